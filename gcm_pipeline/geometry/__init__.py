@@ -1,0 +1,1 @@
+"""Pure geometry: dual quaternions and Delaunay triangulation (no robot)."""

@@ -1,0 +1,1 @@
+"""Pipeline stages: candidates, manifold, densify, reachability, ranking, publish."""

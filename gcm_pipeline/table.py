@@ -1,0 +1,117 @@
+"""The grasp table: equal-length NumPy columns keyed by name.
+
+One table flows through the stages. Each stage reads the columns it needs and
+returns a new table with its own columns added; the arrays of the columns it
+did not touch are shared, never copied, and no stage turns the poses into
+per-grasp Python objects.
+
+Columns (see DESIGN.md):
+
+========================== ============ ===============================
+name                       shape        added by
+========================== ============ ===============================
+``dq``                     (N, 8)       candidates, densify
+``origin``                 (N,) str     densify (``candidate`` or ``interpolated``)
+``triangle``               (N,) int     densify (-1 for candidates)
+``vertices``               (N, 3) int   densify (-1 for candidates)
+``weights``                (N, 3) float densify (NaN for candidates)
+``reachable``, ``reason``  (N,)         reachability
+``q``                      (N, nq)      reachability
+``pos_err``, ``rot_err``   (N,)         reachability [m], [rad]
+``manipulability``         (N,)         ranking
+``rank``                   (N,) int     ranking (1-based, 0 = unreachable)
+========================== ============ ===============================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from gcm_pipeline.errors import InputError
+
+__all__ = ["GraspTable"]
+
+
+class GraspTable:
+    """Named columns (NumPy arrays, read-only) of equal length N; ``len(table) == N``.
+
+    Args:
+        columns: Column name to array-like; every array's first axis has the
+            same length N.
+
+    Raises:
+        InputError: If the columns differ in length or one is a scalar.
+    """
+
+    __slots__ = ("_cols", "_n")
+
+    def __init__(self, columns: Mapping[str, npt.ArrayLike] | None = None) -> None:
+        cols: dict[str, np.ndarray] = {}
+        n: int | None = None
+        for name, values in (columns or {}).items():
+            arr = np.asarray(values)
+            if arr.ndim == 0:
+                raise InputError(f"grasp table column {name!r} must be an array, got a scalar")
+            if n is None:
+                n = arr.shape[0]
+            elif arr.shape[0] != n:
+                raise InputError(
+                    f"grasp table column {name!r} has {arr.shape[0]} rows, expected {n}"
+                )
+            arr.setflags(write=False)
+            cols[name] = arr
+        self._cols = cols
+        self._n = 0 if n is None else n
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        try:
+            return self._cols[name]
+        except KeyError:
+            raise KeyError(
+                f"grasp table has no column {name!r}; columns: {', '.join(self._cols)}"
+            ) from None
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._cols
+
+    def __iter__(self) -> Iterator[str]:
+        """Iterate over column names."""
+        return iter(self._cols)
+
+    def __len__(self) -> int:
+        """Number of grasps (rows) N."""
+        return self._n
+
+    def get(self, name: str, default: Any = None) -> Any:
+        """Return column ``name`` or ``default`` when the table lacks it."""
+        return self._cols.get(name, default)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """Column names in insertion order."""
+        return tuple(self._cols)
+
+    def with_columns(self, **new: npt.ArrayLike) -> GraspTable:
+        """Return a table with ``new`` columns added or replaced.
+
+        Arrays of the other columns are shared, not copied.
+        """
+        merged: dict[str, Any] = dict(self._cols)
+        merged.update(new)
+        out = GraspTable(merged)
+        if self._cols and out._n != self._n:
+            raise InputError(f"new columns have {out._n} rows, table has {self._n}")
+        return out
+
+    def take(self, index: npt.ArrayLike) -> GraspTable:
+        """Return the rows selected by an integer index or boolean mask."""
+        idx = np.asarray(index)
+        return GraspTable({k: v[idx] for k, v in self._cols.items()})
+
+    def __repr__(self) -> str:
+        cols = ", ".join(f"{k}{tuple(v.shape[1:]) or ''}" for k, v in self._cols.items())
+        return f"GraspTable({self._n} rows: {cols})"

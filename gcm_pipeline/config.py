@@ -1,0 +1,500 @@
+"""Run configuration: YAML into validated, frozen config objects.
+
+A config is read once, at the boundary, by :func:`load_config` (or
+:meth:`Config.from_dict`); stages receive the frozen section objects and never
+re-parse dicts. Unknown keys are errors that name the key and suggest the
+closest valid one; every error is a :class:`~gcm_pipeline.errors.ConfigError`
+whose message names the file, the dotted key and the value at fault.
+
+Sections (see DESIGN.md): ``seed``, ``robot``, ``object``, ``candidates``,
+``manifold``, ``densify``, ``ik``, ``environment``, ``approach``, ``ranking``,
+``publish``, ``output``. Only ``candidates`` is required.
+
+Poses are ``{xyz: [x, y, z], rpy: [roll, pitch, yaw]}`` in metres and radians,
+or ``rpy_deg`` in degrees. Roll, pitch and yaw are rotations about the fixed x,
+y and z axes (the URDF convention): ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from gcm_pipeline.errors import ConfigError
+
+__all__ = [
+    "ApproachConfig",
+    "CandidatesConfig",
+    "Config",
+    "DensifyConfig",
+    "EnvironmentConfig",
+    "IKConfig",
+    "ManifoldConfig",
+    "NoiseConfig",
+    "ObjectConfig",
+    "ObstacleConfig",
+    "OutputConfig",
+    "Pose",
+    "PublishConfig",
+    "RankingConfig",
+    "RobotConfig",
+    "ShapeDims",
+    "TableConfig",
+    "load_config",
+]
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+PositiveInt = Annotated[int, Field(gt=0)]
+Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+
+
+class _Section(BaseModel):
+    """Base of every config section: frozen, unknown keys forbidden."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    def __repr__(self) -> str:
+        fields = ", ".join(f"{k}={v!r}" for k, v in self.model_dump(exclude_defaults=True).items())
+        return f"{type(self).__name__}({fields})"
+
+
+class Pose(_Section):
+    """A rigid pose: position [m] and roll-pitch-yaw [rad] (or ``rpy_deg`` [deg])."""
+
+    xyz: Vec3 = (0.0, 0.0, 0.0)
+    rpy: Vec3 | None = None
+    rpy_deg: Vec3 | None = None
+
+    @model_validator(mode="after")
+    def _one_rotation(self) -> Pose:
+        if self.rpy is not None and self.rpy_deg is not None:
+            raise ValueError("give either 'rpy' (radians) or 'rpy_deg' (degrees), not both")
+        return self
+
+    @property
+    def rpy_rad(self) -> tuple[float, float, float]:
+        """Roll, pitch, yaw in [rad]."""
+        if self.rpy_deg is not None:
+            return tuple(math.radians(a) for a in self.rpy_deg)  # type: ignore[return-value]
+        return self.rpy if self.rpy is not None else (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        """Return the pose as a (4, 4) homogeneous transform."""
+        roll, pitch, yaw = self.rpy_rad
+        cr, sr = math.cos(roll), math.sin(roll)
+        cp, sp = math.cos(pitch), math.sin(pitch)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        m = np.eye(4)
+        m[:3, :3] = [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+        m[:3, 3] = self.xyz
+        return m
+
+
+class ShapeDims(_Section):
+    """Dimensions of a primitive shape [m]; which keys are needed depends on the shape."""
+
+    radius: PositiveFloat | None = None
+    height: PositiveFloat | None = None
+    size: tuple[PositiveFloat, ...] | None = None
+
+
+_SHAPE_DIMS: dict[str, tuple[str, ...]] = {
+    "cylinder": ("radius", "height"),
+    "box": ("size",),
+    "sphere": ("radius",),
+    "plane": ("size",),
+    "mesh": (),
+}
+
+
+def _check_shape(shape: str, dims: ShapeDims, mesh: Path | None) -> None:
+    for key in _SHAPE_DIMS[shape]:
+        if getattr(dims, key) is None:
+            raise ValueError(f"shape {shape!r} needs dims.{key}")
+    want = {"box": 3, "plane": 2}.get(shape)
+    if want is not None and dims.size is not None and len(dims.size) != want:
+        raise ValueError(
+            f"shape {shape!r} needs dims.size with {want} values, got {len(dims.size)}"
+        )
+    if shape == "mesh" and mesh is None:
+        raise ValueError("shape 'mesh' needs 'mesh: <path to .stl/.obj/.dae>'")
+
+
+class ObjectConfig(_Section):
+    """The object being grasped; ``pose`` is its frame in the world.
+
+    Cylinders stand on their base with the axis along the frame's z (the base
+    at z = 0 of the frame); boxes and spheres are centred on the frame origin;
+    a plane lies in the frame's xy plane.
+    """
+
+    shape: Literal["cylinder", "box", "sphere", "plane", "mesh"]
+    dims: ShapeDims = ShapeDims()
+    pose: Pose = Pose()
+    mesh: Path | None = None
+    scale: PositiveFloat = 1.0
+
+    @model_validator(mode="after")
+    def _dims_for_shape(self) -> ObjectConfig:
+        _check_shape(self.shape, self.dims, self.mesh)
+        return self
+
+
+class RobotConfig(_Section):
+    """Robot spec (a name under ``robots/`` or a YAML path) and its base pose in the world."""
+
+    spec: str = "panda"
+    base_pose: Pose = Pose()
+
+
+class NoiseConfig(_Section):
+    """Noise added to generated candidates: position [m] and angle [deg] (standard deviations)."""
+
+    position: NonNegFloat = 0.0
+    angle_deg: NonNegFloat = 0.0
+
+
+class CandidatesConfig(_Section):
+    """Where the grasp candidates come from: a generator or a file.
+
+    Generators stand in for a grasp synthesiser: ``plane`` (grasps from above
+    on a flat surface), ``cylinder_side`` (rings around a standing cylinder),
+    ``box`` (faces), ``sphere``. ``file`` imports ``npy``/``npz`` (N, 4, 4),
+    ``csv`` (x,y,z,qw,qx,qy,qz columns) or ``acronym`` HDF5 files.
+    """
+
+    source: Literal["plane", "cylinder_side", "box", "sphere", "file"]
+    count: PositiveInt = 24
+    seed: int | None = None
+    noise: NoiseConfig = NoiseConfig()
+    rings: PositiveInt | None = None
+    path: Path | None = None
+    format: Literal["acronym", "npy", "npz", "csv"] | None = None
+    frame: Literal["object", "world"] = "world"
+    grasp_to_tool: Pose | None = None
+    success_only: bool = False
+    limit: PositiveInt | None = None
+
+    @model_validator(mode="after")
+    def _file_needs_path(self) -> CandidatesConfig:
+        if self.source == "file" and self.path is None:
+            raise ValueError("source 'file' needs 'path'")
+        return self
+
+
+class ManifoldConfig(_Section):
+    """Delaunay manifold over a 2-D chart of the grasp positions."""
+
+    projection: Literal["xy", "pca", "cylindrical", "spherical"] = "xy"
+    triangulator: Literal["qhull", "bowyer_watson"] = "qhull"
+    max_edge_length: PositiveFloat | None = None
+    max_edge_angle_deg: Annotated[float, Field(gt=0, le=180)] | None = None
+
+
+class DensifyConfig(_Section):
+    """Densification inside each triangle: a regular grid or a target spacing [m]."""
+
+    subdivisions: PositiveInt | None = 4
+    spacing: PositiveFloat | None = None
+    method: Literal["dlb", "dib"] = "dlb"
+
+
+class IKConfig(_Section):
+    """Inverse kinematics backend and acceptance tolerances."""
+
+    backend: Literal["pinocchio", "mink"] = "pinocchio"
+    position_tolerance: PositiveFloat = 1.0e-4
+    orientation_tolerance: PositiveFloat = 1.0e-3
+    workers: PositiveInt = 1
+
+
+class TableConfig(_Section):
+    """Support table: a box whose top face is at ``height`` [m] in the world."""
+
+    height: FiniteFloat = 0.0
+    size: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = (2.0, 2.0, 0.05)
+    center_xy: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+
+
+class ObstacleConfig(_Section):
+    """An extra collision obstacle in the world."""
+
+    name: str | None = None
+    shape: Literal["box", "cylinder", "sphere", "mesh"]
+    dims: ShapeDims = ShapeDims()
+    pose: Pose = Pose()
+    mesh: Path | None = None
+    scale: PositiveFloat = 1.0
+
+    @model_validator(mode="after")
+    def _dims_for_shape(self) -> ObstacleConfig:
+        _check_shape(self.shape, self.dims, self.mesh)
+        return self
+
+
+class EnvironmentConfig(_Section):
+    """Collision world: the table (on by default), extra obstacles, the object."""
+
+    table: TableConfig | None = TableConfig()
+    obstacles: tuple[ObstacleConfig, ...] = ()
+    check_object: bool = True
+    self_collision: bool = True
+    contact_tolerance: NonNegFloat = 0.005
+
+
+class ApproachConfig(_Section):
+    """Pre-grasp approach check along the grasp frame's approach axis (z)."""
+
+    distance: NonNegFloat = 0.10
+    steps: PositiveInt = 10
+    max_joint_step: PositiveFloat = 0.25
+
+
+_METRICS = (
+    "yoshikawa",
+    "translational",
+    "inverse_condition",
+    "joint_limit_margin",
+    "clearance",
+    "combined",
+)
+
+
+class RankingConfig(_Section):
+    """Ranking of the reachable grasps by a manipulability metric."""
+
+    metric: Literal[
+        "yoshikawa",
+        "translational",
+        "inverse_condition",
+        "joint_limit_margin",
+        "clearance",
+        "combined",
+    ] = "yoshikawa"
+    top_k: PositiveInt = 10
+    weights: dict[str, NonNegFloat] | None = None
+
+    @field_validator("weights")
+    @classmethod
+    def _known_weights(cls, v: dict[str, float] | None) -> dict[str, float] | None:
+        if v is None:
+            return v
+        valid = [m for m in _METRICS if m != "combined"]
+        for key in v:
+            if key not in valid:
+                close = difflib.get_close_matches(key, valid, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise ValueError(f"unknown metric {key!r}{hint}; valid: {', '.join(valid)}")
+        if not any(w > 0 for w in v.values()):
+            raise ValueError("weights must have at least one positive value")
+        return v
+
+
+class PublishConfig(_Section):
+    """What to publish: live meshcat, a self-contained HTML scene, PNG plots."""
+
+    meshcat: bool = False
+    zmq_url: str | None = None
+    wait: bool = True
+    html: bool = True
+    plots: bool = True
+    connect_timeout_s: PositiveFloat = 5.0
+
+
+class OutputConfig(_Section):
+    """Where the run directory goes."""
+
+    dir: Path = Path("results/run")
+
+
+class Config(_Section):
+    """A whole run. Only ``candidates`` is required."""
+
+    seed: int = 0
+    robot: RobotConfig = RobotConfig()
+    object: ObjectConfig | None = None
+    candidates: CandidatesConfig
+    manifold: ManifoldConfig = ManifoldConfig()
+    densify: DensifyConfig = DensifyConfig()
+    ik: IKConfig = IKConfig()
+    environment: EnvironmentConfig = EnvironmentConfig()
+    approach: ApproachConfig | None = None
+    ranking: RankingConfig = RankingConfig()
+    publish: PublishConfig = PublishConfig()
+    output: OutputConfig = OutputConfig()
+
+    @classmethod
+    def from_dict(cls, data: Any, *, source: str = "config") -> Config:
+        """Validate a plain dict (as read from YAML) into a :class:`Config`.
+
+        Raises:
+            ConfigError: Naming ``source``, the dotted key and the problem.
+        """
+        if data is None:
+            raise ConfigError(
+                f"{source}: config is empty; it needs at least a 'candidates' section"
+            )
+        if not isinstance(data, dict):
+            raise ConfigError(
+                f"{source}: a config is a mapping of sections, got {type(data).__name__}"
+            )
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise ConfigError(f"{source}: {_describe(exc, data)}") from None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The resolved config as plain JSON/YAML-ready data (all defaults filled in)."""
+        return self.model_dump(mode="json")
+
+
+def _describe(exc: ValidationError, data: Any) -> str:
+    """Turn the first pydantic error into one line naming the key and value."""
+    err = exc.errors(include_url=False)[0]
+    loc = [p for p in err["loc"] if not isinstance(p, str) or not p.startswith("function-")]
+    # pydantic puts the union member / literal tag into loc for some errors; drop type names
+    loc = [p for p in loc if not (isinstance(p, str) and p[:1].isupper())]
+    key = ".".join(str(p) for p in loc)
+    if err["type"] == "extra_forbidden":
+        model = _model_at(Config, loc[:-1])
+        valid = sorted(model.model_fields) if model is not None else []
+        close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
+        hint = f" (did you mean {'.'.join([*map(str, loc[:-1]), close[0]])!r}?)" if close else ""
+        return f"unknown key {key!r}{hint}; valid keys here: {', '.join(valid)}"
+    if err["type"] == "missing":
+        return f"missing required key {key!r}"
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    if key and "input" in err and err["type"] not in ("value_error",):
+        return f"{key}: {msg} (got {err['input']!r})"
+    return f"{key}: {msg}" if key else msg
+
+
+def _model_at(model: type[BaseModel], loc: list[Any]) -> type[BaseModel] | None:
+    """Follow a location path through nested models; None where it leaves them."""
+    import types
+    import typing
+
+    current: Any = model
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        if not (isinstance(current, type) and issubclass(current, BaseModel)):
+            return None
+        field = current.model_fields.get(str(part))
+        if field is None:
+            return None
+        ann = field.annotation
+        # unwrap Optional[...] and tuple[Model, ...]
+        for _ in range(3):
+            origin = typing.get_origin(ann)
+            if origin in (typing.Union, types.UnionType):
+                ann = next(a for a in typing.get_args(ann) if a is not type(None))
+            elif origin is tuple:
+                ann = typing.get_args(ann)[0]
+        current = ann
+    return current if isinstance(current, type) and issubclass(current, BaseModel) else None
+
+
+def _set_override(data: dict[str, Any], assignment: str) -> None:
+    """Apply one ``dotted.key=value`` override (value parsed as YAML) to ``data``."""
+    if "=" not in assignment:
+        raise ConfigError(f"--set {assignment!r}: expected KEY=VALUE, e.g. ik.backend=mink")
+    key, _, raw = assignment.partition("=")
+    parts = key.strip().split(".")
+    if not all(parts):
+        raise ConfigError(f"--set {assignment!r}: empty key part in {key!r}")
+    try:
+        value = yaml.safe_load(raw)
+    except yaml.YAMLError:
+        value = raw
+    node = data
+    for part in parts[:-1]:
+        nxt = node.get(part)
+        if nxt is None:
+            nxt = {}
+            node[part] = nxt
+        if not isinstance(nxt, dict):
+            raise ConfigError(f"--set {assignment!r}: {part!r} is not a section")
+        node = nxt
+    node[parts[-1]] = value
+
+
+def read_yaml(path: Path) -> Any:
+    """Read a YAML file; errors name the file, line and column."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"config file not found: {path}")
+    if not path.is_file():
+        raise ConfigError(f"config path is not a file: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read config {path}: {exc}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
+        where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}{where}: malformed YAML: {exc.problem}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: malformed YAML: {exc}") from None
+
+
+def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Load, override and validate a YAML config.
+
+    Relative paths inside the config (``candidates.path``, ``object.mesh``)
+    are resolved against the config file's directory.
+
+    Args:
+        path: The YAML file.
+        overrides: ``dotted.key=value`` strings applied before validation,
+            e.g. ``["ik.backend=mink", "densify.subdivisions=6"]``.
+
+    Returns:
+        The validated, frozen config.
+
+    Raises:
+        ConfigError: Missing or malformed file, unknown key, wrong type or value.
+    """
+    path = Path(path)
+    data = read_yaml(path)
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config is a mapping of sections, got {type(data).__name__}")
+    for assignment in overrides:
+        _set_override(data, assignment)
+    _resolve_paths(data, path.parent)
+    return Config.from_dict(data or None, source=str(path))
+
+
+def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+    """Make relative file paths in the config relative to the config's directory."""
+    for section, key in (("candidates", "path"), ("object", "mesh")):
+        sec = data.get(section)
+        if isinstance(sec, dict) and isinstance(sec.get(key), str):
+            p = Path(sec[key])
+            if not p.is_absolute() and not p.exists() and (base / p).exists():
+                sec[key] = str(base / p)

@@ -1,0 +1,56 @@
+"""The public surface: every name in ``__all__`` imports and is documented."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+import gcm_pipeline
+
+
+def test_all_names_resolve() -> None:
+    missing = [name for name in gcm_pipeline.__all__ if not hasattr(gcm_pipeline, name)]
+    assert missing == []
+
+
+def test_all_is_sorted_and_unique() -> None:
+    names = list(gcm_pipeline.__all__)
+    assert len(names) == len(set(names))
+    assert names == sorted(names, key=str.lower) or names == sorted(names)
+
+
+@pytest.mark.parametrize("name", [n for n in gcm_pipeline.__all__ if not n.startswith("_")])
+def test_public_names_have_docstrings(name: str) -> None:
+    obj = getattr(gcm_pipeline, name)
+    if callable(obj):
+        assert (obj.__doc__ or "").strip(), f"{name} has no docstring"
+
+
+@pytest.mark.parametrize(
+    "module",
+    [
+        "gcm_pipeline.errors",
+        "gcm_pipeline.table",
+        "gcm_pipeline.config",
+    ],
+)
+def test_module_all_resolves(module: str) -> None:
+    mod = importlib.import_module(module)
+    for name in getattr(mod, "__all__", []):
+        assert hasattr(mod, name), f"{module}.__all__ lists {name!r} but it is not defined"
+
+
+def test_errors_share_one_root() -> None:
+    for name in ("ConfigError", "InputError", "GeometryError", "RobotSpecError",
+                 "FrameNotFoundError", "OutputError", "PublishError"):
+        assert issubclass(getattr(gcm_pipeline, name), gcm_pipeline.GcmError)
+
+
+def test_unknown_choice_suggests_and_lists() -> None:
+    from gcm_pipeline.errors import unknown_choice
+
+    msg = unknown_choice("projection", "cylindrcal", ["xy", "pca", "cylindrical", "spherical"])
+    assert "did you mean 'cylindrical'" in msg
+    assert "valid: cylindrical, pca, spherical, xy" in msg
+    assert "\n" not in msg

@@ -1,0 +1,501 @@
+"""Robot specs (YAML) loaded into reduced Pinocchio models.
+
+A robot spec is a small YAML file (``gcm_pipeline/robots/<name>.yaml``)::
+
+    name: panda                          # required
+    description: Franka Panda            # optional, free text
+    model:                               # required: exactly one source
+      example_robot_data: panda          #   a loader name of example-robot-data
+      # or urdf: path.urdf               #   a URDF (relative paths: to the spec file)
+      #    srdf: path.srdf               #   optional
+      #    package_dirs: [dir, ...]      #   optional, resolves package:// URIs
+    grasp_frame: panda_hand_tcp          # required: frame whose pose IK targets
+    locked_joints: {joint: value}        # optional: joints removed at this value [rad or m]
+    home: {joint: value} | [values]      # optional: home configuration [rad] (default: middle)
+    limit_margin: 0.0                    # optional: tighten every range on both sides [rad]
+    joint_limits: {joint: [lo, hi]}      # optional: ranges intersected with the model's [rad]
+
+Another arm of example-robot-data is a new YAML file, not new code. Poses are
+expressed in the model's root frame (``universe``), called the *base frame*.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+import yaml
+
+from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError, unknown_choice
+from gcm_pipeline.robot.chain import KinematicChain
+
+__all__ = ["Robot", "RobotSpec", "available_robots", "load_robot", "load_spec"]
+
+_SPEC_KEYS = (
+    "name",
+    "description",
+    "model",
+    "grasp_frame",
+    "locked_joints",
+    "home",
+    "limit_margin",
+    "joint_limits",
+)
+_MODEL_KEYS = ("example_robot_data", "urdf", "srdf", "package_dirs")
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """A validated robot spec (see the module docstring for the YAML keys).
+
+    Attributes:
+        name: Robot name.
+        description: Free text.
+        path: The YAML file the spec was read from (None if built in code).
+        example_robot_data: Loader name in ``example_robot_data`` or None.
+        urdf: URDF path or None (then ``example_robot_data`` is set).
+        srdf: SRDF path or None.
+        package_dirs: Directories resolving ``package://`` URIs.
+        grasp_frame: Name of the frame that IK targets.
+        locked_joints: Joint name -> locked value [rad or m].
+        home: Joint name -> home value [rad] (empty: middle of the limits).
+        limit_margin: Margin by which every joint range shrinks per side [rad].
+        joint_limits: Joint name -> (lower, upper) [rad], intersected with the model's.
+    """
+
+    name: str
+    grasp_frame: str
+    description: str = ""
+    path: Path | None = None
+    example_robot_data: str | None = None
+    urdf: Path | None = None
+    srdf: Path | None = None
+    package_dirs: tuple[Path, ...] = ()
+    locked_joints: Mapping[str, float] = field(default_factory=dict)
+    home: Mapping[str, float] | tuple[float, ...] = field(default_factory=dict)
+    limit_margin: float = 0.0
+    joint_limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+
+
+def _spec_dir() -> Any:
+    return resources.files("gcm_pipeline") / "robots"
+
+
+def available_robots() -> list[str]:
+    """Names of the robot specs shipped with the package (sorted)."""
+    return sorted(
+        p.name[: -len(".yaml")] for p in _spec_dir().iterdir() if p.name.endswith(".yaml")
+    )
+
+
+def _check_keys(where: str, data: Mapping[str, Any], valid: tuple[str, ...]) -> None:
+    for key in data:
+        if key not in valid:
+            raise RobotSpecError(f"{where}: " + unknown_choice("key", key, valid))
+
+
+def _number(where: str, key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RobotSpecError(f"{where}: {key} must be a number, got {value!r}")
+    if not np.isfinite(value):
+        raise RobotSpecError(f"{where}: {key} must be finite, got {value!r}")
+    return float(value)
+
+
+def _mapping(where: str, key: str, value: Any) -> Mapping[str, Any]:
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise RobotSpecError(f"{where}: {key} must be a mapping, got {value!r}")
+    return value
+
+
+def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
+    """Read and validate a robot spec.
+
+    Args:
+        name_or_path: A shipped spec name (``"panda"``, ``"ur5"``) or a path
+            to a YAML file.
+
+    Returns:
+        The validated spec.
+
+    Raises:
+        RobotSpecError: Unknown name (lists the available specs), unreadable
+            file, unknown key (names it and suggests the closest) or bad value.
+    """
+    text = str(name_or_path)
+    path: Path | None
+    if isinstance(name_or_path, os.PathLike) or text.endswith((".yaml", ".yml")) or os.sep in text:
+        path = Path(text).expanduser()
+        if not path.is_file():
+            raise RobotSpecError(f"robot spec file {text!r} does not exist")
+        raw_text = path.read_text(encoding="utf-8")
+        path = path.resolve()
+    else:
+        res = _spec_dir() / f"{text}.yaml"
+        if not res.is_file():
+            raise RobotSpecError(unknown_choice("robot", text, available_robots()))
+        raw_text = res.read_text(encoding="utf-8")
+        path = Path(str(res))
+    where = f"robot spec {str(path)!r}"
+    try:
+        raw = yaml.safe_load(raw_text)
+    except yaml.YAMLError as exc:
+        raise RobotSpecError(f"{where}: invalid YAML: {exc}".replace("\n", " ")) from exc
+    if not isinstance(raw, Mapping):
+        raise RobotSpecError(f"{where}: expected a mapping at the top level, got {raw!r}")
+    _check_keys(where, raw, _SPEC_KEYS)
+    for key in ("name", "model", "grasp_frame"):
+        if key not in raw:
+            raise RobotSpecError(f"{where}: missing required key {key!r}")
+    if not isinstance(raw["name"], str) or not isinstance(raw["grasp_frame"], str):
+        raise RobotSpecError(f"{where}: name and grasp_frame must be strings")
+    model = _mapping(where, "model", raw["model"])
+    _check_keys(f"{where} model", model, _MODEL_KEYS)
+    erd_name = model.get("example_robot_data")
+    urdf = model.get("urdf")
+    if (erd_name is None) == (urdf is None):
+        raise RobotSpecError(f"{where}: model needs exactly one of example_robot_data, urdf")
+    base = path.parent
+
+    def _resolve(p: Any) -> Path:
+        q = Path(str(p)).expanduser()
+        return q if q.is_absolute() else (base / q)
+
+    locked = {
+        str(k): _number(where, f"locked_joints.{k}", v)
+        for k, v in _mapping(where, "locked_joints", raw.get("locked_joints")).items()
+    }
+    home_raw = raw.get("home")
+    home: Mapping[str, float] | tuple[float, ...]
+    if home_raw is None:
+        home = {}
+    elif isinstance(home_raw, (list, tuple)):
+        home = tuple(_number(where, f"home[{i}]", v) for i, v in enumerate(home_raw))
+    else:
+        home = {
+            str(k): _number(where, f"home.{k}", v)
+            for k, v in _mapping(where, "home", home_raw).items()
+        }
+    margin = _number(where, "limit_margin", raw.get("limit_margin", 0.0))
+    if margin < 0:
+        raise RobotSpecError(f"{where}: limit_margin must be >= 0, got {margin}")
+    limits: dict[str, tuple[float, float]] = {}
+    for k, v in _mapping(where, "joint_limits", raw.get("joint_limits")).items():
+        if not isinstance(v, (list, tuple)) or len(v) != 2:
+            raise RobotSpecError(f"{where}: joint_limits.{k} must be [lower, upper], got {v!r}")
+        lo = _number(where, f"joint_limits.{k}", v[0])
+        hi = _number(where, f"joint_limits.{k}", v[1])
+        if not lo < hi:
+            raise RobotSpecError(f"{where}: joint_limits.{k} needs lower < upper, got {v!r}")
+        limits[str(k)] = (lo, hi)
+    pkg = model.get("package_dirs") or []
+    if isinstance(pkg, str):
+        pkg = [pkg]
+    return RobotSpec(
+        name=raw["name"],
+        description=str(raw.get("description", "") or ""),
+        path=path,
+        grasp_frame=raw["grasp_frame"],
+        example_robot_data=None if erd_name is None else str(erd_name),
+        urdf=None if urdf is None else _resolve(urdf),
+        srdf=None if model.get("srdf") is None else _resolve(model["srdf"]),
+        package_dirs=tuple(_resolve(p) for p in pkg),
+        locked_joints=locked,
+        home=home,
+        limit_margin=margin,
+        joint_limits=limits,
+    )
+
+
+def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
+    """URDF, SRDF and model directory of an example-robot-data loader."""
+    from example_robot_data.robots_loader import ROBOTS, getModelPath
+
+    if name not in ROBOTS:
+        raise RobotSpecError(unknown_choice("example_robot_data robot", name, ROBOTS))
+    loader = ROBOTS[name]
+    sub = f"{loader.path}/{loader.urdf_subpath}/{loader.urdf_filename}"
+    robots_dir = Path(getModelPath(sub)).resolve()
+    urdf = robots_dir / sub
+    srdf = None
+    if loader.srdf_filename:
+        cand = robots_dir / loader.path / loader.srdf_subpath / loader.srdf_filename
+        srdf = cand if cand.is_file() else None
+    return urdf, srdf, robots_dir / loader.path
+
+
+class Robot:
+    """A robot arm: reduced Pinocchio model, limits, home and grasp frame.
+
+    Build it with :func:`load_robot`. All poses are in the base frame (the
+    model's root frame); the grasp-frame Jacobian is expressed in
+    ``pin.LOCAL_WORLD_ALIGNED``: rows ``[v; omega]`` are the linear velocity of
+    the grasp-frame origin and the angular velocity, both in base-frame axes.
+
+    Attributes:
+        spec: The spec it was built from.
+        name: Robot name.
+        model: Reduced Pinocchio model (arm joints only).
+        data: A ``pin.Data`` of ``model`` (not thread-safe; make your own for threads).
+        full_model: The unreduced model as read from the URDF.
+        nq: Number of arm joints.
+        joint_names: Arm joint names, in configuration order.
+        lower: Lower joint limits (N,) [rad], after margin and overrides.
+        upper: Upper joint limits (nq,) [rad].
+        home: Home configuration (nq,) [rad].
+        grasp_frame: Grasp frame name.
+        grasp_frame_id: Its index in ``model.frames``.
+        locked_q: Full-model configuration used for the reduction (locked values).
+        urdf_path: URDF file.
+        srdf_path: SRDF file or None.
+        package_dirs: Directories that resolve the URDF's ``package://`` URIs.
+        mesh_dir: Directory of the robot's description (meshes under it).
+        shoulder: Origin of the first joint in the base frame (3,) [m].
+        max_reach: Upper bound of the distance from ``shoulder`` to the grasp frame [m].
+        chain: Vectorised kinematics of the grasp frame.
+    """
+
+    def __init__(self, spec: RobotSpec) -> None:
+        self.spec = spec
+        self.name = spec.name
+        if spec.example_robot_data is not None:
+            urdf, srdf, mesh_dir = _erd_paths(spec.example_robot_data)
+            package_dirs = (mesh_dir.parent.parent.parent,)
+        else:
+            assert spec.urdf is not None
+            urdf, srdf = spec.urdf, spec.srdf
+            mesh_dir = urdf.parent.parent
+            package_dirs = spec.package_dirs or (mesh_dir.parent,)
+        if not urdf.is_file():
+            raise RobotSpecError(f"robot {spec.name!r}: URDF {str(urdf)!r} does not exist")
+        self.urdf_path = urdf
+        self.srdf_path = srdf
+        self.mesh_dir = mesh_dir
+        self.package_dirs = tuple(package_dirs)
+        try:
+            full = pin.buildModelFromUrdf(str(urdf))
+        except Exception as exc:  # pinocchio raises ValueError/RuntimeError
+            raise RobotSpecError(f"robot {spec.name!r}: cannot read {str(urdf)!r}: {exc}") from exc
+        self.full_model = full
+        joint_names = [full.names[i] for i in range(1, full.njoints)]
+        locked_q = pin.neutral(full)
+        locked_ids = []
+        for jname, value in spec.locked_joints.items():
+            if not full.existJointName(jname):
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: locked_joints: "
+                    + unknown_choice("joint", jname, joint_names)
+                )
+            jid = full.getJointId(jname)
+            if full.joints[jid].nq != 1:
+                raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
+            locked_q[full.joints[jid].idx_q] = value
+            locked_ids.append(jid)
+        self.locked_q = locked_q
+        model = pin.buildReducedModel(full, locked_ids, locked_q) if locked_ids else full.copy()
+        self.model = model
+        self.data = model.createData()
+        self.nq = int(model.nq)
+        self.joint_names = tuple(model.names[i] for i in range(1, model.njoints))
+        if not model.existFrame(spec.grasp_frame):
+            names = [f.name for f in model.frames]
+            close = difflib.get_close_matches(spec.grasp_frame, names, n=5, cutoff=0.4)
+            raise FrameNotFoundError(
+                f"robot {spec.name!r}: grasp frame {spec.grasp_frame!r} not in the model; "
+                f"closest: {', '.join(close) or '(none)'}; all frames: {', '.join(names)}"
+            )
+        self.grasp_frame = spec.grasp_frame
+        self.grasp_frame_id = int(model.getFrameId(spec.grasp_frame))
+        self.chain = KinematicChain(model, self.grasp_frame_id)
+
+        lower = np.array(model.lowerPositionLimit, dtype=float)
+        upper = np.array(model.upperPositionLimit, dtype=float)
+        for jname, (lo, hi) in spec.joint_limits.items():
+            if jname not in self.joint_names:
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: joint_limits: "
+                    + unknown_choice("joint", jname, self.joint_names)
+                )
+            i = self.joint_names.index(jname)
+            lower[i], upper[i] = max(lower[i], lo), min(upper[i], hi)
+        lower += spec.limit_margin
+        upper -= spec.limit_margin
+        if not np.all(np.isfinite(lower) & np.isfinite(upper)) or np.any(lower >= upper):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: empty or infinite joint ranges after limits and "
+                f"margin: lower={lower.tolist()}, upper={upper.tolist()}"
+            )
+        lower.setflags(write=False)
+        upper.setflags(write=False)
+        self.lower = lower
+        self.upper = upper
+
+        if isinstance(spec.home, tuple):
+            if len(spec.home) != self.nq:
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: home has {len(spec.home)} values, expected {self.nq}"
+                )
+            home = np.array(spec.home, dtype=float)
+        else:
+            home = 0.5 * (lower + upper)
+            for jname, value in spec.home.items():
+                if jname not in self.joint_names:
+                    raise RobotSpecError(
+                        f"robot {spec.name!r}: home: "
+                        + unknown_choice("joint", jname, self.joint_names)
+                    )
+                home[self.joint_names.index(jname)] = value
+        if np.any(home < lower) or np.any(home > upper):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: home {home.tolist()} is outside the joint limits"
+            )
+        home.setflags(write=False)
+        self.home = home
+        self.shoulder = self.chain.root_origin.copy()
+        self.max_reach = float(self.chain.link_lengths().sum())
+
+    # -- kinematics ---------------------------------------------------------------------
+
+    def _as_q(self, q: Any) -> np.ndarray:
+        arr = np.asarray(q, dtype=float)
+        if arr.ndim == 1:
+            arr = arr[None]
+        if arr.ndim != 2 or arr.shape[1] != self.nq:
+            raise ValueError(f"q must have shape (N, {self.nq}), got {np.shape(q)}")
+        return arr
+
+    def fk(self, q: Any) -> np.ndarray:
+        """Grasp-frame poses in the base frame.
+
+        Args:
+            q: Configurations (N, nq) or (nq,) [rad].
+
+        Returns:
+            Homogeneous transforms (N, 4, 4) [m].
+        """
+        rot, pos = self.chain.pose(self._as_q(q))
+        out = np.zeros((rot.shape[0], 4, 4))
+        out[:, :3, :3] = rot
+        out[:, :3, 3] = pos
+        out[:, 3, 3] = 1.0
+        return out
+
+    def jacobian(self, q: Any) -> np.ndarray:
+        """Grasp-frame Jacobians, ``pin.LOCAL_WORLD_ALIGNED``.
+
+        Args:
+            q: Configurations (N, nq) or (nq,) [rad].
+
+        Returns:
+            Jacobians (N, 6, nq); rows ``[v; omega]`` in base-frame axes
+            ([m/rad] and [rad/rad]).
+        """
+        return self.chain.pose_jacobian(self._as_q(q))[2]
+
+    def fk_pinocchio(self, q: Any) -> np.ndarray:
+        """Grasp-frame poses computed by Pinocchio itself, one configuration at a time.
+
+        Slower than :meth:`fk` (a Python loop); used to verify IK solutions.
+
+        Args:
+            q: Configurations (N, nq) or (nq,) [rad].
+
+        Returns:
+            Homogeneous transforms (N, 4, 4) [m].
+        """
+        qs = self._as_q(q)
+        out = np.empty((qs.shape[0], 4, 4))
+        model, data, fid = self.model, self.data, self.grasp_frame_id
+        for i, qi in enumerate(qs):
+            pin.forwardKinematics(model, data, qi)
+            pin.updateFramePlacement(model, data, fid)
+            out[i] = data.oMf[fid].homogeneous
+        return out
+
+    def within_limits(self, q: Any, strict: bool = True) -> np.ndarray:
+        """Whether each configuration lies inside the joint limits.
+
+        Args:
+            q: Configurations (N, nq) [rad].
+            strict: Require ``lower < q < upper`` (else ``<=``).
+
+        Returns:
+            (N,) bool.
+        """
+        qs = self._as_q(q)
+        if strict:
+            return np.all((qs > self.lower) & (qs < self.upper), axis=1)
+        return np.all((qs >= self.lower) & (qs <= self.upper), axis=1)
+
+    def random_configurations(self, n: int, seed: int | np.random.Generator = 0) -> np.ndarray:
+        """Uniformly random configurations inside the limits (n, nq) [rad]."""
+        rng = np.random.default_rng(seed)
+        return self.lower + rng.random((n, self.nq)) * (self.upper - self.lower)
+
+    def build_geometry(self, kind: str = "collision") -> pin.GeometryModel:
+        """Collision or visual geometry of the reduced model.
+
+        Args:
+            kind: ``"collision"`` or ``"visual"``.
+
+        Returns:
+            A ``pin.GeometryModel`` whose objects are attached to ``model``'s joints.
+        """
+        kinds = {"collision": pin.GeometryType.COLLISION, "visual": pin.GeometryType.VISUAL}
+        if kind not in kinds:
+            raise RobotSpecError(unknown_choice("geometry kind", kind, kinds))
+        geom = pin.buildGeomFromUrdf(
+            self.full_model,
+            str(self.urdf_path),
+            kinds[kind],
+            package_dirs=[str(p) for p in self.package_dirs],
+        )
+        locked = [
+            self.full_model.getJointId(j)
+            for j in self.spec.locked_joints
+            if self.full_model.existJointName(j)
+        ]
+        if not locked:
+            return geom
+        _, reduced = pin.buildReducedModel(self.full_model, geom, locked, self.locked_q)
+        return reduced
+
+    def __repr__(self) -> str:
+        return (
+            f"Robot({self.name!r}, nq={self.nq}, grasp_frame={self.grasp_frame!r}, "
+            f"joints={list(self.joint_names)}, "
+            f"lower={np.round(self.lower, 4).tolist()}, upper={np.round(self.upper, 4).tolist()}, "
+            f"max_reach={self.max_reach:.3f} m)"
+        )
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        """Pickle as the spec it came from (rebuilt on unpickling)."""
+        return (Robot, (self.spec,))
+
+
+def load_robot(name_or_path: str | os.PathLike[str] | Robot) -> Robot:
+    """Load a robot from a shipped spec name or a spec file.
+
+    Args:
+        name_or_path: ``"panda"``, ``"ur5"`` (see :func:`available_robots`), a path
+            to a YAML spec, or a :class:`Robot` (returned as is).
+
+    Returns:
+        The robot.
+
+    Raises:
+        RobotSpecError: Unknown robot or invalid spec.
+        FrameNotFoundError: The grasp frame is not in the model (lists close names).
+    """
+    if isinstance(name_or_path, Robot):
+        return name_or_path
+    return Robot(load_spec(name_or_path))

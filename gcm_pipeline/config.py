@@ -180,6 +180,23 @@ class CandidatesConfig(_Section):
     on a flat surface), ``cylinder_side`` (rings around a standing cylinder),
     ``box`` (faces), ``sphere``. ``file`` imports ``npy``/``npz`` (N, 4, 4),
     ``csv`` (x,y,z,qw,qx,qy,qz columns) or ``acronym`` HDF5 files.
+
+    Attributes:
+        source: Generator name or ``file``.
+        count: Number of generated grasps (generators only).
+        seed: Seed of the generator's noise and sampling (default: top-level ``seed``).
+        noise: Standard deviations of the position [m] and angle [deg] noise.
+        rings: ``cylinder_side``: number of rings (default ``round(sqrt(count / 3))``).
+        depth: How far the grasp frame lies past the surface along the approach [m]
+            (default 0 for ``plane``, 0.01 otherwise).
+        path: ``file``: the grasp file (relative to the config file's directory).
+        format: ``file``: ``acronym`` | ``npy`` | ``npz`` | ``csv`` (default: from the suffix).
+        frame: ``file``: the poses are in the ``world`` or the ``object`` frame.
+        grasp_to_tool: ``file``: fixed transform from the file's gripper frame to the
+            robot's grasp frame, applied on the right (``T_tool = T_grasp @ grasp_to_tool``).
+            For ACRONYM's Franka gripper use ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
+        success_only: ``file``: keep only grasps labelled successful.
+        limit: ``file``: keep at most this many grasps (the first ones, after filtering).
     """
 
     source: Literal["plane", "cylinder_side", "box", "sphere", "file"]
@@ -187,6 +204,7 @@ class CandidatesConfig(_Section):
     seed: int | None = None
     noise: NoiseConfig = NoiseConfig()
     rings: PositiveInt | None = None
+    depth: FiniteFloat | None = None
     path: Path | None = None
     format: Literal["acronym", "npy", "npz", "csv"] | None = None
     frame: Literal["object", "world"] = "world"
@@ -199,6 +217,10 @@ class CandidatesConfig(_Section):
         if self.source == "file" and self.path is None:
             raise ValueError("source 'file' needs 'path'")
         return self
+
+
+#: Object shape each generator needs.
+GENERATOR_SHAPES = {"plane": "plane", "cylinder_side": "cylinder", "box": "box", "sphere": "sphere"}
 
 
 class ManifoldConfig(_Section):
@@ -341,6 +363,23 @@ class Config(_Section):
     ranking: RankingConfig = RankingConfig()
     publish: PublishConfig = PublishConfig()
     output: OutputConfig = OutputConfig()
+
+    @model_validator(mode="after")
+    def _object_for_candidates(self) -> Config:
+        c = self.candidates
+        shape = GENERATOR_SHAPES.get(c.source)
+        if shape is not None and (self.object is None or self.object.shape != shape):
+            got = (
+                "no 'object' section"
+                if self.object is None
+                else f"object.shape {self.object.shape!r}"
+            )
+            raise ValueError(
+                f"candidates.source {c.source!r} needs object.shape {shape!r}, got {got}"
+            )
+        if c.source == "file" and c.frame == "object" and self.object is None:
+            raise ValueError("candidates.frame 'object' needs an 'object' section (its pose)")
+        return self
 
     @classmethod
     def from_dict(cls, data: Any, *, source: str = "config") -> Config:

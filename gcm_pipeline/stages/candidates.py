@@ -1,0 +1,590 @@
+"""Candidate stage: grasp candidates from a generator or a file.
+
+The generators stand in for a grasp synthesiser. Each places ``count`` grasp
+frames on the object described by the config's ``object`` section, in the
+object frame, adds seeded noise and maps the poses into the world by the
+object pose. A grasp pose is the pose of the robot's grasp frame
+(``panda_hand_tcp`` for the Panda): origin between the fingertips, z = the
+approach direction, fingers closing along y.
+
+========================= ===================================================
+source                    grasps
+========================= ===================================================
+``plane``                 on a flat surface (the paper's Fig. 1): positions
+                          uniform in the plane's ``size``, approach from above
+                          (z pointing down, along the plane's -z), a random yaw
+                          in [-45, 45] deg about the approach
+``cylinder_side``         a bottle grasped along its side: ``rings`` rings at
+                          heights in [0.2, 0.8] of the cylinder's height,
+                          staggered evenly spaced angles, approach radial
+                          (z toward the axis), fingers closing tangentially
+                          (y along the tangent), x along the cylinder axis
+``box``                   on the five faces other than the one the box stands
+                          on (its frame's -z face), chosen with probability
+                          proportional to their area; approach along the
+                          inward face normal, fingers closing along the
+                          face's shorter side
+``sphere``                a Fibonacci lattice over the sphere without its
+                          bottom cap (polar angle <= 120 deg); approach toward
+                          the centre, fingers closing along the horizontal
+                          tangent
+``file``                  imported, see :func:`load_grasp_file`
+========================= ===================================================
+
+``depth`` [m] moves every generated grasp frame along its approach axis,
+past the surface (default 0 for ``plane``, 0.01 m otherwise: the fingertips
+reach 1 cm past the surface they approach).
+
+Noise: ``noise.position`` [m] is the standard deviation of a Gaussian
+displacement per world axis; ``noise.angle_deg`` [deg] the standard deviation
+of the angle of a rotation about a uniformly random axis, applied in the grasp
+frame (on the right). All randomness comes from one
+:func:`numpy.random.default_rng` seeded by ``candidates.seed`` (or the top-level
+``seed``), so the same config gives the same candidates.
+
+Everything is vectorised: poses are (N, 4, 4) arrays until they become the
+``dq`` column of a :class:`~gcm_pipeline.table.GraspTable`.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from gcm_pipeline.config import CandidatesConfig, Config, ObjectConfig
+from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.table import GraspTable
+
+__all__ = [
+    "ACRONYM_INSTALL_HINT",
+    "generate_candidates",
+    "grasp_poses",
+    "load_grasp_file",
+    "poses_box",
+    "poses_cylinder_side",
+    "poses_plane",
+    "poses_sphere",
+]
+
+log = logging.getLogger(__name__)
+
+ACRONYM_INSTALL_HINT = 'pip install "gcm-pipeline[acronym]"'
+
+#: Default ``depth`` [m] per generator.
+_DEFAULT_DEPTH = {"plane": 0.0, "cylinder_side": 0.01, "box": 0.01, "sphere": 0.01}
+
+#: Tolerance of the rigidity check of imported matrices.
+_RIGID_TOL = 1e-4
+
+
+def _frames(x: np.ndarray, y: np.ndarray, z: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Stack axis columns (N, 3) and positions (N, 3) into (N, 4, 4) transforms."""
+    n = p.shape[0]
+    t = np.zeros((n, 4, 4))
+    t[:, :3, 0] = x
+    t[:, :3, 1] = y
+    t[:, :3, 2] = z
+    t[:, :3, 3] = p
+    t[:, 3, 3] = 1.0
+    return t
+
+
+def poses_plane(
+    count: int, size: tuple[float, float], rng: np.random.Generator, *, depth: float = 0.0
+) -> np.ndarray:
+    """Grasps from above on a plane (the object's xy plane), in the object frame.
+
+    Args:
+        count: Number of grasps N.
+        size: Plane extent (x, y) [m], centred on the origin; positions are
+            uniform in the central 80 %.
+        rng: Random generator (positions and yaw).
+        depth: Offset along the approach (down, -z) [m].
+
+    Returns:
+        (N, 4, 4) grasp frames: z = (0, 0, -1), yaw uniform in [-45, 45] deg.
+    """
+    half = 0.4 * np.asarray(size, dtype=float)
+    xy = rng.uniform(-half, half, size=(count, 2))
+    yaw = rng.uniform(-math.pi / 4, math.pi / 4, size=count)
+    c, s = np.cos(yaw), np.sin(yaw)
+    zeros = np.zeros(count)
+    # Rx(pi) @ Rz(yaw): z points down, x and y rotated by the yaw.
+    x = np.stack([c, -s, zeros], axis=1)
+    y = np.stack([-s, -c, zeros], axis=1)
+    z = np.tile([0.0, 0.0, -1.0], (count, 1))
+    p = np.column_stack([xy, np.full(count, -depth)])
+    return _frames(x, y, z, p)
+
+
+def poses_cylinder_side(
+    count: int, radius: float, height: float, *, rings: int | None = None, depth: float = 0.01
+) -> np.ndarray:
+    """Side grasps on a standing cylinder (axis = object z, base at z = 0).
+
+    The grasps lie on ``rings`` rings at heights evenly spread over
+    [0.2, 0.8] * ``height``; each ring holds an even share of the grasps at
+    evenly spaced angles, odd rings turned by half a step (a staggered lattice
+    triangulates well in the cylindrical chart).
+
+    Args:
+        count: Number of grasps N.
+        radius: Cylinder radius [m].
+        height: Cylinder height [m].
+        rings: Number of rings (default: ``round(sqrt(N / 3))``, at least 1).
+        depth: How far the grasp frame lies inside the surface [m]; the frame
+            sits at distance ``radius - depth`` from the axis.
+
+    Returns:
+        (N, 4, 4) grasp frames: z = toward the axis, y = tangent
+        (counter-clockwise), x = the cylinder axis (up).
+    """
+    if rings is None:
+        rings = max(1, round(math.sqrt(count / 3)))
+    rings = min(rings, count)
+    ring = np.arange(count) * rings // count  # ring index of each grasp, sorted
+    per_ring = np.bincount(ring, minlength=rings)
+    first = np.concatenate([[0], np.cumsum(per_ring)[:-1]])
+    k = np.arange(count) - first[ring]
+    theta = 2 * math.pi * (k + 0.5 * (ring % 2)) / per_ring[ring]
+    if rings == 1:
+        h = np.full(count, 0.5 * height)
+    else:
+        h = height * (0.2 + 0.6 * ring / (rings - 1))
+    c, s = np.cos(theta), np.sin(theta)
+    zeros = np.zeros(count)
+    radial = np.stack([c, s, zeros], axis=1)
+    tangent = np.stack([-s, c, zeros], axis=1)
+    axis = np.tile([0.0, 0.0, 1.0], (count, 1))
+    p = radial * (radius - depth)
+    p[:, 2] = h
+    return _frames(axis, tangent, -radial, p)
+
+
+# Faces of a box: (outward normal axis, sign); the -z face (the one the box
+# stands on) is left out.
+_BOX_FACES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0), (2, 1.0))
+
+
+def poses_box(
+    count: int, size: tuple[float, float, float], rng: np.random.Generator, *, depth: float = 0.01
+) -> np.ndarray:
+    """Face grasps on a box centred on the origin.
+
+    Each grasp picks one of the faces +x, -x, +y, -y, +z with probability
+    proportional to its area and a position uniform in the face's central
+    80 %; the frame approaches along the inward face normal and the fingers
+    close along the face's shorter side.
+
+    Args:
+        count: Number of grasps N.
+        size: Box edge lengths (x, y, z) [m].
+        rng: Random generator (faces and positions).
+        depth: Offset past the face along the approach [m].
+
+    Returns:
+        (N, 4, 4) grasp frames in the box frame.
+    """
+    size_arr = np.asarray(size, dtype=float)
+    eye = np.eye(3)
+    areas = np.array([np.prod(np.delete(size_arr, ax)) for ax, _ in _BOX_FACES])
+    face = rng.choice(len(_BOX_FACES), size=count, p=areas / areas.sum())
+    uv = rng.uniform(-0.4, 0.4, size=(count, 2))
+    x = np.empty((count, 3))
+    y = np.empty((count, 3))
+    z = np.empty((count, 3))
+    p = np.empty((count, 3))
+    for f, (ax, sign) in enumerate(_BOX_FACES):
+        sel = face == f
+        normal = sign * eye[ax]
+        a, b = (i for i in range(3) if i != ax)
+        # fingers close along the shorter in-plane side
+        close, other = (a, b) if size_arr[a] <= size_arr[b] else (b, a)
+        z[sel] = -normal
+        y[sel] = eye[close]
+        x[sel] = np.cross(eye[close], -normal)
+        p[sel] = normal * (0.5 * size_arr[ax] - depth)
+        p[sel, close] = uv[sel, 0] * size_arr[close]
+        p[sel, other] = uv[sel, 1] * size_arr[other]
+    return _frames(x, y, z, p)
+
+
+def poses_sphere(count: int, radius: float, *, depth: float = 0.01) -> np.ndarray:
+    """Grasps on a sphere centred on the origin, from a Fibonacci lattice.
+
+    Args:
+        count: Number of grasps N.
+        radius: Sphere radius [m].
+        depth: Offset past the surface along the approach [m].
+
+    Returns:
+        (N, 4, 4) grasp frames: z toward the centre, y horizontal (the local
+        "east" tangent; +y of the object frame at the top pole).
+    """
+    # polar angle from the top pole, cos uniform over [cos(120 deg), 1]
+    i = np.arange(count) + 0.5
+    cos_lo = math.cos(math.radians(120.0))
+    cz = 1.0 - (1.0 - cos_lo) * i / count
+    sz = np.sqrt(np.clip(1.0 - cz**2, 0.0, None))
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * np.arange(count)
+    normal = np.stack([sz * np.cos(phi), sz * np.sin(phi), cz], axis=1)
+    east = np.cross([0.0, 0.0, 1.0], normal)
+    norm = np.linalg.norm(east, axis=1, keepdims=True)
+    east = np.where(norm > 1e-9, east / np.maximum(norm, 1e-12), [0.0, 1.0, 0.0])
+    z = -normal
+    x = np.cross(east, z)
+    p = normal * (radius - depth)
+    return _frames(x, east, z, p)
+
+
+def _noise(poses: np.ndarray, position: float, angle_deg: float, rng: np.random.Generator) -> None:
+    """Perturb (N, 4, 4) poses in place: Gaussian position, random-axis rotation."""
+    n = poses.shape[0]
+    if position > 0:
+        poses[:, :3, 3] += rng.normal(0.0, position, size=(n, 3))
+    if angle_deg > 0:
+        axis = rng.normal(size=(n, 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        angle = rng.normal(0.0, math.radians(angle_deg), size=(n, 1))
+        poses[:, :3, :3] = poses[:, :3, :3] @ Rotation.from_rotvec(axis * angle).as_matrix()
+
+
+def _need_object(cfg: Config, shape: str) -> ObjectConfig:
+    obj = cfg.object
+    if obj is None or obj.shape != shape:
+        got = "no 'object' section" if obj is None else f"object.shape {obj.shape!r}"
+        raise ConfigError(
+            f"candidates.source {cfg.candidates.source!r} needs object.shape {shape!r}, got {got}"
+        )
+    return obj
+
+
+def _generate(cfg: Config, rng: np.random.Generator) -> np.ndarray:
+    """Generator poses (N, 4, 4) in the object frame."""
+    c = cfg.candidates
+    depth = c.depth if c.depth is not None else _DEFAULT_DEPTH[c.source]
+    if c.source == "plane":
+        obj = _need_object(cfg, "plane")
+        assert obj.dims.size is not None
+        return poses_plane(c.count, (obj.dims.size[0], obj.dims.size[1]), rng, depth=depth)
+    if c.source == "cylinder_side":
+        obj = _need_object(cfg, "cylinder")
+        assert obj.dims.radius is not None and obj.dims.height is not None
+        return poses_cylinder_side(
+            c.count, obj.dims.radius, obj.dims.height, rings=c.rings, depth=depth
+        )
+    if c.source == "box":
+        obj = _need_object(cfg, "box")
+        assert obj.dims.size is not None
+        sx, sy, sz = obj.dims.size
+        return poses_box(c.count, (sx, sy, sz), rng, depth=depth)
+    if c.source == "sphere":
+        obj = _need_object(cfg, "sphere")
+        assert obj.dims.radius is not None
+        return poses_sphere(c.count, obj.dims.radius, depth=depth)
+    raise ConfigError(f"candidates.source {c.source!r} is not a generator")  # pragma: no cover
+
+
+def grasp_poses(cfg: Config) -> np.ndarray:
+    """World poses (N, 4, 4) of the grasp frame for ``cfg.candidates``.
+
+    Args:
+        cfg: The full config (``candidates``, ``object`` and ``seed`` are read).
+
+    Returns:
+        (N, 4, 4) rigid transforms of the grasp frame in the world.
+
+    Raises:
+        ConfigError: A generator without a matching ``object`` section.
+        InputError: An unreadable or invalid grasp file.
+    """
+    c = cfg.candidates
+    if c.source == "file":
+        assert c.path is not None
+        poses = load_grasp_file(c.path, format=c.format, success_only=c.success_only, limit=c.limit)
+        if c.grasp_to_tool is not None:
+            poses = poses @ c.grasp_to_tool.matrix()
+        if c.frame == "object":
+            if cfg.object is None:
+                raise ConfigError("candidates.frame 'object' needs an 'object' section")
+            poses = cfg.object.pose.matrix() @ poses
+        return poses
+    rng = np.random.default_rng(c.seed if c.seed is not None else cfg.seed)
+    poses = _generate(cfg, rng)
+    _noise(poses, c.noise.position, c.noise.angle_deg, rng)
+    assert cfg.object is not None
+    return cfg.object.pose.matrix() @ poses
+
+
+def generate_candidates(cfg: Config) -> GraspTable:
+    """The candidate grasp table of a config: one column ``dq`` (N, 8).
+
+    Args:
+        cfg: The full config.
+
+    Returns:
+        A table with ``dq``: unit dual quaternions [rw, rx, ry, rz, dw, dx, dy, dz]
+        of the grasp frame in the world, one row per candidate.
+
+    Raises:
+        ConfigError: A generator without a matching ``object`` section.
+        InputError: An unreadable or invalid grasp file, or no grasp left.
+    """
+    poses = grasp_poses(cfg)
+    if poses.shape[0] == 0:
+        raise InputError(f"candidates: no grasp left from {_describe_source(cfg.candidates)}")
+    log.info("candidates: %d from %s", poses.shape[0], _describe_source(cfg.candidates))
+    return GraspTable({"dq": dq_from_matrix(poses)})
+
+
+def _describe_source(c: CandidatesConfig) -> str:
+    if c.source == "file":
+        return f"file {c.path}"
+    return f"generator {c.source!r}"
+
+
+# --------------------------------------------------------------------- files
+
+
+def _infer_format(path: Path) -> str:
+    suffix = path.suffix.lower()
+    fmt = {".npy": "npy", ".npz": "npz", ".csv": "csv", ".h5": "acronym", ".hdf5": "acronym"}
+    if suffix not in fmt:
+        raise InputError(
+            f"{path}: cannot tell the grasp file format from the suffix {suffix!r}; "
+            "set candidates.format to one of: acronym, csv, npy, npz"
+        )
+    return fmt[suffix]
+
+
+def load_grasp_file(
+    path: str | Path,
+    *,
+    format: str | None = None,
+    success_only: bool = False,
+    limit: int | None = None,
+) -> np.ndarray:
+    """Read grasp poses (N, 4, 4) from a file, as stored (no frame change).
+
+    Formats:
+
+    - ``npy``: one array (N, 4, 4).
+    - ``npz``: array ``transforms`` (or ``poses``, or the only array) (N, 4, 4),
+      optional ``success`` (N,) 0/1.
+    - ``csv``: a header row naming at least ``x,y,z,qw,qx,qy,qz`` (any order,
+      more columns allowed; an optional ``success`` column); quaternions
+      (w, x, y, z) are normalised if within 1e-3 of unit norm.
+    - ``acronym``: the ACRONYM HDF5 layout: ``grasps/transforms`` (N, 4, 4)
+      gripper poses in the object mesh frame [m],
+      ``grasps/qualities/flex/object_in_gripper`` (N,) 0/1 success; needs
+      the optional extra ``acronym`` (h5py).
+
+    Args:
+        path: The grasp file.
+        format: One of the formats above; default from the suffix.
+        success_only: Keep only successful grasps (needs success labels).
+        limit: Keep at most this many (the first ones, after filtering).
+
+    Returns:
+        (N, 4, 4) float64 rigid transforms.
+
+    Raises:
+        InputError: Missing file, wrong shape, non-rigid matrix (names the row),
+            a missing key, or ``success_only`` without success labels.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"grasp file not found: {path}")
+    if not path.is_file():
+        raise InputError(f"grasp file is not a file: {path}")
+    fmt = format or _infer_format(path)
+    success: np.ndarray | None
+    if fmt == "npy":
+        poses, success = _read_npy(path), None
+    elif fmt == "npz":
+        poses, success = _read_npz(path)
+    elif fmt == "csv":
+        poses, success = _read_csv(path)
+    elif fmt == "acronym":
+        poses, success = _read_acronym(path)
+    else:
+        raise InputError(
+            f"{path}: unknown grasp file format {fmt!r}; valid: acronym, csv, npy, npz"
+        )
+    _check_rigid(path, poses)
+    if success_only:
+        if success is None:
+            raise InputError(
+                f"{path}: candidates.success_only needs success labels, but this {fmt} file "
+                "has none (npz: 'success' array, csv: 'success' column, acronym: "
+                "grasps/qualities/flex/object_in_gripper)"
+            )
+        poses = poses[success]
+    if limit is not None:
+        poses = poses[:limit]
+    return np.ascontiguousarray(poses, dtype=float)
+
+
+def _as_poses(path: Path, arr: np.ndarray, what: str) -> np.ndarray:
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}")
+    return np.asarray(arr, dtype=float)
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npy array: {exc}") from None
+    if not isinstance(arr, np.ndarray):
+        raise InputError(f"{path}: expected a .npy array, got an archive (use format: npz)")
+    return _as_poses(path, arr, "the array")
+
+
+def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npz archive: {exc}") from None
+    names = [k for k in ("transforms", "poses") if k in arrays]
+    if not names:
+        others = [k for k in arrays if k != "success"]
+        if len(others) != 1:
+            raise InputError(
+                f"{path}: expected an array 'transforms' (N, 4, 4); arrays: {', '.join(arrays)}"
+            )
+        names = others
+    poses = _as_poses(path, arrays[names[0]], f"array {names[0]!r}")
+    success = arrays.get("success")
+    if success is not None:
+        success = _success(path, success, poses.shape[0], "array 'success'")
+    return poses, success
+
+
+def _success(path: Path, values: np.ndarray, n: int, what: str) -> np.ndarray:
+    values = np.asarray(values).reshape(-1)
+    if values.shape[0] != n:
+        raise InputError(f"{path}: {what} has {values.shape[0]} values, expected {n}")
+    try:
+        return values.astype(float) > 0.5
+    except ValueError:
+        raise InputError(f"{path}: {what} must be 0/1 values") from None
+
+
+_CSV_POSE = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+def _read_csv(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}: cannot read CSV: {exc}") from None
+    if not rows:
+        raise InputError(f"{path}: empty CSV; expected a header row with {','.join(_CSV_POSE)}")
+    header = [h.strip().lower() for h in rows[0]]
+    missing = [c for c in _CSV_POSE if c not in header]
+    if missing:
+        raise InputError(
+            f"{path}: CSV header lacks column(s) {', '.join(missing)}; "
+            f"expected {','.join(_CSV_POSE)} (got {','.join(header)})"
+        )
+    cols = [header.index(c) for c in _CSV_POSE]
+    succ_col = header.index("success") if "success" in header else None
+    values = np.empty((len(rows) - 1, 7))
+    success = np.zeros(len(rows) - 1, dtype=bool)
+    for i, row in enumerate(rows[1:]):
+        line = i + 2
+        if len(row) != len(header):
+            raise InputError(
+                f"{path}:{line}: row has {len(row)} fields, the header has {len(header)}"
+            )
+        try:
+            values[i] = [float(row[j]) for j in cols]
+            if succ_col is not None:
+                success[i] = float(row[succ_col]) > 0.5
+        except ValueError:
+            raise InputError(f"{path}:{line}: not a number in {row!r}") from None
+    if not np.all(np.isfinite(values)):
+        line = int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0]) + 2
+        raise InputError(f"{path}:{line}: non-finite value")
+    quat = values[:, 3:]
+    norm = np.linalg.norm(quat, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+    if bad.size:
+        line = int(bad[0]) + 2
+        raise InputError(
+            f"{path}:{line}: quaternion (qw,qx,qy,qz) has norm {norm[bad[0]]:.6g}, expected 1"
+        )
+    quat = quat / norm[:, None]
+    poses = np.zeros((values.shape[0], 4, 4))
+    poses[:, :3, :3] = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
+    poses[:, :3, 3] = values[:, :3]
+    poses[:, 3, 3] = 1.0
+    return poses, (success if succ_col is not None else None)
+
+
+def _read_acronym(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        import h5py
+    except ImportError:
+        raise InputError(
+            f"{path}: reading ACRONYM HDF5 files needs h5py: {ACRONYM_INSTALL_HINT}"
+        ) from None
+    try:
+        fh = h5py.File(path, "r")
+    except OSError as exc:
+        raise InputError(f"{path}: not a readable HDF5 file: {exc}") from None
+    with fh:
+        for key in ("grasps/transforms", "grasps/qualities/flex/object_in_gripper"):
+            if key not in fh:
+                raise InputError(f"{path}: not an ACRONYM grasp file: missing dataset {key!r}")
+        poses = _as_poses(path, np.asarray(fh["grasps/transforms"]), "grasps/transforms")
+        success = _success(
+            path,
+            np.asarray(fh["grasps/qualities/flex/object_in_gripper"]),
+            poses.shape[0],
+            "grasps/qualities/flex/object_in_gripper",
+        )
+        if "object/file" in fh:
+            raw = fh["object/file"][()]
+            name = raw.decode() if isinstance(raw, bytes) else str(raw)
+            scale = float(fh["object/scale"][()]) if "object/scale" in fh else 1.0
+            log.info("%s: ACRONYM grasps of %s (scale %g)", path, name, scale)
+    return poses, success
+
+
+def _check_rigid(path: Path, poses: np.ndarray) -> None:
+    """Raise naming the first row that is not a finite rigid transform."""
+    if poses.shape[0] == 0:
+        return
+    finite = np.all(np.isfinite(poses), axis=(1, 2))
+    rot = poses[:, :3, :3]
+    ortho = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2))
+    with np.errstate(invalid="ignore"):
+        det = np.linalg.det(np.where(finite[:, None, None], rot, 0.0))
+    bottom = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    ok = finite & (ortho < _RIGID_TOL) & (det > 0) & (bottom < _RIGID_TOL)
+    bad = np.flatnonzero(~ok)
+    if bad.size == 0:
+        return
+    i = int(bad[0])
+    if not finite[i]:
+        why = "has non-finite entries"
+    elif bottom[i] >= _RIGID_TOL:
+        why = f"has last row {poses[i, 3].tolist()}, expected [0, 0, 0, 1]"
+    elif ortho[i] >= _RIGID_TOL:
+        why = f"has a non-orthonormal rotation (|R R^T - I| = {ortho[i]:.3g})"
+    else:
+        why = "has a reflection (det R < 0)"
+    more = f" ({bad.size} bad rows in all)" if bad.size > 1 else ""
+    raise InputError(f"{path}: grasp {i} (0-based row) is not a rigid transform: {why}{more}")

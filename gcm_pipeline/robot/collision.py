@@ -1,0 +1,597 @@
+"""Collision checking of robot configurations against itself, the environment and the object.
+
+The robot's collision meshes come from the same example-robot-data files as its
+kinematic model (:meth:`Robot.build_geometry`), reduced with the same locked
+joints (the Panda's fingers are locked *open*, as given in the robot spec). The
+world is built from the config:
+
+* **environment**: the support table (a box whose top face is at
+  ``table.height``; on by default) and the extra ``obstacles`` (box, cylinder,
+  sphere, mesh);
+* **object**: the object being grasped (``ObjectConfig``).
+
+Everything is expressed in the robot's base frame (``base_pose`` maps base to
+world), so configurations and IK solutions are used as they are.
+
+Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
+
+``collision_environment``
+    every robot link vs every environment obstacle, except the table vs the
+    robot's base links: links attached to the universe (``panda_link0``) and
+    links of the first joint that touch the table in the home configuration
+    (not the case for ``panda_link1``, which therefore stays checked).
+``collision_self``
+    all link pairs on different joints, minus the pairs the SRDF disables
+    (``pin.removeCollisionPairs``) and adjacent links (parent/child joints).
+``collision_object``
+    every robot link, the open fingers included, vs the object. The *gripper*
+    (the body that carries the grasp frame and every link below it: ``panda_hand``
+    and both fingers) is checked against the object **eroded by**
+    ``contact_tolerance``: a gripper link touching the object counts as a
+    collision only when it penetrates deeper than the tolerance (a finger pad
+    closing on the surface is a grasp, not a collision). Primitives are eroded
+    exactly (radius / half-sizes minus the tolerance); a mesh object is eroded
+    by moving its vertices inward along their normals. coal cannot use a
+    negative security margin with meshes, hence erosion. Arm links (not
+    gripper) are checked against the full object.
+
+When a configuration collides in more than one way, the reason is the first of
+environment, self, object.
+
+Checking is batched: a ``pin.GeometryPool`` per kind and
+``pin.computeCollisionsInParallel``, which runs forward kinematics, placement
+updates and all pairs in C++, stopping at a configuration's first collision.
+coal's narrow phase starts with the bounding volumes of each pair (the BVH root
+OBBRSS for meshes), which is the broad phase here; only configurations still
+free after a kind are checked for the next kind.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import coal
+import numpy as np
+import pinocchio as pin
+
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, ObstacleConfig, Pose
+from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.robot.model import Robot
+
+__all__ = [
+    "REASON_ENVIRONMENT",
+    "REASON_OBJECT",
+    "REASON_SELF",
+    "CollisionChecker",
+    "WorldShape",
+    "as_transform",
+    "shape_geometry",
+]
+
+REASON_SELF = "collision_self"
+REASON_ENVIRONMENT = "collision_environment"
+REASON_OBJECT = "collision_object"
+
+_KINDS = ("environment", "self", "object")
+_REASONS = {"environment": REASON_ENVIRONMENT, "self": REASON_SELF, "object": REASON_OBJECT}
+_ENV_SHAPES = ("box", "cylinder", "sphere", "mesh")
+_OBJECT_SHAPES = ("cylinder", "box", "sphere", "plane", "mesh")
+_PLANE_THICKNESS = 0.002  # [m] a 'plane' object is a box this thick, centred on its frame
+
+
+@dataclass(frozen=True)
+class WorldShape:
+    """A collision shape of the world, placed in the robot's base frame.
+
+    Attributes:
+        name: Geometry name (``table``, ``obstacle_<i>`` or the obstacle's name, ``object``).
+        geometry: The coal geometry (centred as coal defines it).
+        placement: Pose of the geometry's centre in the base frame (4, 4) [m].
+        kind: ``"environment"`` or ``"object"``.
+    """
+
+    name: str
+    geometry: Any
+    placement: np.ndarray
+    kind: str
+
+
+def as_transform(pose: Pose | np.ndarray | None) -> np.ndarray:
+    """A pose as a (4, 4) homogeneous transform (identity for None).
+
+    Args:
+        pose: A config :class:`Pose`, a (4, 4) array or None.
+
+    Returns:
+        (4, 4) transform [m].
+
+    Raises:
+        InputError: If an array is not (4, 4) or not finite.
+    """
+    if pose is None:
+        return np.eye(4)
+    if isinstance(pose, Pose):
+        return pose.matrix()
+    arr = np.asarray(pose, dtype=float)
+    if arr.shape != (4, 4) or not np.all(np.isfinite(arr)):
+        raise InputError(f"a pose must be a finite (4, 4) transform, got shape {arr.shape}")
+    return arr
+
+
+def _load_mesh(path: Path | None, scale: float, where: str) -> Any:
+    if path is None:
+        raise ConfigError(f"{where}: shape 'mesh' needs 'mesh: <path>'")
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise InputError(f"{where}: mesh file {str(p)!r} does not exist")
+    try:
+        mesh = coal.MeshLoader().load(str(p), np.full(3, float(scale)))
+    except Exception as exc:  # coal raises ValueError with a multi-line message
+        first = str(exc).strip().splitlines()
+        detail = next((ln for ln in first if ln.startswith("message:")), first[-1] if first else "")
+        raise InputError(f"{where}: cannot read mesh file {str(p)!r}: {detail}") from exc
+    if mesh.num_tris == 0:
+        raise InputError(f"{where}: mesh file {str(p)!r} has no triangles")
+    return mesh
+
+
+def _positive(where: str, name: str, value: float | None) -> float:
+    if value is None or not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"{where}: {name} must be a positive number [m], got {value!r}")
+    return float(value)
+
+
+def shape_geometry(
+    shape: str,
+    dims: Any,
+    *,
+    mesh: Path | None = None,
+    scale: float = 1.0,
+    erode: float = 0.0,
+    where: str = "shape",
+) -> tuple[Any, np.ndarray] | None:
+    """Coal geometry of a config shape and the offset of its centre in the shape's frame.
+
+    Conventions (those of ``ObjectConfig``): a cylinder stands on its base with
+    its axis along the frame's z (base at z = 0); boxes and spheres are centred
+    on the frame origin; a plane is a ``_PLANE_THICKNESS`` thick box centred on
+    the frame's xy plane; a mesh is used as its file defines it (times ``scale``).
+
+    Args:
+        shape: ``box``, ``cylinder``, ``sphere``, ``plane`` or ``mesh``.
+        dims: A :class:`~gcm_pipeline.config.ShapeDims` (``radius``, ``height``, ``size``).
+        mesh: Mesh file (shape ``mesh``).
+        scale: Mesh scale factor.
+        erode: Distance [m] by which the shape shrinks on every side (0: the shape itself).
+        where: Config location used in error messages.
+
+    Returns:
+        ``(geometry, centre)`` with ``centre`` (4, 4) the geometry's pose in the
+        shape's frame; None when erosion leaves nothing (a part thinner than
+        ``2 * erode``).
+
+    Raises:
+        ConfigError: Unknown shape, missing or non-positive size.
+        InputError: Mesh file missing or unreadable (names the file).
+    """
+    centre = np.eye(4)
+    if shape == "cylinder":
+        radius = _positive(where, "dims.radius", dims.radius) - erode
+        height = _positive(where, "dims.height", dims.height)
+        centre[2, 3] = 0.5 * height
+        height -= 2 * erode
+        if radius <= 0 or height <= 0:
+            return None
+        return coal.Cylinder(radius, height), centre
+    if shape in ("box", "plane"):
+        want = 3 if shape == "box" else 2
+        size = tuple(dims.size or ())
+        if len(size) != want:
+            raise ConfigError(f"{where}: shape {shape!r} needs dims.size with {want} values")
+        sizes = [_positive(where, "dims.size", s) for s in size]
+        if shape == "plane":
+            sizes.append(_PLANE_THICKNESS)
+        eroded = [s - 2 * erode for s in sizes]
+        if min(eroded) <= 0:
+            return None
+        return coal.Box(*eroded), centre
+    if shape == "sphere":
+        radius = _positive(where, "dims.radius", dims.radius) - erode
+        if radius <= 0:
+            return None
+        return coal.Sphere(radius), centre
+    if shape == "mesh":
+        _positive(where, "scale", scale)
+        geom = _load_mesh(mesh, scale, where)
+        if erode > 0:
+            geom = _erode_mesh(geom, erode)
+        return geom, centre
+    raise ConfigError(f"{where}: " + unknown_choice("shape", shape, _OBJECT_SHAPES))
+
+
+def _erode_mesh(mesh: Any, distance: float) -> Any:
+    """Move every vertex inward along its (area-weighted) normal by ``distance`` [m]."""
+    verts = np.asarray(mesh.vertices(), dtype=float).copy()
+    tris = np.array(
+        [[int(t[0]), int(t[1]), int(t[2])] for t in map(mesh.tri_indices, range(mesh.num_tris))],
+        dtype=int,
+    )
+    face_n = np.cross(verts[tris[:, 1]] - verts[tris[:, 0]], verts[tris[:, 2]] - verts[tris[:, 0]])
+    normals = np.zeros_like(verts)
+    for k in range(3):
+        np.add.at(normals, tris[:, k], face_n)
+    norm = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, norm, out=np.zeros_like(normals), where=norm > 0)
+    out = coal.BVHModelOBBRSS()
+    out.beginModel(len(tris), len(verts))
+    out.addVertices(verts - distance * normals)
+    out.addTriangles(tris)
+    out.endModel()
+    return out
+
+
+def _se3(m: np.ndarray) -> pin.SE3:
+    return pin.SE3(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))
+
+
+def _obstacle_shape(i: int, obs: ObstacleConfig, base_inv: np.ndarray) -> WorldShape:
+    where = f"environment.obstacles[{i}]"
+    if obs.shape not in _ENV_SHAPES:
+        raise ConfigError(f"{where}: " + unknown_choice("shape", obs.shape, _ENV_SHAPES))
+    made = shape_geometry(obs.shape, obs.dims, mesh=obs.mesh, scale=obs.scale, where=where)
+    assert made is not None
+    geom, centre = made
+    return WorldShape(
+        name=obs.name or f"obstacle_{i}",
+        geometry=geom,
+        placement=base_inv @ obs.pose.matrix() @ centre,
+        kind="environment",
+    )
+
+
+class CollisionChecker:
+    """Batched collision checks and clearance of robot configurations.
+
+    Args:
+        robot: The robot (its reduced model and collision geometry).
+        environment: Table and obstacles; None means the default config
+            (a table at z = 0, self-collision on).
+        object_cfg: The object being grasped, or None (no object).
+        base_pose: Pose of the robot base in the world (config ``robot.base_pose``),
+            a (4, 4) transform or None (identity).
+        threads: Threads for the batched checks (``pin.computeCollisionsInParallel``).
+
+    Raises:
+        ConfigError: Unknown shape or non-positive size in the environment or object.
+        InputError: A mesh file is missing or unreadable (the message names it).
+
+    Attributes:
+        robot: The robot.
+        geom_model: ``pin.GeometryModel`` with the robot links and world shapes
+            and *every* checked pair active (all kinds); usable with
+            ``pin.computeCollisions``.
+        pair_kind: Kind of each pair of ``geom_model.collisionPairs`` (P,) str.
+        n_robot_geoms: Number of robot geometries (the first ones of ``geom_model``).
+        gripper_geoms: Indices of the gripper geometries (checked against the eroded object).
+        world: The world shapes in the base frame.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        environment: EnvironmentConfig | None = None,
+        object_cfg: ObjectConfig | None = None,
+        base_pose: Pose | np.ndarray | None = None,
+        *,
+        threads: int = 1,
+    ) -> None:
+        env = EnvironmentConfig() if environment is None else environment
+        self.robot = robot
+        self.environment = env
+        self.object_cfg = object_cfg
+        self.threads = max(1, int(threads))
+        self.base_pose = as_transform(base_pose)
+        base_inv = np.linalg.inv(self.base_pose)
+        tol = float(env.contact_tolerance)
+        if not math.isfinite(tol) or tol < 0:
+            raise ConfigError(f"environment.contact_tolerance must be >= 0 [m], got {tol!r}")
+        self.contact_tolerance = tol
+
+        model = robot.model
+        gm = robot.build_geometry("collision")
+        self.n_robot_geoms = int(gm.ngeoms)
+        robot_ids = list(range(self.n_robot_geoms))
+        link_of = [model.frames[g.parentFrame].name for g in gm.geometryObjects]
+        joint_of = [int(g.parentJoint) for g in gm.geometryObjects]
+        self.link_names = tuple(link_of)
+        gripper_links = _gripper_links(robot)
+        self.gripper_geoms = tuple(i for i in robot_ids if link_of[i] in gripper_links)
+
+        # --- world shapes (base frame) -------------------------------------------------
+        world: list[WorldShape] = []
+        if env.table is not None:
+            t = env.table
+            sx, sy, sz = (_positive("environment.table", "size", s) for s in t.size)
+            m = np.eye(4)
+            m[:3, 3] = (t.center_xy[0], t.center_xy[1], t.height - 0.5 * sz)
+            world.append(WorldShape("table", coal.Box(sx, sy, sz), base_inv @ m, "environment"))
+        for i, obs in enumerate(env.obstacles):
+            world.append(_obstacle_shape(i, obs, base_inv))
+        contact_obj: WorldShape | None = None
+        if object_cfg is not None and env.check_object:
+            if object_cfg.shape not in _OBJECT_SHAPES:
+                raise ConfigError(
+                    "object: " + unknown_choice("shape", object_cfg.shape, _OBJECT_SHAPES)
+                )
+            made = shape_geometry(
+                object_cfg.shape,
+                object_cfg.dims,
+                mesh=object_cfg.mesh,
+                scale=object_cfg.scale,
+                where="object",
+            )
+            assert made is not None
+            obj_m = base_inv @ object_cfg.pose.matrix()
+            world.append(WorldShape("object", made[0], obj_m @ made[1], "object"))
+            eroded = shape_geometry(
+                object_cfg.shape,
+                object_cfg.dims,
+                mesh=object_cfg.mesh,
+                scale=object_cfg.scale,
+                erode=tol,
+                where="object",
+            )
+            if eroded is not None:
+                contact_obj = WorldShape("object_contact", eroded[0], obj_m @ eroded[1], "object")
+        self.world = tuple(world)
+
+        world_ids: dict[str, int] = {}
+        for shape in [*world, *([contact_obj] if contact_obj is not None else [])]:
+            go = pin.GeometryObject(shape.name, 0, 0, _se3(shape.placement), shape.geometry)
+            world_ids[shape.name] = int(gm.addGeometryObject(go))
+
+        # --- pairs by kind -----------------------------------------------------------
+        pairs: dict[str, list[tuple[int, int]]] = {k: [] for k in _KINDS}
+        if env.self_collision:
+            self_gm = robot.build_geometry("collision")
+            self_gm.addAllCollisionPairs()
+            if robot.srdf_path is not None:
+                pin.removeCollisionPairs(model, self_gm, str(robot.srdf_path))
+            for cp in self_gm.collisionPairs:
+                a, b = int(cp.first), int(cp.second)
+                ja, jb = joint_of[a], joint_of[b]
+                if ja == jb or model.parents[ja] == jb or model.parents[jb] == ja:
+                    continue  # same rigid body or adjacent links
+                pairs["self"].append((a, b))
+        exempt = self._table_exempt(model, gm, world_ids, joint_of) if env.table else set()
+        for shape in world:
+            if shape.kind != "environment":
+                continue
+            w = world_ids[shape.name]
+            for i in robot_ids:
+                if shape.name == "table" and i in exempt:
+                    continue
+                pairs["environment"].append((i, w))
+        if "object" in world_ids:
+            for i in robot_ids:
+                if i not in self.gripper_geoms:
+                    pairs["object"].append((i, world_ids["object"]))
+                elif "object_contact" in world_ids:
+                    pairs["object"].append((i, world_ids["object_contact"]))
+        self.table_exempt = tuple(sorted(link_of[i] for i in exempt))
+
+        # one geometry model per kind (batched checks) plus one with every pair
+        self._kind_models: dict[str, Any] = {}
+        self._pools: dict[str, Any] = {}
+        for kind in _KINDS:
+            if not pairs[kind]:
+                continue
+            km = gm.copy()
+            km.removeAllCollisionPairs()
+            for a, b in pairs[kind]:
+                km.addCollisionPair(pin.CollisionPair(a, b))
+            self._kind_models[kind] = km
+            self._pools[kind] = pin.GeometryPool(model, km, self.threads)
+        full = gm.copy()
+        full.removeAllCollisionPairs()
+        kinds: list[str] = []
+        for kind in _KINDS:
+            for a, b in pairs[kind]:
+                full.addCollisionPair(pin.CollisionPair(a, b))
+                kinds.append(kind)
+        self.geom_model = full
+        self.pair_kind = np.array(kinds, dtype=object)
+        self._data = model.createData()
+        self._full_data = pin.GeometryData(full)
+
+        # clearance: robot vs environment, arm links (not gripper) vs the full object;
+        # base links (universe, first joint) vs the table are left out: their distance
+        # to it does not depend on the configuration and would mask the arm's
+        base_links = {i for i in robot_ids if joint_of[i] in (0, 1)}
+        dist_pairs = [
+            (a, b)
+            for a, b in pairs["environment"]
+            if not (b == world_ids.get("table") and a in base_links)
+        ]
+        if "object" in world_ids:
+            dist_pairs += [
+                (i, world_ids["object"]) for i in robot_ids if i not in self.gripper_geoms
+            ]
+        self._dist_model: Any = None
+        if dist_pairs:
+            dm = gm.copy()
+            dm.removeAllCollisionPairs()
+            for a, b in dist_pairs:
+                dm.addCollisionPair(pin.CollisionPair(a, b))
+            self._dist_model = dm
+            self._dist_data = pin.GeometryData(dm)
+
+    # --- construction helpers ---------------------------------------------------------
+
+    def _table_exempt(
+        self, model: pin.Model, gm: Any, world_ids: dict[str, int], joint_of: list[int]
+    ) -> set[int]:
+        """Robot geometries not checked against the table: the base links.
+
+        Links fixed to the universe always; links of the first joint only when
+        they touch the table in the home configuration (they stand on it).
+        """
+        exempt = {i for i in range(self.n_robot_geoms) if joint_of[i] == 0}
+        first = [i for i in range(self.n_robot_geoms) if joint_of[i] == 1]
+        if not first:
+            return exempt
+        probe = gm.copy()
+        probe.removeAllCollisionPairs()
+        for i in first:
+            probe.addCollisionPair(pin.CollisionPair(i, world_ids["table"]))
+        pd = pin.GeometryData(probe)
+        pin.computeCollisions(model, model.createData(), probe, pd, self.robot.home, False)
+        for k, cp in enumerate(probe.collisionPairs):
+            if pd.collisionResults[k].isCollision():
+                exempt.add(int(cp.first))
+        return exempt
+
+    # --- queries --------------------------------------------------------------------------
+
+    def _as_q(self, q: Any) -> np.ndarray:
+        arr = np.asarray(q, dtype=float)
+        if arr.ndim == 1:
+            arr = arr[None]
+        nq = self.robot.nq
+        if arr.ndim != 2 or arr.shape[1] != nq:
+            raise InputError(f"configurations must have shape (N, {nq}), got {np.shape(q)}")
+        return arr
+
+    def _collides(self, kind: str, q: np.ndarray) -> np.ndarray:
+        pool = self._pools.get(kind)
+        if pool is None or len(q) == 0:
+            return np.zeros(len(q), dtype=bool)
+        qt = np.asfortranarray(q.T)
+        res = pin.computeCollisionsInParallel(self.threads, pool, qt, True, False)
+        return np.asarray(res, dtype=bool).reshape(len(q))
+
+    def check(self, q: Any) -> np.ndarray:
+        """Collision reason of each configuration.
+
+        Args:
+            q: Configurations (N, nq) or (nq,) [rad]. Non-finite rows are skipped
+                (reason ``''``); the caller marks them unreachable anyway.
+
+        Returns:
+            (N,) str: ``''`` (free), ``'collision_environment'``,
+            ``'collision_self'`` or ``'collision_object'`` (first that applies,
+            in this order).
+        """
+        qs = self._as_q(q)
+        reason = np.full(len(qs), "", dtype=object)
+        todo = np.flatnonzero(np.all(np.isfinite(qs), axis=1))
+        for kind in _KINDS:
+            if len(todo) == 0:
+                break
+            hit = self._collides(kind, qs[todo])
+            reason[todo[hit]] = _REASONS[kind]
+            todo = todo[~hit]
+        return reason.astype(str) if len(reason) else np.zeros(0, dtype="<U21")
+
+    def in_collision(self, q: Any) -> np.ndarray:
+        """Whether each configuration collides (any kind), (N,) bool."""
+        return self.check(q) != ""
+
+    def colliding_pairs(self, q: Any) -> list[tuple[str, str, str]]:
+        """All colliding pairs of one configuration (for reports and debugging).
+
+        Args:
+            q: One configuration (nq,) [rad].
+
+        Returns:
+            ``[(geometry_1, geometry_2, kind), ...]``.
+        """
+        qs = self._as_q(q)[0]
+        gm, gd = self.geom_model, self._full_data
+        pin.computeCollisions(self.robot.model, self._data, gm, gd, qs, False)
+        out = []
+        for k, cp in enumerate(gm.collisionPairs):
+            if gd.collisionResults[k].isCollision():
+                out.append(
+                    (
+                        gm.geometryObjects[cp.first].name,
+                        gm.geometryObjects[cp.second].name,
+                        str(self.pair_kind[k]),
+                    )
+                )
+        return out
+
+    def clearance(self, q: Any) -> np.ndarray:
+        """Minimum distance of the robot to the environment and the object [m].
+
+        Pairs: every robot link vs every environment obstacle, except the base
+        links (fixed to the universe or the first joint) vs the table, whose
+        distance to it does not change with the configuration (0.14 m for
+        ``panda_link1``), and every *arm* link vs the object.
+        The gripper (hand and fingers) vs the object is left out: at a grasp it
+        touches the object by design. Penetrating pairs give a distance <= 0.
+
+        Args:
+            q: Configurations (N, nq) or (nq,) [rad].
+
+        Returns:
+            (N,) distances [m]; ``inf`` when there is nothing to measure against,
+            NaN for non-finite configurations.
+        """
+        qs = self._as_q(q)
+        out = np.full(len(qs), np.inf)
+        if self._dist_model is None:
+            out[~np.all(np.isfinite(qs), axis=1)] = np.nan
+            return out
+        model, data = self.robot.model, self._data
+        dm, dd = self._dist_model, self._dist_data
+        results = dd.distanceResults
+        for n, qi in enumerate(qs):
+            if not np.all(np.isfinite(qi)):
+                out[n] = np.nan
+                continue
+            pin.computeDistances(model, data, dm, dd, qi)
+            out[n] = min(r.min_distance for r in results)
+        return out
+
+    def __repr__(self) -> str:
+        counts = {k: int(np.sum(self.pair_kind == k)) for k in _KINDS}
+        world = ", ".join(s.name for s in self.world) or "(none)"
+        return (
+            f"CollisionChecker(robot={self.robot.name!r}, world=[{world}], pairs={counts}, "
+            f"contact_tolerance={self.contact_tolerance}, table_exempt={list(self.table_exempt)})"
+        )
+
+
+def _gripper_links(robot: Robot) -> set[str]:
+    """Links of the gripper: the body carrying the grasp frame and all links below it.
+
+    Walks the *full* (unreduced) model's frame tree: the grasp frame's nearest
+    BODY ancestor (``panda_hand`` for the Panda) and its descendants
+    (``panda_leftfinger``, ``panda_rightfinger``).
+    """
+    fm = robot.full_model
+    fid = fm.getFrameId(robot.grasp_frame)
+    root = fid
+    k = int(fm.frames[fid].parentFrame)
+    while k != root and k > 0:
+        if fm.frames[k].type == pin.FrameType.BODY:
+            root = k
+            break
+        k = int(fm.frames[k].parentFrame)
+    names: set[str] = set()
+    for i, f in enumerate(fm.frames):
+        j, seen = i, set()
+        while j not in seen:
+            if j == root:
+                if f.type == pin.FrameType.BODY:
+                    names.add(f.name)
+                break
+            seen.add(j)
+            if j == 0:
+                break
+            j = int(fm.frames[j].parentFrame)
+    return names

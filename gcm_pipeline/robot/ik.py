@@ -1,0 +1,375 @@
+"""Inverse kinematics of the grasp frame: backend dispatch and verification.
+
+:func:`solve_ik` validates the targets, drops the ones beyond the arm's reach,
+hands the rest to a backend (``pinocchio``: batched Levenberg-Marquardt,
+:mod:`gcm_pipeline.robot.ik_pinocchio`; ``mink``: MuJoCo differential IK,
+:mod:`gcm_pipeline.robot.ik_mink`) and **verifies every success with
+Pinocchio's own forward kinematics** (``pin.forwardKinematics`` +
+``updateFramePlacement``) and the joint limits: a target is reported
+reachable only if a configuration strictly inside the limits puts the grasp
+frame within ``position_tolerance`` [m] and ``orientation_tolerance`` [rad].
+
+An IK that fails is not an error: its row has ``success=False`` and a reason:
+
+=========================== ==============================================
+``out_of_reach``            farther from the shoulder than the arm reaches
+``joint_limits``            a solution exists only outside the joint limits
+``no_ik``                   no seed converged
+``verification_failed``     the backend converged but Pinocchio disagrees
+validator reasons           e.g. ``collision_self`` (see ``validator``)
+=========================== ==============================================
+
+Validators (for collision checking): ``validator(q)`` takes configurations
+(M, nq) [rad] and returns (M,) strings, ``''`` for a valid configuration or a
+reason. It is applied to every converged candidate before one is chosen, so a
+target whose first solution collides keeps trying other seeds; if no valid
+candidate remains, the last validator reason is the row's reason. With
+``return_all=True`` the result also lists every converged candidate
+(:class:`IKCandidates`), valid or not.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.robot.ik_pinocchio import rotation_angle
+from gcm_pipeline.robot.model import Robot, load_robot
+
+__all__ = ["BACKENDS", "IKCandidates", "IKResult", "solve_ik", "verify_solutions"]
+
+BACKENDS = ("pinocchio", "mink")
+
+Validator = Callable[[np.ndarray], Any]
+
+
+class IKCandidates(NamedTuple):
+    """Every converged IK candidate (``return_all=True``).
+
+    Attributes:
+        index: Target row of each candidate (M,) int.
+        q: Candidate configurations (M, nq) [rad], inside the joint limits.
+        reason: Validator reason per candidate (M,) str, ``''`` if valid.
+    """
+
+    index: np.ndarray
+    q: np.ndarray
+    reason: np.ndarray
+
+
+class IKResult(NamedTuple):
+    """Result of :func:`solve_ik` for N targets.
+
+    Attributes:
+        q: Solutions (N, nq) [rad]; NaN rows where ``success`` is False.
+        success: (N,) bool, True only for solutions verified by Pinocchio FK.
+        pos_err: Position error (N,) [m] of the solution, or of the best
+            attempt for failures (NaN if none was made).
+        rot_err: Orientation error (N,) [rad], geodesic angle, same rules.
+        reason: (N,) str, ``''`` for successes, else why (see module doc).
+        backend: Name of the backend that solved.
+        candidates: Every converged candidate when ``return_all=True``, else None.
+    """
+
+    q: np.ndarray
+    success: np.ndarray
+    pos_err: np.ndarray
+    rot_err: np.ndarray
+    reason: np.ndarray
+    backend: str = "pinocchio"
+    candidates: IKCandidates | None = None
+
+    def __repr__(self) -> str:
+        n = len(self.success)
+        ok = int(np.count_nonzero(self.success))
+        reasons, counts = np.unique(self.reason[~self.success].astype(str), return_counts=True)
+        fails = ", ".join(f"{r}: {c}" for r, c in zip(reasons, counts, strict=False))
+        return (
+            f"IKResult(backend={self.backend!r}, {ok}/{n} reached"
+            + (f", failures {{{fails}}}" if fails else "")
+            + ")"
+        )
+
+
+def _backend(name: str) -> Callable[..., dict[str, Any]]:
+    if name == "pinocchio":
+        from gcm_pipeline.robot import ik_pinocchio
+
+        return ik_pinocchio.solve
+    if name == "mink":
+        from gcm_pipeline.robot import ik_mink
+
+        return ik_mink.solve
+    raise InputError(unknown_choice("IK backend", name, BACKENDS))
+
+
+def check_targets(targets: Any, name: str = "targets") -> np.ndarray:
+    """Validate poses and return them as a float array (N, 4, 4).
+
+    Args:
+        targets: Homogeneous transforms (N, 4, 4) or one (4, 4).
+        name: How to call them in error messages.
+
+    Raises:
+        GeometryError: Wrong shape, non-finite values, or a non-rigid matrix
+            (names the first bad row).
+    """
+    arr = np.asarray(targets, dtype=float)
+    if arr.shape == (4, 4):
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise GeometryError(f"{name} must have shape (N, 4, 4), got {np.shape(targets)}")
+    bad = ~np.all(np.isfinite(arr), axis=(1, 2))
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise GeometryError(f"{name}[{i}] has non-finite values: {arr[i].tolist()}")
+    rot = arr[:, :3, :3]
+    ortho = np.abs(rot.transpose(0, 2, 1) @ rot - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(rot)
+    bottom = np.abs(arr[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+    bad = (ortho > 1e-6) | (det < 0) | (bottom > 1e-9)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise GeometryError(
+            f"{name}[{i}] is not a rigid transform (|R^T R - I| = {ortho[i]:.2e}, "
+            f"det R = {det[i]:.6f}, last row {arr[i, 3].tolist()})"
+        )
+    return arr
+
+
+def _tolerance(name: str, value: Any) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise InputError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def verify_solutions(
+    robot: Robot, q: np.ndarray, targets: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Errors of configurations against targets, with Pinocchio's own FK.
+
+    Args:
+        robot: The robot.
+        q: Configurations (M, nq) [rad].
+        targets: Poses (M, 4, 4) in the base frame.
+
+    Returns:
+        ``(pos_err [m], rot_err [rad], inside)``: (M,) each; ``inside`` says
+        whether q is strictly inside the joint limits.
+    """
+    if q.shape[0] == 0:
+        z = np.zeros(0)
+        return z, z, np.zeros(0, dtype=bool)
+    reached = robot.fk_pinocchio(q)
+    pos_err = np.linalg.norm(reached[:, :3, 3] - targets[:, :3, 3], axis=1)
+    rot_err = rotation_angle(targets[:, :3, :3].transpose(0, 2, 1) @ reached[:, :3, :3])
+    return pos_err, rot_err, robot.within_limits(q, strict=True)
+
+
+# state shared with forked worker processes (set just before the pool forks)
+_FORK_STATE: dict[str, Any] = {}
+
+
+def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> dict[str, Any]:
+    targets, seeds = args
+    st = _FORK_STATE
+    return st["solve"](
+        st["robot"],
+        targets,
+        seeds=seeds,
+        validator=st["validator"],
+        return_all=st["return_all"],
+        **st["kwargs"],
+    )
+
+
+def _run_backend(
+    solve: Callable[..., dict[str, Any]],
+    robot: Robot,
+    targets: np.ndarray,
+    seeds: np.ndarray | None,
+    validator: Validator | None,
+    return_all: bool,
+    workers: int,
+    kwargs: dict[str, Any],
+) -> dict[str, Any]:
+    n = targets.shape[0]
+    if workers <= 1 or n < 2 * workers or "fork" not in mp.get_all_start_methods():
+        return solve(
+            robot, targets, seeds=seeds, validator=validator, return_all=return_all, **kwargs
+        )
+    # warm the backend's caches (seed library, compiled model) before forking
+    solve(robot, targets[:1], seeds=None, validator=None, return_all=False, **kwargs)
+    bounds = np.linspace(0, n, workers + 1).astype(int)
+    chunks = [
+        (targets[a:b], None if seeds is None else seeds[a:b])
+        for a, b in zip(bounds[:-1], bounds[1:], strict=False)
+    ]
+    _FORK_STATE.update(
+        solve=solve, robot=robot, validator=validator, return_all=return_all, kwargs=kwargs
+    )
+    try:
+        with mp.get_context("fork").Pool(workers) as pool:
+            parts = pool.map(_worker, chunks)
+    finally:
+        _FORK_STATE.clear()
+    out: dict[str, Any] = {}
+    for key in ("q", "success", "pos_err", "rot_err", "reason"):
+        out[key] = np.concatenate([p[key] for p in parts])
+    if return_all:
+        out["all_index"] = np.concatenate(
+            [p["all_index"] + a for p, a in zip(parts, bounds[:-1], strict=False)]
+        )
+        out["all_q"] = np.concatenate([p["all_q"] for p in parts])
+        out["all_reason"] = np.concatenate([p["all_reason"] for p in parts])
+    return out
+
+
+def solve_ik(
+    robot: Robot | str,
+    targets: Any,
+    backend: str = "pinocchio",
+    *,
+    position_tolerance: float = 1e-4,
+    orientation_tolerance: float = 1e-3,
+    seeds: Any = None,
+    neighbours: Any = None,
+    validator: Validator | None = None,
+    return_all: bool = False,
+    workers: int = 1,
+    **options: Any,
+) -> IKResult:
+    """Solve the inverse kinematics of the grasp frame for N target poses.
+
+    Args:
+        robot: A :class:`Robot` or a spec name/path for :func:`load_robot`.
+        targets: Grasp-frame poses (N, 4, 4) in the robot base frame [m].
+        backend: ``"pinocchio"`` (default, batched LM) or ``"mink"``.
+        position_tolerance: Max position error of a success [m], > 0.
+        orientation_tolerance: Max orientation error (geodesic angle) [rad], > 0.
+        seeds: Optional warm-start configurations (N, K, nq) [rad] tried first;
+            NaN rows are ignored.
+        neighbours: Optional (N, K) int: for row i, rows of ``targets`` whose
+            solutions seed row i (in that order; -1 = none). Rows without
+            neighbours are solved first, then the others seeded from them.
+        validator: Optional ``q (M, nq) -> (M,) str`` ('' = valid) applied to
+            converged candidates before one is chosen (see module doc).
+        return_all: Also return every converged candidate (``result.candidates``).
+        workers: Processes to split the targets over (``0``: all cores).
+        **options: Backend options, e.g. ``max_iterations`` (see
+            :class:`~gcm_pipeline.robot.ik_pinocchio.PinocchioIKOptions` and
+            :class:`~gcm_pipeline.robot.ik_mink.MinkIKOptions`).
+
+    Returns:
+        The :class:`IKResult`; every success verified by Pinocchio FK.
+
+    Raises:
+        InputError: Unknown backend or option, tolerance <= 0, bad seeds or
+            neighbours.
+        GeometryError: Targets of the wrong shape, non-finite or non-rigid.
+    """
+    robot = load_robot(robot)
+    solve = _backend(backend)
+    tol_p = _tolerance("position_tolerance", position_tolerance)
+    tol_r = _tolerance("orientation_tolerance", orientation_tolerance)
+    tgt = check_targets(targets)
+    n, nq = tgt.shape[0], robot.nq
+    if workers == 0:
+        workers = os.cpu_count() or 1
+    if not isinstance(workers, (int, np.integer)) or workers < 0:
+        raise InputError(f"workers must be an int >= 0, got {workers!r}")
+    seed_arr: np.ndarray | None = None
+    if seeds is not None:
+        seed_arr = np.asarray(seeds, dtype=float)
+        if seed_arr.ndim == 2:
+            seed_arr = seed_arr[:, None, :]
+        if seed_arr.ndim != 3 or seed_arr.shape[0] != n or seed_arr.shape[2] != nq:
+            raise InputError(f"seeds must have shape ({n}, K, {nq}), got {np.shape(seeds)}")
+    nb: np.ndarray | None = None
+    if neighbours is not None:
+        nb = np.asarray(neighbours)
+        if nb.ndim == 1:
+            nb = nb[:, None]
+        if nb.ndim != 2 or nb.shape[0] != n or not np.issubdtype(nb.dtype, np.integer):
+            raise InputError(
+                f"neighbours must be an int array of shape ({n}, K), got {np.shape(neighbours)}"
+            )
+        if np.any((nb < -1) | (nb >= n)):
+            raise InputError(f"neighbours must be row ids in [-1, {n - 1}]")
+    kwargs = dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
+
+    q = np.full((n, nq), np.nan)
+    success = np.zeros(n, dtype=bool)
+    pos_err = np.full(n, np.nan)
+    rot_err = np.full(n, np.nan)
+    reason = np.full(n, "", dtype=object)
+    cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    # cheap pre-filter: beyond the arm's reach from the shoulder
+    dist = np.linalg.norm(tgt[:, :3, 3] - robot.shoulder, axis=1)
+    far = dist > robot.max_reach + tol_p
+    reason[far] = "out_of_reach"
+
+    phases: list[np.ndarray]
+    if nb is None:
+        phases = [np.flatnonzero(~far)]
+    else:
+        has_nb = np.any(nb >= 0, axis=1)
+        phases = [np.flatnonzero(~far & ~has_nb), np.flatnonzero(~far & has_nb)]
+    for phase, rows in enumerate(phases):
+        if rows.size == 0:
+            continue
+        sub_seeds = None if seed_arr is None else seed_arr[rows]
+        if phase == 1:
+            assert nb is not None
+            ref = nb[rows]
+            warm = np.where((ref >= 0)[:, :, None], q[np.clip(ref, 0, None)], np.nan)
+            sub_seeds = warm if sub_seeds is None else np.concatenate([warm, sub_seeds], axis=1)
+        raw = _run_backend(
+            solve, robot, tgt[rows], sub_seeds, validator, return_all, workers, kwargs
+        )
+        ok = np.asarray(raw["success"], dtype=bool)
+        q_rows = np.asarray(raw["q"], dtype=float)
+        # independent verification of every success by Pinocchio FK + joint limits
+        pe, re, inside = verify_solutions(robot, q_rows[ok], tgt[rows][ok])
+        good = np.zeros(rows.size, dtype=bool)
+        good[ok] = (pe <= tol_p) & (re <= tol_r) & inside
+        pos_err[rows] = raw["pos_err"]
+        rot_err[rows] = raw["rot_err"]
+        pos_err[rows[ok]] = pe
+        rot_err[rows[ok]] = re
+        success[rows] = good
+        q[rows[good]] = q_rows[good]
+        reason[rows] = np.asarray(raw["reason"], dtype=object)
+        reason[rows[ok & ~good]] = "verification_failed"
+        reason[rows[good]] = ""
+        if return_all:
+            cand.append((rows[raw["all_index"]], raw["all_q"], raw["all_reason"]))
+    candidates = None
+    if return_all:
+        if cand:
+            index = np.concatenate([c[0] for c in cand]).astype(int)
+            cq = np.concatenate([c[1] for c in cand]).reshape(-1, nq)
+            creason = np.concatenate([c[2] for c in cand]).astype(str)
+        else:
+            index, cq, creason = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
+        order = np.argsort(index, kind="stable")
+        candidates = IKCandidates(index[order], cq[order], creason[order])
+    return IKResult(
+        q=q,
+        success=success,
+        pos_err=pos_err,
+        rot_err=rot_err,
+        reason=reason.astype(str),
+        backend=backend,
+        candidates=candidates,
+    )

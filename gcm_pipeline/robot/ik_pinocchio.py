@@ -1,0 +1,491 @@
+r"""Default IK backend: batched Levenberg-Marquardt on Pinocchio's kinematic chain.
+
+All targets are solved at once. The chain (joint placements and axes read out
+of the Pinocchio model, see :class:`~gcm_pipeline.robot.chain.KinematicChain`)
+is evaluated in vectorised NumPy; each iteration takes, for every still-active
+(target, seed) pair, the damped least-squares step
+
+.. math::
+
+    \Delta q = J^\top (J J^\top + \lambda I)^{-1} e, \qquad
+    \lambda = \lambda_0 \lVert e \rVert^2 + \lambda_{\min},
+
+where ``e = [p* - p; log(R* R^T)]`` is the pose error in base-frame axes and
+``J`` the LOCAL_WORLD_ALIGNED grasp-frame Jacobian, and projects ``q`` back
+inside the joint limits. Seeds are tried in rounds, only for the targets that
+still fail: given seeds (warm starts from neighbours), the nearest entries of
+a library of random configurations (KD-tree over position and scaled
+quaternion), the home configuration, then random configurations. Among the
+converged seeds of a target, the one with the largest Yoshikawa
+manipulability is kept.
+
+This module reports raw candidates; :func:`gcm_pipeline.robot.ik.solve_ik`
+verifies every success with Pinocchio's own forward kinematics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gcm_pipeline.errors import InputError, unknown_choice
+
+__all__ = ["PinocchioIKOptions", "SeedLibrary", "log3", "rotation_angle", "solve"]
+
+_LIBRARIES: dict[tuple[int, int, int, float], SeedLibrary] = {}
+
+
+@dataclass(frozen=True)
+class PinocchioIKOptions:
+    r"""Options of the batched LM solver (pass them as keywords to ``solve_ik``).
+
+    Attributes:
+        max_iterations: LM iterations per seed.
+        library_size: Random configurations in the seed library.
+        library_seeds: Nearest library entries tried per target (in rounds).
+        random_restarts: Extra uniformly random seeds for targets still failing.
+        first_round_seeds: Seeds solved at once in the first round; with more
+            than one, the converged solution of best manipulability is kept.
+        round_seeds: Seeds solved at once per target in the later rounds.
+        min_solutions: Stop trying seeds for a target once it has this many
+            valid converged solutions (more gives more choice, costs time).
+        damping: :math:`\lambda_0` of the adaptive damping.
+        min_damping: :math:`\lambda_{\min}`.
+        orientation_weight: Length scale [m] that weights the quaternion in the
+            library's KD-tree (0.5 m per unit quaternion distance).
+        inner_tolerance: Fraction of the user's tolerances used as the
+            convergence threshold (converging further than asked makes the
+            independent verification robust).
+        limit_epsilon: Solutions are kept this far inside the joint limits [rad].
+        random_seed: Seed of the library and the random restarts.
+    """
+
+    max_iterations: int = 15
+    library_size: int = 20000
+    library_seeds: int = 8
+    random_restarts: int = 8
+    first_round_seeds: int = 1
+    round_seeds: int = 1
+    min_solutions: int = 1
+    damping: float = 1e-3
+    min_damping: float = 1e-9
+    orientation_weight: float = 0.5
+    inner_tolerance: float = 0.05
+    limit_epsilon: float = 1e-9
+    random_seed: int = 0
+
+    @classmethod
+    def from_kwargs(cls, options: dict[str, Any]) -> PinocchioIKOptions:
+        """Build from keyword options; unknown names are an :class:`InputError`."""
+        names = cls.__dataclass_fields__
+        for key in options:
+            if key not in names:
+                raise InputError(unknown_choice("pinocchio IK option", key, names))
+        return cls(**options)
+
+
+def log3(rot: np.ndarray) -> np.ndarray:
+    """Rotation vectors of rotation matrices (batched SO(3) logarithm).
+
+    Args:
+        rot: Rotation matrices (N, 3, 3).
+
+    Returns:
+        Rotation vectors (N, 3) [rad], angle in [0, pi].
+    """
+    v = 0.5 * np.stack(
+        [rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]],
+        axis=1,
+    )
+    c = 0.5 * (rot[:, 0, 0] + rot[:, 1, 1] + rot[:, 2, 2] - 1.0)
+    s = np.linalg.norm(v, axis=1)
+    angle = np.arctan2(s, c)
+    scale = np.ones_like(s)
+    big = s > 1e-12
+    scale[big] = angle[big] / s[big]
+    out = v * scale[:, None]
+    near_pi = (~big) & (c < 0)
+    if np.any(near_pi):
+        b = 0.5 * (rot[near_pi] + np.eye(3))
+        k = np.argmax(np.diagonal(b, axis1=1, axis2=2), axis=1)
+        axis = b[np.arange(len(k)), :, k]
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        out[near_pi] = np.pi * axis
+    return out
+
+
+def rotation_angle(rot: np.ndarray) -> np.ndarray:
+    """Angles of rotation matrices (N, 3, 3) -> (N,) [rad], accurate near 0 and pi."""
+    s = 0.5 * np.linalg.norm(
+        np.stack(
+            [rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]],
+            axis=1,
+        ),
+        axis=1,
+    )
+    c = 0.5 * (rot[:, 0, 0] + rot[:, 1, 1] + rot[:, 2, 2] - 1.0)
+    return np.arctan2(s, c)
+
+
+def _quat_wxyz(rot: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of rotation matrices, w >= 0 (Shepperd)."""
+    n = rot.shape[0]
+    m = rot
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
+    k = np.argmax(cand, axis=1)
+    q = np.empty((n, 4))
+    for case in range(4):
+        sel = k == case
+        if not np.any(sel):
+            continue
+        r = m[sel]
+        if case == 0:
+            t = np.sqrt(1.0 + r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]) * 2
+            q[sel] = np.stack(
+                [
+                    0.25 * t,
+                    (r[:, 2, 1] - r[:, 1, 2]) / t,
+                    (r[:, 0, 2] - r[:, 2, 0]) / t,
+                    (r[:, 1, 0] - r[:, 0, 1]) / t,
+                ],
+                axis=1,
+            )
+        elif case == 1:
+            t = np.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2]) * 2
+            q[sel] = np.stack(
+                [
+                    (r[:, 2, 1] - r[:, 1, 2]) / t,
+                    0.25 * t,
+                    (r[:, 0, 1] + r[:, 1, 0]) / t,
+                    (r[:, 0, 2] + r[:, 2, 0]) / t,
+                ],
+                axis=1,
+            )
+        elif case == 2:
+            t = np.sqrt(1.0 - r[:, 0, 0] + r[:, 1, 1] - r[:, 2, 2]) * 2
+            q[sel] = np.stack(
+                [
+                    (r[:, 0, 2] - r[:, 2, 0]) / t,
+                    (r[:, 0, 1] + r[:, 1, 0]) / t,
+                    0.25 * t,
+                    (r[:, 1, 2] + r[:, 2, 1]) / t,
+                ],
+                axis=1,
+            )
+        else:
+            t = np.sqrt(1.0 - r[:, 0, 0] - r[:, 1, 1] + r[:, 2, 2]) * 2
+            q[sel] = np.stack(
+                [
+                    (r[:, 1, 0] - r[:, 0, 1]) / t,
+                    (r[:, 0, 2] + r[:, 2, 0]) / t,
+                    (r[:, 1, 2] + r[:, 2, 1]) / t,
+                    0.25 * t,
+                ],
+                axis=1,
+            )
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+class SeedLibrary:
+    """Random configurations and their grasp-frame poses in a KD-tree.
+
+    Keys are ``[p, w * quat]`` with both quaternion signs stored, so the
+    nearest neighbour respects the double cover.
+
+    Args:
+        robot: The robot (a :class:`~gcm_pipeline.robot.model.Robot`).
+        size: Number of random configurations.
+        weight: Length scale [m] per unit of quaternion distance.
+        seed: Random seed.
+    """
+
+    def __init__(self, robot: Any, size: int, weight: float, seed: int) -> None:
+        self.q = robot.random_configurations(size, np.random.default_rng(seed))
+        rot, pos = robot.chain.pose(self.q)
+        self.weight = weight
+        quat = _quat_wxyz(rot)
+        keys = np.concatenate(
+            [np.hstack([pos, weight * quat]), np.hstack([pos, -weight * quat])], axis=0
+        )
+        self.tree = cKDTree(keys)
+        self.size = size
+
+    def nearest(self, rot: np.ndarray, pos: np.ndarray, k: int) -> np.ndarray:
+        """Indices (N, k) of the library configurations nearest to the poses."""
+        keys = np.hstack([pos, self.weight * _quat_wxyz(rot)])
+        # both signs of one entry are 2 * weight apart: duplicates are rare and harmless
+        _, idx = self.tree.query(keys, k=max(1, min(k, 2 * self.size)))
+        return np.asarray(idx, dtype=int).reshape(keys.shape[0], -1) % self.size
+
+
+def seed_library(robot: Any, opts: PinocchioIKOptions) -> SeedLibrary:
+    """The cached seed library of ``robot`` for these options."""
+    key = (id(robot), opts.library_size, opts.random_seed, opts.orientation_weight)
+    lib = _LIBRARIES.get(key)
+    if lib is None or lib.q.shape[1] != robot.nq:
+        lib = SeedLibrary(robot, opts.library_size, opts.orientation_weight, opts.random_seed)
+        _LIBRARIES[key] = lib
+    return lib
+
+
+def _errors(
+    rot: np.ndarray, pos: np.ndarray, trot: np.ndarray, tpos: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    ep = tpos - pos
+    ew = log3(trot @ rot.transpose(0, 2, 1))
+    return ep, ew
+
+
+def _lm(
+    chain: Any,
+    q: np.ndarray,
+    trot: np.ndarray,
+    tpos: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    tol_p: float,
+    tol_r: float,
+    opts: PinocchioIKOptions,
+    clamp: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Run LM on a batch of (target, seed) pairs.
+
+    Returns:
+        ``(q, converged, pos_err, rot_err)``; errors are those of the returned q.
+    """
+    q = q.copy()
+    m = q.shape[0]
+    converged = np.zeros(m, dtype=bool)
+    pos_err = np.full(m, np.inf)
+    rot_err = np.full(m, np.inf)
+    active = np.arange(m)
+    eye = np.eye(6)
+    for it in range(opts.max_iterations + 1):
+        qa = q[active]
+        rot, pos, jac = chain.pose_jacobian(qa)
+        ep, ew = _errors(rot, pos, trot[active], tpos[active])
+        pe = np.linalg.norm(ep, axis=1)
+        re = np.linalg.norm(ew, axis=1)
+        pos_err[active] = pe
+        rot_err[active] = re
+        done = (pe <= tol_p) & (re <= tol_r)
+        converged[active[done]] = True
+        keep = ~done
+        if it == opts.max_iterations or not np.any(keep):
+            break
+        active = active[keep]
+        jac = jac[keep]
+        e = np.concatenate([ep[keep], ew[keep]], axis=1)
+        lam = opts.damping * np.einsum("ij,ij->i", e, e) + opts.min_damping
+        a = jac @ jac.transpose(0, 2, 1) + lam[:, None, None] * eye
+        y = np.linalg.solve(a, e[:, :, None])
+        dq = (jac.transpose(0, 2, 1) @ y)[:, :, 0]
+        qa = q[active]
+        qn = qa + dq
+        if clamp:
+            viol = (qn < lower) | (qn > upper)
+            rows = np.flatnonzero(viol.any(axis=1))
+            if rows.size:
+                # joints that would cross a limit are frozen at it and the
+                # step is re-solved with the remaining joints (clamped DLS)
+                jr = jac[rows] * (~viol[rows])[:, None, :]
+                qr = np.clip(qn[rows], lower, upper)
+                jr_dq = np.einsum("nij,nj->ni", jac[rows], qr - qa[rows])
+                er = e[rows] - jr_dq
+                ar = jr @ jr.transpose(0, 2, 1) + lam[rows, None, None] * eye
+                yr = np.linalg.solve(ar, er[:, :, None])
+                qn[rows] = qr + (jr.transpose(0, 2, 1) @ yr)[:, :, 0]
+            np.clip(qn, lower, upper, out=qn)
+        q[active] = qn
+    return q, converged, pos_err, rot_err
+
+
+def yoshikawa_of(chain: Any, q: np.ndarray) -> np.ndarray:
+    """Yoshikawa manipulability sqrt(det(J J^T)) of configurations (N, nq)."""
+    jac = chain.pose_jacobian(q)[2]
+    det = np.linalg.det(jac @ jac.transpose(0, 2, 1))
+    return np.sqrt(np.clip(det, 0.0, None))
+
+
+def solve(
+    robot: Any,
+    targets: np.ndarray,
+    *,
+    position_tolerance: float,
+    orientation_tolerance: float,
+    seeds: np.ndarray | None = None,
+    validator: Callable[[np.ndarray], np.ndarray] | None = None,
+    return_all: bool = False,
+    **options: Any,
+) -> dict[str, Any]:
+    """Solve IK for targets with the batched LM (raw, unverified results).
+
+    Args:
+        robot: The robot.
+        targets: Grasp-frame poses (N, 4, 4) in the base frame, already validated.
+        position_tolerance: [m].
+        orientation_tolerance: [rad].
+        seeds: Optional warm starts (N, K, nq) [rad]; NaN rows are skipped.
+        validator: Optional ``q (M, nq) -> (M,) str`` reasons ('' = valid),
+            applied to converged candidates before one is chosen.
+        return_all: Also return every converged candidate.
+        **options: :class:`PinocchioIKOptions` fields.
+
+    Returns:
+        A dict with ``q`` (N, nq) (NaN if none), ``success`` (N,), ``pos_err``,
+        ``rot_err`` (N,) of the chosen or best attempt, ``reason`` (N,) and,
+        with ``return_all``, ``all_index``, ``all_q``, ``all_reason``.
+    """
+    opts = PinocchioIKOptions.from_kwargs(options)
+    n = targets.shape[0]
+    nq = robot.nq
+    chain = robot.chain
+    eps = opts.limit_epsilon
+    lower = robot.lower + eps
+    upper = robot.upper - eps
+    tol_p = position_tolerance * opts.inner_tolerance
+    tol_r = orientation_tolerance * opts.inner_tolerance
+    trot = np.ascontiguousarray(targets[:, :3, :3])
+    tpos = np.ascontiguousarray(targets[:, :3, 3])
+    rng = np.random.default_rng(opts.random_seed + 1)
+
+    best_q = np.full((n, nq), np.nan)
+    best_score = np.full(n, -np.inf)
+    n_valid = np.zeros(n, dtype=int)
+    att_p = np.full(n, np.inf)
+    att_r = np.full(n, np.inf)
+    att_q = np.full((n, nq), np.nan)
+    last_reason = np.full(n, "", dtype=object)
+    all_index: list[np.ndarray] = []
+    all_q: list[np.ndarray] = []
+    all_reason: list[np.ndarray] = []
+
+    # seed schedule: a list of (target ids, seed configurations) per round
+    lib = seed_library(robot, opts)
+    n_lib = max(0, opts.library_seeds)
+    nearest = lib.nearest(trot, tpos, n_lib) if n_lib and n else np.zeros((n, 0), int)
+    given = [] if seeds is None else [seeds[:, k] for k in range(seeds.shape[1])]
+    columns: list[np.ndarray] = []
+    for s in given:
+        columns.append(s)
+    for k in range(n_lib):
+        columns.append(lib.q[nearest[:, k]])
+    columns.append(np.broadcast_to(robot.home, (n, nq)))
+    n_fixed = len(columns)
+    n_rounds = n_fixed + opts.random_restarts
+    first = max(1, opts.first_round_seeds)
+
+    def column(c: int, ids: np.ndarray) -> np.ndarray:
+        if c < n_fixed:
+            return np.asarray(columns[c][ids], dtype=float)
+        return robot.random_configurations(len(ids), rng)
+
+    c = 0
+    while c < n_rounds:
+        todo = np.flatnonzero(n_valid < opts.min_solutions)
+        if todo.size == 0:
+            break
+        width = first if c == 0 else max(1, opts.round_seeds)
+        if c > 0 and todo.size * (n_rounds - c) <= 256:
+            width = n_rounds - c  # few stubborn targets: try every seed left at once
+        ids_list, q0_list = [], []
+        for cc in range(c, min(c + width, n_rounds)):
+            q0 = column(cc, todo)
+            ok = np.all(np.isfinite(q0), axis=1)
+            ids_list.append(todo[ok])
+            q0_list.append(np.clip(q0[ok], lower, upper))
+        c += width
+        ids = np.concatenate(ids_list)
+        if ids.size == 0:
+            continue
+        q0 = np.concatenate(q0_list)
+        q, conv, pe, re = _lm(chain, q0, trot[ids], tpos[ids], lower, upper, tol_p, tol_r, opts)
+        # remember the best attempt (for error reporting of failures)
+        score_att = pe / position_tolerance + re / orientation_tolerance
+        order = np.argsort(-score_att)  # best last, so it wins the fancy assignment
+        cur = att_p[ids[order]] / position_tolerance + att_r[ids[order]] / orientation_tolerance
+        better = score_att[order] < cur
+        sel = order[better]
+        att_p[ids[sel]] = pe[sel]
+        att_r[ids[sel]] = re[sel]
+        att_q[ids[sel]] = q[sel]
+        if not np.any(conv):
+            continue
+        cids, cq = ids[conv], q[conv]
+        if validator is not None:
+            reasons = np.asarray(validator(cq), dtype=object)
+            if reasons.shape != (cq.shape[0],):
+                raise InputError(
+                    f"validator returned shape {reasons.shape}, expected ({cq.shape[0]},)"
+                )
+        else:
+            reasons = np.full(cq.shape[0], "", dtype=object)
+        if return_all:
+            all_index.append(cids)
+            all_q.append(cq)
+            all_reason.append(reasons)
+        valid = reasons == ""
+        last_reason[cids[~valid]] = reasons[~valid]
+        if not np.any(valid):
+            continue
+        vids, vq = cids[valid], cq[valid]
+        score = (
+            yoshikawa_of(chain, vq) if (width > 1 or opts.min_solutions > 1) else np.ones(len(vids))
+        )
+        np.add.at(n_valid, vids, 1)
+        order = np.argsort(score)  # ascending: the best is written last
+        vids, vq, score = vids[order], vq[order], score[order]
+        better = score > best_score[vids]
+        best_q[vids[better]] = vq[better]
+        best_score[vids[better]] = score[better]
+
+    success = n_valid > 0
+    reason = np.full(n, "", dtype=object)
+    fail = np.flatnonzero(~success)
+    if fail.size:
+        reason[fail] = "no_ik"
+        rejected = fail[last_reason[fail] != ""]
+        reason[rejected] = last_reason[rejected]
+        # would the target be reached without the joint limits?
+        plain = fail[last_reason[fail] == ""]
+        start = att_q[plain]
+        ok = np.all(np.isfinite(start), axis=1)
+        plain = plain[ok]
+        if plain.size:
+            qf, conv, pe, re = _lm(
+                chain,
+                start[ok],
+                trot[plain],
+                tpos[plain],
+                lower,
+                upper,
+                tol_p,
+                tol_r,
+                opts,
+                clamp=False,
+            )
+            inside = conv & np.all((qf >= lower) & (qf <= upper), axis=1)
+            if validator is None and np.any(inside):
+                # the unclamped run found a solution inside the limits after all
+                ids = plain[inside]
+                best_q[ids], success[ids], reason[ids] = qf[inside], True, ""
+                att_p[ids], att_r[ids] = pe[inside], re[inside]
+            reason[plain[conv & ~inside]] = "joint_limits"
+    out: dict[str, Any] = {
+        "q": best_q,
+        "success": success,
+        "pos_err": att_p,
+        "rot_err": att_r,
+        "reason": reason,
+    }
+    if return_all:
+        out["all_index"] = np.concatenate(all_index) if all_index else np.zeros(0, int)
+        out["all_q"] = np.concatenate(all_q) if all_q else np.zeros((0, nq))
+        out["all_reason"] = np.concatenate(all_reason) if all_reason else np.zeros(0, dtype=object)
+    return out

@@ -17,9 +17,9 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
 
 ``collision_environment``
     every robot link vs every environment obstacle, except the table vs the
-    robot's base links: links attached to the universe (``panda_link0``) and
-    links of the first joint that touch the table in the home configuration
-    (not the case for ``panda_link1``, which therefore stays checked).
+    robot's base links standing on it: links attached to the universe or to
+    the first joint that touch the table in the home configuration
+    (``panda_link0``; ``panda_link1`` is 0.14 m above it and stays checked).
 ``collision_self``
     all link pairs on different joints, minus the pairs the SRDF disables
     (``pin.removeCollisionPairs``) and adjacent links (parent/child joints).
@@ -434,13 +434,13 @@ class CollisionChecker:
     def _table_exempt(
         self, model: pin.Model, gm: Any, world_ids: dict[str, int], joint_of: list[int]
     ) -> set[int]:
-        """Robot geometries not checked against the table: the base links.
+        """Robot geometries not checked against the table: the base links standing on it.
 
-        Links fixed to the universe always; links of the first joint only when
-        they touch the table in the home configuration (they stand on it).
+        Links fixed to the universe or to the first joint that touch the table
+        in the home configuration (for the Panda at z = 0: ``panda_link0``).
         """
-        exempt = {i for i in range(self.n_robot_geoms) if joint_of[i] == 0}
-        first = [i for i in range(self.n_robot_geoms) if joint_of[i] == 1]
+        exempt: set[int] = set()
+        first = [i for i in range(self.n_robot_geoms) if joint_of[i] in (0, 1)]
         if not first:
             return exempt
         probe = gm.copy()

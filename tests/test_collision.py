@@ -1,0 +1,244 @@
+"""Collision checker on the real Panda model (example-robot-data), no mocks."""
+
+from __future__ import annotations
+
+import coal
+import example_robot_data
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, ObstacleConfig
+from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.robot.collision import (
+    REASON_ENVIRONMENT,
+    REASON_OBJECT,
+    REASON_SELF,
+    CollisionChecker,
+)
+from gcm_pipeline.robot.model import load_robot
+
+BOTTLE = {
+    "shape": "cylinder",
+    "dims": {"radius": 0.035, "height": 0.22},
+    "pose": {"xyz": [0.5, 0, 0]},
+}
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot("panda")
+
+
+@pytest.fixture(scope="module")
+def checker(robot):
+    return CollisionChecker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
+
+
+def _q(robot, **joints):
+    q = np.array(robot.home, dtype=float)
+    for k, v in joints.items():
+        q[int(k[1:]) - 1] = v
+    return q
+
+
+def test_home_is_free(robot, checker):
+    assert checker.check(robot.home).tolist() == [""]
+    assert checker.colliding_pairs(robot.home) == []
+
+
+def test_arm_through_table_is_environment(robot, checker):
+    q = _q(robot, j2=1.6, j4=-0.5)  # leaning forward: the hand ends 0.1 m below z = 0
+    assert robot.fk(q)[0, 2, 3] < 0
+    assert checker.check(q).tolist() == [REASON_ENVIRONMENT]
+    pairs = checker.colliding_pairs(q)
+    assert ("panda_hand_0", "table", "environment") in pairs
+
+
+def test_folded_arm_is_self_collision(robot, checker):
+    q = _q(robot, j2=1.7, j4=-3.0)  # elbow folded shut, wrist back onto the base
+    assert checker.check(q).tolist() == [REASON_SELF]
+    kinds = {k for _, _, k in checker.colliding_pairs(q)}
+    assert kinds == {"self"}
+
+
+def test_object_at_hand_is_object_collision(robot):
+    tcp = robot.fk(robot.home)[0]
+    at_wrist = (tcp[:3, 3] - 0.09 * tcp[:3, 2]).tolist()  # 9 cm behind the TCP: in the hand
+    obj = ObjectConfig.model_validate(
+        {"shape": "box", "dims": {"size": [0.05, 0.05, 0.05]}, "pose": {"xyz": at_wrist}}
+    )
+    c = CollisionChecker(robot, EnvironmentConfig(), obj)
+    assert c.check(robot.home).tolist() == [REASON_OBJECT]
+
+
+def test_contact_tolerance_at_finger_pads(robot):
+    """A sphere between the open fingers: touching within the tolerance is a grasp."""
+    tcp = robot.fk(robot.home)[0, :3, 3].tolist()
+
+    def reason(radius, tol):
+        obj = ObjectConfig.model_validate(
+            {"shape": "sphere", "dims": {"radius": radius}, "pose": {"xyz": tcp}}
+        )
+        c = CollisionChecker(robot, EnvironmentConfig(contact_tolerance=tol), obj)
+        return c.check(robot.home)[0]
+
+    assert reason(0.030, 0.0) == ""  # fits between the fingers (8 cm opening)
+    assert reason(0.041, 0.0) == REASON_OBJECT  # presses 1 mm into the pads
+    assert reason(0.041, 0.005) == ""  # 1 mm < tolerance: contact allowed
+    assert reason(0.050, 0.005) == REASON_OBJECT  # 10 mm > tolerance
+
+
+def test_clearance_free_and_colliding(robot, checker):
+    c_home = checker.clearance(robot.home)[0]
+    tcp_z = robot.fk(robot.home)[0, 2, 3]
+    assert 0.05 < c_home < tcp_z  # nearest link above the table, below the hand height
+    q = _q(robot, j2=1.6, j4=-0.5)
+    assert checker.clearance(q)[0] <= 0.0
+    # lowering the arm toward the table decreases the clearance
+    qs = np.array([_q(robot, j2=a, j4=-0.5) for a in (0.5, 1.0, 1.3)])
+    cl = checker.clearance(qs)
+    assert np.all(np.diff(cl) < 0) and cl[-1] > 0
+
+
+def test_batch_shapes_and_nonfinite(robot, checker):
+    qs = np.vstack([robot.home, np.full(robot.nq, np.nan)])
+    assert checker.check(qs).tolist() == ["", ""]
+    assert np.isnan(checker.clearance(qs)[1])
+    assert checker.check(np.zeros((0, robot.nq))).shape == (0,)
+    with pytest.raises(InputError, match="shape"):
+        checker.check(np.zeros((2, 3)))
+
+
+def _oracle(obj_pose, obstacle_xyz):
+    """Independent world on the *unreduced* example-robot-data model and its own geometry."""
+    erd = example_robot_data.load("panda")
+    model, gm = erd.model, erd.collision_model.copy()  # SRDF pairs already applied by erd
+    n_rob = gm.ngeoms
+    self_pairs = [(int(p.first), int(p.second)) for p in gm.collisionPairs]
+    table = pin.GeometryObject(
+        "t", 0, 0, pin.SE3(np.eye(3), np.array([0.0, 0.0, -0.025])), coal.Box(2.0, 2.0, 0.05)
+    )
+    obj = pin.GeometryObject(
+        "o", 0, 0, pin.SE3(np.eye(3), np.array(obj_pose) + [0, 0, 0.11]), coal.Cylinder(0.035, 0.22)
+    )
+    sph = pin.GeometryObject(
+        "s", 0, 0, pin.SE3(np.eye(3), np.array(obstacle_xyz)), coal.Sphere(0.1)
+    )
+    it, io, is_ = gm.addGeometryObject(table), gm.addGeometryObject(obj), gm.addGeometryObject(sph)
+    gm.removeAllCollisionPairs()
+    kinds = []
+    link0 = gm.getGeometryId("panda_link0_0")
+    for a, b in self_pairs:
+        gm.addCollisionPair(pin.CollisionPair(a, b))
+        kinds.append("self")
+    for i in range(n_rob):
+        if i != link0:
+            gm.addCollisionPair(pin.CollisionPair(i, it))
+            kinds.append("environment")
+        gm.addCollisionPair(pin.CollisionPair(i, is_))
+        kinds.append("environment")
+        gm.addCollisionPair(pin.CollisionPair(i, io))
+        kinds.append("object")
+    return model, gm, np.array(kinds)
+
+
+def test_agrees_with_pinocchio_compute_collisions(robot):
+    obstacle = [0.3, -0.35, 0.45]
+    env = EnvironmentConfig.model_validate(
+        {
+            "contact_tolerance": 0.0,
+            "obstacles": [{"shape": "sphere", "dims": {"radius": 0.1}, "pose": {"xyz": obstacle}}],
+        }
+    )
+    c = CollisionChecker(robot, env, ObjectConfig.model_validate(BOTTLE))
+    model, gm, kinds = _oracle([0.5, 0.0, 0.0], obstacle)
+    data, gd = model.createData(), pin.GeometryData(gm)
+    rng = np.random.default_rng(7)
+    qs = robot.random_configurations(600, rng)
+    # plus configurations near the bottle: perturbed home poses leaning forward
+    near = _q(robot, j2=0.9, j4=-1.2, j6=2.0) + rng.normal(0, 0.25, (200, robot.nq))
+    qs = np.vstack([qs, np.clip(near, robot.lower, robot.upper)])
+    reasons = c.check(qs)
+    expect = []
+    for q in qs:
+        pin.computeCollisions(model, data, gm, gd, np.concatenate([q, [0.04, 0.04]]), False)
+        hit = np.array([r.isCollision() for r in gd.collisionResults])
+        for kind, reason in (
+            ("environment", REASON_ENVIRONMENT),
+            ("self", REASON_SELF),
+            ("object", REASON_OBJECT),
+        ):
+            if hit[kinds == kind].any():
+                expect.append(reason)
+                break
+        else:
+            expect.append("")
+    expect = np.array(expect)
+    assert (reasons == expect).all(), np.flatnonzero(reasons != expect)
+    for r in ("", REASON_ENVIRONMENT, REASON_SELF, REASON_OBJECT):
+        assert (expect == r).sum() >= 5, f"too few samples with reason {r!r}"
+
+
+def test_table_exempts_only_base_link(checker):
+    assert checker.table_exempt == ("panda_link0",)
+    assert "panda_hand" in {checker.link_names[i] for i in checker.gripper_geoms}
+    assert "panda_link7" not in {checker.link_names[i] for i in checker.gripper_geoms}
+
+
+def test_base_pose_moves_the_world(robot):
+    # robot mounted 0.5 m above the table: the through-table configuration is now free
+    q = _q(robot, j2=1.6, j4=-0.5)
+    c = CollisionChecker(robot, EnvironmentConfig(), None, None)
+    assert c.check(q)[0] == REASON_ENVIRONMENT
+    raised = np.eye(4)
+    raised[2, 3] = 0.5
+    c2 = CollisionChecker(robot, EnvironmentConfig(), None, raised)
+    assert c2.check(q)[0] == ""
+    assert c2.table_exempt == ()  # nothing stands on the table any more
+
+
+def test_mesh_obstacle(robot):
+    link0 = robot.mesh_dir / "meshes" / "collision" / "link0.stl"
+    env = EnvironmentConfig.model_validate(
+        {
+            "obstacles": [
+                {"shape": "mesh", "mesh": str(link0), "scale": 2.0, "pose": {"xyz": [0.8, 0, 0]}}
+            ]
+        }
+    )
+    c = CollisionChecker(robot, env)
+    assert c.check(robot.home)[0] == ""
+    assert c.check(_q(robot, j2=1.3, j4=-0.5))[0] == REASON_ENVIRONMENT  # hand at x 0.76, z 0.1
+
+
+# --- errors -----------------------------------------------------------------------------
+
+
+def test_unreadable_mesh_names_the_file(robot, tmp_path):
+    bad = tmp_path / "broken.stl"
+    bad.write_text("not a mesh")
+    env = EnvironmentConfig(obstacles=(ObstacleConfig(shape="mesh", mesh=bad),))
+    with pytest.raises(InputError, match="broken.stl"):
+        CollisionChecker(robot, env)
+    env = EnvironmentConfig(obstacles=(ObstacleConfig(shape="mesh", mesh=tmp_path / "nope.obj"),))
+    with pytest.raises(InputError, match="nope.obj"):
+        CollisionChecker(robot, env)
+
+
+@pytest.mark.parametrize(
+    ("section", "value", "match"),
+    [
+        ("environment", {"obstacles": [{"shape": "cone", "dims": {"radius": 1}}]}, "cone"),
+        ("environment", {"obstacles": [{"shape": "sphere", "dims": {"radius": 0}}]}, "radius"),
+        ("environment", {"obstacles": [{"shape": "box", "dims": {"size": [1, -1, 1]}}]}, "size"),
+        ("environment", {"table": {"size": [1.0, 0.0, 0.05]}}, "size"),
+        ("environment", {"contact_tolerance": -0.001}, "contact_tolerance"),
+        ("approach", {"distance": -0.1}, "distance"),
+        ("ranking", {"metric": "combined", "weights": {"yoshikawa": 0, "clearance": 0}}, "weight"),
+        ("ranking", {"metric": "combined", "weights": {"clearance": -1.0}}, "clearance"),
+    ],
+)
+def test_config_errors(section, value, match):
+    with pytest.raises(ConfigError, match=match):
+        Config.from_dict({"candidates": {"source": "plane"}, section: value})

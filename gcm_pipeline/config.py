@@ -53,6 +53,7 @@ __all__ = [
     "RobotConfig",
     "ShapeDims",
     "TableConfig",
+    "config_schema",
     "load_config",
 ]
 
@@ -537,3 +538,11 @@ def _resolve_paths(data: dict[str, Any], base: Path) -> None:
             p = Path(sec[key])
             if not p.is_absolute() and not p.exists() and (base / p).exists():
                 sec[key] = str(base / p)
+
+
+def config_schema() -> dict[str, Any]:
+    """The JSON Schema (draft 2020-12) of a config file, as printed by ``gcm schema``."""
+    schema = Config.model_json_schema(mode="validation")
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "gcm_pipeline config"
+    return schema

@@ -1,0 +1,277 @@
+"""Command line: ``gcm run | validate | schema | show | plot``.
+
+``gcm run CONFIG`` runs the whole pipeline and writes the run directory;
+``gcm validate CONFIG`` only checks a config; ``gcm schema`` prints the
+config's JSON Schema; ``gcm show RUN_DIR`` prints the top-ranked grasps of a
+run; ``gcm plot RUN_DIR`` writes its plots.
+
+User errors (:class:`~gcm_pipeline.errors.GcmError`) print one line
+``error: <message>`` on stderr and exit with status 2 (the traceback only
+with ``--debug``); anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from gcm_pipeline.errors import GcmError
+
+__all__ = ["build_parser", "main"]
+
+log = logging.getLogger("gcm_pipeline")
+
+EXIT_USER_ERROR = 2
+
+
+def _common(debug_help: bool = True) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
+        help="more log output (-v: info, -vv: debug)",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars, errors only")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of user errors")
+    return p
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``gcm`` argument parser."""
+    from gcm_pipeline import __version__
+
+    common = _common()
+    parser = argparse.ArgumentParser(
+        prog="gcm",
+        description="Grasp configuration manifolds: densify grasp candidates on dual "
+        "quaternions, check which ones a robot reaches, rank them by manipulability.",
+    )
+    parser.add_argument("--version", action="version", version=f"gcm {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    run = sub.add_parser(
+        "run", parents=[common], help="run the pipeline on a config, write a run directory"
+    )
+    run.add_argument("config", metavar="CONFIG", type=Path, help="YAML config file")
+    run.add_argument(
+        "--set",
+        dest="overrides",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a config key, e.g. --set ik.backend=mink (repeatable)",
+    )
+    run.add_argument("--out", type=Path, metavar="DIR", help="run directory (overrides output.dir)")
+    run.add_argument(
+        "--force", action="store_true", help="replace an existing run directory when done"
+    )
+    run.add_argument("--meshcat", action="store_true", help="open the live meshcat viewer")
+    run.add_argument(
+        "--no-wait", action="store_true", help="with --meshcat: do not wait for Ctrl-C"
+    )
+
+    val = sub.add_parser("validate", parents=[common], help="check a config and print it")
+    val.add_argument("config", metavar="CONFIG", type=Path)
+    val.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[])
+
+    sub.add_parser("schema", parents=[common], help="print the config's JSON Schema")
+
+    show = sub.add_parser("show", parents=[common], help="print the top grasps of a run")
+    show.add_argument("run_dir", metavar="RUN_DIR", type=Path)
+    show.add_argument("--top", type=int, default=10, metavar="N", help="rows to show (10)")
+
+    plot = sub.add_parser("plot", parents=[common], help="write the plots of a run")
+    plot.add_argument("run_dir", metavar="RUN_DIR", type=Path)
+    return parser
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
+    level = (
+        logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    )
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    for h in list(log.handlers):
+        if getattr(h, "_gcm_cli", False):
+            log.removeHandler(h)
+    handler._gcm_cli = True  # type: ignore[attr-defined]
+    log.addHandler(handler)
+    log.setLevel(level)
+    log.propagate = False
+    logging.captureWarnings(True)
+
+
+# ------------------------------------------------------------------ commands
+
+
+def _fmt(v: Any, width: int = 9) -> str:
+    if isinstance(v, float):
+        return f"{v:{width}.4f}" if abs(v) < 1e4 else f"{v:{width}.3g}"
+    return f"{v!s:>{width}}"
+
+
+def format_top(top: list[dict[str, Any]], metric: str = "manipulability") -> str:
+    """A small text table of the top grasps (rank, position, quaternion, metric)."""
+    if not top:
+        return "  (no reachable grasp)"
+    cols = ["rank", "origin", "x", "y", "z", "qw", "qx", "qy", "qz", "manipulability"]
+    widths = {"rank": 4, "origin": 12}
+    head = "  ".join(f"{c:>{widths.get(c, 9)}}" for c in cols)
+    lines = ["  " + head]
+    for item in top:
+        cells = [_fmt(item.get(c, ""), widths.get(c, 9)) for c in cols]
+        lines.append("  " + "  ".join(cells))
+    return "\n".join(lines)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from gcm_pipeline.pipeline import Pipeline
+
+    pipeline = Pipeline.from_yaml(args.config, args.overrides)
+    cfg = pipeline.config
+    t0 = time.perf_counter()
+    result = pipeline.run(args.out, progress=not args.quiet, force=args.force)
+    total = time.perf_counter() - t0
+    run_dir = result.run_dir
+    assert run_dir is not None
+    if args.quiet:
+        print(run_dir)
+    else:
+        c = result.counts
+        n = max(c["densified"], 1)
+        print(f"gcm run {args.config}")
+        print(f"  candidates    {c['candidates']}")
+        print(f"  triangles     {c['triangles']} ({c['triangles_dropped']} dropped)")
+        print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
+        share = 100 * c["reachable"] / n
+        print(f"  reachable     {c['reachable']} / {c['densified']} ({share:.1f} %)")
+        timings = ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items())
+        print(f"  timings [s]   {timings}; total {total:.2f}")
+        top = result.top(min(5, cfg.ranking.top_k))
+        print(f"top {len(top)} grasps by {cfg.ranking.metric}:")
+        print(format_top(top))
+        print(f"run directory: {run_dir}")
+        print("  " + ", ".join(p.name for p in result.files))
+        scene = run_dir / "scene.html"
+        if scene.exists():
+            print(f"open the scene: {scene.as_uri()}")
+        if not (args.meshcat or cfg.publish.meshcat):
+            out = args.out or cfg.output.dir
+            print(f"live viewer:   gcm run {args.config} --meshcat --force --out {out}")
+    if args.meshcat or cfg.publish.meshcat:
+        _open_viewer(result, wait=cfg.publish.wait and not args.no_wait)
+    return 0
+
+
+def _open_viewer(result: Any, *, wait: bool) -> None:
+    from gcm_pipeline.stages.publish import open_viewer
+
+    viewer = open_viewer(result.grasps, result.manifold, result.robot, result.config)
+    try:
+        print(f"meshcat viewer: {viewer.url}")
+        if wait:
+            print("press Ctrl-C to quit")
+            try:
+                while True:
+                    time.sleep(0.5)
+            except KeyboardInterrupt:
+                print()
+    finally:
+        viewer.close()
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config import load_config
+
+    cfg = load_config(args.config, args.overrides)
+    c = cfg.candidates
+    obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
+    print(f"{args.config}: ok")
+    print(f"  candidates  {c.source}" + (f" {c.path}" if c.path else f" x{c.count}"))
+    print(f"  object      {obj}")
+    print(f"  robot       {cfg.robot.spec}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
+    print(f"  output      {cfg.output.dir}")
+    return 0
+
+
+def _cmd_schema(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config import config_schema
+
+    print(json.dumps(config_schema(), indent=2))
+    return 0
+
+
+def _cmd_show(args: argparse.Namespace) -> int:
+    from gcm_pipeline.io import read_run
+    from gcm_pipeline.pipeline import top_grasps
+
+    if args.top < 0:
+        raise GcmError(f"--top must be >= 0, got {args.top}")
+    run = read_run(args.run_dir)
+    counts = run.summary.get("counts", {})
+    metric = run.summary.get("ranking", {}).get("metric", "manipulability")
+    print(f"run {run.run_dir}")
+    if counts:
+        print("  " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    top = top_grasps(run.grasps, args.top)
+    print(f"top {len(top)} grasps by {metric}:")
+    print(format_top(top))
+    return 0
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from gcm_pipeline.io import read_run
+    from gcm_pipeline.stages.publish import write_plots
+
+    run = read_run(args.run_dir)
+    paths = write_plots(run.grasps, run.manifold, run.summary.get("counts", {}), run.run_dir)
+    for p in paths:
+        print(p)
+    return 0
+
+
+_COMMANDS = {
+    "run": _cmd_run,
+    "validate": _cmd_validate,
+    "schema": _cmd_schema,
+    "show": _cmd_show,
+    "plot": _cmd_plot,
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``gcm`` command line; returns the exit status.
+
+    Args:
+        argv: Arguments without the program name (default: ``sys.argv[1:]``).
+
+    Returns:
+        0 on success, 2 on a user error (or bad usage), 130 on Ctrl-C.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose, args.quiet)
+    try:
+        return _COMMANDS[args.command](args)
+    except GcmError as exc:
+        if args.debug:
+            traceback.print_exc()
+        message = " ".join(str(exc).split("\n"))
+        print(f"error: {message}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,541 @@
+"""The run directory: written atomically, read back for ``gcm show`` / ``gcm plot``.
+
+A run directory holds (see DESIGN.md, *Run directory*):
+
+- ``grasps.csv``: one row per grasp, ranked rows first (rank 1 = best), then
+  the unreachable ones in table order. Columns, in this order: ``rank, origin,
+  triangle, v1, v2, v3, w1, w2, w3, x, y, z, qw, qx, qy, qz, reachable,
+  reason, pos_err, rot_err, manipulability, q1 .. q{nq}``, then any further
+  metric columns. Poses are the grasp frame in the world (quaternion with
+  ``qw >= 0``). Floats are written with :func:`repr` (they round-trip
+  exactly); NaN is an empty cell; booleans are ``true`` / ``false``.
+- ``summary.json``: counts, timings [s], the ranking's top grasps, the
+  resolved config and package versions.
+- ``manifold.npz``: ``vertex_ids``, ``chart``, ``triangles``, ``dropped``,
+  ``dropped_reason``, ``projection``.
+- ``config.yaml``: the resolved config.
+- optional ``scene.html`` and ``*.png`` from the publish stage.
+
+Everything is written into a temporary sibling directory
+(``.<name>.tmp-<random>``) that is renamed to the final name only when
+complete (:func:`atomic_run_dir`); on any failure, Ctrl-C included, the
+temporary directory is removed, so a directory named like the run is always
+complete. With ``force`` an existing run is replaced only at that final
+rename.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import logging
+import math
+import os
+import platform
+import shutil
+import tempfile
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import yaml
+
+from gcm_pipeline.errors import InputError, OutputError
+from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
+from gcm_pipeline.table import GraspTable
+
+__all__ = [
+    "CSV_COLUMNS",
+    "RunData",
+    "StoredManifold",
+    "atomic_run_dir",
+    "check_output_dir",
+    "format_floats",
+    "read_grasps_csv",
+    "read_manifold",
+    "read_run",
+    "write_config",
+    "write_grasps_csv",
+    "write_manifold",
+    "write_summary",
+]
+
+log = logging.getLogger(__name__)
+
+#: Fixed leading columns of ``grasps.csv`` (then ``q1 .. q{nq}`` and extra metrics).
+CSV_COLUMNS = (
+    "rank",
+    "origin",
+    "triangle",
+    "v1",
+    "v2",
+    "v3",
+    "w1",
+    "w2",
+    "w3",
+    "x",
+    "y",
+    "z",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "reachable",
+    "reason",
+    "pos_err",
+    "rot_err",
+    "manipulability",
+)
+
+#: Table columns that grasps.csv writes under other names (or derives).
+_KNOWN = {"dq", "rank", "origin", "triangle", "vertices", "weights", "reachable", "reason"}
+_KNOWN |= {"q", "pos_err", "rot_err", "manipulability"}
+
+RUN_FILES = ("grasps.csv", "summary.json", "manifold.npz", "config.yaml")
+
+
+# ------------------------------------------------------------ output checks
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_output_dir(path: str | Path, *, force: bool = False) -> Path:
+    """Check, before any work, that a run directory can be written at ``path``.
+
+    Args:
+        path: The run directory to be.
+        force: Allow replacing an existing non-empty directory.
+
+    Returns:
+        The absolute path.
+
+    Raises:
+        OutputError: ``path`` is a file; it is a non-empty directory and
+            ``force`` is false; a parent is a file or not writable.
+    """
+    out = Path(path).expanduser().absolute()
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise OutputError(f"output path {out} exists and is not a directory")
+        if not force and any(out.iterdir()):
+            raise OutputError(
+                f"output directory {out} already exists and is not empty; "
+                "use --force to replace it (or --out DIR for another one)"
+            )
+    parent = _nearest_existing(out.parent)
+    if not parent.is_dir():
+        raise OutputError(f"cannot create output directory {out}: {parent} is not a directory")
+    # os.access is not enough (root, read-only mounts): try it for real.
+    try:
+        probe = tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=parent)
+    except OSError as exc:
+        raise OutputError(
+            f"cannot create output directory {out}: {parent} is not writable ({exc.strerror})"
+        ) from None
+    os.rmdir(probe)
+    return out
+
+
+@contextlib.contextmanager
+def atomic_run_dir(path: str | Path, *, force: bool = False) -> Iterator[Path]:
+    """Yield a temporary sibling directory that becomes ``path`` on success.
+
+    On a clean exit of the ``with`` block the temporary directory is renamed
+    to ``path`` (an existing directory there is replaced only then, and only
+    when ``force`` is set or it is empty). On any exception, including
+    :class:`KeyboardInterrupt`, the temporary directory is removed and the
+    exception propagates; an existing ``path`` is left untouched.
+
+    Raises:
+        OutputError: See :func:`check_output_dir`.
+    """
+    out = check_output_dir(path, force=force)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    except OSError as exc:
+        raise OutputError(f"cannot create output directory {out}: {exc}") from None
+    try:
+        yield tmp
+        os.chmod(tmp, 0o755 & ~_umask())
+        _replace_dir(tmp, out, force=force)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _replace_dir(tmp: Path, out: Path, *, force: bool) -> None:
+    """Rename ``tmp`` to ``out``, replacing an existing ``out`` (checked again)."""
+    old: Path | None = None
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise OutputError(f"output path {out} exists and is not a directory")
+        if any(out.iterdir()) and not force:
+            raise OutputError(f"output directory {out} appeared during the run; use --force")
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+        os.rename(out, old / out.name)
+    try:
+        os.rename(tmp, out)
+    except OSError as exc:
+        if old is not None:
+            os.rename(old / out.name, out)
+            shutil.rmtree(old, ignore_errors=True)
+        raise OutputError(f"cannot move the finished run into {out}: {exc}") from None
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+# ------------------------------------------------------------ grasps.csv
+
+
+def format_floats(values: np.ndarray) -> list[str]:
+    """Floats as :func:`repr` strings (round-trip exact); NaN as ``""``."""
+    return ["" if math.isnan(v) else repr(v) for v in np.asarray(values, dtype=float).tolist()]
+
+
+def _ints(values: np.ndarray) -> list[str]:
+    return [str(v) for v in np.asarray(values, dtype=np.int64).tolist()]
+
+
+def _row_order(grasps: GraspTable) -> np.ndarray:
+    """Ranked rows by rank, then the unranked rows in table order."""
+    n = len(grasps)
+    rank = grasps.get("rank")
+    if rank is None:
+        return np.arange(n)
+    rank = np.asarray(rank, dtype=np.int64)
+    key = np.where(rank > 0, rank, np.iinfo(np.int64).max)
+    return np.argsort(key, kind="stable")
+
+
+def _extra_columns(grasps: GraspTable) -> list[str]:
+    """Further 1-D numeric columns (metrics), in table order."""
+    extra = []
+    for name in grasps.columns:
+        col = grasps[name]
+        if name in _KNOWN or col.ndim != 1:
+            continue
+        if np.issubdtype(col.dtype, np.number) or col.dtype == bool:
+            extra.append(name)
+    return extra
+
+
+def write_grasps_csv(grasps: GraspTable, path: str | Path) -> list[str]:
+    """Write the grasp table as ``grasps.csv`` (see the module docstring).
+
+    Args:
+        grasps: The table; ``dq`` is required, every other column optional
+            (missing ones are empty cells).
+        path: The file to write.
+
+    Returns:
+        The header (column names in file order).
+    """
+    order = _row_order(grasps)
+    g = grasps.take(order)
+    n = len(g)
+    empty = [""] * n
+    pos, quat = dq_to_pos_quat(g["dq"])
+    quat = np.where(quat[:, :1] < 0, -quat, quat)  # same rotation, qw >= 0
+
+    def col(name: str, fmt: Any) -> list[str]:
+        return fmt(g[name]) if name in g else empty
+
+    def bools(v: np.ndarray) -> list[str]:
+        return ["true" if b else "false" for b in np.asarray(v, dtype=bool).tolist()]
+
+    def strs(v: np.ndarray) -> list[str]:
+        return [str(s) for s in np.asarray(v).tolist()]
+
+    cols: list[list[str]] = [col("rank", _ints), col("origin", strs), col("triangle", _ints)]
+    for k in range(3):
+        cols.append(_ints(g["vertices"][:, k]) if "vertices" in g else empty)
+    for k in range(3):
+        cols.append(format_floats(g["weights"][:, k]) if "weights" in g else empty)
+    cols += [format_floats(pos[:, k]) for k in range(3)]
+    cols += [format_floats(quat[:, k]) for k in range(4)]
+    cols += [col("reachable", bools), col("reason", strs)]
+    cols += [col(name, format_floats) for name in ("pos_err", "rot_err", "manipulability")]
+    header = list(CSV_COLUMNS)
+    if "q" in g:
+        q = np.asarray(g["q"], dtype=float).reshape(n, -1)
+        header += [f"q{j + 1}" for j in range(q.shape[1])]
+        cols += [format_floats(q[:, j]) for j in range(q.shape[1])]
+    for name in _extra_columns(g):
+        header.append(name)
+        cols.append(bools(g[name]) if g[name].dtype == bool else format_floats(g[name]))
+    with Path(path).open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows(zip(*cols, strict=True))
+    return header
+
+
+def read_grasps_csv(path: str | Path) -> GraspTable:
+    """Read ``grasps.csv`` back into a grasp table (``dq`` rebuilt from x..qz).
+
+    Rows stay in file order (ranked first). Columns: ``dq``, ``rank``,
+    ``origin``, ``triangle``, ``vertices``, ``weights``, ``reachable``,
+    ``reason``, ``pos_err``, ``rot_err``, ``manipulability``, ``q`` and the
+    extra metric columns, as far as the file has them.
+
+    Raises:
+        InputError: Missing file or columns, or a value that does not parse.
+    """
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except FileNotFoundError:
+        raise InputError(f"not a run directory: {path} is missing") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}: cannot read: {exc}") from None
+    if not rows:
+        raise InputError(f"{path}: empty file")
+    header, body = rows[0], rows[1:]
+    missing = [c for c in ("x", "y", "z", "qw", "qx", "qy", "qz") if c not in header]
+    if missing:
+        raise InputError(f"{path}: missing column(s) {', '.join(missing)}")
+    for i, row in enumerate(body):
+        if len(row) != len(header):
+            raise InputError(f"{path}:{i + 2}: {len(row)} fields, header has {len(header)}")
+    raw = {name: [row[j] for row in body] for j, name in enumerate(header)}
+
+    def floats(name: str) -> np.ndarray:
+        try:
+            return np.array([float(v) if v else math.nan for v in raw[name]], dtype=float)
+        except ValueError as exc:
+            raise InputError(f"{path}: column {name!r}: {exc}") from None
+
+    def ints(name: str) -> np.ndarray:
+        try:
+            return np.array([int(v) for v in raw[name]], dtype=np.int64)
+        except ValueError as exc:
+            raise InputError(f"{path}: column {name!r}: {exc}") from None
+
+    n = len(body)
+    pos = np.column_stack([floats(c) for c in ("x", "y", "z")]).reshape(n, 3)
+    quat = np.column_stack([floats(c) for c in ("qw", "qx", "qy", "qz")]).reshape(n, 4)
+    cols: dict[str, Any] = {"dq": dq_from_pos_quat(pos, quat)}
+    if "rank" in raw:
+        cols["rank"] = ints("rank")
+    if "origin" in raw:
+        cols["origin"] = np.array(raw["origin"], dtype=str)
+    if "triangle" in raw:
+        cols["triangle"] = ints("triangle")
+    if all(c in raw for c in ("v1", "v2", "v3")):
+        cols["vertices"] = np.column_stack([ints(c) for c in ("v1", "v2", "v3")]).reshape(n, 3)
+    if all(c in raw for c in ("w1", "w2", "w3")):
+        cols["weights"] = np.column_stack([floats(c) for c in ("w1", "w2", "w3")]).reshape(n, 3)
+    if "reachable" in raw:
+        cols["reachable"] = np.array([v == "true" for v in raw["reachable"]], dtype=bool)
+    if "reason" in raw:
+        cols["reason"] = np.array(raw["reason"], dtype=str)
+    for name in ("pos_err", "rot_err", "manipulability"):
+        if name in raw:
+            cols[name] = floats(name)
+    qnames = [h for h in header if h[:1] == "q" and h[1:].isdigit()]
+    if qnames:
+        cols["q"] = np.column_stack([floats(c) for c in qnames]).reshape(n, len(qnames))
+    for name in header:
+        if name in CSV_COLUMNS or name in qnames or name in cols:
+            continue
+        values = raw[name]
+        if values and all(v in ("true", "false") for v in values):
+            cols[name] = np.array([v == "true" for v in values], dtype=bool)
+        else:
+            cols[name] = floats(name)
+    return GraspTable(cols)
+
+
+# ------------------------------------------------------------ manifold.npz
+
+
+@dataclass(frozen=True)
+class StoredManifold:
+    """A manifold as read back from ``manifold.npz``.
+
+    Attributes:
+        vertex_ids: (V,) candidate row ids that are manifold vertices.
+        chart: (V, 2) chart coordinates of the candidates.
+        triangles: (T, 3) candidate row ids of the kept triangles.
+        dropped: (D, 3) candidate row ids of the dropped triangles.
+        dropped_reason: (D,) why each was dropped.
+        projection: The chart's name.
+    """
+
+    vertex_ids: np.ndarray
+    chart: np.ndarray
+    triangles: np.ndarray
+    dropped: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
+    dropped_reason: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))
+    projection: str = ""
+
+    def __repr__(self) -> str:
+        return (
+            f"StoredManifold({len(self.chart)} vertices, {len(self.triangles)} triangles, "
+            f"{len(self.dropped)} dropped, projection={self.projection!r})"
+        )
+
+
+def _manifold_arrays(manifold: Any) -> dict[str, np.ndarray]:
+    chart = np.asarray(manifold.chart, dtype=float)
+    triangles = np.asarray(manifold.triangles, dtype=np.int64).reshape(-1, 3)
+    dropped = np.asarray(getattr(manifold, "dropped", np.zeros((0, 3))), dtype=np.int64)
+    reason = np.asarray(getattr(manifold, "dropped_reason", np.zeros(0, dtype=str)), dtype=str)
+    vertex_ids = getattr(manifold, "vertex_ids", None)
+    if vertex_ids is None:
+        vertex_ids = np.arange(chart.shape[0])
+    return {
+        "vertex_ids": np.asarray(vertex_ids, dtype=np.int64),
+        "chart": chart,
+        "triangles": triangles,
+        "dropped": dropped.reshape(-1, 3),
+        "dropped_reason": reason.reshape(-1),
+        "projection": np.asarray(str(getattr(manifold, "projection", ""))),
+    }
+
+
+def write_manifold(manifold: Any, path: str | Path) -> None:
+    """Write ``manifold.npz`` from any object with the manifold's attributes."""
+    with Path(path).open("wb") as fh:
+        np.savez(fh, **_manifold_arrays(manifold))
+
+
+def read_manifold(path: str | Path) -> StoredManifold:
+    """Read ``manifold.npz`` (see :class:`StoredManifold`).
+
+    Raises:
+        InputError: Missing or unreadable file, or a missing array.
+    """
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise InputError(f"not a run directory: {path} is missing") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read: {exc}") from None
+    missing = [k for k in ("chart", "triangles") if k not in arrays]
+    if missing:
+        raise InputError(f"{path}: missing array(s) {', '.join(missing)}")
+    chart = arrays["chart"]
+    return StoredManifold(
+        vertex_ids=arrays.get("vertex_ids", np.arange(chart.shape[0])),
+        chart=chart,
+        triangles=arrays["triangles"],
+        dropped=arrays.get("dropped", np.zeros((0, 3), dtype=np.int64)),
+        dropped_reason=arrays.get("dropped_reason", np.zeros(0, dtype=str)),
+        projection=str(arrays.get("projection", "")),
+    )
+
+
+# ------------------------------------------------------------ json / yaml
+
+
+def _json_clean(value: Any) -> Any:
+    """NumPy scalars/arrays to Python, NaN/inf to None, paths to str."""
+    if isinstance(value, Mapping):
+        return {str(k): _json_clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_clean(value.tolist())
+    if isinstance(value, np.generic):
+        return _json_clean(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def versions() -> dict[str, str]:
+    """Versions of Python and the main packages, for ``summary.json``."""
+    out = {"python": platform.python_version()}
+    for name, module in (
+        ("gcm_pipeline", "gcm_pipeline"),
+        ("numpy", "numpy"),
+        ("scipy", "scipy"),
+        ("pinocchio", "pinocchio"),
+        ("pydantic", "pydantic"),
+    ):
+        try:
+            out[name] = str(__import__(module).__version__)
+        except (ImportError, AttributeError):
+            continue
+    return out
+
+
+def write_summary(summary: Mapping[str, Any], path: str | Path) -> None:
+    """Write ``summary.json`` (NaN becomes null; keys in the given order)."""
+    text = json.dumps(_json_clean(summary), indent=2, allow_nan=False)
+    Path(path).write_text(text + "\n", encoding="utf-8")
+
+
+def write_config(config: Mapping[str, Any], path: str | Path) -> None:
+    """Write the resolved config as YAML (section order kept)."""
+    text = yaml.safe_dump(_json_clean(config), sort_keys=False, default_flow_style=None)
+    Path(path).write_text(text, encoding="utf-8")
+
+
+# ------------------------------------------------------------ read_run
+
+
+class RunData(NamedTuple):
+    """A run directory read back by :func:`read_run`.
+
+    Attributes:
+        grasps: The grasp table, rows in file order (ranked first).
+        manifold: The manifold's arrays.
+        summary: ``summary.json`` as a dict.
+        run_dir: The run directory.
+    """
+
+    grasps: GraspTable
+    manifold: StoredManifold
+    summary: dict[str, Any]
+    run_dir: Path
+
+
+def read_run(run_dir: str | Path) -> RunData:
+    """Read a run directory written by ``gcm run`` / :meth:`Pipeline.run`.
+
+    Args:
+        run_dir: The run directory.
+
+    Returns:
+        The grasp table (``dq`` rebuilt from x..qz), the manifold and the summary.
+
+    Raises:
+        InputError: Not a run directory, or a file in it cannot be read.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"run directory not found: {run_dir}")
+    missing = [
+        f for f in ("grasps.csv", "summary.json", "manifold.npz") if not (run_dir / f).is_file()
+    ]
+    if missing:
+        raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}")
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{run_dir / 'summary.json'}: cannot read: {exc}") from None
+    grasps = read_grasps_csv(run_dir / "grasps.csv")
+    manifold = read_manifold(run_dir / "manifold.npz")
+    return RunData(grasps, manifold, summary, run_dir)

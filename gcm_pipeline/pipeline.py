@@ -1,0 +1,389 @@
+"""The pipeline: candidates -> manifold -> densify -> reachability -> ranking -> publish.
+
+Each stage is usable alone with the full :class:`~gcm_pipeline.config.Config`;
+these functions map the config sections onto the keyword arguments of the
+lower-level stage functions in :mod:`gcm_pipeline.stages`:
+
+======================================== =====================================
+function                                 reads / adds
+======================================== =====================================
+:func:`generate_candidates` ``(cfg)``    ``candidates``, ``object``, ``seed``
+                                         -> table with ``dq``
+:func:`build_manifold` ``(grasps, cfg)`` ``manifold`` (+ object pose as the
+                                         chart frame) -> ``Manifold``
+:func:`densify` ``(grasps, manifold,     ``densify`` -> table with ``origin``,
+cfg)``                                   ``triangle``, ``vertices``, ``weights``
+:func:`check_reachability` ``(grasps,    ``ik``, ``robot.base_pose``,
+robot, cfg)``                            ``environment``, ``approach``, ``object``
+                                         -> ``reachable, reason, q, pos_err, rot_err``
+:func:`rank` ``(grasps, robot, cfg)``    ``ranking`` -> ``manipulability``, ``rank``
+:func:`publish` ``(result, cfg,          ``publish`` -> ``scene.html``, ``*.png``
+out_dir)``
+======================================== =====================================
+
+``densify`` takes the candidate table as well as the manifold: the manifold
+holds row ids into the candidate table, not poses, so that the poses live in
+one place (the table's ``dq`` column) only.
+
+:class:`Pipeline` runs them in order, times them, writes the run directory
+atomically (:mod:`gcm_pipeline.io`) and returns a :class:`RunResult`.
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline import io
+from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
+from gcm_pipeline.stages.candidates import generate_candidates
+from gcm_pipeline.table import GraspTable
+
+__all__ = [
+    "Pipeline",
+    "RunResult",
+    "build_manifold",
+    "check_reachability",
+    "densify",
+    "generate_candidates",
+    "load_robot",
+    "publish",
+    "rank",
+    "top_grasps",
+]
+
+log = logging.getLogger(__name__)
+
+
+def _accepted(func: Callable[..., Any], options: Mapping[str, Any]) -> dict[str, Any]:
+    """The entries of ``options`` that ``func`` accepts as keyword arguments."""
+    params = inspect.signature(func).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        named = {k for k, p in params.items() if p.kind is not inspect.Parameter.VAR_KEYWORD}
+        # a **options catch-all: pass only what the function names explicitly
+        return {k: v for k, v in options.items() if k in named}
+    return {k: v for k, v in options.items() if k in params}
+
+
+def build_manifold(grasps: GraspTable, cfg: Config) -> Any:
+    """Delaunay manifold over the candidates' chart (config section ``manifold``).
+
+    The object pose (if the config has an ``object``) is the frame of the
+    cylindrical and spherical charts.
+
+    Args:
+        grasps: The candidate table (``dq``).
+        cfg: The full config.
+
+    Returns:
+        A :class:`gcm_pipeline.stages.manifold.Manifold`.
+    """
+    from gcm_pipeline.stages import manifold as stage
+
+    m = cfg.manifold
+    return stage.build_manifold(
+        grasps,
+        projection=m.projection,
+        triangulator=m.triangulator,
+        max_edge_length=m.max_edge_length,
+        max_edge_angle_deg=m.max_edge_angle_deg,
+        frame=cfg.object.pose.matrix() if cfg.object is not None else None,
+    )
+
+
+def densify(grasps: GraspTable, manifold: Any, cfg: Config) -> GraspTable:
+    """Densify the manifold's triangles (config section ``densify``).
+
+    Args:
+        grasps: The candidate table; the manifold's triangles index its rows.
+        manifold: From :func:`build_manifold`.
+        cfg: The full config.
+
+    Returns:
+        All candidates (first, in input order) and the interpolated grasps,
+        with ``dq, origin, triangle, vertices, weights``.
+    """
+    from gcm_pipeline.stages import densify as stage
+
+    d = cfg.densify
+    return stage.densify(
+        grasps, manifold, subdivisions=d.subdivisions, spacing=d.spacing, method=d.method
+    )
+
+
+def load_robot(cfg: Config) -> Any:
+    """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path)."""
+    from gcm_pipeline.robot.model import load_robot as _load
+
+    return _load(cfg.robot.spec)
+
+
+def check_reachability(
+    grasps: GraspTable, robot: Any, cfg: Config, *, progress: bool = False
+) -> GraspTable:
+    """IK (and collision / approach checks) for every grasp (``ik`` and friends).
+
+    Passes ``robot.base_pose``, the ``ik`` section and, when the stage function
+    accepts them, the ``environment``, ``approach`` and ``object`` sections.
+
+    Args:
+        grasps: Table with ``dq`` (world poses of the grasp frame).
+        robot: From :func:`load_robot`.
+        cfg: The full config.
+        progress: Show a progress bar.
+
+    Returns:
+        The table with ``reachable, reason, q, pos_err, rot_err`` added.
+    """
+    from gcm_pipeline.stages import reachability as stage
+
+    ik = cfg.ik
+    options = _accepted(
+        stage.check_reachability,
+        {
+            "environment": cfg.environment,
+            "approach": cfg.approach,
+            "object": cfg.object,
+            "workers": ik.workers,
+            "seed": cfg.seed,
+        },
+    )
+    return stage.check_reachability(
+        grasps,
+        robot,
+        base_pose=cfg.robot.base_pose.matrix(),
+        backend=ik.backend,
+        position_tolerance=ik.position_tolerance,
+        orientation_tolerance=ik.orientation_tolerance,
+        progress=progress,
+        **options,
+    )
+
+
+def rank(grasps: GraspTable, robot: Any, cfg: Config) -> GraspTable:
+    """Manipulability metrics and ranks of the reachable grasps (``ranking``).
+
+    Returns:
+        The table with ``manipulability`` (and the other metric columns) and
+        ``rank`` (1-based among reachable grasps, 0 for unreachable) added.
+    """
+    from gcm_pipeline.stages import ranking as stage
+
+    r = cfg.ranking
+    options = _accepted(stage.rank, {"weights": r.weights})
+    return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, **options)
+
+
+def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
+    """Write ``scene.html`` / PNG plots into ``out_dir`` (section ``publish``).
+
+    Returns:
+        The files written.
+    """
+    try:
+        from gcm_pipeline.stages import publish as stage
+    except ModuleNotFoundError as exc:  # until the publish stage lands
+        if exc.name != "gcm_pipeline.stages.publish":
+            raise
+        log.warning("publish stage not available; no scene.html / plots written")
+        return []
+    return list(stage.publish(result.grasps, result.manifold, result.robot, cfg, Path(out_dir)))
+
+
+def top_grasps(grasps: GraspTable, n: int) -> list[dict[str, Any]]:
+    """The ``n`` best-ranked grasps as plain dicts (rank, pose, metric, q).
+
+    Rows without a ``rank`` column, or unranked (rank 0), are left out.
+    """
+    if "rank" not in grasps or n <= 0:
+        return []
+    rank_col = np.asarray(grasps["rank"])
+    rows = np.flatnonzero(rank_col > 0)
+    rows = rows[np.argsort(rank_col[rows], kind="stable")][:n]
+    if rows.size == 0:
+        return []
+    pos, quat = dq_to_pos_quat(grasps["dq"][rows])
+    quat = np.where(quat[:, :1] < 0, -quat, quat)
+    out = []
+    for k, i in enumerate(rows.tolist()):
+        item: dict[str, Any] = {"rank": int(rank_col[i]), "row": i}
+        if "origin" in grasps:
+            item["origin"] = str(grasps["origin"][i])
+        item.update(zip(("x", "y", "z"), pos[k].tolist(), strict=True))
+        item.update(zip(("qw", "qx", "qy", "qz"), quat[k].tolist(), strict=True))
+        if "manipulability" in grasps:
+            item["manipulability"] = float(grasps["manipulability"][i])
+        if "q" in grasps:
+            item["q"] = np.asarray(grasps["q"][i], dtype=float).tolist()
+        out.append(item)
+    return out
+
+
+@dataclass
+class RunResult:
+    """What a pipeline run produced.
+
+    Attributes:
+        grasps: The final grasp table (candidates first, then interpolated;
+            with reachability and ranking columns).
+        manifold: The manifold (triangles over candidate row ids).
+        robot: The robot model used.
+        counts: ``candidates, triangles, triangles_dropped, densified,
+            interpolated, reachable``.
+        timings: Seconds per stage, in run order.
+        config: The resolved config.
+        run_dir: The run directory, or None when nothing was written.
+    """
+
+    grasps: GraspTable
+    manifold: Any
+    robot: Any
+    counts: dict[str, int]
+    timings: dict[str, float]
+    config: Config
+    run_dir: Path | None = None
+    files: list[Path] = field(default_factory=list)
+
+    def top(self, n: int | None = None) -> list[dict[str, Any]]:
+        """The best-ranked grasps (default: ``ranking.top_k`` of them)."""
+        return top_grasps(self.grasps, self.config.ranking.top_k if n is None else n)
+
+    def summary(self) -> dict[str, Any]:
+        """The content of ``summary.json``."""
+        return {
+            "counts": dict(self.counts),
+            "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
+            "ranking": {"metric": self.config.ranking.metric, "top": self.top()},
+            "config": self.config.to_dict(),
+            "versions": io.versions(),
+        }
+
+    def __repr__(self) -> str:
+        c = self.counts
+        total = sum(self.timings.values())
+        return (
+            f"RunResult(candidates={c.get('candidates')}, triangles={c.get('triangles')} "
+            f"(+{c.get('triangles_dropped')} dropped), densified={c.get('densified')}, "
+            f"reachable={c.get('reachable')}, metric={self.config.ranking.metric!r}, "
+            f"time={total:.2f}s, run_dir={str(self.run_dir) if self.run_dir else None!r})"
+        )
+
+
+class Pipeline:
+    """Runs every stage of a config in order.
+
+    Example:
+        >>> result = Pipeline.from_yaml("configs/bottle_side.yaml").run("results/bottle")
+        >>> result.counts["reachable"]  # doctest: +SKIP
+
+    Args:
+        config: The validated config.
+    """
+
+    def __init__(self, config: Config) -> None:
+        if not isinstance(config, Config):
+            raise TypeError(f"Pipeline needs a Config, got {type(config).__name__}")
+        self.config = config
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, overrides: Iterable[str] = ()) -> Pipeline:
+        """Load a YAML config (with ``key=value`` overrides), see :func:`load_config`."""
+        return cls(load_config(path, tuple(overrides)))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Pipeline:
+        """Validate a plain dict into a config, see :meth:`Config.from_dict`."""
+        return cls(Config.from_dict(dict(data)))
+
+    def __repr__(self) -> str:
+        c = self.config
+        return (
+            f"Pipeline(source={c.candidates.source!r}, robot={c.robot.spec!r}, "
+            f"projection={c.manifold.projection!r}, ik={c.ik.backend!r}, "
+            f"metric={c.ranking.metric!r}, out={str(c.output.dir)!r})"
+        )
+
+    def run(
+        self,
+        out_dir: str | Path | None = None,
+        progress: bool = True,
+        *,
+        force: bool = False,
+        write: bool = True,
+    ) -> RunResult:
+        """Run every stage and write the run directory.
+
+        Args:
+            out_dir: The run directory (default: ``output.dir``, relative to
+                the working directory).
+            progress: Show progress bars on the slow stages.
+            force: Replace an existing non-empty run directory (only at the
+                end, when the new one is complete).
+            write: Write the run directory (False: only return the result).
+
+        Returns:
+            The result; ``run_dir`` is the directory written (or None).
+
+        Raises:
+            GcmError: A user error (config, input, output path, robot spec);
+                checked before any work where possible. Nothing is left
+                behind on failure.
+        """
+        cfg = self.config
+        out = Path(out_dir) if out_dir is not None else Path(cfg.output.dir)
+        if write:
+            out = io.check_output_dir(out, force=force)
+        timings: dict[str, float] = {}
+
+        @contextmanager
+        def stage(name: str) -> Iterator[None]:
+            t0 = time.perf_counter()
+            log.debug("stage %s ...", name)
+            yield
+            timings[name] = time.perf_counter() - t0
+            log.info("stage %-12s %8.3f s", name, timings[name])
+
+        with stage("candidates"):
+            candidates = generate_candidates(cfg)
+        with stage("manifold"):
+            manifold = build_manifold(candidates, cfg)
+        with stage("densify"):
+            grasps = densify(candidates, manifold, cfg)
+        with stage("robot"):
+            robot = load_robot(cfg)
+        with stage("reachability"):
+            grasps = check_reachability(grasps, robot, cfg, progress=progress)
+        with stage("ranking"):
+            grasps = rank(grasps, robot, cfg)
+        counts = {
+            "candidates": len(candidates),
+            "triangles": int(len(manifold.triangles)),
+            "triangles_dropped": int(len(getattr(manifold, "dropped", ()))),
+            "densified": len(grasps),
+            "interpolated": len(grasps) - len(candidates),
+            "reachable": int(np.count_nonzero(grasps["reachable"])),
+        }
+        result = RunResult(grasps, manifold, robot, counts, timings, cfg)
+        if not write:
+            return result
+        with io.atomic_run_dir(out, force=force) as tmp:
+            with stage("write"):
+                io.write_grasps_csv(grasps, tmp / "grasps.csv")
+                io.write_manifold(manifold, tmp / "manifold.npz")
+                io.write_config(cfg.to_dict(), tmp / "config.yaml")
+            with stage("publish"):
+                published = publish(result, cfg, tmp)
+            io.write_summary(result.summary(), tmp / "summary.json")
+        result.run_dir = out
+        result.files = sorted(out.iterdir())
+        log.info("run directory %s (%d published files)", out, len(published))
+        return result

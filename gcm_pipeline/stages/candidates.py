@@ -23,7 +23,7 @@ source                    grasps
                           on (its frame's -z face), chosen with probability
                           proportional to their area; approach along the
                           inward face normal, fingers closing along the
-                          face's shorter side
+                          face's shorter side, near the face's middle line
 ``sphere``                a Fibonacci lattice over the sphere without its
                           bottom cap (polar angle <= 120 deg); approach toward
                           the centre, fingers closing along the horizontal
@@ -179,8 +179,9 @@ def poses_box(
 
     Each grasp picks one of the faces +x, -x, +y, -y, +z with probability
     proportional to its area and a position uniform in the face's central
-    80 %; the frame approaches along the inward face normal and the fingers
-    close along the face's shorter side.
+    20 % across the closing axis and 80 % along the other side (the open
+    fingers must clear the box); the frame approaches along the inward face
+    normal and the fingers close along the face's shorter side.
 
     Args:
         count: Number of grasps N.
@@ -195,7 +196,9 @@ def poses_box(
     eye = np.eye(3)
     areas = np.array([np.prod(np.delete(size_arr, ax)) for ax, _ in _BOX_FACES])
     face = rng.choice(len(_BOX_FACES), size=count, p=areas / areas.sum())
-    uv = rng.uniform(-0.4, 0.4, size=(count, 2))
+    # across the fingers' closing axis stay near the middle (the open fingers
+    # must clear the box on both sides); along the face's other side spread out
+    uv = rng.uniform(-1.0, 1.0, size=(count, 2)) * [0.1, 0.4]
     x = np.empty((count, 3))
     y = np.empty((count, 3))
     z = np.empty((count, 3))

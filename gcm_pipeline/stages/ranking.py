@@ -1,0 +1,87 @@
+"""Ranking stage: manipulability metrics of the reachable grasps and their rank.
+
+Reads ``reachable`` and ``q`` (from the reachability stage) and adds one
+column per metric of :mod:`gcm_pipeline.robot.manipulability` (NaN for
+unreachable rows):
+
+================================ ======================= ====================
+metric name (configs)            column                  meaning
+================================ ======================= ====================
+``yoshikawa``                    ``manipulability``      sqrt(det(J J^T)), 6-D
+``translational``                ``manip_translation``   same, linear rows [m^3]
+``inverse_condition``            ``inverse_condition``   sigma_min / sigma_max
+``joint_limit_margin``           ``joint_limit_margin``  normalised, in [0, 1]
+================================ ======================= ====================
+
+plus ``rank`` (N,) int: 1-based among the reachable grasps, by the chosen
+metric in decreasing order, ties broken by row index (lower first); 0 for
+unreachable grasps. ``top`` (N,) bool marks ranks 1..``top_k``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.robot.manipulability import METRICS, manipulability_metrics
+from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.table import GraspTable
+
+__all__ = ["METRICS", "rank"]
+
+
+def rank(
+    grasps: GraspTable,
+    robot: Robot | str,
+    *,
+    metric: str = "yoshikawa",
+    top_k: int | None = 10,
+) -> GraspTable:
+    """Add the manipulability metrics, ``rank`` and ``top`` to the table.
+
+    Args:
+        grasps: Table with ``reachable`` (N,) and ``q`` (N, nq).
+        robot: A :class:`Robot` or a spec name/path.
+        metric: Ranking metric, one of ``yoshikawa``, ``translational``,
+            ``inverse_condition``, ``joint_limit_margin``.
+        top_k: How many of the best grasps ``top`` marks (None: all reachable).
+
+    Returns:
+        The table with ``manipulability``, ``manip_translation``,
+        ``inverse_condition``, ``joint_limit_margin``, ``rank`` and ``top`` added.
+
+    Raises:
+        InputError: Unknown metric (lists the valid ones), bad ``top_k``,
+            missing columns, or ``q`` of the wrong width.
+    """
+    if metric not in METRICS:
+        raise InputError(unknown_choice("ranking metric", metric, METRICS))
+    if top_k is not None and (
+        isinstance(top_k, bool) or not isinstance(top_k, (int, np.integer)) or top_k < 0
+    ):
+        raise InputError(f"top_k must be an int >= 0 or None, got {top_k!r}")
+    robot = load_robot(robot)
+    for col in ("reachable", "q"):
+        if col not in grasps:
+            raise InputError(
+                f"ranking needs column {col!r} (run reachability first); "
+                f"columns: {', '.join(grasps.columns)}"
+            )
+    n = len(grasps)
+    reachable = np.asarray(grasps["reachable"], dtype=bool)
+    q = np.asarray(grasps["q"], dtype=float)
+    if q.shape != (n, robot.nq):
+        raise InputError(f"grasp column 'q' must have shape ({n}, {robot.nq}), got {q.shape}")
+    q_ok = np.where(reachable[:, None], q, np.nan)
+    metrics = manipulability_metrics(robot, q_ok)
+    key = metrics[metric]
+    rows = np.flatnonzero(reachable & np.isfinite(key))
+    # descending metric, then ascending row index
+    order = rows[np.lexsort((rows, -key[rows]))]
+    ranks = np.zeros(n, dtype=int)
+    ranks[order] = np.arange(1, order.size + 1)
+    k = order.size if top_k is None else int(top_k)
+    top = (ranks > 0) & (ranks <= k)
+    return grasps.with_columns(
+        **{METRICS[name]: values for name, values in metrics.items()}, rank=ranks, top=top
+    )

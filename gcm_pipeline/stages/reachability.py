@@ -1,0 +1,198 @@
+"""Reachability stage: inverse kinematics for every grasp of the table.
+
+Reads ``dq`` (world poses of the grasp frame) and, when present, the
+provenance columns ``origin``, ``vertices``, ``weights`` written by densify;
+adds ``reachable``, ``reason``, ``q``, ``pos_err`` and ``rot_err``.
+
+Targets in the robot base frame are ``inv(base_pose) @ T_world``. Candidate
+rows are solved first; interpolated rows are then seeded from the solutions
+of their triangle's vertices, heaviest weight first (nearby poses have nearby
+configurations, so the warm start usually converges in a few iterations),
+and fall back to the backend's usual seeds.
+
+Reasons (``''`` when reachable): ``out_of_reach`` (farther from the shoulder
+than the arm's maximum reach, a cheap pre-filter), ``joint_limits``,
+``no_ik``, ``verification_failed`` and whatever a ``validator`` returns.
+
+Extension point for collision checking: pass ``validator``, a callable
+``q (M, nq) -> (M,) str`` (``''`` = valid, else a reason such as
+``collision_self``), e.g. ``CollisionChecker(...).check``. It is applied by
+the IK to every converged candidate before one is chosen, so a grasp whose
+first solution collides keeps trying other seeds, and a grasp with no valid
+solution gets the validator's reason. ``return_candidates=True`` also returns
+every converged candidate (valid or not) as :class:`IKCandidates`, with row
+ids into the table.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.errors import GeometryError, InputError
+from gcm_pipeline.robot.ik import IKCandidates, Validator, check_targets, solve_ik
+from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.table import GraspTable
+
+__all__ = ["check_reachability", "world_to_base_targets"]
+
+
+def _dq_to_matrix(dq: np.ndarray) -> np.ndarray:
+    from gcm_pipeline.geometry.dualquat import dq_to_matrix
+
+    return dq_to_matrix(dq)
+
+
+def world_to_base_targets(dq: Any, base_pose: Any = None) -> np.ndarray:
+    """Grasp-frame poses in the robot base frame from world dual quaternions.
+
+    Args:
+        dq: Unit dual quaternions (N, 8) of the grasp frame in the world,
+            layout ``[rw, rx, ry, rz, dw, dx, dy, dz]``.
+        base_pose: Robot base in the world (4, 4), identity if None.
+
+    Returns:
+        Homogeneous transforms (N, 4, 4): ``inv(base_pose) @ T_world``.
+
+    Raises:
+        GeometryError: Wrong shape, non-finite or non-unit dual quaternions,
+            or a non-rigid ``base_pose``.
+    """
+    arr = np.asarray(dq, dtype=float)
+    if arr.ndim != 2 or arr.shape[1] != 8:
+        raise GeometryError(f"grasp column 'dq' must have shape (N, 8), got {np.shape(dq)}")
+    bad = ~np.all(np.isfinite(arr), axis=1)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise GeometryError(f"grasp column 'dq' row {i} has non-finite values: {arr[i].tolist()}")
+    norm = np.linalg.norm(arr[:, :4], axis=1)
+    dot = np.einsum("ij,ij->i", arr[:, :4], arr[:, 4:])
+    bad = (np.abs(norm - 1.0) > 1e-6) | (np.abs(dot) > 1e-6)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise GeometryError(
+            f"grasp column 'dq' row {i} is not a unit dual quaternion "
+            f"(|real| = {norm[i]:.6f}, real.dual = {dot[i]:.2e})"
+        )
+    world = _dq_to_matrix(arr)
+    if base_pose is None:
+        return world
+    base = check_targets(base_pose, name="base_pose")
+    if base.shape[0] != 1:
+        raise GeometryError(f"base_pose must have shape (4, 4), got {np.shape(base_pose)}")
+    inv = np.eye(4)
+    rot = base[0, :3, :3]
+    inv[:3, :3] = rot.T
+    inv[:3, 3] = -rot.T @ base[0, :3, 3]
+    return inv @ world
+
+
+def _neighbours(grasps: GraspTable) -> np.ndarray | None:
+    """Warm-start rows (N, 3) from provenance: vertices by decreasing weight."""
+    if "vertices" not in grasps:
+        return None
+    n = len(grasps)
+    vert = np.asarray(grasps["vertices"])
+    if vert.ndim != 2 or not np.issubdtype(vert.dtype, np.integer):
+        raise InputError(f"grasp column 'vertices' must be an int array (N, K), got {vert.dtype}")
+    vert = vert.astype(int)
+    bad = (vert < -1) | (vert >= n)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise InputError(
+            f"grasp column 'vertices' row {i} has row ids {vert[i].tolist()} outside [-1, {n - 1}]"
+        )
+    if "origin" in grasps:
+        is_candidate = np.asarray(grasps["origin"]).astype(str) == "candidate"
+        vert = np.where(is_candidate[:, None], -1, vert)
+    if "weights" in grasps:
+        w = np.asarray(grasps["weights"], dtype=float)
+        if w.shape == vert.shape:
+            order = np.argsort(-np.nan_to_num(w, nan=-np.inf), axis=1, kind="stable")
+            vert = np.take_along_axis(vert, order, axis=1)
+    # a row never seeds itself
+    vert = np.where(vert == np.arange(n)[:, None], -1, vert)
+    return vert
+
+
+def check_reachability(
+    grasps: GraspTable,
+    robot: Robot | str,
+    *,
+    base_pose: Any = None,
+    backend: str = "pinocchio",
+    position_tolerance: float = 1e-4,
+    orientation_tolerance: float = 1e-3,
+    progress: bool = False,
+    validator: Validator | None = None,
+    workers: int = 1,
+    seed: int | None = None,
+    warm_start: bool = True,
+    return_candidates: bool = False,
+    **options: Any,
+) -> GraspTable | tuple[GraspTable, IKCandidates]:
+    """Solve IK for every grasp and add the reachability columns.
+
+    Args:
+        grasps: Table with ``dq`` (N, 8) (world poses of the grasp frame) and
+            optionally ``origin``, ``vertices``, ``weights`` (provenance).
+        robot: A :class:`Robot` or a spec name/path.
+        base_pose: Robot base in the world (4, 4) [m]; identity if None.
+        backend: IK backend, ``"pinocchio"`` or ``"mink"``.
+        position_tolerance: [m], > 0.
+        orientation_tolerance: [rad], > 0.
+        progress: Log a one-line summary (the IK is batched, so there is no
+            per-grasp progress to show).
+        validator: Optional ``q (M, nq) -> (M,) str`` ('' = valid) applied to
+            converged IK candidates (see the module docstring).
+        workers: Processes for the IK (0 = all cores).
+        seed: Random seed of the IK's seed library and restarts.
+        warm_start: Seed interpolated rows from their vertices' solutions.
+        return_candidates: Also return every converged IK candidate.
+        **options: Backend options (see :func:`~gcm_pipeline.robot.ik.solve_ik`).
+
+    Returns:
+        The table with ``reachable`` (N,) bool, ``reason`` (N,) str, ``q``
+        (N, nq) [rad] (NaN rows when unreachable), ``pos_err`` [m] and
+        ``rot_err`` [rad] added; with ``return_candidates``, a pair
+        ``(table, candidates)``.
+
+    Raises:
+        InputError: Missing ``dq`` column, bad provenance, bad options.
+        GeometryError: Non-unit dual quaternions or a non-rigid base pose.
+    """
+    robot = load_robot(robot)
+    if "dq" not in grasps:
+        raise InputError(f"grasp table has no column 'dq'; columns: {', '.join(grasps.columns)}")
+    targets = world_to_base_targets(grasps["dq"], base_pose)
+    nb = _neighbours(grasps) if warm_start else None
+    if seed is not None:
+        options.setdefault("random_seed", int(seed))
+    res = solve_ik(
+        robot,
+        targets,
+        backend,
+        position_tolerance=position_tolerance,
+        orientation_tolerance=orientation_tolerance,
+        neighbours=nb,
+        validator=validator,
+        return_all=return_candidates,
+        workers=workers,
+        **options,
+    )
+    if progress:
+        import logging
+
+        logging.getLogger(__name__).info("reachability: %r", res)
+    table = grasps.with_columns(
+        reachable=res.success,
+        reason=res.reason,
+        q=res.q,
+        pos_err=res.pos_err,
+        rot_err=res.rot_err,
+    )
+    if return_candidates:
+        assert res.candidates is not None
+        return table, res.candidates
+    return table

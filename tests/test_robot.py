@@ -1,0 +1,155 @@
+"""Robot specs, model loading, vectorised kinematics against Pinocchio."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from gcm_pipeline.errors import FrameNotFoundError, GcmError, RobotSpecError
+from gcm_pipeline.robot.model import Robot, available_robots, load_robot
+
+ROOT = Path(__file__).resolve().parents[1]
+PANDA_SPEC = ROOT / "gcm_pipeline" / "robots" / "panda.yaml"
+
+
+@pytest.fixture(scope="module")
+def panda() -> Robot:
+    return load_robot("panda")
+
+
+@pytest.fixture(scope="module")
+def ur5() -> Robot:
+    return load_robot("ur5")
+
+
+def _write_spec(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "spec.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_available_robots_ship_panda_and_ur5():
+    assert {"panda", "ur5"} <= set(available_robots())
+
+
+def test_top_level_specs_are_the_package_specs():
+    for name in available_robots():
+        top = ROOT / "robots" / f"{name}.yaml"
+        assert top.read_text() == (ROOT / "gcm_pipeline" / "robots" / f"{name}.yaml").read_text()
+
+
+def test_panda_model(panda: Robot):
+    assert panda.nq == 7
+    assert panda.grasp_frame == "panda_hand_tcp"
+    assert panda.joint_names == tuple(f"panda_joint{i}" for i in range(1, 8))
+    np.testing.assert_array_equal(panda.lower, panda.model.lowerPositionLimit)
+    np.testing.assert_array_equal(panda.upper, panda.model.upperPositionLimit)
+    assert panda.within_limits(panda.home).all()
+    np.testing.assert_allclose(panda.home[3], -2.356194)
+    assert panda.urdf_path.is_file() and panda.srdf_path is not None and panda.srdf_path.is_file()
+    assert (panda.mesh_dir / "meshes").is_dir()
+    # the fingers are locked at the spec's value
+    fid = panda.full_model.getJointId("panda_finger_joint1")
+    assert panda.locked_q[panda.full_model.joints[fid].idx_q] == 0.04
+    text = repr(panda)
+    assert "panda" in text and "nq=7" in text and "panda_hand_tcp" in text
+
+
+def test_load_by_path_matches_name(panda: Robot):
+    for path in (PANDA_SPEC, ROOT / "robots" / "panda.yaml", str(PANDA_SPEC)):
+        other = load_robot(path)
+        q = panda.random_configurations(5, 1)
+        np.testing.assert_allclose(other.fk(q), panda.fk(q), atol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5"])
+def test_chain_fk_and_jacobian_equal_pinocchio(name: str):
+    robot = load_robot(name)
+    q = robot.random_configurations(200, 3)
+    fk = robot.fk(q)
+    jac = robot.jacobian(q)
+    model, data, fid = robot.model, robot.data, robot.grasp_frame_id
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(model, data, qi)
+        pin.updateFramePlacements(model, data)
+        np.testing.assert_allclose(fk[i], data.oMf[fid].homogeneous, rtol=0, atol=1e-12)
+        ref = pin.computeFrameJacobian(model, data, qi, fid, pin.LOCAL_WORLD_ALIGNED)
+        np.testing.assert_allclose(jac[i], ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(robot.fk_pinocchio(q), fk, rtol=0, atol=1e-12)
+
+
+def test_max_reach_bounds_every_configuration(panda: Robot, ur5: Robot):
+    for robot in (panda, ur5):
+        p = robot.fk(robot.random_configurations(5000, 0))[:, :3, 3]
+        assert np.linalg.norm(p - robot.shoulder, axis=1).max() <= robot.max_reach
+
+
+def test_ur5_spec(ur5: Robot):
+    assert ur5.nq == 6 and ur5.grasp_frame == "tool0"
+    assert ur5.within_limits(ur5.home).all()
+
+
+def test_robot_pickles(panda: Robot):
+    other = pickle.loads(pickle.dumps(panda))
+    q = panda.random_configurations(3, 0)
+    np.testing.assert_allclose(other.fk(q), panda.fk(q))
+
+
+def test_collision_geometry_is_reduced(panda: Robot):
+    geom = panda.build_geometry("collision")
+    assert geom.ngeoms > 0
+    assert all(g.parentJoint < panda.model.njoints for g in geom.geometryObjects)
+    with pytest.raises(RobotSpecError, match="valid: collision, visual"):
+        panda.build_geometry("visuals")
+
+
+def test_unknown_robot_lists_available():
+    with pytest.raises(RobotSpecError, match=r"unknown robot 'pand'.*did you mean 'panda'.*ur5"):
+        load_robot("pand")
+
+
+def test_unknown_key_names_it_and_suggests(tmp_path: Path):
+    text = PANDA_SPEC.read_text().replace("grasp_frame:", "grasp_fram:")
+    with pytest.raises(
+        RobotSpecError, match=r"unknown key 'grasp_fram'.*did you mean 'grasp_frame'"
+    ):
+        load_robot(_write_spec(tmp_path, text))
+    text = PANDA_SPEC.read_text().replace("example_robot_data:", "example_robot_dat:")
+    with pytest.raises(RobotSpecError, match="example_robot_dat"):
+        load_robot(_write_spec(tmp_path, text))
+
+
+def test_missing_grasp_frame_lists_close_names(tmp_path: Path):
+    text = PANDA_SPEC.read_text().replace(
+        "grasp_frame: panda_hand_tcp", "grasp_frame: panda_hand_tpc"
+    )
+    with pytest.raises(FrameNotFoundError, match=r"'panda_hand_tpc'.*closest: panda_hand_tcp"):
+        load_robot(_write_spec(tmp_path, text))
+
+
+def test_spec_errors(tmp_path: Path):
+    with pytest.raises(RobotSpecError, match="does not exist"):
+        load_robot(tmp_path / "nope.yaml")
+    bad = PANDA_SPEC.read_text().replace("panda_finger_joint2: 0.04", "panda_fingr_joint2: 0.04")
+    with pytest.raises(RobotSpecError, match="did you mean 'panda_finger_joint2'"):
+        load_robot(_write_spec(tmp_path, bad))
+    bad = PANDA_SPEC.read_text().replace("limit_margin: 0.0", "limit_margin: -1")
+    with pytest.raises(RobotSpecError, match="limit_margin"):
+        load_robot(_write_spec(tmp_path, bad))
+    bad = PANDA_SPEC.read_text().replace("panda_joint4: -2.356194", "panda_joint4: 1.0")
+    with pytest.raises(RobotSpecError, match="outside the joint limits"):
+        load_robot(_write_spec(tmp_path, bad))
+    assert issubclass(RobotSpecError, GcmError)
+
+
+def test_limit_margin_and_joint_limits(tmp_path: Path, panda: Robot):
+    text = PANDA_SPEC.read_text().replace("limit_margin: 0.0", "limit_margin: 0.05")
+    text += "joint_limits:\n  panda_joint1: [-1.0, 5.0]\n"
+    robot = load_robot(_write_spec(tmp_path, text))
+    np.testing.assert_allclose(robot.lower[0], -1.0 + 0.05)
+    np.testing.assert_allclose(robot.upper[0], panda.upper[0] - 0.05)
+    np.testing.assert_allclose(robot.lower[1:], panda.lower[1:] + 0.05)

@@ -114,9 +114,7 @@ def test_unknown_robot_lists_available():
 
 def test_unknown_key_names_it_and_suggests(tmp_path: Path):
     text = PANDA_SPEC.read_text().replace("grasp_frame:", "grasp_fram:")
-    with pytest.raises(
-        RobotSpecError, match=r"unknown key 'grasp_fram'.*did you mean 'grasp_frame'"
-    ):
+    with pytest.raises(RobotSpecError, match=r"key 'grasp_fram'.*mean 'grasp_frame'"):
         load_robot(_write_spec(tmp_path, text))
     text = PANDA_SPEC.read_text().replace("example_robot_data:", "example_robot_dat:")
     with pytest.raises(RobotSpecError, match="example_robot_dat"):

@@ -454,6 +454,13 @@ class CollisionChecker:
                 exempt.add(int(cp.first))
         return exempt
 
+    def with_contact_tolerance(self, tolerance: float) -> CollisionChecker:
+        """The same world with another finger-contact tolerance [m] (0: no contact allowed)."""
+        env = self.environment.model_copy(update={"contact_tolerance": float(tolerance)})
+        return CollisionChecker(
+            self.robot, env, self.object_cfg, self.base_pose, threads=self.threads
+        )
+
     # --- queries --------------------------------------------------------------------------
 
     def _as_q(self, q: Any) -> np.ndarray:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -33,7 +34,7 @@ from pydantic import (
     model_validator,
 )
 
-from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.errors import ConfigError, unknown_choice
 
 __all__ = [
     "ApproachConfig",
@@ -240,6 +241,12 @@ class DensifyConfig(_Section):
     spacing: PositiveFloat | None = None
     method: Literal["dlb", "dib"] = "dlb"
 
+    @model_validator(mode="after")
+    def _some_density(self) -> DensifyConfig:
+        if self.subdivisions is None and self.spacing is None:
+            raise ValueError("give 'subdivisions' or 'spacing'")
+        return self
+
 
 class IKConfig(_Section):
     """Inverse kinematics backend and acceptance tolerances."""
@@ -420,14 +427,57 @@ def _describe(exc: ValidationError, data: Any) -> str:
         close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
         hint = f" (did you mean {'.'.join([*map(str, loc[:-1]), close[0]])!r}?)" if close else ""
         return f"unknown key {key!r}{hint}; valid keys here: {', '.join(valid)}"
+    if err["type"] == "missing" and loc and isinstance(loc[-1], int):
+        # a tuple with too few values: pydantic reports the first missing index
+        parent = ".".join(str(p) for p in loc[:-1])
+        got = _value_at(data, loc[:-1])
+        n = len(got) if isinstance(got, (list, tuple)) else "?"
+        return f"{parent}: expected {_tuple_len(loc[:-1])} values, got {n} ({got!r})"
     if err["type"] == "missing":
         return f"missing required key {key!r}"
+    if err["type"] == "too_long":
+        return (
+            f"{key}: expected {_tuple_len(loc)} values, got {len(err['input'])} ({err['input']!r})"
+        )
+    if err["type"] == "literal_error":
+        choices = re.findall(r"'([^']*)'", str(err.get("ctx", {}).get("expected", "")))
+        return f"{key}: " + unknown_choice("value", err["input"], choices)
+    if err["type"] in ("model_type", "model_attributes_type", "dict_type"):
+        got = err.get("input")
+        return f"{key or 'config'}: expected a mapping of keys, got {type(got).__name__} {got!r}"
     msg = err["msg"]
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
     if key and "input" in err and err["type"] not in ("value_error",):
         return f"{key}: {msg} (got {err['input']!r})"
     return f"{key}: {msg}" if key else msg
+
+
+def _value_at(data: Any, loc: list[Any]) -> Any:
+    """The raw input value at a location path (None where it leaves the data)."""
+    node = data
+    for part in loc:
+        try:
+            node = node[part]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return node
+
+
+def _tuple_len(loc: list[Any]) -> int | str:
+    """How many values the tuple field at ``loc`` takes ('?' if not a fixed tuple)."""
+    import typing
+
+    model = _model_at(Config, loc[:-1])
+    if model is None or not isinstance(loc[-1], str) or loc[-1] not in model.model_fields:
+        return "?"
+    ann = model.model_fields[loc[-1]].annotation
+    for arg in (ann, *typing.get_args(ann)):
+        if typing.get_origin(arg) is tuple:
+            args = typing.get_args(arg)
+            if args and args[-1] is not Ellipsis:
+                return len(args)
+    return "?"
 
 
 def _model_at(model: type[BaseModel], loc: list[Any]) -> type[BaseModel] | None:

@@ -1,0 +1,229 @@
+"""Config: loading, validation errors with suggestions, overrides, poses, schema."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gcm_pipeline.config import Config, Pose, config_schema, load_config
+from gcm_pipeline.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+
+BASE = {
+    "object": {"shape": "cylinder", "dims": {"radius": 0.03, "height": 0.2}},
+    "candidates": {"source": "cylinder_side"},
+}
+
+
+def _with(**sections):
+    data = json.loads(json.dumps(BASE))
+    data.update(sections)
+    return data
+
+
+def _error(data) -> str:
+    with pytest.raises(ConfigError) as info:
+        Config.from_dict(data)
+    return str(info.value)
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def test_example_configs_load(path):
+    cfg = load_config(path)
+    assert isinstance(cfg, Config)
+    # the resolved config round-trips through plain data
+    assert Config.from_dict(cfg.to_dict()) == cfg
+
+
+def test_defaults_and_frozen():
+    cfg = Config.from_dict(BASE)
+    assert cfg.seed == 0 and cfg.robot.spec == "panda" and cfg.ik.backend == "pinocchio"
+    with pytest.raises(Exception):  # noqa: B017 - pydantic's frozen-instance error
+        cfg.seed = 3  # type: ignore[misc]
+    with pytest.raises(Exception):  # noqa: B017
+        cfg.ik.backend = "mink"  # type: ignore[misc]
+
+
+def test_repr_is_readable():
+    cfg = Config.from_dict(BASE)
+    text = repr(cfg.candidates)
+    assert text.startswith("CandidatesConfig(") and "cylinder_side" in text
+
+
+@pytest.mark.parametrize(
+    ("data", "expected"),
+    [
+        ({**BASE, "candidats": {}}, "unknown key 'candidats' (did you mean 'candidates'?)"),
+        (
+            _with(manifold={"projecton": "xy"}),
+            "unknown key 'manifold.projecton' (did you mean 'manifold.projection'?)",
+        ),
+        (
+            _with(environment={"table": {"heigth": 0.1}}),
+            "did you mean 'environment.table.height'?",
+        ),
+        (
+            _with(
+                environment={
+                    "obstacles": [{"shape": "box", "dims": {"size": [1, 1, 1]}, "poze": {}}]
+                }
+            ),
+            "did you mean 'environment.obstacles.0.pose'?",
+        ),
+        (
+            _with(
+                object={
+                    "shape": "cylinder",
+                    "dims": {"radius": 1, "height": 1},
+                    "pose": {"rpyy": [0, 0, 0]},
+                }
+            ),
+            "did you mean 'object.pose.rpy'?",
+        ),
+    ],
+)
+def test_unknown_keys_suggest_the_closest(data, expected):
+    msg = _error(data)
+    assert expected in msg
+    assert "valid keys here:" in msg
+
+
+@pytest.mark.parametrize(
+    ("mutate", "expected"),
+    [
+        (lambda d: d["candidates"].update(count=0), "candidates.count"),
+        (lambda d: d["candidates"].update(count=-5), "candidates.count"),
+        (lambda d: d["candidates"].update(count="many"), "candidates.count"),
+        (lambda d: d["candidates"].update(count=2.5), "candidates.count"),
+        (lambda d: d["object"]["dims"].update(radius=0), "object.dims.radius"),
+        (lambda d: d["object"]["dims"].update(height=-0.1), "object.dims.height"),
+        (lambda d: d["candidates"].update(noise={"position": -1}), "candidates.noise.position"),
+        (lambda d: d.update(densify={"subdivisions": 0}), "densify.subdivisions"),
+        (lambda d: d.update(densify={"subdivisions": None}), "densify: give 'subdivisions'"),
+        (lambda d: d.update(manifold={"max_edge_length": -1}), "manifold.max_edge_length"),
+        (lambda d: d.update(ik={"position_tolerance": 0}), "ik.position_tolerance"),
+        (lambda d: d.update(seed="x"), "seed"),
+        (
+            lambda d: d["object"].update(pose={"xyz": [0, 0]}),
+            "object.pose.xyz: expected 3 values, got 2",
+        ),
+        (lambda d: d.update(environment={"table": 5}), "environment.table: expected a mapping"),
+        (lambda d: d.update(object={"shape": "box", "dims": {"size": [1, 2]}}), "3 values"),
+        (lambda d: d.update(object={"shape": "box"}), "shape 'box' needs dims.size"),
+        (lambda d: d.update(object=None), "needs object.shape 'cylinder'"),
+        (lambda d: d["object"].update(shape="sphere", dims={"radius": 1}), "needs object.shape"),
+        (lambda d: d.update(candidates={"source": "file"}), "needs 'path'"),
+    ],
+)
+def test_bad_values_name_the_key(mutate, expected):
+    data = json.loads(json.dumps(BASE))
+    mutate(data)
+    assert expected in _error(data)
+
+
+def test_bad_choice_suggests_and_lists():
+    msg = _error(_with(candidates={"source": "cylinder"}))
+    assert "candidates.source" in msg and "did you mean 'cylinder_side'?" in msg
+    assert "box, cylinder_side, file, plane, sphere" in msg
+    msg = _error(_with(ik={"backend": "minc"}))
+    assert "did you mean 'mink'?" in msg
+
+
+def test_empty_and_non_mapping_configs(tmp_path):
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    with pytest.raises(ConfigError, match="empty"):
+        load_config(empty)
+    listy = tmp_path / "list.yaml"
+    listy.write_text("- a\n- b\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(listy)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+
+
+def test_malformed_yaml_names_line_and_column(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("seed: 0\ncandidates:\n  source: plane\n  count: [1, 2\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(bad)
+    msg = str(info.value)
+    assert str(bad) in msg and "malformed YAML" in msg
+    assert ":5:1" in msg or ":4:" in msg
+
+
+def test_overrides_apply_to_any_key():
+    cfg = load_config(
+        ROOT / "configs" / "bottle_side.yaml",
+        ["ik.backend=mink", "densify.subdivisions=6", "object.pose.xyz=[0.4, 0.1, 0]", "seed=7"],
+    )
+    assert cfg.ik.backend == "mink"
+    assert cfg.densify.subdivisions == 6
+    assert cfg.object is not None and cfg.object.pose.xyz == (0.4, 0.1, 0.0)
+    assert cfg.seed == 7
+    # a section that the file does not have is created
+    cfg = load_config(ROOT / "configs" / "flat_surface.yaml", ["approach.distance=0.05"])
+    assert cfg.approach is not None and cfg.approach.distance == 0.05
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("ik.backnd=mink", "unknown key 'ik.backnd' (did you mean 'ik.backend'?)"),
+        ("densfy.subdivisions=3", "unknown key 'densfy' (did you mean 'densify'?)"),
+        ("densify.subdivisions=-1", "densify.subdivisions"),
+        ("ik.backend", "expected KEY=VALUE"),
+        ("seed.x=1", "'seed' is not a section"),
+    ],
+)
+def test_bad_overrides(override, expected):
+    with pytest.raises(ConfigError) as info:
+        load_config(ROOT / "configs" / "bottle_side.yaml", [override])
+    assert expected in str(info.value)
+
+
+def test_relative_paths_resolve_against_the_config(tmp_path):
+    cfg = load_config(ROOT / "configs" / "from_file.yaml")
+    assert cfg.candidates.path is not None and cfg.candidates.path.is_file()
+
+
+@pytest.mark.parametrize("rpy", [(0.1, -0.4, 2.0), (math.pi / 2, 0.3, -1.0), (0.0, 0.0, 0.0)])
+def test_pose_rpy_matches_fixed_axis_xyz(rpy):
+    m = Pose(xyz=(1, 2, 3), rpy=rpy).matrix()
+    assert np.allclose(m[:3, :3], Rotation.from_euler("xyz", rpy).as_matrix())
+    assert np.allclose(m[:3, 3], [1, 2, 3])
+    deg = Pose(xyz=(1, 2, 3), rpy_deg=tuple(np.degrees(rpy))).matrix()
+    assert np.allclose(deg, m)
+
+
+def test_pose_rejects_both_rotations():
+    msg = _error(
+        _with(
+            object={
+                "shape": "sphere",
+                "dims": {"radius": 0.1},
+                "pose": {"rpy": [0, 0, 0], "rpy_deg": [0, 0, 0]},
+            },
+            candidates={"source": "sphere"},
+        )
+    )
+    assert "either 'rpy'" in msg
+
+
+def test_schema_is_json_and_strict():
+    schema = config_schema()
+    text = json.dumps(schema)
+    assert "candidates" in schema["properties"]
+    assert schema["required"] == ["candidates"]
+    assert schema["additionalProperties"] is False
+    assert "cylinder_side" in text

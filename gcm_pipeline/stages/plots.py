@@ -1,0 +1,236 @@
+"""PNG plots of a run: the manifold chart, the manipulability histogram, stage counts.
+
+Figures are drawn with matplotlib's object API on the Agg canvas (no pyplot,
+no global backend switch), so plotting works headless and from threads.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.errors import PublishError
+from gcm_pipeline.table import GraspTable
+
+__all__ = ["PLOT_FILES", "chart_points", "write_plots"]
+
+#: File names written by :func:`write_plots`, in order.
+PLOT_FILES = ("manifold.png", "manipulability_hist.png", "counts.png")
+
+_DPI = 110
+_COUNT_ORDER = ("candidates", "triangles", "triangles_dropped", "densified", "reachable")
+
+
+def _figure(size: tuple[float, float] = (6.4, 4.8)) -> Any:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=size, dpi=_DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Any, path: Path) -> Path:
+    try:
+        fig.savefig(path, dpi=_DPI)
+    except OSError as exc:
+        raise PublishError(f"cannot write plot {str(path)!r}: {exc}") from exc
+    return path
+
+
+def chart_points(grasps: GraspTable, manifold: Any) -> np.ndarray:
+    """Chart coordinates (N, 2) of every grasp row.
+
+    Candidate rows take their own chart coordinates (``manifold.chart``, in
+    candidate order); interpolated rows the barycentric blend
+    ``sum_k weights[k] * chart[vertices[k]]`` of their triangle's corners.
+    Rows that cannot be placed are NaN.
+
+    Args:
+        grasps: The table (``origin``, ``vertices``, ``weights`` used when present).
+        manifold: Object with ``chart`` (Nc, 2).
+
+    Returns:
+        (N, 2) float array.
+    """
+    chart = np.asarray(manifold.chart, dtype=float)
+    n = len(grasps)
+    out = np.full((n, 2), np.nan)
+    origin = grasps.get("origin")
+    if origin is None:
+        rows = np.arange(min(n, len(chart)))
+    else:
+        rows = np.flatnonzero(np.asarray(origin).astype(str) == "candidate")[: len(chart)]
+    out[rows] = chart[: len(rows)]
+    if "vertices" in grasps and "weights" in grasps:
+        verts = np.asarray(grasps["vertices"], dtype=np.int64)
+        w = np.asarray(grasps["weights"], dtype=float)
+        ok = np.all((verts >= 0) & (verts < len(chart)), axis=1) & np.all(np.isfinite(w), axis=1)
+        if origin is not None:
+            ok &= np.asarray(origin).astype(str) != "candidate"
+        out[ok] = np.einsum("nk,nkd->nd", w[ok], chart[verts[ok]])
+    return out
+
+
+def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
+    fig = _figure((7.0, 5.2))
+    ax = fig.add_subplot()
+    projection = str(getattr(manifold, "projection", "") or "")
+    chart = np.asarray(getattr(manifold, "chart", np.empty((0, 2))), dtype=float)
+    tris = np.asarray(getattr(manifold, "triangles", np.empty((0, 3))), dtype=np.int64)
+    if len(chart) and len(tris):
+        ax.triplot(
+            chart[:, 0],
+            chart[:, 1],
+            tris,
+            color="0.55",
+            linewidth=0.7,
+            zorder=1,
+            label=f"triangles ({len(tris)})",
+        )
+    pts = chart_points(grasps, manifold) if len(chart) else np.full((len(grasps), 2), np.nan)
+    reach = np.asarray(grasps.get("reachable", np.zeros(len(grasps), bool)), dtype=bool)
+    manip = np.asarray(grasps.get("manipulability", np.full(len(grasps), np.nan)), dtype=float)
+    placed = np.all(np.isfinite(pts), axis=1)
+    size = float(np.clip(3000.0 / max(len(grasps), 1), 1.0, 30.0))
+    bad = placed & ~reach
+    if bad.any():
+        ax.scatter(
+            pts[bad, 0],
+            pts[bad, 1],
+            s=size,
+            marker="x",
+            c="0.45",
+            linewidths=0.8,
+            label=f"unreachable ({int(bad.sum())})",
+            zorder=2,
+            rasterized=len(grasps) > 5000,
+        )
+    good = placed & reach & np.isfinite(manip)
+    if good.any():
+        sc = ax.scatter(
+            pts[good, 0],
+            pts[good, 1],
+            s=size,
+            c=manip[good],
+            cmap="viridis",
+            label=f"reachable ({int(good.sum())})",
+            zorder=3,
+            rasterized=len(grasps) > 5000,
+            edgecolors="none",
+        )
+        fig.colorbar(sc, ax=ax, label="manipulability [-]")
+    cand = np.asarray(grasps.get("origin", np.array([], dtype=str))).astype(str) == "candidate"
+    if cand.any() and len(chart):
+        ax.scatter(
+            pts[cand, 0],
+            pts[cand, 1],
+            s=28,
+            facecolors="none",
+            edgecolors="crimson",
+            linewidths=1.0,
+            label="candidates",
+            zorder=4,
+        )
+    unit = "[rad·m]" if projection in ("cylindrical", "spherical") else "[m]"
+    unit = "" if not projection else f" {unit}"
+    ax.set_xlabel(f"chart u{unit}")
+    ax.set_ylabel(f"chart v{unit}")
+    title = "Grasp manifold in its 2-D chart"
+    ax.set_title(f"{title} ({projection} projection)" if projection else title)
+    ax.set_aspect("equal", adjustable="datalim")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize="small", framealpha=0.85)
+    ax.grid(alpha=0.25)
+    return _save(fig, path)
+
+
+def _plot_hist(grasps: GraspTable, path: Path) -> Path:
+    fig = _figure()
+    ax = fig.add_subplot()
+    reach = np.asarray(grasps.get("reachable", np.zeros(len(grasps), bool)), dtype=bool)
+    manip = np.asarray(grasps.get("manipulability", np.full(len(grasps), np.nan)), dtype=float)
+    values = manip[reach & np.isfinite(manip)]
+    if values.size:
+        bins = int(np.clip(np.sqrt(values.size), 10, 60))
+        _, edges, patches = ax.hist(values, bins=bins, edgecolor="white", linewidth=0.4)
+        from matplotlib import colormaps
+
+        cmap = colormaps["viridis"]
+        lo, hi = float(values.min()), float(values.max())
+        span = hi - lo if hi > lo else 1.0
+        for left, right, patch in zip(edges[:-1], edges[1:], patches, strict=True):
+            patch.set_facecolor(cmap((0.5 * (left + right) - lo) / span))
+        ax.axvline(
+            float(np.median(values)),
+            color="crimson",
+            linewidth=1.2,
+            label=f"median {np.median(values):.4g}",
+        )
+        ax.legend(fontsize="small")
+    else:
+        ax.text(0.5, 0.5, "no reachable grasp", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("manipulability [-]")
+    ax.set_ylabel("reachable grasps [count]")
+    ax.set_title(f"Manipulability of the reachable grasps (n = {values.size})")
+    ax.grid(alpha=0.25, axis="y")
+    return _save(fig, path)
+
+
+def _plot_counts(counts: Mapping[str, int], path: Path) -> Path:
+    fig = _figure()
+    ax = fig.add_subplot()
+    keys = [k for k in _COUNT_ORDER if k in counts] + [k for k in counts if k not in _COUNT_ORDER]
+    values = [int(counts[k]) for k in keys]
+    colors = ["#4a90d9", "#7f7f7f", "#c7c7c7", "#5aa469", "#21918c"]
+    bars = ax.bar(
+        range(len(keys)), values, color=[colors[i % len(colors)] for i in range(len(keys))]
+    )
+    ax.bar_label(bars, labels=[f"{v:,}" for v in values], padding=2, fontsize="small")
+    ax.set_xticks(range(len(keys)), [k.replace("_", "\n") for k in keys])
+    ax.set_ylabel("count [-]")
+    ax.set_title("Per-stage counts")
+    if values and max(values) > 0 and max(values) > 50 * max(1, min(v for v in values if v > 0)):
+        ax.set_yscale("log")
+        ax.set_ylabel("count [-] (log scale)")
+    ax.margins(y=0.12)
+    ax.grid(alpha=0.25, axis="y")
+    return _save(fig, path)
+
+
+def write_plots(
+    grasps: GraspTable,
+    manifold: Any,
+    counts: Mapping[str, int],
+    out_dir: str | os.PathLike[str],
+) -> list[Path]:
+    """Write ``manifold.png``, ``manipulability_hist.png`` and ``counts.png``.
+
+    Args:
+        grasps: The grasp table (``reachable``, ``manipulability``, ``origin``,
+            ``vertices``, ``weights`` used when present).
+        manifold: Object with ``chart`` (Nc, 2), ``triangles`` (T, 3) and
+            optionally ``projection``; None gives an empty chart plot.
+        counts: Per-stage counts, e.g. ``summary["counts"]``
+            (``candidates``, ``triangles``, ``triangles_dropped``, ``densified``,
+            ``reachable``; other keys are plotted after these).
+        out_dir: An existing directory.
+
+    Returns:
+        The three paths, in :data:`PLOT_FILES` order.
+
+    Raises:
+        PublishError: ``out_dir`` is not a directory or a file cannot be written.
+    """
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise PublishError(f"plot directory {str(out)!r} does not exist")
+    return [
+        _plot_manifold(grasps, manifold, out / PLOT_FILES[0]),
+        _plot_hist(grasps, out / PLOT_FILES[1]),
+        _plot_counts(counts, out / PLOT_FILES[2]),
+    ]

@@ -1,0 +1,1149 @@
+"""Publish stage: a meshcat scene (live or as self-contained HTML) and PNG plots.
+
+The scene holds, under the meshcat root:
+
+=========================== ==================================================
+path                        content
+=========================== ==================================================
+``/robot``                  the robot's visual meshes (Pinocchio's meshcat
+                            visualizer), posed at the top-ranked solution, and
+                            an animation stepping through the top-k solutions
+``/object``                 the grasped object (primitive or mesh)
+``/environment``            the support table (``environment.table``)
+``/grasps/reachable``       one ``LineSegments`` object: a gripper glyph per
+                            grasp, coloured by manipulability (viridis)
+``/grasps/unreachable``     one ``LineSegments`` object: grey for ``no_ik``,
+                            a fixed colour per other ``reason``
+``/manifold``               the manifold's triangles (translucent) and edges
+=========================== ==================================================
+
+Glyphs are batched: each grasp class is one meshcat object with per-vertex
+colours, so the number of meshcat objects does not depend on the number of
+grasps N. Above :data:`FULL_GLYPH_LIMIT` grasps the gripper glyph (4 segments)
+becomes an approach stick (1 segment) to keep the scene light.
+
+The HTML scene is recorded without a server: a recording window stands in for
+meshcat's ZMQ connection, keeps the scene tree exactly as ``meshcat-server``
+does, and writes the same static page that ``Visualizer.static_html()`` would
+ask the server for. The live viewer (:func:`open_viewer`) starts meshcat's own
+server on the loopback interface, or connects to a running one after a
+time-bounded probe, so an absent server is a :class:`PublishError`, not a hang.
+
+This is the only module of the package that imports meshcat.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import os
+import selectors
+import subprocess
+import sys
+import time
+import warnings
+import weakref
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from gcm_pipeline.errors import PublishError
+from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.table import GraspTable
+
+if TYPE_CHECKING:
+    from gcm_pipeline.config import Config
+    from gcm_pipeline.robot.model import Robot
+
+try:
+    import meshcat
+    import meshcat.geometry as mg
+    import umsgpack
+    import zmq
+    from meshcat.animation import Animation
+    from meshcat.servers.tree import SceneTree, find_node, walk
+except ImportError as _exc:  # pragma: no cover - meshcat is a hard dependency
+    raise ImportError("gcm_pipeline.stages.publish needs meshcat (pip install meshcat)") from _exc
+
+__all__ = [
+    "FULL_GLYPH_LIMIT",
+    "REASON_COLORS",
+    "SCENE_PATHS",
+    "SceneInfo",
+    "Viewer",
+    "build_scene",
+    "legend",
+    "open_viewer",
+    "publish",
+    "render_scene_html",
+    "stage_counts",
+    "write_scene_html",
+]
+
+#: Scene paths (relative to the meshcat root) that users can toggle in the controls.
+SCENE_PATHS = (
+    "/robot",
+    "/object",
+    "/environment",
+    "/grasps/reachable",
+    "/grasps/unreachable",
+    "/manifold",
+)
+
+#: Above this many grasps in one class the gripper glyph becomes an approach stick.
+FULL_GLYPH_LIMIT = 20_000
+
+#: Colour [r, g, b] in [0, 1] of unreachable grasps by ``reason``; other reasons
+#: take the next colour of :data:`_EXTRA_REASON_COLORS` in sorted order.
+REASON_COLORS: dict[str, tuple[float, float, float]] = {
+    "no_ik": (0.62, 0.62, 0.62),
+    "self_collision": (0.89, 0.47, 0.13),
+    "collision": (0.84, 0.15, 0.16),
+    "object_collision": (0.84, 0.15, 0.16),
+    "environment_collision": (0.55, 0.34, 0.29),
+    "table_collision": (0.55, 0.34, 0.29),
+    "approach": (0.58, 0.40, 0.74),
+    "approach_blocked": (0.58, 0.40, 0.74),
+    "joint_limits": (0.89, 0.47, 0.76),
+}
+_EXTRA_REASON_COLORS = (
+    (0.09, 0.75, 0.81),
+    (0.74, 0.74, 0.13),
+    (0.12, 0.47, 0.71),
+    (0.17, 0.63, 0.17),
+    (0.50, 0.50, 0.00),
+)
+_COLORMAP = "viridis"
+_TOP_K_DEFAULT = 10
+_ANIM_FPS = 30
+_ANIM_HOLD = 15  # frames a solution is held [1/fps s]
+_ANIM_MOVE = 9  # frames of joint-space interpolation to the next solution
+
+# Gripper glyph in the grasp frame (z = approach, fingers along y, origin between
+# the fingertips): two fingers, the palm and a stem, as 4 segments [m].
+_GLYPH_W, _GLYPH_F, _GLYPH_S = 0.03, 0.03, 0.035
+_GRIPPER = np.array(
+    [
+        [0.0, -_GLYPH_W, 0.0],
+        [0.0, -_GLYPH_W, -_GLYPH_F],
+        [0.0, _GLYPH_W, 0.0],
+        [0.0, _GLYPH_W, -_GLYPH_F],
+        [0.0, -_GLYPH_W, -_GLYPH_F],
+        [0.0, _GLYPH_W, -_GLYPH_F],
+        [0.0, 0.0, -_GLYPH_F],
+        [0.0, 0.0, -_GLYPH_F - _GLYPH_S],
+    ]
+)
+_STICK = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -_GLYPH_F - _GLYPH_S]])
+
+# three.js cameras look along -z with y up; meshcat's camera hangs under
+# /Cameras/default/rotated, which rotates y-up into the world's z-up.
+_ROT_X90 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+_CAMERA_FOV_DEG = 75.0  # meshcat's default camera
+_VIEW_DIR = np.array([1.0, 0.75, 0.55])
+
+
+# -- small results ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SceneInfo:
+    """What a published scene holds; JSON-ready through :meth:`to_dict`.
+
+    Attributes:
+        paths: Scene paths drawn (subset of :data:`SCENE_PATHS`, plus sub-paths).
+        n_reachable: Number of reachable grasps drawn.
+        n_unreachable: Number of unreachable grasps drawn.
+        glyph: ``"gripper"`` (4 segments per grasp) or ``"stick"`` (1 segment).
+        meshcat_objects: Number of ``set_object`` commands sent (independent of N
+            for a given robot, object and environment).
+        legend: Colour legend (see :func:`legend`).
+        camera: ``{"position": [x, y, z], "target": [x, y, z]}`` in the world [m].
+        top_k: Number of solutions in the robot animation.
+        animation_s: Duration of the robot animation [s].
+    """
+
+    paths: tuple[str, ...]
+    n_reachable: int
+    n_unreachable: int
+    glyph: str
+    meshcat_objects: int
+    legend: dict[str, Any]
+    camera: dict[str, list[float]]
+    top_k: int
+    animation_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the info as plain JSON-ready data."""
+        return asdict(self)
+
+
+# -- colours ----------------------------------------------------------------------------
+
+
+def _reason_palette(reasons: Sequence[str]) -> dict[str, tuple[float, float, float]]:
+    extra = iter(_EXTRA_REASON_COLORS * (1 + len(reasons) // len(_EXTRA_REASON_COLORS)))
+    out: dict[str, tuple[float, float, float]] = {}
+    for reason in sorted(set(reasons)):
+        out[reason] = REASON_COLORS.get(reason) or next(extra)
+    return out
+
+
+def _hex(rgb: Sequence[float]) -> str:
+    return "#" + "".join(f"{int(round(255 * float(c))):02x}" for c in rgb[:3])
+
+
+def _manipulability_range(values: np.ndarray) -> tuple[float, float]:
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    lo, hi = float(finite.min()), float(finite.max())
+    if hi <= lo:
+        hi = lo + max(abs(lo), 1.0) * 1e-9
+    return lo, hi
+
+
+def _column(grasps: GraspTable, name: str, default: Any) -> np.ndarray:
+    col = grasps.get(name)
+    if col is None:
+        return np.full(len(grasps), default)
+    return np.asarray(col)
+
+
+def _classes(grasps: GraspTable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reachable mask, reasons (str) and manipulability (float) of every row."""
+    n = len(grasps)
+    reachable = _column(grasps, "reachable", False).astype(bool)
+    reason = _column(grasps, "reason", "").astype(str)
+    if "manipulability" in grasps:
+        manip = np.asarray(grasps["manipulability"], dtype=float)
+    else:
+        manip = np.full(n, np.nan)
+    if "reachable" not in grasps:
+        reason = np.where(reason == "", "unchecked", reason)
+    reason = np.where(~reachable & (reason == ""), "no_ik", reason)
+    return reachable, reason, manip
+
+
+def legend(grasps: GraspTable) -> dict[str, Any]:
+    """Colour legend of the grasp glyphs, JSON-ready (for the run summary).
+
+    Args:
+        grasps: The grasp table (``reachable``, ``reason``, ``manipulability``
+            are used when present).
+
+    Returns:
+        ``{"colormap": "viridis", "metric_range": [vmin, vmax],
+        "ticks": [5 values], "tick_colors": [5 hex colours],
+        "reachable": n, "unreachable": {reason: {"color": hex, "count": n}}}``.
+        ``metric_range`` is the manipulability range over the reachable grasps
+        that the colormap spans (``[0, 1]`` when there is none).
+    """
+    reachable, reason, manip = _classes(grasps)
+    vmin, vmax = _manipulability_range(manip[reachable])
+    ticks = np.linspace(vmin, vmax, 5)
+    cmap = _cmap()
+    unreach = reason[~reachable]
+    names, counts = np.unique(unreach, return_counts=True)
+    palette = _reason_palette(list(names))
+    return {
+        "colormap": _COLORMAP,
+        "metric_range": [vmin, vmax],
+        "ticks": [float(t) for t in ticks],
+        "tick_colors": [_hex(c) for c in cmap(np.linspace(0.0, 1.0, 5))],
+        "reachable": int(reachable.sum()),
+        "unreachable": {
+            str(r): {"color": _hex(palette[str(r)]), "count": int(c)}
+            for r, c in zip(names, counts, strict=True)
+        },
+    }
+
+
+def _cmap() -> Any:
+    from matplotlib import colormaps
+
+    return colormaps[_COLORMAP]
+
+
+# -- geometry ---------------------------------------------------------------------------
+
+
+def _poses(grasps: GraspTable) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations (N, 3, 3) and positions (N, 3) of the grasp frames in the world."""
+    m = dq_to_matrix(np.asarray(grasps["dq"], dtype=float))
+    return m[:, :3, :3], m[:, :3, 3]
+
+
+def _glyph_segments(rot: np.ndarray, trans: np.ndarray, template: np.ndarray) -> np.ndarray:
+    """World vertices (N * V, 3) float32 of a glyph template (V, 3) at N poses."""
+    pts = np.einsum("nij,vj->nvi", rot.astype(np.float32), template.astype(np.float32))
+    pts += trans.astype(np.float32)[:, None, :]
+    return pts.reshape(-1, 3)
+
+
+def _line_segments(vertices: np.ndarray, colors: np.ndarray, linewidth: float = 1.0) -> Any:
+    geometry = mg.PointsGeometry(
+        np.ascontiguousarray(vertices.T, dtype=np.float32),
+        np.ascontiguousarray(colors.T, dtype=np.float32),
+    )
+    material = mg.LineBasicMaterial(vertexColors=True, linewidth=linewidth)
+    return mg.LineSegments(geometry, material)
+
+
+def _rgb_int(rgb: Sequence[float]) -> int:
+    r, g, b = (int(round(255 * float(c))) for c in rgb[:3])
+    return (r << 16) | (g << 8) | b
+
+
+def _translation(xyz: Sequence[float]) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = xyz
+    return m
+
+
+# -- scene parts ------------------------------------------------------------------------
+
+
+def _draw_grasps(
+    vis: Any, grasps: GraspTable, rot: np.ndarray, trans: np.ndarray
+) -> tuple[list[str], str, int, int]:
+    reachable, reason, manip = _classes(grasps)
+    paths: list[str] = []
+    n_r, n_u = int(reachable.sum()), int((~reachable).sum())
+    template = _GRIPPER if max(n_r, n_u) <= FULL_GLYPH_LIMIT else _STICK
+    glyph = "gripper" if template is _GRIPPER else "stick"
+    nv = len(template)
+    if n_r:
+        vmin, vmax = _manipulability_range(manip[reachable])
+        m = manip[reachable]
+        t = np.clip((np.where(np.isfinite(m), m, vmin) - vmin) / (vmax - vmin), 0.0, 1.0)
+        rgb = _cmap()(t)[:, :3].astype(np.float32)
+        verts = _glyph_segments(rot[reachable], trans[reachable], template)
+        colors = np.repeat(rgb, nv, axis=0)
+        vis["grasps/reachable"].set_object(_line_segments(verts, colors, 2.0))
+        paths.append("/grasps/reachable")
+    if n_u:
+        unreach = reason[~reachable]
+        palette = _reason_palette(list(np.unique(unreach)))
+        names = list(palette)
+        table = np.array([palette[n] for n in names], dtype=np.float32)
+        idx = np.searchsorted(np.array(names), unreach)
+        verts = _glyph_segments(rot[~reachable], trans[~reachable], template)
+        colors = np.repeat(table[idx], nv, axis=0)
+        vis["grasps/unreachable"].set_object(_line_segments(verts, colors, 1.0))
+        paths.append("/grasps/unreachable")
+    return paths, glyph, n_r, n_u
+
+
+def _object_geometry(obj: Any) -> tuple[Any, np.ndarray]:
+    """Meshcat geometry of the config's object and its transform in the object frame."""
+    shape = obj.shape
+    dims = obj.dims
+    if shape == "cylinder":
+        # meshcat cylinders run along y, centred: stand it on its base along z
+        local = _translation((0.0, 0.0, dims.height / 2.0))
+        local[:3, :3] = _ROT_X90
+        return mg.Cylinder(dims.height, dims.radius), local
+    if shape == "box":
+        return mg.Box(list(dims.size)), np.eye(4)
+    if shape == "sphere":
+        return mg.Sphere(dims.radius), np.eye(4)
+    if shape == "plane":
+        thickness = 0.002
+        sx, sy = dims.size
+        return mg.Box([sx, sy, thickness]), _translation((0.0, 0.0, -thickness / 2.0))
+    # mesh
+    path = Path(obj.mesh)
+    if not path.is_file():
+        raise PublishError(f"object mesh {str(path)!r} does not exist")
+    ext = path.suffix.lower()
+    loaders = {
+        ".stl": mg.StlMeshGeometry.from_file,
+        ".obj": mg.ObjMeshGeometry.from_file,
+        ".dae": mg.DaeMeshGeometry.from_file,
+    }
+    if ext not in loaders:
+        raise PublishError(
+            f"object mesh {str(path)!r}: unsupported format {ext!r}; valid: .dae, .obj, .stl"
+        )
+    local = np.diag([obj.scale, obj.scale, obj.scale, 1.0])
+    return loaders[ext](str(path)), local
+
+
+def _object_points(obj: Any) -> np.ndarray:
+    """A few world points (K, 3) spanning the object (for framing the camera)."""
+    dims = obj.dims
+    if obj.shape == "cylinder":
+        r, h = dims.radius, dims.height
+        local = np.array([[-r, -r, 0.0], [r, r, h]])
+    elif obj.shape in ("box", "plane"):
+        size = np.zeros(3)
+        size[: len(dims.size)] = dims.size
+        local = np.array([-size / 2, size / 2])
+    elif obj.shape == "sphere":
+        local = np.array([[-dims.radius] * 3, [dims.radius] * 3])
+    else:
+        local = np.zeros((1, 3))
+    m = obj.pose.matrix()
+    return local @ m[:3, :3].T + m[:3, 3]
+
+
+def _draw_object(vis: Any, obj: Any) -> list[str]:
+    geometry, local = _object_geometry(obj)
+    material = mg.MeshPhongMaterial(color=0xD9A441, opacity=0.7, transparent=True)
+    vis["object"].set_transform(obj.pose.matrix())
+    vis["object/shape"].set_object(geometry, material)
+    vis["object/shape"].set_transform(local)
+    return ["/object"]
+
+
+def _draw_environment(vis: Any, config: Config) -> list[str]:
+    env = config.environment
+    paths: list[str] = []
+    if env.table is not None:
+        sx, sy, sz = env.table.size
+        cx, cy = env.table.center_xy
+        material = mg.MeshLambertMaterial(color=0xC8C3BA)
+        vis["environment/table"].set_object(mg.Box([sx, sy, sz]), material)
+        vis["environment/table"].set_transform(_translation((cx, cy, env.table.height - sz / 2)))
+        # the table replaces meshcat's grid, which would z-fight with its top
+        vis["/Grid"].set_property("visible", False)
+        vis["/Axes"].set_property("visible", False)
+        paths.append("/environment")
+    for i, obs in enumerate(env.obstacles):
+        if obs.shape == "mesh" and (obs.mesh is None or not Path(obs.mesh).is_file()):
+            warnings.warn(f"obstacle {i}: mesh {obs.mesh} not found; not drawn", stacklevel=3)
+            continue
+        geometry, local = _object_geometry(obs)
+        name = obs.name or f"obstacle_{i}"
+        material = mg.MeshLambertMaterial(color=0x8C8C99, opacity=0.7, transparent=True)
+        vis[f"environment/{name}"].set_transform(obs.pose.matrix())
+        vis[f"environment/{name}/shape"].set_object(geometry, material)
+        vis[f"environment/{name}/shape"].set_transform(local)
+        if "/environment" not in paths:
+            paths.append("/environment")
+    return paths
+
+
+def _candidate_rows(grasps: GraspTable, n_chart: int) -> np.ndarray:
+    """Table rows of the manifold's vertices (candidate ids 0..n_chart-1)."""
+    origin = grasps.get("origin")
+    if origin is None:
+        rows = np.arange(len(grasps))
+    else:
+        rows = np.flatnonzero(np.asarray(origin).astype(str) == "candidate")
+    return rows[:n_chart]
+
+
+def _draw_manifold(vis: Any, grasps: GraspTable, manifold: Any, trans: np.ndarray) -> list[str]:
+    if manifold is None:
+        return []
+    tris = np.asarray(getattr(manifold, "triangles", np.empty((0, 3))), dtype=np.int64)
+    if tris.size == 0:
+        return []
+    chart = getattr(manifold, "chart", None)
+    n_chart = len(chart) if chart is not None else int(tris.max()) + 1
+    rows = _candidate_rows(grasps, n_chart)
+    if tris.max() >= len(rows):
+        warnings.warn(
+            f"manifold triangles use vertex {int(tris.max())} but the table has "
+            f"{len(rows)} candidate rows; manifold not drawn",
+            stacklevel=3,
+        )
+        return []
+    verts = trans[rows].astype(np.float32)
+    material = mg.MeshLambertMaterial(
+        color=0x4A90D9, opacity=0.28, transparent=True, depthWrite=False
+    )
+    vis["manifold/triangles"].set_object(mg.TriangularMeshGeometry(verts, tris), material)
+    edges = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    seg = verts[edges.reshape(-1)]
+    colors = np.tile(np.array([[0.16, 0.35, 0.62]], dtype=np.float32), (len(seg), 1))
+    vis["manifold/edges"].set_object(_line_segments(seg, colors, 1.0))
+    return ["/manifold"]
+
+
+def _top_solutions(grasps: GraspTable, k: int) -> np.ndarray:
+    """Configurations (<= k, nq) of the best-ranked reachable grasps, best first."""
+    if "q" not in grasps:
+        return np.empty((0, 0))
+    q = np.asarray(grasps["q"], dtype=float)
+    if "rank" in grasps:
+        rank = np.asarray(grasps["rank"], dtype=np.int64)
+        order = np.flatnonzero(rank > 0)
+        order = order[np.argsort(rank[order], kind="stable")]
+    else:
+        order = np.flatnonzero(_column(grasps, "reachable", False).astype(bool))
+    order = order[np.all(np.isfinite(q[order]), axis=1)] if len(order) else order
+    return q[order[:k]]
+
+
+class _RobotDrawer:
+    """Pinocchio's meshcat visualizer of a :class:`Robot`'s visual meshes under ``/robot``."""
+
+    def __init__(self, vis: Any, robot: Robot, base: np.ndarray) -> None:
+        import pinocchio as pin
+        from pinocchio.visualize import MeshcatVisualizer
+
+        self.pin = pin
+        model = robot.model
+        visual = _visual_model(robot)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            self.viz = MeshcatVisualizer(model, None, visual)
+            self.viz.initViewer(viewer=vis)
+            self.viz.loadViewerModel(rootNodeName="robot")
+        vis["robot"].set_transform(base)
+        self.model = model
+        self.visual = visual
+        self.data = model.createData()
+        self.vdata = pin.GeometryData(visual)
+
+    def display(self, q: np.ndarray) -> None:
+        self.viz.display(q)
+
+    def placements(self, q: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        pin = self.pin
+        pin.forwardKinematics(self.model, self.data, q)
+        pin.updateGeometryPlacements(self.model, self.data, self.visual, self.vdata)
+        out = []
+        for gid, obj in enumerate(self.visual.geometryObjects):
+            t = self.vdata.oMg[gid].homogeneous.copy()
+            t[:3, :3] = t[:3, :3] * np.asarray(obj.meshScale)[None, :]
+            out.append((f"robot/visuals/{obj.name}", t))
+        return out
+
+    def animate(self, vis: Any, qs: np.ndarray) -> float:
+        """Set an animation stepping through ``qs`` and back to the first; duration [s]."""
+        anim = Animation(default_framerate=_ANIM_FPS)
+        frame = 0
+        seq = [*qs, qs[0]] if len(qs) > 1 else list(qs)
+        for i, q in enumerate(seq):
+            if i > 0:
+                prev = seq[i - 1]
+                for s in range(1, _ANIM_MOVE):
+                    self._keyframe(anim, vis, frame, prev + (q - prev) * (s / _ANIM_MOVE))
+                    frame += 1
+            self._keyframe(anim, vis, frame, q)
+            frame += _ANIM_HOLD
+            self._keyframe(anim, vis, frame, q)
+            frame += 1
+        vis.set_animation(anim, play=True, repetitions=1)
+        return frame / _ANIM_FPS
+
+    def _keyframe(self, anim: Animation, vis: Any, frame: int, q: np.ndarray) -> None:
+        with anim.at_frame(vis, frame) as f:
+            for path, t in self.placements(q):
+                f[path].set_transform(t)
+
+
+def _visual_model(robot: Robot) -> Any:
+    """The robot's visual GeometryModel, reduced like its kinematic model."""
+    build = getattr(robot, "build_geometry", None)
+    if build is not None:
+        return build("visual")
+    vm = getattr(robot, "visual_model", None)  # e.g. a pinocchio RobotWrapper
+    if vm is not None:
+        return vm
+    raise PublishError(f"robot {robot!r} offers no visual geometry (build_geometry('visual'))")
+
+
+def _robot_points(drawer: _RobotDrawer, q: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """World positions (J, 3) of the robot's joint origins at ``q`` (for framing)."""
+    pin = drawer.pin
+    pin.forwardKinematics(drawer.model, drawer.data, q)
+    pts = np.array([m.translation for m in drawer.data.oMi])
+    return pts @ base[:3, :3].T + base[:3, 3]
+
+
+def _camera(grasp_points: np.ndarray, other_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera target and position [m] framing the grasps and the other points.
+
+    Grasp positions are trimmed to their 1st-99th percentiles (a few stray
+    grasps should not shrink the view); robot and object points count fully.
+    """
+    parts = [other_points]
+    if len(grasp_points):
+        parts.append(np.percentile(grasp_points, [1, 99], axis=0))
+    pts = np.concatenate(parts)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    target = 0.5 * (lo + hi)
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 0.2)
+    direction = _VIEW_DIR / np.linalg.norm(_VIEW_DIR)
+    # distance that fits a sphere of `radius` in the (vertical) field of view
+    dist = radius / math.sin(math.radians(_CAMERA_FOV_DEG) / 2.0)
+    return target, target + direction * dist
+
+
+def _set_camera(vis: Any, position: np.ndarray) -> None:
+    """Place meshcat's default camera at ``position`` (world, [m]).
+
+    The camera hangs under ``/Cameras/default/rotated``, whose rotation undoes
+    the viewer's z-up to y-up turn of the scene, so the camera's local
+    coordinates are three.js world coordinates: ``R_x(90 deg)^T @ world``.
+    meshcat 0.3 has no command for the orbit target (the static page sets
+    ``viewer.controls.target``, see :func:`_orbit_js`); without it the camera
+    looks at the world origin.
+    """
+    vis["/Cameras/default"].set_transform(np.eye(4))
+    local = _ROT_X90.T @ np.asarray(position, dtype=float)
+    vis["/Cameras/default/rotated/<object>"].set_property("position", local.tolist())
+
+
+def build_scene(
+    vis: Any,
+    grasps: GraspTable,
+    manifold: Any,
+    robot: Robot | None,
+    config: Config,
+    *,
+    orbit_target: bool = False,
+) -> SceneInfo:
+    """Draw the whole scene into a meshcat visualizer.
+
+    Args:
+        vis: A ``meshcat.Visualizer`` (live or recording).
+        grasps: The grasp table (``dq`` required; ``reachable``, ``reason``,
+            ``manipulability``, ``q``, ``rank``, ``origin`` used when present).
+        manifold: The manifold (``triangles`` (T, 3) candidate ids, ``chart``
+            (Nc, 2)) or None.
+        robot: The robot, or None to leave it out.
+        config: The run config (``object``, ``environment``, ``robot.base_pose``,
+            ``ranking.top_k``).
+        orbit_target: The page sets the orbit controls' target (static HTML).
+
+    Returns:
+        What was drawn, with the colour legend and the camera.
+    """
+    n = len(grasps)
+    if n and "dq" not in grasps:
+        raise PublishError("grasp table has no 'dq' column; nothing to draw")
+    rot, trans = _poses(grasps) if n else (np.empty((0, 3, 3)), np.empty((0, 3)))
+    vis.delete()
+    paths: list[str] = []
+    frame_pts: list[np.ndarray] = []
+    base = config.robot.base_pose.matrix()
+    top_k = int(getattr(config.ranking, "top_k", _TOP_K_DEFAULT))
+    anim_s = 0.0
+    n_top = 0
+    if robot is not None:
+        drawer = _RobotDrawer(vis, robot, base)
+        qs = _top_solutions(grasps, top_k)
+        home = np.asarray(getattr(robot, "home", np.zeros(robot.nq)), dtype=float)
+        q0 = qs[0] if len(qs) else home
+        drawer.display(q0)
+        frame_pts.append(_robot_points(drawer, q0, base))
+        if len(qs) > 1:
+            anim_s = drawer.animate(vis, qs)
+        n_top = len(qs)
+        paths.append("/robot")
+    if config.object is not None:
+        paths += _draw_object(vis, config.object)
+        frame_pts.append(_object_points(config.object))
+    paths += _draw_environment(vis, config)
+    gpaths, glyph, n_r, n_u = _draw_grasps(vis, grasps, rot, trans) if n else ([], "none", 0, 0)
+    paths += gpaths
+    paths += _draw_manifold(vis, grasps, manifold, trans)
+    others = np.concatenate(frame_pts) if frame_pts else np.zeros((1, 3))
+    target, position = _camera(trans, others)
+    if not orbit_target:
+        # live viewer: the camera looks at the world origin; keep the view direction
+        # and back off until the scene fits
+        radius = float(np.max(np.linalg.norm(others - 0.0, axis=1), initial=0.2))
+        radius = max(radius, float(np.linalg.norm(target)) + 0.2)
+        direction = (position - target) / np.linalg.norm(position - target)
+        target = np.zeros(3)
+        position = direction * radius / math.sin(math.radians(_CAMERA_FOV_DEG) / 2.0)
+    _set_camera(vis, position)
+    window = vis.window
+    n_objects = int(getattr(window, "n_objects", -1))
+    return SceneInfo(
+        paths=tuple(paths),
+        n_reachable=n_r,
+        n_unreachable=n_u,
+        glyph=glyph,
+        meshcat_objects=n_objects,
+        legend=legend(grasps),
+        camera={"position": position.tolist(), "target": target.tolist()},
+        top_k=n_top,
+        animation_s=anim_s,
+    )
+
+
+# -- recording window and static HTML ---------------------------------------------------
+
+
+class _RecordingWindow:
+    """Stands in for meshcat's ZMQ window: keeps the scene tree like ``meshcat-server``.
+
+    ``meshcat.Visualizer(window=_RecordingWindow())`` draws without a server;
+    :meth:`static_html` then builds the page that the server's ``get_scene``
+    would return (same tree walk, same command encoding).
+    """
+
+    def __init__(self) -> None:
+        self.tree = SceneTree()
+        self.web_url = ""
+        self.zmq_url = ""
+        self.n_objects = 0
+
+    def send(self, command: Any) -> None:
+        data = command.lower()
+        kind = data["type"]
+        path = [p for p in data["path"].split("/") if p]
+        packed = umsgpack.packb(data)
+        node = find_node(self.tree, path)
+        if kind == "set_object":
+            node.object = packed
+            node.properties = []
+            self.n_objects += 1
+        elif kind == "set_transform":
+            node.transform = packed
+        elif kind == "set_property":
+            node.properties.append(packed)
+        elif kind == "set_animation":
+            node.animation = packed
+        elif kind == "delete":
+            if path:
+                parent = find_node(self.tree, path[:-1])
+                parent.pop(path[-1], None)
+            else:
+                self.tree = SceneTree()
+        else:  # pragma: no cover - meshcat sends only the above
+            raise PublishError(f"unsupported meshcat command {kind!r}")
+
+    def get_image(self) -> None:  # pragma: no cover - no browser behind it
+        raise PublishError("a recorded scene has no browser to capture an image from")
+
+    def commands(self) -> list[bytes]:
+        """The msgpack-encoded commands in the order the server would replay them."""
+        out: list[bytes] = []
+        for node in walk(self.tree):
+            if node.object is not None:
+                out.append(node.object)
+            out.extend(node.properties)
+            if node.transform is not None:
+                out.append(node.transform)
+            if node.animation is not None:
+                out.append(node.animation)
+        return out
+
+    def static_html(self, extra_js: str = "", title: str = "gcm_pipeline scene") -> str:
+        """The self-contained page: meshcat's viewer script and the recorded commands."""
+        js_path = Path(meshcat.__file__).parent / "viewer" / "dist" / "main.min.js"
+        viewer_js = js_path.read_text(encoding="utf-8")
+        parts = []
+        for blob in self.commands():
+            b64 = base64.b64encode(blob).decode("ascii")
+            parts.append(
+                f'fetch("data:application/octet-binary;base64,{b64}")\n'
+                "    .then(res => res.arrayBuffer())\n"
+                "    .then(buffer => viewer.handle_command_bytearray(new Uint8Array(buffer)));\n"
+            )
+        return _HTML.format(
+            title=title, mainminjs=viewer_js, commands="".join(parts), extra=extra_js
+        )
+
+
+_HTML = """<!DOCTYPE html>
+<html>
+    <head> <meta charset=utf-8> <title>{title}</title> </head>
+    <body>
+        <div id="meshcat-pane">
+        </div>
+        <script>
+{mainminjs}
+        </script>
+        <script>
+            var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
+{commands}
+{extra}
+        </script>
+        <style>
+            body {{margin: 0; }}
+            #meshcat-pane {{
+                width: 100vw;
+                height: 100vh;
+                overflow: hidden;
+            }}
+        </style>
+        <script id="embedded-json"></script>
+    </body>
+</html>
+"""
+
+
+def _orbit_js(target: Sequence[float]) -> str:
+    """Script that turns the page's orbit controls about ``target`` (world, [m])."""
+    x, y, z = (float(v) for v in _ROT_X90.T @ np.asarray(target, dtype=float))
+    return (
+        f"viewer.controls.target.set({x!r}, {y!r}, {z!r});\n"
+        "viewer.controls.update();\nviewer.set_dirty();\n"
+    )
+
+
+def render_scene_html(
+    grasps: GraspTable, manifold: Any, robot: Robot | None, config: Config
+) -> tuple[str, SceneInfo]:
+    """Build the scene without a server and return the self-contained HTML page.
+
+    Args:
+        grasps: The grasp table.
+        manifold: The manifold or None.
+        robot: The robot or None.
+        config: The run config.
+
+    Returns:
+        The page (opens from disk, no server) and what it holds.
+    """
+    window = _RecordingWindow()
+    vis = meshcat.Visualizer(window=window)
+    info = build_scene(vis, grasps, manifold, robot, config, orbit_target=True)
+    return window.static_html(extra_js=_orbit_js(info.camera["target"])), info
+
+
+def write_scene_html(
+    path: str | os.PathLike[str],
+    grasps: GraspTable,
+    manifold: Any,
+    robot: Robot | None,
+    config: Config,
+) -> SceneInfo:
+    """Write the self-contained HTML scene to ``path`` (see :func:`render_scene_html`)."""
+    html, info = render_scene_html(grasps, manifold, robot, config)
+    path = Path(path)
+    try:
+        path.write_text(html, encoding="utf-8")
+    except OSError as exc:
+        raise PublishError(f"cannot write scene {str(path)!r}: {exc}") from exc
+    return info
+
+
+# -- counts and publish -----------------------------------------------------------------
+
+
+def stage_counts(grasps: GraspTable, manifold: Any) -> dict[str, int]:
+    """Per-stage counts in the summary's keys, derived from the table and manifold.
+
+    Returns:
+        ``{"candidates", "triangles", "triangles_dropped", "densified", "reachable"}``.
+    """
+    origin = grasps.get("origin")
+    n = len(grasps)
+    candidates = n if origin is None else int((np.asarray(origin).astype(str) == "candidate").sum())
+    tris = getattr(manifold, "triangles", None)
+    dropped = getattr(manifold, "dropped", None)
+    return {
+        "candidates": candidates,
+        "triangles": 0 if tris is None else len(tris),
+        "triangles_dropped": 0 if dropped is None else len(dropped),
+        "densified": n,
+        "reachable": int(_column(grasps, "reachable", False).astype(bool).sum()),
+    }
+
+
+def publish(
+    grasps: GraspTable,
+    manifold: Any,
+    robot: Robot | None,
+    config: Config,
+    out_dir: str | os.PathLike[str],
+    counts: Mapping[str, int] | None = None,
+) -> list[Path]:
+    """Write the files ``config.publish`` asks for into ``out_dir``.
+
+    ``scene.html`` (when ``publish.html``) and ``manifold.png``,
+    ``manipulability_hist.png``, ``counts.png`` (when ``publish.plots``). The
+    live viewer is separate (:func:`open_viewer`), called once the run
+    directory is complete.
+
+    Args:
+        grasps: The grasp table.
+        manifold: The manifold or None.
+        robot: The robot or None.
+        config: The run config.
+        out_dir: An existing directory.
+        counts: Per-stage counts for the bar chart (default: :func:`stage_counts`).
+
+    Returns:
+        The paths written, in that order.
+
+    Raises:
+        PublishError: A file cannot be written.
+    """
+    out = Path(out_dir)
+    written: list[Path] = []
+    if config.publish.html:
+        path = out / "scene.html"
+        write_scene_html(path, grasps, manifold, robot, config)
+        written.append(path)
+    if config.publish.plots:
+        from gcm_pipeline.stages.plots import write_plots
+
+        written += write_plots(grasps, manifold, counts or stage_counts(grasps, manifold), out)
+    return written
+
+
+# -- live viewer ------------------------------------------------------------------------
+
+# Runs meshcat's server with the web server bound to the loopback interface
+# (meshcat's own launcher listens on all interfaces for HTTP).
+_SERVER_CODE = """
+import os, sys
+import tornado.web
+from meshcat.servers import zmqserver as z
+
+class _App(tornado.web.Application):
+    def listen(self, port, address="127.0.0.1", **kwargs):
+        return super().listen(port, address="127.0.0.1", **kwargs)
+
+class _Bridge(z.ZMQWebSocketBridge):
+    def make_app(self):
+        return _App([
+            (r"/static/(.*)", z.StaticFileHandlerNoCache,
+             {"path": z.VIEWER_ROOT, "default_filename": z.VIEWER_HTML}),
+            (r"/", z.WebSocketHandler, {"bridge": self}),
+        ])
+
+bridge = _Bridge(host="127.0.0.1")
+print("zmq_url=" + bridge.zmq_url, flush=True)
+print("web_url=" + bridge.web_url, flush=True)
+sys.stdout = open(os.devnull, "w")
+try:
+    bridge.run()
+except KeyboardInterrupt:
+    pass
+"""
+
+
+def _request(sock: Any, frames: list[bytes], what: str, url: str, timeout_s: float) -> bytes:
+    try:
+        sock.send_multipart(frames)
+        return bytes(sock.recv())
+    except zmq.Again:
+        raise PublishError(
+            f"meshcat server at {url} did not answer {what!r} within {timeout_s:g} s "
+            "(is `meshcat-server` running there? start one or set publish.zmq_url: null)"
+        ) from None
+    except zmq.ZMQError as exc:
+        raise PublishError(f"meshcat server at {url}: {exc}") from exc
+
+
+def _req_socket(url: str, timeout_s: float) -> Any:
+    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RCVTIMEO, max(1, int(timeout_s * 1000)))
+    sock.setsockopt(zmq.SNDTIMEO, max(1, int(timeout_s * 1000)))
+    try:
+        sock.connect(url)
+    except zmq.ZMQError as exc:
+        sock.close(0)
+        raise PublishError(
+            f"invalid meshcat zmq_url {url!r}: {exc} (expected e.g. tcp://127.0.0.1:6000)"
+        ) from exc
+    return sock
+
+
+def probe_server(zmq_url: str, timeout_s: float) -> str:
+    """Ask a meshcat server for its web URL, giving up after ``timeout_s``.
+
+    Args:
+        zmq_url: The server's ZMQ address, e.g. ``tcp://127.0.0.1:6000``.
+        timeout_s: Time bound [s].
+
+    Returns:
+        The server's web URL.
+
+    Raises:
+        PublishError: No answer within the time bound (names the URL) or a bad URL.
+    """
+    sock = _req_socket(zmq_url, timeout_s)
+    try:
+        return _request(sock, [b"url"], "url", zmq_url, timeout_s).decode("utf-8")
+    finally:
+        sock.close(0)
+
+
+class _ZmqWindow:
+    """meshcat's ZMQ window with time-bounded requests (a dead server raises, never hangs)."""
+
+    def __init__(self, zmq_url: str, web_url: str, timeout_s: float) -> None:
+        self.zmq_url = zmq_url
+        self.web_url = web_url
+        self.timeout_s = timeout_s
+        self.n_objects = 0
+        self._sock = _req_socket(zmq_url, timeout_s)
+
+    def send(self, command: Any) -> None:
+        data = command.lower()
+        if data["type"] == "set_object":
+            self.n_objects += 1
+        frames = [
+            data["type"].encode("utf-8"),
+            data["path"].encode("utf-8"),
+            umsgpack.packb(data),
+        ]
+        _request(self._sock, frames, data["type"], self.zmq_url, self.timeout_s)
+
+    def get_scene(self) -> str:
+        return _request(
+            self._sock, [b"get_scene"], "get_scene", self.zmq_url, self.timeout_s
+        ).decode("utf-8")
+
+    def close(self) -> None:
+        self._sock.close(0)
+
+
+def _start_server(timeout_s: float) -> tuple[subprocess.Popen[bytes], str, str]:
+    """Start meshcat's server on 127.0.0.1; return (process, zmq_url, web_url)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-c", _SERVER_CODE],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        stdin=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    assert proc.stdout is not None
+    urls: dict[str, str] = {}
+    deadline = time.monotonic() + timeout_s
+    buf = b""
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        while len(urls) < 2:
+            left = deadline - time.monotonic()
+            if left <= 0 or proc.poll() is not None:
+                _stop(proc)
+                why = "exited" if proc.poll() is not None else f"gave no URL in {timeout_s:g} s"
+                raise PublishError(f"meshcat server on 127.0.0.1 {why}")
+            if not sel.select(left):
+                continue
+            chunk = os.read(proc.stdout.fileno(), 4096)
+            if not chunk:
+                continue
+            buf += chunk
+            *lines, buf = buf.split(b"\n")
+            for line in lines:
+                key, _, value = line.decode("utf-8", "replace").strip().partition("=")
+                if key in ("zmq_url", "web_url"):
+                    urls[key] = value
+    return proc, urls["zmq_url"], urls["web_url"]
+
+
+def _stop(proc: subprocess.Popen[bytes] | None) -> None:
+    if proc is None or proc.poll() is not None:
+        if proc is not None and proc.stdout is not None:
+            proc.stdout.close()
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
+@dataclass
+class Viewer:
+    """A live meshcat scene.
+
+    Attributes:
+        url: Web address to open in a browser.
+        zmq_url: The server's ZMQ address.
+        info: What the scene holds.
+        visualizer: The ``meshcat.Visualizer`` (draw more with it if you like).
+        owns_server: Whether :meth:`close` stops the server (started by
+            :func:`open_viewer`).
+    """
+
+    url: str
+    zmq_url: str
+    info: SceneInfo
+    visualizer: Any = field(repr=False)
+    owns_server: bool = False
+    closed: bool = False
+    _proc: subprocess.Popen[bytes] | None = field(default=None, repr=False)
+    _finalizer: Any = field(default=None, repr=False)
+
+    def close(self) -> None:
+        """Disconnect, and stop the server if this viewer started it. Idempotent."""
+        window = getattr(self.visualizer, "window", None)
+        if isinstance(window, _ZmqWindow):
+            window.close()
+        if self._finalizer is not None:
+            self._finalizer()
+        self.closed = True
+
+    def __enter__(self) -> Viewer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_viewer(grasps: GraspTable, manifold: Any, robot: Robot | None, config: Config) -> Viewer:
+    """Publish the scene to a live meshcat server.
+
+    With ``config.publish.zmq_url`` None, meshcat's server is started on
+    127.0.0.1 (ZMQ and HTTP) and stopped by :meth:`Viewer.close`; otherwise the
+    server at ``zmq_url`` is probed within ``publish.connect_timeout_s`` and used.
+
+    Args:
+        grasps: The grasp table.
+        manifold: The manifold or None.
+        robot: The robot or None.
+        config: The run config.
+
+    Returns:
+        The viewer; open ``viewer.url`` in a browser, call ``viewer.close()`` when done.
+
+    Raises:
+        PublishError: The server is unreachable within the time bound (names the
+            URL), cannot start, or stops answering.
+    """
+    timeout = float(config.publish.connect_timeout_s)
+    proc = None
+    if config.publish.zmq_url is None:
+        proc, zmq_url, web_url = _start_server(max(timeout, 20.0))
+    else:
+        zmq_url = config.publish.zmq_url
+        web_url = probe_server(zmq_url, timeout)
+    window = None
+    try:
+        # large scenes take a while to forward: allow more than the connect bound
+        window = _ZmqWindow(zmq_url, web_url, max(timeout, 60.0))
+        vis = meshcat.Visualizer(window=window)
+        info = build_scene(vis, grasps, manifold, robot, config)
+    except BaseException:
+        if window is not None:
+            window.close()
+        _stop(proc)
+        raise
+    viewer = Viewer(
+        url=web_url,
+        zmq_url=zmq_url,
+        info=info,
+        visualizer=vis,
+        owns_server=proc is not None,
+        _proc=proc,
+    )
+    # stops the server on close(), when the viewer is garbage-collected, or at exit
+    viewer._finalizer = weakref.finalize(viewer, _stop, proc)
+    return viewer
+
+
+def _json_default(obj: Any) -> Any:  # pragma: no cover - helper for callers dumping info
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(type(obj).__name__)
+
+
+def info_json(info: SceneInfo) -> str:
+    """The scene info as a JSON string."""
+    return json.dumps(info.to_dict(), default=_json_default)

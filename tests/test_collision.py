@@ -17,6 +17,7 @@ from gcm_pipeline.robot.collision import (
     CollisionChecker,
 )
 from gcm_pipeline.robot.model import load_robot
+from gcm_pipeline.stages.collision import combined_score
 
 BOTTLE = {
     "shape": "cylinder",
@@ -242,3 +243,42 @@ def test_unreadable_mesh_names_the_file(robot, tmp_path):
 def test_config_errors(section, value, match):
     with pytest.raises(ConfigError, match=match):
         Config.from_dict({"candidates": {"source": "plane"}, section: value})
+
+
+# --- combined ranking score ---------------------------------------------------------------
+
+
+def test_combined_score_normalises_and_weights():
+    cols = {
+        "yoshikawa": np.array([0.01, 0.03, 0.02, np.nan]),
+        "clearance": np.array([0.30, 0.10, 0.20, 0.5]),
+        "joint_limit_margin": np.array([0.5, 0.5, 0.5, 0.5]),
+    }
+    mask = np.array([True, True, True, False])
+    only_y = combined_score(cols, {"yoshikawa": 2.0, "clearance": 0.0}, mask=mask)
+    np.testing.assert_allclose(only_y[:3], [0.0, 1.0, 0.5])
+    assert np.isnan(only_y[3])
+    both = combined_score(cols, {"yoshikawa": 1.0, "clearance": 1.0}, mask=mask)
+    np.testing.assert_allclose(both[:3], [0.5, 0.5, 0.5])  # opposite orders cancel
+    # a constant metric gives every row its full share; weights are divided by their sum
+    const = combined_score(cols, {"yoshikawa": 3.0, "joint_limit_margin": 1.0}, mask=mask)
+    np.testing.assert_allclose(const[:3], [0.25, 1.0, 0.625])
+    default = combined_score(cols, mask=mask)  # yoshikawa 1, clearance 0.5, margin 0.2
+    assert np.all((default[:3] >= 0) & (default[:3] <= 1)) and np.argmax(default[:3]) == 1
+    ranked = combined_score(cols, {"clearance": 1.0}, mask=mask, normalization="rank")
+    np.testing.assert_allclose(ranked[:3], [1.0, 0.0, 0.5])
+
+
+@pytest.mark.parametrize(
+    ("weights", "match"),
+    [
+        ({"yoshikawa": 0.0, "clearance": 0.0}, "positive"),
+        ({"yoshikawa": -1.0}, "yoshikawa"),
+        ({"clearance": float("nan")}, "clearance"),
+        ({"inverse_condition": 1.0}, "inverse_condition"),
+    ],
+)
+def test_combined_score_errors(weights, match):
+    cols = {"yoshikawa": np.ones(3), "clearance": np.ones(3)}
+    with pytest.raises(ConfigError, match=match):
+        combined_score(cols, weights)

@@ -42,7 +42,7 @@ from scipy.spatial import Delaunay, QhullError
 
 from gcm_pipeline.errors import GeometryError, unknown_choice
 
-__all__ = ["TRIANGULATORS", "bowyer_watson", "delaunay"]
+__all__ = ["TRIANGULATORS", "bowyer_watson", "check_triangulable", "delaunay"]
 
 TRIANGULATORS = ("bowyer_watson", "qhull")
 
@@ -83,6 +83,19 @@ def _prepare(points: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     if evals[0] <= (_COLLINEAR_RATIO**2) * evals[1]:
         raise GeometryError(f"points are degenerate: all {len(ids)} distinct points are collinear")
     return unit, ids
+
+
+def check_triangulable(points: npt.ArrayLike) -> None:
+    """Raise if :func:`delaunay` cannot triangulate ``points``.
+
+    Args:
+        points: Points (N, 2).
+
+    Raises:
+        GeometryError: On a wrong shape, non-finite values, fewer than 3
+            points, or points that are all duplicates or all collinear.
+    """
+    _prepare(points)
 
 
 def _ccw(points: np.ndarray, tris: np.ndarray) -> np.ndarray:

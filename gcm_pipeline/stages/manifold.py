@@ -1,0 +1,382 @@
+"""Manifold stage: a Delaunay mesh linking the grasp candidates.
+
+The paper (section III) projects the grasp positions onto the XY plane,
+drops the orientation and triangulates the 2-D points. The triangles are
+the cells inside which :mod:`gcm_pipeline.stages.densify` blends poses.
+
+Charts (``projection``)
+-----------------------
+
+=============== ===============================================================
+``xy``          the paper's: world (x, y) of the grasp positions [m]. Grasps
+                with the same x, y and different z collapse onto one point
+                (the paper's known problem); only the first is a vertex.
+``pca``         coordinates [m] in the best-fit plane of the positions (the two
+                principal axes), for flat grasp sets in any orientation.
+``cylindrical`` ``(r * theta, h)`` [m]: arc length at the median radius ``r``
+                and height along the axis, for grasps around an elongated
+                object. The chart is periodic in ``theta``: it is triangulated
+                with copies shifted by one turn and every triangle is kept
+                once, so the mesh closes around the object with no seam at
+                +-pi. ``theta`` of the stored chart is in [-pi, pi); a
+                triangle over the seam is counter-clockwise in the unwrapped
+                chart.
+``spherical``   stereographic projection (scaled by twice the median radius
+                [m]) from the pole below the object. It maps circles to
+                circles, so the planar Delaunay triangulation is the spherical
+                one; triangles whose circumcircle contains the pole are left
+                out (grasp sets rarely surround the pole).
+=============== ===============================================================
+
+The cylindrical and spherical charts use the object frame ``frame`` (its z
+axis is the cylinder axis / the direction away from the pole, its origin the
+centre, its x axis the ``theta = 0`` direction). Without it they use the
+grasps' centroid and principal axis (largest variance) for the cylinder, and
+the centroid and the grasps' mean direction for the sphere.
+
+Pruning
+-------
+A triangle is dropped when its longest edge, measured between the 3-D
+positions, exceeds ``max_edge_length`` [m] (reason ``edge_length``), or else
+when two of its vertex orientations differ by more than
+``max_edge_angle_deg`` [deg] (reason ``edge_angle``). So the mesh never links
+grasps on opposite sides of an object or with very different orientations.
+Candidates used by no kept triangle stay grasps of the table
+(:attr:`Manifold.unused`).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.geometry.dualquat import (
+    dq_angle_distance,
+    dq_from_matrix,
+    dq_translation,
+)
+from gcm_pipeline.geometry.triangulation import TRIANGULATORS, check_triangulable, delaunay
+from gcm_pipeline.table import GraspTable
+
+__all__ = ["PROJECTIONS", "Manifold", "build_manifold", "candidate_poses"]
+
+PROJECTIONS = ("cylindrical", "pca", "spherical", "xy")
+
+_EMPTY_TRIS = np.zeros((0, 3), dtype=np.int64)
+_JITTER = 1e-9  # relative tie-breaking offset of the periodic chart
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class Manifold:
+    """A triangle mesh over the grasp candidates (arrays read-only).
+
+    Attributes:
+        chart: (N, 2) chart coordinates [m] of the N candidates, in table order.
+        triangles: (T, 3) int candidate row ids of the kept triangles
+            (counter-clockwise in the chart, unwrapped for ``cylindrical``).
+        dropped: (D, 3) int candidate row ids of the pruned triangles.
+        dropped_reason: (D,) str, ``edge_length`` or ``edge_angle``.
+        projection: The chart's name (see :data:`PROJECTIONS`).
+        triangulator: ``qhull`` or ``bowyer_watson``.
+        frame: (4, 4) pose of the chart frame in the world (the object frame or
+            the estimated one; identity for ``xy``).
+    """
+
+    chart: np.ndarray
+    triangles: np.ndarray
+    dropped: np.ndarray
+    dropped_reason: np.ndarray
+    projection: str
+    triangulator: str = "qhull"
+    frame: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("chart", "triangles", "dropped", "dropped_reason", "frame"):
+            arr = getattr(self, name)
+            if isinstance(arr, np.ndarray):
+                arr.setflags(write=False)
+
+    @property
+    def n_vertices(self) -> int:
+        """Number N of candidates (rows of :attr:`chart`)."""
+        return len(self.chart)
+
+    @property
+    def vertex_ids(self) -> np.ndarray:
+        """(N,) candidate row ids of the chart rows: ``arange(N)``."""
+        return np.arange(len(self.chart))
+
+    @property
+    def unused(self) -> np.ndarray:
+        """(U,) candidate row ids that no kept triangle uses (still grasps to check)."""
+        used = np.zeros(len(self.chart), dtype=bool)
+        used[self.triangles.ravel()] = True
+        return np.flatnonzero(~used)
+
+    @property
+    def dropped_counts(self) -> dict[str, int]:
+        """Number of dropped triangles per reason."""
+        return dict(sorted(Counter(self.dropped_reason.tolist()).items()))
+
+    def __repr__(self) -> str:
+        reasons = ", ".join(f"{k}: {v}" for k, v in self.dropped_counts.items())
+        dropped = f"{len(self.dropped)} dropped" + (f" ({reasons})" if reasons else "")
+        return (
+            f"Manifold(projection={self.projection!r}, triangulator={self.triangulator!r}, "
+            f"{self.n_vertices} vertices, {len(self.triangles)} triangles, {dropped}, "
+            f"{len(self.unused)} unused)"
+        )
+
+
+# --------------------------------------------------------------------------- inputs
+def candidate_poses(grasps: GraspTable) -> np.ndarray:
+    """The ``dq`` column (N, 8) of a candidate table, validated.
+
+    Raises:
+        InputError: If the table has no ``dq`` column.
+        GeometryError: On a wrong shape, non-finite values, a zero-norm
+            rotation or fewer than 3 poses.
+    """
+    if "dq" not in grasps:
+        raise InputError(f"grasp table has no column 'dq'; columns: {', '.join(grasps.columns)}")
+    dq = np.asarray(grasps["dq"], dtype=np.float64)
+    if dq.ndim != 2 or dq.shape[1] != 8:
+        raise GeometryError(f"grasp column 'dq' must have shape (N, 8), got {dq.shape}")
+    finite = np.isfinite(dq).all(axis=1)
+    if not finite.all():
+        raise GeometryError(f"grasp column 'dq' has non-finite values at row {np.argmin(finite)}")
+    norm = np.linalg.norm(dq[:, :4], axis=1)
+    if (norm < 1e-12).any():
+        raise GeometryError(
+            f"grasp column 'dq' has a zero-norm rotation at row {int(np.argmax(norm < 1e-12))}"
+        )
+    if len(dq) < 3:
+        raise GeometryError(f"need at least 3 grasp poses to build a manifold, got {len(dq)}")
+    return dq
+
+
+def _frame_axes(frame: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a (4, 4) rigid frame; return (origin (3,), rotation (3, 3))."""
+    m = np.asarray(frame, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise GeometryError(f"frame must be a (4, 4) pose, got shape {m.shape}")
+    try:
+        dq_from_matrix(m)
+    except GeometryError as exc:
+        raise GeometryError(f"frame: {exc}") from None
+    return m[:3, 3].copy(), m[:3, :3].copy()
+
+
+def _basis_from_axis(axis: np.ndarray) -> np.ndarray:
+    """Right-handed rotation (3, 3) whose z column is ``axis`` (deterministic x)."""
+    z = axis / np.linalg.norm(axis)
+    helper = np.eye(3)[int(np.argmin(np.abs(z)))]
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack((x, np.cross(z, x), z))
+
+
+def _principal_axes(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid (3,) and principal axes (3, 3) (columns, decreasing variance, right-handed)."""
+    centre = pos.mean(axis=0)
+    _, _, vt = np.linalg.svd(pos - centre, full_matrices=False)
+    axes = vt.T.copy()
+    for k in range(3):  # deterministic signs: largest component positive
+        if axes[np.argmax(np.abs(axes[:, k])), k] < 0:
+            axes[:, k] *= -1
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1
+    return centre, axes
+
+
+def _pose(origin: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = origin
+    return out
+
+
+# --------------------------------------------------------------------------- charts
+def _triangulate(chart: np.ndarray, projection: str, triangulator: str) -> np.ndarray:
+    try:
+        return delaunay(chart, triangulator)
+    except GeometryError as exc:
+        raise GeometryError(f"{projection} chart: {exc}") from None
+
+
+def _check_chart(chart: np.ndarray, projection: str) -> None:
+    try:
+        check_triangulable(chart)
+    except GeometryError as exc:
+        raise GeometryError(f"{projection} chart: {exc}") from None
+
+
+def _cylindrical(
+    pos: np.ndarray, frame: np.ndarray | None, triangulator: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if frame is not None:
+        centre, rot = _frame_axes(frame)
+    else:
+        centre, axes = _principal_axes(pos)
+        rot = np.column_stack((axes[:, 1], axes[:, 2], axes[:, 0]))  # z = principal axis
+    rel = (pos - centre) @ rot
+    theta = np.arctan2(rel[:, 1], rel[:, 0])
+    theta[theta >= np.pi] -= 2 * np.pi
+    radius = float(np.median(np.hypot(rel[:, 0], rel[:, 1])))
+    if not radius > 0:
+        raise GeometryError("cylindrical chart: the grasps lie on the cylinder axis (radius 0)")
+    chart = np.column_stack((radius * theta, rel[:, 2]))
+    _check_chart(chart, "cylindrical")
+    # Periodic triangulation: three copies one turn apart; tiny per-candidate
+    # offsets (identical in every copy) break co-circular ties the same way.
+    n = len(chart)
+    turn = 2 * np.pi * radius
+    extent = float(np.ptp(chart, axis=0).max())
+    jitter = np.random.default_rng(0).uniform(-0.5, 0.5, (n, 2)) * (_JITTER * extent)
+    base = chart + jitter
+    ext = np.concatenate((base - (turn, 0.0), base, base + (turn, 0.0)))
+    tris_ext = _triangulate(ext, "cylindrical", triangulator)
+    ids = tris_ext % n
+    xs = ext[tris_ext, 0]
+    centroid = xs.mean(axis=1)
+    # Area in the un-jittered chart: slivers along a straight top or bottom row
+    # exist only because of the jitter and are not triangles of the mesh.
+    raw = np.concatenate((chart - (turn, 0.0), chart, chart + (turn, 0.0)))[tris_ext]
+    e1, e2 = raw[:, 1] - raw[:, 0], raw[:, 2] - raw[:, 0]
+    area2 = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    keep = (
+        (area2 > 1e-6 * extent * extent * _JITTER)
+        & (centroid >= -0.5 * turn)
+        & (centroid < 0.5 * turn)
+        & (np.ptp(xs, axis=1) < 0.5 * turn)
+        & (ids[:, 0] != ids[:, 1])
+        & (ids[:, 1] != ids[:, 2])
+        & (ids[:, 2] != ids[:, 0])
+    )
+    tris = ids[keep]
+    _, first = np.unique(np.sort(tris, axis=1), axis=0, return_index=True)
+    return chart, tris[np.sort(first)], _pose(centre, rot)
+
+
+def _spherical(
+    pos: np.ndarray, frame: np.ndarray | None, triangulator: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if frame is not None:
+        centre, rot = _frame_axes(frame)
+    else:
+        centre = pos.mean(axis=0)
+        mean_dir = (pos - centre).sum(axis=0)
+        if np.linalg.norm(mean_dir) < 1e-12 * max(float(np.abs(pos - centre).max()), 1e-300):
+            _, axes = _principal_axes(pos)
+            mean_dir = axes[:, 2]
+        rot = _basis_from_axis(mean_dir)
+    rel = (pos - centre) @ rot
+    dist = np.linalg.norm(rel, axis=1)
+    if (dist <= 0).any():
+        raise GeometryError(
+            f"spherical chart: grasp {int(np.argmax(dist <= 0))} is at the centre of the chart"
+        )
+    u = rel / dist[:, None]
+    denom = 1.0 + u[:, 2]
+    bad = denom < 1e-9
+    if bad.any():
+        raise GeometryError(
+            f"spherical chart: grasp {int(np.argmax(bad))} lies at the projection pole "
+            "(straight below the centre)"
+        )
+    chart = 2.0 * float(np.median(dist)) * u[:, :2] / denom[:, None]
+    return chart, _triangulate(chart, "spherical", triangulator), _pose(centre, rot)
+
+
+def _planar(
+    pos: np.ndarray, projection: str, triangulator: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if projection == "xy":
+        chart = pos[:, :2].copy()
+        frame = np.eye(4)
+    else:
+        centre, axes = _principal_axes(pos)
+        chart = (pos - centre) @ axes[:, :2]
+        frame = _pose(centre, axes)
+    return chart, _triangulate(chart, projection, triangulator), frame
+
+
+# --------------------------------------------------------------------------- stage
+def build_manifold(
+    grasps: GraspTable,
+    *,
+    projection: str = "xy",
+    triangulator: str = "qhull",
+    max_edge_length: float | None = None,
+    max_edge_angle_deg: float | None = None,
+    frame: npt.ArrayLike | None = None,
+) -> Manifold:
+    """Triangulate the candidates on a 2-D chart and prune long or twisted triangles.
+
+    Args:
+        grasps: Candidate table with column ``dq`` (N, 8), world-frame grasp poses.
+        projection: Chart: ``xy`` (the paper's), ``pca``, ``cylindrical`` or
+            ``spherical`` (see the module docstring).
+        triangulator: ``qhull`` (default) or ``bowyer_watson`` (the paper's).
+        max_edge_length: Drop triangles whose longest edge between the 3-D
+            positions exceeds this [m]; ``None`` keeps all.
+        max_edge_angle_deg: Drop triangles two of whose vertex orientations
+            differ by more than this [deg]; ``None`` keeps all.
+        frame: (4, 4) pose of the object frame in the world, used by the
+            cylindrical and spherical charts (z axis, origin).
+
+    Returns:
+        The :class:`Manifold`.
+
+    Raises:
+        GeometryError: On an unknown projection or triangulator, invalid
+            poses, fewer than 3 poses, a non-rigid frame, non-positive
+            thresholds, or candidates all duplicate or collinear in the chart.
+        InputError: If ``grasps`` has no ``dq`` column.
+    """
+    if projection not in PROJECTIONS:
+        raise GeometryError(unknown_choice("projection", projection, PROJECTIONS))
+    if triangulator not in TRIANGULATORS:
+        raise GeometryError(unknown_choice("triangulator", triangulator, TRIANGULATORS))
+    for name, value, upper in (
+        ("max_edge_length", max_edge_length, np.inf),
+        ("max_edge_angle_deg", max_edge_angle_deg, 180.0),
+    ):
+        if value is not None and not (0 < float(value) <= upper):
+            raise GeometryError(f"{name} must be in (0, {upper:g}], got {value!r}")
+    dq = candidate_poses(grasps)
+    pos = dq_translation(dq)
+    frame_arr = None if frame is None else np.asarray(frame, dtype=np.float64)
+
+    if projection == "cylindrical":
+        chart, tris, used_frame = _cylindrical(pos, frame_arr, triangulator)
+    elif projection == "spherical":
+        chart, tris, used_frame = _spherical(pos, frame_arr, triangulator)
+    else:
+        chart, tris, used_frame = _planar(pos, projection, triangulator)
+
+    reason = np.full(len(tris), "", dtype="<U11")
+    if len(tris):
+        if max_edge_length is not None:
+            p = pos[tris]
+            longest = np.linalg.norm(p - np.roll(p, -1, axis=1), axis=2).max(axis=1)
+            reason[longest > max_edge_length] = "edge_length"
+        if max_edge_angle_deg is not None:
+            q = dq[tris]
+            angle = dq_angle_distance(q, np.roll(q, -1, axis=1)).max(axis=1)
+            reason[(reason == "") & (angle > np.deg2rad(max_edge_angle_deg))] = "edge_angle"
+    kept = reason == ""
+    tris = tris.astype(np.int64)
+    return Manifold(
+        chart=chart,
+        triangles=tris[kept] if len(tris) else _EMPTY_TRIS.copy(),
+        dropped=tris[~kept] if len(tris) else _EMPTY_TRIS.copy(),
+        dropped_reason=reason[~kept],
+        projection=projection,
+        triangulator=triangulator,
+        frame=used_frame,
+    )

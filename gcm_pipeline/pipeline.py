@@ -130,42 +130,60 @@ def load_robot(cfg: Config) -> Any:
 def check_reachability(
     grasps: GraspTable, robot: Any, cfg: Config, *, progress: bool = False
 ) -> GraspTable:
-    """IK (and collision / approach checks) for every grasp (``ik`` and friends).
+    """IK, collision and approach checks for every grasp (``ik`` and friends).
 
-    Passes ``robot.base_pose``, the ``ik`` section and, when the stage function
-    accepts them, the ``environment``, ``approach`` and ``object`` sections.
+    "Reachable" means an IK solution within the ``ik`` tolerances whose
+    configuration is collision-free (``environment`` and ``object``) and,
+    with an ``approach`` section, whose straight-line pre-grasp approach is
+    followable and collision-free. The collision checker is given to the IK
+    as validator (a colliding solution makes the IK try other seeds) and the
+    solutions are then filtered, their approach checked and their
+    ``clearance`` added (:func:`gcm_pipeline.stages.collision.apply_collision_checks`).
 
     Args:
         grasps: Table with ``dq`` (world poses of the grasp frame).
         robot: From :func:`load_robot`.
         cfg: The full config.
-        progress: Show a progress bar.
+        progress: Show progress / a summary line.
 
     Returns:
-        The table with ``reachable, reason, q, pos_err, rot_err`` added.
+        The table with ``reachable, reason, q, pos_err, rot_err`` (and
+        ``clearance``) added.
     """
     from gcm_pipeline.stages import reachability as stage
 
     ik = cfg.ik
+    base_pose = cfg.robot.base_pose.matrix()
+    tolerances = {
+        "backend": ik.backend,
+        "position_tolerance": ik.position_tolerance,
+        "orientation_tolerance": ik.orientation_tolerance,
+    }
+    sections = {"environment": cfg.environment, "approach": cfg.approach, "object": cfg.object}
     options = _accepted(
-        stage.check_reachability,
-        {
-            "environment": cfg.environment,
-            "approach": cfg.approach,
-            "object": cfg.object,
-            "workers": ik.workers,
-            "seed": cfg.seed,
-        },
+        stage.check_reachability, {**sections, "workers": ik.workers, "seed": cfg.seed}
     )
-    return stage.check_reachability(
+    if "environment" in options:  # the stage does the collision checks itself
+        return stage.check_reachability(
+            grasps, robot, base_pose=base_pose, progress=progress, **tolerances, **options
+        )
+    from gcm_pipeline.stages import collision
+
+    checker = collision.make_checker(robot, cfg.environment, cfg.object, base_pose)
+    if "validator" in inspect.signature(stage.check_reachability).parameters:
+        options["validator"] = checker.check
+    grasps = stage.check_reachability(
+        grasps, robot, base_pose=base_pose, progress=progress, **tolerances, **options
+    )
+    return collision.apply_collision_checks(
         grasps,
         robot,
-        base_pose=cfg.robot.base_pose.matrix(),
-        backend=ik.backend,
-        position_tolerance=ik.position_tolerance,
-        orientation_tolerance=ik.orientation_tolerance,
-        progress=progress,
-        **options,
+        environment=cfg.environment,
+        object_cfg=cfg.object,
+        approach=cfg.approach,
+        base_pose=base_pose,
+        checker=checker,
+        **tolerances,
     )
 
 

@@ -38,6 +38,8 @@ def rim_grasps(count: int) -> np.ndarray:
 def main() -> None:
     """Write mug_grasps.npy next to this script."""
     side = poses_cylinder_side(16, RADIUS, HEIGHT, rings=2, depth=0.01)
+    # rings at 5 and 8 cm: lower, the hand would touch the table
+    side[:, 2, 3] = np.where(side[:, 2, 3] < 0.5 * HEIGHT, 0.05, 0.08)
     tool = np.concatenate([side, rim_grasps(8)])
     grasp_to_tool = Pose(xyz=(0, 0, 0.1034), rpy_deg=(0, 0, -90)).matrix()
     gripper = tool @ np.linalg.inv(grasp_to_tool)

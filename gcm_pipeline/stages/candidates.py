@@ -15,7 +15,8 @@ source                    grasps
                           (z pointing down, along the plane's -z), a random yaw
                           in [-45, 45] deg about the approach
 ``cylinder_side``         a bottle grasped along its side: ``rings`` rings at
-                          heights in [0.2, 0.8] of the cylinder's height,
+                          heights in [0.2, 0.8] of the cylinder's height
+                          (default: as many as give an even spacing),
                           staggered evenly spaced angles, approach radial
                           (z toward the axis), fingers closing tangentially
                           (y along the tangent), x along the cylinder axis
@@ -137,7 +138,8 @@ def poses_cylinder_side(
         count: Number of grasps N.
         radius: Cylinder radius [m].
         height: Cylinder height [m].
-        rings: Number of rings (default: ``round(sqrt(N / 3))``, at least 1).
+        rings: Number of rings (default: as many as make the spacing of the
+            rings equal to the spacing along a ring, in the cylindrical chart).
         depth: How far the grasp frame lies inside the surface [m]; the frame
             sits at distance ``radius - depth`` from the axis.
 
@@ -145,8 +147,12 @@ def poses_cylinder_side(
         (N, 4, 4) grasp frames: z = toward the axis, y = tangent
         (counter-clockwise), x = the cylinder axis (up).
     """
+    rho = radius - depth
     if rings is None:
-        rings = max(1, round(math.sqrt(count / 3)))
+        # spacing along a ring (2 pi rho / per ring) equal to the spacing of the
+        # rings (0.6 h / (rings - 1)): rings (rings - 1) = 0.6 h N / (2 pi rho)
+        x = 0.6 * height * count / (2 * math.pi * max(rho, 1e-9))
+        rings = max(1, round(0.5 + math.sqrt(0.25 + x)))
     rings = min(rings, count)
     ring = np.arange(count) * rings // count  # ring index of each grasp, sorted
     per_ring = np.bincount(ring, minlength=rings)
@@ -162,7 +168,7 @@ def poses_cylinder_side(
     radial = np.stack([c, s, zeros], axis=1)
     tangent = np.stack([-s, c, zeros], axis=1)
     axis = np.tile([0.0, 0.0, 1.0], (count, 1))
-    p = radial * (radius - depth)
+    p = radial * rho
     p[:, 2] = h
     return _frames(axis, tangent, -radial, p)
 
@@ -268,10 +274,23 @@ def _need_object(cfg: Config, shape: str) -> ObjectConfig:
     return obj
 
 
+def _check_depth(depth: float, limit: float, what: str) -> None:
+    if depth >= limit:
+        raise ConfigError(
+            f"candidates.depth {depth:g} m puts the grasps past the object's centre: "
+            f"it must be smaller than the {what} ({limit:g} m)"
+        )
+
+
 def _generate(cfg: Config, rng: np.random.Generator) -> np.ndarray:
     """Generator poses (N, 4, 4) in the object frame."""
     c = cfg.candidates
     depth = c.depth if c.depth is not None else _DEFAULT_DEPTH[c.source]
+    dims = cfg.object.dims if cfg.object is not None else None
+    if dims is not None and c.source in ("cylinder_side", "sphere") and dims.radius:
+        _check_depth(depth, dims.radius, "radius")
+    if dims is not None and c.source == "box" and dims.size:
+        _check_depth(depth, 0.5 * min(dims.size), "half of the box's smallest side")
     if c.source == "plane":
         obj = _need_object(cfg, "plane")
         assert obj.dims.size is not None

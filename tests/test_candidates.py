@@ -160,8 +160,8 @@ def test_noise_magnitudes():
 
 
 def test_depth_option_moves_along_the_approach():
-    a = _local(_cfg("cylinder_side", count=12, depth=0.0))
-    b = _local(_cfg("cylinder_side", count=12, depth=0.02))
+    a = _local(_cfg("cylinder_side", count=12, rings=2, depth=0.0))
+    b = _local(_cfg("cylinder_side", count=12, rings=2, depth=0.02))
     assert np.allclose(b[:, :3, 3] - a[:, :3, 3], 0.02 * a[:, :3, 2])
 
 
@@ -359,3 +359,14 @@ def test_no_grasp_left_is_an_error(tmp_path):
     np.savez(path, transforms=_random_poses(3), success=np.zeros(3))
     with pytest.raises(InputError, match="no grasp left"):
         generate_candidates(_file_cfg(path, success_only=True))
+
+
+def test_default_rings_space_grasps_evenly():
+    poses = _local(_cfg("cylinder_side", count=72))
+    heights = np.unique(poses[:, 2, 3].round(9))
+    assert len(heights) == 8  # 8 rings of 9: 40 deg x 25 mm ~ 17 mm, rings 19 mm apart
+
+
+def test_depth_past_the_centre_is_an_error():
+    with pytest.raises(ConfigError, match="candidates.depth"):
+        generate_candidates(_cfg("cylinder_side", depth=0.05))

@@ -16,12 +16,18 @@ import numpy as np
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["PLOT_FILES", "chart_points", "write_plots"]
+__all__ = ["PLOT_FILES", "chart_period", "chart_points", "write_plots"]
 
 #: File names written by :func:`write_plots`, in order.
 PLOT_FILES = ("manifold.png", "manipulability_hist.png", "counts.png")
 
 _DPI = 110
+_AXIS_NAMES = {
+    "xy": ("world x", "world y"),
+    "pca": ("first principal axis", "second principal axis"),
+    "cylindrical": ("arc length r·θ", "height along the axis"),
+    "spherical": ("stereographic u", "stereographic v"),
+}
 _COUNT_ORDER = ("candidates", "triangles", "triangles_dropped", "densified", "reachable")
 
 
@@ -42,17 +48,57 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
-def chart_points(grasps: GraspTable, manifold: Any) -> np.ndarray:
+def chart_period(grasps: GraspTable, manifold: Any) -> float | None:
+    """Period [m] of the chart's u axis (``2 pi r`` for ``cylindrical``), else None.
+
+    The cylindrical chart is ``(r * theta, h)`` with ``r`` the candidates'
+    median distance from the axis of ``manifold.frame``.
+    """
+    frame = getattr(manifold, "frame", None)
+    if getattr(manifold, "projection", None) != "cylindrical" or frame is None:
+        return None
+    if "dq" not in grasps:
+        return None
+    from gcm_pipeline.geometry.dualquat import dq_translation
+
+    rows = _candidate_rows(grasps, len(manifold.chart))
+    pos = np.asarray(dq_translation(np.asarray(grasps["dq"])[rows]), dtype=float)
+    frame = np.asarray(frame, dtype=float)
+    local = (pos - frame[:3, 3]) @ frame[:3, :3]
+    radius = float(np.median(np.hypot(local[:, 0], local[:, 1]))) if len(local) else 0.0
+    return 2.0 * np.pi * radius if radius > 0 else None
+
+
+def _candidate_rows(grasps: GraspTable, n_chart: int) -> np.ndarray:
+    origin = grasps.get("origin")
+    if origin is None:
+        return np.arange(min(len(grasps), n_chart))
+    return np.flatnonzero(np.asarray(origin).astype(str) == "candidate")[:n_chart]
+
+
+def _unwrap(corners: np.ndarray, period: float | None) -> np.ndarray:
+    """Shift u of corners (..., 3, 2) by whole periods to lie within half a period of corner 0."""
+    if period is None:
+        return corners
+    out = corners.copy()
+    du = out[..., :, 0] - out[..., :1, 0]
+    out[..., :, 0] -= period * np.round(du / period)
+    return out
+
+
+def chart_points(grasps: GraspTable, manifold: Any, period: float | None = None) -> np.ndarray:
     """Chart coordinates (N, 2) of every grasp row.
 
     Candidate rows take their own chart coordinates (``manifold.chart``, in
     candidate order); interpolated rows the barycentric blend
-    ``sum_k weights[k] * chart[vertices[k]]`` of their triangle's corners.
+    ``sum_k weights[k] * chart[vertices[k]]`` of their triangle's corners
+    (unwrapped across the seam of a periodic chart of u-period ``period``).
     Rows that cannot be placed are NaN.
 
     Args:
         grasps: The table (``origin``, ``vertices``, ``weights`` used when present).
         manifold: Object with ``chart`` (Nc, 2).
+        period: Period of the chart's u axis [m] (see :func:`chart_period`) or None.
 
     Returns:
         (N, 2) float array.
@@ -60,19 +106,17 @@ def chart_points(grasps: GraspTable, manifold: Any) -> np.ndarray:
     chart = np.asarray(manifold.chart, dtype=float)
     n = len(grasps)
     out = np.full((n, 2), np.nan)
-    origin = grasps.get("origin")
-    if origin is None:
-        rows = np.arange(min(n, len(chart)))
-    else:
-        rows = np.flatnonzero(np.asarray(origin).astype(str) == "candidate")[: len(chart)]
+    rows = _candidate_rows(grasps, len(chart))
     out[rows] = chart[: len(rows)]
+    origin = grasps.get("origin")
     if "vertices" in grasps and "weights" in grasps:
         verts = np.asarray(grasps["vertices"], dtype=np.int64)
         w = np.asarray(grasps["weights"], dtype=float)
         ok = np.all((verts >= 0) & (verts < len(chart)), axis=1) & np.all(np.isfinite(w), axis=1)
         if origin is not None:
             ok &= np.asarray(origin).astype(str) != "candidate"
-        out[ok] = np.einsum("nk,nkd->nd", w[ok], chart[verts[ok]])
+        corners = _unwrap(chart[verts[ok]], period)
+        out[ok] = np.einsum("nk,nkd->nd", w[ok], corners)
     return out
 
 
@@ -82,17 +126,26 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
     projection = str(getattr(manifold, "projection", "") or "")
     chart = np.asarray(getattr(manifold, "chart", np.empty((0, 2))), dtype=float)
     tris = np.asarray(getattr(manifold, "triangles", np.empty((0, 3))), dtype=np.int64)
+    period = chart_period(grasps, manifold) if len(chart) else None
     if len(chart) and len(tris):
-        ax.triplot(
-            chart[:, 0],
-            chart[:, 1],
-            tris,
-            color="0.55",
-            linewidth=0.7,
-            zorder=1,
-            label=f"triangles ({len(tris)})",
+        from matplotlib.collections import PolyCollection
+
+        corners = _unwrap(chart[tris], period)
+        ax.add_collection(
+            PolyCollection(
+                corners,
+                facecolors="none",
+                edgecolors="0.55",
+                linewidths=0.7,
+                zorder=1,
+                label=f"triangles ({len(tris)})",
+            )
         )
-    pts = chart_points(grasps, manifold) if len(chart) else np.full((len(grasps), 2), np.nan)
+        ax.update_datalim(corners.reshape(-1, 2))
+        ax.autoscale_view()
+    pts = (
+        chart_points(grasps, manifold, period) if len(chart) else np.full((len(grasps), 2), np.nan)
+    )
     reach = np.asarray(grasps.get("reachable", np.zeros(len(grasps), bool)), dtype=bool)
     manip = np.asarray(grasps.get("manipulability", np.full(len(grasps), np.nan)), dtype=float)
     placed = np.all(np.isfinite(pts), axis=1)
@@ -136,10 +189,9 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             label="candidates",
             zorder=4,
         )
-    unit = "[rad·m]" if projection in ("cylindrical", "spherical") else "[m]"
-    unit = "" if not projection else f" {unit}"
-    ax.set_xlabel(f"chart u{unit}")
-    ax.set_ylabel(f"chart v{unit}")
+    u_name, v_name = _AXIS_NAMES.get(projection, ("chart u", "chart v"))
+    ax.set_xlabel(f"{u_name} [m]")
+    ax.set_ylabel(f"{v_name} [m]")
     title = "Grasp manifold in its 2-D chart"
     ax.set_title(f"{title} ({projection} projection)" if projection else title)
     ax.set_aspect("equal", adjustable="datalim")

@@ -125,7 +125,7 @@ _ANIM_MOVE = 9  # frames of joint-space interpolation to the next solution
 
 # Gripper glyph in the grasp frame (z = approach, fingers along y, origin between
 # the fingertips): two fingers, the palm and a stem, as 4 segments [m].
-_GLYPH_W, _GLYPH_F, _GLYPH_S = 0.03, 0.03, 0.035
+_GLYPH_W, _GLYPH_F, _GLYPH_S = 0.03, 0.03, 0.025
 _GRIPPER = np.array(
     [
         [0.0, -_GLYPH_W, 0.0],
@@ -566,6 +566,9 @@ def _camera(grasp_points: np.ndarray, other_points: np.ndarray) -> tuple[np.ndar
 
     Grasp positions are trimmed to their 1st-99th percentiles (a few stray
     grasps should not shrink the view); robot and object points count fully.
+    The target sits between the centre of everything and the centre of the
+    grasps (they are what the scene is about); the distance fits the farthest
+    point in the vertical field of view.
     """
     parts = [other_points]
     if len(grasp_points):
@@ -573,10 +576,11 @@ def _camera(grasp_points: np.ndarray, other_points: np.ndarray) -> tuple[np.ndar
     pts = np.concatenate(parts)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     target = 0.5 * (lo + hi)
-    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 0.2)
+    if len(grasp_points):
+        target = 0.5 * (target + np.median(grasp_points, axis=0))
+    radius = max(float(np.max(np.linalg.norm(pts - target, axis=1))), 0.2)
     direction = _VIEW_DIR / np.linalg.norm(_VIEW_DIR)
-    # distance that fits a sphere of `radius` in the (vertical) field of view
-    dist = radius / math.sin(math.radians(_CAMERA_FOV_DEG) / 2.0)
+    dist = 0.8 * radius / math.sin(math.radians(_CAMERA_FOV_DEG) / 2.0)
     return target, target + direction * dist
 
 

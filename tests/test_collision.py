@@ -282,3 +282,32 @@ def test_combined_score_errors(weights, match):
     cols = {"yoshikawa": np.ones(3), "clearance": np.ones(3)}
     with pytest.raises(ConfigError, match=match):
         combined_score(cols, weights)
+
+
+def test_clearance_broad_phase_equals_all_pairs(robot):
+    """The pruned clearance equals the minimum over every distance pair (computeDistances)."""
+    env = EnvironmentConfig.model_validate(
+        {
+            "obstacles": [
+                {
+                    "shape": "box",
+                    "dims": {"size": [0.2, 0.2, 0.4]},
+                    "pose": {"xyz": [0.2, -0.4, 0.2]},
+                }
+            ]
+        }
+    )
+    c = CollisionChecker(robot, env, ObjectConfig.model_validate(BOTTLE))
+    qs = robot.random_configurations(300, 3)
+    fast = c.clearance(qs)
+    dm, dd = c._dist_model, c._dist_data
+    data = robot.model.createData()
+    ref = []
+    for q in qs:
+        pin.computeDistances(robot.model, data, dm, dd, q)
+        ref.append(min(r.min_distance for r in dd.distanceResults))
+    ref = np.array(ref)
+    free = ref > 0
+    assert free.sum() > 100 and (~free).sum() > 5
+    np.testing.assert_allclose(fast[free], ref[free], atol=1e-9)
+    assert np.all(fast[~free] <= 0)

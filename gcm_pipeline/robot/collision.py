@@ -59,6 +59,7 @@ import pinocchio as pin
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, ObstacleConfig, Pose
 from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -428,6 +429,7 @@ class CollisionChecker:
                 dm.addCollisionPair(pin.CollisionPair(a, b))
             self._dist_model = dm
             self._dist_data = pin.GeometryData(dm)
+            self._init_broad_phase(model, dm, dist_pairs, joint_of)
 
     # --- construction helpers ---------------------------------------------------------
 
@@ -460,6 +462,58 @@ class CollisionChecker:
         return CollisionChecker(
             self.robot, env, self.object_cfg, self.base_pose, threads=self.threads
         )
+
+    def _init_broad_phase(
+        self, model: pin.Model, dm: Any, pairs: list[tuple[int, int]], joint_of: list[int]
+    ) -> None:
+        """Bounding spheres of the robot geometries and AABBs of the world, per distance pair.
+
+        The distance between the sphere (in the robot geometry's joint frame)
+        and the world shape's axis-aligned box (in the base frame) is a lower
+        bound of the pair's distance; :meth:`clearance` computes exact
+        distances in increasing order of that bound and stops when the next
+        bound exceeds the best distance found.
+        """
+        centres, radii, lows, highs, joints = [], [], [], [], []
+        for a, b in pairs:
+            ga, gb = dm.geometryObjects[a], dm.geometryObjects[b]
+            ga.geometry.computeLocalAABB()
+            gb.geometry.computeLocalAABB()
+            centres.append(ga.placement.act(np.asarray(ga.geometry.aabb_center, dtype=float)))
+            radii.append(float(ga.geometry.aabb_radius))
+            joints.append(joint_of[a])
+            box = gb.geometry.aabb_local
+            lo, hi = np.asarray(box.min_, dtype=float), np.asarray(box.max_, dtype=float)
+            corners = np.array(
+                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+            )
+            world = corners @ np.asarray(gb.placement.rotation).T + np.asarray(
+                gb.placement.translation
+            )
+            lows.append(world.min(axis=0))
+            highs.append(world.max(axis=0))
+        self._bp_centre = np.array(centres)
+        self._bp_radius = np.array(radii)
+        self._bp_low = np.array(lows)
+        self._bp_high = np.array(highs)
+        self._bp_joint = np.array(joints, dtype=int)
+        self._bp_chains: dict[int, KinematicChain] = {}
+        for j in sorted(set(joints) - {0}):
+            fid = model.getFrameId(model.names[j], pin.FrameType.JOINT)
+            if not model.frames[fid].placement.isIdentity():  # pragma: no cover - URDF joints
+                raise RuntimeError(f"joint frame {model.names[j]!r} is not at its joint")
+            self._bp_chains[j] = KinematicChain(model, fid)
+
+    def _lower_bounds(self, qs: np.ndarray) -> np.ndarray:
+        """Lower bounds (N, P) of every distance pair's distance [m], vectorised."""
+        n = len(qs)
+        centre = np.broadcast_to(self._bp_centre, (n, *self._bp_centre.shape)).copy()
+        for j, chain in self._bp_chains.items():
+            cols = np.flatnonzero(self._bp_joint == j)
+            rot, pos = chain.pose(qs)
+            centre[:, cols] = pos[:, None, :] + np.einsum("nij,pj->npi", rot, self._bp_centre[cols])
+        gap = np.maximum(np.maximum(self._bp_low - centre, centre - self._bp_high), 0.0)
+        return np.linalg.norm(gap, axis=2) - self._bp_radius
 
     # --- queries --------------------------------------------------------------------------
 
@@ -539,7 +593,12 @@ class CollisionChecker:
         distance to it does not change with the configuration (0.14 m for
         ``panda_link1``), and every *arm* link vs the object.
         The gripper (hand and fingers) vs the object is left out: at a grasp it
-        touches the object by design. Penetrating pairs give a distance <= 0.
+        touches the object by design. Penetrating pairs give a distance <= 0
+        (a penetration, not necessarily the deepest one).
+
+        Exact distances (coal, on the meshes) are computed only for the pairs
+        whose bounding-sphere-to-box lower bound is below the best distance
+        found so far (see :meth:`_init_broad_phase`), nearest bound first.
 
         Args:
             q: Configurations (N, nq) or (nq,) [rad].
@@ -553,15 +612,26 @@ class CollisionChecker:
         if self._dist_model is None:
             out[~np.all(np.isfinite(qs), axis=1)] = np.nan
             return out
+        finite = np.all(np.isfinite(qs), axis=1)
+        out[~finite] = np.nan
+        rows = np.flatnonzero(finite)
+        if rows.size == 0:
+            return out
         model, data = self.robot.model, self._data
         dm, dd = self._dist_model, self._dist_data
-        results = dd.distanceResults
-        for n, qi in enumerate(qs):
-            if not np.all(np.isfinite(qi)):
-                out[n] = np.nan
-                continue
-            pin.computeDistances(model, data, dm, dd, qi)
-            out[n] = min(r.min_distance for r in results)
+        bound = self._lower_bounds(qs[rows])
+        order = np.argsort(bound, axis=1)
+        for k, n in enumerate(rows):
+            pin.updateGeometryPlacements(model, data, dm, dd, qs[n])
+            best = np.inf
+            lb = bound[k]
+            for p in order[k]:
+                if lb[p] >= best:
+                    break
+                d = pin.computeDistance(dm, dd, int(p)).min_distance
+                if d < best:
+                    best = d
+            out[n] = best
         return out
 
     def __repr__(self) -> str:

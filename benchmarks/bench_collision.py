@@ -1,0 +1,157 @@
+"""Benchmark: collision checks per second and the cost of the approach check per grasp.
+
+World: the Panda (example-robot-data, fingers open) at the origin, the default
+table (top at z = 0) and the bottle of ``configs/bottle_side.yaml`` (cylinder
+r = 3.5 cm, h = 22 cm at x = 0.5 m).
+
+* ``check``: :meth:`CollisionChecker.check` on random in-limit configurations
+  whose grasp frame is in front of the robot and above the table
+  (x > 0.2 m, z > 0.02 m): the kind an IK returns for grasps on the table.
+* ``pinocchio_loop``: the reference, ``pin.computeCollisions`` in a Python loop
+  over the same configurations with every pair (stop at first collision).
+* ``clearance``: :meth:`CollisionChecker.clearance` on the same configurations.
+* ``approach``: :func:`check_approach_path` (10 steps over 10 cm) for IK
+  solutions of top-down grasps over the table, per grasp.
+
+The machine is shared: every figure is the median of ``--repeats`` runs.
+
+Run: ``python benchmarks/bench_collision.py`` (writes ``benchmarks/results/collision.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
+from gcm_pipeline.robot.approach import check_approach_path
+from gcm_pipeline.robot.collision import CollisionChecker
+from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.model import load_robot
+
+BOTTLE = {
+    "shape": "cylinder",
+    "dims": {"radius": 0.035, "height": 0.22},
+    "pose": {"xyz": [0.5, 0.0, 0.0]},
+}
+
+
+def front_configurations(robot, n: int, seed: int = 0) -> np.ndarray:
+    """Random in-limit configurations with the grasp frame in front of the robot."""
+    rng = np.random.default_rng(seed)
+    out = []
+    while sum(len(o) for o in out) < n:
+        q = robot.random_configurations(4 * n, rng)
+        p = robot.fk(q)[:, :3, 3]
+        out.append(q[(p[:, 0] > 0.2) & (p[:, 2] > 0.02)])
+    return np.concatenate(out)[:n]
+
+
+def top_down_grasps(n: int, seed: int = 0) -> np.ndarray:
+    """Top-down grasp poses over the table in front of the robot (N, 4, 4)."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((n, 4, 4))
+    yaw = rng.uniform(-np.pi / 2, np.pi / 2, n)
+    c, s = np.cos(yaw), np.sin(yaw)
+    # z down, x/y rotated by yaw about the vertical
+    out[:, 0, 0], out[:, 1, 0] = c, s
+    out[:, 0, 1], out[:, 1, 1] = s, -c
+    out[:, 2, 2] = -1.0
+    out[:, 0, 3] = rng.uniform(0.3, 0.6, n)
+    out[:, 1, 3] = rng.uniform(-0.3, 0.3, n)
+    out[:, 2, 3] = rng.uniform(0.05, 0.3, n)
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def timed(fn, repeats: int) -> tuple[float, object]:
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--configs", type=int, default=20000)
+    parser.add_argument("--grasps", type=int, default=500)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "collision.json"
+    )
+    args = parser.parse_args()
+
+    robot = load_robot("panda")
+    obj = ObjectConfig.model_validate(BOTTLE)
+    t0 = time.perf_counter()
+    checker = CollisionChecker(robot, EnvironmentConfig(), obj)
+    build_s = time.perf_counter() - t0
+    q = front_configurations(robot, args.configs)
+    n = len(q)
+    results: dict[str, object] = {"configurations": n, "checker_build_s": build_s}
+
+    for threads in (1, 2):
+        c = (
+            checker
+            if threads == 1
+            else CollisionChecker(robot, EnvironmentConfig(), obj, threads=2)
+        )
+        dt, reasons = timed(lambda c=c: c.check(q), args.repeats)
+        results[f"check_threads{threads}_per_s"] = n / dt
+    kinds, counts = np.unique(np.asarray(reasons), return_counts=True)
+    results["reasons"] = {str(k) or "free": int(v) for k, v in zip(kinds, counts, strict=True)}
+
+    model, gm = robot.model, checker.geom_model
+    data, gd = model.createData(), pin.GeometryData(gm)
+    m = min(n, 5000)
+
+    def loop() -> np.ndarray:
+        return np.array([pin.computeCollisions(model, data, gm, gd, qi, True) for qi in q[:m]])
+
+    dt, hit = timed(loop, args.repeats)
+    results["pinocchio_loop_per_s"] = m / dt
+    assert np.array_equal(hit, np.asarray(reasons)[:m] != ""), "checker disagrees with Pinocchio"
+
+    k = min(n, 2000)
+    dt, _ = timed(lambda: checker.clearance(q[:k]), max(1, args.repeats // 2))
+    results["clearance_per_s"] = k / dt
+
+    grasps = top_down_grasps(args.grasps)
+    ik = solve_ik(robot, grasps, validator=checker.check)
+    ok = ik.success
+    path_checker = checker.with_contact_tolerance(0.0)
+    dt, res = timed(
+        lambda: check_approach_path(
+            robot, grasps[ok], ik.q[ok], path_checker, distance=0.10, steps=10
+        ),
+        max(1, args.repeats // 2),
+    )
+    results["approach_grasps"] = int(ok.sum())
+    results["approach_s_per_grasp"] = dt / max(1, int(ok.sum()))
+    results["approach_grasps_per_s"] = int(ok.sum()) / dt
+    results["approach_passed"] = int(np.count_nonzero(res.ok))
+    results["machine"] = {
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "pinocchio": pin.__version__,
+    }
+    results["target_checks_per_s"] = 5000
+    for key, value in results.items():
+        print(f"{key:28s} {value:.6g}" if isinstance(value, float) else f"{key:28s} {value}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

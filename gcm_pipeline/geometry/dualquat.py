@@ -592,7 +592,10 @@ def _check_weights(w: np.ndarray) -> None:
         raise GeometryError(f"blend weights must be >= 0, got {float(w[i]):.6g} at index {i}")
     total = w.sum(-1)
     bad = np.abs(total - 1.0) > _WEIGHT_TOL
-    if bad.any():
+    if np.ndim(total) == 0:
+        if bad:
+            raise GeometryError(f"blend weights must sum to 1, got {float(total):.12g}")
+    elif bad.any():
         i = _first_bad(bad)
         raise GeometryError(f"blend weights must sum to 1, got {float(total[i]):.12g} at index {i}")
 

@@ -230,7 +230,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 def _cmd_plot(args: argparse.Namespace) -> int:
     from gcm_pipeline.io import read_run
-    from gcm_pipeline.stages.publish import write_plots
+    from gcm_pipeline.stages.plots import write_plots
 
     run = read_run(args.run_dir)
     paths = write_plots(run.grasps, run.manifold, run.summary.get("counts", {}), run.run_dir)

@@ -12,7 +12,7 @@ A run directory holds (see DESIGN.md, *Run directory*):
 - ``summary.json``: counts, timings [s], the ranking's top grasps, the
   resolved config and package versions.
 - ``manifold.npz``: ``vertex_ids``, ``chart``, ``triangles``, ``dropped``,
-  ``dropped_reason``, ``projection``.
+  ``dropped_reason``, ``projection``, ``triangulator`` and the chart ``frame``.
 - ``config.yaml``: the resolved config.
 - optional ``scene.html`` and ``*.png`` from the publish stage.
 
@@ -36,7 +36,6 @@ import platform
 import shutil
 import tempfile
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -45,12 +44,12 @@ import yaml
 
 from gcm_pipeline.errors import InputError, OutputError
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
+from gcm_pipeline.stages.manifold import Manifold
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
     "CSV_COLUMNS",
     "RunData",
-    "StoredManifold",
     "atomic_run_dir",
     "check_output_dir",
     "format_floats",
@@ -60,6 +59,7 @@ __all__ = [
     "write_config",
     "write_grasps_csv",
     "write_manifold",
+    "write_run_files",
     "write_summary",
 ]
 
@@ -234,7 +234,7 @@ def _extra_columns(grasps: GraspTable) -> list[str]:
     return extra
 
 
-def write_grasps_csv(grasps: GraspTable, path: str | Path) -> list[str]:
+def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
     """Write the grasp table as ``grasps.csv`` (see the module docstring).
 
     Args:
@@ -243,7 +243,7 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> list[str]:
         path: The file to write.
 
     Returns:
-        The header (column names in file order).
+        (N,) the table row written as each data row of the file (ranked first).
     """
     order = _row_order(grasps)
     g = grasps.take(order)
@@ -282,7 +282,7 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> list[str]:
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(header)
         writer.writerows(zip(*cols, strict=True))
-    return header
+    return order
 
 
 def read_grasps_csv(path: str | Path) -> GraspTable:
@@ -365,59 +365,49 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
 # ------------------------------------------------------------ manifold.npz
 
 
-@dataclass(frozen=True)
-class StoredManifold:
-    """A manifold as read back from ``manifold.npz``.
-
-    Attributes:
-        vertex_ids: (V,) candidate row ids that are manifold vertices.
-        chart: (V, 2) chart coordinates of the candidates.
-        triangles: (T, 3) candidate row ids of the kept triangles.
-        dropped: (D, 3) candidate row ids of the dropped triangles.
-        dropped_reason: (D,) why each was dropped.
-        projection: The chart's name.
-    """
-
-    vertex_ids: np.ndarray
-    chart: np.ndarray
-    triangles: np.ndarray
-    dropped: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
-    dropped_reason: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))
-    projection: str = ""
-
-    def __repr__(self) -> str:
-        return (
-            f"StoredManifold({len(self.chart)} vertices, {len(self.triangles)} triangles, "
-            f"{len(self.dropped)} dropped, projection={self.projection!r})"
-        )
-
-
-def _manifold_arrays(manifold: Any) -> dict[str, np.ndarray]:
+def _manifold_arrays(manifold: Manifold) -> dict[str, np.ndarray]:
     chart = np.asarray(manifold.chart, dtype=float)
-    triangles = np.asarray(manifold.triangles, dtype=np.int64).reshape(-1, 3)
-    dropped = np.asarray(getattr(manifold, "dropped", np.zeros((0, 3))), dtype=np.int64)
-    reason = np.asarray(getattr(manifold, "dropped_reason", np.zeros(0, dtype=str)), dtype=str)
-    vertex_ids = getattr(manifold, "vertex_ids", None)
-    if vertex_ids is None:
-        vertex_ids = np.arange(chart.shape[0])
-    return {
-        "vertex_ids": np.asarray(vertex_ids, dtype=np.int64),
+    frame = manifold.frame
+    arrays = {
+        "vertex_ids": np.arange(chart.shape[0], dtype=np.int64),
         "chart": chart,
-        "triangles": triangles,
-        "dropped": dropped.reshape(-1, 3),
-        "dropped_reason": reason.reshape(-1),
-        "projection": np.asarray(str(getattr(manifold, "projection", ""))),
+        "triangles": np.asarray(manifold.triangles, dtype=np.int64).reshape(-1, 3),
+        "dropped": np.asarray(manifold.dropped, dtype=np.int64).reshape(-1, 3),
+        "dropped_reason": np.asarray(manifold.dropped_reason, dtype=str).reshape(-1),
+        "projection": np.asarray(str(manifold.projection)),
+        "triangulator": np.asarray(str(manifold.triangulator)),
     }
+    if frame is not None:
+        arrays["frame"] = np.asarray(frame, dtype=float)
+    return arrays
 
 
-def write_manifold(manifold: Any, path: str | Path) -> None:
-    """Write ``manifold.npz`` from any object with the manifold's attributes."""
+def write_manifold(
+    manifold: Manifold, path: str | Path, *, csv_rows: np.ndarray | None = None
+) -> None:
+    """Write ``manifold.npz`` (see :func:`read_manifold` for the arrays).
+
+    Args:
+        manifold: The manifold.
+        path: The file to write.
+        csv_rows: (V,) the ``grasps.csv`` data row (0-based) of each candidate
+            (manifold vertex); default ``arange(V)``.
+    """
+    arrays = _manifold_arrays(manifold)
+    if csv_rows is not None:
+        arrays["vertex_ids"] = np.asarray(csv_rows, dtype=np.int64).reshape(-1)
     with Path(path).open("wb") as fh:
-        np.savez(fh, **_manifold_arrays(manifold))
+        np.savez(fh, **arrays)
 
 
-def read_manifold(path: str | Path) -> StoredManifold:
-    """Read ``manifold.npz`` (see :class:`StoredManifold`).
+def read_manifold(path: str | Path) -> Manifold:
+    """Read ``manifold.npz`` back into a :class:`~gcm_pipeline.stages.manifold.Manifold`.
+
+    The file holds ``vertex_ids`` (V,): the ``grasps.csv`` data row (0-based)
+    of each manifold vertex (candidate); ``chart`` (V, 2) [m]; ``triangles``
+    (T, 3) and ``dropped`` (D, 3) vertex indices (the candidate ids that the
+    ``v1, v2, v3`` columns also use); ``dropped_reason`` (D,); ``projection``;
+    ``triangulator``; and the chart ``frame`` (4, 4) when known.
 
     Raises:
         InputError: Missing or unreadable file, or a missing array.
@@ -430,18 +420,30 @@ def read_manifold(path: str | Path) -> StoredManifold:
         raise InputError(f"not a run directory: {path} is missing") from None
     except (OSError, ValueError) as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
-    missing = [k for k in ("chart", "triangles") if k not in arrays]
+    missing = [k for k in ("chart", "triangles", "projection") if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing array(s) {', '.join(missing)}")
-    chart = arrays["chart"]
-    return StoredManifold(
-        vertex_ids=arrays.get("vertex_ids", np.arange(chart.shape[0])),
-        chart=chart,
+    return Manifold(
+        chart=arrays["chart"],
         triangles=arrays["triangles"],
         dropped=arrays.get("dropped", np.zeros((0, 3), dtype=np.int64)),
         dropped_reason=arrays.get("dropped_reason", np.zeros(0, dtype=str)),
-        projection=str(arrays.get("projection", "")),
+        projection=str(arrays["projection"]),
+        triangulator=str(arrays.get("triangulator", "qhull")),
+        frame=arrays.get("frame"),
     )
+
+
+def write_run_files(
+    out_dir: str | Path, grasps: GraspTable, manifold: Manifold, config: Mapping[str, Any]
+) -> None:
+    """Write ``grasps.csv``, ``manifold.npz`` (vertex ids = csv rows) and ``config.yaml``."""
+    out = Path(out_dir)
+    order = write_grasps_csv(grasps, out / "grasps.csv")
+    csv_row = np.empty(len(order), dtype=np.int64)
+    csv_row[order] = np.arange(len(order))
+    write_manifold(manifold, out / "manifold.npz", csv_rows=csv_row[: len(manifold.chart)])
+    write_config(config, out / "config.yaml")
 
 
 # ------------------------------------------------------------ json / yaml
@@ -500,14 +502,15 @@ class RunData(NamedTuple):
     """A run directory read back by :func:`read_run`.
 
     Attributes:
-        grasps: The grasp table, rows in file order (ranked first).
-        manifold: The manifold's arrays.
+        grasps: The grasp table: candidates first, in manifold vertex order,
+            then the other rows in file order (ranked first).
+        manifold: The manifold (triangles index the candidate rows).
         summary: ``summary.json`` as a dict.
         run_dir: The run directory.
     """
 
     grasps: GraspTable
-    manifold: StoredManifold
+    manifold: Manifold
     summary: dict[str, Any]
     run_dir: Path
 
@@ -519,7 +522,11 @@ def read_run(run_dir: str | Path) -> RunData:
         run_dir: The run directory.
 
     Returns:
-        The grasp table (``dq`` rebuilt from x..qz), the manifold and the summary.
+        The grasp table (``dq`` rebuilt from x..qz), the manifold and the
+        summary. The table's rows are ordered as in the run: the candidates
+        first, in manifold vertex order (so the manifold's triangles and the
+        ``vertices`` column index them), then the other rows in file order
+        (ranked first).
 
     Raises:
         InputError: Not a run directory, or a file in it cannot be read.
@@ -538,4 +545,19 @@ def read_run(run_dir: str | Path) -> RunData:
         raise InputError(f"{run_dir / 'summary.json'}: cannot read: {exc}") from None
     grasps = read_grasps_csv(run_dir / "grasps.csv")
     manifold = read_manifold(run_dir / "manifold.npz")
+    vertex_rows = np.asarray(
+        manifold_vertex_rows(run_dir / "manifold.npz", len(manifold.chart)), dtype=np.int64
+    )
+    if vertex_rows.size and (vertex_rows.min() < 0 or vertex_rows.max() >= len(grasps)):
+        raise InputError(f"{run_dir}: manifold.npz vertex_ids do not match grasps.csv")
+    rest = np.setdiff1d(np.arange(len(grasps)), vertex_rows, assume_unique=False)
+    grasps = grasps.take(np.concatenate([vertex_rows, rest]))
     return RunData(grasps, manifold, summary, run_dir)
+
+
+def manifold_vertex_rows(path: str | Path, n: int) -> np.ndarray:
+    """The ``vertex_ids`` of ``manifold.npz`` (grasps.csv rows of the candidates)."""
+    with np.load(path, allow_pickle=False) as data:
+        if "vertex_ids" in data.files:
+            return np.asarray(data["vertex_ids"], dtype=np.int64)
+    return np.arange(n)

@@ -207,14 +207,12 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     Returns:
         The files written.
     """
-    try:
-        from gcm_pipeline.stages import publish as stage
-    except ModuleNotFoundError as exc:  # until the publish stage lands
-        if exc.name != "gcm_pipeline.stages.publish":
-            raise
-        log.warning("publish stage not available; no scene.html / plots written")
-        return []
-    return list(stage.publish(result.grasps, result.manifold, result.robot, cfg, Path(out_dir)))
+    from gcm_pipeline.stages import publish as stage
+
+    files = stage.publish(
+        result.grasps, result.manifold, result.robot, cfg, Path(out_dir), counts=result.counts
+    )
+    return list(files)
 
 
 def top_grasps(grasps: GraspTable, n: int) -> list[dict[str, Any]]:
@@ -395,9 +393,7 @@ class Pipeline:
             return result
         with io.atomic_run_dir(out, force=force) as tmp:
             with stage("write"):
-                io.write_grasps_csv(grasps, tmp / "grasps.csv")
-                io.write_manifold(manifold, tmp / "manifold.npz")
-                io.write_config(cfg.to_dict(), tmp / "config.yaml")
+                io.write_run_files(tmp, grasps, manifold, cfg.to_dict())
             with stage("publish"):
                 published = publish(result, cfg, tmp)
             io.write_summary(result.summary(), tmp / "summary.json")

@@ -27,8 +27,15 @@ _AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0)}
 _AXES["JointModelRZ"] = (0.0, 0.0, 1.0)
 
 
-def _skew(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+def _z_to(axis: np.ndarray) -> np.ndarray:
+    """A rotation that maps the z axis onto the unit vector ``axis``."""
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(z, axis)
+    c = float(axis @ z)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + k + k @ k / (1.0 + c)
 
 
 class KinematicChain:
@@ -59,7 +66,8 @@ class KinematicChain:
         self.nq = int(model.nq)
         self.joint_ids = np.array(chain, dtype=int)
         self.q_index = np.array([model.joints[j].idx_q for j in chain], dtype=int)
-        a0, a1, a2, trans, axes = [], [], [], [], []
+        rots, trans = [], []
+        post = np.eye(3)  # rotation carried over from the previous joint's axis change
         for j in chain:
             jm = model.joints[j]
             kind = jm.shortname()
@@ -67,26 +75,23 @@ class KinematicChain:
                 axis = np.array(_AXES[kind])
             elif kind == "JointModelRevoluteUnaligned":
                 axis = np.asarray(jm.extract().axis, dtype=float).copy()
+                axis /= np.linalg.norm(axis)
             else:
                 raise RobotSpecError(
                     f"joint {model.names[j]!r} has unsupported type {kind}; "
                     "only revolute joints are supported"
                 )
             placement = model.jointPlacements[j]
-            rot = np.asarray(placement.rotation)
-            k = _skew(axis)
-            a0.append(rot)
-            a1.append(rot @ k)
-            a2.append(rot @ k @ k)
-            trans.append(np.asarray(placement.translation).copy())
-            axes.append(axis)
-        self._a0 = np.array(a0)
-        self._a1 = np.array(a1)
-        self._a2 = np.array(a2)
+            # rotate the joint frame so that its axis is z: Rot(a, q) = Ra Rz(q) Ra^T,
+            # the trailing Ra^T is folded into the next placement
+            ra = _z_to(axis)
+            rots.append(post @ np.asarray(placement.rotation) @ ra)
+            trans.append(post @ np.asarray(placement.translation))
+            post = ra.T
+        self._rot = np.array(rots)
         self._t = np.array(trans)
-        self._axes = np.array(axes)
-        self._tool_r = np.asarray(frame.placement.rotation).copy()
-        self._tool_t = np.asarray(frame.placement.translation).copy()
+        self._tool_r = post @ np.asarray(frame.placement.rotation)
+        self._tool_t = post @ np.asarray(frame.placement.translation)
         # the first joint's origin does not depend on q (its parent is the root)
         self.root_origin = self._t[0].copy() if chain else np.zeros(3)
 
@@ -94,30 +99,42 @@ class KinematicChain:
         self, q: np.ndarray, jacobian: bool
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         n = q.shape[0]
+        nj = len(self.joint_ids)
         rot = np.broadcast_to(np.eye(3), (n, 3, 3))
         pos = np.zeros((n, 3))
-        origins = np.empty((len(self.joint_ids), n, 3))
-        zaxes = np.empty((len(self.joint_ids), n, 3))
-        for k, qi in enumerate(self.q_index):
-            angle = q[:, qi]
-            s = np.sin(angle)[:, None, None]
-            c1 = (1.0 - np.cos(angle))[:, None, None]
-            local = self._a0[k] + s * self._a1[k] + c1 * self._a2[k]
+        origins = np.empty((nj, n, 3))
+        zaxes = np.empty((nj, n, 3))
+        cos = np.cos(q[:, self.q_index])
+        sin = np.sin(q[:, self.q_index])
+        for k in range(nj):
             if k == 0:
-                pos = np.broadcast_to(self._t[0], (n, 3)).copy()
-                rot = local
+                pos = np.broadcast_to(self._t[0], (n, 3))
+                b = np.broadcast_to(self._rot[0], (n, 3, 3))
             else:
-                pos = pos + rot @ self._t[k]
-                rot = rot @ local
+                pos = pos + (rot.reshape(-1, 3) @ self._t[k]).reshape(n, 3)
+                b = (rot.reshape(-1, 3) @ self._rot[k]).reshape(n, 3, 3)
+            c = cos[:, k, None]
+            s = sin[:, k, None]
+            b0, b1 = b[:, :, 0], b[:, :, 1]
+            new = np.empty((n, 3, 3))
+            new[:, :, 0] = c * b0 + s * b1
+            new[:, :, 1] = c * b1 - s * b0
+            new[:, :, 2] = b[:, :, 2]
+            rot = new
             if jacobian:
                 origins[k] = pos
-                zaxes[k] = rot @ self._axes[k]
-        tool_p = pos + rot @ self._tool_t
-        tool_r = rot @ self._tool_r
+                zaxes[k] = b[:, :, 2]
+        tool_p = pos + (rot.reshape(-1, 3) @ self._tool_t).reshape(n, 3)
+        tool_r = (rot.reshape(-1, 3) @ self._tool_r).reshape(n, 3, 3)
         if not jacobian:
             return tool_r, tool_p, None
         jac = np.zeros((n, 6, self.nq))
-        lin = np.cross(zaxes, tool_p[None] - origins)  # (k, n, 3)
+        d = tool_p[None] - origins  # (k, n, 3)
+        z = zaxes
+        lin = np.empty_like(d)
+        lin[..., 0] = z[..., 1] * d[..., 2] - z[..., 2] * d[..., 1]
+        lin[..., 1] = z[..., 2] * d[..., 0] - z[..., 0] * d[..., 2]
+        lin[..., 2] = z[..., 0] * d[..., 1] - z[..., 1] * d[..., 0]
         jac[:, :3, self.q_index] = lin.transpose(1, 2, 0)
         jac[:, 3:, self.q_index] = zaxes.transpose(1, 2, 0)
         return tool_r, tool_p, jac

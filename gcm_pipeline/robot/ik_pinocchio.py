@@ -26,7 +26,7 @@ verifies every success with Pinocchio's own forward kinematics.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -45,6 +45,9 @@ class PinocchioIKOptions:
 
     Attributes:
         max_iterations: LM iterations per seed.
+        stall_after: Iteration from which stalled pairs are dropped.
+        stall_ratio: A pair is dropped when its error is not below this
+            fraction of its error two iterations earlier (0 disables).
         library_size: Random configurations in the seed library.
         library_seeds: Nearest library entries tried per target (in rounds).
         random_restarts: Extra uniformly random seeds for targets still failing.
@@ -57,6 +60,8 @@ class PinocchioIKOptions:
         min_damping: :math:`\lambda_{\min}`.
         orientation_weight: Length scale [m] that weights the quaternion in the
             library's KD-tree (0.5 m per unit quaternion distance).
+        library_eps: Approximation of the KD-tree queries (seeds need not be
+            the exact nearest neighbours).
         inner_tolerance: Fraction of the user's tolerances used as the
             convergence threshold (converging further than asked makes the
             independent verification robust).
@@ -65,7 +70,9 @@ class PinocchioIKOptions:
     """
 
     max_iterations: int = 15
-    library_size: int = 20000
+    stall_after: int = 4
+    stall_ratio: float = 0.5
+    library_size: int = 50000
     library_seeds: int = 8
     random_restarts: int = 8
     first_round_seeds: int = 1
@@ -74,6 +81,7 @@ class PinocchioIKOptions:
     damping: float = 1e-3
     min_damping: float = 1e-9
     orientation_weight: float = 0.5
+    library_eps: float = 0.5
     inner_tolerance: float = 0.05
     limit_epsilon: float = 1e-9
     random_seed: int = 0
@@ -216,11 +224,18 @@ class SeedLibrary:
         self.tree = cKDTree(keys)
         self.size = size
 
-    def nearest(self, rot: np.ndarray, pos: np.ndarray, k: int) -> np.ndarray:
-        """Indices (N, k) of the library configurations nearest to the poses."""
+    def nearest(self, rot: np.ndarray, pos: np.ndarray, k: int, eps: float = 0.0) -> np.ndarray:
+        """Indices (N, k) of the library configurations nearest to the poses.
+
+        Args:
+            rot: Rotations (N, 3, 3).
+            pos: Positions (N, 3) [m].
+            k: Neighbours per pose.
+            eps: Approximation: each neighbour is within (1 + eps) of the true one.
+        """
         keys = np.hstack([pos, self.weight * _quat_wxyz(rot)])
         # both signs of one entry are 2 * weight apart: duplicates are rare and harmless
-        _, idx = self.tree.query(keys, k=max(1, min(k, 2 * self.size)))
+        _, idx = self.tree.query(keys, k=max(1, min(k, 2 * self.size)), eps=eps)
         return np.asarray(idx, dtype=int).reshape(keys.shape[0], -1) % self.size
 
 
@@ -266,6 +281,7 @@ def _lm(
     rot_err = np.full(m, np.inf)
     active = np.arange(m)
     eye = np.eye(6)
+    history: list[np.ndarray] = []  # scaled error per iteration, full length m
     for it in range(opts.max_iterations + 1):
         qa = q[active]
         rot, pos, jac = chain.pose_jacobian(qa)
@@ -277,6 +293,15 @@ def _lm(
         done = (pe <= tol_p) & (re <= tol_r)
         converged[active[done]] = True
         keep = ~done
+        if opts.stall_ratio > 0:
+            score = np.full(m, np.inf)
+            score[active] = pe / tol_p + re / tol_r
+            history.append(score)
+            if it >= opts.stall_after:
+                # a pair converging (quadratically, near the end) shrinks its
+                # error fast; one that stalls (local minimum, limits) is dropped
+                # and its target gets the next seed
+                keep &= score[active] < opts.stall_ratio * history[-3][active]
         if it == opts.max_iterations or not np.any(keep):
             break
         active = active[keep]
@@ -366,24 +391,28 @@ def solve(
     all_q: list[np.ndarray] = []
     all_reason: list[np.ndarray] = []
 
-    # seed schedule: a list of (target ids, seed configurations) per round
+    # seed schedule, one column per round: given seeds, library neighbours, home, random
     lib = seed_library(robot, opts)
     n_lib = max(0, opts.library_seeds)
-    nearest = lib.nearest(trot, tpos, n_lib) if n_lib and n else np.zeros((n, 0), int)
-    given = [] if seeds is None else [seeds[:, k] for k in range(seeds.shape[1])]
-    columns: list[np.ndarray] = []
-    for s in given:
-        columns.append(s)
-    for k in range(n_lib):
-        columns.append(lib.q[nearest[:, k]])
-    columns.append(np.broadcast_to(robot.home, (n, nq)))
-    n_fixed = len(columns)
-    n_rounds = n_fixed + opts.random_restarts
+    n_given = 0 if seeds is None else seeds.shape[1]
+    knn = np.full((n, n_lib), -1, dtype=int)
+    n_rounds = n_given + n_lib + 1 + max(0, opts.random_restarts)
     first = max(1, opts.first_round_seeds)
 
     def column(c: int, ids: np.ndarray) -> np.ndarray:
-        if c < n_fixed:
-            return np.asarray(columns[c][ids], dtype=float)
+        if c < n_given:
+            assert seeds is not None
+            return np.asarray(seeds[ids, c], dtype=float)
+        c -= n_given
+        if c < n_lib:
+            # neighbours are queried lazily: one for everyone, more for the failures
+            missing = ids[knn[ids, c] < 0]
+            if missing.size:
+                k = 1 if c == 0 else n_lib
+                knn[missing, :k] = lib.nearest(trot[missing], tpos[missing], k, opts.library_eps)
+            return lib.q[knn[ids, c]]
+        if c == n_lib:
+            return np.broadcast_to(robot.home, (len(ids), nq)).copy()
         return robot.random_configurations(len(ids), rng)
 
     c = 0
@@ -392,8 +421,13 @@ def solve(
         if todo.size == 0:
             break
         width = first if c == 0 else max(1, opts.round_seeds)
+        run_opts = opts
         if c > 0 and todo.size * (n_rounds - c) <= 256:
-            width = n_rounds - c  # few stubborn targets: try every seed left at once
+            # few stubborn targets: try every seed left at once, longer runs, lenient stall exit
+            width = n_rounds - c
+            run_opts = replace(
+                opts, stall_ratio=0.9, stall_after=8, max_iterations=2 * opts.max_iterations
+            )
         ids_list, q0_list = [], []
         for cc in range(c, min(c + width, n_rounds)):
             q0 = column(cc, todo)
@@ -405,7 +439,7 @@ def solve(
         if ids.size == 0:
             continue
         q0 = np.concatenate(q0_list)
-        q, conv, pe, re = _lm(chain, q0, trot[ids], tpos[ids], lower, upper, tol_p, tol_r, opts)
+        q, conv, pe, re = _lm(chain, q0, trot[ids], tpos[ids], lower, upper, tol_p, tol_r, run_opts)
         # remember the best attempt (for error reporting of failures)
         score_att = pe / position_tolerance + re / orientation_tolerance
         order = np.argsort(-score_att)  # best last, so it wins the fancy assignment

@@ -1,0 +1,213 @@
+"""Run directory: grasps.csv contract and round trip, manifold.npz, atomic writes."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gcm_pipeline import io
+from gcm_pipeline.errors import InputError, OutputError
+from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
+from gcm_pipeline.stages.manifold import Manifold
+from gcm_pipeline.table import GraspTable
+
+N, NC, NQ = 9, 3, 7
+
+
+def _table(seed=0) -> GraspTable:
+    rng = np.random.default_rng(seed)
+    t = np.zeros((N, 4, 4))
+    t[:, :3, :3] = Rotation.random(N, random_state=seed).as_matrix()
+    t[:, :3, 3] = rng.uniform(-1, 1, (N, 3))
+    t[:, 3, 3] = 1
+    dq = dq_from_matrix(t)
+    dq[1] *= -1  # the other cover: same pose
+    reachable = np.array([1, 0, 1, 1, 0, 1, 1, 0, 1], dtype=bool)
+    manip = np.where(reachable, rng.uniform(0.01, 0.1, N), np.nan)
+    rank = np.zeros(N, dtype=np.int64)
+    rows = np.flatnonzero(reachable)
+    rank[rows[np.argsort(-manip[rows])]] = np.arange(1, rows.size + 1)
+    vertices = np.full((N, 3), -1)
+    vertices[NC:] = [0, 1, 2]
+    weights = np.full((N, 3), np.nan)
+    weights[NC:] = rng.dirichlet([1, 1, 1], N - NC)
+    q = np.where(reachable[:, None], rng.uniform(-2, 2, (N, NQ)), np.nan)
+    return GraspTable(
+        {
+            "dq": dq,
+            "origin": np.array(["candidate"] * NC + ["interpolated"] * (N - NC)),
+            "triangle": np.array([-1] * NC + [0] * (N - NC)),
+            "vertices": vertices,
+            "weights": weights,
+            "reachable": reachable,
+            "reason": np.where(reachable, "", "no_ik"),
+            "q": q,
+            "pos_err": rng.uniform(0, 1e-5, N),
+            "rot_err": rng.uniform(0, 1e-4, N),
+            "manipulability": manip,
+            "inverse_condition": np.where(reachable, 0.5, np.nan),
+            "rank": rank,
+        }
+    )
+
+
+def _manifold() -> Manifold:
+    return Manifold(
+        chart=np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.1]]),
+        triangles=np.array([[0, 1, 2]]),
+        dropped=np.zeros((0, 3), dtype=np.int64),
+        dropped_reason=np.zeros(0, dtype=str),
+        projection="xy",
+        triangulator="qhull",
+        frame=np.eye(4),
+    )
+
+
+def test_csv_header_order_and_ranked_rows_first(tmp_path):
+    g = _table()
+    path = tmp_path / "grasps.csv"
+    order = io.write_grasps_csv(g, path)
+    with path.open() as fh:
+        rows = list(csv.reader(fh))
+    header = rows[0]
+    assert header[: len(io.CSV_COLUMNS)] == list(io.CSV_COLUMNS)
+    assert header[len(io.CSV_COLUMNS) : len(io.CSV_COLUMNS) + NQ] == [f"q{i}" for i in range(1, 8)]
+    assert header[-1] == "inverse_condition"
+    ranks = [int(r[0]) for r in rows[1:]]
+    n_ranked = int(np.count_nonzero(g["reachable"]))
+    assert ranks[:n_ranked] == list(range(1, n_ranked + 1))
+    assert ranks[n_ranked:] == [0] * (N - n_ranked)
+    # unranked rows keep table order
+    assert list(order[n_ranked:]) == sorted(order[n_ranked:])
+    # candidates: -1 provenance, empty weights; booleans as true/false
+    first_candidate = rows[1 + int(np.flatnonzero(order == 0)[0])]
+    assert first_candidate[2:9] == ["-1", "-1", "-1", "-1", "", "", ""]
+    assert {r[16] for r in rows[1:]} == {"true", "false"}
+    text = path.read_text()
+    assert "nan" not in text and "\r" not in text
+
+
+def test_csv_round_trip_is_exact(tmp_path):
+    g = _table()
+    path = tmp_path / "grasps.csv"
+    order = io.write_grasps_csv(g, path)
+    back = io.read_grasps_csv(path)
+    ref = g.take(order)
+    assert np.allclose(dq_to_matrix(back["dq"]), dq_to_matrix(ref["dq"]), atol=1e-15)
+    for name in ("rank", "triangle", "vertices", "reachable", "origin", "reason"):
+        assert np.array_equal(back[name], ref[name]), name
+    for name in ("weights", "q", "pos_err", "rot_err", "manipulability", "inverse_condition"):
+        assert np.array_equal(back[name], ref[name], equal_nan=True), name  # repr: bit-exact
+    # quaternion written with qw >= 0
+    assert np.all(back["dq"][:, 0] >= 0)
+
+
+def test_manifold_round_trip(tmp_path):
+    path = tmp_path / "manifold.npz"
+    io.write_manifold(_manifold(), path, csv_rows=np.array([4, 0, 7]))
+    m = io.read_manifold(path)
+    assert isinstance(m, Manifold)
+    assert np.array_equal(m.triangles, [[0, 1, 2]]) and m.projection == "xy"
+    assert np.array_equal(np.load(path)["vertex_ids"], [4, 0, 7])
+    with np.load(path, allow_pickle=False) as data:  # no pickled objects
+        assert {"chart", "triangles", "dropped", "dropped_reason"} <= set(data.files)
+
+
+def test_read_run_restores_candidates_first(tmp_path):
+    g = _table()
+    with io.atomic_run_dir(tmp_path / "run") as tmp:
+        io.write_run_files(tmp, g, _manifold(), {"seed": 0, "robot": {"spec": "panda"}})
+        io.write_summary({"counts": {"candidates": NC}, "x": float("nan")}, tmp / "summary.json")
+    run = io.read_run(tmp_path / "run")
+    assert run.summary["counts"] == {"candidates": NC} and run.summary["x"] is None
+    assert list(run.grasps["origin"][:NC]) == ["candidate"] * NC
+    assert np.allclose(dq_to_matrix(run.grasps["dq"][:NC]), dq_to_matrix(g["dq"][:NC]))
+    assert len(run.grasps) == N
+    assert (tmp_path / "run" / "config.yaml").read_text().startswith("seed: 0")
+
+
+def _siblings(parent: Path) -> list[str]:
+    return sorted(p.name for p in parent.iterdir())
+
+
+def test_atomic_dir_success_and_failure(tmp_path):
+    out = tmp_path / "run"
+    with io.atomic_run_dir(out) as tmp:
+        assert tmp.parent == tmp_path and tmp.name.startswith(".run.tmp-")
+        (tmp / "a.txt").write_text("a")
+        assert not out.exists()
+    assert (out / "a.txt").read_text() == "a"
+    assert _siblings(tmp_path) == ["run"]
+
+    for exc in (RuntimeError("boom"), KeyboardInterrupt()):
+        with pytest.raises(type(exc)):
+            with io.atomic_run_dir(tmp_path / "other") as tmp:
+                (tmp / "partial.csv").write_text("x")
+                raise exc
+        assert _siblings(tmp_path) == ["run"]
+
+
+def test_existing_directory_needs_force_and_is_replaced_at_the_end(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    with pytest.raises(OutputError, match="already exists.*--force"):
+        io.check_output_dir(out)
+    with pytest.raises(OutputError):
+        with io.atomic_run_dir(out):
+            pass
+    # a failing forced run leaves the old run untouched
+    with pytest.raises(RuntimeError):
+        with io.atomic_run_dir(out, force=True) as tmp:
+            (tmp / "new.txt").write_text("new")
+            raise RuntimeError
+    assert _siblings(out) == ["old.txt"] and _siblings(tmp_path) == ["run"]
+    with io.atomic_run_dir(out, force=True) as tmp:
+        (tmp / "new.txt").write_text("new")
+        assert (out / "old.txt").exists()  # still the old one until the end
+    assert _siblings(out) == ["new.txt"] and _siblings(tmp_path) == ["run"]
+
+
+def test_empty_existing_directory_is_fine(tmp_path):
+    (tmp_path / "run").mkdir()
+    with io.atomic_run_dir(tmp_path / "run") as tmp:
+        (tmp / "a").write_text("")
+    assert _siblings(tmp_path / "run") == ["a"]
+
+
+def test_output_path_problems(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(OutputError, match="not a directory"):
+        io.check_output_dir(f)
+    with pytest.raises(OutputError, match="not a directory"):
+        io.check_output_dir(f / "sub" / "run")
+    with pytest.raises(OutputError, match="not writable"):
+        io.check_output_dir("/proc/gcm_test_run")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    os.chmod(ro, 0o500)
+    try:
+        if os.access(ro, os.W_OK) and os.geteuid() != 0:  # pragma: no cover
+            pytest.skip("cannot make a read-only directory here")
+        if os.geteuid() != 0:
+            with pytest.raises(OutputError, match="not writable"):
+                io.check_output_dir(ro / "run")
+    finally:
+        os.chmod(ro, 0o700)
+    # nested new parents are fine and are not created by the check
+    assert io.check_output_dir(tmp_path / "a" / "b" / "run") == tmp_path / "a" / "b" / "run"
+    assert not (tmp_path / "a").exists()
+
+
+def test_read_run_errors(tmp_path):
+    with pytest.raises(InputError, match="run directory not found"):
+        io.read_run(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="not a run directory.*grasps.csv"):
+        io.read_run(tmp_path / "empty")

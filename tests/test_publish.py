@@ -1,0 +1,341 @@
+"""Publish stage: scene content, glyph batching, colours, camera, plots, live viewer."""
+
+from __future__ import annotations
+
+import base64
+import re
+import socket
+import time
+import urllib.request
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import umsgpack
+
+from gcm_pipeline.config import Config
+from gcm_pipeline.errors import PublishError
+from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.robot.model import load_robot
+from gcm_pipeline.stages import publish as pub
+from gcm_pipeline.stages.plots import PLOT_FILES, chart_points, write_plots
+from gcm_pipeline.table import GraspTable
+
+_B64 = re.compile(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)")
+
+
+def decode_commands(html: str) -> list[dict]:
+    """The meshcat commands embedded in a static scene page."""
+    return [umsgpack.unpackb(base64.b64decode(m)) for m in _B64.findall(html)]
+
+
+def f32(ext: umsgpack.Ext) -> np.ndarray:
+    return np.frombuffer(ext.data, dtype=np.float32)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot("panda")
+
+
+def make_config(**publish) -> Config:
+    return Config.from_dict(
+        {
+            "object": {
+                "shape": "cylinder",
+                "dims": {"radius": 0.035, "height": 0.22},
+                "pose": {"xyz": [0.5, 0.0, 0.0]},
+            },
+            "candidates": {"source": "cylinder_side", "count": 12},
+            "ranking": {"top_k": 3},
+            "publish": publish,
+        }
+    )
+
+
+def make_scene(robot, n: int = 60, seed: int = 0):
+    """A grasp table like the pipeline's: FK of perturbed home poses (reachable, with q)
+    and far-away poses (unreachable, reasons no_ik / self_collision), plus a manifold
+    over the first 6 rows."""
+    rng = np.random.default_rng(seed)
+    n_r = n * 2 // 3
+    n_u = n - n_r
+    q = robot.home + rng.normal(0.0, 0.25, (n_r, robot.nq))
+    q = np.clip(q, robot.lower + 1e-3, robot.upper - 1e-3)
+    m_r = robot.fk(q)
+    m_u = m_r[rng.integers(0, n_r, n_u)].copy()
+    m_u[:, 0, 3] += 1.5
+    dq = dq_from_matrix(np.concatenate([m_r, m_u]))
+    reach = np.r_[np.ones(n_r, bool), np.zeros(n_u, bool)]
+    reason = np.where(reach, "", np.where(np.arange(n) % 2 == 0, "no_ik", "self_collision"))
+    manip = np.r_[rng.uniform(0.01, 0.12, n_r), np.full(n_u, np.nan)]
+    rank = np.zeros(n, dtype=np.int64)
+    order = np.argsort(-manip[:n_r])
+    rank[order] = np.arange(1, n_r + 1)
+    qs = np.full((n, robot.nq), np.nan)
+    qs[:n_r] = q
+    nc = 6
+    origin = np.where(np.arange(n) < nc, "candidate", "interpolated")
+    tris = np.array([[0, 1, 2], [1, 3, 2], [2, 3, 4], [3, 5, 4]])
+    chart = rng.uniform(-0.1, 0.1, (nc, 2))
+    tri_of_row = np.where(np.arange(n) < nc, -1, np.arange(n) % len(tris))
+    vertices = np.where(tri_of_row[:, None] >= 0, tris[tri_of_row], -1)
+    weights = rng.dirichlet(np.ones(3), n)
+    weights[:nc] = np.nan
+    grasps = GraspTable(
+        {
+            "dq": dq,
+            "origin": origin,
+            "triangle": tri_of_row,
+            "vertices": vertices,
+            "weights": weights,
+            "reachable": reach,
+            "reason": reason,
+            "q": qs,
+            "manipulability": manip,
+            "rank": rank,
+        }
+    )
+    manifold = SimpleNamespace(
+        chart=chart,
+        triangles=tris,
+        dropped=np.zeros((0, 3), dtype=np.int64),
+        dropped_reason=np.array([], dtype=str),
+        projection="pca",
+    )
+    return grasps, manifold
+
+
+def by_path(commands: list[dict]) -> dict[str, list[dict]]:
+    out: dict[str, list[dict]] = {}
+    for c in commands:
+        out.setdefault(c["path"], []).append(c)
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene(robot):
+    grasps, manifold = make_scene(robot)
+    html, info = pub.render_scene_html(grasps, manifold, robot, make_config())
+    return grasps, manifold, html, info
+
+
+def test_scene_paths(scene):
+    _, _, html, info = scene
+    paths = {c["path"] for c in decode_commands(html)}
+    for sub in pub.SCENE_PATHS:
+        assert any(p == "/meshcat" + sub or p.startswith("/meshcat" + sub + "/") for p in paths), (
+            sub
+        )
+    assert set(info.paths) == set(pub.SCENE_PATHS)
+    assert any(p.startswith("/meshcat/robot/visuals/panda_link7") for p in paths)
+    assert info.n_reachable == 40 and info.n_unreachable == 20
+    # the page is self-contained: meshcat's viewer script is inlined, nothing is fetched
+    assert "MeshCat.Viewer" in html and "<script src" not in html
+
+
+def test_animation_steps_through_top_k(scene):
+    _, _, html, info = scene
+    anims = [c for c in decode_commands(html) if c["type"] == "set_animation"]
+    assert len(anims) == 1
+    clips = anims[0]["animations"]
+    assert {c["path"] for c in clips} >= {"/meshcat/robot/visuals/panda_hand_0"}
+    assert info.top_k == 3 and info.animation_s > 1.0
+
+
+def _object_of(commands: list[dict], path: str) -> dict:
+    (cmd,) = [c for c in commands if c["type"] == "set_object" and c["path"] == path]
+    return cmd["object"]
+
+
+def test_glyphs_are_batched(robot):
+    counts = {}
+    for n in (30, 3000):
+        grasps, manifold = make_scene(robot, n)
+        window = pub._RecordingWindow()
+        import meshcat
+
+        info = pub.build_scene(
+            meshcat.Visualizer(window=window), grasps, manifold, robot, make_config()
+        )
+        counts[n] = window.n_objects
+        assert info.meshcat_objects == window.n_objects
+        commands = [umsgpack.unpackb(b) for b in window.commands()]
+        obj = _object_of(commands, "/meshcat/grasps/reachable")
+        assert obj["object"]["type"] == "LineSegments"
+        pos = obj["geometries"][0]["data"]["attributes"]["position"]
+        assert f32(pos["array"]).size == info.n_reachable * len(pub._GRIPPER) * 3
+    assert counts[30] == counts[3000]
+
+
+def test_large_tables_switch_to_sticks(robot, monkeypatch):
+    monkeypatch.setattr(pub, "FULL_GLYPH_LIMIT", 10)
+    grasps, manifold = make_scene(robot, 60)
+    _, info = pub.render_scene_html(grasps, manifold, None, make_config())
+    assert info.glyph == "stick"
+
+
+def test_colors(scene):
+    grasps, _, html, info = scene
+    commands = decode_commands(html)
+    nv = len(pub._GRIPPER)
+    reach = _object_of(commands, "/meshcat/grasps/reachable")
+    rgb = f32(reach["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
+    assert reach["materials"][0]["vertexColors"] == 2
+    manip = np.asarray(grasps["manipulability"])[np.asarray(grasps["reachable"])]
+    from matplotlib import colormaps
+
+    viridis = colormaps["viridis"]
+    lo, hi = manip.min(), manip.max()
+    expected = viridis((manip - lo) / (hi - lo))[:, :3]
+    np.testing.assert_allclose(rgb[::nv], expected, atol=1e-6)
+    assert np.ptp(rgb, axis=0).max() > 0.5  # a range of colours, not one
+    unreach = _object_of(commands, "/meshcat/grasps/unreachable")
+    urgb = f32(unreach["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
+    reasons = np.asarray(grasps["reason"])[~np.asarray(grasps["reachable"])]
+    grey = urgb[::nv][reasons == "no_ik"]
+    assert np.allclose(grey, grey[:, :1]) and np.allclose(grey, pub.REASON_COLORS["no_ik"])
+    other = urgb[::nv][reasons == "self_collision"]
+    assert np.allclose(other, pub.REASON_COLORS["self_collision"])
+    leg = info.legend
+    assert leg["colormap"] == "viridis"
+    assert leg["metric_range"] == pytest.approx([lo, hi])
+    assert set(leg["unreachable"]) == {"no_ik", "self_collision"}
+    assert leg["unreachable"]["no_ik"]["count"] == 10
+
+
+def test_camera_frames_scene(scene):
+    grasps, _, html, info = scene
+    commands = by_path(decode_commands(html))
+    (prop,) = commands["/Cameras/default/rotated/<object>"]
+    assert prop["property"] == "position"
+    local = np.array(prop["value"])
+    world = pub._ROT_X90 @ local
+    np.testing.assert_allclose(world, info.camera["position"], atol=1e-9)
+    assert not np.allclose(local, [3.0, 1.0, 0.0])  # not meshcat's default
+    target = np.array(info.camera["target"])
+    dist = np.linalg.norm(world - target)
+    assert 0.5 < dist < 4.0
+    # the target lies between the robot base and the grasps
+    assert 0.0 < target[0] < 1.0 and 0.0 < target[2] < 1.0
+    assert "viewer.controls.target.set(" in html
+
+
+def test_objects_and_table(robot):
+    for shape, dims in (
+        ("box", {"size": [0.1, 0.2, 0.3]}),
+        ("sphere", {"radius": 0.05}),
+        ("plane", {"size": [0.4, 0.3]}),
+    ):
+        cfg = Config.from_dict(
+            {
+                "object": {"shape": shape, "dims": dims},
+                "candidates": {"source": shape},
+                "environment": {"table": {"height": -0.1}},
+            }
+        )
+        html, info = pub.render_scene_html(GraspTable(), None, None, cfg)
+        commands = by_path(decode_commands(html))
+        assert "/meshcat/object/shape" in commands
+        table = [c for c in commands["/meshcat/environment/table"] if c["type"] == "set_transform"]
+        assert np.reshape(table[0]["matrix"], (4, 4)).T[2, 3] == pytest.approx(-0.1 - 0.025)
+        assert info.paths == ("/object", "/environment")
+    cfg = Config.from_dict(
+        {"candidates": {"source": "file", "path": "g.npy"}, "environment": {"table": None}}
+    )
+    _, info = pub.render_scene_html(GraspTable(), None, None, cfg)
+    assert info.paths == ()
+
+
+def test_publish_writes_what_config_asks(robot, tmp_path: Path):
+    grasps, manifold = make_scene(robot)
+    paths = pub.publish(grasps, manifold, robot, make_config(html=True, plots=True), tmp_path)
+    assert [p.name for p in paths] == ["scene.html", *PLOT_FILES]
+    assert all(p.is_file() and p.stat().st_size > 1000 for p in paths)
+    only_plots = tmp_path / "plots"
+    only_plots.mkdir()
+    paths = pub.publish(grasps, manifold, robot, make_config(html=False), only_plots)
+    assert [p.name for p in paths] == list(PLOT_FILES)
+    assert (
+        pub.publish(grasps, manifold, robot, make_config(html=False, plots=False), tmp_path) == []
+    )
+
+
+def test_plots(robot, tmp_path: Path):
+    grasps, manifold = make_scene(robot)
+    counts = pub.stage_counts(grasps, manifold)
+    assert counts == {
+        "candidates": 6,
+        "triangles": 4,
+        "triangles_dropped": 0,
+        "densified": 60,
+        "reachable": 40,
+    }
+    paths = write_plots(grasps, manifold, counts, tmp_path)
+    assert [p.name for p in paths] == list(PLOT_FILES)
+    for p in paths:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # no manifold, no reachable grasp: still three (mostly empty) plots
+    empty = GraspTable({"dq": np.asarray(grasps["dq"])[:3]})
+    assert len(write_plots(empty, None, {"densified": 3}, tmp_path)) == 3
+    with pytest.raises(PublishError, match="does not exist"):
+        write_plots(grasps, manifold, counts, tmp_path / "missing")
+
+
+def test_chart_points_are_barycentric(robot):
+    grasps, manifold = make_scene(robot)
+    pts = chart_points(grasps, manifold)
+    np.testing.assert_allclose(pts[:6], manifold.chart)
+    row = 10
+    v = np.asarray(grasps["vertices"])[row]
+    w = np.asarray(grasps["weights"])[row]
+    np.testing.assert_allclose(pts[row], w @ manifold.chart[v])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_server_fails_fast(robot):
+    url = f"tcp://127.0.0.1:{_free_port()}"
+    grasps, manifold = make_scene(robot, 12)
+    cfg = make_config(meshcat=True, zmq_url=url, connect_timeout_s=0.5)
+    start = time.monotonic()
+    with pytest.raises(PublishError, match=re.escape(url)):
+        pub.open_viewer(grasps, manifold, robot, cfg)
+    assert time.monotonic() - start < 5.0
+    with pytest.raises(PublishError, match="invalid meshcat zmq_url"):
+        pub.probe_server("not a url", 0.5)
+
+
+def test_live_viewer(robot):
+    grasps, manifold = make_scene(robot, 30)
+    viewer = pub.open_viewer(grasps, manifold, robot, make_config(meshcat=True))
+    try:
+        assert viewer.owns_server
+        assert viewer.url.startswith("http://127.0.0.1:")
+        assert viewer.zmq_url.startswith("tcp://127.0.0.1:")
+        with urllib.request.urlopen(viewer.url, timeout=10) as resp:
+            assert resp.status == 200
+        assert pub.probe_server(viewer.zmq_url, 5.0) == viewer.url
+        # the server holds the scene: its static page carries our objects
+        html = viewer.visualizer.window.get_scene()
+        paths = {c["path"] for c in decode_commands(html)}
+        assert "/meshcat/grasps/reachable" in paths and "/meshcat/object/shape" in paths
+        assert set(viewer.info.paths) == set(pub.SCENE_PATHS)
+        # a second client connects to the running server through zmq_url
+        other = pub.open_viewer(
+            grasps, manifold, None, make_config(meshcat=True, zmq_url=viewer.zmq_url)
+        )
+        assert other.url == viewer.url and not other.owns_server
+        other.close()
+        proc = viewer._proc
+    finally:
+        viewer.close()
+    assert proc is not None and proc.poll() is not None
+    viewer.close()  # idempotent
+    with pytest.raises(PublishError):
+        pub.probe_server(viewer.zmq_url, 0.3)

@@ -1,0 +1,154 @@
+"""Pipeline: stage functions with the full config, Pipeline.run, RunResult, outputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcm_pipeline import io, pipeline
+from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.errors import OutputError
+from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.pipeline import (
+    Pipeline,
+    RunResult,
+    build_manifold,
+    check_reachability,
+    densify,
+    generate_candidates,
+    load_robot,
+    rank,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+FLAT = ROOT / "configs" / "flat_surface.yaml"
+QUICK = ("publish.html=false", "publish.plots=false")
+
+
+@pytest.fixture(scope="module")
+def cfg() -> Config:
+    return load_config(FLAT, QUICK)
+
+
+@pytest.fixture(scope="module")
+def robot(cfg):
+    return load_robot(cfg)
+
+
+def test_stages_one_by_one(cfg, robot):
+    cand = generate_candidates(cfg)
+    assert cand.columns == ("dq",) and len(cand) == 3
+    manifold = build_manifold(cand, cfg)
+    assert manifold.triangles.shape == (1, 3) and manifold.projection == "xy"
+    dense = densify(cand, manifold, cfg)
+    assert len(dense) == 66  # (10 + 1)(10 + 2) / 2 lattice points
+    assert np.array_equal(dense["dq"][:3], cand["dq"])  # candidates first, shared poses
+    assert {"origin", "triangle", "vertices", "weights"} <= set(dense.columns)
+    reach = check_reachability(dense, robot, cfg)
+    assert {"reachable", "reason", "q", "pos_err", "rot_err"} <= set(reach.columns)
+    assert reach["dq"] is dense["dq"]  # columns are shared, not copied
+    ranked = rank(reach, robot, cfg)
+    assert {"manipulability", "rank"} <= set(ranked.columns)
+    n_ok = int(np.count_nonzero(ranked["reachable"]))
+    assert sorted(ranked["rank"][ranked["reachable"]]) == list(range(1, n_ok + 1))
+    assert np.all(ranked["rank"][~ranked["reachable"]] == 0)
+
+
+def test_run_writes_the_directory_and_returns_a_result(tmp_path):
+    result = Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "run", progress=False)
+    assert isinstance(result, RunResult)
+    assert result.run_dir == (tmp_path / "run").absolute()
+    names = sorted(p.name for p in result.files)
+    assert names == ["config.yaml", "grasps.csv", "manifold.npz", "summary.json"]
+    c = result.counts
+    assert c["candidates"] == 3 and c["triangles"] == 1 and c["densified"] == 66
+    assert c["reachable"] == int(np.count_nonzero(result.grasps["reachable"])) > 0
+    assert list(result.timings)[:6] == [
+        "candidates",
+        "manifold",
+        "densify",
+        "robot",
+        "reachability",
+        "ranking",
+    ]
+    text = repr(result)
+    assert text.startswith("RunResult(") and "reachable=" in text and "run_dir=" in text
+    assert "Pipeline(" in repr(Pipeline.from_yaml(FLAT))
+    run = io.read_run(result.run_dir)
+    assert run.summary["counts"] == c
+    assert run.summary["ranking"]["metric"] == "yoshikawa"
+    assert len(run.summary["ranking"]["top"]) == 5
+    # the table read back is the same set of poses
+    assert np.allclose(dq_to_matrix(run.grasps["dq"][:3]), dq_to_matrix(result.grasps["dq"][:3]))
+    assert (
+        Config.from_dict(__import__("yaml").safe_load((result.run_dir / "config.yaml").read_text()))
+        == result.config
+    )
+
+
+def test_same_config_same_bytes(tmp_path):
+    p = Pipeline.from_yaml(FLAT, QUICK)
+    a = p.run(tmp_path / "a", progress=False).run_dir
+    b = Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "b", progress=False).run_dir
+    assert (a / "grasps.csv").read_bytes() == (b / "grasps.csv").read_bytes()
+    assert (a / "manifold.npz").read_bytes() == (b / "manifold.npz").read_bytes()
+    assert (a / "config.yaml").read_bytes() == (b / "config.yaml").read_bytes()
+
+
+def test_write_false_returns_only_the_result(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = Pipeline.from_yaml(FLAT, QUICK).run(progress=False, write=False)
+    assert result.run_dir is None and result.files == []
+    assert not any(tmp_path.iterdir())
+
+
+def test_output_problems_are_found_before_any_work(tmp_path, monkeypatch):
+    def boom(cfg):
+        raise AssertionError("stage ran")
+
+    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(OutputError):
+        Pipeline.from_yaml(FLAT, QUICK).run(f)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    with pytest.raises(OutputError, match="--force"):
+        Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "full")
+
+
+def test_failure_leaves_nothing_behind(tmp_path, monkeypatch):
+    def broken_publish(result, cfg, out_dir):
+        (Path(out_dir) / "scene.html").write_text("half")
+        raise RuntimeError("publish crashed")
+
+    monkeypatch.setattr(pipeline, "publish", broken_publish)
+    with pytest.raises(RuntimeError):
+        Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "run", progress=False)
+    assert list(tmp_path.iterdir()) == []
+    # and a forced run that fails keeps the previous run
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "grasps.csv").write_text("previous")
+    with pytest.raises(RuntimeError):
+        Pipeline.from_yaml(FLAT, QUICK).run(old, progress=False, force=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+    assert (old / "grasps.csv").read_text() == "previous"
+
+
+def test_output_dir_from_config(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = Pipeline.from_yaml(FLAT, (*QUICK, "output.dir=out/flat")).run(progress=False)
+    assert result.run_dir == tmp_path / "out" / "flat"
+    assert (tmp_path / "out" / "flat" / "grasps.csv").is_file()
+
+
+def test_top_grasps_are_sorted(tmp_path):
+    result = Pipeline.from_yaml(FLAT, QUICK).run(progress=False, write=False)
+    top = result.top(4)
+    assert [t["rank"] for t in top] == [1, 2, 3, 4]
+    m = [t["manipulability"] for t in top]
+    assert m == sorted(m, reverse=True)
+    assert all(t["qw"] >= 0 and len(t["q"]) == 7 for t in top)

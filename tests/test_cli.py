@@ -1,0 +1,299 @@
+"""The gcm command line: commands, summaries and one-line user errors (exit 2)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcm_pipeline.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+FLAT = ROOT / "configs" / "flat_surface.yaml"
+QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _assert_user_error(code, err, *fragments):
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("error: ")
+    assert "Traceback" not in err
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+
+
+def _config(tmp_path, text: str) -> Path:
+    path = tmp_path / "cfg.yaml"
+    path.write_text(text)
+    return path
+
+
+GRASP_FILE_CFG = """
+candidates: {{source: file, path: {path}, format: {fmt}}}
+densify: {{subdivisions: 2}}
+"""
+
+
+@pytest.fixture
+def out(tmp_path):
+    """An output directory inside an otherwise empty parent."""
+    parent = tmp_path / "results"
+    parent.mkdir()
+    return parent / "run"
+
+
+def _nothing_left(out: Path):
+    assert not out.exists()
+    assert list(out.parent.iterdir()) == []  # no temporary siblings either
+
+
+def test_validate_and_schema(capsys):
+    code, text, _ = _run(capsys, "validate", FLAT)
+    assert code == 0 and "ok" in text and "plane" in text
+    code, text, _ = _run(capsys, "schema")
+    assert code == 0
+    schema = json.loads(text)
+    assert "candidates" in schema["properties"]
+
+
+def test_run_prints_a_summary_then_show_and_plot(capsys, out):
+    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--set", "publish.html=false")
+    assert code == 0, err
+    for fragment in (
+        "candidates    3",
+        "reachable",
+        "timings [s]",
+        "top 5 grasps",
+        "run directory:",
+    ):
+        assert fragment in text
+    assert "--meshcat" in text
+    assert (out / "grasps.csv").is_file() and (out / "manifold.png").is_file()
+    code, text, err = _run(capsys, "show", out, "--top", "3")
+    assert code == 0, err
+    rows = [line for line in text.splitlines() if line.strip()[:1].isdigit()]
+    assert [int(r.split()[0]) for r in rows] == [1, 2, 3]
+    for p in out.glob("*.png"):
+        p.unlink()
+    code, text, err = _run(capsys, "plot", out)
+    assert code == 0, err
+    assert (out / "manifold.png").is_file() and "manifold.png" in text
+
+
+def test_quiet_prints_only_the_run_dir(capsys, out):
+    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--quiet", *QUICK)
+    assert code == 0
+    assert text.strip() == str(out.absolute())
+    assert err == ""
+
+
+def test_existing_output_needs_force(capsys, out):
+    assert _run(capsys, "run", FLAT, "--out", out, "-q", *QUICK)[0] == 0
+    before = (out / "grasps.csv").read_bytes()
+    code, _, err = _run(capsys, "run", FLAT, "--out", out, *QUICK)
+    _assert_user_error(code, err, "already exists", "--force")
+    assert (out / "grasps.csv").read_bytes() == before
+    code, _, err = _run(
+        capsys, "run", FLAT, "--out", out, "--force", "-q", *QUICK, "--set", "seed=4"
+    )
+    assert code == 0, err
+    assert sorted(p.name for p in out.parent.iterdir()) == ["run"]
+
+
+BAD_CONFIGS = {
+    "unknown_key": (
+        "candidates: {source: plane, cont: 3}\n",
+        ["candidates.cont", "did you mean 'candidates.count'"],
+    ),
+    "zero_count": (
+        "object: {shape: plane, dims: {size: [0.3, 0.3]}}\ncandidates: {source: plane, count: 0}\n",
+        ["candidates.count"],
+    ),
+    "negative_size": (
+        "object: {shape: plane, dims: {size: [-0.3, 0.3]}}\ncandidates: {source: plane}\n",
+        ["object.dims.size"],
+    ),
+    "wrong_type": ("seed: zero\ncandidates: {source: plane}\n", ["seed"]),
+    "malformed": ("candidates:\n  source: plane\n   count: 3\n", ["malformed YAML", "cfg.yaml:3:"]),
+    "empty": ("", ["empty"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_CONFIGS))
+def test_bad_configs(capsys, tmp_path, out, name):
+    text, fragments = BAD_CONFIGS[name]
+    code, _, err = _run(capsys, "run", _config(tmp_path, text), "--out", out)
+    _assert_user_error(code, err, *fragments)
+    _nothing_left(out)
+
+
+def test_missing_config(capsys, tmp_path, out):
+    code, _, err = _run(capsys, "run", tmp_path / "nope.yaml", "--out", out)
+    _assert_user_error(code, err, "not found", "nope.yaml")
+    _nothing_left(out)
+
+
+def test_bad_override(capsys, out):
+    code, _, err = _run(capsys, "run", FLAT, "--out", out, "--set", "ik.backnd=mink")
+    _assert_user_error(code, err, "unknown key 'ik.backnd'", "did you mean 'ik.backend'")
+    _nothing_left(out)
+    code, _, err = _run(capsys, "validate", FLAT, "--set", "densify.subdivisions=-2")
+    _assert_user_error(code, err, "densify.subdivisions")
+
+
+def _poses(n):
+    t = np.tile(np.eye(4), (n, 1, 1))
+    t[:, 0, 3] = 0.4 + 0.05 * np.arange(n)
+    t[:, 1, 3] = 0.05 * (np.arange(n) % 2)
+    t[:, 2, 3] = 0.3
+    t[:, :3, :3] = np.diag([1.0, -1.0, -1.0])  # approach from above
+    return t
+
+
+def test_grasp_file_errors(capsys, tmp_path, out):
+    bad_shape = tmp_path / "shape.npy"
+    np.save(bad_shape, np.zeros((4, 3, 4)))
+    code, _, err = _run(
+        capsys,
+        "run",
+        _config(tmp_path, GRASP_FILE_CFG.format(path=bad_shape, fmt="npy")),
+        "--out",
+        out,
+    )
+    _assert_user_error(code, err, "shape.npy", "(N, 4, 4)", "(4, 3, 4)")
+    _nothing_left(out)
+
+    poses = _poses(5)
+    poses[2, :3, :3] *= 2.0
+    scaled = tmp_path / "scaled.npy"
+    np.save(scaled, poses)
+    code, _, err = _run(
+        capsys,
+        "run",
+        _config(tmp_path, GRASP_FILE_CFG.format(path=scaled, fmt="npy")),
+        "--out",
+        out,
+    )
+    _assert_user_error(code, err, "grasp 2", "not a rigid transform")
+    _nothing_left(out)
+
+    code, _, err = _run(
+        capsys,
+        "run",
+        _config(tmp_path, GRASP_FILE_CFG.format(path=tmp_path / "missing.npy", fmt="npy")),
+        "--out",
+        out,
+    )
+    _assert_user_error(code, err, "grasp file not found", "missing.npy")
+    _nothing_left(out)
+
+
+def test_acronym_file_missing_key(capsys, tmp_path, out):
+    h5py = pytest.importorskip("h5py")
+    path = tmp_path / "grasps.h5"
+    with h5py.File(path, "w") as f:
+        f["grasps/transforms"] = _poses(4)
+    code, _, err = _run(
+        capsys,
+        "run",
+        _config(tmp_path, GRASP_FILE_CFG.format(path=path, fmt="acronym")),
+        "--out",
+        out,
+    )
+    _assert_user_error(code, err, "grasps.h5", "grasps/qualities/flex/object_in_gripper")
+    _nothing_left(out)
+
+
+def test_acronym_file_runs(capsys, tmp_path, out):
+    h5py = pytest.importorskip("h5py")
+    path = tmp_path / "grasps.h5"
+    with h5py.File(path, "w") as f:
+        f["grasps/transforms"] = _poses(4)
+        f["grasps/qualities/flex/object_in_gripper"] = np.array([1, 1, 0, 1])
+        f["object/file"] = "meshes/Box/x.obj"
+        f["object/scale"] = 1.0
+    text = GRASP_FILE_CFG.format(path=path, fmt="acronym").replace(
+        "format: acronym", "format: acronym, success_only: true"
+    )
+    code, _, err = _run(capsys, "run", _config(tmp_path, text), "--out", out, "-q", *QUICK)
+    assert code == 0, err
+    assert json.loads((out / "summary.json").read_text())["counts"]["candidates"] == 3
+
+
+def test_output_path_problems(capsys, tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    code, _, err = _run(capsys, "run", FLAT, "--out", f)
+    _assert_user_error(code, err, "not a directory")
+    assert f.read_text() == "x"
+    code, _, err = _run(capsys, "run", FLAT, "--out", "/proc/gcm_run")
+    _assert_user_error(code, err, "not writable")
+    if os.geteuid() != 0:
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        code, _, err = _run(capsys, "run", FLAT, "--out", ro / "run")
+        _assert_user_error(code, err, "not writable")
+
+
+def test_show_on_a_non_run(capsys, tmp_path):
+    code, _, err = _run(capsys, "show", tmp_path)
+    _assert_user_error(code, err, "not a run directory")
+
+
+def test_debug_shows_the_traceback(capsys, tmp_path):
+    code, _, err = _run(capsys, "run", tmp_path / "nope.yaml", "--debug")
+    assert code == 2
+    assert "Traceback" in err and err.strip().splitlines()[-1].startswith("error: ")
+
+
+def test_usage_errors_exit_2(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["run"])
+    assert info.value.code == 2
+
+
+def test_python_dash_m(tmp_path):
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gcm_pipeline",
+            "run",
+            str(FLAT),
+            "--out",
+            str(out),
+            "--quiet",
+            *QUICK,
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "grasps.csv").is_file()
+    proc = subprocess.run(
+        [sys.executable, "-m", "gcm_pipeline.cli", "run", str(FLAT), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("error: ") and len(proc.stderr.strip().splitlines()) == 1

@@ -1,0 +1,66 @@
+"""Every config in configs/ runs through ``gcm run`` and gives a complete run directory."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from gcm_pipeline.cli import main
+from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.io import CSV_COLUMNS, read_run
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+
+
+def test_the_examples_exist():
+    names = {p.stem for p in CONFIGS}
+    assert {"flat_surface", "bottle_side", "box", "from_file"} <= names
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
+def test_example_runs(path, tmp_path, capsys):
+    out = tmp_path / path.stem
+    code = main(["run", str(path), "--out", str(out), "--no-wait"])
+    text, err = capsys.readouterr()
+    assert code == 0, err
+    assert "run directory:" in text
+    cfg = load_config(path)
+    for name in ("grasps.csv", "summary.json", "manifold.npz", "config.yaml"):
+        assert (out / name).is_file(), name
+    if cfg.publish.html:
+        assert (out / "scene.html").is_file()
+    if cfg.publish.plots:
+        assert (out / "manifold.png").is_file()
+
+    summary = json.loads((out / "summary.json").read_text())
+    counts = summary["counts"]
+    assert set(summary) >= {"counts", "timings_s", "ranking", "config", "versions"}
+    assert counts["candidates"] >= 3 and counts["triangles"] >= 1
+    assert counts["densified"] > counts["candidates"]
+    # a meaningful share of the grasps is reachable for the Panda at the origin
+    assert counts["reachable"] >= 0.25 * counts["densified"], counts
+    assert Config.from_dict(yaml.safe_load((out / "config.yaml").read_text())) == cfg
+
+    with (out / "grasps.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    header = list(rows[0])
+    assert header[: len(CSV_COLUMNS)] == list(CSV_COLUMNS)
+    assert len(rows) == counts["densified"]
+    assert sum(r["reachable"] == "true" for r in rows) == counts["reachable"]
+    ranks = [int(r["rank"]) for r in rows[: counts["reachable"]]]
+    assert ranks == list(range(1, counts["reachable"] + 1))
+
+    run = read_run(out)
+    m = run.manifold
+    assert m.triangles.max() < counts["candidates"]
+    assert (
+        list(run.grasps["origin"][: counts["candidates"]]) == ["candidate"] * counts["candidates"]
+    )
+    q = np.linalg.norm(run.grasps["dq"][:, :4], axis=1)
+    assert np.allclose(q, 1.0)

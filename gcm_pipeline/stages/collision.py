@@ -293,9 +293,10 @@ def _alternative_approaches(
     if backend == "pinocchio":
         opts = {
             "min_solutions": alternatives + 1,
-            "round_seeds": 4,
-            "library_seeds": 4 * (alternatives + 1),
-            "random_restarts": 4,
+            "first_round_seeds": alternatives + 1,
+            "round_seeds": alternatives + 1,
+            "library_seeds": 3 * (alternatives + 1),
+            "random_restarts": 0,
         }
     res = solve_ik(
         robot,
@@ -379,7 +380,7 @@ def apply_collision_checks(
     """
     if checker is None:
         checker = make_checker(robot, environment, object_cfg, base_pose, threads=threads)
-    ik = dict(
+    ik: dict[str, Any] = dict(
         base_pose=base_pose,
         backend=backend,
         position_tolerance=position_tolerance,

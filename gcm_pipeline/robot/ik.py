@@ -30,6 +30,7 @@ candidate remains, the last validator reason is the row's reason. With
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing as mp
 import os
 from collections.abc import Callable
@@ -177,6 +178,49 @@ def verify_solutions(
 
 # state shared with forked worker processes (set just before the pool forks)
 _FORK_STATE: dict[str, Any] = {}
+_POOL: dict[str, Any] = {}
+
+
+def _close_pool() -> None:
+    pool = _POOL.pop("pool", None)
+    _POOL.pop("key", None)
+    if pool is not None:
+        pool.terminate()
+        pool.join()
+    _FORK_STATE.clear()
+
+
+def _pool(
+    solve: Callable[..., dict[str, Any]],
+    robot: Robot,
+    validator: Validator | None,
+    return_all: bool,
+    workers: int,
+    kwargs: dict[str, Any],
+    warm_targets: np.ndarray,
+) -> Any:
+    """A forked worker pool holding this robot and these options, reused across calls.
+
+    The workers inherit the robot, the validator and the backend's caches
+    (seed library, MuJoCo model) by forking, so nothing heavy is pickled; the
+    pool is kept for the next call with the same state (the state holds strong
+    references, so the ids in the key cannot be reused) and closed at exit.
+    """
+    key = (solve, id(robot), id(validator), return_all, workers, repr(sorted(kwargs.items())))
+    if _POOL.get("key") == key:
+        return _POOL["pool"]
+    _close_pool()
+    # warm the backend's caches before forking
+    solve(robot, warm_targets, seeds=None, validator=None, return_all=False, **kwargs)
+    _FORK_STATE.update(
+        solve=solve, robot=robot, validator=validator, return_all=return_all, kwargs=kwargs
+    )
+    pool = mp.get_context("fork").Pool(workers)
+    if not _POOL.get("atexit"):
+        atexit.register(_close_pool)
+        _POOL["atexit"] = True
+    _POOL.update(key=key, pool=pool)
+    return pool
 
 
 def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> dict[str, Any]:
@@ -207,21 +251,13 @@ def _run_backend(
         return solve(
             robot, targets, seeds=seeds, validator=validator, return_all=return_all, **kwargs
         )
-    # warm the backend's caches (seed library, compiled model) before forking
-    solve(robot, targets[:1], seeds=None, validator=None, return_all=False, **kwargs)
     bounds = np.linspace(0, n, workers + 1).astype(int)
     chunks = [
         (targets[a:b], None if seeds is None else seeds[a:b])
-        for a, b in zip(bounds[:-1], bounds[1:], strict=False)
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
     ]
-    _FORK_STATE.update(
-        solve=solve, robot=robot, validator=validator, return_all=return_all, kwargs=kwargs
-    )
-    try:
-        with mp.get_context("fork").Pool(workers) as pool:
-            parts = pool.map(_worker, chunks)
-    finally:
-        _FORK_STATE.clear()
+    pool = _pool(solve, robot, validator, return_all, workers, kwargs, targets[:1])
+    parts = pool.map(_worker, chunks)
     out: dict[str, Any] = {}
     for key in ("q", "success", "pos_err", "rot_err", "reason"):
         out[key] = np.concatenate([p[key] for p in parts])

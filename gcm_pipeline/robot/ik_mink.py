@@ -212,7 +212,7 @@ def solve(
     nearest = (
         lib.nearest(targets[:, :3, :3], targets[:, :3, 3], k) if k and n else np.zeros((n, 0), int)
     )
-    rng = np.random.default_rng(opts.random_seed + 1)
+    rng = np.random.default_rng([opts.random_seed, 0x5EED3C4])
 
     out_q = np.full((n, nq), np.nan)
     success = np.zeros(n, dtype=bool)

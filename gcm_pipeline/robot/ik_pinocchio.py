@@ -36,6 +36,8 @@ from gcm_pipeline.errors import InputError, unknown_choice
 
 __all__ = ["PinocchioIKOptions", "SeedLibrary", "log3", "rotation_angle", "solve"]
 
+_LIBRARY_STREAM = 0x5EED11B
+_RESTART_STREAM = 0x5EED2E5
 _LIBRARIES: dict[tuple[int, int, int, float], SeedLibrary] = {}
 
 
@@ -214,7 +216,9 @@ class SeedLibrary:
     """
 
     def __init__(self, robot: Any, size: int, weight: float, seed: int) -> None:
-        self.q = robot.random_configurations(size, np.random.default_rng(seed))
+        # a tagged stream: never the same draws as a user's default_rng(seed)
+        rng = np.random.default_rng([seed, _LIBRARY_STREAM])
+        self.q = robot.random_configurations(size, rng)
         rot, pos = robot.chain.pose(self.q)
         self.weight = weight
         quat = _quat_wxyz(rot)
@@ -378,7 +382,7 @@ def solve(
     tol_r = orientation_tolerance * opts.inner_tolerance
     trot = np.ascontiguousarray(targets[:, :3, :3])
     tpos = np.ascontiguousarray(targets[:, :3, 3])
-    rng = np.random.default_rng(opts.random_seed + 1)
+    rng = np.random.default_rng([opts.random_seed, _RESTART_STREAM])
 
     best_q = np.full((n, nq), np.nan)
     best_score = np.full(n, -np.inf)

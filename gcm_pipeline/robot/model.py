@@ -249,7 +249,7 @@ class Robot:
         full_model: The unreduced model as read from the URDF.
         nq: Number of arm joints.
         joint_names: Arm joint names, in configuration order.
-        lower: Lower joint limits (N,) [rad], after margin and overrides.
+        lower: Lower joint limits (nq,) [rad], after margin and overrides.
         upper: Upper joint limits (nq,) [rad].
         home: Home configuration (nq,) [rad].
         grasp_frame: Grasp frame name.

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from gcm_pipeline import io
 from gcm_pipeline.config import Config, load_config
@@ -359,15 +360,41 @@ class Pipeline:
         if write:
             out = io.check_output_dir(out, force=force)
         timings: dict[str, float] = {}
+        names = ["candidates", "manifold", "densify", "robot", "reachability", "ranking"]
+        if write:
+            names += ["write", "publish"]
+        # one bar over the stages (the slow ones, IK and publishing, take seconds);
+        # tqdm hides it when stderr is not a terminal
+        bar = tqdm(
+            total=len(names), desc="gcm", unit="stage", leave=False, disable=not progress or None
+        )
 
         @contextmanager
         def stage(name: str) -> Iterator[None]:
             t0 = time.perf_counter()
             log.debug("stage %s ...", name)
+            bar.set_postfix_str(name)
             yield
             timings[name] = time.perf_counter() - t0
+            bar.update(1)
             log.info("stage %-12s %8.3f s", name, timings[name])
 
+        try:
+            return self._run(out, stage, timings, force=force, write=write, progress=progress)
+        finally:
+            bar.close()
+
+    def _run(
+        self,
+        out: Path,
+        stage: Callable[[str], Any],
+        timings: dict[str, float],
+        *,
+        force: bool,
+        write: bool,
+        progress: bool,
+    ) -> RunResult:
+        cfg = self.config
         with stage("candidates"):
             candidates = generate_candidates(cfg)
         with stage("manifold"):

@@ -311,3 +311,19 @@ def test_clearance_broad_phase_equals_all_pairs(robot):
     assert free.sum() > 100 and (~free).sum() > 5
     np.testing.assert_allclose(fast[free], ref[free], atol=1e-9)
     assert np.all(fast[~free] <= 0)
+
+
+def test_switches_self_collision_and_object(robot):
+    folded = _q(robot, j2=1.7, j4=-3.0)
+    tcp = robot.fk(robot.home)[0]
+    at_wrist = (tcp[:3, 3] - 0.09 * tcp[:3, 2]).tolist()
+    obj = ObjectConfig.model_validate(
+        {"shape": "box", "dims": {"size": [0.05, 0.05, 0.05]}, "pose": {"xyz": at_wrist}}
+    )
+    off = CollisionChecker(robot, EnvironmentConfig(self_collision=False, check_object=False), obj)
+    assert off.check(np.vstack([folded, robot.home])).tolist() == ["", ""]
+    assert "object" not in {s.name for s in off.world}
+    no_table = CollisionChecker(robot, EnvironmentConfig(table=None))
+    assert no_table.check(_q(robot, j2=1.6, j4=-0.5))[0] == ""
+    assert np.isinf(no_table.clearance(robot.home)[0])  # nothing to measure against
+    assert "CollisionChecker(robot='panda'" in repr(no_table)

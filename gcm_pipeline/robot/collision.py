@@ -7,7 +7,8 @@ world is built from the config:
 
 * **environment**: the support table (a box whose top face is at
   ``table.height``; on by default) and the extra ``obstacles`` (box, cylinder,
-  sphere, mesh);
+  sphere, mesh; placed like the object: a cylinder stands on its base along
+  its frame's z, boxes and spheres are centred on their frame);
 * **object**: the object being grasped (``ObjectConfig``).
 
 Everything is expressed in the robot's base frame (``base_pose`` maps base to

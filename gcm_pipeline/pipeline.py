@@ -45,6 +45,7 @@ from tqdm.auto import tqdm
 
 from gcm_pipeline import io
 from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
@@ -191,15 +192,46 @@ def check_reachability(
 def rank(grasps: GraspTable, robot: Any, cfg: Config) -> GraspTable:
     """Manipulability metrics and ranks of the reachable grasps (``ranking``).
 
+    The ``clearance`` and ``combined`` metrics need the collision stage's
+    ``clearance`` column; when the ranking stage does not know them, the
+    manipulability columns come from it and the rank is taken here from
+    ``clearance`` or from :func:`gcm_pipeline.stages.collision.combined_score`
+    over ``ranking.weights`` (added as column ``combined``).
+
     Returns:
-        The table with ``manipulability`` (and the other metric columns) and
-        ``rank`` (1-based among reachable grasps, 0 for unreachable) added.
+        The table with ``manipulability`` (and the other metric columns),
+        ``rank`` (1-based among reachable grasps, 0 for unreachable) and
+        ``top`` added.
     """
     from gcm_pipeline.stages import ranking as stage
 
     r = cfg.ranking
-    options = _accepted(stage.rank, {"weights": r.weights})
-    return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, **options)
+    if r.metric in stage.METRICS or r.metric not in ("clearance", "combined"):
+        options = _accepted(stage.rank, {"weights": r.weights})
+        return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, **options)
+    from gcm_pipeline.stages.collision import combined_score
+
+    grasps = stage.rank(grasps, robot, metric="yoshikawa", top_k=r.top_k)
+    if "clearance" not in grasps:
+        raise ConfigError(
+            f"ranking.metric {r.metric!r} needs the 'clearance' column of the collision checks"
+        )
+    reachable = np.asarray(grasps["reachable"], dtype=bool)
+    extra: dict[str, np.ndarray] = {}
+    if r.metric == "clearance":
+        key = np.asarray(grasps["clearance"], dtype=float)
+    else:
+        from gcm_pipeline.robot.manipulability import METRICS as columns_of
+
+        columns = {m: grasps[c] for m, c in columns_of.items() if c in grasps}
+        columns["clearance"] = grasps["clearance"]
+        key = combined_score(columns, r.weights, mask=reachable)
+        extra["combined"] = key
+    rows = np.flatnonzero(reachable & np.isfinite(key))
+    order = rows[np.lexsort((rows, -key[rows]))]  # best first, ties by row index
+    ranks = np.zeros(len(grasps), dtype=np.int64)
+    ranks[order] = np.arange(1, order.size + 1)
+    return grasps.with_columns(**extra, rank=ranks, top=(ranks > 0) & (ranks <= r.top_k))
 
 
 def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:

@@ -152,3 +152,16 @@ def test_top_grasps_are_sorted(tmp_path):
     m = [t["manipulability"] for t in top]
     assert m == sorted(m, reverse=True)
     assert all(t["qw"] >= 0 and len(t["q"]) == 7 for t in top)
+
+
+@pytest.mark.parametrize("metric", ["clearance", "combined", "joint_limit_margin"])
+def test_every_config_metric_ranks(metric):
+    cfg = load_config(FLAT, (*QUICK, f"ranking.metric={metric}"))
+    result = Pipeline(cfg).run(progress=False, write=False)
+    g = result.grasps
+    column = {"clearance": "clearance", "combined": "combined"}.get(metric, metric)
+    ok = g["rank"] > 0
+    order = np.argsort(g["rank"][ok])
+    values = np.asarray(g[column], dtype=float)[ok][order]
+    assert np.all(np.diff(values) <= 1e-12)  # best first
+    assert int(ok.sum()) == result.counts["reachable"]

@@ -15,6 +15,7 @@ from gcm_pipeline.robot.collision import (
     REASON_OBJECT,
     REASON_SELF,
     CollisionChecker,
+    shape_geometry,
 )
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import combined_score
@@ -327,3 +328,39 @@ def test_switches_self_collision_and_object(robot):
     assert no_table.check(_q(robot, j2=1.6, j4=-0.5))[0] == ""
     assert np.isinf(no_table.clearance(robot.home)[0])  # nothing to measure against
     assert "CollisionChecker(robot='panda'" in repr(no_table)
+
+
+def _cube_stl(path, half):
+    v = np.array([[x, y, z] for x in (-half, half) for y in (-half, half) for z in (-half, half)])
+    faces = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1),
+             (2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)]  # fmt: skip
+    lines = ["solid cube"]
+    for f in faces:
+        a, b, c = v[list(f)]
+        n = np.cross(b - a, c - a)
+        lines.append(f"facet normal {n[0]} {n[1]} {n[2]}\nouter loop")
+        lines += [f"vertex {p[0]} {p[1]} {p[2]}" for p in (a, b, c)]
+        lines.append("endloop\nendfacet")
+    lines.append("endsolid cube")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_mesh_object_is_eroded_for_the_gripper(robot, tmp_path):
+    stl = _cube_stl(tmp_path / "cube.stl", 0.05)
+    full, _ = shape_geometry("mesh", None, mesh=stl)
+    eroded, _ = shape_geometry("mesh", None, mesh=stl, erode=0.005)
+    for g in (full, eroded):
+        g.computeLocalAABB()
+    np.testing.assert_allclose(full.aabb_local.max_, [0.05] * 3, atol=1e-9)
+    np.testing.assert_allclose(eroded.aabb_local.max_, [0.045] * 3, atol=1e-7)  # faces moved 5 mm
+    np.testing.assert_allclose(eroded.aabb_local.min_, [-0.045] * 3, atol=1e-7)
+    tcp = robot.fk(robot.home)[0, :3, 3].tolist()
+    obj = ObjectConfig.model_validate({"shape": "mesh", "mesh": str(stl), "pose": {"xyz": tcp}})
+    c = CollisionChecker(robot, EnvironmentConfig(), obj)
+    assert c.check(robot.home)[0] == REASON_OBJECT  # a 10 cm cube does not fit the 8 cm opening
+    snug = _cube_stl(tmp_path / "snug.stl", 0.041)  # 1 mm into each pad, 4 mm into the palm
+    obj = ObjectConfig.model_validate({"shape": "mesh", "mesh": str(snug), "pose": {"xyz": tcp}})
+    assert CollisionChecker(robot, EnvironmentConfig(), obj).check(robot.home)[0] == ""
+    strict = EnvironmentConfig(contact_tolerance=0.0)
+    assert CollisionChecker(robot, strict, obj).check(robot.home)[0] == REASON_OBJECT

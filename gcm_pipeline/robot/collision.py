@@ -32,7 +32,7 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
     collision only when it penetrates deeper than the tolerance (a finger pad
     closing on the surface is a grasp, not a collision). Primitives are eroded
     exactly (radius / half-sizes minus the tolerance); a mesh object is eroded
-    by moving its vertices inward along their normals. coal cannot use a
+    by moving its faces inward (vertex offsets, see ``_erode_mesh``). coal cannot use a
     negative security margin with meshes, hence erosion. Arm links (not
     gripper) are checked against the full object.
 
@@ -215,21 +215,35 @@ def shape_geometry(
 
 
 def _erode_mesh(mesh: Any, distance: float) -> Any:
-    """Move every vertex inward along its (area-weighted) normal by ``distance`` [m]."""
+    """Move every face of a closed mesh inward by ``distance`` [m] (vertex offsets).
+
+    Each vertex moves by the ``d`` that best satisfies ``n_f . d = -distance``
+    for the unit normals ``n_f`` of its faces (least squares, lightly
+    regularised): exact at the corners and edges of a polyhedron, the inward
+    normal on smooth parts. Offsets are capped at ``3 * distance``.
+    """
     verts = np.asarray(mesh.vertices(), dtype=float).copy()
     tris = np.array(
         [[int(t[0]), int(t[1]), int(t[2])] for t in map(mesh.tri_indices, range(mesh.num_tris))],
         dtype=int,
     )
     face_n = np.cross(verts[tris[:, 1]] - verts[tris[:, 0]], verts[tris[:, 2]] - verts[tris[:, 0]])
-    normals = np.zeros_like(verts)
+    norm = np.linalg.norm(face_n, axis=1, keepdims=True)
+    face_n = np.divide(face_n, norm, out=np.zeros_like(face_n), where=norm > 0)
+    ata = np.zeros((len(verts), 3, 3))
+    atb = np.zeros((len(verts), 3))
+    outer = face_n[:, :, None] * face_n[:, None, :]
     for k in range(3):
-        np.add.at(normals, tris[:, k], face_n)
-    norm = np.linalg.norm(normals, axis=1, keepdims=True)
-    normals = np.divide(normals, norm, out=np.zeros_like(normals), where=norm > 0)
+        np.add.at(ata, tris[:, k], outer)
+        np.add.at(atb, tris[:, k], -distance * face_n)
+    reg = 1e-6 * np.trace(ata, axis1=1, axis2=2)[:, None, None] + 1e-12
+    offset = np.linalg.solve(ata + reg * np.eye(3), atb[:, :, None])[:, :, 0]
+    length = np.linalg.norm(offset, axis=1, keepdims=True)
+    cap = 3.0 * distance
+    offset = np.where(length > cap, offset * cap / np.maximum(length, 1e-300), offset)
     out = coal.BVHModelOBBRSS()
     out.beginModel(len(tris), len(verts))
-    out.addVertices(verts - distance * normals)
+    out.addVertices(verts + offset)
     out.addTriangles(tris)
     out.endModel()
     return out

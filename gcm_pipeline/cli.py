@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from gcm_pipeline.errors import GcmError
+from gcm_pipeline.errors import GcmError, InputError
 
 __all__ = ["build_parser", "main"]
 
@@ -194,6 +194,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, args.overrides)
     c = cfg.candidates
+    if c.path is not None and not c.path.is_file():
+        raise InputError(f"grasp file not found: {c.path}")
     obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
     print(f"{args.config}: ok")
     print(f"  candidates  {c.source}" + (f" {c.path}" if c.path else f" x{c.count}"))

@@ -581,13 +581,32 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
 
 
 def _resolve_paths(data: dict[str, Any], base: Path) -> None:
-    """Make relative file paths in the config relative to the config's directory."""
-    for section, key in (("candidates", "path"), ("object", "mesh")):
-        sec = data.get(section)
-        if isinstance(sec, dict) and isinstance(sec.get(key), str):
-            p = Path(sec[key])
-            if not p.is_absolute() and not p.exists() and (base / p).exists():
-                sec[key] = str(base / p)
+    """Make relative file paths in the config relative to the config's directory.
+
+    ``candidates.path``, ``object.mesh``, ``environment.obstacles[].mesh`` and a
+    ``robot.spec`` that is a path (ends in ``.yaml``/``.yml`` or has a ``/``)
+    are taken relative to ``base``, unless only the path relative to the
+    working directory exists (e.g. given with ``--set``).
+    """
+
+    def fix(section: Any, key: str, only_paths: bool = False) -> None:
+        if not isinstance(section, dict) or not isinstance(section.get(key), str):
+            return
+        text = section[key]
+        if only_paths and not (text.endswith((".yaml", ".yml")) or "/" in text):
+            return
+        p = Path(text).expanduser()
+        if p.is_absolute() or (p.exists() and not (base / p).exists()):
+            return
+        section[key] = str(base / p)
+
+    fix(data.get("candidates"), "path")
+    fix(data.get("object"), "mesh")
+    fix(data.get("robot"), "spec", only_paths=True)
+    env = data.get("environment")
+    if isinstance(env, dict) and isinstance(env.get("obstacles"), list):
+        for obstacle in env["obstacles"]:
+            fix(obstacle, "mesh")
 
 
 def config_schema() -> dict[str, Any]:

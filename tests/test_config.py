@@ -227,3 +227,22 @@ def test_schema_is_json_and_strict():
     assert schema["required"] == ["candidates"]
     assert schema["additionalProperties"] is False
     assert "cylinder_side" in text
+
+
+def test_relative_paths_prefer_the_config_directory(tmp_path, monkeypatch):
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "g.npy").write_bytes(b"")
+    (tmp_path / "cfg" / "arm.yaml").write_text("name: x\n")
+    cfg_path = tmp_path / "cfg" / "run.yaml"
+    cfg_path.write_text(
+        "robot: {spec: arm.yaml}\ncandidates: {source: file, path: g.npy}\n"
+        "environment: {obstacles: [{shape: mesh, mesh: missing.stl}]}\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(cfg_path)
+    assert cfg.candidates.path == tmp_path / "cfg" / "g.npy"
+    assert cfg.robot.spec == str(tmp_path / "cfg" / "arm.yaml")
+    # a missing file is reported where the config says it is
+    assert cfg.environment.obstacles[0].mesh == tmp_path / "cfg" / "missing.stl"
+    # a shipped robot name stays a name
+    assert load_config(ROOT / "configs" / "box.yaml").robot.spec == "panda"

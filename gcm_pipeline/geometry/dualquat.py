@@ -368,31 +368,33 @@ def dq_to_matrix(dq: npt.ArrayLike) -> np.ndarray:
     return out
 
 
+_K_ROWS = np.array([[0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3]])
+
+
 def _quat_from_rotation_matrices(rot: np.ndarray) -> np.ndarray:
     """(w, x, y, z) quaternions (B, 4) with ``w >= 0`` from rotation matrices (B, 3, 3).
 
-    Shepperd's method without branches: ``4 q q^T`` is built from the matrix
-    entries and its row with the largest diagonal (best conditioned) is
-    normalised.
+    Shepperd's method without branches: the ten distinct entries of the
+    symmetric ``4 q q^T`` come from the matrix entries; the row with the
+    largest diagonal (best conditioned, >= 1) is normalised.
     """
-    m00, m01, m02 = rot[:, 0, 0], rot[:, 0, 1], rot[:, 0, 2]
-    m10, m11, m12 = rot[:, 1, 0], rot[:, 1, 1], rot[:, 1, 2]
-    m20, m21, m22 = rot[:, 2, 0], rot[:, 2, 1], rot[:, 2, 2]
-    k = np.empty((rot.shape[0], 4, 4))
-    k[:, 0, 0] = 1.0 + m00 + m11 + m22
-    k[:, 1, 1] = 1.0 + m00 - m11 - m22
-    k[:, 2, 2] = 1.0 - m00 + m11 - m22
-    k[:, 3, 3] = 1.0 - m00 - m11 + m22
-    k[:, 0, 1] = k[:, 1, 0] = m21 - m12
-    k[:, 0, 2] = k[:, 2, 0] = m02 - m20
-    k[:, 0, 3] = k[:, 3, 0] = m10 - m01
-    k[:, 1, 2] = k[:, 2, 1] = m01 + m10
-    k[:, 1, 3] = k[:, 3, 1] = m02 + m20
-    k[:, 2, 3] = k[:, 3, 2] = m12 + m21
-    best = np.argmax(np.einsum("bii->bi", k), axis=-1)
-    q = k.reshape(-1, 4)[np.arange(rot.shape[0]) * 4 + best]
-    q /= np.sqrt(np.einsum("bi,bi->b", q, q))[:, None]
-    q[q[:, 0] < 0] *= -1.0
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = (rot[:, i, j] for i in range(3) for j in range(3))
+    k = np.empty((10, rot.shape[0]))  # ww, xx, yy, zz, wx, wy, wz, xy, xz, yz (times 4)
+    k[0] = 1.0 + m00 + m11 + m22
+    k[1] = 1.0 + m00 - m11 - m22
+    k[2] = 1.0 - m00 + m11 - m22
+    k[3] = 1.0 - m00 - m11 + m22
+    np.subtract(m21, m12, out=k[4])
+    np.subtract(m02, m20, out=k[5])
+    np.subtract(m10, m01, out=k[6])
+    np.add(m01, m10, out=k[7])
+    np.add(m02, m20, out=k[8])
+    np.add(m12, m21, out=k[9])
+    best = np.argmax(k[:4], axis=0)
+    q = k[_K_ROWS[best], np.arange(rot.shape[0])[:, None]]
+    norm = np.sqrt(np.einsum("bi,bi->b", q, q))
+    norm[q[:, 0] < 0] *= -1.0
+    q /= norm[:, None]
     return q
 
 

@@ -32,9 +32,10 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
     collision only when it penetrates deeper than the tolerance (a finger pad
     closing on the surface is a grasp, not a collision). Primitives are eroded
     exactly (radius / half-sizes minus the tolerance); a mesh object is eroded
-    by moving its faces inward (vertex offsets, see ``_erode_mesh``). coal cannot use a
-    negative security margin with meshes, hence erosion. Arm links (not
-    gripper) are checked against the full object.
+    by moving its faces inward (vertex offsets, see ``_erode_mesh``); a
+    ``plane`` object (2 mm thick) erodes to nothing, so the gripper may touch
+    it. coal cannot use a negative security margin with meshes, hence
+    erosion. Arm links (not gripper) are checked against the full object.
 
 When a configuration collides in more than one way, the reason is the first of
 environment, self, object.
@@ -44,7 +45,11 @@ Checking is batched: a ``pin.GeometryPool`` per kind and
 updates and all pairs in C++, stopping at a configuration's first collision.
 coal's narrow phase starts with the bounding volumes of each pair (the BVH root
 OBBRSS for meshes), which is the broad phase here; only configurations still
-free after a kind are checked for the next kind.
+free after a kind are checked for the next kind. :meth:`CollisionChecker.clearance`
+bounds every pair's distance from below with a bounding sphere per link (placed
+by vectorised forward kinematics for all configurations at once) against the
+world shape's box, and runs coal's exact distance only for pairs that can still
+be the nearest.
 """
 
 from __future__ import annotations

@@ -35,14 +35,21 @@ def _assert_verified(robot: Robot, res: IKResult, targets: np.ndarray) -> None:
     assert np.all(res.reason[ok] == "") and np.all(res.reason[~ok] != "")
 
 
-def _unreachable(robot: Robot, n: int, seed: int, distance: float) -> np.ndarray:
-    """Random orientations at positions ``distance`` [m] from the shoulder."""
+def _unreachable(robot: Robot, n: int, seed: int, lo: float, hi: float) -> np.ndarray:
+    """Poses at ``lo``-``hi`` [m] from the shoulder, approach axis (z) pointing at it.
+
+    Beyond ``max_reach`` they are pre-filtered; inside it, the hand would have
+    to reach back past its own wrist: no configuration exists, the IK must fail.
+    """
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    targets = robot.fk(robot.random_configurations(n, seed))
-    targets[:, :3, 3] = robot.shoulder + distance * d
-    return targets
+    x = np.cross(-d, rng.normal(size=(n, 3)))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    out = np.tile(np.eye(4), (n, 1, 1))
+    out[:, :3, 0], out[:, :3, 1], out[:, :3, 2] = x, np.cross(-d, x), -d
+    out[:, :3, 3] = robot.shoulder + rng.uniform(lo, hi, size=(n, 1)) * d
+    return out
 
 
 @pytest.mark.parametrize("name,n", [("panda", 300), ("ur5", 150)])
@@ -67,10 +74,9 @@ def test_mink_round_trip(name: str, n: int):
 
 
 def test_unreachable_targets_are_never_successes(panda: Robot):
-    # 1.2 m: beyond the reach bound (pre-filter); 1.0 m: inside the bound
-    # (1.09 m) but beyond the real reach (~0.95 m), so the IK itself must fail
-    far = _unreachable(panda, 40, 1, 1.2)
-    near = _unreachable(panda, 40, 2, 1.0)
+    far = _unreachable(panda, 40, 1, 1.0, 1.3)  # beyond max_reach: pre-filter
+    near = _unreachable(panda, 40, 2, 0.8, 0.94)  # within reach: the IK runs and fails
+    assert np.all(np.linalg.norm(near[:, :3, 3] - panda.shoulder, axis=1) < panda.max_reach)
     res = solve_ik(panda, np.concatenate([far, near]))
     assert not res.success.any()
     assert np.all(res.reason[:40] == "out_of_reach")

@@ -86,6 +86,9 @@ def test_max_reach_bounds_every_configuration(panda: Robot, ur5: Robot):
     for robot in (panda, ur5):
         p = robot.fk(robot.random_configurations(5000, 0))[:, :3, 3]
         assert np.linalg.norm(p - robot.shoulder, axis=1).max() <= robot.max_reach
+        assert robot.max_reach <= robot.reach_bound
+    # Panda: shoulder-elbow, elbow-wrist and wrist-TCP segments stretched in line
+    assert panda.max_reach == pytest.approx(0.3266 + 0.3928 + 0.2281 + 2e-3, abs=1e-3)
 
 
 def test_ur5_spec(ur5: Robot):

@@ -53,6 +53,11 @@ class PinocchioIKOptions:
         library_size: Random configurations in the seed library.
         library_seeds: Nearest library entries tried per target (in rounds).
         random_restarts: Extra uniformly random seeds for targets still failing.
+        give_up_position: Random restarts are skipped for targets whose best
+            attempt from the given, library and home seeds stayed farther than
+            this [m] (0: never skip). Reachable targets that the first seeds miss
+            end within a few cm; unreachable ones stay far, and would otherwise
+            cost every restart.
         first_round_seeds: Seeds solved at once in the first round; with more
             than one, the converged solution of best manipulability is kept.
         round_seeds: Seeds solved at once per target in the later rounds.
@@ -77,6 +82,7 @@ class PinocchioIKOptions:
     library_size: int = 50000
     library_seeds: int = 8
     random_restarts: int = 8
+    give_up_position: float = 0.15
     first_round_seeds: int = 1
     round_seeds: int = 1
     min_solutions: int = 1
@@ -422,6 +428,9 @@ def solve(
     c = 0
     while c < n_rounds:
         todo = np.flatnonzero(n_valid < opts.min_solutions)
+        if c > n_given + n_lib and opts.give_up_position > 0:
+            # random restarts only for targets that some seed brought close
+            todo = todo[att_p[todo] <= opts.give_up_position]
         if todo.size == 0:
             break
         width = first if c == 0 else max(1, opts.round_seeds)

@@ -260,7 +260,11 @@ class Robot:
         package_dirs: Directories that resolve the URDF's ``package://`` URIs.
         mesh_dir: Directory of the robot's description (meshes under it).
         shoulder: Origin of the first joint in the base frame (3,) [m].
-        max_reach: Upper bound of the distance from ``shoulder`` to the grasp frame [m].
+        max_reach: Largest distance from ``shoulder`` to the grasp frame over
+            configurations inside the limits [m], maximised numerically (plus a
+            2 mm safety margin); the IK's ``out_of_reach`` pre-filter.
+        reach_bound: Sum of the link offsets from the shoulder to the grasp frame,
+            a rigorous upper bound of ``max_reach`` [m].
         chain: Vectorised kinematics of the grasp frame.
     """
 
@@ -361,7 +365,29 @@ class Robot:
         home.setflags(write=False)
         self.home = home
         self.shoulder = self.chain.root_origin.copy()
-        self.max_reach = float(self.chain.link_lengths().sum())
+        self.reach_bound = float(self.chain.link_lengths().sum())
+        self.max_reach = min(self.reach_bound, self._maximise_reach() + 2e-3)
+
+    def _maximise_reach(self, samples: int = 20000, starts: int = 32, steps: int = 300) -> float:
+        """Numerical maximum of |p(q) - shoulder| inside the limits [m].
+
+        Projected gradient ascent from the farthest of ``samples`` random
+        configurations (fixed seed, deterministic).
+        """
+        q = self.random_configurations(samples, np.random.default_rng([7, 0x5EAC]))
+        d = np.linalg.norm(self.chain.pose(q)[1] - self.shoulder, axis=1)
+        best = float(d.max())
+        q = q[np.argsort(-d)[:starts]]
+        step = 0.5
+        for _ in range(steps):
+            _, p, jac = self.chain.pose_jacobian(q)
+            r = p - self.shoulder
+            dist = np.linalg.norm(r, axis=1)
+            best = max(best, float(dist.max()))
+            grad = np.einsum("ni,nij->nj", r / dist[:, None], jac[:, :3])
+            q = np.clip(q + step * grad, self.lower, self.upper)
+        dist = np.linalg.norm(self.chain.pose(q)[1] - self.shoulder, axis=1)
+        return max(best, float(dist.max()))
 
     # -- kinematics ---------------------------------------------------------------------
 

@@ -162,6 +162,18 @@ def test_cylindrical_mesh_closes_around_the_object(triangulator, with_frame, off
         )
 
 
+@pytest.mark.parametrize("triangulator", ["qhull", "bowyer_watson"])
+def test_cylindrical_axis_of_a_squat_grasp_set_without_frame(triangulator):
+    """A wide, short ring of grasps: the axis is the ring's normal, not its largest spread."""
+    frame = object_frame((0.3, -0.1, 0.05), (0.2, 0.0, 0.4))
+    dq = cylinder_grasps(16, 2, radius=0.15, frame=frame)
+    m = build_manifold(table(dq), projection="cylindrical", triangulator=triangulator)
+    assert len(m.triangles) == 16 * 2
+    assert angular_span(m, 16, 2).max() == 1
+    axis = m.frame[:3, 2]
+    assert abs(abs(axis @ frame[:3, 2]) - 1.0) < 1e-9
+
+
 def test_cylindrical_with_noise_and_a_tilted_object_frame():
     frame = object_frame((0.4, 0.2, 0.1), (0.3, 0.5, 0.0))
     dq = cylinder_grasps(16, 5, noise=0.002, frame=frame)
@@ -201,7 +213,8 @@ def test_spherical_chart_gives_the_spherical_delaunay_mesh(triangulator, with_fr
     frame = object_frame((0.5, 0.0, 0.2)) if with_frame else None
     m = build_manifold(table(dq), projection="spherical", triangulator=triangulator, frame=frame)
     assert len(m.unused) == 0
-    centre = np.array([0.5, 0.0, 0.2]) if with_frame else dq_translation(dq).mean(axis=0)
+    centre = np.array([0.5, 0.0, 0.2])  # found by the sphere fit without a frame
+    np.testing.assert_allclose(m.frame[:3, 3], centre, atol=1e-12)
     u = dq_translation(dq) - centre
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     # Empty circumcircle on the sphere: all points on the inner side of each triangle's plane.

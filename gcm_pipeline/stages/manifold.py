@@ -31,8 +31,10 @@ Charts (``projection``)
 The cylindrical and spherical charts use the object frame ``frame`` (its z
 axis is the cylinder axis / the direction away from the pole, its origin the
 centre, its x axis the ``theta = 0`` direction). Without it they use the
-grasps' centroid and principal axis (largest variance) for the cylinder, and
-the centroid and the grasps' mean direction for the sphere.
+grasps' centroid and the principal axis about which they lie closest to a
+cylinder (the largest-variance axis of a tall grasp set, the normal of a flat
+ring), and for the sphere the least-squares sphere centre and the grasps'
+mean direction from it (the pole is opposite).
 
 Pruning
 -------
@@ -193,6 +195,36 @@ def _principal_axes(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, axes
 
 
+def _cylinder_axis(rel: np.ndarray, axes: np.ndarray) -> int:
+    """Index of the principal axis about which the points lie closest to a cylinder.
+
+    The relative spread (std / mean) of the distances from each principal
+    axis through the centroid is smallest for the cylinder's axis, whether the
+    grasp set is tall (axis = largest variance) or a flat ring (axis = normal).
+    """
+    scores = []
+    for k in range(3):
+        along = rel @ axes[:, k]
+        rho = np.linalg.norm(rel - along[:, None] * axes[:, k], axis=1)
+        mean = float(rho.mean())
+        scores.append(float(rho.std()) / mean if mean > 0 else np.inf)
+    return int(np.argmin(scores))
+
+
+def _sphere_centre(pos: np.ndarray) -> np.ndarray:
+    """Least-squares sphere centre of the points (the centroid if they are coplanar).
+
+    Solves ``|p|^2 = 2 c . p + k`` linearly; exact for points on a sphere.
+    """
+    centroid = pos.mean(axis=0)
+    rel = pos - centroid
+    a = np.column_stack((2.0 * rel, np.ones(len(rel))))
+    sol, _, rank, sv = np.linalg.lstsq(a, (rel * rel).sum(axis=1), rcond=None)
+    if rank < 4 or sv[-1] < 1e-9 * sv[0]:
+        return centroid
+    return centroid + sol[:3]
+
+
 def _pose(origin: np.ndarray, rot: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = rot
@@ -222,7 +254,8 @@ def _cylindrical(
         centre, rot = _frame_axes(frame)
     else:
         centre, axes = _principal_axes(pos)
-        rot = np.column_stack((axes[:, 1], axes[:, 2], axes[:, 0]))  # z = principal axis
+        k = _cylinder_axis(pos - centre, axes)
+        rot = np.column_stack((axes[:, (k + 1) % 3], axes[:, (k + 2) % 3], axes[:, k]))
     rel = (pos - centre) @ rot
     theta = np.arctan2(rel[:, 1], rel[:, 0])
     theta[theta >= np.pi] -= 2 * np.pi
@@ -268,7 +301,7 @@ def _spherical(
     if frame is not None:
         centre, rot = _frame_axes(frame)
     else:
-        centre = pos.mean(axis=0)
+        centre = _sphere_centre(pos)
         mean_dir = (pos - centre).sum(axis=0)
         if np.linalg.norm(mean_dir) < 1e-12 * max(float(np.abs(pos - centre).max()), 1e-300):
             _, axes = _principal_axes(pos)

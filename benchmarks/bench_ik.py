@@ -7,9 +7,10 @@ Target sets (fixed seed):
   joint configurations inside the limits;
 * ``unreachable``: 500 poses with random orientations at 1.3-2.0 m from the
   shoulder (the reach pre-filter rejects them before any IK runs);
-* ``unreachable_near``: 500 poses at 0.97-1.08 m from the shoulder, inside the
-  pre-filter's bound (1.09 m) but beyond the arm's real reach (~0.95 m), so the
-  IK itself runs and must fail.
+* ``unreachable_near``: 500 poses at 0.75-0.94 m from the shoulder, inside the
+  arm's reach (0.949 m for the Panda) but with the approach axis pointing back
+  at the shoulder (the hand would have to reach back past its own wrist), so
+  the IK itself runs and must fail.
 
 For each backend: recall on ``reachable``; false positives = successes on the
 unreachable sets plus successes that fail an independent re-check (a fresh
@@ -60,12 +61,19 @@ def pinocchio_fk(robot: Robot, q: np.ndarray) -> np.ndarray:
 
 
 def shell_targets(
-    robot: Robot, n: int, lo: float, hi: float, rng: np.random.Generator
+    robot: Robot, n: int, lo: float, hi: float, rng: np.random.Generator, inward: bool = False
 ) -> np.ndarray:
+    """Poses at ``lo``-``hi`` [m] from the shoulder; random orientations, or with
+    the approach axis (z) pointing back at the shoulder (``inward``)."""
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     out = np.tile(np.eye(4), (n, 1, 1))
-    out[:, :3, :3] = Rotation.random(n, random_state=rng).as_matrix()
+    if inward:
+        x = np.cross(-d, rng.normal(size=(n, 3)))
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        out[:, :3, 0], out[:, :3, 1], out[:, :3, 2] = x, np.cross(-d, x), -d
+    else:
+        out[:, :3, :3] = Rotation.random(n, random_state=rng).as_matrix()
     out[:, :3, 3] = robot.shoulder + rng.uniform(lo, hi, size=(n, 1)) * d
     return out
 
@@ -162,7 +170,7 @@ def main() -> None:
     sets = {
         "reachable": pinocchio_fk(robot, q),
         "unreachable": shell_targets(robot, args.unreachable, 1.3, 2.0, rng),
-        "unreachable_near": shell_targets(robot, args.unreachable, 0.97, 1.08, rng),
+        "unreachable_near": shell_targets(robot, args.unreachable, 0.75, 0.94, rng, inward=True),
     }
     workers = os.cpu_count() or 1
     results = [bench_backend(robot, "pinocchio", sets, args.repeats, workers)]

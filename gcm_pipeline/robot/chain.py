@@ -50,6 +50,8 @@ class KinematicChain:
         RobotSpecError: If the model has a joint type other than revolute.
     """
 
+    CHUNK = 4096
+
     def __init__(self, model: pin.Model, frame_id: int) -> None:
         if model.nq != model.nv or model.nq != model.njoints - 1:
             raise RobotSpecError(
@@ -139,6 +141,24 @@ class KinematicChain:
         jac[:, 3:, self.q_index] = zaxes.transpose(1, 2, 0)
         return tool_r, tool_p, jac
 
+    def _chunked(
+        self, q: np.ndarray, jacobian: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """:meth:`_forward` in blocks of ``CHUNK`` rows (temporaries stay in cache)."""
+        n = q.shape[0]
+        if n <= self.CHUNK:
+            return self._forward(q, jacobian)
+        rot = np.empty((n, 3, 3))
+        pos = np.empty((n, 3))
+        jac = np.empty((n, 6, self.nq)) if jacobian else None
+        for a in range(0, n, self.CHUNK):
+            b = min(n, a + self.CHUNK)
+            r, p, j = self._forward(q[a:b], jacobian)
+            rot[a:b], pos[a:b] = r, p
+            if jac is not None:
+                jac[a:b] = j
+        return rot, pos, jac
+
     def pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rotation and position of the frame.
 
@@ -148,7 +168,7 @@ class KinematicChain:
         Returns:
             ``(R, p)``: rotations (N, 3, 3) and positions (N, 3) [m] in the base frame.
         """
-        r, p, _ = self._forward(np.asarray(q, dtype=float), jacobian=False)
+        r, p, _ = self._chunked(np.asarray(q, dtype=float), jacobian=False)
         return r, p
 
     def pose_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -162,7 +182,7 @@ class KinematicChain:
             (N, 6, nq), rows ``[v; omega]``: linear velocity of the frame origin
             and angular velocity, both in base-frame axes.
         """
-        r, p, jac = self._forward(np.asarray(q, dtype=float), jacobian=True)
+        r, p, jac = self._chunked(np.asarray(q, dtype=float), jacobian=True)
         assert jac is not None
         return r, p, jac
 

@@ -46,10 +46,15 @@ def _jac(jacobian: Any, rows: int = 6) -> np.ndarray:
     return j
 
 
+_CHUNK = 8192
+
+
 def _gram_det_sqrt(j: np.ndarray) -> np.ndarray:
-    gram = j @ j.transpose(0, 2, 1)
-    det = np.linalg.det(gram)
-    return np.sqrt(np.clip(det, 0.0, None))
+    out = np.empty(j.shape[0])
+    for a in range(0, j.shape[0], _CHUNK):
+        jj = j[a : a + _CHUNK]
+        out[a : a + _CHUNK] = np.linalg.det(jj @ jj.transpose(0, 2, 1))
+    return np.sqrt(np.clip(out, 0.0, None))
 
 
 def yoshikawa(jacobian: Any) -> np.ndarray:
@@ -89,7 +94,10 @@ def inverse_condition_number(jacobian: Any) -> np.ndarray:
         (N,) values in [0, 1]; 0 at singular configurations.
     """
     j = _jac(jacobian)
-    eig = np.linalg.eigvalsh(j @ j.transpose(0, 2, 1))  # ascending, sigma^2
+    eig = np.empty((j.shape[0], 6))
+    for a in range(0, j.shape[0], _CHUNK):
+        jj = j[a : a + _CHUNK]
+        eig[a : a + _CHUNK] = np.linalg.eigvalsh(jj @ jj.transpose(0, 2, 1))  # sigma^2, ascending
     eig = np.clip(eig, 0.0, None)
     top = eig[:, -1]
     out = np.zeros(j.shape[0])

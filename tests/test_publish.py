@@ -68,7 +68,7 @@ def make_scene(robot, n: int = 60, seed: int = 0):
     m_u[:, 0, 3] += 1.5
     dq = dq_from_matrix(np.concatenate([m_r, m_u]))
     reach = np.r_[np.ones(n_r, bool), np.zeros(n_u, bool)]
-    reason = np.where(reach, "", np.where(np.arange(n) % 2 == 0, "no_ik", "self_collision"))
+    reason = np.where(reach, "", np.where(np.arange(n) % 2 == 0, "no_ik", "collision_self"))
     manip = np.r_[rng.uniform(0.01, 0.12, n_r), np.full(n_u, np.nan)]
     rank = np.zeros(n, dtype=np.int64)
     order = np.argsort(-manip[:n_r])
@@ -196,12 +196,12 @@ def test_colors(scene):
     reasons = np.asarray(grasps["reason"])[~np.asarray(grasps["reachable"])]
     grey = urgb[::nv][reasons == "no_ik"]
     assert np.allclose(grey, grey[:, :1]) and np.allclose(grey, pub.REASON_COLORS["no_ik"])
-    other = urgb[::nv][reasons == "self_collision"]
-    assert np.allclose(other, pub.REASON_COLORS["self_collision"])
+    other = urgb[::nv][reasons == "collision_self"]
+    assert np.allclose(other, pub.REASON_COLORS["collision_self"])
     leg = info.legend
     assert leg["colormap"] == "viridis"
     assert leg["metric_range"] == pytest.approx([lo, hi])
-    assert set(leg["unreachable"]) == {"no_ik", "self_collision"}
+    assert set(leg["unreachable"]) == {"no_ik", "collision_self"}
     assert leg["unreachable"]["no_ik"]["count"] == 10
 
 

@@ -101,21 +101,19 @@ FULL_GLYPH_LIMIT = 20_000
 #: take the next colour of :data:`_EXTRA_REASON_COLORS` in sorted order.
 REASON_COLORS: dict[str, tuple[float, float, float]] = {
     "no_ik": (0.62, 0.62, 0.62),
-    "self_collision": (0.89, 0.47, 0.13),
-    "collision": (0.84, 0.15, 0.16),
-    "object_collision": (0.84, 0.15, 0.16),
-    "environment_collision": (0.55, 0.34, 0.29),
-    "table_collision": (0.55, 0.34, 0.29),
-    "approach": (0.58, 0.40, 0.74),
-    "approach_blocked": (0.58, 0.40, 0.74),
-    "joint_limits": (0.89, 0.47, 0.76),
+    "joint_limits": (0.36, 0.36, 0.36),
+    "collision_self": (1.00, 0.50, 0.05),
+    "collision_environment": (0.60, 0.35, 0.20),
+    "collision_object": (0.85, 0.10, 0.10),
+    "approach": (0.97, 0.45, 0.70),
 }
+# Kept clear of viridis' purple-blue-green-yellow so reasons never read as a metric.
 _EXTRA_REASON_COLORS = (
-    (0.09, 0.75, 0.81),
-    (0.74, 0.74, 0.13),
-    (0.12, 0.47, 0.71),
-    (0.17, 0.63, 0.17),
-    (0.50, 0.50, 0.00),
+    (0.55, 0.00, 0.00),
+    (1.00, 0.78, 0.55),
+    (0.10, 0.10, 0.10),
+    (0.85, 0.65, 0.65),
+    (0.75, 0.55, 0.35),
 )
 _COLORMAP = "viridis"
 _TOP_K_DEFAULT = 10
@@ -561,14 +559,19 @@ def _robot_points(drawer: _RobotDrawer, q: np.ndarray, base: np.ndarray) -> np.n
     return pts @ base[:3, :3].T + base[:3, 3]
 
 
-def _camera(grasp_points: np.ndarray, other_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _camera(
+    grasp_points: np.ndarray, other_points: np.ndarray, robot_points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Camera target and position [m] framing the grasps and the other points.
 
     Grasp positions are trimmed to their 1st-99th percentiles (a few stray
     grasps should not shrink the view); robot and object points count fully.
     The target sits between the centre of everything and the centre of the
     grasps (they are what the scene is about); the distance fits the farthest
-    point in the vertical field of view.
+    point in the vertical field of view. The view direction is chosen among
+    a ring of directions 30 deg above the horizon: the one whose line of sight
+    to the grasps passes farthest from the robot's links (no arm in front of
+    the grasps), preferring views that show robot and object side by side.
     """
     parts = [other_points]
     if len(grasp_points):
@@ -576,12 +579,43 @@ def _camera(grasp_points: np.ndarray, other_points: np.ndarray) -> tuple[np.ndar
     pts = np.concatenate(parts)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     target = 0.5 * (lo + hi)
-    if len(grasp_points):
-        target = 0.5 * (target + np.median(grasp_points, axis=0))
+    focus = np.median(grasp_points, axis=0) if len(grasp_points) else target
+    target = 0.5 * (target + focus)
     radius = max(float(np.max(np.linalg.norm(pts - target, axis=1))), 0.2)
-    direction = _VIEW_DIR / np.linalg.norm(_VIEW_DIR)
-    dist = 0.8 * radius / math.sin(math.radians(_CAMERA_FOV_DEG) / 2.0)
+    dist = 0.9 * radius / math.sin(math.radians(_CAMERA_FOV_DEG) / 2.0)
+    direction = _view_direction(target, focus, dist, robot_points)
     return target, target + direction * dist
+
+
+def _view_direction(
+    target: np.ndarray, focus: np.ndarray, dist: float, robot_points: np.ndarray
+) -> np.ndarray:
+    default = _VIEW_DIR / np.linalg.norm(_VIEW_DIR)
+    if len(robot_points) < 2:
+        return default
+    # sample the links: joint origins and the midpoints between consecutive ones
+    links = np.concatenate([robot_points, 0.5 * (robot_points[1:] + robot_points[:-1])])
+    side = focus[:2] - robot_points[0, :2]
+    side = side / (np.linalg.norm(side) + 1e-12)
+    best, best_score = default, -np.inf
+    elev = math.radians(30.0)
+    for az in np.radians(np.arange(0.0, 360.0, 20.0)):
+        d = np.array([math.cos(az) * math.cos(elev), math.sin(az) * math.cos(elev), math.sin(elev)])
+        eye = target + d * dist
+        seg = focus - eye
+        t = np.clip(((links - eye) @ seg) / (seg @ seg), 0.0, 1.0)
+        clearance = float(np.min(np.linalg.norm(eye + t[:, None] * seg - links, axis=1)))
+        eye_clearance = float(np.min(np.linalg.norm(links - eye, axis=1)))
+        across = abs(d[0] * side[1] - d[1] * side[0]) / math.cos(elev)
+        score = (
+            min(clearance, 0.2)
+            + 0.3 * min(eye_clearance, 0.6)
+            + 0.08 * across
+            + 0.02 * float(d @ default)
+        )
+        if score > best_score:
+            best, best_score = d, score
+    return best
 
 
 def _set_camera(vis: Any, position: np.ndarray) -> None:
@@ -635,13 +669,15 @@ def build_scene(
     top_k = int(getattr(config.ranking, "top_k", _TOP_K_DEFAULT))
     anim_s = 0.0
     n_top = 0
+    robot_pts = np.zeros((0, 3))
     if robot is not None:
         drawer = _RobotDrawer(vis, robot, base)
         qs = _top_solutions(grasps, top_k)
         home = np.asarray(getattr(robot, "home", np.zeros(robot.nq)), dtype=float)
         q0 = qs[0] if len(qs) else home
         drawer.display(q0)
-        frame_pts.append(_robot_points(drawer, q0, base))
+        robot_pts = _robot_points(drawer, q0, base)
+        frame_pts.append(robot_pts)
         if len(qs) > 1:
             anim_s = drawer.animate(vis, qs)
         n_top = len(qs)
@@ -654,7 +690,7 @@ def build_scene(
     paths += gpaths
     paths += _draw_manifold(vis, grasps, manifold, trans)
     others = np.concatenate(frame_pts) if frame_pts else np.zeros((1, 3))
-    target, position = _camera(trans, others)
+    target, position = _camera(trans, others, robot_pts)
     if not orbit_target:
         # live viewer: the camera looks at the world origin; keep the view direction
         # and back off until the scene fits

@@ -3,6 +3,7 @@
 The public API is listed in ``__all__``; every name in it imports.
 """
 
+from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import (
     ConfigError,
     FrameNotFoundError,
@@ -13,11 +14,23 @@ from gcm_pipeline.errors import (
     PublishError,
     RobotSpecError,
 )
+from gcm_pipeline.io import read_run
+from gcm_pipeline.pipeline import (
+    Pipeline,
+    RunResult,
+    build_manifold,
+    check_reachability,
+    densify,
+    generate_candidates,
+    publish,
+    rank,
+)
 from gcm_pipeline.table import GraspTable
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Config",
     "ConfigError",
     "FrameNotFoundError",
     "GcmError",
@@ -25,7 +38,17 @@ __all__ = [
     "GraspTable",
     "InputError",
     "OutputError",
+    "Pipeline",
     "PublishError",
     "RobotSpecError",
+    "RunResult",
     "__version__",
+    "build_manifold",
+    "check_reachability",
+    "densify",
+    "generate_candidates",
+    "load_config",
+    "publish",
+    "rank",
+    "read_run",
 ]

@@ -158,10 +158,12 @@ def atomic_run_dir(path: str | Path, *, force: bool = False) -> Iterator[Path]:
         OutputError: See :func:`check_output_dir`.
     """
     out = check_output_dir(path, force=force)
+    created = _missing_parents(out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     except OSError as exc:
+        _remove_empty(created)
         raise OutputError(f"cannot create output directory {out}: {exc}") from None
     try:
         yield tmp
@@ -169,7 +171,27 @@ def atomic_run_dir(path: str | Path, *, force: bool = False) -> Iterator[Path]:
         _replace_dir(tmp, out, force=force)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        _remove_empty(created)
         raise
+
+
+def _missing_parents(out: Path) -> list[Path]:
+    """The parents of ``out`` that do not exist yet, deepest first."""
+    missing = []
+    p = out.parent
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    return missing
+
+
+def _remove_empty(dirs: list[Path]) -> None:
+    """Remove directories created for a run that failed (deepest first, if empty)."""
+    for d in dirs:
+        try:
+            d.rmdir()
+        except OSError:
+            return
 
 
 def _umask() -> int:

@@ -173,6 +173,17 @@ def test_existing_directory_needs_force_and_is_replaced_at_the_end(tmp_path):
     assert _siblings(out) == ["new.txt"] and _siblings(tmp_path) == ["run"]
 
 
+def test_failed_run_removes_the_parents_it_created(tmp_path):
+    with pytest.raises(RuntimeError):
+        with io.atomic_run_dir(tmp_path / "a" / "b" / "run") as tmp:
+            assert tmp.parent == tmp_path / "a" / "b"
+            raise RuntimeError
+    assert list(tmp_path.iterdir()) == []
+    with io.atomic_run_dir(tmp_path / "a" / "b" / "run"):
+        pass
+    assert (tmp_path / "a" / "b" / "run").is_dir()
+
+
 def test_empty_existing_directory_is_fine(tmp_path):
     (tmp_path / "run").mkdir()
     with io.atomic_run_dir(tmp_path / "run") as tmp:

@@ -457,3 +457,9 @@ def test_error_sclerp_non_finite_t(rng):
     a, b = random_dq(rng, 2)
     with pytest.raises(GeometryError, match=r"non-finite"):
         sclerp(a, b, np.nan)
+
+
+def test_dib_warns_when_not_converged(rng):
+    q = random_dq(rng, 3)
+    with pytest.warns(RuntimeWarning, match=r"DIB did not converge .* for 1 of 1 blends"):
+        dib(q, [0.2, 0.3, 0.5], max_iter=1)

@@ -44,6 +44,7 @@ vector and the translational part, such that ``dq_exp(dq_log(q)) == q``.
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import numpy as np
@@ -722,13 +723,30 @@ def dib(
 
     Raises:
         GeometryError: As :func:`dlb`.
+
+    Warns:
+        RuntimeWarning: If some blends have not converged after ``max_iter``
+            iterations (their last estimate is returned).
     """
     dqs, w = _blend_inputs(dqs, weights, check)
-    b = dlb(dqs, w, check=False)
+    batch = np.broadcast_shapes(dqs.shape[:-2], w.shape[:-1])
+    k = dqs.shape[-2]
+    poses = np.broadcast_to(dqs, batch + (k, 8)).reshape(-1, k, 8)
+    wf = np.broadcast_to(w, batch + (k,)).reshape(-1, k)
+    b = dlb(poses, wf, check=False)
+    active = np.arange(len(b))  # rows not converged yet: only they are iterated
     for _ in range(max_iter):
-        rel = dq_mul(dq_conj(b)[..., None, :], dqs)
-        x = np.einsum("...k,...kc->...c", w, dq_log(rel))
-        b = dq_mul(b, dq_exp(x))
-        if not x.size or np.abs(x).max() < tol:
+        if not len(active):
             break
-    return _unit_from_blend(b)
+        q, wa, ba = poses[active], wf[active], b[active]
+        x = np.einsum("nk,nkc->nc", wa, dq_log(dq_mul(dq_conj(ba)[:, None, :], q)))
+        b[active] = _unit_from_blend(dq_mul(ba, dq_exp(x)))
+        active = active[np.abs(x).max(axis=1) >= tol]
+    if len(active):
+        warnings.warn(
+            f"DIB did not converge to {tol:g} in {max_iter} iterations for {len(active)} "
+            f"of {len(b)} blends (poses near the cut locus, 180 deg apart?)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return b.reshape(batch + (8,))

@@ -188,3 +188,17 @@ def test_bad_input_errors(panda: Robot):
         solve_ik(panda, good, neighbours=np.array([[5], [0]]))
     # a single (4, 4) pose is one target
     assert solve_ik(panda, good[0]).q.shape == (1, 7)
+
+
+def test_null_space_steps_raise_manipulability(panda: Robot):
+    from gcm_pipeline.robot.manipulability import manipulability
+
+    targets = panda.fk(panda.random_configurations(30, 12))
+    plain = solve_ik(panda, targets)
+    better = solve_ik(panda, targets, manipulability_steps=5, manipulability_step=0.1)
+    ok = plain.success & better.success
+    assert ok.sum() >= 29
+    _assert_verified(panda, better, targets)
+    w0 = manipulability(panda, plain.q[ok])
+    w1 = manipulability(panda, better.q[ok])
+    assert np.all(w1 >= w0 - 1e-12) and w1.mean() > w0.mean()

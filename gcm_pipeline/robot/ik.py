@@ -176,6 +176,9 @@ def verify_solutions(
     return pos_err, rot_err, robot.within_limits(q, strict=True)
 
 
+# targets per backend call: large batches vectorise well, memory stays bounded
+_CHUNK = 16384
+
 # state shared with forked worker processes (set just before the pool forks)
 _FORK_STATE: dict[str, Any] = {}
 _POOL: dict[str, Any] = {}
@@ -247,17 +250,27 @@ def _run_backend(
     kwargs: dict[str, Any],
 ) -> dict[str, Any]:
     n = targets.shape[0]
-    if workers <= 1 or n < 2 * workers or "fork" not in mp.get_all_start_methods():
+    parallel = workers > 1 and n >= 2 * workers and "fork" in mp.get_all_start_methods()
+    n_chunks = -(-n // _CHUNK)
+    if parallel:
+        n_chunks = workers * -(-n_chunks // workers)  # a multiple of the workers
+    if not parallel and n_chunks == 1:
         return solve(
             robot, targets, seeds=seeds, validator=validator, return_all=return_all, **kwargs
         )
-    bounds = np.linspace(0, n, workers + 1).astype(int)
+    bounds = np.linspace(0, n, n_chunks + 1).astype(int)
     chunks = [
         (targets[a:b], None if seeds is None else seeds[a:b])
         for a, b in zip(bounds[:-1], bounds[1:], strict=True)
     ]
-    pool = _pool(solve, robot, validator, return_all, workers, kwargs, targets[:1])
-    parts = pool.map(_worker, chunks)
+    if parallel:
+        pool = _pool(solve, robot, validator, return_all, workers, kwargs, targets[:1])
+        parts = pool.map(_worker, chunks)
+    else:
+        parts = [
+            solve(robot, t, seeds=s, validator=validator, return_all=return_all, **kwargs)
+            for t, s in chunks
+        ]
     out: dict[str, Any] = {}
     for key in ("q", "success", "pos_err", "rot_err", "reason"):
         out[key] = np.concatenate([p[key] for p in parts])

@@ -63,6 +63,9 @@ class PinocchioIKOptions:
         round_seeds: Seeds solved at once per target in the later rounds.
         min_solutions: Stop trying seeds for a target once it has this many
             valid converged solutions (more gives more choice, costs time).
+        manipulability_steps: Null-space steps that raise the Yoshikawa index
+            of each solution while holding the pose (0: off).
+        manipulability_step: Length of one such step in joint space [rad].
         damping: :math:`\lambda_0` of the adaptive damping.
         min_damping: :math:`\lambda_{\min}`.
         orientation_weight: Length scale [m] that weights the quaternion in the
@@ -86,6 +89,8 @@ class PinocchioIKOptions:
     first_round_seeds: int = 1
     round_seeds: int = 1
     min_solutions: int = 1
+    manipulability_steps: int = 0
+    manipulability_step: float = 0.05
     damping: float = 1e-3
     min_damping: float = 1e-9
     orientation_weight: float = 0.5
@@ -348,6 +353,55 @@ def yoshikawa_of(chain: Any, q: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(det, 0.0, None))
 
 
+def _raise_manipulability(
+    chain: Any,
+    q: np.ndarray,
+    trot: np.ndarray,
+    tpos: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    tol_p: float,
+    tol_r: float,
+    opts: PinocchioIKOptions,
+    validator: Callable[[np.ndarray], np.ndarray] | None,
+) -> np.ndarray:
+    """Null-space steps that raise Yoshikawa's index while holding the pose.
+
+    Each step moves along the manipulability gradient (finite differences)
+    projected onto the Jacobian's null space, by at most
+    ``manipulability_step`` [rad], re-converges onto the target with LM and
+    keeps the new configuration only where it converged (inside the limits),
+    passes the validator, and has a larger index.
+    """
+    q = q.copy()
+    nq = q.shape[1]
+    h = 1e-6
+    eye = np.eye(6)
+    for _ in range(opts.manipulability_steps):
+        jac = chain.pose_jacobian(q)[2]
+        w0 = np.sqrt(np.clip(np.linalg.det(jac @ jac.transpose(0, 2, 1)), 0.0, None))
+        grad = np.empty_like(q)
+        for k in range(nq):
+            qk = q.copy()
+            qk[:, k] += h
+            grad[:, k] = (yoshikawa_of(chain, qk) - w0) / h
+        jjt = jac @ jac.transpose(0, 2, 1) + 1e-9 * eye
+        proj = jac.transpose(0, 2, 1) @ np.linalg.solve(jjt, (jac @ grad[:, :, None]))
+        step = grad - proj[:, :, 0]
+        norm = np.linalg.norm(step, axis=1, keepdims=True)
+        step *= opts.manipulability_step / np.maximum(norm, 1e-12)
+        moved = np.clip(q + step, lower, upper)
+        moved, conv, _, _ = _lm(chain, moved, trot, tpos, lower, upper, tol_p, tol_r, opts)
+        better = conv & (yoshikawa_of(chain, moved) > w0)
+        if validator is not None and np.any(better):
+            rows = np.flatnonzero(better)
+            better[rows] = np.asarray(validator(moved[rows]), dtype=object) == ""
+        if not np.any(better):
+            break
+        q[better] = moved[better]
+    return q
+
+
 def solve(
     robot: Any,
     targets: np.ndarray,
@@ -493,6 +547,11 @@ def solve(
         best_score[vids[better]] = score[better]
 
     success = n_valid > 0
+    if opts.manipulability_steps > 0 and np.any(success):
+        ids = np.flatnonzero(success)
+        best_q[ids] = _raise_manipulability(
+            chain, best_q[ids], trot[ids], tpos[ids], lower, upper, tol_p, tol_r, opts, validator
+        )
     reason = np.full(n, "", dtype=object)
     fail = np.flatnonzero(~success)
     if fail.size:

@@ -581,7 +581,8 @@ def _camera(
     target = 0.5 * (lo + hi)
     focus = np.median(grasp_points, axis=0) if len(grasp_points) else target
     target = 0.5 * (target + focus)
-    radius = max(float(np.max(np.linalg.norm(pts - target, axis=1))), 0.2)
+    # + 0.08 m: the links' meshes reach beyond the joint origins that stand for them
+    radius = max(float(np.max(np.linalg.norm(pts - target, axis=1))) + 0.08, 0.2)
     dist = 0.9 * radius / math.sin(math.radians(_CAMERA_FOV_DEG) / 2.0)
     direction = _view_direction(target, focus, dist, robot_points)
     return target, target + direction * dist

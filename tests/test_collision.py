@@ -364,3 +364,13 @@ def test_mesh_object_is_eroded_for_the_gripper(robot, tmp_path):
     assert CollisionChecker(robot, EnvironmentConfig(), obj).check(robot.home)[0] == ""
     strict = EnvironmentConfig(contact_tolerance=0.0)
     assert CollisionChecker(robot, strict, obj).check(robot.home)[0] == REASON_OBJECT
+
+
+def test_self_broad_phase_equals_all_self_pairs(robot, checker):
+    """Sphere-filtered self groups agree with every self pair run by Pinocchio."""
+    km = checker._kind_models["self"]
+    kd, data = pin.GeometryData(km), robot.model.createData()
+    qs = robot.random_configurations(3000, 11)
+    ref = np.array([pin.computeCollisions(robot.model, data, km, kd, q, True) for q in qs])
+    assert ref.sum() > 50
+    np.testing.assert_array_equal(checker._self_collides(qs), ref)

@@ -415,7 +415,10 @@ class CollisionChecker:
             for a, b in pairs[kind]:
                 km.addCollisionPair(pin.CollisionPair(a, b))
             self._kind_models[kind] = km
-            self._pools[kind] = pin.GeometryPool(model, km, self.threads)
+            if kind != "self":  # self pairs: sphere-filtered groups, see _init_self_groups
+                self._pools[kind] = pin.GeometryPool(model, km, self.threads)
+        self._init_spheres(model, gm, joint_of)
+        self._init_self_groups(model, gm, pairs["self"])
         full = gm.copy()
         full.removeAllCollisionPairs()
         kinds: list[str] = []
@@ -449,7 +452,7 @@ class CollisionChecker:
                 dm.addCollisionPair(pin.CollisionPair(a, b))
             self._dist_model = dm
             self._dist_data = pin.GeometryData(dm)
-            self._init_broad_phase(model, dm, dist_pairs, joint_of)
+            self._init_distance_bounds(dm, dist_pairs)
 
     # --- construction helpers ---------------------------------------------------------
 
@@ -483,25 +486,53 @@ class CollisionChecker:
             self.robot, env, self.object_cfg, self.base_pose, threads=self.threads
         )
 
-    def _init_broad_phase(
-        self, model: pin.Model, dm: Any, pairs: list[tuple[int, int]], joint_of: list[int]
-    ) -> None:
-        """Bounding spheres of the robot geometries and AABBs of the world, per distance pair.
+    def _init_spheres(self, model: pin.Model, gm: Any, joint_of: list[int]) -> None:
+        """Bounding sphere of every robot geometry, in its joint's frame.
 
-        The distance between the sphere (in the robot geometry's joint frame)
-        and the world shape's axis-aligned box (in the base frame) is a lower
-        bound of the pair's distance; :meth:`clearance` computes exact
-        distances in increasing order of that bound and stops when the next
-        bound exceeds the best distance found.
+        The sphere circumscribes the geometry's local AABB. Its centre is
+        placed for N configurations at once by :meth:`_sphere_centres`
+        (vectorised forward kinematics of each joint).
         """
-        centres, radii, lows, highs, joints = [], [], [], [], []
-        for a, b in pairs:
-            ga, gb = dm.geometryObjects[a], dm.geometryObjects[b]
-            ga.geometry.computeLocalAABB()
+        centres, radii = [], []
+        for i in range(self.n_robot_geoms):
+            go = gm.geometryObjects[i]
+            go.geometry.computeLocalAABB()
+            centres.append(go.placement.act(np.asarray(go.geometry.aabb_center, dtype=float)))
+            radii.append(float(go.geometry.aabb_radius))
+        self._sph_centre = np.array(centres)
+        self._sph_radius = np.array(radii)
+        self._sph_joint = np.array(joint_of[: self.n_robot_geoms], dtype=int)
+        self._chains: dict[int, KinematicChain] = {}
+        for j in sorted(set(self._sph_joint.tolist()) - {0}):
+            fid = model.getFrameId(model.names[j], pin.FrameType.JOINT)
+            if not model.frames[fid].placement.isIdentity():  # pragma: no cover - URDF joints
+                raise RuntimeError(f"joint frame {model.names[j]!r} is not at its joint")
+            self._chains[j] = KinematicChain(model, fid)
+
+    def _sphere_centres(self, qs: np.ndarray) -> np.ndarray:
+        """Centres (N, G, 3) [m] of the robot geometries' bounding spheres, base frame."""
+        n = len(qs)
+        centre = np.broadcast_to(self._sph_centre, (n, *self._sph_centre.shape)).copy()
+        for j, chain in self._chains.items():
+            cols = np.flatnonzero(self._sph_joint == j)
+            rot, pos = chain.pose(qs)
+            centre[:, cols] = pos[:, None, :] + np.einsum(
+                "nij,pj->npi", rot, self._sph_centre[cols]
+            )
+        return centre
+
+    def _init_distance_bounds(self, dm: Any, pairs: list[tuple[int, int]]) -> None:
+        """Axis-aligned boxes (base frame) of the world shape of every distance pair.
+
+        The distance between a robot geometry's bounding sphere and the world
+        shape's box is a lower bound of the pair's distance; :meth:`clearance`
+        computes exact distances in increasing order of that bound and stops
+        when the next bound exceeds the best distance found.
+        """
+        lows, highs = [], []
+        for _, b in pairs:
+            gb = dm.geometryObjects[b]
             gb.geometry.computeLocalAABB()
-            centres.append(ga.placement.act(np.asarray(ga.geometry.aabb_center, dtype=float)))
-            radii.append(float(ga.geometry.aabb_radius))
-            joints.append(joint_of[a])
             box = gb.geometry.aabb_local
             lo, hi = np.asarray(box.min_, dtype=float), np.asarray(box.max_, dtype=float)
             corners = np.array(
@@ -512,28 +543,50 @@ class CollisionChecker:
             )
             lows.append(world.min(axis=0))
             highs.append(world.max(axis=0))
-        self._bp_centre = np.array(centres)
-        self._bp_radius = np.array(radii)
-        self._bp_low = np.array(lows)
-        self._bp_high = np.array(highs)
-        self._bp_joint = np.array(joints, dtype=int)
-        self._bp_chains: dict[int, KinematicChain] = {}
-        for j in sorted(set(joints) - {0}):
-            fid = model.getFrameId(model.names[j], pin.FrameType.JOINT)
-            if not model.frames[fid].placement.isIdentity():  # pragma: no cover - URDF joints
-                raise RuntimeError(f"joint frame {model.names[j]!r} is not at its joint")
-            self._bp_chains[j] = KinematicChain(model, fid)
+        self._dist_robot = np.array([a for a, _ in pairs], dtype=int)
+        self._dist_low = np.array(lows)
+        self._dist_high = np.array(highs)
 
     def _lower_bounds(self, qs: np.ndarray) -> np.ndarray:
         """Lower bounds (N, P) of every distance pair's distance [m], vectorised."""
-        n = len(qs)
-        centre = np.broadcast_to(self._bp_centre, (n, *self._bp_centre.shape)).copy()
-        for j, chain in self._bp_chains.items():
-            cols = np.flatnonzero(self._bp_joint == j)
-            rot, pos = chain.pose(qs)
-            centre[:, cols] = pos[:, None, :] + np.einsum("nij,pj->npi", rot, self._bp_centre[cols])
-        gap = np.maximum(np.maximum(self._bp_low - centre, centre - self._bp_high), 0.0)
-        return np.linalg.norm(gap, axis=2) - self._bp_radius
+        centre = self._sphere_centres(qs)[:, self._dist_robot]
+        gap = np.maximum(np.maximum(self._dist_low - centre, centre - self._dist_high), 0.0)
+        return np.linalg.norm(gap, axis=2) - self._sph_radius[self._dist_robot]
+
+    def _init_self_groups(self, model: pin.Model, gm: Any, pairs: list[tuple[int, int]]) -> None:
+        """Self pairs grouped by their first geometry, one pool per group.
+
+        :meth:`check` runs a group's pool only on the configurations where the
+        bounding spheres of at least one of its pairs overlap (vectorised
+        sphere test), so far-apart links (the base vs the hand) cost nothing.
+        """
+        self._self_a = np.array([a for a, _ in pairs], dtype=int)
+        self._self_b = np.array([b for _, b in pairs], dtype=int)
+        self._self_groups: list[tuple[np.ndarray, Any]] = []
+        for a in sorted(set(self._self_a.tolist())):
+            idx = np.flatnonzero(self._self_a == a)
+            km = gm.copy()
+            km.removeAllCollisionPairs()
+            for k in idx:
+                km.addCollisionPair(pin.CollisionPair(int(self._self_a[k]), int(self._self_b[k])))
+            self._self_groups.append((idx, pin.GeometryPool(model, km, self.threads)))
+
+    def _self_collides(self, q: np.ndarray) -> np.ndarray:
+        """Self-collision of configurations (M, nq) -> (M,) bool, sphere-filtered groups."""
+        hit = np.zeros(len(q), dtype=bool)
+        if not self._self_groups or len(q) == 0:
+            return hit
+        centre = self._sphere_centres(q)
+        gap = np.linalg.norm(centre[:, self._self_a] - centre[:, self._self_b], axis=2)
+        near = gap <= self._sph_radius[self._self_a] + self._sph_radius[self._self_b]
+        for idx, pool in self._self_groups:
+            rows = np.flatnonzero(near[:, idx].any(axis=1) & ~hit)
+            if rows.size == 0:
+                continue
+            qt = np.asfortranarray(q[rows].T)
+            res = pin.computeCollisionsInParallel(self.threads, pool, qt, True, False)
+            hit[rows] = np.asarray(res, dtype=bool).reshape(rows.size)
+        return hit
 
     # --- queries --------------------------------------------------------------------------
 
@@ -547,6 +600,8 @@ class CollisionChecker:
         return arr
 
     def _collides(self, kind: str, q: np.ndarray) -> np.ndarray:
+        if kind == "self":
+            return self._self_collides(q)
         pool = self._pools.get(kind)
         if pool is None or len(q) == 0:
             return np.zeros(len(q), dtype=bool)
@@ -618,7 +673,7 @@ class CollisionChecker:
 
         Exact distances (coal, on the meshes) are computed only for the pairs
         whose bounding-sphere-to-box lower bound is below the best distance
-        found so far (see :meth:`_init_broad_phase`), nearest bound first.
+        found so far (see :meth:`_init_distance_bounds`), nearest bound first.
 
         Args:
             q: Configurations (N, nq) or (nq,) [rad].

@@ -563,8 +563,9 @@ def sclerp(
 ) -> np.ndarray:
     r"""Screw linear interpolation :math:`\hat a (\hat a^{-1} \hat b)^t`.
 
-    ``b`` is first sign-aligned with ``a`` so the motion takes the short way
-    (rotation angle <= pi).
+    The relative motion :math:`\hat a^{-1} \hat b` is taken the short way
+    (its logarithm has rotation angle <= pi), so the signs of ``a`` and ``b``
+    do not matter.
 
     Args:
         a: Start poses (..., 8), unit dual quaternions.

@@ -14,6 +14,16 @@ from gcm_pipeline.errors import (
     PublishError,
     RobotSpecError,
 )
+from gcm_pipeline.geometry.dualquat import (
+    dib,
+    dlb,
+    dq_from_matrix,
+    dq_from_pos_quat,
+    dq_mul,
+    dq_to_matrix,
+    dq_to_pos_quat,
+    sclerp,
+)
 from gcm_pipeline.io import read_run
 from gcm_pipeline.pipeline import (
     Pipeline,
@@ -46,9 +56,17 @@ __all__ = [
     "build_manifold",
     "check_reachability",
     "densify",
+    "dib",
+    "dlb",
+    "dq_from_matrix",
+    "dq_from_pos_quat",
+    "dq_mul",
+    "dq_to_matrix",
+    "dq_to_pos_quat",
     "generate_candidates",
     "load_config",
     "publish",
     "rank",
     "read_run",
+    "sclerp",
 ]

@@ -387,7 +387,7 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
 # ------------------------------------------------------------ manifold.npz
 
 
-def _manifold_arrays(manifold: Manifold) -> dict[str, np.ndarray]:
+def _manifold_arrays(manifold: Manifold) -> dict[str, Any]:
     chart = np.asarray(manifold.chart, dtype=float)
     frame = manifold.frame
     arrays = {

@@ -156,7 +156,7 @@ def check_reachability(
 
     ik = cfg.ik
     base_pose = cfg.robot.base_pose.matrix()
-    tolerances = {
+    tolerances: dict[str, Any] = {
         "backend": ik.backend,
         "position_tolerance": ik.position_tolerance,
         "orientation_tolerance": ik.orientation_tolerance,
@@ -166,19 +166,22 @@ def check_reachability(
         stage.check_reachability, {**sections, "workers": ik.workers, "seed": cfg.seed}
     )
     if "environment" in options:  # the stage does the collision checks itself
-        return stage.check_reachability(
+        done = stage.check_reachability(
             grasps, robot, base_pose=base_pose, progress=progress, **tolerances, **options
         )
+        assert isinstance(done, GraspTable)
+        return done
     from gcm_pipeline.stages import collision
 
     checker = collision.make_checker(robot, cfg.environment, cfg.object, base_pose)
     if "validator" in inspect.signature(stage.check_reachability).parameters:
         options["validator"] = checker.check
-    grasps = stage.check_reachability(
+    solved = stage.check_reachability(
         grasps, robot, base_pose=base_pose, progress=progress, **tolerances, **options
     )
+    assert isinstance(solved, GraspTable)
     return collision.apply_collision_checks(
-        grasps,
+        solved,
         robot,
         environment=cfg.environment,
         object_cfg=cfg.object,

@@ -40,12 +40,16 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
 When a configuration collides in more than one way, the reason is the first of
 environment, self, object.
 
-Checking is batched: a ``pin.GeometryPool`` per kind and
+Checking is batched: ``pin.GeometryPool`` objects and
 ``pin.computeCollisionsInParallel``, which runs forward kinematics, placement
-updates and all pairs in C++, stopping at a configuration's first collision.
-coal's narrow phase starts with the bounding volumes of each pair (the BVH root
-OBBRSS for meshes), which is the broad phase here; only configurations still
-free after a kind are checked for the next kind. :meth:`CollisionChecker.clearance`
+updates and all pairs of a pool in C++ for every configuration, stopping at a
+configuration's first collision. One pool holds the environment pairs, one the
+object pairs (coal's narrow phase starts with the bounding volumes of each
+pair, the BVH root OBBRSS for meshes, so far-away pairs are cheap), and the
+self pairs, the costly part, are split into one pool per link: a vectorised
+test of the links' bounding spheres (for all configurations at once) decides
+which configurations a link's pool has to see at all. Only configurations
+still free after a kind are checked for the next kind. :meth:`CollisionChecker.clearance`
 bounds every pair's distance from below with a bounding sphere per link (placed
 by vectorised forward kinematics for all configurations at once) against the
 world shape's box, and runs coal's exact distance only for pairs that can still

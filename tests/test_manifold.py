@@ -174,6 +174,28 @@ def test_cylindrical_axis_of_a_squat_grasp_set_without_frame(triangulator):
     assert abs(abs(axis @ frame[:3, 2]) - 1.0) < 1e-9
 
 
+def test_blend_chart_unwraps_the_seam():
+    m = build_manifold(
+        table(cylinder_grasps(12, 3)), projection="cylindrical", frame=object_frame()
+    )
+    assert m.period == pytest.approx(2 * np.pi * 0.04)
+    w = np.full((len(m.triangles), 3), 1.0 / 3.0)
+    centroids = m.blend_chart(m.triangles, w)
+    # every centroid lies between its triangle's columns: within one step of each vertex
+    step = m.period / 12
+    for tri, c in zip(m.triangles, centroids, strict=True):
+        dx = np.abs(m.chart[tri, 0] - c[0])
+        dx = np.minimum(dx, m.period - dx)
+        assert dx.max() <= step + 1e-12
+    assert (np.abs(centroids[:, 0]) <= m.period / 2).all()
+    flat = build_manifold(table(cylinder_grasps(12, 3)), projection="pca")
+    assert flat.period is None
+    w_flat = np.full((len(flat.triangles), 3), 1.0 / 3.0)
+    np.testing.assert_allclose(
+        flat.blend_chart(flat.triangles, w_flat), flat.chart[flat.triangles].mean(axis=1)
+    )
+
+
 def test_cylindrical_with_noise_and_a_tilted_object_frame():
     frame = object_frame((0.4, 0.2, 0.1), (0.3, 0.5, 0.0))
     dq = cylinder_grasps(16, 5, noise=0.002, frame=frame)

@@ -86,6 +86,8 @@ class Manifold:
         triangulator: ``qhull`` or ``bowyer_watson``.
         frame: (4, 4) pose of the chart frame in the world (the object frame or
             the estimated one; identity for ``xy``).
+        period: Period [m] of the chart's first coordinate (one turn,
+            ``2 pi r`` for ``cylindrical``), else ``None``.
     """
 
     chart: np.ndarray
@@ -95,6 +97,7 @@ class Manifold:
     projection: str
     triangulator: str = "qhull"
     frame: np.ndarray | None = None
+    period: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("chart", "triangles", "dropped", "dropped_reason", "frame"):
@@ -123,6 +126,30 @@ class Manifold:
     def dropped_counts(self) -> dict[str, int]:
         """Number of dropped triangles per reason."""
         return dict(sorted(Counter(self.dropped_reason.tolist()).items()))
+
+    def blend_chart(self, vertices: npt.ArrayLike, weights: npt.ArrayLike) -> np.ndarray:
+        """Chart coordinates of barycentric blends, unwrapped across a periodic seam.
+
+        Args:
+            vertices: (M, 3) candidate row ids (e.g. the densified table's
+                ``vertices`` column).
+            weights: (M, 3) barycentric weights.
+
+        Returns:
+            (M, 2) chart coordinates; for a periodic chart the first coordinate
+            is blended on the unwrapped triangle and wrapped back into
+            ``[-period / 2, period / 2)``.
+        """
+        corners = self.chart[np.asarray(vertices, dtype=np.int64)]
+        w = np.asarray(weights, dtype=np.float64)
+        if self.period is None:
+            return np.einsum("mk,mkd->md", w, corners)
+        corners = corners.copy()
+        x = corners[..., 0]
+        x -= self.period * np.round((x - x[:, :1]) / self.period)
+        out = np.einsum("mk,mkd->md", w, corners)
+        out[:, 0] = (out[:, 0] + 0.5 * self.period) % self.period - 0.5 * self.period
+        return out
 
     def __repr__(self) -> str:
         reasons = ", ".join(f"{k}: {v}" for k, v in self.dropped_counts.items())
@@ -249,7 +276,7 @@ def _check_chart(chart: np.ndarray, projection: str) -> None:
 
 def _cylindrical(
     pos: np.ndarray, frame: np.ndarray | None, triangulator: str
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
     else:
@@ -292,7 +319,7 @@ def _cylindrical(
     )
     tris = ids[keep]
     _, first = np.unique(np.sort(tris, axis=1), axis=0, return_index=True)
-    return chart, tris[np.sort(first)], _pose(centre, rot)
+    return chart, tris[np.sort(first)], _pose(centre, rot), turn
 
 
 def _spherical(
@@ -385,8 +412,9 @@ def build_manifold(
     pos = dq_translation(dq)
     frame_arr = None if frame is None else np.asarray(frame, dtype=np.float64)
 
+    period = None
     if projection == "cylindrical":
-        chart, tris, used_frame = _cylindrical(pos, frame_arr, triangulator)
+        chart, tris, used_frame, period = _cylindrical(pos, frame_arr, triangulator)
     elif projection == "spherical":
         chart, tris, used_frame = _spherical(pos, frame_arr, triangulator)
     else:
@@ -412,4 +440,5 @@ def build_manifold(
         projection=projection,
         triangulator=triangulator,
         frame=used_frame,
+        period=period,
     )

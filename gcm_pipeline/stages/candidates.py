@@ -43,6 +43,20 @@ frame (on the right). All randomness comes from one
 :func:`numpy.random.default_rng` seeded by ``candidates.seed`` (or the top-level
 ``seed``), so the same config gives the same candidates.
 
+Imported poses (``source: file``) are read as stored (:func:`load_grasp_file`),
+then mapped onto the robot's grasp frame by ``grasp_to_tool`` on the right,
+``T_tool = T_grasp @ grasp_to_tool``, and into the world by the object pose when
+``frame: object``: ``T_world = T_object @ T_tool``. For ACRONYM's Franka gripper
+(origin at the hand base, z = approach, fingers closing along x: its finger
+control points are at x = +-0.041 m) and the Panda's ``panda_hand_tcp`` (0.1034 m
+further along z, fingers closing along y) use
+``grasp_to_tool: {xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``: the tool's y
+axis is then the gripper's +x axis, its origin the midpoint of the fingertips,
+its z the same approach (``tests/test_candidates.py`` checks this geometry).
+``rpy_deg: [0, 0, 90]`` is the same grasp turned by 180 deg about the
+approach: the symmetric hand cannot tell the two apart, but the arm reaches
+them with joint 7 differing by pi, so the choice can change reachability.
+
 Everything is vectorised: poses are (N, 4, 4) arrays until they become the
 ``dq`` column of a :class:`~gcm_pipeline.table.GraspTable`.
 """

@@ -351,7 +351,12 @@ class PublishConfig(_Section):
 
 
 class OutputConfig(_Section):
-    """Where the run directory goes."""
+    """Where the run directory goes (``gcm run --out DIR`` overrides it).
+
+    A relative ``dir`` is relative to the working directory, not to the config
+    file, so ``gcm run configs/x.yaml`` from the repository root writes under
+    ``results/``.
+    """
 
     dir: Path = Path("results/run")
 

@@ -58,7 +58,7 @@ class IKCandidates(NamedTuple):
         reason: Validator reason per candidate (M,) str, ``''`` if valid.
     """
 
-    index: np.ndarray
+    index: np.ndarray  # type: ignore[assignment]  # shadows tuple.index on purpose
     q: np.ndarray
     reason: np.ndarray
 

@@ -273,7 +273,7 @@ class Robot:
         self.name = spec.name
         if spec.example_robot_data is not None:
             urdf, srdf, mesh_dir = _erd_paths(spec.example_robot_data)
-            package_dirs = (mesh_dir.parent.parent.parent,)
+            package_dirs: tuple[Path, ...] = (mesh_dir.parent.parent.parent,)
         else:
             assert spec.urdf is not None
             urdf, srdf = spec.urdf, spec.srdf

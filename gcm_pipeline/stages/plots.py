@@ -7,7 +7,7 @@ no global backend switch), so plotting works headless and from threads.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -16,10 +16,59 @@ import numpy as np
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["PLOT_FILES", "chart_period", "chart_points", "write_plots"]
+__all__ = [
+    "PLOT_FILES",
+    "REASON_COLORS",
+    "chart_period",
+    "chart_points",
+    "reason_palette",
+    "write_plots",
+]
 
 #: File names written by :func:`write_plots`, in order.
 PLOT_FILES = ("manifold.png", "manipulability_hist.png", "counts.png")
+
+#: Colour [r, g, b] in [0, 1] of unreachable grasps by ``reason``; other reasons
+#: take the next colour of a small extra palette in sorted order.
+REASON_COLORS: dict[str, tuple[float, float, float]] = {
+    "no_ik": (0.62, 0.62, 0.62),
+    "joint_limits": (0.36, 0.36, 0.36),
+    "collision_self": (1.00, 0.50, 0.05),
+    "collision_environment": (0.60, 0.35, 0.20),
+    "collision_object": (0.85, 0.10, 0.10),
+    "approach": (0.97, 0.45, 0.70),
+}
+# Kept clear of viridis' purple-blue-green-yellow so reasons never read as a metric.
+_EXTRA_REASON_COLORS = (
+    (0.55, 0.00, 0.00),
+    (1.00, 0.78, 0.55),
+    (0.10, 0.10, 0.10),
+    (0.85, 0.65, 0.65),
+    (0.75, 0.55, 0.35),
+)
+
+
+def reason_palette(reasons: Sequence[str]) -> dict[str, tuple[float, float, float]]:
+    """Colour of each distinct reason: :data:`REASON_COLORS`, else the extra palette.
+
+    Args:
+        reasons: Reasons (repeats allowed).
+
+    Returns:
+        Reason -> (r, g, b) in [0, 1], in sorted reason order.
+    """
+    names = sorted({str(r) for r in reasons})
+    extra = list(_EXTRA_REASON_COLORS)
+    out: dict[str, tuple[float, float, float]] = {}
+    i = 0
+    for reason in names:
+        if reason in REASON_COLORS:
+            out[reason] = REASON_COLORS[reason]
+        else:
+            out[reason] = extra[i % len(extra)]
+            i += 1
+    return out
+
 
 _DPI = 110
 _AXIS_NAMES = {
@@ -121,7 +170,7 @@ def chart_points(grasps: GraspTable, manifold: Any, period: float | None = None)
 
 
 def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
-    fig = _figure((7.0, 5.2))
+    fig = _figure((7.0, 6.0))
     ax = fig.add_subplot()
     projection = str(getattr(manifold, "projection", "") or "")
     chart = np.asarray(getattr(manifold, "chart", np.empty((0, 2))), dtype=float)
@@ -151,15 +200,18 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
     placed = np.all(np.isfinite(pts), axis=1)
     size = float(np.clip(3000.0 / max(len(grasps), 1), 1.0, 30.0))
     bad = placed & ~reach
-    if bad.any():
+    reasons = np.asarray(grasps.get("reason", np.full(len(grasps), "no_ik"))).astype(str)
+    reasons = np.where(reasons == "", "no_ik", reasons)
+    for reason, rgb in reason_palette(reasons[bad]).items():
+        sel = bad & (reasons == reason)
         ax.scatter(
-            pts[bad, 0],
-            pts[bad, 1],
+            pts[sel, 0],
+            pts[sel, 1],
             s=size,
             marker="x",
-            c="0.45",
+            color=rgb,
             linewidths=0.8,
-            label=f"unreachable ({int(bad.sum())})",
+            label=f"unreachable: {reason} ({int(sel.sum())})",
             zorder=2,
             rasterized=len(grasps) > 5000,
         )
@@ -196,7 +248,16 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
     ax.set_title(f"{title} ({projection} projection)" if projection else title)
     ax.set_aspect("equal", adjustable="datalim")
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="best", fontsize="small", framealpha=0.85)
+        legend = ax.legend(
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.13),
+            ncols=2,
+            fontsize="small",
+            frameon=False,
+        )
+        for handle in legend.legend_handles:
+            if hasattr(handle, "set_sizes"):
+                handle.set_sizes([24.0])
     ax.grid(alpha=0.25)
     return _save(fig, path)
 

@@ -53,6 +53,7 @@ import numpy as np
 
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.stages.plots import REASON_COLORS, reason_palette
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
@@ -97,24 +98,6 @@ SCENE_PATHS = (
 #: Above this many grasps in one class the gripper glyph becomes an approach stick.
 FULL_GLYPH_LIMIT = 20_000
 
-#: Colour [r, g, b] in [0, 1] of unreachable grasps by ``reason``; other reasons
-#: take the next colour of :data:`_EXTRA_REASON_COLORS` in sorted order.
-REASON_COLORS: dict[str, tuple[float, float, float]] = {
-    "no_ik": (0.62, 0.62, 0.62),
-    "joint_limits": (0.36, 0.36, 0.36),
-    "collision_self": (1.00, 0.50, 0.05),
-    "collision_environment": (0.60, 0.35, 0.20),
-    "collision_object": (0.85, 0.10, 0.10),
-    "approach": (0.97, 0.45, 0.70),
-}
-# Kept clear of viridis' purple-blue-green-yellow so reasons never read as a metric.
-_EXTRA_REASON_COLORS = (
-    (0.55, 0.00, 0.00),
-    (1.00, 0.78, 0.55),
-    (0.10, 0.10, 0.10),
-    (0.85, 0.65, 0.65),
-    (0.75, 0.55, 0.35),
-)
 _COLORMAP = "viridis"
 _TOP_K_DEFAULT = 10
 _ANIM_FPS = 30
@@ -183,14 +166,6 @@ class SceneInfo:
 # -- colours ----------------------------------------------------------------------------
 
 
-def _reason_palette(reasons: Sequence[str]) -> dict[str, tuple[float, float, float]]:
-    extra = iter(_EXTRA_REASON_COLORS * (1 + len(reasons) // len(_EXTRA_REASON_COLORS)))
-    out: dict[str, tuple[float, float, float]] = {}
-    for reason in sorted(set(reasons)):
-        out[reason] = REASON_COLORS.get(reason) or next(extra)
-    return out
-
-
 def _hex(rgb: Sequence[float]) -> str:
     return "#" + "".join(f"{int(round(255 * float(c))):02x}" for c in rgb[:3])
 
@@ -247,7 +222,7 @@ def legend(grasps: GraspTable) -> dict[str, Any]:
     cmap = _cmap()
     unreach = reason[~reachable]
     names, counts = np.unique(unreach, return_counts=True)
-    palette = _reason_palette(list(names))
+    palette = reason_palette(list(names))
     return {
         "colormap": _COLORMAP,
         "metric_range": [vmin, vmax],
@@ -326,7 +301,7 @@ def _draw_grasps(
         paths.append("/grasps/reachable")
     if n_u:
         unreach = reason[~reachable]
-        palette = _reason_palette(list(np.unique(unreach)))
+        palette = reason_palette(list(np.unique(unreach)))
         names = list(palette)
         table = np.array([palette[n] for n in names], dtype=np.float32)
         idx = np.searchsorted(np.array(names), unreach)

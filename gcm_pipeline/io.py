@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import json
 import logging
 import math
@@ -388,19 +389,20 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
 
 
 def _manifold_arrays(manifold: Manifold) -> dict[str, Any]:
-    chart = np.asarray(manifold.chart, dtype=float)
-    frame = manifold.frame
-    arrays = {
-        "vertex_ids": np.arange(chart.shape[0], dtype=np.int64),
-        "chart": chart,
-        "triangles": np.asarray(manifold.triangles, dtype=np.int64).reshape(-1, 3),
-        "dropped": np.asarray(manifold.dropped, dtype=np.int64).reshape(-1, 3),
-        "dropped_reason": np.asarray(manifold.dropped_reason, dtype=str).reshape(-1),
-        "projection": np.asarray(str(manifold.projection)),
-        "triangulator": np.asarray(str(manifold.triangulator)),
-    }
-    if frame is not None:
-        arrays["frame"] = np.asarray(frame, dtype=float)
+    """Every field of the manifold as an array (None fields left out)."""
+    arrays: dict[str, Any] = {}
+    for f in dataclasses.fields(manifold):
+        value = getattr(manifold, f.name)
+        if value is None:
+            continue
+        arr = np.asarray(value)
+        if arr.dtype == object:
+            arr = arr.astype(str)
+        arrays[f.name] = arr
+    arrays["vertex_ids"] = np.arange(len(manifold.chart), dtype=np.int64)
+    arrays["triangles"] = np.asarray(manifold.triangles, dtype=np.int64).reshape(-1, 3)
+    arrays["dropped"] = np.asarray(manifold.dropped, dtype=np.int64).reshape(-1, 3)
+    arrays["dropped_reason"] = np.asarray(manifold.dropped_reason, dtype=str).reshape(-1)
     return arrays
 
 
@@ -428,8 +430,9 @@ def read_manifold(path: str | Path) -> Manifold:
     The file holds ``vertex_ids`` (V,): the ``grasps.csv`` data row (0-based)
     of each manifold vertex (candidate); ``chart`` (V, 2) [m]; ``triangles``
     (T, 3) and ``dropped`` (D, 3) vertex indices (the candidate ids that the
-    ``v1, v2, v3`` columns also use); ``dropped_reason`` (D,); ``projection``;
-    ``triangulator``; and the chart ``frame`` (4, 4) when known.
+    ``v1, v2, v3`` columns also use); ``dropped_reason`` (D,); and every other
+    field of the :class:`Manifold` that is not None (``projection``,
+    ``triangulator``, the chart ``frame`` (4, 4), ``period`` [m], ...).
 
     Raises:
         InputError: Missing or unreadable file, or a missing array.
@@ -445,15 +448,14 @@ def read_manifold(path: str | Path) -> Manifold:
     missing = [k for k in ("chart", "triangles", "projection") if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing array(s) {', '.join(missing)}")
-    return Manifold(
-        chart=arrays["chart"],
-        triangles=arrays["triangles"],
-        dropped=arrays.get("dropped", np.zeros((0, 3), dtype=np.int64)),
-        dropped_reason=arrays.get("dropped_reason", np.zeros(0, dtype=str)),
-        projection=str(arrays["projection"]),
-        triangulator=str(arrays.get("triangulator", "qhull")),
-        frame=arrays.get("frame"),
-    )
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(Manifold):
+        if f.name in arrays:
+            value = arrays[f.name]
+            kwargs[f.name] = value.item() if value.ndim == 0 else value
+    kwargs.setdefault("dropped", np.zeros((0, 3), dtype=np.int64))
+    kwargs.setdefault("dropped_reason", np.zeros(0, dtype=str))
+    return Manifold(**kwargs)
 
 
 def write_run_files(

@@ -113,6 +113,15 @@ def test_manifold_round_trip(tmp_path):
     m = io.read_manifold(path)
     assert isinstance(m, Manifold)
     assert np.array_equal(m.triangles, [[0, 1, 2]]) and m.projection == "xy"
+    assert m.triangulator == "qhull" and np.array_equal(m.frame, np.eye(4))
+    # every field of the manifold survives, scalars included
+    import dataclasses
+
+    if any(f.name == "period" for f in dataclasses.fields(Manifold)):
+        m2 = dataclasses.replace(_manifold(), projection="cylindrical", period=0.25)
+        io.write_manifold(m2, path)
+        back = io.read_manifold(path)
+        assert back.period == 0.25 and back.projection == "cylindrical"
     assert np.array_equal(np.load(path)["vertex_ids"], [4, 0, 7])
     with np.load(path, allow_pickle=False) as data:  # no pickled objects
         assert {"chart", "triangles", "dropped", "dropped_reason"} <= set(data.files)

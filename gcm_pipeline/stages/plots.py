@@ -182,7 +182,7 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
         corners = _unwrap(chart[tris], period)
         ax.add_collection(
             PolyCollection(
-                corners,
+                list(corners),
                 facecolors="none",
                 edgecolors="0.55",
                 linewidths=0.7,

@@ -35,7 +35,6 @@ This is the only module of the package that imports meshcat.
 from __future__ import annotations
 
 import base64
-import json
 import math
 import os
 import selectors
@@ -79,6 +78,7 @@ __all__ = [
     "build_scene",
     "legend",
     "open_viewer",
+    "probe_server",
     "publish",
     "render_scene_html",
     "stage_counts",
@@ -265,11 +265,6 @@ def _line_segments(vertices: np.ndarray, colors: np.ndarray, linewidth: float = 
     )
     material = mg.LineBasicMaterial(vertexColors=True, linewidth=linewidth)
     return mg.LineSegments(geometry, material)
-
-
-def _rgb_int(rgb: Sequence[float]) -> int:
-    r, g, b = (int(round(255 * float(c))) for c in rgb[:3])
-    return (r << 16) | (g << 8) | b
 
 
 def _translation(xyz: Sequence[float]) -> np.ndarray:
@@ -951,7 +946,7 @@ def _request(sock: Any, frames: list[bytes], what: str, url: str, timeout_s: flo
 
 
 def _req_socket(url: str, timeout_s: float) -> Any:
-    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock: Any = zmq.Context.instance().socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RCVTIMEO, max(1, int(timeout_s * 1000)))
     sock.setsockopt(zmq.SNDTIMEO, max(1, int(timeout_s * 1000)))
@@ -1152,14 +1147,3 @@ def open_viewer(grasps: GraspTable, manifold: Any, robot: Robot | None, config: 
     # stops the server on close(), when the viewer is garbage-collected, or at exit
     viewer._finalizer = weakref.finalize(viewer, _stop, proc)
     return viewer
-
-
-def _json_default(obj: Any) -> Any:  # pragma: no cover - helper for callers dumping info
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise TypeError(type(obj).__name__)
-
-
-def info_json(info: SceneInfo) -> str:
-    """The scene info as a JSON string."""
-    return json.dumps(info.to_dict(), default=_json_default)

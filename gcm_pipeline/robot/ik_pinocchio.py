@@ -254,6 +254,12 @@ class SeedLibrary:
         return np.asarray(idx, dtype=int).reshape(keys.shape[0], -1) % self.size
 
 
+def restart_seeds(robot: Any, count: int, seed: int) -> np.ndarray:
+    """The random restart configurations (count, nq), the same for every target."""
+    rng = np.random.default_rng([seed, _RESTART_STREAM])
+    return robot.random_configurations(count, rng)
+
+
 def seed_library(robot: Any, opts: PinocchioIKOptions) -> SeedLibrary:
     """The cached seed library of ``robot`` for these options."""
     key = (id(robot), opts.library_size, opts.random_seed, opts.orientation_weight)
@@ -442,7 +448,6 @@ def solve(
     tol_r = orientation_tolerance * opts.inner_tolerance
     trot = np.ascontiguousarray(targets[:, :3, :3])
     tpos = np.ascontiguousarray(targets[:, :3, 3])
-    rng = np.random.default_rng([opts.random_seed, _RESTART_STREAM])
 
     best_q = np.full((n, nq), np.nan)
     best_score = np.full(n, -np.inf)
@@ -455,13 +460,23 @@ def solve(
     all_q: list[np.ndarray] = []
     all_reason: list[np.ndarray] = []
 
-    # seed schedule, one column per round: given seeds, library neighbours, home, random
+    # Seed schedule. Every decision is per target, so a target's result does not
+    # depend on the other targets of the batch (nor on chunking over workers):
+    # rounds over the given seeds, the library neighbours and home (``round_seeds``
+    # at a time, ``first_round_seeds`` in the first), then one last round with
+    # all the random restarts at once, longer runs and a lenient stall exit.
     lib = seed_library(robot, opts)
     n_lib = max(0, opts.library_seeds)
     n_given = 0 if seeds is None else seeds.shape[1]
     knn = np.full((n, n_lib), -1, dtype=int)
-    n_rounds = n_given + n_lib + 1 + max(0, opts.random_restarts)
+    n_fixed = n_given + n_lib + 1
+    n_random = max(0, opts.random_restarts)
+    n_rounds = n_fixed + n_random
+    restarts = restart_seeds(robot, n_random, opts.random_seed)
     first = max(1, opts.first_round_seeds)
+    final_opts = replace(
+        opts, stall_ratio=0.9, stall_after=8, max_iterations=2 * opts.max_iterations
+    )
 
     def column(c: int, ids: np.ndarray) -> np.ndarray:
         if c < n_given:
@@ -477,24 +492,25 @@ def solve(
             return lib.q[knn[ids, c]]
         if c == n_lib:
             return np.broadcast_to(robot.home, (len(ids), nq)).copy()
-        return robot.random_configurations(len(ids), rng)
+        return np.broadcast_to(restarts[c - n_lib - 1], (len(ids), nq)).copy()
 
     c = 0
     while c < n_rounds:
         todo = np.flatnonzero(n_valid < opts.min_solutions)
-        if c > n_given + n_lib and opts.give_up_position > 0:
-            # random restarts only for targets that some seed brought close
-            todo = todo[att_p[todo] <= opts.give_up_position]
-        if todo.size == 0:
-            break
-        width = first if c == 0 else max(1, opts.round_seeds)
         run_opts = opts
-        if c > 0 and todo.size * (n_rounds - c) <= 256:
-            # few stubborn targets: try every seed left at once, longer runs, lenient stall exit
+        if c < n_fixed:
+            width = min(first if c == 0 else max(1, opts.round_seeds), n_fixed - c)
+        else:
             width = n_rounds - c
-            run_opts = replace(
-                opts, stall_ratio=0.9, stall_after=8, max_iterations=2 * opts.max_iterations
-            )
+            run_opts = final_opts
+            if opts.give_up_position > 0:
+                # random restarts only for targets that some seed brought close
+                todo = todo[att_p[todo] <= opts.give_up_position]
+        if todo.size == 0:
+            if c >= n_fixed:
+                break
+            c += width
+            continue
         ids_list, q0_list = [], []
         for cc in range(c, min(c + width, n_rounds)):
             q0 = column(cc, todo)

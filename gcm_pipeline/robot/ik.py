@@ -11,13 +11,13 @@ frame within ``position_tolerance`` [m] and ``orientation_tolerance`` [rad].
 
 An IK that fails is not an error: its row has ``success=False`` and a reason:
 
-=========================== ==============================================
+=========================== ==================================================
 ``out_of_reach``            farther from the shoulder than the arm reaches
-``joint_limits``            a solution exists only outside the joint limits
+``joint_limits``            reached only with joints outside their limits
 ``no_ik``                   no seed converged
 ``verification_failed``     the backend converged but Pinocchio disagrees
 validator reasons           e.g. ``collision_self`` (see ``validator``)
-=========================== ==============================================
+=========================== ==================================================
 
 Validators (for collision checking): ``validator(q)`` takes configurations
 (M, nq) [rad] and returns (M,) strings, ``''`` for a valid configuration or a

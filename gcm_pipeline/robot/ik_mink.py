@@ -32,7 +32,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, RobotSpecError, unknown_choice
-from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, rotation_angle, seed_library
+from gcm_pipeline.robot.ik_pinocchio import (
+    PinocchioIKOptions,
+    restart_seeds,
+    rotation_angle,
+    seed_library,
+)
 
 __all__ = ["MinkIKOptions", "mujoco_model", "solve"]
 
@@ -212,7 +217,7 @@ def solve(
     nearest = (
         lib.nearest(targets[:, :3, :3], targets[:, :3, 3], k) if k and n else np.zeros((n, 0), int)
     )
-    rng = np.random.default_rng([opts.random_seed, 0x5EED3C4])
+    restarts = restart_seeds(robot, max(0, opts.random_restarts), opts.random_seed)
 
     out_q = np.full((n, nq), np.nan)
     success = np.zeros(n, dtype=bool)
@@ -231,7 +236,7 @@ def solve(
             cands += [s for s in seeds[i] if np.all(np.isfinite(s))]
         cands += [lib.q[j] for j in nearest[i]]
         cands.append(np.asarray(robot.home))
-        cands += list(robot.random_configurations(opts.random_restarts, rng))
+        cands += list(restarts)
         for q0 in cands:
             qpos[qidx] = np.clip(q0, robot.lower, robot.upper)
             configuration.update(qpos)

@@ -321,9 +321,9 @@ def _object_geometry(obj: Any) -> tuple[Any, np.ndarray]:
     if shape == "sphere":
         return mg.Sphere(dims.radius), np.eye(4)
     if shape == "plane":
-        thickness = 0.002
+        # a thin box centred on the frame, as the collision world models it
         sx, sy = dims.size
-        return mg.Box([sx, sy, thickness]), _translation((0.0, 0.0, -thickness / 2.0))
+        return mg.Box([sx, sy, 0.002]), np.eye(4)
     # mesh
     path = Path(obj.mesh)
     if not path.is_file():
@@ -905,9 +905,20 @@ def publish(
 # Runs meshcat's server with the web server bound to the loopback interface
 # (meshcat's own launcher listens on all interfaces for HTTP).
 _SERVER_CODE = """
-import os, sys
+import os, sys, threading, time
 import tornado.web
 from meshcat.servers import zmqserver as z
+
+_parent = int(sys.argv[1])
+
+def _watch_parent():
+    # exit with the process that started us, even if it could not stop us
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != _parent:
+            os._exit(0)
+
+threading.Thread(target=_watch_parent, daemon=True).start()
 
 class _App(tornado.web.Application):
     def listen(self, port, address="127.0.0.1", **kwargs):
@@ -1013,7 +1024,7 @@ class _ZmqWindow:
 def _start_server(timeout_s: float) -> tuple[subprocess.Popen[bytes], str, str]:
     """Start meshcat's server on 127.0.0.1; return (process, zmq_url, web_url)."""
     proc = subprocess.Popen(
-        [sys.executable, "-u", "-c", _SERVER_CODE],
+        [sys.executable, "-u", "-c", _SERVER_CODE, str(os.getpid())],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         stdin=subprocess.DEVNULL,

@@ -593,11 +593,23 @@ def solve(
                 clamp=False,
             )
             inside = conv & np.all((qf >= lower) & (qf <= upper), axis=1)
-            if validator is None and np.any(inside):
+            if np.any(inside):
                 # the unclamped run found a solution inside the limits after all
-                ids = plain[inside]
-                best_q[ids], success[ids], reason[ids] = qf[inside], True, ""
-                att_p[ids], att_r[ids] = pe[inside], re[inside]
+                rows = np.flatnonzero(inside)
+                why = (
+                    np.full(rows.size, "", dtype=object)
+                    if validator is None
+                    else np.asarray(validator(qf[rows]), dtype=object)
+                )
+                if return_all:
+                    all_index.append(plain[rows])
+                    all_q.append(qf[rows])
+                    all_reason.append(why)
+                reason[plain[rows[why != ""]]] = why[why != ""]
+                good = rows[why == ""]
+                ids = plain[good]
+                best_q[ids], success[ids], reason[ids] = qf[good], True, ""
+                att_p[ids], att_r[ids] = pe[good], re[good]
             reason[plain[conv & ~inside]] = "joint_limits"
     out: dict[str, Any] = {
         "q": best_q,

@@ -227,7 +227,18 @@ def _replace_dir(tmp: Path, out: Path, *, force: bool) -> None:
 
 def format_floats(values: np.ndarray) -> list[str]:
     """Floats as :func:`repr` strings (round-trip exact); NaN as ``""``."""
-    return ["" if math.isnan(v) else repr(v) for v in np.asarray(values, dtype=float).tolist()]
+    floats = np.asarray(values, dtype=float).reshape(-1).tolist()
+    if not floats:
+        return []
+    # str() of a list reprs every float in C: ~2x faster than a comprehension
+    return str(floats)[1:-1].replace("nan", "").split(", ")
+
+
+def _quote(text: str) -> str:
+    """A CSV field (quoted only when it has to be)."""
+    if any(c in text for c in ',"\n\r'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
 
 
 def _ints(values: np.ndarray) -> list[str]:
@@ -282,7 +293,7 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
         return ["true" if b else "false" for b in np.asarray(v, dtype=bool).tolist()]
 
     def strs(v: np.ndarray) -> list[str]:
-        return [str(s) for s in np.asarray(v).tolist()]
+        return [_quote(str(s)) for s in np.asarray(v).tolist()]
 
     cols: list[list[str]] = [col("rank", _ints), col("origin", strs), col("triangle", _ints)]
     for k in range(3):
@@ -302,9 +313,8 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
         header.append(name)
         cols.append(bools(g[name]) if g[name].dtype == bool else format_floats(g[name]))
     with Path(path).open("w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(header)
-        writer.writerows(zip(*cols, strict=True))
+        fh.write(",".join(header) + "\n")
+        fh.writelines(",".join(row) + "\n" for row in zip(*cols, strict=True))
     return order
 
 
@@ -336,17 +346,20 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
     for i, row in enumerate(body):
         if len(row) != len(header):
             raise InputError(f"{path}:{i + 2}: {len(row)} fields, header has {len(header)}")
-    raw = {name: [row[j] for row in body] for j, name in enumerate(header)}
+    columns = list(zip(*body, strict=True)) if body else [() for _ in header]
+    raw = dict(zip(header, columns, strict=True))
 
     def floats(name: str) -> np.ndarray:
+        col = np.array(raw[name], dtype=str).reshape(-1)
+        col[col == ""] = "nan"
         try:
-            return np.array([float(v) if v else math.nan for v in raw[name]], dtype=float)
+            return col.astype(float)
         except ValueError as exc:
             raise InputError(f"{path}: column {name!r}: {exc}") from None
 
     def ints(name: str) -> np.ndarray:
         try:
-            return np.array([int(v) for v in raw[name]], dtype=np.int64)
+            return np.array(raw[name], dtype=str).reshape(-1).astype(np.int64)
         except ValueError as exc:
             raise InputError(f"{path}: column {name!r}: {exc}") from None
 

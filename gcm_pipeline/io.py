@@ -306,7 +306,8 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
     cols += [col(name, format_floats) for name in ("pos_err", "rot_err", "manipulability")]
     header = list(CSV_COLUMNS)
     if "q" in g:
-        q = np.asarray(g["q"], dtype=float).reshape(n, -1)
+        q = np.asarray(g["q"], dtype=float)
+        q = q.reshape(n, q.shape[1] if q.ndim == 2 else 1)
         header += [f"q{j + 1}" for j in range(q.shape[1])]
         cols += [format_floats(q[:, j]) for j in range(q.shape[1])]
     for name in _extra_columns(g):

@@ -231,3 +231,17 @@ def test_read_run_errors(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="not a run directory.*grasps.csv"):
         io.read_run(tmp_path / "empty")
+
+
+def test_csv_quotes_odd_reasons_and_handles_empty_tables(tmp_path):
+    g = _table()
+    odd = np.array(g["reason"], dtype=object)
+    odd[1] = 'collision: a, b "c"'
+    g = g.with_columns(reason=odd.astype(str))
+    path = tmp_path / "grasps.csv"
+    order = io.write_grasps_csv(g, path)
+    back = io.read_grasps_csv(path)
+    assert np.array_equal(back["reason"], g["reason"][order])
+    empty = g.take(np.zeros(0, dtype=int))
+    io.write_grasps_csv(empty, path)
+    assert len(io.read_grasps_csv(path)) == 0

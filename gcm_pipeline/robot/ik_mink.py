@@ -41,8 +41,6 @@ from gcm_pipeline.robot.ik_pinocchio import (
 
 __all__ = ["MinkIKOptions", "mujoco_model", "solve"]
 
-_MODELS: dict[int, tuple[Any, np.ndarray]] = {}
-
 
 @dataclass(frozen=True)
 class MinkIKOptions:
@@ -145,7 +143,7 @@ def mujoco_model(robot: Any) -> tuple[Any, np.ndarray]:
         RobotSpecError: If MuJoCo cannot compile the URDF or lacks a joint or
             the grasp-frame body.
     """
-    cached = _MODELS.get(id(robot))
+    cached = robot.cache.get("mujoco_model")
     if cached is not None:
         return cached
     try:
@@ -167,7 +165,7 @@ def mujoco_model(robot: Any) -> tuple[Any, np.ndarray]:
     if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.grasp_frame) < 0:
         raise RobotSpecError(f"MuJoCo model of {robot.name!r} has no body {robot.grasp_frame!r}")
     out = (model, np.array(idx, dtype=int))
-    _MODELS[id(robot)] = out
+    robot.cache["mujoco_model"] = out
     return out
 
 

@@ -11,13 +11,22 @@ is evaluated in vectorised NumPy; each iteration takes, for every still-active
     \lambda = \lambda_0 \lVert e \rVert^2 + \lambda_{\min},
 
 where ``e = [p* - p; log(R* R^T)]`` is the pose error in base-frame axes and
-``J`` the LOCAL_WORLD_ALIGNED grasp-frame Jacobian, and projects ``q`` back
-inside the joint limits. Seeds are tried in rounds, only for the targets that
-still fail: given seeds (warm starts from neighbours), the nearest entries of
-a library of random configurations (KD-tree over position and scaled
-quaternion), the home configuration, then random configurations. Among the
-converged seeds of a target, the one with the largest Yoshikawa
-manipulability is kept.
+``J`` the LOCAL_WORLD_ALIGNED grasp-frame Jacobian. Joints that the step would
+push across a limit are frozen at it and the step is re-solved with the others
+(clamped DLS), so iterates stay inside the limits; a (target, seed) pair whose
+error stops shrinking is dropped early.
+
+Seeds are tried in rounds, only for the targets that still fail, in a fixed
+per-target order (a target's result does not depend on the rest of the batch):
+given seeds (warm starts from solved neighbours), the nearest entries of a
+library of random configurations (KD-tree over position and scaled
+quaternion, both quaternion signs), the home configuration, then a last round
+with all random restarts at once. Where several seeds of a target converge
+(``first_round_seeds`` or ``min_solutions`` > 1) the one with the largest
+Yoshikawa manipulability is kept; ``manipulability_steps`` adds null-space
+steps that raise it at fixed pose. Targets that no seed reaches get one run
+without joint limits: if that converges outside the limits their reason is
+``joint_limits``, else ``no_ik``.
 
 This module reports raw candidates; :func:`gcm_pipeline.robot.ik.solve_ik`
 verifies every success with Pinocchio's own forward kinematics.
@@ -34,11 +43,18 @@ from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import InputError, unknown_choice
 
-__all__ = ["PinocchioIKOptions", "SeedLibrary", "log3", "rotation_angle", "solve"]
+__all__ = [
+    "PinocchioIKOptions",
+    "SeedLibrary",
+    "log3",
+    "restart_seeds",
+    "rotation_angle",
+    "seed_library",
+    "solve",
+]
 
 _LIBRARY_STREAM = 0x5EED11B
 _RESTART_STREAM = 0x5EED2E5
-_LIBRARIES: dict[tuple[int, int, int, float], SeedLibrary] = {}
 
 
 @dataclass(frozen=True)
@@ -262,11 +278,11 @@ def restart_seeds(robot: Any, count: int, seed: int) -> np.ndarray:
 
 def seed_library(robot: Any, opts: PinocchioIKOptions) -> SeedLibrary:
     """The cached seed library of ``robot`` for these options."""
-    key = (id(robot), opts.library_size, opts.random_seed, opts.orientation_weight)
-    lib = _LIBRARIES.get(key)
-    if lib is None or lib.q.shape[1] != robot.nq:
+    key = ("seed_library", opts.library_size, opts.random_seed, opts.orientation_weight)
+    lib = robot.cache.get(key)
+    if lib is None:
         lib = SeedLibrary(robot, opts.library_size, opts.orientation_weight, opts.random_seed)
-        _LIBRARIES[key] = lib
+        robot.cache[key] = lib
     return lib
 
 

@@ -266,10 +266,12 @@ class Robot:
         reach_bound: Sum of the link offsets from the shoulder to the grasp frame,
             a rigorous upper bound of ``max_reach`` [m].
         chain: Vectorised kinematics of the grasp frame.
+        cache: Per-robot caches of the IK backends (seed library, MuJoCo model).
     """
 
     def __init__(self, spec: RobotSpec) -> None:
         self.spec = spec
+        self.cache: dict[Any, Any] = {}
         self.name = spec.name
         if spec.example_robot_data is not None:
             urdf, srdf, mesh_dir = _erd_paths(spec.example_robot_data)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import json
 import re
 import socket
 import time
@@ -199,6 +200,8 @@ def test_colors(scene):
     other = urgb[::nv][reasons == "collision_self"]
     assert np.allclose(other, pub.REASON_COLORS["collision_self"])
     leg = info.legend
+    json.dumps(info.to_dict())  # JSON-ready for the run summary
+    assert leg == pub.legend(grasps)
     assert leg["colormap"] == "viridis"
     assert leg["metric_range"] == pytest.approx([lo, hi])
     assert set(leg["unreachable"]) == {"no_ik", "collision_self"}
@@ -222,7 +225,7 @@ def test_camera_frames_scene(scene):
     assert "viewer.controls.target.set(" in html
 
 
-def test_objects_and_table(robot):
+def test_objects_and_table(tmp_path: Path):
     for shape, dims in (
         ("box", {"size": [0.1, 0.2, 0.3]}),
         ("sphere", {"radius": 0.05}),
@@ -241,6 +244,20 @@ def test_objects_and_table(robot):
         table = [c for c in commands["/meshcat/environment/table"] if c["type"] == "set_transform"]
         assert np.reshape(table[0]["matrix"], (4, 4)).T[2, 3] == pytest.approx(-0.1 - 0.025)
         assert info.paths == ("/object", "/environment")
+    obj = tmp_path / "tri.obj"
+    obj.write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
+    cfg = Config.from_dict(
+        {
+            "object": {"shape": "mesh", "mesh": str(obj), "scale": 2.0},
+            "candidates": {"source": "file", "path": "g.npy"},
+        }
+    )
+    html, info = pub.render_scene_html(GraspTable(), None, None, cfg)
+    commands = by_path(decode_commands(html))
+    (shape,) = [c for c in commands["/meshcat/object/shape"] if c["type"] == "set_object"]
+    assert shape["object"]["geometries"][0]["format"] == "obj"
+    (scale,) = [c for c in commands["/meshcat/object/shape"] if c["type"] == "set_transform"]
+    assert np.reshape(scale["matrix"], (4, 4))[0, 0] == pytest.approx(2.0)
     cfg = Config.from_dict(
         {"candidates": {"source": "file", "path": "g.npy"}, "environment": {"table": None}}
     )

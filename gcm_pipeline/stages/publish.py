@@ -136,7 +136,7 @@ class SceneInfo:
     """What a published scene holds; JSON-ready through :meth:`to_dict`.
 
     Attributes:
-        paths: Scene paths drawn (subset of :data:`SCENE_PATHS`, plus sub-paths).
+        paths: Top-level scene paths drawn (a subset of :data:`SCENE_PATHS`).
         n_reachable: Number of reachable grasps drawn.
         n_unreachable: Number of unreachable grasps drawn.
         glyph: ``"gripper"`` (4 segments per grasp) or ``"stick"`` (1 segment).

@@ -1,1 +1,45 @@
-"""Robot models, kinematics, inverse kinematics and manipulability."""
+"""Robot models, kinematics, inverse kinematics and manipulability.
+
+* :mod:`~gcm_pipeline.robot.model`: robot specs -> reduced Pinocchio models
+  (:func:`load_robot`, :class:`Robot`), forward kinematics and grasp-frame
+  Jacobians (``LOCAL_WORLD_ALIGNED``);
+* :mod:`~gcm_pipeline.robot.ik`: :func:`solve_ik` with the ``pinocchio``
+  (batched LM, default) and ``mink`` backends, every success verified by
+  Pinocchio forward kinematics;
+* :mod:`~gcm_pipeline.robot.manipulability`: Yoshikawa (6-D and
+  translational), inverse condition number, joint-limit margin.
+
+Importing this package does not import mink or MuJoCo (only
+:mod:`~gcm_pipeline.robot.ik_mink` does, when the backend is used).
+"""
+
+from gcm_pipeline.robot.ik import BACKENDS, IKCandidates, IKResult, solve_ik
+from gcm_pipeline.robot.manipulability import (
+    METRICS,
+    inverse_condition_number,
+    joint_limit_margin,
+    manipulability,
+    manipulability_metrics,
+    translational_manipulability,
+    yoshikawa,
+)
+from gcm_pipeline.robot.model import Robot, RobotSpec, available_robots, load_robot, load_spec
+
+__all__ = [
+    "BACKENDS",
+    "IKCandidates",
+    "IKResult",
+    "METRICS",
+    "Robot",
+    "RobotSpec",
+    "available_robots",
+    "inverse_condition_number",
+    "joint_limit_margin",
+    "load_robot",
+    "load_spec",
+    "manipulability",
+    "manipulability_metrics",
+    "solve_ik",
+    "translational_manipulability",
+    "yoshikawa",
+]

@@ -119,12 +119,17 @@ def _fmt(v: Any, width: int = 9) -> str:
     return f"{v!s:>{width}}"
 
 
-def format_top(top: list[dict[str, Any]], metric: str = "manipulability") -> str:
-    """A small text table of the top grasps (rank, position, quaternion, metric)."""
+def format_top(top: list[dict[str, Any]], metric: str = "yoshikawa") -> str:
+    """A small text table of the top grasps (rank, position, quaternion, metrics)."""
+    from gcm_pipeline.pipeline import METRIC_COLUMNS
+
     if not top:
         return "  (no reachable grasp)"
     cols = ["rank", "origin", "x", "y", "z", "qw", "qx", "qy", "qz", "manipulability"]
-    widths = {"rank": 4, "origin": 12}
+    column = METRIC_COLUMNS.get(metric, metric)
+    if column not in cols and column in top[0]:
+        cols.append(column)
+    widths = {"rank": 4, "origin": 12, column: max(9, len(column))}
     head = "  ".join(f"{c:>{widths.get(c, 9)}}" for c in cols)
     lines = ["  " + head]
     for item in top:
@@ -158,7 +163,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"  timings [s]   {timings}; total {total:.2f}")
         top = result.top(min(5, cfg.ranking.top_k))
         print(f"top {len(top)} grasps by {cfg.ranking.metric}:")
-        print(format_top(top))
+        print(format_top(top, cfg.ranking.metric))
         print(f"run directory: {run_dir}")
         print("  " + ", ".join(p.name for p in result.files))
         scene = run_dir / "scene.html"
@@ -220,13 +225,13 @@ def _cmd_show(args: argparse.Namespace) -> int:
         raise GcmError(f"--top must be >= 0, got {args.top}")
     run = read_run(args.run_dir)
     counts = run.summary.get("counts", {})
-    metric = run.summary.get("ranking", {}).get("metric", "manipulability")
+    metric = run.summary.get("ranking", {}).get("metric", "yoshikawa")
     print(f"run {run.run_dir}")
     if counts:
         print("  " + ", ".join(f"{k} {v}" for k, v in counts.items()))
-    top = top_grasps(run.grasps, args.top)
+    top = top_grasps(run.grasps, args.top, metric)
     print(f"top {len(top)} grasps by {metric}:")
-    print(format_top(top))
+    print(format_top(top, metric))
     return 0
 
 

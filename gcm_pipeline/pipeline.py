@@ -51,6 +51,7 @@ from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
+    "METRIC_COLUMNS",
     "Pipeline",
     "RunResult",
     "build_manifold",
@@ -251,10 +252,23 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     return list(files)
 
 
-def top_grasps(grasps: GraspTable, n: int) -> list[dict[str, Any]]:
-    """The ``n`` best-ranked grasps as plain dicts (rank, pose, metric, q).
+#: Ranking metric (config name) -> the grasp-table column holding it.
+METRIC_COLUMNS = {
+    "yoshikawa": "manipulability",
+    "translational": "manip_translation",
+    "inverse_condition": "inverse_condition",
+    "joint_limit_margin": "joint_limit_margin",
+    "clearance": "clearance",
+    "combined": "combined",
+}
 
-    Rows without a ``rank`` column, or unranked (rank 0), are left out.
+
+def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[dict[str, Any]]:
+    """The ``n`` best-ranked grasps as plain dicts (rank, pose, metrics, q).
+
+    Each has ``rank, row, origin, x, y, z, qw, qx, qy, qz`` (``qw >= 0``),
+    ``manipulability``, the ranking metric's column when it is another one,
+    and ``q``. Rows without a ``rank`` column, or unranked (rank 0), are left out.
     """
     if "rank" not in grasps or n <= 0:
         return []
@@ -272,8 +286,9 @@ def top_grasps(grasps: GraspTable, n: int) -> list[dict[str, Any]]:
             item["origin"] = str(grasps["origin"][i])
         item.update(zip(("x", "y", "z"), pos[k].tolist(), strict=True))
         item.update(zip(("qw", "qx", "qy", "qz"), quat[k].tolist(), strict=True))
-        if "manipulability" in grasps:
-            item["manipulability"] = float(grasps["manipulability"][i])
+        for name in dict.fromkeys(("manipulability", METRIC_COLUMNS.get(metric, metric))):
+            if name in grasps:
+                item[name] = float(grasps[name][i])
         if "q" in grasps:
             item["q"] = np.asarray(grasps["q"][i], dtype=float).tolist()
         out.append(item)
@@ -307,7 +322,8 @@ class RunResult:
 
     def top(self, n: int | None = None) -> list[dict[str, Any]]:
         """The best-ranked grasps (default: ``ranking.top_k`` of them)."""
-        return top_grasps(self.grasps, self.config.ranking.top_k if n is None else n)
+        r = self.config.ranking
+        return top_grasps(self.grasps, r.top_k if n is None else n, r.metric)
 
     def summary(self) -> dict[str, Any]:
         """The content of ``summary.json``."""

@@ -297,3 +297,25 @@ def test_python_dash_m(tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.startswith("error: ") and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
+    from gcm_pipeline.stages import publish
+
+    events = []
+
+    class FakeViewer:
+        url = "http://127.0.0.1:7000/static/"
+
+        def close(self):
+            events.append("closed")
+
+    def fake_open(grasps, manifold, robot, config):
+        events.append(("open", (out / "grasps.csv").is_file(), len(grasps)))
+        return FakeViewer()
+
+    monkeypatch.setattr(publish, "open_viewer", fake_open)
+    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--meshcat", "--no-wait", *QUICK)
+    assert code == 0, err
+    assert events == [("open", True, 66), "closed"]  # the run directory is complete first
+    assert "meshcat viewer: http://127.0.0.1:7000/static/" in text

@@ -192,3 +192,15 @@ def test_error_unknown_method_lists_valid_ones():
         r"valid: bowyer_watson, qhull",
     ):
         delaunay(np.random.default_rng(0).random((5, 2)), "bowyer-watson")
+
+
+def test_hilbert_order_visits_grid_neighbours():
+    """The insertion order's space-filling curve: each cell follows an adjacent one."""
+    from gcm_pipeline.geometry.triangulation import _hilbert_index
+
+    n = 5
+    gx, gy = np.meshgrid(np.arange(2**n), np.arange(2**n))
+    d = _hilbert_index(gx.ravel(), gy.ravel(), order=n)
+    assert sorted(d.tolist()) == list(range(4**n))
+    cells = np.column_stack((gx.ravel(), gy.ravel()))[np.argsort(d)]
+    assert (np.abs(np.diff(cells, axis=0)).sum(axis=1) == 1).all()

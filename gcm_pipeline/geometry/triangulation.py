@@ -110,21 +110,24 @@ def _ccw(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- ordering
 def _hilbert_index(x: np.ndarray, y: np.ndarray, order: int = 16) -> np.ndarray:
-    """Distance along a Hilbert curve of integer grid coordinates in [0, 2**order)."""
-    x = x.astype(np.int64).copy()
-    y = y.astype(np.int64).copy()
-    n = 1 << order
+    """Distance along a Hilbert curve of integer grid coordinates in [0, 2**order).
+
+    The classic bit-by-bit conversion, vectorised over the points. Reflections
+    use ``s - 1 - x`` instead of ``2**order - 1 - x``: both agree on the bits
+    below ``s``, the only ones read afterwards.
+    """
+    x = x.astype(np.int64)
+    y = y.astype(np.int64)
     d = np.zeros(x.shape, dtype=np.int64)
-    s = n >> 1
+    s = 1 << (order - 1)
     while s > 0:
         rx = (x & s) > 0
         ry = (y & s) > 0
-        d += s * s * ((3 * rx.astype(np.int64)) ^ ry.astype(np.int64))
-        flip = ~ry & rx
-        x[flip] = n - 1 - x[flip]
-        y[flip] = n - 1 - y[flip]
-        swap = ~ry
-        x[swap], y[swap] = y[swap], x[swap]
+        d += s * s * ((3 * rx) ^ ry)
+        flip = rx & ~ry
+        x = np.where(flip, s - 1 - x, x)
+        y = np.where(flip, s - 1 - y, y)
+        x, y = np.where(ry, x, y), np.where(ry, y, x)
         s >>= 1
     return d
 

@@ -332,14 +332,18 @@ def dq_to_pos_quat(dq: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     return dq_translation(dq), np.array(dq[..., :4])
 
 
-def _rotation_matrices(r: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of (w, x, y, z) quaternions (normalised on the fly)."""
+def _rotation_matrices(r: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of (w, x, y, z) quaternions (normalised on the fly).
+
+    ``out`` may be a (..., >=3, >=3) array whose top-left 3x3 block is written.
+    """
     w, x, y, z = r[..., 0], r[..., 1], r[..., 2], r[..., 3]
     s = 2.0 / (w * w + x * x + y * y + z * z)
     xx, yy, zz = x * x * s, y * y * s, z * z * s
     xy, xz, yz = x * y * s, x * z * s, y * z * s
     wx, wy, wz = w * x * s, w * y * s, w * z * s
-    out = np.empty(r.shape[:-1] + (3, 3))
+    if out is None:
+        out = np.empty(r.shape[:-1] + (3, 3))
     out[..., 0, 0] = 1.0 - yy - zz
     out[..., 0, 1] = xy - wz
     out[..., 0, 2] = xz + wy
@@ -363,7 +367,7 @@ def dq_to_matrix(dq: npt.ArrayLike) -> np.ndarray:
     """
     dq = _as_dq(dq, check=False)
     out = np.zeros(dq.shape[:-1] + (4, 4))
-    out[..., :3, :3] = _rotation_matrices(dq[..., :4])
+    _rotation_matrices(dq[..., :4], out)
     out[..., :3, 3] = dq_translation(dq)
     out[..., 3, 3] = 1.0
     return out

@@ -68,13 +68,15 @@ log = logging.getLogger(__name__)
 
 
 def _accepted(func: Callable[..., Any], options: Mapping[str, Any]) -> dict[str, Any]:
-    """The entries of ``options`` that ``func`` accepts as keyword arguments."""
+    """The entries of ``options`` that ``func`` names as keyword parameters.
+
+    A ``**options`` catch-all does not count: only what the function names
+    explicitly is passed (so a colleague's new keyword is picked up as soon as
+    it exists, and nothing unknown reaches a backend).
+    """
     params = inspect.signature(func).parameters
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        named = {k for k, p in params.items() if p.kind is not inspect.Parameter.VAR_KEYWORD}
-        # a **options catch-all: pass only what the function names explicitly
-        return {k: v for k, v in options.items() if k in named}
-    return {k: v for k, v in options.items() if k in params}
+    named = {k for k, p in params.items() if p.kind is not inspect.Parameter.VAR_KEYWORD}
+    return {k: v for k, v in options.items() if k in named}
 
 
 def build_manifold(grasps: GraspTable, cfg: Config) -> Any:

@@ -71,8 +71,8 @@ def _accepted(func: Callable[..., Any], options: Mapping[str, Any]) -> dict[str,
     """The entries of ``options`` that ``func`` names as keyword parameters.
 
     A ``**options`` catch-all does not count: only what the function names
-    explicitly is passed (so a colleague's new keyword is picked up as soon as
-    it exists, and nothing unknown reaches a backend).
+    explicitly is passed (a stage function that gains one of these keywords
+    gets it; nothing unknown reaches an IK backend).
     """
     params = inspect.signature(func).parameters
     named = {k for k, p in params.items() if p.kind is not inspect.Parameter.VAR_KEYWORD}

@@ -139,12 +139,15 @@ def format_top(top: list[dict[str, Any]], metric: str = "yoshikawa") -> str:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
     from gcm_pipeline.pipeline import Pipeline
 
     pipeline = Pipeline.from_yaml(args.config, args.overrides)
     cfg = pipeline.config
     t0 = time.perf_counter()
-    result = pipeline.run(args.out, progress=not args.quiet, force=args.force)
+    with logging_redirect_tqdm(loggers=[log]):  # log lines above the progress bar
+        result = pipeline.run(args.out, progress=not args.quiet, force=args.force)
     total = time.perf_counter() - t0
     run_dir = result.run_dir
     assert run_dir is not None

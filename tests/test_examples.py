@@ -12,7 +12,9 @@ import yaml
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.io import CSV_COLUMNS, read_run
+from gcm_pipeline.pipeline import build_manifold, generate_candidates
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
@@ -64,3 +66,18 @@ def test_example_runs(path, tmp_path, capsys):
     )
     q = np.linalg.norm(run.grasps["dq"][:, :4], axis=1)
     assert np.allclose(q, 1.0)
+
+
+def test_bottle_opposite_sides_are_not_linked():
+    cfg = load_config(ROOT / "configs" / "bottle_side.yaml")
+    cand = generate_candidates(cfg)
+    m = build_manifold(cand, cfg)
+    assert len(m.triangles) >= 100
+    pos, _ = dq_to_pos_quat(cand["dq"])
+    rel = pos[:, :2] - np.asarray(cfg.object.pose.xyz[:2])
+    theta = np.arctan2(rel[:, 1], rel[:, 0])
+    tri = theta[m.triangles]
+    # largest angular gap between two vertices of a triangle, around the circle
+    diff = np.abs(tri[:, :, None] - tri[:, None, :])
+    diff = np.minimum(diff, 2 * np.pi - diff)
+    assert np.degrees(diff.max()) < 90

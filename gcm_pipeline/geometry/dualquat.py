@@ -376,15 +376,16 @@ def dq_to_matrix(dq: npt.ArrayLike) -> np.ndarray:
 _K_ROWS = np.array([[0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3]])
 
 
-def _quat_from_rotation_matrices(rot: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) quaternions (B, 4) with ``w >= 0`` from rotation matrices (B, 3, 3).
+def _quat_from_rotation_entries(e: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) quaternions (B, 4) with ``w >= 0`` from rotation matrix entries (9, B).
 
-    Shepperd's method without branches: the ten distinct entries of the
-    symmetric ``4 q q^T`` come from the matrix entries; the row with the
+    ``e`` holds the entries row-major (``m00, m01, ..., m22``), one contiguous
+    row each. Shepperd's method without branches: the ten distinct entries of
+    the symmetric ``4 q q^T`` come from the matrix entries; the row with the
     largest diagonal (best conditioned, >= 1) is normalised.
     """
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = (rot[:, i, j] for i in range(3) for j in range(3))
-    k = np.empty((10, rot.shape[0]))  # ww, xx, yy, zz, wx, wy, wz, xy, xz, yz (times 4)
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = e
+    k = np.empty((10, e.shape[1]))  # ww, xx, yy, zz, wx, wy, wz, xy, xz, yz (times 4)
     k[0] = 1.0 + m00 + m11 + m22
     k[1] = 1.0 + m00 - m11 - m22
     k[2] = 1.0 - m00 + m11 - m22
@@ -396,7 +397,7 @@ def _quat_from_rotation_matrices(rot: np.ndarray) -> np.ndarray:
     np.add(m02, m20, out=k[8])
     np.add(m12, m21, out=k[9])
     best = np.argmax(k[:4], axis=0)
-    q = k[_K_ROWS[best], np.arange(rot.shape[0])[:, None]]
+    q = k[_K_ROWS[best], np.arange(e.shape[1])[:, None]]
     norm = np.sqrt(np.einsum("bi,bi->b", q, q))
     norm[q[:, 0] < 0] *= -1.0
     q /= norm[:, None]
@@ -424,7 +425,7 @@ def dq_from_matrix(matrix: npt.ArrayLike, *, check: bool = True) -> np.ndarray:
     m = _as_float(matrix, "matrix", (4, 4), check=False)
     batch = m.shape[:-2]
     flat = m.reshape(-1, 4, 4)
-    rot = flat[:, :3, :3]
+    e = flat[:, :3, :3].reshape(-1, 9).T.copy()  # (9, B): one contiguous row per entry
     if check:
         _check_finite(m, "matrix", 2)
         row = np.abs(flat[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0]))
@@ -434,26 +435,36 @@ def dq_from_matrix(matrix: npt.ArrayLike, *, check: bool = True) -> np.ndarray:
                 f"matrix at index {_unflat(i, batch)} is not rigid: bottom row "
                 f"{flat[i, 3].tolist()} != [0, 0, 0, 1]"
             )
-        err = np.abs(np.matmul(rot.transpose(0, 2, 1), rot) - np.eye(3))
-        if err.max(initial=0.0) > _ORTHO_TOL:
-            per = err.reshape(-1, 9).max(-1)
-            i = int(np.argmax(per > _ORTHO_TOL))
-            raise GeometryError(
-                f"rotation block at index {_unflat(i, batch)} is not orthonormal "
-                f"(max |R^T R - I| = {float(per[i]):.3g} > {_ORTHO_TOL:g})"
-            )
-        det = (
-            rot[:, 0, 0] * (rot[:, 1, 1] * rot[:, 2, 2] - rot[:, 1, 2] * rot[:, 2, 1])
-            - rot[:, 0, 1] * (rot[:, 1, 0] * rot[:, 2, 2] - rot[:, 1, 2] * rot[:, 2, 0])
-            + rot[:, 0, 2] * (rot[:, 1, 0] * rot[:, 2, 1] - rot[:, 1, 1] * rot[:, 2, 0])
-        )
-        if (det < 0).any():
-            i = int(np.argmax(det < 0))
-            raise GeometryError(
-                f"rotation block at index {_unflat(i, batch)} is a reflection (det = -1)"
-            )
-    r = _quat_from_rotation_matrices(rot)
+        _check_rotation_entries(e, batch)
+    r = _quat_from_rotation_entries(e)
     return dq_from_pos_quat(flat[:, :3, 3], r, check=False).reshape(batch + (8,))
+
+
+def _check_rotation_entries(e: np.ndarray, batch: tuple[int, ...]) -> None:
+    """Raise unless every matrix of entries ``e`` (9, B) is a rotation (within 1e-6)."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = e
+    gram = np.empty((6, e.shape[1]))  # R^T R - I: 3 diagonal, 3 off-diagonal entries
+    gram[0] = m00 * m00 + m10 * m10 + m20 * m20 - 1.0
+    gram[1] = m01 * m01 + m11 * m11 + m21 * m21 - 1.0
+    gram[2] = m02 * m02 + m12 * m12 + m22 * m22 - 1.0
+    gram[3] = m00 * m01 + m10 * m11 + m20 * m21
+    gram[4] = m00 * m02 + m10 * m12 + m20 * m22
+    gram[5] = m01 * m02 + m11 * m12 + m21 * m22
+    np.abs(gram, out=gram)
+    if gram.max(initial=0.0) > _ORTHO_TOL:
+        per = gram.max(axis=0)
+        i = int(np.argmax(per > _ORTHO_TOL))
+        raise GeometryError(
+            f"rotation block at index {_unflat(i, batch)} is not orthonormal "
+            f"(max |R^T R - I| = {float(per[i]):.3g} > {_ORTHO_TOL:g})"
+        )
+    det = m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20)
+    det += m02 * (m10 * m21 - m11 * m20)
+    if (det < 0).any():
+        i = int(np.argmax(det < 0))
+        raise GeometryError(
+            f"rotation block at index {_unflat(i, batch)} is a reflection (det = -1)"
+        )
 
 
 def dq_transform_points(dq: npt.ArrayLike, points: npt.ArrayLike) -> np.ndarray:

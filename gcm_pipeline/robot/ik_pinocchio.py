@@ -76,7 +76,9 @@ class PinocchioIKOptions:
             cost every restart.
         first_round_seeds: Seeds solved at once in the first round; with more
             than one, the converged solution of best manipulability is kept.
-        round_seeds: Seeds solved at once per target in the later rounds.
+        round_seeds: Seeds solved at once per target in the next rounds.
+        sequential_rounds: Rounds run before all remaining given, library and
+            home seeds are tried at once (fewer, larger batches).
         min_solutions: Stop trying seeds for a target once it has this many
             valid converged solutions (more gives more choice, costs time).
         manipulability_steps: Null-space steps that raise the Yoshikawa index
@@ -104,6 +106,7 @@ class PinocchioIKOptions:
     give_up_position: float = 0.15
     first_round_seeds: int = 1
     round_seeds: int = 1
+    sequential_rounds: int = 3
     min_solutions: int = 1
     manipulability_steps: int = 0
     manipulability_step: float = 0.05
@@ -510,12 +513,24 @@ def solve(
             return np.broadcast_to(robot.home, (len(ids), nq)).copy()
         return np.broadcast_to(restarts[c - n_lib - 1], (len(ids), nq)).copy()
 
+    # among several valid solutions of a target: best manipulability when the
+    # user asks for choice, else the first seed in schedule order (which makes
+    # merged rounds give the same result as one seed at a time)
+    by_manipulability = first > 1 or opts.min_solutions > 1
     c = 0
+    r = 0
     while c < n_rounds:
         todo = np.flatnonzero(n_valid < opts.min_solutions)
         run_opts = opts
         if c < n_fixed:
-            width = min(first if c == 0 else max(1, opts.round_seeds), n_fixed - c)
+            if r == 0:
+                width = first
+            elif r < opts.sequential_rounds:
+                width = max(1, opts.round_seeds)
+            else:
+                width = n_fixed - c  # the remaining fixed seeds at once
+            width = min(width, n_fixed - c)
+            r += 1
         else:
             width = n_rounds - c
             run_opts = final_opts
@@ -527,17 +542,19 @@ def solve(
                 break
             c += width
             continue
-        ids_list, q0_list = [], []
+        ids_list, q0_list, col_list = [], [], []
         for cc in range(c, min(c + width, n_rounds)):
             q0 = column(cc, todo)
             ok = np.all(np.isfinite(q0), axis=1)
             ids_list.append(todo[ok])
             q0_list.append(np.clip(q0[ok], lower, upper))
+            col_list.append(np.full(int(ok.sum()), cc))
         c += width
         ids = np.concatenate(ids_list)
         if ids.size == 0:
             continue
         q0 = np.concatenate(q0_list)
+        cols = np.concatenate(col_list)
         q, conv, pe, re = _lm(chain, q0, trot[ids], tpos[ids], lower, upper, tol_p, tol_r, run_opts)
         # remember the best attempt (for error reporting of failures)
         score_att = pe / position_tolerance + re / orientation_tolerance
@@ -568,9 +585,7 @@ def solve(
         if not np.any(valid):
             continue
         vids, vq = cids[valid], cq[valid]
-        score = (
-            yoshikawa_of(chain, vq) if (width > 1 or opts.min_solutions > 1) else np.ones(len(vids))
-        )
+        score = yoshikawa_of(chain, vq) if by_manipulability else -cols[conv][valid].astype(float)
         np.add.at(n_valid, vids, 1)
         order = np.argsort(score)  # ascending: the best is written last
         vids, vq, score = vids[order], vq[order], score[order]

@@ -204,3 +204,24 @@ def test_null_space_steps_raise_manipulability(panda: Robot):
     w0 = manipulability(panda, plain.q[ok])
     w1 = manipulability(panda, better.q[ok])
     assert np.all(w1 >= w0 - 1e-12) and w1.mean() > w0.mean()
+
+
+def test_log3_and_rotation_angle_match_scipy_near_zero_and_pi():
+    from scipy.spatial.transform import Rotation
+
+    from gcm_pipeline.robot.ik_pinocchio import log3, rotation_angle
+
+    rng = np.random.default_rng(0)
+    axes = rng.normal(size=(200, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.concatenate(
+        [rng.uniform(0, np.pi, 150), [0.0, 1e-9, 1e-6], np.pi - np.logspace(-9, -3, 47)]
+    )
+    rotvec = axes * angles[:, None]
+    mats = Rotation.from_rotvec(rotvec).as_matrix()
+    np.testing.assert_allclose(rotation_angle(mats), angles, atol=1e-8)
+    out = log3(mats)
+    # equal up to the sign ambiguity at exactly pi
+    np.testing.assert_allclose(Rotation.from_rotvec(out).as_matrix(), mats, atol=1e-7)
+    small = angles < 1.0
+    np.testing.assert_allclose(out[small], rotvec[small], atol=1e-12)

@@ -164,7 +164,12 @@ def check_reachability(
         "position_tolerance": ik.position_tolerance,
         "orientation_tolerance": ik.orientation_tolerance,
     }
-    sections = {"environment": cfg.environment, "approach": cfg.approach, "object": cfg.object}
+    sections = {
+        "environment": cfg.environment,
+        "approach": cfg.approach,
+        "object": cfg.object,
+        "object_cfg": cfg.object,
+    }
     options = _accepted(
         stage.check_reachability, {**sections, "workers": ik.workers, "seed": cfg.seed}
     )

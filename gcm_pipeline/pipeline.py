@@ -31,55 +31,44 @@ atomically (:mod:`gcm_pipeline.io`) and returns a :class:`RunResult`.
 
 from __future__ import annotations
 
-import inspect
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from gcm_pipeline import io
 from gcm_pipeline.config import Config, load_config
-from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
 
+if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
+    from gcm_pipeline.robot.model import Robot
+    from gcm_pipeline.stages.manifold import Manifold
+
 __all__ = [
-    "METRIC_COLUMNS",
     "Pipeline",
     "RunResult",
     "build_manifold",
     "check_reachability",
     "densify",
     "generate_candidates",
-    "load_robot",
     "publish",
     "rank",
+    "robot_from_config",
     "top_grasps",
 ]
 
 log = logging.getLogger(__name__)
 
 
-def _accepted(func: Callable[..., Any], options: Mapping[str, Any]) -> dict[str, Any]:
-    """The entries of ``options`` that ``func`` names as keyword parameters.
-
-    A ``**options`` catch-all does not count: only what the function names
-    explicitly is passed (a stage function that gains one of these keywords
-    gets it; nothing unknown reaches an IK backend).
-    """
-    params = inspect.signature(func).parameters
-    named = {k for k, p in params.items() if p.kind is not inspect.Parameter.VAR_KEYWORD}
-    return {k: v for k, v in options.items() if k in named}
-
-
-def build_manifold(grasps: GraspTable, cfg: Config) -> Any:
+def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
     """Delaunay manifold over the candidates' chart (config section ``manifold``).
 
     The object pose (if the config has an ``object``) is the frame of the
@@ -105,7 +94,7 @@ def build_manifold(grasps: GraspTable, cfg: Config) -> Any:
     )
 
 
-def densify(grasps: GraspTable, manifold: Any, cfg: Config) -> GraspTable:
+def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
     """Densify the manifold's triangles (config section ``densify``).
 
     Args:
@@ -125,29 +114,32 @@ def densify(grasps: GraspTable, manifold: Any, cfg: Config) -> GraspTable:
     )
 
 
-def load_robot(cfg: Config) -> Any:
+def robot_from_config(cfg: Config) -> Robot:
     """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path)."""
     from gcm_pipeline.robot.model import load_robot as _load
 
     return _load(cfg.robot.spec)
 
 
+#: The same as :func:`robot_from_config` (``gcm_pipeline.load_robot`` is the
+#: one of :mod:`gcm_pipeline.robot.model`, by name or path).
+load_robot = robot_from_config
+
+
 def check_reachability(
-    grasps: GraspTable, robot: Any, cfg: Config, *, progress: bool = False
+    grasps: GraspTable, robot: Robot, cfg: Config, *, progress: bool = False
 ) -> GraspTable:
     """IK, collision and approach checks for every grasp (``ik`` and friends).
 
     "Reachable" means an IK solution within the ``ik`` tolerances whose
     configuration is collision-free (``environment`` and ``object``) and,
     with an ``approach`` section, whose straight-line pre-grasp approach is
-    followable and collision-free. The collision checker is given to the IK
-    as validator (a colliding solution makes the IK try other seeds) and the
-    solutions are then filtered, their approach checked and their
-    ``clearance`` added (:func:`gcm_pipeline.stages.collision.apply_collision_checks`).
+    followable and collision-free; see
+    :func:`gcm_pipeline.stages.reachability.check_reachability`.
 
     Args:
         grasps: Table with ``dq`` (world poses of the grasp frame).
-        robot: From :func:`load_robot`.
+        robot: From :func:`robot_from_config`.
         cfg: The full config.
         progress: Show progress / a summary line.
 
@@ -158,56 +150,29 @@ def check_reachability(
     from gcm_pipeline.stages import reachability as stage
 
     ik = cfg.ik
-    base_pose = cfg.robot.base_pose.matrix()
-    tolerances: dict[str, Any] = {
-        "backend": ik.backend,
-        "position_tolerance": ik.position_tolerance,
-        "orientation_tolerance": ik.orientation_tolerance,
-    }
-    sections = {
-        "environment": cfg.environment,
-        "approach": cfg.approach,
-        "object": cfg.object,
-        "object_cfg": cfg.object,
-    }
-    options = _accepted(
-        stage.check_reachability, {**sections, "workers": ik.workers, "seed": cfg.seed}
-    )
-    if "environment" in options:  # the stage does the collision checks itself
-        done = stage.check_reachability(
-            grasps, robot, base_pose=base_pose, progress=progress, **tolerances, **options
-        )
-        assert isinstance(done, GraspTable)
-        return done
-    from gcm_pipeline.stages import collision
-
-    checker = collision.make_checker(robot, cfg.environment, cfg.object, base_pose)
-    if "validator" in inspect.signature(stage.check_reachability).parameters:
-        options["validator"] = checker.check
-    solved = stage.check_reachability(
-        grasps, robot, base_pose=base_pose, progress=progress, **tolerances, **options
-    )
-    assert isinstance(solved, GraspTable)
-    return collision.apply_collision_checks(
-        solved,
+    done = stage.check_reachability(
+        grasps,
         robot,
+        base_pose=cfg.robot.base_pose.matrix(),
+        backend=ik.backend,
+        position_tolerance=ik.position_tolerance,
+        orientation_tolerance=ik.orientation_tolerance,
+        progress=progress,
+        workers=ik.workers,
+        seed=cfg.seed,
         environment=cfg.environment,
         object_cfg=cfg.object,
         approach=cfg.approach,
-        base_pose=base_pose,
-        checker=checker,
-        **tolerances,
     )
+    assert isinstance(done, GraspTable)  # no return_candidates
+    return done
 
 
-def rank(grasps: GraspTable, robot: Any, cfg: Config) -> GraspTable:
+def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
     """Manipulability metrics and ranks of the reachable grasps (``ranking``).
 
-    The ``clearance`` and ``combined`` metrics need the collision stage's
-    ``clearance`` column; when the ranking stage does not know them, the
-    manipulability columns come from it and the rank is taken here from
-    ``clearance`` or from :func:`gcm_pipeline.stages.collision.combined_score`
-    over ``ranking.weights`` (added as column ``combined``).
+    See :func:`gcm_pipeline.stages.ranking.rank`; the ``clearance`` and
+    ``combined`` metrics need the ``clearance`` column of the collision checks.
 
     Returns:
         The table with ``manipulability`` (and the other metric columns),
@@ -217,32 +182,7 @@ def rank(grasps: GraspTable, robot: Any, cfg: Config) -> GraspTable:
     from gcm_pipeline.stages import ranking as stage
 
     r = cfg.ranking
-    if r.metric in stage.METRICS or r.metric not in ("clearance", "combined"):
-        options = _accepted(stage.rank, {"weights": r.weights})
-        return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, **options)
-    from gcm_pipeline.stages.collision import combined_score
-
-    grasps = stage.rank(grasps, robot, metric="yoshikawa", top_k=r.top_k)
-    if "clearance" not in grasps:
-        raise ConfigError(
-            f"ranking.metric {r.metric!r} needs the 'clearance' column of the collision checks"
-        )
-    reachable = np.asarray(grasps["reachable"], dtype=bool)
-    extra: dict[str, np.ndarray] = {}
-    if r.metric == "clearance":
-        key = np.asarray(grasps["clearance"], dtype=float)
-    else:
-        from gcm_pipeline.robot.manipulability import METRICS as columns_of
-
-        columns = {m: grasps[c] for m, c in columns_of.items() if c in grasps}
-        columns["clearance"] = grasps["clearance"]
-        key = combined_score(columns, r.weights, mask=reachable)
-        extra["combined"] = key
-    rows = np.flatnonzero(reachable & np.isfinite(key))
-    order = rows[np.lexsort((rows, -key[rows]))]  # best first, ties by row index
-    ranks = np.zeros(len(grasps), dtype=np.int64)
-    ranks[order] = np.arange(1, order.size + 1)
-    return grasps.with_columns(**extra, rank=ranks, top=(ranks > 0) & (ranks <= r.top_k))
+    return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, weights=r.weights)
 
 
 def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
@@ -259,17 +199,6 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     return list(files)
 
 
-#: Ranking metric (config name) -> the grasp-table column holding it.
-METRIC_COLUMNS = {
-    "yoshikawa": "manipulability",
-    "translational": "manip_translation",
-    "inverse_condition": "inverse_condition",
-    "joint_limit_margin": "joint_limit_margin",
-    "clearance": "clearance",
-    "combined": "combined",
-}
-
-
 def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[dict[str, Any]]:
     """The ``n`` best-ranked grasps as plain dicts (rank, pose, metrics, q).
 
@@ -277,6 +206,8 @@ def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[di
     ``manipulability``, the ranking metric's column when it is another one,
     and ``q``. Rows without a ``rank`` column, or unranked (rank 0), are left out.
     """
+    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+
     if "rank" not in grasps or n <= 0:
         return []
     rank_col = np.asarray(grasps["rank"])
@@ -319,8 +250,8 @@ class RunResult:
     """
 
     grasps: GraspTable
-    manifold: Any
-    robot: Any
+    manifold: Manifold
+    robot: Robot
     counts: dict[str, int]
     timings: dict[str, float]
     config: Config
@@ -445,7 +376,7 @@ class Pipeline:
     def _run(
         self,
         out: Path,
-        stage: Callable[[str], Any],
+        stage: Callable[[str], AbstractContextManager[None]],
         timings: dict[str, float],
         *,
         force: bool,
@@ -460,7 +391,7 @@ class Pipeline:
         with stage("densify"):
             grasps = densify(candidates, manifold, cfg)
         with stage("robot"):
-            robot = load_robot(cfg)
+            robot = robot_from_config(cfg)
         with stage("reachability"):
             grasps = check_reachability(grasps, robot, cfg, progress=progress)
         with stage("ranking"):
@@ -468,7 +399,7 @@ class Pipeline:
         counts = {
             "candidates": len(candidates),
             "triangles": int(len(manifold.triangles)),
-            "triangles_dropped": int(len(getattr(manifold, "dropped", ()))),
+            "triangles_dropped": int(len(manifold.dropped)),
             "densified": len(grasps),
             "interpolated": len(grasps) - len(candidates),
             "reachable": int(np.count_nonzero(grasps["reachable"])),

@@ -71,3 +71,25 @@ def test_nothing_reachable(panda: Robot):
     grasps = GraspTable({"reachable": np.zeros(3, bool), "q": np.full((3, 7), np.nan)})
     out = rank(grasps, panda)
     assert np.all(out["rank"] == 0) and not out["top"].any()
+
+
+def test_clearance_and_combined(panda: Robot):
+    grasps = _table(panda)
+    clearance = np.linspace(0.09, 0.01, 9)
+    clearance[8] = clearance[2]  # the tie stays a tie
+    clearance[5] = np.nan
+    with_clearance = grasps.with_columns(clearance=clearance)
+    out = rank(with_clearance, panda, metric="clearance", top_k=3)
+    ranked = np.flatnonzero(out["rank"] > 0)
+    assert list(ranked[np.argsort(out["rank"][ranked])]) == [0, 1, 2, 8, 3, 4, 6, 7]
+    out = rank(with_clearance, panda, metric="combined", weights={"clearance": 1.0})
+    np.testing.assert_allclose(
+        out["combined"][ranked], (clearance[ranked] - 0.02) / 0.07, atol=1e-12
+    )
+    assert out["rank"][5] == 0 and np.isnan(out["combined"][5])
+    # weights without clearance need no clearance column
+    out = rank(grasps, panda, metric="combined", weights={"yoshikawa": 1.0})
+    assert np.array_equal(out["rank"], rank(grasps, panda)["rank"])
+    for metric in ("clearance", "combined"):
+        with pytest.raises(InputError, match=f"metric '{metric}' needs the 'clearance' column"):
+            rank(grasps, panda, metric=metric)

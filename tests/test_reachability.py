@@ -123,3 +123,29 @@ def test_errors(panda: Robot):
         check_reachability(grasps, panda)
     with pytest.raises(InputError, match="position_tolerance"):
         check_reachability(GraspTable({"dq": dq}), panda, position_tolerance=0)
+
+
+def test_collisions_and_approach(panda: Robot):
+    from gcm_pipeline.config import ApproachConfig, EnvironmentConfig
+    from gcm_pipeline.stages.collision import make_checker
+
+    grasps = GraspTable({"dq": dq_from_matrix(panda.fk(panda.random_configurations(12, 5)))})
+    env = EnvironmentConfig()
+    out = check_reachability(grasps, panda, environment=env, approach=ApproachConfig())
+    ok = out["reachable"]
+    checker = make_checker(panda, env)
+    assert np.all(checker.check(out["q"][ok]) == "")
+    assert np.all(np.isnan(out["clearance"][~ok])) and np.all(out["clearance"][ok] > 0)
+    allowed = {"", "collision_self", "collision_environment", "collision_object", "approach"}
+    assert set(out["reason"]) <= allowed | {"out_of_reach", "joint_limits", "no_ik"}
+    # a prebuilt checker does the same; another validator runs after it
+    same = check_reachability(grasps, panda, checker=checker, approach=ApproachConfig())
+    assert np.array_equal(same["reason"], out["reason"])
+    vetoed = check_reachability(
+        grasps, panda, checker=checker, validator=lambda q: np.full(len(q), "veto")
+    )
+    assert not vetoed["reachable"].any()
+    assert set(vetoed["reason"]) <= (allowed - {"", "approach"}) | {"veto", "out_of_reach"}
+    assert "veto" in set(vetoed["reason"])
+    # without environment and object: pure IK, no clearance
+    assert "clearance" not in check_reachability(grasps, panda).columns

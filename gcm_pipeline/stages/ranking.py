@@ -13,6 +13,17 @@ metric name (configs)            column                  meaning
 ``joint_limit_margin``           ``joint_limit_margin``  normalised, in [0, 1]
 ================================ ======================= ====================
 
+Two more metrics rank by columns of the collision checks
+(:mod:`gcm_pipeline.stages.collision`):
+
+================================ ======================= ====================
+``clearance``                    ``clearance``           distance of the arm to
+                                                         environment and object [m]
+``combined``                     ``combined`` (added)    weighted sum of normalised
+                                                         metrics, see
+                                                         :func:`~gcm_pipeline.stages.collision.combined_score`
+================================ ======================= ====================
+
 plus ``rank`` (N,) int: 1-based among the reachable grasps, by the chosen
 metric in decreasing order, ties broken by row index (lower first); 0 for
 unreachable grasps. ``top`` (N,) bool marks ranks 1..``top_k``.
@@ -20,14 +31,24 @@ unreachable grasps. ``top`` (N,) bool marks ranks 1..``top_k``.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from gcm_pipeline.errors import InputError, unknown_choice
 from gcm_pipeline.robot.manipulability import METRICS, manipulability_metrics
 from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS, combined_score
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["METRICS", "rank"]
+__all__ = ["METRICS", "METRIC_COLUMNS", "rank"]
+
+#: Ranking metric (config name) -> the grasp-table column holding it.
+METRIC_COLUMNS: dict[str, str] = {
+    **METRICS,
+    "clearance": "clearance",
+    "combined": "combined",
+}
 
 
 def rank(
@@ -36,31 +57,51 @@ def rank(
     *,
     metric: str = "yoshikawa",
     top_k: int | None = 10,
+    weights: Mapping[str, float] | None = None,
 ) -> GraspTable:
     """Add the manipulability metrics, ``rank`` and ``top`` to the table.
 
     Args:
-        grasps: Table with ``reachable`` (N,) and ``q`` (N, nq).
+        grasps: Table with ``reachable`` (N,) and ``q`` (N, nq) (and
+            ``clearance`` (N,) for the ``clearance`` and ``combined`` metrics).
         robot: A :class:`Robot` or a spec name/path.
-        metric: Ranking metric, one of ``yoshikawa``, ``translational``,
-            ``inverse_condition``, ``joint_limit_margin``.
+        metric: Ranking metric, one of :data:`METRIC_COLUMNS`: ``yoshikawa``,
+            ``translational``, ``inverse_condition``, ``joint_limit_margin``,
+            ``clearance``, ``combined``.
         top_k: How many of the best grasps ``top`` marks (None: all reachable).
+        weights: Metric name -> weight of the ``combined`` metric (None:
+            :data:`~gcm_pipeline.stages.collision.DEFAULT_COMBINED_WEIGHTS`);
+            ignored by the other metrics.
 
     Returns:
         The table with ``manipulability``, ``manip_translation``,
-        ``inverse_condition``, ``joint_limit_margin``, ``rank`` and ``top`` added.
+        ``inverse_condition``, ``joint_limit_margin``, ``rank`` and ``top``
+        (and ``combined`` for that metric) added.
 
     Raises:
         InputError: Unknown metric (lists the valid ones), bad ``top_k``,
-            missing columns, or ``q`` of the wrong width.
+            missing columns (``clearance`` names the metric that needs it),
+            or ``q`` of the wrong width.
+        ConfigError: Bad ``weights`` (see
+            :func:`~gcm_pipeline.stages.collision.combined_score`).
     """
-    if metric not in METRICS:
-        raise InputError(unknown_choice("ranking metric", metric, METRICS))
+    if metric not in METRIC_COLUMNS:
+        raise InputError(unknown_choice("ranking metric", metric, METRIC_COLUMNS))
     if top_k is not None and (
         isinstance(top_k, bool) or not isinstance(top_k, (int, np.integer)) or top_k < 0
     ):
         raise InputError(f"top_k must be an int >= 0 or None, got {top_k!r}")
     robot = load_robot(robot)
+    needs_clearance = metric == "clearance" or (
+        metric == "combined"
+        and (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get("clearance", 0) > 0
+    )
+    if needs_clearance and "clearance" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'clearance' column of the collision "
+            f"checks (reachability with an environment or object); "
+            f"columns: {', '.join(grasps.columns)}"
+        )
     for col in ("reachable", "q"):
         if col not in grasps:
             raise InputError(
@@ -74,7 +115,17 @@ def rank(
         raise InputError(f"grasp column 'q' must have shape ({n}, {robot.nq}), got {q.shape}")
     q_ok = np.where(reachable[:, None], q, np.nan)
     metrics = manipulability_metrics(robot, q_ok)
-    key = metrics[metric]
+    columns = {METRICS[name]: values for name, values in metrics.items()}
+    extra: dict[str, np.ndarray] = {}
+    if metric == "combined":
+        scored = dict(metrics)
+        if "clearance" in grasps:
+            scored["clearance"] = np.asarray(grasps["clearance"], dtype=float)
+        key = extra["combined"] = combined_score(scored, weights, mask=reachable)
+    elif metric == "clearance":
+        key = np.asarray(grasps["clearance"], dtype=float)
+    else:
+        key = columns[METRICS[metric]]
     rows = np.flatnonzero(reachable & np.isfinite(key))
     # descending metric, then ascending row index
     order = rows[np.lexsort((rows, -key[rows]))]
@@ -82,6 +133,4 @@ def rank(
     ranks[order] = np.arange(1, order.size + 1)
     k = order.size if top_k is None else int(top_k)
     top = (ranks > 0) & (ranks <= k)
-    return grasps.with_columns(
-        **{METRICS[name]: values for name, values in metrics.items()}, rank=ranks, top=top
-    )
+    return grasps.with_columns(**columns, rank=ranks, top=top, **extra)

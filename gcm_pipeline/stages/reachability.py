@@ -14,26 +14,42 @@ Reasons (``''`` when reachable): ``out_of_reach`` (farther from the shoulder
 than the arm's maximum reach, a cheap pre-filter), ``joint_limits``,
 ``no_ik``, ``verification_failed`` and whatever a ``validator`` returns.
 
-Extension point for collision checking: pass ``validator``, a callable
-``q (M, nq) -> (M,) str`` (``''`` = valid, else a reason such as
-``collision_self``), e.g. ``CollisionChecker(...).check``. It is applied by
-the IK to every converged candidate before one is chosen, so a grasp whose
-first solution collides keeps trying other seeds, and a grasp with no valid
-solution gets the validator's reason. ``return_candidates=True`` also returns
-every converged candidate (valid or not) as :class:`IKCandidates`, with row
-ids into the table.
+Collisions: with an ``environment`` or ``object_cfg`` section (or a
+prebuilt ``checker``), "reachable" means an IK solution whose configuration
+is collision-free and, with an ``approach`` section, whose straight-line
+pre-grasp approach is followable and collision-free. The collision checker
+(:func:`gcm_pipeline.stages.collision.make_checker`) is given to the IK as
+validator, so a grasp whose first solution collides keeps trying other
+seeds; the solutions are then filtered, their approach checked and their
+``clearance`` added (:func:`gcm_pipeline.stages.collision.apply_collision_checks`).
+Further reasons: ``collision_self``, ``collision_environment``,
+``collision_object`` and ``approach``. Without these sections the stage is
+pure IK.
+
+Any other ``validator``, a callable ``q (M, nq) -> (M,) str`` (``''`` =
+valid, else a reason), is applied by the IK to every converged candidate
+before one is chosen (after the collision checker, when there is one), and a
+grasp with no valid solution gets the validator's reason.
+``return_candidates=True`` also returns every converged IK candidate (valid
+or not) as :class:`IKCandidates`, with row ids into the table.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import logging
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.robot.ik import IKCandidates, Validator, check_targets, solve_ik
 from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.stages import collision
 from gcm_pipeline.table import GraspTable
+
+if TYPE_CHECKING:
+    from gcm_pipeline.config import ApproachConfig, EnvironmentConfig, ObjectConfig
+    from gcm_pipeline.robot.collision import CollisionChecker
 
 __all__ = ["check_reachability", "world_to_base_targets"]
 
@@ -88,6 +104,26 @@ def world_to_base_targets(dq: Any, base_pose: Any = None) -> np.ndarray:
     return inv @ world
 
 
+def _combined_validator(
+    checker: CollisionChecker | None, validator: Validator | None
+) -> Validator | None:
+    """The collision checker's reasons first, then those of ``validator``."""
+    if checker is None:
+        return validator
+    if validator is None:
+        return checker.check
+    extra = validator
+
+    def check(q: np.ndarray) -> np.ndarray:
+        reason = np.asarray(checker.check(q), dtype=object)
+        free = np.flatnonzero(reason == "")
+        if free.size:
+            reason[free] = np.asarray(extra(q[free]), dtype=object)
+        return reason.astype(str)
+
+    return check
+
+
 def _neighbours(grasps: GraspTable) -> np.ndarray | None:
     """Warm-start rows (N, 3) from provenance: vertices by decreasing weight."""
     if "vertices" not in grasps:
@@ -130,9 +166,13 @@ def check_reachability(
     seed: int | None = None,
     warm_start: bool = True,
     return_candidates: bool = False,
+    environment: EnvironmentConfig | None = None,
+    object_cfg: ObjectConfig | None = None,
+    approach: ApproachConfig | None = None,
+    checker: CollisionChecker | None = None,
     **options: Any,
 ) -> GraspTable | tuple[GraspTable, IKCandidates]:
-    """Solve IK for every grasp and add the reachability columns.
+    """Solve IK for every grasp, check collisions and approach, add the reachability columns.
 
     Args:
         grasps: Table with ``dq`` (N, 8) (world poses of the grasp frame) and
@@ -150,13 +190,20 @@ def check_reachability(
         seed: Random seed of the IK's seed library and restarts.
         warm_start: Seed interpolated rows from their vertices' solutions.
         return_candidates: Also return every converged IK candidate.
+        environment: The ``environment`` config section (collision world).
+        object_cfg: The ``object`` config section (the object to grasp).
+        approach: The ``approach`` config section (pre-grasp approach check).
+        checker: A prebuilt
+            :class:`~gcm_pipeline.robot.collision.CollisionChecker`; else one
+            is built from ``environment`` and ``object_cfg`` when either is given.
         **options: Backend options (see :func:`~gcm_pipeline.robot.ik.solve_ik`).
 
     Returns:
         The table with ``reachable`` (N,) bool, ``reason`` (N,) str, ``q``
         (N, nq) [rad] (NaN rows when unreachable), ``pos_err`` [m] and
-        ``rot_err`` [rad] added; with ``return_candidates``, a pair
-        ``(table, candidates)``.
+        ``rot_err`` [rad] added, and ``clearance`` [m] when collisions are
+        checked; with ``return_candidates``, a pair ``(table, candidates)``
+        (the IK candidates before the collision filter).
 
     Raises:
         InputError: Missing ``dq`` column, bad provenance, bad options.
@@ -169,6 +216,8 @@ def check_reachability(
     nb = _neighbours(grasps) if warm_start else None
     if seed is not None:
         options.setdefault("random_seed", int(seed))
+    if checker is None and (environment is not None or object_cfg is not None):
+        checker = collision.make_checker(robot, environment, object_cfg, base_pose)
     res = solve_ik(
         robot,
         targets,
@@ -176,14 +225,12 @@ def check_reachability(
         position_tolerance=position_tolerance,
         orientation_tolerance=orientation_tolerance,
         neighbours=nb,
-        validator=validator,
+        validator=_combined_validator(checker, validator),
         return_all=return_candidates,
         workers=workers,
         **options,
     )
     if progress:
-        import logging
-
         logging.getLogger(__name__).info("reachability: %r", res)
     table = grasps.with_columns(
         reachable=res.success,
@@ -192,6 +239,24 @@ def check_reachability(
         pos_err=res.pos_err,
         rot_err=res.rot_err,
     )
+    ik: dict[str, Any] = {
+        "base_pose": base_pose,
+        "backend": backend,
+        "position_tolerance": position_tolerance,
+        "orientation_tolerance": orientation_tolerance,
+    }
+    if checker is not None:
+        table = collision.apply_collision_checks(
+            table,
+            robot,
+            environment=environment,
+            object_cfg=object_cfg,
+            approach=approach,
+            checker=checker,
+            **ik,
+        )
+    elif approach is not None:
+        table = collision.check_approach(table, robot, None, approach, **ik)
     if return_candidates:
         assert res.candidates is not None
         return table, res.candidates

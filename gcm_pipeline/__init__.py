@@ -1,6 +1,9 @@
 """gcm_pipeline: grasp configuration manifolds and their reachability.
 
 The public API is listed in ``__all__``; every name in it imports.
+Importing the package loads Pinocchio (robot models, IK, collisions) but not
+mink, MuJoCo or meshcat: those load when the ``mink`` IK backend or the
+meshcat publisher is used.
 """
 
 from gcm_pipeline.config import Config, load_config
@@ -35,26 +38,45 @@ from gcm_pipeline.pipeline import (
     publish,
     rank,
 )
+from gcm_pipeline.robot.collision import CollisionChecker
+from gcm_pipeline.robot.ik import IKResult, solve_ik
+from gcm_pipeline.robot.manipulability import (
+    inverse_condition_number,
+    joint_limit_margin,
+    manipulability,
+    manipulability_metrics,
+    translational_manipulability,
+    yoshikawa,
+)
+from gcm_pipeline.robot.model import Robot, available_robots, load_robot
+from gcm_pipeline.stages.collision import combined_score
+from gcm_pipeline.stages.manifold import Manifold
 from gcm_pipeline.table import GraspTable
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "CollisionChecker",
     "Config",
     "ConfigError",
     "FrameNotFoundError",
     "GcmError",
     "GeometryError",
     "GraspTable",
+    "IKResult",
     "InputError",
+    "Manifold",
     "OutputError",
     "Pipeline",
     "PublishError",
+    "Robot",
     "RobotSpecError",
     "RunResult",
     "__version__",
+    "available_robots",
     "build_manifold",
     "check_reachability",
+    "combined_score",
     "densify",
     "dib",
     "dlb",
@@ -64,9 +86,17 @@ __all__ = [
     "dq_to_matrix",
     "dq_to_pos_quat",
     "generate_candidates",
+    "inverse_condition_number",
+    "joint_limit_margin",
     "load_config",
+    "load_robot",
+    "manipulability",
+    "manipulability_metrics",
     "publish",
     "rank",
     "read_run",
     "sclerp",
+    "solve_ik",
+    "translational_manipulability",
+    "yoshikawa",
 ]

@@ -42,8 +42,15 @@ def test_module_all_resolves(module: str) -> None:
 
 
 def test_errors_share_one_root() -> None:
-    for name in ("ConfigError", "InputError", "GeometryError", "RobotSpecError",
-                 "FrameNotFoundError", "OutputError", "PublishError"):
+    for name in (
+        "ConfigError",
+        "InputError",
+        "GeometryError",
+        "RobotSpecError",
+        "FrameNotFoundError",
+        "OutputError",
+        "PublishError",
+    ):
         assert issubclass(getattr(gcm_pipeline, name), gcm_pipeline.GcmError)
 
 

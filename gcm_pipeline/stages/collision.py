@@ -34,16 +34,14 @@ import numpy as np
 
 from gcm_pipeline.config import ApproachConfig, EnvironmentConfig, ObjectConfig, Pose
 from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
-from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import check_approach_path
 from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,
     REASON_OBJECT,
     REASON_SELF,
     CollisionChecker,
-    as_transform,
 )
-from gcm_pipeline.robot.ik import solve_ik, verify_solutions
+from gcm_pipeline.robot.ik import solve_ik, verify_solutions, world_to_base_targets
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
 
@@ -98,9 +96,11 @@ def make_checker(
 
 
 def grasp_targets(grasps: GraspTable, base_pose: Pose | np.ndarray | None = None) -> np.ndarray:
-    """Grasp-frame poses of the table in the robot base frame, (N, 4, 4) [m]."""
-    world = dq_to_matrix(np.asarray(grasps["dq"], dtype=float))
-    return np.linalg.inv(as_transform(base_pose)) @ world
+    """Grasp-frame poses of the table in the robot base frame, (N, 4, 4) [m].
+
+    See :func:`~gcm_pipeline.robot.ik.world_to_base_targets`.
+    """
+    return world_to_base_targets(grasps["dq"], base_pose)
 
 
 def _need(grasps: GraspTable, names: tuple[str, ...]) -> None:

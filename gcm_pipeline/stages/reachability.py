@@ -41,8 +41,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.errors import GeometryError, InputError
-from gcm_pipeline.robot.ik import IKCandidates, Validator, check_targets, solve_ik
+from gcm_pipeline.errors import InputError
+from gcm_pipeline.robot.ik import IKCandidates, Validator, solve_ik, world_to_base_targets
 from gcm_pipeline.robot.model import Robot, load_robot
 from gcm_pipeline.stages import collision
 from gcm_pipeline.table import GraspTable
@@ -52,56 +52,6 @@ if TYPE_CHECKING:
     from gcm_pipeline.robot.collision import CollisionChecker
 
 __all__ = ["check_reachability", "world_to_base_targets"]
-
-
-def _dq_to_matrix(dq: np.ndarray) -> np.ndarray:
-    from gcm_pipeline.geometry.dualquat import dq_to_matrix
-
-    return dq_to_matrix(dq)
-
-
-def world_to_base_targets(dq: Any, base_pose: Any = None) -> np.ndarray:
-    """Grasp-frame poses in the robot base frame from world dual quaternions.
-
-    Args:
-        dq: Unit dual quaternions (N, 8) of the grasp frame in the world,
-            layout ``[rw, rx, ry, rz, dw, dx, dy, dz]``.
-        base_pose: Robot base in the world (4, 4), identity if None.
-
-    Returns:
-        Homogeneous transforms (N, 4, 4): ``inv(base_pose) @ T_world``.
-
-    Raises:
-        GeometryError: Wrong shape, non-finite or non-unit dual quaternions,
-            or a non-rigid ``base_pose``.
-    """
-    arr = np.asarray(dq, dtype=float)
-    if arr.ndim != 2 or arr.shape[1] != 8:
-        raise GeometryError(f"grasp column 'dq' must have shape (N, 8), got {np.shape(dq)}")
-    bad = ~np.all(np.isfinite(arr), axis=1)
-    if np.any(bad):
-        i = int(np.flatnonzero(bad)[0])
-        raise GeometryError(f"grasp column 'dq' row {i} has non-finite values: {arr[i].tolist()}")
-    norm = np.linalg.norm(arr[:, :4], axis=1)
-    dot = np.einsum("ij,ij->i", arr[:, :4], arr[:, 4:])
-    bad = (np.abs(norm - 1.0) > 1e-6) | (np.abs(dot) > 1e-6)
-    if np.any(bad):
-        i = int(np.flatnonzero(bad)[0])
-        raise GeometryError(
-            f"grasp column 'dq' row {i} is not a unit dual quaternion "
-            f"(|real| = {norm[i]:.6f}, real.dual = {dot[i]:.2e})"
-        )
-    world = _dq_to_matrix(arr)
-    if base_pose is None:
-        return world
-    base = check_targets(base_pose, name="base_pose")
-    if base.shape[0] != 1:
-        raise GeometryError(f"base_pose must have shape (4, 4), got {np.shape(base_pose)}")
-    inv = np.eye(4)
-    rot = base[0, :3, :3]
-    inv[:3, :3] = rot.T
-    inv[:3, 3] = -rot.T @ base[0, :3, 3]
-    return inv @ world
 
 
 def _combined_validator(

@@ -463,3 +463,17 @@ def test_dib_warns_when_not_converged(rng):
     q = random_dq(rng, 3)
     with pytest.warns(RuntimeWarning, match=r"DIB did not converge .* for 1 of 1 blends"):
         dib(q, [0.2, 0.3, 0.5], max_iter=1)
+
+
+def test_quat_from_rotation_matches_scipy_and_dq_from_matrix() -> None:
+    from gcm_pipeline.geometry.dualquat import quat_from_rotation
+
+    rot = Rotation.random(200, random_state=7)
+    q = quat_from_rotation(rot.as_matrix().reshape(10, 20, 3, 3))
+    assert q.shape == (10, 20, 4) and np.all(q[..., 0] >= 0)
+    want = rot.as_quat()[:, [3, 0, 1, 2]]
+    want *= np.where(want[:, :1] < 0, -1.0, 1.0)
+    np.testing.assert_allclose(q.reshape(-1, 4), want, atol=1e-12)
+    m = np.tile(np.eye(4), (200, 1, 1))
+    m[:, :3, :3] = rot.as_matrix()
+    np.testing.assert_allclose(q.reshape(-1, 4), dq_from_matrix(m)[:, :4], atol=1e-15)

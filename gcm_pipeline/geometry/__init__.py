@@ -20,6 +20,7 @@ from gcm_pipeline.geometry.dualquat import (
     dq_transform_points,
     dq_translation,
     dq_translation_distance,
+    quat_from_rotation,
     quat_mul,
     sclerp,
 )
@@ -48,6 +49,7 @@ __all__ = [
     "dq_transform_points",
     "dq_translation",
     "dq_translation_distance",
+    "quat_from_rotation",
     "quat_mul",
     "sclerp",
 ]

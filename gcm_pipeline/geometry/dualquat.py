@@ -72,6 +72,7 @@ __all__ = [
     "dq_transform_points",
     "dq_translation",
     "dq_translation_distance",
+    "quat_from_rotation",
     "quat_mul",
     "sclerp",
 ]
@@ -402,6 +403,22 @@ def _quat_from_rotation_entries(e: np.ndarray) -> np.ndarray:
     norm[q[:, 0] < 0] *= -1.0
     q /= norm[:, None]
     return q
+
+
+def quat_from_rotation(rot: npt.ArrayLike) -> np.ndarray:
+    """Unit (w, x, y, z) quaternions with ``w >= 0`` of rotation matrices (unchecked).
+
+    Args:
+        rot: Rotation matrices (..., 3, 3), trusted to be rotations (see
+            :func:`dq_from_matrix` for a checked conversion of transforms).
+
+    Returns:
+        Quaternions (..., 4).
+    """
+    m = _as_float(rot, "rot", (3, 3), check=False)
+    batch = m.shape[:-2]
+    e = m.reshape(-1, 9).T.copy()  # (9, B): one contiguous row per entry
+    return _quat_from_rotation_entries(e).reshape(batch + (4,))
 
 
 def dq_from_matrix(matrix: npt.ArrayLike, *, check: bool = True) -> np.ndarray:

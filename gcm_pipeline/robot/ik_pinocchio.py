@@ -42,6 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.geometry.dualquat import quat_from_rotation
 
 __all__ = [
     "PinocchioIKOptions",
@@ -171,67 +172,6 @@ def rotation_angle(rot: np.ndarray) -> np.ndarray:
     return np.arctan2(s, c)
 
 
-def _quat_wxyz(rot: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) of rotation matrices, w >= 0 (Shepperd)."""
-    n = rot.shape[0]
-    m = rot
-    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
-    k = np.argmax(cand, axis=1)
-    q = np.empty((n, 4))
-    for case in range(4):
-        sel = k == case
-        if not np.any(sel):
-            continue
-        r = m[sel]
-        if case == 0:
-            t = np.sqrt(1.0 + r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]) * 2
-            q[sel] = np.stack(
-                [
-                    0.25 * t,
-                    (r[:, 2, 1] - r[:, 1, 2]) / t,
-                    (r[:, 0, 2] - r[:, 2, 0]) / t,
-                    (r[:, 1, 0] - r[:, 0, 1]) / t,
-                ],
-                axis=1,
-            )
-        elif case == 1:
-            t = np.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2]) * 2
-            q[sel] = np.stack(
-                [
-                    (r[:, 2, 1] - r[:, 1, 2]) / t,
-                    0.25 * t,
-                    (r[:, 0, 1] + r[:, 1, 0]) / t,
-                    (r[:, 0, 2] + r[:, 2, 0]) / t,
-                ],
-                axis=1,
-            )
-        elif case == 2:
-            t = np.sqrt(1.0 - r[:, 0, 0] + r[:, 1, 1] - r[:, 2, 2]) * 2
-            q[sel] = np.stack(
-                [
-                    (r[:, 0, 2] - r[:, 2, 0]) / t,
-                    (r[:, 0, 1] + r[:, 1, 0]) / t,
-                    0.25 * t,
-                    (r[:, 1, 2] + r[:, 2, 1]) / t,
-                ],
-                axis=1,
-            )
-        else:
-            t = np.sqrt(1.0 - r[:, 0, 0] - r[:, 1, 1] + r[:, 2, 2]) * 2
-            q[sel] = np.stack(
-                [
-                    (r[:, 1, 0] - r[:, 0, 1]) / t,
-                    (r[:, 0, 2] + r[:, 2, 0]) / t,
-                    (r[:, 1, 2] + r[:, 2, 1]) / t,
-                    0.25 * t,
-                ],
-                axis=1,
-            )
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 class SeedLibrary:
     """Random configurations and their grasp-frame poses in a KD-tree.
 
@@ -251,7 +191,7 @@ class SeedLibrary:
         self.q = robot.random_configurations(size, rng)
         rot, pos = robot.chain.pose(self.q)
         self.weight = weight
-        quat = _quat_wxyz(rot)
+        quat = quat_from_rotation(rot)
         keys = np.concatenate(
             [np.hstack([pos, weight * quat]), np.hstack([pos, -weight * quat])], axis=0
         )
@@ -267,7 +207,7 @@ class SeedLibrary:
             k: Neighbours per pose.
             eps: Approximation: each neighbour is within (1 + eps) of the true one.
         """
-        keys = np.hstack([pos, self.weight * _quat_wxyz(rot)])
+        keys = np.hstack([pos, self.weight * quat_from_rotation(rot)])
         # both signs of one entry are 2 * weight apart: duplicates are rare and harmless
         _, idx = self.tree.query(keys, k=max(1, min(k, 2 * self.size)), eps=eps)
         return np.asarray(idx, dtype=int).reshape(keys.shape[0], -1) % self.size

@@ -19,6 +19,7 @@ from gcm_pipeline.table import GraspTable
 __all__ = [
     "PLOT_FILES",
     "REASON_COLORS",
+    "candidate_rows",
     "chart_period",
     "chart_points",
     "reason_palette",
@@ -110,7 +111,7 @@ def chart_period(grasps: GraspTable, manifold: Any) -> float | None:
         return None
     from gcm_pipeline.geometry.dualquat import dq_translation
 
-    rows = _candidate_rows(grasps, len(manifold.chart))
+    rows = candidate_rows(grasps, len(manifold.chart))
     pos = np.asarray(dq_translation(np.asarray(grasps["dq"])[rows]), dtype=float)
     frame = np.asarray(frame, dtype=float)
     local = (pos - frame[:3, 3]) @ frame[:3, :3]
@@ -118,7 +119,12 @@ def chart_period(grasps: GraspTable, manifold: Any) -> float | None:
     return 2.0 * np.pi * radius if radius > 0 else None
 
 
-def _candidate_rows(grasps: GraspTable, n_chart: int) -> np.ndarray:
+def candidate_rows(grasps: GraspTable, n_chart: int) -> np.ndarray:
+    """Table rows of the manifold's vertices (candidate ids ``0 .. n_chart - 1``).
+
+    The candidates come first in a densified table (``origin`` ``candidate``);
+    a table without ``origin`` is the candidate table itself.
+    """
     origin = grasps.get("origin")
     if origin is None:
         return np.arange(min(len(grasps), n_chart))
@@ -155,7 +161,7 @@ def chart_points(grasps: GraspTable, manifold: Any, period: float | None = None)
     chart = np.asarray(manifold.chart, dtype=float)
     n = len(grasps)
     out = np.full((n, 2), np.nan)
-    rows = _candidate_rows(grasps, len(chart))
+    rows = candidate_rows(grasps, len(chart))
     out[rows] = chart[: len(rows)]
     origin = grasps.get("origin")
     if "vertices" in grasps and "weights" in grasps:

@@ -52,7 +52,7 @@ import numpy as np
 
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.stages.plots import REASON_COLORS, reason_palette
+from gcm_pipeline.stages.plots import REASON_COLORS, candidate_rows, reason_palette
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
@@ -397,16 +397,6 @@ def _draw_environment(vis: Any, config: Config) -> list[str]:
     return paths
 
 
-def _candidate_rows(grasps: GraspTable, n_chart: int) -> np.ndarray:
-    """Table rows of the manifold's vertices (candidate ids 0..n_chart-1)."""
-    origin = grasps.get("origin")
-    if origin is None:
-        rows = np.arange(len(grasps))
-    else:
-        rows = np.flatnonzero(np.asarray(origin).astype(str) == "candidate")
-    return rows[:n_chart]
-
-
 def _draw_manifold(vis: Any, grasps: GraspTable, manifold: Any, trans: np.ndarray) -> list[str]:
     if manifold is None:
         return []
@@ -415,7 +405,7 @@ def _draw_manifold(vis: Any, grasps: GraspTable, manifold: Any, trans: np.ndarra
         return []
     chart = getattr(manifold, "chart", None)
     n_chart = len(chart) if chart is not None else int(tris.max()) + 1
-    rows = _candidate_rows(grasps, n_chart)
+    rows = candidate_rows(grasps, n_chart)
     if tris.max() >= len(rows):
         warnings.warn(
             f"manifold triangles use vertex {int(tris.max())} but the table has "

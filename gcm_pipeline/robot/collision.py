@@ -594,15 +594,6 @@ class CollisionChecker:
 
     # --- queries --------------------------------------------------------------------------
 
-    def _as_q(self, q: Any) -> np.ndarray:
-        arr = np.asarray(q, dtype=float)
-        if arr.ndim == 1:
-            arr = arr[None]
-        nq = self.robot.nq
-        if arr.ndim != 2 or arr.shape[1] != nq:
-            raise InputError(f"configurations must have shape (N, {nq}), got {np.shape(q)}")
-        return arr
-
     def _collides(self, kind: str, q: np.ndarray) -> np.ndarray:
         if kind == "self":
             return self._self_collides(q)
@@ -625,7 +616,7 @@ class CollisionChecker:
             ``'collision_self'`` or ``'collision_object'`` (first that applies,
             in this order).
         """
-        qs = self._as_q(q)
+        qs = self.robot.as_configurations(q)
         reason = np.full(len(qs), "", dtype=object)
         todo = np.flatnonzero(np.all(np.isfinite(qs), axis=1))
         for kind in _KINDS:
@@ -649,7 +640,7 @@ class CollisionChecker:
         Returns:
             ``[(geometry_1, geometry_2, kind), ...]``.
         """
-        qs = self._as_q(q)[0]
+        qs = self.robot.as_configurations(q)[0]
         gm, gd = self.geom_model, self._full_data
         pin.computeCollisions(self.robot.model, self._data, gm, gd, qs, False)
         out = []
@@ -686,7 +677,7 @@ class CollisionChecker:
             (N,) distances [m]; ``inf`` when there is nothing to measure against,
             NaN for non-finite configurations.
         """
-        qs = self._as_q(q)
+        qs = self.robot.as_configurations(q)
         out = np.full(len(qs), np.inf)
         if self._dist_model is None:
             out[~np.all(np.isfinite(qs), axis=1)] = np.nan

@@ -153,11 +153,7 @@ def manipulability_metrics(robot: Any, q: Any) -> dict[str, np.ndarray]:
     Returns:
         Metric name (see :data:`METRICS`) -> (N,) values.
     """
-    qs = np.asarray(q, dtype=float)
-    if qs.ndim == 1:
-        qs = qs[None]
-    if qs.ndim != 2 or qs.shape[1] != robot.nq:
-        raise InputError(f"q must have shape (N, {robot.nq}), got {np.shape(q)}")
+    qs = robot.as_configurations(q)
     ok = np.all(np.isfinite(qs), axis=1)
     out = {name: np.full(qs.shape[0], np.nan) for name in METRICS}
     if not np.any(ok):

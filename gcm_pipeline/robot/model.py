@@ -33,7 +33,7 @@ import numpy as np
 import pinocchio as pin
 import yaml
 
-from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError, unknown_choice
+from gcm_pipeline.errors import FrameNotFoundError, InputError, RobotSpecError, unknown_choice
 from gcm_pipeline.robot.chain import KinematicChain
 
 __all__ = ["Robot", "RobotSpec", "available_robots", "load_robot", "load_spec"]
@@ -393,12 +393,17 @@ class Robot:
 
     # -- kinematics ---------------------------------------------------------------------
 
-    def _as_q(self, q: Any) -> np.ndarray:
+    def as_configurations(self, q: Any) -> np.ndarray:
+        """Configurations as a float array (N, nq); one (nq,) becomes (1, nq).
+
+        Raises:
+            InputError: Any other shape.
+        """
         arr = np.asarray(q, dtype=float)
         if arr.ndim == 1:
             arr = arr[None]
         if arr.ndim != 2 or arr.shape[1] != self.nq:
-            raise ValueError(f"q must have shape (N, {self.nq}), got {np.shape(q)}")
+            raise InputError(f"q must have shape (N, {self.nq}), got {np.shape(q)}")
         return arr
 
     def fk(self, q: Any) -> np.ndarray:
@@ -410,7 +415,7 @@ class Robot:
         Returns:
             Homogeneous transforms (N, 4, 4) [m].
         """
-        rot, pos = self.chain.pose(self._as_q(q))
+        rot, pos = self.chain.pose(self.as_configurations(q))
         out = np.zeros((rot.shape[0], 4, 4))
         out[:, :3, :3] = rot
         out[:, :3, 3] = pos
@@ -427,7 +432,7 @@ class Robot:
             Jacobians (N, 6, nq); rows ``[v; omega]`` in base-frame axes
             ([m/rad] and [rad/rad]).
         """
-        return self.chain.pose_jacobian(self._as_q(q))[2]
+        return self.chain.pose_jacobian(self.as_configurations(q))[2]
 
     def fk_pinocchio(self, q: Any) -> np.ndarray:
         """Grasp-frame poses computed by Pinocchio itself, one configuration at a time.
@@ -440,7 +445,7 @@ class Robot:
         Returns:
             Homogeneous transforms (N, 4, 4) [m].
         """
-        qs = self._as_q(q)
+        qs = self.as_configurations(q)
         out = np.empty((qs.shape[0], 4, 4))
         model, data, fid = self.model, self.data, self.grasp_frame_id
         for i, qi in enumerate(qs):
@@ -459,7 +464,7 @@ class Robot:
         Returns:
             (N,) bool.
         """
-        qs = self._as_q(q)
+        qs = self.as_configurations(q)
         if strict:
             return np.all((qs > self.lower) & (qs < self.upper), axis=1)
         return np.all((qs >= self.lower) & (qs <= self.upper), axis=1)

@@ -13,6 +13,7 @@ function                                 reads / adds
                                          chart frame) -> ``Manifold``
 :func:`densify` ``(grasps, manifold,     ``densify`` -> table with ``origin``,
 cfg)``                                   ``triangle``, ``vertices``, ``weights``
+:func:`robot_from_config` ``(cfg)``      ``robot.spec`` -> ``Robot``
 :func:`check_reachability` ``(grasps,    ``ik``, ``robot.base_pose``,
 robot, cfg)``                            ``environment``, ``approach``, ``object``
                                          -> ``reachable, reason, q, pos_err, rot_err``

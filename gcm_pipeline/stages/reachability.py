@@ -48,7 +48,7 @@ from gcm_pipeline.stages import collision
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import ApproachConfig, EnvironmentConfig, ObjectConfig
+    from gcm_pipeline.config import ApproachConfig, EnvironmentConfig, ObjectConfig, Pose
     from gcm_pipeline.robot.collision import CollisionChecker
 
 __all__ = ["check_reachability", "world_to_base_targets"]
@@ -106,7 +106,7 @@ def check_reachability(
     grasps: GraspTable,
     robot: Robot | str,
     *,
-    base_pose: Any = None,
+    base_pose: Pose | np.ndarray | None = None,
     backend: str = "pinocchio",
     position_tolerance: float = 1e-4,
     orientation_tolerance: float = 1e-3,
@@ -128,7 +128,8 @@ def check_reachability(
         grasps: Table with ``dq`` (N, 8) (world poses of the grasp frame) and
             optionally ``origin``, ``vertices``, ``weights`` (provenance).
         robot: A :class:`Robot` or a spec name/path.
-        base_pose: Robot base in the world (4, 4) [m]; identity if None.
+        base_pose: Robot base in the world, a config ``Pose`` or (4, 4) [m];
+            identity if None.
         backend: IK backend, ``"pinocchio"`` or ``"mink"``.
         position_tolerance: [m], > 0.
         orientation_tolerance: [rad], > 0.

@@ -265,11 +265,19 @@ class RunResult:
         return top_grasps(self.grasps, r.top_k if n is None else n, r.metric)
 
     def summary(self) -> dict[str, Any]:
-        """The content of ``summary.json``."""
+        """The content of ``summary.json``.
+
+        ``legend`` is the colour scale of the scene and the plots: the
+        colormap, the manipulability range it spans and the colour and count
+        of every unreachable reason.
+        """
+        from gcm_pipeline.stages.publish import legend
+
         return {
             "counts": dict(self.counts),
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
             "ranking": {"metric": self.config.ranking.metric, "top": self.top()},
+            "legend": legend(self.grasps),
             "config": self.config.to_dict(),
             "versions": io.versions(),
         }

@@ -80,6 +80,12 @@ def test_run_writes_the_directory_and_returns_a_result(tmp_path):
     assert run.summary["counts"] == c
     assert run.summary["ranking"]["metric"] == "yoshikawa"
     assert len(run.summary["ranking"]["top"]) == 5
+    legend = run.summary["legend"]
+    assert legend["colormap"] == "viridis"
+    assert legend["reachable"] == c["reachable"]
+    reachable_manip = result.grasps["manipulability"][result.grasps["reachable"]]
+    vmin, vmax = legend["metric_range"]
+    assert vmin <= reachable_manip.min() and vmax >= reachable_manip.max()
     # the table read back is the same set of poses
     assert np.allclose(dq_to_matrix(run.grasps["dq"][:3]), dq_to_matrix(result.grasps["dq"][:3]))
     assert (

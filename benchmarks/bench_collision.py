@@ -25,11 +25,14 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a clone, no install
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.robot.approach import check_approach_path

@@ -36,7 +36,7 @@ import os
 import platform
 import shutil
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -54,6 +54,7 @@ __all__ = [
     "atomic_run_dir",
     "check_output_dir",
     "format_floats",
+    "looks_like_run_dir",
     "read_grasps_csv",
     "read_manifold",
     "read_run",
@@ -108,29 +109,91 @@ def _nearest_existing(path: Path) -> Path:
     return p
 
 
-def check_output_dir(path: str | Path, *, force: bool = False) -> Path:
+def looks_like_run_dir(path: str | Path) -> bool:
+    """Whether ``path`` is a directory written by a previous run.
+
+    A run directory holds ``summary.json`` and ``grasps.csv``; only such a
+    directory may be replaced with ``force``.
+    """
+    p = Path(path)
+    return p.is_dir() and all((p / name).is_file() for name in ("summary.json", "grasps.csv"))
+
+
+def _is_within(path: Path, root: Path) -> bool:
+    """Whether ``path`` is ``root`` or lies inside it (both resolved)."""
+    try:
+        path.resolve().relative_to(root.resolve())
+    except (ValueError, OSError):
+        return False
+    return True
+
+
+def _check_replaceable(out: Path, *, force: bool, keep: Iterable[str | Path] = ()) -> None:
+    """Refuse to use an existing directory ``out`` that must not be replaced.
+
+    ``out`` (which exists) may be replaced when it is empty, or, with
+    ``force``, when it is a previous run directory; never when it is the
+    working directory or one of its ancestors, or holds one of ``keep``.
+
+    Raises:
+        OutputError: Naming ``out`` and why.
+    """
+    if not out.is_dir():
+        raise OutputError(f"output path {out} exists and is not a directory")
+    if _is_within(Path.cwd(), out):
+        raise OutputError(
+            f"refusing to replace {out}: it is the working directory or one of its "
+            "parents; choose another --out"
+        )
+    for item in keep:
+        if _is_within(Path(item), out):
+            raise OutputError(
+                f"refusing to replace {out}: it holds {item}, an input of this run; "
+                "choose another --out"
+            )
+    if not any(out.iterdir()):
+        return
+    if not looks_like_run_dir(out):
+        missing = [n for n in ("summary.json", "grasps.csv") if not (out / n).is_file()]
+        raise OutputError(
+            f"refusing to replace {out}: it is not a gcm run directory "
+            f"(no {' or '.join(missing)}); choose another --out"
+        )
+    if not force:
+        raise OutputError(
+            f"output directory {out} already exists and is not empty; pass --force (CLI) "
+            "or force=True (Python) to replace it, or choose another --out"
+        )
+
+
+def check_output_dir(
+    path: str | Path, *, force: bool = False, keep: Iterable[str | Path] = ()
+) -> Path:
     """Check, before any work, that a run directory can be written at ``path``.
+
+    An existing directory is used only if it is empty, or, with ``force``,
+    if it is a previous run directory (:func:`looks_like_run_dir`); never the
+    working directory or one of its ancestors, nor a directory that holds
+    one of ``keep`` (the config file and other inputs of the run).
 
     Args:
         path: The run directory to be.
-        force: Allow replacing an existing non-empty directory.
+        force: Allow replacing an existing previous run directory.
+        keep: Files that must not be inside a directory being replaced.
 
     Returns:
         The absolute path.
 
     Raises:
         OutputError: ``path`` is a file; it is a non-empty directory and
-            ``force`` is false; a parent is a file or not writable.
+            ``force`` is false or it is not a run directory; it is the working
+            directory, an ancestor of it or holds one of ``keep``; a parent is
+            a file or not writable.
     """
     out = Path(path).expanduser().absolute()
+    keep = tuple(keep)
     if out.exists() or out.is_symlink():
-        if not out.is_dir():
-            raise OutputError(f"output path {out} exists and is not a directory")
-        if not force and any(out.iterdir()):
-            raise OutputError(
-                f"output directory {out} already exists and is not empty; "
-                "use --force to replace it (or --out DIR for another one)"
-            )
+        _check_replaceable(out, force=force, keep=keep)
     parent = _nearest_existing(out.parent)
     if not parent.is_dir():
         raise OutputError(f"cannot create output directory {out}: {parent} is not a directory")
@@ -146,19 +209,23 @@ def check_output_dir(path: str | Path, *, force: bool = False) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_run_dir(path: str | Path, *, force: bool = False) -> Iterator[Path]:
+def atomic_run_dir(
+    path: str | Path, *, force: bool = False, keep: Iterable[str | Path] = ()
+) -> Iterator[Path]:
     """Yield a temporary sibling directory that becomes ``path`` on success.
 
     On a clean exit of the ``with`` block the temporary directory is renamed
     to ``path`` (an existing directory there is replaced only then, and only
-    when ``force`` is set or it is empty). On any exception, including
+    when it is empty or, with ``force``, a previous run directory; see
+    :func:`check_output_dir`). On any exception, including
     :class:`KeyboardInterrupt`, the temporary directory is removed and the
     exception propagates; an existing ``path`` is left untouched.
 
     Raises:
         OutputError: See :func:`check_output_dir`.
     """
-    out = check_output_dir(path, force=force)
+    keep = tuple(keep)
+    out = check_output_dir(path, force=force, keep=keep)
     created = _missing_parents(out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -169,7 +236,7 @@ def atomic_run_dir(path: str | Path, *, force: bool = False) -> Iterator[Path]:
     try:
         yield tmp
         os.chmod(tmp, 0o755 & ~_umask())
-        _replace_dir(tmp, out, force=force)
+        _replace_dir(tmp, out, force=force, keep=keep)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         _remove_empty(created)
@@ -201,14 +268,11 @@ def _umask() -> int:
     return mask
 
 
-def _replace_dir(tmp: Path, out: Path, *, force: bool) -> None:
+def _replace_dir(tmp: Path, out: Path, *, force: bool, keep: tuple[str | Path, ...]) -> None:
     """Rename ``tmp`` to ``out``, replacing an existing ``out`` (checked again)."""
     old: Path | None = None
     if out.exists() or out.is_symlink():
-        if not out.is_dir():
-            raise OutputError(f"output path {out} exists and is not a directory")
-        if any(out.iterdir()) and not force:
-            raise OutputError(f"output directory {out} appeared during the run; use --force")
+        _check_replaceable(out, force=force, keep=keep)
         old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
         os.rename(out, old / out.name)
     try:

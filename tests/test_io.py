@@ -161,11 +161,27 @@ def test_atomic_dir_success_and_failure(tmp_path):
         assert _siblings(tmp_path) == ["run"]
 
 
-def test_existing_directory_needs_force_and_is_replaced_at_the_end(tmp_path):
-    out = tmp_path / "run"
-    out.mkdir()
-    (out / "old.txt").write_text("old")
-    with pytest.raises(OutputError, match="already exists.*--force"):
+def _fake_run(path: Path, marker: str = "old") -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    for name in ("summary.json", "grasps.csv"):
+        (path / name).write_text(marker)
+    return path
+
+
+def test_looks_like_run_dir(tmp_path):
+    assert not io.looks_like_run_dir(tmp_path)
+    assert not io.looks_like_run_dir(tmp_path / "nope")
+    (tmp_path / "summary.json").write_text("{}")
+    assert not io.looks_like_run_dir(tmp_path)  # grasps.csv missing
+    (tmp_path / "grasps.csv").write_text("")
+    assert io.looks_like_run_dir(tmp_path)
+    assert not io.looks_like_run_dir(tmp_path / "grasps.csv")
+
+
+def test_existing_run_needs_force_and_is_replaced_at_the_end(tmp_path):
+    out = _fake_run(tmp_path / "run")
+    msg = "already exists.*--force \\(CLI\\) or force=True \\(Python\\)"
+    with pytest.raises(OutputError, match=msg):
         io.check_output_dir(out)
     with pytest.raises(OutputError):
         with io.atomic_run_dir(out):
@@ -175,11 +191,59 @@ def test_existing_directory_needs_force_and_is_replaced_at_the_end(tmp_path):
         with io.atomic_run_dir(out, force=True) as tmp:
             (tmp / "new.txt").write_text("new")
             raise RuntimeError
-    assert _siblings(out) == ["old.txt"] and _siblings(tmp_path) == ["run"]
+    assert _siblings(out) == ["grasps.csv", "summary.json"] and _siblings(tmp_path) == ["run"]
     with io.atomic_run_dir(out, force=True) as tmp:
         (tmp / "new.txt").write_text("new")
-        assert (out / "old.txt").exists()  # still the old one until the end
+        assert (out / "summary.json").exists()  # still the old one until the end
     assert _siblings(out) == ["new.txt"] and _siblings(tmp_path) == ["run"]
+
+
+def test_force_replaces_only_run_directories(tmp_path):
+    out = tmp_path / "data"
+    out.mkdir()
+    (out / "precious.txt").write_text("precious")
+    (out / "summary.json").write_text("{}")  # half a run is not a run
+    for force in (False, True):
+        with pytest.raises(OutputError) as info:
+            io.check_output_dir(out, force=force)
+        assert str(info.value) == (
+            f"refusing to replace {out}: it is not a gcm run directory (no grasps.csv); "
+            "choose another --out"
+        )
+        with pytest.raises(OutputError, match="not a gcm run directory"):
+            with io.atomic_run_dir(out, force=force):
+                pass
+    assert _siblings(out) == ["precious.txt", "summary.json"] and _siblings(tmp_path) == ["data"]
+
+
+def test_force_never_replaces_the_working_directory_or_a_folder_of_inputs(tmp_path, monkeypatch):
+    work = _fake_run(tmp_path / "work")
+    monkeypatch.chdir(work)
+    for path in (work, Path("."), tmp_path, Path("..")):
+        with pytest.raises(OutputError, match="working directory or one of its parents"):
+            io.check_output_dir(path, force=True)
+    runs = _fake_run(tmp_path / "runs")
+    cfg = runs / "config.yaml"
+    cfg.write_text("x")
+    with pytest.raises(OutputError, match=f"it holds {cfg}, an input of this run"):
+        io.check_output_dir(runs, force=True, keep=[cfg])
+    with pytest.raises(OutputError, match="an input of this run"):
+        with io.atomic_run_dir(runs, force=True, keep=[cfg]):
+            pass
+    # another run next to the input is fine
+    assert io.check_output_dir(tmp_path / "other", force=True, keep=[cfg]) == tmp_path / "other"
+    assert _siblings(runs) == ["config.yaml", "grasps.csv", "summary.json"]
+    assert _siblings(tmp_path) == ["runs", "work"]
+
+
+def test_a_directory_appearing_during_the_run_is_checked_again(tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(OutputError, match="not a gcm run directory"):
+        with io.atomic_run_dir(out, force=True) as tmp:
+            (tmp / "a").write_text("")
+            out.mkdir()
+            (out / "precious.txt").write_text("x")
+    assert _siblings(out) == ["precious.txt"] and _siblings(tmp_path) == ["run"]
 
 
 def test_failed_run_removes_the_parents_it_created(tmp_path):

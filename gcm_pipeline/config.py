@@ -17,8 +17,10 @@ y and z axes (the URDF convention): ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
 
 from __future__ import annotations
 
+import copy
 import difflib
 import math
+import os
 import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -339,6 +341,10 @@ class RankingConfig(_Section):
         return v
 
 
+#: ``tcp://host:port`` (host: a name, an IPv4 address or ``[IPv6]``).
+_ZMQ_URL = re.compile(r"tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):([0-9]{1,5})")
+
+
 class PublishConfig(_Section):
     """What to publish: live meshcat, a self-contained HTML scene, PNG plots."""
 
@@ -348,6 +354,16 @@ class PublishConfig(_Section):
     html: bool = True
     plots: bool = True
     connect_timeout_s: PositiveFloat = 5.0
+
+    @field_validator("zmq_url")
+    @classmethod
+    def _zmq_url_format(cls, v: str | None) -> str | None:
+        if v is None:
+            return v
+        match = _ZMQ_URL.fullmatch(v)
+        if match is None or not 0 < int(match.group(2)) < 65536:
+            raise ValueError(f"expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:6000, got {v!r}")
+        return v
 
 
 class OutputConfig(_Section):
@@ -398,6 +414,9 @@ class Config(_Section):
     def from_dict(cls, data: Any, *, source: str = "config") -> Config:
         """Validate a plain dict (as read from YAML) into a :class:`Config`.
 
+        Relative file paths (``candidates.path``, meshes, a ``robot.spec``
+        path) are made absolute against the working directory.
+
         Raises:
             ConfigError: Naming ``source``, the dotted key and the problem.
         """
@@ -409,6 +428,8 @@ class Config(_Section):
             raise ConfigError(
                 f"{source}: a config is a mapping of sections, got {type(data).__name__}"
             )
+        data = copy.deepcopy(data)
+        _resolve_paths(data, Path.cwd())
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
@@ -559,8 +580,11 @@ def read_yaml(path: Path) -> Any:
 def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Load, override and validate a YAML config.
 
-    Relative paths inside the config (``candidates.path``, ``object.mesh``)
-    are resolved against the config file's directory.
+    Relative file paths inside the config (``candidates.path``,
+    ``object.mesh``, ``environment.obstacles[].mesh`` and a ``robot.spec``
+    path) are resolved against the config file's directory and stored as
+    absolute paths, so the resolved config (the run directory's
+    ``config.yaml``) reads the same files from anywhere.
 
     Args:
         path: The YAML file.
@@ -581,17 +605,18 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
         raise ConfigError(f"{path}: a config is a mapping of sections, got {type(data).__name__}")
     for assignment in overrides:
         _set_override(data, assignment)
-    _resolve_paths(data, path.parent)
+    _resolve_paths(data, Path(os.path.abspath(path)).parent)
     return Config.from_dict(data or None, source=str(path))
 
 
 def _resolve_paths(data: dict[str, Any], base: Path) -> None:
-    """Make relative file paths in the config relative to the config's directory.
+    """Make the file paths in the config absolute, relative ones against ``base``.
 
     ``candidates.path``, ``object.mesh``, ``environment.obstacles[].mesh`` and a
     ``robot.spec`` that is a path (ends in ``.yaml``/``.yml`` or has a ``/``)
-    are taken relative to ``base``, unless only the path relative to the
-    working directory exists (e.g. given with ``--set``).
+    are taken relative to ``base`` (the config's directory, absolute), unless
+    only the path relative to the working directory exists (e.g. given with
+    ``--set``); either way the result is absolute (normalised, symlinks kept).
     """
 
     def fix(section: Any, key: str, only_paths: bool = False) -> None:
@@ -601,9 +626,9 @@ def _resolve_paths(data: dict[str, Any], base: Path) -> None:
         if only_paths and not (text.endswith((".yaml", ".yml")) or "/" in text):
             return
         p = Path(text).expanduser()
-        if p.is_absolute() or (p.exists() and not (base / p).exists()):
-            return
-        section[key] = str(base / p)
+        if not p.is_absolute() and not (p.exists() and not (base / p).exists()):
+            p = base / p
+        section[key] = os.path.abspath(p)
 
     fix(data.get("candidates"), "path")
     fix(data.get("object"), "mesh")

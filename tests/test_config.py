@@ -120,6 +120,10 @@ def test_unknown_keys_suggest_the_closest(data, expected):
         (lambda d: d.update(object=None), "needs object.shape 'cylinder'"),
         (lambda d: d["object"].update(shape="sphere", dims={"radius": 1}), "needs object.shape"),
         (lambda d: d.update(candidates={"source": "file"}), "needs 'path'"),
+        (lambda d: d.update(publish={"zmq_url": "notaurl"}), "publish.zmq_url: expected tcp://"),
+        (lambda d: d.update(publish={"zmq_url": "tcp://127.0.0.1"}), "publish.zmq_url"),
+        (lambda d: d.update(publish={"zmq_url": "tcp://host:99999"}), "publish.zmq_url"),
+        (lambda d: d.update(publish={"zmq_url": "http://host:6000"}), "publish.zmq_url"),
     ],
 )
 def test_bad_values_name_the_key(mutate, expected):
@@ -246,3 +250,32 @@ def test_relative_paths_prefer_the_config_directory(tmp_path, monkeypatch):
     assert cfg.environment.obstacles[0].mesh == tmp_path / "cfg" / "missing.stl"
     # a shipped robot name stays a name
     assert load_config(ROOT / "configs" / "box.yaml").robot.spec == "panda"
+
+
+@pytest.mark.parametrize("url", ["tcp://127.0.0.1:6000", "tcp://localhost:1", "tcp://[::1]:6000"])
+def test_good_zmq_urls(url):
+    assert Config.from_dict(_with(publish={"zmq_url": url})).publish.zmq_url == url
+
+
+def test_file_paths_become_absolute(tmp_path, monkeypatch):
+    """The resolved config reads the same files from any working directory."""
+    monkeypatch.chdir(ROOT)
+    cfg = load_config(Path("configs") / "from_file.yaml")
+    assert cfg.candidates.path == ROOT / "configs" / "data" / "mug_grasps.npy"
+    assert cfg.to_dict()["candidates"]["path"] == str(ROOT / "configs" / "data" / "mug_grasps.npy")
+    (tmp_path / "m.stl").write_text("")
+    monkeypatch.chdir(tmp_path)
+    data = {
+        "object": {"shape": "mesh", "mesh": "m.stl"},
+        "candidates": {"source": "file", "path": "sub/../g.npy"},
+        "environment": {"obstacles": [{"shape": "mesh", "mesh": "m.stl"}]},
+        "robot": {"spec": "arms/arm.yaml"},
+    }
+    cfg = Config.from_dict(data)
+    assert cfg.object is not None and cfg.object.mesh == tmp_path / "m.stl"
+    assert cfg.candidates.path == tmp_path / "g.npy"
+    assert cfg.environment.obstacles[0].mesh == tmp_path / "m.stl"
+    assert cfg.robot.spec == str(tmp_path / "arms" / "arm.yaml")
+    assert data["candidates"]["path"] == "sub/../g.npy"  # the input is not changed
+    # the resolved config validates to itself
+    assert Config.from_dict(cfg.to_dict()) == cfg

@@ -13,10 +13,11 @@ from gcm_pipeline.geometry.dualquat import (
     dq_from_matrix,
     dq_from_pos_quat,
     dq_mul,
+    dq_to_matrix,
     dq_translation,
 )
 from gcm_pipeline.geometry.triangulation import delaunay
-from gcm_pipeline.stages.manifold import Manifold, build_manifold
+from gcm_pipeline.stages.manifold import STANDOFF, Manifold, build_manifold
 from gcm_pipeline.table import GraspTable
 
 IDENT = np.array([1.0, 0.0, 0.0, 0.0])
@@ -45,8 +46,14 @@ def cylinder_grasps(
     offset: float = 0.0,
     seed: int = 0,
     frame: np.ndarray | None = None,
+    position_noise: float = 0.0,
 ) -> np.ndarray:
-    """Radial side grasps on a grid of angles x heights (x along the axis, z toward it)."""
+    """Radial side grasps on a grid of angles x heights (x along the axis, z toward it).
+
+    ``radius`` is the tool points' distance from the axis (the object's radius
+    minus the grasp depth); ``position_noise`` [m] moves each tool point by a
+    Gaussian offset (orientations unchanged).
+    """
     rng = np.random.default_rng(seed)
     a, h = np.meshgrid(
         offset + np.arange(angles) * 2 * np.pi / angles, np.linspace(0.02, 0.2, heights)
@@ -59,6 +66,7 @@ def cylinder_grasps(
     m[:, :3, 2] = -radial
     m[:, :3, 1] = np.cross(m[:, :3, 2], m[:, :3, 0])
     m[:, :3, 3] = radius * radial + h[:, None] * [0.0, 0.0, 1.0]
+    m[:, :3, 3] += position_noise * rng.normal(size=(a.size, 3))
     m[:, 3, 3] = 1.0
     if frame is None:
         frame = np.eye(4)
@@ -154,8 +162,10 @@ def test_cylindrical_mesh_closes_around_the_object(triangulator, with_frame, off
     _, counts = np.unique(edges, axis=0, return_counts=True)
     assert counts.max() == 2
     assert (counts == 1).sum() == 2 * n_a
-    # Chart: arc length at the median radius and the height along the axis.
-    assert np.ptp(m.chart[:, 0]) < 2 * np.pi * 0.04
+    # Chart: arc length at the standoff points' median radius (tool point
+    # radius + standoff for radial grasps) and the height along the axis.
+    assert m.period == pytest.approx(2 * np.pi * (0.04 + STANDOFF))
+    assert np.ptp(m.chart[:, 0]) < m.period
     if with_frame:
         np.testing.assert_allclose(
             np.sort(np.unique(m.chart[:, 1].round(9))), np.linspace(0.02, 0.2, n_h)
@@ -178,7 +188,7 @@ def test_blend_chart_unwraps_the_seam():
     m = build_manifold(
         table(cylinder_grasps(12, 3)), projection="cylindrical", frame=object_frame()
     )
-    assert m.period == pytest.approx(2 * np.pi * 0.04)
+    assert m.period == pytest.approx(2 * np.pi * (0.04 + STANDOFF))
     w = np.full((len(m.triangles), 3), 1.0 / 3.0)
     centroids = m.blend_chart(m.triangles, w)
     # every centroid lies between its triangle's columns: within one step of each vertex
@@ -206,6 +216,77 @@ def test_cylindrical_with_noise_and_a_tilted_object_frame():
     assert seam >= 2 * 4  # the seam between the last and the first column is closed
     assert len(m.unused) == 0
     np.testing.assert_allclose(m.frame, frame)
+
+
+BOTTLE_RADIUS = 0.035
+
+
+@pytest.mark.parametrize("triangulator", ["qhull", "bowyer_watson"])
+@pytest.mark.parametrize("with_frame", [True, False])
+@pytest.mark.parametrize("depth", [0.0, 0.01, 0.025, 0.032, BOTTLE_RADIUS])
+def test_cylindrical_band_of_deep_side_grasps(triangulator, with_frame, depth):
+    """Side grasps deep in a thin bottle, down to tool points on the axis: the full band.
+
+    The angles come from the approach, not from the noisy tool point near the
+    axis, and the arc scale does not shrink with the depth.
+    """
+    n_a, n_h = 12, 5
+    frame = object_frame((0.4, 0.2, 0.1), (0.3, 0.5, 0.0))
+    dq = cylinder_grasps(
+        n_a, n_h, radius=BOTTLE_RADIUS - depth, frame=frame, position_noise=0.001, seed=3
+    )
+    m = build_manifold(
+        table(dq),
+        projection="cylindrical",
+        triangulator=triangulator,
+        frame=frame if with_frame else None,
+        max_edge_length=0.08,
+        max_edge_angle_deg=45.0,
+    )
+    assert len(m.triangles) == n_a * (n_h - 1) * 2  # as many as the shallow grid
+    assert len(m.unused) == 0
+    # dropped: only slivers along the noisy top and bottom rims (one ring each)
+    ring = m.dropped // n_a
+    assert (ring == ring[:, :1]).all() and np.isin(ring[:, 0], [0, n_h - 1]).all()
+    assert angular_span(m, n_a, n_h).max() == 1
+    col = m.triangles % n_a
+    seam = ((col == n_a - 1).any(axis=1) & (col == 0).any(axis=1)).sum()
+    assert seam == 2 * (n_h - 1)  # the seam is closed
+    # one reference radius: the standoff points' median distance from the axis
+    assert m.period == pytest.approx(2 * np.pi * (BOTTLE_RADIUS - depth + STANDOFF), abs=3e-3)
+    assert abs(abs(m.frame[:3, 2] @ frame[:3, 2]) - 1.0) < 1e-4  # axis found without a frame
+    # chart angle = the approach's angle about the axis (grid angle, +- the noise)
+    theta = 2 * np.pi * m.chart[:, 0] / m.period
+    grid = np.arange(n_a) * 2 * np.pi / n_a
+    if with_frame:
+        d = np.angle(np.exp(1j * (theta - np.tile(grid, n_h))))
+        assert np.abs(d).max() < 0.05
+
+
+@pytest.mark.parametrize("heights", [2, 3, 8])
+def test_cylindrical_axis_without_frame_with_tool_points_on_the_axis(heights):
+    """Positions scattered about the axis line: the standoff points pick the axis."""
+    frame = object_frame((0.4, 0.2, 0.1), (0.3, 0.5, 0.0))
+    for seed in range(20):
+        dq = cylinder_grasps(12, heights, radius=0.0, frame=frame, position_noise=0.001, seed=seed)
+        m = build_manifold(table(dq), projection="cylindrical", max_edge_angle_deg=45.0)
+        assert abs(abs(m.frame[:3, 2] @ frame[:3, 2]) - 1.0) < 1e-3
+        assert len(m.triangles) == 12 * (heights - 1) * 2  # (rim slivers dropped)
+
+
+def test_cylindrical_top_grasps_keep_the_position_angle():
+    """Grasps approached along the axis: the standoff point is straight above them."""
+    n = 16
+    ang = np.arange(n) * 2 * np.pi / n
+    pos = np.column_stack((0.03 * np.cos(ang), 0.03 * np.sin(ang), np.tile([0.1, 0.12], n // 2)))
+    m = np.tile(np.eye(4), (n, 1, 1))
+    m[:, :3, :3] = np.diag([1.0, -1.0, -1.0])  # z (approach) straight down the axis
+    m[:, :3, 3] = pos
+    man = build_manifold(table(dq_from_matrix(m)), projection="cylindrical", frame=np.eye(4))
+    assert man.period == pytest.approx(2 * np.pi * 0.03)
+    np.testing.assert_allclose(
+        np.angle(np.exp(1j * (2 * np.pi * man.chart[:, 0] / man.period - ang))), 0.0, atol=1e-9
+    )
 
 
 # ----------------------------------------------------------------------------- spherical
@@ -252,6 +333,26 @@ def test_spherical_chart_gives_the_spherical_delaunay_mesh(triangulator, with_fr
         axis=1,
     )
     assert np.unique(edges, axis=0, return_counts=True)[1].max() == 2
+
+
+@pytest.mark.parametrize("depth", [0.02, 0.045, 0.05])
+def test_spherical_chart_of_deep_grasps_keeps_the_shallow_mesh(depth):
+    """Tool points near the sphere's centre: directions come from the approach."""
+    centre = np.array([0.5, 0.0, 0.2])
+    shallow = fibonacci_sphere_grasps()
+    m = dq_to_matrix(shallow)
+    rng = np.random.default_rng(0)
+    m[:, :3, 3] = centre + (m[:, :3, 3] - centre) * (0.05 - depth) / 0.05
+    m[:, :3, 3] += 1e-4 * rng.normal(size=(len(m), 3))
+    frame = object_frame(centre)
+    ref = build_manifold(table(shallow), projection="spherical", frame=frame)
+    deep = build_manifold(table(dq_from_matrix(m)), projection="spherical", frame=frame)
+    assert {tuple(t) for t in np.sort(deep.triangles, 1)} == {
+        tuple(t) for t in np.sort(ref.triangles, 1)
+    }
+    # one scale: twice the standoff points' median distance from the centre
+    scale = np.linalg.norm(deep.chart, axis=1) / np.linalg.norm(ref.chart, axis=1)
+    np.testing.assert_allclose(scale, (0.05 - depth + STANDOFF) / (0.05 + STANDOFF), rtol=1e-2)
 
 
 def test_spherical_error_grasp_at_the_pole():

@@ -13,28 +13,45 @@ Charts (``projection``)
                 (the paper's known problem); only the first is a vertex.
 ``pca``         coordinates [m] in the best-fit plane of the positions (the two
                 principal axes), for flat grasp sets in any orientation.
-``cylindrical`` ``(r * theta, h)`` [m]: arc length at the median radius ``r``
-                and height along the axis, for grasps around an elongated
-                object. The chart is periodic in ``theta``: it is triangulated
-                with copies shifted by one turn and every triangle is kept
-                once, so the mesh closes around the object with no seam at
-                +-pi. ``theta`` of the stored chart is in [-pi, pi); a
-                triangle over the seam is counter-clockwise in the unwrapped
-                chart.
-``spherical``   stereographic projection (scaled by twice the median radius
-                [m]) from the pole below the object. It maps circles to
-                circles, so the planar Delaunay triangulation is the spherical
-                one; triangles whose circumcircle contains the pole are left
-                out (grasp sets rarely surround the pole).
+``cylindrical`` ``(R * theta, h)`` [m]: arc length at one reference radius
+                ``R`` and height along the axis, for grasps around an
+                elongated object (see *Angles* below). The chart is periodic
+                in ``theta`` with period ``2 pi R``: it is triangulated with
+                copies shifted by one turn and every triangle is kept once, so
+                the mesh closes around the object with no seam at +-pi.
+                ``theta`` of the stored chart is in [-pi, pi); a triangle over
+                the seam is counter-clockwise in the unwrapped chart.
+``spherical``   stereographic projection (scaled by ``2 R``, dimensionless
+                directions times [m]) from the pole below the object. It maps
+                circles to circles, so the planar Delaunay triangulation is the
+                spherical one; triangles whose circumcircle contains the pole
+                are left out (grasp sets rarely surround the pole).
 =============== ===============================================================
 
 The cylindrical and spherical charts use the object frame ``frame`` (its z
 axis is the cylinder axis / the direction away from the pole, its origin the
 centre, its x axis the ``theta = 0`` direction). Without it they use the
-grasps' centroid and the principal axis about which they lie closest to a
-cylinder (the largest-variance axis of a tall grasp set, the normal of a flat
-ring), and for the sphere the least-squares sphere centre and the grasps'
+grasps' centroid and the principal axis (of the positions) about which the
+standoff points (see *Angles*) lie closest to a cylinder (the largest-variance
+axis of a tall grasp set, the normal of a flat ring; judged on the standoff
+points because deep side grasps put the tool points on the axis itself), and
+for the sphere the least-squares sphere centre and the grasps'
 mean direction from it (the pole is opposite).
+
+Angles
+------
+The angle of grasp ``i`` about the axis (cylindrical) or its direction from
+the centre (spherical) is that of ``v_i = (p_i - o) - L a_i`` (for the
+cylinder only its component perpendicular to the axis), with ``p_i`` the grasp
+position, ``o`` the chart origin, ``a_i`` the approach axis (grasp frame z,
+into the object) and ``L`` = :data:`STANDOFF`: the point one standoff back
+along the approach. A grasp whose tool point sits on or near the axis (a
+centred side grasp deep in a thin bottle, as parallel grippers and ACRONYM
+imports give) still gets the angle it is approached from instead of the noise
+of its position; for radial grasps it is the position's angle and for grasps
+approached along the axis (top grasps) it is the position's angle too. The
+reference radius ``R`` is the median ``|v_i|`` (the same for every grasp), so
+the chart's scale does not shrink as the tool points move toward the axis.
 
 Pruning
 -------
@@ -59,14 +76,21 @@ from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import (
     dq_angle_distance,
     dq_from_matrix,
-    dq_translation,
+    dq_to_matrix,
 )
 from gcm_pipeline.geometry.triangulation import TRIANGULATORS, check_triangulable, delaunay
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["PROJECTIONS", "Manifold", "build_manifold", "candidate_poses"]
+__all__ = ["PROJECTIONS", "STANDOFF", "Manifold", "build_manifold", "candidate_poses"]
 
 PROJECTIONS = ("cylindrical", "pca", "spherical", "xy")
+
+#: Standoff [m] along the approach that gives a grasp its angle in the
+#: cylindrical and spherical charts: the angle is taken of the point one
+#: standoff back along the approach, so a grasp whose tool point sits on or
+#: near the axis (centre) still gets the angle it is approached from; for
+#: grasps approached along the axis (top grasps) it is the position's angle.
+STANDOFF = 0.10
 
 _EMPTY_TRIS = np.zeros((0, 3), dtype=np.int64)
 _JITTER = 1e-9  # relative tie-breaking offset of the periodic chart
@@ -77,7 +101,8 @@ class Manifold:
     """A triangle mesh over the grasp candidates (arrays read-only).
 
     Attributes:
-        chart: (N, 2) chart coordinates [m] of the N candidates, in table order.
+        chart: (N, 2) chart coordinates [m] of the N candidates, in table order
+            (stereographic ones scaled by ``2 R`` for ``spherical``).
         triangles: (T, 3) int candidate row ids of the kept triangles
             (counter-clockwise in the chart, unwrapped for ``cylindrical``).
         dropped: (D, 3) int candidate row ids of the pruned triangles.
@@ -87,7 +112,8 @@ class Manifold:
         frame: (4, 4) pose of the chart frame in the world (the object frame or
             the estimated one; identity for ``xy``).
         period: Period [m] of the chart's first coordinate (one turn,
-            ``2 pi r`` for ``cylindrical``), else ``None``.
+            ``2 pi R`` for ``cylindrical``, ``R`` the chart's reference
+            radius), else ``None``.
     """
 
     chart: np.ndarray
@@ -274,21 +300,57 @@ def _check_chart(chart: np.ndarray, projection: str) -> None:
         raise GeometryError(f"{projection} chart: {exc}") from None
 
 
+def _approach_points(
+    pos: np.ndarray, approach: np.ndarray, centre: np.ndarray, rot: np.ndarray, *, cyl: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Chart-frame positions and the points that give each grasp its direction.
+
+    Args:
+        pos: (N, 3) world grasp positions.
+        approach: (N, 3) world approach axes (grasp frame z, into the object).
+        centre: (3,) chart origin.
+        rot: (3, 3) chart axes (columns; z is the cylinder axis / pole direction).
+        cyl: Cylindrical chart: drop the components along the axis (``_|_``).
+
+    Returns:
+        ``rel`` (N, 3), the positions in the chart frame, and ``v`` (N, 3), the
+        points :data:`STANDOFF` back along the approach in the chart frame
+        (their axial component zeroed when ``cyl``).
+    """
+    rel = (pos - centre) @ rot
+    v = rel - STANDOFF * (approach @ rot)
+    if cyl:
+        v[:, 2] = 0.0
+    return rel, v
+
+
+def _chart_radius(standoff_dist: np.ndarray, projection: str) -> float:
+    """Reference radius [m] of the chart: the median distance of the standoff points."""
+    radius = float(np.median(standoff_dist))
+    if not radius > 0:
+        where = "axis" if projection == "cylindrical" else "centre"
+        raise GeometryError(
+            f"{projection} chart: the grasps' standoff points lie on the {where} (radius 0)"
+        )
+    return radius
+
+
 def _cylindrical(
-    pos: np.ndarray, frame: np.ndarray | None, triangulator: str
+    pos: np.ndarray, approach: np.ndarray, frame: np.ndarray | None, triangulator: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
     else:
         centre, axes = _principal_axes(pos)
-        k = _cylinder_axis(pos - centre, axes)
+        # Which principal axis: judged on the standoff points, which lie on a
+        # cylinder even when the tool points crowd onto the axis (deep grasps).
+        standoff = pos - STANDOFF * approach
+        k = _cylinder_axis(standoff - standoff.mean(axis=0), axes)
         rot = np.column_stack((axes[:, (k + 1) % 3], axes[:, (k + 2) % 3], axes[:, k]))
-    rel = (pos - centre) @ rot
-    theta = np.arctan2(rel[:, 1], rel[:, 0])
+    rel, v = _approach_points(pos, approach, centre, rot, cyl=True)
+    theta = np.arctan2(v[:, 1], v[:, 0])
     theta[theta >= np.pi] -= 2 * np.pi
-    radius = float(np.median(np.hypot(rel[:, 0], rel[:, 1])))
-    if not radius > 0:
-        raise GeometryError("cylindrical chart: the grasps lie on the cylinder axis (radius 0)")
+    radius = _chart_radius(np.hypot(v[:, 0], v[:, 1]), "cylindrical")
     chart = np.column_stack((radius * theta, rel[:, 2]))
     _check_chart(chart, "cylindrical")
     # Periodic triangulation: three copies one turn apart; tiny per-candidate
@@ -323,7 +385,7 @@ def _cylindrical(
 
 
 def _spherical(
-    pos: np.ndarray, frame: np.ndarray | None, triangulator: str
+    pos: np.ndarray, approach: np.ndarray, frame: np.ndarray | None, triangulator: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
@@ -334,13 +396,14 @@ def _spherical(
             _, axes = _principal_axes(pos)
             mean_dir = axes[:, 2]
         rot = _basis_from_axis(mean_dir)
-    rel = (pos - centre) @ rot
-    dist = np.linalg.norm(rel, axis=1)
-    if (dist <= 0).any():
+    _, v = _approach_points(pos, approach, centre, rot, cyl=False)
+    vdist = np.linalg.norm(v, axis=1)
+    if (vdist <= 0).any():
         raise GeometryError(
-            f"spherical chart: grasp {int(np.argmax(dist <= 0))} is at the centre of the chart"
+            f"spherical chart: grasp {int(np.argmax(vdist <= 0))} is at the centre of the chart"
         )
-    u = rel / dist[:, None]
+    radius = _chart_radius(vdist, "spherical")
+    u = v / vdist[:, None]
     denom = 1.0 + u[:, 2]
     bad = denom < 1e-9
     if bad.any():
@@ -348,7 +411,7 @@ def _spherical(
             f"spherical chart: grasp {int(np.argmax(bad))} lies at the projection pole "
             "(straight below the centre)"
         )
-    chart = 2.0 * float(np.median(dist)) * u[:, :2] / denom[:, None]
+    chart = 2.0 * radius * u[:, :2] / denom[:, None]
     return chart, _triangulate(chart, "spherical", triangulator), _pose(centre, rot)
 
 
@@ -409,14 +472,15 @@ def build_manifold(
         if value is not None and not (0 < float(value) <= upper):
             raise GeometryError(f"{name} must be in (0, {upper:g}], got {value!r}")
     dq = candidate_poses(grasps)
-    pos = dq_translation(dq)
+    pose = dq_to_matrix(dq)
+    pos, approach = pose[:, :3, 3], pose[:, :3, 2]
     frame_arr = None if frame is None else np.asarray(frame, dtype=np.float64)
 
     period = None
     if projection == "cylindrical":
-        chart, tris, used_frame, period = _cylindrical(pos, frame_arr, triangulator)
+        chart, tris, used_frame, period = _cylindrical(pos, approach, frame_arr, triangulator)
     elif projection == "spherical":
-        chart, tris, used_frame = _spherical(pos, frame_arr, triangulator)
+        chart, tris, used_frame = _spherical(pos, approach, frame_arr, triangulator)
     else:
         chart, tris, used_frame = _planar(pos, projection, triangulator)
 

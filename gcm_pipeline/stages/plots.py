@@ -75,7 +75,7 @@ _DPI = 110
 _AXIS_NAMES = {
     "xy": ("world x", "world y"),
     "pca": ("first principal axis", "second principal axis"),
-    "cylindrical": ("arc length r·θ", "height along the axis"),
+    "cylindrical": ("arc length R·θ", "height along the axis"),
     "spherical": ("stereographic u", "stereographic v"),
 }
 _COUNT_ORDER = ("candidates", "triangles", "triangles_dropped", "densified", "reachable")
@@ -99,14 +99,18 @@ def _save(fig: Any, path: Path) -> Path:
 
 
 def chart_period(grasps: GraspTable, manifold: Any) -> float | None:
-    """Period [m] of the chart's u axis (``2 pi r`` for ``cylindrical``), else None.
+    """Period [m] of the chart's u axis (``2 pi R`` for ``cylindrical``), else None.
 
-    The cylindrical chart is ``(r * theta, h)`` with ``r`` the candidates'
-    median distance from the axis of ``manifold.frame``.
+    The manifold's own ``period`` when it has one. Otherwise (a manifold-like
+    object without it) ``2 pi r`` with ``r`` the candidates' median distance
+    from the axis of ``manifold.frame``.
     """
     frame = getattr(manifold, "frame", None)
     if getattr(manifold, "projection", None) != "cylindrical" or frame is None:
         return None
+    period = getattr(manifold, "period", None)
+    if period is not None:
+        return float(period)
     if "dq" not in grasps:
         return None
     from gcm_pipeline.geometry.dualquat import dq_translation
@@ -248,8 +252,9 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             zorder=4,
         )
     u_name, v_name = _AXIS_NAMES.get(projection, ("chart u", "chart v"))
-    ax.set_xlabel(f"{u_name} [m]")
-    ax.set_ylabel(f"{v_name} [m]")
+    unit = "" if projection == "spherical" else " [m]"  # stereographic: dimensionless
+    ax.set_xlabel(f"{u_name}{unit}")
+    ax.set_ylabel(f"{v_name}{unit}")
     title = "Grasp manifold in its 2-D chart"
     ax.set_title(f"{title} ({projection} projection)" if projection else title)
     ax.set_aspect("equal", adjustable="datalim")

@@ -20,6 +20,7 @@ __all__ = [
     "PLOT_FILES",
     "REASON_COLORS",
     "candidate_rows",
+    "chart_axis_labels",
     "chart_period",
     "chart_points",
     "reason_palette",
@@ -96,6 +97,13 @@ def _save(fig: Any, path: Path) -> Path:
     except OSError as exc:
         raise PublishError(f"cannot write plot {str(path)!r}: {exc}") from exc
     return path
+
+
+def chart_axis_labels(projection: str | None) -> tuple[str, str]:
+    """Axis labels (u, v) of a chart plot; the stereographic ones have no unit."""
+    u_name, v_name = _AXIS_NAMES.get(projection or "", ("chart u", "chart v"))
+    unit = "" if projection == "spherical" else " [m]"
+    return f"{u_name}{unit}", f"{v_name}{unit}"
 
 
 def chart_period(grasps: GraspTable, manifold: Any) -> float | None:
@@ -251,10 +259,9 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             label="candidates",
             zorder=4,
         )
-    u_name, v_name = _AXIS_NAMES.get(projection, ("chart u", "chart v"))
-    unit = "" if projection == "spherical" else " [m]"  # stereographic: dimensionless
-    ax.set_xlabel(f"{u_name}{unit}")
-    ax.set_ylabel(f"{v_name}{unit}")
+    u_label, v_label = chart_axis_labels(projection)
+    ax.set_xlabel(u_label)
+    ax.set_ylabel(v_label)
     title = "Grasp manifold in its 2-D chart"
     ax.set_title(f"{title} ({projection} projection)" if projection else title)
     ax.set_aspect("equal", adjustable="datalim")

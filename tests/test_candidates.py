@@ -368,5 +368,15 @@ def test_default_rings_space_grasps_evenly():
 
 
 def test_depth_past_the_centre_is_an_error():
-    with pytest.raises(ConfigError, match="candidates.depth"):
+    with pytest.raises(ConfigError, match="candidates.depth .* must not exceed the radius"):
         generate_candidates(_cfg("cylinder_side", depth=0.05))
+
+
+def test_depth_equal_to_the_radius_puts_the_tool_points_on_the_axis():
+    cfg = _cfg("cylinder_side", count=12, rings=2)
+    radius = cfg.object.dims.radius
+    poses = _local(_cfg("cylinder_side", count=12, rings=2, depth=radius))
+    np.testing.assert_allclose(poses[:, :2, 3], 0.0, atol=1e-12)  # on the axis
+    _assert_rigid(poses)
+    with pytest.raises(ConfigError, match="candidates.depth"):
+        generate_candidates(_cfg("cylinder_side", depth=radius + 1e-6))

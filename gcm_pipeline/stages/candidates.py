@@ -289,10 +289,11 @@ def _need_object(cfg: Config, shape: str) -> ObjectConfig:
 
 
 def _check_depth(depth: float, limit: float, what: str) -> None:
-    if depth >= limit:
+    """Reject a depth past the object's centre (``depth == limit`` puts it on the centre)."""
+    if depth > limit:
         raise ConfigError(
             f"candidates.depth {depth:g} m puts the grasps past the object's centre: "
-            f"it must be smaller than the {what} ({limit:g} m)"
+            f"it must not exceed the {what} ({limit:g} m)"
         )
 
 

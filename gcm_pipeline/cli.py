@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from gcm_pipeline.errors import GcmError, InputError
+from gcm_pipeline.errors import GcmError
 
 __all__ = ["build_parser", "main"]
 
@@ -40,7 +40,13 @@ def _common(debug_help: bool = True) -> argparse.ArgumentParser:
         default=0,
         help="more log output (-v: info, -vv: debug)",
     )
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars, errors only")
+    p.add_argument(
+        "--quiet",
+        "-q",
+        action="store_true",
+        help="no progress bars, no log output but errors; gcm run prints only the run "
+        "directory's path on stdout (for scripts; with --meshcat also the viewer URL)",
+    )
     p.add_argument("--debug", action="store_true", help="show tracebacks of user errors")
     return p
 
@@ -119,6 +125,13 @@ def _fmt(v: Any, width: int = 9) -> str:
     return f"{v!s:>{width}}"
 
 
+def _fmt_count(v: Any) -> str:
+    """A count, or a breakdown ``{reason: count}`` as ``(a 1, b 2)``."""
+    if isinstance(v, dict):
+        return "(" + ", ".join(f"{k} {n}" for k, n in v.items()) + ")"
+    return str(v)
+
+
 def format_top(top: list[dict[str, Any]], metric: str = "yoshikawa") -> str:
     """A small text table of the top grasps (rank, position, quaternion, metrics)."""
     from gcm_pipeline.stages.ranking import METRIC_COLUMNS
@@ -147,7 +160,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = pipeline.config
     t0 = time.perf_counter()
     with logging_redirect_tqdm(loggers=[log]):  # log lines above the progress bar
-        result = pipeline.run(args.out, progress=not args.quiet, force=args.force)
+        result = pipeline.run(
+            args.out, progress=not args.quiet, force=args.force, viewer=args.meshcat
+        )
     total = time.perf_counter() - t0
     run_dir = result.run_dir
     assert run_dir is not None
@@ -199,11 +214,11 @@ def _open_viewer(result: Any, *, wait: bool) -> None:
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.config import load_config
+    from gcm_pipeline.pipeline import preflight
 
     cfg = load_config(args.config, args.overrides)
+    preflight(cfg)
     c = cfg.candidates
-    if c.path is not None and not c.path.is_file():
-        raise InputError(f"grasp file not found: {c.path}")
     obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
     print(f"{args.config}: ok")
     print(f"  candidates  {c.source}" + (f" {c.path}" if c.path else f" x{c.count}"))
@@ -231,7 +246,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
     metric = run.summary.get("ranking", {}).get("metric", "yoshikawa")
     print(f"run {run.run_dir}")
     if counts:
-        print("  " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+        print("  " + ", ".join(f"{k} {_fmt_count(v)}" for k, v in counts.items()))
     top = top_grasps(run.grasps, args.top, metric)
     print(f"top {len(top)} grasps by {metric}:")
     print(format_top(top, metric))
@@ -243,7 +258,8 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     from gcm_pipeline.stages.plots import write_plots
 
     run = read_run(args.run_dir)
-    paths = write_plots(run.grasps, run.manifold, run.summary.get("counts", {}), run.run_dir)
+    counts = {k: v for k, v in run.summary.get("counts", {}).items() if isinstance(v, int)}
+    paths = write_plots(run.grasps, run.manifold, counts, run.run_dir)
     for p in paths:
         print(p)
     return 0

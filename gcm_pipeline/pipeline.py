@@ -60,6 +60,8 @@ __all__ = [
     "check_reachability",
     "densify",
     "generate_candidates",
+    "input_files",
+    "preflight",
     "publish",
     "rank",
     "robot_from_config",
@@ -67,6 +69,74 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+def input_files(cfg: Config) -> dict[str, Path]:
+    """The files a config reads, keyed by their dotted config key.
+
+    ``candidates.path``, ``object.mesh``, ``environment.obstacles.<i>.mesh``
+    and ``robot.spec`` when it is a spec file rather than a shipped name.
+    """
+    files: dict[str, Path] = {}
+    if cfg.candidates.path is not None:
+        files["candidates.path"] = Path(cfg.candidates.path)
+    if cfg.object is not None and cfg.object.mesh is not None:
+        files["object.mesh"] = Path(cfg.object.mesh)
+    for i, obstacle in enumerate(cfg.environment.obstacles):
+        if obstacle.mesh is not None:
+            files[f"environment.obstacles.{i}.mesh"] = Path(obstacle.mesh)
+    spec = cfg.robot.spec
+    if spec.endswith((".yaml", ".yml")) or "/" in spec:
+        files["robot.spec"] = Path(spec)
+    return files
+
+
+def preflight(cfg: Config, *, viewer: bool = False) -> None:
+    """Check, before any work, what the config refers to outside itself.
+
+    ``gcm validate`` and ``gcm run`` (:meth:`Pipeline.run`) both call it:
+
+    - ``robot.spec`` names a shipped spec or a valid spec file (read, not built);
+    - every file the config reads exists (:func:`input_files`);
+    - with the live viewer requested (``viewer`` or ``publish.meshcat``) and a
+      ``publish.zmq_url``, the meshcat server there answers within
+      ``publish.connect_timeout_s``; without the viewer a ``zmq_url`` is unused,
+      which is logged as a warning.
+
+    Args:
+        cfg: The config.
+        viewer: The live viewer is requested (``gcm run --meshcat``).
+
+    Raises:
+        RobotSpecError: ``robot.spec: ...``, unknown robot or invalid spec.
+        InputError: ``<key>: file not found: <path>``.
+        PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
+    """
+    from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
+    from gcm_pipeline.robot.model import load_spec
+
+    for key, path in input_files(cfg).items():
+        if not path.is_file():
+            what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
+                key, "mesh file"
+            )
+            raise InputError(f"{key}: {what} not found: {path}")
+    try:
+        load_spec(cfg.robot.spec)
+    except RobotSpecError as exc:
+        raise type(exc)(f"robot.spec: {exc}") from exc
+    pub = cfg.publish
+    if pub.zmq_url is None:
+        return
+    if not (viewer or pub.meshcat):
+        log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
+        return
+    from gcm_pipeline.stages.publish import probe_server
+
+    try:
+        probe_server(pub.zmq_url, pub.connect_timeout_s)
+    except PublishError as exc:
+        raise PublishError(f"publish.zmq_url: {exc}") from exc
 
 
 def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
@@ -194,8 +264,9 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     """
     from gcm_pipeline.stages import publish as stage
 
+    counts = {k: v for k, v in result.counts.items() if isinstance(v, int)}
     files = stage.publish(
-        result.grasps, result.manifold, result.robot, cfg, Path(out_dir), counts=result.counts
+        result.grasps, result.manifold, result.robot, cfg, Path(out_dir), counts=counts
     )
     return list(files)
 
@@ -243,8 +314,9 @@ class RunResult:
             with reachability and ranking columns).
         manifold: The manifold (triangles over candidate row ids).
         robot: The robot model used.
-        counts: ``candidates, triangles, triangles_dropped, densified,
-            interpolated, reachable``.
+        counts: ``candidates, triangles, triangles_dropped, dropped_by_reason``
+            (dict), ``densified, interpolated, reachable, unreachable_by_reason``
+            (dict: reason -> count).
         timings: Seconds per stage, in run order.
         config: The resolved config.
         run_dir: The run directory, or None when nothing was written.
@@ -253,7 +325,7 @@ class RunResult:
     grasps: GraspTable
     manifold: Manifold
     robot: Robot
-    counts: dict[str, int]
+    counts: dict[str, Any]
     timings: dict[str, float]
     config: Config
     run_dir: Path | None = None
@@ -304,15 +376,17 @@ class Pipeline:
         config: The validated config.
     """
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, *, source: str | Path | None = None) -> None:
         if not isinstance(config, Config):
             raise TypeError(f"Pipeline needs a Config, got {type(config).__name__}")
         self.config = config
+        #: The config file (from :meth:`from_yaml`); a run never replaces its folder.
+        self.source = Path(source).absolute() if source is not None else None
 
     @classmethod
     def from_yaml(cls, path: str | Path, overrides: Iterable[str] = ()) -> Pipeline:
         """Load a YAML config (with ``key=value`` overrides), see :func:`load_config`."""
-        return cls(load_config(path, tuple(overrides)))
+        return cls(load_config(path, tuple(overrides)), source=path)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Pipeline:
@@ -334,6 +408,7 @@ class Pipeline:
         *,
         force: bool = False,
         write: bool = True,
+        viewer: bool = False,
     ) -> RunResult:
         """Run every stage and write the run directory.
 
@@ -341,9 +416,14 @@ class Pipeline:
             out_dir: The run directory (default: ``output.dir``, relative to
                 the working directory).
             progress: Show progress bars on the slow stages.
-            force: Replace an existing non-empty run directory (only at the
-                end, when the new one is complete).
+            force: Replace an existing previous run directory (one with
+                ``summary.json`` and ``grasps.csv``; only at the end, when the
+                new one is complete). Other non-empty directories, the working
+                directory, its parents and the config's folder are never
+                replaced; an empty directory is used without ``force``.
             write: Write the run directory (False: only return the result).
+            viewer: The caller opens the live viewer afterwards (``gcm run
+                --meshcat``): a ``publish.zmq_url`` server is probed first.
 
         Returns:
             The result; ``run_dir`` is the directory written (or None).
@@ -355,8 +435,10 @@ class Pipeline:
         """
         cfg = self.config
         out = Path(out_dir) if out_dir is not None else Path(cfg.output.dir)
+        keep = self._inputs()
         if write:
-            out = io.check_output_dir(out, force=force)
+            out = io.check_output_dir(out, force=force, keep=keep)
+        preflight(cfg, viewer=viewer)
         timings: dict[str, float] = {}
         names = ["candidates", "manifold", "densify", "robot", "reachability", "ranking"]
         if write:
@@ -382,6 +464,11 @@ class Pipeline:
         finally:
             bar.close()
 
+    def _inputs(self) -> list[Path]:
+        """The config file and the files it reads: a run never replaces their folder."""
+        files = list(input_files(self.config).values())
+        return files if self.source is None else [self.source, *files]
+
     def _run(
         self,
         out: Path,
@@ -403,20 +490,31 @@ class Pipeline:
             robot = robot_from_config(cfg)
         with stage("reachability"):
             grasps = check_reachability(grasps, robot, cfg, progress=progress)
+        unreachable = _count_by(grasps["reason"][~np.asarray(grasps["reachable"], dtype=bool)])
+        log.info(
+            "reachable %d/%d%s",
+            len(grasps) - sum(unreachable.values()),
+            len(grasps),
+            " (unreachable: " + ", ".join(f"{k} {v}" for k, v in unreachable.items()) + ")"
+            if unreachable
+            else "",
+        )
         with stage("ranking"):
             grasps = rank(grasps, robot, cfg)
         counts = {
             "candidates": len(candidates),
             "triangles": int(len(manifold.triangles)),
             "triangles_dropped": int(len(manifold.dropped)),
+            "dropped_by_reason": _count_by(manifold.dropped_reason),
             "densified": len(grasps),
             "interpolated": len(grasps) - len(candidates),
             "reachable": int(np.count_nonzero(grasps["reachable"])),
+            "unreachable_by_reason": unreachable,
         }
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
         if not write:
             return result
-        with io.atomic_run_dir(out, force=force) as tmp:
+        with io.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:
             with stage("write"):
                 io.write_run_files(tmp, grasps, manifold, cfg.to_dict())
             with stage("publish"):
@@ -426,3 +524,10 @@ class Pipeline:
         result.files = sorted(out.iterdir())
         log.info("run directory %s (%d published files)", out, len(published))
         return result
+
+
+def _count_by(labels: Any) -> dict[str, int]:
+    """How often each label occurs, most frequent first (ties by name)."""
+    names, n = np.unique(np.asarray(labels, dtype=str).reshape(-1), return_counts=True)
+    pairs = sorted(zip(names.tolist(), n.tolist(), strict=True), key=lambda p: (-p[1], p[0]))
+    return {str(k): int(v) for k, v in pairs}

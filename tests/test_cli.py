@@ -319,3 +319,198 @@ def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
     assert code == 0, err
     assert events == [("open", True, 66), "closed"]  # the run directory is complete first
     assert "meshcat viewer: http://127.0.0.1:7000/static/" in text
+
+
+# ------------------------------------------------- QA review: run / CLI plumbing
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    """Every file under ``root`` (hidden ones too) with its content."""
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    """``S/precious.txt`` and ``S/sub/cfg.yaml``, with ``S`` the working directory."""
+    s = tmp_path / "S"
+    (s / "sub").mkdir(parents=True)
+    (s / "precious.txt").write_text("precious")
+    (s / "sub" / "cfg.yaml").write_text(FLAT.read_text())
+    monkeypatch.chdir(s)
+    return s
+
+
+def test_force_replaces_only_run_directories(capsys, workdir):
+    (workdir / "configs").mkdir()
+    (workdir / "configs" / "other.yaml").write_text("x")
+    before = _tree(workdir.parent)
+    cases = [
+        (".", f"refusing to replace {workdir}: it is the working directory or one of its parents"),
+        ("..", "it is the working directory or one of its parents"),
+        ("sub", f"refusing to replace {workdir / 'sub'}: it holds {workdir / 'sub' / 'cfg.yaml'}"),
+        (
+            "configs",
+            f"refusing to replace {workdir / 'configs'}: it is not a gcm run directory "
+            "(no summary.json or grasps.csv); choose another --out",
+        ),
+    ]
+    for target, message in cases:
+        for force in (["--force"], []):
+            code, text, err = _run(capsys, "run", "sub/cfg.yaml", "--out", target, *force, *QUICK)
+            _assert_user_error(code, err, message)
+            assert text == ""
+            assert _tree(workdir.parent) == before, (target, force)
+    # an empty directory needs no --force; a previous run is replaced with it
+    (workdir / "empty").mkdir()
+    code, _, err = _run(capsys, "run", "sub/cfg.yaml", "--out", "empty", "-q", *QUICK)
+    assert code == 0, err
+    code, _, err = _run(capsys, "run", "sub/cfg.yaml", "--out", "empty", "-q", *QUICK)
+    _assert_user_error(code, err, "already exists", "pass --force (CLI) or force=True (Python)")
+    code, _, err = _run(capsys, "run", "sub/cfg.yaml", "--out", "empty", "--force", "-q", *QUICK)
+    assert code == 0, err
+    # the config.yaml of a run is re-runnable, but not into its own folder
+    code, _, err = _run(
+        capsys, "run", "empty/config.yaml", "--out", "empty", "--force", "-q", *QUICK
+    )
+    _assert_user_error(code, err, f"it holds {workdir / 'empty' / 'config.yaml'}")
+    assert (workdir / "empty" / "config.yaml").is_file()
+    assert sorted(p.name for p in workdir.iterdir()) == [
+        "configs",
+        "empty",
+        "precious.txt",
+        "sub",
+    ]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+PREFLIGHT_ERRORS = {
+    "robot": (["robot.spec=kuka"], ["robot.spec: unknown robot 'kuka'", "valid: panda, ur5"]),
+    "object_mesh": (
+        ["object={shape: mesh, mesh: nope.stl}", "candidates.source=file", "candidates.path=g.npy"],
+        ["object.mesh: mesh file not found:", "nope.stl"],
+    ),
+    "obstacle_mesh": (
+        [
+            "environment.obstacles=[{shape: box, dims: {size: [1, 1, 1]}},"
+            " {shape: mesh, mesh: o.stl}]"
+        ],
+        ["environment.obstacles.1.mesh: mesh file not found:", "o.stl"],
+    ),
+    "grasp_file": (
+        ["candidates={source: file, path: missing.npy}"],
+        ["candidates.path: grasp file not found:", "missing.npy"],
+    ),
+    "zmq_url": (["publish.zmq_url=notaurl"], ["publish.zmq_url: expected tcp://HOST:PORT"]),
+    "dead_server": (
+        ["publish.zmq_url=tcp://127.0.0.1:{port}", "publish.meshcat=true"],
+        ["publish.zmq_url: meshcat server at tcp://127.0.0.1:", "did not answer"],
+    ),
+}
+
+
+@pytest.mark.parametrize("name", sorted(PREFLIGHT_ERRORS))
+def test_validate_and_run_reject_the_same_configs(capsys, tmp_path, out, monkeypatch, name):
+    from gcm_pipeline import pipeline
+
+    def boom(cfg):
+        raise AssertionError("a stage ran")
+
+    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    np.save(tmp_path / "g.npy", _poses(3))
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(FLAT.read_text())
+    overrides, fragments = PREFLIGHT_ERRORS[name]
+    port = _free_port()
+    sets = [a for o in overrides for a in ("--set", o.replace("{port}", str(port)))]
+    sets += ["--set", "publish.connect_timeout_s=0.3"]
+    code, text, err = _run(capsys, "validate", cfg, *sets)
+    _assert_user_error(code, err, *fragments)
+    assert text == ""
+    code, text, err = _run(capsys, "run", cfg, "--out", out, *sets, *QUICK)
+    _assert_user_error(code, err, *fragments)
+    assert text == ""
+    _nothing_left(out)
+
+
+def test_meshcat_flag_probes_the_server_before_the_run(capsys, tmp_path, out, monkeypatch):
+    from gcm_pipeline import pipeline
+
+    def boom(cfg):
+        raise AssertionError("a stage ran")
+
+    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    url = f"tcp://127.0.0.1:{_free_port()}"
+    code, _, err = _run(
+        capsys,
+        "run",
+        FLAT,
+        "--out",
+        out,
+        "--meshcat",
+        "--no-wait",
+        "--set",
+        f"publish.zmq_url={url}",
+        "--set",
+        "publish.connect_timeout_s=0.3",
+    )
+    _assert_user_error(code, err, f"publish.zmq_url: meshcat server at {url} did not answer")
+    _nothing_left(out)
+
+
+def test_zmq_url_without_the_viewer_warns_once(capsys, out):
+    url = f"tcp://127.0.0.1:{_free_port()}"
+    code, _, err = _run(
+        capsys, "run", FLAT, "--out", out, "--set", f"publish.zmq_url={url}", *QUICK
+    )
+    assert code == 0, err
+    warning = "publish.zmq_url is set but the live viewer is off; add --meshcat"
+    assert err.count(warning) == 1, err
+    code, _, err = _run(capsys, "validate", FLAT, "--set", f"publish.zmq_url={url}")
+    assert code == 0 and err.count(warning) == 1, err
+
+
+def test_the_run_config_reproduces_the_run(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    a = tmp_path / "a"
+    code, _, err = _run(capsys, "run", "configs/from_file.yaml", "--out", a, "-q", *QUICK)
+    assert code == 0, err
+    saved = (a / "config.yaml").read_text()
+    assert f"path: {ROOT / 'configs' / 'data' / 'mug_grasps.npy'}" in saved
+    monkeypatch.chdir(tmp_path)
+    code, _, err = _run(capsys, "run", "a/config.yaml", "--out", "b", "-q")
+    assert code == 0, err
+    assert (tmp_path / "b" / "grasps.csv").read_bytes() == (a / "grasps.csv").read_bytes()
+    assert (tmp_path / "b" / "config.yaml").read_text() == saved
+
+
+def test_quiet_help_says_what_it_does(capsys):
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "gcm run prints only the run directory's path on stdout" in text
+
+
+def test_counts_by_reason_and_the_verbose_reachability_line(capsys, out):
+    code, _, err = _run(capsys, "run", ROOT / "configs" / "box.yaml", "--out", out, "-v", *QUICK)
+    assert code == 0, err
+    counts = json.loads((out / "summary.json").read_text())["counts"]
+    assert sum(counts["dropped_by_reason"].values()) == counts["triangles_dropped"]
+    assert set(counts["dropped_by_reason"]) <= {"edge_length", "edge_angle"}
+    unreachable = counts["unreachable_by_reason"]
+    assert sum(unreachable.values()) == counts["densified"] - counts["reachable"] > 0
+    assert "" not in unreachable
+    breakdown = ", ".join(f"{k} {v}" for k, v in unreachable.items())
+    line = f"reachable {counts['reachable']}/{counts['densified']} (unreachable: {breakdown})"
+    assert line in err
+    code, text, err = _run(capsys, "show", out, "--top", "1")
+    assert code == 0, err
+    assert "unreachable_by_reason (" in text

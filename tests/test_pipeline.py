@@ -119,10 +119,21 @@ def test_output_problems_are_found_before_any_work(tmp_path, monkeypatch):
     f.write_text("x")
     with pytest.raises(OutputError):
         Pipeline.from_yaml(FLAT, QUICK).run(f)
-    (tmp_path / "full").mkdir()
-    (tmp_path / "full" / "x").write_text("x")
-    with pytest.raises(OutputError, match="--force"):
-        Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "full")
+    full = tmp_path / "full"
+    full.mkdir()
+    for name in ("summary.json", "grasps.csv"):
+        (full / name).write_text("previous run")
+    with pytest.raises(OutputError) as info:
+        Pipeline.from_yaml(FLAT, QUICK).run(full)
+    assert str(info.value) == (
+        f"output directory {full} already exists and is not empty; pass --force (CLI) or "
+        "force=True (Python) to replace it, or choose another --out"
+    )
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "x").write_text("x")
+    with pytest.raises(OutputError, match="not a gcm run directory"):
+        Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "data", force=True)
+    assert (tmp_path / "data" / "x").read_text() == "x"
 
 
 def test_failure_leaves_nothing_behind(tmp_path, monkeypatch):
@@ -138,6 +149,7 @@ def test_failure_leaves_nothing_behind(tmp_path, monkeypatch):
     old = tmp_path / "old"
     old.mkdir()
     (old / "grasps.csv").write_text("previous")
+    (old / "summary.json").write_text("{}")
     with pytest.raises(RuntimeError):
         Pipeline.from_yaml(FLAT, QUICK).run(old, progress=False, force=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
@@ -171,3 +183,45 @@ def test_every_config_metric_ranks(metric):
     values = np.asarray(g[column], dtype=float)[ok][order]
     assert np.all(np.diff(values) <= 1e-12)  # best first
     assert int(ok.sum()) == result.counts["reachable"]
+
+
+def test_preflight_names_the_key_before_any_work(tmp_path, monkeypatch):
+    from gcm_pipeline.errors import InputError, RobotSpecError
+
+    def boom(cfg):
+        raise AssertionError("stage ran")
+
+    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    cfg = load_config(FLAT, (*QUICK, "robot.spec=kuka"))
+    with pytest.raises(RobotSpecError, match="^robot.spec: unknown robot 'kuka'"):
+        pipeline.preflight(cfg)
+    with pytest.raises(RobotSpecError, match="^robot.spec: "):
+        Pipeline(cfg).run(tmp_path / "run")
+    cfg = load_config(FLAT, (*QUICK, "environment.obstacles=[{shape: mesh, mesh: x.stl}]"))
+    assert pipeline.input_files(cfg) == {"environment.obstacles.0.mesh": FLAT.parent / "x.stl"}
+    with pytest.raises(InputError, match="^environment.obstacles.0.mesh: mesh file not found"):
+        Pipeline(cfg).run(tmp_path / "run")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_run_never_replaces_the_folder_of_its_config(tmp_path):
+    first = Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "a", progress=False).run_dir
+    assert first is not None
+    again = Pipeline.from_yaml(first / "config.yaml")
+    with pytest.raises(OutputError, match="an input of this run"):
+        again.run(first, force=True, progress=False)
+    assert again.run(tmp_path / "b", progress=False).run_dir == tmp_path / "b"
+
+
+def test_counts_break_down_dropped_and_unreachable(tmp_path):
+    cfg = load_config(ROOT / "configs" / "box.yaml", QUICK)
+    result = Pipeline(cfg).run(progress=False, write=False)
+    c = result.counts
+    assert sum(c["dropped_by_reason"].values()) == c["triangles_dropped"] > 0
+    reasons = np.asarray(result.grasps["reason"])[~np.asarray(result.grasps["reachable"])]
+    assert c["unreachable_by_reason"] == {
+        str(k): int(v) for k, v in zip(*np.unique(reasons, return_counts=True), strict=True)
+    }
+    assert list(c["unreachable_by_reason"].values()) == sorted(
+        c["unreachable_by_reason"].values(), reverse=True
+    )

@@ -57,6 +57,10 @@ def test_example_runs(path, tmp_path, capsys):
     assert sum(r["reachable"] == "true" for r in rows) == counts["reachable"]
     ranks = [int(r["rank"]) for r in rows[: counts["reachable"]]]
     assert ranks == list(range(1, counts["reachable"] + 1))
+    assert summary["ranking"]["metric"] == cfg.ranking.metric
+    if path.stem == "bottle_side":
+        # Yoshikawa alone put the best grasp 3.8 mm above the table
+        assert float(rows[0]["clearance"]) > 0.02, rows[0]
 
     run = read_run(out)
     m = run.manifold
@@ -81,3 +85,15 @@ def test_bottle_opposite_sides_are_not_linked():
     diff = np.abs(tri[:, :, None] - tri[:, None, :])
     diff = np.minimum(diff, 2 * np.pi - diff)
     assert np.degrees(diff.max()) < 90
+
+
+def test_example_metrics():
+    metrics = {p.stem: load_config(p).ranking for p in CONFIGS}
+    assert metrics["bottle_side"].metric == "combined"
+    assert metrics["bottle_side"].weights == {
+        "yoshikawa": 1.0,
+        "clearance": 0.5,
+        "joint_limit_margin": 0.2,
+    }
+    for name in ("flat_surface", "box", "from_file"):
+        assert metrics[name].metric == "yoshikawa"

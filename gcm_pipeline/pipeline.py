@@ -27,7 +27,11 @@ holds row ids into the candidate table, not poses, so that the poses live in
 one place (the table's ``dq`` column) only.
 
 :class:`Pipeline` runs them in order, times them, writes the run directory
-atomically (:mod:`gcm_pipeline.io`) and returns a :class:`RunResult`.
+atomically (:mod:`gcm_pipeline.io`) and returns a :class:`RunResult`. Before
+any stage runs, the output directory is checked and :func:`preflight` (also
+behind ``gcm validate``) checks what the config refers to: the robot spec,
+every input file (named by its config key) and, with the live viewer on, the
+meshcat server at ``publish.zmq_url``.
 """
 
 from __future__ import annotations

@@ -143,7 +143,26 @@ def _check_shape(shape: str, dims: ShapeDims, mesh: Path | None) -> None:
         raise ValueError("shape 'mesh' needs 'mesh: <path to .stl/.obj/.dae>'")
 
 
-class ObjectConfig(_Section):
+class _ShapeSection(_Section):
+    """A primitive or mesh placed in the world (shape, dims, pose, mesh, scale).
+
+    Subclasses narrow ``shape`` to the shapes they allow; the dims each shape
+    needs are checked once here.
+    """
+
+    shape: str
+    dims: ShapeDims = ShapeDims()
+    pose: Pose = Pose()
+    mesh: Path | None = None
+    scale: PositiveFloat = 1.0
+
+    @model_validator(mode="after")
+    def _dims_for_shape(self) -> _ShapeSection:
+        _check_shape(self.shape, self.dims, self.mesh)
+        return self
+
+
+class ObjectConfig(_ShapeSection):
     """The object being grasped; ``pose`` is its frame in the world.
 
     Cylinders stand on their base with the axis along the frame's z (the base
@@ -152,15 +171,6 @@ class ObjectConfig(_Section):
     """
 
     shape: Literal["cylinder", "box", "sphere", "plane", "mesh"]
-    dims: ShapeDims = ShapeDims()
-    pose: Pose = Pose()
-    mesh: Path | None = None
-    scale: PositiveFloat = 1.0
-
-    @model_validator(mode="after")
-    def _dims_for_shape(self) -> ObjectConfig:
-        _check_shape(self.shape, self.dims, self.mesh)
-        return self
 
 
 class RobotConfig(_Section):
@@ -267,20 +277,11 @@ class TableConfig(_Section):
     center_xy: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
 
 
-class ObstacleConfig(_Section):
+class ObstacleConfig(_ShapeSection):
     """An extra collision obstacle in the world."""
 
-    name: str | None = None
     shape: Literal["box", "cylinder", "sphere", "mesh"]
-    dims: ShapeDims = ShapeDims()
-    pose: Pose = Pose()
-    mesh: Path | None = None
-    scale: PositiveFloat = 1.0
-
-    @model_validator(mode="after")
-    def _dims_for_shape(self) -> ObstacleConfig:
-        _check_shape(self.shape, self.dims, self.mesh)
-        return self
+    name: str | None = None
 
 
 class EnvironmentConfig(_Section):

@@ -120,3 +120,32 @@ def test_bottle_side_reachable_grasps_are_collision_free(run):
     assert np.all(clearance > 0)
     # and a reachable grasp is really reached
     assert np.nanmax(np.asarray(g["pos_err"])[reachable]) <= cfg.ik.position_tolerance
+
+
+def test_bottle_side_reachable_grasps_have_a_followable_approach(run):
+    """Every grasp reported reachable passes the approach check from its own
+    solution; every grasp that failed for ``approach`` has no solution left."""
+    from gcm_pipeline.robot.approach import check_approach_path
+    from gcm_pipeline.stages.collision import grasp_targets, make_checker
+
+    cfg, g = run.config, run.grasps
+    reachable = np.asarray(g["reachable"], dtype=bool)
+    rows = np.flatnonzero(reachable)
+    assert rows.size > 100
+    base = cfg.robot.base_pose.matrix()
+    checker = make_checker(run.robot, cfg.environment, cfg.object, base)
+    path = check_approach_path(
+        run.robot,
+        grasp_targets(g.take(rows), base),
+        g["q"][rows],
+        checker.with_contact_tolerance(0.0),
+        distance=cfg.approach.distance,
+        steps=cfg.approach.steps,
+        max_joint_step=cfg.approach.max_joint_step,
+        position_tolerance=cfg.ik.position_tolerance,
+        orientation_tolerance=cfg.ik.orientation_tolerance,
+    )
+    assert path.ok.all(), f"{np.count_nonzero(~path.ok)} reachable grasps fail their approach"
+    approach_rows = np.asarray(g["reason"]) == "approach"
+    assert approach_rows.any()
+    assert np.isnan(g["q"][approach_rows]).all()

@@ -264,7 +264,9 @@ def check_approach(
                 robot, q[changed], grasp_targets(grasps.take(changed), base_pose)
             )
             pos_err[changed], rot_err[changed] = pe, re
-        fail = np.array([i for i in fail if i not in set(fixed)], dtype=int)
+        keep = np.ones(fail.size, dtype=bool)
+        keep[list(fixed)] = False  # ``fixed`` is keyed by position in ``fail``
+        fail = fail[keep]
     bad = rows[fail]
     reachable[bad] = False
     reason[bad] = REASON_APPROACH

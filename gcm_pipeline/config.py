@@ -22,6 +22,7 @@ import difflib
 import math
 import os
 import re
+import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -302,27 +303,21 @@ class ApproachConfig(_Section):
     max_joint_step: PositiveFloat = 0.25
 
 
-_METRICS = (
+Metric = Literal[
     "yoshikawa",
     "translational",
     "inverse_condition",
     "joint_limit_margin",
     "clearance",
     "combined",
-)
+]
+_METRICS: tuple[str, ...] = typing.get_args(Metric)
 
 
 class RankingConfig(_Section):
     """Ranking of the reachable grasps by a manipulability metric."""
 
-    metric: Literal[
-        "yoshikawa",
-        "translational",
-        "inverse_condition",
-        "joint_limit_margin",
-        "clearance",
-        "combined",
-    ] = "yoshikawa"
+    metric: Metric = "yoshikawa"
     top_k: PositiveInt = 10
     weights: dict[str, NonNegFloat] | None = None
 

@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import quat_from_rotation
+from gcm_pipeline.robot.manipulability import yoshikawa
 
 __all__ = [
     "PinocchioIKOptions",
@@ -313,9 +314,7 @@ def _lm(
 
 def yoshikawa_of(chain: Any, q: np.ndarray) -> np.ndarray:
     """Yoshikawa manipulability sqrt(det(J J^T)) of configurations (N, nq)."""
-    jac = chain.pose_jacobian(q)[2]
-    det = np.linalg.det(jac @ jac.transpose(0, 2, 1))
-    return np.sqrt(np.clip(det, 0.0, None))
+    return yoshikawa(chain.pose_jacobian(q)[2])
 
 
 def _raise_manipulability(

@@ -6,7 +6,9 @@ A run directory holds (see DESIGN.md, *Run directory*):
   the unreachable ones in table order. Columns, in this order: ``rank, origin,
   triangle, v1, v2, v3, w1, w2, w3, x, y, z, qw, qx, qy, qz, reachable,
   reason, pos_err, rot_err, manipulability, q1 .. q{nq}``, then any further
-  metric columns. Poses are the grasp frame in the world (quaternion with
+  metric columns, then the per-candidate columns of the source
+  (:data:`~gcm_pipeline.table.CANDIDATE_COLUMNS`: ``score``, ``width``,
+  ``source_id``, ...; integers as integers, strings quoted when needed). Poses are the grasp frame in the world (quaternion with
   ``qw >= 0``). Floats are written with :func:`repr` (they round-trip
   exactly); NaN is an empty cell; booleans are ``true`` / ``false``.
 - ``summary.json``: counts, timings [s], the ranking's top grasps, the
@@ -46,7 +48,7 @@ import yaml
 from gcm_pipeline.errors import InputError, OutputError
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
 from gcm_pipeline.stages.manifold import Manifold
-from gcm_pipeline.table import GraspTable
+from gcm_pipeline.table import CANDIDATE_COLUMNS, GraspTable
 
 __all__ = [
     "CSV_COLUMNS",
@@ -321,15 +323,33 @@ def _row_order(grasps: GraspTable) -> np.ndarray:
 
 
 def _extra_columns(grasps: GraspTable) -> list[str]:
-    """Further 1-D numeric columns (metrics), in table order."""
+    """Further 1-D columns: metrics first, then per-candidate columns, each in table order.
+
+    Numeric, boolean and string columns are written; per-candidate columns
+    are the ones named in :data:`~gcm_pipeline.table.CANDIDATE_COLUMNS`.
+    """
     extra = []
     for name in grasps.columns:
         col = grasps[name]
         if name in _KNOWN or col.ndim != 1:
             continue
-        if np.issubdtype(col.dtype, np.number) or col.dtype == bool:
+        if np.issubdtype(col.dtype, np.number) or col.dtype == bool or col.dtype.kind in "US":
             extra.append(name)
-    return extra
+    return [n for n in extra if n not in CANDIDATE_COLUMNS] + [
+        n for n in extra if n in CANDIDATE_COLUMNS
+    ]
+
+
+def _cells(values: np.ndarray) -> list[str]:
+    """CSV cells of a 1-D column by dtype: bool, int, float (repr) or quoted text."""
+    kind = values.dtype.kind
+    if kind == "b":
+        return ["true" if b else "false" for b in values.tolist()]
+    if kind in "iu":
+        return _ints(values)
+    if kind in "US":
+        return [_quote(str(v)) for v in values.tolist()]
+    return format_floats(values)
 
 
 def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
@@ -376,7 +396,7 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
         cols += [format_floats(q[:, j]) for j in range(q.shape[1])]
     for name in _extra_columns(g):
         header.append(name)
-        cols.append(bools(g[name]) if g[name].dtype == bool else format_floats(g[name]))
+        cols.append(_cells(np.asarray(g[name])))
     with Path(path).open("w", newline="", encoding="utf-8") as fh:
         fh.write(",".join(header) + "\n")
         fh.writelines(",".join(row) + "\n" for row in zip(*cols, strict=True))
@@ -455,12 +475,22 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
     for name in header:
         if name in CSV_COLUMNS or name in qnames or name in cols:
             continue
-        values = raw[name]
-        if values and all(v in ("true", "false") for v in values):
-            cols[name] = np.array([v == "true" for v in values], dtype=bool)
-        else:
-            cols[name] = floats(name)
+        cols[name] = _parse_column(raw[name])
     return GraspTable(cols)
+
+
+def _parse_column(values: Any) -> np.ndarray:
+    """A further column read back: bool, int, float (empty = NaN) or, failing those, str."""
+    text = np.array(values, dtype=str).reshape(-1)
+    if text.size and all(v in ("true", "false") for v in text.tolist()):
+        return text == "true"
+    if text.size and all(v.lstrip("-").isdigit() for v in text.tolist()):
+        return text.astype(np.int64)
+    floats = np.where(text == "", "nan", text)
+    try:
+        return floats.astype(float)
+    except ValueError:
+        return text
 
 
 # ------------------------------------------------------------ manifold.npz

@@ -21,6 +21,15 @@ name                       shape        added by
 ``manipulability``         (N,)         ranking
 ``rank``                   (N,) int     ranking (1-based, 0 = unreachable)
 ========================== ============ ===============================
+
+Per-candidate columns: a candidate source (an importer, the antipodal
+sampler) may add more 1-D columns to the candidate table, such as a
+synthesiser's ``score``, the finger opening ``width`` or the ``source_id``
+(row in the grasp file) of each candidate. They flow through every stage:
+densify keeps them for the candidate rows and fills them for the
+interpolated rows by the rule :data:`CANDIDATE_COLUMNS` gives (see
+:func:`candidate_fill`), and ``grasps.csv`` writes them after the documented
+columns and the metric columns.
 """
 
 from __future__ import annotations
@@ -33,7 +42,33 @@ import numpy.typing as npt
 
 from gcm_pipeline.errors import InputError
 
-__all__ = ["GraspTable"]
+__all__ = ["CANDIDATE_COLUMNS", "FILL_RULES", "GraspTable", "candidate_fill"]
+
+#: How densify fills a per-candidate column for the interpolated rows.
+#: ``blend``: the barycentric blend ``sum_j w_j * value[v_j]`` of the three
+#: vertices' values (float columns; NaN if a vertex value is NaN);
+#: ``missing``: the dtype's missing value (NaN for floats, -1 for signed
+#: integers, 0 for unsigned, False for booleans, ``""`` for strings).
+FILL_RULES = ("blend", "missing")
+
+#: Known per-candidate columns and their fill rule (any other extra column is
+#: filled with ``missing``). ``score``: the source's grasp quality (the
+#: synthesiser's confidence or score, the sampler's antipodal quality), ``width``:
+#: finger opening [m]; ids name the candidate's origin and are not blended.
+CANDIDATE_COLUMNS: dict[str, str] = {
+    "score": "blend",
+    "width": "blend",
+    "id": "missing",
+    "source_id": "missing",
+    "object_id": "missing",
+    "segment": "missing",
+    "success": "missing",
+}
+
+
+def candidate_fill(name: str) -> str:
+    """The fill rule (one of :data:`FILL_RULES`) of a per-candidate column ``name``."""
+    return CANDIDATE_COLUMNS.get(name, "missing")
 
 
 class GraspTable:

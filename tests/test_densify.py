@@ -180,7 +180,7 @@ def test_no_kept_triangles_gives_only_the_candidates():
 def test_other_candidate_columns_are_carried_and_filled():
     g = triangle_table()
     g = g.with_columns(
-        score=np.array([0.1, 0.2, 0.3]), label=np.array(["a", "b", "c"]), ok=np.ones(3, bool)
+        quality=np.array([0.1, 0.2, 0.3]), label=np.array(["a", "b", "c"]), ok=np.ones(3, bool)
     )
     out = densify(g, build_manifold(g), subdivisions=2)
     assert out.columns == (
@@ -189,14 +189,35 @@ def test_other_candidate_columns_are_carried_and_filled():
         "triangle",
         "vertices",
         "weights",
-        "score",
+        "quality",
         "label",
         "ok",
     )
-    np.testing.assert_array_equal(out["score"][:3], [0.1, 0.2, 0.3])
-    assert np.isnan(out["score"][3:]).all()
+    np.testing.assert_array_equal(out["quality"][:3], [0.1, 0.2, 0.3])
+    assert np.isnan(out["quality"][3:]).all()  # not a known blend column: missing
     assert out["label"][3:].tolist() == [""] * 3
     assert not out["ok"][3:].any()
+
+
+def test_score_and_width_are_blended_ids_are_missing():
+    g = triangle_table()
+    score = np.array([0.2, 0.5, 0.8])
+    width = np.array([0.02, 0.04, np.nan])
+    g = g.with_columns(score=score, width=width, source_id=np.array([7, 8, 9]))
+    out = densify(g, build_manifold(g), subdivisions=4)
+    inter = out["origin"] == "interpolated"
+    w, v = out["weights"][inter], out["vertices"][inter]
+    # hand-computed: the barycentric blend of the three vertex scores
+    np.testing.assert_allclose(out["score"][inter], (w * score[v]).sum(axis=1))
+    np.testing.assert_array_equal(out["score"][:3], score)
+    # a NaN vertex value makes the blend NaN where its weight counts, not elsewhere
+    uses_nan = ((v == 2) & (w > 0)).any(axis=1)
+    assert np.isnan(out["width"][inter][uses_nan]).all()
+    ok = np.where(v == 2, 0.0, w * np.nan_to_num(width[v]))
+    np.testing.assert_allclose(out["width"][inter][~uses_nan], ok[~uses_nan].sum(axis=1))
+    assert out["source_id"].dtype.kind == "i"
+    assert (out["source_id"][inter] == -1).all()
+    np.testing.assert_array_equal(out["source_id"][:3], [7, 8, 9])
 
 
 # ----------------------------------------------------------------------------- the paper's intent

@@ -309,3 +309,26 @@ def test_csv_quotes_odd_reasons_and_handles_empty_tables(tmp_path):
     empty = g.take(np.zeros(0, dtype=int))
     io.write_grasps_csv(empty, path)
     assert len(io.read_grasps_csv(path)) == 0
+
+
+def test_per_candidate_columns_follow_the_metrics_and_round_trip(tmp_path):
+    g = _table()
+    score = np.r_[0.9, 0.5, 0.25, np.full(N - NC, np.nan)]
+    g = GraspTable(
+        {
+            "score": score,
+            "source_id": np.r_[12, 3, 7, np.full(N - NC, -1)],
+            "segment": np.array(["mug", "a,b", "x"] + [""] * (N - NC)),
+            **{k: g[k] for k in g.columns},
+        }
+    )
+    path = tmp_path / "grasps.csv"
+    order = io.write_grasps_csv(g, path)
+    header = path.read_text().splitlines()[0].split(",")
+    # documented columns, q, the metric, then the candidates' own columns
+    assert header[-4:] == ["inverse_condition", "score", "source_id", "segment"]
+    back = io.read_grasps_csv(path)
+    assert back["source_id"].dtype.kind == "i"
+    np.testing.assert_array_equal(back["source_id"], g["source_id"][order])
+    np.testing.assert_array_equal(back["score"], g["score"][order])  # NaN == NaN here
+    assert back["segment"].tolist() == g["segment"][order].tolist()

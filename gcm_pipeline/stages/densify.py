@@ -32,7 +32,7 @@ import numpy as np
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dib, dlb, dq_translation
 from gcm_pipeline.stages.manifold import Manifold, candidate_poses
-from gcm_pipeline.table import GraspTable
+from gcm_pipeline.table import GraspTable, candidate_fill
 
 __all__ = ["DENSIFY_METHODS", "densify", "lattice_counts"]
 
@@ -181,10 +181,21 @@ def _points_general(
     return tri[keep][final], ijk[keep][final], n[keep][final]
 
 
-def _fill(column: np.ndarray, count: int) -> np.ndarray:
-    """Values for ``count`` interpolated rows of an extra candidate column."""
+def _fill(
+    column: np.ndarray, count: int, rule: str = "missing", vertices: Any = None, weights: Any = None
+) -> np.ndarray:
+    """Values for ``count`` interpolated rows of an extra candidate column.
+
+    ``rule`` ``blend`` (float columns only) blends the vertices' values with
+    the barycentric weights; anything else gives the dtype's missing value.
+    """
     shape = (count, *column.shape[1:])
     kind = column.dtype.kind
+    if rule == "blend" and kind == "f" and vertices is not None:
+        w = np.asarray(weights, dtype=float).reshape((count, 3) + (1,) * (column.ndim - 1))
+        # a vertex of weight 0 does not count, even if its value is NaN
+        terms = np.where(w > 0, w * column[vertices], 0.0)
+        return np.sum(terms, axis=1).astype(column.dtype, copy=False)
     if kind == "f" or kind == "c":
         return np.full(shape, np.nan, dtype=column.dtype)
     if kind in "iu":
@@ -225,8 +236,12 @@ def densify(
         ``manifold.triangles`` (-1 for candidates), ``vertices`` (M, 3)
         candidate row ids (-1 for candidates), ``weights`` (M, 3) barycentric
         weights of the vertices (NaN for candidates). Other columns of
-        ``grasps`` are kept for the candidate rows and filled with NaN, -1,
-        False, ``""`` or None for the interpolated ones.
+        ``grasps`` (per-candidate columns such as ``score``, ``width``,
+        ``source_id``) are kept for the candidate rows and filled for the
+        interpolated ones by their rule
+        (:func:`gcm_pipeline.table.candidate_fill`): ``blend`` columns
+        (``score``, ``width``) get the barycentric blend of the three vertex
+        values, the others NaN, -1, False, ``""`` or None by dtype.
 
     Raises:
         GeometryError: On an unknown method, invalid subdivisions or
@@ -269,6 +284,7 @@ def densify(
     for name in grasps.columns:
         if name not in _OWN_COLUMNS:
             col = grasps[name]
-            cols[name] = np.concatenate((col, _fill(col, m)))
+            fill = _fill(col, m, candidate_fill(name), vertices, weights)
+            cols[name] = np.concatenate((col, fill))
     ordered = {k: cols[k] for k in (*_OWN_COLUMNS, *[c for c in cols if c not in _OWN_COLUMNS])}
     return GraspTable(ordered)

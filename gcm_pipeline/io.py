@@ -8,9 +8,10 @@ A run directory holds (see DESIGN.md, *Run directory*):
   reason, pos_err, rot_err, manipulability, q1 .. q{nq}``, then any further
   metric columns, then the per-candidate columns of the source
   (:data:`~gcm_pipeline.table.CANDIDATE_COLUMNS`: ``score``, ``width``,
-  ``source_id``, ...; integers as integers, strings quoted when needed). Poses are the grasp frame in the world (quaternion with
-  ``qw >= 0``). Floats are written with :func:`repr` (they round-trip
-  exactly); NaN is an empty cell; booleans are ``true`` / ``false``.
+  ``source_id``, ...; integers as integers, strings quoted when needed).
+  Poses are the grasp frame in the world (quaternion with ``qw >= 0``).
+  Floats are written with :func:`repr` (they round-trip exactly); NaN is an
+  empty cell; booleans are ``true`` / ``false``.
 - ``summary.json``: counts, timings [s], the ranking's top grasps, the
   resolved config and package versions.
 - ``manifold.npz``: ``vertex_ids``, ``chart``, ``triangles``, ``dropped``,

@@ -212,6 +212,14 @@ class CandidatesConfig(_Section):
             For ACRONYM's Franka gripper use ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
         success_only: ``file``: keep only grasps labelled successful.
         limit: ``file``: keep at most this many grasps (the first ones, after filtering).
+        gripper: The gripper whose frame convention maps the file's poses onto the
+            robot's grasp frame (:mod:`gcm_pipeline.formats.grippers`; default
+            ``franka_panda`` for ``graspgen``, ``contact_graspnet``, ``graspnet``), or
+            whose opening and finger depth the ``antipodal`` sampler uses. Replaces
+            ``grasp_to_tool``.
+        camera_pose: ``contact_graspnet`` (required) and ``graspnet``: the pose in the
+            world of the camera's optical frame (OpenCV: x right, y down, z forward)
+            in which the file's grasps are given.
     """
 
     source: Literal["plane", "cylinder_side", "box", "sphere", "file"]
@@ -221,11 +229,15 @@ class CandidatesConfig(_Section):
     rings: PositiveInt | None = None
     depth: FiniteFloat | None = None
     path: Path | None = None
-    format: Literal["acronym", "npy", "npz", "csv"] | None = None
+    format: (
+        Literal["acronym", "npy", "npz", "csv", "graspgen", "contact_graspnet", "graspnet"] | None
+    ) = None
     frame: Literal["object", "world"] = "world"
     grasp_to_tool: Pose | None = None
     success_only: bool = False
     limit: PositiveInt | None = None
+    gripper: str | None = None
+    camera_pose: Pose | None = None
 
     @model_validator(mode="after")
     def _file_needs_path(self) -> CandidatesConfig:
@@ -233,6 +245,44 @@ class CandidatesConfig(_Section):
             raise ValueError("source 'file' needs 'path'")
         return self
 
+    @model_validator(mode="before")
+    @classmethod
+    def _format_from_suffix(cls, data: Any) -> Any:
+        # GraspGen's JSON / YAML grasp files are the only structured-text format
+        if isinstance(data, dict) and data.get("format") is None and data.get("path"):
+            if str(data["path"]).lower().endswith((".json", ".yaml", ".yml")):
+                data = {**data, "format": "graspgen"}
+        return data
+
+    @model_validator(mode="after")
+    def _gripper_and_camera(self) -> CandidatesConfig:
+        from gcm_pipeline.formats.grippers import GRIPPERS
+
+        if self.gripper is not None and self.gripper not in GRIPPERS:
+            raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
+        if self.gripper is not None and self.grasp_to_tool is not None:
+            raise ValueError("give 'gripper' or 'grasp_to_tool', not both")
+        if self.gripper is not None and self.source == "file" and self.format in _POSE_FORMATS:
+            raise ValueError(
+                f"'gripper' needs a format with a documented gripper frame (acronym, "
+                f"graspgen, contact_graspnet, graspnet); {self.format} poses are taken as "
+                "the robot's grasp frame (use grasp_to_tool)"
+            )
+        if self.camera_pose is not None and not (
+            self.source == "file" and self.format in ("contact_graspnet", "graspnet")
+        ):
+            raise ValueError("'camera_pose' applies to format contact_graspnet or graspnet")
+        if self.source == "file" and self.format == "contact_graspnet" and not self.camera_pose:
+            raise ValueError(
+                "'camera_pose' is missing: format 'contact_graspnet' predicts grasps in "
+                "the camera frame (OpenCV: x right, y down, z forward); give the camera's "
+                "pose in the world, e.g. camera_pose: {xyz: [0.5, 0, 0.8], rpy_deg: [180, 0, 0]} "
+                "(looking straight down)"
+            )
+        return self
+
+
+_POSE_FORMATS = ("npy", "npz", "csv")
 
 #: Object shape each generator needs.
 GENERATOR_SHAPES = {"plane": "plane", "cylinder_side": "cylinder", "box": "box", "sphere": "sphere"}
@@ -402,6 +452,8 @@ class Config(_Section):
             raise ValueError(
                 f"candidates.source {c.source!r} needs object.shape {shape!r}, got {got}"
             )
+        if c.source == "antipodal" and self.object is None:
+            raise ValueError("candidates.source 'antipodal' samples an object: add 'object'")
         if c.source == "file" and c.frame == "object" and self.object is None:
             raise ValueError("candidates.frame 'object' needs an 'object' section (its pose)")
         return self

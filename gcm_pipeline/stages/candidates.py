@@ -373,11 +373,17 @@ def generate_candidates(cfg: Config) -> GraspTable:
         ConfigError: A generator without a matching ``object`` section.
         InputError: An unreadable or invalid grasp file, or no grasp left.
     """
-    poses = grasp_poses(cfg)
+    from gcm_pipeline import formats
+
+    columns: dict[str, np.ndarray] = {}
+    if formats.handles(cfg):  # synthesisers' formats, gripper mapping, the antipodal sampler
+        poses, columns = formats.load_candidates(cfg)
+    else:
+        poses = grasp_poses(cfg)
     if poses.shape[0] == 0:
         raise InputError(f"candidates: no grasp left from {_describe_source(cfg.candidates)}")
     log.info("candidates: %d from %s", poses.shape[0], _describe_source(cfg.candidates))
-    return GraspTable({"dq": dq_from_matrix(poses)})
+    return GraspTable({"dq": dq_from_matrix(poses), **columns})
 
 
 def _describe_source(c: CandidatesConfig) -> str:

@@ -1,0 +1,136 @@
+"""Gripper registry: grasp-file frame conventions mapped onto the robot's grasp frame.
+
+A grasp synthesiser writes the pose of *its* gripper frame; the pipeline
+needs the pose of the robot's grasp frame (for the Panda ``panda_hand_tcp``:
+origin midway between the fingertips, z = approach, fingers closing along y).
+The map between the two depends on the gripper and on the file's convention;
+a :class:`GripperSpec` holds it, with the gripper's opening limit and finger
+depth (used by the antipodal sampler).
+
+Conventions (``T_tool = T_file @ to_tool``):
+
+=============== ============================================= =====================
+convention      file frame                                    used by
+=============== ============================================= =====================
+``base``        origin at the hand's base (``panda_hand``),   ACRONYM, GraspGen,
+                z = approach, fingers closing along x; the    Contact-GraspNet
+                fingertip midpoint is ``base_to_tcp`` along z
+``center``      origin at the grasp centre, x = approach,     GraspNet-1Billion,
+                y = closing (``width``), z = the finger       AnyGrasp
+                ``height`` axis; the fingertips reach
+                ``depth`` (per grasp) past the centre along x
+=============== ============================================= =====================
+
+Sources for the conventions: ACRONYM's Franka gripper has finger control
+points at x = +-0.041 m and the hand's base frame at the origin; GraspGen's
+gripper description (``docs/GRIPPER_DESCRIPTION.md``: approach +z, fingers
+closing along x, ``depth`` = base link to TCP) and its Franka config;
+Contact-GraspNet's ``build_6d_grasp`` (rotation columns = [closing
+direction, approach x closing, approach], origin = contact + width/2 along
+the closing direction - 0.1034 m along the approach); graspnetAPI's
+``plot_gripper_pro_max`` (fingers span x in [-0.024, depth], width along y,
+height along z) and its 17-value grasp rows.
+
+This registry is about grasp files and sampling; the robot's own tool
+geometry (collision shapes on the flange) lives in the robot spec.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gcm_pipeline.errors import ConfigError, unknown_choice
+
+__all__ = ["CONVENTIONS", "GRIPPERS", "GripperSpec", "get_gripper", "gripper_names"]
+
+#: Frame conventions of grasp files (see the module docstring).
+CONVENTIONS = ("base", "center")
+
+
+@dataclass(frozen=True)
+class GripperSpec:
+    """A parallel-jaw gripper as grasp files and the sampler see it.
+
+    Attributes:
+        name: Registry name (``candidates.gripper``).
+        description: One line for humans.
+        max_width: Largest finger opening [m].
+        finger_depth: How far the finger pads reach along the approach, from
+            the fingertips back toward the palm [m]; a sampled grasp puts its
+            contacts at most this deep.
+        base_to_tcp: Distance from the hand's base frame to the fingertip
+            midpoint (the robot's grasp frame) along the approach [m].
+        closing_axis_tool: The robot's grasp frame axis along which the
+            fingers close (``"y"`` for ``panda_hand_tcp``).
+    """
+
+    name: str
+    description: str
+    max_width: float
+    finger_depth: float
+    base_to_tcp: float
+    closing_axis_tool: str = "y"
+
+    def to_tool(self, convention: str, depth: np.ndarray | float | None = None) -> np.ndarray:
+        """The right-hand transform from a file's gripper frame to the robot's grasp frame.
+
+        Args:
+            convention: ``base`` or ``center`` (:data:`CONVENTIONS`).
+            depth: ``center`` only: how far the fingertips reach past the
+                grasp centre along its x [m], scalar or (N,).
+
+        Returns:
+            (4, 4), or (N, 4, 4) for an array ``depth``: ``T_tool = T_file @ to_tool``.
+        """
+        if convention == "base":
+            # tool z = file z (approach); tool y = file x (closing); tool x = y x z = -file y
+            m = np.eye(4)
+            m[:3, :3] = [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+            m[2, 3] = self.base_to_tcp
+            return m
+        if convention == "center":
+            d = np.atleast_1d(np.asarray(0.0 if depth is None else depth, dtype=float))
+            m = np.zeros((d.shape[0], 4, 4))
+            # tool z = file x (approach); tool y = file y (closing); tool x = -file z
+            m[:, :3, :3] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]
+            m[:, 0, 3] = d
+            m[:, 3, 3] = 1.0
+            return m[0] if np.ndim(depth) == 0 else m
+        raise ConfigError(unknown_choice("gripper frame convention", convention, CONVENTIONS))
+
+    def __repr__(self) -> str:
+        return (
+            f"GripperSpec({self.name!r}, max_width={self.max_width} m, "
+            f"finger_depth={self.finger_depth} m, base_to_tcp={self.base_to_tcp} m)"
+        )
+
+
+#: Known grippers by name.
+GRIPPERS: dict[str, GripperSpec] = {
+    "franka_panda": GripperSpec(
+        name="franka_panda",
+        description="Franka Hand (Panda): 80 mm stroke, TCP 0.1034 m from the hand base",
+        max_width=0.08,
+        finger_depth=0.04,
+        base_to_tcp=0.1034,
+    ),
+}
+
+
+def gripper_names() -> list[str]:
+    """Names of the known grippers, sorted."""
+    return sorted(GRIPPERS)
+
+
+def get_gripper(name: str) -> GripperSpec:
+    """The gripper called ``name``.
+
+    Raises:
+        ConfigError: An unknown name (lists the known ones).
+    """
+    try:
+        return GRIPPERS[name]
+    except KeyError:
+        raise ConfigError(unknown_choice("gripper", name, GRIPPERS)) from None

@@ -1,0 +1,433 @@
+"""Importers of grasp synthesisers' files: GraspGen, Contact-GraspNet, GraspNet-1Billion.
+
+Each reader returns the poses exactly as the file stores them (the file's
+own gripper frame, in the file's frame of reference) plus the per-candidate
+values the file carries; :func:`gcm_pipeline.formats.load_candidates` maps
+them onto the robot's grasp frame (:mod:`gcm_pipeline.formats.grippers`) and
+into the world.
+
+========================= ============================================================
+format                    layout read
+========================= ============================================================
+``graspgen``              GraspGen's grasp data (JSON or YAML): ``grasps.transforms``
+                          (N, 4, 4) poses of the gripper's base link in the object
+                          mesh frame, optional ``grasps.object_in_gripper`` (N,)
+                          success mask and ``grasps.confidences`` (N,),
+                          ``object.file`` / ``object.scale``, an optional
+                          ``gripper`` (a name or ``{name: ...}``); or GraspGen's
+                          inference output in the ``isaac_grasp`` YAML format
+                          (``format: isaac_grasp``, ``grasps: {name: {confidence,
+                          position: [x, y, z], orientation: {w, xyz: [x, y, z]}}}``)
+``contact_graspnet``      Contact-GraspNet's ``predictions_*.npz``: dicts keyed by
+                          segment id (stored as pickled 0-d object arrays):
+                          ``pred_grasps_cam`` (M, 4, 4) gripper base poses in the
+                          camera frame (OpenCV: x right, y down, z forward),
+                          ``scores`` (M,), ``contact_pts`` (M, 3), optional
+                          ``gripper_openings`` (M,) [m]; plain arrays (no dict)
+                          are one segment (-1)
+``graspnet``              GraspNet-1Billion / AnyGrasp ``GraspGroup`` arrays (``.npy``
+                          or the only / ``grasp_group_array`` array of an ``.npz``):
+                          rows of 17 values ``[score, width, height, depth,
+                          R (9, row-major), t (3), object_id]`` [m]
+========================= ============================================================
+
+Sources: GraspGen's ``docs/GRASP_DATASET_FORMAT.md`` and its
+``save_to_isaac_grasp_format``; the Isaac Sim grasp-editor page on the
+``isaac_grasp`` file; Contact-GraspNet's ``inference.py`` (``np.savez`` of
+``pred_grasps_cam``, ``scores``, ``contact_pts``; later versions add
+``gripper_openings``); graspnetAPI's ``grasp.py`` (``GRASP_ARRAY_LEN = 17``
+and the accessors ``rotation_matrices = rows[:, 4:13].reshape(-1, 3, 3)``,
+``translations = rows[:, 13:16]``).
+
+Contact-GraspNet stores its dicts with pickle. They are read by a restricted
+unpickler that only builds NumPy arrays, dtypes and scalars (besides plain
+dicts, lists, numbers and strings), so a prediction file cannot run code.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import pickle
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+from gcm_pipeline.errors import InputError
+
+__all__ = [
+    "IMPORT_FORMATS",
+    "ImportedGrasps",
+    "read_contact_graspnet",
+    "read_graspgen",
+    "read_graspnet",
+]
+
+log = logging.getLogger(__name__)
+
+#: Formats read here, with the gripper-frame convention of their poses.
+IMPORT_FORMATS: dict[str, str] = {
+    "graspgen": "base",
+    "contact_graspnet": "base",
+    "graspnet": "center",
+}
+
+_RIGID_TOL = 1e-4
+
+
+@dataclass
+class ImportedGrasps:
+    """Grasps as a file stores them.
+
+    Attributes:
+        poses: (N, 4, 4) poses of the file's gripper frame [m].
+        convention: The gripper-frame convention (``base`` or ``center``).
+        columns: Per-candidate columns (N,) to carry through (``score``,
+            ``width``, ``source_id``, ``segment``, ``object_id``).
+        success: (N,) bool success labels, or None.
+        depth: (N,) ``center`` convention: fingertip depth past the centre [m].
+        gripper: The gripper named in the file, if any.
+    """
+
+    poses: np.ndarray
+    convention: str
+    columns: dict[str, np.ndarray] = field(default_factory=dict)
+    success: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    gripper: str | None = None
+
+    def take(self, index: np.ndarray) -> ImportedGrasps:
+        """The rows selected by an integer index or boolean mask."""
+        return ImportedGrasps(
+            poses=self.poses[index],
+            convention=self.convention,
+            columns={k: v[index] for k, v in self.columns.items()},
+            success=None if self.success is None else self.success[index],
+            depth=None if self.depth is None else self.depth[index],
+            gripper=self.gripper,
+        )
+
+
+def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
+    """Return ``poses`` as float (N, 4, 4) or raise naming the first non-rigid row."""
+    arr = np.asarray(poses)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}")
+    if arr.dtype.kind not in "fiu":
+        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(float)
+    if len(arr) == 0:
+        return arr
+    rot = arr[:, :3, :3]
+    with np.errstate(invalid="ignore"):
+        err = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2))
+        err = np.maximum(err, np.abs(arr[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1))
+        det = np.linalg.det(np.nan_to_num(rot))
+    bad = np.flatnonzero(~(np.isfinite(arr).all(axis=(1, 2)) & (err < _RIGID_TOL) & (det > 0)))
+    if bad.size:
+        more = f" ({bad.size} bad rows in all)" if bad.size > 1 else ""
+        raise InputError(
+            f"{path}: {what}: grasp {int(bad[0])} (0-based) is not a rigid transform{more}"
+        )
+    return arr
+
+
+# ----------------------------------------------------------------- GraspGen
+
+
+def _read_structured(path: Path) -> Any:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read: {exc}") from None
+    try:
+        if path.suffix.lower() == ".json":
+            return json.loads(text)
+        return yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError) as exc:
+        kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
+        raise InputError(f"{path}: not valid {kind}: {' '.join(str(exc).split())}") from None
+
+
+def _vector(path: Path, value: Any, n: int, what: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {what} must be numbers") from None
+    if arr.shape[0] != n:
+        raise InputError(f"{path}: {what} has {arr.shape[0]} values, expected {n}")
+    return arr
+
+
+def read_graspgen(path: str | Path) -> ImportedGrasps:
+    """Read a GraspGen grasp file (JSON/YAML dataset layout or ``isaac_grasp`` YAML).
+
+    Returns:
+        Gripper base-link poses (``base`` convention, object mesh frame) with
+        ``score`` (the confidences, when the file has them) and ``source_id``
+        (the grasp's index in the file); ``success`` from
+        ``object_in_gripper``.
+
+    Raises:
+        InputError: Unreadable file, a layout that is not GraspGen's, bad values.
+    """
+    path = Path(path)
+    data = _read_structured(path)
+    if not isinstance(data, dict):
+        raise InputError(
+            f"{path}: not a GraspGen grasp file: expected a mapping with 'grasps', "
+            f"got {type(data).__name__}"
+        )
+    if data.get("format") == "isaac_grasp":
+        return _read_isaac_grasp(path, data)
+    grasps = data.get("grasps")
+    if not isinstance(grasps, dict) or "transforms" not in grasps:
+        raise InputError(
+            f"{path}: not a GraspGen grasp file: expected 'grasps: {{transforms: [...]}}' "
+            f"or 'format: isaac_grasp' (keys: {', '.join(map(str, data)) or 'none'})"
+        )
+    try:
+        raw = np.asarray(grasps["transforms"], dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: grasps.transforms must be (N, 4, 4) numbers") from None
+    if raw.size == 0:
+        raw = raw.reshape(0, 4, 4)
+    poses = check_poses(path, raw, "grasps.transforms")
+    n = len(poses)
+    columns: dict[str, np.ndarray] = {}
+    for key in ("confidences", "confidence", "scores"):
+        if key in grasps:
+            columns["score"] = _vector(path, grasps[key], n, f"grasps.{key}")
+            break
+    success = None
+    if "object_in_gripper" in grasps:
+        success = _vector(path, grasps["object_in_gripper"], n, "grasps.object_in_gripper") > 0.5
+    columns["source_id"] = np.arange(n, dtype=np.int64)
+    obj = data.get("object")
+    if isinstance(obj, dict) and "file" in obj:
+        log.info("%s: GraspGen grasps of %s (scale %s)", path, obj.get("file"), obj.get("scale"))
+    gripper = data.get("gripper")
+    if isinstance(gripper, dict):
+        gripper = gripper.get("name")
+    return ImportedGrasps(
+        poses, "base", columns, success, gripper=str(gripper) if gripper else None
+    )
+
+
+def _read_isaac_grasp(path: Path, data: dict[str, Any]) -> ImportedGrasps:
+    grasps = data.get("grasps")
+    if not isinstance(grasps, dict):
+        raise InputError(f"{path}: isaac_grasp file without a 'grasps' mapping")
+    n = len(grasps)
+    pos = np.empty((n, 3))
+    quat = np.empty((n, 4))  # w, x, y, z
+    score = np.full(n, np.nan)
+    for i, (name, g) in enumerate(grasps.items()):
+        try:
+            pos[i] = np.asarray(g["position"], dtype=float).reshape(3)
+            o = g["orientation"]
+            quat[i, 0] = float(o["w"])
+            quat[i, 1:] = np.asarray(o["xyz"], dtype=float).reshape(3)
+            if "confidence" in g:
+                score[i] = float(g["confidence"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(
+                f"{path}: grasp {name!r}: expected position: [x, y, z] and "
+                "orientation: {w: .., xyz: [x, y, z]}"
+            ) from None
+    norm = np.linalg.norm(quat, axis=1)
+    bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1.0) > 1e-3))
+    if bad.size:
+        name = list(grasps)[int(bad[0])]
+        raise InputError(f"{path}: grasp {name!r}: orientation has norm {norm[bad[0]]:.6g}, not 1")
+    poses = np.zeros((n, 4, 4))
+    if n:
+        poses[:, :3, :3] = Rotation.from_quat((quat / norm[:, None])[:, [1, 2, 3, 0]]).as_matrix()
+    poses[:, :3, 3] = pos
+    poses[:, 3, 3] = 1.0
+    columns = {"score": score, "source_id": np.arange(n, dtype=np.int64)}
+    return ImportedGrasps(poses, "base", columns)
+
+
+# --------------------------------------------------------- Contact-GraspNet
+
+_SAFE_GLOBALS = {
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "scalar"),
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
+}
+
+
+class _ArrayUnpickler(pickle.Unpickler):
+    """Unpickles NumPy arrays, dtypes and scalars in plain containers; nothing else."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) not in _SAFE_GLOBALS:
+            raise pickle.UnpicklingError(f"refusing to load {module}.{name}")
+        return super().find_class(module, name)
+
+
+def _read_npz_members(path: Path) -> dict[str, Any]:
+    """Every array of an ``.npz``; object arrays through :class:`_ArrayUnpickler`."""
+    out: dict[str, Any] = {}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                with zf.open(info) as fh:
+                    version = np.lib.format.read_magic(fh)
+                    if version == (1, 0):
+                        _, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                    else:
+                        _, _, dtype = np.lib.format.read_array_header_2_0(fh)
+                    if dtype.hasobject:
+                        value = _ArrayUnpickler(fh).load()
+                    else:
+                        with zf.open(info) as fh2:
+                            value = np.lib.format.read_array(fh2, allow_pickle=False)
+                out[info.filename[: -len(".npy")]] = value
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, pickle.UnpicklingError) as exc:
+        raise InputError(f"{path}: not a readable .npz archive: {exc}") from None
+    return out
+
+
+def _segments(value: Any) -> dict[Any, np.ndarray]:
+    """A per-segment dict (a 0-d object array holding one, or a plain array = segment -1)."""
+    if isinstance(value, np.ndarray) and value.dtype.hasobject and value.ndim == 0:
+        value = value.item()
+    if isinstance(value, dict):
+        return value
+    return {-1: value}
+
+
+def read_contact_graspnet(path: str | Path) -> ImportedGrasps:
+    """Read Contact-GraspNet predictions (``pred_grasps_cam`` and friends).
+
+    Segments are read in ascending order of their id; within a segment rows
+    stay in file order.
+
+    Returns:
+        Gripper base poses (``base`` convention) in the camera frame with
+        ``score``, ``width`` (``gripper_openings`` when present, else NaN),
+        ``segment`` (the segment id) and ``source_id`` (the row inside its
+        segment).
+
+    Raises:
+        InputError: Not an ``.npz`` with ``pred_grasps_cam``, inconsistent
+            lengths, non-rigid poses.
+    """
+    path = Path(path)
+    arrays = _read_npz_members(path)
+    if "pred_grasps_cam" not in arrays:
+        raise InputError(
+            f"{path}: not a Contact-GraspNet prediction file: no array 'pred_grasps_cam' "
+            f"(arrays: {', '.join(arrays) or 'none'})"
+        )
+    grasps = _segments(arrays["pred_grasps_cam"])
+    scores = _segments(arrays["scores"]) if "scores" in arrays else {}
+    openings = _segments(arrays["gripper_openings"]) if "gripper_openings" in arrays else {}
+    try:
+        keys = sorted(grasps, key=lambda k: float(k))
+    except (TypeError, ValueError):
+        keys = sorted(grasps, key=str)
+    parts, cols = [], {"score": [], "width": [], "segment": [], "source_id": []}
+    for key in keys:
+        raw = np.asarray(grasps[key])
+        if raw.size == 0:
+            continue
+        poses = check_poses(path, raw.reshape(-1, 4, 4), f"pred_grasps_cam[{key}]")
+        m = len(poses)
+        parts.append(poses)
+        score = scores.get(key)
+        cols["score"].append(
+            np.full(m, np.nan) if score is None else _vector(path, score, m, f"scores[{key}]")
+        )
+        width = openings.get(key)
+        cols["width"].append(
+            np.full(m, np.nan)
+            if width is None
+            else _vector(path, width, m, f"gripper_openings[{key}]")
+        )
+        try:
+            seg = int(float(key))
+        except (TypeError, ValueError):
+            seg = keys.index(key)
+        cols["segment"].append(np.full(m, seg, dtype=np.int64))
+        cols["source_id"].append(np.arange(m, dtype=np.int64))
+    if not parts:
+        return ImportedGrasps(np.zeros((0, 4, 4)), "base", {})
+    columns = {k: np.concatenate(v) for k, v in cols.items()}
+    return ImportedGrasps(np.concatenate(parts), "base", columns)
+
+
+# ----------------------------------------------------------------- GraspNet
+
+GRASPNET_ROW = 17
+
+
+def read_graspnet(path: str | Path) -> ImportedGrasps:
+    """Read GraspNet-1Billion / AnyGrasp grasp rows (``GraspGroup`` arrays).
+
+    Returns:
+        Grasp-centre poses (``center`` convention) with ``score``, ``width``
+        [m], ``object_id`` and ``source_id`` (row in the file); ``depth`` [m].
+
+    Raises:
+        InputError: Not a (N, 17) real array, non-rigid rotation, bad values.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".npz":
+        arrays = _read_npz_members(path)
+        names = [k for k in ("grasp_group_array", "grasps", "preds") if k in arrays]
+        if not names and len(arrays) == 1:
+            names = list(arrays)
+        if not names:
+            raise InputError(
+                f"{path}: expected one array of GraspNet rows (N, {GRASPNET_ROW}) or "
+                f"'grasp_group_array'; arrays: {', '.join(arrays) or 'none'}"
+            )
+        rows = arrays[names[0]]
+    else:
+        try:
+            rows = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: not a readable .npy array: {exc}") from None
+    rows = np.asarray(rows)
+    if rows.ndim != 2 or rows.shape[1] != GRASPNET_ROW or rows.dtype.kind not in "fiu":
+        raise InputError(
+            f"{path}: expected GraspNet rows (N, {GRASPNET_ROW}) = [score, width, height, "
+            f"depth, R (9), t (3), object_id], got shape {rows.shape} dtype {rows.dtype}"
+        )
+    rows = rows.astype(float)
+    bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
+    if bad.size:
+        raise InputError(f"{path}: row {int(bad[0])} (0-based) has non-finite values")
+    n = len(rows)
+    poses = np.zeros((n, 4, 4))
+    poses[:, :3, :3] = rows[:, 4:13].reshape(n, 3, 3)
+    poses[:, :3, 3] = rows[:, 13:16]
+    poses[:, 3, 3] = 1.0
+    poses = check_poses(path, poses, "rotation/translation")
+    columns = {
+        "score": rows[:, 0].copy(),
+        "width": rows[:, 1].copy(),
+        "object_id": np.rint(rows[:, 16]).astype(np.int64),
+        "source_id": np.arange(n, dtype=np.int64),
+    }
+    return ImportedGrasps(poses, "center", columns, depth=rows[:, 3].copy())
+
+
+READERS = {
+    "graspgen": read_graspgen,
+    "contact_graspnet": read_contact_graspnet,
+    "graspnet": read_graspnet,
+}

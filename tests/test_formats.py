@@ -1,0 +1,310 @@
+"""Importers of synthesisers' grasp files and the gripper registry.
+
+Every test writes a small file the way the format's documentation describes
+it (not with our own mapping) and checks the imported grasp frame against a
+hand-computed one: a grasp approaching the top face of a box from above ends
+with the TCP at the face centre, z pointing down, fingers closing along the
+world y axis.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import pickle
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from gcm_pipeline import formats
+from gcm_pipeline.cli import main
+from gcm_pipeline.config import Config
+from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.stages.candidates import generate_candidates
+
+BOX_SIZE = (0.10, 0.06, 0.10)
+BOX_XYZ = (0.5, 0.0, 0.05)  # the box stands on the table: top face at z = 0.10
+TOP = np.array([0.5, 0.0, 0.10])
+APPROACH = np.array([0.0, 0.0, -1.0])
+CLOSING = np.array([0.0, 1.0, 0.0])
+
+
+def expected_tool() -> np.ndarray:
+    """The robot's grasp frame (panda_hand_tcp) of the top grasp, by hand."""
+    t = np.eye(4)
+    t[:3, 0] = np.cross(CLOSING, APPROACH)  # x = y x z = (-1, 0, 0)
+    t[:3, 1] = CLOSING
+    t[:3, 2] = APPROACH
+    t[:3, 3] = TOP
+    return t
+
+
+def config(candidates: dict, **extra) -> Config:
+    return Config.from_dict(
+        {
+            "object": {"shape": "box", "dims": {"size": list(BOX_SIZE)}, "pose": {"xyz": BOX_XYZ}},
+            "candidates": {"source": "file", **candidates},
+            **extra,
+        }
+    )
+
+
+def imported(cfg: Config):
+    table = generate_candidates(cfg)
+    return dq_to_matrix(table["dq"]), table
+
+
+def assert_pose(m: np.ndarray, want: np.ndarray) -> None:
+    np.testing.assert_allclose(m[:3, 3], want[:3, 3], atol=1e-6)
+    np.testing.assert_allclose(m[:3, :3], want[:3, :3], atol=1e-6)
+
+
+# ------------------------------------------------------------------ grippers
+
+
+def test_registry_base_convention_is_the_acronym_grasp_to_tool():
+    g = formats.get_gripper("franka_panda")
+    # the README's hand-written map for ACRONYM files
+    want = config(
+        {"path": "x.npy", "grasp_to_tool": {"xyz": [0, 0, 0.1034], "rpy_deg": [0, 0, -90]}}
+    ).candidates.grasp_to_tool.matrix()
+    np.testing.assert_allclose(g.to_tool("base"), want, atol=1e-12)
+    assert g.max_width == 0.08 and 0 < g.finger_depth < 0.06
+
+
+def test_registry_unknown_gripper_lists_the_known_ones():
+    with pytest.raises(ConfigError, match="unknown gripper 'robotiq'.*valid: franka_panda"):
+        formats.get_gripper("robotiq")
+    with pytest.raises(ConfigError, match="candidates.*unknown gripper 'panda_hand'.*franka_panda"):
+        config({"path": "g.json", "gripper": "panda_hand"})
+
+
+# ------------------------------------------------------------------ GraspGen
+
+
+def graspgen_base_in_object() -> np.ndarray:
+    """GraspGen/ACRONYM base-link frame of the top grasp in the box frame (docs: z approach,
+    fingers closing along x, TCP 0.1034 m along z)."""
+    t = np.eye(4)
+    t[:3, 0] = CLOSING
+    t[:3, 2] = APPROACH
+    t[:3, 1] = np.cross(APPROACH, CLOSING)
+    t[:3, 3] = (TOP - BOX_XYZ) - 0.1034 * APPROACH
+    return t
+
+
+def test_graspgen_json_dataset_layout(tmp_path):
+    base = graspgen_base_in_object()
+    other = base.copy()
+    other[0, 3] += 0.02
+    path = tmp_path / "box_grasps.json"
+    path.write_text(
+        json.dumps(
+            {
+                "object": {"file": "meshes/box.obj", "scale": 1.0},
+                "grasps": {
+                    "transforms": [base.tolist(), other.tolist()],
+                    "object_in_gripper": [True, False],
+                    "confidences": [0.9, 0.4],
+                },
+            }
+        )
+    )
+    cfg = config({"path": str(path), "frame": "object"})
+    assert cfg.candidates.format == "graspgen"  # from the suffix
+    poses, table = imported(cfg)
+    assert_pose(poses[0], expected_tool())
+    np.testing.assert_allclose(poses[1][:3, 3], TOP + [0.02, 0, 0], atol=1e-9)
+    np.testing.assert_array_equal(table["score"], [0.9, 0.4])
+    np.testing.assert_array_equal(table["source_id"], [0, 1])
+    only = config({"path": str(path), "frame": "object", "success_only": True})
+    poses, table = imported(only)
+    assert len(poses) == 1 and table["score"].tolist() == [0.9]
+
+
+def test_graspgen_isaac_grasp_yaml(tmp_path):
+    base = graspgen_base_in_object()
+    q = Rotation.from_matrix(base[:3, :3]).as_quat()  # x, y, z, w
+    doc = {
+        "format": "isaac_grasp",
+        "format_version": 1.0,
+        "grasps": {
+            "grasp_0": {
+                "confidence": 0.75,
+                "position": base[:3, 3].tolist(),
+                "orientation": {"w": float(q[3]), "xyz": q[:3].tolist()},
+            }
+        },
+    }
+    path = tmp_path / "box_grasps.yml"
+    path.write_text(yaml.safe_dump(doc))
+    poses, table = imported(config({"path": str(path), "frame": "object"}))
+    assert_pose(poses[0], expected_tool())
+    assert table["score"].tolist() == [0.75]
+
+
+# ---------------------------------------------------------- Contact-GraspNet
+
+# camera 0.7 m above the box top looking straight down (OpenCV optical frame:
+# z forward = world -z, x right = world +x, y down = world -y)
+CAM = np.eye(4)
+CAM[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+CAM[:3, 3] = [0.5, 0.0, 0.8]
+
+
+def cgn_grasp(width: float) -> np.ndarray:
+    """Contact-GraspNet's build_6d_grasp in the camera frame: R = [b, a x b, a],
+    t = contact + width / 2 * b - 0.1034 * a."""
+    r_cam = CAM[:3, :3].T
+    a, b = r_cam @ APPROACH, r_cam @ CLOSING
+    top_cam = r_cam @ (TOP - CAM[:3, 3])
+    contact = top_cam - width / 2 * b  # one finger's contact, level with the fingertips
+    t = np.eye(4)
+    t[:3, :3] = np.column_stack([b, np.cross(a, b), a])
+    t[:3, 3] = contact + width / 2 * b - 0.1034 * a
+    return t
+
+
+def test_contact_graspnet_npz_in_the_camera_frame(tmp_path):
+    g = cgn_grasp(0.06)
+    path = tmp_path / "predictions_scene.npz"
+    # as inference.py saves them: dicts keyed by segment id (pickled object arrays)
+    np.savez(
+        path,
+        pred_grasps_cam={3: np.stack([g, g]).astype(np.float32), 1: g[None]},
+        scores={3: np.array([0.2, 0.8], np.float32), 1: np.array([0.5], np.float32)},
+        contact_pts={3: np.zeros((2, 3)), 1: np.zeros((1, 3))},
+        gripper_openings={3: np.array([0.06, 0.05]), 1: np.array([0.04])},
+    )
+    cam = {"xyz": CAM[:3, 3].tolist(), "rpy_deg": [180, 0, 0]}
+    cfg = config({"path": str(path), "format": "contact_graspnet", "camera_pose": cam})
+    poses, table = imported(cfg)
+    for m in poses:
+        assert_pose(m, expected_tool())  # float32 in the file: 1e-6 is enough
+    assert table["segment"].tolist() == [1, 3, 3]  # segments in ascending order
+    np.testing.assert_allclose(table["score"], [0.5, 0.2, 0.8], rtol=1e-6)
+    np.testing.assert_allclose(table["width"], [0.04, 0.06, 0.05])
+    assert table["source_id"].tolist() == [0, 0, 1]
+
+
+def test_contact_graspnet_needs_a_camera_pose():
+    with pytest.raises(ConfigError, match="candidates: .camera_pose. is missing.*camera frame"):
+        config({"path": "p.npz", "format": "contact_graspnet"})
+
+
+def test_contact_graspnet_never_runs_pickled_code(tmp_path):
+    class Evil:
+        def __reduce__(self):
+            return (Path.touch, (tmp_path / "pwned",))
+
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.array(Evil(), dtype=object), allow_pickle=True)
+    path = tmp_path / "evil.npz"
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("pred_grasps_cam.npy", buf.getvalue())
+    with pytest.raises(InputError, match="refusing to load"):
+        formats.read_contact_graspnet(path)
+    assert not (tmp_path / "pwned").exists()
+    assert pickle  # the stdlib module the attack would need is not what we use to read
+
+
+# ------------------------------------------------------------------ GraspNet
+
+
+def graspnet_row(depth: float = 0.02, score: float = 0.7, object_id: int = 3) -> np.ndarray:
+    """graspnetAPI's row [score, width, height, depth, R(9), t(3), object_id]: x approach,
+    y closing, fingertips ``depth`` past the centre along x."""
+    r = np.column_stack([APPROACH, CLOSING, np.cross(APPROACH, CLOSING)])
+    center = TOP - depth * APPROACH
+    return np.r_[score, 0.06, 0.02, depth, r.reshape(-1), center, object_id]
+
+
+def test_graspnet_rows(tmp_path):
+    rows = np.stack([graspnet_row(0.02), graspnet_row(0.03, 0.4, 5)]).astype(np.float32)
+    path = tmp_path / "gg.npy"
+    np.save(path, rows)  # GraspGroup.save_npy writes the float32 array
+    poses, table = imported(config({"path": str(path), "format": "graspnet"}))
+    for m in poses:
+        assert_pose(m, expected_tool())
+    np.testing.assert_allclose(table["score"], [0.7, 0.4], rtol=1e-6)
+    np.testing.assert_allclose(table["width"], [0.06, 0.06], rtol=1e-6)
+    assert table["object_id"].tolist() == [3, 5]
+
+
+def test_graspnet_with_a_camera_pose(tmp_path):
+    row = graspnet_row()
+    r, t = row[4:13].reshape(3, 3), row[13:16]
+    row[4:13] = (CAM[:3, :3].T @ r).reshape(-1)
+    row[13:16] = CAM[:3, :3].T @ (t - CAM[:3, 3])
+    path = tmp_path / "gg.npy"
+    np.save(path, row[None])
+    cam = {"xyz": CAM[:3, 3].tolist(), "rpy_deg": [180, 0, 0]}
+    poses, _ = imported(config({"path": str(path), "format": "graspnet", "camera_pose": cam}))
+    assert_pose(poses[0], expected_tool())
+
+
+# ----------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize(
+    ("fmt", "content", "message"),
+    [
+        ("graspnet", np.tile(np.eye(4), (2, 1, 1)), r"expected GraspNet rows \(N, 17\)"),
+        ("contact_graspnet", {"transforms": np.tile(np.eye(4), (2, 1, 1))}, "pred_grasps_cam"),
+        ("graspgen", {"grasps": [1, 2]}, "not a GraspGen grasp file"),
+    ],
+)
+def test_wrong_format_is_one_clear_error(tmp_path, fmt, content, message):
+    if fmt == "graspnet":
+        path = tmp_path / "g.npy"
+        np.save(path, content)
+    elif fmt == "contact_graspnet":
+        path = tmp_path / "g.npz"
+        np.savez(path, **content)
+    else:
+        path = tmp_path / "g.json"
+        path.write_text(json.dumps(content))
+    cam = {"camera_pose": {"xyz": [0, 0, 1]}} if fmt == "contact_graspnet" else {}
+    with pytest.raises(InputError, match=message):
+        generate_candidates(config({"path": str(path), "format": fmt, **cam}))
+
+
+def test_non_rigid_rotation_names_the_row(tmp_path):
+    rows = np.stack([graspnet_row(), graspnet_row()])
+    rows[1, 4] = 2.0
+    path = tmp_path / "g.npy"
+    np.save(path, rows)
+    with pytest.raises(InputError, match="grasp 1 .* not a rigid transform"):
+        generate_candidates(config({"path": str(path), "format": "graspnet"}))
+
+
+def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
+    bad = tmp_path / "g.npy"
+    np.save(bad, np.tile(np.eye(4), (3, 1, 1)))
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        yaml.safe_dump(
+            {
+                "object": {"shape": "box", "dims": {"size": list(BOX_SIZE)}},
+                "candidates": {"source": "file", "path": str(bad), "format": "graspnet"},
+                "publish": {"html": False, "plots": False},
+            }
+        )
+    )
+    out = tmp_path / "run"
+    assert main(["run", str(cfg), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "(N, 17)" in err[0]
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "g.npy"]
+
+
+def test_gripper_with_plain_pose_formats_is_rejected():
+    with pytest.raises(ConfigError, match="'gripper' needs a format with a documented"):
+        config({"path": "g.npy", "format": "npy", "gripper": "franka_panda"})
+    with pytest.raises(ConfigError, match="'gripper' or 'grasp_to_tool', not both"):
+        config({"path": "g.json", "gripper": "franka_panda", "grasp_to_tool": {"xyz": [0, 0, 0.1]}})

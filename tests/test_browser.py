@@ -162,3 +162,72 @@ def test_scene_renders_in_headless_chromium(tmp_path: Path):
     assert robot_px.sum() > 0.005 * n_px, robot_px.sum()
     assert object_px.sum() > 150, object_px.sum()
     assert glyph_px.sum() > 100, glyph_px.sum()
+
+
+def test_scene_size_and_ur5_renders_whole(tmp_path: Path):
+    """The Panda's page stays small; the UR5 renders as one connected arm.
+
+    The UR5's pixels are the difference between the page with the robot and
+    the same page without it; the largest connected blob must hold (nearly)
+    all of them: a wrist or flange floating apart from the forearm (as the
+    COLLADA files rendered by the viewer's own loader did) is a second blob.
+    """
+    from PIL import Image
+    from scipy import ndimage
+
+    panda = load_robot("panda")
+    grasps, manifold = scene_table(panda)
+    cfg = Config.from_dict(
+        {"candidates": {"source": "file", "path": "x.npy"}, "publish": {"plots": False}}
+    )
+    (html,) = publish(grasps, manifold, panda, cfg, tmp_path)
+    assert html.stat().st_size <= 5_000_000, html.stat().st_size
+
+    ur5 = load_robot("ur5")
+    q = ur5.home + np.array([0.4, -0.3, 0.5, -0.6, 0.8, 0.3])
+    one = GraspTable(
+        {
+            "dq": dq_from_matrix(ur5.fk(q)),
+            "reachable": np.array([True]),
+            "reason": np.array([""]),
+            "q": q[None],
+            "manipulability": np.array([0.05]),
+            "rank": np.array([1]),
+        }
+    )
+    images = {}
+    for label, robot in (("with", ur5), ("without", None)):
+        cfg = Config.from_dict(
+            {
+                "robot": {"spec": "ur5"},
+                "candidates": {"source": "file", "path": "x.npy"},
+                "publish": {"plots": False},
+            }
+        )
+        out = tmp_path / label
+        out.mkdir()
+        (page,) = publish(one, None, robot, cfg, out)
+        if robot is None:  # same camera as the page with the robot
+            text = (tmp_path / "with" / "scene.html").read_text(encoding="utf-8")
+            page.write_text(_without_robot(text), encoding="utf-8")
+        screenshot(page, out / "scene.png", out / "profile")
+        images[label] = np.asarray(Image.open(out / "scene.png").convert("RGB")).astype(int)
+    diff = np.abs(images["with"] - images["without"]).sum(axis=2) > 30
+    assert diff.sum() > 0.01 * diff.size, diff.sum()
+    labels, n = ndimage.label(ndimage.binary_closing(diff, iterations=2))
+    sizes = np.bincount(labels.ravel())[1:]
+    assert sizes.max() >= 0.98 * sizes.sum(), sorted(sizes.tolist())[-5:]
+
+
+def _without_robot(html: str) -> str:
+    """The same page (same camera) with the robot hidden by one more meshcat command."""
+    hide = {"type": "set_property", "path": "/meshcat/robot", "property": "visible", "value": False}
+    b64 = base64.b64encode(umsgpack.packb(hide)).decode("ascii")
+    extra = (
+        f'fetch("data:application/octet-binary;base64,{b64}")\n'
+        "    .then(res => res.arrayBuffer())\n"
+        "    .then(buffer => viewer.handle_command_bytearray(new Uint8Array(buffer)));\n"
+    )
+    marker = "viewer.controls.update();"
+    assert marker in html
+    return html.replace(marker, marker + "\n" + extra, 1)

@@ -356,3 +356,74 @@ def test_live_viewer(robot):
     viewer.close()  # idempotent
     with pytest.raises(PublishError):
         pub.probe_server(viewer.zmq_url, 0.3)
+
+
+def _robot_mesh_points(commands: list[dict]) -> dict[str, np.ndarray]:
+    """World vertices of every robot visual in a recorded scene (node transforms applied)."""
+    transforms = {
+        c["path"]: np.asarray(c["matrix"], dtype=float).reshape(4, 4).T
+        for c in commands
+        if c["type"] == "set_transform"
+    }
+    base = transforms.get("/meshcat/robot", np.eye(4))
+    out: dict[str, list[np.ndarray]] = {}
+    for c in commands:
+        path = c["path"]
+        if c["type"] != "set_object" or not path.startswith("/meshcat/robot/visuals/"):
+            continue
+        link = path.split("/")[4]
+        geom = c["object"]["geometries"][0]
+        if geom["type"] != "BufferGeometry":
+            continue
+        v = f32(geom["data"]["attributes"]["position"]["array"]).reshape(-1, 3)
+        local = transforms.get(path, np.eye(4))
+        m = base @ transforms[f"/meshcat/robot/visuals/{link}"] @ local
+        out.setdefault(link, []).append(v @ m[:3, :3].T + m[:3, 3])
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5"])
+def test_robot_meshes_are_whole_and_embedded_once(name):
+    """Every link's mesh touches the next one along the chain (the UR5's wrist and
+    flange used to float apart), and each mesh is embedded once, simplified."""
+    from scipy.spatial import cKDTree
+
+    robot = load_robot(name)
+    q = robot.home.copy()
+    grasps = GraspTable(
+        {
+            "dq": dq_from_matrix(robot.fk(q)),
+            "reachable": np.array([True]),
+            "reason": np.array([""]),
+            "q": q[None],
+            "manipulability": np.array([0.05]),
+            "rank": np.array([1]),
+        }
+    )
+    cfg = Config.from_dict(
+        {"robot": {"spec": name}, "candidates": {"source": "file", "path": "x.npy"}}
+    )
+    html, _ = pub.render_scene_html(grasps, None, robot, cfg)
+    commands = decode_commands(html)
+    links = _robot_mesh_points(commands)
+    visual = robot.build_geometry("visual")
+    names = [o.name for o in visual.geometryObjects]
+    assert sorted(links) == sorted(names)
+    # one set_object per colour group of a mesh, never repeated (the animation moves nodes)
+    objs = [c["path"] for c in commands if c["type"] == "set_object" and "/robot/" in c["path"]]
+    assert len(objs) == len(set(objs))
+    by_joint: dict[int, list[str]] = {}
+    for o in visual.geometryObjects:
+        by_joint.setdefault(int(o.parentJoint), []).append(o.name)
+    joints = sorted(by_joint)
+    for a, b in zip(joints[:-1], joints[1:], strict=True):
+        pa = np.concatenate([links[n] for n in by_joint[a]])
+        pb = np.concatenate([links[n] for n in by_joint[b]])
+        gap = cKDTree(pa).query(pb)[0].min()
+        assert gap < 0.01, (name, a, b, gap)
+    total_faces = sum(
+        len(c["object"]["geometries"][0]["data"]["index"]["array"].data) // 6
+        for c in commands
+        if c["type"] == "set_object" and "/robot/" in c["path"]
+    )
+    assert total_faces < pub.MESH_FACE_BUDGET * len(names) * 1.2

@@ -5,8 +5,9 @@ The scene holds, under the meshcat root:
 =========================== ==================================================
 path                        content
 =========================== ==================================================
-``/robot``                  the robot's visual meshes (Pinocchio's meshcat
-                            visualizer), posed at the top-ranked solution, and
+``/robot``                  the robot's visual geometry (every object of its
+                            visual model: meshes read by trimesh and simplified,
+                            primitives), posed at the top-ranked solution, and
                             an animation stepping through the top-k solutions
 ``/object``                 the grasped object (primitive or mesh)
 ``/environment``            the support table (``environment.table``)
@@ -35,6 +36,7 @@ This is the only module of the package that imports meshcat.
 from __future__ import annotations
 
 import base64
+import functools
 import math
 import os
 import selectors
@@ -442,28 +444,34 @@ def _top_solutions(grasps: GraspTable, k: int) -> np.ndarray:
 
 
 class _RobotDrawer:
-    """Pinocchio's meshcat visualizer of a :class:`Robot`'s visual meshes under ``/robot``."""
+    """The visual geometry of a :class:`Robot` under ``/robot/visuals/<name>``.
+
+    Every object of the robot's visual ``GeometryModel`` is drawn (meshes,
+    and primitives such as a tool built from boxes), posed by Pinocchio's
+    forward kinematics. Meshes are read with trimesh (the scene graph of a
+    COLLADA file baked in, as Pinocchio's own geometry loader reads it),
+    grouped by material colour and simplified (:func:`_simplified_mesh`), so a
+    scene embeds each robot mesh once, small.
+    """
 
     def __init__(self, vis: Any, robot: Robot, base: np.ndarray) -> None:
         import pinocchio as pin
-        from pinocchio.visualize import MeshcatVisualizer
 
         self.pin = pin
         model = robot.model
         visual = _visual_model(robot)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)
-            self.viz = MeshcatVisualizer(model, None, visual)
-            self.viz.initViewer(viewer=vis)
-            self.viz.loadViewerModel(rootNodeName="robot")
+        for obj in visual.geometryObjects:
+            _draw_geometry(vis[f"robot/visuals/{obj.name}"], obj)
         vis["robot"].set_transform(base)
+        self.vis = vis
         self.model = model
         self.visual = visual
         self.data = model.createData()
         self.vdata = pin.GeometryData(visual)
 
     def display(self, q: np.ndarray) -> None:
-        self.viz.display(q)
+        for path, t in self.placements(q):
+            self.vis[path].set_transform(t)
 
     def placements(self, q: np.ndarray) -> list[tuple[str, np.ndarray]]:
         pin = self.pin
@@ -498,6 +506,162 @@ class _RobotDrawer:
         with anim.at_frame(vis, frame) as f:
             for path, t in self.placements(q):
                 f[path].set_transform(t)
+
+
+# -- robot meshes -----------------------------------------------------------------------
+
+#: Faces kept per visual object of the robot (its colour groups share them).
+MESH_FACE_BUDGET = 6000
+#: Colour groups with fewer faces than this are kept as they are.
+_MIN_SIMPLIFY_FACES = 300
+
+
+class _PackedMesh(mg.Geometry):
+    """A three.js ``BufferGeometry``: float32 positions, a uint16 (or uint32) index.
+
+    The viewer computes vertex normals for a geometry without them.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        super().__init__()
+        self.vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+        small = len(self.vertices) < 65536
+        self.faces = np.ascontiguousarray(faces, dtype=np.uint16 if small else np.uint32)
+
+    def lower(self, object_data: Any) -> dict[str, Any]:
+        index_type, code = (
+            ("Uint16Array", 20) if self.faces.dtype == np.uint16 else ("Uint32Array", 22)
+        )
+        return {
+            "uuid": self.uuid,
+            "type": "BufferGeometry",
+            "data": {
+                "attributes": {
+                    "position": {
+                        "itemSize": 3,
+                        "type": "Float32Array",
+                        "array": umsgpack.Ext(23, self.vertices.tobytes()),
+                        "normalized": False,
+                    }
+                },
+                "index": {
+                    "itemSize": 1,
+                    "type": index_type,
+                    "array": umsgpack.Ext(code, self.faces.tobytes()),
+                    "normalized": False,
+                },
+            },
+        }
+
+
+def _simplified_mesh(path: str, budget: int = MESH_FACE_BUDGET) -> list[tuple[int, Any]]:
+    """A mesh file as (colour 0xRRGGBB, packed geometry) groups, at most ~``budget`` faces.
+
+    Cached per file (path, modification time, size) for the process.
+    """
+    st = os.stat(path)
+    return _simplified_mesh_cached(path, st.st_mtime_ns, st.st_size, budget)
+
+
+@functools.lru_cache(maxsize=64)
+def _simplified_mesh_cached(
+    path: str, _mtime: int, _size: int, budget: int
+) -> list[tuple[int, Any]]:
+    import fast_simplification
+    import trimesh
+
+    try:
+        scene = trimesh.load(path, force="scene")
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise PublishError(f"cannot read robot mesh {path!r}: {exc}") from exc
+    groups: dict[int, list[np.ndarray]] = {}
+    faces_by: dict[int, list[np.ndarray]] = {}
+    offsets: dict[int, int] = {}
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geom = scene.geometry[name]
+        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+            continue
+        color = _mesh_color(geom)
+        verts = trimesh.transform_points(geom.vertices, transform)
+        groups.setdefault(color, []).append(verts)
+        faces_by.setdefault(color, []).append(np.asarray(geom.faces) + offsets.get(color, 0))
+        offsets[color] = offsets.get(color, 0) + len(verts)
+    total = sum(len(f) for fs in faces_by.values() for f in fs)
+    out = []
+    for color, parts in groups.items():
+        verts = np.concatenate(parts)
+        faces = np.concatenate(faces_by[color])
+        mesh = trimesh.Trimesh(verts, faces, process=True)
+        verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        keep = max(_MIN_SIMPLIFY_FACES, int(budget * len(faces) / max(total, 1)))
+        if len(faces) > keep:
+            verts, faces = fast_simplification.simplify(verts, faces, 1.0 - keep / len(faces))
+        out.append((color, _PackedMesh(verts, faces)))
+    return out
+
+
+def _mesh_color(geom: Any) -> int:
+    """The main colour of a trimesh geometry as 0xRRGGBB (its material or first face colour)."""
+    visual = geom.visual
+    rgba = None
+    material = getattr(visual, "material", None)
+    if material is not None:
+        rgba = getattr(material, "main_color", None)
+    if rgba is None and getattr(visual, "kind", None) in ("face", "vertex"):
+        colors = visual.face_colors if visual.kind == "face" else visual.vertex_colors
+        rgba = colors[0] if len(colors) else None
+    if rgba is None:
+        return 0xB3B3B3
+    r, g, b = (int(c) for c in np.asarray(rgba)[:3])
+    return (r << 16) | (g << 8) | b
+
+
+def _rgba_hex(rgba: Sequence[float]) -> int:
+    r, g, b = (int(round(255 * float(c))) for c in rgba[:3])
+    return (r << 16) | (g << 8) | b
+
+
+def _draw_geometry(node: Any, obj: Any) -> None:
+    """Draw one visual ``GeometryObject`` under ``node`` (meshes and coal primitives)."""
+    import coal
+
+    geom = obj.geometry
+    color = _rgba_hex(obj.meshColor) if obj.overrideMaterial else None
+    opacity = float(obj.meshColor[3]) if obj.overrideMaterial else 1.0
+
+    def material(c: int) -> Any:
+        kw = {"opacity": opacity, "transparent": opacity < 1.0}
+        return mg.MeshPhongMaterial(color=c, **kw)
+
+    default = (
+        color
+        if color is not None
+        else _rgba_hex(obj.meshColor)
+        if any(obj.meshColor[:3])
+        else 0xB3B3B3
+    )
+    if isinstance(geom, coal.Box):
+        node["0"].set_object(mg.Box((2.0 * np.asarray(geom.halfSide)).tolist()), material(default))
+    elif isinstance(geom, coal.Sphere):
+        node["0"].set_object(mg.Sphere(float(geom.radius)), material(default))
+    elif isinstance(geom, coal.Cylinder):
+        node["0"].set_object(mg.Cylinder(2.0 * geom.halfLength, geom.radius), material(default))
+        local = np.eye(4)
+        local[:3, :3] = _ROT_X90  # meshcat cylinders run along y, coal's along z
+        node["0"].set_transform(local)
+    elif obj.meshPath and Path(obj.meshPath).is_file():
+        for k, (c, mesh) in enumerate(_simplified_mesh(obj.meshPath)):
+            node[str(k)].set_object(mesh, material(color if color is not None else c))
+    elif hasattr(geom, "num_tris") and geom.num_tris > 0:  # a mesh built in memory
+        verts = np.array([geom.vertices(i) for i in range(geom.num_vertices)])
+        tris = np.array([list(geom.tri_indices(i)) for i in range(geom.num_tris)])
+        node["0"].set_object(_PackedMesh(verts, tris), material(default))
+    else:
+        warnings.warn(
+            f"robot visual {obj.name!r}: geometry {type(geom).__name__} is not drawn",
+            stacklevel=3,
+        )
 
 
 def _visual_model(robot: Robot) -> Any:

@@ -27,6 +27,7 @@ from gcm_pipeline.geometry.dualquat import (
     dq_to_pos_quat,
     sclerp,
 )
+from gcm_pipeline.geometry.surface import Location
 from gcm_pipeline.io import read_run
 from gcm_pipeline.pipeline import (
     Pipeline,
@@ -38,6 +39,7 @@ from gcm_pipeline.pipeline import (
     publish,
     rank,
 )
+from gcm_pipeline.query import BestGrasps, GraspManifold, NearestReachable, load_manifold
 from gcm_pipeline.robot.collision import CollisionChecker
 from gcm_pipeline.robot.ik import IKResult, solve_ik
 from gcm_pipeline.robot.manipulability import (
@@ -56,16 +58,20 @@ from gcm_pipeline.table import GraspTable
 __version__ = "0.1.0"
 
 __all__ = [
+    "BestGrasps",
     "CollisionChecker",
     "Config",
     "ConfigError",
     "FrameNotFoundError",
     "GcmError",
     "GeometryError",
+    "GraspManifold",
     "GraspTable",
     "IKResult",
     "InputError",
+    "Location",
     "Manifold",
+    "NearestReachable",
     "OutputError",
     "Pipeline",
     "PublishError",
@@ -89,6 +95,7 @@ __all__ = [
     "inverse_condition_number",
     "joint_limit_margin",
     "load_config",
+    "load_manifold",
     "load_robot",
     "manipulability",
     "manipulability_metrics",

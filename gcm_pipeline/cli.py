@@ -1,9 +1,10 @@
-"""Command line: ``gcm run | validate | schema | show | plot``.
+"""Command line: ``gcm run | validate | schema | show | plot | query``.
 
 ``gcm run CONFIG`` runs the whole pipeline and writes the run directory;
 ``gcm validate CONFIG`` only checks a config; ``gcm schema`` prints the
 config's JSON Schema; ``gcm show RUN_DIR`` prints the top-ranked grasps of a
-run; ``gcm plot RUN_DIR`` writes its plots.
+run; ``gcm plot RUN_DIR`` writes its plots; ``gcm query RUN_DIR --pose ...``
+prints the nearest reachable grasp of a run's manifold to a pose.
 
 User errors (:class:`~gcm_pipeline.errors.GcmError`) print one line
 ``error: <message>`` on stderr and exit with status 2 (the traceback only
@@ -97,6 +98,31 @@ def build_parser() -> argparse.ArgumentParser:
 
     plot = sub.add_parser("plot", parents=[common], help="write the plots of a run")
     plot.add_argument("run_dir", metavar="RUN_DIR", type=Path)
+
+    query = sub.add_parser(
+        "query",
+        parents=[common],
+        help="nearest reachable grasp of a run's manifold to a pose",
+        description="Find the grasp of the run's continuous manifold nearest to each pose "
+        "that the robot reaches (IK, collisions and approach as in the run) and print it "
+        "with its joint solution. Distances: position [m] plus 0.1 m per radian of rotation.",
+    )
+    query.add_argument("run_dir", metavar="RUN_DIR", type=Path)
+    query.add_argument(
+        "--pose",
+        nargs=7,
+        action="append",
+        required=True,
+        metavar=("X", "Y", "Z", "QW", "QX", "QY", "QZ"),
+        help="query pose: position [m] and unit quaternion (repeatable)",
+    )
+    query.add_argument(
+        "--frame",
+        choices=("world", "base", "object"),
+        default="world",
+        help="frame of the poses: world (default), the robot base or the object",
+    )
+    query.add_argument("--json", action="store_true", help="print the answers as JSON")
     return parser
 
 
@@ -265,12 +291,103 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _query_poses(values: list[list[str]], frame: str, cfg: Any) -> Any:
+    """World poses (M, 4, 4) of ``--pose`` values given in ``frame``."""
+    import numpy as np
+
+    from gcm_pipeline.errors import GeometryError
+    from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_matrix
+
+    poses = []
+    for i, raw in enumerate(values, start=1):
+        try:
+            nums = np.array([float(v) for v in raw])
+        except ValueError:
+            raise GeometryError(f"--pose {i}: expected 7 numbers, got {' '.join(raw)}") from None
+        if not np.isfinite(nums).all():
+            raise GeometryError(f"--pose {i}: values must be finite, got {' '.join(raw)}")
+        norm = float(np.linalg.norm(nums[3:]))
+        if abs(norm - 1.0) > 1e-3:
+            raise GeometryError(
+                f"--pose {i}: quaternion QW QX QY QZ must have norm 1 (within 1e-3), got {norm:.6g}"
+            )
+        poses.append(dq_to_matrix(dq_from_pos_quat(nums[:3], nums[3:])))
+    world = np.stack(poses)
+    if frame == "base":
+        world = cfg.robot.base_pose.matrix() @ world
+    elif frame == "object":
+        if cfg.object is None:
+            raise GeometryError("--frame object: the run's config has no object")
+        world = cfg.object.pose.matrix() @ world
+    return world
+
+
+def _cmd_query(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
+    from gcm_pipeline.query import load_manifold
+
+    manifold = load_manifold(args.run_dir)
+    poses = _query_poses(args.pose, args.frame, manifold.config)
+    answer = manifold.nearest_reachable(poses)
+    pos, quat = dq_to_pos_quat(np.nan_to_num(answer.dq))
+    quat = np.where(quat[:, :1] < 0, -quat, quat)
+    items = []
+    for i in range(len(poses)):
+        item: dict[str, Any] = {
+            "query": [float(v) for v in args.pose[i]],
+            "frame": args.frame,
+            "manifold_distance": float(answer.located[i]),
+            "found": bool(answer.found[i]),
+        }
+        if answer.found[i]:
+            item.update(
+                distance=float(answer.distance[i]),
+                triangle=int(answer.triangle[i]),
+                weights=answer.weights[i].tolist(),
+                position=pos[i].tolist(),
+                quaternion=quat[i].tolist(),
+                q=answer.q[i].tolist(),
+            )
+        items.append(item)
+    if args.json:
+        print(json.dumps(items, indent=2))
+        return 0
+    reach = np.asarray(manifold.grasps.get("reachable", np.zeros(0, bool)), dtype=bool)
+    print(
+        f"run {args.run_dir} ({len(manifold)} triangles, {int(reach.sum())} of "
+        f"{len(manifold.grasps)} rows reachable)"
+    )
+    for i, item in enumerate(items, start=1):
+        q = item["query"]
+        print(
+            f"query {i} ({args.frame}): x {q[0]:.4f} y {q[1]:.4f} z {q[2]:.4f}, "
+            f"quaternion ({q[3]:.4f}, {q[4]:.4f}, {q[5]:.4f}, {q[6]:.4f})"
+        )
+        print(f"  nearest manifold point    {item['manifold_distance']:.4f} m away")
+        if not item["found"]:
+            print("  no reachable grasp found near it")
+            continue
+        print(
+            f"  nearest reachable grasp   {item['distance']:.4f} m away "
+            f"(triangle {item['triangle']}, world frame)"
+        )
+        cells = [*item["position"], *item["quaternion"]]
+        print("  " + "  ".join(f"{c:>9}" for c in ("x", "y", "z", "qw", "qx", "qy", "qz")))
+        print("  " + "  ".join(f"{c:9.4f}" for c in cells))
+        joints = "  ".join(f"q{j + 1} {v:.4f}" for j, v in enumerate(item["q"]))
+        print(f"  joint solution [rad]  {joints}")
+    return 0
+
+
 _COMMANDS = {
     "run": _cmd_run,
     "validate": _cmd_validate,
     "schema": _cmd_schema,
     "show": _cmd_show,
     "plot": _cmd_plot,
+    "query": _cmd_query,
 }
 
 

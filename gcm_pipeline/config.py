@@ -289,12 +289,18 @@ GENERATOR_SHAPES = {"plane": "plane", "cylinder_side": "cylinder", "box": "box",
 
 
 class ManifoldConfig(_Section):
-    """Delaunay manifold over a 2-D chart of the grasp positions."""
+    """Delaunay manifold over a 2-D chart of the grasp positions.
+
+    ``orientation_scale`` [m/rad] weighs orientation against position in the
+    manifold's pose metric (nearest points, the ``margin`` column): a
+    rotation of 1 rad counts like a move of this length.
+    """
 
     projection: Literal["xy", "pca", "cylindrical", "spherical"] = "xy"
     triangulator: Literal["qhull", "bowyer_watson"] = "qhull"
     max_edge_length: PositiveFloat | None = None
     max_edge_angle_deg: Annotated[float, Field(gt=0, le=180)] | None = None
+    orientation_scale: PositiveFloat = 0.1
 
 
 class DensifyConfig(_Section):

@@ -36,6 +36,7 @@ meshcat server at ``publish.zmq_url``.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -54,11 +55,13 @@ from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
+    from gcm_pipeline.query import GraspManifold
     from gcm_pipeline.robot.model import Robot
     from gcm_pipeline.stages.manifold import Manifold
 
 __all__ = [
     "Pipeline",
+    "ReachabilityCheck",
     "RunResult",
     "build_manifold",
     "check_reachability",
@@ -243,6 +246,93 @@ def check_reachability(
     return done
 
 
+class ReachabilityCheck:
+    """Checks any grasp poses the way the run's reachability stage does.
+
+    The same IK backend, tolerances, collision world and approach check as
+    :func:`check_reachability` with ``cfg``; the collision checker is built
+    once and reused, so the adaptive refinement, IK re-seeding and manifold
+    queries can call it many times on small batches. Each call may pass warm
+    starts: configurations tried first, before the backend's usual seeds.
+
+    Args:
+        robot: The robot.
+        cfg: The full config.
+
+    Attributes:
+        solved: Number of poses checked so far (IK targets).
+    """
+
+    def __init__(self, robot: Robot, cfg: Config) -> None:
+        from gcm_pipeline.stages import collision
+
+        self.robot = robot
+        self.config = cfg
+        self.solved = 0
+        self._checker = None
+        if cfg.environment is not None or cfg.object is not None:
+            self._checker = collision.make_checker(
+                robot, cfg.environment, cfg.object, cfg.robot.base_pose.matrix()
+            )
+
+    def __call__(self, dq: np.ndarray, seeds: np.ndarray | None = None) -> GraspTable:
+        """Check poses (M, 8) (world) with optional warm starts (M, K, nq) [rad].
+
+        Returns:
+            A table of M rows: ``dq, reachable, reason, q, pos_err, rot_err``
+            (and ``clearance`` with collisions), as the reachability stage.
+        """
+        from gcm_pipeline.stages import reachability as stage
+
+        cfg = self.config
+        dq = np.asarray(dq, dtype=np.float64).reshape(-1, 8)
+        table = GraspTable({"dq": dq})
+        if not len(dq):
+            return _empty_reachability(
+                table, self.robot.nq, with_clearance=self._checker is not None
+            )
+        options: dict[str, Any] = {}
+        if seeds is not None:
+            options["seeds"] = np.asarray(seeds, dtype=np.float64)
+        ik = cfg.ik
+        done = stage.check_reachability(
+            table,
+            self.robot,
+            base_pose=cfg.robot.base_pose.matrix(),
+            backend=ik.backend,
+            position_tolerance=ik.position_tolerance,
+            orientation_tolerance=ik.orientation_tolerance,
+            workers=ik.workers,
+            seed=cfg.seed,
+            warm_start=False,
+            environment=cfg.environment,
+            object_cfg=cfg.object,
+            approach=cfg.approach,
+            checker=self._checker,
+            **options,
+        )
+        assert isinstance(done, GraspTable)
+        self.solved += len(dq)
+        return done
+
+    def __repr__(self) -> str:
+        return f"ReachabilityCheck(robot={self.robot.name!r}, solved={self.solved})"
+
+
+def _empty_reachability(table: GraspTable, nq: int, *, with_clearance: bool) -> GraspTable:
+    """The reachability columns of a table with no rows."""
+    cols: dict[str, Any] = dict(
+        reachable=np.zeros(0, dtype=bool),
+        reason=np.zeros(0, dtype="<U1"),
+        q=np.zeros((0, nq)),
+        pos_err=np.zeros(0),
+        rot_err=np.zeros(0),
+    )
+    if with_clearance:
+        cols["clearance"] = np.zeros(0)
+    return GraspTable({"dq": np.zeros((0, 8)), **cols})
+
+
 def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
     """Manipulability metrics and ranks of the reachable grasps (``ranking``).
 
@@ -324,6 +414,8 @@ class RunResult:
         timings: Seconds per stage, in run order.
         config: The resolved config.
         run_dir: The run directory, or None when nothing was written.
+        grasp_manifold: The manifold as a queryable
+            :class:`~gcm_pipeline.query.GraspManifold` (built on first use).
     """
 
     grasps: GraspTable
@@ -334,6 +426,17 @@ class RunResult:
     config: Config
     run_dir: Path | None = None
     files: list[Path] = field(default_factory=list)
+
+    @functools.cached_property
+    def grasp_manifold(self) -> GraspManifold:
+        """The run's manifold as a queryable object (sample, locate, nearest reachable, best).
+
+        See :class:`gcm_pipeline.query.GraspManifold`; the same as
+        :func:`gcm_pipeline.load_manifold` on the run directory.
+        """
+        from gcm_pipeline.query import GraspManifold
+
+        return GraspManifold.from_run(self)
 
     def top(self, n: int | None = None) -> list[dict[str, Any]]:
         """The best-ranked grasps (default: ``ranking.top_k`` of them)."""

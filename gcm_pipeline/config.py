@@ -27,17 +27,24 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    Strict,
     ValidationError,
     field_validator,
     model_validator,
 )
 
-from gcm_pipeline.errors import ConfigError, unknown_choice
+from gcm_pipeline.errors import ConfigError, clip, unknown_choice
+from gcm_pipeline.limits import (
+    DEFAULT_MAX_CANDIDATES,
+    DEFAULT_MAX_POSES,
+    MAX_APPROACH_STEPS,
+    MAX_IK_WORKERS,
+)
+from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 
 __all__ = [
     "ApproachConfig",
@@ -61,11 +68,21 @@ __all__ = [
     "load_config",
 ]
 
-PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-PositiveInt = Annotated[int, Field(gt=0)]
+# Numbers and switches are strict: a bool is not a number (``--set
+# densify.subdivisions=true`` is an error, not 1), a number is not a bool, a
+# string is neither, a float with a fraction is not an int. Every int, float
+# and bool field of a section uses one of these (tests/test_config.py checks).
+Bool = Annotated[bool, Strict()]
+FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+PositiveFloat = Annotated[float, Strict(), Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
+PositiveInt = Annotated[int, Strict(), Field(gt=0)]
+#: Seeds of NumPy's generators are non-negative.
+Seed = Annotated[int, Strict(), Field(ge=0)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+
+#: ``output.dir`` of a config given as a dict (relative to the working directory).
+DEFAULT_OUTPUT_DIR = "results/run"
 
 
 class _Section(BaseModel):
@@ -220,11 +237,13 @@ class CandidatesConfig(_Section):
         camera_pose: ``contact_graspnet`` (required) and ``graspnet``: the pose in the
             world of the camera's optical frame (OpenCV: x right, y down, z forward)
             in which the file's grasps are given.
+        max_count: Ceiling of ``count`` and of the rows of a grasp file (checked
+            before anything is read or generated; see :mod:`gcm_pipeline.limits`).
     """
 
     source: Literal["plane", "cylinder_side", "box", "sphere", "file"]
     count: PositiveInt = 24
-    seed: int | None = None
+    seed: Seed | None = None
     noise: NoiseConfig = NoiseConfig()
     rings: PositiveInt | None = None
     depth: FiniteFloat | None = None
@@ -234,15 +253,21 @@ class CandidatesConfig(_Section):
     ) = None
     frame: Literal["object", "world"] = "world"
     grasp_to_tool: Pose | None = None
-    success_only: bool = False
+    success_only: Bool = False
     limit: PositiveInt | None = None
     gripper: str | None = None
     camera_pose: Pose | None = None
+    max_count: PositiveInt = DEFAULT_MAX_CANDIDATES
 
     @model_validator(mode="after")
     def _file_needs_path(self) -> CandidatesConfig:
         if self.source == "file" and self.path is None:
             raise ValueError("source 'file' needs 'path'")
+        if self.source != "file" and self.count > self.max_count:
+            raise ValueError(
+                f"count {self.count:,} is above candidates.max_count ({self.max_count:,}); "
+                "raise candidates.max_count to allow it"
+            )
         return self
 
     @model_validator(mode="before")
@@ -299,16 +324,22 @@ class ManifoldConfig(_Section):
     projection: Literal["xy", "pca", "cylindrical", "spherical"] = "xy"
     triangulator: Literal["qhull", "bowyer_watson"] = "qhull"
     max_edge_length: PositiveFloat | None = None
-    max_edge_angle_deg: Annotated[float, Field(gt=0, le=180)] | None = None
+    max_edge_angle_deg: Annotated[float, Strict(), Field(gt=0, le=180)] | None = None
     orientation_scale: PositiveFloat = 0.1
 
 
 class DensifyConfig(_Section):
-    """Densification inside each triangle: a regular grid or a target spacing [m]."""
+    """Densification inside each triangle: a regular grid or a target spacing [m].
+
+    ``max_poses`` is the ceiling of the densified table (candidates plus
+    lattice points, estimated before the lattice is built; see
+    :mod:`gcm_pipeline.limits`).
+    """
 
     subdivisions: PositiveInt | None = 4
     spacing: PositiveFloat | None = None
     method: Literal["dlb", "dib"] = "dlb"
+    max_poses: PositiveInt = DEFAULT_MAX_POSES
 
     @model_validator(mode="after")
     def _some_density(self) -> DensifyConfig:
@@ -323,7 +354,7 @@ class IKConfig(_Section):
     backend: Literal["pinocchio", "mink"] = "pinocchio"
     position_tolerance: PositiveFloat = 1.0e-4
     orientation_tolerance: PositiveFloat = 1.0e-3
-    workers: PositiveInt = 1
+    workers: Annotated[int, Strict(), Field(gt=0, le=MAX_IK_WORKERS)] = 1
 
 
 class TableConfig(_Section):
@@ -346,8 +377,8 @@ class EnvironmentConfig(_Section):
 
     table: TableConfig | None = TableConfig()
     obstacles: tuple[ObstacleConfig, ...] = ()
-    check_object: bool = True
-    self_collision: bool = True
+    check_object: Bool = True
+    self_collision: Bool = True
     contact_tolerance: NonNegFloat = 0.005
 
 
@@ -355,7 +386,7 @@ class ApproachConfig(_Section):
     """Pre-grasp approach check along the grasp frame's approach axis (z)."""
 
     distance: NonNegFloat = 0.10
-    steps: PositiveInt = 10
+    steps: Annotated[int, Strict(), Field(gt=0, le=MAX_APPROACH_STEPS)] = 10
     max_joint_step: PositiveFloat = 0.25
 
 
@@ -387,7 +418,7 @@ class RankingConfig(_Section):
             if key not in valid:
                 close = difflib.get_close_matches(key, valid, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise ValueError(f"unknown metric {key!r}{hint}; valid: {', '.join(valid)}")
+                raise ValueError(f"unknown metric {clip(key)}{hint}; valid: {', '.join(valid)}")
         if not any(w > 0 for w in v.values()):
             raise ValueError("weights must have at least one positive value")
         return v
@@ -400,11 +431,11 @@ _ZMQ_URL = re.compile(r"tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):([0-9]{1,5})"
 class PublishConfig(_Section):
     """What to publish: live meshcat, a self-contained HTML scene, PNG plots."""
 
-    meshcat: bool = False
+    meshcat: Bool = False
     zmq_url: str | None = None
-    wait: bool = True
-    html: bool = True
-    plots: bool = True
+    wait: Bool = True
+    html: Bool = True
+    plots: Bool = True
     connect_timeout_s: PositiveFloat = 5.0
 
     @field_validator("zmq_url")
@@ -414,25 +445,26 @@ class PublishConfig(_Section):
             return v
         match = _ZMQ_URL.fullmatch(v)
         if match is None or not 0 < int(match.group(2)) < 65536:
-            raise ValueError(f"expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:6000, got {v!r}")
+            raise ValueError(f"expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:6000, got {clip(v)}")
         return v
 
 
 class OutputConfig(_Section):
     """Where the run directory goes (``gcm run --out DIR`` overrides it).
 
-    A relative ``dir`` is relative to the working directory, not to the config
-    file, so ``gcm run configs/x.yaml`` from the repository root writes under
-    ``results/``.
+    A relative ``dir`` is relative to the config file's folder, like every
+    other path of a config (:func:`load_config`); the default is
+    ``results/<config name>`` there (``results/run`` in the working directory
+    for a config given as a dict).
     """
 
-    dir: Path = Path("results/run")
+    dir: Path = Path(DEFAULT_OUTPUT_DIR)
 
 
 class Config(_Section):
     """A whole run. Only ``candidates`` is required."""
 
-    seed: int = 0
+    seed: Seed = 0
     robot: RobotConfig = RobotConfig()
     object: ObjectConfig | None = None
     candidates: CandidatesConfig
@@ -468,8 +500,10 @@ class Config(_Section):
     def from_dict(cls, data: Any, *, source: str = "config") -> Config:
         """Validate a plain dict (as read from YAML) into a :class:`Config`.
 
-        Relative file paths (``candidates.path``, meshes, a ``robot.spec``
-        path) are made absolute against the working directory.
+        Relative paths (``candidates.path``, meshes, a ``robot.spec`` path,
+        ``output.dir``, default ``results/run``) are made absolute against the
+        working directory. NumPy scalars and arrays are taken as the Python
+        numbers and lists they hold.
 
         Raises:
             ConfigError: Naming ``source``, the dotted key and the problem.
@@ -482,16 +516,33 @@ class Config(_Section):
             raise ConfigError(
                 f"{source}: a config is a mapping of sections, got {type(data).__name__}"
             )
-        data = copy.deepcopy(data)
+        data = _plain(data, source)
         _resolve_paths(data, Path.cwd())
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
             raise ConfigError(f"{source}: {_describe(exc, data)}") from None
+        except RecursionError:
+            raise ConfigError(f"{source}: config nested too deeply") from None
 
     def to_dict(self) -> dict[str, Any]:
         """The resolved config as plain JSON/YAML-ready data (all defaults filled in)."""
         return self.model_dump(mode="json")
+
+
+def _plain(data: Any, source: str, depth: int = 0) -> Any:
+    """A copy of ``data`` with NumPy scalars and arrays as Python values (depth-limited)."""
+    if depth > MAX_YAML_DEPTH:
+        raise ConfigError(f"{source}: config nested deeper than {MAX_YAML_DEPTH} levels")
+    if isinstance(data, dict):
+        return {k: _plain(v, source, depth + 1) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [_plain(v, source, depth + 1) for v in data]
+    if isinstance(data, (np.ndarray, np.generic)):
+        return _plain(data.tolist(), source, depth + 1)
+    if isinstance(data, os.PathLike):
+        return os.fspath(data)
+    return copy.deepcopy(data)
 
 
 def _describe(exc: ValidationError, data: Any) -> str:
@@ -506,30 +557,31 @@ def _describe(exc: ValidationError, data: Any) -> str:
         valid = sorted(model.model_fields) if model is not None else []
         close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
         hint = f" (did you mean {'.'.join([*map(str, loc[:-1]), close[0]])!r}?)" if close else ""
-        return f"unknown key {key!r}{hint}; valid keys here: {', '.join(valid)}"
+        return f"unknown key {clip(key)}{hint}; valid keys here: {', '.join(valid)}"
     if err["type"] == "missing" and loc and isinstance(loc[-1], int):
         # a tuple with too few values: pydantic reports the first missing index
         parent = ".".join(str(p) for p in loc[:-1])
         got = _value_at(data, loc[:-1])
         n = len(got) if isinstance(got, (list, tuple)) else "?"
-        return f"{parent}: expected {_tuple_len(loc[:-1])} values, got {n} ({got!r})"
+        return f"{parent}: expected {_tuple_len(loc[:-1])} values, got {n} ({clip(got)})"
     if err["type"] == "missing":
-        return f"missing required key {key!r}"
+        return f"missing required key {clip(key)}"
     if err["type"] == "too_long":
-        return (
-            f"{key}: expected {_tuple_len(loc)} values, got {len(err['input'])} ({err['input']!r})"
-        )
+        got = err["input"]
+        return f"{key}: expected {_tuple_len(loc)} values, got {len(got)} ({clip(got)})"
     if err["type"] == "literal_error":
         choices = re.findall(r"'([^']*)'", str(err.get("ctx", {}).get("expected", "")))
         return f"{key}: " + unknown_choice("value", err["input"], choices)
     if err["type"] in ("model_type", "model_attributes_type", "dict_type"):
         got = err.get("input")
-        return f"{key or 'config'}: expected a mapping of keys, got {type(got).__name__} {got!r}"
+        return (
+            f"{key or 'config'}: expected a mapping of keys, got {type(got).__name__} {clip(got)}"
+        )
     msg = err["msg"]
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
     if key and "input" in err and err["type"] not in ("value_error",):
-        return f"{key}: {msg} (got {err['input']!r})"
+        return f"{key}: {msg} (got {clip(err['input'])})"
     return f"{key}: {msg}" if key else msg
 
 
@@ -587,17 +639,19 @@ def _model_at(model: type[BaseModel], loc: list[Any]) -> type[BaseModel] | None:
 
 
 def _set_override(data: dict[str, Any], assignment: str) -> None:
-    """Apply one ``dotted.key=value`` override (value parsed as YAML) to ``data``."""
+    """Apply one ``dotted.key=value`` override (value parsed as YAML) to ``data``.
+
+    The value is read with the same limits as a config file
+    (:mod:`gcm_pipeline.safe_yaml`); text that is not valid YAML syntax is
+    taken as a plain string.
+    """
     if "=" not in assignment:
-        raise ConfigError(f"--set {assignment!r}: expected KEY=VALUE, e.g. ik.backend=mink")
+        raise ConfigError(f"--set {clip(assignment)}: expected KEY=VALUE, e.g. ik.backend=mink")
     key, _, raw = assignment.partition("=")
     parts = key.strip().split(".")
     if not all(parts):
-        raise ConfigError(f"--set {assignment!r}: empty key part in {key!r}")
-    try:
-        value = yaml.safe_load(raw)
-    except yaml.YAMLError:
-        value = raw
+        raise ConfigError(f"--set {clip(assignment)}: empty key part in {clip(key)}")
+    value = load_yaml(raw, f"--set {key.strip()[:200]}", ConfigError, plain_on_syntax_error=True)
     node = data
     for part in parts[:-1]:
         nxt = node.get(part)
@@ -605,40 +659,30 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
             nxt = {}
             node[part] = nxt
         if not isinstance(nxt, dict):
-            raise ConfigError(f"--set {assignment!r}: {part!r} is not a section")
+            raise ConfigError(f"--set {clip(assignment)}: {clip(part)} is not a section")
         node = nxt
     node[parts[-1]] = value
 
 
 def read_yaml(path: Path) -> Any:
-    """Read a YAML file; errors name the file, line and column."""
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"config file not found: {path}")
-    if not path.is_file():
-        raise ConfigError(f"config path is not a file: {path}")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read config {path}: {exc}") from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark
-        where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}{where}: malformed YAML: {exc.problem}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: malformed YAML: {exc}") from None
+    """Read a YAML config file; errors name the file, line and column.
+
+    See :func:`gcm_pipeline.safe_yaml.read_yaml_file` for the limits (size,
+    depth, aliases, duplicate keys).
+    """
+    return read_yaml_file(path, "config", ConfigError)
 
 
 def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Load, override and validate a YAML config.
 
-    Relative file paths inside the config (``candidates.path``,
-    ``object.mesh``, ``environment.obstacles[].mesh`` and a ``robot.spec``
-    path) are resolved against the config file's directory and stored as
-    absolute paths, so the resolved config (the run directory's
-    ``config.yaml``) reads the same files from anywhere.
+    One path rule: every relative path in the config or in an override
+    (``candidates.path``, ``object.mesh``, ``environment.obstacles[].mesh``, a
+    ``robot.spec`` path and ``output.dir``) is resolved against the config
+    file's folder and stored as an absolute path, so the resolved config (the
+    run directory's ``config.yaml``) reads and writes the same files from
+    anywhere. Without ``output.dir`` the run goes to ``results/<config name>``
+    in the config's folder.
 
     Args:
         path: The YAML file.
@@ -659,38 +703,47 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
         raise ConfigError(f"{path}: a config is a mapping of sections, got {type(data).__name__}")
     for assignment in overrides:
         _set_override(data, assignment)
-    _resolve_paths(data, Path(os.path.abspath(path)).parent)
+    _resolve_paths(data, Path(os.path.abspath(path)).parent, default_out=f"results/{path.stem}")
     return Config.from_dict(data or None, source=str(path))
 
 
-def _resolve_paths(data: dict[str, Any], base: Path) -> None:
-    """Make the file paths in the config absolute, relative ones against ``base``.
+def _resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_OUTPUT_DIR) -> None:
+    """Make the paths in the config absolute, relative ones against ``base``.
 
-    ``candidates.path``, ``object.mesh``, ``environment.obstacles[].mesh`` and a
-    ``robot.spec`` that is a path (ends in ``.yaml``/``.yml`` or has a ``/``)
-    are taken relative to ``base`` (the config's directory, absolute), unless
-    only the path relative to the working directory exists (e.g. given with
-    ``--set``); either way the result is absolute (normalised, symlinks kept).
+    ``candidates.path``, ``object.mesh``, ``environment.obstacles[].mesh``,
+    ``output.dir`` (``default_out`` when missing) and a ``robot.spec`` that is
+    a path (ends in ``.yaml``/``.yml`` or has a ``/``) become absolute
+    (normalised, symlinks kept); ``base`` is absolute.
+
+    Raises:
+        ConfigError: A path with a NUL character.
     """
 
-    def fix(section: Any, key: str, only_paths: bool = False) -> None:
+    def fix(section: Any, key: str, where: str, only_paths: bool = False) -> None:
         if not isinstance(section, dict) or not isinstance(section.get(key), str):
             return
         text = section[key]
         if only_paths and not (text.endswith((".yaml", ".yml")) or "/" in text):
             return
+        if "\0" in text:
+            raise ConfigError(f"{where}: a path cannot contain a NUL character: {clip(text)}")
         p = Path(text).expanduser()
-        if not p.is_absolute() and not (p.exists() and not (base / p).exists()):
-            p = base / p
-        section[key] = os.path.abspath(p)
+        section[key] = os.path.abspath(p if p.is_absolute() else base / p)
 
-    fix(data.get("candidates"), "path")
-    fix(data.get("object"), "mesh")
-    fix(data.get("robot"), "spec", only_paths=True)
+    fix(data.get("candidates"), "path", "candidates.path")
+    fix(data.get("object"), "mesh", "object.mesh")
+    fix(data.get("robot"), "spec", "robot.spec", only_paths=True)
     env = data.get("environment")
     if isinstance(env, dict) and isinstance(env.get("obstacles"), list):
-        for obstacle in env["obstacles"]:
-            fix(obstacle, "mesh")
+        for i, obstacle in enumerate(env["obstacles"]):
+            fix(obstacle, "mesh", f"environment.obstacles.{i}.mesh")
+    if data.get("output") is None:
+        data["output"] = {}
+    output = data["output"]
+    if isinstance(output, dict):
+        if output.get("dir") is None:
+            output["dir"] = default_out
+        fix(output, "dir", "output.dir")
 
 
 def config_schema() -> dict[str, Any]:

@@ -12,6 +12,7 @@ closed set of valid values, list them (see :func:`unknown_choice`).
 from __future__ import annotations
 
 import difflib
+import reprlib
 from collections.abc import Iterable
 
 __all__ = [
@@ -23,8 +24,12 @@ __all__ = [
     "OutputError",
     "PublishError",
     "RobotSpecError",
+    "clip",
     "unknown_choice",
 ]
+
+#: Longest quote of a user's value in a message [characters].
+MAX_QUOTE = 200
 
 
 class GcmError(Exception):
@@ -59,6 +64,36 @@ class PublishError(GcmError):
     """Publishing results failed (meshcat server unreachable, browser missing)."""
 
 
+def clip(value: object, limit: int = MAX_QUOTE) -> str:
+    """The :func:`repr` of a user's value for a message, at most about ``limit`` characters.
+
+    Built with :mod:`reprlib`, so a huge string or container is never repr'd
+    whole (a 39 MB value stays a short quote, and its repr costs nothing):
+    long strings keep their start and end, containers their first items.
+
+    Args:
+        value: Any value read from a config or a file.
+        limit: Characters to keep.
+
+    Returns:
+        A one-line string.
+    """
+    short = reprlib.Repr()
+    short.maxlevel = 4
+    short.maxstring = limit
+    short.maxother = limit
+    short.maxlist = short.maxtuple = short.maxdict = short.maxset = 12
+    try:
+        text = " ".join(short.repr(value).split())
+    except Exception:  # a broken __repr__ must not hide the real error
+        text = f"<{type(value).__name__}>"
+    if len(text) > limit:
+        text = text[: limit - 3] + "..."
+    if isinstance(value, str) and len(value) > limit:
+        text += f" ({len(value):,} characters)"
+    return text
+
+
 def unknown_choice(kind: str, value: object, choices: Iterable[str]) -> str:
     """Build the message for a value outside a closed set of names.
 
@@ -72,6 +107,7 @@ def unknown_choice(kind: str, value: object, choices: Iterable[str]) -> str:
         is close, and all valid names.
     """
     names = sorted(str(c) for c in choices)
-    close = difflib.get_close_matches(str(value), names, n=1, cutoff=0.6)
+    text = value if isinstance(value, str) and len(value) <= MAX_QUOTE else clip(value)
+    close = difflib.get_close_matches(str(text), names, n=1, cutoff=0.6)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return f"unknown {kind} {value!r}{hint}; valid: {', '.join(names)}"
+    return f"unknown {kind} {clip(value)}{hint}; valid: {', '.join(names)}"

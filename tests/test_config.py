@@ -279,3 +279,116 @@ def test_file_paths_become_absolute(tmp_path, monkeypatch):
     assert data["candidates"]["path"] == "sub/../g.npy"  # the input is not changed
     # the resolved config validates to itself
     assert Config.from_dict(cfg.to_dict()) == cfg
+
+
+# ------------------------------------------------- strict types, limits, path rule
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("densify.subdivisions=true", "densify.subdivisions"),
+        ("densify.subdivisions=4.0", "densify.subdivisions"),
+        ("densify.subdivisions='4'", "densify.subdivisions"),
+        ("ik.workers=1.5", "ik.workers"),
+        ("publish.html=1", "publish.html"),
+        ("publish.plots='yes'", "publish.plots"),
+        ("ik.position_tolerance=true", "ik.position_tolerance"),
+        ("ik.position_tolerance='1e-4'", "ik.position_tolerance"),
+        ("object.pose.xyz=[0.4, true, 0]", "object.pose.xyz.1"),
+        ("seed=-1", "seed"),
+        ("candidates.seed=-3", "candidates.seed"),
+        ("seed=1.0", "seed"),
+    ],
+)
+def test_strict_types(override, key):
+    with pytest.raises(ConfigError) as info:
+        load_config(ROOT / "configs" / "flat_surface.yaml", [override])
+    assert f": {key}: " in str(info.value)
+
+
+def test_every_number_and_switch_of_the_config_is_strict():
+    """A new int/float/bool field must use the strict aliases of config.py."""
+    import typing
+
+    from pydantic import BaseModel, Strict
+
+    def strict(meta) -> bool:
+        return any(isinstance(m, Strict) and m.strict for m in meta)
+
+    def walk(ann, meta, where, seen):
+        origin = typing.get_origin(ann)
+        if origin is typing.Annotated:
+            base, *more = typing.get_args(ann)
+            walk(base, [*meta, *more], where, seen)
+        elif ann in (int, float, bool):
+            assert strict(meta), f"{where} is a plain {ann.__name__}: use a strict alias"
+        elif isinstance(ann, type) and issubclass(ann, BaseModel):
+            if ann not in seen:
+                seen.add(ann)
+                for name, field in ann.model_fields.items():
+                    walk(field.annotation, field.metadata, f"{ann.__name__}.{name}", seen)
+        else:
+            for arg in typing.get_args(ann):
+                if arg is not Ellipsis and arg is not type(None):
+                    walk(arg, [] if origin is not None else meta, where, seen)
+
+    walk(Config, [], "Config", set())
+
+
+def test_numpy_scalars_are_numbers():
+    cfg = Config.from_dict(
+        _with(seed=np.int64(3), densify={"subdivisions": np.int32(2), "spacing": None})
+    )
+    assert cfg.seed == 3 and cfg.densify.subdivisions == 2
+
+
+def test_counts_above_their_ceiling_say_which_key_to_raise():
+    msg = _error(_with(candidates={"source": "cylinder_side", "count": 10**9}))
+    assert "candidates: count 1,000,000,000 is above candidates.max_count (1,000,000)" in msg
+    assert "raise candidates.max_count" in msg
+    cfg = Config.from_dict(
+        _with(candidates={"source": "cylinder_side", "count": 2000, "max_count": 5000})
+    )
+    assert cfg.candidates.count == 2000
+    assert "approach.steps" in _error(_with(approach={"steps": 100_000_000}))
+    assert "ik.workers" in _error(_with(ik={"workers": 100_000}))
+
+
+def test_messages_quote_at_most_a_few_hundred_characters():
+    huge = "x" * 1_000_000
+    for data in (
+        _with(seed=huge),
+        _with(ik={"backend": huge}),
+        _with(**{huge: 1}),
+        _with(object={"shape": "cylinder", "dims": {"radius": [1] * 100_000, "height": 1}}),
+    ):
+        msg = _error(data)
+        assert len(msg) < 700, len(msg)
+
+
+def test_one_path_rule_relative_to_the_config(tmp_path, monkeypatch):
+    """output.dir, input files and --set values all resolve against the config's folder."""
+    (tmp_path / "cfgs").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    cfg_path = tmp_path / "cfgs" / "my_run.yaml"
+    cfg_path.write_text(
+        "candidates: {source: file, path: g.npy}\nenvironment: {obstacles: []}\n"
+        "output: {dir: out/a}\n"
+    )
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    cfg = load_config(cfg_path)
+    assert cfg.output.dir == tmp_path / "cfgs" / "out" / "a"
+    assert cfg.candidates.path == tmp_path / "cfgs" / "g.npy"
+    cfg = load_config(cfg_path, ["output.dir=b", "candidates.path=h.npy"])
+    assert cfg.output.dir == tmp_path / "cfgs" / "b"
+    assert cfg.candidates.path == tmp_path / "cfgs" / "h.npy"
+    # absolute paths stay; no output.dir: results/<config name> beside the config
+    cfg = load_config(cfg_path, [f"output.dir={tmp_path}/abs", "output=null"])
+    assert cfg.output.dir == tmp_path / "cfgs" / "results" / "my_run"
+    cfg = load_config(cfg_path, [f"output.dir={tmp_path / 'abs'}"])
+    assert cfg.output.dir == tmp_path / "abs"
+    # a dict config: relative to the working directory, default results/run
+    assert Config.from_dict(BASE).output.dir == tmp_path / "elsewhere" / "results" / "run"
+    with pytest.raises(ConfigError, match="candidates.path: a path cannot contain a NUL"):
+        load_config(cfg_path, ["candidates.path=a\0b"])

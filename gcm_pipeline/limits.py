@@ -1,0 +1,78 @@
+"""Size limits checked before anything large is allocated.
+
+A run refuses work whose size it can estimate in advance and that would
+exhaust memory, with a message that gives the estimate and the config key
+that raises the ceiling. The ceilings a user can raise are config keys; the
+fixed ones are bounds of the config schema.
+
+================================ ============ ==================================
+limit                            default      estimate checked
+================================ ============ ==================================
+``candidates.max_count``         1,000,000    generated ``count``; rows in a grasp
+                                              file (from its header, before reading)
+``densify.max_poses``            2,000,000    candidates + lattice points
+                                              sum over triangles of (n+1)(n+2)/2,
+                                              before the lattice is built
+``approach.steps``               <= 1,000     schema bound (0.1 mm steps over 10 cm)
+``ik.workers``                   <= 256       schema bound
+YAML files and ``--set``         1 MiB, depth 64, 100,000 values after aliases
+                                 (:mod:`gcm_pipeline.safe_yaml`)
+================================ ============ ==================================
+
+Any stage that grows the table (adaptive refinement included) checks its
+estimate with :func:`check_size` against the same key.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gcm_pipeline.errors import ConfigError
+
+__all__ = [
+    "DEFAULT_MAX_CANDIDATES",
+    "DEFAULT_MAX_POSES",
+    "MAX_APPROACH_STEPS",
+    "MAX_IK_WORKERS",
+    "check_size",
+    "lattice_size",
+]
+
+DEFAULT_MAX_CANDIDATES = 1_000_000
+DEFAULT_MAX_POSES = 2_000_000
+MAX_APPROACH_STEPS = 1_000
+MAX_IK_WORKERS = 256
+
+
+def check_size(estimate: int, limit: int, what: str, key: str, hint: str = "") -> None:
+    """Refuse work whose estimated size is above a ceiling.
+
+    Args:
+        estimate: The estimated count (poses, grasps, rows).
+        limit: The ceiling (the value of ``key``).
+        what: What is counted, e.g. ``"densify: 1 triangle x (30001 x 30002 / 2) points"``.
+        key: The config key holding ``limit``.
+        hint: What else lowers the estimate, e.g. ``"lower densify.subdivisions or "``.
+
+    Raises:
+        ConfigError: ``<what>: <estimate> ... above <key> (<limit>); <hint>raise <key> ...``.
+    """
+    if estimate > limit:
+        raise ConfigError(
+            f"{what}: {estimate:,} is above {key} ({limit:,}); {hint}raise {key} to allow it"
+        )
+
+
+def lattice_size(subdivisions: np.ndarray) -> int:
+    """Upper bound of the lattice points of triangles with ``n`` subdivisions each.
+
+    Args:
+        subdivisions: (T,) subdivisions per triangle.
+
+    Returns:
+        ``sum((n + 1)(n + 2) / 2)`` (capped at 2**62): points shared by
+        neighbouring triangles are counted once per triangle.
+    """
+    n = np.asarray(subdivisions, dtype=np.float64).reshape(-1)
+    total = float(np.sum((n + 1.0) * (n + 2.0) / 2.0))  # float: no int64 overflow
+    return int(min(total, 2.0**62))

@@ -1,0 +1,231 @@
+"""A YAML reader for untrusted files: bounded size, depth and alias expansion, no duplicate keys.
+
+Configs, ``--set`` values and robot specs are read with :func:`load_yaml` /
+:func:`read_yaml_file`, PyYAML's safe loader with these limits:
+
+=============================== ==============================================
+limit                           why
+=============================== ==============================================
+``MAX_YAML_BYTES`` (1 MiB)      a config or spec is a few kB; larger is not one
+``MAX_YAML_DEPTH`` (64)         nesting deeper than any section (the composer
+                                recurses: 3,000 levels overflow the stack)
+``MAX_YAML_VALUES`` (100,000)   values after alias expansion (``&a`` / ``*a``):
+                                nested aliases ("billion laughs") expand
+                                exponentially once validated or printed
+duplicate keys                  YAML says keys are unique; PyYAML keeps the
+                                last one silently
+=============================== ==============================================
+
+Numbers: YAML 1.2 floats without a dot (``1e-4``) are floats here, as a
+reader of a config expects (PyYAML alone reads them as strings).
+
+Every problem raises the error class the caller passes (a
+:class:`~gcm_pipeline.errors.GcmError` subclass) with one line naming the
+source, line and column.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import yaml
+from yaml.nodes import MappingNode, Node, SequenceNode
+
+from gcm_pipeline.errors import GcmError
+
+__all__ = [
+    "MAX_YAML_BYTES",
+    "MAX_YAML_DEPTH",
+    "MAX_YAML_VALUES",
+    "load_yaml",
+    "read_yaml_file",
+]
+
+MAX_YAML_BYTES = 1 << 20
+MAX_YAML_DEPTH = 64
+MAX_YAML_VALUES = 100_000
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+class _Limit(yaml.YAMLError):
+    """A limit of this module was hit (carries the mark of the node at fault)."""
+
+    def __init__(self, problem: str, mark: Any) -> None:
+        super().__init__(problem)
+        self.problem = problem
+        self.problem_mark = mark
+
+
+class _Loader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` with a depth limit, unique keys and YAML 1.2 floats."""
+
+    def __init__(self, stream: Any) -> None:
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent: Node | None, index: Any) -> Node | None:  # noqa: D102
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                mark = self.peek_event().start_mark
+                raise _Limit(f"nested deeper than {MAX_YAML_DEPTH} levels", mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node: MappingNode, deep: bool = False) -> dict[Any, Any]:  # noqa: D102
+        seen: dict[Any, Any] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == _MERGE_TAG:
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.setdefault(key, key_node.start_mark)
+            except TypeError:
+                continue  # unhashable: the constructor reports it
+            if first is not key_node.start_mark:
+                raise _Limit(
+                    f"duplicate key {_short(key)} (first at line {first.line + 1})",
+                    key_node.start_mark,
+                )
+        return super().construct_mapping(node, deep=deep)
+
+
+# YAML 1.2 floats: also 1e-4, 1E5, 2.5e3 (PyYAML's YAML 1.1 needs a dot and a signed exponent)
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _expanded_size(root: Node) -> int:
+    """Number of values the node graph stands for once aliases are expanded.
+
+    Aliases are shared nodes in the composed graph, so the count is a sum over
+    a DAG, memoised per node (linear in the number of distinct nodes). Stops
+    counting beyond ``MAX_YAML_VALUES``.
+    """
+    memo: dict[int, int] = {}
+    # iterative post-order walk (depth is already bounded, but stay flat)
+    stack: list[tuple[Node, bool]] = [(root, False)]
+    while stack:
+        node, done = stack.pop()
+        key = id(node)
+        if key in memo:
+            continue
+        children: list[Node]
+        if isinstance(node, SequenceNode):
+            children = list(node.value)
+        elif isinstance(node, MappingNode):
+            children = [n for pair in node.value for n in pair]
+        else:
+            children = []
+        if done:
+            total = 1 + sum(memo[id(c)] for c in children)
+            memo[key] = min(total, MAX_YAML_VALUES + 1)
+            continue
+        stack.append((node, True))
+        stack.extend((c, False) for c in children if id(c) not in memo)
+    return memo[id(root)]
+
+
+def load_yaml(
+    text: str, source: str, error: type[GcmError], *, plain_on_syntax_error: bool = False
+) -> Any:
+    """Parse YAML text within the limits of this module.
+
+    Args:
+        text: The YAML document.
+        source: What to name in messages (a file path, ``--set key``).
+        error: The exception class to raise.
+        plain_on_syntax_error: Return ``text`` itself when it is not valid YAML
+            syntax (``--set`` values such as ``@x``); the limits still raise.
+
+    Returns:
+        The parsed data (dicts, lists, str, int, float, bool, None, dates).
+
+    Raises:
+        error: ``<source>:<line>:<column>: <problem>`` for malformed YAML, a
+            duplicate key, nesting deeper than ``MAX_YAML_DEPTH``, or more than
+            ``MAX_YAML_VALUES`` values after alias expansion.
+    """
+    loader = None
+    try:
+        loader = _Loader(text)  # reads the first characters: may raise
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        if _expanded_size(node) > MAX_YAML_VALUES:
+            raise _Limit(
+                f"expands to more than {MAX_YAML_VALUES:,} values through aliases (&/*); "
+                "write the values out",
+                node.start_mark,
+            )
+        return loader.construct_document(node)
+    except _Limit as exc:
+        raise error(_where(source, exc.problem_mark) + str(exc.problem)) from None
+    except yaml.MarkedYAMLError as exc:
+        if plain_on_syntax_error:
+            return text
+        raise error(_where(source, exc.problem_mark) + f"malformed YAML: {exc.problem}") from None
+    except yaml.YAMLError as exc:
+        if plain_on_syntax_error:
+            return text
+        raise error(f"{source}: malformed YAML: {' '.join(str(exc).split())}") from None
+    except RecursionError:  # pragma: no cover - the depth limit comes first
+        raise error(f"{source}: YAML nested too deeply") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
+
+
+def _where(source: str, mark: Any) -> str:
+    if mark is None:
+        return f"{source}: "
+    return f"{source}:{mark.line + 1}:{mark.column + 1}: "
+
+
+def read_yaml_file(path: str | Path, what: str, error: type[GcmError]) -> Any:
+    """Read and parse a YAML file of at most ``MAX_YAML_BYTES`` (UTF-8).
+
+    Args:
+        path: The file.
+        what: What the file is, for messages (``config``, ``robot spec``).
+        error: The exception class to raise.
+
+    Raises:
+        error: Missing file, not a file, too large, not UTF-8, or see
+            :func:`load_yaml`.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise error(f"{what} file not found: {path}")
+    if not path.is_file():
+        raise error(f"{what} path is not a file: {path}")
+    try:
+        with path.open("rb") as fh:
+            data = fh.read(MAX_YAML_BYTES + 1)
+    except OSError as exc:
+        raise error(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    if len(data) > MAX_YAML_BYTES:
+        raise error(
+            f"{path}: a {what} file is at most {MAX_YAML_BYTES // 1024} KiB; this one is larger"
+        )
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise error(
+            f"{path}:{line}: {what} is not UTF-8 text (byte 0x{data[exc.start]:02x}); "
+            "save it as UTF-8"
+        ) from None
+    return load_yaml(text.removeprefix("\ufeff"), str(path), error)

@@ -628,7 +628,7 @@ class Pipeline:
                 published = publish(result, cfg, tmp)
             io.write_summary(result.summary(), tmp / "summary.json")
         result.run_dir = out
-        result.files = sorted(out.iterdir())
+        result.files = sorted(p for p in out.iterdir() if p.name != io.MARKER)
         log.info("run directory %s (%d published files)", out, len(published))
         return result
 

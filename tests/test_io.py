@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import csv
 import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -162,19 +165,38 @@ def test_atomic_dir_success_and_failure(tmp_path):
 
 
 def _fake_run(path: Path, marker: str = "old") -> Path:
+    """A directory that gcm wrote (its marker) with two files."""
     path.mkdir(parents=True, exist_ok=True)
+    io.write_marker(path, "run")
     for name in ("summary.json", "grasps.csv"):
         (path / name).write_text(marker)
     return path
 
 
-def test_looks_like_run_dir(tmp_path):
+def test_looks_like_run_dir_needs_the_marker(tmp_path):
     assert not io.looks_like_run_dir(tmp_path)
     assert not io.looks_like_run_dir(tmp_path / "nope")
     (tmp_path / "summary.json").write_text("{}")
-    assert not io.looks_like_run_dir(tmp_path)  # grasps.csv missing
     (tmp_path / "grasps.csv").write_text("")
+    assert not io.looks_like_run_dir(tmp_path)  # file names prove nothing
+    for text in (
+        "{}",
+        '{"project": "gcm_pipeline", "kind": "run", "id": "x"}',
+        '{"project": "other", "kind": "run", "id": "' + "a" * 32 + '"}',
+        "[1, 2]",
+        "not json",
+        '{"project": "gcm_pipeline", "kind": "run", "id": "'
+        + "a" * 32
+        + '", "x": "'
+        + "y" * 5000
+        + '"}',
+    ):
+        (tmp_path / io.MARKER).write_text(text)
+        assert not io.looks_like_run_dir(tmp_path), text
+    ident = io.write_marker(tmp_path, "run")
     assert io.looks_like_run_dir(tmp_path)
+    assert io.read_marker(tmp_path)["id"] == ident
+    assert not io.is_project_dir(tmp_path, "study")  # another kind
     assert not io.looks_like_run_dir(tmp_path / "grasps.csv")
 
 
@@ -191,29 +213,32 @@ def test_existing_run_needs_force_and_is_replaced_at_the_end(tmp_path):
         with io.atomic_run_dir(out, force=True) as tmp:
             (tmp / "new.txt").write_text("new")
             raise RuntimeError
-    assert _siblings(out) == ["grasps.csv", "summary.json"] and _siblings(tmp_path) == ["run"]
+    assert _siblings(out) == [".gcm.json", "grasps.csv", "summary.json"]
+    assert _siblings(tmp_path) == ["run"]
     with io.atomic_run_dir(out, force=True) as tmp:
         (tmp / "new.txt").write_text("new")
         assert (out / "summary.json").exists()  # still the old one until the end
-    assert _siblings(out) == ["new.txt"] and _siblings(tmp_path) == ["run"]
+    assert _siblings(out) == [".gcm.json", "new.txt"] and _siblings(tmp_path) == ["run"]
 
 
 def test_force_replaces_only_run_directories(tmp_path):
     out = tmp_path / "data"
     out.mkdir()
     (out / "precious.txt").write_text("precious")
-    (out / "summary.json").write_text("{}")  # half a run is not a run
+    (out / "summary.json").write_text("{}")  # a look-alike is not a run
+    (out / "grasps.csv").write_text("")
     for force in (False, True):
         with pytest.raises(OutputError) as info:
             io.check_output_dir(out, force=force)
         assert str(info.value) == (
-            f"refusing to replace {out}: it is not a gcm run directory (no grasps.csv); "
-            "choose another --out"
+            f"refusing to replace {out}: it is not a gcm run directory (no valid .gcm.json "
+            "marker, which gcm writes into every run); choose another --out"
         )
         with pytest.raises(OutputError, match="not a gcm run directory"):
             with io.atomic_run_dir(out, force=force):
                 pass
-    assert _siblings(out) == ["precious.txt", "summary.json"] and _siblings(tmp_path) == ["data"]
+    assert _siblings(out) == ["grasps.csv", "precious.txt", "summary.json"]
+    assert _siblings(tmp_path) == ["data"]
 
 
 def test_force_never_replaces_the_working_directory_or_a_folder_of_inputs(tmp_path, monkeypatch):
@@ -232,7 +257,7 @@ def test_force_never_replaces_the_working_directory_or_a_folder_of_inputs(tmp_pa
             pass
     # another run next to the input is fine
     assert io.check_output_dir(tmp_path / "other", force=True, keep=[cfg]) == tmp_path / "other"
-    assert _siblings(runs) == ["config.yaml", "grasps.csv", "summary.json"]
+    assert _siblings(runs) == [".gcm.json", "config.yaml", "grasps.csv", "summary.json"]
     assert _siblings(tmp_path) == ["runs", "work"]
 
 
@@ -261,7 +286,7 @@ def test_empty_existing_directory_is_fine(tmp_path):
     (tmp_path / "run").mkdir()
     with io.atomic_run_dir(tmp_path / "run") as tmp:
         (tmp / "a").write_text("")
-    assert _siblings(tmp_path / "run") == ["a"]
+    assert _siblings(tmp_path / "run") == [".gcm.json", "a"]
 
 
 def test_output_path_problems(tmp_path):
@@ -332,3 +357,93 @@ def test_per_candidate_columns_follow_the_metrics_and_round_trip(tmp_path):
     np.testing.assert_array_equal(back["source_id"], g["source_id"][order])
     np.testing.assert_array_equal(back["score"], g["score"][order])  # NaN == NaN here
     assert back["segment"].tolist() == g["segment"][order].tolist()
+
+
+# ------------------------------------------------- replacement: concurrency, permissions
+
+
+def _writer(out: Path, me: str, rounds: int) -> None:
+    for i in range(rounds):
+        with io.atomic_run_dir(out, force=True) as tmp:
+            for name in ("grasps.csv", "manifold.npz", "summary.json"):
+                (tmp / name).write_text(f"{me} {i}")
+                time.sleep(0.002)
+
+
+def test_concurrent_forced_replacements_leave_one_complete_run(tmp_path):
+    """8 processes x 12 forced replacements of one directory (forked: no imports to wait for)."""
+    import multiprocessing
+
+    out = tmp_path / "run"
+    ctx = multiprocessing.get_context("fork")
+    procs = [ctx.Process(target=_writer, args=(out, f"w{k}", 12)) for k in range(8)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=120)
+        assert p.exitcode == 0
+    assert _siblings(tmp_path) == ["run"]  # no .tmp-* / .old-* left
+    assert io.looks_like_run_dir(out)
+    texts = {(out / n).read_text() for n in ("grasps.csv", "manifold.npz", "summary.json")}
+    assert len(texts) == 1  # the files of one writer's one round: a complete run
+    assert _siblings(out) == [".gcm.json", "grasps.csv", "manifold.npz", "summary.json"]
+
+
+def test_a_previous_run_that_cannot_be_removed_stays_as_it_was(tmp_path):
+    out = _fake_run(tmp_path / "run")
+    locked = out / "grasps.csv"
+    if subprocess.run(["chattr", "+i", str(locked)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not available here (needs root on a filesystem with flags)")
+    try:
+        with pytest.raises(OutputError) as info:
+            with io.atomic_run_dir(out, force=True) as tmp:
+                (tmp / "new.txt").write_text("new")
+        assert str(info.value) == (
+            f"cannot replace {out}: {locked} is immutable, so it cannot be removed; "
+            "it is left as it was"
+        )
+        subprocess.run(["chattr", "-i", str(locked)], check=True)
+        subprocess.run(["chattr", "+i", str(out)], check=True)  # the directory itself
+        with pytest.raises(OutputError, match=f"cannot replace {out}: .*left as it was"):
+            with io.atomic_run_dir(out, force=True) as tmp:
+                (tmp / "new.txt").write_text("new")
+    finally:
+        subprocess.run(["chattr", "-i", str(locked), str(out)], capture_output=True)
+    assert _siblings(out) == [".gcm.json", "grasps.csv", "summary.json"]
+    assert locked.read_text() == "old"
+    assert _siblings(tmp_path) == ["run"]
+
+
+def test_leftovers_of_a_killed_run_are_removed_by_the_next(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\nfrom gcm_pipeline import io\n"
+            "with io.atomic_run_dir(sys.argv[1]) as tmp:\n"
+            "    (tmp / 'partial.csv').write_text('x')\n    print(tmp, flush=True)\n"
+            "    time.sleep(60)\n",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    tmp = Path(proc.stdout.readline().strip())
+    proc.kill()  # SIGKILL: no clean-up possible
+    proc.wait()
+    assert tmp.is_dir() and tmp.name.startswith(f".run.tmp-{proc.pid}-")
+    # a look-alike left by someone else is not ours: kept
+    foreign = tmp_path / f".run.tmp-{proc.pid}-abc"
+    foreign.mkdir()
+    with io.atomic_run_dir(out) as new:
+        (new / "a").write_text("")
+    assert _siblings(tmp_path) == [foreign.name, "run"]
+
+
+def test_a_symbolic_link_is_never_replaced(tmp_path):
+    real = _fake_run(tmp_path / "real")
+    (tmp_path / "link").symlink_to(real)
+    with pytest.raises(OutputError, match="it is a symbolic link"):
+        io.check_output_dir(tmp_path / "link", force=True)
+    assert io.looks_like_run_dir(real)

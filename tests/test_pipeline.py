@@ -123,6 +123,7 @@ def test_output_problems_are_found_before_any_work(tmp_path, monkeypatch):
     full.mkdir()
     for name in ("summary.json", "grasps.csv"):
         (full / name).write_text("previous run")
+    io.write_marker(full, "run")
     with pytest.raises(OutputError) as info:
         Pipeline.from_yaml(FLAT, QUICK).run(full)
     assert str(info.value) == (
@@ -150,17 +151,25 @@ def test_failure_leaves_nothing_behind(tmp_path, monkeypatch):
     old.mkdir()
     (old / "grasps.csv").write_text("previous")
     (old / "summary.json").write_text("{}")
+    io.write_marker(old, "run")
     with pytest.raises(RuntimeError):
         Pipeline.from_yaml(FLAT, QUICK).run(old, progress=False, force=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
     assert (old / "grasps.csv").read_text() == "previous"
+    assert io.looks_like_run_dir(old)
 
 
 def test_output_dir_from_config(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    result = Pipeline.from_yaml(FLAT, (*QUICK, "output.dir=out/flat")).run(progress=False)
-    assert result.run_dir == tmp_path / "out" / "flat"
-    assert (tmp_path / "out" / "flat" / "grasps.csv").is_file()
+    """output.dir (also from --set) is relative to the config's folder, not the working one."""
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    config = tmp_path / "cfg" / "flat.yaml"
+    config.write_text(FLAT.read_text())
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    result = Pipeline.from_yaml(config, (*QUICK, "output.dir=out/flat")).run(progress=False)
+    assert result.run_dir == tmp_path / "cfg" / "out" / "flat"
+    assert (tmp_path / "cfg" / "out" / "flat" / "grasps.csv").is_file()
+    assert list((tmp_path / "elsewhere").iterdir()) == []
 
 
 def test_top_grasps_are_sorted(tmp_path):

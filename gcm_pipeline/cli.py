@@ -14,14 +14,20 @@ with ``--debug``); anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import os
+import shlex
+import signal
 import sys
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
+
+import yaml
 
 from gcm_pipeline.errors import GcmError
 
@@ -177,6 +183,15 @@ def format_top(top: list[dict[str, Any]], metric: str = "yoshikawa") -> str:
     return "\n".join(lines)
 
 
+def _viewer_command(args: argparse.Namespace, out: Path) -> str:
+    """The ``gcm run`` line that shows this run in the live viewer (same overrides)."""
+    words = ["gcm", "run", str(args.config)]
+    for assignment in args.overrides:
+        words += ["--set", assignment]
+    words += ["--meshcat", "--force", "--out", str(out)]
+    return shlex.join(words)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -184,6 +199,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     pipeline = Pipeline.from_yaml(args.config, args.overrides)
     cfg = pipeline.config
+    viewer = args.meshcat or cfg.publish.meshcat
+    if viewer and cfg.publish.zmq_url is None and (args.no_wait or not cfg.publish.wait):
+        flag = "--no-wait" if args.no_wait else "publish.wait: false"
+        raise GcmError(
+            f"{flag}: the meshcat server gcm starts stops when gcm returns, so its URL "
+            "would be dead; run meshcat-server yourself and set publish.zmq_url, or let "
+            "gcm wait for Ctrl-C"
+        )
     t0 = time.perf_counter()
     with logging_redirect_tqdm(loggers=[log]):  # log lines above the progress bar
         result = pipeline.run(
@@ -213,10 +236,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         scene = run_dir / "scene.html"
         if scene.exists():
             print(f"open the scene: {scene.as_uri()}")
-        if not (args.meshcat or cfg.publish.meshcat):
-            out = args.out or cfg.output.dir
-            print(f"live viewer:   gcm run {args.config} --meshcat --force --out {out}")
-    if args.meshcat or cfg.publish.meshcat:
+        if not viewer:
+            print(f"live viewer:   {_viewer_command(args, run_dir)}")
+    if viewer:
         _open_viewer(result, wait=cfg.publish.wait and not args.no_wait)
     return 0
 
@@ -246,11 +268,14 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     preflight(cfg)
     c = cfg.candidates
     obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
-    print(f"{args.config}: ok")
-    print(f"  candidates  {c.source}" + (f" {c.path}" if c.path else f" x{c.count}"))
-    print(f"  object      {obj}")
-    print(f"  robot       {cfg.robot.spec}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
-    print(f"  output      {cfg.output.dir}")
+    # comments first, then the resolved config: the output is itself a valid config
+    print(f"# {args.config}: ok")
+    print(f"#   candidates  {c.source}" + (f" {c.path}" if c.path else f" x{c.count}"))
+    print(f"#   object      {obj}")
+    print(f"#   robot       {cfg.robot.spec}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
+    print(f"#   output      {cfg.output.dir}")
+    print("# resolved config (defaults filled in, paths absolute):")
+    print(yaml.safe_dump(cfg.to_dict(), sort_keys=False, default_flow_style=None), end="")
     return 0
 
 
@@ -273,6 +298,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
     print(f"run {run.run_dir}")
     if counts:
         print("  " + ", ".join(f"{k} {_fmt_count(v)}" for k, v in counts.items()))
+    if args.top == 0:
+        return 0
     top = top_grasps(run.grasps, args.top, metric)
     print(f"top {len(top)} grasps by {metric}:")
     print(format_top(top, metric))
@@ -391,6 +418,50 @@ _COMMANDS = {
 }
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread so it unwinds like Ctrl-C.
+
+    Attributes:
+        signum: The signal number.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated(signum)
+
+
+@contextlib.contextmanager
+def interrupt_on_termination() -> Iterator[None]:
+    """Handle SIGTERM and SIGHUP like SIGINT while the block runs.
+
+    Each raises :class:`Terminated` (a :class:`KeyboardInterrupt`) in the main
+    thread, so every ``finally`` and ``except BaseException`` runs: a run
+    directory being written is removed, as on Ctrl-C. The previous handlers
+    come back afterwards. Outside the main thread this does nothing.
+    """
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    names = ("SIGTERM", "SIGHUP")
+    sigs = [getattr(signal, n) for n in names if hasattr(signal, n)]
+    previous = {sig: signal.signal(sig, _raise_terminated) for sig in sigs}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+#: Longest error line the CLI prints [characters].
+MAX_ERROR_LINE = 2000
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``gcm`` command line; returns the exit status.
 
@@ -398,22 +469,38 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: Arguments without the program name (default: ``sys.argv[1:]``).
 
     Returns:
-        0 on success, 2 on a user error (or bad usage), 130 on Ctrl-C.
+        0 on success, 2 on a user error (or bad usage), 130 on Ctrl-C, 128 +
+        the signal number on SIGTERM (143) or SIGHUP (129), 141 when the
+        reader of the output goes away (``gcm validate | head -1``).
     """
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose, args.quiet)
     try:
-        return _COMMANDS[args.command](args)
+        with interrupt_on_termination():
+            status = _COMMANDS[args.command](args)
+            sys.stdout.flush()  # a closed pipe shows here, inside the handlers
+            return status
     except GcmError as exc:
         if args.debug:
             traceback.print_exc()
-        message = " ".join(str(exc).split("\n"))
+        message = " ".join(str(exc).split())
+        if len(message) > MAX_ERROR_LINE:
+            message = message[: MAX_ERROR_LINE - 3] + "..."
         print(f"error: {message}", file=sys.stderr)
         return EXIT_USER_ERROR
+    except Terminated as exc:
+        print(f"interrupted ({signal.Signals(exc.signum).name})", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # the reader left (e.g. `| head`): no traceback, and none at exit either
+        with contextlib.suppress(OSError, ValueError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
 
 
 if __name__ == "__main__":

@@ -315,10 +315,22 @@ def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
         return FakeViewer()
 
     monkeypatch.setattr(publish, "open_viewer", fake_open)
-    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--meshcat", "--no-wait", *QUICK)
+    monkeypatch.setattr(publish, "probe_server", lambda url, timeout: FakeViewer.url)
+    # --no-wait returns at once: only a server the user runs keeps the scene alive
+    server = ["--set", "publish.zmq_url=tcp://127.0.0.1:6000"]
+    code, text, err = _run(
+        capsys, "run", FLAT, "--out", out, "--meshcat", "--no-wait", *server, *QUICK
+    )
     assert code == 0, err
     assert events == [("open", True, 66), "closed"]  # the run directory is complete first
     assert "meshcat viewer: http://127.0.0.1:7000/static/" in text
+
+
+def test_no_wait_with_gcms_own_server_is_refused_before_the_run(capsys, out):
+    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--meshcat", "--no-wait", *QUICK)
+    _assert_user_error(code, err, "--no-wait", "publish.zmq_url")
+    assert text == ""
+    _nothing_left(out)
 
 
 # ------------------------------------------------- QA review: run / CLI plumbing
@@ -353,7 +365,7 @@ def test_force_replaces_only_run_directories(capsys, workdir):
         (
             "configs",
             f"refusing to replace {workdir / 'configs'}: it is not a gcm run directory "
-            "(no summary.json or grasps.csv); choose another --out",
+            "(no valid .gcm.json marker, which gcm writes into every run); choose another --out",
         ),
     ]
     for target, message in cases:
@@ -514,3 +526,66 @@ def test_counts_by_reason_and_the_verbose_reachability_line(capsys, out):
     code, text, err = _run(capsys, "show", out, "--top", "1")
     assert code == 0, err
     assert "unreachable_by_reason (" in text
+
+
+# ------------------------------------------------- hardening: rough edges of the CLI
+
+
+def test_validate_prints_the_resolved_config_which_loads_again(capsys, tmp_path):
+    code, text, err = _run(capsys, "validate", FLAT, "--set", "densify.subdivisions=3")
+    assert code == 0, err
+    assert text.startswith(f"# {FLAT}: ok\n")
+    resolved = tmp_path / "resolved.yaml"
+    resolved.write_text(text)
+    from gcm_pipeline.config import load_config
+
+    again = load_config(resolved)
+    assert again == load_config(FLAT, ["densify.subdivisions=3"])
+    assert "position_tolerance: 0.0001" in text  # defaults filled in
+
+
+def test_a_closed_pipe_is_not_a_traceback():
+    """``gcm schema | head -1``: the reader leaves before gcm writes."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gcm_pipeline", "schema"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()  # before the interpreter has even started
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141
+    assert err == ""
+
+
+def test_default_output_dir_is_named_after_the_config(capsys, tmp_path, monkeypatch):
+    cfg = tmp_path / "cfgs" / "my_plane.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text(FLAT.read_text().replace("output:", "# output:"))
+    monkeypatch.chdir(tmp_path)
+    code, text, err = _run(capsys, "run", cfg, "-q", *QUICK)
+    assert code == 0, err
+    assert text.strip() == str(tmp_path / "cfgs" / "results" / "my_plane")
+    assert (tmp_path / "cfgs" / "results" / "my_plane" / "grasps.csv").is_file()
+
+
+def test_live_viewer_hint_repeats_the_overrides(capsys, out):
+    code, text, err = _run(
+        capsys, "run", FLAT, "--out", out, "--set", "densify.subdivisions=3", *QUICK
+    )
+    assert code == 0, err
+    (hint,) = [ln for ln in text.splitlines() if ln.startswith("live viewer:")]
+    import shlex
+
+    words = shlex.split(hint.partition(":")[2])
+    assert words[:3] == ["gcm", "run", str(FLAT)]
+    sets = [words[i + 1] for i, w in enumerate(words) if w == "--set"]
+    assert sets == ["densify.subdivisions=3", "publish.html=false", "publish.plots=false"]
+    assert words[-4:] == ["--meshcat", "--force", "--out", str(out)]
+
+
+def test_show_top_zero_prints_only_the_counts(capsys, out):
+    code, _, err = _run(capsys, "run", FLAT, "--out", out, *QUICK)
+    assert code == 0, err
+    code, text, err = _run(capsys, "show", out, "--top", "0")
+    assert code == 0, err
+    assert "reachable" in text and "no reachable grasp" not in text and "grasps by" not in text

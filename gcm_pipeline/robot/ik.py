@@ -33,6 +33,7 @@ from __future__ import annotations
 import atexit
 import multiprocessing as mp
 import os
+import signal
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -275,12 +276,25 @@ def _pool(
     _FORK_STATE.update(
         solve=solve, robot=robot, validator=validator, return_all=return_all, kwargs=kwargs
     )
-    pool = mp.get_context("fork").Pool(workers)
+    pool = mp.get_context("fork").Pool(workers, initializer=_worker_signals)
     if not _POOL.get("atexit"):
         atexit.register(_close_pool)
         _POOL["atexit"] = True
     _POOL.update(key=key, pool=pool)
     return pool
+
+
+def _worker_signals() -> None:
+    """In a worker: Ctrl-C and hang-ups are the parent's to handle, SIGTERM ends it.
+
+    The parent stops the pool on an interrupt (:func:`_run_backend`); a worker
+    that raised KeyboardInterrupt itself would print a traceback and leave
+    ``pool.map`` waiting for a result that never comes.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> dict[str, Any]:
@@ -322,7 +336,11 @@ def _run_backend(
     ]
     if parallel:
         pool = _pool(solve, robot, validator, return_all, workers, kwargs, targets[:1])
-        parts = pool.map(_worker, chunks)
+        try:
+            parts = pool.map(_worker, chunks)
+        except BaseException:  # Ctrl-C, SIGTERM: stop the workers, no half-done pool
+            _close_pool()
+            raise
     else:
         parts = [
             solve(robot, t, seeds=s, validator=validator, return_all=return_all, **kwargs)

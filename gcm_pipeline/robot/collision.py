@@ -27,15 +27,26 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
 ``collision_object``
     every robot link, the open fingers included, vs the object. The *gripper*
     (the body that carries the grasp frame and every link below it: ``panda_hand``
-    and both fingers) is checked against the object **eroded by**
-    ``contact_tolerance``: a gripper link touching the object counts as a
-    collision only when it penetrates deeper than the tolerance (a finger pad
-    closing on the surface is a grasp, not a collision). Primitives are eroded
-    exactly (radius / half-sizes minus the tolerance); a mesh object is eroded
-    by moving its faces inward (vertex offsets, see ``_erode_mesh``); a
-    ``plane`` object (2 mm thick) erodes to nothing, so the gripper may touch
-    it. coal cannot use a negative security margin with meshes, hence
-    erosion. Arm links (not gripper) are checked against the full object.
+    and both fingers) may press into the object by ``contact_tolerance`` ``t``
+    (a finger pad closing on the surface is a grasp, not a collision):
+
+    * a **primitive** object (cylinder, box, sphere, plane) is eroded exactly
+      (radius / half-sizes minus ``t``) and checked against the gripper: the
+      gripper collides when one of its points lies deeper than ``t`` inside
+      the object. A ``plane`` object (2 mm thick) erodes to nothing, so the
+      gripper may touch it;
+    * for a **mesh** object each convex collision piece of the gripper is
+      eroded by ``t`` instead (:mod:`gcm_pipeline.robot.contact`) and checked
+      against the original mesh: the gripper collides when a point of the
+      object's surface lies deeper than ``t`` inside one of its pieces. This is
+      never more conservative than the geometry, also for walls thinner than
+      ``2 t`` (a mug's wall or handle), which an inward offset of the mesh
+      cannot represent. A gripper piece that is not convex is checked
+      uneroded (a warning says so).
+
+    Arm links (not gripper) are checked against the full object. coal treats
+    a mesh as its surface: a link entirely inside a closed mesh object, crossing
+    none of its triangles, is not detected.
 
 When a configuration collides in more than one way, the reason is the first of
 environment, self, object.
@@ -59,6 +70,7 @@ be the nearest.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,6 +82,13 @@ import pinocchio as pin
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, ObstacleConfig, Pose
 from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
 from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.contact import (
+    NotConvexError,
+    SolidMesh,
+    erode_convex,
+    interior_point,
+    mesh_arrays,
+)
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -176,7 +195,9 @@ def shape_geometry(
         dims: A :class:`~gcm_pipeline.config.ShapeDims` (``radius``, ``height``, ``size``).
         mesh: Mesh file (shape ``mesh``).
         scale: Mesh scale factor.
-        erode: Distance [m] by which the shape shrinks on every side (0: the shape itself).
+        erode: Distance [m] by which a primitive shrinks on every side (0: the shape
+            itself). Meshes are not eroded (the gripper is, see
+            :mod:`gcm_pipeline.robot.contact`): ``erode > 0`` with a mesh is a ValueError.
         where: Config location used in error messages.
 
     Returns:
@@ -215,47 +236,13 @@ def shape_geometry(
             return None
         return coal.Sphere(radius), centre
     if shape == "mesh":
-        _positive(where, "scale", scale)
-        geom = _load_mesh(mesh, scale, where)
         if erode > 0:
-            geom = _erode_mesh(geom, erode)
-        return geom, centre
+            raise ValueError(
+                "a mesh is not eroded: the gripper's pieces are (gcm_pipeline.robot.contact)"
+            )
+        _positive(where, "scale", scale)
+        return _load_mesh(mesh, scale, where), centre
     raise ConfigError(f"{where}: " + unknown_choice("shape", shape, _OBJECT_SHAPES))
-
-
-def _erode_mesh(mesh: Any, distance: float) -> Any:
-    """Move every face of a closed mesh inward by ``distance`` [m] (vertex offsets).
-
-    Each vertex moves by the ``d`` that best satisfies ``n_f . d = -distance``
-    for the unit normals ``n_f`` of its faces (least squares, lightly
-    regularised): exact at the corners and edges of a polyhedron, the inward
-    normal on smooth parts. Offsets are capped at ``3 * distance``.
-    """
-    verts = np.asarray(mesh.vertices(), dtype=float).copy()
-    tris = np.array(
-        [[int(t[0]), int(t[1]), int(t[2])] for t in map(mesh.tri_indices, range(mesh.num_tris))],
-        dtype=int,
-    )
-    face_n = np.cross(verts[tris[:, 1]] - verts[tris[:, 0]], verts[tris[:, 2]] - verts[tris[:, 0]])
-    norm = np.linalg.norm(face_n, axis=1, keepdims=True)
-    face_n = np.divide(face_n, norm, out=np.zeros_like(face_n), where=norm > 0)
-    ata = np.zeros((len(verts), 3, 3))
-    atb = np.zeros((len(verts), 3))
-    outer = face_n[:, :, None] * face_n[:, None, :]
-    for k in range(3):
-        np.add.at(ata, tris[:, k], outer)
-        np.add.at(atb, tris[:, k], -distance * face_n)
-    reg = 1e-6 * np.trace(ata, axis1=1, axis2=2)[:, None, None] + 1e-12
-    offset = np.linalg.solve(ata + reg * np.eye(3), atb[:, :, None])[:, :, 0]
-    length = np.linalg.norm(offset, axis=1, keepdims=True)
-    cap = 3.0 * distance
-    offset = np.where(length > cap, offset * cap / np.maximum(length, 1e-300), offset)
-    out = coal.BVHModelOBBRSS()
-    out.beginModel(len(tris), len(verts))
-    out.addVertices(verts + offset)
-    out.addTriangles(tris)
-    out.endModel()
-    return out
 
 
 def _se3(m: np.ndarray) -> pin.SE3:
@@ -361,16 +348,14 @@ class CollisionChecker:
             assert made is not None
             obj_m = base_inv @ object_cfg.pose.matrix()
             world.append(WorldShape("object", made[0], obj_m @ made[1], "object"))
-            eroded = shape_geometry(
-                object_cfg.shape,
-                object_cfg.dims,
-                mesh=object_cfg.mesh,
-                scale=object_cfg.scale,
-                erode=tol,
-                where="object",
-            )
-            if eroded is not None:
-                contact_obj = WorldShape("object_contact", eroded[0], obj_m @ eroded[1], "object")
+            if object_cfg.shape != "mesh":  # primitives: exact object-side erosion
+                eroded = shape_geometry(
+                    object_cfg.shape, object_cfg.dims, erode=tol, where="object"
+                )
+                if eroded is not None:
+                    contact_obj = WorldShape(
+                        "object_contact", eroded[0], obj_m @ eroded[1], "object"
+                    )
         self.world = tuple(world)
 
         world_ids: dict[str, int] = {}
@@ -401,12 +386,18 @@ class CollisionChecker:
                     continue
                 pairs["environment"].append((i, w))
         if "object" in world_ids:
+            mesh = object_cfg is not None and object_cfg.shape == "mesh"
+            eroded_ids = _add_eroded_gripper(gm, self.gripper_geoms, tol) if mesh else {}
             for i in robot_ids:
                 if i not in self.gripper_geoms:
                     pairs["object"].append((i, world_ids["object"]))
+                elif mesh:  # eroded gripper piece vs the original mesh
+                    if eroded_ids[i] is not None:
+                        pairs["object"].append((eroded_ids[i], world_ids["object"]))
                 elif "object_contact" in world_ids:
                     pairs["object"].append((i, world_ids["object_contact"]))
         self.table_exempt = tuple(sorted(link_of[i] for i in exempt))
+        self._init_solid(gm, pairs["object"], world_ids)
 
         # one geometry model per kind (batched checks) plus one with every pair
         self._kind_models: dict[str, Any] = {}
@@ -515,15 +506,52 @@ class CollisionChecker:
 
     def _sphere_centres(self, qs: np.ndarray) -> np.ndarray:
         """Centres (N, G, 3) [m] of the robot geometries' bounding spheres, base frame."""
+        return self._place_points(qs, self._sph_joint, self._sph_centre)
+
+    def _place_points(self, qs: np.ndarray, joints: np.ndarray, local: np.ndarray) -> np.ndarray:
+        """Points (N, P, 3) [m], base frame, of points ``local`` (P, 3) fixed to ``joints`` (P,)."""
         n = len(qs)
-        centre = np.broadcast_to(self._sph_centre, (n, *self._sph_centre.shape)).copy()
-        for j, chain in self._chains.items():
-            cols = np.flatnonzero(self._sph_joint == j)
-            rot, pos = chain.pose(qs)
-            centre[:, cols] = pos[:, None, :] + np.einsum(
-                "nij,pj->npi", rot, self._sph_centre[cols]
-            )
-        return centre
+        out = np.broadcast_to(local, (n, *local.shape)).copy()
+        for j in sorted(set(joints.tolist()) - {0}):
+            cols = np.flatnonzero(joints == j)
+            rot, pos = self._chains[j].pose(qs)
+            out[:, cols] = pos[:, None, :] + np.einsum("nij,pj->npi", rot, local[cols])
+        return out
+
+    def _init_solid(self, gm: Any, pairs: list[tuple[int, int]], world_ids: dict[str, int]) -> None:
+        """Inside test of a mesh object for the robot pieces of the object pairs.
+
+        coal checks a mesh object as its triangles; a robot piece (an arm link,
+        an eroded gripper piece) that lies wholly inside the closed mesh crosses
+        none of them. Such a piece is found by testing one of its points
+        (:func:`~gcm_pipeline.robot.contact.interior_point`) against the solid
+        (:class:`~gcm_pipeline.robot.contact.SolidMesh`) in :meth:`_inside_object`.
+        """
+        self._solid: SolidMesh | None = None
+        obj = self.object_cfg
+        if obj is None or obj.shape != "mesh" or "object" not in world_ids or not pairs:
+            return
+        go = gm.geometryObjects[world_ids["object"]]
+        self._solid = SolidMesh(*mesh_arrays(go.geometry))
+        self._solid_from_base = np.linalg.inv(go.placement.homogeneous)
+        ids = sorted({a for a, _ in pairs})
+        self._solid_names = tuple(gm.geometryObjects[i].name for i in ids)
+        self._solid_joint = np.array([int(gm.geometryObjects[i].parentJoint) for i in ids])
+        self._solid_local = np.array(
+            [
+                gm.geometryObjects[i].placement.act(interior_point(gm.geometryObjects[i].geometry))
+                for i in ids
+            ]
+        )
+
+    def _inside_object(self, q: np.ndarray) -> np.ndarray:
+        """Whether a robot piece of the object pairs lies inside the mesh object, (M,) bool."""
+        if self._solid is None or len(q) == 0:
+            return np.zeros(len(q), dtype=bool)
+        pts = self._place_points(q, self._solid_joint, self._solid_local)
+        m = self._solid_from_base
+        local = pts @ m[:3, :3].T + m[:3, 3]
+        return self._solid.contains(local.reshape(-1, 3)).reshape(pts.shape[:2]).any(axis=1)
 
     def _init_distance_bounds(self, dm: Any, pairs: list[tuple[int, int]]) -> None:
         """Axis-aligned boxes (base frame) of the world shape of every distance pair.
@@ -602,7 +630,11 @@ class CollisionChecker:
             return np.zeros(len(q), dtype=bool)
         qt = np.asfortranarray(q.T)
         res = pin.computeCollisionsInParallel(self.threads, pool, qt, True, False)
-        return np.asarray(res, dtype=bool).reshape(len(q))
+        hit = np.asarray(res, dtype=bool).reshape(len(q))
+        if kind == "object" and self._solid is not None:  # pieces wholly inside the mesh
+            free = np.flatnonzero(~hit)
+            hit[free] = self._inside_object(q[free])
+        return hit
 
     def check(self, q: Any) -> np.ndarray:
         """Collision reason of each configuration.
@@ -638,12 +670,20 @@ class CollisionChecker:
             q: One configuration (nq,) [rad].
 
         Returns:
-            ``[(geometry_1, geometry_2, kind), ...]``.
+            ``[(geometry_1, geometry_2, kind), ...]``; a robot piece wholly inside a
+            mesh object is ``(piece, "object (inside)", "object")``.
         """
         qs = self.robot.as_configurations(q)[0]
         gm, gd = self.geom_model, self._full_data
         pin.computeCollisions(self.robot.model, self._data, gm, gd, qs, False)
         out = []
+        if self._solid is not None:
+            pts = self._place_points(qs[None], self._solid_joint, self._solid_local)[0]
+            m = self._solid_from_base
+            inside = self._solid.contains(pts @ m[:3, :3].T + m[:3, 3])
+            out += [
+                (self._solid_names[k], "object (inside)", "object") for k in np.flatnonzero(inside)
+            ]
         for k, cp in enumerate(gm.collisionPairs):
             if gd.collisionResults[k].isCollision():
                 out.append(
@@ -711,6 +751,42 @@ class CollisionChecker:
             f"CollisionChecker(robot={self.robot.name!r}, world=[{world}], pairs={counts}, "
             f"contact_tolerance={self.contact_tolerance}, table_exempt={list(self.table_exempt)})"
         )
+
+
+def _add_eroded_gripper(
+    gm: Any, gripper_geoms: tuple[int, ...], tol: float
+) -> dict[int, int | None]:
+    """Add each gripper piece eroded by ``tol`` [m] to ``gm`` (same joint, frame, placement).
+
+    Returns:
+        Gripper geometry index -> index of its eroded copy (named ``<name>_contact``),
+        or None when the piece erodes to nothing. A piece that cannot be eroded
+        (not convex) is used uneroded, with a warning.
+    """
+    out: dict[int, int | None] = {}
+    for i in gripper_geoms:
+        go = gm.geometryObjects[i]
+        if tol == 0:
+            out[i] = i
+            continue
+        try:
+            eroded = erode_convex(go.geometry, tol)
+        except NotConvexError as exc:
+            warnings.warn(
+                f"gripper collision piece {go.name!r}: {exc}; checked against the object "
+                "without contact tolerance",
+                stacklevel=3,
+            )
+            out[i] = i
+            continue
+        if eroded is None:
+            out[i] = None
+            continue
+        piece = pin.GeometryObject(
+            f"{go.name}_contact", int(go.parentJoint), int(go.parentFrame), go.placement, eroded
+        )
+        out[i] = int(gm.addGeometryObject(piece))
+    return out
 
 
 def _gripper_links(robot: Robot) -> set[str]:

@@ -1,0 +1,365 @@
+"""Contact-tolerance model on thin-walled objects, checked against an independent oracle.
+
+The oracle does not use the project's checker: it places the Panda's own collision
+pieces with Pinocchio, runs coal directly on the *original* object mesh and the original
+pieces (solids), tests containment with trimesh, and measures how deep the object's
+surface points lie inside each gripper piece from the piece's face planes. Properties:
+
+(a) a configuration whose robot touches the object nowhere is never ``collision_object``;
+(b) a gripper piece holding an object point deeper than ``contact_tolerance`` (plus
+    0.5 mm) is always ``collision_object``;
+(c) an arm link (not gripper) touching the object is always ``collision_object``.
+"""
+
+from __future__ import annotations
+
+import coal
+import numpy as np
+import pinocchio as pin
+import pytest
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
+from gcm_pipeline.robot.collision import REASON_OBJECT, CollisionChecker
+from gcm_pipeline.robot.contact import NotConvexError, SolidMesh, erode_convex
+from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.model import load_robot
+
+trimesh = pytest.importorskip("trimesh")
+
+TOL = 0.005  # [m] contact_tolerance under test (the default)
+MARGIN = 5e-4  # [m] depth beyond the tolerance that must be reported
+GRIPPER_LINKS = ("panda_hand", "panda_leftfinger", "panda_rightfinger")
+
+
+# --- thin-walled objects -------------------------------------------------------------
+
+
+def _revolve(profile, sections=72):
+    m = trimesh.creation.revolve(np.asarray(profile, dtype=float), sections=sections)
+    if m.volume < 0:
+        m.invert()
+    assert m.is_watertight and m.is_volume
+    return m
+
+
+def _tube(path, radius, sides=24):
+    """Closed tube of circular section along a polyline, capped at both ends."""
+    path = np.asarray(path, dtype=float)
+    tangent = np.gradient(path, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    ref = np.array([0.0, 1.0, 0.0])
+    u = np.cross(tangent, ref)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(tangent, u)
+    ang = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    ring = path[:, None] + radius * (
+        np.cos(ang)[None, :, None] * u[:, None] + np.sin(ang)[None, :, None] * v[:, None]
+    )
+    verts = np.vstack([ring.reshape(-1, 3), path[[0, -1]]])
+    n, faces = len(path), []
+    for i in range(n - 1):
+        for j in range(sides):
+            a, b = i * sides + j, i * sides + (j + 1) % sides
+            faces += [[a, b, b + sides], [a, b + sides, a + sides]]
+    c0, c1 = n * sides, n * sides + 1
+    for j in range(sides):
+        faces.append([c0, (j + 1) % sides, j])
+        faces.append([c1, (n - 1) * sides + j, (n - 1) * sides + (j + 1) % sides])
+    m = trimesh.Trimesh(verts, np.array(faces), process=True)
+    trimesh.repair.fix_normals(m)
+    assert m.is_watertight and m.is_volume
+    return m
+
+
+def cup_parts():
+    """A mug: 3 mm wall, 4 mm bottom, r = 40 mm, h = 100 mm, a handle 8 mm thick."""
+    r, h, wall, bottom = 0.040, 0.100, 0.003, 0.004
+    body = _revolve([[0, 0], [r, 0], [r, h], [r - wall, h], [r - wall, bottom], [0, bottom]])
+    theta = np.linspace(-np.pi / 2, np.pi / 2, 40)
+    arc = np.stack([r - 0.001 + 0.025 * np.cos(theta), 0 * theta, 0.055 + 0.025 * np.sin(theta)], 1)
+    return [body, _tube(arc, 0.004)]
+
+
+def bowl_parts():
+    """A hemispherical bowl, 2 mm wall, outer radius 80 mm, open 65 deg from the bottom."""
+    ro, w = 0.080, 0.002
+    phi = np.linspace(0, np.radians(65), 40)
+    outer = np.stack([ro * np.sin(phi), ro - ro * np.cos(phi)], 1)
+    inner = np.stack([(ro - w) * np.sin(phi), ro - (ro - w) * np.cos(phi)], 1)[::-1]
+    return [_revolve(np.vstack([outer, inner]))]
+
+
+def plate_parts():
+    """A flat plate, 200 x 150 x 2 mm."""
+    return [trimesh.creation.box((0.20, 0.15, 0.002))]
+
+
+OBJECTS = {
+    "cup": (cup_parts, {"xyz": [0.5, 0.0, 0.15], "rpy_deg": [0, 0, 30]}),
+    "bowl": (bowl_parts, {"xyz": [0.45, 0.1, 0.2], "rpy_deg": [0, 0, 0]}),
+    "plate": (plate_parts, {"xyz": [0.5, -0.05, 0.25], "rpy_deg": [30, 0, 0]}),
+}
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot("panda")
+
+
+# --- erosion of single pieces ----------------------------------------------------------
+
+
+def _inside(geom, point):
+    """coal: does the piece contain the point (a 1e-12 m sphere)?"""
+    tp = coal.Transform3s()
+    tp.setTranslation(np.asarray(point, dtype=float))
+    res = coal.CollisionResult()
+    return bool(
+        coal.collide(geom, coal.Transform3s(), coal.Sphere(1e-12), tp, coal.CollisionRequest(), res)
+    )
+
+
+def _depth(geom, p):
+    """Distance of a point inside the original piece to its boundary [m] (< 0 outside), analytic."""
+    if isinstance(geom, coal.Box):
+        return float(np.min(np.asarray(geom.halfSide) - np.abs(p)))
+    if isinstance(geom, coal.Sphere):
+        return float(geom.radius - np.linalg.norm(p))
+    if isinstance(geom, coal.Capsule):
+        axial = np.array([0.0, 0.0, np.clip(p[2], -geom.halfLength, geom.halfLength)])
+        return float(geom.radius - np.linalg.norm(p - axial))
+    if isinstance(geom, coal.Cylinder):
+        return float(min(geom.radius - np.hypot(p[0], p[1]), geom.halfLength - abs(p[2])))
+    if id(geom) not in _PLANES:
+        pts = np.asarray(geom.points() if hasattr(geom, "points") else geom.vertices(), dtype=float)
+        _PLANES[id(geom)] = (geom, ConvexHull(pts.reshape(-1, 3)).equations)
+    eq = _PLANES[id(geom)][1]
+    return float(-(eq[:, :3] @ p + eq[:, 3]).max())
+
+
+_PLANES: dict[int, tuple[object, np.ndarray]] = {}
+
+
+def _convex_of(points):
+    vec = coal.StdVec_Vec3s()
+    for p in points:
+        vec.append(np.asarray(p, dtype=float))
+    return coal.Convex.convexHull(vec, True, "Qt")
+
+
+def _hand_mesh(robot):
+    gm = robot.build_geometry("collision")
+    return next(g.geometry for g in gm.geometryObjects if g.name == "panda_hand_0")
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda r: coal.Box(0.03, 0.02, 0.015),
+        lambda r: coal.Sphere(0.02),
+        lambda r: coal.Capsule(0.012, 0.05),
+        lambda r: coal.Cylinder(0.015, 0.04),
+        lambda r: _convex_of(np.random.default_rng(3).normal(size=(40, 3)) * 0.02),
+        _hand_mesh,
+    ],
+    ids=["box", "sphere", "capsule", "cylinder", "convex", "panda_hand_mesh"],
+)
+def test_erosion_is_exact(robot, make):
+    """x is in the eroded piece (coal) iff x lies deeper than t inside the original."""
+    geom = make(robot)
+    eroded = erode_convex(geom, TOL)
+    geom.computeLocalAABB()
+    lo, hi = np.asarray(geom.aabb_local.min_), np.asarray(geom.aabb_local.max_)
+    pts = np.random.default_rng(0).uniform(lo, hi, size=(1500, 3))
+    checked = deep = 0
+    for p in pts:
+        depth = _depth(geom, p)
+        if abs(depth - TOL) < 1e-6:
+            continue
+        assert _inside(eroded, p) == (depth > TOL), (p, depth)
+        checked += 1
+        deep += depth > TOL
+    assert checked > 1400 and deep > 20
+
+
+def test_erosion_edge_cases(robot):
+    assert erode_convex(coal.Box(0.03, 0.009, 0.03), TOL) is None  # thinner than 2 t
+    assert erode_convex(coal.Sphere(0.004), TOL) is None
+    box = coal.Box(0.03, 0.02, 0.015)
+    assert erode_convex(box, 0.0) is box
+    np.testing.assert_allclose(erode_convex(box, TOL).halfSide, [0.01, 0.005, 0.0025])
+    torus = trimesh.creation.torus(0.05, 0.01)
+    bvh = coal.BVHModelOBBRSS()
+    bvh.beginModel(len(torus.faces), len(torus.vertices))
+    bvh.addVertices(np.asarray(torus.vertices, dtype=float))
+    bvh.addTriangles(np.asarray(torus.faces, dtype=int))
+    bvh.endModel()
+    with pytest.raises(NotConvexError, match="not convex"):
+        erode_convex(bvh, TOL)
+    with pytest.raises(NotConvexError):
+        erode_convex(coal.Plane(np.array([0.0, 0, 1]), 0.0), TOL)
+    with pytest.raises(ValueError):
+        erode_convex(box, -1e-3)
+
+
+@pytest.mark.parametrize("name", ["cup", "bowl", "plate"])
+def test_solid_mesh_agrees_with_trimesh(name):
+    parts = OBJECTS[name][0]()
+    whole = trimesh.util.concatenate(parts)
+    solid = SolidMesh(whole.vertices, whole.faces)
+    lo, hi = whole.bounds
+    pts = np.random.default_rng(1).uniform(lo - 0.01, hi + 0.01, size=(5_000, 3))
+    ref = np.zeros(len(pts), dtype=bool)
+    for part in parts:
+        ref |= part.contains(pts)
+    got = solid.contains(pts)
+    if (got != ref).any():  # only points on the surface (ray through an edge) may differ
+        assert np.all(np.abs(trimesh.proximity.signed_distance(whole, pts[got != ref])) < 1e-6)
+    assert ref.sum() > 15  # thin walls, but points do fall inside
+
+
+# --- the checker on thin-walled objects vs the oracle ------------------------------------
+
+
+def _to_bvh(mesh):
+    bvh = coal.BVHModelOBBRSS()
+    bvh.beginModel(len(mesh.faces), len(mesh.vertices))
+    bvh.addVertices(np.asarray(mesh.vertices, dtype=float))
+    bvh.addTriangles(np.asarray(mesh.faces, dtype=int))
+    bvh.endModel()
+    return bvh
+
+
+def _tf(m):
+    t = coal.Transform3s()
+    t.setRotation(np.ascontiguousarray(m[:3, :3]))
+    t.setTranslation(np.ascontiguousarray(m[:3, 3]))
+    return t
+
+
+class Oracle:
+    """Independent object check: Pinocchio placements, coal and trimesh on the original mesh."""
+
+    def __init__(self, robot, parts, obj_pose):
+        self.robot = robot
+        self.gm = robot.build_geometry("collision")
+        self.gd = pin.GeometryData(self.gm)
+        self.data = robot.model.createData()
+        self.parts = parts
+        whole = trimesh.util.concatenate(parts)
+        self.obj = obj_pose
+        self.obj_inv = np.linalg.inv(obj_pose)
+        self.bvh = _to_bvh(whole)
+        self.obj_tf = _tf(obj_pose)
+        samples, _ = trimesh.sample.sample_surface(whole, 25_000, seed=0)
+        self.samples = np.asarray(samples)  # object frame
+        # (name, is_gripper, solid coal geometry, face planes (F, 4), radius, local AABB)
+        self.pieces = []
+        for go in self.gm.geometryObjects:
+            link = robot.model.frames[go.parentFrame].name
+            g = go.geometry
+            if isinstance(g, coal.Box):
+                h = np.asarray(g.halfSide)
+                planes = np.array(
+                    [[*(s * np.eye(3)[k]), -h[k]] for k in range(3) for s in (1.0, -1.0)]
+                )
+                solid, radius = g, float(np.linalg.norm(h))
+            else:
+                verts = np.asarray(g.vertices(), dtype=float)
+                planes = ConvexHull(verts).equations
+                solid, radius = _convex_of(verts), float(np.linalg.norm(verts, axis=1).max())
+            g.computeLocalAABB()
+            lo, hi = np.asarray(g.aabb_local.min_), np.asarray(g.aabb_local.max_)
+            self.pieces.append((go.name, link in GRIPPER_LINKS, solid, planes, radius, lo, hi))
+        # all gripper pieces hang on one joint: their box in that joint's frame
+        grip = [k for k, p in enumerate(self.pieces) if p[1]]
+        self.hand_joint = self.gm.geometryObjects[grip[0]].parentJoint
+        assert all(self.gm.geometryObjects[k].parentJoint == self.hand_joint for k in grip)
+        corners = []
+        for k in grip:
+            lo, hi = self.pieces[k][5:7]
+            box = np.array(
+                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+            )
+            pl = self.gm.geometryObjects[k].placement.homogeneous
+            corners.append(box @ pl[:3, :3].T + pl[:3, 3])
+        corners = np.vstack(corners)
+        self.grip_lo, self.grip_hi = corners.min(axis=0), corners.max(axis=0)
+
+    def evaluate(self, qs):
+        """(touch, deep_gripper, arm_touch), each (N,) bool, for configurations (N, nq)."""
+        model, gm, gd = self.robot.model, self.gm, self.gd
+        n = len(qs)
+        touch, deep, arm = (np.zeros(n, dtype=bool) for _ in range(3))
+        probe_rows, probe_pts, probe_arm = [], [], []
+        for row, q in enumerate(qs):
+            pin.updateGeometryPlacements(model, self.data, gm, gd, q)
+            near = None  # object samples near the gripper, in the gripper joint's frame
+            for k, (_, is_gripper, solid, planes, _, lo, hi) in enumerate(self.pieces):
+                m = gd.oMg[k].homogeneous
+                res = coal.CollisionResult()
+                req = coal.CollisionRequest()
+                if not coal.collide(solid, _tf(m), self.bvh, self.obj_tf, req, res):
+                    probe_rows.append(row)  # crosses no triangle: inside or outside?
+                    probe_pts.append((self.obj_inv @ m[:, 3])[:3])
+                    probe_arm.append(not is_gripper)
+                    continue
+                touch[row] = True
+                if not is_gripper:
+                    arm[row] = True
+                    continue
+                if near is None:
+                    joint = np.linalg.inv(self.data.oMi[self.hand_joint].homogeneous) @ self.obj
+                    pj = self.samples @ joint[:3, :3].T + joint[:3, 3]
+                    near = pj[np.all((pj > self.grip_lo) & (pj < self.grip_hi), axis=1)]
+                local = np.linalg.inv(gm.geometryObjects[k].placement.homogeneous)
+                p = near @ local[:3, :3].T + local[:3, 3]
+                p = p[np.all((p > lo + TOL) & (p < hi - TOL), axis=1)]  # cheap pre-filter
+                depth = -(p @ planes[:, :3].T + planes[:, 3]).max(axis=1)
+                deep[row] |= bool(depth.size and depth.max() > TOL + MARGIN)
+        pts = np.array(probe_pts).reshape(-1, 3)
+        inside = np.zeros(len(pts), dtype=bool)
+        for part in self.parts:
+            box = np.all((pts >= part.bounds[0]) & (pts <= part.bounds[1]), axis=1)
+            if box.any():
+                inside[box] |= part.contains(pts[box])
+        rows = np.array(probe_rows, dtype=int)
+        touch[rows[inside]] = True
+        arm[rows[inside & np.array(probe_arm, dtype=bool)]] = True
+        return touch, deep, arm
+
+
+def _near_surface_configurations(robot, parts, obj_pose, n, seed):
+    rng = np.random.default_rng(seed)
+    whole = trimesh.util.concatenate(parts)
+    pts, _ = trimesh.sample.sample_surface(whole, n, seed=seed)
+    pts = np.asarray(pts) + rng.uniform(-0.02, 0.02, size=(n, 3))
+    targets = np.tile(np.eye(4), (n, 1, 1))
+    targets[:, :3, :3] = Rotation.random(n, random_state=seed).as_matrix()
+    targets[:, :3, 3] = pts @ obj_pose[:3, :3].T + obj_pose[:3, 3]
+    res = solve_ik(robot, targets)
+    return res.q[res.success]
+
+
+@pytest.mark.parametrize("name", ["cup", "bowl", "plate"])
+def test_thin_walls_never_more_conservative_than_the_geometry(robot, name, tmp_path):
+    make, pose = OBJECTS[name]
+    parts = make()
+    stl = tmp_path / f"{name}.stl"
+    trimesh.util.concatenate(parts).export(stl)
+    obj = ObjectConfig.model_validate({"shape": "mesh", "mesh": str(stl), "pose": pose})
+    env = EnvironmentConfig(table=None, self_collision=False, contact_tolerance=TOL)
+    checker = CollisionChecker(robot, env, obj)
+    qs = _near_surface_configurations(robot, parts, obj.pose.matrix(), 400, seed=len(name))
+    reported = checker.check(qs) == REASON_OBJECT
+    oracle = Oracle(robot, parts, obj.pose.matrix())
+    touch, deep, arm = oracle.evaluate(qs)
+    false_alarm = np.flatnonzero(reported & ~touch)
+    missed = np.flatnonzero((deep | arm) & ~reported)
+    assert false_alarm.size == 0, f"(a) free but reported: rows {false_alarm[:10]}"
+    assert missed.size == 0, f"(b)/(c) penetrating but free: rows {missed[:10]}"
+    # the sample is not vacuous: free, deep and touching-within-tolerance cases all occur
+    assert (~touch).sum() >= 20 and deep.sum() >= 100 and arm.sum() >= 20
+    assert (touch & ~reported).sum() >= 20, "the tolerance never let a touching gripper through"

@@ -1,10 +1,12 @@
-"""Command line: ``gcm run | validate | schema | show | plot | query``.
+"""Command line: ``gcm run | validate | schema | show | plot | query | export | view``.
 
 ``gcm run CONFIG`` runs the whole pipeline and writes the run directory;
 ``gcm validate CONFIG`` only checks a config; ``gcm schema`` prints the
 config's JSON Schema; ``gcm show RUN_DIR`` prints the top-ranked grasps of a
 run; ``gcm plot RUN_DIR`` writes its plots; ``gcm query RUN_DIR --pose ...``
-prints the nearest reachable grasp of a run's manifold to a pose.
+prints the nearest reachable grasp of a run's manifold to a pose; ``gcm export
+RUN_DIR --format moveit | parquet | npz`` exports its grasps; ``gcm view RUN_DIR``
+opens a saved run in the live meshcat viewer (nothing is recomputed).
 
 User errors (:class:`~gcm_pipeline.errors.GcmError`) print one line
 ``error: <message>`` on stderr and exit with status 2 (the traceback only
@@ -89,7 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--meshcat", action="store_true", help="open the live meshcat viewer")
     run.add_argument(
-        "--no-wait", action="store_true", help="with --meshcat: do not wait for Ctrl-C"
+        "--no-wait",
+        action="store_true",
+        help="with --meshcat: do not wait for Ctrl-C",
     )
 
     val = sub.add_parser("validate", parents=[common], help="check a config and print it")
@@ -129,6 +133,30 @@ def build_parser() -> argparse.ArgumentParser:
         help="frame of the poses: world (default), the robot base or the object",
     )
     query.add_argument("--json", action="store_true", help="print the answers as JSON")
+
+    export = sub.add_parser(
+        "export", parents=[common], help="export a run's grasps (MoveIt YAML, Parquet, NPZ)"
+    )
+    export.add_argument("run_dir", metavar="RUN_DIR", type=Path)
+    export.add_argument(
+        "--format", required=True, choices=["moveit", "parquet", "npz"], help="export format"
+    )
+    export.add_argument(
+        "--top", type=int, metavar="N", help="only the N best-ranked reachable grasps"
+    )
+    export.add_argument(
+        "--out", type=Path, metavar="FILE", help="file to write (default: inside RUN_DIR)"
+    )
+
+    view = sub.add_parser(
+        "view", parents=[common], help="open a saved run in the live meshcat viewer"
+    )
+    view.add_argument("run_dir", metavar="RUN_DIR", type=Path)
+    view.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="return at once; the viewer's server keeps running (its pid is printed)",
+    )
     return parser
 
 
@@ -239,23 +267,31 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if not viewer:
             print(f"live viewer:   {_viewer_command(args, run_dir)}")
     if viewer:
-        _open_viewer(result, wait=cfg.publish.wait and not args.no_wait)
+        wait = cfg.publish.wait and not args.no_wait
+        _open_viewer(result.grasps, result.manifold, result.robot, result.config, wait=wait)
     return 0
 
 
-def _open_viewer(result: Any, *, wait: bool) -> None:
+def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: bool) -> None:
+    """Publish to the live viewer; wait for Ctrl-C, or leave its server running."""
     from gcm_pipeline.stages.publish import open_viewer
 
-    viewer = open_viewer(result.grasps, result.manifold, result.robot, result.config)
+    viewer = open_viewer(grasps, manifold, robot, config, detach=not wait)
     try:
-        print(f"meshcat viewer: {viewer.url}")
+        print(f"meshcat viewer: {viewer.url}", flush=True)
         if wait:
-            print("press Ctrl-C to quit")
+            print("press Ctrl-C to quit", flush=True)
             try:
                 while True:
                     time.sleep(0.5)
             except KeyboardInterrupt:
                 print()
+        elif viewer.server_pid is not None:
+            print(
+                f"the viewer's server keeps running (pid {viewer.server_pid}); "
+                f"stop it with: kill {viewer.server_pid}",
+                flush=True,
+            )
     finally:
         viewer.close()
 
@@ -408,6 +444,34 @@ def _cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from gcm_pipeline.formats.exporters import export_run
+
+    result = export_run(args.run_dir, args.format, top=args.top, out=args.out)
+    if args.quiet:
+        print(result.path)
+    else:
+        print(f"wrote {result.rows} grasps to {result.path}")
+    return 0
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config import Config
+    from gcm_pipeline.io import read_run
+    from gcm_pipeline.robot.model import load_robot
+
+    run = read_run(args.run_dir)
+    if not isinstance(run.summary.get("config"), dict):
+        raise GcmError(f"{args.run_dir}: summary.json holds no config; cannot draw the scene")
+    cfg = Config.from_dict(run.summary["config"], source=str(args.run_dir / "summary.json"))
+    robot = load_robot(cfg.robot.spec)
+    if not args.quiet:
+        n = int(run.grasps["reachable"].sum()) if "reachable" in run.grasps else 0
+        print(f"run {run.run_dir}: {len(run.grasps)} grasps, {n} reachable")
+    _open_viewer(run.grasps, run.manifold, robot, cfg, wait=not args.no_wait)
+    return 0
+
+
 _COMMANDS = {
     "run": _cmd_run,
     "validate": _cmd_validate,
@@ -415,6 +479,8 @@ _COMMANDS = {
     "show": _cmd_show,
     "plot": _cmd_plot,
     "query": _cmd_query,
+    "export": _cmd_export,
+    "view": _cmd_view,
 }
 
 

@@ -731,7 +731,7 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
 
     def floats(name: str) -> np.ndarray:
         col = np.array(raw[name], dtype=str).reshape(-1)
-        col[col == ""] = "nan"
+        col = np.where(col == "", "nan", col)  # not in place: an all-empty column is '<U1'
         try:
             return col.astype(float)
         except ValueError as exc:

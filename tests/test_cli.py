@@ -306,12 +306,13 @@ def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
 
     class FakeViewer:
         url = "http://127.0.0.1:7000/static/"
+        server_pid = 4242
 
         def close(self):
             events.append("closed")
 
-    def fake_open(grasps, manifold, robot, config):
-        events.append(("open", (out / "grasps.csv").is_file(), len(grasps)))
+    def fake_open(grasps, manifold, robot, config, detach=False):
+        events.append(("open", (out / "grasps.csv").is_file(), len(grasps), detach))
         return FakeViewer()
 
     monkeypatch.setattr(publish, "open_viewer", fake_open)
@@ -322,8 +323,10 @@ def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
         capsys, "run", FLAT, "--out", out, "--meshcat", "--no-wait", *server, *QUICK
     )
     assert code == 0, err
-    assert events == [("open", True, 66), "closed"]  # the run directory is complete first
+    # the run directory is complete first; --no-wait leaves the server running
+    assert events == [("open", True, 66, True), "closed"]
     assert "meshcat viewer: http://127.0.0.1:7000/static/" in text
+    assert "keeps running (pid 4242)" in text
 
 
 def test_no_wait_with_gcms_own_server_is_refused_before_the_run(capsys, out):

@@ -64,6 +64,9 @@ class GripperSpec:
             midpoint (the robot's grasp frame) along the approach [m].
         closing_axis_tool: The robot's grasp frame axis along which the
             fingers close (``"y"`` for ``panda_hand_tcp``).
+        finger_joints: The hand's finger joints in robot models (exported
+            postures; a robot spec that locks them carries this hand).
+        hand_frame: The hand's base link in robot models.
     """
 
     name: str
@@ -72,6 +75,8 @@ class GripperSpec:
     finger_depth: float
     base_to_tcp: float
     closing_axis_tool: str = "y"
+    finger_joints: tuple[str, ...] = ()
+    hand_frame: str = ""
 
     def to_tool(self, convention: str, depth: np.ndarray | float | None = None) -> np.ndarray:
         """The right-hand transform from a file's gripper frame to the robot's grasp frame.
@@ -115,6 +120,8 @@ GRIPPERS: dict[str, GripperSpec] = {
         max_width=0.08,
         finger_depth=0.04,
         base_to_tcp=0.1034,
+        finger_joints=("panda_finger_joint1", "panda_finger_joint2"),
+        hand_frame="panda_hand",
     ),
 }
 

@@ -1064,6 +1064,7 @@ import tornado.web
 from meshcat.servers import zmqserver as z
 
 _parent = int(sys.argv[1])
+_detached = sys.argv[2:] == ["detach"]
 
 def _watch_parent():
     # exit with the process that started us, even if it could not stop us
@@ -1072,7 +1073,8 @@ def _watch_parent():
         if os.getppid() != _parent:
             os._exit(0)
 
-threading.Thread(target=_watch_parent, daemon=True).start()
+if not _detached:  # a detached server outlives its starter (stop it by its pid)
+    threading.Thread(target=_watch_parent, daemon=True).start()
 
 class _App(tornado.web.Application):
     def listen(self, port, address="127.0.0.1", **kwargs):
@@ -1175,10 +1177,16 @@ class _ZmqWindow:
         self._sock.close(0)
 
 
-def _start_server(timeout_s: float) -> tuple[subprocess.Popen[bytes], str, str]:
-    """Start meshcat's server on 127.0.0.1; return (process, zmq_url, web_url)."""
+def _start_server(
+    timeout_s: float, detach: bool = False
+) -> tuple[subprocess.Popen[bytes], str, str]:
+    """Start meshcat's server on 127.0.0.1; return (process, zmq_url, web_url).
+
+    A ``detach``-ed server keeps running after this process exits.
+    """
+    extra = ["detach"] if detach else []
     proc = subprocess.Popen(
-        [sys.executable, "-u", "-c", _SERVER_CODE, str(os.getpid())],
+        [sys.executable, "-u", "-c", _SERVER_CODE, str(os.getpid()), *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         stdin=subprocess.DEVNULL,
@@ -1236,6 +1244,9 @@ class Viewer:
         visualizer: The ``meshcat.Visualizer`` (draw more with it if you like).
         owns_server: Whether :meth:`close` stops the server (started by
             :func:`open_viewer`).
+        server_pid: Process id of the server started by :func:`open_viewer`
+            (None for a server at ``publish.zmq_url``); a detached server
+            keeps running after :meth:`close` until this process is stopped.
     """
 
     url: str
@@ -1243,6 +1254,7 @@ class Viewer:
     info: SceneInfo
     visualizer: Any = field(repr=False)
     owns_server: bool = False
+    server_pid: int | None = None
     closed: bool = False
     _proc: subprocess.Popen[bytes] | None = field(default=None, repr=False)
     _finalizer: Any = field(default=None, repr=False)
@@ -1263,18 +1275,28 @@ class Viewer:
         self.close()
 
 
-def open_viewer(grasps: GraspTable, manifold: Any, robot: Robot | None, config: Config) -> Viewer:
+def open_viewer(
+    grasps: GraspTable,
+    manifold: Any,
+    robot: Robot | None,
+    config: Config,
+    *,
+    detach: bool = False,
+) -> Viewer:
     """Publish the scene to a live meshcat server.
 
     With ``config.publish.zmq_url`` None, meshcat's server is started on
-    127.0.0.1 (ZMQ and HTTP) and stopped by :meth:`Viewer.close`; otherwise the
-    server at ``zmq_url`` is probed within ``publish.connect_timeout_s`` and used.
+    127.0.0.1 (ZMQ and HTTP) and stopped by :meth:`Viewer.close` (unless
+    ``detach``: then it keeps serving the scene after this process exits,
+    until its ``server_pid`` is stopped); otherwise the server at ``zmq_url``
+    is probed within ``publish.connect_timeout_s`` and used.
 
     Args:
         grasps: The grasp table.
         manifold: The manifold or None.
         robot: The robot or None.
         config: The run config.
+        detach: Leave a server started here running after :meth:`Viewer.close`.
 
     Returns:
         The viewer; open ``viewer.url`` in a browser, call ``viewer.close()`` when done.
@@ -1286,7 +1308,7 @@ def open_viewer(grasps: GraspTable, manifold: Any, robot: Robot | None, config: 
     timeout = float(config.publish.connect_timeout_s)
     proc = None
     if config.publish.zmq_url is None:
-        proc, zmq_url, web_url = _start_server(max(timeout, 20.0))
+        proc, zmq_url, web_url = _start_server(max(timeout, 20.0), detach=detach)
     else:
         zmq_url = config.publish.zmq_url
         web_url = probe_server(zmq_url, timeout)
@@ -1306,9 +1328,14 @@ def open_viewer(grasps: GraspTable, manifold: Any, robot: Robot | None, config: 
         zmq_url=zmq_url,
         info=info,
         visualizer=vis,
-        owns_server=proc is not None,
+        owns_server=proc is not None and not detach,
+        server_pid=None if proc is None else proc.pid,
         _proc=proc,
     )
+    if detach:
+        if proc is not None and proc.stdout is not None:
+            proc.stdout.close()
+        return viewer
     # stops the server on close(), when the viewer is garbage-collected, or at exit
     viewer._finalizer = weakref.finalize(viewer, _stop, proc)
     return viewer

@@ -1,0 +1,376 @@
+"""Exporters of a finished run: MoveIt grasps (YAML), Parquet, NPZ.
+
+========== ===================================================================
+format     file
+========== ===================================================================
+``moveit`` a YAML list of ``moveit_msgs/Grasp`` messages (ROS 2 field names:
+           ``header.stamp.{sec, nanosec}``), one per reachable grasp, best
+           first; readable with any YAML parser, no ROS needed
+``parquet`` the grasp table as in ``grasps.csv`` (same rows, same order, same
+           column names; ``q`` one list column instead of ``q1 .. qN``), for
+           pandas / polars / DuckDB
+``npz``    the same columns as arrays, ``q`` (N, nq), plus ``pose`` (N, 4, 4)
+           world poses of the grasp frame
+========== ===================================================================
+
+``moveit_msgs/Grasp`` fields (from the message definition in moveit_msgs):
+``id``; ``pre_grasp_posture`` / ``grasp_posture`` (``trajectory_msgs/
+JointTrajectory`` of the hand's finger joints); ``grasp_pose``
+(``geometry_msgs/PoseStamped``); ``grasp_quality``; ``pre_grasp_approach``,
+``post_grasp_retreat``, ``post_place_retreat`` (``GripperTranslation``:
+``direction`` as a ``Vector3Stamped``, ``desired_distance``,
+``min_distance``); ``max_contact_force``; ``allowed_touch_objects``.
+
+Here ``grasp_pose`` is the pose of the robot spec's grasp frame (the Panda's
+``panda_hand_tcp``) in the robot's root frame (``header.frame_id``, e.g.
+``panda_link0``): the pose the pipeline checked. MoveIt's pick pipeline reads
+``grasp_pose`` as the pose of the end effector's parent link; configure the
+end effector on the grasp frame, or offset the poses. ``grasp_quality`` is
+the run's ranking metric; ``pre_grasp_approach`` follows the config's
+``approach`` (along +z of the grasp frame, ``min_distance`` = the checked
+distance); ``post_grasp_retreat`` follows the config's ``retreat`` when the
+run has one, else the approach reversed. Finger postures use the gripper
+registry's finger joints when the robot's spec locks them (open as locked;
+closed to half the grasp's ``width`` per finger when known, else 0).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+from gcm_pipeline.errors import InputError, OutputError, unknown_choice
+from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
+from gcm_pipeline.table import GraspTable
+
+__all__ = ["EXPORT_FORMATS", "ExportResult", "export_run"]
+
+#: Export formats and their default file names (inside the run directory).
+EXPORT_FORMATS = {"moveit": "grasps_moveit.yaml", "parquet": "grasps.parquet", "npz": "grasps.npz"}
+
+
+class ExportResult(NamedTuple):
+    """What :func:`export_run` wrote.
+
+    Attributes:
+        path: The file written.
+        rows: Number of grasps in it.
+    """
+
+    path: Path
+    rows: int
+
+
+def export_run(
+    run_dir: str | os.PathLike[str],
+    format: str,
+    *,
+    top: int | None = None,
+    out: str | os.PathLike[str] | None = None,
+) -> ExportResult:
+    """Export a run directory's grasps.
+
+    Args:
+        run_dir: A run directory written by ``gcm run``.
+        format: ``moveit``, ``parquet`` or ``npz``.
+        top: Keep only the ``top`` best-ranked reachable grasps (moveit
+            always exports ranked grasps only; default all of them).
+        out: The file to write (default: ``RUN_DIR/`` + the format's name in
+            :data:`EXPORT_FORMATS`). Written atomically.
+
+    Returns:
+        The file and the number of grasps written.
+
+    Raises:
+        InputError: Not a run directory, unknown format, ``top < 0``, or no
+            reachable grasp to export (after an empty, valid file is written).
+        OutputError: The file cannot be written.
+    """
+    from gcm_pipeline.io import read_grasps_csv
+
+    if format not in EXPORT_FORMATS:
+        raise InputError(unknown_choice("export format", format, EXPORT_FORMATS))
+    if top is not None and top < 0:
+        raise InputError(f"--top must be >= 0, got {top}")
+    run = Path(run_dir)
+    if not (run / "grasps.csv").is_file() or not (run / "config.yaml").is_file():
+        raise InputError(f"not a run directory: {run} (needs grasps.csv and config.yaml)")
+    grasps = read_grasps_csv(run / "grasps.csv")  # file order: ranked first
+    # the exact x..qz of the file (the dq column rebuilt from them may differ by an ulp)
+    grasps = grasps.with_columns(pose7=_csv_pose(run / "grasps.csv", len(grasps)))
+    config = _read_yaml(run / "config.yaml")
+    summary = _read_json(run / "summary.json")
+    ranked = np.asarray(grasps["rank"]) > 0 if "rank" in grasps else np.zeros(len(grasps), bool)
+    if format == "moveit" or top is not None:
+        rows = np.flatnonzero(ranked)
+        if top is not None:
+            rows = rows[:top]
+        grasps = grasps.take(rows)
+    path = Path(out) if out is not None else run / EXPORT_FORMATS[format]
+    writers: dict[str, Callable[[GraspTable, Path], None]] = {
+        "moveit": lambda g, p: _write_moveit(g, config, summary, p),
+        "parquet": _write_parquet,
+        "npz": _write_npz,
+    }
+    _atomic(path, lambda tmp: writers[format](grasps, tmp))
+    if (format == "moveit" or top is not None) and len(grasps) == 0:
+        raise InputError(
+            f"{run}: no reachable grasp to export; wrote an empty {format} file {path}"
+        )
+    return ExportResult(path, len(grasps))
+
+
+_POSE7 = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+def _csv_pose(path: Path, n: int) -> np.ndarray:
+    """The ``x, y, z, qw, qx, qy, qz`` columns of ``grasps.csv`` as written (N, 7)."""
+    import csv
+
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.reader(fh)
+        header = next(reader)
+        cols = [header.index(c) for c in _POSE7]
+        return np.array([[float(row[j]) for j in cols] for row in reader]).reshape(n, 7)
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise InputError(f"{path}: cannot read: {exc}") from None
+    return data if isinstance(data, dict) else {}
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _atomic(path: Path, write: Callable[[Path], None]) -> None:
+    """Write through ``write(tmp)`` into a sibling temporary file, then rename."""
+    parent = path.parent
+    if not parent.is_dir():
+        raise OutputError(f"cannot write {path}: {parent} is not a directory")
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"cannot write {path}: {exc}") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# ------------------------------------------------------------------ columns
+
+
+def _flat_columns(g: GraspTable) -> dict[str, np.ndarray]:
+    """The grasps.csv columns (names and values) of a table, ``q`` kept 2-D."""
+    from gcm_pipeline.io import CSV_COLUMNS
+
+    n = len(g)
+    if "pose7" in g:
+        pos, quat = g["pose7"][:, :3], g["pose7"][:, 3:]
+    else:
+        pos, quat = dq_to_pos_quat(np.asarray(g["dq"], dtype=float).reshape(n, 8))
+        quat = np.where(quat[:, :1] < 0, -quat, quat)
+    cols: dict[str, np.ndarray] = {}
+    for name in CSV_COLUMNS:
+        if name in ("v1", "v2", "v3") and "vertices" in g:
+            cols[name] = np.asarray(g["vertices"])[:, int(name[1]) - 1]
+        elif name in ("w1", "w2", "w3") and "weights" in g:
+            cols[name] = np.asarray(g["weights"])[:, int(name[1]) - 1]
+        elif name in ("x", "y", "z"):
+            cols[name] = pos[:, "xyz".index(name)]
+        elif name in ("qw", "qx", "qy", "qz"):
+            cols[name] = quat[:, ("qw", "qx", "qy", "qz").index(name)]
+        elif name in g:
+            cols[name] = np.asarray(g[name])
+    if "q" in g:
+        cols["q"] = np.asarray(g["q"], dtype=float).reshape(n, -1)
+    for name in g.columns:
+        col = np.asarray(g[name])
+        if (
+            name not in cols
+            and name not in ("dq", "vertices", "weights", "pose7")
+            and col.ndim == 1
+        ):
+            cols[name] = col
+    return cols
+
+
+def _write_parquet(g: GraspTable, path: Path) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    arrays, names = [], []
+    for name, col in _flat_columns(g).items():
+        if col.ndim == 2:
+            values = pa.array(col.reshape(-1), type=pa.float64())
+            offsets = pa.array(np.arange(0, col.size + 1, col.shape[1], dtype=np.int32))
+            arrays.append(pa.ListArray.from_arrays(offsets, values))
+        elif col.dtype.kind in "US":
+            arrays.append(pa.array(col.astype(str).tolist(), type=pa.string()))
+        else:
+            arrays.append(pa.array(col))
+        names.append(name)
+    table = pa.Table.from_arrays(arrays, names=names)
+    pq.write_table(table, path)
+
+
+def _write_npz(g: GraspTable, path: Path) -> None:
+    cols = _flat_columns(g)
+    arrays = {k: (v.astype(str) if v.dtype.kind in "USO" else v) for k, v in cols.items()}
+    pose = np.zeros((len(g), 4, 4))
+    pose[:, :3, :3] = (
+        Rotation.from_quat(np.c_[cols["qx"], cols["qy"], cols["qz"], cols["qw"]]).as_matrix()
+        if len(g)
+        else 0.0
+    )
+    pose[:, :3, 3] = np.c_[cols["x"], cols["y"], cols["z"]]
+    pose[:, 3, 3] = 1.0
+    arrays["pose"] = pose
+    with path.open("wb") as fh:
+        np.savez(fh, **arrays)
+
+
+# ------------------------------------------------------------------ MoveIt
+
+
+def _stamp() -> dict[str, int]:
+    return {"sec": 0, "nanosec": 0}
+
+
+def _header(frame: str) -> dict[str, Any]:
+    return {"stamp": _stamp(), "frame_id": frame}
+
+
+def _translation(frame: str, vector: np.ndarray, distance: float, min_distance: float) -> dict:
+    x, y, z = (float(v) for v in vector)
+    return {
+        "direction": {"header": _header(frame), "vector": {"x": x, "y": y, "z": z}},
+        "desired_distance": float(distance),
+        "min_distance": float(min_distance),
+    }
+
+
+def _posture(frame: str, joints: list[str], positions: list[float], t: float) -> dict:
+    points = []
+    if joints:
+        sec = int(math.floor(t))
+        points = [
+            {
+                "positions": [float(p) for p in positions],
+                "velocities": [],
+                "accelerations": [],
+                "effort": [],
+                "time_from_start": {"sec": sec, "nanosec": int(round((t - sec) * 1e9))},
+            }
+        ]
+    return {"header": _header(frame), "joint_names": list(joints), "points": points}
+
+
+def _robot_frames(config: dict[str, Any]) -> tuple[str, str, dict[str, float]]:
+    """Root frame, grasp frame and locked joints of the run's robot spec."""
+    import pinocchio as pin
+
+    from gcm_pipeline.robot.model import _erd_paths, load_spec
+
+    spec = load_spec((config.get("robot") or {}).get("spec", "panda"))
+    urdf = _erd_paths(spec.example_robot_data)[0] if spec.example_robot_data else spec.urdf
+    model = pin.buildModelFromUrdf(str(urdf))
+    root = model.frames[1].name if len(model.frames) > 1 else "world"
+    return root, spec.grasp_frame, dict(spec.locked_joints)
+
+
+def _write_moveit(
+    g: GraspTable, config: dict[str, Any], summary: dict[str, Any], path: Path
+) -> None:
+    from gcm_pipeline.config import Pose
+    from gcm_pipeline.formats.grippers import GRIPPERS
+    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+
+    root, tool, locked = _robot_frames(config)
+    base = Pose(**((config.get("robot") or {}).get("base_pose") or {})).matrix()
+    n = len(g)
+    world = dq_to_matrix(np.asarray(g["dq"], dtype=float).reshape(n, 8))
+    in_base = np.linalg.inv(base) @ world
+    pos = in_base[:, :3, 3]
+    quat = Rotation.from_matrix(in_base[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
+    metric = (summary.get("ranking") or {}).get("metric") or (config.get("ranking") or {}).get(
+        "metric", "yoshikawa"
+    )
+    quality_col = METRIC_COLUMNS.get(metric, "manipulability")
+    quality = np.asarray(g[quality_col] if quality_col in g else g["manipulability"], dtype=float)
+    width = np.asarray(g["width"], dtype=float) if "width" in g else np.full(n, np.nan)
+    gripper = next(
+        (s for s in GRIPPERS.values() if s.finger_joints and set(s.finger_joints) <= set(locked)),
+        None,
+    )
+    joints = list(gripper.finger_joints) if gripper is not None else []
+    open_pos = [float(locked[j]) for j in joints]
+    hand_frame = gripper.hand_frame if gripper is not None else tool
+    approach = config.get("approach") or {}
+    d_app = float(approach.get("distance", 0.0)) if approach else 0.0
+    retreat = config.get("retreat") or None
+    if retreat:
+        direction = np.asarray(retreat.get("direction", [0.0, 0.0, 1.0]), dtype=float)
+        direction = direction / (np.linalg.norm(direction) or 1.0)
+        if retreat.get("frame", "world") == "world":
+            retreat_frame, retreat_dir = root, np.linalg.inv(base)[:3, :3] @ direction
+        else:
+            retreat_frame, retreat_dir = tool, direction
+        d_ret = float(retreat.get("distance", 0.0))
+    else:  # the approach reversed
+        retreat_frame, retreat_dir, d_ret = tool, np.array([0.0, 0.0, -1.0]), d_app
+    rank = np.asarray(g["rank"]) if "rank" in g else np.arange(1, n + 1)
+    grasps = []
+    for i in range(n):
+        closed = [0.5 * width[i] if np.isfinite(width[i]) else 0.0] * len(joints)
+        x, y, z = (float(v) for v in pos[i])
+        qx, qy, qz, qw = (float(v) for v in quat[i])
+        grasps.append(
+            {
+                "id": f"rank_{int(rank[i])}",
+                "pre_grasp_posture": _posture(hand_frame, joints, open_pos, 0.0),
+                "grasp_posture": _posture(hand_frame, joints, closed, 1.0),
+                "grasp_pose": {
+                    "header": _header(root),
+                    "pose": {
+                        "position": {"x": x, "y": y, "z": z},
+                        "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
+                    },
+                },
+                "grasp_quality": float(quality[i]) if np.isfinite(quality[i]) else 0.0,
+                "pre_grasp_approach": _translation(tool, np.array([0, 0, 1.0]), d_app, d_app),
+                "post_grasp_retreat": _translation(retreat_frame, retreat_dir, d_ret, d_ret),
+                "post_place_retreat": _translation("", np.zeros(3), 0.0, 0.0),
+                "max_contact_force": 0.0,
+                "allowed_touch_objects": [],
+            }
+        )
+    head = (
+        f"# moveit_msgs/Grasp list (ROS 2 field names), {n} grasps, best first.\n"
+        f"# grasp_pose: the grasp frame {tool!r} in the robot root frame {root!r};\n"
+        f"# grasp_quality: the ranking metric {metric!r}.\n"
+    )
+    text = yaml.safe_dump(grasps, sort_keys=False, default_flow_style=None, width=100)
+    path.write_text(head + text, encoding="utf-8")

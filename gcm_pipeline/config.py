@@ -234,6 +234,8 @@ class CandidatesConfig(_Section):
             ``franka_panda`` for ``graspgen``, ``contact_graspnet``, ``graspnet``), or
             whose opening and finger depth the ``antipodal`` sampler uses. Replaces
             ``grasp_to_tool``.
+        friction: ``antipodal``: friction coefficient of the contacts (the cone's half
+            angle is ``atan(friction)``).
         camera_pose: ``contact_graspnet`` (required) and ``graspnet``: the pose in the
             world of the camera's optical frame (OpenCV: x right, y down, z forward)
             in which the file's grasps are given.
@@ -241,7 +243,7 @@ class CandidatesConfig(_Section):
             before anything is read or generated; see :mod:`gcm_pipeline.limits`).
     """
 
-    source: Literal["plane", "cylinder_side", "box", "sphere", "file"]
+    source: Literal["plane", "cylinder_side", "box", "sphere", "file", "antipodal"]
     count: PositiveInt = 24
     seed: Seed | None = None
     noise: NoiseConfig = NoiseConfig()
@@ -258,6 +260,7 @@ class CandidatesConfig(_Section):
     gripper: str | None = None
     camera_pose: Pose | None = None
     max_count: PositiveInt = DEFAULT_MAX_CANDIDATES
+    friction: PositiveFloat = 0.5
 
     @model_validator(mode="after")
     def _file_needs_path(self) -> CandidatesConfig:

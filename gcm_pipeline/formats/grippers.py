@@ -67,6 +67,13 @@ class GripperSpec:
         finger_joints: The hand's finger joints in robot models (exported
             postures; a robot spec that locks them carries this hand).
         hand_frame: The hand's base link in robot models.
+        finger_length: From the grasp frame's origin back to the palm along the
+            approach [m].
+        finger_tip: How far the fingertips reach past the grasp frame's origin [m].
+        finger_thickness: Finger size along the closing axis [m].
+        finger_width: Finger size across (the grasp frame's x) [m].
+        palm_size: Palm box (x, y, z) behind the fingers [m] (the sampler's
+            collision check points).
     """
 
     name: str
@@ -77,6 +84,11 @@ class GripperSpec:
     closing_axis_tool: str = "y"
     finger_joints: tuple[str, ...] = ()
     hand_frame: str = ""
+    finger_length: float = 0.037
+    finger_tip: float = 0.009
+    finger_thickness: float = 0.026
+    finger_width: float = 0.021
+    palm_size: tuple[float, float, float] = (0.064, 0.208, 0.092)
 
     def to_tool(self, convention: str, depth: np.ndarray | float | None = None) -> np.ndarray:
         """The right-hand transform from a file's gripper frame to the robot's grasp frame.
@@ -118,10 +130,17 @@ GRIPPERS: dict[str, GripperSpec] = {
         name="franka_panda",
         description="Franka Hand (Panda): 80 mm stroke, TCP 0.1034 m from the hand base",
         max_width=0.08,
-        finger_depth=0.04,
+        finger_depth=0.03,
         base_to_tcp=0.1034,
         finger_joints=("panda_finger_joint1", "panda_finger_joint2"),
         hand_frame="panda_hand",
+        # the sizes of example-robot-data's Panda hand and finger collision
+        # geometry, measured in the panda_hand_tcp frame with the fingers open
+        finger_length=0.037,
+        finger_tip=0.009,
+        finger_thickness=0.026,
+        finger_width=0.021,
+        palm_size=(0.064, 0.208, 0.092),
     ),
 }
 

@@ -427,3 +427,36 @@ def test_robot_meshes_are_whole_and_embedded_once(name):
         if c["type"] == "set_object" and "/robot/" in c["path"]
     )
     assert total_faces < pub.MESH_FACE_BUDGET * len(names) * 1.2
+
+
+def test_primitive_tool_geometry_in_the_visual_model_is_drawn(monkeypatch):
+    """A tool made of boxes (as a robot spec's gripper adds) is drawn with the arm."""
+    import coal
+    import pinocchio as pin
+
+    robot = load_robot("ur5")
+    build = robot.build_geometry
+
+    def with_tool(kind="collision"):
+        geom = build(kind)
+        if kind == "visual":
+            jid = robot.model.frames[robot.grasp_frame_id].parentJoint
+            place = pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.05]))
+            obj = pin.GeometryObject("tool_palm", jid, place, coal.Box(0.04, 0.09, 0.03))
+            obj.meshColor = np.array([0.2, 0.2, 0.25, 1.0])
+            geom.addGeometryObject(obj)
+        return geom
+
+    monkeypatch.setattr(robot, "build_geometry", with_tool)
+    q = robot.home.copy()
+    grasps = GraspTable({"dq": dq_from_matrix(robot.fk(q)), "q": q[None], "rank": np.array([1])})
+    cfg = Config.from_dict(
+        {"robot": {"spec": "ur5"}, "candidates": {"source": "file", "path": "x.npy"}}
+    )
+    commands = decode_commands(pub.render_scene_html(grasps, None, robot, cfg)[0])
+    box = [c for c in commands if c["path"] == "/meshcat/robot/visuals/tool_palm/0"]
+    assert box and box[0]["object"]["geometries"][0]["type"] == "BoxGeometry"
+    geom = box[0]["object"]["geometries"][0]
+    assert [geom["width"], geom["height"], geom["depth"]] == pytest.approx([0.04, 0.09, 0.03])
+    moves = [c for c in commands if c["path"] == "/meshcat/robot/visuals/tool_palm"]
+    assert moves and moves[0]["type"] == "set_transform"

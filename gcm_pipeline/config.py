@@ -7,8 +7,8 @@ closest valid one; every error is a :class:`~gcm_pipeline.errors.ConfigError`
 whose message names the file, the dotted key and the value at fault.
 
 Sections (see DESIGN.md): ``seed``, ``robot``, ``object``, ``candidates``,
-``manifold``, ``densify``, ``ik``, ``environment``, ``approach``, ``ranking``,
-``publish``, ``output``. Only ``candidates`` is required.
+``manifold``, ``densify``, ``ik``, ``environment``, ``approach``, ``retreat``,
+``ranking``, ``publish``, ``output``. Only ``candidates`` is required.
 
 Poses are ``{xyz: [x, y, z], rpy: [roll, pitch, yaw]}`` in metres and radians,
 or ``rpy_deg`` in degrees. Roll, pitch and yaw are rotations about the fixed x,
@@ -61,6 +61,7 @@ __all__ = [
     "Pose",
     "PublishConfig",
     "RankingConfig",
+    "RetreatConfig",
     "RobotConfig",
     "ShapeDims",
     "TableConfig",
@@ -352,12 +353,20 @@ class DensifyConfig(_Section):
 
 
 class IKConfig(_Section):
-    """Inverse kinematics backend and acceptance tolerances."""
+    """Inverse kinematics backend, acceptance tolerances and parallelism.
+
+    Attributes:
+        backend: ``pinocchio`` (batched, default) or ``mink``.
+        position_tolerance: Largest position error of a solution [m].
+        orientation_tolerance: Largest orientation error of a solution [rad].
+        workers: Processes of the reachability engine: ``auto`` (the cores this
+            process may use) or a number. The results do not depend on it.
+    """
 
     backend: Literal["pinocchio", "mink"] = "pinocchio"
     position_tolerance: PositiveFloat = 1.0e-4
     orientation_tolerance: PositiveFloat = 1.0e-3
-    workers: Annotated[int, Strict(), Field(gt=0, le=MAX_IK_WORKERS)] = 1
+    workers: Literal["auto"] | Annotated[int, Strict(), Field(gt=0, le=MAX_IK_WORKERS)] = "auto"
 
 
 class TableConfig(_Section):
@@ -386,11 +395,50 @@ class EnvironmentConfig(_Section):
 
 
 class ApproachConfig(_Section):
-    """Pre-grasp approach check along the grasp frame's approach axis (z)."""
+    """Pre-grasp approach check along the grasp frame's approach axis (z).
+
+    The pre-grasp is the grasp frame backed off by ``distance`` [m] along its
+    z; the hand must move from there to the grasp in a straight line at fixed
+    orientation (see :mod:`gcm_pipeline.robot.approach`).
+
+    Attributes:
+        distance: Length of the straight line [m] (0: no check).
+        steps: The line is cut into this many equal steps; the joint path is
+            collision-checked at the end of every step, and IK waypoints are
+            placed at most at every step.
+        max_joint_step: Largest change of any joint between the ends of one step [rad].
+        max_deviation: Largest distance [m] by which any point of the gripper
+            may leave its straight-line path (a bound over the whole path, not
+            only at the steps).
+    """
 
     distance: NonNegFloat = 0.10
     steps: Annotated[int, Strict(), Field(gt=0, le=MAX_APPROACH_STEPS)] = 10
     max_joint_step: PositiveFloat = 0.25
+    max_deviation: PositiveFloat = 0.002
+
+
+class RetreatConfig(ApproachConfig):
+    """Post-grasp retreat: the grasp frame moves ``distance`` along ``direction``.
+
+    The gripper holds the object: it may touch it (see
+    :mod:`gcm_pipeline.robot.engine`).
+
+    Attributes:
+        direction: Direction of the move (normalised; must not be zero).
+        frame: ``world`` (e.g. ``[0, 0, 1]`` lifts straight up) or ``grasp``
+            (the grasp frame's axes: ``[0, 0, -1]`` backs out along the approach).
+    """
+
+    direction: Vec3 = (0.0, 0.0, 1.0)
+    frame: Literal["world", "grasp"] = "world"
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero_direction(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not math.isfinite(math.hypot(*v)) or math.hypot(*v) < 1e-9:
+            raise ValueError(f"must not be the zero vector, got {list(v)}")
+        return v
 
 
 Metric = Literal[
@@ -476,6 +524,7 @@ class Config(_Section):
     ik: IKConfig = IKConfig()
     environment: EnvironmentConfig = EnvironmentConfig()
     approach: ApproachConfig | None = None
+    retreat: RetreatConfig | None = None
     ranking: RankingConfig = RankingConfig()
     publish: PublishConfig = PublishConfig()
     output: OutputConfig = OutputConfig()

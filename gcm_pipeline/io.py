@@ -16,6 +16,11 @@ A run directory holds (see DESIGN.md, *Run directory*):
   resolved config and package versions.
 - ``manifold.npz``: ``vertex_ids``, ``chart``, ``triangles``, ``dropped``,
   ``dropped_reason``, ``projection``, ``triangulator`` and the chart ``frame``.
+- ``configurations.npz``: the joint configurations [rad], one (N, nq) array
+  per table column, rows in ``grasps.csv`` order: ``q`` (the solution),
+  ``q_pregrasp`` (end of the approach), ``q_retreat`` (end of the retreat)
+  and ``q_rejected`` (for unreachable grasps, the IK solution that collided
+  or whose approach or retreat failed); NaN rows where there is none.
 - ``config.yaml``: the resolved config.
 - optional ``scene.html`` and ``*.png`` from the publish stage.
 
@@ -78,6 +83,7 @@ __all__ = [
     "read_manifold",
     "read_run",
     "write_config",
+    "write_configurations",
     "write_grasps_csv",
     "write_manifold",
     "write_run_files",
@@ -870,7 +876,29 @@ def write_run_files(
     csv_row = np.empty(len(order), dtype=np.int64)
     csv_row[order] = np.arange(len(order))
     write_manifold(manifold, out / "manifold.npz", csv_rows=csv_row[: len(manifold.chart)])
+    write_configurations(grasps, out / "configurations.npz", order)
     write_config(config, out / "config.yaml")
+
+
+#: Table columns of joint configurations written to ``configurations.npz``.
+CONFIGURATION_COLUMNS = ("q", "q_pregrasp", "q_retreat", "q_rejected")
+
+
+def write_configurations(grasps: GraspTable, path: str | Path, order: np.ndarray) -> None:
+    """Write ``configurations.npz``: the (N, nq) configuration columns in csv row order.
+
+    Args:
+        grasps: The grasp table (columns of :data:`CONFIGURATION_COLUMNS` it has).
+        path: The file.
+        order: Table row of each csv row (as :func:`write_grasps_csv` returns).
+    """
+    arrays = {
+        name: np.asarray(grasps[name], dtype=float)[order]
+        for name in CONFIGURATION_COLUMNS
+        if name in grasps and np.ndim(grasps[name]) == 2
+    }
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
 
 
 # ------------------------------------------------------------ json / yaml

@@ -15,8 +15,8 @@ function                                 reads / adds
 cfg)``                                   ``triangle``, ``vertices``, ``weights``
 :func:`robot_from_config` ``(cfg)``      ``robot.spec`` -> ``Robot``
 :func:`check_reachability` ``(grasps,    ``ik``, ``robot.base_pose``,
-robot, cfg)``                            ``environment``, ``approach``, ``object``
-                                         -> ``reachable, reason, q, pos_err, rot_err``
+robot, cfg)``                            ``environment``, ``approach``, ``retreat``,
+                                         ``object`` -> ``reachable, reason, q, ...``
 :func:`rank` ``(grasps, robot, cfg)``    ``ranking`` -> ``manipulability``, ``rank``
 :func:`publish` ``(result, cfg,          ``publish`` -> ``scene.html``, ``*.png``
 out_dir)``
@@ -207,23 +207,26 @@ load_robot = robot_from_config
 def check_reachability(
     grasps: GraspTable, robot: Robot, cfg: Config, *, progress: bool = False
 ) -> GraspTable:
-    """IK, collision and approach checks for every grasp (``ik`` and friends).
+    """IK, collision, approach and retreat checks for every grasp (``ik`` and friends).
 
     "Reachable" means an IK solution within the ``ik`` tolerances whose
-    configuration is collision-free (``environment`` and ``object``) and,
-    with an ``approach`` section, whose straight-line pre-grasp approach is
-    followable and collision-free; see
-    :func:`gcm_pipeline.stages.reachability.check_reachability`.
+    configuration is collision-free (``environment`` and ``object``), with an
+    ``approach`` section whose straight-line pre-grasp approach is followable
+    and collision-free, and with a ``retreat`` section whose post-grasp
+    retreat (holding the object) is too; see
+    :class:`gcm_pipeline.robot.engine.ReachabilityEngine` for the sequence and
+    :func:`gcm_pipeline.stages.reachability.check_reachability` for the mapping.
 
     Args:
         grasps: Table with ``dq`` (world poses of the grasp frame).
         robot: From :func:`robot_from_config`.
         cfg: The full config.
-        progress: Show progress / a summary line.
+        progress: Show per-target progress (a bar on a terminal, else a log
+            line every few seconds).
 
     Returns:
-        The table with ``reachable, reason, q, pos_err, rot_err`` (and
-        ``clearance``) added.
+        The table with ``reachable, reason, q, pos_err, rot_err``,
+        ``q_pregrasp, q_retreat, q_rejected`` (and ``clearance``) added.
     """
     from gcm_pipeline.stages import reachability as stage
 
@@ -241,6 +244,7 @@ def check_reachability(
         environment=cfg.environment,
         object_cfg=cfg.object,
         approach=cfg.approach,
+        retreat=cfg.retreat,
     )
     assert isinstance(done, GraspTable)  # no return_candidates
     return done

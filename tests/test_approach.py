@@ -1,25 +1,32 @@
-"""Pre-grasp approach check and the collision stage helpers, on the real Panda model."""
+"""Straight-line moves (approach, retreat) on the real Panda model, with independent checks.
+
+The soundness tests re-check accepted moves without the module's bounds: the
+joint path is sampled densely and every corner of the gripper's collision
+geometry, placed by Pinocchio's own kinematics, must stay within
+``max_deviation`` of its straight line; every grid point must be collision-free
+for Pinocchio's ``computeCollisions`` over all pairs.
+"""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
-from gcm_pipeline.config import ApproachConfig, EnvironmentConfig
+from gcm_pipeline.config import EnvironmentConfig
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.robot.approach import approach_waypoints, check_approach_path
-from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, CollisionChecker
+from gcm_pipeline.robot.approach import (
+    Move,
+    check_moves,
+    gripper_radius,
+    move_poses,
+    plan_moves,
+)
+from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, CollisionChecker, _gripper_links
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import load_robot
-from gcm_pipeline.stages.collision import (
-    REASON_APPROACH,
-    add_clearance,
-    check_approach,
-    filter_collisions,
-)
-from gcm_pipeline.table import GraspTable
 
 
 def _pose(p, z):
@@ -34,6 +41,7 @@ def _pose(p, z):
 
 TOP_DOWN = _pose([0.5, 0.0, 0.2], [0, 0, -1])  # clear, approach from above
 FROM_BELOW = _pose([0.45, 0.1, 0.3], [0, 0, 1])  # approach upward, from under the table
+APPROACH = Move(distance=0.10, direction=(0, 0, -1), frame="grasp", steps=10)
 
 
 @pytest.fixture(scope="module")
@@ -47,119 +55,171 @@ def checker(robot):
 
 
 @pytest.fixture(scope="module")
+def radius(robot):
+    return gripper_radius(robot)
+
+
+@pytest.fixture(scope="module")
 def solved(robot, checker):
     targets = np.array([TOP_DOWN, FROM_BELOW])
-    res = solve_ik(robot, targets, validator=checker.check)
-    assert res.success.all(), res.reason  # both grasps themselves are reachable and free
+    res = solve_ik(robot, targets)
+    assert res.success.all(), res.reason
+    assert (checker.check(res.q) == "").all()  # both grasps themselves are free
     return targets, res
 
 
-def test_waypoints_back_off_along_approach_axis():
-    wp = approach_waypoints(np.array([TOP_DOWN, FROM_BELOW]), 0.1, 4)
+def test_move_offsets_and_poses():
+    poses = np.array([TOP_DOWN, FROM_BELOW])
+    d = APPROACH.offsets(poses)
+    np.testing.assert_allclose(d, [[0, 0, 0.1], [0, 0, -0.1]], atol=1e-12)  # back along z
+    lift = Move(distance=0.05, direction=(0, 0, 2.0), frame="base", holding=True)
+    np.testing.assert_allclose(lift.offsets(poses), [[0, 0, 0.05]] * 2)
+    wp = move_poses(poses, d, 4)
     assert wp.shape == (5, 2, 4, 4)
+    np.testing.assert_allclose(wp[0], poses)
     back = np.eye(4)
     back[2, 3] = -0.1
-    np.testing.assert_allclose(wp[0], [TOP_DOWN, FROM_BELOW])
     np.testing.assert_allclose(wp[-1, 0], TOP_DOWN @ back, atol=1e-12)
-    np.testing.assert_allclose(wp[-1, 1], FROM_BELOW @ back, atol=1e-12)
-    assert wp[-1, 0, 2, 3] == pytest.approx(0.3)  # top-down: pre-grasp above
-    assert wp[-1, 1, 2, 3] == pytest.approx(0.2)  # upward: pre-grasp below
-    np.testing.assert_allclose(np.diff(wp[:, 0, 2, 3]), 0.025)
+    np.testing.assert_allclose(wp[:, :, :3, :3], np.broadcast_to(poses[:, :3, :3], (5, 2, 3, 3)))
 
 
-def test_top_down_accepted_from_below_rejected(robot, checker, solved):
+def test_gripper_radius_bounds_the_hand(robot, radius):
+    # the Panda hand is about 0.2 m wide, its base 0.1034 m behind the TCP
+    assert 0.12 < radius < 0.25
+
+
+def test_top_down_accepted_from_below_rejected(robot, checker, solved, radius):
     targets, res = solved
-    out = check_approach_path(robot, targets, res.q, checker, distance=0.10, steps=10)
+    out = check_moves(robot, targets, res.q, APPROACH, checker, gripper_radius=radius)
     assert out.ok.tolist() == [True, False]
     assert out.reason[1] == REASON_ENVIRONMENT  # the arm goes through the table
     assert 1 <= out.failed_step[1] <= 10
-    # the pre-grasp configuration really reaches the pre-grasp pose, collision-free
-    pre = approach_waypoints(targets[:1], 0.10, 10)[-1, 0]
-    reached = robot.fk_pinocchio(out.q_pregrasp[0])[0]
+    # the pre-grasp configuration reaches the pre-grasp pose, collision-free
+    pre = move_poses(targets[:1], APPROACH.offsets(targets[:1]), 10)[-1, 0]
+    reached = robot.fk_pinocchio(out.q_end[0])[0]
     np.testing.assert_allclose(reached, pre, atol=2e-4)
-    assert checker.check(out.q_pregrasp[0])[0] == ""
-    assert 0 < out.max_joint_step[0] <= 0.25
-    assert np.isnan(out.q_pregrasp[1]).all()
+    assert checker.check(out.q_end[0])[0] == ""
+    assert 0 < out.deviation[0] <= APPROACH.max_deviation
+    assert np.isnan(out.q_end[1]).all() and np.isnan(out.q_path[1]).all()
+    np.testing.assert_allclose(out.q_path[0, 0], res.q[0])
 
 
-def test_joint_step_bound_and_zero_distance(robot, checker, solved):
+def test_joint_step_bound_zero_distance_and_invalid(robot, checker, solved, radius):
     targets, res = solved
-    out = check_approach_path(robot, targets[:1], res.q[:1], checker, max_joint_step=1e-4)
+    tight = dataclasses.replace(APPROACH, max_joint_step=1e-4)
+    out = check_moves(robot, targets[:1], res.q[:1], tight, checker, gripper_radius=radius)
     assert out.reason.tolist() == ["joint_step"] and out.failed_step[0] == 1
-    out = check_approach_path(robot, targets, res.q, checker, distance=0.0)
+    zero = dataclasses.replace(APPROACH, distance=0.0)
+    out = check_moves(robot, targets, res.q, zero, checker, gripper_radius=radius)
     assert out.ok.all()
+    np.testing.assert_allclose(out.q_end, res.q)
     nan_q = np.full((1, robot.nq), np.nan)
-    assert check_approach_path(robot, targets[:1], nan_q, checker).reason.tolist() == ["invalid"]
+    out = check_moves(robot, targets[:1], nan_q, APPROACH, checker, gripper_radius=radius)
+    assert out.reason.tolist() == ["invalid"]
+
+
+def test_deviation_bound_can_reject(robot, solved, radius):
+    targets, res = solved
+    strict = dataclasses.replace(APPROACH, max_deviation=1e-7)
+    plan = plan_moves(robot, targets[:1], res.q[:1], strict, gripper_radius=radius)
+    assert plan.reason.tolist() == ["deviation"]
 
 
 @pytest.mark.parametrize(
     ("kw", "match"),
-    [({"distance": -0.1}, "distance"), ({"steps": 0}, "steps"), ({"max_joint_step": 0}, "max")],
+    [
+        ({"distance": -0.1}, "distance"),
+        ({"steps": 0}, "steps"),
+        ({"max_joint_step": 0}, "max_joint_step"),
+        ({"max_deviation": 0}, "max_deviation"),
+        ({"direction": (0, 0, 0)}, "direction"),
+        ({"frame": "world"}, "frame"),
+    ],
 )
-def test_approach_errors(robot, checker, solved, kw, match):
-    targets, res = solved
+def test_move_errors(kw, match):
     with pytest.raises(InputError, match=match):
-        check_approach_path(robot, targets, res.q, checker, **kw)
+        Move(**kw)
 
 
-def _table(targets, res):
-    return GraspTable(
-        {
-            "dq": dq_from_matrix(targets),
-            "reachable": res.success,
-            "reason": res.reason,
-            "q": res.q,
-            "pos_err": res.pos_err,
-            "rot_err": res.rot_err,
-        }
-    )
+def _gripper_corners(robot):
+    """Corners of every gripper collision geometry's local box: (geometry index, (8, 3))."""
+    links = _gripper_links(robot)
+    gm = robot.build_geometry("collision")
+    out = []
+    for k, go in enumerate(gm.geometryObjects):
+        if robot.model.frames[go.parentFrame].name not in links:
+            continue
+        go.geometry.computeLocalAABB()
+        lo = np.asarray(go.geometry.aabb_local.min_)
+        hi = np.asarray(go.geometry.aabb_local.max_)
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
+        out.append((k, corners))
+    return gm, out
 
 
-def test_stage_check_approach_sets_reason(robot, checker, solved):
-    targets, res = solved
-    out = check_approach(
-        robot=robot,
-        grasps=_table(targets, res),
-        checker=checker,
-        approach=ApproachConfig(distance=0.1, steps=10),
-    )
-    assert out["reachable"].tolist() == [True, False]
-    assert out["reason"].tolist() == ["", REASON_APPROACH]
-    assert np.isnan(out["q"][1]).all() and np.isfinite(out["q"][0]).all()
-    assert check_approach(_table(targets, res), robot, checker, None)["reachable"].all()
+def _dense_deviation(robot, q_path, offset, per_step=40):
+    """Largest distance of a gripper corner from its straight line along the joint path."""
+    gm, corners = _gripper_corners(robot)
+    model = robot.model
+    data, gd = model.createData(), pin.GeometryData(gm)
+
+    def points(q):
+        pin.forwardKinematics(model, data, q)
+        pin.updateGeometryPlacements(model, data, gm, gd)
+        return np.concatenate(
+            [c @ gd.oMg[k].rotation.T + gd.oMg[k].translation for k, c in corners]
+        )
+
+    start = points(q_path[0])
+    worst = 0.0
+    for a, b in zip(q_path[:-1], q_path[1:], strict=True):
+        for s in np.linspace(0.0, 1.0, per_step + 1):
+            rel = points(a + s * (b - a)) - start
+            t = np.clip(rel @ offset / (offset @ offset), 0.0, 1.0)
+            worst = max(worst, float(np.linalg.norm(rel - t[:, None] * offset, axis=1).max()))
+    return worst
 
 
-def test_filter_collisions_resolves_other_branch(robot):
-    """The home solution hits an obstacle at the elbow; another IK branch avoids it."""
-    elbow = robot.model.getJointId("panda_joint4")
+def _exhaustive_collisions(robot, checker, q):
+    """Every pair of the checker's full geometry model, Pinocchio's own loop: colliding?"""
+    gm = checker.geom_model
+    gd = pin.GeometryData(gm)
     data = robot.model.createData()
-    pin.forwardKinematics(robot.model, data, robot.home)
-    p = data.oMi[elbow].translation.tolist()
-    env = EnvironmentConfig.model_validate(
-        {"obstacles": [{"shape": "sphere", "dims": {"radius": 0.06}, "pose": {"xyz": p}}]}
-    )
-    c = CollisionChecker(robot, env)
-    assert c.check(robot.home)[0] == REASON_ENVIRONMENT
-    target = robot.fk(robot.home)
-    grasps = GraspTable(
-        {
-            "dq": dq_from_matrix(target),
-            "reachable": [True],
-            "reason": [""],
-            "q": robot.home[None],
-            "pos_err": [0.0],
-            "rot_err": [0.0],
-        }
-    )
-    out = filter_collisions(grasps, robot, c)
-    assert out["reachable"].tolist() == [True], out["reason"]
-    assert c.check(out["q"])[0] == ""
-    np.testing.assert_allclose(robot.fk_pinocchio(out["q"])[0], target[0], atol=2e-4)
-    # without re-solving the row is rejected with the collision reason
-    out = filter_collisions(grasps, robot, c, resolve=False)
-    assert out["reachable"].tolist() == [False]
-    assert out["reason"].tolist() == [REASON_ENVIRONMENT]
-    assert np.isnan(out["q"]).all()
-    # clearance: NaN for unreachable, positive for the re-solved row
-    cl = add_clearance(filter_collisions(grasps, robot, c), c)["clearance"]
-    assert 0 < cl[0] < 0.5
+    return pin.computeCollisions(robot.model, data, gm, gd, q, False)
+
+
+def test_accepted_moves_are_sound_on_sampled_grasps(robot, radius):
+    """No accepted move leaves its line by more than max_deviation (dense samples,
+    independent kinematics) or collides at a grid point (exhaustive pair loop)."""
+    rng = np.random.default_rng(11)
+    checker = CollisionChecker(robot, EnvironmentConfig())
+    q0 = robot.random_configurations(400, rng)
+    poses = robot.fk(q0)
+    free = (checker.check(q0) == "") & (poses[:, 2, 3] > 0.05)
+    poses, q0 = poses[free][:60], q0[free][:60]
+    moves = [
+        APPROACH,
+        Move(distance=0.15, direction=(0, 0, 1), frame="base", steps=6, holding=True),
+        Move(distance=0.08, direction=(1, 0, 0), frame="grasp", steps=4, max_deviation=0.0005),
+    ]
+    accepted = 0
+    for move in moves:
+        out = check_moves(robot, poses, q0, move, checker, gripper_radius=radius)
+        offsets = move.offsets(poses)
+        for i in np.flatnonzero(out.ok)[:12]:
+            accepted += 1
+            dev = _dense_deviation(robot, out.q_path[i], offsets[i])
+            assert dev <= move.max_deviation + 1e-9, (move, i, dev)
+            assert dev <= out.deviation[i] + 1e-9
+            for q in out.q_path[i, 1:]:
+                assert not _exhaustive_collisions(robot, checker, q)
+        # every IK waypoint reaches its pose on the line
+        for i in np.flatnonzero(out.ok)[:5]:
+            reached = robot.fk_pinocchio(out.q_path[i])
+            line = move_poses(poses[i : i + 1], offsets[i : i + 1], move.steps)[:, 0]
+            assert np.all(
+                np.linalg.norm(reached[:, :3, 3] - line[:, :3, 3], axis=1) <= move.max_deviation
+            )
+    assert accepted >= 20

@@ -19,6 +19,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import Pipeline
 
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "bottle_side.yaml"
@@ -122,30 +123,39 @@ def test_bottle_side_reachable_grasps_are_collision_free(run):
     assert np.nanmax(np.asarray(g["pos_err"])[reachable]) <= cfg.ik.position_tolerance
 
 
-def test_bottle_side_reachable_grasps_have_a_followable_approach(run):
-    """Every grasp reported reachable passes the approach check from its own
-    solution; every grasp that failed for ``approach`` has no solution left."""
-    from gcm_pipeline.robot.approach import check_approach_path
-    from gcm_pipeline.stages.collision import grasp_targets, make_checker
-
+def test_bottle_side_reachable_grasps_have_an_approach_and_a_pregrasp(run):
+    """Every reachable grasp has a pre-grasp configuration that reaches the pre-grasp
+    pose (Pinocchio FK) and touches neither table nor bottle (the independent world,
+    no finger contact allowed: the whole bottle for every link), within the joint
+    steps the approach allows; every grasp that failed for ``approach`` has no solution."""
     cfg, g = run.config, run.grasps
     reachable = np.asarray(g["reachable"], dtype=bool)
     rows = np.flatnonzero(reachable)
     assert rows.size > 100
+    appr = cfg.approach
+    model, gm, kinds = _world(cfg)
+    # no contact tolerance on the way in: the gripper against the whole bottle too
+    bottle = next(i for i, go in enumerate(gm.geometryObjects) if go.name == "bottle")
+    core = next(i for i, go in enumerate(gm.geometryObjects) if go.name == "bottle_core")
+    for k, cp in enumerate(gm.collisionPairs):
+        if cp.second == core:
+            gm.collisionPairs[k] = pin.CollisionPair(int(cp.first), bottle)
+    data, gd = model.createData(), pin.GeometryData(gm)
+    fingers = list(run.robot.spec.locked_joints.values())
     base = cfg.robot.base_pose.matrix()
-    checker = make_checker(run.robot, cfg.environment, cfg.object, base)
-    path = check_approach_path(
-        run.robot,
-        grasp_targets(g.take(rows), base),
-        g["q"][rows],
-        checker.with_contact_tolerance(0.0),
-        distance=cfg.approach.distance,
-        steps=cfg.approach.steps,
-        max_joint_step=cfg.approach.max_joint_step,
-        position_tolerance=cfg.ik.position_tolerance,
-        orientation_tolerance=cfg.ik.orientation_tolerance,
-    )
-    assert path.ok.all(), f"{np.count_nonzero(~path.ok)} reachable grasps fail their approach"
+    back = np.eye(4)
+    back[2, 3] = -appr.distance
+    q, q_pre = np.asarray(g["q"])[rows], np.asarray(g["q_pregrasp"])[rows]
+    assert np.all(np.isfinite(q_pre))
+    assert np.all(np.abs(q_pre - q) <= appr.steps * appr.max_joint_step)
+    targets = np.linalg.inv(base) @ dq_to_matrix(g["dq"][rows]) @ back
+    reached = run.robot.fk_pinocchio(q_pre)
+    pos = np.linalg.norm(reached[:, :3, 3] - targets[:, :3, 3], axis=1)
+    assert pos.max() <= cfg.ik.position_tolerance
+    for qp in q_pre:
+        pin.computeCollisions(model, data, gm, gd, np.concatenate([qp, fingers]), False)
+        assert not any(res.isCollision() for res in gd.collisionResults)
     approach_rows = np.asarray(g["reason"]) == "approach"
     assert approach_rows.any()
     assert np.isnan(g["q"][approach_rows]).all()
+    assert np.isfinite(g["q_rejected"][approach_rows]).all()

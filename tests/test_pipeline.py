@@ -61,7 +61,13 @@ def test_run_writes_the_directory_and_returns_a_result(tmp_path):
     assert isinstance(result, RunResult)
     assert result.run_dir == (tmp_path / "run").absolute()
     names = sorted(p.name for p in result.files)
-    assert names == ["config.yaml", "grasps.csv", "manifold.npz", "summary.json"]
+    assert names == [
+        "config.yaml",
+        "configurations.npz",
+        "grasps.csv",
+        "manifold.npz",
+        "summary.json",
+    ]
     c = result.counts
     assert c["candidates"] == 3 and c["triangles"] == 1 and c["densified"] == 66
     assert c["reachable"] == int(np.count_nonzero(result.grasps["reachable"])) > 0
@@ -78,6 +84,12 @@ def test_run_writes_the_directory_and_returns_a_result(tmp_path):
     assert "Pipeline(" in repr(Pipeline.from_yaml(FLAT))
     run = io.read_run(result.run_dir)
     assert run.summary["counts"] == c
+    # configurations.npz: the (N, nq) configuration columns in grasps.csv row order
+    csv = io.read_grasps_csv(result.run_dir / "grasps.csv")
+    with np.load(result.run_dir / "configurations.npz") as conf:
+        assert set(conf.files) == {"q", "q_pregrasp", "q_retreat", "q_rejected"}
+        np.testing.assert_array_equal(conf["q"], csv["q"])
+        assert conf["q_rejected"].shape == (len(csv), 7)
     assert run.summary["ranking"]["metric"] == "yoshikawa"
     assert len(run.summary["ranking"]["top"]) == 5
     legend = run.summary["legend"]

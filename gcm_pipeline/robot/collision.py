@@ -275,6 +275,8 @@ class CollisionChecker:
         base_pose: Pose of the robot base in the world (config ``robot.base_pose``),
             a (4, 4) transform or None (identity).
         threads: Threads for the batched checks (``pin.computeCollisionsInParallel``).
+        holding: The gripper holds the object (a retreat): its links are not
+            checked against the object.
 
     Raises:
         ConfigError: Unknown shape or non-positive size in the environment or object.
@@ -299,8 +301,10 @@ class CollisionChecker:
         base_pose: Pose | np.ndarray | None = None,
         *,
         threads: int = 1,
+        holding: bool = False,
     ) -> None:
         env = EnvironmentConfig() if environment is None else environment
+        self.holding = bool(holding)
         self.robot = robot
         self.environment = env
         self.object_cfg = object_cfg
@@ -391,6 +395,8 @@ class CollisionChecker:
             for i in robot_ids:
                 if i not in self.gripper_geoms:
                     pairs["object"].append((i, world_ids["object"]))
+                elif self.holding:
+                    continue  # the gripper holds the object: contact is the point
                 elif mesh:  # eroded gripper piece vs the original mesh
                     if eroded_ids[i] is not None:
                         pairs["object"].append((eroded_ids[i], world_ids["object"]))
@@ -478,7 +484,23 @@ class CollisionChecker:
         """The same world with another finger-contact tolerance [m] (0: no contact allowed)."""
         env = self.environment.model_copy(update={"contact_tolerance": float(tolerance)})
         return CollisionChecker(
-            self.robot, env, self.object_cfg, self.base_pose, threads=self.threads
+            self.robot,
+            env,
+            self.object_cfg,
+            self.base_pose,
+            threads=self.threads,
+            holding=self.holding,
+        )
+
+    def holding_object(self) -> CollisionChecker:
+        """The same world while the gripper holds the object: gripper vs object not checked."""
+        return CollisionChecker(
+            self.robot,
+            self.environment,
+            self.object_cfg,
+            self.base_pose,
+            threads=self.threads,
+            holding=True,
         )
 
     def _init_spheres(self, model: pin.Model, gm: Any, joint_of: list[int]) -> None:

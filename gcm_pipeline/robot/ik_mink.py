@@ -50,6 +50,9 @@ class MinkIKOptions:
         max_iterations: Differential-IK steps per seed.
         library_seeds: Nearest seed-library configurations tried per target.
         random_restarts: Extra random seeds for targets still failing.
+        min_solutions: Stop trying seeds for a target once it has this many
+            valid converged solutions (the first one is the target's answer).
+        home_seed: Try the home configuration after the library seeds.
         damping: Levenberg-Marquardt damping of the QP.
         limit_gain: Gain of :class:`mink.ConfigurationLimit` in (0, 1].
         solver: QP solver name for ``mink.solve_ik``.
@@ -60,6 +63,8 @@ class MinkIKOptions:
     max_iterations: int = 40
     library_seeds: int = 8
     random_restarts: int = 8
+    min_solutions: int = 1
+    home_seed: bool = True
     damping: float = 1e-9
     limit_gain: float = 0.95
     solver: str = "daqp"
@@ -233,8 +238,10 @@ def solve(
         if seeds is not None:
             cands += [s for s in seeds[i] if np.all(np.isfinite(s))]
         cands += [lib.q[j] for j in nearest[i]]
-        cands.append(np.asarray(robot.home))
+        if opts.home_seed:
+            cands.append(np.asarray(robot.home))
         cands += list(restarts)
+        n_valid = 0
         for q0 in cands:
             qpos[qidx] = np.clip(q0, robot.lower, robot.upper)
             configuration.update(qpos)
@@ -250,7 +257,7 @@ def solve(
                 )
                 configuration.integrate_inplace(vel, 1.0)
             q = configuration.q[qidx].copy()
-            if (
+            if not success[i] and (
                 pe + re / orientation_tolerance * position_tolerance
                 < pos_err[i] + rot_err[i] / orientation_tolerance * position_tolerance
             ):
@@ -263,11 +270,15 @@ def solve(
                 all_q.append(q)
                 all_reason.append(why)
             if why:
-                reason[i] = why
+                if not success[i]:
+                    reason[i] = why
                 continue
-            out_q[i], success[i], reason[i] = q, True, ""
-            pos_err[i], rot_err[i] = pe, re
-            break
+            if not success[i]:
+                out_q[i], success[i], reason[i] = q, True, ""
+                pos_err[i], rot_err[i] = pe, re
+            n_valid += 1
+            if n_valid >= opts.min_solutions:
+                break
     out: dict[str, Any] = {
         "q": out_q,
         "success": success,

@@ -83,6 +83,12 @@ class PinocchioIKOptions:
             home seeds are tried at once (fewer, larger batches).
         min_solutions: Stop trying seeds for a target once it has this many
             valid converged solutions (more gives more choice, costs time).
+        home_seed: Try the home configuration after the library seeds (a
+            path's waypoints turn it off: a solution far from the previous
+            waypoint is of no use there).
+        diagnose_limits: For targets no seed reaches, run once more without
+            the joint limits to tell ``joint_limits`` from ``no_ik`` (a path's
+            waypoints do not need the distinction).
         manipulability_steps: Null-space steps that raise the Yoshikawa index
             of each solution while holding the pose (0: off).
         manipulability_step: Length of one such step in joint space [rad].
@@ -110,6 +116,8 @@ class PinocchioIKOptions:
     round_seeds: int = 1
     sequential_rounds: int = 3
     min_solutions: int = 1
+    home_seed: bool = True
+    diagnose_limits: bool = True
     manipulability_steps: int = 0
     manipulability_step: float = 0.05
     damping: float = 1e-3
@@ -427,7 +435,8 @@ def solve(
     n_lib = max(0, opts.library_seeds)
     n_given = 0 if seeds is None else seeds.shape[1]
     knn = np.full((n, n_lib), -1, dtype=int)
-    n_fixed = n_given + n_lib + 1
+    n_home = 1 if opts.home_seed else 0
+    n_fixed = n_given + n_lib + n_home
     n_random = max(0, opts.random_restarts)
     n_rounds = n_fixed + n_random
     restarts = restart_seeds(robot, n_random, opts.random_seed)
@@ -448,9 +457,9 @@ def solve(
                 k = 1 if c == 0 else n_lib
                 knn[missing, :k] = lib.nearest(trot[missing], tpos[missing], k, opts.library_eps)
             return lib.q[knn[ids, c]]
-        if c == n_lib:
+        if c < n_lib + n_home:
             return np.broadcast_to(robot.home, (len(ids), nq)).copy()
-        return np.broadcast_to(restarts[c - n_lib - 1], (len(ids), nq)).copy()
+        return np.broadcast_to(restarts[c - n_lib - n_home], (len(ids), nq)).copy()
 
     # among several valid solutions of a target: best manipulability when the
     # user asks for choice, else the first seed in schedule order (which makes
@@ -545,7 +554,7 @@ def solve(
         rejected = fail[last_reason[fail] != ""]
         reason[rejected] = last_reason[rejected]
         # would the target be reached without the joint limits?
-        plain = fail[last_reason[fail] == ""]
+        plain = fail[last_reason[fail] == ""] if opts.diagnose_limits else fail[:0]
         start = att_q[plain]
         ok = np.all(np.isfinite(start), axis=1)
         plain = plain[ok]

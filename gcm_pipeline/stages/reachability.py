@@ -1,77 +1,106 @@
-"""Reachability stage: inverse kinematics for every grasp of the table.
+"""Reachability stage: the config mapped onto the reachability engine.
 
 Reads ``dq`` (world poses of the grasp frame) and, when present, the
 provenance columns ``origin``, ``vertices``, ``weights`` written by densify;
-adds ``reachable``, ``reason``, ``q``, ``pos_err`` and ``rot_err``.
+adds ``reachable``, ``reason``, ``q``, ``pos_err``, ``rot_err``, the diagnostic
+columns ``q_pregrasp``, ``q_retreat``, ``q_rejected`` and, with a collision
+world, ``clearance``.
 
-Targets in the robot base frame are ``inv(base_pose) @ T_world``. Candidate
-rows are solved first; interpolated rows are then seeded from the solutions
-of their triangle's vertices, heaviest weight first (nearby poses have nearby
-configurations, so the warm start usually converges in a few iterations),
-and fall back to the backend's usual seeds.
+The decision itself, IK, collisions, approach, retreat and re-solves, is made
+in one place, :class:`gcm_pipeline.robot.engine.ReachabilityEngine` (its
+module docstring states the sequence). This stage only maps the config:
+targets in the robot base frame are ``inv(base_pose) @ T_world``; the
+``environment`` and ``object`` sections become the
+:class:`~gcm_pipeline.robot.collision.CollisionChecker`; ``approach`` and
+``retreat`` become :class:`~gcm_pipeline.robot.approach.Move` objects (a world
+retreat direction is turned into the base frame); interpolated rows are seeded
+from the final solutions of their triangle's vertices, heaviest weight first.
 
-Reasons (``''`` when reachable): ``out_of_reach`` (farther from the shoulder
-than the arm's maximum reach, a cheap pre-filter), ``joint_limits``,
-``no_ik``, ``verification_failed`` and whatever a ``validator`` returns.
-
-Collisions: with an ``environment`` or ``object_cfg`` section (or a
-prebuilt ``checker``), "reachable" means an IK solution whose configuration
-is collision-free and, with an ``approach`` section, whose straight-line
-pre-grasp approach is followable and collision-free. The collision checker
-(:func:`gcm_pipeline.stages.collision.make_checker`) is given to the IK as
-validator, so a grasp whose first solution collides keeps trying other
-seeds; the solutions are then filtered, their approach checked and their
-``clearance`` added (:func:`gcm_pipeline.stages.collision.apply_collision_checks`).
-Further reasons: ``collision_self``, ``collision_environment``,
-``collision_object`` and ``approach``. Without these sections the stage is
-pure IK.
-
-Any other ``validator``, a callable ``q (M, nq) -> (M,) str`` (``''`` =
-valid, else a reason), is applied by the IK to every converged candidate
-before one is chosen (after the collision checker, when there is one), and a
-grasp with no valid solution gets the validator's reason.
-``return_candidates=True`` also returns every converged IK candidate (valid
-or not) as :class:`IKCandidates`, with row ids into the table.
+Reasons (``''`` when reachable): ``out_of_reach``, ``joint_limits``,
+``no_ik``, ``verification_failed``, ``collision_self``,
+``collision_environment``, ``collision_object``, a ``validator``'s reasons,
+``approach`` and ``retreat``. Without ``environment``/``object`` sections (and
+no checker) the stage is pure IK.
 """
 
 from __future__ import annotations
 
 import logging
+import sys
+import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.ik import IKCandidates, Validator, solve_ik, world_to_base_targets
+from gcm_pipeline.robot.approach import Move
+from gcm_pipeline.robot.engine import ReachabilityEngine
+from gcm_pipeline.robot.ik import IKCandidates, Validator, world_to_base_targets
 from gcm_pipeline.robot.model import Robot, load_robot
 from gcm_pipeline.stages import collision
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import ApproachConfig, EnvironmentConfig, ObjectConfig, Pose
+    from gcm_pipeline.config import (
+        ApproachConfig,
+        EnvironmentConfig,
+        ObjectConfig,
+        Pose,
+        RetreatConfig,
+    )
     from gcm_pipeline.robot.collision import CollisionChecker
 
-__all__ = ["check_reachability", "world_to_base_targets"]
+__all__ = [
+    "approach_move",
+    "check_reachability",
+    "progress_reporter",
+    "retreat_move",
+    "world_to_base_targets",
+]
+
+log = logging.getLogger(__name__)
+
+#: Seconds between progress lines when stderr is not a terminal.
+PROGRESS_INTERVAL_S = 5.0
 
 
-def _combined_validator(
-    checker: CollisionChecker | None, validator: Validator | None
-) -> Validator | None:
-    """The collision checker's reasons first, then those of ``validator``."""
-    if checker is None:
-        return validator
-    if validator is None:
-        return checker.check
-    extra = validator
+def approach_move(approach: ApproachConfig | None) -> Move | None:
+    """The ``approach`` section as a :class:`Move` (backwards along the grasp frame's z)."""
+    if approach is None:
+        return None
+    return Move(
+        distance=approach.distance,
+        direction=(0.0, 0.0, -1.0),
+        frame="grasp",
+        steps=approach.steps,
+        max_joint_step=approach.max_joint_step,
+        max_deviation=approach.max_deviation,
+        holding=False,
+    )
 
-    def check(q: np.ndarray) -> np.ndarray:
-        reason = np.asarray(checker.check(q), dtype=object)
-        free = np.flatnonzero(reason == "")
-        if free.size:
-            reason[free] = np.asarray(extra(q[free]), dtype=object)
-        return reason.astype(str)
 
-    return check
+def retreat_move(
+    retreat: RetreatConfig | None, base_pose: Pose | np.ndarray | None = None
+) -> Move | None:
+    """The ``retreat`` section as a :class:`Move`; a world direction turned into the base frame."""
+    if retreat is None:
+        return None
+    direction = np.asarray(retreat.direction, dtype=float)
+    frame = "grasp"
+    if retreat.frame == "world":
+        frame = "base"
+        if base_pose is not None:
+            rot = base_pose.matrix()[:3, :3] if hasattr(base_pose, "matrix") else base_pose[:3, :3]
+            direction = np.asarray(rot, dtype=float).T @ direction
+    return Move(
+        distance=retreat.distance,
+        direction=tuple(direction.tolist()),
+        frame=frame,
+        steps=retreat.steps,
+        max_joint_step=retreat.max_joint_step,
+        max_deviation=retreat.max_deviation,
+        holding=True,
+    )
 
 
 def _neighbours(grasps: GraspTable) -> np.ndarray | None:
@@ -102,6 +131,74 @@ def _neighbours(grasps: GraspTable) -> np.ndarray | None:
     return vert
 
 
+class progress_reporter:  # noqa: N801 - used like a function
+    """Per-target progress of the reachability stage: a bar on a terminal, else log lines.
+
+    On a terminal: a tqdm bar with rate and ETA. Otherwise (a log file, CI):
+    one ``INFO`` line of the ``gcm_pipeline`` logger every
+    :data:`PROGRESS_INTERVAL_S` seconds and one at the end.
+
+    Args:
+        total: Number of targets.
+        enabled: False: report nothing.
+        desc: Label of the bar and the lines.
+    """
+
+    def __init__(self, total: int, enabled: bool = True, desc: str = "reachability") -> None:
+        self.total = int(total)
+        self.done = 0
+        self.desc = desc
+        self.start = time.perf_counter()
+        self.last = self.start
+        self.bar: Any = None
+        self.enabled = enabled and total > 0
+        if self.enabled and sys.stderr.isatty():
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=self.total, desc=desc, unit="pose", unit_scale=True, leave=False)
+
+    def __call__(self, count: int) -> None:
+        """``count`` more targets are finished."""
+        if not self.enabled:
+            return
+        self.done += count
+        if self.bar is not None:
+            self.bar.update(count)
+            return
+        now = time.perf_counter()
+        if now - self.last >= PROGRESS_INTERVAL_S and self.done < self.total:
+            self.last = now
+            log.info("%s", self.line(now))
+
+    def line(self, now: float | None = None) -> str:
+        """``reachability: 12,000/56,294 poses (21 %), 4,100 poses/s, ETA 11 s``."""
+        now = time.perf_counter() if now is None else now
+        elapsed = max(now - self.start, 1e-9)
+        rate = self.done / elapsed
+        left = (self.total - self.done) / rate if rate > 0 else float("nan")
+        pct = 100.0 * self.done / max(self.total, 1)
+        eta = f", ETA {left:.0f} s" if self.done < self.total else f" in {elapsed:.1f} s"
+        return (
+            f"{self.desc}: {self.done:,}/{self.total:,} poses ({pct:.0f} %), "
+            f"{rate:,.0f} poses/s{eta}"
+        )
+
+    def close(self) -> None:
+        """Remove the bar (or write the last line)."""
+        if not self.enabled:
+            return
+        if self.bar is not None:
+            self.bar.close()
+        else:
+            log.info("%s", self.line())
+
+    def __enter__(self) -> progress_reporter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def check_reachability(
     grasps: GraspTable,
     robot: Robot | str,
@@ -112,17 +209,21 @@ def check_reachability(
     orientation_tolerance: float = 1e-3,
     progress: bool = False,
     validator: Validator | None = None,
-    workers: int = 1,
+    workers: int | str = 1,
     seed: int | None = None,
     warm_start: bool = True,
     return_candidates: bool = False,
     environment: EnvironmentConfig | None = None,
     object_cfg: ObjectConfig | None = None,
     approach: ApproachConfig | None = None,
+    retreat: RetreatConfig | None = None,
     checker: CollisionChecker | None = None,
+    engine: ReachabilityEngine | None = None,
+    alternatives: int = 4,
+    chunk_size: int = 2048,
     **options: Any,
 ) -> GraspTable | tuple[GraspTable, IKCandidates]:
-    """Solve IK for every grasp, check collisions and approach, add the reachability columns.
+    """Solve IK for every grasp, check collisions, approach and retreat; add the columns.
 
     Args:
         grasps: Table with ``dq`` (N, 8) (world poses of the grasp frame) and
@@ -133,28 +234,35 @@ def check_reachability(
         backend: IK backend, ``"pinocchio"`` or ``"mink"``.
         position_tolerance: [m], > 0.
         orientation_tolerance: [rad], > 0.
-        progress: Log a one-line summary (the IK is batched, so there is no
-            per-grasp progress to show).
-        validator: Optional ``q (M, nq) -> (M,) str`` ('' = valid) applied to
-            converged IK candidates (see the module docstring).
-        workers: Processes for the IK (0 = all cores).
+        progress: Report per-target progress (a bar on a terminal, else a log
+            line every few seconds; see :class:`progress_reporter`).
+        validator: Optional ``q (M, nq) -> (M,) str`` ('' = valid), an extra
+            check of grasp configurations after the collision check.
+        workers: Processes (``"auto"`` or 0: every core this process may use).
+            The result does not depend on it.
         seed: Random seed of the IK's seed library and restarts.
         warm_start: Seed interpolated rows from their vertices' solutions.
-        return_candidates: Also return every converged IK candidate.
+        return_candidates: Also return every converged IK candidate of the
+            first solve (before any check).
         environment: The ``environment`` config section (collision world).
         object_cfg: The ``object`` config section (the object to grasp).
         approach: The ``approach`` config section (pre-grasp approach check).
+        retreat: The ``retreat`` config section (post-grasp retreat check).
         checker: A prebuilt
             :class:`~gcm_pipeline.robot.collision.CollisionChecker`; else one
             is built from ``environment`` and ``object_cfg`` when either is given.
+        engine: A prebuilt engine (reused across calls); the arguments that
+            configure one are then ignored.
+        alternatives: Other IK solutions tried per grasp that fails a check.
+        chunk_size: Targets per chunk of the engine.
         **options: Backend options (see :func:`~gcm_pipeline.robot.ik.solve_ik`).
 
     Returns:
         The table with ``reachable`` (N,) bool, ``reason`` (N,) str, ``q``
-        (N, nq) [rad] (NaN rows when unreachable), ``pos_err`` [m] and
-        ``rot_err`` [rad] added, and ``clearance`` [m] when collisions are
-        checked; with ``return_candidates``, a pair ``(table, candidates)``
-        (the IK candidates before the collision filter).
+        (N, nq) [rad] (NaN rows when unreachable), ``pos_err`` [m],
+        ``rot_err`` [rad], ``q_pregrasp``, ``q_retreat``, ``q_rejected`` (N, nq)
+        and ``clearance`` [m] when collisions are checked; with
+        ``return_candidates``, a pair ``(table, candidates)``.
 
     Raises:
         InputError: Missing ``dq`` column, bad provenance, bad options.
@@ -165,49 +273,49 @@ def check_reachability(
         raise InputError(f"grasp table has no column 'dq'; columns: {', '.join(grasps.columns)}")
     targets = world_to_base_targets(grasps["dq"], base_pose)
     nb = _neighbours(grasps) if warm_start else None
-    if seed is not None:
-        options.setdefault("random_seed", int(seed))
-    if checker is None and (environment is not None or object_cfg is not None):
-        checker = collision.make_checker(robot, environment, object_cfg, base_pose)
-    res = solve_ik(
-        robot,
-        targets,
-        backend,
-        position_tolerance=position_tolerance,
-        orientation_tolerance=orientation_tolerance,
-        neighbours=nb,
-        validator=_combined_validator(checker, validator),
-        return_all=return_candidates,
-        workers=workers,
-        **options,
-    )
-    if progress:
-        logging.getLogger(__name__).info("reachability: %r", res)
-    table = grasps.with_columns(
-        reachable=res.success,
-        reason=res.reason,
-        q=res.q,
-        pos_err=res.pos_err,
-        rot_err=res.rot_err,
-    )
-    ik: dict[str, Any] = {
-        "base_pose": base_pose,
-        "backend": backend,
-        "position_tolerance": position_tolerance,
-        "orientation_tolerance": orientation_tolerance,
-    }
-    if checker is not None:
-        table = collision.apply_collision_checks(
-            table,
+    own = engine is None
+    if engine is None:
+        if seed is not None:
+            options.setdefault("random_seed", int(seed))
+        if checker is None and (environment is not None or object_cfg is not None):
+            checker = collision.make_checker(robot, environment, object_cfg, base_pose)
+        engine = ReachabilityEngine(
             robot,
-            environment=environment,
-            object_cfg=object_cfg,
-            approach=approach,
-            checker=checker,
-            **ik,
+            checker,
+            backend=backend,
+            position_tolerance=position_tolerance,
+            orientation_tolerance=orientation_tolerance,
+            approach=approach_move(approach),
+            retreat=retreat_move(retreat, base_pose),
+            validator=validator,
+            alternatives=alternatives,
+            workers="auto" if workers in (0, "auto") else workers,
+            chunk_size=chunk_size,
+            ik_options=options,
         )
-    elif approach is not None:
-        table = collision.check_approach(table, robot, None, approach, **ik)
+    report = progress_reporter(len(grasps), enabled=progress)
+    try:
+        res = engine.run(
+            targets, neighbours=nb, progress=report, return_candidates=return_candidates
+        )
+    finally:
+        report.close()
+        if own:
+            engine.close()
+    log.debug("reachability: %r", res)
+    columns: dict[str, Any] = {
+        "reachable": res.reachable,
+        "reason": res.reason,
+        "q": res.q,
+        "pos_err": res.pos_err,
+        "rot_err": res.rot_err,
+        "q_pregrasp": res.q_pregrasp,
+        "q_retreat": res.q_retreat,
+        "q_rejected": res.q_rejected,
+    }
+    if res.clearance is not None:
+        columns["clearance"] = res.clearance
+    table = grasps.with_columns(**columns)
     if return_candidates:
         assert res.candidates is not None
         return table, res.candidates

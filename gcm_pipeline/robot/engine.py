@@ -1,0 +1,643 @@
+"""The reachability engine: which grasp poses can the robot take, approach and leave?
+
+One sequence, for every chunk of targets (grasp-frame poses in the robot's
+base frame), in :meth:`ReachabilityEngine.run`:
+
+1. **IK** (:func:`~gcm_pipeline.robot.ik.solve_ik`): one solution per target,
+   batched; seeds are the given warm starts, the seed library, home and random
+   restarts; targets beyond the arm's reach are rejected first
+   (``out_of_reach``), the others get ``no_ik`` or ``joint_limits`` when no seed
+   converges. Every solution is **verified** by Pinocchio's forward kinematics
+   and lies strictly inside the joint limits.
+2. **Check** each solution (:meth:`ReachabilityEngine.check`), in this order,
+   stopping at the first failure:
+
+   a. collisions at the grasp (self, environment, object; the gripper may
+      touch the object by the checker's contact tolerance), then a user's
+      ``validator`` if given;
+   b. the **approach** (:mod:`~gcm_pipeline.robot.approach`): the straight line
+      from the pre-grasp to the grasp, followable with bounded joint steps and
+      deviation, collision-free with no finger contact;
+   c. the **retreat**: the straight line away from the grasp holding the
+      object (the gripper may touch it).
+3. **Re-solve the failures of 2 on other IK branches**: for each target whose
+   solution failed a check, up to ``alternatives`` other distinct solutions
+   (more seeds: library, random restarts), each checked as in 2, in seed
+   order; the first that passes every check is the answer. Nothing else is
+   re-solved: a target with no IK solution had every seed already.
+4. **Clearance** of the reachable rows (distance of the arm to the world).
+
+A row's ``reason`` is ``''`` when reachable; else the IK's reason, or the
+furthest check any of its solutions reached: a collision reason (or the
+validator's), ``approach``, ``retreat``. ``q_rejected`` keeps that solution (the
+one that collided or whose approach or retreat failed) so a user can see what
+went wrong.
+
+Every decision is per target, so a target's result does not depend on the
+other targets, on the chunking or on the number of worker processes. Rows
+with ``neighbours`` (densified poses) are solved after the rows they refer to
+and seeded from those rows' final, checked solutions. Chunks of
+``chunk_size`` targets stream through the sequence, so memory is bounded by
+the chunk size, and several chunks run at once on ``workers`` forked
+processes that inherit the robot, seed library and collision world.
+
+The engine takes plain arrays and shapes (a robot, a collision checker,
+:class:`~gcm_pipeline.robot.approach.Move` objects), no config;
+:mod:`gcm_pipeline.stages.reachability` maps a config onto it. Build it once
+and :meth:`~ReachabilityEngine.run` it on many target sets.
+"""
+
+from __future__ import annotations
+
+import atexit
+import multiprocessing as mp
+import os
+import signal
+import weakref
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from gcm_pipeline.errors import InputError
+from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
+from gcm_pipeline.robot.ik import IKCandidates, check_targets, solve_ik, verify_solutions
+from gcm_pipeline.robot.model import Robot
+
+__all__ = [
+    "REASON_APPROACH",
+    "REASON_RETREAT",
+    "CheckResult",
+    "ReachResult",
+    "ReachabilityEngine",
+    "available_cores",
+]
+
+REASON_APPROACH = "approach"
+REASON_RETREAT = "retreat"
+
+# how far a solution got through the checks of step 2
+_AT_GRASP, _AT_APPROACH, _AT_RETREAT, _PASSED = 0, 1, 2, 3
+
+#: Seeds of the re-solve (step 3) for the pinocchio backend: library
+#: neighbours and random restarts beyond the first solve's.
+_RESOLVE_LIBRARY = 24
+_RESOLVE_RESTARTS = 16
+
+#: Two solutions closer than this in every joint are the same branch [rad].
+_SAME_SOLUTION = 1e-3
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class CheckResult(NamedTuple):
+    """Step 2 for M solutions (:meth:`ReachabilityEngine.check`).
+
+    Attributes:
+        passed: (M,) bool, every check passed.
+        stage: (M,) int, how far the solution got: 0 failed at the grasp
+            (collision or validator), 1 failed the approach, 2 failed the
+            retreat, 3 passed.
+        reason: (M,) str, ``''`` or why it failed.
+        q_pregrasp: (M, nq) [rad] end of the approach (NaN without an approach
+            or where it failed).
+        q_retreat: (M, nq) [rad] end of the retreat (NaN likewise).
+    """
+
+    passed: np.ndarray
+    stage: np.ndarray
+    reason: np.ndarray
+    q_pregrasp: np.ndarray
+    q_retreat: np.ndarray
+
+
+class ReachResult(NamedTuple):
+    """Result of :meth:`ReachabilityEngine.run` for N targets.
+
+    Attributes:
+        reachable: (N,) bool.
+        reason: (N,) str, ``''`` when reachable (see the module doc).
+        q: (N, nq) [rad] the solution; NaN rows when unreachable.
+        pos_err: (N,) [m] position error of the solution, or of the best IK
+            attempt when unreachable (NaN if none was made).
+        rot_err: (N,) [rad] orientation error, same rules.
+        clearance: (N,) [m] distance of the arm to the world (NaN when
+            unreachable), or None without a collision checker.
+        q_pregrasp: (N, nq) [rad] pre-grasp configuration (NaN when unreachable
+            or without an approach).
+        q_retreat: (N, nq) [rad] configuration at the end of the retreat.
+        q_rejected: (N, nq) [rad] for unreachable rows that had an IK solution,
+            the solution that failed the furthest check; NaN otherwise.
+        candidates: Every converged IK candidate of step 1 (``return_candidates``).
+    """
+
+    reachable: np.ndarray
+    reason: np.ndarray
+    q: np.ndarray
+    pos_err: np.ndarray
+    rot_err: np.ndarray
+    clearance: np.ndarray | None
+    q_pregrasp: np.ndarray
+    q_retreat: np.ndarray
+    q_rejected: np.ndarray
+    candidates: IKCandidates | None = None
+
+    def __repr__(self) -> str:
+        n = len(self.reachable)
+        ok = int(np.count_nonzero(self.reachable))
+        names, counts = np.unique(self.reason[~self.reachable].astype(str), return_counts=True)
+        fails = ", ".join(f"{r}: {c}" for r, c in zip(names, counts, strict=True))
+        return f"ReachResult({ok}/{n} reachable" + (f", {{{fails}}}" if fails else "") + ")"
+
+
+class ReachabilityEngine:
+    """IK, collision, approach and retreat checks of grasp poses (see the module doc).
+
+    Args:
+        robot: The robot.
+        checker: The collision world
+            (:class:`~gcm_pipeline.robot.collision.CollisionChecker`), or None
+            for pure kinematics (no collision checks, no clearance).
+        backend: IK backend, ``"pinocchio"`` or ``"mink"``.
+        position_tolerance: IK acceptance [m], > 0.
+        orientation_tolerance: IK acceptance [rad], > 0.
+        approach: The pre-grasp approach (a :class:`Move` with ``holding=False``)
+            or None.
+        retreat: The post-grasp retreat (``holding=True``) or None.
+        validator: Optional extra check of grasp configurations,
+            ``q (M, nq) -> (M,) str`` (``''`` = valid), run after the collision check.
+        alternatives: Other IK solutions tried per target that fails a check (0: none).
+        workers: Processes (1: this one; ``"auto"``: :func:`available_cores`).
+        chunk_size: Targets per chunk (memory and progress granularity).
+        ik_options: Backend options for the IK of step 1 (e.g. ``random_seed``).
+
+    Raises:
+        InputError: Bad tolerances, workers, chunk size or alternatives.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        checker: Any | None = None,
+        *,
+        backend: str = "pinocchio",
+        position_tolerance: float = 1e-4,
+        orientation_tolerance: float = 1e-3,
+        approach: Move | None = None,
+        retreat: Move | None = None,
+        validator: Callable[[np.ndarray], Any] | None = None,
+        alternatives: int = 4,
+        workers: int | str = 1,
+        chunk_size: int = 2048,
+        ik_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        self.robot = robot
+        self.checker = checker
+        self.backend = backend
+        self.position_tolerance = float(position_tolerance)
+        self.orientation_tolerance = float(orientation_tolerance)
+        for name, v in (
+            ("position_tolerance", self.position_tolerance),
+            ("orientation_tolerance", self.orientation_tolerance),
+        ):
+            if not np.isfinite(v) or v <= 0:
+                raise InputError(f"{name} must be a positive finite number, got {v!r}")
+        self.approach = approach
+        self.retreat = retreat
+        self.validator = validator
+        if int(alternatives) != alternatives or alternatives < 0:
+            raise InputError(f"alternatives must be an int >= 0, got {alternatives!r}")
+        self.alternatives = int(alternatives)
+        if workers == "auto":
+            workers = available_cores()
+        if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+            raise InputError(f"workers must be 'auto' or an int >= 1, got {workers!r}")
+        self.workers = int(workers)
+        if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
+            raise InputError(f"chunk_size must be an int >= 1, got {chunk_size!r}")
+        self.chunk_size = int(chunk_size)
+        self.ik_options = dict(ik_options or {})
+        self._radius = gripper_radius(robot) if (approach or retreat) else 0.0
+        # the approach allows no finger contact; the retreat holds the object
+        self._approach_checker = None
+        self._retreat_checker = None
+        if checker is not None and approach is not None:
+            tol = getattr(checker, "contact_tolerance", 0.0)
+            self._approach_checker = checker.with_contact_tolerance(0.0) if tol else checker
+        if checker is not None and retreat is not None:
+            self._retreat_checker = checker.holding_object()
+        self._pool: Any = None
+
+    def __repr__(self) -> str:
+        def move(m: Move | None) -> str:
+            return "None" if m is None else f"{m.distance} m/{m.steps} steps"
+
+        return (
+            f"ReachabilityEngine(robot={self.robot.name!r}, backend={self.backend!r}, "
+            f"collisions={self.checker is not None}, approach={move(self.approach)}, "
+            f"retreat={move(self.retreat)}, alternatives={self.alternatives}, "
+            f"workers={self.workers}, chunk_size={self.chunk_size})"
+        )
+
+    # --- step 2 ------------------------------------------------------------------------
+
+    def check(self, targets: np.ndarray, q: np.ndarray) -> CheckResult:
+        """Step 2 for M solutions: collisions, validator, approach, retreat.
+
+        Args:
+            targets: Grasp poses (M, 4, 4) in the base frame [m].
+            q: Their IK solutions (M, nq) [rad], finite.
+
+        Returns:
+            The :class:`CheckResult`.
+        """
+        m, nq = q.shape
+        reason = np.full(m, "", dtype=object)
+        if self.checker is not None and m:
+            reason[:] = np.asarray(self.checker.check(q), dtype=object)
+        if self.validator is not None:
+            free = np.flatnonzero(reason == "")
+            if free.size:
+                why = np.asarray(self.validator(q[free]), dtype=object)
+                if why.shape != (free.size,):
+                    raise InputError(
+                        f"validator returned shape {why.shape}, expected ({free.size},)"
+                    )
+                reason[free] = why
+        stage = np.where(reason == "", _AT_APPROACH, _AT_GRASP)
+        q_pre = np.full((m, nq), np.nan)
+        q_ret = np.full((m, nq), np.nan)
+        for move, checker, at, fail, out in (
+            (self.approach, self._approach_checker, _AT_APPROACH, REASON_APPROACH, q_pre),
+            (self.retreat, self._retreat_checker, _AT_RETREAT, REASON_RETREAT, q_ret),
+        ):
+            rows = np.flatnonzero(stage == at)
+            if move is not None and rows.size:
+                res = check_moves(
+                    self.robot,
+                    targets[rows],
+                    q[rows],
+                    move,
+                    checker,
+                    gripper_radius=self._radius,
+                    position_tolerance=self.position_tolerance,
+                    orientation_tolerance=self.orientation_tolerance,
+                    backend=self.backend,
+                )
+                reason[rows[~res.ok]] = fail
+                out[rows] = res.q_end
+                rows = rows[res.ok]
+            stage[rows] = at + 1
+        return CheckResult(stage == _PASSED, stage, reason.astype(str), q_pre, q_ret)
+
+    # --- step 3 ------------------------------------------------------------------------
+
+    def _alternatives(
+        self, targets: np.ndarray, q_first: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Other verified, distinct IK solutions of M targets, in seed order.
+
+        Returns:
+            ``(index, rank, q, errors)``: target index (K,) into ``targets``,
+            rank of the alternative among its target's (K,), solutions (K, nq)
+            and ``(pos_err, rot_err)`` stacked (K, 2).
+        """
+        k = self.alternatives
+        opts: dict[str, Any]
+        if self.backend == "pinocchio":
+            opts = {
+                "min_solutions": 2 * (k + 1),
+                "first_round_seeds": k + 1,
+                "round_seeds": k + 1,
+                "library_seeds": _RESOLVE_LIBRARY,
+                "random_restarts": _RESOLVE_RESTARTS,
+            }
+        else:
+            opts = {"min_solutions": 2 * (k + 1)}
+        opts.update((key, v) for key, v in self.ik_options.items() if key in ("random_seed",))
+        res = solve_ik(
+            self.robot,
+            targets,
+            self.backend,
+            position_tolerance=self.position_tolerance,
+            orientation_tolerance=self.orientation_tolerance,
+            return_all=True,
+            **opts,
+        )
+        cand = res.candidates
+        nq = self.robot.nq
+        empty = (np.zeros(0, int), np.zeros(0, int), np.zeros((0, nq)), np.zeros((0, 2)))
+        if cand is None or len(cand.index) == 0:
+            return empty
+        idx, cq = cand.index, cand.q
+        pe, re, inside = verify_solutions(self.robot, cq, targets[idx])
+        good = (pe <= self.position_tolerance) & (re <= self.orientation_tolerance) & inside
+        idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
+        # distinct from the first solution and from the earlier alternatives of the same
+        # target (candidates are sorted by target, in seed order within a target)
+        keep = np.max(np.abs(cq - q_first[idx]), axis=1) >= _SAME_SOLUTION
+        idx, cq, err = idx[keep], cq[keep], err[keep]
+        if len(idx) == 0:
+            return empty
+        pos = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
+        groups, group = np.unique(idx, return_inverse=True)
+        padded = np.full((len(groups), int(pos.max()) + 1, nq), 1e9)  # pads are never near
+        padded[group, pos] = cq
+        near = np.max(np.abs(padded[:, :, None] - padded[:, None, :]), axis=3) < _SAME_SOLUTION
+        earlier = np.tril(near, k=-1).any(axis=2)  # same as an earlier candidate
+        distinct = ~earlier[group, pos]
+        idx, cq, err = idx[distinct], cq[distinct], err[distinct]
+        rank = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
+        keep = rank < k
+        if not np.any(keep):
+            return empty
+        return idx[keep], rank[keep], cq[keep], err[keep]
+
+    # --- one chunk: steps 1-4 -------------------------------------------------------------
+
+    def solve(
+        self, targets: np.ndarray, seeds: np.ndarray | None = None, return_candidates: bool = False
+    ) -> dict[str, Any]:
+        """Steps 1-4 for one chunk of validated targets (see :meth:`run`).
+
+        Args:
+            targets: Grasp poses (M, 4, 4) in the base frame [m].
+            seeds: Warm starts (M, K, nq) [rad] (NaN = none) or None.
+            return_candidates: Also return step 1's converged candidates.
+
+        Returns:
+            The :class:`ReachResult` fields as a dict (``candidates`` as a tuple
+            of arrays or None).
+        """
+        robot, nq = self.robot, self.robot.nq
+        m = targets.shape[0]
+        res = solve_ik(
+            robot,
+            targets,
+            self.backend,
+            position_tolerance=self.position_tolerance,
+            orientation_tolerance=self.orientation_tolerance,
+            seeds=seeds,
+            return_all=return_candidates,
+            **self.ik_options,
+        )
+        reachable = np.zeros(m, dtype=bool)
+        reason = res.reason.astype(object)
+        q = np.full((m, nq), np.nan)
+        pos_err, rot_err = res.pos_err.copy(), res.rot_err.copy()
+        q_pre = np.full((m, nq), np.nan)
+        q_ret = np.full((m, nq), np.nan)
+        q_rejected = np.full((m, nq), np.nan)
+        best = np.full(m, -1)
+
+        def record(rows: np.ndarray, qs: np.ndarray, err: np.ndarray | None) -> np.ndarray:
+            """Check solutions ``qs`` of ``rows``; keep passes and the furthest failures."""
+            chk = self.check(targets[rows], qs)
+            ok = chk.passed
+            reachable[rows[ok]] = True
+            reason[rows[ok]] = ""
+            q[rows[ok]] = qs[ok]
+            q_pre[rows[ok]] = chk.q_pregrasp[ok]
+            q_ret[rows[ok]] = chk.q_retreat[ok]
+            if err is not None:
+                pos_err[rows[ok]], rot_err[rows[ok]] = err[ok, 0], err[ok, 1]
+            further = ~ok & (chk.stage > best[rows])
+            reason[rows[further]] = chk.reason[further]
+            q_rejected[rows[further]] = qs[further]
+            best[rows[further]] = chk.stage[further]
+            return rows[~ok]
+
+        # steps 1-2: the first solution of every target
+        failing = record(np.flatnonzero(res.success), res.q[res.success], None)
+        # step 3: other branches of the targets whose solution failed a check
+        if failing.size and self.alternatives > 0:
+            idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
+            for r in range(self.alternatives):
+                sel = np.flatnonzero((rank == r) & ~reachable[failing[idx]])
+                if sel.size == 0:
+                    continue
+                record(failing[idx[sel]], alt_q[sel], alt_err[sel])
+        q_rejected[reachable] = np.nan
+        # step 4: clearance of the reachable rows
+        clearance = None
+        if self.checker is not None:
+            clearance = np.full(m, np.nan)
+            rows = np.flatnonzero(reachable)
+            if rows.size:
+                clearance[rows] = self.checker.clearance(q[rows])
+        out = {
+            "reachable": reachable,
+            "reason": reason.astype(str),
+            "q": q,
+            "pos_err": pos_err,
+            "rot_err": rot_err,
+            "clearance": clearance,
+            "q_pregrasp": q_pre,
+            "q_retreat": q_ret,
+            "q_rejected": q_rejected,
+            "candidates": None,
+        }
+        if return_candidates and res.candidates is not None:
+            c = res.candidates
+            out["candidates"] = (c.index, c.q, c.reason)
+        return out
+
+    # --- the whole run ---------------------------------------------------------------------
+
+    def run(
+        self,
+        targets: Any,
+        *,
+        neighbours: Any = None,
+        seeds: Any = None,
+        progress: Callable[[int], None] | None = None,
+        return_candidates: bool = False,
+    ) -> ReachResult:
+        """Steps 1-4 for N targets, in chunks, on the engine's workers.
+
+        Args:
+            targets: Grasp-frame poses (N, 4, 4) in the robot's base frame [m].
+            neighbours: Optional (N, K) int: row ``i`` is seeded from the final
+                solutions of rows ``neighbours[i]`` (in that order; -1 = none);
+                rows with neighbours are solved after all rows without.
+            seeds: Optional warm starts (N, K, nq) [rad] tried after the
+                neighbours' (NaN = none).
+            progress: Called with the number of targets finished, after every chunk.
+            return_candidates: Also return every converged IK candidate of step 1.
+
+        Returns:
+            The :class:`ReachResult`.
+
+        Raises:
+            InputError: Bad neighbours or seeds.
+            GeometryError: Targets of the wrong shape, non-finite or non-rigid.
+        """
+        tgt = check_targets(targets)
+        n, nq = tgt.shape[0], self.robot.nq
+        seed_arr = _check_seeds(seeds, n, nq)
+        nb = _check_neighbours(neighbours, n)
+        out: dict[str, Any] = {
+            "reachable": np.zeros(n, dtype=bool),
+            "reason": np.full(n, "", dtype=object),
+            "q": np.full((n, nq), np.nan),
+            "pos_err": np.full(n, np.nan),
+            "rot_err": np.full(n, np.nan),
+            "clearance": np.full(n, np.nan) if self.checker is not None else None,
+            "q_pregrasp": np.full((n, nq), np.nan),
+            "q_retreat": np.full((n, nq), np.nan),
+            "q_rejected": np.full((n, nq), np.nan),
+        }
+        cands: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        if nb is None:
+            phases = [np.arange(n)]
+        else:
+            has_nb = np.any(nb >= 0, axis=1)
+            phases = [np.flatnonzero(~has_nb), np.flatnonzero(has_nb)]
+        for phase, rows in enumerate(phases):
+            if rows.size == 0:
+                continue
+            sub = None if seed_arr is None else seed_arr[rows]
+            if phase == 1:
+                assert nb is not None
+                ref = nb[rows]
+                warm = np.where((ref >= 0)[:, :, None], out["q"][np.clip(ref, 0, None)], np.nan)
+                sub = warm if sub is None else np.concatenate([warm, sub], axis=1)
+            chunks = [
+                (rows[a : a + self.chunk_size], tgt, sub, a)
+                for a in range(0, rows.size, self.chunk_size)
+            ]
+            for (chunk_rows, *_), part in zip(
+                chunks, self._map(chunks, return_candidates), strict=True
+            ):
+                for key, arr in out.items():
+                    if arr is not None:
+                        arr[chunk_rows] = part[key]
+                if part["candidates"] is not None:
+                    i, cq, cr = part["candidates"]
+                    cands.append((chunk_rows[i], cq, cr))
+                if progress is not None:
+                    progress(int(chunk_rows.size))
+        candidates = None
+        if return_candidates:
+            if cands:
+                index = np.concatenate([c[0] for c in cands]).astype(int)
+                cq = np.concatenate([c[1] for c in cands]).reshape(-1, nq)
+                cr = np.concatenate([c[2] for c in cands]).astype(str)
+            else:
+                index, cq, cr = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
+            order = np.argsort(index, kind="stable")
+            candidates = IKCandidates(index[order], cq[order], cr[order])
+        return ReachResult(
+            reachable=out["reachable"],
+            reason=out["reason"].astype(str),
+            q=out["q"],
+            pos_err=out["pos_err"],
+            rot_err=out["rot_err"],
+            clearance=out["clearance"],
+            q_pregrasp=out["q_pregrasp"],
+            q_retreat=out["q_retreat"],
+            q_rejected=out["q_rejected"],
+            candidates=candidates,
+        )
+
+    # --- workers --------------------------------------------------------------------------
+
+    def _map(
+        self, chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, int]], cands: bool
+    ) -> Iterator[dict[str, Any]]:
+        """Solve the chunks in order, on this process or the worker pool."""
+        work = [
+            (tgt[rows], None if sub is None else sub[a : a + rows.size], cands)
+            for rows, tgt, sub, a in chunks
+        ]
+        if self.workers == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
+            for args in work:
+                yield self.solve(*args)
+            return
+        pool = self._get_pool()
+        try:
+            yield from pool.imap(_solve_in_worker, work)
+        except BaseException:
+            # Ctrl-C or a failing chunk: stop the workers before anything else
+            self.close()
+            raise
+
+    def _get_pool(self) -> Any:
+        if self._pool is None:
+            # warm the caches (seed library, MuJoCo model) so that workers inherit them
+            probe = self.robot.fk(self.robot.home)
+            solve_ik(self.robot, probe, self.backend, **self.ik_options)
+            _WORKER["engine"] = self
+            self._pool = mp.get_context("fork").Pool(self.workers, initializer=_ignore_sigint)
+            _POOLS.add(self)
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the worker processes (they start again when needed)."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+
+    def __enter__(self) -> ReachabilityEngine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["_pool"] = None
+        return state
+
+
+# the engine of this worker process (set in the parent just before the pool forks)
+_WORKER: dict[str, ReachabilityEngine] = {}
+_POOLS: weakref.WeakSet[ReachabilityEngine] = weakref.WeakSet()
+
+
+def _ignore_sigint() -> None:
+    """Workers leave Ctrl-C to the parent, which stops them (no tracebacks from each)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _solve_in_worker(args: tuple[np.ndarray, np.ndarray | None, bool]) -> dict[str, Any]:
+    return _WORKER["engine"].solve(*args)
+
+
+@atexit.register
+def _close_pools() -> None:
+    for engine in list(_POOLS):
+        engine.close()
+
+
+def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:
+    if seeds is None:
+        return None
+    arr = np.asarray(seeds, dtype=float)
+    if arr.ndim == 2:
+        arr = arr[:, None, :]
+    if arr.ndim != 3 or arr.shape[0] != n or arr.shape[2] != nq:
+        raise InputError(f"seeds must have shape ({n}, K, {nq}), got {np.shape(seeds)}")
+    return arr
+
+
+def _check_neighbours(neighbours: Any, n: int) -> np.ndarray | None:
+    if neighbours is None:
+        return None
+    nb = np.asarray(neighbours)
+    if nb.ndim == 1:
+        nb = nb[:, None]
+    if nb.ndim != 2 or nb.shape[0] != n or not np.issubdtype(nb.dtype, np.integer):
+        raise InputError(
+            f"neighbours must be an int array of shape ({n}, K), got {np.shape(neighbours)}"
+        )
+    if np.any((nb < -1) | (nb >= n)):
+        raise InputError(f"neighbours must be row ids in [-1, {n - 1}]")
+    return nb.astype(int)

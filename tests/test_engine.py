@@ -1,0 +1,141 @@
+"""The reachability engine: sequence, retreat, diagnostics, workers and chunks (real Panda)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
+from gcm_pipeline.errors import InputError
+from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.robot.approach import Move, move_poses
+from gcm_pipeline.robot.collision import CollisionChecker
+from gcm_pipeline.robot.engine import ReachabilityEngine, available_cores
+from gcm_pipeline.robot.ik import verify_solutions
+from gcm_pipeline.robot.model import load_robot
+from gcm_pipeline.stages.candidates import generate_candidates
+
+ROOT = Path(__file__).resolve().parent.parent
+BOTTLE = {
+    "shape": "cylinder",
+    "dims": {"radius": 0.035, "height": 0.22},
+    "pose": {"xyz": [0.5, 0, 0]},
+}
+APPROACH = Move(distance=0.10, direction=(0, 0, -1), frame="grasp", steps=10)
+LIFT = Move(distance=0.10, direction=(0, 0, 1), frame="base", steps=10, holding=True)
+
+
+def _side_grasps():
+    """The bottle example's 72 side grasps (world = base frame)."""
+    cfg = load_config(ROOT / "configs" / "bottle_side.yaml")
+    return dq_to_matrix(generate_candidates(cfg)["dq"])
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot("panda")
+
+
+@pytest.fixture(scope="module")
+def checker(robot):
+    return CollisionChecker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
+
+
+@pytest.fixture(scope="module")
+def grasps():
+    return _side_grasps()
+
+
+@pytest.fixture(scope="module")
+def result(robot, checker, grasps):
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, chunk_size=16)
+    return eng.run(grasps)
+
+
+def test_reachable_rows_pass_every_check(robot, checker, grasps, result):
+    ok = result.reachable
+    assert 5 <= ok.sum() < len(grasps)
+    pe, re, inside = verify_solutions(robot, result.q[ok], grasps[ok])
+    assert np.all(pe <= 1e-4) and np.all(re <= 1e-3) and inside.all()
+    assert np.all(checker.check(result.q[ok]) == "")
+    assert np.all(result.reason[ok] == "")
+    assert np.all(result.clearance[ok] > 0) and np.isnan(result.clearance[~ok]).all()
+    # pre-grasp and retreat configurations reach their poses
+    pre = move_poses(grasps[ok], APPROACH.offsets(grasps[ok]), 10)[-1]
+    up = move_poses(grasps[ok], LIFT.offsets(grasps[ok]), 10)[-1]
+    for q_end, want in ((result.q_pregrasp[ok], pre), (result.q_retreat[ok], up)):
+        reached = robot.fk_pinocchio(q_end)
+        assert np.max(np.linalg.norm(reached[:, :3, 3] - want[:, :3, 3], axis=1)) < 2e-3
+    assert np.isnan(result.q_pregrasp[~ok]).all() and np.isnan(result.q_retreat[~ok]).all()
+
+
+def test_unreachable_rows_keep_their_rejected_solution(robot, checker, grasps, result):
+    bad = ~result.reachable
+    assert np.isnan(result.q[bad]).all()
+    had_ik = bad & ~np.isin(result.reason, ["no_ik", "out_of_reach", "joint_limits"])
+    assert had_ik.any()
+    assert np.isfinite(result.q_rejected[had_ik]).all()
+    assert np.isnan(result.q_rejected[~had_ik]).all()
+    # a row rejected for a collision: its kept solution really collides that way
+    coll = np.flatnonzero(np.char.startswith(result.reason.astype(str), "collision"))
+    if coll.size:
+        assert np.array_equal(checker.check(result.q_rejected[coll]), result.reason[coll])
+    pe, _, _ = verify_solutions(robot, result.q_rejected[had_ik], grasps[had_ik])
+    assert np.all(pe <= 1e-4)
+
+
+def test_retreat_removes_grasps_and_down_fails(robot, checker, grasps, result):
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH)
+    no_retreat = eng.run(grasps)
+    assert np.all(no_retreat.reachable >= result.reachable)
+    assert np.isnan(no_retreat.q_retreat).all()
+    lost = no_retreat.reachable & ~result.reachable
+    assert np.all(result.reason[lost] == "retreat")
+    # pushing the hand down through the table: nothing survives the retreat
+    down = Move(distance=0.30, direction=(0, 0, -1), frame="base", steps=10, holding=True)
+    pushed = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=down).run(grasps)
+    assert not pushed.reachable.any()
+    assert set(pushed.reason[no_retreat.reachable]) == {"retreat"}
+
+
+def test_workers_and_chunks_do_not_change_the_result(robot, checker, grasps, result):
+    assert available_cores() >= 1
+    for kw in ({"workers": 2, "chunk_size": 7}, {"workers": 1, "chunk_size": 1000}):
+        with ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, **kw) as eng:
+            other = eng.run(grasps)
+        for a, b in zip(result, other, strict=True):
+            if a is None:
+                assert b is None
+            else:
+                np.testing.assert_array_equal(a, b)
+
+
+def test_neighbours_seed_from_final_solutions(robot, checker, grasps):
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH)
+    n = len(grasps)
+    targets = np.concatenate([grasps, grasps])
+    nb = np.concatenate([np.full((n, 1), -1), np.arange(n)[:, None]])
+    calls = []
+    res = eng.run(targets, neighbours=nb, progress=calls.append)
+    assert sum(calls) == 2 * n
+    # a copy seeded with its twin's checked solution lands on that solution
+    both = res.reachable[:n] & res.reachable[n:]
+    assert both.sum() >= 5
+    np.testing.assert_allclose(res.q[n:][both], res.q[:n][both], atol=1e-9)
+
+
+def test_engine_errors(robot):
+    with pytest.raises(InputError, match="workers"):
+        ReachabilityEngine(robot, workers=0)
+    with pytest.raises(InputError, match="chunk_size"):
+        ReachabilityEngine(robot, chunk_size=0)
+    with pytest.raises(InputError, match="position_tolerance"):
+        ReachabilityEngine(robot, position_tolerance=-1)
+    eng = ReachabilityEngine(robot)
+    with pytest.raises(InputError, match="neighbours"):
+        eng.run(robot.fk(robot.home), neighbours=np.array([[3]]))
+    with pytest.raises(InputError, match="seeds"):
+        eng.run(robot.fk(robot.home), seeds=np.zeros((1, 1, 3)))
+    assert "ReachabilityEngine(robot='panda'" in repr(eng)

@@ -368,6 +368,18 @@ class IKConfig(_Section):
     orientation_tolerance: PositiveFloat = 1.0e-3
     workers: Literal["auto"] | Annotated[int, Strict(), Field(gt=0, le=MAX_IK_WORKERS)] = "auto"
 
+    @field_validator("workers", mode="before")
+    @classmethod
+    def _auto_or_count(cls, v: Any) -> Any:
+        if v == "auto" and isinstance(v, str):
+            return v
+        whole = isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+        if not whole or not 0 < v <= MAX_IK_WORKERS:
+            raise ValueError(
+                f"expected 'auto' or a whole number from 1 to {MAX_IK_WORKERS}, got {v!r}"
+            )
+        return int(v)
+
 
 class TableConfig(_Section):
     """Support table: a box whose top face is at ``height`` [m] in the world."""

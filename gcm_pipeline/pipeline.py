@@ -56,6 +56,7 @@ from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
     from gcm_pipeline.query import GraspManifold
+    from gcm_pipeline.robot.engine import ReachabilityEngine
     from gcm_pipeline.robot.model import Robot
     from gcm_pipeline.stages.manifold import Manifold
 
@@ -71,6 +72,7 @@ __all__ = [
     "preflight",
     "publish",
     "rank",
+    "reachability_engine",
     "robot_from_config",
     "top_grasps",
 ]
@@ -204,8 +206,40 @@ def robot_from_config(cfg: Config) -> Robot:
 load_robot = robot_from_config
 
 
+def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
+    """The reachability engine of a config.
+
+    Reads ``ik``, ``environment``, ``object``, ``approach``, ``retreat``,
+    ``robot.base_pose`` and ``seed``. Build it once to check many pose sets with
+    the same robot, seed library and collision world (:func:`check_reachability`
+    with ``engine=``); close it (or use a ``with`` block) to stop its worker
+    processes.
+    """
+    from gcm_pipeline.stages import reachability as stage
+
+    ik = cfg.ik
+    return stage.make_engine(
+        robot,
+        base_pose=cfg.robot.base_pose.matrix(),
+        backend=ik.backend,
+        position_tolerance=ik.position_tolerance,
+        orientation_tolerance=ik.orientation_tolerance,
+        workers=ik.workers,
+        seed=cfg.seed,
+        environment=cfg.environment,
+        object_cfg=cfg.object,
+        approach=cfg.approach,
+        retreat=cfg.retreat,
+    )
+
+
 def check_reachability(
-    grasps: GraspTable, robot: Robot, cfg: Config, *, progress: bool = False
+    grasps: GraspTable,
+    robot: Robot,
+    cfg: Config,
+    *,
+    progress: bool = False,
+    engine: ReachabilityEngine | None = None,
 ) -> GraspTable:
     """IK, collision, approach and retreat checks for every grasp (``ik`` and friends).
 
@@ -223,6 +257,8 @@ def check_reachability(
         cfg: The full config.
         progress: Show per-target progress (a bar on a terminal, else a log
             line every few seconds).
+        engine: The engine of :func:`reachability_engine` for this config, to
+            reuse one across calls (default: built for this call and closed).
 
     Returns:
         The table with ``reachable, reason, q, pos_err, rot_err``,
@@ -230,22 +266,19 @@ def check_reachability(
     """
     from gcm_pipeline.stages import reachability as stage
 
-    ik = cfg.ik
-    done = stage.check_reachability(
-        grasps,
-        robot,
-        base_pose=cfg.robot.base_pose.matrix(),
-        backend=ik.backend,
-        position_tolerance=ik.position_tolerance,
-        orientation_tolerance=ik.orientation_tolerance,
-        progress=progress,
-        workers=ik.workers,
-        seed=cfg.seed,
-        environment=cfg.environment,
-        object_cfg=cfg.object,
-        approach=cfg.approach,
-        retreat=cfg.retreat,
-    )
+    own = engine is None
+    eng = reachability_engine(robot, cfg) if engine is None else engine
+    try:
+        done = stage.check_reachability(
+            grasps,
+            robot,
+            base_pose=cfg.robot.base_pose.matrix(),
+            progress=progress,
+            engine=eng,
+        )
+    finally:
+        if own:
+            eng.close()
     assert isinstance(done, GraspTable)  # no return_candidates
     return done
 
@@ -253,11 +286,12 @@ def check_reachability(
 class ReachabilityCheck:
     """Checks any grasp poses the way the run's reachability stage does.
 
-    The same IK backend, tolerances, collision world and approach check as
-    :func:`check_reachability` with ``cfg``; the collision checker is built
-    once and reused, so the adaptive refinement, IK re-seeding and manifold
-    queries can call it many times on small batches. Each call may pass warm
-    starts: configurations tried first, before the backend's usual seeds.
+    The same IK backend, tolerances, collision world, approach and retreat as
+    :func:`check_reachability` with ``cfg``; the engine (robot, seed library,
+    collision world) is built once and reused, so the adaptive refinement, IK
+    re-seeding and manifold queries can call it many times on small batches.
+    Each call may pass warm starts: configurations tried first, before the
+    backend's usual seeds.
 
     Args:
         robot: The robot.
@@ -268,16 +302,10 @@ class ReachabilityCheck:
     """
 
     def __init__(self, robot: Robot, cfg: Config) -> None:
-        from gcm_pipeline.stages import collision
-
         self.robot = robot
         self.config = cfg
         self.solved = 0
-        self._checker = None
-        if cfg.environment is not None or cfg.object is not None:
-            self._checker = collision.make_checker(
-                robot, cfg.environment, cfg.object, cfg.robot.base_pose.matrix()
-            )
+        self.engine = reachability_engine(robot, cfg)
 
     def __call__(self, dq: np.ndarray, seeds: np.ndarray | None = None) -> GraspTable:
         """Check poses (M, 8) (world) with optional warm starts (M, K, nq) [rad].
@@ -293,31 +321,23 @@ class ReachabilityCheck:
         table = GraspTable({"dq": dq})
         if not len(dq):
             return _empty_reachability(
-                table, self.robot.nq, with_clearance=self._checker is not None
+                table, self.robot.nq, with_clearance=self.engine.checker is not None
             )
-        options: dict[str, Any] = {}
-        if seeds is not None:
-            options["seeds"] = np.asarray(seeds, dtype=np.float64)
-        ik = cfg.ik
         done = stage.check_reachability(
             table,
             self.robot,
             base_pose=cfg.robot.base_pose.matrix(),
-            backend=ik.backend,
-            position_tolerance=ik.position_tolerance,
-            orientation_tolerance=ik.orientation_tolerance,
-            workers=ik.workers,
-            seed=cfg.seed,
             warm_start=False,
-            environment=cfg.environment,
-            object_cfg=cfg.object,
-            approach=cfg.approach,
-            checker=self._checker,
-            **options,
+            seeds=None if seeds is None else np.asarray(seeds, dtype=np.float64),
+            engine=self.engine,
         )
         assert isinstance(done, GraspTable)
         self.solved += len(dq)
         return done
+
+    def close(self) -> None:
+        """Stop the engine's worker processes, if any ran."""
+        self.engine.close()
 
     def __repr__(self) -> str:
         return f"ReachabilityCheck(robot={self.robot.name!r}, solved={self.solved})"
@@ -331,6 +351,9 @@ def _empty_reachability(table: GraspTable, nq: int, *, with_clearance: bool) -> 
         q=np.zeros((0, nq)),
         pos_err=np.zeros(0),
         rot_err=np.zeros(0),
+        q_pregrasp=np.zeros((0, nq)),
+        q_retreat=np.zeros((0, nq)),
+        q_rejected=np.zeros((0, nq)),
     )
     if with_clearance:
         cols["clearance"] = np.zeros(0)

@@ -52,7 +52,6 @@ from __future__ import annotations
 import atexit
 import multiprocessing as mp
 import os
-import signal
 import weakref
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any, NamedTuple
@@ -61,7 +60,13 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
-from gcm_pipeline.robot.ik import IKCandidates, check_targets, solve_ik, verify_solutions
+from gcm_pipeline.robot.ik import (
+    IKCandidates,
+    _worker_signals,
+    check_targets,
+    solve_ik,
+    verify_solutions,
+)
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -574,7 +579,7 @@ class ReachabilityEngine:
             probe = self.robot.fk(self.robot.home)
             solve_ik(self.robot, probe, self.backend, **self.ik_options)
             _WORKER["engine"] = self
-            self._pool = mp.get_context("fork").Pool(self.workers, initializer=_ignore_sigint)
+            self._pool = mp.get_context("fork").Pool(self.workers, initializer=_worker_signals)
             _POOLS.add(self)
         return self._pool
 
@@ -600,11 +605,6 @@ class ReachabilityEngine:
 # the engine of this worker process (set in the parent just before the pool forks)
 _WORKER: dict[str, ReachabilityEngine] = {}
 _POOLS: weakref.WeakSet[ReachabilityEngine] = weakref.WeakSet()
-
-
-def _ignore_sigint() -> None:
-    """Workers leave Ctrl-C to the parent, which stops them (no tracebacks from each)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _solve_in_worker(args: tuple[np.ndarray, np.ndarray | None, bool]) -> dict[str, Any]:

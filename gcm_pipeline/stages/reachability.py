@@ -53,6 +53,7 @@ if TYPE_CHECKING:
 __all__ = [
     "approach_move",
     "check_reachability",
+    "make_engine",
     "progress_reporter",
     "retreat_move",
     "world_to_base_targets",
@@ -199,6 +200,54 @@ class progress_reporter:  # noqa: N801 - used like a function
         self.close()
 
 
+def make_engine(
+    robot: Robot | str,
+    *,
+    base_pose: Pose | np.ndarray | None = None,
+    backend: str = "pinocchio",
+    position_tolerance: float = 1e-4,
+    orientation_tolerance: float = 1e-3,
+    validator: Validator | None = None,
+    workers: int | str = 1,
+    seed: int | None = None,
+    environment: EnvironmentConfig | None = None,
+    object_cfg: ObjectConfig | None = None,
+    approach: ApproachConfig | None = None,
+    retreat: RetreatConfig | None = None,
+    checker: CollisionChecker | None = None,
+    alternatives: int = 4,
+    chunk_size: int = 2048,
+    **options: Any,
+) -> ReachabilityEngine:
+    """The reachability engine of these config sections (build once, run many times).
+
+    Args: as :func:`check_reachability` (``workers`` ``"auto"`` or 0: every core).
+
+    Returns:
+        The :class:`~gcm_pipeline.robot.engine.ReachabilityEngine`; call its
+        ``close()`` (or use it in a ``with`` block) to stop its worker processes.
+    """
+    robot = load_robot(robot)
+    if seed is not None:
+        options.setdefault("random_seed", int(seed))
+    if checker is None and (environment is not None or object_cfg is not None):
+        checker = collision.make_checker(robot, environment, object_cfg, base_pose)
+    return ReachabilityEngine(
+        robot,
+        checker,
+        backend=backend,
+        position_tolerance=position_tolerance,
+        orientation_tolerance=orientation_tolerance,
+        approach=approach_move(approach),
+        retreat=retreat_move(retreat, base_pose),
+        validator=validator,
+        alternatives=alternatives,
+        workers="auto" if workers in (0, "auto") else workers,
+        chunk_size=chunk_size,
+        ik_options=options,
+    )
+
+
 def check_reachability(
     grasps: GraspTable,
     robot: Robot | str,
@@ -212,6 +261,7 @@ def check_reachability(
     workers: int | str = 1,
     seed: int | None = None,
     warm_start: bool = True,
+    seeds: Any = None,
     return_candidates: bool = False,
     environment: EnvironmentConfig | None = None,
     object_cfg: ObjectConfig | None = None,
@@ -242,6 +292,7 @@ def check_reachability(
             The result does not depend on it.
         seed: Random seed of the IK's seed library and restarts.
         warm_start: Seed interpolated rows from their vertices' solutions.
+        seeds: Optional warm starts (N, K, nq) [rad], tried after the vertices'.
         return_candidates: Also return every converged IK candidate of the
             first solve (before any check).
         environment: The ``environment`` config section (collision world).
@@ -251,8 +302,8 @@ def check_reachability(
         checker: A prebuilt
             :class:`~gcm_pipeline.robot.collision.CollisionChecker`; else one
             is built from ``environment`` and ``object_cfg`` when either is given.
-        engine: A prebuilt engine (reused across calls); the arguments that
-            configure one are then ignored.
+        engine: A prebuilt engine (:func:`make_engine`, reused across calls);
+            the arguments that configure one are then ignored.
         alternatives: Other IK solutions tried per grasp that fails a check.
         chunk_size: Targets per chunk of the engine.
         **options: Backend options (see :func:`~gcm_pipeline.robot.ik.solve_ik`).
@@ -275,28 +326,32 @@ def check_reachability(
     nb = _neighbours(grasps) if warm_start else None
     own = engine is None
     if engine is None:
-        if seed is not None:
-            options.setdefault("random_seed", int(seed))
-        if checker is None and (environment is not None or object_cfg is not None):
-            checker = collision.make_checker(robot, environment, object_cfg, base_pose)
-        engine = ReachabilityEngine(
+        engine = make_engine(
             robot,
-            checker,
+            base_pose=base_pose,
             backend=backend,
             position_tolerance=position_tolerance,
             orientation_tolerance=orientation_tolerance,
-            approach=approach_move(approach),
-            retreat=retreat_move(retreat, base_pose),
             validator=validator,
+            workers=workers,
+            seed=seed,
+            environment=environment,
+            object_cfg=object_cfg,
+            approach=approach,
+            retreat=retreat,
+            checker=checker,
             alternatives=alternatives,
-            workers="auto" if workers in (0, "auto") else workers,
             chunk_size=chunk_size,
-            ik_options=options,
+            **options,
         )
     report = progress_reporter(len(grasps), enabled=progress)
     try:
         res = engine.run(
-            targets, neighbours=nb, progress=report, return_candidates=return_candidates
+            targets,
+            neighbours=nb,
+            seeds=seeds,
+            progress=report,
+            return_candidates=return_candidates,
         )
     finally:
         report.close()

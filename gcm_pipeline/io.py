@@ -56,6 +56,7 @@ import tempfile
 import threading
 import time
 import uuid
+import zipfile
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -79,6 +80,9 @@ __all__ = [
     "is_project_dir",
     "looks_like_run_dir",
     "read_marker",
+    "read_npz",
+    "read_summary",
+    "npy_header",
     "read_grasps_csv",
     "read_manifold",
     "read_run",
@@ -663,11 +667,15 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
 
     Returns:
         (N,) the table row written as each data row of the file (ranked first).
+        The ``v1, v2, v3`` cells name data rows of this file (0-based, the
+        header not counted), not table rows.
     """
     order = _row_order(grasps)
     g = grasps.take(order)
     n = len(g)
     empty = [""] * n
+    csv_row = np.empty(n, dtype=np.int64)
+    csv_row[order] = np.arange(n)
     pos, quat = dq_to_pos_quat(g["dq"])
     quat = np.where(quat[:, :1] < 0, -quat, quat)  # same rotation, qw >= 0
 
@@ -681,8 +689,12 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
         return [_quote(str(s)) for s in np.asarray(v).tolist()]
 
     cols: list[list[str]] = [col("rank", _ints), col("origin", strs), col("triangle", _ints)]
+    if "vertices" in g:  # table rows -> the data rows of this file that hold them
+        vert = np.asarray(g["vertices"], dtype=np.int64).reshape(n, 3)
+        ok = (vert >= 0) & (vert < n)
+        vert = np.where(ok, csv_row[np.where(ok, vert, 0)], vert)
     for k in range(3):
-        cols.append(_ints(g["vertices"][:, k]) if "vertices" in g else empty)
+        cols.append(_ints(vert[:, k]) if "vertices" in g else empty)
     for k in range(3):
         cols.append(format_floats(g["weights"][:, k]) if "weights" in g else empty)
     cols += [format_floats(pos[:, k]) for k in range(3)]
@@ -704,69 +716,117 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
     return order
 
 
+#: Most bytes of a run's summary.json that are read.
+_MAX_SUMMARY_BYTES = 64 << 20
+
+
 def read_grasps_csv(path: str | Path) -> GraspTable:
     """Read ``grasps.csv`` back into a grasp table (``dq`` rebuilt from x..qz).
 
-    Rows stay in file order (ranked first). Columns: ``dq``, ``rank``,
-    ``origin``, ``triangle``, ``vertices``, ``weights``, ``reachable``,
-    ``reason``, ``pos_err``, ``rot_err``, ``manipulability``, ``q`` and the
-    extra metric columns, as far as the file has them.
+    Rows stay in file order (ranked first), so ``vertices`` (from ``v1, v2,
+    v3``) index the table's rows. Columns: ``dq``, ``rank``, ``origin``,
+    ``triangle``, ``vertices``, ``weights``, ``reachable``, ``reason``,
+    ``pos_err``, ``rot_err``, ``manipulability``, ``q`` and the further
+    columns, as far as the file has them.
+
+    The file is checked as it is read: unit quaternions, finite positions,
+    ``true``/``false`` switches, integer ids, ``v1..v3`` that name rows of the
+    file; a UTF-8 byte order mark and blank lines are ignored.
 
     Raises:
-        InputError: Missing file or columns, or a value that does not parse.
+        InputError: Missing file or columns, or a value that does not parse
+            (names the line and column).
     """
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            rows: list[list[str]] = []
+            lines: list[int] = []
+            for row in reader:
+                if any(cell.strip() for cell in row):
+                    rows.append(row)
+                    lines.append(reader.line_num)
     except FileNotFoundError:
         raise InputError(f"not a run directory: {path} is missing") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except (OSError, csv.Error) as exc:
+        raise InputError(f"{path}: cannot read: {clip(str(exc))}") from None
     if not rows:
         raise InputError(f"{path}: empty file")
-    header, body = rows[0], rows[1:]
+    header, body, lines = rows[0], rows[1:], lines[1:]
+    if len(set(header)) != len(header):
+        twice = next(h for h in header if header.count(h) > 1)
+        raise InputError(f"{path}: the header names column {clip(twice)} twice")
     missing = [c for c in ("x", "y", "z", "qw", "qx", "qy", "qz") if c not in header]
     if missing:
         raise InputError(f"{path}: missing column(s) {', '.join(missing)}")
-    for i, row in enumerate(body):
+    for row, line in zip(body, lines, strict=True):
         if len(row) != len(header):
-            raise InputError(f"{path}:{i + 2}: {len(row)} fields, header has {len(header)}")
-    columns = list(zip(*body, strict=True)) if body else [() for _ in header]
-    raw = dict(zip(header, columns, strict=True))
+            raise InputError(f"{path}:{line}: {len(row)} fields, header has {len(header)}")
+    n = len(body)
+    cells = np.array(body, dtype=str).reshape(n, len(header))
+    raw = {name: cells[:, k] for k, name in enumerate(header)}
+
+    def bad(name: str, i: int, what: str) -> InputError:
+        return InputError(f"{path}:{lines[i]}: column {name!r}: {what}: {clip(raw[name][i])}")
 
     def floats(name: str) -> np.ndarray:
-        col = np.array(raw[name], dtype=str).reshape(-1)
-        col = np.where(col == "", "nan", col)  # not in place: an all-empty column is '<U1'
+        col = np.where(raw[name] == "", "nan", raw[name])
         try:
             return col.astype(float)
-        except ValueError as exc:
-            raise InputError(f"{path}: column {name!r}: {exc}") from None
+        except ValueError:
+            for i, text in enumerate(col.tolist()):
+                try:
+                    float(text)
+                except ValueError:
+                    raise bad(name, i, "not a number") from None
+            raise  # pragma: no cover
 
     def ints(name: str) -> np.ndarray:
-        try:
-            return np.array(raw[name], dtype=str).reshape(-1).astype(np.int64)
-        except ValueError as exc:
-            raise InputError(f"{path}: column {name!r}: {exc}") from None
+        col = raw[name]
+        ok = np.array([re.fullmatch(r"-?[0-9]{1,18}", t) is not None for t in col.tolist()])
+        if n and not ok.all():
+            raise bad(name, int(np.flatnonzero(~ok)[0]), "not an integer")
+        return col.astype(np.int64).reshape(n)
 
-    n = len(body)
     pos = np.column_stack([floats(c) for c in ("x", "y", "z")]).reshape(n, 3)
     quat = np.column_stack([floats(c) for c in ("qw", "qx", "qy", "qz")]).reshape(n, 4)
+    broken = ~np.isfinite(pos).all(axis=1) | ~np.isfinite(quat).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        broken |= np.abs(np.linalg.norm(quat, axis=1) - 1.0) > 1e-6
+    if broken.any():
+        i = int(np.flatnonzero(broken)[0])
+        raise InputError(
+            f"{path}:{lines[i]}: not a pose: x,y,z must be finite and qw,qx,qy,qz a unit "
+            f"quaternion, got {pos[i].tolist()} and {quat[i].tolist()}"
+        )
     cols: dict[str, Any] = {"dq": dq_from_pos_quat(pos, quat)}
     if "rank" in raw:
         cols["rank"] = ints("rank")
+        if (cols["rank"] < 0).any():
+            raise bad("rank", int(np.flatnonzero(cols["rank"] < 0)[0]), "negative")
     if "origin" in raw:
-        cols["origin"] = np.array(raw["origin"], dtype=str)
+        cols["origin"] = raw["origin"].astype(str)
+        odd = ~np.isin(cols["origin"], ("candidate", "interpolated", ""))
+        if odd.any():
+            raise bad("origin", int(np.flatnonzero(odd)[0]), "not candidate or interpolated")
     if "triangle" in raw:
         cols["triangle"] = ints("triangle")
     if all(c in raw for c in ("v1", "v2", "v3")):
-        cols["vertices"] = np.column_stack([ints(c) for c in ("v1", "v2", "v3")]).reshape(n, 3)
+        vert = np.column_stack([ints(c) for c in ("v1", "v2", "v3")]).reshape(n, 3)
+        out = (vert < -1) | (vert >= n)
+        if out.any():
+            i, k = (int(a[0]) for a in np.nonzero(out))
+            raise bad(f"v{k + 1}", i, f"not a row of this file (0..{n - 1})")
+        cols["vertices"] = vert
     if all(c in raw for c in ("w1", "w2", "w3")):
         cols["weights"] = np.column_stack([floats(c) for c in ("w1", "w2", "w3")]).reshape(n, 3)
     if "reachable" in raw:
-        cols["reachable"] = np.array([v == "true" for v in raw["reachable"]], dtype=bool)
+        cols["reachable"] = _switches(path, raw["reachable"], "reachable", lines)
     if "reason" in raw:
-        cols["reason"] = np.array(raw["reason"], dtype=str)
+        cols["reason"] = raw["reason"].astype(str)
     for name in ("pos_err", "rot_err", "manipulability"):
         if name in raw:
             cols[name] = floats(name)
@@ -780,18 +840,119 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
     return GraspTable(cols)
 
 
+def _switches(path: Path, text: np.ndarray, name: str, lines: list[int]) -> np.ndarray:
+    odd = ~np.isin(text, ("true", "false"))
+    if odd.any():
+        i = int(np.flatnonzero(odd)[0])
+        raise InputError(f"{path}:{lines[i]}: column {name!r}: not true or false: {clip(text[i])}")
+    return np.asarray(text == "true", dtype=bool)
+
+
 def _parse_column(values: Any) -> np.ndarray:
     """A further column read back: bool, int, float (empty = NaN) or, failing those, str."""
     text = np.array(values, dtype=str).reshape(-1)
     if text.size and all(v in ("true", "false") for v in text.tolist()):
         return text == "true"
-    if text.size and all(v.lstrip("-").isdigit() for v in text.tolist()):
+    if text.size and all(re.fullmatch(r"-?[0-9]{1,18}", v) for v in text.tolist()):
         return text.astype(np.int64)
     floats = np.where(text == "", "nan", text)
     try:
         return floats.astype(float)
     except ValueError:
         return text
+
+
+# ------------------------------------------------------------ .npy / .npz, checked
+
+#: Most header bytes of one .npy array (NumPy's own default bound).
+_MAX_NPY_HEADER = 10_000
+
+
+def npy_header(
+    path: Path, fh: Any, what: str, available: int
+) -> tuple[tuple[int, ...], np.dtype[Any]]:
+    """Shape and dtype of the .npy array at ``fh``; refuses a header that promises too much.
+
+    Nothing is allocated: a header that claims 10^10 poses in a 1 kB file
+    is an error here, not a MemoryError later.
+
+    Args:
+        path: The file (for messages).
+        fh: A binary stream at the start of the .npy data.
+        what: The array's name in messages.
+        available: Bytes the stream holds from its start.
+
+    Raises:
+        InputError: Not a .npy header, a pickled object array, or more data
+            promised than ``available``.
+    """
+    try:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh, _MAX_NPY_HEADER)
+        else:
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh, _MAX_NPY_HEADER)
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as exc:
+        raise InputError(f"{path}: {what} is not a .npy array: {clip(str(exc))}") from None
+    if dtype.hasobject:
+        raise InputError(
+            f"{path}: {what} holds Python objects (a pickle); only plain arrays are read"
+        )
+    need = fh.tell() + int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if need > available:
+        raise InputError(
+            f"{path}: {what} is truncated or corrupt: its header says shape {shape} "
+            f"({need:,} bytes) but there are {available:,}"
+        )
+    return tuple(int(k) for k in shape), dtype
+
+
+def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` file, each header checked before it is read.
+
+    Args:
+        path: The archive.
+        max_bytes: Most bytes all arrays may take together.
+        keep: Optional ``(name, shape, dtype) -> bool``: read only those arrays.
+
+    Raises:
+        InputError: Not a zip archive, a member that is not a .npy array,
+            truncated or corrupt data (CRC), pickled objects, too large.
+    """
+    path = Path(path)
+    try:
+        with zipfile.ZipFile(path) as zf:
+            infos = {}
+            for info in zf.infolist():
+                if info.is_dir():
+                    continue
+                if not info.filename.endswith(".npy"):
+                    raise InputError(
+                        f"{path}: member {clip(info.filename)} is not a .npy array; an .npz "
+                        "holds arrays only"
+                    )
+                infos[info.filename[: -len(".npy")]] = info
+            total = sum(info.file_size for info in infos.values())
+            if total > max_bytes:
+                raise InputError(
+                    f"{path}: its arrays take {total:,} bytes, more than the {max_bytes:,} "
+                    "read here"
+                )
+            arrays: dict[str, np.ndarray] = {}
+            for name, info in infos.items():
+                with zf.open(info) as fh:
+                    shape, dtype = npy_header(path, fh, f"array {name!r}", info.file_size)
+                if keep is not None and not keep(name, shape, dtype):
+                    continue
+                with zf.open(info) as fh:
+                    arrays[name] = np.lib.format.read_array(fh, allow_pickle=False)
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npz archive: {clip(str(exc))}") from None
+    except NotImplementedError as exc:  # a compression method zipfile lacks
+        raise InputError(f"{path}: not a readable .npz archive: {exc}") from None
+    return arrays
 
 
 # ------------------------------------------------------------ manifold.npz
@@ -833,38 +994,85 @@ def write_manifold(
         np.savez(fh, **arrays)
 
 
-def read_manifold(path: str | Path) -> Manifold:
+#: Most bytes of a run's manifold.npz that are read.
+_MAX_MANIFOLD_BYTES = 1 << 30
+
+
+def read_manifold(path: str | Path, n_rows: int | None = None) -> Manifold:
     """Read ``manifold.npz`` back into a :class:`~gcm_pipeline.stages.manifold.Manifold`.
 
     The file holds ``vertex_ids`` (V,): the ``grasps.csv`` data row (0-based)
     of each manifold vertex (candidate); ``chart`` (V, 2) [m]; ``triangles``
-    (T, 3) and ``dropped`` (D, 3) vertex indices (the candidate ids that the
-    ``v1, v2, v3`` columns also use); ``dropped_reason`` (D,); and every other
-    field of the :class:`Manifold` that is not None (``projection``,
-    ``triangulator``, the chart ``frame`` (4, 4), ``period`` [m], ...).
+    (T, 3) and ``dropped`` (D, 3) vertex indices 0..V-1; ``dropped_reason``
+    (D,); and every other field of the :class:`Manifold` that is not None
+    (``projection``, ``triangulator``, the chart ``frame`` (4, 4), ``period``
+    [m], ...). Shapes, dtypes and index ranges are checked.
+
+    Args:
+        path: The file.
+        n_rows: Rows of the run's grasps.csv, to check ``vertex_ids`` against.
 
     Raises:
-        InputError: Missing or unreadable file, or a missing array.
+        InputError: Missing, unreadable or inconsistent file (names the array).
     """
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except FileNotFoundError:
-        raise InputError(f"not a run directory: {path} is missing") from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from None
+    if not path.is_file():
+        raise InputError(f"not a run directory: {path} is missing")
+    arrays = read_npz(path, max_bytes=_MAX_MANIFOLD_BYTES)
     missing = [k for k in ("chart", "triangles", "projection") if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing array(s) {', '.join(missing)}")
+
+    def fail(name: str, what: str) -> InputError:
+        return InputError(f"{path}: array {name!r} {what}")
+
+    chart = arrays["chart"]
+    if chart.ndim != 2 or chart.shape[1] != 2 or chart.dtype.kind not in "fiu":
+        raise fail("chart", f"must be (V, 2) numbers, got {chart.shape} {chart.dtype}")
+    n_v = len(chart)
+    for name in ("triangles", "dropped"):
+        value = arrays.get(name, np.zeros((0, 3), dtype=np.int64))
+        if value.size == 0:
+            value = value.reshape(0, 3).astype(np.int64)
+        if value.ndim != 2 or value.shape[1] != 3 or value.dtype.kind not in "iu":
+            raise fail(name, f"must be (T, 3) integers, got {value.shape} {value.dtype}")
+        if value.size and (value.min() < 0 or value.max() >= n_v):
+            raise fail(name, f"has vertex ids outside 0..{n_v - 1}")
+        arrays[name] = value.astype(np.int64)
+    reason = arrays.get("dropped_reason", np.zeros(0, dtype=str)).reshape(-1)
+    if len(reason) != len(arrays["dropped"]):
+        raise fail("dropped_reason", f"has {len(reason)} values for {len(arrays['dropped'])}")
+    arrays["dropped_reason"] = reason.astype(str)
+    for name in ("projection", "triangulator"):
+        if name in arrays and (arrays[name].ndim != 0 or arrays[name].dtype.kind != "U"):
+            raise fail(name, "must be a text")
+    if "frame" in arrays:
+        frame = arrays["frame"]
+        if frame.shape != (4, 4) or frame.dtype.kind not in "fiu":
+            raise fail("frame", f"must be a (4, 4) transform, got {frame.shape}")
+    if "period" in arrays and (arrays["period"].ndim != 0 or arrays["period"].dtype.kind != "f"):
+        raise fail("period", "must be a number")
+    ids = arrays.get("vertex_ids", np.arange(n_v, dtype=np.int64))
+    if ids.shape != (n_v,) or ids.dtype.kind not in "iu":
+        raise fail("vertex_ids", f"must be ({n_v},) integers, got {ids.shape} {ids.dtype}")
+    if n_rows is not None and n_v and (ids.min() < 0 or ids.max() >= n_rows):
+        raise fail("vertex_ids", f"names rows outside grasps.csv (0..{n_rows - 1})")
+    if len(np.unique(ids)) != n_v:
+        raise fail("vertex_ids", "names a row twice")
     kwargs: dict[str, Any] = {}
     for f in dataclasses.fields(Manifold):
         if f.name in arrays:
             value = arrays[f.name]
             kwargs[f.name] = value.item() if value.ndim == 0 else value
-    kwargs.setdefault("dropped", np.zeros((0, 3), dtype=np.int64))
-    kwargs.setdefault("dropped_reason", np.zeros(0, dtype=str))
     return Manifold(**kwargs)
+
+
+def manifold_vertex_rows(path: str | Path, n: int) -> np.ndarray:
+    """The ``vertex_ids`` of ``manifold.npz`` (grasps.csv rows of the candidates)."""
+    arrays = read_npz(path, max_bytes=_MAX_MANIFOLD_BYTES, keep=lambda k, s, d: k == "vertex_ids")
+    if "vertex_ids" in arrays:
+        return np.asarray(arrays["vertex_ids"], dtype=np.int64)
+    return np.arange(n)
 
 
 def write_run_files(
@@ -984,7 +1192,8 @@ def read_run(run_dir: str | Path) -> RunData:
         (ranked first).
 
     Raises:
-        InputError: Not a run directory, or a file in it cannot be read.
+        InputError: Not a run directory, or a file in it cannot be read or
+            does not match the others (names the file and what is wrong).
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -994,25 +1203,70 @@ def read_run(run_dir: str | Path) -> RunData:
     ]
     if missing:
         raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}")
-    try:
-        summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{run_dir / 'summary.json'}: cannot read: {exc}") from None
+    summary = read_summary(run_dir / "summary.json")
     grasps = read_grasps_csv(run_dir / "grasps.csv")
-    manifold = read_manifold(run_dir / "manifold.npz")
-    vertex_rows = np.asarray(
-        manifold_vertex_rows(run_dir / "manifold.npz", len(manifold.chart)), dtype=np.int64
-    )
-    if vertex_rows.size and (vertex_rows.min() < 0 or vertex_rows.max() >= len(grasps)):
-        raise InputError(f"{run_dir}: manifold.npz vertex_ids do not match grasps.csv")
+    manifold = read_manifold(run_dir / "manifold.npz", n_rows=len(grasps))
+    vertex_rows = manifold_vertex_rows(run_dir / "manifold.npz", len(manifold.chart))
+    if "vertices" in grasps and len(grasps):
+        used = np.asarray(grasps["vertices"])
+        used = np.unique(used[used >= 0])
+        stray = np.setdiff1d(used, vertex_rows)
+        if stray.size:
+            raise InputError(
+                f"{run_dir / 'grasps.csv'}: v1..v3 name row {int(stray[0])}, which is not a "
+                "candidate of manifold.npz"
+            )
     rest = np.setdiff1d(np.arange(len(grasps)), vertex_rows, assume_unique=False)
-    grasps = grasps.take(np.concatenate([vertex_rows, rest]))
+    perm = np.concatenate([vertex_rows, rest])
+    grasps = grasps.take(perm)
+    if "vertices" in grasps:  # rows of the file -> rows of the reordered table
+        new_row = np.empty(len(perm), dtype=np.int64)
+        new_row[perm] = np.arange(len(perm))
+        vert = np.asarray(grasps["vertices"])
+        grasps = grasps.with_columns(vertices=np.where(vert >= 0, new_row[np.maximum(vert, 0)], -1))
     return RunData(grasps, manifold, summary, run_dir)
 
 
-def manifold_vertex_rows(path: str | Path, n: int) -> np.ndarray:
-    """The ``vertex_ids`` of ``manifold.npz`` (grasps.csv rows of the candidates)."""
-    with np.load(path, allow_pickle=False) as data:
-        if "vertex_ids" in data.files:
-            return np.asarray(data["vertex_ids"], dtype=np.int64)
-    return np.arange(n)
+def read_summary(path: str | Path) -> dict[str, Any]:
+    """Read and check a run's ``summary.json``.
+
+    ``counts`` (when present) maps names to counts or to ``{reason: count}``
+    breakdowns; ``ranking`` (when present) has a text ``metric`` and a list
+    ``top``.
+
+    Raises:
+        InputError: Unreadable, not JSON, not an object, or a part of the
+            wrong type (names it).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = fh.read(_MAX_SUMMARY_BYTES + 1)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > _MAX_SUMMARY_BYTES:
+        raise InputError(f"{path}: larger than {_MAX_SUMMARY_BYTES >> 20} MiB; not a summary")
+    try:
+        summary = json.loads(data.decode("utf-8"))
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"{path}: not valid JSON: {clip(str(exc))}") from None
+    if not isinstance(summary, dict):
+        raise InputError(f"{path}: expected a JSON object, got {type(summary).__name__}")
+    counts = summary.get("counts", {})
+    if not isinstance(counts, dict):
+        raise InputError(f"{path}: 'counts' must be an object, got {type(counts).__name__}")
+    for key, value in counts.items():
+        ok = (isinstance(value, int) and not isinstance(value, bool)) or (
+            isinstance(value, dict)
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in value.values())
+        )
+        if not ok:
+            raise InputError(f"{path}: counts.{str(key)[:60]} must be a count, got {clip(value)}")
+    ranking = summary.get("ranking", {})
+    if not isinstance(ranking, dict):
+        raise InputError(f"{path}: 'ranking' must be an object, got {type(ranking).__name__}")
+    if not isinstance(ranking.get("metric", ""), str):
+        raise InputError(f"{path}: ranking.metric must be a text, got {clip(ranking['metric'])}")
+    if not isinstance(ranking.get("top", []), list):
+        raise InputError(f"{path}: ranking.top must be a list")
+    return summary

@@ -100,13 +100,17 @@ def input_files(cfg: Config) -> dict[str, Path]:
     return files
 
 
-def preflight(cfg: Config, *, viewer: bool = False) -> None:
+def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     """Check, before any work, what the config refers to outside itself.
 
     ``gcm validate`` and ``gcm run`` (:meth:`Pipeline.run`) both call it:
 
-    - ``robot.spec`` names a shipped spec or a valid spec file (read, not built);
-    - every file the config reads exists (:func:`input_files`);
+    - every file the config reads exists (:func:`input_files`); relative
+      paths were resolved against the config's folder;
+    - ``robot.spec`` names a shipped spec or a valid spec file whose model
+      exists; the robot is built (kinematics, locked joints inside their
+      ranges, a readable SRDF, collision meshes that load);
+    - the object and obstacle meshes load and have finite vertices;
     - with the live viewer requested (``viewer`` or ``publish.meshcat``) and a
       ``publish.zmq_url``, the meshcat server there answers within
       ``publish.connect_timeout_s``; without the viewer a ``zmq_url`` is unused,
@@ -116,36 +120,54 @@ def preflight(cfg: Config, *, viewer: bool = False) -> None:
         cfg: The config.
         viewer: The live viewer is requested (``gcm run --meshcat``).
 
+    Returns:
+        The robot (the run uses it).
+
     Raises:
         RobotSpecError: ``robot.spec: ...``, unknown robot or invalid spec.
-        InputError: ``<key>: file not found: <path>``.
+        InputError: ``<key>: file not found: <path>``, or a mesh that does not load.
         PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
     """
     from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
-    from gcm_pipeline.robot.model import load_spec
+    from gcm_pipeline.robot.collision import shape_geometry
+    from gcm_pipeline.robot.model import Robot, load_spec
 
     for key, path in input_files(cfg).items():
-        if not path.is_file():
+        try:
+            found = path.is_file()
+        except (OSError, ValueError):
+            found = False
+        if not found:
             what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
                 key, "mesh file"
             )
-            raise InputError(f"{key}: {what} not found: {path}")
+            raise InputError(
+                f"{key}: {what} not found: {path} (relative paths resolve against the "
+                "config's folder)"
+            )
     try:
-        load_spec(cfg.robot.spec)
+        robot = Robot(load_spec(cfg.robot.spec))
+        robot.build_geometry("collision")
     except RobotSpecError as exc:
         raise type(exc)(f"robot.spec: {exc}") from exc
+    shapes: list[tuple[str, Any]] = [("object", cfg.object)]
+    shapes += [(f"environment.obstacles.{i}", o) for i, o in enumerate(cfg.environment.obstacles)]
+    for where, shape in shapes:
+        if shape is not None and shape.shape == "mesh":
+            shape_geometry("mesh", shape.dims, mesh=shape.mesh, scale=shape.scale, where=where)
     pub = cfg.publish
     if pub.zmq_url is None:
-        return
+        return robot
     if not (viewer or pub.meshcat):
         log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
-        return
+        return robot
     from gcm_pipeline.stages.publish import probe_server
 
     try:
         probe_server(pub.zmq_url, pub.connect_timeout_s)
     except PublishError as exc:
         raise PublishError(f"publish.zmq_url: {exc}") from exc
+    return robot
 
 
 def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
@@ -190,7 +212,12 @@ def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
 
     d = cfg.densify
     return stage.densify(
-        grasps, manifold, subdivisions=d.subdivisions, spacing=d.spacing, method=d.method
+        grasps,
+        manifold,
+        subdivisions=d.subdivisions,
+        spacing=d.spacing,
+        method=d.method,
+        max_poses=d.max_poses,
     )
 
 
@@ -570,9 +597,12 @@ class Pipeline:
         cfg = self.config
         out = Path(out_dir) if out_dir is not None else Path(cfg.output.dir)
         keep = self._inputs()
+        # what the config refers to first: a bad robot spec is not hidden behind "--force"
+        t0 = time.perf_counter()
+        robot = preflight(cfg, viewer=viewer)  # builds the robot: the "robot" stage's work
+        robot_s = time.perf_counter() - t0
         if write:
             out = io.check_output_dir(out, force=force, keep=keep)
-        preflight(cfg, viewer=viewer)
         timings: dict[str, float] = {}
         names = ["candidates", "manifold", "densify", "robot", "reachability", "ranking"]
         if write:
@@ -594,7 +624,9 @@ class Pipeline:
             log.info("stage %-12s %8.3f s", name, timings[name])
 
         try:
-            return self._run(out, stage, timings, force=force, write=write, progress=progress)
+            return self._run(
+                out, stage, timings, robot, robot_s, force=force, write=write, progress=progress
+            )
         finally:
             bar.close()
 
@@ -608,6 +640,8 @@ class Pipeline:
         out: Path,
         stage: Callable[[str], AbstractContextManager[None]],
         timings: dict[str, float],
+        robot: Robot,
+        robot_s: float,
         *,
         force: bool,
         write: bool,
@@ -621,7 +655,8 @@ class Pipeline:
         with stage("densify"):
             grasps = densify(candidates, manifold, cfg)
         with stage("robot"):
-            robot = robot_from_config(cfg)
+            pass  # built by preflight
+        timings["robot"] = robot_s
         with stage("reachability"):
             grasps = check_reachability(grasps, robot, cfg, progress=progress)
         unreachable = _count_by(grasps["reason"][~np.asarray(grasps["reachable"], dtype=bool)])
@@ -645,6 +680,7 @@ class Pipeline:
             "reachable": int(np.count_nonzero(grasps["reachable"])),
             "unreachable_by_reason": unreachable,
         }
+        _warn_empty(counts, cfg)
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
         if not write:
             return result
@@ -658,6 +694,26 @@ class Pipeline:
         result.files = sorted(p for p in out.iterdir() if p.name != io.MARKER)
         log.info("run directory %s (%d published files)", out, len(published))
         return result
+
+
+def _warn_empty(counts: Mapping[str, Any], cfg: Config) -> None:
+    """Warn about a run that produced nothing to look at (no triangle, no reachable grasp)."""
+    if counts["triangles"] == 0:
+        dropped = counts["dropped_by_reason"]
+        why = ", ".join(f"{k} {v}" for k, v in dropped.items())
+        log.warning(
+            "no triangle is left%s, so no grasp was interpolated; raise "
+            "manifold.max_edge_length / manifold.max_edge_angle_deg or try another "
+            "manifold.projection",
+            f" (dropped: {why})" if why else "",
+        )
+    if counts["reachable"] == 0:
+        why = ", ".join(f"{k} {v}" for k, v in counts["unreachable_by_reason"].items())
+        log.warning(
+            "no grasp is reachable (%s); check robot.base_pose, the object pose and the "
+            "environment",
+            why,
+        )
 
 
 def _count_by(labels: Any) -> dict[str, int]:

@@ -345,7 +345,7 @@ def test_csv_errors(tmp_path):
     with pytest.raises(InputError, match=r"g\.csv:3: quaternion"):
         load_grasp_file(path)
     path.write_text("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n0,a,0,1,0,0,0\n")
-    with pytest.raises(InputError, match=r"g\.csv:3: not a number"):
+    with pytest.raises(InputError, match=r"g\.csv:3: column .y.: not a number"):
         load_grasp_file(path)
 
 

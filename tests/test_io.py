@@ -102,8 +102,12 @@ def test_csv_round_trip_is_exact(tmp_path):
     back = io.read_grasps_csv(path)
     ref = g.take(order)
     assert np.allclose(dq_to_matrix(back["dq"]), dq_to_matrix(ref["dq"]), atol=1e-15)
-    for name in ("rank", "triangle", "vertices", "reachable", "origin", "reason"):
+    for name in ("rank", "triangle", "reachable", "origin", "reason"):
         assert np.array_equal(back[name], ref[name]), name
+    # v1..v3 name rows of the file: the rows where those candidates were written
+    csv_row = np.argsort(order)
+    v = ref["vertices"]
+    assert np.array_equal(back["vertices"], np.where(v >= 0, csv_row[np.maximum(v, 0)], -1))
     for name in ("weights", "q", "pos_err", "rot_err", "manipulability", "inverse_condition"):
         assert np.array_equal(back[name], ref[name], equal_nan=True), name  # repr: bit-exact
     # quaternion written with qw >= 0
@@ -140,6 +144,9 @@ def test_read_run_restores_candidates_first(tmp_path):
     assert list(run.grasps["origin"][:NC]) == ["candidate"] * NC
     assert np.allclose(dq_to_matrix(run.grasps["dq"][:NC]), dq_to_matrix(g["dq"][:NC]))
     assert len(run.grasps) == N
+    # read back, the vertices index the table again (the candidates, first)
+    interp = run.grasps["origin"] == "interpolated"
+    assert np.array_equal(np.unique(run.grasps["vertices"][interp]), np.arange(NC))
     assert (tmp_path / "run" / "config.yaml").read_text().startswith("seed: 0")
 
 

@@ -165,6 +165,10 @@ def _load_mesh(path: Path | None, scale: float, where: str) -> Any:
         raise InputError(f"{where}: cannot read mesh file {str(p)!r}: {detail}") from exc
     if mesh.num_tris == 0:
         raise InputError(f"{where}: mesh file {str(p)!r} has no triangles")
+    verts = np.asarray(mesh.vertices())
+    if not np.isfinite(verts).all():
+        i = int(np.flatnonzero(~np.isfinite(verts).all(axis=1))[0])
+        raise InputError(f"{where}: mesh file {str(p)!r}: vertex {i} is not finite")
     return mesh
 
 

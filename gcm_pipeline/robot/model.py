@@ -31,10 +31,16 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
-import yaml
 
-from gcm_pipeline.errors import FrameNotFoundError, InputError, RobotSpecError, unknown_choice
+from gcm_pipeline.errors import (
+    FrameNotFoundError,
+    InputError,
+    RobotSpecError,
+    clip,
+    unknown_choice,
+)
 from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 
 __all__ = ["Robot", "RobotSpec", "available_robots", "load_robot", "load_spec"]
 
@@ -103,9 +109,9 @@ def _check_keys(where: str, data: Mapping[str, Any], valid: tuple[str, ...]) -> 
 
 def _number(where: str, key: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise RobotSpecError(f"{where}: {key} must be a number, got {value!r}")
+        raise RobotSpecError(f"{where}: {key} must be a number, got {clip(value)}")
     if not np.isfinite(value):
-        raise RobotSpecError(f"{where}: {key} must be finite, got {value!r}")
+        raise RobotSpecError(f"{where}: {key} must be finite, got {clip(value)}")
     return float(value)
 
 
@@ -113,7 +119,7 @@ def _mapping(where: str, key: str, value: Any) -> Mapping[str, Any]:
     if value is None:
         return {}
     if not isinstance(value, Mapping):
-        raise RobotSpecError(f"{where}: {key} must be a mapping, got {value!r}")
+        raise RobotSpecError(f"{where}: {key} must be a mapping, got {clip(value)}")
     return value
 
 
@@ -135,23 +141,23 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
     path: Path | None
     if isinstance(name_or_path, os.PathLike) or text.endswith((".yaml", ".yml")) or os.sep in text:
         path = Path(text).expanduser()
-        if not path.is_file():
-            raise RobotSpecError(f"robot spec file {text!r} does not exist")
-        raw_text = path.read_text(encoding="utf-8")
+        try:
+            found = path.is_file()
+        except (OSError, ValueError):
+            found = False
+        if not found:
+            raise RobotSpecError(f"robot spec file {clip(text)} does not exist")
+        raw = read_yaml_file(path, "robot spec", RobotSpecError)
         path = path.resolve()
     else:
         res = _spec_dir() / f"{text}.yaml"
         if not res.is_file():
             raise RobotSpecError(unknown_choice("robot", text, available_robots()))
-        raw_text = res.read_text(encoding="utf-8")
         path = Path(str(res))
+        raw = load_yaml(res.read_text(encoding="utf-8"), str(path), RobotSpecError)
     where = f"robot spec {str(path)!r}"
-    try:
-        raw = yaml.safe_load(raw_text)
-    except yaml.YAMLError as exc:
-        raise RobotSpecError(f"{where}: invalid YAML: {exc}".replace("\n", " ")) from exc
     if not isinstance(raw, Mapping):
-        raise RobotSpecError(f"{where}: expected a mapping at the top level, got {raw!r}")
+        raise RobotSpecError(f"{where}: expected a mapping at the top level, got {clip(raw)}")
     _check_keys(where, raw, _SPEC_KEYS)
     for key in ("name", "model", "grasp_frame"):
         if key not in raw:
@@ -191,16 +197,16 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
     limits: dict[str, tuple[float, float]] = {}
     for k, v in _mapping(where, "joint_limits", raw.get("joint_limits")).items():
         if not isinstance(v, (list, tuple)) or len(v) != 2:
-            raise RobotSpecError(f"{where}: joint_limits.{k} must be [lower, upper], got {v!r}")
+            raise RobotSpecError(f"{where}: joint_limits.{k} must be [lower, upper], got {clip(v)}")
         lo = _number(where, f"joint_limits.{k}", v[0])
         hi = _number(where, f"joint_limits.{k}", v[1])
         if not lo < hi:
-            raise RobotSpecError(f"{where}: joint_limits.{k} needs lower < upper, got {v!r}")
+            raise RobotSpecError(f"{where}: joint_limits.{k} needs lower < upper, got {clip(v)}")
         limits[str(k)] = (lo, hi)
     pkg = model.get("package_dirs") or []
     if isinstance(pkg, str):
         pkg = [pkg]
-    return RobotSpec(
+    spec = RobotSpec(
         name=raw["name"],
         description=str(raw.get("description", "") or ""),
         path=path,
@@ -214,6 +220,24 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
         limit_margin=margin,
         joint_limits=limits,
     )
+    _check_model_files(where, spec)
+    return spec
+
+
+def _check_model_files(where: str, spec: RobotSpec) -> None:
+    """The model a spec names exists: an example-robot-data loader, or URDF/SRDF files."""
+    if spec.example_robot_data is not None:
+        urdf, _, _ = _erd_paths(spec.example_robot_data)
+        if not urdf.is_file():  # pragma: no cover - a broken example-robot-data install
+            raise RobotSpecError(f"{where}: example-robot-data has no file {urdf}")
+        return
+    files = [("model.urdf", spec.urdf), ("model.srdf", spec.srdf)]
+    for key, file in files:
+        if file is not None and not file.is_file():
+            raise RobotSpecError(f"{where}: {key} {str(file)!r} does not exist")
+    for d in spec.package_dirs:
+        if not d.is_dir():
+            raise RobotSpecError(f"{where}: model.package_dirs: {str(d)!r} is not a directory")
 
 
 def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
@@ -231,6 +255,22 @@ def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
         cand = robots_dir / loader.path / loader.srdf_subpath / loader.srdf_filename
         srdf = cand if cand.is_file() else None
     return urdf, srdf, robots_dir / loader.path
+
+
+def _check_srdf(name: str, srdf: Path) -> None:
+    """An SRDF that is not readable XML is an error of the spec (not a parser traceback)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(srdf).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise RobotSpecError(
+            f"robot {name!r}: SRDF {str(srdf)!r} is not readable XML: {exc}"
+        ) from None
+    if root.tag != "robot":
+        raise RobotSpecError(
+            f"robot {name!r}: SRDF {str(srdf)!r} has root <{clip(root.tag, 40)}>, expected <robot>"
+        )
 
 
 class Robot:
@@ -293,6 +333,8 @@ class Robot:
             raise RobotSpecError(f"robot {spec.name!r}: cannot read {str(urdf)!r}: {exc}") from exc
         self.full_model = full
         joint_names = [full.names[i] for i in range(1, full.njoints)]
+        if srdf is not None:
+            _check_srdf(spec.name, srdf)
         locked_q = pin.neutral(full)
         locked_ids = []
         for jname, value in spec.locked_joints.items():
@@ -304,7 +346,14 @@ class Robot:
             jid = full.getJointId(jname)
             if full.joints[jid].nq != 1:
                 raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
-            locked_q[full.joints[jid].idx_q] = value
+            iq = full.joints[jid].idx_q
+            lo, hi = full.lowerPositionLimit[iq], full.upperPositionLimit[iq]
+            if not lo - 1e-9 <= value <= hi + 1e-9:
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: locked_joints.{jname} = {value:g} is outside the "
+                    f"joint's range [{lo:g}, {hi:g}]"
+                )
+            locked_q[iq] = value
             locked_ids.append(jid)
         self.locked_q = locked_q
         model = pin.buildReducedModel(full, locked_ids, locked_q) if locked_ids else full.copy()
@@ -486,12 +535,19 @@ class Robot:
         kinds = {"collision": pin.GeometryType.COLLISION, "visual": pin.GeometryType.VISUAL}
         if kind not in kinds:
             raise RobotSpecError(unknown_choice("geometry kind", kind, kinds))
-        geom = pin.buildGeomFromUrdf(
-            self.full_model,
-            str(self.urdf_path),
-            kinds[kind],
-            package_dirs=[str(p) for p in self.package_dirs],
-        )
+        try:
+            geom = pin.buildGeomFromUrdf(
+                self.full_model,
+                str(self.urdf_path),
+                kinds[kind],
+                package_dirs=[str(p) for p in self.package_dirs],
+            )
+        except Exception as exc:  # pinocchio raises ValueError/RuntimeError
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise RobotSpecError(
+                f"robot {self.name!r}: cannot load the {kind} meshes of {str(self.urdf_path)!r}: "
+                f"{clip(first, 300)} (model.package_dirs resolves package:// URIs)"
+            ) from exc
         locked = [
             self.full_model.getJointId(j)
             for j in self.spec.locked_joints

@@ -66,14 +66,17 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import CandidatesConfig, Config, ObjectConfig
-from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.errors import ConfigError, InputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -81,6 +84,7 @@ __all__ = [
     "generate_candidates",
     "grasp_poses",
     "load_grasp_file",
+    "read_grasp_file",
     "poses_box",
     "poses_cylinder_side",
     "poses_plane",
@@ -341,33 +345,46 @@ def grasp_poses(cfg: Config) -> np.ndarray:
         ConfigError: A generator without a matching ``object`` section.
         InputError: An unreadable or invalid grasp file.
     """
+    return _candidate_poses(cfg)[0]
+
+
+def _candidate_poses(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """World poses (N, 4, 4) of the grasp frame and per-candidate columns (files only)."""
     c = cfg.candidates
     if c.source == "file":
         assert c.path is not None
-        poses = load_grasp_file(c.path, format=c.format, success_only=c.success_only, limit=c.limit)
+        poses, columns = read_grasp_file(
+            c.path,
+            format=c.format,
+            success_only=c.success_only,
+            limit=c.limit,
+            max_count=c.max_count,
+        )
         if c.grasp_to_tool is not None:
             poses = poses @ c.grasp_to_tool.matrix()
         if c.frame == "object":
             if cfg.object is None:
                 raise ConfigError("candidates.frame 'object' needs an 'object' section")
             poses = cfg.object.pose.matrix() @ poses
-        return poses
+        return poses, columns
     rng = np.random.default_rng(c.seed if c.seed is not None else cfg.seed)
     poses = _generate(cfg, rng)
     _noise(poses, c.noise.position, c.noise.angle_deg, rng)
     assert cfg.object is not None
-    return cfg.object.pose.matrix() @ poses
+    return cfg.object.pose.matrix() @ poses, {}
 
 
 def generate_candidates(cfg: Config) -> GraspTable:
-    """The candidate grasp table of a config: one column ``dq`` (N, 8).
+    """The candidate grasp table of a config: ``dq`` (N, 8) and per-candidate columns.
 
     Args:
         cfg: The full config.
 
     Returns:
         A table with ``dq``: unit dual quaternions [rw, rx, ry, rz, dw, dx, dy, dz]
-        of the grasp frame in the world, one row per candidate.
+        of the grasp frame in the world, one row per candidate; for a grasp
+        file also ``source_id`` (the row in the file) and the file's own
+        columns (:func:`read_grasp_file`).
 
     Raises:
         ConfigError: A generator without a matching ``object`` section.
@@ -379,7 +396,7 @@ def generate_candidates(cfg: Config) -> GraspTable:
     if formats.handles(cfg):  # synthesisers' formats, gripper mapping, the antipodal sampler
         poses, columns = formats.load_candidates(cfg)
     else:
-        poses = grasp_poses(cfg)
+        poses, columns = _candidate_poses(cfg)
     if poses.shape[0] == 0:
         raise InputError(f"candidates: no grasp left from {_describe_source(cfg.candidates)}")
     log.info("candidates: %d from %s", poses.shape[0], _describe_source(cfg.candidates))
@@ -400,7 +417,7 @@ def _infer_format(path: Path) -> str:
     fmt = {".npy": "npy", ".npz": "npz", ".csv": "csv", ".h5": "acronym", ".hdf5": "acronym"}
     if suffix not in fmt:
         raise InputError(
-            f"{path}: cannot tell the grasp file format from the suffix {suffix!r}; "
+            f"{path}: cannot tell the grasp file format from the suffix {clip(suffix)}; "
             "set candidates.format to one of: acronym, csv, npy, npz"
         )
     return fmt[suffix]
@@ -412,55 +429,97 @@ def load_grasp_file(
     format: str | None = None,
     success_only: bool = False,
     limit: int | None = None,
+    max_count: int = DEFAULT_MAX_CANDIDATES,
 ) -> np.ndarray:
     """Read grasp poses (N, 4, 4) from a file, as stored (no frame change).
+
+    The poses of :func:`read_grasp_file` (see there for the formats).
+    """
+    poses, _ = read_grasp_file(
+        path, format=format, success_only=success_only, limit=limit, max_count=max_count
+    )
+    return poses
+
+
+def read_grasp_file(
+    path: str | Path,
+    *,
+    format: str | None = None,
+    success_only: bool = False,
+    limit: int | None = None,
+    max_count: int = DEFAULT_MAX_CANDIDATES,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Read grasp poses (N, 4, 4) and per-candidate columns from a file, as stored.
 
     Formats:
 
     - ``npy``: one array (N, 4, 4).
-    - ``npz``: array ``transforms`` (or ``poses``, or the only array) (N, 4, 4),
-      optional ``success`` (N,) 0/1.
+    - ``npz``: array ``transforms`` (or ``poses``, or the only (N, 4, 4)
+      array), optional ``success`` (N,) 0/1; other 1-D arrays of N numbers or
+      strings (``score``, ``id``, ...) are carried as columns.
     - ``csv``: a header row naming at least ``x,y,z,qw,qx,qy,qz`` (any order,
-      more columns allowed; an optional ``success`` column); quaternions
-      (w, x, y, z) are normalised if within 1e-3 of unit norm.
+      case-insensitive; an optional ``success`` column); quaternions (w, x,
+      y, z) are normalised if within 1e-3 of unit norm. Every other column
+      (``id``, ``score``, ...) is carried as a column: integers, numbers
+      (empty = NaN) or text. A UTF-8 byte order mark and blank lines are
+      ignored; duplicate column names are an error.
     - ``acronym``: the ACRONYM HDF5 layout: ``grasps/transforms`` (N, 4, 4)
       gripper poses in the object mesh frame [m],
       ``grasps/qualities/flex/object_in_gripper`` (N,) 0/1 success; needs
       the optional extra ``acronym`` (h5py).
+
+    Every format also gives ``source_id``: the grasp's 0-based row in the
+    file (before ``success_only`` and ``limit``), so each candidate row of
+    ``grasps.csv`` traces back to its input. Sizes are checked from the
+    file's header before any array is allocated: a file of more than
+    ``max_count`` grasps, or one whose header promises more data than it
+    holds, is refused.
 
     Args:
         path: The grasp file.
         format: One of the formats above; default from the suffix.
         success_only: Keep only successful grasps (needs success labels).
         limit: Keep at most this many (the first ones, after filtering).
+        max_count: Most grasps a file may hold (``candidates.max_count``).
 
     Returns:
-        (N, 4, 4) float64 rigid transforms.
+        ``(poses, columns)``: (N, 4, 4) float64 rigid transforms and (N,)
+        arrays keyed by column name (see
+        :data:`gcm_pipeline.table.CANDIDATE_COLUMNS`).
 
     Raises:
-        InputError: Missing file, wrong shape, non-rigid matrix (names the row),
-            a missing key, or ``success_only`` without success labels.
+        InputError: Missing, truncated or corrupt file, wrong shape or dtype,
+            non-rigid matrix (names the row), a missing key, too many
+            grasps, or ``success_only`` without success labels.
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"grasp file not found: {path}")
-    if not path.is_file():
-        raise InputError(f"grasp file is not a file: {path}")
+    try:
+        if not path.exists():
+            raise InputError(f"grasp file not found: {path}")
+        if not path.is_file():
+            raise InputError(f"grasp file is not a file: {path}")
+    except (OSError, ValueError) as exc:  # name too long, NUL byte
+        raise InputError(f"grasp file {clip(str(path))}: cannot access: {exc}") from None
     fmt = format or _infer_format(path)
+    columns: dict[str, np.ndarray] = {}
     success: np.ndarray | None
     if fmt == "npy":
-        poses, success = _read_npy(path), None
+        poses, success = _read_npy(path, max_count), None
     elif fmt == "npz":
-        poses, success = _read_npz(path)
+        poses, success, columns = _read_npz(path, max_count)
     elif fmt == "csv":
-        poses, success = _read_csv(path)
+        poses, success, columns = _read_csv(path, max_count)
     elif fmt == "acronym":
-        poses, success = _read_acronym(path)
+        poses, success = _read_acronym(path, max_count)
     else:
         raise InputError(
-            f"{path}: unknown grasp file format {fmt!r}; valid: acronym, csv, npy, npz"
+            f"{path}: unknown grasp file format {clip(fmt)}; valid: acronym, csv, npy, npz"
         )
     _check_rigid(path, poses)
+    columns = {"source_id": np.arange(len(poses), dtype=np.int64), **columns}
+    if success is not None:
+        columns["success"] = success
+    keep: np.ndarray | None = None
     if success_only:
         if success is None:
             raise InputError(
@@ -468,142 +527,315 @@ def load_grasp_file(
                 "has none (npz: 'success' array, csv: 'success' column, acronym: "
                 "grasps/qualities/flex/object_in_gripper)"
             )
-        poses = poses[success]
+        keep = np.flatnonzero(success)
     if limit is not None:
-        poses = poses[:limit]
-    return np.ascontiguousarray(poses, dtype=float)
+        keep = (np.arange(len(poses)) if keep is None else keep)[:limit]
+    if keep is not None:
+        poses = poses[keep]
+        columns = {k: v[keep] for k, v in columns.items()}
+    return np.ascontiguousarray(poses, dtype=float), columns
+
+
+def _reserved_columns() -> set[str]:
+    """Names a carried column must not have (grasps.csv and grasp-table columns)."""
+    from gcm_pipeline.io import CSV_COLUMNS
+    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+
+    return {
+        *CSV_COLUMNS,
+        *METRIC_COLUMNS.values(),
+        *("dq", "vertices", "weights", "q", "top", "clearance", "margin"),
+    }
+
+
+def _column_name(path: Path, raw: str, taken: set[str]) -> str:
+    """A carried column's name: lower case, letters/digits/_ only, not reserved or taken."""
+    name = re.sub(r"[^0-9a-z_]+", "_", raw.strip().lower()).strip("_") or "column"
+    if name[0].isdigit():
+        name = "c_" + name
+    if name in _reserved_columns() or re.fullmatch(r"q[0-9]+", name):
+        raise InputError(
+            f"{path}: column {clip(raw)} has the name of a grasps.csv column; rename it "
+            f"(e.g. input_{name})"
+        )
+    if name in taken:
+        raise InputError(f"{path}: two columns are named {clip(name)}; rename one of them")
+    taken.add(name)
+    return name
 
 
 def _as_poses(path: Path, arr: np.ndarray, what: str) -> np.ndarray:
     if arr.ndim != 3 or arr.shape[1:] != (4, 4):
         raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+    if arr.dtype.kind not in "fiu":
         raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}")
     return np.asarray(arr, dtype=float)
 
 
-def _read_npy(path: Path) -> np.ndarray:
+def _check_count(path: Path, n: int, max_count: int) -> None:
+    if n > max_count:
+        raise InputError(
+            f"{path}: holds {n:,} grasps, more than candidates.max_count ({max_count:,}); "
+            "raise candidates.max_count to read it"
+        )
+
+
+def _read_npy(path: Path, max_count: int) -> np.ndarray:
+    from gcm_pipeline.io import npy_header
+
     try:
-        arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable .npy array: {exc}") from None
-    if not isinstance(arr, np.ndarray):
-        raise InputError(f"{path}: expected a .npy array, got an archive (use format: npz)")
+        with path.open("rb") as fh:
+            if fh.read(4) == b"PK\x03\x04":  # an npz is a zip archive
+                raise InputError(f"{path}: expected a .npy array, got an archive (use format: npz)")
+            fh.seek(0)
+            shape, _ = npy_header(path, fh, "the array", path.stat().st_size)
+            if len(shape) != 3 or shape[1:] != (4, 4):
+                raise InputError(f"{path}: the array must have shape (N, 4, 4), got {shape}")
+            _check_count(path, shape[0], max_count)
+            fh.seek(0)
+            arr = np.lib.format.read_array(fh, allow_pickle=False)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise InputError(f"{path}: not a readable .npy array: {clip(str(exc))}") from None
     return _as_poses(path, arr, "the array")
 
 
-def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable .npz archive: {exc}") from None
-    names = [k for k in ("transforms", "poses") if k in arrays]
-    if not names:
-        others = [k for k in arrays if k != "success"]
-        if len(others) != 1:
-            raise InputError(
-                f"{path}: expected an array 'transforms' (N, 4, 4); arrays: {', '.join(arrays)}"
-            )
-        names = others
-    poses = _as_poses(path, arrays[names[0]], f"array {names[0]!r}")
-    success = arrays.get("success")
+#: Bytes per grasp an .npz may hold (a 128-byte pose and some columns).
+_NPZ_BYTES_PER_GRASP = 256
+
+
+def _read_npz(
+    path: Path, max_count: int
+) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
+    from gcm_pipeline.io import read_npz
+
+    arrays = read_npz(
+        path,
+        max_bytes=max_count * _NPZ_BYTES_PER_GRASP,
+        keep=lambda name, shape, dtype: len(shape) in (1, 3),
+    )
+    poses_name = _npz_poses_name(path, {k: (v.shape, v.dtype) for k, v in arrays.items()})
+    poses = _as_poses(path, arrays.pop(poses_name), f"array {poses_name!r}")
+    _check_count(path, len(poses), max_count)
+    success = arrays.pop("success", None)
     if success is not None:
         success = _success(path, success, poses.shape[0], "array 'success'")
-    return poses, success
+    columns: dict[str, np.ndarray] = {}
+    taken: set[str] = {"source_id", "success"}
+    for name, values in arrays.items():
+        if values.ndim != 1 or len(values) != len(poses) or values.dtype.kind not in "biufU":
+            log.info(
+                "%s: array %r %s is not one value per grasp; not read", path, name, values.shape
+            )
+            continue
+        columns[_column_name(path, name, taken)] = values
+    return poses, success, columns
+
+
+def _npz_poses_name(path: Path, headers: dict[str, tuple[tuple[int, ...], Any]]) -> str:
+    for name in ("transforms", "poses"):
+        if name in headers:
+            return name
+    three_d = [k for k, (shape, _) in headers.items() if len(shape) == 3]
+    if len(three_d) != 1:
+        names = ", ".join(clip(k, 40) for k in list(headers)[:20]) or "none"
+        raise InputError(f"{path}: expected an array 'transforms' (N, 4, 4); arrays: {names}")
+    return three_d[0]
 
 
 def _success(path: Path, values: np.ndarray, n: int, what: str) -> np.ndarray:
     values = np.asarray(values).reshape(-1)
     if values.shape[0] != n:
         raise InputError(f"{path}: {what} has {values.shape[0]} values, expected {n}")
-    try:
-        return values.astype(float) > 0.5
-    except ValueError:
-        raise InputError(f"{path}: {what} must be 0/1 values") from None
+    if values.dtype.kind not in "biuf":
+        raise InputError(f"{path}: {what} must be 0/1 values, got dtype {values.dtype}")
+    return values.astype(float) > 0.5
 
 
 _CSV_POSE = ("x", "y", "z", "qw", "qx", "qy", "qz")
+#: Most columns of a grasp CSV.
+_MAX_CSV_COLUMNS = 1000
 
 
-def _read_csv(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+def _read_csv(
+    path: Path, max_count: int
+) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
+    rows: list[list[str]] = []
+    lines: list[int] = []
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"{path}: cannot read CSV: {exc}") from None
-    if not rows:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            header: list[str] | None = None
+            for row in reader:
+                if not any(cell.strip() for cell in row):
+                    continue  # blank line
+                if header is None:
+                    header = row
+                    if len(header) > _MAX_CSV_COLUMNS:
+                        raise InputError(
+                            f"{path}: header has {len(header):,} columns, at most "
+                            f"{_MAX_CSV_COLUMNS} are read"
+                        )
+                    continue
+                if len(rows) >= max_count:
+                    _check_count(path, len(rows) + 1, max_count)
+                rows.append(row)
+                lines.append(reader.line_num)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except (OSError, csv.Error) as exc:
+        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}") from None
+    if header is None:
         raise InputError(f"{path}: empty CSV; expected a header row with {','.join(_CSV_POSE)}")
-    header = [h.strip().lower() for h in rows[0]]
-    missing = [c for c in _CSV_POSE if c not in header]
+    names = [h.strip().lower() for h in header]
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            raise InputError(f"{path}: the header names column {clip(name)} twice")
+        seen.add(name)
+    missing = [c for c in _CSV_POSE if c not in names]
     if missing:
         raise InputError(
             f"{path}: CSV header lacks column(s) {', '.join(missing)}; "
-            f"expected {','.join(_CSV_POSE)} (got {','.join(header)})"
+            f"expected {','.join(_CSV_POSE)} (got {clip(','.join(names))})"
         )
-    cols = [header.index(c) for c in _CSV_POSE]
-    succ_col = header.index("success") if "success" in header else None
-    values = np.empty((len(rows) - 1, 7))
-    success = np.zeros(len(rows) - 1, dtype=bool)
-    for i, row in enumerate(rows[1:]):
-        line = i + 2
-        if len(row) != len(header):
-            raise InputError(
-                f"{path}:{line}: row has {len(row)} fields, the header has {len(header)}"
-            )
-        try:
-            values[i] = [float(row[j]) for j in cols]
-            if succ_col is not None:
-                success[i] = float(row[succ_col]) > 0.5
-        except ValueError:
-            raise InputError(f"{path}:{line}: not a number in {row!r}") from None
+    width = len(names)
+    for row, line in zip(rows, lines, strict=True):
+        if len(row) != width:
+            raise InputError(f"{path}:{line}: row has {len(row)} fields, the header has {width}")
+    cells = np.array(rows, dtype=str).reshape(len(rows), width)
+    values = np.empty((len(rows), 7))
+    for k, c in enumerate(_CSV_POSE):
+        values[:, k] = _csv_floats(path, cells[:, names.index(c)], c, lines)
     if not np.all(np.isfinite(values)):
-        line = int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0]) + 2
+        line = lines[int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0])]
         raise InputError(f"{path}:{line}: non-finite value")
     quat = values[:, 3:]
     norm = np.linalg.norm(quat, axis=1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
     if bad.size:
-        line = int(bad[0]) + 2
         raise InputError(
-            f"{path}:{line}: quaternion (qw,qx,qy,qz) has norm {norm[bad[0]]:.6g}, expected 1"
+            f"{path}:{lines[int(bad[0])]}: quaternion (qw,qx,qy,qz) has norm "
+            f"{norm[bad[0]]:.6g}, expected 1"
         )
     quat = quat / norm[:, None]
     poses = np.zeros((values.shape[0], 4, 4))
     poses[:, :3, :3] = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
     poses[:, :3, 3] = values[:, :3]
     poses[:, 3, 3] = 1.0
-    return poses, (success if succ_col is not None else None)
+    success = None
+    if "success" in names:
+        success = _csv_floats(path, cells[:, names.index("success")], "success", lines) > 0.5
+    columns: dict[str, np.ndarray] = {}
+    taken: set[str] = {"source_id", "success"}
+    for k, raw in enumerate(header):
+        if names[k] in _CSV_POSE or names[k] == "success":
+            continue
+        columns[_column_name(path, raw, taken)] = _csv_column(cells[:, k])
+    return poses, success, columns
 
 
-def _read_acronym(path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _csv_floats(path: Path, col: np.ndarray, name: str, lines: list[int]) -> np.ndarray:
+    out = np.empty(len(col))
+    for i, text in enumerate(col.tolist()):
+        try:
+            out[i] = float(text)
+        except ValueError:
+            raise InputError(
+                f"{path}:{lines[i]}: column {name!r}: not a number: {clip(text)}"
+            ) from None
+    return out
+
+
+def _csv_column(col: np.ndarray) -> np.ndarray:
+    """A carried CSV column: int64 if all integers, float64 if numbers (empty: NaN), else text."""
+    stripped = np.char.strip(col)
+    try:
+        if len(col) and all(re.fullmatch(r"[-+]?[0-9]{1,18}", t) for t in stripped.tolist()):
+            return stripped.astype(np.int64)
+        return np.where(stripped == "", "nan", stripped).astype(np.float64)
+    except ValueError:
+        return col.astype(str)
+
+
+def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
     try:
         import h5py
     except ImportError:
         raise InputError(
             f"{path}: reading ACRONYM HDF5 files needs h5py: {ACRONYM_INSTALL_HINT}"
         ) from None
+    where = "the file"
     try:
-        fh = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputError(f"{path}: not a readable HDF5 file: {exc}") from None
-    with fh:
-        for key in ("grasps/transforms", "grasps/qualities/flex/object_in_gripper"):
-            if key not in fh:
-                raise InputError(f"{path}: not an ACRONYM grasp file: missing dataset {key!r}")
-        poses = _as_poses(path, np.asarray(fh["grasps/transforms"]), "grasps/transforms")
-        success = _success(
-            path,
-            np.asarray(fh["grasps/qualities/flex/object_in_gripper"]),
-            poses.shape[0],
-            "grasps/qualities/flex/object_in_gripper",
-        )
-        if "object/file" in fh:
-            raw = fh["object/file"][()]
-            name = raw.decode() if isinstance(raw, bytes) else str(raw)
-            scale = float(fh["object/scale"][()]) if "object/scale" in fh else 1.0
-            log.info("%s: ACRONYM grasps of %s (scale %g)", path, name, scale)
+        with h5py.File(path, "r") as fh:
+            datasets = {}
+            for key in ("grasps/transforms", "grasps/qualities/flex/object_in_gripper"):
+                where = key
+                if key not in fh:
+                    raise InputError(f"{path}: not an ACRONYM grasp file: missing dataset {key!r}")
+                node = fh[key]
+                if not isinstance(node, h5py.Dataset):
+                    raise InputError(f"{path}: {key} is a {type(node).__name__}, not a dataset")
+                if node.dtype.kind not in "biuf":
+                    raise InputError(f"{path}: {key} must hold numbers, got dtype {node.dtype}")
+                datasets[key] = node
+            where = "grasps/transforms"
+            tf = datasets["grasps/transforms"]
+            if len(tf.shape) != 3 or tf.shape[1:] != (4, 4):
+                raise InputError(
+                    f"{path}: grasps/transforms must have shape (N, 4, 4), got {tf.shape}"
+                )
+            _check_count(path, tf.shape[0], max_count)
+            poses = _as_poses(path, np.asarray(tf[()]), "grasps/transforms")
+            where = "grasps/qualities/flex/object_in_gripper"
+            quality = datasets[where]
+            if quality.size != poses.shape[0]:
+                raise InputError(
+                    f"{path}: {where} has {quality.size} values, expected {poses.shape[0]}"
+                )
+            success = _success(path, np.asarray(quality[()]), poses.shape[0], where)
+            where = "object"
+            name, scale = _acronym_object(path, fh, h5py)
+    except InputError:
+        raise
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
+        raise InputError(
+            f"{path}: corrupt or unreadable HDF5 file (at {where}): {clip(str(exc))}"
+        ) from None
+    if name is not None:
+        log.info("%s: ACRONYM grasps of %s (scale %g)", path, name, scale)
     return poses, success
+
+
+def _acronym_object(path: Path, fh: Any, h5py: Any) -> tuple[str | None, float]:
+    """``object/file`` (text) and ``object/scale`` (a number) of an ACRONYM file."""
+    name = None
+    scale = 1.0
+    if "object/file" in fh:
+        node = fh["object/file"]
+        raw = node[()] if isinstance(node, h5py.Dataset) else None
+        if isinstance(raw, np.ndarray) and raw.size == 1:
+            raw = raw.reshape(-1)[0]
+        if isinstance(raw, bytes):
+            try:
+                raw = raw.decode("utf-8")
+            except UnicodeDecodeError:
+                raw = None
+        if not isinstance(raw, str):
+            raise InputError(f"{path}: object/file must be a text (the mesh file), got {clip(raw)}")
+        name = raw
+    if "object/scale" in fh:
+        node = fh["object/scale"]
+        raw = node[()] if isinstance(node, h5py.Dataset) else None
+        if isinstance(raw, np.ndarray) and raw.size == 1:
+            raw = raw.reshape(-1)[0]
+        if isinstance(raw, (bool, np.bool_)) or not isinstance(raw, (int, float, np.number)):
+            raise InputError(f"{path}: object/scale must be a number, got {clip(raw)}")
+        scale = float(raw)
+        if not (math.isfinite(scale) and scale > 0):
+            raise InputError(f"{path}: object/scale must be a positive number, got {scale!r}")
+    return name, scale
 
 
 def _check_rigid(path: Path, poses: np.ndarray) -> None:

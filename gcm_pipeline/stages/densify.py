@@ -31,6 +31,7 @@ import numpy as np
 
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dib, dlb, dq_translation
+from gcm_pipeline.limits import check_size, lattice_size
 from gcm_pipeline.stages.manifold import Manifold, candidate_poses
 from gcm_pipeline.table import GraspTable, candidate_fill
 
@@ -214,6 +215,7 @@ def densify(
     subdivisions: int | None = 4,
     spacing: float | None = None,
     method: str = "dlb",
+    max_poses: int | None = None,
 ) -> GraspTable:
     """Add blended grasp poses on a barycentric lattice inside every kept triangle.
 
@@ -228,6 +230,8 @@ def densify(
             spacing)`` (overrides ``subdivisions``).
         method: ``dlb`` (dual quaternion linear blending, default) or ``dib``
             (iterative bi-invariant blending).
+        max_poses: Ceiling of the output rows (``densify.max_poses``), checked
+            on an upper bound of the lattice before it is built (None: no ceiling).
 
     Returns:
         A table of M rows: the N candidates (input order, poses bit-for-bit),
@@ -262,6 +266,16 @@ def densify(
             f"0..{len(dq) - 1}"
         )
     n_per = _subdivisions(dq_translation(dq), tris, subdivisions, spacing)
+    if max_poses is not None:
+        n_max = int(n_per.max()) if len(n_per) else 0
+        check_size(
+            len(dq_in) + lattice_size(n_per) - 3 * len(n_per),
+            max_poses,
+            f"densify: {len(dq_in):,} candidates and {len(n_per):,} triangles with up to "
+            f"{n_max:,} subdivisions give up to this many poses",
+            "densify.max_poses",
+            "lower densify.subdivisions (or raise densify.spacing), or ",
+        )
     tri, ijk, n = _points(tris, n_per)
     weights = ijk / n[:, None].astype(np.float64)
     vertices = tris[tri]

@@ -286,18 +286,30 @@ def _pose(origin: np.ndarray, rot: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- charts
+def _chart_error(projection: str, exc: GeometryError) -> GeometryError:
+    """The chart's error; a degenerate chart suggests the other projections."""
+    msg = f"{projection} chart: {exc}"
+    if "degenerate" in str(exc):
+        others = ", ".join(p for p in PROJECTIONS if p != projection)
+        msg += (
+            f"; the grasps do not spread out in the {projection} chart: try another "
+            f"manifold.projection ({others})"
+        )
+    return GeometryError(msg)
+
+
 def _triangulate(chart: np.ndarray, projection: str, triangulator: str) -> np.ndarray:
     try:
         return delaunay(chart, triangulator)
     except GeometryError as exc:
-        raise GeometryError(f"{projection} chart: {exc}") from None
+        raise _chart_error(projection, exc) from None
 
 
 def _check_chart(chart: np.ndarray, projection: str) -> None:
     try:
         check_triangulable(chart)
     except GeometryError as exc:
-        raise GeometryError(f"{projection} chart: {exc}") from None
+        raise _chart_error(projection, exc) from None
 
 
 def _approach_points(

@@ -3,21 +3,17 @@
 A run refuses work whose size it can estimate in advance and that would
 exhaust memory, with a message that gives the estimate and the config key
 that raises the ceiling. The ceilings a user can raise are config keys; the
-fixed ones are bounds of the config schema.
+fixed ones are bounds of the config schema:
 
-================================ ============ ==================================
-limit                            default      estimate checked
-================================ ============ ==================================
-``candidates.max_count``         1,000,000    generated ``count``; rows in a grasp
-                                              file (from its header, before reading)
-``densify.max_poses``            2,000,000    candidates + lattice points
-                                              sum over triangles of (n+1)(n+2)/2,
-                                              before the lattice is built
-``approach.steps``               <= 1,000     schema bound (0.1 mm steps over 10 cm)
-``ik.workers``                   <= 256       schema bound
-YAML files and ``--set``         1 MiB, depth 64, 100,000 values after aliases
-                                 (:mod:`gcm_pipeline.safe_yaml`)
-================================ ============ ==================================
+- ``candidates.max_count`` (default 1,000,000): the generated ``count``; the
+  grasps in a file, from its header, before reading.
+- ``densify.max_poses`` (default 2,000,000): candidates plus lattice points,
+  the sum over the triangles of (n+1)(n+2)/2, before the lattice is built.
+- ``approach.steps``, ``retreat.steps``: at most 1,000 (schema bound; 0.1 mm
+  steps over 10 cm).
+- ``ik.workers``: at most 256 (schema bound).
+- YAML files and ``--set`` values: 1 MiB, depth 64, 100,000 values after
+  aliases (:mod:`gcm_pipeline.safe_yaml`).
 
 Any stage that grows the table (adaptive refinement included) checks its
 estimate with :func:`check_size` against the same key.

@@ -190,6 +190,7 @@ def test_cli_export_and_an_empty_run(run, tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
     # a run whose object is out of reach: no reachable grasp
     empty = make_run(tmp_path / "far", object_x=3.0)
+    assert "no grasp is reachable" in capsys.readouterr().err  # the run warned
     out = tmp_path / "none.yaml"
     assert main(["export", str(empty), "--format", "moveit", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -10,7 +10,7 @@ r = 3.5 cm, h = 22 cm at x = 0.5 m).
 * ``pinocchio_loop``: the reference, ``pin.computeCollisions`` in a Python loop
   over the same configurations with every pair (stop at first collision).
 * ``clearance``: :meth:`CollisionChecker.clearance` on the same configurations.
-* ``approach``: :func:`check_approach_path` (10 steps over 10 cm) for IK
+* ``approach``: :func:`~gcm_pipeline.robot.approach.check_moves` (10 steps over 10 cm) for IK
   solutions of top-down grasps over the table, per grasp.
 
 The machine is shared: every figure is the median of ``--repeats`` runs.
@@ -35,10 +35,10 @@ import pinocchio as pin
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a clone, no install
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
-from gcm_pipeline.robot.approach import check_approach_path
-from gcm_pipeline.robot.collision import CollisionChecker
+from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import load_robot
+from gcm_pipeline.stages.collision import make_checker
 
 BOTTLE = {
     "shape": "cylinder",
@@ -97,18 +97,14 @@ def main() -> None:
     robot = load_robot("panda")
     obj = ObjectConfig.model_validate(BOTTLE)
     t0 = time.perf_counter()
-    checker = CollisionChecker(robot, EnvironmentConfig(), obj)
+    checker = make_checker(robot, EnvironmentConfig(), obj)
     build_s = time.perf_counter() - t0
     q = front_configurations(robot, args.configs)
     n = len(q)
     results: dict[str, object] = {"configurations": n, "checker_build_s": build_s}
 
     for threads in (1, 2):
-        c = (
-            checker
-            if threads == 1
-            else CollisionChecker(robot, EnvironmentConfig(), obj, threads=2)
-        )
+        c = checker if threads == 1 else make_checker(robot, EnvironmentConfig(), obj, threads=2)
         dt, reasons = timed(lambda c=c: c.check(q), args.repeats)
         results[f"check_threads{threads}_per_s"] = n / dt
     kinds, counts = np.unique(np.asarray(reasons), return_counts=True)
@@ -132,10 +128,16 @@ def main() -> None:
     grasps = top_down_grasps(args.grasps)
     ik = solve_ik(robot, grasps, validator=checker.check)
     ok = ik.success
-    path_checker = checker.with_contact_tolerance(0.0)
+    move = Move(distance=0.10, direction=(0, 0, -1), frame="grasp", steps=10)
+    radius = gripper_radius(robot)
     dt, res = timed(
-        lambda: check_approach_path(
-            robot, grasps[ok], ik.q[ok], path_checker, distance=0.10, steps=10
+        lambda: check_moves(
+            robot,
+            grasps[ok],
+            ik.q[ok],
+            move,
+            lambda qs, rows: checker.check(qs, mode="approach"),
+            gripper_radius=radius,
         ),
         max(1, args.repeats // 2),
     )

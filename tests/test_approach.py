@@ -24,9 +24,10 @@ from gcm_pipeline.robot.approach import (
     move_poses,
     plan_moves,
 )
-from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, CollisionChecker, _gripper_links
+from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, gripper_links
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import load_robot
+from gcm_pipeline.stages.collision import make_checker
 
 
 def _pose(p, z):
@@ -44,6 +45,10 @@ FROM_BELOW = _pose([0.45, 0.1, 0.3], [0, 0, 1])  # approach upward, from under t
 APPROACH = Move(distance=0.10, direction=(0, 0, -1), frame="grasp", steps=10)
 
 
+def _approach(checker):
+    return lambda q, rows: checker.check(q, mode="approach")
+
+
 @pytest.fixture(scope="module")
 def robot():
     return load_robot("panda")
@@ -51,7 +56,7 @@ def robot():
 
 @pytest.fixture(scope="module")
 def checker(robot):
-    return CollisionChecker(robot, EnvironmentConfig())
+    return make_checker(robot, EnvironmentConfig())
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +95,7 @@ def test_gripper_radius_bounds_the_hand(robot, radius):
 
 def test_top_down_accepted_from_below_rejected(robot, checker, solved, radius):
     targets, res = solved
-    out = check_moves(robot, targets, res.q, APPROACH, checker, gripper_radius=radius)
+    out = check_moves(robot, targets, res.q, APPROACH, _approach(checker), gripper_radius=radius)
     assert out.ok.tolist() == [True, False]
     assert out.reason[1] == REASON_ENVIRONMENT  # the arm goes through the table
     assert 1 <= out.failed_step[1] <= 10
@@ -107,14 +112,18 @@ def test_top_down_accepted_from_below_rejected(robot, checker, solved, radius):
 def test_joint_step_bound_zero_distance_and_invalid(robot, checker, solved, radius):
     targets, res = solved
     tight = dataclasses.replace(APPROACH, max_joint_step=1e-4)
-    out = check_moves(robot, targets[:1], res.q[:1], tight, checker, gripper_radius=radius)
+    out = check_moves(
+        robot, targets[:1], res.q[:1], tight, _approach(checker), gripper_radius=radius
+    )
     assert out.reason.tolist() == ["joint_step"] and out.failed_step[0] == 1
     zero = dataclasses.replace(APPROACH, distance=0.0)
-    out = check_moves(robot, targets, res.q, zero, checker, gripper_radius=radius)
+    out = check_moves(robot, targets, res.q, zero, _approach(checker), gripper_radius=radius)
     assert out.ok.all()
     np.testing.assert_allclose(out.q_end, res.q)
     nan_q = np.full((1, robot.nq), np.nan)
-    out = check_moves(robot, targets[:1], nan_q, APPROACH, checker, gripper_radius=radius)
+    out = check_moves(
+        robot, targets[:1], nan_q, APPROACH, _approach(checker), gripper_radius=radius
+    )
     assert out.reason.tolist() == ["invalid"]
 
 
@@ -143,7 +152,7 @@ def test_move_errors(kw, match):
 
 def _gripper_corners(robot):
     """Corners of every gripper collision geometry's local box: (geometry index, (8, 3))."""
-    links = _gripper_links(robot)
+    links = gripper_links(robot)
     gm = robot.build_geometry("collision")
     out = []
     for k, go in enumerate(gm.geometryObjects):
@@ -194,7 +203,7 @@ def test_accepted_moves_are_sound_on_sampled_grasps(robot, radius):
     """No accepted move leaves its line by more than max_deviation (dense samples,
     independent kinematics) or collides at a grid point (exhaustive pair loop)."""
     rng = np.random.default_rng(11)
-    checker = CollisionChecker(robot, EnvironmentConfig())
+    checker = make_checker(robot, EnvironmentConfig())
     q0 = robot.random_configurations(400, rng)
     poses = robot.fk(q0)
     free = (checker.check(q0) == "") & (poses[:, 2, 3] > 0.05)
@@ -206,7 +215,7 @@ def test_accepted_moves_are_sound_on_sampled_grasps(robot, radius):
     ]
     accepted = 0
     for move in moves:
-        out = check_moves(robot, poses, q0, move, checker, gripper_radius=radius)
+        out = check_moves(robot, poses, q0, move, _approach(checker), gripper_radius=radius)
         offsets = move.offsets(poses)
         for i in np.flatnonzero(out.ok)[:12]:
             accepted += 1

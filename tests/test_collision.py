@@ -15,11 +15,10 @@ from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,
     REASON_OBJECT,
     REASON_SELF,
-    CollisionChecker,
     shape_geometry,
 )
 from gcm_pipeline.robot.model import load_robot
-from gcm_pipeline.stages.collision import combined_score
+from gcm_pipeline.stages.collision import combined_score, make_checker
 
 BOTTLE = {
     "shape": "cylinder",
@@ -35,7 +34,7 @@ def robot():
 
 @pytest.fixture(scope="module")
 def checker(robot):
-    return CollisionChecker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
+    return make_checker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
 
 
 def _q(robot, **joints):
@@ -71,7 +70,7 @@ def test_object_at_hand_is_object_collision(robot):
     obj = ObjectConfig.model_validate(
         {"shape": "box", "dims": {"size": [0.05, 0.05, 0.05]}, "pose": {"xyz": at_wrist}}
     )
-    c = CollisionChecker(robot, EnvironmentConfig(), obj)
+    c = make_checker(robot, EnvironmentConfig(), obj)
     assert c.check(robot.home).tolist() == [REASON_OBJECT]
 
 
@@ -83,7 +82,7 @@ def test_contact_tolerance_at_finger_pads(robot):
         obj = ObjectConfig.model_validate(
             {"shape": "sphere", "dims": {"radius": radius}, "pose": {"xyz": tcp}}
         )
-        c = CollisionChecker(robot, EnvironmentConfig(contact_tolerance=tol), obj)
+        c = make_checker(robot, EnvironmentConfig(contact_tolerance=tol), obj)
         return c.check(robot.home)[0]
 
     assert reason(0.030, 0.0) == ""  # fits between the fingers (8 cm opening)
@@ -154,7 +153,7 @@ def test_agrees_with_pinocchio_compute_collisions(robot):
             "obstacles": [{"shape": "sphere", "dims": {"radius": 0.1}, "pose": {"xyz": obstacle}}],
         }
     )
-    c = CollisionChecker(robot, env, ObjectConfig.model_validate(BOTTLE))
+    c = make_checker(robot, env, ObjectConfig.model_validate(BOTTLE))
     model, gm, kinds = _oracle([0.5, 0.0, 0.0], obstacle)
     data, gd = model.createData(), pin.GeometryData(gm)
     rng = np.random.default_rng(7)
@@ -192,11 +191,11 @@ def test_table_exempts_only_base_link(checker):
 def test_base_pose_moves_the_world(robot):
     # robot mounted 0.5 m above the table: the through-table configuration is now free
     q = _q(robot, j2=1.6, j4=-0.5)
-    c = CollisionChecker(robot, EnvironmentConfig(), None, None)
+    c = make_checker(robot, EnvironmentConfig(), None, None)
     assert c.check(q)[0] == REASON_ENVIRONMENT
     raised = np.eye(4)
     raised[2, 3] = 0.5
-    c2 = CollisionChecker(robot, EnvironmentConfig(), None, raised)
+    c2 = make_checker(robot, EnvironmentConfig(), None, raised)
     assert c2.check(q)[0] == ""
     assert c2.table_exempt == ()  # nothing stands on the table any more
 
@@ -210,7 +209,7 @@ def test_mesh_obstacle(robot):
             ]
         }
     )
-    c = CollisionChecker(robot, env)
+    c = make_checker(robot, env)
     assert c.check(robot.home)[0] == ""
     assert c.check(_q(robot, j2=1.3, j4=-0.5))[0] == REASON_ENVIRONMENT  # hand at x 0.76, z 0.1
 
@@ -223,10 +222,10 @@ def test_unreadable_mesh_names_the_file(robot, tmp_path):
     bad.write_text("not a mesh")
     env = EnvironmentConfig(obstacles=(ObstacleConfig(shape="mesh", mesh=bad),))
     with pytest.raises(InputError, match="broken.stl"):
-        CollisionChecker(robot, env)
+        make_checker(robot, env)
     env = EnvironmentConfig(obstacles=(ObstacleConfig(shape="mesh", mesh=tmp_path / "nope.obj"),))
     with pytest.raises(InputError, match="nope.obj"):
-        CollisionChecker(robot, env)
+        make_checker(robot, env)
 
 
 @pytest.mark.parametrize(
@@ -299,7 +298,7 @@ def test_clearance_broad_phase_equals_all_pairs(robot):
             ]
         }
     )
-    c = CollisionChecker(robot, env, ObjectConfig.model_validate(BOTTLE))
+    c = make_checker(robot, env, ObjectConfig.model_validate(BOTTLE))
     qs = robot.random_configurations(300, 3)
     fast = c.clearance(qs)
     dm, dd = c._dist_model, c._dist_data
@@ -311,8 +310,11 @@ def test_clearance_broad_phase_equals_all_pairs(robot):
     ref = np.array(ref)
     free = ref > 0
     assert free.sum() > 100 and (~free).sum() > 5
-    np.testing.assert_allclose(fast[free], ref[free], atol=1e-9)
-    assert np.all(fast[~free] <= 0)
+    exact = c.clearance(qs, precision=0.0)
+    np.testing.assert_allclose(exact[free], ref[free], atol=1e-9)
+    assert np.all(exact[~free] <= 0)
+    # the default precision: a real distance, at most 1 mm above the minimum
+    assert np.all(fast[free] >= ref[free] - 1e-9) and np.all(fast[free] <= ref[free] + 1e-3)
 
 
 def test_switches_self_collision_and_object(robot):
@@ -322,10 +324,10 @@ def test_switches_self_collision_and_object(robot):
     obj = ObjectConfig.model_validate(
         {"shape": "box", "dims": {"size": [0.05, 0.05, 0.05]}, "pose": {"xyz": at_wrist}}
     )
-    off = CollisionChecker(robot, EnvironmentConfig(self_collision=False, check_object=False), obj)
+    off = make_checker(robot, EnvironmentConfig(self_collision=False, check_object=False), obj)
     assert off.check(np.vstack([folded, robot.home])).tolist() == ["", ""]
     assert "object" not in {s.name for s in off.world}
-    no_table = CollisionChecker(robot, EnvironmentConfig(table=None))
+    no_table = make_checker(robot, EnvironmentConfig(table=None))
     assert no_table.check(_q(robot, j2=1.6, j4=-0.5))[0] == ""
     assert np.isinf(no_table.clearance(robot.home)[0])  # nothing to measure against
     assert "CollisionChecker(robot='panda'" in repr(no_table)
@@ -357,13 +359,13 @@ def test_mesh_object_contact_tolerance_on_the_gripper(robot, tmp_path):
         shape_geometry("mesh", None, mesh=stl, erode=0.005)
     tcp = robot.fk(robot.home)[0, :3, 3].tolist()
     obj = ObjectConfig.model_validate({"shape": "mesh", "mesh": str(stl), "pose": {"xyz": tcp}})
-    c = CollisionChecker(robot, EnvironmentConfig(), obj)
+    c = make_checker(robot, EnvironmentConfig(), obj)
     assert c.check(robot.home)[0] == REASON_OBJECT  # a 10 cm cube does not fit the 8 cm opening
     snug = _cube_stl(tmp_path / "snug.stl", 0.041)  # 1 mm into each pad, 4 mm into the palm
     obj = ObjectConfig.model_validate({"shape": "mesh", "mesh": str(snug), "pose": {"xyz": tcp}})
-    assert CollisionChecker(robot, EnvironmentConfig(), obj).check(robot.home)[0] == ""
+    assert make_checker(robot, EnvironmentConfig(), obj).check(robot.home)[0] == ""
     strict = EnvironmentConfig(contact_tolerance=0.0)
-    assert CollisionChecker(robot, strict, obj).check(robot.home)[0] == REASON_OBJECT
+    assert make_checker(robot, strict, obj).check(robot.home)[0] == REASON_OBJECT
 
 
 def test_piece_inside_a_mesh_object_collides(robot, tmp_path):
@@ -377,18 +379,145 @@ def test_piece_inside_a_mesh_object_collides(robot, tmp_path):
         trimesh.creation.box((0.06, 2 * half_width, 0.024)).export(stl)
         pose = {"xyz": tcp[:3, 3].tolist(), "rpy_deg": rpy}
         obj = ObjectConfig.model_validate({"shape": "mesh", "mesh": str(stl), "pose": pose})
-        c = CollisionChecker(robot, EnvironmentConfig(), obj)
+        c = make_checker(robot, EnvironmentConfig(), obj)
         assert c.check(robot.home)[0] == expect
     pairs = c.colliding_pairs(robot.home)
     assert ("panda_leftfinger_3_contact", "object (inside)", "object") in pairs
     assert all(b == "object (inside)" for _, b, _ in pairs)  # no triangle is crossed
 
 
-def test_self_broad_phase_equals_all_self_pairs(robot, checker):
-    """Sphere-filtered self groups agree with every self pair run by Pinocchio."""
-    km = checker._kind_models["self"]
-    kd, data = pin.GeometryData(km), robot.model.createData()
-    qs = robot.random_configurations(3000, 11)
-    ref = np.array([pin.computeCollisions(robot.model, data, km, kd, q, True) for q in qs])
-    assert ref.sum() > 50
-    np.testing.assert_array_equal(checker._self_collides(qs), ref)
+def _every_pair_reasons(robot, checker, qs, mode):
+    """Reasons from Pinocchio's computeCollisions over every pair of ``mode`` (no broad phase)."""
+    bit = {"grasp": 1, "approach": 2, "retreat": 4}[mode]
+    gm = checker._gm.copy()
+    gm.removeAllCollisionPairs()
+    kinds = []
+    for p in checker._pairs:
+        if p.modes & bit:
+            gm.addCollisionPair(pin.CollisionPair(p.a, p.b))
+            kinds.append(p.kind)
+    kinds = np.array(kinds)
+    gd, data = pin.GeometryData(gm), robot.model.createData()
+    out = []
+    for q in qs:
+        pin.computeCollisions(robot.model, data, gm, gd, q, False)
+        hit = np.array([r.isCollision() for r in gd.collisionResults])
+        out.append(
+            next(
+                (
+                    f"collision_{k}"
+                    for k in ("environment", "self", "object")
+                    if hit[kinds == k].any()
+                ),
+                "",
+            )
+        )
+    return np.array(out)
+
+
+@pytest.mark.parametrize("mode", ["grasp", "approach", "retreat"])
+def test_broad_phase_agrees_with_every_pair(robot, checker, mode):
+    """The broad-phase pools give the reason of every pair run one by one, in each mode."""
+    qs = robot.random_configurations(2000, 11)
+    # and configurations around the bottle: IK solutions of grasps on it
+    from gcm_pipeline.robot.ik import solve_ik
+
+    t = np.tile(np.eye(4), (200, 1, 1))
+    rng = np.random.default_rng(2)
+    a = rng.uniform(-np.pi, np.pi, 200)
+    z = -np.stack([np.cos(a), np.sin(a), np.zeros(200)], axis=1)
+    t[:, :3, 2] = z
+    t[:, :3, 1] = [0.0, 0.0, 1.0]
+    t[:, :3, 0] = np.cross(t[:, :3, 1], z)
+    t[:, :3, 3] = np.stack(
+        [0.5 + 0.03 * np.cos(a), 0.03 * np.sin(a), rng.uniform(0.02, 0.2, 200)], 1
+    )
+    res = solve_ik(robot, t)
+    qs = np.concatenate([qs, res.q[res.success]])
+    ref = _every_pair_reasons(robot, checker, qs, mode)
+    assert (ref == "").sum() > 100 and len(set(ref)) == (3 if mode == "retreat" else 4)
+    np.testing.assert_array_equal(checker.check(qs, mode), ref)
+
+
+def test_modes_differ_only_at_the_object(robot, checker):
+    """A finger pad pressed 3 mm into the bottle: a grasp, not an approach; the retreat holds it."""
+    from gcm_pipeline.robot.ik import solve_ik
+
+    t = np.eye(4)
+    t[:3, :3] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]  # approach +x, fingers along y
+    t[:3, 3] = [0.5, 0.008, 0.12]  # on the axis, 8 mm aside: one pad 3 mm into the bottle
+    q = solve_ik(robot, t).q
+    assert np.isfinite(q).all()
+    reasons = {m: checker.check(q, m)[0] for m in ("grasp", "approach", "retreat")}
+    assert reasons == {"grasp": "", "approach": REASON_OBJECT, "retreat": ""}
+    with pytest.raises(InputError, match="collision mode"):
+        checker.check(q, "lift")
+
+
+def test_carried_object_agrees_with_coal_on_every_pair(robot, checker):
+    """While the bottle is held (retreat), its sphere-pruned checks against the table
+    and the arm links give coal's answer on every pair."""
+    from gcm_pipeline.robot.collision import gripper_links
+    from gcm_pipeline.robot.ik import solve_ik
+
+    n = 150
+    rng = np.random.default_rng(5)
+    a = rng.uniform(-np.pi / 2, np.pi / 2, n) + np.pi  # the side facing the robot
+    z = -np.stack([np.cos(a), np.sin(a), np.zeros(n)], axis=1)
+    t = np.tile(np.eye(4), (n, 1, 1))
+    t[:, :3, 2] = z
+    t[:, :3, 1] = [0.0, 0.0, 1.0]
+    t[:, :3, 0] = np.cross(t[:, :3, 1], z)
+    t[:, :3, 3] = np.stack(
+        [0.5 + 0.025 * np.cos(a), 0.025 * np.sin(a), rng.uniform(0.03, 0.2, n)], 1
+    )
+    res = solve_ik(robot, t)
+    ok = res.success
+    held = np.linalg.inv(t[ok]) @ checker.object.placement
+    # move the arm around the grasp: the bottle goes down into the table, up, sideways
+    qs = res.q[ok] + rng.normal(0.0, 0.25, (ok.sum(), robot.nq))
+    qs = np.clip(qs, robot.lower + 1e-6, robot.upper - 1e-6)
+    fast = checker.check(qs, "retreat", carried=held)
+
+    ref = _every_pair_reasons(robot, checker, qs, "retreat")
+    gm = checker._gm
+    links = gripper_links(robot)
+    arm = [
+        i
+        for i in range(checker.n_robot_geoms)
+        if robot.model.frames[gm.geometryObjects[i].parentFrame].name not in links
+    ]
+    env = [i for i, go in enumerate(gm.geometryObjects) if go.name == "table"]
+    data, gd = robot.model.createData(), pin.GeometryData(gm)
+    obj = checker.object
+    req = coal.CollisionRequest()
+
+    def hits(g1, m1, g2, m2):
+        res = coal.CollisionResult()
+        tf = lambda m: coal.Transform3s(m[:3, :3].copy(), m[:3, 3].copy())  # noqa: E731
+        return coal.collide(g1, tf(m1), g2, tf(m2), req, res) > 0
+
+    for k, q in enumerate(qs):
+        if ref[k]:
+            continue
+        pin.forwardKinematics(robot.model, data, q)
+        pin.updateGeometryPlacements(robot.model, data, gm, gd)
+        pin.updateFramePlacement(robot.model, data, robot.grasp_frame_id)
+        pose = data.oMf[robot.grasp_frame_id].homogeneous @ held[k]
+        if any(
+            hits(
+                obj.geometry,
+                pose,
+                gm.geometryObjects[w].geometry,
+                gm.geometryObjects[w].placement.homogeneous,
+            )
+            for w in env
+        ):
+            ref[k] = "collision_environment"
+        elif any(
+            hits(gm.geometryObjects[i].geometry, gd.oMg[i].homogeneous, obj.geometry, pose)
+            for i in arm
+        ):
+            ref[k] = "collision_object"
+    assert {"", "collision_environment", "collision_object"} <= set(ref)
+    np.testing.assert_array_equal(fast, ref)

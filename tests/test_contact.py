@@ -21,10 +21,11 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
-from gcm_pipeline.robot.collision import REASON_OBJECT, CollisionChecker
+from gcm_pipeline.robot.collision import REASON_OBJECT
 from gcm_pipeline.robot.contact import NotConvexError, SolidMesh, erode_convex
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import load_robot
+from gcm_pipeline.stages.collision import make_checker
 
 trimesh = pytest.importorskip("trimesh")
 from thin_walled import bowl_parts, cup_parts, plate_parts  # noqa: E402
@@ -289,7 +290,7 @@ def test_thin_walls_never_more_conservative_than_the_geometry(robot, name, tmp_p
     trimesh.util.concatenate(parts).export(stl)
     obj = ObjectConfig.model_validate({"shape": "mesh", "mesh": str(stl), "pose": pose})
     env = EnvironmentConfig(table=None, self_collision=False, contact_tolerance=TOL)
-    checker = CollisionChecker(robot, env, obj)
+    checker = make_checker(robot, env, obj)
     qs = _near_surface_configurations(robot, parts, obj.pose.matrix(), 400, seed=len(name))
     reported = checker.check(qs) == REASON_OBJECT
     oracle = Oracle(robot, parts, obj.pose.matrix())

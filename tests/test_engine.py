@@ -11,11 +11,11 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import Move, move_poses
-from gcm_pipeline.robot.collision import CollisionChecker
 from gcm_pipeline.robot.engine import ReachabilityEngine, available_cores
 from gcm_pipeline.robot.ik import verify_solutions
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.candidates import generate_candidates
+from gcm_pipeline.stages.collision import make_checker
 
 ROOT = Path(__file__).resolve().parent.parent
 BOTTLE = {
@@ -40,7 +40,7 @@ def robot():
 
 @pytest.fixture(scope="module")
 def checker(robot):
-    return CollisionChecker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
+    return make_checker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
 
 
 @pytest.fixture(scope="module")
@@ -93,8 +93,8 @@ def test_retreat_removes_grasps_and_down_fails(robot, checker, grasps, result):
     assert np.isnan(no_retreat.q_retreat).all()
     lost = no_retreat.reachable & ~result.reachable
     assert np.all(result.reason[lost] == "retreat")
-    # pushing the hand down through the table: nothing survives the retreat
-    down = Move(distance=0.30, direction=(0, 0, -1), frame="base", steps=10, holding=True)
+    # pushing the held bottle down into the table: nothing survives the retreat
+    down = Move(distance=0.10, direction=(0, 0, -1), frame="base", steps=10, holding=True)
     pushed = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=down).run(grasps)
     assert not pushed.reachable.any()
     assert set(pushed.reason[no_retreat.reachable]) == {"retreat"}

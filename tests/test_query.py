@@ -18,7 +18,7 @@ from gcm_pipeline.geometry.surface import (
     pose_distance,
     pose_features,
 )
-from gcm_pipeline.robot.collision import CollisionChecker
+from gcm_pipeline.stages.collision import make_checker
 
 ROOT = Path(__file__).resolve().parents[1]
 BOTTLE = ROOT / "configs" / "bottle_side.yaml"
@@ -172,7 +172,7 @@ def _verify(run: gcm.RunResult, dq: np.ndarray, q: np.ndarray) -> None:
     angle = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1))
     assert angle.max() < cfg.ik.orientation_tolerance
     assert run.robot.within_limits(q).all()
-    checker = CollisionChecker(run.robot, cfg.environment, cfg.object, base)
+    checker = make_checker(run.robot, cfg.environment, cfg.object, base)
     assert np.all(checker.check(q) == "")
 
 
@@ -220,7 +220,7 @@ def test_best_is_at_least_the_best_row(
             "dq": best.dq,
             "reachable": np.ones(len(best.dq), bool),
             "q": best.q,
-            "clearance": CollisionChecker(
+            "clearance": make_checker(
                 bottle_run.robot,
                 bottle_run.config.environment,
                 bottle_run.config.object,

@@ -50,12 +50,13 @@ for the :math:`h^2` terms to use at most a quarter of it.
 
 Collisions are checked by :func:`check_moves` at every grid point
 :math:`s_k, k \ge 1` of the joint path (the grasp itself, :math:`k = 0`, is the
-caller's), with the checker the caller gives (the approach: no finger contact
-allowed; the retreat: the gripper holds the object).
+caller's), with the check the caller gives (the approach: no contact allowed;
+the retreat: the gripper holds the object, which moves with it).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -208,12 +209,12 @@ def gripper_radius(robot: Robot) -> float:
     """
     import pinocchio as pin
 
-    from gcm_pipeline.robot.collision import _gripper_links
+    from gcm_pipeline.robot.collision import gripper_links
 
     cached = robot.cache.get("gripper_radius")
     if cached is not None:
         return float(cached)
-    links = _gripper_links(robot)
+    links = gripper_links(robot)
     gm = robot.build_geometry("collision")
     model = robot.model
     data, gd = model.createData(), pin.GeometryData(gm)
@@ -463,7 +464,7 @@ def check_moves(
     poses: Any,
     q_start: Any,
     move: Move,
-    checker: Any | None,
+    collisions: Callable[[np.ndarray, np.ndarray], Any] | None,
     *,
     gripper_radius: float,
     position_tolerance: float = 1e-4,
@@ -478,8 +479,11 @@ def check_moves(
         poses: Grasp poses (N, 4, 4) in the base frame [m].
         q_start: Configurations reaching them (N, nq) [rad].
         move: The move.
-        checker: Object with ``check(q (M, nq)) -> (M,) str`` ('' = free) for
-            the grid points ``k >= 1``, or None (no collision checks).
+        collisions: ``collisions(q, move) -> reasons``: the collision reason
+            (``''`` = free) of configurations ``q`` (K, nq) on the moves with
+            indices ``move`` (K,), for the grid points ``k >= 1``; e.g.
+            ``lambda q, i: checker.check(q, mode="approach")``. None: no
+            collision checks.
         gripper_radius: Largest distance of a gripper point from the grasp frame [m].
         position_tolerance: IK tolerance [m].
         orientation_tolerance: IK tolerance [rad].
@@ -505,10 +509,11 @@ def check_moves(
     failed = plan.failed_step.copy()
     q_path = plan.q_path
     rows = np.flatnonzero(ok)
-    if checker is not None and rows.size and move.distance > 0:
+    if collisions is not None and rows.size and move.distance > 0:
         steps = move.steps
         samples = q_path[rows, 1:].reshape(-1, robot.nq)
-        why = np.asarray(checker.check(samples), dtype=object).reshape(rows.size, steps)
+        which = np.repeat(rows, steps)
+        why = np.asarray(collisions(samples, which), dtype=object).reshape(rows.size, steps)
         hit = why != ""
         bad = np.flatnonzero(hit.any(axis=1))
         first = np.argmax(hit[bad], axis=1)

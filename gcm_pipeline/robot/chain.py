@@ -21,7 +21,7 @@ import pinocchio as pin
 
 from gcm_pipeline.errors import RobotSpecError
 
-__all__ = ["KinematicChain"]
+__all__ = ["JointFrames", "KinematicChain"]
 
 _AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0)}
 _AXES["JointModelRZ"] = (0.0, 0.0, 1.0)
@@ -192,3 +192,96 @@ class KinematicChain:
         Their sum bounds the distance from the first joint's origin to the frame.
         """
         return np.concatenate([np.linalg.norm(self._t[1:], axis=1), [np.linalg.norm(self._tool_t)]])
+
+
+class JointFrames:
+    """Placements of every joint of a model of revolute joints, N configurations at once.
+
+    One pass over the joints (parents before children) computes each joint's
+    frame with the same parameters as :class:`KinematicChain`, so a set of
+    points fixed to the links (collision spheres, geometry placements) is
+    placed for all configurations with a few array operations.
+
+    Frames are returned in a *rotated* convention: each joint's frame is turned
+    so that its axis is z. :meth:`local` converts a point or rotation given in
+    Pinocchio's joint frame into that convention once, ahead of time.
+
+    Args:
+        model: A Pinocchio model whose joints are all 1-DoF revolute joints.
+
+    Raises:
+        RobotSpecError: If the model has a joint type other than revolute.
+    """
+
+    def __init__(self, model: pin.Model) -> None:
+        if model.nq != model.nv or model.nq != model.njoints - 1:
+            raise RobotSpecError(
+                f"model {model.name!r}: only 1-DoF revolute joints are supported "
+                f"(nq={model.nq}, nv={model.nv}, joints={model.njoints - 1})"
+            )
+        nj = int(model.njoints)
+        self.njoints = nj
+        self.parent = np.array([int(model.parents[j]) for j in range(nj)], dtype=int)
+        self.q_index = np.array([-1] + [model.joints[j].idx_q for j in range(1, nj)], dtype=int)
+        self._rot = np.zeros((nj, 3, 3))
+        self._t = np.zeros((nj, 3))
+        self._post = np.zeros((nj, 3, 3))  # R_a^T of each joint: rotated -> Pinocchio frame
+        self._post[0] = np.eye(3)
+        self._rot[0] = np.eye(3)
+        for j in range(1, nj):
+            jm = model.joints[j]
+            kind = jm.shortname()
+            if kind in _AXES:
+                axis = np.array(_AXES[kind])
+            elif kind == "JointModelRevoluteUnaligned":
+                axis = np.asarray(jm.extract().axis, dtype=float).copy()
+                axis /= np.linalg.norm(axis)
+            else:
+                raise RobotSpecError(
+                    f"joint {model.names[j]!r} has unsupported type {kind}; "
+                    "only revolute joints are supported"
+                )
+            ra = _z_to(axis)
+            pre = self._post[self.parent[j]]
+            placement = model.jointPlacements[j]
+            self._rot[j] = pre @ np.asarray(placement.rotation) @ ra
+            self._t[j] = pre @ np.asarray(placement.translation)
+            self._post[j] = ra.T
+
+    def local(
+        self, joint: int, rot: np.ndarray, trans: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """A placement in Pinocchio's frame of ``joint`` in the rotated convention."""
+        post = self._post[joint]
+        return post @ rot, post @ trans
+
+    def compute(self, q: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Frames of every joint (index 0: the universe).
+
+        Args:
+            q: Configurations (N, nq) [rad].
+
+        Returns:
+            ``(R, p)``: per joint, rotations (N, 3, 3) in the rotated convention
+            and origins (N, 3) [m], base frame.
+        """
+        q = np.asarray(q, dtype=float)
+        n = q.shape[0]
+        rots = [np.broadcast_to(np.eye(3), (n, 3, 3))]
+        poss = [np.zeros((n, 3))]
+        cos = np.cos(q)
+        sin = np.sin(q)
+        for j in range(1, self.njoints):
+            p = self.parent[j]
+            rp = rots[p].reshape(-1, 3)
+            poss.append(poss[p] + (rp @ self._t[j]).reshape(n, 3))
+            b = (rp @ self._rot[j]).reshape(n, 3, 3)
+            c = cos[:, self.q_index[j], None]
+            s = sin[:, self.q_index[j], None]
+            b0, b1 = b[:, :, 0], b[:, :, 1]
+            new = np.empty((n, 3, 3))
+            new[:, :, 0] = c * b0 + s * b1
+            new[:, :, 1] = c * b1 - s * b0
+            new[:, :, 2] = b[:, :, 2]
+            rots.append(new)
+        return rots, poss

@@ -1,25 +1,20 @@
-"""Collision checking of robot configurations against itself, the environment and the object.
+"""Collision checking of robot configurations against itself, the world and the object.
 
 The robot's collision meshes come from the same example-robot-data files as its
 kinematic model (:meth:`Robot.build_geometry`), reduced with the same locked
 joints (the Panda's fingers are locked *open*, as given in the robot spec). The
-world is built from the config:
-
-* **environment**: the support table (a box whose top face is at
-  ``table.height``; on by default) and the extra ``obstacles`` (box, cylinder,
-  sphere, mesh; placed like the object: a cylinder stands on its base along
-  its frame's z, boxes and spheres are centred on their frame);
-* **object**: the object being grasped (``ObjectConfig``).
-
-Everything is expressed in the robot's base frame (``base_pose`` maps base to
-world), so configurations and IK solutions are used as they are.
+world is a list of :class:`WorldShape` objects, coal geometries placed in the
+robot's base frame (:func:`gcm_pipeline.stages.collision.world_shapes` builds
+them from a config): the support table and obstacles (kind ``environment``) and
+the object being grasped (kind ``object``). This module takes plain shapes and
+arrays; it knows no config.
 
 Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
 
 ``collision_environment``
-    every robot link vs every environment obstacle, except the table vs the
-    robot's base links standing on it: links attached to the universe or to
-    the first joint that touch the table in the home configuration
+    every robot link vs every environment shape, except a support shape (the
+    table) vs the robot's base links standing on it: links attached to the
+    universe or to the first joint that touch it in the home configuration
     (``panda_link0``; ``panda_link1`` is 0.14 m above it and stays checked).
 ``collision_self``
     all link pairs on different joints, minus the pairs the SRDF disables
@@ -28,13 +23,13 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
     every robot link, the open fingers included, vs the object. The *gripper*
     (the body that carries the grasp frame and every link below it: ``panda_hand``
     and both fingers) may press into the object by ``contact_tolerance`` ``t``
-    (a finger pad closing on the surface is a grasp, not a collision):
+    at the grasp (a finger pad closing on the surface is a grasp, not a collision):
 
-    * a **primitive** object (cylinder, box, sphere, plane) is eroded exactly
-      (radius / half-sizes minus ``t``) and checked against the gripper: the
-      gripper collides when one of its points lies deeper than ``t`` inside
-      the object. A ``plane`` object (2 mm thick) erodes to nothing, so the
-      gripper may touch it;
+    * a **primitive** object (cylinder, box, sphere, a thin box for a plane) is
+      eroded exactly (radius / half-sizes minus ``t``) and checked against the
+      gripper: the gripper collides when one of its points lies deeper than
+      ``t`` inside the object. A 2 mm plane erodes to nothing, so the gripper
+      may touch it;
     * for a **mesh** object each convex collision piece of the gripper is
       eroded by ``t`` instead (:mod:`gcm_pipeline.robot.contact`) and checked
       against the original mesh: the gripper collides when a point of the
@@ -44,27 +39,35 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
       cannot represent. A gripper piece that is not convex is checked
       uneroded (a warning says so).
 
-    Arm links (not gripper) are checked against the full object. coal treats
-    a mesh as its surface: a link entirely inside a closed mesh object, crossing
-    none of its triangles, is not detected.
+    Arm links (not gripper) are checked against the full object. A closed mesh
+    object is a solid: a piece lying wholly inside it, crossing none of its
+    triangles, collides too.
 
 When a configuration collides in more than one way, the reason is the first of
 environment, self, object.
 
-Checking is batched: ``pin.GeometryPool`` objects and
-``pin.computeCollisionsInParallel``, which runs forward kinematics, placement
-updates and all pairs of a pool in C++ for every configuration, stopping at a
-configuration's first collision. One pool holds the environment pairs, one the
-object pairs (coal's narrow phase starts with the bounding volumes of each
-pair, the BVH root OBBRSS for meshes, so far-away pairs are cheap), and the
-self pairs, the costly part, are split into one pool per link: a vectorised
-test of the links' bounding spheres (for all configurations at once) decides
-which configurations a link's pool has to see at all. Only configurations
-still free after a kind are checked for the next kind. :meth:`CollisionChecker.clearance`
-bounds every pair's distance from below with a bounding sphere per link (placed
-by vectorised forward kinematics for all configurations at once) against the
-world shape's box, and runs coal's exact distance only for pairs that can still
-be the nearest.
+**Modes** (:meth:`CollisionChecker.check`): ``grasp`` is the above; ``approach``
+allows no contact (the gripper against the full object, as the arm); ``retreat``
+is the grasp holding the object: the gripper may touch it and the object moves
+with the grasp frame (``carried``), checked against the environment
+(``collision_environment``) and the arm links (``collision_object``).
+
+**Broad phase.** Every robot collision geometry is covered by a few spheres
+(:func:`sphere_cover`: the geometry cut into slabs along its long axis, each
+slab's part inside one sphere, so the union of the spheres contains the
+geometry), placed for all configurations at once by vectorised forward
+kinematics (:class:`~gcm_pipeline.robot.chain.JointFrames`). A pair whose
+spheres are farther from the world shape than zero (exact point distances for
+boxes, cylinders, spheres and capsules, the local bounding box of meshes) or
+from the other link's spheres cannot collide and is not checked further: this
+only skips work, it never changes an answer (tested against Pinocchio's
+``computeCollisions`` over every pair). **Narrow phase**: the pairs are grouped
+by robot geometry and kind, one ``pin.GeometryPool`` per group, and
+``pin.computeCollisionsInParallel`` (forward kinematics, placements and coal's
+narrow phase in C++) runs each group only on the configurations where one of
+its pairs is not ruled out. :meth:`CollisionChecker.clearance` uses the same
+spheres as lower bounds and runs coal's exact distance only for pairs that can
+still be the nearest.
 """
 
 from __future__ import annotations
@@ -73,15 +76,15 @@ import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import coal
 import numpy as np
 import pinocchio as pin
+from scipy.spatial import ConvexHull, QhullError
 
-from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, ObstacleConfig, Pose
 from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
-from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.chain import JointFrames
 from gcm_pipeline.robot.contact import (
     NotConvexError,
     SolidMesh,
@@ -92,13 +95,17 @@ from gcm_pipeline.robot.contact import (
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
+    "MODES",
     "REASON_ENVIRONMENT",
     "REASON_OBJECT",
     "REASON_SELF",
     "CollisionChecker",
+    "SphereCover",
     "WorldShape",
     "as_transform",
+    "gripper_links",
     "shape_geometry",
+    "sphere_cover",
 ]
 
 REASON_SELF = "collision_self"
@@ -107,9 +114,19 @@ REASON_OBJECT = "collision_object"
 
 _KINDS = ("environment", "self", "object")
 _REASONS = {"environment": REASON_ENVIRONMENT, "self": REASON_SELF, "object": REASON_OBJECT}
-_ENV_SHAPES = ("box", "cylinder", "sphere", "mesh")
 _OBJECT_SHAPES = ("cylinder", "box", "sphere", "plane", "mesh")
 _PLANE_THICKNESS = 0.002  # [m] a 'plane' object is a box this thick, centred on its frame
+
+#: Checking modes: what the gripper may do with the object.
+MODES = ("grasp", "approach", "retreat")
+_MODE_BIT = {"grasp": 1, "approach": 2, "retreat": 4}
+_ALL_MODES = 7
+
+#: A pair is ruled out by the broad phase when its lower bound exceeds this [m]
+#: (far above the round-off of the vectorised kinematics, ~1e-12 m).
+_BROAD_MARGIN = 1e-7
+#: Configurations placed per block by the broad phase (temporaries stay in cache).
+_BLOCK = 2048
 
 
 @dataclass(frozen=True)
@@ -120,20 +137,24 @@ class WorldShape:
         name: Geometry name (``table``, ``obstacle_<i>`` or the obstacle's name, ``object``).
         geometry: The coal geometry (centred as coal defines it).
         placement: Pose of the geometry's centre in the base frame (4, 4) [m].
-        kind: ``"environment"`` or ``"object"``.
+        kind: ``"environment"`` or ``"object"`` (at most one object).
+        support: The robot's base stands on it (the table): base links that
+            touch it in the home configuration are not checked against it.
     """
 
     name: str
     geometry: Any
     placement: np.ndarray
     kind: str
+    support: bool = False
 
 
-def as_transform(pose: Pose | np.ndarray | None) -> np.ndarray:
+def as_transform(pose: Any) -> np.ndarray:
     """A pose as a (4, 4) homogeneous transform (identity for None).
 
     Args:
-        pose: A config :class:`Pose`, a (4, 4) array or None.
+        pose: A (4, 4) array, an object with a ``matrix()`` method (a config
+            ``Pose``) or None.
 
     Returns:
         (4, 4) transform [m].
@@ -143,8 +164,8 @@ def as_transform(pose: Pose | np.ndarray | None) -> np.ndarray:
     """
     if pose is None:
         return np.eye(4)
-    if isinstance(pose, Pose):
-        return pose.matrix()
+    if hasattr(pose, "matrix"):
+        return np.asarray(pose.matrix(), dtype=float)
     arr = np.asarray(pose, dtype=float)
     if arr.shape != (4, 4) or not np.all(np.isfinite(arr)):
         raise InputError(f"a pose must be a finite (4, 4) transform, got shape {arr.shape}")
@@ -189,14 +210,14 @@ def shape_geometry(
 ) -> tuple[Any, np.ndarray] | None:
     """Coal geometry of a config shape and the offset of its centre in the shape's frame.
 
-    Conventions (those of ``ObjectConfig``): a cylinder stands on its base with
+    Conventions (those of the config's ``object``): a cylinder stands on its base with
     its axis along the frame's z (base at z = 0); boxes and spheres are centred
     on the frame origin; a plane is a ``_PLANE_THICKNESS`` thick box centred on
     the frame's xy plane; a mesh is used as its file defines it (times ``scale``).
 
     Args:
         shape: ``box``, ``cylinder``, ``sphere``, ``plane`` or ``mesh``.
-        dims: A :class:`~gcm_pipeline.config.ShapeDims` (``radius``, ``height``, ``size``).
+        dims: An object with ``radius``, ``height``, ``size`` (the config's ``dims``).
         mesh: Mesh file (shape ``mesh``).
         scale: Mesh scale factor.
         erode: Distance [m] by which a primitive shrinks on every side (0: the shape
@@ -249,448 +270,588 @@ def shape_geometry(
     raise ConfigError(f"{where}: " + unknown_choice("shape", shape, _OBJECT_SHAPES))
 
 
-def _se3(m: np.ndarray) -> pin.SE3:
-    return pin.SE3(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))
+def erode_primitive(geometry: Any, distance: float) -> Any | None:
+    """A coal primitive shrunk by ``distance`` [m] on every side (exact), or None.
+
+    Boxes, spheres and cylinders are eroded exactly; None when nothing is left
+    (a part thinner than ``2 * distance``) or for any other geometry (meshes:
+    the gripper is eroded instead, see :mod:`gcm_pipeline.robot.contact`).
+    """
+    if isinstance(geometry, coal.Box):
+        half = np.asarray(geometry.halfSide, dtype=float) - distance
+        return coal.Box(*(2.0 * half)) if np.all(half > 0) else None
+    if isinstance(geometry, coal.Sphere):
+        r = float(geometry.radius) - distance
+        return coal.Sphere(r) if r > 0 else None
+    if isinstance(geometry, coal.Cylinder):
+        r = float(geometry.radius) - distance
+        h = 2.0 * (float(geometry.halfLength) - distance)
+        return coal.Cylinder(r, h) if r > 0 and h > 0 else None
+    return None
 
 
-def _obstacle_shape(i: int, obs: ObstacleConfig, base_inv: np.ndarray) -> WorldShape:
-    where = f"environment.obstacles[{i}]"
-    if obs.shape not in _ENV_SHAPES:
-        raise ConfigError(f"{where}: " + unknown_choice("shape", obs.shape, _ENV_SHAPES))
-    made = shape_geometry(obs.shape, obs.dims, mesh=obs.mesh, scale=obs.scale, where=where)
-    assert made is not None
-    geom, centre = made
-    return WorldShape(
-        name=obs.name or f"obstacle_{i}",
-        geometry=geom,
-        placement=base_inv @ obs.pose.matrix() @ centre,
-        kind="environment",
+_PRIMITIVES = (coal.Box, coal.Sphere, coal.Cylinder)
+
+
+# --- sphere covers ------------------------------------------------------------------
+
+
+class SphereCover(NamedTuple):
+    """Spheres whose union contains a geometry (in the frame the points were given in).
+
+    Attributes:
+        centres: (K, 3) [m].
+        radii: (K,) [m].
+    """
+
+    centres: np.ndarray
+    radii: np.ndarray
+
+
+def _box_mesh(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (8, 3) and triangles (12, 3) of an axis-aligned box."""
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
     )
+    faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = [(a, b, c) for a, b, c, d in faces] + [(a, c, d) for a, b, c, d in faces]
+    return corners, np.array(tris, dtype=int)
+
+
+def geometry_mesh(geometry: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Points (V, 3) and triangles (T, 3) whose triangles cover a coal geometry.
+
+    A mesh gives its own triangles (coal checks a mesh as its surface); a
+    convex polytope its hull's; a box its faces; any other shape (sphere,
+    cylinder, capsule, ...) the faces of its local bounding box, which contains it.
+    """
+    if isinstance(geometry, coal.BVHModelBase):
+        return mesh_arrays(geometry)
+    if isinstance(geometry, coal.ConvexBase):
+        pts = np.array(geometry.points(), dtype=float).reshape(-1, 3)
+        try:
+            return pts, ConvexHull(pts).simplices.astype(int)
+        except (QhullError, ValueError):
+            pass
+    geometry.computeLocalAABB()
+    box = geometry.aabb_local
+    return _box_mesh(np.asarray(box.min_, dtype=float), np.asarray(box.max_, dtype=float))
+
+
+def sphere_cover(points: np.ndarray, triangles: np.ndarray, max_spheres: int = 8) -> SphereCover:
+    """Spheres whose union contains every triangle (and so their convex hull's parts).
+
+    The geometry is cut into ``K`` slabs of equal length along its principal
+    axis (``K`` about twice its length over its width, at most
+    ``max_spheres``). The part of the triangles inside a slab lies in the convex
+    hull of the vertices in the slab and of the points where triangle edges
+    cross the slab's planes; one sphere per slab contains all those points,
+    hence that part. The cover of a solid convex piece given by its hull's
+    triangles contains the solid too.
+
+    Args:
+        points: Vertices (V, 3) [m].
+        triangles: (T, 3) int.
+        max_spheres: Upper bound of ``K``.
+
+    Returns:
+        The :class:`SphereCover`.
+    """
+    v = np.asarray(points, dtype=float).reshape(-1, 3)
+    tris = np.asarray(triangles, dtype=int).reshape(-1, 3)
+    mean = v.mean(axis=0)
+    _, _, vt = np.linalg.svd(v - mean, full_matrices=False)
+    axis = vt[0]
+    t = (v - mean) @ axis
+    lo, hi = float(t.min()), float(t.max())
+    radial = np.linalg.norm((v - mean) - np.outer(t, axis), axis=1).max()
+    length = hi - lo
+    k = int(np.clip(np.ceil(2.0 * length / max(2.0 * radial, 1e-6)), 1, max_spheres))
+    planes = lo + length * np.arange(1, k) / k
+    edges = np.unique(
+        np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0
+    )
+    ta, tb = t[edges[:, 0]], t[edges[:, 1]]
+    extra_pts, extra_t = [], []
+    for plane in planes:
+        cross = (np.minimum(ta, tb) < plane) & (np.maximum(ta, tb) > plane)
+        if np.any(cross):
+            e = edges[cross]
+            f = ((plane - t[e[:, 0]]) / (t[e[:, 1]] - t[e[:, 0]]))[:, None]
+            extra_pts.append(v[e[:, 0]] + f * (v[e[:, 1]] - v[e[:, 0]]))
+            extra_t.append(np.full(int(cross.sum()), plane))
+    pts = np.concatenate([v, *extra_pts]) if extra_pts else v
+    pt_t = np.concatenate([t, *extra_t]) if extra_t else t
+    bounds = lo + length * np.arange(k + 1) / k
+    centres, radii = [], []
+    eps = 1e-12 * max(1.0, length)
+    for i in range(k):
+        sel = (pt_t >= bounds[i] - eps) & (pt_t <= bounds[i + 1] + eps)
+        if not np.any(sel):
+            continue
+        p = pts[sel]
+        c = 0.5 * (p.min(axis=0) + p.max(axis=0))
+        centres.append(c)
+        radii.append(float(np.linalg.norm(p - c, axis=1).max()) * (1.0 + 1e-9) + 1e-12)
+    return SphereCover(np.array(centres), np.array(radii))
+
+
+# --- lower bounds of point-to-shape distances -------------------------------------------
+
+
+class _ShapeBound:
+    """Lower bound of the distance from points to a placed coal geometry (exact for primitives).
+
+    Boxes, spheres, cylinders and capsules give the exact distance (0 inside);
+    any other geometry the distance to its local bounding box.
+    """
+
+    def __init__(self, geometry: Any, placement: np.ndarray) -> None:
+        self.inv = np.linalg.inv(placement)
+        self.kind = "box"
+        self.centre = np.zeros(3)
+        if isinstance(geometry, coal.Sphere):
+            self.kind, self.radius = "sphere", float(geometry.radius)
+        elif isinstance(geometry, coal.Cylinder):
+            self.kind, self.radius = "cylinder", float(geometry.radius)
+            self.half = float(geometry.halfLength)
+        elif isinstance(geometry, coal.Capsule):
+            self.kind, self.radius = "capsule", float(geometry.radius)
+            self.half = float(geometry.halfLength)
+        elif isinstance(geometry, coal.Box):
+            self.halfs = np.asarray(geometry.halfSide, dtype=float)
+        else:
+            geometry.computeLocalAABB()
+            box = geometry.aabb_local
+            lo, hi = np.asarray(box.min_, dtype=float), np.asarray(box.max_, dtype=float)
+            self.centre = 0.5 * (lo + hi)
+            self.halfs = 0.5 * (hi - lo)
+
+    def lower(self, points: np.ndarray) -> np.ndarray:
+        """Distances (...,) [m] (>= 0) from points (..., 3) in the base frame."""
+        p = points @ self.inv[:3, :3].T + self.inv[:3, 3]
+        if self.kind == "sphere":
+            return np.maximum(np.linalg.norm(p, axis=-1) - self.radius, 0.0)
+        if self.kind == "cylinder":
+            radial = np.maximum(np.hypot(p[..., 0], p[..., 1]) - self.radius, 0.0)
+            axial = np.maximum(np.abs(p[..., 2]) - self.half, 0.0)
+            return np.hypot(radial, axial)
+        if self.kind == "capsule":
+            z = np.clip(p[..., 2], -self.half, self.half)
+            d = np.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + (p[..., 2] - z) ** 2)
+            return np.maximum(d - self.radius, 0.0)
+        gap = np.maximum(np.abs(p - self.centre) - self.halfs, 0.0)
+        return np.linalg.norm(gap, axis=-1)
+
+
+# --- the checker -----------------------------------------------------------------------
+
+
+class _Pair(NamedTuple):
+    """One checked pair: geometry indices in the checker's model, and what bounds it."""
+
+    kind: str
+    a: int  # robot-side geometry (a link, or an eroded gripper piece)
+    b: int  # world geometry, or the other link for self pairs
+    owner: int  # robot geometry whose spheres bound ``a``
+    other: int  # robot geometry whose spheres bound ``b`` (self pairs), else -1
+    modes: int  # bit set of the modes the pair is checked in
 
 
 class CollisionChecker:
-    """Batched collision checks and clearance of robot configurations.
+    """Batched collision checks and clearance of robot configurations (see the module doc).
 
     Args:
         robot: The robot (its reduced model and collision geometry).
-        environment: Table and obstacles; None means the default config
-            (a table at z = 0, self-collision on).
-        object_cfg: The object being grasped, or None (no object).
-        base_pose: Pose of the robot base in the world (config ``robot.base_pose``),
-            a (4, 4) transform or None (identity).
-        threads: Threads for the batched checks (``pin.computeCollisionsInParallel``).
-        holding: The gripper holds the object (a retreat): its links are not
-            checked against the object.
+        world: The world shapes in the robot's base frame (at most one of kind
+            ``object``).
+        contact_tolerance: How deep the gripper may press into the object at
+            the grasp [m], >= 0.
+        self_collision: Check the robot against itself.
+        threads: Threads of ``pin.computeCollisionsInParallel``.
 
     Raises:
-        ConfigError: Unknown shape or non-positive size in the environment or object.
-        InputError: A mesh file is missing or unreadable (the message names it).
+        ConfigError: A negative contact tolerance or more than one object.
 
     Attributes:
         robot: The robot.
-        geom_model: ``pin.GeometryModel`` with the robot links and world shapes
-            and *every* checked pair active (all kinds); usable with
-            ``pin.computeCollisions``.
+        world: The world shapes.
+        geom_model: ``pin.GeometryModel`` with the robot links, the eroded
+            gripper pieces (mesh object), the world shapes and *every* pair of
+            the ``grasp`` mode active; usable with ``pin.computeCollisions``.
         pair_kind: Kind of each pair of ``geom_model.collisionPairs`` (P,) str.
         n_robot_geoms: Number of robot geometries (the first ones of ``geom_model``).
-        gripper_geoms: Indices of the gripper geometries (checked against the eroded object).
-        world: The world shapes in the base frame.
+        gripper_geoms: Indices of the gripper geometries.
+        link_names: Link of each robot geometry.
+        table_exempt: Base links not checked against the support shape.
+        contact_tolerance: [m].
     """
 
     def __init__(
         self,
         robot: Robot,
-        environment: EnvironmentConfig | None = None,
-        object_cfg: ObjectConfig | None = None,
-        base_pose: Pose | np.ndarray | None = None,
+        world: Any = (),
         *,
+        contact_tolerance: float = 0.005,
+        self_collision: bool = True,
         threads: int = 1,
-        holding: bool = False,
     ) -> None:
-        env = EnvironmentConfig() if environment is None else environment
-        self.holding = bool(holding)
         self.robot = robot
-        self.environment = env
-        self.object_cfg = object_cfg
+        self.world = tuple(world)
         self.threads = max(1, int(threads))
-        self.base_pose = as_transform(base_pose)
-        base_inv = np.linalg.inv(self.base_pose)
-        tol = float(env.contact_tolerance)
+        self.self_collision = bool(self_collision)
+        tol = float(contact_tolerance)
         if not math.isfinite(tol) or tol < 0:
             raise ConfigError(f"environment.contact_tolerance must be >= 0 [m], got {tol!r}")
         self.contact_tolerance = tol
+        objects = [s for s in self.world if s.kind == "object"]
+        if len(objects) > 1:
+            raise ConfigError(f"at most one object shape, got {[s.name for s in objects]}")
+        for s in self.world:
+            if s.kind not in ("environment", "object"):
+                raise ConfigError(
+                    f"world shape {s.name!r}: "
+                    + unknown_choice("kind", s.kind, ("environment", "object"))
+                )
+        self.object = objects[0] if objects else None
 
         model = robot.model
-        gm = robot.build_geometry("collision")
-        self.n_robot_geoms = int(gm.ngeoms)
-        robot_ids = list(range(self.n_robot_geoms))
+        gm = _robot_geometry(robot)
+        self.n_robot_geoms = n_rob = int(gm.ngeoms)
+        robot_ids = list(range(n_rob))
         link_of = [model.frames[g.parentFrame].name for g in gm.geometryObjects]
         joint_of = [int(g.parentJoint) for g in gm.geometryObjects]
         self.link_names = tuple(link_of)
-        gripper_links = _gripper_links(robot)
-        self.gripper_geoms = tuple(i for i in robot_ids if link_of[i] in gripper_links)
+        self.gripper_geoms = tuple(i for i in robot_ids if link_of[i] in gripper_links(robot))
+        gripper = set(self.gripper_geoms)
 
-        # --- world shapes (base frame) -------------------------------------------------
-        world: list[WorldShape] = []
-        if env.table is not None:
-            t = env.table
-            sx, sy, sz = (_positive("environment.table", "size", s) for s in t.size)
-            m = np.eye(4)
-            m[:3, 3] = (t.center_xy[0], t.center_xy[1], t.height - 0.5 * sz)
-            world.append(WorldShape("table", coal.Box(sx, sy, sz), base_inv @ m, "environment"))
-        for i, obs in enumerate(env.obstacles):
-            world.append(_obstacle_shape(i, obs, base_inv))
-        contact_obj: WorldShape | None = None
-        if object_cfg is not None and env.check_object:
-            if object_cfg.shape not in _OBJECT_SHAPES:
-                raise ConfigError(
-                    "object: " + unknown_choice("shape", object_cfg.shape, _OBJECT_SHAPES)
-                )
-            made = shape_geometry(
-                object_cfg.shape,
-                object_cfg.dims,
-                mesh=object_cfg.mesh,
-                scale=object_cfg.scale,
-                where="object",
-            )
-            assert made is not None
-            obj_m = base_inv @ object_cfg.pose.matrix()
-            world.append(WorldShape("object", made[0], obj_m @ made[1], "object"))
-            if object_cfg.shape != "mesh":  # primitives: exact object-side erosion
-                eroded = shape_geometry(
-                    object_cfg.shape, object_cfg.dims, erode=tol, where="object"
-                )
-                if eroded is not None:
-                    contact_obj = WorldShape(
-                        "object_contact", eroded[0], obj_m @ eroded[1], "object"
-                    )
-        self.world = tuple(world)
-
+        # world geometries (after the robot's and the eroded gripper pieces)
+        obj = self.object
+        mesh_object = obj is not None and not isinstance(obj.geometry, _PRIMITIVES)
+        eroded = _add_eroded_gripper(gm, self.gripper_geoms, tol) if mesh_object else {}
         world_ids: dict[str, int] = {}
-        for shape in [*world, *([contact_obj] if contact_obj is not None else [])]:
+        for shape in self.world:
             go = pin.GeometryObject(shape.name, 0, 0, _se3(shape.placement), shape.geometry)
             world_ids[shape.name] = int(gm.addGeometryObject(go))
+        contact_id = None
+        if obj is not None and not mesh_object:
+            shrunk = erode_primitive(obj.geometry, tol) if tol > 0 else obj.geometry
+            if shrunk is not None:
+                go = pin.GeometryObject("object_contact", 0, 0, _se3(obj.placement), shrunk)
+                contact_id = int(gm.addGeometryObject(go))
 
-        # --- pairs by kind -----------------------------------------------------------
-        pairs: dict[str, list[tuple[int, int]]] = {k: [] for k in _KINDS}
-        if env.self_collision:
-            self_gm = robot.build_geometry("collision")
-            self_gm.addAllCollisionPairs()
-            if robot.srdf_path is not None:
-                pin.removeCollisionPairs(model, self_gm, str(robot.srdf_path))
-            for cp in self_gm.collisionPairs:
-                a, b = int(cp.first), int(cp.second)
-                ja, jb = joint_of[a], joint_of[b]
-                if ja == jb or model.parents[ja] == jb or model.parents[jb] == ja:
-                    continue  # same rigid body or adjacent links
-                pairs["self"].append((a, b))
-        exempt = self._table_exempt(model, gm, world_ids, joint_of) if env.table else set()
-        for shape in world:
+        # --- pairs --------------------------------------------------------------------
+        pairs: list[_Pair] = []
+        if self.self_collision:
+            for a, b in _self_pairs(robot, joint_of):
+                pairs.append(_Pair("self", a, b, a, b, _ALL_MODES))
+        exempt: set[int] = set()
+        for shape in self.world:
+            if shape.kind == "environment" and shape.support:
+                exempt |= _support_exempt(robot, gm, world_ids[shape.name], joint_of)
+        self.table_exempt = tuple(sorted({link_of[i] for i in exempt}))
+        for shape in self.world:
             if shape.kind != "environment":
                 continue
             w = world_ids[shape.name]
             for i in robot_ids:
-                if shape.name == "table" and i in exempt:
+                if shape.support and i in exempt:
                     continue
-                pairs["environment"].append((i, w))
-        if "object" in world_ids:
-            mesh = object_cfg is not None and object_cfg.shape == "mesh"
-            eroded_ids = _add_eroded_gripper(gm, self.gripper_geoms, tol) if mesh else {}
+                pairs.append(_Pair("environment", i, w, i, -1, _ALL_MODES))
+        if obj is not None:
+            w = world_ids[obj.name]
+            grasp, approach = _MODE_BIT["grasp"], _MODE_BIT["approach"]
             for i in robot_ids:
-                if i not in self.gripper_geoms:
-                    pairs["object"].append((i, world_ids["object"]))
-                elif self.holding:
-                    continue  # the gripper holds the object: contact is the point
-                elif mesh:  # eroded gripper piece vs the original mesh
-                    if eroded_ids[i] is not None:
-                        pairs["object"].append((eroded_ids[i], world_ids["object"]))
-                elif "object_contact" in world_ids:
-                    pairs["object"].append((i, world_ids["object_contact"]))
-        self.table_exempt = tuple(sorted(link_of[i] for i in exempt))
-        self._init_solid(gm, pairs["object"], world_ids)
+                if i not in gripper:
+                    # arm links vs the object where it stands (not while carried)
+                    pairs.append(_Pair("object", i, w, i, -1, grasp | approach))
+                    continue
+                pairs.append(_Pair("object", i, w, i, -1, approach))  # no contact on the way in
+                if mesh_object:
+                    piece = eroded[i]
+                    if piece is not None:
+                        pairs.append(_Pair("object", piece, w, i, -1, grasp))
+                elif contact_id is not None:
+                    pairs.append(_Pair("object", i, contact_id, i, -1, grasp))
+        self._pairs = pairs
+        self._gm = gm
 
-        # one geometry model per kind (batched checks) plus one with every pair
-        self._kind_models: dict[str, Any] = {}
-        self._pools: dict[str, Any] = {}
-        for kind in _KINDS:
-            if not pairs[kind]:
-                continue
-            km = gm.copy()
-            km.removeAllCollisionPairs()
-            for a, b in pairs[kind]:
-                km.addCollisionPair(pin.CollisionPair(a, b))
-            self._kind_models[kind] = km
-            if kind != "self":  # self pairs: sphere-filtered groups, see _init_self_groups
-                self._pools[kind] = pin.GeometryPool(model, km, self.threads)
-        self._init_spheres(model, gm, joint_of)
-        self._init_self_groups(model, gm, pairs["self"])
+        # --- pools: one broad-phase pool per mode (all its pairs), and per mode and kind
+        # one for the reason of the configurations that collide
+        self._pair_modes = np.array([p.modes for p in pairs], dtype=int)
+        self._pair_kind = np.array([p.kind for p in pairs], dtype=object)
+        self._mode_pool: dict[int, Any] = {}
+        self._kind_pool: dict[tuple[int, str], Any] = {}
+        for bit in _MODE_BIT.values():
+            active = [p for p in pairs if p.modes & bit]
+            if active:
+                self._mode_pool[bit] = _broad_phase_pool(model, gm, active, self.threads)
+            for kind in _KINDS:
+                some = [p for p in active if p.kind == kind]
+                if some:
+                    self._kind_pool[bit, kind] = _broad_phase_pool(model, gm, some, self.threads)
+
+        # sphere covers (clearance bounds, the carried object)
+        self._frames = JointFrames(model)
+        self._cover = _covers(gm, robot_ids, self._frames, max_spheres=8)
+        self._bounds = {
+            w: _ShapeBound(
+                gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous
+            )
+            for w in {p.b for p in pairs if p.kind != "self"}
+        }
+
+        # the mesh object as a solid: pieces wholly inside it
+        self._init_solid(gm, world_ids)
+
+        # every grasp-mode pair in one model (for colliding_pairs and independent checks)
         full = gm.copy()
         full.removeAllCollisionPairs()
         kinds: list[str] = []
         for kind in _KINDS:
-            for a, b in pairs[kind]:
-                full.addCollisionPair(pin.CollisionPair(a, b))
-                kinds.append(kind)
+            for p in pairs:
+                if p.kind == kind and p.modes & _MODE_BIT["grasp"]:
+                    full.addCollisionPair(pin.CollisionPair(p.a, p.b))
+                    kinds.append(kind)
         self.geom_model = full
         self.pair_kind = np.array(kinds, dtype=object)
         self._data = model.createData()
         self._full_data = pin.GeometryData(full)
 
         # clearance: robot vs environment, arm links (not gripper) vs the full object;
-        # base links (universe, first joint) vs the table are left out: their distance
+        # base links (universe, first joint) vs a support are left out: their distance
         # to it does not depend on the configuration and would mask the arm's
         base_links = {i for i in robot_ids if joint_of[i] in (0, 1)}
-        dist_pairs = [
-            (a, b)
-            for a, b in pairs["environment"]
-            if not (b == world_ids.get("table") and a in base_links)
+        supports = {world_ids[s.name] for s in self.world if s.support}
+        dist = [
+            p
+            for p in pairs
+            if (p.kind == "environment" and not (p.a in base_links and p.b in supports))
+            or (p.kind == "object" and p.a not in gripper and p.modes & _MODE_BIT["grasp"])
         ]
-        if "object" in world_ids:
-            dist_pairs += [
-                (i, world_ids["object"]) for i in robot_ids if i not in self.gripper_geoms
-            ]
         self._dist_model: Any = None
-        if dist_pairs:
+        if dist:
             dm = gm.copy()
             dm.removeAllCollisionPairs()
-            for a, b in dist_pairs:
-                dm.addCollisionPair(pin.CollisionPair(a, b))
+            for p in dist:
+                dm.addCollisionPair(pin.CollisionPair(p.a, p.b))
             self._dist_model = dm
             self._dist_data = pin.GeometryData(dm)
-            self._init_distance_bounds(dm, dist_pairs)
+            self._dist_owner = np.array([p.owner for p in dist], dtype=int)
+            self._dist_world = np.array([p.b for p in dist], dtype=int)
+
+        # the carried object (retreat): its cover in its own frame and its pairs
+        self._carried = None
+        if obj is not None:
+            pts, tris = geometry_mesh(obj.geometry)
+            self._carried = _CarriedObject(
+                obj,
+                sphere_cover(pts, tris, max_spheres=8),
+                [world_ids[s.name] for s in self.world if s.kind == "environment"],
+                [i for i in robot_ids if i not in gripper],
+            )
 
     # --- construction helpers ---------------------------------------------------------
 
-    def _table_exempt(
-        self, model: pin.Model, gm: Any, world_ids: dict[str, int], joint_of: list[int]
-    ) -> set[int]:
-        """Robot geometries not checked against the table: the base links standing on it.
-
-        Links fixed to the universe or to the first joint that touch the table
-        in the home configuration (for the Panda at z = 0: ``panda_link0``).
-        """
-        exempt: set[int] = set()
-        first = [i for i in range(self.n_robot_geoms) if joint_of[i] in (0, 1)]
-        if not first:
-            return exempt
-        probe = gm.copy()
-        probe.removeAllCollisionPairs()
-        for i in first:
-            probe.addCollisionPair(pin.CollisionPair(i, world_ids["table"]))
-        pd = pin.GeometryData(probe)
-        pin.computeCollisions(model, model.createData(), probe, pd, self.robot.home, False)
-        for k, cp in enumerate(probe.collisionPairs):
-            if pd.collisionResults[k].isCollision():
-                exempt.add(int(cp.first))
-        return exempt
-
-    def with_contact_tolerance(self, tolerance: float) -> CollisionChecker:
-        """The same world with another finger-contact tolerance [m] (0: no contact allowed)."""
-        env = self.environment.model_copy(update={"contact_tolerance": float(tolerance)})
-        return CollisionChecker(
-            self.robot,
-            env,
-            self.object_cfg,
-            self.base_pose,
-            threads=self.threads,
-            holding=self.holding,
-        )
-
-    def holding_object(self) -> CollisionChecker:
-        """The same world while the gripper holds the object: gripper vs object not checked."""
-        return CollisionChecker(
-            self.robot,
-            self.environment,
-            self.object_cfg,
-            self.base_pose,
-            threads=self.threads,
-            holding=True,
-        )
-
-    def _init_spheres(self, model: pin.Model, gm: Any, joint_of: list[int]) -> None:
-        """Bounding sphere of every robot geometry, in its joint's frame.
-
-        The sphere circumscribes the geometry's local AABB. Its centre is
-        placed for N configurations at once by :meth:`_sphere_centres`
-        (vectorised forward kinematics of each joint).
-        """
-        centres, radii = [], []
-        for i in range(self.n_robot_geoms):
-            go = gm.geometryObjects[i]
-            go.geometry.computeLocalAABB()
-            centres.append(go.placement.act(np.asarray(go.geometry.aabb_center, dtype=float)))
-            radii.append(float(go.geometry.aabb_radius))
-        self._sph_centre = np.array(centres)
-        self._sph_radius = np.array(radii)
-        self._sph_joint = np.array(joint_of[: self.n_robot_geoms], dtype=int)
-        self._chains: dict[int, KinematicChain] = {}
-        for j in sorted(set(self._sph_joint.tolist()) - {0}):
-            fid = model.getFrameId(model.names[j], pin.FrameType.JOINT)
-            if not model.frames[fid].placement.isIdentity():  # pragma: no cover - URDF joints
-                raise RuntimeError(f"joint frame {model.names[j]!r} is not at its joint")
-            self._chains[j] = KinematicChain(model, fid)
-
-    def _sphere_centres(self, qs: np.ndarray) -> np.ndarray:
-        """Centres (N, G, 3) [m] of the robot geometries' bounding spheres, base frame."""
-        return self._place_points(qs, self._sph_joint, self._sph_centre)
-
-    def _place_points(self, qs: np.ndarray, joints: np.ndarray, local: np.ndarray) -> np.ndarray:
-        """Points (N, P, 3) [m], base frame, of points ``local`` (P, 3) fixed to ``joints`` (P,)."""
-        n = len(qs)
-        out = np.broadcast_to(local, (n, *local.shape)).copy()
-        for j in sorted(set(joints.tolist()) - {0}):
-            cols = np.flatnonzero(joints == j)
-            rot, pos = self._chains[j].pose(qs)
-            out[:, cols] = pos[:, None, :] + np.einsum("nij,pj->npi", rot, local[cols])
-        return out
-
-    def _init_solid(self, gm: Any, pairs: list[tuple[int, int]], world_ids: dict[str, int]) -> None:
+    def _init_solid(self, gm: Any, world_ids: dict[str, int]) -> None:
         """Inside test of a mesh object for the robot pieces of the object pairs.
 
         coal checks a mesh object as its triangles; a robot piece (an arm link,
-        an eroded gripper piece) that lies wholly inside the closed mesh crosses
-        none of them. Such a piece is found by testing one of its points
+        a gripper piece) that lies wholly inside the closed mesh crosses none of
+        them. Such a piece is found by testing one of its points
         (:func:`~gcm_pipeline.robot.contact.interior_point`) against the solid
-        (:class:`~gcm_pipeline.robot.contact.SolidMesh`) in :meth:`_inside_object`.
+        (:class:`~gcm_pipeline.robot.contact.SolidMesh`).
         """
         self._solid: SolidMesh | None = None
-        obj = self.object_cfg
-        if obj is None or obj.shape != "mesh" or "object" not in world_ids or not pairs:
+        obj = self.object
+        if obj is None or not isinstance(obj.geometry, coal.BVHModelBase):
             return
-        go = gm.geometryObjects[world_ids["object"]]
-        self._solid = SolidMesh(*mesh_arrays(go.geometry))
-        self._solid_from_base = np.linalg.inv(go.placement.homogeneous)
-        ids = sorted({a for a, _ in pairs})
-        self._solid_names = tuple(gm.geometryObjects[i].name for i in ids)
-        self._solid_joint = np.array([int(gm.geometryObjects[i].parentJoint) for i in ids])
+        w = world_ids[obj.name]
+        rows = [k for k, p in enumerate(self._pairs) if p.kind == "object" and p.b == w]
+        if not rows:
+            return
+        self._solid = SolidMesh(*mesh_arrays(obj.geometry))
+        self._solid_from_base = np.linalg.inv(obj.placement)
+        self._solid_pair = np.array(rows, dtype=int)
+        pieces = [gm.geometryObjects[self._pairs[k].a] for k in rows]
+        self._solid_names = tuple(go.name for go in pieces)
+        self._solid_joint = np.array([int(go.parentJoint) for go in pieces], dtype=int)
         self._solid_local = np.array(
             [
-                gm.geometryObjects[i].placement.act(interior_point(gm.geometryObjects[i].geometry))
-                for i in ids
+                self._frames.local(
+                    int(go.parentJoint), np.eye(3), go.placement.act(interior_point(go.geometry))
+                )[1]
+                for go in pieces
             ]
         )
 
-    def _inside_object(self, q: np.ndarray) -> np.ndarray:
-        """Whether a robot piece of the object pairs lies inside the mesh object, (M,) bool."""
-        if self._solid is None or len(q) == 0:
-            return np.zeros(len(q), dtype=bool)
-        pts = self._place_points(q, self._solid_joint, self._solid_local)
-        m = self._solid_from_base
-        local = pts @ m[:3, :3].T + m[:3, 3]
-        return self._solid.contains(local.reshape(-1, 3)).reshape(pts.shape[:2]).any(axis=1)
+    # --- placing points -------------------------------------------------------------------
 
-    def _init_distance_bounds(self, dm: Any, pairs: list[tuple[int, int]]) -> None:
-        """Axis-aligned boxes (base frame) of the world shape of every distance pair.
+    def _place(self, frames: Any, joints: np.ndarray, local: np.ndarray) -> np.ndarray:
+        """Points (N, P, 3) [m], base frame, of ``local`` (P, 3) fixed to ``joints`` (P,)."""
+        rots, poss = frames
+        n = rots[0].shape[0]
+        out = np.empty((n, len(joints), 3))
+        for j in np.unique(joints).tolist():
+            cols = np.flatnonzero(joints == j)
+            out[:, cols] = poss[j][:, None, :] + np.einsum("nij,pj->npi", rots[j], local[cols])
+        return out
 
-        The distance between a robot geometry's bounding sphere and the world
-        shape's box is a lower bound of the pair's distance; :meth:`clearance`
-        computes exact distances in increasing order of that bound and stops
-        when the next bound exceeds the best distance found.
-        """
-        lows, highs = [], []
-        for _, b in pairs:
-            gb = dm.geometryObjects[b]
-            gb.geometry.computeLocalAABB()
-            box = gb.geometry.aabb_local
-            lo, hi = np.asarray(box.min_, dtype=float), np.asarray(box.max_, dtype=float)
-            corners = np.array(
-                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-            )
-            world = corners @ np.asarray(gb.placement.rotation).T + np.asarray(
-                gb.placement.translation
-            )
-            lows.append(world.min(axis=0))
-            highs.append(world.max(axis=0))
-        self._dist_robot = np.array([a for a, _ in pairs], dtype=int)
-        self._dist_low = np.array(lows)
-        self._dist_high = np.array(highs)
-
-    def _lower_bounds(self, qs: np.ndarray) -> np.ndarray:
-        """Lower bounds (N, P) of every distance pair's distance [m], vectorised."""
-        centre = self._sphere_centres(qs)[:, self._dist_robot]
-        gap = np.maximum(np.maximum(self._dist_low - centre, centre - self._dist_high), 0.0)
-        return np.linalg.norm(gap, axis=2) - self._sph_radius[self._dist_robot]
-
-    def _init_self_groups(self, model: pin.Model, gm: Any, pairs: list[tuple[int, int]]) -> None:
-        """Self pairs grouped by their first geometry, one pool per group.
-
-        :meth:`check` runs a group's pool only on the configurations where the
-        bounding spheres of at least one of its pairs overlap (vectorised
-        sphere test), so far-apart links (the base vs the hand) cost nothing.
-        """
-        self._self_a = np.array([a for a, _ in pairs], dtype=int)
-        self._self_b = np.array([b for _, b in pairs], dtype=int)
-        self._self_groups: list[tuple[np.ndarray, Any]] = []
-        for a in sorted(set(self._self_a.tolist())):
-            idx = np.flatnonzero(self._self_a == a)
-            km = gm.copy()
-            km.removeAllCollisionPairs()
-            for k in idx:
-                km.addCollisionPair(pin.CollisionPair(int(self._self_a[k]), int(self._self_b[k])))
-            self._self_groups.append((idx, pin.GeometryPool(model, km, self.threads)))
-
-    def _self_collides(self, q: np.ndarray) -> np.ndarray:
-        """Self-collision of configurations (M, nq) -> (M,) bool, sphere-filtered groups."""
-        hit = np.zeros(len(q), dtype=bool)
-        if not self._self_groups or len(q) == 0:
-            return hit
-        centre = self._sphere_centres(q)
-        gap = np.linalg.norm(centre[:, self._self_a] - centre[:, self._self_b], axis=2)
-        near = gap <= self._sph_radius[self._self_a] + self._sph_radius[self._self_b]
-        for idx, pool in self._self_groups:
-            rows = np.flatnonzero(near[:, idx].any(axis=1) & ~hit)
-            if rows.size == 0:
-                continue
-            qt = np.asfortranarray(q[rows].T)
-            res = pin.computeCollisionsInParallel(self.threads, pool, qt, True, False)
-            hit[rows] = np.asarray(res, dtype=bool).reshape(rows.size)
-        return hit
+    def _run(self, pool: Any, q: np.ndarray) -> np.ndarray:
+        """Whether each configuration (M, nq) collides for the pairs of ``pool``, (M,) bool."""
+        if len(q) == 0:
+            return np.zeros(0, dtype=bool)
+        res = pin.computeCollisionsInParallel(
+            self.threads, pool, np.asfortranarray(q.T), True, False
+        )
+        return np.asarray(res, dtype=bool).reshape(len(q))
 
     # --- queries --------------------------------------------------------------------------
 
-    def _collides(self, kind: str, q: np.ndarray) -> np.ndarray:
-        if kind == "self":
-            return self._self_collides(q)
-        pool = self._pools.get(kind)
-        if pool is None or len(q) == 0:
-            return np.zeros(len(q), dtype=bool)
-        qt = np.asfortranarray(q.T)
-        res = pin.computeCollisionsInParallel(self.threads, pool, qt, True, False)
-        hit = np.asarray(res, dtype=bool).reshape(len(q))
-        if kind == "object" and self._solid is not None:  # pieces wholly inside the mesh
-            free = np.flatnonzero(~hit)
-            hit[free] = self._inside_object(q[free])
-        return hit
-
-    def check(self, q: Any) -> np.ndarray:
+    def check(self, q: Any, mode: str = "grasp", carried: Any = None) -> np.ndarray:
         """Collision reason of each configuration.
 
         Args:
             q: Configurations (N, nq) or (nq,) [rad]. Non-finite rows are skipped
                 (reason ``''``); the caller marks them unreachable anyway.
+            mode: ``grasp`` (the gripper may touch the object by the contact
+                tolerance), ``approach`` (no contact) or ``retreat`` (the gripper
+                holds the object, carried along, see ``carried``).
+            carried: ``retreat`` only: the pose of the object in the grasp frame,
+                (N, 4, 4) or (4, 4) (``inv(T_grasp) @ T_object`` at the grasp);
+                None: the object is not checked.
 
         Returns:
             (N,) str: ``''`` (free), ``'collision_environment'``,
             ``'collision_self'`` or ``'collision_object'`` (first that applies,
             in this order).
+
+        Raises:
+            InputError: Unknown mode or ``carried`` of the wrong shape.
         """
+        if mode not in _MODE_BIT:
+            raise InputError(unknown_choice("collision mode", mode, MODES))
         qs = self.robot.as_configurations(q)
-        reason = np.full(len(qs), "", dtype=object)
-        todo = np.flatnonzero(np.all(np.isfinite(qs), axis=1))
+        n = len(qs)
+        held = None
+        if carried is not None and mode == "retreat" and self._carried is not None:
+            held = np.broadcast_to(np.asarray(carried, dtype=float), (n, 4, 4))
+        reason = np.full(n, "", dtype=object)
+        rows = np.flatnonzero(np.all(np.isfinite(qs), axis=1))
+        for a in range(0, rows.size, _BLOCK):
+            block = rows[a : a + _BLOCK]
+            reason[block] = self._check_block(
+                qs[block], _MODE_BIT[mode], None if held is None else held[block]
+            )
+        return reason.astype(str) if n else np.zeros(0, dtype="<U21")
+
+    def _check_block(self, q: np.ndarray, bit: int, held: np.ndarray | None) -> np.ndarray:
+        n = len(q)
+        reason = np.full(n, "", dtype=object)
+        # every pair of the mode at once (coal's broad phase in C++), then the kind
+        # of the few configurations that collide, in the order of the reasons
+        pool = self._mode_pool.get(bit)
+        todo = np.flatnonzero(self._run(pool, q)) if pool is not None else np.zeros(0, int)
         for kind in _KINDS:
-            if len(todo) == 0:
-                break
-            hit = self._collides(kind, qs[todo])
+            kind_pool = self._kind_pool.get((bit, kind))
+            if kind_pool is None or todo.size == 0:
+                continue
+            hit = self._run(kind_pool, q[todo])
             reason[todo[hit]] = _REASONS[kind]
             todo = todo[~hit]
-        return reason.astype(str) if len(reason) else np.zeros(0, dtype="<U21")
+        free = np.flatnonzero(reason == "")
+        if free.size and (self._solid is not None or held is not None):
+            frames = self._frames.compute(q[free])
+            if self._solid is not None:
+                inside = self._inside_object(frames, np.arange(free.size), bit)
+                reason[free[inside]] = REASON_OBJECT
+            if held is not None:
+                still = np.flatnonzero(reason[free] == "")
+                sub = ([r[still] for r in frames[0]], [x[still] for x in frames[1]])
+                grasp_pose = self.robot.fk(q[free[still]])
+                for kind in ("environment", "object"):
+                    hit = self._carried_collides(kind, sub, grasp_pose, held[free[still]])
+                    reason[free[still[hit]]] = _REASONS[kind]
+                    still, grasp_pose = still[~hit], grasp_pose[~hit]
+                    sub = ([r[~hit] for r in sub[0]], [x[~hit] for x in sub[1]])
+                    if still.size == 0:
+                        break
+        return reason
 
-    def in_collision(self, q: Any) -> np.ndarray:
+    def _inside_object(self, frames: Any, rows: np.ndarray, bit: int) -> np.ndarray:
+        """Whether an active robot piece lies inside the mesh object, (M,) bool."""
+        out = np.zeros(rows.size, dtype=bool)
+        use = np.flatnonzero(self._pair_modes[self._solid_pair] & bit)
+        if self._solid is None or rows.size == 0 or use.size == 0:
+            return out
+        sub = ([r[rows] for r in frames[0]], [p[rows] for p in frames[1]])
+        pts = self._place(sub, self._solid_joint[use], self._solid_local[use])
+        m = self._solid_from_base
+        local = pts @ m[:3, :3].T + m[:3, 3]
+        inside = self._solid.contains(local.reshape(-1, 3)).reshape(pts.shape[:2])
+        return np.asarray(inside.any(axis=1), dtype=bool)
+
+    def _carried_collides(
+        self, kind: str, frames: Any, grasp_pose: np.ndarray, held: np.ndarray
+    ) -> np.ndarray:
+        """The carried object against the environment or the arm links, (M,) bool.
+
+        Sphere covers rule out most pairs; coal decides the others.
+        """
+        m = grasp_pose.shape[0]
+        out = np.zeros(m, dtype=bool)
+        car = self._carried
+        if car is None or m == 0:
+            return out
+        pose = grasp_pose @ held  # the object in the base frame
+        centres = car.cover.centres @ np.swapaxes(pose[:, :3, :3], 1, 2) + pose[:, None, :3, 3]
+        gm = self._gm
+        req = coal.CollisionRequest()
+        res = coal.CollisionResult()
+        obj_geom = car.shape.geometry
+        if kind == "environment":
+            for w in car.environment:
+                lb = (self._bounds_for(w).lower(centres) - car.cover.radii).min(axis=1)
+                go = gm.geometryObjects[w]
+                tf_w = _tf(go.placement.homogeneous)
+                for i in np.flatnonzero((lb <= _BROAD_MARGIN) & ~out).tolist():
+                    res.clear()
+                    if coal.collide(obj_geom, _tf(pose[i]), go.geometry, tf_w, req, res):
+                        out[i] = True
+            return out
+        cov = self._cover
+        cw = self._place(frames, cov.joint, cov.centre)
+        for g in car.arm:
+            s = np.arange(cov.start[g], cov.start[g + 1])
+            gap = np.linalg.norm(cw[:, s, None, :] - centres[:, None, :, :], axis=3)
+            lb = (gap - cov.radius[s][:, None] - car.cover.radii[None, :]).min(axis=(1, 2))
+            go = gm.geometryObjects[g]
+            j = int(go.parentJoint)
+            rl, tl = self._frames.local(
+                j, np.asarray(go.placement.rotation), np.asarray(go.placement.translation)
+            )
+            for i in np.flatnonzero((lb <= _BROAD_MARGIN) & ~out).tolist():
+                tf = np.eye(4)
+                tf[:3, :3] = frames[0][j][i] @ rl
+                tf[:3, 3] = frames[1][j][i] + frames[0][j][i] @ tl
+                res.clear()
+                if coal.collide(go.geometry, _tf(tf), obj_geom, _tf(pose[i]), req, res):
+                    out[i] = True
+        return out
+
+    def _bounds_for(self, w: int) -> _ShapeBound:
+        bound = self._bounds.get(w)
+        if bound is None:
+            go = self._gm.geometryObjects[w]
+            bound = self._bounds[w] = _ShapeBound(go.geometry, go.placement.homogeneous)
+        return bound
+
+    def in_collision(self, q: Any, mode: str = "grasp") -> np.ndarray:
         """Whether each configuration collides (any kind), (N,) bool."""
-        return self.check(q) != ""
+        return self.check(q, mode) != ""
 
     def colliding_pairs(self, q: Any) -> list[tuple[str, str, str]]:
-        """All colliding pairs of one configuration (for reports and debugging).
+        """All colliding pairs of one configuration in the ``grasp`` mode (for reports).
 
         Args:
             q: One configuration (nq,) [rad].
@@ -704,9 +865,8 @@ class CollisionChecker:
         pin.computeCollisions(self.robot.model, self._data, gm, gd, qs, False)
         out = []
         if self._solid is not None:
-            pts = self._place_points(qs[None], self._solid_joint, self._solid_local)[0]
-            m = self._solid_from_base
-            inside = self._solid.contains(pts @ m[:3, :3].T + m[:3, 3])
+            frames = self._frames.compute(qs[None])
+            inside = self._inside_pieces(frames)
             out += [
                 (self._solid_names[k], "object (inside)", "object") for k in np.flatnonzero(inside)
             ]
@@ -721,23 +881,34 @@ class CollisionChecker:
                 )
         return out
 
-    def clearance(self, q: Any) -> np.ndarray:
+    def _inside_pieces(self, frames: Any) -> np.ndarray:
+        """Which grasp-mode pieces of one configuration lie inside the mesh object."""
+        assert self._solid is not None
+        use = self._pair_modes[self._solid_pair] & _MODE_BIT["grasp"] > 0
+        pts = self._place(frames, self._solid_joint, self._solid_local)[0]
+        m = self._solid_from_base
+        return self._solid.contains(pts @ m[:3, :3].T + m[:3, 3]) & use
+
+    def clearance(self, q: Any, precision: float = 1e-3) -> np.ndarray:
         """Minimum distance of the robot to the environment and the object [m].
 
-        Pairs: every robot link vs every environment obstacle, except the base
-        links (fixed to the universe or the first joint) vs the table, whose
-        distance to it does not change with the configuration (0.14 m for
-        ``panda_link1``), and every *arm* link vs the object.
-        The gripper (hand and fingers) vs the object is left out: at a grasp it
+        Pairs: every robot link vs every environment shape, except the base
+        links (fixed to the universe or the first joint) vs a support (the
+        table), whose distance to it does not change with the configuration
+        (0.14 m for ``panda_link1``), and every *arm* link vs the object. The
+        gripper (hand and fingers) vs the object is left out: at a grasp it
         touches the object by design. Penetrating pairs give a distance <= 0
         (a penetration, not necessarily the deepest one).
 
-        Exact distances (coal, on the meshes) are computed only for the pairs
-        whose bounding-sphere-to-box lower bound is below the best distance
-        found so far (see :meth:`_init_distance_bounds`), nearest bound first.
+        Exact distances (coal, on the meshes) are computed in increasing order
+        of the pairs' sphere-cover lower bounds, and only while a pair's bound
+        is below the best distance found minus ``precision``: the result is a
+        real distance of the robot to the world, at most ``precision`` above
+        the minimum (the ranking needs no more).
 
         Args:
             q: Configurations (N, nq) or (nq,) [rad].
+            precision: How far above the true minimum the result may be [m], >= 0.
 
         Returns:
             (N,) distances [m]; ``inf`` when there is nothing to measure against,
@@ -745,38 +916,163 @@ class CollisionChecker:
         """
         qs = self.robot.as_configurations(q)
         out = np.full(len(qs), np.inf)
-        if self._dist_model is None:
-            out[~np.all(np.isfinite(qs), axis=1)] = np.nan
-            return out
         finite = np.all(np.isfinite(qs), axis=1)
         out[~finite] = np.nan
         rows = np.flatnonzero(finite)
-        if rows.size == 0:
+        if self._dist_model is None or rows.size == 0:
             return out
         model, data = self.robot.model, self._data
         dm, dd = self._dist_model, self._dist_data
-        bound = self._lower_bounds(qs[rows])
-        order = np.argsort(bound, axis=1)
-        for k, n in enumerate(rows):
-            pin.updateGeometryPlacements(model, data, dm, dd, qs[n])
-            best = np.inf
-            lb = bound[k]
-            for p in order[k]:
-                if lb[p] >= best:
-                    break
-                d = pin.computeDistance(dm, dd, int(p)).min_distance
-                if d < best:
-                    best = d
-            out[n] = best
+        cov = self._cover
+        for a in range(0, rows.size, _BLOCK):
+            block = rows[a : a + _BLOCK]
+            frames = self._frames.compute(qs[block])
+            centres = self._place(frames, cov.joint, cov.centre)
+            bound = np.empty((block.size, self._dist_owner.size))
+            for w in np.unique(self._dist_world).tolist():
+                cols = np.flatnonzero(self._dist_world == w)
+                d = self._bounds_for(w).lower(centres) - cov.radius
+                per_owner = np.minimum.reduceat(d, cov.start[:-1], axis=1)
+                bound[:, cols] = per_owner[:, self._dist_owner[cols]]
+            order = np.argsort(bound, axis=1)
+            for k, n in enumerate(block.tolist()):
+                pin.updateGeometryPlacements(model, data, dm, dd, qs[n])
+                best = np.inf
+                lb = bound[k]
+                for p in order[k].tolist():
+                    if lb[p] >= best - precision:
+                        break
+                    d = pin.computeDistance(dm, dd, p).min_distance
+                    if d < best:
+                        best = d
+                out[n] = best
         return out
+
+    def with_world(self, world: Any) -> CollisionChecker:
+        """The same robot and settings in another world (e.g. the object moved).
+
+        The robot's collision geometry is read once per robot and reused.
+        """
+        return CollisionChecker(
+            self.robot,
+            world,
+            contact_tolerance=self.contact_tolerance,
+            self_collision=self.self_collision,
+            threads=self.threads,
+        )
 
     def __repr__(self) -> str:
         counts = {k: int(np.sum(self.pair_kind == k)) for k in _KINDS}
         world = ", ".join(s.name for s in self.world) or "(none)"
+        spheres = len(self._cover.radius)
         return (
             f"CollisionChecker(robot={self.robot.name!r}, world=[{world}], pairs={counts}, "
-            f"contact_tolerance={self.contact_tolerance}, table_exempt={list(self.table_exempt)})"
+            f"contact_tolerance={self.contact_tolerance}, table_exempt={list(self.table_exempt)}, "
+            f"spheres={spheres})"
         )
+
+
+# --- helpers --------------------------------------------------------------------------
+
+
+class _Cover(NamedTuple):
+    """Sphere covers of all robot geometries, in the joints' rotated frames."""
+
+    centre: np.ndarray  # (S, 3)
+    radius: np.ndarray  # (S,)
+    joint: np.ndarray  # (S,)
+    start: np.ndarray  # (R + 1,) spheres of geometry g: start[g]:start[g + 1]
+
+
+class _CarriedObject(NamedTuple):
+    shape: WorldShape
+    cover: SphereCover  # in the object geometry's frame
+    environment: list[int]  # world geometries it may hit
+    arm: list[int]  # robot geometries it may hit (not the gripper)
+
+
+def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _Cover:
+    centres, radii, joints, start = [], [], [], [0]
+    for i in ids:
+        go = gm.geometryObjects[i]
+        pts, tris = geometry_mesh(go.geometry)
+        cov = sphere_cover(pts, tris, max_spheres)
+        j = int(go.parentJoint)
+        rot, trans = frames.local(
+            j, np.asarray(go.placement.rotation), np.asarray(go.placement.translation)
+        )
+        centres.append(cov.centres @ rot.T + trans)
+        radii.append(cov.radii)
+        joints.append(np.full(len(cov.radii), j))
+        start.append(start[-1] + len(cov.radii))
+    return _Cover(
+        np.concatenate(centres), np.concatenate(radii), np.concatenate(joints), np.array(start)
+    )
+
+
+def _broad_phase_pool(model: Any, gm: Any, pairs: list[_Pair], threads: int) -> Any:
+    """A pool checking ``pairs`` with coal's dynamic AABB tree (broad phase) in C++."""
+    km = gm.copy()
+    km.removeAllCollisionPairs()
+    for p in pairs:
+        km.addCollisionPair(pin.CollisionPair(p.a, p.b))
+    return pin.TreeBroadPhaseManagerPool_DynamicAABBTreeCollisionManager(model, km, threads)
+
+
+def _tf(m: np.ndarray) -> Any:
+    return coal.Transform3s(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))
+
+
+def _se3(m: np.ndarray) -> pin.SE3:
+    return pin.SE3(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))
+
+
+def _robot_geometry(robot: Robot) -> Any:
+    """A copy of the robot's collision geometry model (read once per robot)."""
+    gm = robot.cache.get("collision_geometry")
+    if gm is None:
+        gm = robot.cache["collision_geometry"] = robot.build_geometry("collision")
+    return gm.copy()
+
+
+def _self_pairs(robot: Robot, joint_of: list[int]) -> list[tuple[int, int]]:
+    """Self pairs: all pairs minus the SRDF's disabled ones and same/adjacent links."""
+    model = robot.model
+    gm = _robot_geometry(robot)
+    gm.addAllCollisionPairs()
+    if robot.srdf_path is not None:
+        pin.removeCollisionPairs(model, gm, str(robot.srdf_path))
+    out = []
+    for cp in gm.collisionPairs:
+        a, b = int(cp.first), int(cp.second)
+        ja, jb = joint_of[a], joint_of[b]
+        if ja == jb or model.parents[ja] == jb or model.parents[jb] == ja:
+            continue  # same rigid body or adjacent links
+        out.append((a, b))
+    return out
+
+
+def _support_exempt(robot: Robot, gm: Any, support: int, joint_of: list[int]) -> set[int]:
+    """Robot geometries not checked against a support: the base links standing on it.
+
+    Links fixed to the universe or to the first joint that touch the support
+    in the home configuration (for the Panda at z = 0: ``panda_link0``).
+    """
+    model = robot.model
+    first = [i for i in range(len(joint_of)) if joint_of[i] in (0, 1)]
+    if not first:
+        return set()
+    probe = gm.copy()
+    probe.removeAllCollisionPairs()
+    for i in first:
+        probe.addCollisionPair(pin.CollisionPair(i, support))
+    pd = pin.GeometryData(probe)
+    pin.computeCollisions(model, model.createData(), probe, pd, robot.home, False)
+    return {
+        int(cp.first)
+        for k, cp in enumerate(probe.collisionPairs)
+        if pd.collisionResults[k].isCollision()
+    }
 
 
 def _add_eroded_gripper(
@@ -815,7 +1111,7 @@ def _add_eroded_gripper(
     return out
 
 
-def _gripper_links(robot: Robot) -> set[str]:
+def gripper_links(robot: Robot) -> set[str]:
     """Links of the gripper: the body carrying the grasp frame and all links below it.
 
     Walks the *full* (unreduced) model's frame tree: the grasp frame's nearest

@@ -229,14 +229,6 @@ class ReachabilityEngine:
         self.chunk_size = int(chunk_size)
         self.ik_options = dict(ik_options or {})
         self._radius = gripper_radius(robot) if (approach or retreat) else 0.0
-        # the approach allows no finger contact; the retreat holds the object
-        self._approach_checker = None
-        self._retreat_checker = None
-        if checker is not None and approach is not None:
-            tol = getattr(checker, "contact_tolerance", 0.0)
-            self._approach_checker = checker.with_contact_tolerance(0.0) if tol else checker
-        if checker is not None and retreat is not None:
-            self._retreat_checker = checker.holding_object()
         self._pool: Any = None
 
     def __repr__(self) -> str:
@@ -278,9 +270,9 @@ class ReachabilityEngine:
         stage = np.where(reason == "", _AT_APPROACH, _AT_GRASP)
         q_pre = np.full((m, nq), np.nan)
         q_ret = np.full((m, nq), np.nan)
-        for move, checker, at, fail, out in (
-            (self.approach, self._approach_checker, _AT_APPROACH, REASON_APPROACH, q_pre),
-            (self.retreat, self._retreat_checker, _AT_RETREAT, REASON_RETREAT, q_ret),
+        for move, at, fail, out in (
+            (self.approach, _AT_APPROACH, REASON_APPROACH, q_pre),
+            (self.retreat, _AT_RETREAT, REASON_RETREAT, q_ret),
         ):
             rows = np.flatnonzero(stage == at)
             if move is not None and rows.size:
@@ -289,7 +281,7 @@ class ReachabilityEngine:
                     targets[rows],
                     q[rows],
                     move,
-                    checker,
+                    self._path_collisions(move, targets[rows]),
                     gripper_radius=self._radius,
                     position_tolerance=self.position_tolerance,
                     orientation_tolerance=self.orientation_tolerance,
@@ -300,6 +292,25 @@ class ReachabilityEngine:
                 rows = rows[res.ok]
             stage[rows] = at + 1
         return CheckResult(stage == _PASSED, stage, reason.astype(str), q_pre, q_ret)
+
+    def _path_collisions(
+        self, move: Move, targets: np.ndarray
+    ) -> Callable[[np.ndarray, np.ndarray], Any] | None:
+        """The collision check of a move's grid points (None without a checker).
+
+        The approach allows no contact; the retreat holds the object: it moves
+        with the grasp frame (its pose in the grasp frame is fixed at the grasp).
+        """
+        checker = self.checker
+        if checker is None:
+            return None
+        if not move.holding:
+            return lambda q, rows: checker.check(q, mode="approach")
+        obj = getattr(checker, "object", None)
+        if obj is None:
+            return lambda q, rows: checker.check(q, mode="retreat")
+        held = np.linalg.inv(targets) @ obj.placement
+        return lambda q, rows: checker.check(q, mode="retreat", carried=held[rows])
 
     # --- step 3 ------------------------------------------------------------------------
 

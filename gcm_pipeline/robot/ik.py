@@ -39,7 +39,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from gcm_pipeline.config import Pose
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.ik_pinocchio import rotation_angle
@@ -154,13 +153,14 @@ def check_targets(targets: Any, name: str = "targets") -> np.ndarray:
     return arr
 
 
-def world_to_base_targets(dq: Any, base_pose: Pose | np.ndarray | None = None) -> np.ndarray:
+def world_to_base_targets(dq: Any, base_pose: Any = None) -> np.ndarray:
     """Grasp-frame poses in the robot base frame from world dual quaternions.
 
     Args:
         dq: Unit dual quaternions (N, 8) of the grasp frame in the world,
             layout ``[rw, rx, ry, rz, dw, dx, dy, dz]``.
-        base_pose: Robot base in the world, a config :class:`Pose` or (4, 4);
+        base_pose: Robot base in the world, (4, 4) or an object with a
+            ``matrix()`` method (a config ``Pose``);
             identity if None.
 
     Returns:
@@ -189,7 +189,7 @@ def world_to_base_targets(dq: Any, base_pose: Pose | np.ndarray | None = None) -
     world = dq_to_matrix(arr)
     if base_pose is None:
         return world
-    if isinstance(base_pose, Pose):
+    if hasattr(base_pose, "matrix"):
         base_pose = base_pose.matrix()
     base = check_targets(base_pose, name="base_pose")
     if base.shape[0] != 1:

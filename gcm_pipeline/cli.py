@@ -223,7 +223,7 @@ def _viewer_command(args: argparse.Namespace, out: Path) -> str:
 def _cmd_run(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    from gcm_pipeline.pipeline import Pipeline
+    from gcm_pipeline.pipeline import Pipeline, unreachable_hint
 
     pipeline = Pipeline.from_yaml(args.config, args.overrides)
     cfg = pipeline.config
@@ -254,6 +254,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
         share = 100 * c["reachable"] / n
         print(f"  reachable     {c['reachable']} / {c['densified']} ({share:.1f} %)")
+        if c["reachable"] == 0 and c["densified"]:
+            print("  " + unreachable_hint(c["unreachable_by_reason"]))
         timings = ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items())
         print(f"  timings [s]   {timings}; total {total:.2f}")
         top = result.top(min(5, cfg.ranking.top_k))

@@ -225,9 +225,10 @@ class CandidatesConfig(_Section):
         path: ``file``: the grasp file (relative to the config file's directory).
         format: ``file``: ``acronym`` | ``npy`` | ``npz`` | ``csv`` (default: from the suffix).
         frame: ``file``: the poses are in the ``world`` or the ``object`` frame.
-        grasp_to_tool: ``file``: fixed transform from the file's gripper frame to the
-            robot's grasp frame, applied on the right (``T_tool = T_grasp @ grasp_to_tool``).
-            For ACRONYM's Franka gripper use ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
+        grasp_to_tool: Fixed transform from the file's (or the generator's) gripper frame
+            to the robot's grasp frame, applied on the right (``T_tool = T_grasp @
+            grasp_to_tool``), for every source. For ACRONYM's Franka gripper use
+            ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
         success_only: ``file``: keep only grasps labelled successful.
         limit: ``file``: keep at most this many grasps (the first ones, after filtering).
         gripper: The gripper whose frame convention maps the file's poses onto the

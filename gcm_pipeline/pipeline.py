@@ -75,6 +75,7 @@ __all__ = [
     "reachability_engine",
     "robot_from_config",
     "top_grasps",
+    "unreachable_hint",
 ]
 
 log = logging.getLogger(__name__)
@@ -707,13 +708,48 @@ def _warn_empty(counts: Mapping[str, Any], cfg: Config) -> None:
             "manifold.projection",
             f" (dropped: {why})" if why else "",
         )
-    if counts["reachable"] == 0:
-        why = ", ".join(f"{k} {v}" for k, v in counts["unreachable_by_reason"].items())
-        log.warning(
-            "no grasp is reachable (%s); check robot.base_pose, the object pose and the "
-            "environment",
-            why,
-        )
+    if counts["reachable"] == 0 and counts["densified"]:
+        log.warning("%s", unreachable_hint(counts["unreachable_by_reason"]))
+
+
+#: What to try when most grasps fail for a reason (see :func:`unreachable_hint`).
+_HINTS = {
+    "out_of_reach": "the grasps lie beyond the arm's reach: move the object (object.pose) "
+    "or the robot (robot.base_pose) closer",
+    "no_ik": "no IK solution: these grasp orientations may be impossible for this arm here; "
+    "try another robot.base_pose or grasps approached from other sides",
+    "joint_limits": "the solutions leave the joint limits: check the robot spec's joint_limits "
+    "and limit_margin",
+    "collision_object": "the robot hits the object at the grasp: is the grasp frame the "
+    "robot's TCP? An arm without a hand needs a tool in its robot spec (see ur5.yaml), or map "
+    "the grasps onto its grasp frame with candidates.grasp_to_tool; "
+    "environment.contact_tolerance sets how deep the gripper may touch",
+    "collision_environment": "the arm hits the table or an obstacle: check "
+    "environment.table.height and the object's pose",
+    "collision_self": "every solution collides with the arm itself: try grasps approached "
+    "from other sides or another robot.base_pose",
+    "approach": "the pre-grasp approach fails: shorten approach.distance or turn it off "
+    "(approach: null)",
+    "retreat": "the post-grasp retreat fails: shorten retreat.distance or turn it off "
+    "(retreat: null)",
+}
+
+
+def unreachable_hint(unreachable: Mapping[str, int]) -> str:
+    """Why no grasp is reachable and what to try, in one line.
+
+    Args:
+        unreachable: Unreachable grasps by reason, most frequent first (the
+            run's ``counts["unreachable_by_reason"]``).
+
+    Returns:
+        ``"no grasp is reachable (r1 n1, r2 n2, ...); try: ..."``: every
+        reason with its count, and what to try for the two most frequent.
+    """
+    reasons = ", ".join(f"{k} {v}" for k, v in unreachable.items()) or "no reason recorded"
+    tips = [_HINTS[k] for k in list(unreachable)[:2] if k in _HINTS]
+    tip = "; ".join(tips) or "check robot.base_pose, the object pose and the environment"
+    return f"no grasp is reachable ({reasons}); try: {tip}"
 
 
 def _count_by(labels: Any) -> dict[str, int]:

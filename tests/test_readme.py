@@ -49,7 +49,14 @@ def test_config_sketch_validates() -> None:
     yaml_blocks = _blocks("yaml")
     assert yaml_blocks, "README lost its config sketch"
     for text in yaml_blocks:
-        cfg = Config.from_dict(yaml.safe_load(text), source="README.md")
+        data = yaml.safe_load(text)
+        if "tool" in data:  # a robot spec's tool section (see Tools)
+            from gcm_pipeline.robot.tool import parse_tool
+
+            tool = parse_tool("README.md", data["tool"], ROOT)
+            assert data["grasp_frame"] and tool.collision
+            continue
+        cfg = Config.from_dict(data, source="README.md")
         assert cfg.candidates.source
 
 

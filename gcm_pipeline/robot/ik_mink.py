@@ -132,6 +132,18 @@ def _urdf_for_mujoco(robot: Any) -> str:
         for tag in ("axis", "limit", "mimic", "dynamics", "safety_controller"):
             for el in joint.findall(tag):
                 joint.remove(el)
+    if robot.spec.tool is not None:  # the tool's TCP frame becomes a body on a fixed joint
+        parent, rel = robot.tool_tcp_link()
+        joint = ET.SubElement(root, "joint", name=f"{robot.grasp_frame}_joint", type="fixed")
+        ET.SubElement(joint, "parent", link=parent)
+        ET.SubElement(joint, "child", link=robot.grasp_frame)
+        ET.SubElement(
+            joint,
+            "origin",
+            xyz=" ".join(repr(float(v)) for v in rel[:3, 3]),
+            rpy=" ".join(repr(float(v)) for v in Rotation.from_matrix(rel[:3, :3]).as_euler("xyz")),
+        )
+        ET.SubElement(root, "link", name=robot.grasp_frame)
     return ET.tostring(root, encoding="unicode")
 
 

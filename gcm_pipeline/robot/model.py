@@ -14,6 +14,9 @@ A robot spec is a small YAML file (``gcm_pipeline/robots/<name>.yaml``)::
     home: {joint: value} | [values]      # optional: home configuration [rad] (default: middle)
     limit_margin: 0.0                    # optional: tighten every range on both sides [rad]
     joint_limits: {joint: [lo, hi]}      # optional: ranges intersected with the model's [rad]
+    tool: {flange, mount, tcp, collision, ...}  # optional: a gripper for a bare flange;
+                                         #   grasp_frame then names the TCP frame it adds
+                                         #   (see gcm_pipeline.robot.tool)
 
 Another arm of example-robot-data is a new YAML file, not new code. Poses are
 expressed in the model's root frame (``universe``), called the *base frame*.
@@ -40,6 +43,7 @@ from gcm_pipeline.errors import (
     unknown_choice,
 )
 from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.tool import ToolSpec, parse_tool, shape_geometry
 from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 
 __all__ = ["Robot", "RobotSpec", "available_robots", "load_robot", "load_spec"]
@@ -53,6 +57,7 @@ _SPEC_KEYS = (
     "home",
     "limit_margin",
     "joint_limits",
+    "tool",
 )
 _MODEL_KEYS = ("example_robot_data", "urdf", "srdf", "package_dirs")
 
@@ -74,6 +79,8 @@ class RobotSpec:
         home: Joint name -> home value [rad] (empty: middle of the limits).
         limit_margin: Margin by which every joint range shrinks per side [rad].
         joint_limits: Joint name -> (lower, upper) [rad], intersected with the model's.
+        tool: A tool mounted on a flange frame (:mod:`gcm_pipeline.robot.tool`) or None;
+            with a tool, ``grasp_frame`` names the TCP frame the tool adds.
     """
 
     name: str
@@ -88,6 +95,7 @@ class RobotSpec:
     home: Mapping[str, float] | tuple[float, ...] = field(default_factory=dict)
     limit_margin: float = 0.0
     joint_limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    tool: ToolSpec | None = None
 
 
 def _spec_dir() -> Any:
@@ -219,6 +227,7 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
         home=home,
         limit_margin=margin,
         joint_limits=limits,
+        tool=None if raw.get("tool") is None else parse_tool(where, raw["tool"], base),
     )
     _check_model_files(where, spec)
     return spec
@@ -331,6 +340,8 @@ class Robot:
             full = pin.buildModelFromUrdf(str(urdf))
         except Exception as exc:  # pinocchio raises ValueError/RuntimeError
             raise RobotSpecError(f"robot {spec.name!r}: cannot read {str(urdf)!r}: {exc}") from exc
+        if spec.tool is not None:
+            _add_tool_frame(spec, full)
         self.full_model = full
         joint_names = [full.names[i] for i in range(1, full.njoints)]
         if srdf is not None:
@@ -415,6 +426,15 @@ class Robot:
             )
         home.setflags(write=False)
         self.home = home
+        self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}
+        if spec.tool is not None:  # read the meshes now: a bad one fails before any work
+            tool, where = spec.tool, f"robot spec {str(spec.path)!r}: tool"
+            for kind in ("collision", "visual"):
+                shapes = tool.collision if kind == "collision" else tool.visual
+                self._tool_shapes[kind] = [
+                    (s, shape_geometry(s, f"{where}.{kind}[{i}]"), tool.shape_pose(s))
+                    for i, s in enumerate(shapes)
+                ]
         self.shoulder = self.chain.root_origin.copy()
         self.reach_bound = float(self.chain.link_lengths().sum())
         self.max_reach = min(self.reach_bound, self._maximise_reach() + 2e-3)
@@ -553,10 +573,45 @@ class Robot:
             for j in self.spec.locked_joints
             if self.full_model.existJointName(j)
         ]
-        if not locked:
-            return geom
-        _, reduced = pin.buildReducedModel(self.full_model, geom, locked, self.locked_q)
-        return reduced
+        if locked:
+            _, geom = pin.buildReducedModel(self.full_model, geom, locked, self.locked_q)
+        if self.spec.tool is not None:
+            self._add_tool_geometry(geom, kind)
+        return geom
+
+    def tool_tcp_link(self) -> tuple[str, np.ndarray]:
+        """The URDF link that carries the tool's TCP frame and the frame's pose in it (4, 4).
+
+        The link is the flange frame's nearest body (link) frame; for a tool only.
+        """
+        fm = self.full_model
+        fid = fm.getFrameId(self.grasp_frame)
+        k = int(fm.frames[fid].parentFrame)
+        while fm.frames[k].type != pin.FrameType.BODY and k > 0:
+            k = int(fm.frames[k].parentFrame)
+        body = fm.frames[k]
+        rel = np.linalg.inv(body.placement.homogeneous) @ fm.frames[fid].placement.homogeneous
+        return body.name, rel
+
+    def _add_tool_geometry(self, geom: pin.GeometryModel, kind: str) -> None:
+        """Append the tool's shapes, named ``tool/<name>``, on the flange's joint."""
+        tool = self.spec.tool
+        assert tool is not None
+        fid = self.model.getFrameId(tool.flange)
+        frame = self.model.frames[fid]
+        flange = frame.placement.homogeneous @ tool.mount
+        for shape, geometry, pose in self._tool_shapes[kind]:
+            m = flange @ pose
+            placement = pin.SE3(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))
+            obj = pin.GeometryObject(
+                f"tool/{shape.name}", int(frame.parentJoint), int(fid), placement, geometry
+            )
+            if shape.mesh is not None:
+                obj.meshPath = str(shape.mesh)
+                obj.meshScale = np.asarray(shape.scale, dtype=float)
+            obj.meshColor = np.asarray(shape.color or tool.color, dtype=float)
+            obj.overrideMaterial = True
+            geom.addGeometryObject(obj)
 
     def __repr__(self) -> str:
         return (
@@ -569,6 +624,33 @@ class Robot:
     def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
         """Pickle as the spec it came from (rebuilt on unpickling)."""
         return (Robot, (self.spec,))
+
+
+def _add_tool_frame(spec: RobotSpec, full: pin.Model) -> None:
+    """Add the tool's TCP frame (named ``spec.grasp_frame``) to the unreduced model."""
+    tool = spec.tool
+    assert tool is not None
+    names = [f.name for f in full.frames]
+    if not full.existFrame(tool.flange):
+        close = difflib.get_close_matches(tool.flange, names, n=5, cutoff=0.4)
+        raise FrameNotFoundError(
+            f"robot {spec.name!r}: tool.flange {tool.flange!r} is not a frame of the model; "
+            f"closest: {', '.join(close) or '(none)'}"
+        )
+    if full.existFrame(spec.grasp_frame):
+        raise RobotSpecError(
+            f"robot {spec.name!r}: grasp_frame {spec.grasp_frame!r} already exists in the model; "
+            "with a tool, grasp_frame names the new TCP frame the tool adds (e.g. tool_tcp)"
+        )
+    fid = full.getFrameId(tool.flange)
+    frame = full.frames[fid]
+    m = frame.placement.homogeneous @ tool.mount @ tool.tcp
+    placement = pin.SE3(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))
+    full.addFrame(
+        pin.Frame(
+            spec.grasp_frame, int(frame.parentJoint), int(fid), placement, pin.FrameType.OP_FRAME
+        )
+    )
 
 
 def load_robot(name_or_path: str | os.PathLike[str] | Robot) -> Robot:

@@ -56,6 +56,10 @@ its z the same approach (``tests/test_candidates.py`` checks this geometry).
 ``rpy_deg: [0, 0, 90]`` is the same grasp turned by 180 deg about the
 approach: the symmetric hand cannot tell the two apart, but the arm reaches
 them with joint 7 differing by pi, so the choice can change reachability.
+Generated grasps (and the ``antipodal`` sampler's) are mapped by ``grasp_to_tool``
+the same way, before the object pose: the generators make the frame of a
+Panda-like TCP (z = approach, fingers closing along y, origin between the
+fingertips), which another tool may need offset or turned.
 
 Everything is vectorised: poses are (N, 4, 4) arrays until they become the
 ``dq`` column of a :class:`~gcm_pipeline.table.GraspTable`.
@@ -370,6 +374,8 @@ def _candidate_poses(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     rng = np.random.default_rng(c.seed if c.seed is not None else cfg.seed)
     poses = _generate(cfg, rng)
     _noise(poses, c.noise.position, c.noise.angle_deg, rng)
+    if c.grasp_to_tool is not None:  # generated grasps are mapped like imported ones
+        poses = poses @ c.grasp_to_tool.matrix()
     assert cfg.object is not None
     return cfg.object.pose.matrix() @ poses, {}
 
@@ -395,6 +401,8 @@ def generate_candidates(cfg: Config) -> GraspTable:
     columns: dict[str, np.ndarray] = {}
     if formats.handles(cfg):  # synthesisers' formats, gripper mapping, the antipodal sampler
         poses, columns = formats.load_candidates(cfg)
+        if cfg.candidates.source != "file" and cfg.candidates.grasp_to_tool is not None:
+            poses = poses @ cfg.candidates.grasp_to_tool.matrix()  # a sampler's grasps too
     else:
         poses, columns = _candidate_poses(cfg)
     if poses.shape[0] == 0:

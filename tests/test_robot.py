@@ -92,8 +92,16 @@ def test_max_reach_bounds_every_configuration(panda: Robot, ur5: Robot):
 
 
 def test_ur5_spec(ur5: Robot):
-    assert ur5.nq == 6 and ur5.grasp_frame == "tool0"
+    assert ur5.nq == 6 and ur5.grasp_frame == "gripper_tcp"  # the TCP of its tool
+    assert ur5.spec.tool is not None and ur5.spec.tool.flange == "tool0"
     assert ur5.within_limits(ur5.home).all()
+
+
+def test_robot_with_tool_pickles(ur5: Robot):
+    other = pickle.loads(pickle.dumps(ur5))
+    q = ur5.random_configurations(3, 0)
+    np.testing.assert_allclose(other.fk(q), ur5.fk(q))
+    assert [g.name for g in other.build_geometry().geometryObjects][-1] == "tool/finger_right"
 
 
 def test_robot_pickles(panda: Robot):

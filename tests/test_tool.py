@@ -16,9 +16,10 @@ import gcm_pipeline as gcm
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.robot.collision import REASON_OBJECT, CollisionChecker
+from gcm_pipeline.robot.collision import REASON_OBJECT
 from gcm_pipeline.robot.model import load_robot, load_spec
 from gcm_pipeline.robot.tool import parse_pose
+from gcm_pipeline.stages.collision import make_checker
 
 ROOT = Path(__file__).resolve().parents[1]
 UR5_SPEC = yaml.safe_load((ROOT / "gcm_pipeline" / "robots" / "ur5.yaml").read_text())
@@ -84,10 +85,10 @@ def test_tool_pieces_are_the_gripper_and_touch_within_the_tolerance(ur5):
         obj = ObjectConfig.model_validate(
             {"shape": "sphere", "dims": {"radius": radius}, "pose": {"xyz": tcp}}
         )
-        c = CollisionChecker(ur5, EnvironmentConfig(contact_tolerance=tol, table=None), obj)
+        c = make_checker(ur5, EnvironmentConfig(contact_tolerance=tol, table=None), obj)
         return c.check(ur5.home)[0]
 
-    c = CollisionChecker(ur5, EnvironmentConfig())
+    c = make_checker(ur5, EnvironmentConfig())
     assert {c.link_names[i] for i in c.gripper_geoms} == {"tool0"}
     assert reason(0.040, 0.0) == ""
     assert reason(0.0445, 0.0) == REASON_OBJECT  # 2 mm into the pads

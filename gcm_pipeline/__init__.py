@@ -2,8 +2,8 @@
 
 The public API is listed in ``__all__``; every name in it imports.
 Importing the package loads Pinocchio (robot models, IK, collisions) but not
-mink, MuJoCo or meshcat: those load when the ``mink`` IK backend or the
-meshcat publisher is used.
+mink, MuJoCo, meshcat or Ray: those load when the ``mink`` IK backend, the
+meshcat publisher or a placement study (:class:`Study`) is used.
 """
 
 from gcm_pipeline.config import Config, load_config
@@ -53,6 +53,7 @@ from gcm_pipeline.robot.manipulability import (
 from gcm_pipeline.robot.model import Robot, available_robots, load_robot
 from gcm_pipeline.stages.collision import combined_score
 from gcm_pipeline.stages.manifold import Manifold
+from gcm_pipeline.study import Study, StudyResult
 from gcm_pipeline.table import GraspTable
 
 __version__ = "0.1.0"
@@ -78,6 +79,8 @@ __all__ = [
     "Robot",
     "RobotSpecError",
     "RunResult",
+    "Study",
+    "StudyResult",
     "__version__",
     "available_robots",
     "build_manifold",

@@ -1,4 +1,4 @@
-"""Command line: ``gcm run | validate | schema | show | plot | query | export | view``.
+"""Command line: ``gcm run | validate | schema | show | plot | query | export | view | study``.
 
 ``gcm run CONFIG`` runs the whole pipeline and writes the run directory;
 ``gcm validate CONFIG`` only checks a config; ``gcm schema`` prints the
@@ -6,7 +6,9 @@ config's JSON Schema; ``gcm show RUN_DIR`` prints the top-ranked grasps of a
 run; ``gcm plot RUN_DIR`` writes its plots; ``gcm query RUN_DIR --pose ...``
 prints the nearest reachable grasp of a run's manifold to a pose; ``gcm export
 RUN_DIR --format moveit | parquet | npz`` exports its grasps; ``gcm view RUN_DIR``
-opens a saved run in the live meshcat viewer (nothing is recomputed).
+opens a saved run in the live meshcat viewer (nothing is recomputed);
+``gcm study STUDY --out DIR`` runs a placement study on Ray and writes the
+study directory.
 
 User errors (:class:`~gcm_pipeline.errors.GcmError`) print one line
 ``error: <message>`` on stderr and exit with status 2 (the traceback only
@@ -19,6 +21,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import os
 import shlex
 import signal
@@ -156,6 +159,36 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-wait",
         action="store_true",
         help="return at once; the viewer's server keeps running (its pid is printed)",
+    )
+
+    study = sub.add_parser(
+        "study",
+        parents=[common],
+        help="run a placement study (object poses, base poses, objects) on Ray",
+    )
+    study.add_argument("study", metavar="STUDY", type=Path, help="study YAML file")
+    study.add_argument(
+        "--out", type=Path, metavar="DIR", required=True, help="study directory (rerun to resume)"
+    )
+    study.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="Ray workers, one CPU each (default: every CPU of this machine or the cluster)",
+    )
+    study.add_argument(
+        "--address",
+        metavar="ADDR",
+        help="join an existing Ray cluster (HOST:PORT, ray://HOST:PORT or auto) "
+        "instead of starting Ray on this machine",
+    )
+    study.add_argument(
+        "--force",
+        action="store_true",
+        help="run a study with more placements than its max_placements",
+    )
+    study.add_argument(
+        "--no-best", action="store_true", help="do not write best/ (the best placement's run)"
     )
     return parser
 
@@ -474,6 +507,91 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _plural(n: int, word: str) -> str:
+    return f"{n:,} {word}" + ("" if n == 1 else "s")
+
+
+def _cmd_study(args: argparse.Namespace) -> int:
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from gcm_pipeline.study import Study
+
+    if args.workers is not None and args.workers < 1:
+        raise GcmError(f"--workers must be >= 1, got {args.workers}")
+    study = Study.from_yaml(args.study)
+    grid, extra = study.size()
+    if not args.quiet:
+        more = f" (+ up to {extra} from refinement)" if extra else ""
+        print(f"gcm study {args.study}: {_plural(grid, 'placement')}{more}", flush=True)
+    try:
+        with logging_redirect_tqdm(loggers=[log]):
+            result = study.run(
+                args.out,
+                workers=args.workers,
+                address=args.address,
+                force=args.force,
+                progress=not args.quiet,
+                best_run=not args.no_best,
+            )
+    except KeyboardInterrupt:
+        print(
+            f"interrupted: finished placements are kept in {args.out}; "
+            "run the same command again to resume",
+            file=sys.stderr,
+        )
+        return 130
+    if args.quiet:
+        print(result.out_dir)
+        return 0 if result.best is not None else EXIT_USER_ERROR
+    s = result.summary
+    c = s["counts"]
+    eng = s["engine"]
+    where = eng.get("mode", eng["name"])
+    print(
+        f"  placements  {c['finished']} finished ({c['run']} run now, {c['resumed']} resumed), "
+        f"{c['failed']} failed, {c['rounds']} round(s)"
+    )
+    rate = s.get("placements_per_s")
+    print(
+        f"  engine      {eng['name']} {eng.get('version', '')} {where}, {eng['workers']} "
+        f"worker(s) on {eng.get('nodes', 1)} node(s)"
+        + (f"; {rate:.2f} placements/s" if rate else "")
+    )
+    for f in result.failed[:3]:
+        print(f"  failed      #{f['id']}: {f['error']}")
+    best = result.best
+    if best is None:
+        print(
+            f"error: every placement failed; see {result.out_dir / 'placements.csv'}",
+            file=sys.stderr,
+        )
+        return EXIT_USER_ERROR
+    print(
+        f"best placement #{best['id']} ({best['object']}): coverage {best['coverage']:.3f} "
+        f"({best['reachable']} / {best['densified']} reachable, "
+        f"{best['candidates_reachable']} / {best['candidates']} candidates)"
+    )
+    pose = ", ".join(
+        f"{k.replace('_deg', '')} {best[k]:g}" + ("°" if k.endswith("_deg") else "")
+        for k in (
+            "object_x",
+            "object_y",
+            "object_z",
+            "object_yaw_deg",
+            "base_x",
+            "base_y",
+            "base_z",
+            "base_yaw_deg",
+        )
+        if best.get(k) is not None and math.isfinite(best[k])
+    )
+    print(f"  pose        {pose}")
+    print(f"  reproduce   {best['command']}")
+    print(f"study directory: {result.out_dir}")
+    print("  " + ", ".join(p.name + ("/" if p.is_dir() else "") for p in result.files))
+    return 0
+
+
 _COMMANDS = {
     "run": _cmd_run,
     "validate": _cmd_validate,
@@ -483,6 +601,7 @@ _COMMANDS = {
     "query": _cmd_query,
     "export": _cmd_export,
     "view": _cmd_view,
+    "study": _cmd_study,
 }
 
 

@@ -555,11 +555,19 @@ class Robot:
         kinds = {"collision": pin.GeometryType.COLLISION, "visual": pin.GeometryType.VISUAL}
         if kind not in kinds:
             raise RobotSpecError(unknown_choice("geometry kind", kind, kinds))
+        # loaded from the URDF and its meshes once per robot; each caller gets a copy
+        # it may extend (a placement study builds many collision worlds on one robot)
+        cached = self.cache.get(("geometry", kind))
+        if cached is None:
+            cached = self.cache[("geometry", kind)] = self._load_geometry(kind, kinds[kind])
+        return cached.copy()
+
+    def _load_geometry(self, kind: str, geometry_type: Any) -> pin.GeometryModel:
         try:
             geom = pin.buildGeomFromUrdf(
                 self.full_model,
                 str(self.urdf_path),
-                kinds[kind],
+                geometry_type,
                 package_dirs=[str(p) for p in self.package_dirs],
             )
         except Exception as exc:  # pinocchio raises ValueError/RuntimeError

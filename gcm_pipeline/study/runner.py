@@ -1,0 +1,325 @@
+"""Where placements run: Ray actors (local or on a cluster), or in this process.
+
+:class:`RayExecutor` starts Ray on this machine (``ray.init`` with ``workers``
+CPUs, no dashboard, usage statistics off) or joins
+an existing cluster (``address``), creates one
+:class:`~gcm_pipeline.study.worker.PlacementWorker` actor per worker (each
+builds its robot, seed library and collision geometry once) and streams
+placements to them, two in flight per actor so none waits for the driver.
+Results come back as NumPy arrays in the order they finish. A worker that
+dies (killed, out of memory, node lost) is replaced and its placement is tried
+once more; a second loss is recorded as the placement's error.
+
+:class:`InlineExecutor` runs the same worker class in this process, one
+placement after the other (the reference for Ray's overhead).
+
+``ray`` is imported only here, when a study runs: ``import gcm_pipeline``
+does not load it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from collections.abc import Iterable, Iterator
+from typing import Any
+from urllib.parse import urlsplit
+
+from gcm_pipeline.errors import GcmError
+from gcm_pipeline.study.worker import PlacementWorker
+
+__all__ = ["EngineError", "Executor", "InlineExecutor", "RayExecutor", "probe_address"]
+
+log = logging.getLogger(__name__)
+
+#: Placements queued per actor beyond the one it runs.
+_IN_FLIGHT = 2
+
+
+class EngineError(GcmError):
+    """Ray cannot be started or reached (``--address``), or has too few CPUs."""
+
+
+class Executor:
+    """Runs jobs ``{"id", "config"}`` and yields worker results as they finish."""
+
+    name = "executor"
+    workers = 1
+
+    def info(self) -> dict[str, Any]:
+        """What ran the study (``summary.json``'s ``engine``)."""
+        return {"name": self.name, "workers": self.workers}
+
+    def run(self, jobs: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        """Yield one result per job (see :meth:`PlacementWorker.run`)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Stop the workers (and Ray, when this executor started it)."""
+
+
+class InlineExecutor(Executor):
+    """Placements in this process, one after the other, on one :class:`PlacementWorker`.
+
+    Args:
+        warm: The base config dict (robot, seed library and geometry built now).
+    """
+
+    name = "inline"
+
+    def __init__(self, warm: dict[str, Any] | None = None) -> None:
+        t0 = time.perf_counter()
+        self.worker = PlacementWorker(warm)
+        self.startup_s = time.perf_counter() - t0
+
+    def info(self) -> dict[str, Any]:
+        """``{"name": "inline", "workers": 1, "startup_s"}``."""
+        return {"name": self.name, "workers": 1, "startup_s": round(self.startup_s, 3)}
+
+    def run(self, jobs: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        """Run the jobs one by one."""
+        for job in jobs:
+            yield self.worker.run(job)
+
+
+def probe_address(address: str, timeout: float = 5.0) -> None:
+    """Check that something listens at a Ray ``address`` before Ray tries (and retries) it.
+
+    ``auto`` is left to Ray; ``HOST:PORT`` and ``ray://HOST:PORT`` must accept a
+    TCP connection within ``timeout`` seconds.
+
+    Raises:
+        EngineError: ``--address ...: ...`` with the reason.
+    """
+    if address == "auto":
+        return
+    url = urlsplit(address if "://" in address else f"tcp://{address}")
+    try:
+        host, port = url.hostname, url.port
+    except ValueError:
+        host, port = None, None
+    if not host or port is None:
+        raise EngineError(
+            f"--address {address!r}: expected HOST:PORT (a Ray head's GCS address, e.g. "
+            "10.0.0.5:6379), ray://HOST:PORT or auto"
+        )
+    _connect(address, host, port, timeout)
+    if url.scheme == "ray":
+        return
+    # Ray replaces a loopback host by this machine's address before it connects
+    # (and then retries for minutes): check the address it will really use
+    try:
+        from ray._private.services import canonicalize_bootstrap_address
+
+        used = canonicalize_bootstrap_address(f"{host}:{port}")
+    except Exception:  # a private helper of Ray: skip the check when it moved
+        return
+    used_url = urlsplit(f"tcp://{used}") if used else None
+    if used_url is not None and used_url.hostname and used_url.hostname != host:
+        _connect(address, used_url.hostname, used_url.port or port, timeout, rewritten=used)
+
+
+def _connect(
+    address: str, host: str, port: int, timeout: float, *, rewritten: str | None = None
+) -> None:
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        if rewritten is not None:
+            raise EngineError(
+                f"--address {address}: Ray would connect to {rewritten} (this machine's "
+                f"address), where nothing answers ({reason}); start the head with "
+                "--node-ip-address of that address, or set RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 "
+                "to keep Ray on the loopback address"
+            ) from None
+        raise EngineError(
+            f"--address {address}: no Ray cluster answers there ({reason}); start one with "
+            "'ray start --head' or drop --address to run on this machine"
+        ) from None
+
+
+def _import_ray() -> Any:
+    os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+    try:
+        import ray
+    except ImportError as exc:  # pragma: no cover - ray is a dependency
+        raise EngineError(f"studies run on Ray, which cannot be imported: {exc}") from None
+    return ray
+
+
+class RayExecutor(Executor):
+    """Placements on Ray actors, one :class:`PlacementWorker` per CPU used.
+
+    Args:
+        workers: Actors (one CPU each). None: every CPU of this machine, or of
+            the cluster with ``address``.
+        address: An existing Ray cluster (``HOST:PORT``, ``ray://HOST:PORT``,
+            ``auto``); None starts Ray on this machine for this study.
+        warm: The base config dict each actor builds its robot from at start.
+
+    Raises:
+        EngineError: The cluster cannot be reached, or has fewer CPUs than ``workers``.
+    """
+
+    name = "ray"
+
+    def __init__(
+        self,
+        workers: int | None = None,
+        address: str | None = None,
+        warm: dict[str, Any] | None = None,
+    ) -> None:
+        if workers is not None and workers < 1:
+            raise EngineError(f"--workers must be >= 1, got {workers}")
+        t0 = time.perf_counter()
+        ray = self.ray = _import_ray()
+        if address is not None:
+            probe_address(address)
+        self.started = False
+        self.address = address
+        if ray.is_initialized():
+            self.mode = "existing"
+        elif address is None:
+            n = workers or os.cpu_count() or 1
+            try:
+                ray.init(
+                    address="local",
+                    num_cpus=n,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    logging_level=logging.ERROR,
+                    object_store_memory=256 * 1024**2,
+                )
+            except Exception as exc:
+                raise EngineError(f"cannot start Ray on this machine: {exc}") from None
+            self.started = True
+            self.mode = "local"
+        else:
+            try:
+                ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
+            except Exception as exc:
+                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                raise EngineError(
+                    f"--address {address}: cannot join the cluster: {first}"
+                ) from None
+            self.started = True
+            self.mode = "cluster"
+        try:
+            cpus = int(ray.cluster_resources().get("CPU", 0))
+            self.workers = workers or max(cpus, 1)
+            if self.workers > cpus:
+                raise EngineError(
+                    f"--workers {self.workers}: the Ray cluster has {cpus} CPUs; "
+                    f"use --workers {max(cpus, 1)} or fewer"
+                )
+            self.nodes = sum(1 for n in ray.nodes() if n.get("Alive"))
+            self._actor_cls = ray.remote(num_cpus=1, max_restarts=0)(PlacementWorker)
+            self._warm = warm
+            self.actors = [self._new_actor() for _ in range(self.workers)]
+            self.where = ray.get([a.ready.remote() for a in self.actors])
+        except BaseException:
+            self.close()
+            raise
+        self.startup_s = time.perf_counter() - t0
+
+    def _new_actor(self) -> Any:
+        return self._actor_cls.remote(self._warm)
+
+    def info(self) -> dict[str, Any]:
+        """Name, Ray version, mode (local / cluster / existing), workers, nodes, start-up time."""
+        return {
+            "name": "ray",
+            "version": self.ray.__version__,
+            "mode": self.mode,
+            "address": self.address,
+            "workers": self.workers,
+            "nodes": self.nodes,
+            "worker_nodes": sorted({w["node"] for w in self.where}),
+            "startup_s": round(self.startup_s, 3),
+        }
+
+    def run(self, jobs: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        """Stream the jobs over the actors; yield results as they finish."""
+        ray = self.ray
+        from ray.exceptions import RayActorError, RayError
+
+        queue = iter(jobs)
+        pending: dict[Any, tuple[int, int, dict[str, Any]]] = {}
+        load = [0] * len(self.actors)
+        generation = [0] * len(self.actors)
+        retried: set[int] = set()
+        requeue: list[dict[str, Any]] = []
+        exhausted = False
+
+        def next_job() -> dict[str, Any] | None:
+            nonlocal exhausted
+            if requeue:
+                return requeue.pop()
+            if exhausted:
+                return None
+            job = next(queue, None)
+            exhausted = job is None
+            return job
+
+        while True:
+            for k in range(len(self.actors)):
+                while load[k] < _IN_FLIGHT:
+                    job = next_job()
+                    if job is None:
+                        break
+                    pending[self.actors[k].run.remote(job)] = (k, generation[k], job)
+                    load[k] += 1
+            if not pending:
+                return
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
+            for ref in ready:
+                k, gen, job = pending.pop(ref)
+                if gen == generation[k]:
+                    load[k] -= 1
+                try:
+                    result = ray.get(ref)
+                except RayActorError as exc:
+                    if gen == generation[k]:  # the first loss seen of this actor
+                        log.warning("study: worker %d died (%s); starting a new one", k, exc)
+                        self._kill(self.actors[k])
+                        self.actors[k] = self._new_actor()
+                        generation[k] += 1
+                        load[k] = 0
+                    if job["id"] in retried:
+                        result = _failure(job, f"worker died twice: {_first_line(exc)}")
+                    else:
+                        retried.add(job["id"])
+                        requeue.append(job)
+                        continue
+                except RayError as exc:
+                    result = _failure(job, f"{type(exc).__name__}: {_first_line(exc)}")
+                yield result
+
+    def _kill(self, actor: Any) -> None:
+        try:
+            self.ray.kill(actor, no_restart=True)
+        except Exception:  # already gone
+            pass
+
+    def close(self) -> None:
+        """Kill the actors; shut Ray down when this executor started or joined it."""
+        ray = self.ray
+        for actor in getattr(self, "actors", []):
+            self._kill(actor)
+        self.actors = []
+        if self.started and ray.is_initialized():
+            ray.shutdown()
+        self.started = False
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return " ".join(text.splitlines()[0].split()) if text else type(exc).__name__
+
+
+def _failure(job: dict[str, Any], error: str) -> dict[str, Any]:
+    return {"id": int(job["id"]), "node": "", "error": error[:2000], "time_s": float("nan")}

@@ -1,0 +1,769 @@
+"""Study files: a base run config and a sweep of placements, as validated objects.
+
+A study file (YAML) names a base config and what to sweep::
+
+    base: ../bottle_side.yaml        # a config file (relative to this file) or an inline mapping
+    set: [densify.subdivisions=2]    # overrides of the base, as with gcm run --set
+    sweep:
+      object_pose:                   # the object (and its candidates) moved in the world
+        x: {from: 0.3, to: 0.7, steps: 9}
+        y: {from: -0.4, to: 0.4, steps: 9}
+        yaw_deg: [0, 90]
+        region: table                # or {min: [x, y], max: [x, y]}: keep placements inside
+      base_pose: {x: [0.0, -0.1]}    # the robot base, same keys
+      objects:                       # several objects, each over the same placements
+        - {name: bottle}
+        - {name: can, object: {...}, candidates: {...}}
+    refine: {rounds: 2, shrink: 0.5} # re-grid the ranges around the best placement
+    max_placements: 1000             # larger studies need --force
+
+Every placement is the base config plus ``--set`` style overrides
+(:attr:`Placement.overrides`): ``gcm run BASE --set ...`` with the same
+overrides gives the same answer. Pose axes are absolute: ``x, y, z`` [m] set
+the position in the world, ``yaw_deg`` [deg] the yaw of the pose's
+roll-pitch-yaw; axes that are not swept keep the base config's value.
+Moving the object moves its candidates with it (generated candidates and
+files in the object frame are placed by the object pose; a file in the world
+frame is refused, its grasps would stay behind).
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import hashlib
+import itertools
+import json
+import math
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from gcm_pipeline.config import Config, _resolve_paths, _set_override, load_config, read_yaml
+from gcm_pipeline.errors import ConfigError
+
+__all__ = [
+    "AXES",
+    "DEFAULT_MAX_PLACEMENTS",
+    "Placement",
+    "PoseSweep",
+    "RangeSpec",
+    "StudySpec",
+    "format_value",
+    "load_study",
+]
+
+#: Pose keys a sweep may name, per pose.
+AXES = ("x", "y", "z", "yaw_deg")
+
+#: Placements a study may have without ``--force`` (``max_placements`` raises it).
+DEFAULT_MAX_PLACEMENTS = 1000
+
+#: Decimals kept of grid values (so 0.35 is not 0.35000000000000003 in an override).
+_DECIMALS = 10
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+
+class RangeSpec(_Strict):
+    """``{from, to, steps}``: ``steps`` evenly spaced values from ``from`` to ``to``."""
+
+    start: FiniteFloat = Field(alias="from")
+    to: FiniteFloat
+    steps: int = Field(strict=True)
+
+    @model_validator(mode="after")
+    def _valid(self) -> RangeSpec:
+        if self.steps < 1:
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.start > self.to:
+            raise ValueError(f"inverted range: from {self.start} > to {self.to}")
+        if self.steps > 1 and self.start == self.to:
+            raise ValueError(
+                f"empty range: from == to == {self.start} with steps {self.steps}; "
+                "give one value as [v] or steps: 1"
+            )
+        if self.steps == 1 and self.start != self.to:
+            raise ValueError(
+                f"steps: 1 needs from == to (got {self.start}, {self.to}); give one value as [v]"
+            )
+        return self
+
+    def values(self) -> list[float]:
+        """The grid values."""
+        return _rounded(np.linspace(self.start, self.to, self.steps))
+
+
+Axis = RangeSpec | Annotated[list[FiniteFloat], Field(min_length=1)]
+
+
+class BoxRegion(_Strict):
+    """An axis-aligned box of the world: ``min`` and ``max`` corners, 2 (x, y) or 3 values [m]."""
+
+    min: tuple[FiniteFloat, ...]
+    max: tuple[FiniteFloat, ...]
+
+    @model_validator(mode="after")
+    def _valid(self) -> BoxRegion:
+        if len(self.min) not in (2, 3) or len(self.max) != len(self.min):
+            raise ValueError(
+                "min and max need 2 (x, y) or 3 (x, y, z) values each, "
+                f"got {len(self.min)} and {len(self.max)}"
+            )
+        for i, (lo, hi) in enumerate(zip(self.min, self.max, strict=True)):
+            if lo >= hi:
+                raise ValueError(f"empty region: min[{i}] {lo} >= max[{i}] {hi}")
+        return self
+
+    def contains(self, xyz: Sequence[float]) -> bool:
+        """Whether a position lies inside the box (bounds included)."""
+        return all(lo <= v <= hi for lo, v, hi in zip(self.min, xyz, self.max, strict=False))
+
+
+class PoseSweep(_Strict):
+    """Grids over the pose keys ``x, y, z`` [m] and ``yaw_deg`` [deg], optionally in a region.
+
+    Each axis is a list of values or a range ``{from, to, steps}``; the
+    placements are every combination of the axes' values (x varies slowest).
+    ``region: table`` keeps the positions over the base config's table top,
+    ``region: {min, max}`` those inside a box.
+    """
+
+    x: Axis | None = None
+    y: Axis | None = None
+    z: Axis | None = None
+    yaw_deg: Axis | None = None
+    region: Literal["table"] | BoxRegion | None = None
+
+    @model_validator(mode="after")
+    def _some_axis(self) -> PoseSweep:
+        if all(getattr(self, a) is None for a in AXES):
+            raise ValueError(f"give at least one pose key to sweep: {', '.join(AXES)}")
+        return self
+
+    def axes(self) -> dict[str, list[float]]:
+        """Swept axis -> its values, in :data:`AXES` order."""
+        out: dict[str, list[float]] = {}
+        for name in AXES:
+            spec = getattr(self, name)
+            if spec is None:
+                continue
+            values = spec.values() if isinstance(spec, RangeSpec) else _rounded(spec)
+            if len(set(values)) != len(values):
+                dup = next(v for v in values if values.count(v) > 1)
+                raise ConfigError(f"{name}: value {dup} appears twice")
+            out[name] = values
+        return out
+
+    def ranges(self) -> dict[str, RangeSpec]:
+        """The axes given as ranges (the ones :class:`Refine` re-grids)."""
+        return {a: getattr(self, a) for a in AXES if isinstance(getattr(self, a), RangeSpec)}
+
+
+class ObjectEntry(BaseModel):
+    """One object of ``sweep.objects``: a name and the config sections it replaces.
+
+    ``object``, ``candidates``, ``manifold``, ``densify`` and ``ranking`` replace
+    the base config's section of that name (``--set object={...}``); ``set``
+    adds further ``KEY=VALUE`` overrides. Relative file paths resolve against
+    the study file's folder.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
+    object: dict[str, Any] | None = None
+    candidates: dict[str, Any] | None = None
+    manifold: dict[str, Any] | None = None
+    densify: dict[str, Any] | None = None
+    ranking: dict[str, Any] | None = None
+    set: tuple[str, ...] = ()
+
+
+#: Sections an object entry may replace, in override order.
+OBJECT_SECTIONS = ("object", "candidates", "manifold", "densify", "ranking")
+
+
+class Sweep(_Strict):
+    """What a study varies: the object pose, the robot base pose, the object."""
+
+    object_pose: PoseSweep | None = None
+    base_pose: PoseSweep | None = None
+    objects: Annotated[list[ObjectEntry], Field(min_length=1)] | None = None
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> Sweep:
+        if self.objects is not None:
+            names = [o.name for o in self.objects]
+            dup = next((n for n in names if names.count(n) > 1), None)
+            if dup is not None:
+                raise ValueError(f"objects: name {dup!r} appears twice")
+        return self
+
+
+class Refine(_Strict):
+    """Refinement: ``rounds`` re-grids around the best placement, each ``shrink`` times smaller."""
+
+    rounds: int = Field(default=1, ge=0, strict=True)
+    shrink: float = Field(default=0.5, gt=0, lt=1)
+
+
+class StudySpec(_Strict):
+    """A study file, validated (see the module docstring)."""
+
+    base: str | dict[str, Any]
+    set: tuple[str, ...] = ()
+    sweep: Sweep
+    refine: Refine | None = None
+    max_placements: int = Field(default=DEFAULT_MAX_PLACEMENTS, gt=0, strict=True)
+
+
+def _rounded(values: Iterable[float]) -> list[float]:
+    return [round(float(v), _DECIMALS) + 0.0 for v in values]
+
+
+def format_value(value: Any) -> str:
+    """A value as flow YAML for a ``--set KEY=VALUE`` override (floats round-trip).
+
+    PyYAML writes floats with :func:`repr` and a ``.0`` before an exponent, so
+    ``yaml.safe_load`` reads back the same float (``1e-05`` alone would be a string).
+    """
+    text = yaml.safe_dump(value, default_flow_style=True, width=math.inf, sort_keys=False)
+    text = text.strip()
+    if text.endswith("\n...") or text.endswith("..."):
+        text = text[: text.rfind("...")].strip()
+    return text
+
+
+# ------------------------------------------------------------------ placements
+
+
+@dataclass(frozen=True)
+class Placement:
+    """One run of a study: the base config plus :attr:`overrides`.
+
+    Attributes:
+        id: Index in the study (round 0 first, then each refinement round).
+        round: 0 for the grid, r for the r-th refinement round.
+        object: Name of the object (``sweep.objects``; else the base's shape name).
+        object_pose: ``x, y, z, yaw_deg`` of the object's pose as swept (only swept keys).
+        base_pose: The same for the robot base.
+        overrides: ``KEY=VALUE`` strings, in order: the study's ``set``, the
+            object entry's sections and ``set``, then the pose keys.
+    """
+
+    id: int
+    round: int
+    object: str
+    object_pose: dict[str, float] = field(default_factory=dict)
+    base_pose: dict[str, float] = field(default_factory=dict)
+    overrides: tuple[str, ...] = ()
+
+    def label(self) -> str:
+        """A short human-readable description (object, swept pose keys)."""
+        parts = [self.object]
+        for prefix, pose in (("object", self.object_pose), ("base", self.base_pose)):
+            if pose:
+                parts.append(prefix + " " + " ".join(f"{k} {v:g}" for k, v in pose.items()))
+        return ", ".join(parts)
+
+
+class _Target:
+    """A pose the sweep moves: its config key and the base config's value."""
+
+    def __init__(self, key: str, pose: dict[str, Any] | None) -> None:
+        pose = pose or {}
+        self.key = key
+        self.xyz = [float(v) for v in pose.get("xyz", (0.0, 0.0, 0.0))]
+        if pose.get("rpy_deg") is not None:
+            self.rot_key, rot = "rpy_deg", pose["rpy_deg"]
+        elif pose.get("rpy") is not None:
+            self.rot_key, rot = "rpy", pose["rpy"]
+        else:
+            self.rot_key, rot = "rpy_deg", (0.0, 0.0, 0.0)
+        self.rot = [float(v) for v in rot]
+
+    def overrides(self, values: dict[str, float]) -> list[str]:
+        out = []
+        if any(a in values for a in ("x", "y", "z")):
+            xyz = [values.get(a, self.xyz[i]) for i, a in enumerate(("x", "y", "z"))]
+            out.append(f"{self.key}.xyz={format_value(xyz)}")
+        if "yaw_deg" in values:
+            yaw = values["yaw_deg"]
+            if self.rot_key == "rpy":
+                yaw = math.radians(yaw)
+            rot = [self.rot[0], self.rot[1], yaw]
+            out.append(f"{self.key}.{self.rot_key}={format_value(rot)}")
+        return out
+
+    def xyz_of(self, values: dict[str, float]) -> list[float]:
+        return [values.get(a, self.xyz[i]) for i, a in enumerate(("x", "y", "z"))]
+
+
+def _grid(axes: dict[str, list[float]]) -> list[dict[str, float]]:
+    """Every combination of the axes' values (first axis slowest); [{}] without axes."""
+    names = list(axes)
+    return [dict(zip(names, combo, strict=True)) for combo in itertools.product(*axes.values())]
+
+
+# ------------------------------------------------------------------ the study
+
+
+class StudyPlan:
+    """A validated study: the base config, the placements and how to resolve them.
+
+    Built by :func:`load_study`; :class:`gcm_pipeline.study.Study` wraps it.
+
+    Attributes:
+        spec: The validated study file.
+        source: The study file (None for a dict).
+        base_path: The base config file, or None when the base is inline.
+        base_data: The base config as read (a mapping, before overrides).
+        base_dir: Folder against which the base's relative paths resolve.
+    """
+
+    def __init__(
+        self,
+        spec: StudySpec,
+        *,
+        source: Path | None,
+        base_path: Path | None,
+        base_data: dict[str, Any],
+        base_dir: Path,
+        study_dir: Path,
+    ) -> None:
+        self.spec = spec
+        self.source = source
+        self.base_path = base_path
+        self.base_data = base_data
+        self.base_dir = base_dir
+        self.study_dir = study_dir
+        self._key: str | None = None
+        self._objects = self._object_entries()
+        self.base_config = self.resolve(list(spec.set), where="base config")
+        self._check()
+        self._grid = self._make_grid()
+
+    # --- resolving configs ----------------------------------------------------------
+
+    def resolve(self, overrides: Sequence[str], *, where: str = "") -> Config:
+        """The config of the base plus ``overrides``, as ``gcm run BASE --set ...`` reads it.
+
+        Raises:
+            ConfigError: Naming ``where`` (e.g. the placement) and the key at fault.
+        """
+        try:
+            if self.base_path is not None:
+                return load_config(self.base_path, list(overrides))
+            data = copy.deepcopy(self.base_data)
+            for assignment in overrides:
+                _set_override(data, assignment)
+            _resolve_paths(data, self.base_dir)
+            return Config.from_dict(data or None, source="base")
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}" if where else str(exc)) from None
+
+    def _object_entries(self) -> list[tuple[str, list[str]]]:
+        """(name, overrides) of each object; one entry named after the base's object when none."""
+        entries = self.spec.sweep.objects
+        if entries is None:
+            obj = self.base_data.get("object") if isinstance(self.base_data, dict) else None
+            shape = obj.get("shape") if isinstance(obj, dict) else None
+            return [(str(shape) if shape else "object", [])]
+        out = []
+        for entry in entries:
+            sets: list[str] = []
+            for section in OBJECT_SECTIONS:
+                value = getattr(entry, section)
+                if value is None:
+                    continue
+                value = copy.deepcopy(value)
+                holder = {section: value}
+                _resolve_paths(holder, self.study_dir)
+                sets.append(f"{section}={format_value(holder[section])}")
+            sets.extend(entry.set)
+            out.append((entry.name, sets))
+        return out
+
+    def _object_target(self, index: int) -> _Target:
+        cfg = self.object_config(index)
+        pose = cfg.object.pose.model_dump() if cfg.object is not None else None
+        return _Target("object.pose", pose)
+
+    def _base_target(self) -> _Target:
+        return _Target("robot.base_pose", self.base_config.robot.base_pose.model_dump())
+
+    def object_config(self, index: int) -> Config:
+        """The config of object ``index`` before any pose override."""
+        name, sets = self._objects[index]
+        return self.resolve([*self.spec.set, *sets], where=f"objects[{index}] ({name})")
+
+    @property
+    def object_names(self) -> list[str]:
+        """Names of the swept objects, in order."""
+        return [name for name, _ in self._objects]
+
+    # --- checks ------------------------------------------------------------------
+
+    def _check(self) -> None:
+        sweep = self.spec.sweep
+        if sweep.object_pose is None and sweep.base_pose is None and sweep.objects is None:
+            raise ConfigError("sweep: give at least one of object_pose, base_pose, objects")
+        for key, pose in (("object_pose", sweep.object_pose), ("base_pose", sweep.base_pose)):
+            if pose is None:
+                continue
+            try:
+                pose.axes()
+            except ConfigError as exc:
+                raise ConfigError(f"sweep.{key}.{exc}") from None
+            if key == "base_pose" and pose.region == "table":
+                raise ConfigError(
+                    "sweep.base_pose.region: 'table' is a region for the object; "
+                    "give a box {min: [x, y], max: [x, y]}"
+                )
+        for i, name in enumerate(self.object_names):
+            cfg = self.object_config(i)
+            if sweep.object_pose is None:
+                continue
+            if cfg.object is None:
+                raise ConfigError(
+                    f"sweep.object_pose: {name}: the config has no 'object' section to move"
+                )
+            c = cfg.candidates
+            if c.source == "file" and c.frame == "world":
+                raise ConfigError(
+                    f"sweep.object_pose: {name}: candidates.frame is 'world', so the grasps "
+                    "would not move with the object; give the file's grasps in the object "
+                    "frame (candidates.frame: object)"
+                )
+            if sweep.object_pose.region == "table" and cfg.environment.table is None:
+                raise ConfigError(
+                    f"sweep.object_pose.region: 'table' needs a table ({name}: "
+                    "environment.table is null)"
+                )
+        refine = self.spec.refine
+        if refine is not None and refine.rounds > 0 and not self._ranges():
+            raise ConfigError(
+                "refine: no range to re-grid; give a pose key as {from, to, steps} "
+                "(lists are kept as they are)"
+            )
+
+    def _ranges(self) -> dict[str, dict[str, RangeSpec]]:
+        sweep = self.spec.sweep
+        out = {}
+        for key, pose in (("object_pose", sweep.object_pose), ("base_pose", sweep.base_pose)):
+            if pose is not None and pose.ranges():
+                out[key] = pose.ranges()
+        return out
+
+    # --- placements ------------------------------------------------------------------
+
+    def _in_region(self, pose: PoseSweep | None, target: _Target, values: dict[str, float]) -> bool:
+        if pose is None or pose.region is None:
+            return True
+        xyz = target.xyz_of(values)
+        if pose.region == "table":
+            table = self.base_config.environment.table
+            assert table is not None
+            half = (0.5 * table.size[0], 0.5 * table.size[1])
+            return all(abs(xyz[i] - table.center_xy[i]) <= half[i] + 1e-12 for i in range(2))
+        return pose.region.contains(xyz)
+
+    def _combos(
+        self,
+        object_axes: dict[str, list[float]],
+        base_axes: dict[str, list[float]],
+        objects: Iterable[int],
+    ) -> list[tuple[int, dict[str, float], dict[str, float]]]:
+        sweep = self.spec.sweep
+        base_target = self._base_target()
+        bases = [b for b in _grid(base_axes) if self._in_region(sweep.base_pose, base_target, b)]
+        out = []
+        for k in objects:
+            target = self._object_target(k) if object_axes else None
+            poses = [
+                o
+                for o in _grid(object_axes)
+                if target is None or self._in_region(sweep.object_pose, target, o)
+            ]
+            out.extend((k, o, b) for b in bases for o in poses)
+        return out
+
+    def _placement(
+        self, pid: int, rnd: int, k: int, obj: dict[str, float], base: dict[str, float]
+    ) -> Placement:
+        name, sets = self._objects[k]
+        overrides = [*self.spec.set, *sets]
+        if obj:
+            overrides += self._object_target(k).overrides(obj)
+        if base:
+            overrides += self._base_target().overrides(base)
+        return Placement(pid, rnd, name, dict(obj), dict(base), tuple(overrides))
+
+    def grid(self) -> list[Placement]:
+        """The placements of round 0 (the grid), in id order."""
+        return list(self._grid)
+
+    def _make_grid(self) -> list[Placement]:
+        sweep = self.spec.sweep
+        object_axes = sweep.object_pose.axes() if sweep.object_pose else {}
+        base_axes = sweep.base_pose.axes() if sweep.base_pose else {}
+        combos = self._combos(object_axes, base_axes, range(len(self._objects)))
+        if not combos:
+            raise ConfigError("sweep: no placement lies inside the region")
+        return [self._placement(i, 0, *c) for i, c in enumerate(combos)]
+
+    def refine_size(self) -> int:
+        """Upper bound of the placements one refinement round adds (per object)."""
+        refine = self.spec.refine
+        if refine is None or refine.rounds == 0:
+            return 0
+        n = 1
+        for axes in self._ranges().values():
+            for r in axes.values():
+                n *= r.steps
+        return n * len(self._objects)
+
+    def refined(
+        self, rnd: int, best: dict[int, Placement], existing: Sequence[Placement]
+    ) -> list[Placement]:
+        """The placements of refinement round ``rnd`` around each object's best placement.
+
+        Each range axis is re-gridded with its ``steps`` over ``shrink ** rnd``
+        of its span, centred on the best value and clipped to the range; other
+        axes keep the best placement's values. Placements already in
+        ``existing`` (same overrides) are left out.
+
+        Args:
+            rnd: The round, >= 1.
+            best: Object index -> its best placement so far.
+            existing: Every placement so far (ids continue after them).
+        """
+        refine = self.spec.refine
+        assert refine is not None
+        seen = {p.overrides for p in existing}
+        ranges = self._ranges()
+        out: list[Placement] = []
+        next_id = max((p.id for p in existing), default=-1) + 1
+        for k in sorted(best):
+            centre = best[k]
+            axes: dict[str, dict[str, list[float]]] = {}
+            for key, pose_values in (
+                ("object_pose", centre.object_pose),
+                ("base_pose", centre.base_pose),
+            ):
+                pose_axes: dict[str, list[float]] = {}
+                for a, v in pose_values.items():
+                    r = ranges.get(key, {}).get(a)
+                    if r is None:
+                        pose_axes[a] = [v]
+                        continue
+                    half = 0.5 * (r.to - r.start) * refine.shrink**rnd
+                    lo, hi = max(r.start, v - half), min(r.to, v + half)
+                    vals = _rounded(np.linspace(lo, hi, r.steps)) if hi > lo else [v]
+                    pose_axes[a] = list(dict.fromkeys(vals))
+                axes[key] = pose_axes
+            for _, obj, base in self._combos(axes["object_pose"], axes["base_pose"], [k]):
+                p = self._placement(next_id, rnd, k, obj, base)
+                if p.overrides in seen:
+                    continue
+                seen.add(p.overrides)
+                out.append(p)
+                next_id += 1
+        return out
+
+    # --- identity ---------------------------------------------------------------------
+
+    def key(self) -> str:
+        """A digest of everything that decides the study's results.
+
+        The base config as read, the study's sweep, ``set`` and refinement, and
+        the contents of every input file; not ``max_placements``, workers or
+        address. A study directory holds one study: the same key resumes.
+        """
+        if self._key is not None:
+            return self._key
+        from gcm_pipeline import __version__
+        from gcm_pipeline.pipeline import input_files
+
+        files: dict[str, str] = {}
+        for i in range(len(self._objects)):
+            for name, path in input_files(self.object_config(i)).items():
+                files[f"{i}:{name}"] = _file_digest(path)
+        data = {
+            "gcm_pipeline": __version__,
+            "base": self.base_data,
+            "base_dir": str(self.base_dir),
+            "study": self.spec.model_dump(mode="json", exclude={"max_placements"}, by_alias=True),
+            "study_dir": str(self.study_dir),
+            "files": files,
+        }
+        text = json.dumps(data, sort_keys=True, default=str)
+        self._key = hashlib.sha256(text.encode()).hexdigest()[:16]
+        return self._key
+
+    def to_dict(self) -> dict[str, Any]:
+        """The study as plain data (``study.json``): file, base, sweep."""
+        return {
+            "source": str(self.source) if self.source else None,
+            "base": str(self.base_path) if self.base_path else self.base_data,
+            "study": self.spec.model_dump(mode="json", by_alias=True, exclude_none=True),
+        }
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    except OSError:
+        return "missing"
+    return h.hexdigest()[:16]
+
+
+# ------------------------------------------------------------------ loading
+
+
+def _pick(errors: list[Any]) -> Any:
+    """The error to report: of a union's branches, the one matching the input's type."""
+    first = errors[0]
+    branch = {list: "list[", dict: ""}.get(type(first.get("input")))
+    if branch is None:
+        return first
+    for err in errors:
+        tags = [p for p in err["loc"] if isinstance(p, str) and (p[:1].isupper() or "[" in p)]
+        if not tags:
+            continue
+        if (branch == "list[") == any(t.startswith("list[") for t in tags) and (
+            branch == "list[" or not any(t.startswith(("literal[", "list[")) for t in tags)
+        ):
+            return err
+    return first
+
+
+def _describe(exc: ValidationError, source: str) -> str:
+    """One line for the first validation error of a study file."""
+    err = _pick(exc.errors(include_url=False))
+    loc = [
+        p
+        for p in err["loc"]
+        if not (
+            isinstance(p, str)
+            and (p[:1].isupper() or p.startswith(("function-", "list[", "literal[")))
+        )
+    ]
+    key = ".".join(str(p) for p in loc)
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    if err["type"] == "extra_forbidden":
+        parent = ".".join(str(p) for p in loc[:-1])
+        valid = _valid_keys(parent)
+        close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        what = "not a pose key" if parent.endswith("_pose") else "unknown key"
+        return f"{source}: {key}: {what}{hint}; valid keys here: {', '.join(valid)}"
+    if err["type"] == "missing":
+        return f"{source}: missing required key {key!r}"
+    if err["type"] == "too_short":
+        return f"{source}: {key}: empty list; give at least one value"
+    got = err.get("input")
+    shown = repr(got)
+    if len(shown) > 80:
+        shown = shown[:77] + "..."
+    if key.endswith(".region") and err["type"] in ("literal_error", "model_type"):
+        return f"{source}: {key}: expected 'table' or {{min: [x, y], max: [x, y]}}, got {shown}"
+    if loc and loc[-1] in AXES and err["type"] in ("model_type", "list_type"):
+        return (
+            f"{source}: {key}: expected a list of values or {{from: A, to: B, steps: N}}, "
+            f"got {shown}"
+        )
+    if err["type"] in ("value_error", "assertion_error") or isinstance(got, dict):
+        return f"{source}: {key}: {msg}"
+    return f"{source}: {key}: {msg} (got {shown})"
+
+
+def _valid_keys(parent: str) -> list[str]:
+    last = parent.split(".")[-1] if parent else ""
+    models: dict[str, type[BaseModel]] = {
+        "": StudySpec,
+        "sweep": Sweep,
+        "object_pose": PoseSweep,
+        "base_pose": PoseSweep,
+        "refine": Refine,
+        "region": BoxRegion,
+    }
+    model = models.get(last)
+    if model is None and last.isdigit():
+        model = ObjectEntry
+    if model is None:
+        model = RangeSpec
+    return sorted(f.alias or name for name, f in model.model_fields.items())
+
+
+def load_study(source: str | os.PathLike[str] | dict[str, Any], *, where: str = "") -> StudyPlan:
+    """Read and validate a study file (or a mapping) into a :class:`StudyPlan`.
+
+    Args:
+        source: The study YAML file, or its content as a mapping (relative
+            paths then resolve against the working directory).
+        where: Name used in errors for a mapping (default ``study``).
+
+    Raises:
+        ConfigError: One line naming the file, the key and the problem.
+    """
+    if isinstance(source, dict):
+        data: Any = source
+        path: Path | None = None
+        name = where or "study"
+        study_dir = Path.cwd()
+    else:
+        path = Path(os.path.abspath(source))
+        data = read_yaml(path)
+        name = str(source)
+        study_dir = path.parent
+    if not isinstance(data, dict):
+        raise ConfigError(f"{name}: a study is a mapping with 'base' and 'sweep', got {data!r}")
+    try:
+        spec = StudySpec.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_describe(exc, name)) from None
+    if isinstance(spec.base, str):
+        base_path = Path(spec.base).expanduser()
+        if not base_path.is_absolute():
+            base_path = study_dir / base_path
+        base_path = Path(os.path.abspath(base_path))
+        try:
+            base_data = read_yaml(base_path)
+        except ConfigError as exc:
+            raise ConfigError(f"{name}: base: {exc}") from None
+        if base_data is None:
+            base_data = {}
+        if not isinstance(base_data, dict):
+            raise ConfigError(f"{base_path}: a config is a mapping of sections")
+        base_dir = base_path.parent
+    else:
+        base_path, base_data, base_dir = None, dict(spec.base), study_dir
+    try:
+        return StudyPlan(
+            spec,
+            source=path,
+            base_path=base_path,
+            base_data=base_data,
+            base_dir=base_dir,
+            study_dir=study_dir,
+        )
+    except ConfigError as exc:
+        text = str(exc)
+        raise ConfigError(text if text.startswith(name) else f"{name}: {text}") from None

@@ -1,0 +1,283 @@
+"""The study directory: one file per finished placement, consolidated outputs, resume.
+
+Layout::
+
+    study.json          what study this is (its key, the study file, the base config);
+                        written first, checked on every rerun
+    placements/000042.npz
+                        one finished placement (row + grasp arrays), written atomically
+    placements.csv      one row per finished placement, by id
+    reachability.npz    placements x grasps: reachable, metric, manipulability
+    summary.json        best placement, counts, engine, workers, timings, versions
+    coverage.png        coverage heat map over the x-y grid
+    best/               the full run directory of the best placement (gcm run)
+
+Every file is written to a temporary name in its folder and renamed, so a
+killed study leaves only complete files; ``placements/`` is the record a
+rerun resumes from (finished placements are never recomputed).
+``placements.csv`` and ``summary.json`` are rewritten every few seconds while
+the study runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io as _io
+import json
+import logging
+import os
+import tempfile
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.errors import OutputError
+from gcm_pipeline.io import _is_within, _json_clean, format_floats
+
+__all__ = [
+    "CSV_COLUMNS",
+    "MARKER",
+    "StudyDir",
+    "atomic_write",
+]
+
+log = logging.getLogger(__name__)
+
+#: ``study.json``'s ``format`` value: the marker of a study directory.
+MARKER = "gcm_pipeline study"
+
+#: Columns of ``placements.csv``, in order.
+CSV_COLUMNS = (
+    "id",
+    "round",
+    "object",
+    "object_x",
+    "object_y",
+    "object_z",
+    "object_yaw_deg",
+    "base_x",
+    "base_y",
+    "base_z",
+    "base_yaw_deg",
+    "candidates",
+    "densified",
+    "reachable",
+    "coverage",
+    "candidates_reachable",
+    "best_metric",
+    "mean_metric",
+    "best_manipulability",
+    "mean_manipulability",
+    "time_s",
+    "node",
+    "error",
+    "overrides",
+)
+
+#: Per-grasp arrays of a placement part.
+ARRAYS = ("reachable_mask", "metric", "manipulability", "pose", "pose_object", "is_candidate")
+
+
+@contextlib.contextmanager
+def atomic_write(path: Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` that replaces ``path`` on success.
+
+    The temporary file starts with a dot (``.NAME.tmp-XXXX``); on any
+    exception it is removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o644 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _write_text(path: Path, text: str) -> None:
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+class StudyDir:
+    """A study directory (see the module docstring).
+
+    Args:
+        path: The directory.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path).expanduser().absolute()
+        self.parts = self.path / "placements"
+
+    def __repr__(self) -> str:
+        return f"StudyDir({str(self.path)!r})"
+
+    # --- identity -------------------------------------------------------------------
+
+    def check(self, key: str, *, keep: Iterable[str | Path] = ()) -> bool:
+        """Check that the study ``key`` may be written here; nothing is written.
+
+        Args:
+            key: The study's key (:meth:`StudyPlan.key`).
+            keep: Input files that must not lie inside the directory.
+
+        Returns:
+            True when the directory holds this study already (a resume).
+
+        Raises:
+            OutputError: The path is a file; the directory holds another
+                study, or is not empty and not a study directory; it is the
+                working directory or one of its parents; it holds an input.
+        """
+        out = self.path
+        if (out.exists() or out.is_symlink()) and not out.is_dir():
+            raise OutputError(f"study directory {out} exists and is not a directory")
+        if _is_within(Path.cwd(), out):
+            raise OutputError(
+                f"refusing to use {out}: it is the working directory or one of its parents; "
+                "choose another --out"
+            )
+        for item in keep:
+            if _is_within(Path(item), out):
+                raise OutputError(
+                    f"refusing to use {out}: it holds {item}, an input of the study; "
+                    "choose another --out"
+                )
+        if not out.exists() and not out.is_symlink():
+            parent = out.parent
+            while not parent.exists() and parent != parent.parent:
+                parent = parent.parent
+            if not parent.is_dir() or not os.access(parent, os.W_OK):
+                raise OutputError(f"cannot create study directory {out}: {parent} is not writable")
+            return False
+        if not any(out.iterdir()):
+            return False
+        meta = self.read_meta()
+        if meta is None:
+            raise OutputError(
+                f"refusing to use {out}: it is not empty and not a study directory "
+                "(no study.json); choose another --out"
+            )
+        if meta.get("key") != key:
+            source = meta.get("source") or "an inline study"
+            raise OutputError(
+                f"{out} holds a different study (from {source}, key {meta.get('key')}, this "
+                f"one {key}); choose another --out or remove it"
+            )
+        return True
+
+    def read_meta(self) -> dict[str, Any] | None:
+        """``study.json`` as a dict, or None when it is missing or not a study's."""
+        try:
+            meta = json.loads((self.path / "study.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        if not isinstance(meta, dict) or meta.get("format") != MARKER:
+            return None
+        return meta
+
+    def create(self, meta: Mapping[str, Any]) -> None:
+        """Create the directory and write ``study.json`` (kept when it exists)."""
+        try:
+            self.parts.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create study directory {self.path}: {exc}") from None
+        if self.read_meta() is None:
+            data = {"format": MARKER, **meta}
+            _write_text(self.path / "study.json", json.dumps(_json_clean(data), indent=2) + "\n")
+
+    # --- placements -------------------------------------------------------------------
+
+    def part_path(self, pid: int) -> Path:
+        """The file of placement ``pid``."""
+        return self.parts / f"{pid:06d}.npz"
+
+    def write_part(self, row: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        """Write one finished placement (its row and grasp arrays) atomically."""
+        payload = {k: np.asarray(v) for k, v in arrays.items()}
+        payload["row"] = np.array(json.dumps(_json_clean(dict(row))))
+        with atomic_write(self.part_path(int(row["id"]))) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, **payload)
+
+    def load_parts(self) -> dict[int, dict[str, Any]]:
+        """Every finished placement: id -> row (with its arrays under ``arrays``).
+
+        A part that cannot be read (not written by a study) is skipped with a
+        warning: its placement runs again.
+        """
+        out: dict[int, dict[str, Any]] = {}
+        if not self.parts.is_dir():
+            return out
+        for path in sorted(self.parts.glob("[0-9]*.npz")):
+            try:
+                with np.load(path, allow_pickle=False) as data:
+                    row = json.loads(str(data["row"]))
+                    row["arrays"] = {k: data[k] for k in data.files if k != "row"}
+                pid = int(row["id"])
+            except Exception as exc:  # a damaged file: run the placement again
+                log.warning("study: ignoring unreadable %s (%s)", path, exc)
+                continue
+            out[pid] = row
+        return out
+
+    # --- consolidated outputs ---------------------------------------------------------
+
+    def write_csv(self, rows: Iterable[Mapping[str, Any]]) -> Path:
+        """Write ``placements.csv`` (rows sorted by id; floats round-trip, NaN empty)."""
+        buf = _io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(CSV_COLUMNS)
+        for row in sorted(rows, key=lambda r: int(r["id"])):
+            writer.writerow([_cell(row.get(c)) for c in CSV_COLUMNS])
+        path = self.path / "placements.csv"
+        _write_text(path, buf.getvalue())
+        return path
+
+    def write_json(self, name: str, data: Mapping[str, Any]) -> Path:
+        """Write ``name`` (e.g. ``summary.json``) atomically; NaN becomes null."""
+        path = self.path / name
+        _write_text(path, json.dumps(_json_clean(dict(data)), indent=2, allow_nan=False) + "\n")
+        return path
+
+    def write_npz(self, name: str, arrays: Mapping[str, np.ndarray]) -> Path:
+        """Write a compressed ``.npz`` atomically."""
+        path = self.path / name
+        with atomic_write(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
+        return path
+
+    def write_with(self, name: str, writer: Callable[[Path], None]) -> Path:
+        """Write ``name`` by ``writer(tmp_path)`` atomically (e.g. a PNG)."""
+        path = self.path / name
+        with atomic_write(path) as tmp:
+            writer(tmp)
+        return path
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (float, np.floating)):
+        return format_floats(np.array([value]))[0]
+    if isinstance(value, (list, tuple)):
+        return json.dumps(list(value))
+    return str(value)

@@ -1,0 +1,199 @@
+"""The placement worker: one process that runs placements one after the other.
+
+A :class:`PlacementWorker` keeps what every placement of a study shares: the
+robot model, its IK seed library (cached on the robot by the IK backend) and
+the robot's collision geometry (cached on the robot by
+:meth:`~gcm_pipeline.robot.model.Robot.build_geometry`), built once when the
+worker starts. Per placement it runs the pipeline's own stage functions
+(:func:`~gcm_pipeline.pipeline.generate_candidates`, ``build_manifold``,
+``densify``, ``check_reachability``, ``rank``) on the placement's config, so a
+placement gives what ``gcm run`` gives for the same config; only the collision
+world's poses (object, base) are placed anew.
+
+Under Ray each worker is an actor (:mod:`gcm_pipeline.study.runner`); the same
+class runs placements in-process. Results are plain dicts of scalars and NumPy
+arrays (no per-grasp objects). The IK runs on one process per worker (no nested
+process pools): the study's parallelism is the workers.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.config import Config
+from gcm_pipeline.errors import GcmError
+
+__all__ = ["PlacementWorker", "placement_summary"]
+
+
+def _yaw_deg(matrix: np.ndarray) -> float:
+    """Yaw [deg] of a rotation (the z angle of roll-pitch-yaw, fixed axes)."""
+    return math.degrees(math.atan2(matrix[1, 0], matrix[0, 0]))
+
+
+def placement_summary(grasps: Any, cfg: Config) -> dict[str, Any]:
+    """The row of ``placements.csv`` for a ranked grasp table (counts and metrics).
+
+    Args:
+        grasps: The ranked grasp table of the placement.
+        cfg: Its config.
+
+    Returns:
+        ``candidates, densified, reachable, coverage, candidates_reachable,
+        best_metric, mean_metric, best_manipulability, mean_manipulability``.
+    """
+    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+
+    reachable = np.asarray(grasps["reachable"], dtype=bool)
+    is_candidate = np.asarray(grasps["origin"]).astype(str) == "candidate"
+    metric = np.asarray(grasps[METRIC_COLUMNS[cfg.ranking.metric]], dtype=float)
+    manip = np.asarray(grasps["manipulability"], dtype=float)
+    n = len(grasps)
+
+    def stat(values: np.ndarray, fn: Any) -> float:
+        v = values[reachable & np.isfinite(values)]
+        return float(fn(v)) if v.size else math.nan
+
+    return {
+        "candidates": int(is_candidate.sum()),
+        "densified": int(n),
+        "reachable": int(reachable.sum()),
+        "coverage": float(reachable.sum() / n) if n else 0.0,
+        "candidates_reachable": int((reachable & is_candidate).sum()),
+        "best_metric": stat(metric, np.max),
+        "mean_metric": stat(metric, np.mean),
+        "best_manipulability": stat(manip, np.max),
+        "mean_manipulability": stat(manip, np.mean),
+    }
+
+
+def _pose7(dq: np.ndarray) -> np.ndarray:
+    """Poses (N, 7) ``x, y, z, qw, qx, qy, qz`` (``qw >= 0``) of unit dual quaternions (N, 8)."""
+    from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
+
+    pos, quat = dq_to_pos_quat(dq)
+    quat = np.where(quat[:, :1] < 0, -quat, quat)
+    return np.concatenate([pos, quat], axis=1)
+
+
+class PlacementWorker:
+    """Runs placements with a robot, seed library and collision geometry built once.
+
+    Args:
+        warm: A resolved config dict (``Config.to_dict()``) whose robot, seed
+            library and collision geometry are built right away, so the first
+            placement does not pay for them; None builds them on first use.
+    """
+
+    def __init__(self, warm: dict[str, Any] | None = None) -> None:
+        self._robots: dict[str, Any] = {}
+        self.node = self._node()
+        self.pid = os.getpid()
+        if warm is not None:
+            cfg = Config.from_dict(warm, source="study base config")
+            robot = self._robot(cfg.robot.spec)
+            self._warm(robot, cfg.seed)
+
+    @staticmethod
+    def _node() -> str:
+        try:
+            import ray
+
+            if ray.is_initialized():
+                return str(ray.get_runtime_context().get_node_id())[:8]
+        except Exception:  # pragma: no cover - not under Ray
+            pass
+        return "local"
+
+    def _robot(self, spec: str) -> Any:
+        robot = self._robots.get(spec)
+        if robot is None:
+            from gcm_pipeline.robot.model import load_robot
+
+            robot = self._robots[spec] = load_robot(spec)
+        return robot
+
+    @staticmethod
+    def _warm(robot: Any, seed: int) -> None:
+        """Build the seed library (first IK call) and the collision geometry now."""
+        from gcm_pipeline.robot.ik import solve_ik
+
+        targets = robot.fk(robot.random_configurations(4, seed=seed))
+        solve_ik(robot, targets, random_seed=int(seed))
+        robot.build_geometry("collision")
+
+    def ready(self) -> dict[str, Any]:
+        """Where the worker runs: ``{"node", "pid"}`` (Ray: the call that waits for start-up)."""
+        return {"node": self.node, "pid": self.pid}
+
+    def run(self, job: dict[str, Any]) -> dict[str, Any]:
+        """Run one placement.
+
+        Args:
+            job: ``{"id": int, "config": dict}`` (the resolved config of the
+                placement, ``Config.to_dict()``).
+
+        Returns:
+            ``{"id", "node", "time_s", "error"}`` plus, on success, the row
+            fields of :func:`placement_summary`, ``object_pose`` / ``base_pose``
+            (4, 4) and the arrays ``reachable`` (G,) bool, ``metric`` (G,) and
+            ``manipulability`` (G,) (NaN where unreachable), ``pose`` (G, 7)
+            world grasp poses ``x, y, z, qw, qx, qy, qz``, ``pose_object`` (G, 7)
+            the same in the object's frame and ``is_candidate`` (G,).
+            A failure (any exception but an interrupt) comes back as
+            ``error = "<Type>: <message>"``.
+        """
+        t0 = time.perf_counter()
+        out: dict[str, Any] = {"id": int(job["id"]), "node": self.node, "error": ""}
+        try:
+            out.update(self._run(job["config"]))
+        except GcmError as exc:
+            out["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+        except Exception as exc:  # a bug or a library error: recorded, the study goes on
+            out["error"] = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:2000]
+        out["time_s"] = time.perf_counter() - t0
+        return out
+
+    def _run(self, data: dict[str, Any]) -> dict[str, Any]:
+        from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
+        from gcm_pipeline.pipeline import (
+            build_manifold,
+            check_reachability,
+            densify,
+            generate_candidates,
+            rank,
+        )
+        from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+
+        cfg = Config.from_dict(data, source="placement config")
+        # one IK process per worker: the study runs the workers in parallel
+        cfg = cfg.model_copy(update={"ik": cfg.ik.model_copy(update={"workers": 1})})
+        robot = self._robot(cfg.robot.spec)
+        candidates = generate_candidates(cfg)
+        manifold = build_manifold(candidates, cfg)
+        grasps = densify(candidates, manifold, cfg)
+        grasps = check_reachability(grasps, robot, cfg)
+        grasps = rank(grasps, robot, cfg)
+        reachable = np.asarray(grasps["reachable"], dtype=bool)
+        object_pose = cfg.object.pose.matrix() if cfg.object is not None else np.eye(4)
+        local = dq_from_matrix(np.linalg.inv(object_pose) @ dq_to_matrix(grasps["dq"]))
+        metric = np.asarray(grasps[METRIC_COLUMNS[cfg.ranking.metric]], dtype=float)
+        manip = np.asarray(grasps["manipulability"], dtype=float)
+        base_pose = cfg.robot.base_pose.matrix()
+        row = placement_summary(grasps, cfg)
+        row.update(
+            object_pose=object_pose,
+            base_pose=base_pose,
+            reachable_mask=reachable,
+            metric=np.where(reachable, metric, np.nan),
+            manipulability=np.where(reachable, manip, np.nan),
+            pose=_pose7(grasps["dq"]),
+            pose_object=_pose7(local),
+            is_candidate=np.asarray(grasps["origin"]).astype(str) == "candidate",
+        )
+        return row

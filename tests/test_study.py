@@ -217,6 +217,31 @@ def test_bad_study_is_one_line_and_writes_nothing(tmp_path, capsys, sweep, fragm
     assert not out.exists()
 
 
+def test_an_unreadable_mesh_stops_the_study_before_any_work(tmp_path, capsys):
+    broken = tmp_path / "broken.stl"
+    broken.write_text("solid nothing\nthis is not an STL file\n")
+    data = _small(
+        {
+            "objects": [
+                {
+                    "name": "b",
+                    "object": {"shape": "mesh", "mesh": str(broken)},
+                    "candidates": {
+                        "source": "file",
+                        "path": str(FROM_FILE.parent / "data" / "mug_grasps.npy"),
+                        "frame": "object",
+                    },
+                }
+            ]
+        }
+    )
+    out = tmp_path / "out"
+    code = main(["study", str(_study_file(tmp_path, data)), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "broken.stl" in err, err
+    assert not out.exists()
+
+
 def test_a_study_above_its_limit_needs_force(tmp_path, capsys):
     data = _small({"object_pose": {"x": {"from": 0.3, "to": 0.7, "steps": 30}}}, max_placements=20)
     out = tmp_path / "out"
@@ -257,7 +282,7 @@ def test_a_directory_of_another_study_is_refused(tmp_path):
         other.check(out)
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
-    with pytest.raises(OutputError, match="not a study directory"):
+    with pytest.raises(OutputError, match="not a gcm study directory"):
         study.check(tmp_path / "mine")
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
 
@@ -372,8 +397,14 @@ def test_study_across_two_nodes_matches_gcm_run(cluster, tmp_path):
 
 
 def test_a_failing_placement_is_recorded_and_the_study_goes_on(cluster, tmp_path):
-    broken = tmp_path / "broken.stl"
-    broken.write_text("solid nothing\nthis is not an STL file\n")
+    """One object of the list has a corrupt grasp file: its placement fails, the rest runs.
+
+    ``gcm run``'s preflight (which the study repeats) checks that input files
+    exist; reading them is the run's work, so a damaged file among many objects
+    fails only that object's placements.
+    """
+    broken = tmp_path / "broken.npy"
+    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
     data = {
         "base": str(FROM_FILE),
         "set": ["densify.subdivisions=1", "approach=null", "publish.html=false"],
@@ -381,7 +412,7 @@ def test_a_failing_placement_is_recorded_and_the_study_goes_on(cluster, tmp_path
             "object_pose": {"x": [0.45]},
             "objects": [
                 {"name": "mug"},
-                {"name": "broken", "object": {"shape": "mesh", "mesh": str(broken)}},
+                {"name": "broken", "set": [f"candidates.path={broken}"]},
             ],
         },
     }
@@ -391,7 +422,7 @@ def test_a_failing_placement_is_recorded_and_the_study_goes_on(cluster, tmp_path
     rows = {r["object"]: r for r in result.rows}
     assert rows["mug"]["error"] == "" and rows["mug"]["reachable"] > 0
     assert rows["broken"]["error"].startswith("InputError: ")
-    assert "broken.stl" in rows["broken"]["error"]
+    assert "broken.npy" in rows["broken"]["error"]
     assert result.best["object"] == "mug"
     assert result.summary["counts"]["failed"] == 1
     assert result.summary["failed"][0]["id"] == rows["broken"]["id"]

@@ -165,9 +165,7 @@ def write_coverage_png(
         if failed:
             ax.scatter(*zip(*failed, strict=True), marker="x", c="0.5", s=20)
         best = [r for r in rows if best_id is not None and int(r["id"]) == best_id]
-        if best and (
-            merged or _panel_key(best[0], swept, pose) == key or int(best[0]["round"]) > 0
-        ):
+        if best and (merged or _panel_key(best[0], swept, pose) == key):
             b = best[0]
             if str(b["object"]) == str(key[0]):
                 ax.scatter(

@@ -2,6 +2,7 @@
 
 Layout::
 
+    .gcm.json           the project's marker (kind ``study``, :func:`gcm_pipeline.io.write_marker`)
     study.json          what study this is (its key, the study file, the base config);
                         written first, checked on every rerun
     placements/000042.npz
@@ -34,20 +35,17 @@ from typing import Any
 
 import numpy as np
 
+from gcm_pipeline import io
 from gcm_pipeline.errors import OutputError
-from gcm_pipeline.io import _is_within, _json_clean, format_floats
+from gcm_pipeline.io import _json_clean, format_floats
 
 __all__ = [
     "CSV_COLUMNS",
-    "MARKER",
     "StudyDir",
     "atomic_write",
 ]
 
 log = logging.getLogger(__name__)
-
-#: ``study.json``'s ``format`` value: the marker of a study directory.
-MARKER = "gcm_pipeline study"
 
 #: Columns of ``placements.csv``, in order.
 CSV_COLUMNS = (
@@ -140,66 +138,52 @@ class StudyDir:
             True when the directory holds this study already (a resume).
 
         Raises:
-            OutputError: The path is a file; the directory holds another
-                study, or is not empty and not a study directory; it is the
-                working directory or one of its parents; it holds an input.
+            OutputError: The path is a file or a symbolic link; the directory is
+                not empty and not a study directory (no ``.gcm.json`` marker of
+                kind ``study``), or holds another study; it is the working
+                directory or one of its parents; it holds an input.
         """
         out = self.path
-        if (out.exists() or out.is_symlink()) and not out.is_dir():
-            raise OutputError(f"study directory {out} exists and is not a directory")
-        if _is_within(Path.cwd(), out):
-            raise OutputError(
-                f"refusing to use {out}: it is the working directory or one of its parents; "
-                "choose another --out"
-            )
-        for item in keep:
-            if _is_within(Path(item), out):
-                raise OutputError(
-                    f"refusing to use {out}: it holds {item}, an input of the study; "
-                    "choose another --out"
-                )
-        if not out.exists() and not out.is_symlink():
-            parent = out.parent
-            while not parent.exists() and parent != parent.parent:
-                parent = parent.parent
-            if not parent.is_dir() or not os.access(parent, os.W_OK):
-                raise OutputError(f"cannot create study directory {out}: {parent} is not writable")
-            return False
-        if not any(out.iterdir()):
+        try:
+            used = out.is_dir() and not out.is_symlink() and any(out.iterdir())
+        except OSError as exc:
+            raise OutputError(f"cannot read study directory {out}: {exc}") from None
+        # an existing study directory is continued, never replaced: "force" only
+        # lets io's checks accept a directory that carries the study marker
+        io.check_output_dir(out, force=used, keep=keep, kind="study")
+        if not used:
             return False
         meta = self.read_meta()
-        if meta is None:
+        if meta is None or meta.get("key") != key:
+            source = (meta or {}).get("source") or "an unknown study"
             raise OutputError(
-                f"refusing to use {out}: it is not empty and not a study directory "
-                "(no study.json); choose another --out"
-            )
-        if meta.get("key") != key:
-            source = meta.get("source") or "an inline study"
-            raise OutputError(
-                f"{out} holds a different study (from {source}, key {meta.get('key')}, this "
-                f"one {key}); choose another --out or remove it"
+                f"{out} holds a different study (from {source}, key "
+                f"{(meta or {}).get('key')}, this one {key}); choose another --out or remove it"
             )
         return True
 
     def read_meta(self) -> dict[str, Any] | None:
         """``study.json`` as a dict, or None when it is missing or not a study's."""
+        if not io.is_project_dir(self.path, "study"):
+            return None
         try:
             meta = json.loads((self.path / "study.json").read_text(encoding="utf-8"))
         except (OSError, ValueError):
             return None
-        if not isinstance(meta, dict) or meta.get("format") != MARKER:
-            return None
-        return meta
+        return meta if isinstance(meta, dict) else None
 
     def create(self, meta: Mapping[str, Any]) -> None:
-        """Create the directory and write ``study.json`` (kept when it exists)."""
+        """Create the directory, its ``.gcm.json`` marker and ``study.json`` (kept when there)."""
         try:
             self.parts.mkdir(parents=True, exist_ok=True)
+            if io.read_marker(self.path) is None:
+                io.write_marker(self.path, "study")
         except OSError as exc:
             raise OutputError(f"cannot create study directory {self.path}: {exc}") from None
         if self.read_meta() is None:
-            data = {"format": MARKER, **meta}
-            _write_text(self.path / "study.json", json.dumps(_json_clean(data), indent=2) + "\n")
+            _write_text(
+                self.path / "study.json", json.dumps(_json_clean(dict(meta)), indent=2) + "\n"
+            )
 
     # --- placements -------------------------------------------------------------------
 

@@ -45,6 +45,18 @@ __all__ = ["Study", "StudyResult", "best_row"]
 
 log = logging.getLogger(__name__)
 
+#: Pose columns of placements.csv, ``<pose>_<key>``.
+_SWEPT_COLUMNS = (
+    "object_x",
+    "object_y",
+    "object_z",
+    "object_yaw_deg",
+    "base_x",
+    "base_y",
+    "base_z",
+    "base_yaw_deg",
+)
+
 #: Seconds between rewrites of placements.csv / summary.json while a study runs.
 _FLUSH_S = 5.0
 
@@ -556,10 +568,16 @@ class _Run:
             "object": list(sweep.object_pose.axes()) if sweep.object_pose else [],
             "base": list(sweep.base_pose.axes()) if sweep.base_pose else [],
         }
-        metric = self.plan.base_config.ranking.metric
         title = "coverage: reachable fraction of the densified grasps"
         if best is not None:
-            title += f"; best #{best['id']} {best['coverage']:.3f} (ranked by {metric})"
+            where = ", ".join(
+                f"{k.replace('_deg', '').replace('_', ' ')} {best[k]:g}"
+                for k in _SWEPT_COLUMNS
+                if k.split("_", 1)[1] in swept[k.split("_", 1)[0]]
+            )
+            title += f"; best #{best['id']}: {best['coverage']:.3f}" + (
+                f" at {where}" if where else ""
+            )
 
         def draw(tmp: Path) -> None:
             write_coverage_png(

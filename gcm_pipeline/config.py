@@ -613,11 +613,12 @@ def _plain(data: Any, source: str, depth: int = 0) -> Any:
 def _describe(exc: ValidationError, data: Any) -> str:
     """Turn the first pydantic error into one line naming the key and value."""
     err = exc.errors(include_url=False)[0]
-    loc = [p for p in err["loc"] if not isinstance(p, str) or not p.startswith("function-")]
-    # pydantic puts the union member / literal tag into loc for some errors; drop type names
-    loc = [p for p in loc if not (isinstance(p, str) and p[:1].isupper())]
+    # pydantic puts union members and validator tags ('ObjectConfig', 'int',
+    # 'function-after[...]') into loc: keep only the parts that are keys or
+    # indices of the data (and a missing key, which the data cannot have)
+    loc = _data_loc(data, list(err["loc"]), keep_last=err["type"] == "missing")
     key = ".".join(str(p) for p in loc)
-    if err["type"] == "extra_forbidden":
+    if err["type"] == "extra_forbidden" and loc:
         model = _model_at(Config, loc[:-1])
         valid = sorted(model.model_fields) if model is not None else []
         close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
@@ -648,6 +649,20 @@ def _describe(exc: ValidationError, data: Any) -> str:
     if key and "input" in err and err["type"] not in ("value_error",):
         return f"{key}: {msg} (got {clip(err['input'])})"
     return f"{key}: {msg}" if key else msg
+
+
+def _data_loc(data: Any, loc: list[Any], *, keep_last: bool) -> list[Any]:
+    """The parts of a pydantic error location that walk through ``data``."""
+    node, out = data, []
+    for i, part in enumerate(loc):
+        if isinstance(node, dict) and isinstance(part, (str, int)) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and isinstance(part, int) and 0 <= part < len(node):
+            node = node[part]
+        elif not (keep_last and i == len(loc) - 1):
+            continue
+        out.append(part)
+    return out
 
 
 def _value_at(data: Any, loc: list[Any]) -> Any:

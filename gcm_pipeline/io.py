@@ -57,6 +57,7 @@ import threading
 import time
 import uuid
 import zipfile
+import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -892,7 +893,7 @@ def npy_header(
             shape, _, dtype = np.lib.format.read_array_header_1_0(fh, _MAX_NPY_HEADER)
         else:
             shape, _, dtype = np.lib.format.read_array_header_2_0(fh, _MAX_NPY_HEADER)
-    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as exc:
+    except Exception as exc:  # the header is parsed as Python literals: anything can go wrong
         raise InputError(f"{path}: {what} is not a .npy array: {clip(str(exc))}") from None
     if dtype.hasobject:
         raise InputError(
@@ -948,7 +949,14 @@ def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str,
                     arrays[name] = np.lib.format.read_array(fh, allow_pickle=False)
     except InputError:
         raise
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError) as exc:
+    except (
+        zipfile.BadZipFile,
+        zipfile.LargeZipFile,
+        zlib.error,
+        OSError,
+        EOFError,
+        ValueError,
+    ) as exc:
         raise InputError(f"{path}: not a readable .npz archive: {clip(str(exc))}") from None
     except NotImplementedError as exc:  # a compression method zipfile lacks
         raise InputError(f"{path}: not a readable .npz archive: {exc}") from None

@@ -768,12 +768,62 @@ def _csv_column(col: np.ndarray) -> np.ndarray:
 
 
 def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read an ACRONYM file in a forked child process where one can be forked.
+
+    The HDF5 library can crash the whole process (a segmentation fault) on a
+    corrupt file, e.g. when it follows a damaged variable-length string; in a
+    child that crash becomes an :class:`InputError` naming the file.
+    """
     try:
-        import h5py
+        import h5py  # noqa: F401
     except ImportError:
         raise InputError(
             f"{path}: reading ACRONYM HDF5 files needs h5py: {ACRONYM_INSTALL_HINT}"
         ) from None
+    import multiprocessing as mp
+    import signal
+
+    if "fork" not in mp.get_all_start_methods():  # pragma: no cover - not POSIX
+        return _read_acronym_here(path, max_count)
+    ctx = mp.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_acronym_child, args=(send, path, max_count), daemon=True)
+    child.start()
+    send.close()
+    try:
+        result = receive.recv()
+    except EOFError:
+        result = None
+    finally:
+        receive.close()
+        child.join()
+    if result is None:
+        code = child.exitcode or 0
+        what = signal.Signals(-code).name if code < 0 else f"exit status {code}"
+        raise InputError(
+            f"{path}: reading it crashed the HDF5 library ({what}); the file is corrupt"
+        )
+    if result[0] == "error":
+        raise InputError(result[1])
+    return result[1], result[2]
+
+
+def _acronym_child(send: Any, path: Path, max_count: int) -> None:
+    """In the child: read the file and send ``("ok", poses, success)`` or ``("error", msg)``."""
+    try:
+        poses, success = _read_acronym_here(path, max_count)
+        send.send(("ok", poses, success))
+    except InputError as exc:
+        send.send(("error", str(exc)))
+    except BaseException as exc:  # anything else is reported, not raised in the child
+        send.send(("error", f"{path}: corrupt or unreadable HDF5 file: {clip(str(exc))}"))
+    finally:
+        send.close()
+
+
+def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
+    import h5py
+
     where = "the file"
     try:
         with h5py.File(path, "r") as fh:
@@ -851,11 +901,11 @@ def _check_rigid(path: Path, poses: np.ndarray) -> None:
     if poses.shape[0] == 0:
         return
     finite = np.all(np.isfinite(poses), axis=(1, 2))
-    rot = poses[:, :3, :3]
-    ortho = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2))
-    with np.errstate(invalid="ignore"):
-        det = np.linalg.det(np.where(finite[:, None, None], rot, 0.0))
-    bottom = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    rot = np.where(finite[:, None, None], poses[:, :3, :3], 0.0)
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: inf, not a warning
+        ortho = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(rot)
+        bottom = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
     ok = finite & (ortho < _RIGID_TOL) & (det > 0) & (bottom < _RIGID_TOL)
     bad = np.flatnonzero(~ok)
     if bad.size == 0:

@@ -95,7 +95,7 @@ BROKEN_FILES = {
     "npy that is an npz": ("g.npy", _npz_bytes(transforms=_poses(3)), "use format: npz"),
     "npy wrong shape": ("g.npy", _npy_bytes(np.zeros((3, 3, 4))), "shape (N, 4, 4)"),
     "npz truncated": ("g.npz", _npz_bytes(transforms=_poses(5))[:200], "not a readable .npz"),
-    "npz bad CRC": ("g.npz", _crc_broken(), "not a readable .npz"),
+    "npz bad CRC": ("g.npz", _crc_broken(), "Bad CRC-32"),
     "npz member not .npy": ("g.npz", _zip({"notes.txt": b"hello"}), "is not a .npy array"),
     "npz member garbage": ("g.npz", _zip({"transforms.npy": b"hello"}), "not a .npy array"),
     "npz lying member header": (

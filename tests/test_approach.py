@@ -18,6 +18,7 @@ import pytest
 from gcm_pipeline.config import EnvironmentConfig
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import (
+    SUBSTEPS,
     Move,
     check_moves,
     gripper_radius,
@@ -168,8 +169,10 @@ def _gripper_corners(robot):
     return gm, out
 
 
-def _dense_deviation(robot, q_path, offset, per_step=40):
-    """Largest distance of a gripper corner from its straight line along the joint path."""
+def _dense_deviation(robot, knots, offset, per_step=40):
+    """Largest distance of a gripper corner from its straight line along the joint path
+    (piecewise linear through the IK waypoints ``knots``, NaN rows skipped)."""
+    q_path = knots[np.all(np.isfinite(knots), axis=1)]
     gm, corners = _gripper_corners(robot)
     model = robot.model
     data, gd = model.createData(), pin.GeometryData(gm)
@@ -219,11 +222,18 @@ def test_accepted_moves_are_sound_on_sampled_grasps(robot, radius):
         offsets = move.offsets(poses)
         for i in np.flatnonzero(out.ok)[:12]:
             accepted += 1
-            dev = _dense_deviation(robot, out.q_path[i], offsets[i])
+            dev = _dense_deviation(robot, out.knots[i], offsets[i])
             assert dev <= move.max_deviation + 1e-9, (move, i, dev)
             assert dev <= out.deviation[i] + 1e-9
             for q in out.q_path[i, 1:]:
                 assert not _exhaustive_collisions(robot, checker, q)
+            # the grid points lie on the path through the waypoints
+            fine = np.flatnonzero(np.all(np.isfinite(out.knots[i]), axis=1))
+            grid = np.arange(move.steps + 1) * SUBSTEPS
+            path = np.stack(
+                [np.interp(grid, fine, out.knots[i, fine, j]) for j in range(robot.nq)], axis=1
+            )
+            np.testing.assert_allclose(out.q_path[i], path, atol=1e-12)
         # every IK waypoint reaches its pose on the line
         for i in np.flatnonzero(out.ok)[:5]:
             reached = robot.fk_pinocchio(out.q_path[i])

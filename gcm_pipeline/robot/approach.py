@@ -71,6 +71,7 @@ __all__ = [
     "Move",
     "MovePlan",
     "MoveResult",
+    "SUBSTEPS",
     "check_moves",
     "gripper_radius",
     "lever_arms",
@@ -88,6 +89,8 @@ _SLACK_SHARE = 0.25
 _MAX_SAMPLES = 64
 #: Share of ``max_deviation`` the next segment's length aims at.
 _AIM = 0.6
+#: IK waypoints may sit this many times closer than the steps where the path bends.
+SUBSTEPS = 8
 
 
 @dataclass(frozen=True)
@@ -151,6 +154,9 @@ class MovePlan(NamedTuple):
             is the grasp); NaN rows where not ok.
         deviation: (N,) bound of the gripper's deviation from its line [m] (NaN if not ok).
         waypoints: (N,) int, IK waypoints solved after the grasp.
+        knots: (N, steps * substeps + 1, nq) [rad] the IK waypoints on the fine
+            grid ``s = j / (steps * substeps)``, NaN between them: the move is the
+            piecewise linear joint path through them (``q_path`` samples it).
     """
 
     ok: np.ndarray
@@ -159,6 +165,7 @@ class MovePlan(NamedTuple):
     q_path: np.ndarray
     deviation: np.ndarray
     waypoints: np.ndarray
+    knots: np.ndarray
 
 
 class MoveResult(NamedTuple):
@@ -172,6 +179,7 @@ class MoveResult(NamedTuple):
             pre-grasp of an approach), NaN where not ok.
         q_path: (N, steps + 1, nq) joint path at the grid points (NaN where not ok).
         deviation: (N,) deviation bound [m] (NaN where not ok).
+        knots: The IK waypoints (see :class:`MovePlan`), NaN where not ok.
     """
 
     ok: np.ndarray
@@ -180,6 +188,7 @@ class MoveResult(NamedTuple):
     q_end: np.ndarray
     q_path: np.ndarray
     deviation: np.ndarray
+    knots: np.ndarray
 
 
 def move_poses(poses: np.ndarray, offsets: np.ndarray, steps: int) -> np.ndarray:
@@ -367,10 +376,14 @@ def plan_moves(
     q_path[:, 0] = qg
     deviation = np.where(ok, 0.0, np.nan)
     waypoints = np.zeros(n, dtype=int)
+    knots = np.full((n, steps * SUBSTEPS + 1, nq), np.nan)
+    knots[:, 0] = qg
     if move.distance == 0 or not np.any(ok):
         q_path[ok] = qg[ok, None, :]
         q_path[~ok] = np.nan
-        return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints)
+        knots[:, 1:] = np.where(ok[:, None, None], qg[:, None, :], np.nan)
+        knots[~ok] = np.nan
+        return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
 
     if backend == "pinocchio":
         ik_options = {
@@ -385,16 +398,19 @@ def plan_moves(
     offsets = move.offsets(tg)
     lever = lever_arms(robot)
     budget = _SLACK_SHARE * move.max_deviation
-    at = np.zeros(n, dtype=int)  # last accepted grid point
-    step = np.full(n, steps)
+    sub = SUBSTEPS
+    fine_steps = steps * sub  # waypoints sit on a grid finer than the steps
+    at = np.zeros(n, dtype=int)  # last accepted waypoint, in fine units
+    step = np.full(n, fine_steps // 3)
+    q_at = qg.copy()
     active = ok.copy()
     while np.any(active):
         rows = np.flatnonzero(active)
         a = at[rows]
-        b = np.minimum(a + step[rows], steps)
+        b = np.minimum(a + step[rows], fine_steps)
         target = tg[rows].copy()
-        target[:, :3, 3] += (b / steps)[:, None] * offsets[rows]
-        q_a = q_path[rows, a]
+        target[:, :3, 3] += (b / fine_steps)[:, None] * offsets[rows]
+        q_a = q_at[rows]
         res = solve_ik(
             robot,
             target,
@@ -407,9 +423,12 @@ def plan_moves(
         why = np.where(res.success, "", "no_ik").astype(object)
         conv = np.flatnonzero(res.success)
         q_b = res.q
-        span = (b - a).astype(float)
+        span = (b - a).astype(float)  # fine units
         guess = ((b - a) // 2).astype(int)  # after an IK or joint-step failure: halve
-        jump = np.max(np.abs(q_b[conv] - q_a[conv]), axis=1) / span[conv]
+        # the change per step: segments of a step or more change every step alike;
+        # shorter ones may not change more than one step's worth (the grid
+        # points are checked once the path is complete)
+        jump = np.max(np.abs(q_b[conv] - q_a[conv]), axis=1) * sub / np.maximum(span[conv], sub)
         why[conv[jump > move.max_joint_step]] = "joint_step"
         fine = conv[jump <= move.max_joint_step]
         if fine.size:
@@ -437,26 +456,41 @@ def plan_moves(
             waypoints[g_rows] += 1
             ga, gb = a[good], b[good]
             for k in range(1, steps + 1):
-                sel = (ga < k) & (k <= gb)
+                sel = (ga < k * sub) & (k * sub <= gb)
                 if np.any(sel):
-                    f = ((k - ga[sel]) / (gb[sel] - ga[sel]))[:, None]
+                    f = ((k * sub - ga[sel]) / (gb[sel] - ga[sel]))[:, None]
                     q_path[g_rows[sel], k] = q_a[good[sel]] + f * (q_b[good[sel]] - q_a[good[sel]])
             at[g_rows] = gb
-            step[g_rows] = np.clip(guess[good], 1, steps)
-            active[g_rows[gb == steps]] = False
+            q_at[g_rows] = q_b[good]
+            knots[g_rows, gb] = q_b[good]
+            step[g_rows] = np.clip(guess[good], 1, fine_steps)
+            active[g_rows[gb == fine_steps]] = False
         bad = np.flatnonzero(why != "")
         if bad.size:
-            short = (b[bad] - a[bad]) <= 1
+            # an IK failure or a jump within one step fails the move (as a step-by-step
+            # tracking would); a deviation may still be cured by waypoints within a step
+            limit = np.where(why[bad] == "deviation", 1, sub)
+            short = (b[bad] - a[bad]) <= limit
             dead = rows[bad[short]]
             ok[dead] = False
             active[dead] = False
             reason[dead] = why[bad[short]]
-            failed[dead] = a[bad[short]] + 1
+            failed[dead] = a[bad[short]] // sub + 1
             retry = bad[~short]
-            step[rows[retry]] = np.clip(guess[retry], 1, b[retry] - a[retry] - 1)
+            lower = np.where(why[retry] == "deviation", 1, np.minimum(sub, b[retry] - a[retry] - 1))
+            step[rows[retry]] = np.clip(guess[retry], lower, b[retry] - a[retry] - 1)
+    # the change of every joint between consecutive grid points
+    steps_ok = np.all(np.abs(np.diff(q_path[ok], axis=1)) <= move.max_joint_step, axis=(1, 2))
+    over = np.flatnonzero(ok)[~steps_ok]
+    if over.size:
+        big = np.abs(np.diff(q_path[over], axis=1)).max(axis=2) > move.max_joint_step
+        ok[over] = False
+        reason[over] = "joint_step"
+        failed[over] = np.argmax(big, axis=1) + 1
     q_path[~ok] = np.nan
+    knots[~ok] = np.nan
     deviation[~ok] = np.nan
-    return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints)
+    return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
 
 
 def check_moves(
@@ -521,5 +555,6 @@ def check_moves(
         reason[rows[bad]] = why[bad, first]
         failed[rows[bad]] = first + 1
     q_path = np.where(ok[:, None, None], q_path, np.nan)
+    knots = np.where(ok[:, None, None], plan.knots, np.nan)
     dev = np.where(ok, plan.deviation, np.nan)
-    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev)
+    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, knots)

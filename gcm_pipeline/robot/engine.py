@@ -86,8 +86,8 @@ _AT_GRASP, _AT_APPROACH, _AT_RETREAT, _PASSED = 0, 1, 2, 3
 
 #: Seeds of the re-solve (step 3) for the pinocchio backend: library
 #: neighbours and random restarts beyond the first solve's.
-_RESOLVE_LIBRARY = 24
-_RESOLVE_RESTARTS = 16
+_RESOLVE_LIBRARY = 8
+_RESOLVE_RESTARTS = 0
 
 #: Two solutions closer than this in every joint are the same branch [rad].
 _SAME_SOLUTION = 1e-3

@@ -31,23 +31,23 @@ KD-trees answer nearest-pose queries exactly.
 Nearest points
 --------------
 :class:`TriangleLocator` answers "which point of the manifold is nearest to
-this pose" for batches of queries:
+this pose" for batches of queries, exactly up to the projection's tolerance:
 
-1. every triangle is sampled on a small barycentric lattice
-   (``subdivisions``), whose points (both quaternion signs) go into a KD-tree
-   over the 7-D features;
-2. the ``k`` nearest lattice points of a query name its candidate triangles;
-3. on each candidate the query is projected onto the blend surface by a few
-   sequential quadratic programming steps on the barycentric weights: the
-   surface is linearised (DLB: analytic Jacobian of the normalised blend; DIB:
-   finite differences) and the Gauss-Newton model is minimised exactly over
-   the triangle (interior, else the best point of the three edges);
-4. a query whose ``k``-th lattice neighbour is not farther than the best
-   distance found plus the lattice spacing ``h`` might have missed a triangle:
-   every lattice point within that radius adds its triangle and step 3 runs
-   again for them. Any point of a triangle lies within ``h`` of one of its
-   lattice points, so the answer is the nearest of all triangles' local
-   minima.
+1. every triangle gets a bounding slab in the 7-D features (centre, best-fit
+   plane, in-plane extent, thickness, measured on a lattice of its points and
+   enlarged for the curvature between them), so the distance from a query to
+   any point of the triangle has a cheap lower bound;
+2. the query is projected onto the triangle of its nearest centre (KD-trees
+   over the centres, both quaternion signs), giving the distance to beat;
+3. it is projected onto every other triangle whose bound is below that
+   distance; triangles farther in the trees than the bound allows are
+   fetched by a ball query, so none that could hold a nearer point is skipped.
+
+A projection runs a few sequential quadratic programming steps on the
+barycentric weights: the blend surface is linearised (DLB: analytic Jacobian
+of the normalised blend; DIB: finite differences) and the Gauss-Newton model
+is minimised exactly over the triangle (interior, else the best point of the
+three edges). It starts from the query's foot point in the triangle's plane.
 """
 
 from __future__ import annotations
@@ -350,31 +350,77 @@ def _cells(s: int) -> tuple[np.ndarray, np.ndarray]:
     return corners.mean(axis=1), corners
 
 
-class TriangleLocator:
-    """Batched nearest-point queries on a set of blended triangles.
+def _dedupe(rows: np.ndarray, tris: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct (row, triangle) pairs, sorted."""
+    key = np.sort(rows * t + tris)
+    key = key[np.r_[True, key[1:] != key[:-1]]]
+    return key // t, key % t
 
-    Each triangle is cut into ``subdivisions**2`` cells; a cell's centroid
-    pose and radius (the largest pose distance from the centroid to its
-    corners, times :attr:`SAFETY` for the curvature of the blend) bound the
-    distance from a query to any point of the cell from below. A query is
-    projected onto every triangle having a cell whose bound is below the
-    distance to the nearest centroid (which is a point of the manifold), so
-    no triangle that could hold the nearest point is left out.
+
+def _point_triangle_2d(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Distance (P,) from 2-D points (P, 2) to filled triangles (P, 3, 2); 0 inside."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    e0, e1 = b - a, c - a
+    det = e0[:, 0] * e1[:, 1] - e0[:, 1] * e1[:, 0]
+    f = p - a
+    safe = np.where(np.abs(det) > 1e-300, det, 1e-300)
+    u = (f[:, 0] * e1[:, 1] - f[:, 1] * e1[:, 0]) / safe
+    v = (e0[:, 0] * f[:, 1] - e0[:, 1] * f[:, 0]) / safe
+    inside = (u >= 0) & (v >= 0) & (u + v <= 1) & (np.abs(det) > 1e-300)
+    best = np.full(len(p), np.inf)
+    for s0, s1 in ((a, b), (b, c), (c, a)):
+        e = s1 - s0
+        ee = np.maximum(np.einsum("pi,pi->p", e, e), 1e-300)
+        t = np.clip(np.einsum("pi,pi->p", p - s0, e) / ee, 0.0, 1.0)
+        d = p - s0 - t[:, None] * e
+        best = np.minimum(best, np.sqrt(np.einsum("pi,pi->p", d, d)))
+    return np.where(inside, 0.0, best)
+
+
+def _lattice(s: int) -> np.ndarray:
+    """Barycentric weights (P, 3) of the points of an ``s``-subdivided triangle."""
+    i, j = np.meshgrid(np.arange(s + 1), np.arange(s + 1), indexing="ij")
+    keep = i + j <= s
+    return np.stack((s - i[keep] - j[keep], i[keep], j[keep]), axis=1) / float(s)
+
+
+class TriangleLocator:
+    r"""Batched nearest-point queries on a set of blended triangles.
+
+    Every triangle is bounded by a slab in the 7-D feature space of the pose
+    metric: its centre ``c``, the best-fit plane of its points (two
+    orthonormal directions), the radius ``R`` of its points within that
+    plane and their largest distance ``tau`` from it (from a lattice of
+    points, enlarged by :attr:`SAFETY` for the blend's curvature between
+    them). For a query ``x`` with in-plane offset ``a`` and normal offset
+    ``b`` from ``c``, every point of the triangle is at least
+
+    .. math:: \sqrt{\max(0, |a| - R)^2 + \max(0, |b| - \tau)^2}
+
+    away. A query is projected first onto the triangle with the smallest
+    bound (started at its in-plane foot point), then onto every other
+    triangle whose bound is below the distance found. Candidates come from a
+    KD-tree over the centres (both quaternion signs); triangles beyond the
+    ``k`` nearest centres are bounded by ``d_k - R_max``; where that bound
+    does not rule them out, a ball query of radius ``best + R_max`` lists
+    them. Triangles are grouped by size (one tree per group, so a few large
+    triangles do not widen the balls of the many small ones).
 
     Args:
         corners: (T, 3, 8) vertex poses of the T triangles (world).
         method: The blend, ``dlb`` or ``dib``.
         orientation_scale: ``L`` [m/rad] of the pose metric.
-        subdivisions: Cells per triangle edge.
-        neighbours: Cells looked up per query before the bound decides
-            whether more are needed.
+        subdivisions: Lattice subdivisions of the bounding points.
+        neighbours: Nearest centres looked up per query at first.
 
     Raises:
         GeometryError: No triangle, wrong shapes, unknown method.
     """
 
-    #: Factor on the cells' corner distances covering the blend's curvature.
+    #: Factor on the bounds measured on the lattice, covering the blend between its points.
     SAFETY = 1.25
+    #: Ratio of the largest to the smallest extent within one size group.
+    GROUP = 1.5
 
     def __init__(
         self,
@@ -383,7 +429,7 @@ class TriangleLocator:
         method: str = "dlb",
         orientation_scale: float = ORIENTATION_SCALE,
         subdivisions: int = 6,
-        neighbours: int = 16,
+        neighbours: int = 8,
     ) -> None:
         corners = np.asarray(corners, dtype=np.float64)
         if corners.ndim != 3 or corners.shape[1:] != (3, 8):
@@ -396,26 +442,54 @@ class TriangleLocator:
         self.method = method
         self.orientation_scale = float(orientation_scale)
         self.neighbours = max(1, int(neighbours))
-        centroid_w, corner_w = _cells(int(subdivisions))
-        t, c = len(corners), len(centroid_w)
-        tri = np.repeat(np.arange(t), c)
-        centres = blend(corners[tri], np.tile(centroid_w, (t, 1)), method)
-        ends = blend(
-            np.repeat(corners[tri], 3, axis=0), np.tile(corner_w.reshape(-1, 3), (t, 1)), method
-        ).reshape(t * c, 3, 8)
-        radius = self.SAFETY * pose_distance(centres[:, None, :], ends, self.orientation_scale).max(
-            axis=1
+        t = len(corners)
+        lat = _lattice(int(subdivisions))
+        pts = blend(np.repeat(corners, len(lat), axis=0), np.tile(lat, (t, 1)), method)
+        pts = pts.reshape(t, len(lat), 8)
+        # features with the quaternion sign of each triangle's first corner
+        ref = corners[:, 0, :4]
+        sign = np.where(np.einsum("tpc,tc->tp", pts[..., :4], ref) < 0, -1.0, 1.0)
+        feat = np.concatenate(
+            (_translation(pts), (2.0 * self.orientation_scale) * sign[..., None] * pts[..., :4]),
+            axis=-1,
+        )  # (T, P, 7)
+        centre = feat.mean(axis=1)
+        rel = feat - centre[:, None]
+        _, _, vt = np.linalg.svd(rel, full_matrices=False)
+        basis = vt[:, :2]  # (T, 2, 7) best-fit plane
+        inplane = np.einsum("tpk,tjk->tpj", rel, basis)
+        normal = rel - np.einsum("tpj,tjk->tpk", inplane, basis)
+        self._centre = centre
+        self._basis = basis
+        self._ref = ref
+        self._radius = self.SAFETY * np.linalg.norm(inplane, axis=2).max(axis=1) + 1e-12
+        self._thick = self.SAFETY * np.linalg.norm(normal, axis=2).max(axis=1) + 1e-12
+        # in-plane coordinates of the corners (weights (1,0,0), (0,1,0), (0,0,1) are lattice points)
+        first = [int(np.flatnonzero((lat == e).all(axis=1))[0]) for e in np.eye(3)]
+        self._corner_xy = inplane[:, first]  # (T, 3, 2)
+        # how far the points stray outside the corners' flat triangle in the plane
+        outside = _point_triangle_2d(
+            inplane.reshape(-1, 2), np.repeat(self._corner_xy, len(lat), axis=0)
+        ).reshape(t, len(lat))
+        scale = np.linalg.norm(
+            self._corner_xy - self._corner_xy.mean(axis=1, keepdims=True), axis=2
         )
-        feat = pose_features(centres, self.orientation_scale)
-        flipped = feat.copy()
-        flipped[:, 3:] *= -1.0
-        self._tree = cKDTree(np.concatenate((feat, flipped)))
-        self._tri = np.concatenate((tri, tri))
-        uv = np.tile(centroid_w[:, 1:], (t, 1))
-        self._uv = np.concatenate((uv, uv))
-        self._radius = np.concatenate((radius, radius))
-        #: Largest cell radius [m] (pose metric).
-        self.spacing = float(radius.max())
+        self._bulge = self.SAFETY * outside.max(axis=1) + 1e-3 * scale.max(axis=1) + 1e-12
+        # every point of a triangle is within this of its centre
+        self._extent = np.hypot(self._radius, self._thick)
+        # groups of similar size, each with a KD-tree over its centres (both signs)
+        ratio = self._extent / np.median(self._extent)
+        group = np.floor(np.log(np.maximum(ratio, 1e-3)) / np.log(self.GROUP)).astype(np.int64)
+        group = np.maximum(group, -2)  # the smallest share one group
+        self._groups = []
+        for g in np.unique(group):
+            members = np.flatnonzero(group == g)
+            flipped = centre[members].copy()
+            flipped[:, 3:] *= -1.0
+            tree = cKDTree(np.concatenate((centre[members], flipped)))
+            self._groups.append((members, tree, float(self._extent[members].max())))
+        #: Largest in-plane radius [m] of a triangle's bounding slab.
+        self.spacing = float(self._radius.max())
 
     def __len__(self) -> int:
         """Number of triangles."""
@@ -423,12 +497,11 @@ class TriangleLocator:
 
     def __repr__(self) -> str:
         return (
-            f"TriangleLocator({len(self)} triangles, method={self.method!r}, "
-            f"orientation_scale={self.orientation_scale} m/rad, cell radius <= "
-            f"{self.spacing:.3g} m)"
+            f"TriangleLocator({len(self)} triangles in {len(self._groups)} size groups, "
+            f"method={self.method!r}, orientation_scale={self.orientation_scale} m/rad)"
         )
 
-    def locate(self, queries: npt.ArrayLike, *, batch: int = 4096) -> Location:
+    def locate(self, queries: npt.ArrayLike, *, batch: int = 8192) -> Location:
         """Nearest point of the triangles to each query pose.
 
         Args:
@@ -449,53 +522,156 @@ class TriangleLocator:
         dq = blend(self.corners[tri], w, self.method) if m else np.zeros((0, 8))
         return Location(tri, w, d, dq)
 
-    def _locate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _bounds(
+        self, q: np.ndarray, rows: np.ndarray, tris: np.ndarray, limit: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Lower bounds (P,) and in-plane start weights (P, 2) of (query, triangle) pairs.
+
+        The slab bound is taken with the query's quaternion sign nearer to
+        the triangle's centre; the other sign is bounded by its distance to
+        the centre minus the triangle's extent. The flat-triangle refinement
+        of the in-plane term is computed only where the bound is below
+        ``limit`` (per pair; all pairs when None).
+        """
+        x = _translation(q[rows])
+        r = (2.0 * self.orientation_scale) * q[rows, :4]
+        centre = self._centre[tris]
+        plus = np.concatenate((x, r), axis=1) - centre
+        minus = np.concatenate((x, -r), axis=1) - centre
+        d_plus = np.sqrt(np.einsum("pk,pk->p", plus, plus))
+        d_minus = np.sqrt(np.einsum("pk,pk->p", minus, minus))
+        use_plus = d_plus <= d_minus
+        rel = np.where(use_plus[:, None], plus, minus)
+        other = np.where(use_plus, d_minus, d_plus) - self._extent[tris]
+        a = np.einsum("pk,pjk->pj", rel, self._basis[tris])
+        in2 = np.einsum("pj,pj->p", a, a)
+        b2 = np.maximum(np.minimum(d_plus, d_minus) ** 2 - in2, 0.0)
+        la = np.maximum(np.sqrt(in2) - self._radius[tris], 0.0)
+        lb = np.maximum(np.sqrt(b2) - self._thick[tris], 0.0)
+        bound = np.sqrt(la * la + lb * lb)
+        refine = np.flatnonzero(bound < (np.inf if limit is None else limit))
+        if refine.size:
+            t = tris[refine]
+            flat = _point_triangle_2d(a[refine], self._corner_xy[t]) - self._bulge[t]
+            la_r = np.maximum(la[refine], flat)
+            bound[refine] = np.sqrt(la_r * la_r + lb[refine] * lb[refine])
+        bound = np.minimum(bound, np.maximum(other, 0.0))
+        # start: the in-plane foot point in the corners' in-plane coordinates, clipped
+        c = self._corner_xy[tris]
+        e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+        f = a - c[:, 0]
+        u = (f[:, 0] * e2[:, 1] - f[:, 1] * e2[:, 0]) / det
+        v = (e1[:, 0] * f[:, 1] - e1[:, 1] * f[:, 0]) / det
+        w = np.clip(np.column_stack((1.0 - u - v, u, v)), 0.0, None)
+        w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+        w[~np.isfinite(w).all(axis=1)] = 1.0 / 3.0
+        return bound, w[:, 1:]
+
+    def _sphere_bound(self, q: np.ndarray, rows: np.ndarray, tris: np.ndarray) -> np.ndarray:
+        """Lower bound (P,): distance to the triangle's centre minus its extent."""
+        feat = pose_features(q[rows], self.orientation_scale)
+        c = self._centre[tris]
+        d_plus = np.linalg.norm(feat - c, axis=1)
+        feat[:, 3:] *= -1.0
+        d_minus = np.linalg.norm(feat - c, axis=1)
+        return np.minimum(d_plus, d_minus) - self._extent[tris]
+
+    def _candidates(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The nearest centres of every size group.
+
+        Returns:
+            ``(rows, triangles, centre distances, rest)``: pairs sorted by
+            query then distance, and per query a lower bound on the distance
+            to every triangle not listed (``inf`` when all are listed).
+        """
         m = len(q)
         feat = pose_features(q, self.orientation_scale)
-        d0, nearest = self._tree.query(feat, k=1)  # a point of the manifold: an upper bound
-        # stage 1: project onto the triangle of the nearest cell, a tighter bound d1
-        t1 = self._tri[nearest]
-        w1, d1 = project_onto_triangles(
-            q,
-            self.corners[t1],
-            self._uv[nearest],
-            method=self.method,
-            orientation_scale=self.orientation_scale,
-        )
-        # stage 2: every other triangle with a cell whose lower bound |q - c| - rho is below d1
-        balls = self._tree.query_ball_point(feat, d1 + self.spacing)
-        counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=m)
-        rows = np.repeat(np.arange(m), counts)
-        cell = np.fromiter(itertools.chain.from_iterable(balls), np.int64, counts.sum())
-        dist = np.linalg.norm(self._tree.data[cell] - feat[rows], axis=1)
-        tri = self._tri[cell]
-        keep = (dist - self._radius[cell] < d1[rows]) & (tri != t1[rows])
-        rows, cell, dist, tri = rows[keep], cell[keep], dist[keep], tri[keep]
-        # one projection per (query, triangle), started at its nearest cell
-        order = np.lexsort((dist, tri, rows))
-        rows, cell, tri = rows[order], cell[order], tri[order]
-        head = np.ones(len(rows), dtype=bool)
-        head[1:] = (rows[1:] != rows[:-1]) | (tri[1:] != tri[:-1])
-        pr, pt, uv0 = rows[head], tri[head], self._uv[cell[head]]
+        rows_list, tri_list, dist_list = [], [], []
+        rest = np.full(m, np.inf)
+        largest = max(len(g[0]) for g in self._groups)
+        for members, tree, rmax in self._groups:
+            share = int(np.ceil(self.neighbours * len(members) / largest))
+            k = min(max(share, 2), tree.n)
+            dist, idx = tree.query(feat, k=k)
+            dist, idx = dist.reshape(m, k), idx.reshape(m, k)
+            if k < tree.n:
+                rest = np.minimum(rest, dist[:, -1] - rmax)
+            rows_list.append(np.repeat(np.arange(m), k))
+            tri_list.append(members[idx.ravel() % len(members)])
+            dist_list.append(dist.ravel())
+        rows = np.concatenate(rows_list)
+        tris = np.concatenate(tri_list)
+        dist = np.concatenate(dist_list)
+        order = np.lexsort((dist, rows))
+        rows, tris, dist = rows[order], tris[order], dist[order]
+        # a triangle listed twice (both quaternion signs): keep its nearer centre
+        key = rows * len(self) + tris
+        _, first = np.unique(key, return_index=True)
+        keep = np.sort(first)
+        return rows[keep], tris[keep], dist[keep], rest
+
+    def _locate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        m = len(q)
+        best_tri = np.zeros(m, dtype=np.int64)
+        best_w = np.zeros((m, 3))
+        best_d = np.full(m, np.inf)
+        rows, tris, dist, rest = self._candidates(q)
+        # round 1: the triangle of the nearest centre
+        first = np.r_[True, rows[1:] != rows[:-1]]
+        _, uv0 = self._bounds(q, rows[first], tris[first])
+        self._project(q, rows[first], tris[first], uv0, best_tri, best_w, best_d)
+        # round 2: the others whose bound (sphere, then slab) is below the distance found
+        other = ~first & (dist - self._extent[tris] < best_d[rows])
+        rows, tris = rows[other], tris[other]
+        bound, uv0 = self._bounds(q, rows, tris, best_d[rows])
+        keep = bound < best_d[rows]
+        self._project(q, rows[keep], tris[keep], uv0[keep], best_tri, best_w, best_d)
+        # round 3: queries whose unlisted triangles might be nearer: every centre
+        # within best + R_max of each group, by ball queries
+        unsure = np.flatnonzero(rest < best_d)
+        if unsure.size:
+            feat = pose_features(q[unsure], self.orientation_scale)
+            r_list, t_list = [], []
+            for members, tree, rmax in self._groups:
+                balls = tree.query_ball_point(feat, best_d[unsure] + rmax)
+                counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
+                ids = np.fromiter(itertools.chain.from_iterable(balls), np.int64, counts.sum())
+                r_list.append(np.repeat(unsure, counts))
+                t_list.append(members[ids % len(members)])
+            r3, t3 = _dedupe(np.concatenate(r_list), np.concatenate(t_list), len(self))
+            near = self._sphere_bound(q, r3, t3) < best_d[r3]
+            r3, t3 = r3[near], t3[near]
+            b3, uv3 = self._bounds(q, r3, t3, best_d[r3])
+            keep = (b3 < best_d[r3]) & (t3 != best_tri[r3])
+            self._project(q, r3[keep], t3[keep], uv3[keep], best_tri, best_w, best_d)
+        return best_tri, best_w, best_d
+
+    def _project(
+        self,
+        q: np.ndarray,
+        rows: np.ndarray,
+        tris: np.ndarray,
+        uv0: np.ndarray,
+        best_tri: np.ndarray,
+        best_w: np.ndarray,
+        best_d: np.ndarray,
+    ) -> None:
+        """Project queries ``rows`` onto triangles ``tris``; keep the nearest per query."""
+        if not rows.size:
+            return
         w, d = project_onto_triangles(
-            q[pr],
-            self.corners[pt],
+            q[rows],
+            self.corners[tris],
             uv0,
             method=self.method,
             orientation_scale=self.orientation_scale,
         )
-        pr = np.concatenate((np.arange(m), pr))
-        pt = np.concatenate((t1, pt))
-        w = np.concatenate((w1, w))
-        d = np.concatenate((d1, d))
-        order = np.lexsort((pt, d, pr))  # per query: smallest distance, then lowest triangle
-        pr, pt, w, d = pr[order], pt[order], w[order], d[order]
-        first = np.ones(len(pr), dtype=bool)
-        first[1:] = pr[1:] != pr[:-1]
-        best_tri = np.zeros(m, dtype=np.int64)
-        best_w = np.zeros((m, 3))
-        best_d = np.full(m, np.inf)
-        best_tri[pr[first]] = pt[first]
-        best_w[pr[first]] = w[first]
-        best_d[pr[first]] = d[first]
-        return best_tri, best_w, best_d
+        order = np.lexsort((tris, d, rows))  # per query: nearest, then lowest triangle
+        rows, tris, w, d = rows[order], tris[order], w[order], d[order]
+        head = np.r_[True, rows[1:] != rows[:-1]]
+        rows, tris, w, d = rows[head], tris[head], w[head], d[head]
+        better = (d < best_d[rows]) | ((d == best_d[rows]) & (tris < best_tri[rows]))
+        rows = rows[better]
+        best_tri[rows], best_w[rows], best_d[rows] = tris[better], w[better], d[better]

@@ -399,19 +399,17 @@ class TriangleLocator:
 
     away. A query is projected first onto the triangle with the smallest
     bound (started at its in-plane foot point), then onto every other
-    triangle whose bound is below the distance found. Candidates come from a
-    KD-tree over the centres (both quaternion signs); triangles beyond the
-    ``k`` nearest centres are bounded by ``d_k - R_max``; where that bound
-    does not rule them out, a ball query of radius ``best + R_max`` lists
-    them. Triangles are grouped by size (one tree per group, so a few large
-    triangles do not widen the balls of the many small ones).
+    triangle whose bound is below the distance found. Candidates come from
+    KD-trees over the centres (both quaternion signs): the nearest centre's
+    triangle first, then every centre within the distance found plus the
+    largest extent. Triangles are grouped by size (one tree per group, so a
+    few large triangles do not widen the balls of the many small ones).
 
     Args:
         corners: (T, 3, 8) vertex poses of the T triangles (world).
         method: The blend, ``dlb`` or ``dib``.
         orientation_scale: ``L`` [m/rad] of the pose metric.
         subdivisions: Lattice subdivisions of the bounding points.
-        neighbours: Nearest centres looked up per query at first.
 
     Raises:
         GeometryError: No triangle, wrong shapes, unknown method.
@@ -429,7 +427,6 @@ class TriangleLocator:
         method: str = "dlb",
         orientation_scale: float = ORIENTATION_SCALE,
         subdivisions: int = 6,
-        neighbours: int = 8,
     ) -> None:
         corners = np.asarray(corners, dtype=np.float64)
         if corners.ndim != 3 or corners.shape[1:] != (3, 8):
@@ -441,7 +438,6 @@ class TriangleLocator:
         self.corners = corners
         self.method = method
         self.orientation_scale = float(orientation_scale)
-        self.neighbours = max(1, int(neighbours))
         t = len(corners)
         lat = _lattice(int(subdivisions))
         pts = blend(np.repeat(corners, len(lat), axis=0), np.tile(lat, (t, 1)), method)
@@ -501,7 +497,7 @@ class TriangleLocator:
             f"method={self.method!r}, orientation_scale={self.orientation_scale} m/rad)"
         )
 
-    def locate(self, queries: npt.ArrayLike, *, batch: int = 8192) -> Location:
+    def locate(self, queries: npt.ArrayLike, *, batch: int = 1024) -> Location:
         """Nearest point of the triangles to each query pose.
 
         Args:
@@ -578,74 +574,40 @@ class TriangleLocator:
         d_minus = np.linalg.norm(feat - c, axis=1)
         return np.minimum(d_plus, d_minus) - self._extent[tris]
 
-    def _candidates(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The nearest centres of every size group.
-
-        Returns:
-            ``(rows, triangles, centre distances, rest)``: pairs sorted by
-            query then distance, and per query a lower bound on the distance
-            to every triangle not listed (``inf`` when all are listed).
-        """
-        m = len(q)
-        feat = pose_features(q, self.orientation_scale)
-        rows_list, tri_list, dist_list = [], [], []
-        rest = np.full(m, np.inf)
-        largest = max(len(g[0]) for g in self._groups)
-        for members, tree, rmax in self._groups:
-            share = int(np.ceil(self.neighbours * len(members) / largest))
-            k = min(max(share, 2), tree.n)
-            dist, idx = tree.query(feat, k=k)
-            dist, idx = dist.reshape(m, k), idx.reshape(m, k)
-            if k < tree.n:
-                rest = np.minimum(rest, dist[:, -1] - rmax)
-            rows_list.append(np.repeat(np.arange(m), k))
-            tri_list.append(members[idx.ravel() % len(members)])
-            dist_list.append(dist.ravel())
-        rows = np.concatenate(rows_list)
-        tris = np.concatenate(tri_list)
-        dist = np.concatenate(dist_list)
-        order = np.lexsort((dist, rows))
-        rows, tris, dist = rows[order], tris[order], dist[order]
-        # a triangle listed twice (both quaternion signs): keep its nearer centre
-        key = rows * len(self) + tris
-        _, first = np.unique(key, return_index=True)
-        keep = np.sort(first)
-        return rows[keep], tris[keep], dist[keep], rest
-
     def _locate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         m = len(q)
         best_tri = np.zeros(m, dtype=np.int64)
         best_w = np.zeros((m, 3))
         best_d = np.full(m, np.inf)
-        rows, tris, dist, rest = self._candidates(q)
-        # round 1: the triangle of the nearest centre
-        first = np.r_[True, rows[1:] != rows[:-1]]
-        _, uv0 = self._bounds(q, rows[first], tris[first])
-        self._project(q, rows[first], tris[first], uv0, best_tri, best_w, best_d)
-        # round 2: the others whose bound (sphere, then slab) is below the distance found
-        other = ~first & (dist - self._extent[tris] < best_d[rows])
-        rows, tris = rows[other], tris[other]
-        bound, uv0 = self._bounds(q, rows, tris, best_d[rows])
-        keep = bound < best_d[rows]
-        self._project(q, rows[keep], tris[keep], uv0[keep], best_tri, best_w, best_d)
-        # round 3: queries whose unlisted triangles might be nearer: every centre
-        # within best + R_max of each group, by ball queries
-        unsure = np.flatnonzero(rest < best_d)
-        if unsure.size:
-            feat = pose_features(q[unsure], self.orientation_scale)
-            r_list, t_list = [], []
-            for members, tree, rmax in self._groups:
-                balls = tree.query_ball_point(feat, best_d[unsure] + rmax)
-                counts = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
-                ids = np.fromiter(itertools.chain.from_iterable(balls), np.int64, counts.sum())
-                r_list.append(np.repeat(unsure, counts))
-                t_list.append(members[ids % len(members)])
-            r3, t3 = _dedupe(np.concatenate(r_list), np.concatenate(t_list), len(self))
-            near = self._sphere_bound(q, r3, t3) < best_d[r3]
-            r3, t3 = r3[near], t3[near]
-            b3, uv3 = self._bounds(q, r3, t3, best_d[r3])
-            keep = (b3 < best_d[r3]) & (t3 != best_tri[r3])
-            self._project(q, r3[keep], t3[keep], uv3[keep], best_tri, best_w, best_d)
+        feat = pose_features(q, self.orientation_scale)
+        # round 1: the triangle of the nearest centre (over the size groups)
+        near_d = np.full(m, np.inf)
+        near_t = np.zeros(m, dtype=np.int64)
+        for members, tree, _ in self._groups:
+            dist, idx = tree.query(feat, k=1)
+            closer = dist < near_d
+            near_d[closer] = dist[closer]
+            near_t[closer] = members[idx[closer] % len(members)]
+        rows = np.arange(m)
+        _, uv0 = self._bounds(q, rows, near_t)
+        self._project(q, rows, near_t, uv0, best_tri, best_w, best_d)
+        # round 2: every triangle whose centre is within best + its group's
+        # largest extent, then whose sphere and slab bounds are below best
+        r_list, t_list = [], []
+        for members, tree, rmax in self._groups:
+            balls = tree.query_ball_point(feat, best_d + rmax)
+            counts = np.fromiter(map(len, balls), dtype=np.int64, count=m)
+            ids = np.fromiter(itertools.chain.from_iterable(balls), np.int64, counts.sum())
+            r_list.append(np.repeat(rows, counts))
+            t_list.append(members[ids % len(members)])
+        r2, t2 = _dedupe(np.concatenate(r_list), np.concatenate(t_list), len(self))
+        keep = t2 != near_t[r2]
+        r2, t2 = r2[keep], t2[keep]
+        keep = self._sphere_bound(q, r2, t2) < best_d[r2]
+        r2, t2 = r2[keep], t2[keep]
+        bound, uv2 = self._bounds(q, r2, t2, best_d[r2])
+        keep = bound < best_d[r2]
+        self._project(q, r2[keep], t2[keep], uv2[keep], best_tri, best_w, best_d)
         return best_tri, best_w, best_d
 
     def _project(

@@ -41,12 +41,14 @@ from gcm_pipeline.errors import ConfigError, clip, unknown_choice
 from gcm_pipeline.limits import (
     DEFAULT_MAX_CANDIDATES,
     DEFAULT_MAX_POSES,
+    MAX_ADAPTIVE_LEVEL,
     MAX_APPROACH_STEPS,
     MAX_IK_WORKERS,
 )
 from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 
 __all__ = [
+    "AdaptiveConfig",
     "ApproachConfig",
     "CandidatesConfig",
     "Config",
@@ -333,18 +335,47 @@ class ManifoldConfig(_Section):
     orientation_scale: PositiveFloat = 0.1
 
 
+class AdaptiveConfig(_Section):
+    """Adaptive refinement (see :mod:`gcm_pipeline.stages.adaptive`).
+
+    Triangles are split into four where their corners disagree on
+    reachability (``boundary``) or their ranking metric varies by more than
+    ``metric_threshold`` times its range (``metric``), down to ``max_level``
+    (``2**max_level`` subdivisions per candidate edge at most); ``min_level``
+    levels are refined everywhere first.
+    """
+
+    max_level: Annotated[int, Strict(), Field(ge=1, le=MAX_ADAPTIVE_LEVEL)]
+    min_level: Annotated[int, Strict(), Field(ge=0, le=MAX_ADAPTIVE_LEVEL)] = 0
+    refine: tuple[Literal["boundary", "metric"], ...] = ("boundary", "metric")
+    metric_threshold: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.1
+
+    @model_validator(mode="after")
+    def _levels(self) -> AdaptiveConfig:
+        if self.min_level > self.max_level:
+            raise ValueError(
+                f"min_level ({self.min_level}) must not exceed max_level ({self.max_level})"
+            )
+        if not self.refine:
+            raise ValueError("refine needs at least one of 'boundary', 'metric'")
+        return self
+
+
 class DensifyConfig(_Section):
     """Densification inside each triangle: a regular grid or a target spacing [m].
 
     ``max_poses`` is the ceiling of the densified table (candidates plus
     lattice points, estimated before the lattice is built; see
-    :mod:`gcm_pipeline.limits`).
+    :mod:`gcm_pipeline.limits`). With ``adaptive`` the lattice is refined
+    where reachability or the metric changes instead (``subdivisions`` and
+    ``spacing`` are then not used).
     """
 
     subdivisions: PositiveInt | None = 4
     spacing: PositiveFloat | None = None
     method: Literal["dlb", "dib"] = "dlb"
     max_poses: PositiveInt = DEFAULT_MAX_POSES
+    adaptive: AdaptiveConfig | None = None
 
     @model_validator(mode="after")
     def _some_density(self) -> DensifyConfig:

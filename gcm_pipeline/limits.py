@@ -9,6 +9,9 @@ fixed ones are bounds of the config schema:
   grasps in a file, from its header, before reading.
 - ``densify.max_poses`` (default 2,000,000): candidates plus lattice points,
   the sum over the triangles of (n+1)(n+2)/2, before the lattice is built.
+- ``densify.adaptive.max_level``: at most 10 (schema bound; 2**10 subdivisions
+  per candidate edge); the table is checked against ``densify.max_poses``
+  before each level of adaptive refinement.
 - ``approach.steps``, ``retreat.steps``: at most 1,000 (schema bound; 0.1 mm
   steps over 10 cm).
 - ``ik.workers``: at most 256 (schema bound).
@@ -28,6 +31,7 @@ from gcm_pipeline.errors import ConfigError
 __all__ = [
     "DEFAULT_MAX_CANDIDATES",
     "DEFAULT_MAX_POSES",
+    "MAX_ADAPTIVE_LEVEL",
     "MAX_APPROACH_STEPS",
     "MAX_IK_WORKERS",
     "check_size",
@@ -37,6 +41,7 @@ __all__ = [
 DEFAULT_MAX_CANDIDATES = 1_000_000
 DEFAULT_MAX_POSES = 2_000_000
 MAX_APPROACH_STEPS = 1_000
+MAX_ADAPTIVE_LEVEL = 10
 MAX_IK_WORKERS = 256
 
 

@@ -67,6 +67,7 @@ __all__ = [
     "build_manifold",
     "check_reachability",
     "densify",
+    "densify_adaptive",
     "generate_candidates",
     "input_files",
     "preflight",
@@ -220,6 +221,95 @@ def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
         method=d.method,
         max_poses=d.max_poses,
     )
+
+
+def refinement_score(robot: Robot, cfg: Config) -> Callable[[GraspTable], np.ndarray]:
+    """The metric adaptive refinement follows: the ranking metric of ``cfg``.
+
+    ``combined`` is normalised over the reachable rows checked so far;
+    ``margin`` (which needs the finished manifold) falls back to Yoshikawa's
+    index.
+    """
+    from gcm_pipeline.robot.manipulability import manipulability_metrics
+    from gcm_pipeline.stages.collision import combined_score
+
+    metric = cfg.ranking.metric
+
+    def score(table: GraspTable) -> np.ndarray:
+        reach = np.asarray(table["reachable"], dtype=bool)
+        q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
+        values: dict[str, np.ndarray] = dict(manipulability_metrics(robot, q))
+        if "clearance" in table:
+            values["clearance"] = np.asarray(table["clearance"], dtype=np.float64)
+        if metric == "combined":
+            weights = {k: v for k, v in (cfg.ranking.weights or {}).items() if k in values}
+            return combined_score(values, weights or None, mask=reach)
+        return values.get(metric, values["yoshikawa"])
+
+    return score
+
+
+def densify_adaptive(
+    grasps: GraspTable,
+    manifold: Manifold,
+    robot: Robot,
+    cfg: Config,
+    *,
+    check: ReachabilityCheck | None = None,
+) -> GraspTable:
+    """Densify where reachability or the metric changes, checking as it refines.
+
+    Section ``densify.adaptive`` (see :mod:`gcm_pipeline.stages.adaptive`);
+    reachability is decided as in :func:`check_reachability`, so the result
+    has the columns of densify and of the reachability stage, plus ``level``.
+
+    Args:
+        grasps: The candidate table; the manifold's triangles index its rows.
+        manifold: From :func:`build_manifold`.
+        robot: From :func:`robot_from_config`.
+        cfg: The full config (``densify.adaptive`` set).
+        check: A :class:`ReachabilityCheck` to use (its ``solved`` counts the IK solves).
+
+    Raises:
+        ConfigError: No ``densify.adaptive`` section, or the table would grow
+            beyond ``densify.max_poses``.
+    """
+    from gcm_pipeline.errors import ConfigError
+    from gcm_pipeline.stages import adaptive as stage
+
+    a = cfg.densify.adaptive
+    if a is None:
+        raise ConfigError("densify_adaptive needs a densify.adaptive section")
+    check = check if check is not None else ReachabilityCheck(robot, cfg)
+    return stage.refine(
+        grasps,
+        manifold,
+        check,
+        max_level=a.max_level,
+        min_level=a.min_level,
+        criteria=a.refine,
+        score=refinement_score(robot, cfg) if "metric" in a.refine else None,
+        metric_threshold=a.metric_threshold,
+        method=cfg.densify.method,
+        max_poses=cfg.densify.max_poses,
+    )
+
+
+def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict[str, Any]:
+    """``counts["adaptive"]`` of a run: rows per level, IK solves, the uniform lattice's size."""
+    from gcm_pipeline.stages.adaptive import uniform_size
+
+    a = cfg.densify.adaptive
+    assert a is not None
+    levels, per_level = np.unique(np.asarray(grasps["level"]), return_counts=True)
+    uniform = uniform_size(manifold.triangles, manifold.n_vertices, a.max_level)
+    return {
+        "max_level": a.max_level,
+        "rows_by_level": {str(k): int(v) for k, v in zip(levels, per_level, strict=True)},
+        "ik_solves": len(grasps),
+        "uniform_rows": uniform,
+        "uniform_subdivisions": 1 << a.max_level,
+    }
 
 
 def robot_from_config(cfg: Config) -> Robot:
@@ -653,13 +743,19 @@ class Pipeline:
             candidates = generate_candidates(cfg)
         with stage("manifold"):
             manifold = build_manifold(candidates, cfg)
+        adaptive = cfg.densify.adaptive is not None
         with stage("densify"):
-            grasps = densify(candidates, manifold, cfg)
+            if not adaptive:  # adaptive densification solves as it refines, below
+                grasps = densify(candidates, manifold, cfg)
         with stage("robot"):
             pass  # built by preflight
         timings["robot"] = robot_s
         with stage("reachability"):
-            grasps = check_reachability(grasps, robot, cfg, progress=progress)
+            if adaptive:
+                check = ReachabilityCheck(robot, cfg)
+                grasps = densify_adaptive(candidates, manifold, robot, cfg, check=check)
+            else:
+                grasps = check_reachability(grasps, robot, cfg, progress=progress)
         unreachable = _count_by(grasps["reason"][~np.asarray(grasps["reachable"], dtype=bool)])
         log.info(
             "reachable %d/%d%s",
@@ -682,6 +778,8 @@ class Pipeline:
             "unreachable_by_reason": unreachable,
         }
         _warn_empty(counts, cfg)
+        if adaptive:
+            counts["adaptive"] = adaptive_counts(grasps, manifold, cfg)
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
         if not write:
             return result

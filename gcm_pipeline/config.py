@@ -8,7 +8,7 @@ whose message names the file, the dotted key and the value at fault.
 
 Sections (see DESIGN.md): ``seed``, ``robot``, ``object``, ``candidates``,
 ``manifold``, ``densify``, ``ik``, ``environment``, ``approach``, ``retreat``,
-``ranking``, ``publish``, ``output``. Only ``candidates`` is required.
+``continuity``, ``ranking``, ``publish``, ``output``. Only ``candidates`` is required.
 
 Poses are ``{xyz: [x, y, z], rpy: [roll, pitch, yaw]}`` in metres and radians,
 or ``rpy_deg`` in degrees. Roll, pitch and yaw are rotations about the fixed x,
@@ -52,6 +52,7 @@ __all__ = [
     "ApproachConfig",
     "CandidatesConfig",
     "Config",
+    "ContinuityConfig",
     "DensifyConfig",
     "EnvironmentConfig",
     "IKConfig",
@@ -491,9 +492,25 @@ Metric = Literal[
     "inverse_condition",
     "joint_limit_margin",
     "clearance",
+    "margin",
     "combined",
 ]
 _METRICS: tuple[str, ...] = typing.get_args(Metric)
+
+
+class ContinuityConfig(_Section):
+    """IK continuity between neighbouring grasps (see :mod:`gcm_pipeline.stages.continuity`).
+
+    ``threshold`` [rad] is the largest joint jump (L-infinity) between
+    neighbours of one patch (one IK branch). With ``reseed``, grasps at the
+    border of a smaller patch are re-solved from their neighbours in a larger
+    one (collisions and approach checked as in the run) until patches stop
+    growing or ``max_rounds`` rounds have run.
+    """
+
+    threshold: PositiveFloat = 0.5
+    reseed: Bool = False
+    max_rounds: Annotated[int, Strict(), Field(ge=1, le=10_000)] = 100
 
 
 class RankingConfig(_Section):
@@ -569,6 +586,7 @@ class Config(_Section):
     environment: EnvironmentConfig = EnvironmentConfig()
     approach: ApproachConfig | None = None
     retreat: RetreatConfig | None = None
+    continuity: ContinuityConfig = ContinuityConfig()
     ranking: RankingConfig = RankingConfig()
     publish: PublishConfig = PublishConfig()
     output: OutputConfig = OutputConfig()

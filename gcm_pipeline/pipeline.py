@@ -64,6 +64,7 @@ __all__ = [
     "Pipeline",
     "ReachabilityCheck",
     "RunResult",
+    "add_continuity",
     "build_manifold",
     "check_reachability",
     "densify",
@@ -310,6 +311,55 @@ def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict
         "uniform_rows": uniform,
         "uniform_subdivisions": 1 << a.max_level,
     }
+
+
+def add_continuity(
+    grasps: GraspTable,
+    manifold: Manifold,
+    cfg: Config,
+    *,
+    check: ReachabilityCheck | None = None,
+) -> tuple[GraspTable, dict[str, int]]:
+    """IK continuity and the robustness margin (sections ``continuity``, ``manifold``).
+
+    Adds ``ik_jump`` [rad] and ``patch`` (:mod:`gcm_pipeline.stages.continuity`)
+    and ``margin`` [m] (:mod:`gcm_pipeline.stages.margin`); with
+    ``continuity.reseed`` first re-solves border grasps of smaller patches from
+    their neighbours in larger ones (that needs ``check``, or the robot to
+    build one).
+
+    Returns:
+        The table and ``counts["continuity"]``: ``patches`` and, with
+        re-seeding, ``patches_before_reseed``, ``reseeded`` (grasps that took a
+        new solution) and ``reseed_ik_solves``.
+    """
+    from gcm_pipeline.stages import continuity as stage
+    from gcm_pipeline.stages.lattice import row_mesh
+    from gcm_pipeline.stages.margin import margin
+
+    c = cfg.continuity
+    edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
+    counts: dict[str, int] = {}
+    if c.reseed:
+        if check is None:
+            check = ReachabilityCheck(robot_from_config(cfg), cfg)
+        grasps, report = stage.reseed(
+            grasps, edges, check, threshold=c.threshold, max_rounds=c.max_rounds
+        )
+        counts.update(
+            patches_before_reseed=report.patches_before,
+            reseeded=report.moved,
+            reseed_ik_solves=report.solved,
+        )
+    cols = stage.continuity_columns(grasps, edges, c.threshold)
+    counts = {"patches": int(cols["patch"].max(initial=-1) + 1), **counts}
+    cols["margin"] = margin(
+        np.asarray(grasps["dq"], dtype=np.float64),
+        np.asarray(grasps["reachable"], dtype=bool),
+        edges,
+        cfg.manifold.orientation_scale,
+    )
+    return grasps.with_columns(**cols), counts
 
 
 def robot_from_config(cfg: Config) -> Robot:
@@ -744,6 +794,7 @@ class Pipeline:
         with stage("manifold"):
             manifold = build_manifold(candidates, cfg)
         adaptive = cfg.densify.adaptive is not None
+        check: ReachabilityCheck | None = None
         with stage("densify"):
             if not adaptive:  # adaptive densification solves as it refines, below
                 grasps = densify(candidates, manifold, cfg)
@@ -765,6 +816,10 @@ class Pipeline:
             if unreachable
             else "",
         )
+        with stage("continuity"):
+            if cfg.continuity.reseed and check is None:
+                check = ReachabilityCheck(robot, cfg)
+            grasps, continuity = add_continuity(grasps, manifold, cfg, check=check)
         with stage("ranking"):
             grasps = rank(grasps, robot, cfg)
         counts = {
@@ -780,6 +835,7 @@ class Pipeline:
         _warn_empty(counts, cfg)
         if adaptive:
             counts["adaptive"] = adaptive_counts(grasps, manifold, cfg)
+        counts["continuity"] = continuity
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
         if not write:
             return result

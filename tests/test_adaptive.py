@@ -153,6 +153,7 @@ def test_gcm_run_adaptive_and_bad_levels(
     )
     run = gcm.read_run(out)
     assert "level" in run.grasps and run.summary["counts"]["adaptive"]["max_level"] == 2
+    assert (out / "levels.png").is_file() and (out / "patches.png").is_file()
     capsys.readouterr()
     bad = [
         "run",

@@ -187,7 +187,13 @@ def chart_points(grasps: GraspTable, manifold: Any, period: float | None = None)
     return out
 
 
-def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
+def _chart_figure(grasps: GraspTable, manifold: Any) -> tuple[Any, Any, np.ndarray, str]:
+    """A figure with the manifold's triangles drawn in its chart.
+
+    Returns:
+        ``(fig, ax, pts, projection)``: ``pts`` (N, 2) the chart coordinates of
+        every row (NaN where a row cannot be placed).
+    """
     fig = _figure((7.0, 6.0))
     ax = fig.add_subplot()
     projection = str(getattr(manifold, "projection", "") or "")
@@ -213,6 +219,107 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
     pts = (
         chart_points(grasps, manifold, period) if len(chart) else np.full((len(grasps), 2), np.nan)
     )
+    return fig, ax, pts, projection
+
+
+def _finish_chart(fig: Any, ax: Any, projection: str, title: str, path: Path) -> Path:
+    u_label, v_label = chart_axis_labels(projection)
+    ax.set_xlabel(u_label)
+    ax.set_ylabel(v_label)
+    ax.set_title(f"{title} ({projection} projection)" if projection else title)
+    ax.set_aspect("equal", adjustable="datalim")
+    if ax.get_legend_handles_labels()[0]:
+        legend = ax.legend(
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.13),
+            ncols=2,
+            fontsize="small",
+            frameon=False,
+        )
+        for handle in legend.legend_handles:
+            if hasattr(handle, "set_sizes"):
+                handle.set_sizes([24.0])
+    ax.grid(alpha=0.25)
+    return _save(fig, path)
+
+
+def _plot_levels(grasps: GraspTable, manifold: Any, path: Path) -> Path:
+    """Adaptive refinement: rows in the chart coloured by level, unreachable as crosses."""
+    fig, ax, pts, projection = _chart_figure(grasps, manifold)
+    level = np.asarray(grasps["level"], dtype=np.int64)
+    reach = np.asarray(grasps.get("reachable", np.ones(len(grasps), bool)), dtype=bool)
+    placed = np.all(np.isfinite(pts), axis=1)
+    size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
+    from matplotlib import colormaps
+
+    cmap = colormaps["plasma"]
+    top = max(int(level.max(initial=0)), 1)
+    for lv in range(int(level.max(initial=-1)) + 1):
+        colour = cmap(0.85 * lv / top)
+        for ok, marker in ((True, "o"), (False, "x")):
+            sel = placed & (level == lv) & (reach == ok)
+            if not sel.any():
+                continue
+            label = f"level {lv}, {'reachable' if ok else 'unreachable'} ({int(sel.sum())})"
+            ax.scatter(
+                pts[sel, 0],
+                pts[sel, 1],
+                s=size if ok else size * 1.3,
+                marker=marker,
+                color=colour,
+                linewidths=0.8,
+                edgecolors="none" if ok else None,
+                label=label,
+                zorder=2 + lv,
+                rasterized=len(grasps) > 5000,
+            )
+    title = f"Adaptive refinement: {len(grasps):,} grasps, levels 0..{int(level.max(initial=0))}"
+    return _finish_chart(fig, ax, projection, title, path)
+
+
+def _plot_patches(grasps: GraspTable, manifold: Any, path: Path) -> Path:
+    """IK continuity: reachable rows coloured by patch (one IK branch each)."""
+    fig, ax, pts, projection = _chart_figure(grasps, manifold)
+    patch = np.asarray(grasps["patch"], dtype=np.int64)
+    placed = np.all(np.isfinite(pts), axis=1)
+    size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
+    from matplotlib import colormaps
+
+    tab = colormaps["tab10"]
+    ids, counts = np.unique(patch[patch >= 0], return_counts=True)
+    for k, (pid, n) in enumerate(zip(ids.tolist(), counts.tolist(), strict=True)):
+        sel = placed & (patch == pid)
+        label = f"patch {pid} ({n})" if k < 8 else None
+        ax.scatter(
+            pts[sel, 0],
+            pts[sel, 1],
+            s=size,
+            color=tab(pid % 10),
+            edgecolors="none",
+            label=label,
+            zorder=3,
+            rasterized=len(grasps) > 5000,
+        )
+    bad = placed & (patch < 0)
+    if bad.any():
+        ax.scatter(
+            pts[bad, 0],
+            pts[bad, 1],
+            s=size,
+            marker="x",
+            color="0.7",
+            linewidths=0.6,
+            label=f"unreachable ({int(bad.sum())})",
+            zorder=2,
+            rasterized=len(grasps) > 5000,
+        )
+    title = f"IK branches: {len(ids)} patches"
+    return _finish_chart(fig, ax, projection, title, path)
+
+
+def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
+    fig, ax, pts, projection = _chart_figure(grasps, manifold)
+    chart = np.asarray(getattr(manifold, "chart", np.empty((0, 2))), dtype=float)
     reach = np.asarray(grasps.get("reachable", np.zeros(len(grasps), bool)), dtype=bool)
     manip = np.asarray(grasps.get("manipulability", np.full(len(grasps), np.nan)), dtype=float)
     placed = np.all(np.isfinite(pts), axis=1)
@@ -259,25 +366,7 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             label="candidates",
             zorder=4,
         )
-    u_label, v_label = chart_axis_labels(projection)
-    ax.set_xlabel(u_label)
-    ax.set_ylabel(v_label)
-    title = "Grasp manifold in its 2-D chart"
-    ax.set_title(f"{title} ({projection} projection)" if projection else title)
-    ax.set_aspect("equal", adjustable="datalim")
-    if ax.get_legend_handles_labels()[0]:
-        legend = ax.legend(
-            loc="upper center",
-            bbox_to_anchor=(0.5, -0.13),
-            ncols=2,
-            fontsize="small",
-            frameon=False,
-        )
-        for handle in legend.legend_handles:
-            if hasattr(handle, "set_sizes"):
-                handle.set_sizes([24.0])
-    ax.grid(alpha=0.25)
-    return _save(fig, path)
+    return _finish_chart(fig, ax, projection, "Grasp manifold in its 2-D chart", path)
 
 
 def _plot_hist(grasps: GraspTable, path: Path) -> Path:
@@ -339,7 +428,10 @@ def write_plots(
     counts: Mapping[str, int],
     out_dir: str | os.PathLike[str],
 ) -> list[Path]:
-    """Write ``manifold.png``, ``manipulability_hist.png`` and ``counts.png``.
+    """Write ``manifold.png``, ``manipulability_hist.png`` and ``counts.png`` (and more).
+
+    A table with a ``level`` column (adaptive densification) also gets
+    ``levels.png``, one with a ``patch`` column (IK continuity) ``patches.png``.
 
     Args:
         grasps: The grasp table (``reachable``, ``manipulability``, ``origin``,
@@ -352,7 +444,8 @@ def write_plots(
         out_dir: An existing directory.
 
     Returns:
-        The three paths, in :data:`PLOT_FILES` order.
+        The paths: the three of :data:`PLOT_FILES`, then ``levels.png`` and
+        ``patches.png`` when written.
 
     Raises:
         PublishError: ``out_dir`` is not a directory or a file cannot be written.
@@ -360,8 +453,13 @@ def write_plots(
     out = Path(out_dir)
     if not out.is_dir():
         raise PublishError(f"plot directory {str(out)!r} does not exist")
-    return [
+    paths = [
         _plot_manifold(grasps, manifold, out / PLOT_FILES[0]),
         _plot_hist(grasps, out / PLOT_FILES[1]),
         _plot_counts(counts, out / PLOT_FILES[2]),
     ]
+    if "level" in grasps and manifold is not None:
+        paths.append(_plot_levels(grasps, manifold, out / "levels.png"))
+    if "patch" in grasps and manifold is not None:
+        paths.append(_plot_patches(grasps, manifold, out / "patches.png"))
+    return paths

@@ -13,12 +13,16 @@ metric name (configs)            column                  meaning
 ``joint_limit_margin``           ``joint_limit_margin``  normalised, in [0, 1]
 ================================ ======================= ====================
 
-Two more metrics rank by columns of the collision checks
-(:mod:`gcm_pipeline.stages.collision`):
+Three more metrics rank by columns of other stages (the collision checks,
+:mod:`gcm_pipeline.stages.collision`; the margin,
+:mod:`gcm_pipeline.stages.margin`):
 
 ================================ ======================= ====================
 ``clearance``                    ``clearance``           distance of the arm to
                                                          environment and object [m]
+``margin``                       ``margin``              distance along the manifold
+                                                         to the nearest unreachable
+                                                         point [m] (``inf``: none)
 ``combined``                     ``combined`` (added)    weighted sum of normalised
                                                          metrics, see
                                                          :func:`~gcm_pipeline.stages.collision.combined_score`
@@ -47,8 +51,22 @@ __all__ = ["METRICS", "METRIC_COLUMNS", "rank"]
 METRIC_COLUMNS: dict[str, str] = {
     **METRICS,
     "clearance": "clearance",
+    "margin": "margin",
     "combined": "combined",
 }
+
+
+def _finite_margin(values: np.ndarray, reachable: np.ndarray) -> np.ndarray:
+    """Margins with ``inf`` (no unreachable point in reach) as the largest finite one.
+
+    Ranks the unbounded grasps first (ties by row) and keeps min-max
+    normalisation finite; all ``inf`` gives a constant column.
+    """
+    m = np.array(values, dtype=float)
+    finite = np.isfinite(m) & reachable
+    top = float(m[finite].max()) if finite.any() else 1.0
+    m[np.isposinf(m)] = top
+    return m
 
 
 def rank(
@@ -67,7 +85,8 @@ def rank(
         robot: A :class:`Robot` or a spec name/path.
         metric: Ranking metric, one of :data:`METRIC_COLUMNS`: ``yoshikawa``,
             ``translational``, ``inverse_condition``, ``joint_limit_margin``,
-            ``clearance``, ``combined``.
+            ``clearance``, ``margin``, ``combined`` (``margin``: ``inf`` counts
+            as the largest finite margin).
         top_k: How many of the best grasps ``top`` marks (None: all reachable).
         weights: Metric name -> weight of the ``combined`` metric (None:
             :data:`~gcm_pipeline.stages.collision.DEFAULT_COMBINED_WEIGHTS`);
@@ -92,15 +111,21 @@ def rank(
     ):
         raise InputError(f"top_k must be an int >= 0 or None, got {top_k!r}")
     robot = load_robot(robot)
+    weight_of = (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get
     needs_clearance = metric == "clearance" or (
-        metric == "combined"
-        and (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get("clearance", 0) > 0
+        metric == "combined" and weight_of("clearance", 0) > 0
     )
     if needs_clearance and "clearance" not in grasps:
         raise InputError(
             f"ranking metric {metric!r} needs the 'clearance' column of the collision "
             f"checks (reachability with an environment or object); "
             f"columns: {', '.join(grasps.columns)}"
+        )
+    needs_margin = metric == "margin" or (metric == "combined" and weight_of("margin", 0) > 0)
+    if needs_margin and "margin" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'margin' column (the pipeline adds it "
+            f"after reachability); columns: {', '.join(grasps.columns)}"
         )
     for col in ("reachable", "q"):
         if col not in grasps:
@@ -121,9 +146,13 @@ def rank(
         scored = dict(metrics)
         if "clearance" in grasps:
             scored["clearance"] = np.asarray(grasps["clearance"], dtype=float)
+        if "margin" in grasps:
+            scored["margin"] = _finite_margin(grasps["margin"], reachable)
         key = extra["combined"] = combined_score(scored, weights, mask=reachable)
     elif metric == "clearance":
         key = np.asarray(grasps["clearance"], dtype=float)
+    elif metric == "margin":
+        key = _finite_margin(grasps["margin"], reachable)
     else:
         key = columns[METRICS[metric]]
     rows = np.flatnonzero(reachable & np.isfinite(key))

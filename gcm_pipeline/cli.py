@@ -426,9 +426,9 @@ def _cmd_query(args: argparse.Namespace) -> int:
     from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
     from gcm_pipeline.query import load_manifold
 
-    manifold = load_manifold(args.run_dir)
-    poses = _query_poses(args.pose, args.frame, manifold.config)
-    answer = manifold.nearest_reachable(poses)
+    with load_manifold(args.run_dir) as manifold:
+        poses = _query_poses(args.pose, args.frame, manifold.config)
+        answer = manifold.nearest_reachable(poses)
     pos, quat = dq_to_pos_quat(np.nan_to_num(answer.dq))
     quat = np.where(quat[:, :1] < 0, -quat, quat)
     items = []

@@ -349,7 +349,7 @@ class AdaptiveConfig(_Section):
     max_level: Annotated[int, Strict(), Field(ge=1, le=MAX_ADAPTIVE_LEVEL)]
     min_level: Annotated[int, Strict(), Field(ge=0, le=MAX_ADAPTIVE_LEVEL)] = 0
     refine: tuple[Literal["boundary", "metric"], ...] = ("boundary", "metric")
-    metric_threshold: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.1
+    metric_threshold: Annotated[float, Strict(), Field(gt=0, le=1, allow_inf_nan=False)] = 0.1
 
     @model_validator(mode="after")
     def _levels(self) -> AdaptiveConfig:

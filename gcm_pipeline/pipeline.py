@@ -281,19 +281,24 @@ def densify_adaptive(
     a = cfg.densify.adaptive
     if a is None:
         raise ConfigError("densify_adaptive needs a densify.adaptive section")
-    check = check if check is not None else ReachabilityCheck(robot, cfg)
-    return stage.refine(
-        grasps,
-        manifold,
-        check,
-        max_level=a.max_level,
-        min_level=a.min_level,
-        criteria=a.refine,
-        score=refinement_score(robot, cfg) if "metric" in a.refine else None,
-        metric_threshold=a.metric_threshold,
-        method=cfg.densify.method,
-        max_poses=cfg.densify.max_poses,
-    )
+    own = check is None
+    check = ReachabilityCheck(robot, cfg) if check is None else check
+    try:
+        return stage.refine(
+            grasps,
+            manifold,
+            check,
+            max_level=a.max_level,
+            min_level=a.min_level,
+            criteria=a.refine,
+            score=refinement_score(robot, cfg) if "metric" in a.refine else None,
+            metric_threshold=a.metric_threshold,
+            method=cfg.densify.method,
+            max_poses=cfg.densify.max_poses,
+        )
+    finally:
+        if own:
+            check.close()
 
 
 def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict[str, Any]:
@@ -341,11 +346,15 @@ def add_continuity(
     edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
     counts: dict[str, int] = {}
     if c.reseed:
-        if check is None:
-            check = ReachabilityCheck(robot_from_config(cfg), cfg)
-        grasps, report = stage.reseed(
-            grasps, edges, check, threshold=c.threshold, max_rounds=c.max_rounds
-        )
+        own = check is None
+        check = ReachabilityCheck(robot_from_config(cfg), cfg) if check is None else check
+        try:
+            grasps, report = stage.reseed(
+                grasps, edges, check, threshold=c.threshold, max_rounds=c.max_rounds
+            )
+        finally:
+            if own:
+                check.close()
         counts.update(
             patches_before_reseed=report.patches_before,
             reseeded=report.moved,
@@ -801,25 +810,29 @@ class Pipeline:
         with stage("robot"):
             pass  # built by preflight
         timings["robot"] = robot_s
-        with stage("reachability"):
-            if adaptive:
-                check = ReachabilityCheck(robot, cfg)
-                grasps = densify_adaptive(candidates, manifold, robot, cfg, check=check)
-            else:
-                grasps = check_reachability(grasps, robot, cfg, progress=progress)
-        unreachable = _count_by(grasps["reason"][~np.asarray(grasps["reachable"], dtype=bool)])
-        log.info(
-            "reachable %d/%d%s",
-            len(grasps) - sum(unreachable.values()),
-            len(grasps),
-            " (unreachable: " + ", ".join(f"{k} {v}" for k, v in unreachable.items()) + ")"
-            if unreachable
-            else "",
-        )
-        with stage("continuity"):
-            if cfg.continuity.reseed and check is None:
-                check = ReachabilityCheck(robot, cfg)
-            grasps, continuity = add_continuity(grasps, manifold, cfg, check=check)
+        try:
+            with stage("reachability"):
+                if adaptive:
+                    check = ReachabilityCheck(robot, cfg)
+                    grasps = densify_adaptive(candidates, manifold, robot, cfg, check=check)
+                else:
+                    grasps = check_reachability(grasps, robot, cfg, progress=progress)
+            unreachable = _count_by(grasps["reason"][~np.asarray(grasps["reachable"], dtype=bool)])
+            log.info(
+                "reachable %d/%d%s",
+                len(grasps) - sum(unreachable.values()),
+                len(grasps),
+                " (unreachable: " + ", ".join(f"{k} {v}" for k, v in unreachable.items()) + ")"
+                if unreachable
+                else "",
+            )
+            with stage("continuity"):
+                if cfg.continuity.reseed and check is None:
+                    check = ReachabilityCheck(robot, cfg)
+                grasps, continuity = add_continuity(grasps, manifold, cfg, check=check)
+        finally:
+            if check is not None:
+                check.close()
         with stage("ranking"):
             grasps = rank(grasps, robot, cfg)
         counts = {

@@ -283,6 +283,18 @@ class GraspManifold:
         """Number of triangles."""
         return len(self.triangles)
 
+    def close(self) -> None:
+        """Stop the worker processes of the reachability checks made so far (if any ran)."""
+        for check in self._checks.values():
+            check.close()
+        self._checks.clear()
+
+    def __enter__(self) -> GraspManifold:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def __repr__(self) -> str:
         reach = self.grasps.get("reachable")
         nr = "" if reach is None else f", {int(np.count_nonzero(reach))} reachable"

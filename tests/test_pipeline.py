@@ -71,12 +71,13 @@ def test_run_writes_the_directory_and_returns_a_result(tmp_path):
     c = result.counts
     assert c["candidates"] == 3 and c["triangles"] == 1 and c["densified"] == 66
     assert c["reachable"] == int(np.count_nonzero(result.grasps["reachable"])) > 0
-    assert list(result.timings)[:6] == [
+    assert list(result.timings)[:7] == [
         "candidates",
         "manifold",
         "densify",
         "robot",
         "reachability",
+        "continuity",
         "ranking",
     ]
     text = repr(result)

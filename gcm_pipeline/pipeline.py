@@ -301,21 +301,23 @@ def densify_adaptive(
             check.close()
 
 
-def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict[str, Any]:
-    """``counts["adaptive"]`` of a run: rows per level, IK solves, the uniform lattice's size."""
+def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict[str, int]:
+    """``counts["adaptive"]`` of a run: IK solves, rows per level, the uniform lattice's size.
+
+    Keys: ``max_level``, ``ik_solves``, ``level_0`` .. ``level_L`` (rows first
+    made at each level), ``uniform_subdivisions`` and ``uniform_rows`` (the
+    uniform lattice with ``2**max_level`` subdivisions).
+    """
     from gcm_pipeline.stages.adaptive import uniform_size
 
     a = cfg.densify.adaptive
     assert a is not None
     levels, per_level = np.unique(np.asarray(grasps["level"]), return_counts=True)
-    uniform = uniform_size(manifold.triangles, manifold.n_vertices, a.max_level)
-    return {
-        "max_level": a.max_level,
-        "rows_by_level": {str(k): int(v) for k, v in zip(levels, per_level, strict=True)},
-        "ik_solves": len(grasps),
-        "uniform_rows": uniform,
-        "uniform_subdivisions": 1 << a.max_level,
-    }
+    out = {"max_level": a.max_level, "ik_solves": len(grasps)}
+    out.update({f"level_{k}": int(v) for k, v in zip(levels, per_level, strict=True)})
+    out["uniform_subdivisions"] = 1 << a.max_level
+    out["uniform_rows"] = uniform_size(manifold.triangles, manifold.n_vertices, a.max_level)
+    return out
 
 
 def add_continuity(

@@ -10,8 +10,8 @@ import pytest
 import gcm_pipeline as gcm
 from gcm_pipeline.geometry.surface import pose_distance
 from gcm_pipeline.pipeline import ReachabilityCheck
-from gcm_pipeline.robot.collision import CollisionChecker
 from gcm_pipeline.stages import continuity
+from gcm_pipeline.stages.collision import make_checker
 from gcm_pipeline.stages.densify import densify
 from gcm_pipeline.stages.lattice import row_mesh
 from gcm_pipeline.stages.manifold import build_manifold
@@ -128,7 +128,7 @@ def test_reseeding_merges_patches_and_keeps_valid_solutions(bottle: gcm.RunResul
     target = np.linalg.inv(base) @ gcm.dq_to_matrix(np.asarray(g["dq"])[reach])
     reached = bottle.robot.fk_pinocchio(q[reach])
     assert np.abs(reached[:, :3, 3] - target[:, :3, 3]).max() < cfg.ik.position_tolerance
-    checker = CollisionChecker(bottle.robot, cfg.environment, cfg.object, base)
+    checker = make_checker(bottle.robot, cfg.environment, cfg.object, base)
     assert np.all(checker.check(q[reach]) == "")
 
 

@@ -431,7 +431,8 @@ def write_plots(
     """Write ``manifold.png``, ``manipulability_hist.png`` and ``counts.png`` (and more).
 
     A table with a ``level`` column (adaptive densification) also gets
-    ``levels.png``, one with a ``patch`` column (IK continuity) ``patches.png``.
+    ``levels.png``, one with a ``patch`` column (IK continuity) and a reachable
+    grasp ``patches.png``.
 
     Args:
         grasps: The grasp table (``reachable``, ``manipulability``, ``origin``,
@@ -460,6 +461,6 @@ def write_plots(
     ]
     if "level" in grasps and manifold is not None:
         paths.append(_plot_levels(grasps, manifold, out / "levels.png"))
-    if "patch" in grasps and manifold is not None:
+    if "patch" in grasps and manifold is not None and (np.asarray(grasps["patch"]) >= 0).any():
         paths.append(_plot_patches(grasps, manifold, out / "patches.png"))
     return paths

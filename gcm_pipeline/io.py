@@ -771,7 +771,7 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
     raw = {name: cells[:, k] for k, name in enumerate(header)}
 
     def bad(name: str, i: int, what: str) -> InputError:
-        return InputError(f"{path}:{lines[i]}: column {name!r}: {what}: {clip(raw[name][i])}")
+        return InputError(f"{path}:{lines[i]}: column {name!r}: {what}: {clip(str(raw[name][i]))}")
 
     def floats(name: str) -> np.ndarray:
         col = np.where(raw[name] == "", "nan", raw[name])
@@ -845,7 +845,9 @@ def _switches(path: Path, text: np.ndarray, name: str, lines: list[int]) -> np.n
     odd = ~np.isin(text, ("true", "false"))
     if odd.any():
         i = int(np.flatnonzero(odd)[0])
-        raise InputError(f"{path}:{lines[i]}: column {name!r}: not true or false: {clip(text[i])}")
+        raise InputError(
+            f"{path}:{lines[i]}: column {name!r}: not true or false: {clip(str(text[i]))}"
+        )
     return np.asarray(text == "true", dtype=bool)
 
 

@@ -90,7 +90,7 @@ def _validate(capsys, text: str) -> None:
         assert len(lines[0]) <= 2000
 
 
-@FUZZ
+@settings(FUZZ, max_examples=int(25 * SCALE))
 @given(st.dictionaries(keys, trees, max_size=6))
 def test_random_config_trees(capsys, data):
     _validate(capsys, yaml.safe_dump(data, allow_unicode=True))

@@ -30,27 +30,11 @@ from gcm_pipeline.robot.ik import solve_ik
 
 trimesh = pytest.importorskip("trimesh")
 h5py = pytest.importorskip("h5py")
-from thin_walled import cup_parts  # noqa: E402
+from thin_walled import coal_transform, cup_parts, to_bvh  # noqa: E402
 
 BASE_TO_TCP = 0.1034  # [m] ACRONYM's Franka hand base -> fingertip midpoint
 MUG_POSE = {"xyz": [0.45, -0.15, 0.0], "rpy_deg": [0, 0, 40]}
 CLEARANCE = 0.001  # [m] the open gripper's distance to the mesh in every kept grasp
-
-
-def _bvh(mesh):
-    bvh = coal.BVHModelOBBRSS()
-    bvh.beginModel(len(mesh.faces), len(mesh.vertices))
-    bvh.addVertices(np.asarray(mesh.vertices, dtype=float))
-    bvh.addTriangles(np.asarray(mesh.faces, dtype=int))
-    bvh.endModel()
-    return bvh
-
-
-def _tf(m):
-    t = coal.Transform3s()
-    t.setRotation(np.ascontiguousarray(m[:3, :3]))
-    t.setTranslation(np.ascontiguousarray(m[:3, 3]))
-    return t
 
 
 def _solid(geometry):
@@ -93,7 +77,7 @@ def _gap(pieces, bvh, tcp, depth):
     for solid, rel in pieces:
         res = coal.DistanceResult()
         d = coal.distance(
-            solid, _tf(tool @ rel), bvh, coal.Transform3s(), coal.DistanceRequest(), res
+            solid, coal_transform(tool @ rel), bvh, coal.Transform3s(), coal.DistanceRequest(), res
         )
         gap = min(gap, d)
     return gap
@@ -107,7 +91,7 @@ def sample_antipodal_grasps(parts, n, seed=0):
     """ACRONYM-like successful grasps (hand base frame, object frame) and some failures."""
     rng = np.random.default_rng(seed)
     whole = trimesh.util.concatenate(parts)
-    bvh = _bvh(whole)
+    bvh = to_bvh(whole)
     pieces = _gripper_pieces()
     tool_from_base = np.eye(4)
     tool_from_base[2, 3] = BASE_TO_TCP
@@ -188,7 +172,7 @@ class Oracle:
         table = pin.GeometryObject(
             "t", 0, 0, pin.SE3(np.eye(3), np.array([0.0, 0.0, -0.025])), coal.Box(2.0, 2.0, 0.05)
         )
-        mug = pin.GeometryObject("o", 0, 0, pin.SE3(mug_pose), _bvh(whole))
+        mug = pin.GeometryObject("o", 0, 0, pin.SE3(mug_pose), to_bvh(whole))
         it, io = gm.addGeometryObject(table), gm.addGeometryObject(mug)
         gm.removeAllCollisionPairs()
         link0 = gm.getGeometryId("panda_link0_0")

@@ -28,7 +28,7 @@ from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
 trimesh = pytest.importorskip("trimesh")
-from thin_walled import bowl_parts, cup_parts, plate_parts  # noqa: E402
+from thin_walled import bowl_parts, coal_transform, cup_parts, plate_parts, to_bvh  # noqa: E402
 
 TOL = 0.005  # [m] contact_tolerance under test (the default)
 MARGIN = 5e-4  # [m] depth beyond the tolerance that must be reported
@@ -162,22 +162,6 @@ def test_solid_mesh_agrees_with_trimesh(name):
 # --- the checker on thin-walled objects vs the oracle ------------------------------------
 
 
-def _to_bvh(mesh):
-    bvh = coal.BVHModelOBBRSS()
-    bvh.beginModel(len(mesh.faces), len(mesh.vertices))
-    bvh.addVertices(np.asarray(mesh.vertices, dtype=float))
-    bvh.addTriangles(np.asarray(mesh.faces, dtype=int))
-    bvh.endModel()
-    return bvh
-
-
-def _tf(m):
-    t = coal.Transform3s()
-    t.setRotation(np.ascontiguousarray(m[:3, :3]))
-    t.setTranslation(np.ascontiguousarray(m[:3, 3]))
-    return t
-
-
 class Oracle:
     """Independent object check: Pinocchio placements, coal and trimesh on the original mesh."""
 
@@ -190,8 +174,8 @@ class Oracle:
         whole = trimesh.util.concatenate(parts)
         self.obj = obj_pose
         self.obj_inv = np.linalg.inv(obj_pose)
-        self.bvh = _to_bvh(whole)
-        self.obj_tf = _tf(obj_pose)
+        self.bvh = to_bvh(whole)
+        self.obj_tf = coal_transform(obj_pose)
         samples, _ = trimesh.sample.sample_surface(whole, 25_000, seed=0)
         self.samples = np.asarray(samples)  # object frame
         # (name, is_gripper, solid coal geometry, face planes (F, 4), radius, local AABB)
@@ -240,7 +224,7 @@ class Oracle:
                 m = gd.oMg[k].homogeneous
                 res = coal.CollisionResult()
                 req = coal.CollisionRequest()
-                if not coal.collide(solid, _tf(m), self.bvh, self.obj_tf, req, res):
+                if not coal.collide(solid, coal_transform(m), self.bvh, self.obj_tf, req, res):
                     probe_rows.append(row)  # crosses no triangle: inside or outside?
                     probe_pts.append((self.obj_inv @ m[:, 3])[:3])
                     probe_arm.append(not is_gripper)

@@ -5,6 +5,7 @@ Each is a list of closed (watertight) parts; the mug's handle overlaps its wall.
 
 from __future__ import annotations
 
+import coal
 import numpy as np
 import trimesh
 
@@ -67,3 +68,21 @@ def bowl_parts():
 def plate_parts():
     """A flat plate, 200 x 150 x 2 mm."""
     return [trimesh.creation.box((0.20, 0.15, 0.002))]
+
+
+def to_bvh(mesh):
+    """A trimesh mesh as a coal BVH mesh (its surface), built directly."""
+    bvh = coal.BVHModelOBBRSS()
+    bvh.beginModel(len(mesh.faces), len(mesh.vertices))
+    bvh.addVertices(np.asarray(mesh.vertices, dtype=float))
+    bvh.addTriangles(np.asarray(mesh.faces, dtype=int))
+    bvh.endModel()
+    return bvh
+
+
+def coal_transform(m):
+    """A (4, 4) transform as a coal.Transform3s."""
+    t = coal.Transform3s()
+    t.setRotation(np.ascontiguousarray(m[:3, :3]))
+    t.setTranslation(np.ascontiguousarray(m[:3, 3]))
+    return t

@@ -92,6 +92,7 @@ from gcm_pipeline.robot.contact import (
     interior_point,
     mesh_arrays,
 )
+from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -175,22 +176,10 @@ def as_transform(pose: Any) -> np.ndarray:
 def _load_mesh(path: Path | None, scale: float, where: str) -> Any:
     if path is None:
         raise ConfigError(f"{where}: shape 'mesh' needs 'mesh: <path>'")
-    p = Path(path).expanduser()
-    if not p.is_file():
-        raise InputError(f"{where}: mesh file {str(p)!r} does not exist")
     try:
-        mesh = coal.MeshLoader().load(str(p), np.full(3, float(scale)))
-    except Exception as exc:  # coal raises ValueError with a multi-line message
-        first = str(exc).strip().splitlines()
-        detail = next((ln for ln in first if ln.startswith("message:")), first[-1] if first else "")
-        raise InputError(f"{where}: cannot read mesh file {str(p)!r}: {detail}") from exc
-    if mesh.num_tris == 0:
-        raise InputError(f"{where}: mesh file {str(p)!r} has no triangles")
-    verts = np.asarray(mesh.vertices())
-    if not np.isfinite(verts).all():
-        i = int(np.flatnonzero(~np.isfinite(verts).all(axis=1))[0])
-        raise InputError(f"{where}: mesh file {str(p)!r}: vertex {i} is not finite")
-    return mesh
+        return read_mesh(path, scale)
+    except MeshReadError as exc:
+        raise InputError(f"{where}: {exc}") from exc
 
 
 def _positive(where: str, name: str, value: float | None) -> float:
@@ -277,16 +266,8 @@ def erode_primitive(geometry: Any, distance: float) -> Any | None:
     (a part thinner than ``2 * distance``) or for any other geometry (meshes:
     the gripper is eroded instead, see :mod:`gcm_pipeline.robot.contact`).
     """
-    if isinstance(geometry, coal.Box):
-        half = np.asarray(geometry.halfSide, dtype=float) - distance
-        return coal.Box(*(2.0 * half)) if np.all(half > 0) else None
-    if isinstance(geometry, coal.Sphere):
-        r = float(geometry.radius) - distance
-        return coal.Sphere(r) if r > 0 else None
-    if isinstance(geometry, coal.Cylinder):
-        r = float(geometry.radius) - distance
-        h = 2.0 * (float(geometry.halfLength) - distance)
-        return coal.Cylinder(r, h) if r > 0 and h > 0 else None
+    if isinstance(geometry, _PRIMITIVES):
+        return erode_convex(geometry, distance)
     return None
 
 

@@ -50,6 +50,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import RobotSpecError, unknown_choice
+from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
 
 __all__ = ["ToolShape", "ToolSpec", "parse_pose", "parse_tool"]
 
@@ -156,6 +157,16 @@ class ToolSpec:
         )
 
 
+def _section(where: str, raw: Any, keys: tuple[str, ...]) -> Mapping[str, Any]:
+    """``raw`` as a mapping whose keys are all in ``keys`` (else a one-line error)."""
+    if not isinstance(raw, Mapping):
+        raise RobotSpecError(f"{where} must be a mapping with keys {', '.join(keys)}, got {raw!r}")
+    for key in raw:
+        if key not in keys:
+            raise RobotSpecError(f"{where}: " + unknown_choice("key", key, keys))
+    return raw
+
+
 def _numbers(where: str, value: Any, n: int | None = None) -> tuple[float, ...]:
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         value = [value]
@@ -197,11 +208,7 @@ def parse_pose(where: str, raw: Any) -> np.ndarray:
     out = np.eye(4)
     if raw is None:
         return out
-    if not isinstance(raw, Mapping):
-        raise RobotSpecError(f"{where} must be a mapping with xyz and rpy/quat/matrix, got {raw!r}")
-    for key in raw:
-        if key not in _POSE_KEYS:
-            raise RobotSpecError(f"{where}: " + unknown_choice("key", key, _POSE_KEYS))
+    raw = _section(where, raw, _POSE_KEYS)
     rot_keys = [k for k in ("rpy", "rpy_deg", "quat", "matrix") if k in raw]
     if len(rot_keys) > 1:
         raise RobotSpecError(f"{where}: give one of {', '.join(rot_keys)}, not several")
@@ -253,11 +260,7 @@ def _color(where: str, raw: Any) -> tuple[float, float, float, float]:
 
 
 def _shape(where: str, raw: Any, base: Path, index: int) -> ToolShape:
-    if not isinstance(raw, Mapping):
-        raise RobotSpecError(f"{where} must be a mapping (shape, size, xyz, ...), got {raw!r}")
-    for key in raw:
-        if key not in _SHAPE_KEYS:
-            raise RobotSpecError(f"{where}: " + unknown_choice("key", key, _SHAPE_KEYS))
+    raw = _section(where, raw, _SHAPE_KEYS)
     kind = raw.get("shape")
     if kind not in _SHAPES:
         raise RobotSpecError(f"{where}.shape: " + unknown_choice("shape", kind, _SHAPES))
@@ -327,11 +330,7 @@ def parse_tool(where: str, raw: Any, base: Path) -> ToolSpec:
             finger shapes without ``fingers`` (or the reverse).
     """
     w = f"{where}: tool"
-    if not isinstance(raw, Mapping):
-        raise RobotSpecError(f"{w} must be a mapping (flange, mount, tcp, collision, ...)")
-    for key in raw:
-        if key not in _TOOL_KEYS:
-            raise RobotSpecError(f"{w}: " + unknown_choice("key", key, _TOOL_KEYS))
+    raw = _section(w, raw, _TOOL_KEYS)
     flange = raw.get("flange")
     if not isinstance(flange, str) or not flange:
         raise RobotSpecError(
@@ -346,15 +345,7 @@ def parse_tool(where: str, raw: Any, base: Path) -> ToolSpec:
     axis = np.array([0.0, 1.0, 0.0])
     tagged = [s.name for s in (*collision, *visual) if s.finger is not None]
     if fingers is not None:
-        if not isinstance(fingers, Mapping):
-            raise RobotSpecError(
-                f"{w}.fingers must be a mapping {{opening, axis}}, got {fingers!r}"
-            )
-        for key in fingers:
-            if key not in ("opening", "axis"):
-                raise RobotSpecError(
-                    f"{w}.fingers: " + unknown_choice("key", key, ("opening", "axis"))
-                )
+        fingers = _section(f"{w}.fingers", fingers, ("opening", "axis"))
         (opening,) = _numbers(f"{w}.fingers.opening", fingers.get("opening"), 1)
         if opening < 0:
             raise RobotSpecError(f"{w}.fingers.opening must be >= 0 [m], got {opening}")
@@ -391,7 +382,8 @@ def shape_geometry(shape: ToolShape, where: str) -> Any:
     """The coal geometry of a tool shape, in the shape's frame.
 
     Raises:
-        RobotSpecError: A mesh file coal cannot read or one without triangles.
+        RobotSpecError: A mesh file coal cannot read, one without triangles or with a
+            vertex that is not finite.
     """
     import coal
 
@@ -405,11 +397,6 @@ def shape_geometry(shape: ToolShape, where: str) -> Any:
         return coal.Sphere(shape.size[0])
     assert shape.mesh is not None
     try:
-        mesh = coal.MeshLoader().load(str(shape.mesh), np.asarray(shape.scale, dtype=float))
-    except Exception as exc:  # coal raises ValueError with a multi-line message
-        lines = str(exc).strip().splitlines()
-        detail = next((ln for ln in lines if ln.startswith("message:")), lines[-1] if lines else "")
-        raise RobotSpecError(f"{where}.mesh: cannot read {str(shape.mesh)!r}: {detail}") from exc
-    if mesh.num_tris == 0:
-        raise RobotSpecError(f"{where}.mesh: file {str(shape.mesh)!r} has no triangles")
-    return mesh
+        return read_mesh(shape.mesh, shape.scale)
+    except MeshReadError as exc:
+        raise RobotSpecError(f"{where}.mesh: {exc}") from exc

@@ -1,0 +1,48 @@
+"""Reading a triangle mesh file into a coal BVH mesh, with one-line errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import coal
+import numpy as np
+
+__all__ = ["MeshReadError", "read_mesh"]
+
+
+class MeshReadError(ValueError):
+    """A mesh file that cannot be used; the message is one line naming the file."""
+
+
+def read_mesh(path: str | Path, scale: Any = 1.0) -> Any:
+    """A mesh file (STL, OBJ, DAE, ... through coal's assimp loader) as a coal BVH mesh.
+
+    Args:
+        path: The file.
+        scale: One factor or three (per axis).
+
+    Returns:
+        A ``coal.BVHModelOBBRSS`` in the file's frame, scaled [m].
+
+    Raises:
+        MeshReadError: The file does not exist, cannot be read, has no
+            triangles or has a vertex that is not finite.
+    """
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise MeshReadError(f"mesh file {str(p)!r} does not exist")
+    factors = np.broadcast_to(np.asarray(scale, dtype=float), (3,)).copy()
+    try:
+        mesh = coal.MeshLoader().load(str(p), factors)
+    except Exception as exc:  # coal raises ValueError with a multi-line message
+        lines = str(exc).strip().splitlines()
+        detail = next((ln for ln in lines if ln.startswith("message:")), lines[-1] if lines else "")
+        raise MeshReadError(f"cannot read mesh file {str(p)!r}: {detail}") from exc
+    if mesh.num_tris == 0:
+        raise MeshReadError(f"mesh file {str(p)!r} has no triangles")
+    verts = np.asarray(mesh.vertices())
+    if not np.isfinite(verts).all():
+        i = int(np.flatnonzero(~np.isfinite(verts).all(axis=1))[0])
+        raise MeshReadError(f"mesh file {str(p)!r}: vertex {i} is not finite")
+    return mesh

@@ -19,7 +19,10 @@ unreachable sets plus successes that fail an independent re-check (a fresh
 cores (``workers``), medians of several repeats (wall clock; the CPU-time rate
 of the one-process run is printed too because the machine may be shared).
 mink runs on a subset (``--mink-targets``, default 200 reachable targets) to
-keep the run short. Also times the manipulability of 100,000 configurations.
+keep the run short. TRAC-IK (``pytracik``, ``pip install ".[bench]"``) runs on
+the same 2,000 reachable targets in the same run (one thread, home seed), and
+the default backend's rates are reported as ratios to it. Also times the
+manipulability of 100,000 configurations.
 
 Run from the repository root: ``python benchmarks/bench_ik.py``; writes
 ``benchmarks/results/ik.json``.
@@ -94,6 +97,33 @@ def independent_ok(robot: Robot, q: np.ndarray, targets: np.ndarray) -> np.ndarr
         inside = np.all(qi > model.lowerPositionLimit) and np.all(qi < model.upperPositionLimit)
         ok[i] = pe <= TOL_P and re <= TOL_R and inside
     return ok
+
+
+def tracik_rate(robot: Robot, targets: np.ndarray, repeats: int) -> tuple[float, float] | None:
+    """TRAC-IK (``pytracik``, the ``bench`` extra) on the same targets: median targets/s
+    (one thread, home seed, 5 ms timeout, Speed mode) and its success rate; None if
+    pytracik is not installed."""
+    try:
+        import pytracik
+    except ImportError:
+        return None
+    from gcm_pipeline.geometry.dualquat import quat_from_rotation
+
+    urdf = robot.urdf_path.read_text()
+    solver = pytracik.TRAC_IK(
+        "panda_link0", robot.grasp_frame, urdf, 0.005, 1e-5, pytracik.SolveType.Speed
+    )
+    pytracik.set_joint_limits(solver, robot.lower.tolist(), robot.upper.tolist())
+    quats = quat_from_rotation(targets[:, :3, :3]).tolist()
+    seed = np.asarray(robot.home, dtype=float)
+    rates, ok = [], 0
+    for _ in range(repeats):
+        ok = 0
+        t0 = time.perf_counter()
+        for t, (w, x, y, z) in zip(targets, quats, strict=True):
+            ok += pytracik.ik(solver, seed, t[0, 3], t[1, 3], t[2, 3], x, y, z, w)[0] >= 0
+        rates.append(len(targets) / (time.perf_counter() - t0))
+    return float(np.median(rates)), ok / len(targets)
 
 
 def timed(fn: Any, repeats: int) -> tuple[Any, float, float]:
@@ -177,6 +207,7 @@ def main() -> None:
     m = args.mink_targets
     mink_sets = {k: v[:m] if k == "reachable" else v[: max(1, m // 4)] for k, v in sets.items()}
     results.append(bench_backend(robot, "mink", mink_sets, max(1, args.repeats // 3), workers))
+    tracik = tracik_rate(robot, sets["reachable"], max(1, args.repeats // 2))
     ratio = results[0]["rate_1proc"] / results[1]["rate_1proc"]
     ratio_all = results[0]["rate_all_cores"] / results[1]["rate_all_cores"]
 
@@ -200,6 +231,15 @@ def main() -> None:
             f"{r['rate_all_cores']:>12.0f}"
         )
     print(f"speed ratio pinocchio / mink: {ratio:.0f}x (1 process), {ratio_all:.0f}x (all cores)")
+    if tracik is not None:
+        print(
+            f"TRAC-IK (same targets, one thread): {tracik[0]:.0f} targets/s, success "
+            f"{100 * tracik[1]:.1f} %; pinocchio / TRAC-IK: "
+            f"{results[0]['rate_1proc'] / tracik[0]:.1f}x (1 process), "
+            f"{results[0]['rate_all_cores'] / tracik[0]:.1f}x (all cores)"
+        )
+    else:
+        print("TRAC-IK: not installed (pip install '.[bench]')")
     print(
         f"unreachable sets: pinocchio {results[0]['rate_unreachable']:.0f}/s (pre-filter), "
         f"{results[0]['rate_unreachable_near']:.0f}/s (IK runs and fails)"
@@ -221,6 +261,12 @@ def main() -> None:
         "backends": results,
         "speed_ratio_pinocchio_over_mink_1proc": ratio,
         "speed_ratio_pinocchio_over_mink_all_cores": ratio_all,
+        "tracik_targets_per_s": None if tracik is None else tracik[0],
+        "tracik_success": None if tracik is None else tracik[1],
+        "ratio_over_tracik_1proc": None if tracik is None else results[0]["rate_1proc"] / tracik[0],
+        "ratio_over_tracik_all_cores": None
+        if tracik is None
+        else results[0]["rate_all_cores"] / tracik[0],
         "manipulability_100k_s": manip_wall,
         "manipulability_all_metrics_100k_s": all_wall,
         "load_average_start": load_start,

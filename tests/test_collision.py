@@ -521,3 +521,18 @@ def test_carried_object_agrees_with_coal_on_every_pair(robot, checker):
             ref[k] = "collision_object"
     assert {"", "collision_environment", "collision_object"} <= set(ref)
     np.testing.assert_array_equal(fast, ref)
+
+
+def test_answers_do_not_depend_on_the_order_of_the_queries(robot, checker):
+    """coal's cached GJK guesses are off: a configuration's clearance and reason are the
+    same whatever was asked before (so chunks and workers cannot change a result)."""
+    qs = robot.random_configurations(1500, 4)
+    perm = np.random.default_rng(1).permutation(len(qs))
+    a = checker.clearance(qs, precision=0.0)
+    b = np.empty_like(a)
+    b[perm] = checker.clearance(qs[perm], precision=0.0)
+    np.testing.assert_array_equal(a, b)
+    r = checker.check(qs)
+    s = np.empty_like(r)
+    s[perm] = checker.check(qs[perm])
+    np.testing.assert_array_equal(r, s)

@@ -617,7 +617,7 @@ class CollisionChecker:
             for p in dist:
                 dm.addCollisionPair(pin.CollisionPair(p.a, p.b))
             self._dist_model = dm
-            self._dist_data = pin.GeometryData(dm)
+            self._dist_data = _without_cached_guess(pin.GeometryData(dm))
             self._dist_owner = np.array([p.owner for p in dist], dtype=int)
             self._dist_world = np.array([p.b for p in dist], dtype=int)
 
@@ -991,13 +991,32 @@ def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _
     )
 
 
+def _without_cached_guess(gd: Any) -> Any:
+    """Geometry data whose GJK starts from the same guess every time.
+
+    coal reuses the last query's solution as the next initial guess by
+    default; an answer then depends on what was asked before (last bits of a
+    distance, rarely a borderline contact), so the result of a configuration
+    would depend on the chunking and the number of workers.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        for req in [*gd.collisionRequests, *gd.distanceRequests]:
+            req.enable_cached_gjk_guess = False
+            req.gjk_initial_guess = coal.GJKInitialGuess.DefaultGuess
+    return gd
+
+
 def _broad_phase_pool(model: Any, gm: Any, pairs: list[_Pair], threads: int) -> Any:
     """A pool checking ``pairs`` with coal's dynamic AABB tree (broad phase) in C++."""
     km = gm.copy()
     km.removeAllCollisionPairs()
     for p in pairs:
         km.addCollisionPair(pin.CollisionPair(p.a, p.b))
-    return pin.TreeBroadPhaseManagerPool_DynamicAABBTreeCollisionManager(model, km, threads)
+    pool = pin.TreeBroadPhaseManagerPool_DynamicAABBTreeCollisionManager(model, km, threads)
+    for i in range(pool.size()):
+        _without_cached_guess(pool.getGeometryData(i))
+    return pool
 
 
 def _tf(m: np.ndarray) -> Any:

@@ -52,6 +52,7 @@ from __future__ import annotations
 import atexit
 import multiprocessing as mp
 import os
+import time
 import weakref
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any, NamedTuple
@@ -230,6 +231,10 @@ class ReachabilityEngine:
         self.ik_options = dict(ik_options or {})
         self._radius = gripper_radius(robot) if (approach or retreat) else 0.0
         self._pool: Any = None
+        #: CPU time [s] of each step of the last :meth:`run`, summed over chunks
+        #: and workers: ``ik``, ``collisions``, ``approach``, ``retreat``,
+        #: ``alternatives`` (their IK), ``clearance``.
+        self.timings: dict[str, float] = {}
 
     def __repr__(self) -> str:
         def move(m: Move | None) -> str:
@@ -256,8 +261,10 @@ class ReachabilityEngine:
         """
         m, nq = q.shape
         reason = np.full(m, "", dtype=object)
+        t0 = time.process_time()
         if self.checker is not None and m:
             reason[:] = np.asarray(self.checker.check(q), dtype=object)
+        self._spent("collisions", t0)
         if self.validator is not None:
             free = np.flatnonzero(reason == "")
             if free.size:
@@ -275,6 +282,7 @@ class ReachabilityEngine:
             (self.retreat, _AT_RETREAT, REASON_RETREAT, q_ret),
         ):
             rows = np.flatnonzero(stage == at)
+            t0 = time.process_time()
             if move is not None and rows.size:
                 res = check_moves(
                     self.robot,
@@ -291,7 +299,12 @@ class ReachabilityEngine:
                 out[rows] = res.q_end
                 rows = rows[res.ok]
             stage[rows] = at + 1
+            self._spent(fail, t0)
         return CheckResult(stage == _PASSED, stage, reason.astype(str), q_pre, q_ret)
+
+    def _spent(self, step: str, since: float) -> None:
+        """Add the CPU time since ``since`` to ``timings[step]`` [s]."""
+        self.timings[step] = self.timings.get(step, 0.0) + time.process_time() - since
 
     def _path_collisions(
         self, move: Move, targets: np.ndarray
@@ -393,6 +406,8 @@ class ReachabilityEngine:
         """
         robot, nq = self.robot, self.robot.nq
         m = targets.shape[0]
+        self.timings = {}
+        t0 = time.process_time()
         res = solve_ik(
             robot,
             targets,
@@ -403,6 +418,7 @@ class ReachabilityEngine:
             return_all=return_candidates,
             **self.ik_options,
         )
+        self._spent("ik", t0)
         reachable = np.zeros(m, dtype=bool)
         reason = res.reason.astype(object)
         q = np.full((m, nq), np.nan)
@@ -433,7 +449,9 @@ class ReachabilityEngine:
         failing = record(np.flatnonzero(res.success), res.q[res.success], None)
         # step 3: other branches of the targets whose solution failed a check
         if failing.size and self.alternatives > 0:
+            t0 = time.process_time()
             idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
+            self._spent("alternatives", t0)
             for r in range(self.alternatives):
                 sel = np.flatnonzero((rank == r) & ~reachable[failing[idx]])
                 if sel.size == 0:
@@ -443,10 +461,12 @@ class ReachabilityEngine:
         # step 4: clearance of the reachable rows
         clearance = None
         if self.checker is not None:
+            t0 = time.process_time()
             clearance = np.full(m, np.nan)
             rows = np.flatnonzero(reachable)
             if rows.size:
                 clearance[rows] = self.checker.clearance(q[rows])
+            self._spent("clearance", t0)
         out = {
             "reachable": reachable,
             "reason": reason.astype(str),
@@ -458,6 +478,7 @@ class ReachabilityEngine:
             "q_retreat": q_ret,
             "q_rejected": q_rejected,
             "candidates": None,
+            "timings": dict(self.timings),
         }
         if return_candidates and res.candidates is not None:
             c = res.candidates
@@ -510,6 +531,7 @@ class ReachabilityEngine:
             "q_rejected": np.full((n, nq), np.nan),
         }
         cands: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        timings: dict[str, float] = {}
         if nb is None:
             phases = [np.arange(n)]
         else:
@@ -534,11 +556,14 @@ class ReachabilityEngine:
                 for key, arr in out.items():
                     if arr is not None:
                         arr[chunk_rows] = part[key]
+                for key, value in part["timings"].items():
+                    timings[key] = timings.get(key, 0.0) + value
                 if part["candidates"] is not None:
                     i, cq, cr = part["candidates"]
                     cands.append((chunk_rows[i], cq, cr))
                 if progress is not None:
                     progress(int(chunk_rows.size))
+        self.timings = timings
         candidates = None
         if return_candidates:
             if cands:

@@ -136,8 +136,8 @@ class progress_reporter:  # noqa: N801 - used like a function
     """Per-target progress of the reachability stage: a bar on a terminal, else log lines.
 
     On a terminal: a tqdm bar with rate and ETA. Otherwise (a log file, CI):
-    one ``INFO`` line of the ``gcm_pipeline`` logger every
-    :data:`PROGRESS_INTERVAL_S` seconds and one at the end.
+    a line on stderr every :data:`PROGRESS_INTERVAL_S` seconds, and one at the
+    end when any was written (a short run writes none).
 
     Args:
         total: Number of targets.
@@ -152,6 +152,7 @@ class progress_reporter:  # noqa: N801 - used like a function
         self.start = time.perf_counter()
         self.last = self.start
         self.bar: Any = None
+        self.lines = 0
         self.enabled = enabled and total > 0
         if self.enabled and sys.stderr.isatty():
             from tqdm.auto import tqdm
@@ -169,7 +170,8 @@ class progress_reporter:  # noqa: N801 - used like a function
         now = time.perf_counter()
         if now - self.last >= PROGRESS_INTERVAL_S and self.done < self.total:
             self.last = now
-            log.info("%s", self.line(now))
+            self.lines += 1
+            print(self.line(now), file=sys.stderr, flush=True)
 
     def line(self, now: float | None = None) -> str:
         """``reachability: 12,000/56,294 poses (21 %), 4,100 poses/s, ETA 11 s``."""
@@ -190,8 +192,8 @@ class progress_reporter:  # noqa: N801 - used like a function
             return
         if self.bar is not None:
             self.bar.close()
-        else:
-            log.info("%s", self.line())
+        elif self.lines:
+            print(self.line(), file=sys.stderr, flush=True)
 
     def __enter__(self) -> progress_reporter:
         return self

@@ -43,6 +43,7 @@ from gcm_pipeline.limits import (
     DEFAULT_MAX_POSES,
     MAX_ADAPTIVE_LEVEL,
     MAX_APPROACH_STEPS,
+    MAX_IK_SOLUTIONS,
     MAX_IK_WORKERS,
 )
 from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
@@ -394,12 +395,20 @@ class IKConfig(_Section):
         orientation_tolerance: Largest orientation error of a solution [rad].
         workers: Processes of the reachability engine: ``auto`` (the cores this
             process may use) or a number. The results do not depend on it.
+        solutions: Distinct IK solutions (branches) kept per reachable grasp,
+            each verified and passing every check (``solutions.npz``); 1: only
+            the first one found.
+        select: Which branch a grasp takes when there are several: ``metric``
+            (the best by the ranking metric) or ``continuity`` (the one nearest
+            to its neighbours' on the manifold, fewer IK patches).
     """
 
     backend: Literal["pinocchio", "mink"] = "pinocchio"
     position_tolerance: PositiveFloat = 1.0e-4
     orientation_tolerance: PositiveFloat = 1.0e-3
     workers: Literal["auto"] | Annotated[int, Strict(), Field(gt=0, le=MAX_IK_WORKERS)] = "auto"
+    solutions: Annotated[int, Strict(), Field(ge=1, le=MAX_IK_SOLUTIONS)] = 1
+    select: Literal["metric", "continuity"] = "metric"
 
     @field_validator("workers", mode="before")
     @classmethod

@@ -21,6 +21,8 @@ A run directory holds (see DESIGN.md, *Run directory*):
   ``q_pregrasp`` (end of the approach), ``q_retreat`` (end of the retreat)
   and ``q_rejected`` (for unreachable grasps, the IK solution that collided
   or whose approach or retreat failed); NaN rows where there is none.
+- ``solutions.npz`` (``ik.solutions`` > 1): every kept IK branch per grasp,
+  rows in ``grasps.csv`` order (:func:`write_solutions`).
 - ``config.yaml``: the resolved config.
 - optional ``scene.html`` and ``*.png`` from the publish stage.
 
@@ -89,6 +91,7 @@ __all__ = [
     "read_run",
     "write_config",
     "write_configurations",
+    "write_solutions",
     "write_grasps_csv",
     "write_manifold",
     "write_run_files",
@@ -1095,6 +1098,8 @@ def write_run_files(
     csv_row[order] = np.arange(len(order))
     write_manifold(manifold, out / "manifold.npz", csv_rows=csv_row[: len(manifold.chart)])
     write_configurations(grasps, out / "configurations.npz", order)
+    if "solutions" in grasps:
+        write_solutions(grasps, out / "solutions.npz", order)
     write_config(config, out / "config.yaml")
 
 
@@ -1114,6 +1119,33 @@ def write_configurations(grasps: GraspTable, path: str | Path, order: np.ndarray
         name: np.asarray(grasps[name], dtype=float)[order]
         for name in CONFIGURATION_COLUMNS
         if name in grasps and np.ndim(grasps[name]) == 2
+    }
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+#: Branch columns written to ``solutions.npz`` (``ik.solutions`` > 1) and their names there.
+SOLUTION_COLUMNS = {
+    "solutions": "q",
+    "solutions_q_pregrasp": "q_pregrasp",
+    "solutions_q_retreat": "q_retreat",
+    "solutions_clearance": "clearance",
+    "n_solutions": "count",
+    "solution": "chosen",
+}
+
+
+def write_solutions(grasps: GraspTable, path: str | Path, order: np.ndarray) -> None:
+    """Write ``solutions.npz``: every kept IK branch of every grasp, in csv row order.
+
+    ``q``, ``q_pregrasp``, ``q_retreat`` (N, K, nq) [rad], ``clearance`` (N, K)
+    [m], ``count`` (N,) branches kept, ``chosen`` (N,) the branch in
+    ``grasps.csv`` (-1: unreachable); NaN past ``count``.
+    """
+    arrays = {
+        name: np.asarray(grasps[col])[order]
+        for col, name in SOLUTION_COLUMNS.items()
+        if col in grasps
     }
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)

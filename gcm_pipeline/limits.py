@@ -15,6 +15,7 @@ fixed ones are bounds of the config schema:
 - ``approach.steps``, ``retreat.steps``: at most 1,000 (schema bound; 0.1 mm
   steps over 10 cm).
 - ``ik.workers``: at most 256 (schema bound).
+- ``ik.solutions``: at most 16 IK branches per grasp (schema bound).
 - YAML files and ``--set`` values: 1 MiB, depth 64, 100,000 values after
   aliases (:mod:`gcm_pipeline.safe_yaml`).
 
@@ -33,6 +34,7 @@ __all__ = [
     "DEFAULT_MAX_POSES",
     "MAX_ADAPTIVE_LEVEL",
     "MAX_APPROACH_STEPS",
+    "MAX_IK_SOLUTIONS",
     "MAX_IK_WORKERS",
     "check_size",
     "lattice_size",
@@ -43,6 +45,7 @@ DEFAULT_MAX_POSES = 2_000_000
 MAX_APPROACH_STEPS = 1_000
 MAX_ADAPTIVE_LEVEL = 10
 MAX_IK_WORKERS = 256
+MAX_IK_SOLUTIONS = 16
 
 
 def check_size(estimate: int, limit: int, what: str, key: str, hint: str = "") -> None:

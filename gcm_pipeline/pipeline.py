@@ -65,6 +65,7 @@ __all__ = [
     "ReachabilityCheck",
     "RunResult",
     "add_continuity",
+    "branch_scores",
     "build_manifold",
     "check_reachability",
     "densify",
@@ -76,6 +77,7 @@ __all__ = [
     "rank",
     "reachability_engine",
     "robot_from_config",
+    "select_branches",
     "top_grasps",
     "unreachable_hint",
 ]
@@ -373,6 +375,64 @@ def add_continuity(
     return grasps.with_columns(**cols), counts
 
 
+def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
+    """The ranking metric of every IK branch (N, K) (``solutions`` column), higher is better.
+
+    ``combined`` normalises each metric over all branches of all reachable
+    grasps; ``margin`` is the same for every branch of a grasp, so branches are
+    compared by Yoshikawa's index instead (also its weight in ``combined`` is
+    left out).
+    """
+    from gcm_pipeline.robot.manipulability import manipulability_metrics
+    from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
+
+    sol = np.asarray(grasps["solutions"], dtype=np.float64)
+    n, k, nq = sol.shape
+    metrics = manipulability_metrics(robot, sol.reshape(-1, nq))
+    values = {name: v.reshape(n, k) for name, v in metrics.items()}
+    if "solutions_clearance" in grasps:
+        values["clearance"] = np.asarray(grasps["solutions_clearance"], dtype=np.float64)
+    metric = cfg.ranking.metric
+    if metric != "combined":
+        return values.get(metric, values["yoshikawa"])
+    weights = {
+        name: float(w)
+        for name, w in (cfg.ranking.weights or DEFAULT_COMBINED_WEIGHTS).items()
+        if w > 0 and name in values
+    }
+    score = np.zeros((n, k))
+    total = sum(weights.values()) or 1.0
+    for name, w in weights.items():
+        x = values[name]
+        ok = np.isfinite(x)
+        lo, hi = (float(x[ok].min()), float(x[ok].max())) if ok.any() else (0.0, 1.0)
+        score += w / total * ((x - lo) / (hi - lo) if hi > lo else np.ones_like(x))
+    return score
+
+
+def select_branches(
+    grasps: GraspTable, manifold: Manifold, robot: Robot, cfg: Config
+) -> GraspTable:
+    """Choose one IK branch per grasp (``ik.select``; needs ``ik.solutions`` > 1).
+
+    See :mod:`gcm_pipeline.stages.branches`. A table without branch columns is
+    returned unchanged.
+    """
+    from gcm_pipeline.stages import branches as stage
+    from gcm_pipeline.stages.lattice import row_mesh
+
+    if "solutions" not in grasps:
+        return grasps
+    edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
+    return stage.select_branches(
+        grasps,
+        edges,
+        branch_scores(grasps, robot, cfg),
+        method=cfg.ik.select,
+        threshold=cfg.continuity.threshold,
+    )
+
+
 def robot_from_config(cfg: Config) -> Robot:
     """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path)."""
     from gcm_pipeline.robot.model import load_robot as _load
@@ -409,6 +469,7 @@ def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
         object_cfg=cfg.object,
         approach=cfg.approach,
         retreat=cfg.retreat,
+        solutions=ik.solutions,
     )
 
 
@@ -819,6 +880,7 @@ class Pipeline:
                     grasps = densify_adaptive(candidates, manifold, robot, cfg, check=check)
                 else:
                     grasps = check_reachability(grasps, robot, cfg, progress=progress)
+                grasps = select_branches(grasps, manifold, robot, cfg)
             unreachable = _count_by(grasps["reason"][~np.asarray(grasps["reachable"], dtype=bool)])
             log.info(
                 "reachable %d/%d%s",

@@ -25,7 +25,14 @@ base frame), in :meth:`ReachabilityEngine.run`:
    (more seeds: library, random restarts), each checked as in 2, in seed
    order; the first that passes every check is the answer. Nothing else is
    re-solved: a target with no IK solution had every seed already.
-4. **Clearance** of the reachable rows (distance of the arm to the world).
+4. **More branches** (``solutions`` > 1): for every reachable target, further
+   IK solutions (more library seeds and random restarts), each differing from
+   the ones kept by more than ``solution_separation`` in some joint, checked
+   as in 2; up to ``solutions`` passing ones are kept (the answer of 1-3
+   first, then in seed order). Which one a grasp takes is decided later, by
+   the stage (ranking metric or continuity with the neighbours).
+5. **Clearance** of the reachable rows (distance of the arm to the world), and
+   of every kept branch.
 
 A row's ``reason`` is ``''`` when reachable; else the IK's reason, or the
 furthest check any of its solutions reached: a collision reason (or the
@@ -73,6 +80,7 @@ from gcm_pipeline.robot.model import Robot
 __all__ = [
     "REASON_APPROACH",
     "REASON_RETREAT",
+    "Branches",
     "CheckResult",
     "ReachResult",
     "ReachabilityEngine",
@@ -92,6 +100,10 @@ _RESOLVE_RESTARTS = 0
 
 #: Two solutions closer than this in every joint are the same branch [rad].
 _SAME_SOLUTION = 1e-3
+
+#: Seeds of the search for more branches (step 4, pinocchio backend).
+_BRANCH_LIBRARY = 16
+_BRANCH_RESTARTS = 8
 
 
 def available_cores() -> int:
@@ -123,6 +135,26 @@ class CheckResult(NamedTuple):
     q_retreat: np.ndarray
 
 
+class Branches(NamedTuple):
+    """Up to K verified solutions per target that pass every check (step 4).
+
+    Attributes:
+        q: (N, K, nq) [rad]; branch 0 is the answer of steps 1-3 (``ReachResult.q``);
+            NaN past ``count``.
+        q_pregrasp: (N, K, nq) [rad] end of each branch's approach (NaN likewise).
+        q_retreat: (N, K, nq) [rad] end of each branch's retreat.
+        clearance: (N, K) [m] distance of the arm to the world, or None
+            without a collision checker.
+        count: (N,) int, branches kept (0 for unreachable targets).
+    """
+
+    q: np.ndarray
+    q_pregrasp: np.ndarray
+    q_retreat: np.ndarray
+    clearance: np.ndarray | None
+    count: np.ndarray
+
+
 class ReachResult(NamedTuple):
     """Result of :meth:`ReachabilityEngine.run` for N targets.
 
@@ -141,6 +173,8 @@ class ReachResult(NamedTuple):
         q_rejected: (N, nq) [rad] for unreachable rows that had an IK solution,
             the solution that failed the furthest check; NaN otherwise.
         candidates: Every converged IK candidate of step 1 (``return_candidates``).
+        branches: Every kept branch when the engine keeps several
+            (``solutions`` > 1), else None.
     """
 
     reachable: np.ndarray
@@ -153,6 +187,7 @@ class ReachResult(NamedTuple):
     q_retreat: np.ndarray
     q_rejected: np.ndarray
     candidates: IKCandidates | None = None
+    branches: Branches | None = None
 
     def __repr__(self) -> str:
         n = len(self.reachable)
@@ -182,6 +217,9 @@ class ReachabilityEngine:
         workers: Processes (1: this one; ``"auto"``: :func:`available_cores`).
         chunk_size: Targets per chunk (memory and progress granularity).
         ik_options: Backend options for the IK of step 1 (e.g. ``random_seed``).
+        solutions: Branches kept per reachable target (step 4; 1: only the answer).
+        solution_separation: Two kept branches differ by more than this in
+            some joint [rad].
 
     Raises:
         InputError: Bad tolerances, workers, chunk size or alternatives.
@@ -202,6 +240,8 @@ class ReachabilityEngine:
         workers: int | str = 1,
         chunk_size: int = 2048,
         ik_options: Mapping[str, Any] | None = None,
+        solutions: int = 1,
+        solution_separation: float = 0.2,
     ) -> None:
         self.robot = robot
         self.checker = checker
@@ -229,6 +269,14 @@ class ReachabilityEngine:
             raise InputError(f"chunk_size must be an int >= 1, got {chunk_size!r}")
         self.chunk_size = int(chunk_size)
         self.ik_options = dict(ik_options or {})
+        if isinstance(solutions, bool) or int(solutions) != solutions or solutions < 1:
+            raise InputError(f"solutions must be an int >= 1, got {solutions!r}")
+        self.solutions = int(solutions)
+        self.solution_separation = float(solution_separation)
+        if not np.isfinite(self.solution_separation) or self.solution_separation <= 0:
+            raise InputError(
+                f"solution_separation must be a positive angle [rad], got {solution_separation!r}"
+            )
         self._radius = gripper_radius(robot) if (approach or retreat) else 0.0
         self._pool: Any = None
         #: CPU time [s] of each step of the last :meth:`run`, summed over chunks
@@ -244,6 +292,7 @@ class ReachabilityEngine:
             f"ReachabilityEngine(robot={self.robot.name!r}, backend={self.backend!r}, "
             f"collisions={self.checker is not None}, approach={move(self.approach)}, "
             f"retreat={move(self.retreat)}, alternatives={self.alternatives}, "
+            f"solutions={self.solutions}, "
             f"workers={self.workers}, chunk_size={self.chunk_size})"
         )
 
@@ -328,24 +377,38 @@ class ReachabilityEngine:
     # --- step 3 ------------------------------------------------------------------------
 
     def _alternatives(
-        self, targets: np.ndarray, q_first: np.ndarray
+        self,
+        targets: np.ndarray,
+        q_first: np.ndarray,
+        count: int | None = None,
+        separation: float = _SAME_SOLUTION,
+        library: int = _RESOLVE_LIBRARY,
+        restarts: int = _RESOLVE_RESTARTS,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Other verified, distinct IK solutions of M targets, in seed order.
+
+        Args:
+            targets: (M, 4, 4) poses in the base frame.
+            q_first: (M, nq) the solution each must differ from.
+            count: Alternatives wanted per target (default ``alternatives``).
+            separation: Solutions closer than this in every joint are the same [rad].
+            library: Library seeds per target (pinocchio).
+            restarts: Random restarts per target (pinocchio).
 
         Returns:
             ``(index, rank, q, errors)``: target index (K,) into ``targets``,
             rank of the alternative among its target's (K,), solutions (K, nq)
             and ``(pos_err, rot_err)`` stacked (K, 2).
         """
-        k = self.alternatives
+        k = self.alternatives if count is None else int(count)
         opts: dict[str, Any]
         if self.backend == "pinocchio":
             opts = {
                 "min_solutions": 2 * (k + 1),
                 "first_round_seeds": k + 1,
                 "round_seeds": k + 1,
-                "library_seeds": _RESOLVE_LIBRARY,
-                "random_restarts": _RESOLVE_RESTARTS,
+                "library_seeds": library,
+                "random_restarts": restarts,
             }
         else:
             opts = {"min_solutions": 2 * (k + 1)}
@@ -370,7 +433,7 @@ class ReachabilityEngine:
         idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
         # distinct from the first solution and from the earlier alternatives of the same
         # target (candidates are sorted by target, in seed order within a target)
-        keep = np.max(np.abs(cq - q_first[idx]), axis=1) >= _SAME_SOLUTION
+        keep = np.max(np.abs(cq - q_first[idx]), axis=1) >= separation
         idx, cq, err = idx[keep], cq[keep], err[keep]
         if len(idx) == 0:
             return empty
@@ -378,7 +441,7 @@ class ReachabilityEngine:
         groups, group = np.unique(idx, return_inverse=True)
         padded = np.full((len(groups), int(pos.max()) + 1, nq), 1e9)  # pads are never near
         padded[group, pos] = cq
-        near = np.max(np.abs(padded[:, :, None] - padded[:, None, :]), axis=3) < _SAME_SOLUTION
+        near = np.max(np.abs(padded[:, :, None] - padded[:, None, :]), axis=3) < separation
         earlier = np.tril(near, k=-1).any(axis=2)  # same as an earlier candidate
         distinct = ~earlier[group, pos]
         idx, cq, err = idx[distinct], cq[distinct], err[distinct]
@@ -388,12 +451,62 @@ class ReachabilityEngine:
             return empty
         return idx[keep], rank[keep], cq[keep], err[keep]
 
-    # --- one chunk: steps 1-4 -------------------------------------------------------------
+    def _branches(
+        self,
+        targets: np.ndarray,
+        reachable: np.ndarray,
+        q: np.ndarray,
+        q_pre: np.ndarray,
+        q_ret: np.ndarray,
+    ) -> dict[str, np.ndarray]:
+        """Step 4: up to ``solutions`` branches per reachable target (arrays ``b_*``)."""
+        m, nq, k = len(targets), self.robot.nq, self.solutions
+        bq = np.full((m, k, nq), np.nan)
+        bpre = np.full((m, k, nq), np.nan)
+        bret = np.full((m, k, nq), np.nan)
+        count = reachable.astype(np.int64)
+        bq[:, 0], bpre[:, 0], bret[:, 0] = q, q_pre, q_ret
+        rows = np.flatnonzero(reachable)
+        if rows.size:
+            idx, rank, alt_q, _ = self._alternatives(
+                targets[rows],
+                q[rows],
+                count=2 * (k - 1),
+                separation=self.solution_separation,
+                library=_BRANCH_LIBRARY,
+                restarts=_BRANCH_RESTARTS,
+            )
+            if len(idx):
+                chk = self.check(targets[rows[idx]], alt_q)
+                ok = np.flatnonzero(chk.passed)  # sorted by target, then seed order
+                i = idx[ok]
+                slot = 1 + np.arange(len(i)) - np.searchsorted(i, i, side="left")
+                keep = slot < k
+                r, sl, o = rows[i[keep]], slot[keep], ok[keep]
+                bq[r, sl] = alt_q[o]
+                bpre[r, sl] = chk.q_pregrasp[o]
+                bret[r, sl] = chk.q_retreat[o]
+                np.maximum.at(count, r, sl + 1)
+        bclear = np.full((m, k), np.nan)
+        if self.checker is not None:
+            extra = np.isfinite(bq[:, 1:, 0])
+            if extra.any():
+                r, j = np.nonzero(extra)
+                bclear[r, j + 1] = self.checker.clearance(bq[r, j + 1])
+        return {
+            "b_q": bq,
+            "b_q_pregrasp": bpre,
+            "b_q_retreat": bret,
+            "b_clearance": bclear,
+            "b_count": count,
+        }
+
+    # --- one chunk: steps 1-5 -------------------------------------------------------------
 
     def solve(
         self, targets: np.ndarray, seeds: np.ndarray | None = None, return_candidates: bool = False
     ) -> dict[str, Any]:
-        """Steps 1-4 for one chunk of validated targets (see :meth:`run`).
+        """Steps 1-5 for one chunk of validated targets (see :meth:`run`).
 
         Args:
             targets: Grasp poses (M, 4, 4) in the base frame [m].
@@ -458,7 +571,11 @@ class ReachabilityEngine:
                     continue
                 record(failing[idx[sel]], alt_q[sel], alt_err[sel])
         q_rejected[reachable] = np.nan
-        # step 4: clearance of the reachable rows
+        # step 4: more branches of the reachable targets
+        branches = (
+            self._branches(targets, reachable, q, q_pre, q_ret) if self.solutions > 1 else None
+        )
+        # step 5: clearance of the reachable rows (and of every branch)
         clearance = None
         if self.checker is not None:
             t0 = time.process_time()
@@ -480,6 +597,10 @@ class ReachabilityEngine:
             "candidates": None,
             "timings": dict(self.timings),
         }
+        if branches is not None:
+            out.update(branches)
+            if clearance is not None:
+                out["b_clearance"][:, 0] = clearance
         if return_candidates and res.candidates is not None:
             c = res.candidates
             out["candidates"] = (c.index, c.q, c.reason)
@@ -496,7 +617,7 @@ class ReachabilityEngine:
         progress: Callable[[int], None] | None = None,
         return_candidates: bool = False,
     ) -> ReachResult:
-        """Steps 1-4 for N targets, in chunks, on the engine's workers.
+        """Steps 1-5 for N targets, in chunks, on the engine's workers.
 
         Args:
             targets: Grasp-frame poses (N, 4, 4) in the robot's base frame [m].
@@ -530,6 +651,15 @@ class ReachabilityEngine:
             "q_retreat": np.full((n, nq), np.nan),
             "q_rejected": np.full((n, nq), np.nan),
         }
+        k = self.solutions
+        if k > 1:
+            out.update(
+                b_q=np.full((n, k, nq), np.nan),
+                b_q_pregrasp=np.full((n, k, nq), np.nan),
+                b_q_retreat=np.full((n, k, nq), np.nan),
+                b_clearance=np.full((n, k), np.nan),
+                b_count=np.zeros(n, dtype=np.int64),
+            )
         cands: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         timings: dict[str, float] = {}
         if nb is None:
@@ -574,6 +704,15 @@ class ReachabilityEngine:
                 index, cq, cr = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
             order = np.argsort(index, kind="stable")
             candidates = IKCandidates(index[order], cq[order], cr[order])
+        branches = None
+        if k > 1:
+            branches = Branches(
+                q=out["b_q"],
+                q_pregrasp=out["b_q_pregrasp"],
+                q_retreat=out["b_q_retreat"],
+                clearance=out["b_clearance"] if self.checker is not None else None,
+                count=out["b_count"],
+            )
         return ReachResult(
             reachable=out["reachable"],
             reason=out["reason"].astype(str),
@@ -585,6 +724,7 @@ class ReachabilityEngine:
             q_retreat=out["q_retreat"],
             q_rejected=out["q_rejected"],
             candidates=candidates,
+            branches=branches,
         )
 
     # --- workers --------------------------------------------------------------------------

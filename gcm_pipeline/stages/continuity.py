@@ -208,6 +208,10 @@ def reseed(
                     continue
                 updates[col] = np.array(grasps[col])
             updates[col][rows] = np.asarray(res[col])[ok]
+        if "solution" in grasps:  # the re-solved answer is branch 0 of its new branches
+            if "solution" not in updates:
+                updates["solution"] = np.array(grasps["solution"])
+            updates["solution"][rows] = 0
         moved += len(rows)
         pid = patches(q, reach, edges, threshold)
     after = int(pid.max(initial=-1) + 1)

@@ -219,6 +219,7 @@ def make_engine(
     checker: CollisionChecker | None = None,
     alternatives: int = 4,
     chunk_size: int = 2048,
+    solutions: int = 1,
     **options: Any,
 ) -> ReachabilityEngine:
     """The reachability engine of these config sections (build once, run many times).
@@ -247,6 +248,7 @@ def make_engine(
         workers="auto" if workers in (0, "auto") else workers,
         chunk_size=chunk_size,
         ik_options=options,
+        solutions=solutions,
     )
 
 
@@ -273,6 +275,7 @@ def check_reachability(
     engine: ReachabilityEngine | None = None,
     alternatives: int = 4,
     chunk_size: int = 2048,
+    solutions: int = 1,
     **options: Any,
 ) -> GraspTable | tuple[GraspTable, IKCandidates]:
     """Solve IK for every grasp, check collisions, approach and retreat; add the columns.
@@ -308,14 +311,18 @@ def check_reachability(
             the arguments that configure one are then ignored.
         alternatives: Other IK solutions tried per grasp that fails a check.
         chunk_size: Targets per chunk of the engine.
+        solutions: IK branches kept per reachable grasp (the engine's step 4).
         **options: Backend options (see :func:`~gcm_pipeline.robot.ik.solve_ik`).
 
     Returns:
         The table with ``reachable`` (N,) bool, ``reason`` (N,) str, ``q``
         (N, nq) [rad] (NaN rows when unreachable), ``pos_err`` [m],
         ``rot_err`` [rad], ``q_pregrasp``, ``q_retreat``, ``q_rejected`` (N, nq)
-        and ``clearance`` [m] when collisions are checked; with
-        ``return_candidates``, a pair ``(table, candidates)``.
+        and ``clearance`` [m] when collisions are checked; when the engine
+        keeps several branches, also ``solutions`` (N, K, nq),
+        ``solutions_q_pregrasp``, ``solutions_q_retreat`` (N, K, nq),
+        ``solutions_clearance`` (N, K) and ``n_solutions`` (N,) (branch 0 is
+        ``q``); with ``return_candidates``, a pair ``(table, candidates)``.
 
     Raises:
         InputError: Missing ``dq`` column, bad provenance, bad options.
@@ -344,6 +351,7 @@ def check_reachability(
             checker=checker,
             alternatives=alternatives,
             chunk_size=chunk_size,
+            solutions=solutions,
             **options,
         )
     report = progress_reporter(len(grasps), enabled=progress)
@@ -372,6 +380,16 @@ def check_reachability(
     }
     if res.clearance is not None:
         columns["clearance"] = res.clearance
+    if res.branches is not None:
+        b = res.branches
+        columns.update(
+            solutions=b.q,
+            solutions_q_pregrasp=b.q_pregrasp,
+            solutions_q_retreat=b.q_retreat,
+            n_solutions=b.count,
+        )
+        if b.clearance is not None:
+            columns["solutions_clearance"] = b.clearance
     table = grasps.with_columns(**columns)
     if return_candidates:
         assert res.candidates is not None

@@ -533,13 +533,12 @@ def _cmd_study(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 best_run=not args.no_best,
             )
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # Ctrl-C, SIGTERM, SIGHUP: main() prints and sets the status
         print(
-            f"interrupted: finished placements are kept in {args.out}; "
-            "run the same command again to resume",
+            f"finished placements are kept in {args.out}; run the same command to resume",
             file=sys.stderr,
         )
-        return 130
+        raise
     if args.quiet:
         print(result.out_dir)
         return 0 if result.best is not None else EXIT_USER_ERROR

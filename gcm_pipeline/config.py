@@ -834,7 +834,19 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
         ConfigError: Missing or malformed file, unknown key, wrong type or value.
     """
     path = Path(path)
-    data = read_yaml(path)
+    return config_from_data(read_yaml(path), path, overrides)
+
+
+def config_from_data(
+    data: Any, path: str | Path, overrides: list[str] | tuple[str, ...] = ()
+) -> Config:
+    """:func:`load_config` of a config file's content already read (``data`` is changed).
+
+    The same steps as :func:`load_config` after reading ``path``: overrides,
+    paths resolved against ``path``'s folder, validation. A placement study
+    reads its base config once and resolves every placement from it.
+    """
+    path = Path(path)
     if data is None:
         data = {}
     if not isinstance(data, dict):

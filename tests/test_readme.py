@@ -60,6 +60,18 @@ def test_config_sketch_validates() -> None:
         assert cfg.candidates.source
 
 
+def test_study_sketch_matches_the_example_study() -> None:
+    """The study file shown in Studies is configs/studies/bottle_placement.yaml, minus comments."""
+    from gcm_pipeline.study import load_study
+
+    section = README.split("## Studies", 1)[1]
+    blocks = re.findall(r"^```(\w*)\n(.*?)^```", section, flags=re.S | re.M)
+    sketch = yaml.safe_load(next(text for lang, text in blocks if not lang))
+    example = ROOT / "configs" / "studies" / "bottle_placement.yaml"
+    assert sketch == {k: v for k, v in yaml.safe_load(example.read_text()).items()} | {"set": []}
+    load_study(example)
+
+
 def test_every_example_config_is_listed() -> None:
     for path in sorted((ROOT / "configs").glob("*.yaml")):
         assert f"configs/{path.name}" in README, f"README does not mention {path.name}"

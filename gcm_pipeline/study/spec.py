@@ -45,7 +45,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from gcm_pipeline.config import Config, _resolve_paths, _set_override, load_config, read_yaml
+from gcm_pipeline.config import Config, _resolve_paths, config_from_data, read_yaml
 from gcm_pipeline.errors import ConfigError
 
 __all__ = [
@@ -362,14 +362,11 @@ class StudyPlan:
         Raises:
             ConfigError: Naming ``where`` (e.g. the placement) and the key at fault.
         """
+        # the base as read when the study was loaded (a file edited meanwhile is
+        # another study: its key differs), resolved as load_config resolves it
+        path = self.base_path or (self.source or self.study_dir / "study.yaml")
         try:
-            if self.base_path is not None:
-                return load_config(self.base_path, list(overrides))
-            data = copy.deepcopy(self.base_data)
-            for assignment in overrides:
-                _set_override(data, assignment)
-            _resolve_paths(data, self.base_dir)
-            return Config.from_dict(data or None, source="base")
+            return config_from_data(copy.deepcopy(self.base_data), path, list(overrides))
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}" if where else str(exc)) from None
 

@@ -23,11 +23,8 @@ from __future__ import annotations
 import logging
 import math
 import shlex
-import signal
-import threading
 import time
 from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -128,24 +125,6 @@ def _pose_columns(cfg: Config) -> dict[str, float]:
         else:
             out[f"{prefix}_yaw_deg"] = math.degrees(pose.rpy_rad[2])
     return out
-
-
-@contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM (and SIGHUP) stop a study like Ctrl-C (main thread only)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt(signal.Signals(signum).name)
-
-    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGHUP)}
-    try:
-        yield
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
 
 
 class Study:
@@ -263,8 +242,9 @@ class Study:
             GcmError: A user error, raised before anything is written: invalid
                 study, too large without ``force``, unusable ``out_dir``, Ray
                 unreachable (:class:`~gcm_pipeline.study.runner.EngineError`).
-            KeyboardInterrupt: Ctrl-C or SIGTERM: workers are stopped, finished
-                placements stay in ``out_dir`` and a rerun resumes.
+            KeyboardInterrupt: Ctrl-C (``gcm study`` also turns SIGTERM and SIGHUP
+                into one): workers are stopped, finished placements stay in
+                ``out_dir`` and a rerun resumes.
         """
         from gcm_pipeline.study.runner import InlineExecutor, RayExecutor
 
@@ -282,8 +262,7 @@ class Study:
         run = _Run(self, store, executor, progress=progress)
         try:
             store.create({"key": plan.key(), "created": time.time(), **plan.to_dict()})
-            with _sigterm_as_interrupt():
-                result = run.execute(resumed=resumed, t_start=t_start, best_run=best_run)
+            result = run.execute(resumed=resumed, t_start=t_start, best_run=best_run)
         except KeyboardInterrupt:
             executor.close()
             run.finish(complete=False, t_start=t_start)

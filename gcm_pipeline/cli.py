@@ -515,6 +515,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     from gcm_pipeline.study import Study
+    from gcm_pipeline.study.store import POSE_COLUMNS
 
     if args.workers is not None and args.workers < 1:
         raise GcmError(f"--workers must be >= 1, got {args.workers}")
@@ -572,16 +573,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     )
     pose = ", ".join(
         f"{k.replace('_deg', '')} {best[k]:g}" + ("°" if k.endswith("_deg") else "")
-        for k in (
-            "object_x",
-            "object_y",
-            "object_z",
-            "object_yaw_deg",
-            "base_x",
-            "base_y",
-            "base_z",
-            "base_yaw_deg",
-        )
+        for k in POSE_COLUMNS
         if best.get(k) is not None and math.isfinite(best[k])
     )
     print(f"  pose        {pose}")

@@ -38,28 +38,26 @@ import numpy as np
 from gcm_pipeline import io
 from gcm_pipeline.errors import OutputError
 from gcm_pipeline.io import _json_clean, format_floats
+from gcm_pipeline.study.spec import AXES
 
 __all__ = [
     "CSV_COLUMNS",
+    "POSE_COLUMNS",
     "StudyDir",
     "atomic_write",
 ]
 
 log = logging.getLogger(__name__)
 
+#: Pose columns of ``placements.csv``: ``<object|base>_<x|y|z|yaw_deg>``.
+POSE_COLUMNS = tuple(f"{pose}_{key}" for pose in ("object", "base") for key in AXES)
+
 #: Columns of ``placements.csv``, in order.
 CSV_COLUMNS = (
     "id",
     "round",
     "object",
-    "object_x",
-    "object_y",
-    "object_z",
-    "object_yaw_deg",
-    "base_x",
-    "base_y",
-    "base_z",
-    "base_yaw_deg",
+    *POSE_COLUMNS,
     "candidates",
     "densified",
     "reachable",

@@ -36,23 +36,11 @@ from gcm_pipeline import io
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, GcmError
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
-from gcm_pipeline.study.store import StudyDir
+from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
 
 __all__ = ["Study", "StudyResult", "best_row"]
 
 log = logging.getLogger(__name__)
-
-#: Pose columns of placements.csv, ``<pose>_<key>``.
-_SWEPT_COLUMNS = (
-    "object_x",
-    "object_y",
-    "object_z",
-    "object_yaw_deg",
-    "base_x",
-    "base_y",
-    "base_z",
-    "base_yaw_deg",
-)
 
 #: Seconds between rewrites of placements.csv / summary.json while a study runs.
 _FLUSH_S = 5.0
@@ -551,7 +539,7 @@ class _Run:
         if best is not None:
             where = ", ".join(
                 f"{k.replace('_deg', '').replace('_', ' ')} {best[k]:g}"
-                for k in _SWEPT_COLUMNS
+                for k in POSE_COLUMNS
                 if k.split("_", 1)[1] in swept[k.split("_", 1)[0]]
             )
             title += f"; best #{best['id']}: {best['coverage']:.3f}" + (

@@ -783,6 +783,7 @@ class Pipeline:
         force: bool = False,
         write: bool = True,
         viewer: bool = False,
+        robot: Robot | None = None,
     ) -> RunResult:
         """Run every stage and write the run directory.
 
@@ -798,6 +799,10 @@ class Pipeline:
             write: Write the run directory (False: only return the result).
             viewer: The caller opens the live viewer afterwards (``gcm run
                 --meshcat``): a ``publish.zmq_url`` server is probed first.
+            robot: The robot of ``robot.spec``, built before by the caller, who
+                also did the :func:`preflight`: a placement study runs many
+                configs on one robot and its caches (seed library, geometry).
+                None: :func:`preflight` checks the config and builds it.
 
         Returns:
             The result; ``run_dir`` is the directory written (or None).
@@ -812,7 +817,8 @@ class Pipeline:
         keep = self._inputs()
         # what the config refers to first: a bad robot spec is not hidden behind "--force"
         t0 = time.perf_counter()
-        robot = preflight(cfg, viewer=viewer)  # builds the robot: the "robot" stage's work
+        if robot is None:
+            robot = preflight(cfg, viewer=viewer)  # builds the robot: the "robot" stage's work
         robot_s = time.perf_counter() - t0
         if write:
             out = io.check_output_dir(out, force=force, keep=keep)

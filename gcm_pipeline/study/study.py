@@ -327,8 +327,6 @@ class _Run:
                 arrays[key] = np.asarray(result.pop(key))
         if "is_candidate" in result:
             arrays["is_candidate"] = np.asarray(result.pop("is_candidate"), dtype=bool)
-        result.pop("object_pose", None)
-        result.pop("base_pose", None)
         row.update(result)
         self._finished(row, arrays)
 

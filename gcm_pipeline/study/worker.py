@@ -4,11 +4,11 @@ A :class:`PlacementWorker` keeps what every placement of a study shares: the
 robot model, its IK seed library (cached on the robot by the IK backend) and
 the robot's collision geometry (cached on the robot by
 :meth:`~gcm_pipeline.robot.model.Robot.build_geometry`), built once when the
-worker starts. Per placement it runs the pipeline's own stage functions
-(:func:`~gcm_pipeline.pipeline.generate_candidates`, ``build_manifold``,
-``densify``, ``check_reachability``, ``rank``) on the placement's config, so a
-placement gives what ``gcm run`` gives for the same config; only the collision
-world's poses (object, base) are placed anew.
+worker starts. Per placement it runs :meth:`Pipeline.run
+<gcm_pipeline.pipeline.Pipeline.run>` (``write=False``) on the placement's
+config with that robot, so a placement gives what ``gcm run`` gives for the
+same config; only the collision world (the robot's cached geometry placed with
+the placement's object and base poses) is assembled anew.
 
 Under Ray each worker is an actor (:mod:`gcm_pipeline.study.runner`); the same
 class runs placements in-process. Results are plain dicts of scalars and NumPy
@@ -140,9 +140,9 @@ class PlacementWorker:
 
         Returns:
             ``{"id", "node", "time_s", "error"}`` plus, on success, the row
-            fields of :func:`placement_summary`, ``object_pose`` / ``base_pose``
-            (4, 4) and the arrays ``reachable`` (G,) bool, ``metric`` (G,) and
-            ``manipulability`` (G,) (NaN where unreachable), ``pose`` (G, 7)
+            fields of :func:`placement_summary` and the arrays
+            ``reachable_mask`` (G,) bool, ``metric`` (G,) and ``manipulability``
+            (G,) (NaN where unreachable), ``pose`` (G, 7)
             world grasp poses ``x, y, z, qw, qx, qy, qz``, ``pose_object`` (G, 7)
             the same in the object's frame and ``is_candidate`` (G,).
             A failure (any exception but an interrupt) comes back as
@@ -161,34 +161,22 @@ class PlacementWorker:
 
     def _run(self, data: dict[str, Any]) -> dict[str, Any]:
         from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
-        from gcm_pipeline.pipeline import (
-            build_manifold,
-            check_reachability,
-            densify,
-            generate_candidates,
-            rank,
-        )
+        from gcm_pipeline.pipeline import Pipeline
         from gcm_pipeline.stages.ranking import METRIC_COLUMNS
 
         cfg = Config.from_dict(data, source="placement config")
         # one IK process per worker: the study runs the workers in parallel
         cfg = cfg.model_copy(update={"ik": cfg.ik.model_copy(update={"workers": 1})})
         robot = self._robot(cfg.robot.spec)
-        candidates = generate_candidates(cfg)
-        manifold = build_manifold(candidates, cfg)
-        grasps = densify(candidates, manifold, cfg)
-        grasps = check_reachability(grasps, robot, cfg)
-        grasps = rank(grasps, robot, cfg)
+        # the pipeline's own sequence of stages (what gcm run does), on this worker's robot
+        grasps = Pipeline(cfg).run(progress=False, write=False, robot=robot).grasps
         reachable = np.asarray(grasps["reachable"], dtype=bool)
         object_pose = cfg.object.pose.matrix() if cfg.object is not None else np.eye(4)
         local = dq_from_matrix(np.linalg.inv(object_pose) @ dq_to_matrix(grasps["dq"]))
         metric = np.asarray(grasps[METRIC_COLUMNS[cfg.ranking.metric]], dtype=float)
         manip = np.asarray(grasps["manipulability"], dtype=float)
-        base_pose = cfg.robot.base_pose.matrix()
         row = placement_summary(grasps, cfg)
         row.update(
-            object_pose=object_pose,
-            base_pose=base_pose,
             reachable_mask=reachable,
             metric=np.where(reachable, metric, np.nan),
             manipulability=np.where(reachable, manip, np.nan),

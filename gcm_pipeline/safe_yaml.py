@@ -107,12 +107,12 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _expanded_size(root: Node) -> int:
+def _expanded_size(root: Node, limit: int = MAX_YAML_VALUES) -> int:
     """Number of values the node graph stands for once aliases are expanded.
 
     Aliases are shared nodes in the composed graph, so the count is a sum over
     a DAG, memoised per node (linear in the number of distinct nodes). Stops
-    counting beyond ``MAX_YAML_VALUES``.
+    counting beyond ``limit``.
     """
     memo: dict[int, int] = {}
     # iterative post-order walk (depth is already bounded, but stay flat)
@@ -131,7 +131,7 @@ def _expanded_size(root: Node) -> int:
             children = []
         if done:
             total = 1 + sum(memo[id(c)] for c in children)
-            memo[key] = min(total, MAX_YAML_VALUES + 1)
+            memo[key] = min(total, limit + 1)
             continue
         stack.append((node, True))
         stack.extend((c, False) for c in children if id(c) not in memo)
@@ -139,7 +139,12 @@ def _expanded_size(root: Node) -> int:
 
 
 def load_yaml(
-    text: str, source: str, error: type[GcmError], *, plain_on_syntax_error: bool = False
+    text: str,
+    source: str,
+    error: type[GcmError],
+    *,
+    plain_on_syntax_error: bool = False,
+    max_values: int = MAX_YAML_VALUES,
 ) -> Any:
     """Parse YAML text within the limits of this module.
 
@@ -149,6 +154,8 @@ def load_yaml(
         error: The exception class to raise.
         plain_on_syntax_error: Return ``text`` itself when it is not valid YAML
             syntax (``--set`` values such as ``@x``); the limits still raise.
+        max_values: Most values after alias expansion (data files such as
+            grasp lists hold more than a config).
 
     Returns:
         The parsed data (dicts, lists, str, int, float, bool, None, dates).
@@ -156,7 +163,7 @@ def load_yaml(
     Raises:
         error: ``<source>:<line>:<column>: <problem>`` for malformed YAML, a
             duplicate key, nesting deeper than ``MAX_YAML_DEPTH``, or more than
-            ``MAX_YAML_VALUES`` values after alias expansion.
+            ``max_values`` values after alias expansion.
     """
     loader = None
     try:
@@ -164,9 +171,9 @@ def load_yaml(
         node = loader.get_single_node()
         if node is None:
             return None
-        if _expanded_size(node) > MAX_YAML_VALUES:
+        if _expanded_size(node, max_values) > max_values:
             raise _Limit(
-                f"expands to more than {MAX_YAML_VALUES:,} values through aliases (&/*); "
+                f"expands to more than {max_values:,} values through aliases (&/*); "
                 "write the values out",
                 node.start_mark,
             )

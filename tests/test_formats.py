@@ -216,11 +216,17 @@ def test_contact_graspnet_never_runs_pickled_code(tmp_path):
 # ------------------------------------------------------------------ GraspNet
 
 
-def graspnet_row(depth: float = 0.02, score: float = 0.7, object_id: int = 3) -> np.ndarray:
+def graspnet_row(
+    depth: float = 0.02, score: float = 0.7, object_id: int = 3, tips: np.ndarray | None = None
+) -> np.ndarray:
     """graspnetAPI's row [score, width, height, depth, R(9), t(3), object_id]: x approach,
-    y closing, fingertips ``depth`` past the centre along x."""
+    y closing, fingertips ``depth`` past the centre along x. By default the fingertips are
+    where the Panda's are when its TCP is at the top face (8.9 mm past it, see
+    test_panda_fingertips_are_finger_tip_past_the_tcp)."""
+    if tips is None:
+        tips = TOP + formats.get_gripper("franka_panda").finger_tip * APPROACH
     r = np.column_stack([APPROACH, CLOSING, np.cross(APPROACH, CLOSING)])
-    center = TOP - depth * APPROACH
+    center = tips - depth * APPROACH
     return np.r_[score, 0.06, 0.02, depth, r.reshape(-1), center, object_id]
 
 
@@ -308,3 +314,168 @@ def test_gripper_with_plain_pose_formats_is_rejected():
         config({"path": "g.npy", "format": "npy", "gripper": "franka_panda"})
     with pytest.raises(ConfigError, match="'gripper' or 'grasp_to_tool', not both"):
         config({"path": "g.json", "gripper": "franka_panda", "grasp_to_tool": {"xyz": [0, 0, 0.1]}})
+
+
+# ------------------------------------------------- GraspNet fingertips (frame)
+
+
+def test_graspnet_fingertips_land_where_graspnet_draws_them(tmp_path):
+    """graspnetAPI draws the fingers over x in [-0.024, depth]: the tips are ``depth`` past
+    the centre. The Panda's fingertips are ``finger_tip`` past its TCP (example-robot-data's
+    finger meshes end 8.9 mm past panda_hand_tcp), so the TCP sits ``depth - finger_tip``
+    past the centre and the real fingertips touch the face, not 9 mm below it."""
+    g = formats.get_gripper("franka_panda")
+    assert 0.008 < g.finger_tip < 0.010
+    path = tmp_path / "gg.npy"
+    np.save(path, np.stack([graspnet_row(0.01, tips=TOP), graspnet_row(0.04, tips=TOP)]))
+    poses, _ = imported(config({"path": str(path), "format": "graspnet"}))
+    for m in poses:
+        tips = m[:3, 3] + g.finger_tip * m[:3, 2]
+        np.testing.assert_allclose(tips, TOP, atol=1e-9)
+        np.testing.assert_allclose(m[:3, 2], APPROACH, atol=1e-9)
+
+
+def test_panda_fingertips_are_finger_tip_past_the_tcp():
+    """The registry's finger_tip is the example-robot-data Panda's own finger length past
+    panda_hand_tcp (the visual finger meshes, fingers open)."""
+    import pinocchio as pin
+    import trimesh
+
+    from gcm_pipeline.robot.model import load_robot
+
+    robot = load_robot("panda")
+    model = robot.model
+    visual = robot.build_geometry("visual")
+    data = model.createData()
+    q = pin.neutral(model)
+    pin.forwardKinematics(model, data, q)
+    pin.updateFramePlacements(model, data)
+    gdata = pin.GeometryData(visual)
+    pin.updateGeometryPlacements(model, data, visual, gdata)
+    tcp = data.oMf[model.getFrameId("panda_hand_tcp")]
+    tips = []
+    for i, obj in enumerate(visual.geometryObjects):
+        if "finger" not in obj.name or not obj.meshPath:
+            continue
+        v = trimesh.load(obj.meshPath, force="mesh").vertices * np.asarray(obj.meshScale)
+        w = v @ gdata.oMg[i].rotation.T + gdata.oMg[i].translation
+        tips.append(((w - tcp.translation) @ tcp.rotation)[:, 2].max())
+    assert tips
+    np.testing.assert_allclose(max(tips), formats.get_gripper("franka_panda").finger_tip, atol=5e-4)
+
+
+# ------------------------------------------- hostile files: one line, no crash
+
+
+def _npy_with_header(path: Path, shape: tuple, payload: bytes, descr: str = "<f8") -> None:
+    with path.open("wb") as fh:
+        header = {"descr": descr, "fortran_order": False, "shape": shape}
+        np.lib.format.write_array_header_1_0(fh, header)
+        fh.write(payload)
+
+
+def _npz_member(path: Path, name: str, data: bytes, mode: str = "w") -> None:
+    with zipfile.ZipFile(path, mode, compression=zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr(f"{name}.npy", data)
+
+
+def _pickled_member(obj: object) -> bytes:
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "|O", "fortran_order": False, "shape": ()})
+    pickle.dump(obj, buf, protocol=4)
+    return buf.getvalue()
+
+
+class _HugeReconstruct:
+    """NumPy's own pickled-array constructor (allowed) asked for a 10**14-byte array."""
+
+    def __reduce__(self):
+        return (np.zeros(1).__reduce__()[0], (np.ndarray, (10**14,), b"b"))
+
+
+def _hostile_files(tmp_path: Path) -> list[tuple[str, Path, dict, str]]:
+    """(format, file, extra config, expected message) for files that must fail in one line."""
+    row = graspnet_row()
+    cases = []
+    # graspnet: a header that promises 10^9 rows in a few bytes, an empty file, truncated data
+    p = tmp_path / "lying.npy"
+    _npy_with_header(p, (10**9, 17), row.tobytes())
+    cases.append(("graspnet", p, {}, "truncated or corrupt"))
+    p = tmp_path / "zero.npy"
+    p.write_bytes(b"")
+    cases.append(("graspnet", p, {}, "not a .npy array"))
+    p = tmp_path / "json.npy"
+    p.write_text('{"grasps": []}')
+    cases.append(("graspnet", p, {}, "not a .npy array"))
+    p = tmp_path / "rows.npy"
+    np.save(p, np.tile(row, (50, 1)))
+    cases.append(("graspnet", p, {"max_count": 10}, "holds 50 grasps, more than candidates.max"))
+    p = tmp_path / "id.npy"
+    bad_id = row.copy()
+    bad_id[16] = 1e30
+    np.save(p, bad_id[None])
+    cases.append(("graspnet", p, {}, "row 0 .*object_id"))
+    # contact_graspnet: a lying plain header, a deflated bomb, odd values, huge pickled arrays
+    cam = {"camera_pose": {"xyz": [0, 0, 1]}}
+    p = tmp_path / "lying.npz"
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf, {"descr": "<f8", "fortran_order": False, "shape": (10**9, 4, 4)}
+    )
+    _npz_member(p, "pred_grasps_cam", buf.getvalue() + np.eye(4).tobytes())
+    cases.append(("contact_graspnet", p, cam, "truncated or corrupt"))
+    p = tmp_path / "bomb.npz"
+    _npz_member(p, "pred_grasps_cam", _pickled_member({0: np.zeros((200_000, 4, 4))}))
+    cases.append(("contact_graspnet", p, {**cam, "max_count": 100}, "candidates.max_count"))
+    p = tmp_path / "many.npz"
+    np.savez(p, pred_grasps_cam={0: np.tile(np.eye(4), (50, 1, 1))})
+    cases.append(("contact_graspnet", p, {**cam, "max_count": 10}, "holds 50 grasps"))
+    for name, value in [
+        ("shape", {0: np.zeros((5, 3))}),
+        ("dict", {0: {"x": 1}}),
+        ("text", {0: "hello"}),
+        ("flat", np.array([1, 2, 3], dtype=object)),
+    ]:
+        p = tmp_path / f"odd_{name}.npz"
+        np.savez(p, pred_grasps_cam=value)
+        cases.append(("contact_graspnet", p, cam, r"pred_grasps_cam.* \(M, 4, 4\)"))
+    p = tmp_path / "bigkey.npz"
+    np.savez(p, pred_grasps_cam={1e300: np.eye(4)[None]})
+    cases.append(("contact_graspnet", p, cam, "segment"))
+    p = tmp_path / "recon.npz"
+    _npz_member(p, "pred_grasps_cam", _pickled_member({0: _HugeReconstruct()}))
+    cases.append(("contact_graspnet", p, cam, "refusing"))
+    # graspgen: an alias bomb, more grasps than max_count, a file larger than they can take
+    p = tmp_path / "bomb.yaml"
+    levels = ["a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"] + [
+        f"{k}: &{k} [{', '.join(['*' + prev] * 10)}]"
+        for prev, k in zip("abcdefg", "bcdefgh", strict=True)
+    ]
+    p.write_text("\n".join(levels) + "\ngrasps: {transforms: *h}\n")
+    cases.append(("graspgen", p, {}, "aliases"))
+    p = tmp_path / "many.json"
+    p.write_text(json.dumps({"grasps": {"transforms": [np.eye(4).tolist()] * 50}}))
+    cases.append(("graspgen", p, {"max_count": 10}, "holds 50 grasps"))
+    p = tmp_path / "big.json"
+    p.write_text(
+        json.dumps({"grasps": {"transforms": [np.eye(4).tolist()]}, "pad": "x" * 3_000_000})
+    )
+    cases.append(("graspgen", p, {"max_count": 1}, "bytes"))
+    p = tmp_path / "deep.json"
+    p.write_text("[" * 200_000 + "]" * 200_000)
+    cases.append(("graspgen", p, {}, "nested too deeply"))
+    p = tmp_path / "isaac.yaml"
+    p.write_text(
+        "format: isaac_grasp\ngrasps:\n  g0: {confidence: 1.0, position: [0, 0, .inf],"
+        " orientation: {w: 1, xyz: [0, 0, 0]}}\n"
+    )
+    cases.append(("graspgen", p, {}, "grasp 'g0': position"))
+    return cases
+
+
+def test_hostile_grasp_files_are_one_line_errors(tmp_path):
+    for fmt, path, extra, message in _hostile_files(tmp_path):
+        with pytest.raises(InputError, match=message) as info:
+            generate_candidates(config({"path": str(path), "format": fmt, **extra}))
+        assert "\n" not in str(info.value), (path.name, str(info.value))
+        assert str(path) in str(info.value), (path.name, str(info.value))

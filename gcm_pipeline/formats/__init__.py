@@ -96,7 +96,7 @@ def load_candidates(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
 
         return sample_antipodal_config(cfg)
     assert c.path is not None and c.format is not None
-    grasps = _read(c.format, c.path, c.success_only, c.limit)
+    grasps = _read(c.format, c.path, c.success_only, c.limit, c.max_count)
     poses = grasps.poses
     if c.grasp_to_tool is not None:
         poses = poses @ c.grasp_to_tool.matrix()
@@ -115,13 +115,21 @@ def load_candidates(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     return poses, grasps.columns
 
 
-def _read(fmt: str, path: object, success_only: bool, limit: int | None) -> ImportedGrasps:
+def _read(
+    fmt: str, path: object, success_only: bool, limit: int | None, max_count: int
+) -> ImportedGrasps:
     if fmt == "acronym":  # the built-in reader filters; no per-candidate columns
         from gcm_pipeline.stages.candidates import load_grasp_file
 
-        poses = load_grasp_file(path, format="acronym", success_only=success_only, limit=limit)  # type: ignore[arg-type]
+        poses = load_grasp_file(
+            path,  # type: ignore[arg-type]
+            format="acronym",
+            success_only=success_only,
+            limit=limit,
+            max_count=max_count,
+        )
         return ImportedGrasps(poses, "base")
-    grasps = READERS[fmt](path)  # type: ignore[arg-type]
+    grasps = READERS[fmt](path, max_count=max_count)  # type: ignore[arg-type, operator]
     if success_only:
         if grasps.success is None:
             raise InputError(

@@ -18,7 +18,10 @@ convention      file frame                                    used by
 ``center``      origin at the grasp centre, x = approach,     GraspNet-1Billion,
                 y = closing (``width``), z = the finger       AnyGrasp
                 ``height`` axis; the fingertips reach
-                ``depth`` (per grasp) past the centre along x
+                ``depth`` (per grasp) past the centre along
+                x, so the robot's grasp frame (``finger_tip``
+                behind its fingertips) is ``depth -
+                finger_tip`` past the centre
 =============== ============================================= =====================
 
 Sources for the conventions: ACRONYM's Franka gripper has finger control
@@ -96,7 +99,9 @@ class GripperSpec:
         Args:
             convention: ``base`` or ``center`` (:data:`CONVENTIONS`).
             depth: ``center`` only: how far the fingertips reach past the
-                grasp centre along its x [m], scalar or (N,).
+                grasp centre along its x [m], scalar or (N,). The grasp frame
+                is put ``finger_tip`` behind that point, so that the robot's
+                fingertips end where the file's do.
 
         Returns:
             (4, 4), or (N, 4, 4) for an array ``depth``: ``T_tool = T_file @ to_tool``.
@@ -112,7 +117,8 @@ class GripperSpec:
             m = np.zeros((d.shape[0], 4, 4))
             # tool z = file x (approach); tool y = file y (closing); tool x = -file z
             m[:, :3, :3] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]
-            m[:, 0, 3] = d
+            # the file's fingertips are `depth` past its centre; ours `finger_tip` past the TCP
+            m[:, 0, 3] = d - self.finger_tip
             m[:, 3, 3] = 1.0
             return m[0] if np.ndim(depth) == 0 else m
         raise ConfigError(unknown_choice("gripper frame convention", convention, CONVENTIONS))

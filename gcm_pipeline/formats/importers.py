@@ -55,10 +55,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.errors import InputError
+from gcm_pipeline.errors import InputError, clip
+from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES
 
 __all__ = [
     "IMPORT_FORMATS",
@@ -78,6 +78,34 @@ IMPORT_FORMATS: dict[str, str] = {
 }
 
 _RIGID_TOL = 1e-4
+
+#: Bytes a grasp may take in a text (JSON/YAML) file, and the slack on top (object,
+#: gripper and comments): a file larger than ``max_count`` grasps can fill is refused.
+_TEXT_BYTES_PER_GRASP = 2048
+#: Bytes a grasp may take in a binary (.npy/.npz) file: a pose, scores, contacts,
+#: openings and pickle framing.
+_BINARY_BYTES_PER_GRASP = 512
+_SLACK_BYTES = 1 << 20
+#: YAML values a grasp may take after alias expansion (16 for its pose and a few more).
+_YAML_VALUES_PER_GRASP = 64
+
+
+def _check_count(path: Path, n: int, max_count: int) -> None:
+    if n > max_count:
+        raise InputError(
+            f"{path}: holds {n:,} grasps, more than candidates.max_count ({max_count:,}); "
+            "raise candidates.max_count to read it"
+        )
+
+
+def _check_bytes(path: Path, size: int, max_count: int, per_grasp: int, what: str) -> None:
+    limit = max_count * per_grasp + _SLACK_BYTES
+    if size > limit:
+        raise InputError(
+            f"{path}: {what} take {size:,} bytes, more than {max_count:,} grasps "
+            f"(candidates.max_count) need (at most {limit:,}); raise candidates.max_count "
+            "to read it"
+        )
 
 
 @dataclass
@@ -140,18 +168,23 @@ def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
 # ----------------------------------------------------------------- GraspGen
 
 
-def _read_structured(path: Path) -> Any:
+def _read_structured(path: Path, max_count: int) -> Any:
+    from gcm_pipeline.safe_yaml import load_yaml
+
     try:
+        _check_bytes(path, path.stat().st_size, max_count, _TEXT_BYTES_PER_GRASP, "its grasps")
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
-    try:
-        if path.suffix.lower() == ".json":
+    if path.suffix.lower() == ".json":
+        try:
             return json.loads(text)
-        return yaml.safe_load(text)
-    except (ValueError, yaml.YAMLError) as exc:
-        kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
-        raise InputError(f"{path}: not valid {kind}: {' '.join(str(exc).split())}") from None
+        except ValueError as exc:
+            raise InputError(f"{path}: not valid JSON: {' '.join(str(exc).split())}") from None
+        except RecursionError:
+            raise InputError(f"{path}: not a GraspGen grasp file: JSON nested too deeply") from None
+    max_values = max(_YAML_VALUES_PER_GRASP * max_count, 100_000)
+    return load_yaml(text.removeprefix("\ufeff"), str(path), InputError, max_values=max_values)
 
 
 def _vector(path: Path, value: Any, n: int, what: str) -> np.ndarray:
@@ -164,8 +197,13 @@ def _vector(path: Path, value: Any, n: int, what: str) -> np.ndarray:
     return arr
 
 
-def read_graspgen(path: str | Path) -> ImportedGrasps:
+def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) -> ImportedGrasps:
     """Read a GraspGen grasp file (JSON/YAML dataset layout or ``isaac_grasp`` YAML).
+
+    Args:
+        path: The file.
+        max_count: Most grasps the file may hold (``candidates.max_count``);
+            a larger file is refused before it is parsed.
 
     Returns:
         Gripper base-link poses (``base`` convention, object mesh frame) with
@@ -177,20 +215,22 @@ def read_graspgen(path: str | Path) -> ImportedGrasps:
         InputError: Unreadable file, a layout that is not GraspGen's, bad values.
     """
     path = Path(path)
-    data = _read_structured(path)
+    data = _read_structured(path, max_count)
     if not isinstance(data, dict):
         raise InputError(
             f"{path}: not a GraspGen grasp file: expected a mapping with 'grasps', "
             f"got {type(data).__name__}"
         )
     if data.get("format") == "isaac_grasp":
-        return _read_isaac_grasp(path, data)
+        return _read_isaac_grasp(path, data, max_count)
     grasps = data.get("grasps")
     if not isinstance(grasps, dict) or "transforms" not in grasps:
         raise InputError(
             f"{path}: not a GraspGen grasp file: expected 'grasps: {{transforms: [...]}}' "
             f"or 'format: isaac_grasp' (keys: {', '.join(map(str, data)) or 'none'})"
         )
+    if isinstance(grasps["transforms"], list):
+        _check_count(path, len(grasps["transforms"]), max_count)
     try:
         raw = np.asarray(grasps["transforms"], dtype=float)
     except (TypeError, ValueError):
@@ -219,11 +259,12 @@ def read_graspgen(path: str | Path) -> ImportedGrasps:
     )
 
 
-def _read_isaac_grasp(path: Path, data: dict[str, Any]) -> ImportedGrasps:
+def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> ImportedGrasps:
     grasps = data.get("grasps")
     if not isinstance(grasps, dict):
         raise InputError(f"{path}: isaac_grasp file without a 'grasps' mapping")
     n = len(grasps)
+    _check_count(path, n, max_count)
     pos = np.empty((n, 3))
     quat = np.empty((n, 4))  # w, x, y, z
     score = np.full(n, np.nan)
@@ -237,14 +278,20 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any]) -> ImportedGrasps:
                 score[i] = float(g["confidence"])
         except (KeyError, TypeError, ValueError):
             raise InputError(
-                f"{path}: grasp {name!r}: expected position: [x, y, z] and "
+                f"{path}: grasp {clip(name)}: expected position: [x, y, z] and "
                 "orientation: {w: .., xyz: [x, y, z]}"
             ) from None
+        if not np.isfinite(pos[i]).all():
+            raise InputError(
+                f"{path}: grasp {clip(name)}: position {pos[i].tolist()} is not finite"
+            )
     norm = np.linalg.norm(quat, axis=1)
     bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1.0) > 1e-3))
     if bad.size:
         name = list(grasps)[int(bad[0])]
-        raise InputError(f"{path}: grasp {name!r}: orientation has norm {norm[bad[0]]:.6g}, not 1")
+        raise InputError(
+            f"{path}: grasp {clip(name)}: orientation has norm {norm[bad[0]]:.6g}, not 1"
+        )
     poses = np.zeros((n, 4, 4))
     if n:
         poses[:, :3, :3] = Rotation.from_quat((quat / norm[:, None])[:, [1, 2, 3, 0]]).as_matrix()
@@ -266,23 +313,46 @@ _SAFE_GLOBALS = {
 }
 
 
+def _empty_reconstruct(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
+    """NumPy's pickled-array constructor, for the empty arrays a pickle starts from.
+
+    A pickled array is built as an empty array whose state (shape and data)
+    is then set from the pickle's bytes; a pickle that asks the constructor
+    itself for a large array would allocate memory the file never held.
+    """
+    if subtype is not np.ndarray or int(np.prod(shape, dtype=object)) != 0:
+        raise pickle.UnpicklingError("refusing a pickled array that is not built from its data")
+    return np.ndarray.__new__(subtype, shape, dtype)
+
+
 class _ArrayUnpickler(pickle.Unpickler):
     """Unpickles NumPy arrays, dtypes and scalars in plain containers; nothing else."""
 
     def find_class(self, module: str, name: str) -> Any:
         if (module, name) not in _SAFE_GLOBALS:
             raise pickle.UnpicklingError(f"refusing to load {module}.{name}")
+        if name == "_reconstruct":
+            return _empty_reconstruct
         return super().find_class(module, name)
 
 
-def _read_npz_members(path: Path) -> dict[str, Any]:
-    """Every array of an ``.npz``; object arrays through :class:`_ArrayUnpickler`."""
+def _read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
+    """Every array of an ``.npz``; object arrays through :class:`_ArrayUnpickler`.
+
+    Sizes are checked before anything is read: all members together at most
+    what ``max_count`` grasps take, and each plain array's header against
+    the bytes its member holds.
+    """
+    from gcm_pipeline.io import npy_header
+
     out: dict[str, Any] = {}
     try:
         with zipfile.ZipFile(path) as zf:
-            for info in zf.infolist():
-                if not info.filename.endswith(".npy"):
-                    continue
+            infos = [i for i in zf.infolist() if i.filename.endswith(".npy")]
+            total = sum(i.file_size for i in infos)
+            _check_bytes(path, total, max_count, _BINARY_BYTES_PER_GRASP, "its arrays")
+            for info in infos:
+                name = info.filename[: -len(".npy")]
                 with zf.open(info) as fh:
                     version = np.lib.format.read_magic(fh)
                     if version == (1, 0):
@@ -290,13 +360,25 @@ def _read_npz_members(path: Path) -> dict[str, Any]:
                     else:
                         _, _, dtype = np.lib.format.read_array_header_2_0(fh)
                     if dtype.hasobject:
-                        value = _ArrayUnpickler(fh).load()
-                    else:
-                        with zf.open(info) as fh2:
-                            value = np.lib.format.read_array(fh2, allow_pickle=False)
-                out[info.filename[: -len(".npy")]] = value
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, pickle.UnpicklingError) as exc:
-        raise InputError(f"{path}: not a readable .npz archive: {exc}") from None
+                        out[name] = _ArrayUnpickler(fh).load()
+                        continue
+                with zf.open(info) as fh:
+                    npy_header(path, fh, f"array {clip(name)}", info.file_size)
+                with zf.open(info) as fh:
+                    out[name] = np.lib.format.read_array(fh, allow_pickle=False)
+    except InputError:
+        raise
+    except (
+        zipfile.BadZipFile,
+        OSError,
+        ValueError,
+        EOFError,
+        TypeError,
+        SyntaxError,
+        NotImplementedError,
+        pickle.UnpicklingError,
+    ) as exc:
+        raise InputError(f"{path}: not a readable .npz archive: {clip(str(exc))}") from None
     return out
 
 
@@ -309,11 +391,18 @@ def _segments(value: Any) -> dict[Any, np.ndarray]:
     return {-1: value}
 
 
-def read_contact_graspnet(path: str | Path) -> ImportedGrasps:
+def read_contact_graspnet(
+    path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES
+) -> ImportedGrasps:
     """Read Contact-GraspNet predictions (``pred_grasps_cam`` and friends).
 
     Segments are read in ascending order of their id; within a segment rows
     stay in file order.
+
+    Args:
+        path: The ``.npz`` file.
+        max_count: Most grasps the file may hold (``candidates.max_count``);
+            its arrays are sized before they are read.
 
     Returns:
         Gripper base poses (``base`` convention) in the camera frame with
@@ -326,7 +415,7 @@ def read_contact_graspnet(path: str | Path) -> ImportedGrasps:
             lengths, non-rigid poses.
     """
     path = Path(path)
-    arrays = _read_npz_members(path)
+    arrays = _read_npz_members(path, max_count)
     if "pred_grasps_cam" not in arrays:
         raise InputError(
             f"{path}: not a Contact-GraspNet prediction file: no array 'pred_grasps_cam' "
@@ -340,11 +429,19 @@ def read_contact_graspnet(path: str | Path) -> ImportedGrasps:
     except (TypeError, ValueError):
         keys = sorted(grasps, key=str)
     parts, cols = [], {"score": [], "width": [], "segment": [], "source_id": []}
+    _check_count(path, sum(int(np.size(v)) // 16 for v in grasps.values()), max_count)
     for key in keys:
-        raw = np.asarray(grasps[key])
+        what = f"pred_grasps_cam[{clip(key, 40)}]"
+        value = grasps[key]
+        raw = value if isinstance(value, np.ndarray) else np.asarray(value, dtype=object)
         if raw.size == 0:
             continue
-        poses = check_poses(path, raw.reshape(-1, 4, 4), f"pred_grasps_cam[{key}]")
+        if raw.ndim not in (2, 3) or raw.shape[-2:] != (4, 4):
+            raise InputError(
+                f"{path}: {what} must be an (M, 4, 4) array of poses, got "
+                f"{type(value).__name__} of shape {raw.shape}"
+            )
+        poses = check_poses(path, raw.reshape(-1, 4, 4), what)
         m = len(poses)
         parts.append(poses)
         score = scores.get(key)
@@ -359,8 +456,10 @@ def read_contact_graspnet(path: str | Path) -> ImportedGrasps:
         )
         try:
             seg = int(float(key))
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             seg = keys.index(key)
+        if abs(seg) >= 2**62:
+            raise InputError(f"{path}: segment id {clip(key, 40)} is not an integer id")
         cols["segment"].append(np.full(m, seg, dtype=np.int64))
         cols["source_id"].append(np.arange(m, dtype=np.int64))
     if not parts:
@@ -374,8 +473,13 @@ def read_contact_graspnet(path: str | Path) -> ImportedGrasps:
 GRASPNET_ROW = 17
 
 
-def read_graspnet(path: str | Path) -> ImportedGrasps:
+def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) -> ImportedGrasps:
     """Read GraspNet-1Billion / AnyGrasp grasp rows (``GraspGroup`` arrays).
+
+    Args:
+        path: The ``.npy`` (or ``.npz``) file.
+        max_count: Most grasps the file may hold (``candidates.max_count``),
+            checked from the array's header before it is read.
 
     Returns:
         Grasp-centre poses (``center`` convention) with ``score``, ``width``
@@ -386,7 +490,7 @@ def read_graspnet(path: str | Path) -> ImportedGrasps:
     """
     path = Path(path)
     if path.suffix.lower() == ".npz":
-        arrays = _read_npz_members(path)
+        arrays = _read_npz_members(path, max_count)
         names = [k for k in ("grasp_group_array", "grasps", "preds") if k in arrays]
         if not names and len(arrays) == 1:
             names = list(arrays)
@@ -397,20 +501,20 @@ def read_graspnet(path: str | Path) -> ImportedGrasps:
             )
         rows = arrays[names[0]]
     else:
-        try:
-            rows = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{path}: not a readable .npy array: {exc}") from None
+        rows = _read_graspnet_npy(path, max_count)
     rows = np.asarray(rows)
-    if rows.ndim != 2 or rows.shape[1] != GRASPNET_ROW or rows.dtype.kind not in "fiu":
-        raise InputError(
-            f"{path}: expected GraspNet rows (N, {GRASPNET_ROW}) = [score, width, height, "
-            f"depth, R (9), t (3), object_id], got shape {rows.shape} dtype {rows.dtype}"
-        )
+    _check_graspnet_shape(path, rows.shape, rows.dtype)
+    _check_count(path, len(rows), max_count)
     rows = rows.astype(float)
     bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
     if bad.size:
         raise InputError(f"{path}: row {int(bad[0])} (0-based) has non-finite values")
+    bad = np.flatnonzero(np.abs(rows[:, 16]) >= 2.0**53)
+    if bad.size:
+        raise InputError(
+            f"{path}: row {int(bad[0])} (0-based): object_id {rows[bad[0], 16]:g} is not an "
+            "integer id"
+        )
     n = len(rows)
     poses = np.zeros((n, 4, 4))
     poses[:, :3, :3] = rows[:, 4:13].reshape(n, 3, 3)
@@ -424,6 +528,31 @@ def read_graspnet(path: str | Path) -> ImportedGrasps:
         "source_id": np.arange(n, dtype=np.int64),
     }
     return ImportedGrasps(poses, "center", columns, depth=rows[:, 3].copy())
+
+
+def _check_graspnet_shape(path: Path, shape: tuple[int, ...], dtype: np.dtype[Any]) -> None:
+    if len(shape) != 2 or shape[1] != GRASPNET_ROW or dtype.kind not in "fiu":
+        raise InputError(
+            f"{path}: expected GraspNet rows (N, {GRASPNET_ROW}) = [score, width, height, "
+            f"depth, R (9), t (3), object_id], got shape {shape} dtype {dtype}"
+        )
+
+
+def _read_graspnet_npy(path: Path, max_count: int) -> np.ndarray:
+    """The rows of a ``.npy`` file, its header checked before the data is read."""
+    from gcm_pipeline.io import npy_header
+
+    try:
+        with path.open("rb") as fh:
+            shape, dtype = npy_header(path, fh, "the array", path.stat().st_size)
+            _check_graspnet_shape(path, shape, dtype)
+            _check_count(path, shape[0], max_count)
+            fh.seek(0)
+            return np.lib.format.read_array(fh, allow_pickle=False)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise InputError(f"{path}: not a readable .npy array: {clip(str(exc))}") from None
 
 
 READERS = {

@@ -199,3 +199,100 @@ def test_cli_export_and_an_empty_run(run, tmp_path, capsys):
     with pytest.raises(InputError, match="not a run directory"):
         export_run(tmp_path, "npz")
     assert not list(tmp_path.glob(".*.tmp"))  # nothing half-written
+
+
+# ------------------------------------------------ tampered runs, odd arguments
+
+
+def _copy_run(run: Path, dest: Path) -> Path:
+    import shutil
+
+    shutil.copytree(run, dest)
+    return dest
+
+
+def test_export_reads_grasps_csv_as_the_run_reader_does(run, tmp_path):
+    """Blank lines, a byte order mark and CRLF line ends are read (read_grasps_csv ignores
+    them), so the exports of the edited file equal those of the original."""
+    edited = _copy_run(run, tmp_path / "edited")
+    lines = (run / "grasps.csv").read_text(encoding="utf-8").splitlines()
+    lines.insert(3, "")
+    lines.append("")
+    text = "\ufeff" + "\r\n".join(lines) + "\r\n"
+    (edited / "grasps.csv").write_bytes(text.encode("utf-8"))
+    for fmt in ("moveit", "parquet", "npz"):
+        a = export_run(run, fmt, top=4, out=tmp_path / f"a.{fmt}")
+        b = export_run(edited, fmt, top=4, out=tmp_path / f"b.{fmt}")
+        assert a.rows == b.rows == 4
+        if fmt == "moveit":
+            assert (tmp_path / "a.moveit").read_text() == (tmp_path / "b.moveit").read_text()
+
+
+@pytest.mark.parametrize("fmt", ["moveit", "parquet", "npz"])
+def test_an_empty_export_is_a_valid_file_in_every_format(run, tmp_path, fmt):
+    """A run whose grasps.csv has no row (or no reachable one with --top) still exports an
+    empty file of the format, then says so in one line."""
+    empty = _copy_run(run, tmp_path / "empty")
+    header = (run / "grasps.csv").read_text(encoding="utf-8").splitlines()[0]
+    (empty / "grasps.csv").write_text(header + "\n", encoding="utf-8")
+    out = tmp_path / f"none.{fmt}"
+    with pytest.raises(InputError, match="no reachable grasp to export; wrote an empty"):
+        export_run(empty, fmt, top=5, out=out)
+    if fmt == "moveit":
+        assert yaml.safe_load(out.read_text()) == []
+    elif fmt == "parquet":
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(out)
+        assert table.num_rows == 0 and "q" in table.column_names
+    else:
+        with np.load(out, allow_pickle=False) as data:
+            assert data["pose"].shape == (0, 4, 4) and data["q"].shape[0] == 0
+
+
+def test_top_must_ask_for_at_least_one_grasp(run, tmp_path, capsys):
+    for top in ("0", "-1"):
+        out = tmp_path / f"top{top}.yaml"
+        code = main(["export", str(run), "--format", "moveit", "--top", top, "--out", str(out)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and "--top must be >= 1" in err[0], err
+        assert not out.exists()
+
+
+def test_out_never_overwrites_the_run_itself(run, tmp_path, capsys):
+    copy = _copy_run(run, tmp_path / "copy")
+    before = {p.name: p.read_bytes() for p in copy.iterdir() if p.is_file()}
+    for name in ("grasps.csv", "config.yaml", "summary.json", "manifold.npz", ".gcm.json"):
+        code = main(["export", str(copy), "--format", "parquet", "--out", str(copy / name)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and "the run's own" in err[0], err
+    assert {p.name: p.read_bytes() for p in copy.iterdir() if p.is_file()} == before
+    # a previous export of the run is fine to replace
+    assert main(["export", str(copy), "--format", "parquet", "--out", str(copy / "a.pq")]) == 0
+    assert main(["export", str(copy), "--format", "parquet", "--out", str(copy / "a.pq")]) == 0
+
+
+def test_out_where_no_file_can_be_made_is_one_line(run, capsys):
+    code = main(["export", str(run), "--format", "npz", "--out", "/proc/gcm-export.npz"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: cannot write"), err
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        "robot: 5\ncandidates: {source: plane, count: 3}\n",
+        "robot: {base_pose: {xyz: [1, 2]}}\ncandidates: {source: plane, count: 3}\n",
+        "approach: {distance: abc}\ncandidates: {source: plane, count: 3}\n",
+        "retreat: 5\ncandidates: {source: plane, count: 3}\n",
+        "[1, 2\n",
+    ],
+)
+def test_a_tampered_config_yaml_is_one_line(run, tmp_path, capsys, config):
+    bad = _copy_run(run, tmp_path / "bad")
+    (bad / "config.yaml").write_text(config)
+    code = main(["export", str(bad), "--format", "moveit", "--out", str(tmp_path / "m.yaml")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: "), err
+    assert "config.yaml" in err[0]
+    assert not (tmp_path / "m.yaml").exists()

@@ -36,13 +36,12 @@ closed to half the grasp's ``width`` per finger when known, else 0).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import yaml
@@ -51,6 +50,9 @@ from scipy.spatial.transform import Rotation
 from gcm_pipeline.errors import InputError, OutputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
 from gcm_pipeline.table import GraspTable
+
+if TYPE_CHECKING:
+    from gcm_pipeline.config import Config
 
 __all__ = ["EXPORT_FORMATS", "ExportResult", "export_run"]
 
@@ -91,33 +93,36 @@ def export_run(
         The file and the number of grasps written.
 
     Raises:
-        InputError: Not a run directory, unknown format, ``top < 0``, or no
-            reachable grasp to export (after an empty, valid file is written).
+        InputError: Not a run directory, unknown format, ``top < 1``, ``out``
+            naming one of the run's own files, or no reachable grasp to
+            export (after an empty, valid file is written).
+        ConfigError: The run's ``config.yaml`` is not a valid config.
         OutputError: The file cannot be written.
     """
+    from gcm_pipeline.config import load_config
     from gcm_pipeline.io import read_grasps_csv
 
     if format not in EXPORT_FORMATS:
         raise InputError(unknown_choice("export format", format, EXPORT_FORMATS))
-    if top is not None and top < 0:
-        raise InputError(f"--top must be >= 0, got {top}")
+    if top is not None and top < 1:
+        raise InputError(f"--top must be >= 1, got {top}")
     run = Path(run_dir)
     if not (run / "grasps.csv").is_file() or not (run / "config.yaml").is_file():
         raise InputError(f"not a run directory: {run} (needs grasps.csv and config.yaml)")
+    path = Path(out) if out is not None else run / EXPORT_FORMATS[format]
+    _check_not_the_run(run, path)
     grasps = read_grasps_csv(run / "grasps.csv")  # file order: ranked first
     # the exact x..qz of the file (the dq column rebuilt from them may differ by an ulp)
     grasps = grasps.with_columns(pose7=_csv_pose(run / "grasps.csv", len(grasps)))
-    config = _read_yaml(run / "config.yaml")
-    summary = _read_json(run / "summary.json")
+    config = load_config(run / "config.yaml")
     ranked = np.asarray(grasps["rank"]) > 0 if "rank" in grasps else np.zeros(len(grasps), bool)
     if format == "moveit" or top is not None:
         rows = np.flatnonzero(ranked)
         if top is not None:
             rows = rows[:top]
         grasps = grasps.take(rows)
-    path = Path(out) if out is not None else run / EXPORT_FORMATS[format]
     writers: dict[str, Callable[[GraspTable, Path], None]] = {
-        "moveit": lambda g, p: _write_moveit(g, config, summary, p),
+        "moveit": lambda g, p: _write_moveit(g, config, p),
         "parquet": _write_parquet,
         "npz": _write_npz,
     }
@@ -136,27 +141,29 @@ def _csv_pose(path: Path, n: int) -> np.ndarray:
     """The ``x, y, z, qw, qx, qy, qz`` columns of ``grasps.csv`` as written (N, 7)."""
     import csv
 
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
-        header = next(reader)
-        cols = [header.index(c) for c in _POSE7]
-        return np.array([[float(row[j]) for j in cols] for row in reader]).reshape(n, 7)
+    # read as io.read_grasps_csv reads it (which has checked the file): BOM and blank lines
+    with path.open(newline="", encoding="utf-8-sig") as fh:
+        rows = [row for row in csv.reader(fh) if any(cell.strip() for cell in row)]
+    cols = [rows[0].index(c) for c in _POSE7]
+    return np.array([[float(row[j]) for j in cols] for row in rows[1:]]).reshape(n, 7)
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from None
-    return data if isinstance(data, dict) else {}
+#: Files of a run directory an export never replaces.
+_RUN_OWN_FILES = frozenset(
+    ("grasps.csv", "summary.json", "manifold.npz", "config.yaml", "configurations.npz")
+    + (".gcm.json", "scene.html")
+)
 
 
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
+def _check_not_the_run(run: Path, path: Path) -> None:
+    """Refuse an export file that would replace one of the run's own files."""
+    target = path.resolve()
+    if target.parent == run.resolve() and (
+        target.name in _RUN_OWN_FILES or target.suffix.lower() == ".png"
+    ):
+        raise InputError(
+            f"--out {path} would overwrite the run's own {target.name}; choose another file"
+        )
 
 
 def _atomic(path: Path, write: Callable[[Path], None]) -> None:
@@ -164,7 +171,10 @@ def _atomic(path: Path, write: Callable[[Path], None]) -> None:
     parent = path.parent
     if not parent.is_dir():
         raise OutputError(f"cannot write {path}: {parent} is not a directory")
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
     os.close(fd)
     tmp = Path(name)
     try:
@@ -205,7 +215,8 @@ def _flat_columns(g: GraspTable) -> dict[str, np.ndarray]:
         elif name in g:
             cols[name] = np.asarray(g[name])
     if "q" in g:
-        cols["q"] = np.asarray(g["q"], dtype=float).reshape(n, -1)
+        q = np.asarray(g["q"], dtype=float)
+        cols["q"] = q.reshape(n, q.shape[-1] if q.ndim == 2 else -1)
     for name in g.columns:
         col = np.asarray(g[name])
         if (
@@ -288,36 +299,31 @@ def _posture(frame: str, joints: list[str], positions: list[float], t: float) ->
     return {"header": _header(frame), "joint_names": list(joints), "points": points}
 
 
-def _robot_frames(config: dict[str, Any]) -> tuple[str, str, dict[str, float]]:
+def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
     """Root frame, grasp frame and locked joints of the run's robot spec."""
     import pinocchio as pin
 
     from gcm_pipeline.robot.model import _erd_paths, load_spec
 
-    spec = load_spec((config.get("robot") or {}).get("spec", "panda"))
+    spec = load_spec(config.robot.spec)
     urdf = _erd_paths(spec.example_robot_data)[0] if spec.example_robot_data else spec.urdf
     model = pin.buildModelFromUrdf(str(urdf))
     root = model.frames[1].name if len(model.frames) > 1 else "world"
     return root, spec.grasp_frame, dict(spec.locked_joints)
 
 
-def _write_moveit(
-    g: GraspTable, config: dict[str, Any], summary: dict[str, Any], path: Path
-) -> None:
-    from gcm_pipeline.config import Pose
+def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
     from gcm_pipeline.formats.grippers import GRIPPERS
     from gcm_pipeline.stages.ranking import METRIC_COLUMNS
 
     root, tool, locked = _robot_frames(config)
-    base = Pose(**((config.get("robot") or {}).get("base_pose") or {})).matrix()
+    base = config.robot.base_pose.matrix()
     n = len(g)
     world = dq_to_matrix(np.asarray(g["dq"], dtype=float).reshape(n, 8))
     in_base = np.linalg.inv(base) @ world
     pos = in_base[:, :3, 3]
     quat = Rotation.from_matrix(in_base[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
-    metric = (summary.get("ranking") or {}).get("metric") or (config.get("ranking") or {}).get(
-        "metric", "yoshikawa"
-    )
+    metric = config.ranking.metric
     quality_col = METRIC_COLUMNS.get(metric, "manipulability")
     quality = np.asarray(g[quality_col] if quality_col in g else g["manipulability"], dtype=float)
     width = np.asarray(g["width"], dtype=float) if "width" in g else np.full(n, np.nan)
@@ -328,17 +334,16 @@ def _write_moveit(
     joints = list(gripper.finger_joints) if gripper is not None else []
     open_pos = [float(locked[j]) for j in joints]
     hand_frame = gripper.hand_frame if gripper is not None else tool
-    approach = config.get("approach") or {}
-    d_app = float(approach.get("distance", 0.0)) if approach else 0.0
-    retreat = config.get("retreat") or None
-    if retreat:
-        direction = np.asarray(retreat.get("direction", [0.0, 0.0, 1.0]), dtype=float)
-        direction = direction / (np.linalg.norm(direction) or 1.0)
-        if retreat.get("frame", "world") == "world":
+    d_app = config.approach.distance if config.approach is not None else 0.0
+    retreat = config.retreat
+    if retreat is not None:
+        direction = np.asarray(retreat.direction, dtype=float)
+        direction = direction / np.linalg.norm(direction)
+        if retreat.frame == "world":
             retreat_frame, retreat_dir = root, np.linalg.inv(base)[:3, :3] @ direction
         else:
             retreat_frame, retreat_dir = tool, direction
-        d_ret = float(retreat.get("distance", 0.0))
+        d_ret = float(retreat.distance)
     else:  # the approach reversed
         retreat_frame, retreat_dir, d_ret = tool, np.array([0.0, 0.0, -1.0]), d_app
     rank = np.asarray(g["rank"]) if "rank" in g else np.arange(1, n + 1)

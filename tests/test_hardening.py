@@ -361,7 +361,7 @@ def test_a_bad_spec_is_reported_before_the_existing_output(capsys, tmp_path):
     assert "--force" not in err
 
 
-def test_a_mesh_with_nan_vertices_is_refused(tmp_path):
+def test_a_mesh_with_nan_vertices_is_refused(tmp_path, capfd):
     (tmp_path / "m.obj").write_text(
         "v 0 0 0\nv 1 0 0\nv 0 nan 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 4\n"
     )
@@ -374,6 +374,10 @@ def test_a_mesh_with_nan_vertices_is_refused(tmp_path):
     )
     with pytest.raises(InputError, match=r"environment.obstacles.0: mesh file .*m.obj.*not finite"):
         preflight(load_config(cfg))
+    capfd.readouterr()
+    code = main(["validate", str(cfg)])
+    out, err = capfd.readouterr()  # file-descriptor level: the mesh library prints nothing
+    _one_line_error(code, err, "vertex 2 is not finite")
 
 
 # --------------------------------------------------------------- tampered run directories

@@ -32,6 +32,9 @@ def read_mesh(path: str | Path, scale: Any = 1.0) -> Any:
     p = Path(path).expanduser()
     if not p.is_file():
         raise MeshReadError(f"mesh file {str(p)!r} does not exist")
+    bad = _first_nonfinite_vertex(p)  # before coal: its BVH fit prints on NaN input
+    if bad is not None:
+        raise MeshReadError(f"mesh file {str(p)!r}: vertex {bad} is not finite")
     factors = np.broadcast_to(np.asarray(scale, dtype=float), (3,)).copy()
     try:
         mesh = coal.MeshLoader().load(str(p), factors)
@@ -46,3 +49,16 @@ def read_mesh(path: str | Path, scale: Any = 1.0) -> Any:
         i = int(np.flatnonzero(~np.isfinite(verts).all(axis=1))[0])
         raise MeshReadError(f"mesh file {str(p)!r}: vertex {i} is not finite")
     return mesh
+
+
+def _first_nonfinite_vertex(path: Path) -> int | None:
+    """Index of the first NaN/inf vertex of a mesh file trimesh can read, else None."""
+    try:
+        import trimesh
+
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+        verts = np.asarray(mesh.vertices, dtype=float).reshape(-1, 3)
+    except Exception:  # coal reads it (or says why not)
+        return None
+    bad = np.flatnonzero(~np.isfinite(verts).all(axis=1))
+    return int(bad[0]) if bad.size else None

@@ -18,8 +18,12 @@ the speed-up of 2 workers over 1 (target >= 1.7 on 2 cores) and Ray's overhead
 with 1 worker against inline (target <= 10 %). Correctness on the same work:
 every placement's reachable count must be identical in the three runs.
 
+Every process uses one BLAS thread (``OMP_NUM_THREADS=1``, as Ray gives its
+1-CPU actors), so inline and Ray run the same work.
+
 Run: ``python benchmarks/bench_study.py`` (about 4 minutes on a quiet 2-core
-machine; writes ``benchmarks/results/study.json``).
+machine; ``--placements 10`` for a quick check; writes
+``benchmarks/results/study.json``).
 """
 
 from __future__ import annotations
@@ -41,6 +45,11 @@ os.environ["PYTHONPATH"] = os.pathsep.join(
     [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]
 )
 os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+# One BLAS thread per process, in this process as in Ray's 1-CPU actors (Ray sets
+# OMP_NUM_THREADS=1 for them): the inline reference then does the same work; with
+# BLAS's default two threads a placement ran about 2x slower here under load.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 from gcm_pipeline.study import Study  # noqa: E402
 
@@ -127,6 +136,7 @@ def main() -> None:
         "ray_overhead_1_worker": overhead,
         "identical_results": identical,
         "load_average": os.getloadavg(),
+        "blas_threads": os.environ.get("OMP_NUM_THREADS"),
         "cpus": os.cpu_count(),
         "python": platform.python_version(),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S"),

@@ -55,6 +55,14 @@ DEFAULT_FRICTION = 0.5
 #: Opening kept free beyond the contact width [m].
 _CLEARANCE = 0.005
 _MIN_WIDTH = 0.002
+#: Grasps whose hand is checked against object and table at once (their check
+#: points take about 27 MB), so memory stays flat for any ``count``.
+_CHUNK_POSES = 4096
+#: Sampling stops once this many times ``count`` grasps are collision-free;
+#: ``count`` of them are then drawn at random.
+_POOL_FACTOR = 4
+#: Most surface points drawn in one round.
+_MAX_POINTS = 1_000_000
 
 
 def object_mesh(obj: ObjectConfig) -> Any:
@@ -91,6 +99,9 @@ def object_mesh(obj: ObjectConfig) -> Any:
     mesh.apply_scale(obj.scale)
     if not mesh.is_watertight:
         log.warning("object.mesh %s is not watertight: inside tests may be wrong", obj.mesh)
+    elif mesh.volume < 0:  # faces wound inside out: normals point into the object
+        log.info("object.mesh %s: faces wound inside out; turned", obj.mesh)
+        mesh.invert()
     return mesh
 
 
@@ -180,7 +191,7 @@ def sample_antipodal(
     max_width = gripper.max_width - _CLEARANCE
     found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     total = 0
-    n_points = max(100, 4 * count)
+    n_points = min(max(100, 4 * count), _MAX_POINTS)
     for _ in range(10):  # more surface points while too few grasps survive
         pts, face = _sample_surface(mesh, n_points, rng)
         n1 = mesh.face_normals[face]
@@ -201,15 +212,27 @@ def sample_antipodal(
                 sel = np.sort(rng.choice(sel, size=cap, replace=False))
             if len(sel):
                 quality = np.minimum(cos1, cos2)[sel]
-                poses, score, w = _frames(
-                    p1[sel], hit[sel], dd[sel], quality, gripper, approaches, rng
-                )
-                keep = _collision_free(mesh, poses, checks, arm, world, floor_z)
-                found.append((poses[keep], score[keep], w[keep]))
-                total += int(keep.sum())
+                phase = rng.uniform(0.0, 2 * math.pi, (len(sel), 1))
+                step = max(1, _CHUNK_POSES // approaches)
+                for start in range(0, len(sel), step):
+                    part = sel[start : start + step]
+                    poses, score, w = _frames(
+                        p1[part],
+                        hit[part],
+                        dd[part],
+                        quality[start : start + step],
+                        gripper,
+                        phase[start : start + step],
+                        approaches,
+                    )
+                    keep = _collision_free(mesh, poses, checks, arm, world, floor_z)
+                    found.append((poses[keep], score[keep], w[keep]))
+                    total += int(keep.sum())
+                    if total >= _POOL_FACTOR * count:
+                        break
         if total >= count:
             break
-        n_points *= 2
+        n_points = min(2 * n_points, _MAX_POINTS)
     if total == 0:
         return np.zeros((0, 4, 4)), {"score": np.zeros(0), "width": np.zeros(0)}
     poses = np.concatenate([f[0] for f in found])
@@ -233,13 +256,16 @@ def _frames(
     d: np.ndarray,
     quality: np.ndarray,
     gripper: GripperSpec,
+    phase: np.ndarray,
     approaches: int,
-    rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Grasp frames (P * K, 4, 4) around each contact axis, with score and width."""
+    """Grasp frames (P * K, 4, 4) around each contact axis, with score and width.
+
+    The K approaches of a pair are evenly spaced from its ``phase`` (P, 1) [rad].
+    """
     n, k = len(p1), approaches
     a, b = _perpendicular_basis(d)
-    theta = rng.uniform(0.0, 2 * math.pi, (n, 1)) + 2 * math.pi * np.arange(k) / k
+    theta = phase + 2 * math.pi * np.arange(k) / k
     z = np.cos(theta)[..., None] * a[:, None] + np.sin(theta)[..., None] * b[:, None]
     y = np.broadcast_to(d[:, None], z.shape)
     x = np.cross(y, z)
@@ -310,11 +336,13 @@ def sample_antipodal_config(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarr
         floor_z=None if table is None else table.height,
     )
     if len(poses) == 0:
+        size = " x ".join(f"{1000 * e:.3g}" for e in mesh.extents)
         raise InputError(
             f"candidates.source 'antipodal': no collision-free antipodal grasp on the "
-            f"{obj.shape} object for gripper {gripper.name!r} (opening "
-            f"{gripper.max_width:g} m, friction {c.friction:g}); is the object wider "
-            "than the opening everywhere?"
+            f"{obj.shape} object ({size} mm) for gripper {gripper.name!r}: the fingers need "
+            f"two faces {1000 * _MIN_WIDTH:g} to {1000 * (gripper.max_width - _CLEARANCE):g} mm "
+            f"apart, each within the friction cone (friction {c.friction:g}) of the closing "
+            "direction, and room for the open hand outside the object and above the table"
         )
     if len(poses) < c.count:
         log.warning("antipodal: %d of %d grasps found", len(poses), c.count)

@@ -242,6 +242,24 @@ def test_an_unreadable_mesh_stops_the_study_before_any_work(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_a_missing_file_of_any_object_stops_the_study_before_any_work(tmp_path, capsys):
+    data = _small(
+        {
+            "objects": [
+                {"name": "bottle"},
+                {"name": "mug", "set": [f"candidates.path={tmp_path / 'missing.npy'}"]},
+            ]
+        }
+    )
+    data["base"] = str(FROM_FILE)
+    out = tmp_path / "out"
+    code = main(["study", str(_study_file(tmp_path, data)), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "(mug): candidates.path: file not found" in err and "missing.npy" in err
+    assert not out.exists()
+
+
 def test_a_study_above_its_limit_needs_force(tmp_path, capsys):
     data = _small({"object_pose": {"x": {"from": 0.3, "to": 0.7, "steps": 30}}}, max_placements=20)
     out = tmp_path / "out"

@@ -34,7 +34,7 @@ from tqdm.auto import tqdm
 
 from gcm_pipeline import io
 from gcm_pipeline.config import Config
-from gcm_pipeline.errors import ConfigError, GcmError
+from gcm_pipeline.errors import ConfigError, GcmError, InputError
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
 from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
 
@@ -165,10 +165,13 @@ class Study:
     def check(self, out_dir: str | Path, *, force: bool = False) -> bool:
         """Check the study and its directory before any work; True when it resumes.
 
-        Checks the size limit (``max_placements``, or ``force``), that the first
-        placement of each object resolves and its inputs exist (the same
-        preflight as ``gcm run``), and that ``out_dir`` is empty, new or holds
-        this very study.
+        Checks the size limit (``max_placements``, or ``force``), ``gcm run``'s
+        preflight on the first placement (robot, meshes, files), that the first
+        placement of every other object resolves and its files exist (a damaged
+        file fails that object's placements, recorded, as reading files is a
+        placement's work: a list of thousands of objects does not wait for all
+        of them to load), and that ``out_dir`` is empty, new or holds this very
+        study.
 
         Raises:
             ConfigError: The study is too large without ``force``, or a placement
@@ -192,9 +195,15 @@ class Study:
         for p in grid_placements:
             if p.object in seen:
                 continue
+            where = f"placement {p.id} ({p.label()})"
+            cfg = self.plan.resolve(p.overrides, where=where)
+            if not seen:  # gcm run's preflight once: the robot, meshes, files
+                preflight(cfg)
+            else:  # every other object: its files exist (reading them is its placements' work)
+                for key, path in input_files(cfg).items():
+                    if not path.is_file():
+                        raise InputError(f"{where}: {key}: file not found: {path}")
             seen.add(p.object)
-            cfg = self.plan.resolve(p.overrides, where=f"placement {p.id} ({p.label()})")
-            preflight(cfg)
             keep += list(input_files(cfg).values())
         return StudyDir(out_dir).check(self.plan.key(), keep=keep)
 

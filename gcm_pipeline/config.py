@@ -306,6 +306,11 @@ class CandidatesConfig(_Section):
             self.source == "file" and self.format in ("contact_graspnet", "graspnet")
         ):
             raise ValueError("'camera_pose' applies to format contact_graspnet or graspnet")
+        if self.camera_pose is not None and self.frame == "object":
+            raise ValueError(
+                "give 'camera_pose' (the grasps are in the camera frame) or 'frame: object', "
+                "not both"
+            )
         if self.source == "file" and self.format == "contact_graspnet" and not self.camera_pose:
             raise ValueError(
                 "'camera_pose' is missing: format 'contact_graspnet' predicts grasps in "

@@ -479,3 +479,16 @@ def test_hostile_grasp_files_are_one_line_errors(tmp_path):
             generate_candidates(config({"path": str(path), "format": fmt, **extra}))
         assert "\n" not in str(info.value), (path.name, str(info.value))
         assert str(path) in str(info.value), (path.name, str(info.value))
+
+
+def test_camera_pose_and_object_frame_are_not_both_taken():
+    """With both, the object frame was silently ignored."""
+    with pytest.raises(ConfigError, match="'camera_pose'.*or 'frame: object', not both"):
+        config(
+            {
+                "path": "g.npy",
+                "format": "graspnet",
+                "camera_pose": {"xyz": [0, 0, 1]},
+                "frame": "object",
+            }
+        )

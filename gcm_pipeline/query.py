@@ -447,6 +447,8 @@ class GraspManifold:
         def offer(
             i: np.ndarray, dq: np.ndarray, q: np.ndarray, t: np.ndarray, w: np.ndarray
         ) -> None:
+            if not len(i):
+                return
             d = pose_distance(dq, query[i], self.orientation_scale)
             # several offers for one query: keep the nearest (lexsort by distance)
             order = np.lexsort((d, i))
@@ -468,7 +470,7 @@ class GraspManifold:
             tree = cKDTree(np.concatenate((feat, flip)))
             _, idx = tree.query(pose_features(query, self.orientation_scale), k=2 * k)
             idx = np.asarray(idx).reshape(m, 2 * k) % rows_ok.size
-            near = np.stack([_first_unique(r, k) for r in idx]) if m else near
+            near = _first_unique(idx, k)
             near = rows_ok[near]
         # 1. the nearest manifold point, warm-started from its vertices and the nearest rows
         tri_rows = self.triangles[loc.triangle]
@@ -780,12 +782,14 @@ class GraspManifold:
 
 
 def _first_unique(values: np.ndarray, k: int) -> np.ndarray:
-    """The first ``k`` distinct entries of ``values`` in order (padded with the last)."""
-    _, first = np.unique(values, return_index=True)
-    out = values[np.sort(first)][:k]
-    if len(out) < k:
-        out = np.concatenate((out, np.full(k - len(out), out[-1])))
-    return out
+    """The first ``k`` distinct entries of each row of ``values`` (M, P), in order.
+
+    Each row must hold at least ``k`` distinct values.
+    """
+    earlier = np.triu(np.ones((values.shape[1],) * 2, dtype=bool), k=1)  # [a, b]: a before b
+    dup = ((values[:, :, None] == values[:, None, :]) & earlier[None]).any(axis=1)
+    order = np.argsort(dup, axis=1, kind="stable")[:, :k]
+    return np.take_along_axis(values, order, axis=1)
 
 
 def load_manifold(run_dir: str | Path) -> GraspManifold:

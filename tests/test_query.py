@@ -295,3 +295,20 @@ def test_gcm_query_needs_a_run_with_a_manifold(
     assert "manifold.npz" in err and err.count("\n") == 1
     with pytest.raises(gcm.InputError, match="manifold.npz"):
         gcm.load_manifold(broken)
+
+
+def test_nothing_reachable_is_an_answer_not_an_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    far = tmp_path / "far.yaml"
+    text = (ROOT / "configs" / "flat_surface.yaml").read_text()
+    far.write_text(text.replace("xyz: [0.45, 0.0, 0.03]", "xyz: [2.5, 0.0, 0.03]"))
+    out = tmp_path / "run"
+    cfg = gcm.load_config(far, ["publish.html=false", "publish.plots=false"])
+    gcm.Pipeline(cfg).run(out, progress=False)
+    with gcm.load_manifold(out) as m:
+        ans = m.nearest_reachable(m.poses[:2])
+    assert not ans.found.any() and np.isnan(ans.distance).all() and np.isnan(ans.q).all()
+    assert np.allclose(ans.located, 0.0, atol=1e-9)
+    assert main(["query", str(out), "--pose", "2.5", "0", "0.1", "0", "1", "0", "0"]) == 0
+    assert "no reachable grasp found" in capsys.readouterr().out

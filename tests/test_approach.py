@@ -135,6 +135,42 @@ def test_deviation_bound_can_reject(robot, solved, radius):
     assert plan.reason.tolist() == ["deviation"]
 
 
+def test_colliding_path_gets_a_second_path_with_grid_waypoints(robot, radius):
+    """A path rejected at a grid point is planned again with a waypoint at every grid
+    point; it is accepted only when those grid points pass the check too."""
+    rng = np.random.default_rng(5)
+    q0 = robot.random_configurations(80, rng)
+    poses = robot.fk(q0)
+    offsets = APPROACH.offsets(poses)
+    line = move_poses(poses, offsets, APPROACH.steps)  # (steps + 1, N, 4, 4)
+    checked = []
+
+    def near_line(q, rows):
+        """'collision' for grid points more than 0.2 mm off their pose on the line."""
+        k = np.tile(np.arange(1, APPROACH.steps + 1), len(q) // APPROACH.steps)
+        want = line[k, rows, :3, 3]
+        off = np.linalg.norm(robot.fk(q)[:, :3, 3] - want, axis=1)
+        checked.append((q.copy(), off))
+        return np.where(off > 2e-4, "collision_test", "")
+
+    first = plan_moves(robot, poses, q0, APPROACH, gripper_radius=radius)
+    out = check_moves(robot, poses, q0, APPROACH, near_line, gripper_radius=radius)
+    assert first.ok.sum() >= 20
+    # first paths interpolate between few waypoints: most grid points are off by more
+    assert len(checked) == 2
+    rejected_first = np.flatnonzero(first.ok)[
+        (checked[0][1].reshape(-1, APPROACH.steps) > 2e-4).any(axis=1)
+    ]
+    assert rejected_first.size >= 10
+    # the second paths put every grid point on the line (waypoint tolerance 0.1 mm)
+    assert out.ok[rejected_first].sum() >= 0.8 * rejected_first.size
+    for i in np.flatnonzero(out.ok):
+        reached = robot.fk(out.q_path[i])[:, :3, 3]
+        assert np.linalg.norm(reached - line[:, i, :3, 3], axis=1).max() <= 2e-4
+        assert out.deviation[i] <= APPROACH.max_deviation
+    assert set(out.reason[~out.ok]) <= {"collision_test", "no_ik", "joint_step", "deviation"}
+
+
 @pytest.mark.parametrize(
     ("kw", "match"),
     [
@@ -217,8 +253,18 @@ def test_accepted_moves_are_sound_on_sampled_grasps(robot, radius):
         Move(distance=0.08, direction=(1, 0, 0), frame="grasp", steps=4, max_deviation=0.0005),
     ]
     accepted = 0
-    for move in moves:
-        out = check_moves(robot, poses, q0, move, _approach(checker), gripper_radius=radius)
+    for move, grid_knots in [(m, False) for m in moves] + [(moves[0], True)]:
+        if grid_knots:  # the second path of check_moves: a waypoint at every grid point
+            plan = plan_moves(robot, poses, q0, move, gripper_radius=radius, grid_knots=True)
+            free = np.array(
+                [
+                    plan.ok[i] and (checker.check(plan.q_path[i, 1:], mode="approach") == "").all()
+                    for i in range(len(poses))
+                ]
+            )
+            out = plan._replace(ok=free)
+        else:
+            out = check_moves(robot, poses, q0, move, _approach(checker), gripper_radius=radius)
         offsets = move.offsets(poses)
         for i in np.flatnonzero(out.ok)[:12]:
             accepted += 1

@@ -12,7 +12,7 @@ from gcm_pipeline.errors import InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import Move, move_poses
 from gcm_pipeline.robot.engine import ReachabilityEngine, available_cores
-from gcm_pipeline.robot.ik import verify_solutions
+from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.stages.collision import make_checker
@@ -124,6 +124,28 @@ def test_neighbours_seed_from_final_solutions(robot, checker, grasps):
     both = res.reachable[:n] & res.reachable[n:]
     assert both.sum() >= 5
     np.testing.assert_allclose(res.q[n:][both], res.q[:n][both], atol=1e-9)
+
+
+def test_no_random_restarts_where_every_neighbour_failed_ik(robot):
+    """Random restarts are skipped for a row whose neighbours all failed IK (they had
+    their own restarts); a row with a solved neighbour, or none, keeps them."""
+    targets = robot.fk_pinocchio(robot.random_configurations(4000, np.random.default_rng(0)))
+    with_restarts = solve_ik(robot, targets)
+    without = solve_ik(robot, targets, random_restarts=0)
+    rescued = targets[with_restarts.success & ~without.success]
+    assert len(rescued) >= 3  # targets only the random restarts reach
+    k = len(rescued)
+    far = rescued.copy()
+    far[:, :3, 3] += 2.0  # out of reach: these rows fail IK
+    eng = ReachabilityEngine(robot)
+    rows = np.concatenate([far, rescued, rescued])
+    nb = np.full((3 * k, 1), -1)
+    nb[k : 2 * k, 0] = np.arange(k)  # neighbours that failed IK
+    res = eng.run(rows, neighbours=nb)
+    assert set(res.reason[:k]) == {"out_of_reach"}
+    assert not res.reachable[k : 2 * k].any()
+    assert set(res.reason[k : 2 * k]) <= {"no_ik", "joint_limits"}
+    assert res.reachable[2 * k :].all()  # no neighbours: restarts as usual
 
 
 def test_engine_errors(robot):

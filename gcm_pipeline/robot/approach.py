@@ -12,25 +12,34 @@ The **approach** is the move with :math:`d = -\mathrm{distance}\,z_g` (the
 pre-grasp lies behind the grasp along its approach axis; the robot runs it
 from :math:`s = 1` to :math:`s = 0`); the **retreat** moves ``distance`` along a
 direction given in the base or the grasp frame (see :class:`Move`). Both are
-computed from the grasp outwards, so the path stays on the grasp solution's
-IK branch.
+computed from the grasp outwards.
 
-The joint path is piecewise linear through IK waypoints placed on the grid
-:math:`s_k = k / \mathrm{steps}`. It is built by tracking from the grasp with an
-adaptive step: from the last waypoint :math:`a` the IK solves the pose at
-:math:`b = a + \mathrm{step}` seeded with :math:`q_a` (no other seeds: a solution
-elsewhere is of no use), and the segment is accepted when
+The joint path is piecewise linear through waypoints (knots) on a grid
+:math:`SUBSTEPS` times finer than the steps :math:`s_k = k / \mathrm{steps}`
+(:func:`plan_moves`), all moves of a batch at once:
 
-* the IK converged (verified by Pinocchio FK, strictly inside the limits),
-* no joint changes by more than ``max_joint_step`` per grid step, and
-* a **bound** on the deviation of the gripper from its straight-line path over
-  the whole segment is at most ``max_deviation`` [m];
+1. **The end of the move**: one IK of the pose at :math:`s = 1` seeded with
+   :math:`q_g` only (a solution elsewhere is of no use), to the IK tolerances
+   (verified by Pinocchio FK, strictly inside the limits). It fails: the move
+   fails (``no_ik``).
+2. **Segments** between consecutive known waypoints (first the whole move) are
+   accepted when no joint changes by more than ``max_joint_step`` per grid step
+   and a **bound** on the deviation of the gripper from its straight-line path
+   over the whole segment is at most ``max_deviation`` [m]. Otherwise the
+   segment is split into :math:`k` parts (the deviation falls with the square
+   of a segment's length: :math:`k` is the count expected to bring each part
+   to ``_AIM`` of the tolerance) with new waypoints on the line, started from
+   the segment's joint interpolation and converged by a few Levenberg-Marquardt
+   steps to a small share of the deviation budget (``_KNOT_TOLERANCE``): their
+   error is part of what the bound measures, so they need not meet the IK
+   tolerance. A waypoint that does not converge, a jump within one grid step
+   or a deviation within one fine step fails the move.
 
-otherwise the step shrinks (down to one grid step, where a failure fails the
-move) and after an accepted segment it grows: the deviation grows with the
-square of a segment's length, so the next length is the one expected to use
-about half the tolerance (halved after an IK or joint-step failure). A move
-that needs no waypoint in between costs one IK.
+The bound is computed on the actual joint path, so the path is sound whatever
+its waypoints are: every gripper point stays within ``max_deviation`` of its
+line. A move whose first path collides at a grid point gets a second path with
+a waypoint at every grid point (:func:`check_moves`), so that a collision found
+does not depend on where the first path's waypoints fell.
 
 Deviation bound. Along a segment :math:`q(s) = q_a + s\,\Delta q` the grasp
 frame's position :math:`p(s)` has :math:`|p''| \le K = \sum_{j,k} r_{\max(j,k)}
@@ -64,6 +73,7 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -87,10 +97,16 @@ MOVE_REASONS = ("invalid", "no_ik", "joint_step", "deviation")
 _SLACK_SHARE = 0.25
 #: At most this many samples per segment (a segment needing more is split).
 _MAX_SAMPLES = 64
-#: Share of ``max_deviation`` the next segment's length aims at.
+#: Share of ``max_deviation`` a split segment's parts aim at.
 _AIM = 0.6
-#: IK waypoints may sit this many times closer than the steps where the path bends.
+#: Waypoints may sit this many times closer than the steps where the path bends.
 SUBSTEPS = 8
+#: Interior waypoints converge to this share of ``max_deviation`` (position) and
+#: of ``max_deviation / gripper_radius`` (orientation): their error is part of
+#: the deviation the bound measures, not an IK tolerance.
+_KNOT_TOLERANCE = 0.05
+#: LM options of the interior waypoints (they start close: early stall exits).
+_KNOT_OPTIONS = PinocchioIKOptions(stall_after=2)
 
 
 @dataclass(frozen=True)
@@ -272,6 +288,7 @@ def _segment_bounds(
     offsets: np.ndarray,
     radius: float,
     budget: float,
+    reject_above: float = np.inf,
 ) -> np.ndarray:
     """Bound of the gripper's deviation (M,) [m] over the joint segments ``q_a -> q_b``.
 
@@ -285,10 +302,30 @@ def _segment_bounds(
         offsets: Each move's displacement (M, 3) [m].
         radius: Largest distance of a gripper point from the grasp frame [m].
         budget: What the h^2 terms may use [m]; more samples if needed.
+        reject_above: Segments whose deviation at the midpoint already exceeds
+            this [m] get that value (a lower bound of their bound) without
+            further samples.
     """
     m = q_a.shape[0]
     if m == 0:
         return np.zeros(0)
+    out = np.empty(m)
+    todo = np.arange(m)
+    if np.isfinite(reject_above):
+        mid = _sample_deviation(robot, 0.5 * (q_a + q_b), start, rot0, offsets, radius)
+        far = mid > reject_above
+        out[far] = mid[far]
+        todo = np.flatnonzero(~far)
+        if todo.size == 0:
+            return out
+        q_a, q_b, start, rot0, offsets = (
+            q_a[todo],
+            q_b[todo],
+            start[todo],
+            rot0[todo],
+            offsets[todo],
+        )
+        m = todo.size
     dq = np.abs(q_b - q_a)
     order = robot.chain.q_index
     d = dq[:, order]
@@ -301,7 +338,7 @@ def _segment_bounds(
     # rounded up to a power of two so that rows share a few sample counts
     need = np.sqrt(curvature / (8.0 * budget))
     n_rows = np.clip(2 ** np.ceil(np.log2(np.maximum(need, 2.0))), 2, _MAX_SAMPLES).astype(int)
-    out = np.empty(m)
+    res = np.empty(m)
     for n in np.unique(n_rows).tolist():
         sel = np.flatnonzero(n_rows == n)
         s = np.linspace(0.0, 1.0, n + 1)
@@ -321,8 +358,33 @@ def _segment_bounds(
         dist = np.linalg.norm(rel - t[:, :, None] * d[:, None, :], axis=2).max(axis=1)
         rdist = np.linalg.norm(rot - rot0[sel].reshape(-1, 1, 9), axis=2).max(axis=1)
         h2 = 1.0 / n**2
-        out[sel] = dist + k_pos[sel] * h2 / 8.0 + radius * (rdist + k_rot[sel] * h2 / 8.0)
+        res[sel] = dist + k_pos[sel] * h2 / 8.0 + radius * (rdist + k_rot[sel] * h2 / 8.0)
+    out[todo] = res
     return out
+
+
+def _sample_deviation(
+    robot: Robot,
+    q: np.ndarray,
+    start: np.ndarray,
+    rot0: np.ndarray,
+    offsets: np.ndarray,
+    radius: float,
+) -> np.ndarray:
+    """Sampled deviation (M,) [m] at configurations ``q`` (M, nq) [rad].
+
+    The distance of the grasp frame from its move's line segment plus
+    ``radius`` times the orientation change ``||R - R_g||_F``.
+    """
+    rot, pos = robot.chain.pose(q)
+    rel = pos - start
+    t = np.einsum("ij,ij->i", rel, offsets) / np.maximum(
+        np.einsum("ij,ij->i", offsets, offsets), 1e-300
+    )
+    t = np.clip(t, 0.0, 1.0)
+    dist = np.linalg.norm(rel - t[:, None] * offsets, axis=1)
+    rdist = np.linalg.norm((rot - rot0).reshape(-1, 9), axis=1)
+    return dist + radius * rdist
 
 
 def plan_moves(
@@ -335,6 +397,7 @@ def plan_moves(
     position_tolerance: float = 1e-4,
     orientation_tolerance: float = 1e-3,
     backend: str = "pinocchio",
+    grid_knots: bool = False,
     **ik_options: Any,
 ) -> MovePlan:
     """Joint paths of N moves from their grasps, batched over the moves (see module doc).
@@ -345,11 +408,13 @@ def plan_moves(
         q_start: Configurations reaching them (N, nq) [rad]; NaN rows fail (``invalid``).
         move: The move.
         gripper_radius: Largest distance of a gripper point from the grasp frame [m].
-        position_tolerance: IK tolerance of the waypoints [m].
-        orientation_tolerance: IK tolerance of the waypoints [rad].
-        backend: IK backend.
-        **ik_options: Further backend options (waypoints use only the previous
-            waypoint as seed unless given otherwise).
+        position_tolerance: IK tolerance of the end of the move [m].
+        orientation_tolerance: IK tolerance of the end of the move [rad].
+        backend: IK backend of the end of the move.
+        grid_knots: Start with a waypoint at every grid point (on the line
+            within the waypoint tolerance) instead of none.
+        **ik_options: Further backend options of the end's IK (seeded only
+            with the grasp's configuration unless given otherwise).
 
     Returns:
         The :class:`MovePlan`.
@@ -373,14 +438,14 @@ def plan_moves(
     reason = np.where(ok, "", "invalid").astype(object)
     failed = np.zeros(n, dtype=int)
     q_path = np.full((n, steps + 1, nq), np.nan)
-    q_path[:, 0] = qg
     deviation = np.where(ok, 0.0, np.nan)
     waypoints = np.zeros(n, dtype=int)
-    knots = np.full((n, steps * SUBSTEPS + 1, nq), np.nan)
+    sub = SUBSTEPS
+    fine_steps = steps * sub
+    knots = np.full((n, fine_steps + 1, nq), np.nan)
     knots[:, 0] = qg
     if move.distance == 0 or not np.any(ok):
         q_path[ok] = qg[ok, None, :]
-        q_path[~ok] = np.nan
         knots[:, 1:] = np.where(ok[:, None, None], qg[:, None, :], np.nan)
         knots[~ok] = np.nan
         return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
@@ -396,101 +461,192 @@ def plan_moves(
     elif backend == "mink":
         ik_options = {"library_seeds": 0, "random_restarts": 0, "home_seed": False, **ik_options}
     offsets = move.offsets(tg)
-    lever = lever_arms(robot)
-    budget = _SLACK_SHARE * move.max_deviation
-    sub = SUBSTEPS
-    fine_steps = steps * sub  # waypoints sit on a grid finer than the steps
-    at = np.zeros(n, dtype=int)  # last accepted waypoint, in fine units
-    step = np.full(n, fine_steps // 3)
-    q_at = qg.copy()
-    active = ok.copy()
-    while np.any(active):
-        rows = np.flatnonzero(active)
-        a = at[rows]
-        b = np.minimum(a + step[rows], fine_steps)
-        target = tg[rows].copy()
-        target[:, :3, 3] += (b / fine_steps)[:, None] * offsets[rows]
-        q_a = q_at[rows]
-        res = solve_ik(
-            robot,
-            target,
-            backend,
-            position_tolerance=position_tolerance,
-            orientation_tolerance=orientation_tolerance,
-            seeds=q_a[:, None, :],
-            **ik_options,
-        )
-        why = np.where(res.success, "", "no_ik").astype(object)
-        conv = np.flatnonzero(res.success)
-        q_b = res.q
-        span = (b - a).astype(float)  # fine units
-        guess = ((b - a) // 2).astype(int)  # after an IK or joint-step failure: halve
-        # the change per step: segments of a step or more change every step alike;
-        # shorter ones may not change more than one step's worth (the grid
-        # points are checked once the path is complete)
-        jump = np.max(np.abs(q_b[conv] - q_a[conv]), axis=1) * sub / np.maximum(span[conv], sub)
-        why[conv[jump > move.max_joint_step]] = "joint_step"
-        fine = conv[jump <= move.max_joint_step]
-        if fine.size:
-            dev = _segment_bounds(
+    tol = move.max_deviation
+
+    def fail(rows: np.ndarray, at: np.ndarray, why: Any) -> None:
+        """Rows fail at fine positions ``at`` (the first per row counts)."""
+        if rows.size == 0:
+            return
+        first = np.full(n, fine_steps)
+        np.minimum.at(first, rows, at)
+        bad = np.unique(rows)
+        ok[bad] = False
+        reason[bad] = why if isinstance(why, str) else why[bad]
+        failed[bad] = np.minimum(first[bad] // sub + 1, steps)
+
+    # 1. the end of the move: one IK seeded from the grasp's configuration
+    rows = np.flatnonzero(ok)
+    end = tg[rows].copy()
+    end[:, :3, 3] += offsets[rows]
+    res = solve_ik(
+        robot,
+        end,
+        backend,
+        position_tolerance=position_tolerance,
+        orientation_tolerance=orientation_tolerance,
+        seeds=qg[rows][:, None, :],
+        **ik_options,
+    )
+    knots[rows[res.success], fine_steps] = res.q[res.success]
+    fail(rows[~res.success], np.full(int(np.sum(~res.success)), fine_steps - 1), "no_ik")
+
+    # 2. segments between known waypoints: accepted under the deviation bound, else
+    # split; a new waypoint starts from the segment's joint interpolation
+    s_row = np.flatnonzero(ok)
+    s_a = np.zeros(s_row.size, dtype=int)
+    s_b = np.full(s_row.size, fine_steps)
+    parts = np.full(s_row.size, steps if grid_knots else 1)
+    while s_row.size:
+        split = np.flatnonzero(parts > 1)
+        if split.size:
+            s_row, s_a, s_b = _split_segments(
                 robot,
-                lever,
-                q_a[fine],
-                q_b[fine],
-                tg[rows[fine], :3, 3],
-                tg[rows[fine], :3, :3],
-                offsets[rows[fine]],
+                tg,
+                offsets,
+                knots,
+                s_row,
+                s_a,
+                s_b,
+                split,
+                parts[split],
+                fine_steps,
+                tol,
                 gripper_radius,
-                budget,
+                fail,
             )
-            too_far = dev > move.max_deviation
-            why[fine[too_far]] = "deviation"
-            # the deviation grows with the square of the segment's length: the
-            # next try (shorter after a failure, longer after a success) aims at
-            # _AIM of the tolerance
-            scale = np.sqrt(_AIM * move.max_deviation / np.maximum(dev, 1e-12))
-            guess[fine] = np.floor(span[fine] * np.minimum(scale, 4.0)).astype(int)
-            good = fine[~too_far]
-            g_rows = rows[good]
-            deviation[g_rows] = np.maximum(deviation[g_rows], dev[~too_far])
-            waypoints[g_rows] += 1
-            ga, gb = a[good], b[good]
-            for k in range(1, steps + 1):
-                sel = (ga < k * sub) & (k * sub <= gb)
-                if np.any(sel):
-                    f = ((k * sub - ga[sel]) / (gb[sel] - ga[sel]))[:, None]
-                    q_path[g_rows[sel], k] = q_a[good[sel]] + f * (q_b[good[sel]] - q_a[good[sel]])
-            at[g_rows] = gb
-            q_at[g_rows] = q_b[good]
-            knots[g_rows, gb] = q_b[good]
-            step[g_rows] = np.clip(guess[good], 1, fine_steps)
-            active[g_rows[gb == fine_steps]] = False
-        bad = np.flatnonzero(why != "")
-        if bad.size:
-            # an IK failure or a jump within one step fails the move (as a step-by-step
-            # tracking would); a deviation may still be cured by waypoints within a step
-            limit = np.where(why[bad] == "deviation", 1, sub)
-            short = (b[bad] - a[bad]) <= limit
-            dead = rows[bad[short]]
-            ok[dead] = False
-            active[dead] = False
-            reason[dead] = why[bad[short]]
-            failed[dead] = a[bad[short]] // sub + 1
-            retry = bad[~short]
-            lower = np.where(why[retry] == "deviation", 1, np.minimum(sub, b[retry] - a[retry] - 1))
-            step[rows[retry]] = np.clip(guess[retry], lower, b[retry] - a[retry] - 1)
-    # the change of every joint between consecutive grid points
-    steps_ok = np.all(np.abs(np.diff(q_path[ok], axis=1)) <= move.max_joint_step, axis=(1, 2))
-    over = np.flatnonzero(ok)[~steps_ok]
-    if over.size:
-        big = np.abs(np.diff(q_path[over], axis=1)).max(axis=2) > move.max_joint_step
-        ok[over] = False
-        reason[over] = "joint_step"
-        failed[over] = np.argmax(big, axis=1) + 1
+            keep = ok[s_row]
+            s_row, s_a, s_b = s_row[keep], s_a[keep], s_b[keep]
+        if s_row.size == 0:
+            break
+        qa, qb = knots[s_row, s_a], knots[s_row, s_b]
+        span = s_b - s_a
+        # the change per grid step: segments of a step or more change every step
+        # alike; shorter ones may not change more than one step's worth
+        jump = np.max(np.abs(qb - qa), axis=1) * sub / np.maximum(span, sub)
+        over = jump > move.max_joint_step
+        dev = np.full(s_row.size, np.inf)
+        fine = np.flatnonzero(~over)
+        dev[fine] = _segment_bounds(
+            robot,
+            lever_arms(robot),
+            qa[fine],
+            qb[fine],
+            tg[s_row[fine], :3, 3],
+            tg[s_row[fine], :3, :3],
+            offsets[s_row[fine]],
+            gripper_radius,
+            _SLACK_SHARE * tol,
+            reject_above=tol,
+        )
+        good = ~over & (dev <= tol)
+        np.maximum.at(deviation, s_row[good], dev[good])
+        np.add.at(waypoints, s_row[good], 1)
+        # a jump within one grid step, a deviation within one fine step: the move fails
+        dead = (over & (span <= sub)) | (~over & ~good & (span <= 1))
+        why = np.full(n, "deviation", dtype=object)
+        why[s_row[dead & over]] = "joint_step"
+        fail(s_row[dead], s_a[dead], why)
+        again = ~good & ~dead & ok[s_row]
+        # the deviation falls with the square of a segment's length
+        need = np.where(
+            over, np.ceil(jump / move.max_joint_step), np.ceil(np.sqrt(dev / (_AIM * tol)))
+        )
+        parts = np.clip(np.nan_to_num(need, nan=2.0, posinf=2.0), 2, np.maximum(span, 2))
+        s_row, s_a, s_b, parts = s_row[again], s_a[again], s_b[again], parts[again].astype(int)
+
+    # the grid points on the piecewise linear path through the knots
+    rows = np.flatnonzero(ok)
+    if rows.size:
+        kn = knots[rows]
+        have = np.isfinite(kn[:, :, 0])
+        idx = np.arange(fine_steps + 1)
+        prev = np.maximum.accumulate(np.where(have, idx, 0), axis=1)
+        nxt = np.minimum.accumulate(np.where(have, idx, fine_steps)[:, ::-1], axis=1)[:, ::-1]
+        grid = np.arange(steps + 1) * sub
+        pa, pb = prev[:, grid], nxt[:, grid]
+        ka = np.take_along_axis(kn, pa[:, :, None], axis=1)
+        kb = np.take_along_axis(kn, pb[:, :, None], axis=1)
+        f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
+        q_path[rows] = ka + f * (kb - ka)
+        # the change of every joint between consecutive grid points
+        big = np.abs(np.diff(q_path[rows], axis=1)).max(axis=2) > move.max_joint_step
+        over = np.flatnonzero(big.any(axis=1))
+        if over.size:
+            fail(rows[over], np.argmax(big[over], axis=1) * sub, "joint_step")
     q_path[~ok] = np.nan
     knots[~ok] = np.nan
     deviation[~ok] = np.nan
+    waypoints[~ok] = 0
     return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
+
+
+def _split_segments(
+    robot: Robot,
+    poses: np.ndarray,
+    offsets: np.ndarray,
+    knots: np.ndarray,
+    s_row: np.ndarray,
+    s_a: np.ndarray,
+    s_b: np.ndarray,
+    split: np.ndarray,
+    parts: np.ndarray,
+    fine_steps: int,
+    tol: float,
+    radius: float,
+    fail: Callable[[np.ndarray, np.ndarray, str], None],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split segments ``split`` into ``parts`` pieces with new waypoints (in ``knots``).
+
+    A new waypoint starts from the joint interpolation of its segment and
+    converges to its pose on the line within ``_KNOT_TOLERANCE`` of the
+    deviation budget (batched Levenberg-Marquardt, inside the joint limits);
+    a row whose waypoint does not converge fails (``no_ik``).
+
+    Returns:
+        The segments ``(row, a, b)`` after the split, the others unchanged.
+    """
+    cnt = parts - 1
+    owner = np.repeat(split, cnt)
+    i = np.arange(owner.size) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
+    a, b = s_a[owner], s_b[owner]
+    at = a + (i * (b - a)) // parts[np.repeat(np.arange(split.size), cnt)]
+    row = s_row[owner]
+    qa, qb = knots[row, a], knots[row, b]
+    seed = qa + ((at - a) / (b - a))[:, None] * (qb - qa)
+    target = poses[row].copy()
+    target[:, :3, 3] += (at / fine_steps)[:, None] * offsets[row]
+    eps = PinocchioIKOptions.limit_epsilon
+    lower, upper = robot.lower + eps, robot.upper - eps
+    q_new, conv, _, _ = _lm(
+        robot.chain,
+        np.clip(seed, lower, upper),
+        target[:, :3, :3],
+        target[:, :3, 3],
+        lower,
+        upper,
+        _KNOT_TOLERANCE * tol,
+        _KNOT_TOLERANCE * tol / max(radius, 1e-3),
+        _KNOT_OPTIONS,
+    )
+    knots[row[conv], at[conv]] = q_new[conv]
+    fail(row[~conv], at[~conv], "no_ik")
+    # every split segment becomes its parts: boundaries sorted within each segment
+    seg = np.concatenate([split, owner])
+    start = np.concatenate([s_a[split], at])
+    o = np.lexsort((start, seg))
+    seg, start = seg[o], start[o]
+    stop = np.empty_like(start)
+    stop[:-1] = start[1:]
+    last = np.ones(seg.size, dtype=bool)
+    last[:-1] = seg[1:] != seg[:-1]
+    stop[last] = s_b[seg[last]]
+    rest = np.ones(s_row.size, dtype=bool)
+    rest[split] = False
+    return (
+        np.concatenate([s_row[rest], s_row[seg]]),
+        np.concatenate([s_a[rest], start]),
+        np.concatenate([s_b[rest], stop]),
+    )
 
 
 def check_moves(
@@ -507,6 +663,9 @@ def check_moves(
     **ik_options: Any,
 ) -> MoveResult:
     """Plan N moves (:func:`plan_moves`) and check their grid points for collisions.
+
+    A move whose path collides is planned once more with a waypoint at every
+    grid point (``grid_knots``) and accepted if that path is free.
 
     Args:
         robot: The robot.
@@ -527,34 +686,63 @@ def check_moves(
     Returns:
         The :class:`MoveResult`.
     """
-    plan = plan_moves(
-        robot,
-        poses,
-        q_start,
-        move,
+    opts = dict(
         gripper_radius=gripper_radius,
         position_tolerance=position_tolerance,
         orientation_tolerance=orientation_tolerance,
         backend=backend,
         **ik_options,
     )
+    tg = np.asarray(poses, dtype=float)
+    if tg.ndim == 2:
+        tg = tg[None]
+    q0 = np.asarray(q_start, dtype=float)
+    if q0.ndim == 1:
+        q0 = q0[None]
+    plan = plan_moves(robot, tg, q0, move, **opts)
     ok = plan.ok.copy()
     reason = plan.reason.astype(object)
     failed = plan.failed_step.copy()
-    q_path = plan.q_path
-    rows = np.flatnonzero(ok)
-    if collisions is not None and rows.size and move.distance > 0:
-        steps = move.steps
-        samples = q_path[rows, 1:].reshape(-1, robot.nq)
-        which = np.repeat(rows, steps)
-        why = np.asarray(collisions(samples, which), dtype=object).reshape(rows.size, steps)
-        hit = why != ""
-        bad = np.flatnonzero(hit.any(axis=1))
-        first = np.argmax(hit[bad], axis=1)
-        ok[rows[bad]] = False
-        reason[rows[bad]] = why[bad, first]
-        failed[rows[bad]] = first + 1
+    q_path, knots, dev = plan.q_path.copy(), plan.knots.copy(), plan.deviation.copy()
+    if collisions is not None and move.distance > 0:
+        rows = np.flatnonzero(ok)
+        hit_rows, why, first = _grid_collisions(collisions, q_path, rows, robot.nq)
+        ok[hit_rows] = False
+        reason[hit_rows] = why
+        failed[hit_rows] = first
+        if hit_rows.size:
+            # a path that collides gets a second plan with a waypoint at every grid
+            # point (on the line within the waypoint tolerance): a collision then
+            # does not depend on where the first plan's waypoints fell
+            again = plan_moves(robot, tg[hit_rows], q0[hit_rows], move, grid_knots=True, **opts)
+            sub = np.flatnonzero(again.ok)
+            hit2, _, _ = _grid_collisions(collisions, again.q_path, sub, robot.nq, hit_rows)
+            good = np.setdiff1d(sub, hit2)
+            r = hit_rows[good]
+            ok[r], reason[r], failed[r] = True, "", 0
+            q_path[r], knots[r] = again.q_path[good], again.knots[good]
+            dev[r] = again.deviation[good]
     q_path = np.where(ok[:, None, None], q_path, np.nan)
-    knots = np.where(ok[:, None, None], plan.knots, np.nan)
-    dev = np.where(ok, plan.deviation, np.nan)
+    knots = np.where(ok[:, None, None], knots, np.nan)
+    dev = np.where(ok, dev, np.nan)
     return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, knots)
+
+
+def _grid_collisions(
+    collisions: Callable[[np.ndarray, np.ndarray], Any],
+    q_path: np.ndarray,
+    rows: np.ndarray,
+    nq: int,
+    ids: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows of ``rows`` whose grid points ``k >= 1`` collide, their first reason and step."""
+    if rows.size == 0:
+        return rows, np.zeros(0, dtype=object), np.zeros(0, dtype=int)
+    steps = q_path.shape[1] - 1
+    samples = q_path[rows, 1:].reshape(-1, nq)
+    which = np.repeat(rows if ids is None else ids[rows], steps)
+    why = np.asarray(collisions(samples, which), dtype=object).reshape(rows.size, steps)
+    hit = why != ""
+    bad = np.flatnonzero(hit.any(axis=1))
+    first = np.argmax(hit[bad], axis=1)
+    return rows[bad], why[bad, first], first + 1

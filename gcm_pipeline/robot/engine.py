@@ -5,7 +5,10 @@ base frame), in :meth:`ReachabilityEngine.run`:
 
 1. **IK** (:func:`~gcm_pipeline.robot.ik.solve_ik`): one solution per target,
    batched; seeds are the given warm starts, the seed library, home and random
-   restarts; targets beyond the arm's reach are rejected first
+   restarts (none for a row whose neighbours all failed IK after their own
+   restarts: on the dense bottle manifold of ``bench_pipeline.py`` restarts
+   reach none of the 8,633 targets that fail); targets beyond the arm's reach
+   are rejected first
    (``out_of_reach``), the others get ``no_ik`` or ``joint_limits`` when no seed
    converges. Every solution is **verified** by Pinocchio's forward kinematics
    and lies strictly inside the joint limits.
@@ -69,7 +72,9 @@ import numpy as np
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
 from gcm_pipeline.robot.ik import (
+    IK_REASONS,
     IKCandidates,
+    IKResult,
     _worker_signals,
     check_targets,
     solve_ik,
@@ -503,8 +508,40 @@ class ReachabilityEngine:
 
     # --- one chunk: steps 1-5 -------------------------------------------------------------
 
+    def _first_solve(
+        self,
+        targets: np.ndarray,
+        seeds: np.ndarray | None,
+        return_candidates: bool,
+        no_restarts: np.ndarray | None,
+    ) -> IKResult:
+        """Step 1: the IK of every target; ``no_restarts`` rows without random restarts."""
+
+        def ik(rows: np.ndarray, **extra: Any) -> IKResult:
+            return solve_ik(
+                self.robot,
+                targets[rows],
+                self.backend,
+                position_tolerance=self.position_tolerance,
+                orientation_tolerance=self.orientation_tolerance,
+                seeds=None if seeds is None else seeds[rows],
+                return_all=return_candidates,
+                **{**self.ik_options, **extra},
+            )
+
+        m = len(targets)
+        if no_restarts is None or not np.any(no_restarts):
+            return ik(np.arange(m))
+        parts = [np.flatnonzero(~no_restarts), np.flatnonzero(no_restarts)]
+        results = [ik(parts[0]), ik(parts[1], random_restarts=0)]
+        return _merge_ik(parts, results, m, self.robot.nq)
+
     def solve(
-        self, targets: np.ndarray, seeds: np.ndarray | None = None, return_candidates: bool = False
+        self,
+        targets: np.ndarray,
+        seeds: np.ndarray | None = None,
+        return_candidates: bool = False,
+        no_restarts: np.ndarray | None = None,
     ) -> dict[str, Any]:
         """Steps 1-5 for one chunk of validated targets (see :meth:`run`).
 
@@ -512,25 +549,18 @@ class ReachabilityEngine:
             targets: Grasp poses (M, 4, 4) in the base frame [m].
             seeds: Warm starts (M, K, nq) [rad] (NaN = none) or None.
             return_candidates: Also return step 1's converged candidates.
+            no_restarts: (M,) bool, targets whose IK gets no random restarts
+                (every neighbour failed IK after its own restarts), or None.
 
         Returns:
             The :class:`ReachResult` fields as a dict (``candidates`` as a tuple
             of arrays or None).
         """
-        robot, nq = self.robot, self.robot.nq
+        nq = self.robot.nq
         m = targets.shape[0]
         self.timings = {}
         t0 = time.process_time()
-        res = solve_ik(
-            robot,
-            targets,
-            self.backend,
-            position_tolerance=self.position_tolerance,
-            orientation_tolerance=self.orientation_tolerance,
-            seeds=seeds,
-            return_all=return_candidates,
-            **self.ik_options,
-        )
+        res = self._first_solve(targets, seeds, return_candidates, no_restarts)
         self._spent("ik", t0)
         reachable = np.zeros(m, dtype=bool)
         reason = res.reason.astype(object)
@@ -671,13 +701,17 @@ class ReachabilityEngine:
             if rows.size == 0:
                 continue
             sub = None if seed_arr is None else seed_arr[rows]
+            hopeless = None
             if phase == 1:
                 assert nb is not None
                 ref = nb[rows]
                 warm = np.where((ref >= 0)[:, :, None], out["q"][np.clip(ref, 0, None)], np.nan)
                 sub = warm if sub is None else np.concatenate([warm, sub], axis=1)
+                # no random restarts where every neighbour failed IK after its own
+                no_ik = np.isin(out["reason"][np.clip(ref, 0, None)], IK_REASONS)
+                hopeless = np.all(no_ik | (ref < 0), axis=1)
             chunks = [
-                (rows[a : a + self.chunk_size], tgt, sub, a)
+                (rows[a : a + self.chunk_size], tgt, sub, a, hopeless)
                 for a in range(0, rows.size, self.chunk_size)
             ]
             for (chunk_rows, *_), part in zip(
@@ -730,12 +764,19 @@ class ReachabilityEngine:
     # --- workers --------------------------------------------------------------------------
 
     def _map(
-        self, chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, int]], cands: bool
+        self,
+        chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, int, np.ndarray | None]],
+        cands: bool,
     ) -> Iterator[dict[str, Any]]:
         """Solve the chunks in order, on this process or the worker pool."""
         work = [
-            (tgt[rows], None if sub is None else sub[a : a + rows.size], cands)
-            for rows, tgt, sub, a in chunks
+            (
+                tgt[rows],
+                None if sub is None else sub[a : a + rows.size],
+                cands,
+                None if hopeless is None else hopeless[a : a + rows.size],
+            )
+            for rows, tgt, sub, a, hopeless in chunks
         ]
         if self.workers == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
             for args in work:
@@ -783,7 +824,9 @@ _WORKER: dict[str, ReachabilityEngine] = {}
 _POOLS: weakref.WeakSet[ReachabilityEngine] = weakref.WeakSet()
 
 
-def _solve_in_worker(args: tuple[np.ndarray, np.ndarray | None, bool]) -> dict[str, Any]:
+def _solve_in_worker(
+    args: tuple[np.ndarray, np.ndarray | None, bool, np.ndarray | None],
+) -> dict[str, Any]:
     return _WORKER["engine"].solve(*args)
 
 
@@ -791,6 +834,31 @@ def _solve_in_worker(args: tuple[np.ndarray, np.ndarray | None, bool]) -> dict[s
 def _close_pools() -> None:
     for engine in list(_POOLS):
         engine.close()
+
+
+def _merge_ik(parts: list[np.ndarray], results: list[IKResult], m: int, nq: int) -> IKResult:
+    """One :class:`IKResult` of M targets from results of row subsets ``parts``."""
+    q = np.full((m, nq), np.nan)
+    success = np.zeros(m, dtype=bool)
+    pos_err = np.full(m, np.nan)
+    rot_err = np.full(m, np.nan)
+    reason = np.full(m, "", dtype=object)
+    for rows, r in zip(parts, results, strict=True):
+        q[rows], success[rows], reason[rows] = r.q, r.success, r.reason
+        pos_err[rows], rot_err[rows] = r.pos_err, r.rot_err
+    candidates = None
+    if results[0].candidates is not None:
+        cands = [r.candidates for r in results if r.candidates is not None]
+        index = np.concatenate([rows[c.index] for rows, c in zip(parts, cands, strict=True)])
+        order = np.argsort(index, kind="stable")
+        candidates = IKCandidates(
+            index[order],
+            np.concatenate([c.q for c in cands]).reshape(-1, nq)[order],
+            np.concatenate([c.reason for c in cands])[order],
+        )
+    return IKResult(
+        q, success, pos_err, rot_err, reason.astype(str), results[0].backend, candidates
+    )
 
 
 def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:

@@ -46,6 +46,7 @@ from gcm_pipeline.robot.model import Robot, load_robot
 
 __all__ = [
     "BACKENDS",
+    "IK_REASONS",
     "IKCandidates",
     "IKResult",
     "check_targets",
@@ -55,6 +56,9 @@ __all__ = [
 ]
 
 BACKENDS = ("pinocchio", "mink")
+
+#: Reasons of targets that no IK solution reaches.
+IK_REASONS = ("out_of_reach", "joint_limits", "no_ik", "verification_failed")
 
 Validator = Callable[[np.ndarray], Any]
 

@@ -20,8 +20,10 @@ The joint path is piecewise linear through waypoints (knots) on a grid
 
 1. **The end of the move**: one IK of the pose at :math:`s = 1` seeded with
    :math:`q_g` only (a solution elsewhere is of no use), to the IK tolerances
-   (verified by Pinocchio FK, strictly inside the limits). It fails: the move
-   fails (``no_ik``).
+   (verified by Pinocchio FK, strictly inside the limits). Where that fails
+   (a long jump near a singularity), the line is followed from the grasp in
+   pieces of about ``_REACH`` (2.5 cm), each waypoint started from the
+   previous one; a piece that fails fails the move (``no_ik``).
 2. **Segments** between consecutive known waypoints (first the whole move) are
    accepted when no joint changes by more than ``max_joint_step`` per grid step
    and a **bound** on the deviation of the gripper from its straight-line path
@@ -72,7 +74,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm
 from gcm_pipeline.robot.model import Robot
 
@@ -106,7 +108,10 @@ SUBSTEPS = 8
 #: the deviation the bound measures, not an IK tolerance.
 _KNOT_TOLERANCE = 0.05
 #: LM options of the interior waypoints (they start close: early stall exits).
-_KNOT_OPTIONS = PinocchioIKOptions(stall_after=2)
+_KNOT_OPTIONS = PinocchioIKOptions()
+#: Where one IK cannot reach the end of a move from the grasp, the line is
+#: followed in pieces of about this length [m] (continuation).
+_REACH = 0.025
 
 
 @dataclass(frozen=True)
@@ -474,28 +479,66 @@ def plan_moves(
         reason[bad] = why if isinstance(why, str) else why[bad]
         failed[bad] = np.minimum(first[bad] // sub + 1, steps)
 
-    # 1. the end of the move: one IK seeded from the grasp's configuration
+    def follow(rows: np.ndarray, pieces: int) -> np.ndarray:
+        """The rows that reach the end following the line from the grasp in pieces.
+
+        Each waypoint starts from the previous one; a failure fails the row.
+        """
+        last = 0
+        for i in range(1, pieces + 1):
+            at = (i * fine_steps) // pieces
+            if rows.size == 0 or at == last:
+                continue
+            target = tg[rows].copy()
+            target[:, :3, 3] += (at / fine_steps) * offsets[rows]
+            seed = knots[rows, last]
+            if at < fine_steps:
+                q_new, conv = _waypoints(robot, seed, target, tol, gripper_radius)
+            else:
+                res = solve_ik(
+                    robot,
+                    target,
+                    backend,
+                    position_tolerance=position_tolerance,
+                    orientation_tolerance=orientation_tolerance,
+                    seeds=seed[:, None, :],
+                    **ik_options,
+                )
+                q_new, conv = res.q, res.success
+            knots[rows[conv], at] = q_new[conv]
+            knots[rows[~conv], 1:] = np.nan
+            failed_at[rows[~conv]] = last
+            rows, last = rows[conv], at
+        return rows
+
+    # 1. the end of the move: one IK seeded from the grasp's configuration; where it
+    # fails, the line is followed from the grasp in pieces of about _REACH
+    # (continuation: each waypoint started from the previous ones and converged to
+    # the waypoint tolerance, the last to the IK tolerances)
+    failed_at = np.zeros(n, dtype=int)
+    pieces = int(np.clip(np.ceil(move.distance / _REACH), 1, steps))
     rows = np.flatnonzero(ok)
-    end = tg[rows].copy()
-    end[:, :3, 3] += offsets[rows]
-    res = solve_ik(
-        robot,
-        end,
-        backend,
-        position_tolerance=position_tolerance,
-        orientation_tolerance=orientation_tolerance,
-        seeds=qg[rows][:, None, :],
-        **ik_options,
-    )
-    knots[rows[res.success], fine_steps] = res.q[res.success]
-    fail(rows[~res.success], np.full(int(np.sum(~res.success)), fine_steps - 1), "no_ik")
+    if grid_knots:
+        reached = follow(rows, steps)
+    else:
+        ends = tg[rows].copy()
+        ends[:, :3, 3] += offsets[rows]
+        q_end, done = _end_of_move(
+            robot, ends, qg[rows], backend, position_tolerance, orientation_tolerance, ik_options
+        )
+        knots[rows[done], fine_steps] = q_end[done]
+        reached = rows[done]
+        retry = rows[~done]
+        reached = np.union1d(reached, follow(retry, pieces))
+    lost = np.setdiff1d(rows, reached)
+    fail(lost, failed_at[lost], "no_ik")
 
     # 2. segments between known waypoints: accepted under the deviation bound, else
     # split; a new waypoint starts from the segment's joint interpolation
-    s_row = np.flatnonzero(ok)
-    s_a = np.zeros(s_row.size, dtype=int)
-    s_b = np.full(s_row.size, fine_steps)
-    parts = np.full(s_row.size, steps if grid_knots else 1)
+    r_idx, pos = np.nonzero(np.isfinite(knots[:, :, 0]) & ok[:, None])
+    inner = r_idx[1:] == r_idx[:-1]
+    s_row, s_a, s_b = r_idx[1:][inner], pos[:-1][inner], pos[1:][inner]
+    parts = np.ones(s_row.size, dtype=int)
     while s_row.size:
         split = np.flatnonzero(parts > 1)
         if split.size:
@@ -580,6 +623,80 @@ def plan_moves(
     return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
 
 
+def _end_of_move(
+    robot: Robot,
+    ends: np.ndarray,
+    q_start: np.ndarray,
+    backend: str,
+    position_tolerance: float,
+    orientation_tolerance: float,
+    ik_options: dict[str, Any],
+) -> tuple[np.ndarray, np.ndarray]:
+    """IK of the end poses (M, 4, 4) seeded only from ``q_start`` (M, nq).
+
+    Returns:
+        ``(q, reached)``: configurations (M, nq) and whether each reaches its
+        pose within the IK tolerances (verified by Pinocchio FK, strictly
+        inside the limits).
+    """
+    m = len(ends)
+    if backend != "pinocchio":
+        res = solve_ik(
+            robot,
+            ends,
+            backend,
+            position_tolerance=position_tolerance,
+            orientation_tolerance=orientation_tolerance,
+            seeds=q_start[:, None, :],
+            **ik_options,
+        )
+        return res.q, res.success
+    opts = PinocchioIKOptions.from_kwargs(ik_options)
+    eps = opts.limit_epsilon
+    lower, upper = robot.lower + eps, robot.upper - eps
+    q, conv, _, _ = _lm(
+        robot.chain,
+        np.clip(q_start, lower, upper),
+        ends[:, :3, :3],
+        ends[:, :3, 3],
+        lower,
+        upper,
+        position_tolerance * opts.inner_tolerance,
+        orientation_tolerance * opts.inner_tolerance,
+        opts,
+    )
+    reached = np.zeros(m, dtype=bool)
+    rows = np.flatnonzero(conv)
+    pe, re, inside = verify_solutions(robot, q[rows], ends[rows])
+    reached[rows] = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
+    return q, reached
+
+
+def _waypoints(
+    robot: Robot, seed: np.ndarray, target: np.ndarray, tol: float, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints on the line: configurations (M, nq) near ``target`` poses (M, 4, 4).
+
+    Batched Levenberg-Marquardt from ``seed`` (M, nq), inside the joint limits,
+    to ``_KNOT_TOLERANCE`` of the deviation budget ``tol`` [m] (the orientation
+    scaled by the gripper ``radius`` [m]). Returns ``(q, converged)``.
+    """
+    eps = PinocchioIKOptions.limit_epsilon
+    lower, upper = robot.lower + eps, robot.upper - eps
+    q, conv, _, _ = _lm(
+        robot.chain,
+        np.clip(seed, lower, upper),
+        target[:, :3, :3],
+        target[:, :3, 3],
+        lower,
+        upper,
+        _KNOT_TOLERANCE * tol,
+        _KNOT_TOLERANCE * tol / max(radius, 1e-3),
+        _KNOT_OPTIONS,
+    )
+    return q, conv
+
+
 def _split_segments(
     robot: Robot,
     poses: np.ndarray,
@@ -615,19 +732,7 @@ def _split_segments(
     seed = qa + ((at - a) / (b - a))[:, None] * (qb - qa)
     target = poses[row].copy()
     target[:, :3, 3] += (at / fine_steps)[:, None] * offsets[row]
-    eps = PinocchioIKOptions.limit_epsilon
-    lower, upper = robot.lower + eps, robot.upper - eps
-    q_new, conv, _, _ = _lm(
-        robot.chain,
-        np.clip(seed, lower, upper),
-        target[:, :3, :3],
-        target[:, :3, 3],
-        lower,
-        upper,
-        _KNOT_TOLERANCE * tol,
-        _KNOT_TOLERANCE * tol / max(radius, 1e-3),
-        _KNOT_OPTIONS,
-    )
+    q_new, conv = _waypoints(robot, seed, target, tol, radius)
     knots[row[conv], at[conv]] = q_new[conv]
     fail(row[~conv], at[~conv], "no_ik")
     # every split segment becomes its parts: boundaries sorted within each segment

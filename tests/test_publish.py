@@ -465,3 +465,46 @@ def test_primitive_tool_geometry_in_the_visual_model_is_drawn(monkeypatch):
     assert [geom["width"], geom["height"], geom["depth"]] == pytest.approx([0.04, 0.09, 0.03])
     moves = [c for c in commands if c["path"] == "/meshcat/robot/visuals/tool_palm"]
     assert moves and moves[0]["type"] == "set_transform"
+
+
+def test_simplified_robot_meshes_are_cached_on_disk(tmp_path, monkeypatch):
+    """The second run reads the simplified meshes from the cache instead of simplifying again."""
+    robot = load_robot("panda")
+    path = next(o.meshPath for o in robot.build_geometry("visual").geometryObjects if o.meshPath)
+    monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
+    pub._simplified_mesh_cached.cache_clear()
+    first = pub._simplified_mesh(path)
+    files = list((tmp_path / "cache" / "meshes").iterdir())
+    assert len(files) == 1 and files[0].suffix == ".npz"
+
+    def no_simplify(*_args):
+        raise AssertionError("simplified again although the cache holds the mesh")
+
+    pub._simplified_mesh_cached.cache_clear()
+    monkeypatch.setattr(pub, "_simplify_mesh", no_simplify)
+    again = pub._simplified_mesh(path)
+    assert [c for c, _ in again] == [c for c, _ in first]
+    for (_, a), (_, b) in zip(first, again, strict=True):
+        assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    pub._simplified_mesh_cached.cache_clear()
+
+
+def test_a_damaged_or_unwritable_mesh_cache_is_rebuilt_or_skipped(tmp_path, monkeypatch):
+    robot = load_robot("panda")
+    path = next(o.meshPath for o in robot.build_geometry("visual").geometryObjects if o.meshPath)
+    monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
+    pub._simplified_mesh_cached.cache_clear()
+    fresh = pub._simplified_mesh(path)
+    (cached,) = (tmp_path / "cache" / "meshes").iterdir()
+    cached.write_bytes(cached.read_bytes()[:100])  # truncated
+    pub._simplified_mesh_cached.cache_clear()
+    rebuilt = pub._simplified_mesh(path)
+    assert [len(m.faces) for _, m in rebuilt] == [len(m.faces) for _, m in fresh]
+    assert pub._read_mesh_cache(cached) is not None  # written again, whole
+    # a cache folder that cannot be created (a file is in the way): drawn all the same
+    blocker = tmp_path / "blocker"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("GCM_CACHE_DIR", str(blocker))
+    pub._simplified_mesh_cached.cache_clear()
+    assert [len(m.faces) for _, m in pub._simplified_mesh(path)] == [len(m.faces) for _, m in fresh]
+    pub._simplified_mesh_cached.cache_clear()

@@ -36,7 +36,9 @@ This is the only module of the package that imports meshcat.
 from __future__ import annotations
 
 import base64
+import contextlib
 import functools
+import hashlib
 import math
 import os
 import selectors
@@ -45,6 +47,7 @@ import sys
 import time
 import warnings
 import weakref
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -554,10 +557,30 @@ class _PackedMesh(mg.Geometry):
         }
 
 
+#: Version of the simplified-mesh cache files (bump when their content changes).
+_MESH_CACHE_VERSION = 1
+
+
+def mesh_cache_dir() -> Path:
+    """Folder of the simplified robot meshes: ``$GCM_CACHE_DIR/meshes``.
+
+    ``GCM_CACHE_DIR`` defaults to ``$XDG_CACHE_HOME/gcm_pipeline`` (``~/.cache/gcm_pipeline``).
+    Deleting it is always safe: the meshes are simplified again on the next run.
+    """
+    root = os.environ.get("GCM_CACHE_DIR")
+    if not root:
+        xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        root = os.path.join(xdg, "gcm_pipeline")
+    return Path(root) / "meshes"
+
+
 def _simplified_mesh(path: str, budget: int = MESH_FACE_BUDGET) -> list[tuple[int, Any]]:
     """A mesh file as (colour 0xRRGGBB, packed geometry) groups, at most ~``budget`` faces.
 
-    Cached per file (path, modification time, size) for the process.
+    Reading a robot's COLLADA files and simplifying them takes about a second
+    for the Panda, so the result is cached per file (path, modification time,
+    size) for the process and on disk (:func:`mesh_cache_dir`, keyed by the
+    file's content and the budget).
     """
     st = os.stat(path)
     return _simplified_mesh_cached(path, st.st_mtime_ns, st.st_size, budget)
@@ -567,6 +590,66 @@ def _simplified_mesh(path: str, budget: int = MESH_FACE_BUDGET) -> list[tuple[in
 def _simplified_mesh_cached(
     path: str, _mtime: int, _size: int, budget: int
 ) -> list[tuple[int, Any]]:
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise PublishError(f"cannot read robot mesh {path!r}: {exc}") from exc
+    key = hashlib.sha256(data).hexdigest()[:32]
+    cache = mesh_cache_dir() / f"{key}-b{budget}-v{_MESH_CACHE_VERSION}.npz"
+    groups = _read_mesh_cache(cache)
+    if groups is None:
+        groups = _simplify_mesh(path, budget)
+        _write_mesh_cache(cache, groups)
+    return [(color, _PackedMesh(verts, faces)) for color, verts, faces in groups]
+
+
+_MeshGroups = list[tuple[int, np.ndarray, np.ndarray]]
+
+
+def _read_mesh_cache(path: Path) -> _MeshGroups | None:
+    """The groups of a cache file, or None when it is absent or unreadable."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            colors = np.asarray(z["colors"], dtype=np.int64)
+            groups = [
+                (int(c), np.asarray(z[f"v{i}"], dtype=np.float32), np.asarray(z[f"f{i}"]))
+                for i, c in enumerate(colors.tolist())
+            ]
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    for _, verts, faces in groups:
+        if (
+            verts.ndim != 2
+            or verts.shape[1:] != (3,)
+            or faces.ndim != 2
+            or faces.shape[1:] != (3,)
+            or not np.issubdtype(faces.dtype, np.integer)
+            or (faces.size and (faces.min() < 0 or faces.max() >= len(verts)))
+            or not np.isfinite(verts).all()
+        ):
+            return None
+    return groups
+
+
+def _write_mesh_cache(path: Path, groups: _MeshGroups) -> None:
+    """Store ``groups`` atomically; a cache that cannot be written is skipped."""
+    arrays: dict[str, np.ndarray] = {"colors": np.array([c for c, _, _ in groups], np.int64)}
+    for i, (_, verts, faces) in enumerate(groups):
+        arrays[f"v{i}"] = np.asarray(verts, dtype=np.float32)
+        arrays[f"f{i}"] = np.asarray(faces, dtype=np.uint32)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+def _simplify_mesh(path: str, budget: int) -> _MeshGroups:
+    """Read a mesh file with trimesh, group it by colour and simplify each group."""
     import fast_simplification
     import trimesh
 
@@ -597,7 +680,7 @@ def _simplified_mesh_cached(
         keep = max(_MIN_SIMPLIFY_FACES, int(budget * len(faces) / max(total, 1)))
         if len(faces) > keep:
             verts, faces = fast_simplification.simplify(verts, faces, 1.0 - keep / len(faces))
-        out.append((color, _PackedMesh(verts, faces)))
+        out.append((color, np.asarray(verts, dtype=np.float32), np.asarray(faces)))
     return out
 
 

@@ -317,6 +317,38 @@ def test_clearance_broad_phase_equals_all_pairs(robot):
     assert np.all(fast[free] >= ref[free] - 1e-9) and np.all(fast[free] <= ref[free] + 1e-3)
 
 
+def test_clearance_face_shortcut_equals_coal(robot):
+    """Distances taken from hull vertices (a link in the region of one face of a box:
+    the table, a box obstacle on any side) equal coal's distance of that pair."""
+    env = EnvironmentConfig.model_validate(
+        {
+            "obstacles": [
+                {
+                    "shape": "box",
+                    "dims": {"size": [0.2, 0.2, 0.4]},
+                    "pose": {"xyz": [0.2, -0.4, 0.2]},
+                }
+            ]
+        }
+    )
+    c = make_checker(robot, env, ObjectConfig.model_validate(BOTTLE))
+    qs = robot.random_configurations(400, 4)
+    frames = c._frames.compute(qs)
+    exact = c._face_distances(frames, c._place(frames, c._cover.joint, c._cover.centre))
+    known = np.isfinite(exact)
+    assert known.sum() > 2000  # most link-table pairs and some link-obstacle pairs
+    worlds = {c._gm.geometryObjects[int(w)].name for w in c._dist_world[known.any(axis=0)]}
+    assert worlds == {"table", "obstacle_0"}
+    dm, dd = c._dist_model, c._dist_data
+    data = robot.model.createData()
+    for i, q in enumerate(qs):
+        pin.updateGeometryPlacements(robot.model, data, dm, dd, q)
+        for p in np.flatnonzero(known[i]):
+            ref = pin.computeDistance(dm, dd, int(p)).min_distance
+            # coal's GJK stops at a relative tolerance of about 1e-6
+            assert abs(exact[i, p] - ref) < 1e-9 + 2e-6 * abs(ref), (i, p, exact[i, p], ref)
+
+
 def test_switches_self_collision_and_object(robot):
     folded = _q(robot, j2=1.7, j4=-3.0)
     tcp = robot.fk(robot.home)[0]

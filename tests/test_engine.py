@@ -126,9 +126,10 @@ def test_neighbours_seed_from_final_solutions(robot, checker, grasps):
     np.testing.assert_allclose(res.q[n:][both], res.q[:n][both], atol=1e-9)
 
 
-def test_no_random_restarts_where_every_neighbour_failed_ik(robot):
-    """Random restarts are skipped for a row whose neighbours all failed IK (they had
-    their own restarts); a row with a solved neighbour, or none, keeps them."""
+def test_small_seed_budget_where_every_neighbour_failed_ik(robot):
+    """A row whose neighbours all failed IK (after their own full seed schedule) gets
+    no random restarts and 2 library seeds; a row with a solved neighbour, or none,
+    keeps the full schedule."""
     targets = robot.fk_pinocchio(robot.random_configurations(4000, np.random.default_rng(0)))
     with_restarts = solve_ik(robot, targets)
     without = solve_ik(robot, targets, random_restarts=0)
@@ -143,9 +144,13 @@ def test_no_random_restarts_where_every_neighbour_failed_ik(robot):
     nb[k : 2 * k, 0] = np.arange(k)  # neighbours that failed IK
     res = eng.run(rows, neighbours=nb)
     assert set(res.reason[:k]) == {"out_of_reach"}
-    assert not res.reachable[k : 2 * k].any()
-    assert set(res.reason[k : 2 * k]) <= {"no_ik", "joint_limits"}
-    assert res.reachable[2 * k :].all()  # no neighbours: restarts as usual
+    small = solve_ik(robot, rescued, random_restarts=0, library_seeds=2)
+    full = solve_ik(robot, rescued)
+    assert not small.success.all() and full.success.all()
+    np.testing.assert_array_equal(res.reachable[k : 2 * k], small.success)
+    np.testing.assert_array_equal(res.q[k : 2 * k], small.q)
+    np.testing.assert_array_equal(res.reachable[2 * k :], full.success)  # no neighbours
+    np.testing.assert_array_equal(res.q[2 * k :], full.q)
 
 
 def test_engine_errors(robot):

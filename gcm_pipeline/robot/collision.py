@@ -272,6 +272,8 @@ def erode_primitive(geometry: Any, distance: float) -> Any | None:
 
 
 _PRIMITIVES = (coal.Box, coal.Sphere, coal.Cylinder)
+#: Geometries whose points are the convex combinations of their vertices' (hull).
+_POLYTOPES = (coal.BVHModelBase, coal.ConvexBase, coal.Box)
 
 
 # --- sphere covers ------------------------------------------------------------------
@@ -620,6 +622,25 @@ class CollisionChecker:
             self._dist_data = _without_cached_guess(pin.GeometryData(dm))
             self._dist_owner = np.array([p.owner for p in dist], dtype=int)
             self._dist_world = np.array([p.b for p in dist], dtype=int)
+            # the pairs against boxes: their hull vertices give exact distances
+            self._hulls: dict[int, tuple[int, np.ndarray]] = {}
+            self._box_pairs: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
+            for col, p in enumerate(dist):
+                world = gm.geometryObjects[p.b]
+                robot_geom = gm.geometryObjects[p.a].geometry
+                if (
+                    not isinstance(world.geometry, coal.Box)
+                    or not isinstance(robot_geom, _POLYTOPES)
+                    or p.a != p.owner
+                ):
+                    continue
+                if p.a not in self._hulls:
+                    self._hulls[p.a] = _hull_vertices(gm.geometryObjects[p.a], self._frames)
+                self._box_pairs[col] = (
+                    np.linalg.inv(world.placement.homogeneous),
+                    np.asarray(world.geometry.halfSide, dtype=float),
+                    p.a,
+                )
 
         # the carried object (retreat): its cover in its own frame and its pairs
         self._carried = None
@@ -675,7 +696,9 @@ class CollisionChecker:
         out = np.empty((n, len(joints), 3))
         for j in np.unique(joints).tolist():
             cols = np.flatnonzero(joints == j)
-            out[:, cols] = poss[j][:, None, :] + np.einsum("nij,pj->npi", rots[j], local[cols])
+            # (N * 3, 3) @ (3, P_j): one BLAS call per joint
+            placed = (rots[j].reshape(-1, 3) @ local[cols].T).reshape(n, 3, cols.size)
+            out[:, cols] = placed.transpose(0, 2, 1) + poss[j][:, None, :]
         return out
 
     def _run(self, pool: Any, q: np.ndarray) -> np.ndarray:
@@ -915,18 +938,70 @@ class CollisionChecker:
                 d = self._bounds_for(w).lower(centres) - cov.radius
                 per_owner = np.minimum.reduceat(d, cov.start[:-1], axis=1)
                 bound[:, cols] = per_owner[:, self._dist_owner[cols]]
-            order = np.argsort(bound, axis=1)
-            for k, n in enumerate(block.tolist()):
+            # exact distances to boxes where a link lies in the region of one face
+            exact = self._face_distances(frames, centres)
+            known = np.isfinite(exact)
+            bound[known] = exact[known]
+            best0 = np.where(known, exact, np.inf).min(axis=1)
+            # coal only for rows with a pair that may still be nearer than best - precision
+            need = ~known & (bound < best0[:, None] - precision)
+            todo = np.flatnonzero(need.any(axis=1))
+            easy = np.setdiff1d(np.arange(block.size), todo)
+            out[block[easy]] = best0[easy]
+            order = np.argsort(bound[todo], axis=1)
+            for k, i in enumerate(todo.tolist()):
+                n = int(block[i])
                 pin.updateGeometryPlacements(model, data, dm, dd, qs[n])
                 best = np.inf
-                lb = bound[k]
+                lb = bound[i]
                 for p in order[k].tolist():
                     if lb[p] >= best - precision:
                         break
-                    d = pin.computeDistance(dm, dd, p).min_distance
+                    d = exact[i, p] if known[i, p] else pin.computeDistance(dm, dd, p).min_distance
                     if d < best:
                         best = d
                 out[n] = best
+        return out
+
+    def _face_distances(self, frames: Any, centres: np.ndarray) -> np.ndarray:
+        """Exact distances (N, P) of the clearance pairs against boxes, NaN where unknown.
+
+        A robot geometry that lies in the region of one face of a box (its
+        covering spheres inside the face's rectangle, its hull vertices beyond
+        the face's plane) is at the distance of its nearest hull vertex from
+        that plane: the distance to the box is linear in that region, so its
+        minimum over the geometry is at a hull vertex (what coal computes on
+        the mesh, to round-off).
+        """
+        n = centres.shape[0]
+        out = np.full((n, self._dist_owner.size), np.nan)
+        cov = self._cover
+        rots, poss = frames
+        for col, (inv, halfs, g) in self._box_pairs.items():
+            sph = np.arange(cov.start[g], cov.start[g + 1])
+            c = centres[:, sph] @ inv[:3, :3].T + inv[:3, 3]  # (N, s, 3), box frame
+            r = cov.radius[sph]
+            joint, verts = self._hulls[g]
+            for axis in range(3):
+                other = [k for k in range(3) if k != axis]
+                lateral = np.all(np.abs(c[:, :, other]) + r[None, :, None] <= halfs[other], axis=2)
+                rows = np.flatnonzero(lateral.all(axis=1))
+                if rows.size == 0:
+                    continue
+                # the face on the geometry's side; the height of a vertex v over it is
+                # u . (R_j v + o_j) + t with u the face's normal in the base frame
+                sign = np.where(c[rows, 0, axis] >= 0, 1.0, -1.0)
+                u = sign[:, None] * inv[axis, :3]
+                w = np.einsum("ni,nij->nj", u, rots[joint][rows])  # R_j^T u
+                lowest = (w @ verts.T).min(axis=1)
+                height = (
+                    lowest
+                    + np.einsum("ni,ni->n", u, poss[joint][rows])
+                    + sign * inv[axis, 3]
+                    - halfs[axis]
+                )
+                above = height >= 0
+                out[rows[above], col] = height[above]
         return out
 
     def with_world(self, world: Any) -> CollisionChecker:
@@ -989,6 +1064,20 @@ def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _
     return _Cover(
         np.concatenate(centres), np.concatenate(radii), np.concatenate(joints), np.array(start)
     )
+
+
+def _hull_vertices(go: Any, frames: JointFrames) -> tuple[int, np.ndarray]:
+    """A robot geometry's convex hull vertices in its joint's rotated frame: ``(joint, (V, 3))``."""
+    pts, _ = geometry_mesh(go.geometry)
+    try:
+        pts = pts[ConvexHull(pts).vertices]
+    except (QhullError, ValueError):
+        pass
+    j = int(go.parentJoint)
+    rot, trans = frames.local(
+        j, np.asarray(go.placement.rotation), np.asarray(go.placement.translation)
+    )
+    return j, pts @ rot.T + trans
 
 
 def _without_cached_guess(gd: Any) -> Any:

@@ -5,10 +5,10 @@ base frame), in :meth:`ReachabilityEngine.run`:
 
 1. **IK** (:func:`~gcm_pipeline.robot.ik.solve_ik`): one solution per target,
    batched; seeds are the given warm starts, the seed library, home and random
-   restarts (none for a row whose neighbours all failed IK after their own
-   restarts: on the dense bottle manifold of ``bench_pipeline.py`` restarts
-   reach none of the 8,633 targets that fail); targets beyond the arm's reach
-   are rejected first
+   restarts (for a row whose neighbours all failed IK after their full seed
+   schedule, no random restarts and 2 library seeds: on the dense bottle
+   manifold of ``bench_pipeline.py`` none of its 5,940 such rows is reached by
+   any seed); targets beyond the arm's reach are rejected first
    (``out_of_reach``), the others get ``no_ik`` or ``joint_limits`` when no seed
    converges. Every solution is **verified** by Pinocchio's forward kinematics
    and lies strictly inside the joint limits.
@@ -60,6 +60,7 @@ and :meth:`~ReachabilityEngine.run` it on many target sets.
 from __future__ import annotations
 
 import atexit
+import functools
 import multiprocessing as mp
 import os
 import time
@@ -80,6 +81,7 @@ from gcm_pipeline.robot.ik import (
     solve_ik,
     verify_solutions,
 )
+from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -102,6 +104,9 @@ _AT_GRASP, _AT_APPROACH, _AT_RETREAT, _PASSED = 0, 1, 2, 3
 #: neighbours and random restarts beyond the first solve's.
 _RESOLVE_LIBRARY = 8
 _RESOLVE_RESTARTS = 0
+
+#: Library seeds of a row whose neighbours all failed IK (step 1; no random restarts).
+_HOPELESS_LIBRARY = 2
 
 #: Two solutions closer than this in every joint are the same branch [rad].
 _SAME_SOLUTION = 1e-3
@@ -533,7 +538,11 @@ class ReachabilityEngine:
         if no_restarts is None or not np.any(no_restarts):
             return ik(np.arange(m))
         parts = [np.flatnonzero(~no_restarts), np.flatnonzero(no_restarts)]
-        results = [ik(parts[0]), ik(parts[1], random_restarts=0)]
+        small: dict[str, Any] = {"random_restarts": 0}
+        if self.backend == "pinocchio":
+            lib = self.ik_options.get("library_seeds", PinocchioIKOptions.library_seeds)
+            small["library_seeds"] = min(int(lib), _HOPELESS_LIBRARY)
+        results = [ik(parts[0]), ik(parts[1], **small)]
         return _merge_ik(parts, results, m, self.robot.nq)
 
     def solve(
@@ -549,13 +558,26 @@ class ReachabilityEngine:
             targets: Grasp poses (M, 4, 4) in the base frame [m].
             seeds: Warm starts (M, K, nq) [rad] (NaN = none) or None.
             return_candidates: Also return step 1's converged candidates.
-            no_restarts: (M,) bool, targets whose IK gets no random restarts
-                (every neighbour failed IK after its own restarts), or None.
+            no_restarts: (M,) bool, targets whose IK gets no random restarts and
+                fewer library seeds (every neighbour failed IK after its own
+                full schedule), or None.
 
         Returns:
             The :class:`ReachResult` fields as a dict (``candidates`` as a tuple
             of arrays or None).
         """
+        # the engine's parallelism is its worker processes: BLAS runs on one thread
+        # (its threads only contend with them, and the matrices here are small)
+        with _blas_controller().limit(limits=1, user_api="blas"):
+            return self._solve(targets, seeds, return_candidates, no_restarts)
+
+    def _solve(
+        self,
+        targets: np.ndarray,
+        seeds: np.ndarray | None,
+        return_candidates: bool,
+        no_restarts: np.ndarray | None,
+    ) -> dict[str, Any]:
         nq = self.robot.nq
         m = targets.shape[0]
         self.timings = {}
@@ -834,6 +856,14 @@ def _solve_in_worker(
 def _close_pools() -> None:
     for engine in list(_POOLS):
         engine.close()
+
+
+@functools.cache
+def _blas_controller() -> Any:
+    """The process's thread pools (BLAS), inspected once."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _merge_ik(parts: list[np.ndarray], results: list[IKResult], m: int, nq: int) -> IKResult:

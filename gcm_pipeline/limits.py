@@ -16,6 +16,10 @@ fixed ones are bounds of the config schema:
   steps over 10 cm).
 - ``ik.workers``: at most 256 (schema bound).
 - ``ik.solutions``: at most 16 IK branches per grasp (schema bound).
+- Studies: a range ``{from, to, steps}`` has at most 1,000,000 steps; a study
+  plans at most 1,000,000 placements even with ``--force`` (above
+  ``max_placements``, default 1,000, it needs ``--force``). The count is
+  worked out per axis before any placement is built.
 - YAML files and ``--set`` values: 1 MiB, depth 64, 100,000 values after
   aliases (:mod:`gcm_pipeline.safe_yaml`).
 
@@ -36,6 +40,8 @@ __all__ = [
     "MAX_APPROACH_STEPS",
     "MAX_IK_SOLUTIONS",
     "MAX_IK_WORKERS",
+    "MAX_RANGE_STEPS",
+    "MAX_STUDY_PLACEMENTS",
     "check_size",
     "lattice_size",
 ]
@@ -46,6 +52,8 @@ MAX_APPROACH_STEPS = 1_000
 MAX_ADAPTIVE_LEVEL = 10
 MAX_IK_WORKERS = 256
 MAX_IK_SOLUTIONS = 16
+MAX_RANGE_STEPS = 1_000_000
+MAX_STUDY_PLACEMENTS = 1_000_000
 
 
 def check_size(estimate: int, limit: int, what: str, key: str, hint: str = "") -> None:

@@ -143,6 +143,21 @@ def test_region_table_and_box_restrict_the_grid():
     )
     assert len(box.placements()) == 6  # x 0.4, 0.8, 1.2 times y 0.0, 1.5
     assert {p.object_pose["x"] for p in box.placements()} == {0.4, 0.8, 1.2}
+    # the size is counted axis by axis, before any placement is built
+    assert table.size() == (3, 0) and box.size() == (6, 0)
+    base = Study.from_dict(
+        _small(
+            {
+                "object_pose": {
+                    **sweep,
+                    "z": [0.0, 0.5],
+                    "region": {"min": [0.3, -1, -0.1], "max": [1.3, 2, 0.1]},
+                },
+                "base_pose": {"y": [-0.2, 0.0, 0.2], "region": {"min": [-1, -0.1], "max": [1, 1]}},
+            }
+        )
+    )
+    assert base.size() == (6 * 2, 0) and len(base.placements()) == 12
 
 
 def test_objects_and_base_pose_multiply(tmp_path):
@@ -271,6 +286,42 @@ def test_a_study_above_its_limit_needs_force(tmp_path, capsys):
     study = Study.from_dict(data)
     assert study.check(out, force=True) is False  # accepted with force, still nothing written
     assert not out.exists()
+
+
+_WIDE = {"from": 0.2, "to": 0.8, "steps": 100_000}
+
+
+@pytest.mark.parametrize(
+    ("sweep", "fragment"),
+    [
+        ({"x": _WIDE, "y": _WIDE}, "10,000,000,000 placements; one study holds at most 1,000,000"),
+        (
+            {"x": {"from": 0.3, "to": 0.7, "steps": 10**9}},
+            "steps must be <= 1,000,000, got 1,000,000,000",
+        ),
+    ],
+)
+def test_a_huge_study_is_refused_before_it_is_built(tmp_path, sweep, fragment):
+    """Counted per axis and refused in one line, even with --force (it cannot help).
+
+    The CLI runs in a subprocess with its address space capped at 2 GiB, so
+    building the placements or the grid values (tens of GB) fails there
+    instead of on this machine.
+    """
+    path = _study_file(tmp_path, _small({"object_pose": sweep}))
+    out = tmp_path / "out"
+    cap = "import resource; resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30)); "
+    for extra in ([], ["--force"]):
+        code = cap + (
+            "import sys; from gcm_pipeline.cli import main; "
+            f"sys.exit(main(['study', {str(path)!r}, '--out', {str(out)!r}, *{extra!r}]))"
+        )
+        proc = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600
+        )
+        assert proc.returncode == 2, proc.stderr[-2000:]
+        assert proc.stderr.count("\n") == 1 and fragment in proc.stderr, proc.stderr[-2000:]
+        assert not out.exists()
 
 
 def test_unreachable_address_is_one_line(tmp_path, capsys):

@@ -29,6 +29,7 @@ frame is refused, its grasps would stay behind).
 
 from __future__ import annotations
 
+import collections
 import copy
 import difflib
 import hashlib
@@ -47,6 +48,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from gcm_pipeline.config import Config, _resolve_paths, config_from_data, read_yaml
 from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.limits import MAX_RANGE_STEPS, MAX_STUDY_PLACEMENTS
 
 __all__ = [
     "AXES",
@@ -86,6 +88,8 @@ class RangeSpec(_Strict):
     def _valid(self) -> RangeSpec:
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.steps > MAX_RANGE_STEPS:
+            raise ValueError(f"steps must be <= {MAX_RANGE_STEPS:,}, got {self.steps:,}")
         if self.start > self.to:
             raise ValueError(f"inverted range: from {self.start} > to {self.to}")
         if self.steps > 1 and self.start == self.to:
@@ -160,7 +164,7 @@ class PoseSweep(_Strict):
                 continue
             values = spec.values() if isinstance(spec, RangeSpec) else _rounded(spec)
             if len(set(values)) != len(values):
-                dup = next(v for v in values if values.count(v) > 1)
+                dup = next(v for v, n in collections.Counter(values).items() if n > 1)
                 raise ConfigError(f"{name}: value {dup} appears twice")
             out[name] = values
         return out
@@ -350,9 +354,14 @@ class StudyPlan:
         self.study_dir = study_dir
         self._key: str | None = None
         self._objects = self._object_entries()
+        self._targets: dict[int, _Target] = {}
         self.base_config = self.resolve(list(spec.set), where="base config")
         self._check()
-        self._grid = self._make_grid()
+        # counted per axis, so a study far too large is refused before it is built
+        self._count = self._count_grid()
+        if self._count == 0:
+            raise ConfigError("sweep: no placement lies inside the region")
+        self._grid: list[Placement] | None = None
 
     # --- resolving configs ----------------------------------------------------------
 
@@ -393,12 +402,17 @@ class StudyPlan:
         return out
 
     def _object_target(self, index: int) -> _Target:
-        cfg = self.object_config(index)
-        pose = cfg.object.pose.model_dump() if cfg.object is not None else None
-        return _Target("object.pose", pose)
+        if index not in self._targets:
+            cfg = self.object_config(index)
+            pose = cfg.object.pose.model_dump() if cfg.object is not None else None
+            self._targets[index] = _Target("object.pose", pose)
+        return self._targets[index]
 
     def _base_target(self) -> _Target:
-        return _Target("robot.base_pose", self.base_config.robot.base_pose.model_dump())
+        if -1 not in self._targets:
+            pose = self.base_config.robot.base_pose.model_dump()
+            self._targets[-1] = _Target("robot.base_pose", pose)
+        return self._targets[-1]
 
     def object_config(self, index: int) -> Config:
         """The config of object ``index`` before any pose override."""
@@ -465,16 +479,52 @@ class StudyPlan:
 
     # --- placements ------------------------------------------------------------------
 
-    def _in_region(self, pose: PoseSweep | None, target: _Target, values: dict[str, float]) -> bool:
+    def _inside(self, pose: PoseSweep | None, axis: int, value: float) -> bool:
+        """Whether coordinate ``axis`` (0 x, 1 y, 2 z) of a position is inside the region.
+
+        Both regions (the table top, a box) are boxes, so a position is inside
+        when each coordinate is: the grid's size is counted axis by axis.
+        """
         if pose is None or pose.region is None:
             return True
-        xyz = target.xyz_of(values)
         if pose.region == "table":
+            if axis > 1:
+                return True
             table = self.base_config.environment.table
             assert table is not None
-            half = (0.5 * table.size[0], 0.5 * table.size[1])
-            return all(abs(xyz[i] - table.center_xy[i]) <= half[i] + 1e-12 for i in range(2))
-        return pose.region.contains(xyz)
+            half = 0.5 * table.size[axis]
+            return abs(value - table.center_xy[axis]) <= half + 1e-12
+        box = pose.region
+        return axis >= len(box.min) or box.min[axis] <= value <= box.max[axis]
+
+    def _in_region(self, pose: PoseSweep | None, target: _Target, values: dict[str, float]) -> bool:
+        return all(self._inside(pose, i, v) for i, v in enumerate(target.xyz_of(values)))
+
+    def _count_poses(
+        self, pose: PoseSweep | None, axes: dict[str, list[float]], target: _Target
+    ) -> int:
+        """How many of the combinations of ``axes`` lie inside ``pose``'s region."""
+        n = len(axes.get("yaw_deg", [0.0]))
+        for i, a in enumerate(("x", "y", "z")):
+            values = axes[a] if a in axes else [target.xyz[i]]
+            n *= sum(1 for v in values if self._inside(pose, i, v))
+        return n
+
+    def _count_grid(self) -> int:
+        sweep = self.spec.sweep
+        object_axes = sweep.object_pose.axes() if sweep.object_pose else {}
+        base_axes = sweep.base_pose.axes() if sweep.base_pose else {}
+        bases = self._count_poses(sweep.base_pose, base_axes, self._base_target())
+        if not object_axes:
+            return bases * len(self._objects)
+        return bases * sum(
+            self._count_poses(sweep.object_pose, object_axes, self._object_target(k))
+            for k in range(len(self._objects))
+        )
+
+    def count(self) -> int:
+        """The number of placements of round 0 (the grid), without building them."""
+        return self._count
 
     def _combos(
         self,
@@ -508,17 +558,26 @@ class StudyPlan:
         return Placement(pid, rnd, name, dict(obj), dict(base), tuple(overrides))
 
     def grid(self) -> list[Placement]:
-        """The placements of round 0 (the grid), in id order."""
-        return list(self._grid)
+        """The placements of round 0 (the grid), in id order.
 
-    def _make_grid(self) -> list[Placement]:
-        sweep = self.spec.sweep
-        object_axes = sweep.object_pose.axes() if sweep.object_pose else {}
-        base_axes = sweep.base_pose.axes() if sweep.base_pose else {}
-        combos = self._combos(object_axes, base_axes, range(len(self._objects)))
-        if not combos:
-            raise ConfigError("sweep: no placement lies inside the region")
-        return [self._placement(i, 0, *c) for i, c in enumerate(combos)]
+        Built on the first call.
+
+        Raises:
+            ConfigError: The grid has more than
+                :data:`~gcm_pipeline.limits.MAX_STUDY_PLACEMENTS` placements.
+        """
+        if self._grid is None:
+            if self._count > MAX_STUDY_PLACEMENTS:
+                raise ConfigError(
+                    f"study has {self._count:,} placements; one study holds at most "
+                    f"{MAX_STUDY_PLACEMENTS:,} (split it into several studies)"
+                )
+            sweep = self.spec.sweep
+            object_axes = sweep.object_pose.axes() if sweep.object_pose else {}
+            base_axes = sweep.base_pose.axes() if sweep.base_pose else {}
+            combos = self._combos(object_axes, base_axes, range(len(self._objects)))
+            self._grid = [self._placement(i, 0, *c) for i, c in enumerate(combos)]
+        return list(self._grid)
 
     def refine_size(self) -> int:
         """Upper bound of the placements one refinement round adds (per object)."""

@@ -35,6 +35,7 @@ from tqdm.auto import tqdm
 from gcm_pipeline import io
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError
+from gcm_pipeline.limits import MAX_STUDY_PLACEMENTS
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
 from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
 
@@ -149,7 +150,7 @@ class Study:
         base = self.plan.base_path or "inline"
         return (
             f"Study(base={str(base)!r}, objects={self.plan.object_names}, "
-            f"grid={len(self.placements())}, refine={spec.refine!r})"
+            f"grid={self.plan.count()}, refine={spec.refine!r})"
         )
 
     def placements(self) -> list[Placement]:
@@ -157,15 +158,16 @@ class Study:
         return self.plan.grid()
 
     def size(self) -> tuple[int, int]:
-        """(grid placements, at most this many more from refinement)."""
+        """(grid placements, at most this many more from refinement), counted, not built."""
         refine = self.plan.spec.refine
         rounds = refine.rounds if refine is not None else 0
-        return len(self.placements()), rounds * self.plan.refine_size()
+        return self.plan.count(), rounds * self.plan.refine_size()
 
     def check(self, out_dir: str | Path, *, force: bool = False) -> bool:
         """Check the study and its directory before any work; True when it resumes.
 
-        Checks the size limit (``max_placements``, or ``force``), ``gcm run``'s
+        Checks the size limits (``max_placements``, or ``force``; at most
+        :data:`~gcm_pipeline.limits.MAX_STUDY_PLACEMENTS` in any case), ``gcm run``'s
         preflight on the first placement (robot, meshes, files), that the first
         placement of every other object resolves and its files exist (a damaged
         file fails that object's placements, recorded, as reading files is a
@@ -174,7 +176,7 @@ class Study:
         study.
 
         Raises:
-            ConfigError: The study is too large without ``force``, or a placement
+            ConfigError: The study is too large (without ``force``), or a placement
                 config is invalid.
             OutputError: ``out_dir`` cannot hold this study.
         """
@@ -182,8 +184,13 @@ class Study:
 
         grid, extra = self.size()
         limit = self.plan.spec.max_placements
+        more = f" + up to {extra:,} from refinement" if extra else ""
+        if grid + extra > MAX_STUDY_PLACEMENTS:
+            raise ConfigError(
+                f"study has {grid:,} placements{more}; one study holds at most "
+                f"{MAX_STUDY_PLACEMENTS:,} (split it into several studies)"
+            )
         if grid + extra > limit and not force:
-            more = f" + up to {extra:,} from refinement" if extra else ""
             raise ConfigError(
                 f"study has {grid:,} placements{more}, more than max_placements {limit:,}; "
                 "pass --force (CLI) or force=True to run it, or raise max_placements in the "

@@ -608,7 +608,15 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
+#: The SIGTERM / SIGHUP that interrupted the command, if any: a library that
+#: turns a KeyboardInterrupt into a new one (Ray does, inside ray.get and
+#: ray.wait) loses the :class:`Terminated` and its signal number.
+_terminated_by: int | None = None
+
+
 def _raise_terminated(signum: int, frame: Any) -> None:
+    global _terminated_by
+    _terminated_by = signum
     raise Terminated(signum)
 
 
@@ -651,9 +659,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         the signal number on SIGTERM (143) or SIGHUP (129), 141 when the
         reader of the output goes away (``gcm validate | head -1``).
     """
+    global _terminated_by
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose, args.quiet)
+    _terminated_by = None
     try:
         with interrupt_on_termination():
             status = _COMMANDS[args.command](args)
@@ -667,10 +677,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             message = message[: MAX_ERROR_LINE - 3] + "..."
         print(f"error: {message}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except Terminated as exc:
-        print(f"interrupted ({signal.Signals(exc.signum).name})", file=sys.stderr)
-        return 128 + exc.signum
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Terminated) else _terminated_by
+        if signum is not None:
+            print(f"interrupted ({signal.Signals(signum).name})", file=sys.stderr)
+            return 128 + signum
         print("interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:

@@ -550,27 +550,61 @@ def test_kill_resume_and_ctrl_c(cluster, tmp_path):
     assert [r["id"] for r in result.rows] == list(range(8))
 
 
+def _in_session(sid: int) -> list[str]:
+    """Command lines of the processes of session ``sid`` (the driver's, started with setsid)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if os.getsid(int(d.name)) == sid:
+                out.append((d / "cmdline").read_bytes().replace(b"\0", b" ").decode()[:200])
+        except OSError:  # gone meanwhile
+            continue
+    return out
+
+
+def _session_ends(sid: int, timeout: float = 60.0) -> list[str]:
+    """Wait until no process of session ``sid`` is left; return those still there."""
+    t0 = time.perf_counter()
+    while (left := _in_session(sid)) and time.perf_counter() - t0 < timeout:
+        time.sleep(0.2)
+    return left
+
+
 def test_gcm_study_starts_ray_on_this_machine(tmp_path):
-    """Without --address: Ray starts locally, runs the study and stops again."""
-    data = _small({"object_pose": {"x": [0.5]}})
+    """Without --address: Ray starts locally and stops again, also on SIGTERM; a rerun resumes."""
+    data = _small({"object_pose": {"x": [0.35, 0.4, 0.45, 0.5, 0.55, 0.6]}})
     path = _study_file(tmp_path, data)
     out = tmp_path / "study"
     env = dict(os.environ)
     env["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="gcm-ray-", dir="/tmp")
+    argv = [sys.executable, "-m", "gcm_pipeline", "study", str(path), "--out", str(out)]
+    argv += ["--workers", "1"]
     try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "gcm_pipeline", "study", str(path), "--out", str(out)]
-            + ["--workers", "1"],
-            capture_output=True,
+        # SIGTERM (a process manager stopping it): like Ctrl-C, status 143, nothing of Ray left
+        proc = subprocess.Popen(
+            argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
             text=True,
             env=env,
-            timeout=300,
+            start_new_session=True,  # Ray's processes join the driver's session
         )
+        _wait_for_parts(out, 1, proc)
+        proc.terminate()
+        _, stderr = proc.communicate(timeout=120)
+        assert proc.returncode == 143, stderr
+        assert stderr.endswith("run the same command to resume\ninterrupted (SIGTERM)\n"), stderr
+        assert _session_ends(proc.pid) == []
+        first = len(list((out / "placements").glob("*.npz")))
+        proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
     finally:
         shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
     assert proc.returncode == 0, proc.stderr
-    assert "best placement #0" in proc.stdout
+    assert "best placement #" in proc.stdout
     assert "ray" in proc.stdout and "local" in proc.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert summary["engine"]["mode"] == "local" and summary["complete"]
+    assert summary["counts"]["resumed"] == first and summary["counts"]["finished"] == 6
     assert (out / "best" / "summary.json").is_file()

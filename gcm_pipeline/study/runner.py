@@ -19,9 +19,12 @@ does not load it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from typing import Any
@@ -142,6 +145,29 @@ def _connect(
         ) from None
 
 
+@contextlib.contextmanager
+def _caller_signal_handlers() -> Iterator[None]:
+    """Keep the caller's SIGTERM, SIGHUP and SIGINT handlers across ``ray.init``.
+
+    ``ray.init`` sets its own SIGTERM handler (exit at once with status 15,
+    Ray's core worker printing a stack), which would replace ``gcm study``'s
+    (stop the workers, keep what finished, exit 143 like Ctrl-C). A handler the
+    caller set (a Python function, or ignore) is put back afterwards; where
+    the caller had none, Ray's stays (it stops the Ray processes it started).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = [getattr(signal, n) for n in ("SIGTERM", "SIGHUP", "SIGINT") if hasattr(signal, n)]
+    saved = {sig: signal.getsignal(sig) for sig in sigs}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            if callable(handler) or handler == signal.SIG_IGN:
+                signal.signal(sig, handler)
+
+
 def _import_ray() -> Any:
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     try:
@@ -186,21 +212,23 @@ class RayExecutor(Executor):
         elif address is None:
             n = workers or os.cpu_count() or 1
             try:
-                ray.init(
-                    address="local",
-                    num_cpus=n,
-                    include_dashboard=False,
-                    log_to_driver=False,
-                    logging_level=logging.ERROR,
-                    object_store_memory=256 * 1024**2,
-                )
+                with _caller_signal_handlers():
+                    ray.init(
+                        address="local",
+                        num_cpus=n,
+                        include_dashboard=False,
+                        log_to_driver=False,
+                        logging_level=logging.ERROR,
+                        object_store_memory=256 * 1024**2,
+                    )
             except Exception as exc:
                 raise EngineError(f"cannot start Ray on this machine: {exc}") from None
             self.started = True
             self.mode = "local"
         else:
             try:
-                ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
+                with _caller_signal_handlers():
+                    ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             except Exception as exc:
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise EngineError(

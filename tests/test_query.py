@@ -156,6 +156,64 @@ def test_query_poses_must_be_rigid_and_finite(
         bottle.locate(pose)
 
 
+@pytest.fixture(scope="module")
+def many_triangles() -> TriangleLocator:
+    """The bottle with 2,000 side grasps: about 4,000 small triangles (the benchmark's)."""
+    over = ["candidates.count=2000", "manifold.max_edge_length=0.03"]
+    cfg = gcm.load_config(BOTTLE, over)
+    cand = gcm.generate_candidates(cfg)
+    mesh = gcm.build_manifold(cand, cfg)
+    assert len(mesh.triangles) > 3000
+    return TriangleLocator(np.asarray(cand["dq"])[mesh.triangles], method=cfg.densify.method)
+
+
+def _far_queries(corners: np.ndarray, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = rng.integers(0, len(corners), n)
+    on = blend(corners[t], rng.dirichlet((1, 1, 1), n))
+    return _noisy(on, rng, 0.05, np.deg2rad(15.0))
+
+
+def test_pruned_locate_equals_exhaustive_projection(
+    bottle: gcm.GraspManifold, many_triangles: TriangleLocator
+) -> None:
+    # pruning skips only triangles that cannot hold a nearer point: the answer
+    # is the one of projecting every query onto every triangle
+    for loc, n in ((bottle.locator, 300), (many_triangles, 40)):
+        queries = _far_queries(loc.corners, n, seed=len(loc))
+        got = loc.locate(queries)
+        ref = loc.locate(queries, exhaustive=True)
+        assert np.all(np.abs(got.distance - ref.distance) <= 1e-12)
+        assert np.array_equal(got.triangle, ref.triangle)
+
+
+def test_locator_bounds_are_lower_bounds(
+    bottle: gcm.GraspManifold, many_triangles: TriangleLocator
+) -> None:
+    # every bound used for pruning is at most the distance to any point of the
+    # triangle; checked where it matters, on each query's 8 lowest-bound triangles
+    inner, corners = _cells(24)
+    pts_w = np.concatenate((inner, corners.reshape(-1, 3)))
+    for loc in (bottle.locator, many_triangles):
+        rng = np.random.default_rng(5)
+        queries = np.concatenate(
+            (_far_queries(loc.corners, 25, 1), _noisy(loc.corners[:25, 0], rng, 0.01, 0.05))
+        )
+        m, t = len(queries), len(loc)
+        rows = np.repeat(np.arange(m), t)
+        feat = pose_features(queries, loc.orientation_scale)
+        kept, bound, _ = loc._bounds(feat, rows, np.tile(np.arange(t), m), np.full(m, np.inf))
+        assert len(kept) == len(rows)
+        lowest = np.argsort(bound.reshape(m, t), axis=1)[:, :8]  # (m, 8)
+        tris = lowest.ravel()
+        pts = blend(np.repeat(loc.corners[tris], len(pts_w), 0), np.tile(pts_w, (len(tris), 1)))
+        dist = pose_distance(pts.reshape(m, 8, -1, 8), queries[:, None, None]).min(axis=2)
+        assert np.all(np.take_along_axis(bound.reshape(m, t), lowest, 1) <= dist + 1e-12)
+        # and the first distance to beat is that of a point of the manifold
+        tri, w, d = loc._upper(queries, feat)
+        assert np.allclose(pose_distance(blend(loc.corners[tri], w), queries), d, atol=1e-15)
+
+
 def test_triangle_locator_needs_triangles() -> None:
     with pytest.raises(gcm.GeometryError, match="no triangle"):
         TriangleLocator(np.zeros((0, 3, 8)))

@@ -37,11 +37,15 @@ this pose" for batches of queries, exactly up to the projection's tolerance:
    plane, in-plane extent, thickness, measured on a lattice of its points and
    enlarged for the curvature between them), so the distance from a query to
    any point of the triangle has a cheap lower bound;
-2. the query is projected onto the triangle of its nearest centre (KD-trees
-   over the centres, both quaternion signs), giving the distance to beat;
-3. it is projected onto every other triangle whose bound is below that
-   distance; triangles farther in the trees than the bound allows are
-   fetched by a ball query, so none that could hold a nearer point is skipped.
+2. the distance to beat starts at a point of the manifold: the nearest point
+   of a coarse lattice on the triangle of the query's nearest centre;
+3. triangles whose centre lies within that distance plus their size (ball
+   queries in KD-trees over the centres, both quaternion signs) are bounded;
+   per query, in the order of their bounds, the lowest is projected first,
+   then every other whose bound is still below the distance found. A pruned
+   triangle's bound is at or above a distance already reached, so it holds
+   no nearer point: the answer equals projecting onto every triangle
+   (``TriangleLocator.locate(..., exhaustive=True)``).
 
 A projection runs a few sequential quadratic programming steps on the
 barycentric weights: the blend surface is linearised (DLB: analytic Jacobian
@@ -397,13 +401,16 @@ class TriangleLocator:
 
     .. math:: \sqrt{\max(0, |a| - R)^2 + \max(0, |b| - \tau)^2}
 
-    away. A query is projected first onto the triangle with the smallest
-    bound (started at its in-plane foot point), then onto every other
-    triangle whose bound is below the distance found. Candidates come from
-    KD-trees over the centres (both quaternion signs): the nearest centre's
-    triangle first, then every centre within the distance found plus the
-    largest extent. Triangles are grouped by size (one tree per group, so a
-    few large triangles do not widen the balls of the many small ones).
+    away (with the quaternion sign nearer to the centre; the other sign is
+    bounded by its distance to the centre minus the triangle's extent). The
+    first distance to beat is that of the nearest point of a coarse lattice
+    on the triangle of the nearest centre. Candidates are the triangles whose
+    centre is within that distance plus the largest extent of their size
+    group (ball queries in KD-trees over the centres, both quaternion signs;
+    one tree per size group, so a few large triangles do not widen the balls
+    of the many small ones). A query is projected onto its lowest-bound
+    candidate first (started at its in-plane foot point), then onto every
+    other whose bound is below the distance found.
 
     Args:
         corners: (T, 3, 8) vertex poses of the T triangles (world).
@@ -419,6 +426,10 @@ class TriangleLocator:
     SAFETY = 1.25
     #: Ratio of the largest to the smallest extent within one size group.
     GROUP = 1.5
+    #: Subdivisions of the lattice whose nearest point gives the first distance to beat.
+    UPPER_SUBDIVISIONS = 3
+    #: Rounds projecting each query's lowest-bound triangle before the rest.
+    HEAD_PASSES = 1
 
     def __init__(
         self,
@@ -484,6 +495,16 @@ class TriangleLocator:
             flipped[:, 3:] *= -1.0
             tree = cKDTree(np.concatenate((centre[members], flipped)))
             self._groups.append((members, tree, float(self._extent[members].max())))
+        # a coarse lattice of every triangle's points, for the first upper bound,
+        # and a KD-tree over all centres (both signs) to pick the triangle
+        up = _lattice(self.UPPER_SUBDIVISIONS)
+        self._up_w = up
+        self._up_dq = blend(
+            np.repeat(corners, len(up), axis=0), np.tile(up, (t, 1)), method
+        ).reshape(t, len(up), 8)
+        flipped = centre.copy()
+        flipped[:, 3:] *= -1.0
+        self._centre_tree = cKDTree(np.concatenate((centre, flipped)))
         #: Largest in-plane radius [m] of a triangle's bounding slab.
         self.spacing = float(self._radius.max())
 
@@ -497,61 +518,97 @@ class TriangleLocator:
             f"method={self.method!r}, orientation_scale={self.orientation_scale} m/rad)"
         )
 
-    def locate(self, queries: npt.ArrayLike, *, batch: int = 1024) -> Location:
+    def locate(
+        self, queries: npt.ArrayLike, *, batch: int = 1024, exhaustive: bool = False
+    ) -> Location:
         """Nearest point of the triangles to each query pose.
 
         Args:
             queries: (M, 8) unit dual quaternions (world), trusted.
             batch: Queries handled at once (bounds memory).
+            exhaustive: Project every query onto every triangle, no pruning
+                (the reference the pruned search equals; slow: M * T projections).
 
         Returns:
             The :class:`Location` of each query.
         """
         q = np.asarray(queries, dtype=np.float64).reshape(-1, 8)
         m = len(q)
+        if exhaustive:
+            batch = max(1, min(batch, 65536 // len(self)))
         tri = np.zeros(m, dtype=np.int64)
         w = np.zeros((m, 3))
         d = np.zeros(m)
         for a in range(0, m, batch):
             sl = slice(a, min(a + batch, m))
-            tri[sl], w[sl], d[sl] = self._locate(q[sl])
+            tri[sl], w[sl], d[sl] = self._locate(q[sl], exhaustive)
         dq = blend(self.corners[tri], w, self.method) if m else np.zeros((0, 8))
         return Location(tri, w, d, dq)
 
     def _bounds(
-        self, q: np.ndarray, rows: np.ndarray, tris: np.ndarray, limit: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Lower bounds (P,) and in-plane start weights (P, 2) of (query, triangle) pairs.
+        self, feat: np.ndarray, rows: np.ndarray, tris: np.ndarray, limit: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Lower bounds of (query, triangle) pairs whose bound is below ``limit``.
 
-        The slab bound is taken with the query's quaternion sign nearer to
-        the triangle's centre; the other sign is bounded by its distance to
-        the centre minus the triangle's extent. The flat-triangle refinement
-        of the in-plane term is computed only where the bound is below
-        ``limit`` (per pair; all pairs when None).
+        Args:
+            feat: (M, 7) query features (:func:`pose_features`).
+            rows: (P,) query of each pair.
+            tris: (P,) triangle of each pair.
+            limit: (M,) per query: pairs bounded at or above it are dropped.
+
+        Returns:
+            ``(kept (K,), bound (K,), uv (K, 2))``: indices into the pairs, their
+            lower bounds [m] and in-plane start weights ``(w1, w2)``.
+
+        Why each is a lower bound of the distance from the query to every point
+        ``y`` of the triangle (features taken with the sign of the triangle's
+        first corner): the metric is ``min(|f+ - y|, |f- - y|)`` over the two
+        signs of the query's rotation, so a lower bound of each sign's term
+        bounds it.
+
+        * Sphere: every ``y`` is within ``extent`` of the centre ``c``, so
+          ``|f - y| >= |f - c| - extent`` (triangle inequality). The sign
+          nearer to ``c`` (``s = sign(f_r . c_r)``) has ``|f_s - c|^2 =
+          |f_-s - c|^2 - 4 |f_r . c_r|``, so its sphere bound is the smaller
+          and bounds both terms: pairs with it at or above ``limit`` go.
+        * Slab (near sign): ``y - c`` splits into an in-plane part of norm
+          ``<= radius`` (and in the corners' flat triangle grown by ``bulge``)
+          and an orthogonal part of norm ``<= thick``; ``f - c`` splits the
+          same way into ``a`` and ``b``; by orthogonality ``|f - y|^2 =
+          |a - y_a|^2 + |b - y_b|^2`` and each part is at least its norm gap
+          (``|a| - radius`` or the distance to the grown flat triangle;
+          ``|b| - thick``).
+        * Far sign: its sphere bound ``|f_-s - c| - extent``.
+
+        The bound is the smaller of the near sign's slab bound and the far
+        sign's sphere bound.
         """
-        x = _translation(q[rows])
-        r = (2.0 * self.orientation_scale) * q[rows, :4]
-        centre = self._centre[tris]
-        plus = np.concatenate((x, r), axis=1) - centre
-        minus = np.concatenate((x, -r), axis=1) - centre
-        d_plus = np.sqrt(np.einsum("pk,pk->p", plus, plus))
-        d_minus = np.sqrt(np.einsum("pk,pk->p", minus, minus))
-        use_plus = d_plus <= d_minus
-        rel = np.where(use_plus[:, None], plus, minus)
-        other = np.where(use_plus, d_minus, d_plus) - self._extent[tris]
+        f = feat[rows]
+        c = self._centre[tris]
+        ext = self._extent[tris]
+        dot = np.einsum("pk,pk->p", f[:, 3:], c[:, 3:])
+        f[:, 3:] *= np.where(dot < 0, -1.0, 1.0)[:, None]
+        rel = f - c
+        near2 = np.einsum("pk,pk->p", rel, rel)
+        near = np.sqrt(near2)
+        keep = np.flatnonzero(near - ext < limit[rows])
+        rel, near2, near, tris = rel[keep], near2[keep], near[keep], tris[keep]
+        lim = limit[rows[keep]]
         a = np.einsum("pk,pjk->pj", rel, self._basis[tris])
         in2 = np.einsum("pj,pj->p", a, a)
-        b2 = np.maximum(np.minimum(d_plus, d_minus) ** 2 - in2, 0.0)
         la = np.maximum(np.sqrt(in2) - self._radius[tris], 0.0)
-        lb = np.maximum(np.sqrt(b2) - self._thick[tris], 0.0)
+        lb = np.maximum(np.sqrt(np.maximum(near2 - in2, 0.0)) - self._thick[tris], 0.0)
         bound = np.sqrt(la * la + lb * lb)
-        refine = np.flatnonzero(bound < (np.inf if limit is None else limit))
+        refine = np.flatnonzero(bound < lim)
         if refine.size:
             t = tris[refine]
             flat = _point_triangle_2d(a[refine], self._corner_xy[t]) - self._bulge[t]
             la_r = np.maximum(la[refine], flat)
             bound[refine] = np.sqrt(la_r * la_r + lb[refine] * lb[refine])
-        bound = np.minimum(bound, np.maximum(other, 0.0))
+        far = np.sqrt(near2 + 4.0 * np.abs(dot[keep])) - self._extent[tris]
+        bound = np.minimum(bound, np.maximum(far, 0.0))
+        sel = np.flatnonzero(bound < lim)
+        keep, bound, a, tris = keep[sel], bound[sel], a[sel], tris[sel]
         # start: the in-plane foot point in the corners' in-plane coordinates, clipped
         c = self._corner_xy[tris]
         e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
@@ -563,51 +620,67 @@ class TriangleLocator:
         w = np.clip(np.column_stack((1.0 - u - v, u, v)), 0.0, None)
         w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
         w[~np.isfinite(w).all(axis=1)] = 1.0 / 3.0
-        return bound, w[:, 1:]
+        return keep, bound, w[:, 1:]
 
-    def _sphere_bound(self, q: np.ndarray, rows: np.ndarray, tris: np.ndarray) -> np.ndarray:
-        """Lower bound (P,): distance to the triangle's centre minus its extent."""
-        feat = pose_features(q[rows], self.orientation_scale)
-        c = self._centre[tris]
-        d_plus = np.linalg.norm(feat - c, axis=1)
-        feat[:, 3:] *= -1.0
-        d_minus = np.linalg.norm(feat - c, axis=1)
-        return np.minimum(d_plus, d_minus) - self._extent[tris]
+    def _upper(self, q: np.ndarray, feat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A point of the manifold near each query: the first distance to beat.
 
-    def _locate(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        The nearest point of the coarse lattice of the triangle whose centre is
+        nearest to the query; being a point of the manifold, its distance bounds
+        the answer from above.
+
+        Returns:
+            ``(triangle (M,), weights (M, 3), distance (M,))``.
+        """
+        _, idx = self._centre_tree.query(feat, k=1)
+        tri = idx % len(self)
+        pts = self._up_dq[tri]  # (M, U, 8)
+        d = pose_distance(pts, q[:, None, :], self.orientation_scale)
+        j = np.argmin(d, axis=1)
+        rows = np.arange(len(q))
+        return tri, self._up_w[j], d[rows, j]
+
+    def _locate(
+        self, q: np.ndarray, exhaustive: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         m = len(q)
-        best_tri = np.zeros(m, dtype=np.int64)
-        best_w = np.zeros((m, 3))
-        best_d = np.full(m, np.inf)
-        feat = pose_features(q, self.orientation_scale)
-        # round 1: the triangle of the nearest centre (over the size groups)
-        near_d = np.full(m, np.inf)
-        near_t = np.zeros(m, dtype=np.int64)
-        for members, tree, _ in self._groups:
-            dist, idx = tree.query(feat, k=1)
-            closer = dist < near_d
-            near_d[closer] = dist[closer]
-            near_t[closer] = members[idx[closer] % len(members)]
         rows = np.arange(m)
-        _, uv0 = self._bounds(q, rows, near_t)
-        self._project(q, rows, near_t, uv0, best_tri, best_w, best_d)
-        # round 2: every triangle whose centre is within best + its group's
-        # largest extent, then whose sphere and slab bounds are below best
+        feat = pose_features(q, self.orientation_scale)
+        # a point of the manifold near each query: an answer, and the distance to beat
+        best_tri, best_w, best_d = self._upper(q, feat)
+        if exhaustive:
+            r2 = np.repeat(rows, len(self))
+            t2 = np.tile(np.arange(len(self)), m)
+            kept, _, uv = self._bounds(feat, r2, t2, np.full(m, np.inf))
+            self._project(q, r2[kept], t2[kept], uv, best_tri, best_w, best_d)
+            return best_tri, best_w, best_d
+        # every triangle whose centre is within best + its group's largest extent
+        # (any other is farther than best by the sphere bound of _bounds)
         r_list, t_list = [], []
         for members, tree, rmax in self._groups:
-            balls = tree.query_ball_point(feat, best_d + rmax)
+            balls = tree.query_ball_point(feat, best_d + rmax, return_sorted=False)
             counts = np.fromiter(map(len, balls), dtype=np.int64, count=m)
             ids = np.fromiter(itertools.chain.from_iterable(balls), np.int64, counts.sum())
             r_list.append(np.repeat(rows, counts))
             t_list.append(members[ids % len(members)])
         r2, t2 = _dedupe(np.concatenate(r_list), np.concatenate(t_list), len(self))
-        keep = t2 != near_t[r2]
-        r2, t2 = r2[keep], t2[keep]
-        keep = self._sphere_bound(q, r2, t2) < best_d[r2]
-        r2, t2 = r2[keep], t2[keep]
-        bound, uv2 = self._bounds(q, r2, t2, best_d[r2])
-        keep = bound < best_d[r2]
-        self._project(q, r2[keep], t2[keep], uv2[keep], best_tri, best_w, best_d)
+        kept, bound, uv = self._bounds(feat, r2, t2, best_d)
+        r2, t2 = r2[kept], t2[kept]
+        # per query in bound order: the lowest-bound triangles are projected
+        # first, so the distance to beat falls before the rest are pruned
+        # against it (a pair whose lower bound is at or above the distance
+        # already found cannot hold a nearer point)
+        order = np.lexsort((bound, r2))
+        r2, t2, bound, uv = r2[order], t2[order], bound[order], uv[order]
+        for _ in range(self.HEAD_PASSES):
+            if not r2.size:
+                break
+            head = np.r_[True, r2[1:] != r2[:-1]]
+            self._project(q, r2[head], t2[head], uv[head], best_tri, best_w, best_d)
+            rest = np.flatnonzero(~head)
+            rest = rest[bound[rest] < best_d[r2[rest]]]
+            r2, t2, bound, uv = r2[rest], t2[rest], bound[rest], uv[rest]
+        self._project(q, r2, t2, uv, best_tri, best_w, best_d)
         return best_tri, best_w, best_d
 
     def _project(

@@ -83,6 +83,7 @@ ORIENTATION_SCALE = 0.1
 BLEND_METHODS = ("dib", "dlb")
 
 _QCONJ = np.array([1.0, -1.0, -1.0, -1.0])
+_FLIP = np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0, -1.0])  # the other quaternion sign
 
 
 class Location(NamedTuple):
@@ -177,6 +178,49 @@ def _dlb_model(
     c = corners * sign[:, :, None]
     b = np.einsum("pk,pkc->pc", w, c)
     db = np.stack((c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=-1)  # (P, 8, 2)
+    return _dlb_of_blend(b, db)
+
+
+def _dlb_aligned(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Corners (P, 3, 8) signed once for every ``(u, v)`` of :func:`_dlb_model`.
+
+    DLB signs the corners to agree with the heaviest one. Where the three
+    rotations, signed to agree with the first corner, agree pairwise (positive
+    dot products), signing them to any other corner only flips the blend as a
+    whole, which changes neither the pose nor the Gauss-Newton model (its
+    residual and Jacobian flip together): the blend is then affine in
+    ``(u, v)`` with these coefficients for the whole projection.
+
+    Returns:
+        ``base`` (P, 8) (the first corner), ``db`` (P, 8, 2) (the other two
+        minus it, signed) and ``ok`` (P,): the signs hold for every ``(u, v)``.
+    """
+    r = corners[:, :, :4]
+    s1 = np.where(np.einsum("pc,pc->p", r[:, 1], r[:, 0]) < 0, -1.0, 1.0)
+    s2 = np.where(np.einsum("pc,pc->p", r[:, 2], r[:, 0]) < 0, -1.0, 1.0)
+    c1 = corners[:, 1] * s1[:, None]
+    c2 = corners[:, 2] * s2[:, None]
+    base = corners[:, 0]
+    ok = (
+        (np.einsum("pc,pc->p", c1[:, :4], base[:, :4]) > 0)
+        & (np.einsum("pc,pc->p", c2[:, :4], base[:, :4]) > 0)
+        & (np.einsum("pc,pc->p", c1[:, :4], c2[:, :4]) > 0)
+    )
+    return base, np.stack((c1 - base, c2 - base), axis=-1), ok
+
+
+def _dlb_affine_model(
+    base: np.ndarray, db: np.ndarray, uv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """As :func:`_dlb_model`, with the corners signed once (:func:`_dlb_aligned`)."""
+    b = base + db[:, :, 0] * uv[:, :1] + db[:, :, 1] * uv[:, 1:]
+    return _dlb_of_blend(b, db)
+
+
+def _dlb_of_blend(
+    b: np.ndarray, db: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Position, rotation and Jacobians of the normalised blend ``b`` (P, 8), ``db`` (P, 8, 2)."""
     a, e = b[:, :4], b[:, 4:]
     da, de = db[:, :4], db[:, 4:]
     n2 = np.einsum("pc,pc->p", a, a)
@@ -186,8 +230,8 @@ def _dlb_model(
     m = 2.0 * quat_mul(e, a_conj)  # 2 e a*, its vector part / n2 is p
     p = m[:, 1:] / n2[:, None]
     dn2 = 2.0 * np.einsum("pc,pcj->pj", a, da)  # (P, 2)
-    dp = np.empty((len(w), 3, 2))
-    dr = np.empty((len(w), 4, 2))
+    dp = np.empty((len(b), 3, 2))
+    dr = np.empty((len(b), 4, 2))
     for j in range(2):
         dm = 2.0 * (quat_mul(de[:, :, j], a_conj) + quat_mul(e, da[:, :, j] * _QCONJ))
         dp[:, :, j] = (dm[:, 1:] - p * dn2[:, j : j + 1]) / n2[:, None]
@@ -300,7 +344,19 @@ def project_onto_triangles(
         ``(weights (P, 3), distance (P,))``: the local minimiser and its
         pose-metric distance [m] (from the exact blend, :func:`blend`).
     """
-    model = _dlb_model if method == "dlb" else _dib_model
+    if method == "dlb":
+        base, db, ok = _dlb_aligned(corners)
+    if method == "dlb" and ok.all():
+
+        def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
+            return _dlb_affine_model(base[rows], db[rows], uv)
+
+    else:
+        blend_model = _dlb_model if method == "dlb" else _dib_model
+
+        def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
+            return blend_model(corners[rows], uv)
+
     uv = np.array(uv0, dtype=np.float64)
     p_q = _translation(queries)
     r_q = queries[:, :4]
@@ -309,7 +365,7 @@ def project_onto_triangles(
     for _ in range(iterations):
         if not active.size:
             break
-        p, r, dp, dr = model(corners[active], uv[active])
+        p, r, dp, dr = model(active, uv[active])
         sign = np.where(np.einsum("pc,pc->p", r, r_q[active]) < 0, -1.0, 1.0)
         res = np.concatenate((p - p_q[active], scale * (r - sign[:, None] * r_q[active])), axis=1)
         jac = np.concatenate((dp, scale * dr), axis=1)  # (P, 7, 2)
@@ -430,6 +486,8 @@ class TriangleLocator:
     UPPER_SUBDIVISIONS = 3
     #: Rounds projecting each query's lowest-bound triangle before the rest.
     HEAD_PASSES = 1
+    #: Leaf size of the KD-trees over the centres.
+    LEAF = 64
 
     def __init__(
         self,
@@ -484,27 +542,30 @@ class TriangleLocator:
         self._bulge = self.SAFETY * outside.max(axis=1) + 1e-3 * scale.max(axis=1) + 1e-12
         # every point of a triangle is within this of its centre
         self._extent = np.hypot(self._radius, self._thick)
-        # groups of similar size, each with a KD-tree over its centres (both signs)
+        # KD-trees over the centres (both signs) in the principal axes of the
+        # centres: a rotation keeps every distance, and the trees' boxes follow
+        # the thin manifold (ball queries about a third faster than on raw axes)
+        both = np.concatenate((centre, centre * _FLIP))
+        _, _, vt = np.linalg.svd(both - both.mean(axis=0), full_matrices=False)
+        self._axes = vt.T  # (7, 7) orthogonal
+        # groups of similar size, each with a KD-tree over its centres
         ratio = self._extent / np.median(self._extent)
         group = np.floor(np.log(np.maximum(ratio, 1e-3)) / np.log(self.GROUP)).astype(np.int64)
         group = np.maximum(group, -2)  # the smallest share one group
         self._groups = []
         for g in np.unique(group):
             members = np.flatnonzero(group == g)
-            flipped = centre[members].copy()
-            flipped[:, 3:] *= -1.0
-            tree = cKDTree(np.concatenate((centre[members], flipped)))
+            pts = np.concatenate((centre[members], centre[members] * _FLIP)) @ self._axes
+            tree = cKDTree(pts, leafsize=self.LEAF)
             self._groups.append((members, tree, float(self._extent[members].max())))
         # a coarse lattice of every triangle's points, for the first upper bound,
-        # and a KD-tree over all centres (both signs) to pick the triangle
+        # and a KD-tree over all centres to pick the triangle
         up = _lattice(self.UPPER_SUBDIVISIONS)
         self._up_w = up
         self._up_dq = blend(
             np.repeat(corners, len(up), axis=0), np.tile(up, (t, 1)), method
         ).reshape(t, len(up), 8)
-        flipped = centre.copy()
-        flipped[:, 3:] *= -1.0
-        self._centre_tree = cKDTree(np.concatenate((centre, flipped)))
+        self._centre_tree = cKDTree(both @ self._axes, leafsize=self.LEAF)
         #: Largest in-plane radius [m] of a triangle's bounding slab.
         self.spacing = float(self._radius.max())
 
@@ -632,7 +693,7 @@ class TriangleLocator:
         Returns:
             ``(triangle (M,), weights (M, 3), distance (M,))``.
         """
-        _, idx = self._centre_tree.query(feat, k=1)
+        _, idx = self._centre_tree.query(feat @ self._axes, k=1)
         tri = idx % len(self)
         pts = self._up_dq[tri]  # (M, U, 8)
         d = pose_distance(pts, q[:, None, :], self.orientation_scale)
@@ -655,10 +716,13 @@ class TriangleLocator:
             self._project(q, r2[kept], t2[kept], uv, best_tri, best_w, best_d)
             return best_tri, best_w, best_d
         # every triangle whose centre is within best + its group's largest extent
-        # (any other is farther than best by the sphere bound of _bounds)
+        # (any other is farther than best by the sphere bound of _bounds; the
+        # radii are a hair wider, as the rotated coordinates round differently)
+        rot = feat @ self._axes
         r_list, t_list = [], []
         for members, tree, rmax in self._groups:
-            balls = tree.query_ball_point(feat, best_d + rmax, return_sorted=False)
+            radius = (best_d + rmax) * (1.0 + 1e-9)
+            balls = tree.query_ball_point(rot, radius, return_sorted=False)
             counts = np.fromiter(map(len, balls), dtype=np.int64, count=m)
             ids = np.fromiter(itertools.chain.from_iterable(balls), np.int64, counts.sum())
             r_list.append(np.repeat(rows, counts))

@@ -608,3 +608,11 @@ def test_gcm_study_starts_ray_on_this_machine(tmp_path):
     assert summary["engine"]["mode"] == "local" and summary["complete"]
     assert summary["counts"]["resumed"] == first and summary["counts"]["finished"] == 6
     assert (out / "best" / "summary.json").is_file()
+    # a finished study run again: every placement resumed, Ray not even started
+    again = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert "0 run now, 6 resumed" in again.stdout and "not started" in again.stdout
+    summary2 = json.loads((out / "summary.json").read_text())
+    assert summary2["engine"]["mode"].startswith("not started") and summary2["complete"]
+    assert summary2["counts"]["run"] == 0 and summary2["timings_s"]["startup"] == 0
+    assert summary2["best"]["id"] == summary["best"]["id"]

@@ -197,6 +197,12 @@ class StudyDir:
             with open(tmp, "wb") as f:
                 np.savez(f, **payload)
 
+    def finished_ids(self) -> set[int]:
+        """Ids of the placements with a part file (not read: see :meth:`load_parts`)."""
+        if not self.parts.is_dir():
+            return set()
+        return {int(p.stem) for p in self.parts.glob("[0-9]*.npz") if p.stem.isdigit()}
+
     def load_parts(self) -> dict[int, dict[str, Any]]:
         """Every finished placement: id -> row (with its arrays under ``arrays``).
 

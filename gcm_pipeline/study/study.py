@@ -24,7 +24,7 @@ import logging
 import math
 import shlex
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -259,10 +259,14 @@ class Study:
         warm = plan.base_config.to_dict()
         if engine == "inline":
             executor: Any = InlineExecutor(warm)
-        elif engine == "ray":
-            executor = RayExecutor(workers, address, warm)
-        else:
+        elif engine != "ray":
             raise ConfigError(f"engine must be 'ray' or 'inline', got {engine!r}")
+        elif resumed and self._grid_done(store):
+            # a resumed study whose grid is finished may have nothing left to run:
+            # Ray starts only if a refinement round still has placements to run
+            executor = _Deferred(lambda: RayExecutor(workers, address, warm))
+        else:
+            executor = RayExecutor(workers, address, warm)
         run = _Run(self, store, executor, progress=progress)
         try:
             store.create({"key": plan.key(), "created": time.time(), **plan.to_dict()})
@@ -274,6 +278,42 @@ class Study:
         finally:
             executor.close()
         return result
+
+    def _grid_done(self, store: StudyDir) -> bool:
+        """Whether every placement of the grid (round 0) is finished in ``store``."""
+        done = store.finished_ids()
+        return all(p.id in done for p in self.plan.grid())
+
+
+class _Deferred:
+    """An executor built on its first :meth:`run` (nothing to run: never built)."""
+
+    def __init__(self, make: Callable[[], Any]) -> None:
+        self._make = make
+        self._real: Any = None
+
+    def run(self, jobs: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        """Build the executor if needed and run the jobs on it."""
+        if self._real is None:
+            self._real = self._make()
+        return self._real.run(jobs)
+
+    def info(self) -> dict[str, Any]:
+        """The executor's info, or that it was not started."""
+        if self._real is not None:
+            return self._real.info()
+        return {
+            "name": "ray",
+            "mode": "not started: nothing left to run",
+            "workers": 0,
+            "nodes": 0,
+            "startup_s": 0.0,
+        }
+
+    def close(self) -> None:
+        """Close the executor if it was built."""
+        if self._real is not None:
+            self._real.close()
 
 
 class _Run:
@@ -351,10 +391,13 @@ class _Run:
             return
         self._meta: dict[int, dict[str, Any]] = {}
         t0 = time.perf_counter()
+        started = self.timings["startup"]
         for result in self.executor.run(self._jobs(todo)):
             self._collect(result)
+        # a deferred executor starts inside run(): its start-up is not placement time
+        self.timings["startup"] = float(self.executor.info().get("startup_s", 0.0))
         self.timings["placements"] = self.timings.get("placements", 0.0) + (
-            time.perf_counter() - t0
+            time.perf_counter() - t0 - (self.timings["startup"] - started)
         )
 
     # --- rounds ------------------------------------------------------------------------

@@ -61,3 +61,28 @@ def test_unknown_choice_suggests_and_lists() -> None:
     assert "did you mean 'cylindrical'" in msg
     assert "valid: cylindrical, pca, spherical, xy" in msg
     assert "\n" not in msg
+
+
+def test_the_command_line_starts_without_the_heavy_libraries() -> None:
+    """``gcm`` installs its Ctrl-C handling before NumPy and Pinocchio load.
+
+    The public names load on first use, so importing the package or its
+    command line loads neither; an interrupt while they load (inside ``main``)
+    is then an ordinary ``interrupted``, not a traceback.
+    """
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, gcm_pipeline, gcm_pipeline.cli; "
+        "print(sorted(m for m in ('numpy', 'pinocchio', 'scipy') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_names_load_on_first_use_and_unknown_names_fail() -> None:
+    assert gcm_pipeline.Pipeline is importlib.import_module("gcm_pipeline.pipeline").Pipeline
+    assert "Pipeline" in dir(gcm_pipeline)
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        gcm_pipeline.nope  # noqa: B018

@@ -28,6 +28,7 @@ import signal
 import sys
 import time
 import traceback
+import typing
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -43,8 +44,17 @@ log = logging.getLogger("gcm_pipeline")
 EXIT_USER_ERROR = 2
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line ``error: ...`` (exit status 2)."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        """Print ``error: PROG: MESSAGE (see PROG --help)`` on stderr and exit with status 2."""
+        line = " ".join(f"{self.prog}: {message}".split())
+        self.exit(EXIT_USER_ERROR, f"error: {line} (see {self.prog} --help)\n")
+
+
 def _common(debug_help: bool = True) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(add_help=False)
+    p = _Parser(add_help=False)
     p.add_argument(
         "-v",
         "--verbose",
@@ -68,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     from gcm_pipeline import __version__
 
     common = _common()
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="gcm",
         description="Grasp configuration manifolds: densify grasp candidates on dual "
         "quaternions, check which ones a robot reaches, rank them by manipulability.",
@@ -552,13 +562,19 @@ def _cmd_study(args: argparse.Namespace) -> int:
         f"{c['failed']} failed, {c['rounds']} round(s)"
     )
     rate = s.get("placements_per_s")
-    print(
-        f"  engine      {eng['name']} {eng.get('version', '')} {where}, {eng['workers']} "
-        f"worker(s) on {eng.get('nodes', 1)} node(s)"
-        + (f"; {rate:.2f} placements/s" if rate else "")
-    )
+    if eng["workers"]:
+        print(
+            f"  engine      {eng['name']} {eng.get('version', '')} {where}, {eng['workers']} "
+            f"worker(s) on {eng.get('nodes', 1)} node(s)"
+            + (f"; {rate:.2f} placements/s" if rate else "")
+        )
+    else:  # a finished study run again: Ray was not started
+        print(f"  engine      {eng['name']} {where}")
     for f in result.failed[:3]:
         print(f"  failed      #{f['id']}: {f['error']}")
+    if len(result.failed) > 3:
+        more = len(result.failed) - 3
+        print(f"  failed      ... and {more} more (column 'error' of placements.csv)")
     best = result.best
     if best is None:
         print(

@@ -276,6 +276,12 @@ def _check_replaceable(
     if empty:
         return
     if not is_project_dir(out, kind):
+        other = (read_marker(out) or {}).get("kind")
+        if other is not None and other != kind:
+            raise OutputError(
+                f"refusing to replace {out}: it is a gcm {other[:40]} directory, not a "
+                f"{kind} directory; choose another --out"
+            )
         raise OutputError(
             f"refusing to replace {out}: it is not a gcm {kind} directory (no valid {MARKER} "
             "marker, which gcm writes into every run); choose another --out"
@@ -837,6 +843,12 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
     qnames = [h for h in header if h[:1] == "q" and h[1:].isdigit()]
     if qnames:
         cols["q"] = np.column_stack([floats(c) for c in qnames]).reshape(n, len(qnames))
+        if "reachable" in cols:  # a reachable grasp has its joint solution
+            odd = cols["reachable"] & ~np.isfinite(cols["q"]).all(axis=1)
+            if odd.any():
+                i = int(np.flatnonzero(odd)[0])
+                k = int(np.flatnonzero(~np.isfinite(cols["q"][i]))[0])
+                raise bad(qnames[k], i, "a reachable grasp needs a finite joint value")
     for name in header:
         if name in CSV_COLUMNS or name in qnames or name in cols:
             continue

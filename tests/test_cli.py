@@ -258,10 +258,25 @@ def test_debug_shows_the_traceback(capsys, tmp_path):
     assert "Traceback" in err and err.strip().splitlines()[-1].startswith("error: ")
 
 
-def test_usage_errors_exit_2(capsys):
+@pytest.mark.parametrize(
+    ("argv", "fragment"),
+    [
+        (["run"], "gcm run: the following arguments are required: CONFIG"),
+        (["bogus"], "gcm: argument COMMAND: invalid choice: 'bogus'"),
+        ([], "gcm: the following arguments are required: COMMAND"),
+        (["query", "r", "--pose", "1", "2"], "gcm query: argument --pose: expected 7 arguments"),
+        (["export", "r", "--format", "csv"], "gcm export: argument --format: invalid choice"),
+        (["show", "r", "--top", "x"], "gcm show: argument --top: invalid int value: 'x'"),
+        (["run", "c.yaml", "--bogus"], "gcm: unrecognized arguments: --bogus"),
+    ],
+)
+def test_usage_errors_are_one_line_and_exit_2(capsys, argv, fragment):
     with pytest.raises(SystemExit) as info:
-        main(["run"])
+        main(argv)
     assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: "), err
+    assert fragment in err and err.rstrip().endswith("--help)"), err
 
 
 def test_python_dash_m(tmp_path):

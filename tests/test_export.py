@@ -278,6 +278,16 @@ def test_out_where_no_file_can_be_made_is_one_line(run, capsys):
     assert code == 2 and len(err) == 1 and err[0].startswith("error: cannot write"), err
 
 
+def test_out_into_a_missing_folder_says_it_does_not_exist(run, tmp_path, capsys):
+    missing = tmp_path / "no" / "such"
+    for fmt in ("moveit", "parquet", "npz"):
+        code = main(["export", str(run), "--format", fmt, "--out", str(missing / "g")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert err[0] == f"error: cannot write {missing / 'g'}: {missing} does not exist"
+    assert not (tmp_path / "no").exists()
+
+
 @pytest.mark.parametrize(
     "config",
     [

@@ -458,6 +458,9 @@ TAMPERED = {
     "v1 out of range": (_edit_csv("v1", "99999", row=60), "not a row of this file"),
     "reachable=maybe": (_edit_csv("reachable", "maybe"), "not true or false"),
     "rank=-3": (_edit_csv("rank", "-3"), "negative"),
+    # row 1 is the best-ranked grasp, reachable: its joint solution must be there
+    "q1=inf in a reachable row": (_edit_csv("q1", "inf"), "column 'q1': a reachable grasp needs"),
+    "q3 empty in a reachable row": (_edit_csv("q3", ""), "column 'q3': a reachable grasp needs"),
 }
 
 

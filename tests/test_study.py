@@ -499,6 +499,47 @@ def test_a_failing_placement_is_recorded_and_the_study_goes_on(cluster, tmp_path
     assert "InputError" in text
 
 
+def test_a_finished_study_run_again_lists_every_failure_and_no_engine(tmp_path, capsys):
+    """Rerunning a finished study (no Ray started) names the failures beyond the first three."""
+    broken = tmp_path / "broken.npy"
+    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    data = {
+        "base": str(FROM_FILE),
+        "set": ["densify.subdivisions=1", "approach=null", "publish.html=false"],
+        "sweep": {
+            "object_pose": {"x": [0.40, 0.45, 0.50, 0.55]},
+            "objects": [
+                {"name": "mug"},
+                {"name": "broken", "set": [f"candidates.path={broken}"]},
+            ],
+        },
+    }
+    path = _study_file(tmp_path, data)
+    out = tmp_path / "study"
+    first = Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
+    assert first.summary["counts"]["failed"] == 4
+    assert main(["study", str(path), "--out", str(out), "--no-best"]) == 0
+    text = capsys.readouterr().out
+    assert text.count("  failed      #") == 3
+    assert "  failed      ... and 1 more (column 'error' of placements.csv)" in text
+    assert "  engine      ray not started: nothing left to run\n" in text
+
+
+def test_a_run_directory_is_not_a_study_directory(tmp_path, capsys):
+    """--out of the other kind of gcm directory is refused naming what it is."""
+    run = tmp_path / "run"
+    sets = ["densify.subdivisions=1", "publish.html=false", "publish.plots=false"]
+    assert main(["run", str(FROM_FILE), "--out", str(run), *(f"--set={s}" for s in sets)]) == 0
+    path = _study_file(tmp_path, _small({"object_pose": {"x": [0.4]}}))
+    capsys.readouterr()
+    assert main(["study", str(path), "--out", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: refusing to replace ") and err.count("\n") == 1
+    assert "it is a gcm run directory, not a study directory" in err
+    files = ".gcm.json config.yaml configurations.npz grasps.csv manifold.npz summary.json"
+    assert sorted(p.name for p in run.iterdir()) == files.split()
+
+
 def _wait_for_parts(out: Path, n: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < timeout:

@@ -170,7 +170,8 @@ def _atomic(path: Path, write: Callable[[Path], None]) -> None:
     """Write through ``write(tmp)`` into a sibling temporary file, then rename."""
     parent = path.parent
     if not parent.is_dir():
-        raise OutputError(f"cannot write {path}: {parent} is not a directory")
+        what = "is not a directory" if parent.exists() else "does not exist"
+        raise OutputError(f"cannot write {path}: {parent} {what}")
     try:
         fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
     except OSError as exc:

@@ -552,7 +552,13 @@ def _cmd_study(args: argparse.Namespace) -> int:
         raise
     if args.quiet:
         print(result.out_dir)
-        return 0 if result.best is not None else EXIT_USER_ERROR
+        if result.best is None:  # the status says it, and one line says why
+            print(
+                f"error: every placement failed; see {result.out_dir / 'placements.csv'}",
+                file=sys.stderr,
+            )
+            return EXIT_USER_ERROR
+        return 0
     s = result.summary
     c = s["counts"]
     eng = s["engine"]

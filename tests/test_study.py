@@ -525,6 +525,24 @@ def test_a_finished_study_run_again_lists_every_failure_and_no_engine(tmp_path, 
     assert "  engine      ray not started: nothing left to run\n" in text
 
 
+def test_quiet_study_whose_every_placement_failed_says_so_in_one_line(tmp_path, capsys):
+    broken = tmp_path / "broken.npy"
+    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    data = {
+        "base": str(FROM_FILE),
+        "set": ["densify.subdivisions=1", f"candidates.path={broken}", "publish.html=false"],
+        "sweep": {"object_pose": {"x": [0.40, 0.45]}},
+    }
+    path = _study_file(tmp_path, data)
+    out = tmp_path / "study"
+    first = Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
+    assert first.best is None and first.summary["counts"]["failed"] == 2
+    assert main(["study", str(path), "--out", str(out), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == f"{out}\n"
+    assert captured.err == f"error: every placement failed; see {out / 'placements.csv'}\n"
+
+
 def test_a_run_directory_is_not_a_study_directory(tmp_path, capsys):
     """--out of the other kind of gcm directory is refused naming what it is."""
     run = tmp_path / "run"

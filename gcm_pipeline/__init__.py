@@ -9,6 +9,7 @@ placement study (:class:`Study`) is used.
 """
 
 import importlib
+import importlib.util
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names for type checkers; at run time they load on first use
@@ -171,16 +172,20 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    """Load a public name on first use (PEP 562)."""
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'gcm_pipeline' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # the next access is a plain lookup
-    return value
+if not TYPE_CHECKING:  # type checkers see the imports above, and typos stay errors
 
+    def __getattr__(name: str) -> Any:
+        """Load a public name, or a subpackage (``gcm_pipeline.io``), on first use (PEP 562)."""
+        module = _LAZY.get(name)
+        if module is not None:
+            value = getattr(importlib.import_module(module), name)
+        elif not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}"):
+            value = importlib.import_module(f"{__name__}.{name}")
+        else:
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+        globals()[name] = value  # the next access is a plain lookup
+        return value
 
-def __dir__() -> list[str]:
-    """The module's names, the public ones included before they load."""
-    return sorted(set(globals()) | set(_LAZY))
+    def __dir__() -> list[str]:
+        """The module's names, the public ones included before they load."""
+        return sorted(set(globals()) | set(_LAZY))

@@ -127,30 +127,43 @@ def test_neighbours_seed_from_final_solutions(robot, checker, grasps):
 
 
 def test_small_seed_budget_where_every_neighbour_failed_ik(robot):
-    """A row whose neighbours all failed IK (after their own full seed schedule) gets
-    no random restarts and 2 library seeds; a row with a solved neighbour, or none,
-    keeps the full schedule."""
+    """A row whose neighbours all failed IK after their own full seed schedule (no_ik,
+    joint_limits) gets no random restarts and 2 library seeds; a row with a solved
+    neighbour, none, or neighbours only out of reach (no seed ran) keeps the full
+    schedule."""
     targets = robot.fk_pinocchio(robot.random_configurations(4000, np.random.default_rng(0)))
     with_restarts = solve_ik(robot, targets)
     without = solve_ik(robot, targets, random_restarts=0)
     rescued = targets[with_restarts.success & ~without.success]
     assert len(rescued) >= 3  # targets only the random restarts reach
     k = len(rescued)
+    # within reach, the hand pointing back at the shoulder: every seed fails (no_ik)
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = np.cross(-d, rng.normal(size=(k, 3)))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    failing = np.tile(np.eye(4), (k, 1, 1))
+    failing[:, :3, 0], failing[:, :3, 1], failing[:, :3, 2] = x, np.cross(-d, x), -d
+    failing[:, :3, 3] = robot.shoulder + 0.85 * d
     far = rescued.copy()
-    far[:, :3, 3] += 2.0  # out of reach: these rows fail IK
+    far[:, :3, 3] += 2.0  # out of reach: rejected before any seed
     eng = ReachabilityEngine(robot)
-    rows = np.concatenate([far, rescued, rescued])
-    nb = np.full((3 * k, 1), -1)
-    nb[k : 2 * k, 0] = np.arange(k)  # neighbours that failed IK
+    rows = np.concatenate([failing, far, rescued, rescued, rescued])
+    nb = np.full((5 * k, 1), -1)
+    nb[2 * k : 3 * k, 0] = np.arange(k)  # neighbours that failed IK after every seed
+    nb[3 * k : 4 * k, 0] = k + np.arange(k)  # neighbours out of reach
     res = eng.run(rows, neighbours=nb)
-    assert set(res.reason[:k]) == {"out_of_reach"}
+    assert set(res.reason[:k]) <= {"no_ik", "joint_limits"}
+    assert set(res.reason[k : 2 * k]) == {"out_of_reach"}
     small = solve_ik(robot, rescued, random_restarts=0, library_seeds=2)
     full = solve_ik(robot, rescued)
     assert not small.success.all() and full.success.all()
-    np.testing.assert_array_equal(res.reachable[k : 2 * k], small.success)
-    np.testing.assert_array_equal(res.q[k : 2 * k], small.q)
-    np.testing.assert_array_equal(res.reachable[2 * k :], full.success)  # no neighbours
-    np.testing.assert_array_equal(res.q[2 * k :], full.q)
+    np.testing.assert_array_equal(res.reachable[2 * k : 3 * k], small.success)
+    np.testing.assert_array_equal(res.q[2 * k : 3 * k], small.q)
+    for part in (slice(3 * k, 4 * k), slice(4 * k, 5 * k)):  # out of reach; no neighbours
+        np.testing.assert_array_equal(res.reachable[part], full.success)
+        np.testing.assert_array_equal(res.q[part], full.q)
 
 
 def test_engine_errors(robot):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 import pytest
 
@@ -77,7 +78,10 @@ def test_the_command_line_starts_without_the_heavy_libraries() -> None:
         "import sys, gcm_pipeline, gcm_pipeline.cli; "
         "print(sorted(m for m in ('numpy', 'pinocchio', 'scipy') if m in sys.modules))"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    root = Path(__file__).resolve().parents[1]  # this checkout, not another install
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root
+    )
     assert out.stdout.strip() == "[]"
 
 

@@ -501,6 +501,14 @@ def test_a_damaged_or_unwritable_mesh_cache_is_rebuilt_or_skipped(tmp_path, monk
     rebuilt = pub._simplified_mesh(path)
     assert [len(m.faces) for _, m in rebuilt] == [len(m.faces) for _, m in fresh]
     assert pub._read_mesh_cache(cached) is not None  # written again, whole
+    # files that load but are not a cache: a plain array, a scalar colour list
+    with cached.open("wb") as f:
+        np.save(f, np.zeros(3))
+    assert pub._read_mesh_cache(cached) is None
+    np.savez(cached.with_suffix(".x.npz"), colors=np.int64(3))
+    assert pub._read_mesh_cache(cached.with_suffix(".x.npz")) is None
+    pub._simplified_mesh_cached.cache_clear()
+    assert [len(m.faces) for _, m in pub._simplified_mesh(path)] == [len(m.faces) for _, m in fresh]
     # a cache folder that cannot be created (a file is in the way): drawn all the same
     blocker = tmp_path / "blocker"
     blocker.write_text("not a folder")

@@ -675,3 +675,27 @@ def test_gcm_study_starts_ray_on_this_machine(tmp_path):
     assert summary2["engine"]["mode"].startswith("not started") and summary2["complete"]
     assert summary2["counts"]["run"] == 0 and summary2["timings_s"]["startup"] == 0
     assert summary2["best"]["id"] == summary["best"]["id"]
+
+
+def test_a_small_region_of_a_huge_sweep_builds_only_what_is_inside():
+    """10^10 combinations cut down by a box region to a few: only those are built.
+
+    Run under a 2 GiB address-space cap: building every combination first and
+    filtering afterwards (tens of GB) fails there.
+    """
+    wide = {"from": 0.0, "to": 1.0, "steps": 100_001}  # spacing 1e-5
+    region = {"min": [0.49999, -0.00001, -1.0], "max": [0.50001, 0.00001, 1.0]}
+    data = _small({"object_pose": {"x": wide, "y": wide, "region": region}})
+    code = (
+        "import resource; resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30)); "
+        "import json, sys; from gcm_pipeline import Study; "
+        f"s = Study.from_dict(json.loads({json.dumps(json.dumps(data))})); "
+        "p = s.placements(); "
+        "print(len(p), s.size()[0], sorted({round(x.object_pose['x'], 6) for x in p}))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    n, size, xs = proc.stdout.strip().split(" ", 2)
+    assert int(n) == int(size) == 6 and xs == "[0.49999, 0.5, 0.50001]"  # y: 0, 1e-5

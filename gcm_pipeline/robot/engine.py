@@ -73,7 +73,6 @@ import numpy as np
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
 from gcm_pipeline.robot.ik import (
-    IK_REASONS,
     IKCandidates,
     IKResult,
     _worker_signals,
@@ -107,6 +106,8 @@ _RESOLVE_RESTARTS = 0
 
 #: Library seeds of a row whose neighbours all failed IK (step 1; no random restarts).
 _HOPELESS_LIBRARY = 2
+#: IK reasons of a neighbour that tried its whole seed schedule and failed.
+_RAN_EVERY_SEED = ("no_ik", "joint_limits")
 
 #: Two solutions closer than this in every joint are the same branch [rad].
 _SAME_SOLUTION = 1e-3
@@ -729,9 +730,10 @@ class ReachabilityEngine:
                 ref = nb[rows]
                 warm = np.where((ref >= 0)[:, :, None], out["q"][np.clip(ref, 0, None)], np.nan)
                 sub = warm if sub is None else np.concatenate([warm, sub], axis=1)
-                # no random restarts where every neighbour failed IK after its own
-                no_ik = np.isin(out["reason"][np.clip(ref, 0, None)], IK_REASONS)
-                hopeless = np.all(no_ik | (ref < 0), axis=1)
+                # a short seed schedule where every neighbour failed IK after its own
+                # full one (out of reach: no seed ran, so it does not count)
+                no_ik = np.isin(out["reason"][np.clip(ref, 0, None)], _RAN_EVERY_SEED)
+                hopeless = np.all(no_ik | (ref < 0), axis=1) & np.any(ref >= 0, axis=1)
             chunks = [
                 (rows[a : a + self.chunk_size], tgt, sub, a, hopeless)
                 for a in range(0, rows.size, self.chunk_size)

@@ -594,7 +594,9 @@ def _simplified_mesh_cached(
         data = Path(path).read_bytes()
     except OSError as exc:
         raise PublishError(f"cannot read robot mesh {path!r}: {exc}") from exc
-    key = hashlib.sha256(data).hexdigest()[:32]
+    # the mesh's bytes and the libraries that read and simplify it (an upgrade
+    # may simplify differently); a colour sidecar (.mtl) is not part of the key
+    key = hashlib.sha256(data + _simplifier_versions().encode()).hexdigest()[:32]
     cache = mesh_cache_dir() / f"{key}-b{budget}-v{_MESH_CACHE_VERSION}.npz"
     groups = _read_mesh_cache(cache)
     if groups is None:
@@ -606,16 +608,38 @@ def _simplified_mesh_cached(
 _MeshGroups = list[tuple[int, np.ndarray, np.ndarray]]
 
 
+@functools.cache
+def _simplifier_versions() -> str:
+    """Versions of the libraries behind :func:`_simplify_mesh`, for the cache key."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = []
+    for dist in ("trimesh", "fast-simplification", "numpy"):
+        try:
+            out.append(f"{dist}={version(dist)}")
+        except PackageNotFoundError:
+            out.append(f"{dist}=?")
+    return ";".join(out)
+
+
 def _read_mesh_cache(path: Path) -> _MeshGroups | None:
     """The groups of a cache file, or None when it is absent or unreadable."""
     try:
-        with np.load(path, allow_pickle=False) as z:
+        loaded = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
+    if not isinstance(loaded, np.lib.npyio.NpzFile):  # a plain .npy array: not ours
+        return None
+    try:
+        with loaded as z:
             colors = np.asarray(z["colors"], dtype=np.int64)
+            if colors.ndim != 1:
+                return None
             groups = [
                 (int(c), np.asarray(z[f"v{i}"], dtype=np.float32), np.asarray(z[f"f{i}"]))
                 for i, c in enumerate(colors.tolist())
             ]
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+    except (OSError, ValueError, TypeError, KeyError, EOFError, zipfile.BadZipFile):
         return None
     for _, verts, faces in groups:
         if (

@@ -314,6 +314,10 @@ class _Target:
         return [values.get(a, self.xyz[i]) for i, a in enumerate(("x", "y", "z"))]
 
 
+#: Position axes of a pose sweep and their coordinate index.
+_XYZ = {"x": 0, "y": 1, "z": 2}
+
+
 def _grid(axes: dict[str, list[float]]) -> list[dict[str, float]]:
     """Every combination of the axes' values (first axis slowest); [{}] without axes."""
     names = list(axes)
@@ -497,9 +501,6 @@ class StudyPlan:
         box = pose.region
         return axis >= len(box.min) or box.min[axis] <= value <= box.max[axis]
 
-    def _in_region(self, pose: PoseSweep | None, target: _Target, values: dict[str, float]) -> bool:
-        return all(self._inside(pose, i, v) for i, v in enumerate(target.xyz_of(values)))
-
     def _count_poses(
         self, pose: PoseSweep | None, axes: dict[str, list[float]], target: _Target
     ) -> int:
@@ -533,18 +534,34 @@ class StudyPlan:
         objects: Iterable[int],
     ) -> list[tuple[int, dict[str, float], dict[str, float]]]:
         sweep = self.spec.sweep
-        base_target = self._base_target()
-        bases = [b for b in _grid(base_axes) if self._in_region(sweep.base_pose, base_target, b)]
-        out = []
+        bases = self._poses_in_region(sweep.base_pose, base_axes, self._base_target())
+        out: list[tuple[int, dict[str, float], dict[str, float]]] = []
         for k in objects:
-            target = self._object_target(k) if object_axes else None
-            poses = [
-                o
-                for o in _grid(object_axes)
-                if target is None or self._in_region(sweep.object_pose, target, o)
-            ]
+            poses = (
+                self._poses_in_region(sweep.object_pose, object_axes, self._object_target(k))
+                if object_axes
+                else [{}]
+            )
             out.extend((k, o, b) for b in bases for o in poses)
         return out
+
+    def _poses_in_region(
+        self, pose: PoseSweep | None, axes: dict[str, list[float]], target: _Target
+    ) -> list[dict[str, float]]:
+        """The combinations of ``axes`` inside ``pose``'s region, in grid order.
+
+        Each axis is filtered before the combinations are built (both regions
+        are boxes): a large sweep cut down by a small region builds only what
+        is inside it, as :meth:`_count_poses` counts it.
+        """
+        kept: dict[str, list[float]] = {}
+        for name, values in axes.items():
+            i = _XYZ.get(name)
+            kept[name] = values if i is None else [v for v in values if self._inside(pose, i, v)]
+        fixed_inside = all(
+            self._inside(pose, i, target.xyz[i]) for a, i in _XYZ.items() if a not in axes
+        )
+        return _grid(kept) if fixed_inside else []
 
     def _placement(
         self, pid: int, rnd: int, k: int, obj: dict[str, float], base: dict[str, float]

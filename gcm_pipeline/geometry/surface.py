@@ -642,18 +642,19 @@ class TriangleLocator:
         * Far sign: its sphere bound ``|f_-s - c| - extent``.
 
         The bound is the smaller of the near sign's slab bound and the far
-        sign's sphere bound.
+        sign's sphere bound. (Rounding, about 1e-17 m here, is far inside the
+        1e-12 m added to every radius and thickness.)
         """
         f = feat[rows]
-        c = self._centre[tris]
-        ext = self._extent[tris]
-        dot = np.einsum("pk,pk->p", f[:, 3:], c[:, 3:])
-        f[:, 3:] *= np.where(dot < 0, -1.0, 1.0)[:, None]
-        rel = f - c
-        near2 = np.einsum("pk,pk->p", rel, rel)
-        near = np.sqrt(near2)
-        keep = np.flatnonzero(near - ext < limit[rows])
-        rel, near2, near, tris = rel[keep], near2[keep], near[keep], tris[keep]
+        rel = f - self._centre[tris]  # with the query's sign r_w >= 0
+        dot = np.einsum("pk,pk->p", f[:, 3:], self._centre[tris, 3:])
+        # the nearer sign: |-f_r - c_r|^2 = |f_r - c_r|^2 + 4 f_r . c_r
+        near2 = np.einsum("pk,pk->p", rel, rel) + 4.0 * np.minimum(dot, 0.0)
+        near2 = np.maximum(near2, 0.0)
+        keep = np.flatnonzero(np.sqrt(near2) - self._extent[tris] < limit[rows])
+        rel, near2, dot, tris = rel[keep], near2[keep], dot[keep], tris[keep]
+        flip = np.flatnonzero(dot < 0)
+        rel[flip, 3:] -= 2.0 * f[keep[flip], 3:]  # -f_r - c_r
         lim = limit[rows[keep]]
         a = np.einsum("pk,pjk->pj", rel, self._basis[tris])
         in2 = np.einsum("pj,pj->p", a, a)
@@ -666,7 +667,7 @@ class TriangleLocator:
             flat = _point_triangle_2d(a[refine], self._corner_xy[t]) - self._bulge[t]
             la_r = np.maximum(la[refine], flat)
             bound[refine] = np.sqrt(la_r * la_r + lb[refine] * lb[refine])
-        far = np.sqrt(near2 + 4.0 * np.abs(dot[keep])) - self._extent[tris]
+        far = np.sqrt(near2 + 4.0 * np.abs(dot)) - self._extent[tris]
         bound = np.minimum(bound, np.maximum(far, 0.0))
         sel = np.flatnonzero(bound < lim)
         keep, bound, a, tris = keep[sel], bound[sel], a[sel], tris[sel]

@@ -179,7 +179,14 @@ def test_pruned_locate_equals_exhaustive_projection(
 ) -> None:
     # pruning skips only triangles that cannot hold a nearer point: the answer
     # is the one of projecting every query onto every triangle
-    for loc, n in ((bottle.locator, 300), (many_triangles, 40)):
+    # and on triangles turning by up to about 3 rad, some with corners whose
+    # quaternions disagree in sign pairwise (DLB signs them point by point there)
+    rng = np.random.default_rng(1)
+    twist = np.zeros((90, 6))
+    twist[:, :3] = rng.normal(size=(90, 3)) * 1.5
+    twist[:, 3:] = rng.normal(size=(90, 3)) * 0.05
+    wide = TriangleLocator(dq_exp(twist).reshape(30, 3, 8))
+    for loc, n in ((bottle.locator, 300), (many_triangles, 40), (wide, 200)):
         queries = _far_queries(loc.corners, n, seed=len(loc))
         got = loc.locate(queries)
         ref = loc.locate(queries, exhaustive=True)

@@ -345,17 +345,27 @@ def project_onto_triangles(
         pose-metric distance [m] (from the exact blend, :func:`blend`).
     """
     if method == "dlb":
+        # corners signed once where that holds for every weight (the same
+        # model either way, up to rounding; chosen per triangle, never per batch)
         base, db, ok = _dlb_aligned(corners)
-    if method == "dlb" and ok.all():
 
         def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
-            return _dlb_affine_model(base[rows], db[rows], uv)
+            fast = ok[rows]
+            if fast.all():
+                return _dlb_affine_model(base[rows], db[rows], uv)
+            out = tuple(np.empty((len(rows), *shape)) for shape in ((3,), (4,), (3, 2), (4, 2)))
+            for sel, part in (
+                (fast, _dlb_affine_model(base[rows[fast]], db[rows[fast]], uv[fast])),
+                (~fast, _dlb_model(corners[rows[~fast]], uv[~fast])),
+            ):
+                for whole, piece in zip(out, part, strict=True):
+                    whole[sel] = piece
+            return out
 
     else:
-        blend_model = _dlb_model if method == "dlb" else _dib_model
 
         def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
-            return blend_model(corners[rows], uv)
+            return _dib_model(corners[rows], uv)
 
     uv = np.array(uv0, dtype=np.float64)
     p_q = _translation(queries)

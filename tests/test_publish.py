@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import re
 import socket
 import time
@@ -501,6 +502,16 @@ def test_a_damaged_or_unwritable_mesh_cache_is_rebuilt_or_skipped(tmp_path, monk
     rebuilt = pub._simplified_mesh(path)
     assert [len(m.faces) for _, m in rebuilt] == [len(m.faces) for _, m in fresh]
     assert pub._read_mesh_cache(cached) is not None  # written again, whole
+    # a temporary file left by a process killed while writing: removed once stale
+    stale, fresh_tmp = cached.parent / ".a.npz.1.tmp", cached.parent / ".b.npz.2.tmp"
+    stale.write_bytes(b"partial")
+    fresh_tmp.write_bytes(b"being written")
+    os.utime(stale, (time.time() - 7200, time.time() - 7200))
+    cached.unlink()
+    pub._simplified_mesh_cached.cache_clear()
+    pub._simplified_mesh(path)
+    assert not stale.exists() and fresh_tmp.exists() and cached.is_file()
+    fresh_tmp.unlink()
     # files that load but are not a cache: a plain array, a scalar colour list
     with cached.open("wb") as f:
         np.save(f, np.zeros(3))
@@ -515,4 +526,22 @@ def test_a_damaged_or_unwritable_mesh_cache_is_rebuilt_or_skipped(tmp_path, monk
     monkeypatch.setenv("GCM_CACHE_DIR", str(blocker))
     pub._simplified_mesh_cached.cache_clear()
     assert [len(m.faces) for _, m in pub._simplified_mesh(path)] == [len(m.faces) for _, m in fresh]
+    pub._simplified_mesh_cached.cache_clear()
+
+
+def test_the_mesh_cache_follows_an_obj_files_materials(tmp_path, monkeypatch):
+    """Changing an .obj mesh's .mtl (its colours) is a new cache entry, not the old colours."""
+    mesh = tmp_path / "m.obj"
+    mesh.write_text(
+        "mtllib m.mtl\nusemtl c\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+        "f 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+    )
+    (tmp_path / "m.mtl").write_text("newmtl c\nKd 1 0 0\n")
+    monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
+    pub._simplified_mesh_cached.cache_clear()
+    assert [c for c, _ in pub._simplified_mesh(str(mesh))] == [0xFF0000]
+    (tmp_path / "m.mtl").write_text("newmtl c\nKd 0 0 1\n")
+    pub._simplified_mesh_cached.cache_clear()
+    assert [c for c, _ in pub._simplified_mesh(str(mesh))] == [0x0000FF]
+    assert len(list((tmp_path / "cache" / "meshes").iterdir())) == 2
     pub._simplified_mesh_cached.cache_clear()

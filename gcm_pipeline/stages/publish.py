@@ -594,9 +594,13 @@ def _simplified_mesh_cached(
         data = Path(path).read_bytes()
     except OSError as exc:
         raise PublishError(f"cannot read robot mesh {path!r}: {exc}") from exc
-    # the mesh's bytes and the libraries that read and simplify it (an upgrade
-    # may simplify differently); a colour sidecar (.mtl) is not part of the key
-    key = hashlib.sha256(data + _simplifier_versions().encode()).hexdigest()[:32]
+    # the mesh's bytes, its material files (an .obj's mtllib: its colours) and the
+    # libraries that read and simplify it (an upgrade may simplify differently)
+    digest = hashlib.sha256(data + _simplifier_versions().encode())
+    for material in _material_files(Path(path), data):
+        with contextlib.suppress(OSError):
+            digest.update(material.read_bytes())
+    key = digest.hexdigest()[:32]
     cache = mesh_cache_dir() / f"{key}-b{budget}-v{_MESH_CACHE_VERSION}.npz"
     groups = _read_mesh_cache(cache)
     if groups is None:
@@ -664,12 +668,39 @@ def _write_mesh_cache(path: Path, groups: _MeshGroups) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_tmp(path.parent)
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
         os.replace(tmp, path)
     except OSError:
         with contextlib.suppress(OSError):
             tmp.unlink()
+
+
+def _material_files(path: Path, data: bytes) -> list[Path]:
+    """The material files an .obj mesh names (``mtllib`` lines), beside it."""
+    if path.suffix.lower() != ".obj":
+        return []
+    out = []
+    for line in data.splitlines():
+        if line.startswith(b"mtllib"):
+            name = line[len(b"mtllib") :].strip().decode("utf-8", "replace")
+            if name:
+                out.append(path.parent / name)
+    return out
+
+
+#: A cache file still being written after this long was left by a killed process [s].
+_STALE_TMP_S = 3600.0
+
+
+def _remove_stale_tmp(folder: Path) -> None:
+    """Delete the cache's temporary files left by processes killed while writing."""
+    now = time.time()
+    for left in folder.glob(".*.tmp"):
+        with contextlib.suppress(OSError):
+            if now - left.stat().st_mtime > _STALE_TMP_S:
+                left.unlink()
 
 
 def _simplify_mesh(path: str, budget: int) -> _MeshGroups:

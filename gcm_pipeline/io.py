@@ -330,7 +330,11 @@ def check_output_dir(
     except (OSError, ValueError) as exc:
         raise OutputError(f"bad output path {clip(str(out))}: {exc}") from None
     if exists:
-        _check_replaceable(out, force=force, keep=keep, kind=kind)
+        # with the parent locked: a concurrent writer's swap (old directory renamed
+        # aside, new one renamed in) must not be seen half done
+        with _locked(out.parent):
+            if out.exists() or out.is_symlink():
+                _check_replaceable(out, force=force, keep=keep, kind=kind)
     parent = _nearest_existing(out.parent)
     if not parent.is_dir():
         raise OutputError(f"cannot create output directory {out}: {parent} is not a directory")

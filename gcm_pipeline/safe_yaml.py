@@ -59,22 +59,8 @@ class _Limit(yaml.YAMLError):
         self.problem_mark = mark
 
 
-class _Loader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` with a depth limit, unique keys and YAML 1.2 floats."""
-
-    def __init__(self, stream: Any) -> None:
-        super().__init__(stream)
-        self._depth = 0
-
-    def compose_node(self, parent: Node | None, index: Any) -> Node | None:  # noqa: D102
-        self._depth += 1
-        try:
-            if self._depth > MAX_YAML_DEPTH:
-                mark = self.peek_event().start_mark
-                raise _Limit(f"nested deeper than {MAX_YAML_DEPTH} levels", mark)
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
+class _UniqueKeys:
+    """Constructor part of both loaders: unique mapping keys."""
 
     def construct_mapping(self, node: MappingNode, deep: bool = False) -> dict[Any, Any]:  # noqa: D102
         seen: dict[Any, Any] = {}
@@ -91,15 +77,67 @@ class _Loader(yaml.SafeLoader):
                     f"duplicate key {_short(key)} (first at line {first.line + 1})",
                     key_node.start_mark,
                 )
-        return super().construct_mapping(node, deep=deep)
+        return super().construct_mapping(node, deep=deep)  # type: ignore[misc]
 
+
+class _Loader(_UniqueKeys, yaml.SafeLoader):
+    """``yaml.SafeLoader`` with a depth limit, unique keys and YAML 1.2 floats."""
+
+    def __init__(self, stream: Any) -> None:
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent: Node | None, index: Any) -> Node | None:  # noqa: D102
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                mark = self.peek_event().start_mark
+                raise _Limit(f"nested deeper than {MAX_YAML_DEPTH} levels", mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+#: libyaml's parser and composer (C), the same constructor and resolver: for
+#: large documents (grasp files), where the pure-Python parser takes seconds.
+#: Its composer cannot be given the depth limit, so :func:`_check_depth` runs
+#: first, over libyaml's flat event stream.
+_CLoader: Any = None
+if getattr(yaml, "__with_libyaml__", False):
+
+    class _CLoader(_UniqueKeys, yaml.CSafeLoader):  # type: ignore[no-redef]
+        """``yaml.CSafeLoader`` with unique keys and YAML 1.2 floats."""
+
+
+#: Documents at least this long [characters] use libyaml when it is installed.
+FAST_YAML_CHARS = 1 << 16
 
 # YAML 1.2 floats: also 1e-4, 1E5, 2.5e3 (PyYAML's YAML 1.1 needs a dot and a signed exponent)
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-    list("-+0123456789."),
-)
+for _cls in (_Loader, _CLoader):
+    if _cls is not None:
+        _cls.add_implicit_resolver(
+            "tag:yaml.org,2002:float",
+            re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+            list("-+0123456789."),
+        )
+
+
+def _check_depth(text: str) -> None:
+    """Raise :class:`_Limit` where a node lies deeper than ``MAX_YAML_DEPTH`` (libyaml events).
+
+    The same count as :meth:`_Loader.compose_node`: the root node is at depth 1,
+    the children of a collection one deeper.
+    """
+    depth = 0
+    for event in yaml.parse(text, Loader=yaml.CSafeLoader):
+        if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                raise _Limit(f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark)
+        elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+            depth -= 1
+        elif isinstance(event, (yaml.ScalarEvent, yaml.AliasEvent)) and depth + 1 > MAX_YAML_DEPTH:
+            raise _Limit(f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark)
 
 
 def _short(value: Any, limit: int = 60) -> str:
@@ -167,7 +205,11 @@ def load_yaml(
     """
     loader = None
     try:
-        loader = _Loader(text)  # reads the first characters: may raise
+        if _CLoader is not None and len(text) >= FAST_YAML_CHARS:
+            _check_depth(text)
+            loader = _CLoader(text)
+        else:
+            loader = _Loader(text)  # reads the first characters: may raise
         node = loader.get_single_node()
         if node is None:
             return None

@@ -117,3 +117,31 @@ def test_files_too_large_not_utf8_or_missing(tmp_path):
     bom = tmp_path / "bom.yaml"
     bom.write_bytes(b"\xef\xbb\xbfseed: 3\n")
     assert read_yaml_file(bom, "config", ConfigError) == {"seed": 3}
+
+
+_PAD = "# " + "x" * 70_000 + "\n"  # a comment that makes a document large (libyaml's path)
+
+
+def test_large_documents_read_the_same_through_libyaml(monkeypatch):
+    """Large documents (grasp files) are parsed by libyaml: the same data, the same limits."""
+    import gcm_pipeline.safe_yaml as sy
+
+    if sy._CLoader is None:
+        pytest.skip("PyYAML without libyaml")
+    rows = "\n".join(f"  - [{i}, {i}.5, 1e-4, -2.5e3, true, null, 'q{i}']" for i in range(3000))
+    text = f"{_PAD}grasps:\n{rows}\nwhen: 2026-12-02\nname: x\nnested: {{a: {{b: [1, 2]}}}}\n"
+    assert len(text) >= sy.FAST_YAML_CHARS
+    fast = _load(text)
+    monkeypatch.setattr(sy, "FAST_YAML_CHARS", 10**12)  # the pure-Python path
+    assert _load(text) == fast
+    assert fast["grasps"][7] == [7, 7.5, 1e-4, -2500.0, True, None, "q7"]
+    monkeypatch.undo()
+    # the limits hold on that path too, at the same place
+    assert _error(_PAD + "a: 1\nb: 2\na: 3\n").startswith("src:4:1: duplicate key 'a'")
+    deep = _PAD + "[" * (MAX_YAML_DEPTH + 6) + "]" * (MAX_YAML_DEPTH + 6)
+    assert f"nested deeper than {MAX_YAML_DEPTH} levels" in _error(deep)
+    bomb = _PAD + "a: &a [1,2,3,4,5,6,7,8,9]\nb: &b [*a,*a,*a,*a,*a,*a,*a,*a,*a]\n"
+    bomb += "c: &c [*b,*b,*b,*b,*b,*b,*b,*b,*b]\nd: &d [*c,*c,*c,*c,*c,*c,*c,*c,*c]\n"
+    bomb += "e: [" + ",".join(["*d"] * 20) + "]\n"
+    assert "through aliases" in _error(bomb)
+    assert "malformed YAML" in _error(_PAD + "[" * 100_000)  # libyaml's own nesting guard

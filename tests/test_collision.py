@@ -285,20 +285,16 @@ def test_combined_score_errors(weights, match):
         combined_score(cols, weights)
 
 
+def _bottle_and_box_checker(robot):
+    """Table, the bottle and a box obstacle beside the arm."""
+    box = {"shape": "box", "dims": {"size": [0.2, 0.2, 0.4]}, "pose": {"xyz": [0.2, -0.4, 0.2]}}
+    env = EnvironmentConfig.model_validate({"obstacles": [box]})
+    return make_checker(robot, env, ObjectConfig.model_validate(BOTTLE))
+
+
 def test_clearance_broad_phase_equals_all_pairs(robot):
     """The pruned clearance equals the minimum over every distance pair (computeDistances)."""
-    env = EnvironmentConfig.model_validate(
-        {
-            "obstacles": [
-                {
-                    "shape": "box",
-                    "dims": {"size": [0.2, 0.2, 0.4]},
-                    "pose": {"xyz": [0.2, -0.4, 0.2]},
-                }
-            ]
-        }
-    )
-    c = make_checker(robot, env, ObjectConfig.model_validate(BOTTLE))
+    c = _bottle_and_box_checker(robot)
     qs = robot.random_configurations(300, 3)
     fast = c.clearance(qs)
     dm, dd = c._dist_model, c._dist_data
@@ -320,18 +316,7 @@ def test_clearance_broad_phase_equals_all_pairs(robot):
 def test_clearance_face_shortcut_equals_coal(robot):
     """Distances taken from hull vertices (a link in the region of one face of a box:
     the table, a box obstacle on any side) equal coal's distance of that pair."""
-    env = EnvironmentConfig.model_validate(
-        {
-            "obstacles": [
-                {
-                    "shape": "box",
-                    "dims": {"size": [0.2, 0.2, 0.4]},
-                    "pose": {"xyz": [0.2, -0.4, 0.2]},
-                }
-            ]
-        }
-    )
-    c = make_checker(robot, env, ObjectConfig.model_validate(BOTTLE))
+    c = _bottle_and_box_checker(robot)
     qs = robot.random_configurations(400, 4)
     frames = c._frames.compute(qs)
     exact = c._face_distances(frames, c._place(frames, c._cover.joint, c._cover.centre))

@@ -59,6 +59,13 @@ def _study_file(tmp_path: Path, data: dict, name: str = "study.yaml") -> Path:
     return path
 
 
+def _broken_grasp_file(folder: Path) -> Path:
+    """A damaged ``.npy`` grasp file: its placements fail when the run reads it."""
+    broken = folder / "broken.npy"
+    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    return broken
+
+
 def _small(sweep: dict, **extra) -> dict:
     return {"base": str(BOTTLE), "set": list(SMALL), "sweep": sweep, **extra}
 
@@ -472,8 +479,7 @@ def test_a_failing_placement_is_recorded_and_the_study_goes_on(cluster, tmp_path
     exist; reading them is the run's work, so a damaged file among many objects
     fails only that object's placements.
     """
-    broken = tmp_path / "broken.npy"
-    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    broken = _broken_grasp_file(tmp_path)
     data = {
         "base": str(FROM_FILE),
         "set": ["densify.subdivisions=1", "approach=null", "publish.html=false"],
@@ -501,8 +507,7 @@ def test_a_failing_placement_is_recorded_and_the_study_goes_on(cluster, tmp_path
 
 def test_a_finished_study_run_again_lists_every_failure_and_no_engine(tmp_path, capsys):
     """Rerunning a finished study (no Ray started) names the failures beyond the first three."""
-    broken = tmp_path / "broken.npy"
-    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    broken = _broken_grasp_file(tmp_path)
     data = {
         "base": str(FROM_FILE),
         "set": ["densify.subdivisions=1", "approach=null", "publish.html=false"],
@@ -526,8 +531,7 @@ def test_a_finished_study_run_again_lists_every_failure_and_no_engine(tmp_path, 
 
 
 def test_quiet_study_whose_every_placement_failed_says_so_in_one_line(tmp_path, capsys):
-    broken = tmp_path / "broken.npy"
-    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    broken = _broken_grasp_file(tmp_path)
     data = {
         "base": str(FROM_FILE),
         "set": ["densify.subdivisions=1", f"candidates.path={broken}", "publish.html=false"],

@@ -652,15 +652,10 @@ def _end_of_move(
         )
         return res.q, res.success
     opts = PinocchioIKOptions.from_kwargs(ik_options)
-    eps = opts.limit_epsilon
-    lower, upper = robot.lower + eps, robot.upper - eps
-    q, conv, _, _ = _lm(
-        robot.chain,
-        np.clip(q_start, lower, upper),
-        ends[:, :3, :3],
-        ends[:, :3, 3],
-        lower,
-        upper,
+    q, conv = _lm_inside(
+        robot,
+        q_start,
+        ends,
         position_tolerance * opts.inner_tolerance,
         orientation_tolerance * opts.inner_tolerance,
         opts,
@@ -681,7 +676,29 @@ def _waypoints(
     to ``_KNOT_TOLERANCE`` of the deviation budget ``tol`` [m] (the orientation
     scaled by the gripper ``radius`` [m]). Returns ``(q, converged)``.
     """
-    eps = PinocchioIKOptions.limit_epsilon
+    return _lm_inside(
+        robot,
+        seed,
+        target,
+        _KNOT_TOLERANCE * tol,
+        _KNOT_TOLERANCE * tol / max(radius, 1e-3),
+        _KNOT_OPTIONS,
+    )
+
+
+def _lm_inside(
+    robot: Robot,
+    seed: np.ndarray,
+    target: np.ndarray,
+    tol_p: float,
+    tol_r: float,
+    opts: PinocchioIKOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Batched LM from ``seed`` (M, nq) to ``target`` poses (M, 4, 4).
+
+    Kept ``opts.limit_epsilon`` inside the joint limits; returns ``(q, converged)``.
+    """
+    eps = opts.limit_epsilon
     lower, upper = robot.lower + eps, robot.upper - eps
     q, conv, _, _ = _lm(
         robot.chain,
@@ -690,9 +707,9 @@ def _waypoints(
         target[:, :3, 3],
         lower,
         upper,
-        _KNOT_TOLERANCE * tol,
-        _KNOT_TOLERANCE * tol / max(radius, 1e-3),
-        _KNOT_OPTIONS,
+        tol_p,
+        tol_r,
+        opts,
     )
     return q, conv
 

@@ -38,6 +38,33 @@ def _z_to(axis: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k / (1.0 + c)
 
 
+def _check_one_dof(model: pin.Model) -> None:
+    """Raise :class:`RobotSpecError` unless every joint has one degree of freedom."""
+    if model.nq != model.nv or model.nq != model.njoints - 1:
+        raise RobotSpecError(
+            f"model {model.name!r}: only 1-DoF revolute joints are supported "
+            f"(nq={model.nq}, nv={model.nv}, joints={model.njoints - 1})"
+        )
+
+
+def _joint_axis(model: pin.Model, j: int) -> np.ndarray:
+    """Unit axis (3,) of revolute joint ``j`` in its own frame.
+
+    Raises:
+        RobotSpecError: If the joint is not revolute.
+    """
+    jm = model.joints[j]
+    kind = jm.shortname()
+    if kind in _AXES:
+        return np.array(_AXES[kind])
+    if kind == "JointModelRevoluteUnaligned":
+        axis = np.asarray(jm.extract().axis, dtype=float).copy()
+        return axis / np.linalg.norm(axis)
+    raise RobotSpecError(
+        f"joint {model.names[j]!r} has unsupported type {kind}; only revolute joints are supported"
+    )
+
+
 class KinematicChain:
     """Serial chain from the model root to one frame, evaluated in batches.
 
@@ -53,11 +80,7 @@ class KinematicChain:
     CHUNK = 4096
 
     def __init__(self, model: pin.Model, frame_id: int) -> None:
-        if model.nq != model.nv or model.nq != model.njoints - 1:
-            raise RobotSpecError(
-                f"model {model.name!r}: only 1-DoF revolute joints are supported "
-                f"(nq={model.nq}, nv={model.nv}, joints={model.njoints - 1})"
-            )
+        _check_one_dof(model)
         frame = model.frames[frame_id]
         chain: list[int] = []
         j = int(frame.parentJoint)
@@ -71,18 +94,7 @@ class KinematicChain:
         rots, trans = [], []
         post = np.eye(3)  # rotation carried over from the previous joint's axis change
         for j in chain:
-            jm = model.joints[j]
-            kind = jm.shortname()
-            if kind in _AXES:
-                axis = np.array(_AXES[kind])
-            elif kind == "JointModelRevoluteUnaligned":
-                axis = np.asarray(jm.extract().axis, dtype=float).copy()
-                axis /= np.linalg.norm(axis)
-            else:
-                raise RobotSpecError(
-                    f"joint {model.names[j]!r} has unsupported type {kind}; "
-                    "only revolute joints are supported"
-                )
+            axis = _joint_axis(model, j)
             placement = model.jointPlacements[j]
             # rotate the joint frame so that its axis is z: Rot(a, q) = Ra Rz(q) Ra^T,
             # the trailing Ra^T is folded into the next placement
@@ -214,11 +226,7 @@ class JointFrames:
     """
 
     def __init__(self, model: pin.Model) -> None:
-        if model.nq != model.nv or model.nq != model.njoints - 1:
-            raise RobotSpecError(
-                f"model {model.name!r}: only 1-DoF revolute joints are supported "
-                f"(nq={model.nq}, nv={model.nv}, joints={model.njoints - 1})"
-            )
+        _check_one_dof(model)
         nj = int(model.njoints)
         self.njoints = nj
         self.parent = np.array([int(model.parents[j]) for j in range(nj)], dtype=int)
@@ -229,18 +237,7 @@ class JointFrames:
         self._post[0] = np.eye(3)
         self._rot[0] = np.eye(3)
         for j in range(1, nj):
-            jm = model.joints[j]
-            kind = jm.shortname()
-            if kind in _AXES:
-                axis = np.array(_AXES[kind])
-            elif kind == "JointModelRevoluteUnaligned":
-                axis = np.asarray(jm.extract().axis, dtype=float).copy()
-                axis /= np.linalg.norm(axis)
-            else:
-                raise RobotSpecError(
-                    f"joint {model.names[j]!r} has unsupported type {kind}; "
-                    "only revolute joints are supported"
-                )
+            axis = _joint_axis(model, j)
             ra = _z_to(axis)
             pre = self._post[self.parent[j]]
             placement = model.jointPlacements[j]

@@ -130,10 +130,11 @@ def test_small_seed_budget_where_every_neighbour_failed_ik(robot):
     """A row whose neighbours all failed IK after their own full seed schedule (no_ik,
     joint_limits) gets no random restarts and 2 library seeds; a row with a solved
     neighbour, none, or neighbours only out of reach (no seed ran) keeps the full
-    schedule."""
+    schedule. (The LM schedule alone: the closed-form round would solve these rows.)"""
+    lm = {"analytic": False}
     targets = robot.fk_pinocchio(robot.random_configurations(4000, np.random.default_rng(0)))
-    with_restarts = solve_ik(robot, targets)
-    without = solve_ik(robot, targets, random_restarts=0)
+    with_restarts = solve_ik(robot, targets, **lm)
+    without = solve_ik(robot, targets, random_restarts=0, **lm)
     rescued = targets[with_restarts.success & ~without.success]
     assert len(rescued) >= 3  # targets only the random restarts reach
     k = len(rescued)
@@ -148,7 +149,7 @@ def test_small_seed_budget_where_every_neighbour_failed_ik(robot):
     failing[:, :3, 3] = robot.shoulder + 0.85 * d
     far = rescued.copy()
     far[:, :3, 3] += 2.0  # out of reach: rejected before any seed
-    eng = ReachabilityEngine(robot)
+    eng = ReachabilityEngine(robot, ik_options=lm)
     rows = np.concatenate([failing, far, rescued, rescued, rescued])
     nb = np.full((5 * k, 1), -1)
     nb[2 * k : 3 * k, 0] = np.arange(k)  # neighbours that failed IK after every seed
@@ -156,8 +157,8 @@ def test_small_seed_budget_where_every_neighbour_failed_ik(robot):
     res = eng.run(rows, neighbours=nb)
     assert set(res.reason[:k]) <= {"no_ik", "joint_limits"}
     assert set(res.reason[k : 2 * k]) == {"out_of_reach"}
-    small = solve_ik(robot, rescued, random_restarts=0, library_seeds=2)
-    full = solve_ik(robot, rescued)
+    small = solve_ik(robot, rescued, random_restarts=0, library_seeds=2, **lm)
+    full = solve_ik(robot, rescued, **lm)
     assert not small.success.all() and full.success.all()
     np.testing.assert_array_equal(res.reachable[2 * k : 3 * k], small.success)
     np.testing.assert_array_equal(res.q[2 * k : 3 * k], small.q)

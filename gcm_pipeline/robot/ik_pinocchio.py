@@ -1,6 +1,19 @@
-r"""Default IK backend: batched Levenberg-Marquardt on Pinocchio's kinematic chain.
+r"""Default IK backend: closed form where the arm has one, then batched Levenberg-Marquardt.
 
-All targets are solved at once. The chain (joint placements and axes read out
+**Closed form first.** An arm with the Franka Panda's kinematics (checked at
+load, :mod:`~gcm_pipeline.robot.analytic`) is solved exactly for given values
+of joint 7, all branches at once: at the preferred joint 7 (the first given
+seed's, else the home configuration's), then on grids of 8, 64 and 512 values
+over its range for the targets still unsolved. Each target keeps the solution
+nearest the preferred configuration (where several are wanted, the nearest of
+each branch first, so that they differ). Every solution is checked by forward
+kinematics like an LM answer. Targets the closed form leaves unsolved (near a
+singularity, or a joint-7 window narrower than the finest grid) go on to the
+LM with a short schedule (``fallback_library_seeds``,
+``fallback_random_restarts``). Any other arm, or ``analytic=False``, uses the LM
+alone.
+
+**LM.** All targets are solved at once. The chain (joint placements and axes read out
 of the Pinocchio model, see :class:`~gcm_pipeline.robot.chain.KinematicChain`)
 is evaluated in vectorised NumPy; each iteration takes, for every still-active
 (target, seed) pair, the damped least-squares step
@@ -43,6 +56,7 @@ from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import quat_from_rotation
+from gcm_pipeline.robot.analytic import PandaAnalyticIK
 from gcm_pipeline.robot.manipulability import yoshikawa
 
 __all__ = [
@@ -55,6 +69,13 @@ __all__ = [
     "solve",
 ]
 
+#: Offsets [rad] of joint 7 around its preferred value, tried with the first grid.
+_NEAR_Q7 = np.array([0.0, -0.05, 0.05, -0.1, 0.1, -0.2, 0.2, -0.4, 0.4])
+
+#: A closed-form answer farther than this from its given seed in some joint [rad] is
+#: compared with the LM's from the seed.
+_SEED_JUMP = 0.2
+
 _LIBRARY_STREAM = 0x5EED11B
 _RESTART_STREAM = 0x5EED2E5
 
@@ -64,6 +85,16 @@ class PinocchioIKOptions:
     r"""Options of the batched LM solver (pass them as keywords to ``solve_ik``).
 
     Attributes:
+        analytic: Solve first in closed form where the arm has the Panda's
+            kinematics (:mod:`~gcm_pipeline.robot.analytic`); the LM rounds
+            then run only for the targets that this leaves unsolved.
+        analytic_samples: Values of joint 7 tried with the preferred one (that
+            of the first seed, else of home), evenly spaced over its range; the
+            targets this leaves unsolved get 8 times as many, then 64 times
+            (0: only the preferred value, no grid).
+        fallback_library_seeds: After a closed-form search over the whole grid,
+            the LM's library seeds are cut to this many.
+        fallback_random_restarts: ... and its random restarts to this many.
         max_iterations: LM iterations per seed.
         stall_after: Iteration from which stalled pairs are dropped.
         stall_ratio: A pair is dropped when its error is not below this
@@ -105,6 +136,10 @@ class PinocchioIKOptions:
         random_seed: Seed of the library and the random restarts.
     """
 
+    analytic: bool = True
+    analytic_samples: int = 8
+    fallback_library_seeds: int = 2
+    fallback_random_restarts: int = 0
     max_iterations: int = 15
     stall_after: int = 4
     stall_ratio: float = 0.5
@@ -320,6 +355,15 @@ def _lm(
     return q, converged, pos_err, rot_err
 
 
+def analytic_solver(robot: Any) -> PandaAnalyticIK | None:
+    """The closed-form solver of ``robot``'s arm (cached), or None if it has none."""
+    key = ("analytic_ik",)
+    if key not in robot.cache:
+        robot.cache[key] = PandaAnalyticIK.for_chain(robot.chain)
+    solver: PandaAnalyticIK | None = robot.cache[key]
+    return solver
+
+
 def yoshikawa_of(chain: Any, q: np.ndarray) -> np.ndarray:
     """Yoshikawa manipulability sqrt(det(J J^T)) of configurations (N, nq)."""
     return yoshikawa(chain.pose_jacobian(q)[2])
@@ -426,6 +470,134 @@ def solve(
     all_q: list[np.ndarray] = []
     all_reason: list[np.ndarray] = []
 
+    first = max(1, opts.first_round_seeds)
+    # among several valid solutions of a target: best manipulability when the
+    # user asks for choice, else the first seed in schedule order (which makes
+    # merged rounds give the same result as one seed at a time)
+    by_manipulability = first > 1 or opts.min_solutions > 1
+
+    def accept(cids: np.ndarray, cq: np.ndarray, rank: np.ndarray) -> None:
+        """Record converged candidates ``cq`` of targets ``cids``.
+
+        ``rank``: higher wins (when not by manipulability).
+        """
+        if validator is not None:
+            reasons = np.asarray(validator(cq), dtype=object)
+            if reasons.shape != (cq.shape[0],):
+                raise InputError(
+                    f"validator returned shape {reasons.shape}, expected ({cq.shape[0]},)"
+                )
+        else:
+            reasons = np.full(cq.shape[0], "", dtype=object)
+        if return_all:
+            all_index.append(cids)
+            all_q.append(cq)
+            all_reason.append(reasons)
+        valid = reasons == ""
+        last_reason[cids[~valid]] = reasons[~valid]
+        if not np.any(valid):
+            return
+        vids, vq = cids[valid], cq[valid]
+        score = yoshikawa_of(chain, vq) if by_manipulability else rank[valid]
+        np.add.at(n_valid, vids, 1)
+        order = np.argsort(score, kind="stable")  # ascending: the best is written last
+        vids, vq, score = vids[order], vq[order], score[order]
+        better = score > best_score[vids]
+        best_q[vids[better]] = vq[better]
+        best_score[vids[better]] = score[better]
+
+    solver = analytic_solver(robot) if opts.analytic else None
+    if solver is not None and n:
+        # closed form first: the preferred joint 7 (the first seed's, else home's),
+        # then a grid over its range for the targets still short of solutions
+        pref = np.broadcast_to(np.asarray(robot.home, dtype=float), (n, nq)).copy()
+        if seeds is not None and seeds.shape[1]:
+            finite = np.all(np.isfinite(seeds), axis=2)
+            has = finite.any(axis=1)
+            col0 = np.argmax(finite, axis=1)
+            pref[has] = seeds[np.flatnonzero(has), col0[has]]
+        pref = np.clip(pref, lower, upper)
+        one_each = not (
+            return_all or validator is not None or opts.min_solutions > 1 or by_manipulability
+        )
+        # rounds: (around the preferred joint 7 too, grid size): the preferred joint 7
+        # (one answer each: alone first), values around it and a grid over its range
+        # (the self-motion may turn back just short of the preferred value), then
+        # finer grids
+        k = opts.analytic_samples
+        rounds = [(True, k), (False, 8 * k), (False, 64 * k)] if k else [(True, 0)]
+        if one_each and k:
+            rounds.insert(0, (False, 0))
+        tried = np.zeros(0)
+        for with_pref, samples in rounds:
+            todo = np.flatnonzero(n_valid < opts.min_solutions)
+            if todo.size == 0:
+                break
+            grid = np.linspace(lower[6], upper[6], samples)  # the ends too: some poses need them
+            # a finer grid repeats the coarser one's values: not their solutions again
+            new = np.min(np.abs(grid[:, None] - tried[None, :]), axis=1, initial=np.inf) > 1e-12
+            grid, tried = grid[new], np.concatenate([tried, grid[new]])
+            samples = grid.size
+            # the preferred q7 (and, for one answer each, values around it)
+            near = pref[todo, 6:7] + (_NEAR_Q7 if with_pref and one_each else 0.0)
+            q7s = np.concatenate(
+                [np.clip(near, lower[6], upper[6]), np.broadcast_to(grid, (todo.size, samples))],
+                axis=1,
+            )
+            at, cq, branch = solver.solve(trot[todo], tpos[todo], q7s, lower, upper)
+            if at.size == 0:
+                continue
+            dist = np.sum((cq - pref[todo[at]]) ** 2, axis=1)
+            if one_each:  # per target, the nearest to the preferred configuration
+                order = np.lexsort((dist, at))
+            else:
+                # per target, the nearest of each branch first (nearest branch first),
+                # then the second nearest of each, ...: choice across branches
+                order = np.lexsort((dist, branch, at))
+                key = at.astype(np.int64)[order] * 8 + branch[order]
+                start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+                within = np.arange(key.size) - np.repeat(start, np.diff(np.r_[start, key.size]))
+                order = order[np.lexsort((dist[order], within, at[order]))]
+            at, cq, dist = at[order], cq[order], dist[order]
+            if validator is None:
+                # per target, as many as it still needs (one each: the first); to
+                # choose by manipulability, at least first_round_seeds
+                start = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
+                rank = np.arange(at.size) - np.repeat(start, np.diff(np.r_[start, at.size]))
+                need = np.maximum(opts.min_solutions - n_valid[todo[at]], 1)
+                if by_manipulability:
+                    need = np.maximum(need, first)
+                take = rank < need
+                at, cq, dist = at[take], cq[take], dist[take]
+            ids = todo[at]
+            rot, pos = chain.pose(cq)
+            ep, ew = _errors(rot, pos, trot[ids], tpos[ids])
+            pe, re = np.linalg.norm(ep, axis=1), np.linalg.norm(ew, axis=1)
+            conv = (pe <= tol_p) & (re <= tol_r)
+            if not np.any(conv):
+                continue
+            ids, cq, pe, re, dist = ids[conv], cq[conv], pe[conv], re[conv], dist[conv]
+            att_p[ids], att_r[ids], att_q[ids] = pe, re, cq
+            accept(ids, cq, 1.0 / (1.0 + dist))
+        if one_each and seeds is not None and seeds.shape[1]:
+            # the sampled joint-7 values may miss a seed's own neighbourhood (near a turn
+            # of the self-motion, a narrow window inside the limits): where the answer
+            # jumps far from the given seed, the LM from the seed, if it lands nearer
+            jump = np.max(np.abs(best_q - pref), axis=1)
+            far = np.flatnonzero(has & (n_valid > 0) & (jump > _SEED_JUMP))
+            if far.size:
+                qf, conv, pe, re = _lm(
+                    chain, pref[far], trot[far], tpos[far], lower, upper, tol_p, tol_r, opts
+                )
+                nearer = conv & (np.max(np.abs(qf - pref[far]), axis=1) < jump[far])
+                ids = far[nearer]
+                best_q[ids], att_q[ids], att_p[ids], att_r[ids] = (
+                    qf[nearer],
+                    qf[nearer],
+                    pe[nearer],
+                    re[nearer],
+                )
+
     # Seed schedule. Every decision is per target, so a target's result does not
     # depend on the other targets of the batch (nor on chunking over workers):
     # rounds over the given seeds, the library neighbours and home (``round_seeds``
@@ -438,9 +610,15 @@ def solve(
     n_home = 1 if opts.home_seed else 0
     n_fixed = n_given + n_lib + n_home
     n_random = max(0, opts.random_restarts)
+    if solver is not None and opts.analytic_samples > 0:
+        # the closed form has searched the whole range of joint 7: the LM is left
+        # the poses it cannot settle (near singularities, joint-7 windows narrower
+        # than its finest grid), with a short schedule
+        n_lib = min(n_lib, max(0, opts.fallback_library_seeds))
+        n_random = min(n_random, max(0, opts.fallback_random_restarts))
+        n_fixed = n_given + n_lib + n_home
     n_rounds = n_fixed + n_random
     restarts = restart_seeds(robot, n_random, opts.random_seed)
-    first = max(1, opts.first_round_seeds)
     final_opts = replace(
         opts, stall_ratio=0.9, stall_after=8, max_iterations=2 * opts.max_iterations
     )
@@ -461,10 +639,6 @@ def solve(
             return np.broadcast_to(robot.home, (len(ids), nq)).copy()
         return np.broadcast_to(restarts[c - n_lib - n_home], (len(ids), nq)).copy()
 
-    # among several valid solutions of a target: best manipulability when the
-    # user asks for choice, else the first seed in schedule order (which makes
-    # merged rounds give the same result as one seed at a time)
-    by_manipulability = first > 1 or opts.min_solutions > 1
     c = 0
     r = 0
     while c < n_rounds:
@@ -513,33 +687,8 @@ def solve(
         att_p[ids[sel]] = pe[sel]
         att_r[ids[sel]] = re[sel]
         att_q[ids[sel]] = q[sel]
-        if not np.any(conv):
-            continue
-        cids, cq = ids[conv], q[conv]
-        if validator is not None:
-            reasons = np.asarray(validator(cq), dtype=object)
-            if reasons.shape != (cq.shape[0],):
-                raise InputError(
-                    f"validator returned shape {reasons.shape}, expected ({cq.shape[0]},)"
-                )
-        else:
-            reasons = np.full(cq.shape[0], "", dtype=object)
-        if return_all:
-            all_index.append(cids)
-            all_q.append(cq)
-            all_reason.append(reasons)
-        valid = reasons == ""
-        last_reason[cids[~valid]] = reasons[~valid]
-        if not np.any(valid):
-            continue
-        vids, vq = cids[valid], cq[valid]
-        score = yoshikawa_of(chain, vq) if by_manipulability else -cols[conv][valid].astype(float)
-        np.add.at(n_valid, vids, 1)
-        order = np.argsort(score)  # ascending: the best is written last
-        vids, vq, score = vids[order], vq[order], score[order]
-        better = score > best_score[vids]
-        best_q[vids[better]] = vq[better]
-        best_score[vids[better]] = score[better]
+        if np.any(conv):
+            accept(ids[conv], q[conv], -cols[conv].astype(float))
 
     success = n_valid > 0
     if opts.manipulability_steps > 0 and np.any(success):

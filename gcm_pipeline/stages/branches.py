@@ -13,7 +13,9 @@ found. :func:`select_branches` picks one per grasp (``ik.select``):
   joint distance) to the branch chosen by its predecessor; then a few sweeps
   let every grasp switch to the branch with the fewest neighbours farther than
   ``threshold`` (then the smallest sum of joint jumps to them), alternating
-  between two halves of the rows so that neighbours rarely move at once.
+  between two halves of the rows so that neighbours rarely move at once. If
+  that gives more patches than every grasp keeping its first branch found, the
+  first branches are kept.
 
 The chosen branch replaces ``q``, ``q_pregrasp``, ``q_retreat`` and
 ``clearance``; ``solution`` (N,) is its index (-1 for unreachable grasps).
@@ -26,6 +28,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.stages.continuity import patches
 from gcm_pipeline.table import GraspTable
 
 __all__ = ["SELECT_METHODS", "select_branches"]
@@ -113,7 +116,12 @@ def _continuity(
         if not move.size and sweep % 2 == 1:
             break
         chosen[move] = pick[move]
-    return chosen
+    # a heuristic: never worse than every grasp keeping the first branch found
+    reach = valid.any(axis=1)
+    count = [
+        patches(q[np.arange(n), c], reach, edges, threshold).max() for c in (chosen, 0 * chosen)
+    ]
+    return chosen if count[0] <= count[1] else np.zeros_like(chosen)
 
 
 def select_branches(

@@ -1,0 +1,249 @@
+r"""Closed-form IK of the Franka Panda's arm, batched, with joint 7 as the free parameter.
+
+The Panda's joints 1-3 meet at the shoulder :math:`O_2` (a spherical shoulder),
+joint 4 is the elbow, and the axes of joints 5 and 6 meet at :math:`O_6`. Fix
+joint 7 at :math:`q_7` and the pose of frame 6 follows from the target; then
+
+1. the distance :math:`|O_6 - O_2|` depends on :math:`q_4` alone (law of
+   cosines in the arm plane): two elbow solutions;
+2. the arm plane (spanned by :math:`O_2`, :math:`O_4`, :math:`O_6`, with normal
+   :math:`z_4`) turns about the line :math:`O_2 O_6` by a swivel angle; the axis
+   of joint 5 lies in that plane and must be perpendicular to the axis of
+   joint 6: :math:`A \sin\varphi + B \cos\varphi = C`, two swivel solutions;
+3. the shoulder rotation :math:`R_{03} = R_z(q_1) R_y(q_2) R_z(q_3)` gives two
+   Euler solutions, and :math:`R_{46} = R_y(q_5) R_z(q_6)` gives :math:`q_5, q_6`.
+
+That is up to 8 configurations per :math:`q_7`, all of them exact (no
+iteration). The frames are Craig's modified Denavit-Hartenberg frames of the
+Panda (Franka's published table), which the example-robot-data URDF uses. A
+robot gets this solver only if its kinematic chain equals these frames plus a
+fixed tool transform, checked at load against the chain's forward kinematics
+(:meth:`PandaAnalyticIK.for_chain`); any other arm keeps the iterative solver.
+
+Configurations are returned unverified and unfiltered (NaN where a step has no
+real solution); callers keep those inside the joint limits and verify them by
+forward kinematics, as every IK answer of the project is verified.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = ["PandaAnalyticIK"]
+
+# Craig's modified DH parameters of the Panda arm (Franka's table) [m]
+_D1, _D3, _D5 = 0.333, 0.316, 0.384
+_A4, _A5, _A7 = 0.0825, -0.0825, 0.088
+
+
+def _dh_forward(q: np.ndarray) -> np.ndarray:
+    """Frame 7 of the modified-DH chain, (N, 4, 4), for configurations (N, 7)."""
+    d = np.array([_D1, 0.0, _D3, 0.0, _D5, 0.0, 0.0])
+    a = np.array([0.0, 0.0, 0.0, _A4, _A5, 0.0, _A7])
+    alpha = np.array([0.0, -np.pi / 2, np.pi / 2, np.pi / 2, -np.pi / 2, np.pi / 2, np.pi / 2])
+    n = q.shape[0]
+    out = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    for i in range(7):
+        ca, sa = np.cos(alpha[i]), np.sin(alpha[i])
+        ct, st = np.cos(q[:, i]), np.sin(q[:, i])
+        t = np.zeros((n, 4, 4))
+        t[:, 0, 0], t[:, 0, 1], t[:, 0, 3] = ct, -st, a[i]
+        t[:, 1, 0], t[:, 1, 1], t[:, 1, 2], t[:, 1, 3] = st * ca, ct * ca, -sa, -sa * d[i]
+        t[:, 2, 0], t[:, 2, 1], t[:, 2, 2], t[:, 2, 3] = st * sa, ct * sa, ca, ca * d[i]
+        t[:, 3, 3] = 1.0
+        out = out @ t
+    return out
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
+
+
+class PandaAnalyticIK:
+    """All closed-form IK solutions of a Panda-kinematics chain for given :math:`q_7`.
+
+    Args:
+        tool_rotation: Rotation (3, 3) of the grasp frame in DH frame 7.
+        tool_translation: Position (3,) of the grasp frame in DH frame 7 [m].
+    """
+
+    BRANCHES = 8
+
+    def __init__(self, tool_rotation: np.ndarray, tool_translation: np.ndarray) -> None:
+        self.tool_rotation = np.asarray(tool_rotation, dtype=float)
+        self.tool_translation = np.asarray(tool_translation, dtype=float)
+        # |O6 - O2|^2 = k + alpha cos q4 + beta sin q4 = k + rho4 cos(q4 - gamma)
+        # (arm plane, frame 4)
+        self._k = _A5**2 + _D5**2 + _A4**2 + _D3**2
+        alpha = 2.0 * (_A5 * _A4 + _D5 * _D3)
+        beta = 2.0 * (_A5 * _D3 - _D5 * _A4)
+        self._rho4 = float(np.hypot(alpha, beta))
+        self._gamma = float(np.arctan2(beta, alpha))
+
+    @classmethod
+    def for_chain(
+        cls, chain: Any, checks: int = 32, tolerance: float = 1e-9
+    ) -> PandaAnalyticIK | None:
+        """The solver for a chain, or None when its kinematics are not the Panda's.
+
+        ``chain`` is a :class:`~gcm_pipeline.robot.chain.KinematicChain`. The
+        tool transform is read off the chain at one configuration; the chain
+        qualifies when DH frame 7 times that transform equals the chain's
+        forward kinematics at ``checks`` random configurations to
+        ``tolerance`` [m, rad].
+        """
+        if (
+            chain.nq != 7
+            or len(chain.joint_ids) != 7
+            or not np.array_equal(chain.q_index, np.arange(7))
+        ):
+            return None
+        rng = np.random.default_rng(0x5A7A)
+        q = rng.uniform(-np.pi, np.pi, size=(checks + 1, 7))
+        rot, pos = chain.pose(q)
+        frame7 = _dh_forward(q)
+        r7, p7 = frame7[0, :3, :3], frame7[0, :3, 3]
+        tool_r = r7.T @ rot[0]
+        tool_t = r7.T @ (pos[0] - p7)
+        exp_r = frame7[:, :3, :3] @ tool_r
+        exp_p = frame7[:, :3, 3] + frame7[:, :3, :3] @ tool_t
+        if np.max(np.abs(exp_r - rot)) > tolerance or np.max(np.abs(exp_p - pos)) > tolerance:
+            return None
+        return cls(tool_r, tool_t)
+
+    def solve(
+        self,
+        rot: np.ndarray,
+        pos: np.ndarray,
+        q7: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every closed-form solution inside the joint limits, for each (target, :math:`q_7`).
+
+        The branches are pruned joint by joint (elbow, then joint 6, then the
+        shoulder and joint 5), so rows that leave the limits early cost little.
+
+        Args:
+            rot: Target rotations of the grasp frame (N, 3, 3), base frame.
+            pos: Target positions (N, 3) [m].
+            q7: Values of joint 7 (N, K) [rad], inside its limits.
+            lower: Lower joint limits (7,) [rad].
+            upper: Upper joint limits (7,) [rad].
+
+        Returns:
+            ``(index, q, branch)``: target index (M,), configuration (M, 7)
+            [rad] and branch (M,) of each solution, grouped by target in
+            (q7 column, branch) order. The branch (0-7) numbers the roots of
+            the elbow, joint 6 and the shoulder; along a branch the solution
+            moves continuously with :math:`q_7` (away from singularities).
+            Unverified: near a singularity of the shoulder or the wrist a row
+            may be inexact, so callers verify by forward kinematics.
+        """
+        n, k = q7.shape
+        lower = np.asarray(lower, dtype=float)
+        upper = np.asarray(upper, dtype=float)
+
+        def within(j: int, angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """Angle of joint j moved a turn up where below its limit, and inside-mask.
+
+            The Panda's joint 6 goes past pi.
+            """
+            angle = np.where(angle < lower[j], angle + 2.0 * np.pi, angle)
+            return angle, (angle >= lower[j]) & (angle <= upper[j])
+
+        # frame 7 of the targets; components as separate arrays (NumPy is slow on
+        # axes of length 3)
+        r7 = rot @ self.tool_rotation.T
+        p7 = pos - r7 @ self.tool_translation
+        t = np.repeat(np.arange(n), k)
+        q7f = np.asarray(q7, dtype=float).reshape(-1)
+        c7, s7 = np.cos(q7f), np.sin(q7f)
+        ra = [r7[t, i, 0] for i in range(3)]
+        rb = [r7[t, i, 1] for i in range(3)]
+        # frame 6 for each q7: x6 = R7 (c7, -s7, 0), z6 = R7 (s7, c7, 0), y6 = -z7
+        x6 = [ra[i] * c7 - rb[i] * s7 for i in range(3)]
+        z6 = [ra[i] * s7 + rb[i] * c7 for i in range(3)]
+        y6 = [-r7[t, i, 2] for i in range(3)]
+        v = [p7[t, i] - _A7 * x6[i] for i in range(3)]  # O6 - O2
+        v[2] = v[2] - _D1
+        length2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+
+        # 1. elbow: |O6 - O2| fixes q4 (two roots); keep those inside the limits
+        with np.errstate(invalid="ignore"):
+            half = np.arccos((length2 - self._k) / self._rho4)  # NaN out of reach
+        q4 = _wrap(np.concatenate([self._gamma + half, self._gamma - half]))
+        q4, ok = within(3, q4)
+        rows = np.flatnonzero(ok)
+        src = rows % (n * k)  # row of the (target, q7) table
+        branch = rows // (n * k) * 4  # elbow root
+        q4 = q4[rows]
+        length = np.sqrt(length2[src])
+        u = [v[i][src] / length for i in range(3)]
+        x6 = [c[src] for c in x6]
+        y6 = [c[src] for c in y6]
+        z6 = [c[src] for c in z6]
+        c4, s4 = np.cos(q4), np.sin(q4)
+        # (O6 - O2) / |O6 - O2| in frame 4: (ux, uy, 0)
+        ux = (_A5 + _A4 * c4 + _D3 * s4) / length
+        uy = (_D5 - _A4 * s4 + _D3 * c4) / length
+
+        # 2. joint 6: the axis of joint 5 is y4 = sin(q6) x6 + cos(q6) y6 and makes
+        #    the fixed angle y4 . u = uy with the line O2-O6: two roots
+        xu = x6[0] * u[0] + x6[1] * u[1] + x6[2] * u[2]
+        yu = y6[0] * u[0] + y6[1] * u[1] + y6[2] * u[2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            spread = np.arccos(uy / np.hypot(xu, yu))
+        centre = np.arctan2(xu, yu)
+        q6 = _wrap(np.concatenate([centre + spread, centre - spread]))
+        q6, ok = within(5, q6)
+        rows2 = np.flatnonzero(ok)
+        sel = rows2 % len(rows)
+        q6 = q6[rows2]
+
+        def pick(cols: list[np.ndarray]) -> list[np.ndarray]:
+            return [c[sel] for c in cols]
+
+        u, x6, y6, z6 = pick(u), pick(x6), pick(y6), pick(z6)
+        ux, uy, c4, s4 = ux[sel], uy[sel], c4[sel], s4[sel]
+        src, q4 = src[sel], q4[sel]
+        branch = branch[sel] + rows2 // len(rows) * 2  # joint 6 root
+        s6, c6 = np.sin(q6), np.cos(q6)
+        y4 = [s6 * x6[i] + c6 * y6[i] for i in range(3)]
+        # y4 = uy u + ux (z4 x u): recover z4 x u, then z4 = u x (z4 x u), x4 = y4 x z4
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = [(y4[i] - uy * u[i]) / ux for i in range(3)]
+        z4 = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]]
+        x4 = [ux * u[i] - uy * w[i] for i in range(3)]
+
+        # 3. shoulder: R03 = R04 Rz(q4)^T Rx(pi/2)^T = Rz(q1) Ry(q2) Rz(q3), two roots;
+        #    x3 = c4 x4 - s4 y4, y3 = -z4, z3 = s4 x4 + c4 y4
+        z3 = [s4 * x4[i] + c4 * y4[i] for i in range(3)]
+        x3z = c4 * x4[2] - s4 * y4[2]
+        sb = np.hypot(z3[0], z3[1])
+        # joint 5: R46 = R04^T R06 = Ry(q5) Rz(q6)
+        q5 = np.arctan2(
+            x4[0] * z6[0] + x4[1] * z6[1] + x4[2] * z6[2],
+            z4[0] * z6[0] + z4[1] * z6[1] + z4[2] * z6[2],
+        )
+        m = len(src)
+        out_q = np.empty((2 * m, 7))
+        for half_, sign in ((slice(0, m), 1.0), (slice(m, 2 * m), -1.0)):
+            out_q[half_, 0] = np.arctan2(sign * z3[1], sign * z3[0])
+            out_q[half_, 1] = np.arctan2(sign * sb, z3[2])
+            out_q[half_, 2] = np.arctan2(-sign * z4[2], -sign * x3z)
+        out_q[:, 3] = np.tile(q4, 2)
+        out_q[:, 4] = np.tile(q5, 2)
+        out_q[:, 5] = np.tile(q6, 2)
+        out_q[:, 6] = np.tile(q7f[src], 2)
+        ok = np.ones(2 * m, dtype=bool)
+        for j in (0, 1, 2, 4):
+            out_q[:, j], inside = within(j, out_q[:, j])
+            ok &= inside
+        keep = np.flatnonzero(ok)
+        target = np.tile(src, 2)[keep] // k
+        branch = np.concatenate([branch, branch + 1])[keep]  # shoulder root
+        order = np.lexsort((branch, np.tile(src, 2)[keep] % k, target))
+        return target[order], out_q[keep[order]], branch[order]

@@ -1,0 +1,178 @@
+"""Closed-form Panda IK: exactness, completeness on random poses, who gets it, selection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from gcm_pipeline.robot.analytic import PandaAnalyticIK
+from gcm_pipeline.robot.approach import _end_of_move
+from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, analytic_solver
+from gcm_pipeline.robot.model import Robot, load_robot
+
+TOL_P, TOL_R = 1e-4, 1e-3
+
+
+@pytest.fixture(scope="module")
+def panda() -> Robot:
+    return load_robot("panda")
+
+
+def _pin_pose(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Grasp-frame rotations and positions by Pinocchio itself (no project code)."""
+    data = robot.model.createData()
+    rot, pos = np.empty((len(q), 3, 3)), np.empty((len(q), 3))
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(robot.model, data, qi)
+        pin.updateFramePlacements(robot.model, data)
+        m = data.oMf[robot.grasp_frame_id]
+        rot[i], pos[i] = m.rotation, m.translation
+    return rot, pos
+
+
+def test_only_panda_kinematics_get_the_closed_form(panda: Robot) -> None:
+    assert isinstance(analytic_solver(panda), PandaAnalyticIK)
+    assert analytic_solver(load_robot("ur5")) is None
+    # a Panda whose forearm is 1 cm longer is not a Panda: the check at load says so
+    model = panda.model.copy()
+    j5 = model.getJointId("panda_joint5")
+    placement = model.jointPlacements[j5].copy()
+    placement.translation = placement.translation + np.array([0.0, 0.01, 0.0])
+    model.jointPlacements[j5] = placement
+    assert PandaAnalyticIK.for_chain(KinematicChain(model, panda.grasp_frame_id)) is None
+
+
+def test_every_solution_is_exact_inside_the_limits_and_the_original_is_among_them(
+    panda: Robot,
+) -> None:
+    """At the joint 7 of a random configuration, the closed form returns that very
+    configuration among its solutions, and every solution reaches the pose (Pinocchio's
+    own FK) inside the limits."""
+    solver = analytic_solver(panda)
+    assert solver is not None
+    q = panda.random_configurations(3000, np.random.default_rng(11))
+    rot, pos = _pin_pose(panda, q)
+    at, sol, branch = solver.solve(rot, pos, q[:, 6:7], panda.lower, panda.upper)
+    assert len(at) >= len(q)
+    assert np.all(np.diff(at) >= 0)  # grouped by target
+    assert np.all((branch >= 0) & (branch < 8))
+    # at most one solution per branch for one value of joint 7
+    assert len(np.unique(at * 8 + branch)) == len(at)
+    assert np.all((sol >= panda.lower) & (sol <= panda.upper))
+    np.testing.assert_array_equal(sol[:, 6], q[at, 6])
+    r2, p2 = _pin_pose(panda, sol)
+    assert np.max(np.linalg.norm(p2 - pos[at], axis=1)) < 1e-9
+    assert np.max(np.abs(r2 - rot[at])) < 1e-9
+    found = np.zeros(len(q), dtype=bool)
+    found[at[np.max(np.abs(sol - q[at]), axis=1) < 1e-7]] = True
+    assert found.all()
+
+
+def test_out_of_reach_and_backward_poses_have_no_solution(panda: Robot) -> None:
+    solver = analytic_solver(panda)
+    assert solver is not None
+    rng = np.random.default_rng(3)
+    n = 300
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = np.cross(-d, rng.normal(size=(n, 3)))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    rot = np.stack([x, np.cross(-d, x), -d], axis=2)  # the hand points back at the shoulder
+    near = panda.shoulder + 0.85 * d
+    far = panda.shoulder + 1.2 * d
+    grid = np.broadcast_to(np.linspace(panda.lower[6], panda.upper[6], 512), (n, 512))
+    for pos in (near, far):
+        at, _, _ = solver.solve(rot, pos, grid, panda.lower, panda.upper)
+        assert at.size == 0
+
+
+def test_solve_ik_reaches_every_random_pose_and_each_answer_verifies(panda: Robot) -> None:
+    """Recall on poses of random configurations: every one, where the LM alone misses
+    some (joint limits, narrow windows); each answer re-checked by Pinocchio FK."""
+    q = panda.random_configurations(4000, np.random.default_rng(5))
+    targets = panda.fk_pinocchio(q)
+    res = solve_ik(panda, targets)
+    assert res.success.all()
+    rot, pos = _pin_pose(panda, res.q)
+    assert np.max(np.linalg.norm(pos - targets[:, :3, 3], axis=1)) <= TOL_P
+    ang = np.array([np.linalg.norm(pin.log3(t[:3, :3].T @ r)) for t, r in zip(targets, rot)])
+    assert ang.max() <= TOL_R
+    assert np.all((res.q > panda.lower) & (res.q < panda.upper))
+    lm = solve_ik(panda, targets, analytic=False)
+    assert lm.success.sum() < len(q)
+
+
+def test_a_seed_picks_the_nearest_solution(panda: Robot) -> None:
+    """With a seed, the answer is the solution nearest to it: a pose a small move from the
+    seed's gives a configuration a small move from the seed (continuity on a manifold)."""
+    rng = np.random.default_rng(8)
+    q0 = panda.random_configurations(500, rng)
+    q0 = np.clip(q0, panda.lower + 0.1, panda.upper - 0.1)
+    moved = q0 + rng.normal(0.0, 0.01, q0.shape)
+    targets = panda.fk_pinocchio(moved)
+    res = solve_ik(panda, targets, seeds=q0[:, None, :])
+    assert res.success.all()
+    assert np.max(np.abs(res.q - q0)) < 0.2
+    # without a seed the answer is nearest to home: another branch for many
+    far = solve_ik(panda, targets)
+    assert np.mean(np.max(np.abs(far.q - q0), axis=1) > 0.5) > 0.3
+
+
+def test_several_solutions_come_from_different_branches(panda: Robot) -> None:
+    q = panda.random_configurations(200, np.random.default_rng(2))
+    targets = panda.fk_pinocchio(q)
+    res = solve_ik(panda, targets, return_all=True, min_solutions=4)
+    cand = res.candidates
+    assert cand is not None
+    solver = analytic_solver(panda)
+    assert solver is not None
+    for t in range(0, 200, 20):
+        rows = cand.q[cand.index == t]
+        assert 1 <= len(rows) <= 4
+        # distinct configurations, pairwise far apart in some joint
+        gaps = np.max(np.abs(rows[:, None] - rows[None]), axis=2)
+        assert np.all(gaps[~np.eye(len(rows), dtype=bool)] > 0.05)
+
+
+def test_analytic_off_is_the_lm(panda: Robot) -> None:
+    q = panda.random_configurations(50, np.random.default_rng(4))
+    targets = panda.fk_pinocchio(q)
+    a = solve_ik(panda, targets, analytic=False)
+    b = solve_ik(panda, targets, analytic=False)
+    np.testing.assert_array_equal(a.q, b.q)
+    with pytest.raises(Exception, match="analytic_samplez"):
+        PinocchioIKOptions.from_kwargs({"analytic_samplez": 3})
+
+
+def test_end_of_move_settles_only_moves_without_a_near_solution(panda: Robot) -> None:
+    """The approach's end of move: reached ends verify and are near the start; a move
+    declared settled has no solution within the joint change a path could make, at
+    any of 2,000 values of joint 7 (a far denser search than the one it used)."""
+    rng = np.random.default_rng(6)
+    q = np.clip(panda.random_configurations(400, rng), panda.lower + 0.05, panda.upper - 0.05)
+    grasp = panda.fk_pinocchio(q)
+    ends = grasp.copy()
+    ends[:, :3, 3] -= 0.1 * grasp[:, :3, 2]  # 10 cm back along the approach axis
+    opts = {"library_seeds": 0, "random_restarts": 0, "home_seed": False}
+    max_change = 1.0
+    qe, reached, settled, too_far = _end_of_move(
+        panda, ends, q, "pinocchio", TOL_P, TOL_R, opts, max_change=max_change
+    )
+    assert reached.sum() > 100 and settled.sum() > 0
+    assert not np.any(reached & settled) and not np.any(too_far & ~settled)
+    assert np.all(np.max(np.abs(qe[reached] - q[reached]), axis=1) <= max_change)
+    rot, pos = _pin_pose(panda, qe[reached])
+    assert np.max(np.linalg.norm(pos - ends[reached, :3, 3], axis=1)) <= TOL_P
+    solver = analytic_solver(panda)
+    assert solver is not None
+    rows = np.flatnonzero(settled)
+    lo, hi = panda.lower + 1e-9, panda.upper - 1e-9
+    q7 = q[rows, 6:7] + np.linspace(-max_change, max_change, 2001)
+    q7 = np.clip(q7, lo[6], hi[6])
+    at, sol, _ = solver.solve(ends[rows, :3, :3], ends[rows, :3, 3], q7, lo, hi)
+    change = np.max(np.abs(sol - q[rows[at]]), axis=1)
+    # nothing within the bound, save windows narrower than the search's offsets
+    assert np.count_nonzero(change <= max_change) <= 0.02 * len(rows) * 2001

@@ -171,11 +171,13 @@ class PandaAnalyticIK:
         v[2] = v[2] - _D1
         length2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
 
-        # 1. elbow: |O6 - O2| fixes q4 (two roots); keep those inside the limits
+        # 1. elbow: |O6 - O2| fixes q4 (two roots); keep those inside the limits (and
+        #    the values of joint 7 inside its own)
         with np.errstate(invalid="ignore"):
             half = np.arccos((length2 - self._k) / self._rho4)  # NaN out of reach
         q4 = _wrap(np.concatenate([self._gamma + half, self._gamma - half]))
         q4, ok = within(3, q4)
+        ok &= np.tile((q7f >= lower[6]) & (q7f <= upper[6]), 2)
         rows = np.flatnonzero(ok)
         src = rows % (n * k)  # row of the (target, q7) table
         branch = rows // (n * k) * 4  # elbow root

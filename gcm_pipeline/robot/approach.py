@@ -113,6 +113,11 @@ _KNOT_OPTIONS = PinocchioIKOptions()
 #: followed in pieces of about this length [m] (continuation).
 _REACH = 0.025
 
+#: Joint-7 offsets [rad] around the start's where the closed form looks for the end of a
+#: move, and the largest joint change [rad] of an end it keeps (else LM from the start).
+_END_Q7 = np.array([0.0, -0.01, 0.01, -0.025, 0.025, -0.05, 0.05, -0.1, 0.1, -0.2, 0.2])
+_NEAR_END = 0.3
+
 
 @dataclass(frozen=True)
 class Move:
@@ -524,23 +529,14 @@ def plan_moves(
     else:
         ends = tg[rows].copy()
         ends[:, :3, 3] += offsets[rows]
-        q_end, done, settled, too_far = _end_of_move(
-            robot,
-            ends,
-            qg[rows],
-            backend,
-            position_tolerance,
-            orientation_tolerance,
-            ik_options,
-            max_change=steps * move.max_joint_step,
+        q_end, done = _end_of_move(
+            robot, ends, qg[rows], backend, position_tolerance, orientation_tolerance, ik_options
         )
         knots[rows[done], fine_steps] = q_end[done]
         reached = rows[done]
-        retry = rows[~done & ~settled]
-        fail(rows[too_far], np.zeros(int(too_far.sum()), dtype=int), "joint_step")
+        retry = rows[~done]
         reached = np.union1d(reached, follow(retry, pieces))
     lost = np.setdiff1d(rows, reached)
-    lost = lost[ok[lost]]  # not failed already
     fail(lost, failed_at[lost], "no_ik")
 
     # 2. segments between known waypoints: accepted under the deviation bound, else
@@ -641,29 +637,22 @@ def _end_of_move(
     position_tolerance: float,
     orientation_tolerance: float,
     ik_options: dict[str, Any],
-    max_change: float = np.inf,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray]:
     """IK of the end poses (M, 4, 4) seeded only from ``q_start`` (M, nq).
 
-    With the Panda's closed form (pinocchio backend) the end is searched along
-    the arm's self-motion: every branch at joint-7 values around the start's
-    (offsets 0, +-0.05, +-0.1, ... rad, doubling up to ``max_change``), and the
-    solution whose largest joint change from the start is smallest is kept,
-    if that change is at most ``max_change`` [rad] (the most a path of the
-    move's steps can change a joint). A pose with no such solution has no
-    end that a path of the move could reach (up to the offsets' spacing):
-    ``settled``. Elsewhere, LM from the start.
+    With the Panda's closed form (pinocchio backend) the end is first solved at
+    joint-7 values around the start's (offsets up to 0.2 rad), keeping the
+    solution whose largest joint change from the start is smallest, if that is
+    at most ``_NEAR_END`` [rad]. The other rows (no such solution: a window of
+    joint 7 between the samples, or a far end) get LM from the start, as
+    without the closed form.
 
     Returns:
-        ``(q, reached, settled, too_far)``: configurations (M, nq), whether each
-        reaches its pose within the IK tolerances (verified by Pinocchio FK,
-        strictly inside the limits), the rows the closed form showed
-        unreachable, and among those the ones with an end farther than
-        ``max_change`` (a joint-step failure rather than no IK).
+        ``(q, reached)``: configurations (M, nq) and whether each reaches its
+        pose within the IK tolerances (verified by Pinocchio FK, strictly
+        inside the limits).
     """
     m = len(ends)
-    settled = np.zeros(m, dtype=bool)
-    too_far = np.zeros(m, dtype=bool)
     if backend != "pinocchio":
         res = solve_ik(
             robot,
@@ -674,7 +663,7 @@ def _end_of_move(
             seeds=q_start[:, None, :],
             **ik_options,
         )
-        return res.q, res.success, settled, too_far
+        return res.q, res.success
     opts = PinocchioIKOptions.from_kwargs(ik_options)
     q = np.full((m, robot.nq), np.nan)
     conv = np.zeros(m, dtype=bool)
@@ -683,22 +672,15 @@ def _end_of_move(
         eps = opts.limit_epsilon
         lower, upper = robot.lower + eps, robot.upper - eps
         start = np.clip(q_start, lower, upper)
-        reach = min(float(max_change), float(upper[6] - lower[6]))
-        steps = 0.05 * 2.0 ** np.arange(max(0, int(np.floor(np.log2(reach / 0.05))) + 1))
-        offsets = np.concatenate([[0.0], steps, -steps]) if reach >= 0.05 else np.zeros(1)
-        q7 = np.clip(start[:, 6:7] + offsets, lower[6], upper[6])
+        q7 = np.clip(start[:, 6:7] + _END_Q7, lower[6], upper[6])
         at, cand, _ = solver.solve(ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper)
         change = np.max(np.abs(cand - start[at]), axis=1)
         order = np.lexsort((change, at))
         at, cand, change = at[order], cand[order], change[order]
         first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]]) if at.size else at
-        near = first[change[first] <= max_change]
+        near = first[change[first] <= _NEAR_END]
         q[at[near]], conv[at[near]] = cand[near], True
-        settled[:] = True
-        settled[at[near]] = False
-        # an end exists, but farther than any path of the move could go
-        too_far[at[first[change[first] > max_change]]] = True
-    rest = np.flatnonzero(~conv & ~settled)
+    rest = np.flatnonzero(~conv)
     if rest.size:
         q[rest], conv[rest] = _lm_inside(
             robot,
@@ -712,8 +694,7 @@ def _end_of_move(
     rows = np.flatnonzero(conv)
     pe, re, inside = verify_solutions(robot, q[rows], ends[rows])
     reached[rows] = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
-    settled &= ~reached
-    return q, reached, settled, too_far & settled
+    return q, reached
 
 
 def _waypoints(

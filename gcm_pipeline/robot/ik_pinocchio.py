@@ -72,6 +72,9 @@ __all__ = [
 #: Offsets [rad] of joint 7 around its preferred value, tried with the first grid.
 _NEAR_Q7 = np.array([0.0, -0.05, 0.05, -0.1, 0.1, -0.2, 0.2, -0.4, 0.4])
 
+#: (target, joint-7) rows of one closed-form call: about 340 bytes each.
+_ANALYTIC_ROWS = 1 << 18
+
 #: A closed-form answer farther than this from its given seed in some joint [rad] is
 #: compared with the LM's from the seed.
 _SEED_JUMP = 0.2
@@ -170,6 +173,16 @@ class PinocchioIKOptions:
         for key in options:
             if key not in names:
                 raise InputError(unknown_choice("pinocchio IK option", key, names))
+        for key in ("analytic_samples", "fallback_library_seeds", "fallback_random_restarts"):
+            value = options.get(key, 0)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+                raise InputError(
+                    f"pinocchio IK option {key}: expected a whole number >= 0, got {value!r}"
+                )
+        if not isinstance(options.get("analytic", True), (bool, np.bool_)):
+            raise InputError(
+                f"pinocchio IK option analytic: expected true or false, got {options['analytic']!r}"
+            )
         return cls(**options)
 
 
@@ -364,6 +377,38 @@ def analytic_solver(robot: Any) -> PandaAnalyticIK | None:
     return solver
 
 
+def _analytic_blocks(
+    solver: PandaAnalyticIK,
+    rot: np.ndarray,
+    pos: np.ndarray,
+    q7: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`PandaAnalyticIK.solve` in blocks of targets, without repeats.
+
+    Blocks bound the memory; a repeat is one joint-7 value given twice to a
+    target (e.g. two offsets clipped to a limit).
+    """
+    n, k = q7.shape
+    step = max(1, _ANALYTIC_ROWS // max(k, 1))
+    starts = range(0, max(n, 1), step)
+    parts = [
+        solver.solve(rot[a : a + step], pos[a : a + step], q7[a : a + step], lower, upper)
+        for a in starts
+    ]
+    at = np.concatenate([p[0] + a for p, a in zip(parts, starts, strict=True)])
+    cq = np.concatenate([p[1] for p in parts])
+    branch = np.concatenate([p[2] for p in parts])
+    if at.size:
+        order = np.lexsort((cq[:, 6], branch, at))
+        key = np.column_stack([at[order], branch[order], cq[order, 6]])
+        repeat = np.r_[False, np.all(key[1:] == key[:-1], axis=1)]
+        keep = np.sort(order[~repeat])  # back to the solver's order
+        at, cq, branch = at[keep], cq[keep], branch[keep]
+    return at, cq, branch
+
+
 def yoshikawa_of(chain: Any, q: np.ndarray) -> np.ndarray:
     """Yoshikawa manipulability sqrt(det(J J^T)) of configurations (N, nq)."""
     return yoshikawa(chain.pose_jacobian(q)[2])
@@ -522,12 +567,12 @@ def solve(
         )
         # rounds: (around the preferred joint 7 too, grid size): the preferred joint 7
         # (one answer each: alone first), values around it and a grid over its range
-        # (the self-motion may turn back just short of the preferred value), then
-        # finer grids
+        # (the self-motion may turn back just short of the preferred value), then a
+        # finer grid (one answer each: and a finer one still)
         k = opts.analytic_samples
-        rounds = [(True, k), (False, 8 * k), (False, 64 * k)] if k else [(True, 0)]
-        if one_each and k:
-            rounds.insert(0, (False, 0))
+        rounds = [(True, k), (False, 8 * k)] if k else [(True, 0)]
+        if one_each and k:  # the finest grid finds narrow windows; choice needs no more
+            rounds = [(False, 0), *rounds, (False, 64 * k)]
         tried = np.zeros(0)
         for with_pref, samples in rounds:
             todo = np.flatnonzero(n_valid < opts.min_solutions)
@@ -544,7 +589,7 @@ def solve(
                 [np.clip(near, lower[6], upper[6]), np.broadcast_to(grid, (todo.size, samples))],
                 axis=1,
             )
-            at, cq, branch = solver.solve(trot[todo], tpos[todo], q7s, lower, upper)
+            at, cq, branch = _analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
             if at.size == 0:
                 continue
             dist = np.sum((cq - pref[todo[at]]) ** 2, axis=1)
@@ -559,26 +604,36 @@ def solve(
                 within = np.arange(key.size) - np.repeat(start, np.diff(np.r_[start, key.size]))
                 order = order[np.lexsort((dist[order], within, at[order]))]
             at, cq, dist = at[order], cq[order], dist[order]
-            if validator is None:
-                # per target, as many as it still needs (one each: the first); to
-                # choose by manipulability, at least first_round_seeds
-                start = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
-                rank = np.arange(at.size) - np.repeat(start, np.diff(np.r_[start, at.size]))
+            start = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
+            rank = np.arange(at.size) - np.repeat(start, np.diff(np.r_[start, at.size]))
+            # in order of preference, as many as a target still needs (one each: the
+            # first; by manipulability: at least first_round_seeds); with a validator, in
+            # batches of ranks 0, 1, 2-3, 4-7, ... for the targets still short of valid ones
+            top = int(rank.max(initial=-1)) + 1
+            bounds = [0, top]
+            if validator is not None:
+                bounds = [0, *(1 << i for i in range(max(1, top).bit_length())), top]
+            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+                short = n_valid[todo[at]] < opts.min_solutions
                 need = np.maximum(opts.min_solutions - n_valid[todo[at]], 1)
                 if by_manipulability:
                     need = np.maximum(need, first)
-                take = rank < need
-                at, cq, dist = at[take], cq[take], dist[take]
-            ids = todo[at]
-            rot, pos = chain.pose(cq)
-            ep, ew = _errors(rot, pos, trot[ids], tpos[ids])
-            pe, re = np.linalg.norm(ep, axis=1), np.linalg.norm(ew, axis=1)
-            conv = (pe <= tol_p) & (re <= tol_r)
-            if not np.any(conv):
-                continue
-            ids, cq, pe, re, dist = ids[conv], cq[conv], pe[conv], re[conv], dist[conv]
-            att_p[ids], att_r[ids], att_q[ids] = pe, re, cq
-            accept(ids, cq, 1.0 / (1.0 + dist))
+                take = short & (rank >= lo) & (rank < hi)
+                if validator is None:
+                    take &= rank < need
+                rows = np.flatnonzero(take)
+                if rows.size == 0:
+                    continue
+                ids = todo[at[rows]]
+                rot, pos = chain.pose(cq[rows])
+                ep, ew = _errors(rot, pos, trot[ids], tpos[ids])
+                pe, re = np.linalg.norm(ep, axis=1), np.linalg.norm(ew, axis=1)
+                conv = (pe <= tol_p) & (re <= tol_r)
+                if not np.any(conv):
+                    continue
+                rows, ids, pe, re = rows[conv], ids[conv], pe[conv], re[conv]
+                att_p[ids], att_r[ids], att_q[ids] = pe, re, cq[rows]
+                accept(ids, cq[rows], 1.0 / (1.0 + dist[rows]))
         if one_each and seeds is not None and seeds.shape[1]:
             # the sampled joint-7 values may miss a seed's own neighbourhood (near a turn
             # of the self-motion, a narrow window inside the limits): where the answer

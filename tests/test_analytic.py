@@ -232,3 +232,25 @@ def test_joint7_outside_its_limits_gives_nothing_and_blocks_change_nothing(
     monkeypatch.setattr(ik_pinocchio, "_ANALYTIC_ROWS", 7)  # blocks of one target
     blocks = solve_ik(panda, targets)
     np.testing.assert_array_equal(whole.q, blocks.q)
+
+
+def test_analytic_false_reaches_every_ik_of_the_engine(
+    panda: Robot, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``ik_options={"analytic": False}`` holds for the first solve, the other branches
+    and the approach's end of move: the closed form is never called."""
+    from gcm_pipeline.robot.approach import Move
+    from gcm_pipeline.robot.engine import ReachabilityEngine
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("closed form called")
+
+    q = panda.random_configurations(40, np.random.default_rng(13))
+    targets = panda.fk_pinocchio(q)
+    monkeypatch.setattr(PandaAnalyticIK, "solve", refuse)
+    eng = ReachabilityEngine(
+        panda, ik_options={"analytic": False}, approach=Move(distance=0.05), solutions=2
+    )
+    with eng:
+        res = eng.run(targets)
+    assert res.reachable.sum() > 20

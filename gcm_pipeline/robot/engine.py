@@ -354,6 +354,7 @@ class ReachabilityEngine:
                     position_tolerance=self.position_tolerance,
                     orientation_tolerance=self.orientation_tolerance,
                     backend=self.backend,
+                    **self._shared_options(),
                 )
                 reason[rows[~res.ok]] = fail
                 out[rows] = res.q_end
@@ -361,6 +362,15 @@ class ReachabilityEngine:
             stage[rows] = at + 1
             self._spent(fail, t0)
         return CheckResult(stage == _PASSED, stage, reason.astype(str), q_pre, q_ret)
+
+    def _shared_options(self) -> dict[str, Any]:
+        """The IK options that hold for every IK of the engine, not only step 1.
+
+        That is whether the pinocchio backend uses the closed form.
+        """
+        if self.backend != "pinocchio":
+            return {}
+        return {k: v for k, v in self.ik_options.items() if k in ("analytic",)}
 
     def _spent(self, step: str, since: float) -> None:
         """Add the CPU time since ``since`` to ``timings[step]`` [s]."""
@@ -423,7 +433,8 @@ class ReachabilityEngine:
             }
         else:
             opts = {"min_solutions": 2 * (k + 1)}
-        opts.update((key, v) for key, v in self.ik_options.items() if key in ("random_seed",))
+        opts.update((key, v) for key, v in self.ik_options.items() if key == "random_seed")
+        opts.update(self._shared_options())
         res = solve_ik(
             self.robot,
             targets,

@@ -95,6 +95,10 @@ class PinocchioIKOptions:
             of the first seed, else of home), evenly spaced over its range; the
             targets this leaves unsolved get 8 times as many, then 64 times
             (0: only the preferred value, no grid).
+        unseeded: The closed form's preferred configuration for a target
+            without a given seed: ``home`` (the solution nearest the home
+            configuration) or ``library`` (nearest the library's configuration
+            nearest in pose, where the LM would start; a KD-tree query per target).
         fallback_library_seeds: After a closed-form search over the whole grid,
             the LM's library seeds are cut to this many.
         fallback_random_restarts: ... and its random restarts to this many.
@@ -142,6 +146,7 @@ class PinocchioIKOptions:
     analytic: bool = True
     analytic_samples: int = 8
     fallback_library_seeds: int = 2
+    unseeded: str = "home"
     fallback_random_restarts: int = 0
     max_iterations: int = 15
     stall_after: int = 4
@@ -179,6 +184,12 @@ class PinocchioIKOptions:
                 raise InputError(
                     f"pinocchio IK option {key}: expected a whole number >= 0, got {value!r}"
                 )
+        if options.get("unseeded", "home") not in ("home", "library"):
+            raise InputError(
+                unknown_choice(
+                    "pinocchio IK option unseeded", options["unseeded"], ("home", "library")
+                )
+            )
         if not isinstance(options.get("analytic", True), (bool, np.bool_)):
             raise InputError(
                 f"pinocchio IK option analytic: expected true or false, got {options['analytic']!r}"
@@ -377,6 +388,82 @@ def analytic_solver(robot: Any) -> PandaAnalyticIK | None:
     return solver
 
 
+def _seeded_round(
+    solver: PandaAnalyticIK,
+    lib: SeedLibrary,
+    seeds: np.ndarray | None,
+    trot: np.ndarray,
+    tpos: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    opts: PinocchioIKOptions,
+    n_valid: np.ndarray,
+    chain: Any,
+    tol_p: float,
+    tol_r: float,
+    attempts: tuple[np.ndarray, np.ndarray, np.ndarray],
+    accept: Callable[[np.ndarray, np.ndarray, np.ndarray], None],
+    validate: bool,
+) -> None:
+    """Closed-form solutions nearest each seed (given seeds, then library neighbours).
+
+    For each target still short of ``opts.min_solutions`` and each of its seeds
+    in order, the solution nearest the seed among those at the seed's joint 7
+    and around it (``_NEAR_Q7``); repeats dropped; verified; accepted in seed
+    order (what the LM from those seeds would give, exactly).
+    """
+    todo = np.flatnonzero(n_valid < opts.min_solutions)
+    if todo.size == 0:
+        return
+    parts = []
+    if seeds is not None and seeds.shape[1]:
+        parts.append(np.asarray(seeds[todo], dtype=float))
+    knn = lib.nearest(trot[todo], tpos[todo], opts.library_seeds, opts.library_eps)
+    parts.append(lib.q[knn])
+    near = np.clip(np.concatenate(parts, axis=1), lower, upper)  # (m, J, nq); NaN stays
+    m = near.shape[0]
+    q7s = np.clip(near[:, :, 6:7] + _NEAR_Q7, lower[6], upper[6]).reshape(m, -1)
+    ok7 = np.isfinite(q7s)
+    q7s = np.where(ok7, q7s, lower[6])
+    at, cq, _ = _analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
+    if at.size == 0:
+        return
+    # the seed each solution came from: its joint-7 column
+    col = np.argmin(np.abs(q7s[at] - cq[:, 6:7]) + np.where(ok7[at], 0.0, np.inf), axis=1)
+    seed = col // _NEAR_Q7.size
+    dist = np.sum((cq - near[at, seed]) ** 2, axis=1)
+    dist = np.where(np.isfinite(dist), dist, np.inf)
+    order = np.lexsort((dist, seed, at))
+    at, cq, seed, dist = at[order], cq[order], seed[order], dist[order]
+    first = np.r_[True, (at[1:] != at[:-1]) | (seed[1:] != seed[:-1])] & np.isfinite(dist)
+    at, cq, seed = at[first], cq[first], seed[first]
+    # one solution reached from two seeds counts once
+    key = np.round(cq, 9)
+    order = np.lexsort((*key.T[::-1], at))
+    same = np.r_[
+        False, (at[order][1:] == at[order][:-1]) & np.all(key[order][1:] == key[order][:-1], axis=1)
+    ]
+    keep = np.sort(order[~same])
+    at, cq, seed = at[keep], cq[keep], seed[keep]
+    if not validate:  # as many as a target needs (a validator may reject some)
+        start = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
+        rank = np.arange(at.size) - np.repeat(start, np.diff(np.r_[start, at.size]))
+        need = np.maximum(opts.min_solutions - n_valid[todo[at]], max(1, opts.first_round_seeds))
+        take = rank < need
+        at, cq, seed = at[take], cq[take], seed[take]
+    ids = todo[at]
+    rot, pos = chain.pose(cq)
+    ep, ew = _errors(rot, pos, trot[ids], tpos[ids])
+    pe, re = np.linalg.norm(ep, axis=1), np.linalg.norm(ew, axis=1)
+    conv = (pe <= tol_p) & (re <= tol_r)
+    if not np.any(conv):
+        return
+    att_p, att_r, att_q = attempts
+    ids, cq, pe, re, seed = ids[conv], cq[conv], pe[conv], re[conv], seed[conv]
+    att_p[ids], att_r[ids], att_q[ids] = pe, re, cq
+    accept(ids, cq, -seed.astype(float))
+
+
 def _analytic_blocks(
     solver: PandaAnalyticIK,
     rot: np.ndarray,
@@ -561,6 +648,15 @@ def solve(
             has = finite.any(axis=1)
             col0 = np.argmax(finite, axis=1)
             pref[has] = seeds[np.flatnonzero(has), col0[has]]
+        if opts.unseeded == "library":
+            # the library's nearest configuration, as the LM would start from it
+            unseeded = (
+                np.flatnonzero(~has) if seeds is not None and seeds.shape[1] else np.arange(n)
+            )
+            if unseeded.size:
+                lib0 = seed_library(robot, opts)
+                near0 = lib0.nearest(trot[unseeded], tpos[unseeded], 1, opts.library_eps)
+                pref[unseeded] = lib0.q[near0[:, 0]]
         pref = np.clip(pref, lower, upper)
         one_each = not (
             return_all or validator is not None or opts.min_solutions > 1 or by_manipulability
@@ -573,6 +669,27 @@ def solve(
         rounds = [(True, k), (False, 8 * k)] if k else [(True, 0)]
         if one_each and k:  # the finest grid finds narrow windows; choice needs no more
             rounds = [(False, 0), *rounds, (False, 64 * k)]
+        if (opts.min_solutions > 1 or by_manipulability) and opts.library_seeds > 0:
+            # several solutions wanted: first, like the LM from each seed (the given
+            # ones, then the library's nearest), the closed form's solution nearest
+            # each seed at its joint 7 and around: solutions spread where the seeds are
+            _seeded_round(
+                solver,
+                seed_library(robot, opts),
+                seeds,
+                trot,
+                tpos,
+                lower,
+                upper,
+                opts,
+                n_valid,
+                chain,
+                tol_p,
+                tol_r,
+                (att_p, att_r, att_q),
+                accept,
+                validator is not None,
+            )
         tried = np.zeros(0)
         for with_pref, samples in rounds:
             todo = np.flatnonzero(n_valid < opts.min_solutions)

@@ -388,6 +388,21 @@ def analytic_solver(robot: Any) -> PandaAnalyticIK | None:
     return solver
 
 
+def _rank_in_runs(key: np.ndarray) -> np.ndarray:
+    """Position of each element in its run of equal consecutive ``key`` values."""
+    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    return np.arange(key.size) - np.repeat(start, np.diff(np.r_[start, key.size]))
+
+
+def _pose_errors(
+    chain: Any, q: np.ndarray, trot: np.ndarray, tpos: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Position and orientation errors (M,) of configurations q (M, nq) at their targets."""
+    rot, pos = chain.pose(q)
+    ep, ew = _errors(rot, pos, trot, tpos)
+    return np.linalg.norm(ep, axis=1), np.linalg.norm(ew, axis=1)
+
+
 def _seeded_round(
     solver: PandaAnalyticIK,
     lib: SeedLibrary,
@@ -446,15 +461,12 @@ def _seeded_round(
     keep = np.sort(order[~same])
     at, cq, seed = at[keep], cq[keep], seed[keep]
     if not validate:  # as many as a target needs (a validator may reject some)
-        start = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
-        rank = np.arange(at.size) - np.repeat(start, np.diff(np.r_[start, at.size]))
+        rank = _rank_in_runs(at)
         need = np.maximum(opts.min_solutions - n_valid[todo[at]], max(1, opts.first_round_seeds))
         take = rank < need
         at, cq, seed = at[take], cq[take], seed[take]
     ids = todo[at]
-    rot, pos = chain.pose(cq)
-    ep, ew = _errors(rot, pos, trot[ids], tpos[ids])
-    pe, re = np.linalg.norm(ep, axis=1), np.linalg.norm(ew, axis=1)
+    pe, re = _pose_errors(chain, cq, trot[ids], tpos[ids])
     conv = (pe <= tol_p) & (re <= tol_r)
     if not np.any(conv):
         return
@@ -716,13 +728,10 @@ def solve(
                 # per target, the nearest of each branch first (nearest branch first),
                 # then the second nearest of each, ...: choice across branches
                 order = np.lexsort((dist, branch, at))
-                key = at.astype(np.int64)[order] * 8 + branch[order]
-                start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-                within = np.arange(key.size) - np.repeat(start, np.diff(np.r_[start, key.size]))
+                within = _rank_in_runs(at.astype(np.int64)[order] * 8 + branch[order])
                 order = order[np.lexsort((dist[order], within, at[order]))]
             at, cq, dist = at[order], cq[order], dist[order]
-            start = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
-            rank = np.arange(at.size) - np.repeat(start, np.diff(np.r_[start, at.size]))
+            rank = _rank_in_runs(at)
             # in order of preference, as many as a target still needs (one each: the
             # first; by manipulability: at least first_round_seeds); with a validator, in
             # batches of ranks 0, 1, 2-3, 4-7, ... for the targets still short of valid ones
@@ -742,9 +751,7 @@ def solve(
                 if rows.size == 0:
                     continue
                 ids = todo[at[rows]]
-                rot, pos = chain.pose(cq[rows])
-                ep, ew = _errors(rot, pos, trot[ids], tpos[ids])
-                pe, re = np.linalg.norm(ep, axis=1), np.linalg.norm(ew, axis=1)
+                pe, re = _pose_errors(chain, cq[rows], trot[ids], tpos[ids])
                 conv = (pe <= tol_p) & (re <= tol_r)
                 if not np.any(conv):
                     continue

@@ -94,7 +94,7 @@ class PinocchioIKOptions:
         analytic_samples: Values of joint 7 tried with the preferred one (that
             of the first seed, else of home), evenly spaced over its range; the
             targets this leaves unsolved get 8 times as many, then 64 times
-            (0: only the preferred value, no grid).
+            (0: only the preferred value and values around it, no grid).
         unseeded: The closed form's preferred configuration for a target
             without a given seed: ``home`` (the solution nearest the home
             configuration) or ``library`` (nearest the library's configuration

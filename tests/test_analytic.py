@@ -57,7 +57,8 @@ def test_every_solution_is_exact_inside_the_limits_and_the_original_is_among_the
     assert solver is not None
     q = panda.random_configurations(3000, np.random.default_rng(11))
     rot, pos = _pin_pose(panda, q)
-    at, sol, branch = solver.solve(rot, pos, q[:, 6:7], panda.lower, panda.upper)
+    at, sol, branch, column = solver.solve(rot, pos, q[:, 6:7], panda.lower, panda.upper)
+    assert np.all(column == 0)
     assert len(at) >= len(q)
     assert np.all(np.diff(at) >= 0)  # grouped by target
     assert np.all((branch >= 0) & (branch < 8))
@@ -87,7 +88,7 @@ def test_out_of_reach_and_backward_poses_have_no_solution(panda: Robot) -> None:
     far = panda.shoulder + 1.2 * d
     grid = np.broadcast_to(np.linspace(panda.lower[6], panda.upper[6], 512), (n, 512))
     for pos in (near, far):
-        at, _, _ = solver.solve(rot, pos, grid, panda.lower, panda.upper)
+        at, _, _, _ = solver.solve(rot, pos, grid, panda.lower, panda.upper)
         assert at.size == 0
 
 
@@ -225,7 +226,7 @@ def test_joint7_outside_its_limits_gives_nothing_and_blocks_change_nothing(
     q = panda.random_configurations(50, np.random.default_rng(12))
     rot, pos = _pin_pose(panda, q)
     outside = np.full((50, 1), panda.upper[6] + 0.1)
-    at, _, _ = solver.solve(rot, pos, outside, panda.lower, panda.upper)
+    at, _, _, _ = solver.solve(rot, pos, outside, panda.lower, panda.upper)
     assert at.size == 0
     targets = panda.fk_pinocchio(q)
     whole = solve_ik(panda, targets)
@@ -254,3 +255,34 @@ def test_analytic_false_reaches_every_ik_of_the_engine(
     with eng:
         res = eng.run(targets)
     assert res.reachable.sum() > 20
+
+
+def test_reporting_flags_and_empty_seeds_do_not_change_the_answer(panda: Robot) -> None:
+    """return_all, a validator that accepts everything, or an extra all-NaN seed column
+    give the same answer as the plain call (they change what is reported, not chosen)."""
+    rng = np.random.default_rng(21)
+    q = panda.random_configurations(600, rng)
+    targets = panda.fk_pinocchio(q)
+    seeds = np.clip(q + rng.normal(0.0, 0.3, q.shape), panda.lower, panda.upper)[:, None, :]
+    plain = solve_ik(panda, targets, seeds=seeds)
+
+    def accept_all(qs: np.ndarray) -> np.ndarray:
+        return np.full(len(qs), "", dtype=object)
+
+    nan_col = np.concatenate([seeds, np.full_like(seeds, np.nan)], axis=1)
+    for other in (
+        solve_ik(panda, targets, seeds=seeds, return_all=True),
+        solve_ik(panda, targets, seeds=seeds, validator=accept_all),
+        solve_ik(panda, targets, seeds=nan_col),
+    ):
+        np.testing.assert_array_equal(other.success, plain.success)
+        np.testing.assert_array_equal(other.q, plain.q)
+    # several answers: the closed form's are the same (the LM's rounds, for what the
+    # closed form leaves, depend on the seed columns, as without it)
+    several = solve_ik(panda, targets, seeds=seeds, min_solutions=3, return_all=True)
+    with_nan = solve_ik(panda, targets, seeds=nan_col, min_solutions=3, return_all=True)
+    assert several.candidates is not None and with_nan.candidates is not None
+    np.testing.assert_array_equal(several.candidates.q, with_nan.candidates.q)
+    assert len(several.candidates.q) == 3 * len(q)
+    with pytest.raises(InputError, match="min_solutions"):
+        solve_ik(panda, targets[:2], min_solutions=0)

@@ -120,7 +120,7 @@ class PandaAnalyticIK:
         q7: np.ndarray,
         lower: np.ndarray,
         upper: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every closed-form solution inside the joint limits, for each (target, :math:`q_7`).
 
         The branches are pruned joint by joint (elbow, then joint 6, then the
@@ -134,9 +134,9 @@ class PandaAnalyticIK:
             upper: Upper joint limits (7,) [rad].
 
         Returns:
-            ``(index, q, branch)``: target index (M,), configuration (M, 7)
-            [rad] and branch (M,) of each solution, grouped by target in
-            (q7 column, branch) order. The branch (0-7) numbers the roots of
+            ``(index, q, branch, column)``: target index (M,), configuration
+            (M, 7) [rad], branch (M,) and column of ``q7`` (M,) of each solution,
+            grouped by target in (q7 column, branch) order. The branch (0-7) numbers the roots of
             the elbow, joint 6 and the shoulder; along a branch the solution
             moves continuously with :math:`q_7` (away from singularities).
             Unverified: near a singularity of the shoulder or the wrist a row
@@ -248,4 +248,5 @@ class PandaAnalyticIK:
         target = np.tile(src, 2)[keep] // k
         branch = np.concatenate([branch, branch + 1])[keep]  # shoulder root
         order = np.lexsort((branch, np.tile(src, 2)[keep] % k, target))
-        return target[order], out_q[keep[order]], branch[order]
+        column = (np.tile(src, 2)[keep] % k)[order]
+        return target[order], out_q[keep[order]], branch[order], column

@@ -75,7 +75,13 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
-from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm, analytic_solver
+from gcm_pipeline.robot.ik_pinocchio import (
+    PinocchioIKOptions,
+    _analytic_blocks,
+    _lm,
+    _pose_errors,
+    analytic_solver,
+)
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -673,12 +679,19 @@ def _end_of_move(
         lower, upper = robot.lower + eps, robot.upper - eps
         start = np.clip(q_start, lower, upper)
         q7 = np.clip(start[:, 6:7] + _END_Q7, lower[6], upper[6])
-        at, cand, _ = solver.solve(ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper)
+        at, cand, _, _ = _analytic_blocks(solver, ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper)
         change = np.max(np.abs(cand - start[at]), axis=1)
         order = np.lexsort((change, at))
         at, cand, change = at[order], cand[order], change[order]
         first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]]) if at.size else at
         near = first[change[first] <= _NEAR_END]
+        # exact away from singularities: a pick off its pose leaves the row to the LM
+        tol_p = position_tolerance * opts.inner_tolerance
+        tol_r = orientation_tolerance * opts.inner_tolerance
+        pe, re = _pose_errors(
+            robot.chain, cand[near], ends[at[near], :3, :3], ends[at[near], :3, 3]
+        )
+        near = near[(pe <= tol_p) & (re <= tol_r)]
         q[at[near]], conv[at[near]] = cand[near], True
     rest = np.flatnonzero(~conv)
     if rest.size:

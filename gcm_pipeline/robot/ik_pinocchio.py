@@ -184,6 +184,11 @@ class PinocchioIKOptions:
                 raise InputError(
                     f"pinocchio IK option {key}: expected a whole number >= 0, got {value!r}"
                 )
+        value = options.get("min_solutions", 1)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(
+                f"pinocchio IK option min_solutions: expected a whole number >= 1, got {value!r}"
+            )
         if options.get("unseeded", "home") not in ("home", "library"):
             raise InputError(
                 unknown_choice(
@@ -439,13 +444,13 @@ def _seeded_round(
     m = near.shape[0]
     q7s = np.clip(near[:, :, 6:7] + _NEAR_Q7, lower[6], upper[6]).reshape(m, -1)
     ok7 = np.isfinite(q7s)
-    q7s = np.where(ok7, q7s, lower[6])
-    at, cq, _ = _analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
+    q7s = np.where(ok7, q7s, lower[6] - 1.0)  # outside the limits: no solution
+    at, cq, _, col = _analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
+    real = ok7[at, col]  # not from a NaN seed's placeholder
+    at, cq, col = at[real], cq[real], col[real]
     if at.size == 0:
         return
-    # the seed each solution came from: its joint-7 column
-    col = np.argmin(np.abs(q7s[at] - cq[:, 6:7]) + np.where(ok7[at], 0.0, np.inf), axis=1)
-    seed = col // _NEAR_Q7.size
+    seed = col // _NEAR_Q7.size  # the seed each solution came from
     dist = np.sum((cq - near[at, seed]) ** 2, axis=1)
     dist = np.where(np.isfinite(dist), dist, np.inf)
     order = np.lexsort((dist, seed, at))
@@ -483,11 +488,11 @@ def _analytic_blocks(
     q7: np.ndarray,
     lower: np.ndarray,
     upper: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`PandaAnalyticIK.solve` in blocks of targets, without repeats.
 
     Blocks bound the memory; a repeat is one joint-7 value given twice to a
-    target (e.g. two offsets clipped to a limit).
+    target (e.g. two offsets clipped to a limit): its first column is kept.
     """
     n, k = q7.shape
     step = max(1, _ANALYTIC_ROWS // max(k, 1))
@@ -499,13 +504,14 @@ def _analytic_blocks(
     at = np.concatenate([p[0] + a for p, a in zip(parts, starts, strict=True)])
     cq = np.concatenate([p[1] for p in parts])
     branch = np.concatenate([p[2] for p in parts])
+    column = np.concatenate([p[3] for p in parts])
     if at.size:
-        order = np.lexsort((cq[:, 6], branch, at))
+        order = np.lexsort((column, cq[:, 6], branch, at))
         key = np.column_stack([at[order], branch[order], cq[order, 6]])
         repeat = np.r_[False, np.all(key[1:] == key[:-1], axis=1)]
         keep = np.sort(order[~repeat])  # back to the solver's order
-        at, cq, branch = at[keep], cq[keep], branch[keep]
-    return at, cq, branch
+        at, cq, branch, column = at[keep], cq[keep], branch[keep], column[keep]
+    return at, cq, branch, column
 
 
 def yoshikawa_of(chain: Any, q: np.ndarray) -> np.ndarray:
@@ -670,17 +676,18 @@ def solve(
                 near0 = lib0.nearest(trot[unseeded], tpos[unseeded], 1, opts.library_eps)
                 pref[unseeded] = lib0.q[near0[:, 0]]
         pref = np.clip(pref, lower, upper)
-        one_each = not (
-            return_all or validator is not None or opts.min_solutions > 1 or by_manipulability
-        )
+        # one answer per target (a validator or return_all does not change which)
+        one_each = not (opts.min_solutions > 1 or by_manipulability)
         # rounds: (around the preferred joint 7 too, grid size): the preferred joint 7
         # (one answer each: alone first), values around it and a grid over its range
         # (the self-motion may turn back just short of the preferred value), then a
         # finer grid (one answer each: and a finer one still)
         k = opts.analytic_samples
-        rounds = [(True, k), (False, 8 * k)] if k else [(True, 0)]
-        if one_each and k:  # the finest grid finds narrow windows; choice needs no more
-            rounds = [(False, 0), *rounds, (False, 64 * k)]
+        grids = [(False, 8 * k)] if k else []
+        if one_each:  # the finest grid finds narrow windows; choice needs no more
+            rounds = [(False, 0), (True, k), *grids, *([(False, 64 * k)] if k else [])]
+        else:
+            rounds = [(True, k), *grids]
         if (opts.min_solutions > 1 or by_manipulability) and opts.library_seeds > 0:
             # several solutions wanted: first, like the LM from each seed (the given
             # ones, then the library's nearest), the closed form's solution nearest
@@ -713,12 +720,12 @@ def solve(
             grid, tried = grid[new], np.concatenate([tried, grid[new]])
             samples = grid.size
             # the preferred q7 (and, for one answer each, values around it)
-            near = pref[todo, 6:7] + (_NEAR_Q7 if with_pref and one_each else 0.0)
+            near = pref[todo, 6:7] + (_NEAR_Q7[1:] if with_pref and one_each else 0.0)
             q7s = np.concatenate(
                 [np.clip(near, lower[6], upper[6]), np.broadcast_to(grid, (todo.size, samples))],
                 axis=1,
             )
-            at, cq, branch = _analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
+            at, cq, branch, _ = _analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
             if at.size == 0:
                 continue
             dist = np.sum((cq - pref[todo[at]]) ** 2, axis=1)
@@ -769,13 +776,16 @@ def solve(
                     chain, pref[far], trot[far], tpos[far], lower, upper, tol_p, tol_r, opts
                 )
                 nearer = conv & (np.max(np.abs(qf - pref[far]), axis=1) < jump[far])
-                ids = far[nearer]
-                best_q[ids], att_q[ids], att_p[ids], att_r[ids] = (
-                    qf[nearer],
-                    qf[nearer],
-                    pe[nearer],
-                    re[nearer],
-                )
+                ids, qf, pe, re = far[nearer], qf[nearer], pe[nearer], re[nearer]
+                if ids.size:
+                    before = best_q[ids].copy()
+                    accept(ids, qf, np.full(ids.size, 2.0))  # above any closed-form rank
+                    took = np.any(best_q[ids] != before, axis=1)
+                    att_q[ids[took]], att_p[ids[took]], att_r[ids[took]] = (
+                        qf[took],
+                        pe[took],
+                        re[took],
+                    )
 
     # Seed schedule. Every decision is per target, so a target's result does not
     # depend on the other targets of the batch (nor on chunking over workers):

@@ -58,7 +58,9 @@ def _dh_forward(q: np.ndarray) -> np.ndarray:
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
-    return np.mod(angle + np.pi, 2.0 * np.pi) - np.pi
+    """Angles in (-2 pi, 2 pi) (sums of two angles of at most pi) into [-pi, pi]."""
+    out = np.where(angle > np.pi, angle - 2.0 * np.pi, angle)
+    return np.where(out < -np.pi, out + 2.0 * np.pi, out)
 
 
 class PandaAnalyticIK:

@@ -505,7 +505,8 @@ def _analytic_blocks(
     cq = np.concatenate([p[1] for p in parts])
     branch = np.concatenate([p[2] for p in parts])
     column = np.concatenate([p[3] for p in parts])
-    if at.size:
+    values = np.sort(q7, axis=1)
+    if at.size and np.any(values[:, 1:] == values[:, :-1]):
         order = np.lexsort((column, cq[:, 6], branch, at))
         key = np.column_stack([at[order], branch[order], cq[order, 6]])
         repeat = np.r_[False, np.all(key[1:] == key[:-1], axis=1)]
@@ -719,7 +720,8 @@ def solve(
             new = np.min(np.abs(grid[:, None] - tried[None, :]), axis=1, initial=np.inf) > 1e-12
             grid, tried = grid[new], np.concatenate([tried, grid[new]])
             samples = grid.size
-            # the preferred q7 (and, for one answer each, values around it)
+            # the preferred q7 (and, for one answer each, values around it: the
+            # self-motion may turn back just short of it)
             near = pref[todo, 6:7] + (_NEAR_Q7[1:] if with_pref and one_each else 0.0)
             q7s = np.concatenate(
                 [np.clip(near, lower[6], upper[6]), np.broadcast_to(grid, (todo.size, samples))],
@@ -729,6 +731,10 @@ def solve(
             if at.size == 0:
                 continue
             dist = np.sum((cq - pref[todo[at]]) ** 2, axis=1)
+            import os
+
+            eps_tie = float(os.environ.get("GCM_TIE", "0"))
+            dist = dist + eps_tie * cq[:, 0]
             if one_each:  # per target, the nearest to the preferred configuration
                 order = np.lexsort((dist, at))
             else:

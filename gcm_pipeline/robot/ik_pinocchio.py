@@ -731,10 +731,6 @@ def solve(
             if at.size == 0:
                 continue
             dist = np.sum((cq - pref[todo[at]]) ** 2, axis=1)
-            import os
-
-            eps_tie = float(os.environ.get("GCM_TIE", "0"))
-            dist = dist + eps_tie * cq[:, 0]
             if one_each:  # per target, the nearest to the preferred configuration
                 order = np.lexsort((dist, at))
             else:

@@ -472,7 +472,7 @@ def plan_moves(
             "random_restarts": 0,
             "home_seed": False,
             "diagnose_limits": False,
-            "analytic_samples": 0,  # closed form only at the previous waypoint's joint 7
+            "analytic_samples": 0,  # closed form at and around the last waypoint's joint 7
             **ik_options,
         }
     elif backend == "mink":

@@ -3,10 +3,14 @@ r"""Default IK backend: closed form where the arm has one, then batched Levenber
 **Closed form first.** An arm with the Franka Panda's kinematics (checked at
 load, :mod:`~gcm_pipeline.robot.analytic`) is solved exactly for given values
 of joint 7, all branches at once: at the preferred joint 7 (the first given
-seed's, else the home configuration's), then on grids of 8, 64 and 512 values
-over its range for the targets still unsolved. Each target keeps the solution
-nearest the preferred configuration (where several are wanted, the nearest of
-each branch first, so that they differ). Every solution is checked by forward
+seed's, else the home configuration's), then at values around it and on grids
+of 8, 64 and 512 values over its range for the targets still unsolved. Each
+target keeps the solution nearest the preferred configuration; where that jumps
+far from a given seed (a turn of the self-motion between the sampled values),
+the LM from the seed decides if it lands nearer. Where several solutions are
+wanted, they come first from the seeds (given ones, then the library's nearest
+configurations: the closed-form solution nearest each), then from the grids,
+the nearest of each branch first. Every solution is checked by forward
 kinematics like an LM answer. Targets the closed form leaves unsolved (near a
 singularity, or a joint-7 window narrower than the finest grid) go on to the
 LM with a short schedule (``fallback_library_seeds``,

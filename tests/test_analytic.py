@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+from poses import backward_poses
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import ik_pinocchio
@@ -77,15 +78,11 @@ def test_every_solution_is_exact_inside_the_limits_and_the_original_is_among_the
 def test_out_of_reach_and_backward_poses_have_no_solution(panda: Robot) -> None:
     solver = analytic_solver(panda)
     assert solver is not None
-    rng = np.random.default_rng(3)
     n = 300
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    x = np.cross(-d, rng.normal(size=(n, 3)))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    rot = np.stack([x, np.cross(-d, x), -d], axis=2)  # the hand points back at the shoulder
-    near = panda.shoulder + 0.85 * d
-    far = panda.shoulder + 1.2 * d
+    poses = backward_poses(panda, n, np.random.default_rng(3), 0.85)
+    rot = poses[:, :3, :3]  # the hand points back at the shoulder
+    near = poses[:, :3, 3]
+    far = panda.shoulder - 1.2 * poses[:, :3, 2]
     grid = np.broadcast_to(np.linspace(panda.lower[6], panda.upper[6], 512), (n, 512))
     for pos in (near, far):
         at, _, _, _ = solver.solve(rot, pos, grid, panda.lower, panda.upper)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from poses import backward_poses
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError
@@ -139,14 +140,7 @@ def test_small_seed_budget_where_every_neighbour_failed_ik(robot):
     assert len(rescued) >= 3  # targets only the random restarts reach
     k = len(rescued)
     # within reach, the hand pointing back at the shoulder: every seed fails (no_ik)
-    rng = np.random.default_rng(1)
-    d = rng.normal(size=(k, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    x = np.cross(-d, rng.normal(size=(k, 3)))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    failing = np.tile(np.eye(4), (k, 1, 1))
-    failing[:, :3, 0], failing[:, :3, 1], failing[:, :3, 2] = x, np.cross(-d, x), -d
-    failing[:, :3, 3] = robot.shoulder + 0.85 * d
+    failing = backward_poses(robot, k, np.random.default_rng(1), 0.85)
     far = rescued.copy()
     far[:, :3, 3] += 2.0  # out of reach: rejected before any seed
     eng = ReachabilityEngine(robot, ik_options=lm)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from poses import backward_poses
 
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.robot.ik import IKResult, solve_ik, verify_solutions
@@ -36,20 +37,8 @@ def _assert_verified(robot: Robot, res: IKResult, targets: np.ndarray) -> None:
 
 
 def _unreachable(robot: Robot, n: int, seed: int, lo: float, hi: float) -> np.ndarray:
-    """Poses at ``lo``-``hi`` [m] from the shoulder, approach axis (z) pointing at it.
-
-    Beyond ``max_reach`` they are pre-filtered; inside it, the hand would have
-    to reach back past its own wrist: no configuration exists, the IK must fail.
-    """
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    x = np.cross(-d, rng.normal(size=(n, 3)))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    out = np.tile(np.eye(4), (n, 1, 1))
-    out[:, :3, 0], out[:, :3, 1], out[:, :3, 2] = x, np.cross(-d, x), -d
-    out[:, :3, 3] = robot.shoulder + rng.uniform(lo, hi, size=(n, 1)) * d
-    return out
+    """Backward-pointing poses at ``lo``-``hi`` [m] from the shoulder (no IK exists)."""
+    return backward_poses(robot, n, np.random.default_rng(seed), lo, hi)
 
 
 @pytest.mark.parametrize("name,n", [("panda", 300), ("ur5", 150)])

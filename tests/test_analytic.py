@@ -283,3 +283,47 @@ def test_reporting_flags_and_empty_seeds_do_not_change_the_answer(panda: Robot) 
     assert len(several.candidates.q) == 3 * len(q)
     with pytest.raises(InputError, match="min_solutions"):
         solve_ik(panda, targets[:2], min_solutions=0)
+
+
+def test_reach_proof_never_rejects_a_pose_the_arm_reaches(panda: Robot) -> None:
+    """Poses of random configurations, of configurations at the elbow's limits (the
+    reach's extremes) and targets moved off them by up to the IK tolerances: none is
+    counted unreachable."""
+    solver = analytic_solver(panda)
+    assert solver is not None
+    rng = np.random.default_rng(21)
+    q = panda.random_configurations(20000, rng)
+    q[:4000, 3] = panda.lower[3]
+    q[4000:8000, 3] = panda.upper[3]
+    rot, pos = _pin_pose(panda, q)
+    assert not solver.unreachable(rot, pos, panda.lower, panda.upper).any()
+    # targets off the reached pose by the tolerances: still not counted
+    step = rng.normal(size=(len(q), 3))
+    pos_off = pos + TOL_P * step / np.linalg.norm(step, axis=1, keepdims=True)
+    axis = rng.normal(size=(len(q), 3))
+    axis *= TOL_R / np.linalg.norm(axis, axis=1, keepdims=True)
+    rot_off = np.array([r @ pin.exp3(a) for r, a in zip(rot, axis, strict=True)])
+    out = solver.unreachable(rot_off, pos_off, panda.lower, panda.upper, TOL_P, TOL_R)
+    assert not out.any()
+
+
+def test_reach_proof_catches_far_and_folded_poses_that_no_seed_reaches(panda: Robot) -> None:
+    solver = analytic_solver(panda)
+    assert solver is not None
+    rng = np.random.default_rng(22)
+    q = panda.random_configurations(200, rng)
+    rot, pos = _pin_pose(panda, q)
+    shoulder = np.array([0.0, 0.0, 0.333])
+    ray = pos - shoulder
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    far = shoulder + 1.2 * ray  # beyond the stretched arm
+    # frame 7 at the shoulder: the elbow cannot fold the wrist that close
+    near = shoulder + (rot @ solver.tool_rotation.T) @ solver.tool_translation
+    for p in (far, near):
+        assert solver.unreachable(rot, p, panda.lower, panda.upper, TOL_P, TOL_R).all()
+    # what the proof rejects, an exhaustive iterative search does not reach either
+    targets = np.broadcast_to(np.eye(4), (40, 4, 4)).copy()
+    targets[:, :3, :3] = rot[:40]
+    targets[:20, :3, 3], targets[20:, :3, 3] = far[:20], near[20:40]
+    res = solve_ik(panda, targets, analytic=False, library_seeds=32, random_restarts=16)
+    assert not res.success.any()

@@ -101,6 +101,32 @@ def test_retreat_removes_grasps_and_down_fails(robot, checker, grasps, result):
     assert set(pushed.reason[no_retreat.reachable]) == {"retreat"}
 
 
+def test_moves_proved_beyond_reach_change_no_result(robot, checker, grasps, monkeypatch):
+    """A 30 cm approach puts many pre-grasps beyond the arm's reach: the engine fails
+    them without planning and tries no other solution for them; the result is the
+    one of planning every move and trying every alternative."""
+    import gcm_pipeline.robot.approach as approach_module
+    import gcm_pipeline.robot.engine as engine_module
+
+    long_approach = Move(distance=0.30, direction=(0, 0, -1), frame="grasp", steps=10)
+    proved = approach_module.unreachable_ends(robot, grasps, long_approach, 1e-4, 1e-3)
+    fast = ReachabilityEngine(robot, checker, approach=long_approach, retreat=LIFT).run(grasps)
+    assert np.count_nonzero(proved & (fast.reason == "approach")) >= 10
+    assert not (proved & fast.reachable).any()
+
+    def nothing_proved(robot, poses, *args):
+        return np.zeros(len(poses), dtype=bool)
+
+    monkeypatch.setattr(approach_module, "unreachable_ends", nothing_proved)
+    monkeypatch.setattr(engine_module, "unreachable_ends", nothing_proved)
+    slow = ReachabilityEngine(robot, checker, approach=long_approach, retreat=LIFT).run(grasps)
+    for a, b in zip(fast, slow, strict=True):
+        if a is None:
+            assert b is None
+        else:
+            np.testing.assert_array_equal(a, b)
+
+
 def test_workers_and_chunks_do_not_change_the_result(robot, checker, grasps, result):
     assert available_cores() >= 1
     for kw in ({"workers": 2, "chunk_size": 7}, {"workers": 1, "chunk_size": 1000}):

@@ -115,6 +115,76 @@ class PandaAnalyticIK:
             return None
         return cls(tool_r, tool_t)
 
+    def unreachable(
+        self,
+        rot: np.ndarray,
+        pos: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        position_tolerance: float = 0.0,
+        orientation_tolerance: float = 0.0,
+    ) -> np.ndarray:
+        r"""Targets that no configuration reaches, proved by the elbow's range.
+
+        The distance :math:`|O_6 - O_2|` is a function of :math:`q_4` alone,
+        :math:`\sqrt{k + \rho_4 \cos(q_4 - \gamma)}`, so joint 4's limits bound
+        it to an interval. The target fixes frame 7 (:math:`O_7`, :math:`z_7`);
+        :math:`O_6 = O_7 - a_7 x_6` with :math:`x_6 \perp z_7`, so whatever
+        :math:`q_7` is, :math:`O_6` lies on the circle of radius :math:`a_7`
+        about :math:`O_7` normal to :math:`z_7`, whose distances from
+        :math:`O_2` span an interval. Disjoint intervals: no configuration with
+        joint 4 inside its limits reaches the target.
+
+        A configuration within the tolerances of a target has its :math:`O_7`
+        within ``position_tolerance`` + ``orientation_tolerance`` times the
+        tool's length, and its circle turned by at most
+        ``orientation_tolerance`` (points moved by at most :math:`a_7` times
+        it): the intervals are widened by that much (and by 1e-9 m for
+        round-off), so a target counted here has no IK solution within the
+        tolerances either.
+
+        Args:
+            rot: Target rotations of the grasp frame (N, 3, 3), base frame.
+            pos: Target positions (N, 3) [m].
+            lower: Lower joint limits (7,) [rad].
+            upper: Upper joint limits (7,) [rad].
+            position_tolerance: IK tolerance [m], >= 0.
+            orientation_tolerance: IK tolerance [rad], >= 0 (angle of the
+                rotation between the reached and the target orientation).
+
+        Returns:
+            (N,) bool, True where the target is proved unreachable.
+        """
+        rot = np.asarray(rot, dtype=float).reshape(-1, 3, 3)
+        pos = np.asarray(pos, dtype=float).reshape(-1, 3)
+        # elbow: |O6 - O2|^2 = k + rho4 cos(x), x = q4 - gamma over the limits
+        lo = float(lower[3]) - self._gamma
+        hi = float(upper[3]) - self._gamma
+        turns = np.arange(np.floor(lo / (2 * np.pi)) - 1, np.ceil(hi / (2 * np.pi)) + 2)
+        cos_hi = 1.0 if np.any((2 * np.pi * turns >= lo) & (2 * np.pi * turns <= hi)) else None
+        odd = 2 * np.pi * turns + np.pi
+        cos_lo = -1.0 if np.any((odd >= lo) & (odd <= hi)) else None
+        ends = (np.cos(lo), np.cos(hi))
+        cos_hi = max(ends) if cos_hi is None else cos_hi
+        cos_lo = min(ends) if cos_lo is None else cos_lo
+        near = np.sqrt(max(self._k + self._rho4 * cos_lo, 0.0))
+        far = np.sqrt(self._k + self._rho4 * cos_hi)
+        # the circle of O6 over joint 7
+        r7 = rot @ self.tool_rotation.T
+        v = pos - r7 @ self.tool_translation
+        v[:, 2] -= _D1  # O7 - O2
+        z7 = r7[:, :, 2]
+        along = np.einsum("ij,ij->i", v, z7)
+        across = np.linalg.norm(v - along[:, None] * z7, axis=1)
+        closest = np.hypot(along, np.maximum(across - abs(_A7), 0.0))
+        farthest = np.hypot(along, across + abs(_A7))
+        slack = (
+            position_tolerance
+            + orientation_tolerance * (float(np.linalg.norm(self.tool_translation)) + abs(_A7))
+            + 1e-9
+        )
+        return (farthest < near - slack) | (closest > far + slack)
+
     def solve(
         self,
         rot: np.ndarray,

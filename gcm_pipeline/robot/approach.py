@@ -18,6 +18,9 @@ The joint path is piecewise linear through waypoints (knots) on a grid
 :math:`SUBSTEPS` times finer than the steps :math:`s_k = k / \mathrm{steps}`
 (:func:`plan_moves`), all moves of a batch at once:
 
+0. **Ends beyond reach**: a move whose end no configuration reaches within
+   the IK tolerances fails (``no_ik``) without any IK; this is proved from
+   the Panda's elbow range (:func:`unreachable_ends`), not searched for.
 1. **The end of the move**: one IK of the pose at :math:`s = 1` seeded with
    :math:`q_g` only (a solution elsewhere is of no use), to the IK tolerances
    (verified by Pinocchio FK, strictly inside the limits). Where that fails
@@ -95,6 +98,7 @@ __all__ = [
     "lever_arms",
     "move_poses",
     "plan_moves",
+    "unreachable_ends",
 ]
 
 #: Why a move fails (``MoveResult.reason``), besides the checker's collision reasons.
@@ -403,6 +407,43 @@ def _sample_deviation(
     return dist + radius * rdist
 
 
+def unreachable_ends(
+    robot: Robot,
+    poses: np.ndarray,
+    move: Move,
+    position_tolerance: float,
+    orientation_tolerance: float,
+) -> np.ndarray:
+    """Moves whose end no configuration reaches within the IK tolerances, (N,) bool.
+
+    A proof, not a search (:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.unreachable`:
+    the end lies beyond what the elbow's limits let the arm reach, whatever
+    joint 7 is); such a move fails whatever configuration it starts from. All
+    False for a robot without the Panda's kinematics.
+
+    Args:
+        robot: The robot.
+        poses: Grasp poses (N, 4, 4) in the base frame [m].
+        move: The move.
+        position_tolerance: IK tolerance of the end of the move [m].
+        orientation_tolerance: IK tolerance [rad].
+    """
+    tg = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    solver = analytic_solver(robot)
+    if solver is None or move.distance == 0 or tg.shape[0] == 0:
+        return np.zeros(tg.shape[0], dtype=bool)
+    with np.errstate(invalid="ignore"):
+        out = solver.unreachable(
+            tg[:, :3, :3],
+            tg[:, :3, 3] + move.offsets(tg),
+            robot.lower,
+            robot.upper,
+            position_tolerance,
+            orientation_tolerance,
+        )
+    return out & np.all(np.isfinite(tg), axis=(1, 2))
+
+
 def plan_moves(
     robot: Robot,
     poses: Any,
@@ -522,6 +563,12 @@ def plan_moves(
             failed_at[rows[~conv]] = last
             rows, last = rows[conv], at
         return rows
+
+    # 0. ends proved beyond reach fail at once, whatever the IK would try
+    beyond = np.flatnonzero(
+        ok & unreachable_ends(robot, tg, move, position_tolerance, orientation_tolerance)
+    )
+    fail(beyond, np.full(beyond.size, fine_steps), "no_ik")
 
     # 1. the end of the move: one IK seeded from the grasp's configuration; where it
     # fails, the line is followed from the grasp in pieces of about _REACH

@@ -27,7 +27,11 @@ base frame), in :meth:`ReachabilityEngine.run`:
    solution failed a check, up to ``alternatives`` other distinct solutions
    (more seeds: library, random restarts), each checked as in 2, in seed
    order; the first that passes every check is the answer. Nothing else is
-   re-solved: a target with no IK solution had every seed already.
+   re-solved: a target with no IK solution had every seed already, and one
+   whose solution failed a move that ends beyond reach (proved for the
+   Panda's kinematics, :func:`~gcm_pipeline.robot.approach.unreachable_ends`)
+   fails that move with any solution. Such moves are not planned either: they
+   fail in 2 without IK.
 4. **More branches** (``solutions`` > 1): for every reachable target, further
    IK solutions (more library seeds and random restarts), each differing from
    the ones kept by more than ``solution_separation`` in some joint, checked
@@ -71,7 +75,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
+from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
     IKCandidates,
     IKResult,
@@ -363,6 +367,27 @@ class ReachabilityEngine:
             self._spent(fail, t0)
         return CheckResult(stage == _PASSED, stage, reason.astype(str), q_pre, q_ret)
 
+    def _hopeless(self, targets: np.ndarray, stage: np.ndarray) -> np.ndarray:
+        """Targets (M,) whose solution failed a move that no solution can pass.
+
+        ``stage`` (M,) is how far the target's solution got (:class:`CheckResult`);
+        one that failed the approach (or the retreat) whose end is proved beyond
+        reach (:func:`~gcm_pipeline.robot.approach.unreachable_ends`) fails it
+        whatever the configuration, so no other solution gets further.
+        """
+        out = np.zeros(len(targets), dtype=bool)
+        for move, at in ((self.approach, _AT_APPROACH), (self.retreat, _AT_RETREAT)):
+            rows = np.flatnonzero(stage == at)
+            if move is not None and rows.size:
+                out[rows] = unreachable_ends(
+                    self.robot,
+                    targets[rows],
+                    move,
+                    self.position_tolerance,
+                    self.orientation_tolerance,
+                )
+        return out
+
     def _shared_options(self) -> dict[str, Any]:
         """The IK options that hold for every IK of the engine, not only step 1.
 
@@ -624,7 +649,9 @@ class ReachabilityEngine:
 
         # steps 1-2: the first solution of every target
         failing = record(np.flatnonzero(res.success), res.q[res.success], None)
-        # step 3: other branches of the targets whose solution failed a check
+        # step 3: other branches of the targets whose solution failed a check, except
+        # where the move it failed ends beyond reach (no branch can pass it)
+        failing = failing[~self._hopeless(targets[failing], best[failing])]
         if failing.size and self.alternatives > 0:
             t0 = time.process_time()
             idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])

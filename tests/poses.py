@@ -13,8 +13,9 @@ def backward_poses(
     """Poses (n, 4, 4) at ``lo``-``hi`` [m] from the shoulder (``lo`` if ``hi`` is None),
     approach axis (z) pointing back at it.
 
-    Beyond ``max_reach`` they are pre-filtered; inside it, the hand would have to
-    reach back past its own wrist: no configuration exists, the IK must fail.
+    Beyond ``max_reach`` they are pre-filtered. Inside it, from about 0.6 m (the
+    Panda), the hand would have to reach back past its own wrist: no configuration
+    exists, and the Panda's reach proof says so before any IK (``out_of_reach``).
     """
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)

@@ -296,15 +296,21 @@ def test_reach_proof_never_rejects_a_pose_the_arm_reaches(panda: Robot) -> None:
     q[:4000, 3] = panda.lower[3]
     q[4000:8000, 3] = panda.upper[3]
     rot, pos = _pin_pose(panda, q)
-    assert not solver.unreachable(rot, pos, panda.lower, panda.upper).any()
+    elbow = (panda.lower[3], panda.upper[3])
+    assert not solver.unreachable(rot, pos, elbow_limits=elbow).any()
+    assert not solver.unreachable(rot, pos).any()
+    # any elbow angle, limits or not: the arm's reach itself
+    q_any = q[:2000].copy()
+    q_any[:, 3] = rng.uniform(-np.pi, np.pi, size=2000)
+    assert not solver.unreachable(*_pin_pose(panda, q_any)).any()
     # targets off the reached pose by the tolerances: still not counted
     step = rng.normal(size=(len(q), 3))
     pos_off = pos + TOL_P * step / np.linalg.norm(step, axis=1, keepdims=True)
     axis = rng.normal(size=(len(q), 3))
     axis *= TOL_R / np.linalg.norm(axis, axis=1, keepdims=True)
     rot_off = np.array([r @ pin.exp3(a) for r, a in zip(rot, axis, strict=True)])
-    out = solver.unreachable(rot_off, pos_off, panda.lower, panda.upper, TOL_P, TOL_R)
-    assert not out.any()
+    for limits in (elbow, None):
+        assert not solver.unreachable(rot_off, pos_off, TOL_P, TOL_R, limits).any()
 
 
 def test_reach_proof_catches_far_and_folded_poses_that_no_seed_reaches(panda: Robot) -> None:
@@ -319,8 +325,9 @@ def test_reach_proof_catches_far_and_folded_poses_that_no_seed_reaches(panda: Ro
     far = shoulder + 1.2 * ray  # beyond the stretched arm
     # frame 7 at the shoulder: the elbow cannot fold the wrist that close
     near = shoulder + (rot @ solver.tool_rotation.T) @ solver.tool_translation
-    for p in (far, near):
-        assert solver.unreachable(rot, p, panda.lower, panda.upper, TOL_P, TOL_R).all()
+    elbow = (panda.lower[3], panda.upper[3])
+    for p, limits in ((far, None), (near, elbow)):
+        assert solver.unreachable(rot, p, TOL_P, TOL_R, limits).all()
     # what the proof rejects, an exhaustive iterative search does not reach either
     targets = np.broadcast_to(np.eye(4), (40, 4, 4)).copy()
     targets[:, :3, :3] = rot[:40]

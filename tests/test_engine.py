@@ -12,7 +12,7 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import Move, move_poses
-from gcm_pipeline.robot.engine import ReachabilityEngine, available_cores
+from gcm_pipeline.robot.engine import _RAN_EVERY_SEED, ReachabilityEngine, available_cores
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.candidates import generate_candidates
@@ -165,8 +165,12 @@ def test_small_seed_budget_where_every_neighbour_failed_ik(robot):
     rescued = targets[with_restarts.success & ~without.success]
     assert len(rescued) >= 3  # targets only the random restarts reach
     k = len(rescued)
-    # within reach, the hand pointing back at the shoulder: every seed fails (no_ik)
-    failing = backward_poses(robot, k, np.random.default_rng(1), 0.85)
+    # 0.5 m from the shoulder, the hand pointing back at it: not proved out of reach,
+    # but some are reached by no seed (joint_limits)
+    behind = backward_poses(robot, 400, np.random.default_rng(1), 0.5)
+    tried = solve_ik(robot, behind, **lm)
+    failing = behind[np.isin(tried.reason, _RAN_EVERY_SEED)][:k]
+    assert len(failing) == k
     far = rescued.copy()
     far[:, :3, 3] += 2.0  # out of reach: rejected before any seed
     eng = ReachabilityEngine(robot, ik_options=lm)

@@ -119,21 +119,21 @@ class PandaAnalyticIK:
         self,
         rot: np.ndarray,
         pos: np.ndarray,
-        lower: np.ndarray,
-        upper: np.ndarray,
         position_tolerance: float = 0.0,
         orientation_tolerance: float = 0.0,
+        elbow_limits: tuple[float, float] | None = None,
     ) -> np.ndarray:
         r"""Targets that no configuration reaches, proved by the elbow's range.
 
         The distance :math:`|O_6 - O_2|` is a function of :math:`q_4` alone,
-        :math:`\sqrt{k + \rho_4 \cos(q_4 - \gamma)}`, so joint 4's limits bound
-        it to an interval. The target fixes frame 7 (:math:`O_7`, :math:`z_7`);
-        :math:`O_6 = O_7 - a_7 x_6` with :math:`x_6 \perp z_7`, so whatever
-        :math:`q_7` is, :math:`O_6` lies on the circle of radius :math:`a_7`
-        about :math:`O_7` normal to :math:`z_7`, whose distances from
-        :math:`O_2` span an interval. Disjoint intervals: no configuration with
-        joint 4 inside its limits reaches the target.
+        :math:`\sqrt{k + \rho_4 \cos(q_4 - \gamma)}`, so it lies in an interval
+        (over every angle, or over joint 4's limits). The target fixes frame 7
+        (:math:`O_7`, :math:`z_7`); :math:`O_6 = O_7 - a_7 x_6` with
+        :math:`x_6 \perp z_7`, so whatever :math:`q_7` is, :math:`O_6` lies on
+        the circle of radius :math:`a_7` about :math:`O_7` normal to
+        :math:`z_7`, whose distances from :math:`O_2` span an interval.
+        Disjoint intervals: no configuration reaches the target (with
+        ``elbow_limits``: none with joint 4 inside them).
 
         A configuration within the tolerances of a target has its :math:`O_7`
         within ``position_tolerance`` + ``orientation_tolerance`` times the
@@ -146,11 +146,11 @@ class PandaAnalyticIK:
         Args:
             rot: Target rotations of the grasp frame (N, 3, 3), base frame.
             pos: Target positions (N, 3) [m].
-            lower: Lower joint limits (7,) [rad].
-            upper: Upper joint limits (7,) [rad].
             position_tolerance: IK tolerance [m], >= 0.
             orientation_tolerance: IK tolerance [rad], >= 0 (angle of the
                 rotation between the reached and the target orientation).
+            elbow_limits: ``(lower, upper)`` of joint 4 [rad], or None for
+                any elbow angle (the arm's reach itself).
 
         Returns:
             (N,) bool, True where the target is proved unreachable.
@@ -158,8 +158,8 @@ class PandaAnalyticIK:
         rot = np.asarray(rot, dtype=float).reshape(-1, 3, 3)
         pos = np.asarray(pos, dtype=float).reshape(-1, 3)
         # elbow: |O6 - O2|^2 = k + rho4 cos(x), x = q4 - gamma over the limits
-        lo = float(lower[3]) - self._gamma
-        hi = float(upper[3]) - self._gamma
+        lo, hi = (-np.pi, np.pi) if elbow_limits is None else elbow_limits
+        lo, hi = float(lo) - self._gamma, float(hi) - self._gamma
         turns = np.arange(np.floor(lo / (2 * np.pi)) - 1, np.ceil(hi / (2 * np.pi)) + 2)
         cos_hi = 1.0 if np.any((2 * np.pi * turns >= lo) & (2 * np.pi * turns <= hi)) else None
         odd = 2 * np.pi * turns + np.pi

@@ -436,10 +436,9 @@ def unreachable_ends(
         out = solver.unreachable(
             tg[:, :3, :3],
             tg[:, :3, 3] + move.offsets(tg),
-            robot.lower,
-            robot.upper,
             position_tolerance,
             orientation_tolerance,
+            (robot.lower[3], robot.upper[3]),
         )
     return out & np.all(np.isfinite(tg), axis=(1, 2))
 

@@ -6,12 +6,12 @@ base frame), in :meth:`ReachabilityEngine.run`:
 1. **IK** (:func:`~gcm_pipeline.robot.ik.solve_ik`): one solution per target,
    batched; seeds are the given warm starts, the seed library, home and random
    restarts (for a row whose neighbours all failed IK after their full seed
-   schedule, no random restarts and 2 library seeds: on the dense bottle
-   manifold of ``bench_pipeline.py`` none of its 5,940 such rows is reached by
-   any seed); targets beyond the arm's reach are rejected first
-   (``out_of_reach``), the others get ``no_ik`` or ``joint_limits`` when no seed
-   converges. Every solution is **verified** by Pinocchio's forward kinematics
-   and lies strictly inside the joint limits.
+   schedule, no random restarts and 2 library seeds); targets beyond the arm's
+   reach are rejected first (``out_of_reach``: farther than the arm reaches,
+   or for the Panda's kinematics proved by the elbow's range), the others get
+   ``no_ik`` or ``joint_limits`` when no seed converges. Every solution is
+   **verified** by Pinocchio's forward kinematics and lies strictly inside the
+   joint limits.
 2. **Check** each solution (:meth:`ReachabilityEngine.check`), in this order,
    stopping at the first failure:
 

@@ -12,7 +12,10 @@ frame within ``position_tolerance`` [m] and ``orientation_tolerance`` [rad].
 An IK that fails is not an error: its row has ``success=False`` and a reason:
 
 =========================== ==================================================
-``out_of_reach``            farther from the shoulder than the arm reaches
+``out_of_reach``            farther from the shoulder than the arm reaches, or
+                            (Panda kinematics) no elbow angle puts the wrist at
+                            the distance from the shoulder the target asks
+                            (:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.unreachable`)
 ``joint_limits``            reached only with joints outside their limits
 ``no_ik``                   no seed converged
 ``verification_failed``     the backend converged but Pinocchio disagrees
@@ -41,7 +44,7 @@ import numpy as np
 
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.robot.ik_pinocchio import rotation_angle
+from gcm_pipeline.robot.ik_pinocchio import analytic_solver, rotation_angle
 from gcm_pipeline.robot.model import Robot, load_robot
 
 __all__ = [
@@ -442,9 +445,13 @@ def solve_ik(
     reason = np.full(n, "", dtype=object)
     cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
-    # cheap pre-filter: beyond the arm's reach from the shoulder
+    # cheap pre-filter: beyond the arm's reach from the shoulder, and for the Panda's
+    # kinematics where no elbow angle puts the wrist at the distance the target asks
     dist = np.linalg.norm(tgt[:, :3, 3] - robot.shoulder, axis=1)
     far = dist > robot.max_reach + tol_p
+    solver = analytic_solver(robot)
+    if solver is not None and n:
+        far |= solver.unreachable(tgt[:, :3, :3], tgt[:, :3, 3], tol_p, tol_r)
     reason[far] = "out_of_reach"
 
     phases: list[np.ndarray]

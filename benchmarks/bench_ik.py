@@ -9,8 +9,9 @@ Target sets (fixed seed):
   shoulder (the reach pre-filter rejects them before any IK runs);
 * ``unreachable_near``: 500 poses at 0.75-0.94 m from the shoulder, inside the
   arm's reach (0.949 m for the Panda) but with the approach axis pointing back
-  at the shoulder (the hand would have to reach back past its own wrist), so
-  the IK itself runs and must fail.
+  at the shoulder (the hand would have to reach back past its own wrist): the
+  Panda's reach proof (the wrist beyond the elbow's range whatever joint 7 is)
+  rejects them before any seed; an arm without it runs the IK, which must fail.
 
 For each backend: recall on ``reachable``; false positives = successes on the
 unreachable sets plus successes that fail an independent re-check (a fresh
@@ -242,7 +243,8 @@ def main() -> None:
         print("TRAC-IK: not installed (pip install '.[bench]')")
     print(
         f"unreachable sets: pinocchio {results[0]['rate_unreachable']:.0f}/s (pre-filter), "
-        f"{results[0]['rate_unreachable_near']:.0f}/s (IK runs and fails)"
+        f"{results[0]['rate_unreachable_near']:.0f}/s (inside max_reach: "
+        f"{results[0]['reasons_unreachable_near']})"
     )
     print(
         f"manipulability of 100,000 configurations: {manip_wall:.3f} s (Yoshikawa incl. "

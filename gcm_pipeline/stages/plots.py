@@ -33,6 +33,7 @@ PLOT_FILES = ("manifold.png", "manipulability_hist.png", "counts.png")
 #: Colour [r, g, b] in [0, 1] of unreachable grasps by ``reason``; other reasons
 #: take the next colour of a small extra palette in sorted order.
 REASON_COLORS: dict[str, tuple[float, float, float]] = {
+    "out_of_reach": (0.80, 0.80, 0.80),
     "no_ik": (0.62, 0.62, 0.62),
     "joint_limits": (0.36, 0.36, 0.36),
     "collision_self": (1.00, 0.50, 0.05),

@@ -12,7 +12,7 @@ from gcm_pipeline.robot import ik_pinocchio
 from gcm_pipeline.robot.analytic import PandaAnalyticIK
 from gcm_pipeline.robot.approach import _end_of_move
 from gcm_pipeline.robot.chain import KinematicChain
-from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, analytic_solver
 from gcm_pipeline.robot.model import Robot, load_robot
 
@@ -334,3 +334,30 @@ def test_reach_proof_catches_far_and_folded_poses_that_no_seed_reaches(panda: Ro
     targets[:20, :3, 3], targets[20:, :3, 3] = far[:20], near[20:40]
     res = solve_ik(panda, targets, analytic=False, library_seeds=32, random_restarts=16)
     assert not res.success.any()
+
+
+def test_reach_proof_allows_for_rotations_orthonormal_only_to_1e6(panda: Robot) -> None:
+    """check_targets accepts rotations with |R^T R - I| up to 1e-6: a configuration
+    that reaches such a target within the tolerances is not ruled out by the proof,
+    however small the orientation tolerance (a case found by review)."""
+    solver = analytic_solver(panda)
+    assert solver is not None
+    q = np.array([1.6280484756265108, 1.0565746597690184, -0.1300437666720563,
+                  -0.46700241680492438, -6.1123488380520348e-08, 1.8013213083624451,
+                  -0.40036142126962676])  # fmt: skip
+    target = np.array(
+        [
+            [-0.9300912460116731, 0.3503456618307057, 0.11040403064220272, 0.0048364334499967935],
+            [0.36732738430370526, 0.8879106228985715, 0.27691993858825525, 0.8377622368507478],
+            [-0.0010106411894930246, 0.29811628520272127, -0.9545289622651606, 0.3419384590035645],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    tol_p, tol_r = 1e-4, 1e-8
+    pe, re, inside = verify_solutions(panda, q[None], target[None])
+    assert pe[0] <= tol_p and re[0] <= tol_r and inside[0]  # reached, as the IK counts it
+    assert not solver.unreachable(target[None, :3, :3], target[None, :3, 3], tol_p, tol_r)[0]
+    res = solve_ik(panda, target[None], position_tolerance=tol_p, orientation_tolerance=tol_r)
+    assert res.reason[0] != "out_of_reach"
+    with pytest.raises(ValueError, match="elbow_limits"):
+        solver.unreachable(target[None, :3, :3], target[None, :3, 3], elbow_limits=(-1.0, -2.0))

@@ -36,6 +36,10 @@ __all__ = ["PandaAnalyticIK"]
 # Craig's modified DH parameters of the Panda arm (Franka's table) [m]
 _D1, _D3, _D5 = 0.333, 0.316, 0.384
 _A4, _A5, _A7 = 0.0825, -0.0825, 0.088
+#: How far a target rotation that check_targets accepts (|R^T R - I| <= 1e-6 per
+#: element, so within 3e-6 of a rotation) may turn a vector, relative to its length,
+#: with a margin (the reach proof's allowance).
+_SKEW = 1e-5
 
 
 def _dh_forward(q: np.ndarray) -> np.ndarray:
@@ -139,9 +143,13 @@ class PandaAnalyticIK:
         within ``position_tolerance`` + ``orientation_tolerance`` times the
         tool's length, and its circle turned by at most
         ``orientation_tolerance`` (points moved by at most :math:`a_7` times
-        it): the intervals are widened by that much (and by 1e-9 m for
-        round-off), so a target counted here has no IK solution within the
-        tolerances either.
+        it): the intervals are widened by that much, so a target counted here
+        has no IK solution within the tolerances either. A target rotation may
+        be orthonormal only to about 1e-6 (what
+        :func:`~gcm_pipeline.robot.ik.check_targets` accepts): that moves
+        frame 7 and its circle by up to ``_SKEW`` times the lengths involved
+        (the tool, :math:`a_7` and :math:`|O_7 - O_2|`), which widens the
+        intervals too, with 1e-9 m for round-off.
 
         Args:
             rot: Target rotations of the grasp frame (N, 3, 3), base frame.
@@ -159,6 +167,10 @@ class PandaAnalyticIK:
         pos = np.asarray(pos, dtype=float).reshape(-1, 3)
         # elbow: |O6 - O2|^2 = k + rho4 cos(x), x = q4 - gamma over the limits
         lo, hi = (-np.pi, np.pi) if elbow_limits is None else elbow_limits
+        if not lo <= hi:
+            raise ValueError(
+                f"elbow_limits must be (lower, upper) with lower <= upper, got {elbow_limits!r}"
+            )
         lo, hi = float(lo) - self._gamma, float(hi) - self._gamma
         turns = np.arange(np.floor(lo / (2 * np.pi)) - 1, np.ceil(hi / (2 * np.pi)) + 2)
         cos_hi = 1.0 if np.any((2 * np.pi * turns >= lo) & (2 * np.pi * turns <= hi)) else None
@@ -178,9 +190,11 @@ class PandaAnalyticIK:
         across = np.linalg.norm(v - along[:, None] * z7, axis=1)
         closest = np.hypot(along, np.maximum(across - abs(_A7), 0.0))
         farthest = np.hypot(along, across + abs(_A7))
+        lever = float(np.linalg.norm(self.tool_translation)) + abs(_A7)
         slack = (
             position_tolerance
-            + orientation_tolerance * (float(np.linalg.norm(self.tool_translation)) + abs(_A7))
+            + orientation_tolerance * lever
+            + _SKEW * (lever + np.linalg.norm(v, axis=1))
             + 1e-9
         )
         return (farthest < near - slack) | (closest > far + slack)

@@ -521,6 +521,10 @@ def _plural(n: int, word: str) -> str:
     return f"{n:,} {word}" + ("" if n == 1 else "s")
 
 
+def _kept(out: Path) -> None:
+    print(f"finished placements are kept in {out}; run the same command to resume", file=sys.stderr)
+
+
 def _cmd_study(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -544,11 +548,13 @@ def _cmd_study(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 best_run=not args.no_best,
             )
+    except Exception as exc:
+        if interrupt_cause(exc) is None:
+            raise
+        _kept(args.out)
+        raise
     except KeyboardInterrupt:  # Ctrl-C, SIGTERM, SIGHUP: main() prints and sets the status
-        print(
-            f"finished placements are kept in {args.out}; run the same command to resume",
-            file=sys.stderr,
-        )
+        _kept(args.out)
         raise
     if args.quiet:
         print(result.out_dir)
@@ -700,18 +706,46 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {message}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt as exc:
-        signum = exc.signum if isinstance(exc, Terminated) else _terminated_by
-        if signum is not None:
-            print(f"interrupted ({signal.Signals(signum).name})", file=sys.stderr)
-            return 128 + signum
-        print("interrupted", file=sys.stderr)
-        return 130
+        return _interrupted(exc)
     except BrokenPipeError:
         # the reader left (e.g. `| head`): no traceback, and none at exit either
         with contextlib.suppress(OSError, ValueError):
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
         return 128 + signal.SIGPIPE
+    except Exception as exc:
+        interrupt = interrupt_cause(exc)
+        if interrupt is None:
+            raise
+        return _interrupted(interrupt)
+
+
+def interrupt_cause(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C (or :class:`Terminated`) behind an exception, if any.
+
+    A library may turn an interrupt that arrives inside its own code into an
+    error of its own (pydantic does while it serialises a config: a
+    ``PydanticSerializationError`` caused by the ``KeyboardInterrupt``); such
+    an error is an interrupt all the same.
+    """
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return cur
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return None
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    """One line for an interrupt, and its exit status (130, or 128 + the signal)."""
+    signum = exc.signum if isinstance(exc, Terminated) else _terminated_by
+    if signum is not None:
+        print(f"interrupted ({signal.Signals(signum).name})", file=sys.stderr)
+        return 128 + signum
+    print("interrupted", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":

@@ -120,3 +120,45 @@ def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
     assert capsys.readouterr().err.strip().splitlines() == ["interrupted (SIGHUP)"]
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGHUP) == before  # handlers restored
+
+
+def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, monkeypatch):
+    """pydantic turns a Ctrl-C that arrives while it serialises a config into an error
+    of its own, caused by the KeyboardInterrupt: ``gcm`` still says ``interrupted``
+    (status 130), keeps the previous run, and ``gcm study`` says what it kept."""
+    from pydantic import BaseModel, field_serializer
+
+    from gcm_pipeline import io
+    from gcm_pipeline.cli import main
+    from gcm_pipeline.study import Study
+
+    class Slow(BaseModel):
+        x: int = 0
+
+        @field_serializer("x")
+        def _ser(self, value: int) -> int:
+            raise KeyboardInterrupt  # the signal lands inside the serialiser
+
+    def wrapped(*args, **kwargs):
+        Slow().model_dump()  # raises pydantic's error, caused by the interrupt
+
+    out = tmp_path / "run"
+    quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
+    assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    monkeypatch.setattr(io, "write_run_files", wrapped)
+    assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+    monkeypatch.setattr(Study, "run", lambda self, *a, **k: wrapped())
+    study = ROOT / "configs" / "studies" / "bottle_placement.yaml"
+    assert main(["study", str(study), "--out", str(tmp_path / "study"), "-q"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "interrupted" and "finished placements are kept" in err[0]
+    # an error that is not an interrupt still shows as one
+    monkeypatch.setattr(io, "write_run_files", lambda *a, **k: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        main(["run", str(FLAT), "--out", str(out), "--force", *quick])

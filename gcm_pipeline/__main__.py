@@ -1,10 +1,30 @@
-"""``python -m gcm_pipeline``: the ``gcm`` command line."""
+"""``python -m gcm_pipeline`` and the ``gcm`` command.
+
+The signal handlers come first, before the command line (and NumPy,
+Pinocchio, ...) load, so that a Ctrl-C, SIGTERM or SIGHUP at any moment ends
+``gcm`` with its one line (``interrupted``) and status (130, 128 + signal);
+once the command has returned they are ignored while the process exits.
+"""
 
 from __future__ import annotations
 
 import sys
 
-from gcm_pipeline.cli import main
+from gcm_pipeline import signals
+
+
+def entry() -> int:
+    """Run the ``gcm`` command line (``sys.argv``); returns the exit status."""
+    try:
+        signals.install()
+        from gcm_pipeline.cli import main
+
+        return main()
+    except KeyboardInterrupt as exc:  # before main() handles them (while it loads)
+        return signals.report(exc)
+    finally:
+        signals.ignore()
+
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry())

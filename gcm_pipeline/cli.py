@@ -35,6 +35,7 @@ from typing import Any
 
 import yaml
 
+from gcm_pipeline import signals
 from gcm_pipeline.errors import GcmError
 
 __all__ = ["build_parser", "main"]
@@ -329,7 +330,8 @@ def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: b
             try:
                 while True:
                     time.sleep(0.5)
-            except KeyboardInterrupt:
+            except KeyboardInterrupt:  # the way to close the viewer: not an interruption
+                signals.clear()
                 print()
         elif viewer.server_pid is not None:
             print(
@@ -549,7 +551,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
                 best_run=not args.no_best,
             )
     except Exception as exc:
-        if interrupt_cause(exc) is None:
+        if signals.interrupt_cause(exc) is None:
             raise
         _kept(args.out)
         raise
@@ -624,52 +626,39 @@ _COMMANDS = {
 }
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM or SIGHUP, raised in the main thread so it unwinds like Ctrl-C.
-
-    Attributes:
-        signum: The signal number.
-    """
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-#: The SIGTERM / SIGHUP that interrupted the command, if any: a library that
-#: turns a KeyboardInterrupt into a new one (Ray does, inside ray.get and
-#: ray.wait) loses the :class:`Terminated` and its signal number.
-_terminated_by: int | None = None
-
-
-def _raise_terminated(signum: int, frame: Any) -> None:
-    global _terminated_by
-    _terminated_by = signum
-    raise Terminated(signum)
-
-
 @contextlib.contextmanager
 def interrupt_on_termination() -> Iterator[None]:
-    """Handle SIGTERM and SIGHUP like SIGINT while the block runs.
+    """Handle Ctrl-C, SIGTERM and SIGHUP with :func:`gcm_pipeline.signals.raise_interrupt`.
 
-    Each raises :class:`Terminated` (a :class:`KeyboardInterrupt`) in the main
-    thread, so every ``finally`` and ``except BaseException`` runs: a run
-    directory being written is removed, as on Ctrl-C. The previous handlers
-    come back afterwards. Outside the main thread this does nothing.
+    Each raises :class:`~gcm_pipeline.signals.Terminated` (a :class:`KeyboardInterrupt`; plain
+    ``KeyboardInterrupt`` for Ctrl-C) in the main thread, so every ``finally``
+    and ``except BaseException`` runs: a run directory being written is
+    removed. The signal is also recorded, so that an interrupt Python drops
+    (raised inside a finaliser; it says nothing about it then) is raised again
+    where a result becomes final (:func:`gcm_pipeline.signals.check`). The
+    previous handlers come back afterwards. Outside the main thread the
+    signals are not handled.
     """
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    names = ("SIGTERM", "SIGHUP")
-    sigs = [getattr(signal, n) for n in names if hasattr(signal, n)]
-    previous = {sig: signal.signal(sig, _raise_terminated) for sig in sigs}
+    previous = signals.install()
+    hook = sys.unraisablehook
+    sys.unraisablehook = _quiet_dropped_interrupts(hook)
     try:
         yield
     finally:
+        sys.unraisablehook = hook
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def _quiet_dropped_interrupts(hook: Any) -> Any:
+    """An unraisable hook that is silent about a dropped interrupt (it is recorded)."""
+
+    def quiet(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return
+        hook(unraisable)
+
+    return quiet
 
 
 #: Longest error line the CLI prints [characters].
@@ -687,15 +676,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         the signal number on SIGTERM (143) or SIGHUP (129), 141 when the
         reader of the output goes away (``gcm validate | head -1``).
     """
-    global _terminated_by
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose, args.quiet)
-    _terminated_by = None
+    signals.clear()
     try:
         with interrupt_on_termination():
             status = _COMMANDS[args.command](args)
             sys.stdout.flush()  # a closed pipe shows here, inside the handlers
+            signals.check()  # an interrupt Python dropped on the way is not ignored
             return status
     except GcmError as exc:
         if args.debug:
@@ -714,38 +703,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             os.dup2(devnull, sys.stdout.fileno())
         return 128 + signal.SIGPIPE
     except Exception as exc:
-        interrupt = interrupt_cause(exc)
+        interrupt = signals.interrupt_cause(exc)
         if interrupt is None:
             raise
         return _interrupted(interrupt)
 
 
-def interrupt_cause(exc: BaseException) -> KeyboardInterrupt | None:
-    """The Ctrl-C (or :class:`Terminated`) behind an exception, if any.
-
-    A library may turn an interrupt that arrives inside its own code into an
-    error of its own (pydantic does while it serialises a config: a
-    ``PydanticSerializationError`` caused by the ``KeyboardInterrupt``); such
-    an error is an interrupt all the same.
-    """
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:
-        if isinstance(cur, KeyboardInterrupt):
-            return cur
-        seen.add(id(cur))
-        cur = cur.__cause__ or cur.__context__
-    return None
-
-
 def _interrupted(exc: KeyboardInterrupt) -> int:
     """One line for an interrupt, and its exit status (130, or 128 + the signal)."""
-    signum = exc.signum if isinstance(exc, Terminated) else _terminated_by
-    if signum is not None:
-        print(f"interrupted ({signal.Signals(signum).name})", file=sys.stderr)
-        return 128 + signum
-    print("interrupted", file=sys.stderr)
-    return 130
+    return signals.report(exc)
 
 
 if __name__ == "__main__":

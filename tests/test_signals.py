@@ -162,3 +162,81 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     monkeypatch.setattr(io, "write_run_files", lambda *a, **k: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         main(["run", str(FLAT), "--out", str(out), "--force", *quick])
+
+
+def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeypatch):
+    """An interrupt raised inside a finaliser is dropped by Python ("Exception
+    ignored"): the run would go on and replace the previous one. The handler recorded
+    it, so the swap does not happen: one line, status 130, the previous run kept."""
+    from gcm_pipeline import io, signals
+    from gcm_pipeline.cli import main
+
+    class Finalised:
+        def __del__(self) -> None:
+            signals.raise_interrupt(signal.SIGINT)  # as if Ctrl-C landed in here
+
+    written = io.write_run_files
+
+    def dropped(*args, **kwargs):
+        Finalised()  # collected at once: the interrupt is raised and dropped
+        return written(*args, **kwargs)
+
+    out = tmp_path / "run"
+    quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
+    assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    monkeypatch.setattr(io, "write_run_files", dropped)
+    assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # the next command starts afresh
+    monkeypatch.setattr(io, "write_run_files", written)
+    assert main(["run", str(FLAT), "--out", str(out), "--force", "-q", *quick]) == 0
+
+
+def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypatch, capsys):
+    """``python -m gcm_pipeline`` (and ``gcm``) handle the signals before the command
+    line loads: an interrupt then is the same one line and status; after the command
+    they are ignored while the process exits."""
+    import types
+
+    from gcm_pipeline import __main__ as entry_point
+
+    class Loading(types.ModuleType):
+        def __getattr__(self, name: str):
+            os.kill(os.getpid(), signal.SIGTERM)  # arrives while the CLI loads
+            time.sleep(5)
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        monkeypatch.setitem(sys.modules, "gcm_pipeline.cli", Loading("gcm_pipeline.cli"))
+        assert entry_point.entry() == 128 + signal.SIGTERM
+        assert capsys.readouterr().err.strip().splitlines() == ["interrupted (SIGTERM)"]
+        for s in saved:
+            assert signal.getsignal(s) == signal.SIG_IGN
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs /proc (Linux)")
+def test_sigterm_at_once_is_one_line(tmp_path):
+    """A SIGTERM as soon as the interpreter has loaded this project's entry point."""
+    probe = (
+        "import os, signal, sys; sys.argv = ['gcm', 'run', sys.argv[1], '--out', sys.argv[2]]; "
+        "from gcm_pipeline.__main__ import entry; "
+        "import gcm_pipeline.signals as s; orig = s.install; "
+        "s.install = lambda *a: (orig(*a), os.kill(os.getpid(), signal.SIGTERM))[0]; "
+        "sys.exit(entry())"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe, str(FLAT), str(tmp_path / "run")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 128 + signal.SIGTERM, proc.stderr
+    assert proc.stderr.strip().splitlines() == ["interrupted (SIGTERM)"]
+    assert list(tmp_path.iterdir()) == []

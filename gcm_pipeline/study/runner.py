@@ -147,7 +147,7 @@ def _connect(
 
 @contextlib.contextmanager
 def _caller_signal_handlers() -> Iterator[None]:
-    """Keep the caller's SIGTERM, SIGHUP and SIGINT handlers across ``ray.init``.
+    """Keep the caller's SIGTERM, SIGHUP and SIGINT handlers across ``ray.init``/``shutdown``.
 
     ``ray.init`` sets its own SIGTERM handler (exit at once with status 15,
     Ray's core worker printing a stack), which would replace ``gcm study``'s
@@ -340,7 +340,10 @@ class RayExecutor(Executor):
             self._kill(actor)
         self.actors = []
         if self.started and ray.is_initialized():
-            ray.shutdown()
+            # Ray's shutdown leaves its own native SIGTERM handler behind (the process
+            # would die silently on it): the caller's handlers are put back
+            with _caller_signal_handlers():
+                ray.shutdown()
         self.started = False
 
 

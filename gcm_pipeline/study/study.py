@@ -32,7 +32,7 @@ from typing import Any, Literal
 import numpy as np
 from tqdm.auto import tqdm
 
-from gcm_pipeline import io
+from gcm_pipeline import io, signals
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError
 from gcm_pipeline.limits import MAX_STUDY_PLACEMENTS
@@ -271,9 +271,10 @@ class Study:
         try:
             store.create({"key": plan.key(), "created": time.time(), **plan.to_dict()})
             result = run.execute(resumed=resumed, t_start=t_start, best_run=best_run)
-        except KeyboardInterrupt:
-            executor.close()
-            run.finish(complete=False, t_start=t_start)
+        except BaseException as exc:
+            if signals.interrupt_cause(exc) is not None:  # also one a library wrapped
+                executor.close()
+                run.finish(complete=False, t_start=t_start)
             raise
         finally:
             executor.close()
@@ -338,6 +339,7 @@ class _Run:
 
     def _jobs(self, todo: list[Placement]) -> Iterator[dict[str, Any]]:
         for p in todo:
+            signals.check()  # an interrupt dropped on the way stops the study here
             row = self._row_base(p)
             try:
                 cfg = self.plan.resolve(p.overrides, where=f"placement {p.id}")

@@ -1,0 +1,118 @@
+"""The interrupts the ``gcm`` command received (Ctrl-C, SIGTERM, SIGHUP).
+
+``gcm`` handles these signals by raising :class:`KeyboardInterrupt` (or
+:class:`Terminated`) in the main thread, so that every clean-up runs. Python
+drops an exception raised while it runs a finaliser or a weak-reference
+callback ("Exception ignored in ..."): an interrupt landing there would be
+lost and the command would go on, even replace a previous run. So the
+handlers also *record* the signal, and the places that make a result final
+call :func:`check`, which raises the interrupt again if one was recorded.
+Outside ``gcm`` (the Python API) nothing is recorded and :func:`check` does
+nothing.
+
+This module imports nothing heavy: ``python -m gcm_pipeline`` installs the
+handlers before anything else loads (:func:`install`).
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from typing import Any
+
+__all__ = ["Terminated", "check", "clear", "install", "interrupt_cause", "received", "report"]
+
+#: The signals ``gcm`` turns into an interrupt of the main thread.
+NAMES = ("SIGINT", "SIGTERM", "SIGHUP")
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread so it unwinds like Ctrl-C.
+
+    Attributes:
+        signum: The signal number.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+_received: int | None = None
+
+
+def received() -> int | None:
+    """The signal number of the last interrupt recorded since :func:`clear`, or None."""
+    return _received
+
+
+def clear() -> None:
+    """Forget the recorded interrupt (at the start of a command)."""
+    global _received
+    _received = None
+
+
+def _interrupt(signum: int) -> KeyboardInterrupt:
+    return KeyboardInterrupt() if signum == signal.SIGINT else Terminated(signum)
+
+
+def raise_interrupt(signum: int, frame: Any = None) -> None:
+    """Signal handler: record the signal and raise its interrupt."""
+    global _received
+    _received = signum
+    raise _interrupt(signum)
+
+
+def check() -> None:
+    """Raise the recorded interrupt again (it may have been lost); nothing if none."""
+    if _received is not None:
+        raise _interrupt(_received)
+
+
+def install(signums: tuple[int, ...] | None = None) -> dict[int, Any]:
+    """Handle the signals with :func:`raise_interrupt`; returns the previous handlers.
+
+    Outside the main thread this does nothing (and returns ``{}``).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    sigs = signums or tuple(getattr(signal, n) for n in NAMES if hasattr(signal, n))
+    return {sig: signal.signal(sig, raise_interrupt) for sig in sigs}
+
+
+def ignore() -> None:
+    """Ignore the signals from now on (the command is done; the process exits)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for n in NAMES:
+        if hasattr(signal, n):
+            signal.signal(getattr(signal, n), signal.SIG_IGN)
+
+
+def report(exc: KeyboardInterrupt) -> int:
+    """Print the one line of an interrupt; return its exit status (130 or 128 + signal)."""
+    signum = exc.signum if isinstance(exc, Terminated) else _received
+    if signum is not None and signum != signal.SIGINT:
+        print(f"interrupted ({signal.Signals(signum).name})", file=sys.stderr)
+        return 128 + signum
+    print("interrupted", file=sys.stderr)
+    return 130
+
+
+def interrupt_cause(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C (or :class:`Terminated`) behind an exception, if any.
+
+    A library may turn an interrupt that arrives inside its own code into an
+    error of its own (pydantic does while it serialises a config: a
+    ``PydanticSerializationError`` caused by the ``KeyboardInterrupt``); such
+    an error is an interrupt all the same.
+    """
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return cur
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return None

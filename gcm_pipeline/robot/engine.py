@@ -77,6 +77,7 @@ import numpy as np
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
+    ForkPool,
     IKCandidates,
     IKResult,
     _worker_signals,
@@ -858,7 +859,7 @@ class ReachabilityEngine:
             probe = self.robot.fk(self.robot.home)
             solve_ik(self.robot, probe, self.backend, **self.ik_options)
             _WORKER["engine"] = self
-            self._pool = mp.get_context("fork").Pool(self.workers, initializer=_worker_signals)
+            self._pool = ForkPool(self.workers, initializer=_worker_signals)
             _POOLS.add(self)
         return self._pool
 

@@ -35,8 +35,10 @@ from __future__ import annotations
 
 import atexit
 import multiprocessing as mp
+import multiprocessing.pool
 import os
 import signal
+import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -283,12 +285,33 @@ def _pool(
     _FORK_STATE.update(
         solve=solve, robot=robot, validator=validator, return_all=return_all, kwargs=kwargs
     )
-    pool = mp.get_context("fork").Pool(workers, initializer=_worker_signals)
+    pool = ForkPool(workers, initializer=_worker_signals)
     if not _POOL.get("atexit"):
         atexit.register(_close_pool)
         _POOL["atexit"] = True
     _POOL.update(key=key, pool=pool)
     return pool
+
+
+class ForkPool(multiprocessing.pool.Pool):
+    """A pool of forked workers whose ``terminate()`` cannot hang on a killed worker.
+
+    An idle worker waits for its next task holding the task queue's read lock;
+    killed then (SIGTERM to the process group), it never releases it, and the
+    standard ``Pool.terminate()`` waits for that lock for ever before it drains
+    the queue. Here it waits at most a second, then drains the queue anyway:
+    the pool is being torn down and no worker reads it any more.
+    """
+
+    def __init__(self, processes: int, initializer: Any = None) -> None:
+        super().__init__(processes, initializer=initializer, context=mp.get_context("fork"))
+
+    @staticmethod
+    def _help_stuff_finish(inqueue: Any, task_handler: Any, size: int) -> None:
+        inqueue._rlock.acquire(True, 1.0)
+        while task_handler.is_alive() and inqueue._reader.poll():
+            inqueue._reader.recv()
+            time.sleep(0)
 
 
 def _worker_signals() -> None:

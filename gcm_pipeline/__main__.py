@@ -24,6 +24,7 @@ def entry() -> int:
         return signals.report(exc)
     finally:
         signals.ignore()
+        signals.clear()
 
 
 if __name__ == "__main__":

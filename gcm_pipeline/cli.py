@@ -523,10 +523,6 @@ def _plural(n: int, word: str) -> str:
     return f"{n:,} {word}" + ("" if n == 1 else "s")
 
 
-def _kept(out: Path) -> None:
-    print(f"finished placements are kept in {out}; run the same command to resume", file=sys.stderr)
-
-
 def _cmd_study(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -550,13 +546,12 @@ def _cmd_study(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 best_run=not args.no_best,
             )
-    except Exception as exc:
-        if signals.interrupt_cause(exc) is None:
-            raise
-        _kept(args.out)
-        raise
-    except KeyboardInterrupt:  # Ctrl-C, SIGTERM, SIGHUP: main() prints and sets the status
-        _kept(args.out)
+    except BaseException as exc:  # an interrupt: main() prints it and sets the status
+        if signals.interrupt_cause(exc) is not None:
+            print(
+                f"finished placements are kept in {args.out}; run the same command to resume",
+                file=sys.stderr,
+            )
         raise
     if args.quiet:
         print(result.out_dir)
@@ -694,24 +689,20 @@ def main(argv: Sequence[str] | None = None) -> int:
             message = message[: MAX_ERROR_LINE - 3] + "..."
         print(f"error: {message}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except KeyboardInterrupt as exc:
-        return _interrupted(exc)
     except BrokenPipeError:
         # the reader left (e.g. `| head`): no traceback, and none at exit either
         with contextlib.suppress(OSError, ValueError):
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
         return 128 + signal.SIGPIPE
-    except Exception as exc:
+    except BaseException as exc:
+        # Ctrl-C, SIGTERM, SIGHUP, also when a library wrapped it in an error of its own
         interrupt = signals.interrupt_cause(exc)
         if interrupt is None:
             raise
-        return _interrupted(interrupt)
-
-
-def _interrupted(exc: KeyboardInterrupt) -> int:
-    """One line for an interrupt, and its exit status (130, or 128 + the signal)."""
-    return signals.report(exc)
+        return signals.report(interrupt)
+    finally:
+        signals.clear()  # a handled interrupt does not outlive the command
 
 
 if __name__ == "__main__":

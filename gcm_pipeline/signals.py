@@ -21,7 +21,7 @@ import sys
 import threading
 from typing import Any
 
-__all__ = ["Terminated", "check", "clear", "install", "interrupt_cause", "received", "report"]
+__all__ = ["Terminated", "check", "clear", "ignore", "install", "interrupt_cause", "report"]
 
 #: The signals ``gcm`` turns into an interrupt of the main thread.
 NAMES = ("SIGINT", "SIGTERM", "SIGHUP")
@@ -40,11 +40,6 @@ class Terminated(KeyboardInterrupt):
 
 
 _received: int | None = None
-
-
-def received() -> int | None:
-    """The signal number of the last interrupt recorded since :func:`clear`, or None."""
-    return _received
 
 
 def clear() -> None:
@@ -70,24 +65,25 @@ def check() -> None:
         raise _interrupt(_received)
 
 
-def install(signums: tuple[int, ...] | None = None) -> dict[int, Any]:
-    """Handle the signals with :func:`raise_interrupt`; returns the previous handlers.
+def _set(handler: Any) -> dict[int, Any]:
+    """Set ``handler`` for the signals of :data:`NAMES`; returns the previous handlers.
 
-    Outside the main thread this does nothing (and returns ``{}``).
+    Outside the main thread (where Python allows no handler) nothing is set.
     """
     if threading.current_thread() is not threading.main_thread():
         return {}
-    sigs = signums or tuple(getattr(signal, n) for n in NAMES if hasattr(signal, n))
-    return {sig: signal.signal(sig, raise_interrupt) for sig in sigs}
+    sigs = [getattr(signal, n) for n in NAMES if hasattr(signal, n)]
+    return {sig: signal.signal(sig, handler) for sig in sigs}
+
+
+def install() -> dict[int, Any]:
+    """Handle the signals with :func:`raise_interrupt`; returns the previous handlers."""
+    return _set(raise_interrupt)
 
 
 def ignore() -> None:
     """Ignore the signals from now on (the command is done; the process exits)."""
-    if threading.current_thread() is not threading.main_thread():
-        return
-    for n in NAMES:
-        if hasattr(signal, n):
-            signal.signal(getattr(signal, n), signal.SIG_IGN)
+    _set(signal.SIG_IGN)
 
 
 def report(exc: KeyboardInterrupt) -> int:

@@ -122,6 +122,25 @@ def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
     assert signal.getsignal(signal.SIGHUP) == before  # handlers restored
 
 
+def _interrupted_rerun(tmp_path, capsys, monkeypatch, write_run_files):
+    """A complete run, then ``--force`` over it with ``write_run_files`` patched to get
+    interrupted: one line, status 130, the first run kept as it was."""
+    from gcm_pipeline import io
+    from gcm_pipeline.cli import main
+
+    out = tmp_path / "run"
+    quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
+    assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    monkeypatch.setattr(io, "write_run_files", write_run_files)
+    assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    return out, quick
+
+
 def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, monkeypatch):
     """pydantic turns a Ctrl-C that arrives while it serialises a config into an error
     of its own, caused by the KeyboardInterrupt: ``gcm`` still says ``interrupted``
@@ -142,16 +161,7 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     def wrapped(*args, **kwargs):
         Slow().model_dump()  # raises pydantic's error, caused by the interrupt
 
-    out = tmp_path / "run"
-    quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-    assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
-    capsys.readouterr()
-    monkeypatch.setattr(io, "write_run_files", wrapped)
-    assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
-    assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    out, quick = _interrupted_rerun(tmp_path, capsys, monkeypatch, wrapped)
 
     monkeypatch.setattr(Study, "run", lambda self, *a, **k: wrapped())
     study = ROOT / "configs" / "studies" / "bottle_placement.yaml"
@@ -168,7 +178,7 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
     """An interrupt raised inside a finaliser is dropped by Python ("Exception
     ignored"): the run would go on and replace the previous one. The handler recorded
     it, so the swap does not happen: one line, status 130, the previous run kept."""
-    from gcm_pipeline import io, signals
+    from gcm_pipeline import Pipeline, io, load_config, signals
     from gcm_pipeline.cli import main
 
     class Finalised:
@@ -181,18 +191,13 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
         Finalised()  # collected at once: the interrupt is raised and dropped
         return written(*args, **kwargs)
 
-    out = tmp_path / "run"
-    quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-    assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
-    capsys.readouterr()
-    monkeypatch.setattr(io, "write_run_files", dropped)
-    assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
-    assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
-    # the next command starts afresh
+    out, quick = _interrupted_rerun(tmp_path, capsys, monkeypatch, dropped)
+    # the handled interrupt does not outlive the command: the Python API and the next
+    # command write their runs
     monkeypatch.setattr(io, "write_run_files", written)
+    cfg = load_config(FLAT, ["publish.html=false", "publish.plots=false"])
+    Pipeline(cfg).run(out_dir=tmp_path / "api", progress=False)
+    assert (tmp_path / "api" / "summary.json").is_file()
     assert main(["run", str(FLAT), "--out", str(out), "--force", "-q", *quick]) == 0
 
 
@@ -203,6 +208,7 @@ def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypat
     import types
 
     from gcm_pipeline import __main__ as entry_point
+    from gcm_pipeline import signals
 
     class Loading(types.ModuleType):
         def __getattr__(self, name: str):
@@ -216,6 +222,7 @@ def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypat
         assert capsys.readouterr().err.strip().splitlines() == ["interrupted (SIGTERM)"]
         for s in saved:
             assert signal.getsignal(s) == signal.SIG_IGN
+        signals.check()  # the handled interrupt is not raised again later
     finally:
         for s, handler in saved.items():
             signal.signal(s, handler)

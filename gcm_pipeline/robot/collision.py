@@ -52,20 +52,24 @@ is the grasp holding the object: the gripper may touch it and the object moves
 with the grasp frame (``carried``), checked against the environment
 (``collision_environment``) and the arm links (``collision_object``).
 
-**Broad phase.** Every robot collision geometry is covered by a few spheres
+**Broad phase**, vectorised over all configurations (NumPy), in three levels.
+Every robot collision geometry is covered by a few spheres
 (:func:`sphere_cover`: the geometry cut into slabs along its long axis, each
 slab's part inside one sphere, so the union of the spheres contains the
-geometry), placed for all configurations at once by vectorised forward
-kinematics (:class:`~gcm_pipeline.robot.chain.JointFrames`). A pair whose
-spheres are farther from the world shape than zero (exact point distances for
-boxes, cylinders, spheres and capsules, the local bounding box of meshes) or
-from the other link's spheres cannot collide and is not checked further: this
-only skips work, it never changes an answer (tested against Pinocchio's
-``computeCollisions`` over every pair). **Narrow phase**: the pairs are grouped
-by robot geometry and kind, one ``pin.GeometryPool`` per group, and
-``pin.computeCollisionsInParallel`` (forward kinematics, placements and coal's
-narrow phase in C++) runs each group only on the configurations where one of
-its pairs is not ruled out. :meth:`CollisionChecker.clearance` uses the same
+geometry) and by one sphere around those; all are placed for all
+configurations at once by vectorised forward kinematics
+(:class:`~gcm_pipeline.robot.chain.JointFrames`). (1) A pair whose bounding
+spheres are apart (from each other, or from the world shape: exact point
+distances for boxes, cylinders, spheres and capsules, the local bounding box
+of meshes) cannot collide; (2) nor can one whose sphere covers are apart.
+(3) A robot polytope against a box (the table, box obstacles) is free when
+its convex hull's vertices all lie beyond the plane of one face of the box,
+and collides when one of them lies strictly inside the box (the vertex of one
+of its triangles, which coal finds too). These levels only skip work, they
+never change an answer (tested pair by pair against coal on every pair).
+**Narrow phase**: coal, through ``pin.computeCollisionsInParallel`` on a pool
+holding the pair's two geometries, only for the (configuration, pair) entries
+the broad phase left open. :meth:`CollisionChecker.clearance` uses the same
 spheres as lower bounds and runs coal's exact distance only for pairs that can
 still be the nearest.
 """
@@ -412,19 +416,30 @@ class _ShapeBound:
 
     def lower(self, points: np.ndarray) -> np.ndarray:
         """Distances (...,) [m] (>= 0) from points (..., 3) in the base frame."""
-        p = points @ self.inv[:3, :3].T + self.inv[:3, 3]
+        pts = np.asarray(points, dtype=float)
+        # one (K, 3) @ (3, 3) product (a stacked product loops over the leading axes)
+        p = (pts.reshape(-1, 3) @ self.inv[:3, :3].T + self.inv[:3, 3]).reshape(pts.shape)
         if self.kind == "sphere":
-            return np.maximum(np.linalg.norm(p, axis=-1) - self.radius, 0.0)
+            return np.maximum(np.sqrt(_sq(p)) - self.radius, 0.0)
         if self.kind == "cylinder":
-            radial = np.maximum(np.hypot(p[..., 0], p[..., 1]) - self.radius, 0.0)
-            axial = np.maximum(np.abs(p[..., 2]) - self.half, 0.0)
-            return np.hypot(radial, axial)
+            radial = np.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2) - self.radius
+            axial = np.abs(p[..., 2]) - self.half
+            np.maximum(radial, 0.0, out=radial)
+            np.maximum(axial, 0.0, out=axial)
+            return np.sqrt(radial**2 + axial**2)
         if self.kind == "capsule":
             z = np.clip(p[..., 2], -self.half, self.half)
             d = np.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + (p[..., 2] - z) ** 2)
             return np.maximum(d - self.radius, 0.0)
-        gap = np.maximum(np.abs(p - self.centre) - self.halfs, 0.0)
-        return np.linalg.norm(gap, axis=-1)
+        gap = np.abs(p - self.centre)
+        gap -= self.halfs
+        np.maximum(gap, 0.0, out=gap)
+        return np.sqrt(_sq(gap))
+
+
+def _sq(v: np.ndarray) -> np.ndarray:
+    """Squared norms (...,) of vectors (..., 3) (faster than ``norm`` along a short axis)."""
+    return np.einsum("...i,...i->...", v, v)
 
 
 # --- the checker -----------------------------------------------------------------------
@@ -439,6 +454,26 @@ class _Pair(NamedTuple):
     owner: int  # robot geometry whose spheres bound ``a``
     other: int  # robot geometry whose spheres bound ``b`` (self pairs), else -1
     modes: int  # bit set of the modes the pair is checked in
+
+
+class _Screen(NamedTuple):
+    """The broad phase of one mode's pairs (columns ``k`` index ``pairs``)."""
+
+    pairs: np.ndarray  # (P,) indices of the checker's pairs
+    kind: np.ndarray  # (P,) their kinds
+    geom_a: np.ndarray  # (P,) robot geometry whose spheres bound side a
+    geom_b: np.ndarray  # (P,) the other robot geometry (self pairs), else -1
+    world: np.ndarray  # (P,) world geometry (world pairs), else -1
+    # the sphere tests of column k: entries first_test[k]:first_test[k] + n_tests[k]
+    # of sphere_a / sphere_b (-1 against the world shape) / bound (reach^2 of two
+    # spheres; the radius against a world shape)
+    first_test: np.ndarray
+    n_tests: np.ndarray
+    sphere_a: np.ndarray
+    sphere_b: np.ndarray
+    bound: np.ndarray
+    # robot polytope vs box, by column: (joint, hull vertices (3, V), inverse placement, halfs)
+    boxes: dict[int, tuple[int, np.ndarray, np.ndarray, np.ndarray]]
 
 
 class CollisionChecker:
@@ -559,22 +594,10 @@ class CollisionChecker:
         self._pairs = pairs
         self._gm = gm
 
-        # --- pools: one broad-phase pool per mode (all its pairs), and per mode and kind
-        # one for the reason of the configurations that collide
         self._pair_modes = np.array([p.modes for p in pairs], dtype=int)
         self._pair_kind = np.array([p.kind for p in pairs], dtype=object)
-        self._mode_pool: dict[int, Any] = {}
-        self._kind_pool: dict[tuple[int, str], Any] = {}
-        for bit in _MODE_BIT.values():
-            active = [p for p in pairs if p.modes & bit]
-            if active:
-                self._mode_pool[bit] = _broad_phase_pool(model, gm, active, self.threads)
-            for kind in _KINDS:
-                some = [p for p in active if p.kind == kind]
-                if some:
-                    self._kind_pool[bit, kind] = _broad_phase_pool(model, gm, some, self.threads)
 
-        # sphere covers (clearance bounds, the carried object)
+        # sphere covers (broad phase, clearance bounds, the carried object)
         self._frames = JointFrames(model)
         self._cover = _covers(gm, robot_ids, self._frames, max_spheres=8)
         self._bounds = {
@@ -582,6 +605,13 @@ class CollisionChecker:
                 gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous
             )
             for w in {p.b for p in pairs if p.kind != "self"}
+        }
+        self._hulls: dict[int, tuple[int, np.ndarray]] = {}
+        # the narrow phase: one pool per pair (its two geometries only)
+        self._pair_pool = [_pair_pool(model, gm, p, self.threads) for p in pairs]
+        self._screens = {
+            bit: self._screen([k for k, p in enumerate(pairs) if p.modes & bit])
+            for bit in _MODE_BIT.values()
         }
 
         # the mesh object as a solid: pieces wholly inside it
@@ -623,7 +653,6 @@ class CollisionChecker:
             self._dist_owner = np.array([p.owner for p in dist], dtype=int)
             self._dist_world = np.array([p.b for p in dist], dtype=int)
             # the pairs against boxes: their hull vertices give exact distances
-            self._hulls: dict[int, tuple[int, np.ndarray]] = {}
             self._box_pairs: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
             for col, p in enumerate(dist):
                 world = gm.geometryObjects[p.b]
@@ -634,8 +663,7 @@ class CollisionChecker:
                     or p.a != p.owner
                 ):
                     continue
-                if p.a not in self._hulls:
-                    self._hulls[p.a] = _hull_vertices(gm.geometryObjects[p.a], self._frames)
+                self._hull(p.a)
                 self._box_pairs[col] = (
                     np.linalg.inv(world.placement.homogeneous),
                     np.asarray(world.geometry.halfSide, dtype=float),
@@ -654,6 +682,59 @@ class CollisionChecker:
             )
 
     # --- construction helpers ---------------------------------------------------------
+
+    def _hull(self, g: int) -> tuple[int, np.ndarray]:
+        """Hull vertices of robot geometry ``g``: ``(joint, (V, 3))`` (cached)."""
+        if g not in self._hulls:
+            self._hulls[g] = _hull_vertices(self._gm.geometryObjects[g], self._frames)
+        return self._hulls[g]
+
+    def _screen(self, cols: list[int]) -> _Screen:
+        """The broad phase of the pairs ``cols`` (indices of ``self._pairs``) of one mode."""
+        cov, gm = self._cover, self._gm
+        sa, sb, bound = [], [], []
+        boxes = {}
+        for k, c in enumerate(cols):
+            p = self._pairs[c]
+            own = np.arange(cov.start[p.owner], cov.start[p.owner + 1])
+            if p.kind == "self":
+                oth = np.arange(cov.start[p.other], cov.start[p.other + 1])
+                ia, ib = np.repeat(own, oth.size), np.tile(oth, own.size)
+                sa.append(ia)
+                sb.append(ib)
+                bound.append((cov.radius[ia] + cov.radius[ib] + _BROAD_MARGIN) ** 2)
+                continue
+            sa.append(own)
+            sb.append(np.full(own.size, -1))
+            bound.append(cov.radius[own])
+            shape = gm.geometryObjects[p.b]
+            if (
+                p.a == p.owner
+                and isinstance(shape.geometry, coal.Box)
+                and isinstance(gm.geometryObjects[p.a].geometry, _POLYTOPES)
+            ):
+                inv = np.linalg.inv(shape.placement.homogeneous)
+                joint, verts = self._hull(p.a)
+                boxes[k] = (joint, verts.T.copy(), inv, np.asarray(shape.geometry.halfSide))
+        pairs = [self._pairs[c] for c in cols]
+        count = np.array([x.size for x in sa], dtype=int)
+
+        def cat(parts: list[np.ndarray], dtype: Any) -> np.ndarray:
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype=dtype)
+
+        return _Screen(
+            np.array(cols, dtype=int),
+            np.array([p.kind for p in pairs], dtype=object),
+            np.array([p.owner for p in pairs], dtype=int),
+            np.array([p.other if p.kind == "self" else -1 for p in pairs], dtype=int),
+            np.array([-1 if p.kind == "self" else p.b for p in pairs], dtype=int),
+            np.cumsum(count) - count,
+            count,
+            cat(sa, int),
+            cat(sb, int),
+            cat(bound, float),
+            boxes,
+        )
 
     def _init_solid(self, gm: Any, world_ids: dict[str, int]) -> None:
         """Inside test of a mesh object for the robot pieces of the object pairs.
@@ -752,20 +833,15 @@ class CollisionChecker:
     def _check_block(self, q: np.ndarray, bit: int, held: np.ndarray | None) -> np.ndarray:
         n = len(q)
         reason = np.full(n, "", dtype=object)
-        # every pair of the mode at once (coal's broad phase in C++), then the kind
-        # of the few configurations that collide, in the order of the reasons
-        pool = self._mode_pool.get(bit)
-        todo = np.flatnonzero(self._run(pool, q)) if pool is not None else np.zeros(0, int)
+        screen = self._screens[bit]
+        all_frames = self._frames.compute(q)
+        hit = self._pair_hits(q, all_frames, screen)
         for kind in _KINDS:
-            kind_pool = self._kind_pool.get((bit, kind))
-            if kind_pool is None or todo.size == 0:
-                continue
-            hit = self._run(kind_pool, q[todo])
-            reason[todo[hit]] = _REASONS[kind]
-            todo = todo[~hit]
+            some = np.flatnonzero(hit[:, screen.kind == kind].any(axis=1) & (reason == ""))
+            reason[some] = _REASONS[kind]
         free = np.flatnonzero(reason == "")
         if free.size and (self._solid is not None or held is not None):
-            frames = self._frames.compute(q[free])
+            frames = ([r[free] for r in all_frames[0]], [x[free] for x in all_frames[1]])
             if self._solid is not None:
                 inside = self._inside_object(frames, np.arange(free.size), bit)
                 reason[free[inside]] = REASON_OBJECT
@@ -781,6 +857,88 @@ class CollisionChecker:
                     if still.size == 0:
                         break
         return reason
+
+    def _pair_hits(self, q: np.ndarray, frames: Any, screen: _Screen) -> np.ndarray:
+        """Which pairs of ``screen`` collide in each configuration, (N, P) bool.
+
+        Broad phase, in three levels: a pair whose geometries' bounding spheres
+        are apart (from each other, or from the world shape) is free; so is
+        one whose sphere covers are. A robot polytope against a box is free if
+        its hull vertices all lie beyond one face's plane, and collides if one
+        of them lies inside the box (a vertex of one of its triangles, or of
+        the solid). coal's narrow phase decides the rest, pair by pair, only on
+        the configurations left.
+        """
+        cov, rots, poss = self._cover, frames[0], frames[1]
+        # 1. one bounding sphere per robot geometry
+        ball = self._place(frames, cov.ball_joint, cov.ball_centre)  # (N, G, 3)
+        open_ = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        own = screen.geom_b >= 0
+        if own.any():
+            by_geom = np.ascontiguousarray(ball.transpose(1, 0, 2))  # (G, N, 3): fast gathers
+            gap = by_geom[screen.geom_a[own]] - by_geom[screen.geom_b[own]]
+            reach = cov.ball_radius[screen.geom_a[own]] + cov.ball_radius[screen.geom_b[own]]
+            near = np.einsum("pni,pni->pn", gap, gap) <= ((reach + _BROAD_MARGIN) ** 2)[:, None]
+            open_[:, own] = near.T
+        for w in np.unique(screen.world[screen.world >= 0]).tolist():
+            at = np.flatnonzero(screen.world == w)
+            g = screen.geom_a[at]
+            lb = self._bounds_for(w).lower(ball[:, g]) - cov.ball_radius[g]
+            open_[:, at] = lb <= _BROAD_MARGIN
+        hit = np.zeros_like(open_)
+        for k in np.flatnonzero(open_.any(axis=0)).tolist():
+            rows = np.flatnonzero(open_[:, k])
+            # 2. the sphere covers
+            span = slice(screen.first_test[k], screen.first_test[k] + screen.n_tests[k])
+            a, b, bound = screen.sphere_a[span], screen.sphere_b[span], screen.bound[span]
+            ca = self._place_rows(frames, rows, cov.joint[a], cov.centre[a])
+            if screen.world[k] < 0:
+                gap = ca - self._place_rows(frames, rows, cov.joint[b], cov.centre[b])
+                near = (_sq(gap) <= bound).any(axis=1)
+            else:
+                lb = self._bounds_for(int(screen.world[k])).lower(ca) - bound
+                near = (lb <= _BROAD_MARGIN).any(axis=1)
+            rows = rows[near]
+            # 3. hull vertices against a box
+            box = screen.boxes.get(k)
+            if box is not None and rows.size:
+                joint, verts, inv, halfs = box
+                lim = halfs[None, :, None]
+
+                # the face nearest the geometry's bounding sphere first: its lowest
+                # hull vertex over that face's plane (one coordinate), then all of them
+                g = screen.geom_a[k]
+                centre = ball[rows, g] @ inv[:3, :3].T + inv[:3, 3]
+                axis = np.argmax(np.abs(centre) - halfs, axis=1)
+                sign = np.where(centre[np.arange(rows.size), axis] >= 0, 1.0, -1.0)
+                normal = sign[:, None] * inv[axis, :3]  # the face's outward normal, base frame
+                w = np.einsum("ni,nij->nj", normal, rots[joint][rows])  # in the joint's frame
+                height = (
+                    (w @ verts).min(axis=1)
+                    + np.einsum("ni,ni->n", normal, poss[joint][rows])
+                    + sign * inv[axis, 3]
+                    - halfs[axis]
+                )
+                rows = rows[height <= _BROAD_MARGIN]
+                local = _in_box_frame((rots[joint], poss[joint], inv), rows, verts)
+                inside = np.all(np.abs(local) < lim - _BROAD_MARGIN, axis=1).any(axis=1)
+                hit[rows[inside], k] = True
+                rows = rows[~(_beyond_a_face(local, lim) | inside)]
+            if rows.size:
+                hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
+        return hit
+
+    def _place_rows(
+        self, frames: Any, rows: np.ndarray, joints: np.ndarray, local: np.ndarray
+    ) -> np.ndarray:
+        """Points (M, P, 3) of ``local`` (P, 3) fixed to ``joints`` (P,), rows ``rows``."""
+        rots, poss = frames
+        out = np.empty((rows.size, len(joints), 3))
+        for j in np.unique(joints).tolist():
+            cols = np.flatnonzero(joints == j)
+            placed = (rots[j][rows].reshape(-1, 3) @ local[cols].T).reshape(rows.size, 3, -1)
+            out[:, cols] = placed.transpose(0, 2, 1) + poss[j][rows][:, None, :]
+        return out
 
     def _inside_object(self, frames: Any, rows: np.ndarray, bit: int) -> np.ndarray:
         """Whether an active robot piece lies inside the mesh object, (M,) bool."""
@@ -1038,6 +1196,9 @@ class _Cover(NamedTuple):
     radius: np.ndarray  # (S,)
     joint: np.ndarray  # (S,)
     start: np.ndarray  # (R + 1,) spheres of geometry g: start[g]:start[g + 1]
+    ball_centre: np.ndarray  # (R, 3) one sphere per geometry containing its cover
+    ball_radius: np.ndarray  # (R,)
+    ball_joint: np.ndarray  # (R,)
 
 
 class _CarriedObject(NamedTuple):
@@ -1049,6 +1210,8 @@ class _CarriedObject(NamedTuple):
 
 def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _Cover:
     centres, radii, joints, start = [], [], [], [0]
+    balls: list[np.ndarray] = []
+    ball_r: list[float] = []
     for i in ids:
         go = gm.geometryObjects[i]
         pts, tris = geometry_mesh(go.geometry)
@@ -1061,14 +1224,50 @@ def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _
         radii.append(cov.radii)
         joints.append(np.full(len(cov.radii), j))
         start.append(start[-1] + len(cov.radii))
+        # the sphere around the cover's spheres: centred in their bounding box
+        c = centres[-1]
+        mid = 0.5 * (c.min(axis=0) + c.max(axis=0))
+        balls.append(mid)
+        ball_r.append(float((np.linalg.norm(c - mid, axis=1) + cov.radii).max()) * (1 + 1e-12))
     return _Cover(
-        np.concatenate(centres), np.concatenate(radii), np.concatenate(joints), np.array(start)
+        np.concatenate(centres),
+        np.concatenate(radii),
+        np.concatenate(joints),
+        np.array(start),
+        np.array(balls).reshape(-1, 3),
+        np.array(ball_r),
+        np.array([int(gm.geometryObjects[i].parentJoint) for i in ids], dtype=int),
     )
 
 
+def _in_box_frame(frame: tuple[Any, Any, np.ndarray], rows: np.ndarray, points: np.ndarray) -> Any:
+    """Points (3, V) fixed to a joint, in a box's frame, for configurations ``rows``: (M, 3, V).
+
+    ``frame`` is the joint's rotations (N, 3, 3) and origins (N, 3) and the
+    box's inverse placement (4, 4).
+    """
+    rots, poss, inv = frame
+    m = rows.size
+    rot = (inv[:3, :3] @ rots[rows]).reshape(3 * m, 3)
+    off = poss[rows] @ inv[:3, :3].T + inv[:3, 3]
+    return (rot @ points).reshape(m, 3, points.shape[1]) + off[:, :, None]
+
+
+def _beyond_a_face(local: np.ndarray, lim: np.ndarray) -> np.ndarray:
+    """Whether all points (M, 3, V) lie beyond one face plane of the box ``|x| <= lim``, (M,)."""
+    return (
+        np.all(local > lim + _BROAD_MARGIN, axis=2) | np.all(local < -lim - _BROAD_MARGIN, axis=2)
+    ).any(axis=1)
+
+
 def _hull_vertices(go: Any, frames: JointFrames) -> tuple[int, np.ndarray]:
-    """A robot geometry's convex hull vertices in its joint's rotated frame: ``(joint, (V, 3))``."""
-    pts, _ = geometry_mesh(go.geometry)
+    """A robot geometry's convex hull vertices in its joint's rotated frame: ``(joint, (V, 3))``.
+
+    Only vertices of its triangles count (a mesh may list unused ones): each
+    hull vertex is a point of the geometry.
+    """
+    pts, tris = geometry_mesh(go.geometry)
+    pts = pts[np.unique(tris)] if tris.size else pts
     try:
         pts = pts[ConvexHull(pts).vertices]
     except (QhullError, ValueError):
@@ -1096,13 +1295,13 @@ def _without_cached_guess(gd: Any) -> Any:
     return gd
 
 
-def _broad_phase_pool(model: Any, gm: Any, pairs: list[_Pair], threads: int) -> Any:
-    """A pool checking ``pairs`` with coal's dynamic AABB tree (broad phase) in C++."""
-    km = gm.copy()
-    km.removeAllCollisionPairs()
-    for p in pairs:
-        km.addCollisionPair(pin.CollisionPair(p.a, p.b))
-    pool = pin.TreeBroadPhaseManagerPool_DynamicAABBTreeCollisionManager(model, km, threads)
+def _pair_pool(model: Any, gm: Any, pair: _Pair, threads: int) -> Any:
+    """A pool checking one pair with coal's narrow phase (a model of its two geometries)."""
+    km = pin.GeometryModel()
+    for g in (pair.a, pair.b):
+        km.addGeometryObject(gm.geometryObjects[g])
+    km.addCollisionPair(pin.CollisionPair(0, 1))
+    pool = pin.GeometryPool(model, km, threads)
     for i in range(pool.size()):
         _without_cached_guess(pool.getGeometryData(i))
     return pool

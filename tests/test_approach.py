@@ -146,18 +146,21 @@ def test_colliding_path_gets_a_second_path_with_grid_waypoints(robot, radius):
     checked = []
 
     def near_line(q, rows):
-        """'collision' for grid points more than 0.2 mm off their pose on the line."""
-        k = np.tile(np.arange(1, APPROACH.steps + 1), len(q) // APPROACH.steps)
-        want = line[k, rows, :3, 3]
-        off = np.linalg.norm(robot.fk(q)[:, :3, 3] - want, axis=1)
+        """'collision' for grid points more than 0.2 mm off every grid pose of their line.
+
+        (Grid poses are 1 cm apart: the nearest is a point's own.)
+        """
+        want = line[1:, rows, :3, 3]  # (K, steps, 3)
+        off = np.linalg.norm(robot.fk(q)[:, None, :3, 3] - want, axis=2).min(axis=1)
         checked.append((q.copy(), off))
         return np.where(off > 2e-4, "collision_test", "")
 
     first = plan_moves(robot, poses, q0, APPROACH, gripper_radius=radius)
     out = check_moves(robot, poses, q0, APPROACH, near_line, gripper_radius=radius)
     assert first.ok.sum() >= 20
-    # first paths interpolate between few waypoints: most grid points are off by more
-    assert len(checked) == 2
+    # first paths interpolate between few waypoints: most grid points are off by more;
+    # the second plans check each grid waypoint as it is found
+    assert len(checked) > 2
     rejected_first = np.flatnonzero(first.ok)[
         (checked[0][1].reshape(-1, APPROACH.steps) > 2e-4).any(axis=1)
     ]
@@ -169,6 +172,39 @@ def test_colliding_path_gets_a_second_path_with_grid_waypoints(robot, radius):
         assert np.linalg.norm(reached - line[:, i, :3, 3], axis=1).max() <= 2e-4
         assert out.deviation[i] <= APPROACH.max_deviation
     assert set(out.reason[~out.ok]) <= {"collision_test", "no_ik", "joint_step", "deviation"}
+
+
+def test_knot_check_only_stops_moves_that_would_collide(robot, radius):
+    """Checking grid waypoints as they are found gives the moves whose finished
+    grid path is free: the same paths, no more and no fewer."""
+    rng = np.random.default_rng(9)
+    q0 = robot.random_configurations(120, rng)
+    poses = robot.fk(q0)
+
+    # a 'collision' depending on the configuration only: elbow and wrist bent together
+    def check(q, rows):
+        return np.where(q[:, 3] + q[:, 5] > 1.2, "collision_test", "")
+
+    plain = plan_moves(robot, poses, q0, APPROACH, gripper_radius=radius, grid_knots=True)
+    early = plan_moves(
+        robot, poses, q0, APPROACH, gripper_radius=radius, grid_knots=True, knot_check=check
+    )
+    rows = np.flatnonzero(plain.ok)
+    free = rows[
+        (check(plain.q_path[rows, 1:].reshape(-1, robot.nq), None) == "")
+        .reshape(rows.size, -1)
+        .all(axis=1)
+    ]
+    assert 10 <= free.size < rows.size
+    np.testing.assert_array_equal(np.flatnonzero(early.ok), free)
+    np.testing.assert_array_equal(early.q_path[free], plain.q_path[free])
+    stopped = np.setdiff1d(rows, free)
+    assert set(early.reason[stopped]) == {"collision_test"}
+    # the step at which a move stops is its first colliding grid point
+    hit = (check(plain.q_path[stopped, 1:].reshape(-1, robot.nq), None) != "").reshape(
+        stopped.size, -1
+    )
+    np.testing.assert_array_equal(early.failed_step[stopped], hit.argmax(axis=1) + 1)
 
 
 @pytest.mark.parametrize(

@@ -454,6 +454,7 @@ def plan_moves(
     orientation_tolerance: float = 1e-3,
     backend: str = "pinocchio",
     grid_knots: bool = False,
+    knot_check: Callable[[np.ndarray, np.ndarray], Any] | None = None,
     **ik_options: Any,
 ) -> MovePlan:
     """Joint paths of N moves from their grasps, batched over the moves (see module doc).
@@ -469,6 +470,11 @@ def plan_moves(
         backend: IK backend of the end of the move.
         grid_knots: Start with a waypoint at every grid point (on the line
             within the waypoint tolerance) instead of none.
+        knot_check: With ``grid_knots``: ``knot_check(q, move) -> reasons``
+            (as ``collisions`` of :func:`check_moves`) is called on each grid
+            waypoint as it is found; a move whose waypoint gets a reason fails
+            with it there, before the rest of its line is followed (the grid
+            waypoints are the path's grid points).
         **ik_options: Further backend options of the end's IK (seeded only
             with the grasp's configuration unless given otherwise).
 
@@ -561,6 +567,13 @@ def plan_moves(
             knots[rows[~conv], 1:] = np.nan
             failed_at[rows[~conv]] = last
             rows, last = rows[conv], at
+            if knot_check is not None and rows.size:
+                why = np.full(n, "", dtype=object)
+                why[rows] = np.asarray(knot_check(knots[rows, at], rows), dtype=object)
+                bad = rows[why[rows] != ""]
+                fail(bad, np.full(bad.size, at - 1), why)  # fails at grid step at / sub
+                knots[bad, 1:] = np.nan
+                rows = rows[why[rows] == ""]
         return rows
 
     # 0. ends proved beyond reach fail at once, whatever the IK would try
@@ -589,6 +602,7 @@ def plan_moves(
         retry = rows[~done]
         reached = np.union1d(reached, follow(retry, pieces))
     lost = np.setdiff1d(rows, reached)
+    lost = lost[ok[lost]]  # not those a knot check failed
     fail(lost, failed_at[lost], "no_ik")
 
     # 2. segments between known waypoints: accepted under the deviation bound, else
@@ -925,8 +939,18 @@ def check_moves(
             # a path that collides gets a second plan with a waypoint at every grid
             # point (on the line within the waypoint tolerance): a collision then
             # does not depend on where the first plan's waypoints fell
-            again = plan_moves(robot, tg[hit_rows], q0[hit_rows], move, grid_knots=True, **opts)
+            again = plan_moves(
+                robot,
+                tg[hit_rows],
+                q0[hit_rows],
+                move,
+                grid_knots=True,
+                # a waypoint that collides fails its move at once (it is a grid point)
+                knot_check=lambda q, i: collisions(q, hit_rows[i]),
+                **opts,
+            )
             sub = np.flatnonzero(again.ok)
+            # (its grid points are the waypoints just checked: a cheap safeguard)
             hit2, _, _ = _grid_collisions(collisions, again.q_path, sub, robot.nq, hit_rows)
             good = np.setdiff1d(sub, hit2)
             r = hit_rows[good]

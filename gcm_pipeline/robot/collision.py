@@ -132,6 +132,9 @@ _ALL_MODES = 7
 _BROAD_MARGIN = 1e-7
 #: Configurations placed per block by the broad phase (temporaries stay in cache).
 _BLOCK = 2048
+#: Fewer configurations than this go to coal's AABB-tree pools instead of the
+#: NumPy broad phase (its set-up costs about as much as 100 configurations).
+_FEW = 128
 
 
 @dataclass(frozen=True)
@@ -609,6 +612,18 @@ class CollisionChecker:
         self._hulls: dict[int, tuple[int, np.ndarray]] = {}
         # the narrow phase: one pool per pair (its two geometries only)
         self._pair_pool = [_pair_pool(model, gm, p, self.threads) for p in pairs]
+        # a few configurations: coal's own broad phase (an AABB tree) per mode, and per
+        # mode and kind for the reason of those that collide (no NumPy set-up cost)
+        self._mode_pool: dict[int, Any] = {}
+        self._kind_pool: dict[tuple[int, str], Any] = {}
+        for bit in _MODE_BIT.values():
+            active = [p for p in pairs if p.modes & bit]
+            if active:
+                self._mode_pool[bit] = _tree_pool(model, gm, active, self.threads)
+            for kind in _KINDS:
+                some = [p for p in active if p.kind == kind]
+                if some:
+                    self._kind_pool[bit, kind] = _tree_pool(model, gm, some, self.threads)
         self._screens = {
             bit: self._screen([k for k, p in enumerate(pairs) if p.modes & bit])
             for bit in _MODE_BIT.values()
@@ -833,15 +848,30 @@ class CollisionChecker:
     def _check_block(self, q: np.ndarray, bit: int, held: np.ndarray | None) -> np.ndarray:
         n = len(q)
         reason = np.full(n, "", dtype=object)
-        screen = self._screens[bit]
-        all_frames = self._frames.compute(q)
-        hit = self._pair_hits(q, all_frames, screen)
-        for kind in _KINDS:
-            some = np.flatnonzero(hit[:, screen.kind == kind].any(axis=1) & (reason == ""))
-            reason[some] = _REASONS[kind]
+        all_frames = None
+        if n < _FEW:
+            pool = self._mode_pool.get(bit)
+            todo = np.flatnonzero(self._run(pool, q)) if pool is not None else np.zeros(0, int)
+            for kind in _KINDS:
+                kind_pool = self._kind_pool.get((bit, kind))
+                if kind_pool is None or todo.size == 0:
+                    continue
+                hit = self._run(kind_pool, q[todo])
+                reason[todo[hit]] = _REASONS[kind]
+                todo = todo[~hit]
+        else:
+            screen = self._screens[bit]
+            all_frames = self._frames.compute(q)
+            hit = self._pair_hits(q, all_frames, screen)
+            for kind in _KINDS:
+                some = np.flatnonzero(hit[:, screen.kind == kind].any(axis=1) & (reason == ""))
+                reason[some] = _REASONS[kind]
         free = np.flatnonzero(reason == "")
         if free.size and (self._solid is not None or held is not None):
-            frames = ([r[free] for r in all_frames[0]], [x[free] for x in all_frames[1]])
+            if all_frames is None:
+                frames = self._frames.compute(q[free])
+            else:
+                frames = ([r[free] for r in all_frames[0]], [x[free] for x in all_frames[1]])
             if self._solid is not None:
                 inside = self._inside_object(frames, np.arange(free.size), bit)
                 reason[free[inside]] = REASON_OBJECT
@@ -1293,6 +1323,18 @@ def _without_cached_guess(gd: Any) -> Any:
             req.enable_cached_gjk_guess = False
             req.gjk_initial_guess = coal.GJKInitialGuess.DefaultGuess
     return gd
+
+
+def _tree_pool(model: Any, gm: Any, pairs: list[_Pair], threads: int) -> Any:
+    """A pool checking ``pairs`` with coal's dynamic AABB tree (broad phase) in C++."""
+    km = gm.copy()
+    km.removeAllCollisionPairs()
+    for p in pairs:
+        km.addCollisionPair(pin.CollisionPair(p.a, p.b))
+    pool = pin.TreeBroadPhaseManagerPool_DynamicAABBTreeCollisionManager(model, km, threads)
+    for i in range(pool.size()):
+        _without_cached_guess(pool.getGeometryData(i))
+    return pool
 
 
 def _pair_pool(model: Any, gm: Any, pair: _Pair, threads: int) -> Any:

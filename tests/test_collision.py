@@ -454,6 +454,9 @@ def test_broad_phase_agrees_with_every_pair(robot, checker, mode):
     ref = _every_pair_reasons(robot, checker, qs, mode)
     assert (ref == "").sum() > 100 and len(set(ref)) == (3 if mode == "retreat" else 4)
     np.testing.assert_array_equal(checker.check(qs, mode), ref)
+    # a few configurations at a time take coal's tree pools instead of the NumPy broad phase
+    few = [checker.check(qs[a : a + 50], mode) for a in range(0, len(qs), 50)]
+    np.testing.assert_array_equal(np.concatenate(few), ref)
 
 
 def test_modes_differ_only_at_the_object(robot, checker):

@@ -602,14 +602,22 @@ class CollisionChecker:
 
         # sphere covers (broad phase, clearance bounds, the carried object)
         self._frames = JointFrames(model)
-        self._cover = _covers(gm, robot_ids, self._frames, max_spheres=8)
+        # the robot's own sphere covers and hull vertices: computed once per robot
+        cover = robot.cache.get("collision_cover")
+        if cover is None:
+            cover = robot.cache["collision_cover"] = _covers(
+                gm, robot_ids, self._frames, max_spheres=8
+            )
+        self._cover = cover
         self._bounds = {
             w: _ShapeBound(
                 gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous
             )
             for w in {p.b for p in pairs if p.kind != "self"}
         }
-        self._hulls: dict[int, tuple[int, np.ndarray]] = {}
+        self._hulls: dict[int, tuple[int, np.ndarray]] = robot.cache.setdefault(
+            "collision_hulls", {}
+        )
         # the narrow phase: one pool per pair (its two geometries only)
         self._pair_pool = [_pair_pool(model, gm, p, self.threads) for p in pairs]
         # a few configurations: coal's own broad phase (an AABB tree) per mode, and per
@@ -699,7 +707,7 @@ class CollisionChecker:
     # --- construction helpers ---------------------------------------------------------
 
     def _hull(self, g: int) -> tuple[int, np.ndarray]:
-        """Hull vertices of robot geometry ``g``: ``(joint, (V, 3))`` (cached)."""
+        """Hull vertices of robot geometry ``g < n_robot_geoms``: ``(joint, (V, 3))`` (cached)."""
         if g not in self._hulls:
             self._hulls[g] = _hull_vertices(self._gm.geometryObjects[g], self._frames)
         return self._hulls[g]
@@ -1167,7 +1175,8 @@ class CollisionChecker:
         rots, poss = frames
         for col, (inv, halfs, g) in self._box_pairs.items():
             sph = np.arange(cov.start[g], cov.start[g + 1])
-            c = centres[:, sph] @ inv[:3, :3].T + inv[:3, 3]  # (N, s, 3), box frame
+            pts = centres[:, sph]
+            c = (pts.reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]).reshape(pts.shape)  # box frame
             r = cov.radius[sph]
             joint, verts = self._hulls[g]
             for axis in range(3):

@@ -400,6 +400,8 @@ class _ShapeBound:
         self.inv = np.linalg.inv(placement)
         self.kind = "box"
         self.centre = np.zeros(3)
+        #: the shape itself (a primitive), not a box around it
+        self.exact = isinstance(geometry, (coal.Sphere, coal.Cylinder, coal.Capsule, coal.Box))
         if isinstance(geometry, coal.Sphere):
             self.kind, self.radius = "sphere", float(geometry.radius)
         elif isinstance(geometry, coal.Cylinder):
@@ -438,6 +440,45 @@ class _ShapeBound:
         gap -= self.halfs
         np.maximum(gap, 0.0, out=gap)
         return np.sqrt(_sq(gap))
+
+    def nearest(self, p: np.ndarray) -> np.ndarray:
+        """Nearest points (..., 3) of the shape to points ``p`` (..., 3) given in its frame.
+
+        Exact for the primitives (a point inside is its own nearest point).
+        """
+        if self.kind == "sphere":
+            norm = np.sqrt(_sq(p))[..., None]
+            return np.where(norm > self.radius, p * (self.radius / np.maximum(norm, 1e-300)), p)
+        if self.kind == "cylinder":
+            radial = np.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2)[..., None]
+            scale = np.minimum(1.0, self.radius / np.maximum(radial, 1e-300))
+            out = p * scale
+            out[..., 2] = np.clip(p[..., 2], -self.half, self.half)
+            return out
+        if self.kind == "capsule":
+            axis = np.zeros_like(p)
+            axis[..., 2] = np.clip(p[..., 2], -self.half, self.half)
+            rel = p - axis
+            norm = np.sqrt(_sq(rel))[..., None]
+            return axis + np.where(
+                norm > self.radius, rel * (self.radius / np.maximum(norm, 1e-300)), rel
+            )
+        return self.centre + np.clip(p - self.centre, -self.halfs, self.halfs)
+
+    def support(self, n: np.ndarray) -> np.ndarray:
+        """Support function ``max_{x in shape} n . x`` (...,) of directions ``n`` (..., 3).
+
+        In the shape's frame; exact for the primitives.
+        """
+        if self.kind == "sphere":
+            return self.radius * np.sqrt(_sq(n))
+        if self.kind == "cylinder":
+            return self.radius * np.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2) + self.half * np.abs(
+                n[..., 2]
+            )
+        if self.kind == "capsule":
+            return self.radius * np.sqrt(_sq(n)) + self.half * np.abs(n[..., 2])
+        return n @ self.centre + np.abs(n) @ self.halfs
 
 
 def _sq(v: np.ndarray) -> np.ndarray:
@@ -675,16 +716,18 @@ class CollisionChecker:
             self._dist_data = _without_cached_guess(pin.GeometryData(dm))
             self._dist_owner = np.array([p.owner for p in dist], dtype=int)
             self._dist_world = np.array([p.b for p in dist], dtype=int)
-            # the pairs against boxes: their hull vertices give exact distances
+            # a robot polytope against a primitive: its hull vertices give distances
+            # (exact to boxes in a face's region, else within a known margin)
             self._box_pairs: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
+            self._vertex_pairs: dict[int, tuple[int, int]] = {}
             for col, p in enumerate(dist):
                 world = gm.geometryObjects[p.b]
                 robot_geom = gm.geometryObjects[p.a].geometry
-                if (
-                    not isinstance(world.geometry, coal.Box)
-                    or not isinstance(robot_geom, _POLYTOPES)
-                    or p.a != p.owner
-                ):
+                if not isinstance(robot_geom, _POLYTOPES) or p.a != p.owner:
+                    continue
+                if self._bounds_for(p.b).exact:
+                    self._vertex_pairs[col] = (p.a, p.b)
+                if not isinstance(world.geometry, coal.Box):
                     continue
                 self._hull(p.a)
                 self._box_pairs[col] = (
@@ -1100,11 +1143,15 @@ class CollisionChecker:
         touches the object by design. Penetrating pairs give a distance <= 0
         (a penetration, not necessarily the deepest one).
 
-        Exact distances (coal, on the meshes) are computed in increasing order
-        of the pairs' sphere-cover lower bounds, and only while a pair's bound
-        is below the best distance found minus ``precision``: the result is a
-        real distance of the robot to the world, at most ``precision`` above
-        the minimum (the ranking needs no more).
+        Distances are computed in increasing order of the pairs' lower bounds
+        (sphere covers), and only while a pair's bound is below the best
+        distance found minus ``precision``: exact ones by coal on the meshes,
+        or, from the hull vertices (vectorised), the exact distance of a link
+        in the region of one face of a box, and the distance of a link's
+        nearest vertex from a primitive shape where a separating plane proves
+        it within ``precision`` of the pair's. The result is a real distance
+        of the robot to the world (between two of their points), at most
+        ``precision`` above the minimum (the ranking needs no more).
 
         Args:
             q: Configurations (N, nq) or (nq,) [rad].
@@ -1139,6 +1186,13 @@ class CollisionChecker:
             known = np.isfinite(exact)
             bound[known] = exact[known]
             best0 = np.where(known, exact, np.inf).min(axis=1)
+            need = ~known & (bound < best0[:, None] - precision)
+            # the nearest hull vertex's distance where it is within precision of the pair's
+            # (its lower bound stays the pair's bound: what it may still be)
+            upper, lower = self._vertex_distances(frames, need & (precision > 0), precision)
+            found = np.isfinite(upper)
+            exact[found], known[found], bound[found] = upper[found], True, lower[found]
+            best0 = np.where(known, exact, np.inf).min(axis=1)
             # coal only for rows with a pair that may still be nearer than best - precision
             need = ~known & (bound < best0[:, None] - precision)
             todo = np.flatnonzero(need.any(axis=1))
@@ -1158,6 +1212,47 @@ class CollisionChecker:
                         best = d
                 out[n] = best
         return out
+
+    def _vertex_distances(
+        self, frames: Any, need: np.ndarray, precision: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds ``(U, L)`` (N, P) of the clearance pairs' distances, NaN where not known.
+
+        Only the pairs ``need`` (N, P) are looked at.
+
+        For a robot polytope against a primitive shape: ``U``, the distance of
+        its nearest hull vertex (a point of the robot) from the shape, bounds
+        the pair's distance ``d`` from above. From below, the plane through
+        the shape's nearest point normal to that direction separates the shape
+        from the hull by ``L = min_v n . v - h(n)`` (``h`` the shape's support
+        function), and the robot's geometry lies in its hull: ``L <= d <= U``.
+        Both are kept where ``U - L <= precision`` (the vertex is outside the shape).
+        """
+        out = np.full(need.shape, np.nan)
+        below = np.full(need.shape, np.nan)
+        rots, poss = frames
+        for col in np.flatnonzero(need.any(axis=0)).tolist():
+            pair = self._vertex_pairs.get(col)
+            if pair is None:
+                continue
+            rows = np.flatnonzero(need[:, col])
+            g, w = pair
+            joint, verts = self._hull(g)
+            shape = self._bounds_for(w)
+            pts = _in_box_frame((rots[joint], poss[joint], shape.inv), rows, verts.T.copy())
+            pts = pts.transpose(0, 2, 1)  # (M, V, 3) in the shape's frame
+            gap = pts - shape.nearest(pts)
+            dist = np.sqrt(_sq(gap))
+            at = np.argmin(dist, axis=1)
+            m = np.arange(rows.size)
+            upper = dist[m, at]
+            outside = upper > 0
+            normal = gap[m, at] / np.where(outside, upper, 1.0)[:, None]
+            lower = np.einsum("mvi,mi->mv", pts, normal).min(axis=1) - shape.support(normal)
+            keep = outside & (upper - lower <= precision)
+            out[rows[keep], col] = upper[keep]
+            below[rows[keep], col] = lower[keep]
+        return out, below
 
     def _face_distances(self, frames: Any, centres: np.ndarray) -> np.ndarray:
         """Exact distances (N, P) of the clearance pairs against boxes, NaN where unknown.

@@ -15,6 +15,9 @@ from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,
     REASON_OBJECT,
     REASON_SELF,
+    CollisionChecker,
+    WorldShape,
+    _without_cached_guess,
     shape_geometry,
 )
 from gcm_pipeline.robot.model import load_robot
@@ -504,7 +507,9 @@ def _every_pair_reasons(robot, checker, qs, mode):
             gm.addCollisionPair(pin.CollisionPair(p.a, p.b))
             kinds.append(p.kind)
     kinds = np.array(kinds)
-    gd, data = pin.GeometryData(gm), robot.model.createData()
+    # the checker's GJK setting: no guess carried over from the previous query (with it,
+    # answers within about 1e-5 m of contact depend on the queries before)
+    gd, data = _without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
     out = []
     for q in qs:
         pin.computeCollisions(robot.model, data, gm, gd, q, False)
@@ -656,7 +661,7 @@ def _every_pair_hits(robot, checker, qs, screen):
     for k in screen.pairs:
         p = checker._pairs[k]
         gm.addCollisionPair(pin.CollisionPair(p.a, p.b))
-    gd, data = pin.GeometryData(gm), robot.model.createData()
+    gd, data = _without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
     out = np.zeros((len(qs), screen.pairs.size), dtype=bool)
     for i, q in enumerate(qs):
         pin.computeCollisions(robot.model, data, gm, gd, q, False)
@@ -715,3 +720,66 @@ def test_broad_phase_pair_by_pair_with_rotated_boxes(robot):
         for kind in ("environment", "self", "object"):
             assert ref[:, screen.kind == kind].any(), kind
     assert len(c._screens[1].boxes) > 10
+
+
+def test_an_obstacle_overlapping_the_base_collides_in_every_batch(robot):
+    """A pair of two geometries fixed to the world (the base link and a pedestal box that
+    is not the support) collides in every configuration, in large and small batches."""
+    env = EnvironmentConfig.model_validate(
+        {
+            "table": {"height": -0.3},
+            "obstacles": [
+                {"shape": "box", "dims": {"size": [0.3, 0.3, 0.3]}, "pose": {"xyz": [0, 0, -0.149]}}
+            ],
+        }
+    )
+    c = make_checker(robot, env, None)
+    qs = robot.random_configurations(200, 0)
+    ref = _every_pair_reasons(robot, c, qs, "grasp")
+    assert set(ref) == {REASON_ENVIRONMENT}
+    np.testing.assert_array_equal(c.check(qs), ref)
+    np.testing.assert_array_equal(
+        np.concatenate([c.check(qs[a : a + 50]) for a in range(0, 200, 50)]), ref
+    )
+    # an object at the base: its reason, unless the table or the arm comes first
+    obj = ObjectConfig.model_validate(
+        {"shape": "box", "dims": {"size": [0.1, 0.1, 0.1]}, "pose": {"xyz": [-0.1, 0.0, 0.05]}}
+    )
+    c2 = make_checker(robot, EnvironmentConfig(), obj)
+    qs = np.concatenate([qs, [_q(robot, j2=1.6, j4=-0.5)]])  # and one through the table
+    for mode in ("grasp", "approach"):
+        ref = _every_pair_reasons(robot, c2, qs, mode)
+        assert {REASON_OBJECT, REASON_ENVIRONMENT} <= set(ref) and "" not in set(ref)
+        np.testing.assert_array_equal(c2.check(qs, mode), ref)
+        np.testing.assert_array_equal(c2.check(qs[:50], mode), ref[:50])
+
+
+def test_finger_boxes_at_a_box_agree_with_coal_near_contact(robot):
+    """A finger box with a corner pressed 3e-7 to 1e-3 m into a small tilted box, or 1e-5 m
+    short of it: the large-batch path (hull vertices) and the small-batch path (coal's tree
+    pools) give coal's answer (coal misses some of the shallowest box-box contacts)."""
+    base = CollisionChecker(robot, [], self_collision=False)
+    q = np.asarray(robot.home, dtype=float)
+    rots, poss = base._frames.compute(q[None])
+    finger = base.link_names.index("panda_rightfinger")
+    joint, v = base._hull(finger)
+    v = v @ rots[joint][0].T + poss[joint][0]
+    rng = np.random.default_rng(0)
+    answers = set()
+    for _ in range(30):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        low = v[np.argmin(v @ n)]
+        rot = Rotation.align_vectors([n], [[0, 0, 1]])[0].as_matrix()
+        for depth in (-1e-5, 3e-7, 3e-6, 3e-5, 1e-3):
+            size = 0.004
+            place = np.eye(4)
+            place[:3, :3] = rot
+            place[:3, 3] = (low @ n + depth - size / 2) * n + (low - (low @ n) * n)
+            box = WorldShape("obstacle", coal.Box(size, size, size), place, "environment")
+            c = CollisionChecker(robot, [box], self_collision=False)
+            ref = _every_pair_reasons(robot, c, q[None], "grasp")[0]
+            assert c.check(np.tile(q, (128, 1)))[0] == ref, (n, depth)
+            assert c.check(q[None])[0] == ref, (n, depth)
+            answers.add(ref)
+    assert answers == {"", REASON_ENVIRONMENT}

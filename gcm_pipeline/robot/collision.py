@@ -64,12 +64,18 @@ distances for boxes, cylinders, spheres and capsules, the local bounding box
 of meshes) cannot collide; (2) nor can one whose sphere covers are apart.
 (3) A robot polytope against a box (the table, box obstacles) is free when
 its convex hull's vertices all lie beyond the plane of one face of the box,
-and collides when one of them lies strictly inside the box (the vertex of one
-of its triangles, which coal finds too). These levels only skip work, they
-never change an answer (tested pair by pair against coal on every pair).
-**Narrow phase**: coal, through ``pin.computeCollisionsInParallel`` on a pool
-holding the pair's two geometries, only for the (configuration, pair) entries
-the broad phase left open. :meth:`CollisionChecker.clearance` uses the same
+and collides when one of them lies more than 0.1 mm inside the box (the
+vertex of one of its triangles; coal, called as Pinocchio calls it, misses
+box-box penetrations of a few 1e-5 m, so shallower ones are left to it).
+These levels only skip work, they never change an answer (tested pair by pair
+against coal on every pair). **Narrow phase**: coal, through
+``pin.computeCollisionsInParallel`` on a pool holding the pair's two
+geometries, only for the (configuration, pair) entries the broad phase left
+open. Batches of fewer than ``_FEW`` configurations go to coal's own broad
+phase (AABB-tree pools) instead, which costs less to set up. A pair of two
+geometries fixed to the world (the base link against an obstacle that
+overlaps it) collides in every configuration or in none: it is decided once,
+when the checker is built. :meth:`CollisionChecker.clearance` uses the same
 spheres as lower bounds and runs coal's exact distance only for pairs that can
 still be the nearest.
 """
@@ -132,6 +138,10 @@ _ALL_MODES = 7
 _BROAD_MARGIN = 1e-7
 #: Configurations placed per block by the broad phase (temporaries stay in cache).
 _BLOCK = 2048
+#: A hull vertex this deep inside a box [m] makes the pair collide without coal.
+#: coal, called without contact information as Pinocchio calls it, misses box-box
+#: penetrations of up to a few 1e-5 m; shallower ones are left to it.
+_INSIDE_DEPTH = 1e-4
 #: Fewer configurations than this go to coal's AABB-tree pools instead of the
 #: NumPy broad phase (its set-up costs about as much as 100 configurations).
 _FEW = 128
@@ -661,22 +671,39 @@ class CollisionChecker:
         )
         # the narrow phase: one pool per pair (its two geometries only)
         self._pair_pool = [_pair_pool(model, gm, p, self.threads) for p in pairs]
+        # pairs of two geometries fixed to the world (the base link against an obstacle)
+        # collide in every configuration or in none: decided once, here
+        fixed = [
+            k
+            for k, p in enumerate(pairs)
+            if gm.geometryObjects[p.a].parentJoint == 0 and gm.geometryObjects[p.b].parentJoint == 0
+        ]
+        static_hit = {
+            k
+            for k in fixed
+            if self._run(self._pair_pool[k], np.asarray(robot.home, dtype=float)[None])[0]
+        }
+        moving = [k for k in range(len(pairs)) if k not in fixed]
         # a few configurations: coal's own broad phase (an AABB tree) per mode, and per
         # mode and kind for the reason of those that collide (no NumPy set-up cost)
         self._mode_pool: dict[int, Any] = {}
         self._kind_pool: dict[tuple[int, str], Any] = {}
+        self._screens: dict[int, _Screen] = {}
+        self._static_reason: dict[int, str] = {}
         for bit in _MODE_BIT.values():
-            active = [p for p in pairs if p.modes & bit]
+            cols = [k for k in moving if pairs[k].modes & bit]
+            active = [pairs[k] for k in cols]
             if active:
                 self._mode_pool[bit] = _tree_pool(model, gm, active, self.threads)
             for kind in _KINDS:
                 some = [p for p in active if p.kind == kind]
                 if some:
                     self._kind_pool[bit, kind] = _tree_pool(model, gm, some, self.threads)
-        self._screens = {
-            bit: self._screen([k for k, p in enumerate(pairs) if p.modes & bit])
-            for bit in _MODE_BIT.values()
-        }
+            self._screens[bit] = self._screen(cols)
+            hit_kinds = {pairs[k].kind for k in static_hit if pairs[k].modes & bit}
+            first = next((kind for kind in _KINDS if kind in hit_kinds), None)
+            if first is not None:
+                self._static_reason[bit] = _REASONS[first]
 
         # the mesh object as a solid: pieces wholly inside it
         self._init_solid(gm, world_ids)
@@ -917,6 +944,12 @@ class CollisionChecker:
             for kind in _KINDS:
                 some = np.flatnonzero(hit[:, screen.kind == kind].any(axis=1) & (reason == ""))
                 reason[some] = _REASONS[kind]
+        static = self._static_reason.get(bit)
+        if static is not None:
+            # a static pair collides in every configuration: its kind unless an earlier one
+            rank = {r: i for i, r in enumerate(_REASONS[k] for k in _KINDS)}
+            later = np.array([r == "" or rank[r] > rank[static] for r in reason], dtype=bool)
+            reason[later] = static
         free = np.flatnonzero(reason == "")
         if free.size and (self._solid is not None or held is not None):
             if all_frames is None:
@@ -946,9 +979,9 @@ class CollisionChecker:
         are apart (from each other, or from the world shape) is free; so is
         one whose sphere covers are. A robot polytope against a box is free if
         its hull vertices all lie beyond one face's plane, and collides if one
-        of them lies inside the box (a vertex of one of its triangles, or of
-        the solid). coal's narrow phase decides the rest, pair by pair, only on
-        the configurations left.
+        of them lies ``_INSIDE_DEPTH`` inside the box (a vertex of one of its
+        triangles, or of the solid). coal's narrow phase decides the rest, pair
+        by pair, only on the configurations left.
         """
         cov, rots, poss = self._cover, frames[0], frames[1]
         # 1. one bounding sphere per robot geometry
@@ -1002,7 +1035,7 @@ class CollisionChecker:
                 )
                 rows = rows[height <= _BROAD_MARGIN]
                 local = _in_box_frame((rots[joint], poss[joint], inv), rows, verts)
-                inside = np.all(np.abs(local) < lim - _BROAD_MARGIN, axis=1).any(axis=1)
+                inside = np.all(np.abs(local) < lim - _INSIDE_DEPTH, axis=1).any(axis=1)
                 hit[rows[inside], k] = True
                 rows = rows[~(_beyond_a_face(local, lim) | inside)]
             if rows.size:

@@ -552,6 +552,9 @@ def test_broad_phase_agrees_with_every_pair(robot, checker, mode):
     # a few configurations at a time take coal's tree pools instead of the NumPy broad phase
     few = [checker.check(qs[a : a + 50], mode) for a in range(0, len(qs), 50)]
     np.testing.assert_array_equal(np.concatenate(few), ref)
+    # and so does a checker with two threads, in every batch
+    two = make_checker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE), threads=2)
+    np.testing.assert_array_equal(two.check(qs, mode), ref)
 
 
 def test_modes_differ_only_at_the_object(robot, checker):

@@ -72,7 +72,9 @@ against coal on every pair). **Narrow phase**: coal, through
 ``pin.computeCollisionsInParallel`` on a pool holding the pair's two
 geometries, only for the (configuration, pair) entries the broad phase left
 open. Batches of fewer than ``_FEW`` configurations go to coal's own broad
-phase (AABB-tree pools) instead, which costs less to set up. A pair of two
+phase (AABB-tree pools) instead, which costs less to set up, and so do all
+batches of a checker with ``threads`` > 1 (those pools run in parallel in C++;
+the NumPy broad phase does not). A pair of two
 geometries fixed to the world (the base link against an obstacle that
 overlaps it) collides in every configuration or in none: it is decided once,
 when the checker is built. :meth:`CollisionChecker.clearance` uses the same
@@ -540,7 +542,8 @@ class CollisionChecker:
         contact_tolerance: How deep the gripper may press into the object at
             the grasp [m], >= 0.
         self_collision: Check the robot against itself.
-        threads: Threads of ``pin.computeCollisionsInParallel``.
+        threads: Threads of ``pin.computeCollisionsInParallel``; with more than one,
+            every batch goes to coal's AABB-tree pools (parallel in C++).
 
     Raises:
         ConfigError: A negative contact tolerance or more than one object.
@@ -927,7 +930,7 @@ class CollisionChecker:
         n = len(q)
         reason = np.full(n, "", dtype=object)
         all_frames = None
-        if n < _FEW:
+        if n < _FEW or self.threads > 1:
             pool = self._mode_pool.get(bit)
             todo = np.flatnonzero(self._run(pool, q)) if pool is not None else np.zeros(0, int)
             for kind in _KINDS:

@@ -725,7 +725,7 @@ def test_broad_phase_pair_by_pair_with_rotated_boxes(robot):
     assert len(c._screens[1].boxes) > 10
 
 
-def test_an_obstacle_overlapping_the_base_collides_in_every_batch(robot):
+def test_an_obstacle_overlapping_the_base_collides_in_every_batch(robot, caplog):
     """A pair of two geometries fixed to the world (the base link and a pedestal box that
     is not the support) collides in every configuration, in large and small batches."""
     env = EnvironmentConfig.model_validate(
@@ -736,7 +736,10 @@ def test_an_obstacle_overlapping_the_base_collides_in_every_batch(robot):
             ],
         }
     )
-    c = make_checker(robot, env, None)
+    with caplog.at_level("WARNING"):
+        c = make_checker(robot, env, None)
+    assert c.static_collisions == (("panda_link0", "obstacle_0"),)
+    assert "obstacle_0 overlaps the robot's fixed panda_link0" in caplog.text
     qs = robot.random_configurations(200, 0)
     ref = _every_pair_reasons(robot, c, qs, "grasp")
     assert set(ref) == {REASON_ENVIRONMENT}

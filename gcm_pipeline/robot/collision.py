@@ -560,6 +560,9 @@ class CollisionChecker:
         link_names: Link of each robot geometry.
         table_exempt: Base links not checked against the support shape.
         contact_tolerance: [m].
+        static_collisions: ``(robot link, world shape)`` pairs fixed to the
+            world that collide (an obstacle overlapping the base link): every
+            configuration collides.
     """
 
     def __init__(
@@ -687,6 +690,10 @@ class CollisionChecker:
             if self._run(self._pair_pool[k], np.asarray(robot.home, dtype=float)[None])[0]
         }
         moving = [k for k in range(len(pairs)) if k not in fixed]
+        self.static_collisions = tuple(
+            (link_of[pairs[k].owner], gm.geometryObjects[pairs[k].b].name)
+            for k in sorted(static_hit)
+        )
         # a few configurations: coal's own broad phase (an AABB tree) per mode, and per
         # mode and kind for the reason of those that collide (no NumPy set-up cost)
         self._mode_pool: dict[int, Any] = {}

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from typing import Any
 
@@ -29,6 +30,8 @@ from gcm_pipeline.robot.collision import (
     shape_geometry,
 )
 from gcm_pipeline.robot.model import Robot
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "COLLISION_REASONS",
@@ -143,13 +146,21 @@ def make_checker(
         The :class:`~gcm_pipeline.robot.collision.CollisionChecker`.
     """
     env = EnvironmentConfig() if environment is None else environment
-    return CollisionChecker(
+    checker = CollisionChecker(
         robot,
         world_shapes(env, object_cfg, base_pose),
         contact_tolerance=env.contact_tolerance,
         self_collision=env.self_collision,
         threads=threads,
     )
+    for link, shape in checker.static_collisions:
+        log.warning(
+            "%s overlaps the robot's fixed %s: every configuration collides "
+            "(move it, or the robot: robot.base_pose)",
+            shape,
+            link,
+        )
+    return checker
 
 
 def combined_score(

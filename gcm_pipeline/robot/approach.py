@@ -949,10 +949,8 @@ def check_moves(
                 knot_check=lambda q, i: collisions(q, hit_rows[i]),
                 **opts,
             )
-            sub = np.flatnonzero(again.ok)
-            # (its grid points are the waypoints just checked: a cheap safeguard)
-            hit2, _, _ = _grid_collisions(collisions, again.q_path, sub, robot.nq, hit_rows)
-            good = np.setdiff1d(sub, hit2)
+            # its grid points are its waypoints, each checked as it was found
+            good = np.flatnonzero(again.ok)
             r = hit_rows[good]
             ok[r], reason[r], failed[r] = True, "", 0
             q_path[r], knots[r] = again.q_path[good], again.knots[good]

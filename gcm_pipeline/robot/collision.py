@@ -873,16 +873,26 @@ class CollisionChecker:
 
     # --- placing points -------------------------------------------------------------------
 
-    def _place(self, frames: Any, joints: np.ndarray, local: np.ndarray) -> np.ndarray:
-        """Points (N, P, 3) [m], base frame, of ``local`` (P, 3) fixed to ``joints`` (P,)."""
+    def _place(
+        self,
+        frames: Any,
+        joints: np.ndarray,
+        local: np.ndarray,
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Points (N, P, 3) [m], base frame, of ``local`` (P, 3) fixed to ``joints`` (P,).
+
+        ``rows``: only these configurations of ``frames`` (M,), giving (M, P, 3).
+        """
         rots, poss = frames
-        n = rots[0].shape[0]
+        n = rots[0].shape[0] if rows is None else rows.size
         out = np.empty((n, len(joints), 3))
         for j in np.unique(joints).tolist():
             cols = np.flatnonzero(joints == j)
+            rot, pos = (rots[j], poss[j]) if rows is None else (rots[j][rows], poss[j][rows])
             # (N * 3, 3) @ (3, P_j): one BLAS call per joint
-            placed = (rots[j].reshape(-1, 3) @ local[cols].T).reshape(n, 3, cols.size)
-            out[:, cols] = placed.transpose(0, 2, 1) + poss[j][:, None, :]
+            placed = (rot.reshape(-1, 3) @ local[cols].T).reshape(n, 3, cols.size)
+            out[:, cols] = placed.transpose(0, 2, 1) + pos[:, None, :]
         return out
 
     def _run(self, pool: Any, q: np.ndarray) -> np.ndarray:
@@ -957,8 +967,8 @@ class CollisionChecker:
         static = self._static_reason.get(bit)
         if static is not None:
             # a static pair collides in every configuration: its kind unless an earlier one
-            rank = {r: i for i, r in enumerate(_REASONS[k] for k in _KINDS)}
-            later = np.array([r == "" or rank[r] > rank[static] for r in reason], dtype=bool)
+            order = [_REASONS[k] for k in _KINDS]
+            later = np.isin(reason, ["", *order[order.index(static) + 1 :]])
             reason[later] = static
         free = np.flatnonzero(reason == "")
         if free.size and (self._solid is not None or held is not None):
@@ -1015,9 +1025,9 @@ class CollisionChecker:
             # 2. the sphere covers
             span = slice(screen.first_test[k], screen.first_test[k] + screen.n_tests[k])
             a, b, bound = screen.sphere_a[span], screen.sphere_b[span], screen.bound[span]
-            ca = self._place_rows(frames, rows, cov.joint[a], cov.centre[a])
+            ca = self._place(frames, cov.joint[a], cov.centre[a], rows)
             if screen.world[k] < 0:
-                gap = ca - self._place_rows(frames, rows, cov.joint[b], cov.centre[b])
+                gap = ca - self._place(frames, cov.joint[b], cov.centre[b], rows)
                 near = (_sq(gap) <= bound).any(axis=1)
             else:
                 lb = self._bounds_for(int(screen.world[k])).lower(ca) - bound
@@ -1035,34 +1045,16 @@ class CollisionChecker:
                 centre = ball[rows, g] @ inv[:3, :3].T + inv[:3, 3]
                 axis = np.argmax(np.abs(centre) - halfs, axis=1)
                 sign = np.where(centre[np.arange(rows.size), axis] >= 0, 1.0, -1.0)
-                normal = sign[:, None] * inv[axis, :3]  # the face's outward normal, base frame
-                w = np.einsum("ni,nij->nj", normal, rots[joint][rows])  # in the joint's frame
-                height = (
-                    (w @ verts).min(axis=1)
-                    + np.einsum("ni,ni->n", normal, poss[joint][rows])
-                    + sign * inv[axis, 3]
-                    - halfs[axis]
-                )
+                frame = (rots[joint][rows], poss[joint][rows], inv)
+                height = _height_over_face(frame, verts, halfs, axis, sign)
                 rows = rows[height <= _BROAD_MARGIN]
-                local = _in_box_frame((rots[joint], poss[joint], inv), rows, verts)
+                local = _in_frame((rots[joint], poss[joint], inv), rows, verts)
                 inside = np.all(np.abs(local) < lim - _INSIDE_DEPTH, axis=1).any(axis=1)
                 hit[rows[inside], k] = True
                 rows = rows[~(_beyond_a_face(local, lim) | inside)]
             if rows.size:
                 hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
         return hit
-
-    def _place_rows(
-        self, frames: Any, rows: np.ndarray, joints: np.ndarray, local: np.ndarray
-    ) -> np.ndarray:
-        """Points (M, P, 3) of ``local`` (P, 3) fixed to ``joints`` (P,), rows ``rows``."""
-        rots, poss = frames
-        out = np.empty((rows.size, len(joints), 3))
-        for j in np.unique(joints).tolist():
-            cols = np.flatnonzero(joints == j)
-            placed = (rots[j][rows].reshape(-1, 3) @ local[cols].T).reshape(rows.size, 3, -1)
-            out[:, cols] = placed.transpose(0, 2, 1) + poss[j][rows][:, None, :]
-        return out
 
     def _inside_object(self, frames: Any, rows: np.ndarray, bit: int) -> np.ndarray:
         """Whether an active robot piece lies inside the mesh object, (M,) bool."""
@@ -1282,7 +1274,7 @@ class CollisionChecker:
             g, w = pair
             joint, verts = self._hull(g)
             shape = self._bounds_for(w)
-            pts = _in_box_frame((rots[joint], poss[joint], shape.inv), rows, verts.T.copy())
+            pts = _in_frame((rots[joint], poss[joint], shape.inv), rows, verts.T)
             pts = pts.transpose(0, 2, 1)  # (M, V, 3) in the shape's frame
             gap = pts - shape.nearest(pts)
             dist = np.sqrt(_sq(gap))
@@ -1323,18 +1315,10 @@ class CollisionChecker:
                 rows = np.flatnonzero(lateral.all(axis=1))
                 if rows.size == 0:
                     continue
-                # the face on the geometry's side; the height of a vertex v over it is
-                # u . (R_j v + o_j) + t with u the face's normal in the base frame
+                # the face on the geometry's side
                 sign = np.where(c[rows, 0, axis] >= 0, 1.0, -1.0)
-                u = sign[:, None] * inv[axis, :3]
-                w = np.einsum("ni,nij->nj", u, rots[joint][rows])  # R_j^T u
-                lowest = (w @ verts.T).min(axis=1)
-                height = (
-                    lowest
-                    + np.einsum("ni,ni->n", u, poss[joint][rows])
-                    + sign * inv[axis, 3]
-                    - halfs[axis]
-                )
+                frame = (rots[joint][rows], poss[joint][rows], inv)
+                height = _height_over_face(frame, verts.T, halfs, np.full(rows.size, axis), sign)
                 above = height >= 0
                 out[rows[above], col] = height[above]
         return out
@@ -1417,17 +1401,42 @@ def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _
     )
 
 
-def _in_box_frame(frame: tuple[Any, Any, np.ndarray], rows: np.ndarray, points: np.ndarray) -> Any:
-    """Points (3, V) fixed to a joint, in a box's frame, for configurations ``rows``: (M, 3, V).
+def _in_frame(frame: tuple[Any, Any, np.ndarray], rows: np.ndarray, points: np.ndarray) -> Any:
+    """Points (3, V) fixed to a joint, in a world shape's frame, for configurations ``rows``.
 
     ``frame`` is the joint's rotations (N, 3, 3) and origins (N, 3) and the
-    box's inverse placement (4, 4).
+    shape's inverse placement (4, 4). Returns (M, 3, V).
     """
     rots, poss, inv = frame
     m = rows.size
     rot = (inv[:3, :3] @ rots[rows]).reshape(3 * m, 3)
     off = poss[rows] @ inv[:3, :3].T + inv[:3, 3]
     return (rot @ points).reshape(m, 3, points.shape[1]) + off[:, :, None]
+
+
+def _height_over_face(
+    frame: tuple[np.ndarray, np.ndarray, np.ndarray],
+    points: np.ndarray,
+    halfs: np.ndarray,
+    axis: np.ndarray,
+    sign: np.ndarray,
+) -> np.ndarray:
+    """Height (M,) of the lowest of points (3, V) fixed to a joint over one face of a box.
+
+    ``frame`` is the joint's rotations (M, 3, 3) and origins (M, 3) and the
+    box's inverse placement (4, 4); the face is the one across ``axis`` (M,)
+    on the side ``sign`` (M,, +-1) of the box ``|x| <= halfs``. The height of a
+    point v is ``u . (R v + o) + t`` with ``u`` the face's outward normal.
+    """
+    rots, poss, inv = frame
+    normal = sign[:, None] * inv[axis, :3]  # base frame
+    w = np.einsum("ni,nij->nj", normal, rots)  # R^T u, the joint's frame
+    return (
+        (w @ points).min(axis=1)
+        + np.einsum("ni,ni->n", normal, poss)
+        + sign * inv[axis, 3]
+        - halfs[axis]
+    )
 
 
 def _beyond_a_face(local: np.ndarray, lim: np.ndarray) -> np.ndarray:

@@ -77,7 +77,7 @@ class KinematicChain:
         RobotSpecError: If the model has a joint type other than revolute.
     """
 
-    CHUNK = 4096
+    CHUNK = 2048
 
     def __init__(self, model: pin.Model, frame_id: int) -> None:
         _check_one_dof(model)
@@ -102,55 +102,54 @@ class KinematicChain:
             rots.append(post @ np.asarray(placement.rotation) @ ra)
             trans.append(post @ np.asarray(placement.translation))
             post = ra.T
-        self._rot = np.array(rots)
-        self._t = np.array(trans)
+        self._rot = np.array(rots).reshape(-1, 3, 3)
+        self._t = np.array(trans).reshape(-1, 3)
         self._tool_r = post @ np.asarray(frame.placement.rotation)
         self._tool_t = post @ np.asarray(frame.placement.translation)
+        # the same as homogeneous transforms (4, 4): joint placements and the tool
+        self._placement = np.zeros((len(chain), 4, 4))
+        self._placement[:, :3, :3] = self._rot
+        self._placement[:, :3, 3] = self._t
+        self._placement[:, 3, 3] = 1.0
+        self._tool = np.eye(4)
+        self._tool[:3, :3], self._tool[:3, 3] = self._tool_r, self._tool_t
+        self._all_joints = bool(np.array_equal(self.q_index, np.arange(self.nq)))
         # the first joint's origin does not depend on q (its parent is the root)
         self.root_origin = self._t[0].copy() if chain else np.zeros(3)
 
     def _forward(
         self, q: np.ndarray, jacobian: bool
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        # each joint's frame as a (N, 3, 4) transform: one (3N, 4) @ (4, 4) product
+        # for the placement, then Rz(q) on the first two columns as one complex
+        # product, (x + i y) * exp(-i q), on a complex view of the array
         n = q.shape[0]
         nj = len(self.joint_ids)
-        rot = np.broadcast_to(np.eye(3), (n, 3, 3))
-        pos = np.zeros((n, 3))
-        origins = np.empty((nj, n, 3))
-        zaxes = np.empty((nj, n, 3))
-        cos = np.cos(q[:, self.q_index])
-        sin = np.sin(q[:, self.q_index])
+        turn = np.exp(-1j * q[:, self.q_index])  # (N, nj)
+        frames = np.empty((max(nj, 1), n, 3, 4))
+        frames[0] = self._placement[0, :3] if nj else np.eye(4)[:3]
         for k in range(nj):
-            if k == 0:
-                pos = np.broadcast_to(self._t[0], (n, 3))
-                b = np.broadcast_to(self._rot[0], (n, 3, 3))
-            else:
-                pos = pos + (rot.reshape(-1, 3) @ self._t[k]).reshape(n, 3)
-                b = (rot.reshape(-1, 3) @ self._rot[k]).reshape(n, 3, 3)
-            c = cos[:, k, None]
-            s = sin[:, k, None]
-            b0, b1 = b[:, :, 0], b[:, :, 1]
-            new = np.empty((n, 3, 3))
-            new[:, :, 0] = c * b0 + s * b1
-            new[:, :, 1] = c * b1 - s * b0
-            new[:, :, 2] = b[:, :, 2]
-            rot = new
-            if jacobian:
-                origins[k] = pos
-                zaxes[k] = b[:, :, 2]
-        tool_p = pos + (rot.reshape(-1, 3) @ self._tool_t).reshape(n, 3)
-        tool_r = (rot.reshape(-1, 3) @ self._tool_r).reshape(n, 3, 3)
+            cur = frames[k]
+            if k:
+                np.matmul(frames[k - 1].reshape(-1, 4), self._placement[k], out=cur.reshape(-1, 4))
+            cur.view(np.complex128)[:, :, 0] *= turn[:, k, None]
+        tool = (frames[nj - 1 if nj else 0].reshape(-1, 4) @ self._tool).reshape(n, 3, 4)
+        tool_r, tool_p = tool[:, :, :3], tool[:, :, 3]
         if not jacobian:
             return tool_r, tool_p, None
+        # columns of the Jacobian, component-major (3, nj, N): contiguous rows
+        origin = frames[:nj, :, :, 3].transpose(2, 0, 1)
+        z = frames[:nj, :, :, 2].transpose(2, 0, 1)
+        d = tool_p.T[:, None, :] - origin
+        cols = np.empty((6, nj, n))
+        cols[0] = z[1] * d[2] - z[2] * d[1]
+        cols[1] = z[2] * d[0] - z[0] * d[2]
+        cols[2] = z[0] * d[1] - z[1] * d[0]
+        cols[3:] = z
+        if self._all_joints:
+            return tool_r, tool_p, np.ascontiguousarray(cols.transpose(2, 0, 1))
         jac = np.zeros((n, 6, self.nq))
-        d = tool_p[None] - origins  # (k, n, 3)
-        z = zaxes
-        lin = np.empty_like(d)
-        lin[..., 0] = z[..., 1] * d[..., 2] - z[..., 2] * d[..., 1]
-        lin[..., 1] = z[..., 2] * d[..., 0] - z[..., 0] * d[..., 2]
-        lin[..., 2] = z[..., 0] * d[..., 1] - z[..., 1] * d[..., 0]
-        jac[:, :3, self.q_index] = lin.transpose(1, 2, 0)
-        jac[:, 3:, self.q_index] = zaxes.transpose(1, 2, 0)
+        jac[:, :, self.q_index] = cols.transpose(2, 0, 1)
         return tool_r, tool_p, jac
 
     def _chunked(
@@ -244,6 +243,10 @@ class JointFrames:
             self._rot[j] = pre @ np.asarray(placement.rotation) @ ra
             self._t[j] = pre @ np.asarray(placement.translation)
             self._post[j] = ra.T
+        self._placement = np.zeros((nj, 4, 4))
+        self._placement[:, :3, :3] = self._rot
+        self._placement[:, :3, 3] = self._t
+        self._placement[:, 3, 3] = 1.0
 
     def local(
         self, joint: int, rot: np.ndarray, trans: np.ndarray
@@ -266,19 +269,17 @@ class JointFrames:
         n = q.shape[0]
         rots = [np.broadcast_to(np.eye(3), (n, 3, 3))]
         poss = [np.zeros((n, 3))]
-        cos = np.cos(q)
-        sin = np.sin(q)
+        # as in KinematicChain._forward: (N, 3, 4) transforms, Rz(q) as a complex product
+        turn = np.exp(-1j * q)
+        frames = np.empty((self.njoints, n, 3, 4))
         for j in range(1, self.njoints):
             p = self.parent[j]
-            rp = rots[p].reshape(-1, 3)
-            poss.append(poss[p] + (rp @ self._t[j]).reshape(n, 3))
-            b = (rp @ self._rot[j]).reshape(n, 3, 3)
-            c = cos[:, self.q_index[j], None]
-            s = sin[:, self.q_index[j], None]
-            b0, b1 = b[:, :, 0], b[:, :, 1]
-            new = np.empty((n, 3, 3))
-            new[:, :, 0] = c * b0 + s * b1
-            new[:, :, 1] = c * b1 - s * b0
-            new[:, :, 2] = b[:, :, 2]
-            rots.append(new)
+            cur = frames[j]
+            if p == 0:
+                cur[:] = self._placement[j, :3]
+            else:
+                np.matmul(frames[p].reshape(-1, 4), self._placement[j], out=cur.reshape(-1, 4))
+            cur.view(np.complex128)[:, :, 0] *= turn[:, self.q_index[j], None]
+            rots.append(cur[:, :, :3])
+            poss.append(cur[:, :, 3])
         return rots, poss

@@ -434,24 +434,31 @@ class _ShapeBound:
     def lower(self, points: np.ndarray) -> np.ndarray:
         """Distances (...,) [m] (>= 0) from points (..., 3) in the base frame."""
         pts = np.asarray(points, dtype=float)
-        # one (K, 3) @ (3, 3) product (a stacked product loops over the leading axes)
-        p = (pts.reshape(-1, 3) @ self.inv[:3, :3].T + self.inv[:3, 3]).reshape(pts.shape)
+        return self.lower_xyz(pts.reshape(-1, 3).T).reshape(pts.shape[:-1])
+
+    def lower_xyz(self, xyz: np.ndarray) -> np.ndarray:
+        """:meth:`lower` of points given by their coordinates (3, ...) (component first)."""
+        # one (3, 3) @ (3, K) product; then each coordinate is a contiguous row
+        x, y, z = self.inv[:3, :3] @ xyz.reshape(3, -1) + self.inv[:3, 3, None]
+        shape = xyz.shape[1:]
         if self.kind == "sphere":
-            return np.maximum(np.sqrt(_sq(p)) - self.radius, 0.0)
-        if self.kind == "cylinder":
-            radial = np.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2) - self.radius
-            axial = np.abs(p[..., 2]) - self.half
+            out = np.sqrt(x * x + y * y + z * z) - self.radius
+        elif self.kind == "cylinder":
+            radial = np.sqrt(x * x + y * y) - self.radius
+            axial = np.abs(z) - self.half
             np.maximum(radial, 0.0, out=radial)
             np.maximum(axial, 0.0, out=axial)
-            return np.sqrt(radial**2 + axial**2)
-        if self.kind == "capsule":
-            z = np.clip(p[..., 2], -self.half, self.half)
-            d = np.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2 + (p[..., 2] - z) ** 2)
-            return np.maximum(d - self.radius, 0.0)
-        gap = np.abs(p - self.centre)
-        gap -= self.halfs
-        np.maximum(gap, 0.0, out=gap)
-        return np.sqrt(_sq(gap))
+            return np.sqrt(radial * radial + axial * axial).reshape(shape)
+        elif self.kind == "capsule":
+            along = z - np.clip(z, -self.half, self.half)
+            out = np.sqrt(x * x + y * y + along * along) - self.radius
+        else:
+            gx, gy, gz = (
+                np.maximum(np.abs(c - m) - h, 0.0)
+                for c, m, h in zip((x, y, z), self.centre, self.halfs, strict=True)
+            )
+            return np.sqrt(gx * gx + gy * gy + gz * gz).reshape(shape)
+        return np.maximum(out, 0.0).reshape(shape)
 
     def nearest(self, p: np.ndarray) -> np.ndarray:
         """Nearest points (..., 3) of the shape to points ``p`` (..., 3) given in its frame.
@@ -1006,22 +1013,23 @@ class CollisionChecker:
         cov, rots, poss = self._cover, frames[0], frames[1]
         # 1. one bounding sphere per robot geometry
         ball = self._place(frames, cov.ball_joint, cov.ball_centre)  # (N, G, 3)
-        open_ = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        # coordinates first, (3, G, N): gathers of whole rows, contiguous arithmetic
+        xyz = np.ascontiguousarray(ball.transpose(2, 1, 0))
+        open_ = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N)
         own = screen.geom_b >= 0
         if own.any():
-            by_geom = np.ascontiguousarray(ball.transpose(1, 0, 2))  # (G, N, 3): fast gathers
-            gap = by_geom[screen.geom_a[own]] - by_geom[screen.geom_b[own]]
-            reach = cov.ball_radius[screen.geom_a[own]] + cov.ball_radius[screen.geom_b[own]]
-            near = np.einsum("pni,pni->pn", gap, gap) <= ((reach + _BROAD_MARGIN) ** 2)[:, None]
-            open_[:, own] = near.T
+            ga, gb = screen.geom_a[own], screen.geom_b[own]
+            dx, dy, dz = xyz[:, ga] - xyz[:, gb]
+            reach = cov.ball_radius[ga] + cov.ball_radius[gb]
+            open_[own] = dx * dx + dy * dy + dz * dz <= ((reach + _BROAD_MARGIN) ** 2)[:, None]
         for w in np.unique(screen.world[screen.world >= 0]).tolist():
             at = np.flatnonzero(screen.world == w)
             g = screen.geom_a[at]
-            lb = self._bounds_for(w).lower(ball[:, g]) - cov.ball_radius[g]
-            open_[:, at] = lb <= _BROAD_MARGIN
-        hit = np.zeros_like(open_)
-        for k in np.flatnonzero(open_.any(axis=0)).tolist():
-            rows = np.flatnonzero(open_[:, k])
+            lb = self._bounds_for(w).lower_xyz(xyz[:, g]) - cov.ball_radius[g][:, None]
+            open_[at] = lb <= _BROAD_MARGIN
+        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        for k in np.flatnonzero(open_.any(axis=1)).tolist():
+            rows = np.flatnonzero(open_[k])
             # 2. the sphere covers
             span = slice(screen.first_test[k], screen.first_test[k] + screen.n_tests[k])
             a, b, bound = screen.sphere_a[span], screen.sphere_b[span], screen.bound[span]

@@ -675,6 +675,8 @@ class CollisionChecker:
                 gm, robot_ids, self._frames, max_spheres=8
             )
         self._cover = cover
+        #: _place's grouping of points by joint, by the joints' bytes
+        self._groups: dict[bytes, list[tuple[int, np.ndarray]]] = {}
         self._bounds = {
             w: _ShapeBound(
                 gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous
@@ -895,13 +897,20 @@ class CollisionChecker:
         """
         rots, poss = frames
         n = rots[0].shape[0] if rows is None else rows.size
-        out = np.empty((n, len(joints), 3))
-        for j in np.unique(joints).tolist():
-            cols = np.flatnonzero(joints == j)
+        groups = self._groups.get(joints.tobytes())
+        if groups is None:
+            groups = self._groups[joints.tobytes()] = [
+                (j, np.flatnonzero(joints == j)) for j in np.unique(joints).tolist()
+            ]
+        out = None if len(groups) == 1 else np.empty((n, len(joints), 3))
+        for j, cols in groups:
             rot, pos = (rots[j], poss[j]) if rows is None else (rots[j][rows], poss[j][rows])
             # (N * 3, 3) @ (3, P_j): one BLAS call per joint
             placed = (rot.reshape(-1, 3) @ local[cols].T).reshape(n, 3, cols.size)
+            if out is None:  # every point on one joint
+                return np.add(placed.transpose(0, 2, 1), pos[:, None, :], order="C")
             out[:, cols] = placed.transpose(0, 2, 1) + pos[:, None, :]
+        assert out is not None
         return out
 
     def _run(self, pool: Any, q: np.ndarray) -> np.ndarray:

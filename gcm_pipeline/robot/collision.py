@@ -1030,9 +1030,14 @@ class CollisionChecker:
         own = screen.geom_b >= 0
         if own.any():
             ga, gb = screen.geom_a[own], screen.geom_b[own]
-            dx, dy, dz = xyz[:, ga] - xyz[:, gb]
+            # one coordinate at a time: temporaries of (pairs, N), not (3, pairs, N)
+            # (large temporaries cost page faults)
+            sq = np.zeros((ga.size, len(q)))
+            for c in xyz:
+                d = c[ga] - c[gb]
+                sq += d * d
             reach = cov.ball_radius[ga] + cov.ball_radius[gb]
-            open_[own] = dx * dx + dy * dy + dz * dz <= ((reach + _BROAD_MARGIN) ** 2)[:, None]
+            open_[own] = sq <= ((reach + _BROAD_MARGIN) ** 2)[:, None]
         for w in np.unique(screen.world[screen.world >= 0]).tolist():
             at = np.flatnonzero(screen.world == w)
             g = screen.geom_a[at]

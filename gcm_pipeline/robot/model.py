@@ -517,10 +517,11 @@ class Robot:
         qs = self.as_configurations(q)
         out = np.empty((qs.shape[0], 4, 4))
         model, data, fid = self.model, self.data, self.grasp_frame_id
+        fk, frame = pin.forwardKinematics, pin.updateFramePlacement
         for i, qi in enumerate(qs):
-            pin.forwardKinematics(model, data, qi)
-            pin.updateFramePlacement(model, data, fid)
-            out[i] = data.oMf[fid].homogeneous
+            fk(model, data, qi)
+            # the placement updateFramePlacement returns: no second lookup in data.oMf
+            out[i] = frame(model, data, fid).homogeneous
         return out
 
     def within_limits(self, q: Any, strict: bool = True) -> np.ndarray:

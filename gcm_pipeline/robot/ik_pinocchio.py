@@ -76,8 +76,10 @@ __all__ = [
 #: Offsets [rad] of joint 7 around its preferred value, tried with the first grid.
 _NEAR_Q7 = np.array([0.0, -0.05, 0.05, -0.1, 0.1, -0.2, 0.2, -0.4, 0.4])
 
-#: (target, joint-7) rows of one closed-form call: about 340 bytes each.
-_ANALYTIC_ROWS = 1 << 18
+#: (target, joint-7) rows of one closed-form call: about 340 bytes each. Blocks of
+#: 16,384 rows ran 1.5x faster than of 262,144 (20,000 targets x 8 values: 159 against
+#: 248 ms): their temporaries stay in the cache and cost no page faults.
+_ANALYTIC_ROWS = 1 << 14
 
 #: A closed-form answer farther than this from its given seed in some joint [rad] is
 #: compared with the LM's from the seed.

@@ -38,6 +38,31 @@ def _z_to(axis: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k / (1.0 + c)
 
 
+def _homogeneous(rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """Transforms (K, 4, 4) of rotations (K, 3, 3) and translations (K, 3)."""
+    out = np.zeros((len(rot), 4, 4))
+    out[:, :3, :3] = rot
+    out[:, :3, 3] = trans
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _joint_frame(
+    out: np.ndarray, parent: np.ndarray | None, placement: np.ndarray, turn: np.ndarray
+) -> None:
+    """A joint's frames (N, 3, 4), in place: parent @ placement @ Rz(q).
+
+    ``parent`` (N, 3, 4) is None at the root; ``turn`` (N,) is exp(-i q). The
+    placement is one (3N, 4) @ (4, 4) product; Rz(q) changes only the x and y
+    columns, (x + i y) * exp(-i q): one complex product on a complex view.
+    """
+    if parent is None:
+        out[:] = placement[:3]
+    else:
+        np.matmul(parent.reshape(-1, 4), placement, out=out.reshape(-1, 4))
+    out.view(np.complex128)[:, :, 0] *= turn[:, None]
+
+
 def _check_one_dof(model: pin.Model) -> None:
     """Raise :class:`RobotSpecError` unless every joint has one degree of freedom."""
     if model.nq != model.nv or model.nq != model.njoints - 1:
@@ -102,38 +127,30 @@ class KinematicChain:
             rots.append(post @ np.asarray(placement.rotation) @ ra)
             trans.append(post @ np.asarray(placement.translation))
             post = ra.T
-        self._rot = np.array(rots).reshape(-1, 3, 3)
-        self._t = np.array(trans).reshape(-1, 3)
-        self._tool_r = post @ np.asarray(frame.placement.rotation)
-        self._tool_t = post @ np.asarray(frame.placement.translation)
-        # the same as homogeneous transforms (4, 4): joint placements and the tool
-        self._placement = np.zeros((len(chain), 4, 4))
-        self._placement[:, :3, :3] = self._rot
-        self._placement[:, :3, 3] = self._t
-        self._placement[:, 3, 3] = 1.0
-        self._tool = np.eye(4)
-        self._tool[:3, :3], self._tool[:3, 3] = self._tool_r, self._tool_t
+        # joint placements and the tool as transforms (4, 4)
+        self._placement = _homogeneous(
+            np.array(rots).reshape(-1, 3, 3), np.array(trans).reshape(-1, 3)
+        )
+        tool = frame.placement
+        self._tool = _homogeneous(
+            (post @ np.asarray(tool.rotation))[None], (post @ np.asarray(tool.translation))[None]
+        )[0]
         self._all_joints = bool(np.array_equal(self.q_index, np.arange(self.nq)))
         # the first joint's origin does not depend on q (its parent is the root)
-        self.root_origin = self._t[0].copy() if chain else np.zeros(3)
+        self.root_origin = self._placement[0, :3, 3].copy() if chain else np.zeros(3)
 
     def _forward(
         self, q: np.ndarray, jacobian: bool
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        # each joint's frame as a (N, 3, 4) transform: one (3N, 4) @ (4, 4) product
-        # for the placement, then Rz(q) on the first two columns as one complex
-        # product, (x + i y) * exp(-i q), on a complex view of the array
+        # each joint's frame as a (N, 3, 4) transform (see _joint_frame)
         n = q.shape[0]
         nj = len(self.joint_ids)
         turn = np.exp(-1j * q[:, self.q_index])  # (N, nj)
-        frames = np.empty((max(nj, 1), n, 3, 4))
-        frames[0] = self._placement[0, :3] if nj else np.eye(4)[:3]
+        frames = np.empty((nj, n, 3, 4))
         for k in range(nj):
-            cur = frames[k]
-            if k:
-                np.matmul(frames[k - 1].reshape(-1, 4), self._placement[k], out=cur.reshape(-1, 4))
-            cur.view(np.complex128)[:, :, 0] *= turn[:, k, None]
-        tool = (frames[nj - 1 if nj else 0].reshape(-1, 4) @ self._tool).reshape(n, 3, 4)
+            _joint_frame(frames[k], frames[k - 1] if k else None, self._placement[k], turn[:, k])
+        last = frames[-1] if nj else np.broadcast_to(np.eye(4)[:3], (n, 3, 4))
+        tool = (last.reshape(-1, 4) @ self._tool).reshape(n, 3, 4)
         tool_r, tool_p = tool[:, :, :3], tool[:, :, 3]
         if not jacobian:
             return tool_r, tool_p, None
@@ -202,7 +219,8 @@ class KinematicChain:
 
         Their sum bounds the distance from the first joint's origin to the frame.
         """
-        return np.concatenate([np.linalg.norm(self._t[1:], axis=1), [np.linalg.norm(self._tool_t)]])
+        steps = np.concatenate([self._placement[1:, :3, 3], self._tool[None, :3, 3]])
+        return np.linalg.norm(steps, axis=1)
 
 
 class JointFrames:
@@ -230,23 +248,20 @@ class JointFrames:
         self.njoints = nj
         self.parent = np.array([int(model.parents[j]) for j in range(nj)], dtype=int)
         self.q_index = np.array([-1] + [model.joints[j].idx_q for j in range(1, nj)], dtype=int)
-        self._rot = np.zeros((nj, 3, 3))
-        self._t = np.zeros((nj, 3))
+        rot = np.zeros((nj, 3, 3))
+        trans = np.zeros((nj, 3))
         self._post = np.zeros((nj, 3, 3))  # R_a^T of each joint: rotated -> Pinocchio frame
         self._post[0] = np.eye(3)
-        self._rot[0] = np.eye(3)
+        rot[0] = np.eye(3)
         for j in range(1, nj):
             axis = _joint_axis(model, j)
             ra = _z_to(axis)
             pre = self._post[self.parent[j]]
             placement = model.jointPlacements[j]
-            self._rot[j] = pre @ np.asarray(placement.rotation) @ ra
-            self._t[j] = pre @ np.asarray(placement.translation)
+            rot[j] = pre @ np.asarray(placement.rotation) @ ra
+            trans[j] = pre @ np.asarray(placement.translation)
             self._post[j] = ra.T
-        self._placement = np.zeros((nj, 4, 4))
-        self._placement[:, :3, :3] = self._rot
-        self._placement[:, :3, 3] = self._t
-        self._placement[:, 3, 3] = 1.0
+        self._placement = _homogeneous(rot, trans)
 
     def local(
         self, joint: int, rot: np.ndarray, trans: np.ndarray
@@ -269,17 +284,13 @@ class JointFrames:
         n = q.shape[0]
         rots = [np.broadcast_to(np.eye(3), (n, 3, 3))]
         poss = [np.zeros((n, 3))]
-        # as in KinematicChain._forward: (N, 3, 4) transforms, Rz(q) as a complex product
         turn = np.exp(-1j * q)
-        frames = np.empty((self.njoints, n, 3, 4))
+        frames = np.empty((self.njoints, n, 3, 4))  # (N, 3, 4) transforms, see _joint_frame
         for j in range(1, self.njoints):
             p = self.parent[j]
             cur = frames[j]
-            if p == 0:
-                cur[:] = self._placement[j, :3]
-            else:
-                np.matmul(frames[p].reshape(-1, 4), self._placement[j], out=cur.reshape(-1, 4))
-            cur.view(np.complex128)[:, :, 0] *= turn[:, self.q_index[j], None]
+            parent = frames[p] if p else None
+            _joint_frame(cur, parent, self._placement[j], turn[:, self.q_index[j]])
             rots.append(cur[:, :, :3])
             poss.append(cur[:, :, 3])
         return rots, poss

@@ -902,14 +902,15 @@ class CollisionChecker:
             groups = self._groups[joints.tobytes()] = [
                 (j, np.flatnonzero(joints == j)) for j in np.unique(joints).tolist()
             ]
-        out = None if len(groups) == 1 else np.empty((n, len(joints), 3))
+        out = np.empty((n, len(joints), 3)) if len(groups) != 1 else None
         for j, cols in groups:
             rot, pos = (rots[j], poss[j]) if rows is None else (rots[j][rows], poss[j][rows])
             # (N * 3, 3) @ (3, P_j): one BLAS call per joint
             placed = (rot.reshape(-1, 3) @ local[cols].T).reshape(n, 3, cols.size)
+            pts = np.add(placed.transpose(0, 2, 1), pos[:, None, :], order="C")
             if out is None:  # every point on one joint
-                return np.add(placed.transpose(0, 2, 1), pos[:, None, :], order="C")
-            out[:, cols] = placed.transpose(0, 2, 1) + pos[:, None, :]
+                return pts
+            out[:, cols] = pts
         assert out is not None
         return out
 

@@ -540,9 +540,13 @@ def plan_moves(
     def follow(rows: np.ndarray, pieces: int) -> np.ndarray:
         """The rows that reach the end following the line from the grasp in pieces.
 
-        Each waypoint starts from the previous one; a failure fails the row.
+        Each waypoint starts from the previous one; a failure fails the row. With
+        ``knot_check`` (``pieces == steps``: the waypoints are the grid points) each
+        row's waypoints up to its first failure are checked in one batch after the
+        line is followed; a row fails at its first waypoint the check rejects,
+        as if each had been checked when found (later ones started from it only).
         """
-        last = 0
+        start, last = rows, 0
         for i in range(1, pieces + 1):
             at = (i * fine_steps) // pieces
             if rows.size == 0 or at == last:
@@ -564,16 +568,22 @@ def plan_moves(
                 )
                 q_new, conv = res.q, res.success
             knots[rows[conv], at] = q_new[conv]
-            knots[rows[~conv], 1:] = np.nan
             failed_at[rows[~conv]] = last
             rows, last = rows[conv], at
-            if knot_check is not None and rows.size:
-                why = np.full(n, "", dtype=object)
-                why[rows] = np.asarray(knot_check(knots[rows, at], rows), dtype=object)
-                bad = rows[why[rows] != ""]
-                fail(bad, np.full(bad.size, at - 1), why)  # fails at grid step at / sub
-                knots[bad, 1:] = np.nan
-                rows = rows[why[rows] == ""]
+        if knot_check is not None and start.size:
+            grid = knots[start][:, sub::sub]  # (m, steps, nq), NaN after a row's failure
+            found = np.isfinite(grid[:, :, 0])
+            owner = np.broadcast_to(start[:, None], found.shape)
+            why = np.full(found.shape, "", dtype=object)
+            why[found] = np.asarray(knot_check(grid[found], owner[found]), dtype=object)
+            hit = why != ""
+            bad = np.flatnonzero(hit.any(axis=1))
+            first = hit[bad].argmax(axis=1)
+            row_why = np.full(n, "", dtype=object)
+            row_why[start[bad]] = why[bad, first]
+            fail(start[bad], (first + 1) * sub - 1, row_why)  # fails at grid step first + 1
+            rows = rows[ok[rows]]
+        knots[np.setdiff1d(start, rows), 1:] = np.nan
         return rows
 
     # 0. ends proved beyond reach fail at once, whatever the IK would try

@@ -12,7 +12,12 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import Move, move_poses
-from gcm_pipeline.robot.engine import _RAN_EVERY_SEED, ReachabilityEngine, available_cores
+from gcm_pipeline.robot.engine import (
+    _RAN_EVERY_SEED,
+    ReachabilityEngine,
+    _guided_chunks,
+    available_cores,
+)
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.candidates import generate_candidates
@@ -137,6 +142,20 @@ def test_workers_and_chunks_do_not_change_the_result(robot, checker, grasps, res
                 assert b is None
             else:
                 np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    ("n", "most", "workers"), [(56214, 8192, 2), (10, 3, 2), (5, 8, 4), (9, 4, 1)]
+)
+def test_chunks_cover_every_target_once_in_order(n, most, workers):
+    chunks = _guided_chunks(n, most, workers)
+    np.testing.assert_array_equal(np.concatenate(chunks), np.arange(n))
+    sizes = [c.size for c in chunks]
+    assert max(sizes) <= most
+    # on several workers they shrink towards the end; one worker takes the largest
+    assert sizes == sorted(sizes, reverse=True)
+    if workers == 1:
+        assert sizes[:-1] == [most] * (len(sizes) - 1)
 
 
 def test_neighbours_seed_from_final_solutions(robot, checker, grasps):

@@ -51,8 +51,9 @@ Every decision is per target, so a target's result does not depend on the
 other targets, on the chunking or on the number of worker processes. Rows
 with ``neighbours`` (densified poses) are solved after the rows they refer to
 and seeded from those rows' final, checked solutions. Chunks of
-``chunk_size`` targets stream through the sequence, so memory is bounded by
-the chunk size, and several chunks run at once on ``workers`` forked
+at most ``chunk_size`` targets stream through the sequence (on several
+workers the last ones smaller), so memory is bounded by the chunk size,
+and several chunks run at once on ``workers`` forked
 processes that inherit the robot, seed library and collision world.
 
 The engine takes plain arrays and shapes (a robot, a collision checker,
@@ -231,7 +232,8 @@ class ReachabilityEngine:
             ``q (M, nq) -> (M,) str`` (``''`` = valid), run after the collision check.
         alternatives: Other IK solutions tried per target that fails a check (0: none).
         workers: Processes (1: this one; ``"auto"``: :func:`available_cores`).
-        chunk_size: Targets per chunk (memory and progress granularity).
+        chunk_size: Most targets per chunk (memory and progress granularity); on
+            several workers the last chunks are smaller, so they finish together.
         ik_options: Backend options for the IK of step 1 (e.g. ``random_seed``).
         solutions: Branches kept per reachable target (step 4; 1: only the answer).
         solution_separation: Two kept branches differ by more than this in
@@ -254,7 +256,7 @@ class ReachabilityEngine:
         validator: Callable[[np.ndarray], Any] | None = None,
         alternatives: int = 4,
         workers: int | str = 1,
-        chunk_size: int = 2048,
+        chunk_size: int = 8192,
         ik_options: Mapping[str, Any] | None = None,
         solutions: int = 1,
         solution_separation: float = 0.2,
@@ -774,8 +776,13 @@ class ReachabilityEngine:
                 no_ik = np.isin(out["reason"][np.clip(ref, 0, None)], _RAN_EVERY_SEED)
                 hopeless = np.all(no_ik | (ref < 0), axis=1) & np.any(ref >= 0, axis=1)
             chunks = [
-                (rows[a : a + self.chunk_size], tgt, sub, a, hopeless)
-                for a in range(0, rows.size, self.chunk_size)
+                (
+                    rows[at],
+                    tgt,
+                    None if sub is None else sub[at],
+                    None if hopeless is None else hopeless[at],
+                )
+                for at in _guided_chunks(rows.size, self.chunk_size, self.workers)
             ]
             for (chunk_rows, *_), part in zip(
                 chunks, self._map(chunks, return_candidates), strict=True
@@ -828,19 +835,11 @@ class ReachabilityEngine:
 
     def _map(
         self,
-        chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, int, np.ndarray | None]],
+        chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]],
         cands: bool,
     ) -> Iterator[dict[str, Any]]:
         """Solve the chunks in order, on this process or the worker pool."""
-        work = [
-            (
-                tgt[rows],
-                None if sub is None else sub[a : a + rows.size],
-                cands,
-                None if hopeless is None else hopeless[a : a + rows.size],
-            )
-            for rows, tgt, sub, a, hopeless in chunks
-        ]
+        work = [(tgt[rows], sub, cands, hopeless) for rows, tgt, sub, hopeless in chunks]
         if self.workers == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
             for args in work:
                 yield self.solve(*args)
@@ -905,6 +904,24 @@ def _blas_controller() -> Any:
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
+
+
+def _guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:
+    """Positions ``0..n-1`` in contiguous chunks of at most ``most``, shrinking at the end.
+
+    On several workers a chunk takes a share of what is left (guided
+    scheduling), at least ``most // 4``: large chunks while there is much to
+    do (fewer, larger NumPy calls), small ones at the end so that the workers
+    finish together. Results do not depend on the chunks (every decision is
+    per target).
+    """
+    least = max(most // 4, 1)
+    out, a = [], 0
+    while a < n:
+        size = most if workers == 1 else min(most, max(least, -(-(n - a) // (2 * workers))))
+        out.append(np.arange(a, min(a + size, n)))
+        a += size
+    return out
 
 
 def _merge_ik(parts: list[np.ndarray], results: list[IKResult], m: int, nq: int) -> IKResult:

@@ -218,7 +218,7 @@ def make_engine(
     retreat: RetreatConfig | None = None,
     checker: CollisionChecker | None = None,
     alternatives: int = 4,
-    chunk_size: int = 2048,
+    chunk_size: int = 8192,
     solutions: int = 1,
     **options: Any,
 ) -> ReachabilityEngine:
@@ -274,7 +274,7 @@ def check_reachability(
     checker: CollisionChecker | None = None,
     engine: ReachabilityEngine | None = None,
     alternatives: int = 4,
-    chunk_size: int = 2048,
+    chunk_size: int = 8192,
     solutions: int = 1,
     **options: Any,
 ) -> GraspTable | tuple[GraspTable, IKCandidates]:

@@ -935,10 +935,15 @@ def check_moves(
     if q0.ndim == 1:
         q0 = q0[None]
     plan = plan_moves(robot, tg, q0, move, **opts)
-    ok = plan.ok.copy()
+    # the plan's own arrays, changed in place (knots: (N, 8 steps + 1, nq) floats)
+    ok, failed, q_path, knots, dev = (
+        plan.ok,
+        plan.failed_step,
+        plan.q_path,
+        plan.knots,
+        plan.deviation,
+    )
     reason = plan.reason.astype(object)
-    failed = plan.failed_step.copy()
-    q_path, knots, dev = plan.q_path.copy(), plan.knots.copy(), plan.deviation.copy()
     if collisions is not None and move.distance > 0:
         rows = np.flatnonzero(ok)
         hit_rows, why, first = _grid_collisions(collisions, q_path, rows, robot.nq)
@@ -965,9 +970,9 @@ def check_moves(
             ok[r], reason[r], failed[r] = True, "", 0
             q_path[r], knots[r] = again.q_path[good], again.knots[good]
             dev[r] = again.deviation[good]
-    q_path = np.where(ok[:, None, None], q_path, np.nan)
-    knots = np.where(ok[:, None, None], knots, np.nan)
-    dev = np.where(ok, dev, np.nan)
+    q_path[~ok] = np.nan
+    knots[~ok] = np.nan
+    dev[~ok] = np.nan
     return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, knots)
 
 

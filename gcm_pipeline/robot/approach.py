@@ -455,6 +455,7 @@ def plan_moves(
     backend: str = "pinocchio",
     grid_knots: bool = False,
     knot_check: Callable[[np.ndarray, np.ndarray], Any] | None = None,
+    check_first: Any = None,
     **ik_options: Any,
 ) -> MovePlan:
     """Joint paths of N moves from their grasps, batched over the moves (see module doc).
@@ -475,6 +476,11 @@ def plan_moves(
             waypoint as it is found; a move whose waypoint gets a reason fails
             with it there, before the rest of its line is followed (the grid
             waypoints are the path's grid points).
+        check_first: With ``knot_check``: per move (N,) the grid step up to
+            which its waypoints are found and checked before the rest of its
+            line is followed (e.g. where its first path collided: most moves
+            fail there, and their later waypoints are never computed). The
+            result does not depend on it. None: the whole line, then the checks.
         **ik_options: Further backend options of the end's IK (seeded only
             with the grasp's configuration unless given otherwise).
 
@@ -496,6 +502,10 @@ def plan_moves(
             f"poses must be (N, 4, 4) and q_start (N, {nq}) with the same N, "
             f"got {tg.shape} and {qg.shape}"
         )
+    if check_first is not None:
+        check_first = np.asarray(check_first)
+        if check_first.shape != (n,) or not np.issubdtype(check_first.dtype, np.integer):
+            raise InputError(f"check_first must be (N,) = ({n},) ints, got {check_first.shape}")
     ok = np.all(np.isfinite(qg), axis=1) & np.all(np.isfinite(tg), axis=(1, 2))
     reason = np.where(ok, "", "invalid").astype(object)
     failed = np.zeros(n, dtype=int)
@@ -537,23 +547,22 @@ def plan_moves(
         reason[bad] = why if isinstance(why, str) else why[bad]
         failed[bad] = np.minimum(first[bad] // sub + 1, steps)
 
-    def follow(rows: np.ndarray, pieces: int) -> np.ndarray:
-        """The rows that reach the end following the line from the grasp in pieces.
+    def advance(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray, pieces: int) -> np.ndarray:
+        """Waypoints ``lo + 1 .. hi`` (per row) of the line cut in ``pieces``.
 
-        Each waypoint starts from the previous one; a failure fails the row. With
-        ``knot_check`` (``pieces == steps``: the waypoints are the grid points) each
-        row's waypoints up to its first failure are checked in one batch after the
-        line is followed; a row fails at its first waypoint the check rejects,
-        as if each had been checked when found (later ones started from it only).
+        Each starts from the previous one (waypoint 0 is the grasp); a waypoint
+        that does not converge stops its row. Returns the rows that got them all.
         """
-        start, last = rows, 0
+        alive = np.ones(rows.size, dtype=bool)
         for i in range(1, pieces + 1):
-            at = (i * fine_steps) // pieces
-            if rows.size == 0 or at == last:
+            sel = np.flatnonzero(alive & (lo < i) & (i <= hi))
+            if sel.size == 0:
                 continue
-            target = tg[rows].copy()
-            target[:, :3, 3] += (at / fine_steps) * offsets[rows]
-            seed = knots[rows, last]
+            r = rows[sel]
+            at, prev = (i * fine_steps) // pieces, ((i - 1) * fine_steps) // pieces
+            target = tg[r].copy()
+            target[:, :3, 3] += (at / fine_steps) * offsets[r]
+            seed = knots[r, prev]
             if at < fine_steps:
                 q_new, conv = _waypoints(robot, seed, target, tol, gripper_radius)
             else:
@@ -567,22 +576,56 @@ def plan_moves(
                     **ik_options,
                 )
                 q_new, conv = res.q, res.success
-            knots[rows[conv], at] = q_new[conv]
-            failed_at[rows[~conv]] = last
-            rows, last = rows[conv], at
-        if knot_check is not None and start.size:
-            grid = knots[start][:, sub::sub]  # (m, steps, nq), NaN after a row's failure
-            found = np.isfinite(grid[:, :, 0])
-            owner = np.broadcast_to(start[:, None], found.shape)
-            why = np.full(found.shape, "", dtype=object)
+            knots[r[conv], at] = q_new[conv]
+            failed_at[r[~conv]] = prev
+            alive[sel[~conv]] = False
+        return rows[alive]
+
+    def check_grid(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+        """``knot_check`` on the grid waypoints ``lo + 1 .. hi`` found (per row), one batch.
+
+        A row fails at its first waypoint the check rejects.
+        """
+        k = np.arange(1, steps + 1)
+        grid = knots[rows[:, None], k * sub]  # (m, steps, nq), NaN where not found
+        found = np.isfinite(grid[:, :, 0]) & (k > lo[:, None]) & (k <= hi[:, None])
+        owner = np.broadcast_to(rows[:, None], found.shape)
+        why = np.full(found.shape, "", dtype=object)
+        if found.any():
+            assert knot_check is not None
             why[found] = np.asarray(knot_check(grid[found], owner[found]), dtype=object)
-            hit = why != ""
-            bad = np.flatnonzero(hit.any(axis=1))
-            first = hit[bad].argmax(axis=1)
-            row_why = np.full(n, "", dtype=object)
-            row_why[start[bad]] = why[bad, first]
-            fail(start[bad], (first + 1) * sub - 1, row_why)  # fails at grid step first + 1
-            rows = rows[ok[rows]]
+        hit = why != ""
+        bad = np.flatnonzero(hit.any(axis=1))
+        first = hit[bad].argmax(axis=1)
+        row_why = np.full(n, "", dtype=object)
+        row_why[rows[bad]] = why[bad, first]
+        fail(rows[bad], (first + 1) * sub - 1, row_why)  # fails at grid step first + 1
+
+    def follow(rows: np.ndarray, pieces: int) -> np.ndarray:
+        """The rows that reach the end following the line from the grasp in pieces.
+
+        Each waypoint starts from the previous one; a failure fails the row. With
+        ``knot_check`` (``pieces == steps``: the waypoints are the grid points) the
+        waypoints are checked in batches: each row's up to its ``check_first``
+        step, then, for the rows still free, the rest of the line. A row fails at
+        its first waypoint the check rejects, as if each had been checked when
+        found (later ones only start from it).
+        """
+        start, none = rows, np.zeros(rows.size, dtype=int)
+        end = np.full(rows.size, pieces)
+        if knot_check is None or rows.size == 0:
+            rows = advance(rows, none, end, pieces)
+        else:
+            pause = end if check_first is None else np.clip(check_first[rows], 1, pieces)
+            advance(rows, none, pause, pieces)
+            check_grid(rows, none, pause)
+            more = np.flatnonzero(
+                ok[rows] & (pause < pieces) & np.isfinite(knots[rows, pause * sub, 0])
+            )
+            done = rows[ok[rows] & (pause == pieces) & np.isfinite(knots[rows, fine_steps, 0])]
+            later = advance(rows[more], pause[more], end[more], pieces)
+            check_grid(rows[more], pause[more], end[more])
+            rows = np.union1d(done, later[ok[later]])
         knots[np.setdiff1d(start, rows), 1:] = np.nan
         return rows
 
@@ -962,6 +1005,7 @@ def check_moves(
                 grid_knots=True,
                 # a waypoint that collides fails its move at once (it is a grid point)
                 knot_check=lambda q, i: collisions(q, hit_rows[i]),
+                check_first=first,  # where the first path collided
                 **opts,
             )
             # its grid points are its waypoints, each checked as it was found

@@ -118,6 +118,9 @@ _RAN_EVERY_SEED = ("no_ik", "joint_limits")
 #: Two solutions closer than this in every joint are the same branch [rad].
 _SAME_SOLUTION = 1e-3
 
+#: Default most targets per chunk, by backend (see ``chunk_size``).
+_CHUNK = {"pinocchio": 8192, "mink": 2048}
+
 #: Seeds of the search for more branches (step 4, pinocchio backend).
 _BRANCH_LIBRARY = 16
 _BRANCH_RESTARTS = 8
@@ -234,6 +237,9 @@ class ReachabilityEngine:
         workers: Processes (1: this one; ``"auto"``: :func:`available_cores`).
         chunk_size: Most targets per chunk (memory and progress granularity); on
             several workers the last chunks are smaller, so they finish together.
+            None: 8,192 for the pinocchio backend (fewer, larger NumPy calls),
+            2,048 for mink (it solves one target at a time: progress every few
+            seconds).
         ik_options: Backend options for the IK of step 1 (e.g. ``random_seed``).
         solutions: Branches kept per reachable target (step 4; 1: only the answer).
         solution_separation: Two kept branches differ by more than this in
@@ -256,7 +262,7 @@ class ReachabilityEngine:
         validator: Callable[[np.ndarray], Any] | None = None,
         alternatives: int = 4,
         workers: int | str = 1,
-        chunk_size: int = 8192,
+        chunk_size: int | None = None,
         ik_options: Mapping[str, Any] | None = None,
         solutions: int = 1,
         solution_separation: float = 0.2,
@@ -283,6 +289,8 @@ class ReachabilityEngine:
         if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
             raise InputError(f"workers must be 'auto' or an int >= 1, got {workers!r}")
         self.workers = int(workers)
+        if chunk_size is None:
+            chunk_size = _CHUNK.get(backend, _CHUNK["mink"])
         if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
             raise InputError(f"chunk_size must be an int >= 1, got {chunk_size!r}")
         self.chunk_size = int(chunk_size)

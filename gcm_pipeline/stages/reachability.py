@@ -218,7 +218,7 @@ def make_engine(
     retreat: RetreatConfig | None = None,
     checker: CollisionChecker | None = None,
     alternatives: int = 4,
-    chunk_size: int = 8192,
+    chunk_size: int | None = None,
     solutions: int = 1,
     **options: Any,
 ) -> ReachabilityEngine:
@@ -274,7 +274,7 @@ def check_reachability(
     checker: CollisionChecker | None = None,
     engine: ReachabilityEngine | None = None,
     alternatives: int = 4,
-    chunk_size: int = 8192,
+    chunk_size: int | None = None,
     solutions: int = 1,
     **options: Any,
 ) -> GraspTable | tuple[GraspTable, IKCandidates]:
@@ -310,7 +310,7 @@ def check_reachability(
         engine: A prebuilt engine (:func:`make_engine`, reused across calls);
             the arguments that configure one are then ignored.
         alternatives: Other IK solutions tried per grasp that fails a check.
-        chunk_size: Targets per chunk of the engine.
+        chunk_size: Most targets per chunk of the engine (None: by backend).
         solutions: IK branches kept per reachable grasp (the engine's step 4).
         **options: Backend options (see :func:`~gcm_pipeline.robot.ik.solve_ik`).
 

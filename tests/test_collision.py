@@ -766,7 +766,7 @@ def test_finger_boxes_at_a_box_agree_with_coal_near_contact(robot):
     pools) give coal's answer (coal misses some of the shallowest box-box contacts)."""
     base = CollisionChecker(robot, [], self_collision=False)
     q = np.asarray(robot.home, dtype=float)
-    rots, poss = base._frames.compute(q[None])
+    rots, poss, _ = base._frames.compute(q[None])
     finger = base.link_names.index("panda_rightfinger")
     joint, v = base._hull(finger)
     v = v @ rots[joint][0].T + poss[joint][0]

@@ -16,12 +16,14 @@ equal Pinocchio's ``forwardKinematics`` + ``updateFramePlacements`` and
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pinocchio as pin
 
 from gcm_pipeline.errors import RobotSpecError
 
-__all__ = ["JointFrames", "KinematicChain"]
+__all__ = ["Frames", "JointFrames", "KinematicChain"]
 
 _AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0)}
 _AXES["JointModelRZ"] = (0.0, 0.0, 1.0)
@@ -223,6 +225,26 @@ class KinematicChain:
         return np.linalg.norm(steps, axis=1)
 
 
+class Frames(NamedTuple):
+    """Frames of every joint for N configurations (:meth:`JointFrames.compute`).
+
+    Attributes:
+        rots: Per joint, rotations (N, 3, 3) (views of ``transforms``).
+        poss: Per joint, origins (N, 3) [m] (views of ``transforms``).
+        transforms: Per joint, the frames as (N, 3, 4) transforms ``[R | p]``
+            (one matrix product places points: ``T.reshape(-1, 4) @ [x; 1]``).
+    """
+
+    rots: list[np.ndarray]
+    poss: list[np.ndarray]
+    transforms: list[np.ndarray]
+
+    def take(self, rows: np.ndarray) -> Frames:
+        """The frames of configurations ``rows`` only."""
+        tfs = [t[rows] for t in self.transforms]
+        return Frames([t[:, :, :3] for t in tfs], [t[:, :, 3] for t in tfs], tfs)
+
+
 class JointFrames:
     """Placements of every joint of a model of revolute joints, N configurations at once.
 
@@ -270,27 +292,26 @@ class JointFrames:
         post = self._post[joint]
         return post @ rot, post @ trans
 
-    def compute(self, q: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    def compute(self, q: np.ndarray) -> Frames:
         """Frames of every joint (index 0: the universe).
 
         Args:
             q: Configurations (N, nq) [rad].
 
         Returns:
-            ``(R, p)``: per joint, rotations (N, 3, 3) in the rotated convention
-            and origins (N, 3) [m], base frame.
+            The :class:`Frames`: per joint, rotations (N, 3, 3) in the rotated
+            convention and origins (N, 3) [m], base frame, and both as (N, 3, 4)
+            transforms.
         """
         q = np.asarray(q, dtype=float)
         n = q.shape[0]
-        rots = [np.broadcast_to(np.eye(3), (n, 3, 3))]
-        poss = [np.zeros((n, 3))]
         turn = np.exp(-1j * q)
         frames = np.empty((self.njoints, n, 3, 4))  # (N, 3, 4) transforms, see _joint_frame
+        frames[0] = np.eye(4)[:3]
         for j in range(1, self.njoints):
             p = self.parent[j]
             cur = frames[j]
             parent = frames[p] if p else None
             _joint_frame(cur, parent, self._placement[j], turn[:, self.q_index[j]])
-            rots.append(cur[:, :, :3])
-            poss.append(cur[:, :, 3])
-        return rots, poss
+        tfs = list(frames)
+        return Frames([t[:, :, :3] for t in tfs], [t[:, :, 3] for t in tfs], tfs)

@@ -895,8 +895,8 @@ class CollisionChecker:
 
         ``rows``: only these configurations of ``frames`` (M,), giving (M, P, 3).
         """
-        rots, poss = frames
-        n = rots[0].shape[0] if rows is None else rows.size
+        tfs = frames.transforms
+        n = tfs[0].shape[0] if rows is None else rows.size
         groups = self._groups.get(joints.tobytes())
         if groups is None:
             groups = self._groups[joints.tobytes()] = [
@@ -904,13 +904,15 @@ class CollisionChecker:
             ]
         out = np.empty((n, len(joints), 3)) if len(groups) != 1 else None
         for j, cols in groups:
-            rot, pos = (rots[j], poss[j]) if rows is None else (rots[j][rows], poss[j][rows])
-            # (N * 3, 3) @ (3, P_j): one BLAS call per joint
-            placed = (rot.reshape(-1, 3) @ local[cols].T).reshape(n, 3, cols.size)
-            pts = np.add(placed.transpose(0, 2, 1), pos[:, None, :], order="C")
+            tf = tfs[j] if rows is None else tfs[j][rows]
+            # (N * 3, 4) @ (4, P_j), the points in homogeneous coordinates: one BLAS call
+            # per joint, rotation and translation at once
+            homo = np.ones((4, cols.size))
+            homo[:3] = local[cols].T
+            placed = (tf.reshape(-1, 4) @ homo).reshape(n, 3, cols.size).transpose(0, 2, 1)
             if out is None:  # every point on one joint
-                return pts
-            out[:, cols] = pts
+                return np.ascontiguousarray(placed)
+            out[:, cols] = placed
         assert out is not None
         return out
 
@@ -994,19 +996,19 @@ class CollisionChecker:
             if all_frames is None:
                 frames = self._frames.compute(q[free])
             else:
-                frames = ([r[free] for r in all_frames[0]], [x[free] for x in all_frames[1]])
+                frames = all_frames.take(free)
             if self._solid is not None:
                 inside = self._inside_object(frames, np.arange(free.size), bit)
                 reason[free[inside]] = REASON_OBJECT
             if held is not None:
                 still = np.flatnonzero(reason[free] == "")
-                sub = ([r[still] for r in frames[0]], [x[still] for x in frames[1]])
+                sub = frames.take(still)
                 grasp_pose = self.robot.fk(q[free[still]])
                 for kind in ("environment", "object"):
                     hit = self._carried_collides(kind, sub, grasp_pose, held[free[still]])
                     reason[free[still[hit]]] = _REASONS[kind]
                     still, grasp_pose = still[~hit], grasp_pose[~hit]
-                    sub = ([r[~hit] for r in sub[0]], [x[~hit] for x in sub[1]])
+                    sub = sub.take(np.flatnonzero(~hit))
                     if still.size == 0:
                         break
         return reason
@@ -1087,7 +1089,7 @@ class CollisionChecker:
         use = np.flatnonzero(self._pair_modes[self._solid_pair] & bit)
         if self._solid is None or rows.size == 0 or use.size == 0:
             return out
-        sub = ([r[rows] for r in frames[0]], [p[rows] for p in frames[1]])
+        sub = frames.take(rows)
         pts = self._place(sub, self._solid_joint[use], self._solid_local[use])
         m = self._solid_from_base
         local = pts @ m[:3, :3].T + m[:3, 3]
@@ -1290,7 +1292,7 @@ class CollisionChecker:
         """
         out = np.full(need.shape, np.nan)
         below = np.full(need.shape, np.nan)
-        rots, poss = frames
+        rots, poss = frames.rots, frames.poss
         for col in np.flatnonzero(need.any(axis=0)).tolist():
             pair = self._vertex_pairs.get(col)
             if pair is None:
@@ -1327,7 +1329,7 @@ class CollisionChecker:
         n = centres.shape[0]
         out = np.full((n, self._dist_owner.size), np.nan)
         cov = self._cover
-        rots, poss = frames
+        rots, poss = frames.rots, frames.poss
         for col, (inv, halfs, g) in self._box_pairs.items():
             sph = np.arange(cov.start[g], cov.start[g + 1])
             pts = centres[:, sph]

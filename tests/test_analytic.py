@@ -75,6 +75,28 @@ def test_every_solution_is_exact_inside_the_limits_and_the_original_is_among_the
     assert found.all()
 
 
+@pytest.mark.parametrize("reach", [0.05, 0.3, 1.0])
+def test_near_keeps_exactly_the_solutions_within_reach_of_the_reference(
+    panda: Robot, reach: float
+) -> None:
+    """Pruning by a reference configuration returns exactly the full solution set's
+    members within ``reach`` in every joint, in the same order (the approach's end
+    of move relies on it to pick the same end)."""
+    solver = analytic_solver(panda)
+    assert solver is not None
+    rng = np.random.default_rng(12)
+    q = panda.random_configurations(800, rng)
+    rot, pos = _pin_pose(panda, q)
+    ref = np.clip(q + rng.normal(0.0, reach / 3, q.shape), panda.lower, panda.upper)
+    q7 = np.clip(ref[:, 6:7] + np.linspace(-0.2, 0.2, 5), panda.lower[6], panda.upper[6])
+    full = solver.solve(rot, pos, q7, panda.lower, panda.upper)
+    near = solver.solve(rot, pos, q7, panda.lower, panda.upper, (ref, reach))
+    inside = np.all(np.abs(full[1] - ref[full[0]]) <= reach, axis=1)
+    assert 0 < inside.sum() < inside.size
+    for a, b in zip(full, near, strict=True):
+        np.testing.assert_array_equal(a[inside], b)
+
+
 def test_out_of_reach_and_backward_poses_have_no_solution(panda: Robot) -> None:
     solver = analytic_solver(panda)
     assert solver is not None

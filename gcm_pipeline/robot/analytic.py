@@ -206,11 +206,13 @@ class PandaAnalyticIK:
         q7: np.ndarray,
         lower: np.ndarray,
         upper: np.ndarray,
+        near: tuple[np.ndarray, float] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every closed-form solution inside the joint limits, for each (target, :math:`q_7`).
 
         The branches are pruned joint by joint (elbow, then joint 6, then the
-        shoulder and joint 5), so rows that leave the limits early cost little.
+        shoulder and joint 5), so rows that leave the limits early cost little;
+        with ``near``, so do rows that leave the given neighbourhood.
 
         Args:
             rot: Target rotations of the grasp frame (N, 3, 3), base frame.
@@ -218,6 +220,10 @@ class PandaAnalyticIK:
             q7: Values of joint 7 (N, K) [rad], inside its limits.
             lower: Lower joint limits (7,) [rad].
             upper: Upper joint limits (7,) [rad].
+            near: ``(reference, reach)``: only the solutions within ``reach``
+                [rad] of ``reference[index]`` (N, 7) in every joint (exactly
+                those of all the solutions; the others are not computed past
+                the joint that leaves).
 
         Returns:
             ``(index, q, branch, column)``: target index (M,), configuration
@@ -263,7 +269,12 @@ class PandaAnalyticIK:
             half = np.arccos((length2 - self._k) / self._rho4)  # NaN out of reach
         q4 = _wrap(np.concatenate([self._gamma + half, self._gamma - half]))
         q4, ok = within(3, q4)
-        ok &= np.tile((q7f >= lower[6]) & (q7f <= upper[6]), 2)
+        q7_ok = (q7f >= lower[6]) & (q7f <= upper[6])
+        if near is not None:
+            ref, reach = np.asarray(near[0], dtype=float), float(near[1])
+            q7_ok &= np.abs(q7f - ref[t, 6]) <= reach
+            ok &= np.abs(q4 - np.tile(ref[t, 3], 2)) <= reach
+        ok &= np.tile(q7_ok, 2)
         rows = np.flatnonzero(ok)
         src = rows % (n * k)  # row of the (target, q7) table
         branch = rows // (n * k) * 4  # elbow root
@@ -287,6 +298,8 @@ class PandaAnalyticIK:
         centre = np.arctan2(xu, yu)
         q6 = _wrap(np.concatenate([centre + spread, centre - spread]))
         q6, ok = within(5, q6)
+        if near is not None:
+            ok &= np.abs(q6 - np.tile(ref[src // k, 5], 2)) <= reach
         rows2 = np.flatnonzero(ok)
         sel = rows2 % len(rows)
         q6 = q6[rows2]
@@ -330,6 +343,8 @@ class PandaAnalyticIK:
         for j in (0, 1, 2, 4):
             out_q[:, j], inside = within(j, out_q[:, j])
             ok &= inside
+        if near is not None:
+            ok &= np.all(np.abs(out_q - ref[np.tile(src // k, 2)]) <= reach, axis=1)
         keep = np.flatnonzero(ok)
         target = np.tile(src, 2)[keep] // k
         branch = np.concatenate([branch, branch + 1])[keep]  # shoulder root

@@ -792,7 +792,10 @@ def _end_of_move(
         lower, upper = robot.lower + eps, robot.upper - eps
         start = np.clip(q_start, lower, upper)
         q7 = np.clip(start[:, 6:7] + _END_Q7, lower[6], upper[6])
-        at, cand, _, _ = _analytic_blocks(solver, ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper)
+        # only ends within _NEAR_END of the start in every joint can be kept
+        at, cand, _, _ = _analytic_blocks(
+            solver, ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper, (start, _NEAR_END)
+        )
         change = np.max(np.abs(cand - start[at]), axis=1)
         order = np.lexsort((change, at))
         at, cand, change = at[order], cand[order], change[order]

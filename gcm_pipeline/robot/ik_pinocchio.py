@@ -494,17 +494,26 @@ def _analytic_blocks(
     q7: np.ndarray,
     lower: np.ndarray,
     upper: np.ndarray,
+    near: tuple[np.ndarray, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`PandaAnalyticIK.solve` in blocks of targets, without repeats.
 
     Blocks bound the memory; a repeat is one joint-7 value given twice to a
     target (e.g. two offsets clipped to a limit): its first column is kept.
+    ``near``: ``(reference (N, 7), reach)``, as for the solver.
     """
     n, k = q7.shape
     step = max(1, _ANALYTIC_ROWS // max(k, 1))
     starts = range(0, max(n, 1), step)
     parts = [
-        solver.solve(rot[a : a + step], pos[a : a + step], q7[a : a + step], lower, upper)
+        solver.solve(
+            rot[a : a + step],
+            pos[a : a + step],
+            q7[a : a + step],
+            lower,
+            upper,
+            None if near is None else (near[0][a : a + step], near[1]),
+        )
         for a in starts
     ]
     at = np.concatenate([p[0] + a for p, a in zip(parts, starts, strict=True)])

@@ -472,10 +472,11 @@ def plan_moves(
         grid_knots: Start with a waypoint at every grid point (on the line
             within the waypoint tolerance) instead of none.
         knot_check: With ``grid_knots``: ``knot_check(q, move) -> reasons``
-            (as ``collisions`` of :func:`check_moves`) is called on each grid
-            waypoint as it is found; a move whose waypoint gets a reason fails
-            with it there, before the rest of its line is followed (the grid
-            waypoints are the path's grid points).
+            (as ``collisions`` of :func:`check_moves`) is called on the grid
+            waypoints found, in at most two batches (see ``check_first``); a
+            move fails at its first waypoint that gets a reason, with that
+            reason (the grid waypoints are the path's grid points). Ignored
+            without ``grid_knots``.
         check_first: With ``knot_check``: per move (N,) the grid step up to
             which its waypoints are found and checked before the rest of its
             line is followed (e.g. where its first path collided: most moves
@@ -613,7 +614,7 @@ def plan_moves(
         """
         start, none = rows, np.zeros(rows.size, dtype=int)
         end = np.full(rows.size, pieces)
-        if knot_check is None or rows.size == 0:
+        if knot_check is None or not grid_knots or rows.size == 0:
             rows = advance(rows, none, end, pieces)
         else:
             pause = end if check_first is None else np.clip(check_first[rows], 1, pieces)

@@ -28,6 +28,7 @@ from pydantic import BaseModel
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.stages import candidates
 from gcm_pipeline.stages.candidates import read_grasp_file
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -216,6 +217,31 @@ def test_damaged_grasp_files(fmt, mutations, cut, tail):
 @given(data=st.binary(max_size=600))
 def test_random_bytes_as_grasp_files(fmt, data):
     _read_or_refuse(fmt, data)
+
+
+def test_an_hdf5_read_that_never_finishes_is_refused_in_one_line(monkeypatch):
+    """One byte changed in a valid ACRONYM file (a damaged variable-length string, found
+    by the fuzz test above) made the HDF5 library loop forever in the reader: now the read
+    is given up after its time limit, refused in one line, and its child process killed."""
+    import multiprocessing as mp
+    import time
+
+    monkeypatch.setattr(candidates, "_HDF5_SECONDS", 2.0)
+    data = bytearray(VALID["acronym"])
+    data[7112] = 97  # with h5py's layout of this file: the object/file string's heap entry
+    t0 = time.monotonic()
+    _read_or_refuse("acronym", bytes(data) + b"\x00")
+    assert time.monotonic() - t0 < 30
+    assert not mp.active_children()
+
+    # a reader that never returns, whatever the h5py version writes
+    monkeypatch.setattr(candidates, "_read_acronym_here", lambda path, n: time.sleep(600))
+    with tempfile.TemporaryDirectory(prefix="gcm-fuzz-") as d:
+        path = Path(d) / "g.h5"
+        path.write_bytes(VALID["acronym"])
+        with pytest.raises(InputError, match="did not finish reading it in 2 s; the file"):
+            read_grasp_file(path, format="acronym")
+    assert not mp.active_children()
 
 
 # --------------------------------------------------------------- tampered run directories

@@ -767,12 +767,20 @@ def _csv_column(col: np.ndarray) -> np.ndarray:
         return col.astype(str)
 
 
+#: A child reading an ACRONYM file gets this long [s], plus a second per
+#: ``_HDF5_BYTES_PER_SECOND`` of file, before the file counts as corrupt: the HDF5
+#: library can loop forever on a damaged file (seen: a damaged variable-length string).
+_HDF5_SECONDS = 10.0
+_HDF5_BYTES_PER_SECOND = 20e6
+
+
 def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
     """Read an ACRONYM file in a forked child process where one can be forked.
 
-    The HDF5 library can crash the whole process (a segmentation fault) on a
-    corrupt file, e.g. when it follows a damaged variable-length string; in a
-    child that crash becomes an :class:`InputError` naming the file.
+    The HDF5 library can crash the whole process (a segmentation fault) or
+    loop forever on a corrupt file, e.g. when it follows a damaged
+    variable-length string; in a child, that crash or a read that does not
+    finish in time becomes an :class:`InputError` naming the file.
     """
     try:
         import h5py  # noqa: F401
@@ -787,16 +795,30 @@ def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
         return _read_acronym_here(path, max_count)
     ctx = mp.get_context("fork")
     receive, send = ctx.Pipe(duplex=False)
+    try:
+        limit = _HDF5_SECONDS + path.stat().st_size / _HDF5_BYTES_PER_SECOND
+    except OSError:
+        limit = _HDF5_SECONDS
     child = ctx.Process(target=_acronym_child, args=(send, path, max_count), daemon=True)
     child.start()
     send.close()
+    late = False
     try:
-        result = receive.recv()
+        late = not receive.poll(limit)
+        result = None if late else receive.recv()
     except EOFError:
         result = None
     finally:
         receive.close()
-        child.join()
+        child.join(timeout=0 if late else 5.0)
+        if child.is_alive():  # looping in HDF5, or the caller was interrupted
+            child.kill()
+            child.join()
+    if late:
+        raise InputError(
+            f"{path}: the HDF5 library did not finish reading it in {limit:.0f} s; "
+            "the file is corrupt"
+        )
     if result is None:
         code = child.exitcode or 0
         what = signal.Signals(-code).name if code < 0 else f"exit status {code}"

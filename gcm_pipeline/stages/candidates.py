@@ -802,15 +802,16 @@ def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
     child = ctx.Process(target=_acronym_child, args=(send, path, max_count), daemon=True)
     child.start()
     send.close()
-    late = False
+    late, answered = False, False
     try:
         late = not receive.poll(limit)
         result = None if late else receive.recv()
+        answered = not late
     except EOFError:
-        result = None
+        result, answered = None, True
     finally:
         receive.close()
-        child.join(timeout=0 if late else 5.0)
+        child.join(timeout=5.0 if answered else 0)
         if child.is_alive():  # looping in HDF5, or the caller was interrupted
             child.kill()
             child.join()

@@ -552,7 +552,8 @@ def plan_moves(
         """Waypoints ``lo + 1 .. hi`` (per row) of the line cut in ``pieces``.
 
         Each starts from the previous one (waypoint 0 is the grasp); a waypoint
-        that does not converge stops its row. Returns the rows that got them all.
+        that does not converge stops its row. Returns (M,) bool: the rows that
+        got them all.
         """
         alive = np.ones(rows.size, dtype=bool)
         for i in range(1, pieces + 1):
@@ -580,7 +581,7 @@ def plan_moves(
             knots[r[conv], at] = q_new[conv]
             failed_at[r[~conv]] = prev
             alive[sel[~conv]] = False
-        return rows[alive]
+        return alive
 
     def check_grid(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
         """``knot_check`` on the grid waypoints ``lo + 1 .. hi`` found (per row), one batch.
@@ -612,21 +613,19 @@ def plan_moves(
         its first waypoint the check rejects, as if each had been checked when
         found (later ones only start from it).
         """
-        start, none = rows, np.zeros(rows.size, dtype=int)
+        start, zero = rows, np.zeros(rows.size, dtype=int)
         end = np.full(rows.size, pieces)
         if knot_check is None or not grid_knots or rows.size == 0:
-            rows = advance(rows, none, end, pieces)
+            rows = rows[advance(rows, zero, end, pieces)]
         else:
             pause = end if check_first is None else np.clip(check_first[rows], 1, pieces)
-            advance(rows, none, pause, pieces)
-            check_grid(rows, none, pause)
-            more = np.flatnonzero(
-                ok[rows] & (pause < pieces) & np.isfinite(knots[rows, pause * sub, 0])
-            )
-            done = rows[ok[rows] & (pause == pieces) & np.isfinite(knots[rows, fine_steps, 0])]
-            later = advance(rows[more], pause[more], end[more], pieces)
+            got = advance(rows, zero, pause, pieces)
+            check_grid(rows, zero, pause)
+            got &= ok[rows]
+            more = got & (pause < pieces)
+            got[more] = advance(rows[more], pause[more], end[more], pieces)
             check_grid(rows[more], pause[more], end[more])
-            rows = np.union1d(done, later[ok[later]])
+            rows = rows[got & ok[rows]]
         knots[np.setdiff1d(start, rows), 1:] = np.nan
         return rows
 

@@ -412,7 +412,9 @@ def test_clearance_face_shortcut_equals_coal(robot):
     c = _bottle_and_box_checker(robot)
     qs = robot.random_configurations(400, 4)
     frames = c._frames.compute(qs)
-    exact = c._face_distances(frames, c._place(frames, c._cover.joint, c._cover.centre))
+    centres = c._place(frames, c._cover.joint, c._cover.centre)
+    anything = np.full((len(qs), c._dist_owner.size), -np.inf)  # no pair left out
+    exact = c._face_distances(frames, centres, anything)
     known = np.isfinite(exact)
     assert known.sum() > 2000  # most link-table pairs and some link-obstacle pairs
     worlds = {c._gm.geometryObjects[int(w)].name for w in c._dist_world[known.any(axis=0)]}
@@ -425,6 +427,20 @@ def test_clearance_face_shortcut_equals_coal(robot):
             ref = pin.computeDistance(dm, dd, int(p)).min_distance
             # coal's GJK stops at a relative tolerance of about 1e-6
             assert abs(exact[i, p] - ref) < 1e-9 + 2e-6 * abs(ref), (i, p, exact[i, p], ref)
+    # with the pairs' sphere bounds, pairs that cannot be nearer than a distance found
+    # are left out: fewer distances, the same minimum of each row
+    bound = np.full_like(anything, np.inf)
+    for w in np.unique(c._dist_world).tolist():
+        cols = np.flatnonzero(c._dist_world == w)
+        d = c._bounds_for(w).lower(centres) - c._cover.radius
+        bound[:, cols] = np.minimum.reduceat(d, c._cover.start[:-1], axis=1)[:, c._dist_owner[cols]]
+    some = c._face_distances(frames, centres, bound)
+    assert np.isfinite(some).sum() < 0.5 * known.sum()
+    assert np.all((some == exact) | np.isnan(some))
+    np.testing.assert_array_equal(
+        np.nanmin(np.where(known, exact, np.inf), axis=1),
+        np.nanmin(np.where(np.isfinite(some), some, np.inf), axis=1),
+    )
 
 
 def test_switches_self_collision_and_object(robot):
@@ -789,3 +805,17 @@ def test_finger_boxes_at_a_box_agree_with_coal_near_contact(robot):
             assert c.check(q[None])[0] == ref, (n, depth)
             answers.add(ref)
     assert answers == {"", REASON_ENVIRONMENT}
+
+
+def test_clearance_of_a_row_does_not_depend_on_its_batch(robot, checker):
+    """A configuration's clearance is the same, to the bit, alone or in any batch (chunks
+    and workers of the engine give identical answers); NumPy computes a single row
+    through another BLAS routine, which rounds differently."""
+    c = _bottle_and_box_checker(robot)
+    qs = robot.random_configurations(60, 11)
+    for chk in (checker, c):
+        batch = chk.clearance(qs)
+        alone = np.array([chk.clearance(q[None])[0] for q in qs])
+        pairs = np.array([chk.clearance(qs[i : i + 2])[0] for i in range(len(qs) - 1)])
+        np.testing.assert_array_equal(alone, batch)
+        np.testing.assert_array_equal(pairs, batch[:-1])

@@ -440,27 +440,47 @@ class _ShapeBound:
         """:meth:`lower` of points given by their coordinates (3, ...) (component first)."""
         # each coordinate a contiguous row; einsum, not matmul: OpenBLAS takes ten
         # times longer on a (3, 3) @ (3, K) product
-        x, y, z = np.einsum("ij,jk->ik", self.inv[:3, :3], xyz.reshape(3, -1))
-        x, y, z = x + self.inv[0, 3], y + self.inv[1, 3], z + self.inv[2, 3]
+        loc = np.einsum("ij,jk->ik", self.inv[:3, :3], xyz.reshape(3, -1))
+        # in place from here on (the same arithmetic; fewer temporaries of K floats)
+        loc += self.inv[:3, 3:4]
+        x, y, z = loc
         shape = xyz.shape[1:]
         if self.kind == "sphere":
-            out = np.sqrt(x * x + y * y + z * z) - self.radius
+            out = x * x
+            out += y * y
+            out += z * z
+            np.sqrt(out, out=out)
+            out -= self.radius
         elif self.kind == "cylinder":
-            radial = np.sqrt(x * x + y * y) - self.radius
-            axial = np.abs(z) - self.half
+            radial = x * x
+            radial += y * y
+            np.sqrt(radial, out=radial)
+            radial -= self.radius
+            axial = np.abs(z, out=z)
+            axial -= self.half
             np.maximum(radial, 0.0, out=radial)
             np.maximum(axial, 0.0, out=axial)
-            return np.sqrt(radial * radial + axial * axial).reshape(shape)
+            radial *= radial
+            axial *= axial
+            radial += axial
+            return np.sqrt(radial, out=radial).reshape(shape)
         elif self.kind == "capsule":
             along = z - np.clip(z, -self.half, self.half)
-            out = np.sqrt(x * x + y * y + along * along) - self.radius
+            out = x * x
+            out += y * y
+            out += along * along
+            np.sqrt(out, out=out)
+            out -= self.radius
         else:
-            gx, gy, gz = (
-                np.maximum(np.abs(c - m) - h, 0.0)
-                for c, m, h in zip((x, y, z), self.centre, self.halfs, strict=True)
-            )
-            return np.sqrt(gx * gx + gy * gy + gz * gz).reshape(shape)
-        return np.maximum(out, 0.0).reshape(shape)
+            loc -= self.centre[:, None]
+            np.abs(loc, out=loc)
+            loc -= self.halfs[:, None]
+            np.maximum(loc, 0.0, out=loc)
+            loc *= loc
+            out = x + y
+            out += z
+            return np.sqrt(out, out=out).reshape(shape)
+        return np.maximum(out, 0.0, out=out).reshape(shape)
 
     def nearest(self, p: np.ndarray) -> np.ndarray:
         """Nearest points (..., 3) of the shape to points ``p`` (..., 3) given in its frame.
@@ -499,7 +519,7 @@ class _ShapeBound:
             )
         if self.kind == "capsule":
             return self.radius * np.sqrt(_sq(n)) + self.half * np.abs(n[..., 2])
-        return n @ self.centre + np.abs(n) @ self.halfs
+        return _row_matmul(n, self.centre) + _row_matmul(np.abs(n), self.halfs)
 
 
 def _sq(v: np.ndarray) -> np.ndarray:
@@ -1069,7 +1089,7 @@ class CollisionChecker:
                 # the face nearest the geometry's bounding sphere first: its lowest
                 # hull vertex over that face's plane (one coordinate), then all of them
                 g = screen.geom_a[k]
-                centre = ball[rows, g] @ inv[:3, :3].T + inv[:3, 3]
+                centre = _row_matmul(ball[rows, g], inv[:3, :3].T) + inv[:3, 3]
                 axis = np.argmax(np.abs(centre) - halfs, axis=1)
                 sign = np.where(centre[np.arange(rows.size), axis] >= 0, 1.0, -1.0)
                 frame = (rots[joint][rows], poss[joint][rows], inv)
@@ -1243,8 +1263,9 @@ class CollisionChecker:
                 d = self._bounds_for(w).lower(centres) - cov.radius
                 per_owner = np.minimum.reduceat(d, cov.start[:-1], axis=1)
                 bound[:, cols] = per_owner[:, self._dist_owner[cols]]
-            # exact distances to boxes where a link lies in the region of one face
-            exact = self._face_distances(frames, centres)
+            # exact distances to boxes where a link lies in the region of one face, and
+            # where they can still be the nearest
+            exact = self._face_distances(frames, centres, bound)
             known = np.isfinite(exact)
             bound[known] = exact[known]
             best0 = np.where(known, exact, np.inf).min(axis=1)
@@ -1316,7 +1337,7 @@ class CollisionChecker:
             below[rows[keep], col] = lower[keep]
         return out, below
 
-    def _face_distances(self, frames: Any, centres: np.ndarray) -> np.ndarray:
+    def _face_distances(self, frames: Any, centres: np.ndarray, bound: np.ndarray) -> np.ndarray:
         """Exact distances (N, P) of the clearance pairs against boxes, NaN where unknown.
 
         A robot geometry that lies in the region of one face of a box (its
@@ -1325,15 +1346,30 @@ class CollisionChecker:
         that plane: the distance to the box is linear in that region, so its
         minimum over the geometry is at a hull vertex (what coal computes on
         the mesh, to round-off).
+
+        Pairs whose lower bound ``bound`` (N, P) is no less than an exact
+        distance already found for the row are left unknown: their distance
+        cannot be below the row's minimum, so the clearance is the same. The
+        pairs are visited in a fixed order, the links farthest along the chain first
+        (at a grasp they are usually the nearest): a row's result does not depend on
+        the other rows of the batch (two pairs can be at the same distance, e.g. the
+        two fingers over a table, to round-off).
         """
         n = centres.shape[0]
         out = np.full((n, self._dist_owner.size), np.nan)
+        best = np.full(n, np.inf)
         cov = self._cover
         rots, poss = frames.rots, frames.poss
-        for col, (inv, halfs, g) in self._box_pairs.items():
+        along = self._cover.ball_joint
+        cols = sorted(self._box_pairs, key=lambda k: (-int(along[self._box_pairs[k][2]]), k))
+        for col in cols:
+            inv, halfs, g = self._box_pairs[col]
             sph = np.arange(cov.start[g], cov.start[g + 1])
-            pts = centres[:, sph]
-            c = (pts.reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]).reshape(pts.shape)  # box frame
+            may = np.flatnonzero(bound[:, col] < best)
+            if may.size == 0:
+                continue
+            pts = centres[may][:, sph]
+            c = (_row_matmul(pts.reshape(-1, 3), inv[:3, :3].T) + inv[:3, 3]).reshape(pts.shape)
             r = cov.radius[sph]
             joint, verts = self._hulls[g]
             for axis in range(3):
@@ -1344,10 +1380,12 @@ class CollisionChecker:
                     continue
                 # the face on the geometry's side
                 sign = np.where(c[rows, 0, axis] >= 0, 1.0, -1.0)
-                frame = (rots[joint][rows], poss[joint][rows], inv)
+                at = may[rows]
+                frame = (rots[joint][at], poss[joint][at], inv)
                 height = _height_over_face(frame, verts.T, halfs, np.full(rows.size, axis), sign)
                 above = height >= 0
-                out[rows[above], col] = height[above]
+                out[at[above], col] = height[above]
+                np.minimum.at(best, at[above], height[above])
         return out
 
     def with_world(self, world: Any) -> CollisionChecker:
@@ -1428,6 +1466,18 @@ def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _
     )
 
 
+def _row_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for a 2-D ``a``, each row's result the same whatever the number of rows.
+
+    NumPy computes a single row with BLAS's vector routine, whose sums can differ
+    in the last bit from the matrix routine's; a configuration's answer must not
+    depend on the batch it comes in (chunks, workers), so one row is computed as two.
+    """
+    if a.ndim == 2 and a.shape[0] == 1:
+        return (np.concatenate([a, a]) @ b)[:1]
+    return a @ b
+
+
 def _in_frame(frame: tuple[Any, Any, np.ndarray], rows: np.ndarray, points: np.ndarray) -> Any:
     """Points (3, V) fixed to a joint, in a world shape's frame, for configurations ``rows``.
 
@@ -1437,7 +1487,7 @@ def _in_frame(frame: tuple[Any, Any, np.ndarray], rows: np.ndarray, points: np.n
     rots, poss, inv = frame
     m = rows.size
     rot = (inv[:3, :3] @ rots[rows]).reshape(3 * m, 3)
-    off = poss[rows] @ inv[:3, :3].T + inv[:3, 3]
+    off = _row_matmul(poss[rows], inv[:3, :3].T) + inv[:3, 3]
     return (rot @ points).reshape(m, 3, points.shape[1]) + off[:, :, None]
 
 
@@ -1459,7 +1509,7 @@ def _height_over_face(
     normal = sign[:, None] * inv[axis, :3]  # base frame
     w = np.einsum("ni,nij->nj", normal, rots)  # R^T u, the joint's frame
     return (
-        (w @ points).min(axis=1)
+        _row_matmul(w, points).min(axis=1)
         + np.einsum("ni,ni->n", normal, poss)
         + sign * inv[axis, 3]
         - halfs[axis]

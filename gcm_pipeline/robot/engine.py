@@ -641,9 +641,15 @@ class ReachabilityEngine:
         q_rejected = np.full((m, nq), np.nan)
         best = np.full(m, -1)
 
-        def record(rows: np.ndarray, qs: np.ndarray, err: np.ndarray | None) -> np.ndarray:
-            """Check solutions ``qs`` of ``rows``; keep passes and the furthest failures."""
-            chk = self.check(targets[rows], qs)
+        def record(
+            rows: np.ndarray, qs: np.ndarray, err: np.ndarray | None, chk: CheckResult | None = None
+        ) -> np.ndarray:
+            """Check solutions ``qs`` of ``rows``; keep passes and the furthest failures.
+
+            ``chk``: their check, if already done.
+            """
+            if chk is None:
+                chk = self.check(targets[rows], qs)
             ok = chk.passed
             reachable[rows[ok]] = True
             reason[rows[ok]] = ""
@@ -667,11 +673,25 @@ class ReachabilityEngine:
             t0 = time.process_time()
             idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
             self._spent("alternatives", t0)
-            for r in range(self.alternatives):
-                sel = np.flatnonzero((rank == r) & ~reachable[failing[idx]])
+            # in rank order: a target's first passing alternative is its answer. The
+            # first alternatives are checked alone, the later ones of the targets still
+            # failing in one batch (few pass, so few are checked needlessly; one batch
+            # instead of one per rank saves the per-call cost of small batches)
+            for ranks in (range(1), range(1, self.alternatives)):
+                sel = np.flatnonzero((rank < ranks.stop) & (rank >= ranks.start))
+                sel = sel[~reachable[failing[idx[sel]]]]
                 if sel.size == 0:
                     continue
-                record(failing[idx[sel]], alt_q[sel], alt_err[sel])
+                chk = self.check(targets[failing[idx[sel]]], alt_q[sel])
+                for r in ranks:
+                    s = np.flatnonzero((rank[sel] == r) & ~reachable[failing[idx[sel]]])
+                    if s.size:
+                        record(
+                            failing[idx[sel[s]]],
+                            alt_q[sel[s]],
+                            alt_err[sel[s]],
+                            CheckResult(*(field[s] for field in chk)),
+                        )
         q_rejected[reachable] = np.nan
         # step 4: more branches of the reachable targets
         branches = (

@@ -54,7 +54,7 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USER_ERROR, f"error: {line} (see {self.prog} --help)\n")
 
 
-def _common(debug_help: bool = True) -> argparse.ArgumentParser:
+def _common(debug_help: bool = True) -> _Parser:
     p = _Parser(add_help=False)
     p.add_argument(
         "-v",
@@ -582,8 +582,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
     for f in result.failed[:3]:
         print(f"  failed      #{f['id']}: {f['error']}")
     if len(result.failed) > 3:
-        more = len(result.failed) - 3
-        print(f"  failed      ... and {more} more (column 'error' of placements.csv)")
+        rest = len(result.failed) - 3
+        print(f"  failed      ... and {rest} more (column 'error' of placements.csv)")
     best = result.best
     if best is None:
         print(

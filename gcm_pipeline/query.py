@@ -337,10 +337,10 @@ class GraspManifold:
         if bad.any():
             i = int(np.argmax(bad))
             raise GeometryError(f"triangle id {int(tri[i])} at {i} is outside 0..{len(self) - 1}")
-        bad = ~np.isfinite(w).all(axis=1) | (w < -1e-12).any(axis=1)
-        bad |= np.abs(w.sum(axis=1) - 1.0) > 1e-9
-        if bad.any():
-            i = int(np.argmax(bad))
+        off = ~np.isfinite(w).all(axis=1) | (w < -1e-12).any(axis=1)
+        off |= np.abs(w.sum(axis=1) - 1.0) > 1e-9
+        if off.any():
+            i = int(np.argmax(off))
             raise GeometryError(
                 f"weights at {i} must be finite, >= 0 and sum to 1, got {w[i].tolist()}"
             )
@@ -699,9 +699,9 @@ class GraspManifold:
                 gain[v[good]] = vals[good] - val[owner[v[good]]]
                 new_q[v[good]] = np.asarray(res["q"])[good]
                 trial_vals[v] = vals
-            gain = gain.reshape(len(act), len(directions))
-            pick = np.argmax(gain, axis=1)
-            best_gain = gain[np.arange(len(act)), pick]
+            gains = gain.reshape(len(act), len(directions))
+            pick = np.argmax(gains, axis=1)
+            best_gain = gains[np.arange(len(act)), pick]
             moved = best_gain > 0
             flat = np.arange(len(act)) * len(directions) + pick
             mv = act[moved]

@@ -62,6 +62,8 @@ class _Limit(yaml.YAMLError):
 class _UniqueKeys:
     """Constructor part of both loaders: unique mapping keys."""
 
+    construct_object: Any  # yaml's constructor method, next in the loaders' MRO
+
     def construct_mapping(self, node: MappingNode, deep: bool = False) -> dict[Any, Any]:  # noqa: D102
         seen: dict[Any, Any] = {}
         for key_node, _ in node.value:

@@ -129,7 +129,7 @@ def _read(
             max_count=max_count,
         )
         return ImportedGrasps(poses, "base")
-    grasps = READERS[fmt](path, max_count=max_count)  # type: ignore[arg-type, operator]
+    grasps = READERS[fmt](path, max_count=max_count)  # type: ignore[arg-type]
     if success_only:
         if grasps.success is None:
             raise InputError(

@@ -250,7 +250,9 @@ def _write_parquet(g: GraspTable, path: Path) -> None:
 
 def _write_npz(g: GraspTable, path: Path) -> None:
     cols = _flat_columns(g)
-    arrays = {k: (v.astype(str) if v.dtype.kind in "USO" else v) for k, v in cols.items()}
+    arrays: dict[str, Any] = {
+        k: (v.astype(str) if v.dtype.kind in "USO" else v) for k, v in cols.items()
+    }
     pose = np.zeros((len(g), 4, 4))
     pose[:, :3, :3] = (
         Rotation.from_quat(np.c_[cols["qx"], cols["qy"], cols["qz"], cols["qw"]]).as_matrix()

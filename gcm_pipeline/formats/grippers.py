@@ -120,7 +120,7 @@ class GripperSpec:
             # the file's fingertips are `depth` past its centre; ours `finger_tip` past the TCP
             m[:, 0, 3] = d - self.finger_tip
             m[:, 3, 3] = 1.0
-            return m[0] if np.ndim(depth) == 0 else m
+            return m[0] if depth is None or np.ndim(depth) == 0 else m
         raise ConfigError(unknown_choice("gripper frame convention", convention, CONVENTIONS))
 
     def __repr__(self) -> str:

@@ -428,7 +428,8 @@ def read_contact_graspnet(
         keys = sorted(grasps, key=lambda k: float(k))
     except (TypeError, ValueError):
         keys = sorted(grasps, key=str)
-    parts, cols = [], {"score": [], "width": [], "segment": [], "source_id": []}
+    parts: list[np.ndarray] = []
+    cols: dict[str, list[Any]] = {"score": [], "width": [], "segment": [], "source_id": []}
     _check_count(path, sum(int(np.size(v)) // 16 for v in grasps.values()), max_count)
     for key in keys:
         what = f"pred_grasps_cam[{clip(key, 40)}]"
@@ -491,7 +492,7 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     path = Path(path)
     if path.suffix.lower() == ".npz":
         arrays = _read_npz_members(path, max_count)
-        names = [k for k in ("grasp_group_array", "grasps", "preds") if k in arrays]
+        names: list[str] = [k for k in ("grasp_group_array", "grasps", "preds") if k in arrays]
         if not names and len(arrays) == 1:
             names = list(arrays)
         if not names:

@@ -172,7 +172,7 @@ class Branches(NamedTuple):
     q_pregrasp: np.ndarray
     q_retreat: np.ndarray
     clearance: np.ndarray | None
-    count: np.ndarray
+    count: np.ndarray  # type: ignore[assignment]  # the field shadows tuple.count
 
 
 class ReachResult(NamedTuple):

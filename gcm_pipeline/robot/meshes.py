@@ -56,7 +56,7 @@ def _first_nonfinite_vertex(path: Path) -> int | None:
     try:
         import trimesh
 
-        mesh = trimesh.load(str(path), force="mesh", process=False)
+        mesh: Any = trimesh.load(str(path), force="mesh", process=False)
         verts = np.asarray(mesh.vertices, dtype=float).reshape(-1, 3)
     except Exception:  # coal reads it (or says why not)
         return None

@@ -76,14 +76,17 @@ def object_mesh(obj: ObjectConfig) -> Any:
     """
     import trimesh
 
-    d = obj.dims
+    d = obj.dims  # the config checked that the shape's dims are given
     if obj.shape == "cylinder":
+        assert d.radius is not None and d.height is not None
         mesh = trimesh.creation.cylinder(radius=d.radius, height=d.height, sections=64)
         mesh.apply_translation([0.0, 0.0, 0.5 * d.height])
         return mesh
     if obj.shape == "box":
+        assert d.size is not None
         return trimesh.creation.box(extents=list(d.size))
     if obj.shape == "sphere":
+        assert d.radius is not None
         return trimesh.creation.icosphere(subdivisions=3, radius=d.radius)
     if obj.shape == "plane":
         raise ConfigError(

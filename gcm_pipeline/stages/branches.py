@@ -117,7 +117,7 @@ def _continuity(
             break
         chosen[move] = pick[move]
     # a heuristic: never worse than every grasp keeping the first branch found
-    reach = valid.any(axis=1)
+    reach = np.asarray(valid.any(axis=1))
     count = [
         patches(q[np.arange(n), c], reach, edges, threshold).max() for c in (chosen, 0 * chosen)
     ]

@@ -661,7 +661,7 @@ def _read_mesh_cache(path: Path) -> _MeshGroups | None:
 
 def _write_mesh_cache(path: Path, groups: _MeshGroups) -> None:
     """Store ``groups`` atomically; a cache that cannot be written is skipped."""
-    arrays: dict[str, np.ndarray] = {"colors": np.array([c for c, _, _ in groups], np.int64)}
+    arrays: dict[str, Any] = {"colors": np.array([c for c, _, _ in groups], np.int64)}
     for i, (_, verts, faces) in enumerate(groups):
         arrays[f"v{i}"] = np.asarray(verts, dtype=np.float32)
         arrays[f"f{i}"] = np.asarray(faces, dtype=np.uint32)
@@ -709,7 +709,7 @@ def _simplify_mesh(path: str, budget: int) -> _MeshGroups:
     import trimesh
 
     try:
-        scene = trimesh.load(path, force="scene")
+        scene: Any = trimesh.load(path, force="scene")
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise PublishError(f"cannot read robot mesh {path!r}: {exc}") from exc
     groups: dict[int, list[np.ndarray]] = {}

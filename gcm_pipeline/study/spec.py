@@ -711,7 +711,8 @@ def _file_digest(path: Path) -> str:
 def _pick(errors: list[Any]) -> Any:
     """The error to report: of a union's branches, the one matching the input's type."""
     first = errors[0]
-    branch = {list: "list[", dict: ""}.get(type(first.get("input")))
+    prefix: dict[type, str] = {list: "list[", dict: ""}
+    branch = prefix.get(type(first.get("input")))
     if branch is None:
         return first
     for err in errors:

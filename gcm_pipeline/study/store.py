@@ -191,7 +191,7 @@ class StudyDir:
 
     def write_part(self, row: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
         """Write one finished placement (its row and grasp arrays) atomically."""
-        payload = {k: np.asarray(v) for k, v in arrays.items()}
+        payload: dict[str, Any] = {k: np.asarray(v) for k, v in arrays.items()}
         payload["row"] = np.array(json.dumps(_json_clean(dict(row))))
         with atomic_write(self.part_path(int(row["id"]))) as tmp:
             with open(tmp, "wb") as f:
@@ -248,7 +248,8 @@ class StudyDir:
         path = self.path / name
         with atomic_write(path) as tmp:
             with open(tmp, "wb") as f:
-                np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
+                packed: dict[str, Any] = {k: np.asarray(v) for k, v in arrays.items()}
+                np.savez_compressed(f, **packed)
         return path
 
     def write_with(self, name: str, writer: Callable[[Path], None]) -> Path:

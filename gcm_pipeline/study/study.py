@@ -24,7 +24,7 @@ import logging
 import math
 import shlex
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 _FLUSH_S = 5.0
 
 
-def best_row(rows: list[Mapping[str, Any]]) -> Mapping[str, Any] | None:
+def best_row(rows: Sequence[Mapping[str, Any]]) -> Mapping[str, Any] | None:
     """The best finished placement: highest coverage, then mean manipulability, then lowest id."""
     ok = [r for r in rows if not r.get("error")]
     if not ok:
@@ -379,7 +379,7 @@ class _Run:
 
     def _collect(self, result: dict[str, Any]) -> None:
         row = dict(self._meta.pop(int(result["id"])))
-        arrays = {}
+        arrays: dict[str, np.ndarray] = {}
         for key in ("reachable_mask", "metric", "manipulability", "pose", "pose_object"):
             if key in result:
                 arrays[key] = np.asarray(result.pop(key))

@@ -1036,7 +1036,7 @@ def _grid_collisions(
     steps = q_path.shape[1] - 1
     samples = q_path[rows, 1:].reshape(-1, nq)
     which = np.repeat(rows if ids is None else ids[rows], steps)
-    why = np.asarray(collisions(samples, which), dtype=object).reshape(rows.size, steps)
+    why = np.asarray(collisions(samples, which)).reshape(rows.size, steps)
     hit = why != ""
     bad = np.flatnonzero(hit.any(axis=1))
     first = np.argmax(hit[bad], axis=1)

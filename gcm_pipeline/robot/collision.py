@@ -127,6 +127,8 @@ REASON_OBJECT = "collision_object"
 
 _KINDS = ("environment", "self", "object")
 _REASONS = {"environment": REASON_ENVIRONMENT, "self": REASON_SELF, "object": REASON_OBJECT}
+#: The reasons as a fixed-width string array (no object arrays to convert).
+_REASON_DTYPE = f"<U{max(len(r) for r in _REASONS.values())}"
 _OBJECT_SHAPES = ("cylinder", "box", "sphere", "plane", "mesh")
 _PLANE_THICKNESS = 0.002  # [m] a 'plane' object is a box this thick, centred on its frame
 
@@ -975,18 +977,18 @@ class CollisionChecker:
         held = None
         if carried is not None and mode == "retreat" and self._carried is not None:
             held = np.broadcast_to(np.asarray(carried, dtype=float), (n, 4, 4))
-        reason = np.full(n, "", dtype=object)
+        reason = np.full(n, "", dtype=_REASON_DTYPE)
         rows = np.flatnonzero(np.all(np.isfinite(qs), axis=1))
         for a in range(0, rows.size, _BLOCK):
             block = rows[a : a + _BLOCK]
             reason[block] = self._check_block(
                 qs[block], _MODE_BIT[mode], None if held is None else held[block]
             )
-        return reason.astype(str) if n else np.zeros(0, dtype="<U21")
+        return reason
 
     def _check_block(self, q: np.ndarray, bit: int, held: np.ndarray | None) -> np.ndarray:
         n = len(q)
-        reason = np.full(n, "", dtype=object)
+        reason = np.full(n, "", dtype=_REASON_DTYPE)
         all_frames = None
         if n < _FEW or self.threads > 1:
             pool = self._mode_pool.get(bit)

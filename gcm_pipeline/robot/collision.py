@@ -1362,10 +1362,10 @@ class CollisionChecker:
         best = np.full(n, np.inf)
         cov = self._cover
         rots, poss = frames.rots, frames.poss
-        along = self._cover.ball_joint
-        cols = sorted(self._box_pairs, key=lambda k: (-int(along[self._box_pairs[k][2]]), k))
+        pairs = self._box_pairs
+        cols = sorted(pairs, key=lambda k: (-int(cov.ball_joint[pairs[k][2]]), k))
         for col in cols:
-            inv, halfs, g = self._box_pairs[col]
+            inv, halfs, g = pairs[col]
             sph = np.arange(cov.start[g], cov.start[g + 1])
             may = np.flatnonzero(bound[:, col] < best)
             if may.size == 0:

@@ -677,17 +677,18 @@ class ReachabilityEngine:
             # first alternatives are checked alone, the later ones of the targets still
             # failing in one batch (few pass, so few are checked needlessly; one batch
             # instead of one per rank saves the per-call cost of small batches)
+            who = failing[idx]  # the target of each alternative
             for ranks in (range(1), range(1, self.alternatives)):
-                sel = np.flatnonzero((rank < ranks.stop) & (rank >= ranks.start))
-                sel = sel[~reachable[failing[idx[sel]]]]
+                sel = np.flatnonzero((rank >= ranks.start) & (rank < ranks.stop))
+                sel = sel[~reachable[who[sel]]]
                 if sel.size == 0:
                     continue
-                chk = self.check(targets[failing[idx[sel]]], alt_q[sel])
+                chk = self.check(targets[who[sel]], alt_q[sel])
                 for r in ranks:
-                    s = np.flatnonzero((rank[sel] == r) & ~reachable[failing[idx[sel]]])
+                    s = np.flatnonzero((rank[sel] == r) & ~reachable[who[sel]])
                     if s.size:
                         record(
-                            failing[idx[sel[s]]],
+                            who[sel[s]],
                             alt_q[sel[s]],
                             alt_err[sel[s]],
                             CheckResult(*(field[s] for field in chk)),

@@ -158,6 +158,22 @@ def test_chunks_cover_every_target_once_in_order(n, most, workers):
         assert sizes[:-1] == [most] * (len(sizes) - 1)
 
 
+@pytest.mark.parametrize(
+    ("n", "workers", "sizes"),
+    [
+        (2048, 2, [2048]),
+        (2049, 2, [1025, 1024]),
+        (3001, 2, [1501, 1500]),
+        (6000, 3, [2000, 2000, 2000]),
+        (5000, 2, [2048, 2048, 904]),
+    ],
+)
+def test_a_few_thousand_targets_are_shared_out_equally(n, workers, sizes):
+    # one chunk per worker, not 2,048 and the rest on one of them; beyond
+    # workers * most // 4 the guided chunks of test_chunks_cover_every_target_once_in_order
+    assert [c.size for c in _guided_chunks(n, 8192, workers)] == sizes
+
+
 def test_neighbours_seed_from_final_solutions(robot, checker, grasps):
     eng = ReachabilityEngine(robot, checker, approach=APPROACH)
     n = len(grasps)

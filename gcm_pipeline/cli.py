@@ -667,7 +667,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: Arguments without the program name (default: ``sys.argv[1:]``).
 
     Returns:
-        0 on success, 2 on a user error (or bad usage), 130 on Ctrl-C, 128 +
+        0 on success, 2 on a user error (or bad usage), 1 when a worker process
+        died (e.g. killed for lack of memory), 130 on Ctrl-C, 128 +
         the signal number on SIGTERM (143) or SIGHUP (129), 141 when the
         reader of the output goes away (``gcm validate | head -1``).
     """
@@ -688,7 +689,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if len(message) > MAX_ERROR_LINE:
             message = message[: MAX_ERROR_LINE - 3] + "..."
         print(f"error: {message}", file=sys.stderr)
-        return EXIT_USER_ERROR
+        return exc.exit_status
     except BrokenPipeError:
         # the reader left (e.g. `| head`): no traceback, and none at exit either
         with contextlib.suppress(OSError, ValueError):

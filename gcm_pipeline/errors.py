@@ -24,6 +24,7 @@ __all__ = [
     "OutputError",
     "PublishError",
     "RobotSpecError",
+    "WorkerLostError",
     "clip",
     "unknown_choice",
 ]
@@ -34,6 +35,9 @@ MAX_QUOTE = 200
 
 class GcmError(Exception):
     """Root of every error a user of gcm_pipeline can cause."""
+
+    #: The command line's exit status for it.
+    exit_status = 2
 
 
 class ConfigError(GcmError):
@@ -62,6 +66,15 @@ class OutputError(GcmError):
 
 class PublishError(GcmError):
     """Publishing results failed (meshcat server unreachable, browser missing)."""
+
+
+class WorkerLostError(GcmError):
+    """A worker process died before returning its result (killed, e.g. out of memory).
+
+    Not the input's fault: the command line exits with status 1, not 2.
+    """
+
+    exit_status = 1
 
 
 def clip(value: object, limit: int = MAX_QUOTE) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +11,7 @@ import pytest
 from poses import backward_poses
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
-from gcm_pipeline.errors import InputError
+from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import Move, move_poses
 from gcm_pipeline.robot.engine import (
@@ -239,3 +241,31 @@ def test_engine_errors(robot):
     with pytest.raises(InputError, match="seeds"):
         eng.run(robot.fk(robot.home), seeds=np.zeros((1, 1, 3)))
     assert "ReachabilityEngine(robot='panda'" in repr(eng)
+
+
+def _dies_in_a_worker(parent: int):
+    """A validator that kills the process it runs in, unless that is ``parent``."""
+
+    def validator(q):
+        if os.getpid() != parent:
+            os.kill(os.getpid(), signal.SIGKILL)  # what the out-of-memory killer does
+        return np.full(len(q), "")
+
+    return validator
+
+
+def test_a_worker_that_dies_stops_the_run_instead_of_hanging(robot, checker, grasps):
+    # the standard pool replaces the dead worker and waits for its task for ever
+    eng = ReachabilityEngine(
+        robot, checker, validator=_dies_in_a_worker(os.getpid()), workers=2, chunk_size=4
+    )
+    with eng, pytest.raises(WorkerLostError, match=r"died \(killed by SIGKILL\).*memory"):
+        eng.run(grasps)
+    # the engine starts new workers for the next run, which completes
+    with ReachabilityEngine(robot, checker, workers=2, chunk_size=4) as eng:
+        assert eng.run(grasps).reachable.any()
+
+
+def test_a_worker_that_dies_stops_solve_ik(robot, grasps):
+    with pytest.raises(WorkerLostError, match="SIGKILL"):
+        solve_ik(robot, grasps, workers=2, validator=_dies_in_a_worker(os.getpid()))

@@ -81,6 +81,21 @@ def test_ctrl_c_with_two_ik_workers_is_one_line(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs /proc (Linux)")
+def test_a_killed_worker_ends_the_run_with_one_line(tmp_path):
+    # what the out-of-memory killer does to one worker: the run must not wait for ever
+    out = tmp_path / "run"
+    proc = _start(BOTTLE, out, "densify.subdivisions=12", "ik.workers=2", "publish.html=false")
+    _wait_for(lambda: len(_children(proc.pid)) >= 2, proc)
+    time.sleep(0.3)
+    os.kill(_children(proc.pid)[0], signal.SIGKILL)
+    status, lines = _finish(proc)
+    assert status == 1, lines
+    assert len(lines) == 1 and lines[0].startswith("error: worker process "), lines
+    assert "killed by SIGKILL" in lines[0] and "memory" in lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_sigterm_while_writing_leaves_the_previous_run(tmp_path):
     sig = "SIGTERM"
     from gcm_pipeline.cli import main

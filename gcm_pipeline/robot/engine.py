@@ -875,7 +875,7 @@ class ReachabilityEngine:
             return
         pool = self._get_pool()
         try:
-            yield from pool.imap(_solve_in_worker, work)
+            yield from pool.ordered(_solve_in_worker, work)
         except BaseException:
             # Ctrl-C or a failing chunk: stop the workers before anything else
             self.close()

@@ -39,12 +39,12 @@ import multiprocessing.pool
 import os
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, WorkerLostError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.ik_pinocchio import analytic_solver, rotation_angle
 from gcm_pipeline.robot.model import Robot, load_robot
@@ -306,12 +306,51 @@ class ForkPool(multiprocessing.pool.Pool):
     def __init__(self, processes: int, initializer: Any = None) -> None:
         super().__init__(processes, initializer=initializer, context=mp.get_context("fork"))
 
+    def ordered(self, func: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
+        """``imap(func, items)``: results in order, as they come.
+
+        A worker that dies (killed, e.g. by the out-of-memory killer) takes its
+        task with it: the standard pool starts a new worker and waits for that
+        result for ever. Here the workers are looked at while waiting, and a
+        dead one raises :class:`~gcm_pipeline.errors.WorkerLostError`.
+        """
+        # the pool replaces a dead worker in _pool: these are the originals
+        workers = list(self._pool)  # type: ignore[attr-defined]
+        results = self.imap(func, items)
+        while True:
+            try:
+                yield results.next(timeout=_WORKER_POLL)
+            except StopIteration:
+                return
+            except mp.TimeoutError:
+                pass
+            for proc in workers:
+                if proc.exitcode is not None:
+                    raise WorkerLostError(_worker_death(proc.pid, proc.exitcode))
+
     @staticmethod
     def _help_stuff_finish(inqueue: Any, task_handler: Any, size: int) -> None:
         inqueue._rlock.acquire(True, 1.0)
         while task_handler.is_alive() and inqueue._reader.poll():
             inqueue._reader.recv()
             time.sleep(0)
+
+
+#: How often the workers are looked at while a result is awaited [s].
+_WORKER_POLL = 0.25
+
+
+def _worker_death(pid: int | None, code: int) -> str:
+    """What to tell a user whose worker process ``pid`` ended with ``code``."""
+    if code < 0:
+        try:
+            how = f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            how = f"killed by signal {-code}"
+    else:
+        how = f"exit status {code}"
+    hint = "; out of memory? Fewer workers or fewer targets at once need less" if code == -9 else ""
+    return f"worker process {pid} died ({how}) before returning its result{hint}"
 
 
 def _worker_signals() -> None:
@@ -367,7 +406,7 @@ def _run_backend(
     if parallel:
         pool = _pool(solve, robot, validator, return_all, workers, kwargs, targets[:1])
         try:
-            parts = pool.map(_worker, chunks)
+            parts = list(pool.ordered(_worker, chunks))
         except BaseException:  # Ctrl-C, SIGTERM: stop the workers, no half-done pool
             _close_pool()
             raise

@@ -152,9 +152,11 @@ def _expanded_size(root: Node, limit: int = MAX_YAML_VALUES) -> int:
 
     Aliases are shared nodes in the composed graph, so the count is a sum over
     a DAG, memoised per node (linear in the number of distinct nodes). Stops
-    counting beyond ``limit``.
+    counting beyond ``limit``. An alias inside the collection it names
+    (``a: &a [*a]``) makes a cycle, an infinite value: :class:`_Limit`.
     """
     memo: dict[int, int] = {}
+    open_: set[int] = set()  # nodes whose children are being counted: the current path
     # iterative post-order walk (depth is already bounded, but stay flat)
     stack: list[tuple[Node, bool]] = [(root, False)]
     while stack:
@@ -162,6 +164,8 @@ def _expanded_size(root: Node, limit: int = MAX_YAML_VALUES) -> int:
         key = id(node)
         if key in memo:
             continue
+        if not done and key in open_:
+            raise _Limit("an alias (*) inside the collection its anchor (&) names", node.start_mark)
         children: list[Node]
         if isinstance(node, SequenceNode):
             children = list(node.value)
@@ -172,7 +176,9 @@ def _expanded_size(root: Node, limit: int = MAX_YAML_VALUES) -> int:
         if done:
             total = 1 + sum(memo[id(c)] for c in children)
             memo[key] = min(total, limit + 1)
+            open_.discard(key)
             continue
+        open_.add(key)
         stack.append((node, True))
         stack.extend((c, False) for c in children if id(c) not in memo)
     return memo[id(root)]

@@ -145,3 +145,19 @@ def test_large_documents_read_the_same_through_libyaml(monkeypatch):
     bomb += "e: [" + ",".join(["*d"] * 20) + "]\n"
     assert "through aliases" in _error(bomb)
     assert "malformed YAML" in _error(_PAD + "[" * 100_000)  # libyaml's own nesting guard
+
+
+@pytest.mark.parametrize("pad", ["", _PAD])  # the pure-Python and libyaml paths
+@pytest.mark.parametrize(
+    "text", ["a: &a [*a]\n", "x: &x {y: *x}\n", "a: &a [1, {b: [2, *a]}]\n", "&r [*r]\n"]
+)
+def test_an_alias_inside_its_own_anchor_is_refused_at_once(text, pad):
+    # a recursive value, infinite once expanded: the reader used to loop with memory growing
+    t0 = time.perf_counter()
+    msg = _error(pad + text)
+    assert time.perf_counter() - t0 < 5.0
+    assert "an alias (*) inside the collection its anchor (&) names" in msg
+    with pytest.raises(ConfigError, match=r"--set seed:1:1: an alias \(\*\) inside"):
+        load_config(FLAT, ["seed=&a [*a]"])
+    # a shared anchor that is not its own ancestor is fine (a DAG)
+    assert _load(pad + "b: &b [1]\nc: [*b, [*b, {d: *b}]]\n")["c"] == [[1], [[1], {"d": [1]}]]

@@ -27,6 +27,7 @@ source, line and column.
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +82,15 @@ class _UniqueKeys:
                 )
         return super().construct_mapping(node, deep=deep)  # type: ignore[misc]
 
+    def construct_yaml_int(self, node: Node) -> int:  # noqa: D102
+        try:
+            return super().construct_yaml_int(node)  # type: ignore[misc]
+        except ValueError:  # Python's limit of digits in an int (4,300)
+            most = sys.get_int_max_str_digits()
+            raise _Limit(
+                f"an integer of {len(node.value):,} digits (at most {most:,})", node.start_mark
+            ) from None
+
 
 class _Loader(_UniqueKeys, yaml.SafeLoader):
     """``yaml.SafeLoader`` with a depth limit, unique keys and YAML 1.2 floats."""
@@ -122,6 +132,7 @@ for _cls in (_Loader, _CLoader):
             re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
             list("-+0123456789."),
         )
+        _cls.add_constructor("tag:yaml.org,2002:int", _cls.construct_yaml_int)
 
 
 def _check_depth(text: str) -> None:

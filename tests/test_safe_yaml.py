@@ -161,3 +161,12 @@ def test_an_alias_inside_its_own_anchor_is_refused_at_once(text, pad):
         load_config(FLAT, ["seed=&a [*a]"])
     # a shared anchor that is not its own ancestor is fine (a DAG)
     assert _load(pad + "b: &b [1]\nc: [*b, [*b, {d: *b}]]\n")["c"] == [[1], [[1], {"d": [1]}]]
+
+
+@pytest.mark.parametrize("pad", ["", _PAD])
+def test_an_integer_too_long_for_python_is_one_line(pad):
+    msg = _error(pad + "candidates: {count: " + "9" * 5000 + "}\n")
+    assert msg.startswith(f"src:{2 if pad else 1}:21: an integer of 5,000 digits (at most")
+    with pytest.raises(ConfigError, match="--set seed:1:1: an integer of 5,000 digits"):
+        load_config(FLAT, ["seed=" + "9" * 5000])
+    assert _load(pad + "a: 0x1F\nb: -12_000\nc: 0b101\n") == {"a": 31, "b": -12000, "c": 5}

@@ -351,6 +351,17 @@ def test_bad_robot_specs_are_found_by_validate(capsys, tmp_path):
         assert out == ""
 
 
+def test_a_robot_name_too_long_for_a_file_name_is_unknown(capsys):
+    # it used to be looked up as a file: OSError "File name too long", the name in full
+    code, out, err = _cli(capsys, "validate", FLAT, "--set", "robot.spec=" + "a" * 300)
+    _one_line_error(code, err, "robot.spec: ", "unknown robot 'aaaa")
+    assert "(300 characters); valid: panda, ur5" in err and len(err) < 400
+    from gcm_pipeline import load_robot
+
+    with pytest.raises(RobotSpecError, match="unknown robot"):
+        load_robot("a" * 5000)
+
+
 def test_a_bad_spec_is_reported_before_the_existing_output(capsys, tmp_path):
     code, _, err = _cli(capsys, "run", FLAT, "--out", tmp_path / "run", "-q", *QUICK)
     assert code == 0, err

@@ -158,9 +158,10 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
         raw = read_yaml_file(path, "robot spec", RobotSpecError)
         path = path.resolve()
     else:
+        names = available_robots()
+        if text not in names:  # (no file lookup: a name of 300 characters is no file name)
+            raise RobotSpecError(unknown_choice("robot", text, names))
         res = _spec_dir() / f"{text}.yaml"
-        if not res.is_file():
-            raise RobotSpecError(unknown_choice("robot", text, available_robots()))
         path = Path(str(res))
         raw = load_yaml(res.read_text(encoding="utf-8"), str(path), RobotSpecError)
     where = f"robot spec {str(path)!r}"

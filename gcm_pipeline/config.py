@@ -45,6 +45,7 @@ from gcm_pipeline.limits import (
     MAX_APPROACH_STEPS,
     MAX_IK_SOLUTIONS,
     MAX_IK_WORKERS,
+    MAX_LENGTH,
 )
 from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 
@@ -85,6 +86,11 @@ PositiveInt = Annotated[int, Strict(), Field(gt=0)]
 #: Seeds of NumPy's generators are non-negative.
 Seed = Annotated[int, Strict(), Field(ge=0)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+#: Lengths and coordinates of the scene [m], within MAX_LENGTH (see gcm_pipeline.limits).
+Length = Annotated[float, Strict(), Field(ge=-MAX_LENGTH, le=MAX_LENGTH, allow_inf_nan=False)]
+PositiveLength = Annotated[float, Strict(), Field(gt=0, le=MAX_LENGTH, allow_inf_nan=False)]
+NonNegLength = Annotated[float, Strict(), Field(ge=0, le=MAX_LENGTH, allow_inf_nan=False)]
+Point3 = tuple[Length, Length, Length]
 
 #: ``output.dir`` of a config given as a dict (relative to the working directory).
 DEFAULT_OUTPUT_DIR = "results/run"
@@ -103,7 +109,7 @@ class _Section(BaseModel):
 class Pose(_Section):
     """A rigid pose: position [m] and roll-pitch-yaw [rad] (or ``rpy_deg`` [deg])."""
 
-    xyz: Vec3 = (0.0, 0.0, 0.0)
+    xyz: Point3 = (0.0, 0.0, 0.0)
     rpy: Vec3 | None = None
     rpy_deg: Vec3 | None = None
 
@@ -139,9 +145,9 @@ class Pose(_Section):
 class ShapeDims(_Section):
     """Dimensions of a primitive shape [m]; which keys are needed depends on the shape."""
 
-    radius: PositiveFloat | None = None
-    height: PositiveFloat | None = None
-    size: tuple[PositiveFloat, ...] | None = None
+    radius: PositiveLength | None = None
+    height: PositiveLength | None = None
+    size: tuple[PositiveLength, ...] | None = None
 
 
 _SHAPE_DIMS: dict[str, tuple[str, ...]] = {
@@ -177,7 +183,7 @@ class _ShapeSection(_Section):
     dims: ShapeDims = ShapeDims()
     pose: Pose = Pose()
     mesh: Path | None = None
-    scale: PositiveFloat = 1.0
+    scale: PositiveLength = 1.0
 
     @model_validator(mode="after")
     def _dims_for_shape(self) -> _ShapeSection:
@@ -206,7 +212,7 @@ class RobotConfig(_Section):
 class NoiseConfig(_Section):
     """Noise added to generated candidates: position [m] and angle [deg] (standard deviations)."""
 
-    position: NonNegFloat = 0.0
+    position: NonNegLength = 0.0
     angle_deg: NonNegFloat = 0.0
 
 
@@ -254,7 +260,7 @@ class CandidatesConfig(_Section):
     seed: Seed | None = None
     noise: NoiseConfig = NoiseConfig()
     rings: PositiveInt | None = None
-    depth: FiniteFloat | None = None
+    depth: Length | None = None
     path: Path | None = None
     format: (
         Literal["acronym", "npy", "npz", "csv", "graspgen", "contact_graspnet", "graspnet"] | None
@@ -337,7 +343,7 @@ class ManifoldConfig(_Section):
 
     projection: Literal["xy", "pca", "cylindrical", "spherical"] = "xy"
     triangulator: Literal["qhull", "bowyer_watson"] = "qhull"
-    max_edge_length: PositiveFloat | None = None
+    max_edge_length: PositiveLength | None = None
     max_edge_angle_deg: Annotated[float, Strict(), Field(gt=0, le=180)] | None = None
     orientation_scale: PositiveFloat = 0.1
 
@@ -379,7 +385,7 @@ class DensifyConfig(_Section):
     """
 
     subdivisions: PositiveInt | None = 4
-    spacing: PositiveFloat | None = None
+    spacing: PositiveLength | None = None
     method: Literal["dlb", "dib"] = "dlb"
     max_poses: PositiveInt = DEFAULT_MAX_POSES
     adaptive: AdaptiveConfig | None = None
@@ -431,9 +437,9 @@ class IKConfig(_Section):
 class TableConfig(_Section):
     """Support table: a box whose top face is at ``height`` [m] in the world."""
 
-    height: FiniteFloat = 0.0
-    size: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = (2.0, 2.0, 0.05)
-    center_xy: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    height: Length = 0.0
+    size: tuple[PositiveLength, PositiveLength, PositiveLength] = (2.0, 2.0, 0.05)
+    center_xy: tuple[Length, Length] = (0.0, 0.0)
 
 
 class ObstacleConfig(_ShapeSection):
@@ -450,7 +456,7 @@ class EnvironmentConfig(_Section):
     obstacles: tuple[ObstacleConfig, ...] = ()
     check_object: Bool = True
     self_collision: Bool = True
-    contact_tolerance: NonNegFloat = 0.005
+    contact_tolerance: NonNegLength = 0.005
 
 
 class ApproachConfig(_Section):
@@ -471,10 +477,10 @@ class ApproachConfig(_Section):
             only at the steps).
     """
 
-    distance: NonNegFloat = 0.10
+    distance: NonNegLength = 0.10
     steps: Annotated[int, Strict(), Field(gt=0, le=MAX_APPROACH_STEPS)] = 10
     max_joint_step: PositiveFloat = 0.25
-    max_deviation: PositiveFloat = 0.002
+    max_deviation: PositiveLength = 0.002
 
 
 class RetreatConfig(ApproachConfig):
@@ -495,7 +501,7 @@ class RetreatConfig(ApproachConfig):
     @field_validator("direction")
     @classmethod
     def _nonzero_direction(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if not math.isfinite(math.hypot(*v)) or math.hypot(*v) < 1e-9:
+        if not any(v):  # any other length: the direction is what counts
             raise ValueError(f"must not be the zero vector, got {list(v)}")
         return v
 

@@ -16,6 +16,11 @@ fixed ones are bounds of the config schema:
   steps over 10 cm).
 - ``ik.workers``: at most 256 (schema bound).
 - ``ik.solutions``: at most 16 IK branches per grasp (schema bound).
+- Lengths and positions of the scene (poses, shape dims, the table, the
+  approach and retreat distances, the contact tolerance) and a mesh's
+  ``scale``: at most 1,000 (m, or a factor) in magnitude (schema bound). A
+  robot's world is metres across; at 1e20 coal's bounding volumes break, and
+  a box of 1e308 m makes Eigen's eigen-solver give up.
 - Studies: a range ``{from, to, steps}`` has at most 1,000,000 steps; a study
   plans at most 1,000,000 placements even with ``--force`` (above
   ``max_placements``, default 1,000, it needs ``--force``). The count is
@@ -40,6 +45,7 @@ __all__ = [
     "MAX_APPROACH_STEPS",
     "MAX_IK_SOLUTIONS",
     "MAX_IK_WORKERS",
+    "MAX_LENGTH",
     "MAX_RANGE_STEPS",
     "MAX_STUDY_PLACEMENTS",
     "check_size",
@@ -52,6 +58,8 @@ MAX_APPROACH_STEPS = 1_000
 MAX_ADAPTIVE_LEVEL = 10
 MAX_IK_WORKERS = 256
 MAX_IK_SOLUTIONS = 16
+#: Largest length or coordinate of a scene [m], and mesh scale.
+MAX_LENGTH = 1_000.0
 MAX_RANGE_STEPS = 1_000_000
 MAX_STUDY_PLACEMENTS = 1_000_000
 

@@ -341,7 +341,8 @@ def test_works_with_any_object_having_triangles():
         ({"subdivisions": True}, r"subdivisions must be an integer >= 1, got True"),
         ({"subdivisions": None}, r"needs subdivisions or spacing, got neither"),
         ({"spacing": -0.01}, r"spacing must be a positive length \[m\], got -0.01"),
-        ({"spacing": 1e-9}, r"asks for \d+ subdivisions of a triangle"),
+        ({"spacing": 1e-9}, r"asks for 106,301,459 subdivisions of a triangle \(max 32,768\)"),
+        ({"spacing": 1e-300}, r"asks for 1.06e\+299 subdivisions"),  # no int64 overflow
         ({"method": "slerp"}, r"unknown densify method 'slerp'; valid: dib, dlb"),
     ],
 )

@@ -167,6 +167,7 @@ def test_chunks_cover_every_target_once_in_order(n, most, workers):
         (2049, 2, [1025, 1024]),
         (3001, 2, [1501, 1500]),
         (6000, 3, [2000, 2000, 2000]),
+        (2100, 64, [256] * 8 + [52]),  # not 33 chunks of 64
         (5000, 2, [2048, 2048, 904]),
     ],
 )
@@ -269,3 +270,14 @@ def test_a_worker_that_dies_stops_the_run_instead_of_hanging(robot, checker, gra
 def test_a_worker_that_dies_stops_solve_ik(robot, grasps):
     with pytest.raises(WorkerLostError, match="SIGKILL"):
         solve_ik(robot, grasps, workers=2, validator=_dies_in_a_worker(os.getpid()))
+
+
+def test_no_more_workers_start_than_there_are_chunks(robot, checker, grasps):
+    n = len(grasps)
+    with ReachabilityEngine(robot, checker, workers=64, chunk_size=100) as eng:
+        eng.run(grasps)
+        assert eng._pool_size == len(_guided_chunks(n, 100, 64)) == 3  # forked 3, not 64
+        eng.chunk_size = 16
+        more = eng.run(grasps)  # more chunks: a larger pool
+        assert eng._pool_size == len(_guided_chunks(n, 16, 64)) == 18
+        np.testing.assert_array_equal(more.reachable, eng.run(grasps).reachable)

@@ -27,6 +27,7 @@ from gcm_pipeline.stages.candidates import read_grasp_file
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAT = ROOT / "configs" / "flat_surface.yaml"
+BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
 
 
@@ -349,6 +350,37 @@ def test_bad_robot_specs_are_found_by_validate(capsys, tmp_path):
         code, out, err = _cli(capsys, "validate", FLAT, "--set", f"robot.spec={spec}")
         _one_line_error(code, err, "robot.spec: ", fragment)
         assert out == ""
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        # coal: "The bounding volume has a negative volume" (a traceback)
+        ("environment.table.height=1e20", "environment.table.height"),
+        ("robot.base_pose.xyz=[0, -1e20, 0]", "robot.base_pose.xyz.1"),
+        # accepted: Eigen printed "too many iterations", every grasp inside the table
+        ("environment.table.size=[1e308, 1e308, 1e308]", "environment.table.size.0"),
+        ("environment.obstacles=[{shape: sphere, dims: {radius: 1e308}}]", "dims.radius"),
+        ("object.pose.xyz=[1e20, 0, 0]", "object.pose.xyz.0"),  # was: row 4 not a unit dq
+        ("object.scale=1e300", "object.scale"),
+    ],
+)
+def test_a_scene_of_astronomic_size_is_refused_naming_the_key(capsys, override, key):
+    code, _, err = _cli(capsys, "validate", BOTTLE, "--set", override)
+    _one_line_error(code, err, f"{key}: Input should be ", "1000")
+
+
+def test_a_retreat_direction_of_any_length_is_a_direction():
+    from gcm_pipeline.robot.approach import Move
+
+    unit = Move(distance=0.1, direction=(1, 1, 1)).direction
+    # the norm of the first overflowed: the move went nowhere and every retreat failed
+    assert Move(distance=0.1, direction=(1e300, 1e300, 1e300)).direction == unit
+    assert Move(distance=0.1, direction=(1e-320, 0, 0)).direction == (1.0, 0.0, 0.0)
+    cfg = load_config(BOTTLE, ["retreat.direction=[1e308, 1e308, 1e308]"])
+    assert cfg.retreat.direction == (1e308, 1e308, 1e308)
+    with pytest.raises(GcmError, match="must not be the zero vector"):
+        load_config(BOTTLE, ["retreat.direction=[0, 0, 0]"])
 
 
 def test_a_robot_name_too_long_for_a_file_name_is_unknown(capsys):

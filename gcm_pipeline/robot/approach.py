@@ -166,8 +166,9 @@ class Move:
         if self.frame not in ("grasp", "base"):
             raise InputError(f"move frame must be 'grasp' or 'base', got {self.frame!r}")
         u = np.asarray(self.direction, dtype=float)
-        if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        if u.shape != (3,) or not np.all(np.isfinite(u)) or not np.any(u):
             raise InputError(f"move direction must be a non-zero 3-vector, got {self.direction!r}")
+        u = u / np.abs(u).max()  # first: the norm of [1e300, 1e300, 1e300] overflows
         object.__setattr__(self, "direction", tuple((u / np.linalg.norm(u)).tolist()))
         object.__setattr__(self, "steps", int(self.steps))
 

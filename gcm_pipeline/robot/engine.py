@@ -120,6 +120,8 @@ _SAME_SOLUTION = 1e-3
 
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
+#: Fewest targets of a chunk when a few thousand are shared out (see _guided_chunks).
+_LEAST_SHARE = 256
 
 #: Seeds of the search for more branches (step 4, pinocchio backend).
 _BRANCH_LIBRARY = 16
@@ -305,6 +307,7 @@ class ReachabilityEngine:
             )
         self._radius = gripper_radius(robot) if (approach or retreat) else 0.0
         self._pool: Any = None
+        self._pool_size = 0
         #: CPU time [s] of each step of the last :meth:`run`, summed over chunks
         #: and workers: ``ik``, ``collisions``, ``approach``, ``retreat``,
         #: ``alternatives`` (their IK), ``clearance``.
@@ -873,7 +876,7 @@ class ReachabilityEngine:
             for args in work:
                 yield self.solve(*args)
             return
-        pool = self._get_pool()
+        pool = self._get_pool(len(work))
         try:
             yield from pool.ordered(_solve_in_worker, work)
         except BaseException:
@@ -881,14 +884,19 @@ class ReachabilityEngine:
             self.close()
             raise
 
-    def _get_pool(self) -> Any:
+    def _get_pool(self, chunks: int) -> Any:
+        """The worker processes, no more than ``chunks`` (64 workers for 5 chunks: 5)."""
+        size = min(self.workers, chunks)
+        if self._pool is not None and self._pool_size < size:
+            self.close()  # a larger run than the pool was started for
         if self._pool is None:
             # warm the caches (seed library, MuJoCo model) so that workers inherit them
             probe = self.robot.fk(self.robot.home)
             solve_ik(self.robot, probe, self.backend, **self.ik_options)
             _blas_controller()  # it reads the loaded libraries (about 10 ms): once, here
             _WORKER["engine"] = self
-            self._pool = ForkPool(self.workers, initializer=_worker_signals)
+            self._pool = ForkPool(size, initializer=_worker_signals)
+            self._pool_size = size
             _POOLS.add(self)
         return self._pool
 
@@ -907,7 +915,7 @@ class ReachabilityEngine:
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
-        state["_pool"] = None
+        state["_pool"], state["_pool_size"] = None, 0
         return state
 
 
@@ -945,12 +953,13 @@ def _guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:
     finish together. A set of at most ``most // 4`` is one chunk, solved on
     this process (starting workers costs about as much as they save there);
     up to ``workers`` times that, it is shared out equally, one chunk per
-    worker (3,000 targets on two: 1,500 each, not 2,048 and 952). Results do
-    not depend on the chunks (every decision is per target).
+    worker (3,000 targets on two: 1,500 each, not 2,048 and 952), but not
+    in chunks under ``_LEAST_SHARE`` (or ``most // 4`` if smaller). Results
+    do not depend on the chunks (every decision is per target).
     """
     least = max(most // 4, 1)
     if workers > 1 and least < n <= workers * least:
-        least = most = -(-n // workers)
+        least = most = max(-(-n // workers), min(least, _LEAST_SHARE))
     out, a = [], 0
     while a < n:
         size = most if workers == 1 else min(most, max(least, -(-(n - a) // (2 * workers))))

@@ -83,13 +83,14 @@ def _subdivisions(
             raise GeometryError(f"densify spacing must be a positive length [m], got {spacing!r}")
         p = pos[tris]
         longest = np.linalg.norm(p - np.roll(p, -1, axis=1), axis=2).max(axis=1)
-        n = np.maximum(np.ceil(longest / spacing - 1e-9), 1).astype(np.int64)
+        n = np.maximum(np.ceil(longest / spacing - 1e-9), 1)  # float: checked before int64
         if len(n) and n.max() > _MAX_SUBDIVISIONS:
+            most = f"{int(n.max()):,}" if n.max() < 1e15 else f"{n.max():.3g}"
             raise GeometryError(
-                f"densify spacing {spacing!r} m asks for {int(n.max())} subdivisions of a "
-                f"triangle (max {_MAX_SUBDIVISIONS})"
+                f"densify spacing {spacing!r} m asks for {most} subdivisions of a "
+                f"triangle (max {_MAX_SUBDIVISIONS:,})"
             )
-        return n
+        return n.astype(np.int64)
     if subdivisions is None:
         raise GeometryError("densify needs subdivisions or spacing, got neither")
     if isinstance(subdivisions, bool) or int(subdivisions) != subdivisions or subdivisions < 1:

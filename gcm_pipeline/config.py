@@ -46,6 +46,7 @@ from gcm_pipeline.limits import (
     MAX_IK_SOLUTIONS,
     MAX_IK_WORKERS,
     MAX_LENGTH,
+    MAX_OBSTACLES,
 )
 from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 
@@ -453,7 +454,7 @@ class EnvironmentConfig(_Section):
     """Collision world: the table (on by default), extra obstacles, the object."""
 
     table: TableConfig | None = TableConfig()
-    obstacles: tuple[ObstacleConfig, ...] = ()
+    obstacles: Annotated[tuple[ObstacleConfig, ...], Field(max_length=MAX_OBSTACLES)] = ()
     check_object: Bool = True
     self_collision: Bool = True
     contact_tolerance: NonNegLength = 0.005
@@ -702,7 +703,9 @@ def _describe(exc: ValidationError, data: Any) -> str:
     if err["type"] == "missing":
         return f"missing required key {clip(key)}"
     if err["type"] == "too_long":
-        got = err["input"]
+        got, most = err["input"], err.get("ctx", {}).get("max_length")
+        if _tuple_len(loc) == "?" and most is not None:  # a list with a bound
+            return f"{key}: at most {most:,} items, got {len(got):,}"
         return f"{key}: expected {_tuple_len(loc)} values, got {len(got)} ({clip(got)})"
     if err["type"] == "literal_error":
         choices = re.findall(r"'([^']*)'", str(err.get("ctx", {}).get("expected", "")))
@@ -862,6 +865,8 @@ def config_from_data(
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config is a mapping of sections, got {type(data).__name__}")
+    if isinstance(overrides, str):  # one assignment, not its characters one by one
+        overrides = (overrides,)
     for assignment in overrides:
         _set_override(data, assignment)
     _resolve_paths(data, Path(os.path.abspath(path)).parent, default_out=f"results/{path.stem}")

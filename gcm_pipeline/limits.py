@@ -15,6 +15,9 @@ fixed ones are bounds of the config schema:
 - ``approach.steps``, ``retreat.steps``: at most 1,000 (schema bound; 0.1 mm
   steps over 10 cm).
 - ``ik.workers``: at most 256 (schema bound).
+- ``environment.obstacles``: at most 100 (schema bound; each costs the
+  collision checker about 4.5 MB: 2,000 took 8.9 GB; a cluttered scene is
+  one mesh).
 - ``ik.solutions``: at most 16 IK branches per grasp (schema bound).
 - Lengths and positions of the scene (poses, shape dims, the table, the
   approach and retreat distances, the contact tolerance) and a mesh's
@@ -46,6 +49,7 @@ __all__ = [
     "MAX_IK_SOLUTIONS",
     "MAX_IK_WORKERS",
     "MAX_LENGTH",
+    "MAX_OBSTACLES",
     "MAX_RANGE_STEPS",
     "MAX_STUDY_PLACEMENTS",
     "check_size",
@@ -60,6 +64,8 @@ MAX_IK_WORKERS = 256
 MAX_IK_SOLUTIONS = 16
 #: Largest length or coordinate of a scene [m], and mesh scale.
 MAX_LENGTH = 1_000.0
+#: Most ``environment.obstacles`` (each costs the collision checker about 4.5 MB).
+MAX_OBSTACLES = 100
 MAX_RANGE_STEPS = 1_000_000
 MAX_STUDY_PLACEMENTS = 1_000_000
 

@@ -583,3 +583,24 @@ def test_a_degenerate_chart_suggests_another_projection(capsys, tmp_path):
 def test_user_errors_are_gcm_errors():
     """The root of every error above: the CLI turns exactly these into exit 2."""
     assert issubclass(InputError, GcmError) and issubclass(RobotSpecError, GcmError)
+
+
+def test_more_obstacles_than_the_bound_are_refused(capsys):
+    # each costs the collision checker about 4.5 MB: 2,000 took 8.9 GB
+    many = "[" + ", ".join(["{shape: sphere, dims: {radius: 0.01}}"] * 101) + "]"
+    code, _, err = _cli(capsys, "validate", BOTTLE, "--set", f"environment.obstacles={many}")
+    _one_line_error(code, err, "environment.obstacles: ", "at most 100 items")
+
+
+def test_api_arguments_that_were_read_oddly():
+    from gcm_pipeline import load_robot
+    from gcm_pipeline.robot.ik import solve_ik
+
+    # one override string, not its characters ("--set 'i'")
+    assert load_config(FLAT, "ik.workers=2").ik.workers == 2
+    robot = load_robot("panda")
+    targets = robot.fk(np.tile(robot.home, (4, 1)))
+    assert solve_ik(robot, targets, workers="auto").success.all()  # as the config says it
+    for bad in (True, -1, "two", 1.5):
+        with pytest.raises(InputError, match="workers must be 'auto' or an int >= 0"):
+            solve_ik(robot, targets, workers=bad)

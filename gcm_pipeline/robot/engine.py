@@ -67,7 +67,6 @@ from __future__ import annotations
 import atexit
 import functools
 import multiprocessing as mp
-import os
 import time
 import weakref
 from collections.abc import Callable, Iterator, Mapping
@@ -81,6 +80,7 @@ from gcm_pipeline.robot.ik import (
     ForkPool,
     IKCandidates,
     IKResult,
+    _cores,
     _worker_signals,
     check_targets,
     solve_ik,
@@ -130,10 +130,7 @@ _BRANCH_RESTARTS = 8
 
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    return _cores()
 
 
 class CheckResult(NamedTuple):

@@ -336,6 +336,13 @@ class ForkPool(multiprocessing.pool.Pool):
             time.sleep(0)
 
 
+def _cores() -> int:
+    """Cores this process may run on (its CPU affinity), at least 1."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)  # pragma: no cover - not Linux
+
+
 #: How often the workers are looked at while a result is awaited [s].
 _WORKER_POLL = 0.25
 
@@ -438,7 +445,7 @@ def solve_ik(
     neighbours: Any = None,
     validator: Validator | None = None,
     return_all: bool = False,
-    workers: int = 1,
+    workers: int | str = 1,
     **options: Any,
 ) -> IKResult:
     """Solve the inverse kinematics of the grasp frame for N target poses.
@@ -457,7 +464,8 @@ def solve_ik(
         validator: Optional ``q (M, nq) -> (M,) str`` ('' = valid) applied to
             converged candidates before one is chosen (see module doc).
         return_all: Also return every converged candidate (``result.candidates``).
-        workers: Processes to split the targets over (``0``: all cores).
+        workers: Processes to split the targets over (``"auto"`` or ``0``: the
+            cores this process may run on).
         **options: Backend options, e.g. ``max_iterations`` (see
             :class:`~gcm_pipeline.robot.ik_pinocchio.PinocchioIKOptions` and
             :class:`~gcm_pipeline.robot.ik_mink.MinkIKOptions`).
@@ -476,10 +484,11 @@ def solve_ik(
     tol_r = _tolerance("orientation_tolerance", orientation_tolerance)
     tgt = check_targets(targets)
     n, nq = tgt.shape[0], robot.nq
-    if workers == 0:
-        workers = os.cpu_count() or 1
-    if not isinstance(workers, (int, np.integer)) or workers < 0:
-        raise InputError(f"workers must be an int >= 0, got {workers!r}")
+    if isinstance(workers, bool) or not (
+        workers == "auto" or (isinstance(workers, (int, np.integer)) and workers >= 0)
+    ):
+        raise InputError(f"workers must be 'auto' or an int >= 0 (0: all cores), got {workers!r}")
+    processes = int(workers) if workers not in ("auto", 0) else _cores()
     seed_arr: np.ndarray | None = None
     if seeds is not None:
         seed_arr = np.asarray(seeds, dtype=float)
@@ -532,7 +541,7 @@ def solve_ik(
             warm = np.where((ref >= 0)[:, :, None], q[np.clip(ref, 0, None)], np.nan)
             sub_seeds = warm if sub_seeds is None else np.concatenate([warm, sub_seeds], axis=1)
         raw = _run_backend(
-            solve, robot, tgt[rows], sub_seeds, validator, return_all, workers, kwargs
+            solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
         )
         ok = np.asarray(raw["success"], dtype=bool)
         q_rows = np.asarray(raw["q"], dtype=float)

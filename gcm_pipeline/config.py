@@ -23,6 +23,7 @@ import math
 import os
 import re
 import typing
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -632,7 +633,9 @@ class Config(_Section):
         return self
 
     @classmethod
-    def from_dict(cls, data: Any, *, source: str = "config") -> Config:
+    def from_dict(
+        cls, data: Any, *, source: str = "config", set_keys: Sequence[str] = ()
+    ) -> Config:
         """Validate a plain dict (as read from YAML) into a :class:`Config`.
 
         Relative paths (``candidates.path``, meshes, a ``robot.spec`` path,
@@ -640,8 +643,14 @@ class Config(_Section):
         working directory. NumPy scalars and arrays are taken as the Python
         numbers and lists they hold.
 
+        Args:
+            data: The config as plain data.
+            source: What to name in messages (the file).
+            set_keys: Dotted keys given by ``--set``: an error at or under one
+                of them names ``--set``, not ``source``.
+
         Raises:
-            ConfigError: Naming ``source``, the dotted key and the problem.
+            ConfigError: Naming ``source`` (or ``--set``), the dotted key and the problem.
         """
         if data is None:
             raise ConfigError(
@@ -656,7 +665,18 @@ class Config(_Section):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            raise ConfigError(f"{source}: {_describe(exc, data)}") from None
+            message, key = _describe(exc, data), _error_key(exc, data)
+            unknown = exc.errors()[0]["type"] == "extra_forbidden"
+            given = [
+                k
+                for k in set_keys
+                if key == k or key.startswith(k + ".") or (unknown and k.startswith(key + "."))
+            ]
+            if not given:
+                raise ConfigError(f"{source}: {message}") from None
+            k = given[-1]
+            named = message.startswith((f"{k}: ", f"{k}."))
+            raise ConfigError(f"--set {message}" if named else f"--set {k}: {message}") from None
         except RecursionError:
             raise ConfigError(f"{source}: config nested too deeply") from None
 
@@ -680,13 +700,24 @@ def _plain(data: Any, source: str, depth: int = 0) -> Any:
     return copy.deepcopy(data)
 
 
-def _describe(exc: ValidationError, data: Any) -> str:
-    """Turn the first pydantic error into one line naming the key and value."""
+def _error_loc(exc: ValidationError, data: Any) -> list[Any]:
+    """The keys and indices of the data at which the first pydantic error lies."""
     err = exc.errors(include_url=False)[0]
     # pydantic puts union members and validator tags ('ObjectConfig', 'int',
     # 'function-after[...]') into loc: keep only the parts that are keys or
     # indices of the data (and a missing key, which the data cannot have)
-    loc = _data_loc(data, list(err["loc"]), keep_last=err["type"] == "missing")
+    return _data_loc(data, list(err["loc"]), keep_last=err["type"] == "missing")
+
+
+def _error_key(exc: ValidationError, data: Any) -> str:
+    """The dotted key of the first pydantic error (``environment.table.size.0``)."""
+    return ".".join(str(p) for p in _error_loc(exc, data))
+
+
+def _describe(exc: ValidationError, data: Any) -> str:
+    """Turn the first pydantic error into one line naming the key and value."""
+    err = exc.errors(include_url=False)[0]
+    loc = _error_loc(exc, data)
     key = ".".join(str(p) for p in loc)
     if err["type"] == "extra_forbidden" and loc:
         model = _model_at(Config, loc[:-1])
@@ -870,7 +901,8 @@ def config_from_data(
     for assignment in overrides:
         _set_override(data, assignment)
     _resolve_paths(data, Path(os.path.abspath(path)).parent, default_out=f"results/{path.stem}")
-    return Config.from_dict(data or None, source=str(path))
+    set_keys = [a.partition("=")[0].strip() for a in overrides]
+    return Config.from_dict(data or None, source=str(path), set_keys=set_keys)
 
 
 def _resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_OUTPUT_DIR) -> None:

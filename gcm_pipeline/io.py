@@ -1257,6 +1257,8 @@ def read_run(run_dir: str | Path) -> RunData:
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
+        if run_dir.exists():
+            raise InputError(f"not a run directory: {run_dir} is a file (give its folder)")
         raise InputError(f"run directory not found: {run_dir}")
     missing = [
         f for f in ("grasps.csv", "summary.json", "manifold.npz") if not (run_dir / f).is_file()

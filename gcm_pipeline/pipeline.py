@@ -139,13 +139,15 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
 
     for key, path in input_files(cfg).items():
         try:
-            found = path.is_file()
+            found, there = path.is_file(), path.exists()
         except (OSError, ValueError):
-            found = False
+            found = there = False
         if not found:
             what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
                 key, "mesh file"
             )
+            if there:  # a directory, a device (/dev/zero), a pipe
+                raise InputError(f"{key}: {what} {path} is not a regular file")
             raise InputError(
                 f"{key}: {what} not found: {path} (relative paths resolve against the "
                 "config's folder)"

@@ -604,3 +604,12 @@ def test_api_arguments_that_were_read_oddly():
     for bad in (True, -1, "two", 1.5):
         with pytest.raises(InputError, match="workers must be 'auto' or an int >= 0"):
             solve_ik(robot, targets, workers=bad)
+
+
+def test_a_path_that_exists_but_is_no_file_is_not_called_missing(capsys, tmp_path):
+    cfg = ROOT / "configs" / "from_file.yaml"
+    for odd in ("/dev/zero", str(tmp_path)):  # it was "grasp file not found: /dev/zero"
+        code, _, err = _cli(capsys, "validate", cfg, "--set", f"candidates.path={odd}")
+        _one_line_error(code, err, f"candidates.path: grasp file {odd} is not a regular file")
+    code, _, err = _cli(capsys, "show", ROOT / "README.md")
+    _one_line_error(code, err, "README.md is a file (give its folder)")

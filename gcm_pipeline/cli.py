@@ -407,6 +407,7 @@ def _query_poses(values: list[list[str]], frame: str, cfg: Any) -> Any:
 
     from gcm_pipeline.errors import GeometryError
     from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_matrix
+    from gcm_pipeline.limits import MAX_LENGTH
 
     poses = []
     for i, raw in enumerate(values, start=1):
@@ -416,6 +417,11 @@ def _query_poses(values: list[list[str]], frame: str, cfg: Any) -> Any:
             raise GeometryError(f"--pose {i}: expected 7 numbers, got {' '.join(raw)}") from None
         if not np.isfinite(nums).all():
             raise GeometryError(f"--pose {i}: values must be finite, got {' '.join(raw)}")
+        if np.abs(nums[:3]).max() > MAX_LENGTH:
+            raise GeometryError(
+                f"--pose {i}: position {' '.join(raw[:3])} m is outside the scene (at most "
+                f"{MAX_LENGTH:g} m per coordinate)"
+            )
         norm = float(np.linalg.norm(nums[3:]))
         if abs(norm - 1.0) > 1e-3:
             raise GeometryError(

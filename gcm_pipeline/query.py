@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
 from gcm_pipeline.geometry.surface import (
     BLEND_METHODS,
     ORIENTATION_SCALE,
@@ -51,6 +51,7 @@ from gcm_pipeline.geometry.surface import (
     pose_features,
     project_onto_triangles,
 )
+from gcm_pipeline.limits import MAX_LENGTH
 from gcm_pipeline.stages.lattice import RowMesh, interpolate, row_memberships, row_mesh
 from gcm_pipeline.stages.manifold import Manifold
 from gcm_pipeline.table import GraspTable
@@ -132,6 +133,17 @@ class BestGrasps(NamedTuple):
     metric: str
 
 
+def _check_positions(xyz: np.ndarray, name: str) -> None:
+    """Positions within the scene's bounds (``MAX_LENGTH`` per coordinate, as the config's)."""
+    bad = (np.abs(xyz) > MAX_LENGTH).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise GeometryError(
+            f"{name} {i}: position {[float(f'{v:.6g}') for v in xyz[i]]} m is outside the "
+            f"scene (at most {MAX_LENGTH:g} m per coordinate)"
+        )
+
+
 def as_query_poses(poses: Any, name: str = "query pose") -> np.ndarray:
     """Validate query poses and return them as unit dual quaternions (M, 8).
 
@@ -150,6 +162,7 @@ def as_query_poses(poses: Any, name: str = "query pose") -> np.ndarray:
         raise GeometryError(f"{name}s must be numbers: {exc}") from None
     if arr.shape[-2:] == (4, 4) and arr.ndim in (2, 3):
         mats = arr.reshape(-1, 4, 4)
+        _check_positions(np.nan_to_num(mats[:, :3, 3]), name)  # non-finite: said below
         try:
             return dq_from_matrix(mats)
         except GeometryError as exc:
@@ -169,6 +182,7 @@ def as_query_poses(poses: Any, name: str = "query pose") -> np.ndarray:
                 f"{name} {i} is not a unit dual quaternion (|real| = {norm[i]:.6g}, "
                 f"real.dual = {dot[i]:.2e}); pass (4, 4) matrices or dq_from_pos_quat(...)"
             )
+        _check_positions(dq_translation(dq), name)
         return dq.copy()
     raise GeometryError(
         f"{name}s must be (M, 4, 4) / (4, 4) matrices or (M, 8) / (8,) dual quaternions, "

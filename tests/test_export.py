@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -199,6 +200,31 @@ def test_cli_export_and_an_empty_run(run, tmp_path, capsys):
     with pytest.raises(InputError, match="not a run directory"):
         export_run(tmp_path, "npz")
     assert not list(tmp_path.glob(".*.tmp"))  # nothing half-written
+
+
+def test_export_to_a_device_pipe_or_folder_is_refused_and_a_link_is_kept(run, tmp_path, capsys):
+    """A rename would replace /dev/null, a pipe or a folder with a file: refused in one line."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for target, what in (
+        ("/dev/null", "not a regular file"),
+        (fifo, "not a regular file"),
+        (tmp_path, "a directory"),
+    ):
+        assert main(["export", str(run), "--format", "npz", "--out", str(target)]) == 2
+        assert (
+            capsys.readouterr().err
+            == f"error: cannot write {target}: it is {what}; give a file name\n"
+        )
+    assert Path("/dev/null").is_char_device() and fifo.is_fifo()
+    # a symbolic link stays a link; the file it names gets the export
+    real = tmp_path / "real.npz"
+    real.write_bytes(b"old")
+    link = tmp_path / "link.npz"
+    link.symlink_to(real)
+    assert main(["export", str(run), "--format", "npz", "--out", str(link)]) == 0
+    assert link.is_symlink() and np.load(link)["x"].shape == np.load(real)["x"].shape
+    assert real.read_bytes()[:2] == b"PK"
 
 
 # ------------------------------------------------ tampered runs, odd arguments

@@ -147,6 +147,8 @@ def test_locate_takes_matrices_and_one_pose(bottle: gcm.GraspManifold) -> None:
         (np.ones(8), "not a unit dual quaternion"),
         (np.zeros((3, 3)), "must be"),
         ([1, 0, 0, 0, 0, 0, np.inf, 0], "non-finite"),
+        ([1, 0, 0, 0, 0, 5e159, 0, 0], r"position \[1e\+160, 0.0, 0.0\] m is outside the scene"),
+        (np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * 1001, "outside the scene"),
     ],
 )
 def test_query_poses_must_be_rigid_and_finite(
@@ -336,6 +338,7 @@ def test_gcm_query_prints_the_nearest_reachable_grasp(
         (["0.5", "0", "0.1", "2", "0", "0", "0"], "norm 1"),
         (["0.5", "0", "nan", "1", "0", "0", "0"], "finite"),
         (["0.5", "0", "x", "1", "0", "0", "0"], "7 numbers"),
+        (["1e160", "0", "0.1", "1", "0", "0", "0"], "--pose 1: position 1e160 0 0.1 m is outside"),
     ],
 )
 def test_gcm_query_bad_poses_are_one_line_errors(

@@ -347,6 +347,19 @@ def test_unreachable_address_is_one_line(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_more_workers_than_this_machine_has_cpus_is_one_line(tmp_path, capsys):
+    """Without --address, Ray would take --workers for CPUs and start that many actors."""
+    path = _study_file(tmp_path, _small({"object_pose": {"x": [0.5]}}))
+    out = tmp_path / "out"
+    cpus = os.cpu_count()
+    assert main(["study", str(path), "--out", str(out), "--workers", "100000"]) == 2
+    assert capsys.readouterr().err == (
+        f"error: --workers 100000: this machine has {cpus} CPUs; use --workers {cpus} or "
+        "fewer, or --address to run on a cluster\n"
+    )
+    assert not out.exists()
+
+
 def test_a_directory_of_another_study_is_refused(tmp_path):
     study = Study.from_dict(_small({"object_pose": {"x": [0.5]}}))
     other = Study.from_dict(_small({"object_pose": {"x": [0.6]}}))
@@ -361,6 +374,54 @@ def test_a_directory_of_another_study_is_refused(tmp_path):
     with pytest.raises(OutputError, match="not a gcm study directory"):
         study.check(tmp_path / "mine")
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
+
+
+def test_a_study_directory_in_use_is_refused_and_left_alone(tmp_path, capsys):
+    """A second study into the directory of a running one stops in one line, writing nothing."""
+    path = _study_file(tmp_path, _small({"object_pose": {"x": [0.5]}}))
+    out = tmp_path / "out"
+    with StudyDir(out).lock():  # what a running study holds
+        before = sorted(p.name for p in out.iterdir())
+        assert main(["study", str(path), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err == (
+            f"error: {out} is in use by another gcm study (pid {os.getpid()}); wait for it "
+            "to finish or choose another --out\n"
+        )
+        assert sorted(p.name for p in out.iterdir()) == before == [".study.lock"]
+    # released: the study runs, and a later run of it resumes
+    result = Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
+    assert result.complete and len(result.rows) == 1
+
+
+def _rewrite_part(path: Path, **change) -> None:
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    row = json.loads(str(arrays.pop("row")))
+    row.update(change.pop("row", {}))
+    arrays.update(change)
+    np.savez(path, row=np.array(json.dumps(row)), **arrays)
+
+
+def test_a_damaged_or_foreign_placement_file_runs_again(tmp_path, caplog):
+    """Resume trusts only part files that hold their own placement; the others run again."""
+    path = _study_file(tmp_path, _small({"object_pose": {"x": [0.45, 0.5, 0.55]}}))
+    out = tmp_path / "out"
+    first = Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
+    reach = np.load(out / "reachability.npz")["reachable"]
+    parts = out / "placements"
+    shutil.copy(parts / "000000.npz", parts / "000001.npz")  # another placement's file
+    _rewrite_part(parts / "000001.npz", row={"id": 1})  # ... claiming to be this one
+    _rewrite_part(parts / "000000.npz", reachable_mask=np.ones(3, dtype=bool))  # wrong length
+    _rewrite_part(parts / "000002.npz", row={"coverage": "all"})
+    again = Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
+    assert again.summary["counts"]["resumed"] == 0 and again.summary["counts"]["run"] == 3
+    assert [r["reachable"] for r in again.rows] == [r["reachable"] for r in first.rows]
+    assert np.array_equal(np.load(out / "reachability.npz")["reachable"], reach)
+    text = caplog.text
+    assert "000000.npz, placement runs again (arrays of different lengths: reachable_mask 3" in text
+    assert "000001.npz, it is not placement 1" in text
+    assert "000002.npz, placement runs again (coverage is not a number" in text
 
 
 def test_import_does_not_load_ray():

@@ -87,7 +87,8 @@ def export_run(
         top: Keep only the ``top`` best-ranked reachable grasps (moveit
             always exports ranked grasps only; default all of them).
         out: The file to write (default: ``RUN_DIR/`` + the format's name in
-            :data:`EXPORT_FORMATS`). Written atomically.
+            :data:`EXPORT_FORMATS`). Written atomically; a symbolic link is
+            kept and the file it names is replaced.
 
     Returns:
         The file and the number of grasps written.
@@ -97,7 +98,8 @@ def export_run(
             naming one of the run's own files, or no reachable grasp to
             export (after an empty, valid file is written).
         ConfigError: The run's ``config.yaml`` is not a valid config.
-        OutputError: The file cannot be written.
+        OutputError: The file cannot be written, or ``out`` is a directory, a
+            device or a pipe.
     """
     from gcm_pipeline.config import load_config
     from gcm_pipeline.io import read_grasps_csv
@@ -109,7 +111,7 @@ def export_run(
     run = Path(run_dir)
     if not (run / "grasps.csv").is_file() or not (run / "config.yaml").is_file():
         raise InputError(f"not a run directory: {run} (needs grasps.csv and config.yaml)")
-    path = Path(out) if out is not None else run / EXPORT_FORMATS[format]
+    path = _output_file(Path(out) if out is not None else run / EXPORT_FORMATS[format])
     _check_not_the_run(run, path)
     grasps = read_grasps_csv(run / "grasps.csv")  # file order: ranked first
     # the exact x..qz of the file (the dq column rebuilt from them may differ by an ulp)
@@ -164,6 +166,24 @@ def _check_not_the_run(run: Path, path: Path) -> None:
         raise InputError(
             f"--out {path} would overwrite the run's own {target.name}; choose another file"
         )
+
+
+def _output_file(path: Path) -> Path:
+    """The file an export replaces: ``path``, or the file a symbolic link there names.
+
+    Raises:
+        OutputError: ``path`` (or the link's target) exists and is no regular file
+            (a directory, ``/dev/null``, a pipe): a rename would replace it.
+    """
+    target = path.resolve() if path.is_symlink() else path
+    try:
+        exists, regular = target.exists(), target.is_file()
+    except (OSError, ValueError) as exc:
+        raise OutputError(f"cannot write {path}: {exc}") from None
+    if exists and not regular:
+        what = "a directory" if target.is_dir() else "not a regular file"
+        raise OutputError(f"cannot write {path}: it is {what}; give a file name")
+    return target
 
 
 def _atomic(path: Path, write: Callable[[Path], None]) -> None:

@@ -188,7 +188,8 @@ class RayExecutor(Executor):
         warm: The base config dict each actor builds its robot from at start.
 
     Raises:
-        EngineError: The cluster cannot be reached, or has fewer CPUs than ``workers``.
+        EngineError: The cluster cannot be reached, or it (without ``address``:
+            this machine) has fewer CPUs than ``workers``.
     """
 
     name = "ray"
@@ -210,7 +211,14 @@ class RayExecutor(Executor):
         if ray.is_initialized():
             self.mode = "existing"
         elif address is None:
-            n = workers or os.cpu_count() or 1
+            cpus = os.cpu_count() or 1
+            if workers is not None and workers > cpus:
+                # Ray would believe in that many CPUs and start an actor for each
+                raise EngineError(
+                    f"--workers {workers}: this machine has {cpus} CPUs; use --workers {cpus} "
+                    "or fewer, or --address to run on a cluster"
+                )
+            n = workers or cpus
             try:
                 with _caller_signal_handlers():
                     ray.init(

@@ -3,6 +3,9 @@
 Layout::
 
     .gcm.json           the project's marker (kind ``study``, :func:`gcm_pipeline.io.write_marker`)
+    .study.lock         held (``flock``) by the study running here: a second study
+                        into the same directory stops with an error instead of
+                        writing over the first one's files
     study.json          what study this is (its key, the study file, the base config);
                         written first, checked on every rerun
     placements/000042.npz
@@ -40,6 +43,11 @@ from gcm_pipeline.errors import OutputError
 from gcm_pipeline.io import _json_clean, format_floats
 from gcm_pipeline.study.spec import AXES
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX
+    fcntl = None  # type: ignore[assignment]
+
 __all__ = [
     "CSV_COLUMNS",
     "POSE_COLUMNS",
@@ -75,6 +83,23 @@ CSV_COLUMNS = (
 
 #: Per-grasp arrays of a placement part.
 ARRAYS = ("reachable_mask", "metric", "manipulability", "pose", "pose_object", "is_candidate")
+
+#: Numeric fields of a placement's row (null allowed: NaN, or a failed placement).
+_NUMBERS = (
+    "candidates",
+    "densified",
+    "reachable",
+    "coverage",
+    "candidates_reachable",
+    "best_metric",
+    "mean_metric",
+    "best_manipulability",
+    "mean_manipulability",
+    "time_s",
+    *POSE_COLUMNS,
+)
+
+_LOCK = ".study.lock"
 
 
 @contextlib.contextmanager
@@ -143,13 +168,24 @@ class StudyDir:
         """
         out = self.path
         try:
-            used = out.is_dir() and not out.is_symlink() and any(out.iterdir())
+            names = {p.name for p in out.iterdir()} if out.is_dir() and not out.is_symlink() else ()
         except OSError as exc:
             raise OutputError(f"cannot read study directory {out}: {exc}") from None
+        if names and set(names) <= {_LOCK}:
+            return False  # left by a study stopped before it wrote anything
         # an existing study directory is continued, never replaced: "force" only
         # lets io's checks accept a directory that carries the study marker
-        io.check_output_dir(out, force=used, keep=keep, kind="study")
-        if not used:
+        io.check_output_dir(out, force=bool(names), keep=keep, kind="study")
+        return bool(names) and self.holds(key)
+
+    def holds(self, key: str) -> bool:
+        """Whether the directory holds the study ``key`` already (checked again under :meth:`lock`).
+
+        Raises:
+            OutputError: It holds another study.
+        """
+        out = self.path
+        if not (out / io.MARKER).exists():
             return False
         meta = self.read_meta()
         if meta is None or meta.get("key") != key:
@@ -159,6 +195,59 @@ class StudyDir:
                 f"{(meta or {}).get('key')}, this one {key}); choose another --out or remove it"
             )
         return True
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the directory for this process while the block runs (``.study.lock``).
+
+        Creates the directory when needed. A directory this call created is
+        removed again when the block fails before anything else was written
+        into it.
+
+        Raises:
+            OutputError: Another process holds it (a study running into the same
+                directory), or it cannot be created.
+        """
+        made = not self.path.exists()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path / _LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise OutputError(f"cannot create study directory {self.path}: {exc}") from None
+        try:
+            if fcntl is not None:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+                    who = f" (pid {holder})" if holder.isdigit() else ""
+                    raise OutputError(
+                        f"{self.path} is in use by another gcm study{who}; wait for it to "
+                        "finish or choose another --out"
+                    ) from None
+                except OSError:  # pragma: no cover - a filesystem without locks
+                    pass
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            try:
+                yield
+            except BaseException:
+                if made:
+                    self._remove_if_unused()
+                raise
+        finally:
+            os.close(fd)  # releases the lock
+
+    def _remove_if_unused(self) -> None:
+        """Remove the directory when it holds nothing but the lock (and empty ``placements/``)."""
+        with contextlib.suppress(OSError):
+            names = {p.name for p in self.path.iterdir()}
+            if names <= {_LOCK, "placements"} and not any(self.parts.iterdir()):
+                self.parts.rmdir()
+        with contextlib.suppress(OSError):
+            if {p.name for p in self.path.iterdir()} <= {_LOCK}:
+                (self.path / _LOCK).unlink()
+                self.path.rmdir()
 
     def read_meta(self) -> dict[str, Any] | None:
         """``study.json`` as a dict, or None when it is missing or not a study's."""
@@ -206,22 +295,27 @@ class StudyDir:
     def load_parts(self) -> dict[int, dict[str, Any]]:
         """Every finished placement: id -> row (with its arrays under ``arrays``).
 
-        A part that cannot be read (not written by a study) is skipped with a
-        warning: its placement runs again.
+        A part that cannot be read or does not hold what a study writes (a
+        damaged or edited file) is skipped with a warning: its placement runs
+        again.
         """
         out: dict[int, dict[str, Any]] = {}
         if not self.parts.is_dir():
             return out
         for path in sorted(self.parts.glob("[0-9]*.npz")):
+            if not path.stem.isdigit():
+                continue
             try:
                 with np.load(path, allow_pickle=False) as data:
                     row = json.loads(str(data["row"]))
+                    if not isinstance(row, dict):
+                        raise ValueError("its row is not a JSON object")
                     row["arrays"] = {k: data[k] for k in data.files if k != "row"}
-                pid = int(row["id"])
+                _check_part(int(path.stem), row)
             except Exception as exc:  # a damaged file: run the placement again
-                log.warning("study: ignoring unreadable %s (%s)", path, exc)
+                log.warning("study: ignoring %s, placement runs again (%s)", path, exc)
                 continue
-            out[pid] = row
+            out[int(row["id"])] = row
         return out
 
     # --- consolidated outputs ---------------------------------------------------------
@@ -258,6 +352,41 @@ class StudyDir:
         with atomic_write(path) as tmp:
             writer(tmp)
         return path
+
+
+def _check_part(pid: int, row: Mapping[str, Any]) -> None:
+    """Raise ValueError unless ``row`` is a part as :meth:`StudyDir.write_part` writes one."""
+    if type(row.get("id")) is not int or row["id"] != pid:
+        raise ValueError(f"its id {row.get('id')!r} is not its file name's {pid}")
+    if not isinstance(row.get("object"), str) or not isinstance(row.get("error", ""), str):
+        raise ValueError("object or error is not a string")
+    for key in _NUMBERS:
+        value = row.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise ValueError(f"{key} is not a number: {value!r}")
+    arrays = row["arrays"]
+    if row.get("error"):
+        return
+    if row.get("coverage") is None or set(arrays) != set(ARRAYS):
+        raise ValueError(f"a finished placement needs coverage and the arrays {', '.join(ARRAYS)}")
+    lengths = {k: (v.shape[0] if v.ndim else None) for k, v in arrays.items()}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(
+            "arrays of different lengths: " + ", ".join(f"{k} {v}" for k, v in lengths.items())
+        )
+    n = arrays["reachable_mask"].shape[:1]
+    shapes = {
+        "reachable_mask": (n, "b"),
+        "is_candidate": (n, "b"),
+        "metric": (n, "f"),
+        "manipulability": (n, "f"),
+        "pose": ((*n, 7), "f"),
+        "pose_object": ((*n, 7), "f"),
+    }
+    for key, value in arrays.items():
+        shape, kind = shapes[key]
+        if value.shape != shape or value.dtype.kind != kind:
+            raise ValueError(f"{key} has shape {value.shape} and dtype {value.dtype}")
 
 
 def _cell(value: Any) -> str:

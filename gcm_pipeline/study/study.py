@@ -250,17 +250,35 @@ class Study:
                 into one): workers are stopped, finished placements stay in
                 ``out_dir`` and a rerun resumes.
         """
+        t_start = time.perf_counter()
+        if engine not in ("ray", "inline"):
+            raise ConfigError(f"engine must be 'ray' or 'inline', got {engine!r}")
+        self.check(out_dir, force=force)
+        store = StudyDir(out_dir)
+        # one study at a time in a directory; what it holds is read again under the lock
+        with store.lock():
+            resumed = store.holds(self.plan.key())
+            return self._run_locked(
+                store, resumed, t_start, workers, address, engine, progress, best_run
+            )
+
+    def _run_locked(
+        self,
+        store: StudyDir,
+        resumed: bool,
+        t_start: float,
+        workers: int | None,
+        address: str | None,
+        engine: str,
+        progress: bool,
+        best_run: bool,
+    ) -> StudyResult:
         from gcm_pipeline.study.runner import InlineExecutor, RayExecutor
 
-        t_start = time.perf_counter()
-        resumed = self.check(out_dir, force=force)
-        store = StudyDir(out_dir)
         plan = self.plan
         warm = plan.base_config.to_dict()
         if engine == "inline":
             executor: Any = InlineExecutor(warm)
-        elif engine != "ray":
-            raise ConfigError(f"engine must be 'ray' or 'inline', got {engine!r}")
         elif resumed and self._grid_done(store):
             # a resumed study whose grid is finished may have nothing left to run:
             # Ray starts only if a refinement round still has placements to run
@@ -406,9 +424,9 @@ class _Run:
 
     def execute(self, *, resumed: bool, t_start: float, best_run: bool) -> StudyResult:
         done = self.store.load_parts() if resumed else {}
-        self.rows = {pid: row for pid, row in done.items()}
-        self.resumed = len(self.rows)
         grid = self.plan.grid()
+        self.rows = self._own(grid, done)
+        self.resumed = len(self.rows)
         refine = self.plan.spec.refine
         rounds = refine.rounds if refine is not None else 0
         self.bar = tqdm(
@@ -428,6 +446,7 @@ class _Run:
                     break
                 more = self.plan.refined(rnd, best, self.placements)
                 self.placements += more
+                self.rows.update(self._own(more, done))
                 todo = [p for p in more if p.id not in self.rows]
                 self.bar.total += len(more)
                 self.bar.update(len(more) - len(todo))
@@ -440,6 +459,32 @@ class _Run:
         known = {p.id for p in self.placements}
         self.rows = {k: v for k, v in self.rows.items() if k in known}
         return self.finish(complete=True, t_start=t_start, best_run=best_run)
+
+    def _own(
+        self, placements: list[Placement], done: Mapping[int, dict[str, Any]]
+    ) -> dict[int, dict[str, Any]]:
+        """The finished rows of ``placements`` in ``done``.
+
+        A part whose object or pose is not its placement's (a file from
+        elsewhere) is ignored with a warning: that placement runs again.
+        """
+        own: dict[int, dict[str, Any]] = {}
+        for p in placements:
+            row = done.get(p.id)
+            if row is None:
+                continue
+            want = self._row_base(p)
+            keys = [k for k in POSE_COLUMNS if not math.isnan(want[k])]
+            if row["object"] != p.object or any(row.get(k) != want[k] for k in keys):
+                log.warning(
+                    "study: ignoring %s, it is not placement %d (%s); it runs again",
+                    self.store.part_path(p.id),
+                    p.id,
+                    p.label(),
+                )
+                continue
+            own[p.id] = row
+        return own
 
     def _best_per_object(self) -> dict[int, Placement]:
         by_id = {p.id: p for p in self.placements}

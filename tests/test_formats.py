@@ -213,6 +213,44 @@ def test_contact_graspnet_never_runs_pickled_code(tmp_path):
     assert pickle  # the stdlib module the attack would need is not what we use to read
 
 
+def _object_npz(path: Path, **members: object) -> Path:
+    """An ``.npz`` whose members are pickled object arrays (as Contact-GraspNet saves dicts)."""
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, value in members.items():
+            buf = io.BytesIO()
+            arr = np.empty((), dtype=object)
+            arr[()] = value
+            np.lib.format.write_array(buf, arr, allow_pickle=True)
+            zf.writestr(f"{name}.npy", buf.getvalue())
+    return path
+
+
+def test_contact_graspnet_pickle_that_expands_is_refused_before_it_is_built(tmp_path):
+    """A pickle refers to one list many times for 2 bytes each: sized by what it expands to."""
+    pose = np.eye(4).tolist()
+    shared = [pose] * 1000  # one list of 1,000 poses ...
+    path = _object_npz(tmp_path / "bomb.npz", pred_grasps_cam={0: [shared] * 20_000})  # 20M poses
+    assert path.stat().st_size < 200_000
+    with pytest.raises(
+        InputError, match=r"array 'pred_grasps_cam' expands to more than 64,131,072"
+    ):
+        formats.read_contact_graspnet(path)
+    # nested without end
+    deep: list = [[1.0]]
+    for _ in range(50):
+        deep = [deep]
+    path = _object_npz(tmp_path / "deep.npz", pred_grasps_cam={0: deep})
+    with pytest.raises(InputError, match="nests lists or dicts more than 8 levels deep"):
+        formats.read_contact_graspnet(path)
+    # the layout Contact-GraspNet writes (dicts of arrays) reads, scores as a list too
+    path = _object_npz(
+        tmp_path / "ok.npz", pred_grasps_cam={3: np.stack([pose, pose])}, scores={3: [0.5, 0.25]}
+    )
+    got = formats.read_contact_graspnet(path)
+    assert got.poses.shape == (2, 4, 4) and got.columns["score"].tolist() == [0.5, 0.25]
+    assert got.columns["segment"].tolist() == [3, 3]
+
+
 # ------------------------------------------------------------------ GraspNet
 
 
@@ -462,8 +500,11 @@ def _hostile_files(tmp_path: Path) -> list[tuple[str, Path, dict, str]]:
     )
     cases.append(("graspgen", p, {"max_count": 1}, "bytes"))
     p = tmp_path / "deep.json"
-    p.write_text("[" * 200_000 + "]" * 200_000)
+    p.write_text("[" * 20_000 + "]" * 20_000)
     cases.append(("graspgen", p, {}, "nested too deeply"))
+    p = tmp_path / "empties.json"  # 3 bytes of text, a list of 56 bytes parsed: 20x
+    p.write_text("[" + "[]," * 300_000 + "[]]")
+    cases.append(("graspgen", p, {"max_count": 10}, "holds about 600,003 JSON values"))
     p = tmp_path / "isaac.yaml"
     p.write_text(
         "format: isaac_grasp\ngrasps:\n  g0: {confidence: 1.0, position: [0, 0, .inf],"

@@ -50,6 +50,7 @@ import json
 import logging
 import pickle
 import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,7 +87,7 @@ _TEXT_BYTES_PER_GRASP = 2048
 #: openings and pickle framing.
 _BINARY_BYTES_PER_GRASP = 512
 _SLACK_BYTES = 1 << 20
-#: YAML values a grasp may take after alias expansion (16 for its pose and a few more).
+#: YAML or JSON values a grasp may take (YAML after aliases; 16 for its pose and a few more).
 _YAML_VALUES_PER_GRASP = 64
 
 
@@ -176,14 +177,23 @@ def _read_structured(path: Path, max_count: int) -> Any:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
+    max_values = max(_YAML_VALUES_PER_GRASP * max_count, 100_000)
     if path.suffix.lower() == ".json":
+        # a value takes up to ~70 bytes parsed ("[]," is 3 bytes of text and a list of 56):
+        # counted from the separators before anything is built
+        values = 1 + text.count(",") + text.count("[") + text.count("{")
+        if values > max_values:
+            raise InputError(
+                f"{path}: holds about {values:,} JSON values, more than {max_count:,} grasps "
+                f"(candidates.max_count) need (at most {max_values:,}); raise "
+                "candidates.max_count to read it"
+            )
         try:
             return json.loads(text)
         except ValueError as exc:
             raise InputError(f"{path}: not valid JSON: {' '.join(str(exc).split())}") from None
         except RecursionError:
             raise InputError(f"{path}: not a GraspGen grasp file: JSON nested too deeply") from None
-    max_values = max(_YAML_VALUES_PER_GRASP * max_count, 100_000)
     return load_yaml(text.removeprefix("\ufeff"), str(path), InputError, max_values=max_values)
 
 
@@ -346,6 +356,10 @@ def _read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
     from gcm_pipeline.io import npy_header
 
     out: dict[str, Any] = {}
+    # numbers the pickled members may expand to: a pickle refers to one list or array
+    # many times for a few bytes each, so its size on disk does not bound them
+    budget = max_count * (_BINARY_BYTES_PER_GRASP // 8) + _SLACK_BYTES // 8
+    values = 0
     try:
         with zipfile.ZipFile(path) as zf:
             infos = [i for i in zf.infolist() if i.filename.endswith(".npy")]
@@ -360,7 +374,9 @@ def _read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
                     else:
                         _, _, dtype = np.lib.format.read_array_header_2_0(fh)
                     if dtype.hasobject:
-                        out[name] = _ArrayUnpickler(fh).load()
+                        value = _ArrayUnpickler(fh).load()
+                        values += _count_values(path, name, value, budget - values)
+                        out[name] = value
                         continue
                 with zf.open(info) as fh:
                     npy_header(path, fh, f"array {clip(name)}", info.file_size)
@@ -380,6 +396,66 @@ def _read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
     ) as exc:
         raise InputError(f"{path}: not a readable .npz archive: {clip(str(exc))}") from None
     return out
+
+
+#: Levels of lists, dicts and object arrays a pickled member may nest.
+_MAX_NESTING = 8
+
+
+def _count_values(path: Path, name: str, value: Any, budget: int) -> int:
+    """Numbers a pickled member expands to, counted without building anything.
+
+    Every reference counts (a list referred to twice is two lists' worth), as
+    converting the member to arrays would copy it that often (each object is
+    walked once). The walk stops as soon as the count passes ``budget``.
+
+    Raises:
+        InputError: More than ``budget`` numbers, or nested more than
+            :data:`_MAX_NESTING` levels deep.
+    """
+    containers = (np.ndarray, list, tuple, dict)
+
+    def size(v: Any) -> int:
+        return int(v.size) if isinstance(v, np.ndarray) else len(v)
+
+    def children(v: Any) -> Iterator[Any]:
+        if isinstance(v, np.ndarray):
+            return v.flat if v.dtype.hasobject else iter(())
+        items = v.values() if isinstance(v, dict) else v
+        # a flat list of numbers is not walked number by number (types are listed in C)
+        if not any(issubclass(t, containers) for t in set(map(type, items))):
+            return iter(())
+        return iter(items)
+
+    too_many = InputError(
+        f"{path}: array {clip(name)} expands to more than {budget:,} numbers, more than "
+        "candidates.max_count grasps need; raise candidates.max_count to read it"
+    )
+    totals: dict[int, int] = {}  # by id: an object referred to again is not walked again
+
+    def total(v: Any, depth: int) -> int:
+        if not isinstance(v, containers):
+            return 1
+        if id(v) in totals:
+            return totals[id(v)]
+        if depth >= _MAX_NESTING:
+            raise InputError(
+                f"{path}: array {clip(name)} nests lists or dicts more than "
+                f"{_MAX_NESTING} levels deep"
+            )
+        n = size(v)
+        for child in children(v):
+            if isinstance(child, containers):
+                n += total(child, depth + 1)
+                if n > budget:
+                    raise too_many
+        totals[id(v)] = n
+        return n
+
+    count = total(value, 0)
+    if count > budget:
+        raise too_many
+    return count
 
 
 def _segments(value: Any) -> dict[Any, np.ndarray]:

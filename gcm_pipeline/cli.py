@@ -553,7 +553,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
                 best_run=not args.no_best,
             )
     except BaseException as exc:  # an interrupt: main() prints it and sets the status
-        if signals.interrupt_cause(exc) is not None:
+        parts = Path(args.out) / "placements"
+        if signals.interrupt_cause(exc) is not None and any(parts.glob("*.npz")):
             print(
                 f"finished placements are kept in {args.out}; run the same command to resume",
                 file=sys.stderr,

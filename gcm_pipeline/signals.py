@@ -16,12 +16,24 @@ handlers before anything else loads (:func:`install`).
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from typing import Any
 
-__all__ = ["Terminated", "check", "clear", "ignore", "install", "interrupt_cause", "report"]
+__all__ = [
+    "Terminated",
+    "check",
+    "clear",
+    "held",
+    "ignore",
+    "install",
+    "interrupt_cause",
+    "release",
+    "report",
+]
 
 #: The signals ``gcm`` turns into an interrupt of the main thread.
 NAMES = ("SIGINT", "SIGTERM", "SIGHUP")
@@ -79,6 +91,42 @@ def _set(handler: Any) -> dict[int, Any]:
 def install() -> dict[int, Any]:
     """Handle the signals with :func:`raise_interrupt`; returns the previous handlers."""
     return _set(raise_interrupt)
+
+
+@contextlib.contextmanager
+def held() -> Iterator[list[int]]:
+    """Record the interrupts instead of acting on them while the block runs.
+
+    For code that must not be cut in the middle (starting Ray: an interrupt
+    inside its start-up left its agents running or crashed the interpreter at
+    exit). Only signals handled by a Python function are held (a default
+    action stays what it is); the previous handlers are back after the block.
+    The caller passes the yielded list to :func:`release` once it can clean up.
+    """
+    got: list[int] = []
+
+    def record(signum: int, frame: Any) -> None:
+        got.append(signum)
+
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for name in NAMES:
+            sig = getattr(signal, name, None)
+            if sig is not None and callable(signal.getsignal(sig)):
+                previous[sig] = signal.signal(sig, record)
+    try:
+        yield got
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def release(got: list[int]) -> None:
+    """Raise the first interrupt :func:`held` recorded (nothing if none)."""
+    global _received
+    if got:
+        _received = got[0]
+        raise _interrupt(got[0])
 
 
 def ignore() -> None:

@@ -742,6 +742,40 @@ def test_gcm_study_starts_ray_on_this_machine(tmp_path):
     assert summary2["best"]["id"] == summary["best"]["id"]
 
 
+def test_ctrl_c_while_ray_starts_stops_it_whole(tmp_path):
+    """Ctrl-C inside Ray's start-up (once its raylet runs): status 130, one line, nothing left.
+
+    Cut in the middle, the start-up left Ray's agents running and sometimes crashed
+    the interpreter at exit (status 139); the interrupt now waits for the start-up.
+    """
+    path = _study_file(tmp_path, _small({"object_pose": {"x": [0.4, 0.5]}}))
+    out = tmp_path / "study"
+    env = dict(os.environ)
+    env["RAY_TMPDIR"] = tempfile.mkdtemp(prefix="gcm-ray-", dir="/tmp")
+    argv = [sys.executable, "-m", "gcm_pipeline", "study", str(path), "--out", str(out)]
+    try:
+        proc = subprocess.Popen(
+            [*argv, "--workers", "1", "-q"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            start_new_session=True,
+        )
+        t0 = time.perf_counter()
+        while not any("raylet" in c for c in _in_session(proc.pid)):
+            assert proc.poll() is None and time.perf_counter() - t0 < 60
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=120)
+        assert proc.returncode == 130, stderr
+        assert stderr == "interrupted\n"
+        assert _session_ends(proc.pid) == []
+        assert not out.exists()  # nothing was written: the directory went again
+    finally:
+        shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
+
+
 def test_a_small_region_of_a_huge_sweep_builds_only_what_is_inside():
     """10^10 combinations cut down by a box region to a few: only those are built.
 

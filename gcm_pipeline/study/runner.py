@@ -30,6 +30,7 @@ from collections.abc import Iterable, Iterator
 from typing import Any
 from urllib.parse import urlsplit
 
+from gcm_pipeline import signals
 from gcm_pipeline.errors import GcmError
 from gcm_pipeline.study.worker import PlacementWorker
 
@@ -168,6 +169,30 @@ def _caller_signal_handlers() -> Iterator[None]:
                 signal.signal(sig, handler)
 
 
+@contextlib.contextmanager
+def _uninterrupted(ray: Any) -> Iterator[list[int]]:
+    """Run ``ray.init`` whole: Ctrl-C, SIGTERM and SIGHUP are held until it returns.
+
+    Cut in the middle, Ray's start-up left its dashboard and runtime-env agents
+    running, and the interpreter sometimes crashed at exit (status 139). The
+    signals received are yielded for the caller to raise once Ray can be
+    stopped; ``ray.init`` is kept from installing its own SIGTERM handler (exit
+    at once) meanwhile, and the caller's handlers are back afterwards.
+    """
+    utils: Any = getattr(getattr(ray, "_private", None), "utils", None)
+    setter = getattr(utils, "set_sigterm_handler", None)
+    with _caller_signal_handlers(), signals.held() as got:
+        # only while SIGTERM is held: else Ray's handler is what stops its processes
+        patch = setter is not None and callable(signal.getsignal(signal.SIGTERM))
+        if patch:
+            utils.set_sigterm_handler = lambda handler: None
+        try:
+            yield got
+        finally:
+            if patch:
+                utils.set_sigterm_handler = setter
+
+
 def _import_ray() -> Any:
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     try:
@@ -208,6 +233,7 @@ class RayExecutor(Executor):
             probe_address(address)
         self.started = False
         self.address = address
+        got: list[int] = []  # interrupts held while Ray started
         if ray.is_initialized():
             self.mode = "existing"
         elif address is None:
@@ -220,7 +246,7 @@ class RayExecutor(Executor):
                 )
             n = workers or cpus
             try:
-                with _caller_signal_handlers():
+                with _uninterrupted(ray) as got:
                     ray.init(
                         address="local",
                         num_cpus=n,
@@ -235,7 +261,7 @@ class RayExecutor(Executor):
             self.mode = "local"
         else:
             try:
-                with _caller_signal_handlers():
+                with _uninterrupted(ray) as got:
                     ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             except Exception as exc:
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -244,6 +270,9 @@ class RayExecutor(Executor):
                 ) from None
             self.started = True
             self.mode = "cluster"
+        if got:  # an interrupt during start-up: Ray is up, so it stops cleanly
+            self.close()
+            signals.release(got)
         try:
             cpus = int(ray.cluster_resources().get("CPU", 0))
             self.workers = workers or max(cpus, 1)

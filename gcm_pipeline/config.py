@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import copy
 import difflib
+import functools
+import inspect
 import math
 import os
 import re
 import typing
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, ParamSpec, TypeVar
 
 import numpy as np
 from pydantic import (
@@ -52,6 +54,8 @@ from gcm_pipeline.limits import (
 from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 
 __all__ = [
+    "as_config",
+    "takes_config",
     "AdaptiveConfig",
     "ApproachConfig",
     "CandidatesConfig",
@@ -950,3 +954,38 @@ def config_schema() -> dict[str, Any]:
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["title"] = "gcm_pipeline config"
     return schema
+
+
+def as_config(cfg: Any) -> Config:
+    """``cfg`` as a :class:`Config`: a Config as it is, a mapping through :meth:`Config.from_dict`.
+
+    Raises:
+        ConfigError: Neither, or an invalid mapping.
+    """
+    if isinstance(cfg, Config):
+        return cfg
+    if isinstance(cfg, Mapping):
+        return Config.from_dict(dict(cfg), source="cfg")
+    raise ConfigError(
+        f"cfg must be a Config (load_config, Config.from_dict) or a mapping, got "
+        f"{type(cfg).__name__}"
+    )
+
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+def takes_config(func: Callable[_P, _R]) -> Callable[_P, _R]:
+    """Let a stage function's ``cfg`` argument also be a plain mapping (see :func:`as_config`)."""
+    sig = inspect.signature(func)
+
+    @functools.wraps(func)
+    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        bound = sig.bind(*args, **kwargs)
+        if "cfg" in bound.arguments and not isinstance(bound.arguments["cfg"], Config):
+            bound.arguments["cfg"] = as_config(bound.arguments["cfg"])
+            return func(*bound.args, **bound.kwargs)
+        return func(*args, **kwargs)
+
+    return wrapper

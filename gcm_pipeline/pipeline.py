@@ -49,7 +49,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from gcm_pipeline import io
-from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.config import Config, load_config, takes_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
@@ -105,6 +105,7 @@ def input_files(cfg: Config) -> dict[str, Path]:
     return files
 
 
+@takes_config
 def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     """Check, before any work, what the config refers to outside itself.
 
@@ -177,6 +178,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     return robot
 
 
+@takes_config
 def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
     """Delaunay manifold over the candidates' chart (config section ``manifold``).
 
@@ -203,6 +205,7 @@ def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
     )
 
 
+@takes_config
 def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
     """Densify the manifold's triangles (config section ``densify``).
 
@@ -228,6 +231,7 @@ def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
     )
 
 
+@takes_config
 def refinement_score(robot: Robot, cfg: Config) -> Callable[[GraspTable], np.ndarray]:
     """The metric adaptive refinement follows: the ranking metric of ``cfg``.
 
@@ -254,6 +258,7 @@ def refinement_score(robot: Robot, cfg: Config) -> Callable[[GraspTable], np.nda
     return score
 
 
+@takes_config
 def densify_adaptive(
     grasps: GraspTable,
     manifold: Manifold,
@@ -305,6 +310,7 @@ def densify_adaptive(
             check.close()
 
 
+@takes_config
 def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict[str, int]:
     """``counts["adaptive"]`` of a run: IK solves, rows per level, the uniform lattice's size.
 
@@ -324,6 +330,7 @@ def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict
     return out
 
 
+@takes_config
 def add_continuity(
     grasps: GraspTable,
     manifold: Manifold,
@@ -377,6 +384,7 @@ def add_continuity(
     return grasps.with_columns(**cols), counts
 
 
+@takes_config
 def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
     """The ranking metric of every IK branch (N, K) (``solutions`` column), higher is better.
 
@@ -412,6 +420,7 @@ def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
     return score
 
 
+@takes_config
 def select_branches(
     grasps: GraspTable, manifold: Manifold, robot: Robot, cfg: Config
 ) -> GraspTable:
@@ -435,6 +444,7 @@ def select_branches(
     )
 
 
+@takes_config
 def robot_from_config(cfg: Config) -> Robot:
     """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path)."""
     from gcm_pipeline.robot.model import load_robot as _load
@@ -447,6 +457,7 @@ def robot_from_config(cfg: Config) -> Robot:
 load_robot = robot_from_config
 
 
+@takes_config
 def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     """The reachability engine of a config.
 
@@ -475,6 +486,7 @@ def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     )
 
 
+@takes_config
 def check_reachability(
     grasps: GraspTable,
     robot: Robot,
@@ -602,6 +614,7 @@ def _empty_reachability(table: GraspTable, nq: int, *, with_clearance: bool) -> 
     return GraspTable({"dq": np.zeros((0, 8)), **cols})
 
 
+@takes_config
 def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
     """Manipulability metrics and ranks of the reachable grasps (``ranking``).
 
@@ -619,6 +632,7 @@ def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
     return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, weights=r.weights)
 
 
+@takes_config
 def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     """Write ``scene.html`` / PNG plots into ``out_dir`` (section ``publish``).
 
@@ -760,9 +774,10 @@ class Pipeline:
         self.source = Path(source).absolute() if source is not None else None
 
     @classmethod
-    def from_yaml(cls, path: str | Path, overrides: Iterable[str] = ()) -> Pipeline:
-        """Load a YAML config (with ``key=value`` overrides), see :func:`load_config`."""
-        return cls(load_config(path, tuple(overrides)), source=path)
+    def from_yaml(cls, path: str | Path, overrides: Iterable[str] | str = ()) -> Pipeline:
+        """Load a YAML config with ``key=value`` overrides (or one as a string); see load_config."""
+        over = (overrides,) if isinstance(overrides, str) else tuple(overrides)
+        return cls(load_config(path, over), source=path)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Pipeline:

@@ -788,6 +788,8 @@ class GraspManifold:
         ids = np.asarray(region)
         if ids.ndim != 1 or (ids.size and not np.issubdtype(ids.dtype, np.integer)):
             raise InputError("region must be None, triangle ids or a callable on poses")
+        if not ids.size:
+            raise InputError("region holds no triangle id; pass None for the whole manifold")
         if ids.size and (ids.min() < 0 or ids.max() >= len(self)):
             raise InputError(f"region triangle ids must be in 0..{len(self) - 1}")
         allowed = np.zeros(len(self), dtype=bool)

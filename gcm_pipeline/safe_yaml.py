@@ -124,6 +124,17 @@ if getattr(yaml, "__with_libyaml__", False):
 #: Documents at least this long [characters] use libyaml when it is installed.
 FAST_YAML_CHARS = 1 << 16
 
+#: PyYAML's int and float resolvers without their base-60 branch (``1:30`` = 90).
+_SEXAGESIMAL_FREE = {
+    "tag:yaml.org,2002:int": re.compile(
+        r"^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$"
+    ),
+    "tag:yaml.org,2002:float": re.compile(
+        r"^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?|\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?"
+        r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+    ),
+}
+
 # YAML 1.2 floats: also 1e-4, 1E5, 2.5e3 (PyYAML's YAML 1.1 needs a dot and a signed exponent)
 for _cls in (_Loader, _CLoader):
     if _cls is not None:
@@ -133,6 +144,12 @@ for _cls in (_Loader, _CLoader):
             list("-+0123456789."),
         )
         _cls.add_constructor("tag:yaml.org,2002:int", _cls.construct_yaml_int)
+        # no YAML 1.1 base-60 numbers: "1:00" is a string, not 60 (YAML 1.2 dropped them)
+        for _resolvers in _cls.yaml_implicit_resolvers.values():
+            _resolvers[:] = [
+                (tag, _SEXAGESIMAL_FREE.get(tag, rx) if "(?::[0-5]?[0-9])" in rx.pattern else rx)
+                for tag, rx in _resolvers
+            ]
 
 
 def _check_depth(text: str) -> None:

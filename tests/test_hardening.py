@@ -21,8 +21,8 @@ import pytest
 from gcm_pipeline import io
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import load_config
-from gcm_pipeline.errors import GcmError, InputError, RobotSpecError
-from gcm_pipeline.pipeline import preflight
+from gcm_pipeline.errors import ConfigError, GcmError, InputError, RobotSpecError
+from gcm_pipeline.pipeline import Pipeline, preflight
 from gcm_pipeline.stages.candidates import read_grasp_file
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -598,6 +598,15 @@ def test_api_arguments_that_were_read_oddly():
 
     # one override string, not its characters ("--set 'i'")
     assert load_config(FLAT, "ik.workers=2").ik.workers == 2
+    assert Pipeline.from_yaml(FLAT, "ik.workers=2").config.ik.workers == 2
+    # a stage function takes the config as a plain mapping too (it was an AttributeError)
+    from gcm_pipeline.pipeline import build_manifold, generate_candidates
+    from gcm_pipeline.safe_yaml import read_yaml_file
+
+    as_read = generate_candidates(read_yaml_file(FLAT, "config", ConfigError))
+    assert np.array_equal(as_read["dq"], generate_candidates(load_config(FLAT))["dq"])
+    with pytest.raises(ConfigError, match="cfg must be a Config .* or a mapping, got list"):
+        build_manifold(as_read, cfg=[1])
     robot = load_robot("panda")
     targets = robot.fk(np.tile(robot.home, (4, 1)))
     assert solve_ik(robot, targets, workers="auto").success.all()  # as the config says it

@@ -310,6 +310,8 @@ def test_best_in_a_region_and_by_another_metric(bottle: gcm.GraspManifold) -> No
     assert np.isin(tri.triangle, [0, 1, 2]).all()
     with pytest.raises(gcm.InputError, match="unknown metric"):
         bottle.best("speed")
+    with pytest.raises(gcm.InputError, match="region holds no triangle id"):
+        bottle.best(region=[])
 
 
 def test_gcm_query_prints_the_nearest_reachable_grasp(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -170,3 +171,10 @@ def test_an_integer_too_long_for_python_is_one_line(pad):
     with pytest.raises(ConfigError, match="--set seed:1:1: an integer of 5,000 digits"):
         load_config(FLAT, ["seed=" + "9" * 5000])
     assert _load(pad + "a: 0x1F\nb: -12_000\nc: 0b101\n") == {"a": 31, "b": -12000, "c": 5}
+
+
+@pytest.mark.parametrize("pad", ["", _PAD])  # the pure-Python and libyaml paths
+def test_no_base_60_numbers(pad):
+    """YAML 1.1 read 1:00 as 60 and 1:30.5 as 90.5 (YAML 1.2 dropped it): strings now."""
+    data = _load(pad + "a: 1:00\nb: 1:30.5\nc: 12:34:56\nd: 0x1F\ne: 1_000\nf: .inf\n")
+    assert data == {"a": "1:00", "b": "1:30.5", "c": "12:34:56", "d": 31, "e": 1000, "f": math.inf}

@@ -159,7 +159,7 @@ def _interrupted_rerun(tmp_path, capsys, monkeypatch, write_run_files):
 def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, monkeypatch):
     """pydantic turns a Ctrl-C that arrives while it serialises a config into an error
     of its own, caused by the KeyboardInterrupt: ``gcm`` still says ``interrupted``
-    (status 130), keeps the previous run, and ``gcm study`` says what it kept."""
+    (status 130), keeps the previous run, and ``gcm study`` says what it kept (if any)."""
     from pydantic import BaseModel, field_serializer
 
     from gcm_pipeline import io
@@ -180,6 +180,10 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
 
     monkeypatch.setattr(Study, "run", lambda self, *a, **k: wrapped())
     study = ROOT / "configs" / "studies" / "bottle_placement.yaml"
+    assert main(["study", str(study), "--out", str(tmp_path / "study"), "-q"]) == 130
+    assert capsys.readouterr().err == "interrupted\n"  # nothing finished: nothing kept
+    (tmp_path / "study" / "placements").mkdir(parents=True)
+    (tmp_path / "study" / "placements" / "000000.npz").write_bytes(b"")
     assert main(["study", str(study), "--out", str(tmp_path / "study"), "-q"]) == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == "interrupted" and "finished placements are kept" in err[0]

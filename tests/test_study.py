@@ -226,6 +226,9 @@ def test_refine_regrids_around_the_best_and_skips_repeats():
         ({"densify": {"subdivisions": [1, 2]}}, "sweep.densify: unknown key"),
         ({"object_pose": {"x": [0.5], "region": {"min": [2, 2], "max": [3, 3]}}}, "no placement"),
         ({"object_pose": {"x": "0.5"}}, "expected a list of values or {from"),
+        ({"object_pose": {"x": [True]}}, "sweep.object_pose.x"),
+        ({"object_pose": {"yaw_deg": [1e20]}}, "less than or equal to 1000"),
+        ({"base_pose": {"x": {"from": 0, "to": 1e300, "steps": 2}}}, "less than or equal to 1000"),
     ],
 )
 def test_bad_study_is_one_line_and_writes_nothing(tmp_path, capsys, sweep, fragment):

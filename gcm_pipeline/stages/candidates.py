@@ -77,7 +77,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.config import CandidatesConfig, Config, ObjectConfig
+from gcm_pipeline.config import CandidatesConfig, Config, ObjectConfig, takes_config
 from gcm_pipeline.errors import ConfigError, InputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES
@@ -380,6 +380,7 @@ def _candidate_poses(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     return cfg.object.pose.matrix() @ poses, {}
 
 
+@takes_config
 def generate_candidates(cfg: Config) -> GraspTable:
     """The candidate grasp table of a config: ``dq`` (N, 8) and per-candidate columns.
 

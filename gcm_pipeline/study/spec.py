@@ -44,11 +44,11 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 
 from gcm_pipeline.config import Config, _resolve_paths, config_from_data, read_yaml
 from gcm_pipeline.errors import ConfigError
-from gcm_pipeline.limits import MAX_RANGE_STEPS, MAX_STUDY_PLACEMENTS
+from gcm_pipeline.limits import MAX_LENGTH, MAX_RANGE_STEPS, MAX_STUDY_PLACEMENTS
 
 __all__ = [
     "AXES",
@@ -70,7 +70,8 @@ DEFAULT_MAX_PLACEMENTS = 1000
 #: Decimals kept of grid values (so 0.35 is not 0.35000000000000003 in an override).
 _DECIMALS = 10
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+#: A swept value: x, y, z [m] or yaw_deg [deg], a number (not ``true``) within the scene's bounds.
+FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False, ge=-MAX_LENGTH, le=MAX_LENGTH)]
 
 
 class _Strict(BaseModel):

@@ -346,14 +346,16 @@ def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: b
 def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.config import load_config
     from gcm_pipeline.pipeline import preflight
+    from gcm_pipeline.stages.candidates import generate_candidates
 
     cfg = load_config(args.config, args.overrides)
     preflight(cfg)
+    n = len(generate_candidates(cfg))  # a grasp file is read and checked as a run reads it
     c = cfg.candidates
     obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
     # comments first, then the resolved config: the output is itself a valid config
     print(f"# {args.config}: ok")
-    print(f"#   candidates  {c.source}" + (f" {c.path}" if c.path else f" x{c.count}"))
+    print(f"#   candidates  {c.source}" + (f" {c.path}" if c.path else "") + f": {n:,} grasps")
     print(f"#   object      {obj}")
     print(f"#   robot       {cfg.robot.spec}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
     print(f"#   output      {cfg.output.dir}")

@@ -280,6 +280,13 @@ def test_acronym_import(tmp_path):
         cfg.object.pose.matrix() @ poses[success == 1] @ cfg.candidates.grasp_to_tool.matrix()
     )
     assert np.allclose(dq_to_matrix(table["dq"]), expected)
+    assert table["source_id"].tolist() == np.flatnonzero(success == 1).tolist()
+    # with a gripper instead of grasp_to_tool: the same poses, the same source rows
+    by_gripper = generate_candidates(
+        _file_cfg(path, format="acronym", frame="object", success_only=True, gripper="franka_panda")
+    )
+    assert np.allclose(dq_to_matrix(by_gripper["dq"]), expected, atol=1e-9)
+    assert by_gripper["source_id"].tolist() == table["source_id"].tolist()
 
 
 @pytest.mark.parametrize("key", ["grasps/transforms", "grasps/qualities/flex/object_in_gripper"])

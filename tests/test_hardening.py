@@ -622,3 +622,23 @@ def test_a_path_that_exists_but_is_no_file_is_not_called_missing(capsys, tmp_pat
         _one_line_error(code, err, f"candidates.path: grasp file {odd} is not a regular file")
     code, _, err = _cli(capsys, "show", ROOT / "README.md")
     _one_line_error(code, err, "README.md is a file (give its folder)")
+
+
+def test_validate_reads_the_grasp_file_and_refuses_nul_characters(capsys, tmp_path):
+    """gcm validate reads the candidates as the run does: a bad grasp file fails there.
+
+    A NUL in a CSV cell was dropped by NumPy's strings (``0`` + NUL read as 0)."""
+    cfg = ROOT / "configs" / "from_file.yaml"
+    code, out, _ = _cli(capsys, "validate", cfg)
+    assert code == 0 and "mug_grasps.npy: 24 grasps" in out.splitlines()[1]
+    header = "x,y,z,qw,qx,qy,qz\n"
+    rows = "0.5,0,0.1,1,0,0,0\n0.5,0.1,0.1,1,0,0,0\n0.5,0\0,0.1,1,0,0,0\n"
+    bad = tmp_path / "nul.csv"
+    bad.write_text(header + rows)
+    sets = [f"candidates.path={bad}", "candidates.format=csv"]
+    code, _, err = _cli(capsys, "validate", cfg, *(a for s in sets for a in ("--set", s)))
+    _one_line_error(code, err, f"{bad}:4: NUL character in a CSV file")
+    broken = tmp_path / "broken.npy"
+    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    code, _, err = _cli(capsys, "validate", cfg, "--set", f"candidates.path={broken}")
+    _one_line_error(code, err, str(broken))

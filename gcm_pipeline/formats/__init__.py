@@ -118,17 +118,17 @@ def load_candidates(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
 def _read(
     fmt: str, path: object, success_only: bool, limit: int | None, max_count: int
 ) -> ImportedGrasps:
-    if fmt == "acronym":  # the built-in reader filters; no per-candidate columns
-        from gcm_pipeline.stages.candidates import load_grasp_file
+    if fmt == "acronym":  # the built-in reader filters; source_id and success as without a gripper
+        from gcm_pipeline.stages.candidates import read_grasp_file
 
-        poses = load_grasp_file(
+        poses, columns = read_grasp_file(
             path,  # type: ignore[arg-type]
             format="acronym",
             success_only=success_only,
             limit=limit,
             max_count=max_count,
         )
-        return ImportedGrasps(poses, "base")
+        return ImportedGrasps(poses, "base", columns)
     grasps = READERS[fmt](path, max_count=max_count)  # type: ignore[arg-type]
     if success_only:
         if grasps.success is None:

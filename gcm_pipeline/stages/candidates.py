@@ -667,11 +667,31 @@ _CSV_POSE = ("x", "y", "z", "qw", "qx", "qy", "qz")
 _MAX_CSV_COLUMNS = 1000
 
 
+def _refuse_nul(path: Path, chunk: int = 1 << 22) -> None:
+    """Raise InputError at the first NUL character of a CSV file.
+
+    NumPy's strings drop trailing NULs (a cell ``0`` + NUL read as 0) and a NUL
+    inside a text column would be carried into grasps.csv.
+    """
+    line = 1
+    try:
+        with path.open("rb") as fh:
+            while data := fh.read(chunk):
+                at = data.find(b"\0")
+                if at >= 0:
+                    line += data.count(b"\n", 0, at)
+                    raise InputError(f"{path}:{line}: NUL character in a CSV file")
+                line += data.count(b"\n")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}") from None
+
+
 def _read_csv(
     path: Path, max_count: int
 ) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
     rows: list[list[str]] = []
     lines: list[int] = []
+    _refuse_nul(path)
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)

@@ -225,6 +225,11 @@ def test_export_to_a_device_pipe_or_folder_is_refused_and_a_link_is_kept(run, tm
     assert main(["export", str(run), "--format", "npz", "--out", str(link)]) == 0
     assert link.is_symlink() and np.load(link)["x"].shape == np.load(real)["x"].shape
     assert real.read_bytes()[:2] == b"PK"
+    loop = tmp_path / "loop.npz"
+    loop.symlink_to(loop)
+    assert main(["export", str(run), "--format", "npz", "--out", str(loop)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: cannot write {loop}: ") and err.count("\n") == 1
 
 
 # ------------------------------------------------ tampered runs, odd arguments

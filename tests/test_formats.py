@@ -242,6 +242,26 @@ def test_contact_graspnet_pickle_that_expands_is_refused_before_it_is_built(tmp_
     path = _object_npz(tmp_path / "deep.npz", pred_grasps_cam={0: deep})
     with pytest.raises(InputError, match="nests lists or dicts more than 8 levels deep"):
         formats.read_contact_graspnet(path)
+    # a pickle of DUP opcodes: 1 byte each, a reference each, before anything can be counted
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, {"descr": "|O", "fortran_order": False, "shape": ()}
+    )
+    dups = header.getvalue() + b"\x80\x02N" + b"2" * 5_000_000 + b"."
+    _npz_member(tmp_path / "dup.npz", "pred_grasps_cam", dups)
+    with pytest.raises(InputError, match="its pickle takes more than 1,000,000 steps"):
+        formats.read_contact_graspnet(tmp_path / "dup.npz")
+    # a chain of shared lists nested deeper than 8 (each object once in a memo by id)
+    chain: list = [[1.0]]
+    for _ in range(20):
+        chain = [chain, chain]
+    path = _object_npz(tmp_path / "chain.npz", pred_grasps_cam={0: chain})
+    with pytest.raises(InputError, match="more than 8 levels deep"):
+        formats.read_contact_graspnet(path)
+    # ragged lists: one line
+    path = _object_npz(tmp_path / "ragged.npz", pred_grasps_cam={0: [[1, 2], [3]]})
+    with pytest.raises(InputError, match=r"must map segments to \(M, 4, 4\) arrays"):
+        formats.read_contact_graspnet(path)
     # the layout Contact-GraspNet writes (dicts of arrays) reads, scores as a list too
     path = _object_npz(
         tmp_path / "ok.npz", pred_grasps_cam={3: np.stack([pose, pose])}, scores={3: [0.5, 0.25]}

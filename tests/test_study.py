@@ -395,6 +395,23 @@ def test_a_study_directory_in_use_is_refused_and_left_alone(tmp_path, capsys):
     # released: the study runs, and a later run of it resumes
     result = Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
     assert result.complete and len(result.rows) == 1
+    # a lock that is a symbolic link is not followed (its target was overwritten), nor a pipe
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    for odd in ("link", "fifo"):
+        other = tmp_path / f"out_{odd}"
+        other.mkdir()
+        if odd == "link":
+            (other / ".study.lock").symlink_to(victim)
+        else:
+            os.mkfifo(other / ".study.lock")
+        assert main(["study", str(path), "--out", str(other)]) == 2
+        err = capsys.readouterr().err
+        assert (
+            err.startswith(f"error: cannot lock study directory {other}: ") and err.count("\n") == 1
+        )
+        assert "is not a regular file" in err
+    assert victim.read_text() == "keep me"
 
 
 def _rewrite_part(path: Path, **change) -> None:
@@ -416,7 +433,7 @@ def test_a_damaged_or_foreign_placement_file_runs_again(tmp_path, caplog):
     shutil.copy(parts / "000000.npz", parts / "000001.npz")  # another placement's file
     _rewrite_part(parts / "000001.npz", row={"id": 1})  # ... claiming to be this one
     _rewrite_part(parts / "000000.npz", reachable_mask=np.ones(3, dtype=bool))  # wrong length
-    _rewrite_part(parts / "000002.npz", row={"coverage": "all"})
+    _rewrite_part(parts / "000002.npz", row={"coverage": 5.0})  # it would become the best
     again = Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
     assert again.summary["counts"]["resumed"] == 0 and again.summary["counts"]["run"] == 3
     assert [r["reachable"] for r in again.rows] == [r["reachable"] for r in first.rows]
@@ -424,7 +441,7 @@ def test_a_damaged_or_foreign_placement_file_runs_again(tmp_path, caplog):
     text = caplog.text
     assert "000000.npz, placement runs again (arrays of different lengths: reachable_mask 3" in text
     assert "000001.npz, it is not placement 1" in text
-    assert "000002.npz, placement runs again (coverage is not a number" in text
+    assert "000002.npz, placement runs again (coverage 5.0 is not within [0, 1])" in text
 
 
 def test_import_does_not_load_ray():

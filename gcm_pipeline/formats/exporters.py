@@ -175,10 +175,10 @@ def _output_file(path: Path) -> Path:
         OutputError: ``path`` (or the link's target) exists and is no regular file
             (a directory, ``/dev/null``, a pipe): a rename would replace it.
     """
-    target = path.resolve() if path.is_symlink() else path
     try:
+        target = path.resolve(strict=False) if path.is_symlink() else path
         exists, regular = target.exists(), target.is_file()
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RuntimeError) as exc:  # RuntimeError: a symbolic link loop
         raise OutputError(f"cannot write {path}: {exc}") from None
     if exists and not regular:
         what = "a directory" if target.is_dir() else "not a regular file"

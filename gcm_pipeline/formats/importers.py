@@ -50,7 +50,7 @@ import json
 import logging
 import pickle
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -335,8 +335,37 @@ def _empty_reconstruct(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
     return np.ndarray.__new__(subtype, shape, dtype)
 
 
-class _ArrayUnpickler(pickle.Unpickler):
-    """Unpickles NumPy arrays, dtypes and scalars in plain containers; nothing else."""
+#: Steps (opcodes) a pickled member may take: a dict of arrays takes a few per array, while
+#: each step may add a reference (DUP, GET: one byte of file, 8 of memory), so the count,
+#: not the file's size, bounds what unpickling builds.
+_MAX_PICKLE_STEPS = 1_000_000
+
+
+class _TooManySteps(Exception):
+    pass
+
+
+def _counted(step: Callable[[Any], None]) -> Callable[[Any], None]:
+    def run(self: _ArrayUnpickler) -> None:
+        self.steps_left -= 1
+        if self.steps_left < 0:
+            raise _TooManySteps
+        step(self)
+
+    return run
+
+
+class _ArrayUnpickler(pickle._Unpickler):
+    """Unpickles NumPy arrays, dtypes and scalars in plain containers; nothing else.
+
+    The pure-Python unpickler, each opcode counted (at most :data:`_MAX_PICKLE_STEPS`).
+    """
+
+    dispatch = {k: _counted(f) for k, f in pickle._Unpickler.dispatch.items()}
+
+    def __init__(self, file: Any) -> None:
+        super().__init__(file)
+        self.steps_left = _MAX_PICKLE_STEPS
 
     def find_class(self, module: str, name: str) -> Any:
         if (module, name) not in _SAFE_GLOBALS:
@@ -374,7 +403,14 @@ def _read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
                     else:
                         _, _, dtype = np.lib.format.read_array_header_2_0(fh)
                     if dtype.hasobject:
-                        value = _ArrayUnpickler(fh).load()
+                        try:
+                            value = _ArrayUnpickler(fh).load()
+                        except _TooManySteps:
+                            raise InputError(
+                                f"{path}: array {clip(name)}: its pickle takes more than "
+                                f"{_MAX_PICKLE_STEPS:,} steps (a dict of arrays takes a few "
+                                "per array); save it as plain arrays"
+                            ) from None
                         values += _count_values(path, name, value, budget - values)
                         out[name] = value
                         continue
@@ -431,13 +467,14 @@ def _count_values(path: Path, name: str, value: Any, budget: int) -> int:
         f"{path}: array {clip(name)} expands to more than {budget:,} numbers, more than "
         "candidates.max_count grasps need; raise candidates.max_count to read it"
     )
-    totals: dict[int, int] = {}  # by id: an object referred to again is not walked again
+    # by id and depth: an object referred to again at the same depth is not walked again
+    totals: dict[tuple[int, int], int] = {}
 
     def total(v: Any, depth: int) -> int:
         if not isinstance(v, containers):
             return 1
-        if id(v) in totals:
-            return totals[id(v)]
+        if (id(v), depth) in totals:
+            return totals[id(v), depth]
         if depth >= _MAX_NESTING:
             raise InputError(
                 f"{path}: array {clip(name)} nests lists or dicts more than "
@@ -449,7 +486,7 @@ def _count_values(path: Path, name: str, value: Any, budget: int) -> int:
                 n += total(child, depth + 1)
                 if n > budget:
                     raise too_many
-        totals[id(v)] = n
+        totals[id(v), depth] = n
         return n
 
     count = total(value, 0)
@@ -506,7 +543,13 @@ def read_contact_graspnet(
         keys = sorted(grasps, key=str)
     parts: list[np.ndarray] = []
     cols: dict[str, list[Any]] = {"score": [], "width": [], "segment": [], "source_id": []}
-    _check_count(path, sum(int(np.size(v)) // 16 for v in grasps.values()), max_count)
+    try:
+        total = sum(int(np.size(v)) // 16 for v in grasps.values())
+    except (TypeError, ValueError):  # ragged lists
+        raise InputError(
+            f"{path}: pred_grasps_cam must map segments to (M, 4, 4) arrays of poses"
+        ) from None
+    _check_count(path, total, max_count)
     for key in keys:
         what = f"pred_grasps_cam[{clip(key, 40)}]"
         value = grasps[key]

@@ -31,6 +31,7 @@ import io as _io
 import json
 import logging
 import os
+import stat
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
@@ -100,6 +101,9 @@ _NUMBERS = (
 )
 
 _LOCK = ".study.lock"
+
+#: Most bytes a placement part's arrays may take (the densify limit's poses, with room).
+_MAX_PART_BYTES = 1 << 30
 
 
 @contextlib.contextmanager
@@ -209,11 +213,23 @@ class StudyDir:
                 directory), or it cannot be created.
         """
         made = not self.path.exists()
+        lock = self.path / _LOCK
         try:
             self.path.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.path / _LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+            # never through a symbolic link (its target would be overwritten), never a pipe
+            fd = os.open(
+                lock,
+                os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_NONBLOCK,
+                0o644,
+            )
         except OSError as exc:
-            raise OutputError(f"cannot create study directory {self.path}: {exc}") from None
+            what = "is not a regular file" if lock.is_symlink() or lock.is_dir() else exc
+            raise OutputError(f"cannot lock study directory {self.path}: {lock} {what}") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise OutputError(
+                f"cannot lock study directory {self.path}: {lock} is not a regular file"
+            )
         try:
             if fcntl is not None:
                 try:
@@ -306,11 +322,12 @@ class StudyDir:
             if not path.stem.isdigit():
                 continue
             try:
-                with np.load(path, allow_pickle=False) as data:
-                    row = json.loads(str(data["row"]))
-                    if not isinstance(row, dict):
-                        raise ValueError("its row is not a JSON object")
-                    row["arrays"] = {k: data[k] for k in data.files if k != "row"}
+                # sizes from the headers first: a compressed member may unpack to gigabytes
+                data = io.read_npz(path, max_bytes=_MAX_PART_BYTES)
+                row = json.loads(str(data.pop("row")))
+                if not isinstance(row, dict):
+                    raise ValueError("its row is not a JSON object")
+                row["arrays"] = data
                 _check_part(int(path.stem), row)
             except Exception as exc:  # a damaged file: run the placement again
                 log.warning("study: ignoring %s, placement runs again (%s)", path, exc)
@@ -369,6 +386,8 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
         return
     if row.get("coverage") is None or set(arrays) != set(ARRAYS):
         raise ValueError(f"a finished placement needs coverage and the arrays {', '.join(ARRAYS)}")
+    if not 0.0 <= row["coverage"] <= 1.0:
+        raise ValueError(f"coverage {row['coverage']!r} is not within [0, 1]")
     lengths = {k: (v.shape[0] if v.ndim else None) for k, v in arrays.items()}
     if len(set(lengths.values())) != 1:
         raise ValueError(
@@ -387,6 +406,15 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
         shape, kind = shapes[key]
         if value.shape != shape or value.dtype.kind != kind:
             raise ValueError(f"{key} has shape {value.shape} and dtype {value.dtype}")
+    reached = int(np.count_nonzero(arrays["reachable_mask"]))
+    total = arrays["reachable_mask"].shape[0]
+    if row.get("reachable") != reached or row.get("densified") != total:
+        raise ValueError(
+            f"reachable {row.get('reachable')!r} of {row.get('densified')!r} is not its "
+            f"mask's {reached} of {total}"
+        )
+    if total and abs(row["coverage"] - reached / total) > 1e-12:
+        raise ValueError(f"coverage {row['coverage']!r} is not {reached} / {total}")
 
 
 def _cell(value: Any) -> str:

@@ -61,12 +61,8 @@ log = logging.getLogger(__name__)
 #: Pose columns of ``placements.csv``: ``<object|base>_<x|y|z|yaw_deg>``.
 POSE_COLUMNS = tuple(f"{pose}_{key}" for pose in ("object", "base") for key in AXES)
 
-#: Columns of ``placements.csv``, in order.
-CSV_COLUMNS = (
-    "id",
-    "round",
-    "object",
-    *POSE_COLUMNS,
+#: The numbers a placement's run reports (null allowed: NaN, or a failed placement).
+_RESULTS = (
     "candidates",
     "densified",
     "reachable",
@@ -77,28 +73,16 @@ CSV_COLUMNS = (
     "best_manipulability",
     "mean_manipulability",
     "time_s",
-    "node",
-    "error",
-    "overrides",
 )
+
+#: Columns of ``placements.csv``, in order.
+CSV_COLUMNS = ("id", "round", "object", *POSE_COLUMNS, *_RESULTS, "node", "error", "overrides")
 
 #: Per-grasp arrays of a placement part.
 ARRAYS = ("reachable_mask", "metric", "manipulability", "pose", "pose_object", "is_candidate")
 
-#: Numeric fields of a placement's row (null allowed: NaN, or a failed placement).
-_NUMBERS = (
-    "candidates",
-    "densified",
-    "reachable",
-    "coverage",
-    "candidates_reachable",
-    "best_metric",
-    "mean_metric",
-    "best_manipulability",
-    "mean_manipulability",
-    "time_s",
-    *POSE_COLUMNS,
-)
+#: Numeric fields of a placement's row.
+_NUMBERS = (*_RESULTS, *POSE_COLUMNS)
 
 _LOCK = ".study.lock"
 

@@ -158,9 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument(
         "--top", type=int, metavar="N", help="only the N best-ranked reachable grasps"
     )
-    export.add_argument(
-        "--out", type=Path, metavar="FILE", help="file to write (default: inside RUN_DIR)"
-    )
+    export.add_argument("--out", metavar="FILE", help="file to write (default: inside RUN_DIR)")
 
     view = sub.add_parser(
         "view", parents=[common], help="open a saved run in the live meshcat viewer"

@@ -139,7 +139,7 @@ def _check_positions(xyz: np.ndarray, name: str) -> None:
     if bad.any():
         i = int(np.argmax(bad))
         raise GeometryError(
-            f"{name} {i}: position {[float(f'{v:.6g}') for v in xyz[i]]} m is outside the "
+            f"{name} {i}: position [{', '.join(f'{v:.10g}' for v in xyz[i])}] m is outside the "
             f"scene (at most {MAX_LENGTH:g} m per coordinate)"
         )
 
@@ -162,7 +162,8 @@ def as_query_poses(poses: Any, name: str = "query pose") -> np.ndarray:
         raise GeometryError(f"{name}s must be numbers: {exc}") from None
     if arr.shape[-2:] == (4, 4) and arr.ndim in (2, 3):
         mats = arr.reshape(-1, 4, 4)
-        _check_positions(np.nan_to_num(mats[:, :3, 3]), name)  # non-finite: said below
+        xyz = mats[:, :3, 3]
+        _check_positions(np.where(np.isfinite(xyz), xyz, 0.0), name)  # non-finite: said below
         try:
             return dq_from_matrix(mats)
         except GeometryError as exc:

@@ -124,10 +124,11 @@ if getattr(yaml, "__with_libyaml__", False):
 #: Documents at least this long [characters] use libyaml when it is installed.
 FAST_YAML_CHARS = 1 << 16
 
-#: PyYAML's int and float resolvers without their base-60 branch (``1:30`` = 90).
-_SEXAGESIMAL_FREE = {
+#: PyYAML's int and float resolvers without their base-60 branch (``1:30`` = 90) and
+#: without YAML 1.1's octal ``010`` = 8 (a leading zero makes a string, as ``08`` was).
+_YAML12_NUMBERS = {
     "tag:yaml.org,2002:int": re.compile(
-        r"^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$"
+        r"^(?:[-+]?0b[0-1_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$"
     ),
     "tag:yaml.org,2002:float": re.compile(
         r"^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?|\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?"
@@ -144,10 +145,10 @@ for _cls in (_Loader, _CLoader):
             list("-+0123456789."),
         )
         _cls.add_constructor("tag:yaml.org,2002:int", _cls.construct_yaml_int)
-        # no YAML 1.1 base-60 numbers: "1:00" is a string, not 60 (YAML 1.2 dropped them)
+        # no YAML 1.1 base-60 or leading-zero octal numbers (YAML 1.2 dropped them)
         for _resolvers in _cls.yaml_implicit_resolvers.values():
             _resolvers[:] = [
-                (tag, _SEXAGESIMAL_FREE.get(tag, rx) if "(?::[0-5]?[0-9])" in rx.pattern else rx)
+                (tag, _YAML12_NUMBERS.get(tag, rx) if "(?::[0-5]?[0-9])" in rx.pattern else rx)
                 for tag, rx in _resolvers
             ]
 

@@ -225,6 +225,12 @@ def test_export_to_a_device_pipe_or_folder_is_refused_and_a_link_is_kept(run, tm
     assert main(["export", str(run), "--format", "npz", "--out", str(link)]) == 0
     assert link.is_symlink() and np.load(link)["x"].shape == np.load(real)["x"].shape
     assert real.read_bytes()[:2] == b"PK"
+    folder = str(tmp_path / "x") + "/"  # a folder's name: never a file named x
+    assert main(["export", str(run), "--format", "npz", "--out", folder]) == 2
+    assert capsys.readouterr().err == (
+        f"error: cannot write {folder}: a file name, not a folder, is needed\n"
+    )
+    assert not (tmp_path / "x").exists()
     loop = tmp_path / "loop.npz"
     loop.symlink_to(loop)
     assert main(["export", str(run), "--format", "npz", "--out", str(loop)]) == 2

@@ -178,3 +178,11 @@ def test_no_base_60_numbers(pad):
     """YAML 1.1 read 1:00 as 60 and 1:30.5 as 90.5 (YAML 1.2 dropped it): strings now."""
     data = _load(pad + "a: 1:00\nb: 1:30.5\nc: 12:34:56\nd: 0x1F\ne: 1_000\nf: .inf\n")
     assert data == {"a": "1:00", "b": "1:30.5", "c": "12:34:56", "d": 31, "e": 1000, "f": math.inf}
+    # nor YAML 1.1's octal: 010 was 8 while 08 was a string; both are strings now
+    assert _load(pad + "a: 010\nb: 08\nc: 0\nd: -0\ne: 0.5\n") == {
+        "a": "010",
+        "b": "08",
+        "c": 0,
+        "d": 0,
+        "e": 0.5,
+    }

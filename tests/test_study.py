@@ -609,6 +609,9 @@ def test_a_finished_study_run_again_lists_every_failure_and_no_engine(tmp_path, 
     assert text.count("  failed      #") == 3
     assert "  failed      ... and 1 more (column 'error' of placements.csv)" in text
     assert "  engine      ray not started: nothing left to run\n" in text
+    # --workers is checked against this machine even when Ray would not start
+    assert main(["study", str(path), "--out", str(out), "--workers", "100000"]) == 2
+    assert "--workers 100000: this machine has" in capsys.readouterr().err
 
 
 def test_quiet_study_whose_every_placement_failed_says_so_in_one_line(tmp_path, capsys):

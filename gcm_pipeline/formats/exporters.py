@@ -111,6 +111,8 @@ def export_run(
     run = Path(run_dir)
     if not (run / "grasps.csv").is_file() or not (run / "config.yaml").is_file():
         raise InputError(f"not a run directory: {run} (needs grasps.csv and config.yaml)")
+    if out is not None and os.fspath(out).endswith(("/", os.sep)):
+        raise OutputError(f"cannot write {os.fspath(out)}: a file name, not a folder, is needed")
     path = _output_file(Path(out) if out is not None else run / EXPORT_FORMATS[format])
     _check_not_the_run(run, path)
     grasps = read_grasps_csv(run / "grasps.csv")  # file order: ranked first

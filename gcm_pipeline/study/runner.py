@@ -193,6 +193,22 @@ def _uninterrupted(ray: Any) -> Iterator[list[int]]:
                 utils.set_sigterm_handler = setter
 
 
+def check_local_workers(workers: int | None) -> None:
+    """Refuse more workers than this machine has CPUs (Ray started here, no ``--address``).
+
+    Ray would believe in that many CPUs and start an actor for each.
+
+    Raises:
+        EngineError: ``--workers N: this machine has C CPUs; ...``.
+    """
+    cpus = os.cpu_count() or 1
+    if workers is not None and workers > cpus:
+        raise EngineError(
+            f"--workers {workers}: this machine has {cpus} CPUs; use --workers {cpus} "
+            "or fewer, or --address to run on a cluster"
+        )
+
+
 def _import_ray() -> Any:
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     try:
@@ -237,14 +253,8 @@ class RayExecutor(Executor):
         if ray.is_initialized():
             self.mode = "existing"
         elif address is None:
-            cpus = os.cpu_count() or 1
-            if workers is not None and workers > cpus:
-                # Ray would believe in that many CPUs and start an actor for each
-                raise EngineError(
-                    f"--workers {workers}: this machine has {cpus} CPUs; use --workers {cpus} "
-                    "or fewer, or --address to run on a cluster"
-                )
-            n = workers or cpus
+            check_local_workers(workers)
+            n = workers or os.cpu_count() or 1
             try:
                 with _uninterrupted(ray) as got:
                     ray.init(

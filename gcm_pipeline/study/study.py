@@ -253,6 +253,10 @@ class Study:
         t_start = time.perf_counter()
         if engine not in ("ray", "inline"):
             raise ConfigError(f"engine must be 'ray' or 'inline', got {engine!r}")
+        if engine == "ray" and address is None:
+            from gcm_pipeline.study.runner import check_local_workers
+
+            check_local_workers(workers)  # also when Ray will not start (nothing left to run)
         self.check(out_dir, force=force)
         store = StudyDir(out_dir)
         # one study at a time in a directory; what it holds is read again under the lock

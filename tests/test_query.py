@@ -149,7 +149,7 @@ def test_locate_takes_matrices_and_one_pose(bottle: gcm.GraspManifold) -> None:
         ([1, 0, 0, 0, 0, 0, np.inf, 0], "non-finite"),
         ([1, 0, 0, 0, 0, 5e159, 0, 0], r"position \[1e\+160, 0, 0\] m is outside the scene"),
         (np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * 1001, "outside the scene"),
-        (np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * np.inf, "non-finite"),
+        ([[1, 0, 0, np.inf], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "non-finite"),
         (np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * 1000.001, r"\[1000.001, 0, 0\] m"),
     ],
 )

@@ -156,10 +156,11 @@ class StudyDir:
         """
         out = self.path
         try:
-            names = {p.name for p in out.iterdir()} if out.is_dir() and not out.is_symlink() else ()
+            used = out.is_dir() and not out.is_symlink()
+            names = {p.name for p in out.iterdir()} if used else set()
         except OSError as exc:
             raise OutputError(f"cannot read study directory {out}: {exc}") from None
-        if names and set(names) <= {_LOCK}:
+        if names and names <= {_LOCK}:
             return False  # left by a study stopped before it wrote anything
         # an existing study directory is continued, never replaced: "force" only
         # lets io's checks accept a directory that carries the study marker

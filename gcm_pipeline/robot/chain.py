@@ -22,6 +22,7 @@ import numpy as np
 import pinocchio as pin
 
 from gcm_pipeline.errors import RobotSpecError
+from gcm_pipeline.robot import kernels
 
 __all__ = ["Frames", "JointFrames", "KinematicChain"]
 
@@ -144,6 +145,17 @@ class KinematicChain:
     def _forward(
         self, q: np.ndarray, jacobian: bool
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        compiled = kernels.get()
+        if compiled is not None:
+            rot, pos, jac = compiled.chain_forward(
+                np.ascontiguousarray(q),
+                self.q_index,
+                self._placement,
+                self._tool,
+                self.nq,
+                jacobian,
+            )
+            return rot, pos, jac if jacobian else None
         # each joint's frame as a (N, 3, 4) transform (see _joint_frame)
         n = q.shape[0]
         nj = len(self.joint_ids)

@@ -96,6 +96,7 @@ import pinocchio as pin
 from scipy.spatial import ConvexHull, QhullError
 
 from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.chain import JointFrames
 from gcm_pipeline.robot.contact import (
     NotConvexError,
@@ -484,6 +485,24 @@ class _ShapeBound:
             return np.sqrt(out, out=out).reshape(shape)
         return np.maximum(out, 0.0, out=out).reshape(shape)
 
+    def packed(self) -> np.ndarray:
+        """The bound as a row (21,) of the compiled broad phase.
+
+        The inverse placement's first three rows (12), the kind's index in
+        :data:`~gcm_pipeline.robot.kernels.SHAPE_KINDS`, the radius, the half
+        length, the box's centre (3) and half sizes (3) (0 where they do not apply).
+        """
+        row = np.zeros(21)
+        row[:12] = self.inv[:3].reshape(-1)
+        row[12] = kernels.SHAPE_KINDS.index(self.kind)
+        if self.kind == "box":
+            row[15:18] = self.centre
+            row[18:21] = self.halfs
+        else:
+            row[13] = self.radius
+            row[14] = getattr(self, "half", 0.0)
+        return row
+
     def nearest(self, p: np.ndarray) -> np.ndarray:
         """Nearest points (..., 3) of the shape to points ``p`` (..., 3) given in its frame.
 
@@ -699,6 +718,8 @@ class CollisionChecker:
         self._cover = cover
         #: _place's grouping of points by joint, by the joints' bytes
         self._groups: dict[bytes, list[tuple[int, np.ndarray]]] = {}
+        #: the arguments of the compiled broad phase, by screen (see _compiled_screen)
+        self._compiled_args: dict[int, tuple[_Screen, tuple[Any, ...], dict[int, Any]]] = {}
         self._bounds = {
             w: _ShapeBound(
                 gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous
@@ -1046,6 +1067,9 @@ class CollisionChecker:
         triangles, or of the solid). coal's narrow phase decides the rest, pair
         by pair, only on the configurations left.
         """
+        compiled = kernels.get()
+        if compiled is not None:
+            return self._pair_hits_compiled(compiled, q, frames, screen)
         cov, rots, poss = self._cover, frames[0], frames[1]
         # 1. one bounding sphere per robot geometry
         ball = self._place(frames, cov.ball_joint, cov.ball_centre)  # (N, G, 3)
@@ -1104,6 +1128,75 @@ class CollisionChecker:
             if rows.size:
                 hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
         return hit
+
+    def _pair_hits_compiled(
+        self, compiled: kernels.Kernels, q: np.ndarray, frames: Any, screen: _Screen
+    ) -> np.ndarray:
+        """:meth:`_pair_hits` by the compiled kernels (see :mod:`~gcm_pipeline.robot.kernels`).
+
+        The same answers: levels 1 and 2 for all pairs in one pass, then level 3
+        and coal pair by pair.
+        """
+        tfs = _stacked(frames.transforms)
+        broad, boxes = self._compiled_screen(screen)
+        open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
+        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        for k in np.flatnonzero(open_.any(axis=1)).tolist():
+            rows = np.flatnonzero(open_[k])
+            box = boxes.get(k)
+            if box is not None:
+                joint, *limits = box
+                status = compiled.hull_vs_box(tfs[joint], rows, *limits)
+                hit[rows[status == kernels.COLLIDES], k] = True
+                rows = rows[status == kernels.UNDECIDED]
+            if rows.size:
+                hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
+        return hit
+
+    def _compiled_screen(self, screen: _Screen) -> tuple[tuple[Any, ...], dict[int, Any]]:
+        """The compiled broad phase's arguments for ``screen`` (built once per screen).
+
+        Returns the arguments of ``broad_phase`` after the frames, and the
+        level-3 arguments ``(joint, vertices, inverse placement, beyond, deep)``
+        of each column with a box. Each limit is the NumPy level's plus
+        :data:`~gcm_pipeline.robot.kernels.SLACK` (level 3: minus it, for the depth).
+        """
+        known = self._compiled_args.get(id(screen))
+        if known is not None and known[0] is screen:
+            return known[1], known[2]
+        cov, slack = self._cover, kernels.SLACK
+        worlds = sorted({int(w) for w in screen.world.tolist() if w >= 0})
+        shapes = np.array([self._bounds_for(w).packed() for w in worlds]).reshape(-1, 21)
+        world = np.array([worlds.index(w) if w >= 0 else -1 for w in screen.world.tolist()])
+        own = world < 0
+        ra = cov.ball_radius[screen.geom_a]
+        rb = cov.ball_radius[np.where(own, screen.geom_b, 0)]
+        # self pairs compare squared gaps with squared limits; world pairs distances
+        limit1 = np.where(own, (ra + rb + _BROAD_MARGIN + slack) ** 2, ra + _BROAD_MARGIN + slack)
+        limit2 = np.where(
+            np.repeat(own, screen.n_tests),
+            (np.sqrt(screen.bound) + slack) ** 2,
+            screen.bound + _BROAD_MARGIN + slack,
+        )
+        args = [cov.ball_joint, cov.ball_centre, cov.joint, cov.centre, screen.geom_a]
+        args += [screen.geom_b, world, limit1, screen.first_test, screen.n_tests]
+        args += [screen.sphere_a, screen.sphere_b, limit2, shapes]
+        # indices as intp, all C-contiguous (the kernels' signature)
+        broad = tuple(
+            np.ascontiguousarray(a, np.float64 if a.dtype.kind == "f" else np.intp) for a in args
+        )
+        boxes = {
+            k: (
+                joint,
+                np.ascontiguousarray(verts, float),
+                np.ascontiguousarray(inv, float),
+                halfs + (_BROAD_MARGIN + slack),
+                halfs - (_INSIDE_DEPTH + slack),
+            )
+            for k, (joint, verts, inv, halfs) in screen.boxes.items()
+        }
+        self._compiled_args[id(screen)] = (screen, broad, boxes)
+        return broad, boxes
 
     def _inside_object(self, frames: Any, rows: np.ndarray, bit: int) -> np.ndarray:
         """Whether an active robot piece lies inside the mesh object, (M,) bool."""
@@ -1466,6 +1559,23 @@ def _covers(gm: Any, ids: list[int], frames: JointFrames, max_spheres: int) -> _
         np.array(ball_r),
         np.array([int(gm.geometryObjects[i].parentJoint) for i in ids], dtype=int),
     )
+
+
+def _stacked(tfs: list[np.ndarray]) -> np.ndarray:
+    """Joint frames (N, 3, 4) as one (J, N, 3, 4) array: the array they are views of, if any."""
+    base = tfs[0].base
+    if (
+        isinstance(base, np.ndarray)
+        and base.shape == (len(tfs), *tfs[0].shape)
+        and base.dtype == np.float64
+        and base.flags.c_contiguous
+        and all(
+            t.base is base and t.ctypes.data == base.ctypes.data + j * base.strides[0]
+            for j, t in enumerate(tfs)
+        )
+    ):
+        return base
+    return np.stack(tfs)
 
 
 def _row_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -1,0 +1,105 @@
+"""Compiled kernels: Numba versions of the hottest NumPy loops of the robot checks.
+
+Three loops run as compiled kernels, one configuration at a time, where the
+NumPy code runs array operation after array operation over all of them:
+
+* the batched forward kinematics and Jacobian of a chain
+  (:meth:`KinematicChain._forward <gcm_pipeline.robot.chain.KinematicChain>`),
+  which the IK iterations call;
+* levels 1 and 2 of the collision broad phase (one bounding sphere per
+  geometry, then the sphere covers), and
+* level 3 (a robot polytope's hull vertices against a box), see
+  :mod:`gcm_pipeline.robot.collision`.
+
+**Loading.** :func:`get` returns them, or None for the NumPy code. Importing
+the package does not import Numba: the first forward kinematics or collision
+check of a process does, once, and compiles the kernels, or loads the machine
+code an earlier process compiled from Numba's cache (``cache=True``: the
+``__pycache__`` folder beside the package's sources, or Numba's folder in the
+user's cache directory when that is not writable; ``NUMBA_CACHE_DIR`` moves
+it). Compiling takes a few seconds, once per cache; loading about 0.4 s per
+process (the Numba import included). The reachability engine loads them
+before it forks its workers, so the workers inherit them.
+
+**Switch.** The environment variable ``GCM_JIT=0`` selects the NumPy code
+(it is read at each call); so does a Python without Numba. The NumPy code
+is the reference: the kernels give the same answers.
+
+**Same answers.**
+
+* Forward kinematics: the kernel sums each matrix product in the order of
+  OpenBLAS's dgemm kernel (one FMA chain) and each complex product as
+  NumPy's loop does, so on the x86-64 machines this was measured on the
+  results equal NumPy's to the bit. That order is a property of the BLAS
+  kernel picked at run time, so on another CPU the last bit may differ
+  (the tests compare to 1e-12).
+* Broad phase, levels 1 and 2: *conservative*. A pair is ruled out only when
+  its bound clears the NumPy threshold by :data:`SLACK` (far above the
+  round-off by which the two summation orders can differ), so every (pair,
+  configuration) the NumPy levels leave open stays open; coal decides the
+  few more that stay open, with the same answers.
+* Level 3: stricter than the NumPy level on both sides by :data:`SLACK`
+  (free when all hull vertices lie beyond one face plane by the margin plus
+  the slack, colliding when one lies deeper than the depth plus the slack):
+  whatever it decides, the NumPy level decides the same; coal the rest.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+__all__ = ["COLLIDES", "FREE", "SHAPE_KINDS", "SLACK", "UNDECIDED", "Kernels", "get"]
+
+log = logging.getLogger(__name__)
+
+#: Distance [m] by which a bound must clear a NumPy threshold before a
+#: broad-phase kernel decides on it (the summation orders differ by ~1e-16 m).
+SLACK = 1e-9
+#: Kinds of world shapes the broad phase bounds exactly, by their code in a
+#: packed shape row; any other shape is bounded by its box (code 3).
+SHAPE_KINDS = ("sphere", "cylinder", "capsule", "box")
+#: Level-3 answers of :attr:`Kernels.hull_vs_box`.
+FREE, COLLIDES, UNDECIDED = 0, 1, 2
+
+
+class Kernels(NamedTuple):
+    """The compiled kernels (Numba dispatchers); arguments as documented there.
+
+    Attributes:
+        chain_forward: Forward kinematics and Jacobian of a chain, (N, ...) at once.
+        broad_phase: Levels 1 and 2: the (pair, configuration) entries left open.
+        hull_vs_box: Level 3: :data:`FREE`, :data:`COLLIDES` or :data:`UNDECIDED`.
+    """
+
+    chain_forward: Callable[..., Any]
+    broad_phase: Callable[..., Any]
+    hull_vs_box: Callable[..., Any]
+
+
+def get() -> Kernels | None:
+    """The compiled kernels, loaded on the first call of the process; None: use NumPy.
+
+    None when the environment variable ``GCM_JIT`` is ``0`` or Numba cannot be
+    imported (or, not expected, fails to compile them: a warning says why).
+    """
+    if os.environ.get("GCM_JIT") == "0":
+        return None
+    return _load()
+
+
+@functools.cache
+def _load() -> Kernels | None:
+    """Import (compile or load from the cache) the kernels, once per process."""
+    try:
+        from gcm_pipeline.robot import _compiled
+    except ImportError as exc:
+        log.debug("compiled kernels off, NumPy code used: %s", exc)
+        return None
+    except Exception as exc:  # any failure of Numba leaves the NumPy code
+        log.warning("compiled kernels failed to load, NumPy code used: %s", exc)
+        return None
+    return Kernels(_compiled.chain_forward, _compiled.broad_phase, _compiled.hull_vs_box)

@@ -75,6 +75,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
     ForkPool,
@@ -891,6 +892,7 @@ class ReachabilityEngine:
             probe = self.robot.fk(self.robot.home)
             solve_ik(self.robot, probe, self.backend, **self.ik_options)
             _blas_controller()  # it reads the loaded libraries (about 10 ms): once, here
+            kernels.get()  # compiled or read from Numba's cache once, here, not per worker
             _WORKER["engine"] = self
             self._pool = ForkPool(size, initializer=_worker_signals)
             self._pool_size = size

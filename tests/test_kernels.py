@@ -133,6 +133,7 @@ def test_fk_kernel_equals_numpy(monkeypatch, compiled, name, n):
     chain = _chains()[name]
     rng = np.random.default_rng(n)
     q = rng.uniform(-np.pi, np.pi, (n, chain.nq))
+    q.setflags(write=False)  # read-only arrays are taken too (a robot's home is one)
     ref = _numpy(monkeypatch, chain._forward, q, True)
     out = chain._forward(q, True)
     for got, want in zip(out, ref, strict=True):

@@ -18,11 +18,13 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-_F1 = types.float64[::1]
-_F2 = types.float64[:, ::1]
-_F3 = types.float64[:, :, ::1]
-_F4 = types.float64[:, :, :, ::1]
-_I1 = types.intp[::1]
+# C-contiguous arrays: inputs read-only (so that read-only arrays are taken
+# too), the results writable
+_F1 = types.Array(types.float64, 1, "C", readonly=True)
+_F2 = types.Array(types.float64, 2, "C", readonly=True)
+_F3 = types.Array(types.float64, 3, "C", readonly=True)
+_F4 = types.Array(types.float64, 4, "C", readonly=True)
+_I1 = types.Array(types.intp, 1, "C", readonly=True)
 
 
 def _fma_typer(typingctx: Any, a: Any, b: Any, c: Any) -> Any:
@@ -57,7 +59,9 @@ def _dot4(a: Any, r: int, b: Any, c: int) -> float:
 
 
 @njit(
-    types.Tuple((_F3, _F2, _F3))(_F2, _I1, _F3, _F2, types.intp, types.boolean),
+    types.Tuple((types.float64[:, :, ::1], types.float64[:, ::1], types.float64[:, :, ::1]))(
+        _F2, _I1, _F3, _F2, types.intp, types.boolean
+    ),
     cache=True,
 )
 def chain_forward(q, q_index, placement, tool, nq, jacobian):

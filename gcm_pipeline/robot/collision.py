@@ -68,7 +68,9 @@ and collides when one of them lies more than 0.1 mm inside the box (the
 vertex of one of its triangles; coal, called as Pinocchio calls it, misses
 box-box penetrations of a few 1e-5 m, so shallower ones are left to it).
 These levels only skip work, they never change an answer (tested pair by pair
-against coal on every pair). **Narrow phase**: coal, through
+against coal on every pair). The compiled kernels (:mod:`gcm_pipeline.robot.kernels`)
+run the same three levels one configuration at a time, conservatively: the same
+answers. **Narrow phase**: coal, through
 ``pin.computeCollisionsInParallel`` on a pool holding the pair's two
 geometries, only for the (configuration, pair) entries the broad phase left
 open. Batches of fewer than ``_FEW`` configurations go to coal's own broad

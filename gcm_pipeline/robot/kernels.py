@@ -29,7 +29,7 @@ is the reference: the kernels give the same answers.
 
 * Forward kinematics: the kernel sums each matrix product in the order of
   OpenBLAS's dgemm kernel (one FMA chain) and each complex product as
-  NumPy's loop does, so on the x86-64 machines this was measured on the
+  NumPy's loop does, so on the x86-64 machine this was measured on the
   results equal NumPy's to the bit. That order is a property of the BLAS
   kernel picked at run time, so on another CPU the last bit may differ
   (the tests compare to 1e-12).

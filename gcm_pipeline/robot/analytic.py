@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.robot import kernels
+
 __all__ = ["PandaAnalyticIK"]
 
 # Craig's modified DH parameters of the Panda arm (Franka's table) [m]
@@ -87,6 +89,10 @@ class PandaAnalyticIK:
         beta = 2.0 * (_A5 * _D3 - _D5 * _A4)
         self._rho4 = float(np.hypot(alpha, beta))
         self._gamma = float(np.arctan2(beta, alpha))
+        #: the constants as the compiled kernel takes them
+        self._dims = np.array(
+            [self._k, self._rho4, self._gamma, _A4, _A5, _A7, _D1, _D3, _D5], dtype=float
+        )
 
     @classmethod
     def for_chain(
@@ -237,6 +243,22 @@ class PandaAnalyticIK:
         n, k = q7.shape
         lower = np.asarray(lower, dtype=float)
         upper = np.asarray(upper, dtype=float)
+        compiled = kernels.get()
+        if compiled is not None:
+            r7 = rot @ self.tool_rotation.T
+            p7 = pos - r7 @ self.tool_translation
+            out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = compiled.panda_ik(
+                np.ascontiguousarray(r7),
+                np.ascontiguousarray(p7),
+                np.ascontiguousarray(q7, dtype=float),
+                np.ascontiguousarray(lower),
+                np.ascontiguousarray(upper),
+                np.zeros((0, 7)) if near is None else np.ascontiguousarray(near[0], dtype=float),
+                0.0 if near is None else float(near[1]),
+                near is not None,
+                self._dims,
+            )
+            return out
 
         def within(j: int, angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """Angle of joint j moved a turn up where below its limit, and inside-mask.

@@ -77,6 +77,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.ik_pinocchio import (
     PinocchioIKOptions,
@@ -332,8 +333,15 @@ def _segment_bounds(
         return np.zeros(0)
     out = np.empty(m)
     todo = np.arange(m)
+    compiled = kernels.get()
     if np.isfinite(reject_above):
-        mid = _sample_deviation(robot, 0.5 * (q_a + q_b), start, rot0, offsets, radius)
+        if compiled is not None:
+            dist, turn = compiled.segment_samples(
+                q_a, q_b, np.zeros(m, dtype=np.intp), start, rot0, offsets, *robot.chain.packed
+            )
+            mid = dist + radius * turn
+        else:
+            mid = _sample_deviation(robot, 0.5 * (q_a + q_b), start, rot0, offsets, radius)
         far = mid > reject_above
         out[far] = mid[far]
         todo = np.flatnonzero(~far)
@@ -358,7 +366,14 @@ def _segment_bounds(
     # h^2 / 8 * curvature <= budget  ->  intervals n >= sqrt(curvature / (8 budget)),
     # rounded up to a power of two so that rows share a few sample counts
     need = np.sqrt(curvature / (8.0 * budget))
-    n_rows = np.clip(2 ** np.ceil(np.log2(np.maximum(need, 2.0))), 2, _MAX_SAMPLES).astype(int)
+    n_rows = np.clip(2 ** np.ceil(np.log2(np.maximum(need, 2.0))), 2, _MAX_SAMPLES).astype(np.intp)
+    if compiled is not None:
+        dist, turn = compiled.segment_samples(
+            q_a, q_b, n_rows, start, rot0, offsets, *robot.chain.packed
+        )
+        h2 = 1.0 / n_rows**2
+        out[todo] = dist + k_pos * h2 / 8.0 + radius * (turn + k_rot * h2 / 8.0)
+        return out
     res = np.empty(m)
     for n in np.unique(n_rows).tolist():
         sel = np.flatnonzero(n_rows == n)

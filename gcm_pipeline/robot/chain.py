@@ -141,6 +141,8 @@ class KinematicChain:
         self._all_joints = bool(np.array_equal(self.q_index, np.arange(self.nq)))
         # the first joint's origin does not depend on q (its parent is the root)
         self.root_origin = self._placement[0, :3, 3].copy() if chain else np.zeros(3)
+        #: ``(q_index, placement, tool)``: the chain as the compiled kernels take it
+        self.packed = (self.q_index, self._placement, self._tool)
 
     def _forward(
         self, q: np.ndarray, jacobian: bool
@@ -148,12 +150,7 @@ class KinematicChain:
         compiled = kernels.get()
         if compiled is not None:
             rot, pos, jac = compiled.chain_forward(
-                np.ascontiguousarray(q),
-                self.q_index,
-                self._placement,
-                self._tool,
-                self.nq,
-                jacobian,
+                np.ascontiguousarray(q), *self.packed, self.nq, jacobian
             )
             return rot, pos, jac if jacobian else None
         # each joint's frame as a (N, 3, 4) transform (see _joint_frame)

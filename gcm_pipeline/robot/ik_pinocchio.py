@@ -60,6 +60,7 @@ from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import quat_from_rotation
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.analytic import PandaAnalyticIK
 from gcm_pipeline.robot.manipulability import yoshikawa
 
@@ -333,6 +334,25 @@ def _lm(
     Returns:
         ``(q, converged, pos_err, rot_err)``; errors are those of the returned q.
     """
+    compiled = kernels.get()
+    if compiled is not None:
+        out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = compiled.levenberg_marquardt(
+            np.ascontiguousarray(q, dtype=float),
+            np.ascontiguousarray(trot, dtype=float),
+            np.ascontiguousarray(tpos, dtype=float),
+            np.ascontiguousarray(lower, dtype=float),
+            np.ascontiguousarray(upper, dtype=float),
+            tol_p,
+            tol_r,
+            opts.max_iterations,
+            opts.stall_after,
+            opts.stall_ratio,
+            opts.damping,
+            opts.min_damping,
+            clamp,
+            *chain.packed,
+        )
+        return out
     q = q.copy()
     m = q.shape[0]
     converged = np.zeros(m, dtype=bool)

@@ -73,11 +73,17 @@ class Kernels(NamedTuple):
         chain_forward: Forward kinematics and Jacobian of a chain, (N, ...) at once.
         broad_phase: Levels 1 and 2: the (pair, configuration) entries left open.
         hull_vs_box: Level 3: :data:`FREE`, :data:`COLLIDES` or :data:`UNDECIDED`.
+        levenberg_marquardt: The IK's Levenberg-Marquardt iterations, per (target, seed).
+        segment_samples: The approach's deviation samples along joint segments.
+        panda_ik: The Panda's closed-form IK, per (target, q7).
     """
 
     chain_forward: Callable[..., Any]
     broad_phase: Callable[..., Any]
     hull_vs_box: Callable[..., Any]
+    levenberg_marquardt: Callable[..., Any]
+    segment_samples: Callable[..., Any]
+    panda_ik: Callable[..., Any]
 
 
 def get() -> Kernels | None:
@@ -102,4 +108,11 @@ def _load() -> Kernels | None:
     except Exception as exc:  # any failure of Numba leaves the NumPy code
         log.warning("compiled kernels failed to load, NumPy code used: %s", exc)
         return None
-    return Kernels(_compiled.chain_forward, _compiled.broad_phase, _compiled.hull_vs_box)
+    return Kernels(
+        _compiled.chain_forward,
+        _compiled.broad_phase,
+        _compiled.hull_vs_box,
+        _compiled.levenberg_marquardt,
+        _compiled.segment_samples,
+        _compiled.panda_ik,
+    )

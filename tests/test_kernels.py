@@ -98,18 +98,18 @@ def test_gcm_jit_0_selects_the_numpy_code(monkeypatch, panda, compiled):
         kernels.get()
 
 
-def test_without_numba_the_numpy_code_is_used(monkeypatch):
+def test_without_numba_the_numpy_code_is_used():
     import gcm_pipeline.robot as package
 
-    monkeypatch.setitem(sys.modules, "numba", None)  # import numba raises ImportError
-    monkeypatch.delitem(sys.modules, "gcm_pipeline.robot._compiled", raising=False)
-    monkeypatch.delattr(package, "_compiled", raising=False)
     kernels._load.cache_clear()
     try:
-        assert kernels.get() is None
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setitem(sys.modules, "numba", None)  # import numba raises ImportError
+            mp.delitem(sys.modules, "gcm_pipeline.robot._compiled", raising=False)
+            mp.delattr(package, "_compiled", raising=False)
+            assert kernels.get() is None
     finally:
         kernels._load.cache_clear()
-        monkeypatch.undo()
     assert kernels.get() is not None
 
 

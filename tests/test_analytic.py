@@ -231,6 +231,12 @@ def test_bad_closed_form_options_are_one_line_errors(panda: Robot) -> None:
         ("analytic_samples", True),
         ("fallback_library_seeds", -3),
         ("analytic", "yes"),
+        # the LM's numbers (the compiled iteration takes exactly these types)
+        ("stall_after", 1),
+        ("max_iterations", 1.5),
+        ("min_damping", 0.0),
+        ("damping", float("nan")),
+        ("stall_ratio", "half"),
     ]:
         with pytest.raises(InputError, match=key) as info:
             solve_ik(panda, t, **{key: value})

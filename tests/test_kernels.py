@@ -286,3 +286,107 @@ def test_kernel_limits_are_the_numpy_ones_plus_the_slack(bottle):
     for k, (_, _, _, beyond, deep) in boxes.items():
         halfs = screen.boxes[k][3]
         assert (beyond > halfs + _BROAD_MARGIN).all() and (deep < halfs - _INSIDE_DEPTH).all()
+
+
+# --- IK iterations, the approach's deviation, the Panda's closed form -------------------
+
+
+def _near_targets(robot, n, seed):
+    """Targets (rotations, positions) of random configurations and seeds around them.
+
+    Seeds 0.02-0.6 rad away: most converge, some stall or stop at a joint limit;
+    a tenth start half a turn of joint 7 away (the orientation error's half-turn case).
+    """
+    rng = np.random.default_rng(seed)
+    q = robot.random_configurations(n, rng)
+    rot, pos = robot.chain.pose(q)
+    scale = rng.choice([0.02, 0.2, 0.6], size=(n, 1))
+    seeds = np.clip(q + scale * rng.normal(size=q.shape), robot.lower, robot.upper)
+    flip = rng.random(n) < 0.1
+    seeds[flip, 6] = np.clip(q[flip, 6] + np.pi, robot.lower[6], robot.upper[6])
+    return seeds, rot, pos
+
+
+@pytest.mark.parametrize("clamp", [True, False])
+def test_lm_kernel_equals_numpy(monkeypatch, compiled, panda, clamp):
+    from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm
+
+    seeds, rot, pos = _near_targets(panda, 3000, 11)
+    for opts in (PinocchioIKOptions(), PinocchioIKOptions(stall_ratio=0.0, max_iterations=6)):
+        args = (panda.chain, seeds, rot, pos, panda.lower, panda.upper, 1e-6, 1e-5, opts, clamp)
+        q, conv, pe, re = _lm(*args)
+        q_ref, conv_ref, pe_ref, re_ref = _numpy(monkeypatch, _lm, *args)
+        np.testing.assert_array_equal(conv, conv_ref)
+        assert 0.3 < conv.mean() < 0.97  # converged and failed rows both tested
+        np.testing.assert_allclose(q, q_ref, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(pe, pe_ref, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(re, re_ref, rtol=1e-6, atol=1e-12)
+        assert np.all(pe[conv] <= 1e-6) and np.all(re[conv] <= 1e-5)
+        if clamp:
+            assert np.all((q >= panda.lower) & (q <= panda.upper))
+    # a half turn away in orientation: the rotation vector's length is pi
+    flip = np.diag([1.0, -1.0, -1.0])
+    q0 = panda.random_configurations(1, 3)
+    r0, p0 = panda.chain.pose(q0)
+    one = (panda.chain, q0, r0 @ flip, p0, panda.lower, panda.upper, 1e-6, 1e-5)
+    got = _lm(*one, PinocchioIKOptions(max_iterations=0))
+    ref = _numpy(monkeypatch, _lm, *one, PinocchioIKOptions(max_iterations=0))
+    assert got[3][0] == pytest.approx(np.pi) and ref[3][0] == pytest.approx(np.pi)
+
+
+@pytest.mark.parametrize("reject", [np.inf, 2e-3])
+def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject):
+    from gcm_pipeline.robot.approach import _segment_bounds, lever_arms
+
+    rng = np.random.default_rng(12)
+    n = 2000
+    q_a = panda.random_configurations(n, rng)
+    # short and long joint segments: 2 to 64 samples
+    q_b = q_a + rng.choice([0.005, 0.05, 0.3], size=(n, 1)) * rng.normal(size=q_a.shape)
+    rot, pos = panda.chain.pose(q_a)
+    offsets = rng.normal(0.0, 0.05, (n, 3))
+    offsets[:10] = 0.0  # a move of zero length
+    args = (panda, lever_arms(panda), q_a, q_b, pos, rot, offsets, 0.12, 1e-3, reject)
+    got = _segment_bounds(*args)
+    ref = _numpy(monkeypatch, _segment_bounds, *args)
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)
+    assert np.unique(got > 5e-3).size == 2
+
+
+@pytest.mark.parametrize("near", [False, True])
+def test_closed_form_kernel_equals_numpy(monkeypatch, compiled, panda, near):
+    from gcm_pipeline.robot.ik_pinocchio import analytic_solver
+
+    solver = analytic_solver(panda)
+    rng = np.random.default_rng(13)
+    q = panda.random_configurations(2000, rng)
+    rot, pos = panda.chain.pose(q)
+    q7 = q[:, 6:7] + np.array([0.0, -0.05, 0.05, 0.4, -1.5, 3.5])  # some outside the limits
+    pos[:20] += 5.0  # out of reach: no solution
+    args = (rot, pos, q7, panda.lower, panda.upper, (q, 0.3) if near else None)
+    got = solver.solve(*args)
+    ref = _numpy(monkeypatch, solver.solve, *args)
+    for name, a, b in zip(("index", "q", "branch", "column"), got, ref, strict=True):
+        assert a.shape == b.shape, name
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12, err_msg=name)
+    assert len(got[0]) > 2000 and not np.isin(np.arange(20), got[0]).any()
+    # every solution reaches its target
+    r, p = panda.chain.pose(got[1])
+    np.testing.assert_allclose(p, pos[got[0]], atol=1e-9)
+    np.testing.assert_allclose(r, rot[got[0]], atol=1e-9)
+    assert solver.solve(rot[:0], pos[:0], q7[:0], panda.lower, panda.upper)[1].shape == (0, 7)
+
+
+def test_reachability_with_and_without_kernels(monkeypatch, compiled):
+    """The whole check: the same decisions, configurations equal to round-off."""
+    cfg = load_config(ROOT / "configs" / "bottle_side.yaml", ["ik.workers=1"])
+    cand = P.generate_candidates(cfg)
+    grasps = P.densify(cand, P.build_manifold(cand, cfg), cfg)
+    robot = P.robot_from_config(cfg)
+    out = P.check_reachability(grasps, robot, cfg)
+    ref = _numpy(monkeypatch, P.check_reachability, grasps, robot, cfg)
+    np.testing.assert_array_equal(out["reachable"], ref["reachable"])
+    np.testing.assert_array_equal(out["reason"], ref["reason"])
+    assert 0 < out["reachable"].sum() < len(out["reachable"])
+    for key in ("q", "q_pregrasp", "clearance"):
+        np.testing.assert_allclose(np.asarray(out[key]), np.asarray(ref[key]), atol=1e-8)

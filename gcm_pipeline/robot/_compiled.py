@@ -338,7 +338,7 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _solve6(a: Any, e: Any, y: Any) -> None:
     """``y = a^-1 e`` for a symmetric positive definite ``a`` (6, 6), by Cholesky (overwrites a)."""
     for j in range(6):
@@ -364,7 +364,7 @@ def _solve6(a: Any, e: Any, y: Any) -> None:
         y[i] = s / a[i, i]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _damped_step(jac: Any, e: Any, lam: float, free: Any, a: Any, y: Any, dq: Any) -> None:
     """``dq = J^T (J J^T + lam I)^-1 e`` over the columns ``free`` of ``jac`` (6, nj), else 0."""
     nj = jac.shape[1]
@@ -386,7 +386,7 @@ def _damped_step(jac: Any, e: Any, lam: float, free: Any, a: Any, y: Any, dq: An
         dq[k] = s
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _pose_error(trot: Any, tpos: Any, tcp: Any, e: Any) -> None:
     """``e`` (6,) = (tpos - position, log3(trot @ rotation^T)) of the tool frame ``tcp`` (3, 4).
 
@@ -527,9 +527,11 @@ def levenberg_marquardt(
             for i in range(6):
                 squared += e[i] * e[i]
             lam = damping * squared + min_damping
-            free[:] = True
+            for k in range(nj):
+                free[k] = True
             _damped_step(jac, e, lam, free, a, y, dq)
-            step[:] = q
+            for j in range(nq):
+                step[j] = q[j]
             for k in range(nj):
                 step[q_index[k]] += dq[k]
             if clamp:
@@ -541,7 +543,8 @@ def levenberg_marquardt(
                 if crossed:
                     # the joints that would cross a limit are frozen at it and the
                     # step is re-solved with the others (clamped DLS)
-                    e_rest[:] = e
+                    for i in range(6):
+                        e_rest[i] = e[i]
                     for k in range(nj):
                         j = q_index[k]
                         at = min(max(step[j], lower[j]), upper[j])
@@ -554,7 +557,8 @@ def levenberg_marquardt(
                         step[q_index[k]] += dq[k]
                 for j in range(nq):
                     step[j] = min(max(step[j], lower[j]), upper[j])
-            q[:] = step
+            for j in range(nq):
+                q[j] = step[j]
     return q_out, converged, pos_err, rot_err
 
 

@@ -196,6 +196,27 @@ class PinocchioIKOptions:
             raise InputError(
                 f"pinocchio IK option min_solutions: expected a whole number >= 1, got {value!r}"
             )
+        # the iteration's numbers (the stall test compares with two iterations back;
+        # the damping keeps J J^T + lam I positive definite)
+        for key, least in (("max_iterations", 0), ("stall_after", 2)):
+            value = options.get(key, least)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise InputError(
+                    f"pinocchio IK option {key}: expected a whole number >= {least}, got {value!r}"
+                )
+        for key, positive in (("stall_ratio", False), ("damping", False), ("min_damping", True)):
+            value = options.get(key, 1.0)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float, np.integer, np.floating))
+                or not np.isfinite(value)
+                or value < 0
+                or (positive and value == 0)
+            ):
+                raise InputError(
+                    f"pinocchio IK option {key}: expected a finite number "
+                    f"{'> 0' if positive else '>= 0'}, got {value!r}"
+                )
         if options.get("unseeded", "home") not in ("home", "library"):
             raise InputError(
                 unknown_choice(

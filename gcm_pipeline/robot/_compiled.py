@@ -96,6 +96,22 @@ def _frames(turn: Any, placement: Any, tool: Any, frame: Any, tcp: Any) -> None:
             tcp[r, col] = _dot4(frame[nj - 1], r, tool, col) if nj else tool[r, col]
 
 
+@njit(cache=True, inline="always")
+def _columns(frame: Any, tcp: Any, jac: Any) -> None:
+    """Jacobian columns (6, nj) in chain order: linear ``z x (p_tool - p_joint)``, angular ``z``."""
+    for k in range(frame.shape[0]):
+        f = frame[k]
+        d0 = tcp[0, 3] - f[0, 3]
+        d1 = tcp[1, 3] - f[1, 3]
+        d2 = tcp[2, 3] - f[2, 3]
+        jac[0, k] = f[1, 2] * d2 - f[2, 2] * d1
+        jac[1, k] = f[2, 2] * d0 - f[0, 2] * d2
+        jac[2, k] = f[0, 2] * d1 - f[1, 2] * d0
+        jac[3, k] = f[0, 2]
+        jac[4, k] = f[1, 2]
+        jac[5, k] = f[2, 2]
+
+
 @njit(
     types.Tuple((types.float64[:, :, ::1], types.float64[:, ::1], types.float64[:, :, ::1]))(
         _F2, _I1, _F3, _F2, types.intp, types.boolean
@@ -125,6 +141,7 @@ def chain_forward(q, q_index, placement, tool, nq, jacobian):
     frame = np.empty((nj, 3, 4))
     tcp = np.empty((3, 4))
     turn = np.empty((nj, 2))
+    columns = np.empty((6, nj))
     for i in range(n):
         for k in range(nj):
             turn[k, 0] = math.cos(q[i, q_index[k]])
@@ -136,19 +153,10 @@ def chain_forward(q, q_index, placement, tool, nq, jacobian):
             pos[i, r] = tcp[r, 3]
         if not jacobian:
             continue
+        _columns(frame, tcp, columns)
         for k in range(nj):
-            f = frame[k]
-            # linear: z x (p_tool - p_joint); angular: z
-            d0 = tcp[0, 3] - f[0, 3]
-            d1 = tcp[1, 3] - f[1, 3]
-            d2 = tcp[2, 3] - f[2, 3]
-            j = q_index[k]
-            jac[i, 0, j] = f[1, 2] * d2 - f[2, 2] * d1
-            jac[i, 1, j] = f[2, 2] * d0 - f[0, 2] * d2
-            jac[i, 2, j] = f[0, 2] * d1 - f[1, 2] * d0
-            jac[i, 3, j] = f[0, 2]
-            jac[i, 4, j] = f[1, 2]
-            jac[i, 5, j] = f[2, 2]
+            for a in range(6):
+                jac[i, a, q_index[k]] = columns[a, k]
     return rot, pos, jac
 
 
@@ -511,18 +519,7 @@ def levenberg_marquardt(
                     break
             if it == max_iterations:
                 break
-            for k in range(nj):
-                f = frame[k]
-                # linear: z x (p_tool - p_joint); angular: z
-                d0 = tcp[0, 3] - f[0, 3]
-                d1 = tcp[1, 3] - f[1, 3]
-                d2 = tcp[2, 3] - f[2, 3]
-                jac[0, k] = f[1, 2] * d2 - f[2, 2] * d1
-                jac[1, k] = f[2, 2] * d0 - f[0, 2] * d2
-                jac[2, k] = f[0, 2] * d1 - f[1, 2] * d0
-                jac[3, k] = f[0, 2]
-                jac[4, k] = f[1, 2]
-                jac[5, k] = f[2, 2]
+            _columns(frame, tcp, jac)
             squared = 0.0
             for i in range(6):
                 squared += e[i] * e[i]

@@ -113,6 +113,30 @@ def test_without_numba_the_numpy_code_is_used():
     assert kernels.get() is not None
 
 
+def test_a_long_load_says_that_it_compiles(monkeypatch, caplog):
+    import time
+
+    real = kernels._import
+
+    def slow():
+        time.sleep(0.3)  # as a first run's compilation, only shorter
+        return real()
+
+    monkeypatch.setattr(kernels, "_NOTICE_AFTER", 0.05)
+    for load, said in ((slow, True), (real, False)):
+        monkeypatch.setattr(kernels, "_import", load)
+        kernels._load.cache_clear()
+        caplog.clear()
+        try:
+            with caplog.at_level("WARNING", logger="gcm_pipeline.robot.kernels"):
+                assert kernels.get() is not None
+                time.sleep(0.1)  # a notice still pending would fire now
+        finally:
+            kernels._load.cache_clear()
+        assert ("compiling the package's kernels" in caplog.text) is said
+        assert caplog.text.count("compiling") <= 1
+
+
 # --- forward kinematics -----------------------------------------------------------------
 
 

@@ -49,6 +49,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import threading
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -62,6 +63,12 @@ SLACK = 1e-9
 #: Kinds of world shapes the broad phase bounds exactly, by their code in a
 #: packed shape row; any other shape is bounded by its box (code 3).
 SHAPE_KINDS = ("sphere", "cylinder", "capsule", "box")
+#: Seconds of loading after which a line says that the kernels are being compiled.
+_NOTICE_AFTER = 3.0
+_COMPILING = (
+    "compiling the package's kernels with Numba (once per install, about 20 s; "
+    "later runs read them from Numba's cache)"
+)
 #: Level-3 answers of :attr:`Kernels.hull_vs_box`.
 FREE, COLLIDES, UNDECIDED = 0, 1, 2
 
@@ -97,17 +104,30 @@ def get() -> Kernels | None:
     return _load()
 
 
+def _import() -> Any:
+    """The module of the compiled kernels (importing it compiles them or reads the cache)."""
+    from gcm_pipeline.robot import _compiled
+
+    return _compiled
+
+
 @functools.cache
 def _load() -> Kernels | None:
     """Import (compile or load from the cache) the kernels, once per process."""
+    # loading from the cache takes well under a second; longer means compiling: say so
+    notice = threading.Timer(_NOTICE_AFTER, log.warning, (_COMPILING,))
+    notice.daemon = True
+    notice.start()
     try:
-        from gcm_pipeline.robot import _compiled
+        _compiled = _import()
     except ImportError as exc:
         log.debug("compiled kernels off, NumPy code used: %s", exc)
         return None
     except Exception as exc:  # any failure of Numba leaves the NumPy code
         log.warning("compiled kernels failed to load, NumPy code used: %s", exc)
         return None
+    finally:
+        notice.cancel()
     return Kernels(
         _compiled.chain_forward,
         _compiled.broad_phase,

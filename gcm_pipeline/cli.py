@@ -344,10 +344,12 @@ def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: b
 def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.config import load_config
     from gcm_pipeline.pipeline import preflight
+    from gcm_pipeline.robot import kernels
     from gcm_pipeline.stages.candidates import generate_candidates
 
     cfg = load_config(args.config, args.overrides)
-    preflight(cfg)
+    with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
+        preflight(cfg)
     n = len(generate_candidates(cfg))  # a grasp file is read and checked as a run reads it
     c = cfg.candidates
     obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"

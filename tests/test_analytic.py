@@ -234,7 +234,7 @@ def test_bad_closed_form_options_are_one_line_errors(panda: Robot) -> None:
         # the LM's numbers (the compiled iteration takes exactly these types)
         ("stall_after", 1),
         ("max_iterations", 1.5),
-        ("min_damping", 0.0),
+        ("min_damping", 1e-13),
         ("damping", float("nan")),
         ("stall_ratio", "half"),
     ]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -67,17 +68,18 @@ def test_the_package_and_its_command_line_do_not_import_numba():
         "from gcm_pipeline.config import load_config\n"
         "import gcm_pipeline.pipeline, gcm_pipeline.robot.collision\n"
         "load_config('configs/bottle_side.yaml')\n"
-        "sys.argv = ['gcm', '--help']\n"
-        "try:\n"
-        "    entry()\n"
-        "except SystemExit:\n"
-        "    pass\n"
+        "for argv in (['--help'], ['validate', 'configs/bottle_side.yaml']):\n"
+        "    sys.argv = ['gcm', *argv]\n"
+        "    try:\n"
+        "        entry()\n"
+        "    except SystemExit:\n"
+        "        pass\n"
         "print('numba' in sys.modules, file=sys.stderr)\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
     )
-    assert "usage" in out.stdout
+    assert "usage" in out.stdout and "bottle_side.yaml: ok" in out.stdout
     assert out.stderr.strip().splitlines()[-1] == "False"
 
 
@@ -110,6 +112,36 @@ def test_without_numba_the_numpy_code_is_used():
             assert kernels.get() is None
     finally:
         kernels._load.cache_clear()
+    assert kernels.get() is not None
+
+
+def test_numbas_own_switch_and_other_spellings_select_numpy(monkeypatch):
+    # NUMBA_DISABLE_JIT would run the kernels as Python (and the FMA intrinsic cannot)
+    code = (
+        "from gcm_pipeline.robot import kernels\n"
+        "from gcm_pipeline.robot.model import load_robot\n"
+        "from gcm_pipeline.robot.ik import solve_ik\n"
+        "r = load_robot('panda')\n"
+        "res = solve_ik(r, r.fk(r.random_configurations(20, 1)))\n"
+        "print(kernels.get() is None, bool(res.success.all()))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "GCM_JIT"}
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=ROOT,
+        env={**env, "NUMBA_DISABLE_JIT": "1", "PYTHONPATH": str(ROOT)},
+    )
+    assert out.stdout.split() == ["True", "True"], out.stderr
+    for value in ("off", "False", " no "):
+        monkeypatch.setenv("GCM_JIT", value)
+        assert kernels.get() is None
+    monkeypatch.setenv("GCM_JIT", "1")
+    assert kernels.get() is not None
+    with kernels.suppressed():
+        assert kernels.get() is None
     assert kernels.get() is not None
 
 
@@ -414,3 +446,24 @@ def test_reachability_with_and_without_kernels(monkeypatch, compiled):
     assert 0 < out["reachable"].sum() < len(out["reachable"])
     for key in ("q", "q_pregrasp", "clearance"):
         np.testing.assert_allclose(np.asarray(out[key]), np.asarray(ref[key]), atol=1e-8)
+
+
+def test_kernels_never_read_past_mismatched_arrays(monkeypatch, compiled, panda):
+    """Shapes the kernels do not expect get the NumPy code (its errors), not stray memory."""
+    from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm, analytic_solver
+
+    q = panda.random_configurations(5, 1)
+    with pytest.raises(IndexError):
+        panda.chain.pose(q[:, :3])  # too few joints
+    rot, pos = panda.chain.pose(q)
+    solver = analytic_solver(panda)
+    with pytest.raises(IndexError):
+        solver.solve(rot, pos, np.zeros((40, 1)), panda.lower, panda.upper)  # q7 rows
+    got = solver.solve(rot, pos, q[:, 6:7], panda.lower, panda.upper)
+    ref = _numpy(monkeypatch, solver.solve, rot, pos, q[:, 6:7], panda.lower, panda.upper)
+    assert np.array_equal(got[0], ref[0]) and set(got[0]) == set(range(5))
+    # an iteration budget far beyond memory: the stall test needs only the last scores
+    opts = PinocchioIKOptions(max_iterations=2**40)
+    args = (panda.chain, q + 0.1, rot, pos, panda.lower, panda.upper, 1e-6, 1e-5, opts)
+    conv = _lm(*args)[1]
+    assert np.array_equal(conv, _numpy(monkeypatch, _lm, *args)[1])

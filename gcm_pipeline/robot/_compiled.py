@@ -497,7 +497,7 @@ def levenberg_marquardt(
     step = np.empty(nq)
     free = np.ones(nj, dtype=np.bool_)
     over = np.zeros(nj, dtype=np.bool_)
-    score = np.empty(max_iterations + 1)
+    score = np.empty(3)  # the last three iterations' scores (the stall test looks two back)
     for r in range(m):
         q = q_out[r]
         for it in range(max_iterations + 1):
@@ -514,8 +514,8 @@ def levenberg_marquardt(
                 converged[r] = True
                 break
             if stall_ratio > 0:
-                score[it] = pe / tol_p + re / tol_r
-                if it >= stall_after and not score[it] < stall_ratio * score[it - 2]:
+                score[it % 3] = pe / tol_p + re / tol_r
+                if it >= stall_after and not score[it % 3] < stall_ratio * score[(it + 1) % 3]:
                     break
             if it == max_iterations:
                 break
@@ -532,11 +532,14 @@ def levenberg_marquardt(
             for k in range(nj):
                 step[q_index[k]] += dq[k]
             if clamp:
+                # any joint outside its limits (one outside the chain too, as the NumPy
+                # code tests every column) re-solves the step from the clipped one
                 crossed = False
+                for j in range(nq):
+                    crossed |= step[j] < lower[j] or step[j] > upper[j]
                 for k in range(nj):
                     j = q_index[k]
                     over[k] = step[j] < lower[j] or step[j] > upper[j]
-                    crossed |= over[k]
                 if crossed:
                     # the joints that would cross a limit are frozen at it and the
                     # step is re-solved with the others (clamped DLS)

@@ -244,7 +244,14 @@ class PandaAnalyticIK:
         lower = np.asarray(lower, dtype=float)
         upper = np.asarray(upper, dtype=float)
         compiled = kernels.get()
-        if compiled is not None:
+        # the kernel reads without bounds checks: other shapes get the NumPy code's errors
+        shapes_fit = (
+            np.shape(rot) == (n, 3, 3)
+            and np.shape(pos) == (n, 3)
+            and lower.shape == upper.shape == (7,)
+            and (near is None or np.shape(near[0]) == (n, 7))
+        )
+        if compiled is not None and shapes_fit:
             r7 = rot @ self.tool_rotation.T
             p7 = pos - r7 @ self.tool_translation
             out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = compiled.panda_ik(

@@ -148,7 +148,8 @@ class KinematicChain:
         self, q: np.ndarray, jacobian: bool
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         compiled = kernels.get()
-        if compiled is not None:
+        # the kernel reads without bounds checks: other shapes get the NumPy code's errors
+        if compiled is not None and q.ndim == 2 and q.shape[1] == self.nq:
             rot, pos, jac = compiled.chain_forward(
                 np.ascontiguousarray(q), *self.packed, self.nq, jacobian
             )

@@ -197,25 +197,24 @@ class PinocchioIKOptions:
                 f"pinocchio IK option min_solutions: expected a whole number >= 1, got {value!r}"
             )
         # the iteration's numbers (the stall test compares with two iterations back;
-        # the damping keeps J J^T + lam I positive definite)
+        # a damping of at least 1e-12 keeps J J^T + lam I positive definite in floats)
         for key, least in (("max_iterations", 0), ("stall_after", 2)):
             value = options.get(key, least)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise InputError(
                     f"pinocchio IK option {key}: expected a whole number >= {least}, got {value!r}"
                 )
-        for key, positive in (("stall_ratio", False), ("damping", False), ("min_damping", True)):
+        for key, bound in (("stall_ratio", 0.0), ("damping", 0.0), ("min_damping", 1e-12)):
             value = options.get(key, 1.0)
             if (
                 isinstance(value, bool)
                 or not isinstance(value, (int, float, np.integer, np.floating))
                 or not np.isfinite(value)
-                or value < 0
-                or (positive and value == 0)
+                or value < bound
             ):
                 raise InputError(
-                    f"pinocchio IK option {key}: expected a finite number "
-                    f"{'> 0' if positive else '>= 0'}, got {value!r}"
+                    f"pinocchio IK option {key}: expected a finite number >= {bound:g}, "
+                    f"got {value!r}"
                 )
         if options.get("unseeded", "home") not in ("home", "library"):
             raise InputError(
@@ -356,7 +355,15 @@ def _lm(
         ``(q, converged, pos_err, rot_err)``; errors are those of the returned q.
     """
     compiled = kernels.get()
-    if compiled is not None:
+    m = len(q)
+    # the kernel reads without bounds checks: other shapes get the NumPy code's errors
+    if (
+        compiled is not None
+        and np.shape(q) == (m, chain.nq)
+        and np.shape(trot) == (m, 3, 3)
+        and np.shape(tpos) == (m, 3)
+        and np.shape(lower) == np.shape(upper) == (chain.nq,)
+    ):
         out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = compiled.levenberg_marquardt(
             np.ascontiguousarray(q, dtype=float),
             np.ascontiguousarray(trot, dtype=float),

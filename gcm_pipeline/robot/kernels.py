@@ -46,11 +46,12 @@ is the reference: the kernels give the same answers.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
 __all__ = ["COLLIDES", "FREE", "SHAPE_KINDS", "SLACK", "UNDECIDED", "Kernels", "get"]
@@ -63,6 +64,10 @@ SLACK = 1e-9
 #: Kinds of world shapes the broad phase bounds exactly, by their code in a
 #: packed shape row; any other shape is bounded by its box (code 3).
 SHAPE_KINDS = ("sphere", "cylinder", "capsule", "box")
+#: Values of ``GCM_JIT`` that select the NumPy code.
+_OFF = ("0", "false", "off", "no")
+#: Inside :func:`suppressed`.
+_SUPPRESSED = False
 #: Seconds of loading after which a line says that the kernels are being compiled.
 _NOTICE_AFTER = 3.0
 _COMPILING = (
@@ -96,16 +101,38 @@ class Kernels(NamedTuple):
 def get() -> Kernels | None:
     """The compiled kernels, loaded on the first call of the process; None: use NumPy.
 
-    None when the environment variable ``GCM_JIT`` is ``0`` or Numba cannot be
-    imported (or, not expected, fails to compile them: a warning says why).
+    None when the environment variable ``GCM_JIT`` is ``0`` (or ``false``,
+    ``off``, ``no``), inside :func:`suppressed`, when Numba's own switch
+    ``NUMBA_DISABLE_JIT`` is on, or when Numba cannot be imported or fails to
+    compile them (a warning says why).
     """
-    if os.environ.get("GCM_JIT") == "0":
+    if os.environ.get("GCM_JIT", "").strip().lower() in _OFF or _SUPPRESSED:
         return None
     return _load()
 
 
+@contextlib.contextmanager
+def suppressed() -> Iterator[None]:
+    """The NumPy code inside the block, without loading the kernels (e.g. a config check)."""
+    global _SUPPRESSED
+    before, _SUPPRESSED = _SUPPRESSED, True
+    try:
+        yield
+    finally:
+        _SUPPRESSED = before
+
+
 def _import() -> Any:
-    """The module of the compiled kernels (importing it compiles them or reads the cache)."""
+    """The module of the compiled kernels (importing it compiles them or reads the cache).
+
+    None when Numba's ``NUMBA_DISABLE_JIT`` is on: its kernels would run as
+    Python (far too slow, and the FMA intrinsic cannot run at all).
+    """
+    from numba.core import config
+
+    if config.DISABLE_JIT:  # type: ignore[attr-defined]  # set at import, not declared
+        log.info("NUMBA_DISABLE_JIT is on: the NumPy code is used")
+        return None
     from gcm_pipeline.robot import _compiled
 
     return _compiled
@@ -120,14 +147,19 @@ def _load() -> Kernels | None:
     notice.start()
     try:
         _compiled = _import()
-    except ImportError as exc:
-        log.debug("compiled kernels off, NumPy code used: %s", exc)
-        return None
-    except Exception as exc:  # any failure of Numba leaves the NumPy code
-        log.warning("compiled kernels failed to load, NumPy code used: %s", exc)
+    except Exception as exc:  # no Numba, or any failure of it, leaves the NumPy code
+        log.warning(
+            "compiled kernels failed to load (%s: %s), NumPy code used; if Numba's cache is "
+            "damaged, delete it (NUMBA_CACHE_DIR, or __pycache__ beside %s)",
+            type(exc).__name__,
+            exc,
+            os.path.dirname(os.path.abspath(__file__)),
+        )
         return None
     finally:
         notice.cancel()
+    if _compiled is None:
+        return None
     return Kernels(
         _compiled.chain_forward,
         _compiled.broad_phase,

@@ -1,15 +1,19 @@
 """Compiled kernels: Numba versions of the hottest NumPy loops of the robot checks.
 
-Three loops run as compiled kernels, one configuration at a time, where the
-NumPy code runs array operation after array operation over all of them:
+These loops run as compiled kernels, one configuration (or one target) at a
+time, where the NumPy code runs array operation after array operation over
+all of them:
 
 * the batched forward kinematics and Jacobian of a chain
-  (:meth:`KinematicChain._forward <gcm_pipeline.robot.chain.KinematicChain>`),
-  which the IK iterations call;
+  (:meth:`KinematicChain._forward <gcm_pipeline.robot.chain.KinematicChain>`);
+* the IK's Levenberg-Marquardt iterations (``ik_pinocchio._lm``), per
+  (target, seed) pair;
+* the Panda's closed form (:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.solve`),
+  per (target, joint-7 value);
+* the approach's deviation samples along joint segments (``approach._segment_bounds``);
 * levels 1 and 2 of the collision broad phase (one bounding sphere per
-  geometry, then the sphere covers), and
-* level 3 (a robot polytope's hull vertices against a box), see
-  :mod:`gcm_pipeline.robot.collision`.
+  geometry, then the sphere covers), and level 3 (a robot polytope's hull
+  vertices against a box), see :mod:`gcm_pipeline.robot.collision`.
 
 **Loading.** :func:`get` returns them, or None for the NumPy code. Importing
 the package does not import Numba: the first forward kinematics or collision
@@ -17,13 +21,15 @@ check of a process does, once, and compiles the kernels, or loads the machine
 code an earlier process compiled from Numba's cache (``cache=True``: the
 ``__pycache__`` folder beside the package's sources, or Numba's folder in the
 user's cache directory when that is not writable; ``NUMBA_CACHE_DIR`` moves
-it). Compiling takes a few seconds, once per cache; loading about 0.4 s per
-process (the Numba import included). The reachability engine loads them
-before it forks its workers, so the workers inherit them.
+it). Compiling takes about 17 s, once per cache (a warning line says so after
+3 s); loading about 0.7 s per process (the Numba import included). The
+reachability engine loads them before it forks its workers, so the workers
+inherit them.
 
-**Switch.** The environment variable ``GCM_JIT=0`` selects the NumPy code
-(it is read at each call); so does a Python without Numba. The NumPy code
-is the reference: the kernels give the same answers.
+**Switches.** ``GCM_JIT=0`` (or ``false``, ``off``, ``no``; read at each call)
+selects the NumPy code, and so do Numba's ``NUMBA_DISABLE_JIT``, a Python
+without Numba, a failing load (a warning says why) and :func:`suppressed`.
+The NumPy code is the reference.
 
 **Same answers.**
 
@@ -42,6 +48,12 @@ is the reference: the kernels give the same answers.
   (free when all hull vertices lie beyond one face plane by the margin plus
   the slack, colliding when one lies deeper than the depth plus the slack):
   whatever it decides, the NumPy level decides the same; coal the rest.
+* The closed form: the same arithmetic, equal to the bit.
+* The LM iterates each pair alone and solves its 6x6 system by Cholesky,
+  and the deviation samples step each joint's sine and cosine by angle
+  addition: their numbers differ from the NumPy code's in the last digits
+  (the decisions of the reachability check were the same on every example
+  config; iterations run long without the stall test amplify the digits).
 """
 
 from __future__ import annotations
@@ -54,7 +66,7 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
-__all__ = ["COLLIDES", "FREE", "SHAPE_KINDS", "SLACK", "UNDECIDED", "Kernels", "get"]
+__all__ = ["COLLIDES", "FREE", "SHAPE_KINDS", "SLACK", "UNDECIDED", "Kernels", "get", "suppressed"]
 
 log = logging.getLogger(__name__)
 

@@ -407,6 +407,9 @@ def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject)
     ref = _numpy(monkeypatch, _segment_bounds, *args)
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)
     assert np.unique(got > 5e-3).size == 2
+    # arrays in any memory layout (the kernel takes C arrays)
+    strided = (*args[:2], np.asfortranarray(q_a), q_b[:, ::-1][:, ::-1], *args[4:])
+    np.testing.assert_array_equal(_segment_bounds(*strided), got)
 
 
 @pytest.mark.parametrize("near", [False, True])

@@ -336,8 +336,8 @@ def _segment_bounds(
     compiled = kernels.get()
     if np.isfinite(reject_above):
         if compiled is not None:
-            dist, turn = compiled.segment_samples(
-                q_a, q_b, np.zeros(m, dtype=np.intp), start, rot0, offsets, *robot.chain.packed
+            dist, turn = _samples(
+                compiled, robot, q_a, q_b, np.zeros(m, dtype=np.intp), start, rot0, offsets
             )
             mid = dist + radius * turn
         else:
@@ -368,9 +368,7 @@ def _segment_bounds(
     need = np.sqrt(curvature / (8.0 * budget))
     n_rows = np.clip(2 ** np.ceil(np.log2(np.maximum(need, 2.0))), 2, _MAX_SAMPLES).astype(np.intp)
     if compiled is not None:
-        dist, turn = compiled.segment_samples(
-            q_a, q_b, n_rows, start, rot0, offsets, *robot.chain.packed
-        )
+        dist, turn = _samples(compiled, robot, q_a, q_b, n_rows, start, rot0, offsets)
         h2 = 1.0 / n_rows**2
         out[todo] = dist + k_pos * h2 / 8.0 + radius * (turn + k_rot * h2 / 8.0)
         return out
@@ -396,6 +394,14 @@ def _segment_bounds(
         h2 = 1.0 / n**2
         res[sel] = dist + k_pos[sel] * h2 / 8.0 + radius * (rdist + k_rot[sel] * h2 / 8.0)
     out[todo] = res
+    return out
+
+
+def _samples(compiled: Any, robot: Robot, *arrays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled kernel's deviation samples (its arguments as C arrays)."""
+    out: tuple[np.ndarray, np.ndarray] = compiled.segment_samples(
+        *(np.ascontiguousarray(a) for a in arrays), *robot.chain.packed
+    )
     return out
 
 

@@ -500,6 +500,8 @@ def levenberg_marquardt(
     score = np.empty(3)  # the last three iterations' scores (the stall test looks two back)
     for r in range(m):
         q = q_out[r]
+        for i in range(3):
+            score[i] = np.inf  # nothing of the previous pair
         for it in range(max_iterations + 1):
             for k in range(nj):
                 turn[k, 0] = math.cos(q[q_index[k]])

@@ -185,20 +185,17 @@ class PinocchioIKOptions:
         for key in options:
             if key not in names:
                 raise InputError(unknown_choice("pinocchio IK option", key, names))
-        for key in ("analytic_samples", "fallback_library_seeds", "fallback_random_restarts"):
-            value = options.get(key, 0)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-                raise InputError(
-                    f"pinocchio IK option {key}: expected a whole number >= 0, got {value!r}"
-                )
-        value = options.get("min_solutions", 1)
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise InputError(
-                f"pinocchio IK option min_solutions: expected a whole number >= 1, got {value!r}"
-            )
-        # the iteration's numbers (the stall test compares with two iterations back;
-        # a damping of at least 1e-12 keeps J J^T + lam I positive definite in floats)
-        for key, least in (("max_iterations", 0), ("stall_after", 2)):
+        # whole numbers (the stall test compares with two iterations back; a damping of
+        # at least 1e-12 keeps J J^T + lam I positive definite in floats)
+        wholes = (
+            ("analytic_samples", 0),
+            ("fallback_library_seeds", 0),
+            ("fallback_random_restarts", 0),
+            ("min_solutions", 1),
+            ("max_iterations", 0),
+            ("stall_after", 2),
+        )
+        for key, least in wholes:
             value = options.get(key, least)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise InputError(
@@ -382,7 +379,6 @@ def _lm(
         )
         return out
     q = q.copy()
-    m = q.shape[0]
     converged = np.zeros(m, dtype=bool)
     pos_err = np.full(m, np.inf)
     rot_err = np.full(m, np.inf)

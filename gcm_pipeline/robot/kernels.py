@@ -159,7 +159,10 @@ def _load() -> Kernels | None:
     notice.start()
     try:
         _compiled = _import()
-    except Exception as exc:  # no Numba, or any failure of it, leaves the NumPy code
+    except ImportError as exc:
+        log.warning("Numba cannot be imported (%s): the NumPy code is used", exc)
+        return None
+    except Exception as exc:  # any failure of Numba leaves the NumPy code
         log.warning(
             "compiled kernels failed to load (%s: %s), NumPy code used; if Numba's cache is "
             "damaged, delete it (NUMBA_CACHE_DIR, or __pycache__ beside %s)",

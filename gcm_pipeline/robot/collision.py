@@ -1069,6 +1069,8 @@ class CollisionChecker:
         triangles, or of the solid). coal's narrow phase decides the rest, pair
         by pair, only on the configurations left.
         """
+        if screen.pairs.size == 0:  # e.g. no table, no object, no self-collision
+            return np.zeros((len(q), 0), dtype=bool)
         compiled = kernels.get()
         if compiled is not None:
             return self._pair_hits_compiled(compiled, q, frames, screen)
@@ -1168,8 +1170,12 @@ class CollisionChecker:
             return known[1], known[2]
         cov, slack = self._cover, kernels.SLACK
         worlds = sorted({int(w) for w in screen.world.tolist() if w >= 0})
-        shapes = np.array([self._bounds_for(w).packed() for w in worlds]).reshape(-1, 21)
-        world = np.array([worlds.index(w) if w >= 0 else -1 for w in screen.world.tolist()])
+        # explicit dtypes: without a world shape or a pair these lists are empty
+        # (and np.array([]) is float64)
+        shapes = np.array([self._bounds_for(w).packed() for w in worlds], float).reshape(-1, 21)
+        world = np.array(
+            [worlds.index(w) if w >= 0 else -1 for w in screen.world.tolist()], np.intp
+        )
         own = world < 0
         ra = cov.ball_radius[screen.geom_a]
         rb = cov.ball_radius[np.where(own, screen.geom_b, 0)]

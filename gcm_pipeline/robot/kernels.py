@@ -61,6 +61,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import operator
 import os
 import threading
 from collections.abc import Callable, Iterator
@@ -176,10 +177,74 @@ def _load() -> Kernels | None:
     if _compiled is None:
         return None
     return Kernels(
-        _compiled.chain_forward,
-        _compiled.broad_phase,
-        _compiled.hull_vs_box,
-        _compiled.levenberg_marquardt,
-        _compiled.segment_samples,
-        _compiled.panda_ik,
+        _Kernel(_compiled.chain_forward),
+        _Kernel(_compiled.broad_phase),
+        _Kernel(_compiled.hull_vs_box),
+        _Kernel(_compiled.levenberg_marquardt),
+        _Kernel(_compiled.segment_samples),
+        _Kernel(_compiled.panda_ik),
     )
+
+
+class _Kernel:
+    """A compiled kernel that takes its arguments as a NumPy function would.
+
+    Each kernel is compiled for one signature: C-contiguous float64 or intp
+    arrays of fixed dimensions, an integer, a float or a bool per scalar. A
+    Numba dispatcher refuses anything else ("No matching definition"), so each
+    array is first converted: to the kernel's dtype when the cast is safe
+    (``np.can_cast(..., "safe")``: int32 to intp, float32 or an int to
+    float64; bool) or when the array is empty (``np.array([])`` is float64,
+    whatever it would have held), and to C order (a copy of a Fortran-order,
+    strided or negatively strided array; read-only arrays are taken as they
+    are). Integer scalars must be integers (:func:`operator.index`), not floats
+    that Numba would truncate.
+
+    Raises:
+        TypeError: An array of the wrong dimension or a dtype that does not
+            cast safely (a float array of indices), naming the kernel and the
+            argument: a caller's mistake, not an input to convert.
+    """
+
+    def __init__(self, dispatcher: Any) -> None:
+        from numba import types
+        from numba.np.numpy_support import as_dtype
+
+        (signature,) = dispatcher.nopython_signatures  # compiled for exactly one
+        self.dispatcher = dispatcher
+        self.__name__ = dispatcher.__name__
+        self.__doc__ = dispatcher.__doc__
+        self._convert: list[Callable[[Any], Any]] = []
+        for i, t in enumerate(signature.args):
+            if isinstance(t, types.Array):
+                self._convert.append(functools.partial(self._array, i, as_dtype(t.dtype), t.ndim))
+            elif isinstance(t, types.Boolean):
+                self._convert.append(bool)
+            elif isinstance(t, types.Integer):
+                self._convert.append(operator.index)
+            else:
+                self._convert.append(float)
+
+    def _array(self, i: int, dtype: Any, ndim: int, value: Any) -> Any:
+        import numpy as np
+
+        a = np.asarray(value)
+        if a.ndim != ndim:
+            raise TypeError(
+                f"kernel {self.__name__}: argument {i} has {a.ndim} dimensions, not {ndim}"
+            )
+        if a.dtype != dtype:
+            if a.size and not np.can_cast(a.dtype, dtype, "safe"):
+                raise TypeError(
+                    f"kernel {self.__name__}: argument {i} of dtype {a.dtype} does not cast "
+                    f"safely to {dtype}"
+                )
+            a = a.astype(dtype)
+        return np.ascontiguousarray(a)
+
+    def __call__(self, *args: Any) -> Any:
+        if len(args) != len(self._convert):
+            raise TypeError(
+                f"kernel {self.__name__} takes {len(self._convert)} arguments, not {len(args)}"
+            )
+        return self.dispatcher(*(f(a) for f, a in zip(self._convert, args, strict=True)))

@@ -740,6 +740,10 @@ def test_a_kernel_converts_safely_or_says_why(compiled):
         np.zeros((2, 7)), q_index.astype(np.int32), placement, tool, np.int16(7), 1
     )
     np.testing.assert_allclose(rot, panda.chain.pose(np.zeros((2, 7)))[0], atol=1e-12)
+    unaligned = np.frombuffer(bytes(1 + 2 * 7 * 8), np.float64, 14, 1).reshape(2, 7)
+    assert not unaligned.flags.aligned
+    rot, _, _ = compiled.chain_forward(unaligned, q_index, placement, tool, 7, True)
+    np.testing.assert_allclose(rot, panda.chain.pose(np.zeros((2, 7)))[0], atol=1e-12)
     with pytest.raises(TypeError, match="chain_forward: argument 1 of dtype float64"):
         compiled.chain_forward(np.zeros((2, 7)), q_index + 0.5, placement, tool, 7, True)
     with pytest.raises(TypeError, match="chain_forward: argument 0 has 1 dimensions, not 2"):

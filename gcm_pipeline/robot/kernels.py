@@ -208,8 +208,8 @@ class _Kernel:
     (``np.can_cast(..., "safe")``: int32 to intp, float32 or an int to
     float64; bool) or when the array is empty (``np.array([])`` is float64,
     whatever it would have held), and to C order (a copy of a Fortran-order,
-    strided or negatively strided array; read-only arrays are taken as they
-    are). Integer scalars must be integers (:func:`operator.index`), not floats
+    strided, negatively strided or unaligned array; read-only arrays are
+    taken as they are). Integer scalars must be integers (:func:`operator.index`), not floats
     that Numba would truncate.
 
     Raises:
@@ -252,7 +252,8 @@ class _Kernel:
                     f"safely to {dtype}"
                 )
             a = a.astype(dtype)
-        return np.ascontiguousarray(a)
+        a = np.ascontiguousarray(a)
+        return a if a.flags.aligned else a.copy()  # e.g. np.frombuffer at an odd offset
 
     def __call__(self, *args: Any) -> Any:
         if len(args) != len(self._convert):

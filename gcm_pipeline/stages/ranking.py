@@ -144,13 +144,13 @@ def rank(
     extra: dict[str, np.ndarray] = {}
     if metric == "combined":
         scored = dict(metrics)
-        if "clearance" in grasps:
-            scored["clearance"] = np.asarray(grasps["clearance"], dtype=float)
+        if "clearance" in grasps:  # inf: nothing to collide with (as a margin's inf)
+            scored["clearance"] = _finite_margin(grasps["clearance"], reachable)
         if "margin" in grasps:
             scored["margin"] = _finite_margin(grasps["margin"], reachable)
         key = extra["combined"] = combined_score(scored, weights, mask=reachable)
     elif metric == "clearance":
-        key = np.asarray(grasps["clearance"], dtype=float)
+        key = _finite_margin(grasps["clearance"], reachable)
     elif metric == "margin":
         key = _finite_margin(grasps["margin"], reachable)
     else:

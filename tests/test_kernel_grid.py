@@ -150,3 +150,23 @@ def test_gcm_run_decides_the_same_with_gcm_jit_on_and_off(
     off = _gcm_run(tmp_path, "off", overrides, jit=False)
     assert on == off and len(on) == 18
     assert any(reachable == "true" for reachable, _ in on)
+
+
+def test_a_bare_flange_decides_the_same_with_and_without_kernels(tmp_path):
+    """No tool (the UR5's flange as the grasp frame): no gripper geometry, no contact pair."""
+    spec = yaml.safe_load((ROOT / "robots" / "ur5.yaml").read_text())
+    del spec["tool"]
+    spec["grasp_frame"], spec["name"] = "tool0", "ur5_bare"
+    path = tmp_path / "ur5_bare.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    robot = P.robot_from_config(load_config(BASE, _overrides(path, *WORLDS[0])))
+    grasps = P.generate_candidates(load_config(BASE, [*FAST, *GRASP_SETS[0]]))
+    seen = set()
+    for world in WORLDS[::3]:  # each (table, object, self) once, with 0 obstacles
+        cfg = load_config(BASE, _overrides(path, *world))
+        out = P.check_reachability(grasps, robot, cfg)
+        with kernels.suppressed():
+            ref = P.check_reachability(grasps, robot, cfg)
+        np.testing.assert_array_equal(out["reason"], ref["reason"], err_msg=str(world))
+        seen |= set(np.asarray(out["reason"]).tolist())
+    assert {"", "collision_object", "collision_environment"} <= seen, seen

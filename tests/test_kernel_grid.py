@@ -4,9 +4,10 @@ The grid: the table on or off, the object checked or not, self-collision on
 or off, 0, 1 or 3 obstacles, on the Panda, the UR5 and a robot a user brings
 as a URDF file (example-robot-data's UR10 file with the UR5's tool), each
 checked with the kernels and with the NumPy code (``kernels.suppressed()``, as
-``GCM_JIT=0``), in this process: 72 worlds x 2. Every grasp's ``reachable``
-and ``reason`` must be the same. A few ``gcm run`` subprocesses prove the
-command line's path with ``GCM_JIT`` on and off.
+``GCM_JIT=0``), in this process: 72 worlds x 2, 54 grasps each. Every
+grasp's ``reachable`` and ``reason`` must be the same. A bare flange (no
+tool) is checked too, and a few ``gcm run`` subprocesses prove the command
+line's path with ``GCM_JIT`` on and off.
 """
 
 from __future__ import annotations

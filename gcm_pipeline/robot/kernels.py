@@ -79,6 +79,8 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
+import numpy as np
+
 __all__ = ["COLLIDES", "FREE", "SHAPE_KINDS", "SLACK", "UNDECIDED", "Kernels", "get", "suppressed"]
 
 log = logging.getLogger(__name__)
@@ -209,8 +211,8 @@ class _Kernel:
     float64; bool) or when the array is empty (``np.array([])`` is float64,
     whatever it would have held), and to C order (a copy of a Fortran-order,
     strided, negatively strided or unaligned array; read-only arrays are
-    taken as they are). Integer scalars must be integers (:func:`operator.index`), not floats
-    that Numba would truncate.
+    taken as they are). Integer scalars must be integers
+    (:func:`operator.index`), not floats that Numba would truncate.
 
     Raises:
         TypeError: An array of the wrong dimension or a dtype that does not
@@ -238,8 +240,6 @@ class _Kernel:
                 self._convert.append(float)
 
     def _array(self, i: int, dtype: Any, ndim: int, value: Any) -> Any:
-        import numpy as np
-
         a = np.asarray(value)
         if a.ndim != ndim:
             raise TypeError(

@@ -257,6 +257,10 @@ class Study:
             from gcm_pipeline.study.runner import check_local_workers
 
             check_local_workers(workers)  # also when Ray will not start (nothing left to run)
+        elif engine == "ray" and address is not None:
+            from gcm_pipeline.study.runner import probe_address
+
+            probe_address(address)  # seconds, before the preflight and before Ray retries
         self.check(out_dir, force=force)
         store = StudyDir(out_dir)
         # one study at a time in a directory; what it holds is read again under the lock

@@ -53,6 +53,7 @@ import platform
 import re
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
@@ -931,6 +932,32 @@ def npy_header(
     return tuple(int(k) for k in shape), dtype
 
 
+def open_regular(path: str | Path) -> Any:
+    """Open ``path`` for binary reading without ever waiting on it: a regular file only.
+
+    A named pipe would block ``open`` until a writer comes (and a device may
+    never end): the file is opened with ``O_NONBLOCK`` and checked with
+    ``fstat`` before a byte is read.
+
+    Raises:
+        InputError: It is a directory, a pipe, a device or a socket.
+        OSError: It cannot be opened.
+    """
+    path = Path(path)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            what = "a directory" if stat.S_ISDIR(mode) else "not a regular file (a pipe or device)"
+            raise InputError(f"{path}: it is {what}; a regular file is needed")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str, np.ndarray]:
     """The arrays of an ``.npz`` file, each header checked before it is read.
 
@@ -945,7 +972,7 @@ def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str,
     """
     path = Path(path)
     try:
-        with zipfile.ZipFile(path) as zf:
+        with open_regular(path) as fh, zipfile.ZipFile(fh) as zf:
             infos = {}
             for info in zf.infolist():
                 if info.is_dir():

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline import io
-from gcm_pipeline.errors import OutputError
+from gcm_pipeline.errors import InputError, OutputError
 from gcm_pipeline.io import _json_clean, format_floats
 from gcm_pipeline.study.spec import AXES
 
@@ -51,6 +51,7 @@ except ImportError:  # pragma: no cover - not POSIX
 
 __all__ = [
     "CSV_COLUMNS",
+    "MAX_META_BYTES",
     "POSE_COLUMNS",
     "StudyDir",
     "atomic_write",
@@ -85,6 +86,9 @@ ARRAYS = ("reachable_mask", "metric", "manipulability", "pose", "pose_object", "
 _NUMBERS = (*_RESULTS, *POSE_COLUMNS)
 
 _LOCK = ".study.lock"
+
+#: Most bytes of ``study.json`` (a study writes its study file and base config there: kB).
+MAX_META_BYTES = 16 * 1024**2
 
 #: Most bytes a placement part's arrays may take (the densify limit's poses, with room).
 _MAX_PART_BYTES = 1 << 30
@@ -251,11 +255,28 @@ class StudyDir:
                 self.path.rmdir()
 
     def read_meta(self) -> dict[str, Any] | None:
-        """``study.json`` as a dict, or None when it is missing or not a study's."""
+        """``study.json`` as a dict, or None when it is missing or not a study's.
+
+        Raises:
+            OutputError: It is not a regular file (a pipe would block), or it is
+                larger than :data:`MAX_META_BYTES` (a study writes a few kB).
+        """
         if not io.is_project_dir(self.path, "study"):
             return None
+        path = self.path / "study.json"
         try:
-            meta = json.loads((self.path / "study.json").read_text(encoding="utf-8"))
+            with io.open_regular(path) as fh:
+                size = os.fstat(fh.fileno()).st_size
+                if size > MAX_META_BYTES:
+                    raise OutputError(
+                        f"{path} is {size:,} bytes, more than the {MAX_META_BYTES:,} a study's "
+                        "study.json may hold; it is not what a study wrote (remove the "
+                        "directory or choose another --out)"
+                    )
+                raw = fh.read(MAX_META_BYTES + 1)
+            meta = json.loads(raw.decode("utf-8"))
+        except InputError as exc:  # a directory, a pipe, a device
+            raise OutputError(str(exc)) from None
         except (OSError, ValueError):
             return None
         return meta if isinstance(meta, dict) else None
@@ -269,9 +290,13 @@ class StudyDir:
         except OSError as exc:
             raise OutputError(f"cannot create study directory {self.path}: {exc}") from None
         if self.read_meta() is None:
-            _write_text(
-                self.path / "study.json", json.dumps(_json_clean(dict(meta)), indent=2) + "\n"
-            )
+            text = json.dumps(_json_clean(dict(meta)), indent=2) + "\n"
+            if len(text.encode("utf-8")) > MAX_META_BYTES:  # it could not be read back
+                raise OutputError(
+                    f"{self.path / 'study.json'}: the study file and base config take "
+                    f"{len(text.encode('utf-8')):,} bytes, more than {MAX_META_BYTES:,}"
+                )
+            _write_text(self.path / "study.json", text)
 
     # --- placements -------------------------------------------------------------------
 

@@ -159,9 +159,7 @@ class Study:
 
     def size(self) -> tuple[int, int]:
         """(grid placements, at most this many more from refinement), counted, not built."""
-        refine = self.plan.spec.refine
-        rounds = refine.rounds if refine is not None else 0
-        return self.plan.count(), rounds * self.plan.refine_size()
+        return self.plan.count(), self.plan.refine_rounds() * self.plan.refine_size()
 
     def check(self, out_dir: str | Path, *, force: bool = False) -> bool:
         """Check the study and its directory before any work; True when it resumes.
@@ -435,8 +433,7 @@ class _Run:
         grid = self.plan.grid()
         self.rows = self._own(grid, done)
         self.resumed = len(self.rows)
-        refine = self.plan.spec.refine
-        rounds = refine.rounds if refine is not None else 0
+        rounds = self.plan.refine_rounds()  # later rounds could add nothing
         self.bar = tqdm(
             total=len(grid),
             initial=sum(1 for p in grid if p.id in self.rows),

@@ -45,6 +45,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import errno
 import json
 import logging
 import math
@@ -81,8 +82,10 @@ __all__ = [
     "atomic_dir",
     "atomic_run_dir",
     "check_output_dir",
+    "disk_full",
     "format_floats",
     "is_project_dir",
+    "open_regular",
     "looks_like_run_dir",
     "read_marker",
     "read_npz",
@@ -533,11 +536,35 @@ def atomic_dir(
             with _signals_deferred():
                 _replace_dir(tmp, out, force=force, keep=keep, kind=kind)
                 _remove_stale(out)
-    except BaseException:
+    except BaseException as exc:
         with _signals_deferred():
             shutil.rmtree(tmp, ignore_errors=True)
             _remove_empty(created)
+        full = disk_full(out, exc, "nothing was written")
+        if full is not None:
+            raise full from None
         raise
+
+
+#: The errors of a file system that has no room left (space, quota, file size).
+_DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def disk_full(path: str | Path, exc: BaseException, outcome: str) -> OutputError | None:
+    """The one-line error for ``exc`` when it says the file system of ``path`` is full, else None.
+
+    Args:
+        path: What was being written (named in the message).
+        exc: The exception a write raised.
+        outcome: What is left, e.g. ``"nothing was written"``.
+    """
+    if not isinstance(exc, OSError) or exc.errno not in _DISK_FULL:
+        return None
+    code = errno.errorcode.get(exc.errno, str(exc.errno))
+    return OutputError(
+        f"cannot write {path}: {os.strerror(exc.errno)} ({code}); {outcome}; free some space "
+        "or choose another --out"
+    )
 
 
 def atomic_run_dir(

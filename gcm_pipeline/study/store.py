@@ -99,19 +99,26 @@ def atomic_write(path: Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` that replaces ``path`` on success.
 
     The temporary file starts with a dot (``.NAME.tmp-XXXX``); on any
-    exception it is removed and ``path`` is left as it was.
+    exception it is removed and ``path`` is left as it was (a full file
+    system is an :class:`OutputError` naming ``path``).
     """
     path = Path(path)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
     os.close(fd)
     tmp = Path(name)
     try:
         yield tmp
         os.chmod(tmp, 0o644 & ~_umask())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        full = io.disk_full(path, exc, "the finished placements are kept (a rerun resumes)")
+        if full is not None:
+            raise full from None
         raise
 
 

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline import io
-from gcm_pipeline.errors import InputError, OutputError
+from gcm_pipeline.errors import InputError, OutputError, clip
 from gcm_pipeline.io import _json_clean, format_floats
 from gcm_pipeline.study.spec import AXES
 
@@ -87,6 +87,9 @@ _NUMBERS = (*_RESULTS, *POSE_COLUMNS)
 
 _LOCK = ".study.lock"
 
+#: The files a study writes at the top of its directory.
+OUTPUT_FILES = ("study.json", "placements.csv", "reachability.npz", "summary.json", "coverage.png")
+
 #: Most bytes of ``study.json`` (a study writes its study file and base config there: kB).
 MAX_META_BYTES = 16 * 1024**2
 
@@ -112,7 +115,10 @@ def atomic_write(path: Path) -> Iterator[Path]:
     try:
         yield tmp
         os.chmod(tmp, 0o644 & ~_umask())
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except IsADirectoryError:  # made while the study ran (else refused before any work)
+            raise OutputError(f"cannot write {path}: it is a directory; remove it") from None
     except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
@@ -176,7 +182,34 @@ class StudyDir:
         # an existing study directory is continued, never replaced: "force" only
         # lets io's checks accept a directory that carries the study marker
         io.check_output_dir(out, force=bool(names), keep=keep, kind="study")
+        self._check_slots(names)
         return bool(names) and self.holds(key)
+
+    def _check_slots(self, names: set[str]) -> None:
+        """Refuse a directory, pipe or device where the study writes a file, a file for a folder.
+
+        Found before any work: a ``placements.csv`` that is a directory made the
+        study end in a traceback when it wrote its tables.
+        """
+        for name in sorted(names & (set(OUTPUT_FILES) | {"placements"})):
+            try:
+                mode = os.lstat(self.path / name).st_mode
+            except OSError:
+                continue
+            want_dir = name == "placements"
+            if stat.S_ISLNK(mode) and not want_dir:
+                continue  # a rename replaces the link itself
+            if want_dir and not stat.S_ISDIR(mode):
+                raise OutputError(
+                    f"{self.path / name} is not a directory; the study keeps its finished "
+                    "placements there (remove it or choose another --out)"
+                )
+            if not want_dir and not stat.S_ISREG(mode):
+                what = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+                raise OutputError(
+                    f"{self.path / name} is {what}; the study writes its {name} there "
+                    "(remove it or choose another --out)"
+                )
 
     def holds(self, key: str) -> bool:
         """Whether the directory holds the study ``key`` already (checked again under :meth:`lock`).
@@ -394,6 +427,11 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
         raise ValueError(f"its id {row.get('id')!r} is not its file name's {pid}")
     if not isinstance(row.get("object"), str) or not isinstance(row.get("error", ""), str):
         raise ValueError("object or error is not a string")
+    if type(row.get("round")) is not int or row["round"] < 0:
+        raise ValueError(f"round {row.get('round')!r} is not a whole number >= 0")
+    overrides = row.get("overrides")
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        raise ValueError(f"overrides {clip(repr(overrides))} is not a list of KEY=VALUE strings")
     for key in _NUMBERS:
         value = row.get(key)
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):

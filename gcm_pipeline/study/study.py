@@ -470,8 +470,10 @@ class _Run:
     ) -> dict[int, dict[str, Any]]:
         """The finished rows of ``placements`` in ``done``.
 
-        A part whose object or pose is not its placement's (a file from
-        elsewhere) is ignored with a warning: that placement runs again.
+        A part whose object, pose, round or overrides are not its placement's
+        (a file from elsewhere, or edited) is ignored with a warning naming the
+        file and the first key that differs: that placement runs again, so
+        ``best/`` never re-runs overrides the study did not plan.
         """
         own: dict[int, dict[str, Any]] = {}
         for p in placements:
@@ -479,13 +481,17 @@ class _Run:
             if row is None:
                 continue
             want = self._row_base(p)
-            keys = [k for k in POSE_COLUMNS if not math.isnan(want[k])]
-            if row["object"] != p.object or any(row.get(k) != want[k] for k in keys):
+            keys = ["object", "round"] + [k for k in POSE_COLUMNS if not math.isnan(want[k])]
+            differ = next((f"{k} {row.get(k)!r}" for k in keys if row.get(k) != want[k]), None)
+            if differ is None and row.get("overrides") != want["overrides"]:
+                differ = _first_override_difference(row.get("overrides"), want["overrides"])
+            if differ is not None:
                 log.warning(
-                    "study: ignoring %s, it is not placement %d (%s); it runs again",
+                    "study: ignoring %s, it is not placement %d (%s): %s; it runs again",
                     self.store.part_path(p.id),
                     p.id,
                     p.label(),
+                    differ,
                 )
                 continue
             own[p.id] = row
@@ -680,6 +686,18 @@ class _Run:
         log.info("study: writing best/ (placement %s)", best["id"])
         Pipeline(cfg, source=self.plan.base_path).run(out, progress=self.progress, force=True)
         return out
+
+
+def _first_override_difference(got: Any, want: Sequence[str]) -> str:
+    """``overrides: KEY is 'KEY=A', the plan's 'KEY=B'`` for the first override that differs."""
+    got = list(got) if isinstance(got, (list, tuple)) else []
+    for k in range(max(len(got), len(want))):
+        a = got[k] if k < len(got) else None
+        b = want[k] if k < len(want) else None
+        if a != b:
+            key = str(a if a is not None else b).split("=", 1)[0]
+            return f"overrides: {key} is {a!r}, the plan's {b!r}"
+    return "overrides differ"
 
 
 def _same_poses(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> bool:

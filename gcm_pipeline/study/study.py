@@ -670,16 +670,15 @@ class _Run:
 
     def _best_run(self, best: Mapping[str, Any]) -> Path:
         """``best/``: ``gcm run`` of the best placement (kept when it is already there)."""
-        import yaml
-
         from gcm_pipeline.pipeline import Pipeline
+        from gcm_pipeline.safe_yaml import read_yaml_file
 
         out = self.store.path / "best"
         cfg = self.plan.resolve(best["overrides"], where=f"placement {best['id']}")
         if io.looks_like_run_dir(out) and (out / "config.yaml").is_file():
-            try:
-                old = yaml.safe_load((out / "config.yaml").read_text(encoding="utf-8"))
-            except (OSError, yaml.YAMLError):
+            try:  # bounded (1 MiB, as any config), never a pipe: else write best/ again
+                old = read_yaml_file(out / "config.yaml", "config", GcmError)
+            except GcmError:
                 old = None
             if old == io._json_clean(cfg.to_dict()):
                 return out

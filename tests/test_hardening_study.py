@@ -497,7 +497,7 @@ def test_a_study_on_a_full_file_system_is_one_line(tmp_path, monkeypatch):
 
 
 def test_gcm_study_on_a_full_file_system_is_one_line(tiny_tmpfs, tmp_path, capsys):
-    """``gcm study`` in a subprocess, placements run inline (the CLI's path without Ray's start-up)."""
+    """``gcm study`` in a subprocess, placements inline (the CLI without Ray's start-up)."""
     path = _study_file(tmp_path, {"object_pose": {"x": [0.45, 0.5]}})
     out = tiny_tmpfs / "study"
     # fill the file system so that the placements fit and the coverage plot does not

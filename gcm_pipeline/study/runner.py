@@ -167,7 +167,8 @@ def _probe(
         raise fail(exc.strerror or type(exc).__name__) from None
     with sock:
         try:
-            reason = _grpc_call(sock, f"{host}:{port}", timeout, gcs=gcs)
+            authority = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+            reason = _grpc_call(sock, authority, timeout, gcs=gcs)
         except TimeoutError:
             reason = f"something accepts connections but sent no HTTP/2 answer within {timeout:g} s"
         except OSError as exc:
@@ -239,8 +240,12 @@ def _grpc_call(sock: socket.socket, authority: str, timeout: float, *, gcs: bool
             if flags & 0x8 and payload:  # PADDED
                 payload = payload[1 : len(payload) - payload[0]]
             data += payload
-            if len(data) >= 5 and len(data) >= 5 + int.from_bytes(data[1:5], "big"):
-                return _cluster_id_reply(data[5 : 5 + int.from_bytes(data[1:5], "big")])
+            if len(data) >= 5:
+                size = int.from_bytes(data[1:5], "big")
+                if size > 1 << 20:  # a cluster id is 28 bytes
+                    return f"the server there answered {_GCS_METHOD} with {size:,} bytes"
+                if len(data) >= 5 + size:
+                    return _cluster_id_reply(data[5 : 5 + size])
         if kind in (0x0, 0x1) and stream == 1 and flags & 0x1:  # END_STREAM with no reply
             # a gRPC status only (Ray's GCS with token authentication says 16,
             # UNAUTHENTICATED); 12, UNIMPLEMENTED: a gRPC server, but not Ray's GCS

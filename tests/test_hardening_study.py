@@ -273,7 +273,7 @@ def test_a_study_json_that_is_a_named_pipe_is_one_line(finished_study, tmp_path,
         code, _, err = _finishes(_cli, capsys, "study", path, "--out", out)
     finally:
         _unblock(out / "study.json")
-    _one_line_error(code, err, f"{out / 'study.json'}: it is not a regular file")
+    _one_line_error(code, err, f"{out / 'study.json'} is not a regular file")
 
 
 # ------------------------------------------------------------------ refinement
@@ -518,3 +518,62 @@ def test_gcm_study_on_a_full_file_system_is_one_line(tiny_tmpfs, tmp_path, capsy
     assert len(lines) == 1 and "No space left on device (ENOSPC)" in lines[0], proc.stderr
     assert lines[0].startswith(f"error: cannot write {out}")
     assert not [p for p in out.rglob(".*tmp*")]  # no temporary file left
+
+
+# ------------------------------------------------------------------ signals while Ray joins
+
+
+def test_a_held_interrupt_is_raised_after_its_grace():
+    """signals.held(grace): SIGTERM waits at most ``grace`` seconds, then cuts the block."""
+    import time
+
+    previous = signals.install()
+    try:
+        with pytest.raises(signals.Terminated):
+            with signals.held(0.2) as got:
+                os.kill(os.getpid(), signal.SIGTERM)
+                for _ in range(600):  # 60 s at most: the interrupt ends it long before
+                    time.sleep(0.1)
+        assert got == [signal.SIGTERM]
+        with signals.held() as got:  # no grace: held to the end of the block
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.5)
+        assert got == [signal.SIGTERM]
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        signals.clear()
+
+
+def test_sigterm_while_ray_joins_a_silent_address_exits_143(tmp_path, silent_port):
+    """ray.init retrying an address that never answers (probe bypassed) still honours SIGTERM."""
+    path = _study_file(tmp_path)
+    out = tmp_path / "out"
+    code = (
+        "import sys\n"
+        "from gcm_pipeline.study import runner\n"
+        "runner.probe_address = lambda address, timeout=5.0: None\n"
+        "from gcm_pipeline.cli import main\n"
+        f"sys.exit(main(['study', {str(path)!r}, '--out', {str(out)!r}, '-q',"
+        f" '--address', '127.0.0.1:{silent_port}']))\n"
+    )
+    env = dict(os.environ, RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER="0")
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env
+    )
+    seen = []
+    try:
+        for line in proc.stderr:  # Ray's driver logs its first failed attempt
+            seen.append(line)
+            if "127.0.0.1:" in line and "GCS" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        rest = proc.communicate(timeout=300)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 143, "".join(seen)[-2000:] + rest[-2000:]
+    assert rest.strip().splitlines()[-1] == "interrupted (SIGTERM)"
+    assert "Traceback" not in rest
+    assert not out.exists()

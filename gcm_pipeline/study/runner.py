@@ -331,9 +331,17 @@ def _caller_signal_handlers() -> Iterator[None]:
                 signal.signal(sig, handler)
 
 
+#: Seconds an interrupt waits for ``ray.init`` joining a cluster before it cuts it.
+_JOIN_GRACE_S = 10.0
+
+
 @contextlib.contextmanager
-def _uninterrupted(ray: Any) -> Iterator[list[int]]:
+def _uninterrupted(ray: Any, grace: float | None = None) -> Iterator[list[int]]:
     """Run ``ray.init`` whole: Ctrl-C, SIGTERM and SIGHUP are held until it returns.
+
+    With ``grace``, a held interrupt is raised after that many seconds all the
+    same (joining a cluster: nothing local to leave running, and a head that
+    answers the probe but then never the driver must not hold SIGTERM forever).
 
     Cut in the middle, Ray's start-up left its dashboard and runtime-env agents
     running, and the interpreter sometimes crashed at exit (status 139). The
@@ -343,7 +351,7 @@ def _uninterrupted(ray: Any) -> Iterator[list[int]]:
     """
     utils: Any = getattr(getattr(ray, "_private", None), "utils", None)
     setter = getattr(utils, "set_sigterm_handler", None)
-    with _caller_signal_handlers(), signals.held() as got:
+    with _caller_signal_handlers(), signals.held(grace) as got:
         # only while SIGTERM is held: else Ray's handler is what stops its processes
         patch = setter is not None and callable(signal.getsignal(signal.SIGTERM))
         if patch:
@@ -433,9 +441,11 @@ class RayExecutor(Executor):
             self.mode = "local"
         else:
             try:
-                with _uninterrupted(ray) as got:
+                with _uninterrupted(ray, _JOIN_GRACE_S) as got:
                     ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             except Exception as exc:
+                if signals.interrupt_cause(exc) is not None:  # cut after the grace: an interrupt
+                    raise
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise EngineError(
                     f"--address {address}: cannot join the cluster: {first}"

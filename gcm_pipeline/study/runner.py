@@ -258,7 +258,9 @@ def _grpc_call(sock: socket.socket, authority: str, timeout: float, *, gcs: bool
 def _cluster_id_reply(message: bytes) -> str:
     """'' when ``message`` is a GCS's GetClusterId reply with a cluster id, else why not."""
     try:
-        from ray.core.generated.gcs_service_pb2 import GetClusterIdReply
+        from ray.core.generated.gcs_service_pb2 import (  # type: ignore[attr-defined]
+            GetClusterIdReply,
+        )
 
         reply = GetClusterIdReply.FromString(message)
     except ImportError:  # Ray moved its generated messages: an answer is good enough

@@ -45,6 +45,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import errno
 import json
 import logging
 import math
@@ -53,6 +54,7 @@ import platform
 import re
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
@@ -80,9 +82,11 @@ __all__ = [
     "atomic_dir",
     "atomic_run_dir",
     "check_output_dir",
+    "disk_full",
     "format_floats",
     "is_project_dir",
     "looks_like_run_dir",
+    "open_regular",
     "read_marker",
     "read_npz",
     "read_summary",
@@ -532,11 +536,35 @@ def atomic_dir(
             with _signals_deferred():
                 _replace_dir(tmp, out, force=force, keep=keep, kind=kind)
                 _remove_stale(out)
-    except BaseException:
+    except BaseException as exc:
         with _signals_deferred():
             shutil.rmtree(tmp, ignore_errors=True)
             _remove_empty(created)
+        full = disk_full(out, exc, "nothing was written")
+        if full is not None:
+            raise full from None
         raise
+
+
+#: The errors of a file system that has no room left (space, quota, file size).
+_DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def disk_full(path: str | Path, exc: BaseException, outcome: str) -> OutputError | None:
+    """The one-line error for ``exc`` when it says the file system of ``path`` is full, else None.
+
+    Args:
+        path: What was being written (named in the message).
+        exc: The exception a write raised.
+        outcome: What is left, e.g. ``"nothing was written"``.
+    """
+    if not isinstance(exc, OSError) or exc.errno not in _DISK_FULL:
+        return None
+    code = errno.errorcode.get(exc.errno, str(exc.errno))
+    return OutputError(
+        f"cannot write {path}: {os.strerror(exc.errno)} ({code}); {outcome}; free some space "
+        "or choose another --out"
+    )
 
 
 def atomic_run_dir(
@@ -931,6 +959,32 @@ def npy_header(
     return tuple(int(k) for k in shape), dtype
 
 
+def open_regular(path: str | Path) -> Any:
+    """Open ``path`` for binary reading without ever waiting on it: a regular file only.
+
+    A named pipe would block ``open`` until a writer comes (and a device may
+    never end): the file is opened with ``O_NONBLOCK`` and checked with
+    ``fstat`` before a byte is read.
+
+    Raises:
+        InputError: It is a directory, a pipe, a device or a socket.
+        OSError: It cannot be opened.
+    """
+    path = Path(path)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            what = "a directory" if stat.S_ISDIR(mode) else "not a regular file (a pipe or device)"
+            raise InputError(f"{path}: it is {what}; a regular file is needed")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str, np.ndarray]:
     """The arrays of an ``.npz`` file, each header checked before it is read.
 
@@ -945,7 +999,7 @@ def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str,
     """
     path = Path(path)
     try:
-        with zipfile.ZipFile(path) as zf:
+        with open_regular(path) as fh, zipfile.ZipFile(fh) as zf:
             infos = {}
             for info in zf.infolist():
                 if info.is_dir():

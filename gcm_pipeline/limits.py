@@ -30,6 +30,8 @@ fixed ones are bounds of the config schema:
   worked out per axis before any placement is built.
 - YAML files and ``--set`` values: 1 MiB, depth 64, 100,000 values after
   aliases (:mod:`gcm_pipeline.safe_yaml`).
+- A study directory's ``study.json``: 16 MiB (a study writes a few kB
+  there; a larger one is refused in one line before it is read).
 
 Any stage that grows the table (adaptive refinement included) checks its
 estimate with :func:`check_size` against the same key.

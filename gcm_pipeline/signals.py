@@ -94,7 +94,7 @@ def install() -> dict[int, Any]:
 
 
 @contextlib.contextmanager
-def held() -> Iterator[list[int]]:
+def held(grace: float | None = None) -> Iterator[list[int]]:
     """Record the interrupts instead of acting on them while the block runs.
 
     For code that must not be cut in the middle (starting Ray: an interrupt
@@ -102,11 +102,25 @@ def held() -> Iterator[list[int]]:
     exit). Only signals handled by a Python function are held (a default
     action stays what it is); the previous handlers are back after the block.
     The caller passes the yielded list to :func:`release` once it can clean up.
+
+    Args:
+        grace: Seconds a held interrupt may wait; then it is raised inside the
+            block after all (joining a Ray cluster that never answers must not
+            make SIGTERM wait forever). None: it waits for the block's end.
     """
     got: list[int] = []
+    late = threading.Event()
+    timers: list[threading.Timer] = []
 
     def record(signum: int, frame: Any) -> None:
+        if late.is_set():
+            raise_interrupt(signum)
         got.append(signum)
+        if grace is not None and not timers:
+            timer = threading.Timer(grace, _deliver_late, (late, got[0]))
+            timer.daemon = True
+            timers.append(timer)
+            timer.start()
 
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
@@ -117,8 +131,16 @@ def held() -> Iterator[list[int]]:
     try:
         yield got
     finally:
+        for timer in timers:
+            timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def _deliver_late(late: threading.Event, signum: int) -> None:
+    """Deliver a held interrupt again, now to be raised (see :func:`held`)."""
+    late.set()
+    signal.raise_signal(signum)
 
 
 def release(got: list[int]) -> None:

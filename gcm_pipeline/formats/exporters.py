@@ -152,21 +152,43 @@ def _csv_pose(path: Path, n: int) -> np.ndarray:
     return np.array([[float(row[j]) for j in cols] for row in rows[1:]]).reshape(n, 7)
 
 
-#: Files of a run directory an export never replaces.
+#: Files of a run directory an export never replaces (every file ``gcm run`` writes).
 _RUN_OWN_FILES = frozenset(
     ("grasps.csv", "summary.json", "manifold.npz", "config.yaml", "configurations.npz")
-    + (".gcm.json", "scene.html")
+    + ("solutions.npz", ".gcm.json", "scene.html")
+)
+
+#: Files of a study directory an export never replaces (and ``placements/*``).
+_STUDY_OWN_FILES = frozenset(
+    ("study.json", "placements.csv", "reachability.npz", "summary.json", ".gcm.json")
+    + (".study.lock",)
 )
 
 
 def _check_not_the_run(run: Path, path: Path) -> None:
-    """Refuse an export file that would replace one of the run's own files."""
+    """Refuse an export file that would replace a file ``gcm run`` or ``gcm study`` wrote.
+
+    The file (symbolic links resolved) must not be one of the run's own files
+    (its ``.png`` plots included), nor one of another run's or study's
+    directory (a folder with this project's marker) or a study's placement.
+    """
+    from gcm_pipeline.io import read_marker
+
     target = path.resolve()
-    if target.parent == run.resolve() and (
-        target.name in _RUN_OWN_FILES or target.suffix.lower() == ".png"
-    ):
+    folder = target.parent
+    kind = (read_marker(folder) or {}).get("kind")
+    if folder == run.resolve():
+        kind = "run"
+    own = {"run": _RUN_OWN_FILES, "study": _STUDY_OWN_FILES}.get(str(kind))
+    if own is not None and (target.name in own or target.suffix.lower() == ".png"):
+        whose = "the run's own" if folder == run.resolve() else f"the {kind} directory's"
         raise InputError(
-            f"--out {path} would overwrite the run's own {target.name}; choose another file"
+            f"--out {path} would overwrite {whose} {target.name} ({folder}); choose another file"
+        )
+    if folder.name == "placements" and (read_marker(folder.parent) or {}).get("kind") == "study":
+        raise InputError(
+            f"--out {path} would overwrite a placement of the study {folder.parent}; "
+            "choose another file"
         )
 
 

@@ -89,27 +89,33 @@ class InlineExecutor(Executor):
 
 
 def probe_address(address: str, timeout: float = 5.0) -> None:
-    """Check that something listens at a Ray ``address`` before Ray tries (and retries) it.
+    """Check that a Ray cluster answers at ``address`` before Ray tries (and retries) it.
 
-    ``auto`` is left to Ray; ``HOST:PORT`` and ``ray://HOST:PORT`` must accept a
-    TCP connection within ``timeout`` seconds.
+    ``auto`` is left to Ray. ``HOST:PORT`` must be a Ray head's GCS: it is
+    asked for its cluster id (the gRPC call ``NodeInfoGcsService/GetClusterId``
+    every Ray client makes first) over one HTTP/2 connection;
+    ``ray://HOST:PORT`` must answer as an HTTP/2 (gRPC) server. Each step
+    has ``timeout`` seconds, so a port where something else listens (a web
+    server, a silent socket) is an error within seconds instead of
+    ``ray.init`` retrying for minutes with the signals held. Ctrl-C and
+    SIGTERM stop the probe at once.
 
     Raises:
         EngineError: ``--address ...: ...`` with the reason.
     """
     if address == "auto":
         return
-    url = urlsplit(address if "://" in address else f"tcp://{address}")
     try:
+        url = urlsplit(address if "://" in address else f"tcp://{address}")
         host, port = url.hostname, url.port
-    except ValueError:
-        host, port = None, None
-    if not host or port is None:
+    except ValueError:  # an unbalanced IPv6 bracket, a port that is no number
+        host, port, url = None, None, None
+    if url is None or not host or port is None or url.scheme not in ("tcp", "ray"):
         raise EngineError(
             f"--address {address!r}: expected HOST:PORT (a Ray head's GCS address, e.g. "
-            "10.0.0.5:6379), ray://HOST:PORT or auto"
+            "10.0.0.5:6379 or [::1]:6379), ray://HOST:PORT or auto"
         )
-    _connect(address, host, port, timeout)
+    _probe(address, host, port, timeout, gcs=url.scheme == "tcp")
     if url.scheme == "ray":
         return
     # Ray replaces a loopback host by this machine's address before it connects
@@ -120,30 +126,188 @@ def probe_address(address: str, timeout: float = 5.0) -> None:
         used = canonicalize_bootstrap_address(f"{host}:{port}")
     except Exception:  # a private helper of Ray: skip the check when it moved
         return
-    used_url = urlsplit(f"tcp://{used}") if used else None
-    if used_url is not None and used_url.hostname and used_url.hostname != host:
-        _connect(address, used_url.hostname, used_url.port or port, timeout, rewritten=used)
-
-
-def _connect(
-    address: str, host: str, port: int, timeout: float, *, rewritten: str | None = None
-) -> None:
     try:
-        with socket.create_connection((host, port), timeout=timeout):
-            pass
-    except OSError as exc:
-        reason = exc.strerror or type(exc).__name__
+        used_url = urlsplit(f"tcp://{used}") if used else None
+        used_host, used_port = (used_url.hostname, used_url.port) if used_url else (None, None)
+    except ValueError:
+        return
+    if used_host and used_host != host:
+        _probe(address, used_host, used_port or port, timeout, gcs=True, rewritten=used)
+
+
+#: The gRPC method every Ray client calls first on the GCS.
+_GCS_METHOD = "/ray.rpc.NodeInfoGcsService/GetClusterId"
+
+
+def _probe(
+    address: str,
+    host: str,
+    port: int,
+    timeout: float,
+    *,
+    gcs: bool,
+    rewritten: str | None = None,
+) -> None:
+    def fail(reason: str) -> EngineError:
         if rewritten is not None:
-            raise EngineError(
+            return EngineError(
                 f"--address {address}: Ray would connect to {rewritten} (this machine's "
-                f"address), where nothing answers ({reason}); start the head with "
+                f"address), where no Ray cluster answers ({reason}); start the head with "
                 "--node-ip-address of that address, or set RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 "
                 "to keep Ray on the loopback address"
-            ) from None
-        raise EngineError(
+            )
+        return EngineError(
             f"--address {address}: no Ray cluster answers there ({reason}); start one with "
             "'ray start --head' or drop --address to run on this machine"
-        ) from None
+        )
+
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout)
+    except OSError as exc:
+        raise fail(exc.strerror or type(exc).__name__) from None
+    with sock:
+        try:
+            authority = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+            reason = _grpc_call(sock, authority, timeout, gcs=gcs)
+        except TimeoutError:
+            reason = f"something accepts connections but sent no HTTP/2 answer within {timeout:g} s"
+        except OSError as exc:
+            reason = f"the connection failed: {exc.strerror or type(exc).__name__}"
+    if reason:
+        raise fail(reason)
+
+
+def _grpc_call(sock: socket.socket, authority: str, timeout: float, *, gcs: bool) -> str:
+    """Speak HTTP/2 to ``sock``; with ``gcs``, call GetClusterId. Returns '' or why not Ray."""
+    deadline = time.monotonic() + timeout
+
+    def frame(kind: int, flags: int, stream: int, payload: bytes = b"") -> bytes:
+        head = len(payload).to_bytes(3, "big") + bytes((kind, flags))
+        return head + stream.to_bytes(4, "big") + payload
+
+    def recv(n: int) -> bytes:
+        buf = b""
+        while len(buf) < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError
+            sock.settimeout(left)
+            chunk = sock.recv(n - len(buf))
+            if not chunk:
+                raise ConnectionResetError(0, "closed by the server")
+            buf += chunk
+        return buf
+
+    out = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + frame(0x4, 0, 0)
+    if gcs:
+        fields = {
+            ":method": "POST",
+            ":scheme": "http",
+            ":path": _GCS_METHOD,
+            ":authority": authority,
+            "content-type": "application/grpc",
+            "te": "trailers",
+        }
+        block = b"".join(_hpack_literal(k, v) for k, v in fields.items())
+        out += frame(0x1, 0x4, 1, block)  # HEADERS, END_HEADERS
+        out += frame(0x0, 0x1, 1, b"\x00\x00\x00\x00\x00")  # an empty request, END_STREAM
+    sock.settimeout(max(deadline - time.monotonic(), 0.001))
+    sock.sendall(out)
+    first = recv(9)
+    if first.startswith(b"HTTP/"):
+        return "an HTTP/1 server answers there, not a Ray cluster's GCS"
+    if first[3] != 0x4:  # a server's HTTP/2 preface is a SETTINGS frame
+        return "the server there does not speak HTTP/2 (gRPC)"
+    data = b""
+    header = first
+    while True:
+        size, kind, flags = int.from_bytes(header[:3], "big"), header[3], header[4]
+        stream = int.from_bytes(header[5:9], "big") & 0x7FFFFFFF
+        if size > 1 << 20:
+            return "the server there sent an HTTP/2 frame of more than 1 MiB"
+        payload = recv(size) if size else b""
+        if kind == 0x4 and not flags & 0x1:
+            sock.sendall(frame(0x4, 0x1, 0))  # acknowledge the server's settings
+            if not gcs:
+                return ""
+        elif kind == 0x6 and not flags & 0x1:  # PING: answer it
+            sock.sendall(frame(0x6, 0x1, 0, payload))
+        elif kind == 0x7:
+            return "the HTTP/2 server there closed the connection (GOAWAY), it is not Ray's GCS"
+        elif kind == 0x3 and stream == 1:
+            return f"the HTTP/2 server there refused {_GCS_METHOD}, it is not Ray's GCS"
+        elif kind == 0x0 and stream == 1:
+            if flags & 0x8 and payload:  # PADDED
+                payload = payload[1 : len(payload) - payload[0]]
+            data += payload
+            if len(data) >= 5:
+                size = int.from_bytes(data[1:5], "big")
+                if size > 1 << 20:  # a cluster id is 28 bytes
+                    return f"the server there answered {_GCS_METHOD} with {size:,} bytes"
+                if len(data) >= 5 + size:
+                    return _cluster_id_reply(data[5 : 5 + size])
+        if kind in (0x0, 0x1) and stream == 1 and flags & 0x1:  # END_STREAM with no reply
+            # a gRPC status only (Ray's GCS with token authentication says 16,
+            # UNAUTHENTICATED); 12, UNIMPLEMENTED: a gRPC server, but not Ray's GCS
+            if kind == 0x1 and _literal_value(payload, b"grpc-status") not in (b"12", None):
+                return ""
+            return f"the gRPC server there has no {_GCS_METHOD}, it is not Ray's GCS"
+        header = recv(9)
+
+
+def _cluster_id_reply(message: bytes) -> str:
+    """'' when ``message`` is a GCS's GetClusterId reply with a cluster id, else why not."""
+    try:
+        from ray.core.generated.gcs_service_pb2 import (  # type: ignore[attr-defined]
+            GetClusterIdReply,
+        )
+
+        reply = GetClusterIdReply.FromString(message)
+    except ImportError:  # Ray moved its generated messages: an answer is good enough
+        return ""
+    except Exception:
+        return f"the gRPC server there answered {_GCS_METHOD} with something else"
+    if reply.status.code != 0 or not reply.cluster_id:
+        return f"the gRPC server there gave no cluster id (status {reply.status.code})"
+    return ""
+
+
+def _literal_value(block: bytes, name: bytes) -> bytes | None:
+    """The value after the literal header ``name`` in an HPACK block (not Huffman-coded), or None.
+
+    Enough to read a status a gRPC server sends in plain text; a block that
+    codes it otherwise gives None.
+    """
+    at = block.find(bytes((len(name),)) + name)
+    if at < 0 or at + 1 + len(name) >= len(block):
+        return None
+    start = at + 1 + len(name)
+    size = block[start]
+    if size & 0x80 or size == 0x7F:  # Huffman-coded, or a long value
+        return None
+    return block[start + 1 : start + 1 + size]
+
+
+def _hpack_literal(name: str, value: str) -> bytes:
+    """An HPACK header field, literal without indexing, no Huffman coding (RFC 7541 6.2.2)."""
+    out = b"\x00"
+    for text in (name, value):
+        raw = text.encode("utf-8")
+        out += _hpack_int(len(raw)) + raw
+    return out
+
+
+def _hpack_int(n: int) -> bytes:
+    """An HPACK integer with a 7-bit prefix (the string length, H bit 0)."""
+    if n < 127:
+        return bytes((n,))
+    out = [127]
+    n -= 127
+    while n >= 128:
+        out.append(n % 128 + 128)
+        n //= 128
+    out.append(n)
+    return bytes(out)
 
 
 @contextlib.contextmanager
@@ -169,9 +333,17 @@ def _caller_signal_handlers() -> Iterator[None]:
                 signal.signal(sig, handler)
 
 
+#: Seconds an interrupt waits for ``ray.init`` joining a cluster before it cuts it.
+_JOIN_GRACE_S = 10.0
+
+
 @contextlib.contextmanager
-def _uninterrupted(ray: Any) -> Iterator[list[int]]:
+def _uninterrupted(ray: Any, grace: float | None = None) -> Iterator[list[int]]:
     """Run ``ray.init`` whole: Ctrl-C, SIGTERM and SIGHUP are held until it returns.
+
+    With ``grace``, a held interrupt is raised after that many seconds all the
+    same (joining a cluster: nothing local to leave running, and a head that
+    answers the probe but then never the driver must not hold SIGTERM forever).
 
     Cut in the middle, Ray's start-up left its dashboard and runtime-env agents
     running, and the interpreter sometimes crashed at exit (status 139). The
@@ -181,7 +353,7 @@ def _uninterrupted(ray: Any) -> Iterator[list[int]]:
     """
     utils: Any = getattr(getattr(ray, "_private", None), "utils", None)
     setter = getattr(utils, "set_sigterm_handler", None)
-    with _caller_signal_handlers(), signals.held() as got:
+    with _caller_signal_handlers(), signals.held(grace) as got:
         # only while SIGTERM is held: else Ray's handler is what stops its processes
         patch = setter is not None and callable(signal.getsignal(signal.SIGTERM))
         if patch:
@@ -271,9 +443,11 @@ class RayExecutor(Executor):
             self.mode = "local"
         else:
             try:
-                with _uninterrupted(ray) as got:
+                with _uninterrupted(ray, _JOIN_GRACE_S) as got:
                     ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             except Exception as exc:
+                if signals.interrupt_cause(exc) is not None:  # cut after the grace: an interrupt
+                    raise
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise EngineError(
                     f"--address {address}: cannot join the cluster: {first}"

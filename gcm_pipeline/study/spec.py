@@ -597,10 +597,30 @@ class StudyPlan:
             self._grid = [self._placement(i, 0, *c) for i, c in enumerate(combos)]
         return list(self._grid)
 
-    def refine_size(self) -> int:
-        """Upper bound of the placements one refinement round adds (per object)."""
+    def refine_rounds(self) -> int:
+        """The refinement rounds that can add a placement (at most ``refine.rounds``).
+
+        Round ``r`` re-grids each range over ``shrink ** r`` of its span; once
+        that span is below the rounding of grid values (``1e-10``), every value
+        rounds to the best placement's own, so no later round adds anything
+        (a range of one value adds nothing at all). ``rounds: 999998`` on such
+        a grid costs nothing instead of running until killed.
+        """
         refine = self.spec.refine
         if refine is None or refine.rounds == 0:
+            return 0
+        spans = [r.to - r.start for axes in self._ranges().values() for r in axes.values()]
+        widest = max((w for w in spans if w > 0), default=0.0)
+        unit = 10.0**-_DECIMALS
+        if widest < unit:
+            return 0
+        # the last r with widest * shrink**r >= unit, plus one against rounding
+        last = math.floor(math.log(unit / widest) / math.log(refine.shrink)) + 1
+        return max(0, min(refine.rounds, last))
+
+    def refine_size(self) -> int:
+        """Upper bound of the placements one refinement round adds (per object)."""
+        if self.refine_rounds() == 0:
             return 0
         n = 1
         for axes in self._ranges().values():

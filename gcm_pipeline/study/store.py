@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline import io
-from gcm_pipeline.errors import OutputError
+from gcm_pipeline.errors import InputError, OutputError, clip
 from gcm_pipeline.io import _json_clean, format_floats
 from gcm_pipeline.study.spec import AXES
 
@@ -51,6 +51,7 @@ except ImportError:  # pragma: no cover - not POSIX
 
 __all__ = [
     "CSV_COLUMNS",
+    "MAX_META_BYTES",
     "POSE_COLUMNS",
     "StudyDir",
     "atomic_write",
@@ -86,6 +87,12 @@ _NUMBERS = (*_RESULTS, *POSE_COLUMNS)
 
 _LOCK = ".study.lock"
 
+#: The files a study writes at the top of its directory.
+OUTPUT_FILES = ("study.json", "placements.csv", "reachability.npz", "summary.json", "coverage.png")
+
+#: Most bytes of ``study.json`` (a study writes its study file and base config there: kB).
+MAX_META_BYTES = 16 * 1024**2
+
 #: Most bytes a placement part's arrays may take (the densify limit's poses, with room).
 _MAX_PART_BYTES = 1 << 30
 
@@ -95,19 +102,29 @@ def atomic_write(path: Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` that replaces ``path`` on success.
 
     The temporary file starts with a dot (``.NAME.tmp-XXXX``); on any
-    exception it is removed and ``path`` is left as it was.
+    exception it is removed and ``path`` is left as it was (a full file
+    system is an :class:`OutputError` naming ``path``).
     """
     path = Path(path)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
     os.close(fd)
     tmp = Path(name)
     try:
         yield tmp
         os.chmod(tmp, 0o644 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
+        try:
+            os.replace(tmp, path)
+        except IsADirectoryError:  # made while the study ran (else refused before any work)
+            raise OutputError(f"cannot write {path}: it is a directory; remove it") from None
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        full = io.disk_full(path, exc, "the finished placements are kept (a rerun resumes)")
+        if full is not None:
+            raise full from None
         raise
 
 
@@ -165,7 +182,34 @@ class StudyDir:
         # an existing study directory is continued, never replaced: "force" only
         # lets io's checks accept a directory that carries the study marker
         io.check_output_dir(out, force=bool(names), keep=keep, kind="study")
+        self._check_slots(names)
         return bool(names) and self.holds(key)
+
+    def _check_slots(self, names: set[str]) -> None:
+        """Refuse a directory, pipe or device where the study writes a file, a file for a folder.
+
+        Found before any work: a ``placements.csv`` that is a directory made the
+        study end in a traceback when it wrote its tables.
+        """
+        for name in sorted(names & (set(OUTPUT_FILES) | {"placements"})):
+            try:
+                mode = os.lstat(self.path / name).st_mode
+            except OSError:
+                continue
+            want_dir = name == "placements"
+            if stat.S_ISLNK(mode) and not want_dir:
+                continue  # a rename replaces the link itself
+            if want_dir and not stat.S_ISDIR(mode):
+                raise OutputError(
+                    f"{self.path / name} is not a directory; the study keeps its finished "
+                    "placements there (remove it or choose another --out)"
+                )
+            if not want_dir and not stat.S_ISREG(mode):
+                what = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+                raise OutputError(
+                    f"{self.path / name} is {what}; the study writes its {name} there "
+                    "(remove it or choose another --out)"
+                )
 
     def holds(self, key: str) -> bool:
         """Whether the directory holds the study ``key`` already (checked again under :meth:`lock`).
@@ -251,11 +295,28 @@ class StudyDir:
                 self.path.rmdir()
 
     def read_meta(self) -> dict[str, Any] | None:
-        """``study.json`` as a dict, or None when it is missing or not a study's."""
+        """``study.json`` as a dict, or None when it is missing or not a study's.
+
+        Raises:
+            OutputError: It is not a regular file (a pipe would block), or it is
+                larger than :data:`MAX_META_BYTES` (a study writes a few kB).
+        """
         if not io.is_project_dir(self.path, "study"):
             return None
+        path = self.path / "study.json"
         try:
-            meta = json.loads((self.path / "study.json").read_text(encoding="utf-8"))
+            with io.open_regular(path) as fh:
+                size = os.fstat(fh.fileno()).st_size
+                if size > MAX_META_BYTES:
+                    raise OutputError(
+                        f"{path} is {size:,} bytes, more than the {MAX_META_BYTES:,} a study's "
+                        "study.json may hold; it is not what a study wrote (remove the "
+                        "directory or choose another --out)"
+                    )
+                raw = fh.read(MAX_META_BYTES + 1)
+            meta = json.loads(raw.decode("utf-8"))
+        except InputError as exc:  # a directory, a pipe, a device
+            raise OutputError(str(exc)) from None
         except (OSError, ValueError):
             return None
         return meta if isinstance(meta, dict) else None
@@ -269,9 +330,13 @@ class StudyDir:
         except OSError as exc:
             raise OutputError(f"cannot create study directory {self.path}: {exc}") from None
         if self.read_meta() is None:
-            _write_text(
-                self.path / "study.json", json.dumps(_json_clean(dict(meta)), indent=2) + "\n"
-            )
+            text = json.dumps(_json_clean(dict(meta)), indent=2) + "\n"
+            if len(text.encode("utf-8")) > MAX_META_BYTES:  # it could not be read back
+                raise OutputError(
+                    f"{self.path / 'study.json'}: the study file and base config take "
+                    f"{len(text.encode('utf-8')):,} bytes, more than {MAX_META_BYTES:,}"
+                )
+            _write_text(self.path / "study.json", text)
 
     # --- placements -------------------------------------------------------------------
 
@@ -362,6 +427,11 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
         raise ValueError(f"its id {row.get('id')!r} is not its file name's {pid}")
     if not isinstance(row.get("object"), str) or not isinstance(row.get("error", ""), str):
         raise ValueError("object or error is not a string")
+    if type(row.get("round")) is not int or row["round"] < 0:
+        raise ValueError(f"round {row.get('round')!r} is not a whole number >= 0")
+    overrides = row.get("overrides")
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        raise ValueError(f"overrides {clip(repr(overrides))} is not a list of KEY=VALUE strings")
     for key in _NUMBERS:
         value = row.get(key)
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):

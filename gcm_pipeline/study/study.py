@@ -159,9 +159,7 @@ class Study:
 
     def size(self) -> tuple[int, int]:
         """(grid placements, at most this many more from refinement), counted, not built."""
-        refine = self.plan.spec.refine
-        rounds = refine.rounds if refine is not None else 0
-        return self.plan.count(), rounds * self.plan.refine_size()
+        return self.plan.count(), self.plan.refine_rounds() * self.plan.refine_size()
 
     def check(self, out_dir: str | Path, *, force: bool = False) -> bool:
         """Check the study and its directory before any work; True when it resumes.
@@ -257,6 +255,10 @@ class Study:
             from gcm_pipeline.study.runner import check_local_workers
 
             check_local_workers(workers)  # also when Ray will not start (nothing left to run)
+        elif engine == "ray" and address is not None:
+            from gcm_pipeline.study.runner import probe_address
+
+            probe_address(address)  # seconds, before the preflight and before Ray retries
         self.check(out_dir, force=force)
         store = StudyDir(out_dir)
         # one study at a time in a directory; what it holds is read again under the lock
@@ -431,8 +433,7 @@ class _Run:
         grid = self.plan.grid()
         self.rows = self._own(grid, done)
         self.resumed = len(self.rows)
-        refine = self.plan.spec.refine
-        rounds = refine.rounds if refine is not None else 0
+        rounds = self.plan.refine_rounds()  # later rounds could add nothing
         self.bar = tqdm(
             total=len(grid),
             initial=sum(1 for p in grid if p.id in self.rows),
@@ -469,8 +470,10 @@ class _Run:
     ) -> dict[int, dict[str, Any]]:
         """The finished rows of ``placements`` in ``done``.
 
-        A part whose object or pose is not its placement's (a file from
-        elsewhere) is ignored with a warning: that placement runs again.
+        A part whose object, pose, round or overrides are not its placement's
+        (a file from elsewhere, or edited) is ignored with a warning naming the
+        file and the first key that differs: that placement runs again, so
+        ``best/`` never re-runs overrides the study did not plan.
         """
         own: dict[int, dict[str, Any]] = {}
         for p in placements:
@@ -478,13 +481,17 @@ class _Run:
             if row is None:
                 continue
             want = self._row_base(p)
-            keys = [k for k in POSE_COLUMNS if not math.isnan(want[k])]
-            if row["object"] != p.object or any(row.get(k) != want[k] for k in keys):
+            keys = ["object", "round"] + [k for k in POSE_COLUMNS if not math.isnan(want[k])]
+            differ = next((f"{k} {row.get(k)!r}" for k in keys if row.get(k) != want[k]), None)
+            if differ is None and row.get("overrides") != want["overrides"]:
+                differ = _first_override_difference(row.get("overrides"), want["overrides"])
+            if differ is not None:
                 log.warning(
-                    "study: ignoring %s, it is not placement %d (%s); it runs again",
+                    "study: ignoring %s, it is not placement %d (%s): %s; it runs again",
                     self.store.part_path(p.id),
                     p.id,
                     p.label(),
+                    differ,
                 )
                 continue
             own[p.id] = row
@@ -663,22 +670,33 @@ class _Run:
 
     def _best_run(self, best: Mapping[str, Any]) -> Path:
         """``best/``: ``gcm run`` of the best placement (kept when it is already there)."""
-        import yaml
-
         from gcm_pipeline.pipeline import Pipeline
+        from gcm_pipeline.safe_yaml import read_yaml_file
 
         out = self.store.path / "best"
         cfg = self.plan.resolve(best["overrides"], where=f"placement {best['id']}")
         if io.looks_like_run_dir(out) and (out / "config.yaml").is_file():
-            try:
-                old = yaml.safe_load((out / "config.yaml").read_text(encoding="utf-8"))
-            except (OSError, yaml.YAMLError):
+            try:  # bounded (1 MiB, as any config), never a pipe: else write best/ again
+                old = read_yaml_file(out / "config.yaml", "config", GcmError)
+            except GcmError:
                 old = None
             if old == io._json_clean(cfg.to_dict()):
                 return out
         log.info("study: writing best/ (placement %s)", best["id"])
         Pipeline(cfg, source=self.plan.base_path).run(out, progress=self.progress, force=True)
         return out
+
+
+def _first_override_difference(got: Any, want: Sequence[str]) -> str:
+    """``overrides: KEY is 'KEY=A', the plan's 'KEY=B'`` for the first override that differs."""
+    got = list(got) if isinstance(got, (list, tuple)) else []
+    for k in range(max(len(got), len(want))):
+        a = got[k] if k < len(got) else None
+        b = want[k] if k < len(want) else None
+        if a != b:
+            key = str(a if a is not None else b).split("=", 1)[0]
+            return f"overrides: {key} is {a!r}, the plan's {b!r}"
+    return "overrides differ"
 
 
 def _same_poses(a: np.ndarray, b: np.ndarray, tol: float = 1e-9) -> bool:

@@ -544,3 +544,18 @@ def test_moveit_export_refuses_a_grasps_csv_whose_ranks_and_values_disagree(run,
         csv.writer(fh, lineterminator="\n").writerows([header, *rows])
     with pytest.raises(InputError, match=r"rank 2 has combined .* more than"):
         export_run(copy, "moveit", out=tmp_path / "g.yaml")
+
+
+def test_gcm_show_on_a_grasps_csv_with_a_huge_cell_is_one_line(run, tmp_path, capsys):
+    """A 423 KiB grasps.csv with one 100,000-character cell asked gcm show for 26.8 GiB."""
+    copy = _copy_run(run, tmp_path / "copy")
+    header, rows = csv_rows(copy)
+    rows[2][header.index("origin")] = "x" * 100_000
+    with (copy / "grasps.csv").open("w", newline="") as fh:
+        csv.writer(fh, lineterminator="\n").writerows([header, *rows])
+    assert main(["show", str(copy)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"error: {copy / 'grasps.csv'}:4: column 'origin': a cell of 100,000 characters; "
+        "a CSV cell holds at most 256 (gcm_pipeline.limits.MAX_CSV_CELL)"
+    ]

@@ -46,10 +46,12 @@ frame (on the right). All randomness comes from one
 Imported poses (``source: file``) are read as stored (:func:`load_grasp_file`),
 then mapped onto the robot's grasp frame by ``grasp_to_tool`` on the right,
 ``T_tool = T_grasp @ grasp_to_tool``, and into the world by the object pose when
-``frame: object``: ``T_world = T_object @ T_tool``. For ACRONYM's Franka gripper
+``frame: object``: ``T_world = T_object @ T_tool``. (``format: acronym`` and the
+synthesisers' formats map their gripper frame by the gripper registry instead,
+see :mod:`gcm_pipeline.formats`.) For poses in ACRONYM's Franka gripper frame
 (origin at the hand base, z = approach, fingers closing along x: its finger
-control points are at x = +-0.041 m) and the Panda's ``panda_hand_tcp`` (0.1034 m
-further along z, fingers closing along y) use
+control points are at x = +-0.041 m) written as ``npy``/``npz``/``csv``, and the
+Panda's ``panda_hand_tcp`` (0.1034 m further along z, fingers closing along y) use
 ``grasp_to_tool: {xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``: the tool's y
 axis is then the gripper's +x axis, its origin the midpoint of the fingertips,
 its z the same approach (``tests/test_candidates.py`` checks this geometry).
@@ -497,7 +499,12 @@ def read_grasp_file(
     ``grasps.csv`` traces back to its input. Sizes are checked from the
     file's header before any array is allocated: a file of more than
     ``max_count`` grasps, or one whose header promises more data than it
-    holds, is refused.
+    holds, is refused; so are a CSV cell longer than ``MAX_CSV_CELL`` and an
+    HDF5 text declaring more than ``MAX_HDF5_TEXT`` bytes
+    (:mod:`gcm_pipeline.limits`). A file whose first bytes show another
+    format is refused naming it (:mod:`gcm_pipeline.formats.sniff`); a grasp
+    farther than ``MAX_GRASP_DISTANCE`` (1,000 m) from the origin is refused
+    naming its row.
 
     Args:
         path: The grasp file.

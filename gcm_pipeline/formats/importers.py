@@ -59,7 +59,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.formats.sniff import check_format
+from gcm_pipeline.formats.sniff import check_format, sniff
 from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES, MAX_GRASP_DISTANCE
 
 __all__ = [
@@ -143,7 +143,9 @@ class ImportedGrasps:
         )
 
 
-def check_positions(path: Path, positions: np.ndarray, where: list[str] | None = None) -> None:
+def check_positions(
+    path: Path, positions: np.ndarray, where: Callable[[int], str] | None = None
+) -> None:
     """Refuse a grasp farther than :data:`~gcm_pipeline.limits.MAX_GRASP_DISTANCE` from the origin.
 
     A robot's world is metres across; a grasp 1e25 m away is a unit or
@@ -152,7 +154,7 @@ def check_positions(path: Path, positions: np.ndarray, where: list[str] | None =
     Args:
         path: The file (for messages).
         positions: (N, 3) finite grasp positions as the file stores them [m].
-        where: Per row, how a message names it (default ``"<path>: grasp <i> (0-based)"``).
+        where: How a message names row ``i`` (default ``"<path>: grasp <i> (0-based)"``).
 
     Raises:
         InputError: Names the first such row and its position.
@@ -162,7 +164,7 @@ def check_positions(path: Path, positions: np.ndarray, where: list[str] | None =
     far = np.flatnonzero(~(dist <= MAX_GRASP_DISTANCE))
     if far.size:
         i = int(far[0])
-        name = where[i] if where is not None else f"{path}: grasp {i} (0-based)"
+        name = where(i) if where is not None else f"{path}: grasp {i} (0-based)"
         more = f" ({far.size:,} such grasps)" if far.size > 1 else ""
         xyz = ", ".join(f"{v:.6g}" for v in np.asarray(positions, dtype=float).reshape(-1, 3)[i])
         raise InputError(
@@ -327,7 +329,7 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> Impor
             raise InputError(
                 f"{path}: grasp {clip(name)}: position {pos[i].tolist()} is not finite"
             )
-    check_positions(path, pos, [f"{path}: grasp {clip(name)}" for name in grasps])
+    check_positions(path, pos, lambda i: f"{path}: grasp {clip(list(grasps)[i])}")
     norm = np.linalg.norm(quat, axis=1)
     bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1.0) > 1e-3))
     if bad.size:
@@ -644,7 +646,8 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     """
     path = Path(path)
     check_format(path, "graspnet")
-    if path.suffix.lower() == ".npz":
+    kind = getattr(sniff(path), "kind", None)  # the suffix when the start says nothing
+    if kind == "zip" or (kind is None and path.suffix.lower() == ".npz"):
         arrays = _read_npz_members(path, max_count)
         names: list[str] = [k for k in ("grasp_group_array", "grasps", "preds") if k in arrays]
         if not names and len(arrays) == 1:

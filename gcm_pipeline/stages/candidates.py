@@ -789,7 +789,7 @@ def _read_csv(
         raise InputError(
             f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {values[i, k]!r}"
         )
-    check_positions(path, values[:, :3], [f"{path}:{line}" for line in lines])
+    check_positions(path, values[:, :3], lambda i: f"{path}:{lines[i]}")
     quat = values[:, 3:]
     norm = np.linalg.norm(quat, axis=1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)

@@ -872,16 +872,19 @@ def check_csv_cells(path: Path, line: int, header: list[str] | None, row: list[s
     """Refuse a CSV row with a cell longer than :data:`~gcm_pipeline.limits.MAX_CSV_CELL`.
 
     Raises:
-        InputError: Names the line, the column and the cell's length.
+        InputError: Names the line, the column and the cell's length
+            (attributes ``path``, ``row``: the line, ``key``, ``value``: the length).
     """
     if max(map(len, row), default=0) <= MAX_CSV_CELL:
         return
     k = max(range(len(row)), key=lambda j: len(row[j]))
     name = clip(header[k], 40) if header is not None and k < len(header) else f"#{k + 1}"
-    raise InputError(
+    err = InputError(
         f"{path}:{line}: column {name}: a cell of {len(row[k]):,} characters; a CSV cell "
         f"holds at most {MAX_CSV_CELL} (gcm_pipeline.limits.MAX_CSV_CELL)"
     )
+    err.path, err.row, err.key, err.value = path, line, name, len(row[k])  # type: ignore[attr-defined]
+    raise err
 
 
 def _switches(path: Path, text: np.ndarray, name: str, lines: list[int]) -> np.ndarray:

@@ -657,6 +657,8 @@ def test_a_file_whose_gripper_is_unknown_is_refused_with_the_choices(tmp_path):
         generate_candidates(config({"path": str(path), "frame": "object"}))
     msg = str(info.value)
     assert "'robotiq_2f_85'" in msg and "known: franka_panda" in msg and "grasp_to_tool" in msg
+    assert info.value.value == "robotiq_2f_85"
+    assert info.value.choices == ("franka_panda", "grasp_to_tool")
     assert str(path) in msg and "\n" not in msg
     # an explicit map is the way out, and is reported
     report: dict = {}
@@ -836,6 +838,7 @@ def test_a_grasp_absurdly_far_away_is_refused_naming_it(tmp_path, fmt):
         generate_candidates(config({"path": str(path), "format": fmt, **extra}))
     msg = str(info.value)
     assert msg.startswith(where), msg
+    assert (info.value.row, info.value.value) == (1, 1e25)
     assert "farther than 1000 m" in msg and "\n" not in msg
     poses[1, 0, 3] = 999.0  # within the bound: read
     if fmt == "npy":

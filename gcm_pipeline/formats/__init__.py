@@ -157,7 +157,8 @@ def choose_gripper(
     Raises:
         InputError: The file names a gripper the registry does not know, or
             names none and its format has no dataset gripper (the message
-            lists the known grippers and ``grasp_to_tool``).
+            lists the known grippers and ``grasp_to_tool``; attributes ``key``,
+            ``value``: the file's gripper, ``choices``).
     """
     if mapped:
         return GripperChoice(fmt, None, "grasp_to_tool", file_gripper)
@@ -175,20 +176,31 @@ def choose_gripper(
     if file_gripper is not None:
         found = find_gripper(file_gripper)
         if found is None:
-            raise InputError(
+            raise _refused(
                 f"{path}: its grasps are for gripper {file_gripper!r}, which the gripper "
                 f"registry does not know (known: {known}); give candidates.grasp_to_tool "
                 "(its gripper frame -> the robot's grasp frame), or candidates.gripper to "
-                "map it as a known one"
+                "map it as a known one",
+                path,
+                file_gripper,
             )
         return GripperChoice(fmt, found.name, "file", file_gripper)
     if fmt in DATASET_GRIPPERS:
         return GripperChoice(fmt, DATASET_GRIPPERS[fmt], "dataset")
-    raise InputError(
+    raise _refused(
         f"{path}: this {fmt} file does not name its gripper, and {fmt} grasps are made for "
         "several grippers whose frames differ; set candidates.gripper (one of: "
-        f"{known}) or candidates.grasp_to_tool"
+        f"{known}) or candidates.grasp_to_tool",
+        path,
+        None,
     )
+
+
+def _refused(message: str, path: object, value: str | None) -> InputError:
+    err = InputError(message)
+    err.path, err.key, err.value = path, "candidates.gripper", value  # type: ignore[attr-defined]
+    err.choices = (*gripper_names(), "grasp_to_tool")  # type: ignore[attr-defined]
+    return err
 
 
 def load_candidates(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:

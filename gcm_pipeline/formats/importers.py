@@ -157,7 +157,8 @@ def check_positions(
         where: How a message names row ``i`` (default ``"<path>: grasp <i> (0-based)"``).
 
     Raises:
-        InputError: Names the first such row and its position.
+        InputError: Names the first such row and its position (attributes
+            ``path``, ``row`` (0-based), ``value``: its distance [m]).
     """
     with np.errstate(over="ignore"):
         dist = np.linalg.norm(np.asarray(positions, dtype=float).reshape(-1, 3), axis=1)
@@ -167,11 +168,13 @@ def check_positions(
         name = where(i) if where is not None else f"{path}: grasp {i} (0-based)"
         more = f" ({far.size:,} such grasps)" if far.size > 1 else ""
         xyz = ", ".join(f"{v:.6g}" for v in np.asarray(positions, dtype=float).reshape(-1, 3)[i])
-        raise InputError(
+        err = InputError(
             f"{name}: position ({xyz}) is {dist[i]:.3g} m from the file's origin, farther "
             f"than {MAX_GRASP_DISTANCE:g} m (gcm_pipeline.limits.MAX_GRASP_DISTANCE): not a "
             f"grasp in a robot's world; are the units metres?{more}"
         )
+        err.path, err.row, err.value = path, i, float(dist[i])  # type: ignore[attr-defined]
+        raise err
 
 
 def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:

@@ -905,3 +905,13 @@ def test_an_hdf5_text_declaring_a_huge_size_is_refused_before_it_is_read(tmp_pat
         "a text takes at most 4,096: the file is corrupt"
     )
     assert int(kib) < 1_000_000  # KiB: far below the 1.5 GB declared
+
+
+def test_a_file_without_a_known_suffix_gets_a_suggestion(tmp_path):
+    path = _files_of_every_kind(tmp_path)["hdf5"].rename(tmp_path / "grasps.dat")
+    with pytest.raises(
+        InputError,
+        match=r"suffix '\.dat'; .*\(it looks like an HDF5 file: "
+        r"format: acronym\)$",
+    ):
+        generate_candidates(config({"path": str(path)}))

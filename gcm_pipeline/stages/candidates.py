@@ -442,9 +442,17 @@ def _infer_format(path: Path) -> str:
     suffix = path.suffix.lower()
     fmt = {".npy": "npy", ".npz": "npz", ".csv": "csv", ".h5": "acronym", ".hdf5": "acronym"}
     if suffix not in fmt:
+        from gcm_pipeline.formats.sniff import sniff
+
+        found = sniff(path)
+        looks = (
+            f" (it looks like {found.description}: format: {' or '.join(found.formats)})"
+            if found is not None and found.formats
+            else ""
+        )
         raise InputError(
             f"{path}: cannot tell the grasp file format from the suffix {clip(suffix)}; "
-            "set candidates.format to one of: acronym, csv, npy, npz"
+            f"set candidates.format to one of: acronym, csv, npy, npz{looks}"
         )
     return fmt[suffix]
 

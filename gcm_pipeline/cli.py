@@ -292,6 +292,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         n = max(c["densified"], 1)
         print(f"gcm run {args.config}")
         print(f"  candidates    {c['candidates']}")
+        if result.grasp_frame:  # a grasp file's gripper frame: never mapped silently
+            print(f"  gripper       {result.grasp_frame['describe']}")
         print(f"  triangles     {c['triangles']} ({c['triangles_dropped']} dropped)")
         print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
         share = 100 * c["reachable"] / n

@@ -243,15 +243,16 @@ class CandidatesConfig(_Section):
         frame: ``file``: the poses are in the ``world`` or the ``object`` frame.
         grasp_to_tool: Fixed transform from the file's (or the generator's) gripper frame
             to the robot's grasp frame, applied on the right (``T_tool = T_grasp @
-            grasp_to_tool``), for every source. For ACRONYM's Franka gripper use
-            ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
+            grasp_to_tool``), for every source. ACRONYM's Franka frame written as
+            ``npy``/``npz``/``csv`` needs ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
         success_only: ``file``: keep only grasps labelled successful.
         limit: ``file``: keep at most this many grasps (the first ones, after filtering).
         gripper: The gripper whose frame convention maps the file's poses onto the
-            robot's grasp frame (:mod:`gcm_pipeline.formats.grippers`; default
-            ``franka_panda`` for ``graspgen``, ``contact_graspnet``, ``graspnet``), or
-            whose opening and finger depth the ``antipodal`` sampler uses. Replaces
-            ``grasp_to_tool``.
+            robot's grasp frame (:mod:`gcm_pipeline.formats.grippers`; default: the
+            gripper the file names, else the format's dataset gripper, ``franka_panda``
+            for ``acronym``, ``contact_graspnet``, ``graspnet``; a ``graspgen`` file
+            naming none needs it), or whose opening and finger depth the ``antipodal``
+            sampler uses. Replaces ``grasp_to_tool``.
         friction: ``antipodal``: friction coefficient of the contacts (the cone's half
             angle is ``atan(friction)``).
         camera_pose: ``contact_graspnet`` (required) and ``graspnet``: the pose in the

@@ -72,6 +72,7 @@ import yaml
 from gcm_pipeline import signals
 from gcm_pipeline.errors import InputError, OutputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
+from gcm_pipeline.limits import MAX_CSV_CELL
 from gcm_pipeline.stages.manifold import Manifold
 from gcm_pipeline.table import CANDIDATE_COLUMNS, GraspTable
 
@@ -81,6 +82,7 @@ __all__ = [
     "RunData",
     "atomic_dir",
     "atomic_run_dir",
+    "check_csv_cells",
     "check_output_dir",
     "disk_full",
     "format_floats",
@@ -789,6 +791,7 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
             lines: list[int] = []
             for row in reader:
                 if any(cell.strip() for cell in row):
+                    check_csv_cells(path, reader.line_num, rows[0] if rows else None, row)
                     rows.append(row)
                     lines.append(reader.line_num)
     except FileNotFoundError:
@@ -810,7 +813,10 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
         if len(row) != len(header):
             raise InputError(f"{path}:{line}: {len(row)} fields, header has {len(header)}")
     n = len(body)
-    cells = np.array(body, dtype=str).reshape(n, len(header))
+    # Python strings: a fixed-width array is as wide as the longest cell in every cell
+    cells = np.empty((n, len(header)), dtype=object)
+    if body:
+        cells[:] = body
     raw = {name: cells[:, k] for k, name in enumerate(header)}
 
     def bad(name: str, i: int, what: str) -> InputError:
@@ -888,6 +894,25 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
             continue
         cols[name] = _parse_column(raw[name])
     return GraspTable(cols)
+
+
+def check_csv_cells(path: Path, line: int, header: list[str] | None, row: list[str]) -> None:
+    """Refuse a CSV row with a cell longer than :data:`~gcm_pipeline.limits.MAX_CSV_CELL`.
+
+    Raises:
+        InputError: Names the line, the column and the cell's length
+            (attributes ``path``, ``row``: the line, ``key``, ``value``: the length).
+    """
+    if max(map(len, row), default=0) <= MAX_CSV_CELL:
+        return
+    k = max(range(len(row)), key=lambda j: len(row[j]))
+    name = clip(header[k], 40) if header is not None and k < len(header) else f"#{k + 1}"
+    err = InputError(
+        f"{path}:{line}: column {name}: a cell of {len(row[k]):,} characters; a CSV cell "
+        f"holds at most {MAX_CSV_CELL} (gcm_pipeline.limits.MAX_CSV_CELL)"
+    )
+    err.path, err.row, err.key, err.value = path, line, name, len(row[k])  # type: ignore[attr-defined]
+    raise err
 
 
 def _switches(path: Path, text: np.ndarray, name: str, lines: list[int]) -> np.ndarray:

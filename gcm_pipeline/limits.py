@@ -32,6 +32,12 @@ fixed ones are bounds of the config schema:
   aliases (:mod:`gcm_pipeline.safe_yaml`).
 - A study directory's ``study.json``: 16 MiB (a study writes a few kB
   there; a larger one is refused in one line before it is read).
+- Grasp files: a grasp's position at most ``MAX_LENGTH`` (1,000 m) from the
+  file's origin (:data:`MAX_GRASP_DISTANCE`); a CSV cell (a grasp file's or
+  ``grasps.csv``'s) at most :data:`MAX_CSV_CELL` characters (text columns
+  are arrays as wide as their longest cell: one 100,000-character cell made
+  20,000 rows ask for 59.6 GiB); an HDF5 text (ACRONYM's ``object/file``)
+  at most :data:`MAX_HDF5_TEXT` bytes as declared, checked before it is read.
 
 Any stage that grows the table (adaptive refinement included) checks its
 estimate with :func:`check_size` against the same key.
@@ -48,6 +54,9 @@ __all__ = [
     "DEFAULT_MAX_POSES",
     "MAX_ADAPTIVE_LEVEL",
     "MAX_APPROACH_STEPS",
+    "MAX_CSV_CELL",
+    "MAX_GRASP_DISTANCE",
+    "MAX_HDF5_TEXT",
     "MAX_IK_SOLUTIONS",
     "MAX_IK_WORKERS",
     "MAX_LENGTH",
@@ -66,6 +75,12 @@ MAX_IK_WORKERS = 256
 MAX_IK_SOLUTIONS = 16
 #: Largest length or coordinate of a scene [m], and mesh scale.
 MAX_LENGTH = 1_000.0
+#: Farthest a grasp file's grasp may lie from the file's origin [m].
+MAX_GRASP_DISTANCE = MAX_LENGTH
+#: Most characters of one CSV cell (grasp files and ``grasps.csv``).
+MAX_CSV_CELL = 256
+#: Most bytes an HDF5 text value (a mesh file name, a gripper name) may declare.
+MAX_HDF5_TEXT = 4096
 #: Most ``environment.obstacles`` (each costs the collision checker about 4.5 MB).
 MAX_OBSTACLES = 100
 MAX_RANGE_STEPS = 1_000_000

@@ -699,6 +699,9 @@ class RunResult:
         run_dir: The run directory, or None when nothing was written.
         grasp_manifold: The manifold as a queryable
             :class:`~gcm_pipeline.query.GraspManifold` (built on first use).
+        grasp_frame: How a grasp file's gripper frame was mapped onto the
+            robot's grasp frame (``format``, ``gripper``, ``chosen_by``,
+            ``file_gripper``, ``describe``), None for other sources.
     """
 
     grasps: GraspTable
@@ -709,6 +712,7 @@ class RunResult:
     config: Config
     run_dir: Path | None = None
     files: list[Path] = field(default_factory=list)
+    grasp_frame: dict[str, Any] | None = None
 
     @functools.cached_property
     def grasp_manifold(self) -> GraspManifold:
@@ -739,6 +743,7 @@ class RunResult:
             "counts": dict(self.counts),
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
             "ranking": {"metric": self.config.ranking.metric, "top": self.top()},
+            **({"grasp_frame": self.grasp_frame} if self.grasp_frame else {}),
             "legend": legend(self.grasps),
             "config": self.config.to_dict(),
             "versions": io.versions(),
@@ -884,8 +889,9 @@ class Pipeline:
         progress: bool,
     ) -> RunResult:
         cfg = self.config
+        source: dict[str, Any] = {}
         with stage("candidates"):
-            candidates = generate_candidates(cfg)
+            candidates = generate_candidates(cfg, report=source)
         with stage("manifold"):
             manifold = build_manifold(candidates, cfg)
         adaptive = cfg.densify.adaptive is not None
@@ -937,6 +943,7 @@ class Pipeline:
             counts["adaptive"] = adaptive_counts(grasps, manifold, cfg)
         counts["continuity"] = continuity
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
+        result.grasp_frame = source.get("grasp_frame")
         if not write:
             return result
         with io.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:

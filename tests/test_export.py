@@ -53,7 +53,12 @@ def make_run(root: Path, *, object_x: float = 0.5, html: bool = False) -> Path:
             "dims": {"size": [0.06, 0.06, 0.10]},
             "pose": {"xyz": [object_x, 0.0, 0.05]},
         },
-        "candidates": {"source": "file", "path": str(data), "frame": "object"},
+        "candidates": {
+            "source": "file",
+            "path": str(data),
+            "frame": "object",
+            "gripper": "franka_panda",
+        },
         "manifold": {"projection": "xy"},
         "densify": {"subdivisions": 2},
         "approach": {"distance": 0.05, "steps": 5},
@@ -161,15 +166,18 @@ def test_parquet_export_matches_grasps_csv(run, tmp_path):
         want = [r[header.index(name)] for r in rows]
         got = table[name]
         if name in ("origin", "reason"):
-            assert got == want
+            assert got == [w or None for w in want]  # an empty cell is null
         elif set(want) <= {"true", "false"}:  # reachable, top
             assert got == [w == "true" for w in want]
         else:
+            assert [g is None for g in got] == [w == "" for w in want], name
             np.testing.assert_array_equal(
                 np.array(got, dtype=float), np.array([w or "nan" for w in want], dtype=float)
             )
-    q = np.array([[float(r[header.index(c)] or "nan") for c in qnames] for r in rows])
-    np.testing.assert_array_equal(np.array(table["q"], dtype=float), q)
+    q = [
+        [float(r[header.index(c)]) for c in qnames] if r[header.index("q1")] else None for r in rows
+    ]
+    assert table["q"] == q
 
 
 def test_npz_export_and_top(run, tmp_path):
@@ -343,3 +351,211 @@ def test_a_tampered_config_yaml_is_one_line(run, tmp_path, capsys, config):
     assert code == 2 and len(err) == 1 and err[0].startswith("error: "), err
     assert "config.yaml" in err[0]
     assert not (tmp_path / "m.yaml").exists()
+
+
+# ------------------------------------------- real clients: DuckDB, polars, rosbags
+
+BOX = Path(__file__).resolve().parents[1] / "configs" / "box.yaml"
+#: configs/box.yaml made quick: 110 grasps, 71 reachable, 16 of them with margin inf
+QUICK_BOX = ("densify.subdivisions=2", "publish.html=false", "publish.plots=false")
+
+
+def box_run(root: Path, metric: str, *more: str) -> Path:
+    from gcm_pipeline.config import load_config
+
+    out = root / f"box_{metric}"
+    cfg = load_config(BOX, (*QUICK_BOX, f"ranking.metric={metric}", *more))
+    Pipeline(cfg).run(out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def margin_run(tmp_path_factory) -> Path:
+    return box_run(tmp_path_factory.mktemp("margin"), "margin")
+
+
+def _client_columns(header: list[str]) -> list[tuple[str, str]]:
+    """(grasps.csv column, the same values in the Parquet file) for every column."""
+    return [(h, f"q[{h[1:]}]" if h[0] == "q" and h[1:].isdigit() else h) for h in header if h != ""]
+
+
+@pytest.mark.parametrize("which", ["combined", "margin"])
+def test_duckdb_and_polars_aggregate_parquet_as_grasps_csv(run, margin_run, tmp_path, which):
+    """count/avg/min/max of every column agree between grasps.csv and the Parquet export.
+
+    grasps.csv leaves a missing value empty (an unreachable grasp's metrics, joint values,
+    error columns, a candidate's weights, a reachable grasp's reason); DuckDB and polars
+    read that as null, so the Parquet file must hold null there, not NaN.
+    """
+    import duckdb
+    import polars as pl
+
+    src = {"combined": run, "margin": margin_run}[which]
+    out = tmp_path / "g.parquet"
+    export_run(src, "parquet", out=out)
+    csv_path = src / "grasps.csv"
+    header, rows = csv_rows(src)
+    empty = {h for j, h in enumerate(header) if any(r[j] == "" for r in rows)}
+    if which == "margin":  # the run this test is about: unreachable rows and empty cells
+        assert {"manipulability", "reason", "q1", "combined"} - empty == {"combined"}
+    con = duckdb.connect()
+    parquet = pl.read_parquet(out)
+    # the CSV read with the Parquet file's column types (DuckDB's sniffer takes a column of
+    # only "inf" for a DATE); q1..qN as q's element type
+    types = {row[0]: row[1] for row in con.sql(f"describe select * from '{out}'").fetchall()}
+    qnames = [h for h in header if h[0] == "q" and h[1:].isdigit()]
+    element = types.pop("q").removesuffix("[]")
+    types.update({h: element for h in qnames})
+    csv_types = "{" + ", ".join(f"'{k}': '{v}'" for k, v in types.items()) + "}"
+    from_csv = pl.read_csv(
+        csv_path, schema_overrides={h: pl.Float64 for h, t in types.items() if t == "DOUBLE"}
+    )
+    for name, pq_name in _client_columns(header):
+        aggs = ["count", "min", "max"] + (["avg"] if types[name] in ("DOUBLE", "BIGINT") else [])
+        col = pq_name if "[" in pq_name else f'"{pq_name}"'
+        want_sql = ", ".join(f'{a}("{name}")' for a in aggs)
+        want = con.sql(f"select {want_sql} from read_csv('{csv_path}', types={csv_types})")
+        got_sql = ", ".join(f"{a}({col})" for a in aggs)
+        got = con.sql(f"select {got_sql} from '{out}'")
+        assert got.fetchall() == want.fetchall(), (which, name)
+        # polars: the same counts and aggregates (nulls left out)
+        pcol = parquet["q"].list.get(int(name[1:]) - 1) if "[" in pq_name else parquet[name]
+        ccol = from_csv[name]
+        assert pcol.null_count() == ccol.null_count(), (which, name)
+        if types[name] in ("DOUBLE", "BIGINT"):
+            assert pcol.mean() == pytest.approx(ccol.mean(), rel=1e-12, nan_ok=True), name
+            assert (pcol.min(), pcol.max()) == (ccol.min(), ccol.max()), name
+    # the issue's case: the mean manipulability over the reachable grasps, not NaN
+    ((mean, count),) = con.sql(
+        f"select avg(manipulability), count(manipulability) from '{out}'"
+    ).fetchall()
+    assert count == sum(r[header.index("reachable")] == "true" for r in rows)
+    assert np.isfinite(mean)
+    if which == "margin":
+        assert count < len(rows)
+
+
+def _moveit_typestore():
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types = {}
+    for f in sorted((Path(__file__).parent / "data" / "moveit_msgs" / "msg").glob("*.msg")):
+        types.update(get_types_from_msg(f.read_text(), f"moveit_msgs/msg/{f.stem}"))
+    store.register(types)
+    return store
+
+
+def _ros_message(store, typename: str, data):
+    """A rosbags message built from a YAML mapping that has exactly the message's fields."""
+    from rosbags.typesys.store import Nodetype
+
+    msgdef = store.get_msgdef(typename)
+    names = [name for name, _ in msgdef.fields]
+    assert isinstance(data, dict) and list(data) == names, (typename, data)
+
+    def value(node, spec, v):
+        if node == Nodetype.NAME:
+            return _ros_message(store, spec, v)
+        if node in (Nodetype.SEQUENCE, Nodetype.ARRAY):
+            (sub_node, sub_spec), _ = spec
+            assert isinstance(v, list), (typename, v)
+            if sub_node == Nodetype.BASE and sub_spec[0] != "string":
+                return np.array(v, dtype=np.dtype(sub_spec[0].replace("float", "float")))
+            return [value(sub_node, sub_spec, x) for x in v]
+        typ = spec[0]
+        if typ == "string":
+            assert isinstance(v, str)
+            return v
+        if typ.startswith("float"):
+            assert isinstance(v, (int, float)) and not isinstance(v, bool)
+            return float(v)
+        assert isinstance(v, int) and not isinstance(v, bool), (typename, v)
+        return v
+
+    return msgdef.cls(**{name: value(*spec, data[name]) for name, spec in msgdef.fields})
+
+
+def _through_a_bag(store, grasps: list, bag: Path) -> list:
+    """The grasps as moveit_msgs/msg/Grasp written to a rosbag2 bag and read back."""
+    from rosbags.rosbag2 import Reader, Writer
+
+    msgtype = "moveit_msgs/msg/Grasp"
+    with Writer(bag, version=9) as writer:
+        conn = writer.add_connection("/grasps", msgtype, typestore=store)
+        for i, g in enumerate(grasps):
+            writer.write(conn, i + 1, store.serialize_cdr(_ros_message(store, msgtype, g), msgtype))
+    with Reader(bag) as reader:
+        return [store.deserialize_cdr(raw, conn.msgtype) for conn, _, raw in reader.messages()]
+
+
+ALL_METRICS = [
+    ("yoshikawa",),
+    ("translational",),
+    ("inverse_condition",),
+    ("joint_limit_margin",),
+    ("clearance",),
+    ("margin",),
+    ("combined",),
+    ("combined", "ranking.weights={yoshikawa: 1.0, margin: 1.0}"),
+]
+
+
+@pytest.mark.parametrize("metric", ALL_METRICS, ids=lambda m: "+".join(m).split("=")[-1])
+def test_moveit_grasp_quality_never_increases_down_the_list(tmp_path, margin_run, metric):
+    """Every ranking metric, inf margins included: read back with rosbags and moveit_msgs.
+
+    MoveIt's pick sorts its grasps by grasp_quality, best first; an infinite margin exported
+    as 0 sent the best grasps to the end.
+    """
+    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+
+    src = margin_run if metric == ("margin",) else box_run(tmp_path, *metric)
+    out = tmp_path / "grasps.yaml"
+    export_run(src, "moveit", out=out)
+    msgs = _through_a_bag(_moveit_typestore(), yaml.safe_load(out.read_text()), tmp_path / "bag")
+    header, rows = csv_rows(src)
+    rank = column(header, rows, "rank", int)
+    ranked = [r for r, k in zip(rows, rank, strict=True) if k > 0]
+    assert len(msgs) == len(ranked) > 10
+    assert [m.id for m in msgs] == [f"rank_{k}" for k in range(1, len(ranked) + 1)]
+    quality = np.array([m.grasp_quality for m in msgs])
+    assert np.isfinite(quality).all()
+    assert (np.diff(quality) <= 0).all(), quality
+    value = column(header, ranked, METRIC_COLUMNS[metric[0]])
+    infinite = np.isposinf(value)
+    np.testing.assert_array_equal(quality[~infinite], value[~infinite])
+    if metric == ("margin",):
+        assert 0 < infinite.sum() < len(value)  # the case of the issue
+        np.testing.assert_array_equal(quality[infinite], value[~infinite].max())
+    for m, row in zip(msgs, ranked, strict=True):
+        p = m.grasp_pose.pose.position
+        assert m.grasp_pose.header.frame_id == "panda_link0"
+        assert np.isfinite([p.x, p.y, p.z]).all()
+        assert row[header.index("reachable")] == "true"
+
+
+def test_moveit_export_refuses_a_grasps_csv_whose_ranks_and_values_disagree(run, tmp_path):
+    copy = _copy_run(run, tmp_path / "copy")
+    header, rows = csv_rows(copy)
+    j = header.index("combined")
+    rows[1][j] = repr(float(rows[0][j]) + 1.0)  # rank 2 better than rank 1
+    with (copy / "grasps.csv").open("w", newline="") as fh:
+        csv.writer(fh, lineterminator="\n").writerows([header, *rows])
+    with pytest.raises(InputError, match=r"rank 2 has combined .* more than"):
+        export_run(copy, "moveit", out=tmp_path / "g.yaml")
+
+
+def test_gcm_show_on_a_grasps_csv_with_a_huge_cell_is_one_line(run, tmp_path, capsys):
+    """A 423 KiB grasps.csv with one 100,000-character cell asked gcm show for 26.8 GiB."""
+    copy = _copy_run(run, tmp_path / "copy")
+    header, rows = csv_rows(copy)
+    rows[2][header.index("origin")] = "x" * 100_000
+    with (copy / "grasps.csv").open("w", newline="") as fh:
+        csv.writer(fh, lineterminator="\n").writerows([header, *rows])
+    assert main(["show", str(copy)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"error: {copy / 'grasps.csv'}:4: column 'origin': a cell of 100,000 characters; "
+        "a CSV cell holds at most 256 (gcm_pipeline.limits.MAX_CSV_CELL)"
+    ]

@@ -115,14 +115,16 @@ def test_graspgen_json_dataset_layout(tmp_path):
             }
         )
     )
-    cfg = config({"path": str(path), "frame": "object"})
+    cfg = config({"path": str(path), "frame": "object", "gripper": "franka_panda"})
     assert cfg.candidates.format == "graspgen"  # from the suffix
     poses, table = imported(cfg)
     assert_pose(poses[0], expected_tool())
     np.testing.assert_allclose(poses[1][:3, 3], TOP + [0.02, 0, 0], atol=1e-9)
     np.testing.assert_array_equal(table["score"], [0.9, 0.4])
     np.testing.assert_array_equal(table["source_id"], [0, 1])
-    only = config({"path": str(path), "frame": "object", "success_only": True})
+    only = config(
+        {"path": str(path), "frame": "object", "success_only": True, "gripper": "franka_panda"}
+    )
     poses, table = imported(only)
     assert len(poses) == 1 and table["score"].tolist() == [0.9]
 
@@ -143,7 +145,9 @@ def test_graspgen_isaac_grasp_yaml(tmp_path):
     }
     path = tmp_path / "box_grasps.yml"
     path.write_text(yaml.safe_dump(doc))
-    poses, table = imported(config({"path": str(path), "frame": "object"}))
+    poses, table = imported(
+        config({"path": str(path), "frame": "object", "gripper": "franka_panda"})
+    )
     assert_pose(poses[0], expected_tool())
     assert table["score"].tolist() == [0.75]
 
@@ -464,7 +468,7 @@ def _hostile_files(tmp_path: Path) -> list[tuple[str, Path, dict, str]]:
     cases.append(("graspnet", p, {}, "not a .npy array"))
     p = tmp_path / "json.npy"
     p.write_text('{"grasps": []}')
-    cases.append(("graspnet", p, {}, "not a .npy array"))
+    cases.append(("graspnet", p, {}, "but this is JSON text; use format: graspgen"))
     p = tmp_path / "rows.npy"
     np.save(p, np.tile(row, (50, 1)))
     cases.append(("graspnet", p, {"max_count": 10}, "holds 50 grasps, more than candidates.max"))
@@ -553,3 +557,361 @@ def test_camera_pose_and_object_frame_are_not_both_taken():
                 "frame": "object",
             }
         )
+
+
+# ------------------------------------------------ no silent guess: dataset grippers
+
+DATA = Path(__file__).parent / "data" / "acronym"
+#: ACRONYM's example grasps of a mug (NVlabs/acronym, data/examples; MIT, see DATA/README.md)
+MUG_H5 = DATA / "Mug_10f6e09036350e92b3f21f1137c3c347_0.0002682457830986903.h5"
+MUG_OBJ = DATA / "10f6e09036350e92b3f21f1137c3c347.obj"
+MUG_SCALE = 0.0002682457830986903
+#: The README's hand-written map of ACRONYM's Franka frame onto panda_hand_tcp
+ACRONYM_TO_TCP = {"xyz": [0, 0, 0.1034], "rpy_deg": [0, 0, -90]}
+
+
+def mug_config(**candidates) -> Config:
+    """ACRONYM's mug standing on the table 0.5 m in front of the Panda."""
+    return Config.from_dict(
+        {
+            "object": {
+                "shape": "mesh",
+                "mesh": str(MUG_OBJ),
+                "scale": MUG_SCALE,
+                "pose": {"xyz": [0.5, 0.0, -0.0514]},  # the mesh's bottom at z = 0.0514 m
+            },
+            "candidates": {
+                "source": "file",
+                "path": str(MUG_H5),
+                "frame": "object",
+                "success_only": True,
+                **candidates,
+            },
+            "manifold": {"projection": "spherical", "max_edge_length": 0.04},
+            "densify": {"subdivisions": 1},
+            "publish": {"html": False, "plots": False},
+        }
+    )
+
+
+def test_acronym_without_gripper_uses_the_dataset_gripper_and_says_so():
+    """The real ACRONYM file names gripper/type 'panda': the registry's Franka hand.
+
+    Without it the hand base was taken for the TCP (10 cm short of the fingertips).
+    """
+    pytest.importorskip("h5py")
+    report: dict = {}
+    default = generate_candidates(mug_config(format="acronym"), report=report)
+    assert report["grasp_frame"] == {
+        "format": "acronym",
+        "gripper": "franka_panda",
+        "chosen_by": "file",
+        "file_gripper": "panda",
+        "describe": "franka_panda (named by the file)",
+    }
+    by_hand = generate_candidates(mug_config(format="acronym", grasp_to_tool=ACRONYM_TO_TCP))
+    named = generate_candidates(mug_config(format="acronym", gripper="franka_panda"))
+    suffix = generate_candidates(mug_config())  # format from the .h5 suffix
+    a, b = dq_to_matrix(default["dq"]), dq_to_matrix(by_hand["dq"])
+    assert len(a) == 1290  # ACRONYM's successful grasps of this mug
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    np.testing.assert_array_equal(default["dq"], named["dq"])
+    np.testing.assert_array_equal(default["dq"], suffix["dq"])
+    # the file's hand base frames are 0.1034 m behind the TCP along the approach
+    from gcm_pipeline.stages.candidates import read_grasp_file
+
+    base, _ = read_grasp_file(MUG_H5, success_only=True)
+    obj = mug_config().object.pose.matrix()
+    np.testing.assert_allclose(
+        a[:, :3, 3], (obj @ base)[:, :3, 3] + 0.1034 * a[:, :3, 2], atol=1e-9
+    )
+
+
+def _acronym_file(path: Path, gripper: str | None) -> Path:
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(path, "w") as f:
+        f["grasps/transforms"] = np.tile(graspgen_base_in_object(), (2, 1, 1))
+        f["grasps/qualities/flex/object_in_gripper"] = np.array([1, 1])
+        if gripper is not None:
+            f["gripper/type"] = gripper
+    return path
+
+
+def test_a_file_without_gripper_name_gets_its_dataset_gripper(tmp_path):
+    report: dict = {}
+    path = _acronym_file(tmp_path / "g.h5", None)
+    poses, _ = imported_report(config({"path": str(path), "frame": "object"}), report)
+    assert_pose(poses[0], expected_tool())
+    assert report["grasp_frame"]["chosen_by"] == "dataset"
+    assert report["grasp_frame"]["describe"] == "franka_panda (the acronym dataset's gripper)"
+
+
+def imported_report(cfg: Config, report: dict):
+    table = generate_candidates(cfg, report=report)
+    return dq_to_matrix(table["dq"]), table
+
+
+def test_a_file_whose_gripper_is_unknown_is_refused_with_the_choices(tmp_path):
+    path = _acronym_file(tmp_path / "g.h5", "robotiq_2f_85")
+    with pytest.raises(InputError) as info:
+        generate_candidates(config({"path": str(path), "frame": "object"}))
+    msg = str(info.value)
+    assert "'robotiq_2f_85'" in msg and "known: franka_panda" in msg and "grasp_to_tool" in msg
+    assert info.value.value == "robotiq_2f_85"
+    assert info.value.choices == ("franka_panda", "grasp_to_tool")
+    assert str(path) in msg and "\n" not in msg
+    # an explicit map is the way out, and is reported
+    report: dict = {}
+    generate_candidates(
+        config({"path": str(path), "frame": "object", "grasp_to_tool": ACRONYM_TO_TCP}),
+        report=report,
+    )
+    assert report["grasp_frame"]["chosen_by"] == "grasp_to_tool"
+    assert report["grasp_frame"]["file_gripper"] == "robotiq_2f_85"
+
+
+@pytest.mark.parametrize(
+    ("named", "outcome"),
+    [(None, "refused"), ("franka_panda", "file"), ({"name": "robotiq_2f_140"}, "unknown")],
+)
+def test_graspgen_grippers(tmp_path, named, outcome):
+    """GraspGen publishes grasps for several grippers: its file must say which, or the config."""
+    doc = {"grasps": {"transforms": [graspgen_base_in_object().tolist()]}}
+    if named is not None:
+        doc["gripper"] = named
+    path = tmp_path / "g.json"
+    path.write_text(json.dumps(doc))
+    cfg = config({"path": str(path), "frame": "object"})
+    report: dict = {}
+    if outcome == "file":
+        poses, _ = imported_report(cfg, report)
+        assert_pose(poses[0], expected_tool())
+        assert report["grasp_frame"]["chosen_by"] == "file"
+        return
+    with pytest.raises(InputError) as info:
+        generate_candidates(cfg)
+    msg = str(info.value)
+    assert "franka_panda" in msg and "grasp_to_tool" in msg and "\n" not in msg
+    if outcome == "refused":
+        assert "does not name its gripper" in msg and "candidates.gripper" in msg
+    else:
+        assert "'robotiq_2f_140'" in msg
+    # the config settles it
+    poses, _ = imported_report(
+        config({"path": str(path), "frame": "object", "gripper": "franka_panda"}), report
+    )
+    assert_pose(poses[0], expected_tool())
+    assert report["grasp_frame"]["chosen_by"] == "config"
+
+
+def test_run_output_and_summary_name_the_gripper(tmp_path, capsys):
+    pytest.importorskip("h5py")
+    cfg = tmp_path / "mug.yaml"
+    cfg.write_text(
+        yaml.safe_dump(
+            {
+                **mug_config(format="acronym", limit=40).to_dict(),
+                "output": {"dir": str(tmp_path / "run")},
+            }
+        )
+    )
+    assert main(["run", str(cfg), "--out", str(tmp_path / "run")]) == 0
+    out = capsys.readouterr().out
+    assert "  gripper       franka_panda (named by the file)\n" in out
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["grasp_frame"]["gripper"] == "franka_panda"
+    assert summary["grasp_frame"]["chosen_by"] == "file"
+
+
+# ------------------------------------------------------- a file in the wrong format
+
+
+def _files_of_every_kind(tmp_path: Path) -> dict[str, Path]:
+    h5py = pytest.importorskip("h5py")
+    files = {}
+    files["hdf5"] = _acronym_file(tmp_path / "a.h5", "panda")
+    files["npy"] = tmp_path / "a.npy"
+    np.save(files["npy"], np.tile(np.eye(4), (2, 1, 1)))
+    files["zip"] = tmp_path / "a.npz"
+    np.savez(files["zip"], transforms=np.tile(np.eye(4), (2, 1, 1)))
+    files["pickle"] = tmp_path / "a.pkl"
+    files["pickle"].write_bytes(pickle.dumps({"grasps": [1, 2]}, protocol=4))
+    files["json"] = tmp_path / "a.json"
+    files["json"].write_text(json.dumps({"grasps": {"transforms": []}}))
+    files["yaml"] = tmp_path / "a.yaml"
+    files["yaml"].write_text("# GraspGen\ngrasps:\n  transforms: []\n")
+    files["csv"] = tmp_path / "a.csv"
+    files["csv"].write_text("x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n")
+    del h5py
+    return files
+
+
+#: (kind of file, format it is read as, what the message must say)
+WRONG = [
+    ("hdf5", "graspgen", "this is an HDF5 file; use format: acronym"),
+    ("hdf5", "csv", "this is an HDF5 file; use format: acronym"),
+    ("npy", "acronym", "this is a NumPy .npy array; use format: npy or graspnet"),
+    ("zip", "graspgen", "zip archive .*; use format: npz, contact_graspnet or graspnet"),
+    ("zip", "npy", "zip archive .*; use format: npz, contact_graspnet or graspnet"),
+    ("pickle", "npz", "this is a Python pickle; no grasp format reads it"),
+    ("json", "csv", "this is JSON text; use format: graspgen"),
+    ("json", "acronym", "this is JSON text; use format: graspgen"),
+    ("yaml", "contact_graspnet", "this is YAML text; use format: graspgen"),
+    ("csv", "graspgen", r"this is a CSV table \(header x,y,z,qw,qx,qy,qz\); use format: csv"),
+    ("csv", "graspnet", r"this is a CSV table .*; use format: csv"),
+]
+
+
+@pytest.mark.parametrize(
+    ("kind", "fmt", "message"), WRONG, ids=[f"{k}-as-{f}" for k, f, _ in WRONG]
+)
+def test_a_file_in_the_wrong_format_is_named(tmp_path, kind, fmt, message):
+    path = _files_of_every_kind(tmp_path)[kind]
+    cam = {"camera_pose": {"xyz": [0, 0, 1]}} if fmt == "contact_graspnet" else {}
+    with pytest.raises(InputError, match=message) as info:
+        generate_candidates(config({"path": str(path), "format": fmt, **cam}))
+    assert str(info.value).startswith(f"{path}: format {fmt} reads ")
+    assert "\n" not in str(info.value)
+
+
+def test_every_kind_is_read_by_the_format_it_names(tmp_path):
+    """The sniffer never refuses a file its own suggestion reads (no false alarms)."""
+    from gcm_pipeline.formats.sniff import EXPECTED_KINDS, check_format, sniff
+
+    for kind, path in _files_of_every_kind(tmp_path).items():
+        found = sniff(path)
+        assert found is not None and found.kind == kind
+        for fmt in found.formats:
+            assert kind in EXPECTED_KINDS[fmt]
+            check_format(path, fmt)  # no error
+
+
+def test_hdf5_read_as_graspgen_on_the_command_line(tmp_path, capsys):
+    """The issue's case: it said "'utf-8' codec can't decode byte 0x89"."""
+    pytest.importorskip("h5py")
+    cfg = tmp_path / "c.yaml"
+    doc = mug_config(format="acronym").to_dict()
+    doc["candidates"]["format"] = "graspgen"
+    cfg.write_text(yaml.safe_dump(doc))
+    assert main(["run", str(cfg), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ")
+    assert "this is an HDF5 file; use format: acronym" in err[0] and "utf-8" not in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+# ------------------------------------------------------------ hostile grasp files
+
+
+@pytest.mark.parametrize("fmt", ["csv", "npy", "graspgen", "isaac_grasp"])
+def test_a_grasp_absurdly_far_away_is_refused_naming_it(tmp_path, fmt):
+    """It was reported as "points are degenerate ... try another manifold.projection"."""
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 2, 3] = [0.1, 0.2, 0.3]
+    poses[1, 0, 3] = 1e25
+    extra: dict = {}
+    if fmt == "csv":
+        path = tmp_path / "g.csv"
+        rows = [f"{float(p[0, 3])!r},0,{float(p[2, 3])!r},1,0,0,0" for p in poses]
+        path.write_text("x,y,z,qw,qx,qy,qz\n" + "\n".join(rows) + "\n")
+        where = f"{path}:3: position (1e+25, 0, 0.2)"
+    elif fmt == "npy":
+        path = tmp_path / "g.npy"
+        np.save(path, poses)
+        where = f"{path}: grasp 1 (0-based): position (1e+25, 0, 0.2)"
+    elif fmt == "graspgen":
+        path = tmp_path / "g.json"
+        path.write_text(json.dumps({"grasps": {"transforms": poses.tolist()}}))
+        extra = {"gripper": "franka_panda"}
+        where = f"{path}: grasp 1 (0-based): position (1e+25, 0, 0.2)"
+    else:
+        path = tmp_path / "g.yaml"
+        grasps = {
+            f"g{i}": {"position": p[:3, 3].tolist(), "orientation": {"w": 1, "xyz": [0, 0, 0]}}
+            for i, p in enumerate(poses)
+        }
+        path.write_text(yaml.safe_dump({"format": "isaac_grasp", "grasps": grasps}))
+        extra = {"gripper": "franka_panda"}
+        where = f"{path}: grasp 'g1': position (1e+25, 0, 0.2)"
+    fmt = "graspgen" if fmt == "isaac_grasp" else fmt
+    with pytest.raises(InputError) as info:
+        generate_candidates(config({"path": str(path), "format": fmt, **extra}))
+    msg = str(info.value)
+    assert msg.startswith(where), msg
+    assert (info.value.row, info.value.value) == (1, 1e25)
+    assert "farther than 1000 m" in msg and "\n" not in msg
+    poses[1, 0, 3] = 999.0  # within the bound: read
+    if fmt == "npy":
+        np.save(path, poses)
+        generate_candidates(config({"path": str(path), "format": fmt}))
+
+
+def test_a_long_csv_cell_is_refused_and_short_text_costs_its_size(tmp_path):
+    """20,000 grasps with one 100,000-character cell asked for 59.6 GiB (fixed-width text)."""
+    import tracemalloc
+
+    path = tmp_path / "g.csv"
+    rows = ["x,y,z,qw,qx,qy,qz,label"] + ["0.1,0,0.2,1,0,0,0,a"] * 20_000
+    rows[501] = "0.1,0,0.2,1,0,0,0," + "b" * 100_000
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.raises(InputError) as info:
+        generate_candidates(config({"path": str(path)}))
+    assert str(info.value) == (
+        f"{path}:502: column 'label': a cell of 100,000 characters; a CSV cell holds at "
+        "most 256 (gcm_pipeline.limits.MAX_CSV_CELL)"
+    )
+    # one text cell of 250 characters: the old 2-D text array took 20,000 x 8 x 250 x 4 bytes
+    rows[501] = "0.1,0,0.2,1,0,0,0," + "b" * 250
+    path.write_text("\n".join(rows) + "\n")
+    from gcm_pipeline.stages.candidates import read_grasp_file
+
+    tracemalloc.start()
+    try:
+        _, columns = read_grasp_file(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert columns["label"][500] == "b" * 250 and columns["label"][0] == "a"
+    assert peak < 60e6, peak  # the label column alone is 20,000 x 250 x 4 = 20 MB
+
+
+def test_an_hdf5_text_declaring_a_huge_size_is_refused_before_it_is_read(tmp_path):
+    """An 8 KiB file whose object/file declares 1.5 GB cost 1.5 GiB before it was refused."""
+    h5py = pytest.importorskip("h5py")
+    path = tmp_path / "huge.h5"
+    with h5py.File(path, "w") as f:
+        f["grasps/transforms"] = np.tile(np.eye(4), (3, 1, 1))
+        f["grasps/qualities/flex/object_in_gripper"] = np.ones(3)
+        f.create_dataset("object/file", shape=(), dtype="S1500000000")  # never written
+    assert path.stat().st_size < 16_384
+    code = (
+        "import resource, sys\n"
+        "from gcm_pipeline.errors import InputError\n"
+        "from gcm_pipeline.stages.candidates import read_grasp_file\n"
+        "try:\n"
+        f"    read_grasp_file({str(path)!r})\n"
+        "except InputError as exc:\n"
+        "    print(exc)\n"
+        "kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss\n"  # the HDF5 reader
+        "print(max(kids, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))\n"
+    )
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    message, kib = done.stdout.strip().splitlines()
+    assert message == (
+        f"{path}: object/file declares 1,500,000,000 bytes (shape (), dtype |S1500000000); "
+        "a text takes at most 4,096: the file is corrupt"
+    )
+    assert int(kib) < 1_000_000  # KiB: far below the 1.5 GB declared
+
+
+def test_a_file_without_a_known_suffix_gets_a_suggestion(tmp_path):
+    path = _files_of_every_kind(tmp_path)["hdf5"].rename(tmp_path / "grasps.dat")
+    with pytest.raises(
+        InputError,
+        match=r"suffix '\.dat'; .*\(it looks like an HDF5 file: "
+        r"format: acronym\)$",
+    ):
+        generate_candidates(config({"path": str(path)}))

@@ -366,6 +366,45 @@ def test_per_candidate_columns_follow_the_metrics_and_round_trip(tmp_path):
     assert back["segment"].tolist() == g["segment"][order].tolist()
 
 
+def test_a_long_cell_in_grasps_csv_is_refused_and_text_costs_its_size(tmp_path):
+    """gcm show on a 423 KiB grasps.csv with one 100,000-character cell asked for 26.8 GiB.
+
+    Every cell of the file went into one text array as wide as the longest cell.
+    """
+    import tracemalloc
+
+    base = _table()
+    g = base.take(np.arange(2_000) % NC)  # 2,000 candidates (no triangles)
+    n = len(g)
+    g = g.with_columns(
+        reason=np.array(["no_ik"] * n),
+        reachable=np.zeros(n, dtype=bool),
+        rank=np.zeros(n, dtype=np.int64),
+        label=np.array(["a"] * (n - 1) + ["b" * 250]),  # a carried text column
+    )
+    path = tmp_path / "grasps.csv"
+    io.write_grasps_csv(g, path)
+    tracemalloc.start()
+    try:
+        back = io.read_grasps_csv(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert back["label"][-1] == "b" * 250
+    width = len(path.read_text().splitlines()[0].split(","))
+    # the old 2-D array: 2,000 rows x all columns x 250 characters x 4 bytes (46 MB)
+    assert peak < n * width * 250 * 4 / 3, (peak, width)
+    lines = path.read_text().splitlines()
+    lines[3] = lines[3].replace(",no_ik,", "," + "r" * 100_000 + ",")
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError) as info:
+        io.read_grasps_csv(path)
+    assert str(info.value) == (
+        f"{path}:4: column 'reason': a cell of 100,000 characters; a CSV cell holds at most "
+        "256 (gcm_pipeline.limits.MAX_CSV_CELL)"
+    )
+
+
 # ------------------------------------------------- replacement: concurrency, permissions
 
 

@@ -8,7 +8,8 @@ format     file
            first; readable with any YAML parser, no ROS needed
 ``parquet`` the grasp table as in ``grasps.csv`` (same rows, same order, same
            column names; ``q`` one list column instead of ``q1 .. qN``), for
-           pandas / polars / DuckDB
+           pandas / polars / DuckDB; a cell empty in ``grasps.csv`` is null
+           (never NaN), so their ``count``/``avg``/``min``/``max`` agree
 ``npz``    the same columns as arrays, ``q`` (N, nq), plus ``pose`` (N, 4, 4)
            world poses of the grasp frame
 ========== ===================================================================
@@ -26,7 +27,10 @@ Here ``grasp_pose`` is the pose of the robot spec's grasp frame (the Panda's
 ``panda_link0``): the pose the pipeline checked. MoveIt's pick pipeline reads
 ``grasp_pose`` as the pose of the end effector's parent link; configure the
 end effector on the grasp frame, or offset the poses. ``grasp_quality`` is
-the run's ranking metric; ``pre_grasp_approach`` follows the config's
+the run's ranking metric as the ranking counted it (``margin``: ``inf``, no
+unreachable point in reach, as the largest finite margin), so it is finite
+and never increases down the list: MoveIt's pick tries grasps in decreasing
+``grasp_quality``; ``pre_grasp_approach`` follows the config's
 ``approach`` (along +z of the grasp frame, ``min_distance`` = the checked
 distance); ``post_grasp_retreat`` follows the config's ``retreat`` when the
 run has one, else the approach reversed. Finger postures use the gripper
@@ -120,6 +124,10 @@ def export_run(
     grasps = grasps.with_columns(pose7=_csv_pose(run / "grasps.csv", len(grasps)))
     config = load_config(run / "config.yaml")
     ranked = np.asarray(grasps["rank"]) > 0 if "rank" in grasps else np.zeros(len(grasps), bool)
+    if format == "moveit":  # from every ranked row, before --top keeps some
+        grasps = grasps.with_columns(
+            grasp_quality=_grasp_quality(grasps, config.ranking.metric, run / "grasps.csv")
+        )
     if format == "moveit" or top is not None:
         rows = np.flatnonzero(ranked)
         if top is not None:
@@ -273,22 +281,38 @@ def _flat_columns(g: GraspTable) -> dict[str, np.ndarray]:
     return cols
 
 
+def _arrow_column(col: np.ndarray) -> Any:
+    """One column as Arrow, a missing value (NaN, empty text) as null.
+
+    grasps.csv writes a missing value as an empty cell, which DuckDB, polars
+    and pandas read as null; a NaN in Parquet would be a value that ``avg``
+    and ``count`` take in.
+    """
+    import pyarrow as pa
+
+    if col.ndim == 2:  # q: a list per row; null when the row has no joint value
+        values = np.asarray(col, dtype=float)
+        missing = np.isnan(values)
+        flat = pa.array(values.reshape(-1), type=pa.float64(), mask=missing.reshape(-1))
+        offsets = pa.array(np.arange(0, values.size + 1, max(values.shape[1], 1), dtype=np.int32))
+        if values.shape[1] == 0:
+            offsets = pa.array(np.zeros(len(values) + 1, dtype=np.int32))
+        rows_missing = pa.array(missing.all(axis=1) & (values.shape[1] > 0))
+        return pa.ListArray.from_arrays(offsets, flat, mask=rows_missing)
+    if col.dtype.kind in "USO":
+        text = col.astype(str)
+        return pa.array(text.tolist(), type=pa.string(), mask=text == "")
+    if col.dtype.kind == "f":
+        return pa.array(col, mask=np.isnan(col))
+    return pa.array(col)
+
+
 def _write_parquet(g: GraspTable, path: Path) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    arrays, names = [], []
-    for name, col in _flat_columns(g).items():
-        if col.ndim == 2:
-            values = pa.array(col.reshape(-1), type=pa.float64())
-            offsets = pa.array(np.arange(0, col.size + 1, col.shape[1], dtype=np.int32))
-            arrays.append(pa.ListArray.from_arrays(offsets, values))
-        elif col.dtype.kind in "US":
-            arrays.append(pa.array(col.astype(str).tolist(), type=pa.string()))
-        else:
-            arrays.append(pa.array(col))
-        names.append(name)
-    table = pa.Table.from_arrays(arrays, names=names)
+    cols = _flat_columns(g)
+    table = pa.Table.from_arrays([_arrow_column(c) for c in cols.values()], names=list(cols))
     pq.write_table(table, path)
 
 
@@ -311,6 +335,45 @@ def _write_npz(g: GraspTable, path: Path) -> None:
 
 
 # ------------------------------------------------------------------ MoveIt
+
+
+def _grasp_quality(g: GraspTable, metric: str, path: Path) -> np.ndarray:
+    """``grasp_quality`` per row: the ranking metric as the ranking counted it.
+
+    ``inf`` (a ``margin`` with no unreachable point in reach) is the largest
+    finite value of the ranked rows, as :func:`gcm_pipeline.stages.ranking.rank`
+    counts it (1.0 when none is finite), so the value is finite and never
+    increases with the rank: MoveIt's pick sorts its grasps by it, best first.
+
+    Raises:
+        InputError: The metric's column is missing, or a ranked row's value
+            is not finite or is larger than the row ranked above it (a
+            ``grasps.csv`` whose ranks and values disagree).
+    """
+    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+
+    n = len(g)
+    rank = np.asarray(g["rank"], dtype=np.int64) if "rank" in g else np.zeros(n, np.int64)
+    name = METRIC_COLUMNS.get(metric, metric)
+    if not (rank > 0).any():
+        return np.full(n, np.nan)
+    if name not in g:
+        raise InputError(f"{path}: no column {name!r} of the run's ranking metric {metric!r}")
+    value = np.array(g[name], dtype=float)
+    ranked = np.flatnonzero(rank > 0)
+    ranked = ranked[np.argsort(rank[ranked], kind="stable")]
+    finite = value[ranked][np.isfinite(value[ranked])]
+    value[np.isposinf(value)] = float(finite.max()) if finite.size else 1.0
+    v = value[ranked]
+    bad = np.flatnonzero(~np.isfinite(v) | (np.diff(v, prepend=v[0]) > 0))
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(
+            f"{path}: rank {int(rank[ranked[i]])} has {name} {v[i]!r}, "
+            + ("not a number" if not np.isfinite(v[i]) else f"more than rank above's {v[i - 1]!r}")
+            + "; the file's ranks and values disagree"
+        )
+    return value
 
 
 def _stamp() -> dict[str, int]:
@@ -361,7 +424,6 @@ def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
 
 def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
     from gcm_pipeline.formats.grippers import GRIPPERS
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
 
     root, tool, locked = _robot_frames(config)
     base = config.robot.base_pose.matrix()
@@ -371,8 +433,7 @@ def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
     pos = in_base[:, :3, 3]
     quat = Rotation.from_matrix(in_base[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
     metric = config.ranking.metric
-    quality_col = METRIC_COLUMNS.get(metric, "manipulability")
-    quality = np.asarray(g[quality_col] if quality_col in g else g["manipulability"], dtype=float)
+    quality = np.asarray(g["grasp_quality"], dtype=float)
     width = np.asarray(g["width"], dtype=float) if "width" in g else np.full(n, np.nan)
     gripper = next(
         (s for s in GRIPPERS.values() if s.finger_joints and set(s.finger_joints) <= set(locked)),
@@ -411,7 +472,7 @@ def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
                         "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
                     },
                 },
-                "grasp_quality": float(quality[i]) if np.isfinite(quality[i]) else 0.0,
+                "grasp_quality": float(quality[i]),
                 "pre_grasp_approach": _translation(tool, np.array([0, 0, 1.0]), d_app, d_app),
                 "post_grasp_retreat": _translation(retreat_frame, retreat_dir, d_ret, d_ret),
                 "post_place_retreat": _translation("", np.zeros(3), 0.0, 0.0),
@@ -422,7 +483,7 @@ def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
     head = (
         f"# moveit_msgs/Grasp list (ROS 2 field names), {n} grasps, best first.\n"
         f"# grasp_pose: the grasp frame {tool!r} in the robot root frame {root!r};\n"
-        f"# grasp_quality: the ranking metric {metric!r}.\n"
+        f"# grasp_quality: the ranking metric {metric!r} (inf: the largest finite value).\n"
     )
     text = yaml.safe_dump(grasps, sort_keys=False, default_flow_style=None, width=100)
     path.write_text(head + text, encoding="utf-8")

@@ -46,7 +46,15 @@ import numpy as np
 
 from gcm_pipeline.errors import ConfigError, unknown_choice
 
-__all__ = ["CONVENTIONS", "GRIPPERS", "GripperSpec", "get_gripper", "gripper_names"]
+__all__ = [
+    "CONVENTIONS",
+    "DATASET_GRIPPERS",
+    "GRIPPERS",
+    "GripperSpec",
+    "find_gripper",
+    "get_gripper",
+    "gripper_names",
+]
 
 #: Frame conventions of grasp files (see the module docstring).
 CONVENTIONS = ("base", "center")
@@ -77,6 +85,8 @@ class GripperSpec:
         finger_width: Finger size across (the grasp frame's x) [m].
         palm_size: Palm box (x, y, z) behind the fingers [m] (the sampler's
             collision check points).
+        aliases: Other names grasp files give this gripper (ACRONYM's
+            ``gripper/type``, GraspGen's gripper name).
     """
 
     name: str
@@ -92,6 +102,7 @@ class GripperSpec:
     finger_thickness: float = 0.026
     finger_width: float = 0.021
     palm_size: tuple[float, float, float] = (0.064, 0.208, 0.092)
+    aliases: tuple[str, ...] = ()
 
     def to_tool(self, convention: str, depth: np.ndarray | float | None = None) -> np.ndarray:
         """The right-hand transform from a file's gripper frame to the robot's grasp frame.
@@ -147,13 +158,36 @@ GRIPPERS: dict[str, GripperSpec] = {
         finger_thickness=0.026,
         finger_width=0.021,
         palm_size=(0.064, 0.208, 0.092),
+        # ACRONYM's gripper/type; its mesh file and GraspGen's config name the hand so too
+        aliases=("panda", "franka", "franka_gripper", "panda_gripper"),
     ),
+}
+
+#: The gripper a format's dataset was made with, for files that name none. ACRONYM's
+#: grasps are all for the Franka hand (``gripper/type: panda``); Contact-GraspNet is
+#: trained on ACRONYM; GraspNet-1Billion's grasp-centre rows fit any parallel-jaw hand,
+#: and the Franka hand's fingertips place the TCP. GraspGen is not listed: it publishes
+#: grasps for several grippers (``franka_panda``, ``robotiq_2f_140``, a suction cup) in
+#: one layout, and a file that does not name its gripper needs ``candidates.gripper``.
+DATASET_GRIPPERS: dict[str, str] = {
+    "acronym": "franka_panda",
+    "contact_graspnet": "franka_panda",
+    "graspnet": "franka_panda",
 }
 
 
 def gripper_names() -> list[str]:
     """Names of the known grippers, sorted."""
     return sorted(GRIPPERS)
+
+
+def find_gripper(name: str) -> GripperSpec | None:
+    """The gripper a file calls ``name`` (a registry name or an alias, any case), or None."""
+    key = name.strip().lower()
+    for spec in GRIPPERS.values():
+        if key == spec.name or key in spec.aliases:
+            return spec
+    return None
 
 
 def get_gripper(name: str) -> GripperSpec:

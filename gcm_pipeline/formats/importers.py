@@ -59,7 +59,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES
+from gcm_pipeline.formats.sniff import check_format, sniff
+from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES, MAX_GRASP_DISTANCE
 
 __all__ = [
     "IMPORT_FORMATS",
@@ -142,6 +143,40 @@ class ImportedGrasps:
         )
 
 
+def check_positions(
+    path: Path, positions: np.ndarray, where: Callable[[int], str] | None = None
+) -> None:
+    """Refuse a grasp farther than :data:`~gcm_pipeline.limits.MAX_GRASP_DISTANCE` from the origin.
+
+    A robot's world is metres across; a grasp 1e25 m away is a unit or
+    export mistake, and further on it only breaks the manifold's geometry.
+
+    Args:
+        path: The file (for messages).
+        positions: (N, 3) finite grasp positions as the file stores them [m].
+        where: How a message names row ``i`` (default ``"<path>: grasp <i> (0-based)"``).
+
+    Raises:
+        InputError: Names the first such row and its position (attributes
+            ``path``, ``row`` (0-based), ``value``: its distance [m]).
+    """
+    with np.errstate(over="ignore"):
+        dist = np.linalg.norm(np.asarray(positions, dtype=float).reshape(-1, 3), axis=1)
+    far = np.flatnonzero(~(dist <= MAX_GRASP_DISTANCE))
+    if far.size:
+        i = int(far[0])
+        name = where(i) if where is not None else f"{path}: grasp {i} (0-based)"
+        more = f" ({far.size:,} such grasps)" if far.size > 1 else ""
+        xyz = ", ".join(f"{v:.6g}" for v in np.asarray(positions, dtype=float).reshape(-1, 3)[i])
+        err = InputError(
+            f"{name}: position ({xyz}) is {dist[i]:.3g} m from the file's origin, farther "
+            f"than {MAX_GRASP_DISTANCE:g} m (gcm_pipeline.limits.MAX_GRASP_DISTANCE): not a "
+            f"grasp in a robot's world; are the units metres?{more}"
+        )
+        err.path, err.row, err.value = path, i, float(dist[i])  # type: ignore[attr-defined]
+        raise err
+
+
 def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
     """Return ``poses`` as float (N, 4, 4) or raise naming the first non-rigid row."""
     arr = np.asarray(poses)
@@ -163,6 +198,7 @@ def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
         raise InputError(
             f"{path}: {what}: grasp {int(bad[0])} (0-based) is not a rigid transform{more}"
         )
+    check_positions(path, arr[:, :3, 3])
     return arr
 
 
@@ -225,6 +261,7 @@ def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
         InputError: Unreadable file, a layout that is not GraspGen's, bad values.
     """
     path = Path(path)
+    check_format(path, "graspgen")
     data = _read_structured(path, max_count)
     if not isinstance(data, dict):
         raise InputError(
@@ -295,6 +332,7 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> Impor
             raise InputError(
                 f"{path}: grasp {clip(name)}: position {pos[i].tolist()} is not finite"
             )
+    check_positions(path, pos, lambda i: f"{path}: grasp {clip(list(grasps)[i])}")
     norm = np.linalg.norm(quat, axis=1)
     bad = np.flatnonzero(~np.isfinite(norm) | (np.abs(norm - 1.0) > 1e-3))
     if bad.size:
@@ -528,6 +566,7 @@ def read_contact_graspnet(
             lengths, non-rigid poses.
     """
     path = Path(path)
+    check_format(path, "contact_graspnet")
     arrays = _read_npz_members(path, max_count)
     if "pred_grasps_cam" not in arrays:
         raise InputError(
@@ -609,7 +648,9 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
         InputError: Not a (N, 17) real array, non-rigid rotation, bad values.
     """
     path = Path(path)
-    if path.suffix.lower() == ".npz":
+    check_format(path, "graspnet")
+    kind = getattr(sniff(path), "kind", None)  # the suffix when the start says nothing
+    if kind == "zip" or (kind is None and path.suffix.lower() == ".npz"):
         arrays = _read_npz_members(path, max_count)
         names: list[str] = [k for k in ("grasp_group_array", "grasps", "preds") if k in arrays]
         if not names and len(arrays) == 1:

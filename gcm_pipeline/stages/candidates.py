@@ -46,10 +46,12 @@ frame (on the right). All randomness comes from one
 Imported poses (``source: file``) are read as stored (:func:`load_grasp_file`),
 then mapped onto the robot's grasp frame by ``grasp_to_tool`` on the right,
 ``T_tool = T_grasp @ grasp_to_tool``, and into the world by the object pose when
-``frame: object``: ``T_world = T_object @ T_tool``. For ACRONYM's Franka gripper
+``frame: object``: ``T_world = T_object @ T_tool``. (``format: acronym`` and the
+synthesisers' formats map their gripper frame by the gripper registry instead,
+see :mod:`gcm_pipeline.formats`.) For poses in ACRONYM's Franka gripper frame
 (origin at the hand base, z = approach, fingers closing along x: its finger
-control points are at x = +-0.041 m) and the Panda's ``panda_hand_tcp`` (0.1034 m
-further along z, fingers closing along y) use
+control points are at x = +-0.041 m) written as ``npy``/``npz``/``csv``, and the
+Panda's ``panda_hand_tcp`` (0.1034 m further along z, fingers closing along y) use
 ``grasp_to_tool: {xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``: the tool's y
 axis is then the gripper's +x axis, its origin the midpoint of the fingertips,
 its z the same approach (``tests/test_candidates.py`` checks this geometry).
@@ -79,8 +81,10 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import CandidatesConfig, Config, ObjectConfig, takes_config
 from gcm_pipeline.errors import ConfigError, InputError, clip
+from gcm_pipeline.formats.importers import check_positions
+from gcm_pipeline.formats.sniff import check_format
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES
+from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES, MAX_HDF5_TEXT
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -347,9 +351,26 @@ def grasp_poses(cfg: Config) -> np.ndarray:
 
     Raises:
         ConfigError: A generator without a matching ``object`` section.
-        InputError: An unreadable or invalid grasp file.
+        InputError: An unreadable or invalid grasp file, or one whose gripper is unknown.
     """
-    return _candidate_poses(cfg)[0]
+    return _world_poses(cfg)[0]
+
+
+def _world_poses(
+    cfg: Config, report: dict[str, Any] | None = None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """World poses (N, 4, 4) of the grasp frame and per-candidate columns, from any source."""
+    from gcm_pipeline import formats
+
+    if not formats.handles(cfg):
+        return _candidate_poses(cfg)
+    # synthesisers' formats (gripper frames), the antipodal sampler
+    poses, columns, choice = formats.load_candidates_choice(cfg)
+    if choice is not None and report is not None:
+        report["grasp_frame"] = choice.as_dict() | {"describe": choice.describe()}
+    if cfg.candidates.source != "file" and cfg.candidates.grasp_to_tool is not None:
+        poses = poses @ cfg.candidates.grasp_to_tool.matrix()  # a sampler's grasps too
+    return poses, columns
 
 
 def _candidate_poses(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -381,11 +402,14 @@ def _candidate_poses(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
 
 
 @takes_config
-def generate_candidates(cfg: Config) -> GraspTable:
+def generate_candidates(cfg: Config, *, report: dict[str, Any] | None = None) -> GraspTable:
     """The candidate grasp table of a config: ``dq`` (N, 8) and per-candidate columns.
 
     Args:
         cfg: The full config.
+        report: A dict that gets ``grasp_frame``, how a grasp file's gripper
+            frame was mapped (:meth:`gcm_pipeline.formats.GripperChoice.as_dict`),
+            when the file has one.
 
     Returns:
         A table with ``dq``: unit dual quaternions [rw, rx, ry, rz, dw, dx, dy, dz]
@@ -395,17 +419,10 @@ def generate_candidates(cfg: Config) -> GraspTable:
 
     Raises:
         ConfigError: A generator without a matching ``object`` section.
-        InputError: An unreadable or invalid grasp file, or no grasp left.
+        InputError: An unreadable or invalid grasp file, a file whose gripper
+            is unknown, or no grasp left.
     """
-    from gcm_pipeline import formats
-
-    columns: dict[str, np.ndarray] = {}
-    if formats.handles(cfg):  # synthesisers' formats, gripper mapping, the antipodal sampler
-        poses, columns = formats.load_candidates(cfg)
-        if cfg.candidates.source != "file" and cfg.candidates.grasp_to_tool is not None:
-            poses = poses @ cfg.candidates.grasp_to_tool.matrix()  # a sampler's grasps too
-    else:
-        poses, columns = _candidate_poses(cfg)
+    poses, columns = _world_poses(cfg, report)
     if poses.shape[0] == 0:
         raise InputError(f"candidates: no grasp left from {_describe_source(cfg.candidates)}")
     log.info("candidates: %d from %s", poses.shape[0], _describe_source(cfg.candidates))
@@ -425,9 +442,17 @@ def _infer_format(path: Path) -> str:
     suffix = path.suffix.lower()
     fmt = {".npy": "npy", ".npz": "npz", ".csv": "csv", ".h5": "acronym", ".hdf5": "acronym"}
     if suffix not in fmt:
+        from gcm_pipeline.formats.sniff import sniff
+
+        found = sniff(path)
+        looks = (
+            f" (it looks like {found.description}: format: {' or '.join(found.formats)})"
+            if found is not None and found.formats
+            else ""
+        )
         raise InputError(
             f"{path}: cannot tell the grasp file format from the suffix {clip(suffix)}; "
-            "set candidates.format to one of: acronym, csv, npy, npz"
+            f"set candidates.format to one of: acronym, csv, npy, npz{looks}"
         )
     return fmt[suffix]
 
@@ -482,7 +507,12 @@ def read_grasp_file(
     ``grasps.csv`` traces back to its input. Sizes are checked from the
     file's header before any array is allocated: a file of more than
     ``max_count`` grasps, or one whose header promises more data than it
-    holds, is refused.
+    holds, is refused; so are a CSV cell longer than ``MAX_CSV_CELL`` and an
+    HDF5 text declaring more than ``MAX_HDF5_TEXT`` bytes
+    (:mod:`gcm_pipeline.limits`). A file whose first bytes show another
+    format is refused naming it (:mod:`gcm_pipeline.formats.sniff`); a grasp
+    farther than ``MAX_GRASP_DISTANCE`` (1,000 m) from the origin is refused
+    naming its row.
 
     Args:
         path: The grasp file.
@@ -501,6 +531,21 @@ def read_grasp_file(
             non-rigid matrix (names the row), a missing key, too many
             grasps, or ``success_only`` without success labels.
     """
+    poses, columns, _ = read_grasp_file_gripper(
+        path, format=format, success_only=success_only, limit=limit, max_count=max_count
+    )
+    return poses, columns
+
+
+def read_grasp_file_gripper(
+    path: str | Path,
+    *,
+    format: str | None = None,
+    success_only: bool = False,
+    limit: int | None = None,
+    max_count: int = DEFAULT_MAX_CANDIDATES,
+) -> tuple[np.ndarray, dict[str, np.ndarray], str | None]:
+    """:func:`read_grasp_file`, plus the gripper the file names (ACRONYM's ``gripper/type``)."""
     path = Path(path)
     try:
         if not path.exists():
@@ -510,6 +555,8 @@ def read_grasp_file(
     except (OSError, ValueError) as exc:  # name too long, NUL byte
         raise InputError(f"grasp file {clip(str(path))}: cannot access: {exc}") from None
     fmt = format or _infer_format(path)
+    check_format(path, fmt)
+    gripper: str | None = None
     columns: dict[str, np.ndarray] = {}
     success: np.ndarray | None
     if fmt == "npy":
@@ -519,12 +566,14 @@ def read_grasp_file(
     elif fmt == "csv":
         poses, success, columns = _read_csv(path, max_count)
     elif fmt == "acronym":
-        poses, success = _read_acronym(path, max_count)
+        poses, success, gripper = _read_acronym(path, max_count)
     else:
         raise InputError(
             f"{path}: unknown grasp file format {clip(fmt)}; valid: acronym, csv, npy, npz"
         )
     _check_rigid(path, poses)
+    if fmt != "csv":  # a CSV names the line, above
+        check_positions(path, poses[:, :3, 3])
     columns = {"source_id": np.arange(len(poses), dtype=np.int64), **columns}
     if success is not None:
         columns["success"] = success
@@ -542,7 +591,7 @@ def read_grasp_file(
     if keep is not None:
         poses = poses[keep]
         columns = {k: v[keep] for k, v in columns.items()}
-    return np.ascontiguousarray(poses, dtype=float), columns
+    return np.ascontiguousarray(poses, dtype=float), columns, gripper
 
 
 def _reserved_columns() -> set[str]:
@@ -689,6 +738,8 @@ def _refuse_nul(path: Path, chunk: int = 1 << 22) -> None:
 def _read_csv(
     path: Path, max_count: int
 ) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
+    from gcm_pipeline.io import check_csv_cells
+
     rows: list[list[str]] = []
     lines: list[int] = []
     _refuse_nul(path)
@@ -709,6 +760,7 @@ def _read_csv(
                     continue
                 if len(rows) >= max_count:
                     _check_count(path, len(rows) + 1, max_count)
+                check_csv_cells(path, reader.line_num, header, row)
                 rows.append(row)
                 lines.append(reader.line_num)
     except UnicodeDecodeError as exc:
@@ -733,13 +785,19 @@ def _read_csv(
     for row, line in zip(rows, lines, strict=True):
         if len(row) != width:
             raise InputError(f"{path}:{line}: row has {len(row)} fields, the header has {width}")
-    cells = np.array(rows, dtype=str).reshape(len(rows), width)
+    # Python strings, not a fixed-width array: that is as wide as the longest cell in every cell
+    cells = np.empty((len(rows), width), dtype=object)
+    if rows:
+        cells[:] = rows
     values = np.empty((len(rows), 7))
     for k, c in enumerate(_CSV_POSE):
         values[:, k] = _csv_floats(path, cells[:, names.index(c)], c, lines)
     if not np.all(np.isfinite(values)):
-        line = lines[int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0])]
-        raise InputError(f"{path}:{line}: non-finite value")
+        i, k = (int(a[0]) for a in np.nonzero(~np.isfinite(values)))
+        raise InputError(
+            f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {values[i, k]!r}"
+        )
+    check_positions(path, values[:, :3], lambda i: f"{path}:{lines[i]}")
     quat = values[:, 3:]
     norm = np.linalg.norm(quat, axis=1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
@@ -778,14 +836,17 @@ def _csv_floats(path: Path, col: np.ndarray, name: str, lines: list[int]) -> np.
 
 
 def _csv_column(col: np.ndarray) -> np.ndarray:
-    """A carried CSV column: int64 if all integers, float64 if numbers (empty: NaN), else text."""
-    stripped = np.char.strip(col)
+    """A carried CSV column: int64 if all integers, float64 if numbers (empty: NaN), else text.
+
+    ``col`` holds Python strings (of at most ``MAX_CSV_CELL`` characters).
+    """
+    stripped = [t.strip() for t in col.tolist()]
     try:
-        if len(col) and all(re.fullmatch(r"[-+]?[0-9]{1,18}", t) for t in stripped.tolist()):
-            return stripped.astype(np.int64)
-        return np.where(stripped == "", "nan", stripped).astype(np.float64)
+        if stripped and all(re.fullmatch(r"[-+]?[0-9]{1,18}", t) for t in stripped):
+            return np.array([int(t) for t in stripped], dtype=np.int64)
+        return np.array([float(t) if t else np.nan for t in stripped], dtype=np.float64)
     except ValueError:
-        return col.astype(str)
+        return np.array(col.tolist(), dtype=str).reshape(len(stripped))
 
 
 #: A child reading an ACRONYM file gets this long [s], plus a second per
@@ -795,7 +856,7 @@ _HDF5_SECONDS = 10.0
 _HDF5_BYTES_PER_SECOND = 20e6
 
 
-def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
+def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray, str | None]:
     """Read an ACRONYM file in a forked child process where one can be forked.
 
     The HDF5 library can crash the whole process (a segmentation fault) or
@@ -849,14 +910,13 @@ def _read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
         )
     if result[0] == "error":
         raise InputError(result[1])
-    return result[1], result[2]
+    return result[1], result[2], result[3]
 
 
 def _acronym_child(send: Any, path: Path, max_count: int) -> None:
-    """In the child: read the file and send ``("ok", poses, success)`` or ``("error", msg)``."""
+    """In the child: send ``("ok", poses, success, gripper)`` or ``("error", message)``."""
     try:
-        poses, success = _read_acronym_here(path, max_count)
-        send.send(("ok", poses, success))
+        send.send(("ok", *_read_acronym_here(path, max_count)))
     except InputError as exc:
         send.send(("error", str(exc)))
     except BaseException as exc:  # anything else is reported, not raised in the child
@@ -865,7 +925,8 @@ def _acronym_child(send: Any, path: Path, max_count: int) -> None:
         send.close()
 
 
-def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray]:
+def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """Poses, success labels and ``gripper/type`` (e.g. ``panda``, or None) of an ACRONYM file."""
     import h5py
 
     where = "the file"
@@ -899,6 +960,8 @@ def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarr
             success = _success(path, np.asarray(quality[()]), poses.shape[0], where)
             where = "object"
             name, scale = _acronym_object(path, fh, h5py)
+            where = "gripper/type"
+            gripper = _h5_text(path, fh, h5py, "gripper/type")
     except InputError:
         raise
     except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
@@ -907,29 +970,53 @@ def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarr
         ) from None
     if name is not None:
         log.info("%s: ACRONYM grasps of %s (scale %g)", path, name, scale)
-    return poses, success
+    return poses, success, gripper
+
+
+def _h5_small(path: Path, node: Any, h5py: Any, key: str, what: str, max_bytes: int) -> Any:
+    """The dataset ``key`` read whole, after its declared size is checked.
+
+    A dataset's size comes from its header, not from the bytes in the file
+    (an unwritten dataset reads as fill values): an 8 KiB file can declare a
+    1.5 GB string, which reading would allocate.
+
+    Raises:
+        InputError: Not a dataset, or more than ``max_bytes`` declared.
+    """
+    if not isinstance(node, h5py.Dataset):
+        raise InputError(f"{path}: {key} must be {what}, got a {type(node).__name__}")
+    declared = int(np.prod(node.shape, dtype=object)) * node.dtype.itemsize
+    if declared > max_bytes:
+        raise InputError(
+            f"{path}: {key} declares {declared:,} bytes (shape {node.shape}, dtype "
+            f"{node.dtype}); {what} takes at most {max_bytes:,}: the file is corrupt"
+        )
+    return node[()]
+
+
+def _h5_text(path: Path, fh: Any, h5py: Any, key: str) -> str | None:
+    """The text stored at ``key`` (None when the file has no ``key``), at most ``MAX_HDF5_TEXT``."""
+    if key not in fh:
+        return None
+    raw = _h5_small(path, fh[key], h5py, key, "a text", MAX_HDF5_TEXT)
+    if isinstance(raw, np.ndarray) and raw.size == 1:
+        raw = raw.reshape(-1)[0]
+    if isinstance(raw, bytes) and len(raw) <= MAX_HDF5_TEXT:
+        try:
+            raw = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raw = None
+    if not isinstance(raw, str) or len(raw) > MAX_HDF5_TEXT:
+        raise InputError(f"{path}: {key} must be a text, got {clip(raw)}")
+    return raw
 
 
 def _acronym_object(path: Path, fh: Any, h5py: Any) -> tuple[str | None, float]:
     """``object/file`` (text) and ``object/scale`` (a number) of an ACRONYM file."""
-    name = None
+    name = _h5_text(path, fh, h5py, "object/file")
     scale = 1.0
-    if "object/file" in fh:
-        node = fh["object/file"]
-        raw = node[()] if isinstance(node, h5py.Dataset) else None
-        if isinstance(raw, np.ndarray) and raw.size == 1:
-            raw = raw.reshape(-1)[0]
-        if isinstance(raw, bytes):
-            try:
-                raw = raw.decode("utf-8")
-            except UnicodeDecodeError:
-                raw = None
-        if not isinstance(raw, str):
-            raise InputError(f"{path}: object/file must be a text (the mesh file), got {clip(raw)}")
-        name = raw
     if "object/scale" in fh:
-        node = fh["object/scale"]
-        raw = node[()] if isinstance(node, h5py.Dataset) else None
+        raw = _h5_small(path, fh["object/scale"], h5py, "object/scale", "a number", 16)
         if isinstance(raw, np.ndarray) and raw.size == 1:
             raw = raw.reshape(-1)[0]
         if isinstance(raw, (bool, np.bool_)) or not isinstance(raw, (int, float, np.number)):

@@ -152,7 +152,7 @@ def test_bottle_with_the_ur5_gives_a_plausible_answer(ur5):
             r"tool\.tcp\.matrix is not a rigid transform: last row",
         ),
         ({"mount": {"rpy_deg": [0, 0, 90], "quat": [1, 0, 0, 0]}}, r"tool\.mount: give one of"),
-        ({"collision": []}, r"tool\.collision must be a non-empty list"),
+        ({"collision": "box"}, r"tool\.collision must be a non-empty list"),
         ({"fingers": None}, r"tool\.fingers: missing, but shapes finger_left, finger_right"),
         ({"flange": None}, r"tool\.flange"),
         ({"gripper": "x"}, r"tool: unknown key 'gripper'"),

@@ -829,7 +829,7 @@ class Robot:
             try:
                 read_mesh(ref.path)
             except MeshReadError as bad:
-                return RobotSpecError(f"{where}: link {ref.link!r}: {kind} mesh {bad}")
+                return RobotSpecError(f"{where}: link {ref.link!r}, {kind} mesh: {bad}")
         lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
         useful = [
             ln for ln in lines if not ln.startswith(("From file:", "in function:", "at line:"))

@@ -27,7 +27,6 @@ import os
 import shlex
 import signal
 import sys
-import textwrap
 import time
 import traceback
 import typing
@@ -762,8 +761,15 @@ def robot_report(robot: Any) -> list[str]:
     out.append(
         f"               {len(pairs)} self-collision pairs checked ({len(checked)} link pairs)"
     )
-    text = f"{len(excluded)} link pairs not checked: {', '.join(excluded) or '(none)'}"
-    out += textwrap.wrap(text, 100, initial_indent=" " * 15, subsequent_indent=" " * 17)
+    line = f"{' ' * 15}{len(excluded)} link pairs not checked:"
+    for i, item in enumerate(excluded or ["(none)"]):  # whole items per line
+        item += "," if i < len(excluded) - 1 else ""
+        if len(line) + 1 + len(item) > 100:
+            out.append(line)
+            line = " " * 17 + item
+        else:
+            line += " " + item
+    out.append(line)
     return out
 
 

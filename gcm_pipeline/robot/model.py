@@ -442,18 +442,29 @@ def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
             dirs = tuple(Path(d) for d in get_package_dirs(module))
             srdf_path = getattr(module, "SRDF_PATH", None)
     except Exception as exc:  # git, network, xacro: whatever the download raised
-        lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
-        why = clip(lines[-1] if lines else type(exc).__name__, 200)
-        repo = desc.repository or name
-        raise RobotSpecError(
-            f"model.robot_descriptions {name!r}: its files are not in the cache {cache} and "
-            f"cannot be fetched ({why}); robot_descriptions clones the repository {repo!r} "
-            "there on first use: run once with network access, or set "
-            "ROBOT_DESCRIPTIONS_CACHE to a folder that holds it"
-        ) from None
+        raise RobotSpecError(_rd_fetch_error(name, desc.repository, cache, exc)) from None
     srdf = Path(srdf_path) if srdf_path and Path(srdf_path).is_file() else None
     _RD_PATHS[name] = (urdf, srdf, dirs)
     return _RD_PATHS[name]
+
+
+def _rd_fetch_error(name: str, repository: str | None, cache: str, exc: Exception) -> str:
+    """One line: what could not be fetched, where it was expected, how to provide it."""
+    from robot_descriptions._repositories import REPOSITORIES
+
+    lines = [ln.strip(" '\"") for ln in str(exc).strip().splitlines() if ln.strip(" '\"")]
+    why = lines[-1] if lines else type(exc).__name__
+    why = why.removeprefix("stderr: ").strip(" '\"")[:200]
+    repo = REPOSITORIES.get(repository or "")
+    if repo is None:  # not a download: e.g. a Xacro that does not render
+        return f"model.robot_descriptions {name!r}: cannot be loaded: {why}"
+    target = os.path.join(cache, repo.cache_path)
+    return (
+        f"model.robot_descriptions {name!r}: not in the cache {cache} and cannot be fetched "
+        f"from {repo.url} ({why}); run once with network access, or clone that repository "
+        f"into {target} yourself (its commit {repo.commit[:12]} must be in it; "
+        "ROBOT_DESCRIPTIONS_CACHE sets the cache folder)"
+    )
 
 
 def model_files(spec: RobotSpec) -> tuple[Path, Path | None, tuple[Path, ...]]:

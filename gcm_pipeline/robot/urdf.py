@@ -225,7 +225,7 @@ def prepare_urdf(
     where = f"URDF {str(path)!r}"
     root = _read_xml(path, "URDF")
     if root.tag != "robot":
-        raise RobotSpecError(f"{where}: root element is <{clip(root.tag, 40)}>, expected <robot>")
+        raise RobotSpecError(f"{where}: root element is <{root.tag[:40]}>, expected <robot>")
     limits = dict(joint_limits or {})
     continuous: dict[str, tuple[float, float]] = {}
     children = set()

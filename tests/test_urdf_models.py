@@ -585,3 +585,20 @@ def test_moveit_export_when_the_runs_urdf_is_no_longer_valid_xml(capsys, tmp_pat
 def test_root_link_is_the_moveit_frame_of_the_shipped_specs():
     assert root_link(load_spec("panda")) == "panda_link0"
     assert root_link(load_spec("ur5")) == "world"
+
+
+def test_a_revolute_joint_without_lower_upper_takes_the_specs_range(tmp_path):
+    spec = write_arm(tmp_path, limits=None)  # urdfdom reads [0, 0]
+    with pytest.raises(RobotSpecError, match=re_escape(
+        "joint 'shoulder_pan_joint' has an empty range [0, 0] after joint_limits and "
+        "limit_margin (0) (the URDF gives it no lower/upper; give joint_limits: "
+        "{shoulder_pan_joint: [lower, upper]})"
+    )):  # fmt: skip
+        load_robot(spec)
+    joints = [j[0] for j in __import__("urdfs").UR5_JOINTS]
+    spec.write_text(
+        spec.read_text() + "joint_limits: {" + ", ".join(f"{j}: [-3, 3]" for j in joints) + "}\n"
+    )
+    robot = load_robot(spec)
+    np.testing.assert_allclose(robot.lower, -3.0)
+    np.testing.assert_allclose(robot.upper, 3.0)

@@ -634,10 +634,16 @@ class Robot:
         upper -= spec.limit_margin
         for i, jname in enumerate(self.joint_names):
             if not lower[i] < upper[i]:
+                why = (
+                    f" (the URDF gives it no lower/upper; give joint_limits: {{{jname}: "
+                    "[lower, upper]})"
+                    if jname in prepared.unbounded
+                    else ""
+                )
                 raise RobotSpecError(
                     f"robot {spec.name!r}: joint {jname!r} has an empty range "
                     f"[{lower[i]:g}, {upper[i]:g}] after joint_limits and limit_margin "
-                    f"({spec.limit_margin:g})"
+                    f"({spec.limit_margin:g}){why}"
                 )
         lower.setflags(write=False)
         upper.setflags(write=False)

@@ -95,6 +95,8 @@ class PreparedUrdf:
         robot_name: ``<robot name>``.
         root_link: The link that is no joint's child.
         continuous: Joints that were continuous, with the range they got [rad].
+        unbounded: Revolute or prismatic joints without ``lower``/``upper`` (urdfdom
+            reads [0, 0]; the spec's ``joint_limits`` range is written in when given).
         meshes: Every mesh of every link.
         package_dirs: Folders that resolved ``package://`` URIs (for other readers).
     """
@@ -104,6 +106,7 @@ class PreparedUrdf:
     robot_name: str
     root_link: str
     continuous: Mapping[str, tuple[float, float]]
+    unbounded: tuple[str, ...]
     meshes: tuple[MeshRef, ...]
     package_dirs: tuple[Path, ...]
 
@@ -228,17 +231,24 @@ def prepare_urdf(
         raise RobotSpecError(f"{where}: root element is <{root.tag[:40]}>, expected <robot>")
     limits = dict(joint_limits or {})
     continuous: dict[str, tuple[float, float]] = {}
+    unbounded: list[str] = []
     children = set()
     for joint in root.findall("joint"):
         child = joint.find("child")
         if child is not None:
             children.add(child.get("link"))
+        name = str(joint.get("name"))
         if joint.get("type") == "continuous":
-            name = str(joint.get("name"))
             rng = limits.get(name, CONTINUOUS_RANGE)
             joint.set("type", "revolute")
             _joint_limit(joint, rng)
             continuous[name] = (float(rng[0]), float(rng[1]))
+        elif joint.get("type") in ("revolute", "prismatic"):
+            limit = joint.find("limit")
+            if limit is None or (limit.get("lower") is None and limit.get("upper") is None):
+                unbounded.append(name)  # urdfdom reads [0, 0]
+                if name in limits:  # the spec's range is the range
+                    _joint_limit(joint, limits[name])
     links = [str(link.get("name")) for link in root.findall("link")]
     roots = [n for n in links if n not in children]
     if not links or not roots:
@@ -278,6 +288,7 @@ def prepare_urdf(
         robot_name=str(root.get("name", "")),
         root_link=roots[0],
         continuous=continuous,
+        unbounded=tuple(unbounded),
         meshes=tuple(meshes),
         package_dirs=tuple(dict.fromkeys([*pkg_dirs, folder])),
     )

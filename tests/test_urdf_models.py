@@ -16,7 +16,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import trimesh
-from urdfs import arm_urdf, write_arm
+from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
@@ -595,7 +595,7 @@ def test_a_revolute_joint_without_lower_upper_takes_the_specs_range(tmp_path):
         "{shoulder_pan_joint: [lower, upper]})"
     )):  # fmt: skip
         load_robot(spec)
-    joints = [j[0] for j in __import__("urdfs").UR5_JOINTS]
+    joints = [j[0] for j in UR5_JOINTS]
     spec.write_text(
         spec.read_text() + "joint_limits: {" + ", ".join(f"{j}: [-3, 3]" for j in joints) + "}\n"
     )

@@ -273,8 +273,10 @@ def test_scene_draws_the_ur5_with_its_gripper(ur5):
 
 def test_readme_tool_section_is_the_shipped_one():
     readme = (ROOT / "README.md").read_text()
-    block = next(b for b in readme.split("```yaml")[1:] if "\ntool:" in b.split("```")[0])
-    data = yaml.safe_load(block.split("```")[0])
+    blocks = [b.split("```")[0] for b in readme.split("```yaml")[1:]]
+    # the Tools section's block (the robot spec sketch before it has a model and a TCP-only tool)
+    block = next(b for b in blocks if "\ntool:" in b and "\nmodel:" not in b)
+    data = yaml.safe_load(block)
     shipped = {k: UR5_SPEC["tool"][k] for k in ("flange", "mount", "tcp", "fingers", "collision")}
     assert {k: data["tool"][k] for k in shipped} == shipped
     assert data["grasp_frame"] == UR5_SPEC["grasp_frame"]

@@ -427,6 +427,7 @@ def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
             f"needed: {', '.join(close) or 'see robot_descriptions --help'}"
         )
     cache = _rd_cache_dir()
+    _rd_announce(desc.repository, cache)
     try:
         # its clone prints a progress bar and git's messages: kept out of the output
         with (
@@ -446,6 +447,23 @@ def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
     srdf = Path(srdf_path) if srdf_path and Path(srdf_path).is_file() else None
     _RD_PATHS[name] = (urdf, srdf, dirs)
     return _RD_PATHS[name]
+
+
+def _rd_announce(repository: str | None, cache: str) -> None:
+    """Say so when robot_descriptions is about to clone a repository (it may take minutes)."""
+    from robot_descriptions._repositories import REPOSITORIES
+
+    repo = REPOSITORIES.get(repository or "")
+    if repo is None:
+        return
+    commit = os.environ.get("ROBOT_DESCRIPTION_COMMIT")  # robot_descriptions' own variable
+    sub = f"{repo.cache_path}-{commit}/{repo.cache_path}" if commit else repo.cache_path
+    if not os.path.isdir(os.path.join(cache, sub)):
+        log.warning(
+            "robot_descriptions: cloning %s into %s (first use; this can take minutes)",
+            repo.url,
+            os.path.join(cache, sub),
+        )
 
 
 def _rd_fetch_error(name: str, repository: str | None, cache: str, exc: Exception) -> str:

@@ -325,6 +325,7 @@ def test_bad_robot_specs_are_found_by_validate(capsys, tmp_path):
     latin.write_bytes(("# caf\xe9\n" + panda).encode("latin-1"))
     urdf = _panda_urdf()
     (tmp_path / "bad.srdf").write_text("<robot><disable_collisions link1=")
+    (tmp_path / "copy.urdf").write_text(urdf.read_text())
     cases = {
         latin: "robot spec is not UTF-8 text",
         _spec(
@@ -342,8 +343,10 @@ def test_bad_robot_specs_are_found_by_validate(capsys, tmp_path):
             "e.yaml",
             panda.replace("panda_finger_joint1: 0.04", "panda_finger_joint1: 1000"),
         ): "locked_joints.panda_finger_joint1 = 1000 is outside the joint's range [0, 0.04]",
-        _spec(tmp_path, "f.yaml", f"name: p\nmodel: {{urdf: {urdf}}}\n" + SPEC_TAIL): (
-            "cannot load the collision meshes"
+        # a copy of the URDF away from its meshes: the mesh is named, and the fix
+        _spec(tmp_path, "f.yaml", "name: p\nmodel: {urdf: copy.urdf}\n" + SPEC_TAIL): (
+            "link 'panda_link0': visual mesh 'package://example-robot-data/robots/"
+            "panda_description/meshes/visual/link0.dae' not found"
         ),
     }
     for spec, fragment in cases.items():

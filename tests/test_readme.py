@@ -50,6 +50,9 @@ def test_config_sketch_validates() -> None:
     assert yaml_blocks, "README lost its config sketch"
     for text in yaml_blocks:
         data = yaml.safe_load(text)
+        if "model" in data:  # a robot spec of a user's URDF: written and loaded
+            _load_readme_spec(data)
+            continue
         if "tool" in data:  # a robot spec's tool section (see Tools)
             from gcm_pipeline.robot.tool import parse_tool
 
@@ -80,3 +83,20 @@ def test_every_example_config_is_listed() -> None:
 def test_benchmark_scripts_named_in_readme_exist() -> None:
     for script in re.findall(r"python (benchmarks/\S+\.py)", README):
         assert (ROOT / script).is_file(), script
+
+
+def _load_readme_spec(data: dict) -> None:
+    import tempfile
+
+    from urdfs import arm_urdf
+
+    from gcm_pipeline.robot.model import load_robot
+
+    with tempfile.TemporaryDirectory() as tmp:
+        urdf = Path(tmp) / data["model"]["urdf"]
+        urdf.parent.mkdir(parents=True)
+        urdf.write_text(arm_urdf())
+        spec = Path(tmp) / "spec.yaml"
+        spec.write_text(yaml.safe_dump(data))
+        robot = load_robot(spec)
+        assert robot.grasp_frame == data["grasp_frame"] and robot.upper[5] == 3.1416

@@ -152,7 +152,7 @@ def test_bottle_with_the_ur5_gives_a_plausible_answer(ur5):
             r"tool\.tcp\.matrix is not a rigid transform: last row",
         ),
         ({"mount": {"rpy_deg": [0, 0, 90], "quat": [1, 0, 0, 0]}}, r"tool\.mount: give one of"),
-        ({"collision": []}, r"tool\.collision must be a non-empty list"),
+        ({"collision": "box"}, r"tool\.collision must be a non-empty list"),
         ({"fingers": None}, r"tool\.fingers: missing, but shapes finger_left, finger_right"),
         ({"flange": None}, r"tool\.flange"),
         ({"gripper": "x"}, r"tool: unknown key 'gripper'"),
@@ -273,8 +273,60 @@ def test_scene_draws_the_ur5_with_its_gripper(ur5):
 
 def test_readme_tool_section_is_the_shipped_one():
     readme = (ROOT / "README.md").read_text()
-    block = next(b for b in readme.split("```yaml")[1:] if "\ntool:" in b.split("```")[0])
-    data = yaml.safe_load(block.split("```")[0])
+    blocks = [b.split("```")[0] for b in readme.split("```yaml")[1:]]
+    # the Tools section's block (the robot spec sketch before it has a model and a TCP-only tool)
+    block = next(b for b in blocks if "\ntool:" in b and "\nmodel:" not in b)
+    data = yaml.safe_load(block)
     shipped = {k: UR5_SPEC["tool"][k] for k in ("flange", "mount", "tcp", "fingers", "collision")}
     assert {k: data["tool"][k] for k in shipped} == shipped
     assert data["grasp_frame"] == UR5_SPEC["grasp_frame"]
+
+
+def test_a_tool_may_be_a_tcp_only(tmp_path, ur5, caplog):
+    spec = _spec(tmp_path, collision=None, fingers=None)
+    with caplog.at_level("WARNING", logger="gcm_pipeline"):
+        robot = load_robot(spec)
+    assert "is a TCP only (no collision shapes): the hand is not collision-checked" in caplog.text
+    assert robot.spec.tool.collision == () and robot.spec.tool.visual == ()
+    for kind in ("collision", "visual"):
+        names = [g.name for g in robot.build_geometry(kind).geometryObjects]
+        assert not any(n.startswith("tool/") for n in names)
+        assert len(names) == len(ur5.build_geometry(kind).geometryObjects) - 4
+    q = ur5.random_configurations(20, seed=4)
+    np.testing.assert_allclose(robot.fk(q), ur5.fk(q), atol=1e-12)  # the same TCP frame
+    # no gripper geometry then (tool0 has none): every arm link is checked against the object
+    cfg = _bottle_config()
+    checker = make_checker(robot, cfg.environment, cfg.object)
+    assert checker.gripper_geoms == ()
+    assert list(checker.pair_kind).count("object") == checker.n_robot_geoms == 8
+    spec = _spec(tmp_path, collision=[], fingers=None)
+    assert load_robot(spec).spec.tool.collision == ()
+
+
+def _bottle_config():
+    from gcm_pipeline.config import load_config
+
+    return load_config(ROOT / "configs" / "bottle_side.yaml", ["robot.spec=ur5"])
+
+
+@pytest.mark.parametrize(
+    ("changes", "key"),
+    [
+        ({"fingers": {"opening": 1e300}}, "tool.fingers.opening: 1e+300 is beyond +-1000"),
+        ({"tcp": {"xyz": [0, 0, 1e30]}}, "tool.tcp.xyz: 1e+30 is beyond +-1000"),
+        (
+            {"collision": [{"name": "b", "shape": "box", "size": [0.1, 1e20, 0.1]}]},
+            "tool.collision[0].size: 1e+20 is beyond",
+        ),
+    ],
+)
+def test_astronomic_tool_numbers_are_one_line(tmp_path, changes, key):
+    spec = _spec(tmp_path, **changes)
+    proc = subprocess.run(
+        [sys.executable, "-m", "gcm_pipeline", "validate",
+         str(ROOT / "configs" / "flat_surface.yaml"), "--set", f"robot.spec={spec}"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
+    assert key in lines[0], lines[0]

@@ -411,15 +411,10 @@ def _posture(frame: str, joints: list[str], positions: list[float], t: float) ->
 
 def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
     """Root frame, grasp frame and locked joints of the run's robot spec."""
-    import pinocchio as pin
-
-    from gcm_pipeline.robot.model import _erd_paths, load_spec
+    from gcm_pipeline.robot.model import load_spec, root_link
 
     spec = load_spec(config.robot.spec)
-    urdf = _erd_paths(spec.example_robot_data)[0] if spec.example_robot_data else spec.urdf
-    model = pin.buildModelFromUrdf(str(urdf))
-    root = model.frames[1].name if len(model.frames) > 1 else "world"
-    return root, spec.grasp_frame, dict(spec.locked_joints)
+    return root_link(spec), spec.grasp_frame, dict(spec.locked_joints)
 
 
 def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:

@@ -1802,7 +1802,7 @@ def gripper_links(robot: Robot) -> set[str]:
     (``panda_leftfinger``, ``panda_rightfinger``).
     """
     fm = robot.full_model
-    fid = fm.getFrameId(robot.grasp_frame)
+    fid = robot.full_grasp_frame_id  # by name and type: a joint may share its name
     root = fid
     k = int(fm.frames[fid].parentFrame)
     while k != root and k > 0:

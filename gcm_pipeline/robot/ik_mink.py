@@ -83,8 +83,8 @@ class MinkIKOptions:
 
 def _urdf_for_mujoco(robot: Any) -> str:
     """URDF text that MuJoCo compiles (see the module docstring)."""
-    tree = ET.parse(robot.urdf_path)
-    root = tree.getroot()
+    # the URDF the model was built from: continuous joints revolute, mesh paths absolute
+    root = ET.fromstring(robot.urdf_xml)
     for old in root.findall("mujoco"):
         root.remove(old)
     ext = ET.SubElement(root, "mujoco")

@@ -39,9 +39,7 @@ def read_mesh(path: str | Path, scale: Any = 1.0) -> Any:
     try:
         mesh = coal.MeshLoader().load(str(p), factors)
     except Exception as exc:  # coal raises ValueError with a multi-line message
-        lines = str(exc).strip().splitlines()
-        detail = next((ln for ln in lines if ln.startswith("message:")), lines[-1] if lines else "")
-        raise MeshReadError(f"cannot read mesh file {str(p)!r}: {detail}") from exc
+        raise MeshReadError(f"cannot read mesh file {str(p)!r}: {_coal_reason(exc)}") from exc
     if mesh.num_tris == 0:
         raise MeshReadError(f"mesh file {str(p)!r} has no triangles")
     verts = np.asarray(mesh.vertices())
@@ -49,6 +47,19 @@ def read_mesh(path: str | Path, scale: Any = 1.0) -> Any:
         i = int(np.flatnonzero(~np.isfinite(verts).all(axis=1))[0])
         raise MeshReadError(f"mesh file {str(p)!r}: vertex {i} is not finite")
     return mesh
+
+
+def _coal_reason(exc: Exception) -> str:
+    """The reason in coal's multi-line loader message, without its C++ source location.
+
+    coal says ``From file: /project/src/mesh_loader/assimp.cpp``, ``in function: ...``,
+    ``at line: ...``, ``message: Could not load resource <file>``, then assimp's
+    reason (``STL: Invalid number of vertices``) and a hint: the reason is kept.
+    """
+    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
+    skip = ("From file:", "in function:", "at line:", "Hint:", "message: Could not load resource")
+    useful = [ln for ln in lines if not ln.startswith(skip)]
+    return " ".join(useful)[:300] or "assimp cannot read it"
 
 
 def _first_nonfinite_vertex(path: Path) -> int | None:

@@ -6,26 +6,36 @@ A robot spec is a small YAML file (``gcm_pipeline/robots/<name>.yaml``)::
     description: Franka Panda            # optional, free text
     model:                               # required: exactly one source
       example_robot_data: panda          #   a loader name of example-robot-data
+      # or robot_descriptions: ur10e_description   # a robot_descriptions module
       # or urdf: path.urdf               #   a URDF (relative paths: to the spec file)
-      #    srdf: path.srdf               #   optional
-      #    package_dirs: [dir, ...]      #   optional, resolves package:// URIs
+      #    srdf: path.srdf               #   optional (disabled collision pairs)
+      #    package_dirs: [dir, ...]      #   optional, resolves package:// URIs; the
+      #                                  #   URDF's folder and its parents are tried after
     grasp_frame: panda_hand_tcp          # required: frame whose pose IK targets
     locked_joints: {joint: value}        # optional: joints removed at this value [rad or m]
     home: {joint: value} | [values]      # optional: home configuration [rad] (default: middle)
     limit_margin: 0.0                    # optional: tighten every range on both sides [rad]
-    joint_limits: {joint: [lo, hi]}      # optional: ranges intersected with the model's [rad]
+    joint_limits: {joint: [lo, hi]}      # optional: ranges intersected with the model's [rad];
+                                         #   a continuous joint's range (default [-2pi, 2pi])
     tool: {flange, mount, tcp, collision, ...}  # optional: a gripper for a bare flange;
                                          #   grasp_frame then names the TCP frame it adds
                                          #   (see gcm_pipeline.robot.tool)
 
 Another arm of example-robot-data is a new YAML file, not new code. Poses are
 expressed in the model's root frame (``universe``), called the *base frame*.
+
+A user's URDF is read by :mod:`gcm_pipeline.robot.urdf`: continuous joints become
+revolute over [-2π, 2π] (or the ``joint_limits`` range), meshes resolve against
+``package_dirs`` then the URDF's folder and its parents, and frames resolve by name
+and type (a link and a joint of one name mean the link).
 """
 
 from __future__ import annotations
 
 import difflib
+import logging
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
@@ -36,17 +46,34 @@ import numpy as np
 import pinocchio as pin
 
 from gcm_pipeline.errors import (
-    FrameNotFoundError,
     InputError,
     RobotSpecError,
     clip,
     unknown_choice,
 )
 from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
 from gcm_pipeline.robot.tool import ToolSpec, parse_tool, shape_geometry
+from gcm_pipeline.robot.urdf import (
+    PreparedUrdf,
+    build_model,
+    captured_output,
+    prepare_urdf,
+    resolve_frame,
+)
 from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 
-__all__ = ["Robot", "RobotSpec", "available_robots", "load_robot", "load_spec"]
+__all__ = [
+    "Robot",
+    "RobotSpec",
+    "available_robots",
+    "load_robot",
+    "load_spec",
+    "model_files",
+    "root_link",
+]
+
+log = logging.getLogger(__name__)
 
 _SPEC_KEYS = (
     "name",
@@ -59,7 +86,9 @@ _SPEC_KEYS = (
     "joint_limits",
     "tool",
 )
-_MODEL_KEYS = ("example_robot_data", "urdf", "srdf", "package_dirs")
+_MODEL_KEYS = ("example_robot_data", "robot_descriptions", "urdf", "srdf", "package_dirs")
+#: Largest joint bound accepted [rad or m]; a URDF's "unlimited" +-1e308 is refused.
+MAX_JOINT_BOUND = 1000.0
 
 
 @dataclass(frozen=True)
@@ -71,7 +100,8 @@ class RobotSpec:
         description: Free text.
         path: The YAML file the spec was read from (None if built in code).
         example_robot_data: Loader name in ``example_robot_data`` or None.
-        urdf: URDF path or None (then ``example_robot_data`` is set).
+        robot_descriptions: Module name in ``robot_descriptions`` or None.
+        urdf: URDF path or None (then one of the two above is set).
         srdf: SRDF path or None.
         package_dirs: Directories resolving ``package://`` URIs.
         grasp_frame: Name of the frame that IK targets.
@@ -88,6 +118,7 @@ class RobotSpec:
     description: str = ""
     path: Path | None = None
     example_robot_data: str | None = None
+    robot_descriptions: str | None = None
     urdf: Path | None = None
     srdf: Path | None = None
     package_dirs: tuple[Path, ...] = ()
@@ -176,9 +207,23 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
     model = _mapping(where, "model", raw["model"])
     _check_keys(f"{where} model", model, _MODEL_KEYS)
     erd_name = model.get("example_robot_data")
+    rd_name = model.get("robot_descriptions")
     urdf = model.get("urdf")
-    if (erd_name is None) == (urdf is None):
-        raise RobotSpecError(f"{where}: model needs exactly one of example_robot_data, urdf")
+    sources = ("example_robot_data", "robot_descriptions", "urdf")
+    given = [k for k in sources if model.get(k) is not None]
+    if len(given) != 1:
+        raise RobotSpecError(
+            f"{where}: model needs exactly one of {', '.join(sources)}, got "
+            f"{', '.join(given) or 'none'}"
+        )
+    for key in ("example_robot_data", "robot_descriptions", "urdf", "srdf"):
+        if model.get(key) is not None and not isinstance(model[key], str):
+            raise RobotSpecError(f"{where}: model.{key} must be a string, got {clip(model[key])}")
+    if rd_name is not None and (model.get("srdf") is not None or model.get("package_dirs")):
+        raise RobotSpecError(
+            f"{where}: model.robot_descriptions brings its own SRDF and package folders; "
+            "remove model.srdf / model.package_dirs (or use model.urdf)"
+        )
     base = path.parent
 
     def _resolve(p: Any) -> Path:
@@ -215,12 +260,17 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
     pkg = model.get("package_dirs") or []
     if isinstance(pkg, str):
         pkg = [pkg]
+    if not isinstance(pkg, (list, tuple)) or not all(isinstance(d, str) for d in pkg):
+        raise RobotSpecError(
+            f"{where}: model.package_dirs must be a folder or a list of folders, got {clip(pkg)}"
+        )
     spec = RobotSpec(
         name=raw["name"],
         description=str(raw.get("description", "") or ""),
         path=path,
         grasp_frame=raw["grasp_frame"],
         example_robot_data=None if erd_name is None else str(erd_name),
+        robot_descriptions=None if rd_name is None else str(rd_name),
         urdf=None if urdf is None else _resolve(urdf),
         srdf=None if model.get("srdf") is None else _resolve(model["srdf"]),
         package_dirs=tuple(_resolve(p) for p in pkg),
@@ -235,11 +285,15 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
 
 
 def _check_model_files(where: str, spec: RobotSpec) -> None:
-    """The model a spec names exists: an example-robot-data loader, or URDF/SRDF files."""
-    if spec.example_robot_data is not None:
-        urdf, _, _ = _erd_paths(spec.example_robot_data)
+    """The model a spec names exists.
+
+    A loader of example-robot-data or robot_descriptions that loads the robot it
+    is named after, or URDF/SRDF files.
+    """
+    if spec.example_robot_data is not None or spec.robot_descriptions is not None:
+        urdf = model_files(spec)[0]
         if not urdf.is_file():  # pragma: no cover - a broken example-robot-data install
-            raise RobotSpecError(f"{where}: example-robot-data has no file {urdf}")
+            raise RobotSpecError(f"{where}: the model's URDF {str(urdf)!r} does not exist")
         return
     files = [("model.urdf", spec.urdf), ("model.srdf", spec.srdf)]
     for key, file in files:
@@ -257,6 +311,11 @@ def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
     if name not in ROBOTS:
         raise RobotSpecError(unknown_choice("example_robot_data robot", name, ROBOTS))
     loader = ROBOTS[name]
+    if not loader.urdf_filename:
+        raise RobotSpecError(
+            f"example_robot_data robot {name!r} is an SDF model ({loader.sdf_filename}); "
+            "only URDF models are read: give its URDF with model.urdf"
+        )
     sub = f"{loader.path}/{loader.urdf_subpath}/{loader.urdf_filename}"
     robots_dir = Path(getModelPath(sub)).resolve()
     urdf = robots_dir / sub
@@ -265,6 +324,196 @@ def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
         cand = robots_dir / loader.path / loader.srdf_subpath / loader.srdf_filename
         srdf = cand if cand.is_file() else None
     return urdf, srdf, robots_dir / loader.path
+
+
+_MODEL_TOKEN = re.compile(r"([a-z]+)(\d+)([a-z]?)")
+
+
+def _model_tokens(text: str) -> dict[str, set[str]]:
+    """Model numbers in a name, by letter prefix: ``ur10e_description`` -> {ur: {ur10e}}."""
+    out: dict[str, set[str]] = {}
+    for part in re.split(r"[^a-z0-9]+", text.lower()):
+        m = _MODEL_TOKEN.fullmatch(part)
+        if m:
+            out.setdefault(m.group(1), set()).add(part)
+    return out
+
+
+def _urdf_robot_name(urdf: Path) -> str:
+    """``<robot name>`` of a URDF, read from its first 64 KiB ('' if not found)."""
+    try:
+        with open(urdf, "rb") as fh:
+            head = fh.read(1 << 16).decode("utf-8", errors="replace")
+    except OSError:
+        return ""
+    m = re.search(r"<robot\b[^>]*?\bname\s*=\s*[\"']([^\"']*)", head)
+    return m.group(1) if m else ""
+
+
+def _check_same_robot(source: str, name: str, urdf: Path) -> None:
+    """Refuse a loader that loads another robot's model.
+
+    Example-robot-data's ``ur3`` loads ``ur5_robot.urdf``: a model number in the
+    loader's name (ur3) that the URDF's file name and robot name contradict (ur5).
+    """
+    robot = _urdf_robot_name(urdf)
+    got: dict[str, set[str]] = {}
+    for text in (urdf.stem, robot):
+        for prefix, tokens in _model_tokens(text).items():
+            got.setdefault(prefix, set()).update(tokens)
+    for prefix, tokens in _model_tokens(name).items():
+        for token in tokens:
+            others = got.get(prefix, set())
+            if not others or token in others:
+                continue
+            ships = sorted(
+                (
+                    p
+                    for p in urdf.parent.glob("*.urdf")
+                    if token in _model_tokens(p.stem).get(prefix, ())
+                ),
+                key=lambda p: (p.stem != f"{token}_robot", p.name),
+            )
+            fix = (
+                f"use model: {{urdf: {ships[0]}}} instead"
+                if ships
+                else f"no URDF of the {token} ships beside it; give your own with model.urdf"
+            )
+            raise RobotSpecError(
+                f"model.{source} {name!r} loads another robot's model: {urdf.name} "
+                f"(robot {robot or '?'!r}, a {', '.join(sorted(others))}); {fix}"
+            )
+
+
+#: robot_descriptions modules resolved in this process: name -> (urdf, srdf, package dirs)
+_RD_PATHS: dict[str, tuple[Path, Path | None, tuple[Path, ...]]] = {}
+
+
+def _rd_cache_dir() -> str:
+    return os.path.expanduser(
+        os.environ.get("ROBOT_DESCRIPTIONS_CACHE", "~/.cache/robot_descriptions")
+    )
+
+
+def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
+    """URDF, SRDF and package folders of a ``robot_descriptions`` module.
+
+    Importing the module clones its repository into robot_descriptions' cache
+    (``ROBOT_DESCRIPTIONS_CACHE``, default ``~/.cache/robot_descriptions``) on first
+    use; a Xacro description is rendered to a URDF there (needs ``xacrodoc``).
+    """
+    import contextlib
+    import importlib
+    import io
+
+    if name in _RD_PATHS:
+        return _RD_PATHS[name]
+    try:
+        from robot_descriptions._descriptions import DESCRIPTIONS
+    except ImportError:  # pragma: no cover - a dependency of the package
+        raise RobotSpecError(
+            "model.robot_descriptions needs the package robot_descriptions "
+            "(pip install robot_descriptions)"
+        ) from None
+    if name not in DESCRIPTIONS:
+        urdf_names = [k for k, d in DESCRIPTIONS.items() if d.has_urdf]
+        raise RobotSpecError(unknown_choice("robot_descriptions model", name, urdf_names))
+    desc = DESCRIPTIONS[name]
+    if not desc.has_urdf:
+        urdf_names = [k for k, d in DESCRIPTIONS.items() if d.has_urdf]
+        close = difflib.get_close_matches(name.replace("_mj_", "_"), urdf_names, n=3, cutoff=0.5)
+        raise RobotSpecError(
+            f"model.robot_descriptions {name!r} is an MJCF (MuJoCo) model; a URDF one is "
+            f"needed: {', '.join(close) or 'see robot_descriptions --help'}"
+        )
+    cache = _rd_cache_dir()
+    _rd_announce(desc.repository, cache)
+    try:
+        # its clone prints a progress bar and git's messages: kept out of the output
+        with (
+            contextlib.redirect_stdout(io.StringIO()),
+            contextlib.redirect_stderr(io.StringIO()),
+            captured_output(),
+        ):
+            from robot_descriptions._package_dirs import get_package_dirs
+            from robot_descriptions._xacro import get_urdf_path
+
+            module = importlib.import_module(f"robot_descriptions.{name}")
+            urdf = Path(get_urdf_path(module))
+            dirs = tuple(Path(d) for d in get_package_dirs(module))
+            srdf_path = getattr(module, "SRDF_PATH", None)
+    except Exception as exc:  # git, network, xacro: whatever the download raised
+        raise RobotSpecError(_rd_fetch_error(name, desc.repository, cache, exc)) from None
+    srdf = Path(srdf_path) if srdf_path and Path(srdf_path).is_file() else None
+    _RD_PATHS[name] = (urdf, srdf, dirs)
+    return _RD_PATHS[name]
+
+
+def _rd_announce(repository: str | None, cache: str) -> None:
+    """Say so when robot_descriptions is about to clone a repository (it may take minutes)."""
+    from robot_descriptions._repositories import REPOSITORIES
+
+    repo = REPOSITORIES.get(repository or "")
+    if repo is None:
+        return
+    commit = os.environ.get("ROBOT_DESCRIPTION_COMMIT")  # robot_descriptions' own variable
+    sub = f"{repo.cache_path}-{commit}/{repo.cache_path}" if commit else repo.cache_path
+    if not os.path.isdir(os.path.join(cache, sub)):
+        log.warning(
+            "robot_descriptions: cloning %s into %s (first use; this can take minutes)",
+            repo.url,
+            os.path.join(cache, sub),
+        )
+
+
+def _rd_fetch_error(name: str, repository: str | None, cache: str, exc: Exception) -> str:
+    """One line: what could not be fetched, where it was expected, how to provide it."""
+    from robot_descriptions._repositories import REPOSITORIES
+
+    lines = [ln.strip(" '\"") for ln in str(exc).strip().splitlines() if ln.strip(" '\"")]
+    why = lines[-1] if lines else type(exc).__name__
+    why = why.removeprefix("stderr: ").strip(" '\"")[:200]
+    repo = REPOSITORIES.get(repository or "")
+    if repo is None:  # not a download: e.g. a Xacro that does not render
+        return f"model.robot_descriptions {name!r}: cannot be loaded: {why}"
+    target = os.path.join(cache, repo.cache_path)
+    return (
+        f"model.robot_descriptions {name!r}: not in the cache {cache} and cannot be fetched "
+        f"from {repo.url} ({why}); run once with network access, or clone that repository "
+        f"into {target} yourself (its commit {repo.commit[:12]} must be in it; "
+        "ROBOT_DESCRIPTIONS_CACHE sets the cache folder)"
+    )
+
+
+def model_files(spec: RobotSpec) -> tuple[Path, Path | None, tuple[Path, ...]]:
+    """URDF, SRDF and ``package://`` folders of a spec's model.
+
+    Raises:
+        RobotSpecError: An unknown loader or description, a loader that loads
+            another robot's model, a description that cannot be fetched.
+    """
+    if spec.example_robot_data is not None:
+        urdf, srdf, mesh_dir = _erd_paths(spec.example_robot_data)
+        _check_same_robot("example_robot_data", spec.example_robot_data, urdf)
+        return urdf, srdf, (mesh_dir.parent.parent.parent,)
+    if spec.robot_descriptions is not None:
+        urdf, srdf, dirs = _rd_paths(spec.robot_descriptions)
+        _check_same_robot("robot_descriptions", spec.robot_descriptions, urdf)
+        return urdf, srdf, dirs
+    assert spec.urdf is not None
+    return spec.urdf, spec.srdf, spec.package_dirs
+
+
+def root_link(spec: RobotSpec) -> str:
+    """Name of the root link of a spec's URDF (the robot's base frame).
+
+    Raises:
+        RobotSpecError: One line: the URDF is missing, not valid XML or has no root link.
+    """
+    urdf, _, dirs = model_files(spec)
+    if not urdf.is_file():
+        raise RobotSpecError(f"robot {spec.name!r}: URDF {str(urdf)!r} does not exist")
+    return prepare_urdf(urdf, dirs, spec.joint_limits, check_meshes=False).root_link
 
 
 def _check_srdf(name: str, srdf: Path) -> None:
@@ -306,6 +555,11 @@ class Robot:
         grasp_frame_id: Its index in ``model.frames``.
         locked_q: Full-model configuration used for the reduction (locked values).
         urdf_path: URDF file.
+        urdf_xml: The URDF as the model was built from it (continuous joints
+            revolute, mesh paths absolute; see :mod:`gcm_pipeline.robot.urdf`).
+        urdf: The prepared URDF (root link, robot name, meshes, continuous joints).
+        continuous_joints: Arm joints that are continuous in the URDF, with the
+            range they were given [rad].
         srdf_path: SRDF file or None.
         package_dirs: Directories that resolve the URDF's ``package://`` URIs.
         mesh_dir: Directory of the robot's description (meshes under it).
@@ -323,24 +577,17 @@ class Robot:
         self.spec = spec
         self.cache: dict[Any, Any] = {}
         self.name = spec.name
-        if spec.example_robot_data is not None:
-            urdf, srdf, mesh_dir = _erd_paths(spec.example_robot_data)
-            package_dirs: tuple[Path, ...] = (mesh_dir.parent.parent.parent,)
-        else:
-            assert spec.urdf is not None
-            urdf, srdf = spec.urdf, spec.srdf
-            mesh_dir = urdf.parent.parent
-            package_dirs = spec.package_dirs or (mesh_dir.parent,)
+        urdf, srdf, package_dirs = model_files(spec)
         if not urdf.is_file():
             raise RobotSpecError(f"robot {spec.name!r}: URDF {str(urdf)!r} does not exist")
         self.urdf_path = urdf
         self.srdf_path = srdf
-        self.mesh_dir = mesh_dir
-        self.package_dirs = tuple(package_dirs)
-        try:
-            full = pin.buildModelFromUrdf(str(urdf))
-        except Exception as exc:  # pinocchio raises ValueError/RuntimeError
-            raise RobotSpecError(f"robot {spec.name!r}: cannot read {str(urdf)!r}: {exc}") from exc
+        self.mesh_dir = urdf.parent.parent
+        prepared = prepare_urdf(urdf, package_dirs, spec.joint_limits)
+        self.urdf: PreparedUrdf = prepared
+        self.urdf_xml = prepared.xml
+        self.package_dirs = prepared.package_dirs
+        full = build_model(prepared)
         if spec.tool is not None:
             _add_tool_frame(spec, full)
         self.full_model = full
@@ -373,15 +620,14 @@ class Robot:
         self.data = model.createData()
         self.nq = int(model.nq)
         self.joint_names = tuple(model.names[i] for i in range(1, model.njoints))
-        if not model.existFrame(spec.grasp_frame):
-            names = [f.name for f in model.frames]
-            close = difflib.get_close_matches(spec.grasp_frame, names, n=5, cutoff=0.4)
-            raise FrameNotFoundError(
-                f"robot {spec.name!r}: grasp frame {spec.grasp_frame!r} not in the model; "
-                f"closest: {', '.join(close) or '(none)'}; all frames: {', '.join(names)}"
-            )
+        where = f"robot {spec.name!r}"
         self.grasp_frame = spec.grasp_frame
-        self.grasp_frame_id = int(model.getFrameId(spec.grasp_frame))
+        self.grasp_frame_id = resolve_frame(model, spec.grasp_frame, "grasp frame", where)
+        #: the grasp frame's index in ``full_model``
+        self.full_grasp_frame_id = resolve_frame(full, spec.grasp_frame, "grasp frame", where)
+        self.continuous_joints = {
+            j: r for j, r in prepared.continuous.items() if j in self.joint_names
+        }
         self.chain = KinematicChain(model, self.grasp_frame_id)
 
         lower = np.array(model.lowerPositionLimit, dtype=float)
@@ -394,13 +640,29 @@ class Robot:
                 )
             i = self.joint_names.index(jname)
             lower[i], upper[i] = max(lower[i], lo), min(upper[i], hi)
+        for i, jname in enumerate(self.joint_names):
+            lo, hi = float(lower[i]), float(upper[i])
+            if not (abs(lo) <= MAX_JOINT_BOUND and abs(hi) <= MAX_JOINT_BOUND):
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: joint {jname!r} has the range [{lo:g}, {hi:g}] in "
+                    f"{str(urdf)!r}, beyond +-{MAX_JOINT_BOUND:g} (rad or m); give its real "
+                    f"range in the spec: joint_limits: {{{jname}: [lower, upper]}}"
+                )
         lower += spec.limit_margin
         upper -= spec.limit_margin
-        if not np.all(np.isfinite(lower) & np.isfinite(upper)) or np.any(lower >= upper):
-            raise RobotSpecError(
-                f"robot {spec.name!r}: empty or infinite joint ranges after limits and "
-                f"margin: lower={lower.tolist()}, upper={upper.tolist()}"
-            )
+        for i, jname in enumerate(self.joint_names):
+            if not lower[i] < upper[i]:
+                why = (
+                    f" (the URDF gives it no lower/upper; give joint_limits: {{{jname}: "
+                    "[lower, upper]})"
+                    if jname in prepared.unbounded
+                    else ""
+                )
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: joint {jname!r} has an empty range "
+                    f"[{lower[i]:g}, {upper[i]:g}] after joint_limits and limit_margin "
+                    f"({spec.limit_margin:g}){why}"
+                )
         lower.setflags(write=False)
         upper.setflags(write=False)
         self.lower = lower
@@ -430,6 +692,13 @@ class Robot:
         self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}
         if spec.tool is not None:  # read the meshes now: a bad one fails before any work
             tool, where = spec.tool, f"robot spec {str(spec.path)!r}: tool"
+            if not tool.collision:
+                log.warning(
+                    "robot %r: the tool %r is a TCP only (no collision shapes): the hand is "
+                    "not collision-checked, only the arm's links are",
+                    spec.name,
+                    tool.name,
+                )
             for kind in ("collision", "visual"):
                 shapes = tool.collision if kind == "collision" else tool.visual
                 self._tool_shapes[kind] = [
@@ -566,18 +835,15 @@ class Robot:
 
     def _load_geometry(self, kind: str, geometry_type: Any) -> pin.GeometryModel:
         try:
-            geom = pin.buildGeomFromUrdf(
-                self.full_model,
-                str(self.urdf_path),
-                geometry_type,
-                package_dirs=[str(p) for p in self.package_dirs],
-            )
+            with captured_output():
+                geom = pin.buildGeomFromUrdfString(
+                    self.full_model,
+                    self.urdf_xml,
+                    geometry_type,
+                    package_dirs=[str(p) for p in self.package_dirs],
+                )
         except Exception as exc:  # pinocchio raises ValueError/RuntimeError
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise RobotSpecError(
-                f"robot {self.name!r}: cannot load the {kind} meshes of {str(self.urdf_path)!r}: "
-                f"{clip(first, 300)} (model.package_dirs resolves package:// URIs)"
-            ) from exc
+            raise self._geometry_error(kind, exc) from None
         locked = [
             self.full_model.getJointId(j)
             for j in self.spec.locked_joints
@@ -589,13 +855,32 @@ class Robot:
             self._add_tool_geometry(geom, kind)
         return geom
 
+    def _geometry_error(self, kind: str, exc: Exception) -> RobotSpecError:
+        """A one-line error naming the link and the mesh file that did not load."""
+        where = f"robot {self.name!r}: URDF {str(self.urdf_path)!r}"
+        for ref in self.urdf.meshes:
+            if ref.kind != kind:
+                continue
+            try:
+                read_mesh(ref.path)
+            except MeshReadError as bad:
+                return RobotSpecError(f"{where}: link {ref.link!r}, {kind} mesh: {bad}")
+        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+        useful = [
+            ln for ln in lines if not ln.startswith(("From file:", "in function:", "at line:"))
+        ]
+        return RobotSpecError(
+            f"{where}: cannot load the {kind} geometry: "
+            f"{clip('; '.join(useful) or type(exc).__name__, 300)}"
+        )
+
     def tool_tcp_link(self) -> tuple[str, np.ndarray]:
         """The URDF link that carries the tool's TCP frame and the frame's pose in it (4, 4).
 
         The link is the flange frame's nearest body (link) frame; for a tool only.
         """
         fm = self.full_model
-        fid = fm.getFrameId(self.grasp_frame)
+        fid = self.full_grasp_frame_id
         k = int(fm.frames[fid].parentFrame)
         while fm.frames[k].type != pin.FrameType.BODY and k > 0:
             k = int(fm.frames[k].parentFrame)
@@ -607,7 +892,7 @@ class Robot:
         """Append the tool's shapes, named ``tool/<name>``, on the flange's joint."""
         tool = self.spec.tool
         assert tool is not None
-        fid = self.model.getFrameId(tool.flange)
+        fid = resolve_frame(self.model, tool.flange, "tool.flange", f"robot {self.name!r}")
         frame = self.model.frames[fid]
         flange = frame.placement.homogeneous @ tool.mount
         for shape, geometry, pose in self._tool_shapes[kind]:
@@ -640,19 +925,12 @@ def _add_tool_frame(spec: RobotSpec, full: pin.Model) -> None:
     """Add the tool's TCP frame (named ``spec.grasp_frame``) to the unreduced model."""
     tool = spec.tool
     assert tool is not None
-    names = [f.name for f in full.frames]
-    if not full.existFrame(tool.flange):
-        close = difflib.get_close_matches(tool.flange, names, n=5, cutoff=0.4)
-        raise FrameNotFoundError(
-            f"robot {spec.name!r}: tool.flange {tool.flange!r} is not a frame of the model; "
-            f"closest: {', '.join(close) or '(none)'}"
-        )
+    fid = resolve_frame(full, tool.flange, "tool.flange", f"robot {spec.name!r}")
     if full.existFrame(spec.grasp_frame):
         raise RobotSpecError(
             f"robot {spec.name!r}: grasp_frame {spec.grasp_frame!r} already exists in the model; "
             "with a tool, grasp_frame names the new TCP frame the tool adds (e.g. tool_tcp)"
         )
-    fid = full.getFrameId(tool.flange)
     frame = full.frames[fid]
     m = frame.placement.homogeneous @ tool.mount @ tool.tcp
     placement = pin.SE3(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))

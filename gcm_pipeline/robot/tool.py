@@ -26,6 +26,15 @@ to the spec file, ``scale``: a number or three). A pose is ``xyz`` [m] plus one
 of ``rpy`` [rad], ``rpy_deg``, ``quat`` ([w, x, y, z], unit) or a ``matrix``
 (4 x 4 rigid transform); each must be rigid.
 
+A tool may be a TCP only: without ``collision`` (or with ``collision: []``) it
+adds the grasp frame and nothing else. The hand is then not collision-checked
+(only the arm's own links are), which the robot says in a warning when it is
+built.
+
+Lengths, positions, the opening and a mesh's scale are at most
+:data:`~gcm_pipeline.limits.MAX_LENGTH` (1,000 m, or a factor) in magnitude, as
+in a run's config: coal's bounding volumes break on astronomic sizes.
+
 Fingers: shapes tagged ``finger: left`` / ``finger: right`` are given closed
 (touching at the tool's axis) and are moved by ``+opening / 2`` / ``-opening / 2``
 along ``fingers.axis`` (tool base frame), like two symmetric prismatic finger
@@ -50,6 +59,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import RobotSpecError, unknown_choice
+from gcm_pipeline.limits import MAX_LENGTH
 from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
 
 __all__ = ["ToolShape", "ToolSpec", "parse_pose", "parse_tool"]
@@ -126,7 +136,7 @@ class ToolSpec:
         opening: Finger opening [m] or None (no finger shapes).
         axis: Closing axis of the fingers in the tool base frame (3,), unit.
         color: RGBA of the drawn tool.
-        collision: Collision shapes.
+        collision: Collision shapes (empty: a TCP only, the hand is not collision-checked).
         visual: Visual shapes (the collision shapes when the spec gives none).
     """
 
@@ -179,6 +189,12 @@ def _numbers(where: str, value: Any, n: int | None = None) -> tuple[float, ...]:
         out.append(float(v))
     if n is not None and len(out) != n:
         raise RobotSpecError(f"{where} needs {n} numbers, got {len(out)}: {value!r}")
+    big = next((v for v in out if abs(v) > MAX_LENGTH), None)
+    if big is not None:
+        raise RobotSpecError(
+            f"{where}: {big:g} is beyond +-{MAX_LENGTH:g} (m, or a factor); a tool is "
+            "metres across at most"
+        )
     return tuple(out)
 
 
@@ -302,8 +318,10 @@ def _shape(where: str, raw: Any, base: Path, index: int) -> ToolShape:
     return ToolShape(name, kind, size, mesh, scale, pose, finger, color)
 
 
-def _shapes(where: str, raw: Any, base: Path) -> tuple[ToolShape, ...]:
-    if not isinstance(raw, Sequence) or isinstance(raw, str) or not raw:
+def _shapes(where: str, raw: Any, base: Path, empty: bool = False) -> tuple[ToolShape, ...]:
+    if raw is None and empty:
+        return ()
+    if not isinstance(raw, Sequence) or isinstance(raw, str) or (not raw and not empty):
         raise RobotSpecError(f"{where} must be a non-empty list of shapes, got {raw!r}")
     out = tuple(_shape(f"{where}[{i}]", item, base, i) for i, item in enumerate(raw))
     names = [s.name for s in out]
@@ -336,9 +354,8 @@ def parse_tool(where: str, raw: Any, base: Path) -> ToolSpec:
         raise RobotSpecError(
             f"{w}.flange: name the model frame the tool is mounted on (e.g. tool0)"
         )
-    if "collision" not in raw:
-        raise RobotSpecError(f"{w}.collision: missing (a list of shapes)")
-    collision = _shapes(f"{w}.collision", raw["collision"], base)
+    # no collision shapes: a TCP only (the hand is not collision-checked)
+    collision = _shapes(f"{w}.collision", raw.get("collision"), base, empty=True)
     visual = collision if raw.get("visual") is None else _shapes(f"{w}.visual", raw["visual"], base)
     fingers = raw.get("fingers")
     opening: float | None = None

@@ -1,0 +1,93 @@
+"""Small URDFs written by tests: a UR5-like 6R arm made of primitives, with knobs for the
+quirks users' URDFs have (a joint named like a link, continuous joints, huge limits,
+relative or ``package://`` meshes)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+# (joint, parent link, child link, origin xyz, origin rpy, axis): the UR5 of example-robot-data
+UR5_JOINTS = [
+    ("shoulder_pan_joint", "base_link", "shoulder_link", "0 0 0.089159", "0 0 0", "0 0 1"),
+    ("shoulder_lift_joint", "shoulder_link", "upper_arm_link", "0 0.13585 0", "0 1.5707963 0",
+     "0 1 0"),
+    ("elbow_joint", "upper_arm_link", "forearm_link", "0 -0.1197 0.425", "0 0 0", "0 1 0"),
+    ("wrist_1_joint", "forearm_link", "wrist_1_link", "0 0 0.39225", "0 1.5707963 0", "0 1 0"),
+    ("wrist_2_joint", "wrist_1_link", "wrist_2_link", "0 0.093 0", "0 0 0", "0 0 1"),
+    ("wrist_3_joint", "wrist_2_link", "wrist_3_link", "0 0 0.09465", "0 0 0", "0 1 0"),
+]  # fmt: skip
+# a collision cylinder per link: (radius, length, xyz, rpy)
+SHAPES = {
+    "base_link": (0.06, 0.05, "0 0 0.025", "0 0 0"),
+    "shoulder_link": (0.06, 0.12, "0 0 0", "0 0 0"),
+    "upper_arm_link": (0.05, 0.30, "0 0 0.2125", "0 0 0"),
+    "forearm_link": (0.04, 0.28, "0 0 0.196", "0 0 0"),
+    "wrist_1_link": (0.035, 0.10, "0 0.093 0", "1.5707963 0 0"),
+    "wrist_2_link": (0.035, 0.09, "0 0 0.09465", "0 0 0"),
+    "wrist_3_link": (0.03, 0.04, "0 0.06 0", "1.5707963 0 0"),
+}
+
+
+def arm_urdf(
+    *,
+    joint_type: str | dict[str, str] = "revolute",
+    limits: tuple[float, float] | None = (-2 * math.pi, 2 * math.pi),
+    flange_joint: str = "tool0_joint",
+    mesh: str | None = None,
+    mesh_link: str = "wrist_3_link",
+    name: str = "arm",
+) -> str:
+    """URDF text of a UR5-like arm ending in a ``tool0`` flange (z out of the flange).
+
+    Args:
+        joint_type: Type of every arm joint, or joint name -> type.
+        limits: ``<limit lower upper>`` of every arm joint (None: no lower/upper).
+        flange_joint: Name of the fixed joint to ``tool0`` (``"tool0"``: a joint and a
+            link of one name).
+        mesh: A mesh filename used as ``mesh_link``'s visual and collision geometry
+            instead of its cylinder.
+        name: The robot's name.
+    """
+    out = [f'<?xml version="1.0"?>\n<robot name="{name}">']
+    for link, (r, length, xyz, rpy) in SHAPES.items():
+        if mesh is not None and link == mesh_link:
+            geom = f'<geometry><mesh filename="{mesh}"/></geometry>'
+        else:
+            geom = f'<geometry><cylinder radius="{r}" length="{length}"/></geometry>'
+        out.append(
+            f'  <link name="{link}">\n'
+            f'    <visual><origin xyz="{xyz}" rpy="{rpy}"/>{geom}</visual>\n'
+            f'    <collision><origin xyz="{xyz}" rpy="{rpy}"/>{geom}</collision>\n'
+            f'    <inertial><mass value="1"/>'
+            f'<inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>\n'
+            "  </link>"
+        )
+    for joint, parent, child, xyz, rpy, axis in UR5_JOINTS:
+        kind = joint_type if isinstance(joint_type, str) else joint_type.get(joint, "revolute")
+        lim = ""
+        if limits is not None:
+            lim = f'<limit lower="{limits[0]!r}" upper="{limits[1]!r}" effort="28" velocity="3.2"/>'
+        elif kind != "fixed":
+            lim = '<limit effort="28" velocity="3.2"/>'
+        out.append(
+            f'  <joint name="{joint}" type="{kind}"><parent link="{parent}"/>'
+            f'<child link="{child}"/><origin xyz="{xyz}" rpy="{rpy}"/>'
+            f'<axis xyz="{axis}"/>{lim}</joint>'
+        )
+    out.append('  <link name="tool0"/>')
+    out.append(
+        f'  <joint name="{flange_joint}" type="fixed"><parent link="wrist_3_link"/>'
+        '<child link="tool0"/><origin xyz="0 0.0823 0" rpy="-1.5707963 0 0"/></joint>'
+    )
+    out.append("</robot>\n")
+    return "\n".join(out)
+
+
+def write_arm(folder: Path, spec_extra: str = "", *, urdf_name: str = "arm.urdf", **kw) -> Path:
+    """Write ``arm.urdf`` and ``spec.yaml`` (grasp frame ``tool0``) in ``folder``; the spec."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / urdf_name).write_text(arm_urdf(**kw))
+    spec = folder / "spec.yaml"
+    spec.write_text(f"name: arm\nmodel: {{urdf: {urdf_name}}}\ngrasp_frame: tool0\n" + spec_extra)
+    return spec

@@ -113,3 +113,33 @@ def test_solve_ik_takes_the_branch_nearest_the_seed(arm: Robot) -> None:
         assert len(b) >= 2
         gap = np.max(branch_gap(b[:, None], b[None], wide), axis=2)
         assert np.all(gap[~np.eye(len(b), dtype=bool)] > 1e-6)
+
+
+@pytest.mark.parametrize("analytic", [True, False])
+def test_alternatives_are_other_arm_shapes_not_whole_turns(arm: Robot, analytic: bool) -> None:
+    """Step 3's alternatives differ from the rejected solution and from each other modulo
+    2 pi (a whole turn of a wrist is the same arm in the same collision); with closed-form
+    branches they are every other branch."""
+    from gcm_pipeline.robot.engine import ReachabilityEngine
+
+    q = arm.random_configurations(40, np.random.default_rng(5))
+    q = np.clip(q, arm.lower + 0.1, arm.upper - 0.1)
+    poses = _pin_pose(arm, q)
+    engine = ReachabilityEngine(arm, alternatives=4, ik_options={"analytic": analytic})
+    # the rejected solution, given at a copy a turn away where the limits allow it
+    wide = wide_joints(arm.lower, arm.upper)
+    turned = np.where(wide & (q < 0), q + 2 * np.pi, q)
+    idx, rank, alt, err = engine._alternatives(poses, turned)
+    assert idx.size and np.all(err[:, 0] <= 1e-4) and np.all(err[:, 1] <= 1e-3)
+    assert np.all(np.max(branch_gap(alt, q[idx], wide), axis=1) >= 1e-3)
+    for i in np.unique(idx):
+        b = alt[idx == i]
+        gap = np.max(branch_gap(b[:, None], b[None], wide), axis=2)
+        assert np.all(gap[~np.eye(len(b), dtype=bool)] >= 1e-3)
+    if analytic:
+        solver = six_r_solver(arm)
+        assert solver is not None
+        every, _ = solver.solve(poses[:, :3, :3], poses[:, :3, 3], arm.lower, arm.upper, arm.home)
+        # every branch but the rejected one (the limits are not binding here)
+        np.testing.assert_array_equal(np.bincount(idx, minlength=40) + 1, np.bincount(every))
+        assert rank.max() >= 4  # more than `alternatives`: all of them

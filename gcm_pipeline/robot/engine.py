@@ -335,17 +335,13 @@ class ReachabilityEngine:
 
     # --- step 2 ------------------------------------------------------------------------
 
-    def check(self, targets: np.ndarray, q: np.ndarray) -> CheckResult:
-        """Step 2 for M solutions: collisions, validator, approach, retreat.
-
-        Args:
-            targets: Grasp poses (M, 4, 4) in the base frame [m].
-            q: Their IK solutions (M, nq) [rad], finite.
+    def check_grasp(self, q: np.ndarray) -> np.ndarray:
+        """The checks at the grasp of M solutions: collisions, then the validator.
 
         Returns:
-            The :class:`CheckResult`.
+            (M,) object array of reasons, ``''`` where both pass.
         """
-        m, nq = q.shape
+        m = q.shape[0]
         reason = np.full(m, "", dtype=object)
         t0 = time.process_time()
         if self.checker is not None and m:
@@ -360,6 +356,27 @@ class ReachabilityEngine:
                         f"validator returned shape {why.shape}, expected ({free.size},)"
                     )
                 reason[free] = why
+        return reason
+
+    def check(
+        self, targets: np.ndarray, q: np.ndarray, at_grasp: np.ndarray | None = None
+    ) -> CheckResult:
+        """Step 2 for M solutions: collisions, validator, approach, retreat.
+
+        Args:
+            targets: Grasp poses (M, 4, 4) in the base frame [m].
+            q: Their IK solutions (M, nq) [rad], finite.
+            at_grasp: The reasons (M,) of the checks at the grasp (collisions and
+                validator, :meth:`check_grasp`) if already known.
+
+        Returns:
+            The :class:`CheckResult`.
+        """
+        m, nq = q.shape
+        if at_grasp is None:
+            reason = self.check_grasp(q)
+        else:
+            reason = np.asarray(at_grasp, dtype=object).copy()
         stage = np.where(reason == "", _AT_APPROACH, _AT_GRASP)
         q_pre = np.full((m, nq), np.nan)
         q_ret = np.full((m, nq), np.nan)
@@ -713,25 +730,36 @@ class ReachabilityEngine:
             idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
             self._spent("alternatives", t0)
             # in rank order: a target's first passing alternative is its answer. The
-            # first alternatives are checked alone, the later ones of the targets still
-            # failing in one batch (few pass, so few are checked needlessly; one batch
-            # instead of one per rank saves the per-call cost of small batches)
+            # first alternatives are checked alone; of the later ones, the checks at the
+            # grasp run in one batch, then the moves (the costly part) rank by rank: a
+            # target's next collision-free alternative only while none has passed
             who = failing[idx]  # the target of each alternative
-            for ranks in (range(1), range(1, int(rank.max(initial=0)) + 1)):
-                sel = np.flatnonzero((rank >= ranks.start) & (rank < ranks.stop))
-                sel = sel[~reachable[who[sel]]]
-                if sel.size == 0:
-                    continue
-                chk = self.check(targets[who[sel]], alt_q[sel])
-                for r in ranks:
-                    s = np.flatnonzero((rank[sel] == r) & ~reachable[who[sel]])
-                    if s.size:
-                        record(
-                            who[sel[s]],
-                            alt_q[sel[s]],
-                            alt_err[sel[s]],
-                            CheckResult(*(field[s] for field in chk)),
-                        )
+            sel = np.flatnonzero((rank == 0) & ~reachable[who])
+            if sel.size:
+                record(
+                    who[sel], alt_q[sel], alt_err[sel], self.check(targets[who[sel]], alt_q[sel])
+                )
+            sel = np.flatnonzero((rank > 0) & ~reachable[who])
+            if sel.size:
+                at_grasp = self.check_grasp(alt_q[sel])
+                stage = np.where(at_grasp == "", _AT_APPROACH, _AT_GRASP)
+                s = np.flatnonzero(stage == _AT_GRASP)  # failed at the grasp: the reasons
+                if s.size:
+                    nan = np.full((s.size, nq), np.nan)
+                    fails = np.zeros(s.size, dtype=bool)
+                    chk = CheckResult(fails, stage[s], at_grasp[s].astype(str), nan, nan)
+                    record(who[sel[s]], alt_q[sel[s]], alt_err[sel[s]], chk)
+                pending = np.flatnonzero(stage == _AT_APPROACH)  # positions in sel, rank order
+                while pending.size:
+                    pending = pending[~reachable[who[sel[pending]]]]
+                    if pending.size == 0:
+                        break
+                    owner = who[sel[pending]]
+                    first = np.r_[True, owner[1:] != owner[:-1]]
+                    take, pending = pending[first], pending[~first]
+                    rows = sel[take]
+                    chk = self.check(targets[who[rows]], alt_q[rows], at_grasp[take])
+                    record(who[rows], alt_q[rows], alt_err[rows], chk)
         q_rejected[reachable] = np.nan
         # step 4: more branches of the reachable targets
         branches = (

@@ -28,10 +28,11 @@ does not (0 when the reference is complete); false positives = reachable rows
 that fail an independent re-check (FK by a fresh ``pin.Data``, the strict
 joint limits, ``pin.computeCollisions`` over every pair of the grasp's world).
 
-Speed: the reachability stage on the UR5 config, median of ``--repeats`` runs
-(one engine, warm), and, with ``--before CHECKOUT`` (a checkout of the code
-before, e.g. ``/work/main``), the same timing and recall of that code in a
-child process in the same run, interleaved.
+Speed: the reachability stage on each arm, median of ``--repeats`` runs (one
+engine, warm), and ``gcm run`` of the UR5 config (no HTML, no plots), median of
+``--pipeline-repeats``; with ``--before CHECKOUT`` (a checkout of the code
+before) the same figures of that code in the same run (a child process; the
+``gcm run`` timings alternate between the two).
 
 Run from the repository root: ``python benchmarks/bench_branches.py
 [--before ../main]``; writes ``benchmarks/results/branches.json``.
@@ -45,6 +46,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -304,6 +306,25 @@ def before(checkout: str, arms: list[str], overrides: list[str], repeats: int, s
         out.unlink(missing_ok=True)
 
 
+def pipeline_runs(checkouts: dict[str, str], repeats: int) -> dict[str, Any]:
+    """``gcm run`` of the bottle config on the UR5 (no HTML, no plots), wall time per checkout.
+
+    The runs of the checkouts alternate (the load of a shared machine hits both alike).
+    """
+    walls: dict[str, list[float]] = {name: [] for name in checkouts}
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(repeats):
+            for name, path in checkouts.items():
+                cmd = [sys.executable, "-m", "gcm_pipeline", "run", str(CONFIG)]
+                cmd += ["--set", "robot.spec=ur5", "--set", "publish.html=false"]
+                cmd += ["--set", "publish.plots=false", "--out", f"{tmp}/{name}", "--force"]
+                env = dict(os.environ, PYTHONPATH=os.path.abspath(path))
+                t0 = time.perf_counter()
+                subprocess.run(cmd, env=env, cwd=tmp, check=True, capture_output=True)
+                walls[name].append(round(time.perf_counter() - t0, 3))
+    return {name: {"wall_s": w, "median_s": float(np.median(w))} for name, w in walls.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
@@ -312,6 +333,9 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="config override key=value")
     parser.add_argument("--before", help="a checkout of the code before, timed in the same run")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "branches.json"))
+    parser.add_argument(
+        "--pipeline-repeats", type=int, default=3, help="gcm run on the UR5 per checkout (0: none)"
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -337,6 +361,11 @@ def main() -> None:
             result["arms"][name]["stage_wall_median_s"] = float(
                 np.median(result["arms"][name]["stage_wall_s"])
             )
+    if args.pipeline_repeats:
+        checkouts = {"after": str(ROOT)}
+        if args.before:
+            checkouts["before"] = args.before
+        result["pipeline_ur5"] = pipeline_runs(checkouts, args.pipeline_repeats)
     result["load_after"] = os.getloadavg()
     for name, r in result["arms"].items():
         line = (
@@ -353,6 +382,8 @@ def main() -> None:
                 f"(missed {b['missed']}), false positives {b['false_positives']}; "
                 f"stage {b['stage_wall_median_s']:.3f} s (median)"
             )
+    for name, r in result.get("pipeline_ur5", {}).items():
+        print(f"gcm run, UR5 bottle ({name}): {r['median_s']:.2f} s (median of {r['wall_s']})")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -38,11 +38,13 @@ base frame), in :meth:`ReachabilityEngine.run`:
    fails that move with any solution. Such moves are not planned either: they
    fail in 2 without IK.
 4. **More branches** (``solutions`` > 1): for every reachable target, further
-   IK solutions (more library seeds and random restarts), each differing from
-   the ones kept by more than ``solution_separation`` in some joint, checked
-   as in 2; up to ``solutions`` passing ones are kept (the answer of 1-3
-   first, then in seed order). Which one a grasp takes is decided later, by
-   the stage (ranking metric or continuity with the neighbours).
+   IK solutions (more library seeds and random restarts; a 6R arm's other
+   closed-form branches, nearest home first), each differing from the ones
+   kept by more than ``solution_separation`` in some joint (modulo 2π where
+   the range exceeds a turn), checked as in 2; up to ``solutions`` passing
+   ones are kept (the answer of 1-3 first, then in seed order). Which one a
+   grasp takes is decided later, by the stage (ranking metric or continuity
+   with the neighbours).
 5. **Clearance** of the reachable rows (distance of the arm to the world), and
    of every kept branch.
 

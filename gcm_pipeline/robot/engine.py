@@ -26,18 +26,25 @@ base frame), in :meth:`ReachabilityEngine.run`:
 3. **Re-solve the failures of 2 on other IK branches**: for each target whose
    solution failed a check, up to ``alternatives`` other distinct solutions
    (more seeds: library, random restarts), each checked as in 2, in seed
-   order; the first that passes every check is the answer. Nothing else is
+   order; the first that passes every check is the answer. A 6R arm with
+   closed-form branches (:mod:`~gcm_pipeline.robot.analytic_6r`) tries
+   **every** other branch instead, nearest home first, so a branch that
+   passes is found whenever one exists. Solutions are distinct modulo 2π on
+   joints whose range exceeds a turn (``q + 2π`` is the same arm shape and
+   is never re-tried). Nothing else is
    re-solved: a target with no IK solution had every seed already, and one
    whose solution failed a move that ends beyond reach (proved for the
    Panda's kinematics, :func:`~gcm_pipeline.robot.approach.unreachable_ends`)
    fails that move with any solution. Such moves are not planned either: they
    fail in 2 without IK.
 4. **More branches** (``solutions`` > 1): for every reachable target, further
-   IK solutions (more library seeds and random restarts), each differing from
-   the ones kept by more than ``solution_separation`` in some joint, checked
-   as in 2; up to ``solutions`` passing ones are kept (the answer of 1-3
-   first, then in seed order). Which one a grasp takes is decided later, by
-   the stage (ranking metric or continuity with the neighbours).
+   IK solutions (more library seeds and random restarts; a 6R arm's other
+   closed-form branches, nearest home first), each differing from the ones
+   kept by more than ``solution_separation`` in some joint (modulo 2π where
+   the range exceeds a turn), checked as in 2; up to ``solutions`` passing
+   ones are kept (the answer of 1-3 first, then in seed order). Which one a
+   grasp takes is decided later, by the stage (ranking metric or continuity
+   with the neighbours).
 5. **Clearance** of the reachable rows (distance of the arm to the world), and
    of every kept branch.
 
@@ -76,6 +83,7 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import kernels
+from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, wide_joints
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
     ForkPool,
@@ -87,7 +95,7 @@ from gcm_pipeline.robot.ik import (
     solve_ik,
     verify_solutions,
 )
-from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions
+from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, six_r_solver
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -123,6 +131,9 @@ _SAME_SOLUTION = 1e-3
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
 #: Fewest targets of a chunk when a few thousand are shared out (see _guided_chunks).
 _LEAST_SHARE = 256
+
+#: Most closed-form branches of a 6R arm (EAIK: at most 16); step 3 tries every one.
+_MOST_BRANCHES = 16
 
 #: Seeds of the search for more branches (step 4, pinocchio backend).
 _BRANCH_LIBRARY = 16
@@ -233,7 +244,8 @@ class ReachabilityEngine:
         retreat: The post-grasp retreat (``holding=True``) or None.
         validator: Optional extra check of grasp configurations,
             ``q (M, nq) -> (M,) str`` (``''`` = valid), run after the collision check.
-        alternatives: Other IK solutions tried per target that fails a check (0: none).
+        alternatives: Other IK solutions tried per target that fails a check (0:
+            none; a 6R arm with closed-form branches tries every branch).
         workers: Processes (1: this one; ``"auto"``: :func:`available_cores`).
         chunk_size: Most targets per chunk (memory and progress granularity); on
             several workers the last chunks are smaller, so they finish together.
@@ -325,17 +337,13 @@ class ReachabilityEngine:
 
     # --- step 2 ------------------------------------------------------------------------
 
-    def check(self, targets: np.ndarray, q: np.ndarray) -> CheckResult:
-        """Step 2 for M solutions: collisions, validator, approach, retreat.
-
-        Args:
-            targets: Grasp poses (M, 4, 4) in the base frame [m].
-            q: Their IK solutions (M, nq) [rad], finite.
+    def check_grasp(self, q: np.ndarray) -> np.ndarray:
+        """The checks at the grasp of M solutions: collisions, then the validator.
 
         Returns:
-            The :class:`CheckResult`.
+            (M,) object array of reasons, ``''`` where both pass.
         """
-        m, nq = q.shape
+        m = q.shape[0]
         reason = np.full(m, "", dtype=object)
         t0 = time.process_time()
         if self.checker is not None and m:
@@ -350,6 +358,27 @@ class ReachabilityEngine:
                         f"validator returned shape {why.shape}, expected ({free.size},)"
                     )
                 reason[free] = why
+        return reason
+
+    def check(
+        self, targets: np.ndarray, q: np.ndarray, at_grasp: np.ndarray | None = None
+    ) -> CheckResult:
+        """Step 2 for M solutions: collisions, validator, approach, retreat.
+
+        Args:
+            targets: Grasp poses (M, 4, 4) in the base frame [m].
+            q: Their IK solutions (M, nq) [rad], finite.
+            at_grasp: The reasons (M,) of the checks at the grasp (collisions and
+                validator, :meth:`check_grasp`) if already known.
+
+        Returns:
+            The :class:`CheckResult`.
+        """
+        m, nq = q.shape
+        if at_grasp is None:
+            reason = self.check_grasp(q)
+        else:
+            reason = np.asarray(at_grasp, dtype=object).copy()
         stage = np.where(reason == "", _AT_APPROACH, _AT_GRASP)
         q_pre = np.full((m, nq), np.nan)
         q_ret = np.full((m, nq), np.nan)
@@ -459,48 +488,70 @@ class ReachabilityEngine:
             and ``(pos_err, rot_err)`` stacked (K, 2).
         """
         k = self.alternatives if count is None else int(count)
-        opts: dict[str, Any]
-        if self.backend == "pinocchio":
-            opts = {
-                "min_solutions": 2 * (k + 1),
-                "first_round_seeds": k + 1,
-                "round_seeds": k + 1,
-                "library_seeds": library,
-                "random_restarts": restarts,
-            }
-        else:
-            opts = {"min_solutions": 2 * (k + 1)}
-        opts.update((key, v) for key, v in self.ik_options.items() if key == "random_seed")
-        opts.update(self._shared_options())
-        res = solve_ik(
-            self.robot,
-            targets,
-            self.backend,
-            position_tolerance=self.position_tolerance,
-            orientation_tolerance=self.orientation_tolerance,
-            return_all=True,
-            **opts,
-        )
-        cand = res.candidates
         nq = self.robot.nq
         empty = (np.zeros(0, int), np.zeros(0, int), np.zeros((0, nq)), np.zeros((0, 2)))
-        if cand is None or len(cand.index) == 0:
+        six = self._six()
+        if six is not None:
+            # every branch in closed form, each at its 2 pi copy nearest home, nearest
+            # first; step 3 tries them all (the enumeration is complete and cheap)
+            eps = PinocchioIKOptions.limit_epsilon
+            idx, cq = six.solve(
+                targets[:, :3, :3],
+                targets[:, :3, 3],
+                self.robot.lower + eps,
+                self.robot.upper - eps,
+                self.robot.home,
+            )
+            order = np.lexsort((np.sum((cq - self.robot.home) ** 2, axis=1), idx))
+            idx, cq = idx[order], cq[order]
+            if count is None:
+                k = max(k, _MOST_BRANCHES)
+        else:
+            opts: dict[str, Any]
+            if self.backend == "pinocchio":
+                opts = {
+                    "min_solutions": 2 * (k + 1),
+                    "first_round_seeds": k + 1,
+                    "round_seeds": k + 1,
+                    "library_seeds": library,
+                    "random_restarts": restarts,
+                }
+            else:
+                opts = {"min_solutions": 2 * (k + 1)}
+            opts.update((key, v) for key, v in self.ik_options.items() if key == "random_seed")
+            opts.update(self._shared_options())
+            res = solve_ik(
+                self.robot,
+                targets,
+                self.backend,
+                position_tolerance=self.position_tolerance,
+                orientation_tolerance=self.orientation_tolerance,
+                return_all=True,
+                **opts,
+            )
+            cand = res.candidates
+            if cand is None or len(cand.index) == 0:
+                return empty
+            idx, cq = cand.index, cand.q
+        if len(idx) == 0:
             return empty
-        idx, cq = cand.index, cand.q
         pe, re, inside = verify_solutions(self.robot, cq, targets[idx])
         good = (pe <= self.position_tolerance) & (re <= self.orientation_tolerance) & inside
         idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
         # distinct from the first solution and from the earlier alternatives of the same
-        # target (candidates are sorted by target, in seed order within a target)
-        keep = np.max(np.abs(cq - q_first[idx]), axis=1) >= separation
+        # target (candidates are sorted by target, in seed order within a target), modulo
+        # 2 pi on the joints whose range exceeds a turn: q + 2 pi is the same arm shape
+        wide = wide_joints(self.robot.lower, self.robot.upper)
+        keep = np.max(branch_gap(cq, q_first[idx], wide), axis=1) >= separation
         idx, cq, err = idx[keep], cq[keep], err[keep]
         if len(idx) == 0:
             return empty
         pos = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
         groups, group = np.unique(idx, return_inverse=True)
-        padded = np.full((len(groups), int(pos.max()) + 1, nq), 1e9)  # pads are never near
+        padded = np.full((len(groups), int(pos.max()) + 1, nq), np.nan)  # pads are never near
         padded[group, pos] = cq
-        near = np.max(np.abs(padded[:, :, None] - padded[:, None, :]), axis=3) < separation
+        gap = np.max(branch_gap(padded[:, :, None], padded[:, None, :], wide), axis=3)
+        near = gap < separation  # NaN (a pad) compares False
         earlier = np.tril(near, k=-1).any(axis=2)  # same as an earlier candidate
         distinct = ~earlier[group, pos]
         idx, cq, err = idx[distinct], cq[distinct], err[distinct]
@@ -509,6 +560,12 @@ class ReachabilityEngine:
         if not np.any(keep):
             return empty
         return idx[keep], rank[keep], cq[keep], err[keep]
+
+    def _six(self) -> SixRAnalyticIK | None:
+        """The closed-form branch solver of a 6R arm, unless the IK options turn it off."""
+        if self.ik_options.get("analytic", True) is False:
+            return None
+        return six_r_solver(self.robot)
 
     def _branches(
         self,
@@ -675,25 +732,36 @@ class ReachabilityEngine:
             idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
             self._spent("alternatives", t0)
             # in rank order: a target's first passing alternative is its answer. The
-            # first alternatives are checked alone, the later ones of the targets still
-            # failing in one batch (few pass, so few are checked needlessly; one batch
-            # instead of one per rank saves the per-call cost of small batches)
+            # first alternatives are checked alone; of the later ones, the checks at the
+            # grasp run in one batch, then the moves (the costly part) rank by rank: a
+            # target's next collision-free alternative only while none has passed
             who = failing[idx]  # the target of each alternative
-            for ranks in (range(1), range(1, self.alternatives)):
-                sel = np.flatnonzero((rank >= ranks.start) & (rank < ranks.stop))
-                sel = sel[~reachable[who[sel]]]
-                if sel.size == 0:
-                    continue
-                chk = self.check(targets[who[sel]], alt_q[sel])
-                for r in ranks:
-                    s = np.flatnonzero((rank[sel] == r) & ~reachable[who[sel]])
-                    if s.size:
-                        record(
-                            who[sel[s]],
-                            alt_q[sel[s]],
-                            alt_err[sel[s]],
-                            CheckResult(*(field[s] for field in chk)),
-                        )
+            sel = np.flatnonzero((rank == 0) & ~reachable[who])
+            if sel.size:
+                record(
+                    who[sel], alt_q[sel], alt_err[sel], self.check(targets[who[sel]], alt_q[sel])
+                )
+            sel = np.flatnonzero((rank > 0) & ~reachable[who])
+            if sel.size:
+                at_grasp = self.check_grasp(alt_q[sel])
+                stage = np.where(at_grasp == "", _AT_APPROACH, _AT_GRASP)
+                s = np.flatnonzero(stage == _AT_GRASP)  # failed at the grasp: the reasons
+                if s.size:
+                    nan = np.full((s.size, nq), np.nan)
+                    fails = np.zeros(s.size, dtype=bool)
+                    chk = CheckResult(fails, stage[s], at_grasp[s].astype(str), nan, nan)
+                    record(who[sel[s]], alt_q[sel[s]], alt_err[sel[s]], chk)
+                pending = np.flatnonzero(stage == _AT_APPROACH)  # positions in sel, rank order
+                while pending.size:
+                    pending = pending[~reachable[who[sel[pending]]]]
+                    if pending.size == 0:
+                        break
+                    owner = who[sel[pending]]
+                    first = np.r_[True, owner[1:] != owner[:-1]]
+                    take, pending = pending[first], pending[~first]
+                    rows = sel[take]
+                    chk = self.check(targets[who[rows]], alt_q[rows], at_grasp[take])
+                    record(who[rows], alt_q[rows], alt_err[rows], chk)
         q_rejected[reachable] = np.nan
         # step 4: more branches of the reachable targets
         branches = (

@@ -14,8 +14,15 @@ the nearest of each branch first. Every solution is checked by forward
 kinematics like an LM answer. Targets the closed form leaves unsolved (near a
 singularity, or a joint-7 window narrower than the finest grid) go on to the
 LM with a short schedule (``fallback_library_seeds``,
-``fallback_random_restarts``). Any other arm, or ``analytic=False``, uses the LM
-alone.
+``fallback_random_restarts``).
+
+A 6R arm that EAIK decomposes (the UR family and others, checked at load,
+:mod:`~gcm_pipeline.robot.analytic_6r`) gets every IK branch in closed form,
+each once modulo 2π, at its copy inside the limits nearest the preferred
+configuration (the first given seed's, else home's); a target takes the
+nearest branch (several answers: in order of distance), and the LM runs only
+for targets without an exact branch inside the limits (singular poses). Any
+other arm, or ``analytic=False``, uses the LM alone.
 
 **LM.** All targets are solved at once. The chain (joint placements and axes read out
 of the Pinocchio model, see :class:`~gcm_pipeline.robot.chain.KinematicChain`)
@@ -62,6 +69,7 @@ from gcm_pipeline.errors import InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import quat_from_rotation
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.analytic import PandaAnalyticIK
+from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK
 from gcm_pipeline.robot.manipulability import yoshikawa
 
 __all__ = [
@@ -71,6 +79,7 @@ __all__ = [
     "restart_seeds",
     "rotation_angle",
     "seed_library",
+    "six_r_solver",
     "solve",
 ]
 
@@ -531,6 +540,76 @@ def _seeded_round(
     accept(ids, cq, -seed.astype(float))
 
 
+def six_r_solver(robot: Any) -> SixRAnalyticIK | None:
+    """The closed-form branch solver (EAIK) of ``robot``'s 6R arm (cached), or None."""
+    key = ("analytic_6r",)
+    if key not in robot.cache:
+        robot.cache[key] = SixRAnalyticIK.for_chain(robot.chain)
+    solver: SixRAnalyticIK | None = robot.cache[key]
+    return solver
+
+
+def _six_round(
+    six: SixRAnalyticIK,
+    trot: np.ndarray,
+    tpos: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    pref: np.ndarray,
+    opts: PinocchioIKOptions,
+    n_valid: np.ndarray,
+    chain: Any,
+    tol_p: float,
+    tol_r: float,
+    attempts: tuple[np.ndarray, np.ndarray, np.ndarray],
+    accept: Callable[[np.ndarray, np.ndarray, np.ndarray], None],
+    validate: bool,
+    least: int,
+) -> np.ndarray:
+    """Every closed-form branch of a 6R arm, nearest the preferred configuration first.
+
+    Each branch comes at its 2 pi copy inside the limits nearest ``pref``
+    (N, nq); per target, as many as it needs (``opts.min_solutions``, at least
+    ``least``) in order of distance, verified by the chain's forward
+    kinematics; with a validator, in batches of ranks 0, 1, 2-3, 4-7, ... for
+    the targets still short of valid ones.
+
+    Returns:
+        The targets (K,) that got an exact branch inside the limits: every one
+        of their branches has been offered (the enumeration is complete).
+    """
+    at, cq = six.solve(trot, tpos, lower, upper, pref)
+    if at.size == 0:
+        return at
+    pe, re = _pose_errors(chain, cq, trot[at], tpos[at])
+    conv = (pe <= tol_p) & (re <= tol_r)
+    at, cq, pe, re = at[conv], cq[conv], pe[conv], re[conv]
+    if at.size == 0:
+        return at
+    dist = np.sum((cq - pref[at]) ** 2, axis=1)
+    order = np.lexsort((dist, at))
+    at, cq, pe, re, dist = at[order], cq[order], pe[order], re[order], dist[order]
+    rank = _rank_in_runs(at)
+    top = int(rank.max()) + 1
+    bounds = [0, top]
+    if validate:
+        bounds = [0, *(1 << i for i in range(max(1, top).bit_length())), top]
+    att_p, att_r, att_q = attempts
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        short = n_valid[at] < opts.min_solutions
+        need = np.maximum(np.maximum(opts.min_solutions - n_valid[at], 1), least)
+        take = short & (rank >= lo) & (rank < hi)
+        if not validate:
+            take &= rank < need
+        rows = np.flatnonzero(take)
+        if rows.size == 0:
+            continue
+        ids = at[rows]
+        att_p[ids], att_r[ids], att_q[ids] = pe[rows], re[rows], cq[rows]
+        accept(ids, cq[rows], 1.0 / (1.0 + dist[rows]))
+    return np.unique(at)
+
+
 def _analytic_blocks(
     solver: PandaAnalyticIK,
     rot: np.ndarray,
@@ -717,10 +796,13 @@ def solve(
         best_score[vids[better]] = score[better]
 
     solver = analytic_solver(robot) if opts.analytic else None
-    if solver is not None and n:
-        # closed form first: the preferred joint 7 (the first seed's, else home's),
-        # then a grid over its range for the targets still short of solutions
-        pref = np.broadcast_to(np.asarray(robot.home, dtype=float), (n, nq)).copy()
+    six = six_r_solver(robot) if opts.analytic and solver is None else None
+    # one answer per target (a validator or return_all does not change which)
+    one_each = not (opts.min_solutions > 1 or by_manipulability)
+    has = np.zeros(n, dtype=bool)
+    pref = np.broadcast_to(np.asarray(robot.home, dtype=float), (n, nq)).copy()
+    if (solver is not None or six is not None) and n:
+        # the preferred configuration: the first seed's, else home's (or the library's)
         if seeds is not None and seeds.shape[1]:
             finite = np.all(np.isfinite(seeds), axis=2)
             has = finite.any(axis=1)
@@ -728,16 +810,39 @@ def solve(
             pref[has] = seeds[np.flatnonzero(has), col0[has]]
         if opts.unseeded == "library":
             # the library's nearest configuration, as the LM would start from it
-            unseeded = (
-                np.flatnonzero(~has) if seeds is not None and seeds.shape[1] else np.arange(n)
-            )
+            unseeded = np.flatnonzero(~has)
             if unseeded.size:
                 lib0 = seed_library(robot, opts)
                 near0 = lib0.nearest(trot[unseeded], tpos[unseeded], 1, opts.library_eps)
                 pref[unseeded] = lib0.q[near0[:, 0]]
         pref = np.clip(pref, lower, upper)
-        # one answer per target (a validator or return_all does not change which)
-        one_each = not (opts.min_solutions > 1 or by_manipulability)
+    # targets whose every branch the closed form has offered: no seed can add one
+    complete = np.zeros(n, dtype=bool)
+    if six is not None and n:
+        # every branch in closed form (EAIK), each at its 2 pi copy nearest the
+        # preferred configuration; nearest first
+        complete[
+            _six_round(
+                six,
+                trot,
+                tpos,
+                lower,
+                upper,
+                pref,
+                opts,
+                n_valid,
+                chain,
+                tol_p,
+                tol_r,
+                (att_p, att_r, att_q),
+                accept,
+                validator is not None,
+                first if by_manipulability else 1,
+            )
+        ] = True
+    if solver is not None and n:
+        # closed form first: the preferred joint 7 (the first seed's, else home's),
+        # then a grid over its range for the targets still short of solutions
         # rounds: (around the preferred joint 7 too, grid size): the preferred joint 7
         # (one answer each: alone first), values around it and a grid over its range
         # (the self-motion may turn back just short of the preferred value), then a
@@ -826,27 +931,32 @@ def solve(
                 rows, ids, pe, re = rows[conv], ids[conv], pe[conv], re[conv]
                 att_p[ids], att_r[ids], att_q[ids] = pe, re, cq[rows]
                 accept(ids, cq[rows], 1.0 / (1.0 + dist[rows]))
-        if one_each and seeds is not None and seeds.shape[1]:
-            # the sampled joint-7 values may miss a seed's own neighbourhood (near a turn
-            # of the self-motion, a narrow window inside the limits): where the answer
-            # jumps far from the given seed, the LM from the seed, if it lands nearer
-            jump = np.max(np.abs(best_q - pref), axis=1)
-            far = np.flatnonzero(has & (n_valid > 0) & (jump > _SEED_JUMP))
-            if far.size:
-                qf, conv, pe, re = _lm(
-                    chain, pref[far], trot[far], tpos[far], lower, upper, tol_p, tol_r, opts
+    if (
+        (solver is not None or six is not None)
+        and one_each
+        and seeds is not None
+        and seeds.shape[1]
+    ):
+        # the sampled joint-7 values may miss a seed's own neighbourhood (near a turn
+        # of the self-motion, a narrow window inside the limits): where the answer
+        # jumps far from the given seed, the LM from the seed, if it lands nearer
+        jump = np.max(np.abs(best_q - pref), axis=1)
+        far = np.flatnonzero(has & (n_valid > 0) & (jump > _SEED_JUMP))
+        if far.size:
+            qf, conv, pe, re = _lm(
+                chain, pref[far], trot[far], tpos[far], lower, upper, tol_p, tol_r, opts
+            )
+            nearer = conv & (np.max(np.abs(qf - pref[far]), axis=1) < jump[far])
+            ids, qf, pe, re = far[nearer], qf[nearer], pe[nearer], re[nearer]
+            if ids.size:
+                before = best_q[ids].copy()
+                accept(ids, qf, np.full(ids.size, 2.0))  # above any closed-form rank
+                took = np.any(best_q[ids] != before, axis=1)
+                att_q[ids[took]], att_p[ids[took]], att_r[ids[took]] = (
+                    qf[took],
+                    pe[took],
+                    re[took],
                 )
-                nearer = conv & (np.max(np.abs(qf - pref[far]), axis=1) < jump[far])
-                ids, qf, pe, re = far[nearer], qf[nearer], pe[nearer], re[nearer]
-                if ids.size:
-                    before = best_q[ids].copy()
-                    accept(ids, qf, np.full(ids.size, 2.0))  # above any closed-form rank
-                    took = np.any(best_q[ids] != before, axis=1)
-                    att_q[ids[took]], att_p[ids[took]], att_r[ids[took]] = (
-                        qf[took],
-                        pe[took],
-                        re[took],
-                    )
 
     # Seed schedule. Every decision is per target, so a target's result does not
     # depend on the other targets of the batch (nor on chunking over workers):
@@ -892,7 +1002,7 @@ def solve(
     c = 0
     r = 0
     while c < n_rounds:
-        todo = np.flatnonzero(n_valid < opts.min_solutions)
+        todo = np.flatnonzero((n_valid < opts.min_solutions) & ~complete)
         run_opts = opts
         if c < n_fixed:
             if r == 0:

@@ -1,0 +1,208 @@
+r"""Every IK branch of a 6R arm in closed form (EAIK), one representative per branch.
+
+Six-joint arms whose axes intersect or are parallel in the right places (the
+Universal Robots family, spherical-wrist arms and others) have finitely many
+IK solutions per pose, up to 16, found exactly by subproblem decomposition:
+`EAIK <https://github.com/OstermD/EAIK>`_ (Ostermeier et al., 2024, PyPI
+``eaik``). A robot gets this solver only if
+
+* its grasp frame hangs on a chain of exactly its 6 joints (a tool adds a fixed
+  transform; locked joints are already removed from the model);
+* EAIK knows a decomposition of the chain's axes (``hasKnownDecomposition``);
+* EAIK's forward kinematics equals the chain's at ``checks`` random
+  configurations (:meth:`SixRAnalyticIK.for_chain`), like the Panda's closed
+  form (:mod:`~gcm_pipeline.robot.analytic`).
+
+The EAIK robot is built from the loaded chain itself (each joint's frame at
+q = 0 in the base frame, axis z, and the grasp frame), so the tool, a TCP or a
+base offset are part of it. Any other arm keeps the iterative solver.
+
+**Branches modulo 2π.** A branch is a configuration modulo 2π: on a joint
+whose range exceeds 2π (±2π on a UR) the same arm shape is reachable at
+several angles. :meth:`SixRAnalyticIK.solve` returns each branch once, at the
+copy inside the joint limits nearest a reference configuration (the home
+posture or a seed), and drops a branch with no copy inside them. EAIK's
+approximate answers (``is_LS``: least squares where no exact one exists) are
+dropped; the rest are returned unverified: callers verify every answer by
+Pinocchio's forward kinematics and the joint limits, as every IK answer of
+the project is verified.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SixRAnalyticIK", "branch_gap", "wide_joints"]
+
+#: Two EAIK answers closer than this modulo 2π in every joint are one branch [rad].
+_SAME_BRANCH = 1e-6
+
+
+def wide_joints(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Joints (nq,) bool whose range exceeds 2π: angles there are compared modulo 2π."""
+    span = np.asarray(upper, dtype=float) - np.asarray(lower, dtype=float)
+    return span > 2.0 * np.pi + 1e-9  # [-pi, pi] is not wide (its ends are one angle)
+
+
+def branch_gap(a: np.ndarray, b: np.ndarray, wide: np.ndarray) -> np.ndarray:
+    """Per-joint distance of configurations ``a`` and ``b`` (broadcast), modulo 2π on ``wide``.
+
+    Two configurations whose gap is small in every joint are the same branch
+    (the same arm shape): ``q`` and ``q + 2π`` on a joint of range 4π have gap 0.
+    """
+    d = np.abs(np.asarray(a, dtype=float) - np.asarray(b, dtype=float))
+    wrapped = np.abs(np.remainder(d + np.pi, 2.0 * np.pi) - np.pi)
+    return np.where(wide, wrapped, d)
+
+
+def nearest_copy(
+    q: np.ndarray, reference: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> np.ndarray:
+    """Each angle of ``q`` (M, nq) moved by whole turns to the copy nearest ``reference``.
+
+    Only copies inside ``[lower, upper]`` count; where a joint has none the
+    row gets NaN there. ``reference`` (M, nq) should lie inside the limits.
+    """
+    two_pi = 2.0 * np.pi
+    # the copy nearest the reference, then the one a turn to its other side
+    base = q + two_pi * np.round((reference - q) / two_pi)
+    other = np.where(base > reference, base - two_pi, base + two_pi)
+    inside_b = (base >= lower) & (base <= upper)
+    inside_o = (other >= lower) & (other <= upper)
+    return np.where(inside_b, base, np.where(inside_o, other, np.nan))
+
+
+class SixRAnalyticIK:
+    """All closed-form IK branches of a 6R chain (see the module doc).
+
+    Args:
+        robot: The EAIK robot (``eaik.IK_Homogeneous.HomogeneousRobot``) of the
+            chain, whose forward kinematics equal the chain's.
+    """
+
+    def __init__(self, robot: Any) -> None:
+        self._robot = robot
+        self.family = str(robot.getKinematicFamily())
+
+    @classmethod
+    def for_chain(
+        cls, chain: Any, checks: int = 32, tolerance: float = 1e-9
+    ) -> SixRAnalyticIK | None:
+        """The solver for a chain, or None when EAIK does not fit it.
+
+        ``chain`` is a :class:`~gcm_pipeline.robot.chain.KinematicChain`. The
+        chain qualifies when it moves exactly the model's 6 joints, in order,
+        EAIK knows a decomposition of its axes, and EAIK's forward kinematics
+        equals the chain's at ``checks`` random configurations to
+        ``tolerance`` [m, rad].
+        """
+        if (
+            chain.nq != 6
+            or len(chain.joint_ids) != 6
+            or not np.array_equal(chain.q_index, np.arange(6))
+        ):
+            return None
+        try:
+            from eaik.IK_Homogeneous import HomogeneousRobot
+        except ImportError:  # pragma: no cover - eaik is a dependency
+            return None
+        # each joint's frame at q = 0 (its axis is z in the chain's convention) and
+        # the grasp frame, in the base frame
+        _, placement, tool = chain.packed
+        frames = np.empty((7, 4, 4))
+        t = np.eye(4)
+        for k in range(6):
+            t = t @ placement[k]
+            frames[k] = t
+        frames[6] = t @ tool
+        try:
+            robot = HomogeneousRobot(frames)
+            if not robot.hasKnownDecomposition():
+                return None
+            rng = np.random.default_rng(0x6E41C)
+            q = rng.uniform(-np.pi, np.pi, size=(checks, 6))
+            fk = np.array([robot.fwdKin(qi) for qi in q])
+        except (RuntimeError, ValueError):  # EAIK refuses the geometry
+            return None
+        rot, pos = chain.pose(q)
+        if (
+            np.max(np.abs(fk[:, :3, :3] - rot)) > tolerance
+            or np.max(np.abs(fk[:, :3, 3] - pos)) > tolerance
+        ):
+            return None
+        return cls(robot)
+
+    def raw(self, rot: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """EAIK's exact answers for N poses, angles in (-π, π], repeats removed.
+
+        Args:
+            rot: Rotations (N, 3, 3) of the grasp frame in the base frame.
+            pos: Positions (N, 3) [m].
+
+        Returns:
+            ``(index, q)``: target (M,) and configuration (M, 6) [rad] of each
+            answer, grouped by target in EAIK's order.
+        """
+        n = len(rot)
+        poses = np.zeros((n, 4, 4))
+        poses[:, :3, :3] = rot
+        poses[:, :3, 3] = pos
+        poses[:, 3, 3] = 1.0
+        sols = self._robot.IK_batched(poses, 1) if n else []
+        qs = [np.asarray(s.Q, dtype=float).reshape(-1, 6) for s in sols]
+        counts = np.array([len(q) for q in qs], dtype=int)
+        if counts.sum() == 0:
+            return np.zeros(0, dtype=int), np.zeros((0, 6))
+        q = np.concatenate(qs)
+        ls = np.concatenate([np.asarray(s.is_LS, dtype=bool).reshape(-1) for s in sols])
+        idx = np.repeat(np.arange(n), counts)
+        keep = ~ls & np.all(np.isfinite(q), axis=1)
+        idx, q = idx[keep], np.remainder(q[keep] + np.pi, 2.0 * np.pi) - np.pi
+        # at singularities EAIK may give one branch twice: keep its first
+        rank = np.arange(idx.size) - np.searchsorted(idx, idx, side="left")
+        k = int(rank.max(initial=-1)) + 1
+        if k > 1:
+            padded = np.full((n, k, 6), np.nan)
+            padded[idx, rank] = q
+            d = np.abs(padded[:, :, None, :] - padded[:, None, :, :])  # angles in (-pi, pi]
+            gap = np.minimum(d, 2.0 * np.pi - d)
+            same = np.all(gap < _SAME_BRANCH, axis=3)  # NaN pads are never the same
+            earlier = np.tril(same, k=-1).any(axis=2)
+            first = ~earlier[idx, rank]
+            idx, q = idx[first], q[first]
+        return idx, q
+
+    def solve(
+        self,
+        rot: np.ndarray,
+        pos: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        reference: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Every branch of N poses, each once, at its copy nearest ``reference``.
+
+        Args:
+            rot: Target rotations of the grasp frame (N, 3, 3), base frame.
+            pos: Target positions (N, 3) [m].
+            lower: Lower joint limits (6,) [rad].
+            upper: Upper joint limits (6,) [rad].
+            reference: Configurations (N, 6) or (6,) [rad]: of the 2π copies of
+                a branch inside the limits, the one nearest this is returned.
+
+        Returns:
+            ``(index, q)``: target (M,) and configuration (M, 6) [rad] of each
+            branch with a copy inside the limits, grouped by target.
+            Unverified (see the module doc).
+        """
+        rot = np.asarray(rot, dtype=float).reshape(-1, 3, 3)
+        pos = np.asarray(pos, dtype=float).reshape(-1, 3)
+        ref = np.broadcast_to(np.asarray(reference, dtype=float), (len(rot), 6))
+        idx, q = self.raw(rot, pos)
+        if idx.size == 0:
+            return idx, q
+        q = nearest_copy(q, ref[idx], lower, upper)
+        keep = np.all(np.isfinite(q), axis=1)
+        return idx[keep], q[keep]

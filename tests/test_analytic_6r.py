@@ -1,0 +1,145 @@
+"""Closed-form branches of 6R arms (EAIK): who gets them, exactness, completeness, 2 pi copies."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, nearest_copy, wide_joints
+from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.ik_pinocchio import six_r_solver
+from gcm_pipeline.robot.model import Robot, load_robot
+
+UR10_SPEC = Path(__file__).resolve().parents[1] / "configs" / "robots" / "ur10.yaml"
+
+
+@pytest.fixture(scope="module", params=["ur5", "ur10"])
+def arm(request: pytest.FixtureRequest) -> Robot:
+    return load_robot("ur5" if request.param == "ur5" else UR10_SPEC)
+
+
+def _pin_pose(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """Grasp-frame poses (N, 4, 4) by Pinocchio itself (no project code)."""
+    data = robot.model.createData()
+    out = np.empty((len(q), 4, 4))
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(robot.model, data, qi)
+        pin.updateFramePlacements(robot.model, data)
+        out[i] = data.oMf[robot.grasp_frame_id].homogeneous
+    return out
+
+
+def test_which_arms_get_closed_form_branches() -> None:
+    assert six_r_solver(load_robot("panda")) is None  # 7 joints: its own closed form
+    ur5 = load_robot("ur5")
+    assert isinstance(six_r_solver(ur5), SixRAnalyticIK)
+    assert isinstance(six_r_solver(load_robot(UR10_SPEC)), SixRAnalyticIK)
+    # a UR5 whose elbow axis is tilted by 0.05 rad (no longer parallel to the shoulder's
+    # and wrist 1's) has no decomposition EAIK knows: the iterative solver keeps it
+    model = ur5.model.copy()
+    j = model.getJointId("elbow_joint")
+    placement = model.jointPlacements[j].copy()
+    placement.rotation = placement.rotation @ pin.exp3(np.array([0.05, 0.0, 0.0]))
+    model.jointPlacements[j] = placement
+    assert SixRAnalyticIK.for_chain(KinematicChain(model, ur5.grasp_frame_id)) is None
+
+
+def test_every_branch_is_exact_distinct_inside_the_limits_and_the_original_is_one(
+    arm: Robot,
+) -> None:
+    solver = six_r_solver(arm)
+    assert solver is not None
+    q = arm.random_configurations(500, np.random.default_rng(7))
+    poses = _pin_pose(arm, q)
+    idx, cq = solver.solve(poses[:, :3, :3], poses[:, :3, 3], arm.lower, arm.upper, arm.home)
+    assert idx.size >= 500
+    reached = _pin_pose(arm, cq)
+    assert np.max(np.linalg.norm(reached[:, :3, 3] - poses[idx, :3, 3], axis=1)) < 1e-9
+    assert np.max(np.abs(reached[:, :3, :3] - poses[idx, :3, :3])) < 1e-9
+    assert np.all(arm.within_limits(cq, strict=False))
+    wide = wide_joints(arm.lower, arm.upper)
+    assert wide.sum() == 5  # +-2 pi everywhere but the elbow
+    # the configuration that made the pose is one of its branches (modulo 2 pi)
+    hit = np.all(branch_gap(cq, q[idx], wide) < 1e-7, axis=1)
+    assert np.array_equal(np.unique(idx[hit]), np.arange(500))
+    # no branch twice: two answers of one pose differ modulo 2 pi
+    for i in range(500):
+        b = cq[idx == i]
+        gap = np.max(branch_gap(b[:, None], b[None], wide), axis=2)
+        assert np.all(gap[~np.eye(len(b), dtype=bool)] > 1e-6)
+
+
+def test_each_branch_comes_at_its_copy_nearest_the_reference(arm: Robot) -> None:
+    solver = six_r_solver(arm)
+    assert solver is not None
+    q = np.array([[-0.3, -1.2, 1.4, -1.9, -1.6, -0.2]])
+    pose = _pin_pose(arm, q)
+    # near home: the copy in (-pi, pi]; near q + 2 pi on the wide joints: that copy
+    shifted = q + np.where(wide_joints(arm.lower, arm.upper), 2 * np.pi, 0.0)
+    for ref in (q[0], shifted[0]):
+        _, cq = solver.solve(pose[:, :3, :3], pose[:, :3, 3], arm.lower, arm.upper, ref)
+        nearest = cq[np.argmin(np.sum((cq - ref) ** 2, axis=1))]
+        np.testing.assert_allclose(nearest, ref, atol=1e-7)
+
+
+def test_nearest_copy_keeps_the_limits() -> None:
+    lower, upper = np.array([-6.0, -1.0]), np.array([6.0, 1.0])
+    q = np.array([[3.0, 0.5], [-3.0, 0.9], [0.0, 3.0]])
+    ref = np.array([[-3.0, 0.0], [5.9, 0.0], [0.0, 0.0]])
+    out = nearest_copy(q, ref, lower, upper)
+    np.testing.assert_allclose(out[0], [3.0 - 2 * np.pi, 0.5])
+    np.testing.assert_allclose(out[1], [-3.0 + 2 * np.pi, 0.9])
+    assert np.isnan(out[2, 1]) and out[2, 0] == 0.0  # 3 rad has no copy in [-1, 1]
+
+
+def test_solve_ik_takes_the_branch_nearest_the_seed(arm: Robot) -> None:
+    q = arm.random_configurations(200, np.random.default_rng(3))
+    q = np.clip(q, arm.lower + 0.1, arm.upper - 0.1)
+    poses = _pin_pose(arm, q)
+    res = solve_ik(arm, poses, seeds=q[:, None, :] + 0.01)
+    assert res.success.all()
+    np.testing.assert_allclose(res.q, q, atol=1e-6)  # the seed's own branch and copy
+    # several answers: distinct branches modulo 2 pi
+    res = solve_ik(arm, poses[:20], return_all=True, min_solutions=8)
+    cand = res.candidates
+    assert cand is not None
+    wide = wide_joints(arm.lower, arm.upper)
+    for i in range(20):
+        b = cand.q[cand.index == i]
+        assert len(b) >= 2
+        gap = np.max(branch_gap(b[:, None], b[None], wide), axis=2)
+        assert np.all(gap[~np.eye(len(b), dtype=bool)] > 1e-6)
+
+
+@pytest.mark.parametrize("analytic", [True, False])
+def test_alternatives_are_other_arm_shapes_not_whole_turns(arm: Robot, analytic: bool) -> None:
+    """Step 3's alternatives differ from the rejected solution and from each other modulo
+    2 pi (a whole turn of a wrist is the same arm in the same collision); with closed-form
+    branches they are every other branch."""
+    from gcm_pipeline.robot.engine import ReachabilityEngine
+
+    q = arm.random_configurations(40, np.random.default_rng(5))
+    q = np.clip(q, arm.lower + 0.1, arm.upper - 0.1)
+    poses = _pin_pose(arm, q)
+    engine = ReachabilityEngine(arm, alternatives=4, ik_options={"analytic": analytic})
+    # the rejected solution, given at a copy a turn away where the limits allow it
+    wide = wide_joints(arm.lower, arm.upper)
+    turned = np.where(wide & (q < 0), q + 2 * np.pi, q)
+    idx, rank, alt, err = engine._alternatives(poses, turned)
+    assert idx.size and np.all(err[:, 0] <= 1e-4) and np.all(err[:, 1] <= 1e-3)
+    assert np.all(np.max(branch_gap(alt, q[idx], wide), axis=1) >= 1e-3)
+    for i in np.unique(idx):
+        b = alt[idx == i]
+        gap = np.max(branch_gap(b[:, None], b[None], wide), axis=2)
+        assert np.all(gap[~np.eye(len(b), dtype=bool)] >= 1e-3)
+    if analytic:
+        solver = six_r_solver(arm)
+        assert solver is not None
+        every, _ = solver.solve(poses[:, :3, :3], poses[:, :3, 3], arm.lower, arm.upper, arm.home)
+        # every branch but the rejected one (the limits are not binding here)
+        np.testing.assert_array_equal(np.bincount(idx, minlength=40) + 1, np.bincount(every))
+        assert rank.max() >= 4  # more than `alternatives`: all of them

@@ -110,8 +110,12 @@ def test_decisions_equal_with_and_without_kernels_on_every_world(robot_name, use
         for reason in np.asarray(out["reason"]).tolist():
             seen[reason] = seen.get(reason, 0) + 1
         by_world[world] = np.asarray(out["reachable"])
-    # not a grid of one answer: reachable grasps, and every kind of collision
-    kinds = {"", "collision_environment", "collision_object", "collision_self"}
+    # not a grid of one answer: reachable grasps and collisions with the world and the
+    # object (a 6R arm tries every closed-form branch, so none of its 54 grasps is left
+    # with a self-collision only; the Panda still has some)
+    kinds = {"", "collision_environment", "collision_object"}
+    if robot_name == "panda":
+        kinds.add("collision_self")
     assert kinds <= set(seen), seen
     # the obstacles and the checks decide grasps: the fullest world reaches fewer
     # than the empty one

@@ -146,6 +146,53 @@ def test_animation_steps_through_top_k(scene):
     assert info.top_k == 3 and info.animation_s > 1.0
 
 
+def test_animation_keys_never_blend_between_branches():
+    a = np.array([0.0, 0.5, 0.0, -2.0, 0.0, 1.5, 0.8])
+    qs = np.stack([a, a + 0.1, a + np.r_[2.0, np.zeros(6)], a + np.r_[2.0, 0.2, np.zeros(5)]])
+    keys, cuts = pub.animation_keys(qs, blend_limit=0.5)
+    assert cuts == 2  # 2 -> 3 (joint 1 turns by 1.9 rad) and 4 -> 1 (closing the loop)
+    frames = [f for f, _ in keys]
+    assert frames == sorted(frames) and len(set(frames)) == len(frames)
+    on_branch = [np.abs(qs - q).max(axis=1) for _, q in keys]
+    for (f0, q0), (f1, q1) in zip(keys, keys[1:], strict=False):
+        if np.abs(q1 - q0).max() > 0.5:  # across branches: one solution to the next, at once
+            assert f1 == f0 + 1
+            assert any(np.array_equal(q0, s) for s in qs)
+            assert any(np.array_equal(q1, s) for s in qs)
+    # every key is a solution or a blend of two solutions of one branch
+    for (_, q), dist in zip(keys, on_branch, strict=True):
+        assert dist.min() == 0.0 or np.sort(dist)[:2].max() <= 0.5 + 1e-12, q
+    # within one branch the animation blends (frames between the two held solutions)
+    blended = [q for _, q in keys if np.abs(qs - q).max(axis=1).min() > 0]
+    assert len(blended) == 2 * (pub._ANIM_MOVE - 1)  # 1 -> 2 and 3 -> 4
+    # a limit above every jump blends everywhere; one solution has no animation step
+    assert pub.animation_keys(qs, blend_limit=10.0)[1] == 0
+    assert pub.animation_keys(qs[:1])[1] == 0 and len(pub.animation_keys(qs[:1])[0]) == 2
+
+
+def test_scene_animation_cuts_between_branches(robot):
+    grasps, manifold = make_scene(robot)
+    rank = np.asarray(grasps["rank"])
+    q = np.array(grasps["q"])
+    top = [int(np.flatnonzero(rank == r)[0]) for r in (1, 2, 3)]
+    base = np.clip(robot.home, robot.lower, robot.upper)
+    q[top[0]] = base
+    q[top[1]] = base + 0.05
+    q[top[2]] = base + np.r_[1.5, np.zeros(robot.nq - 1)]  # another branch
+    grasps = grasps.with_columns(q=q)
+    html, info = pub.render_scene_html(grasps, manifold, robot, make_config())
+    assert info.top_k == 3 and info.animation_cuts == 2
+    (anim,) = [c for c in decode_commands(html) if c["type"] == "set_animation"]
+    clip = next(c["clip"] for c in anim["animations"] if c["path"].endswith("panda_link1_0"))
+    times = [k["time"] for k in clip["tracks"][0]["keys"]]
+    # 4 held solutions (2 keys each), one blend of 8 frames: no frames across the cuts
+    assert len(times) == 4 * 2 + (pub._ANIM_MOVE - 1)
+    cfg = make_config()
+    cfg = Config.from_dict({**cfg.to_dict(), "continuity": {"threshold": 3.0}})
+    _, info = pub.render_scene_html(grasps, manifold, robot, cfg)
+    assert info.animation_cuts == 0  # the threshold of one branch is continuity.threshold
+
+
 def _object_of(commands: list[dict], path: str) -> dict:
     (cmd,) = [c for c in commands if c["type"] == "set_object" and c["path"] == path]
     return cmd["object"]

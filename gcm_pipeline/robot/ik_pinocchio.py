@@ -63,6 +63,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import InputError, unknown_choice
@@ -84,6 +85,9 @@ __all__ = [
 ]
 
 #: Offsets [rad] of joint 7 around its preferred value, tried with the first grid.
+#: Smallest weight [m] of a joint in :func:`joint_levers` (a wrist joint whose axis
+#: passes through the grasp frame still turns the hand).
+MIN_LEVER = 0.05
 _NEAR_Q7 = np.array([0.0, -0.05, 0.05, -0.1, 0.1, -0.2, 0.2, -0.4, 0.4])
 
 #: (target, joint-7) rows of one closed-form call: about 340 bytes each. Blocks of
@@ -441,6 +445,40 @@ def _lm(
             np.clip(qn, lower, upper, out=qn)
         q[active] = qn
     return q, converged, pos_err, rot_err
+
+
+def joint_levers(robot: Any) -> np.ndarray:
+    """Per joint (nq,), the distance [m] from its axis to the grasp frame at home.
+
+    Turning a revolute joint by one radian moves the grasp frame by about this
+    much: the weights of a distance between postures in metres. A joint whose
+    axis passes through or near the grasp frame (a last wrist joint) still turns
+    the hand: at least :data:`MIN_LEVER`. Other joints weigh 1. Cached on the robot.
+    """
+    cached = robot.cache.get("joint_levers")
+    if cached is not None:
+        return cached
+    model = robot.model
+    data = model.createData()
+    home = np.clip(np.asarray(robot.home, dtype=np.float64), robot.lower, robot.upper)
+    pin.computeJointJacobians(model, data, home)
+    pin.updateFramePlacements(model, data)
+    tcp = data.oMf[robot.grasp_frame_id].translation
+    out = np.ones(robot.nq)
+    for j in range(1, model.njoints):
+        joint = model.joints[j]
+        if joint.nq != 1 or joint.nv != 1:
+            continue
+        axis = pin.getJointJacobian(model, data, j, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[
+            3:, joint.idx_v
+        ]
+        if np.linalg.norm(axis) < 0.5:  # prismatic
+            continue
+        axis = axis / np.linalg.norm(axis)
+        r = tcp - data.oMi[j].translation
+        out[joint.idx_q] = max(MIN_LEVER, float(np.linalg.norm(r - (r @ axis) * axis)))
+    robot.cache["joint_levers"] = out
+    return out
 
 
 def analytic_solver(robot: Any) -> PandaAnalyticIK | None:
@@ -848,9 +886,13 @@ def solve(
         # (the self-motion may turn back just short of the preferred value), then a
         # finer grid (one answer each: and a finer one still)
         k = opts.analytic_samples
+        levers = joint_levers(robot)
         grids = [(False, 8 * k)] if k else []
         if one_each:  # the finest grid finds narrow windows; choice needs no more
-            rounds = [(False, 0), (True, k), *grids, *([(False, 64 * k)] if k else [])]
+            # the preferred joint 7 with values around it at once: the branch nearest
+            # the preferred posture may sit just beside the preferred joint 7 (at home's
+            # joint 7 alone, the Panda's bottle grasps took a q1 1.3 rad from home)
+            rounds = [(True, k), *grids, *([(False, 64 * k)] if k else [])]
         else:
             rounds = [(True, k), *grids]
         if (opts.min_solutions > 1 or by_manipulability) and opts.library_seeds > 0:
@@ -894,7 +936,9 @@ def solve(
             at, cq, branch, _ = _analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
             if at.size == 0:
                 continue
-            dist = np.sum((cq - pref[todo[at]]) ** 2, axis=1)
+            # lever-weighted: a radian at the shoulder moves the hand far more than
+            # one at the wrist, so "nearest the preferred posture" is in metres
+            dist = np.sum(((cq - pref[todo[at]]) * levers) ** 2, axis=1)
             if one_each:  # per target, the nearest to the preferred configuration
                 order = np.lexsort((dist, at))
             else:

@@ -14,7 +14,8 @@ A robot spec is a small YAML file (``gcm_pipeline/robots/<name>.yaml``)::
     grasp_frame: panda_hand_tcp          # required: frame whose pose IK targets
     locked_joints: {joint: value}        # optional: joints removed at this value [rad or m]
     home: {joint: value} | [values]      # optional: home configuration [rad] (default: middle)
-    limit_margin: 0.0                    # optional: tighten every range on both sides [rad]
+    limit_margin: 0.1                    # optional: tighten every revolute range per side [rad]
+                                         #   (default 0.1; 0: the model's full ranges)
     joint_limits: {joint: [lo, hi]}      # optional: ranges intersected with the model's [rad];
                                          #   a continuous joint's range (default [-2pi, 2pi])
     tool: {flange, mount, tcp, collision, ...}  # optional: a gripper for a bare flange;
@@ -107,7 +108,10 @@ class RobotSpec:
         grasp_frame: Name of the frame that IK targets.
         locked_joints: Joint name -> locked value [rad or m].
         home: Joint name -> home value [rad] (empty: middle of the limits).
-        limit_margin: Margin by which every joint range shrinks per side [rad].
+        limit_margin: Margin by which every revolute joint's range shrinks per side
+            [rad] (default 0.1: a controller refuses or cannot hold a joint at its
+            limit; see the robots page of the docs; 0 on request). Prismatic
+            joints keep their range.
         joint_limits: Joint name -> (lower, upper) [rad], intersected with the model's.
         tool: A tool mounted on a flange frame (:mod:`gcm_pipeline.robot.tool`) or None;
             with a tool, ``grasp_frame`` names the TCP frame the tool adds.
@@ -124,7 +128,7 @@ class RobotSpec:
     package_dirs: tuple[Path, ...] = ()
     locked_joints: Mapping[str, float] = field(default_factory=dict)
     home: Mapping[str, float] | tuple[float, ...] = field(default_factory=dict)
-    limit_margin: float = 0.0
+    limit_margin: float = 0.1
     joint_limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     tool: ToolSpec | None = None
 
@@ -245,7 +249,7 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
             str(k): _number(where, f"home.{k}", v)
             for k, v in _mapping(where, "home", home_raw).items()
         }
-    margin = _number(where, "limit_margin", raw.get("limit_margin", 0.0))
+    margin = _number(where, "limit_margin", raw.get("limit_margin", RobotSpec.limit_margin))
     if margin < 0:
         raise RobotSpecError(f"{where}: limit_margin must be >= 0, got {margin}")
     limits: dict[str, tuple[float, float]] = {}
@@ -648,8 +652,14 @@ class Robot:
                     f"{str(urdf)!r}, beyond +-{MAX_JOINT_BOUND:g} (rad or m); give its real "
                     f"range in the spec: joint_limits: {{{jname}: [lower, upper]}}"
                 )
-        lower += spec.limit_margin
-        upper -= spec.limit_margin
+        # the margin is in radians: revolute joints only (a prismatic range is in metres)
+        revolute = np.zeros(self.nq, dtype=bool)
+        for j in range(1, model.njoints):
+            joint = model.joints[j]
+            if joint.nq == 1 and "P" not in joint.shortname().replace("JointModel", "")[:1]:
+                revolute[joint.idx_q] = True
+        lower += np.where(revolute, spec.limit_margin, 0.0)
+        upper -= np.where(revolute, spec.limit_margin, 0.0)
         for i, jname in enumerate(self.joint_names):
             if not lower[i] < upper[i]:
                 why = (

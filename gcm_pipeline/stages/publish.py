@@ -9,6 +9,7 @@ path                        content
                             visual model: meshes read by trimesh and simplified,
                             primitives), posed at the top-ranked solution, and
                             an animation stepping through the top-k solutions
+                            (blending on one IK branch, cutting across them)
 ``/object``                 the grasped object (primitive or mesh)
 ``/environment``            the support table (``environment.table``)
 ``/grasps/reachable``       one ``LineSegments`` object: a gripper glyph per
@@ -42,12 +43,12 @@ import hashlib
 import math
 import os
 import selectors
-import stat
 import subprocess
 import sys
 import time
 import warnings
 import weakref
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -55,9 +56,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, PublishError
+from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.io import read_npz
 from gcm_pipeline.stages.plots import REASON_COLORS, candidate_rows, reason_palette
 from gcm_pipeline.table import GraspTable
 
@@ -76,11 +76,13 @@ except ImportError as _exc:  # pragma: no cover - meshcat is a hard dependency
     raise ImportError("gcm_pipeline.stages.publish needs meshcat (pip install meshcat)") from _exc
 
 __all__ = [
+    "ANIMATION_BLEND_LIMIT",
     "FULL_GLYPH_LIMIT",
     "REASON_COLORS",
     "SCENE_PATHS",
     "SceneInfo",
     "Viewer",
+    "animation_keys",
     "build_scene",
     "legend",
     "open_viewer",
@@ -109,6 +111,9 @@ _TOP_K_DEFAULT = 10
 _ANIM_FPS = 30
 _ANIM_HOLD = 15  # frames a solution is held [1/fps s]
 _ANIM_MOVE = 9  # frames of joint-space interpolation to the next solution
+#: Largest joint jump [rad] (L-infinity) the animation blends across: one IK branch
+#: (the default ``continuity.threshold``); beyond it, the animation cuts.
+ANIMATION_BLEND_LIMIT = 0.5
 
 # Gripper glyph in the grasp frame (z = approach, fingers along y, origin between
 # the fingertips): two fingers, the palm and a stem, as 4 segments [m].
@@ -152,6 +157,8 @@ class SceneInfo:
         camera: ``{"position": [x, y, z], "target": [x, y, z]}`` in the world [m].
         top_k: Number of solutions in the robot animation.
         animation_s: Duration of the robot animation [s].
+        animation_cuts: Steps of the animation that cut to the next solution
+            (another IK branch) instead of blending to it.
     """
 
     paths: tuple[str, ...]
@@ -163,6 +170,7 @@ class SceneInfo:
     camera: dict[str, list[float]]
     top_k: int
     animation_s: float
+    animation_cuts: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """Return the info as plain JSON-ready data."""
@@ -488,28 +496,61 @@ class _RobotDrawer:
             out.append((f"robot/visuals/{obj.name}", t))
         return out
 
-    def animate(self, vis: Any, qs: np.ndarray) -> float:
-        """Set an animation stepping through ``qs`` and back to the first; duration [s]."""
+    def animate(
+        self, vis: Any, qs: np.ndarray, blend_limit: float = ANIMATION_BLEND_LIMIT
+    ) -> tuple[float, int]:
+        """Set the top-k animation (:func:`animation_keys`); its duration [s] and cuts."""
         anim = Animation(default_framerate=_ANIM_FPS)
-        frame = 0
-        seq = [*qs, qs[0]] if len(qs) > 1 else list(qs)
-        for i, q in enumerate(seq):
-            if i > 0:
-                prev = seq[i - 1]
-                for s in range(1, _ANIM_MOVE):
-                    self._keyframe(anim, vis, frame, prev + (q - prev) * (s / _ANIM_MOVE))
-                    frame += 1
+        keys, cuts = animation_keys(qs, blend_limit)
+        for frame, q in keys:
             self._keyframe(anim, vis, frame, q)
-            frame += _ANIM_HOLD
-            self._keyframe(anim, vis, frame, q)
-            frame += 1
         vis.set_animation(anim, play=True, repetitions=1)
-        return frame / _ANIM_FPS
+        return (keys[-1][0] + 1) / _ANIM_FPS, cuts
 
     def _keyframe(self, anim: Animation, vis: Any, frame: int, q: np.ndarray) -> None:
         with anim.at_frame(vis, frame) as f:
             for path, t in self.placements(q):
                 f[path].set_transform(t)
+
+
+def animation_keys(
+    qs: np.ndarray, blend_limit: float = ANIMATION_BLEND_LIMIT
+) -> tuple[list[tuple[int, np.ndarray]], int]:
+    """Keyframes of the top-k animation: each solution held, then the next one.
+
+    Two consecutive solutions (and the last and the first, which closes the
+    loop) within ``blend_limit`` [rad] of each other in every joint are on one
+    IK branch: the animation blends between them in joint space. Farther apart
+    they are on different branches, and a joint-space blend would swing the arm
+    through poses nobody checked: the animation **cuts**, keying the next
+    solution on the very next frame, with no configuration in between.
+
+    Args:
+        qs: (k, nq) solutions, best first.
+        blend_limit: Largest joint jump [rad] (L-infinity) blended across.
+
+    Returns:
+        ``(frame, q)`` keyframes in frame order, and the number of cuts.
+    """
+    qs = np.asarray(qs, dtype=float)
+    seq = [*qs, qs[0]] if len(qs) > 1 else list(qs)
+    keys: list[tuple[int, np.ndarray]] = []
+    frame = 0
+    cuts = 0
+    for i, q in enumerate(seq):
+        if i > 0:
+            prev = seq[i - 1]
+            if np.max(np.abs(q - prev), initial=0.0) <= blend_limit:
+                for s in range(1, _ANIM_MOVE):
+                    keys.append((frame, prev + (q - prev) * (s / _ANIM_MOVE)))
+                    frame += 1
+            else:
+                cuts += 1
+        keys.append((frame, q))
+        frame += _ANIM_HOLD
+        keys.append((frame, q))
+        frame += 1
+    return keys, cuts
 
 
 # -- robot meshes -----------------------------------------------------------------------
@@ -628,29 +669,23 @@ def _simplifier_versions() -> str:
 
 
 def _read_mesh_cache(path: Path) -> _MeshGroups | None:
-    """The groups of a cache file, or None when it is absent or unreadable.
-
-    Only a regular file is opened (a named pipe there would block), and the
-    arrays its headers declare must fit in the file (the cache is written
-    uncompressed) before anything is allocated: a header claiming a terabyte
-    is a damaged entry, simplified again.
-    """
+    """The groups of a cache file, or None when it is absent or unreadable."""
     try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode):
-            return None
-        z = read_npz(path, max_bytes=st.st_size)
-    except (OSError, InputError):
+        loaded = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
+    if not isinstance(loaded, np.lib.npyio.NpzFile):  # a plain .npy array: not ours
         return None
     try:
-        colors = np.asarray(z["colors"], dtype=np.int64)
-        if colors.ndim != 1:
-            return None
-        groups = [
-            (int(c), np.asarray(z[f"v{i}"], dtype=np.float32), np.asarray(z[f"f{i}"]))
-            for i, c in enumerate(colors.tolist())
-        ]
-    except (ValueError, TypeError, KeyError, OverflowError):
+        with loaded as z:
+            colors = np.asarray(z["colors"], dtype=np.int64)
+            if colors.ndim != 1:
+                return None
+            groups = [
+                (int(c), np.asarray(z[f"v{i}"], dtype=np.float32), np.asarray(z[f"f{i}"]))
+                for i, c in enumerate(colors.tolist())
+            ]
+    except (OSError, ValueError, TypeError, KeyError, EOFError, zipfile.BadZipFile):
         return None
     for _, verts, faces in groups:
         if (
@@ -938,6 +973,7 @@ def build_scene(
     base = config.robot.base_pose.matrix()
     top_k = int(getattr(config.ranking, "top_k", _TOP_K_DEFAULT))
     anim_s = 0.0
+    cuts = 0
     n_top = 0
     robot_pts = np.zeros((0, 3))
     if robot is not None:
@@ -949,7 +985,8 @@ def build_scene(
         robot_pts = _robot_points(drawer, q0, base)
         frame_pts.append(robot_pts)
         if len(qs) > 1:
-            anim_s = drawer.animate(vis, qs)
+            blend = float(getattr(getattr(config, "continuity", None), "threshold", 0.5))
+            anim_s, cuts = drawer.animate(vis, qs, blend)
         n_top = len(qs)
         paths.append("/robot")
     if config.object is not None:
@@ -982,6 +1019,7 @@ def build_scene(
         camera={"position": position.tolist(), "target": target.tolist()},
         top_k=n_top,
         animation_s=anim_s,
+        animation_cuts=cuts,
     )
 
 

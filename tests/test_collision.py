@@ -594,7 +594,7 @@ def test_carried_object_agrees_with_coal_on_every_pair(robot, checker):
     from gcm_pipeline.robot.collision import gripper_links
     from gcm_pipeline.robot.ik import solve_ik
 
-    n = 150
+    n = 300  # (150 held no arm-object case once the joint ranges had their 0.1 rad margin)
     rng = np.random.default_rng(5)
     a = rng.uniform(-np.pi / 2, np.pi / 2, n) + np.pi  # the side facing the robot
     z = -np.stack([np.cos(a), np.sin(a), np.zeros(n)], axis=1)

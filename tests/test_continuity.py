@@ -106,7 +106,7 @@ def test_reseeding_merges_patches_and_keeps_valid_solutions(bottle: gcm.RunResul
     assert c["reseeded"] > 0
     g = bottle.grasps
     reach = np.asarray(g["reachable"])
-    assert int(reach.sum()) == 659  # reachability never changes
+    assert int(reach.sum()) == 647  # reachability never changes (0.1 rad limit margin)
     pid = np.asarray(g["patch"])
     assert pid.max() + 1 == c["patches"]
     assert np.all((pid >= 0) == reach)

@@ -46,8 +46,9 @@ def test_panda_model(panda: Robot):
     assert panda.nq == 7
     assert panda.grasp_frame == "panda_hand_tcp"
     assert panda.joint_names == tuple(f"panda_joint{i}" for i in range(1, 8))
-    np.testing.assert_array_equal(panda.lower, panda.model.lowerPositionLimit)
-    np.testing.assert_array_equal(panda.upper, panda.model.upperPositionLimit)
+    # the model's limits, 0.1 rad inside (the spec's limit_margin)
+    np.testing.assert_allclose(panda.lower, panda.model.lowerPositionLimit + 0.1)
+    np.testing.assert_allclose(panda.upper, panda.model.upperPositionLimit - 0.1)
     assert panda.within_limits(panda.home).all()
     np.testing.assert_allclose(panda.home[3], -2.356194)
     assert panda.urdf_path.is_file() and panda.srdf_path is not None and panda.srdf_path.is_file()
@@ -146,7 +147,7 @@ def test_spec_errors(tmp_path: Path):
     bad = PANDA_SPEC.read_text().replace("panda_finger_joint2: 0.04", "panda_fingr_joint2: 0.04")
     with pytest.raises(RobotSpecError, match="did you mean 'panda_finger_joint2'"):
         load_robot(_write_spec(tmp_path, bad))
-    bad = PANDA_SPEC.read_text().replace("limit_margin: 0.0", "limit_margin: -1")
+    bad = PANDA_SPEC.read_text().replace("limit_margin: 0.1", "limit_margin: -1")
     with pytest.raises(RobotSpecError, match="limit_margin"):
         load_robot(_write_spec(tmp_path, bad))
     bad = PANDA_SPEC.read_text().replace("panda_joint4: -2.356194", "panda_joint4: 1.0")
@@ -156,12 +157,12 @@ def test_spec_errors(tmp_path: Path):
 
 
 def test_limit_margin_and_joint_limits(tmp_path: Path, panda: Robot):
-    text = PANDA_SPEC.read_text().replace("limit_margin: 0.0", "limit_margin: 0.05")
+    text = PANDA_SPEC.read_text().replace("limit_margin: 0.1", "limit_margin: 0.05")
     text += "joint_limits:\n  panda_joint1: [-1.0, 5.0]\n"
     robot = load_robot(_write_spec(tmp_path, text))
     np.testing.assert_allclose(robot.lower[0], -1.0 + 0.05)
-    np.testing.assert_allclose(robot.upper[0], panda.upper[0] - 0.05)
-    np.testing.assert_allclose(robot.lower[1:], panda.lower[1:] + 0.05)
+    np.testing.assert_allclose(robot.upper[0], panda.upper[0] + 0.1 - 0.05)
+    np.testing.assert_allclose(robot.lower[1:], panda.lower[1:] - 0.1 + 0.05)
 
 
 def test_robot_package_exports_resolve_without_mink():
@@ -174,3 +175,21 @@ def test_robot_package_exports_resolve_without_mink():
         "assert 'mink' not in sys.modules and 'mujoco' not in sys.modules"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_default_limit_margin_keeps_joints_off_their_limits(tmp_path: Path, panda: Robot) -> None:
+    # shipped specs and a spec without the key: 0.1 rad inside the model's limits per side
+    model = panda.model
+    np.testing.assert_allclose(panda.lower, np.asarray(model.lowerPositionLimit) + 0.1)
+    np.testing.assert_allclose(panda.upper, np.asarray(model.upperPositionLimit) - 0.1)
+    text = "\n".join(
+        line for line in PANDA_SPEC.read_text().splitlines() if "limit_margin" not in line
+    )
+    assert "limit_margin" not in text
+    assert load_robot(_write_spec(tmp_path, text)).spec.limit_margin == 0.1
+    # 0 on request: the model's own limits
+    zero = load_robot(_write_spec(tmp_path, text + "\nlimit_margin: 0\n"))
+    np.testing.assert_array_equal(zero.lower, np.asarray(model.lowerPositionLimit))
+    np.testing.assert_array_equal(zero.upper, np.asarray(model.upperPositionLimit))
+    ur5 = load_robot("ur5")
+    np.testing.assert_allclose(ur5.upper, np.asarray(ur5.model.upperPositionLimit) - 0.1)

@@ -43,12 +43,12 @@ import hashlib
 import math
 import os
 import selectors
+import stat
 import subprocess
 import sys
 import time
 import warnings
 import weakref
-import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -56,8 +56,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.errors import PublishError
+from gcm_pipeline.errors import InputError, PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.io import read_npz
 from gcm_pipeline.stages.plots import REASON_COLORS, candidate_rows, reason_palette
 from gcm_pipeline.table import GraspTable
 
@@ -669,23 +670,29 @@ def _simplifier_versions() -> str:
 
 
 def _read_mesh_cache(path: Path) -> _MeshGroups | None:
-    """The groups of a cache file, or None when it is absent or unreadable."""
+    """The groups of a cache file, or None when it is absent or unreadable.
+
+    Only a regular file is opened (a named pipe there would block), and the
+    arrays its headers declare must fit in the file (the cache is written
+    uncompressed) before anything is allocated: a header claiming a terabyte
+    is a damaged entry, simplified again.
+    """
     try:
-        loaded = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
-        return None
-    if not isinstance(loaded, np.lib.npyio.NpzFile):  # a plain .npy array: not ours
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            return None
+        z = read_npz(path, max_bytes=st.st_size)
+    except (OSError, InputError):
         return None
     try:
-        with loaded as z:
-            colors = np.asarray(z["colors"], dtype=np.int64)
-            if colors.ndim != 1:
-                return None
-            groups = [
-                (int(c), np.asarray(z[f"v{i}"], dtype=np.float32), np.asarray(z[f"f{i}"]))
-                for i, c in enumerate(colors.tolist())
-            ]
-    except (OSError, ValueError, TypeError, KeyError, EOFError, zipfile.BadZipFile):
+        colors = np.asarray(z["colors"], dtype=np.int64)
+        if colors.ndim != 1:
+            return None
+        groups = [
+            (int(c), np.asarray(z[f"v{i}"], dtype=np.float32), np.asarray(z[f"f{i}"]))
+            for i, c in enumerate(colors.tolist())
+        ]
+    except (ValueError, TypeError, KeyError, OverflowError):
         return None
     for _, verts, faces in groups:
         if (

@@ -928,7 +928,7 @@ def solve(
             samples = grid.size
             # the preferred q7 (and, for one answer each, values around it: the
             # self-motion may turn back just short of it)
-            near = pref[todo, 6:7] + (_NEAR_Q7[1:] if with_pref and one_each else 0.0)
+            near = pref[todo, 6:7] + (_NEAR_Q7 if with_pref and one_each else 0.0)
             q7s = np.concatenate(
                 [np.clip(near, lower[6], upper[6]), np.broadcast_to(grid, (todo.size, samples))],
                 axis=1,

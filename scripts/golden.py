@@ -249,9 +249,10 @@ def git_commit() -> dict[str, object]:
 def record(out: Path) -> int:
     """Run every command into ``out`` and write ``out/golden.json``."""
     out.mkdir(parents=True, exist_ok=True)
+    commit = git_commit()  # the code that runs, before anything else is committed
     seconds = run_all(out.resolve())
     files = digest(out.resolve())
-    golden = {**git_commit(), "files": files}
+    golden = {**commit, "files": files}
     (out / "golden.json").write_text(json.dumps(golden, indent=1) + "\n")
     print(f"golden: recorded {len(files)} files in {seconds:.0f} s -> {out / 'golden.json'}")
     return 0

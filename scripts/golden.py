@@ -292,6 +292,8 @@ def check(out: Path) -> int:
                 old_file = out / rel
                 if old_file.is_file():
                     old = normalise(rel, old_file.read_bytes(), out)
+                    if hashlib.sha256(old).hexdigest() != want:
+                        print(f"  ({old_file} changed since it was recorded: diff against it)")
                     new = normalise(rel, (now_dir / rel).read_bytes(), now_dir)
                     text = _diff(old, new, rel)
                     if text:

@@ -258,7 +258,10 @@ BENCH_NOTES: dict[str, str] = {
         "inside the reach (`unreachable_near`), for both backends (mink on a subset), "
         "against TRAC-IK (`pytracik`, one thread, home seed) in the same run; the ratios "
         "are measured in one run (compare ratios, not rates across days). Also the "
-        'manipulability of 100,000 configurations. Needs `pip install ".[bench]"`.'
+        "manipulability of 100,000 configurations. The reachable set takes a few tens of "
+        "milliseconds, so one slow moment moves a run. Unreachable targets cost no IK: the far "
+        "ones are rejected by the distance pre-filter, the ones inside the reach by the reach "
+        'proof. Needs `pip install ".[bench]"`.'
     ),
     "manifold": (
         "`locate` on two manifolds of about 100,000 densified poses, with queries that are "
@@ -272,22 +275,30 @@ BENCH_NOTES: dict[str, str] = {
         "step, an independent re-check of every reachable row (Pinocchio FK, strict "
         "limits, `computeCollisions` over every pair), 1 against all workers, and "
         "(`--million`) a run of about a million poses in a fresh process with its peak "
-        "memory (the main process's peak resident size plus its largest worker's) and cost "
+        "memory (the main process's peak resident size plus its largest worker's, pages the "
+        "forked workers share with it counted twice) and cost "
         "per pose. The reference is TRAC-IK's IK-only rate (one thread, home seed, 5 ms "
         "timeout), timed on two target sets: poses drawn from the same dense manifold "
-        "(`tracik_same_poses`) and random reachable targets (TRAC-IK's best case). Needs "
+        "(`tracik_same_poses`; those without a solution cost TRAC-IK its timeout) and random "
+        "reachable targets (TRAC-IK's best case). The stage's rate is the median of three runs "
+        "in one process, the compiled kernels loaded before them when the robot is built, as "
+        "a `gcm run` loads them once. Needs "
         '`pip install ".[bench]"`.'
     ),
     "publish": (
         "Building and writing `scene.html` (above 20,000 grasps per class the glyph is a "
         "single approach stick; the first scene of a process also simplifies and caches "
-        "the robot meshes), and the live viewer on a loopback server."
+        "the robot meshes), and the live viewer on a loopback server. Glyphs are batched into "
+        "one meshcat object per class, so the number of meshcat objects does not grow with "
+        "the grasps."
     ),
     "study": (
         "Placements of the bottle (`bottle_side.yaml`) over a grid, placements/s of the "
         "placement phase (Ray's start-up and each worker's robot, seed library and "
         "geometry timed apart), one BLAS thread per process; `inline` runs in this "
-        "process and is the reference of Ray's overhead."
+        "process and is the reference of Ray's overhead (a negative overhead means the inline "
+        "reference met a busier moment); `identical_results`: every placement's reachable "
+        "count is the same in every run."
     ),
 }
 

@@ -37,12 +37,14 @@ class Column:
     """One documented column of the grasp table.
 
     Attributes:
+        dtype: Kind of the values: ``float``, ``int``, ``bool`` or ``str``.
         shape: Array shape, N rows (``nq``: joints, ``K``: ``ik.solutions``).
         unit: Unit of the values (``""`` for none).
         stage: The stage that adds the column.
         meaning: What a value says.
     """
 
+    dtype: str
     shape: str
     unit: str
     stage: str
@@ -54,56 +56,71 @@ class Column:
 #: Per-candidate columns of a source are listed in :data:`CANDIDATE_COLUMNS`.
 COLUMNS: dict[str, Column] = {
     "dq": Column(
-        "(N, 8)", "", "candidates, densify", "unit dual quaternion of the grasp frame in the world"
+        "float",
+        "(N, 8)",
+        "",
+        "candidates, densify",
+        "unit dual quaternion of the grasp frame in the world",
     ),
-    "origin": Column("(N,) str", "", "densify", "`candidate` or `interpolated`"),
+    "origin": Column("str", "(N,)", "", "densify", "`candidate` or `interpolated`"),
     "triangle": Column(
-        "(N,) int",
+        "int",
+        "(N,)",
         "",
         "densify",
         "provenance: the manifold triangle of the row (-1 for candidates)",
     ),
     "vertices": Column(
-        "(N, 3) int",
+        "int",
+        "(N, 3)",
         "",
         "densify",
         "provenance: the triangle's three candidate rows (-1 for candidates)",
     ),
     "weights": Column(
-        "(N, 3) float",
+        "float",
+        "(N, 3)",
         "",
         "densify",
         "provenance: barycentric weights of the blend (NaN for candidates)",
     ),
     "level": Column(
-        "(N,) int",
+        "int",
+        "(N,)",
         "",
         "densify (adaptive)",
         "adaptive densification only: refinement level of the row (0 = candidate)",
     ),
     "reachable": Column(
-        "(N,) bool", "", "reachability", "an IK solution that passes every check exists"
+        "bool", "(N,)", "", "reachability", "an IK solution that passes every check exists"
     ),
     "reason": Column(
-        "(N,) str",
+        "str",
+        "(N,)",
         "",
         "reachability",
         "`''` or why not: `out_of_reach`, `no_ik`, `joint_limits`, `collision_self`, "
         "`collision_environment`, `collision_object`, `approach`, `retreat`",
     ),
-    "q": Column("(N, nq)", "rad", "reachability", "IK solution (NaN if none)"),
-    "pos_err": Column("(N,)", "m", "reachability", "verified position error of `q`"),
-    "rot_err": Column("(N,)", "rad", "reachability", "verified orientation error of `q`"),
+    "q": Column("float", "(N, nq)", "rad", "reachability", "IK solution (NaN if none)"),
+    "pos_err": Column("float", "(N,)", "m", "reachability", "verified position error of `q`"),
+    "rot_err": Column("float", "(N,)", "rad", "reachability", "verified orientation error of `q`"),
     "q_pregrasp": Column(
+        "float",
         "(N, nq)",
         "rad",
         "reachability",
         "configuration at the pre-grasp, the start of the approach (NaN where none)",
     ),
     "q_retreat": Column(
-        "(N, nq)", "rad", "reachability", "configuration at the end of the retreat (NaN where none)"
+        "float",
+        "(N, nq)",
+        "rad",
+        "reachability",
+        "configuration at the end of the retreat (NaN where none)",
     ),
     "q_rejected": Column(
+        "float",
         "(N, nq)",
         "rad",
         "reachability",
@@ -111,64 +128,85 @@ COLUMNS: dict[str, Column] = {
         "collided or whose approach or retreat failed (NaN where none)",
     ),
     "clearance": Column(
+        "float",
         "(N,)",
         "m",
         "reachability",
         "minimum distance of the arm to table, obstacles and object (at most 1 mm above it)",
     ),
     "solutions": Column(
+        "float",
         "(N, K, nq)",
         "rad",
         "reachability (`ik.solutions` > 1)",
         "every kept IK branch of the grasp (NaN where fewer)",
     ),
     "solutions_q_pregrasp": Column(
+        "float",
         "(N, K, nq)",
         "rad",
         "reachability (`ik.solutions` > 1)",
         "pre-grasp configuration of each kept branch",
     ),
     "solutions_q_retreat": Column(
+        "float",
         "(N, K, nq)",
         "rad",
         "reachability (`ik.solutions` > 1)",
         "end of the retreat of each kept branch",
     ),
     "solutions_clearance": Column(
-        "(N, K)", "m", "reachability (`ik.solutions` > 1)", "clearance of each kept branch"
+        "float", "(N, K)", "m", "reachability (`ik.solutions` > 1)", "clearance of each kept branch"
     ),
-    "n_solutions": Column("(N,) int", "", "reachability (`ik.solutions` > 1)", "IK branches kept"),
+    "n_solutions": Column(
+        "int", "(N,)", "", "reachability (`ik.solutions` > 1)", "IK branches kept"
+    ),
     "solution": Column(
-        "(N,) int",
+        "int",
+        "(N,)",
         "",
         "reachability (`ik.solutions` > 1)",
         "which kept branch `q` is (-1 = unreachable)",
     ),
     "ik_jump": Column(
+        "float",
         "(N,)",
         "rad",
         "continuity",
         "largest joint jump (L-infinity) to the reachable neighbours on the manifold",
     ),
     "patch": Column(
-        "(N,) int", "", "continuity", "IK-branch patch id (0 = largest, -1 = unreachable)"
+        "int", "(N,)", "", "continuity", "IK-branch patch id (0 = largest, -1 = unreachable)"
     ),
     "margin": Column(
+        "float",
         "(N,)",
         "m",
         "continuity",
         "distance along the manifold to the nearest unreachable point "
         "(0 at the boundary and beyond, `inf` if none)",
     ),
-    "manipulability": Column("(N,)", "", "ranking", "Yoshikawa index (6-D grasp-frame Jacobian)"),
-    "manip_translation": Column("(N,)", "", "ranking", "translational Yoshikawa index (3 rows)"),
-    "inverse_condition": Column("(N,)", "", "ranking", "inverse condition number of the Jacobian"),
-    "joint_limit_margin": Column("(N,)", "", "ranking", "normalised distance to the joint limits"),
-    "combined": Column(
-        "(N,)", "", "ranking (`metric: combined`)", "weighted sum of the min-max normalised metrics"
+    "manipulability": Column(
+        "float", "(N,)", "", "ranking", "Yoshikawa index (6-D grasp-frame Jacobian)"
     ),
-    "rank": Column("(N,) int", "", "ranking", "1 = best among the reachable, 0 = unreachable"),
-    "top": Column("(N,) bool", "", "ranking", "among the `ranking.top_k` best"),
+    "manip_translation": Column(
+        "float", "(N,)", "", "ranking", "translational Yoshikawa index (3 rows)"
+    ),
+    "inverse_condition": Column(
+        "float", "(N,)", "", "ranking", "inverse condition number of the Jacobian"
+    ),
+    "joint_limit_margin": Column(
+        "float", "(N,)", "", "ranking", "normalised distance to the joint limits"
+    ),
+    "combined": Column(
+        "float",
+        "(N,)",
+        "",
+        "ranking (`metric: combined`)",
+        "weighted sum of the min-max normalised metrics",
+    ),
+    "rank": Column("int", "(N,)", "", "ranking", "1 = best among the reachable, 0 = unreachable"),
+    "top": Column("bool", "(N,)", "", "ranking", "among the `ranking.top_k` best"),
 }
 
 #: How densify fills a per-candidate column for the interpolated rows.

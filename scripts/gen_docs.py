@@ -114,9 +114,9 @@ def _refs(prop: dict[str, Any]) -> list[str]:
 
 def render_configuration() -> str:
     """The config reference: one table per section of the JSON Schema."""
-    from gcm_pipeline.config import config_schema
+    from gcm_pipeline import Config  # the public name survives module moves
 
-    schema = config_schema()
+    schema = Config.model_json_schema(mode="validation")
     defs = schema.get("$defs", {})
     order: list[str] = []
     paths: dict[str, list[str]] = {}
@@ -181,13 +181,14 @@ def render_columns() -> str:
         "",
         f"From `gcm_pipeline.table.COLUMNS`; written by `{COMMAND}`.",
         "",
-        "| column | shape | unit | added by | meaning |",
-        "| --- | --- | --- | --- | --- |",
+        "| column | dtype | shape | unit | added by | meaning |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for name, col in COLUMNS.items():
         unit = f"[{col.unit}]" if col.unit else ""
         out.append(
-            f"| `{name}` | {col.shape} | {unit} | {_cell(col.stage)} | {_cell(col.meaning)} |"
+            f"| `{name}` | {col.dtype} | {col.shape} | {unit} | {_cell(col.stage)} "
+            f"| {_cell(col.meaning)} |"
         )
     out += [
         "",

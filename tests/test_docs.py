@@ -64,10 +64,10 @@ def test_benchmarks_page_has_every_result_with_its_record() -> None:
 
 
 def test_config_reference_names_every_key() -> None:
-    from gcm_pipeline.config import config_schema
+    from gcm_pipeline import Config
 
     page = (DOCS / "configuration.md").read_text(encoding="utf-8")
-    schema = config_schema()
+    schema = Config.model_json_schema(mode="validation")
     for model in [schema, *schema["$defs"].values()]:
         for key in model.get("properties", {}):
             assert f"| `{key}` |" in page, key
@@ -120,7 +120,11 @@ def test_column_registry_names_every_column_of_a_run() -> None:
     pipeline = gcm.Pipeline.from_yaml(ROOT / "configs" / "flat_surface.yaml", overrides)
     with tempfile.TemporaryDirectory() as tmp:
         result = pipeline.run(Path(tmp) / "run", progress=False)
-    columns = set(result.grasps.columns)
-    assert not columns - set(COLUMNS) - set(CANDIDATE_COLUMNS)
+    table = result.grasps
+    assert not set(table.columns) - set(COLUMNS) - set(CANDIDATE_COLUMNS)
+    kinds = {"float": "f", "int": "iu", "bool": "b", "str": "UO"}
     for name, col in COLUMNS.items():
         assert col.shape.startswith("(N") and col.stage and col.meaning, name
+        if name in table.columns:  # every column of this run: its dtype and its dimensions
+            assert table[name].dtype.kind in kinds[col.dtype], (name, table[name].dtype)
+            assert table[name].ndim == col.shape.count(",") + (not col.shape.endswith(",)")), name

@@ -5,22 +5,8 @@ returns a new table with its own columns added; the arrays of the columns it
 did not touch are shared, never copied, and no stage turns the poses into
 per-grasp Python objects.
 
-Columns (see DESIGN.md):
-
-========================== ============ ===============================
-name                       shape        added by
-========================== ============ ===============================
-``dq``                     (N, 8)       candidates, densify
-``origin``                 (N,) str     densify (``candidate`` or ``interpolated``)
-``triangle``               (N,) int     densify (-1 for candidates)
-``vertices``               (N, 3) int   densify (-1 for candidates)
-``weights``                (N, 3) float densify (NaN for candidates)
-``reachable``, ``reason``  (N,)         reachability
-``q``                      (N, nq)      reachability
-``pos_err``, ``rot_err``   (N,)         reachability [m], [rad]
-``manipulability``         (N,)         ranking
-``rank``                   (N,) int     ranking (1-based, 0 = unreachable)
-========================== ============ ===============================
+Columns: :data:`COLUMNS` names each with its shape, unit, the stage that adds
+it and its meaning (the run-directory reference of the docs is generated from it).
 
 Per-candidate columns: a candidate source (an importer, the antipodal
 sampler) may add more 1-D columns to the candidate table, such as a
@@ -35,6 +21,7 @@ columns and the metric columns.
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -42,7 +29,185 @@ import numpy.typing as npt
 
 from gcm_pipeline.errors import InputError
 
-__all__ = ["CANDIDATE_COLUMNS", "FILL_RULES", "GraspTable", "candidate_fill"]
+__all__ = ["CANDIDATE_COLUMNS", "COLUMNS", "FILL_RULES", "Column", "GraspTable", "candidate_fill"]
+
+
+@dataclass(frozen=True)
+class Column:
+    """One documented column of the grasp table.
+
+    Attributes:
+        dtype: Kind of the values: ``float``, ``int``, ``bool`` or ``str``.
+        shape: Array shape, N rows (``nq``: joints, ``K``: ``ik.solutions``).
+        unit: Unit of the values (``""`` for none).
+        stage: The stage that adds the column.
+        meaning: What a value says.
+    """
+
+    dtype: str
+    shape: str
+    unit: str
+    stage: str
+    meaning: str
+
+
+#: The grasp table's columns, in the order a run adds them: the single source of
+#: the run-directory reference (``docs/gen.py`` renders it into ``docs/run-directory.md``).
+#: Per-candidate columns of a source are listed in :data:`CANDIDATE_COLUMNS`.
+COLUMNS: dict[str, Column] = {
+    "dq": Column(
+        "float",
+        "(N, 8)",
+        "",
+        "candidates, densify",
+        "unit dual quaternion of the grasp frame in the world",
+    ),
+    "origin": Column("str", "(N,)", "", "densify", "`candidate` or `interpolated`"),
+    "triangle": Column(
+        "int",
+        "(N,)",
+        "",
+        "densify",
+        "provenance: the manifold triangle of the row (-1 for candidates)",
+    ),
+    "vertices": Column(
+        "int",
+        "(N, 3)",
+        "",
+        "densify",
+        "provenance: the triangle's three candidate rows (-1 for candidates)",
+    ),
+    "weights": Column(
+        "float",
+        "(N, 3)",
+        "",
+        "densify",
+        "provenance: barycentric weights of the blend (NaN for candidates)",
+    ),
+    "level": Column(
+        "int",
+        "(N,)",
+        "",
+        "densify (adaptive)",
+        "adaptive densification only: refinement level of the row (0 = candidate)",
+    ),
+    "reachable": Column(
+        "bool", "(N,)", "", "reachability", "an IK solution that passes every check exists"
+    ),
+    "reason": Column(
+        "str",
+        "(N,)",
+        "",
+        "reachability",
+        "`''` or why not: `out_of_reach`, `no_ik`, `joint_limits`, `collision_self`, "
+        "`collision_environment`, `collision_object`, `approach`, `retreat`",
+    ),
+    "q": Column("float", "(N, nq)", "rad", "reachability", "IK solution (NaN if none)"),
+    "pos_err": Column("float", "(N,)", "m", "reachability", "verified position error of `q`"),
+    "rot_err": Column("float", "(N,)", "rad", "reachability", "verified orientation error of `q`"),
+    "q_pregrasp": Column(
+        "float",
+        "(N, nq)",
+        "rad",
+        "reachability",
+        "configuration at the pre-grasp, the start of the approach (NaN where none)",
+    ),
+    "q_retreat": Column(
+        "float",
+        "(N, nq)",
+        "rad",
+        "reachability",
+        "configuration at the end of the retreat (NaN where none)",
+    ),
+    "q_rejected": Column(
+        "float",
+        "(N, nq)",
+        "rad",
+        "reachability",
+        "for an unreachable grasp that had an IK solution: the solution that "
+        "collided or whose approach or retreat failed (NaN where none)",
+    ),
+    "clearance": Column(
+        "float",
+        "(N,)",
+        "m",
+        "reachability",
+        "minimum distance of the arm to table, obstacles and object (at most 1 mm above it)",
+    ),
+    "solutions": Column(
+        "float",
+        "(N, K, nq)",
+        "rad",
+        "reachability (`ik.solutions` > 1)",
+        "every kept IK branch of the grasp (NaN where fewer)",
+    ),
+    "solutions_q_pregrasp": Column(
+        "float",
+        "(N, K, nq)",
+        "rad",
+        "reachability (`ik.solutions` > 1)",
+        "pre-grasp configuration of each kept branch",
+    ),
+    "solutions_q_retreat": Column(
+        "float",
+        "(N, K, nq)",
+        "rad",
+        "reachability (`ik.solutions` > 1)",
+        "end of the retreat of each kept branch",
+    ),
+    "solutions_clearance": Column(
+        "float", "(N, K)", "m", "reachability (`ik.solutions` > 1)", "clearance of each kept branch"
+    ),
+    "n_solutions": Column(
+        "int", "(N,)", "", "reachability (`ik.solutions` > 1)", "IK branches kept"
+    ),
+    "solution": Column(
+        "int",
+        "(N,)",
+        "",
+        "reachability (`ik.solutions` > 1)",
+        "which kept branch `q` is (-1 = unreachable)",
+    ),
+    "ik_jump": Column(
+        "float",
+        "(N,)",
+        "rad",
+        "continuity",
+        "largest joint jump (L-infinity) to the reachable neighbours on the manifold",
+    ),
+    "patch": Column(
+        "int", "(N,)", "", "continuity", "IK-branch patch id (0 = largest, -1 = unreachable)"
+    ),
+    "margin": Column(
+        "float",
+        "(N,)",
+        "m",
+        "continuity",
+        "distance along the manifold to the nearest unreachable point "
+        "(0 at the boundary and beyond, `inf` if none)",
+    ),
+    "manipulability": Column(
+        "float", "(N,)", "", "ranking", "Yoshikawa index (6-D grasp-frame Jacobian)"
+    ),
+    "manip_translation": Column(
+        "float", "(N,)", "", "ranking", "translational Yoshikawa index (3 rows)"
+    ),
+    "inverse_condition": Column(
+        "float", "(N,)", "", "ranking", "inverse condition number of the Jacobian"
+    ),
+    "joint_limit_margin": Column(
+        "float", "(N,)", "", "ranking", "normalised distance to the joint limits"
+    ),
+    "combined": Column(
+        "float",
+        "(N,)",
+        "",
+        "ranking (`metric: combined`)",
+        "weighted sum of the min-max normalised metrics",
+    ),
+    "rank": Column("int", "(N,)", "", "ranking", "1 = best among the reachable, 0 = unreachable"),
+    "top": Column("bool", "(N,)", "", "ranking", "among the `ranking.top_k` best"),
+}
 
 #: How densify fills a per-candidate column for the interpolated rows.
 #: ``blend``: the barycentric blend ``sum_j w_j * value[v_j]`` of the three

@@ -272,7 +272,7 @@ def test_scene_draws_the_ur5_with_its_gripper(ur5):
 
 
 def test_readme_tool_section_is_the_shipped_one():
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / "docs" / "robots.md").read_text()  # the Tools section of the docs
     blocks = [b.split("```")[0] for b in readme.split("```yaml")[1:]]
     # the Tools section's block (the robot spec sketch before it has a model and a TCP-only tool)
     block = next(b for b in blocks if "\ntool:" in b and "\nmodel:" not in b)

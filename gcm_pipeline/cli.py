@@ -693,7 +693,10 @@ def robot_report(robot: Any) -> list[str]:
     if spec.locked_joints:
         locked = ", ".join(f"{k} = {v:g}" for k, v in spec.locked_joints.items())
         out.append(f"  locked       {locked}")
-    out.append(f"  limit margin {spec.limit_margin:g} (each range shrinks by it on both sides)")
+    out.append(
+        f"  limit margin {spec.limit_margin:g} rad (each revolute range above shrinks by it "
+        "on both sides; continuous joints keep two turns)"
+    )
     fm = robot.full_model
     out.append(
         f"  frames       base {robot.urdf.root_link} (the URDF's root link; poses are in it)"

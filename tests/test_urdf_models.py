@@ -152,8 +152,9 @@ def test_continuous_joints_are_revolute_over_two_turns(tmp_path):
     )
     robot = load_robot(spec)
     assert robot.continuous_joints == {"wrist_3_joint": (-9.0, 9.0)}
-    assert (robot.lower[5], robot.upper[5]) == (-9.0, 9.0)  # wider than 2 pi: the spec's
-    np.testing.assert_allclose(robot.lower[:5], -1.0)
+    # wider than 2 pi: the spec's, less the limit margin (a stated range is a limit)
+    np.testing.assert_allclose((robot.lower[5], robot.upper[5]), (-8.9, 8.9))
+    np.testing.assert_allclose(robot.lower[:5], -1.0 + 0.1)
 
 
 def test_kinova_with_continuous_joints_loads_and_its_fk_is_the_urdfs(tmp_path):
@@ -321,7 +322,7 @@ def test_urdf_joint_limits_of_1e308_are_refused_naming_the_joint(tmp_path):
     )
     spec.write_text(spec.read_text() + f"joint_limits: {{{limits}}}\n")
     robot = load_robot(spec)
-    np.testing.assert_allclose(robot.upper, 6.3)
+    np.testing.assert_allclose(robot.upper, 6.3 - 0.1)  # the stated range, less the margin
     assert np.isfinite(robot.max_reach) and robot.max_reach < 1.1
 
 
@@ -525,7 +526,7 @@ def test_gcm_robot_prints_what_a_spec_configures(capsys, tmp_path):
     assert code == 0, err
     for fragment in [
         "panda_joint4  revolute",
-        "-3.0718   -0.0698   -2.3562",
+        "-2.9718   -0.1698   -2.3562",  # the model's range, 0.1 rad inside (limit_margin)
         "locked       panda_finger_joint1 = 0.04",
         "base panda_link0",
         "grasp frame panda_hand_tcp (link fixed to panda_hand)",
@@ -590,8 +591,8 @@ def test_root_link_is_the_moveit_frame_of_the_shipped_specs():
 def test_a_revolute_joint_without_lower_upper_takes_the_specs_range(tmp_path):
     spec = write_arm(tmp_path, limits=None)  # urdfdom reads [0, 0]
     with pytest.raises(RobotSpecError, match=re_escape(
-        "joint 'shoulder_pan_joint' has an empty range [0, 0] after joint_limits and "
-        "limit_margin (0) (the URDF gives it no lower/upper; give joint_limits: "
+        "joint 'shoulder_pan_joint' has an empty range [0.1, -0.1] after joint_limits and "
+        "limit_margin (0.1) (the URDF gives it no lower/upper; give joint_limits: "
         "{shoulder_pan_joint: [lower, upper]})"
     )):  # fmt: skip
         load_robot(spec)
@@ -600,5 +601,5 @@ def test_a_revolute_joint_without_lower_upper_takes_the_specs_range(tmp_path):
         spec.read_text() + "joint_limits: {" + ", ".join(f"{j}: [-3, 3]" for j in joints) + "}\n"
     )
     robot = load_robot(spec)
-    np.testing.assert_allclose(robot.lower, -3.0)
-    np.testing.assert_allclose(robot.upper, 3.0)
+    np.testing.assert_allclose(robot.lower, -3.0 + 0.1)  # the spec's range, less the margin
+    np.testing.assert_allclose(robot.upper, 3.0 - 0.1)

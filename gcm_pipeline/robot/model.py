@@ -652,11 +652,15 @@ class Robot:
                     f"{str(urdf)!r}, beyond +-{MAX_JOINT_BOUND:g} (rad or m); give its real "
                     f"range in the spec: joint_limits: {{{jname}: [lower, upper]}}"
                 )
-        # the margin is in radians: revolute joints only (a prismatic range is in metres)
+        # the margin is in radians: revolute joints only (a prismatic range is in metres),
+        # and not a continuous joint's stated range of two turns (no limit to keep off)
         revolute = np.zeros(self.nq, dtype=bool)
         for j in range(1, model.njoints):
             joint = model.joints[j]
-            if joint.nq == 1 and "P" not in joint.shortname().replace("JointModel", "")[:1]:
+            limited = model.names[j] not in self.continuous_joints or (
+                model.names[j] in spec.joint_limits
+            )
+            if joint.nq == 1 and limited and not joint.shortname()[10:].startswith("P"):
                 revolute[joint.idx_q] = True
         lower += np.where(revolute, spec.limit_margin, 0.0)
         upper -= np.where(revolute, spec.limit_margin, 0.0)

@@ -128,4 +128,5 @@ def _load_readme_spec(data: dict) -> None:
         spec = Path(tmp) / "spec.yaml"
         spec.write_text(yaml.safe_dump(data))
         robot = load_robot(spec)
-        assert robot.grasp_frame == data["grasp_frame"] and robot.upper[5] == 3.1416 - 0.1  # less the limit margin
+        assert robot.grasp_frame == data["grasp_frame"]
+        assert robot.upper[5] == 3.1416 - 0.1  # the stated range, less the limit margin

@@ -72,8 +72,10 @@ VOLATILE_JSON: dict[str, list[str]] = {
     # a run's summary: wall-clock time per stage, the package version
     "runs/*/summary.json": ["timings_s", "versions.gcm_pipeline"],
     "study/best/summary.json": ["timings_s", "versions.gcm_pipeline"],
-    # the study's resume key file: creation time (epoch seconds)
-    "study/study.json": ["created"],
+    # the study's resume key file: creation time (epoch seconds), and the key itself: it
+    # hashes the spec's absolute base directory, so it differs between checkouts (the
+    # spec it is derived from is compared, paths normalised)
+    "study/study.json": ["created", "key"],
     # the study summary: Ray node ids, times, throughput, package version
     "study/summary.json": [
         "best.node",
@@ -83,6 +85,7 @@ VOLATILE_JSON: dict[str, list[str]] = {
         "timings_s",
         "placements_per_s",
         "versions.gcm_pipeline",
+        "study.key",  # a hash of the absolute base directory (see study.json)
     ],
 }
 # Per-placement volatile fields (placements.csv columns, placements/*.npz row JSON).

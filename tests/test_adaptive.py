@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import BOTTLE, ROOT
 from scipy.spatial import cKDTree
 
 import gcm_pipeline as gcm
@@ -16,8 +17,6 @@ from gcm_pipeline.stages.adaptive import refine, uniform_size
 from gcm_pipeline.stages.lattice import interpolate, row_mesh
 from gcm_pipeline.table import GraspTable
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 LEVEL = 3
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import BOTTLE
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
@@ -14,8 +15,6 @@ from gcm_pipeline.stages.collision import make_checker
 from gcm_pipeline.stages.continuity import patches
 from gcm_pipeline.stages.lattice import row_mesh
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 SMALL = ["candidates.count=45", "densify.subdivisions=3", "ik.solutions=4"]
 
 

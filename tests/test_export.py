@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import CONFIGS, DATA
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.cli import main
@@ -355,7 +356,7 @@ def test_a_tampered_config_yaml_is_one_line(run, tmp_path, capsys, config):
 
 # ------------------------------------------- real clients: DuckDB, polars, rosbags
 
-BOX = Path(__file__).resolve().parents[1] / "configs" / "box.yaml"
+BOX = CONFIGS / "box.yaml"
 #: configs/box.yaml made quick: 110 grasps, 71 reachable, 16 of them with margin inf
 QUICK_BOX = ("densify.subdivisions=2", "publish.html=false", "publish.plots=false")
 
@@ -440,7 +441,7 @@ def _moveit_typestore():
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = {}
-    for f in sorted((Path(__file__).parent / "data" / "moveit_msgs" / "msg").glob("*.msg")):
+    for f in sorted((DATA / "moveit_msgs" / "msg").glob("*.msg")):
         types.update(get_types_from_msg(f.read_text(), f"moveit_msgs/msg/{f.stem}"))
     store.register(types)
     return store

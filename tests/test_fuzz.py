@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import FLAT
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import BaseModel
@@ -30,9 +31,6 @@ from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.stages import candidates
 from gcm_pipeline.stages.candidates import read_grasp_file
-
-ROOT = Path(__file__).resolve().parents[1]
-FLAT = ROOT / "configs" / "flat_surface.yaml"
 
 #: Examples per test (more with GCM_FUZZ_SCALE=10, e.g., for a longer hunt).
 SCALE = float(os.environ.get("GCM_FUZZ_SCALE", "1"))

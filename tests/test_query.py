@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import BOTTLE, ROOT
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
@@ -19,9 +20,6 @@ from gcm_pipeline.geometry.surface import (
     pose_features,
 )
 from gcm_pipeline.stages.collision import make_checker
-
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 
 
 @pytest.fixture(scope="module")

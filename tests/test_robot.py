@@ -8,17 +8,12 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers import ROOT
 
 from gcm_pipeline.errors import FrameNotFoundError, GcmError, RobotSpecError
 from gcm_pipeline.robot.model import Robot, available_robots, load_robot
 
-ROOT = Path(__file__).resolve().parents[1]
 PANDA_SPEC = ROOT / "gcm_pipeline" / "robots" / "panda.yaml"
-
-
-@pytest.fixture(scope="module")
-def panda() -> Robot:
-    return load_robot("panda")
 
 
 @pytest.fixture(scope="module")

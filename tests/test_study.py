@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import BOTTLE, ROOT
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
@@ -39,8 +40,6 @@ from gcm_pipeline.study.store import CSV_COLUMNS, StudyDir
 # before anything here imports Ray (the subprocesses inherit it).
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 FROM_FILE = ROOT / "configs" / "from_file.yaml"
 #: A small bottle: 2 rings of 9 candidates, 45 grasps (about 0.4 s per placement).
 SMALL = [

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import coal
 import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
+from helpers import ROOT
 
 import gcm_pipeline as gcm
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
@@ -21,7 +21,6 @@ from gcm_pipeline.robot.model import load_robot, load_spec
 from gcm_pipeline.robot.tool import parse_pose
 from gcm_pipeline.stages.collision import make_checker
 
-ROOT = Path(__file__).resolve().parents[1]
 UR5_SPEC = yaml.safe_load((ROOT / "gcm_pipeline" / "robots" / "ur5.yaml").read_text())
 
 

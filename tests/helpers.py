@@ -31,18 +31,21 @@ def assert_one_line_error(code: int, err: str, *fragments: str, warnings: bool =
     """
     assert code == 2, err
     assert "Traceback" not in err, err
-    lines = err.strip().splitlines()
+    lines = err.splitlines()
     if warnings:
         lines = [ln for ln in lines if not ln.startswith("WARNING")]
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert len(lines) == 1 and lines[0].startswith("error: ") and err.endswith("\n"), err
     assert len(lines[0]) <= 2000, len(lines[0])
     for f in fragments:
         assert f in lines[0], (f, lines[0])
     return lines[0]
 
 
-def gcm(
-    *argv: object, env: dict[str, str] | None = None, cwd: Path | None = None, timeout: float = 600
+def run_gcm(
+    *argv: object,
+    env: dict[str, str] | None = None,
+    cwd: Path | None = None,
+    timeout: float | None = 600,
 ) -> subprocess.CompletedProcess[str]:
     """``gcm ARGV`` in a subprocess of this checkout: what a user's terminal shows.
 

@@ -285,8 +285,7 @@ def test_python_dash_m(tmp_path):
         cwd=tmp_path,
         timeout=120,
     )
-    assert proc.returncode == 2
-    assert proc.stderr.startswith("error: ") and len(proc.stderr.strip().splitlines()) == 1
+    assert_one_line_error(proc.returncode, proc.stderr)
 
 
 def test_meshcat_viewer_opens_after_the_run(cli, out, monkeypatch):

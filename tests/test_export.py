@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from helpers import CONFIGS, DATA
+from helpers import CONFIGS, DATA, assert_one_line_error
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.cli import main
@@ -320,17 +320,16 @@ def test_out_never_overwrites_the_run_itself(run, tmp_path, capsys):
 
 def test_out_where_no_file_can_be_made_is_one_line(run, capsys):
     code = main(["export", str(run), "--format", "npz", "--out", "/proc/gcm-export.npz"])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and err[0].startswith("error: cannot write"), err
+    line = assert_one_line_error(code, capsys.readouterr().err)
+    assert line.startswith("error: cannot write"), line
 
 
 def test_out_into_a_missing_folder_says_it_does_not_exist(run, tmp_path, capsys):
     missing = tmp_path / "no" / "such"
     for fmt in ("moveit", "parquet", "npz"):
         code = main(["export", str(run), "--format", fmt, "--out", str(missing / "g")])
-        err = capsys.readouterr().err.strip().splitlines()
-        assert code == 2 and len(err) == 1, err
-        assert err[0] == f"error: cannot write {missing / 'g'}: {missing} does not exist"
+        line = assert_one_line_error(code, capsys.readouterr().err)
+        assert line == f"error: cannot write {missing / 'g'}: {missing} does not exist"
     assert not (tmp_path / "no").exists()
 
 
@@ -348,9 +347,7 @@ def test_a_tampered_config_yaml_is_one_line(run, tmp_path, capsys, config):
     bad = _copy_run(run, tmp_path / "bad")
     (bad / "config.yaml").write_text(config)
     code = main(["export", str(bad), "--format", "moveit", "--out", str(tmp_path / "m.yaml")])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and err[0].startswith("error: "), err
-    assert "config.yaml" in err[0]
+    assert_one_line_error(code, capsys.readouterr().err, "config.yaml")
     assert not (tmp_path / "m.yaml").exists()
 
 

@@ -14,15 +14,12 @@ from __future__ import annotations
 
 import csv
 import itertools
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from helpers import BOTTLE, ROOT
+from helpers import BOTTLE, ROOT, run_gcm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -123,10 +120,9 @@ def test_decisions_equal_with_and_without_kernels_on_every_world(robot_name, use
 
 def _gcm_run(tmp_path, name, overrides, jit):
     out = tmp_path / name
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "GCM_JIT": "1" if jit else "0"}
-    args = [sys.executable, "-m", "gcm_pipeline", "run", str(BOTTLE), "--out", str(out)]
-    args += ["--force", "--quiet", *(x for o in overrides for x in ("--set", o))]
-    res = subprocess.run(args, capture_output=True, text=True, env=env, cwd=tmp_path)
+    args = ["run", BOTTLE, "--out", out, "--force", "--quiet"]
+    args += [x for o in overrides for x in ("--set", o)]
+    res = run_gcm(*args, env={"GCM_JIT": "1" if jit else "0"}, cwd=tmp_path, timeout=None)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "Traceback" not in res.stderr
     with open(out / "grasps.csv", newline="") as f:

@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import trimesh
-from helpers import BOTTLE, FLAT, QUICK, ROOT, assert_one_line_error, gcm
+from helpers import BOTTLE, FLAT, QUICK, ROOT, assert_one_line_error, run_gcm
 from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
@@ -234,7 +234,7 @@ def test_a_bad_mesh_names_the_link_and_the_file_not_assimp(tmp_path, case):
             " vertex 0 0 0\n endloop\n endfacet\nendsolid\n"
         )
     spec = write_arm(tmp_path, mesh="meshes/w3.stl")
-    proc = gcm("validate", FLAT, "--set", f"robot.spec={spec}")
+    proc = run_gcm("validate", FLAT, "--set", f"robot.spec={spec}")
     line = assert_one_line_error(
         proc.returncode, proc.stderr, "link 'wrist_3_link'", "meshes/w3.stl"
     )
@@ -261,7 +261,7 @@ def test_a_bad_mesh_names_the_link_and_the_file_not_assimp(tmp_path, case):
 def test_a_malformed_urdf_is_one_line_and_nothing_of_urdfdom(tmp_path, text, fragment):
     (tmp_path / "arm.urdf").write_text(text)
     (tmp_path / "spec.yaml").write_text("name: a\nmodel: {urdf: arm.urdf}\ngrasp_frame: tool0\n")
-    proc = gcm("validate", FLAT, "--set", f"robot.spec={tmp_path / 'spec.yaml'}")
+    proc = run_gcm("validate", FLAT, "--set", f"robot.spec={tmp_path / 'spec.yaml'}")
     line = assert_one_line_error(proc.returncode, proc.stderr, "arm.urdf", fragment)
     assert proc.stderr.count("\n") == 1, proc.stderr  # urdfdom printed nothing of its own
     assert "at line" not in line and proc.stdout == ""
@@ -269,7 +269,7 @@ def test_a_malformed_urdf_is_one_line_and_nothing_of_urdfdom(tmp_path, text, fra
 
 def test_urdf_joint_limits_of_1e308_are_refused_naming_the_joint(tmp_path):
     spec = write_arm(tmp_path, limits=(-1e308, 1e308))
-    proc = gcm("validate", FLAT, "--set", f"robot.spec={spec}")
+    proc = run_gcm("validate", FLAT, "--set", f"robot.spec={spec}")
     assert_one_line_error(
         proc.returncode,
         proc.stderr,
@@ -413,7 +413,7 @@ def test_a_robot_descriptions_model_loads_from_its_cache(tmp_path, rd_env, panda
     assert robot.build_geometry("collision").ngeoms == panda.build_geometry("collision").ngeoms
     assert root_link(robot.spec) == "panda_link0"
     # the command line, in a fresh process
-    proc = gcm(
+    proc = run_gcm(
         "robot",
         spec,
         env={
@@ -451,7 +451,7 @@ def test_a_xacro_robot_descriptions_model_is_rendered(tmp_path, rd_env):
 def test_a_robot_descriptions_model_not_in_the_cache_is_one_line(tmp_path, rd_env):
     spec = tmp_path / "rd.yaml"
     spec.write_text("name: x\nmodel: {robot_descriptions: ur10e_description}\ngrasp_frame: tool0\n")
-    proc = gcm(
+    proc = run_gcm(
         "validate",
         FLAT,
         "--set",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import BOTTLE, FLAT, QUICK, ROOT, assert_one_line_error
+from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, ROOT, assert_one_line_error
 
 from gcm_pipeline import io
 from gcm_pipeline.cli import main
@@ -303,7 +303,7 @@ SPEC_TAIL = (
 
 
 def test_bad_robot_specs_are_found_by_validate(cli, tmp_path):
-    panda = (ROOT / "gcm_pipeline" / "robots" / "panda.yaml").read_text()
+    panda = (ROBOT_SPECS / "panda.yaml").read_text()
     latin = tmp_path / "latin.yaml"
     latin.write_bytes(("# caf\xe9\n" + panda).encode("latin-1"))
     urdf = _panda_urdf()

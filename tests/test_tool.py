@@ -7,7 +7,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
-from helpers import BOTTLE, FLAT, QUICK, ROOT, assert_one_line_error, run_gcm
+from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, ROOT, assert_one_line_error, run_gcm
 
 import gcm_pipeline as gcm
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
@@ -18,7 +18,7 @@ from gcm_pipeline.robot.model import load_robot, load_spec
 from gcm_pipeline.robot.tool import parse_pose
 from gcm_pipeline.stages.collision import make_checker
 
-UR5_SPEC = yaml.safe_load((ROOT / "gcm_pipeline" / "robots" / "ur5.yaml").read_text())
+UR5_SPEC = yaml.safe_load((ROBOT_SPECS / "ur5.yaml").read_text())
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import trimesh
-from helpers import BOTTLE, FLAT, QUICK, ROOT, assert_one_line_error, run_gcm
+from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, assert_one_line_error, run_gcm
 from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
@@ -401,7 +401,7 @@ def test_a_robot_descriptions_model_loads_from_its_cache(tmp_path, rd_env, panda
     )
     rd_env.setenv("ROBOT_DESCRIPTIONS_CACHE", str(cache))
     rd_env.setenv("ROBOT_DESCRIPTION_COMMIT", sha)
-    text = (ROOT / "gcm_pipeline" / "robots" / "panda.yaml").read_text()
+    text = (ROBOT_SPECS / "panda.yaml").read_text()
     spec = tmp_path / "rd.yaml"
     spec.write_text(
         text.replace("example_robot_data: panda", "robot_descriptions: panda_description")

@@ -1,4 +1,4 @@
-"""Session set-up shared by the tests."""
+"""Fixtures shared by the tests (paths and assertions: ``helpers.py``, poses: ``poses.py``)."""
 
 from __future__ import annotations
 
@@ -30,3 +30,31 @@ def _compiled_kernels_ready():
             capture_output=True,
             timeout=600,
         )
+
+
+@pytest.fixture(scope="session")
+def panda():
+    """The shipped Panda, loaded once for the session: tests read it, never change it.
+
+    (A test that patches it does so with ``monkeypatch``, undone when it ends.)
+    """
+    from gcm_pipeline.robot.model import load_robot
+
+    return load_robot("panda")
+
+
+@pytest.fixture
+def cli(capsys):
+    """``gcm ARGV`` in this process: ``cli(*argv) -> (exit code, stdout, stderr)``.
+
+    Arguments are passed through ``str`` (paths welcome); the output captured so far
+    in the test is read and cleared with each call.
+    """
+    from gcm_pipeline.cli import main
+
+    def run(*argv: object) -> tuple[int, str, str]:
+        code = main([str(a) for a in argv])
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return run

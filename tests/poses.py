@@ -1,9 +1,10 @@
-"""Test poses shared by the IK tests."""
+"""Test poses and pose comparisons shared by the tests."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.model import Robot
 
 
@@ -26,3 +27,18 @@ def backward_poses(
     dist = lo if hi is None else rng.uniform(lo, hi, size=(n, 1))
     out[:, :3, 3] = robot.shoulder + dist * d
     return out
+
+
+def same_pose(a: np.ndarray, b: np.ndarray, atol: float = 1e-10) -> bool:
+    """Dual quaternions (..., 8) of the same poses: equal up to the double cover (q ~ -q)."""
+    return np.allclose(dq_to_matrix(a), dq_to_matrix(b), atol=atol)
+
+
+def equal_up_to_sign(a: np.ndarray, b: np.ndarray, atol: float = 1e-10) -> bool:
+    """Quaternions (..., 4) or dual quaternions (..., 8) equal up to the sign of each one.
+
+    The sign is the one of the real parts' dot product, so ``a`` and ``-b`` compare
+    equal, and ``a`` and ``b`` differing in anything but the sign do not.
+    """
+    s = np.sign(np.einsum("...i,...i->...", a[..., :4], b[..., :4]))[..., None]
+    return np.allclose(a, s * b, atol=atol)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import BOTTLE, ROOT, assert_one_line_error
 from scipy.spatial import cKDTree
 
 import gcm_pipeline as gcm
@@ -16,8 +17,6 @@ from gcm_pipeline.stages.adaptive import refine, uniform_size
 from gcm_pipeline.stages.lattice import interpolate, row_mesh
 from gcm_pipeline.table import GraspTable
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 LEVEL = 3
 
 
@@ -163,7 +162,6 @@ def test_gcm_run_adaptive_and_bad_levels(
         "--set",
         "densify.adaptive={max_level: 12}",
     ]
-    assert main(bad) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error: ") and "max_level" in err and err.count("\n") == 1
+    code = main(bad)
+    assert_one_line_error(code, capsys.readouterr().err, "max_level")
     assert not (tmp_path / "x").exists()

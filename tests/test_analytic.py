@@ -19,11 +19,6 @@ from gcm_pipeline.robot.model import Robot, load_robot
 TOL_P, TOL_R = 1e-4, 1e-3
 
 
-@pytest.fixture(scope="module")
-def panda() -> Robot:
-    return load_robot("panda")
-
-
 def _pin_pose(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Grasp-frame rotations and positions by Pinocchio itself (no project code)."""
     data = robot.model.createData()

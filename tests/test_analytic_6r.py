@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers import CONFIGS
 
 from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, nearest_copy, wide_joints
 from gcm_pipeline.robot.chain import KinematicChain
@@ -14,7 +13,7 @@ from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.ik_pinocchio import six_r_solver
 from gcm_pipeline.robot.model import Robot, load_robot
 
-UR10_SPEC = Path(__file__).resolve().parents[1] / "configs" / "robots" / "ur10.yaml"
+UR10_SPEC = CONFIGS / "robots" / "ur10.yaml"
 
 
 @pytest.fixture(scope="module", params=["ur5", "ur10"])
@@ -33,8 +32,8 @@ def _pin_pose(robot: Robot, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def test_which_arms_get_closed_form_branches() -> None:
-    assert six_r_solver(load_robot("panda")) is None  # 7 joints: its own closed form
+def test_which_arms_get_closed_form_branches(panda) -> None:
+    assert six_r_solver(panda) is None  # 7 joints: its own closed form
     ur5 = load_robot("ur5")
     assert isinstance(six_r_solver(ur5), SixRAnalyticIK)
     assert isinstance(six_r_solver(load_robot(UR10_SPEC)), SixRAnalyticIK)

@@ -27,7 +27,6 @@ from gcm_pipeline.robot.approach import (
 )
 from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, gripper_links
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
 
@@ -51,8 +50,9 @@ def _approach(checker):
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return load_robot("panda")
+def robot(panda):
+    """The shared Panda (conftest.py) under this module's name."""
+    return panda
 
 
 @pytest.fixture(scope="module")

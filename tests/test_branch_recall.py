@@ -11,16 +11,15 @@ nothing the independent re-check (FK, limits, every collision pair) refutes.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_branches as bench  # noqa: E402

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import BOTTLE, assert_one_line_error
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
@@ -14,8 +15,6 @@ from gcm_pipeline.stages.collision import make_checker
 from gcm_pipeline.stages.continuity import patches
 from gcm_pipeline.stages.lattice import row_mesh
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 SMALL = ["candidates.count=45", "densify.subdivisions=3", "ik.solutions=4"]
 
 
@@ -107,8 +106,7 @@ def test_bad_solution_counts_are_one_line_errors(
 ) -> None:
     out = tmp_path / "x"
     code = main(["run", str(BOTTLE), "--out", str(out), "--set", f"ik.solutions={value}"])
-    err = capsys.readouterr().err
-    assert code == 2 and err.startswith("error: ") and "ik.solutions" in err
-    assert err.count("\n") == 1 and not out.exists()
+    assert_one_line_error(code, capsys.readouterr().err, "ik.solutions")
+    assert not out.exists()
     with pytest.raises(gcm.ConfigError, match="ik.select"):
         gcm.load_config(BOTTLE, ["ik.select=best"])

@@ -156,12 +156,12 @@ def scene_table(robot):
     return grasps, manifold
 
 
-def test_scene_renders_in_headless_chromium(tmp_path: Path):
+def test_scene_renders_in_headless_chromium(tmp_path: Path, panda):
     exe = chromium()
     assert exe
     from PIL import Image
 
-    robot = load_robot("panda")
+    robot = panda
     grasps, manifold = scene_table(robot)
     cfg = Config.from_dict(
         {
@@ -205,7 +205,7 @@ def test_scene_renders_in_headless_chromium(tmp_path: Path):
     assert glyph_px.sum() > 100, glyph_px.sum()
 
 
-def test_scene_size_and_ur5_renders_whole(tmp_path: Path):
+def test_scene_size_and_ur5_renders_whole(tmp_path: Path, panda):
     """The Panda's page stays small; the UR5 renders as one connected arm.
 
     The UR5's pixels are the difference between the page with the robot and
@@ -216,7 +216,6 @@ def test_scene_size_and_ur5_renders_whole(tmp_path: Path):
     from PIL import Image
     from scipy import ndimage
 
-    panda = load_robot("panda")
     grasps, manifold = scene_table(panda)
     cfg = Config.from_dict(
         {"candidates": {"source": "file", "path": "x.npy"}, "publish": {"plots": False}}

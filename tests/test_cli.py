@@ -10,28 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import FLAT, QUICK, ROOT, assert_one_line_error
 
 from gcm_pipeline.cli import main
-
-ROOT = Path(__file__).resolve().parents[1]
-FLAT = ROOT / "configs" / "flat_surface.yaml"
-QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-
-
-def _run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def _assert_user_error(code, err, *fragments):
-    assert code == 2
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("error: ")
-    assert "Traceback" not in err
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
 
 
 def _config(tmp_path, text: str) -> Path:
@@ -59,17 +40,17 @@ def _nothing_left(out: Path):
     assert list(out.parent.iterdir()) == []  # no temporary siblings either
 
 
-def test_validate_and_schema(capsys):
-    code, text, _ = _run(capsys, "validate", FLAT)
+def test_validate_and_schema(cli):
+    code, text, _ = cli("validate", FLAT)
     assert code == 0 and "ok" in text and "plane" in text
-    code, text, _ = _run(capsys, "schema")
+    code, text, _ = cli("schema")
     assert code == 0
     schema = json.loads(text)
     assert "candidates" in schema["properties"]
 
 
-def test_run_prints_a_summary_then_show_and_plot(capsys, out):
-    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--set", "publish.html=false")
+def test_run_prints_a_summary_then_show_and_plot(cli, out):
+    code, text, err = cli("run", FLAT, "--out", out, "--set", "publish.html=false")
     assert code == 0, err
     for fragment in (
         "candidates    3",
@@ -81,33 +62,31 @@ def test_run_prints_a_summary_then_show_and_plot(capsys, out):
         assert fragment in text
     assert "--meshcat" in text
     assert (out / "grasps.csv").is_file() and (out / "manifold.png").is_file()
-    code, text, err = _run(capsys, "show", out, "--top", "3")
+    code, text, err = cli("show", out, "--top", "3")
     assert code == 0, err
     rows = [line for line in text.splitlines() if line.strip()[:1].isdigit()]
     assert [int(r.split()[0]) for r in rows] == [1, 2, 3]
     for p in out.glob("*.png"):
         p.unlink()
-    code, text, err = _run(capsys, "plot", out)
+    code, text, err = cli("plot", out)
     assert code == 0, err
     assert (out / "manifold.png").is_file() and "manifold.png" in text
 
 
-def test_quiet_prints_only_the_run_dir(capsys, out):
-    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--quiet", *QUICK)
+def test_quiet_prints_only_the_run_dir(cli, out):
+    code, text, err = cli("run", FLAT, "--out", out, "--quiet", *QUICK)
     assert code == 0
     assert text.strip() == str(out.absolute())
     assert err == ""
 
 
-def test_existing_output_needs_force(capsys, out):
-    assert _run(capsys, "run", FLAT, "--out", out, "-q", *QUICK)[0] == 0
+def test_existing_output_needs_force(cli, out):
+    assert cli("run", FLAT, "--out", out, "-q", *QUICK)[0] == 0
     before = (out / "grasps.csv").read_bytes()
-    code, _, err = _run(capsys, "run", FLAT, "--out", out, *QUICK)
-    _assert_user_error(code, err, "already exists", "--force")
+    code, _, err = cli("run", FLAT, "--out", out, *QUICK)
+    assert_one_line_error(code, err, "already exists", "--force")
     assert (out / "grasps.csv").read_bytes() == before
-    code, _, err = _run(
-        capsys, "run", FLAT, "--out", out, "--force", "-q", *QUICK, "--set", "seed=4"
-    )
+    code, _, err = cli("run", FLAT, "--out", out, "--force", "-q", *QUICK, "--set", "seed=4")
     assert code == 0, err
     assert sorted(p.name for p in out.parent.iterdir()) == ["run"]
 
@@ -132,25 +111,25 @@ BAD_CONFIGS = {
 
 
 @pytest.mark.parametrize("name", sorted(BAD_CONFIGS))
-def test_bad_configs(capsys, tmp_path, out, name):
+def test_bad_configs(cli, tmp_path, out, name):
     text, fragments = BAD_CONFIGS[name]
-    code, _, err = _run(capsys, "run", _config(tmp_path, text), "--out", out)
-    _assert_user_error(code, err, *fragments)
+    code, _, err = cli("run", _config(tmp_path, text), "--out", out)
+    assert_one_line_error(code, err, *fragments)
     _nothing_left(out)
 
 
-def test_missing_config(capsys, tmp_path, out):
-    code, _, err = _run(capsys, "run", tmp_path / "nope.yaml", "--out", out)
-    _assert_user_error(code, err, "not found", "nope.yaml")
+def test_missing_config(cli, tmp_path, out):
+    code, _, err = cli("run", tmp_path / "nope.yaml", "--out", out)
+    assert_one_line_error(code, err, "not found", "nope.yaml")
     _nothing_left(out)
 
 
-def test_bad_override(capsys, out):
-    code, _, err = _run(capsys, "run", FLAT, "--out", out, "--set", "ik.backnd=mink")
-    _assert_user_error(code, err, "unknown key 'ik.backnd'", "did you mean 'ik.backend'")
+def test_bad_override(cli, out):
+    code, _, err = cli("run", FLAT, "--out", out, "--set", "ik.backnd=mink")
+    assert_one_line_error(code, err, "unknown key 'ik.backnd'", "did you mean 'ik.backend'")
     _nothing_left(out)
-    code, _, err = _run(capsys, "validate", FLAT, "--set", "densify.subdivisions=-2")
-    _assert_user_error(code, err, "densify.subdivisions")
+    code, _, err = cli("validate", FLAT, "--set", "densify.subdivisions=-2")
+    assert_one_line_error(code, err, "densify.subdivisions")
 
 
 def _poses(n):
@@ -162,61 +141,57 @@ def _poses(n):
     return t
 
 
-def test_grasp_file_errors(capsys, tmp_path, out):
+def test_grasp_file_errors(cli, tmp_path, out):
     bad_shape = tmp_path / "shape.npy"
     np.save(bad_shape, np.zeros((4, 3, 4)))
-    code, _, err = _run(
-        capsys,
+    code, _, err = cli(
         "run",
         _config(tmp_path, GRASP_FILE_CFG.format(path=bad_shape, fmt="npy")),
         "--out",
         out,
     )
-    _assert_user_error(code, err, "shape.npy", "(N, 4, 4)", "(4, 3, 4)")
+    assert_one_line_error(code, err, "shape.npy", "(N, 4, 4)", "(4, 3, 4)")
     _nothing_left(out)
 
     poses = _poses(5)
     poses[2, :3, :3] *= 2.0
     scaled = tmp_path / "scaled.npy"
     np.save(scaled, poses)
-    code, _, err = _run(
-        capsys,
+    code, _, err = cli(
         "run",
         _config(tmp_path, GRASP_FILE_CFG.format(path=scaled, fmt="npy")),
         "--out",
         out,
     )
-    _assert_user_error(code, err, "grasp 2", "not a rigid transform")
+    assert_one_line_error(code, err, "grasp 2", "not a rigid transform")
     _nothing_left(out)
 
-    code, _, err = _run(
-        capsys,
+    code, _, err = cli(
         "run",
         _config(tmp_path, GRASP_FILE_CFG.format(path=tmp_path / "missing.npy", fmt="npy")),
         "--out",
         out,
     )
-    _assert_user_error(code, err, "grasp file not found", "missing.npy")
+    assert_one_line_error(code, err, "grasp file not found", "missing.npy")
     _nothing_left(out)
 
 
-def test_acronym_file_missing_key(capsys, tmp_path, out):
+def test_acronym_file_missing_key(cli, tmp_path, out):
     h5py = pytest.importorskip("h5py")
     path = tmp_path / "grasps.h5"
     with h5py.File(path, "w") as f:
         f["grasps/transforms"] = _poses(4)
-    code, _, err = _run(
-        capsys,
+    code, _, err = cli(
         "run",
         _config(tmp_path, GRASP_FILE_CFG.format(path=path, fmt="acronym")),
         "--out",
         out,
     )
-    _assert_user_error(code, err, "grasps.h5", "grasps/qualities/flex/object_in_gripper")
+    assert_one_line_error(code, err, "grasps.h5", "grasps/qualities/flex/object_in_gripper")
     _nothing_left(out)
 
 
-def test_acronym_file_runs(capsys, tmp_path, out):
+def test_acronym_file_runs(cli, tmp_path, out):
     h5py = pytest.importorskip("h5py")
     path = tmp_path / "grasps.h5"
     with h5py.File(path, "w") as f:
@@ -227,33 +202,33 @@ def test_acronym_file_runs(capsys, tmp_path, out):
     text = GRASP_FILE_CFG.format(path=path, fmt="acronym").replace(
         "format: acronym", "format: acronym, success_only: true"
     )
-    code, _, err = _run(capsys, "run", _config(tmp_path, text), "--out", out, "-q", *QUICK)
+    code, _, err = cli("run", _config(tmp_path, text), "--out", out, "-q", *QUICK)
     assert code == 0, err
     assert json.loads((out / "summary.json").read_text())["counts"]["candidates"] == 3
 
 
-def test_output_path_problems(capsys, tmp_path):
+def test_output_path_problems(cli, tmp_path):
     f = tmp_path / "file"
     f.write_text("x")
-    code, _, err = _run(capsys, "run", FLAT, "--out", f)
-    _assert_user_error(code, err, "not a directory")
+    code, _, err = cli("run", FLAT, "--out", f)
+    assert_one_line_error(code, err, "not a directory")
     assert f.read_text() == "x"
-    code, _, err = _run(capsys, "run", FLAT, "--out", "/proc/gcm_run")
-    _assert_user_error(code, err, "not writable")
+    code, _, err = cli("run", FLAT, "--out", "/proc/gcm_run")
+    assert_one_line_error(code, err, "not writable")
     if os.geteuid() != 0:
         ro = tmp_path / "ro"
         ro.mkdir(mode=0o500)
-        code, _, err = _run(capsys, "run", FLAT, "--out", ro / "run")
-        _assert_user_error(code, err, "not writable")
+        code, _, err = cli("run", FLAT, "--out", ro / "run")
+        assert_one_line_error(code, err, "not writable")
 
 
-def test_show_on_a_non_run(capsys, tmp_path):
-    code, _, err = _run(capsys, "show", tmp_path)
-    _assert_user_error(code, err, "not a run directory")
+def test_show_on_a_non_run(cli, tmp_path):
+    code, _, err = cli("show", tmp_path)
+    assert_one_line_error(code, err, "not a run directory")
 
 
-def test_debug_shows_the_traceback(capsys, tmp_path):
-    code, _, err = _run(capsys, "run", tmp_path / "nope.yaml", "--debug")
+def test_debug_shows_the_traceback(cli, tmp_path):
+    code, _, err = cli("run", tmp_path / "nope.yaml", "--debug")
     assert code == 2
     assert "Traceback" in err and err.strip().splitlines()[-1].startswith("error: ")
 
@@ -310,11 +285,10 @@ def test_python_dash_m(tmp_path):
         cwd=tmp_path,
         timeout=120,
     )
-    assert proc.returncode == 2
-    assert proc.stderr.startswith("error: ") and len(proc.stderr.strip().splitlines()) == 1
+    assert_one_line_error(proc.returncode, proc.stderr)
 
 
-def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
+def test_meshcat_viewer_opens_after_the_run(cli, out, monkeypatch):
     from gcm_pipeline.stages import publish
 
     events = []
@@ -334,9 +308,7 @@ def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
     monkeypatch.setattr(publish, "probe_server", lambda url, timeout: FakeViewer.url)
     # --no-wait returns at once: only a server the user runs keeps the scene alive
     server = ["--set", "publish.zmq_url=tcp://127.0.0.1:6000"]
-    code, text, err = _run(
-        capsys, "run", FLAT, "--out", out, "--meshcat", "--no-wait", *server, *QUICK
-    )
+    code, text, err = cli("run", FLAT, "--out", out, "--meshcat", "--no-wait", *server, *QUICK)
     assert code == 0, err
     # the run directory is complete first; --no-wait leaves the server running
     assert events == [("open", True, 66, True), "closed"]
@@ -344,9 +316,9 @@ def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
     assert "keeps running (pid 4242)" in text
 
 
-def test_no_wait_with_gcms_own_server_is_refused_before_the_run(capsys, out):
-    code, text, err = _run(capsys, "run", FLAT, "--out", out, "--meshcat", "--no-wait", *QUICK)
-    _assert_user_error(code, err, "--no-wait", "publish.zmq_url")
+def test_no_wait_with_gcms_own_server_is_refused_before_the_run(cli, out):
+    code, text, err = cli("run", FLAT, "--out", out, "--meshcat", "--no-wait", *QUICK)
+    assert_one_line_error(code, err, "--no-wait", "publish.zmq_url")
     assert text == ""
     _nothing_left(out)
 
@@ -372,7 +344,7 @@ def workdir(tmp_path, monkeypatch):
     return s
 
 
-def test_force_replaces_only_run_directories(capsys, workdir):
+def test_force_replaces_only_run_directories(cli, workdir):
     (workdir / "configs").mkdir()
     (workdir / "configs" / "other.yaml").write_text("x")
     before = _tree(workdir.parent)
@@ -388,23 +360,21 @@ def test_force_replaces_only_run_directories(capsys, workdir):
     ]
     for target, message in cases:
         for force in (["--force"], []):
-            code, text, err = _run(capsys, "run", "sub/cfg.yaml", "--out", target, *force, *QUICK)
-            _assert_user_error(code, err, message)
+            code, text, err = cli("run", "sub/cfg.yaml", "--out", target, *force, *QUICK)
+            assert_one_line_error(code, err, message)
             assert text == ""
             assert _tree(workdir.parent) == before, (target, force)
     # an empty directory needs no --force; a previous run is replaced with it
     (workdir / "empty").mkdir()
-    code, _, err = _run(capsys, "run", "sub/cfg.yaml", "--out", "empty", "-q", *QUICK)
+    code, _, err = cli("run", "sub/cfg.yaml", "--out", "empty", "-q", *QUICK)
     assert code == 0, err
-    code, _, err = _run(capsys, "run", "sub/cfg.yaml", "--out", "empty", "-q", *QUICK)
-    _assert_user_error(code, err, "already exists", "pass --force (CLI) or force=True (Python)")
-    code, _, err = _run(capsys, "run", "sub/cfg.yaml", "--out", "empty", "--force", "-q", *QUICK)
+    code, _, err = cli("run", "sub/cfg.yaml", "--out", "empty", "-q", *QUICK)
+    assert_one_line_error(code, err, "already exists", "pass --force (CLI) or force=True (Python)")
+    code, _, err = cli("run", "sub/cfg.yaml", "--out", "empty", "--force", "-q", *QUICK)
     assert code == 0, err
     # the config.yaml of a run is re-runnable, but not into its own folder
-    code, _, err = _run(
-        capsys, "run", "empty/config.yaml", "--out", "empty", "--force", "-q", *QUICK
-    )
-    _assert_user_error(code, err, f"it holds {workdir / 'empty' / 'config.yaml'}")
+    code, _, err = cli("run", "empty/config.yaml", "--out", "empty", "--force", "-q", *QUICK)
+    assert_one_line_error(code, err, f"it holds {workdir / 'empty' / 'config.yaml'}")
     assert (workdir / "empty" / "config.yaml").is_file()
     assert sorted(p.name for p in workdir.iterdir()) == [
         "configs",
@@ -448,7 +418,7 @@ PREFLIGHT_ERRORS = {
 
 
 @pytest.mark.parametrize("name", sorted(PREFLIGHT_ERRORS))
-def test_validate_and_run_reject_the_same_configs(capsys, tmp_path, out, monkeypatch, name):
+def test_validate_and_run_reject_the_same_configs(cli, tmp_path, out, monkeypatch, name):
     from gcm_pipeline import pipeline
 
     def boom(cfg):
@@ -462,16 +432,16 @@ def test_validate_and_run_reject_the_same_configs(capsys, tmp_path, out, monkeyp
     port = _free_port()
     sets = [a for o in overrides for a in ("--set", o.replace("{port}", str(port)))]
     sets += ["--set", "publish.connect_timeout_s=0.3"]
-    code, text, err = _run(capsys, "validate", cfg, *sets)
-    _assert_user_error(code, err, *fragments)
+    code, text, err = cli("validate", cfg, *sets)
+    assert_one_line_error(code, err, *fragments)
     assert text == ""
-    code, text, err = _run(capsys, "run", cfg, "--out", out, *sets, *QUICK)
-    _assert_user_error(code, err, *fragments)
+    code, text, err = cli("run", cfg, "--out", out, *sets, *QUICK)
+    assert_one_line_error(code, err, *fragments)
     assert text == ""
     _nothing_left(out)
 
 
-def test_meshcat_flag_probes_the_server_before_the_run(capsys, tmp_path, out, monkeypatch):
+def test_meshcat_flag_probes_the_server_before_the_run(cli, tmp_path, out, monkeypatch):
     from gcm_pipeline import pipeline
 
     def boom(cfg):
@@ -479,8 +449,7 @@ def test_meshcat_flag_probes_the_server_before_the_run(capsys, tmp_path, out, mo
 
     monkeypatch.setattr(pipeline, "generate_candidates", boom)
     url = f"tcp://127.0.0.1:{_free_port()}"
-    code, _, err = _run(
-        capsys,
+    code, _, err = cli(
         "run",
         FLAT,
         "--out",
@@ -492,31 +461,29 @@ def test_meshcat_flag_probes_the_server_before_the_run(capsys, tmp_path, out, mo
         "--set",
         "publish.connect_timeout_s=0.3",
     )
-    _assert_user_error(code, err, f"publish.zmq_url: meshcat server at {url} did not answer")
+    assert_one_line_error(code, err, f"publish.zmq_url: meshcat server at {url} did not answer")
     _nothing_left(out)
 
 
-def test_zmq_url_without_the_viewer_warns_once(capsys, out):
+def test_zmq_url_without_the_viewer_warns_once(cli, out):
     url = f"tcp://127.0.0.1:{_free_port()}"
-    code, _, err = _run(
-        capsys, "run", FLAT, "--out", out, "--set", f"publish.zmq_url={url}", *QUICK
-    )
+    code, _, err = cli("run", FLAT, "--out", out, "--set", f"publish.zmq_url={url}", *QUICK)
     assert code == 0, err
     warning = "publish.zmq_url is set but the live viewer is off; add --meshcat"
     assert err.count(warning) == 1, err
-    code, _, err = _run(capsys, "validate", FLAT, "--set", f"publish.zmq_url={url}")
+    code, _, err = cli("validate", FLAT, "--set", f"publish.zmq_url={url}")
     assert code == 0 and err.count(warning) == 1, err
 
 
-def test_the_run_config_reproduces_the_run(capsys, tmp_path, monkeypatch):
+def test_the_run_config_reproduces_the_run(cli, tmp_path, monkeypatch):
     monkeypatch.chdir(ROOT)
     a = tmp_path / "a"
-    code, _, err = _run(capsys, "run", "configs/from_file.yaml", "--out", a, "-q", *QUICK)
+    code, _, err = cli("run", "configs/from_file.yaml", "--out", a, "-q", *QUICK)
     assert code == 0, err
     saved = (a / "config.yaml").read_text()
     assert f"path: {ROOT / 'configs' / 'data' / 'mug_grasps.npy'}" in saved
     monkeypatch.chdir(tmp_path)
-    code, _, err = _run(capsys, "run", "a/config.yaml", "--out", "b", "-q")
+    code, _, err = cli("run", "a/config.yaml", "--out", "b", "-q")
     assert code == 0, err
     assert (tmp_path / "b" / "grasps.csv").read_bytes() == (a / "grasps.csv").read_bytes()
     assert (tmp_path / "b" / "config.yaml").read_text() == saved
@@ -529,8 +496,8 @@ def test_quiet_help_says_what_it_does(capsys):
     assert "gcm run prints only the run directory's path on stdout" in text
 
 
-def test_counts_by_reason_and_the_verbose_reachability_line(capsys, out):
-    code, _, err = _run(capsys, "run", ROOT / "configs" / "box.yaml", "--out", out, "-v", *QUICK)
+def test_counts_by_reason_and_the_verbose_reachability_line(cli, out):
+    code, _, err = cli("run", ROOT / "configs" / "box.yaml", "--out", out, "-v", *QUICK)
     assert code == 0, err
     counts = json.loads((out / "summary.json").read_text())["counts"]
     assert sum(counts["dropped_by_reason"].values()) == counts["triangles_dropped"]
@@ -541,7 +508,7 @@ def test_counts_by_reason_and_the_verbose_reachability_line(capsys, out):
     breakdown = ", ".join(f"{k} {v}" for k, v in unreachable.items())
     line = f"reachable {counts['reachable']}/{counts['densified']} (unreachable: {breakdown})"
     assert line in err
-    code, text, err = _run(capsys, "show", out, "--top", "1")
+    code, text, err = cli("show", out, "--top", "1")
     assert code == 0, err
     assert "unreachable_by_reason (" in text
 
@@ -549,8 +516,8 @@ def test_counts_by_reason_and_the_verbose_reachability_line(capsys, out):
 # ------------------------------------------------- hardening: rough edges of the CLI
 
 
-def test_validate_prints_the_resolved_config_which_loads_again(capsys, tmp_path):
-    code, text, err = _run(capsys, "validate", FLAT, "--set", "densify.subdivisions=3")
+def test_validate_prints_the_resolved_config_which_loads_again(cli, tmp_path):
+    code, text, err = cli("validate", FLAT, "--set", "densify.subdivisions=3")
     assert code == 0, err
     assert text.startswith(f"# {FLAT}: ok\n")
     resolved = tmp_path / "resolved.yaml"
@@ -575,21 +542,19 @@ def test_a_closed_pipe_is_not_a_traceback():
     assert err == ""
 
 
-def test_default_output_dir_is_named_after_the_config(capsys, tmp_path, monkeypatch):
+def test_default_output_dir_is_named_after_the_config(cli, tmp_path, monkeypatch):
     cfg = tmp_path / "cfgs" / "my_plane.yaml"
     cfg.parent.mkdir()
     cfg.write_text(FLAT.read_text().replace("output:", "# output:"))
     monkeypatch.chdir(tmp_path)
-    code, text, err = _run(capsys, "run", cfg, "-q", *QUICK)
+    code, text, err = cli("run", cfg, "-q", *QUICK)
     assert code == 0, err
     assert text.strip() == str(tmp_path / "cfgs" / "results" / "my_plane")
     assert (tmp_path / "cfgs" / "results" / "my_plane" / "grasps.csv").is_file()
 
 
-def test_live_viewer_hint_repeats_the_overrides(capsys, out):
-    code, text, err = _run(
-        capsys, "run", FLAT, "--out", out, "--set", "densify.subdivisions=3", *QUICK
-    )
+def test_live_viewer_hint_repeats_the_overrides(cli, out):
+    code, text, err = cli("run", FLAT, "--out", out, "--set", "densify.subdivisions=3", *QUICK)
     assert code == 0, err
     (hint,) = [ln for ln in text.splitlines() if ln.startswith("live viewer:")]
     import shlex
@@ -601,9 +566,9 @@ def test_live_viewer_hint_repeats_the_overrides(capsys, out):
     assert words[-4:] == ["--meshcat", "--force", "--out", str(out)]
 
 
-def test_show_top_zero_prints_only_the_counts(capsys, out):
-    code, _, err = _run(capsys, "run", FLAT, "--out", out, *QUICK)
+def test_show_top_zero_prints_only_the_counts(cli, out):
+    code, _, err = cli("run", FLAT, "--out", out, *QUICK)
     assert code == 0, err
-    code, text, err = _run(capsys, "show", out, "--top", "0")
+    code, text, err = cli("show", out, "--top", "0")
     assert code == 0, err
     assert "reachable" in text and "no reachable grasp" not in text and "grasps by" not in text

@@ -20,7 +20,6 @@ from gcm_pipeline.robot.collision import (
     _without_cached_guess,
     shape_geometry,
 )
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import combined_score, make_checker
 
 BOTTLE = {
@@ -31,8 +30,9 @@ BOTTLE = {
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return load_robot("panda")
+def robot(panda):
+    """The shared Panda (conftest.py) under this module's name."""
+    return panda
 
 
 @pytest.fixture(scope="module")

@@ -11,24 +11,22 @@ the bottle, the gripper at most ``contact_tolerance`` deep in it, no self-collis
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import coal
 import example_robot_data
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers import BOTTLE
 
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import Pipeline
 
-CONFIG = Path(__file__).resolve().parent.parent / "configs" / "bottle_side.yaml"
 GRIPPER = ("panda_hand", "panda_leftfinger", "panda_rightfinger")
 
 
 @pytest.fixture(scope="module")
 def run():
-    return Pipeline.from_yaml(CONFIG).run(write=False, progress=False)
+    return Pipeline.from_yaml(BOTTLE).run(write=False, progress=False)
 
 
 def _world(cfg):

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import Config, Pose, config_schema, load_config
 from gcm_pipeline.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
 
 BASE = {

@@ -24,7 +24,6 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.robot.collision import REASON_OBJECT
 from gcm_pipeline.robot.contact import NotConvexError, SolidMesh, erode_convex
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
 trimesh = pytest.importorskip("trimesh")
@@ -43,8 +42,9 @@ OBJECTS = {
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return load_robot("panda")
+def robot(panda):
+    """The shared Panda (conftest.py) under this module's name."""
+    return panda
 
 
 # --- erosion of single pieces ----------------------------------------------------------

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from helpers import BOTTLE
 
 import gcm_pipeline as gcm
 from gcm_pipeline.geometry.surface import pose_distance
@@ -17,9 +16,6 @@ from gcm_pipeline.stages.lattice import row_mesh
 from gcm_pipeline.stages.manifold import build_manifold
 from gcm_pipeline.stages.margin import margin
 from gcm_pipeline.table import GraspTable
-
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 
 
 def _flat(subdivisions: int = 20) -> tuple[GraspTable, np.ndarray]:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from poses import equal_up_to_sign, same_pose
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import GcmError, GeometryError
@@ -48,16 +49,6 @@ def random_matrices(rng: np.random.Generator, n: int) -> np.ndarray:
     m[:, :3, 3] = rng.normal(size=(n, 3))
     m[:, 3, 3] = 1.0
     return m
-
-
-def same_pose(a: np.ndarray, b: np.ndarray, atol: float = 1e-10) -> bool:
-    """Equal up to the double cover (q ~ -q)."""
-    return np.allclose(dq_to_matrix(a), dq_to_matrix(b), atol=atol)
-
-
-def equal_up_to_sign(a: np.ndarray, b: np.ndarray, atol: float = 1e-10) -> bool:
-    s = np.sign(np.einsum("...i,...i->...", a[..., :4], b[..., :4]))[..., None]
-    return np.allclose(a, s * b, atol=atol)
 
 
 def assert_unit(dq: np.ndarray) -> None:

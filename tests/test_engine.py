@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import os
 import signal
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from poses import backward_poses
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
@@ -21,11 +21,9 @@ from gcm_pipeline.robot.engine import (
     available_cores,
 )
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.stages.collision import make_checker
 
-ROOT = Path(__file__).resolve().parent.parent
 BOTTLE = {
     "shape": "cylinder",
     "dims": {"radius": 0.035, "height": 0.22},
@@ -42,8 +40,9 @@ def _side_grasps():
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return load_robot("panda")
+def robot(panda):
+    """The shared Panda (conftest.py) under this module's name."""
+    return panda
 
 
 @pytest.fixture(scope="module")

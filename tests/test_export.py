@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import CONFIGS, DATA, assert_one_line_error
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.cli import main
@@ -319,17 +320,16 @@ def test_out_never_overwrites_the_run_itself(run, tmp_path, capsys):
 
 def test_out_where_no_file_can_be_made_is_one_line(run, capsys):
     code = main(["export", str(run), "--format", "npz", "--out", "/proc/gcm-export.npz"])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and err[0].startswith("error: cannot write"), err
+    line = assert_one_line_error(code, capsys.readouterr().err)
+    assert line.startswith("error: cannot write"), line
 
 
 def test_out_into_a_missing_folder_says_it_does_not_exist(run, tmp_path, capsys):
     missing = tmp_path / "no" / "such"
     for fmt in ("moveit", "parquet", "npz"):
         code = main(["export", str(run), "--format", fmt, "--out", str(missing / "g")])
-        err = capsys.readouterr().err.strip().splitlines()
-        assert code == 2 and len(err) == 1, err
-        assert err[0] == f"error: cannot write {missing / 'g'}: {missing} does not exist"
+        line = assert_one_line_error(code, capsys.readouterr().err)
+        assert line == f"error: cannot write {missing / 'g'}: {missing} does not exist"
     assert not (tmp_path / "no").exists()
 
 
@@ -347,15 +347,13 @@ def test_a_tampered_config_yaml_is_one_line(run, tmp_path, capsys, config):
     bad = _copy_run(run, tmp_path / "bad")
     (bad / "config.yaml").write_text(config)
     code = main(["export", str(bad), "--format", "moveit", "--out", str(tmp_path / "m.yaml")])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and err[0].startswith("error: "), err
-    assert "config.yaml" in err[0]
+    assert_one_line_error(code, capsys.readouterr().err, "config.yaml")
     assert not (tmp_path / "m.yaml").exists()
 
 
 # ------------------------------------------- real clients: DuckDB, polars, rosbags
 
-BOX = Path(__file__).resolve().parents[1] / "configs" / "box.yaml"
+BOX = CONFIGS / "box.yaml"
 #: configs/box.yaml made quick: 110 grasps, 71 reachable, 16 of them with margin inf
 QUICK_BOX = ("densify.subdivisions=2", "publish.html=false", "publish.plots=false")
 
@@ -440,7 +438,7 @@ def _moveit_typestore():
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = {}
-    for f in sorted((Path(__file__).parent / "data" / "moveit_msgs" / "msg").glob("*.msg")):
+    for f in sorted((DATA / "moveit_msgs" / "msg").glob("*.msg")):
         types.update(get_types_from_msg(f.read_text(), f"moveit_msgs/msg/{f.stem}"))
     store.register(types)
     return store

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import DATA, assert_one_line_error
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline import formats
@@ -365,9 +366,8 @@ def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):
         )
     )
     out = tmp_path / "run"
-    assert main(["run", str(cfg), "--out", str(out), "--quiet"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: ") and "(N, 17)" in err[0]
+    code = main(["run", str(cfg), "--out", str(out), "--quiet"])
+    assert_one_line_error(code, capsys.readouterr().err, "(N, 17)")
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "g.npy"]
 
 
@@ -397,15 +397,13 @@ def test_graspnet_fingertips_land_where_graspnet_draws_them(tmp_path):
         np.testing.assert_allclose(m[:3, 2], APPROACH, atol=1e-9)
 
 
-def test_panda_fingertips_are_finger_tip_past_the_tcp():
+def test_panda_fingertips_are_finger_tip_past_the_tcp(panda):
     """The registry's finger_tip is the example-robot-data Panda's own finger length past
     panda_hand_tcp (the visual finger meshes, fingers open)."""
     import pinocchio as pin
     import trimesh
 
-    from gcm_pipeline.robot.model import load_robot
-
-    robot = load_robot("panda")
+    robot = panda
     model = robot.model
     visual = robot.build_geometry("visual")
     data = model.createData()
@@ -561,10 +559,10 @@ def test_camera_pose_and_object_frame_are_not_both_taken():
 
 # ------------------------------------------------ no silent guess: dataset grippers
 
-DATA = Path(__file__).parent / "data" / "acronym"
-#: ACRONYM's example grasps of a mug (NVlabs/acronym, data/examples; MIT, see DATA/README.md)
-MUG_H5 = DATA / "Mug_10f6e09036350e92b3f21f1137c3c347_0.0002682457830986903.h5"
-MUG_OBJ = DATA / "10f6e09036350e92b3f21f1137c3c347.obj"
+ACRONYM = DATA / "acronym"
+#: ACRONYM's example grasps of a mug (NVlabs/acronym, data/examples; MIT, see ACRONYM/README.md)
+MUG_H5 = ACRONYM / "Mug_10f6e09036350e92b3f21f1137c3c347_0.0002682457830986903.h5"
+MUG_OBJ = ACRONYM / "10f6e09036350e92b3f21f1137c3c347.obj"
 MUG_SCALE = 0.0002682457830986903
 #: The README's hand-written map of ACRONYM's Franka frame onto panda_hand_tcp
 ACRONYM_TO_TCP = {"xyz": [0, 0, 0.1034], "rpy_deg": [0, 0, -90]}
@@ -793,10 +791,9 @@ def test_hdf5_read_as_graspgen_on_the_command_line(tmp_path, capsys):
     doc = mug_config(format="acronym").to_dict()
     doc["candidates"]["format"] = "graspgen"
     cfg.write_text(yaml.safe_dump(doc))
-    assert main(["run", str(cfg), "--out", str(tmp_path / "run")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: ")
-    assert "this is an HDF5 file; use format: acronym" in err[0] and "utf-8" not in err[0]
+    code = main(["run", str(cfg), "--out", str(tmp_path / "run")])
+    line = assert_one_line_error(code, capsys.readouterr().err)
+    assert "this is an HDF5 file; use format: acronym" in line and "utf-8" not in line
     assert not (tmp_path / "run").exists()
 
 

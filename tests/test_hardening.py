@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, ROOT, assert_one_line_error
 
 from gcm_pipeline import io
 from gcm_pipeline.cli import main
@@ -24,26 +25,6 @@ from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError, RobotSpecError
 from gcm_pipeline.pipeline import Pipeline, preflight
 from gcm_pipeline.stages.candidates import read_grasp_file
-
-ROOT = Path(__file__).resolve().parents[1]
-FLAT = ROOT / "configs" / "flat_surface.yaml"
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
-QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-
-
-def _cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def _one_line_error(code, err, *fragments):
-    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("WARNING")]
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    assert len(lines[0]) <= 2000, len(lines[0])
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
 
 
 def _poses(n: int) -> np.ndarray:
@@ -156,7 +137,7 @@ def test_csv_as_spreadsheets_write_it(tmp_path):
     assert columns["source_id"].tolist() == [0, 1]
 
 
-def test_extra_csv_columns_are_carried_to_grasps_csv(capsys, tmp_path):
+def test_extra_csv_columns_are_carried_to_grasps_csv(cli, tmp_path):
     cfg = tmp_path / "cfg.yaml"
     (tmp_path / "g.csv").write_text(
         "ID,x,y,z,qw,qx,qy,qz,score,Grasp Label,success\n"
@@ -169,7 +150,7 @@ def test_extra_csv_columns_are_carried_to_grasps_csv(capsys, tmp_path):
         "candidates: {source: file, path: g.csv, success_only: true}\n"
         "densify: {subdivisions: 2}\npublish: {html: false, plots: false}\n"
     )
-    code, _, err = _cli(capsys, "run", cfg, "--out", tmp_path / "run", "-q")
+    code, _, err = cli("run", cfg, "--out", tmp_path / "run", "-q")
     assert code == 0, err
     with (tmp_path / "run" / "grasps.csv").open() as fh:
         rows = list(csv.DictReader(fh))
@@ -184,8 +165,8 @@ def test_extra_csv_columns_are_carried_to_grasps_csv(capsys, tmp_path):
     assert min(scores) >= 0.5 - 1e-12 and max(scores) <= 0.9 + 1e-12
 
 
-def test_v1_v3_are_rows_of_grasps_csv(capsys, tmp_path):
-    code, _, err = _cli(capsys, "run", FLAT, "--out", tmp_path / "run", "-q", *QUICK)
+def test_v1_v3_are_rows_of_grasps_csv(cli, tmp_path):
+    code, _, err = cli("run", FLAT, "--out", tmp_path / "run", "-q", *QUICK)
     assert code == 0, err
     with (tmp_path / "run" / "grasps.csv").open() as fh:
         rows = list(csv.DictReader(fh))
@@ -282,18 +263,20 @@ def test_corrupted_hdf5_bytes(tmp_path):
         ("approach={distance: 0.1, steps: 100000000}", "approach.steps"),
     ],
 )
-def test_resource_bombs_are_refused_at_once(capsys, tmp_path, override, fragment):
-    code, _, err = _cli(capsys, "run", FLAT, "--out", tmp_path / "run", "--set", override, *QUICK)
-    _one_line_error(code, err, fragment)
+def test_resource_bombs_are_refused_at_once(cli, tmp_path, override, fragment):
+    code, _, err = cli("run", FLAT, "--out", tmp_path / "run", "--set", override, *QUICK)
+    assert_one_line_error(code, err, fragment)
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_raised_ceiling_lets_the_run_through(capsys, tmp_path):
+def test_a_raised_ceiling_lets_the_run_through(cli, tmp_path):
     sets = ["--set", "densify.subdivisions=30", "--set", "densify.max_poses=400"]
-    code, _, err = _cli(capsys, "run", FLAT, "--out", tmp_path / "a", *sets, *QUICK)
-    _one_line_error(code, err, "densify: 3 candidates and 1 triangles", "above densify.max_poses")
+    code, _, err = cli("run", FLAT, "--out", tmp_path / "a", *sets, *QUICK)
+    assert_one_line_error(
+        code, err, "densify: 3 candidates and 1 triangles", "above densify.max_poses"
+    )
     sets[-1] = "densify.max_poses=600"
-    code, _, err = _cli(capsys, "run", FLAT, "--out", tmp_path / "b", *sets, *QUICK, "-q")
+    code, _, err = cli("run", FLAT, "--out", tmp_path / "b", *sets, *QUICK, "-q")
     assert code == 0, err
 
 
@@ -319,8 +302,8 @@ SPEC_TAIL = (
 )
 
 
-def test_bad_robot_specs_are_found_by_validate(capsys, tmp_path):
-    panda = (ROOT / "gcm_pipeline" / "robots" / "panda.yaml").read_text()
+def test_bad_robot_specs_are_found_by_validate(cli, tmp_path):
+    panda = (ROBOT_SPECS / "panda.yaml").read_text()
     latin = tmp_path / "latin.yaml"
     latin.write_bytes(("# caf\xe9\n" + panda).encode("latin-1"))
     urdf = _panda_urdf()
@@ -350,8 +333,8 @@ def test_bad_robot_specs_are_found_by_validate(capsys, tmp_path):
         ),
     }
     for spec, fragment in cases.items():
-        code, out, err = _cli(capsys, "validate", FLAT, "--set", f"robot.spec={spec}")
-        _one_line_error(code, err, "robot.spec: ", fragment)
+        code, out, err = cli("validate", FLAT, "--set", f"robot.spec={spec}")
+        assert_one_line_error(code, err, "robot.spec: ", fragment)
         assert out == ""
 
 
@@ -368,9 +351,9 @@ def test_bad_robot_specs_are_found_by_validate(capsys, tmp_path):
         ("object.scale=1e300", "object.scale"),
     ],
 )
-def test_a_scene_of_astronomic_size_is_refused_naming_the_key(capsys, override, key):
-    code, _, err = _cli(capsys, "validate", BOTTLE, "--set", override)
-    _one_line_error(code, err, f"{key}: Input should be ", "1000")
+def test_a_scene_of_astronomic_size_is_refused_naming_the_key(cli, override, key):
+    code, _, err = cli("validate", BOTTLE, "--set", override)
+    assert_one_line_error(code, err, f"{key}: Input should be ", "1000")
 
 
 def test_a_retreat_direction_of_any_length_is_a_direction():
@@ -386,10 +369,10 @@ def test_a_retreat_direction_of_any_length_is_a_direction():
         load_config(BOTTLE, ["retreat.direction=[0, 0, 0]"])
 
 
-def test_a_robot_name_too_long_for_a_file_name_is_unknown(capsys):
+def test_a_robot_name_too_long_for_a_file_name_is_unknown(cli):
     # it used to be looked up as a file: OSError "File name too long", the name in full
-    code, out, err = _cli(capsys, "validate", FLAT, "--set", "robot.spec=" + "a" * 300)
-    _one_line_error(code, err, "robot.spec: ", "unknown robot 'aaaa")
+    code, out, err = cli("validate", FLAT, "--set", "robot.spec=" + "a" * 300)
+    assert_one_line_error(code, err, "robot.spec: ", "unknown robot 'aaaa")
     assert "(300 characters); valid: panda, ur5" in err and len(err) < 400
     from gcm_pipeline import load_robot
 
@@ -397,13 +380,11 @@ def test_a_robot_name_too_long_for_a_file_name_is_unknown(capsys):
         load_robot("a" * 5000)
 
 
-def test_a_bad_spec_is_reported_before_the_existing_output(capsys, tmp_path):
-    code, _, err = _cli(capsys, "run", FLAT, "--out", tmp_path / "run", "-q", *QUICK)
+def test_a_bad_spec_is_reported_before_the_existing_output(cli, tmp_path):
+    code, _, err = cli("run", FLAT, "--out", tmp_path / "run", "-q", *QUICK)
     assert code == 0, err
-    code, _, err = _cli(
-        capsys, "run", FLAT, "--out", tmp_path / "run", "--set", "robot.spec=pandaa", *QUICK
-    )
-    _one_line_error(code, err, "robot.spec: unknown robot 'pandaa'")
+    code, _, err = cli("run", FLAT, "--out", tmp_path / "run", "--set", "robot.spec=pandaa", *QUICK)
+    assert_one_line_error(code, err, "robot.spec: unknown robot 'pandaa'")
     assert "--force" not in err
 
 
@@ -423,7 +404,7 @@ def test_a_mesh_with_nan_vertices_is_refused(tmp_path, capfd):
     capfd.readouterr()
     code = main(["validate", str(cfg)])
     out, err = capfd.readouterr()  # file-descriptor level: the mesh library prints nothing
-    _one_line_error(code, err, "vertex 2 is not finite")
+    assert_one_line_error(code, err, "vertex 2 is not finite")
 
 
 # --------------------------------------------------------------- tampered run directories
@@ -511,7 +492,7 @@ TAMPERED = {
 
 
 @pytest.mark.parametrize("case", sorted(TAMPERED))
-def test_tampered_run_directories(capsys, tmp_path, good_run, case):
+def test_tampered_run_directories(cli, tmp_path, good_run, case):
     tamper, fragment = TAMPERED[case]
     d = tmp_path / "run"
     shutil.copytree(good_run, d)
@@ -519,45 +500,44 @@ def test_tampered_run_directories(capsys, tmp_path, good_run, case):
     with pytest.raises(InputError, match=None) as info:
         io.read_run(d)
     assert fragment in str(info.value), str(info.value)
-    code, out, err = _cli(capsys, "show", d)
-    _one_line_error(code, err, fragment)
+    code, out, err = cli("show", d)
+    assert_one_line_error(code, err, fragment)
 
 
-def test_plot_on_a_tampered_run_is_one_line(capsys, tmp_path, good_run):
+def test_plot_on_a_tampered_run_is_one_line(cli, tmp_path, good_run):
     d = tmp_path / "run"
     shutil.copytree(good_run, d)
     TAMPERED["triangle ids out of range"][0](d)
-    code, out, err = _cli(capsys, "plot", d)
-    _one_line_error(code, err, "'triangles' has vertex ids outside")
+    code, out, err = cli("plot", d)
+    assert_one_line_error(code, err, "'triangles' has vertex ids outside")
     assert not list(d.glob("*.png"))
 
 
 # --------------------------------------------------------------- nothing reachable, no triangle
 
 
-def test_a_run_with_nothing_reachable_reads_shows_and_plots(capsys, tmp_path):
+def test_a_run_with_nothing_reachable_reads_shows_and_plots(cli, tmp_path):
     cfg = tmp_path / "far.yaml"
     cfg.write_text(FLAT.read_text().replace("xyz: [0.45, 0.0, 0.03]", "xyz: [2.5, 0.0, 0.03]"))
     out = tmp_path / "run"
-    code, _, err = _cli(capsys, "run", cfg, "--out", out, "--set", "publish.html=false")
+    code, _, err = cli("run", cfg, "--out", out, "--set", "publish.html=false")
     assert code == 0, err
     assert "WARNING" in err and "no grasp is reachable (out_of_reach 66)" in err
     run = io.read_run(out)
     assert len(run.grasps) == 66 and not run.grasps["reachable"].any()
     assert np.isnan(run.grasps["pos_err"]).all()
-    code, text, err = _cli(capsys, "show", out)
+    code, text, err = cli("show", out)
     assert code == 0, err
     assert "reachable 0" in text and "(no reachable grasp)" in text
     for png in out.glob("*.png"):
         png.unlink()
-    code, text, err = _cli(capsys, "plot", out)
+    code, text, err = cli("plot", out)
     assert code == 0, err
     assert len(list(out.glob("*.png"))) == 3
 
 
-def test_a_run_with_no_triangle_left_warns_and_suggests(capsys, tmp_path):
-    code, _, err = _cli(
-        capsys,
+def test_a_run_with_no_triangle_left_warns_and_suggests(cli, tmp_path):
+    code, _, err = cli(
         "run",
         FLAT,
         "--out",
@@ -571,14 +551,14 @@ def test_a_run_with_no_triangle_left_warns_and_suggests(capsys, tmp_path):
     assert "manifold.max_edge_length" in err
 
 
-def test_a_degenerate_chart_suggests_another_projection(capsys, tmp_path):
+def test_a_degenerate_chart_suggests_another_projection(cli, tmp_path):
     (tmp_path / "g.csv").write_text(
         "x,y,z,qw,qx,qy,qz\n0.5,0,0.2,0,1,0,0\n0.5,0.1,0.2,0,1,0,0\n0.5,0.2,0.2,0,1,0,0\n"
     )
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("candidates: {source: file, path: g.csv}\nmanifold: {projection: xy}\n")
-    code, _, err = _cli(capsys, "run", cfg, "--out", tmp_path / "run")
-    _one_line_error(
+    code, _, err = cli("run", cfg, "--out", tmp_path / "run")
+    assert_one_line_error(
         code, err, "collinear", "try another manifold.projection (cylindrical, pca, spherical)"
     )
 
@@ -588,15 +568,14 @@ def test_user_errors_are_gcm_errors():
     assert issubclass(InputError, GcmError) and issubclass(RobotSpecError, GcmError)
 
 
-def test_more_obstacles_than_the_bound_are_refused(capsys):
+def test_more_obstacles_than_the_bound_are_refused(cli):
     # each costs the collision checker about 4.5 MB: 2,000 took 8.9 GB
     many = "[" + ", ".join(["{shape: sphere, dims: {radius: 0.01}}"] * 101) + "]"
-    code, _, err = _cli(capsys, "validate", BOTTLE, "--set", f"environment.obstacles={many}")
-    _one_line_error(code, err, "environment.obstacles: ", "at most 100 items")
+    code, _, err = cli("validate", BOTTLE, "--set", f"environment.obstacles={many}")
+    assert_one_line_error(code, err, "environment.obstacles: ", "at most 100 items")
 
 
-def test_api_arguments_that_were_read_oddly():
-    from gcm_pipeline import load_robot
+def test_api_arguments_that_were_read_oddly(panda):
     from gcm_pipeline.robot.ik import solve_ik
 
     # one override string, not its characters ("--set 'i'")
@@ -610,7 +589,7 @@ def test_api_arguments_that_were_read_oddly():
     assert np.array_equal(as_read["dq"], generate_candidates(load_config(FLAT))["dq"])
     with pytest.raises(ConfigError, match="cfg must be a Config .* or a mapping, got list"):
         build_manifold(as_read, cfg=[1])
-    robot = load_robot("panda")
+    robot = panda
     targets = robot.fk(np.tile(robot.home, (4, 1)))
     assert solve_ik(robot, targets, workers="auto").success.all()  # as the config says it
     for bad in (True, -1, "two", 1.5):
@@ -618,30 +597,30 @@ def test_api_arguments_that_were_read_oddly():
             solve_ik(robot, targets, workers=bad)
 
 
-def test_a_path_that_exists_but_is_no_file_is_not_called_missing(capsys, tmp_path):
+def test_a_path_that_exists_but_is_no_file_is_not_called_missing(cli, tmp_path):
     cfg = ROOT / "configs" / "from_file.yaml"
     for odd in ("/dev/zero", str(tmp_path)):  # it was "grasp file not found: /dev/zero"
-        code, _, err = _cli(capsys, "validate", cfg, "--set", f"candidates.path={odd}")
-        _one_line_error(code, err, f"candidates.path: grasp file {odd} is not a regular file")
-    code, _, err = _cli(capsys, "show", ROOT / "README.md")
-    _one_line_error(code, err, "README.md is a file (give its folder)")
+        code, _, err = cli("validate", cfg, "--set", f"candidates.path={odd}")
+        assert_one_line_error(code, err, f"candidates.path: grasp file {odd} is not a regular file")
+    code, _, err = cli("show", ROOT / "README.md")
+    assert_one_line_error(code, err, "README.md is a file (give its folder)")
 
 
-def test_validate_reads_the_grasp_file_and_refuses_nul_characters(capsys, tmp_path):
+def test_validate_reads_the_grasp_file_and_refuses_nul_characters(cli, tmp_path):
     """gcm validate reads the candidates as the run does: a bad grasp file fails there.
 
     A NUL in a CSV cell was dropped by NumPy's strings (``0`` + NUL read as 0)."""
     cfg = ROOT / "configs" / "from_file.yaml"
-    code, out, _ = _cli(capsys, "validate", cfg)
+    code, out, _ = cli("validate", cfg)
     assert code == 0 and "mug_grasps.npy: 24 grasps" in out.splitlines()[1]
     header = "x,y,z,qw,qx,qy,qz\n"
     rows = "0.5,0,0.1,1,0,0,0\n0.5,0.1,0.1,1,0,0,0\n0.5,0\0,0.1,1,0,0,0\n"
     bad = tmp_path / "nul.csv"
     bad.write_text(header + rows)
     sets = [f"candidates.path={bad}", "candidates.format=csv"]
-    code, _, err = _cli(capsys, "validate", cfg, *(a for s in sets for a in ("--set", s)))
-    _one_line_error(code, err, f"{bad}:4: NUL character in a CSV file")
+    code, _, err = cli("validate", cfg, *(a for s in sets for a in ("--set", s)))
+    assert_one_line_error(code, err, f"{bad}:4: NUL character in a CSV file")
     broken = tmp_path / "broken.npy"
     broken.write_bytes(b"\x93NUMPY this is not a grasp file")
-    code, _, err = _cli(capsys, "validate", cfg, "--set", f"candidates.path={broken}")
-    _one_line_error(code, err, str(broken))
+    code, _, err = cli("validate", cfg, "--set", f"candidates.path={broken}")
+    assert_one_line_error(code, err, str(broken))

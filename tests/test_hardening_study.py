@@ -24,14 +24,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import BOTTLE, QUICK, ROOT, assert_one_line_error
 
 from gcm_pipeline import signals
 from gcm_pipeline.cli import main
 from gcm_pipeline.study import Study
 from gcm_pipeline.study.runner import EngineError, probe_address
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 #: A small bottle: 45 grasps, about 0.4 s per placement (as in test_study.py).
 SMALL = [
     "candidates.count=18",
@@ -41,21 +40,6 @@ SMALL = [
     "publish.html=false",
     "publish.plots=false",
 ]
-QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-
-
-def _cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def _one_line_error(code, err, *fragments):
-    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("WARNING")]
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
 
 
 def _study_file(tmp_path: Path, sweep: dict | None = None, **extra) -> Path:
@@ -98,15 +82,17 @@ def http_port():
 
 
 @pytest.mark.parametrize("server", ["silent_port", "http_port"])
-def test_an_address_where_no_ray_listens_is_one_line(tmp_path, capsys, request, server):
+def test_an_address_where_no_ray_listens_is_one_line(tmp_path, cli, request, server):
     """A silent socket or a web server: an error within seconds, not Ray retrying for minutes."""
     port = request.getfixturevalue(server)
     out = tmp_path / "out"
-    code, _, err = _cli(
-        capsys, "study", _study_file(tmp_path), "--out", out, "--address", f"127.0.0.1:{port}"
+    code, _, err = cli(
+        "study", _study_file(tmp_path), "--out", out, "--address", f"127.0.0.1:{port}"
     )
     why = "no HTTP/2 answer within 5 s" if server == "silent_port" else "does not speak HTTP/2"
-    _one_line_error(code, err, f"--address 127.0.0.1:{port}: no Ray cluster answers there", why)
+    assert_one_line_error(
+        code, err, f"--address 127.0.0.1:{port}: no Ray cluster answers there", why
+    )
     assert not out.exists()
 
 
@@ -126,11 +112,11 @@ def test_sigterm_stops_the_address_probe(silent_port):
 
 
 @pytest.mark.parametrize("address", ["[::1:6379", "[::1", "ray://[fe80::1:10001", "http://h:1"])
-def test_a_malformed_address_is_one_line(tmp_path, capsys, address):
-    code, _, err = _cli(
-        capsys, "study", _study_file(tmp_path), "--out", tmp_path / "out", "--address", address
+def test_a_malformed_address_is_one_line(tmp_path, cli, address):
+    code, _, err = cli(
+        "study", _study_file(tmp_path), "--out", tmp_path / "out", "--address", address
     )
-    _one_line_error(code, err, f"--address {address!r}: expected HOST:PORT")
+    assert_one_line_error(code, err, f"--address {address!r}: expected HOST:PORT")
     assert not (tmp_path / "out").exists()
     with pytest.raises(EngineError, match="expected HOST:PORT"):
         probe_address(address)
@@ -244,36 +230,36 @@ def test_a_tampered_placement_file_runs_again(finished_study, tmp_path, caplog, 
 
 @pytest.mark.parametrize("name", ["placements.csv", "summary.json", "coverage.png"])
 def test_a_study_output_that_is_a_directory_is_one_line_before_any_work(
-    finished_study, tmp_path, capsys, name
+    finished_study, tmp_path, cli, name
 ):
     path, out = _copy_study(finished_study, tmp_path)
     (out / name).unlink()
     (out / name).mkdir()
     before = sorted(p.name for p in out.rglob("*"))
-    code, _, err = _cli(capsys, "study", path, "--out", out)
-    _one_line_error(code, err, f"{out / name} is a directory", f"writes its {name} there")
+    code, _, err = cli("study", path, "--out", out)
+    assert_one_line_error(code, err, f"{out / name} is a directory", f"writes its {name} there")
     assert sorted(p.name for p in out.rglob("*")) == before
 
 
-def test_a_huge_study_json_is_refused_before_it_is_read(finished_study, tmp_path, capsys):
+def test_a_huge_study_json_is_refused_before_it_is_read(finished_study, tmp_path, cli):
     """A sparse 3 GiB study.json: one line with the bound, nothing read into memory."""
     path, out = _copy_study(finished_study, tmp_path)
     with open(out / "study.json", "r+b") as fh:
         fh.truncate(3 * 1024**3)
-    code, _, err = _cli(capsys, "study", path, "--out", out)
-    _one_line_error(code, err, f"{out / 'study.json'} is 3,221,225,472 bytes", "16,777,216")
+    code, _, err = cli("study", path, "--out", out)
+    assert_one_line_error(code, err, f"{out / 'study.json'} is 3,221,225,472 bytes", "16,777,216")
     assert (out / "study.json").stat().st_size == 3 * 1024**3  # left alone
 
 
-def test_a_study_json_that_is_a_named_pipe_is_one_line(finished_study, tmp_path, capsys):
+def test_a_study_json_that_is_a_named_pipe_is_one_line(finished_study, tmp_path, cli):
     path, out = _copy_study(finished_study, tmp_path)
     (out / "study.json").unlink()
     os.mkfifo(out / "study.json")
     try:
-        code, _, err = _finishes(_cli, capsys, "study", path, "--out", out)
+        code, _, err = _finishes(cli, "study", path, "--out", out)
     finally:
         _unblock(out / "study.json")
-    _one_line_error(code, err, f"{out / 'study.json'} is not a regular file")
+    assert_one_line_error(code, err, f"{out / 'study.json'} is not a regular file")
 
 
 # ------------------------------------------------------------------ refinement
@@ -322,13 +308,11 @@ def test_refinement_stops_exactly_where_rounds_stop_adding():
 
 
 @pytest.fixture
-def panda_mesh(tmp_path, monkeypatch):
+def panda_mesh(tmp_path, monkeypatch, panda):
     """One of the Panda's visual meshes, simplified once into an empty cache: (mesh, entry)."""
-    from gcm_pipeline.robot import load_robot
     from gcm_pipeline.stages import publish as pub
 
-    robot = load_robot("panda")
-    path = next(o.meshPath for o in robot.build_geometry("visual").geometryObjects if o.meshPath)
+    path = next(o.meshPath for o in panda.build_geometry("visual").geometryObjects if o.meshPath)
     monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
     pub._simplified_mesh_cached.cache_clear()
     first = pub._simplified_mesh(path)
@@ -398,7 +382,7 @@ def run_with_branches(tmp_path_factory):
     return out
 
 
-def test_export_never_overwrites_the_runs_solutions_npz(run_with_branches, tmp_path, capsys):
+def test_export_never_overwrites_the_runs_solutions_npz(run_with_branches, tmp_path, cli):
     import shutil
 
     run = tmp_path / "run"
@@ -409,15 +393,15 @@ def test_export_never_overwrites_the_runs_solutions_npz(run_with_branches, tmp_p
     link.symlink_to(run / "solutions.npz")
     before = {p: p.read_bytes() for d in (run, other) for p in d.iterdir()}
     for out in (run / "solutions.npz", link, other / "solutions.npz", other / "grasps.csv"):
-        code, _, err = _cli(capsys, "export", run, "--format", "npz", "--out", out)
-        _one_line_error(code, err, "would overwrite", "choose another file")
+        code, _, err = cli("export", run, "--format", "npz", "--out", out)
+        assert_one_line_error(code, err, "would overwrite", "choose another file")
     assert {p: p.read_bytes() for d in (run, other) for p in d.iterdir()} == before
     # the default name, and a new file beside the run's own ones, are fine
-    assert _cli(capsys, "export", run, "--format", "npz")[0] == 0
-    assert _cli(capsys, "export", run, "--format", "npz", "--out", run / "mine.npz")[0] == 0
+    assert cli("export", run, "--format", "npz")[0] == 0
+    assert cli("export", run, "--format", "npz", "--out", run / "mine.npz")[0] == 0
 
 
-def test_export_never_overwrites_a_studys_files(finished_study, tmp_path, capsys):
+def test_export_never_overwrites_a_studys_files(finished_study, tmp_path, cli):
     _, study = _copy_study(finished_study, tmp_path)
     run = study / "best"
     before = {p: p.read_bytes() for p in study.rglob("*") if p.is_file()}
@@ -426,8 +410,8 @@ def test_export_never_overwrites_a_studys_files(finished_study, tmp_path, capsys
         study / "study.json",
         study / "placements" / "000000.npz",
     ):
-        code, _, err = _cli(capsys, "export", run, "--format", "npz", "--out", out)
-        _one_line_error(code, err, "would overwrite")
+        code, _, err = cli("export", run, "--format", "npz", "--out", out)
+        assert_one_line_error(code, err, "would overwrite")
     assert {p: p.read_bytes() for p in study.rglob("*") if p.is_file()} == before
 
 
@@ -453,15 +437,15 @@ def tiny_tmpfs(tmp_path):
         subprocess.run(["umount", str(where)], check=False)
 
 
-def test_gcm_run_on_a_full_file_system_is_one_line(tiny_tmpfs, capsys):
+def test_gcm_run_on_a_full_file_system_is_one_line(tiny_tmpfs, cli):
     """The bottle's grasps.csv does not fit in 200 kB: ENOSPC named, no directory left."""
     out = tiny_tmpfs / "run"
-    code, _, err = _cli(capsys, "run", BOTTLE, "--out", out, "-q", *QUICK)
-    _one_line_error(code, err, f"cannot write {out}: No space left on device (ENOSPC)")
+    code, _, err = cli("run", BOTTLE, "--out", out, "-q", *QUICK)
+    assert_one_line_error(code, err, f"cannot write {out}: No space left on device (ENOSPC)")
     assert list(tiny_tmpfs.iterdir()) == []
 
 
-def test_disk_full_while_writing_is_one_line_in_process(tmp_path, capsys, monkeypatch):
+def test_disk_full_while_writing_is_one_line_in_process(tmp_path, cli, monkeypatch):
     from gcm_pipeline import io
 
     def full(*args, **kwargs):
@@ -470,8 +454,8 @@ def test_disk_full_while_writing_is_one_line_in_process(tmp_path, capsys, monkey
     monkeypatch.setattr(io, "write_grasps_csv", full)
     out = tmp_path / "run"
     sets = [a for s in SMALL for a in ("--set", s)]
-    code, _, err = _cli(capsys, "run", BOTTLE, "--out", out, "-q", *sets)
-    _one_line_error(code, err, f"cannot write {out}: No space left on device (ENOSPC)")
+    code, _, err = cli("run", BOTTLE, "--out", out, "-q", *sets)
+    assert_one_line_error(code, err, f"cannot write {out}: No space left on device (ENOSPC)")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -6,19 +6,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from poses import backward_poses
 
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.robot.ik import IKResult, solve_ik, verify_solutions
 from gcm_pipeline.robot.model import Robot, load_robot
 
-ROOT = Path(__file__).resolve().parents[1]
 TOL_P, TOL_R = 1e-4, 1e-3
-
-
-@pytest.fixture(scope="module")
-def panda() -> Robot:
-    return load_robot("panda")
 
 
 @pytest.fixture(scope="module")

@@ -14,22 +14,18 @@ from __future__ import annotations
 
 import csv
 import itertools
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from helpers import BOTTLE, ROOT, run_gcm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.table import GraspTable
 
-ROOT = Path(__file__).resolve().parents[1]
-BASE = ROOT / "configs" / "bottle_side.yaml"
 #: Few grasps, no manifold: 2 rings of 9 around the bottle, one worker (in-process).
 FAST = [
     "candidates.count=18",
@@ -93,14 +89,14 @@ def _overrides(spec, table, check_object, self_collision, obstacles):
 @pytest.mark.parametrize("robot_name", ["panda", "ur5", "user_urdf"])
 def test_decisions_equal_with_and_without_kernels_on_every_world(robot_name, user_urdf_spec):
     spec = str(user_urdf_spec) if robot_name == "user_urdf" else robot_name
-    parts = [P.generate_candidates(load_config(BASE, [*FAST, *extra])) for extra in GRASP_SETS]
+    parts = [P.generate_candidates(load_config(BOTTLE, [*FAST, *extra])) for extra in GRASP_SETS]
     grasps = GraspTable({c: np.concatenate([p[c] for p in parts]) for c in parts[0].columns})
     assert len(grasps) == 54
-    robot = P.robot_from_config(load_config(BASE, _overrides(spec, *WORLDS[0])))  # shared
+    robot = P.robot_from_config(load_config(BOTTLE, _overrides(spec, *WORLDS[0])))  # shared
     seen: dict[str, int] = {}
     by_world = {}
     for world in WORLDS:
-        cfg = load_config(BASE, _overrides(spec, *world))
+        cfg = load_config(BOTTLE, _overrides(spec, *world))
         out = P.check_reachability(grasps, robot, cfg)
         with kernels.suppressed():
             ref = P.check_reachability(grasps, robot, cfg)
@@ -124,10 +120,9 @@ def test_decisions_equal_with_and_without_kernels_on_every_world(robot_name, use
 
 def _gcm_run(tmp_path, name, overrides, jit):
     out = tmp_path / name
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "GCM_JIT": "1" if jit else "0"}
-    args = [sys.executable, "-m", "gcm_pipeline", "run", str(BASE), "--out", str(out)]
-    args += ["--force", "--quiet", *(x for o in overrides for x in ("--set", o))]
-    res = subprocess.run(args, capture_output=True, text=True, env=env, cwd=tmp_path)
+    args = ["run", BOTTLE, "--out", out, "--force", "--quiet"]
+    args += [x for o in overrides for x in ("--set", o)]
+    res = run_gcm(*args, env={"GCM_JIT": "1" if jit else "0"}, cwd=tmp_path, timeout=None)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "Traceback" not in res.stderr
     with open(out / "grasps.csv", newline="") as f:
@@ -164,11 +159,11 @@ def test_a_bare_flange_decides_the_same_with_and_without_kernels(tmp_path):
     spec["grasp_frame"], spec["name"] = "tool0", "ur5_bare"
     path = tmp_path / "ur5_bare.yaml"
     path.write_text(yaml.safe_dump(spec))
-    robot = P.robot_from_config(load_config(BASE, _overrides(path, *WORLDS[0])))
-    grasps = P.generate_candidates(load_config(BASE, [*FAST, *GRASP_SETS[0]]))
+    robot = P.robot_from_config(load_config(BOTTLE, _overrides(path, *WORLDS[0])))
+    grasps = P.generate_candidates(load_config(BOTTLE, [*FAST, *GRASP_SETS[0]]))
     seen = set()
     for world in WORLDS[::3]:  # each (table, object, self) once, with 0 obstacles
-        cfg = load_config(BASE, _overrides(path, *world))
+        cfg = load_config(BOTTLE, _overrides(path, *world))
         out = P.check_reachability(grasps, robot, cfg)
         with kernels.suppressed():
             ref = P.check_reachability(grasps, robot, cfg)

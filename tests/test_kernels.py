@@ -18,11 +18,11 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers import ROOT
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -40,8 +40,6 @@ from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(autouse=True)
 def _kernels_on(monkeypatch):
@@ -56,11 +54,6 @@ def compiled():
         out = kernels.get()
     assert out is not None, "numba is a dependency: the kernels must load"
     return out
-
-
-@pytest.fixture(scope="module")
-def panda():
-    return load_robot("panda")
 
 
 def _numpy(monkeypatch, fn, *args):
@@ -246,9 +239,9 @@ def test_a_long_load_says_that_it_compiles(monkeypatch, caplog):
 # --- forward kinematics -----------------------------------------------------------------
 
 
-def _chains():
+def _chains(panda):
     """Chains by name: (chain, the model, the frame's id in it)."""
-    panda, ur5 = load_robot("panda"), load_robot("ur5")
+    ur5 = load_robot("ur5")
     link4 = panda.model.getFrameId("panda_link4")
     return {
         "panda": (panda.chain, panda.model, panda.grasp_frame_id),
@@ -260,14 +253,14 @@ def _chains():
 
 @pytest.mark.parametrize("name", ["panda", "ur5_tool", "panda_link4"])
 @pytest.mark.parametrize("n", [0, 1, 1000])
-def test_fk_kernel_equals_numpy(monkeypatch, compiled, name, n):
+def test_fk_kernel_equals_numpy(monkeypatch, compiled, panda, name, n):
     """Forward kinematics is a closed form: no iteration amplifies round-off.
 
     The kernel and the NumPy code sum in other orders on other CPUs; each
     result is within a few ulps of the exact one, so they agree, and agree
     with Pinocchio, to 1e-12 (about 5,000 ulps of values of order 1).
     """
-    chain, model, frame_id = _chains()[name]
+    chain, model, frame_id = _chains(panda)[name]
     rng = np.random.default_rng(n)
     q = rng.uniform(-np.pi, np.pi, (n, chain.nq))
     q.setflags(write=False)  # read-only arrays are taken too (a robot's home is one)
@@ -728,10 +721,9 @@ def test_kernels_take_any_layout_dtype_and_row_count(monkeypatch, compiled, n):
     assert ("segment_samples" in calls) == (n > 0)
 
 
-def test_a_kernel_converts_safely_or_says_why(compiled):
+def test_a_kernel_converts_safely_or_says_why(compiled, panda):
     """Empty arrays of any dtype and safe casts convert; lossy casts and wrong
     dimensions are a caller's mistake, named, not Numba's 'No matching definition'."""
-    panda = load_robot("panda")
     q_index, placement, tool = panda.chain.packed
     rot, pos, jac = compiled.chain_forward(
         np.zeros((0, 7), np.int32), q_index, placement, tool, 7, True

@@ -21,11 +21,6 @@ from gcm_pipeline.robot.manipulability import (
 from gcm_pipeline.robot.model import Robot, load_robot
 
 
-@pytest.fixture(scope="module")
-def panda() -> Robot:
-    return load_robot("panda")
-
-
 def _fd_jacobian(robot: Robot, q: np.ndarray, h: float = 1e-6) -> np.ndarray:
     jac = np.zeros((6, robot.nq))
     for k in range(robot.nq):

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import FLAT, ROOT
 
 from gcm_pipeline import io, pipeline
 from gcm_pipeline.config import Config, load_config
@@ -22,8 +23,6 @@ from gcm_pipeline.pipeline import (
     rank,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
-FLAT = ROOT / "configs" / "flat_surface.yaml"
 QUICK = ("publish.html=false", "publish.plots=false")
 
 

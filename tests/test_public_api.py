@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import importlib
-from pathlib import Path
 
 import pytest
+from helpers import ROOT
 
 import gcm_pipeline
 
@@ -78,9 +78,8 @@ def test_the_command_line_starts_without_the_heavy_libraries() -> None:
         "import sys, gcm_pipeline, gcm_pipeline.cli; "
         "print(sorted(m for m in ('numpy', 'pinocchio', 'scipy') if m in sys.modules))"
     )
-    root = Path(__file__).resolve().parents[1]  # this checkout, not another install
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root
+    out = subprocess.run(  # in this checkout, not another install
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
     )
     assert out.stdout.strip() == "[]"
 

@@ -37,8 +37,9 @@ def f32(ext: umsgpack.Ext) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def robot():
-    return load_robot("panda")
+def robot(panda):
+    """The shared Panda (conftest.py) under this module's name."""
+    return panda
 
 
 def make_config(**publish) -> Config:
@@ -515,18 +516,17 @@ def test_primitive_tool_geometry_in_the_visual_model_is_drawn(monkeypatch):
     assert moves and moves[0]["type"] == "set_transform"
 
 
-def _cached_panda_mesh(tmp_path, monkeypatch) -> str:
+def _cached_panda_mesh(robot, tmp_path, monkeypatch) -> str:
     """One of the Panda's visual meshes, with an empty mesh cache under ``tmp_path``."""
-    robot = load_robot("panda")
     path = next(o.meshPath for o in robot.build_geometry("visual").geometryObjects if o.meshPath)
     monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
     pub._simplified_mesh_cached.cache_clear()
     return path
 
 
-def test_simplified_robot_meshes_are_cached_on_disk(tmp_path, monkeypatch):
+def test_simplified_robot_meshes_are_cached_on_disk(robot, tmp_path, monkeypatch):
     """The second run reads the simplified meshes from the cache instead of simplifying again."""
-    path = _cached_panda_mesh(tmp_path, monkeypatch)
+    path = _cached_panda_mesh(robot, tmp_path, monkeypatch)
     first = pub._simplified_mesh(path)
     files = list((tmp_path / "cache" / "meshes").iterdir())
     assert len(files) == 1 and files[0].suffix == ".npz"
@@ -543,8 +543,8 @@ def test_simplified_robot_meshes_are_cached_on_disk(tmp_path, monkeypatch):
     pub._simplified_mesh_cached.cache_clear()
 
 
-def test_a_damaged_or_unwritable_mesh_cache_is_rebuilt_or_skipped(tmp_path, monkeypatch):
-    path = _cached_panda_mesh(tmp_path, monkeypatch)
+def test_a_damaged_or_unwritable_mesh_cache_is_rebuilt_or_skipped(robot, tmp_path, monkeypatch):
+    path = _cached_panda_mesh(robot, tmp_path, monkeypatch)
     fresh = pub._simplified_mesh(path)
     (cached,) = (tmp_path / "cache" / "meshes").iterdir()
     cached.write_bytes(cached.read_bytes()[:100])  # truncated

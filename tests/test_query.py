@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import BOTTLE, ROOT, assert_one_line_error
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
@@ -19,9 +20,6 @@ from gcm_pipeline.geometry.surface import (
     pose_features,
 )
 from gcm_pipeline.stages.collision import make_checker
-
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -348,9 +346,8 @@ def test_gcm_query_prints_the_nearest_reachable_grasp(
 def test_gcm_query_bad_poses_are_one_line_errors(
     bottle_run: gcm.RunResult, capsys: pytest.CaptureFixture[str], pose: list[str], match: str
 ) -> None:
-    assert main(["query", str(bottle_run.run_dir), "--pose", *pose]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error: ") and err.count("\n") == 1 and match in err
+    code = main(["query", str(bottle_run.run_dir), "--pose", *pose])
+    assert_one_line_error(code, capsys.readouterr().err, match)
 
 
 def test_gcm_query_needs_a_run_with_a_manifold(

@@ -7,14 +7,9 @@ import pytest
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.manipulability import manipulability
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.stages.ranking import rank
 from gcm_pipeline.table import GraspTable
-
-
-@pytest.fixture(scope="module")
-def panda() -> Robot:
-    return load_robot("panda")
 
 
 def _table(panda: Robot) -> GraspTable:

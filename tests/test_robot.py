@@ -8,17 +8,12 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers import ROBOT_SPECS, ROOT
 
 from gcm_pipeline.errors import FrameNotFoundError, GcmError, RobotSpecError
 from gcm_pipeline.robot.model import Robot, available_robots, load_robot
 
-ROOT = Path(__file__).resolve().parents[1]
-PANDA_SPEC = ROOT / "gcm_pipeline" / "robots" / "panda.yaml"
-
-
-@pytest.fixture(scope="module")
-def panda() -> Robot:
-    return load_robot("panda")
+PANDA_SPEC = ROBOT_SPECS / "panda.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +34,7 @@ def test_available_robots_ship_panda_and_ur5():
 def test_top_level_specs_are_the_package_specs():
     for name in available_robots():
         top = ROOT / "robots" / f"{name}.yaml"
-        assert top.read_text() == (ROOT / "gcm_pipeline" / "robots" / f"{name}.yaml").read_text()
+        assert top.read_text() == (ROBOT_SPECS / f"{name}.yaml").read_text()
 
 
 def test_panda_model(panda: Robot):

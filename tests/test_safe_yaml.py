@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 
 import pytest
+from helpers import FLAT
 
 from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import ConfigError, RobotSpecError
@@ -17,8 +17,6 @@ from gcm_pipeline.safe_yaml import (
     load_yaml,
     read_yaml_file,
 )
-
-FLAT = Path(__file__).resolve().parents[1] / "configs" / "flat_surface.yaml"
 
 
 def _load(text: str):

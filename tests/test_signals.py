@@ -18,10 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
-FLAT = ROOT / "configs" / "flat_surface.yaml"
+from helpers import BOTTLE, FLAT, ROOT
 
 
 def _start(config: Path, out: Path, *sets: str, force: bool = False) -> subprocess.Popen:

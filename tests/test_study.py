@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import BOTTLE, ROOT, assert_one_line_error
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
@@ -39,8 +40,6 @@ from gcm_pipeline.study.store import CSV_COLUMNS, StudyDir
 # before anything here imports Ray (the subprocesses inherit it).
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
 FROM_FILE = ROOT / "configs" / "from_file.yaml"
 #: A small bottle: 2 rings of 9 candidates, 45 grasps (about 0.4 s per placement).
 SMALL = [
@@ -235,10 +234,7 @@ def test_bad_study_is_one_line_and_writes_nothing(tmp_path, capsys, sweep, fragm
     path = _study_file(tmp_path, _small(sweep))
     out = tmp_path / "out"
     code = main(["study", str(path), "--out", str(out)])
-    err = capsys.readouterr().err
-    assert code == 2
-    assert err.count("\n") == 1 and err.startswith("error: ") and "Traceback" not in err
-    assert fragment in err, err
+    assert_one_line_error(code, capsys.readouterr().err, fragment)
     assert not out.exists()
 
 
@@ -344,8 +340,8 @@ def test_unreachable_address_is_one_line(tmp_path, capsys):
     out = tmp_path / "out"
     t0 = time.perf_counter()
     code = main(["study", str(path), "--out", str(out), "--address", f"127.0.0.1:{port}"])
-    err = capsys.readouterr().err
-    assert code == 2 and err.startswith("error: --address 127.0.0.1:") and err.count("\n") == 1
+    line = assert_one_line_error(code, capsys.readouterr().err)
+    assert line.startswith("error: --address 127.0.0.1:"), line
     assert time.perf_counter() - t0 < 30
     assert not out.exists()
 
@@ -638,10 +634,10 @@ def test_a_run_directory_is_not_a_study_directory(tmp_path, capsys):
     assert main(["run", str(FROM_FILE), "--out", str(run), *(f"--set={s}" for s in sets)]) == 0
     path = _study_file(tmp_path, _small({"object_pose": {"x": [0.4]}}))
     capsys.readouterr()
-    assert main(["study", str(path), "--out", str(run)]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error: refusing to replace ") and err.count("\n") == 1
-    assert "it is a gcm run directory, not a study directory" in err
+    code = main(["study", str(path), "--out", str(run)])
+    line = assert_one_line_error(code, capsys.readouterr().err)
+    assert line.startswith("error: refusing to replace ")
+    assert "it is a gcm run directory, not a study directory" in line
     files = ".gcm.json config.yaml configurations.npz grasps.csv manifold.npz summary.json"
     assert sorted(p.name for p in run.iterdir()) == files.split()
 

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
 import coal
 import numpy as np
 import pinocchio as pin
 import pytest
 import yaml
+from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, ROOT, assert_one_line_error, run_gcm
 
 import gcm_pipeline as gcm
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
@@ -21,8 +18,7 @@ from gcm_pipeline.robot.model import load_robot, load_spec
 from gcm_pipeline.robot.tool import parse_pose
 from gcm_pipeline.stages.collision import make_checker
 
-ROOT = Path(__file__).resolve().parents[1]
-UR5_SPEC = yaml.safe_load((ROOT / "gcm_pipeline" / "robots" / "ur5.yaml").read_text())
+UR5_SPEC = yaml.safe_load((ROBOT_SPECS / "ur5.yaml").read_text())
 
 
 @pytest.fixture(scope="module")
@@ -184,16 +180,10 @@ def test_unreadable_tool_mesh_fails_before_anything_is_written(tmp_path):
     cover = {"name": "cover", "shape": "mesh", "mesh": "bad.stl"}
     spec = _spec(tmp_path, collision=[*UR5_SPEC["tool"]["collision"], cover])
     out = tmp_path / "run"
-    proc = subprocess.run(
-        [sys.executable, "-m", "gcm_pipeline", "run", str(ROOT / "configs" / "bottle_side.yaml"),
-         "--set", f"robot.spec={spec}", "--out", str(out)],
-        capture_output=True, text=True, cwd=tmp_path, timeout=300,
-    )  # fmt: skip
-    assert proc.returncode == 2, proc.stderr
-    lines = proc.stderr.strip().splitlines()
-    assert (
-        len(lines) == 1 and lines[0].startswith("error: ") and "tool.collision[4].mesh" in lines[0]
+    proc = run_gcm(
+        "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", out, cwd=tmp_path, timeout=300
     )
+    assert_one_line_error(proc.returncode, proc.stderr, "tool.collision[4].mesh")
     assert not out.exists()
     assert {p.name for p in tmp_path.iterdir()} == {"bad.stl", "spec.yaml"}
 
@@ -238,11 +228,9 @@ def test_zero_reachable_says_why_and_what_to_try(tmp_path, caplog):
     spec["grasp_frame"] = "tool0"
     (tmp_path / "bare.yaml").write_text(yaml.safe_dump(spec))
     out = tmp_path / "run"
-    proc = subprocess.run(
-        [sys.executable, "-m", "gcm_pipeline", "run", str(ROOT / "configs" / "bottle_side.yaml"),
-         "--set", f"robot.spec={tmp_path / 'bare.yaml'}", "--set", "publish.html=false",
-         "--set", "publish.plots=false", "--out", str(out)],
-        capture_output=True, text=True, cwd=tmp_path, timeout=300,
+    proc = run_gcm(
+        "run", BOTTLE, "--set", f"robot.spec={tmp_path / 'bare.yaml'}", *QUICK, "--out", out,
+        cwd=tmp_path, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert "reachable     0 / 1044" in proc.stdout
@@ -322,11 +310,5 @@ def _bottle_config():
 )
 def test_astronomic_tool_numbers_are_one_line(tmp_path, changes, key):
     spec = _spec(tmp_path, **changes)
-    proc = subprocess.run(
-        [sys.executable, "-m", "gcm_pipeline", "validate",
-         str(ROOT / "configs" / "flat_surface.yaml"), "--set", f"robot.spec={spec}"],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
-    lines = proc.stderr.strip().splitlines()
-    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
-    assert key in lines[0], lines[0]
+    proc = run_gcm("validate", FLAT, "--set", f"robot.spec={spec}", timeout=300)
+    assert_one_line_error(proc.returncode, proc.stderr, key)

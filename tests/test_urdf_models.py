@@ -7,7 +7,6 @@ example-robot-data's Kinova (continuous joints) and UR3 loader (loads the UR5).
 from __future__ import annotations
 
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,47 +15,16 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import trimesh
+from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, assert_one_line_error, run_gcm
 from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
-from gcm_pipeline.cli import main
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.io import read_run
 from gcm_pipeline.robot import model as model_module
 from gcm_pipeline.robot.model import load_robot, load_spec, root_link
 from gcm_pipeline.robot.urdf import CONTINUOUS_RANGE, resolve_frame
 
-ROOT = Path(__file__).resolve().parents[1]
-BOTTLE = ROOT / "configs" / "bottle_side.yaml"
-FLAT = ROOT / "configs" / "flat_surface.yaml"
-QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
 TCP_ONLY = "tool: {name: tcp_only, flange: tool0, tcp: {xyz: [0, 0, 0.15]}}\n"
-
-
-def _cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def _one_line_error(code, err, *fragments):
-    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("WARNING")]
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    return lines[0]
-
-
-def _gcm(*argv, env=None, cwd=None):
-    """``gcm`` in a subprocess: what a user's terminal shows, C++ output included."""
-    return subprocess.run(
-        [sys.executable, "-m", "gcm_pipeline", *map(str, argv)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
-        cwd=cwd,
-    )
 
 
 def _with_grasp_frame(spec: Path, frame: str) -> Path:
@@ -117,12 +85,12 @@ def test_an_ambiguous_frame_says_which_frames_share_the_name():
         resolve_frame(model, "tool9", "grasp frame", "robot 'x'")
 
 
-def test_gcm_run_on_a_urdf_whose_link_and_joint_share_a_name(capsys, tmp_path):
+def test_gcm_run_on_a_urdf_whose_link_and_joint_share_a_name(cli, tmp_path):
     spec = _with_grasp_frame(write_arm(tmp_path / "dup", TCP_ONLY, flange_joint="tool0"), "tcp")
-    code, out, err = _cli(capsys, "validate", BOTTLE, "--set", f"robot.spec={spec}")
+    code, out, err = cli("validate", BOTTLE, "--set", f"robot.spec={spec}")
     assert code == 0, err
-    code, out, err = _cli(
-        capsys, "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", tmp_path / "run", *QUICK
+    code, out, err = cli(
+        "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", tmp_path / "run", *QUICK
     )
     assert code == 0, err
     assert "is a TCP only (no collision shapes): the hand is not collision-checked" in err
@@ -199,12 +167,11 @@ def _write(folder: Path, text: str, name: str = "spec.yaml") -> Path:
     return path
 
 
-def test_gcm_run_with_continuous_joints_equals_two_turn_revolute(capsys, tmp_path):
+def test_gcm_run_with_continuous_joints_equals_two_turn_revolute(cli, tmp_path):
     counts = {}
     for kind, kw in {"rev": {}, "cont": {"joint_type": "continuous", "limits": None}}.items():
         spec = _with_grasp_frame(write_arm(tmp_path / kind, TCP_ONLY, **kw), "tcp")
-        code, _, err = _cli(
-            capsys,
+        code, _, err = cli(
             "run",
             BOTTLE,
             "--set",
@@ -268,8 +235,10 @@ def test_a_bad_mesh_names_the_link_and_the_file_not_assimp(tmp_path, case):
             " vertex 0 0 0\n endloop\n endfacet\nendsolid\n"
         )
     spec = write_arm(tmp_path, mesh="meshes/w3.stl")
-    proc = _gcm("validate", FLAT, "--set", f"robot.spec={spec}")
-    line = _one_line_error(proc.returncode, proc.stderr, "link 'wrist_3_link'", "meshes/w3.stl")
+    proc = run_gcm("validate", FLAT, "--set", f"robot.spec={spec}")
+    line = assert_one_line_error(
+        proc.returncode, proc.stderr, "link 'wrist_3_link'", "meshes/w3.stl"
+    )
     assert "assimp" not in line and "/project/" not in line and "Hint" not in line
     if case == "corrupt":
         assert "STL: Invalid number of vertices" in line
@@ -293,16 +262,16 @@ def test_a_bad_mesh_names_the_link_and_the_file_not_assimp(tmp_path, case):
 def test_a_malformed_urdf_is_one_line_and_nothing_of_urdfdom(tmp_path, text, fragment):
     (tmp_path / "arm.urdf").write_text(text)
     (tmp_path / "spec.yaml").write_text("name: a\nmodel: {urdf: arm.urdf}\ngrasp_frame: tool0\n")
-    proc = _gcm("validate", FLAT, "--set", f"robot.spec={tmp_path / 'spec.yaml'}")
-    line = _one_line_error(proc.returncode, proc.stderr, "arm.urdf", fragment)
+    proc = run_gcm("validate", FLAT, "--set", f"robot.spec={tmp_path / 'spec.yaml'}")
+    line = assert_one_line_error(proc.returncode, proc.stderr, "arm.urdf", fragment)
     assert proc.stderr.count("\n") == 1, proc.stderr  # urdfdom printed nothing of its own
     assert "at line" not in line and proc.stdout == ""
 
 
 def test_urdf_joint_limits_of_1e308_are_refused_naming_the_joint(tmp_path):
     spec = write_arm(tmp_path, limits=(-1e308, 1e308))
-    proc = _gcm("validate", FLAT, "--set", f"robot.spec={spec}")
-    _one_line_error(
+    proc = run_gcm("validate", FLAT, "--set", f"robot.spec={spec}")
+    assert_one_line_error(
         proc.returncode,
         proc.stderr,
         "joint 'shoulder_pan_joint' has the range [-1e+308, 1e+308]",
@@ -418,7 +387,7 @@ def rd_env(monkeypatch):
     model_module._RD_PATHS.clear()
 
 
-def test_a_robot_descriptions_model_loads_from_its_cache(tmp_path, rd_env):
+def test_a_robot_descriptions_model_loads_from_its_cache(tmp_path, rd_env, panda):
     from example_robot_data.robots_loader import getModelPath
 
     erd = Path(getModelPath("panda_description/urdf/panda.urdf")) / "panda_description"
@@ -433,8 +402,7 @@ def test_a_robot_descriptions_model_loads_from_its_cache(tmp_path, rd_env):
     )
     rd_env.setenv("ROBOT_DESCRIPTIONS_CACHE", str(cache))
     rd_env.setenv("ROBOT_DESCRIPTION_COMMIT", sha)
-    panda = load_robot("panda")
-    text = (ROOT / "gcm_pipeline" / "robots" / "panda.yaml").read_text()
+    text = (ROBOT_SPECS / "panda.yaml").read_text()
     spec = tmp_path / "rd.yaml"
     spec.write_text(
         text.replace("example_robot_data: panda", "robot_descriptions: panda_description")
@@ -446,7 +414,7 @@ def test_a_robot_descriptions_model_loads_from_its_cache(tmp_path, rd_env):
     assert robot.build_geometry("collision").ngeoms == panda.build_geometry("collision").ngeoms
     assert root_link(robot.spec) == "panda_link0"
     # the command line, in a fresh process
-    proc = _gcm(
+    proc = run_gcm(
         "robot",
         spec,
         env={
@@ -484,20 +452,21 @@ def test_a_xacro_robot_descriptions_model_is_rendered(tmp_path, rd_env):
 def test_a_robot_descriptions_model_not_in_the_cache_is_one_line(tmp_path, rd_env):
     spec = tmp_path / "rd.yaml"
     spec.write_text("name: x\nmodel: {robot_descriptions: ur10e_description}\ngrasp_frame: tool0\n")
-    proc = _gcm(
+    proc = run_gcm(
         "validate",
         FLAT,
         "--set",
         f"robot.spec={spec}",
         env={"ROBOT_DESCRIPTIONS_CACHE": str(tmp_path / "cache"), "GIT_ALLOW_PROTOCOL": "file"},
     )
-    _one_line_error(
+    assert_one_line_error(
         proc.returncode,
         proc.stderr,
         "model.robot_descriptions 'ur10e_description'",
         f"not in the cache {tmp_path / 'cache'}",
         "Universal_Robots_ROS2_Description",
         f"into {tmp_path / 'cache' / 'ur_description'}",
+        warnings=True,  # the notice that robot_descriptions is about to clone
     )
     assert "Cloning" not in proc.stdout + proc.stderr
     for text, fragment in [
@@ -521,8 +490,8 @@ def re_escape(text: str) -> str:
 # ------------------------------------------------------------------------------ gcm robot
 
 
-def test_gcm_robot_prints_what_a_spec_configures(capsys, tmp_path):
-    code, out, err = _cli(capsys, "robot", "panda", "--out", tmp_path / "panda.html")
+def test_gcm_robot_prints_what_a_spec_configures(cli, tmp_path):
+    code, out, err = cli("robot", "panda", "--out", tmp_path / "panda.html")
     assert code == 0, err
     for fragment in [
         "panda_joint4  revolute",
@@ -539,7 +508,7 @@ def test_gcm_robot_prints_what_a_spec_configures(capsys, tmp_path):
     ]:
         assert fragment in out, (fragment, out)
     assert (tmp_path / "panda.html").stat().st_size > 100_000
-    code, out, err = _cli(capsys, "robot", "ur5")
+    code, out, err = cli("robot", "ur5")
     assert code == 0, err
     assert "flange tool0" in out and "fingers open 0.085 m along [0, 1, 0]" in out
     assert "finger_left (box 0.022 x 0.012 x 0.066, finger left)" in out
@@ -552,34 +521,34 @@ def test_gcm_robot_prints_what_a_spec_configures(capsys, tmp_path):
         ),
         "tcp",
     )
-    code, out, err = _cli(capsys, "robot", spec, "--out", tmp_path / "u.html")
+    code, out, err = cli("robot", spec, "--out", tmp_path / "u.html")
     assert code == 0, err
     assert "wrist_3_joint        continuous (as revolute)   -6.2832    6.2832" in out
     assert "TCP only: no collision shapes, the hand is not collision-checked" in out
     assert "grasp frame tcp (operational frame on link tool0)" in out
     assert "6 link pairs not checked" in out and "15 self-collision pairs" in out
     assert (tmp_path / "u.html").is_file()
-    code, out, err = _cli(capsys, "robot", "pandaa")
-    _one_line_error(code, err, "unknown robot 'pandaa'")
+    code, out, err = cli("robot", "pandaa")
+    assert_one_line_error(code, err, "unknown robot 'pandaa'")
 
 
 # ------------------------------------------------------------------------------ exports
 
 
-def test_moveit_export_when_the_runs_urdf_is_no_longer_valid_xml(capsys, tmp_path):
+def test_moveit_export_when_the_runs_urdf_is_no_longer_valid_xml(cli, tmp_path):
     spec = _with_grasp_frame(write_arm(tmp_path / "arm", TCP_ONLY), "tcp")
-    code, _, err = _cli(
-        capsys, "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", tmp_path / "run", *QUICK
+    code, _, err = cli(
+        "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", tmp_path / "run", *QUICK
     )
     assert code == 0, err
-    code, out, err = _cli(capsys, "export", tmp_path / "run", "--format", "moveit", "--top", "2")
+    code, out, err = cli("export", tmp_path / "run", "--format", "moveit", "--top", "2")
     assert code == 0, err
     assert "robot root frame 'base_link'" in (tmp_path / "run" / "grasps_moveit.yaml").read_text()
     (tmp_path / "arm" / "arm.urdf").write_text("<robot><link name=")
-    code, _, err = _cli(
-        capsys, "export", tmp_path / "run", "--format", "moveit", "--out", tmp_path / "m.yaml"
+    code, _, err = cli(
+        "export", tmp_path / "run", "--format", "moveit", "--out", tmp_path / "m.yaml"
     )
-    _one_line_error(code, err, "arm.urdf", "is not valid XML")
+    assert_one_line_error(code, err, "arm.urdf", "is not valid XML")
     assert not (tmp_path / "m.yaml").exists()
 
 

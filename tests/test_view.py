@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_one_line_error, run_gcm
 from test_browser import chromium
 from test_export import make_run
 
@@ -195,11 +196,5 @@ def test_gcm_view_no_wait_leaves_a_working_server(run):
 
 
 def test_gcm_view_bad_run_dir(tmp_path):
-    proc = subprocess.run(
-        [sys.executable, "-m", "gcm_pipeline", "view", str(tmp_path / "nope")],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert proc.returncode == 2
-    assert proc.stderr.startswith("error: ") and len(proc.stderr.strip().splitlines()) == 1
+    proc = run_gcm("view", tmp_path / "nope", timeout=60)
+    assert_one_line_error(proc.returncode, proc.stderr)

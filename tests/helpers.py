@@ -1,0 +1,64 @@
+"""Paths and assertions shared by the tests (the fixtures are in ``conftest.py``)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+#: The repository's root (this checkout, wherever a test file sits under ``tests/``).
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+DATA = ROOT / "tests" / "data"
+FLAT = CONFIGS / "flat_surface.yaml"
+BOTTLE = CONFIGS / "bottle_side.yaml"
+#: The robot specs shipped with the package (``load_robot("panda")`` reads panda.yaml).
+ROBOT_SPECS = ROOT / "gcm_pipeline" / "robots"
+#: ``gcm run`` without the HTML scene and the plots (the slow part of a small run).
+QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
+
+
+def assert_one_line_error(code: int, err: str, *fragments: str, warnings: bool = False) -> str:
+    """The error contract of ``gcm``: exit 2, one line ``error: ...`` on stderr, no traceback.
+
+    Args:
+        code: The command's exit status.
+        err: What it wrote to stderr.
+        *fragments: Texts the error line must contain (the key, file, value, choices).
+        warnings: Allow ``WARNING ...`` log lines before the error line.
+
+    Returns:
+        The error line.
+    """
+    assert code == 2, err
+    assert "Traceback" not in err, err
+    lines = err.splitlines()
+    if warnings:
+        lines = [ln for ln in lines if not ln.startswith("WARNING")]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and err.endswith("\n"), err
+    assert len(lines[0]) <= 2000, len(lines[0])
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+    return lines[0]
+
+
+def run_gcm(
+    *argv: object,
+    env: dict[str, str] | None = None,
+    cwd: Path | None = None,
+    timeout: float | None = 600,
+) -> subprocess.CompletedProcess[str]:
+    """``gcm ARGV`` in a subprocess of this checkout: what a user's terminal shows.
+
+    C++ output of the libraries included. ``env`` is added to this process's
+    environment.
+    """
+    return subprocess.run(
+        [sys.executable, "-m", "gcm_pipeline", *map(str, argv)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+        cwd=cwd,
+    )

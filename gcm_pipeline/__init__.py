@@ -13,7 +13,7 @@ import importlib.util
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names for type checkers; at run time they load on first use
-    from gcm_pipeline.config import Config, load_config
+    from gcm_pipeline.config.run import Config, load_config
     from gcm_pipeline.errors import (
         ConfigError,
         FrameNotFoundError,

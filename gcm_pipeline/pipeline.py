@@ -49,7 +49,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from gcm_pipeline import io
-from gcm_pipeline.config import Config, load_config, takes_config
+from gcm_pipeline.config.run import Config, load_config, takes_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable

@@ -40,8 +40,7 @@ from pydantic import (
     model_validator,
 )
 
-from gcm_pipeline.errors import ConfigError, clip, unknown_choice
-from gcm_pipeline.limits import (
+from gcm_pipeline.config.bounds import (
     DEFAULT_MAX_CANDIDATES,
     DEFAULT_MAX_POSES,
     MAX_ADAPTIVE_LEVEL,
@@ -51,7 +50,8 @@ from gcm_pipeline.limits import (
     MAX_LENGTH,
     MAX_OBSTACLES,
 )
-from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
+from gcm_pipeline.config.yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
+from gcm_pipeline.errors import ConfigError, clip, unknown_choice
 
 __all__ = [
     "as_config",
@@ -92,7 +92,7 @@ PositiveInt = Annotated[int, Strict(), Field(gt=0)]
 #: Seeds of NumPy's generators are non-negative.
 Seed = Annotated[int, Strict(), Field(ge=0)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
-#: Lengths and coordinates of the scene [m], within MAX_LENGTH (see gcm_pipeline.limits).
+#: Lengths and coordinates of the scene [m], within MAX_LENGTH (see gcm_pipeline.config.bounds).
 Length = Annotated[float, Strict(), Field(ge=-MAX_LENGTH, le=MAX_LENGTH, allow_inf_nan=False)]
 PositiveLength = Annotated[float, Strict(), Field(gt=0, le=MAX_LENGTH, allow_inf_nan=False)]
 NonNegLength = Annotated[float, Strict(), Field(ge=0, le=MAX_LENGTH, allow_inf_nan=False)]
@@ -259,7 +259,7 @@ class CandidatesConfig(_Section):
             world of the camera's optical frame (OpenCV: x right, y down, z forward)
             in which the file's grasps are given.
         max_count: Ceiling of ``count`` and of the rows of a grasp file (checked
-            before anything is read or generated; see :mod:`gcm_pipeline.limits`).
+            before anything is read or generated; see :mod:`gcm_pipeline.config.bounds`).
     """
 
     source: Literal["plane", "cylinder_side", "box", "sphere", "file", "antipodal"]
@@ -386,7 +386,7 @@ class DensifyConfig(_Section):
 
     ``max_poses`` is the ceiling of the densified table (candidates plus
     lattice points, estimated before the lattice is built; see
-    :mod:`gcm_pipeline.limits`). With ``adaptive`` the lattice is refined
+    :mod:`gcm_pipeline.config.bounds`). With ``adaptive`` the lattice is refined
     where reachability or the metric changes instead (``subdivisions`` and
     ``spacing`` are then not used).
     """
@@ -830,7 +830,7 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
     """Apply one ``dotted.key=value`` override (value parsed as YAML) to ``data``.
 
     The value is read with the same limits as a config file
-    (:mod:`gcm_pipeline.safe_yaml`); text that is not valid YAML syntax is
+    (:mod:`gcm_pipeline.config.yaml`); text that is not valid YAML syntax is
     taken as a plain string.
     """
     if "=" not in assignment:
@@ -855,7 +855,7 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
 def read_yaml(path: Path) -> Any:
     """Read a YAML config file; errors name the file, line and column.
 
-    See :func:`gcm_pipeline.safe_yaml.read_yaml_file` for the limits (size,
+    See :func:`gcm_pipeline.config.yaml.read_yaml_file` for the limits (size,
     depth, aliases, duplicate keys).
     """
     return read_yaml_file(path, "config", ConfigError)

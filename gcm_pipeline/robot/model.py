@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from gcm_pipeline.config.yaml import load_yaml, read_yaml_file
 from gcm_pipeline.errors import (
     InputError,
     RobotSpecError,
@@ -61,7 +62,6 @@ from gcm_pipeline.robot.urdf import (
     prepare_urdf,
     resolve_frame,
 )
-from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 
 __all__ = [
     "Robot",

@@ -41,7 +41,7 @@ from gcm_pipeline.stages import collision
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import (
+    from gcm_pipeline.config.run import (
         ApproachConfig,
         EnvironmentConfig,
         ObjectConfig,

@@ -46,9 +46,9 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 
-from gcm_pipeline.config import Config, _resolve_paths, config_from_data, read_yaml
+from gcm_pipeline.config.bounds import MAX_LENGTH, MAX_RANGE_STEPS, MAX_STUDY_PLACEMENTS
+from gcm_pipeline.config.run import Config, _resolve_paths, config_from_data, read_yaml
 from gcm_pipeline.errors import ConfigError
-from gcm_pipeline.limits import MAX_LENGTH, MAX_RANGE_STEPS, MAX_STUDY_PLACEMENTS
 
 __all__ = [
     "AXES",
@@ -582,7 +582,7 @@ class StudyPlan:
 
         Raises:
             ConfigError: The grid has more than
-                :data:`~gcm_pipeline.limits.MAX_STUDY_PLACEMENTS` placements.
+                :data:`~gcm_pipeline.config.bounds.MAX_STUDY_PLACEMENTS` placements.
         """
         if self._grid is None:
             if self._count > MAX_STUDY_PLACEMENTS:

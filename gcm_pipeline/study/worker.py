@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.config import Config
+from gcm_pipeline.config.run import Config
 from gcm_pipeline.errors import GcmError
 
 __all__ = ["PlacementWorker", "placement_summary"]

@@ -525,9 +525,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config.robot_spec import load_robot
     from gcm_pipeline.config.run import Config
     from gcm_pipeline.io import read_run
-    from gcm_pipeline.robot.model import load_robot
 
     run = read_run(args.run_dir)
     if not isinstance(run.summary.get("config"), dict):
@@ -778,9 +778,9 @@ def robot_report(robot: Any) -> list[str]:
 def _cmd_robot(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from gcm_pipeline.config.robot_spec import load_robot
     from gcm_pipeline.config.run import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
-    from gcm_pipeline.robot.model import load_robot
     from gcm_pipeline.stages.publish import write_scene_html
     from gcm_pipeline.table import GraspTable
 

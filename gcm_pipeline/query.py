@@ -271,7 +271,7 @@ class GraspManifold:
         if self._robot is None:
             if self.config is None:
                 raise InputError("this manifold has no config: pass robot= and cfg= to the query")
-            from gcm_pipeline.robot.model import load_robot
+            from gcm_pipeline.config.robot_spec import load_robot
 
             self._robot = load_robot(self.config.robot.spec)
         return self._robot

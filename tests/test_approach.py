@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from gcm_pipeline.config import EnvironmentConfig
+from gcm_pipeline.config import EnvironmentConfig, load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import (
     SUBSTEPS,
@@ -27,7 +27,6 @@ from gcm_pipeline.robot.approach import (
 )
 from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, gripper_links
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
 

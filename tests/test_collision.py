@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, ObstacleConfig
+from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, ObstacleConfig, load_robot
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,
@@ -20,7 +20,6 @@ from gcm_pipeline.robot.collision import (
     _without_cached_guess,
     shape_geometry,
 )
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import combined_score, make_checker
 
 BOTTLE = {

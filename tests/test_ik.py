@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from poses import backward_poses
 
+from gcm_pipeline.config import load_robot
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.robot.ik import IKResult, solve_ik, verify_solutions
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL_P, TOL_R = 1e-4, 1e-3

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gcm_pipeline.config import load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.manipulability import manipulability
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.stages.ranking import rank
 from gcm_pipeline.table import GraspTable
 

@@ -9,8 +9,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from gcm_pipeline.config import available_robots, load_robot
 from gcm_pipeline.errors import FrameNotFoundError, GcmError, RobotSpecError
-from gcm_pipeline.robot.model import Robot, available_robots, load_robot
+from gcm_pipeline.robot.model import Robot
 
 ROOT = Path(__file__).resolve().parents[1]
 PANDA_SPEC = ROOT / "gcm_pipeline" / "robots" / "panda.yaml"

@@ -19,10 +19,11 @@ import trimesh
 from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.cli import main
+from gcm_pipeline.config import load_robot, load_spec
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.io import read_run
 from gcm_pipeline.robot import model as model_module
-from gcm_pipeline.robot.model import load_robot, load_spec, root_link
+from gcm_pipeline.robot.model import root_link
 from gcm_pipeline.robot.urdf import CONTINUOUS_RANGE, resolve_frame
 
 ROOT = Path(__file__).resolve().parents[1]

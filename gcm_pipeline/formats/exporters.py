@@ -411,7 +411,8 @@ def _posture(frame: str, joints: list[str], positions: list[float], t: float) ->
 
 def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
     """Root frame, grasp frame and locked joints of the run's robot spec."""
-    from gcm_pipeline.robot.model import load_spec, root_link
+    from gcm_pipeline.config.robot_spec import load_spec
+    from gcm_pipeline.robot.model import root_link
 
     spec = load_spec(config.robot.spec)
     return root_link(spec), spec.grasp_frame, dict(spec.locked_joints)

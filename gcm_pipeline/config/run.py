@@ -53,6 +53,7 @@ from gcm_pipeline.config.bounds import (
 from gcm_pipeline.config.validation import describe
 from gcm_pipeline.config.yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 from gcm_pipeline.errors import ConfigError, clip, unknown_choice
+from gcm_pipeline.formats.grippers import GRIPPERS
 
 __all__ = [
     "as_config",
@@ -304,8 +305,6 @@ class CandidatesConfig(_Section):
 
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
-        from gcm_pipeline.formats.grippers import GRIPPERS
-
         if self.gripper is not None and self.gripper not in GRIPPERS:
             raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
         if self.gripper is not None and self.grasp_to_tool is not None:

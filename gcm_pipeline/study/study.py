@@ -35,6 +35,7 @@ from tqdm.auto import tqdm
 from gcm_pipeline import io, signals
 from gcm_pipeline.config.bounds import MAX_STUDY_PLACEMENTS
 from gcm_pipeline.config.run import Config
+from gcm_pipeline.config.yaml import read_yaml_file
 from gcm_pipeline.errors import ConfigError, GcmError, InputError
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
 from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
@@ -670,7 +671,6 @@ class _Run:
 
     def _best_run(self, best: Mapping[str, Any]) -> Path:
         """``best/``: ``gcm run`` of the best placement (kept when it is already there)."""
-        from gcm_pipeline.config.yaml import read_yaml_file
         from gcm_pipeline.pipeline import Pipeline
 
         out = self.store.path / "best"

@@ -142,10 +142,8 @@ def _common(
             f"{key or 'config'}: expected a mapping of keys, got {type(got).__name__} {clip(got)}"
         )
     msg = err["msg"].removeprefix("Value error, ")
-    got = err.get("input")
-    if key and "input" in err and kind not in ("value_error", "assertion_error"):
-        if not isinstance(got, dict):
-            return f"{key}: {msg} (got {clip(got)})"
+    if key and "input" in err and kind != "value_error":  # a validator's message says it all
+        return f"{key}: {msg} (got {clip(err['input'])})"
     return f"{key}: {msg}" if key else msg
 
 

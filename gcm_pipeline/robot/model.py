@@ -329,10 +329,11 @@ def _check_srdf(name: str, srdf: Path) -> None:
 class Robot:
     """A robot arm: reduced Pinocchio model, limits, home and grasp frame.
 
-    Build it with :func:`load_robot`. All poses are in the base frame (the
-    model's root frame); the grasp-frame Jacobian is expressed in
-    ``pin.LOCAL_WORLD_ALIGNED``: rows ``[v; omega]`` are the linear velocity of
-    the grasp-frame origin and the angular velocity, both in base-frame axes.
+    Build it from a :class:`RobotSpec` (by name: :func:`gcm_pipeline.config.load_robot`).
+    All poses are in the base frame (the model's root frame); the grasp-frame
+    Jacobian is expressed in ``pin.LOCAL_WORLD_ALIGNED``: rows ``[v; omega]`` are
+    the linear velocity of the grasp-frame origin and the angular velocity, both
+    in base-frame axes.
 
     Attributes:
         spec: The spec it was built from.

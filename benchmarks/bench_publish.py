@@ -29,7 +29,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcm_pipeline.config import Config, load_robot  # noqa: E402
+from gcm_pipeline.config import Config  # noqa: E402
+from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_from_matrix  # noqa: E402
 from gcm_pipeline.stages import publish as pub  # noqa: E402
 from gcm_pipeline.table import GraspTable  # noqa: E402

@@ -7,7 +7,7 @@ import pinocchio as pin
 import pytest
 from poses import backward_poses
 
-from gcm_pipeline.config import load_robot
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import ik_pinocchio
 from gcm_pipeline.robot.analytic import PandaAnalyticIK

@@ -8,7 +8,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from gcm_pipeline.config import load_robot
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, nearest_copy, wide_joints
 from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.ik import solve_ik

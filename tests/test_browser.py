@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 import umsgpack
 
-from gcm_pipeline.config import Config, load_robot
+from gcm_pipeline.config import Config
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.stages.publish import publish
 from gcm_pipeline.table import GraspTable

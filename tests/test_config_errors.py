@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import yaml
 
-from gcm_pipeline.config import load_config, load_spec, read_study
+from gcm_pipeline.config import load_config, read_study
+from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.errors import ConfigError, InputError, RobotSpecError
 from gcm_pipeline.robot.ik import solve_ik
 

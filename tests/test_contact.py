@@ -20,7 +20,8 @@ import pytest
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_robot
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.collision import REASON_OBJECT
 from gcm_pipeline.robot.contact import NotConvexError, SolidMesh, erode_convex
 from gcm_pipeline.robot.ik import solve_ik

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from poses import backward_poses
 
-from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config, load_robot
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import Move, move_poses

@@ -403,7 +403,7 @@ def test_panda_fingertips_are_finger_tip_past_the_tcp():
     import pinocchio as pin
     import trimesh
 
-    from gcm_pipeline.config import load_robot
+    from gcm_pipeline.config.robot_spec import load_robot
 
     robot = load_robot("panda")
     model = robot.model

@@ -324,7 +324,7 @@ def test_refinement_stops_exactly_where_rounds_stop_adding():
 @pytest.fixture
 def panda_mesh(tmp_path, monkeypatch):
     """One of the Panda's visual meshes, simplified once into an empty cache: (mesh, entry)."""
-    from gcm_pipeline.config import load_robot
+    from gcm_pipeline.config.robot_spec import load_robot
     from gcm_pipeline.stages import publish as pub
 
     robot = load_robot("panda")

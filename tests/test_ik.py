@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from poses import backward_poses
 
-from gcm_pipeline.config import load_robot
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.robot.ik import IKResult, solve_ik, verify_solutions
 from gcm_pipeline.robot.model import Robot

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from gcm_pipeline.config import load_robot
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.ik_pinocchio import log3
 from gcm_pipeline.robot.manipulability import (

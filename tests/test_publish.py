@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 import umsgpack
 
-from gcm_pipeline.config import Config, load_robot
+from gcm_pipeline.config import Config
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.stages import publish as pub

@@ -90,7 +90,7 @@ def _load_readme_spec(data: dict) -> None:
 
     from urdfs import arm_urdf
 
-    from gcm_pipeline.config import load_robot
+    from gcm_pipeline.config.robot_spec import load_robot
 
     with tempfile.TemporaryDirectory() as tmp:
         urdf = Path(tmp) / data["model"]["urdf"]

@@ -9,7 +9,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from gcm_pipeline.config import available_robots, load_robot
+from gcm_pipeline.config.robot_spec import available_robots, load_robot
 from gcm_pipeline.errors import FrameNotFoundError, GcmError, RobotSpecError
 from gcm_pipeline.robot.model import Robot
 

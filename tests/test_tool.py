@@ -13,8 +13,8 @@ import pytest
 import yaml
 
 import gcm_pipeline as gcm
-from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_robot, load_spec
-from gcm_pipeline.config.robot_spec import parse_pose
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
+from gcm_pipeline.config.robot_spec import load_robot, load_spec, parse_pose
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.collision import REASON_OBJECT

@@ -19,7 +19,7 @@ import trimesh
 from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.cli import main
-from gcm_pipeline.config import load_robot, load_spec
+from gcm_pipeline.config.robot_spec import load_robot, load_spec
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.io import read_run
 from gcm_pipeline.robot import model as model_module

@@ -6,7 +6,8 @@ may ask for:
 * :mod:`~gcm_pipeline.config.run`: the run config (:class:`Config`, its
   sections, :func:`load_config`, ``--set`` overrides, the JSON schema);
 * :mod:`~gcm_pipeline.config.robot_spec`: robot specs and their tools
-  (:func:`load_spec`, :func:`load_robot`, :func:`available_robots`);
+  (``load_spec``, ``load_robot``, ``available_robots``); imported by name, not
+  here: it builds robots (Pinocchio), and a config is read without them;
 * :mod:`~gcm_pipeline.config.study`: study files (:class:`StudySpec`,
   :func:`read_study`); planning and running them is :mod:`gcm_pipeline.study`'s;
 * :mod:`~gcm_pipeline.config.validation`: the one formatter of invalid values
@@ -17,13 +18,6 @@ may ask for:
   anything large is allocated.
 """
 
-from gcm_pipeline.config.robot_spec import (
-    available_robots,
-    load_robot,
-    load_spec,
-    parse_pose,
-    parse_tool,
-)
 from gcm_pipeline.config.run import (
     AdaptiveConfig,
     ApproachConfig,
@@ -77,14 +71,9 @@ __all__ = [
     "StudySpec",
     "TableConfig",
     "as_config",
-    "available_robots",
     "config_schema",
     "load_config",
-    "load_robot",
-    "load_spec",
     "load_yaml",
-    "parse_pose",
-    "parse_tool",
     "read_study",
     "read_yaml_file",
     "takes_config",

@@ -53,7 +53,6 @@ from gcm_pipeline.config.bounds import (
 from gcm_pipeline.config.validation import describe
 from gcm_pipeline.config.yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 from gcm_pipeline.errors import ConfigError, clip, unknown_choice
-from gcm_pipeline.formats.grippers import GRIPPERS
 
 __all__ = [
     "as_config",
@@ -305,8 +304,13 @@ class CandidatesConfig(_Section):
 
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
-        if self.gripper is not None and self.gripper not in GRIPPERS:
-            raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
+        if self.gripper is not None:
+            # here, not at the top: gcm_pipeline.formats loads SciPy and the file readers
+            # (about 1 s); a config that names no gripper is read without them
+            from gcm_pipeline.formats.grippers import GRIPPERS
+
+            if self.gripper not in GRIPPERS:
+                raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
         if self.gripper is not None and self.grasp_to_tool is not None:
             raise ValueError("give 'gripper' or 'grasp_to_tool', not both")
         if self.gripper is not None and self.source == "file" and self.format in _POSE_FORMATS:

@@ -2,7 +2,7 @@
 
 * :mod:`~gcm_pipeline.robot.model`: parsed robot specs -> reduced Pinocchio
   models (:class:`Robot`; by name or spec file:
-  :func:`gcm_pipeline.config.load_robot`), forward kinematics and grasp-frame
+  :func:`gcm_pipeline.config.robot_spec.load_robot`), forward kinematics and grasp-frame
   Jacobians (``LOCAL_WORLD_ALIGNED``);
 * :mod:`~gcm_pipeline.robot.ik`: :func:`solve_ik` with the ``pinocchio``
   (batched LM, default) and ``mink`` backends, every success verified by

@@ -329,7 +329,7 @@ def _check_srdf(name: str, srdf: Path) -> None:
 class Robot:
     """A robot arm: reduced Pinocchio model, limits, home and grasp frame.
 
-    Build it from a :class:`RobotSpec` (by name: :func:`gcm_pipeline.config.load_robot`).
+    Build it from a :class:`RobotSpec` (by name: :func:`gcm_pipeline.config.robot_spec.load_robot`).
     All poses are in the base frame (the model's root frame); the grasp-frame
     Jacobian is expressed in ``pin.LOCAL_WORLD_ALIGNED``: rows ``[v; omega]`` are
     the linear velocity of the grasp-frame origin and the angular velocity, both
@@ -739,7 +739,7 @@ def _add_tool_frame(spec: RobotSpec, full: pin.Model) -> None:
 def as_robot(robot: Robot | RobotSpec) -> Robot:
     """``robot`` itself, or the :class:`Robot` built from a spec.
 
-    A robot by name or spec file is :func:`gcm_pipeline.config.load_robot`'s.
+    A robot by name or spec file is :func:`gcm_pipeline.config.robot_spec.load_robot`'s.
 
     Raises:
         InputError: Neither a Robot nor a RobotSpec.

@@ -40,9 +40,9 @@ import pinocchio as pin
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a clone, no install
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
 MUG = Path(__file__).resolve().parents[1] / "configs" / "data" / "mug.obj"

@@ -47,9 +47,10 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
 from gcm_pipeline.robot.ik import solve_ik  # noqa: E402
 from gcm_pipeline.robot.manipulability import manipulability_metrics, yoshikawa  # noqa: E402
-from gcm_pipeline.robot.model import Robot, load_robot  # noqa: E402
+from gcm_pipeline.robot.model import Robot  # noqa: E402
 
 TOL_P, TOL_R = 1e-4, 1e-3
 

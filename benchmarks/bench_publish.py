@@ -30,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gcm_pipeline.config import Config  # noqa: E402
+from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_from_matrix  # noqa: E402
-from gcm_pipeline.robot.model import load_robot  # noqa: E402
 from gcm_pipeline.stages import publish as pub  # noqa: E402
 from gcm_pipeline.table import GraspTable  # noqa: E402
 

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names for type checkers; at run time they load on first use
     from gcm_pipeline.config import Config, load_config
+    from gcm_pipeline.config.robot_spec import available_robots, load_robot
     from gcm_pipeline.errors import (
         ConfigError,
         FrameNotFoundError,
@@ -57,7 +58,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         translational_manipulability,
         yoshikawa,
     )
-    from gcm_pipeline.robot.model import Robot, available_robots, load_robot
+    from gcm_pipeline.robot.model import Robot
     from gcm_pipeline.stages.collision import combined_score
     from gcm_pipeline.stages.manifold import Manifold
     from gcm_pipeline.study import Study, StudyResult
@@ -87,7 +88,7 @@ _LAZY = {
     "RunResult": "gcm_pipeline.pipeline",
     "Study": "gcm_pipeline.study",
     "StudyResult": "gcm_pipeline.study",
-    "available_robots": "gcm_pipeline.robot.model",
+    "available_robots": "gcm_pipeline.config.robot_spec",
     "build_manifold": "gcm_pipeline.pipeline",
     "check_reachability": "gcm_pipeline.pipeline",
     "combined_score": "gcm_pipeline.stages.collision",
@@ -104,7 +105,7 @@ _LAZY = {
     "joint_limit_margin": "gcm_pipeline.robot.manipulability",
     "load_config": "gcm_pipeline.config",
     "load_manifold": "gcm_pipeline.query",
-    "load_robot": "gcm_pipeline.robot.model",
+    "load_robot": "gcm_pipeline.config.robot_spec",
     "manipulability": "gcm_pipeline.robot.manipulability",
     "manipulability_metrics": "gcm_pipeline.robot.manipulability",
     "publish": "gcm_pipeline.pipeline",

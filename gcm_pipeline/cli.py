@@ -356,7 +356,7 @@ def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: b
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from gcm_pipeline.config import load_config
+    from gcm_pipeline.config.run import load_config
     from gcm_pipeline.pipeline import preflight
     from gcm_pipeline.robot import kernels
     from gcm_pipeline.stages.candidates import generate_candidates
@@ -379,7 +379,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_schema(args: argparse.Namespace) -> int:
-    from gcm_pipeline.config import config_schema
+    from gcm_pipeline.config.run import config_schema
 
     print(json.dumps(config_schema(), indent=2))
     return 0
@@ -421,9 +421,9 @@ def _query_poses(values: list[list[str]], frame: str, cfg: Any) -> Any:
     """World poses (M, 4, 4) of ``--pose`` values given in ``frame``."""
     import numpy as np
 
+    from gcm_pipeline.config.bounds import MAX_LENGTH
     from gcm_pipeline.errors import GeometryError
     from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_matrix
-    from gcm_pipeline.limits import MAX_LENGTH
 
     poses = []
     for i, raw in enumerate(values, start=1):
@@ -525,9 +525,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from gcm_pipeline.config import Config
+    from gcm_pipeline.config.robot_spec import load_robot
+    from gcm_pipeline.config.run import Config
     from gcm_pipeline.io import read_run
-    from gcm_pipeline.robot.model import load_robot
 
     run = read_run(args.run_dir)
     if not isinstance(run.summary.get("config"), dict):
@@ -781,9 +781,9 @@ def robot_report(robot: Any) -> list[str]:
 def _cmd_robot(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from gcm_pipeline.config import Config
+    from gcm_pipeline.config.robot_spec import load_robot
+    from gcm_pipeline.config.run import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
-    from gcm_pipeline.robot.model import load_robot
     from gcm_pipeline.stages.publish import write_scene_html
     from gcm_pipeline.table import GraspTable
 

@@ -49,7 +49,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from gcm_pipeline import io
-from gcm_pipeline.config import Config, load_config, takes_config
+from gcm_pipeline.config.run import Config, load_config, takes_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
@@ -134,9 +134,10 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         InputError: ``<key>: file not found: <path>``, or a mesh that does not load.
         PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
     """
+    from gcm_pipeline.config.robot_spec import load_spec
     from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
     from gcm_pipeline.robot.collision import shape_geometry
-    from gcm_pipeline.robot.model import Robot, load_spec
+    from gcm_pipeline.robot.model import Robot
 
     for key, path in input_files(cfg).items():
         try:
@@ -447,13 +448,13 @@ def select_branches(
 @takes_config
 def robot_from_config(cfg: Config) -> Robot:
     """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path)."""
-    from gcm_pipeline.robot.model import load_robot as _load
+    from gcm_pipeline.config.robot_spec import load_robot as _load
 
     return _load(cfg.robot.spec)
 
 
 #: The same as :func:`robot_from_config` (``gcm_pipeline.load_robot`` is the
-#: one of :mod:`gcm_pipeline.robot.model`, by name or path).
+#: one of :mod:`gcm_pipeline.config.robot_spec`, by name or path).
 load_robot = robot_from_config
 
 

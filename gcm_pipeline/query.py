@@ -38,7 +38,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.config.bounds import MAX_LENGTH
+from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
 from gcm_pipeline.geometry.surface import (
@@ -51,7 +52,6 @@ from gcm_pipeline.geometry.surface import (
     pose_features,
     project_onto_triangles,
 )
-from gcm_pipeline.limits import MAX_LENGTH
 from gcm_pipeline.stages.lattice import RowMesh, interpolate, row_memberships, row_mesh
 from gcm_pipeline.stages.manifold import Manifold
 from gcm_pipeline.table import GraspTable
@@ -271,7 +271,7 @@ class GraspManifold:
         if self._robot is None:
             if self.config is None:
                 raise InputError("this manifold has no config: pass robot= and cfg= to the query")
-            from gcm_pipeline.robot.model import load_robot
+            from gcm_pipeline.config.robot_spec import load_robot
 
             self._robot = load_robot(self.config.robot.spec)
         return self._robot

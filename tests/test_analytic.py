@@ -7,6 +7,7 @@ import pinocchio as pin
 import pytest
 from poses import backward_poses
 
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import ik_pinocchio
 from gcm_pipeline.robot.analytic import PandaAnalyticIK
@@ -14,7 +15,7 @@ from gcm_pipeline.robot.approach import _end_of_move
 from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, analytic_solver
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot
 
 TOL_P, TOL_R = 1e-4, 1e-3
 

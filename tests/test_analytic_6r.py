@@ -7,11 +7,12 @@ import pinocchio as pin
 import pytest
 from helpers import CONFIGS
 
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, nearest_copy, wide_joints
 from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.ik_pinocchio import six_r_solver
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot
 
 UR10_SPEC = CONFIGS / "robots" / "ur10.yaml"
 

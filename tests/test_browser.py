@@ -23,8 +23,8 @@ import pytest
 import umsgpack
 
 from gcm_pipeline.config import Config
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.publish import publish
 from gcm_pipeline.table import GraspTable
 

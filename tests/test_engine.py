@@ -11,6 +11,7 @@ from helpers import ROOT
 from poses import backward_poses
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.approach import Move, move_poses

@@ -855,7 +855,7 @@ def test_a_long_csv_cell_is_refused_and_short_text_costs_its_size(tmp_path):
         generate_candidates(config({"path": str(path)}))
     assert str(info.value) == (
         f"{path}:502: column 'label': a cell of 100,000 characters; a CSV cell holds at "
-        "most 256 (gcm_pipeline.limits.MAX_CSV_CELL)"
+        "most 256 (gcm_pipeline.config.bounds.MAX_CSV_CELL)"
     )
     # one text cell of 250 characters: the old 2-D text array took 20,000 x 8 x 250 x 4 bytes
     rows[501] = "0.1,0,0.2,1,0,0,0," + "b" * 250

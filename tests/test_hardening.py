@@ -582,8 +582,8 @@ def test_api_arguments_that_were_read_oddly(panda):
     assert load_config(FLAT, "ik.workers=2").ik.workers == 2
     assert Pipeline.from_yaml(FLAT, "ik.workers=2").config.ik.workers == 2
     # a stage function takes the config as a plain mapping too (it was an AttributeError)
+    from gcm_pipeline.config.yaml import read_yaml_file
     from gcm_pipeline.pipeline import build_manifold, generate_candidates
-    from gcm_pipeline.safe_yaml import read_yaml_file
 
     as_read = generate_candidates(read_yaml_file(FLAT, "config", ConfigError))
     assert np.array_equal(as_read["dq"], generate_candidates(load_config(FLAT))["dq"])

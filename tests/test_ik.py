@@ -9,9 +9,10 @@ import pytest
 from helpers import ROOT
 from poses import backward_poses
 
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.robot.ik import IKResult, solve_ik, verify_solutions
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot
 
 TOL_P, TOL_R = 1e-4, 1e-3
 

@@ -26,6 +26,7 @@ from helpers import ROOT
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.chain import KinematicChain
@@ -37,7 +38,6 @@ from gcm_pipeline.robot.collision import (
     _stacked,
 )
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
 
@@ -186,7 +186,7 @@ def test_numbas_own_switch_and_other_spellings_select_numpy(monkeypatch):
     # NUMBA_DISABLE_JIT would run the kernels as Python (and the FMA intrinsic cannot)
     code = (
         "from gcm_pipeline.robot import kernels\n"
-        "from gcm_pipeline.robot.model import load_robot\n"
+        "from gcm_pipeline.config.robot_spec import load_robot\n"
         "from gcm_pipeline.robot.ik import solve_ik\n"
         "r = load_robot('panda')\n"
         "res = solve_ik(r, r.fk(r.random_configurations(20, 1)))\n"

@@ -7,6 +7,7 @@ import time
 import numpy as np
 import pytest
 
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.ik_pinocchio import log3
 from gcm_pipeline.robot.manipulability import (
@@ -18,7 +19,7 @@ from gcm_pipeline.robot.manipulability import (
     translational_manipulability,
     yoshikawa,
 )
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot
 
 
 def _fd_jacobian(robot: Robot, q: np.ndarray, h: float = 1e-6) -> np.ndarray:

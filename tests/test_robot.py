@@ -10,8 +10,9 @@ import pinocchio as pin
 import pytest
 from helpers import ROBOT_SPECS, ROOT
 
+from gcm_pipeline.config.robot_spec import available_robots, load_robot
 from gcm_pipeline.errors import FrameNotFoundError, GcmError, RobotSpecError
-from gcm_pipeline.robot.model import Robot, available_robots, load_robot
+from gcm_pipeline.robot.model import Robot
 
 PANDA_SPEC = ROBOT_SPECS / "panda.yaml"
 

@@ -11,11 +11,10 @@ from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, ROOT, assert_one_line_erro
 
 import gcm_pipeline as gcm
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
+from gcm_pipeline.config.robot_spec import load_robot, load_spec, parse_pose
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.collision import REASON_OBJECT
-from gcm_pipeline.robot.model import load_robot, load_spec
-from gcm_pipeline.robot.tool import parse_pose
 from gcm_pipeline.stages.collision import make_checker
 
 UR5_SPEC = yaml.safe_load((ROBOT_SPECS / "ur5.yaml").read_text())
@@ -151,7 +150,7 @@ def test_bottle_with_the_ur5_gives_a_plausible_answer(ur5):
         ({"collision": "box"}, r"tool\.collision must be a non-empty list"),
         ({"fingers": None}, r"tool\.fingers: missing, but shapes finger_left, finger_right"),
         ({"flange": None}, r"tool\.flange"),
-        ({"gripper": "x"}, r"tool: unknown key 'gripper'"),
+        ({"gripper": "x"}, r"unknown key 'tool\.gripper'"),
         (
             {"collision": [{"name": "b", "shape": "box", "size": [0.1, -0.1, 0.1]}]},
             r"tool\.collision\[0\]\.size must be > 0",

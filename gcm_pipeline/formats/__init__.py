@@ -54,7 +54,7 @@ from gcm_pipeline.formats.importers import (
 )
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import Config
+    from gcm_pipeline.config.run import Config
 
 __all__ = [
     "CONVENTIONS",

@@ -56,7 +56,7 @@ from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import Config
+    from gcm_pipeline.config.run import Config
 
 __all__ = ["EXPORT_FORMATS", "ExportResult", "export_run"]
 
@@ -105,7 +105,7 @@ def export_run(
         OutputError: The file cannot be written, or ``out`` is a directory, a
             device or a pipe.
     """
-    from gcm_pipeline.config import load_config
+    from gcm_pipeline.config.run import load_config
     from gcm_pipeline.io import read_grasps_csv
 
     if format not in EXPORT_FORMATS:
@@ -411,7 +411,8 @@ def _posture(frame: str, joints: list[str], positions: list[float], t: float) ->
 
 def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
     """Root frame, grasp frame and locked joints of the run's robot spec."""
-    from gcm_pipeline.robot.model import load_spec, root_link
+    from gcm_pipeline.config.robot_spec import load_spec
+    from gcm_pipeline.robot.model import root_link
 
     spec = load_spec(config.robot.spec)
     return root_link(spec), spec.grasp_frame, dict(spec.locked_joints)

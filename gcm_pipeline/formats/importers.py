@@ -58,9 +58,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from gcm_pipeline.config.bounds import DEFAULT_MAX_CANDIDATES, MAX_GRASP_DISTANCE
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.formats.sniff import check_format, sniff
-from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES, MAX_GRASP_DISTANCE
 
 __all__ = [
     "IMPORT_FORMATS",
@@ -146,7 +146,7 @@ class ImportedGrasps:
 def check_positions(
     path: Path, positions: np.ndarray, where: Callable[[int], str] | None = None
 ) -> None:
-    """Refuse a grasp farther than :data:`~gcm_pipeline.limits.MAX_GRASP_DISTANCE` from the origin.
+    """Refuse a grasp farther than :data:`~gcm_pipeline.config.bounds.MAX_GRASP_DISTANCE`.
 
     A robot's world is metres across; a grasp 1e25 m away is a unit or
     export mistake, and further on it only breaks the manifold's geometry.
@@ -170,7 +170,7 @@ def check_positions(
         xyz = ", ".join(f"{v:.6g}" for v in np.asarray(positions, dtype=float).reshape(-1, 3)[i])
         err = InputError(
             f"{name}: position ({xyz}) is {dist[i]:.3g} m from the file's origin, farther "
-            f"than {MAX_GRASP_DISTANCE:g} m (gcm_pipeline.limits.MAX_GRASP_DISTANCE): not a "
+            f"than {MAX_GRASP_DISTANCE:g} m (gcm_pipeline.config.bounds.MAX_GRASP_DISTANCE): not a "
             f"grasp in a robot's world; are the units metres?{more}"
         )
         err.path, err.row, err.value = path, i, float(dist[i])  # type: ignore[attr-defined]
@@ -206,7 +206,7 @@ def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
 
 
 def _read_structured(path: Path, max_count: int) -> Any:
-    from gcm_pipeline.safe_yaml import load_yaml
+    from gcm_pipeline.config.yaml import load_yaml
 
     try:
         _check_bytes(path, path.stat().st_size, max_count, _TEXT_BYTES_PER_GRASP, "its grasps")

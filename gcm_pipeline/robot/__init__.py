@@ -1,7 +1,8 @@
 """Robot models, kinematics, inverse kinematics and manipulability.
 
-* :mod:`~gcm_pipeline.robot.model`: robot specs -> reduced Pinocchio models
-  (:func:`load_robot`, :class:`Robot`), forward kinematics and grasp-frame
+* :mod:`~gcm_pipeline.robot.model`: parsed robot specs -> reduced Pinocchio
+  models (:class:`Robot`; by name or spec file:
+  :func:`gcm_pipeline.config.robot_spec.load_robot`), forward kinematics and grasp-frame
   Jacobians (``LOCAL_WORLD_ALIGNED``);
 * :mod:`~gcm_pipeline.robot.ik`: :func:`solve_ik` with the ``pinocchio``
   (batched LM, default) and ``mink`` backends, every success verified by
@@ -23,7 +24,7 @@ from gcm_pipeline.robot.manipulability import (
     translational_manipulability,
     yoshikawa,
 )
-from gcm_pipeline.robot.model import Robot, RobotSpec, available_robots, load_robot, load_spec
+from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
 
 __all__ = [
     "BACKENDS",
@@ -32,11 +33,9 @@ __all__ = [
     "METRICS",
     "Robot",
     "RobotSpec",
-    "available_robots",
+    "as_robot",
     "inverse_condition_number",
     "joint_limit_margin",
-    "load_robot",
-    "load_spec",
     "manipulability",
     "manipulability_metrics",
     "solve_ik",

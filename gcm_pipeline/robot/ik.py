@@ -47,7 +47,7 @@ import numpy as np
 from gcm_pipeline.errors import GeometryError, InputError, WorkerLostError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.ik_pinocchio import analytic_solver, rotation_angle
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
 
 __all__ = [
     "BACKENDS",
@@ -435,7 +435,7 @@ def _run_backend(
 
 
 def solve_ik(
-    robot: Robot | str,
+    robot: Robot | RobotSpec,
     targets: Any,
     backend: str = "pinocchio",
     *,
@@ -451,7 +451,7 @@ def solve_ik(
     """Solve the inverse kinematics of the grasp frame for N target poses.
 
     Args:
-        robot: A :class:`Robot` or a spec name/path for :func:`load_robot`.
+        robot: A :class:`Robot` or a :class:`RobotSpec` (by name: ``gcm_pipeline.load_robot``).
         targets: Grasp-frame poses (N, 4, 4) in the robot base frame [m].
         backend: ``"pinocchio"`` (default, batched LM) or ``"mink"``.
         position_tolerance: Max position error of a success [m], > 0.
@@ -478,7 +478,7 @@ def solve_ik(
             neighbours.
         GeometryError: Targets of the wrong shape, non-finite or non-rigid.
     """
-    robot = load_robot(robot)
+    robot = as_robot(robot)
     solve = _backend(backend)
     tol_p = _tolerance("position_tolerance", position_tolerance)
     tol_r = _tolerance("orientation_tolerance", orientation_tolerance)

@@ -1,29 +1,13 @@
-"""Robot specs (YAML) loaded into reduced Pinocchio models.
+"""Robot specs loaded into reduced Pinocchio models.
 
-A robot spec is a small YAML file (``gcm_pipeline/robots/<name>.yaml``)::
-
-    name: panda                          # required
-    description: Franka Panda            # optional, free text
-    model:                               # required: exactly one source
-      example_robot_data: panda          #   a loader name of example-robot-data
-      # or robot_descriptions: ur10e_description   # a robot_descriptions module
-      # or urdf: path.urdf               #   a URDF (relative paths: to the spec file)
-      #    srdf: path.srdf               #   optional (disabled collision pairs)
-      #    package_dirs: [dir, ...]      #   optional, resolves package:// URIs; the
-      #                                  #   URDF's folder and its parents are tried after
-    grasp_frame: panda_hand_tcp          # required: frame whose pose IK targets
-    locked_joints: {joint: value}        # optional: joints removed at this value [rad or m]
-    home: {joint: value} | [values]      # optional: home configuration [rad] (default: middle)
-    limit_margin: 0.1                    # optional: tighten every revolute range per side [rad]
-                                         #   (default 0.1; 0: the model's full ranges)
-    joint_limits: {joint: [lo, hi]}      # optional: ranges intersected with the model's [rad];
-                                         #   a continuous joint's range (default [-2pi, 2pi])
-    tool: {flange, mount, tcp, collision, ...}  # optional: a gripper for a bare flange;
-                                         #   grasp_frame then names the TCP frame it adds
-                                         #   (see gcm_pipeline.robot.tool)
-
-Another arm of example-robot-data is a new YAML file, not new code. Poses are
-expressed in the model's root frame (``universe``), called the *base frame*.
+A :class:`RobotSpec` is the plain, validated content of a robot spec file
+(``gcm_pipeline/robots/<name>.yaml``); :mod:`gcm_pipeline.config.robot_spec`
+reads and validates those files (``load_spec``, ``load_robot``). A
+:class:`Robot` is built from a spec: the model it names (an
+example-robot-data loader, a ``robot_descriptions`` module or a URDF), reduced
+to the arm's joints, with limits, home and the grasp frame. Another arm of
+example-robot-data is a new YAML file, not new code. Poses are expressed in the
+model's root frame (``universe``), called the *base frame*.
 
 A user's URDF is read by :mod:`gcm_pipeline.robot.urdf`: continuous joints become
 revolute over [-2π, 2π] (or the ``joint_limits`` range), meshes resolve against
@@ -39,7 +23,6 @@ import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +37,7 @@ from gcm_pipeline.errors import (
 )
 from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
-from gcm_pipeline.robot.tool import ToolSpec, parse_tool, shape_geometry
+from gcm_pipeline.robot.tool import ToolSpec, shape_geometry
 from gcm_pipeline.robot.urdf import (
     PreparedUrdf,
     build_model,
@@ -62,32 +45,17 @@ from gcm_pipeline.robot.urdf import (
     prepare_urdf,
     resolve_frame,
 )
-from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 
 __all__ = [
     "Robot",
     "RobotSpec",
-    "available_robots",
-    "load_robot",
-    "load_spec",
+    "as_robot",
     "model_files",
     "root_link",
 ]
 
 log = logging.getLogger(__name__)
 
-_SPEC_KEYS = (
-    "name",
-    "description",
-    "model",
-    "grasp_frame",
-    "locked_joints",
-    "home",
-    "limit_margin",
-    "joint_limits",
-    "tool",
-)
-_MODEL_KEYS = ("example_robot_data", "robot_descriptions", "urdf", "srdf", "package_dirs")
 #: Largest joint bound accepted [rad or m]; a URDF's "unlimited" +-1e308 is refused.
 MAX_JOINT_BOUND = 1000.0
 
@@ -111,7 +79,7 @@ class RobotSpec:
         limit_margin: Margin by which every revolute joint's range shrinks per side
             [rad] (default 0.1: a controller refuses or cannot hold a joint at its
             limit; see the robots page of the docs; 0 on request). Prismatic
-            joints keep their range.
+            joints and a continuous joint's default two turns keep their range.
         joint_limits: Joint name -> (lower, upper) [rad], intersected with the model's.
         tool: A tool mounted on a flange frame (:mod:`gcm_pipeline.robot.tool`) or None;
             with a tool, ``grasp_frame`` names the TCP frame the tool adds.
@@ -131,181 +99,6 @@ class RobotSpec:
     limit_margin: float = 0.1
     joint_limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     tool: ToolSpec | None = None
-
-
-def _spec_dir() -> Any:
-    return resources.files("gcm_pipeline") / "robots"
-
-
-def available_robots() -> list[str]:
-    """Names of the robot specs shipped with the package (sorted)."""
-    return sorted(
-        p.name[: -len(".yaml")] for p in _spec_dir().iterdir() if p.name.endswith(".yaml")
-    )
-
-
-def _check_keys(where: str, data: Mapping[str, Any], valid: tuple[str, ...]) -> None:
-    for key in data:
-        if key not in valid:
-            raise RobotSpecError(f"{where}: " + unknown_choice("key", key, valid))
-
-
-def _number(where: str, key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise RobotSpecError(f"{where}: {key} must be a number, got {clip(value)}")
-    if not np.isfinite(value):
-        raise RobotSpecError(f"{where}: {key} must be finite, got {clip(value)}")
-    return float(value)
-
-
-def _mapping(where: str, key: str, value: Any) -> Mapping[str, Any]:
-    if value is None:
-        return {}
-    if not isinstance(value, Mapping):
-        raise RobotSpecError(f"{where}: {key} must be a mapping, got {clip(value)}")
-    return value
-
-
-def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
-    """Read and validate a robot spec.
-
-    Args:
-        name_or_path: A shipped spec name (``"panda"``, ``"ur5"``) or a path
-            to a YAML file.
-
-    Returns:
-        The validated spec.
-
-    Raises:
-        RobotSpecError: Unknown name (lists the available specs), unreadable
-            file, unknown key (names it and suggests the closest) or bad value.
-    """
-    text = str(name_or_path)
-    path: Path | None
-    if isinstance(name_or_path, os.PathLike) or text.endswith((".yaml", ".yml")) or os.sep in text:
-        path = Path(text).expanduser()
-        try:
-            found = path.is_file()
-        except (OSError, ValueError):
-            found = False
-        if not found:
-            raise RobotSpecError(f"robot spec file {clip(text)} does not exist")
-        raw = read_yaml_file(path, "robot spec", RobotSpecError)
-        path = path.resolve()
-    else:
-        names = available_robots()
-        if text not in names:  # (no file lookup: a name of 300 characters is no file name)
-            raise RobotSpecError(unknown_choice("robot", text, names))
-        res = _spec_dir() / f"{text}.yaml"
-        path = Path(str(res))
-        raw = load_yaml(res.read_text(encoding="utf-8"), str(path), RobotSpecError)
-    where = f"robot spec {str(path)!r}"
-    if not isinstance(raw, Mapping):
-        raise RobotSpecError(f"{where}: expected a mapping at the top level, got {clip(raw)}")
-    _check_keys(where, raw, _SPEC_KEYS)
-    for key in ("name", "model", "grasp_frame"):
-        if key not in raw:
-            raise RobotSpecError(f"{where}: missing required key {key!r}")
-    if not isinstance(raw["name"], str) or not isinstance(raw["grasp_frame"], str):
-        raise RobotSpecError(f"{where}: name and grasp_frame must be strings")
-    model = _mapping(where, "model", raw["model"])
-    _check_keys(f"{where} model", model, _MODEL_KEYS)
-    erd_name = model.get("example_robot_data")
-    rd_name = model.get("robot_descriptions")
-    urdf = model.get("urdf")
-    sources = ("example_robot_data", "robot_descriptions", "urdf")
-    given = [k for k in sources if model.get(k) is not None]
-    if len(given) != 1:
-        raise RobotSpecError(
-            f"{where}: model needs exactly one of {', '.join(sources)}, got "
-            f"{', '.join(given) or 'none'}"
-        )
-    for key in ("example_robot_data", "robot_descriptions", "urdf", "srdf"):
-        if model.get(key) is not None and not isinstance(model[key], str):
-            raise RobotSpecError(f"{where}: model.{key} must be a string, got {clip(model[key])}")
-    if rd_name is not None and (model.get("srdf") is not None or model.get("package_dirs")):
-        raise RobotSpecError(
-            f"{where}: model.robot_descriptions brings its own SRDF and package folders; "
-            "remove model.srdf / model.package_dirs (or use model.urdf)"
-        )
-    base = path.parent
-
-    def _resolve(p: Any) -> Path:
-        q = Path(str(p)).expanduser()
-        return q if q.is_absolute() else (base / q)
-
-    locked = {
-        str(k): _number(where, f"locked_joints.{k}", v)
-        for k, v in _mapping(where, "locked_joints", raw.get("locked_joints")).items()
-    }
-    home_raw = raw.get("home")
-    home: Mapping[str, float] | tuple[float, ...]
-    if home_raw is None:
-        home = {}
-    elif isinstance(home_raw, (list, tuple)):
-        home = tuple(_number(where, f"home[{i}]", v) for i, v in enumerate(home_raw))
-    else:
-        home = {
-            str(k): _number(where, f"home.{k}", v)
-            for k, v in _mapping(where, "home", home_raw).items()
-        }
-    margin = _number(where, "limit_margin", raw.get("limit_margin", RobotSpec.limit_margin))
-    if margin < 0:
-        raise RobotSpecError(f"{where}: limit_margin must be >= 0, got {margin}")
-    limits: dict[str, tuple[float, float]] = {}
-    for k, v in _mapping(where, "joint_limits", raw.get("joint_limits")).items():
-        if not isinstance(v, (list, tuple)) or len(v) != 2:
-            raise RobotSpecError(f"{where}: joint_limits.{k} must be [lower, upper], got {clip(v)}")
-        lo = _number(where, f"joint_limits.{k}", v[0])
-        hi = _number(where, f"joint_limits.{k}", v[1])
-        if not lo < hi:
-            raise RobotSpecError(f"{where}: joint_limits.{k} needs lower < upper, got {clip(v)}")
-        limits[str(k)] = (lo, hi)
-    pkg = model.get("package_dirs") or []
-    if isinstance(pkg, str):
-        pkg = [pkg]
-    if not isinstance(pkg, (list, tuple)) or not all(isinstance(d, str) for d in pkg):
-        raise RobotSpecError(
-            f"{where}: model.package_dirs must be a folder or a list of folders, got {clip(pkg)}"
-        )
-    spec = RobotSpec(
-        name=raw["name"],
-        description=str(raw.get("description", "") or ""),
-        path=path,
-        grasp_frame=raw["grasp_frame"],
-        example_robot_data=None if erd_name is None else str(erd_name),
-        robot_descriptions=None if rd_name is None else str(rd_name),
-        urdf=None if urdf is None else _resolve(urdf),
-        srdf=None if model.get("srdf") is None else _resolve(model["srdf"]),
-        package_dirs=tuple(_resolve(p) for p in pkg),
-        locked_joints=locked,
-        home=home,
-        limit_margin=margin,
-        joint_limits=limits,
-        tool=None if raw.get("tool") is None else parse_tool(where, raw["tool"], base),
-    )
-    _check_model_files(where, spec)
-    return spec
-
-
-def _check_model_files(where: str, spec: RobotSpec) -> None:
-    """The model a spec names exists.
-
-    A loader of example-robot-data or robot_descriptions that loads the robot it
-    is named after, or URDF/SRDF files.
-    """
-    if spec.example_robot_data is not None or spec.robot_descriptions is not None:
-        urdf = model_files(spec)[0]
-        if not urdf.is_file():  # pragma: no cover - a broken example-robot-data install
-            raise RobotSpecError(f"{where}: the model's URDF {str(urdf)!r} does not exist")
-        return
-    files = [("model.urdf", spec.urdf), ("model.srdf", spec.srdf)]
-    for key, file in files:
-        if file is not None and not file.is_file():
-            raise RobotSpecError(f"{where}: {key} {str(file)!r} does not exist")
-    for d in spec.package_dirs:
-        if not d.is_dir():
-            raise RobotSpecError(f"{where}: model.package_dirs: {str(d)!r} is not a directory")
 
 
 def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
@@ -539,10 +332,11 @@ def _check_srdf(name: str, srdf: Path) -> None:
 class Robot:
     """A robot arm: reduced Pinocchio model, limits, home and grasp frame.
 
-    Build it with :func:`load_robot`. All poses are in the base frame (the
-    model's root frame); the grasp-frame Jacobian is expressed in
-    ``pin.LOCAL_WORLD_ALIGNED``: rows ``[v; omega]`` are the linear velocity of
-    the grasp-frame origin and the angular velocity, both in base-frame axes.
+    Build it from a :class:`RobotSpec` (by name: :func:`gcm_pipeline.config.robot_spec.load_robot`).
+    All poses are in the base frame (the model's root frame); the grasp-frame
+    Jacobian is expressed in ``pin.LOCAL_WORLD_ALIGNED``: rows ``[v; omega]`` are
+    the linear velocity of the grasp-frame origin and the angular velocity, both
+    in base-frame axes.
 
     Attributes:
         spec: The spec it was built from.
@@ -955,20 +749,19 @@ def _add_tool_frame(spec: RobotSpec, full: pin.Model) -> None:
     )
 
 
-def load_robot(name_or_path: str | os.PathLike[str] | Robot) -> Robot:
-    """Load a robot from a shipped spec name or a spec file.
+def as_robot(robot: Robot | RobotSpec) -> Robot:
+    """``robot`` itself, or the :class:`Robot` built from a spec.
 
-    Args:
-        name_or_path: ``"panda"``, ``"ur5"`` (see :func:`available_robots`), a path
-            to a YAML spec, or a :class:`Robot` (returned as is).
-
-    Returns:
-        The robot.
+    A robot by name or spec file is :func:`gcm_pipeline.config.robot_spec.load_robot`'s.
 
     Raises:
-        RobotSpecError: Unknown robot or invalid spec.
-        FrameNotFoundError: The grasp frame is not in the model (lists close names).
+        InputError: Neither a Robot nor a RobotSpec.
     """
-    if isinstance(name_or_path, Robot):
-        return name_or_path
-    return Robot(load_spec(name_or_path))
+    if isinstance(robot, Robot):
+        return robot
+    if isinstance(robot, RobotSpec):
+        return Robot(robot)
+    raise InputError(
+        f"robot must be a Robot or a RobotSpec (gcm_pipeline.load_robot(name or spec file) "
+        f"makes one), got {clip(robot)}"
+    )

@@ -43,7 +43,7 @@ import numpy as np
 from gcm_pipeline.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import Config, ObjectConfig
+    from gcm_pipeline.config.run import Config, ObjectConfig
     from gcm_pipeline.formats.grippers import GripperSpec
 
 __all__ = ["DEFAULT_FRICTION", "object_mesh", "sample_antipodal", "sample_antipodal_config"]

@@ -79,12 +79,12 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.config import CandidatesConfig, Config, ObjectConfig, takes_config
+from gcm_pipeline.config.bounds import DEFAULT_MAX_CANDIDATES, MAX_HDF5_TEXT
+from gcm_pipeline.config.run import CandidatesConfig, Config, ObjectConfig, takes_config
 from gcm_pipeline.errors import ConfigError, InputError, clip
 from gcm_pipeline.formats.importers import check_positions
 from gcm_pipeline.formats.sniff import check_format
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.limits import DEFAULT_MAX_CANDIDATES, MAX_HDF5_TEXT
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -509,7 +509,7 @@ def read_grasp_file(
     ``max_count`` grasps, or one whose header promises more data than it
     holds, is refused; so are a CSV cell longer than ``MAX_CSV_CELL`` and an
     HDF5 text declaring more than ``MAX_HDF5_TEXT`` bytes
-    (:mod:`gcm_pipeline.limits`). A file whose first bytes show another
+    (:mod:`gcm_pipeline.config.bounds`). A file whose first bytes show another
     format is refused naming it (:mod:`gcm_pipeline.formats.sniff`); a grasp
     farther than ``MAX_GRASP_DISTANCE`` (1,000 m) from the origin is refused
     naming its row.

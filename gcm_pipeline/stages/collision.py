@@ -18,7 +18,7 @@ from typing import Any
 import coal
 import numpy as np
 
-from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, Pose
+from gcm_pipeline.config.run import EnvironmentConfig, ObjectConfig, Pose
 from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
 from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,

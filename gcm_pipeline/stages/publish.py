@@ -63,7 +63,7 @@ from gcm_pipeline.stages.plots import REASON_COLORS, candidate_rows, reason_pale
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import Config
+    from gcm_pipeline.config.run import Config
     from gcm_pipeline.robot.model import Robot
 
 try:

@@ -41,7 +41,7 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError, unknown_choice
 from gcm_pipeline.robot.manipulability import METRICS, manipulability_metrics
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
 from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS, combined_score
 from gcm_pipeline.table import GraspTable
 
@@ -71,7 +71,7 @@ def _finite_margin(values: np.ndarray, reachable: np.ndarray) -> np.ndarray:
 
 def rank(
     grasps: GraspTable,
-    robot: Robot | str,
+    robot: Robot | RobotSpec,
     *,
     metric: str = "yoshikawa",
     top_k: int | None = 10,
@@ -82,7 +82,7 @@ def rank(
     Args:
         grasps: Table with ``reachable`` (N,) and ``q`` (N, nq) (and
             ``clearance`` (N,) for the ``clearance`` and ``combined`` metrics).
-        robot: A :class:`Robot` or a spec name/path.
+        robot: A :class:`Robot` or a :class:`RobotSpec`.
         metric: Ranking metric, one of :data:`METRIC_COLUMNS`: ``yoshikawa``,
             ``translational``, ``inverse_condition``, ``joint_limit_margin``,
             ``clearance``, ``margin``, ``combined`` (``margin``: ``inf`` counts
@@ -110,7 +110,7 @@ def rank(
         isinstance(top_k, bool) or not isinstance(top_k, (int, np.integer)) or top_k < 0
     ):
         raise InputError(f"top_k must be an int >= 0 or None, got {top_k!r}")
-    robot = load_robot(robot)
+    robot = as_robot(robot)
     weight_of = (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get
     needs_clearance = metric == "clearance" or (
         metric == "combined" and weight_of("clearance", 0) > 0

@@ -36,12 +36,12 @@ from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import Move
 from gcm_pipeline.robot.engine import ReachabilityEngine
 from gcm_pipeline.robot.ik import IKCandidates, Validator, world_to_base_targets
-from gcm_pipeline.robot.model import Robot, load_robot
+from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
 from gcm_pipeline.stages import collision
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config import (
+    from gcm_pipeline.config.run import (
         ApproachConfig,
         EnvironmentConfig,
         ObjectConfig,
@@ -203,7 +203,7 @@ class progress_reporter:  # noqa: N801 - used like a function
 
 
 def make_engine(
-    robot: Robot | str,
+    robot: Robot | RobotSpec,
     *,
     base_pose: Pose | np.ndarray | None = None,
     backend: str = "pinocchio",
@@ -230,7 +230,7 @@ def make_engine(
         The :class:`~gcm_pipeline.robot.engine.ReachabilityEngine`; call its
         ``close()`` (or use it in a ``with`` block) to stop its worker processes.
     """
-    robot = load_robot(robot)
+    robot = as_robot(robot)
     if seed is not None:
         options.setdefault("random_seed", int(seed))
     if checker is None and (environment is not None or object_cfg is not None):
@@ -254,7 +254,7 @@ def make_engine(
 
 def check_reachability(
     grasps: GraspTable,
-    robot: Robot | str,
+    robot: Robot | RobotSpec,
     *,
     base_pose: Pose | np.ndarray | None = None,
     backend: str = "pinocchio",
@@ -283,7 +283,7 @@ def check_reachability(
     Args:
         grasps: Table with ``dq`` (N, 8) (world poses of the grasp frame) and
             optionally ``origin``, ``vertices``, ``weights`` (provenance).
-        robot: A :class:`Robot` or a spec name/path.
+        robot: A :class:`Robot` or a :class:`RobotSpec`.
         base_pose: Robot base in the world, a config ``Pose`` or (4, 4) [m];
             identity if None.
         backend: IK backend, ``"pinocchio"`` or ``"mink"``.
@@ -328,7 +328,7 @@ def check_reachability(
         InputError: Missing ``dq`` column, bad provenance, bad options.
         GeometryError: Non-unit dual quaternions or a non-rigid base pose.
     """
-    robot = load_robot(robot)
+    robot = as_robot(robot)
     if "dq" not in grasps:
         raise InputError(f"grasp table has no column 'dq'; columns: {', '.join(grasps.columns)}")
     targets = world_to_base_targets(grasps["dq"], base_pose)

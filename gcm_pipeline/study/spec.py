@@ -1,22 +1,6 @@
-"""Study files: a base run config and a sweep of placements, as validated objects.
+"""Study plans: the placements of a study file, as ``--set`` overrides of its base config.
 
-A study file (YAML) names a base config and what to sweep::
-
-    base: ../bottle_side.yaml        # a config file (relative to this file) or an inline mapping
-    set: [densify.subdivisions=2]    # overrides of the base, as with gcm run --set
-    sweep:
-      object_pose:                   # the object (and its candidates) moved in the world
-        x: {from: 0.3, to: 0.7, steps: 9}
-        y: {from: -0.4, to: 0.4, steps: 9}
-        yaw_deg: [0, 90]
-        region: table                # or {min: [x, y], max: [x, y]}: keep placements inside
-      base_pose: {x: [0.0, -0.1]}    # the robot base, same keys
-      objects:                       # several objects, each over the same placements
-        - {name: bottle}
-        - {name: can, object: {...}, candidates: {...}}
-    refine: {rounds: 2, shrink: 0.5} # re-grid the ranges around the best placement
-    max_placements: 1000             # larger studies need --force
-
+The study file itself is read and validated by :mod:`gcm_pipeline.config.study`.
 Every placement is the base config plus ``--set`` style overrides
 (:attr:`Placement.overrides`): ``gcm run BASE --set ...`` with the same
 overrides gives the same answer. Pose axes are absolute: ``x, y, z`` [m] set
@@ -29,9 +13,7 @@ frame is refused, its grasps would stay behind).
 
 from __future__ import annotations
 
-import collections
 import copy
-import difflib
 import hashlib
 import itertools
 import json
@@ -40,201 +22,25 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 
-from gcm_pipeline.config import Config, _resolve_paths, config_from_data, read_yaml
+from gcm_pipeline.config.bounds import MAX_STUDY_PLACEMENTS
+from gcm_pipeline.config.run import Config, config_from_data, resolve_paths
+from gcm_pipeline.config.study import (
+    DECIMALS,
+    OBJECT_SECTIONS,
+    PoseSweep,
+    RangeSpec,
+    StudySpec,
+    read_study,
+    rounded,
+)
 from gcm_pipeline.errors import ConfigError
-from gcm_pipeline.limits import MAX_LENGTH, MAX_RANGE_STEPS, MAX_STUDY_PLACEMENTS
 
-__all__ = [
-    "AXES",
-    "DEFAULT_MAX_PLACEMENTS",
-    "Placement",
-    "PoseSweep",
-    "RangeSpec",
-    "StudySpec",
-    "format_value",
-    "load_study",
-]
-
-#: Pose keys a sweep may name, per pose.
-AXES = ("x", "y", "z", "yaw_deg")
-
-#: Placements a study may have without ``--force`` (``max_placements`` raises it).
-DEFAULT_MAX_PLACEMENTS = 1000
-
-#: Decimals kept of grid values (so 0.35 is not 0.35000000000000003 in an override).
-_DECIMALS = 10
-
-#: A swept value: x, y, z [m] or yaw_deg [deg], a number (not ``true``) within the scene's bounds.
-FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False, ge=-MAX_LENGTH, le=MAX_LENGTH)]
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
-
-
-class RangeSpec(_Strict):
-    """``{from, to, steps}``: ``steps`` evenly spaced values from ``from`` to ``to``."""
-
-    start: FiniteFloat = Field(alias="from")
-    to: FiniteFloat
-    steps: int = Field(strict=True)
-
-    @model_validator(mode="after")
-    def _valid(self) -> RangeSpec:
-        if self.steps < 1:
-            raise ValueError(f"steps must be >= 1, got {self.steps}")
-        if self.steps > MAX_RANGE_STEPS:
-            raise ValueError(f"steps must be <= {MAX_RANGE_STEPS:,}, got {self.steps:,}")
-        if self.start > self.to:
-            raise ValueError(f"inverted range: from {self.start} > to {self.to}")
-        if self.steps > 1 and self.start == self.to:
-            raise ValueError(
-                f"empty range: from == to == {self.start} with steps {self.steps}; "
-                "give one value as [v] or steps: 1"
-            )
-        if self.steps == 1 and self.start != self.to:
-            raise ValueError(
-                f"steps: 1 needs from == to (got {self.start}, {self.to}); give one value as [v]"
-            )
-        return self
-
-    def values(self) -> list[float]:
-        """The grid values."""
-        return _rounded(np.linspace(self.start, self.to, self.steps))
-
-
-Axis = RangeSpec | Annotated[list[FiniteFloat], Field(min_length=1)]
-
-
-class BoxRegion(_Strict):
-    """An axis-aligned box of the world: ``min`` and ``max`` corners, 2 (x, y) or 3 values [m]."""
-
-    min: tuple[FiniteFloat, ...]
-    max: tuple[FiniteFloat, ...]
-
-    @model_validator(mode="after")
-    def _valid(self) -> BoxRegion:
-        if len(self.min) not in (2, 3) or len(self.max) != len(self.min):
-            raise ValueError(
-                "min and max need 2 (x, y) or 3 (x, y, z) values each, "
-                f"got {len(self.min)} and {len(self.max)}"
-            )
-        for i, (lo, hi) in enumerate(zip(self.min, self.max, strict=True)):
-            if lo >= hi:
-                raise ValueError(f"empty region: min[{i}] {lo} >= max[{i}] {hi}")
-        return self
-
-    def contains(self, xyz: Sequence[float]) -> bool:
-        """Whether a position lies inside the box (bounds included)."""
-        return all(lo <= v <= hi for lo, v, hi in zip(self.min, xyz, self.max, strict=False))
-
-
-class PoseSweep(_Strict):
-    """Grids over the pose keys ``x, y, z`` [m] and ``yaw_deg`` [deg], optionally in a region.
-
-    Each axis is a list of values or a range ``{from, to, steps}``; the
-    placements are every combination of the axes' values (x varies slowest).
-    ``region: table`` keeps the positions over the base config's table top,
-    ``region: {min, max}`` those inside a box.
-    """
-
-    x: Axis | None = None
-    y: Axis | None = None
-    z: Axis | None = None
-    yaw_deg: Axis | None = None
-    region: Literal["table"] | BoxRegion | None = None
-
-    @model_validator(mode="after")
-    def _some_axis(self) -> PoseSweep:
-        if all(getattr(self, a) is None for a in AXES):
-            raise ValueError(f"give at least one pose key to sweep: {', '.join(AXES)}")
-        return self
-
-    def axes(self) -> dict[str, list[float]]:
-        """Swept axis -> its values, in :data:`AXES` order."""
-        out: dict[str, list[float]] = {}
-        for name in AXES:
-            spec = getattr(self, name)
-            if spec is None:
-                continue
-            values = spec.values() if isinstance(spec, RangeSpec) else _rounded(spec)
-            if len(set(values)) != len(values):
-                dup = next(v for v, n in collections.Counter(values).items() if n > 1)
-                raise ConfigError(f"{name}: value {dup} appears twice")
-            out[name] = values
-        return out
-
-    def ranges(self) -> dict[str, RangeSpec]:
-        """The axes given as ranges (the ones :class:`Refine` re-grids)."""
-        return {a: getattr(self, a) for a in AXES if isinstance(getattr(self, a), RangeSpec)}
-
-
-class ObjectEntry(BaseModel):
-    """One object of ``sweep.objects``: a name and the config sections it replaces.
-
-    ``object``, ``candidates``, ``manifold``, ``densify`` and ``ranking`` replace
-    the base config's section of that name (``--set object={...}``); ``set``
-    adds further ``KEY=VALUE`` overrides. Relative file paths resolve against
-    the study file's folder.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
-    object: dict[str, Any] | None = None
-    candidates: dict[str, Any] | None = None
-    manifold: dict[str, Any] | None = None
-    densify: dict[str, Any] | None = None
-    ranking: dict[str, Any] | None = None
-    set: tuple[str, ...] = ()
-
-
-#: Sections an object entry may replace, in override order.
-OBJECT_SECTIONS = ("object", "candidates", "manifold", "densify", "ranking")
-
-
-class Sweep(_Strict):
-    """What a study varies: the object pose, the robot base pose, the object."""
-
-    object_pose: PoseSweep | None = None
-    base_pose: PoseSweep | None = None
-    objects: Annotated[list[ObjectEntry], Field(min_length=1)] | None = None
-
-    @model_validator(mode="after")
-    def _unique_names(self) -> Sweep:
-        if self.objects is not None:
-            names = [o.name for o in self.objects]
-            dup = next((n for n in names if names.count(n) > 1), None)
-            if dup is not None:
-                raise ValueError(f"objects: name {dup!r} appears twice")
-        return self
-
-
-class Refine(_Strict):
-    """Refinement: ``rounds`` re-grids around the best placement, each ``shrink`` times smaller."""
-
-    rounds: int = Field(default=1, ge=0, strict=True)
-    shrink: float = Field(default=0.5, gt=0, lt=1)
-
-
-class StudySpec(_Strict):
-    """A study file, validated (see the module docstring)."""
-
-    base: str | dict[str, Any]
-    set: tuple[str, ...] = ()
-    sweep: Sweep
-    refine: Refine | None = None
-    max_placements: int = Field(default=DEFAULT_MAX_PLACEMENTS, gt=0, strict=True)
-
-
-def _rounded(values: Iterable[float]) -> list[float]:
-    return [round(float(v), _DECIMALS) + 0.0 for v in values]
+__all__ = ["Placement", "StudyPlan", "format_value", "load_study"]
 
 
 def format_value(value: Any) -> str:
@@ -400,7 +206,7 @@ class StudyPlan:
                     continue
                 value = copy.deepcopy(value)
                 holder = {section: value}
-                _resolve_paths(holder, self.study_dir)
+                resolve_paths(holder, self.study_dir)
                 sets.append(f"{section}={format_value(holder[section])}")
             sets.extend(entry.set)
             out.append((entry.name, sets))
@@ -582,7 +388,7 @@ class StudyPlan:
 
         Raises:
             ConfigError: The grid has more than
-                :data:`~gcm_pipeline.limits.MAX_STUDY_PLACEMENTS` placements.
+                :data:`~gcm_pipeline.config.bounds.MAX_STUDY_PLACEMENTS` placements.
         """
         if self._grid is None:
             if self._count > MAX_STUDY_PLACEMENTS:
@@ -611,7 +417,7 @@ class StudyPlan:
             return 0
         spans = [r.to - r.start for axes in self._ranges().values() for r in axes.values()]
         widest = max((w for w in spans if w > 0), default=0.0)
-        unit = 10.0**-_DECIMALS
+        unit = 10.0**-DECIMALS
         if widest < unit:
             return 0
         # the last r with widest * shrink**r >= unit, plus one against rounding
@@ -664,7 +470,7 @@ class StudyPlan:
                         continue
                     half = 0.5 * (r.to - r.start) * refine.shrink**rnd
                     lo, hi = max(r.start, v - half), min(r.to, v + half)
-                    vals = _rounded(np.linspace(lo, hi, r.steps)) if hi > lo else [v]
+                    vals = rounded(np.linspace(lo, hi, r.steps)) if hi > lo else [v]
                     pose_axes[a] = list(dict.fromkeys(vals))
                 axes[key] = pose_axes
             for _, obj, base in self._combos(axes["object_pose"], axes["base_pose"], [k]):
@@ -729,84 +535,6 @@ def _file_digest(path: Path) -> str:
 # ------------------------------------------------------------------ loading
 
 
-def _pick(errors: list[Any]) -> Any:
-    """The error to report: of a union's branches, the one matching the input's type."""
-    first = errors[0]
-    prefix: dict[type, str] = {list: "list[", dict: ""}
-    branch = prefix.get(type(first.get("input")))
-    if branch is None:
-        return first
-    for err in errors:
-        tags = [p for p in err["loc"] if isinstance(p, str) and (p[:1].isupper() or "[" in p)]
-        if not tags:
-            continue
-        if (branch == "list[") == any(t.startswith("list[") for t in tags) and (
-            branch == "list[" or not any(t.startswith(("literal[", "list[")) for t in tags)
-        ):
-            return err
-    return first
-
-
-def _describe(exc: ValidationError, source: str) -> str:
-    """One line for the first validation error of a study file."""
-    err = _pick(exc.errors(include_url=False))
-    loc = [
-        p
-        for p in err["loc"]
-        if not (
-            isinstance(p, str)
-            and (p[:1].isupper() or p.startswith(("function-", "list[", "literal[")))
-        )
-    ]
-    key = ".".join(str(p) for p in loc)
-    msg = err["msg"]
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, ") :]
-    if err["type"] == "extra_forbidden":
-        parent = ".".join(str(p) for p in loc[:-1])
-        valid = _valid_keys(parent)
-        close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        what = "not a pose key" if parent.endswith("_pose") else "unknown key"
-        return f"{source}: {key}: {what}{hint}; valid keys here: {', '.join(valid)}"
-    if err["type"] == "missing":
-        return f"{source}: missing required key {key!r}"
-    if err["type"] == "too_short":
-        return f"{source}: {key}: empty list; give at least one value"
-    got = err.get("input")
-    shown = repr(got)
-    if len(shown) > 80:
-        shown = shown[:77] + "..."
-    if key.endswith(".region") and err["type"] in ("literal_error", "model_type"):
-        return f"{source}: {key}: expected 'table' or {{min: [x, y], max: [x, y]}}, got {shown}"
-    if loc and loc[-1] in AXES and err["type"] in ("model_type", "list_type"):
-        return (
-            f"{source}: {key}: expected a list of values or {{from: A, to: B, steps: N}}, "
-            f"got {shown}"
-        )
-    if err["type"] in ("value_error", "assertion_error") or isinstance(got, dict):
-        return f"{source}: {key}: {msg}"
-    return f"{source}: {key}: {msg} (got {shown})"
-
-
-def _valid_keys(parent: str) -> list[str]:
-    last = parent.split(".")[-1] if parent else ""
-    models: dict[str, type[BaseModel]] = {
-        "": StudySpec,
-        "sweep": Sweep,
-        "object_pose": PoseSweep,
-        "base_pose": PoseSweep,
-        "refine": Refine,
-        "region": BoxRegion,
-    }
-    model = models.get(last)
-    if model is None and last.isdigit():
-        model = ObjectEntry
-    if model is None:
-        model = RangeSpec
-    return sorted(f.alias or name for name, f in model.model_fields.items())
-
-
 def load_study(source: str | os.PathLike[str] | dict[str, Any], *, where: str = "") -> StudyPlan:
     """Read and validate a study file (or a mapping) into a :class:`StudyPlan`.
 
@@ -818,46 +546,16 @@ def load_study(source: str | os.PathLike[str] | dict[str, Any], *, where: str = 
     Raises:
         ConfigError: One line naming the file, the key and the problem.
     """
-    if isinstance(source, dict):
-        data: Any = source
-        path: Path | None = None
-        name = where or "study"
-        study_dir = Path.cwd()
-    else:
-        path = Path(os.path.abspath(source))
-        data = read_yaml(path)
-        name = str(source)
-        study_dir = path.parent
-    if not isinstance(data, dict):
-        raise ConfigError(f"{name}: a study is a mapping with 'base' and 'sweep', got {data!r}")
-    try:
-        spec = StudySpec.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(_describe(exc, name)) from None
-    if isinstance(spec.base, str):
-        base_path = Path(spec.base).expanduser()
-        if not base_path.is_absolute():
-            base_path = study_dir / base_path
-        base_path = Path(os.path.abspath(base_path))
-        try:
-            base_data = read_yaml(base_path)
-        except ConfigError as exc:
-            raise ConfigError(f"{name}: base: {exc}") from None
-        if base_data is None:
-            base_data = {}
-        if not isinstance(base_data, dict):
-            raise ConfigError(f"{base_path}: a config is a mapping of sections")
-        base_dir = base_path.parent
-    else:
-        base_path, base_data, base_dir = None, dict(spec.base), study_dir
+    study = read_study(source, where=where)
+    name = study.name
     try:
         return StudyPlan(
-            spec,
-            source=path,
-            base_path=base_path,
-            base_data=base_data,
-            base_dir=base_dir,
-            study_dir=study_dir,
+            study.spec,
+            source=study.source,
+            base_path=study.base_path,
+            base_data=study.base_data,
+            base_dir=study.base_dir,
+            study_dir=study.study_dir,
         )
     except ConfigError as exc:
         text = str(exc)

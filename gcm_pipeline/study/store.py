@@ -40,9 +40,9 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline import io
+from gcm_pipeline.config.study import AXES
 from gcm_pipeline.errors import InputError, OutputError, clip
 from gcm_pipeline.io import _json_clean, format_floats
-from gcm_pipeline.study.spec import AXES
 
 try:
     import fcntl

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.config import Config
+from gcm_pipeline.config.run import Config
 from gcm_pipeline.errors import GcmError
 
 __all__ = ["PlacementWorker", "placement_summary"]
@@ -113,7 +113,7 @@ class PlacementWorker:
     def _robot(self, spec: str) -> Any:
         robot = self._robots.get(spec)
         if robot is None:
-            from gcm_pipeline.robot.model import load_robot
+            from gcm_pipeline.config.robot_spec import load_robot
 
             robot = self._robots[spec] = load_robot(spec)
         return robot

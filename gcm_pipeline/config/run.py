@@ -40,8 +40,7 @@ from pydantic import (
     model_validator,
 )
 
-from gcm_pipeline.errors import ConfigError, clip, unknown_choice
-from gcm_pipeline.limits import (
+from gcm_pipeline.config.bounds import (
     DEFAULT_MAX_CANDIDATES,
     DEFAULT_MAX_POSES,
     MAX_ADAPTIVE_LEVEL,
@@ -51,7 +50,9 @@ from gcm_pipeline.limits import (
     MAX_LENGTH,
     MAX_OBSTACLES,
 )
-from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
+from gcm_pipeline.config.validation import describe
+from gcm_pipeline.config.yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
+from gcm_pipeline.errors import ConfigError, clip, unknown_choice
 
 __all__ = [
     "as_config",
@@ -92,7 +93,7 @@ PositiveInt = Annotated[int, Strict(), Field(gt=0)]
 #: Seeds of NumPy's generators are non-negative.
 Seed = Annotated[int, Strict(), Field(ge=0)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
-#: Lengths and coordinates of the scene [m], within MAX_LENGTH (see gcm_pipeline.limits).
+#: Lengths and coordinates of the scene [m], within MAX_LENGTH (see gcm_pipeline.config.bounds).
 Length = Annotated[float, Strict(), Field(ge=-MAX_LENGTH, le=MAX_LENGTH, allow_inf_nan=False)]
 PositiveLength = Annotated[float, Strict(), Field(gt=0, le=MAX_LENGTH, allow_inf_nan=False)]
 NonNegLength = Annotated[float, Strict(), Field(ge=0, le=MAX_LENGTH, allow_inf_nan=False)]
@@ -259,7 +260,7 @@ class CandidatesConfig(_Section):
             world of the camera's optical frame (OpenCV: x right, y down, z forward)
             in which the file's grasps are given.
         max_count: Ceiling of ``count`` and of the rows of a grasp file (checked
-            before anything is read or generated; see :mod:`gcm_pipeline.limits`).
+            before anything is read or generated; see :mod:`gcm_pipeline.config.bounds`).
     """
 
     source: Literal["plane", "cylinder_side", "box", "sphere", "file", "antipodal"]
@@ -303,10 +304,13 @@ class CandidatesConfig(_Section):
 
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
-        from gcm_pipeline.formats.grippers import GRIPPERS
+        if self.gripper is not None:
+            # here, not at the top: gcm_pipeline.formats loads SciPy and the file readers
+            # (about 1 s); a config that names no gripper is read without them
+            from gcm_pipeline.formats.grippers import GRIPPERS
 
-        if self.gripper is not None and self.gripper not in GRIPPERS:
-            raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
+            if self.gripper not in GRIPPERS:
+                raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
         if self.gripper is not None and self.grasp_to_tool is not None:
             raise ValueError("give 'gripper' or 'grasp_to_tool', not both")
         if self.gripper is not None and self.source == "file" and self.format in _POSE_FORMATS:
@@ -386,7 +390,7 @@ class DensifyConfig(_Section):
 
     ``max_poses`` is the ceiling of the densified table (candidates plus
     lattice points, estimated before the lattice is built; see
-    :mod:`gcm_pipeline.limits`). With ``adaptive`` the lattice is refined
+    :mod:`gcm_pipeline.config.bounds`). With ``adaptive`` the lattice is refined
     where reachability or the metric changes instead (``subdivisions`` and
     ``spacing`` are then not used).
     """
@@ -666,12 +670,13 @@ class Config(_Section):
                 f"{source}: a config is a mapping of sections, got {type(data).__name__}"
             )
         data = _plain(data, source)
-        _resolve_paths(data, Path.cwd())
+        resolve_paths(data, Path.cwd())
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            message, key = _describe(exc, data), _error_key(exc, data)
-            unknown = exc.errors()[0]["type"] == "extra_forbidden"
+            problem = describe(exc, data, Config)
+            message, key = problem.message, problem.key
+            unknown = problem.kind == "extra_forbidden"
             given = [
                 k
                 for k in set_keys
@@ -705,132 +710,11 @@ def _plain(data: Any, source: str, depth: int = 0) -> Any:
     return copy.deepcopy(data)
 
 
-def _error_loc(exc: ValidationError, data: Any) -> list[Any]:
-    """The keys and indices of the data at which the first pydantic error lies."""
-    err = exc.errors(include_url=False)[0]
-    # pydantic puts union members and validator tags ('ObjectConfig', 'int',
-    # 'function-after[...]') into loc: keep only the parts that are keys or
-    # indices of the data (and a missing key, which the data cannot have)
-    return _data_loc(data, list(err["loc"]), keep_last=err["type"] == "missing")
-
-
-def _error_key(exc: ValidationError, data: Any) -> str:
-    """The dotted key of the first pydantic error (``environment.table.size.0``)."""
-    return ".".join(str(p) for p in _error_loc(exc, data))
-
-
-def _describe(exc: ValidationError, data: Any) -> str:
-    """Turn the first pydantic error into one line naming the key and value."""
-    err = exc.errors(include_url=False)[0]
-    loc = _error_loc(exc, data)
-    key = ".".join(str(p) for p in loc)
-    if err["type"] == "extra_forbidden" and loc:
-        model = _model_at(Config, loc[:-1])
-        valid = sorted(model.model_fields) if model is not None else []
-        close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
-        hint = f" (did you mean {'.'.join([*map(str, loc[:-1]), close[0]])!r}?)" if close else ""
-        return f"unknown key {clip(key)}{hint}; valid keys here: {', '.join(valid)}"
-    if err["type"] == "missing" and loc and isinstance(loc[-1], int):
-        # a tuple with too few values: pydantic reports the first missing index
-        parent = ".".join(str(p) for p in loc[:-1])
-        got = _value_at(data, loc[:-1])
-        n = len(got) if isinstance(got, (list, tuple)) else "?"
-        return f"{parent}: expected {_tuple_len(loc[:-1])} values, got {n} ({clip(got)})"
-    if err["type"] == "missing":
-        return f"missing required key {clip(key)}"
-    if err["type"] == "too_long":
-        got, most = err["input"], err.get("ctx", {}).get("max_length")
-        if _tuple_len(loc) == "?" and most is not None:  # a list with a bound
-            return f"{key}: at most {most:,} items, got {len(got):,}"
-        return f"{key}: expected {_tuple_len(loc)} values, got {len(got)} ({clip(got)})"
-    if err["type"] == "literal_error":
-        choices = re.findall(r"'([^']*)'", str(err.get("ctx", {}).get("expected", "")))
-        return f"{key}: " + unknown_choice("value", err["input"], choices)
-    if err["type"] in ("model_type", "model_attributes_type", "dict_type"):
-        got = err.get("input")
-        return (
-            f"{key or 'config'}: expected a mapping of keys, got {type(got).__name__} {clip(got)}"
-        )
-    msg = err["msg"]
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, ") :]
-    if key and "input" in err and err["type"] not in ("value_error",):
-        return f"{key}: {msg} (got {clip(err['input'])})"
-    return f"{key}: {msg}" if key else msg
-
-
-def _data_loc(data: Any, loc: list[Any], *, keep_last: bool) -> list[Any]:
-    """The parts of a pydantic error location that walk through ``data``."""
-    node, out = data, []
-    for i, part in enumerate(loc):
-        if isinstance(node, dict) and isinstance(part, (str, int)) and part in node:
-            node = node[part]
-        elif isinstance(node, list) and isinstance(part, int) and 0 <= part < len(node):
-            node = node[part]
-        elif not (keep_last and i == len(loc) - 1):
-            continue
-        out.append(part)
-    return out
-
-
-def _value_at(data: Any, loc: list[Any]) -> Any:
-    """The raw input value at a location path (None where it leaves the data)."""
-    node = data
-    for part in loc:
-        try:
-            node = node[part]
-        except (KeyError, IndexError, TypeError):
-            return None
-    return node
-
-
-def _tuple_len(loc: list[Any]) -> int | str:
-    """How many values the tuple field at ``loc`` takes ('?' if not a fixed tuple)."""
-    import typing
-
-    model = _model_at(Config, loc[:-1])
-    if model is None or not isinstance(loc[-1], str) or loc[-1] not in model.model_fields:
-        return "?"
-    ann = model.model_fields[loc[-1]].annotation
-    for arg in (ann, *typing.get_args(ann)):
-        if typing.get_origin(arg) is tuple:
-            args = typing.get_args(arg)
-            if args and args[-1] is not Ellipsis:
-                return len(args)
-    return "?"
-
-
-def _model_at(model: type[BaseModel], loc: list[Any]) -> type[BaseModel] | None:
-    """Follow a location path through nested models; None where it leaves them."""
-    import types
-    import typing
-
-    current: Any = model
-    for part in loc:
-        if isinstance(part, int):
-            continue
-        if not (isinstance(current, type) and issubclass(current, BaseModel)):
-            return None
-        field = current.model_fields.get(str(part))
-        if field is None:
-            return None
-        ann = field.annotation
-        # unwrap Optional[...] and tuple[Model, ...]
-        for _ in range(3):
-            origin = typing.get_origin(ann)
-            if origin in (typing.Union, types.UnionType):
-                ann = next(a for a in typing.get_args(ann) if a is not type(None))
-            elif origin is tuple:
-                ann = typing.get_args(ann)[0]
-        current = ann
-    return current if isinstance(current, type) and issubclass(current, BaseModel) else None
-
-
 def _set_override(data: dict[str, Any], assignment: str) -> None:
     """Apply one ``dotted.key=value`` override (value parsed as YAML) to ``data``.
 
     The value is read with the same limits as a config file
-    (:mod:`gcm_pipeline.safe_yaml`); text that is not valid YAML syntax is
+    (:mod:`gcm_pipeline.config.yaml`); text that is not valid YAML syntax is
     taken as a plain string.
     """
     if "=" not in assignment:
@@ -855,7 +739,7 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
 def read_yaml(path: Path) -> Any:
     """Read a YAML config file; errors name the file, line and column.
 
-    See :func:`gcm_pipeline.safe_yaml.read_yaml_file` for the limits (size,
+    See :func:`gcm_pipeline.config.yaml.read_yaml_file` for the limits (size,
     depth, aliases, duplicate keys).
     """
     return read_yaml_file(path, "config", ConfigError)
@@ -905,12 +789,12 @@ def config_from_data(
         overrides = (overrides,)
     for assignment in overrides:
         _set_override(data, assignment)
-    _resolve_paths(data, Path(os.path.abspath(path)).parent, default_out=f"results/{path.stem}")
+    resolve_paths(data, Path(os.path.abspath(path)).parent, default_out=f"results/{path.stem}")
     set_keys = [a.partition("=")[0].strip() for a in overrides]
     return Config.from_dict(data or None, source=str(path), set_keys=set_keys)
 
 
-def _resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_OUTPUT_DIR) -> None:
+def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_OUTPUT_DIR) -> None:
     """Make the paths in the config absolute, relative ones against ``base``.
 
     ``candidates.path``, ``object.mesh``, ``environment.obstacles[].mesh``,

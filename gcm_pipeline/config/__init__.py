@@ -1,0 +1,80 @@
+"""Configuration: YAML files into validated, frozen objects.
+
+One home for everything a user writes in YAML and every bound on what they
+may ask for:
+
+* :mod:`~gcm_pipeline.config.run`: the run config (:class:`Config`, its
+  sections, :func:`load_config`, ``--set`` overrides, the JSON schema);
+* :mod:`~gcm_pipeline.config.robot_spec`: robot specs and their tools
+  (``load_spec``, ``load_robot``, ``available_robots``); imported by name, not
+  here: it builds robots (Pinocchio), and a config is read without them;
+* :mod:`~gcm_pipeline.config.study`: study files (:class:`StudySpec`,
+  :func:`read_study`); planning and running them is :mod:`gcm_pipeline.study`'s;
+* :mod:`~gcm_pipeline.config.validation`: the one formatter of invalid values
+  (key path, value, choices);
+* :mod:`~gcm_pipeline.config.yaml`: the one YAML reader (size, depth, alias
+  and duplicate-key limits, one-line errors naming file, line and column);
+* :mod:`~gcm_pipeline.config.bounds`: input-size bounds checked before
+  anything large is allocated.
+"""
+
+from gcm_pipeline.config.run import (
+    AdaptiveConfig,
+    ApproachConfig,
+    CandidatesConfig,
+    Config,
+    ContinuityConfig,
+    DensifyConfig,
+    EnvironmentConfig,
+    IKConfig,
+    ManifoldConfig,
+    NoiseConfig,
+    ObjectConfig,
+    ObstacleConfig,
+    OutputConfig,
+    Pose,
+    PublishConfig,
+    RankingConfig,
+    RetreatConfig,
+    RobotConfig,
+    ShapeDims,
+    TableConfig,
+    as_config,
+    config_schema,
+    load_config,
+    takes_config,
+)
+from gcm_pipeline.config.study import StudyFile, StudySpec, read_study
+from gcm_pipeline.config.yaml import load_yaml, read_yaml_file
+
+__all__ = [
+    "AdaptiveConfig",
+    "ApproachConfig",
+    "CandidatesConfig",
+    "Config",
+    "ContinuityConfig",
+    "DensifyConfig",
+    "EnvironmentConfig",
+    "IKConfig",
+    "ManifoldConfig",
+    "NoiseConfig",
+    "ObjectConfig",
+    "ObstacleConfig",
+    "OutputConfig",
+    "Pose",
+    "PublishConfig",
+    "RankingConfig",
+    "RetreatConfig",
+    "RobotConfig",
+    "ShapeDims",
+    "StudyFile",
+    "StudySpec",
+    "TableConfig",
+    "as_config",
+    "config_schema",
+    "load_config",
+    "load_yaml",
+    "read_study",
+    "read_yaml_file",
+    "takes_config",
+]

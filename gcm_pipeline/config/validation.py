@@ -1,0 +1,239 @@
+"""One line per invalid YAML value: the formatter shared by every config front-end.
+
+Run configs (:mod:`~gcm_pipeline.config.run`), study files
+(:mod:`~gcm_pipeline.config.study`) and robot specs with their tools
+(:mod:`~gcm_pipeline.config.robot_spec`) report a bad value the same way:
+the dotted key path, the value at fault (quoted with
+:func:`~gcm_pipeline.errors.clip`) and, for a closed set, the valid keys or
+values and the closest one. Where the YAML reader knows it
+(:mod:`~gcm_pipeline.config.yaml`), the file's line and column come first.
+
+:func:`describe` turns the first error of a pydantic ``ValidationError`` into
+a :class:`Problem`; :func:`unknown_key` is the message of a key outside a
+section, for the front-ends that check keys by hand.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+import types
+import typing
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from gcm_pipeline.errors import clip, unknown_choice
+
+__all__ = ["Problem", "describe", "dotted", "unknown_key"]
+
+#: A front-end's own wording for some errors: (error, dotted key, location) -> message or None.
+Special = Callable[[dict[str, Any], str, list[Any]], "str | None"]
+
+
+@dataclass(frozen=True)
+class Problem:
+    """The first validation error of a document, as evidence and one line.
+
+    Attributes:
+        key: Dotted key of the value at fault (``environment.table.size.0``; ``''``
+            for the document itself).
+        loc: The same as keys and list indices.
+        message: One line naming the key, the value and, for a closed set, the choices.
+        kind: pydantic's error type (``extra_forbidden``, ``missing``, ...).
+    """
+
+    key: str
+    loc: tuple[Any, ...]
+    message: str
+    kind: str
+
+
+def dotted(loc: Iterable[Any]) -> str:
+    """A location as a dotted key: ``('sweep', 'objects', 0)`` -> ``sweep.objects.0``."""
+    return ".".join(str(p) for p in loc)
+
+
+def unknown_key(parent: str, key: Any, valid: Sequence[str], noun: str = "key") -> str:
+    """The message of a key that a section does not have.
+
+    Args:
+        parent: Dotted path of the section (``''`` at the top of the file).
+        key: The key given.
+        valid: The section's keys.
+        noun: What the keys are (``pose key``).
+
+    Returns:
+        ``unknown <noun> '<parent.key>' (did you mean '<parent.close>'?); valid
+        keys here: a, b, c``.
+    """
+    names = sorted(str(v) for v in valid)
+    full = f"{parent}.{key}" if parent else str(key)
+    close = difflib.get_close_matches(str(key), names, n=1)
+    hint = f" (did you mean {(f'{parent}.{close[0]}' if parent else close[0])!r}?)" if close else ""
+    return f"unknown {noun} {clip(full)}{hint}; valid keys here: {', '.join(names)}"
+
+
+def describe(
+    exc: ValidationError,
+    data: Any,
+    model: type[BaseModel],
+    *,
+    special: Special | None = None,
+) -> Problem:
+    """The first error of ``model.model_validate(data)`` as one line.
+
+    Of a union's branches, the error of the branch that matches the input's
+    type is reported (a list given for ``list | Model`` reports the list's
+    error). Union members and validator tags are left out of the key.
+
+    Args:
+        exc: The error pydantic raised.
+        data: The document that was validated (plain data).
+        model: The model it was validated against (for valid keys and tuple sizes).
+        special: A front-end's own wording for some errors (return None to
+            fall back to the common one).
+
+    Returns:
+        The problem; its message does not name the file (the caller prefixes it).
+    """
+    err = _pick(exc.errors(include_url=False))
+    loc = _data_loc(data, list(err["loc"]), keep_last=err["type"] == "missing")
+    key = dotted(loc)
+    message = None if special is None else special(err, key, loc)
+    if message is None:
+        message = _common(err, key, loc, data, model)
+    return Problem(key=key, loc=tuple(loc), message=message, kind=err["type"])
+
+
+def _common(
+    err: dict[str, Any], key: str, loc: list[Any], data: Any, model: type[BaseModel]
+) -> str:
+    kind = err["type"]
+    if kind == "extra_forbidden" and loc:
+        at = _model_at(model, loc[:-1])
+        valid = [f.alias or n for n, f in at.model_fields.items()] if at is not None else []
+        noun = getattr(at, "key_noun", "key") if at is not None else "key"
+        return unknown_key(dotted(loc[:-1]), loc[-1], valid, noun)
+    if kind == "missing" and loc and isinstance(loc[-1], int):
+        # a tuple with too few values: pydantic reports the first missing index
+        parent = dotted(loc[:-1])
+        got = _value_at(data, loc[:-1])
+        n = len(got) if isinstance(got, (list, tuple)) else "?"
+        return f"{parent}: expected {_tuple_len(model, loc[:-1])} values, got {n} ({clip(got)})"
+    if kind == "missing":
+        return f"missing required key {clip(key)}"
+    if kind == "too_short":
+        return f"{key}: empty list; give at least one value"
+    if kind == "too_long":
+        got, most = err["input"], err.get("ctx", {}).get("max_length")
+        size = _tuple_len(model, loc)
+        if size == "?" and most is not None:  # a list with a bound
+            return f"{key}: at most {most:,} items, got {len(got):,}"
+        return f"{key}: expected {size} values, got {len(got)} ({clip(got)})"
+    if kind == "literal_error":
+        choices = re.findall(r"'([^']*)'", str(err.get("ctx", {}).get("expected", "")))
+        return f"{key}: " + unknown_choice("value", err["input"], choices)
+    if kind in ("model_type", "model_attributes_type", "dict_type"):
+        got = err.get("input")
+        return (
+            f"{key or 'config'}: expected a mapping of keys, got {type(got).__name__} {clip(got)}"
+        )
+    msg = err["msg"].removeprefix("Value error, ")
+    if key and "input" in err and kind != "value_error":  # a validator's message says it all
+        return f"{key}: {msg} (got {clip(err['input'])})"
+    return f"{key}: {msg}" if key else msg
+
+
+def _pick(errors: list[Any]) -> Any:
+    """The error to report: of a union's branches, the one matching the input's type."""
+    first = errors[0]
+    prefix: dict[type, str] = {list: "list[", dict: ""}
+    branch = prefix.get(type(first.get("input")))
+    if branch is None:
+        return first
+    for err in errors:
+        tags = [p for p in err["loc"] if isinstance(p, str) and (p[:1].isupper() or "[" in p)]
+        if not tags:
+            continue
+        if (branch == "list[") == any(t.startswith("list[") for t in tags) and (
+            branch == "list[" or not any(t.startswith(("literal[", "list[")) for t in tags)
+        ):
+            return err
+    return first
+
+
+def _data_loc(data: Any, loc: list[Any], *, keep_last: bool) -> list[Any]:
+    """The parts of a pydantic error location that walk through ``data``.
+
+    pydantic puts union members and validator tags (``ObjectConfig``, ``int``,
+    ``function-after[...]``) into a location: only the keys and indices of the
+    data are kept (and a missing key, which the data cannot have).
+    """
+    node, out = data, []
+    for i, part in enumerate(loc):
+        if isinstance(node, dict) and isinstance(part, (str, int)) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and isinstance(part, int) and 0 <= part < len(node):
+            node = node[part]
+        elif not (keep_last and i == len(loc) - 1):
+            continue
+        out.append(part)
+    return out
+
+
+def _value_at(data: Any, loc: list[Any]) -> Any:
+    """The raw input value at a location path (None where it leaves the data)."""
+    node = data
+    for part in loc:
+        try:
+            node = node[part]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return node
+
+
+def _tuple_len(model: type[BaseModel], loc: list[Any]) -> int | str:
+    """How many values the tuple field at ``loc`` takes ('?' if not a fixed tuple)."""
+    at = _model_at(model, loc[:-1])
+    if at is None or not loc or not isinstance(loc[-1], str) or loc[-1] not in at.model_fields:
+        return "?"
+    ann = at.model_fields[loc[-1]].annotation
+    for arg in (ann, *typing.get_args(ann)):
+        if typing.get_origin(arg) is tuple:
+            args = typing.get_args(arg)
+            if args and args[-1] is not Ellipsis:
+                return len(args)
+    return "?"
+
+
+def _models_in(ann: Any, depth: int = 0) -> list[type[BaseModel]]:
+    """The models an annotation holds: through Optional, unions, Annotated, tuples, lists."""
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return [ann]
+    if depth > 4:
+        return []
+    origin = typing.get_origin(ann)
+    if origin in (typing.Union, types.UnionType, typing.Annotated, tuple, list):
+        args = typing.get_args(ann)[:1] if origin is typing.Annotated else typing.get_args(ann)
+        return [m for a in args for m in _models_in(a, depth + 1)]
+    return []
+
+
+def _model_at(model: type[BaseModel], loc: list[Any]) -> type[BaseModel] | None:
+    """Follow a location path through nested models; None where it leaves them."""
+    current: type[BaseModel] | None = model
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        if current is None:
+            return None
+        fields = {f.alias or n: f for n, f in current.model_fields.items()}
+        field = fields.get(str(part)) or current.model_fields.get(str(part))
+        if field is None:
+            return None
+        models = _models_in(field.annotation)
+        current = models[0] if models else None
+    return current

@@ -1,0 +1,86 @@
+"""One formatter of invalid values for every YAML front-end: run configs, studies, robot specs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from gcm_pipeline.config import load_config, read_study
+from gcm_pipeline.config.robot_spec import load_spec
+from gcm_pipeline.errors import ConfigError, InputError, RobotSpecError
+from gcm_pipeline.robot.ik import solve_ik
+
+BASE = {
+    "object": {"shape": "plane", "dims": {"size": [0.4, 0.4]}},
+    "candidates": {"source": "plane"},
+}
+
+
+def _write(path, data):
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _one_line(exc: pytest.ExceptionInfo) -> str:
+    text = str(exc.value)
+    assert "\n" not in text
+    return text
+
+
+def test_an_unknown_key_reads_the_same_in_a_config_a_study_and_a_robot_spec(tmp_path):
+    cfg = _write(tmp_path / "run.yaml", {**BASE, "ik": {"backnd": "mink"}})
+    with pytest.raises(ConfigError) as run:
+        load_config(cfg)
+    assert _one_line(run) == (
+        f"{cfg}: unknown key 'ik.backnd' (did you mean 'ik.backend'?); valid keys here: "
+        "backend, orientation_tolerance, position_tolerance, select, solutions, workers"
+    )
+
+    study = _write(
+        tmp_path / "study.yaml", {"base": BASE, "sweep": {"object_pose": {"x": [0.1], "yy": [0]}}}
+    )
+    with pytest.raises(ConfigError) as sweep:
+        read_study(study)
+    assert _one_line(sweep) == (
+        f"{study}: unknown pose key 'sweep.object_pose.yy' (did you mean "
+        "'sweep.object_pose.y'?); valid keys here: region, x, y, yaw_deg, z"
+    )
+
+    spec = {"name": "arm", "model": {"example_robot_data": "panda", "urfd": "x.urdf"}}
+    spec_file = _write(tmp_path / "arm.yaml", {**spec, "grasp_frame": "panda_hand_tcp"})
+    with pytest.raises(RobotSpecError) as robot:
+        load_spec(spec_file)
+    assert _one_line(robot) == (
+        f"robot spec {str(spec_file)!r}: unknown key 'model.urfd' (did you mean "
+        "'model.urdf'?); valid keys here: example_robot_data, package_dirs, "
+        "robot_descriptions, srdf, urdf"
+    )
+
+
+def test_a_wrong_value_names_the_key_the_value_and_the_choices(tmp_path):
+    cfg = _write(tmp_path / "run.yaml", {**BASE, "manifold": {"projection": "cylindrcal"}})
+    with pytest.raises(ConfigError) as run:
+        load_config(cfg)
+    assert _one_line(run) == (
+        f"{cfg}: manifold.projection: unknown value 'cylindrcal' (did you mean "
+        "'cylindrical'?); valid: cylindrical, pca, spherical, xy"
+    )
+    study = _write(
+        tmp_path / "study.yaml",
+        {"base": BASE, "sweep": {"object_pose": {"x": [0.1], "region": "tabel"}}},
+    )
+    with pytest.raises(ConfigError) as sweep:
+        read_study(study)
+    assert _one_line(sweep) == (
+        f"{study}: sweep.object_pose.region: expected 'table' or {{min: [x, y], "
+        "max: [x, y]}, got 'tabel'"
+    )
+
+
+def test_the_robot_package_takes_a_robot_not_a_name():
+    """A spec name is read by the config layer (gcm_pipeline.load_robot), not inside robot/."""
+    with pytest.raises(
+        InputError, match=r"robot must be a Robot or a RobotSpec.*load_robot.*'panda'"
+    ):
+        solve_ik("panda", np.eye(4)[None])

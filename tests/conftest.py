@@ -38,7 +38,7 @@ def panda():
 
     (A test that patches it does so with ``monkeypatch``, undone when it ends.)
     """
-    from gcm_pipeline.robot.model import load_robot
+    from gcm_pipeline.config.robot_spec import load_robot
 
     return load_robot("panda")
 

@@ -357,9 +357,8 @@ def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: b
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.config import load_config
-    from gcm_pipeline.pipeline import preflight
+    from gcm_pipeline.pipeline import generate_candidates, preflight
     from gcm_pipeline.robot import kernels
-    from gcm_pipeline.stages.candidates import generate_candidates
 
     cfg = load_config(args.config, args.overrides)
     with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels

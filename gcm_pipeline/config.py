@@ -248,7 +248,7 @@ class CandidatesConfig(_Section):
         success_only: ``file``: keep only grasps labelled successful.
         limit: ``file``: keep at most this many grasps (the first ones, after filtering).
         gripper: The gripper whose frame convention maps the file's poses onto the
-            robot's grasp frame (:mod:`gcm_pipeline.formats.grippers`; default: the
+            robot's grasp frame (:mod:`gcm_pipeline.sources.grippers`; default: the
             gripper the file names, else the format's dataset gripper, ``franka_panda``
             for ``acronym``, ``contact_graspnet``, ``graspnet``; a ``graspgen`` file
             naming none needs it), or whose opening and finger depth the ``antipodal``
@@ -303,7 +303,7 @@ class CandidatesConfig(_Section):
 
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
-        from gcm_pipeline.formats.grippers import GRIPPERS
+        from gcm_pipeline.sources.grippers import GRIPPERS
 
         if self.gripper is not None and self.gripper not in GRIPPERS:
             raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))

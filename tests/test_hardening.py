@@ -23,7 +23,7 @@ from gcm_pipeline.cli import main
 from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError, RobotSpecError
 from gcm_pipeline.pipeline import Pipeline, preflight
-from gcm_pipeline.stages.candidates import read_grasp_file
+from gcm_pipeline.sources import read_grasp_file
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAT = ROOT / "configs" / "flat_surface.yaml"

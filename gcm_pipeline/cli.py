@@ -357,9 +357,8 @@ def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: b
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.run import load_config
-    from gcm_pipeline.pipeline import preflight
+    from gcm_pipeline.pipeline import generate_candidates, preflight
     from gcm_pipeline.robot import kernels
-    from gcm_pipeline.stages.candidates import generate_candidates
 
     cfg = load_config(args.config, args.overrides)
     with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
@@ -421,7 +420,7 @@ def _query_poses(values: list[list[str]], frame: str, cfg: Any) -> Any:
     """World poses (M, 4, 4) of ``--pose`` values given in ``frame``."""
     import numpy as np
 
-    from gcm_pipeline.config.bounds import MAX_LENGTH
+    from gcm_pipeline.bounds import MAX_LENGTH
     from gcm_pipeline.errors import GeometryError
     from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_matrix
 

@@ -70,7 +70,7 @@ import numpy as np
 import yaml
 
 from gcm_pipeline import signals
-from gcm_pipeline.config.bounds import MAX_CSV_CELL
+from gcm_pipeline.bounds import MAX_CSV_CELL
 from gcm_pipeline.errors import InputError, OutputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
 from gcm_pipeline.stages.manifold import Manifold
@@ -897,7 +897,7 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
 
 
 def check_csv_cells(path: Path, line: int, header: list[str] | None, row: list[str]) -> None:
-    """Refuse a CSV row with a cell longer than :data:`~gcm_pipeline.config.bounds.MAX_CSV_CELL`.
+    """Refuse a CSV row with a cell longer than :data:`~gcm_pipeline.bounds.MAX_CSV_CELL`.
 
     Raises:
         InputError: Names the line, the column and the cell's length
@@ -909,7 +909,7 @@ def check_csv_cells(path: Path, line: int, header: list[str] | None, row: list[s
     name = clip(header[k], 40) if header is not None and k < len(header) else f"#{k + 1}"
     err = InputError(
         f"{path}:{line}: column {name}: a cell of {len(row[k]):,} characters; a CSV cell "
-        f"holds at most {MAX_CSV_CELL} (gcm_pipeline.config.bounds.MAX_CSV_CELL)"
+        f"holds at most {MAX_CSV_CELL} (gcm_pipeline.bounds.MAX_CSV_CELL)"
     )
     err.path, err.row, err.key, err.value = path, line, name, len(row[k])  # type: ignore[attr-defined]
     raise err

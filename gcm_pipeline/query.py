@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from gcm_pipeline.config.bounds import MAX_LENGTH
+from gcm_pipeline.bounds import MAX_LENGTH
 from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation

@@ -10,12 +10,8 @@ import pytest
 from gcm_pipeline.config import Config, Pose
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.stages.candidates import (
-    ACRONYM_INSTALL_HINT,
-    generate_candidates,
-    grasp_poses,
-    load_grasp_file,
-)
+from gcm_pipeline.pipeline import candidate_poses, generate_candidates
+from gcm_pipeline.sources import ACRONYM_INSTALL_HINT, load_grasp_file
 from gcm_pipeline.table import GraspTable
 
 OBJECTS = {
@@ -40,6 +36,11 @@ def _cfg(source, *, pose=None, noise=None, count=30, seed=None, cand_seed=None, 
     if seed is not None:
         data["seed"] = seed
     return Config.from_dict(data)
+
+
+def grasp_poses(cfg):
+    """World poses (N, 4, 4) of a config's candidates."""
+    return candidate_poses(cfg)[0]
 
 
 def _local(cfg):

@@ -555,5 +555,5 @@ def test_gcm_show_on_a_grasps_csv_with_a_huge_cell_is_one_line(run, tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
         f"error: {copy / 'grasps.csv'}:4: column 'origin': a cell of 100,000 characters; "
-        "a CSV cell holds at most 256 (gcm_pipeline.config.bounds.MAX_CSV_CELL)"
+        "a CSV cell holds at most 256 (gcm_pipeline.bounds.MAX_CSV_CELL)"
     ]

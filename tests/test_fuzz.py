@@ -29,8 +29,8 @@ from pydantic import BaseModel
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import ConfigError, InputError
-from gcm_pipeline.stages import candidates
-from gcm_pipeline.stages.candidates import read_grasp_file
+from gcm_pipeline.sources import read_grasp_file
+from gcm_pipeline.sources.files import acronym
 
 #: Examples per test (more with GCM_FUZZ_SCALE=10, e.g., for a longer hunt).
 SCALE = float(os.environ.get("GCM_FUZZ_SCALE", "1"))
@@ -222,7 +222,7 @@ def test_an_hdf5_read_that_never_finishes_is_refused_in_one_line(monkeypatch):
     import multiprocessing as mp
     import time
 
-    monkeypatch.setattr(candidates, "_HDF5_SECONDS", 2.0)
+    monkeypatch.setattr(acronym, "_HDF5_SECONDS", 2.0)
     data = bytearray(VALID["acronym"])
     data[7112] = 97  # with h5py's layout of this file: the object/file string's heap entry
     t0 = time.monotonic()
@@ -231,7 +231,7 @@ def test_an_hdf5_read_that_never_finishes_is_refused_in_one_line(monkeypatch):
     assert not mp.active_children()
 
     # a reader that never returns, whatever the h5py version writes
-    monkeypatch.setattr(candidates, "_read_acronym_here", lambda path, n: time.sleep(600))
+    monkeypatch.setattr(acronym, "_read_acronym_here", lambda path, n: time.sleep(600))
     with tempfile.TemporaryDirectory(prefix="gcm-fuzz-") as d:
         path = Path(d) / "g.h5"
         path.write_bytes(VALID["acronym"])

@@ -24,7 +24,7 @@ from gcm_pipeline.cli import main
 from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError, RobotSpecError
 from gcm_pipeline.pipeline import Pipeline, preflight
-from gcm_pipeline.stages.candidates import read_grasp_file
+from gcm_pipeline.sources import read_grasp_file
 
 
 def _poses(n: int) -> np.ndarray:
@@ -582,7 +582,7 @@ def test_api_arguments_that_were_read_oddly(panda):
     assert load_config(FLAT, "ik.workers=2").ik.workers == 2
     assert Pipeline.from_yaml(FLAT, "ik.workers=2").config.ik.workers == 2
     # a stage function takes the config as a plain mapping too (it was an AttributeError)
-    from gcm_pipeline.config.yaml import read_yaml_file
+    from gcm_pipeline.safe_yaml import read_yaml_file
     from gcm_pipeline.pipeline import build_manifold, generate_candidates
 
     as_read = generate_candidates(read_yaml_file(FLAT, "config", ConfigError))

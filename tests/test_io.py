@@ -401,7 +401,7 @@ def test_a_long_cell_in_grasps_csv_is_refused_and_text_costs_its_size(tmp_path):
         io.read_grasps_csv(path)
     assert str(info.value) == (
         f"{path}:4: column 'reason': a cell of 100,000 characters; a CSV cell holds at most "
-        "256 (gcm_pipeline.config.bounds.MAX_CSV_CELL)"
+        "256 (gcm_pipeline.bounds.MAX_CSV_CELL)"
     )
 
 

@@ -9,7 +9,7 @@ import pytest
 from helpers import FLAT
 
 from gcm_pipeline.config import load_config
-from gcm_pipeline.config.yaml import (
+from gcm_pipeline.safe_yaml import (
     MAX_YAML_BYTES,
     MAX_YAML_DEPTH,
     MAX_YAML_VALUES,
@@ -123,7 +123,7 @@ _PAD = "# " + "x" * 70_000 + "\n"  # a comment that makes a document large (liby
 
 def test_large_documents_read_the_same_through_libyaml(monkeypatch):
     """Large documents (grasp files) are parsed by libyaml: the same data, the same limits."""
-    import gcm_pipeline.config.yaml as sy
+    import gcm_pipeline.safe_yaml as sy
 
     if sy._CLoader is None:
         pytest.skip("PyYAML without libyaml")

@@ -1,7 +1,6 @@
 """Configuration: YAML files into validated, frozen objects.
 
-One home for everything a user writes in YAML and every bound on what they
-may ask for:
+One home for everything a user writes in YAML:
 
 * :mod:`~gcm_pipeline.config.run`: the run config (:class:`Config`, its
   sections, :func:`load_config`, ``--set`` overrides, the JSON schema);
@@ -12,10 +11,12 @@ may ask for:
   :func:`read_study`); planning and running them is :mod:`gcm_pipeline.study`'s;
 * :mod:`~gcm_pipeline.config.validation`: the one formatter of invalid values
   (key path, value, choices);
-* :mod:`~gcm_pipeline.config.yaml`: the one YAML reader (size, depth, alias
-  and duplicate-key limits, one-line errors naming file, line and column);
-* :mod:`~gcm_pipeline.config.bounds`: input-size bounds checked before
-  anything large is allocated.
+
+The YAML reader (:mod:`gcm_pipeline.safe_yaml`: size, depth, alias and
+duplicate-key limits, one-line errors naming file, line and column) and the
+input-size bounds (:mod:`gcm_pipeline.bounds`) sit in the bottom layer beside
+:mod:`gcm_pipeline.errors`: grasp-file readers and the run directory check
+them too, and they sit below this package.
 """
 
 from gcm_pipeline.config.run import (
@@ -45,7 +46,7 @@ from gcm_pipeline.config.run import (
     takes_config,
 )
 from gcm_pipeline.config.study import StudyFile, StudySpec, read_study
-from gcm_pipeline.config.yaml import load_yaml, read_yaml_file
+from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 
 __all__ = [
     "AdaptiveConfig",

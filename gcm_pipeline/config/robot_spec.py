@@ -38,13 +38,13 @@ The ``tool`` section mounts a gripper on a bare flange and defines the grasp
 
 The shapes, poses and fingers are described in :mod:`gcm_pipeline.robot.tool`
 (:class:`~gcm_pipeline.robot.tool.ToolSpec`). Lengths, positions, the opening
-and a mesh's scale are at most :data:`~gcm_pipeline.config.bounds.MAX_LENGTH`
+and a mesh's scale are at most :data:`~gcm_pipeline.bounds.MAX_LENGTH`
 (1,000 m, or a factor) in magnitude, as in a run's config.
 
 Every problem is a :class:`~gcm_pipeline.errors.RobotSpecError` of one line
 naming the spec file and the key (an unknown key in the words of
 :func:`~gcm_pipeline.config.validation.unknown_key`, as for run configs and
-studies); the file is read by :mod:`gcm_pipeline.config.yaml`.
+studies); the file is read by :mod:`gcm_pipeline.safe_yaml`.
 """
 
 from __future__ import annotations
@@ -58,9 +58,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.config.bounds import MAX_LENGTH
+from gcm_pipeline.bounds import MAX_LENGTH
 from gcm_pipeline.config.validation import unknown_key
-from gcm_pipeline.config.yaml import load_yaml, read_yaml_file
+from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 from gcm_pipeline.errors import RobotSpecError, clip, unknown_choice
 from gcm_pipeline.robot.model import Robot, RobotSpec, model_files
 from gcm_pipeline.robot.tool import ToolShape, ToolSpec

@@ -40,7 +40,7 @@ from pydantic import (
     model_validator,
 )
 
-from gcm_pipeline.config.bounds import (
+from gcm_pipeline.bounds import (
     DEFAULT_MAX_CANDIDATES,
     DEFAULT_MAX_POSES,
     MAX_ADAPTIVE_LEVEL,
@@ -51,7 +51,7 @@ from gcm_pipeline.config.bounds import (
     MAX_OBSTACLES,
 )
 from gcm_pipeline.config.validation import describe
-from gcm_pipeline.config.yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
+from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 from gcm_pipeline.errors import ConfigError, clip, unknown_choice
 
 __all__ = [
@@ -93,7 +93,7 @@ PositiveInt = Annotated[int, Strict(), Field(gt=0)]
 #: Seeds of NumPy's generators are non-negative.
 Seed = Annotated[int, Strict(), Field(ge=0)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
-#: Lengths and coordinates of the scene [m], within MAX_LENGTH (see gcm_pipeline.config.bounds).
+#: Lengths and coordinates of the scene [m], within MAX_LENGTH (see gcm_pipeline.bounds).
 Length = Annotated[float, Strict(), Field(ge=-MAX_LENGTH, le=MAX_LENGTH, allow_inf_nan=False)]
 PositiveLength = Annotated[float, Strict(), Field(gt=0, le=MAX_LENGTH, allow_inf_nan=False)]
 NonNegLength = Annotated[float, Strict(), Field(ge=0, le=MAX_LENGTH, allow_inf_nan=False)]
@@ -249,7 +249,7 @@ class CandidatesConfig(_Section):
         success_only: ``file``: keep only grasps labelled successful.
         limit: ``file``: keep at most this many grasps (the first ones, after filtering).
         gripper: The gripper whose frame convention maps the file's poses onto the
-            robot's grasp frame (:mod:`gcm_pipeline.formats.grippers`; default: the
+            robot's grasp frame (:mod:`gcm_pipeline.sources.grippers`; default: the
             gripper the file names, else the format's dataset gripper, ``franka_panda``
             for ``acronym``, ``contact_graspnet``, ``graspnet``; a ``graspgen`` file
             naming none needs it), or whose opening and finger depth the ``antipodal``
@@ -260,7 +260,7 @@ class CandidatesConfig(_Section):
             world of the camera's optical frame (OpenCV: x right, y down, z forward)
             in which the file's grasps are given.
         max_count: Ceiling of ``count`` and of the rows of a grasp file (checked
-            before anything is read or generated; see :mod:`gcm_pipeline.config.bounds`).
+            before anything is read or generated; see :mod:`gcm_pipeline.bounds`).
     """
 
     source: Literal["plane", "cylinder_side", "box", "sphere", "file", "antipodal"]
@@ -305,9 +305,9 @@ class CandidatesConfig(_Section):
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
         if self.gripper is not None:
-            # here, not at the top: gcm_pipeline.formats loads SciPy and the file readers
+            # here, not at the top: gcm_pipeline.sources loads SciPy and the file readers
             # (about 1 s); a config that names no gripper is read without them
-            from gcm_pipeline.formats.grippers import GRIPPERS
+            from gcm_pipeline.sources.grippers import GRIPPERS
 
             if self.gripper not in GRIPPERS:
                 raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
@@ -390,7 +390,7 @@ class DensifyConfig(_Section):
 
     ``max_poses`` is the ceiling of the densified table (candidates plus
     lattice points, estimated before the lattice is built; see
-    :mod:`gcm_pipeline.config.bounds`). With ``adaptive`` the lattice is refined
+    :mod:`gcm_pipeline.bounds`). With ``adaptive`` the lattice is refined
     where reachability or the metric changes instead (``subdivisions`` and
     ``spacing`` are then not used).
     """
@@ -714,7 +714,7 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
     """Apply one ``dotted.key=value`` override (value parsed as YAML) to ``data``.
 
     The value is read with the same limits as a config file
-    (:mod:`gcm_pipeline.config.yaml`); text that is not valid YAML syntax is
+    (:mod:`gcm_pipeline.safe_yaml`); text that is not valid YAML syntax is
     taken as a plain string.
     """
     if "=" not in assignment:
@@ -739,7 +739,7 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
 def read_yaml(path: Path) -> Any:
     """Read a YAML config file; errors name the file, line and column.
 
-    See :func:`gcm_pipeline.config.yaml.read_yaml_file` for the limits (size,
+    See :func:`gcm_pipeline.safe_yaml.read_yaml_file` for the limits (size,
     depth, aliases, duplicate keys).
     """
     return read_yaml_file(path, "config", ConfigError)

@@ -35,7 +35,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 
-from gcm_pipeline.config.bounds import MAX_LENGTH, MAX_RANGE_STEPS
+from gcm_pipeline.bounds import MAX_LENGTH, MAX_RANGE_STEPS
 from gcm_pipeline.config.run import read_yaml
 from gcm_pipeline.config.validation import describe
 from gcm_pipeline.errors import ConfigError, clip

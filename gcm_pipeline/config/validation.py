@@ -6,7 +6,7 @@ Run configs (:mod:`~gcm_pipeline.config.run`), study files
 the dotted key path, the value at fault (quoted with
 :func:`~gcm_pipeline.errors.clip`) and, for a closed set, the valid keys or
 values and the closest one. Where the YAML reader knows it
-(:mod:`~gcm_pipeline.config.yaml`), the file's line and column come first.
+(:mod:`~gcm_pipeline.safe_yaml`), the file's line and column come first.
 
 :func:`describe` turns the first error of a pydantic ``ValidationError`` into
 a :class:`Problem`; :func:`unknown_key` is the message of a key outside a

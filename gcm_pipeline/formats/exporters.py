@@ -419,7 +419,7 @@ def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
 
 
 def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
-    from gcm_pipeline.formats.grippers import GRIPPERS
+    from gcm_pipeline.sources.grippers import GRIPPERS
 
     root, tool, locked = _robot_frames(config)
     base = config.robot.base_pose.matrix()

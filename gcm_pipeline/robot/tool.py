@@ -32,7 +32,7 @@ adds the grasp frame and nothing else. The hand is then not collision-checked
 built.
 
 Lengths, positions, the opening and a mesh's scale are at most
-:data:`~gcm_pipeline.config.bounds.MAX_LENGTH` (1,000 m, or a factor) in magnitude, as
+:data:`~gcm_pipeline.bounds.MAX_LENGTH` (1,000 m, or a factor) in magnitude, as
 in a run's config: coal's bounding volumes break on astronomic sizes.
 
 Fingers: shapes tagged ``finger: left`` / ``finger: right`` are given closed

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.config.bounds import MAX_ADAPTIVE_LEVEL, check_size
+from gcm_pipeline.bounds import MAX_ADAPTIVE_LEVEL, check_size
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.surface import blend
 from gcm_pipeline.stages.densify import _fill

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.config.bounds import check_size, lattice_size
+from gcm_pipeline.bounds import check_size, lattice_size
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dib, dlb, dq_translation
 from gcm_pipeline.stages.manifold import Manifold, candidate_poses

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from gcm_pipeline.config.bounds import MAX_STUDY_PLACEMENTS
+from gcm_pipeline.bounds import MAX_STUDY_PLACEMENTS
 from gcm_pipeline.config.run import Config, config_from_data, resolve_paths
 from gcm_pipeline.config.study import (
     DECIMALS,
@@ -388,7 +388,7 @@ class StudyPlan:
 
         Raises:
             ConfigError: The grid has more than
-                :data:`~gcm_pipeline.config.bounds.MAX_STUDY_PLACEMENTS` placements.
+                :data:`~gcm_pipeline.bounds.MAX_STUDY_PLACEMENTS` placements.
         """
         if self._grid is None:
             if self._count > MAX_STUDY_PLACEMENTS:

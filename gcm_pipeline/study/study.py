@@ -33,9 +33,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from gcm_pipeline import io, signals
-from gcm_pipeline.config.bounds import MAX_STUDY_PLACEMENTS
+from gcm_pipeline.bounds import MAX_STUDY_PLACEMENTS
 from gcm_pipeline.config.run import Config
-from gcm_pipeline.config.yaml import read_yaml_file
+from gcm_pipeline.safe_yaml import read_yaml_file
 from gcm_pipeline.errors import ConfigError, GcmError, InputError
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
 from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
@@ -166,7 +166,7 @@ class Study:
         """Check the study and its directory before any work; True when it resumes.
 
         Checks the size limits (``max_placements``, or ``force``; at most
-        :data:`~gcm_pipeline.config.bounds.MAX_STUDY_PLACEMENTS` in any case), ``gcm run``'s
+        :data:`~gcm_pipeline.bounds.MAX_STUDY_PLACEMENTS` in any case), ``gcm run``'s
         preflight on the first placement (robot, meshes, files), that the first
         placement of every other object resolves and its files exist (a damaged
         file fails that object's placements, recorded, as reading files is a

@@ -29,7 +29,7 @@ fixed ones are bounds of the config schema:
   ``max_placements``, default 1,000, it needs ``--force``). The count is
   worked out per axis before any placement is built.
 - YAML files and ``--set`` values: 1 MiB, depth 64, 100,000 values after
-  aliases (:mod:`gcm_pipeline.config.yaml`).
+  aliases (:mod:`gcm_pipeline.safe_yaml`).
 - A study directory's ``study.json``: 16 MiB (a study writes a few kB
   there; a larger one is refused in one line before it is read).
 - Grasp files: a grasp's position at most ``MAX_LENGTH`` (1,000 m) from the

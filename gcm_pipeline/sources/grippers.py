@@ -34,27 +34,40 @@ the closing direction - 0.1034 m along the approach); graspnetAPI's
 ``plot_gripper_pro_max`` (fingers span x in [-0.024, depth], width along y,
 height along z) and its 17-value grasp rows.
 
+A file's gripper is, in this order: ``candidates.gripper``; the gripper the
+file names (ACRONYM's ``gripper/type``, GraspGen's ``gripper``), which the
+registry must know; the format's dataset gripper (:data:`DATASET_GRIPPERS`).
+A file with none of these or naming an unknown gripper is refused with the
+choices (:func:`choose_gripper`); the choice is logged and kept in
+``summary.json``'s ``grasp_frame`` (:class:`GripperChoice`).
+
 This registry is about grasp files and sampling; the robot's own tool
 geometry (collision shapes on the flange) lives in the robot spec.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import ConfigError, unknown_choice
+from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
 
 __all__ = [
     "CONVENTIONS",
     "DATASET_GRIPPERS",
     "GRIPPERS",
+    "GripperChoice",
     "GripperSpec",
+    "choose_gripper",
     "find_gripper",
     "get_gripper",
     "gripper_names",
 ]
+
+log = logging.getLogger(__name__)
 
 #: Frame conventions of grasp files (see the module docstring).
 CONVENTIONS = ("base", "center")
@@ -200,3 +213,104 @@ def get_gripper(name: str) -> GripperSpec:
         return GRIPPERS[name]
     except KeyError:
         raise ConfigError(unknown_choice("gripper", name, GRIPPERS)) from None
+
+
+@dataclass(frozen=True)
+class GripperChoice:
+    """How a grasp file's gripper frame is mapped onto the robot's grasp frame.
+
+    Attributes:
+        format: The file's format.
+        gripper: The registry gripper used, or None (``grasp_to_tool``).
+        chosen_by: ``config`` (``candidates.gripper``), ``file`` (the gripper
+            the file names), ``dataset`` (the format's dataset gripper,
+            :data:`DATASET_GRIPPERS`) or ``grasp_to_tool``.
+        file_gripper: The gripper as the file names it, if it does.
+    """
+
+    format: str
+    gripper: str | None
+    chosen_by: str
+    file_gripper: str | None = None
+
+    def describe(self) -> str:
+        """One line for the run's output."""
+        named = f", the file names {self.file_gripper!r}" if self.file_gripper else ""
+        if self.gripper is None:
+            return f"{self.format} poses mapped by candidates.grasp_to_tool{named}"
+        why = {
+            "config": "candidates.gripper",
+            "file": "named by the file",
+            "dataset": f"the {self.format} dataset's gripper",
+        }[self.chosen_by]
+        return f"{self.gripper} ({why}{named if self.chosen_by != 'file' else ''})"
+
+    def as_dict(self) -> dict[str, Any]:
+        """``summary.json``'s ``grasp_frame``."""
+        return {
+            "format": self.format,
+            "gripper": self.gripper,
+            "chosen_by": self.chosen_by,
+            "file_gripper": self.file_gripper,
+        }
+
+
+def choose_gripper(
+    path: object, fmt: str, configured: str | None, mapped: bool, file_gripper: str | None
+) -> GripperChoice:
+    """The gripper whose frame the file's poses are in (see the module docstring).
+
+    Args:
+        path: The file (for messages).
+        fmt: Its format (one of :data:`~gcm_pipeline.sources.files.GRIPPER_FORMATS`).
+        configured: ``candidates.gripper``.
+        mapped: Whether ``candidates.grasp_to_tool`` is given.
+        file_gripper: The gripper the file names, if any.
+
+    Raises:
+        InputError: The file names a gripper the registry does not know, or
+            names none and its format has no dataset gripper (the message
+            lists the known grippers and ``grasp_to_tool``; attributes ``key``,
+            ``value``: the file's gripper, ``choices``).
+    """
+    if mapped:
+        return GripperChoice(fmt, None, "grasp_to_tool", file_gripper)
+    known = ", ".join(gripper_names())
+    if configured is not None:
+        spec = get_gripper(configured)
+        if file_gripper is not None and find_gripper(file_gripper) is not spec:
+            log.warning(
+                "%s: grasps made for gripper %r are mapped onto %r (candidates.gripper)",
+                path,
+                file_gripper,
+                spec.name,
+            )
+        return GripperChoice(fmt, spec.name, "config", file_gripper)
+    if file_gripper is not None:
+        found = find_gripper(file_gripper)
+        if found is None:
+            raise _refused(
+                f"{path}: its grasps are for gripper {file_gripper!r}, which the gripper "
+                f"registry does not know (known: {known}); give candidates.grasp_to_tool "
+                "(its gripper frame -> the robot's grasp frame), or candidates.gripper to "
+                "map it as a known one",
+                path,
+                file_gripper,
+            )
+        return GripperChoice(fmt, found.name, "file", file_gripper)
+    if fmt in DATASET_GRIPPERS:
+        return GripperChoice(fmt, DATASET_GRIPPERS[fmt], "dataset")
+    raise _refused(
+        f"{path}: this {fmt} file does not name its gripper, and {fmt} grasps are made for "
+        "several grippers whose frames differ; set candidates.gripper (one of: "
+        f"{known}) or candidates.grasp_to_tool",
+        path,
+        None,
+    )
+
+
+def _refused(message: str, path: object, value: str | None) -> InputError:
+    err = InputError(message)
+    err.path, err.key, err.value = path, "candidates.gripper", value  # type: ignore[attr-defined]
+    err.choices = (*gripper_names(), "grasp_to_tool")  # type: ignore[attr-defined]
+    return err

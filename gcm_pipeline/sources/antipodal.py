@@ -36,17 +36,15 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.sources.grippers import GripperSpec
 
-if TYPE_CHECKING:
-    from gcm_pipeline.config.run import Config, ObjectConfig
-    from gcm_pipeline.formats.grippers import GripperSpec
-
-__all__ = ["DEFAULT_FRICTION", "object_mesh", "sample_antipodal", "sample_antipodal_config"]
+__all__ = ["DEFAULT_FRICTION", "antipodal_candidates", "object_mesh", "sample_antipodal"]
 
 log = logging.getLogger(__name__)
 
@@ -65,10 +63,26 @@ _POOL_FACTOR = 4
 _MAX_POINTS = 1_000_000
 
 
-def object_mesh(obj: ObjectConfig) -> Any:
+def object_mesh(
+    shape: str,
+    *,
+    radius: float | None = None,
+    height: float | None = None,
+    size: tuple[float, ...] | None = None,
+    mesh: str | Path | None = None,
+    scale: float = 1.0,
+) -> Any:
     """The object as a ``trimesh.Trimesh`` in its own frame (as the collision model has it).
 
     Cylinders stand on their base at z = 0; boxes and spheres are centred.
+
+    Args:
+        shape: ``cylinder``, ``box``, ``sphere``, ``mesh`` (or ``plane``: refused).
+        radius: Cylinder or sphere radius [m].
+        height: Cylinder height [m].
+        size: Box size (x, y, z) [m].
+        mesh: ``mesh``: the mesh file (``object.mesh``).
+        scale: ``mesh``: scale applied to the file's vertices.
 
     Raises:
         ConfigError: A plane (no volume to grasp across).
@@ -76,36 +90,36 @@ def object_mesh(obj: ObjectConfig) -> Any:
     """
     import trimesh
 
-    d = obj.dims  # the config checked that the shape's dims are given
-    if obj.shape == "cylinder":
-        assert d.radius is not None and d.height is not None
-        mesh = trimesh.creation.cylinder(radius=d.radius, height=d.height, sections=64)
-        mesh.apply_translation([0.0, 0.0, 0.5 * d.height])
-        return mesh
-    if obj.shape == "box":
-        assert d.size is not None
-        return trimesh.creation.box(extents=list(d.size))
-    if obj.shape == "sphere":
-        assert d.radius is not None
-        return trimesh.creation.icosphere(subdivisions=3, radius=d.radius)
-    if obj.shape == "plane":
+    # the config checked that the shape's dims are given
+    if shape == "cylinder":
+        assert radius is not None and height is not None
+        solid = trimesh.creation.cylinder(radius=radius, height=height, sections=64)
+        solid.apply_translation([0.0, 0.0, 0.5 * height])
+        return solid
+    if shape == "box":
+        assert size is not None
+        return trimesh.creation.box(extents=list(size))
+    if shape == "sphere":
+        assert radius is not None
+        return trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    if shape == "plane":
         raise ConfigError(
             "candidates.source 'antipodal' needs a solid object; a plane has no two sides "
             "to close the fingers on (use source: plane)"
         )
     try:
-        mesh = trimesh.load(str(obj.mesh), force="mesh")
+        loaded = trimesh.load(str(mesh), force="mesh")
     except Exception as exc:  # trimesh raises many types for unreadable files
-        raise InputError(f"object.mesh {obj.mesh}: cannot read: {exc}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError(f"object.mesh {obj.mesh}: no triangles")
-    mesh.apply_scale(obj.scale)
-    if not mesh.is_watertight:
-        log.warning("object.mesh %s is not watertight: inside tests may be wrong", obj.mesh)
-    elif mesh.volume < 0:  # faces wound inside out: normals point into the object
-        log.info("object.mesh %s: faces wound inside out; turned", obj.mesh)
-        mesh.invert()
-    return mesh
+        raise InputError(f"object.mesh {mesh}: cannot read: {exc}") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise InputError(f"object.mesh {mesh}: no triangles")
+    loaded.apply_scale(scale)
+    if not loaded.is_watertight:
+        log.warning("object.mesh %s is not watertight: inside tests may be wrong", mesh)
+    elif loaded.volume < 0:  # faces wound inside out: normals point into the object
+        log.info("object.mesh %s: faces wound inside out; turned", mesh)
+        loaded.invert()
+    return loaded
 
 
 def _perpendicular_basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -311,42 +325,48 @@ def _collision_free(
     return ok
 
 
-def sample_antipodal_config(cfg: Config) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The ``antipodal`` candidate source of a config: world poses and columns.
+def antipodal_candidates(
+    mesh: Any,
+    count: int,
+    gripper: GripperSpec,
+    rng: np.random.Generator,
+    *,
+    shape: str,
+    friction: float = DEFAULT_FRICTION,
+    world: np.ndarray | None = None,
+    floor_z: float | None = None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """:func:`sample_antipodal` as a candidate source: world poses and columns, or an error.
+
+    Args:
+        mesh: The object (:func:`object_mesh`) in its own frame.
+        count: Number of grasps wanted.
+        gripper: The gripper (``candidates.gripper``).
+        rng: Random generator.
+        shape: The object's shape (for the message).
+        friction: Friction coefficient of the contacts.
+        world: (4, 4) the object's pose in the world (default: identity).
+        floor_z: Height of the table top in the world, if there is a table.
+
+    Returns:
+        ``(poses, columns)``: (M, 4, 4) grasp frames in the world, M <= ``count``.
 
     Raises:
-        ConfigError: No object, a plane, an unknown gripper.
         InputError: No antipodal grasp found.
     """
-    from gcm_pipeline.formats.grippers import get_gripper
-
-    c = cfg.candidates
-    obj = cfg.object
-    if obj is None:
-        raise ConfigError("candidates.source 'antipodal' samples an object: add 'object'")
-    gripper = get_gripper(c.gripper or "franka_panda")
-    mesh = object_mesh(obj)
-    rng = np.random.default_rng(c.seed if c.seed is not None else cfg.seed)
-    world = obj.pose.matrix()
-    table = cfg.environment.table
+    world = np.eye(4) if world is None else world
     poses, columns = sample_antipodal(
-        mesh,
-        c.count,
-        gripper,
-        rng,
-        friction=c.friction,
-        world=world,
-        floor_z=None if table is None else table.height,
+        mesh, count, gripper, rng, friction=friction, world=world, floor_z=floor_z
     )
     if len(poses) == 0:
         size = " x ".join(f"{1000 * e:.3g}" for e in mesh.extents)
         raise InputError(
             f"candidates.source 'antipodal': no collision-free antipodal grasp on the "
-            f"{obj.shape} object ({size} mm) for gripper {gripper.name!r}: the fingers need "
+            f"{shape} object ({size} mm) for gripper {gripper.name!r}: the fingers need "
             f"two faces {1000 * _MIN_WIDTH:g} to {1000 * (gripper.max_width - _CLEARANCE):g} mm "
-            f"apart, each within the friction cone (friction {c.friction:g}) of the closing "
+            f"apart, each within the friction cone (friction {friction:g}) of the closing "
             "direction, and room for the open hand outside the object and above the table"
         )
-    if len(poses) < c.count:
-        log.warning("antipodal: %d of %d grasps found", len(poses), c.count)
+    if len(poses) < count:
+        log.warning("antipodal: %d of %d grasps found", len(poses), count)
     return world @ poses, columns

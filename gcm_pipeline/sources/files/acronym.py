@@ -1,0 +1,203 @@
+"""``format: acronym``: ACRONYM's HDF5 grasp files, read in a forked child process.
+
+Layout: ``grasps/transforms`` (N, 4, 4) poses of the Franka hand's base in the
+object mesh frame [m], ``grasps/qualities/flex/object_in_gripper`` (N,) 0/1
+success, optional ``object/file``, ``object/scale`` and ``gripper/type``.
+Reading needs the optional extra ``acronym`` (h5py, :data:`ACRONYM_INSTALL_HINT`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+import signal
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.errors import InputError, clip
+from gcm_pipeline.bounds import MAX_HDF5_TEXT
+from gcm_pipeline.sources.files.common import as_poses, check_count, success_labels
+
+__all__ = ["ACRONYM_INSTALL_HINT", "read_acronym"]
+
+log = logging.getLogger(__name__)
+
+ACRONYM_INSTALL_HINT = 'pip install "gcm-pipeline[acronym]"'
+
+#: A child reading an ACRONYM file gets this long [s], plus a second per
+#: ``_HDF5_BYTES_PER_SECOND`` of file, before the file counts as corrupt: the HDF5
+#: library can loop forever on a damaged file (seen: a damaged variable-length string).
+_HDF5_SECONDS = 10.0
+_HDF5_BYTES_PER_SECOND = 20e6
+
+
+def read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """Read an ACRONYM file in a forked child process where one can be forked.
+
+    The HDF5 library can crash the whole process (a segmentation fault) or
+    loop forever on a corrupt file, e.g. when it follows a damaged
+    variable-length string; in a child, that crash or a read that does not
+    finish in time becomes an :class:`InputError` naming the file.
+    """
+    try:
+        import h5py  # noqa: F401
+    except ImportError:
+        raise InputError(
+            f"{path}: reading ACRONYM HDF5 files needs h5py: {ACRONYM_INSTALL_HINT}"
+        ) from None
+
+    if "fork" not in mp.get_all_start_methods():  # pragma: no cover - not POSIX
+        return _read_acronym_here(path, max_count)
+    ctx = mp.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+    try:
+        limit = _HDF5_SECONDS + path.stat().st_size / _HDF5_BYTES_PER_SECOND
+    except OSError:
+        limit = _HDF5_SECONDS
+    child = ctx.Process(target=_acronym_child, args=(send, path, max_count), daemon=True)
+    child.start()
+    send.close()
+    late, answered = False, False
+    try:
+        late = not receive.poll(limit)
+        result = None if late else receive.recv()
+        answered = not late
+    except EOFError:
+        result, answered = None, True
+    finally:
+        receive.close()
+        child.join(timeout=5.0 if answered else 0)
+        if child.is_alive():  # looping in HDF5, or the caller was interrupted
+            child.kill()
+            child.join()
+    if late:
+        raise InputError(
+            f"{path}: the HDF5 library did not finish reading it in {limit:.0f} s; "
+            "the file is corrupt"
+        )
+    if result is None:
+        code = child.exitcode or 0
+        what = signal.Signals(-code).name if code < 0 else f"exit status {code}"
+        raise InputError(
+            f"{path}: reading it crashed the HDF5 library ({what}); the file is corrupt"
+        )
+    if result[0] == "error":
+        raise InputError(result[1])
+    return result[1], result[2], result[3]
+
+
+def _acronym_child(send: Any, path: Path, max_count: int) -> None:
+    """In the child: send ``("ok", poses, success, gripper)`` or ``("error", message)``."""
+    try:
+        send.send(("ok", *_read_acronym_here(path, max_count)))
+    except InputError as exc:
+        send.send(("error", str(exc)))
+    except BaseException as exc:  # anything else is reported, not raised in the child
+        send.send(("error", f"{path}: corrupt or unreadable HDF5 file: {clip(str(exc))}"))
+    finally:
+        send.close()
+
+
+def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """Poses, success labels and ``gripper/type`` (e.g. ``panda``, or None) of an ACRONYM file."""
+    import h5py
+
+    where = "the file"
+    try:
+        with h5py.File(path, "r") as fh:
+            datasets = {}
+            for key in ("grasps/transforms", "grasps/qualities/flex/object_in_gripper"):
+                where = key
+                if key not in fh:
+                    raise InputError(f"{path}: not an ACRONYM grasp file: missing dataset {key!r}")
+                node = fh[key]
+                if not isinstance(node, h5py.Dataset):
+                    raise InputError(f"{path}: {key} is a {type(node).__name__}, not a dataset")
+                if node.dtype.kind not in "biuf":
+                    raise InputError(f"{path}: {key} must hold numbers, got dtype {node.dtype}")
+                datasets[key] = node
+            where = "grasps/transforms"
+            tf = datasets["grasps/transforms"]
+            if len(tf.shape) != 3 or tf.shape[1:] != (4, 4):
+                raise InputError(
+                    f"{path}: grasps/transforms must have shape (N, 4, 4), got {tf.shape}"
+                )
+            check_count(path, tf.shape[0], max_count)
+            poses = as_poses(path, np.asarray(tf[()]), "grasps/transforms")
+            where = "grasps/qualities/flex/object_in_gripper"
+            quality = datasets[where]
+            if quality.size != poses.shape[0]:
+                raise InputError(
+                    f"{path}: {where} has {quality.size} values, expected {poses.shape[0]}"
+                )
+            success = success_labels(path, np.asarray(quality[()]), poses.shape[0], where)
+            where = "object"
+            name, scale = _acronym_object(path, fh, h5py)
+            where = "gripper/type"
+            gripper = _h5_text(path, fh, h5py, "gripper/type")
+    except InputError:
+        raise
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
+        raise InputError(
+            f"{path}: corrupt or unreadable HDF5 file (at {where}): {clip(str(exc))}"
+        ) from None
+    if name is not None:
+        log.info("%s: ACRONYM grasps of %s (scale %g)", path, name, scale)
+    return poses, success, gripper
+
+
+def _h5_small(path: Path, node: Any, h5py: Any, key: str, what: str, max_bytes: int) -> Any:
+    """The dataset ``key`` read whole, after its declared size is checked.
+
+    A dataset's size comes from its header, not from the bytes in the file
+    (an unwritten dataset reads as fill values): an 8 KiB file can declare a
+    1.5 GB string, which reading would allocate.
+
+    Raises:
+        InputError: Not a dataset, or more than ``max_bytes`` declared.
+    """
+    if not isinstance(node, h5py.Dataset):
+        raise InputError(f"{path}: {key} must be {what}, got a {type(node).__name__}")
+    declared = int(np.prod(node.shape, dtype=object)) * node.dtype.itemsize
+    if declared > max_bytes:
+        raise InputError(
+            f"{path}: {key} declares {declared:,} bytes (shape {node.shape}, dtype "
+            f"{node.dtype}); {what} takes at most {max_bytes:,}: the file is corrupt"
+        )
+    return node[()]
+
+
+def _h5_text(path: Path, fh: Any, h5py: Any, key: str) -> str | None:
+    """The text stored at ``key`` (None when the file has no ``key``), at most ``MAX_HDF5_TEXT``."""
+    if key not in fh:
+        return None
+    raw = _h5_small(path, fh[key], h5py, key, "a text", MAX_HDF5_TEXT)
+    if isinstance(raw, np.ndarray) and raw.size == 1:
+        raw = raw.reshape(-1)[0]
+    if isinstance(raw, bytes) and len(raw) <= MAX_HDF5_TEXT:
+        try:
+            raw = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raw = None
+    if not isinstance(raw, str) or len(raw) > MAX_HDF5_TEXT:
+        raise InputError(f"{path}: {key} must be a text, got {clip(raw)}")
+    return raw
+
+
+def _acronym_object(path: Path, fh: Any, h5py: Any) -> tuple[str | None, float]:
+    """``object/file`` (text) and ``object/scale`` (a number) of an ACRONYM file."""
+    name = _h5_text(path, fh, h5py, "object/file")
+    scale = 1.0
+    if "object/scale" in fh:
+        raw = _h5_small(path, fh["object/scale"], h5py, "object/scale", "a number", 16)
+        if isinstance(raw, np.ndarray) and raw.size == 1:
+            raw = raw.reshape(-1)[0]
+        if isinstance(raw, (bool, np.bool_)) or not isinstance(raw, (int, float, np.number)):
+            raise InputError(f"{path}: object/scale must be a number, got {clip(raw)}")
+        scale = float(raw)
+        if not (math.isfinite(scale) and scale > 0):
+            raise InputError(f"{path}: object/scale must be a positive number, got {scale!r}")
+    return name, scale

@@ -1,0 +1,238 @@
+"""What every grasp-file reader shares: the read grasps, size and rigidity checks, column names.
+
+Sizes are checked before anything is allocated (:func:`check_count`,
+:func:`check_bytes`); poses must be finite rigid transforms
+(:func:`check_rigid`, :func:`check_poses`) within
+:data:`~gcm_pipeline.bounds.MAX_GRASP_DISTANCE` of the file's origin
+(:func:`check_positions`); a column a file carries gets a name that no
+``grasps.csv`` or grasp-table column has (:func:`column_name`).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.errors import InputError, clip
+from gcm_pipeline.io import CSV_COLUMNS
+from gcm_pipeline.bounds import MAX_GRASP_DISTANCE
+from gcm_pipeline.robot.manipulability import METRICS
+
+__all__ = [
+    "ImportedGrasps",
+    "as_poses",
+    "check_bytes",
+    "check_count",
+    "check_poses",
+    "check_positions",
+    "check_rigid",
+    "column_name",
+    "success_labels",
+    "vector",
+]
+
+#: Tolerance of the rigidity checks of imported matrices.
+RIGID_TOL = 1e-4
+
+#: Bytes of slack on top of what ``max_count`` grasps take (object, gripper, comments).
+SLACK_BYTES = 1 << 20
+
+#: Names a carried column must not have: ``grasps.csv``'s and the grasp table's columns
+#: (the ranking metrics' columns, ``clearance``, ``margin`` and ``combined`` among them).
+RESERVED_COLUMNS = frozenset(
+    {
+        *CSV_COLUMNS,
+        *METRICS.values(),
+        *("dq", "vertices", "weights", "q", "top", "clearance", "margin", "combined"),
+    }
+)
+
+
+def check_count(path: Path, n: int, max_count: int) -> None:
+    """Refuse a file of more than ``max_count`` grasps (``candidates.max_count``)."""
+    if n > max_count:
+        raise InputError(
+            f"{path}: holds {n:,} grasps, more than candidates.max_count ({max_count:,}); "
+            "raise candidates.max_count to read it"
+        )
+
+
+def check_bytes(path: Path, size: int, max_count: int, per_grasp: int, what: str) -> None:
+    """Refuse a file whose grasps take more bytes than ``max_count`` of ``per_grasp`` bytes."""
+    limit = max_count * per_grasp + SLACK_BYTES
+    if size > limit:
+        raise InputError(
+            f"{path}: {what} take {size:,} bytes, more than {max_count:,} grasps "
+            f"(candidates.max_count) need (at most {limit:,}); raise candidates.max_count "
+            "to read it"
+        )
+
+
+@dataclass
+class ImportedGrasps:
+    """Grasps as a file stores them.
+
+    Attributes:
+        poses: (N, 4, 4) poses of the file's gripper frame [m].
+        convention: The gripper-frame convention (``base`` or ``center``).
+        columns: Per-candidate columns (N,) to carry through (``score``,
+            ``width``, ``source_id``, ``segment``, ``object_id``).
+        success: (N,) bool success labels, or None.
+        depth: (N,) ``center`` convention: fingertip depth past the centre [m].
+        gripper: The gripper named in the file, if any.
+    """
+
+    poses: np.ndarray
+    convention: str
+    columns: dict[str, np.ndarray] = field(default_factory=dict)
+    success: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    gripper: str | None = None
+
+    def take(self, index: np.ndarray) -> ImportedGrasps:
+        """The rows selected by an integer index or boolean mask."""
+        return ImportedGrasps(
+            poses=self.poses[index],
+            convention=self.convention,
+            columns={k: v[index] for k, v in self.columns.items()},
+            success=None if self.success is None else self.success[index],
+            depth=None if self.depth is None else self.depth[index],
+            gripper=self.gripper,
+        )
+
+
+def check_positions(
+    path: Path, positions: np.ndarray, where: Callable[[int], str] | None = None
+) -> None:
+    """Refuse a grasp farther than :data:`~gcm_pipeline.bounds.MAX_GRASP_DISTANCE` from the origin.
+
+    A robot's world is metres across; a grasp 1e25 m away is a unit or
+    export mistake, and further on it only breaks the manifold's geometry.
+
+    Args:
+        path: The file (for messages).
+        positions: (N, 3) finite grasp positions as the file stores them [m].
+        where: How a message names row ``i`` (default ``"<path>: grasp <i> (0-based)"``).
+
+    Raises:
+        InputError: Names the first such row and its position (attributes
+            ``path``, ``row`` (0-based), ``value``: its distance [m]).
+    """
+    with np.errstate(over="ignore"):
+        dist = np.linalg.norm(np.asarray(positions, dtype=float).reshape(-1, 3), axis=1)
+    far = np.flatnonzero(~(dist <= MAX_GRASP_DISTANCE))
+    if far.size:
+        i = int(far[0])
+        name = where(i) if where is not None else f"{path}: grasp {i} (0-based)"
+        more = f" ({far.size:,} such grasps)" if far.size > 1 else ""
+        xyz = ", ".join(f"{v:.6g}" for v in np.asarray(positions, dtype=float).reshape(-1, 3)[i])
+        err = InputError(
+            f"{name}: position ({xyz}) is {dist[i]:.3g} m from the file's origin, farther "
+            f"than {MAX_GRASP_DISTANCE:g} m (gcm_pipeline.bounds.MAX_GRASP_DISTANCE): not a "
+            f"grasp in a robot's world; are the units metres?{more}"
+        )
+        err.path, err.row, err.value = path, i, float(dist[i])  # type: ignore[attr-defined]
+        raise err
+
+
+def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
+    """Return ``poses`` as float (N, 4, 4) or raise naming the first non-rigid row."""
+    arr = np.asarray(poses)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}")
+    if arr.dtype.kind not in "fiu":
+        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(float)
+    if len(arr) == 0:
+        return arr
+    rot = arr[:, :3, :3]
+    with np.errstate(invalid="ignore"):
+        err = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2))
+        err = np.maximum(err, np.abs(arr[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1))
+        det = np.linalg.det(np.nan_to_num(rot))
+    bad = np.flatnonzero(~(np.isfinite(arr).all(axis=(1, 2)) & (err < RIGID_TOL) & (det > 0)))
+    if bad.size:
+        more = f" ({bad.size} bad rows in all)" if bad.size > 1 else ""
+        raise InputError(
+            f"{path}: {what}: grasp {int(bad[0])} (0-based) is not a rigid transform{more}"
+        )
+    check_positions(path, arr[:, :3, 3])
+    return arr
+
+
+def check_rigid(path: Path, poses: np.ndarray) -> None:
+    """Raise naming the first row that is not a finite rigid transform."""
+    if poses.shape[0] == 0:
+        return
+    finite = np.all(np.isfinite(poses), axis=(1, 2))
+    rot = np.where(finite[:, None, None], poses[:, :3, :3], 0.0)
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: inf, not a warning
+        ortho = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(rot)
+        bottom = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    ok = finite & (ortho < RIGID_TOL) & (det > 0) & (bottom < RIGID_TOL)
+    bad = np.flatnonzero(~ok)
+    if bad.size == 0:
+        return
+    i = int(bad[0])
+    if not finite[i]:
+        why = "has non-finite entries"
+    elif bottom[i] >= RIGID_TOL:
+        why = f"has last row {poses[i, 3].tolist()}, expected [0, 0, 0, 1]"
+    elif ortho[i] >= RIGID_TOL:
+        why = f"has a non-orthonormal rotation (|R R^T - I| = {ortho[i]:.3g})"
+    else:
+        why = "has a reflection (det R < 0)"
+    more = f" ({bad.size} bad rows in all)" if bad.size > 1 else ""
+    raise InputError(f"{path}: grasp {i} (0-based row) is not a rigid transform: {why}{more}")
+
+
+def as_poses(path: Path, arr: np.ndarray, what: str) -> np.ndarray:
+    """``arr`` as float (N, 4, 4), or raise naming its shape or dtype."""
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}")
+    if arr.dtype.kind not in "fiu":
+        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}")
+    return np.asarray(arr, dtype=float)
+
+
+def success_labels(path: Path, values: np.ndarray, n: int, what: str) -> np.ndarray:
+    """(n,) bool success labels from 0/1 numbers, or raise naming ``what``."""
+    values = np.asarray(values).reshape(-1)
+    if values.shape[0] != n:
+        raise InputError(f"{path}: {what} has {values.shape[0]} values, expected {n}")
+    if values.dtype.kind not in "biuf":
+        raise InputError(f"{path}: {what} must be 0/1 values, got dtype {values.dtype}")
+    return values.astype(float) > 0.5
+
+
+def vector(path: Path, value: Any, n: int, what: str) -> np.ndarray:
+    """``value`` as (n,) floats, or raise naming ``what``."""
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {what} must be numbers") from None
+    if arr.shape[0] != n:
+        raise InputError(f"{path}: {what} has {arr.shape[0]} values, expected {n}")
+    return arr
+
+
+def column_name(path: Path, raw: str, taken: set[str]) -> str:
+    """A carried column's name: lower case, letters/digits/_ only, not reserved or taken."""
+    name = re.sub(r"[^0-9a-z_]+", "_", raw.strip().lower()).strip("_") or "column"
+    if name[0].isdigit():
+        name = "c_" + name
+    if name in RESERVED_COLUMNS or re.fullmatch(r"q[0-9]+", name):
+        raise InputError(
+            f"{path}: column {clip(raw)} has the name of a grasps.csv column; rename it "
+            f"(e.g. input_{name})"
+        )
+    if name in taken:
+        raise InputError(f"{path}: two columns are named {clip(name)}; rename one of them")
+    taken.add(name)
+    return name

@@ -34,8 +34,15 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         dq_to_pos_quat,
         sclerp,
     )
-    from gcm_pipeline.geometry.surface import Location
     from gcm_pipeline.io import read_run
+    from gcm_pipeline.manifold.build import Manifold
+    from gcm_pipeline.manifold.query import (
+        BestGrasps,
+        GraspManifold,
+        NearestReachable,
+        load_manifold,
+    )
+    from gcm_pipeline.manifold.surface import Location
     from gcm_pipeline.pipeline import (
         Pipeline,
         RunResult,
@@ -46,7 +53,6 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         publish,
         rank,
     )
-    from gcm_pipeline.query import BestGrasps, GraspManifold, NearestReachable, load_manifold
     from gcm_pipeline.robot.collision import CollisionChecker
     from gcm_pipeline.robot.ik import IKResult, solve_ik
     from gcm_pipeline.robot.manipulability import (
@@ -59,26 +65,25 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
     )
     from gcm_pipeline.robot.model import Robot, available_robots, load_robot
     from gcm_pipeline.stages.collision import combined_score
-    from gcm_pipeline.stages.manifold import Manifold
     from gcm_pipeline.study import Study, StudyResult
     from gcm_pipeline.table import GraspTable
 
 #: Public name -> the module that defines it.
 _LAZY = {
-    "BestGrasps": "gcm_pipeline.query",
+    "BestGrasps": "gcm_pipeline.manifold.query",
     "CollisionChecker": "gcm_pipeline.robot.collision",
     "Config": "gcm_pipeline.config",
     "ConfigError": "gcm_pipeline.errors",
     "FrameNotFoundError": "gcm_pipeline.errors",
     "GcmError": "gcm_pipeline.errors",
     "GeometryError": "gcm_pipeline.errors",
-    "GraspManifold": "gcm_pipeline.query",
+    "GraspManifold": "gcm_pipeline.manifold.query",
     "GraspTable": "gcm_pipeline.table",
     "IKResult": "gcm_pipeline.robot.ik",
     "InputError": "gcm_pipeline.errors",
-    "Location": "gcm_pipeline.geometry.surface",
-    "Manifold": "gcm_pipeline.stages.manifold",
-    "NearestReachable": "gcm_pipeline.query",
+    "Location": "gcm_pipeline.manifold.surface",
+    "Manifold": "gcm_pipeline.manifold.build",
+    "NearestReachable": "gcm_pipeline.manifold.query",
     "OutputError": "gcm_pipeline.errors",
     "Pipeline": "gcm_pipeline.pipeline",
     "PublishError": "gcm_pipeline.errors",
@@ -103,7 +108,7 @@ _LAZY = {
     "inverse_condition_number": "gcm_pipeline.robot.manipulability",
     "joint_limit_margin": "gcm_pipeline.robot.manipulability",
     "load_config": "gcm_pipeline.config",
-    "load_manifold": "gcm_pipeline.query",
+    "load_manifold": "gcm_pipeline.manifold.query",
     "load_robot": "gcm_pipeline.robot.model",
     "manipulability": "gcm_pipeline.robot.manipulability",
     "manipulability_metrics": "gcm_pipeline.robot.manipulability",

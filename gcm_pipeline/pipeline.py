@@ -55,10 +55,10 @@ from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
-    from gcm_pipeline.query import GraspManifold
+    from gcm_pipeline.manifold.build import Manifold
+    from gcm_pipeline.manifold.query import GraspManifold
     from gcm_pipeline.robot.engine import ReachabilityEngine
     from gcm_pipeline.robot.model import Robot
-    from gcm_pipeline.stages.manifold import Manifold
 
 __all__ = [
     "Pipeline",
@@ -190,9 +190,9 @@ def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
         cfg: The full config.
 
     Returns:
-        A :class:`gcm_pipeline.stages.manifold.Manifold`.
+        A :class:`gcm_pipeline.manifold.build.Manifold`.
     """
-    from gcm_pipeline.stages import manifold as stage
+    from gcm_pipeline.manifold import build as stage
 
     m = cfg.manifold
     return stage.build_manifold(
@@ -218,7 +218,7 @@ def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
         All candidates (first, in input order) and the interpolated grasps,
         with ``dq, origin, triangle, vertices, weights``.
     """
-    from gcm_pipeline.stages import densify as stage
+    from gcm_pipeline.manifold import densify as stage
 
     d = cfg.densify
     return stage.densify(
@@ -269,7 +269,7 @@ def densify_adaptive(
 ) -> GraspTable:
     """Densify where reachability or the metric changes, checking as it refines.
 
-    Section ``densify.adaptive`` (see :mod:`gcm_pipeline.stages.adaptive`);
+    Section ``densify.adaptive`` (see :mod:`gcm_pipeline.manifold.adaptive`);
     reachability is decided as in :func:`check_reachability`, so the result
     has the columns of densify and of the reachability stage, plus ``level``.
 
@@ -285,7 +285,7 @@ def densify_adaptive(
             beyond ``densify.max_poses``.
     """
     from gcm_pipeline.errors import ConfigError
-    from gcm_pipeline.stages import adaptive as stage
+    from gcm_pipeline.manifold import adaptive as stage
 
     a = cfg.densify.adaptive
     if a is None:
@@ -318,7 +318,7 @@ def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict
     made at each level), ``uniform_subdivisions`` and ``uniform_rows`` (the
     uniform lattice with ``2**max_level`` subdivisions).
     """
-    from gcm_pipeline.stages.adaptive import uniform_size
+    from gcm_pipeline.manifold.adaptive import uniform_size
 
     a = cfg.densify.adaptive
     assert a is not None
@@ -340,8 +340,8 @@ def add_continuity(
 ) -> tuple[GraspTable, dict[str, int]]:
     """IK continuity and the robustness margin (sections ``continuity``, ``manifold``).
 
-    Adds ``ik_jump`` [rad] and ``patch`` (:mod:`gcm_pipeline.stages.continuity`)
-    and ``margin`` [m] (:mod:`gcm_pipeline.stages.margin`); with
+    Adds ``ik_jump`` [rad] and ``patch`` (:mod:`gcm_pipeline.manifold.continuity`)
+    and ``margin`` [m] (:mod:`gcm_pipeline.manifold.margin`); with
     ``continuity.reseed`` first re-solves border grasps of smaller patches from
     their neighbours in larger ones (that needs ``check``, or the robot to
     build one).
@@ -351,9 +351,9 @@ def add_continuity(
         re-seeding, ``patches_before_reseed``, ``reseeded`` (grasps that took a
         new solution) and ``reseed_ik_solves``.
     """
-    from gcm_pipeline.stages import continuity as stage
-    from gcm_pipeline.stages.lattice import row_mesh
-    from gcm_pipeline.stages.margin import margin
+    from gcm_pipeline.manifold import continuity as stage
+    from gcm_pipeline.manifold.lattice import row_mesh
+    from gcm_pipeline.manifold.margin import margin
 
     c = cfg.continuity
     edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
@@ -429,8 +429,8 @@ def select_branches(
     See :mod:`gcm_pipeline.stages.branches`. A table without branch columns is
     returned unchanged.
     """
+    from gcm_pipeline.manifold.lattice import row_mesh
     from gcm_pipeline.stages import branches as stage
-    from gcm_pipeline.stages.lattice import row_mesh
 
     if "solutions" not in grasps:
         return grasps
@@ -698,7 +698,7 @@ class RunResult:
         config: The resolved config.
         run_dir: The run directory, or None when nothing was written.
         grasp_manifold: The manifold as a queryable
-            :class:`~gcm_pipeline.query.GraspManifold` (built on first use).
+            :class:`~gcm_pipeline.manifold.query.GraspManifold` (built on first use).
         grasp_frame: How a grasp file's gripper frame was mapped onto the
             robot's grasp frame (``format``, ``gripper``, ``chosen_by``,
             ``file_gripper``, ``describe``), None for other sources.
@@ -718,10 +718,10 @@ class RunResult:
     def grasp_manifold(self) -> GraspManifold:
         """The run's manifold as a queryable object (sample, locate, nearest reachable, best).
 
-        See :class:`gcm_pipeline.query.GraspManifold`; the same as
+        See :class:`gcm_pipeline.manifold.query.GraspManifold`; the same as
         :func:`gcm_pipeline.load_manifold` on the run directory.
         """
-        from gcm_pipeline.query import GraspManifold
+        from gcm_pipeline.manifold.query import GraspManifold
 
         return GraspManifold.from_run(self)
 

@@ -9,10 +9,10 @@ import pytest
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
+from gcm_pipeline.manifold.continuity import patches
+from gcm_pipeline.manifold.lattice import row_mesh
 from gcm_pipeline.pipeline import branch_scores
 from gcm_pipeline.stages.collision import make_checker
-from gcm_pipeline.stages.continuity import patches
-from gcm_pipeline.stages.lattice import row_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 BOTTLE = ROOT / "configs" / "bottle_side.yaml"

@@ -17,8 +17,8 @@ from gcm_pipeline.geometry.dualquat import (
     dq_translation,
     sclerp,
 )
-from gcm_pipeline.stages.densify import _points_general, _points_uniform, densify
-from gcm_pipeline.stages.manifold import Manifold, build_manifold
+from gcm_pipeline.manifold.build import Manifold, build_manifold
+from gcm_pipeline.manifold.densify import _points_general, _points_uniform, densify
 from gcm_pipeline.table import GraspTable
 
 IDENT = np.array([1.0, 0.0, 0.0, 0.0])

@@ -11,7 +11,7 @@ import pytest
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
 from gcm_pipeline.geometry.dualquat import dq_exp, dq_mul, dq_to_matrix
-from gcm_pipeline.geometry.surface import (
+from gcm_pipeline.manifold.surface import (
     TriangleLocator,
     _cells,
     blend,

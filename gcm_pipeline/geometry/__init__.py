@@ -1,5 +1,6 @@
 """Pure geometry: dual quaternions and Delaunay triangulation (no robot)."""
 
+from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS, bowyer_watson, delaunay
 from gcm_pipeline.geometry.dualquat import (
     dib,
     dlb,
@@ -24,7 +25,6 @@ from gcm_pipeline.geometry.dualquat import (
     quat_mul,
     sclerp,
 )
-from gcm_pipeline.geometry.triangulation import TRIANGULATORS, bowyer_watson, delaunay
 
 __all__ = [
     "TRIANGULATORS",

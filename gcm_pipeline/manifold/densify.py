@@ -32,7 +32,7 @@ import numpy as np
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dib, dlb, dq_translation
 from gcm_pipeline.limits import check_size, lattice_size
-from gcm_pipeline.stages.manifold import Manifold, candidate_poses
+from gcm_pipeline.manifold.build import Manifold, candidate_poses
 from gcm_pipeline.table import GraspTable, candidate_fill
 
 __all__ = ["DENSIFY_METHODS", "densify", "lattice_counts"]
@@ -223,7 +223,7 @@ def densify(
     Args:
         grasps: The candidate table (``dq`` (N, 8)); the manifold's triangles
             index its rows.
-        manifold: From :func:`gcm_pipeline.stages.manifold.build_manifold`
+        manifold: From :func:`gcm_pipeline.manifold.build.build_manifold`
             (anything with ``triangles`` (T, 3)).
         subdivisions: Lattice subdivisions ``n`` per triangle edge (>= 1); a
             triangle then yields ``(n + 1)(n + 2) / 2`` points with its vertices.

@@ -2,7 +2,7 @@
 
 The paper (section III) projects the grasp positions onto the XY plane,
 drops the orientation and triangulates the 2-D points. The triangles are
-the cells inside which :mod:`gcm_pipeline.stages.densify` blends poses.
+the cells inside which :mod:`gcm_pipeline.manifold.densify` blends poses.
 
 Charts (``projection``)
 -----------------------
@@ -73,12 +73,12 @@ import numpy as np
 import numpy.typing as npt
 
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS, check_triangulable, delaunay
 from gcm_pipeline.geometry.dualquat import (
     dq_angle_distance,
     dq_from_matrix,
     dq_to_matrix,
 )
-from gcm_pipeline.geometry.triangulation import TRIANGULATORS, check_triangulable, delaunay
 from gcm_pipeline.table import GraspTable
 
 __all__ = ["PROJECTIONS", "STANDOFF", "Manifold", "build_manifold", "candidate_poses"]

@@ -1,6 +1,6 @@
 r"""Adaptive densification: refine the manifold where reachability or the metric changes.
 
-A uniform lattice (:mod:`gcm_pipeline.stages.densify`) spends most IK solves
+A uniform lattice (:mod:`gcm_pipeline.manifold.densify`) spends most IK solves
 inside regions that are wholly reachable or wholly unreachable. Here the
 triangles are refined only where something happens:
 
@@ -41,10 +41,10 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.geometry.surface import blend
 from gcm_pipeline.limits import MAX_ADAPTIVE_LEVEL, check_size
-from gcm_pipeline.stages.densify import _fill
-from gcm_pipeline.stages.manifold import Manifold, candidate_poses
+from gcm_pipeline.manifold.build import Manifold, candidate_poses
+from gcm_pipeline.manifold.densify import _fill
+from gcm_pipeline.manifold.surface import blend
 from gcm_pipeline.table import GraspTable, candidate_fill
 
 __all__ = ["CRITERIA", "MAX_LEVEL", "refine", "uniform_size"]

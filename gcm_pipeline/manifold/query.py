@@ -1,7 +1,7 @@
 """The grasp manifold as an object you can query after a run.
 
 :class:`GraspManifold` joins the manifold's triangles (:class:`~gcm_pipeline.
-stages.manifold.Manifold`), the candidate poses at their corners, the run's
+manifold.build.Manifold`), the candidate poses at their corners, the run's
 blend method and the run's grasp table (reachability, IK solutions,
 metrics). Every point of a triangle is a grasp, so the queries work on the
 continuous manifold, not only on the densified rows:
@@ -41,7 +41,10 @@ from scipy.spatial import cKDTree
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
-from gcm_pipeline.geometry.surface import (
+from gcm_pipeline.limits import MAX_LENGTH
+from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.manifold.lattice import RowMesh, interpolate, row_memberships, row_mesh
+from gcm_pipeline.manifold.surface import (
     BLEND_METHODS,
     ORIENTATION_SCALE,
     Location,
@@ -51,9 +54,6 @@ from gcm_pipeline.geometry.surface import (
     pose_features,
     project_onto_triangles,
 )
-from gcm_pipeline.limits import MAX_LENGTH
-from gcm_pipeline.stages.lattice import RowMesh, interpolate, row_memberships, row_mesh
-from gcm_pipeline.stages.manifold import Manifold
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
@@ -289,7 +289,7 @@ class GraspManifold:
 
     @property
     def row_mesh(self) -> RowMesh:
-        """The rows of the table as a mesh (:func:`~gcm_pipeline.stages.lattice.row_mesh`)."""
+        """The rows of the table as a mesh (:func:`~gcm_pipeline.manifold.lattice.row_mesh`)."""
         if self._rows is None:
             self._rows = row_mesh(self.grasps, self.triangles, self.mesh.n_vertices)
         return self._rows
@@ -366,7 +366,7 @@ class GraspManifold:
 
         The metric is position [m] plus orientation at ``L`` =
         :attr:`orientation_scale` metres per radian (see
-        :mod:`gcm_pipeline.geometry.surface`); the search is exact up to the
+        :mod:`gcm_pipeline.manifold.surface`); the search is exact up to the
         projection's tolerance (no triangle that could hold a nearer point is
         skipped).
 
@@ -374,7 +374,7 @@ class GraspManifold:
             poses: (M, 4, 4) or (M, 8) query poses in the world (one pose: (4, 4) or (8,)).
 
         Returns:
-            :class:`~gcm_pipeline.geometry.surface.Location`: ``triangle``
+            :class:`~gcm_pipeline.manifold.surface.Location`: ``triangle``
             (M,), ``weights`` (M, 3), ``distance`` (M,) [m], ``dq`` (M, 8).
 
         Raises:

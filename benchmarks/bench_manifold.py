@@ -43,8 +43,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gcm_pipeline as gcm
 from gcm_pipeline.geometry.dualquat import dq_exp, dq_mul
+from gcm_pipeline.geometry.pose_metric import pose_features
+from gcm_pipeline.manifold.locate import _cells
 from gcm_pipeline.manifold.query import GraspManifold
-from gcm_pipeline.manifold.surface import _cells, blend, pose_features
+from gcm_pipeline.manifold.surface import blend
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "manifold.json"

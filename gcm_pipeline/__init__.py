@@ -36,13 +36,13 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
     )
     from gcm_pipeline.io import read_run
     from gcm_pipeline.manifold.build import Manifold
+    from gcm_pipeline.manifold.locate import Location
     from gcm_pipeline.manifold.query import (
         BestGrasps,
         GraspManifold,
         NearestReachable,
         load_manifold,
     )
-    from gcm_pipeline.manifold.surface import Location
     from gcm_pipeline.pipeline import (
         Pipeline,
         RunResult,
@@ -81,7 +81,7 @@ _LAZY = {
     "GraspTable": "gcm_pipeline.table",
     "IKResult": "gcm_pipeline.robot.ik",
     "InputError": "gcm_pipeline.errors",
-    "Location": "gcm_pipeline.manifold.surface",
+    "Location": "gcm_pipeline.manifold.locate",
     "Manifold": "gcm_pipeline.manifold.build",
     "NearestReachable": "gcm_pipeline.manifold.query",
     "OutputError": "gcm_pipeline.errors",

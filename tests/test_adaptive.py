@@ -10,9 +10,9 @@ from scipy.spatial import cKDTree
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
+from gcm_pipeline.geometry.pose_metric import pose_features
 from gcm_pipeline.manifold.adaptive import refine, uniform_size
 from gcm_pipeline.manifold.lattice import interpolate, row_mesh
-from gcm_pipeline.manifold.surface import pose_features
 from gcm_pipeline.pipeline import ReachabilityCheck, densify_adaptive
 from gcm_pipeline.table import GraspTable
 

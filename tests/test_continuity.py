@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 import gcm_pipeline as gcm
+from gcm_pipeline.geometry.pose_metric import pose_distance
 from gcm_pipeline.manifold import continuity
 from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.densify import densify
 from gcm_pipeline.manifold.lattice import row_mesh
 from gcm_pipeline.manifold.margin import margin
-from gcm_pipeline.manifold.surface import pose_distance
 from gcm_pipeline.pipeline import ReachabilityCheck
 from gcm_pipeline.stages.collision import make_checker
 from gcm_pipeline.table import GraspTable

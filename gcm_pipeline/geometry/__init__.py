@@ -1,4 +1,4 @@
-"""Pure geometry: dual quaternions and Delaunay triangulation (no robot)."""
+"""Pure geometry: dual quaternions, Delaunay triangulation and the pose metric (no robot)."""
 
 from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS, bowyer_watson, delaunay
 from gcm_pipeline.geometry.dualquat import (
@@ -25,8 +25,10 @@ from gcm_pipeline.geometry.dualquat import (
     quat_mul,
     sclerp,
 )
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
 
 __all__ = [
+    "ORIENTATION_SCALE",
     "TRIANGULATORS",
     "bowyer_watson",
     "delaunay",
@@ -49,6 +51,8 @@ __all__ = [
     "dq_transform_points",
     "dq_translation",
     "dq_translation_distance",
+    "pose_distance",
+    "pose_features",
     "quat_from_rotation",
     "quat_mul",
     "sclerp",

@@ -43,7 +43,7 @@ import numpy as np
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.limits import MAX_ADAPTIVE_LEVEL, check_size
 from gcm_pipeline.manifold.build import Manifold, candidate_poses
-from gcm_pipeline.manifold.densify import _fill
+from gcm_pipeline.manifold.densify import fill_column
 from gcm_pipeline.manifold.surface import blend
 from gcm_pipeline.table import GraspTable, candidate_fill
 
@@ -368,7 +368,7 @@ def _assemble(
         if name in _OWN:
             continue
         col = np.asarray(candidates[name])
-        cols[name] = np.concatenate((col, _fill(col, m, candidate_fill(name), verts, w)))
+        cols[name] = np.concatenate((col, fill_column(col, m, candidate_fill(name), verts, w)))
     for name in checked.columns:
         if name != "dq":
             cols[name] = checked[name]

@@ -35,7 +35,7 @@ from gcm_pipeline.limits import check_size, lattice_size
 from gcm_pipeline.manifold.build import Manifold, candidate_poses
 from gcm_pipeline.table import GraspTable, candidate_fill
 
-__all__ = ["DENSIFY_METHODS", "densify", "lattice_counts"]
+__all__ = ["DENSIFY_METHODS", "densify", "fill_column", "lattice_counts"]
 
 DENSIFY_METHODS = ("dib", "dlb")
 
@@ -183,7 +183,7 @@ def _points_general(
     return tri[keep][final], ijk[keep][final], n[keep][final]
 
 
-def _fill(
+def fill_column(
     column: np.ndarray, count: int, rule: str = "missing", vertices: Any = None, weights: Any = None
 ) -> np.ndarray:
     """Values for ``count`` interpolated rows of an extra candidate column.
@@ -299,7 +299,7 @@ def densify(
     for name in grasps.columns:
         if name not in _OWN_COLUMNS:
             col = grasps[name]
-            fill = _fill(col, m, candidate_fill(name), vertices, weights)
+            fill = fill_column(col, m, candidate_fill(name), vertices, weights)
             cols[name] = np.concatenate((col, fill))
     ordered = {k: cols[k] for k in (*_OWN_COLUMNS, *[c for c in cols if c not in _OWN_COLUMNS])}
     return GraspTable(ordered)

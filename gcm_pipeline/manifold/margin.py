@@ -8,7 +8,7 @@ distance between its rows,
 .. math:: d^2 = \lVert \Delta p \rVert^2 + (2L)^2 \lVert \Delta r \rVert^2,
 
 position [m] plus orientation at ``L`` = ``manifold.orientation_scale``
-(0.1 m per radian by default; see :mod:`gcm_pipeline.manifold.surface`).
+(0.1 m per radian by default; see :mod:`gcm_pipeline.geometry.pose_metric`).
 The boundary between a reachable row and an unreachable neighbour is placed
 at the middle of their edge, so a reachable row next to an unreachable one
 has a margin of half that edge (the resolution of the lattice) and the
@@ -24,7 +24,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from gcm_pipeline.manifold.surface import ORIENTATION_SCALE, pose_distance
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance
 
 __all__ = ["margin"]
 

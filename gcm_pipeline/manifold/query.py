@@ -11,7 +11,7 @@ continuous manifold, not only on the densified rows:
                                  run's DLB or DIB; exact at the vertices)
 ``locate(poses)``                the manifold point nearest to each query pose
                                  (pose metric of :mod:`gcm_pipeline.geometry.
-                                 surface`: position [m] plus 0.1 m per radian)
+                                 pose_metric`: position [m] plus 0.1 m per radian)
 ``nearest_reachable(poses)``     the nearest grasp the robot reaches, with its
                                  verified IK solution
 ``best(metric, region)``         a continuous search for grasps better than
@@ -41,19 +41,12 @@ from scipy.spatial import cKDTree
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
 from gcm_pipeline.limits import MAX_LENGTH
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.lattice import RowMesh, interpolate, row_memberships, row_mesh
-from gcm_pipeline.manifold.surface import (
-    BLEND_METHODS,
-    ORIENTATION_SCALE,
-    Location,
-    TriangleLocator,
-    blend,
-    pose_distance,
-    pose_features,
-    project_onto_triangles,
-)
+from gcm_pipeline.manifold.locate import Location, TriangleLocator
+from gcm_pipeline.manifold.surface import BLEND_METHODS, blend, project_onto_triangles
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
@@ -366,7 +359,7 @@ class GraspManifold:
 
         The metric is position [m] plus orientation at ``L`` =
         :attr:`orientation_scale` metres per radian (see
-        :mod:`gcm_pipeline.manifold.surface`); the search is exact up to the
+        :mod:`gcm_pipeline.geometry.pose_metric`); the search is exact up to the
         projection's tolerance (no triangle that could hold a nearer point is
         skipped).
 
@@ -374,7 +367,7 @@ class GraspManifold:
             poses: (M, 4, 4) or (M, 8) query poses in the world (one pose: (4, 4) or (8,)).
 
         Returns:
-            :class:`~gcm_pipeline.manifold.surface.Location`: ``triangle``
+            :class:`~gcm_pipeline.manifold.locate.Location`: ``triangle``
             (M,), ``weights`` (M, 3), ``distance`` (M,) [m], ``dq`` (M, 8).
 
         Raises:

@@ -37,12 +37,8 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
     from gcm_pipeline.io import read_run
     from gcm_pipeline.manifold.build import Manifold
     from gcm_pipeline.manifold.locate import Location
-    from gcm_pipeline.manifold.query import (
-        BestGrasps,
-        GraspManifold,
-        NearestReachable,
-        load_manifold,
-    )
+    from gcm_pipeline.manifold.query import GraspManifold
+    from gcm_pipeline.manifold.search import BestGrasps, NearestReachable
     from gcm_pipeline.pipeline import (
         Pipeline,
         RunResult,
@@ -50,6 +46,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         check_reachability,
         densify,
         generate_candidates,
+        load_manifold,
         publish,
         rank,
     )
@@ -70,7 +67,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
 
 #: Public name -> the module that defines it.
 _LAZY = {
-    "BestGrasps": "gcm_pipeline.manifold.query",
+    "BestGrasps": "gcm_pipeline.manifold.search",
     "CollisionChecker": "gcm_pipeline.robot.collision",
     "Config": "gcm_pipeline.config",
     "ConfigError": "gcm_pipeline.errors",
@@ -83,7 +80,7 @@ _LAZY = {
     "InputError": "gcm_pipeline.errors",
     "Location": "gcm_pipeline.manifold.locate",
     "Manifold": "gcm_pipeline.manifold.build",
-    "NearestReachable": "gcm_pipeline.manifold.query",
+    "NearestReachable": "gcm_pipeline.manifold.search",
     "OutputError": "gcm_pipeline.errors",
     "Pipeline": "gcm_pipeline.pipeline",
     "PublishError": "gcm_pipeline.errors",
@@ -108,7 +105,7 @@ _LAZY = {
     "inverse_condition_number": "gcm_pipeline.robot.manipulability",
     "joint_limit_margin": "gcm_pipeline.robot.manipulability",
     "load_config": "gcm_pipeline.config",
-    "load_manifold": "gcm_pipeline.manifold.query",
+    "load_manifold": "gcm_pipeline.pipeline",
     "load_robot": "gcm_pipeline.robot.model",
     "manipulability": "gcm_pipeline.robot.manipulability",
     "manipulability_metrics": "gcm_pipeline.robot.manipulability",

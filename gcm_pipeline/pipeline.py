@@ -61,6 +61,7 @@ if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage run
     from gcm_pipeline.robot.model import Robot
 
 __all__ = [
+    "ConfigRunQueries",
     "Pipeline",
     "ReachabilityCheck",
     "RunResult",
@@ -71,7 +72,9 @@ __all__ = [
     "densify",
     "densify_adaptive",
     "generate_candidates",
+    "grasp_manifold",
     "input_files",
+    "load_manifold",
     "preflight",
     "publish",
     "rank",
@@ -682,6 +685,84 @@ def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[di
     return out
 
 
+@dataclass(frozen=True)
+class ConfigRunQueries:
+    """A run's config as the manifold queries take it (a :class:`~.manifold.query.RunQueries`).
+
+    Args:
+        config: The run's config.
+    """
+
+    config: Config
+
+    @property
+    def ranking_metric(self) -> str:
+        """``ranking.metric``."""
+        return self.config.ranking.metric
+
+    @property
+    def combined_weights(self) -> Mapping[str, float]:
+        """``ranking.weights``, else the default weights of the ``combined`` metric."""
+        from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
+
+        return self.config.ranking.weights or DEFAULT_COMBINED_WEIGHTS
+
+    def load_robot(self) -> Robot:
+        """The robot of ``robot.spec``."""
+        return robot_from_config(self.config)
+
+    def reachability(self, robot: Robot, cfg: Config) -> ReachabilityCheck:
+        """A :class:`ReachabilityCheck` of ``robot`` with ``cfg``."""
+        return ReachabilityCheck(robot, cfg)
+
+    def robot_metrics(self, robot: Robot, q: np.ndarray) -> Mapping[str, np.ndarray]:
+        """The manipulability metrics of configurations ``q`` (N, nq) [rad]."""
+        from gcm_pipeline.robot.manipulability import manipulability_metrics
+
+        return manipulability_metrics(robot, q)
+
+
+def grasp_manifold(
+    manifold: Manifold, grasps: GraspTable, cfg: Config, robot: Robot | None = None
+) -> GraspManifold:
+    """The queryable manifold of a run: its triangles and grasp table, queried as ``cfg`` says.
+
+    ``densify.method`` is the blend, ``manifold.orientation_scale`` the pose
+    metric's ``L``; reachability, robot metrics and ranking weights come from
+    the rest of ``cfg`` (:class:`ConfigRunQueries`).
+    """
+    from gcm_pipeline.manifold.query import GraspManifold
+
+    return GraspManifold(
+        manifold,
+        grasps,
+        method=cfg.densify.method,
+        run=ConfigRunQueries(cfg),
+        robot=robot,
+        orientation_scale=cfg.manifold.orientation_scale,
+    )
+
+
+def load_manifold(run_dir: str | Path) -> GraspManifold:
+    """Load the queryable manifold of a run directory (``gcm run`` output).
+
+    Reads ``grasps.csv``, ``manifold.npz``, ``summary.json`` and
+    ``config.yaml`` (the blend method, the robot and what decides
+    reachability).
+
+    Raises:
+        InputError: Not a run directory, or a file in it is missing or unreadable.
+        ConfigError: Its ``config.yaml`` is invalid.
+    """
+    from gcm_pipeline.errors import InputError
+
+    run = io.read_run(run_dir)
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise InputError(f"not a run directory: {run_dir} lacks config.yaml")
+    return grasp_manifold(run.manifold, run.grasps, load_config(path))
+
+
 @dataclass
 class RunResult:
     """What a pipeline run produced.
@@ -721,9 +802,7 @@ class RunResult:
         See :class:`gcm_pipeline.manifold.query.GraspManifold`; the same as
         :func:`gcm_pipeline.load_manifold` on the run directory.
         """
-        from gcm_pipeline.manifold.query import GraspManifold
-
-        return GraspManifold.from_run(self)
+        return grasp_manifold(self.manifold, self.grasps, self.config, self.robot)
 
     def top(self, n: int | None = None) -> list[dict[str, Any]]:
         """The best-ranked grasps (default: ``ranking.top_k`` of them)."""

@@ -1,4 +1,4 @@
-r"""Nearest points of the grasp manifold: :class:`TriangleLocator`.
+r"""Nearest points of the grasp manifold: :class:`TriangleLocator`, :func:`as_query_poses`.
 
 :class:`TriangleLocator` answers "which point of the manifold is nearest to
 this pose" for batches of queries, exactly up to the projection's tolerance:
@@ -21,18 +21,21 @@ this pose" for batches of queries, exactly up to the projection's tolerance:
 from __future__ import annotations
 
 import itertools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import GeometryError, unknown_choice
-from gcm_pipeline.geometry.dualquat import dq_translation
+from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
+from gcm_pipeline.limits import MAX_LENGTH
 from gcm_pipeline.manifold.surface import BLEND_METHODS, blend, project_onto_triangles
 
-__all__ = ["Location", "TriangleLocator"]
+__all__ = ["Location", "TriangleLocator", "as_query_poses"]
+
+_UNIT_TOL = 1e-6  # |real| - 1 and real.dual of a query dual quaternion
 
 _FLIP = np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0, -1.0])  # the other quaternion sign
 
@@ -51,6 +54,65 @@ class Location(NamedTuple):
     weights: np.ndarray
     distance: np.ndarray
     dq: np.ndarray
+
+
+# --------------------------------------------------------------------------- query poses
+def _check_positions(xyz: np.ndarray, name: str) -> None:
+    """Positions within the scene's bounds (``MAX_LENGTH`` per coordinate, as the config's)."""
+    bad = (np.abs(xyz) > MAX_LENGTH).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise GeometryError(
+            f"{name} {i}: position [{', '.join(f'{v:.10g}' for v in xyz[i])}] m is outside the "
+            f"scene (at most {MAX_LENGTH:g} m per coordinate)"
+        )
+
+
+def as_query_poses(poses: Any, name: str = "query pose") -> np.ndarray:
+    """Validate query poses and return them as unit dual quaternions (M, 8).
+
+    Args:
+        poses: (M, 4, 4) or (4, 4) rigid transforms, or (M, 8) or (8,) unit
+            dual quaternions ``[r_w, r_x, r_y, r_z, d_w, d_x, d_y, d_z]``.
+        name: How to call them in messages.
+
+    Raises:
+        GeometryError: Another shape, non-finite values, a matrix that is not
+            rigid or a dual quaternion that is not unit (names the first bad one).
+    """
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GeometryError(f"{name}s must be numbers: {exc}") from None
+    if arr.shape[-2:] == (4, 4) and arr.ndim in (2, 3):
+        mats = arr.reshape(-1, 4, 4)
+        xyz = mats[:, :3, 3]
+        _check_positions(np.where(np.isfinite(xyz), xyz, 0.0), name)  # non-finite: said below
+        try:
+            return dq_from_matrix(mats)
+        except GeometryError as exc:
+            raise GeometryError(f"{name}: {exc}") from None
+    if arr.ndim in (1, 2) and arr.shape[-1] == 8:
+        dq = arr.reshape(-1, 8)
+        bad = ~np.isfinite(dq).all(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise GeometryError(f"{name} {i} has non-finite values: {dq[i].tolist()}")
+        norm = np.linalg.norm(dq[:, :4], axis=1)
+        dot = np.einsum("ij,ij->i", dq[:, :4], dq[:, 4:])
+        bad = (np.abs(norm - 1.0) > _UNIT_TOL) | (np.abs(dot) > _UNIT_TOL)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise GeometryError(
+                f"{name} {i} is not a unit dual quaternion (|real| = {norm[i]:.6g}, "
+                f"real.dual = {dot[i]:.2e}); pass (4, 4) matrices or dq_from_pos_quat(...)"
+            )
+        _check_positions(dq_translation(dq), name)
+        return dq.copy()
+    raise GeometryError(
+        f"{name}s must be (M, 4, 4) / (4, 4) matrices or (M, 8) / (8,) dual quaternions, "
+        f"got shape {arr.shape}"
+    )
 
 
 # --------------------------------------------------------------------------- locator

@@ -25,15 +25,13 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         RobotSpecError,
     )
     from gcm_pipeline.geometry.dualquat import (
-        dib,
-        dlb,
         dq_from_matrix,
         dq_from_pos_quat,
         dq_mul,
         dq_to_matrix,
         dq_to_pos_quat,
-        sclerp,
     )
+    from gcm_pipeline.geometry.pose_blend import dib, dlb, sclerp
     from gcm_pipeline.io import read_run
     from gcm_pipeline.manifold.build import Manifold
     from gcm_pipeline.manifold.locate import Location
@@ -94,8 +92,8 @@ _LAZY = {
     "check_reachability": "gcm_pipeline.pipeline",
     "combined_score": "gcm_pipeline.stages.collision",
     "densify": "gcm_pipeline.pipeline",
-    "dib": "gcm_pipeline.geometry.dualquat",
-    "dlb": "gcm_pipeline.geometry.dualquat",
+    "dib": "gcm_pipeline.geometry.pose_blend",
+    "dlb": "gcm_pipeline.geometry.pose_blend",
     "dq_from_matrix": "gcm_pipeline.geometry.dualquat",
     "dq_from_pos_quat": "gcm_pipeline.geometry.dualquat",
     "dq_mul": "gcm_pipeline.geometry.dualquat",
@@ -112,7 +110,7 @@ _LAZY = {
     "publish": "gcm_pipeline.pipeline",
     "rank": "gcm_pipeline.pipeline",
     "read_run": "gcm_pipeline.io",
-    "sclerp": "gcm_pipeline.geometry.dualquat",
+    "sclerp": "gcm_pipeline.geometry.pose_blend",
     "solve_ik": "gcm_pipeline.robot.ik",
     "translational_manipulability": "gcm_pipeline.robot.manipulability",
     "yoshikawa": "gcm_pipeline.robot.manipulability",

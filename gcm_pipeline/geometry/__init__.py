@@ -1,9 +1,7 @@
-"""Pure geometry: dual quaternions, Delaunay triangulation and the pose metric (no robot)."""
+"""Pure geometry: dual quaternions, pose blends, Delaunay triangulation, the pose metric."""
 
 from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS, bowyer_watson, delaunay
 from gcm_pipeline.geometry.dualquat import (
-    dib,
-    dlb,
     dq_angle_distance,
     dq_conj,
     dq_distance,
@@ -23,8 +21,8 @@ from gcm_pipeline.geometry.dualquat import (
     dq_translation_distance,
     quat_from_rotation,
     quat_mul,
-    sclerp,
 )
+from gcm_pipeline.geometry.pose_blend import dib, dlb, sclerp
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
 
 __all__ = [

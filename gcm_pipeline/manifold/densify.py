@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.geometry.dualquat import dib, dlb, dq_translation
+from gcm_pipeline.geometry.dualquat import dq_translation
+from gcm_pipeline.geometry.pose_blend import dib, dlb
 from gcm_pipeline.limits import check_size, lattice_size
 from gcm_pipeline.manifold.build import Manifold, candidate_poses
 from gcm_pipeline.table import GraspTable, candidate_fill

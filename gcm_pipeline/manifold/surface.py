@@ -24,7 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from gcm_pipeline.errors import GeometryError, unknown_choice
-from gcm_pipeline.geometry.dualquat import dib, dlb, dq_translation, quat_mul
+from gcm_pipeline.geometry.dualquat import dq_translation, quat_mul
+from gcm_pipeline.geometry.pose_blend import dib, dlb
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance
 
 __all__ = ["BLEND_METHODS", "blend", "project_onto_triangles"]
@@ -65,7 +66,7 @@ def _dlb_model(
     """DLB surface at ``uv`` (P, 2): position (P, 3), rotation (P, 4) and their Jacobians.
 
     ``w = (1 - u - v, u, v)``; signs aligned to the heaviest corner as
-    :func:`~gcm_pipeline.geometry.dualquat.dlb` does. The blend ``b`` is
+    :func:`~gcm_pipeline.geometry.pose_blend.dlb` does. The blend ``b`` is
     affine in (u, v); ``r = b_r / |b_r|`` and ``p = vec(2 b_d b_r^*) / |b_r|^2``.
 
     Returns:

@@ -17,7 +17,8 @@ from gcm_pipeline.geometry.dualquat import (
     dq_to_matrix,
     dq_translation,
 )
-from gcm_pipeline.manifold.build import STANDOFF, Manifold, build_manifold
+from gcm_pipeline.manifold.build import Manifold, build_manifold
+from gcm_pipeline.manifold.charts import STANDOFF
 from gcm_pipeline.table import GraspTable
 
 IDENT = np.array([1.0, 0.0, 0.0, 0.0])

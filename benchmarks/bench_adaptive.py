@@ -36,8 +36,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gcm_pipeline as gcm
+from gcm_pipeline.manifold.lattice import interpolate, row_mesh
 from gcm_pipeline.pipeline import ReachabilityCheck, densify_adaptive
-from gcm_pipeline.stages.lattice import interpolate, row_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "bottle_side.yaml"

@@ -29,10 +29,11 @@ import scipy
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gcm_pipeline.geometry.dualquat import dlb, dq_from_matrix, dq_from_pos_quat, dq_to_matrix
-from gcm_pipeline.geometry.triangulation import bowyer_watson, delaunay
-from gcm_pipeline.stages.densify import densify
-from gcm_pipeline.stages.manifold import build_manifold
+from gcm_pipeline.geometry.bowyer_watson import bowyer_watson, delaunay
+from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_from_pos_quat, dq_to_matrix
+from gcm_pipeline.geometry.pose_blend import dlb
+from gcm_pipeline.manifold.build import build_manifold
+from gcm_pipeline.manifold.densify import densify
 from gcm_pipeline.table import GraspTable
 
 RESULTS = Path(__file__).resolve().parent / "results" / "geometry.json"

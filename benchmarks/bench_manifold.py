@@ -43,8 +43,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gcm_pipeline as gcm
 from gcm_pipeline.geometry.dualquat import dq_exp, dq_mul
-from gcm_pipeline.geometry.surface import _cells, blend, pose_features
-from gcm_pipeline.query import GraspManifold
+from gcm_pipeline.geometry.pose_metric import pose_features
+from gcm_pipeline.manifold.locate import _cells
+from gcm_pipeline.manifold.surface import blend
+from gcm_pipeline.pipeline import grasp_manifold
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "manifold.json"
@@ -84,7 +86,7 @@ def bench(name: str, overrides: list[str], n_queries: int, repeats: int) -> dict
     mesh = gcm.build_manifold(cand, cfg)
     table = gcm.densify(cand, mesh, cfg)
     t0 = time.perf_counter()
-    manifold = GraspManifold(mesh, table, method=cfg.densify.method, config=cfg)
+    manifold = grasp_manifold(mesh, table, cfg)
     _ = manifold.locator
     build = time.perf_counter() - t0
     rng = np.random.default_rng(0)

@@ -26,17 +26,18 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         RobotSpecError,
     )
     from gcm_pipeline.geometry.dualquat import (
-        dib,
-        dlb,
         dq_from_matrix,
         dq_from_pos_quat,
         dq_mul,
         dq_to_matrix,
         dq_to_pos_quat,
-        sclerp,
     )
-    from gcm_pipeline.geometry.surface import Location
+    from gcm_pipeline.geometry.pose_blend import dib, dlb, sclerp
     from gcm_pipeline.io import read_run
+    from gcm_pipeline.manifold.build import Manifold
+    from gcm_pipeline.manifold.locate import Location
+    from gcm_pipeline.manifold.query import GraspManifold
+    from gcm_pipeline.manifold.search import BestGrasps, NearestReachable
     from gcm_pipeline.pipeline import (
         Pipeline,
         RunResult,
@@ -44,10 +45,10 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         check_reachability,
         densify,
         generate_candidates,
+        load_manifold,
         publish,
         rank,
     )
-    from gcm_pipeline.query import BestGrasps, GraspManifold, NearestReachable, load_manifold
     from gcm_pipeline.robot.collision import CollisionChecker
     from gcm_pipeline.robot.ik import IKResult, solve_ik
     from gcm_pipeline.robot.manipulability import (
@@ -60,26 +61,25 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
     )
     from gcm_pipeline.robot.model import Robot
     from gcm_pipeline.stages.collision import combined_score
-    from gcm_pipeline.stages.manifold import Manifold
     from gcm_pipeline.study import Study, StudyResult
     from gcm_pipeline.table import GraspTable
 
 #: Public name -> the module that defines it.
 _LAZY = {
-    "BestGrasps": "gcm_pipeline.query",
+    "BestGrasps": "gcm_pipeline.manifold.search",
     "CollisionChecker": "gcm_pipeline.robot.collision",
     "Config": "gcm_pipeline.config",
     "ConfigError": "gcm_pipeline.errors",
     "FrameNotFoundError": "gcm_pipeline.errors",
     "GcmError": "gcm_pipeline.errors",
     "GeometryError": "gcm_pipeline.errors",
-    "GraspManifold": "gcm_pipeline.query",
+    "GraspManifold": "gcm_pipeline.manifold.query",
     "GraspTable": "gcm_pipeline.table",
     "IKResult": "gcm_pipeline.robot.ik",
     "InputError": "gcm_pipeline.errors",
-    "Location": "gcm_pipeline.geometry.surface",
-    "Manifold": "gcm_pipeline.stages.manifold",
-    "NearestReachable": "gcm_pipeline.query",
+    "Location": "gcm_pipeline.manifold.locate",
+    "Manifold": "gcm_pipeline.manifold.build",
+    "NearestReachable": "gcm_pipeline.manifold.search",
     "OutputError": "gcm_pipeline.errors",
     "Pipeline": "gcm_pipeline.pipeline",
     "PublishError": "gcm_pipeline.errors",
@@ -93,8 +93,8 @@ _LAZY = {
     "check_reachability": "gcm_pipeline.pipeline",
     "combined_score": "gcm_pipeline.stages.collision",
     "densify": "gcm_pipeline.pipeline",
-    "dib": "gcm_pipeline.geometry.dualquat",
-    "dlb": "gcm_pipeline.geometry.dualquat",
+    "dib": "gcm_pipeline.geometry.pose_blend",
+    "dlb": "gcm_pipeline.geometry.pose_blend",
     "dq_from_matrix": "gcm_pipeline.geometry.dualquat",
     "dq_from_pos_quat": "gcm_pipeline.geometry.dualquat",
     "dq_mul": "gcm_pipeline.geometry.dualquat",
@@ -104,14 +104,14 @@ _LAZY = {
     "inverse_condition_number": "gcm_pipeline.robot.manipulability",
     "joint_limit_margin": "gcm_pipeline.robot.manipulability",
     "load_config": "gcm_pipeline.config",
-    "load_manifold": "gcm_pipeline.query",
+    "load_manifold": "gcm_pipeline.pipeline",
     "load_robot": "gcm_pipeline.config.robot_spec",
     "manipulability": "gcm_pipeline.robot.manipulability",
     "manipulability_metrics": "gcm_pipeline.robot.manipulability",
     "publish": "gcm_pipeline.pipeline",
     "rank": "gcm_pipeline.pipeline",
     "read_run": "gcm_pipeline.io",
-    "sclerp": "gcm_pipeline.geometry.dualquat",
+    "sclerp": "gcm_pipeline.geometry.pose_blend",
     "solve_ik": "gcm_pipeline.robot.ik",
     "translational_manipulability": "gcm_pipeline.robot.manipulability",
     "yoshikawa": "gcm_pipeline.robot.manipulability",

@@ -457,7 +457,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
     import numpy as np
 
     from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
-    from gcm_pipeline.query import load_manifold
+    from gcm_pipeline.pipeline import load_manifold
 
     with load_manifold(args.run_dir) as manifold:
         poses = _query_poses(args.pose, args.frame, manifold.config)

@@ -73,7 +73,8 @@ from gcm_pipeline import signals
 from gcm_pipeline.bounds import MAX_CSV_CELL
 from gcm_pipeline.errors import InputError, OutputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
-from gcm_pipeline.stages.manifold import Manifold
+from gcm_pipeline.bounds import MAX_CSV_CELL
+from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.table import CANDIDATE_COLUMNS, GraspTable
 
 __all__ = [
@@ -1109,7 +1110,7 @@ _MAX_MANIFOLD_BYTES = 1 << 30
 
 
 def read_manifold(path: str | Path, n_rows: int | None = None) -> Manifold:
-    """Read ``manifold.npz`` back into a :class:`~gcm_pipeline.stages.manifold.Manifold`.
+    """Read ``manifold.npz`` back into a :class:`~gcm_pipeline.manifold.build.Manifold`.
 
     The file holds ``vertex_ids`` (V,): the ``grasps.csv`` data row (0-based)
     of each manifold vertex (candidate); ``chart`` (V, 2) [m]; ``triangles``

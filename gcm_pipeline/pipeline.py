@@ -55,12 +55,13 @@ from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_pos_quat
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
-    from gcm_pipeline.query import GraspManifold
+    from gcm_pipeline.manifold.build import Manifold
+    from gcm_pipeline.manifold.query import GraspManifold
     from gcm_pipeline.robot.engine import ReachabilityEngine
     from gcm_pipeline.robot.model import Robot
-    from gcm_pipeline.stages.manifold import Manifold
 
 __all__ = [
+    "ConfigRunQueries",
     "Pipeline",
     "ReachabilityCheck",
     "RunResult",
@@ -72,7 +73,9 @@ __all__ = [
     "densify",
     "densify_adaptive",
     "generate_candidates",
+    "grasp_manifold",
     "input_files",
+    "load_manifold",
     "preflight",
     "publish",
     "rank",
@@ -297,9 +300,9 @@ def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
         cfg: The full config.
 
     Returns:
-        A :class:`gcm_pipeline.stages.manifold.Manifold`.
+        A :class:`gcm_pipeline.manifold.build.Manifold`.
     """
-    from gcm_pipeline.stages import manifold as stage
+    from gcm_pipeline.manifold import build as stage
 
     m = cfg.manifold
     return stage.build_manifold(
@@ -325,7 +328,7 @@ def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
         All candidates (first, in input order) and the interpolated grasps,
         with ``dq, origin, triangle, vertices, weights``.
     """
-    from gcm_pipeline.stages import densify as stage
+    from gcm_pipeline.manifold import densify as stage
 
     d = cfg.densify
     return stage.densify(
@@ -376,7 +379,7 @@ def densify_adaptive(
 ) -> GraspTable:
     """Densify where reachability or the metric changes, checking as it refines.
 
-    Section ``densify.adaptive`` (see :mod:`gcm_pipeline.stages.adaptive`);
+    Section ``densify.adaptive`` (see :mod:`gcm_pipeline.manifold.adaptive`);
     reachability is decided as in :func:`check_reachability`, so the result
     has the columns of densify and of the reachability stage, plus ``level``.
 
@@ -392,7 +395,7 @@ def densify_adaptive(
             beyond ``densify.max_poses``.
     """
     from gcm_pipeline.errors import ConfigError
-    from gcm_pipeline.stages import adaptive as stage
+    from gcm_pipeline.manifold import adaptive as stage
 
     a = cfg.densify.adaptive
     if a is None:
@@ -425,7 +428,7 @@ def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict
     made at each level), ``uniform_subdivisions`` and ``uniform_rows`` (the
     uniform lattice with ``2**max_level`` subdivisions).
     """
-    from gcm_pipeline.stages.adaptive import uniform_size
+    from gcm_pipeline.manifold.adaptive import uniform_size
 
     a = cfg.densify.adaptive
     assert a is not None
@@ -447,8 +450,8 @@ def add_continuity(
 ) -> tuple[GraspTable, dict[str, int]]:
     """IK continuity and the robustness margin (sections ``continuity``, ``manifold``).
 
-    Adds ``ik_jump`` [rad] and ``patch`` (:mod:`gcm_pipeline.stages.continuity`)
-    and ``margin`` [m] (:mod:`gcm_pipeline.stages.margin`); with
+    Adds ``ik_jump`` [rad] and ``patch`` (:mod:`gcm_pipeline.manifold.continuity`)
+    and ``margin`` [m] (:mod:`gcm_pipeline.manifold.margin`); with
     ``continuity.reseed`` first re-solves border grasps of smaller patches from
     their neighbours in larger ones (that needs ``check``, or the robot to
     build one).
@@ -458,9 +461,9 @@ def add_continuity(
         re-seeding, ``patches_before_reseed``, ``reseeded`` (grasps that took a
         new solution) and ``reseed_ik_solves``.
     """
-    from gcm_pipeline.stages import continuity as stage
-    from gcm_pipeline.stages.lattice import row_mesh
-    from gcm_pipeline.stages.margin import margin
+    from gcm_pipeline.manifold import continuity as stage
+    from gcm_pipeline.manifold.lattice import row_mesh
+    from gcm_pipeline.manifold.margin import margin
 
     c = cfg.continuity
     edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
@@ -536,8 +539,8 @@ def select_branches(
     See :mod:`gcm_pipeline.stages.branches`. A table without branch columns is
     returned unchanged.
     """
+    from gcm_pipeline.manifold.lattice import row_mesh
     from gcm_pipeline.stages import branches as stage
-    from gcm_pipeline.stages.lattice import row_mesh
 
     if "solutions" not in grasps:
         return grasps
@@ -789,6 +792,84 @@ def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[di
     return out
 
 
+@dataclass(frozen=True)
+class ConfigRunQueries:
+    """A run's config as the manifold queries take it (a :class:`~.manifold.query.RunQueries`).
+
+    Args:
+        config: The run's config.
+    """
+
+    config: Config
+
+    @property
+    def ranking_metric(self) -> str:
+        """``ranking.metric``."""
+        return self.config.ranking.metric
+
+    @property
+    def combined_weights(self) -> Mapping[str, float]:
+        """``ranking.weights``, else the default weights of the ``combined`` metric."""
+        from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
+
+        return self.config.ranking.weights or DEFAULT_COMBINED_WEIGHTS
+
+    def load_robot(self) -> Robot:
+        """The robot of ``robot.spec``."""
+        return robot_from_config(self.config)
+
+    def reachability(self, robot: Robot, cfg: Config) -> ReachabilityCheck:
+        """A :class:`ReachabilityCheck` of ``robot`` with ``cfg``."""
+        return ReachabilityCheck(robot, cfg)
+
+    def robot_metrics(self, robot: Robot, q: np.ndarray) -> Mapping[str, np.ndarray]:
+        """The manipulability metrics of configurations ``q`` (N, nq) [rad]."""
+        from gcm_pipeline.robot.manipulability import manipulability_metrics
+
+        return manipulability_metrics(robot, q)
+
+
+def grasp_manifold(
+    manifold: Manifold, grasps: GraspTable, cfg: Config, robot: Robot | None = None
+) -> GraspManifold:
+    """The queryable manifold of a run: its triangles and grasp table, queried as ``cfg`` says.
+
+    ``densify.method`` is the blend, ``manifold.orientation_scale`` the pose
+    metric's ``L``; reachability, robot metrics and ranking weights come from
+    the rest of ``cfg`` (:class:`ConfigRunQueries`).
+    """
+    from gcm_pipeline.manifold.query import GraspManifold
+
+    return GraspManifold(
+        manifold,
+        grasps,
+        method=cfg.densify.method,
+        run=ConfigRunQueries(cfg),
+        robot=robot,
+        orientation_scale=cfg.manifold.orientation_scale,
+    )
+
+
+def load_manifold(run_dir: str | Path) -> GraspManifold:
+    """Load the queryable manifold of a run directory (``gcm run`` output).
+
+    Reads ``grasps.csv``, ``manifold.npz``, ``summary.json`` and
+    ``config.yaml`` (the blend method, the robot and what decides
+    reachability).
+
+    Raises:
+        InputError: Not a run directory, or a file in it is missing or unreadable.
+        ConfigError: Its ``config.yaml`` is invalid.
+    """
+    from gcm_pipeline.errors import InputError
+
+    run = io.read_run(run_dir)
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise InputError(f"not a run directory: {run_dir} lacks config.yaml")
+    return grasp_manifold(run.manifold, run.grasps, load_config(path))
+
+
 @dataclass
 class RunResult:
     """What a pipeline run produced.
@@ -805,7 +886,7 @@ class RunResult:
         config: The resolved config.
         run_dir: The run directory, or None when nothing was written.
         grasp_manifold: The manifold as a queryable
-            :class:`~gcm_pipeline.query.GraspManifold` (built on first use).
+            :class:`~gcm_pipeline.manifold.query.GraspManifold` (built on first use).
         grasp_frame: How a grasp file's gripper frame was mapped onto the
             robot's grasp frame (``format``, ``gripper``, ``chosen_by``,
             ``file_gripper``, ``describe``), None for other sources.
@@ -825,12 +906,10 @@ class RunResult:
     def grasp_manifold(self) -> GraspManifold:
         """The run's manifold as a queryable object (sample, locate, nearest reachable, best).
 
-        See :class:`gcm_pipeline.query.GraspManifold`; the same as
+        See :class:`gcm_pipeline.manifold.query.GraspManifold`; the same as
         :func:`gcm_pipeline.load_manifold` on the run directory.
         """
-        from gcm_pipeline.query import GraspManifold
-
-        return GraspManifold.from_run(self)
+        return grasp_manifold(self.manifold, self.grasps, self.config, self.robot)
 
     def top(self, n: int | None = None) -> list[dict[str, Any]]:
         """The best-ranked grasps (default: ``ranking.top_k`` of them)."""

@@ -11,10 +11,10 @@ from scipy.spatial import cKDTree
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
-from gcm_pipeline.geometry.surface import pose_features
+from gcm_pipeline.geometry.pose_metric import pose_features
+from gcm_pipeline.manifold.adaptive import refine, uniform_size
+from gcm_pipeline.manifold.lattice import interpolate, row_mesh
 from gcm_pipeline.pipeline import ReachabilityCheck, densify_adaptive
-from gcm_pipeline.stages.adaptive import refine, uniform_size
-from gcm_pipeline.stages.lattice import interpolate, row_mesh
 from gcm_pipeline.table import GraspTable
 
 LEVEL = 3

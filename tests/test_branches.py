@@ -10,10 +10,10 @@ from helpers import BOTTLE, assert_one_line_error
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
+from gcm_pipeline.manifold.continuity import patches
+from gcm_pipeline.manifold.lattice import row_mesh
 from gcm_pipeline.pipeline import branch_scores
 from gcm_pipeline.stages.collision import make_checker
-from gcm_pipeline.stages.continuity import patches
-from gcm_pipeline.stages.lattice import row_mesh
 
 SMALL = ["candidates.count=45", "densify.subdivisions=3", "ik.solutions=4"]
 

@@ -7,14 +7,14 @@ import pytest
 from helpers import BOTTLE
 
 import gcm_pipeline as gcm
-from gcm_pipeline.geometry.surface import pose_distance
+from gcm_pipeline.geometry.pose_metric import pose_distance
+from gcm_pipeline.manifold import continuity
+from gcm_pipeline.manifold.build import build_manifold
+from gcm_pipeline.manifold.densify import densify
+from gcm_pipeline.manifold.lattice import row_mesh
+from gcm_pipeline.manifold.margin import margin
 from gcm_pipeline.pipeline import ReachabilityCheck
-from gcm_pipeline.stages import continuity
 from gcm_pipeline.stages.collision import make_checker
-from gcm_pipeline.stages.densify import densify
-from gcm_pipeline.stages.lattice import row_mesh
-from gcm_pipeline.stages.manifold import build_manifold
-from gcm_pipeline.stages.margin import margin
 from gcm_pipeline.table import GraspTable
 
 

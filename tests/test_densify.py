@@ -8,17 +8,15 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.geometry.dualquat import (
-    dib,
-    dlb,
     dq_angle_distance,
     dq_distance,
     dq_from_pos_quat,
     dq_to_matrix,
     dq_translation,
-    sclerp,
 )
-from gcm_pipeline.stages.densify import _points_general, _points_uniform, densify
-from gcm_pipeline.stages.manifold import Manifold, build_manifold
+from gcm_pipeline.geometry.pose_blend import dib, dlb, sclerp
+from gcm_pipeline.manifold.build import Manifold, build_manifold
+from gcm_pipeline.manifold.densify import _points_general, _points_uniform, densify
 from gcm_pipeline.table import GraspTable
 
 IDENT = np.array([1.0, 0.0, 0.0, 0.0])

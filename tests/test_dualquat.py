@@ -11,8 +11,6 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import GcmError, GeometryError
 from gcm_pipeline.geometry.dualquat import (
-    dib,
-    dlb,
     dq_angle_distance,
     dq_conj,
     dq_distance,
@@ -28,8 +26,8 @@ from gcm_pipeline.geometry.dualquat import (
     dq_to_pos_quat,
     dq_transform_points,
     dq_translation,
-    sclerp,
 )
+from gcm_pipeline.geometry.pose_blend import dib, dlb, sclerp
 
 ATOL = 1e-12
 

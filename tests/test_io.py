@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from gcm_pipeline import io
 from gcm_pipeline.errors import InputError, OutputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
-from gcm_pipeline.stages.manifold import Manifold
+from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.table import GraspTable
 
 N, NC, NQ = 9, 3, 7

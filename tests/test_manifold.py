@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import GcmError, GeometryError, InputError
+from gcm_pipeline.geometry.bowyer_watson import delaunay
 from gcm_pipeline.geometry.dualquat import (
     dq_from_matrix,
     dq_from_pos_quat,
@@ -16,8 +17,8 @@ from gcm_pipeline.geometry.dualquat import (
     dq_to_matrix,
     dq_translation,
 )
-from gcm_pipeline.geometry.triangulation import delaunay
-from gcm_pipeline.stages.manifold import STANDOFF, Manifold, build_manifold
+from gcm_pipeline.manifold.build import Manifold, build_manifold
+from gcm_pipeline.manifold.charts import STANDOFF
 from gcm_pipeline.table import GraspTable
 
 IDENT = np.array([1.0, 0.0, 0.0, 0.0])

@@ -12,13 +12,9 @@ from helpers import BOTTLE, ROOT, assert_one_line_error
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
 from gcm_pipeline.geometry.dualquat import dq_exp, dq_mul, dq_to_matrix
-from gcm_pipeline.geometry.surface import (
-    TriangleLocator,
-    _cells,
-    blend,
-    pose_distance,
-    pose_features,
-)
+from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
+from gcm_pipeline.manifold.locate import TriangleLocator, _cells
+from gcm_pipeline.manifold.surface import blend
 from gcm_pipeline.stages.collision import make_checker
 
 

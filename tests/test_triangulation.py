@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
 from gcm_pipeline.errors import GeometryError
-from gcm_pipeline.geometry.triangulation import bowyer_watson, delaunay
+from gcm_pipeline.geometry.bowyer_watson import bowyer_watson, delaunay
 
 METHODS = ("qhull", "bowyer_watson")
 
@@ -196,7 +196,7 @@ def test_error_unknown_method_lists_valid_ones():
 
 def test_hilbert_order_visits_grid_neighbours():
     """The insertion order's space-filling curve: each cell follows an adjacent one."""
-    from gcm_pipeline.geometry.triangulation import _hilbert_index
+    from gcm_pipeline.geometry.bowyer_watson import _hilbert_index
 
     n = 5
     gx, gy = np.meshgrid(np.arange(2**n), np.arange(2**n))

@@ -360,7 +360,7 @@ class ManifoldConfig(_Section):
 
 
 class AdaptiveConfig(_Section):
-    """Adaptive refinement (see :mod:`gcm_pipeline.stages.adaptive`).
+    """Adaptive refinement (see :mod:`gcm_pipeline.manifold.adaptive`).
 
     Triangles are split into four where their corners disagree on
     reachability (``boundary``) or their ranking metric varies by more than
@@ -530,7 +530,7 @@ _METRICS: tuple[str, ...] = typing.get_args(Metric)
 
 
 class ContinuityConfig(_Section):
-    """IK continuity between neighbouring grasps (see :mod:`gcm_pipeline.stages.continuity`).
+    """IK continuity between neighbouring grasps (see :mod:`gcm_pipeline.manifold.continuity`).
 
     ``threshold`` [rad] is the largest joint jump (L-infinity) between
     neighbours of one patch (one IK branch). With ``reseed``, grasps at the

@@ -1,8 +1,7 @@
-"""Pure geometry: dual quaternions and Delaunay triangulation (no robot)."""
+"""Pure geometry: dual quaternions, pose blends, Delaunay triangulation, the pose metric."""
 
+from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS, bowyer_watson, delaunay
 from gcm_pipeline.geometry.dualquat import (
-    dib,
-    dlb,
     dq_angle_distance,
     dq_conj,
     dq_distance,
@@ -22,11 +21,12 @@ from gcm_pipeline.geometry.dualquat import (
     dq_translation_distance,
     quat_from_rotation,
     quat_mul,
-    sclerp,
 )
-from gcm_pipeline.geometry.triangulation import TRIANGULATORS, bowyer_watson, delaunay
+from gcm_pipeline.geometry.pose_blend import dib, dlb, sclerp
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
 
 __all__ = [
+    "ORIENTATION_SCALE",
     "TRIANGULATORS",
     "bowyer_watson",
     "delaunay",
@@ -49,6 +49,8 @@ __all__ = [
     "dq_transform_points",
     "dq_translation",
     "dq_translation_distance",
+    "pose_distance",
+    "pose_features",
     "quat_from_rotation",
     "quat_mul",
     "sclerp",

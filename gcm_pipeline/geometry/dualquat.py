@@ -29,14 +29,7 @@ rotation. With the standard convention above, DLB (Kavan et al. 2008) does
 what the paper intends: the vertices of a triangle are reproduced exactly
 and the interior is a smooth blend of position and orientation.
 
-Blends
-------
-* :func:`dlb`: dual quaternion linear blending (Kavan et al.), closed form,
-  fast, approximates the bi-invariant mean.
-* :func:`dib`: dual quaternion iterative blending (Kavan et al.), the exact
-  bi-invariant weighted mean, iterating :func:`dq_log` / :func:`dq_exp`
-  around the current estimate.
-* :func:`sclerp`: screw linear interpolation between two poses.
+Blends of poses (ScLERP, DLB, DIB) are in :mod:`gcm_pipeline.geometry.pose_blend`.
 
 Logarithms are SE(3) twists ``(omega, v)`` (..., 6) [rad, m]: the rotation
 vector and the translational part, such that ``dq_exp(dq_log(q)) == q``.
@@ -44,17 +37,13 @@ vector and the translational part, such that ``dq_exp(dq_log(q)) == q``.
 
 from __future__ import annotations
 
-import warnings
-from typing import Literal
-
 import numpy as np
 import numpy.typing as npt
 
-from gcm_pipeline.errors import GeometryError, unknown_choice
+from gcm_pipeline.errors import GeometryError
 
 __all__ = [
-    "dib",
-    "dlb",
+    "as_dq",
     "dq_angle_distance",
     "dq_conj",
     "dq_distance",
@@ -72,22 +61,20 @@ __all__ = [
     "dq_transform_points",
     "dq_translation",
     "dq_translation_distance",
+    "first_bad_index",
     "quat_from_rotation",
     "quat_mul",
-    "sclerp",
+    "unit_from_blend",
 ]
 
 _ORTHO_TOL = 1e-6
 _ROW_TOL = 1e-9
-_WEIGHT_TOL = 1e-9
 _ZERO_NORM = 1e-12
 _SMALL_ANGLE = 1e-3
 
-_PIVOTS = ("first", "heaviest")
-
 
 # --------------------------------------------------------------------------- helpers
-def _first_bad(mask: np.ndarray) -> tuple[int, ...] | int:
+def first_bad_index(mask: np.ndarray) -> tuple[int, ...] | int:
     """Return the batch index of the first True entry of ``mask``."""
     flat = int(np.flatnonzero(mask.ravel())[0])
     if mask.ndim <= 1:
@@ -120,10 +107,10 @@ def _check_finite(arr: np.ndarray, name: str, trailing: int) -> None:
     bad = ~np.isfinite(arr)
     if trailing:
         bad = bad.reshape(arr.shape[: arr.ndim - trailing] + (-1,)).any(-1)
-    raise GeometryError(f"{name} has non-finite values at index {_first_bad(bad)}")
+    raise GeometryError(f"{name} has non-finite values at index {first_bad_index(bad)}")
 
 
-def _as_dq(x: npt.ArrayLike, name: str = "dq", check: bool = True) -> np.ndarray:
+def as_dq(x: npt.ArrayLike, name: str = "dq", check: bool = True) -> np.ndarray:
     """Convert to a float64 (..., 8) array; with ``check``, require finite values."""
     return _as_float(x, name, (8,), check)
 
@@ -134,7 +121,7 @@ def _check_nonzero(dq: np.ndarray, name: str) -> None:
     bad = n2 < _ZERO_NORM**2
     if bad.any():
         raise GeometryError(
-            f"{name} has a zero-norm rotation (real part) at index {_first_bad(bad)}"
+            f"{name} has a zero-norm rotation (real part) at index {first_bad_index(bad)}"
         )
 
 
@@ -176,7 +163,7 @@ def _qconj(q: np.ndarray) -> np.ndarray:
     return out
 
 
-def _unit_from_blend(b: np.ndarray) -> np.ndarray:
+def unit_from_blend(b: np.ndarray) -> np.ndarray:
     """Normalise a blended dual quaternion (..., 8) to unit (Kavan's normalisation).
 
     ``r <- r/|r|``, ``d <- d/|r| - r (r.d)/|r|^3`` so that ``r.d == 0``; the
@@ -212,8 +199,8 @@ def dq_mul(a: npt.ArrayLike, b: npt.ArrayLike) -> np.ndarray:
         The product (..., 8): real ``a_r b_r``, dual ``a_r b_d + a_d b_r``.
         The matrix of the product is ``dq_to_matrix(a) @ dq_to_matrix(b)``.
     """
-    a = _as_dq(a, "a", check=False)
-    b = _as_dq(b, "b", check=False)
+    a = as_dq(a, "a", check=False)
+    b = as_dq(b, "b", check=False)
     ar, ad = a[..., :4], a[..., 4:]
     br, bd = b[..., :4], b[..., 4:]
     return np.concatenate((quat_mul(ar, br), quat_mul(ar, bd) + quat_mul(ad, br)), axis=-1)
@@ -224,7 +211,7 @@ def dq_conj(dq: npt.ArrayLike) -> np.ndarray:
 
     For a unit dual quaternion this is its inverse (the inverse pose).
     """
-    dq = _as_dq(dq, check=False)
+    dq = as_dq(dq, check=False)
     out = -dq
     out[..., 0] = dq[..., 0]
     out[..., 4] = dq[..., 4]
@@ -245,7 +232,7 @@ def dq_inv(dq: npt.ArrayLike) -> np.ndarray:
     Raises:
         GeometryError: On non-finite values or a zero-norm real part.
     """
-    dq = _as_dq(dq)
+    dq = as_dq(dq)
     _check_nonzero(dq, "dq")
     r = dq[..., :4]
     rinv = _qconj(r) / np.einsum("...i,...i->...", r, r)[..., None]
@@ -266,19 +253,19 @@ def dq_normalize(dq: npt.ArrayLike) -> np.ndarray:
     Raises:
         GeometryError: On non-finite values or a zero-norm real part.
     """
-    dq = _as_dq(dq)
+    dq = as_dq(dq)
     _check_nonzero(dq, "dq")
-    return _unit_from_blend(dq)
+    return unit_from_blend(dq)
 
 
 def dq_rotation(dq: npt.ArrayLike) -> np.ndarray:
     """Rotation quaternions (w, x, y, z) (..., 4): the real part (a view-free copy)."""
-    return np.array(_as_dq(dq, check=False)[..., :4])
+    return np.array(as_dq(dq, check=False)[..., :4])
 
 
 def dq_translation(dq: npt.ArrayLike) -> np.ndarray:
     r"""Translations [m] (..., 3) of unit dual quaternions, :math:`t = 2\,(d\, r^*)_{xyz}`."""
-    dq = _as_dq(dq, check=False)
+    dq = as_dq(dq, check=False)
     w = dq[..., 0:1]
     v = dq[..., 1:4]
     dw = dq[..., 4:5]
@@ -306,7 +293,7 @@ def dq_from_pos_quat(pos: npt.ArrayLike, quat: npt.ArrayLike, *, check: bool = T
     quat = _as_float(quat, "quat", (4,), check)
     n = np.sqrt(np.einsum("...i,...i->...", quat, quat))
     if check and (n < _ZERO_NORM).any():
-        raise GeometryError(f"quat has zero norm at index {_first_bad(n < _ZERO_NORM)}")
+        raise GeometryError(f"quat has zero norm at index {first_bad_index(n < _ZERO_NORM)}")
     batch = np.broadcast_shapes(quat.shape[:-1], pos.shape[:-1])
     r = np.broadcast_to(quat / n[..., None], batch + (4,))
     pos = np.broadcast_to(pos, batch + (3,))
@@ -329,7 +316,7 @@ def dq_to_pos_quat(dq: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         ``(pos, quat)``: positions [m] (..., 3) and quaternions (..., 4), the
         real part as stored (the sign is kept, not canonicalised).
     """
-    dq = _as_dq(dq, check=False)
+    dq = as_dq(dq, check=False)
     return dq_translation(dq), np.array(dq[..., :4])
 
 
@@ -366,7 +353,7 @@ def dq_to_matrix(dq: npt.ArrayLike) -> np.ndarray:
     Returns:
         Rigid transforms (..., 4, 4), bottom row ``[0, 0, 0, 1]``.
     """
-    dq = _as_dq(dq, check=False)
+    dq = as_dq(dq, check=False)
     out = np.zeros(dq.shape[:-1] + (4, 4))
     _rotation_matrices(dq[..., :4], out)
     out[..., :3, 3] = dq_translation(dq)
@@ -494,7 +481,7 @@ def dq_transform_points(dq: npt.ArrayLike, points: npt.ArrayLike) -> np.ndarray:
     Returns:
         Transformed points [m] (..., 3).
     """
-    dq = _as_dq(dq, check=False)
+    dq = as_dq(dq, check=False)
     p = _as_float(points, "points", (3,), check=False)
     w = dq[..., 0:1]
     u = dq[..., 1:4]
@@ -510,8 +497,8 @@ def dq_translation_distance(a: npt.ArrayLike, b: npt.ArrayLike) -> np.ndarray:
 
 def dq_angle_distance(a: npt.ArrayLike, b: npt.ArrayLike) -> np.ndarray:
     """Rotation angle [rad] (...,) in [0, pi] of ``a^-1 b``, independent of signs."""
-    a = _as_dq(a, "a", check=False)
-    b = _as_dq(b, "b", check=False)
+    a = as_dq(a, "a", check=False)
+    b = as_dq(b, "b", check=False)
     rel = quat_mul(_qconj(a[..., :4]), b[..., :4])
     return 2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), np.abs(rel[..., 0]))
 
@@ -543,7 +530,7 @@ def dq_log(dq: npt.ArrayLike) -> np.ndarray:
         Twists ``(omega, v)`` (..., 6): rotation vector [rad] and translational
         part [m] with ``t = V(omega) v`` (SE(3) left Jacobian ``V``).
     """
-    dq = _as_dq(dq, check=False)
+    dq = as_dq(dq, check=False)
     sgn = np.where(dq[..., 0] < 0, -1.0, 1.0)[..., None]
     w = np.abs(dq[..., 0])
     v = dq[..., 1:4] * sgn
@@ -587,199 +574,3 @@ def dq_exp(xi: npt.ArrayLike) -> np.ndarray:
     r[..., 0] = np.cos(0.5 * th)
     r[..., 1:] = omega * half_sinc[..., None]
     return dq_from_pos_quat(t, r, check=False)
-
-
-# --------------------------------------------------------------------------- blends
-def sclerp(
-    a: npt.ArrayLike, b: npt.ArrayLike, t: npt.ArrayLike, *, check: bool = True
-) -> np.ndarray:
-    r"""Screw linear interpolation :math:`\hat a (\hat a^{-1} \hat b)^t`.
-
-    The relative motion :math:`\hat a^{-1} \hat b` is taken the short way
-    (its logarithm has rotation angle <= pi), so the signs of ``a`` and ``b``
-    do not matter.
-
-    Args:
-        a: Start poses (..., 8), unit dual quaternions.
-        b: End poses (..., 8), broadcast against ``a``.
-        t: Interpolation parameter(s) [-], broadcast against the batch shape;
-            0 gives ``a``, 1 gives ``b`` (up to sign).
-        check: Validate finiteness.
-
-    Returns:
-        Interpolated unit dual quaternions (..., 8).
-    """
-    a = _as_dq(a, "a", check)
-    b = _as_dq(b, "b", check)
-    t = np.asarray(t, dtype=np.float64)
-    if check and not np.isfinite(t).all():
-        raise GeometryError(f"sclerp parameter t has non-finite values: {t}")
-    rel = dq_mul(dq_conj(a), b)
-    return dq_mul(a, dq_exp(dq_log(rel) * t[..., None]))
-
-
-def _check_weights(w: np.ndarray) -> None:
-    bad = ~np.isfinite(w)
-    if bad.any():
-        raise GeometryError(f"blend weights have non-finite values at index {_first_bad(bad)}")
-    bad = w < -_WEIGHT_TOL
-    if bad.any():
-        i = _first_bad(bad)
-        raise GeometryError(f"blend weights must be >= 0, got {float(w[i]):.6g} at index {i}")
-    total = w.sum(-1)
-    bad = np.abs(total - 1.0) > _WEIGHT_TOL
-    if np.ndim(total) == 0:
-        if bad:
-            raise GeometryError(f"blend weights must sum to 1, got {float(total):.12g}")
-    elif bad.any():
-        i = _first_bad(bad)
-        raise GeometryError(f"blend weights must sum to 1, got {float(total[i]):.12g} at index {i}")
-
-
-def _blend_inputs(
-    dqs: npt.ArrayLike, weights: npt.ArrayLike, check: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    dqs = _as_dq(dqs, "dqs", check)
-    w = np.asarray(weights, dtype=np.float64)
-    if dqs.ndim < 2:
-        raise GeometryError(f"dqs must have shape (..., K, 8), got {dqs.shape}")
-    if w.ndim < 1 or w.shape[-1] != dqs.shape[-2]:
-        raise GeometryError(
-            f"weights must have shape (..., K) with K = {dqs.shape[-2]} poses, got {w.shape}"
-        )
-    try:
-        np.broadcast_shapes(dqs.shape[:-2], w.shape[:-1])
-    except ValueError:
-        raise GeometryError(
-            f"batch shapes of dqs {dqs.shape} and weights {w.shape} do not broadcast"
-        ) from None
-    if check:
-        _check_weights(w)
-    return dqs, w
-
-
-def _aligned_weights(dqs: np.ndarray, w: np.ndarray, pivot: str) -> np.ndarray:
-    """Weights with each pose's sign folded in: negated where ``r_k . r_pivot < 0``."""
-    r = dqs[..., :4]
-    if dqs.ndim == 2:  # K shared poses: a (K, K) table of dot products
-        gram = r @ r.T
-        dots = gram[np.argmax(w, axis=-1)] if pivot == "heaviest" else gram[0]
-    elif pivot == "first":
-        dots = np.einsum("...kc,...c->...k", r, r[..., 0, :])
-    else:
-        onehot = (np.arange(w.shape[-1]) == np.argmax(w, axis=-1)[..., None]).astype(np.float64)
-        piv = np.einsum("...k,...kc->...c", onehot, r)
-        dots = np.einsum("...kc,...c->...k", r, piv)
-    return np.where(dots < 0, -w, w)
-
-
-def dlb(
-    dqs: npt.ArrayLike,
-    weights: npt.ArrayLike,
-    *,
-    pivot: Literal["heaviest", "first"] = "heaviest",
-    check: bool = True,
-) -> np.ndarray:
-    r"""Dual quaternion linear blending (DLB, Kavan et al. 2008).
-
-    .. math::
-
-        \mathrm{DLB}(w; \hat q_1, \dots, \hat q_K) =
-        \frac{\sum_k w_k s_k \hat q_k}{\lVert \sum_k w_k s_k \hat q_k \rVert},
-        \qquad s_k = \operatorname{sign}(r_k \cdot r_{\mathrm{pivot}})
-
-    The signs :math:`s_k` align every pose with the pivot (antipodality: q and
-    -q are the same pose and must not cancel). The norm is the dual norm
-    (Kavan's normalisation, see :func:`dq_normalize`).
-
-    Args:
-        dqs: K unit dual quaternions, (K, 8) shared by all weight rows or
-            (..., K, 8) broadcast against the weights' batch shape.
-        weights: Blend weights (..., K) [-], each row >= 0 and summing to 1.
-        pivot: ``"heaviest"`` (per weight row, default; the blend can never
-            vanish) or ``"first"`` (the first pose).
-        check: Validate finiteness and the weights (cheap, vectorised).
-            ``False`` for trusted internal calls.
-
-    Returns:
-        Blended unit dual quaternions (..., 8), sign-aligned with the pivot.
-
-    Raises:
-        GeometryError: On shapes that do not fit, non-finite values, negative
-            weights or weights not summing to 1 (tolerance 1e-9).
-    """
-    if pivot not in _PIVOTS:
-        raise GeometryError(unknown_choice("DLB pivot", pivot, _PIVOTS))
-    dqs, w = _blend_inputs(dqs, weights, check)
-    ws = _aligned_weights(dqs, w, pivot)
-    if dqs.ndim == 2:
-        blended = ws @ dqs
-    else:
-        blended = np.einsum("...k,...kc->...c", ws, dqs)
-    if check:
-        n2 = np.einsum("...i,...i->...", blended[..., :4], blended[..., :4])
-        if (n2 < _ZERO_NORM**2).any():
-            i = _first_bad(n2 < _ZERO_NORM**2)
-            raise GeometryError(f"DLB blend has a zero-norm rotation at index {i}")
-    return _unit_from_blend(blended)
-
-
-def dib(
-    dqs: npt.ArrayLike,
-    weights: npt.ArrayLike,
-    *,
-    tol: float = 1e-12,
-    max_iter: int = 50,
-    check: bool = True,
-) -> np.ndarray:
-    r"""Dual quaternion iterative blending (DIB, Kavan et al.): the bi-invariant mean.
-
-    Starting from :func:`dlb`, iterate
-
-    .. math::
-
-        x = \sum_k w_k \log(\hat b^{-1} \hat q_k), \qquad \hat b \leftarrow \hat b \exp(x)
-
-    until :math:`\lVert x \rVert_\infty <` ``tol``. The fixed point is
-    invariant to left and right multiplication of all poses; for two poses it
-    is exactly :func:`sclerp` at ``t = w_2``.
-
-    Args:
-        dqs: K unit dual quaternions, (K, 8) or (..., K, 8).
-        weights: Blend weights (..., K), >= 0, summing to 1.
-        tol: Convergence threshold on the update twist [rad, m].
-        max_iter: Maximum number of iterations.
-        check: Validate finiteness and the weights.
-
-    Returns:
-        Blended unit dual quaternions (..., 8).
-
-    Raises:
-        GeometryError: As :func:`dlb`.
-
-    Warns:
-        RuntimeWarning: If some blends have not converged after ``max_iter``
-            iterations (their last estimate is returned).
-    """
-    dqs, w = _blend_inputs(dqs, weights, check)
-    batch = np.broadcast_shapes(dqs.shape[:-2], w.shape[:-1])
-    k = dqs.shape[-2]
-    poses = np.broadcast_to(dqs, batch + (k, 8)).reshape(-1, k, 8)
-    wf = np.broadcast_to(w, batch + (k,)).reshape(-1, k)
-    b = dlb(poses, wf, check=False)
-    active = np.arange(len(b))  # rows not converged yet: only they are iterated
-    for _ in range(max_iter):
-        if not len(active):
-            break
-        q, wa, ba = poses[active], wf[active], b[active]
-        x = np.einsum("nk,nkc->nc", wa, dq_log(dq_mul(dq_conj(ba)[:, None, :], q)))
-        b[active] = _unit_from_blend(dq_mul(ba, dq_exp(x)))
-        active = active[np.abs(x).max(axis=1) >= tol]
-    if len(active):
-        warnings.warn(
-            f"DIB did not converge to {tol:g} in {max_iter} iterations for {len(active)} "
-            f"of {len(b)} blends (poses near the cut locus, 180 deg apart?)",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-    return b.reshape(batch + (8,))

@@ -28,7 +28,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from gcm_pipeline.errors import InputError, unknown_choice
-from gcm_pipeline.stages.continuity import patches
+from gcm_pipeline.manifold.continuity import patches
 from gcm_pipeline.table import GraspTable
 
 __all__ = ["SELECT_METHODS", "select_branches"]

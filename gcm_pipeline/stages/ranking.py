@@ -15,7 +15,7 @@ metric name (configs)            column                  meaning
 
 Three more metrics rank by columns of other stages (the collision checks,
 :mod:`gcm_pipeline.stages.collision`; the margin,
-:mod:`gcm_pipeline.stages.margin`):
+:mod:`gcm_pipeline.manifold.margin`):
 
 ================================ ======================= ====================
 ``clearance``                    ``clearance``           distance of the arm to

@@ -2,13 +2,13 @@ r"""Robustness margin: how far a reachable grasp can drift on the manifold and s
 
 ``margin`` (N,) [m] is the distance *along the manifold* from each reachable
 grasp to the nearest unreachable point: the shortest path over the row mesh
-(:mod:`gcm_pipeline.stages.lattice`), each edge as long as the pose-metric
+(:mod:`gcm_pipeline.manifold.lattice`), each edge as long as the pose-metric
 distance between its rows,
 
 .. math:: d^2 = \lVert \Delta p \rVert^2 + (2L)^2 \lVert \Delta r \rVert^2,
 
 position [m] plus orientation at ``L`` = ``manifold.orientation_scale``
-(0.1 m per radian by default; see :mod:`gcm_pipeline.geometry.surface`).
+(0.1 m per radian by default; see :mod:`gcm_pipeline.geometry.pose_metric`).
 The boundary between a reachable row and an unreachable neighbour is placed
 at the middle of their edge, so a reachable row next to an unreachable one
 has a margin of half that edge (the resolution of the lattice) and the
@@ -24,7 +24,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from gcm_pipeline.geometry.surface import ORIENTATION_SCALE, pose_distance
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance
 
 __all__ = ["margin"]
 
@@ -40,7 +40,7 @@ def margin(
     Args:
         dq: (N, 8) poses of the rows (world).
         reachable: (N,) bool.
-        edges: (E, 2) neighbour rows (:attr:`~gcm_pipeline.stages.lattice.RowMesh.edges`).
+        edges: (E, 2) neighbour rows (:attr:`~gcm_pipeline.manifold.lattice.RowMesh.edges`).
         orientation_scale: ``L`` [m/rad] of the pose metric.
 
     Returns:

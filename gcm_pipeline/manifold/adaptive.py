@@ -1,6 +1,6 @@
 r"""Adaptive densification: refine the manifold where reachability or the metric changes.
 
-A uniform lattice (:mod:`gcm_pipeline.stages.densify`) spends most IK solves
+A uniform lattice (:mod:`gcm_pipeline.manifold.densify`) spends most IK solves
 inside regions that are wholly reachable or wholly unreachable. Here the
 triangles are refined only where something happens:
 
@@ -42,9 +42,10 @@ import numpy as np
 
 from gcm_pipeline.bounds import MAX_ADAPTIVE_LEVEL, check_size
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.geometry.surface import blend
-from gcm_pipeline.stages.densify import _fill
-from gcm_pipeline.stages.manifold import Manifold, candidate_poses
+from gcm_pipeline.bounds import MAX_ADAPTIVE_LEVEL, check_size
+from gcm_pipeline.manifold.build import Manifold, candidate_poses
+from gcm_pipeline.manifold.densify import fill_column
+from gcm_pipeline.manifold.surface import blend
 from gcm_pipeline.table import GraspTable, candidate_fill
 
 __all__ = ["CRITERIA", "MAX_LEVEL", "refine", "uniform_size"]
@@ -126,6 +127,106 @@ class _Registry:
         self.keys, self.rows = k[order], r[order]
 
 
+def _check_options(
+    max_level: int,
+    min_level: int,
+    criteria: Sequence[str],
+    score: Score | None,
+    metric_threshold: float,
+) -> None:
+    """Raise on a bad level, criterion or threshold of :func:`refine`."""
+    if isinstance(max_level, bool) or int(max_level) != max_level:
+        raise GeometryError(f"adaptive max_level must be an integer, got {max_level!r}")
+    if not 1 <= max_level <= MAX_LEVEL:
+        raise GeometryError(f"adaptive max_level must be in 1..{MAX_LEVEL}, got {max_level}")
+    if not 0 <= min_level <= max_level:
+        raise GeometryError(f"adaptive min_level must be in 0..{max_level}, got {min_level}")
+    for c in criteria:
+        if c not in CRITERIA:
+            raise GeometryError(unknown_choice("refinement criterion", c, CRITERIA))
+    if not 0 < metric_threshold <= 1 or not np.isfinite(metric_threshold):
+        raise GeometryError(f"metric_threshold must be in (0, 1], got {metric_threshold!r}")
+    if "metric" in criteria and score is None:
+        raise InputError("refinement by 'metric' needs a score function")
+
+
+def _split(
+    state: _State,
+    rows3: np.ndarray,
+    everywhere: bool,
+    criteria: Sequence[str],
+    score: Score | None,
+    metric_threshold: float,
+) -> np.ndarray:
+    """Which sub-triangles (corner rows ``rows3`` (S, 3)) a level splits, by the criteria."""
+    split = np.zeros(len(rows3), dtype=bool)
+    if everywhere:
+        split[:] = True
+    reach = state.reachable[rows3]
+    if "boundary" in criteria:
+        split |= reach.any(axis=1) & ~reach.all(axis=1)
+    if "metric" in criteria:
+        assert score is not None
+        values = score(state.table())
+        ok = np.isfinite(values) & state.reachable
+        span = float(np.ptp(values[ok])) if ok.any() else 0.0
+        v3 = values[rows3]
+        spread = np.where(reach.all(axis=1), np.ptp(v3, axis=1), 0.0)
+        split |= np.nan_to_num(spread) > metric_threshold * span
+    return split
+
+
+def _subdivide(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edge midpoints and children of sub-triangles with corners ``ijk`` (M, 3, 3).
+
+    Returns:
+        ``(mids (3M, 3), kids (4M, 3, 3))``: the midpoints of the edges ab,
+        then bc, then ca; the children at a, at b, at c, then the middle one.
+    """
+    a, b, c = ijk[:, 0], ijk[:, 1], ijk[:, 2]
+    ab, bc, ca = (a + b) // 2, (b + c) // 2, (c + a) // 2
+    mids = np.concatenate((ab, bc, ca))
+    kids = np.concatenate(
+        (
+            np.stack((a, ab, ca), axis=1),
+            np.stack((ab, b, bc), axis=1),
+            np.stack((ca, bc, c), axis=1),
+            np.stack((ab, bc, ca), axis=1),
+        )
+    )
+    return mids, kids
+
+
+def _closure(
+    state: _State,
+    sub_root: np.ndarray,
+    sub_ijk: np.ndarray,
+    rows3: np.ndarray,
+    done: np.ndarray,
+    corner_rows: Callable[[np.ndarray, np.ndarray], np.ndarray],
+) -> np.ndarray:
+    """Sub-triangles not split yet (``~done``) with a checked midpoint of another class."""
+    rest = np.flatnonzero(~done)
+    if not rest.size:
+        return rest
+    ijk_r = sub_ijk[rest]
+    mids_r = np.stack(
+        (
+            (ijk_r[:, 0] + ijk_r[:, 1]) // 2,
+            (ijk_r[:, 1] + ijk_r[:, 2]) // 2,
+            (ijk_r[:, 2] + ijk_r[:, 0]) // 2,
+        ),
+        axis=1,
+    )
+    mid_rows = corner_rows(sub_root[rest], mids_r)
+    corner_class = state.reachable[rows3[rest, 0]]
+    known = mid_rows >= 0
+    differs = known & (state.reachable[np.maximum(mid_rows, 0)] != corner_class[:, None])
+    return rest[differs.any(axis=1)]
+
+
+# Over 100 lines with its docstring: the level loop shares the registry of rows and the
+# checked table through two closures (corner_rows, make_points).
 def refine(
     candidates: GraspTable,
     manifold: Manifold | Any,
@@ -167,19 +268,7 @@ def refine(
             triangles indexing rows that do not exist.
         ConfigError: The table would grow beyond ``max_poses``.
     """
-    if isinstance(max_level, bool) or int(max_level) != max_level:
-        raise GeometryError(f"adaptive max_level must be an integer, got {max_level!r}")
-    if not 1 <= max_level <= MAX_LEVEL:
-        raise GeometryError(f"adaptive max_level must be in 1..{MAX_LEVEL}, got {max_level}")
-    if not 0 <= min_level <= max_level:
-        raise GeometryError(f"adaptive min_level must be in 0..{max_level}, got {min_level}")
-    for c in criteria:
-        if c not in CRITERIA:
-            raise GeometryError(unknown_choice("refinement criterion", c, CRITERIA))
-    if not 0 < metric_threshold <= 1 or not np.isfinite(metric_threshold):
-        raise GeometryError(f"metric_threshold must be in (0, 1], got {metric_threshold!r}")
-    if "metric" in criteria and score is None:
-        raise InputError("refinement by 'metric' needs a score function")
+    _check_options(max_level, min_level, criteria, score, metric_threshold)
     dq = candidate_poses(candidates)
     tris = np.asarray(manifold.triangles, dtype=np.int64).reshape(-1, 3)
     if len(tris) and (tris.min() < 0 or tris.max() >= len(dq)):
@@ -252,65 +341,26 @@ def refine(
         if not len(sub_root):
             break
         rows3 = corner_rows(sub_root, sub_ijk)
-        split = np.zeros(len(sub_root), dtype=bool)
-        if level < min_level:
-            split[:] = True
-        reach = state.reachable[rows3]
-        if "boundary" in criteria:
-            split |= reach.any(axis=1) & ~reach.all(axis=1)
-        if "metric" in criteria:
-            assert score is not None
-            values = score(state.table())
-            ok = np.isfinite(values) & state.reachable
-            span = float(np.ptp(values[ok])) if ok.any() else 0.0
-            v3 = values[rows3]
-            spread = np.where(reach.all(axis=1), np.ptp(v3, axis=1), 0.0)
-            split |= np.nan_to_num(spread) > metric_threshold * span
+        split = _split(state, rows3, level < min_level, criteria, score, metric_threshold)
         pending = np.flatnonzero(split)
         done = np.zeros(len(sub_root), dtype=bool)
         child_root, child_ijk = [], []
         while pending.size:
             done[pending] = True
-            root, ijk = sub_root[pending], sub_ijk[pending]
-            a, b, c = ijk[:, 0], ijk[:, 1], ijk[:, 2]
-            ab, bc, ca = (a + b) // 2, (b + c) // 2, (c + a) // 2
+            root = sub_root[pending]
+            mids, kids = _subdivide(sub_ijk[pending])
             # midpoints, seeded from the edge's ends, then the third corner
-            mids = np.concatenate((ab, bc, ca))
             r3 = rows3[pending]
             seeds = np.concatenate(
                 (r3[:, [0, 1, 2]], r3[:, [1, 2, 0]], r3[:, [2, 0, 1]])
             )  # ends first
             make_points(np.tile(root, 3), mids, seeds, level + 1)
-            kids = np.concatenate(
-                (
-                    np.stack((a, ab, ca), axis=1),
-                    np.stack((ab, b, bc), axis=1),
-                    np.stack((ca, bc, c), axis=1),
-                    np.stack((ab, bc, ca), axis=1),
-                )
-            )
             child_root.append(np.tile(root, 4))
             child_ijk.append(kids)
             # closure: unsplit triangles with a checked midpoint of another class
             if "boundary" not in criteria:
                 break
-            rest = np.flatnonzero(~done)
-            if not rest.size:
-                break
-            ijk_r = sub_ijk[rest]
-            mids_r = np.stack(
-                (
-                    (ijk_r[:, 0] + ijk_r[:, 1]) // 2,
-                    (ijk_r[:, 1] + ijk_r[:, 2]) // 2,
-                    (ijk_r[:, 2] + ijk_r[:, 0]) // 2,
-                ),
-                axis=1,
-            )
-            mid_rows = corner_rows(sub_root[rest], mids_r)
-            corner_class = state.reachable[rows3[rest, 0]]
-            known = mid_rows >= 0
-            differs = known & (state.reachable[np.maximum(mid_rows, 0)] != corner_class[:, None])
-            pending = rest[differs.any(axis=1)]
+            pending = _closure(state, sub_root, sub_ijk, rows3, done, corner_rows)
         if child_root:
             sub_root = np.concatenate(child_root)
             sub_ijk = np.concatenate(child_ijk)
@@ -368,7 +418,7 @@ def _assemble(
         if name in _OWN:
             continue
         col = np.asarray(candidates[name])
-        cols[name] = np.concatenate((col, _fill(col, m, candidate_fill(name), verts, w)))
+        cols[name] = np.concatenate((col, fill_column(col, m, candidate_fill(name), verts, w)))
     for name in checked.columns:
         if name != "dq":
             cols[name] = checked[name]

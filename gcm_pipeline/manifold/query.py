@@ -1,7 +1,7 @@
 """The grasp manifold as an object you can query after a run.
 
 :class:`GraspManifold` joins the manifold's triangles (:class:`~gcm_pipeline.
-stages.manifold.Manifold`), the candidate poses at their corners, the run's
+manifold.build.Manifold`), the candidate poses at their corners, the run's
 blend method and the run's grasp table (reachability, IK solutions,
 metrics). Every point of a triangle is a grasp, so the queries work on the
 continuous manifold, not only on the densified rows:
@@ -11,63 +11,55 @@ continuous manifold, not only on the densified rows:
                                  run's DLB or DIB; exact at the vertices)
 ``locate(poses)``                the manifold point nearest to each query pose
                                  (pose metric of :mod:`gcm_pipeline.geometry.
-                                 surface`: position [m] plus 0.1 m per radian)
+                                 pose_metric`: position [m] plus 0.1 m per radian)
 ``nearest_reachable(poses)``     the nearest grasp the robot reaches, with its
                                  verified IK solution
 ``best(metric, region)``         a continuous search for grasps better than
                                  the best row of the run by a ranking metric
 ================================ ==============================================
 
-Get one from a run with :func:`load_manifold` (a run directory) or
-``RunResult.grasp_manifold`` (a run in memory). The robot and the config of
+Get one from a run with :func:`gcm_pipeline.load_manifold` (a run directory)
+or ``RunResult.grasp_manifold`` (a run in memory). The robot and the config of
 the run are used for the IK checks; they can be overridden per call.
 
 Reachability of new points is decided exactly as in the run (same IK backend,
-tolerances, collision world and approach check; see
-:class:`~gcm_pipeline.pipeline.ReachabilityCheck`), warm-started from the IK
-solutions of nearby rows, so neighbouring grasps keep the same IK branch.
+tolerances, collision world and approach check), warm-started from the IK
+solutions of nearby rows, so neighbouring grasps keep the same IK branch. This
+module never reads a config: what the queries need from the run (its robot,
+its reachability check, the robot's metrics, the ranking's weights) comes
+through a :class:`RunQueries` object, which :mod:`gcm_pipeline.pipeline` builds
+from the run's config; a ``cfg`` passed to a query is handed back to it unread.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from gcm_pipeline.bounds import MAX_LENGTH
-from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
-from gcm_pipeline.geometry.surface import (
-    BLEND_METHODS,
-    ORIENTATION_SCALE,
-    Location,
-    TriangleLocator,
-    blend,
-    pose_distance,
-    pose_features,
-    project_onto_triangles,
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
+from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.manifold.lattice import RowMesh, interpolate, row_memberships, row_mesh
+from gcm_pipeline.manifold.locate import Location, TriangleLocator, as_query_poses
+from gcm_pipeline.manifold.search import (
+    BestGrasps,
+    NearestReachable,
+    first_unique,
+    pattern_search,
+    search_near_rows,
 )
-from gcm_pipeline.stages.lattice import RowMesh, interpolate, row_memberships, row_mesh
-from gcm_pipeline.stages.manifold import Manifold
+from gcm_pipeline.manifold.surface import BLEND_METHODS, blend
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:
-    from gcm_pipeline.pipeline import ReachabilityCheck, RunResult
-    from gcm_pipeline.robot.model import Robot
 
 __all__ = [
     "QUERY_METRICS",
-    "BestGrasps",
     "GraspManifold",
-    "Location",
-    "NearestReachable",
-    "as_query_poses",
-    "load_manifold",
+    "PoseCheck",
+    "RunQueries",
 ]
 
 #: Metrics :meth:`GraspManifold.best` optimises (the ranking metrics).
@@ -81,114 +73,52 @@ QUERY_METRICS = (
     "margin",
 )
 
-_UNIT_TOL = 1e-6
+#: The metrics of :data:`QUERY_METRICS` the robot computes from a configuration.
+_ROBOT_METRICS = ("yoshikawa", "translational", "inverse_condition", "joint_limit_margin")
+
+_NO_CONFIG = "this manifold has no config"
 
 
-class NearestReachable(NamedTuple):
-    """The nearest reachable grasps of M query poses.
+class PoseCheck(Protocol):
+    """Checks grasp poses the way the run's reachability stage does (one robot, one config)."""
 
-    Attributes:
-        dq: (M, 8) the grasp (world), on the manifold; NaN where none was found.
-        q: (M, nq) its IK solution [rad], verified by Pinocchio FK, collision
-            free and approachable as in the run.
-        distance: (M,) pose-metric distance [m] from the query to the grasp.
-        triangle: (M,) manifold triangle of the grasp (-1 if none).
-        weights: (M, 3) its barycentric weights there.
-        found: (M,) bool, False when no reachable grasp was found near the query.
-        located: (M,) distance [m] from the query to the manifold itself
-            (:meth:`GraspManifold.locate`); equal to ``distance`` when the
-            nearest manifold point is reachable.
+    robot: Any
+    config: Any
+
+    def __call__(self, dq: np.ndarray, seeds: np.ndarray | None = None) -> GraspTable:
+        """Rows ``dq, reachable, reason, q, ...`` for poses (M, 8), warm starts (M, K, nq)."""
+        ...
+
+    def close(self) -> None:
+        """Stop any worker processes."""
+        ...
+
+
+class RunQueries(Protocol):
+    """What the queries take from the run beyond its geometry.
+
+    :mod:`gcm_pipeline.pipeline` implements it from the run's config; this
+    module hands ``config`` (or a ``cfg`` given to a query) back to it unread.
     """
 
-    dq: np.ndarray
-    q: np.ndarray
-    distance: np.ndarray
-    triangle: np.ndarray
-    weights: np.ndarray
-    found: np.ndarray
-    located: np.ndarray
+    #: The run's config (``GraspManifold.config``), opaque here.
+    config: Any
+    #: The ranking metric :meth:`GraspManifold.best` optimises by default.
+    ranking_metric: str
+    #: Metric -> weight of the ``combined`` metric (the run's ranking weights).
+    combined_weights: Mapping[str, float]
 
+    def load_robot(self) -> Any:
+        """The run's robot."""
+        ...
 
-class BestGrasps(NamedTuple):
-    """Grasps found by :meth:`GraspManifold.best`, best first.
+    def reachability(self, robot: Any, cfg: Any) -> PoseCheck:
+        """A check of poses with ``robot`` as a run with config ``cfg`` does it."""
+        ...
 
-    Attributes:
-        dq: (K, 8) the grasps (world), points of the manifold.
-        q: (K, nq) their verified IK solutions [rad].
-        value: (K,) the metric at each grasp (same scale as the run's column).
-        triangle: (K,) manifold triangle of each grasp.
-        weights: (K, 3) barycentric weights there.
-        start_row: (K,) the table row each search started from.
-        start_value: (K,) the metric of that row; ``value >= start_value``.
-        metric: The metric's name.
-    """
-
-    dq: np.ndarray
-    q: np.ndarray
-    value: np.ndarray
-    triangle: np.ndarray
-    weights: np.ndarray
-    start_row: np.ndarray
-    start_value: np.ndarray
-    metric: str
-
-
-def _check_positions(xyz: np.ndarray, name: str) -> None:
-    """Positions within the scene's bounds (``MAX_LENGTH`` per coordinate, as the config's)."""
-    bad = (np.abs(xyz) > MAX_LENGTH).any(axis=1)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise GeometryError(
-            f"{name} {i}: position [{', '.join(f'{v:.10g}' for v in xyz[i])}] m is outside the "
-            f"scene (at most {MAX_LENGTH:g} m per coordinate)"
-        )
-
-
-def as_query_poses(poses: Any, name: str = "query pose") -> np.ndarray:
-    """Validate query poses and return them as unit dual quaternions (M, 8).
-
-    Args:
-        poses: (M, 4, 4) or (4, 4) rigid transforms, or (M, 8) or (8,) unit
-            dual quaternions ``[r_w, r_x, r_y, r_z, d_w, d_x, d_y, d_z]``.
-        name: How to call them in messages.
-
-    Raises:
-        GeometryError: Another shape, non-finite values, a matrix that is not
-            rigid or a dual quaternion that is not unit (names the first bad one).
-    """
-    try:
-        arr = np.asarray(poses, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise GeometryError(f"{name}s must be numbers: {exc}") from None
-    if arr.shape[-2:] == (4, 4) and arr.ndim in (2, 3):
-        mats = arr.reshape(-1, 4, 4)
-        xyz = mats[:, :3, 3]
-        _check_positions(np.where(np.isfinite(xyz), xyz, 0.0), name)  # non-finite: said below
-        try:
-            return dq_from_matrix(mats)
-        except GeometryError as exc:
-            raise GeometryError(f"{name}: {exc}") from None
-    if arr.ndim in (1, 2) and arr.shape[-1] == 8:
-        dq = arr.reshape(-1, 8)
-        bad = ~np.isfinite(dq).all(axis=1)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise GeometryError(f"{name} {i} has non-finite values: {dq[i].tolist()}")
-        norm = np.linalg.norm(dq[:, :4], axis=1)
-        dot = np.einsum("ij,ij->i", dq[:, :4], dq[:, 4:])
-        bad = (np.abs(norm - 1.0) > _UNIT_TOL) | (np.abs(dot) > _UNIT_TOL)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise GeometryError(
-                f"{name} {i} is not a unit dual quaternion (|real| = {norm[i]:.6g}, "
-                f"real.dual = {dot[i]:.2e}); pass (4, 4) matrices or dq_from_pos_quat(...)"
-            )
-        _check_positions(dq_translation(dq), name)
-        return dq.copy()
-    raise GeometryError(
-        f"{name}s must be (M, 4, 4) / (4, 4) matrices or (M, 8) / (8,) dual quaternions, "
-        f"got shape {arr.shape}"
-    )
+    def robot_metrics(self, robot: Any, q: np.ndarray) -> Mapping[str, np.ndarray]:
+        """The robot's metrics (``yoshikawa`` ...) of configurations (N, nq) [rad]."""
+        ...
 
 
 class GraspManifold:
@@ -200,11 +130,11 @@ class GraspManifold:
             V - 1`` are the manifold's vertices), then the other rows, with
             the reachability columns for the reachability queries.
         method: The blend of the run, ``dlb`` or ``dib``.
-        config: The run's config (IK, collisions and approach of the
-            reachability checks; ranking weights).
-        robot: The run's robot (else loaded from ``config`` when needed).
-        orientation_scale: ``L`` [m/rad] of the pose metric (default:
-            ``config.manifold.orientation_scale``, else 0.1).
+        run: What the reachability and ranking queries need from the run
+            (its config's IK, collisions, approach and ranking weights); None:
+            geometry only.
+        robot: The run's robot (else loaded through ``run`` when needed).
+        orientation_scale: ``L`` [m/rad] of the pose metric.
 
     Raises:
         InputError: The table has fewer rows than the manifold has vertices,
@@ -218,9 +148,9 @@ class GraspManifold:
         grasps: GraspTable,
         *,
         method: str = "dlb",
-        config: Config | None = None,
-        robot: Robot | None = None,
-        orientation_scale: float | None = None,
+        run: RunQueries | None = None,
+        robot: Any = None,
+        orientation_scale: float = ORIENTATION_SCALE,
     ) -> None:
         if method not in BLEND_METHODS:
             raise GeometryError(unknown_choice("blend method", method, BLEND_METHODS))
@@ -234,46 +164,37 @@ class GraspManifold:
         self.mesh = mesh
         self.grasps = grasps
         self.method = method
-        self.config = config
+        self.run = run
         self._robot = robot
-        if orientation_scale is None:
-            orientation_scale = (
-                config.manifold.orientation_scale if config is not None else ORIENTATION_SCALE
-            )
         self.orientation_scale = float(orientation_scale)
         self.poses = np.asarray(grasps["dq"], dtype=np.float64)[:n_v]
         self._locator: TriangleLocator | None = None
         self._rows: RowMesh | None = None
-        self._checks: dict[int, ReachabilityCheck] = {}
-
-    # ------------------------------------------------------------ construction
-    @classmethod
-    def from_run(cls, result: RunResult) -> GraspManifold:
-        """The manifold of a run in memory (:class:`~gcm_pipeline.pipeline.RunResult`)."""
-        cfg = result.config
-        return cls(
-            result.manifold,
-            result.grasps,
-            method=cfg.densify.method,
-            config=cfg,
-            robot=result.robot,
-        )
+        self._checks: dict[int, PoseCheck] = {}
 
     # ------------------------------------------------------------ properties
+    @property
+    def config(self) -> Any:
+        """The run's config (None without a run)."""
+        return None if self.run is None else self.run.config
+
+    def _run(self, message: str) -> RunQueries:
+        """The run's queries, or ``InputError(message)`` on a manifold without a run."""
+        if self.run is None:
+            raise InputError(message)
+        return self.run
+
     @property
     def triangles(self) -> np.ndarray:
         """(T, 3) candidate row ids of the triangles."""
         return self.mesh.triangles
 
     @property
-    def robot(self) -> Robot:
+    def robot(self) -> Any:
         """The run's robot (loaded from the config on first use)."""
         if self._robot is None:
-            if self.config is None:
-                raise InputError("this manifold has no config: pass robot= and cfg= to the query")
-            from gcm_pipeline.config.robot_spec import load_robot
-
-            self._robot = load_robot(self.config.robot.spec)
+            run = self._run(f"{_NO_CONFIG}: pass robot= and cfg= to the query")
+            self._robot = run.load_robot()
         return self._robot
 
     @property
@@ -289,7 +210,7 @@ class GraspManifold:
 
     @property
     def row_mesh(self) -> RowMesh:
-        """The rows of the table as a mesh (:func:`~gcm_pipeline.stages.lattice.row_mesh`)."""
+        """The rows of the table as a mesh (:func:`~gcm_pipeline.manifold.lattice.row_mesh`)."""
         if self._rows is None:
             self._rows = row_mesh(self.grasps, self.triangles, self.mesh.n_vertices)
         return self._rows
@@ -366,7 +287,7 @@ class GraspManifold:
 
         The metric is position [m] plus orientation at ``L`` =
         :attr:`orientation_scale` metres per radian (see
-        :mod:`gcm_pipeline.geometry.surface`); the search is exact up to the
+        :mod:`gcm_pipeline.geometry.pose_metric`); the search is exact up to the
         projection's tolerance (no triangle that could hold a nearer point is
         skipped).
 
@@ -374,7 +295,7 @@ class GraspManifold:
             poses: (M, 4, 4) or (M, 8) query poses in the world (one pose: (4, 4) or (8,)).
 
         Returns:
-            :class:`~gcm_pipeline.geometry.surface.Location`: ``triangle``
+            :class:`~gcm_pipeline.manifold.locate.Location`: ``triangle``
             (M,), ``weights`` (M, 3), ``distance`` (M,) [m], ``dq`` (M, 8).
 
         Raises:
@@ -383,17 +304,14 @@ class GraspManifold:
         return self.locator.locate(as_query_poses(poses))
 
     # ------------------------------------------------------------ reachability
-    def _checker(self, robot: Robot | None, cfg: Config | None) -> ReachabilityCheck:
-        from gcm_pipeline.pipeline import ReachabilityCheck
-
-        cfg = cfg if cfg is not None else self.config
-        if cfg is None:
-            raise InputError("this manifold has no config: pass cfg= (and robot=)")
+    def _checker(self, robot: Any, cfg: Any) -> PoseCheck:
+        run = self._run(f"{_NO_CONFIG}: pass cfg= (and robot=)")
+        cfg = cfg if cfg is not None else run.config
         robot = robot if robot is not None else self.robot
         key = hash((id(robot), id(cfg)))
         check = self._checks.get(key)
         if check is None or check.robot is not robot or check.config is not cfg:
-            check = ReachabilityCheck(robot, cfg)
+            check = run.reachability(robot, cfg)
             self._checks[key] = check
         return check
 
@@ -410,8 +328,8 @@ class GraspManifold:
     def nearest_reachable(
         self,
         poses: Any,
-        robot: Robot | None = None,
-        cfg: Config | None = None,
+        robot: Any = None,
+        cfg: Any = None,
         *,
         neighbours: int = 4,
         bisections: int = 8,
@@ -485,7 +403,7 @@ class GraspManifold:
             tree = cKDTree(np.concatenate((feat, flip)))
             _, idx = tree.query(pose_features(query, self.orientation_scale), k=2 * k)
             idx = np.asarray(idx).reshape(m, 2 * k) % rows_ok.size
-            near = _first_unique(idx, k)
+            near = first_unique(idx, k)
             near = rows_ok[near]
         # 1. the nearest manifold point, warm-started from its vertices and the nearest rows
         tri_rows = self.triangles[loc.triangle]
@@ -497,85 +415,10 @@ class GraspManifold:
         offer(idx_ok, loc.dq[ok], np.asarray(res["q"])[ok], loc.triangle[ok], loc.weights[ok])
         todo = np.flatnonzero(~ok)
         if todo.size and k > 0:
-            self._search_near_rows(query, todo, near[todo], q_table, check, bisections, offer)
+            search_near_rows(self, query, todo, near[todo], q_table, check, bisections, offer)
         found = np.isfinite(out_d)
         out_d[~found] = np.nan
         return NearestReachable(out_dq, out_q, out_d, out_t, out_w, found, loc.distance)
-
-    def _search_near_rows(
-        self,
-        query: np.ndarray,
-        todo: np.ndarray,
-        near: np.ndarray,
-        q_table: np.ndarray,
-        check: ReachabilityCheck,
-        bisections: int,
-        offer: Callable[..., None],
-    ) -> None:
-        """Step 2 of :meth:`nearest_reachable` for the queries ``todo``."""
-        n_v = self.mesh.n_vertices
-        mem_row, mem_tri, mem_w = row_memberships(self.grasps, self.triangles, n_v)
-        order = np.argsort(mem_row, kind="stable")
-        mem_row, mem_tri, mem_w = mem_row[order], mem_tri[order], mem_w[order]
-        # the rows themselves, re-checked from their own solutions
-        rows = np.unique(near)
-        res = check(self.grasps["dq"][rows], q_table[rows][:, None, :])
-        good = np.asarray(res["reachable"], dtype=bool)
-        q_row = np.full((len(self.grasps), q_table.shape[1]), np.nan)
-        q_row[rows[good]] = np.asarray(res["q"])[good]
-        # pairs (query, membership of a near row)
-        qi = np.repeat(todo, near.shape[1])
-        r = near.ravel()
-        keep = np.isfinite(q_row[r]).all(axis=1)
-        qi, r = qi[keep], r[keep]
-        lo = np.searchsorted(mem_row, r, side="left")
-        hi = np.searchsorted(mem_row, r, side="right")
-        counts = hi - lo
-        pair_q = np.repeat(qi, counts)
-        pair_r = np.repeat(r, counts)
-        pos = (
-            np.concatenate([np.arange(a, b) for a, b in zip(lo, hi, strict=True)])
-            if len(lo)
-            else np.zeros(0, np.int64)
-        )
-        pair_t, pair_w0 = mem_tri[pos], mem_w[pos]
-        row_dq = np.asarray(self.grasps["dq"])[pair_r]
-        offer(pair_q, row_dq, q_row[pair_r], pair_t, pair_w0)
-        if not len(pair_q):
-            return
-        corners = self.poses[self.triangles[pair_t]]
-        w_y, _ = project_onto_triangles(
-            query[pair_q],
-            corners,
-            pair_w0[:, 1:],
-            method=self.method,
-            orientation_scale=self.orientation_scale,
-        )
-        # the projections: reachable ones are offered, the others bisected
-        y = blend(corners, w_y, self.method)
-        res = check(y, q_row[pair_r][:, None, :])
-        ok = np.asarray(res["reachable"], dtype=bool)
-        offer(pair_q[ok], y[ok], np.asarray(res["q"])[ok], pair_t[ok], w_y[ok])
-        b = np.flatnonzero(~ok)
-        s_lo = np.zeros(len(b))
-        s_hi = np.ones(len(b))
-        q_lo = q_row[pair_r[b]]
-        for _ in range(int(bisections)):
-            if not len(b):
-                break
-            s = 0.5 * (s_lo + s_hi)
-            w = (1.0 - s)[:, None] * pair_w0[b] + s[:, None] * w_y[b]
-            pts = blend(corners[b], w, self.method)
-            res = check(pts, q_lo[:, None, :])
-            ok = np.asarray(res["reachable"], dtype=bool)
-            s_lo = np.where(ok, s, s_lo)
-            s_hi = np.where(ok, s_hi, s)
-            q_lo[ok] = np.asarray(res["q"])[ok]
-        moved = s_lo > 0
-        if moved.any():
-            bb = b[moved]
-            w = (1.0 - s_lo[moved])[:, None] * pair_w0[bb] + s_lo[moved][:, None] * w_y[bb]
-            offer(pair_q[bb], blend(corners[bb], w, self.method), q_lo[moved], pair_t[bb], w)
 
     # ------------------------------------------------------------ optimisation
     def metric_values(self, table: GraspTable, metric: str) -> np.ndarray:
@@ -588,14 +431,14 @@ class GraspManifold:
         Raises:
             InputError: Unknown metric, or a column the metric needs is missing.
         """
-        from gcm_pipeline.robot.manipulability import METRICS, manipulability_metrics
-
         if metric not in QUERY_METRICS:
             raise InputError(unknown_choice("metric", metric, QUERY_METRICS))
         reach = np.asarray(table["reachable"], dtype=bool)
         q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
-        if metric in METRICS:
-            return manipulability_metrics(self.robot, q)[metric]
+        if metric in _ROBOT_METRICS:
+            robot = self.robot
+            run = self._run(f"{_NO_CONFIG}: pass robot= and cfg= to the query")
+            return run.robot_metrics(robot, q)[metric]
         if metric in ("clearance", "margin"):
             if metric not in table:
                 raise InputError(f"metric {metric!r} needs the {metric!r} column; the run has none")
@@ -613,10 +456,8 @@ class GraspManifold:
         return np.where(reach, score, np.nan)
 
     def _combined_weights(self) -> dict[str, float]:
-        from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
-
-        w = None if self.config is None else self.config.ranking.weights
-        return {k: float(v) for k, v in (w or DEFAULT_COMBINED_WEIGHTS).items() if v > 0}
+        w = self._run(f"{_NO_CONFIG}: the combined metric takes the run's weights")
+        return {k: float(v) for k, v in w.combined_weights.items() if v > 0}
 
     def _reference_ranges(self, names: tuple[str, ...]) -> dict[str, tuple[float, float]]:
         out = {}
@@ -633,8 +474,8 @@ class GraspManifold:
         *,
         starts: int = 8,
         iterations: int = 12,
-        robot: Robot | None = None,
-        cfg: Config | None = None,
+        robot: Any = None,
+        cfg: Any = None,
     ) -> BestGrasps:
         """Search the continuous manifold for the grasps best by a ranking metric.
 
@@ -665,7 +506,7 @@ class GraspManifold:
                 row in ``region``.
         """
         if metric is None:
-            metric = self.config.ranking.metric if self.config is not None else "yoshikawa"
+            metric = self.run.ranking_metric if self.run is not None else "yoshikawa"
         if metric not in QUERY_METRICS:
             raise InputError(unknown_choice("metric", metric, QUERY_METRICS))
         check = self._checker(robot, cfg)
@@ -683,48 +524,19 @@ class GraspManifold:
         # one search per (start row, triangle around it)
         sel = np.isin(mem_row, start_rows) & in_region
         s_row, t, w = mem_row[sel], mem_tri[sel], mem_w[sel].copy()
-        q_cur = q_table[s_row].copy()
-        val = row_values[s_row].copy()
-        dq_cur = np.asarray(self.grasps["dq"])[s_row].copy()
-        step = np.full(len(t), 0.5 * self._cell_size())
-        directions = np.array(
-            [[1, -1, 0], [-1, 1, 0], [0, 1, -1], [0, -1, 1], [-1, 0, 1], [1, 0, -1]], float
+        w, q_cur, val, dq_cur = pattern_search(
+            self,
+            t,
+            w,
+            q_table[s_row].copy(),
+            row_values[s_row].copy(),
+            np.asarray(self.grasps["dq"])[s_row].copy(),
+            step=0.5 * self._cell_size(),
+            iterations=int(iterations),
+            check=check,
+            values=lambda res, tri, wt: self._point_values(res, metric, tri, wt),
+            inside=inside,
         )
-        min_step = step / 64.0
-        for _ in range(int(iterations)):
-            act = np.flatnonzero(step >= min_step)
-            if not act.size:
-                break
-            trial_w = (w[act, None, :] + step[act, None, None] * directions[None]).reshape(-1, 3)
-            owner = np.repeat(act, len(directions))
-            valid = (trial_w >= -1e-12).all(axis=1)
-            trial_w = np.clip(trial_w, 0.0, None)
-            trial_w /= trial_w.sum(axis=1, keepdims=True)
-            trial_t = t[owner]
-            pts = blend(self.poses[self.triangles[trial_t]], trial_w, self.method)
-            valid &= inside(trial_t, pts)
-            gain = np.full(len(owner), -np.inf)
-            new_q = np.full((len(owner), q_table.shape[1]), np.nan)
-            trial_vals = np.full(len(owner), np.nan)
-            if valid.any():
-                v = np.flatnonzero(valid)
-                res = check(pts[v], q_cur[owner[v]][:, None, :])
-                vals = self._point_values(res, metric, trial_t[v], trial_w[v])
-                good = np.asarray(res["reachable"], dtype=bool) & np.isfinite(vals)
-                gain[v[good]] = vals[good] - val[owner[v[good]]]
-                new_q[v[good]] = np.asarray(res["q"])[good]
-                trial_vals[v] = vals
-            gains = gain.reshape(len(act), len(directions))
-            pick = np.argmax(gains, axis=1)
-            best_gain = gains[np.arange(len(act)), pick]
-            moved = best_gain > 0
-            flat = np.arange(len(act)) * len(directions) + pick
-            mv = act[moved]
-            w[mv] = trial_w[flat[moved]]
-            q_cur[mv] = new_q[flat[moved]]
-            val[mv] = trial_vals[flat[moved]]
-            dq_cur[mv] = pts[flat[moved]]
-            step[act[~moved]] *= 0.5
         # best search per start row, then best first
         order = np.lexsort((-val, s_row))
         s_row, t, w, q_cur, val, dq_cur = (
@@ -796,35 +608,3 @@ class GraspManifold:
         allowed = np.zeros(len(self), dtype=bool)
         allowed[ids] = True
         return lambda tri, dq: allowed[tri]
-
-
-def _first_unique(values: np.ndarray, k: int) -> np.ndarray:
-    """The first ``k`` distinct entries of each row of ``values`` (M, P), in order.
-
-    Each row must hold at least ``k`` distinct values.
-    """
-    earlier = np.triu(np.ones((values.shape[1],) * 2, dtype=bool), k=1)  # [a, b]: a before b
-    dup = ((values[:, :, None] == values[:, None, :]) & earlier[None]).any(axis=1)
-    order = np.argsort(dup, axis=1, kind="stable")[:, :k]
-    return np.take_along_axis(values, order, axis=1)
-
-
-def load_manifold(run_dir: str | Path) -> GraspManifold:
-    """Load the queryable manifold of a run directory (``gcm run`` output).
-
-    Reads ``grasps.csv``, ``manifold.npz``, ``summary.json`` and
-    ``config.yaml`` (the blend method, the robot and what decides
-    reachability).
-
-    Raises:
-        InputError: Not a run directory, or a file in it is missing or unreadable.
-        ConfigError: Its ``config.yaml`` is invalid.
-    """
-    from gcm_pipeline.io import read_run
-
-    run = read_run(run_dir)
-    path = Path(run_dir) / "config.yaml"
-    if not path.is_file():
-        raise InputError(f"not a run directory: {run_dir} lacks config.yaml")
-    cfg = load_config(path)
-    return GraspManifold(run.manifold, run.grasps, method=cfg.densify.method, config=cfg)

@@ -174,6 +174,8 @@ def bowyer_watson(points: npt.ArrayLike, *, seed: int = 0) -> np.ndarray:
     return ids[tris]
 
 
+# One function over 100 lines on purpose: the insertion loop and its helpers share local
+# lists through closures, the cheapest access pure Python has in this hot loop.
 def _bowyer_watson_core(unit: np.ndarray, order: np.ndarray) -> np.ndarray:  # noqa: C901
     """Insert ``unit[order]`` one by one; return ccw triangles (T, 3) into ``unit``."""
     n = len(unit)

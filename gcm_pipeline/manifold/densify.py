@@ -31,11 +31,13 @@ import numpy as np
 
 from gcm_pipeline.bounds import check_size, lattice_size
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.geometry.dualquat import dib, dlb, dq_translation
-from gcm_pipeline.stages.manifold import Manifold, candidate_poses
+from gcm_pipeline.geometry.dualquat import dq_translation
+from gcm_pipeline.geometry.pose_blend import dib, dlb
+from gcm_pipeline.bounds import check_size, lattice_size
+from gcm_pipeline.manifold.build import Manifold, candidate_poses
 from gcm_pipeline.table import GraspTable, candidate_fill
 
-__all__ = ["DENSIFY_METHODS", "densify", "lattice_counts"]
+__all__ = ["DENSIFY_METHODS", "densify", "fill_column", "lattice_counts"]
 
 DENSIFY_METHODS = ("dib", "dlb")
 
@@ -183,7 +185,7 @@ def _points_general(
     return tri[keep][final], ijk[keep][final], n[keep][final]
 
 
-def _fill(
+def fill_column(
     column: np.ndarray, count: int, rule: str = "missing", vertices: Any = None, weights: Any = None
 ) -> np.ndarray:
     """Values for ``count`` interpolated rows of an extra candidate column.
@@ -223,7 +225,7 @@ def densify(
     Args:
         grasps: The candidate table (``dq`` (N, 8)); the manifold's triangles
             index its rows.
-        manifold: From :func:`gcm_pipeline.stages.manifold.build_manifold`
+        manifold: From :func:`gcm_pipeline.manifold.build.build_manifold`
             (anything with ``triangles`` (T, 3)).
         subdivisions: Lattice subdivisions ``n`` per triangle edge (>= 1); a
             triangle then yields ``(n + 1)(n + 2) / 2`` points with its vertices.
@@ -299,7 +301,7 @@ def densify(
     for name in grasps.columns:
         if name not in _OWN_COLUMNS:
             col = grasps[name]
-            fill = _fill(col, m, candidate_fill(name), vertices, weights)
+            fill = fill_column(col, m, candidate_fill(name), vertices, weights)
             cols[name] = np.concatenate((col, fill))
     ordered = {k: cols[k] for k in (*_OWN_COLUMNS, *[c for c in cols if c not in _OWN_COLUMNS])}
     return GraspTable(ordered)

@@ -1,35 +1,5 @@
-r"""The continuous grasp manifold: blended triangles, a pose metric, nearest points.
+r"""Nearest points of the grasp manifold: :class:`TriangleLocator`, :func:`as_query_poses`.
 
-A kept triangle with vertex poses :math:`\hat q_0, \hat q_1, \hat q_2` is a
-*surface* of poses: every weight triple :math:`w` (barycentric, ``w >= 0``,
-summing to 1) is the grasp :math:`S(w) = \mathrm{DLB}(w; \hat q_0, \hat q_1,
-\hat q_2)` (or DIB). Densification samples it on a lattice; this module
-evaluates it anywhere and finds the point of a set of such triangles nearest
-to given poses.
-
-Pose metric
------------
-Distances between poses ``a`` and ``b`` combine position [m] and orientation:
-
-.. math::
-
-    d(a, b)^2 = \lVert p_a - p_b \rVert^2
-              + (2 L)^2 \min(\lVert r_a - r_b \rVert^2, \lVert r_a + r_b \rVert^2)
-
-with ``r`` the unit rotation quaternions and ``L`` = :data:`ORIENTATION_SCALE`
-= 0.1 m per radian. Since :math:`\lVert r_a - r_b \rVert = 2 \sin(\theta / 4)`
-for a relative rotation angle :math:`\theta`, the orientation term is
-:math:`L \cdot 4 \sin(\theta/4) = L \theta (1 - \theta^2/96 + \dots)`: a
-rotation of 1 rad counts as 0.099 m (1 % less than ``L`` per radian at 1
-rad, 10 % less at pi). ``L`` is about the distance from the grasp frame to the
-wrist, so the term approximates how far the hand moves when the grasp turns
-about its own origin. The metric is a true metric on poses (both quaternion
-signs give the same value) and it is the Euclidean distance between the
-embeddings ``[p, 2 L r]`` (:func:`pose_features`) of sign-aligned poses, so
-KD-trees answer nearest-pose queries exactly.
-
-Nearest points
---------------
 :class:`TriangleLocator` answers "which point of the manifold is nearest to
 this pose" for batches of queries, exactly up to the projection's tolerance:
 
@@ -46,43 +16,27 @@ this pose" for batches of queries, exactly up to the projection's tolerance:
    triangle's bound is at or above a distance already reached, so it holds
    no nearer point: the answer equals projecting onto every triangle
    (``TriangleLocator.locate(..., exhaustive=True)``).
-
-A projection runs a few sequential quadratic programming steps on the
-barycentric weights: the blend surface is linearised (DLB: analytic Jacobian
-of the normalised blend; DIB: finite differences) and the Gauss-Newton model
-is minimised exactly over the triangle (interior, else the best point of the
-three edges). It starts from the query's foot point in the triangle's plane.
 """
 
 from __future__ import annotations
 
 import itertools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import GeometryError, unknown_choice
-from gcm_pipeline.geometry.dualquat import _cross, dib, dlb, quat_mul
+from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
+from gcm_pipeline.bounds import MAX_LENGTH
+from gcm_pipeline.manifold.surface import BLEND_METHODS, blend, project_onto_triangles
 
-__all__ = [
-    "BLEND_METHODS",
-    "ORIENTATION_SCALE",
-    "Location",
-    "TriangleLocator",
-    "blend",
-    "pose_distance",
-    "pose_features",
-    "project_onto_triangles",
-]
+__all__ = ["Location", "TriangleLocator", "as_query_poses"]
 
-#: Length scale ``L`` [m/rad] of the orientation term of the pose metric.
-ORIENTATION_SCALE = 0.1
+_UNIT_TOL = 1e-6  # |real| - 1 and real.dual of a query dual quaternion
 
-BLEND_METHODS = ("dib", "dlb")
-
-_QCONJ = np.array([1.0, -1.0, -1.0, -1.0])
 _FLIP = np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0, -1.0])  # the other quaternion sign
 
 
@@ -102,302 +56,63 @@ class Location(NamedTuple):
     dq: np.ndarray
 
 
-def blend(corners: np.ndarray, weights: np.ndarray, method: str = "dlb") -> np.ndarray:
-    """Poses (M, 8) of barycentric weights (M, 3) in triangles with corners (M, 3, 8).
+# --------------------------------------------------------------------------- query poses
+def _check_positions(xyz: np.ndarray, name: str) -> None:
+    """Positions within the scene's bounds (``MAX_LENGTH`` per coordinate, as the config's)."""
+    bad = (np.abs(xyz) > MAX_LENGTH).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise GeometryError(
+            f"{name} {i}: position [{', '.join(f'{v:.10g}' for v in xyz[i])}] m is outside the "
+            f"scene (at most {MAX_LENGTH:g} m per coordinate)"
+        )
 
-    A weight row with a single 1 returns that corner bit for bit (the
-    triangle's vertex), whatever the method.
+
+def as_query_poses(poses: Any, name: str = "query pose") -> np.ndarray:
+    """Validate query poses and return them as unit dual quaternions (M, 8).
+
+    Args:
+        poses: (M, 4, 4) or (4, 4) rigid transforms, or (M, 8) or (8,) unit
+            dual quaternions ``[r_w, r_x, r_y, r_z, d_w, d_x, d_y, d_z]``.
+        name: How to call them in messages.
 
     Raises:
-        GeometryError: Unknown method (the weights are trusted: >= 0, sum 1).
+        GeometryError: Another shape, non-finite values, a matrix that is not
+            rigid or a dual quaternion that is not unit (names the first bad one).
     """
-    if method not in BLEND_METHODS:
-        raise GeometryError(unknown_choice("blend method", method, BLEND_METHODS))
-    corners = np.asarray(corners, dtype=np.float64)
-    weights = np.asarray(weights, dtype=np.float64)
-    if method == "dlb":
-        out = dlb(corners, weights, check=False)
-    else:
-        out = dib(corners, weights, check=False)
-    vertex = weights == 1.0
-    rows = np.flatnonzero(vertex.any(axis=1))
-    if rows.size:
-        out[rows] = corners[rows, np.argmax(vertex[rows], axis=1)]
-    return out
-
-
-def pose_features(dq: npt.ArrayLike, orientation_scale: float = ORIENTATION_SCALE) -> np.ndarray:
-    """Embeddings ``[p, 2 L r]`` (..., 7) of poses (..., 8), ``r_w >= 0``.
-
-    The metric of the module docstring is the Euclidean distance between
-    embeddings of sign-aligned poses; use both signs of ``r`` in a KD-tree.
-    """
-    dq = np.asarray(dq, dtype=np.float64)
-    r = dq[..., :4]
-    sign = np.where(r[..., :1] < 0, -1.0, 1.0)
-    return np.concatenate((_translation(dq), (2.0 * orientation_scale) * sign * r), axis=-1)
-
-
-def pose_distance(
-    a: npt.ArrayLike, b: npt.ArrayLike, orientation_scale: float = ORIENTATION_SCALE
-) -> np.ndarray:
-    """Pose-metric distance [m] (...,) between poses (..., 8) (see the module docstring)."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    dp = _translation(a) - _translation(b)
-    ra, rb = a[..., :4], b[..., :4]
-    sign = np.where(np.einsum("...i,...i->...", ra, rb) < 0, -1.0, 1.0)[..., None]
-    dr = ra - sign * rb  # the nearer of rb and -rb (no cancellation at small angles)
-    chord2 = np.einsum("...i,...i->...", dr, dr)
-    return np.sqrt(np.einsum("...i,...i->...", dp, dp) + (2.0 * orientation_scale) ** 2 * chord2)
-
-
-def _translation(dq: np.ndarray) -> np.ndarray:
-    w, v = dq[..., 0:1], dq[..., 1:4]
-    dw, dv = dq[..., 4:5], dq[..., 5:8]
-    return 2.0 * (w * dv - dw * v + _cross(v, dv))
-
-
-# --------------------------------------------------------------------------- projection
-def _dlb_model(
-    corners: np.ndarray, uv: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """DLB surface at ``uv`` (P, 2): position (P, 3), rotation (P, 4) and their Jacobians.
-
-    ``w = (1 - u - v, u, v)``; signs aligned to the heaviest corner as
-    :func:`~gcm_pipeline.geometry.dualquat.dlb` does. The blend ``b`` is
-    affine in (u, v); ``r = b_r / |b_r|`` and ``p = vec(2 b_d b_r^*) / |b_r|^2``.
-
-    Returns:
-        ``p`` (P, 3), ``r`` (P, 4), ``dp`` (P, 3, 2), ``dr`` (P, 4, 2).
-    """
-    w = np.column_stack((1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]))
-    piv = np.argmax(w, axis=1)
-    rpiv = corners[np.arange(len(w)), piv, :4]
-    sign = np.where(np.einsum("pkc,pc->pk", corners[:, :, :4], rpiv) < 0, -1.0, 1.0)
-    c = corners * sign[:, :, None]
-    b = np.einsum("pk,pkc->pc", w, c)
-    db = np.stack((c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=-1)  # (P, 8, 2)
-    return _dlb_of_blend(b, db)
-
-
-def _dlb_aligned(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Corners (P, 3, 8) signed once for every ``(u, v)`` of :func:`_dlb_model`.
-
-    DLB signs the corners to agree with the heaviest one. Where the three
-    rotations, signed to agree with the first corner, agree pairwise (positive
-    dot products), signing them to any other corner only flips the blend as a
-    whole, which changes neither the pose nor the Gauss-Newton model (its
-    residual and Jacobian flip together): the blend is then affine in
-    ``(u, v)`` with these coefficients for the whole projection.
-
-    Returns:
-        ``base`` (P, 8) (the first corner), ``db`` (P, 8, 2) (the other two
-        minus it, signed) and ``ok`` (P,): the signs hold for every ``(u, v)``.
-    """
-    r = corners[:, :, :4]
-    s1 = np.where(np.einsum("pc,pc->p", r[:, 1], r[:, 0]) < 0, -1.0, 1.0)
-    s2 = np.where(np.einsum("pc,pc->p", r[:, 2], r[:, 0]) < 0, -1.0, 1.0)
-    c1 = corners[:, 1] * s1[:, None]
-    c2 = corners[:, 2] * s2[:, None]
-    base = corners[:, 0]
-    ok = (
-        (np.einsum("pc,pc->p", c1[:, :4], base[:, :4]) > 0)
-        & (np.einsum("pc,pc->p", c2[:, :4], base[:, :4]) > 0)
-        & (np.einsum("pc,pc->p", c1[:, :4], c2[:, :4]) > 0)
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GeometryError(f"{name}s must be numbers: {exc}") from None
+    if arr.shape[-2:] == (4, 4) and arr.ndim in (2, 3):
+        mats = arr.reshape(-1, 4, 4)
+        xyz = mats[:, :3, 3]
+        _check_positions(np.where(np.isfinite(xyz), xyz, 0.0), name)  # non-finite: said below
+        try:
+            return dq_from_matrix(mats)
+        except GeometryError as exc:
+            raise GeometryError(f"{name}: {exc}") from None
+    if arr.ndim in (1, 2) and arr.shape[-1] == 8:
+        dq = arr.reshape(-1, 8)
+        bad = ~np.isfinite(dq).all(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise GeometryError(f"{name} {i} has non-finite values: {dq[i].tolist()}")
+        norm = np.linalg.norm(dq[:, :4], axis=1)
+        dot = np.einsum("ij,ij->i", dq[:, :4], dq[:, 4:])
+        bad = (np.abs(norm - 1.0) > _UNIT_TOL) | (np.abs(dot) > _UNIT_TOL)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise GeometryError(
+                f"{name} {i} is not a unit dual quaternion (|real| = {norm[i]:.6g}, "
+                f"real.dual = {dot[i]:.2e}); pass (4, 4) matrices or dq_from_pos_quat(...)"
+            )
+        _check_positions(dq_translation(dq), name)
+        return dq.copy()
+    raise GeometryError(
+        f"{name}s must be (M, 4, 4) / (4, 4) matrices or (M, 8) / (8,) dual quaternions, "
+        f"got shape {arr.shape}"
     )
-    return base, np.stack((c1 - base, c2 - base), axis=-1), ok
-
-
-def _dlb_affine_model(
-    base: np.ndarray, db: np.ndarray, uv: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """As :func:`_dlb_model`, with the corners signed once (:func:`_dlb_aligned`)."""
-    b = base + db[:, :, 0] * uv[:, :1] + db[:, :, 1] * uv[:, 1:]
-    return _dlb_of_blend(b, db)
-
-
-def _dlb_of_blend(
-    b: np.ndarray, db: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Position, rotation and Jacobians of the normalised blend ``b`` (P, 8), ``db`` (P, 8, 2)."""
-    a, e = b[:, :4], b[:, 4:]
-    da, de = db[:, :4], db[:, 4:]
-    n2 = np.einsum("pc,pc->p", a, a)
-    n = np.sqrt(n2)
-    r = a / n[:, None]
-    a_conj = a * _QCONJ
-    m = 2.0 * quat_mul(e, a_conj)  # 2 e a*, its vector part / n2 is p
-    p = m[:, 1:] / n2[:, None]
-    dn2 = 2.0 * np.einsum("pc,pcj->pj", a, da)  # (P, 2)
-    dp = np.empty((len(b), 3, 2))
-    dr = np.empty((len(b), 4, 2))
-    for j in range(2):
-        dm = 2.0 * (quat_mul(de[:, :, j], a_conj) + quat_mul(e, da[:, :, j] * _QCONJ))
-        dp[:, :, j] = (dm[:, 1:] - p * dn2[:, j : j + 1]) / n2[:, None]
-        dr[:, :, j] = da[:, :, j] / n[:, None] - r * (0.5 * dn2[:, j] / n2)[:, None]
-    return p, r, dp, dr
-
-
-def _dib_model(
-    corners: np.ndarray, uv: np.ndarray, step: float = 1e-6
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """As :func:`_dlb_model` for DIB, Jacobians by forward differences (inward)."""
-    w = np.column_stack((1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]))
-    base = dib(corners, w, check=False)
-    p, r = _translation(base), base[:, :4]
-    dp = np.empty((len(w), 3, 2))
-    dr = np.empty((len(w), 4, 2))
-    for j in range(2):
-        h = np.where(uv.sum(axis=1) + step > 1.0, -step, step)  # stay inside the triangle
-        wj = w.copy()
-        wj[:, j + 1] += h
-        wj[:, 0] -= h
-        moved = dib(corners, wj, check=False)
-        rj = moved[:, :4] * np.where(np.einsum("pc,pc->p", moved[:, :4], r) < 0, -1.0, 1.0)[:, None]
-        dp[:, :, j] = (_translation(moved) - p) / h[:, None]
-        dr[:, :, j] = (rj - r) / h[:, None]
-    return p, r, dp, dr
-
-
-def _qp_triangle(x: np.ndarray, h: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """Minimise ``0.5 d^T H d + g^T d`` over ``x + d`` in the triangle u, v >= 0, u + v <= 1.
-
-    Args:
-        x: Current points (P, 2).
-        h: Hessians (P, 2, 2), positive semi-definite.
-        g: Gradients (P, 2).
-
-    Returns:
-        The minimisers (P, 2), exact for the quadratic model.
-    """
-    reg = 1e-12 * (np.trace(h, axis1=1, axis2=2) + 1e-30)
-    hh = h + reg[:, None, None] * np.eye(2)
-    det = hh[:, 0, 0] * hh[:, 1, 1] - hh[:, 0, 1] * hh[:, 1, 0]
-    inv = (
-        np.stack(
-            (
-                np.stack((hh[:, 1, 1], -hh[:, 0, 1]), axis=-1),
-                np.stack((-hh[:, 1, 0], hh[:, 0, 0]), axis=-1),
-            ),
-            axis=1,
-        )
-        / det[:, None, None]
-    )
-    free = x - np.einsum("pij,pj->pi", inv, g)
-    inside = (free[:, 0] >= 0) & (free[:, 1] >= 0) & (free.sum(axis=1) <= 1)
-    out = free
-    if inside.all():
-        return out
-    rows = np.flatnonzero(~inside)
-    xr, hr, gr = x[rows], h[rows], g[rows]
-    corners = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-    best = np.full(len(rows), np.inf)
-    best_pt = np.zeros((len(rows), 2))
-    for a_i, b_i in ((0, 1), (1, 2), (2, 0)):
-        a, b = corners[a_i], corners[b_i]
-        # point a + s (b - a); model value as a quadratic in s
-        d0 = a - xr  # step to a
-        e = b - a
-        he = np.einsum("pij,j->pi", hr, e)
-        curv = np.einsum("j,pj->p", e, he)
-        slope = np.einsum("pj,pj->p", gr, np.broadcast_to(e, gr.shape)) + np.einsum(
-            "pj,pj->p", d0, he
-        )
-        s = np.clip(np.where(curv > 0, -slope / np.where(curv > 0, curv, 1.0), 0.0), 0.0, 1.0)
-        # with zero curvature pick the better end
-        flat = curv <= 0
-        s = np.where(flat, np.where(slope < 0, 1.0, 0.0), s)
-        pt = a + s[:, None] * e
-        d = pt - xr
-        val = 0.5 * np.einsum("pi,pij,pj->p", d, hr, d) + np.einsum("pi,pi->p", gr, d)
-        better = val < best
-        best = np.where(better, val, best)
-        best_pt[better] = pt[better]
-    out = out.copy()
-    out[rows] = best_pt
-    return out
-
-
-def project_onto_triangles(
-    queries: np.ndarray,
-    corners: np.ndarray,
-    uv0: np.ndarray,
-    *,
-    method: str = "dlb",
-    orientation_scale: float = ORIENTATION_SCALE,
-    iterations: int = 8,
-    tolerance: float = 1e-8,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest point of each blended triangle to a query pose (local minimum, batched).
-
-    Args:
-        queries: (P, 8) query poses, one per pair.
-        corners: (P, 3, 8) the triangle's vertex poses, one per pair.
-        uv0: (P, 2) starting weights ``(w1, w2)`` (e.g. of the nearest lattice point).
-        method: The blend, ``dlb`` or ``dib``.
-        orientation_scale: ``L`` [m/rad] of the pose metric.
-        iterations: Maximum SQP steps.
-        tolerance: Stop when no pair moves more than this in (u, v).
-
-    Returns:
-        ``(weights (P, 3), distance (P,))``: the local minimiser and its
-        pose-metric distance [m] (from the exact blend, :func:`blend`).
-    """
-    if method == "dlb":
-        # corners signed once where that holds for every weight (the same
-        # model either way, up to rounding; chosen per triangle, never per batch)
-        base, db, ok = _dlb_aligned(corners)
-
-        def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
-            fast = ok[rows]
-            if fast.all():
-                return _dlb_affine_model(base[rows], db[rows], uv)
-            out = tuple(np.empty((len(rows), *shape)) for shape in ((3,), (4,), (3, 2), (4, 2)))
-            for sel, part in (
-                (fast, _dlb_affine_model(base[rows[fast]], db[rows[fast]], uv[fast])),
-                (~fast, _dlb_model(corners[rows[~fast]], uv[~fast])),
-            ):
-                for whole, piece in zip(out, part, strict=True):
-                    whole[sel] = piece
-            return out
-
-    else:
-
-        def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
-            return _dib_model(corners[rows], uv)
-
-    uv = np.array(uv0, dtype=np.float64)
-    p_q = _translation(queries)
-    r_q = queries[:, :4]
-    scale = 2.0 * orientation_scale
-    active = np.arange(len(uv))
-    for _ in range(iterations):
-        if not active.size:
-            break
-        p, r, dp, dr = model(active, uv[active])
-        sign = np.where(np.einsum("pc,pc->p", r, r_q[active]) < 0, -1.0, 1.0)
-        res = np.concatenate((p - p_q[active], scale * (r - sign[:, None] * r_q[active])), axis=1)
-        jac = np.concatenate((dp, scale * dr), axis=1)  # (P, 7, 2)
-        h = np.einsum("pki,pkj->pij", jac, jac)
-        g = np.einsum("pki,pk->pi", jac, res)
-        new = _qp_triangle(uv[active], h, g)
-        moved = np.abs(new - uv[active]).max(axis=1)
-        uv[active] = new
-        active = active[moved > tolerance]
-    w = np.column_stack((1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]))
-    w = np.clip(w, 0.0, 1.0)
-    w /= w.sum(axis=1, keepdims=True)
-    w = _snap(w)
-    pts = blend(corners, w, method)
-    return w, pose_distance(pts, queries, orientation_scale)
-
-
-def _snap(w: np.ndarray, eps: float = 1e-12) -> np.ndarray:
-    """Weights within ``eps`` of 0 or 1 set exactly (vertices and edges come out exact)."""
-    w = np.where(w < eps, 0.0, w)
-    w = np.where(w > 1.0 - eps, 1.0, w)
-    return w / w.sum(axis=1, keepdims=True)
 
 
 # --------------------------------------------------------------------------- locator
@@ -525,7 +240,7 @@ class TriangleLocator:
         ref = corners[:, 0, :4]
         sign = np.where(np.einsum("tpc,tc->tp", pts[..., :4], ref) < 0, -1.0, 1.0)
         feat = np.concatenate(
-            (_translation(pts), (2.0 * self.orientation_scale) * sign[..., None] * pts[..., :4]),
+            (dq_translation(pts), (2.0 * self.orientation_scale) * sign[..., None] * pts[..., :4]),
             axis=-1,
         )  # (T, P, 7)
         centre = feat.mean(axis=1)

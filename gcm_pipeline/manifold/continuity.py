@@ -1,7 +1,7 @@
 """IK continuity across the manifold: joint jumps, IK-branch patches, re-seeding.
 
 Neighbouring grasps of the manifold (edges of the row mesh,
-:mod:`gcm_pipeline.stages.lattice`) are close poses; a planner that moves
+:mod:`gcm_pipeline.manifold.lattice`) are close poses; a planner that moves
 along the manifold needs their IK solutions close too. An elbow or wrist flip
 between neighbours makes the region useless for continuous motion even when
 every grasp in it is reachable.
@@ -150,7 +150,7 @@ def reseed(
 
     Args:
         grasps: Table with the reachability columns (``dq``, ``reachable``, ``q``, ...).
-        edges: (E, 2) neighbour rows (:attr:`~gcm_pipeline.stages.lattice.RowMesh.edges`).
+        edges: (E, 2) neighbour rows (:attr:`~gcm_pipeline.manifold.lattice.RowMesh.edges`).
         check: Checks poses warm-started from given solutions, as the run does
             (:class:`~gcm_pipeline.pipeline.ReachabilityCheck`).
         threshold: Largest joint jump [rad] within a patch.

@@ -35,7 +35,6 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         sclerp,
     )
     from gcm_pipeline.geometry.surface import Location
-    from gcm_pipeline.io import read_run
     from gcm_pipeline.pipeline import (
         Pipeline,
         RunResult,
@@ -58,6 +57,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         yoshikawa,
     )
     from gcm_pipeline.robot.model import Robot, available_robots, load_robot
+    from gcm_pipeline.rundir.transaction import read_run
     from gcm_pipeline.stages.collision import combined_score
     from gcm_pipeline.stages.manifold import Manifold
     from gcm_pipeline.study import Study, StudyResult
@@ -109,7 +109,7 @@ _LAZY = {
     "manipulability_metrics": "gcm_pipeline.robot.manipulability",
     "publish": "gcm_pipeline.pipeline",
     "rank": "gcm_pipeline.pipeline",
-    "read_run": "gcm_pipeline.io",
+    "read_run": "gcm_pipeline.rundir.transaction",
     "sclerp": "gcm_pipeline.geometry.dualquat",
     "solve_ik": "gcm_pipeline.robot.ik",
     "translational_manipulability": "gcm_pipeline.robot.manipulability",
@@ -175,7 +175,7 @@ __all__ = [
 if not TYPE_CHECKING:  # type checkers see the imports above, and typos stay errors
 
     def __getattr__(name: str) -> Any:
-        """Load a public name, or a subpackage (``gcm_pipeline.io``), on first use (PEP 562)."""
+        """Load a public name, or a subpackage (``gcm_pipeline.rundir``), on first use (PEP 562)."""
         module = _LAZY.get(name)
         if module is not None:
             value = getattr(importlib.import_module(module), name)

@@ -27,7 +27,7 @@ holds row ids into the candidate table, not poses, so that the poses live in
 one place (the table's ``dq`` column) only.
 
 :class:`Pipeline` runs them in order, times them, writes the run directory
-atomically (:mod:`gcm_pipeline.io`) and returns a :class:`RunResult`. Before
+atomically (:mod:`gcm_pipeline.rundir.transaction`) and returns a :class:`RunResult`. Before
 any stage runs, the output directory is checked and :func:`preflight` (also
 behind ``gcm validate``) checks what the config refers to: the robot spec,
 every input file (named by its config key) and, with the live viewer on, the
@@ -48,9 +48,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from gcm_pipeline import io
 from gcm_pipeline.config import Config, load_config, takes_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
+from gcm_pipeline.rundir import transaction as io
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
 
@@ -169,7 +169,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     if not (viewer or pub.meshcat):
         log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
         return robot
-    from gcm_pipeline.stages.publish import probe_server
+    from gcm_pipeline.publish.scene import probe_server
 
     try:
         probe_server(pub.zmq_url, pub.connect_timeout_s)
@@ -639,7 +639,7 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     Returns:
         The files written.
     """
-    from gcm_pipeline.stages import publish as stage
+    from gcm_pipeline.publish import scene as stage
 
     counts = {k: v for k, v in result.counts.items() if isinstance(v, int)}
     files = stage.publish(
@@ -737,7 +737,7 @@ class RunResult:
         colormap, the manipulability range it spans and the colour and count
         of every unreachable reason.
         """
-        from gcm_pipeline.stages.publish import legend
+        from gcm_pipeline.publish.scene import legend
 
         return {
             "counts": dict(self.counts),

@@ -315,7 +315,7 @@ def test_python_dash_m(tmp_path):
 
 
 def test_meshcat_viewer_opens_after_the_run(capsys, out, monkeypatch):
-    from gcm_pipeline.stages import publish
+    from gcm_pipeline.publish import scene as publish
 
     events = []
 

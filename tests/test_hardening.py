@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcm_pipeline import io
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError, RobotSpecError
 from gcm_pipeline.pipeline import Pipeline, preflight
+from gcm_pipeline.rundir import transaction as io
 from gcm_pipeline.stages.candidates import read_grasp_file
 
 ROOT = Path(__file__).resolve().parents[1]

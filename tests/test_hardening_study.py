@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import yaml
 
-from gcm_pipeline import signals
+from gcm_pipeline import interrupts
 from gcm_pipeline.cli import main
 from gcm_pipeline.study import Study
 from gcm_pipeline.study.runner import EngineError, probe_address
@@ -112,17 +112,17 @@ def test_an_address_where_no_ray_listens_is_one_line(tmp_path, capsys, request, 
 
 def test_sigterm_stops_the_address_probe(silent_port):
     """The probe waits on a socket in Python: SIGTERM ends it at once, as everywhere in gcm."""
-    previous = signals.install()
+    previous = interrupts.install()
     timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM))
     try:
         timer.start()
-        with pytest.raises(signals.Terminated):
+        with pytest.raises(interrupts.Terminated):
             probe_address(f"127.0.0.1:{silent_port}", timeout=300)
     finally:
         timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        signals.clear()
+        interrupts.clear()
 
 
 @pytest.mark.parametrize("address", ["[::1:6379", "[::1", "ray://[fe80::1:10001", "http://h:1"])
@@ -324,8 +324,8 @@ def test_refinement_stops_exactly_where_rounds_stop_adding():
 @pytest.fixture
 def panda_mesh(tmp_path, monkeypatch):
     """One of the Panda's visual meshes, simplified once into an empty cache: (mesh, entry)."""
+    from gcm_pipeline.publish import scene as pub
     from gcm_pipeline.robot import load_robot
-    from gcm_pipeline.stages import publish as pub
 
     robot = load_robot("panda")
     path = next(o.meshPath for o in robot.build_geometry("visual").geometryObjects if o.meshPath)
@@ -347,7 +347,7 @@ def _npy(arr: np.ndarray) -> bytes:
 
 
 def test_a_mesh_cache_entry_that_is_a_named_pipe_is_simplified_again(panda_mesh):
-    from gcm_pipeline.stages import publish as pub
+    from gcm_pipeline.publish import scene as pub
 
     path, entry, faces = panda_mesh
     entry.unlink()
@@ -367,7 +367,7 @@ def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
 
     import numpy.lib.format as npf
 
-    from gcm_pipeline.stages import publish as pub
+    from gcm_pipeline.publish import scene as pub
 
     path, entry, faces = panda_mesh
     import io as _io
@@ -462,7 +462,7 @@ def test_gcm_run_on_a_full_file_system_is_one_line(tiny_tmpfs, capsys):
 
 
 def test_disk_full_while_writing_is_one_line_in_process(tmp_path, capsys, monkeypatch):
-    from gcm_pipeline import io
+    from gcm_pipeline.rundir import transaction as io
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -524,25 +524,25 @@ def test_gcm_study_on_a_full_file_system_is_one_line(tiny_tmpfs, tmp_path, capsy
 
 
 def test_a_held_interrupt_is_raised_after_its_grace():
-    """signals.held(grace): SIGTERM waits at most ``grace`` seconds, then cuts the block."""
+    """interrupts.held(grace): SIGTERM waits at most ``grace`` seconds, then cuts the block."""
     import time
 
-    previous = signals.install()
+    previous = interrupts.install()
     try:
-        with pytest.raises(signals.Terminated):
-            with signals.held(0.2) as got:
+        with pytest.raises(interrupts.Terminated):
+            with interrupts.held(0.2) as got:
                 os.kill(os.getpid(), signal.SIGTERM)
                 for _ in range(600):  # 60 s at most: the interrupt ends it long before
                     time.sleep(0.1)
         assert got == [signal.SIGTERM]
-        with signals.held() as got:  # no grace: held to the end of the block
+        with interrupts.held() as got:  # no grace: held to the end of the block
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.5)
         assert got == [signal.SIGTERM]
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        signals.clear()
+        interrupts.clear()
 
 
 def test_sigterm_while_ray_joins_a_silent_address_exits_143(tmp_path, silent_port):

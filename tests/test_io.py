@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline import io
 from gcm_pipeline.errors import InputError, OutputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
+from gcm_pipeline.rundir import transaction as io
 from gcm_pipeline.stages.manifold import Manifold
 from gcm_pipeline.table import GraspTable
 
@@ -466,7 +466,7 @@ def test_leftovers_of_a_killed_run_are_removed_by_the_next(tmp_path):
         [
             sys.executable,
             "-c",
-            "import sys, time\nfrom gcm_pipeline import io\n"
+            "import sys, time\nfrom gcm_pipeline.rundir import transaction as io\n"
             "with io.atomic_run_dir(sys.argv[1]) as tmp:\n"
             "    (tmp / 'partial.csv').write_text('x')\n    print(tmp, flush=True)\n"
             "    time.sleep(60)\n",

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcm_pipeline import io, pipeline
+from gcm_pipeline import pipeline
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import OutputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
@@ -21,6 +21,7 @@ from gcm_pipeline.pipeline import (
     load_robot,
     rank,
 )
+from gcm_pipeline.rundir import transaction as io
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAT = ROOT / "configs" / "flat_surface.yaml"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.publish.plots import chart_axis_labels, chart_period
 from gcm_pipeline.stages.manifold import STANDOFF, build_manifold
-from gcm_pipeline.stages.plots import chart_axis_labels, chart_period
 from gcm_pipeline.table import GraspTable
 
 

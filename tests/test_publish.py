@@ -19,9 +19,9 @@ import umsgpack
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.publish import scene as pub
+from gcm_pipeline.publish.plots import PLOT_FILES, chart_points, write_plots
 from gcm_pipeline.robot.model import load_robot
-from gcm_pipeline.stages import publish as pub
-from gcm_pipeline.stages.plots import PLOT_FILES, chart_points, write_plots
 from gcm_pipeline.table import GraspTable
 
 _B64 = re.compile(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)")

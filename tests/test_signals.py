@@ -117,8 +117,8 @@ def test_sigterm_while_writing_leaves_the_previous_run(tmp_path):
 
 def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
     """``gcm`` turns SIGHUP (and SIGTERM) into an interrupt of the main thread."""
-    from gcm_pipeline import io
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import transaction as io
 
     written = io.write_run_files
 
@@ -140,8 +140,8 @@ def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
 def _interrupted_rerun(tmp_path, capsys, monkeypatch, write_run_files):
     """A complete run, then ``--force`` over it with ``write_run_files`` patched to get
     interrupted: one line, status 130, the first run kept as it was."""
-    from gcm_pipeline import io
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import transaction as io
 
     out = tmp_path / "run"
     quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
@@ -162,8 +162,8 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     (status 130), keeps the previous run, and ``gcm study`` says what it kept (if any)."""
     from pydantic import BaseModel, field_serializer
 
-    from gcm_pipeline import io
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import transaction as io
     from gcm_pipeline.study import Study
 
     class Slow(BaseModel):
@@ -197,12 +197,13 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
     """An interrupt raised inside a finaliser is dropped by Python ("Exception
     ignored"): the run would go on and replace the previous one. The handler recorded
     it, so the swap does not happen: one line, status 130, the previous run kept."""
-    from gcm_pipeline import Pipeline, io, load_config, signals
+    from gcm_pipeline import Pipeline, interrupts, load_config
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import transaction as io
 
     class Finalised:
         def __del__(self) -> None:
-            signals.raise_interrupt(signal.SIGINT)  # as if Ctrl-C landed in here
+            interrupts.raise_interrupt(signal.SIGINT)  # as if Ctrl-C landed in here
 
     written = io.write_run_files
 
@@ -227,7 +228,7 @@ def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypat
     import types
 
     from gcm_pipeline import __main__ as entry_point
-    from gcm_pipeline import signals
+    from gcm_pipeline import interrupts
 
     class Loading(types.ModuleType):
         def __getattr__(self, name: str):
@@ -241,7 +242,7 @@ def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypat
         assert capsys.readouterr().err.strip().splitlines() == ["interrupted (SIGTERM)"]
         for s in saved:
             assert signal.getsignal(s) == signal.SIG_IGN
-        signals.check()  # the handled interrupt is not raised again later
+        interrupts.check()  # the handled interrupt is not raised again later
     finally:
         for s, handler in saved.items():
             signal.signal(s, handler)
@@ -253,7 +254,7 @@ def test_sigterm_at_once_is_one_line(tmp_path):
     probe = (
         "import os, signal, sys; sys.argv = ['gcm', 'run', sys.argv[1], '--out', sys.argv[2]]; "
         "from gcm_pipeline.__main__ import entry; "
-        "import gcm_pipeline.signals as s; orig = s.install; "
+        "import gcm_pipeline.interrupts as s; orig = s.install; "
         "s.install = lambda *a: (orig(*a), os.kill(os.getpid(), signal.SIGTERM))[0]; "
         "sys.exit(entry())"
     )

@@ -257,7 +257,7 @@ def test_scene_draws_the_ur5_with_its_gripper(ur5):
 
     from gcm_pipeline.config import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
-    from gcm_pipeline.stages import publish as pub
+    from gcm_pipeline.publish import scene as pub
     from gcm_pipeline.table import GraspTable
 
     q = ur5.home.copy()

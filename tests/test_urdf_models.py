@@ -20,10 +20,10 @@ from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
-from gcm_pipeline.io import read_run
 from gcm_pipeline.robot import model as model_module
 from gcm_pipeline.robot.model import load_robot, load_spec, root_link
 from gcm_pipeline.robot.urdf import CONTINUOUS_RANGE, resolve_frame
+from gcm_pipeline.rundir.transaction import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
 BOTTLE = ROOT / "configs" / "bottle_side.yaml"

@@ -2,7 +2,7 @@
 
 Layout::
 
-    .gcm.json           the project's marker (kind ``study``, :func:`gcm_pipeline.io.write_marker`)
+    .gcm.json           the project's marker (kind ``study``, :mod:`gcm_pipeline.rundir`)
     .study.lock         held (``flock``) by the study running here: a second study
                         into the same directory stops with an error instead of
                         writing over the first one's files
@@ -39,9 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline import io
 from gcm_pipeline.errors import InputError, OutputError, clip
-from gcm_pipeline.io import _json_clean, format_floats
+from gcm_pipeline.rundir import transaction as io
+from gcm_pipeline.rundir.transaction import _json_clean, format_floats
 from gcm_pipeline.study.spec import AXES
 
 try:

@@ -32,10 +32,11 @@ from typing import Any, Literal
 import numpy as np
 from tqdm.auto import tqdm
 
-from gcm_pipeline import io, signals
+from gcm_pipeline import interrupts
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError
 from gcm_pipeline.limits import MAX_STUDY_PLACEMENTS
+from gcm_pipeline.rundir import transaction as io
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
 from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
 
@@ -296,7 +297,7 @@ class Study:
             store.create({"key": plan.key(), "created": time.time(), **plan.to_dict()})
             result = run.execute(resumed=resumed, t_start=t_start, best_run=best_run)
         except BaseException as exc:
-            if signals.interrupt_cause(exc) is not None:  # also one a library wrapped
+            if interrupts.interrupt_cause(exc) is not None:  # also one a library wrapped
                 executor.close()
                 run.finish(complete=False, t_start=t_start)
             raise
@@ -363,7 +364,7 @@ class _Run:
 
     def _jobs(self, todo: list[Placement]) -> Iterator[dict[str, Any]]:
         for p in todo:
-            signals.check()  # an interrupt dropped on the way stops the study here
+            interrupts.check()  # an interrupt dropped on the way stops the study here
             row = self._row_base(p)
             try:
                 cfg = self.plan.resolve(p.overrides, where=f"placement {p.id}")

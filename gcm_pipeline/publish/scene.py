@@ -58,8 +58,8 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError, PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.io import read_npz
-from gcm_pipeline.stages.plots import REASON_COLORS, candidate_rows, reason_palette
+from gcm_pipeline.publish.plots import REASON_COLORS, candidate_rows, reason_palette
+from gcm_pipeline.rundir.transaction import read_npz
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
@@ -74,7 +74,7 @@ try:
     from meshcat.animation import Animation
     from meshcat.servers.tree import SceneTree, find_node, walk
 except ImportError as _exc:  # pragma: no cover - meshcat is a hard dependency
-    raise ImportError("gcm_pipeline.stages.publish needs meshcat (pip install meshcat)") from _exc
+    raise ImportError("gcm_pipeline.publish.scene needs meshcat (pip install meshcat)") from _exc
 
 __all__ = [
     "ANIMATION_BLEND_LIMIT",
@@ -1238,7 +1238,7 @@ def publish(
         write_scene_html(path, grasps, manifold, robot, config)
         written.append(path)
     if config.publish.plots:
-        from gcm_pipeline.stages.plots import write_plots
+        from gcm_pipeline.publish.plots import write_plots
 
         written += write_plots(grasps, manifold, counts or stage_counts(grasps, manifold), out)
     return written

@@ -69,7 +69,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import yaml
 
-from gcm_pipeline import signals
+from gcm_pipeline import interrupts
 from gcm_pipeline.errors import InputError, OutputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
 from gcm_pipeline.limits import MAX_CSV_CELL
@@ -532,7 +532,7 @@ def atomic_dir(
         raise OutputError(f"cannot create output directory {out}: {exc}") from None
     try:
         yield tmp
-        signals.check()  # an interrupt dropped while the block ran still stops the swap
+        interrupts.check()  # an interrupt dropped while the block ran still stops the swap
         os.chmod(tmp, 0o755 & ~_umask())
         with _locked(out.parent):
             with _signals_deferred():

@@ -106,7 +106,7 @@ def export_run(
             device or a pipe.
     """
     from gcm_pipeline.config import load_config
-    from gcm_pipeline.io import read_grasps_csv
+    from gcm_pipeline.rundir.transaction import read_grasps_csv
 
     if format not in EXPORT_FORMATS:
         raise InputError(unknown_choice("export format", format, EXPORT_FORMATS))
@@ -180,7 +180,7 @@ def _check_not_the_run(run: Path, path: Path) -> None:
     (its ``.png`` plots included), nor one of another run's or study's
     directory (a folder with this project's marker) or a study's placement.
     """
-    from gcm_pipeline.io import read_marker
+    from gcm_pipeline.rundir.transaction import read_marker
 
     target = path.resolve()
     folder = target.parent
@@ -247,7 +247,7 @@ def _atomic(path: Path, write: Callable[[Path], None]) -> None:
 
 def _flat_columns(g: GraspTable) -> dict[str, np.ndarray]:
     """The grasps.csv columns (names and values) of a table, ``q`` kept 2-D."""
-    from gcm_pipeline.io import CSV_COLUMNS
+    from gcm_pipeline.rundir.transaction import CSV_COLUMNS
 
     n = len(g)
     if "pose7" in g:

@@ -57,7 +57,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         yoshikawa,
     )
     from gcm_pipeline.robot.model import Robot, available_robots, load_robot
-    from gcm_pipeline.rundir.transaction import read_run
+    from gcm_pipeline.rundir.run import read_run
     from gcm_pipeline.stages.collision import combined_score
     from gcm_pipeline.stages.manifold import Manifold
     from gcm_pipeline.study import Study, StudyResult
@@ -109,7 +109,7 @@ _LAZY = {
     "manipulability_metrics": "gcm_pipeline.robot.manipulability",
     "publish": "gcm_pipeline.pipeline",
     "rank": "gcm_pipeline.pipeline",
-    "read_run": "gcm_pipeline.rundir.transaction",
+    "read_run": "gcm_pipeline.rundir.run",
     "sclerp": "gcm_pipeline.geometry.dualquat",
     "solve_ik": "gcm_pipeline.robot.ik",
     "translational_manipulability": "gcm_pipeline.robot.manipulability",

@@ -387,7 +387,7 @@ def _cmd_schema(args: argparse.Namespace) -> int:
 
 def _cmd_show(args: argparse.Namespace) -> int:
     from gcm_pipeline.pipeline import top_grasps
-    from gcm_pipeline.rundir.transaction import read_run
+    from gcm_pipeline.rundir.run import read_run
 
     if args.top < 0:
         raise GcmError(f"--top must be >= 0, got {args.top}")
@@ -407,7 +407,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 def _cmd_plot(args: argparse.Namespace) -> int:
     from gcm_pipeline.publish.plots import write_plots
-    from gcm_pipeline.rundir.transaction import read_run
+    from gcm_pipeline.rundir.run import read_run
 
     run = read_run(args.run_dir)
     counts = {k: v for k, v in run.summary.get("counts", {}).items() if isinstance(v, int)}
@@ -527,7 +527,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_view(args: argparse.Namespace) -> int:
     from gcm_pipeline.config import Config
     from gcm_pipeline.robot.model import load_robot
-    from gcm_pipeline.rundir.transaction import read_run
+    from gcm_pipeline.rundir.run import read_run
 
     run = read_run(args.run_dir)
     if not isinstance(run.summary.get("config"), dict):
@@ -850,8 +850,7 @@ def interrupt_on_termination() -> Iterator[None]:
         yield
     finally:
         sys.unraisablehook = hook
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        interrupts.restore(previous)
 
 
 def _quiet_dropped_interrupts(hook: Any) -> Any:

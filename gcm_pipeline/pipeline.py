@@ -27,7 +27,7 @@ holds row ids into the candidate table, not poses, so that the poses live in
 one place (the table's ``dq`` column) only.
 
 :class:`Pipeline` runs them in order, times them, writes the run directory
-atomically (:mod:`gcm_pipeline.rundir.transaction`) and returns a :class:`RunResult`. Before
+atomically (:mod:`gcm_pipeline.rundir`) and returns a :class:`RunResult`. Before
 any stage runs, the output directory is checked and :func:`preflight` (also
 behind ``gcm validate``) checks what the config refers to: the robot spec,
 every input file (named by its config key) and, with the live viewer on, the
@@ -50,7 +50,8 @@ from tqdm.auto import tqdm
 
 from gcm_pipeline.config import Config, load_config, takes_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
-from gcm_pipeline.rundir import transaction as io
+from gcm_pipeline.rundir import run as run_files
+from gcm_pipeline.rundir import transaction
 from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
 
@@ -746,7 +747,7 @@ class RunResult:
             **({"grasp_frame": self.grasp_frame} if self.grasp_frame else {}),
             "legend": legend(self.grasps),
             "config": self.config.to_dict(),
-            "versions": io.versions(),
+            "versions": run_files.versions(),
         }
 
     def __repr__(self) -> str:
@@ -843,7 +844,7 @@ class Pipeline:
             robot = preflight(cfg, viewer=viewer)  # builds the robot: the "robot" stage's work
         robot_s = time.perf_counter() - t0
         if write:
-            out = io.check_output_dir(out, force=force, keep=keep)
+            out = transaction.check_output_dir(out, force=force, keep=keep)
         timings: dict[str, float] = {}
         names = ["candidates", "manifold", "densify", "robot", "reachability", "ranking"]
         if write:
@@ -946,14 +947,14 @@ class Pipeline:
         result.grasp_frame = source.get("grasp_frame")
         if not write:
             return result
-        with io.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:
+        with transaction.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:
             with stage("write"):
-                io.write_run_files(tmp, grasps, manifold, cfg.to_dict())
+                run_files.write_run_files(tmp, grasps, manifold, cfg.to_dict())
             with stage("publish"):
                 published = publish(result, cfg, tmp)
-            io.write_summary(result.summary(), tmp / "summary.json")
+            run_files.write_summary(result.summary(), tmp / "summary.json")
         result.run_dir = out
-        result.files = sorted(p for p in out.iterdir() if p.name != io.MARKER)
+        result.files = sorted(p for p in out.iterdir() if p.name != transaction.MARKER)
         log.info("run directory %s (%d published files)", out, len(published))
         return result
 

@@ -820,7 +820,7 @@ def load_manifold(run_dir: str | Path) -> GraspManifold:
         InputError: Not a run directory, or a file in it is missing or unreadable.
         ConfigError: Its ``config.yaml`` is invalid.
     """
-    from gcm_pipeline.rundir.transaction import read_run
+    from gcm_pipeline.rundir.run import read_run
 
     run = read_run(run_dir)
     path = Path(run_dir) / "config.yaml"

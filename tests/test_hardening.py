@@ -22,7 +22,7 @@ from gcm_pipeline.cli import main
 from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError, RobotSpecError
 from gcm_pipeline.pipeline import Pipeline, preflight
-from gcm_pipeline.rundir import transaction as io
+from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.stages.candidates import read_grasp_file
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -517,7 +517,7 @@ def test_tampered_run_directories(capsys, tmp_path, good_run, case):
     shutil.copytree(good_run, d)
     tamper(d)
     with pytest.raises(InputError, match=None) as info:
-        io.read_run(d)
+        run_files.read_run(d)
     assert fragment in str(info.value), str(info.value)
     code, out, err = _cli(capsys, "show", d)
     _one_line_error(code, err, fragment)
@@ -542,7 +542,7 @@ def test_a_run_with_nothing_reachable_reads_shows_and_plots(capsys, tmp_path):
     code, _, err = _cli(capsys, "run", cfg, "--out", out, "--set", "publish.html=false")
     assert code == 0, err
     assert "WARNING" in err and "no grasp is reachable (out_of_reach 66)" in err
-    run = io.read_run(out)
+    run = run_files.read_run(out)
     assert len(run.grasps) == 66 and not run.grasps["reachable"].any()
     assert np.isnan(run.grasps["pos_err"]).all()
     code, text, err = _cli(capsys, "show", out)

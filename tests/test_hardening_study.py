@@ -462,12 +462,12 @@ def test_gcm_run_on_a_full_file_system_is_one_line(tiny_tmpfs, capsys):
 
 
 def test_disk_full_while_writing_is_one_line_in_process(tmp_path, capsys, monkeypatch):
-    from gcm_pipeline.rundir import transaction as io
+    from gcm_pipeline.rundir import run as run_files
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(io, "write_grasps_csv", full)
+    monkeypatch.setattr(run_files, "write_grasps_csv", full)
     out = tmp_path / "run"
     sets = [a for s in SMALL for a in ("--set", s)]
     code, _, err = _cli(capsys, "run", BOTTLE, "--out", out, "-q", *sets)

@@ -118,16 +118,16 @@ def test_sigterm_while_writing_leaves_the_previous_run(tmp_path):
 def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
     """``gcm`` turns SIGHUP (and SIGTERM) into an interrupt of the main thread."""
     from gcm_pipeline.cli import main
-    from gcm_pipeline.rundir import transaction as io
+    from gcm_pipeline.rundir import run as run_files
 
-    written = io.write_run_files
+    written = run_files.write_run_files
 
     def hang_up(out_dir, *args, **kwargs):
         written(out_dir, *args, **kwargs)
         os.kill(os.getpid(), signal.SIGHUP)
         time.sleep(5)  # the handler raises long before this ends
 
-    monkeypatch.setattr(io, "write_run_files", hang_up)
+    monkeypatch.setattr(run_files, "write_run_files", hang_up)
     before = signal.getsignal(signal.SIGHUP)
     out = tmp_path / "run"
     status = main(["run", str(FLAT), "--out", str(out), "--set", "publish.html=false"])
@@ -141,14 +141,14 @@ def _interrupted_rerun(tmp_path, capsys, monkeypatch, write_run_files):
     """A complete run, then ``--force`` over it with ``write_run_files`` patched to get
     interrupted: one line, status 130, the first run kept as it was."""
     from gcm_pipeline.cli import main
-    from gcm_pipeline.rundir import transaction as io
+    from gcm_pipeline.rundir import run as run_files
 
     out = tmp_path / "run"
     quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
     assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     capsys.readouterr()
-    monkeypatch.setattr(io, "write_run_files", write_run_files)
+    monkeypatch.setattr(run_files, "write_run_files", write_run_files)
     assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
     assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
@@ -163,7 +163,7 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     from pydantic import BaseModel, field_serializer
 
     from gcm_pipeline.cli import main
-    from gcm_pipeline.rundir import transaction as io
+    from gcm_pipeline.rundir import run as run_files
     from gcm_pipeline.study import Study
 
     class Slow(BaseModel):
@@ -188,7 +188,7 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == "interrupted" and "finished placements are kept" in err[0]
     # an error that is not an interrupt still shows as one
-    monkeypatch.setattr(io, "write_run_files", lambda *a, **k: 1 / 0)
+    monkeypatch.setattr(run_files, "write_run_files", lambda *a, **k: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         main(["run", str(FLAT), "--out", str(out), "--force", *quick])
 
@@ -199,13 +199,13 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
     it, so the swap does not happen: one line, status 130, the previous run kept."""
     from gcm_pipeline import Pipeline, interrupts, load_config
     from gcm_pipeline.cli import main
-    from gcm_pipeline.rundir import transaction as io
+    from gcm_pipeline.rundir import run as run_files
 
     class Finalised:
         def __del__(self) -> None:
             interrupts.raise_interrupt(signal.SIGINT)  # as if Ctrl-C landed in here
 
-    written = io.write_run_files
+    written = run_files.write_run_files
 
     def dropped(*args, **kwargs):
         Finalised()  # collected at once: the interrupt is raised and dropped
@@ -214,7 +214,7 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
     out, quick = _interrupted_rerun(tmp_path, capsys, monkeypatch, dropped)
     # the handled interrupt does not outlive the command: the Python API and the next
     # command write their runs
-    monkeypatch.setattr(io, "write_run_files", written)
+    monkeypatch.setattr(run_files, "write_run_files", written)
     cfg = load_config(FLAT, ["publish.html=false", "publish.plots=false"])
     Pipeline(cfg).run(out_dir=tmp_path / "api", progress=False)
     assert (tmp_path / "api" / "summary.json").is_file()

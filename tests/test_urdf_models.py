@@ -23,7 +23,7 @@ from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.robot import model as model_module
 from gcm_pipeline.robot.model import load_robot, load_spec, root_link
 from gcm_pipeline.robot.urdf import CONTINUOUS_RANGE, resolve_frame
-from gcm_pipeline.rundir.transaction import read_run
+from gcm_pipeline.rundir.run import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
 BOTTLE = ROOT / "configs" / "bottle_side.yaml"

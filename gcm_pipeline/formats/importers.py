@@ -420,7 +420,7 @@ def _read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
     what ``max_count`` grasps take, and each plain array's header against
     the bytes its member holds.
     """
-    from gcm_pipeline.rundir.transaction import npy_header
+    from gcm_pipeline.rundir.arrays import npy_header
 
     out: dict[str, Any] = {}
     # numbers the pickled members may expand to: a pickle refers to one list or array
@@ -701,7 +701,7 @@ def _check_graspnet_shape(path: Path, shape: tuple[int, ...], dtype: np.dtype[An
 
 def _read_graspnet_npy(path: Path, max_count: int) -> np.ndarray:
     """The rows of a ``.npy`` file, its header checked before the data is read."""
-    from gcm_pipeline.rundir.transaction import npy_header
+    from gcm_pipeline.rundir.arrays import npy_header
 
     try:
         with path.open("rb") as fh:

@@ -56,10 +56,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, PublishError
+from gcm_pipeline.errors import InputError, OutputError, PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.publish.plots import REASON_COLORS, candidate_rows, reason_palette
-from gcm_pipeline.rundir.transaction import read_npz
+from gcm_pipeline.rundir.arrays import read_npz
+from gcm_pipeline.rundir.transaction import atomic_file
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
@@ -714,16 +715,13 @@ def _write_mesh_cache(path: Path, groups: _MeshGroups) -> None:
     for i, (_, verts, faces) in enumerate(groups):
         arrays[f"v{i}"] = np.asarray(verts, dtype=np.float32)
         arrays[f"f{i}"] = np.asarray(faces, dtype=np.uint32)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale_tmp(path.parent)
-        with open(tmp, "wb") as fh:
+        with atomic_file(path) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except OSError:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+    except (OSError, OutputError):
+        pass
 
 
 def _material_files(path: Path, data: bytes) -> list[Path]:

@@ -596,7 +596,7 @@ def read_grasp_file_gripper(
 
 def _reserved_columns() -> set[str]:
     """Names a carried column must not have (grasps.csv and grasp-table columns)."""
-    from gcm_pipeline.rundir.transaction import CSV_COLUMNS
+    from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
     from gcm_pipeline.stages.ranking import METRIC_COLUMNS
 
     return {
@@ -639,7 +639,7 @@ def _check_count(path: Path, n: int, max_count: int) -> None:
 
 
 def _read_npy(path: Path, max_count: int) -> np.ndarray:
-    from gcm_pipeline.rundir.transaction import npy_header
+    from gcm_pipeline.rundir.arrays import npy_header
 
     try:
         with path.open("rb") as fh:
@@ -666,7 +666,7 @@ _NPZ_BYTES_PER_GRASP = 256
 def _read_npz(
     path: Path, max_count: int
 ) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
-    from gcm_pipeline.rundir.transaction import read_npz
+    from gcm_pipeline.rundir.arrays import read_npz
 
     arrays = read_npz(
         path,
@@ -738,7 +738,7 @@ def _refuse_nul(path: Path, chunk: int = 1 << 22) -> None:
 def _read_csv(
     path: Path, max_count: int
 ) -> tuple[np.ndarray, np.ndarray | None, dict[str, np.ndarray]]:
-    from gcm_pipeline.rundir.transaction import check_csv_cells
+    from gcm_pipeline.rundir.grasps_csv import check_csv_cells
 
     rows: list[list[str]] = []
     lines: list[int] = []

@@ -36,7 +36,8 @@ from gcm_pipeline import interrupts
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError
 from gcm_pipeline.limits import MAX_STUDY_PLACEMENTS
-from gcm_pipeline.rundir import transaction as io
+from gcm_pipeline.rundir import run as run_files
+from gcm_pipeline.rundir import transaction
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
 from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
 
@@ -556,7 +557,7 @@ class _Run:
             "engine": self.executor.info(),
             "timings_s": {k: round(v, 3) for k, v in self.timings.items()},
             "placements_per_s": round(self.ran / placements_s, 4) if placements_s > 0 else None,
-            "versions": io.versions() | self._ray_version(),
+            "versions": run_files.versions() | self._ray_version(),
         }
 
     @staticmethod
@@ -676,12 +677,12 @@ class _Run:
 
         out = self.store.path / "best"
         cfg = self.plan.resolve(best["overrides"], where=f"placement {best['id']}")
-        if io.looks_like_run_dir(out) and (out / "config.yaml").is_file():
+        if transaction.looks_like_run_dir(out) and (out / "config.yaml").is_file():
             try:  # bounded (1 MiB, as any config), never a pipe: else write best/ again
                 old = read_yaml_file(out / "config.yaml", "config", GcmError)
             except GcmError:
                 old = None
-            if old == io._json_clean(cfg.to_dict()):
+            if old == run_files.json_clean(cfg.to_dict()):
                 return out
         log.info("study: writing best/ (placement %s)", best["id"])
         Pipeline(cfg, source=self.plan.base_path).run(out, progress=self.progress, force=True)

@@ -332,7 +332,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: bool) -> None:
     """Publish to the live viewer; wait for Ctrl-C, or leave its server running."""
-    from gcm_pipeline.publish.scene import open_viewer
+    from gcm_pipeline.publish.live import open_viewer
 
     viewer = open_viewer(grasps, manifold, robot, config, detach=not wait)
     try:
@@ -780,7 +780,7 @@ def _cmd_robot(args: argparse.Namespace) -> int:
 
     from gcm_pipeline.config import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
-    from gcm_pipeline.publish.scene import write_scene_html
+    from gcm_pipeline.publish.html import write_scene_html
     from gcm_pipeline.robot.model import load_robot
     from gcm_pipeline.table import GraspTable
 

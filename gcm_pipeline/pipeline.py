@@ -170,7 +170,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     if not (viewer or pub.meshcat):
         log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
         return robot
-    from gcm_pipeline.publish.scene import probe_server
+    from gcm_pipeline.publish.live import probe_server
 
     try:
         probe_server(pub.zmq_url, pub.connect_timeout_s)
@@ -640,10 +640,10 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     Returns:
         The files written.
     """
-    from gcm_pipeline.publish import scene as stage
+    from gcm_pipeline.publish import html
 
     counts = {k: v for k, v in result.counts.items() if isinstance(v, int)}
-    files = stage.publish(
+    files = html.publish(
         result.grasps, result.manifold, result.robot, cfg, Path(out_dir), counts=counts
     )
     return list(files)

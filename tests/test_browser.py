@@ -24,7 +24,7 @@ import umsgpack
 
 from gcm_pipeline.config import Config
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.publish.scene import publish
+from gcm_pipeline.publish.html import publish
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.table import GraspTable
 

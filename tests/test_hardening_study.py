@@ -324,18 +324,18 @@ def test_refinement_stops_exactly_where_rounds_stop_adding():
 @pytest.fixture
 def panda_mesh(tmp_path, monkeypatch):
     """One of the Panda's visual meshes, simplified once into an empty cache: (mesh, entry)."""
-    from gcm_pipeline.publish import scene as pub
+    from gcm_pipeline.publish import robot_view
     from gcm_pipeline.robot import load_robot
 
     robot = load_robot("panda")
     path = next(o.meshPath for o in robot.build_geometry("visual").geometryObjects if o.meshPath)
     monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
-    pub._simplified_mesh_cached.cache_clear()
-    first = pub._simplified_mesh(path)
+    robot_view._simplified_mesh_cached.cache_clear()
+    first = robot_view._simplified_mesh(path)
     (entry,) = (tmp_path / "cache" / "meshes").iterdir()
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()
     yield path, entry, [len(m.faces) for _, m in first]
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()
 
 
 def _npy(arr: np.ndarray) -> bytes:
@@ -347,18 +347,18 @@ def _npy(arr: np.ndarray) -> bytes:
 
 
 def test_a_mesh_cache_entry_that_is_a_named_pipe_is_simplified_again(panda_mesh):
-    from gcm_pipeline.publish import scene as pub
+    from gcm_pipeline.publish import robot_view
 
     path, entry, faces = panda_mesh
     entry.unlink()
     os.mkfifo(entry)
     try:
-        assert _finishes(pub._read_mesh_cache, entry) is None
-        again = _finishes(pub._simplified_mesh, path)
+        assert _finishes(robot_view._read_mesh_cache, entry) is None
+        again = _finishes(robot_view._simplified_mesh, path)
     finally:
         _unblock(entry)
     assert [len(m.faces) for _, m in again] == faces
-    assert entry.is_file() and pub._read_mesh_cache(entry) is not None  # replaced, whole
+    assert entry.is_file() and robot_view._read_mesh_cache(entry) is not None  # replaced, whole
 
 
 def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
@@ -367,7 +367,7 @@ def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
 
     import numpy.lib.format as npf
 
-    from gcm_pipeline.publish import scene as pub
+    from gcm_pipeline.publish import robot_view
 
     path, entry, faces = panda_mesh
     import io as _io
@@ -381,8 +381,8 @@ def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
         zf.writestr("v0.npy", header.getvalue() + bytes(1200))
         zf.writestr("f0.npy", _npy(np.zeros((1, 3), np.uint32)))
     assert entry.stat().st_size < 4096
-    assert pub._read_mesh_cache(entry) is None
-    assert [len(m.faces) for _, m in pub._simplified_mesh(path)] == faces
+    assert robot_view._read_mesh_cache(entry) is None
+    assert [len(m.faces) for _, m in robot_view._simplified_mesh(path)] == faces
 
 
 # ------------------------------------------------------------------ export

@@ -1,7 +1,6 @@
-"""Publish stage: a meshcat scene (live or as self-contained HTML) and PNG plots.
+"""The published scene: what a run's meshcat scene holds and how it is drawn.
 
 The scene holds, under the meshcat root:
-
 =========================== ==================================================
 path                        content
 =========================== ==================================================
@@ -24,75 +23,42 @@ colours, so the number of meshcat objects does not depend on the number of
 grasps N. Above :data:`FULL_GLYPH_LIMIT` grasps the gripper glyph (4 segments)
 becomes an approach stick (1 segment) to keep the scene light.
 
-The HTML scene is recorded without a server: a recording window stands in for
-meshcat's ZMQ connection, keeps the scene tree exactly as ``meshcat-server``
-does, and writes the same static page that ``Visualizer.static_html()`` would
-ask the server for. The live viewer (:func:`open_viewer`) starts meshcat's own
-server on the loopback interface, or connects to a running one after a
-time-bounded probe, so an absent server is a :class:`PublishError`, not a hang.
-
-This is the only module of the package that imports meshcat.
+The same scene is recorded into a self-contained page
+(:mod:`gcm_pipeline.publish.html`) or sent to a live meshcat server
+(:mod:`gcm_pipeline.publish.live`); the robot's part is drawn by
+:mod:`gcm_pipeline.publish.robot_view`.
 """
 
 from __future__ import annotations
 
-import base64
-import contextlib
-import functools
-import hashlib
 import math
-import os
-import selectors
-import stat
-import subprocess
-import sys
-import time
 import warnings
-import weakref
-from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import meshcat.geometry as mg
 import numpy as np
 
-from gcm_pipeline.errors import InputError, OutputError, PublishError
+from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.publish.plots import REASON_COLORS, candidate_rows, reason_palette
-from gcm_pipeline.rundir.arrays import read_npz
-from gcm_pipeline.rundir.transaction import atomic_file
+from gcm_pipeline.publish.plots import candidate_rows, reason_palette
+from gcm_pipeline.publish.robot_view import ROT_X90, RobotDrawer
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
     from gcm_pipeline.config import Config
     from gcm_pipeline.robot.model import Robot
 
-try:
-    import meshcat
-    import meshcat.geometry as mg
-    import umsgpack
-    import zmq
-    from meshcat.animation import Animation
-    from meshcat.servers.tree import SceneTree, find_node, walk
-except ImportError as _exc:  # pragma: no cover - meshcat is a hard dependency
-    raise ImportError("gcm_pipeline.publish.scene needs meshcat (pip install meshcat)") from _exc
-
 __all__ = [
-    "ANIMATION_BLEND_LIMIT",
     "FULL_GLYPH_LIMIT",
-    "REASON_COLORS",
     "SCENE_PATHS",
     "SceneInfo",
-    "Viewer",
-    "animation_keys",
     "build_scene",
     "legend",
-    "open_viewer",
-    "probe_server",
-    "publish",
-    "render_scene_html",
+    "shape_view",
     "stage_counts",
-    "write_scene_html",
 ]
 
 #: Scene paths (relative to the meshcat root) that users can toggle in the controls.
@@ -110,12 +76,6 @@ FULL_GLYPH_LIMIT = 20_000
 
 _COLORMAP = "viridis"
 _TOP_K_DEFAULT = 10
-_ANIM_FPS = 30
-_ANIM_HOLD = 15  # frames a solution is held [1/fps s]
-_ANIM_MOVE = 9  # frames of joint-space interpolation to the next solution
-#: Largest joint jump [rad] (L-infinity) the animation blends across: one IK branch
-#: (the default ``continuity.threshold``); beyond it, the animation cuts.
-ANIMATION_BLEND_LIMIT = 0.5
 
 # Gripper glyph in the grasp frame (z = approach, fingers along y, origin between
 # the fingertips): two fingers, the palm and a stem, as 4 segments [m].
@@ -133,10 +93,6 @@ _GRIPPER = np.array(
     ]
 )
 _STICK = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -_GLYPH_F - _GLYPH_S]])
-
-# three.js cameras look along -z with y up; meshcat's camera hangs under
-# /Cameras/default/rotated, which rotates y-up into the world's z-up.
-_ROT_X90 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 _CAMERA_FOV_DEG = 75.0  # meshcat's default camera
 _VIEW_DIR = np.array([1.0, 0.75, 0.55])
 
@@ -323,24 +279,49 @@ def _draw_grasps(
     return paths, glyph, n_r, n_u
 
 
-def _object_geometry(obj: Any) -> tuple[Any, np.ndarray]:
-    """Meshcat geometry of the config's object and its transform in the object frame."""
+def shape_view(obj: Any, *, load_mesh: bool = True) -> tuple[Any, np.ndarray, np.ndarray]:
+    """The scene's one per-shape table: a config shape as meshcat geometry and points.
+
+    ``obj`` is a config shape (the object or an obstacle: ``shape``, ``dims``,
+    ``mesh``, ``scale``); every branch on the shape kind in this package's
+    scene is here.
+
+    Args:
+        obj: The shape.
+        load_mesh: Read a ``mesh`` shape's file (False: geometry None, for
+            the points alone).
+
+    Returns:
+        The meshcat geometry, its transform (4, 4) in the shape's frame, and
+        a few points (K, 3) in the shape's frame spanning it (for framing the
+        camera; the frame's origin alone for a mesh).
+
+    Raises:
+        PublishError: A mesh file that does not exist or has an unsupported format.
+    """
     shape = obj.shape
     dims = obj.dims
     if shape == "cylinder":
+        r, h = dims.radius, dims.height
         # meshcat cylinders run along y, centred: stand it on its base along z
-        local = _translation((0.0, 0.0, dims.height / 2.0))
-        local[:3, :3] = _ROT_X90
-        return mg.Cylinder(dims.height, dims.radius), local
-    if shape == "box":
-        return mg.Box(list(dims.size)), np.eye(4)
-    if shape == "sphere":
-        return mg.Sphere(dims.radius), np.eye(4)
-    if shape == "plane":
+        local = _translation((0.0, 0.0, h / 2.0))
+        local[:3, :3] = ROT_X90
+        return mg.Cylinder(h, r), local, np.array([[-r, -r, 0.0], [r, r, h]])
+    if shape in ("box", "plane"):
+        size = np.zeros(3)
+        size[: len(dims.size)] = dims.size
+        corners = np.array([-size / 2, size / 2])
+        if shape == "box":
+            return mg.Box(list(dims.size)), np.eye(4), corners
         # a thin box centred on the frame, as the collision world models it
         sx, sy = dims.size
-        return mg.Box([sx, sy, 0.002]), np.eye(4)
+        return mg.Box([sx, sy, 0.002]), np.eye(4), corners
+    if shape == "sphere":
+        r = dims.radius
+        return mg.Sphere(r), np.eye(4), np.array([[-r] * 3, [r] * 3])
     # mesh
+    if not load_mesh:
+        return None, np.eye(4), np.zeros((1, 3))
     path = Path(obj.mesh)
     if not path.is_file():
         raise PublishError(f"object mesh {str(path)!r} does not exist")
@@ -355,29 +336,18 @@ def _object_geometry(obj: Any) -> tuple[Any, np.ndarray]:
             f"object mesh {str(path)!r}: unsupported format {ext!r}; valid: .dae, .obj, .stl"
         )
     local = np.diag([obj.scale, obj.scale, obj.scale, 1.0])
-    return loaders[ext](str(path)), local
+    return loaders[ext](str(path)), local, np.zeros((1, 3))
 
 
 def _object_points(obj: Any) -> np.ndarray:
     """A few world points (K, 3) spanning the object (for framing the camera)."""
-    dims = obj.dims
-    if obj.shape == "cylinder":
-        r, h = dims.radius, dims.height
-        local = np.array([[-r, -r, 0.0], [r, r, h]])
-    elif obj.shape in ("box", "plane"):
-        size = np.zeros(3)
-        size[: len(dims.size)] = dims.size
-        local = np.array([-size / 2, size / 2])
-    elif obj.shape == "sphere":
-        local = np.array([[-dims.radius] * 3, [dims.radius] * 3])
-    else:
-        local = np.zeros((1, 3))
+    local = shape_view(obj, load_mesh=False)[2]
     m = obj.pose.matrix()
     return local @ m[:3, :3].T + m[:3, 3]
 
 
 def _draw_object(vis: Any, obj: Any) -> list[str]:
-    geometry, local = _object_geometry(obj)
+    geometry, local, _ = shape_view(obj)
     material = mg.MeshPhongMaterial(color=0xD9A441, opacity=0.7, transparent=True)
     vis["object"].set_transform(obj.pose.matrix())
     vis["object/shape"].set_object(geometry, material)
@@ -402,7 +372,7 @@ def _draw_environment(vis: Any, config: Config) -> list[str]:
         if obs.shape == "mesh" and (obs.mesh is None or not Path(obs.mesh).is_file()):
             warnings.warn(f"obstacle {i}: mesh {obs.mesh} not found; not drawn", stacklevel=3)
             continue
-        geometry, local = _object_geometry(obs)
+        geometry, local, _ = shape_view(obs)
         name = obs.name or f"obstacle_{i}"
         material = mg.MeshLambertMaterial(color=0x8C8C99, opacity=0.7, transparent=True)
         vis[f"environment/{name}"].set_transform(obs.pose.matrix())
@@ -455,417 +425,6 @@ def _top_solutions(grasps: GraspTable, k: int) -> np.ndarray:
         order = np.flatnonzero(_column(grasps, "reachable", False).astype(bool))
     order = order[np.all(np.isfinite(q[order]), axis=1)] if len(order) else order
     return q[order[:k]]
-
-
-class _RobotDrawer:
-    """The visual geometry of a :class:`Robot` under ``/robot/visuals/<name>``.
-
-    Every object of the robot's visual ``GeometryModel`` is drawn (meshes,
-    and primitives such as a tool built from boxes), posed by Pinocchio's
-    forward kinematics. Meshes are read with trimesh (the scene graph of a
-    COLLADA file baked in, as Pinocchio's own geometry loader reads it),
-    grouped by material colour and simplified (:func:`_simplified_mesh`), so a
-    scene embeds each robot mesh once, small.
-    """
-
-    def __init__(self, vis: Any, robot: Robot, base: np.ndarray) -> None:
-        import pinocchio as pin
-
-        self.pin = pin
-        model = robot.model
-        visual = _visual_model(robot)
-        for obj in visual.geometryObjects:
-            _draw_geometry(vis[f"robot/visuals/{obj.name}"], obj)
-        vis["robot"].set_transform(base)
-        self.vis = vis
-        self.model = model
-        self.visual = visual
-        self.data = model.createData()
-        self.vdata = pin.GeometryData(visual)
-
-    def display(self, q: np.ndarray) -> None:
-        for path, t in self.placements(q):
-            self.vis[path].set_transform(t)
-
-    def placements(self, q: np.ndarray) -> list[tuple[str, np.ndarray]]:
-        pin = self.pin
-        pin.forwardKinematics(self.model, self.data, q)
-        pin.updateGeometryPlacements(self.model, self.data, self.visual, self.vdata)
-        out = []
-        for gid, obj in enumerate(self.visual.geometryObjects):
-            t = self.vdata.oMg[gid].homogeneous.copy()
-            t[:3, :3] = t[:3, :3] * np.asarray(obj.meshScale)[None, :]
-            out.append((f"robot/visuals/{obj.name}", t))
-        return out
-
-    def animate(
-        self, vis: Any, qs: np.ndarray, blend_limit: float = ANIMATION_BLEND_LIMIT
-    ) -> tuple[float, int]:
-        """Set the top-k animation (:func:`animation_keys`); its duration [s] and cuts."""
-        anim = Animation(default_framerate=_ANIM_FPS)
-        keys, cuts = animation_keys(qs, blend_limit)
-        for frame, q in keys:
-            self._keyframe(anim, vis, frame, q)
-        vis.set_animation(anim, play=True, repetitions=1)
-        return (keys[-1][0] + 1) / _ANIM_FPS, cuts
-
-    def _keyframe(self, anim: Animation, vis: Any, frame: int, q: np.ndarray) -> None:
-        with anim.at_frame(vis, frame) as f:
-            for path, t in self.placements(q):
-                f[path].set_transform(t)
-
-
-def animation_keys(
-    qs: np.ndarray, blend_limit: float = ANIMATION_BLEND_LIMIT
-) -> tuple[list[tuple[int, np.ndarray]], int]:
-    """Keyframes of the top-k animation: each solution held, then the next one.
-
-    Two consecutive solutions (and the last and the first, which closes the
-    loop) within ``blend_limit`` [rad] of each other in every joint are on one
-    IK branch: the animation blends between them in joint space. Farther apart
-    they are on different branches, and a joint-space blend would swing the arm
-    through poses nobody checked: the animation **cuts**, keying the next
-    solution on the very next frame, with no configuration in between.
-
-    Args:
-        qs: (k, nq) solutions, best first.
-        blend_limit: Largest joint jump [rad] (L-infinity) blended across.
-
-    Returns:
-        ``(frame, q)`` keyframes in frame order, and the number of cuts.
-    """
-    qs = np.asarray(qs, dtype=float)
-    seq = [*qs, qs[0]] if len(qs) > 1 else list(qs)
-    keys: list[tuple[int, np.ndarray]] = []
-    frame = 0
-    cuts = 0
-    for i, q in enumerate(seq):
-        if i > 0:
-            prev = seq[i - 1]
-            if np.max(np.abs(q - prev), initial=0.0) <= blend_limit:
-                for s in range(1, _ANIM_MOVE):
-                    keys.append((frame, prev + (q - prev) * (s / _ANIM_MOVE)))
-                    frame += 1
-            else:
-                cuts += 1
-        keys.append((frame, q))
-        frame += _ANIM_HOLD
-        keys.append((frame, q))
-        frame += 1
-    return keys, cuts
-
-
-# -- robot meshes -----------------------------------------------------------------------
-
-#: Faces kept per visual object of the robot (its colour groups share them).
-MESH_FACE_BUDGET = 6000
-#: Colour groups with fewer faces than this are kept as they are.
-_MIN_SIMPLIFY_FACES = 300
-
-
-class _PackedMesh(mg.Geometry):
-    """A three.js ``BufferGeometry``: float32 positions, a uint16 (or uint32) index.
-
-    The viewer computes vertex normals for a geometry without them.
-    """
-
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        super().__init__()
-        self.vertices = np.ascontiguousarray(vertices, dtype=np.float32)
-        small = len(self.vertices) < 65536
-        self.faces = np.ascontiguousarray(faces, dtype=np.uint16 if small else np.uint32)
-
-    def lower(self, object_data: Any) -> dict[str, Any]:
-        index_type, code = (
-            ("Uint16Array", 20) if self.faces.dtype == np.uint16 else ("Uint32Array", 22)
-        )
-        return {
-            "uuid": self.uuid,
-            "type": "BufferGeometry",
-            "data": {
-                "attributes": {
-                    "position": {
-                        "itemSize": 3,
-                        "type": "Float32Array",
-                        "array": umsgpack.Ext(23, self.vertices.tobytes()),
-                        "normalized": False,
-                    }
-                },
-                "index": {
-                    "itemSize": 1,
-                    "type": index_type,
-                    "array": umsgpack.Ext(code, self.faces.tobytes()),
-                    "normalized": False,
-                },
-            },
-        }
-
-
-#: Version of the simplified-mesh cache files (bump when their content changes).
-_MESH_CACHE_VERSION = 1
-
-
-def mesh_cache_dir() -> Path:
-    """Folder of the simplified robot meshes: ``$GCM_CACHE_DIR/meshes``.
-
-    ``GCM_CACHE_DIR`` defaults to ``$XDG_CACHE_HOME/gcm_pipeline`` (``~/.cache/gcm_pipeline``).
-    Deleting it is always safe: the meshes are simplified again on the next run.
-    """
-    root = os.environ.get("GCM_CACHE_DIR")
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        root = os.path.join(xdg, "gcm_pipeline")
-    return Path(root) / "meshes"
-
-
-def _simplified_mesh(path: str, budget: int = MESH_FACE_BUDGET) -> list[tuple[int, Any]]:
-    """A mesh file as (colour 0xRRGGBB, packed geometry) groups, at most ~``budget`` faces.
-
-    Reading a robot's COLLADA files and simplifying them takes about a second
-    for the Panda, so the result is cached per file (path, modification time,
-    size) for the process and on disk (:func:`mesh_cache_dir`, keyed by the
-    file's content and the budget).
-    """
-    st = os.stat(path)
-    return _simplified_mesh_cached(path, st.st_mtime_ns, st.st_size, budget)
-
-
-@functools.lru_cache(maxsize=64)
-def _simplified_mesh_cached(
-    path: str, _mtime: int, _size: int, budget: int
-) -> list[tuple[int, Any]]:
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise PublishError(f"cannot read robot mesh {path!r}: {exc}") from exc
-    # the mesh's bytes, its material files (an .obj's mtllib: its colours) and the
-    # libraries that read and simplify it (an upgrade may simplify differently)
-    digest = hashlib.sha256(data + _simplifier_versions().encode())
-    for material in _material_files(Path(path), data):
-        with contextlib.suppress(OSError):
-            digest.update(material.read_bytes())
-    key = digest.hexdigest()[:32]
-    cache = mesh_cache_dir() / f"{key}-b{budget}-v{_MESH_CACHE_VERSION}.npz"
-    groups = _read_mesh_cache(cache)
-    if groups is None:
-        groups = _simplify_mesh(path, budget)
-        _write_mesh_cache(cache, groups)
-    return [(color, _PackedMesh(verts, faces)) for color, verts, faces in groups]
-
-
-_MeshGroups = list[tuple[int, np.ndarray, np.ndarray]]
-
-
-@functools.cache
-def _simplifier_versions() -> str:
-    """Versions of the libraries behind :func:`_simplify_mesh`, for the cache key."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = []
-    for dist in ("trimesh", "fast-simplification", "numpy"):
-        try:
-            out.append(f"{dist}={version(dist)}")
-        except PackageNotFoundError:
-            out.append(f"{dist}=?")
-    return ";".join(out)
-
-
-def _read_mesh_cache(path: Path) -> _MeshGroups | None:
-    """The groups of a cache file, or None when it is absent or unreadable.
-
-    Only a regular file is opened (a named pipe there would block), and the
-    arrays its headers declare must fit in the file (the cache is written
-    uncompressed) before anything is allocated: a header claiming a terabyte
-    is a damaged entry, simplified again.
-    """
-    try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode):
-            return None
-        z = read_npz(path, max_bytes=st.st_size)
-    except (OSError, InputError):
-        return None
-    try:
-        colors = np.asarray(z["colors"], dtype=np.int64)
-        if colors.ndim != 1:
-            return None
-        groups = [
-            (int(c), np.asarray(z[f"v{i}"], dtype=np.float32), np.asarray(z[f"f{i}"]))
-            for i, c in enumerate(colors.tolist())
-        ]
-    except (ValueError, TypeError, KeyError, OverflowError):
-        return None
-    for _, verts, faces in groups:
-        if (
-            verts.ndim != 2
-            or verts.shape[1:] != (3,)
-            or faces.ndim != 2
-            or faces.shape[1:] != (3,)
-            or not np.issubdtype(faces.dtype, np.integer)
-            or (faces.size and (faces.min() < 0 or faces.max() >= len(verts)))
-            or not np.isfinite(verts).all()
-        ):
-            return None
-    return groups
-
-
-def _write_mesh_cache(path: Path, groups: _MeshGroups) -> None:
-    """Store ``groups`` atomically; a cache that cannot be written is skipped."""
-    arrays: dict[str, Any] = {"colors": np.array([c for c, _, _ in groups], np.int64)}
-    for i, (_, verts, faces) in enumerate(groups):
-        arrays[f"v{i}"] = np.asarray(verts, dtype=np.float32)
-        arrays[f"f{i}"] = np.asarray(faces, dtype=np.uint32)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_tmp(path.parent)
-        with atomic_file(path) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-    except (OSError, OutputError):
-        pass
-
-
-def _material_files(path: Path, data: bytes) -> list[Path]:
-    """The material files an .obj mesh names (``mtllib`` lines), beside it."""
-    if path.suffix.lower() != ".obj":
-        return []
-    out = []
-    for line in data.splitlines():
-        if line.startswith(b"mtllib"):
-            name = line[len(b"mtllib") :].strip().decode("utf-8", "replace")
-            if name:
-                out.append(path.parent / name)
-    return out
-
-
-#: A cache file still being written after this long was left by a killed process [s].
-_STALE_TMP_S = 3600.0
-
-
-def _remove_stale_tmp(folder: Path) -> None:
-    """Delete the cache's temporary files left by processes killed while writing."""
-    now = time.time()
-    for left in folder.glob(".*.tmp"):
-        with contextlib.suppress(OSError):
-            if now - left.stat().st_mtime > _STALE_TMP_S:
-                left.unlink()
-
-
-def _simplify_mesh(path: str, budget: int) -> _MeshGroups:
-    """Read a mesh file with trimesh, group it by colour and simplify each group."""
-    import fast_simplification
-    import trimesh
-
-    try:
-        scene: Any = trimesh.load(path, force="scene")
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise PublishError(f"cannot read robot mesh {path!r}: {exc}") from exc
-    groups: dict[int, list[np.ndarray]] = {}
-    faces_by: dict[int, list[np.ndarray]] = {}
-    offsets: dict[int, int] = {}
-    for node in scene.graph.nodes_geometry:
-        transform, name = scene.graph[node]
-        geom = scene.geometry[name]
-        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
-            continue
-        color = _mesh_color(geom)
-        verts = trimesh.transform_points(geom.vertices, transform)
-        groups.setdefault(color, []).append(verts)
-        faces_by.setdefault(color, []).append(np.asarray(geom.faces) + offsets.get(color, 0))
-        offsets[color] = offsets.get(color, 0) + len(verts)
-    total = sum(len(f) for fs in faces_by.values() for f in fs)
-    out = []
-    for color, parts in groups.items():
-        verts = np.concatenate(parts)
-        faces = np.concatenate(faces_by[color])
-        mesh = trimesh.Trimesh(verts, faces, process=True)
-        verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-        keep = max(_MIN_SIMPLIFY_FACES, int(budget * len(faces) / max(total, 1)))
-        if len(faces) > keep:
-            verts, faces = fast_simplification.simplify(verts, faces, 1.0 - keep / len(faces))
-        out.append((color, np.asarray(verts, dtype=np.float32), np.asarray(faces)))
-    return out
-
-
-def _mesh_color(geom: Any) -> int:
-    """The main colour of a trimesh geometry as 0xRRGGBB (its material or first face colour)."""
-    visual = geom.visual
-    rgba = None
-    material = getattr(visual, "material", None)
-    if material is not None:
-        rgba = getattr(material, "main_color", None)
-    if rgba is None and getattr(visual, "kind", None) in ("face", "vertex"):
-        colors = visual.face_colors if visual.kind == "face" else visual.vertex_colors
-        rgba = colors[0] if len(colors) else None
-    if rgba is None:
-        return 0xB3B3B3
-    r, g, b = (int(c) for c in np.asarray(rgba)[:3])
-    return (r << 16) | (g << 8) | b
-
-
-def _rgba_hex(rgba: Sequence[float]) -> int:
-    r, g, b = (int(round(255 * float(c))) for c in rgba[:3])
-    return (r << 16) | (g << 8) | b
-
-
-def _draw_geometry(node: Any, obj: Any) -> None:
-    """Draw one visual ``GeometryObject`` under ``node`` (meshes and coal primitives)."""
-    import coal
-
-    geom = obj.geometry
-    color = _rgba_hex(obj.meshColor) if obj.overrideMaterial else None
-    opacity = float(obj.meshColor[3]) if obj.overrideMaterial else 1.0
-
-    def material(c: int) -> Any:
-        kw = {"opacity": opacity, "transparent": opacity < 1.0}
-        return mg.MeshPhongMaterial(color=c, **kw)
-
-    default = (
-        color
-        if color is not None
-        else _rgba_hex(obj.meshColor)
-        if any(obj.meshColor[:3])
-        else 0xB3B3B3
-    )
-    if isinstance(geom, coal.Box):
-        node["0"].set_object(mg.Box((2.0 * np.asarray(geom.halfSide)).tolist()), material(default))
-    elif isinstance(geom, coal.Sphere):
-        node["0"].set_object(mg.Sphere(float(geom.radius)), material(default))
-    elif isinstance(geom, coal.Cylinder):
-        node["0"].set_object(mg.Cylinder(2.0 * geom.halfLength, geom.radius), material(default))
-        local = np.eye(4)
-        local[:3, :3] = _ROT_X90  # meshcat cylinders run along y, coal's along z
-        node["0"].set_transform(local)
-    elif obj.meshPath and Path(obj.meshPath).is_file():
-        for k, (c, mesh) in enumerate(_simplified_mesh(obj.meshPath)):
-            node[str(k)].set_object(mesh, material(color if color is not None else c))
-    elif hasattr(geom, "num_tris") and geom.num_tris > 0:  # a mesh built in memory
-        verts = np.array([geom.vertices(i) for i in range(geom.num_vertices)])
-        tris = np.array([list(geom.tri_indices(i)) for i in range(geom.num_tris)])
-        node["0"].set_object(_PackedMesh(verts, tris), material(default))
-    else:
-        warnings.warn(
-            f"robot visual {obj.name!r}: geometry {type(geom).__name__} is not drawn",
-            stacklevel=3,
-        )
-
-
-def _visual_model(robot: Robot) -> Any:
-    """The robot's visual GeometryModel, reduced like its kinematic model."""
-    build = getattr(robot, "build_geometry", None)
-    if build is not None:
-        return build("visual")
-    vm = getattr(robot, "visual_model", None)  # e.g. a pinocchio RobotWrapper
-    if vm is not None:
-        return vm
-    raise PublishError(f"robot {robot!r} offers no visual geometry (build_geometry('visual'))")
-
-
-def _robot_points(drawer: _RobotDrawer, q: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """World positions (J, 3) of the robot's joint origins at ``q`` (for framing)."""
-    pin = drawer.pin
-    pin.forwardKinematics(drawer.model, drawer.data, q)
-    pts = np.array([m.translation for m in drawer.data.oMi])
-    return pts @ base[:3, :3].T + base[:3, 3]
 
 
 def _camera(
@@ -939,7 +498,7 @@ def _set_camera(vis: Any, position: np.ndarray) -> None:
     looks at the world origin.
     """
     vis["/Cameras/default"].set_transform(np.eye(4))
-    local = _ROT_X90.T @ np.asarray(position, dtype=float)
+    local = ROT_X90.T @ np.asarray(position, dtype=float)
     vis["/Cameras/default/rotated/<object>"].set_property("position", local.tolist())
 
 
@@ -982,12 +541,12 @@ def build_scene(
     n_top = 0
     robot_pts = np.zeros((0, 3))
     if robot is not None:
-        drawer = _RobotDrawer(vis, robot, base)
+        drawer = RobotDrawer(vis, robot, base)
         qs = _top_solutions(grasps, top_k)
         home = np.asarray(getattr(robot, "home", np.zeros(robot.nq)), dtype=float)
         q0 = qs[0] if len(qs) else home
         drawer.display(q0)
-        robot_pts = _robot_points(drawer, q0, base)
+        robot_pts = drawer.joint_points(q0, base)
         frame_pts.append(robot_pts)
         if len(qs) > 1:
             blend = float(getattr(getattr(config, "continuity", None), "threshold", 0.5))
@@ -1028,155 +587,6 @@ def build_scene(
     )
 
 
-# -- recording window and static HTML ---------------------------------------------------
-
-
-class _RecordingWindow:
-    """Stands in for meshcat's ZMQ window: keeps the scene tree like ``meshcat-server``.
-
-    ``meshcat.Visualizer(window=_RecordingWindow())`` draws without a server;
-    :meth:`static_html` then builds the page that the server's ``get_scene``
-    would return (same tree walk, same command encoding).
-    """
-
-    def __init__(self) -> None:
-        self.tree = SceneTree()
-        self.web_url = ""
-        self.zmq_url = ""
-        self.n_objects = 0
-
-    def send(self, command: Any) -> None:
-        data = command.lower()
-        kind = data["type"]
-        path = [p for p in data["path"].split("/") if p]
-        packed = umsgpack.packb(data)
-        node = find_node(self.tree, path)
-        if kind == "set_object":
-            node.object = packed
-            node.properties = []
-            self.n_objects += 1
-        elif kind == "set_transform":
-            node.transform = packed
-        elif kind == "set_property":
-            node.properties.append(packed)
-        elif kind == "set_animation":
-            node.animation = packed
-        elif kind == "delete":
-            if path:
-                parent = find_node(self.tree, path[:-1])
-                parent.pop(path[-1], None)
-            else:
-                self.tree = SceneTree()
-        else:  # pragma: no cover - meshcat sends only the above
-            raise PublishError(f"unsupported meshcat command {kind!r}")
-
-    def get_image(self) -> None:  # pragma: no cover - no browser behind it
-        raise PublishError("a recorded scene has no browser to capture an image from")
-
-    def commands(self) -> list[bytes]:
-        """The msgpack-encoded commands in the order the server would replay them."""
-        out: list[bytes] = []
-        for node in walk(self.tree):
-            if node.object is not None:
-                out.append(node.object)
-            out.extend(node.properties)
-            if node.transform is not None:
-                out.append(node.transform)
-            if node.animation is not None:
-                out.append(node.animation)
-        return out
-
-    def static_html(self, extra_js: str = "", title: str = "gcm_pipeline scene") -> str:
-        """The self-contained page: meshcat's viewer script and the recorded commands."""
-        js_path = Path(meshcat.__file__).parent / "viewer" / "dist" / "main.min.js"
-        viewer_js = js_path.read_text(encoding="utf-8")
-        parts = []
-        for blob in self.commands():
-            b64 = base64.b64encode(blob).decode("ascii")
-            parts.append(
-                f'fetch("data:application/octet-binary;base64,{b64}")\n'
-                "    .then(res => res.arrayBuffer())\n"
-                "    .then(buffer => viewer.handle_command_bytearray(new Uint8Array(buffer)));\n"
-            )
-        return _HTML.format(
-            title=title, mainminjs=viewer_js, commands="".join(parts), extra=extra_js
-        )
-
-
-_HTML = """<!DOCTYPE html>
-<html>
-    <head> <meta charset=utf-8> <title>{title}</title> </head>
-    <body>
-        <div id="meshcat-pane">
-        </div>
-        <script>
-{mainminjs}
-        </script>
-        <script>
-            var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
-{commands}
-{extra}
-        </script>
-        <style>
-            body {{margin: 0; }}
-            #meshcat-pane {{
-                width: 100vw;
-                height: 100vh;
-                overflow: hidden;
-            }}
-        </style>
-        <script id="embedded-json"></script>
-    </body>
-</html>
-"""
-
-
-def _orbit_js(target: Sequence[float]) -> str:
-    """Script that turns the page's orbit controls about ``target`` (world, [m])."""
-    x, y, z = (float(v) for v in _ROT_X90.T @ np.asarray(target, dtype=float))
-    return (
-        f"viewer.controls.target.set({x!r}, {y!r}, {z!r});\n"
-        "viewer.controls.update();\nviewer.set_dirty();\n"
-    )
-
-
-def render_scene_html(
-    grasps: GraspTable, manifold: Any, robot: Robot | None, config: Config
-) -> tuple[str, SceneInfo]:
-    """Build the scene without a server and return the self-contained HTML page.
-
-    Args:
-        grasps: The grasp table.
-        manifold: The manifold or None.
-        robot: The robot or None.
-        config: The run config.
-
-    Returns:
-        The page (opens from disk, no server) and what it holds.
-    """
-    window = _RecordingWindow()
-    vis = meshcat.Visualizer(window=window)
-    info = build_scene(vis, grasps, manifold, robot, config, orbit_target=True)
-    return window.static_html(extra_js=_orbit_js(info.camera["target"])), info
-
-
-def write_scene_html(
-    path: str | os.PathLike[str],
-    grasps: GraspTable,
-    manifold: Any,
-    robot: Robot | None,
-    config: Config,
-) -> SceneInfo:
-    """Write the self-contained HTML scene to ``path`` (see :func:`render_scene_html`)."""
-    html, info = render_scene_html(grasps, manifold, robot, config)
-    path = Path(path)
-    try:
-        path.write_text(html, encoding="utf-8")
-    except OSError as exc:
-        raise PublishError(f"cannot write scene {str(path)!r}: {exc}") from exc
-    return info
-
-
 # -- counts and publish -----------------------------------------------------------------
 
 
@@ -1198,332 +608,3 @@ def stage_counts(grasps: GraspTable, manifold: Any) -> dict[str, int]:
         "densified": n,
         "reachable": int(_column(grasps, "reachable", False).astype(bool).sum()),
     }
-
-
-def publish(
-    grasps: GraspTable,
-    manifold: Any,
-    robot: Robot | None,
-    config: Config,
-    out_dir: str | os.PathLike[str],
-    counts: Mapping[str, int] | None = None,
-) -> list[Path]:
-    """Write the files ``config.publish`` asks for into ``out_dir``.
-
-    ``scene.html`` (when ``publish.html``) and ``manifold.png``,
-    ``manipulability_hist.png``, ``counts.png`` (when ``publish.plots``). The
-    live viewer is separate (:func:`open_viewer`), called once the run
-    directory is complete.
-
-    Args:
-        grasps: The grasp table.
-        manifold: The manifold or None.
-        robot: The robot or None.
-        config: The run config.
-        out_dir: An existing directory.
-        counts: Per-stage counts for the bar chart (default: :func:`stage_counts`).
-
-    Returns:
-        The paths written, in that order.
-
-    Raises:
-        PublishError: A file cannot be written.
-    """
-    out = Path(out_dir)
-    written: list[Path] = []
-    if config.publish.html:
-        path = out / "scene.html"
-        write_scene_html(path, grasps, manifold, robot, config)
-        written.append(path)
-    if config.publish.plots:
-        from gcm_pipeline.publish.plots import write_plots
-
-        written += write_plots(grasps, manifold, counts or stage_counts(grasps, manifold), out)
-    return written
-
-
-# -- live viewer ------------------------------------------------------------------------
-
-# Runs meshcat's server with the web server bound to the loopback interface
-# (meshcat's own launcher listens on all interfaces for HTTP).
-_SERVER_CODE = """
-import os, sys, threading, time
-import tornado.web
-from meshcat.servers import zmqserver as z
-
-_parent = int(sys.argv[1])
-_detached = sys.argv[2:] == ["detach"]
-
-def _watch_parent():
-    # exit with the process that started us, even if it could not stop us
-    while True:
-        time.sleep(1.0)
-        if os.getppid() != _parent:
-            os._exit(0)
-
-if not _detached:  # a detached server outlives its starter (stop it by its pid)
-    threading.Thread(target=_watch_parent, daemon=True).start()
-
-class _App(tornado.web.Application):
-    def listen(self, port, address="127.0.0.1", **kwargs):
-        return super().listen(port, address="127.0.0.1", **kwargs)
-
-class _Bridge(z.ZMQWebSocketBridge):
-    def make_app(self):
-        return _App([
-            (r"/static/(.*)", z.StaticFileHandlerNoCache,
-             {"path": z.VIEWER_ROOT, "default_filename": z.VIEWER_HTML}),
-            (r"/", z.WebSocketHandler, {"bridge": self}),
-        ])
-
-bridge = _Bridge(host="127.0.0.1")
-print("zmq_url=" + bridge.zmq_url, flush=True)
-print("web_url=" + bridge.web_url, flush=True)
-sys.stdout = open(os.devnull, "w")
-try:
-    bridge.run()
-except KeyboardInterrupt:
-    pass
-"""
-
-
-def _request(sock: Any, frames: list[bytes], what: str, url: str, timeout_s: float) -> bytes:
-    try:
-        sock.send_multipart(frames)
-        return bytes(sock.recv())
-    except zmq.Again:
-        raise PublishError(
-            f"meshcat server at {url} did not answer {what!r} within {timeout_s:g} s "
-            "(is `meshcat-server` running there? start one or set publish.zmq_url: null)"
-        ) from None
-    except zmq.ZMQError as exc:
-        raise PublishError(f"meshcat server at {url}: {exc}") from exc
-
-
-def _req_socket(url: str, timeout_s: float) -> Any:
-    sock: Any = zmq.Context.instance().socket(zmq.REQ)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.RCVTIMEO, max(1, int(timeout_s * 1000)))
-    sock.setsockopt(zmq.SNDTIMEO, max(1, int(timeout_s * 1000)))
-    try:
-        sock.connect(url)
-    except zmq.ZMQError as exc:
-        sock.close(0)
-        raise PublishError(
-            f"invalid meshcat zmq_url {url!r}: {exc} (expected e.g. tcp://127.0.0.1:6000)"
-        ) from exc
-    return sock
-
-
-def probe_server(zmq_url: str, timeout_s: float) -> str:
-    """Ask a meshcat server for its web URL, giving up after ``timeout_s``.
-
-    Args:
-        zmq_url: The server's ZMQ address, e.g. ``tcp://127.0.0.1:6000``.
-        timeout_s: Time bound [s].
-
-    Returns:
-        The server's web URL.
-
-    Raises:
-        PublishError: No answer within the time bound (names the URL) or a bad URL.
-    """
-    sock = _req_socket(zmq_url, timeout_s)
-    try:
-        return _request(sock, [b"url"], "url", zmq_url, timeout_s).decode("utf-8")
-    finally:
-        sock.close(0)
-
-
-class _ZmqWindow:
-    """meshcat's ZMQ window with time-bounded requests (a dead server raises, never hangs)."""
-
-    def __init__(self, zmq_url: str, web_url: str, timeout_s: float) -> None:
-        self.zmq_url = zmq_url
-        self.web_url = web_url
-        self.timeout_s = timeout_s
-        self.n_objects = 0
-        self._sock = _req_socket(zmq_url, timeout_s)
-
-    def send(self, command: Any) -> None:
-        data = command.lower()
-        if data["type"] == "set_object":
-            self.n_objects += 1
-        frames = [
-            data["type"].encode("utf-8"),
-            data["path"].encode("utf-8"),
-            umsgpack.packb(data),
-        ]
-        _request(self._sock, frames, data["type"], self.zmq_url, self.timeout_s)
-
-    def get_scene(self) -> str:
-        return _request(
-            self._sock, [b"get_scene"], "get_scene", self.zmq_url, self.timeout_s
-        ).decode("utf-8")
-
-    def close(self) -> None:
-        self._sock.close(0)
-
-
-def _start_server(
-    timeout_s: float, detach: bool = False
-) -> tuple[subprocess.Popen[bytes], str, str]:
-    """Start meshcat's server on 127.0.0.1; return (process, zmq_url, web_url).
-
-    A ``detach``-ed server keeps running after this process exits.
-    """
-    extra = ["detach"] if detach else []
-    proc = subprocess.Popen(
-        [sys.executable, "-u", "-c", _SERVER_CODE, str(os.getpid()), *extra],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        stdin=subprocess.DEVNULL,
-        start_new_session=True,
-    )
-    assert proc.stdout is not None
-    urls: dict[str, str] = {}
-    deadline = time.monotonic() + timeout_s
-    buf = b""
-    with selectors.DefaultSelector() as sel:
-        sel.register(proc.stdout, selectors.EVENT_READ)
-        while len(urls) < 2:
-            left = deadline - time.monotonic()
-            if left <= 0 or proc.poll() is not None:
-                _stop(proc)
-                why = "exited" if proc.poll() is not None else f"gave no URL in {timeout_s:g} s"
-                raise PublishError(f"meshcat server on 127.0.0.1 {why}")
-            if not sel.select(left):
-                continue
-            chunk = os.read(proc.stdout.fileno(), 4096)
-            if not chunk:
-                continue
-            buf += chunk
-            *lines, buf = buf.split(b"\n")
-            for line in lines:
-                key, _, value = line.decode("utf-8", "replace").strip().partition("=")
-                if key in ("zmq_url", "web_url"):
-                    urls[key] = value
-    return proc, urls["zmq_url"], urls["web_url"]
-
-
-def _stop(proc: subprocess.Popen[bytes] | None) -> None:
-    if proc is None or proc.poll() is not None:
-        if proc is not None and proc.stdout is not None:
-            proc.stdout.close()
-        return
-    proc.terminate()
-    try:
-        proc.wait(timeout=5)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-    if proc.stdout is not None:
-        proc.stdout.close()
-
-
-@dataclass
-class Viewer:
-    """A live meshcat scene.
-
-    Attributes:
-        url: Web address to open in a browser.
-        zmq_url: The server's ZMQ address.
-        info: What the scene holds.
-        visualizer: The ``meshcat.Visualizer`` (draw more with it if you like).
-        owns_server: Whether :meth:`close` stops the server (started by
-            :func:`open_viewer`).
-        server_pid: Process id of the server started by :func:`open_viewer`
-            (None for a server at ``publish.zmq_url``); a detached server
-            keeps running after :meth:`close` until this process is stopped.
-    """
-
-    url: str
-    zmq_url: str
-    info: SceneInfo
-    visualizer: Any = field(repr=False)
-    owns_server: bool = False
-    server_pid: int | None = None
-    closed: bool = False
-    _proc: subprocess.Popen[bytes] | None = field(default=None, repr=False)
-    _finalizer: Any = field(default=None, repr=False)
-
-    def close(self) -> None:
-        """Disconnect, and stop the server if this viewer started it. Idempotent."""
-        window = getattr(self.visualizer, "window", None)
-        if isinstance(window, _ZmqWindow):
-            window.close()
-        if self._finalizer is not None:
-            self._finalizer()
-        self.closed = True
-
-    def __enter__(self) -> Viewer:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-def open_viewer(
-    grasps: GraspTable,
-    manifold: Any,
-    robot: Robot | None,
-    config: Config,
-    *,
-    detach: bool = False,
-) -> Viewer:
-    """Publish the scene to a live meshcat server.
-
-    With ``config.publish.zmq_url`` None, meshcat's server is started on
-    127.0.0.1 (ZMQ and HTTP) and stopped by :meth:`Viewer.close` (unless
-    ``detach``: then it keeps serving the scene after this process exits,
-    until its ``server_pid`` is stopped); otherwise the server at ``zmq_url``
-    is probed within ``publish.connect_timeout_s`` and used.
-
-    Args:
-        grasps: The grasp table.
-        manifold: The manifold or None.
-        robot: The robot or None.
-        config: The run config.
-        detach: Leave a server started here running after :meth:`Viewer.close`.
-
-    Returns:
-        The viewer; open ``viewer.url`` in a browser, call ``viewer.close()`` when done.
-
-    Raises:
-        PublishError: The server is unreachable within the time bound (names the
-            URL), cannot start, or stops answering.
-    """
-    timeout = float(config.publish.connect_timeout_s)
-    proc = None
-    if config.publish.zmq_url is None:
-        proc, zmq_url, web_url = _start_server(max(timeout, 20.0), detach=detach)
-    else:
-        zmq_url = config.publish.zmq_url
-        web_url = probe_server(zmq_url, timeout)
-    window = None
-    try:
-        # large scenes take a while to forward: allow more than the connect bound
-        window = _ZmqWindow(zmq_url, web_url, max(timeout, 60.0))
-        vis = meshcat.Visualizer(window=window)
-        info = build_scene(vis, grasps, manifold, robot, config)
-    except BaseException:
-        if window is not None:
-            window.close()
-        _stop(proc)
-        raise
-    viewer = Viewer(
-        url=web_url,
-        zmq_url=zmq_url,
-        info=info,
-        visualizer=vis,
-        owns_server=proc is not None and not detach,
-        server_pid=None if proc is None else proc.pid,
-        _proc=proc,
-    )
-    if detach:
-        if proc is not None and proc.stdout is not None:
-            proc.stdout.close()
-        return viewer
-    # stops the server on close(), when the viewer is garbage-collected, or at exit
-    viewer._finalizer = weakref.finalize(viewer, _stop, proc)
-    return viewer

@@ -33,7 +33,6 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         dq_to_pos_quat,
     )
     from gcm_pipeline.geometry.pose_blend import dib, dlb, sclerp
-    from gcm_pipeline.io import read_run
     from gcm_pipeline.manifold.build import Manifold
     from gcm_pipeline.manifold.locate import Location
     from gcm_pipeline.manifold.query import GraspManifold
@@ -60,6 +59,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         yoshikawa,
     )
     from gcm_pipeline.robot.model import Robot
+    from gcm_pipeline.rundir.run import read_run
     from gcm_pipeline.stages.collision import combined_score
     from gcm_pipeline.study import Study, StudyResult
     from gcm_pipeline.table import GraspTable
@@ -110,7 +110,7 @@ _LAZY = {
     "manipulability_metrics": "gcm_pipeline.robot.manipulability",
     "publish": "gcm_pipeline.pipeline",
     "rank": "gcm_pipeline.pipeline",
-    "read_run": "gcm_pipeline.io",
+    "read_run": "gcm_pipeline.rundir.run",
     "sclerp": "gcm_pipeline.geometry.pose_blend",
     "solve_ik": "gcm_pipeline.robot.ik",
     "translational_manipulability": "gcm_pipeline.robot.manipulability",
@@ -176,7 +176,7 @@ __all__ = [
 if not TYPE_CHECKING:  # type checkers see the imports above, and typos stay errors
 
     def __getattr__(name: str) -> Any:
-        """Load a public name, or a subpackage (``gcm_pipeline.io``), on first use (PEP 562)."""
+        """Load a public name, or a subpackage (``gcm_pipeline.rundir``), on first use (PEP 562)."""
         module = _LAZY.get(name)
         if module is not None:
             value = getattr(importlib.import_module(module), name)

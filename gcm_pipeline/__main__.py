@@ -10,21 +10,21 @@ from __future__ import annotations
 
 import sys
 
-from gcm_pipeline import signals
+from gcm_pipeline import interrupts
 
 
 def entry() -> int:
     """Run the ``gcm`` command line (``sys.argv``); returns the exit status."""
     try:
-        signals.install()
+        interrupts.install()
         from gcm_pipeline.cli import main
 
         return main()
     except KeyboardInterrupt as exc:  # before main() handles them (while it loads)
-        return signals.report(exc)
+        return interrupts.report(exc)
     finally:
-        signals.ignore()
-        signals.clear()
+        interrupts.ignore()
+        interrupts.clear()
 
 
 if __name__ == "__main__":

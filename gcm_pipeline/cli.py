@@ -36,7 +36,7 @@ from typing import Any
 
 import yaml
 
-from gcm_pipeline import signals
+from gcm_pipeline import interrupts
 from gcm_pipeline.errors import GcmError
 
 __all__ = ["build_parser", "main"]
@@ -332,7 +332,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: bool) -> None:
     """Publish to the live viewer; wait for Ctrl-C, or leave its server running."""
-    from gcm_pipeline.stages.publish import open_viewer
+    from gcm_pipeline.publish.live import open_viewer
 
     viewer = open_viewer(grasps, manifold, robot, config, detach=not wait)
     try:
@@ -343,7 +343,7 @@ def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: b
                 while True:
                     time.sleep(0.5)
             except KeyboardInterrupt:  # the way to close the viewer: not an interruption
-                signals.clear()
+                interrupts.clear()
                 print()
         elif viewer.server_pid is not None:
             print(
@@ -385,8 +385,8 @@ def _cmd_schema(args: argparse.Namespace) -> int:
 
 
 def _cmd_show(args: argparse.Namespace) -> int:
-    from gcm_pipeline.io import read_run
     from gcm_pipeline.pipeline import top_grasps
+    from gcm_pipeline.rundir.run import read_run
 
     if args.top < 0:
         raise GcmError(f"--top must be >= 0, got {args.top}")
@@ -405,8 +405,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from gcm_pipeline.io import read_run
-    from gcm_pipeline.stages.plots import write_plots
+    from gcm_pipeline.publish.plots import write_plots
+    from gcm_pipeline.rundir.run import read_run
 
     run = read_run(args.run_dir)
     counts = {k: v for k, v in run.summary.get("counts", {}).items() if isinstance(v, int)}
@@ -513,7 +513,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from gcm_pipeline.formats.exporters import export_run
+    from gcm_pipeline.rundir.export import export_run
 
     result = export_run(args.run_dir, args.format, top=args.top, out=args.out)
     if args.quiet:
@@ -526,7 +526,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_view(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.robot_spec import load_robot
     from gcm_pipeline.config.run import Config
-    from gcm_pipeline.io import read_run
+    from gcm_pipeline.rundir.run import read_run
 
     run = read_run(args.run_dir)
     if not isinstance(run.summary.get("config"), dict):
@@ -569,7 +569,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
             )
     except BaseException as exc:  # an interrupt: main() prints it and sets the status
         parts = Path(args.out) / "placements"
-        if signals.interrupt_cause(exc) is not None and any(parts.glob("*.npz")):
+        if interrupts.interrupt_cause(exc) is not None and any(parts.glob("*.npz")):
             print(
                 f"finished placements are kept in {args.out}; run the same command to resume",
                 file=sys.stderr,
@@ -783,7 +783,7 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.robot_spec import load_robot
     from gcm_pipeline.config.run import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
-    from gcm_pipeline.stages.publish import write_scene_html
+    from gcm_pipeline.publish.html import write_scene_html
     from gcm_pipeline.table import GraspTable
 
     robot = load_robot(args.spec)
@@ -834,26 +834,25 @@ _COMMANDS = {
 
 @contextlib.contextmanager
 def interrupt_on_termination() -> Iterator[None]:
-    """Handle Ctrl-C, SIGTERM and SIGHUP with :func:`gcm_pipeline.signals.raise_interrupt`.
+    """Handle Ctrl-C, SIGTERM and SIGHUP with :func:`gcm_pipeline.interrupts.raise_interrupt`.
 
-    Each raises :class:`~gcm_pipeline.signals.Terminated` (a :class:`KeyboardInterrupt`; plain
+    Each raises :class:`~gcm_pipeline.interrupts.Terminated` (a :class:`KeyboardInterrupt`; plain
     ``KeyboardInterrupt`` for Ctrl-C) in the main thread, so every ``finally``
     and ``except BaseException`` runs: a run directory being written is
     removed. The signal is also recorded, so that an interrupt Python drops
     (raised inside a finaliser; it says nothing about it then) is raised again
-    where a result becomes final (:func:`gcm_pipeline.signals.check`). The
+    where a result becomes final (:func:`gcm_pipeline.interrupts.check`). The
     previous handlers come back afterwards. Outside the main thread the
     signals are not handled.
     """
-    previous = signals.install()
+    previous = interrupts.install()
     hook = sys.unraisablehook
     sys.unraisablehook = _quiet_dropped_interrupts(hook)
     try:
         yield
     finally:
         sys.unraisablehook = hook
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        interrupts.restore(previous)
 
 
 def _quiet_dropped_interrupts(hook: Any) -> Any:
@@ -886,12 +885,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose, args.quiet)
-    signals.clear()
+    interrupts.clear()
     try:
         with interrupt_on_termination():
             status = _COMMANDS[args.command](args)
             sys.stdout.flush()  # a closed pipe shows here, inside the handlers
-            signals.check()  # an interrupt Python dropped on the way is not ignored
+            interrupts.check()  # an interrupt Python dropped on the way is not ignored
             return status
     except GcmError as exc:
         if args.debug:
@@ -909,12 +908,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 128 + signal.SIGPIPE
     except BaseException as exc:
         # Ctrl-C, SIGTERM, SIGHUP, also when a library wrapped it in an error of its own
-        interrupt = signals.interrupt_cause(exc)
+        interrupt = interrupts.interrupt_cause(exc)
         if interrupt is None:
             raise
-        return signals.report(interrupt)
+        return interrupts.report(interrupt)
     finally:
-        signals.clear()  # a handled interrupt does not outlive the command
+        interrupts.clear()  # a handled interrupt does not outlive the command
 
 
 if __name__ == "__main__":

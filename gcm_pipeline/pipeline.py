@@ -27,7 +27,7 @@ holds row ids into the candidate table, not poses, so that the poses live in
 one place (the table's ``dq`` column) only.
 
 :class:`Pipeline` runs them in order, times them, writes the run directory
-atomically (:mod:`gcm_pipeline.io`) and returns a :class:`RunResult`. Before
+atomically (:mod:`gcm_pipeline.rundir`) and returns a :class:`RunResult`. Before
 any stage runs, the output directory is checked and :func:`preflight` (also
 behind ``gcm validate``) checks what the config refers to: the robot spec,
 every input file (named by its config key) and, with the live viewer on, the
@@ -48,10 +48,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from gcm_pipeline import io, sources
+from gcm_pipeline import sources
 from gcm_pipeline.config.run import CandidatesConfig, Config, load_config, takes_config
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_pos_quat
+from gcm_pipeline.rundir import run as run_files
+from gcm_pipeline.rundir import transaction
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
@@ -279,7 +281,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     if not (viewer or pub.meshcat):
         log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
         return robot
-    from gcm_pipeline.stages.publish import probe_server
+    from gcm_pipeline.publish.live import probe_server
 
     try:
         probe_server(pub.zmq_url, pub.connect_timeout_s)
@@ -749,10 +751,10 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     Returns:
         The files written.
     """
-    from gcm_pipeline.stages import publish as stage
+    from gcm_pipeline.publish import html
 
     counts = {k: v for k, v in result.counts.items() if isinstance(v, int)}
-    files = stage.publish(
+    files = html.publish(
         result.grasps, result.manifold, result.robot, cfg, Path(out_dir), counts=counts
     )
     return list(files)
@@ -863,7 +865,7 @@ def load_manifold(run_dir: str | Path) -> GraspManifold:
     """
     from gcm_pipeline.errors import InputError
 
-    run = io.read_run(run_dir)
+    run = run_files.read_run(run_dir)
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise InputError(f"not a run directory: {run_dir} lacks config.yaml")
@@ -923,7 +925,7 @@ class RunResult:
         colormap, the manipulability range it spans and the colour and count
         of every unreachable reason.
         """
-        from gcm_pipeline.stages.publish import legend
+        from gcm_pipeline.publish.scene import legend
 
         return {
             "counts": dict(self.counts),
@@ -932,7 +934,7 @@ class RunResult:
             **({"grasp_frame": self.grasp_frame} if self.grasp_frame else {}),
             "legend": legend(self.grasps),
             "config": self.config.to_dict(),
-            "versions": io.versions(),
+            "versions": run_files.versions(),
         }
 
     def __repr__(self) -> str:
@@ -1029,7 +1031,7 @@ class Pipeline:
             robot = preflight(cfg, viewer=viewer)  # builds the robot: the "robot" stage's work
         robot_s = time.perf_counter() - t0
         if write:
-            out = io.check_output_dir(out, force=force, keep=keep)
+            out = transaction.check_output_dir(out, force=force, keep=keep)
         timings: dict[str, float] = {}
         names = ["candidates", "manifold", "densify", "robot", "reachability", "ranking"]
         if write:
@@ -1132,14 +1134,14 @@ class Pipeline:
         result.grasp_frame = source.get("grasp_frame")
         if not write:
             return result
-        with io.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:
+        with transaction.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:
             with stage("write"):
-                io.write_run_files(tmp, grasps, manifold, cfg.to_dict())
+                run_files.write_run_files(tmp, grasps, manifold, cfg.to_dict())
             with stage("publish"):
                 published = publish(result, cfg, tmp)
-            io.write_summary(result.summary(), tmp / "summary.json")
+            run_files.write_summary(result.summary(), tmp / "summary.json")
         result.run_dir = out
-        result.files = sorted(p for p in out.iterdir() if p.name != io.MARKER)
+        result.files = sorted(p for p in out.iterdir() if p.name != transaction.MARKER)
         log.info("run directory %s (%d published files)", out, len(published))
         return result
 

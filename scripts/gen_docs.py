@@ -3,7 +3,7 @@
 - ``docs/configuration.md``: the config reference, from the run config's JSON Schema
   (``gcm schema``);
 - ``docs/run-directory.md``: the grasp-table columns, from ``gcm_pipeline.table.COLUMNS``,
-  and the ``grasps.csv`` column order, from ``gcm_pipeline.io.CSV_COLUMNS``;
+  and the ``grasps.csv`` column order, from ``gcm_pipeline.rundir.grasps_csv.CSV_COLUMNS``;
 - ``docs/benchmarks.md``: every figure of ``benchmarks/results/*.json`` with the command,
   date, machine and load the file records.
 
@@ -173,7 +173,7 @@ def render_configuration() -> str:
 
 def render_columns() -> str:
     """The grasp-table columns and the grasps.csv column order."""
-    from gcm_pipeline.io import CSV_COLUMNS
+    from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
     from gcm_pipeline.table import CANDIDATE_COLUMNS, COLUMNS
 
     out = [
@@ -205,7 +205,7 @@ def render_columns() -> str:
         "",
         "#### `grasps.csv` columns, in order",
         "",
-        "From `gcm_pipeline.io.CSV_COLUMNS`: "
+        "From `gcm_pipeline.rundir.grasps_csv.CSV_COLUMNS`: "
         + ", ".join(f"`{c}`" for c in CSV_COLUMNS)
         + ", then `q1` .. `q{nq}`, then the other metric columns (`clearance`, ...), then the "
         "per-candidate columns. `v1, v2, v3` and `w1, w2, w3` are the table's `vertices` and "

@@ -16,7 +16,6 @@ import pinocchio as pin
 import pytest
 
 from gcm_pipeline.config import EnvironmentConfig
-from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.approach import (
     SUBSTEPS,

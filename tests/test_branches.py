@@ -13,6 +13,7 @@ from gcm_pipeline.cli import main
 from gcm_pipeline.manifold.continuity import patches
 from gcm_pipeline.manifold.lattice import row_mesh
 from gcm_pipeline.pipeline import branch_scores
+from gcm_pipeline.rundir.grasps_csv import read_grasps_csv
 from gcm_pipeline.stages.collision import make_checker
 
 SMALL = ["candidates.count=45", "densify.subdivisions=3", "ik.solutions=4"]
@@ -96,7 +97,7 @@ def test_solutions_npz_in_csv_order(runs: dict) -> None:
         chosen = s["chosen"]
         rows = np.flatnonzero(chosen >= 0)
         assert np.array_equal(s["q"][rows, chosen[rows]], c["q"][rows])
-    table = gcm.io.read_grasps_csv(run.run_dir / "grasps.csv")
+    table = read_grasps_csv(run.run_dir / "grasps.csv")
     assert np.array_equal(table["solution"], chosen)
 
 

@@ -289,7 +289,7 @@ def test_python_dash_m(tmp_path):
 
 
 def test_meshcat_viewer_opens_after_the_run(cli, out, monkeypatch):
-    from gcm_pipeline.stages import publish
+    from gcm_pipeline.publish import live
 
     events = []
 
@@ -304,8 +304,8 @@ def test_meshcat_viewer_opens_after_the_run(cli, out, monkeypatch):
         events.append(("open", (out / "grasps.csv").is_file(), len(grasps), detach))
         return FakeViewer()
 
-    monkeypatch.setattr(publish, "open_viewer", fake_open)
-    monkeypatch.setattr(publish, "probe_server", lambda url, timeout: FakeViewer.url)
+    monkeypatch.setattr(live, "open_viewer", fake_open)
+    monkeypatch.setattr(live, "probe_server", lambda url, timeout: FakeViewer.url)
     # --no-wait returns at once: only a server the user runs keeps the scene alive
     server = ["--set", "publish.zmq_url=tcp://127.0.0.1:6000"]
     code, text, err = cli("run", FLAT, "--out", out, "--meshcat", "--no-wait", *server, *QUICK)

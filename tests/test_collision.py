@@ -10,7 +10,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, ObstacleConfig
-from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,

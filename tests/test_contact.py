@@ -21,7 +21,6 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
-from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.collision import REASON_OBJECT
 from gcm_pipeline.robot.contact import NotConvexError, SolidMesh, erode_convex
 from gcm_pipeline.robot.ik import solve_ik

@@ -11,7 +11,6 @@ from helpers import ROOT
 from poses import backward_poses
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
-from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates
@@ -23,7 +22,6 @@ from gcm_pipeline.robot.engine import (
     available_cores,
 )
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
-from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.stages.collision import make_checker
 
 BOTTLE = {

@@ -13,8 +13,9 @@ import yaml
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
-from gcm_pipeline.io import CSV_COLUMNS, read_run
 from gcm_pipeline.pipeline import build_manifold, generate_candidates
+from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
+from gcm_pipeline.rundir.run import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, ROOT, assert_one_line_error
 
-from gcm_pipeline import io
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import ConfigError, GcmError, InputError, RobotSpecError
 from gcm_pipeline.pipeline import Pipeline, preflight
+from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.sources import read_grasp_file
 
 
@@ -498,7 +498,7 @@ def test_tampered_run_directories(cli, tmp_path, good_run, case):
     shutil.copytree(good_run, d)
     tamper(d)
     with pytest.raises(InputError, match=None) as info:
-        io.read_run(d)
+        run_files.read_run(d)
     assert fragment in str(info.value), str(info.value)
     code, out, err = cli("show", d)
     assert_one_line_error(code, err, fragment)
@@ -523,7 +523,7 @@ def test_a_run_with_nothing_reachable_reads_shows_and_plots(cli, tmp_path):
     code, _, err = cli("run", cfg, "--out", out, "--set", "publish.html=false")
     assert code == 0, err
     assert "WARNING" in err and "no grasp is reachable (out_of_reach 66)" in err
-    run = io.read_run(out)
+    run = run_files.read_run(out)
     assert len(run.grasps) == 66 and not run.grasps["reachable"].any()
     assert np.isnan(run.grasps["pos_err"]).all()
     code, text, err = cli("show", out)
@@ -582,8 +582,8 @@ def test_api_arguments_that_were_read_oddly(panda):
     assert load_config(FLAT, "ik.workers=2").ik.workers == 2
     assert Pipeline.from_yaml(FLAT, "ik.workers=2").config.ik.workers == 2
     # a stage function takes the config as a plain mapping too (it was an AttributeError)
-    from gcm_pipeline.safe_yaml import read_yaml_file
     from gcm_pipeline.pipeline import build_manifold, generate_candidates
+    from gcm_pipeline.safe_yaml import read_yaml_file
 
     as_read = generate_candidates(read_yaml_file(FLAT, "config", ConfigError))
     assert np.array_equal(as_read["dq"], generate_candidates(load_config(FLAT))["dq"])

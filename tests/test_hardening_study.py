@@ -26,7 +26,7 @@ import pytest
 import yaml
 from helpers import BOTTLE, QUICK, ROOT, assert_one_line_error
 
-from gcm_pipeline import signals
+from gcm_pipeline import interrupts
 from gcm_pipeline.cli import main
 from gcm_pipeline.study import Study
 from gcm_pipeline.study.runner import EngineError, probe_address
@@ -98,17 +98,17 @@ def test_an_address_where_no_ray_listens_is_one_line(tmp_path, cli, request, ser
 
 def test_sigterm_stops_the_address_probe(silent_port):
     """The probe waits on a socket in Python: SIGTERM ends it at once, as everywhere in gcm."""
-    previous = signals.install()
+    previous = interrupts.install()
     timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM))
     try:
         timer.start()
-        with pytest.raises(signals.Terminated):
+        with pytest.raises(interrupts.Terminated):
             probe_address(f"127.0.0.1:{silent_port}", timeout=300)
     finally:
         timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        signals.clear()
+        interrupts.clear()
 
 
 @pytest.mark.parametrize("address", ["[::1:6379", "[::1", "ray://[fe80::1:10001", "http://h:1"])
@@ -310,16 +310,16 @@ def test_refinement_stops_exactly_where_rounds_stop_adding():
 @pytest.fixture
 def panda_mesh(tmp_path, monkeypatch, panda):
     """One of the Panda's visual meshes, simplified once into an empty cache: (mesh, entry)."""
-    from gcm_pipeline.stages import publish as pub
+    from gcm_pipeline.publish import robot_view
 
     path = next(o.meshPath for o in panda.build_geometry("visual").geometryObjects if o.meshPath)
     monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
-    pub._simplified_mesh_cached.cache_clear()
-    first = pub._simplified_mesh(path)
+    robot_view._simplified_mesh_cached.cache_clear()
+    first = robot_view._simplified_mesh(path)
     (entry,) = (tmp_path / "cache" / "meshes").iterdir()
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()
     yield path, entry, [len(m.faces) for _, m in first]
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()
 
 
 def _npy(arr: np.ndarray) -> bytes:
@@ -331,18 +331,18 @@ def _npy(arr: np.ndarray) -> bytes:
 
 
 def test_a_mesh_cache_entry_that_is_a_named_pipe_is_simplified_again(panda_mesh):
-    from gcm_pipeline.stages import publish as pub
+    from gcm_pipeline.publish import robot_view
 
     path, entry, faces = panda_mesh
     entry.unlink()
     os.mkfifo(entry)
     try:
-        assert _finishes(pub._read_mesh_cache, entry) is None
-        again = _finishes(pub._simplified_mesh, path)
+        assert _finishes(robot_view._read_mesh_cache, entry) is None
+        again = _finishes(robot_view._simplified_mesh, path)
     finally:
         _unblock(entry)
     assert [len(m.faces) for _, m in again] == faces
-    assert entry.is_file() and pub._read_mesh_cache(entry) is not None  # replaced, whole
+    assert entry.is_file() and robot_view._read_mesh_cache(entry) is not None  # replaced, whole
 
 
 def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
@@ -351,7 +351,7 @@ def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
 
     import numpy.lib.format as npf
 
-    from gcm_pipeline.stages import publish as pub
+    from gcm_pipeline.publish import robot_view
 
     path, entry, faces = panda_mesh
     import io as _io
@@ -365,8 +365,8 @@ def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
         zf.writestr("v0.npy", header.getvalue() + bytes(1200))
         zf.writestr("f0.npy", _npy(np.zeros((1, 3), np.uint32)))
     assert entry.stat().st_size < 4096
-    assert pub._read_mesh_cache(entry) is None
-    assert [len(m.faces) for _, m in pub._simplified_mesh(path)] == faces
+    assert robot_view._read_mesh_cache(entry) is None
+    assert [len(m.faces) for _, m in robot_view._simplified_mesh(path)] == faces
 
 
 # ------------------------------------------------------------------ export
@@ -446,12 +446,12 @@ def test_gcm_run_on_a_full_file_system_is_one_line(tiny_tmpfs, cli):
 
 
 def test_disk_full_while_writing_is_one_line_in_process(tmp_path, cli, monkeypatch):
-    from gcm_pipeline import io
+    from gcm_pipeline.rundir import run as run_files
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(io, "write_grasps_csv", full)
+    monkeypatch.setattr(run_files, "write_grasps_csv", full)
     out = tmp_path / "run"
     sets = [a for s in SMALL for a in ("--set", s)]
     code, _, err = cli("run", BOTTLE, "--out", out, "-q", *sets)
@@ -508,25 +508,25 @@ def test_gcm_study_on_a_full_file_system_is_one_line(tiny_tmpfs, tmp_path, capsy
 
 
 def test_a_held_interrupt_is_raised_after_its_grace():
-    """signals.held(grace): SIGTERM waits at most ``grace`` seconds, then cuts the block."""
+    """interrupts.held(grace): SIGTERM waits at most ``grace`` seconds, then cuts the block."""
     import time
 
-    previous = signals.install()
+    previous = interrupts.install()
     try:
-        with pytest.raises(signals.Terminated):
-            with signals.held(0.2) as got:
+        with pytest.raises(interrupts.Terminated):
+            with interrupts.held(0.2) as got:
                 os.kill(os.getpid(), signal.SIGTERM)
                 for _ in range(600):  # 60 s at most: the interrupt ends it long before
                     time.sleep(0.1)
         assert got == [signal.SIGTERM]
-        with signals.held() as got:  # no grace: held to the end of the block
+        with interrupts.held() as got:  # no grace: held to the end of the block
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.5)
         assert got == [signal.SIGTERM]
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        signals.clear()
+        interrupts.clear()
 
 
 def test_sigterm_while_ray_joins_a_silent_address_exits_143(tmp_path, silent_port):

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline import io
 from gcm_pipeline.errors import InputError, OutputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
 from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.rundir import arrays, grasps_csv, transaction
+from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.table import GraspTable
 
 N, NC, NQ = 9, 3, 7
@@ -74,12 +75,14 @@ def _manifold() -> Manifold:
 def test_csv_header_order_and_ranked_rows_first(tmp_path):
     g = _table()
     path = tmp_path / "grasps.csv"
-    order = io.write_grasps_csv(g, path)
+    order = grasps_csv.write_grasps_csv(g, path)
     with path.open() as fh:
         rows = list(csv.reader(fh))
     header = rows[0]
-    assert header[: len(io.CSV_COLUMNS)] == list(io.CSV_COLUMNS)
-    assert header[len(io.CSV_COLUMNS) : len(io.CSV_COLUMNS) + NQ] == [f"q{i}" for i in range(1, 8)]
+    assert header[: len(grasps_csv.CSV_COLUMNS)] == list(grasps_csv.CSV_COLUMNS)
+    assert header[len(grasps_csv.CSV_COLUMNS) : len(grasps_csv.CSV_COLUMNS) + NQ] == [
+        f"q{i}" for i in range(1, 8)
+    ]
     assert header[-1] == "inverse_condition"
     ranks = [int(r[0]) for r in rows[1:]]
     n_ranked = int(np.count_nonzero(g["reachable"]))
@@ -98,8 +101,8 @@ def test_csv_header_order_and_ranked_rows_first(tmp_path):
 def test_csv_round_trip_is_exact(tmp_path):
     g = _table()
     path = tmp_path / "grasps.csv"
-    order = io.write_grasps_csv(g, path)
-    back = io.read_grasps_csv(path)
+    order = grasps_csv.write_grasps_csv(g, path)
+    back = grasps_csv.read_grasps_csv(path)
     ref = g.take(order)
     assert np.allclose(dq_to_matrix(back["dq"]), dq_to_matrix(ref["dq"]), atol=1e-15)
     for name in ("rank", "triangle", "reachable", "origin", "reason"):
@@ -116,8 +119,8 @@ def test_csv_round_trip_is_exact(tmp_path):
 
 def test_manifold_round_trip(tmp_path):
     path = tmp_path / "manifold.npz"
-    io.write_manifold(_manifold(), path, csv_rows=np.array([4, 0, 7]))
-    m = io.read_manifold(path)
+    arrays.write_manifold(_manifold(), path, csv_rows=np.array([4, 0, 7]))
+    m = arrays.read_manifold(path)
     assert isinstance(m, Manifold)
     assert np.array_equal(m.triangles, [[0, 1, 2]]) and m.projection == "xy"
     assert m.triangulator == "qhull" and np.array_equal(m.frame, np.eye(4))
@@ -126,8 +129,8 @@ def test_manifold_round_trip(tmp_path):
 
     if any(f.name == "period" for f in dataclasses.fields(Manifold)):
         m2 = dataclasses.replace(_manifold(), projection="cylindrical", period=0.25)
-        io.write_manifold(m2, tmp_path / "m2.npz")
-        back = io.read_manifold(tmp_path / "m2.npz")
+        arrays.write_manifold(m2, tmp_path / "m2.npz")
+        back = arrays.read_manifold(tmp_path / "m2.npz")
         assert back.period == 0.25 and back.projection == "cylindrical"
     assert np.array_equal(np.load(path)["vertex_ids"], [4, 0, 7])
     with np.load(path, allow_pickle=False) as data:  # no pickled objects
@@ -136,10 +139,12 @@ def test_manifold_round_trip(tmp_path):
 
 def test_read_run_restores_candidates_first(tmp_path):
     g = _table()
-    with io.atomic_run_dir(tmp_path / "run") as tmp:
-        io.write_run_files(tmp, g, _manifold(), {"seed": 0, "robot": {"spec": "panda"}})
-        io.write_summary({"counts": {"candidates": NC}, "x": float("nan")}, tmp / "summary.json")
-    run = io.read_run(tmp_path / "run")
+    with transaction.atomic_run_dir(tmp_path / "run") as tmp:
+        run_files.write_run_files(tmp, g, _manifold(), {"seed": 0, "robot": {"spec": "panda"}})
+        run_files.write_summary(
+            {"counts": {"candidates": NC}, "x": float("nan")}, tmp / "summary.json"
+        )
+    run = run_files.read_run(tmp_path / "run")
     assert run.summary["counts"] == {"candidates": NC} and run.summary["x"] is None
     assert list(run.grasps["origin"][:NC]) == ["candidate"] * NC
     assert np.allclose(dq_to_matrix(run.grasps["dq"][:NC]), dq_to_matrix(g["dq"][:NC]))
@@ -156,7 +161,7 @@ def _siblings(parent: Path) -> list[str]:
 
 def test_atomic_dir_success_and_failure(tmp_path):
     out = tmp_path / "run"
-    with io.atomic_run_dir(out) as tmp:
+    with transaction.atomic_run_dir(out) as tmp:
         assert tmp.parent == tmp_path and tmp.name.startswith(".run.tmp-")
         (tmp / "a.txt").write_text("a")
         assert not out.exists()
@@ -165,7 +170,7 @@ def test_atomic_dir_success_and_failure(tmp_path):
 
     for exc in (RuntimeError("boom"), KeyboardInterrupt()):
         with pytest.raises(type(exc)):
-            with io.atomic_run_dir(tmp_path / "other") as tmp:
+            with transaction.atomic_run_dir(tmp_path / "other") as tmp:
                 (tmp / "partial.csv").write_text("x")
                 raise exc
         assert _siblings(tmp_path) == ["run"]
@@ -174,18 +179,18 @@ def test_atomic_dir_success_and_failure(tmp_path):
 def _fake_run(path: Path, marker: str = "old") -> Path:
     """A directory that gcm wrote (its marker) with two files."""
     path.mkdir(parents=True, exist_ok=True)
-    io.write_marker(path, "run")
+    transaction.write_marker(path, "run")
     for name in ("summary.json", "grasps.csv"):
         (path / name).write_text(marker)
     return path
 
 
 def test_looks_like_run_dir_needs_the_marker(tmp_path):
-    assert not io.looks_like_run_dir(tmp_path)
-    assert not io.looks_like_run_dir(tmp_path / "nope")
+    assert not transaction.looks_like_run_dir(tmp_path)
+    assert not transaction.looks_like_run_dir(tmp_path / "nope")
     (tmp_path / "summary.json").write_text("{}")
     (tmp_path / "grasps.csv").write_text("")
-    assert not io.looks_like_run_dir(tmp_path)  # file names prove nothing
+    assert not transaction.looks_like_run_dir(tmp_path)  # file names prove nothing
     for text in (
         "{}",
         '{"project": "gcm_pipeline", "kind": "run", "id": "x"}',
@@ -198,31 +203,31 @@ def test_looks_like_run_dir_needs_the_marker(tmp_path):
         + "y" * 5000
         + '"}',
     ):
-        (tmp_path / io.MARKER).write_text(text)
-        assert not io.looks_like_run_dir(tmp_path), text
-    ident = io.write_marker(tmp_path, "run")
-    assert io.looks_like_run_dir(tmp_path)
-    assert io.read_marker(tmp_path)["id"] == ident
-    assert not io.is_project_dir(tmp_path, "study")  # another kind
-    assert not io.looks_like_run_dir(tmp_path / "grasps.csv")
+        (tmp_path / transaction.MARKER).write_text(text)
+        assert not transaction.looks_like_run_dir(tmp_path), text
+    ident = transaction.write_marker(tmp_path, "run")
+    assert transaction.looks_like_run_dir(tmp_path)
+    assert transaction.read_marker(tmp_path)["id"] == ident
+    assert not transaction.is_project_dir(tmp_path, "study")  # another kind
+    assert not transaction.looks_like_run_dir(tmp_path / "grasps.csv")
 
 
 def test_existing_run_needs_force_and_is_replaced_at_the_end(tmp_path):
     out = _fake_run(tmp_path / "run")
     msg = "already exists.*--force \\(CLI\\) or force=True \\(Python\\)"
     with pytest.raises(OutputError, match=msg):
-        io.check_output_dir(out)
+        transaction.check_output_dir(out)
     with pytest.raises(OutputError):
-        with io.atomic_run_dir(out):
+        with transaction.atomic_run_dir(out):
             pass
     # a failing forced run leaves the old run untouched
     with pytest.raises(RuntimeError):
-        with io.atomic_run_dir(out, force=True) as tmp:
+        with transaction.atomic_run_dir(out, force=True) as tmp:
             (tmp / "new.txt").write_text("new")
             raise RuntimeError
     assert _siblings(out) == [".gcm.json", "grasps.csv", "summary.json"]
     assert _siblings(tmp_path) == ["run"]
-    with io.atomic_run_dir(out, force=True) as tmp:
+    with transaction.atomic_run_dir(out, force=True) as tmp:
         (tmp / "new.txt").write_text("new")
         assert (out / "summary.json").exists()  # still the old one until the end
     assert _siblings(out) == [".gcm.json", "new.txt"] and _siblings(tmp_path) == ["run"]
@@ -236,13 +241,13 @@ def test_force_replaces_only_run_directories(tmp_path):
     (out / "grasps.csv").write_text("")
     for force in (False, True):
         with pytest.raises(OutputError) as info:
-            io.check_output_dir(out, force=force)
+            transaction.check_output_dir(out, force=force)
         assert str(info.value) == (
             f"refusing to replace {out}: it is not a gcm run directory (no valid .gcm.json "
             "marker, which gcm writes into every run); choose another --out"
         )
         with pytest.raises(OutputError, match="not a gcm run directory"):
-            with io.atomic_run_dir(out, force=force):
+            with transaction.atomic_run_dir(out, force=force):
                 pass
     assert _siblings(out) == ["grasps.csv", "precious.txt", "summary.json"]
     assert _siblings(tmp_path) == ["data"]
@@ -253,17 +258,20 @@ def test_force_never_replaces_the_working_directory_or_a_folder_of_inputs(tmp_pa
     monkeypatch.chdir(work)
     for path in (work, Path("."), tmp_path, Path("..")):
         with pytest.raises(OutputError, match="working directory or one of its parents"):
-            io.check_output_dir(path, force=True)
+            transaction.check_output_dir(path, force=True)
     runs = _fake_run(tmp_path / "runs")
     cfg = runs / "config.yaml"
     cfg.write_text("x")
     with pytest.raises(OutputError, match=f"it holds {cfg}, an input of this run"):
-        io.check_output_dir(runs, force=True, keep=[cfg])
+        transaction.check_output_dir(runs, force=True, keep=[cfg])
     with pytest.raises(OutputError, match="an input of this run"):
-        with io.atomic_run_dir(runs, force=True, keep=[cfg]):
+        with transaction.atomic_run_dir(runs, force=True, keep=[cfg]):
             pass
     # another run next to the input is fine
-    assert io.check_output_dir(tmp_path / "other", force=True, keep=[cfg]) == tmp_path / "other"
+    assert (
+        transaction.check_output_dir(tmp_path / "other", force=True, keep=[cfg])
+        == tmp_path / "other"
+    )
     assert _siblings(runs) == [".gcm.json", "config.yaml", "grasps.csv", "summary.json"]
     assert _siblings(tmp_path) == ["runs", "work"]
 
@@ -271,7 +279,7 @@ def test_force_never_replaces_the_working_directory_or_a_folder_of_inputs(tmp_pa
 def test_a_directory_appearing_during_the_run_is_checked_again(tmp_path):
     out = tmp_path / "run"
     with pytest.raises(OutputError, match="not a gcm run directory"):
-        with io.atomic_run_dir(out, force=True) as tmp:
+        with transaction.atomic_run_dir(out, force=True) as tmp:
             (tmp / "a").write_text("")
             out.mkdir()
             (out / "precious.txt").write_text("x")
@@ -280,18 +288,18 @@ def test_a_directory_appearing_during_the_run_is_checked_again(tmp_path):
 
 def test_failed_run_removes_the_parents_it_created(tmp_path):
     with pytest.raises(RuntimeError):
-        with io.atomic_run_dir(tmp_path / "a" / "b" / "run") as tmp:
+        with transaction.atomic_run_dir(tmp_path / "a" / "b" / "run") as tmp:
             assert tmp.parent == tmp_path / "a" / "b"
             raise RuntimeError
     assert list(tmp_path.iterdir()) == []
-    with io.atomic_run_dir(tmp_path / "a" / "b" / "run"):
+    with transaction.atomic_run_dir(tmp_path / "a" / "b" / "run"):
         pass
     assert (tmp_path / "a" / "b" / "run").is_dir()
 
 
 def test_empty_existing_directory_is_fine(tmp_path):
     (tmp_path / "run").mkdir()
-    with io.atomic_run_dir(tmp_path / "run") as tmp:
+    with transaction.atomic_run_dir(tmp_path / "run") as tmp:
         (tmp / "a").write_text("")
     assert _siblings(tmp_path / "run") == [".gcm.json", "a"]
 
@@ -300,11 +308,11 @@ def test_output_path_problems(tmp_path):
     f = tmp_path / "file"
     f.write_text("x")
     with pytest.raises(OutputError, match="not a directory"):
-        io.check_output_dir(f)
+        transaction.check_output_dir(f)
     with pytest.raises(OutputError, match="not a directory"):
-        io.check_output_dir(f / "sub" / "run")
+        transaction.check_output_dir(f / "sub" / "run")
     with pytest.raises(OutputError, match="not writable"):
-        io.check_output_dir("/proc/gcm_test_run")
+        transaction.check_output_dir("/proc/gcm_test_run")
     ro = tmp_path / "ro"
     ro.mkdir()
     os.chmod(ro, 0o500)
@@ -313,20 +321,22 @@ def test_output_path_problems(tmp_path):
             pytest.skip("cannot make a read-only directory here")
         if os.geteuid() != 0:
             with pytest.raises(OutputError, match="not writable"):
-                io.check_output_dir(ro / "run")
+                transaction.check_output_dir(ro / "run")
     finally:
         os.chmod(ro, 0o700)
     # nested new parents are fine and are not created by the check
-    assert io.check_output_dir(tmp_path / "a" / "b" / "run") == tmp_path / "a" / "b" / "run"
+    assert (
+        transaction.check_output_dir(tmp_path / "a" / "b" / "run") == tmp_path / "a" / "b" / "run"
+    )
     assert not (tmp_path / "a").exists()
 
 
 def test_read_run_errors(tmp_path):
     with pytest.raises(InputError, match="run directory not found"):
-        io.read_run(tmp_path / "nope")
+        run_files.read_run(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="not a run directory.*grasps.csv"):
-        io.read_run(tmp_path / "empty")
+        run_files.read_run(tmp_path / "empty")
 
 
 def test_csv_quotes_odd_reasons_and_handles_empty_tables(tmp_path):
@@ -335,12 +345,12 @@ def test_csv_quotes_odd_reasons_and_handles_empty_tables(tmp_path):
     odd[1] = 'collision: a, b "c"'
     g = g.with_columns(reason=odd.astype(str))
     path = tmp_path / "grasps.csv"
-    order = io.write_grasps_csv(g, path)
-    back = io.read_grasps_csv(path)
+    order = grasps_csv.write_grasps_csv(g, path)
+    back = grasps_csv.read_grasps_csv(path)
     assert np.array_equal(back["reason"], g["reason"][order])
     empty = g.take(np.zeros(0, dtype=int))
-    io.write_grasps_csv(empty, path)
-    assert len(io.read_grasps_csv(path)) == 0
+    grasps_csv.write_grasps_csv(empty, path)
+    assert len(grasps_csv.read_grasps_csv(path)) == 0
 
 
 def test_per_candidate_columns_follow_the_metrics_and_round_trip(tmp_path):
@@ -355,11 +365,11 @@ def test_per_candidate_columns_follow_the_metrics_and_round_trip(tmp_path):
         }
     )
     path = tmp_path / "grasps.csv"
-    order = io.write_grasps_csv(g, path)
+    order = grasps_csv.write_grasps_csv(g, path)
     header = path.read_text().splitlines()[0].split(",")
     # documented columns, q, the metric, then the candidates' own columns
     assert header[-4:] == ["inverse_condition", "score", "source_id", "segment"]
-    back = io.read_grasps_csv(path)
+    back = grasps_csv.read_grasps_csv(path)
     assert back["source_id"].dtype.kind == "i"
     np.testing.assert_array_equal(back["source_id"], g["source_id"][order])
     np.testing.assert_array_equal(back["score"], g["score"][order])  # NaN == NaN here
@@ -383,10 +393,10 @@ def test_a_long_cell_in_grasps_csv_is_refused_and_text_costs_its_size(tmp_path):
         label=np.array(["a"] * (n - 1) + ["b" * 250]),  # a carried text column
     )
     path = tmp_path / "grasps.csv"
-    io.write_grasps_csv(g, path)
+    grasps_csv.write_grasps_csv(g, path)
     tracemalloc.start()
     try:
-        back = io.read_grasps_csv(path)
+        back = grasps_csv.read_grasps_csv(path)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -398,7 +408,7 @@ def test_a_long_cell_in_grasps_csv_is_refused_and_text_costs_its_size(tmp_path):
     lines[3] = lines[3].replace(",no_ik,", "," + "r" * 100_000 + ",")
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError) as info:
-        io.read_grasps_csv(path)
+        grasps_csv.read_grasps_csv(path)
     assert str(info.value) == (
         f"{path}:4: column 'reason': a cell of 100,000 characters; a CSV cell holds at most "
         "256 (gcm_pipeline.bounds.MAX_CSV_CELL)"
@@ -410,7 +420,7 @@ def test_a_long_cell_in_grasps_csv_is_refused_and_text_costs_its_size(tmp_path):
 
 def _writer(out: Path, me: str, rounds: int) -> None:
     for i in range(rounds):
-        with io.atomic_run_dir(out, force=True) as tmp:
+        with transaction.atomic_run_dir(out, force=True) as tmp:
             for name in ("grasps.csv", "manifold.npz", "summary.json"):
                 (tmp / name).write_text(f"{me} {i}")
                 time.sleep(0.002)
@@ -429,7 +439,7 @@ def test_concurrent_forced_replacements_leave_one_complete_run(tmp_path):
         p.join(timeout=120)
         assert p.exitcode == 0
     assert _siblings(tmp_path) == ["run"]  # no .tmp-* / .old-* left
-    assert io.looks_like_run_dir(out)
+    assert transaction.looks_like_run_dir(out)
     texts = {(out / n).read_text() for n in ("grasps.csv", "manifold.npz", "summary.json")}
     assert len(texts) == 1  # the files of one writer's one round: a complete run
     assert _siblings(out) == [".gcm.json", "grasps.csv", "manifold.npz", "summary.json"]
@@ -442,7 +452,7 @@ def test_a_previous_run_that_cannot_be_removed_stays_as_it_was(tmp_path):
         pytest.skip("chattr +i is not available here (needs root on a filesystem with flags)")
     try:
         with pytest.raises(OutputError) as info:
-            with io.atomic_run_dir(out, force=True) as tmp:
+            with transaction.atomic_run_dir(out, force=True) as tmp:
                 (tmp / "new.txt").write_text("new")
         assert str(info.value) == (
             f"cannot replace {out}: {locked} is immutable, so it cannot be removed; "
@@ -451,7 +461,7 @@ def test_a_previous_run_that_cannot_be_removed_stays_as_it_was(tmp_path):
         subprocess.run(["chattr", "-i", str(locked)], check=True)
         subprocess.run(["chattr", "+i", str(out)], check=True)  # the directory itself
         with pytest.raises(OutputError, match=f"cannot replace {out}: .*left as it was"):
-            with io.atomic_run_dir(out, force=True) as tmp:
+            with transaction.atomic_run_dir(out, force=True) as tmp:
                 (tmp / "new.txt").write_text("new")
     finally:
         subprocess.run(["chattr", "-i", str(locked), str(out)], capture_output=True)
@@ -466,8 +476,8 @@ def test_leftovers_of_a_killed_run_are_removed_by_the_next(tmp_path):
         [
             sys.executable,
             "-c",
-            "import sys, time\nfrom gcm_pipeline import io\n"
-            "with io.atomic_run_dir(sys.argv[1]) as tmp:\n"
+            "import sys, time\nfrom gcm_pipeline.rundir import transaction\n"
+            "with transaction.atomic_run_dir(sys.argv[1]) as tmp:\n"
             "    (tmp / 'partial.csv').write_text('x')\n    print(tmp, flush=True)\n"
             "    time.sleep(60)\n",
             str(out),
@@ -482,7 +492,7 @@ def test_leftovers_of_a_killed_run_are_removed_by_the_next(tmp_path):
     # a look-alike left by someone else is not ours: kept
     foreign = tmp_path / f".run.tmp-{proc.pid}-abc"
     foreign.mkdir()
-    with io.atomic_run_dir(out) as new:
+    with transaction.atomic_run_dir(out) as new:
         (new / "a").write_text("")
     assert _siblings(tmp_path) == [foreign.name, "run"]
 
@@ -491,5 +501,5 @@ def test_a_symbolic_link_is_never_replaced(tmp_path):
     real = _fake_run(tmp_path / "real")
     (tmp_path / "link").symlink_to(real)
     with pytest.raises(OutputError, match="it is a symbolic link"):
-        io.check_output_dir(tmp_path / "link", force=True)
-    assert io.looks_like_run_dir(real)
+        transaction.check_output_dir(tmp_path / "link", force=True)
+    assert transaction.looks_like_run_dir(real)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers import FLAT, ROOT
 
-from gcm_pipeline import io, pipeline
+from gcm_pipeline import pipeline
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import OutputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
@@ -22,6 +22,8 @@ from gcm_pipeline.pipeline import (
     load_robot,
     rank,
 )
+from gcm_pipeline.rundir import grasps_csv, transaction
+from gcm_pipeline.rundir import run as run_files
 
 QUICK = ("publish.html=false", "publish.plots=false")
 
@@ -82,10 +84,10 @@ def test_run_writes_the_directory_and_returns_a_result(tmp_path):
     text = repr(result)
     assert text.startswith("RunResult(") and "reachable=" in text and "run_dir=" in text
     assert "Pipeline(" in repr(Pipeline.from_yaml(FLAT))
-    run = io.read_run(result.run_dir)
+    run = run_files.read_run(result.run_dir)
     assert run.summary["counts"] == c
     # configurations.npz: the (N, nq) configuration columns in grasps.csv row order
-    csv = io.read_grasps_csv(result.run_dir / "grasps.csv")
+    csv = grasps_csv.read_grasps_csv(result.run_dir / "grasps.csv")
     with np.load(result.run_dir / "configurations.npz") as conf:
         assert set(conf.files) == {"q", "q_pregrasp", "q_retreat", "q_rejected"}
         np.testing.assert_array_equal(conf["q"], csv["q"])
@@ -135,7 +137,7 @@ def test_output_problems_are_found_before_any_work(tmp_path, monkeypatch):
     full.mkdir()
     for name in ("summary.json", "grasps.csv"):
         (full / name).write_text("previous run")
-    io.write_marker(full, "run")
+    transaction.write_marker(full, "run")
     with pytest.raises(OutputError) as info:
         Pipeline.from_yaml(FLAT, QUICK).run(full)
     assert str(info.value) == (
@@ -163,12 +165,12 @@ def test_failure_leaves_nothing_behind(tmp_path, monkeypatch):
     old.mkdir()
     (old / "grasps.csv").write_text("previous")
     (old / "summary.json").write_text("{}")
-    io.write_marker(old, "run")
+    transaction.write_marker(old, "run")
     with pytest.raises(RuntimeError):
         Pipeline.from_yaml(FLAT, QUICK).run(old, progress=False, force=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
     assert (old / "grasps.csv").read_text() == "previous"
-    assert io.looks_like_run_dir(old)
+    assert transaction.looks_like_run_dir(old)
 
 
 def test_output_dir_from_config(tmp_path, monkeypatch):

@@ -20,8 +20,10 @@ from gcm_pipeline.config import Config
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.stages import publish as pub
-from gcm_pipeline.stages.plots import PLOT_FILES, chart_points, write_plots
+from gcm_pipeline.publish import html as pub_html
+from gcm_pipeline.publish import live, plots, robot_view
+from gcm_pipeline.publish import scene as pub_scene
+from gcm_pipeline.publish.plots import PLOT_FILES, chart_points, write_plots
 from gcm_pipeline.table import GraspTable
 
 _B64 = re.compile(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)")
@@ -120,18 +122,18 @@ def by_path(commands: list[dict]) -> dict[str, list[dict]]:
 @pytest.fixture(scope="module")
 def scene(robot):
     grasps, manifold = make_scene(robot)
-    html, info = pub.render_scene_html(grasps, manifold, robot, make_config())
+    html, info = pub_html.render_scene_html(grasps, manifold, robot, make_config())
     return grasps, manifold, html, info
 
 
 def test_scene_paths(scene):
     _, _, html, info = scene
     paths = {c["path"] for c in decode_commands(html)}
-    for sub in pub.SCENE_PATHS:
+    for sub in pub_scene.SCENE_PATHS:
         assert any(p == "/meshcat" + sub or p.startswith("/meshcat" + sub + "/") for p in paths), (
             sub
         )
-    assert set(info.paths) == set(pub.SCENE_PATHS)
+    assert set(info.paths) == set(pub_scene.SCENE_PATHS)
     assert any(p.startswith("/meshcat/robot/visuals/panda_link7") for p in paths)
     assert info.n_reachable == 40 and info.n_unreachable == 20
     # the page is self-contained: meshcat's viewer script is inlined, nothing is fetched
@@ -150,7 +152,7 @@ def test_animation_steps_through_top_k(scene):
 def test_animation_keys_never_blend_between_branches():
     a = np.array([0.0, 0.5, 0.0, -2.0, 0.0, 1.5, 0.8])
     qs = np.stack([a, a + 0.1, a + np.r_[2.0, np.zeros(6)], a + np.r_[2.0, 0.2, np.zeros(5)]])
-    keys, cuts = pub.animation_keys(qs, blend_limit=0.5)
+    keys, cuts = robot_view.animation_keys(qs, blend_limit=0.5)
     assert cuts == 2  # 2 -> 3 (joint 1 turns by 1.9 rad) and 4 -> 1 (closing the loop)
     frames = [f for f, _ in keys]
     assert frames == sorted(frames) and len(set(frames)) == len(frames)
@@ -165,10 +167,12 @@ def test_animation_keys_never_blend_between_branches():
         assert dist.min() == 0.0 or np.sort(dist)[:2].max() <= 0.5 + 1e-12, q
     # within one branch the animation blends (frames between the two held solutions)
     blended = [q for _, q in keys if np.abs(qs - q).max(axis=1).min() > 0]
-    assert len(blended) == 2 * (pub._ANIM_MOVE - 1)  # 1 -> 2 and 3 -> 4
+    assert len(blended) == 2 * (robot_view._ANIM_MOVE - 1)  # 1 -> 2 and 3 -> 4
     # a limit above every jump blends everywhere; one solution has no animation step
-    assert pub.animation_keys(qs, blend_limit=10.0)[1] == 0
-    assert pub.animation_keys(qs[:1])[1] == 0 and len(pub.animation_keys(qs[:1])[0]) == 2
+    assert robot_view.animation_keys(qs, blend_limit=10.0)[1] == 0
+    assert (
+        robot_view.animation_keys(qs[:1])[1] == 0 and len(robot_view.animation_keys(qs[:1])[0]) == 2
+    )
 
 
 def test_scene_animation_cuts_between_branches(robot):
@@ -181,16 +185,16 @@ def test_scene_animation_cuts_between_branches(robot):
     q[top[1]] = base + 0.05
     q[top[2]] = base + np.r_[1.5, np.zeros(robot.nq - 1)]  # another branch
     grasps = grasps.with_columns(q=q)
-    html, info = pub.render_scene_html(grasps, manifold, robot, make_config())
+    html, info = pub_html.render_scene_html(grasps, manifold, robot, make_config())
     assert info.top_k == 3 and info.animation_cuts == 2
     (anim,) = [c for c in decode_commands(html) if c["type"] == "set_animation"]
     clip = next(c["clip"] for c in anim["animations"] if c["path"].endswith("panda_link1_0"))
     times = [k["time"] for k in clip["tracks"][0]["keys"]]
     # 4 held solutions (2 keys each), one blend of 8 frames: no frames across the cuts
-    assert len(times) == 4 * 2 + (pub._ANIM_MOVE - 1)
+    assert len(times) == 4 * 2 + (robot_view._ANIM_MOVE - 1)
     cfg = make_config()
     cfg = Config.from_dict({**cfg.to_dict(), "continuity": {"threshold": 3.0}})
-    _, info = pub.render_scene_html(grasps, manifold, robot, cfg)
+    _, info = pub_html.render_scene_html(grasps, manifold, robot, cfg)
     assert info.animation_cuts == 0  # the threshold of one branch is continuity.threshold
 
 
@@ -203,10 +207,10 @@ def test_glyphs_are_batched(robot):
     counts = {}
     for n in (30, 3000):
         grasps, manifold = make_scene(robot, n)
-        window = pub._RecordingWindow()
+        window = pub_html._RecordingWindow()
         import meshcat
 
-        info = pub.build_scene(
+        info = pub_scene.build_scene(
             meshcat.Visualizer(window=window), grasps, manifold, robot, make_config()
         )
         counts[n] = window.n_objects
@@ -215,21 +219,21 @@ def test_glyphs_are_batched(robot):
         obj = _object_of(commands, "/meshcat/grasps/reachable")
         assert obj["object"]["type"] == "LineSegments"
         pos = obj["geometries"][0]["data"]["attributes"]["position"]
-        assert f32(pos["array"]).size == info.n_reachable * len(pub._GRIPPER) * 3
+        assert f32(pos["array"]).size == info.n_reachable * len(pub_scene._GRIPPER) * 3
     assert counts[30] == counts[3000]
 
 
 def test_large_tables_switch_to_sticks(robot, monkeypatch):
-    monkeypatch.setattr(pub, "FULL_GLYPH_LIMIT", 10)
+    monkeypatch.setattr(pub_scene, "FULL_GLYPH_LIMIT", 10)
     grasps, manifold = make_scene(robot, 60)
-    _, info = pub.render_scene_html(grasps, manifold, None, make_config())
+    _, info = pub_html.render_scene_html(grasps, manifold, None, make_config())
     assert info.glyph == "stick"
 
 
 def test_colors(scene):
     grasps, _, html, info = scene
     commands = decode_commands(html)
-    nv = len(pub._GRIPPER)
+    nv = len(pub_scene._GRIPPER)
     reach = _object_of(commands, "/meshcat/grasps/reachable")
     rgb = f32(reach["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
     assert reach["materials"][0]["vertexColors"] == 2
@@ -245,12 +249,12 @@ def test_colors(scene):
     urgb = f32(unreach["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
     reasons = np.asarray(grasps["reason"])[~np.asarray(grasps["reachable"])]
     grey = urgb[::nv][reasons == "no_ik"]
-    assert np.allclose(grey, grey[:, :1]) and np.allclose(grey, pub.REASON_COLORS["no_ik"])
+    assert np.allclose(grey, grey[:, :1]) and np.allclose(grey, plots.REASON_COLORS["no_ik"])
     other = urgb[::nv][reasons == "collision_self"]
-    assert np.allclose(other, pub.REASON_COLORS["collision_self"])
+    assert np.allclose(other, plots.REASON_COLORS["collision_self"])
     leg = info.legend
     json.dumps(info.to_dict())  # JSON-ready for the run summary
-    assert leg == pub.legend(grasps)
+    assert leg == pub_scene.legend(grasps)
     assert leg["colormap"] == "viridis"
     assert leg["metric_range"] == pytest.approx([lo, hi])
     assert set(leg["unreachable"]) == {"no_ik", "collision_self"}
@@ -263,7 +267,7 @@ def test_camera_frames_scene(scene):
     (prop,) = commands["/Cameras/default/rotated/<object>"]
     assert prop["property"] == "position"
     local = np.array(prop["value"])
-    world = pub._ROT_X90 @ local
+    world = robot_view.ROT_X90 @ local
     np.testing.assert_allclose(world, info.camera["position"], atol=1e-9)
     assert not np.allclose(local, [3.0, 1.0, 0.0])  # not meshcat's default
     target = np.array(info.camera["target"])
@@ -287,7 +291,7 @@ def test_objects_and_table(tmp_path: Path):
                 "environment": {"table": {"height": -0.1}},
             }
         )
-        html, info = pub.render_scene_html(GraspTable(), None, None, cfg)
+        html, info = pub_html.render_scene_html(GraspTable(), None, None, cfg)
         commands = by_path(decode_commands(html))
         assert "/meshcat/object/shape" in commands
         table = [c for c in commands["/meshcat/environment/table"] if c["type"] == "set_transform"]
@@ -301,7 +305,7 @@ def test_objects_and_table(tmp_path: Path):
             "candidates": {"source": "file", "path": "g.npy"},
         }
     )
-    html, info = pub.render_scene_html(GraspTable(), None, None, cfg)
+    html, info = pub_html.render_scene_html(GraspTable(), None, None, cfg)
     commands = by_path(decode_commands(html))
     (shape,) = [c for c in commands["/meshcat/object/shape"] if c["type"] == "set_object"]
     assert shape["object"]["geometries"][0]["format"] == "obj"
@@ -310,27 +314,26 @@ def test_objects_and_table(tmp_path: Path):
     cfg = Config.from_dict(
         {"candidates": {"source": "file", "path": "g.npy"}, "environment": {"table": None}}
     )
-    _, info = pub.render_scene_html(GraspTable(), None, None, cfg)
+    _, info = pub_html.render_scene_html(GraspTable(), None, None, cfg)
     assert info.paths == ()
 
 
 def test_publish_writes_what_config_asks(robot, tmp_path: Path):
     grasps, manifold = make_scene(robot)
-    paths = pub.publish(grasps, manifold, robot, make_config(html=True, plots=True), tmp_path)
+    paths = pub_html.publish(grasps, manifold, robot, make_config(html=True, plots=True), tmp_path)
     assert [p.name for p in paths] == ["scene.html", *PLOT_FILES]
     assert all(p.is_file() and p.stat().st_size > 1000 for p in paths)
     only_plots = tmp_path / "plots"
     only_plots.mkdir()
-    paths = pub.publish(grasps, manifold, robot, make_config(html=False), only_plots)
+    paths = pub_html.publish(grasps, manifold, robot, make_config(html=False), only_plots)
     assert [p.name for p in paths] == list(PLOT_FILES)
-    assert (
-        pub.publish(grasps, manifold, robot, make_config(html=False, plots=False), tmp_path) == []
-    )
+    neither = make_config(html=False, plots=False)
+    assert pub_html.publish(grasps, manifold, robot, neither, tmp_path) == []
 
 
 def test_plots(robot, tmp_path: Path):
     grasps, manifold = make_scene(robot)
-    counts = pub.stage_counts(grasps, manifold)
+    counts = pub_scene.stage_counts(grasps, manifold)
     assert counts == {
         "candidates": 6,
         "triangles": 4,
@@ -371,29 +374,29 @@ def test_unreachable_server_fails_fast(robot):
     cfg = make_config(meshcat=True, zmq_url=url, connect_timeout_s=0.5)
     start = time.monotonic()
     with pytest.raises(PublishError, match=re.escape(url)):
-        pub.open_viewer(grasps, manifold, robot, cfg)
+        live.open_viewer(grasps, manifold, robot, cfg)
     assert time.monotonic() - start < 5.0
     with pytest.raises(PublishError, match="invalid meshcat zmq_url"):
-        pub.probe_server("not a url", 0.5)
+        live.probe_server("not a url", 0.5)
 
 
 def test_live_viewer(robot):
     grasps, manifold = make_scene(robot, 30)
-    viewer = pub.open_viewer(grasps, manifold, robot, make_config(meshcat=True))
+    viewer = live.open_viewer(grasps, manifold, robot, make_config(meshcat=True))
     try:
         assert viewer.owns_server
         assert viewer.url.startswith("http://127.0.0.1:")
         assert viewer.zmq_url.startswith("tcp://127.0.0.1:")
         with urllib.request.urlopen(viewer.url, timeout=10) as resp:
             assert resp.status == 200
-        assert pub.probe_server(viewer.zmq_url, 5.0) == viewer.url
+        assert live.probe_server(viewer.zmq_url, 5.0) == viewer.url
         # the server holds the scene: its static page carries our objects
         html = viewer.visualizer.window.get_scene()
         paths = {c["path"] for c in decode_commands(html)}
         assert "/meshcat/grasps/reachable" in paths and "/meshcat/object/shape" in paths
-        assert set(viewer.info.paths) == set(pub.SCENE_PATHS)
+        assert set(viewer.info.paths) == set(pub_scene.SCENE_PATHS)
         # a second client connects to the running server through zmq_url
-        other = pub.open_viewer(
+        other = live.open_viewer(
             grasps, manifold, None, make_config(meshcat=True, zmq_url=viewer.zmq_url)
         )
         assert other.url == viewer.url and not other.owns_server
@@ -404,7 +407,7 @@ def test_live_viewer(robot):
     assert proc is not None and proc.poll() is not None
     viewer.close()  # idempotent
     with pytest.raises(PublishError):
-        pub.probe_server(viewer.zmq_url, 0.3)
+        live.probe_server(viewer.zmq_url, 0.3)
 
 
 def _robot_mesh_points(commands: list[dict]) -> dict[str, np.ndarray]:
@@ -452,7 +455,7 @@ def test_robot_meshes_are_whole_and_embedded_once(name):
     cfg = Config.from_dict(
         {"robot": {"spec": name}, "candidates": {"source": "file", "path": "x.npy"}}
     )
-    html, _ = pub.render_scene_html(grasps, None, robot, cfg)
+    html, _ = pub_html.render_scene_html(grasps, None, robot, cfg)
     commands = decode_commands(html)
     links = _robot_mesh_points(commands)
     visual = robot.build_geometry("visual")
@@ -480,7 +483,7 @@ def test_robot_meshes_are_whole_and_embedded_once(name):
         and "/robot/" in c["path"]
         and c["object"]["geometries"][0]["type"] == "BufferGeometry"
     )
-    assert total_faces < pub.MESH_FACE_BUDGET * len(names) * 1.2
+    assert total_faces < robot_view.MESH_FACE_BUDGET * len(names) * 1.2
 
 
 def test_primitive_tool_geometry_in_the_visual_model_is_drawn(monkeypatch):
@@ -507,7 +510,7 @@ def test_primitive_tool_geometry_in_the_visual_model_is_drawn(monkeypatch):
     cfg = Config.from_dict(
         {"robot": {"spec": "ur5"}, "candidates": {"source": "file", "path": "x.npy"}}
     )
-    commands = decode_commands(pub.render_scene_html(grasps, None, robot, cfg)[0])
+    commands = decode_commands(pub_html.render_scene_html(grasps, None, robot, cfg)[0])
     box = [c for c in commands if c["path"] == "/meshcat/robot/visuals/tool_palm/0"]
     assert box and box[0]["object"]["geometries"][0]["type"] == "BoxGeometry"
     geom = box[0]["object"]["geometries"][0]
@@ -520,63 +523,67 @@ def _cached_panda_mesh(robot, tmp_path, monkeypatch) -> str:
     """One of the Panda's visual meshes, with an empty mesh cache under ``tmp_path``."""
     path = next(o.meshPath for o in robot.build_geometry("visual").geometryObjects if o.meshPath)
     monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()
     return path
 
 
 def test_simplified_robot_meshes_are_cached_on_disk(robot, tmp_path, monkeypatch):
     """The second run reads the simplified meshes from the cache instead of simplifying again."""
     path = _cached_panda_mesh(robot, tmp_path, monkeypatch)
-    first = pub._simplified_mesh(path)
+    first = robot_view._simplified_mesh(path)
     files = list((tmp_path / "cache" / "meshes").iterdir())
     assert len(files) == 1 and files[0].suffix == ".npz"
 
     def no_simplify(*_args):
         raise AssertionError("simplified again although the cache holds the mesh")
 
-    pub._simplified_mesh_cached.cache_clear()
-    monkeypatch.setattr(pub, "_simplify_mesh", no_simplify)
-    again = pub._simplified_mesh(path)
+    robot_view._simplified_mesh_cached.cache_clear()
+    monkeypatch.setattr(robot_view, "_simplify_mesh", no_simplify)
+    again = robot_view._simplified_mesh(path)
     assert [c for c, _ in again] == [c for c, _ in first]
     for (_, a), (_, b) in zip(first, again, strict=True):
         assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()
 
 
 def test_a_damaged_or_unwritable_mesh_cache_is_rebuilt_or_skipped(robot, tmp_path, monkeypatch):
     path = _cached_panda_mesh(robot, tmp_path, monkeypatch)
-    fresh = pub._simplified_mesh(path)
+    fresh = robot_view._simplified_mesh(path)
     (cached,) = (tmp_path / "cache" / "meshes").iterdir()
     cached.write_bytes(cached.read_bytes()[:100])  # truncated
-    pub._simplified_mesh_cached.cache_clear()
-    rebuilt = pub._simplified_mesh(path)
+    robot_view._simplified_mesh_cached.cache_clear()
+    rebuilt = robot_view._simplified_mesh(path)
     assert [len(m.faces) for _, m in rebuilt] == [len(m.faces) for _, m in fresh]
-    assert pub._read_mesh_cache(cached) is not None  # written again, whole
+    assert robot_view._read_mesh_cache(cached) is not None  # written again, whole
     # a temporary file left by a process killed while writing: removed once stale
     stale, fresh_tmp = cached.parent / ".a.npz.1.tmp", cached.parent / ".b.npz.2.tmp"
     stale.write_bytes(b"partial")
     fresh_tmp.write_bytes(b"being written")
     os.utime(stale, (time.time() - 7200, time.time() - 7200))
     cached.unlink()
-    pub._simplified_mesh_cached.cache_clear()
-    pub._simplified_mesh(path)
+    robot_view._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh(path)
     assert not stale.exists() and fresh_tmp.exists() and cached.is_file()
     fresh_tmp.unlink()
     # files that load but are not a cache: a plain array, a scalar colour list
     with cached.open("wb") as f:
         np.save(f, np.zeros(3))
-    assert pub._read_mesh_cache(cached) is None
+    assert robot_view._read_mesh_cache(cached) is None
     np.savez(cached.with_suffix(".x.npz"), colors=np.int64(3))
-    assert pub._read_mesh_cache(cached.with_suffix(".x.npz")) is None
-    pub._simplified_mesh_cached.cache_clear()
-    assert [len(m.faces) for _, m in pub._simplified_mesh(path)] == [len(m.faces) for _, m in fresh]
+    assert robot_view._read_mesh_cache(cached.with_suffix(".x.npz")) is None
+    robot_view._simplified_mesh_cached.cache_clear()
+    assert [len(m.faces) for _, m in robot_view._simplified_mesh(path)] == [
+        len(m.faces) for _, m in fresh
+    ]
     # a cache folder that cannot be created (a file is in the way): drawn all the same
     blocker = tmp_path / "blocker"
     blocker.write_text("not a folder")
     monkeypatch.setenv("GCM_CACHE_DIR", str(blocker))
-    pub._simplified_mesh_cached.cache_clear()
-    assert [len(m.faces) for _, m in pub._simplified_mesh(path)] == [len(m.faces) for _, m in fresh]
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()
+    assert [len(m.faces) for _, m in robot_view._simplified_mesh(path)] == [
+        len(m.faces) for _, m in fresh
+    ]
+    robot_view._simplified_mesh_cached.cache_clear()
 
 
 def test_the_mesh_cache_follows_an_obj_files_materials(tmp_path, monkeypatch):
@@ -588,10 +595,10 @@ def test_the_mesh_cache_follows_an_obj_files_materials(tmp_path, monkeypatch):
     )
     (tmp_path / "m.mtl").write_text("newmtl c\nKd 1 0 0\n")
     monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
-    pub._simplified_mesh_cached.cache_clear()
-    assert [c for c, _ in pub._simplified_mesh(str(mesh))] == [0xFF0000]
+    robot_view._simplified_mesh_cached.cache_clear()
+    assert [c for c, _ in robot_view._simplified_mesh(str(mesh))] == [0xFF0000]
     (tmp_path / "m.mtl").write_text("newmtl c\nKd 0 0 1\n")
-    pub._simplified_mesh_cached.cache_clear()
-    assert [c for c, _ in pub._simplified_mesh(str(mesh))] == [0x0000FF]
+    robot_view._simplified_mesh_cached.cache_clear()
+    assert [c for c, _ in robot_view._simplified_mesh(str(mesh))] == [0x0000FF]
     assert len(list((tmp_path / "cache" / "meshes").iterdir())) == 2
-    pub._simplified_mesh_cached.cache_clear()
+    robot_view._simplified_mesh_cached.cache_clear()

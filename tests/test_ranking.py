@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.manipulability import manipulability
 from gcm_pipeline.robot.model import Robot

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.robot.ik import verify_solutions

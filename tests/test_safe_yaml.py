@@ -9,6 +9,7 @@ import pytest
 from helpers import FLAT
 
 from gcm_pipeline.config import load_config
+from gcm_pipeline.errors import ConfigError, RobotSpecError
 from gcm_pipeline.safe_yaml import (
     MAX_YAML_BYTES,
     MAX_YAML_DEPTH,
@@ -16,7 +17,6 @@ from gcm_pipeline.safe_yaml import (
     load_yaml,
     read_yaml_file,
 )
-from gcm_pipeline.errors import ConfigError, RobotSpecError
 
 
 def _load(text: str):

@@ -114,17 +114,17 @@ def test_sigterm_while_writing_leaves_the_previous_run(tmp_path):
 
 def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
     """``gcm`` turns SIGHUP (and SIGTERM) into an interrupt of the main thread."""
-    from gcm_pipeline import io
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import run as run_files
 
-    written = io.write_run_files
+    written = run_files.write_run_files
 
     def hang_up(out_dir, *args, **kwargs):
         written(out_dir, *args, **kwargs)
         os.kill(os.getpid(), signal.SIGHUP)
         time.sleep(5)  # the handler raises long before this ends
 
-    monkeypatch.setattr(io, "write_run_files", hang_up)
+    monkeypatch.setattr(run_files, "write_run_files", hang_up)
     before = signal.getsignal(signal.SIGHUP)
     out = tmp_path / "run"
     status = main(["run", str(FLAT), "--out", str(out), "--set", "publish.html=false"])
@@ -137,15 +137,15 @@ def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
 def _interrupted_rerun(tmp_path, capsys, monkeypatch, write_run_files):
     """A complete run, then ``--force`` over it with ``write_run_files`` patched to get
     interrupted: one line, status 130, the first run kept as it was."""
-    from gcm_pipeline import io
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import run as run_files
 
     out = tmp_path / "run"
     quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
     assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     capsys.readouterr()
-    monkeypatch.setattr(io, "write_run_files", write_run_files)
+    monkeypatch.setattr(run_files, "write_run_files", write_run_files)
     assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
     assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
@@ -159,8 +159,8 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     (status 130), keeps the previous run, and ``gcm study`` says what it kept (if any)."""
     from pydantic import BaseModel, field_serializer
 
-    from gcm_pipeline import io
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import run as run_files
     from gcm_pipeline.study import Study
 
     class Slow(BaseModel):
@@ -185,7 +185,7 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == "interrupted" and "finished placements are kept" in err[0]
     # an error that is not an interrupt still shows as one
-    monkeypatch.setattr(io, "write_run_files", lambda *a, **k: 1 / 0)
+    monkeypatch.setattr(run_files, "write_run_files", lambda *a, **k: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         main(["run", str(FLAT), "--out", str(out), "--force", *quick])
 
@@ -194,14 +194,15 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
     """An interrupt raised inside a finaliser is dropped by Python ("Exception
     ignored"): the run would go on and replace the previous one. The handler recorded
     it, so the swap does not happen: one line, status 130, the previous run kept."""
-    from gcm_pipeline import Pipeline, io, load_config, signals
+    from gcm_pipeline import Pipeline, interrupts, load_config
     from gcm_pipeline.cli import main
+    from gcm_pipeline.rundir import run as run_files
 
     class Finalised:
         def __del__(self) -> None:
-            signals.raise_interrupt(signal.SIGINT)  # as if Ctrl-C landed in here
+            interrupts.raise_interrupt(signal.SIGINT)  # as if Ctrl-C landed in here
 
-    written = io.write_run_files
+    written = run_files.write_run_files
 
     def dropped(*args, **kwargs):
         Finalised()  # collected at once: the interrupt is raised and dropped
@@ -210,7 +211,7 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
     out, quick = _interrupted_rerun(tmp_path, capsys, monkeypatch, dropped)
     # the handled interrupt does not outlive the command: the Python API and the next
     # command write their runs
-    monkeypatch.setattr(io, "write_run_files", written)
+    monkeypatch.setattr(run_files, "write_run_files", written)
     cfg = load_config(FLAT, ["publish.html=false", "publish.plots=false"])
     Pipeline(cfg).run(out_dir=tmp_path / "api", progress=False)
     assert (tmp_path / "api" / "summary.json").is_file()
@@ -224,7 +225,7 @@ def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypat
     import types
 
     from gcm_pipeline import __main__ as entry_point
-    from gcm_pipeline import signals
+    from gcm_pipeline import interrupts
 
     class Loading(types.ModuleType):
         def __getattr__(self, name: str):
@@ -238,7 +239,7 @@ def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypat
         assert capsys.readouterr().err.strip().splitlines() == ["interrupted (SIGTERM)"]
         for s in saved:
             assert signal.getsignal(s) == signal.SIG_IGN
-        signals.check()  # the handled interrupt is not raised again later
+        interrupts.check()  # the handled interrupt is not raised again later
     finally:
         for s, handler in saved.items():
             signal.signal(s, handler)
@@ -250,7 +251,7 @@ def test_sigterm_at_once_is_one_line(tmp_path):
     probe = (
         "import os, signal, sys; sys.argv = ['gcm', 'run', sys.argv[1], '--out', sys.argv[2]]; "
         "from gcm_pipeline.__main__ import entry; "
-        "import gcm_pipeline.signals as s; orig = s.install; "
+        "import gcm_pipeline.interrupts as s; orig = s.install; "
         "s.install = lambda *a: (orig(*a), os.kill(os.getpid(), signal.SIGTERM))[0]; "
         "sys.exit(entry())"
     )

@@ -28,8 +28,8 @@ from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import ConfigError, OutputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
-from gcm_pipeline.io import read_grasps_csv
 from gcm_pipeline.pipeline import generate_candidates
+from gcm_pipeline.rundir.grasps_csv import read_grasps_csv
 from gcm_pipeline.study import Study, load_study
 from gcm_pipeline.study.runner import probe_address
 from gcm_pipeline.study.spec import format_value

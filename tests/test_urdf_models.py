@@ -20,10 +20,10 @@ from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.config.robot_spec import load_robot, load_spec
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
-from gcm_pipeline.io import read_run
 from gcm_pipeline.robot import model as model_module
 from gcm_pipeline.robot.model import root_link
 from gcm_pipeline.robot.urdf import CONTINUOUS_RANGE, resolve_frame
+from gcm_pipeline.rundir.run import read_run
 
 TCP_ONLY = "tool: {name: tcp_only, flange: tool0, tcp: {xyz: [0, 0, 0.15]}}\n"
 

@@ -51,8 +51,8 @@ from gcm_pipeline.bounds import (
     MAX_OBSTACLES,
 )
 from gcm_pipeline.config.validation import describe
-from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 from gcm_pipeline.errors import ConfigError, clip, unknown_choice
+from gcm_pipeline.safe_yaml import MAX_YAML_DEPTH, load_yaml, read_yaml_file
 
 __all__ = [
     "as_config",

@@ -42,7 +42,6 @@ import numpy as np
 
 from gcm_pipeline.bounds import MAX_ADAPTIVE_LEVEL, check_size
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.bounds import MAX_ADAPTIVE_LEVEL, check_size
 from gcm_pipeline.manifold.build import Manifold, candidate_poses
 from gcm_pipeline.manifold.densify import fill_column
 from gcm_pipeline.manifold.surface import blend

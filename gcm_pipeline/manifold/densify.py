@@ -33,7 +33,6 @@ from gcm_pipeline.bounds import check_size, lattice_size
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_translation
 from gcm_pipeline.geometry.pose_blend import dib, dlb
-from gcm_pipeline.bounds import check_size, lattice_size
 from gcm_pipeline.manifold.build import Manifold, candidate_poses
 from gcm_pipeline.table import GraspTable, candidate_fill
 

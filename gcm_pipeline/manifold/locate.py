@@ -27,10 +27,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from gcm_pipeline.bounds import MAX_LENGTH
 from gcm_pipeline.errors import GeometryError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
-from gcm_pipeline.bounds import MAX_LENGTH
 from gcm_pipeline.manifold.surface import BLEND_METHODS, blend, project_onto_triangles
 
 __all__ = ["Location", "TriangleLocator", "as_query_poses"]

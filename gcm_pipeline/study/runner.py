@@ -30,7 +30,7 @@ from collections.abc import Iterable, Iterator
 from typing import Any
 from urllib.parse import urlsplit
 
-from gcm_pipeline import signals
+from gcm_pipeline import interrupts
 from gcm_pipeline.errors import GcmError
 from gcm_pipeline.study.worker import PlacementWorker
 
@@ -353,7 +353,7 @@ def _uninterrupted(ray: Any, grace: float | None = None) -> Iterator[list[int]]:
     """
     utils: Any = getattr(getattr(ray, "_private", None), "utils", None)
     setter = getattr(utils, "set_sigterm_handler", None)
-    with _caller_signal_handlers(), signals.held(grace) as got:
+    with _caller_signal_handlers(), interrupts.held(grace) as got:
         # only while SIGTERM is held: else Ray's handler is what stops its processes
         patch = setter is not None and callable(signal.getsignal(signal.SIGTERM))
         if patch:
@@ -446,7 +446,7 @@ class RayExecutor(Executor):
                 with _uninterrupted(ray, _JOIN_GRACE_S) as got:
                     ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             except Exception as exc:
-                if signals.interrupt_cause(exc) is not None:  # cut after the grace: an interrupt
+                if interrupts.interrupt_cause(exc) is not None:  # cut after the grace: an interrupt
                     raise
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise EngineError(
@@ -456,7 +456,7 @@ class RayExecutor(Executor):
             self.mode = "cluster"
         if got:  # an interrupt during start-up: Ray is up, so it stops cleanly
             self.close()
-            signals.release(got)
+            interrupts.release(got)
         try:
             cpus = int(ray.cluster_resources().get("CPU", 0))
             self.workers = workers or max(cpus, 1)

@@ -2,7 +2,7 @@
 
 Layout::
 
-    .gcm.json           the project's marker (kind ``study``, :func:`gcm_pipeline.io.write_marker`)
+    .gcm.json           the project's marker (kind ``study``, :mod:`gcm_pipeline.rundir`)
     .study.lock         held (``flock``) by the study running here: a second study
                         into the same directory stops with an error instead of
                         writing over the first one's files
@@ -32,17 +32,17 @@ import json
 import logging
 import os
 import stat
-import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gcm_pipeline import io
 from gcm_pipeline.config.study import AXES
 from gcm_pipeline.errors import InputError, OutputError, clip
-from gcm_pipeline.io import _json_clean, format_floats
+from gcm_pipeline.rundir import arrays, transaction
+from gcm_pipeline.rundir.grasps_csv import format_floats
+from gcm_pipeline.rundir.run import json_clean
 
 try:
     import fcntl
@@ -101,37 +101,20 @@ _MAX_PART_BYTES = 1 << 30
 def atomic_write(path: Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` that replaces ``path`` on success.
 
-    The temporary file starts with a dot (``.NAME.tmp-XXXX``); on any
-    exception it is removed and ``path`` is left as it was (a full file
+    :func:`~gcm_pipeline.rundir.transaction.atomic_file`; on any exception the
+    temporary file is removed and ``path`` is left as it was (a full file
     system is an :class:`OutputError` naming ``path``).
     """
-    path = Path(path)
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    except OSError as exc:
-        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        yield tmp
-        os.chmod(tmp, 0o644 & ~_umask())
-        try:
-            os.replace(tmp, path)
-        except IsADirectoryError:  # made while the study ran (else refused before any work)
-            raise OutputError(f"cannot write {path}: it is a directory; remove it") from None
+        with transaction.atomic_file(path) as tmp:
+            yield tmp
     except BaseException as exc:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        full = io.disk_full(path, exc, "the finished placements are kept (a rerun resumes)")
+        full = transaction.disk_full(
+            path, exc, "the finished placements are kept (a rerun resumes)"
+        )
         if full is not None:
             raise full from None
         raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -180,8 +163,8 @@ class StudyDir:
         if names and names <= {_LOCK}:
             return False  # left by a study stopped before it wrote anything
         # an existing study directory is continued, never replaced: "force" only
-        # lets io's checks accept a directory that carries the study marker
-        io.check_output_dir(out, force=bool(names), keep=keep, kind="study")
+        # lets the transaction's checks accept a directory that carries the study marker
+        transaction.check_output_dir(out, force=bool(names), keep=keep, kind="study")
         self._check_slots(names)
         return bool(names) and self.holds(key)
 
@@ -218,7 +201,7 @@ class StudyDir:
             OutputError: It holds another study.
         """
         out = self.path
-        if not (out / io.MARKER).exists():
+        if not (out / transaction.MARKER).exists():
             return False
         meta = self.read_meta()
         if meta is None or meta.get("key") != key:
@@ -301,11 +284,11 @@ class StudyDir:
             OutputError: It is not a regular file (a pipe would block), or it is
                 larger than :data:`MAX_META_BYTES` (a study writes a few kB).
         """
-        if not io.is_project_dir(self.path, "study"):
+        if not transaction.is_project_dir(self.path, "study"):
             return None
         path = self.path / "study.json"
         try:
-            with io.open_regular(path) as fh:
+            with arrays.open_regular(path) as fh:
                 size = os.fstat(fh.fileno()).st_size
                 if size > MAX_META_BYTES:
                     raise OutputError(
@@ -325,12 +308,12 @@ class StudyDir:
         """Create the directory, its ``.gcm.json`` marker and ``study.json`` (kept when there)."""
         try:
             self.parts.mkdir(parents=True, exist_ok=True)
-            if io.read_marker(self.path) is None:
-                io.write_marker(self.path, "study")
+            if transaction.read_marker(self.path) is None:
+                transaction.write_marker(self.path, "study")
         except OSError as exc:
             raise OutputError(f"cannot create study directory {self.path}: {exc}") from None
         if self.read_meta() is None:
-            text = json.dumps(_json_clean(dict(meta)), indent=2) + "\n"
+            text = json.dumps(json_clean(dict(meta)), indent=2) + "\n"
             if len(text.encode("utf-8")) > MAX_META_BYTES:  # it could not be read back
                 raise OutputError(
                     f"{self.path / 'study.json'}: the study file and base config take "
@@ -347,7 +330,7 @@ class StudyDir:
     def write_part(self, row: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
         """Write one finished placement (its row and grasp arrays) atomically."""
         payload: dict[str, Any] = {k: np.asarray(v) for k, v in arrays.items()}
-        payload["row"] = np.array(json.dumps(_json_clean(dict(row))))
+        payload["row"] = np.array(json.dumps(json_clean(dict(row))))
         with atomic_write(self.part_path(int(row["id"]))) as tmp:
             with open(tmp, "wb") as f:
                 np.savez(f, **payload)
@@ -373,7 +356,7 @@ class StudyDir:
                 continue
             try:
                 # sizes from the headers first: a compressed member may unpack to gigabytes
-                data = io.read_npz(path, max_bytes=_MAX_PART_BYTES)
+                data = arrays.read_npz(path, max_bytes=_MAX_PART_BYTES)
                 row = json.loads(str(data.pop("row")))
                 if not isinstance(row, dict):
                     raise ValueError("its row is not a JSON object")
@@ -401,7 +384,7 @@ class StudyDir:
     def write_json(self, name: str, data: Mapping[str, Any]) -> Path:
         """Write ``name`` (e.g. ``summary.json``) atomically; NaN becomes null."""
         path = self.path / name
-        _write_text(path, json.dumps(_json_clean(dict(data)), indent=2, allow_nan=False) + "\n")
+        _write_text(path, json.dumps(json_clean(dict(data)), indent=2, allow_nan=False) + "\n")
         return path
 
     def write_npz(self, name: str, arrays: Mapping[str, np.ndarray]) -> Path:

@@ -32,11 +32,13 @@ from typing import Any, Literal
 import numpy as np
 from tqdm.auto import tqdm
 
-from gcm_pipeline import io, signals
+from gcm_pipeline import interrupts
 from gcm_pipeline.bounds import MAX_STUDY_PLACEMENTS
 from gcm_pipeline.config.run import Config
-from gcm_pipeline.safe_yaml import read_yaml_file
 from gcm_pipeline.errors import ConfigError, GcmError, InputError
+from gcm_pipeline.rundir import run as run_files
+from gcm_pipeline.rundir import transaction
+from gcm_pipeline.safe_yaml import read_yaml_file
 from gcm_pipeline.study.spec import Placement, StudyPlan, load_study
 from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
 
@@ -297,7 +299,7 @@ class Study:
             store.create({"key": plan.key(), "created": time.time(), **plan.to_dict()})
             result = run.execute(resumed=resumed, t_start=t_start, best_run=best_run)
         except BaseException as exc:
-            if signals.interrupt_cause(exc) is not None:  # also one a library wrapped
+            if interrupts.interrupt_cause(exc) is not None:  # also one a library wrapped
                 executor.close()
                 run.finish(complete=False, t_start=t_start)
             raise
@@ -364,7 +366,7 @@ class _Run:
 
     def _jobs(self, todo: list[Placement]) -> Iterator[dict[str, Any]]:
         for p in todo:
-            signals.check()  # an interrupt dropped on the way stops the study here
+            interrupts.check()  # an interrupt dropped on the way stops the study here
             row = self._row_base(p)
             try:
                 cfg = self.plan.resolve(p.overrides, where=f"placement {p.id}")
@@ -556,7 +558,7 @@ class _Run:
             "engine": self.executor.info(),
             "timings_s": {k: round(v, 3) for k, v in self.timings.items()},
             "placements_per_s": round(self.ran / placements_s, 4) if placements_s > 0 else None,
-            "versions": io.versions() | self._ray_version(),
+            "versions": run_files.versions() | self._ray_version(),
         }
 
     @staticmethod
@@ -675,12 +677,12 @@ class _Run:
 
         out = self.store.path / "best"
         cfg = self.plan.resolve(best["overrides"], where=f"placement {best['id']}")
-        if io.looks_like_run_dir(out) and (out / "config.yaml").is_file():
+        if transaction.looks_like_run_dir(out) and (out / "config.yaml").is_file():
             try:  # bounded (1 MiB, as any config), never a pipe: else write best/ again
                 old = read_yaml_file(out / "config.yaml", "config", GcmError)
             except GcmError:
                 old = None
-            if old == io._json_clean(cfg.to_dict()):
+            if old == run_files.json_clean(cfg.to_dict()):
                 return out
         log.info("study: writing best/ (placement %s)", best["id"])
         Pipeline(cfg, source=self.plan.base_path).run(out, progress=self.progress, force=True)

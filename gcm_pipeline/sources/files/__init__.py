@@ -46,8 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.bounds import DEFAULT_MAX_CANDIDATES
+from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.sources.files.acronym import ACRONYM_INSTALL_HINT, read_acronym
 from gcm_pipeline.sources.files.common import ImportedGrasps, check_positions, check_rigid
 from gcm_pipeline.sources.files.contact_graspnet import read_contact_graspnet

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.bounds import MAX_HDF5_TEXT
+from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.sources.files.common import as_poses, check_count, success_labels
 
 __all__ = ["ACRONYM_INSTALL_HINT", "read_acronym"]

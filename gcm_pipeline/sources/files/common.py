@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.io import CSV_COLUMNS
 from gcm_pipeline.bounds import MAX_GRASP_DISTANCE
+from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.robot.manipulability import METRICS
+from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
 
 __all__ = [
     "ImportedGrasps",

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.bounds import DEFAULT_MAX_CANDIDATES
+from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.sources.files.common import ImportedGrasps, check_count, check_poses, vector
 from gcm_pipeline.sources.files.pickled import read_npz_members
 from gcm_pipeline.sources.files.sniff import check_format

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.io import check_csv_cells
+from gcm_pipeline.rundir.grasps_csv import check_csv_cells
 from gcm_pipeline.sources.files.common import check_count, check_positions, column_name
 
 __all__ = ["read_csv"]

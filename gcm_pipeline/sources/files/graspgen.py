@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.bounds import DEFAULT_MAX_CANDIDATES
+from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.safe_yaml import load_yaml
 from gcm_pipeline.sources.files.common import (
     ImportedGrasps,

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.io import npy_header
+from gcm_pipeline.rundir.arrays import npy_header
 from gcm_pipeline.sources.files.common import as_poses, check_count
 
 __all__ = ["read_npy"]

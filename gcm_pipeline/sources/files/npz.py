@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.io import read_npz as read_npz_arrays
+from gcm_pipeline.rundir.arrays import read_npz as read_npz_arrays
 from gcm_pipeline.sources.files.common import as_poses, check_count, column_name, success_labels
 
 __all__ = ["read_npz"]

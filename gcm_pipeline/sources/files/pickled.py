@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.io import npy_header
+from gcm_pipeline.rundir.arrays import npy_header
 from gcm_pipeline.sources.files.common import SLACK_BYTES, check_bytes
 
 __all__ = ["read_npz_members"]

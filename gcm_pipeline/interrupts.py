@@ -27,16 +27,19 @@ __all__ = [
     "Terminated",
     "check",
     "clear",
+    "deferred",
     "held",
     "ignore",
     "install",
     "interrupt_cause",
     "release",
     "report",
+    "restore",
 ]
 
 #: The signals ``gcm`` turns into an interrupt of the main thread.
 NAMES = ("SIGINT", "SIGTERM", "SIGHUP")
+_SIGNALS = tuple(getattr(signal, name) for name in NAMES if hasattr(signal, name))
 
 
 class Terminated(KeyboardInterrupt):
@@ -93,6 +96,12 @@ def install() -> dict[int, Any]:
     return _set(raise_interrupt)
 
 
+def restore(previous: dict[int, Any]) -> None:
+    """Put back the handlers :func:`install` returned."""
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
+
+
 @contextlib.contextmanager
 def held(grace: float | None = None) -> Iterator[list[int]]:
     """Record the interrupts instead of acting on them while the block runs.
@@ -135,6 +144,25 @@ def held(grace: float | None = None) -> Iterator[list[int]]:
             timer.cancel()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Hold Ctrl-C, SIGTERM and SIGHUP until the block is done (they arrive afterwards).
+
+    Blocks the signals (``pthread_sigmask``) instead of handling them: used
+    around the few renames that swap a run directory in, and around the
+    clean-up after a failure, so that an interrupt cannot leave them half done.
+    """
+    block = getattr(signal, "pthread_sigmask", None)
+    if block is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = block(signal.SIG_BLOCK, _SIGNALS)
+    try:
+        yield
+    finally:
+        block(signal.SIG_SETMASK, previous)
 
 
 def _deliver_late(late: threading.Event, signum: int) -> None:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import PublishError
+from gcm_pipeline.geometry.dualquat import dq_translation
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -122,8 +123,6 @@ def chart_period(grasps: GraspTable, manifold: Any) -> float | None:
         return float(period)
     if "dq" not in grasps:
         return None
-    from gcm_pipeline.geometry.dualquat import dq_translation
-
     rows = candidate_rows(grasps, len(manifold.chart))
     pos = np.asarray(dq_translation(np.asarray(grasps["dq"])[rows]), dtype=float)
     frame = np.asarray(frame, dtype=float)

@@ -40,23 +40,26 @@ closed to half the grasp's ``width`` per finger when known, else 0).
 
 from __future__ import annotations
 
+import csv
 import math
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
+from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import InputError, OutputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
+from gcm_pipeline.robot.model import load_spec, root_link
+from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
+from gcm_pipeline.rundir.transaction import atomic_file, read_marker
+from gcm_pipeline.sources.grippers import GRIPPERS
+from gcm_pipeline.stages.ranking import METRIC_COLUMNS
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:
-    from gcm_pipeline.config.run import Config
 
 __all__ = ["EXPORT_FORMATS", "ExportResult", "export_run"]
 
@@ -105,9 +108,6 @@ def export_run(
         OutputError: The file cannot be written, or ``out`` is a directory, a
             device or a pipe.
     """
-    from gcm_pipeline.config.run import load_config
-    from gcm_pipeline.io import read_grasps_csv
-
     if format not in EXPORT_FORMATS:
         raise InputError(unknown_choice("export format", format, EXPORT_FORMATS))
     if top is not None and top < 1:
@@ -151,9 +151,7 @@ _POSE7 = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 def _csv_pose(path: Path, n: int) -> np.ndarray:
     """The ``x, y, z, qw, qx, qy, qz`` columns of ``grasps.csv`` as written (N, 7)."""
-    import csv
-
-    # read as io.read_grasps_csv reads it (which has checked the file): BOM and blank lines
+    # read as read_grasps_csv reads it (which has checked the file): BOM and blank lines
     with path.open(newline="", encoding="utf-8-sig") as fh:
         rows = [row for row in csv.reader(fh) if any(cell.strip() for cell in row)]
     cols = [rows[0].index(c) for c in _POSE7]
@@ -180,8 +178,6 @@ def _check_not_the_run(run: Path, path: Path) -> None:
     (its ``.png`` plots included), nor one of another run's or study's
     directory (a folder with this project's marker) or a study's placement.
     """
-    from gcm_pipeline.io import read_marker
-
     target = path.resolve()
     folder = target.parent
     kind = (read_marker(folder) or {}).get("kind")
@@ -225,21 +221,10 @@ def _atomic(path: Path, write: Callable[[Path], None]) -> None:
         what = "is not a directory" if parent.exists() else "does not exist"
         raise OutputError(f"cannot write {path}: {parent} {what}")
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
+        with atomic_file(path) as tmp:
+            write(tmp)
     except OSError as exc:
-        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise OutputError(f"cannot write {path}: {exc}") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 # ------------------------------------------------------------------ columns
@@ -247,8 +232,6 @@ def _atomic(path: Path, write: Callable[[Path], None]) -> None:
 
 def _flat_columns(g: GraspTable) -> dict[str, np.ndarray]:
     """The grasps.csv columns (names and values) of a table, ``q`` kept 2-D."""
-    from gcm_pipeline.io import CSV_COLUMNS
-
     n = len(g)
     if "pose7" in g:
         pos, quat = g["pose7"][:, :3], g["pose7"][:, 3:]
@@ -350,8 +333,6 @@ def _grasp_quality(g: GraspTable, metric: str, path: Path) -> np.ndarray:
             is not finite or is larger than the row ranked above it (a
             ``grasps.csv`` whose ranks and values disagree).
     """
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
-
     n = len(g)
     rank = np.asarray(g["rank"], dtype=np.int64) if "rank" in g else np.zeros(n, np.int64)
     name = METRIC_COLUMNS.get(metric, metric)
@@ -411,16 +392,11 @@ def _posture(frame: str, joints: list[str], positions: list[float], t: float) ->
 
 def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
     """Root frame, grasp frame and locked joints of the run's robot spec."""
-    from gcm_pipeline.config.robot_spec import load_spec
-    from gcm_pipeline.robot.model import root_link
-
     spec = load_spec(config.robot.spec)
     return root_link(spec), spec.grasp_frame, dict(spec.locked_joints)
 
 
 def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
-    from gcm_pipeline.sources.grippers import GRIPPERS
-
     root, tool, locked = _robot_frames(config)
     base = config.robot.base_pose.matrix()
     n = len(g)

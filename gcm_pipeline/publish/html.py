@@ -1,0 +1,226 @@
+"""The scene as a self-contained HTML page, and the publish files of a run directory.
+
+The HTML scene is recorded without a server: a recording window stands in for
+meshcat's ZMQ connection, keeps the scene tree exactly as ``meshcat-server``
+does, and writes the same static page that ``Visualizer.static_html()`` would
+ask the server for. :func:`publish` writes ``scene.html`` and the plots into
+a run directory.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import meshcat
+import numpy as np
+import umsgpack
+from meshcat.servers.tree import SceneTree, find_node, walk
+
+from gcm_pipeline.errors import PublishError
+from gcm_pipeline.publish.plots import write_plots
+from gcm_pipeline.publish.robot_view import ROT_X90
+from gcm_pipeline.publish.scene import SceneInfo, build_scene, stage_counts
+from gcm_pipeline.table import GraspTable
+
+if TYPE_CHECKING:
+    from gcm_pipeline.config import Config
+    from gcm_pipeline.robot.model import Robot
+
+__all__ = [
+    "publish",
+    "render_scene_html",
+    "write_scene_html",
+]
+
+
+# -- recording window and static HTML ---------------------------------------------------
+
+
+class _RecordingWindow:
+    """Stands in for meshcat's ZMQ window: keeps the scene tree like ``meshcat-server``.
+
+    ``meshcat.Visualizer(window=_RecordingWindow())`` draws without a server;
+    :meth:`static_html` then builds the page that the server's ``get_scene``
+    would return (same tree walk, same command encoding).
+    """
+
+    def __init__(self) -> None:
+        self.tree = SceneTree()
+        self.web_url = ""
+        self.zmq_url = ""
+        self.n_objects = 0
+
+    def send(self, command: Any) -> None:
+        data = command.lower()
+        kind = data["type"]
+        path = [p for p in data["path"].split("/") if p]
+        packed = umsgpack.packb(data)
+        node = find_node(self.tree, path)
+        if kind == "set_object":
+            node.object = packed
+            node.properties = []
+            self.n_objects += 1
+        elif kind == "set_transform":
+            node.transform = packed
+        elif kind == "set_property":
+            node.properties.append(packed)
+        elif kind == "set_animation":
+            node.animation = packed
+        elif kind == "delete":
+            if path:
+                parent = find_node(self.tree, path[:-1])
+                parent.pop(path[-1], None)
+            else:
+                self.tree = SceneTree()
+        else:  # pragma: no cover - meshcat sends only the above
+            raise PublishError(f"unsupported meshcat command {kind!r}")
+
+    def get_image(self) -> None:  # pragma: no cover - no browser behind it
+        raise PublishError("a recorded scene has no browser to capture an image from")
+
+    def commands(self) -> list[bytes]:
+        """The msgpack-encoded commands in the order the server would replay them."""
+        out: list[bytes] = []
+        for node in walk(self.tree):
+            if node.object is not None:
+                out.append(node.object)
+            out.extend(node.properties)
+            if node.transform is not None:
+                out.append(node.transform)
+            if node.animation is not None:
+                out.append(node.animation)
+        return out
+
+    def static_html(self, extra_js: str = "", title: str = "gcm_pipeline scene") -> str:
+        """The self-contained page: meshcat's viewer script and the recorded commands."""
+        js_path = Path(meshcat.__file__).parent / "viewer" / "dist" / "main.min.js"
+        viewer_js = js_path.read_text(encoding="utf-8")
+        parts = []
+        for blob in self.commands():
+            b64 = base64.b64encode(blob).decode("ascii")
+            parts.append(
+                f'fetch("data:application/octet-binary;base64,{b64}")\n'
+                "    .then(res => res.arrayBuffer())\n"
+                "    .then(buffer => viewer.handle_command_bytearray(new Uint8Array(buffer)));\n"
+            )
+        return _HTML.format(
+            title=title, mainminjs=viewer_js, commands="".join(parts), extra=extra_js
+        )
+
+
+_HTML = """<!DOCTYPE html>
+<html>
+    <head> <meta charset=utf-8> <title>{title}</title> </head>
+    <body>
+        <div id="meshcat-pane">
+        </div>
+        <script>
+{mainminjs}
+        </script>
+        <script>
+            var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
+{commands}
+{extra}
+        </script>
+        <style>
+            body {{margin: 0; }}
+            #meshcat-pane {{
+                width: 100vw;
+                height: 100vh;
+                overflow: hidden;
+            }}
+        </style>
+        <script id="embedded-json"></script>
+    </body>
+</html>
+"""
+
+
+def _orbit_js(target: Sequence[float]) -> str:
+    """Script that turns the page's orbit controls about ``target`` (world, [m])."""
+    x, y, z = (float(v) for v in ROT_X90.T @ np.asarray(target, dtype=float))
+    return (
+        f"viewer.controls.target.set({x!r}, {y!r}, {z!r});\n"
+        "viewer.controls.update();\nviewer.set_dirty();\n"
+    )
+
+
+def render_scene_html(
+    grasps: GraspTable, manifold: Any, robot: Robot | None, config: Config
+) -> tuple[str, SceneInfo]:
+    """Build the scene without a server and return the self-contained HTML page.
+
+    Args:
+        grasps: The grasp table.
+        manifold: The manifold or None.
+        robot: The robot or None.
+        config: The run config.
+
+    Returns:
+        The page (opens from disk, no server) and what it holds.
+    """
+    window = _RecordingWindow()
+    vis = meshcat.Visualizer(window=window)
+    info = build_scene(vis, grasps, manifold, robot, config, orbit_target=True)
+    return window.static_html(extra_js=_orbit_js(info.camera["target"])), info
+
+
+def write_scene_html(
+    path: str | os.PathLike[str],
+    grasps: GraspTable,
+    manifold: Any,
+    robot: Robot | None,
+    config: Config,
+) -> SceneInfo:
+    """Write the self-contained HTML scene to ``path`` (see :func:`render_scene_html`)."""
+    html, info = render_scene_html(grasps, manifold, robot, config)
+    path = Path(path)
+    try:
+        path.write_text(html, encoding="utf-8")
+    except OSError as exc:
+        raise PublishError(f"cannot write scene {str(path)!r}: {exc}") from exc
+    return info
+
+
+def publish(
+    grasps: GraspTable,
+    manifold: Any,
+    robot: Robot | None,
+    config: Config,
+    out_dir: str | os.PathLike[str],
+    counts: Mapping[str, int] | None = None,
+) -> list[Path]:
+    """Write the files ``config.publish`` asks for into ``out_dir``.
+
+    ``scene.html`` (when ``publish.html``) and ``manifold.png``,
+    ``manipulability_hist.png``, ``counts.png`` (when ``publish.plots``). The
+    live viewer is separate (:func:`open_viewer`), called once the run
+    directory is complete.
+
+    Args:
+        grasps: The grasp table.
+        manifold: The manifold or None.
+        robot: The robot or None.
+        config: The run config.
+        out_dir: An existing directory.
+        counts: Per-stage counts for the bar chart (default: :func:`stage_counts`).
+
+    Returns:
+        The paths written, in that order.
+
+    Raises:
+        PublishError: A file cannot be written.
+    """
+    out = Path(out_dir)
+    written: list[Path] = []
+    if config.publish.html:
+        path = out / "scene.html"
+        write_scene_html(path, grasps, manifold, robot, config)
+        written.append(path)
+    if config.publish.plots:
+        written += write_plots(grasps, manifold, counts or stage_counts(grasps, manifold), out)
+    return written

@@ -1,0 +1,236 @@
+"""A run directory's files, written together and read back for ``gcm show`` / ``gcm plot``.
+
+A run directory holds (see DESIGN.md, *Run directory*):
+
+- ``grasps.csv`` (:mod:`gcm_pipeline.rundir.grasps_csv`);
+- ``summary.json``: counts, timings [s], the ranking's top grasps, the
+  resolved config and package versions;
+- ``manifold.npz``, ``configurations.npz`` and, with ``ik.solutions`` > 1,
+  ``solutions.npz`` (:mod:`gcm_pipeline.rundir.arrays`);
+- ``config.yaml``: the resolved config;
+- optional ``scene.html`` and ``*.png`` from the publish stage;
+- ``.gcm.json``, the marker (:mod:`gcm_pipeline.rundir.transaction`, which
+  writes the directory atomically).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import yaml
+
+from gcm_pipeline.errors import InputError, clip
+from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.rundir.arrays import (
+    manifold_vertex_rows,
+    read_manifold,
+    write_configurations,
+    write_manifold,
+    write_solutions,
+)
+from gcm_pipeline.rundir.grasps_csv import read_grasps_csv, write_grasps_csv
+from gcm_pipeline.table import GraspTable
+
+__all__ = [
+    "RUN_FILES",
+    "RunData",
+    "json_clean",
+    "read_run",
+    "read_summary",
+    "versions",
+    "write_config",
+    "write_run_files",
+    "write_summary",
+]
+
+RUN_FILES = ("grasps.csv", "summary.json", "manifold.npz", "config.yaml")
+
+
+#: Most bytes of a run's summary.json that are read.
+_MAX_SUMMARY_BYTES = 64 << 20
+
+
+def write_run_files(
+    out_dir: str | Path, grasps: GraspTable, manifold: Manifold, config: Mapping[str, Any]
+) -> None:
+    """Write ``grasps.csv``, ``manifold.npz`` (vertex ids = csv rows) and ``config.yaml``."""
+    out = Path(out_dir)
+    order = write_grasps_csv(grasps, out / "grasps.csv")
+    csv_row = np.empty(len(order), dtype=np.int64)
+    csv_row[order] = np.arange(len(order))
+    write_manifold(manifold, out / "manifold.npz", csv_rows=csv_row[: len(manifold.chart)])
+    write_configurations(grasps, out / "configurations.npz", order)
+    if "solutions" in grasps:
+        write_solutions(grasps, out / "solutions.npz", order)
+    write_config(config, out / "config.yaml")
+
+
+# ------------------------------------------------------------ json / yaml
+
+
+def json_clean(value: Any) -> Any:
+    """NumPy scalars/arrays to Python, NaN/inf to None, paths to str."""
+    if isinstance(value, Mapping):
+        return {str(k): json_clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_clean(value.tolist())
+    if isinstance(value, np.generic):
+        return json_clean(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def versions() -> dict[str, str]:
+    """Versions of Python and the main packages, for ``summary.json``."""
+    out = {"python": platform.python_version()}
+    for name, module in (
+        ("gcm_pipeline", "gcm_pipeline"),
+        ("numpy", "numpy"),
+        ("scipy", "scipy"),
+        ("pinocchio", "pinocchio"),
+        ("pydantic", "pydantic"),
+    ):
+        try:
+            out[name] = str(__import__(module).__version__)
+        except (ImportError, AttributeError):
+            continue
+    return out
+
+
+def write_summary(summary: Mapping[str, Any], path: str | Path) -> None:
+    """Write ``summary.json`` (NaN becomes null; keys in the given order)."""
+    text = json.dumps(json_clean(summary), indent=2, allow_nan=False)
+    Path(path).write_text(text + "\n", encoding="utf-8")
+
+
+def write_config(config: Mapping[str, Any], path: str | Path) -> None:
+    """Write the resolved config as YAML (section order kept)."""
+    text = yaml.safe_dump(json_clean(config), sort_keys=False, default_flow_style=None)
+    Path(path).write_text(text, encoding="utf-8")
+
+
+# ------------------------------------------------------------ read_run
+
+
+class RunData(NamedTuple):
+    """A run directory read back by :func:`read_run`.
+
+    Attributes:
+        grasps: The grasp table: candidates first, in manifold vertex order,
+            then the other rows in file order (ranked first).
+        manifold: The manifold (triangles index the candidate rows).
+        summary: ``summary.json`` as a dict.
+        run_dir: The run directory.
+    """
+
+    grasps: GraspTable
+    manifold: Manifold
+    summary: dict[str, Any]
+    run_dir: Path
+
+
+def read_run(run_dir: str | Path) -> RunData:
+    """Read a run directory written by ``gcm run`` / :meth:`Pipeline.run`.
+
+    Args:
+        run_dir: The run directory.
+
+    Returns:
+        The grasp table (``dq`` rebuilt from x..qz), the manifold and the
+        summary. The table's rows are ordered as in the run: the candidates
+        first, in manifold vertex order (so the manifold's triangles and the
+        ``vertices`` column index them), then the other rows in file order
+        (ranked first).
+
+    Raises:
+        InputError: Not a run directory, or a file in it cannot be read or
+            does not match the others (names the file and what is wrong).
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        if run_dir.exists():
+            raise InputError(f"not a run directory: {run_dir} is a file (give its folder)")
+        raise InputError(f"run directory not found: {run_dir}")
+    missing = [
+        f for f in ("grasps.csv", "summary.json", "manifold.npz") if not (run_dir / f).is_file()
+    ]
+    if missing:
+        raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}")
+    summary = read_summary(run_dir / "summary.json")
+    grasps = read_grasps_csv(run_dir / "grasps.csv")
+    manifold = read_manifold(run_dir / "manifold.npz", n_rows=len(grasps))
+    vertex_rows = manifold_vertex_rows(run_dir / "manifold.npz", len(manifold.chart))
+    if "vertices" in grasps and len(grasps):
+        used = np.asarray(grasps["vertices"])
+        used = np.unique(used[used >= 0])
+        stray = np.setdiff1d(used, vertex_rows)
+        if stray.size:
+            raise InputError(
+                f"{run_dir / 'grasps.csv'}: v1..v3 name row {int(stray[0])}, which is not a "
+                "candidate of manifold.npz"
+            )
+    rest = np.setdiff1d(np.arange(len(grasps)), vertex_rows, assume_unique=False)
+    perm = np.concatenate([vertex_rows, rest])
+    grasps = grasps.take(perm)
+    if "vertices" in grasps:  # rows of the file -> rows of the reordered table
+        new_row = np.empty(len(perm), dtype=np.int64)
+        new_row[perm] = np.arange(len(perm))
+        vert = np.asarray(grasps["vertices"])
+        grasps = grasps.with_columns(vertices=np.where(vert >= 0, new_row[np.maximum(vert, 0)], -1))
+    return RunData(grasps, manifold, summary, run_dir)
+
+
+def read_summary(path: str | Path) -> dict[str, Any]:
+    """Read and check a run's ``summary.json``.
+
+    ``counts`` (when present) maps names to counts or to ``{reason: count}``
+    breakdowns; ``ranking`` (when present) has a text ``metric`` and a list
+    ``top``.
+
+    Raises:
+        InputError: Unreadable, not JSON, not an object, or a part of the
+            wrong type (names it).
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = fh.read(_MAX_SUMMARY_BYTES + 1)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > _MAX_SUMMARY_BYTES:
+        raise InputError(f"{path}: larger than {_MAX_SUMMARY_BYTES >> 20} MiB; not a summary")
+    try:
+        summary = json.loads(data.decode("utf-8"))
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"{path}: not valid JSON: {clip(str(exc))}") from None
+    if not isinstance(summary, dict):
+        raise InputError(f"{path}: expected a JSON object, got {type(summary).__name__}")
+    counts = summary.get("counts", {})
+    if not isinstance(counts, dict):
+        raise InputError(f"{path}: 'counts' must be an object, got {type(counts).__name__}")
+    for key, value in counts.items():
+        ok = (isinstance(value, int) and not isinstance(value, bool)) or (
+            isinstance(value, dict)
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in value.values())
+        )
+        if not ok:
+            raise InputError(f"{path}: counts.{str(key)[:60]} must be a count, got {clip(value)}")
+    ranking = summary.get("ranking", {})
+    if not isinstance(ranking, dict):
+        raise InputError(f"{path}: 'ranking' must be an object, got {type(ranking).__name__}")
+    if not isinstance(ranking.get("metric", ""), str):
+        raise InputError(f"{path}: ranking.metric must be a text, got {clip(ranking['metric'])}")
+    if not isinstance(ranking.get("top", []), list):
+        raise InputError(f"{path}: ranking.top must be a list")
+    return summary

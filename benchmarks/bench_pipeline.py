@@ -54,9 +54,9 @@ sys.path.insert(0, str(ROOT))  # run from a clone, no install
 from gcm_pipeline import pipeline as P  # noqa: E402
 from gcm_pipeline.config import load_config  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, quat_from_rotation  # noqa: E402
+from gcm_pipeline.pipeline import make_checker  # noqa: E402
 from gcm_pipeline.robot.collision import as_transform  # noqa: E402
 from gcm_pipeline.robot.model import Robot, load_robot  # noqa: E402
-from gcm_pipeline.stages.collision import make_checker  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 DENSE = ["candidates.count=80", "densify.subdivisions=28"]

@@ -613,7 +613,7 @@ class GraspManifold:
         return np.where(reach, score, np.nan)
 
     def _combined_weights(self) -> dict[str, float]:
-        from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
+        from gcm_pipeline.stages.ranking import DEFAULT_COMBINED_WEIGHTS
 
         w = None if self.config is None else self.config.ranking.weights
         return {k: float(v) for k, v in (w or DEFAULT_COMBINED_WEIGHTS).items() if v > 0}

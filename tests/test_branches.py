@@ -9,8 +9,7 @@ import pytest
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
-from gcm_pipeline.pipeline import branch_scores
-from gcm_pipeline.stages.collision import make_checker
+from gcm_pipeline.pipeline import branch_scores, make_checker
 from gcm_pipeline.stages.continuity import patches
 from gcm_pipeline.stages.lattice import row_mesh
 

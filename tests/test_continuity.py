@@ -9,9 +9,8 @@ import pytest
 
 import gcm_pipeline as gcm
 from gcm_pipeline.geometry.surface import pose_distance
-from gcm_pipeline.pipeline import ReachabilityCheck
+from gcm_pipeline.pipeline import ReachabilityCheck, make_checker
 from gcm_pipeline.stages import continuity
-from gcm_pipeline.stages.collision import make_checker
 from gcm_pipeline.stages.densify import densify
 from gcm_pipeline.stages.lattice import row_mesh
 from gcm_pipeline.stages.manifold import build_manifold

@@ -13,6 +13,7 @@ from poses import backward_poses
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.approach import Move, move_poses
 from gcm_pipeline.robot.engine import (
     _RAN_EVERY_SEED,
@@ -23,7 +24,6 @@ from gcm_pipeline.robot.engine import (
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.candidates import generate_candidates
-from gcm_pipeline.stages.collision import make_checker
 
 ROOT = Path(__file__).resolve().parent.parent
 BOTTLE = {

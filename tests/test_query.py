@@ -18,7 +18,7 @@ from gcm_pipeline.geometry.surface import (
     pose_distance,
     pose_features,
 )
-from gcm_pipeline.stages.collision import make_checker
+from gcm_pipeline.pipeline import make_checker
 
 ROOT = Path(__file__).resolve().parents[1]
 BOTTLE = ROOT / "configs" / "bottle_side.yaml"

@@ -16,10 +16,10 @@ import gcm_pipeline as gcm
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.collision import REASON_OBJECT
 from gcm_pipeline.robot.model import load_robot, load_spec
 from gcm_pipeline.robot.tool import parse_pose
-from gcm_pipeline.stages.collision import make_checker
 
 ROOT = Path(__file__).resolve().parents[1]
 UR5_SPEC = yaml.safe_load((ROOT / "gcm_pipeline" / "robots" / "ur5.yaml").read_text())

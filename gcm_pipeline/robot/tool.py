@@ -59,8 +59,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import RobotSpecError, unknown_choice
+from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.limits import MAX_LENGTH
-from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
 
 __all__ = ["ToolShape", "ToolSpec", "parse_pose", "parse_tool"]
 

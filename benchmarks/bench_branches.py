@@ -61,9 +61,9 @@ if "GCM_BENCH_CHILD" not in os.environ:
 from gcm_pipeline import pipeline as P  # noqa: E402
 from gcm_pipeline.config import load_config  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_to_matrix  # noqa: E402
+from gcm_pipeline.pipeline import make_checker  # noqa: E402
 from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm  # noqa: E402
 from gcm_pipeline.robot.model import Robot  # noqa: E402
-from gcm_pipeline.stages.collision import make_checker  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 UR10 = ROOT / "configs" / "robots" / "ur10.yaml"

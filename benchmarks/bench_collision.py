@@ -15,7 +15,7 @@ r = 3.5 cm, h = 22 cm at x = 0.5 m).
 * ``check_mesh``: the same configurations against a thin-walled mesh object instead of
   the bottle (the mug of ``configs/data/mug.obj``, 3 mm wall, 784 triangles, at the
   bottle's place): the contact model erodes the gripper's pieces and tests whether a
-  piece lies inside the mesh (see :mod:`gcm_pipeline.robot.contact`); the reference is
+  piece lies inside the mesh (see :mod:`gcm_pipeline.robot.collision.contact`); the reference is
   Pinocchio's loop over the same pairs (which lacks the inside test).
 
 The machine is shared: every figure is the median of ``--repeats`` runs.
@@ -41,9 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a clone
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.config.robot_spec import load_robot
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.stages.collision import make_checker
 
 MUG = Path(__file__).resolve().parents[1] / "configs" / "data" / "mug.obj"
 BOTTLE = {

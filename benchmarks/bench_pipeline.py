@@ -55,9 +55,9 @@ from gcm_pipeline import pipeline as P  # noqa: E402
 from gcm_pipeline.config import load_config  # noqa: E402
 from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, quat_from_rotation  # noqa: E402
+from gcm_pipeline.pipeline import make_checker  # noqa: E402
 from gcm_pipeline.robot.collision import as_transform  # noqa: E402
 from gcm_pipeline.robot.model import Robot  # noqa: E402
-from gcm_pipeline.stages.collision import make_checker  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 DENSE = ["candidates.count=80", "densify.subdivisions=28"]

@@ -57,8 +57,10 @@ from gcm_pipeline.rundir import transaction
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
+    from gcm_pipeline.config.run import EnvironmentConfig, ObjectConfig, Pose
     from gcm_pipeline.manifold.build import Manifold
     from gcm_pipeline.manifold.query import GraspManifold
+    from gcm_pipeline.robot.collision import CollisionChecker, WorldShape
     from gcm_pipeline.robot.engine import ReachabilityEngine
     from gcm_pipeline.robot.model import Robot
 
@@ -72,12 +74,14 @@ __all__ = [
     "build_manifold",
     "candidate_poses",
     "check_reachability",
+    "collision_world",
     "densify",
     "densify_adaptive",
     "generate_candidates",
     "grasp_manifold",
     "input_files",
     "load_manifold",
+    "make_checker",
     "preflight",
     "publish",
     "rank",
@@ -247,7 +251,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     """
     from gcm_pipeline.config.robot_spec import load_spec
     from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
-    from gcm_pipeline.robot.collision import shape_geometry
+    from gcm_pipeline.geometry.shapes import shape_geometry
     from gcm_pipeline.robot.model import Robot
 
     for key, path in input_files(cfg).items():
@@ -352,7 +356,7 @@ def refinement_score(robot: Robot, cfg: Config) -> Callable[[GraspTable], np.nda
     index.
     """
     from gcm_pipeline.robot.manipulability import manipulability_metrics
-    from gcm_pipeline.stages.collision import combined_score
+    from gcm_pipeline.stages.ranking import combined_score
 
     metric = cfg.ranking.metric
 
@@ -506,7 +510,7 @@ def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
     left out).
     """
     from gcm_pipeline.robot.manipulability import manipulability_metrics
-    from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
+    from gcm_pipeline.stages.ranking import DEFAULT_COMBINED_WEIGHTS
 
     sol = np.asarray(grasps["solutions"], dtype=np.float64)
     n, k, nq = sol.shape
@@ -567,6 +571,106 @@ def robot_from_config(cfg: Config) -> Robot:
 #: The same as :func:`robot_from_config` (``gcm_pipeline.load_robot`` is the
 #: one of :mod:`gcm_pipeline.config.robot_spec`, by name or path).
 load_robot = robot_from_config
+
+
+def collision_world(
+    environment: EnvironmentConfig | None = None,
+    object_cfg: ObjectConfig | None = None,
+    base_pose: Pose | np.ndarray | None = None,
+) -> list[WorldShape]:
+    """The collision world of the config sections, in the robot's base frame.
+
+    * the support table (``environment.table``): a box whose top face is at
+      ``table.height``, centred at ``center_xy``; the robot's base stands on it;
+    * the ``environment.obstacles`` (box, cylinder, sphere, mesh; placed like
+      the object: a cylinder stands on its base along its frame's z, boxes and
+      spheres are centred on their frame);
+    * the ``object`` (kind ``object``) unless ``environment.check_object`` is off.
+
+    Args:
+        environment: Config section (None: the default, a table at z = 0).
+        object_cfg: Config ``object`` section or None.
+        base_pose: Robot base in the world (Pose or (4, 4)); None: identity.
+
+    Returns:
+        The :class:`~gcm_pipeline.robot.collision.WorldShape` list.
+
+    Raises:
+        ConfigError: Unknown shape, missing or non-positive size.
+        InputError: A mesh file is missing or unreadable (the message names it).
+    """
+    from gcm_pipeline.config import EnvironmentConfig
+    from gcm_pipeline.robot import collision
+
+    env = EnvironmentConfig() if environment is None else environment
+    base_inv = np.linalg.inv(collision.as_transform(base_pose))
+    world: list[WorldShape] = []
+    if env.table is not None:
+        t = env.table
+        world.append(collision.table_shape(t.size, t.center_xy, t.height, base_inv))
+    for i, obs in enumerate(env.obstacles):
+        world.append(
+            collision.obstacle_shape(
+                obs.name or f"obstacle_{i}",
+                obs.shape,
+                obs.dims,
+                obs.pose.matrix(),
+                base_inv,
+                mesh=obs.mesh,
+                scale=obs.scale,
+                where=f"environment.obstacles[{i}]",
+            )
+        )
+    if object_cfg is not None and env.check_object:
+        o = object_cfg
+        world.append(
+            collision.object_shape(
+                o.shape, o.dims, o.pose.matrix(), base_inv, mesh=o.mesh, scale=o.scale
+            )
+        )
+    return world
+
+
+def make_checker(
+    robot: Robot,
+    environment: EnvironmentConfig | None = None,
+    object_cfg: ObjectConfig | None = None,
+    base_pose: Pose | np.ndarray | None = None,
+    *,
+    threads: int = 1,
+) -> CollisionChecker:
+    """The collision checker of a run (``environment``, ``object``, ``robot.base_pose``).
+
+    Args:
+        robot: The robot.
+        environment: Config section (None: the default, a table at z = 0).
+        object_cfg: Config ``object`` section or None.
+        base_pose: Robot base in the world (Pose or (4, 4)); None: identity.
+        threads: Threads for the batched checks.
+
+    Returns:
+        The :class:`~gcm_pipeline.robot.collision.CollisionChecker`; a world
+        shape overlapping the robot's fixed links is logged as a warning.
+    """
+    from gcm_pipeline.config import EnvironmentConfig
+    from gcm_pipeline.robot.collision import CollisionChecker
+
+    env = EnvironmentConfig() if environment is None else environment
+    checker = CollisionChecker(
+        robot,
+        collision_world(env, object_cfg, base_pose),
+        contact_tolerance=env.contact_tolerance,
+        self_collision=env.self_collision,
+        threads=threads,
+    )
+    for link, shape in checker.static_collisions:
+        log.warning(
+            "%s overlaps the robot's fixed %s: every configuration collides "
+            "(move it, or the robot: robot.base_pose)",
+            shape,
+            link,
+        )
+    return checker
 
 
 @takes_config
@@ -812,7 +916,7 @@ class ConfigRunQueries:
     @property
     def combined_weights(self) -> Mapping[str, float]:
         """``ranking.weights``, else the default weights of the ``combined`` metric."""
-        from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
+        from gcm_pipeline.stages.ranking import DEFAULT_COMBINED_WEIGHTS
 
         return self.config.ranking.weights or DEFAULT_COMBINED_WEIGHTS
 

@@ -17,6 +17,7 @@ import pytest
 
 from gcm_pipeline.config import EnvironmentConfig
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.approach import (
     SUBSTEPS,
     Move,
@@ -27,7 +28,6 @@ from gcm_pipeline.robot.approach import (
 )
 from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, gripper_links
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.stages.collision import make_checker
 
 
 def _pose(p, z):

@@ -12,9 +12,8 @@ import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
 from gcm_pipeline.manifold.continuity import patches
 from gcm_pipeline.manifold.lattice import row_mesh
-from gcm_pipeline.pipeline import branch_scores
+from gcm_pipeline.pipeline import branch_scores, make_checker
 from gcm_pipeline.rundir.grasps_csv import read_grasps_csv
-from gcm_pipeline.stages.collision import make_checker
 
 SMALL = ["candidates.count=45", "densify.subdivisions=3", "ik.solutions=4"]
 

@@ -11,16 +11,17 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, ObstacleConfig
 from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.geometry.shapes import shape_geometry
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,
     REASON_OBJECT,
     REASON_SELF,
     CollisionChecker,
     WorldShape,
-    _without_cached_guess,
-    shape_geometry,
 )
-from gcm_pipeline.stages.collision import combined_score, make_checker
+from gcm_pipeline.robot.collision.pairs import without_cached_guess
+from gcm_pipeline.stages.ranking import combined_score
 
 BOTTLE = {
     "shape": "cylinder",
@@ -379,12 +380,12 @@ def test_clearance_vertex_bounds_hold_against_coal(robot):
 )
 def test_shape_nearest_points_and_support(geometry):
     """The primitives' nearest points and support functions, against the distance bound."""
-    from gcm_pipeline.robot.collision import _ShapeBound
+    from gcm_pipeline.robot.collision.broadphase import ShapeBound
 
     placement = np.eye(4)
     placement[:3, :3] = Rotation.from_euler("xyz", [0.3, -0.5, 1.1]).as_matrix()
     placement[:3, 3] = [0.1, -0.2, 0.3]
-    shape = _ShapeBound(geometry, placement)
+    shape = ShapeBound(geometry, placement)
     assert shape.exact
     rng = np.random.default_rng(3)
     local = rng.normal(0, 0.2, (2000, 3))
@@ -476,7 +477,7 @@ def _cube_stl(path, half):
 
 
 def test_mesh_object_contact_tolerance_on_the_gripper(robot, tmp_path):
-    """A mesh object is not eroded; the gripper's pieces are (robot.contact)."""
+    """A mesh object is not eroded; the gripper's pieces are (robot.collision.contact)."""
     stl = _cube_stl(tmp_path / "cube.stl", 0.05)
     full, _ = shape_geometry("mesh", None, mesh=stl)
     full.computeLocalAABB()
@@ -525,7 +526,7 @@ def _every_pair_reasons(robot, checker, qs, mode):
     kinds = np.array(kinds)
     # the checker's GJK setting: no guess carried over from the previous query (with it,
     # answers within about 1e-5 m of contact depend on the queries before)
-    gd, data = _without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
+    gd, data = without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
     out = []
     for q in qs:
         pin.computeCollisions(robot.model, data, gm, gd, q, False)
@@ -680,7 +681,7 @@ def _every_pair_hits(robot, checker, qs, screen):
     for k in screen.pairs:
         p = checker._pairs[k]
         gm.addCollisionPair(pin.CollisionPair(p.a, p.b))
-    gd, data = _without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
+    gd, data = without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
     out = np.zeros((len(qs), screen.pairs.size), dtype=bool)
     for i, q in enumerate(qs):
         pin.computeCollisions(robot.model, data, gm, gd, q, False)

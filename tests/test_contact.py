@@ -21,10 +21,10 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.collision import REASON_OBJECT
-from gcm_pipeline.robot.contact import NotConvexError, SolidMesh, erode_convex
+from gcm_pipeline.robot.collision.contact import NotConvexError, SolidMesh, erode_convex
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.stages.collision import make_checker
 
 trimesh = pytest.importorskip("trimesh")
 from thin_walled import bowl_parts, coal_transform, cup_parts, plate_parts, to_bvh  # noqa: E402

@@ -13,8 +13,7 @@ from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.densify import densify
 from gcm_pipeline.manifold.lattice import row_mesh
 from gcm_pipeline.manifold.margin import margin
-from gcm_pipeline.pipeline import ReachabilityCheck
-from gcm_pipeline.stages.collision import make_checker
+from gcm_pipeline.pipeline import ReachabilityCheck, make_checker
 from gcm_pipeline.table import GraspTable
 
 

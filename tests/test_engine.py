@@ -13,7 +13,7 @@ from poses import backward_poses
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.pipeline import generate_candidates
+from gcm_pipeline.pipeline import generate_candidates, make_checker
 from gcm_pipeline.robot.approach import Move, move_poses
 from gcm_pipeline.robot.engine import (
     _RAN_EVERY_SEED,
@@ -22,7 +22,6 @@ from gcm_pipeline.robot.engine import (
     available_cores,
 )
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
-from gcm_pipeline.stages.collision import make_checker
 
 BOTTLE = {
     "shape": "cylinder",

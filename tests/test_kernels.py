@@ -28,17 +28,17 @@ from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.chain import KinematicChain
-from gcm_pipeline.robot.collision import (
-    _BROAD_MARGIN,
-    _INSIDE_DEPTH,
-    _beyond_a_face,
-    _in_frame,
-    _stacked,
+from gcm_pipeline.robot.collision.broadphase import (
+    BROAD_MARGIN,
+    INSIDE_DEPTH,
+    beyond_a_face,
+    in_frame,
+    stacked,
 )
 from gcm_pipeline.robot.ik import solve_ik
-from gcm_pipeline.stages.collision import make_checker
 
 
 @pytest.fixture(autouse=True)
@@ -375,10 +375,10 @@ def test_open_pairs_contain_the_colliding_ones(compiled, bottle):
 
 def _stacked_checked(frames):
     """The frames as one array, as the kernels take them: a view, not a copy."""
-    tfs = _stacked(frames.transforms)
+    tfs = stacked(frames.transforms)
     assert tfs.base is None and tfs is frames.transforms[0].base  # no copy
     taken = frames.take(np.arange(5))
-    np.testing.assert_array_equal(_stacked(taken.transforms), tfs[:, :5])
+    np.testing.assert_array_equal(stacked(taken.transforms), tfs[:, :5])
     return tfs
 
 
@@ -397,10 +397,10 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
         # the NumPy level 3 on every vertex: colliding when one lies deep inside,
         # free when all lie beyond one face plane
         halfs = screen.boxes[k][3]
-        local = _in_frame((rots[joint], poss[joint], inv), rows, verts)
+        local = in_frame((rots[joint], poss[joint], inv), rows, verts)
         lim = halfs[None, :, None]
-        inside = np.all(np.abs(local) < lim - _INSIDE_DEPTH, axis=1).any(axis=1)
-        free = _beyond_a_face(local, lim) & ~inside
+        inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
+        free = beyond_a_face(local, lim) & ~inside
         assert inside[status == kernels.COLLIDES].all()
         assert free[status == kernels.FREE].all()
         # and undecided only where the NumPy level is undecided too (or within the slack)
@@ -419,11 +419,11 @@ def test_kernel_limits_are_the_numpy_ones_plus_the_slack(bottle):
     own = world < 0
     cov = checker._cover
     ra = cov.ball_radius[screen.geom_a]
-    np.testing.assert_allclose(limit1[~own], ra[~own] + _BROAD_MARGIN + kernels.SLACK, rtol=0)
-    assert (np.sqrt(limit1[own]) > ra[own] + _BROAD_MARGIN).all()
+    np.testing.assert_allclose(limit1[~own], ra[~own] + BROAD_MARGIN + kernels.SLACK, rtol=0)
+    assert (np.sqrt(limit1[own]) > ra[own] + BROAD_MARGIN).all()
     for k, (_, _, _, beyond, deep) in boxes.items():
         halfs = screen.boxes[k][3]
-        assert (beyond > halfs + _BROAD_MARGIN).all() and (deep < halfs - _INSIDE_DEPTH).all()
+        assert (beyond > halfs + BROAD_MARGIN).all() and (deep < halfs - INSIDE_DEPTH).all()
 
 
 # --- IK iterations, the approach's deviation, the Panda's closed form -------------------

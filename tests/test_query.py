@@ -15,7 +15,7 @@ from gcm_pipeline.geometry.dualquat import dq_exp, dq_mul, dq_to_matrix
 from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
 from gcm_pipeline.manifold.locate import TriangleLocator, _cells
 from gcm_pipeline.manifold.surface import blend
-from gcm_pipeline.stages.collision import make_checker
+from gcm_pipeline.pipeline import make_checker
 
 
 @pytest.fixture(scope="module")

@@ -122,7 +122,7 @@ def test_errors(panda: Robot):
 
 def test_collisions_and_approach(panda: Robot):
     from gcm_pipeline.config import ApproachConfig, EnvironmentConfig
-    from gcm_pipeline.stages.collision import make_checker
+    from gcm_pipeline.pipeline import make_checker
 
     grasps = GraspTable({"dq": dq_from_matrix(panda.fk(panda.random_configurations(12, 5)))})
     env = EnvironmentConfig()

@@ -14,8 +14,8 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.config.robot_spec import load_robot, load_spec, parse_pose
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.collision import REASON_OBJECT
-from gcm_pipeline.stages.collision import make_checker
 
 UR5_SPEC = yaml.safe_load((ROBOT_SPECS / "ur5.yaml").read_text())
 

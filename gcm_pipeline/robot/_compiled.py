@@ -171,9 +171,9 @@ def _place(tf: Any, centre: Any, out: Any) -> None:
 def _lower(p: Any, shape: Any) -> float:
     """Lower bound of the distance from point ``p`` (3,) to a world shape (a packed row).
 
-    The row is ``_ShapeBound.packed`` (:mod:`gcm_pipeline.robot.collision`): the
+    The row is ``ShapeBound.packed`` (:mod:`gcm_pipeline.robot.collision.broadphase`): the
     shape's inverse placement's first three rows (12), its kind, radius, half
-    length, box centre (3), half sizes (3). The same bound as ``_ShapeBound.lower``.
+    length, box centre (3), half sizes (3). The same bound as ``ShapeBound.lower``.
     """
     x = shape[0] * p[0] + shape[1] * p[1] + shape[2] * p[2] + shape[3]
     y = shape[4] * p[0] + shape[5] * p[1] + shape[6] * p[2] + shape[7]

@@ -35,8 +35,8 @@ from gcm_pipeline.errors import (
     clip,
     unknown_choice,
 )
+from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.robot.chain import KinematicChain
-from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
 from gcm_pipeline.robot.tool import ToolSpec, shape_geometry
 from gcm_pipeline.robot.urdf import (
     PreparedUrdf,

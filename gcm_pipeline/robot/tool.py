@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import RobotSpecError
-from gcm_pipeline.robot.meshes import MeshReadError, read_mesh
+from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 
 __all__ = ["ToolShape", "ToolSpec", "shape_geometry"]
 

@@ -14,7 +14,7 @@ metric name (configs)            column                  meaning
 ================================ ======================= ====================
 
 Three more metrics rank by columns of other stages (the collision checks,
-:mod:`gcm_pipeline.stages.collision`; the margin,
+:mod:`gcm_pipeline.robot.collision`; the margin,
 :mod:`gcm_pipeline.manifold.margin`):
 
 ================================ ======================= ====================
@@ -25,7 +25,7 @@ Three more metrics rank by columns of other stages (the collision checks,
                                                          point [m] (``inf``: none)
 ``combined``                     ``combined`` (added)    weighted sum of normalised
                                                          metrics, see
-                                                         :func:`~gcm_pipeline.stages.collision.combined_score`
+                                                         :func:`combined_score`
 ================================ ======================= ====================
 
 plus ``rank`` (N,) int: 1-based among the reachable grasps, by the chosen
@@ -36,16 +36,16 @@ unreachable grasps. ``top`` (N,) bool marks ranks 1..``top_k``.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
 from gcm_pipeline.robot.manipulability import METRICS, manipulability_metrics
 from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
-from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS, combined_score
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["METRICS", "METRIC_COLUMNS", "rank"]
+__all__ = ["DEFAULT_COMBINED_WEIGHTS", "METRICS", "METRIC_COLUMNS", "combined_score", "rank"]
 
 #: Ranking metric (config name) -> the grasp-table column holding it.
 METRIC_COLUMNS: dict[str, str] = {
@@ -53,6 +53,13 @@ METRIC_COLUMNS: dict[str, str] = {
     "clearance": "clearance",
     "margin": "margin",
     "combined": "combined",
+}
+
+#: Weights of the ``combined`` metric when the config gives none.
+DEFAULT_COMBINED_WEIGHTS: dict[str, float] = {
+    "yoshikawa": 1.0,
+    "clearance": 0.5,
+    "joint_limit_margin": 0.2,
 }
 
 
@@ -89,7 +96,7 @@ def rank(
             as the largest finite margin).
         top_k: How many of the best grasps ``top`` marks (None: all reachable).
         weights: Metric name -> weight of the ``combined`` metric (None:
-            :data:`~gcm_pipeline.stages.collision.DEFAULT_COMBINED_WEIGHTS`);
+            :data:`DEFAULT_COMBINED_WEIGHTS`);
             ignored by the other metrics.
 
     Returns:
@@ -102,7 +109,7 @@ def rank(
             missing columns (``clearance`` names the metric that needs it),
             or ``q`` of the wrong width.
         ConfigError: Bad ``weights`` (see
-            :func:`~gcm_pipeline.stages.collision.combined_score`).
+            :func:`combined_score`).
     """
     if metric not in METRIC_COLUMNS:
         raise InputError(unknown_choice("ranking metric", metric, METRIC_COLUMNS))
@@ -163,3 +170,85 @@ def rank(
     k = order.size if top_k is None else int(top_k)
     top = (ranks > 0) & (ranks <= k)
     return grasps.with_columns(**columns, rank=ranks, top=top, **extra)
+
+
+def combined_score(
+    columns: Mapping[str, Any],
+    weights: Mapping[str, float] | None = None,
+    *,
+    mask: Any = None,
+    normalization: str = "minmax",
+) -> np.ndarray:
+    r"""Weighted combination of ranking metrics, each normalised to [0, 1].
+
+    .. math::
+
+        s_i = \sum_m \frac{w_m}{\sum_k w_k} \, \hat{x}_{m,i}, \qquad
+        \hat{x}_{m,i} = \frac{x_{m,i} - \min_j x_{m,j}}{\max_j x_{m,j} - \min_j x_{m,j}}
+
+    over the rows in ``mask`` (the reachable grasps), so that a weight is the
+    share of the score a metric can move, whatever its units (Yoshikawa's
+    index, clearance [m], joint-limit margin). A metric constant over the
+    rows contributes its full weight to every row. ``normalization="rank"``
+    uses ranks instead (``(rank - 1) / (n - 1)``, ties averaged): robust to
+    outliers. Every metric is "higher is better". Metrics of weight 0 are
+    ignored (their column may be missing).
+
+    Args:
+        columns: Metric name -> (N,) values (e.g. ``{"yoshikawa": t["manipulability"],
+            "clearance": t["clearance"], "joint_limit_margin": ...}``).
+        weights: Metric name -> weight >= 0, at least one > 0 (None:
+            :data:`DEFAULT_COMBINED_WEIGHTS`).
+        mask: (N,) bool rows to score (default: rows where every used metric is finite).
+        normalization: ``"minmax"`` or ``"rank"``.
+
+    Returns:
+        (N,) scores in [0, 1]; NaN outside ``mask`` or where a used metric is NaN.
+
+    Raises:
+        ConfigError: Negative or non-finite weight, all weights zero, or a
+            weighted metric without a column (names it and the columns given).
+        InputError: Columns of different lengths.
+    """
+    w = dict(DEFAULT_COMBINED_WEIGHTS if weights is None else weights)
+    if normalization not in ("minmax", "rank"):
+        raise ConfigError(unknown_choice("normalization", normalization, ("minmax", "rank")))
+    for name, value in w.items():
+        if not np.isfinite(value) or value < 0:
+            raise ConfigError(f"ranking.weights.{name} must be a number >= 0, got {value!r}")
+    used = {k: float(v) for k, v in w.items() if v > 0}
+    if not used:
+        raise ConfigError(
+            f"ranking.weights must have at least one positive weight, got {dict(w)!r}"
+        )
+    for name in used:
+        if name not in columns:
+            raise ConfigError(
+                f"ranking.weights.{name}: no such metric column; "
+                f"available: {', '.join(sorted(columns)) or '(none)'}"
+            )
+    cols = {k: np.asarray(columns[k], dtype=float) for k in used}
+    n = {len(c) for c in cols.values()}
+    if len(n) != 1:
+        raise InputError(
+            f"metric columns differ in length: { {k: len(c) for k, c in cols.items()} }"
+        )
+    size = n.pop()
+    finite = np.all([np.isfinite(c) for c in cols.values()], axis=0)
+    sel = finite if mask is None else (np.asarray(mask, dtype=bool) & finite)
+    total = sum(used.values())
+    score = np.zeros(size)
+    for name, weight in used.items():
+        x = cols[name][sel]
+        if x.size == 0:
+            continue
+        if normalization == "rank":
+            from scipy.stats import rankdata
+
+            norm = (rankdata(x) - 1.0) / (x.size - 1) if x.size > 1 else np.ones_like(x)
+        else:
+            lo, hi = float(np.min(x)), float(np.max(x))
+            norm = (x - lo) / (hi - lo) if hi > lo else np.ones_like(x)
+        score[sel] += weight / total * norm
+    score[~sel] = np.nan
+    return score

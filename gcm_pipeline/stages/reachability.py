@@ -33,11 +33,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.approach import Move
 from gcm_pipeline.robot.engine import ReachabilityEngine
 from gcm_pipeline.robot.ik import IKCandidates, Validator, world_to_base_targets
 from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
-from gcm_pipeline.stages import collision
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
@@ -234,7 +234,7 @@ def make_engine(
     if seed is not None:
         options.setdefault("random_seed", int(seed))
     if checker is None and (environment is not None or object_cfg is not None):
-        checker = collision.make_checker(robot, environment, object_cfg, base_pose)
+        checker = make_checker(robot, environment, object_cfg, base_pose)
     return ReachabilityEngine(
         robot,
         checker,

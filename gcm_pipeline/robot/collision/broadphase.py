@@ -1,0 +1,557 @@
+"""The broad phase: which (configuration, pair) entries coal must decide.
+
+Vectorised over all configurations (NumPy), in three levels. Every robot
+collision geometry is covered by a few spheres
+(:func:`~gcm_pipeline.robot.collision.spheres.sphere_cover`: the geometry
+cut into slabs along its long axis, each slab's part inside one sphere, so the
+union of the spheres contains the geometry) and by one sphere around those; all are placed for all
+configurations at once by vectorised forward kinematics
+(:class:`~gcm_pipeline.robot.chain.JointFrames`). (1) A pair whose bounding
+spheres are apart (from each other, or from the world shape: exact point
+distances for boxes, cylinders, spheres and capsules, the local bounding box
+of meshes) cannot collide; (2) nor can one whose sphere covers are apart.
+(3) A robot polytope against a box (the table, box obstacles) is free when
+its convex hull's vertices all lie beyond the plane of one face of the box,
+and collides when one of them lies more than 0.1 mm inside the box (the
+vertex of one of its triangles; coal, called as Pinocchio calls it, misses
+box-box penetrations of a few 1e-5 m, so shallower ones are left to it).
+These levels only skip work, they never change an answer (tested pair by pair
+against coal on every pair). The compiled kernels (:mod:`gcm_pipeline.robot.kernels`)
+run the same three levels one configuration at a time, conservatively: the same
+answers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import coal
+import numpy as np
+
+from gcm_pipeline.robot import kernels
+from gcm_pipeline.robot.collision.pairs import Pair
+from gcm_pipeline.robot.collision.spheres import POLYTOPES, RobotCover, hull_vertices
+
+__all__ = [
+    "BLOCK",
+    "BROAD_MARGIN",
+    "INSIDE_DEPTH",
+    "BroadPhase",
+    "Screen",
+    "ShapeBound",
+    "beyond_a_face",
+    "height_over_face",
+    "in_frame",
+    "row_matmul",
+    "squared_norms",
+    "stacked",
+]
+
+#: A pair is ruled out by the broad phase when its lower bound exceeds this [m]
+#: (far above the round-off of the vectorised kinematics, ~1e-12 m).
+BROAD_MARGIN = 1e-7
+#: Configurations placed per block by the broad phase (temporaries stay in cache).
+BLOCK = 2048
+#: A hull vertex this deep inside a box [m] makes the pair collide without coal.
+#: coal, called without contact information as Pinocchio calls it, misses box-box
+#: penetrations of up to a few 1e-5 m; shallower ones are left to it.
+INSIDE_DEPTH = 1e-4
+
+
+class ShapeBound:
+    """Lower bound of the distance from points to a placed coal geometry (exact for primitives).
+
+    Boxes, spheres, cylinders and capsules give the exact distance (0 inside);
+    any other geometry the distance to its local bounding box.
+    """
+
+    def __init__(self, geometry: Any, placement: np.ndarray) -> None:
+        self.inv = np.linalg.inv(placement)
+        self.kind = "box"
+        self.centre = np.zeros(3)
+        #: the shape itself (a primitive), not a box around it
+        self.exact = isinstance(geometry, (coal.Sphere, coal.Cylinder, coal.Capsule, coal.Box))
+        if isinstance(geometry, coal.Sphere):
+            self.kind, self.radius = "sphere", float(geometry.radius)
+        elif isinstance(geometry, coal.Cylinder):
+            self.kind, self.radius = "cylinder", float(geometry.radius)
+            self.half = float(geometry.halfLength)
+        elif isinstance(geometry, coal.Capsule):
+            self.kind, self.radius = "capsule", float(geometry.radius)
+            self.half = float(geometry.halfLength)
+        elif isinstance(geometry, coal.Box):
+            self.halfs = np.asarray(geometry.halfSide, dtype=float)
+        else:
+            geometry.computeLocalAABB()
+            box = geometry.aabb_local
+            lo, hi = np.asarray(box.min_, dtype=float), np.asarray(box.max_, dtype=float)
+            self.centre = 0.5 * (lo + hi)
+            self.halfs = 0.5 * (hi - lo)
+
+    def lower(self, points: np.ndarray) -> np.ndarray:
+        """Distances (...,) [m] (>= 0) from points (..., 3) in the base frame."""
+        pts = np.asarray(points, dtype=float)
+        return self.lower_xyz(pts.reshape(-1, 3).T).reshape(pts.shape[:-1])
+
+    def lower_xyz(self, xyz: np.ndarray) -> np.ndarray:
+        """:meth:`lower` of points given by their coordinates (3, ...) (component first)."""
+        # each coordinate a contiguous row; einsum, not matmul: OpenBLAS takes ten
+        # times longer on a (3, 3) @ (3, K) product
+        loc = np.einsum("ij,jk->ik", self.inv[:3, :3], xyz.reshape(3, -1))
+        # in place from here on (the same arithmetic; fewer temporaries of K floats)
+        loc += self.inv[:3, 3:4]
+        x, y, z = loc
+        shape = xyz.shape[1:]
+        if self.kind == "sphere":
+            out = x * x
+            out += y * y
+            out += z * z
+            np.sqrt(out, out=out)
+            out -= self.radius
+        elif self.kind == "cylinder":
+            radial = x * x
+            radial += y * y
+            np.sqrt(radial, out=radial)
+            radial -= self.radius
+            axial = np.abs(z, out=z)
+            axial -= self.half
+            np.maximum(radial, 0.0, out=radial)
+            np.maximum(axial, 0.0, out=axial)
+            radial *= radial
+            axial *= axial
+            radial += axial
+            return np.sqrt(radial, out=radial).reshape(shape)
+        elif self.kind == "capsule":
+            along = z - np.clip(z, -self.half, self.half)
+            out = x * x
+            out += y * y
+            out += along * along
+            np.sqrt(out, out=out)
+            out -= self.radius
+        else:
+            loc -= self.centre[:, None]
+            np.abs(loc, out=loc)
+            loc -= self.halfs[:, None]
+            np.maximum(loc, 0.0, out=loc)
+            loc *= loc
+            out = x + y
+            out += z
+            return np.sqrt(out, out=out).reshape(shape)
+        return np.maximum(out, 0.0, out=out).reshape(shape)
+
+    def packed(self) -> np.ndarray:
+        """The bound as a row (21,) of the compiled broad phase.
+
+        The inverse placement's first three rows (12), the kind's index in
+        :data:`~gcm_pipeline.robot.kernels.SHAPE_KINDS`, the radius, the half
+        length, the box's centre (3) and half sizes (3) (0 where they do not apply).
+        """
+        row = np.zeros(21)
+        row[:12] = self.inv[:3].reshape(-1)
+        row[12] = kernels.SHAPE_KINDS.index(self.kind)
+        if self.kind == "box":
+            row[15:18] = self.centre
+            row[18:21] = self.halfs
+        else:
+            row[13] = self.radius
+            row[14] = getattr(self, "half", 0.0)
+        return row
+
+    def nearest(self, p: np.ndarray) -> np.ndarray:
+        """Nearest points (..., 3) of the shape to points ``p`` (..., 3) given in its frame.
+
+        Exact for the primitives (a point inside is its own nearest point).
+        """
+        if self.kind == "sphere":
+            norm = np.sqrt(squared_norms(p))[..., None]
+            return np.where(norm > self.radius, p * (self.radius / np.maximum(norm, 1e-300)), p)
+        if self.kind == "cylinder":
+            radial = np.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2)[..., None]
+            scale = np.minimum(1.0, self.radius / np.maximum(radial, 1e-300))
+            out = p * scale
+            out[..., 2] = np.clip(p[..., 2], -self.half, self.half)
+            return out
+        if self.kind == "capsule":
+            axis = np.zeros_like(p)
+            axis[..., 2] = np.clip(p[..., 2], -self.half, self.half)
+            rel = p - axis
+            norm = np.sqrt(squared_norms(rel))[..., None]
+            return axis + np.where(
+                norm > self.radius, rel * (self.radius / np.maximum(norm, 1e-300)), rel
+            )
+        return self.centre + np.clip(p - self.centre, -self.halfs, self.halfs)
+
+    def support(self, n: np.ndarray) -> np.ndarray:
+        """Support function ``max_{x in shape} n . x`` (...,) of directions ``n`` (..., 3).
+
+        In the shape's frame; exact for the primitives.
+        """
+        if self.kind == "sphere":
+            return self.radius * np.sqrt(squared_norms(n))
+        if self.kind == "cylinder":
+            return self.radius * np.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2) + self.half * np.abs(
+                n[..., 2]
+            )
+        if self.kind == "capsule":
+            return self.radius * np.sqrt(squared_norms(n)) + self.half * np.abs(n[..., 2])
+        return row_matmul(n, self.centre) + row_matmul(np.abs(n), self.halfs)
+
+
+def squared_norms(v: np.ndarray) -> np.ndarray:
+    """Squared norms (...,) of vectors (..., 3) (faster than ``norm`` along a short axis)."""
+    return np.einsum("...i,...i->...", v, v)
+
+
+class Screen(NamedTuple):
+    """The broad phase of one mode's pairs (columns ``k`` index ``pairs``)."""
+
+    pairs: np.ndarray  # (P,) indices of the checker's pairs
+    kind: np.ndarray  # (P,) their kinds
+    geom_a: np.ndarray  # (P,) robot geometry whose spheres bound side a
+    geom_b: np.ndarray  # (P,) the other robot geometry (self pairs), else -1
+    world: np.ndarray  # (P,) world geometry (world pairs), else -1
+    # the sphere tests of column k: entries first_test[k]:first_test[k] + n_tests[k]
+    # of sphere_a / sphere_b (-1 against the world shape) / bound (reach^2 of two
+    # spheres; the radius against a world shape)
+    first_test: np.ndarray
+    n_tests: np.ndarray
+    sphere_a: np.ndarray
+    sphere_b: np.ndarray
+    bound: np.ndarray
+    # robot polytope vs box, by column: (joint, hull vertices (3, V), inverse placement, halfs)
+    boxes: dict[int, tuple[int, np.ndarray, np.ndarray, np.ndarray]]
+
+
+class BroadPhase:
+    """The broad phase of :class:`~gcm_pipeline.robot.collision.checker.CollisionChecker`.
+
+    A base class of the checker: its methods use the checker's robot geometry
+    (``_gm``), pairs (``_pairs``), sphere covers (``_cover``), joint frames
+    (``_frames``) and narrow phase (``_run``, ``_pair_pool``).
+    """
+
+    _gm: Any
+    _pairs: list[Pair]
+    _cover: RobotCover
+    _frames: Any
+    _pair_pool: list[Any]
+    _groups: dict[bytes, list[tuple[int, np.ndarray]]]
+    _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any]]]
+    _bounds: dict[int, ShapeBound]
+    _hulls: dict[int, tuple[int, np.ndarray]]
+    _run: Callable[[Any, np.ndarray], np.ndarray]
+
+    def _hull(self, g: int) -> tuple[int, np.ndarray]:
+        """Hull vertices of robot geometry ``g < n_robot_geoms``: ``(joint, (V, 3))`` (cached)."""
+        if g not in self._hulls:
+            self._hulls[g] = hull_vertices(self._gm.geometryObjects[g], self._frames)
+        return self._hulls[g]
+
+    def _screen(self, cols: list[int]) -> Screen:
+        """The broad phase of the pairs ``cols`` (indices of ``self._pairs``) of one mode."""
+        cov, gm = self._cover, self._gm
+        sa, sb, bound = [], [], []
+        boxes = {}
+        for k, c in enumerate(cols):
+            p = self._pairs[c]
+            own = np.arange(cov.start[p.owner], cov.start[p.owner + 1])
+            if p.kind == "self":
+                oth = np.arange(cov.start[p.other], cov.start[p.other + 1])
+                ia, ib = np.repeat(own, oth.size), np.tile(oth, own.size)
+                sa.append(ia)
+                sb.append(ib)
+                bound.append((cov.radius[ia] + cov.radius[ib] + BROAD_MARGIN) ** 2)
+                continue
+            sa.append(own)
+            sb.append(np.full(own.size, -1))
+            bound.append(cov.radius[own])
+            shape = gm.geometryObjects[p.b]
+            if (
+                p.a == p.owner
+                and isinstance(shape.geometry, coal.Box)
+                and isinstance(gm.geometryObjects[p.a].geometry, POLYTOPES)
+            ):
+                inv = np.linalg.inv(shape.placement.homogeneous)
+                joint, verts = self._hull(p.a)
+                boxes[k] = (joint, verts.T.copy(), inv, np.asarray(shape.geometry.halfSide))
+        pairs = [self._pairs[c] for c in cols]
+        count = np.array([x.size for x in sa], dtype=int)
+
+        def cat(parts: list[np.ndarray], dtype: Any) -> np.ndarray:
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype=dtype)
+
+        return Screen(
+            np.array(cols, dtype=int),
+            np.array([p.kind for p in pairs], dtype=object),
+            np.array([p.owner for p in pairs], dtype=int),
+            np.array([p.other if p.kind == "self" else -1 for p in pairs], dtype=int),
+            np.array([-1 if p.kind == "self" else p.b for p in pairs], dtype=int),
+            np.cumsum(count) - count,
+            count,
+            cat(sa, int),
+            cat(sb, int),
+            cat(bound, float),
+            boxes,
+        )
+
+    def _place(
+        self,
+        frames: Any,
+        joints: np.ndarray,
+        local: np.ndarray,
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Points (N, P, 3) [m], base frame, of ``local`` (P, 3) fixed to ``joints`` (P,).
+
+        ``rows``: only these configurations of ``frames`` (M,), giving (M, P, 3).
+        """
+        tfs = frames.transforms
+        n = tfs[0].shape[0] if rows is None else rows.size
+        groups = self._groups.get(joints.tobytes())
+        if groups is None:
+            groups = self._groups[joints.tobytes()] = [
+                (j, np.flatnonzero(joints == j)) for j in np.unique(joints).tolist()
+            ]
+        out = np.empty((n, len(joints), 3)) if len(groups) != 1 else None
+        for j, cols in groups:
+            tf = tfs[j] if rows is None else tfs[j][rows]
+            # (N * 3, 4) @ (4, P_j), the points in homogeneous coordinates: one BLAS call
+            # per joint, rotation and translation at once
+            homo = np.ones((4, cols.size))
+            homo[:3] = local[cols].T
+            placed = (tf.reshape(-1, 4) @ homo).reshape(n, 3, cols.size).transpose(0, 2, 1)
+            if out is None:  # every point on one joint
+                return np.ascontiguousarray(placed)
+            out[:, cols] = placed
+        assert out is not None
+        return out
+
+    def _pair_hits(self, q: np.ndarray, frames: Any, screen: Screen) -> np.ndarray:
+        """Which pairs of ``screen`` collide in each configuration, (N, P) bool.
+
+        Broad phase, in three levels: a pair whose geometries' bounding spheres
+        are apart (from each other, or from the world shape) is free; so is
+        one whose sphere covers are. A robot polytope against a box is free if
+        its hull vertices all lie beyond one face's plane, and collides if one
+        of them lies ``INSIDE_DEPTH`` inside the box (a vertex of one of its
+        triangles, or of the solid). coal's narrow phase decides the rest, pair
+        by pair, only on the configurations left.
+        """
+        if screen.pairs.size == 0:  # e.g. no table, no object, no self-collision
+            return np.zeros((len(q), 0), dtype=bool)
+        compiled = kernels.get()
+        if compiled is not None:
+            return self._pair_hits_compiled(compiled, q, frames, screen)
+        cov, rots, poss = self._cover, frames[0], frames[1]
+        # 1. one bounding sphere per robot geometry
+        ball = self._place(frames, cov.ball_joint, cov.ball_centre)  # (N, G, 3)
+        # coordinates first, (3, G, N): gathers of whole rows, contiguous arithmetic
+        xyz = np.ascontiguousarray(ball.transpose(2, 1, 0))
+        open_ = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N)
+        own = screen.geom_b >= 0
+        if own.any():
+            ga, gb = screen.geom_a[own], screen.geom_b[own]
+            # one coordinate at a time: temporaries of (pairs, N), not (3, pairs, N)
+            # (large temporaries cost page faults)
+            sq = np.zeros((ga.size, len(q)))
+            for c in xyz:
+                d = c[ga] - c[gb]
+                sq += d * d
+            reach = cov.ball_radius[ga] + cov.ball_radius[gb]
+            open_[own] = sq <= ((reach + BROAD_MARGIN) ** 2)[:, None]
+        for w in np.unique(screen.world[screen.world >= 0]).tolist():
+            at = np.flatnonzero(screen.world == w)
+            g = screen.geom_a[at]
+            lb = self._bounds_for(w).lower_xyz(xyz[:, g]) - cov.ball_radius[g][:, None]
+            open_[at] = lb <= BROAD_MARGIN
+        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        for k in np.flatnonzero(open_.any(axis=1)).tolist():
+            rows = np.flatnonzero(open_[k])
+            # 2. the sphere covers
+            span = slice(screen.first_test[k], screen.first_test[k] + screen.n_tests[k])
+            a, b, bound = screen.sphere_a[span], screen.sphere_b[span], screen.bound[span]
+            ca = self._place(frames, cov.joint[a], cov.centre[a], rows)
+            if screen.world[k] < 0:
+                gap = ca - self._place(frames, cov.joint[b], cov.centre[b], rows)
+                near = (squared_norms(gap) <= bound).any(axis=1)
+            else:
+                lb = self._bounds_for(int(screen.world[k])).lower(ca) - bound
+                near = (lb <= BROAD_MARGIN).any(axis=1)
+            rows = rows[near]
+            # 3. hull vertices against a box
+            box = screen.boxes.get(k)
+            if box is not None and rows.size:
+                joint, verts, inv, halfs = box
+                lim = halfs[None, :, None]
+
+                # the face nearest the geometry's bounding sphere first: its lowest
+                # hull vertex over that face's plane (one coordinate), then all of them
+                g = screen.geom_a[k]
+                centre = row_matmul(ball[rows, g], inv[:3, :3].T) + inv[:3, 3]
+                axis = np.argmax(np.abs(centre) - halfs, axis=1)
+                sign = np.where(centre[np.arange(rows.size), axis] >= 0, 1.0, -1.0)
+                frame = (rots[joint][rows], poss[joint][rows], inv)
+                height = height_over_face(frame, verts, halfs, axis, sign)
+                rows = rows[height <= BROAD_MARGIN]
+                local = in_frame((rots[joint], poss[joint], inv), rows, verts)
+                inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
+                hit[rows[inside], k] = True
+                rows = rows[~(beyond_a_face(local, lim) | inside)]
+            if rows.size:
+                hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
+        return hit
+
+    def _pair_hits_compiled(
+        self, compiled: kernels.Kernels, q: np.ndarray, frames: Any, screen: Screen
+    ) -> np.ndarray:
+        """:meth:`_pair_hits` by the compiled kernels (see :mod:`~gcm_pipeline.robot.kernels`).
+
+        The same answers: levels 1 and 2 for all pairs in one pass, then level 3
+        and coal pair by pair.
+        """
+        tfs = stacked(frames.transforms)
+        broad, boxes = self._compiled_screen(screen)
+        open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
+        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        for k in np.flatnonzero(open_.any(axis=1)).tolist():
+            rows = np.flatnonzero(open_[k])
+            box = boxes.get(k)
+            if box is not None:
+                joint, *limits = box
+                status = compiled.hull_vs_box(tfs[joint], rows, *limits)
+                hit[rows[status == kernels.COLLIDES], k] = True
+                rows = rows[status == kernels.UNDECIDED]
+            if rows.size:
+                hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
+        return hit
+
+    def _compiled_screen(self, screen: Screen) -> tuple[tuple[Any, ...], dict[int, Any]]:
+        """The compiled broad phase's arguments for ``screen`` (built once per screen).
+
+        Returns the arguments of ``broad_phase`` after the frames, and the
+        level-3 arguments ``(joint, vertices, inverse placement, beyond, deep)``
+        of each column with a box. Each limit is the NumPy level's plus
+        :data:`~gcm_pipeline.robot.kernels.SLACK` (level 3: minus it, for the depth).
+        """
+        known = self._compiled_args.get(id(screen))
+        if known is not None and known[0] is screen:
+            return known[1], known[2]
+        cov, slack = self._cover, kernels.SLACK
+        worlds = sorted({int(w) for w in screen.world.tolist() if w >= 0})
+        # explicit dtypes: without a world shape or a pair these lists are empty
+        # (and np.array([]) is float64)
+        shapes = np.array([self._bounds_for(w).packed() for w in worlds], float).reshape(-1, 21)
+        world = np.array(
+            [worlds.index(w) if w >= 0 else -1 for w in screen.world.tolist()], np.intp
+        )
+        own = world < 0
+        ra = cov.ball_radius[screen.geom_a]
+        rb = cov.ball_radius[np.where(own, screen.geom_b, 0)]
+        # self pairs compare squared gaps with squared limits; world pairs distances
+        limit1 = np.where(own, (ra + rb + BROAD_MARGIN + slack) ** 2, ra + BROAD_MARGIN + slack)
+        limit2 = np.where(
+            np.repeat(own, screen.n_tests),
+            (np.sqrt(screen.bound) + slack) ** 2,
+            screen.bound + BROAD_MARGIN + slack,
+        )
+        args = [cov.ball_joint, cov.ball_centre, cov.joint, cov.centre, screen.geom_a]
+        args += [screen.geom_b, world, limit1, screen.first_test, screen.n_tests]
+        args += [screen.sphere_a, screen.sphere_b, limit2, shapes]
+        # indices as intp, all C-contiguous (the kernels' signature)
+        broad = tuple(
+            np.ascontiguousarray(a, np.float64 if a.dtype.kind == "f" else np.intp) for a in args
+        )
+        boxes = {
+            k: (
+                joint,
+                np.ascontiguousarray(verts, float),
+                np.ascontiguousarray(inv, float),
+                halfs + (BROAD_MARGIN + slack),
+                halfs - (INSIDE_DEPTH + slack),
+            )
+            for k, (joint, verts, inv, halfs) in screen.boxes.items()
+        }
+        self._compiled_args[id(screen)] = (screen, broad, boxes)
+        return broad, boxes
+
+    def _bounds_for(self, w: int) -> ShapeBound:
+        bound = self._bounds.get(w)
+        if bound is None:
+            go = self._gm.geometryObjects[w]
+            bound = self._bounds[w] = ShapeBound(go.geometry, go.placement.homogeneous)
+        return bound
+
+
+def stacked(tfs: list[np.ndarray]) -> np.ndarray:
+    """Joint frames (N, 3, 4) as one (J, N, 3, 4) array: the array they are views of, if any."""
+    base = tfs[0].base
+    if (
+        isinstance(base, np.ndarray)
+        and base.shape == (len(tfs), *tfs[0].shape)
+        and base.dtype == np.float64
+        and base.flags.c_contiguous
+        and all(
+            t.base is base and t.ctypes.data == base.ctypes.data + j * base.strides[0]
+            for j, t in enumerate(tfs)
+        )
+    ):
+        return base
+    return np.stack(tfs)
+
+
+def row_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for a 2-D ``a``, each row's result the same whatever the number of rows.
+
+    NumPy computes a single row with BLAS's vector routine, whose sums can differ
+    in the last bit from the matrix routine's; a configuration's answer must not
+    depend on the batch it comes in (chunks, workers), so one row is computed as two.
+    """
+    if a.ndim == 2 and a.shape[0] == 1:
+        return (np.concatenate([a, a]) @ b)[:1]
+    return a @ b
+
+
+def in_frame(frame: tuple[Any, Any, np.ndarray], rows: np.ndarray, points: np.ndarray) -> Any:
+    """Points (3, V) fixed to a joint, in a world shape's frame, for configurations ``rows``.
+
+    ``frame`` is the joint's rotations (N, 3, 3) and origins (N, 3) and the
+    shape's inverse placement (4, 4). Returns (M, 3, V).
+    """
+    rots, poss, inv = frame
+    m = rows.size
+    rot = (inv[:3, :3] @ rots[rows]).reshape(3 * m, 3)
+    off = row_matmul(poss[rows], inv[:3, :3].T) + inv[:3, 3]
+    return (rot @ points).reshape(m, 3, points.shape[1]) + off[:, :, None]
+
+
+def height_over_face(
+    frame: tuple[np.ndarray, np.ndarray, np.ndarray],
+    points: np.ndarray,
+    halfs: np.ndarray,
+    axis: np.ndarray,
+    sign: np.ndarray,
+) -> np.ndarray:
+    """Height (M,) of the lowest of points (3, V) fixed to a joint over one face of a box.
+
+    ``frame`` is the joint's rotations (M, 3, 3) and origins (M, 3) and the
+    box's inverse placement (4, 4); the face is the one across ``axis`` (M,)
+    on the side ``sign`` (M,, +-1) of the box ``|x| <= halfs``. The height of a
+    point v is ``u . (R v + o) + t`` with ``u`` the face's outward normal.
+    """
+    rots, poss, inv = frame
+    normal = sign[:, None] * inv[axis, :3]  # base frame
+    w = np.einsum("ni,nij->nj", normal, rots)  # R^T u, the joint's frame
+    return (
+        row_matmul(w, points).min(axis=1)
+        + np.einsum("ni,ni->n", normal, poss)
+        + sign * inv[axis, 3]
+        - halfs[axis]
+    )
+
+
+def beyond_a_face(local: np.ndarray, lim: np.ndarray) -> np.ndarray:
+    """Whether all points (M, 3, V) lie beyond one face plane of the box ``|x| <= lim``, (M,)."""
+    return (
+        np.all(local > lim + BROAD_MARGIN, axis=2) | np.all(local < -lim - BROAD_MARGIN, axis=2)
+    ).any(axis=1)

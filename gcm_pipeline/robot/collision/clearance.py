@@ -1,0 +1,265 @@
+"""Clearance: the distance of the robot to the environment and the object.
+
+The same sphere covers as the broad phase give lower bounds; coal's exact
+distance runs only for pairs that can still be the nearest, and hull vertices
+give exact or near-exact distances to primitives without coal (see
+:meth:`ClearanceQueries.clearance`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import coal
+import numpy as np
+import pinocchio as pin
+
+from gcm_pipeline.robot.collision.broadphase import (
+    BLOCK,
+    BroadPhase,
+    height_over_face,
+    in_frame,
+    row_matmul,
+    squared_norms,
+)
+from gcm_pipeline.robot.collision.pairs import MODE_BIT, Pair, without_cached_guess
+from gcm_pipeline.robot.collision.spheres import POLYTOPES
+
+__all__ = ["ClearanceQueries"]
+
+
+class ClearanceQueries(BroadPhase):
+    """The clearance queries of :class:`~gcm_pipeline.robot.collision.checker.CollisionChecker`.
+
+    A base class of the checker: :meth:`_init_clearance` builds the distance
+    model when the checker is built.
+    """
+
+    robot: Any
+    world: tuple[Any, ...]
+    _data: Any
+
+    def _init_clearance(
+        self,
+        gm: Any,
+        pairs: list[Pair],
+        world_ids: dict[str, int],
+        joint_of: list[int],
+        gripper: set[int],
+    ) -> None:
+        """The distance model: robot vs environment, arm links (not gripper) vs the object."""
+        robot_ids = range(len(joint_of))
+        # clearance: robot vs environment, arm links (not gripper) vs the full object;
+        # base links (universe, first joint) vs a support are left out: their distance
+        # to it does not depend on the configuration and would mask the arm's
+        base_links = {i for i in robot_ids if joint_of[i] in (0, 1)}
+        supports = {world_ids[s.name] for s in self.world if s.support}
+        dist = [
+            p
+            for p in pairs
+            if (p.kind == "environment" and not (p.a in base_links and p.b in supports))
+            or (p.kind == "object" and p.a not in gripper and p.modes & MODE_BIT["grasp"])
+        ]
+        self._dist_model: Any = None
+        if dist:
+            dm = gm.copy()
+            dm.removeAllCollisionPairs()
+            for p in dist:
+                dm.addCollisionPair(pin.CollisionPair(p.a, p.b))
+            self._dist_model = dm
+            self._dist_data = without_cached_guess(pin.GeometryData(dm))
+            self._dist_owner = np.array([p.owner for p in dist], dtype=int)
+            self._dist_world = np.array([p.b for p in dist], dtype=int)
+            # a robot polytope against a primitive: its hull vertices give distances
+            # (exact to boxes in a face's region, else within a known margin)
+            self._box_pairs: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
+            self._vertex_pairs: dict[int, tuple[int, int]] = {}
+            for col, p in enumerate(dist):
+                world = gm.geometryObjects[p.b]
+                robot_geom = gm.geometryObjects[p.a].geometry
+                if not isinstance(robot_geom, POLYTOPES) or p.a != p.owner:
+                    continue
+                if self._bounds_for(p.b).exact:
+                    self._vertex_pairs[col] = (p.a, p.b)
+                if not isinstance(world.geometry, coal.Box):
+                    continue
+                self._hull(p.a)
+                self._box_pairs[col] = (
+                    np.linalg.inv(world.placement.homogeneous),
+                    np.asarray(world.geometry.halfSide, dtype=float),
+                    p.a,
+                )
+
+    def clearance(self, q: Any, precision: float = 1e-3) -> np.ndarray:
+        """Minimum distance of the robot to the environment and the object [m].
+
+        Pairs: every robot link vs every environment shape, except the base
+        links (fixed to the universe or the first joint) vs a support (the
+        table), whose distance to it does not change with the configuration
+        (0.14 m for ``panda_link1``), and every *arm* link vs the object. The
+        gripper (hand and fingers) vs the object is left out: at a grasp it
+        touches the object by design. Penetrating pairs give a distance <= 0
+        (a penetration, not necessarily the deepest one).
+
+        Distances are computed in increasing order of the pairs' lower bounds
+        (sphere covers), and only while a pair's bound is below the best
+        distance found minus ``precision``: exact ones by coal on the meshes,
+        or, from the hull vertices (vectorised), the exact distance of a link
+        in the region of one face of a box, and the distance of a link's
+        nearest vertex from a primitive shape where a separating plane proves
+        it within ``precision`` of the pair's. The result is a real distance
+        of the robot to the world (between two of their points), at most
+        ``precision`` above the minimum (the ranking needs no more).
+
+        Args:
+            q: Configurations (N, nq) or (nq,) [rad].
+            precision: How far above the true minimum the result may be [m], >= 0.
+
+        Returns:
+            (N,) distances [m]; ``inf`` when there is nothing to measure against,
+            NaN for non-finite configurations.
+        """
+        qs = self.robot.as_configurations(q)
+        out = np.full(len(qs), np.inf)
+        finite = np.all(np.isfinite(qs), axis=1)
+        out[~finite] = np.nan
+        rows = np.flatnonzero(finite)
+        if self._dist_model is None or rows.size == 0:
+            return out
+        model, data = self.robot.model, self._data
+        dm, dd = self._dist_model, self._dist_data
+        cov = self._cover
+        for a in range(0, rows.size, BLOCK):
+            block = rows[a : a + BLOCK]
+            frames = self._frames.compute(qs[block])
+            centres = self._place(frames, cov.joint, cov.centre)
+            bound = np.empty((block.size, self._dist_owner.size))
+            for w in np.unique(self._dist_world).tolist():
+                cols = np.flatnonzero(self._dist_world == w)
+                d = self._bounds_for(w).lower(centres) - cov.radius
+                per_owner = np.minimum.reduceat(d, cov.start[:-1], axis=1)
+                bound[:, cols] = per_owner[:, self._dist_owner[cols]]
+            # exact distances to boxes where a link lies in the region of one face, and
+            # where they can still be the nearest
+            exact = self._face_distances(frames, centres, bound)
+            known = np.isfinite(exact)
+            bound[known] = exact[known]
+            best0 = np.where(known, exact, np.inf).min(axis=1)
+            need = ~known & (bound < best0[:, None] - precision)
+            # the nearest hull vertex's distance where it is within precision of the pair's
+            # (its lower bound stays the pair's bound: what it may still be)
+            upper, lower = self._vertex_distances(frames, need & (precision > 0), precision)
+            found = np.isfinite(upper)
+            exact[found], known[found], bound[found] = upper[found], True, lower[found]
+            best0 = np.where(known, exact, np.inf).min(axis=1)
+            # coal only for rows with a pair that may still be nearer than best - precision
+            need = ~known & (bound < best0[:, None] - precision)
+            todo = np.flatnonzero(need.any(axis=1))
+            easy = np.setdiff1d(np.arange(block.size), todo)
+            out[block[easy]] = best0[easy]
+            order = np.argsort(bound[todo], axis=1)
+            for k, i in enumerate(todo.tolist()):
+                n = int(block[i])
+                pin.updateGeometryPlacements(model, data, dm, dd, qs[n])
+                best = np.inf
+                lb = bound[i]
+                for p in order[k].tolist():
+                    if lb[p] >= best - precision:
+                        break
+                    d = exact[i, p] if known[i, p] else pin.computeDistance(dm, dd, p).min_distance
+                    if d < best:
+                        best = d
+                out[n] = best
+        return out
+
+    def _vertex_distances(
+        self, frames: Any, need: np.ndarray, precision: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds ``(U, L)`` (N, P) of the clearance pairs' distances, NaN where not known.
+
+        Only the pairs ``need`` (N, P) are looked at.
+
+        For a robot polytope against a primitive shape: ``U``, the distance of
+        its nearest hull vertex (a point of the robot) from the shape, bounds
+        the pair's distance ``d`` from above. From below, the plane through
+        the shape's nearest point normal to that direction separates the shape
+        from the hull by ``L = min_v n . v - h(n)`` (``h`` the shape's support
+        function), and the robot's geometry lies in its hull: ``L <= d <= U``.
+        Both are kept where ``U - L <= precision`` (the vertex is outside the shape).
+        """
+        out = np.full(need.shape, np.nan)
+        below = np.full(need.shape, np.nan)
+        rots, poss = frames.rots, frames.poss
+        for col in np.flatnonzero(need.any(axis=0)).tolist():
+            pair = self._vertex_pairs.get(col)
+            if pair is None:
+                continue
+            rows = np.flatnonzero(need[:, col])
+            g, w = pair
+            joint, verts = self._hull(g)
+            shape = self._bounds_for(w)
+            pts = in_frame((rots[joint], poss[joint], shape.inv), rows, verts.T)
+            pts = pts.transpose(0, 2, 1)  # (M, V, 3) in the shape's frame
+            gap = pts - shape.nearest(pts)
+            dist = np.sqrt(squared_norms(gap))
+            at = np.argmin(dist, axis=1)
+            m = np.arange(rows.size)
+            upper = dist[m, at]
+            outside = upper > 0
+            normal = gap[m, at] / np.where(outside, upper, 1.0)[:, None]
+            lower = np.einsum("mvi,mi->mv", pts, normal).min(axis=1) - shape.support(normal)
+            keep = outside & (upper - lower <= precision)
+            out[rows[keep], col] = upper[keep]
+            below[rows[keep], col] = lower[keep]
+        return out, below
+
+    def _face_distances(self, frames: Any, centres: np.ndarray, bound: np.ndarray) -> np.ndarray:
+        """Exact distances (N, P) of the clearance pairs against boxes, NaN where unknown.
+
+        A robot geometry that lies in the region of one face of a box (its
+        covering spheres inside the face's rectangle, its hull vertices beyond
+        the face's plane) is at the distance of its nearest hull vertex from
+        that plane: the distance to the box is linear in that region, so its
+        minimum over the geometry is at a hull vertex (what coal computes on
+        the mesh, to round-off).
+
+        Pairs whose lower bound ``bound`` (N, P) is no less than an exact
+        distance already found for the row are left unknown: their distance
+        cannot be below the row's minimum, so the clearance is the same. The
+        pairs are visited in a fixed order, the links farthest along the chain first
+        (at a grasp they are usually the nearest): a row's result does not depend on
+        the other rows of the batch (two pairs can be at the same distance, e.g. the
+        two fingers over a table, to round-off).
+        """
+        n = centres.shape[0]
+        out = np.full((n, self._dist_owner.size), np.nan)
+        best = np.full(n, np.inf)
+        cov = self._cover
+        rots, poss = frames.rots, frames.poss
+        pairs = self._box_pairs
+        cols = sorted(pairs, key=lambda k: (-int(cov.ball_joint[pairs[k][2]]), k))
+        for col in cols:
+            inv, halfs, g = pairs[col]
+            sph = np.arange(cov.start[g], cov.start[g + 1])
+            may = np.flatnonzero(bound[:, col] < best)
+            if may.size == 0:
+                continue
+            pts = centres[may][:, sph]
+            c = (row_matmul(pts.reshape(-1, 3), inv[:3, :3].T) + inv[:3, 3]).reshape(pts.shape)
+            r = cov.radius[sph]
+            joint, verts = self._hulls[g]
+            for axis in range(3):
+                other = [k for k in range(3) if k != axis]
+                lateral = np.all(np.abs(c[:, :, other]) + r[None, :, None] <= halfs[other], axis=2)
+                rows = np.flatnonzero(lateral.all(axis=1))
+                if rows.size == 0:
+                    continue
+                # the face on the geometry's side
+                sign = np.where(c[rows, 0, axis] >= 0, 1.0, -1.0)
+                at = may[rows]
+                frame = (rots[joint][at], poss[joint][at], inv)
+                height = height_over_face(frame, verts.T, halfs, np.full(rows.size, axis), sign)
+                above = height >= 0
+                out[at[above], col] = height[above]
+                np.minimum.at(best, at[above], height[above])
+        return out

@@ -1,0 +1,365 @@
+"""Which pairs are checked, in which modes, and the coal pools that check them.
+
+Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
+
+``collision_environment``
+    every robot link vs every environment shape, except a support shape (the
+    table) vs the robot's base links standing on it: links attached to the
+    universe or to the first joint that touch it in the home configuration
+    (``panda_link0``; ``panda_link1`` is 0.14 m above it and stays checked).
+``collision_self``
+    all link pairs on different joints, minus the pairs the SRDF disables
+    (``pin.removeCollisionPairs``) and adjacent links (parent/child joints).
+``collision_object``
+    every robot link, the open fingers included, vs the object. The *gripper*
+    (the body that carries the grasp frame and every link below it: ``panda_hand``
+    and both fingers) may press into the object by ``contact_tolerance`` ``t``
+    at the grasp (a finger pad closing on the surface is a grasp, not a collision):
+
+    * a **primitive** object (cylinder, box, sphere, a thin box for a plane) is
+      eroded exactly (radius / half-sizes minus ``t``) and checked against the
+      gripper: the gripper collides when one of its points lies deeper than
+      ``t`` inside the object. A 2 mm plane erodes to nothing, so the gripper
+      may touch it;
+    * for a **mesh** object each convex collision piece of the gripper is
+      eroded by ``t`` instead (:mod:`gcm_pipeline.robot.collision.contact`) and checked
+      against the original mesh: the gripper collides when a point of the
+      object's surface lies deeper than ``t`` inside one of its pieces. This is
+      never more conservative than the geometry, also for walls thinner than
+      ``2 t`` (a mug's wall or handle), which an inward offset of the mesh
+      cannot represent. A gripper piece that is not convex is checked
+      uneroded (a warning says so).
+
+    Arm links (not gripper) are checked against the full object. A closed mesh
+    object is a solid: a piece lying wholly inside it, crossing none of its
+    triangles, collides too.
+
+When a configuration collides in more than one way, the reason is the first of
+environment, self, object.
+
+**Modes** (:meth:`~gcm_pipeline.robot.collision.checker.CollisionChecker.check`):
+``grasp`` is the above; ``approach`` allows no contact (the gripper against the
+full object, as the arm); ``retreat`` is the grasp holding the object: the
+gripper may touch it and the object moves with the grasp frame (``carried``),
+checked against the environment (``collision_environment``) and the arm links
+(``collision_object``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, NamedTuple
+
+import coal
+import numpy as np
+import pinocchio as pin
+
+from gcm_pipeline.robot.collision.contact import NotConvexError, erode_convex
+from gcm_pipeline.robot.collision.world import PRIMITIVES, WorldShape, erode_primitive
+from gcm_pipeline.robot.model import Robot
+
+__all__ = [
+    "ALL_MODES",
+    "COLLISION_REASONS",
+    "KINDS",
+    "MODES",
+    "MODE_BIT",
+    "REASONS",
+    "REASON_ENVIRONMENT",
+    "REASON_OBJECT",
+    "REASON_SELF",
+    "Pair",
+    "PairSet",
+    "add_eroded_gripper",
+    "checked_pairs",
+    "coal_transform",
+    "gripper_links",
+    "pair_pool",
+    "robot_geometry",
+    "se3",
+    "self_pairs",
+    "support_exempt",
+    "tree_pool",
+    "without_cached_guess",
+]
+
+REASON_SELF = "collision_self"
+REASON_ENVIRONMENT = "collision_environment"
+REASON_OBJECT = "collision_object"
+COLLISION_REASONS = (REASON_SELF, REASON_ENVIRONMENT, REASON_OBJECT)
+
+KINDS = ("environment", "self", "object")
+REASONS = {"environment": REASON_ENVIRONMENT, "self": REASON_SELF, "object": REASON_OBJECT}
+
+#: Checking modes: what the gripper may do with the object.
+MODES = ("grasp", "approach", "retreat")
+MODE_BIT = {"grasp": 1, "approach": 2, "retreat": 4}
+ALL_MODES = 7
+
+
+class Pair(NamedTuple):
+    """One checked pair: geometry indices in the checker's model, and what bounds it."""
+
+    kind: str
+    a: int  # robot-side geometry (a link, or an eroded gripper piece)
+    b: int  # world geometry, or the other link for self pairs
+    owner: int  # robot geometry whose spheres bound ``a``
+    other: int  # robot geometry whose spheres bound ``b`` (self pairs), else -1
+    modes: int  # bit set of the modes the pair is checked in
+
+
+class PairSet(NamedTuple):
+    """The checked pairs of a robot in a world, and the world's geometries in the model.
+
+    Attributes:
+        pairs: The pairs (robot links first, then eroded gripper pieces, then world).
+        world_ids: World shape name -> geometry index in the model.
+        table_exempt: Base links not checked against the support shape.
+    """
+
+    pairs: list[Pair]
+    world_ids: dict[str, int]
+    table_exempt: tuple[str, ...]
+
+
+def checked_pairs(
+    robot: Robot,
+    gm: Any,
+    world: tuple[WorldShape, ...],
+    gripper_geoms: tuple[int, ...],
+    tol: float,
+    self_collision: bool,
+) -> PairSet:
+    """Add the world (and the eroded gripper or object) to ``gm``; list the pairs to check.
+
+    Args:
+        robot: The robot.
+        gm: Its collision geometry model (a copy: world geometries are added to it).
+        world: The world shapes (at most one of kind ``object``).
+        gripper_geoms: Indices of the gripper geometries in ``gm``.
+        tol: The contact tolerance [m] >= 0.
+        self_collision: Check the robot against itself.
+
+    Returns:
+        The :class:`PairSet`.
+    """
+    model = robot.model
+    n_rob = int(gm.ngeoms)
+    robot_ids = list(range(n_rob))
+    link_of = [model.frames[g.parentFrame].name for g in gm.geometryObjects]
+    joint_of = [int(g.parentJoint) for g in gm.geometryObjects]
+    gripper = set(gripper_geoms)
+    obj = next((s for s in world if s.kind == "object"), None)
+
+    # world geometries (after the robot's and the eroded gripper pieces)
+    mesh_object = obj is not None and not isinstance(obj.geometry, PRIMITIVES)
+    eroded = add_eroded_gripper(gm, gripper_geoms, tol) if mesh_object else {}
+    world_ids: dict[str, int] = {}
+    for shape in world:
+        go = pin.GeometryObject(shape.name, 0, 0, se3(shape.placement), shape.geometry)
+        world_ids[shape.name] = int(gm.addGeometryObject(go))
+    contact_id = None
+    if obj is not None and not mesh_object:
+        shrunk = erode_primitive(obj.geometry, tol) if tol > 0 else obj.geometry
+        if shrunk is not None:
+            go = pin.GeometryObject("object_contact", 0, 0, se3(obj.placement), shrunk)
+            contact_id = int(gm.addGeometryObject(go))
+
+    pairs: list[Pair] = []
+    if self_collision:
+        for a, b in self_pairs(robot, joint_of):
+            pairs.append(Pair("self", a, b, a, b, ALL_MODES))
+    exempt: set[int] = set()
+    for shape in world:
+        if shape.kind == "environment" and shape.support:
+            exempt |= support_exempt(robot, gm, world_ids[shape.name], joint_of)
+    table_exempt = tuple(sorted({link_of[i] for i in exempt}))
+    for shape in world:
+        if shape.kind != "environment":
+            continue
+        w = world_ids[shape.name]
+        for i in robot_ids:
+            if shape.support and i in exempt:
+                continue
+            pairs.append(Pair("environment", i, w, i, -1, ALL_MODES))
+    if obj is not None:
+        w = world_ids[obj.name]
+        grasp, approach = MODE_BIT["grasp"], MODE_BIT["approach"]
+        for i in robot_ids:
+            if i not in gripper:
+                # arm links vs the object where it stands (not while carried)
+                pairs.append(Pair("object", i, w, i, -1, grasp | approach))
+                continue
+            pairs.append(Pair("object", i, w, i, -1, approach))  # no contact on the way in
+            if mesh_object:
+                piece = eroded[i]
+                if piece is not None:
+                    pairs.append(Pair("object", piece, w, i, -1, grasp))
+            elif contact_id is not None:
+                pairs.append(Pair("object", i, contact_id, i, -1, grasp))
+    return PairSet(pairs, world_ids, table_exempt)
+
+
+def robot_geometry(robot: Robot) -> Any:
+    """A copy of the robot's collision geometry model (read once per robot)."""
+    gm = robot.cache.get("collision_geometry")
+    if gm is None:
+        gm = robot.cache["collision_geometry"] = robot.build_geometry("collision")
+    return gm.copy()
+
+
+def self_pairs(robot: Robot, joint_of: list[int]) -> list[tuple[int, int]]:
+    """Self pairs: all pairs minus the SRDF's disabled ones and same/adjacent links."""
+    model = robot.model
+    gm = robot_geometry(robot)
+    gm.addAllCollisionPairs()
+    if robot.srdf_path is not None:
+        pin.removeCollisionPairs(model, gm, str(robot.srdf_path))
+    out = []
+    for cp in gm.collisionPairs:
+        a, b = int(cp.first), int(cp.second)
+        ja, jb = joint_of[a], joint_of[b]
+        if ja == jb or model.parents[ja] == jb or model.parents[jb] == ja:
+            continue  # same rigid body or adjacent links
+        out.append((a, b))
+    return out
+
+
+def support_exempt(robot: Robot, gm: Any, support: int, joint_of: list[int]) -> set[int]:
+    """Robot geometries not checked against a support: the base links standing on it.
+
+    Links fixed to the universe or to the first joint that touch the support
+    in the home configuration (for the Panda at z = 0: ``panda_link0``).
+    """
+    model = robot.model
+    first = [i for i in range(len(joint_of)) if joint_of[i] in (0, 1)]
+    if not first:
+        return set()
+    probe = gm.copy()
+    probe.removeAllCollisionPairs()
+    for i in first:
+        probe.addCollisionPair(pin.CollisionPair(i, support))
+    pd = pin.GeometryData(probe)
+    pin.computeCollisions(model, model.createData(), probe, pd, robot.home, False)
+    return {
+        int(cp.first)
+        for k, cp in enumerate(probe.collisionPairs)
+        if pd.collisionResults[k].isCollision()
+    }
+
+
+def add_eroded_gripper(
+    gm: Any, gripper_geoms: tuple[int, ...], tol: float
+) -> dict[int, int | None]:
+    """Add each gripper piece eroded by ``tol`` [m] to ``gm`` (same joint, frame, placement).
+
+    Returns:
+        Gripper geometry index -> index of its eroded copy (named ``<name>_contact``),
+        or None when the piece erodes to nothing. A piece that cannot be eroded
+        (not convex) is used uneroded, with a warning.
+    """
+    out: dict[int, int | None] = {}
+    for i in gripper_geoms:
+        go = gm.geometryObjects[i]
+        if tol == 0:
+            out[i] = i
+            continue
+        try:
+            eroded = erode_convex(go.geometry, tol)
+        except NotConvexError as exc:
+            warnings.warn(
+                f"gripper collision piece {go.name!r}: {exc}; checked against the object "
+                "without contact tolerance",
+                stacklevel=4,
+            )
+            out[i] = i
+            continue
+        if eroded is None:
+            out[i] = None
+            continue
+        piece = pin.GeometryObject(
+            f"{go.name}_contact", int(go.parentJoint), int(go.parentFrame), go.placement, eroded
+        )
+        out[i] = int(gm.addGeometryObject(piece))
+    return out
+
+
+def gripper_links(robot: Robot) -> set[str]:
+    """Links of the gripper: the body carrying the grasp frame and all links below it.
+
+    Walks the *full* (unreduced) model's frame tree: the grasp frame's nearest
+    BODY ancestor (``panda_hand`` for the Panda) and its descendants
+    (``panda_leftfinger``, ``panda_rightfinger``).
+    """
+    fm = robot.full_model
+    fid = robot.full_grasp_frame_id  # by name and type: a joint may share its name
+    root = fid
+    k = int(fm.frames[fid].parentFrame)
+    while k != root and k > 0:
+        if fm.frames[k].type == pin.FrameType.BODY:
+            root = k
+            break
+        k = int(fm.frames[k].parentFrame)
+    names: set[str] = set()
+    for i, f in enumerate(fm.frames):
+        j, seen = i, set()
+        while j not in seen:
+            if j == root:
+                if f.type == pin.FrameType.BODY:
+                    names.add(f.name)
+                break
+            seen.add(j)
+            if j == 0:
+                break
+            j = int(fm.frames[j].parentFrame)
+    return names
+
+
+def without_cached_guess(gd: Any) -> Any:
+    """Geometry data whose GJK starts from the same guess every time.
+
+    coal reuses the last query's solution as the next initial guess by
+    default; an answer then depends on what was asked before (last bits of a
+    distance, rarely a borderline contact), so the result of a configuration
+    would depend on the chunking and the number of workers.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        for req in [*gd.collisionRequests, *gd.distanceRequests]:
+            req.enable_cached_gjk_guess = False
+            req.gjk_initial_guess = coal.GJKInitialGuess.DefaultGuess
+    return gd
+
+
+def tree_pool(model: Any, gm: Any, pairs: list[Pair], threads: int) -> Any:
+    """A pool checking ``pairs`` with coal's dynamic AABB tree (broad phase) in C++."""
+    km = gm.copy()
+    km.removeAllCollisionPairs()
+    for p in pairs:
+        km.addCollisionPair(pin.CollisionPair(p.a, p.b))
+    pool = pin.TreeBroadPhaseManagerPool_DynamicAABBTreeCollisionManager(model, km, threads)
+    for i in range(pool.size()):
+        without_cached_guess(pool.getGeometryData(i))
+    return pool
+
+
+def pair_pool(model: Any, gm: Any, pair: Pair, threads: int) -> Any:
+    """A pool checking one pair with coal's narrow phase (a model of its two geometries)."""
+    km = pin.GeometryModel()
+    for g in (pair.a, pair.b):
+        km.addGeometryObject(gm.geometryObjects[g])
+    km.addCollisionPair(pin.CollisionPair(0, 1))
+    pool = pin.GeometryPool(model, km, threads)
+    for i in range(pool.size()):
+        without_cached_guess(pool.getGeometryData(i))
+    return pool
+
+
+def coal_transform(m: np.ndarray) -> Any:
+    """A (4, 4) transform as a ``coal.Transform3s``."""
+    return coal.Transform3s(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))
+
+
+def se3(m: np.ndarray) -> pin.SE3:
+    """A (4, 4) transform as a ``pin.SE3``."""
+    return pin.SE3(np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]))

@@ -1,0 +1,182 @@
+"""The collision world: coal geometries placed in the robot's base frame.
+
+The world is a list of :class:`WorldShape` objects: the support table and
+obstacles (kind ``environment``) and the object being grasped (kind
+``object``). :func:`table_shape`, :func:`obstacle_shape` and
+:func:`object_shape` build them from plain sizes, poses and shapes (the
+shape -> geometry table is :mod:`gcm_pipeline.geometry.shapes`); the run's
+config is mapped onto them in :mod:`gcm_pipeline.pipeline`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import coal
+import numpy as np
+
+from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.geometry.shapes import shape_geometry
+from gcm_pipeline.robot.collision.contact import erode_convex
+
+__all__ = [
+    "ENVIRONMENT_SHAPES",
+    "PRIMITIVES",
+    "WorldShape",
+    "as_transform",
+    "erode_primitive",
+    "object_shape",
+    "obstacle_shape",
+    "table_shape",
+]
+
+#: Shapes an obstacle may have (a plane is an object only).
+ENVIRONMENT_SHAPES = ("box", "cylinder", "sphere", "mesh")
+#: Coal geometries eroded exactly (:func:`erode_primitive`).
+PRIMITIVES = (coal.Box, coal.Sphere, coal.Cylinder)
+
+
+@dataclass(frozen=True)
+class WorldShape:
+    """A collision shape of the world, placed in the robot's base frame.
+
+    Attributes:
+        name: Geometry name (``table``, ``obstacle_<i>`` or the obstacle's name, ``object``).
+        geometry: The coal geometry (centred as coal defines it).
+        placement: Pose of the geometry's centre in the base frame (4, 4) [m].
+        kind: ``"environment"`` or ``"object"`` (at most one object).
+        support: The robot's base stands on it (the table): base links that
+            touch it in the home configuration are not checked against it.
+    """
+
+    name: str
+    geometry: Any
+    placement: np.ndarray
+    kind: str
+    support: bool = False
+
+
+def as_transform(pose: Any) -> np.ndarray:
+    """A pose as a (4, 4) homogeneous transform (identity for None).
+
+    Args:
+        pose: A (4, 4) array, an object with a ``matrix()`` method (a config
+            ``Pose``) or None.
+
+    Returns:
+        (4, 4) transform [m].
+
+    Raises:
+        InputError: If an array is not (4, 4) or not finite.
+    """
+    if pose is None:
+        return np.eye(4)
+    if hasattr(pose, "matrix"):
+        return np.asarray(pose.matrix(), dtype=float)
+    arr = np.asarray(pose, dtype=float)
+    if arr.shape != (4, 4) or not np.all(np.isfinite(arr)):
+        raise InputError(f"a pose must be a finite (4, 4) transform, got shape {arr.shape}")
+    return arr
+
+
+def table_shape(
+    size: Any, center_xy: Any, height: float, base_inv: np.ndarray, where: str = "environment.table"
+) -> WorldShape:
+    """The support table: a box whose top face is at ``height``, centred at ``center_xy``.
+
+    Args:
+        size: Box sizes (x, y, z) [m].
+        center_xy: Centre of the top face in the world (x, y) [m].
+        height: Height of the top face in the world [m].
+        base_inv: Inverse of the robot base's pose in the world (4, 4).
+        where: Config location used in error messages.
+
+    Returns:
+        The ``table`` shape (kind ``environment``, the robot's support).
+
+    Raises:
+        ConfigError: A size that is not a positive number.
+    """
+    for s in size:
+        if not np.isfinite(s) or s <= 0:
+            raise ConfigError(f"{where}: size must be positive numbers [m], got {s!r}")
+    sx, sy, sz = (float(s) for s in size)
+    m = np.eye(4)
+    m[:3, 3] = (center_xy[0], center_xy[1], height - 0.5 * sz)
+    return WorldShape("table", coal.Box(sx, sy, sz), base_inv @ m, "environment", support=True)
+
+
+def obstacle_shape(
+    name: str,
+    shape: str,
+    dims: Any,
+    pose: np.ndarray,
+    base_inv: np.ndarray,
+    *,
+    mesh: Path | None = None,
+    scale: float = 1.0,
+    where: str = "obstacle",
+) -> WorldShape:
+    """An obstacle (kind ``environment``), placed like the object.
+
+    A cylinder stands on its base along its frame's z, boxes and spheres are
+    centred on their frame (:func:`~gcm_pipeline.geometry.shapes.shape_geometry`).
+
+    Args:
+        name: Shape name.
+        shape: One of :data:`ENVIRONMENT_SHAPES`.
+        dims: An object with ``radius``, ``height``, ``size``.
+        pose: The shape's frame in the world (4, 4) [m].
+        base_inv: Inverse of the robot base's pose in the world (4, 4).
+        mesh: Mesh file (shape ``mesh``).
+        scale: Mesh scale factor.
+        where: Config location used in error messages.
+
+    Raises:
+        ConfigError: Unknown shape, missing or non-positive size.
+        InputError: A mesh file is missing or unreadable (the message names it).
+    """
+    if shape not in ENVIRONMENT_SHAPES:
+        raise ConfigError(f"{where}: " + unknown_choice("shape", shape, ENVIRONMENT_SHAPES))
+    made = shape_geometry(shape, dims, mesh=mesh, scale=scale, where=where)
+    assert made is not None
+    geom, centre = made
+    return WorldShape(name, geom, base_inv @ pose @ centre, "environment")
+
+
+def object_shape(
+    shape: str,
+    dims: Any,
+    pose: np.ndarray,
+    base_inv: np.ndarray,
+    *,
+    mesh: Path | None = None,
+    scale: float = 1.0,
+    where: str = "object",
+) -> WorldShape:
+    """The object being grasped (kind ``object``), named ``object``.
+
+    Args: as :func:`obstacle_shape` (any shape of
+    :data:`~gcm_pipeline.geometry.shapes.SHAPES`).
+
+    Raises:
+        ConfigError: Unknown shape, missing or non-positive size.
+        InputError: A mesh file is missing or unreadable (the message names it).
+    """
+    made = shape_geometry(shape, dims, mesh=mesh, scale=scale, where=where)
+    assert made is not None
+    return WorldShape("object", made[0], base_inv @ pose @ made[1], "object")
+
+
+def erode_primitive(geometry: Any, distance: float) -> Any | None:
+    """A coal primitive shrunk by ``distance`` [m] on every side (exact), or None.
+
+    Boxes, spheres and cylinders are eroded exactly; None when nothing is left
+    (a part thinner than ``2 * distance``) or for any other geometry (meshes:
+    the gripper is eroded instead, see :mod:`gcm_pipeline.robot.collision.contact`).
+    """
+    if isinstance(geometry, PRIMITIVES):
+        return erode_convex(geometry, distance)
+    return None

@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import yaml
 
 import gcm_pipeline as gcm
-from gcm_pipeline.rundir.export import export_run
+from gcm_pipeline.publish.export import export_run
 
 ROOT = Path(__file__).resolve().parent.parent
 out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(tempfile.mkdtemp(prefix="gcm-"))

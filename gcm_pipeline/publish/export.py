@@ -52,9 +52,10 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.errors import InputError, OutputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
-from gcm_pipeline.robot.model import load_spec, root_link
+from gcm_pipeline.robot.model import root_link
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
 from gcm_pipeline.sources.grippers import GRIPPERS

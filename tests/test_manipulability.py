@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.ik_pinocchio import log3
+from gcm_pipeline.robot.ik.lm import log3
 from gcm_pipeline.robot.manipulability import (
     METRICS,
     inverse_condition_number,

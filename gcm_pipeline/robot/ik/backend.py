@@ -2,8 +2,8 @@
 
 :func:`solve_ik` validates the targets, drops the ones beyond the arm's reach,
 hands the rest to a backend (``pinocchio``: batched Levenberg-Marquardt,
-:mod:`gcm_pipeline.robot.ik_pinocchio`; ``mink``: MuJoCo differential IK,
-:mod:`gcm_pipeline.robot.ik_mink`) and **verifies every success with
+:mod:`gcm_pipeline.robot.ik.pinocchio_backend`; ``mink``: MuJoCo differential IK,
+:mod:`gcm_pipeline.robot.ik.mink_backend`) and **verifies every success with
 Pinocchio's own forward kinematics** (``pin.forwardKinematics`` +
 ``updateFramePlacement``) and the joint limits: a target is reported
 reachable only if a configuration strictly inside the limits puts the grasp
@@ -15,7 +15,7 @@ An IK that fails is not an error: its row has ``success=False`` and a reason:
 ``out_of_reach``            farther from the shoulder than the arm reaches, or
                             (Panda kinematics) no elbow angle puts the wrist at
                             the distance from the shoulder the target asks
-                            (:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.unreachable`)
+                            (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.unreachable`)
 ``joint_limits``            reached only with joints outside their limits
 ``no_ik``                   no seed converged
 ``verification_failed``     the backend converged but Pinocchio disagrees
@@ -29,31 +29,34 @@ target whose first solution collides keeps trying other seeds; if no valid
 candidate remains, the last validator reason is the row's reason. With
 ``return_all=True`` the result also lists every converged candidate
 (:class:`IKCandidates`), valid or not.
+
+A backend is a function of the :class:`IKBackend` protocol; it returns raw,
+unverified answers, which :func:`solve_ik` verifies.
 """
 
 from __future__ import annotations
 
-import atexit
-import multiprocessing as mp
-import multiprocessing.pool
-import os
-import signal
-import time
-from collections.abc import Callable, Iterable, Iterator
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
-from gcm_pipeline.errors import GeometryError, InputError, WorkerLostError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.robot.ik_pinocchio import analytic_solver, rotation_angle
+from gcm_pipeline.robot.ik import mink_backend, pinocchio_backend
+from gcm_pipeline.robot.ik.lm import rotation_angle
+from gcm_pipeline.robot.ik.panda import analytic_solver
+from gcm_pipeline.robot.ik.pool import cores, run_backend
 from gcm_pipeline.robot.model import Robot, load_robot
 
 __all__ = [
     "BACKENDS",
     "IK_REASONS",
+    "IKBackend",
     "IKCandidates",
     "IKResult",
+    "Validator",
     "check_targets",
     "solve_ik",
     "verify_solutions",
@@ -68,7 +71,51 @@ IK_REASONS = ("out_of_reach", "joint_limits", "no_ik", "verification_failed")
 Validator = Callable[[np.ndarray], Any]
 
 
-class IKCandidates(NamedTuple):
+class IKBackend(Protocol):
+    """An IK backend: raw, unverified answers for validated targets.
+
+    Args:
+        robot: The robot.
+        targets: Grasp-frame poses (N, 4, 4) in the base frame, already validated.
+        position_tolerance: [m], > 0.
+        orientation_tolerance: [rad], > 0.
+        seeds: Optional warm starts (N, K, nq) [rad]; NaN rows are skipped.
+        validator: Optional ``q (M, nq) -> (M,) str`` reasons ('' = valid),
+            applied to converged candidates before one is chosen.
+        return_all: Also return every converged candidate.
+        **options: The backend's own options (unknown names: :class:`InputError`).
+
+    Returns:
+        A dict with ``q`` (N, nq) [rad] (NaN if none), ``success`` (N,) bool,
+        ``pos_err`` [m] and ``rot_err`` [rad] (N,) of the chosen or best
+        attempt, ``reason`` (N,) and, with ``return_all``, ``all_index`` (M,),
+        ``all_q`` (M, nq) and ``all_reason`` (M,).
+    """
+
+    def __call__(
+        self,
+        robot: Any,
+        targets: np.ndarray,
+        *,
+        position_tolerance: float,
+        orientation_tolerance: float,
+        seeds: np.ndarray | None = None,
+        validator: Validator | None = None,
+        return_all: bool = False,
+        **options: Any,
+    ) -> dict[str, Any]:
+        """Raw answers for ``targets`` (see the class docstring)."""
+        ...
+
+
+_SOLVERS: dict[str, IKBackend] = {
+    "pinocchio": pinocchio_backend.solve,
+    "mink": mink_backend.solve,
+}
+
+
+@dataclass(frozen=True, eq=False)
+class IKCandidates:
     """Every converged IK candidate (``return_all=True``).
 
     Attributes:
@@ -77,12 +124,13 @@ class IKCandidates(NamedTuple):
         reason: Validator reason per candidate (M,) str, ``''`` if valid.
     """
 
-    index: np.ndarray  # type: ignore[assignment]  # shadows tuple.index on purpose
+    index: np.ndarray
     q: np.ndarray
     reason: np.ndarray
 
 
-class IKResult(NamedTuple):
+@dataclass(frozen=True, eq=False, repr=False)
+class IKResult:
     """Result of :func:`solve_ik` for N targets.
 
     Attributes:
@@ -116,16 +164,11 @@ class IKResult(NamedTuple):
         )
 
 
-def _backend(name: str) -> Callable[..., dict[str, Any]]:
-    if name == "pinocchio":
-        from gcm_pipeline.robot import ik_pinocchio
-
-        return ik_pinocchio.solve
-    if name == "mink":
-        from gcm_pipeline.robot import ik_mink
-
-        return ik_mink.solve
-    raise InputError(unknown_choice("IK backend", name, BACKENDS))
+def _backend(name: str) -> IKBackend:
+    solve = _SOLVERS.get(name) if isinstance(name, str) else None
+    if solve is None:
+        raise InputError(unknown_choice("IK backend", name, BACKENDS))
+    return solve
 
 
 def check_targets(targets: Any, name: str = "targets") -> np.ndarray:
@@ -243,197 +286,6 @@ def verify_solutions(
     return pos_err, rot_err, robot.within_limits(q, strict=True)
 
 
-# targets per backend call: large batches vectorise well, memory stays bounded
-_CHUNK = 16384
-
-# state shared with forked worker processes (set just before the pool forks)
-_FORK_STATE: dict[str, Any] = {}
-_POOL: dict[str, Any] = {}
-
-
-def _close_pool() -> None:
-    pool = _POOL.pop("pool", None)
-    _POOL.pop("key", None)
-    if pool is not None:
-        pool.terminate()
-        pool.join()
-    _FORK_STATE.clear()
-
-
-def _pool(
-    solve: Callable[..., dict[str, Any]],
-    robot: Robot,
-    validator: Validator | None,
-    return_all: bool,
-    workers: int,
-    kwargs: dict[str, Any],
-    warm_targets: np.ndarray,
-) -> Any:
-    """A forked worker pool holding this robot and these options, reused across calls.
-
-    The workers inherit the robot, the validator and the backend's caches
-    (seed library, MuJoCo model) by forking, so nothing heavy is pickled; the
-    pool is kept for the next call with the same state (the state holds strong
-    references, so the ids in the key cannot be reused) and closed at exit.
-    """
-    key = (solve, id(robot), id(validator), return_all, workers, repr(sorted(kwargs.items())))
-    if _POOL.get("key") == key:
-        return _POOL["pool"]
-    _close_pool()
-    # warm the backend's caches before forking
-    solve(robot, warm_targets, seeds=None, validator=None, return_all=False, **kwargs)
-    _FORK_STATE.update(
-        solve=solve, robot=robot, validator=validator, return_all=return_all, kwargs=kwargs
-    )
-    pool = ForkPool(workers, initializer=_worker_signals)
-    if not _POOL.get("atexit"):
-        atexit.register(_close_pool)
-        _POOL["atexit"] = True
-    _POOL.update(key=key, pool=pool)
-    return pool
-
-
-class ForkPool(multiprocessing.pool.Pool):
-    """A pool of forked workers whose ``terminate()`` cannot hang on a killed worker.
-
-    An idle worker waits for its next task holding the task queue's read lock;
-    killed then (SIGTERM to the process group), it never releases it, and the
-    standard ``Pool.terminate()`` waits for that lock for ever before it drains
-    the queue. Here it waits at most a second, then drains the queue anyway:
-    the pool is being torn down and no worker reads it any more.
-    """
-
-    def __init__(self, processes: int, initializer: Any = None) -> None:
-        super().__init__(processes, initializer=initializer, context=mp.get_context("fork"))
-
-    def ordered(self, func: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
-        """``imap(func, items)``: results in order, as they come.
-
-        A worker that dies (killed, e.g. by the out-of-memory killer) takes its
-        task with it: the standard pool starts a new worker and waits for that
-        result for ever. Here the workers are looked at while waiting, and a
-        dead one raises :class:`~gcm_pipeline.errors.WorkerLostError`.
-        """
-        # the pool replaces a dead worker in _pool: these are the originals
-        workers = list(self._pool)  # type: ignore[attr-defined]
-        results = self.imap(func, items)
-        while True:
-            try:
-                yield results.next(timeout=_WORKER_POLL)
-            except StopIteration:
-                return
-            except mp.TimeoutError:
-                pass
-            for proc in workers:
-                if proc.exitcode is not None:
-                    raise WorkerLostError(_worker_death(proc.pid, proc.exitcode))
-
-    @staticmethod
-    def _help_stuff_finish(inqueue: Any, task_handler: Any, size: int) -> None:
-        inqueue._rlock.acquire(True, 1.0)
-        while task_handler.is_alive() and inqueue._reader.poll():
-            inqueue._reader.recv()
-            time.sleep(0)
-
-
-def _cores() -> int:
-    """Cores this process may run on (its CPU affinity), at least 1."""
-    if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)  # pragma: no cover - not Linux
-
-
-#: How often the workers are looked at while a result is awaited [s].
-_WORKER_POLL = 0.25
-
-
-def _worker_death(pid: int | None, code: int) -> str:
-    """What to tell a user whose worker process ``pid`` ended with ``code``."""
-    if code < 0:
-        try:
-            how = f"killed by {signal.Signals(-code).name}"
-        except ValueError:
-            how = f"killed by signal {-code}"
-    else:
-        how = f"exit status {code}"
-    hint = "; out of memory? Fewer workers or fewer targets at once need less" if code == -9 else ""
-    return f"worker process {pid} died ({how}) before returning its result{hint}"
-
-
-def _worker_signals() -> None:
-    """In a worker: Ctrl-C and hang-ups are the parent's to handle, SIGTERM ends it.
-
-    The parent stops the pool on an interrupt (:func:`_run_backend`); a worker
-    that raised KeyboardInterrupt itself would print a traceback and leave
-    ``pool.map`` waiting for a result that never comes.
-    """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if hasattr(signal, "SIGHUP"):
-        signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> dict[str, Any]:
-    targets, seeds = args
-    st = _FORK_STATE
-    return st["solve"](
-        st["robot"],
-        targets,
-        seeds=seeds,
-        validator=st["validator"],
-        return_all=st["return_all"],
-        **st["kwargs"],
-    )
-
-
-def _run_backend(
-    solve: Callable[..., dict[str, Any]],
-    robot: Robot,
-    targets: np.ndarray,
-    seeds: np.ndarray | None,
-    validator: Validator | None,
-    return_all: bool,
-    workers: int,
-    kwargs: dict[str, Any],
-) -> dict[str, Any]:
-    n = targets.shape[0]
-    parallel = workers > 1 and n >= 2 * workers and "fork" in mp.get_all_start_methods()
-    n_chunks = -(-n // _CHUNK)
-    if parallel:
-        n_chunks = workers * -(-n_chunks // workers)  # a multiple of the workers
-    if not parallel and n_chunks == 1:
-        return solve(
-            robot, targets, seeds=seeds, validator=validator, return_all=return_all, **kwargs
-        )
-    bounds = np.linspace(0, n, n_chunks + 1).astype(int)
-    chunks = [
-        (targets[a:b], None if seeds is None else seeds[a:b])
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-    ]
-    if parallel:
-        pool = _pool(solve, robot, validator, return_all, workers, kwargs, targets[:1])
-        try:
-            parts = list(pool.ordered(_worker, chunks))
-        except BaseException:  # Ctrl-C, SIGTERM: stop the workers, no half-done pool
-            _close_pool()
-            raise
-    else:
-        parts = [
-            solve(robot, t, seeds=s, validator=validator, return_all=return_all, **kwargs)
-            for t, s in chunks
-        ]
-    out: dict[str, Any] = {}
-    for key in ("q", "success", "pos_err", "rot_err", "reason"):
-        out[key] = np.concatenate([p[key] for p in parts])
-    if return_all:
-        out["all_index"] = np.concatenate(
-            [p["all_index"] + a for p, a in zip(parts, bounds[:-1], strict=False)]
-        )
-        out["all_q"] = np.concatenate([p["all_q"] for p in parts])
-        out["all_reason"] = np.concatenate([p["all_reason"] for p in parts])
-    return out
-
-
 def solve_ik(
     robot: Robot | str,
     targets: Any,
@@ -467,8 +319,8 @@ def solve_ik(
         workers: Processes to split the targets over (``"auto"`` or ``0``: the
             cores this process may run on).
         **options: Backend options, e.g. ``max_iterations`` (see
-            :class:`~gcm_pipeline.robot.ik_pinocchio.PinocchioIKOptions` and
-            :class:`~gcm_pipeline.robot.ik_mink.MinkIKOptions`).
+            :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` and
+            :class:`~gcm_pipeline.robot.ik.mink_backend.MinkIKOptions`).
 
     Returns:
         The :class:`IKResult`; every success verified by Pinocchio FK.
@@ -488,7 +340,7 @@ def solve_ik(
         workers == "auto" or (isinstance(workers, (int, np.integer)) and workers >= 0)
     ):
         raise InputError(f"workers must be 'auto' or an int >= 0 (0: all cores), got {workers!r}")
-    processes = int(workers) if workers not in ("auto", 0) else _cores()
+    processes = int(workers) if workers not in ("auto", 0) else cores()
     seed_arr: np.ndarray | None = None
     if seeds is not None:
         seed_arr = np.asarray(seeds, dtype=float)
@@ -540,7 +392,7 @@ def solve_ik(
             ref = nb[rows]
             warm = np.where((ref >= 0)[:, :, None], q[np.clip(ref, 0, None)], np.nan)
             sub_seeds = warm if sub_seeds is None else np.concatenate([warm, sub_seeds], axis=1)
-        raw = _run_backend(
+        raw = run_backend(
             solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
         )
         ok = np.asarray(raw["success"], dtype=bool)

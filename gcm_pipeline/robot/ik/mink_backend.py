@@ -1,6 +1,7 @@
 """Second IK backend: mink's differential IK on a MuJoCo model of the same URDF.
 
-This is the only module that imports ``mink`` and ``mujoco``. The MuJoCo model
+This is the only module that imports ``mink`` and ``mujoco``, on first use
+(:func:`_libraries`): importing the package does not load them. The MuJoCo model
 is compiled from the robot's example-robot-data URDF: the ``<robot>`` element
 gets ``<mujoco><compiler fusestatic="false" .../></mujoco>`` so fixed links such
 as ``panda_hand_tcp`` stay bodies, ``package://`` mesh paths become absolute,
@@ -26,20 +27,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import mink
-import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, RobotSpecError, unknown_choice
-from gcm_pipeline.robot.ik_pinocchio import (
-    PinocchioIKOptions,
-    restart_seeds,
-    rotation_angle,
-    seed_library,
-)
+from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, rotation_angle
+from gcm_pipeline.robot.ik.seeds import restart_seeds, seed_library
 
 __all__ = ["MinkIKOptions", "mujoco_model", "solve"]
+
+
+def _libraries() -> tuple[Any, Any]:
+    """The ``mink`` and ``mujoco`` modules, imported on first use (heavy, optional)."""
+    import mink
+    import mujoco
+
+    return mink, mujoco
 
 
 @dataclass(frozen=True)
@@ -163,6 +166,7 @@ def mujoco_model(robot: Any) -> tuple[Any, np.ndarray]:
     cached = robot.cache.get("mujoco_model")
     if cached is not None:
         return cached
+    _, mujoco = _libraries()
     try:
         model = mujoco.MjModel.from_xml_string(_urdf_for_mujoco(robot))
     except ValueError as exc:
@@ -210,9 +214,11 @@ def solve(
         **options: :class:`MinkIKOptions` fields.
 
     Returns:
-        Same dict as :func:`gcm_pipeline.robot.ik_pinocchio.solve`.
+        Same dict as :func:`gcm_pipeline.robot.ik.pinocchio_backend.solve`
+        (:class:`~gcm_pipeline.robot.ik.backend.IKBackend`).
     """
     opts = MinkIKOptions.from_kwargs(options)
+    mink, _ = _libraries()
     model, qidx = mujoco_model(robot)
     n, nq = targets.shape[0], robot.nq
     configuration = mink.Configuration(model)

@@ -336,29 +336,9 @@ def solve_ik(
     tol_r = _tolerance("orientation_tolerance", orientation_tolerance)
     tgt = check_targets(targets)
     n, nq = tgt.shape[0], robot.nq
-    if isinstance(workers, bool) or not (
-        workers == "auto" or (isinstance(workers, (int, np.integer)) and workers >= 0)
-    ):
-        raise InputError(f"workers must be 'auto' or an int >= 0 (0: all cores), got {workers!r}")
-    processes = int(workers) if workers not in ("auto", 0) else cores()
-    seed_arr: np.ndarray | None = None
-    if seeds is not None:
-        seed_arr = np.asarray(seeds, dtype=float)
-        if seed_arr.ndim == 2:
-            seed_arr = seed_arr[:, None, :]
-        if seed_arr.ndim != 3 or seed_arr.shape[0] != n or seed_arr.shape[2] != nq:
-            raise InputError(f"seeds must have shape ({n}, K, {nq}), got {np.shape(seeds)}")
-    nb: np.ndarray | None = None
-    if neighbours is not None:
-        nb = np.asarray(neighbours)
-        if nb.ndim == 1:
-            nb = nb[:, None]
-        if nb.ndim != 2 or nb.shape[0] != n or not np.issubdtype(nb.dtype, np.integer):
-            raise InputError(
-                f"neighbours must be an int array of shape ({n}, K), got {np.shape(neighbours)}"
-            )
-        if np.any((nb < -1) | (nb >= n)):
-            raise InputError(f"neighbours must be row ids in [-1, {n - 1}]")
+    processes = _processes(workers)
+    seed_arr = _check_seeds(seeds, n, nq)
+    nb = _check_neighbours(neighbours, n)
     kwargs = dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
 
     q = np.full((n, nq), np.nan)
@@ -368,13 +348,7 @@ def solve_ik(
     reason = np.full(n, "", dtype=object)
     cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
-    # cheap pre-filter: beyond the arm's reach from the shoulder, and for the Panda's
-    # kinematics where no elbow angle puts the wrist at the distance the target asks
-    dist = np.linalg.norm(tgt[:, :3, 3] - robot.shoulder, axis=1)
-    far = dist > robot.max_reach + tol_p
-    solver = analytic_solver(robot)
-    if solver is not None and n:
-        far |= solver.unreachable(tgt[:, :3, :3], tgt[:, :3, 3], tol_p, tol_r)
+    far = _out_of_reach(robot, tgt, tol_p, tol_r)
     reason[far] = "out_of_reach"
 
     phases: list[np.ndarray]
@@ -395,12 +369,7 @@ def solve_ik(
         raw = run_backend(
             solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
         )
-        ok = np.asarray(raw["success"], dtype=bool)
-        q_rows = np.asarray(raw["q"], dtype=float)
-        # independent verification of every success by Pinocchio FK + joint limits
-        pe, re, inside = verify_solutions(robot, q_rows[ok], tgt[rows][ok])
-        good = np.zeros(rows.size, dtype=bool)
-        good[ok] = (pe <= tol_p) & (re <= tol_r) & inside
+        ok, good, q_rows, pe, re = _verify(robot, tgt[rows], raw, tol_p, tol_r)
         pos_err[rows] = raw["pos_err"]
         rot_err[rows] = raw["rot_err"]
         pos_err[rows[ok]] = pe
@@ -412,16 +381,6 @@ def solve_ik(
         reason[rows[good]] = ""
         if return_all:
             cand.append((rows[raw["all_index"]], raw["all_q"], raw["all_reason"]))
-    candidates = None
-    if return_all:
-        if cand:
-            index = np.concatenate([c[0] for c in cand]).astype(int)
-            cq = np.concatenate([c[1] for c in cand]).reshape(-1, nq)
-            creason = np.concatenate([c[2] for c in cand]).astype(str)
-        else:
-            index, cq, creason = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
-        order = np.argsort(index, kind="stable")
-        candidates = IKCandidates(index[order], cq[order], creason[order])
     return IKResult(
         q=q,
         success=success,
@@ -429,5 +388,88 @@ def solve_ik(
         rot_err=rot_err,
         reason=reason.astype(str),
         backend=backend,
-        candidates=candidates,
+        candidates=_gather_candidates(cand, nq) if return_all else None,
     )
+
+
+def _processes(workers: Any) -> int:
+    """Worker processes of ``workers`` (``"auto"`` or 0: the usable cores)."""
+    if isinstance(workers, bool) or not (
+        workers == "auto" or (isinstance(workers, (int, np.integer)) and workers >= 0)
+    ):
+        raise InputError(f"workers must be 'auto' or an int >= 0 (0: all cores), got {workers!r}")
+    return int(workers) if workers not in ("auto", 0) else cores()
+
+
+def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:
+    """Warm starts as (n, K, nq) floats; one per target may come as (n, nq)."""
+    if seeds is None:
+        return None
+    seed_arr = np.asarray(seeds, dtype=float)
+    if seed_arr.ndim == 2:
+        seed_arr = seed_arr[:, None, :]
+    if seed_arr.ndim != 3 or seed_arr.shape[0] != n or seed_arr.shape[2] != nq:
+        raise InputError(f"seeds must have shape ({n}, K, {nq}), got {np.shape(seeds)}")
+    return seed_arr
+
+
+def _check_neighbours(neighbours: Any, n: int) -> np.ndarray | None:
+    """Neighbour rows as (n, K) ints in [-1, n - 1]; one per target may come as (n,)."""
+    if neighbours is None:
+        return None
+    nb = np.asarray(neighbours)
+    if nb.ndim == 1:
+        nb = nb[:, None]
+    if nb.ndim != 2 or nb.shape[0] != n or not np.issubdtype(nb.dtype, np.integer):
+        raise InputError(
+            f"neighbours must be an int array of shape ({n}, K), got {np.shape(neighbours)}"
+        )
+    if np.any((nb < -1) | (nb >= n)):
+        raise InputError(f"neighbours must be row ids in [-1, {n - 1}]")
+    return nb
+
+
+def _gather_candidates(
+    cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]], nq: int
+) -> IKCandidates:
+    """The candidates of every phase, in target order (stable)."""
+    if cand:
+        index = np.concatenate([c[0] for c in cand]).astype(int)
+        cq = np.concatenate([c[1] for c in cand]).reshape(-1, nq)
+        creason = np.concatenate([c[2] for c in cand]).astype(str)
+    else:
+        index, cq, creason = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
+    order = np.argsort(index, kind="stable")
+    return IKCandidates(index[order], cq[order], creason[order])
+
+
+def _out_of_reach(robot: Robot, tgt: np.ndarray, tol_p: float, tol_r: float) -> np.ndarray:
+    """Targets (N,) bool that no configuration reaches, by a cheap test.
+
+    Beyond the arm's reach from the shoulder, and for the Panda's kinematics
+    where no elbow angle puts the wrist at the distance the target asks.
+    """
+    dist = np.linalg.norm(tgt[:, :3, 3] - robot.shoulder, axis=1)
+    far = dist > robot.max_reach + tol_p
+    solver = analytic_solver(robot)
+    if solver is not None and tgt.shape[0]:
+        far |= solver.unreachable(tgt[:, :3, :3], tgt[:, :3, 3], tol_p, tol_r)
+    return far
+
+
+def _verify(
+    robot: Robot, tgt: np.ndarray, raw: dict[str, Any], tol_p: float, tol_r: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Independent verification of a backend's successes by Pinocchio FK + joint limits.
+
+    Returns:
+        ``(ok, good, q, pos_err, rot_err)``: the backend's successes (M,), those
+        verified (M,), its configurations (M, nq) [rad], and the verified
+        errors of the successes (count of ``ok``,) [m], [rad].
+    """
+    ok = np.asarray(raw["success"], dtype=bool)
+    q_rows = np.asarray(raw["q"], dtype=float)
+    pe, re, inside = verify_solutions(robot, q_rows[ok], tgt[ok])
+    good = np.zeros(ok.size, dtype=bool)
+    good[ok] = (pe <= tol_p) & (re <= tol_r) & inside
+    return ok, good, q_rows, pe, re

@@ -252,15 +252,9 @@ def solve(
     for i in range(n):
         task.set_target(mink.SE3.from_matrix(targets[i]))
         trot, tpos = targets[i, :3, :3], targets[i, :3, 3]
-        cands: list[np.ndarray] = []
-        if seeds is not None:
-            cands += [s for s in seeds[i] if np.all(np.isfinite(s))]
-        cands += [lib.q[j] for j in nearest[i]]
-        if opts.home_seed:
-            cands.append(np.asarray(robot.home))
-        cands += list(restarts)
         n_valid = 0
-        for q0 in cands:
+        given = None if seeds is None else seeds[i]
+        for q0 in _seed_list(given, lib.q[nearest[i]], robot.home, opts.home_seed, restarts):
             qpos[qidx] = np.clip(q0, robot.lower, robot.upper)
             configuration.update(qpos)
             for _ in range(opts.max_iterations + 1):
@@ -305,7 +299,34 @@ def solve(
         "reason": reason,
     }
     if return_all:
-        out["all_index"] = np.array(all_index, dtype=int)
-        out["all_q"] = np.array(all_q).reshape(-1, nq)
-        out["all_reason"] = np.array(all_reason, dtype=object)
+        out.update(_all_candidates(all_index, all_q, all_reason, nq))
     return out
+
+
+def _seed_list(
+    given: np.ndarray | None,
+    library: np.ndarray,
+    home: Any,
+    home_seed: bool,
+    restarts: np.ndarray,
+) -> list[np.ndarray]:
+    """One target's seeds in order: finite given ones, library neighbours, home, restarts."""
+    cands: list[np.ndarray] = []
+    if given is not None:
+        cands += [s for s in given if np.all(np.isfinite(s))]
+    cands += list(library)
+    if home_seed:
+        cands.append(np.asarray(home))
+    cands += list(restarts)
+    return cands
+
+
+def _all_candidates(
+    all_index: list[int], all_q: list[np.ndarray], all_reason: list[str], nq: int
+) -> dict[str, np.ndarray]:
+    """The ``all_*`` arrays of the raw answer (``return_all``)."""
+    return {
+        "all_index": np.array(all_index, dtype=int),
+        "all_q": np.array(all_q).reshape(-1, nq),
+        "all_reason": np.array(all_reason, dtype=object),
+    }

@@ -210,6 +210,8 @@ class PandaAnalyticIK:
         )
         return (farthest < near - slack) | (closest > far + slack)
 
+    # one derivation in order (elbow, swivel, shoulder, wrist), each step's arrays feeding the
+    # next: cut into functions it would pass a dozen arrays around (reason for > 100 lines)
     def solve(
         self,
         rot: np.ndarray,

@@ -117,9 +117,17 @@ def solve(
     if opts.manipulability_steps > 0 and np.any(success):
         ids = np.flatnonzero(success)
         tally.best_q[ids] = raise_manipulability(
-            ctx.chain, tally.best_q[ids], ctx.trot[ids], ctx.tpos[ids], ctx.lower, ctx.upper,
-            ctx.tol_p, ctx.tol_r, opts, validator,
-        )  # fmt: skip
+            ctx.chain,
+            tally.best_q[ids],
+            ctx.trot[ids],
+            ctx.tpos[ids],
+            ctx.lower,
+            ctx.upper,
+            ctx.tol_p,
+            ctx.tol_r,
+            opts,
+            validator,
+        )
     reason = _diagnose_failures(ctx, success)
     out: dict[str, Any] = {
         "q": tally.best_q,
@@ -219,9 +227,16 @@ def _nearer_from_seeds(ctx: SolveContext, has: np.ndarray, pref: np.ndarray) -> 
     if not far.size:
         return
     qf, conv, pe, re = levenberg_marquardt(
-        ctx.chain, pref[far], ctx.trot[far], ctx.tpos[far], ctx.lower, ctx.upper,
-        ctx.tol_p, ctx.tol_r, ctx.opts,
-    )  # fmt: skip
+        ctx.chain,
+        pref[far],
+        ctx.trot[far],
+        ctx.tpos[far],
+        ctx.lower,
+        ctx.upper,
+        ctx.tol_p,
+        ctx.tol_r,
+        ctx.opts,
+    )
     nearer = conv & (np.max(np.abs(qf - pref[far]), axis=1) < jump[far])
     ids, qf, pe, re = far[nearer], qf[nearer], pe[nearer], re[nearer]
     if ids.size:
@@ -260,9 +275,17 @@ def _diagnose_failures(ctx: SolveContext, success: np.ndarray) -> np.ndarray:
     if not plain.size:
         return reason
     qf, conv, pe, re = levenberg_marquardt(
-        ctx.chain, start[ok], ctx.trot[plain], ctx.tpos[plain], lower, upper,
-        ctx.tol_p, ctx.tol_r, opts, clamp=False,
-    )  # fmt: skip
+        ctx.chain,
+        start[ok],
+        ctx.trot[plain],
+        ctx.tpos[plain],
+        lower,
+        upper,
+        ctx.tol_p,
+        ctx.tol_r,
+        opts,
+        clamp=False,
+    )
     inside = conv & np.all((qf >= lower) & (qf <= upper), axis=1)
     if np.any(inside):
         # the unclamped run found a solution inside the limits after all

@@ -209,9 +209,16 @@ def lm_rounds(
         if ids.size == 0:
             continue
         q, conv, pe, re = levenberg_marquardt(
-            ctx.chain, q0, ctx.trot[ids], ctx.tpos[ids], ctx.lower, ctx.upper,
-            ctx.tol_p, ctx.tol_r, run_opts,
-        )  # fmt: skip
+            ctx.chain,
+            q0,
+            ctx.trot[ids],
+            ctx.tpos[ids],
+            ctx.lower,
+            ctx.upper,
+            ctx.tol_p,
+            ctx.tol_r,
+            run_opts,
+        )
         _keep_best_attempts(ctx, ids, q, pe, re)
         if np.any(conv):
             tally.accept(ids[conv], q[conv], -cols[conv].astype(float))

@@ -2,7 +2,8 @@
 
 * :mod:`~gcm_pipeline.robot.ik.backend`: :func:`solve_ik` (validation, the
   reach pre-filter, backend dispatch, verification by Pinocchio FK), the
-  :class:`IKBackend` protocol and the typed :class:`IKResult`;
+  :class:`IKBackend` protocol (raw answers: :class:`BackendAnswer`) and the
+  typed :class:`IKResult`;
 * :mod:`~gcm_pipeline.robot.ik.pinocchio_backend`: the default backend, in
   stages: closed forms (:mod:`~gcm_pipeline.robot.ik.panda`,
   :mod:`~gcm_pipeline.robot.ik.panda_rounds`,
@@ -13,6 +14,7 @@
 * :mod:`~gcm_pipeline.robot.ik.pool`: the fork pool the targets are split over.
 """
 
+from gcm_pipeline.robot.ik.answer import BackendAnswer
 from gcm_pipeline.robot.ik.backend import (
     BACKENDS,
     IK_REASONS,
@@ -30,6 +32,7 @@ from gcm_pipeline.robot.ik.mink_backend import MinkIKOptions
 
 __all__ = [
     "BACKENDS",
+    "BackendAnswer",
     "IK_REASONS",
     "IKBackend",
     "IKCandidates",

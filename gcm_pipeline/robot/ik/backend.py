@@ -45,6 +45,7 @@ import numpy as np
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.ik import mink_backend, pinocchio_backend
+from gcm_pipeline.robot.ik.answer import BackendAnswer
 from gcm_pipeline.robot.ik.lm import rotation_angle
 from gcm_pipeline.robot.ik.panda import analytic_solver
 from gcm_pipeline.robot.ik.pool import cores, run_backend
@@ -86,10 +87,8 @@ class IKBackend(Protocol):
         **options: The backend's own options (unknown names: :class:`InputError`).
 
     Returns:
-        A dict with ``q`` (N, nq) [rad] (NaN if none), ``success`` (N,) bool,
-        ``pos_err`` [m] and ``rot_err`` [rad] (N,) of the chosen or best
-        attempt, ``reason`` (N,) and, with ``return_all``, ``all_index`` (M,),
-        ``all_q`` (M, nq) and ``all_reason`` (M,).
+        The :class:`~gcm_pipeline.robot.ik.answer.BackendAnswer` (with the
+        ``all_*`` candidates when ``return_all``).
     """
 
     def __call__(
@@ -103,7 +102,7 @@ class IKBackend(Protocol):
         validator: Validator | None = None,
         return_all: bool = False,
         **options: Any,
-    ) -> dict[str, Any]:
+    ) -> BackendAnswer:
         """Raw answers for ``targets`` (see the class docstring)."""
         ...
 
@@ -370,17 +369,19 @@ def solve_ik(
             solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
         )
         ok, good, q_rows, pe, re = _verify(robot, tgt[rows], raw, tol_p, tol_r)
-        pos_err[rows] = raw["pos_err"]
-        rot_err[rows] = raw["rot_err"]
+        pos_err[rows] = raw.pos_err
+        rot_err[rows] = raw.rot_err
         pos_err[rows[ok]] = pe
         rot_err[rows[ok]] = re
         success[rows] = good
         q[rows[good]] = q_rows[good]
-        reason[rows] = np.asarray(raw["reason"], dtype=object)
+        reason[rows] = np.asarray(raw.reason, dtype=object)
         reason[rows[ok & ~good]] = "verification_failed"
         reason[rows[good]] = ""
         if return_all:
-            cand.append((rows[raw["all_index"]], raw["all_q"], raw["all_reason"]))
+            assert raw.all_index is not None and raw.all_q is not None
+            assert raw.all_reason is not None
+            cand.append((rows[raw.all_index], raw.all_q, raw.all_reason))
     return IKResult(
         q=q,
         success=success,
@@ -458,7 +459,7 @@ def _out_of_reach(robot: Robot, tgt: np.ndarray, tol_p: float, tol_r: float) -> 
 
 
 def _verify(
-    robot: Robot, tgt: np.ndarray, raw: dict[str, Any], tol_p: float, tol_r: float
+    robot: Robot, tgt: np.ndarray, raw: BackendAnswer, tol_p: float, tol_r: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Independent verification of a backend's successes by Pinocchio FK + joint limits.
 
@@ -467,8 +468,8 @@ def _verify(
         verified (M,), its configurations (M, nq) [rad], and the verified
         errors of the successes (count of ``ok``,) [m], [rad].
     """
-    ok = np.asarray(raw["success"], dtype=bool)
-    q_rows = np.asarray(raw["q"], dtype=float)
+    ok = np.asarray(raw.success, dtype=bool)
+    q_rows = np.asarray(raw.q, dtype=float)
     pe, re, inside = verify_solutions(robot, q_rows[ok], tgt[ok])
     good = np.zeros(ok.size, dtype=bool)
     good[ok] = (pe <= tol_p) & (re <= tol_r) & inside

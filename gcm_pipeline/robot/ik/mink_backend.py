@@ -31,6 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, RobotSpecError, unknown_choice
+from gcm_pipeline.robot.ik.answer import BackendAnswer
 from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, rotation_angle
 from gcm_pipeline.robot.ik.seeds import restart_seeds, seed_library
 
@@ -200,7 +201,7 @@ def solve(
     validator: Callable[[np.ndarray], np.ndarray] | None = None,
     return_all: bool = False,
     **options: Any,
-) -> dict[str, Any]:
+) -> BackendAnswer:
     """Solve IK target by target with mink (raw, unverified results).
 
     Args:
@@ -214,7 +215,7 @@ def solve(
         **options: :class:`MinkIKOptions` fields.
 
     Returns:
-        Same dict as :func:`gcm_pipeline.robot.ik.pinocchio_backend.solve`
+        The raw answer, as :func:`gcm_pipeline.robot.ik.pinocchio_backend.solve`'s
         (:class:`~gcm_pipeline.robot.ik.backend.IKBackend`).
     """
     opts = MinkIKOptions.from_kwargs(options)
@@ -291,16 +292,18 @@ def solve(
             n_valid += 1
             if n_valid >= opts.min_solutions:
                 break
-    out: dict[str, Any] = {
-        "q": out_q,
-        "success": success,
-        "pos_err": pos_err,
-        "rot_err": rot_err,
-        "reason": reason,
-    }
-    if return_all:
-        out.update(_all_candidates(all_index, all_q, all_reason, nq))
-    return out
+    if not return_all:
+        return BackendAnswer(out_q, success, pos_err, rot_err, reason)
+    return BackendAnswer(
+        out_q,
+        success,
+        pos_err,
+        rot_err,
+        reason,
+        all_index=np.array(all_index, dtype=int),
+        all_q=np.array(all_q).reshape(-1, nq),
+        all_reason=np.array(all_reason, dtype=object),
+    )
 
 
 def _seed_list(
@@ -319,14 +322,3 @@ def _seed_list(
         cands.append(np.asarray(home))
     cands += list(restarts)
     return cands
-
-
-def _all_candidates(
-    all_index: list[int], all_q: list[np.ndarray], all_reason: list[str], nq: int
-) -> dict[str, np.ndarray]:
-    """The ``all_*`` arrays of the raw answer (``return_all``)."""
-    return {
-        "all_index": np.array(all_index, dtype=int),
-        "all_q": np.array(all_q).reshape(-1, nq),
-        "all_reason": np.array(all_reason, dtype=object),
-    }

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.robot.ik.analytic_6r import six_r_solver, six_round
+from gcm_pipeline.robot.ik.answer import BackendAnswer
 from gcm_pipeline.robot.ik.candidates import SolveContext, Tally
 from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt, raise_manipulability
 from gcm_pipeline.robot.ik.panda import analytic_solver
@@ -72,7 +73,7 @@ def solve(
     validator: Callable[[np.ndarray], np.ndarray] | None = None,
     return_all: bool = False,
     **options: Any,
-) -> dict[str, Any]:
+) -> BackendAnswer:
     """Solve IK for targets with the batched LM (raw, unverified results).
 
     Args:
@@ -87,9 +88,10 @@ def solve(
         **options: :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` fields.
 
     Returns:
-        A dict with ``q`` (N, nq) (NaN if none), ``success`` (N,), ``pos_err``,
-        ``rot_err`` (N,) of the chosen or best attempt, ``reason`` (N,) and,
-        with ``return_all``, ``all_index``, ``all_q``, ``all_reason``.
+        The :class:`~gcm_pipeline.robot.ik.answer.BackendAnswer`: ``q`` (N, nq)
+        (NaN if none), ``success`` (N,), ``pos_err``, ``rot_err`` (N,) of the
+        chosen or best attempt, ``reason`` (N,) and, with ``return_all``,
+        ``all_index``, ``all_q``, ``all_reason``.
     """
     opts = PinocchioIKOptions.from_kwargs(options)
     ctx = _context(
@@ -129,21 +131,21 @@ def solve(
             validator,
         )
     reason = _diagnose_failures(ctx, success)
-    out: dict[str, Any] = {
-        "q": tally.best_q,
-        "success": success,
-        "pos_err": tally.att_p,
-        "rot_err": tally.att_r,
-        "reason": reason,
-    }
-    if return_all:
-        nq = robot.nq
-        out["all_index"] = np.concatenate(tally.all_index) if tally.all_index else np.zeros(0, int)
-        out["all_q"] = np.concatenate(tally.all_q) if tally.all_q else np.zeros((0, nq))
-        out["all_reason"] = (
+    if not return_all:
+        return BackendAnswer(tally.best_q, success, tally.att_p, tally.att_r, reason)
+    nq = robot.nq
+    return BackendAnswer(
+        tally.best_q,
+        success,
+        tally.att_p,
+        tally.att_r,
+        reason,
+        all_index=np.concatenate(tally.all_index) if tally.all_index else np.zeros(0, int),
+        all_q=np.concatenate(tally.all_q) if tally.all_q else np.zeros((0, nq)),
+        all_reason=(
             np.concatenate(tally.all_reason) if tally.all_reason else np.zeros(0, dtype=object)
-        )
-    return out
+        ),
+    )
 
 
 def _context(

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import WorkerLostError
+from gcm_pipeline.robot.ik.answer import BackendAnswer
 from gcm_pipeline.robot.model import Robot
 
 __all__ = ["ForkPool", "cores", "run_backend", "worker_signals"]
@@ -46,7 +47,7 @@ def _close_pool() -> None:
 
 
 def _pool(
-    solve: Callable[..., dict[str, Any]],
+    solve: Callable[..., BackendAnswer],
     robot: Robot,
     validator: Callable[[np.ndarray], Any] | None,
     return_all: bool,
@@ -158,7 +159,7 @@ def worker_signals() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> dict[str, Any]:
+def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> BackendAnswer:
     targets, seeds = args
     st = _FORK_STATE
     return st["solve"](
@@ -172,7 +173,7 @@ def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> dict[str, Any]:
 
 
 def run_backend(
-    solve: Callable[..., dict[str, Any]],
+    solve: Callable[..., BackendAnswer],
     robot: Robot,
     targets: np.ndarray,
     seeds: np.ndarray | None,
@@ -180,7 +181,7 @@ def run_backend(
     return_all: bool,
     workers: int,
     kwargs: dict[str, Any],
-) -> dict[str, Any]:
+) -> BackendAnswer:
     """The raw answer of backend ``solve`` for ``targets``, in chunks, over ``workers``.
 
     Chunks of at most 16,384 targets (a multiple of the workers when they run
@@ -214,13 +215,4 @@ def run_backend(
             solve(robot, t, seeds=s, validator=validator, return_all=return_all, **kwargs)
             for t, s in chunks
         ]
-    out: dict[str, Any] = {}
-    for key in ("q", "success", "pos_err", "rot_err", "reason"):
-        out[key] = np.concatenate([p[key] for p in parts])
-    if return_all:
-        out["all_index"] = np.concatenate(
-            [p["all_index"] + a for p, a in zip(parts, bounds[:-1], strict=False)]
-        )
-        out["all_q"] = np.concatenate([p["all_q"] for p in parts])
-        out["all_reason"] = np.concatenate([p["all_reason"] for p in parts])
-    return out
+    return BackendAnswer.concatenate(parts, list(bounds[:-1]), return_all)

@@ -62,7 +62,7 @@ from gcm_pipeline import pipeline as P  # noqa: E402
 from gcm_pipeline.config import load_config  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_to_matrix  # noqa: E402
 from gcm_pipeline.pipeline import make_checker  # noqa: E402
-from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm  # noqa: E402
+from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt  # noqa: E402
 from gcm_pipeline.robot.model import Robot  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
@@ -137,7 +137,7 @@ def reference_branches(
     q0 = rng.uniform(lower, upper, size=(n * starts, nq))
     rep = np.repeat(np.arange(n), starts)
     opts = PinocchioIKOptions(max_iterations=60, stall_ratio=0.0)
-    q_lm, conv, _, _ = _lm(
+    q_lm, conv, _, _ = levenberg_marquardt(
         robot.chain,
         q0,
         targets[rep, :3, :3],

@@ -9,12 +9,11 @@ from poses import backward_poses
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot import ik_pinocchio
-from gcm_pipeline.robot.analytic import PandaAnalyticIK
 from gcm_pipeline.robot.approach import _end_of_move
 from gcm_pipeline.robot.chain import KinematicChain
-from gcm_pipeline.robot.ik import solve_ik, verify_solutions
-from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, analytic_solver
+from gcm_pipeline.robot.ik import PinocchioIKOptions, solve_ik, verify_solutions
+from gcm_pipeline.robot.ik import panda as panda_ik
+from gcm_pipeline.robot.ik.panda import PandaAnalyticIK, analytic_solver
 from gcm_pipeline.robot.model import Robot
 
 TOL_P, TOL_R = 1e-4, 1e-3
@@ -256,7 +255,7 @@ def test_joint7_outside_its_limits_gives_nothing_and_blocks_change_nothing(
     assert at.size == 0
     targets = panda.fk_pinocchio(q)
     whole = solve_ik(panda, targets)
-    monkeypatch.setattr(ik_pinocchio, "_ANALYTIC_ROWS", 7)  # blocks of one target
+    monkeypatch.setattr(panda_ik, "_ANALYTIC_ROWS", 7)  # blocks of one target
     blocks = solve_ik(panda, targets)
     np.testing.assert_array_equal(whole.q, blocks.q)
 

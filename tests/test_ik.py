@@ -205,7 +205,7 @@ def test_null_space_steps_raise_manipulability(panda: Robot):
 def test_log3_and_rotation_angle_match_scipy_near_zero_and_pi():
     from scipy.spatial.transform import Rotation
 
-    from gcm_pipeline.robot.ik_pinocchio import log3, rotation_angle
+    from gcm_pipeline.robot.ik.lm import log3, rotation_angle
 
     rng = np.random.default_rng(0)
     axes = rng.normal(size=(200, 3))

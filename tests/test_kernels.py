@@ -468,14 +468,14 @@ def test_lm_kernel_equals_numpy(monkeypatch, compiled, panda, clamp):
     amplified at a threshold moves an answer; a different step rule moves
     most). Never q to the last bits.
     """
-    from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm
+    from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt
 
     seeds, rot, pos = _near_targets(panda, 3000, 11)
     tol_p, tol_r = 1e-6, 1e-5
     for opts in (PinocchioIKOptions(), PinocchioIKOptions(stall_ratio=0.0, max_iterations=6)):
         args = (panda.chain, seeds, rot, pos, panda.lower, panda.upper, tol_p, tol_r, opts, clamp)
-        q, conv, pe, re = _lm(*args)
-        q_ref, conv_ref, pe_ref, re_ref = _numpy(monkeypatch, _lm, *args)
+        q, conv, pe, re = levenberg_marquardt(*args)
+        q_ref, conv_ref, pe_ref, re_ref = _numpy(monkeypatch, levenberg_marquardt, *args)
         assert 0.3 < conv_ref.mean() < 0.97  # converged and failed rows both tested
         assert (conv != conv_ref).sum() <= _FLIP_SHARE * len(conv)
         # every answer: its error as Pinocchio computes it, within the tolerances if converged
@@ -497,8 +497,8 @@ def test_lm_kernel_equals_numpy(monkeypatch, compiled, panda, clamp):
     q0 = panda.random_configurations(1, 3)
     r0, p0 = panda.chain.pose(q0)
     one = (panda.chain, q0, r0 @ flip, p0, panda.lower, panda.upper, 1e-6, 1e-5)
-    got = _lm(*one, PinocchioIKOptions(max_iterations=0))
-    ref = _numpy(monkeypatch, _lm, *one, PinocchioIKOptions(max_iterations=0))
+    got = levenberg_marquardt(*one, PinocchioIKOptions(max_iterations=0))
+    ref = _numpy(monkeypatch, levenberg_marquardt, *one, PinocchioIKOptions(max_iterations=0))
     assert got[3][0] == pytest.approx(np.pi) and ref[3][0] == pytest.approx(np.pi)
 
 
@@ -549,7 +549,7 @@ def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject)
 
 @pytest.mark.parametrize("near", [False, True])
 def test_closed_form_kernel_equals_numpy(monkeypatch, compiled, panda, near):
-    from gcm_pipeline.robot.ik_pinocchio import analytic_solver
+    from gcm_pipeline.robot.ik.panda import analytic_solver
 
     solver = analytic_solver(panda)
     rng = np.random.default_rng(13)
@@ -619,7 +619,8 @@ def test_reachability_with_and_without_kernels(monkeypatch, compiled):
 
 def test_kernels_never_read_past_mismatched_arrays(monkeypatch, compiled, panda):
     """Shapes the kernels do not expect get the NumPy code (its errors), not stray memory."""
-    from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm, analytic_solver
+    from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt
+    from gcm_pipeline.robot.ik.panda import analytic_solver
 
     q = panda.random_configurations(5, 1)
     with pytest.raises(IndexError):
@@ -634,8 +635,8 @@ def test_kernels_never_read_past_mismatched_arrays(monkeypatch, compiled, panda)
     # an iteration budget far beyond memory: the stall test needs only the last scores
     opts = PinocchioIKOptions(max_iterations=2**40)
     args = (panda.chain, q + 0.1, rot, pos, panda.lower, panda.upper, 1e-6, 1e-5, opts)
-    conv = _lm(*args)[1]
-    assert np.array_equal(conv, _numpy(monkeypatch, _lm, *args)[1])
+    conv = levenberg_marquardt(*args)[1]
+    assert np.array_equal(conv, _numpy(monkeypatch, levenberg_marquardt, *args)[1])
 
 
 # --- every input a NumPy reference takes ------------------------------------------------
@@ -662,7 +663,8 @@ def test_kernels_take_any_layout_dtype_and_row_count(monkeypatch, compiled, n):
     """Zero rows, one row, Fortran order, strides, read-only, float32 or int arrays:
     each kernel (not the NumPy fallback) takes them and answers as the NumPy code."""
     from gcm_pipeline.robot.approach import _segment_bounds, lever_arms
-    from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm, analytic_solver
+    from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt
+    from gcm_pipeline.robot.ik.panda import analytic_solver
 
     calls = {}
 
@@ -691,7 +693,10 @@ def test_kernels_take_any_layout_dtype_and_row_count(monkeypatch, compiled, n):
             ):
                 np.testing.assert_allclose(got, want, rtol=0, atol=1e-12, err_msg=layout)
             lm = (robot.chain, q, rot, pos, robot.lower, robot.upper, 1e-6, 1e-5, opts)
-            got, want = _lm(*lm), _numpy(monkeypatch, _lm, robot.chain, qf, *lm[2:])
+            got, want = (
+                levenberg_marquardt(*lm),
+                _numpy(monkeypatch, levenberg_marquardt, robot.chain, qf, *lm[2:]),
+            )
             np.testing.assert_array_equal(got[1], want[1], err_msg=layout)
             seg = (robot, lev, q, qf + 0.05, pos, rot, np.full((n, 3), 0.01), 0.12, 1e-3, np.inf)
             np.testing.assert_allclose(
@@ -702,8 +707,8 @@ def test_kernels_take_any_layout_dtype_and_row_count(monkeypatch, compiled, n):
                 err_msg=layout,
             )
         for layout, r in _layouts(rot).items():  # targets too
-            got = _lm(robot.chain, q0, r, _layouts(pos)[layout], robot.lower, robot.upper,
-                      1e-6, 1e-5, opts)  # fmt: skip
+            got = levenberg_marquardt(robot.chain, q0, r, _layouts(pos)[layout], robot.lower,
+                                      robot.upper, 1e-6, 1e-5, opts)  # fmt: skip
             assert got[0].shape == q0.shape and got[0].dtype == np.float64, layout
     solver = analytic_solver(robots["panda"])
     panda = robots["panda"]

@@ -9,7 +9,7 @@ import pytest
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.ik_pinocchio import log3
+from gcm_pipeline.robot.ik.lm import log3
 from gcm_pipeline.robot.manipulability import (
     METRICS,
     inverse_condition_number,

@@ -272,7 +272,7 @@ def test_worker_pool_terminates_after_a_worker_died_waiting_for_work():
     terminates (the standard one waits for that lock for ever)."""
     import threading
 
-    from gcm_pipeline.robot.ik import ForkPool
+    from gcm_pipeline.robot.ik.pool import ForkPool
 
     pool = ForkPool(1)
     assert pool.apply(abs, (-3,)) == 3  # the worker is up, now idle in get()

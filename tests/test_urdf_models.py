@@ -222,7 +222,7 @@ def test_relative_and_package_meshes_resolve_without_package_dirs(tmp_path):
     )
     assert load_robot(spec).build_geometry("collision").ngeoms == 7
     # the mink backend reads the same resolved URDF (MuJoCo has no package folders)
-    from gcm_pipeline.robot.ik_mink import mujoco_model
+    from gcm_pipeline.robot.ik.mink_backend import mujoco_model
 
     mujoco_model(load_robot(write_arm(tmp_path / "rel", mesh="meshes/w3.stl")))
 

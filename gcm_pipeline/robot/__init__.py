@@ -11,7 +11,7 @@
   translational), inverse condition number, joint-limit margin.
 
 Importing this package does not import mink or MuJoCo (only
-:mod:`~gcm_pipeline.robot.ik_mink` does, when the backend is used).
+:mod:`~gcm_pipeline.robot.ik.mink_backend` does, when the backend is used).
 """
 
 from gcm_pipeline.robot.ik import BACKENDS, IKCandidates, IKResult, solve_ik

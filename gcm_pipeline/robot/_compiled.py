@@ -398,7 +398,7 @@ def _damped_step(jac: Any, e: Any, lam: float, free: Any, a: Any, y: Any, dq: An
 def _pose_error(trot: Any, tpos: Any, tcp: Any, e: Any) -> None:
     """``e`` (6,) = (tpos - position, log3(trot @ rotation^T)) of the tool frame ``tcp`` (3, 4).
 
-    The logarithm as :func:`~gcm_pipeline.robot.ik_pinocchio.log3` computes it.
+    The logarithm as :func:`~gcm_pipeline.robot.ik.lm.log3` computes it.
     """
     for i in range(3):
         e[i] = tpos[i] - tcp[i, 3]
@@ -447,7 +447,7 @@ def levenberg_marquardt(
     q0, trot, tpos, lower, upper, tol_p, tol_r, max_iterations, stall_after, stall_ratio,
     damping, min_damping, clamp, q_index, placement, tool,
 ):  # fmt: skip
-    """:func:`~gcm_pipeline.robot.ik_pinocchio._lm`, one (target, seed) pair at a time.
+    """:func:`~gcm_pipeline.robot.ik.lm.levenberg_marquardt`, one (target, seed) pair at a time.
 
     The same iteration as the NumPy code, which runs it on all pairs at once:
     the pose error (position, log3 of the rotation error), converged when both
@@ -666,7 +666,7 @@ def _wrap(angle: float) -> float:
     error_model="numpy",
 )
 def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims):
-    """:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.solve`, one (target, q7) at a time.
+    """:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.solve`, one (target, q7) at a time.
 
     The same closed form and pruning (see that module); the solutions come out
     in the same order: by target, column of ``q7``, branch.

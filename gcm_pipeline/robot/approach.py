@@ -78,14 +78,11 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.ik import solve_ik, verify_solutions
-from gcm_pipeline.robot.ik_pinocchio import (
-    PinocchioIKOptions,
-    _analytic_blocks,
-    _lm,
-    _pose_errors,
-    analytic_solver,
-)
+from gcm_pipeline.robot.ik import PinocchioIKOptions, solve_ik, verify_solutions
+from gcm_pipeline.robot.ik.lm import levenberg_marquardt as _lm
+from gcm_pipeline.robot.ik.lm import pose_errors as _pose_errors
+from gcm_pipeline.robot.ik.panda import analytic_blocks as _analytic_blocks
+from gcm_pipeline.robot.ik.panda import analytic_solver
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -438,7 +435,7 @@ def unreachable_ends(
 ) -> np.ndarray:
     """Moves whose end no configuration reaches within the IK tolerances, (N,) bool.
 
-    A proof, not a search (:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.unreachable`:
+    A proof, not a search (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.unreachable`:
     the end lies beyond what the elbow's limits let the arm reach, whatever
     joint 7 is); such a move fails whatever configuration it starts from. All
     False for a robot without the Panda's kinematics.

@@ -27,7 +27,7 @@ base frame), in :meth:`ReachabilityEngine.run`:
    solution failed a check, up to ``alternatives`` other distinct solutions
    (more seeds: library, random restarts), each checked as in 2, in seed
    order; the first that passes every check is the answer. A 6R arm with
-   closed-form branches (:mod:`~gcm_pipeline.robot.analytic_6r`) tries
+   closed-form branches (:mod:`~gcm_pipeline.robot.ik.analytic_6r`) tries
    **every** other branch instead, nearest home first, so a branch that
    passes is found whenever one exists. Solutions are distinct modulo 2π on
    joints whose range exceeds a turn (``q + 2π`` is the same arm shape and
@@ -83,19 +83,19 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, wide_joints
 from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
-    ForkPool,
     IKCandidates,
     IKResult,
-    _cores,
-    _worker_signals,
+    PinocchioIKOptions,
     check_targets,
     solve_ik,
     verify_solutions,
 )
-from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, six_r_solver
+from gcm_pipeline.robot.ik.analytic_6r import SixRAnalyticIK, branch_gap, six_r_solver, wide_joints
+from gcm_pipeline.robot.ik.pool import ForkPool
+from gcm_pipeline.robot.ik.pool import cores as _cores
+from gcm_pipeline.robot.ik.pool import worker_signals as _worker_signals
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [

@@ -6,9 +6,9 @@ all of them:
 
 * the batched forward kinematics and Jacobian of a chain
   (:meth:`KinematicChain._forward <gcm_pipeline.robot.chain.KinematicChain>`);
-* the IK's Levenberg-Marquardt iterations (``ik_pinocchio._lm``), per
-  (target, seed) pair;
-* the Panda's closed form (:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.solve`),
+* the IK's Levenberg-Marquardt iterations
+  (:func:`~gcm_pipeline.robot.ik.lm.levenberg_marquardt`), per (target, seed) pair;
+* the Panda's closed form (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.solve`),
   per (target, joint-7 value);
 * the approach's deviation samples along joint segments (``approach._segment_bounds``);
 * levels 1 and 2 of the collision broad phase (one bounding sphere per

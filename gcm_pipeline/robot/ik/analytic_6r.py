@@ -11,7 +11,7 @@ IK solutions per pose, up to 16, found exactly by subproblem decomposition:
 * EAIK knows a decomposition of the chain's axes (``hasKnownDecomposition``);
 * EAIK's forward kinematics equals the chain's at ``checks`` random
   configurations (:meth:`SixRAnalyticIK.for_chain`), like the Panda's closed
-  form (:mod:`~gcm_pipeline.robot.analytic`).
+  form (:mod:`~gcm_pipeline.robot.ik.panda`).
 
 The EAIK robot is built from the loaded chain itself (each joint's frame at
 q = 0 in the base frame, axis z, and the grasp frame), so the tool, a TCP or a
@@ -26,6 +26,9 @@ approximate answers (``is_LS``: least squares where no exact one exists) are
 dropped; the rest are returned unverified: callers verify every answer by
 Pinocchio's forward kinematics and the joint limits, as every IK answer of
 the project is verified.
+
+The default backend's stage for such an arm, :func:`six_round`, offers every
+branch to its targets, nearest the preferred configuration first.
 """
 
 from __future__ import annotations
@@ -34,7 +37,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SixRAnalyticIK", "branch_gap", "wide_joints"]
+from gcm_pipeline.robot.ik.candidates import SolveContext, rank_in_runs
+from gcm_pipeline.robot.ik.lm import pose_errors
+
+__all__ = [
+    "SixRAnalyticIK",
+    "branch_gap",
+    "nearest_copy",
+    "six_r_solver",
+    "six_round",
+    "wide_joints",
+]
 
 #: Two EAIK answers closer than this modulo 2π in every joint are one branch [rad].
 _SAME_BRANCH = 1e-6
@@ -206,3 +219,60 @@ class SixRAnalyticIK:
         q = nearest_copy(q, ref[idx], lower, upper)
         keep = np.all(np.isfinite(q), axis=1)
         return idx[keep], q[keep]
+
+
+def six_r_solver(robot: Any) -> SixRAnalyticIK | None:
+    """The closed-form branch solver (EAIK) of ``robot``'s 6R arm (cached), or None."""
+    key = ("analytic_6r",)
+    if key not in robot.cache:
+        robot.cache[key] = SixRAnalyticIK.for_chain(robot.chain)
+    solver: SixRAnalyticIK | None = robot.cache[key]
+    return solver
+
+
+def six_round(six: SixRAnalyticIK, ctx: SolveContext, pref: np.ndarray) -> np.ndarray:
+    """Every closed-form branch of a 6R arm, nearest the preferred configuration first.
+
+    Each branch comes at its 2 pi copy inside the limits nearest ``pref``
+    (N, nq); per target, as many as it needs (``opts.min_solutions``, at least
+    ``first_round_seeds`` when the best manipulability decides, else 1) in
+    order of distance, verified by the chain's forward kinematics; with a
+    validator, in batches of ranks 0, 1, 2-3, 4-7, ... for the targets still
+    short of valid ones.
+
+    Returns:
+        The targets (K,) that got an exact branch inside the limits: every one
+        of their branches has been offered (the enumeration is complete).
+    """
+    opts, tally, trot, tpos = ctx.opts, ctx.tally, ctx.trot, ctx.tpos
+    n_valid = tally.n_valid
+    least = ctx.first if ctx.by_manipulability else 1
+    at, cq = six.solve(trot, tpos, ctx.lower, ctx.upper, pref)
+    if at.size == 0:
+        return at
+    pe, re = pose_errors(ctx.chain, cq, trot[at], tpos[at])
+    conv = (pe <= ctx.tol_p) & (re <= ctx.tol_r)
+    at, cq, pe, re = at[conv], cq[conv], pe[conv], re[conv]
+    if at.size == 0:
+        return at
+    dist = np.sum((cq - pref[at]) ** 2, axis=1)
+    order = np.lexsort((dist, at))
+    at, cq, pe, re, dist = at[order], cq[order], pe[order], re[order], dist[order]
+    rank = rank_in_runs(at)
+    top = int(rank.max()) + 1
+    bounds = [0, top]
+    if ctx.validate:
+        bounds = [0, *(1 << i for i in range(max(1, top).bit_length())), top]
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        short = n_valid[at] < opts.min_solutions
+        need = np.maximum(np.maximum(opts.min_solutions - n_valid[at], 1), least)
+        take = short & (rank >= lo) & (rank < hi)
+        if not ctx.validate:
+            take &= rank < need
+        rows = np.flatnonzero(take)
+        if rows.size == 0:
+            continue
+        ids = at[rows]
+        tally.attempted(ids, pe[rows], re[rows], cq[rows])
+        tally.accept(ids, cq[rows], 1.0 / (1.0 + dist[rows]))
+    return np.unique(at)

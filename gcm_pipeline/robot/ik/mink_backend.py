@@ -1,6 +1,7 @@
 """Second IK backend: mink's differential IK on a MuJoCo model of the same URDF.
 
-This is the only module that imports ``mink`` and ``mujoco``. The MuJoCo model
+This is the only module that imports ``mink`` and ``mujoco``, on first use
+(:func:`_libraries`): importing the package does not load them. The MuJoCo model
 is compiled from the robot's example-robot-data URDF: the ``<robot>`` element
 gets ``<mujoco><compiler fusestatic="false" .../></mujoco>`` so fixed links such
 as ``panda_hand_tcp`` stay bodies, ``package://`` mesh paths become absolute,
@@ -26,20 +27,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import mink
-import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, RobotSpecError, unknown_choice
-from gcm_pipeline.robot.ik_pinocchio import (
-    PinocchioIKOptions,
-    restart_seeds,
-    rotation_angle,
-    seed_library,
-)
+from gcm_pipeline.robot.ik.answer import BackendAnswer
+from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, rotation_angle
+from gcm_pipeline.robot.ik.seeds import restart_seeds, seed_library
 
 __all__ = ["MinkIKOptions", "mujoco_model", "solve"]
+
+
+def _libraries() -> tuple[Any, Any]:
+    """The ``mink`` and ``mujoco`` modules, imported on first use (heavy, optional)."""
+    import mink
+    import mujoco
+
+    return mink, mujoco
 
 
 @dataclass(frozen=True)
@@ -163,6 +167,7 @@ def mujoco_model(robot: Any) -> tuple[Any, np.ndarray]:
     cached = robot.cache.get("mujoco_model")
     if cached is not None:
         return cached
+    _, mujoco = _libraries()
     try:
         model = mujoco.MjModel.from_xml_string(_urdf_for_mujoco(robot))
     except ValueError as exc:
@@ -196,7 +201,7 @@ def solve(
     validator: Callable[[np.ndarray], np.ndarray] | None = None,
     return_all: bool = False,
     **options: Any,
-) -> dict[str, Any]:
+) -> BackendAnswer:
     """Solve IK target by target with mink (raw, unverified results).
 
     Args:
@@ -210,9 +215,11 @@ def solve(
         **options: :class:`MinkIKOptions` fields.
 
     Returns:
-        Same dict as :func:`gcm_pipeline.robot.ik_pinocchio.solve`.
+        The raw answer, as :func:`gcm_pipeline.robot.ik.pinocchio_backend.solve`'s
+        (:class:`~gcm_pipeline.robot.ik.backend.IKBackend`).
     """
     opts = MinkIKOptions.from_kwargs(options)
+    mink, _ = _libraries()
     model, qidx = mujoco_model(robot)
     n, nq = targets.shape[0], robot.nq
     configuration = mink.Configuration(model)
@@ -246,15 +253,9 @@ def solve(
     for i in range(n):
         task.set_target(mink.SE3.from_matrix(targets[i]))
         trot, tpos = targets[i, :3, :3], targets[i, :3, 3]
-        cands: list[np.ndarray] = []
-        if seeds is not None:
-            cands += [s for s in seeds[i] if np.all(np.isfinite(s))]
-        cands += [lib.q[j] for j in nearest[i]]
-        if opts.home_seed:
-            cands.append(np.asarray(robot.home))
-        cands += list(restarts)
         n_valid = 0
-        for q0 in cands:
+        given = None if seeds is None else seeds[i]
+        for q0 in _seed_list(given, lib.q[nearest[i]], robot.home, opts.home_seed, restarts):
             qpos[qidx] = np.clip(q0, robot.lower, robot.upper)
             configuration.update(qpos)
             for _ in range(opts.max_iterations + 1):
@@ -291,15 +292,33 @@ def solve(
             n_valid += 1
             if n_valid >= opts.min_solutions:
                 break
-    out: dict[str, Any] = {
-        "q": out_q,
-        "success": success,
-        "pos_err": pos_err,
-        "rot_err": rot_err,
-        "reason": reason,
-    }
-    if return_all:
-        out["all_index"] = np.array(all_index, dtype=int)
-        out["all_q"] = np.array(all_q).reshape(-1, nq)
-        out["all_reason"] = np.array(all_reason, dtype=object)
-    return out
+    if not return_all:
+        return BackendAnswer(out_q, success, pos_err, rot_err, reason)
+    return BackendAnswer(
+        out_q,
+        success,
+        pos_err,
+        rot_err,
+        reason,
+        all_index=np.array(all_index, dtype=int),
+        all_q=np.array(all_q).reshape(-1, nq),
+        all_reason=np.array(all_reason, dtype=object),
+    )
+
+
+def _seed_list(
+    given: np.ndarray | None,
+    library: np.ndarray,
+    home: Any,
+    home_seed: bool,
+    restarts: np.ndarray,
+) -> list[np.ndarray]:
+    """One target's seeds in order: finite given ones, library neighbours, home, restarts."""
+    cands: list[np.ndarray] = []
+    if given is not None:
+        cands += [s for s in given if np.all(np.isfinite(s))]
+    cands += list(library)
+    if home_seed:
+        cands.append(np.asarray(home))
+    cands += list(restarts)
+    return cands

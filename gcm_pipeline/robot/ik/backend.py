@@ -2,8 +2,8 @@
 
 :func:`solve_ik` validates the targets, drops the ones beyond the arm's reach,
 hands the rest to a backend (``pinocchio``: batched Levenberg-Marquardt,
-:mod:`gcm_pipeline.robot.ik_pinocchio`; ``mink``: MuJoCo differential IK,
-:mod:`gcm_pipeline.robot.ik_mink`) and **verifies every success with
+:mod:`gcm_pipeline.robot.ik.pinocchio_backend`; ``mink``: MuJoCo differential IK,
+:mod:`gcm_pipeline.robot.ik.mink_backend`) and **verifies every success with
 Pinocchio's own forward kinematics** (``pin.forwardKinematics`` +
 ``updateFramePlacement``) and the joint limits: a target is reported
 reachable only if a configuration strictly inside the limits puts the grasp
@@ -15,7 +15,7 @@ An IK that fails is not an error: its row has ``success=False`` and a reason:
 ``out_of_reach``            farther from the shoulder than the arm reaches, or
                             (Panda kinematics) no elbow angle puts the wrist at
                             the distance from the shoulder the target asks
-                            (:meth:`~gcm_pipeline.robot.analytic.PandaAnalyticIK.unreachable`)
+                            (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.unreachable`)
 ``joint_limits``            reached only with joints outside their limits
 ``no_ik``                   no seed converged
 ``verification_failed``     the backend converged but Pinocchio disagrees
@@ -29,31 +29,35 @@ target whose first solution collides keeps trying other seeds; if no valid
 candidate remains, the last validator reason is the row's reason. With
 ``return_all=True`` the result also lists every converged candidate
 (:class:`IKCandidates`), valid or not.
+
+A backend is a function of the :class:`IKBackend` protocol; it returns raw,
+unverified answers, which :func:`solve_ik` verifies.
 """
 
 from __future__ import annotations
 
-import atexit
-import multiprocessing as mp
-import multiprocessing.pool
-import os
-import signal
-import time
-from collections.abc import Callable, Iterable, Iterator
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
-from gcm_pipeline.errors import GeometryError, InputError, WorkerLostError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.robot.ik_pinocchio import analytic_solver, rotation_angle
+from gcm_pipeline.robot.ik import mink_backend, pinocchio_backend
+from gcm_pipeline.robot.ik.answer import BackendAnswer
+from gcm_pipeline.robot.ik.lm import rotation_angle
+from gcm_pipeline.robot.ik.panda import analytic_solver
+from gcm_pipeline.robot.ik.pool import cores, run_backend
 from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
 
 __all__ = [
     "BACKENDS",
     "IK_REASONS",
+    "IKBackend",
     "IKCandidates",
     "IKResult",
+    "Validator",
     "check_targets",
     "solve_ik",
     "verify_solutions",
@@ -68,7 +72,49 @@ IK_REASONS = ("out_of_reach", "joint_limits", "no_ik", "verification_failed")
 Validator = Callable[[np.ndarray], Any]
 
 
-class IKCandidates(NamedTuple):
+class IKBackend(Protocol):
+    """An IK backend: raw, unverified answers for validated targets.
+
+    Args:
+        robot: The robot.
+        targets: Grasp-frame poses (N, 4, 4) in the base frame, already validated.
+        position_tolerance: [m], > 0.
+        orientation_tolerance: [rad], > 0.
+        seeds: Optional warm starts (N, K, nq) [rad]; NaN rows are skipped.
+        validator: Optional ``q (M, nq) -> (M,) str`` reasons ('' = valid),
+            applied to converged candidates before one is chosen.
+        return_all: Also return every converged candidate.
+        **options: The backend's own options (unknown names: :class:`InputError`).
+
+    Returns:
+        The :class:`~gcm_pipeline.robot.ik.answer.BackendAnswer` (with the
+        ``all_*`` candidates when ``return_all``).
+    """
+
+    def __call__(
+        self,
+        robot: Any,
+        targets: np.ndarray,
+        *,
+        position_tolerance: float,
+        orientation_tolerance: float,
+        seeds: np.ndarray | None = None,
+        validator: Validator | None = None,
+        return_all: bool = False,
+        **options: Any,
+    ) -> BackendAnswer:
+        """Raw answers for ``targets`` (see the class docstring)."""
+        ...
+
+
+_SOLVERS: dict[str, IKBackend] = {
+    "pinocchio": pinocchio_backend.solve,
+    "mink": mink_backend.solve,
+}
+
+
+@dataclass(frozen=True, eq=False)
+class IKCandidates:
     """Every converged IK candidate (``return_all=True``).
 
     Attributes:
@@ -77,12 +123,13 @@ class IKCandidates(NamedTuple):
         reason: Validator reason per candidate (M,) str, ``''`` if valid.
     """
 
-    index: np.ndarray  # type: ignore[assignment]  # shadows tuple.index on purpose
+    index: np.ndarray
     q: np.ndarray
     reason: np.ndarray
 
 
-class IKResult(NamedTuple):
+@dataclass(frozen=True, eq=False, repr=False)
+class IKResult:
     """Result of :func:`solve_ik` for N targets.
 
     Attributes:
@@ -116,16 +163,11 @@ class IKResult(NamedTuple):
         )
 
 
-def _backend(name: str) -> Callable[..., dict[str, Any]]:
-    if name == "pinocchio":
-        from gcm_pipeline.robot import ik_pinocchio
-
-        return ik_pinocchio.solve
-    if name == "mink":
-        from gcm_pipeline.robot import ik_mink
-
-        return ik_mink.solve
-    raise InputError(unknown_choice("IK backend", name, BACKENDS))
+def _backend(name: str) -> IKBackend:
+    solve = _SOLVERS.get(name) if isinstance(name, str) else None
+    if solve is None:
+        raise InputError(unknown_choice("IK backend", name, BACKENDS))
+    return solve
 
 
 def check_targets(targets: Any, name: str = "targets") -> np.ndarray:
@@ -243,197 +285,6 @@ def verify_solutions(
     return pos_err, rot_err, robot.within_limits(q, strict=True)
 
 
-# targets per backend call: large batches vectorise well, memory stays bounded
-_CHUNK = 16384
-
-# state shared with forked worker processes (set just before the pool forks)
-_FORK_STATE: dict[str, Any] = {}
-_POOL: dict[str, Any] = {}
-
-
-def _close_pool() -> None:
-    pool = _POOL.pop("pool", None)
-    _POOL.pop("key", None)
-    if pool is not None:
-        pool.terminate()
-        pool.join()
-    _FORK_STATE.clear()
-
-
-def _pool(
-    solve: Callable[..., dict[str, Any]],
-    robot: Robot,
-    validator: Validator | None,
-    return_all: bool,
-    workers: int,
-    kwargs: dict[str, Any],
-    warm_targets: np.ndarray,
-) -> Any:
-    """A forked worker pool holding this robot and these options, reused across calls.
-
-    The workers inherit the robot, the validator and the backend's caches
-    (seed library, MuJoCo model) by forking, so nothing heavy is pickled; the
-    pool is kept for the next call with the same state (the state holds strong
-    references, so the ids in the key cannot be reused) and closed at exit.
-    """
-    key = (solve, id(robot), id(validator), return_all, workers, repr(sorted(kwargs.items())))
-    if _POOL.get("key") == key:
-        return _POOL["pool"]
-    _close_pool()
-    # warm the backend's caches before forking
-    solve(robot, warm_targets, seeds=None, validator=None, return_all=False, **kwargs)
-    _FORK_STATE.update(
-        solve=solve, robot=robot, validator=validator, return_all=return_all, kwargs=kwargs
-    )
-    pool = ForkPool(workers, initializer=_worker_signals)
-    if not _POOL.get("atexit"):
-        atexit.register(_close_pool)
-        _POOL["atexit"] = True
-    _POOL.update(key=key, pool=pool)
-    return pool
-
-
-class ForkPool(multiprocessing.pool.Pool):
-    """A pool of forked workers whose ``terminate()`` cannot hang on a killed worker.
-
-    An idle worker waits for its next task holding the task queue's read lock;
-    killed then (SIGTERM to the process group), it never releases it, and the
-    standard ``Pool.terminate()`` waits for that lock for ever before it drains
-    the queue. Here it waits at most a second, then drains the queue anyway:
-    the pool is being torn down and no worker reads it any more.
-    """
-
-    def __init__(self, processes: int, initializer: Any = None) -> None:
-        super().__init__(processes, initializer=initializer, context=mp.get_context("fork"))
-
-    def ordered(self, func: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
-        """``imap(func, items)``: results in order, as they come.
-
-        A worker that dies (killed, e.g. by the out-of-memory killer) takes its
-        task with it: the standard pool starts a new worker and waits for that
-        result for ever. Here the workers are looked at while waiting, and a
-        dead one raises :class:`~gcm_pipeline.errors.WorkerLostError`.
-        """
-        # the pool replaces a dead worker in _pool: these are the originals
-        workers = list(self._pool)  # type: ignore[attr-defined]
-        results = self.imap(func, items)
-        while True:
-            try:
-                yield results.next(timeout=_WORKER_POLL)
-            except StopIteration:
-                return
-            except mp.TimeoutError:
-                pass
-            for proc in workers:
-                if proc.exitcode is not None:
-                    raise WorkerLostError(_worker_death(proc.pid, proc.exitcode))
-
-    @staticmethod
-    def _help_stuff_finish(inqueue: Any, task_handler: Any, size: int) -> None:
-        inqueue._rlock.acquire(True, 1.0)
-        while task_handler.is_alive() and inqueue._reader.poll():
-            inqueue._reader.recv()
-            time.sleep(0)
-
-
-def _cores() -> int:
-    """Cores this process may run on (its CPU affinity), at least 1."""
-    if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)  # pragma: no cover - not Linux
-
-
-#: How often the workers are looked at while a result is awaited [s].
-_WORKER_POLL = 0.25
-
-
-def _worker_death(pid: int | None, code: int) -> str:
-    """What to tell a user whose worker process ``pid`` ended with ``code``."""
-    if code < 0:
-        try:
-            how = f"killed by {signal.Signals(-code).name}"
-        except ValueError:
-            how = f"killed by signal {-code}"
-    else:
-        how = f"exit status {code}"
-    hint = "; out of memory? Fewer workers or fewer targets at once need less" if code == -9 else ""
-    return f"worker process {pid} died ({how}) before returning its result{hint}"
-
-
-def _worker_signals() -> None:
-    """In a worker: Ctrl-C and hang-ups are the parent's to handle, SIGTERM ends it.
-
-    The parent stops the pool on an interrupt (:func:`_run_backend`); a worker
-    that raised KeyboardInterrupt itself would print a traceback and leave
-    ``pool.map`` waiting for a result that never comes.
-    """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if hasattr(signal, "SIGHUP"):
-        signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> dict[str, Any]:
-    targets, seeds = args
-    st = _FORK_STATE
-    return st["solve"](
-        st["robot"],
-        targets,
-        seeds=seeds,
-        validator=st["validator"],
-        return_all=st["return_all"],
-        **st["kwargs"],
-    )
-
-
-def _run_backend(
-    solve: Callable[..., dict[str, Any]],
-    robot: Robot,
-    targets: np.ndarray,
-    seeds: np.ndarray | None,
-    validator: Validator | None,
-    return_all: bool,
-    workers: int,
-    kwargs: dict[str, Any],
-) -> dict[str, Any]:
-    n = targets.shape[0]
-    parallel = workers > 1 and n >= 2 * workers and "fork" in mp.get_all_start_methods()
-    n_chunks = -(-n // _CHUNK)
-    if parallel:
-        n_chunks = workers * -(-n_chunks // workers)  # a multiple of the workers
-    if not parallel and n_chunks == 1:
-        return solve(
-            robot, targets, seeds=seeds, validator=validator, return_all=return_all, **kwargs
-        )
-    bounds = np.linspace(0, n, n_chunks + 1).astype(int)
-    chunks = [
-        (targets[a:b], None if seeds is None else seeds[a:b])
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-    ]
-    if parallel:
-        pool = _pool(solve, robot, validator, return_all, workers, kwargs, targets[:1])
-        try:
-            parts = list(pool.ordered(_worker, chunks))
-        except BaseException:  # Ctrl-C, SIGTERM: stop the workers, no half-done pool
-            _close_pool()
-            raise
-    else:
-        parts = [
-            solve(robot, t, seeds=s, validator=validator, return_all=return_all, **kwargs)
-            for t, s in chunks
-        ]
-    out: dict[str, Any] = {}
-    for key in ("q", "success", "pos_err", "rot_err", "reason"):
-        out[key] = np.concatenate([p[key] for p in parts])
-    if return_all:
-        out["all_index"] = np.concatenate(
-            [p["all_index"] + a for p, a in zip(parts, bounds[:-1], strict=False)]
-        )
-        out["all_q"] = np.concatenate([p["all_q"] for p in parts])
-        out["all_reason"] = np.concatenate([p["all_reason"] for p in parts])
-    return out
-
-
 def solve_ik(
     robot: Robot | RobotSpec,
     targets: Any,
@@ -467,8 +318,8 @@ def solve_ik(
         workers: Processes to split the targets over (``"auto"`` or ``0``: the
             cores this process may run on).
         **options: Backend options, e.g. ``max_iterations`` (see
-            :class:`~gcm_pipeline.robot.ik_pinocchio.PinocchioIKOptions` and
-            :class:`~gcm_pipeline.robot.ik_mink.MinkIKOptions`).
+            :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` and
+            :class:`~gcm_pipeline.robot.ik.mink_backend.MinkIKOptions`).
 
     Returns:
         The :class:`IKResult`; every success verified by Pinocchio FK.
@@ -484,29 +335,9 @@ def solve_ik(
     tol_r = _tolerance("orientation_tolerance", orientation_tolerance)
     tgt = check_targets(targets)
     n, nq = tgt.shape[0], robot.nq
-    if isinstance(workers, bool) or not (
-        workers == "auto" or (isinstance(workers, (int, np.integer)) and workers >= 0)
-    ):
-        raise InputError(f"workers must be 'auto' or an int >= 0 (0: all cores), got {workers!r}")
-    processes = int(workers) if workers not in ("auto", 0) else _cores()
-    seed_arr: np.ndarray | None = None
-    if seeds is not None:
-        seed_arr = np.asarray(seeds, dtype=float)
-        if seed_arr.ndim == 2:
-            seed_arr = seed_arr[:, None, :]
-        if seed_arr.ndim != 3 or seed_arr.shape[0] != n or seed_arr.shape[2] != nq:
-            raise InputError(f"seeds must have shape ({n}, K, {nq}), got {np.shape(seeds)}")
-    nb: np.ndarray | None = None
-    if neighbours is not None:
-        nb = np.asarray(neighbours)
-        if nb.ndim == 1:
-            nb = nb[:, None]
-        if nb.ndim != 2 or nb.shape[0] != n or not np.issubdtype(nb.dtype, np.integer):
-            raise InputError(
-                f"neighbours must be an int array of shape ({n}, K), got {np.shape(neighbours)}"
-            )
-        if np.any((nb < -1) | (nb >= n)):
-            raise InputError(f"neighbours must be row ids in [-1, {n - 1}]")
+    processes = _processes(workers)
+    seed_arr = _check_seeds(seeds, n, nq)
+    nb = _check_neighbours(neighbours, n)
     kwargs = dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
 
     q = np.full((n, nq), np.nan)
@@ -516,13 +347,7 @@ def solve_ik(
     reason = np.full(n, "", dtype=object)
     cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
-    # cheap pre-filter: beyond the arm's reach from the shoulder, and for the Panda's
-    # kinematics where no elbow angle puts the wrist at the distance the target asks
-    dist = np.linalg.norm(tgt[:, :3, 3] - robot.shoulder, axis=1)
-    far = dist > robot.max_reach + tol_p
-    solver = analytic_solver(robot)
-    if solver is not None and n:
-        far |= solver.unreachable(tgt[:, :3, :3], tgt[:, :3, 3], tol_p, tol_r)
+    far = _out_of_reach(robot, tgt, tol_p, tol_r)
     reason[far] = "out_of_reach"
 
     phases: list[np.ndarray]
@@ -540,36 +365,23 @@ def solve_ik(
             ref = nb[rows]
             warm = np.where((ref >= 0)[:, :, None], q[np.clip(ref, 0, None)], np.nan)
             sub_seeds = warm if sub_seeds is None else np.concatenate([warm, sub_seeds], axis=1)
-        raw = _run_backend(
+        raw = run_backend(
             solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
         )
-        ok = np.asarray(raw["success"], dtype=bool)
-        q_rows = np.asarray(raw["q"], dtype=float)
-        # independent verification of every success by Pinocchio FK + joint limits
-        pe, re, inside = verify_solutions(robot, q_rows[ok], tgt[rows][ok])
-        good = np.zeros(rows.size, dtype=bool)
-        good[ok] = (pe <= tol_p) & (re <= tol_r) & inside
-        pos_err[rows] = raw["pos_err"]
-        rot_err[rows] = raw["rot_err"]
+        ok, good, q_rows, pe, re = _verify(robot, tgt[rows], raw, tol_p, tol_r)
+        pos_err[rows] = raw.pos_err
+        rot_err[rows] = raw.rot_err
         pos_err[rows[ok]] = pe
         rot_err[rows[ok]] = re
         success[rows] = good
         q[rows[good]] = q_rows[good]
-        reason[rows] = np.asarray(raw["reason"], dtype=object)
+        reason[rows] = np.asarray(raw.reason, dtype=object)
         reason[rows[ok & ~good]] = "verification_failed"
         reason[rows[good]] = ""
         if return_all:
-            cand.append((rows[raw["all_index"]], raw["all_q"], raw["all_reason"]))
-    candidates = None
-    if return_all:
-        if cand:
-            index = np.concatenate([c[0] for c in cand]).astype(int)
-            cq = np.concatenate([c[1] for c in cand]).reshape(-1, nq)
-            creason = np.concatenate([c[2] for c in cand]).astype(str)
-        else:
-            index, cq, creason = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
-        order = np.argsort(index, kind="stable")
-        candidates = IKCandidates(index[order], cq[order], creason[order])
+            assert raw.all_index is not None and raw.all_q is not None
+            assert raw.all_reason is not None
+            cand.append((rows[raw.all_index], raw.all_q, raw.all_reason))
     return IKResult(
         q=q,
         success=success,
@@ -577,5 +389,88 @@ def solve_ik(
         rot_err=rot_err,
         reason=reason.astype(str),
         backend=backend,
-        candidates=candidates,
+        candidates=_gather_candidates(cand, nq) if return_all else None,
     )
+
+
+def _processes(workers: Any) -> int:
+    """Worker processes of ``workers`` (``"auto"`` or 0: the usable cores)."""
+    if isinstance(workers, bool) or not (
+        workers == "auto" or (isinstance(workers, (int, np.integer)) and workers >= 0)
+    ):
+        raise InputError(f"workers must be 'auto' or an int >= 0 (0: all cores), got {workers!r}")
+    return int(workers) if workers not in ("auto", 0) else cores()
+
+
+def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:
+    """Warm starts as (n, K, nq) floats; one per target may come as (n, nq)."""
+    if seeds is None:
+        return None
+    seed_arr = np.asarray(seeds, dtype=float)
+    if seed_arr.ndim == 2:
+        seed_arr = seed_arr[:, None, :]
+    if seed_arr.ndim != 3 or seed_arr.shape[0] != n or seed_arr.shape[2] != nq:
+        raise InputError(f"seeds must have shape ({n}, K, {nq}), got {np.shape(seeds)}")
+    return seed_arr
+
+
+def _check_neighbours(neighbours: Any, n: int) -> np.ndarray | None:
+    """Neighbour rows as (n, K) ints in [-1, n - 1]; one per target may come as (n,)."""
+    if neighbours is None:
+        return None
+    nb = np.asarray(neighbours)
+    if nb.ndim == 1:
+        nb = nb[:, None]
+    if nb.ndim != 2 or nb.shape[0] != n or not np.issubdtype(nb.dtype, np.integer):
+        raise InputError(
+            f"neighbours must be an int array of shape ({n}, K), got {np.shape(neighbours)}"
+        )
+    if np.any((nb < -1) | (nb >= n)):
+        raise InputError(f"neighbours must be row ids in [-1, {n - 1}]")
+    return nb
+
+
+def _gather_candidates(
+    cand: list[tuple[np.ndarray, np.ndarray, np.ndarray]], nq: int
+) -> IKCandidates:
+    """The candidates of every phase, in target order (stable)."""
+    if cand:
+        index = np.concatenate([c[0] for c in cand]).astype(int)
+        cq = np.concatenate([c[1] for c in cand]).reshape(-1, nq)
+        creason = np.concatenate([c[2] for c in cand]).astype(str)
+    else:
+        index, cq, creason = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
+    order = np.argsort(index, kind="stable")
+    return IKCandidates(index[order], cq[order], creason[order])
+
+
+def _out_of_reach(robot: Robot, tgt: np.ndarray, tol_p: float, tol_r: float) -> np.ndarray:
+    """Targets (N,) bool that no configuration reaches, by a cheap test.
+
+    Beyond the arm's reach from the shoulder, and for the Panda's kinematics
+    where no elbow angle puts the wrist at the distance the target asks.
+    """
+    dist = np.linalg.norm(tgt[:, :3, 3] - robot.shoulder, axis=1)
+    far = dist > robot.max_reach + tol_p
+    solver = analytic_solver(robot)
+    if solver is not None and tgt.shape[0]:
+        far |= solver.unreachable(tgt[:, :3, :3], tgt[:, :3, 3], tol_p, tol_r)
+    return far
+
+
+def _verify(
+    robot: Robot, tgt: np.ndarray, raw: BackendAnswer, tol_p: float, tol_r: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Independent verification of a backend's successes by Pinocchio FK + joint limits.
+
+    Returns:
+        ``(ok, good, q, pos_err, rot_err)``: the backend's successes (M,), those
+        verified (M,), its configurations (M, nq) [rad], and the verified
+        errors of the successes (count of ``ok``,) [m], [rad].
+    """
+    ok = np.asarray(raw.success, dtype=bool)
+    q_rows = np.asarray(raw.q, dtype=float)
+    pe, re, inside = verify_solutions(robot, q_rows[ok], tgt[ok])
+    good = np.zeros(ok.size, dtype=bool)
+    good[ok] = (pe <= tol_p) & (re <= tol_r) & inside
+    return ok, good, q_rows, pe, re

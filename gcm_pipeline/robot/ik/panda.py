@@ -33,7 +33,12 @@ import numpy as np
 
 from gcm_pipeline.robot import kernels
 
-__all__ = ["PandaAnalyticIK"]
+__all__ = ["PandaAnalyticIK", "analytic_blocks", "analytic_solver"]
+
+#: (target, joint-7) rows of one closed-form call: about 340 bytes each. Blocks of
+#: 16,384 rows ran 1.5x faster than of 262,144 (20,000 targets x 8 values: 159 against
+#: 248 ms): their temporaries stay in the cache and cost no page faults.
+_ANALYTIC_ROWS = 1 << 14
 
 # Craig's modified DH parameters of the Panda arm (Franka's table) [m]
 _D1, _D3, _D5 = 0.333, 0.316, 0.384
@@ -205,6 +210,8 @@ class PandaAnalyticIK:
         )
         return (farthest < near - slack) | (closest > far + slack)
 
+    # one derivation in order (elbow, swivel, shoulder, wrist), each step's arrays feeding the
+    # next: cut into functions it would pass a dozen arrays around (reason for > 100 lines)
     def solve(
         self,
         rot: np.ndarray,
@@ -380,3 +387,55 @@ class PandaAnalyticIK:
         order = np.lexsort((branch, np.tile(src, 2)[keep] % k, target))
         column = (np.tile(src, 2)[keep] % k)[order]
         return target[order], out_q[keep[order]], branch[order], column
+
+
+def analytic_solver(robot: Any) -> PandaAnalyticIK | None:
+    """The closed-form solver of ``robot``'s arm (cached), or None if it has none."""
+    key = ("analytic_ik",)
+    if key not in robot.cache:
+        robot.cache[key] = PandaAnalyticIK.for_chain(robot.chain)
+    solver: PandaAnalyticIK | None = robot.cache[key]
+    return solver
+
+
+def analytic_blocks(
+    solver: PandaAnalyticIK,
+    rot: np.ndarray,
+    pos: np.ndarray,
+    q7: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    near: tuple[np.ndarray, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`PandaAnalyticIK.solve` in blocks of targets, without repeats.
+
+    Blocks bound the memory; a repeat is one joint-7 value given twice to a
+    target (e.g. two offsets clipped to a limit): its first column is kept.
+    ``near``: ``(reference (N, 7), reach)``, as for the solver.
+    """
+    n, k = q7.shape
+    step = max(1, _ANALYTIC_ROWS // max(k, 1))
+    starts = range(0, max(n, 1), step)
+    parts = [
+        solver.solve(
+            rot[a : a + step],
+            pos[a : a + step],
+            q7[a : a + step],
+            lower,
+            upper,
+            None if near is None else (near[0][a : a + step], near[1]),
+        )
+        for a in starts
+    ]
+    at = np.concatenate([p[0] + a for p, a in zip(parts, starts, strict=True)])
+    cq = np.concatenate([p[1] for p in parts])
+    branch = np.concatenate([p[2] for p in parts])
+    column = np.concatenate([p[3] for p in parts])
+    values = np.sort(q7, axis=1)
+    if at.size and np.any(values[:, 1:] == values[:, :-1]):
+        order = np.lexsort((column, cq[:, 6], branch, at))
+        key = np.column_stack([at[order], branch[order], cq[order, 6]])
+        repeat = np.r_[False, np.all(key[1:] == key[:-1], axis=1)]
+        keep = np.sort(order[~repeat])  # back to the solver's order
+        at, cq, branch, column = at[keep], cq[keep], branch[keep], column[keep]
+    return at, cq, branch, column

@@ -56,7 +56,7 @@ from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
     from gcm_pipeline.query import GraspManifold
-    from gcm_pipeline.robot.engine import ReachabilityEngine
+    from gcm_pipeline.reach.engine import ReachabilityEngine
     from gcm_pipeline.robot.model import Robot
     from gcm_pipeline.stages.manifold import Manifold
 
@@ -426,10 +426,10 @@ def select_branches(
 ) -> GraspTable:
     """Choose one IK branch per grasp (``ik.select``; needs ``ik.solutions`` > 1).
 
-    See :mod:`gcm_pipeline.stages.branches`. A table without branch columns is
+    See :mod:`gcm_pipeline.reach.branches`. A table without branch columns is
     returned unchanged.
     """
-    from gcm_pipeline.stages import branches as stage
+    from gcm_pipeline.reach import branches as stage
     from gcm_pipeline.stages.lattice import row_mesh
 
     if "solutions" not in grasps:
@@ -467,7 +467,7 @@ def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     with ``engine=``); close it (or use a ``with`` block) to stop its worker
     processes.
     """
-    from gcm_pipeline.stages import reachability as stage
+    from gcm_pipeline.reach import check as stage
 
     ik = cfg.ik
     return stage.make_engine(
@@ -502,8 +502,8 @@ def check_reachability(
     ``approach`` section whose straight-line pre-grasp approach is followable
     and collision-free, and with a ``retreat`` section whose post-grasp
     retreat (holding the object) is too; see
-    :class:`gcm_pipeline.robot.engine.ReachabilityEngine` for the sequence and
-    :func:`gcm_pipeline.stages.reachability.check_reachability` for the mapping.
+    :class:`gcm_pipeline.reach.engine.ReachabilityEngine` for the sequence and
+    :func:`gcm_pipeline.reach.check.check_reachability` for the mapping.
 
     Args:
         grasps: Table with ``dq`` (world poses of the grasp frame).
@@ -518,7 +518,7 @@ def check_reachability(
         The table with ``reachable, reason, q, pos_err, rot_err``,
         ``q_pregrasp, q_retreat, q_rejected`` (and ``clearance``) added.
     """
-    from gcm_pipeline.stages import reachability as stage
+    from gcm_pipeline.reach import check as stage
 
     own = engine is None
     eng = reachability_engine(robot, cfg) if engine is None else engine
@@ -568,7 +568,7 @@ class ReachabilityCheck:
             A table of M rows: ``dq, reachable, reason, q, pos_err, rot_err``
             (and ``clearance`` with collisions), as the reachability stage.
         """
-        from gcm_pipeline.stages import reachability as stage
+        from gcm_pipeline.reach import check as stage
 
         cfg = self.config
         dq = np.asarray(dq, dtype=np.float64).reshape(-1, 8)
@@ -618,7 +618,7 @@ def _empty_reachability(table: GraspTable, nq: int, *, with_clearance: bool) -> 
 def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
     """Manipulability metrics and ranks of the reachable grasps (``ranking``).
 
-    See :func:`gcm_pipeline.stages.ranking.rank`; the ``clearance`` and
+    See :func:`gcm_pipeline.ranking.rank.rank`; the ``clearance`` and
     ``combined`` metrics need the ``clearance`` column of the collision checks.
 
     Returns:
@@ -626,7 +626,7 @@ def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
         ``rank`` (1-based among reachable grasps, 0 for unreachable) and
         ``top`` added.
     """
-    from gcm_pipeline.stages import ranking as stage
+    from gcm_pipeline.ranking import rank as stage
 
     r = cfg.ranking
     return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, weights=r.weights)
@@ -655,7 +655,7 @@ def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[di
     ``manipulability``, the ranking metric's column when it is another one,
     and ``q``. Rows without a ``rank`` column, or unranked (rank 0), are left out.
     """
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+    from gcm_pipeline.ranking.rank import METRIC_COLUMNS
 
     if "rank" not in grasps or n <= 0:
         return []

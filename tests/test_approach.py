@@ -17,7 +17,7 @@ import pytest
 
 from gcm_pipeline.config import EnvironmentConfig
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.approach import (
+from gcm_pipeline.reach.moves import (
     SUBSTEPS,
     Move,
     check_moves,

@@ -511,7 +511,7 @@ def test_lm_kernel_equals_numpy(monkeypatch, compiled, panda, clamp):
 
 @pytest.mark.parametrize("reject", [np.inf, 2e-3])
 def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject):
-    from gcm_pipeline.robot.approach import _sample_deviation, _segment_bounds, lever_arms
+    from gcm_pipeline.reach.moves import _sample_deviation, _segment_bounds, lever_arms
 
     rng = np.random.default_rng(12)
     n = 2000
@@ -668,7 +668,7 @@ def _layouts(a):
 def test_kernels_take_any_layout_dtype_and_row_count(monkeypatch, compiled, n):
     """Zero rows, one row, Fortran order, strides, read-only, float32 or int arrays:
     each kernel (not the NumPy fallback) takes them and answers as the NumPy code."""
-    from gcm_pipeline.robot.approach import _segment_bounds, lever_arms
+    from gcm_pipeline.reach.moves import _segment_bounds, lever_arms
     from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, _lm, analytic_solver
 
     calls = {}

@@ -8,7 +8,7 @@ import pytest
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.manipulability import manipulability
 from gcm_pipeline.robot.model import Robot, load_robot
-from gcm_pipeline.stages.ranking import rank
+from gcm_pipeline.ranking.rank import rank
 from gcm_pipeline.table import GraspTable
 
 

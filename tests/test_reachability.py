@@ -9,7 +9,7 @@ from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.robot.ik import verify_solutions
 from gcm_pipeline.robot.model import Robot, load_robot
-from gcm_pipeline.stages.reachability import check_reachability, world_to_base_targets
+from gcm_pipeline.reach.check import check_reachability, world_to_base_targets
 from gcm_pipeline.table import GraspTable
 
 

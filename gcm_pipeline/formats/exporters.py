@@ -341,7 +341,7 @@ def _grasp_quality(g: GraspTable, metric: str, path: Path) -> np.ndarray:
     """``grasp_quality`` per row: the ranking metric as the ranking counted it.
 
     ``inf`` (a ``margin`` with no unreachable point in reach) is the largest
-    finite value of the ranked rows, as :func:`gcm_pipeline.stages.ranking.rank`
+    finite value of the ranked rows, as :func:`gcm_pipeline.ranking.rank.rank`
     counts it (1.0 when none is finite), so the value is finite and never
     increases with the rank: MoveIt's pick sorts its grasps by it, best first.
 
@@ -350,7 +350,7 @@ def _grasp_quality(g: GraspTable, metric: str, path: Path) -> np.ndarray:
             is not finite or is larger than the row ranked above it (a
             ``grasps.csv`` whose ranks and values disagree).
     """
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+    from gcm_pipeline.ranking.rank import METRIC_COLUMNS
 
     n = len(g)
     rank = np.asarray(g["rank"], dtype=np.int64) if "rank" in g else np.zeros(n, np.int64)

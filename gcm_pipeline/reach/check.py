@@ -7,12 +7,12 @@ columns ``q_pregrasp``, ``q_retreat``, ``q_rejected`` and, with a collision
 world, ``clearance``.
 
 The decision itself, IK, collisions, approach, retreat and re-solves, is made
-in one place, :class:`gcm_pipeline.robot.engine.ReachabilityEngine` (its
+in one place, :class:`gcm_pipeline.reach.engine.ReachabilityEngine` (its
 module docstring states the sequence). This stage only maps the config:
 targets in the robot base frame are ``inv(base_pose) @ T_world``; the
 ``environment`` and ``object`` sections become the
 :class:`~gcm_pipeline.robot.collision.CollisionChecker`; ``approach`` and
-``retreat`` become :class:`~gcm_pipeline.robot.approach.Move` objects (a world
+``retreat`` become :class:`~gcm_pipeline.reach.moves.Move` objects (a world
 retreat direction is turned into the base frame); interpolated rows are seeded
 from the final solutions of their triangle's vertices, heaviest weight first.
 
@@ -33,8 +33,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.approach import Move
-from gcm_pipeline.robot.engine import ReachabilityEngine
+from gcm_pipeline.reach.moves import Move
+from gcm_pipeline.reach.engine import ReachabilityEngine
 from gcm_pipeline.robot.ik import IKCandidates, Validator, world_to_base_targets
 from gcm_pipeline.robot.model import Robot, load_robot
 from gcm_pipeline.stages import collision
@@ -227,7 +227,7 @@ def make_engine(
     Args: as :func:`check_reachability` (``workers`` ``"auto"`` or 0: every core).
 
     Returns:
-        The :class:`~gcm_pipeline.robot.engine.ReachabilityEngine`; call its
+        The :class:`~gcm_pipeline.reach.engine.ReachabilityEngine`; call its
         ``close()`` (or use it in a ``with`` block) to stop its worker processes.
     """
     robot = load_robot(robot)

@@ -18,7 +18,7 @@ base frame), in :meth:`ReachabilityEngine.run`:
    a. collisions at the grasp (self, environment, object; the gripper may
       touch the object by the checker's contact tolerance), then a user's
       ``validator`` if given;
-   b. the **approach** (:mod:`~gcm_pipeline.robot.approach`): the straight line
+   b. the **approach** (:mod:`~gcm_pipeline.reach.moves`): the straight line
       from the pre-grasp to the grasp, followable with bounded joint steps and
       deviation, collision-free with no finger contact;
    c. the **retreat**: the straight line away from the grasp holding the
@@ -34,7 +34,7 @@ base frame), in :meth:`ReachabilityEngine.run`:
    is never re-tried). Nothing else is
    re-solved: a target with no IK solution had every seed already, and one
    whose solution failed a move that ends beyond reach (proved for the
-   Panda's kinematics, :func:`~gcm_pipeline.robot.approach.unreachable_ends`)
+   Panda's kinematics, :func:`~gcm_pipeline.reach.moves.unreachable_ends`)
    fails that move with any solution. Such moves are not planned either: they
    fail in 2 without IK.
 4. **More branches** (``solutions`` > 1): for every reachable target, further
@@ -64,8 +64,8 @@ and several chunks run at once on ``workers`` forked
 processes that inherit the robot, seed library and collision world.
 
 The engine takes plain arrays and shapes (a robot, a collision checker,
-:class:`~gcm_pipeline.robot.approach.Move` objects), no config;
-:mod:`gcm_pipeline.stages.reachability` maps a config onto it. Build it once
+:class:`~gcm_pipeline.reach.moves.Move` objects), no config;
+:mod:`gcm_pipeline.reach.check` maps a config onto it. Build it once
 and :meth:`~ReachabilityEngine.run` it on many target sets.
 """
 
@@ -84,7 +84,7 @@ import numpy as np
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, wide_joints
-from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius, unreachable_ends
+from gcm_pipeline.reach.moves import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
     ForkPool,
     IKCandidates,
@@ -413,7 +413,7 @@ class ReachabilityEngine:
 
         ``stage`` (M,) is how far the target's solution got (:class:`CheckResult`);
         one that failed the approach (or the retreat) whose end is proved beyond
-        reach (:func:`~gcm_pipeline.robot.approach.unreachable_ends`) fails it
+        reach (:func:`~gcm_pipeline.reach.moves.unreachable_ends`) fails it
         whatever the configuration, so no other solution gets further.
         """
         out = np.zeros(len(targets), dtype=bool)

@@ -4,7 +4,7 @@
   ``environment``, ``object`` and ``robot.base_pose`` onto world shapes in the
   robot's base frame and a
   :class:`~gcm_pipeline.robot.collision.CollisionChecker` (the reachability
-  engine, :mod:`gcm_pipeline.robot.engine`, uses it for the grasp, the
+  engine, :mod:`gcm_pipeline.reach.engine`, uses it for the grasp, the
   approach and the retreat);
 * :func:`combined_score` is the ``combined`` ranking metric.
 """

@@ -41,7 +41,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -55,8 +55,11 @@ from gcm_pipeline.stages.candidates import generate_candidates
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
+    from gcm_pipeline.config import ApproachConfig, RetreatConfig
     from gcm_pipeline.query import GraspManifold
     from gcm_pipeline.reach.engine import ReachabilityEngine
+    from gcm_pipeline.reach.moves import Move
+    from gcm_pipeline.reach.options import ReachOptions
     from gcm_pipeline.robot.model import Robot
     from gcm_pipeline.stages.manifold import Manifold
 
@@ -65,6 +68,7 @@ __all__ = [
     "ReachabilityCheck",
     "RunResult",
     "add_continuity",
+    "approach_move",
     "branch_scores",
     "build_manifold",
     "check_reachability",
@@ -75,7 +79,9 @@ __all__ = [
     "preflight",
     "publish",
     "rank",
+    "reach_options",
     "reachability_engine",
+    "retreat_move",
     "robot_from_config",
     "select_branches",
     "top_grasps",
@@ -457,33 +463,88 @@ def robot_from_config(cfg: Config) -> Robot:
 load_robot = robot_from_config
 
 
+def approach_move(approach: ApproachConfig | None) -> Move | None:
+    """The ``approach`` section as a :class:`Move` (backwards along the grasp frame's z)."""
+    from gcm_pipeline.reach.moves import Move
+
+    if approach is None:
+        return None
+    return Move(
+        distance=approach.distance,
+        direction=(0.0, 0.0, -1.0),
+        frame="grasp",
+        steps=approach.steps,
+        max_joint_step=approach.max_joint_step,
+        max_deviation=approach.max_deviation,
+        holding=False,
+    )
+
+
+def retreat_move(retreat: RetreatConfig | None, base_pose: np.ndarray | None = None) -> Move | None:
+    """The ``retreat`` section as a :class:`Move`; a world direction turned into the base frame."""
+    from gcm_pipeline.reach.moves import Move
+
+    if retreat is None:
+        return None
+    direction = np.asarray(retreat.direction, dtype=float)
+    frame = "grasp"
+    if retreat.frame == "world":
+        frame = "base"
+        if base_pose is not None:
+            direction = np.asarray(base_pose[:3, :3], dtype=float).T @ direction
+    return Move(
+        distance=retreat.distance,
+        direction=tuple(direction.tolist()),
+        frame=frame,
+        steps=retreat.steps,
+        max_joint_step=retreat.max_joint_step,
+        max_deviation=retreat.max_deviation,
+        holding=True,
+    )
+
+
+@takes_config
+def reach_options(cfg: Config) -> ReachOptions:
+    """The reachability options of a config.
+
+    Reads ``ik``, ``robot.base_pose``, ``approach``, ``retreat`` and ``seed``.
+    """
+    from gcm_pipeline.reach.options import ReachOptions
+
+    ik = cfg.ik
+    base_pose = cfg.robot.base_pose.matrix()
+    return ReachOptions(
+        backend=ik.backend,
+        position_tolerance=ik.position_tolerance,
+        orientation_tolerance=ik.orientation_tolerance,
+        approach=approach_move(cfg.approach),
+        retreat=retreat_move(cfg.retreat, base_pose),
+        workers=ik.workers,
+        solutions=ik.solutions,
+        seed=cfg.seed,
+        base_pose=base_pose,
+    )
+
+
 @takes_config
 def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     """The reachability engine of a config.
 
     Reads ``ik``, ``environment``, ``object``, ``approach``, ``retreat``,
-    ``robot.base_pose`` and ``seed``. Build it once to check many pose sets with
-    the same robot, seed library and collision world (:func:`check_reachability`
-    with ``engine=``); close it (or use a ``with`` block) to stop its worker
-    processes.
+    ``robot.base_pose`` and ``seed`` (:func:`reach_options`; the
+    ``environment`` and ``object`` sections become the collision checker).
+    Build it once to check many pose sets with the same robot, seed library and
+    collision world (:func:`check_reachability` with ``engine=``); close it (or
+    use a ``with`` block) to stop its worker processes.
     """
     from gcm_pipeline.reach import check as stage
+    from gcm_pipeline.stages.collision import make_checker
 
-    ik = cfg.ik
-    return stage.make_engine(
-        robot,
-        base_pose=cfg.robot.base_pose.matrix(),
-        backend=ik.backend,
-        position_tolerance=ik.position_tolerance,
-        orientation_tolerance=ik.orientation_tolerance,
-        workers=ik.workers,
-        seed=cfg.seed,
-        environment=cfg.environment,
-        object_cfg=cfg.object,
-        approach=cfg.approach,
-        retreat=cfg.retreat,
-        solutions=ik.solutions,
-    )
+    options = reach_options(cfg)
+    checker = None
+    if cfg.environment is not None or cfg.object is not None:
+        checker = make_checker(robot, cfg.environment, cfg.object, options.base_pose)
+    return stage.make_engine(robot, options, checker=checker)
 
 
 @takes_config
@@ -503,7 +564,7 @@ def check_reachability(
     and collision-free, and with a ``retreat`` section whose post-grasp
     retreat (holding the object) is too; see
     :class:`gcm_pipeline.reach.engine.ReachabilityEngine` for the sequence and
-    :func:`gcm_pipeline.reach.check.check_reachability` for the mapping.
+    :func:`reach_options` for the mapping.
 
     Args:
         grasps: Table with ``dq`` (world poses of the grasp frame).
@@ -524,11 +585,7 @@ def check_reachability(
     eng = reachability_engine(robot, cfg) if engine is None else engine
     try:
         done = stage.check_reachability(
-            grasps,
-            robot,
-            base_pose=cfg.robot.base_pose.matrix(),
-            progress=progress,
-            engine=eng,
+            grasps, robot, reach_options(cfg), engine=eng, progress=progress
         )
     finally:
         if own:
@@ -580,8 +637,7 @@ class ReachabilityCheck:
         done = stage.check_reachability(
             table,
             self.robot,
-            base_pose=cfg.robot.base_pose.matrix(),
-            warm_start=False,
+            replace(reach_options(cfg), warm_start=False),
             seeds=None if seeds is None else np.asarray(seeds, dtype=np.float64),
             engine=self.engine,
         )

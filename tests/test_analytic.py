@@ -8,9 +8,9 @@ import pytest
 from poses import backward_poses
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.reach.moves import _end_of_move
 from gcm_pipeline.robot import ik_pinocchio
 from gcm_pipeline.robot.analytic import PandaAnalyticIK
-from gcm_pipeline.reach.moves import _end_of_move
 from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, analytic_solver
@@ -265,8 +265,8 @@ def test_analytic_false_reaches_every_ik_of_the_engine(
 ) -> None:
     """``ik_options={"analytic": False}`` holds for the first solve, the other branches
     and the approach's end of move: the closed form is never called."""
-    from gcm_pipeline.reach.moves import Move
     from gcm_pipeline.reach.engine import ReachabilityEngine
+    from gcm_pipeline.reach.moves import Move
 
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("closed form called")

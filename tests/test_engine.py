@@ -13,13 +13,13 @@ from poses import backward_poses
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.reach.moves import Move, move_poses
 from gcm_pipeline.reach.engine import (
     _RAN_EVERY_SEED,
     ReachabilityEngine,
     _guided_chunks,
     available_cores,
 )
+from gcm_pipeline.reach.moves import Move, move_poses
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 from gcm_pipeline.robot.model import load_robot
 from gcm_pipeline.stages.candidates import generate_candidates
@@ -112,8 +112,8 @@ def test_moves_proved_beyond_reach_change_no_result(robot, checker, grasps, monk
     """A 30 cm approach puts many pre-grasps beyond the arm's reach: the engine fails
     them without planning and tries no other solution for them; the result is the
     one of planning every move and trying every alternative."""
-    import gcm_pipeline.reach.moves as approach_module
     import gcm_pipeline.reach.engine as engine_module
+    import gcm_pipeline.reach.moves as approach_module
 
     long_approach = Move(distance=0.30, direction=(0, 0, -1), frame="grasp", steps=10)
     proved = approach_module.unreachable_ends(robot, grasps, long_approach, 1e-4, 1e-3)

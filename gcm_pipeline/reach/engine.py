@@ -82,9 +82,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.reach.moves import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, wide_joints
-from gcm_pipeline.reach.moves import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
     ForkPool,
     IKCandidates,

@@ -47,6 +47,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         rank,
     )
     from gcm_pipeline.query import BestGrasps, GraspManifold, NearestReachable, load_manifold
+    from gcm_pipeline.ranking.metrics import combined_score
     from gcm_pipeline.robot.collision import CollisionChecker
     from gcm_pipeline.robot.ik import IKResult, solve_ik
     from gcm_pipeline.robot.manipulability import (
@@ -58,7 +59,6 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         yoshikawa,
     )
     from gcm_pipeline.robot.model import Robot, available_robots, load_robot
-    from gcm_pipeline.stages.collision import combined_score
     from gcm_pipeline.stages.manifold import Manifold
     from gcm_pipeline.study import Study, StudyResult
     from gcm_pipeline.table import GraspTable
@@ -90,7 +90,7 @@ _LAZY = {
     "available_robots": "gcm_pipeline.robot.model",
     "build_manifold": "gcm_pipeline.pipeline",
     "check_reachability": "gcm_pipeline.pipeline",
-    "combined_score": "gcm_pipeline.stages.collision",
+    "combined_score": "gcm_pipeline.ranking.metrics",
     "densify": "gcm_pipeline.pipeline",
     "dib": "gcm_pipeline.geometry.dualquat",
     "dlb": "gcm_pipeline.geometry.dualquat",

@@ -245,23 +245,12 @@ def refinement_score(robot: Robot, cfg: Config) -> Callable[[GraspTable], np.nda
     ``margin`` (which needs the finished manifold) falls back to Yoshikawa's
     index.
     """
-    from gcm_pipeline.robot.manipulability import manipulability_metrics
-    from gcm_pipeline.stages.collision import combined_score
+    from gcm_pipeline.ranking import rank as ranking
 
-    metric = cfg.ranking.metric
-
-    def score(table: GraspTable) -> np.ndarray:
-        reach = np.asarray(table["reachable"], dtype=bool)
-        q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
-        values: dict[str, np.ndarray] = dict(manipulability_metrics(robot, q))
-        if "clearance" in table:
-            values["clearance"] = np.asarray(table["clearance"], dtype=np.float64)
-        if metric == "combined":
-            weights = {k: v for k, v in (cfg.ranking.weights or {}).items() if k in values}
-            return combined_score(values, weights or None, mask=reach)
-        return values.get(metric, values["yoshikawa"])
-
-    return score
+    r = cfg.ranking
+    return functools.partial(
+        ranking.reachable_score, robot=robot, metric=r.metric, weights=r.weights
+    )
 
 
 @takes_config
@@ -399,31 +388,13 @@ def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
     compared by Yoshikawa's index instead (also its weight in ``combined`` is
     left out).
     """
-    from gcm_pipeline.robot.manipulability import manipulability_metrics
-    from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS
+    from gcm_pipeline.ranking import rank as ranking
 
-    sol = np.asarray(grasps["solutions"], dtype=np.float64)
-    n, k, nq = sol.shape
-    metrics = manipulability_metrics(robot, sol.reshape(-1, nq))
-    values = {name: v.reshape(n, k) for name, v in metrics.items()}
-    if "solutions_clearance" in grasps:
-        values["clearance"] = np.asarray(grasps["solutions_clearance"], dtype=np.float64)
-    metric = cfg.ranking.metric
-    if metric != "combined":
-        return values.get(metric, values["yoshikawa"])
-    weights = {
-        name: float(w)
-        for name, w in (cfg.ranking.weights or DEFAULT_COMBINED_WEIGHTS).items()
-        if w > 0 and name in values
-    }
-    score = np.zeros((n, k))
-    total = sum(weights.values()) or 1.0
-    for name, w in weights.items():
-        x = values[name]
-        ok = np.isfinite(x)
-        lo, hi = (float(x[ok].min()), float(x[ok].max())) if ok.any() else (0.0, 1.0)
-        score += w / total * ((x - lo) / (hi - lo) if hi > lo else np.ones_like(x))
-    return score
+    clearance = grasps["solutions_clearance"] if "solutions_clearance" in grasps else None
+    r = cfg.ranking
+    return ranking.branch_scores(
+        grasps["solutions"], robot, metric=r.metric, weights=r.weights, clearance=clearance
+    )
 
 
 @takes_config
@@ -711,7 +682,7 @@ def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[di
     ``manipulability``, the ranking metric's column when it is another one,
     and ``q``. Rows without a ``rank`` column, or unranked (rank 0), are left out.
     """
-    from gcm_pipeline.ranking.rank import METRIC_COLUMNS
+    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
     if "rank" not in grasps or n <= 0:
         return []

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, ObstacleConfig
 from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.ranking.metrics import combined_score
 from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,
     REASON_OBJECT,
@@ -21,7 +22,7 @@ from gcm_pipeline.robot.collision import (
     shape_geometry,
 )
 from gcm_pipeline.robot.model import load_robot
-from gcm_pipeline.stages.collision import combined_score, make_checker
+from gcm_pipeline.stages.collision import make_checker
 
 BOTTLE = {
     "shape": "cylinder",

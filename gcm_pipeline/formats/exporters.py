@@ -350,7 +350,7 @@ def _grasp_quality(g: GraspTable, metric: str, path: Path) -> np.ndarray:
             is not finite or is larger than the row ranked above it (a
             ``grasps.csv`` whose ranks and values disagree).
     """
-    from gcm_pipeline.ranking.rank import METRIC_COLUMNS
+    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
     n = len(g)
     rank = np.asarray(g["rank"], dtype=np.int64) if "rank" in g else np.zeros(n, np.int64)

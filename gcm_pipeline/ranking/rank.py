@@ -14,7 +14,7 @@ metric name (configs)            column                  meaning
 ================================ ======================= ====================
 
 Three more metrics rank by columns of other stages (the collision checks,
-:mod:`gcm_pipeline.stages.collision`; the margin,
+:mod:`gcm_pipeline.reach.engine`; the margin,
 :mod:`gcm_pipeline.stages.margin`):
 
 ================================ ======================= ====================
@@ -25,7 +25,7 @@ Three more metrics rank by columns of other stages (the collision checks,
                                                          point [m] (``inf``: none)
 ``combined``                     ``combined`` (added)    weighted sum of normalised
                                                          metrics, see
-                                                         :func:`~gcm_pipeline.stages.collision.combined_score`
+                                                         :func:`~gcm_pipeline.ranking.metrics.combined_score`
 ================================ ======================= ====================
 
 plus ``rank`` (N,) int: 1-based among the reachable grasps, by the chosen
@@ -40,20 +40,19 @@ from collections.abc import Mapping
 import numpy as np
 
 from gcm_pipeline.errors import InputError, unknown_choice
-from gcm_pipeline.robot.manipulability import METRICS, manipulability_metrics
+from gcm_pipeline.ranking.metrics import (
+    DEFAULT_COMBINED_WEIGHTS,
+    METRIC_COLUMNS,
+    METRICS,
+    combined_score,
+    value_range,
+    weighted_sum,
+)
+from gcm_pipeline.robot.manipulability import manipulability_metrics
 from gcm_pipeline.robot.model import Robot, load_robot
-from gcm_pipeline.stages.collision import DEFAULT_COMBINED_WEIGHTS, combined_score
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["METRICS", "METRIC_COLUMNS", "rank"]
-
-#: Ranking metric (config name) -> the grasp-table column holding it.
-METRIC_COLUMNS: dict[str, str] = {
-    **METRICS,
-    "clearance": "clearance",
-    "margin": "margin",
-    "combined": "combined",
-}
+__all__ = ["branch_scores", "rank", "reachable_score"]
 
 
 def _finite_margin(values: np.ndarray, reachable: np.ndarray) -> np.ndarray:
@@ -89,7 +88,7 @@ def rank(
             as the largest finite margin).
         top_k: How many of the best grasps ``top`` marks (None: all reachable).
         weights: Metric name -> weight of the ``combined`` metric (None:
-            :data:`~gcm_pipeline.stages.collision.DEFAULT_COMBINED_WEIGHTS`);
+            :data:`~gcm_pipeline.ranking.metrics.DEFAULT_COMBINED_WEIGHTS`);
             ignored by the other metrics.
 
     Returns:
@@ -102,7 +101,7 @@ def rank(
             missing columns (``clearance`` names the metric that needs it),
             or ``q`` of the wrong width.
         ConfigError: Bad ``weights`` (see
-            :func:`~gcm_pipeline.stages.collision.combined_score`).
+            :func:`~gcm_pipeline.ranking.metrics.combined_score`).
     """
     if metric not in METRIC_COLUMNS:
         raise InputError(unknown_choice("ranking metric", metric, METRIC_COLUMNS))
@@ -163,3 +162,67 @@ def rank(
     k = order.size if top_k is None else int(top_k)
     top = (ranks > 0) & (ranks <= k)
     return grasps.with_columns(**columns, rank=ranks, top=top, **extra)
+
+
+def reachable_score(
+    table: GraspTable,
+    robot: Robot,
+    *,
+    metric: str = "yoshikawa",
+    weights: Mapping[str, float] | None = None,
+) -> np.ndarray:
+    """A ranking metric of the rows checked so far (``reachable``, ``q``); NaN: unreachable.
+
+    ``combined`` is normalised over the reachable rows of ``table`` (its
+    weights of metrics the table lacks are left out); ``margin`` (which needs
+    the finished manifold) falls back to Yoshikawa's index.
+    """
+    reach = np.asarray(table["reachable"], dtype=bool)
+    q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
+    values: dict[str, np.ndarray] = dict(manipulability_metrics(robot, q))
+    if "clearance" in table:
+        values["clearance"] = np.asarray(table["clearance"], dtype=np.float64)
+    if metric == "combined":
+        used = {k: v for k, v in (weights or {}).items() if k in values}
+        return combined_score(values, used or None, mask=reach)
+    return values.get(metric, values["yoshikawa"])
+
+
+def branch_scores(
+    solutions: np.ndarray,
+    robot: Robot,
+    *,
+    metric: str = "yoshikawa",
+    weights: Mapping[str, float] | None = None,
+    clearance: np.ndarray | None = None,
+) -> np.ndarray:
+    """The ranking metric of every IK branch (N, K), higher is better.
+
+    ``combined`` normalises each metric over all branches of all grasps (NaN
+    branches aside); ``margin`` is the same for every branch of a grasp, so
+    branches are compared by Yoshikawa's index instead (also its weight in
+    ``combined`` is left out).
+
+    Args:
+        solutions: The branches (N, K, nq) [rad] (NaN past a grasp's last one).
+        robot: The robot.
+        metric: The ranking metric.
+        weights: The ``combined`` metric's weights (None or empty:
+            :data:`~gcm_pipeline.ranking.metrics.DEFAULT_COMBINED_WEIGHTS`).
+        clearance: The branches' clearance (N, K) [m], if checked.
+    """
+    sol = np.asarray(solutions, dtype=np.float64)
+    n, k, nq = sol.shape
+    metrics = manipulability_metrics(robot, sol.reshape(-1, nq))
+    values = {name: v.reshape(n, k) for name, v in metrics.items()}
+    if clearance is not None:
+        values["clearance"] = np.asarray(clearance, dtype=np.float64)
+    if metric != "combined":
+        return values.get(metric, values["yoshikawa"])
+    used = {
+        name: float(w)
+        for name, w in (weights or DEFAULT_COMBINED_WEIGHTS).items()
+        if w > 0 and name in values
+    }
+    ranges = {name: value_range(values[name]) for name in used}
+    return weighted_sum(values, used, ranges, (n, k))

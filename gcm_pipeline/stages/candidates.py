@@ -597,7 +597,7 @@ def read_grasp_file_gripper(
 def _reserved_columns() -> set[str]:
     """Names a carried column must not have (grasps.csv and grasp-table columns)."""
     from gcm_pipeline.io import CSV_COLUMNS
-    from gcm_pipeline.ranking.rank import METRIC_COLUMNS
+    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
     return {
         *CSV_COLUMNS,

@@ -8,7 +8,7 @@ import pytest
 from poses import backward_poses
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.reach.moves import _end_of_move
+from gcm_pipeline.reach.waypoints import end_of_move
 from gcm_pipeline.robot import ik_pinocchio
 from gcm_pipeline.robot.analytic import PandaAnalyticIK
 from gcm_pipeline.robot.chain import KinematicChain
@@ -180,8 +180,8 @@ def test_end_of_move_is_near_the_start_and_at_least_as_good_as_the_lm(panda: Rob
     ends = grasp.copy()
     ends[:, :3, 3] -= 0.1 * grasp[:, :3, 2]  # 10 cm back along the approach axis
     opts = {"library_seeds": 0, "random_restarts": 0, "home_seed": False}
-    qe, reached = _end_of_move(panda, ends, q, "pinocchio", TOL_P, TOL_R, opts)
-    q_lm, reached_lm = _end_of_move(
+    qe, reached = end_of_move(panda, ends, q, "pinocchio", TOL_P, TOL_R, opts)
+    q_lm, reached_lm = end_of_move(
         panda, ends, q, "pinocchio", TOL_P, TOL_R, {**opts, "analytic": False}
     )
     assert reached.sum() > 300

@@ -82,7 +82,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.reach.moves import Move, check_moves, gripper_radius, unreachable_ends
+from gcm_pipeline.reach.deviation import gripper_radius
+from gcm_pipeline.reach.moves import Move, unreachable_ends
+from gcm_pipeline.reach.path import check_moves
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, wide_joints
 from gcm_pipeline.robot.ik import (

@@ -1,0 +1,541 @@
+r"""Joint paths of straight-line moves, and their collision checks.
+
+The joint path is piecewise linear through waypoints (knots) on a grid
+:math:`SUBSTEPS` times finer than the steps :math:`s_k = k / \mathrm{steps}`
+(:func:`plan_moves`), all moves of a batch at once:
+
+0. **Ends beyond reach**: a move whose end no configuration reaches within
+   the IK tolerances fails (``no_ik``) without any IK; this is proved from
+   the Panda's elbow range (:func:`~gcm_pipeline.reach.moves.unreachable_ends`), not searched for.
+1. **The end of the move**: one IK of the pose at :math:`s = 1` seeded with
+   :math:`q_g` only (a solution elsewhere is of no use), to the IK tolerances
+   (verified by Pinocchio FK, strictly inside the limits). Where that fails
+   (a long jump near a singularity), the line is followed from the grasp in
+   pieces of about ``_REACH`` (2.5 cm), each waypoint started from the
+   previous one; a piece that fails fails the move (``no_ik``).
+2. **Segments** between consecutive known waypoints (first the whole move) are
+   accepted when no joint changes by more than ``max_joint_step`` per grid step
+   and a **bound** on the deviation of the gripper from its straight-line path
+   over the whole segment is at most ``max_deviation`` [m]. Otherwise the
+   segment is split into :math:`k` parts (the deviation falls with the square
+   of a segment's length: :math:`k` is the count expected to bring each part
+   to ``_AIM`` of the tolerance) with new waypoints on the line, started from
+   the segment's joint interpolation and converged by a few Levenberg-Marquardt
+   steps to a small share of the deviation budget (``KNOT_TOLERANCE`` of
+   :mod:`~gcm_pipeline.reach.waypoints`): their error is part of what the bound measures, so they need not meet the IK
+   tolerance. A waypoint that does not converge, a jump within one grid step
+   or a deviation within one fine step fails the move.
+
+The bound is computed on the actual joint path, so the path is sound whatever
+its waypoints are: every gripper point stays within ``max_deviation`` of its
+line. A move whose first path collides at a grid point gets a second path with
+a waypoint at every grid point (:func:`check_moves`), so that a collision found
+does not depend on where the first path's waypoints fell.
+
+Collisions are checked by :func:`check_moves` at every grid point
+:math:`s_k, k \ge 1` of the joint path (the grasp itself, :math:`k = 0`, is the
+caller's), with the check the caller gives (the approach: no contact allowed;
+the retreat: the gripper holds the object, which moves with it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.errors import InputError
+from gcm_pipeline.reach.deviation import lever_arms, segment_bounds
+from gcm_pipeline.reach.moves import Move, MovePlan, MoveResult, unreachable_ends
+from gcm_pipeline.reach.waypoints import end_of_move, line_waypoints
+from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.model import Robot
+
+__all__ = ["SUBSTEPS", "check_moves", "plan_moves"]
+
+#: Samples per unit of the segment parameter are chosen so that the h^2 terms
+#: of the deviation bound use at most this share of ``max_deviation``.
+_SLACK_SHARE = 0.25
+#: Share of ``max_deviation`` a split segment's parts aim at.
+_AIM = 0.6
+#: Waypoints may sit this many times closer than the steps where the path bends.
+SUBSTEPS = 8
+#: Where one IK cannot reach the end of a move from the grasp, the line is
+#: followed in pieces of about this length [m] (continuation).
+_REACH = 0.025
+
+
+def plan_moves(
+    robot: Robot,
+    poses: Any,
+    q_start: Any,
+    move: Move,
+    *,
+    gripper_radius: float,
+    position_tolerance: float = 1e-4,
+    orientation_tolerance: float = 1e-3,
+    backend: str = "pinocchio",
+    grid_knots: bool = False,
+    knot_check: Callable[[np.ndarray, np.ndarray], Any] | None = None,
+    check_first: Any = None,
+    **ik_options: Any,
+) -> MovePlan:
+    """Joint paths of N moves from their grasps, batched over the moves (see module doc).
+
+    Args:
+        robot: The robot.
+        poses: Grasp poses (N, 4, 4) in the base frame [m].
+        q_start: Configurations reaching them (N, nq) [rad]; NaN rows fail (``invalid``).
+        move: The move.
+        gripper_radius: Largest distance of a gripper point from the grasp frame [m].
+        position_tolerance: IK tolerance of the end of the move [m].
+        orientation_tolerance: IK tolerance of the end of the move [rad].
+        backend: IK backend of the end of the move.
+        grid_knots: Start with a waypoint at every grid point (on the line
+            within the waypoint tolerance) instead of none.
+        knot_check: With ``grid_knots``: ``knot_check(q, move) -> reasons``
+            (as ``collisions`` of :func:`check_moves`) is called on the grid
+            waypoints found, in at most two batches (see ``check_first``); a
+            move fails at its first waypoint that gets a reason, with that
+            reason (the grid waypoints are the path's grid points). Ignored
+            without ``grid_knots``.
+        check_first: With ``knot_check``: per move (N,) the grid step up to
+            which its waypoints are found and checked before the rest of its
+            line is followed (e.g. where its first path collided: most moves
+            fail there, and their later waypoints are never computed). The
+            result does not depend on it. None: the whole line, then the checks.
+        **ik_options: Further backend options of the end's IK (seeded only
+            with the grasp's configuration unless given otherwise).
+
+    Returns:
+        The :class:`MovePlan`.
+
+    Raises:
+        InputError: Arrays of the wrong shape.
+    """
+    tg = np.asarray(poses, dtype=float)
+    if tg.ndim == 2:
+        tg = tg[None]
+    qg = np.asarray(q_start, dtype=float)
+    if qg.ndim == 1:
+        qg = qg[None]
+    n, nq, steps = tg.shape[0], robot.nq, move.steps
+    if tg.shape != (n, 4, 4) or qg.shape != (n, nq):
+        raise InputError(
+            f"poses must be (N, 4, 4) and q_start (N, {nq}) with the same N, "
+            f"got {tg.shape} and {qg.shape}"
+        )
+    if check_first is not None:
+        check_first = np.asarray(check_first)
+        if check_first.shape != (n,) or not np.issubdtype(check_first.dtype, np.integer):
+            raise InputError(f"check_first must be (N,) = ({n},) ints, got {check_first.shape}")
+    ok = np.all(np.isfinite(qg), axis=1) & np.all(np.isfinite(tg), axis=(1, 2))
+    reason = np.where(ok, "", "invalid").astype(object)
+    failed = np.zeros(n, dtype=int)
+    q_path = np.full((n, steps + 1, nq), np.nan)
+    deviation = np.where(ok, 0.0, np.nan)
+    waypoints = np.zeros(n, dtype=int)
+    sub = SUBSTEPS
+    fine_steps = steps * sub
+    knots = np.full((n, fine_steps + 1, nq), np.nan)
+    knots[:, 0] = qg
+    if move.distance == 0 or not np.any(ok):
+        q_path[ok] = qg[ok, None, :]
+        knots[:, 1:] = np.where(ok[:, None, None], qg[:, None, :], np.nan)
+        knots[~ok] = np.nan
+        return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
+
+    if backend == "pinocchio":
+        ik_options = {
+            "library_seeds": 0,
+            "random_restarts": 0,
+            "home_seed": False,
+            "diagnose_limits": False,
+            "analytic_samples": 0,  # closed form at and around the last waypoint's joint 7
+            **ik_options,
+        }
+    elif backend == "mink":
+        ik_options = {"library_seeds": 0, "random_restarts": 0, "home_seed": False, **ik_options}
+    offsets = move.offsets(tg)
+    tol = move.max_deviation
+
+    def fail(rows: np.ndarray, at: np.ndarray, why: Any) -> None:
+        """Rows fail at fine positions ``at`` (the first per row counts)."""
+        if rows.size == 0:
+            return
+        first = np.full(n, fine_steps)
+        np.minimum.at(first, rows, at)
+        bad = np.unique(rows)
+        ok[bad] = False
+        reason[bad] = why if isinstance(why, str) else why[bad]
+        failed[bad] = np.minimum(first[bad] // sub + 1, steps)
+
+    def advance(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray, pieces: int) -> np.ndarray:
+        """Waypoints ``lo + 1 .. hi`` (per row) of the line cut in ``pieces``.
+
+        Each starts from the previous one (waypoint 0 is the grasp); a waypoint
+        that does not converge stops its row. Returns (M,) bool: the rows that
+        got them all.
+        """
+        alive = np.ones(rows.size, dtype=bool)
+        for i in range(1, pieces + 1):
+            sel = np.flatnonzero(alive & (lo < i) & (i <= hi))
+            if sel.size == 0:
+                continue
+            r = rows[sel]
+            at, prev = (i * fine_steps) // pieces, ((i - 1) * fine_steps) // pieces
+            target = tg[r].copy()
+            target[:, :3, 3] += (at / fine_steps) * offsets[r]
+            seed = knots[r, prev]
+            if at < fine_steps:
+                q_new, conv = line_waypoints(robot, seed, target, tol, gripper_radius)
+            else:
+                res = solve_ik(
+                    robot,
+                    target,
+                    backend,
+                    position_tolerance=position_tolerance,
+                    orientation_tolerance=orientation_tolerance,
+                    seeds=seed[:, None, :],
+                    **ik_options,
+                )
+                q_new, conv = res.q, res.success
+            knots[r[conv], at] = q_new[conv]
+            failed_at[r[~conv]] = prev
+            alive[sel[~conv]] = False
+        return alive
+
+    def check_grid(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+        """``knot_check`` on the grid waypoints ``lo + 1 .. hi`` found (per row), one batch.
+
+        A row fails at its first waypoint the check rejects.
+        """
+        k = np.arange(1, steps + 1)
+        grid = knots[rows[:, None], k * sub]  # (m, steps, nq), NaN where not found
+        found = np.isfinite(grid[:, :, 0]) & (k > lo[:, None]) & (k <= hi[:, None])
+        owner = np.broadcast_to(rows[:, None], found.shape)
+        why = np.full(found.shape, "", dtype=object)
+        if found.any():
+            assert knot_check is not None
+            why[found] = np.asarray(knot_check(grid[found], owner[found]), dtype=object)
+        hit = why != ""
+        bad = np.flatnonzero(hit.any(axis=1))
+        first = hit[bad].argmax(axis=1)
+        row_why = np.full(n, "", dtype=object)
+        row_why[rows[bad]] = why[bad, first]
+        fail(rows[bad], (first + 1) * sub - 1, row_why)  # fails at grid step first + 1
+
+    def follow(rows: np.ndarray, pieces: int) -> np.ndarray:
+        """The rows that reach the end following the line from the grasp in pieces.
+
+        Each waypoint starts from the previous one; a failure fails the row. With
+        ``knot_check`` (``pieces == steps``: the waypoints are the grid points) the
+        waypoints are checked in batches: each row's up to its ``check_first``
+        step, then, for the rows still free, the rest of the line. A row fails at
+        its first waypoint the check rejects, as if each had been checked when
+        found (later ones only start from it).
+        """
+        start, zero = rows, np.zeros(rows.size, dtype=int)
+        end = np.full(rows.size, pieces)
+        if knot_check is None or not grid_knots or rows.size == 0:
+            rows = rows[advance(rows, zero, end, pieces)]
+        else:
+            pause = end if check_first is None else np.clip(check_first[rows], 1, pieces)
+            got = advance(rows, zero, pause, pieces)
+            check_grid(rows, zero, pause)
+            got &= ok[rows]
+            more = got & (pause < pieces)
+            got[more] = advance(rows[more], pause[more], end[more], pieces)
+            check_grid(rows[more], pause[more], end[more])
+            rows = rows[got & ok[rows]]
+        knots[np.setdiff1d(start, rows), 1:] = np.nan
+        return rows
+
+    # 0. ends proved beyond reach fail at once, whatever the IK would try
+    beyond = np.flatnonzero(
+        ok & unreachable_ends(robot, tg, move, position_tolerance, orientation_tolerance)
+    )
+    fail(beyond, np.full(beyond.size, fine_steps), "no_ik")
+
+    # 1. the end of the move: one IK seeded from the grasp's configuration; where it
+    # fails, the line is followed from the grasp in pieces of about _REACH
+    # (continuation: each waypoint started from the previous ones and converged to
+    # the waypoint tolerance, the last to the IK tolerances)
+    failed_at = np.zeros(n, dtype=int)
+    pieces = int(np.clip(np.ceil(move.distance / _REACH), 1, steps))
+    rows = np.flatnonzero(ok)
+    if grid_knots:
+        reached = follow(rows, steps)
+    else:
+        ends = tg[rows].copy()
+        ends[:, :3, 3] += offsets[rows]
+        q_end, done = end_of_move(
+            robot, ends, qg[rows], backend, position_tolerance, orientation_tolerance, ik_options
+        )
+        knots[rows[done], fine_steps] = q_end[done]
+        reached = rows[done]
+        retry = rows[~done]
+        reached = np.union1d(reached, follow(retry, pieces))
+    lost = np.setdiff1d(rows, reached)
+    lost = lost[ok[lost]]  # not those a knot check failed
+    fail(lost, failed_at[lost], "no_ik")
+
+    # 2. segments between known waypoints: accepted under the deviation bound, else
+    # split; a new waypoint starts from the segment's joint interpolation
+    r_idx, pos = np.nonzero(np.isfinite(knots[:, :, 0]) & ok[:, None])
+    inner = r_idx[1:] == r_idx[:-1]
+    s_row, s_a, s_b = r_idx[1:][inner], pos[:-1][inner], pos[1:][inner]
+    parts = np.ones(s_row.size, dtype=int)
+    while s_row.size:
+        split = np.flatnonzero(parts > 1)
+        if split.size:
+            s_row, s_a, s_b = _split_segments(
+                robot,
+                tg,
+                offsets,
+                knots,
+                s_row,
+                s_a,
+                s_b,
+                split,
+                parts[split],
+                fine_steps,
+                tol,
+                gripper_radius,
+                fail,
+            )
+            keep = ok[s_row]
+            s_row, s_a, s_b = s_row[keep], s_a[keep], s_b[keep]
+        if s_row.size == 0:
+            break
+        qa, qb = knots[s_row, s_a], knots[s_row, s_b]
+        span = s_b - s_a
+        # the change per grid step: segments of a step or more change every step
+        # alike; shorter ones may not change more than one step's worth
+        jump = np.max(np.abs(qb - qa), axis=1) * sub / np.maximum(span, sub)
+        over = jump > move.max_joint_step
+        dev = np.full(s_row.size, np.inf)
+        fine = np.flatnonzero(~over)
+        dev[fine] = segment_bounds(
+            robot,
+            lever_arms(robot),
+            qa[fine],
+            qb[fine],
+            tg[s_row[fine], :3, 3],
+            tg[s_row[fine], :3, :3],
+            offsets[s_row[fine]],
+            gripper_radius,
+            _SLACK_SHARE * tol,
+            reject_above=tol,
+        )
+        good = ~over & (dev <= tol)
+        np.maximum.at(deviation, s_row[good], dev[good])
+        np.add.at(waypoints, s_row[good], 1)
+        # a jump within one grid step, a deviation within one fine step: the move fails
+        dead = (over & (span <= sub)) | (~over & ~good & (span <= 1))
+        why = np.full(n, "deviation", dtype=object)
+        why[s_row[dead & over]] = "joint_step"
+        fail(s_row[dead], s_a[dead], why)
+        again = ~good & ~dead & ok[s_row]
+        # the deviation falls with the square of a segment's length
+        need = np.where(
+            over, np.ceil(jump / move.max_joint_step), np.ceil(np.sqrt(dev / (_AIM * tol)))
+        )
+        parts = np.clip(np.nan_to_num(need, nan=2.0, posinf=2.0), 2, np.maximum(span, 2))
+        s_row, s_a, s_b, parts = s_row[again], s_a[again], s_b[again], parts[again].astype(int)
+
+    # the grid points on the piecewise linear path through the knots
+    rows = np.flatnonzero(ok)
+    if rows.size:
+        kn = knots[rows]
+        have = np.isfinite(kn[:, :, 0])
+        idx = np.arange(fine_steps + 1)
+        prev = np.maximum.accumulate(np.where(have, idx, 0), axis=1)
+        nxt = np.minimum.accumulate(np.where(have, idx, fine_steps)[:, ::-1], axis=1)[:, ::-1]
+        grid = np.arange(steps + 1) * sub
+        pa, pb = prev[:, grid], nxt[:, grid]
+        ka = np.take_along_axis(kn, pa[:, :, None], axis=1)
+        kb = np.take_along_axis(kn, pb[:, :, None], axis=1)
+        f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
+        q_path[rows] = ka + f * (kb - ka)
+        # the change of every joint between consecutive grid points
+        big = np.abs(np.diff(q_path[rows], axis=1)).max(axis=2) > move.max_joint_step
+        over = np.flatnonzero(big.any(axis=1))
+        if over.size:
+            fail(rows[over], np.argmax(big[over], axis=1) * sub, "joint_step")
+    q_path[~ok] = np.nan
+    knots[~ok] = np.nan
+    deviation[~ok] = np.nan
+    waypoints[~ok] = 0
+    return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
+
+
+def _split_segments(
+    robot: Robot,
+    poses: np.ndarray,
+    offsets: np.ndarray,
+    knots: np.ndarray,
+    s_row: np.ndarray,
+    s_a: np.ndarray,
+    s_b: np.ndarray,
+    split: np.ndarray,
+    parts: np.ndarray,
+    fine_steps: int,
+    tol: float,
+    radius: float,
+    fail: Callable[[np.ndarray, np.ndarray, str], None],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split segments ``split`` into ``parts`` pieces with new waypoints (in ``knots``).
+
+    A new waypoint starts from the joint interpolation of its segment and
+    converges to its pose on the line within ``KNOT_TOLERANCE`` of the
+    deviation budget (batched Levenberg-Marquardt, inside the joint limits);
+    a row whose waypoint does not converge fails (``no_ik``).
+
+    Returns:
+        The segments ``(row, a, b)`` after the split, the others unchanged.
+    """
+    cnt = parts - 1
+    owner = np.repeat(split, cnt)
+    i = np.arange(owner.size) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
+    a, b = s_a[owner], s_b[owner]
+    at = a + (i * (b - a)) // parts[np.repeat(np.arange(split.size), cnt)]
+    row = s_row[owner]
+    qa, qb = knots[row, a], knots[row, b]
+    seed = qa + ((at - a) / (b - a))[:, None] * (qb - qa)
+    target = poses[row].copy()
+    target[:, :3, 3] += (at / fine_steps)[:, None] * offsets[row]
+    q_new, conv = line_waypoints(robot, seed, target, tol, radius)
+    knots[row[conv], at[conv]] = q_new[conv]
+    fail(row[~conv], at[~conv], "no_ik")
+    # every split segment becomes its parts: boundaries sorted within each segment
+    seg = np.concatenate([split, owner])
+    start = np.concatenate([s_a[split], at])
+    o = np.lexsort((start, seg))
+    seg, start = seg[o], start[o]
+    stop = np.empty_like(start)
+    stop[:-1] = start[1:]
+    last = np.ones(seg.size, dtype=bool)
+    last[:-1] = seg[1:] != seg[:-1]
+    stop[last] = s_b[seg[last]]
+    rest = np.ones(s_row.size, dtype=bool)
+    rest[split] = False
+    return (
+        np.concatenate([s_row[rest], s_row[seg]]),
+        np.concatenate([s_a[rest], start]),
+        np.concatenate([s_b[rest], stop]),
+    )
+
+
+def check_moves(
+    robot: Robot,
+    poses: Any,
+    q_start: Any,
+    move: Move,
+    collisions: Callable[[np.ndarray, np.ndarray], Any] | None,
+    *,
+    gripper_radius: float,
+    position_tolerance: float = 1e-4,
+    orientation_tolerance: float = 1e-3,
+    backend: str = "pinocchio",
+    **ik_options: Any,
+) -> MoveResult:
+    """Plan N moves (:func:`plan_moves`) and check their grid points for collisions.
+
+    A move whose path collides is planned once more with a waypoint at every
+    grid point (``grid_knots``) and accepted if that path is free.
+
+    Args:
+        robot: The robot.
+        poses: Grasp poses (N, 4, 4) in the base frame [m].
+        q_start: Configurations reaching them (N, nq) [rad].
+        move: The move.
+        collisions: ``collisions(q, move) -> reasons``: the collision reason
+            (``''`` = free) of configurations ``q`` (K, nq) on the moves with
+            indices ``move`` (K,), for the grid points ``k >= 1``; e.g.
+            ``lambda q, i: checker.check(q, mode="approach")``. None: no
+            collision checks.
+        gripper_radius: Largest distance of a gripper point from the grasp frame [m].
+        position_tolerance: IK tolerance [m].
+        orientation_tolerance: IK tolerance [rad].
+        backend: IK backend.
+        **ik_options: Further backend options.
+
+    Returns:
+        The :class:`MoveResult`.
+    """
+    opts = dict(
+        gripper_radius=gripper_radius,
+        position_tolerance=position_tolerance,
+        orientation_tolerance=orientation_tolerance,
+        backend=backend,
+        **ik_options,
+    )
+    tg = np.asarray(poses, dtype=float)
+    if tg.ndim == 2:
+        tg = tg[None]
+    q0 = np.asarray(q_start, dtype=float)
+    if q0.ndim == 1:
+        q0 = q0[None]
+    plan = plan_moves(robot, tg, q0, move, **opts)
+    # the plan's own arrays, changed in place (knots: (N, 8 steps + 1, nq) floats)
+    ok, failed, q_path, knots, dev = (
+        plan.ok,
+        plan.failed_step,
+        plan.q_path,
+        plan.knots,
+        plan.deviation,
+    )
+    reason = plan.reason.astype(object)
+    if collisions is not None and move.distance > 0:
+        rows = np.flatnonzero(ok)
+        hit_rows, why, first = _grid_collisions(collisions, q_path, rows, robot.nq)
+        ok[hit_rows] = False
+        reason[hit_rows] = why
+        failed[hit_rows] = first
+        if hit_rows.size:
+            # a path that collides gets a second plan with a waypoint at every grid
+            # point (on the line within the waypoint tolerance): a collision then
+            # does not depend on where the first plan's waypoints fell
+            again = plan_moves(
+                robot,
+                tg[hit_rows],
+                q0[hit_rows],
+                move,
+                grid_knots=True,
+                # a waypoint that collides fails its move at once (it is a grid point)
+                knot_check=lambda q, i: collisions(q, hit_rows[i]),
+                check_first=first,  # where the first path collided
+                **opts,
+            )
+            # its grid points are its waypoints, each checked as it was found
+            good = np.flatnonzero(again.ok)
+            r = hit_rows[good]
+            ok[r], reason[r], failed[r] = True, "", 0
+            q_path[r], knots[r] = again.q_path[good], again.knots[good]
+            dev[r] = again.deviation[good]
+    q_path[~ok] = np.nan
+    knots[~ok] = np.nan
+    dev[~ok] = np.nan
+    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, knots)
+
+
+def _grid_collisions(
+    collisions: Callable[[np.ndarray, np.ndarray], Any],
+    q_path: np.ndarray,
+    rows: np.ndarray,
+    nq: int,
+    ids: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows of ``rows`` whose grid points ``k >= 1`` collide, their first reason and step."""
+    if rows.size == 0:
+        return rows, np.zeros(0, dtype=object), np.zeros(0, dtype=int)
+    steps = q_path.shape[1] - 1
+    samples = q_path[rows, 1:].reshape(-1, nq)
+    which = np.repeat(rows if ids is None else ids[rows], steps)
+    why = np.asarray(collisions(samples, which)).reshape(rows.size, steps)
+    hit = why != ""
+    bad = np.flatnonzero(hit.any(axis=1))
+    first = np.argmax(hit[bad], axis=1)
+    return rows[bad], why[bad, first], first + 1

@@ -22,8 +22,8 @@ The joint path is piecewise linear through waypoints (knots) on a grid
    to ``_AIM`` of the tolerance) with new waypoints on the line, started from
    the segment's joint interpolation and converged by a few Levenberg-Marquardt
    steps to a small share of the deviation budget (``KNOT_TOLERANCE`` of
-   :mod:`~gcm_pipeline.reach.waypoints`): their error is part of what the bound measures, so they need not meet the IK
-   tolerance. A waypoint that does not converge, a jump within one grid step
+   :mod:`~gcm_pipeline.reach.waypoints`): their error is part of what the bound
+   measures, so they need not meet the IK tolerance. A waypoint that does not converge, a jump within one grid step
    or a deviation within one fine step fails the move.
 
 The bound is computed on the actual joint path, so the path is sound whatever

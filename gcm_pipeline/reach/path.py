@@ -23,8 +23,9 @@ The joint path is piecewise linear through waypoints (knots) on a grid
    the segment's joint interpolation and converged by a few Levenberg-Marquardt
    steps to a small share of the deviation budget (``KNOT_TOLERANCE`` of
    :mod:`~gcm_pipeline.reach.waypoints`): their error is part of what the bound
-   measures, so they need not meet the IK tolerance. A waypoint that does not converge, a jump within one grid step
-   or a deviation within one fine step fails the move.
+   measures, so they need not meet the IK tolerance. A waypoint that does not
+   converge, a jump within one grid step or a deviation within one fine step
+   fails the move.
 
 The bound is computed on the actual joint path, so the path is sound whatever
 its waypoints are: every gripper point stays within ``max_deviation`` of its

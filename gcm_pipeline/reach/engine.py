@@ -65,28 +65,43 @@ processes that inherit the robot, seed library and collision world.
 
 The engine takes plain arrays and shapes (a robot, a collision checker,
 :class:`~gcm_pipeline.reach.moves.Move` objects), no config;
-:mod:`gcm_pipeline.reach.check` maps a config onto it. Build it once
+:mod:`gcm_pipeline.pipeline` maps a config onto it. Build it once
 and :meth:`~ReachabilityEngine.run` it on many target sets.
 """
 
 from __future__ import annotations
 
-import atexit
-import functools
 import multiprocessing as mp
 import time
-import weakref
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.reach.alternatives import merge_ik, other_solutions
 from gcm_pipeline.reach.deviation import gripper_radius
 from gcm_pipeline.reach.moves import Move, unreachable_ends
 from gcm_pipeline.reach.path import check_moves
+from gcm_pipeline.reach.result import (
+    AT_APPROACH,
+    AT_GRASP,
+    AT_RETREAT,
+    PASSED,
+    REASON_APPROACH,
+    REASON_RETREAT,
+    Branches,
+    CheckResult,
+    ReachResult,
+)
+from gcm_pipeline.reach.workers import (
+    POOLS,
+    WORKER,
+    blas_controller,
+    guided_chunks,
+    solve_in_worker,
+)
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.analytic_6r import SixRAnalyticIK, branch_gap, wide_joints
 from gcm_pipeline.robot.ik import (
     ForkPool,
     IKCandidates,
@@ -95,26 +110,11 @@ from gcm_pipeline.robot.ik import (
     _worker_signals,
     check_targets,
     solve_ik,
-    verify_solutions,
 )
-from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions, six_r_solver
+from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions
 from gcm_pipeline.robot.model import Robot
 
-__all__ = [
-    "REASON_APPROACH",
-    "REASON_RETREAT",
-    "Branches",
-    "CheckResult",
-    "ReachResult",
-    "ReachabilityEngine",
-    "available_cores",
-]
-
-REASON_APPROACH = "approach"
-REASON_RETREAT = "retreat"
-
-# how far a solution got through the checks of step 2
-_AT_GRASP, _AT_APPROACH, _AT_RETREAT, _PASSED = 0, 1, 2, 3
+__all__ = ["ReachabilityEngine", "available_cores"]
 
 #: Seeds of the re-solve (step 3) for the pinocchio backend: library
 #: neighbours and random restarts beyond the first solve's.
@@ -131,11 +131,6 @@ _SAME_SOLUTION = 1e-3
 
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
-#: Fewest targets of a chunk when a few thousand are shared out (see _guided_chunks).
-_LEAST_SHARE = 256
-
-#: Most closed-form branches of a 6R arm (EAIK: at most 16); step 3 tries every one.
-_MOST_BRANCHES = 16
 
 #: Seeds of the search for more branches (step 4, pinocchio backend).
 _BRANCH_LIBRARY = 16
@@ -145,89 +140,6 @@ _BRANCH_RESTARTS = 8
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity), at least 1."""
     return _cores()
-
-
-class CheckResult(NamedTuple):
-    """Step 2 for M solutions (:meth:`ReachabilityEngine.check`).
-
-    Attributes:
-        passed: (M,) bool, every check passed.
-        stage: (M,) int, how far the solution got: 0 failed at the grasp
-            (collision or validator), 1 failed the approach, 2 failed the
-            retreat, 3 passed.
-        reason: (M,) str, ``''`` or why it failed.
-        q_pregrasp: (M, nq) [rad] end of the approach (NaN without an approach
-            or where it failed).
-        q_retreat: (M, nq) [rad] end of the retreat (NaN likewise).
-    """
-
-    passed: np.ndarray
-    stage: np.ndarray
-    reason: np.ndarray
-    q_pregrasp: np.ndarray
-    q_retreat: np.ndarray
-
-
-class Branches(NamedTuple):
-    """Up to K verified solutions per target that pass every check (step 4).
-
-    Attributes:
-        q: (N, K, nq) [rad]; branch 0 is the answer of steps 1-3 (``ReachResult.q``);
-            NaN past ``count``.
-        q_pregrasp: (N, K, nq) [rad] end of each branch's approach (NaN likewise).
-        q_retreat: (N, K, nq) [rad] end of each branch's retreat.
-        clearance: (N, K) [m] distance of the arm to the world, or None
-            without a collision checker.
-        count: (N,) int, branches kept (0 for unreachable targets).
-    """
-
-    q: np.ndarray
-    q_pregrasp: np.ndarray
-    q_retreat: np.ndarray
-    clearance: np.ndarray | None
-    count: np.ndarray  # type: ignore[assignment]  # the field shadows tuple.count
-
-
-class ReachResult(NamedTuple):
-    """Result of :meth:`ReachabilityEngine.run` for N targets.
-
-    Attributes:
-        reachable: (N,) bool.
-        reason: (N,) str, ``''`` when reachable (see the module doc).
-        q: (N, nq) [rad] the solution; NaN rows when unreachable.
-        pos_err: (N,) [m] position error of the solution, or of the best IK
-            attempt when unreachable (NaN if none was made).
-        rot_err: (N,) [rad] orientation error, same rules.
-        clearance: (N,) [m] distance of the arm to the world (NaN when
-            unreachable), or None without a collision checker.
-        q_pregrasp: (N, nq) [rad] pre-grasp configuration (NaN when unreachable
-            or without an approach).
-        q_retreat: (N, nq) [rad] configuration at the end of the retreat.
-        q_rejected: (N, nq) [rad] for unreachable rows that had an IK solution,
-            the solution that failed the furthest check; NaN otherwise.
-        candidates: Every converged IK candidate of step 1 (``return_candidates``).
-        branches: Every kept branch when the engine keeps several
-            (``solutions`` > 1), else None.
-    """
-
-    reachable: np.ndarray
-    reason: np.ndarray
-    q: np.ndarray
-    pos_err: np.ndarray
-    rot_err: np.ndarray
-    clearance: np.ndarray | None
-    q_pregrasp: np.ndarray
-    q_retreat: np.ndarray
-    q_rejected: np.ndarray
-    candidates: IKCandidates | None = None
-    branches: Branches | None = None
-
-    def __repr__(self) -> str:
-        n = len(self.reachable)
-        ok = int(np.count_nonzero(self.reachable))
-        names, counts = np.unique(self.reason[~self.reachable].astype(str), return_counts=True)
-        fails = ", ".join(f"{r}: {c}" for r, c in zip(names, counts, strict=True))
-        return f"ReachResult({ok}/{n} reachable" + (f", {{{fails}}}" if fails else "") + ")"
 
 
 class ReachabilityEngine:
@@ -381,12 +293,12 @@ class ReachabilityEngine:
             reason = self.check_grasp(q)
         else:
             reason = np.asarray(at_grasp, dtype=object).copy()
-        stage = np.where(reason == "", _AT_APPROACH, _AT_GRASP)
+        stage = np.where(reason == "", AT_APPROACH, AT_GRASP)
         q_pre = np.full((m, nq), np.nan)
         q_ret = np.full((m, nq), np.nan)
         for move, at, fail, out in (
-            (self.approach, _AT_APPROACH, REASON_APPROACH, q_pre),
-            (self.retreat, _AT_RETREAT, REASON_RETREAT, q_ret),
+            (self.approach, AT_APPROACH, REASON_APPROACH, q_pre),
+            (self.retreat, AT_RETREAT, REASON_RETREAT, q_ret),
         ):
             rows = np.flatnonzero(stage == at)
             t0 = time.process_time()
@@ -408,7 +320,7 @@ class ReachabilityEngine:
                 rows = rows[res.ok]
             stage[rows] = at + 1
             self._spent(fail, t0)
-        return CheckResult(stage == _PASSED, stage, reason.astype(str), q_pre, q_ret)
+        return CheckResult(stage == PASSED, stage, reason.astype(str), q_pre, q_ret)
 
     def _hopeless(self, targets: np.ndarray, stage: np.ndarray) -> np.ndarray:
         """Targets (M,) whose solution failed a move that no solution can pass.
@@ -419,7 +331,7 @@ class ReachabilityEngine:
         whatever the configuration, so no other solution gets further.
         """
         out = np.zeros(len(targets), dtype=bool)
-        for move, at in ((self.approach, _AT_APPROACH), (self.retreat, _AT_RETREAT)):
+        for move, at in ((self.approach, AT_APPROACH), (self.retreat, AT_RETREAT)):
             rows = np.flatnonzero(stage == at)
             if move is not None and rows.size:
                 out[rows] = unreachable_ends(
@@ -476,98 +388,24 @@ class ReachabilityEngine:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Other verified, distinct IK solutions of M targets, in seed order.
 
-        Args:
-            targets: (M, 4, 4) poses in the base frame.
-            q_first: (M, nq) the solution each must differ from.
-            count: Alternatives wanted per target (default ``alternatives``).
-            separation: Solutions closer than this in every joint are the same [rad].
-            library: Library seeds per target (pinocchio).
-            restarts: Random restarts per target (pinocchio).
-
-        Returns:
-            ``(index, rank, q, errors)``: target index (K,) into ``targets``,
-            rank of the alternative among its target's (K,), solutions (K, nq)
-            and ``(pos_err, rot_err)`` stacked (K, 2).
+        See :func:`~gcm_pipeline.reach.alternatives.other_solutions`; ``count``
+        None: ``alternatives`` per target (every closed-form branch of a 6R arm).
         """
-        k = self.alternatives if count is None else int(count)
-        nq = self.robot.nq
-        empty = (np.zeros(0, int), np.zeros(0, int), np.zeros((0, nq)), np.zeros((0, 2)))
-        six = self._six()
-        if six is not None:
-            # every branch in closed form, each at its 2 pi copy nearest home, nearest
-            # first; step 3 tries them all (the enumeration is complete and cheap)
-            eps = PinocchioIKOptions.limit_epsilon
-            idx, cq = six.solve(
-                targets[:, :3, :3],
-                targets[:, :3, 3],
-                self.robot.lower + eps,
-                self.robot.upper - eps,
-                self.robot.home,
-            )
-            order = np.lexsort((np.sum((cq - self.robot.home) ** 2, axis=1), idx))
-            idx, cq = idx[order], cq[order]
-            if count is None:
-                k = max(k, _MOST_BRANCHES)
-        else:
-            opts: dict[str, Any]
-            if self.backend == "pinocchio":
-                opts = {
-                    "min_solutions": 2 * (k + 1),
-                    "first_round_seeds": k + 1,
-                    "round_seeds": k + 1,
-                    "library_seeds": library,
-                    "random_restarts": restarts,
-                }
-            else:
-                opts = {"min_solutions": 2 * (k + 1)}
-            opts.update((key, v) for key, v in self.ik_options.items() if key == "random_seed")
-            opts.update(self._shared_options())
-            res = solve_ik(
-                self.robot,
-                targets,
-                self.backend,
-                position_tolerance=self.position_tolerance,
-                orientation_tolerance=self.orientation_tolerance,
-                return_all=True,
-                **opts,
-            )
-            cand = res.candidates
-            if cand is None or len(cand.index) == 0:
-                return empty
-            idx, cq = cand.index, cand.q
-        if len(idx) == 0:
-            return empty
-        pe, re, inside = verify_solutions(self.robot, cq, targets[idx])
-        good = (pe <= self.position_tolerance) & (re <= self.orientation_tolerance) & inside
-        idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
-        # distinct from the first solution and from the earlier alternatives of the same
-        # target (candidates are sorted by target, in seed order within a target), modulo
-        # 2 pi on the joints whose range exceeds a turn: q + 2 pi is the same arm shape
-        wide = wide_joints(self.robot.lower, self.robot.upper)
-        keep = np.max(branch_gap(cq, q_first[idx], wide), axis=1) >= separation
-        idx, cq, err = idx[keep], cq[keep], err[keep]
-        if len(idx) == 0:
-            return empty
-        pos = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
-        groups, group = np.unique(idx, return_inverse=True)
-        padded = np.full((len(groups), int(pos.max()) + 1, nq), np.nan)  # pads are never near
-        padded[group, pos] = cq
-        gap = np.max(branch_gap(padded[:, :, None], padded[:, None, :], wide), axis=3)
-        near = gap < separation  # NaN (a pad) compares False
-        earlier = np.tril(near, k=-1).any(axis=2)  # same as an earlier candidate
-        distinct = ~earlier[group, pos]
-        idx, cq, err = idx[distinct], cq[distinct], err[distinct]
-        rank = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
-        keep = rank < k
-        if not np.any(keep):
-            return empty
-        return idx[keep], rank[keep], cq[keep], err[keep]
-
-    def _six(self) -> SixRAnalyticIK | None:
-        """The closed-form branch solver of a 6R arm, unless the IK options turn it off."""
-        if self.ik_options.get("analytic", True) is False:
-            return None
-        return six_r_solver(self.robot)
+        return other_solutions(
+            self.robot,
+            targets,
+            q_first,
+            count=self.alternatives if count is None else int(count),
+            every_branch=count is None,
+            backend=self.backend,
+            position_tolerance=self.position_tolerance,
+            orientation_tolerance=self.orientation_tolerance,
+            ik_options=self.ik_options,
+            shared_options=self._shared_options(),
+            separation=separation,
+            library=library,
+            restarts=restarts,
+        )
 
     def _branches(
         self,
@@ -651,7 +489,7 @@ class ReachabilityEngine:
             lib = self.ik_options.get("library_seeds", PinocchioIKOptions.library_seeds)
             small["library_seeds"] = min(int(lib), _HOPELESS_LIBRARY)
         results = [ik(parts[0]), ik(parts[1], **small)]
-        return _merge_ik(parts, results, m, self.robot.nq)
+        return merge_ik(parts, results, m, self.robot.nq)
 
     def solve(
         self,
@@ -676,7 +514,7 @@ class ReachabilityEngine:
         """
         # the engine's parallelism is its worker processes: BLAS runs on one thread
         # (its threads only contend with them, and the matrices here are small)
-        with _blas_controller().limit(limits=1, user_api="blas"):
+        with blas_controller().limit(limits=1, user_api="blas"):
             return self._solve(targets, seeds, return_candidates, no_restarts)
 
     def _solve(
@@ -746,14 +584,14 @@ class ReachabilityEngine:
             sel = np.flatnonzero((rank > 0) & ~reachable[who])
             if sel.size:
                 at_grasp = self.check_grasp(alt_q[sel])
-                stage = np.where(at_grasp == "", _AT_APPROACH, _AT_GRASP)
-                s = np.flatnonzero(stage == _AT_GRASP)  # failed at the grasp: the reasons
+                stage = np.where(at_grasp == "", AT_APPROACH, AT_GRASP)
+                s = np.flatnonzero(stage == AT_GRASP)  # failed at the grasp: the reasons
                 if s.size:
                     nan = np.full((s.size, nq), np.nan)
                     fails = np.zeros(s.size, dtype=bool)
                     chk = CheckResult(fails, stage[s], at_grasp[s].astype(str), nan, nan)
                     record(who[sel[s]], alt_q[sel[s]], alt_err[sel[s]], chk)
-                pending = np.flatnonzero(stage == _AT_APPROACH)  # positions in sel, rank order
+                pending = np.flatnonzero(stage == AT_APPROACH)  # positions in sel, rank order
                 while pending.size:
                     pending = pending[~reachable[who[sel[pending]]]]
                     if pending.size == 0:
@@ -882,7 +720,7 @@ class ReachabilityEngine:
                     None if sub is None else sub[at],
                     None if hopeless is None else hopeless[at],
                 )
-                for at in _guided_chunks(rows.size, self.chunk_size, self.workers)
+                for at in guided_chunks(rows.size, self.chunk_size, self.workers)
             ]
             for (chunk_rows, *_), part in zip(
                 chunks, self._map(chunks, return_candidates), strict=True
@@ -946,7 +784,7 @@ class ReachabilityEngine:
             return
         pool = self._get_pool(len(work))
         try:
-            yield from pool.ordered(_solve_in_worker, work)
+            yield from pool.ordered(solve_in_worker, work)
         except BaseException:
             # Ctrl-C or a failing chunk: stop the workers before anything else
             self.close()
@@ -961,12 +799,12 @@ class ReachabilityEngine:
             # warm the caches (seed library, MuJoCo model) so that workers inherit them
             probe = self.robot.fk(self.robot.home)
             solve_ik(self.robot, probe, self.backend, **self.ik_options)
-            _blas_controller()  # it reads the loaded libraries (about 10 ms): once, here
+            blas_controller()  # it reads the loaded libraries (about 10 ms): once, here
             kernels.get()  # compiled or read from Numba's cache once, here, not per worker
-            _WORKER["engine"] = self
+            WORKER["engine"] = self
             self._pool = ForkPool(size, initializer=_worker_signals)
             self._pool_size = size
-            _POOLS.add(self)
+            POOLS.add(self)
         return self._pool
 
     def close(self) -> None:
@@ -986,80 +824,6 @@ class ReachabilityEngine:
         state = dict(self.__dict__)
         state["_pool"], state["_pool_size"] = None, 0
         return state
-
-
-# the engine of this worker process (set in the parent just before the pool forks)
-_WORKER: dict[str, ReachabilityEngine] = {}
-_POOLS: weakref.WeakSet[ReachabilityEngine] = weakref.WeakSet()
-
-
-def _solve_in_worker(
-    args: tuple[np.ndarray, np.ndarray | None, bool, np.ndarray | None],
-) -> dict[str, Any]:
-    return _WORKER["engine"].solve(*args)
-
-
-@atexit.register
-def _close_pools() -> None:
-    for engine in list(_POOLS):
-        engine.close()
-
-
-@functools.cache
-def _blas_controller() -> Any:
-    """The process's thread pools (BLAS), inspected once."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
-
-
-def _guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:
-    """Positions ``0..n-1`` in contiguous chunks of at most ``most``, shrinking at the end.
-
-    On several workers a chunk takes a share of what is left (guided
-    scheduling), at least ``most // 4``: large chunks while there is much to
-    do (fewer, larger NumPy calls), small ones at the end so that the workers
-    finish together. A set of at most ``most // 4`` is one chunk, solved on
-    this process (starting workers costs about as much as they save there);
-    up to ``workers`` times that, it is shared out equally, one chunk per
-    worker (3,000 targets on two: 1,500 each, not 2,048 and 952), but not
-    in chunks under ``_LEAST_SHARE`` (or ``most // 4`` if smaller). Results
-    do not depend on the chunks (every decision is per target).
-    """
-    least = max(most // 4, 1)
-    if workers > 1 and least < n <= workers * least:
-        least = most = max(-(-n // workers), min(least, _LEAST_SHARE))
-    out, a = [], 0
-    while a < n:
-        size = most if workers == 1 else min(most, max(least, -(-(n - a) // (2 * workers))))
-        out.append(np.arange(a, min(a + size, n)))
-        a += size
-    return out
-
-
-def _merge_ik(parts: list[np.ndarray], results: list[IKResult], m: int, nq: int) -> IKResult:
-    """One :class:`IKResult` of M targets from results of row subsets ``parts``."""
-    q = np.full((m, nq), np.nan)
-    success = np.zeros(m, dtype=bool)
-    pos_err = np.full(m, np.nan)
-    rot_err = np.full(m, np.nan)
-    reason = np.full(m, "", dtype=object)
-    for rows, r in zip(parts, results, strict=True):
-        q[rows], success[rows], reason[rows] = r.q, r.success, r.reason
-        pos_err[rows], rot_err[rows] = r.pos_err, r.rot_err
-    candidates = None
-    if results[0].candidates is not None:
-        cands = [r.candidates for r in results if r.candidates is not None]
-        index = np.concatenate([rows[c.index] for rows, c in zip(parts, cands, strict=True)])
-        order = np.argsort(index, kind="stable")
-        candidates = IKCandidates(
-            index[order],
-            np.concatenate([c.q for c in cands]).reshape(-1, nq)[order],
-            np.concatenate([c.reason for c in cands])[order],
-        )
-    return IKResult(
-        q, success, pos_err, rot_err, reason.astype(str), results[0].backend, candidates
-    )
 
 
 def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:

@@ -80,16 +80,12 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.reach.alternatives import merge_ik, other_solutions
-from gcm_pipeline.reach.deviation import gripper_radius
-from gcm_pipeline.reach.moves import Move, unreachable_ends
-from gcm_pipeline.reach.path import check_moves
+from gcm_pipeline.reach.solution_checks import SolutionChecks
+from gcm_pipeline.reach.moves import Move
+from gcm_pipeline.reach.options import shared_ik_options
 from gcm_pipeline.reach.result import (
     AT_APPROACH,
     AT_GRASP,
-    AT_RETREAT,
-    PASSED,
-    REASON_APPROACH,
-    REASON_RETREAT,
     Branches,
     CheckResult,
     ReachResult,
@@ -229,7 +225,18 @@ class ReachabilityEngine:
             raise InputError(
                 f"solution_separation must be a positive angle [rad], got {solution_separation!r}"
             )
-        self._radius = gripper_radius(robot) if (approach or retreat) else 0.0
+        self._checks = SolutionChecks(
+            robot,
+            checker,
+            validator,
+            approach,
+            retreat,
+            backend=backend,
+            position_tolerance=self.position_tolerance,
+            orientation_tolerance=self.orientation_tolerance,
+            ik_options=self.ik_options,
+            spent=self._spent,
+        )
         self._pool: Any = None
         self._pool_size = 0
         #: CPU time [s] of each step of the last :meth:`run`, summed over chunks
@@ -252,128 +259,18 @@ class ReachabilityEngine:
     # --- step 2 ------------------------------------------------------------------------
 
     def check_grasp(self, q: np.ndarray) -> np.ndarray:
-        """The checks at the grasp of M solutions: collisions, then the validator.
-
-        Returns:
-            (M,) object array of reasons, ``''`` where both pass.
-        """
-        m = q.shape[0]
-        reason = np.full(m, "", dtype=object)
-        t0 = time.process_time()
-        if self.checker is not None and m:
-            reason[:] = np.asarray(self.checker.check(q), dtype=object)
-        self._spent("collisions", t0)
-        if self.validator is not None:
-            free = np.flatnonzero(reason == "")
-            if free.size:
-                why = np.asarray(self.validator(q[free]), dtype=object)
-                if why.shape != (free.size,):
-                    raise InputError(
-                        f"validator returned shape {why.shape}, expected ({free.size},)"
-                    )
-                reason[free] = why
-        return reason
+        """The checks at the grasp of M solutions (:meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.at_grasp`)."""
+        return self._checks.at_grasp(q)
 
     def check(
         self, targets: np.ndarray, q: np.ndarray, at_grasp: np.ndarray | None = None
     ) -> CheckResult:
-        """Step 2 for M solutions: collisions, validator, approach, retreat.
-
-        Args:
-            targets: Grasp poses (M, 4, 4) in the base frame [m].
-            q: Their IK solutions (M, nq) [rad], finite.
-            at_grasp: The reasons (M,) of the checks at the grasp (collisions and
-                validator, :meth:`check_grasp`) if already known.
-
-        Returns:
-            The :class:`CheckResult`.
-        """
-        m, nq = q.shape
-        if at_grasp is None:
-            reason = self.check_grasp(q)
-        else:
-            reason = np.asarray(at_grasp, dtype=object).copy()
-        stage = np.where(reason == "", AT_APPROACH, AT_GRASP)
-        q_pre = np.full((m, nq), np.nan)
-        q_ret = np.full((m, nq), np.nan)
-        for move, at, fail, out in (
-            (self.approach, AT_APPROACH, REASON_APPROACH, q_pre),
-            (self.retreat, AT_RETREAT, REASON_RETREAT, q_ret),
-        ):
-            rows = np.flatnonzero(stage == at)
-            t0 = time.process_time()
-            if move is not None and rows.size:
-                res = check_moves(
-                    self.robot,
-                    targets[rows],
-                    q[rows],
-                    move,
-                    self._path_collisions(move, targets[rows]),
-                    gripper_radius=self._radius,
-                    position_tolerance=self.position_tolerance,
-                    orientation_tolerance=self.orientation_tolerance,
-                    backend=self.backend,
-                    **self._shared_options(),
-                )
-                reason[rows[~res.ok]] = fail
-                out[rows] = res.q_end
-                rows = rows[res.ok]
-            stage[rows] = at + 1
-            self._spent(fail, t0)
-        return CheckResult(stage == PASSED, stage, reason.astype(str), q_pre, q_ret)
-
-    def _hopeless(self, targets: np.ndarray, stage: np.ndarray) -> np.ndarray:
-        """Targets (M,) whose solution failed a move that no solution can pass.
-
-        ``stage`` (M,) is how far the target's solution got (:class:`CheckResult`);
-        one that failed the approach (or the retreat) whose end is proved beyond
-        reach (:func:`~gcm_pipeline.reach.moves.unreachable_ends`) fails it
-        whatever the configuration, so no other solution gets further.
-        """
-        out = np.zeros(len(targets), dtype=bool)
-        for move, at in ((self.approach, AT_APPROACH), (self.retreat, AT_RETREAT)):
-            rows = np.flatnonzero(stage == at)
-            if move is not None and rows.size:
-                out[rows] = unreachable_ends(
-                    self.robot,
-                    targets[rows],
-                    move,
-                    self.position_tolerance,
-                    self.orientation_tolerance,
-                )
-        return out
-
-    def _shared_options(self) -> dict[str, Any]:
-        """The IK options that hold for every IK of the engine, not only step 1.
-
-        That is whether the pinocchio backend uses the closed form.
-        """
-        if self.backend != "pinocchio":
-            return {}
-        return {k: v for k, v in self.ik_options.items() if k in ("analytic",)}
+        """Step 2 for M solutions (:meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.check`)."""
+        return self._checks.check(targets, q, at_grasp)
 
     def _spent(self, step: str, since: float) -> None:
         """Add the CPU time since ``since`` to ``timings[step]`` [s]."""
         self.timings[step] = self.timings.get(step, 0.0) + time.process_time() - since
-
-    def _path_collisions(
-        self, move: Move, targets: np.ndarray
-    ) -> Callable[[np.ndarray, np.ndarray], Any] | None:
-        """The collision check of a move's grid points (None without a checker).
-
-        The approach allows no contact; the retreat holds the object: it moves
-        with the grasp frame (its pose in the grasp frame is fixed at the grasp).
-        """
-        checker = self.checker
-        if checker is None:
-            return None
-        if not move.holding:
-            return lambda q, rows: checker.check(q, mode="approach")
-        obj = getattr(checker, "object", None)
-        if obj is None:
-            return lambda q, rows: checker.check(q, mode="retreat")
-        held = np.linalg.inv(targets) @ obj.placement
-        return lambda q, rows: checker.check(q, mode="retreat", carried=held[rows])
 
     # --- step 3 ------------------------------------------------------------------------
 
@@ -401,7 +298,7 @@ class ReachabilityEngine:
             position_tolerance=self.position_tolerance,
             orientation_tolerance=self.orientation_tolerance,
             ik_options=self.ik_options,
-            shared_options=self._shared_options(),
+            shared_options=shared_ik_options(self.backend, self.ik_options),
             separation=separation,
             library=library,
             restarts=restarts,
@@ -517,6 +414,7 @@ class ReachabilityEngine:
         with blas_controller().limit(limits=1, user_api="blas"):
             return self._solve(targets, seeds, return_candidates, no_restarts)
 
+    # over 100 lines: steps 1-5 of a chunk share their per-target arrays through `record`
     def _solve(
         self,
         targets: np.ndarray,
@@ -566,7 +464,7 @@ class ReachabilityEngine:
         failing = record(np.flatnonzero(res.success), res.q[res.success], None)
         # step 3: other branches of the targets whose solution failed a check, except
         # where the move it failed ends beyond reach (no branch can pass it)
-        failing = failing[~self._hopeless(targets[failing], best[failing])]
+        failing = failing[~self._checks.hopeless(targets[failing], best[failing])]
         if failing.size and self.alternatives > 0:
             t0 = time.process_time()
             idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
@@ -640,6 +538,7 @@ class ReachabilityEngine:
 
     # --- the whole run ---------------------------------------------------------------------
 
+    # over 100 lines: the two phases (rows without, then with, neighbours) fill one set of arrays
     def run(
         self,
         targets: Any,

@@ -16,7 +16,7 @@ import numpy as np
 
 from gcm_pipeline.reach.moves import Move
 
-__all__ = ["ReachOptions"]
+__all__ = ["ReachOptions", "shared_ik_options"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,3 +61,13 @@ class ReachOptions:
             base = np.array(self.base_pose, dtype=float)
             base.setflags(write=False)
             object.__setattr__(self, "base_pose", base)
+
+
+def shared_ik_options(backend: str, ik_options: Mapping[str, Any]) -> dict[str, Any]:
+    """The IK options that hold for every IK of the engine, not only step 1.
+
+    That is whether the pinocchio backend uses the closed form.
+    """
+    if backend != "pinocchio":
+        return {}
+    return {k: v for k, v in ik_options.items() if k in ("analytic",)}

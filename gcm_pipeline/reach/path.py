@@ -67,6 +67,7 @@ SUBSTEPS = 8
 _REACH = 0.025
 
 
+# over 100 lines: the closures (fail, advance, check_grid, follow) share the batch's arrays
 def plan_moves(
     robot: Robot,
     poses: Any,

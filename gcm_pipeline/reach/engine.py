@@ -80,7 +80,6 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.reach.alternatives import merge_ik, other_solutions
-from gcm_pipeline.reach.solution_checks import SolutionChecks
 from gcm_pipeline.reach.moves import Move
 from gcm_pipeline.reach.options import shared_ik_options
 from gcm_pipeline.reach.result import (
@@ -90,6 +89,7 @@ from gcm_pipeline.reach.result import (
     CheckResult,
     ReachResult,
 )
+from gcm_pipeline.reach.solution_checks import SolutionChecks
 from gcm_pipeline.reach.workers import (
     POOLS,
     WORKER,

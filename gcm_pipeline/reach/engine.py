@@ -259,13 +259,19 @@ class ReachabilityEngine:
     # --- step 2 ------------------------------------------------------------------------
 
     def check_grasp(self, q: np.ndarray) -> np.ndarray:
-        """The checks at the grasp of M solutions (:meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.at_grasp`)."""
+        """The checks at the grasp of M solutions: collisions, then the validator.
+
+        See :meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.at_grasp`.
+        """
         return self._checks.at_grasp(q)
 
     def check(
         self, targets: np.ndarray, q: np.ndarray, at_grasp: np.ndarray | None = None
     ) -> CheckResult:
-        """Step 2 for M solutions (:meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.check`)."""
+        """Step 2 for M solutions: collisions, validator, approach, retreat.
+
+        See :meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.check`.
+        """
         return self._checks.check(targets, q, at_grasp)
 
     def _spent(self, step: str, since: float) -> None:

@@ -108,9 +108,9 @@ def test_moves_proved_beyond_reach_change_no_result(robot, checker, grasps, monk
     """A 30 cm approach puts many pre-grasps beyond the arm's reach: the engine fails
     them without planning and tries no other solution for them; the result is the
     one of planning every move and trying every alternative."""
-    import gcm_pipeline.reach.engine as engine_module
     import gcm_pipeline.reach.moves as approach_module
     import gcm_pipeline.reach.path as path_module
+    import gcm_pipeline.reach.solution_checks as checks_module
 
     long_approach = Move(distance=0.30, direction=(0, 0, -1), frame="grasp", steps=10)
     proved = approach_module.unreachable_ends(robot, grasps, long_approach, 1e-4, 1e-3)
@@ -122,7 +122,7 @@ def test_moves_proved_beyond_reach_change_no_result(robot, checker, grasps, monk
         return np.zeros(len(poses), dtype=bool)
 
     monkeypatch.setattr(path_module, "unreachable_ends", nothing_proved)
-    monkeypatch.setattr(engine_module, "unreachable_ends", nothing_proved)
+    monkeypatch.setattr(checks_module, "unreachable_ends", nothing_proved)
     slow = ReachabilityEngine(robot, checker, approach=long_approach, retreat=LIFT).run(grasps)
     for a, b in zip(fast, slow, strict=True):
         if a is None:

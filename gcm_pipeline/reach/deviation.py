@@ -22,8 +22,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
 from gcm_pipeline.robot import kernels
+from gcm_pipeline.robot.collision import gripper_links
 from gcm_pipeline.robot.model import Robot
 
 __all__ = ["gripper_radius", "lever_arms", "sample_deviation", "segment_bounds"]
@@ -39,10 +41,6 @@ def gripper_radius(robot: Robot) -> float:
     (rigid in the reduced model); each geometry is bounded by the corners of
     its local bounding box.
     """
-    import pinocchio as pin
-
-    from gcm_pipeline.robot.collision import gripper_links
-
     cached = robot.cache.get("gripper_radius")
     if cached is not None:
         return float(cached)

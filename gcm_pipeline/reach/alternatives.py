@@ -25,6 +25,7 @@ __all__ = ["merge_ik", "other_solutions"]
 _MOST_BRANCHES = 16
 
 
+# over 100 lines (a third of it the docstring): one batch from candidates to distinct ranks
 def other_solutions(
     robot: Robot,
     targets: np.ndarray,

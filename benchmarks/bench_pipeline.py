@@ -4,7 +4,7 @@
 Work: ``configs/bottle_side.yaml`` with 80 side grasps and ``subdivisions: 28``
 (about 56,000 poses), approach on (10 cm, 10 steps), table and bottle in the
 collision world: the reachability stage (:func:`gcm_pipeline.check_reachability`,
-the engine of :mod:`gcm_pipeline.robot.engine`: IK, collisions, approach,
+the engine of :mod:`gcm_pipeline.reach.engine`: IK, collisions, approach,
 re-solves, clearance) timed end to end with ``ik.workers: auto``.
 
 Reference: TRAC-IK (``pytracik``, ``pip install ".[bench]"``), IK only, one

@@ -48,6 +48,7 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
         publish,
         rank,
     )
+    from gcm_pipeline.ranking.metrics import combined_score
     from gcm_pipeline.robot.collision import CollisionChecker
     from gcm_pipeline.robot.ik import IKResult, solve_ik
     from gcm_pipeline.robot.manipulability import (
@@ -60,7 +61,6 @@ if TYPE_CHECKING:  # the names for type checkers; at run time they load on first
     )
     from gcm_pipeline.robot.model import Robot
     from gcm_pipeline.rundir.run import read_run
-    from gcm_pipeline.stages.ranking import combined_score
     from gcm_pipeline.study import Study, StudyResult
     from gcm_pipeline.table import GraspTable
 
@@ -91,7 +91,7 @@ _LAZY = {
     "available_robots": "gcm_pipeline.config.robot_spec",
     "build_manifold": "gcm_pipeline.pipeline",
     "check_reachability": "gcm_pipeline.pipeline",
-    "combined_score": "gcm_pipeline.stages.ranking",
+    "combined_score": "gcm_pipeline.ranking.metrics",
     "densify": "gcm_pipeline.pipeline",
     "dib": "gcm_pipeline.geometry.pose_blend",
     "dlb": "gcm_pipeline.geometry.pose_blend",

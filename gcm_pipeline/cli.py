@@ -248,7 +248,7 @@ def _fmt_count(v: Any) -> str:
 
 def format_top(top: list[dict[str, Any]], metric: str = "yoshikawa") -> str:
     """A small text table of the top grasps (rank, position, quaternion, metrics)."""
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
     if not top:
         return "  (no reachable grasp)"

@@ -41,7 +41,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -57,11 +57,19 @@ from gcm_pipeline.rundir import transaction
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
-    from gcm_pipeline.config.run import EnvironmentConfig, ObjectConfig, Pose
+    from gcm_pipeline.config.run import (
+        ApproachConfig,
+        EnvironmentConfig,
+        ObjectConfig,
+        Pose,
+        RetreatConfig,
+    )
     from gcm_pipeline.manifold.build import Manifold
     from gcm_pipeline.manifold.query import GraspManifold
+    from gcm_pipeline.reach.engine import ReachabilityEngine
+    from gcm_pipeline.reach.moves import Move
+    from gcm_pipeline.reach.options import ReachOptions
     from gcm_pipeline.robot.collision import CollisionChecker, WorldShape
-    from gcm_pipeline.robot.engine import ReachabilityEngine
     from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -70,6 +78,7 @@ __all__ = [
     "ReachabilityCheck",
     "RunResult",
     "add_continuity",
+    "approach_move",
     "branch_scores",
     "build_manifold",
     "candidate_poses",
@@ -85,7 +94,9 @@ __all__ = [
     "preflight",
     "publish",
     "rank",
+    "reach_options",
     "reachability_engine",
+    "retreat_move",
     "robot_from_config",
     "select_branches",
     "top_grasps",
@@ -355,23 +366,12 @@ def refinement_score(robot: Robot, cfg: Config) -> Callable[[GraspTable], np.nda
     ``margin`` (which needs the finished manifold) falls back to Yoshikawa's
     index.
     """
-    from gcm_pipeline.robot.manipulability import manipulability_metrics
-    from gcm_pipeline.stages.ranking import combined_score
+    from gcm_pipeline.ranking import rank as ranking
 
-    metric = cfg.ranking.metric
-
-    def score(table: GraspTable) -> np.ndarray:
-        reach = np.asarray(table["reachable"], dtype=bool)
-        q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
-        values: dict[str, np.ndarray] = dict(manipulability_metrics(robot, q))
-        if "clearance" in table:
-            values["clearance"] = np.asarray(table["clearance"], dtype=np.float64)
-        if metric == "combined":
-            weights = {k: v for k, v in (cfg.ranking.weights or {}).items() if k in values}
-            return combined_score(values, weights or None, mask=reach)
-        return values.get(metric, values["yoshikawa"])
-
-    return score
+    r = cfg.ranking
+    return functools.partial(
+        ranking.reachable_score, robot=robot, metric=r.metric, weights=r.weights
+    )
 
 
 @takes_config
@@ -509,31 +509,13 @@ def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
     compared by Yoshikawa's index instead (also its weight in ``combined`` is
     left out).
     """
-    from gcm_pipeline.robot.manipulability import manipulability_metrics
-    from gcm_pipeline.stages.ranking import DEFAULT_COMBINED_WEIGHTS
+    from gcm_pipeline.ranking import rank as ranking
 
-    sol = np.asarray(grasps["solutions"], dtype=np.float64)
-    n, k, nq = sol.shape
-    metrics = manipulability_metrics(robot, sol.reshape(-1, nq))
-    values = {name: v.reshape(n, k) for name, v in metrics.items()}
-    if "solutions_clearance" in grasps:
-        values["clearance"] = np.asarray(grasps["solutions_clearance"], dtype=np.float64)
-    metric = cfg.ranking.metric
-    if metric != "combined":
-        return values.get(metric, values["yoshikawa"])
-    weights = {
-        name: float(w)
-        for name, w in (cfg.ranking.weights or DEFAULT_COMBINED_WEIGHTS).items()
-        if w > 0 and name in values
-    }
-    score = np.zeros((n, k))
-    total = sum(weights.values()) or 1.0
-    for name, w in weights.items():
-        x = values[name]
-        ok = np.isfinite(x)
-        lo, hi = (float(x[ok].min()), float(x[ok].max())) if ok.any() else (0.0, 1.0)
-        score += w / total * ((x - lo) / (hi - lo) if hi > lo else np.ones_like(x))
-    return score
+    clearance = grasps["solutions_clearance"] if "solutions_clearance" in grasps else None
+    r = cfg.ranking
+    return ranking.branch_scores(
+        grasps["solutions"], robot, metric=r.metric, weights=r.weights, clearance=clearance
+    )
 
 
 @takes_config
@@ -542,11 +524,11 @@ def select_branches(
 ) -> GraspTable:
     """Choose one IK branch per grasp (``ik.select``; needs ``ik.solutions`` > 1).
 
-    See :mod:`gcm_pipeline.stages.branches`. A table without branch columns is
+    See :mod:`gcm_pipeline.reach.branches`. A table without branch columns is
     returned unchanged.
     """
     from gcm_pipeline.manifold.lattice import row_mesh
-    from gcm_pipeline.stages import branches as stage
+    from gcm_pipeline.reach import branches as stage
 
     if "solutions" not in grasps:
         return grasps
@@ -673,33 +655,87 @@ def make_checker(
     return checker
 
 
+def approach_move(approach: ApproachConfig | None) -> Move | None:
+    """The ``approach`` section as a :class:`Move` (backwards along the grasp frame's z)."""
+    from gcm_pipeline.reach.moves import Move
+
+    if approach is None:
+        return None
+    return Move(
+        distance=approach.distance,
+        direction=(0.0, 0.0, -1.0),
+        frame="grasp",
+        steps=approach.steps,
+        max_joint_step=approach.max_joint_step,
+        max_deviation=approach.max_deviation,
+        holding=False,
+    )
+
+
+def retreat_move(retreat: RetreatConfig | None, base_pose: np.ndarray | None = None) -> Move | None:
+    """The ``retreat`` section as a :class:`Move`; a world direction turned into the base frame."""
+    from gcm_pipeline.reach.moves import Move
+
+    if retreat is None:
+        return None
+    direction = np.asarray(retreat.direction, dtype=float)
+    frame = "grasp"
+    if retreat.frame == "world":
+        frame = "base"
+        if base_pose is not None:
+            direction = np.asarray(base_pose[:3, :3], dtype=float).T @ direction
+    return Move(
+        distance=retreat.distance,
+        direction=tuple(direction.tolist()),
+        frame=frame,
+        steps=retreat.steps,
+        max_joint_step=retreat.max_joint_step,
+        max_deviation=retreat.max_deviation,
+        holding=True,
+    )
+
+
+@takes_config
+def reach_options(cfg: Config) -> ReachOptions:
+    """The reachability options of a config.
+
+    Reads ``ik``, ``robot.base_pose``, ``approach``, ``retreat`` and ``seed``.
+    """
+    from gcm_pipeline.reach.options import ReachOptions
+
+    ik = cfg.ik
+    base_pose = cfg.robot.base_pose.matrix()
+    return ReachOptions(
+        backend=ik.backend,
+        position_tolerance=ik.position_tolerance,
+        orientation_tolerance=ik.orientation_tolerance,
+        approach=approach_move(cfg.approach),
+        retreat=retreat_move(cfg.retreat, base_pose),
+        workers=ik.workers,
+        solutions=ik.solutions,
+        seed=cfg.seed,
+        base_pose=base_pose,
+    )
+
+
 @takes_config
 def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     """The reachability engine of a config.
 
     Reads ``ik``, ``environment``, ``object``, ``approach``, ``retreat``,
-    ``robot.base_pose`` and ``seed``. Build it once to check many pose sets with
-    the same robot, seed library and collision world (:func:`check_reachability`
-    with ``engine=``); close it (or use a ``with`` block) to stop its worker
-    processes.
+    ``robot.base_pose`` and ``seed`` (:func:`reach_options`; the
+    ``environment`` and ``object`` sections become the collision checker).
+    Build it once to check many pose sets with the same robot, seed library and
+    collision world (:func:`check_reachability` with ``engine=``); close it (or
+    use a ``with`` block) to stop its worker processes.
     """
-    from gcm_pipeline.stages import reachability as stage
+    from gcm_pipeline.reach import check as stage
 
-    ik = cfg.ik
-    return stage.make_engine(
-        robot,
-        base_pose=cfg.robot.base_pose.matrix(),
-        backend=ik.backend,
-        position_tolerance=ik.position_tolerance,
-        orientation_tolerance=ik.orientation_tolerance,
-        workers=ik.workers,
-        seed=cfg.seed,
-        environment=cfg.environment,
-        object_cfg=cfg.object,
-        approach=cfg.approach,
-        retreat=cfg.retreat,
-        solutions=ik.solutions,
-    )
+    options = reach_options(cfg)
+    checker = None
+    if cfg.environment is not None or cfg.object is not None:
+        checker = make_checker(robot, cfg.environment, cfg.object, options.base_pose)
+    return stage.make_engine(robot, options, checker=checker)
 
 
 @takes_config
@@ -718,8 +754,8 @@ def check_reachability(
     ``approach`` section whose straight-line pre-grasp approach is followable
     and collision-free, and with a ``retreat`` section whose post-grasp
     retreat (holding the object) is too; see
-    :class:`gcm_pipeline.robot.engine.ReachabilityEngine` for the sequence and
-    :func:`gcm_pipeline.stages.reachability.check_reachability` for the mapping.
+    :class:`gcm_pipeline.reach.engine.ReachabilityEngine` for the sequence and
+    :func:`reach_options` for the mapping.
 
     Args:
         grasps: Table with ``dq`` (world poses of the grasp frame).
@@ -734,17 +770,13 @@ def check_reachability(
         The table with ``reachable, reason, q, pos_err, rot_err``,
         ``q_pregrasp, q_retreat, q_rejected`` (and ``clearance``) added.
     """
-    from gcm_pipeline.stages import reachability as stage
+    from gcm_pipeline.reach import check as stage
 
     own = engine is None
     eng = reachability_engine(robot, cfg) if engine is None else engine
     try:
         done = stage.check_reachability(
-            grasps,
-            robot,
-            base_pose=cfg.robot.base_pose.matrix(),
-            progress=progress,
-            engine=eng,
+            grasps, robot, reach_options(cfg), engine=eng, progress=progress
         )
     finally:
         if own:
@@ -784,7 +816,7 @@ class ReachabilityCheck:
             A table of M rows: ``dq, reachable, reason, q, pos_err, rot_err``
             (and ``clearance`` with collisions), as the reachability stage.
         """
-        from gcm_pipeline.stages import reachability as stage
+        from gcm_pipeline.reach import check as stage
 
         cfg = self.config
         dq = np.asarray(dq, dtype=np.float64).reshape(-1, 8)
@@ -796,8 +828,7 @@ class ReachabilityCheck:
         done = stage.check_reachability(
             table,
             self.robot,
-            base_pose=cfg.robot.base_pose.matrix(),
-            warm_start=False,
+            replace(reach_options(cfg), warm_start=False),
             seeds=None if seeds is None else np.asarray(seeds, dtype=np.float64),
             engine=self.engine,
         )
@@ -834,7 +865,7 @@ def _empty_reachability(table: GraspTable, nq: int, *, with_clearance: bool) -> 
 def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
     """Manipulability metrics and ranks of the reachable grasps (``ranking``).
 
-    See :func:`gcm_pipeline.stages.ranking.rank`; the ``clearance`` and
+    See :func:`gcm_pipeline.ranking.rank.rank`; the ``clearance`` and
     ``combined`` metrics need the ``clearance`` column of the collision checks.
 
     Returns:
@@ -842,7 +873,7 @@ def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
         ``rank`` (1-based among reachable grasps, 0 for unreachable) and
         ``top`` added.
     """
-    from gcm_pipeline.stages import ranking as stage
+    from gcm_pipeline.ranking import rank as stage
 
     r = cfg.ranking
     return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, weights=r.weights)
@@ -871,7 +902,7 @@ def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[di
     ``manipulability``, the ranking metric's column when it is another one,
     and ``q``. Rows without a ``rank`` column, or unranked (rank 0), are left out.
     """
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
     if "rank" not in grasps or n <= 0:
         return []
@@ -916,7 +947,7 @@ class ConfigRunQueries:
     @property
     def combined_weights(self) -> Mapping[str, float]:
         """``ranking.weights``, else the default weights of the ``combined`` metric."""
-        from gcm_pipeline.stages.ranking import DEFAULT_COMBINED_WEIGHTS
+        from gcm_pipeline.ranking.metrics import DEFAULT_COMBINED_WEIGHTS
 
         return self.config.ranking.weights or DEFAULT_COMBINED_WEIGHTS
 

@@ -9,7 +9,7 @@ from poses import backward_poses
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot.approach import _end_of_move
+from gcm_pipeline.reach.waypoints import end_of_move
 from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.ik import PinocchioIKOptions, solve_ik, verify_solutions
 from gcm_pipeline.robot.ik import panda as panda_ik
@@ -180,8 +180,8 @@ def test_end_of_move_is_near_the_start_and_at_least_as_good_as_the_lm(panda: Rob
     ends = grasp.copy()
     ends[:, :3, 3] -= 0.1 * grasp[:, :3, 2]  # 10 cm back along the approach axis
     opts = {"library_seeds": 0, "random_restarts": 0, "home_seed": False}
-    qe, reached = _end_of_move(panda, ends, q, "pinocchio", TOL_P, TOL_R, opts)
-    q_lm, reached_lm = _end_of_move(
+    qe, reached = end_of_move(panda, ends, q, "pinocchio", TOL_P, TOL_R, opts)
+    q_lm, reached_lm = end_of_move(
         panda, ends, q, "pinocchio", TOL_P, TOL_R, {**opts, "analytic": False}
     )
     assert reached.sum() > 300
@@ -265,8 +265,8 @@ def test_analytic_false_reaches_every_ik_of_the_engine(
 ) -> None:
     """``ik_options={"analytic": False}`` holds for the first solve, the other branches
     and the approach's end of move: the closed form is never called."""
-    from gcm_pipeline.robot.approach import Move
-    from gcm_pipeline.robot.engine import ReachabilityEngine
+    from gcm_pipeline.reach.engine import ReachabilityEngine
+    from gcm_pipeline.reach.moves import Move
 
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("closed form called")

@@ -125,7 +125,7 @@ def test_alternatives_are_other_arm_shapes_not_whole_turns(arm: Robot, analytic:
     """Step 3's alternatives differ from the rejected solution and from each other modulo
     2 pi (a whole turn of a wrist is the same arm in the same collision); with closed-form
     branches they are every other branch."""
-    from gcm_pipeline.robot.engine import ReachabilityEngine
+    from gcm_pipeline.reach.engine import ReachabilityEngine
 
     q = arm.random_configurations(40, np.random.default_rng(5))
     q = np.clip(q, arm.lower + 0.1, arm.upper - 0.1)

@@ -13,6 +13,7 @@ from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, Obstacl
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.pipeline import make_checker
+from gcm_pipeline.ranking.metrics import combined_score
 from gcm_pipeline.robot.collision import (
     REASON_ENVIRONMENT,
     REASON_OBJECT,
@@ -21,7 +22,6 @@ from gcm_pipeline.robot.collision import (
     WorldShape,
 )
 from gcm_pipeline.robot.collision.pairs import without_cached_guess
-from gcm_pipeline.stages.ranking import combined_score
 
 BOTTLE = {
     "shape": "cylinder",

@@ -14,13 +14,9 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates, make_checker
-from gcm_pipeline.robot.approach import Move, move_poses
-from gcm_pipeline.robot.engine import (
-    _RAN_EVERY_SEED,
-    ReachabilityEngine,
-    _guided_chunks,
-    available_cores,
-)
+from gcm_pipeline.reach.engine import _RAN_EVERY_SEED, ReachabilityEngine, available_cores
+from gcm_pipeline.reach.moves import Move, move_poses
+from gcm_pipeline.reach.workers import guided_chunks
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 
 BOTTLE = {
@@ -110,8 +106,9 @@ def test_moves_proved_beyond_reach_change_no_result(robot, checker, grasps, monk
     """A 30 cm approach puts many pre-grasps beyond the arm's reach: the engine fails
     them without planning and tries no other solution for them; the result is the
     one of planning every move and trying every alternative."""
-    import gcm_pipeline.robot.approach as approach_module
-    import gcm_pipeline.robot.engine as engine_module
+    import gcm_pipeline.reach.moves as approach_module
+    import gcm_pipeline.reach.path as path_module
+    import gcm_pipeline.reach.solution_checks as checks_module
 
     long_approach = Move(distance=0.30, direction=(0, 0, -1), frame="grasp", steps=10)
     proved = approach_module.unreachable_ends(robot, grasps, long_approach, 1e-4, 1e-3)
@@ -122,8 +119,8 @@ def test_moves_proved_beyond_reach_change_no_result(robot, checker, grasps, monk
     def nothing_proved(robot, poses, *args):
         return np.zeros(len(poses), dtype=bool)
 
-    monkeypatch.setattr(approach_module, "unreachable_ends", nothing_proved)
-    monkeypatch.setattr(engine_module, "unreachable_ends", nothing_proved)
+    monkeypatch.setattr(path_module, "unreachable_ends", nothing_proved)
+    monkeypatch.setattr(checks_module, "unreachable_ends", nothing_proved)
     slow = ReachabilityEngine(robot, checker, approach=long_approach, retreat=LIFT).run(grasps)
     for a, b in zip(fast, slow, strict=True):
         if a is None:
@@ -148,7 +145,7 @@ def test_workers_and_chunks_do_not_change_the_result(robot, checker, grasps, res
     ("n", "most", "workers"), [(56214, 8192, 2), (10, 3, 2), (5, 8, 4), (9, 4, 1)]
 )
 def test_chunks_cover_every_target_once_in_order(n, most, workers):
-    chunks = _guided_chunks(n, most, workers)
+    chunks = guided_chunks(n, most, workers)
     np.testing.assert_array_equal(np.concatenate(chunks), np.arange(n))
     sizes = [c.size for c in chunks]
     assert max(sizes) <= most
@@ -172,7 +169,7 @@ def test_chunks_cover_every_target_once_in_order(n, most, workers):
 def test_a_few_thousand_targets_are_shared_out_equally(n, workers, sizes):
     # one chunk per worker, not 2,048 and the rest on one of them; beyond
     # workers * most // 4 the guided chunks of test_chunks_cover_every_target_once_in_order
-    assert [c.size for c in _guided_chunks(n, 8192, workers)] == sizes
+    assert [c.size for c in guided_chunks(n, 8192, workers)] == sizes
 
 
 def test_neighbours_seed_from_final_solutions(robot, checker, grasps):
@@ -274,8 +271,8 @@ def test_no_more_workers_start_than_there_are_chunks(robot, checker, grasps):
     n = len(grasps)
     with ReachabilityEngine(robot, checker, workers=64, chunk_size=100) as eng:
         eng.run(grasps)
-        assert eng._pool_size == len(_guided_chunks(n, 100, 64)) == 3  # forked 3, not 64
+        assert eng._pool_size == len(guided_chunks(n, 100, 64)) == 3  # forked 3, not 64
         eng.chunk_size = 16
         more = eng.run(grasps)  # more chunks: a larger pool
-        assert eng._pool_size == len(_guided_chunks(n, 16, 64)) == 18
+        assert eng._pool_size == len(guided_chunks(n, 16, 64)) == 18
         np.testing.assert_array_equal(more.reachable, eng.run(grasps).reachable)

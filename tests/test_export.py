@@ -506,7 +506,7 @@ def test_moveit_grasp_quality_never_increases_down_the_list(tmp_path, margin_run
     MoveIt's pick sorts its grasps by grasp_quality, best first; an infinite margin exported
     as 0 sent the best grasps to the end.
     """
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
     src = margin_run if metric == ("margin",) else box_run(tmp_path, *metric)
     out = tmp_path / "grasps.yaml"

@@ -357,7 +357,7 @@ def test_a_scene_of_astronomic_size_is_refused_naming_the_key(cli, override, key
 
 
 def test_a_retreat_direction_of_any_length_is_a_direction():
-    from gcm_pipeline.robot.approach import Move
+    from gcm_pipeline.reach.moves import Move
 
     unit = Move(distance=0.1, direction=(1, 1, 1)).direction
     # the norm of the first overflowed: the move went nowhere and every retreat failed

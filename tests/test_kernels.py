@@ -504,7 +504,7 @@ def test_lm_kernel_equals_numpy(monkeypatch, compiled, panda, clamp):
 
 @pytest.mark.parametrize("reject", [np.inf, 2e-3])
 def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject):
-    from gcm_pipeline.robot.approach import _sample_deviation, _segment_bounds, lever_arms
+    from gcm_pipeline.reach.deviation import lever_arms, sample_deviation, segment_bounds
 
     rng = np.random.default_rng(12)
     n = 2000
@@ -515,12 +515,12 @@ def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject)
     offsets = rng.normal(0.0, 0.05, (n, 3))
     offsets[:10] = 0.0  # a move of zero length
     args = (panda, lever_arms(panda), q_a, q_b, pos, rot, offsets, 0.12, 1e-3, reject)
-    got = _segment_bounds(*args)
-    ref = _numpy(monkeypatch, _segment_bounds, *args)
+    got = segment_bounds(*args)
+    ref = _numpy(monkeypatch, segment_bounds, *args)
     # sums of a few samples' distances: round-off only (1e-9 is 10^7 ulps); except a
     # segment whose midpoint lies within round-off of ``reject`` (its bound is either
     # the midpoint's or the full one): none of the 2,000 here, on any CPU
-    mid = _numpy(monkeypatch, _sample_deviation, panda, 0.5 * (q_a + q_b), pos, rot, offsets, 0.12)
+    mid = _numpy(monkeypatch, sample_deviation, panda, 0.5 * (q_a + q_b), pos, rot, offsets, 0.12)
     sure = np.abs(mid - reject) > 1e-9
     assert sure.all()
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)
@@ -531,7 +531,7 @@ def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject)
     s = np.linspace(0.0, 1.0, 513)
     rows = np.arange(0, n, 10)
     qs = q_a[rows, None] + s[None, :, None] * (q_b - q_a)[rows, None]
-    fine = _sample_deviation(
+    fine = sample_deviation(
         panda,
         qs.reshape(-1, panda.nq),
         np.repeat(pos[rows], s.size, axis=0),
@@ -544,7 +544,7 @@ def test_segment_bound_kernel_equals_numpy(monkeypatch, compiled, panda, reject)
     assert np.all(got[rows][kept] >= fine.max(axis=1)[kept] - 1e-12)
     # arrays in any memory layout (the kernel takes C arrays)
     strided = (*args[:2], np.asfortranarray(q_a), q_b[:, ::-1][:, ::-1], *args[4:])
-    np.testing.assert_array_equal(_segment_bounds(*strided), got)
+    np.testing.assert_array_equal(segment_bounds(*strided), got)
 
 
 @pytest.mark.parametrize("near", [False, True])
@@ -662,7 +662,7 @@ def _layouts(a):
 def test_kernels_take_any_layout_dtype_and_row_count(monkeypatch, compiled, n):
     """Zero rows, one row, Fortran order, strides, read-only, float32 or int arrays:
     each kernel (not the NumPy fallback) takes them and answers as the NumPy code."""
-    from gcm_pipeline.robot.approach import _segment_bounds, lever_arms
+    from gcm_pipeline.reach.deviation import lever_arms, segment_bounds
     from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt
     from gcm_pipeline.robot.ik.panda import analytic_solver
 
@@ -700,8 +700,8 @@ def test_kernels_take_any_layout_dtype_and_row_count(monkeypatch, compiled, n):
             np.testing.assert_array_equal(got[1], want[1], err_msg=layout)
             seg = (robot, lev, q, qf + 0.05, pos, rot, np.full((n, 3), 0.01), 0.12, 1e-3, np.inf)
             np.testing.assert_allclose(
-                _segment_bounds(*seg),
-                _numpy(monkeypatch, _segment_bounds, robot, lev, qf, *seg[3:]),
+                segment_bounds(*seg),
+                _numpy(monkeypatch, segment_bounds, robot, lev, qf, *seg[3:]),
                 rtol=1e-9,
                 atol=1e-12,
                 err_msg=layout,

@@ -248,3 +248,39 @@ def test_counts_break_down_dropped_and_unreachable(tmp_path):
     assert list(c["unreachable_by_reason"].values()) == sorted(
         c["unreachable_by_reason"].values(), reverse=True
     )
+
+
+def test_reach_options_map_the_config_sections():
+    """ik, seed, robot.base_pose, approach and retreat become one frozen ReachOptions."""
+    cfg = load_config(
+        FLAT,
+        (
+            *QUICK,
+            "robot.base_pose={xyz: [0.1, 0.2, 0.0], rpy_deg: [0, 0, 90]}",
+            "approach={distance: 0.05, steps: 4}",
+            "retreat={distance: 0.08, direction: [1, 0, 0], frame: world}",
+            "ik.solutions=3",
+            "seed=7",
+        ),
+    )
+    opt = pipeline.reach_options(cfg)
+    np.testing.assert_allclose(opt.base_pose, cfg.robot.base_pose.matrix())
+    assert opt.seed == 7 and opt.solutions == 3 and opt.backend == cfg.ik.backend
+    assert opt.position_tolerance == cfg.ik.position_tolerance and opt.warm_start
+    # the approach backs out along the grasp frame's z
+    assert opt.approach is not None and opt.approach.frame == "grasp"
+    assert opt.approach.distance == 0.05 and opt.approach.steps == 4
+    assert opt.approach.direction == (0.0, 0.0, -1.0) and not opt.approach.holding
+    # a world retreat direction is turned into the robot's base frame (base yawed 90 deg)
+    assert opt.retreat is not None and opt.retreat.frame == "base" and opt.retreat.holding
+    np.testing.assert_allclose(opt.retreat.direction, (0.0, -1.0, 0.0), atol=1e-12)
+    # frozen: a check cannot change the options it was given
+    with pytest.raises(AttributeError):
+        opt.seed = 8  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        opt.ik_options["random_seed"] = 1  # type: ignore[index]
+    with pytest.raises(ValueError):
+        opt.base_pose[0, 3] = 1.0
+    # without approach and retreat sections (flat_surface.yaml) there is nothing to move
+    plain = pipeline.reach_options(load_config(FLAT, QUICK))
+    assert plain.approach is None and plain.retreat is None

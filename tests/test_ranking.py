@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.ranking.rank import rank
 from gcm_pipeline.robot.manipulability import manipulability
 from gcm_pipeline.robot.model import Robot
-from gcm_pipeline.stages.ranking import rank
 from gcm_pipeline.table import GraspTable
 
 

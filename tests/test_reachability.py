@@ -7,9 +7,10 @@ import pytest
 
 from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.reach.check import check_reachability, world_to_base_targets
+from gcm_pipeline.reach.options import ReachOptions
 from gcm_pipeline.robot.ik import verify_solutions
 from gcm_pipeline.robot.model import Robot
-from gcm_pipeline.stages.reachability import check_reachability, world_to_base_targets
 from gcm_pipeline.table import GraspTable
 
 
@@ -50,7 +51,7 @@ def _table(panda: Robot, base: np.ndarray) -> tuple[GraspTable, np.ndarray]:
 def test_columns_and_base_pose(panda: Robot):
     base = _base()
     grasps, local = _table(panda, base)
-    out = check_reachability(grasps, panda, base_pose=base)
+    out = check_reachability(grasps, panda, ReachOptions(base_pose=base))
     n = len(grasps)
     for col in ("dq", "origin", "vertices", "weights"):
         assert out[col] is grasps[col]
@@ -70,10 +71,10 @@ def test_columns_and_base_pose(panda: Robot):
 def test_interpolated_rows_are_seeded_by_their_heaviest_vertex(panda: Robot):
     base = _base()
     grasps, _ = _table(panda, base)
-    out = check_reachability(grasps, panda, base_pose=base)
+    out = check_reachability(grasps, panda, ReachOptions(base_pose=base))
     # a warm start at the exact solution converges without moving
     np.testing.assert_allclose(out["q"][10:20], out["q"][:10], atol=1e-12)
-    cold = check_reachability(grasps, panda, base_pose=base, warm_start=False)
+    cold = check_reachability(grasps, panda, ReachOptions(base_pose=base, warm_start=False))
     assert cold["reachable"][:20].all()
 
 
@@ -84,7 +85,11 @@ def test_validator_and_candidates(panda: Robot):
         return np.where(q[:, 6] > 0, "collision_self", "")
 
     out, cand = check_reachability(
-        grasps, panda, validator=wrist_rule, return_candidates=True, first_round_seeds=2
+        grasps,
+        panda,
+        ReachOptions(ik_options={"first_round_seeds": 2}),
+        validator=wrist_rule,
+        return_candidates=True,
     )
     assert np.all(out["q"][out["reachable"], 6] <= 0)
     assert set(out["reason"][~out["reachable"]]) <= {"collision_self", "out_of_reach"}
@@ -95,7 +100,7 @@ def test_validator_and_candidates(panda: Robot):
 def test_table_without_provenance_and_mink(panda: Robot):
     local = panda.fk(panda.random_configurations(4, 0))
     grasps = GraspTable({"dq": dq_from_matrix(local)})
-    out = check_reachability(grasps, panda, backend="mink")
+    out = check_reachability(grasps, panda, ReachOptions(backend="mink"))
     assert out["reachable"].all()
 
 
@@ -112,21 +117,22 @@ def test_errors(panda: Robot):
     base = np.eye(4)
     base[0, 0] = 2.0
     with pytest.raises(GeometryError, match="base_pose"):
-        check_reachability(GraspTable({"dq": dq}), panda, base_pose=base)
+        check_reachability(GraspTable({"dq": dq}), panda, ReachOptions(base_pose=base))
     grasps = GraspTable({"dq": dq, "vertices": np.array([[5, -1, -1]])})
     with pytest.raises(InputError, match="'vertices' row 0"):
         check_reachability(grasps, panda)
     with pytest.raises(InputError, match="position_tolerance"):
-        check_reachability(GraspTable({"dq": dq}), panda, position_tolerance=0)
+        check_reachability(GraspTable({"dq": dq}), panda, ReachOptions(position_tolerance=0))
 
 
 def test_collisions_and_approach(panda: Robot):
     from gcm_pipeline.config import ApproachConfig, EnvironmentConfig
-    from gcm_pipeline.pipeline import make_checker
+    from gcm_pipeline.pipeline import approach_move, make_checker
 
     grasps = GraspTable({"dq": dq_from_matrix(panda.fk(panda.random_configurations(12, 5)))})
     env = EnvironmentConfig()
-    out = check_reachability(grasps, panda, environment=env, approach=ApproachConfig())
+    approach = ReachOptions(approach=approach_move(ApproachConfig()))
+    out = check_reachability(grasps, panda, approach, checker=make_checker(panda, env))
     ok = out["reachable"]
     checker = make_checker(panda, env)
     assert np.all(checker.check(out["q"][ok]) == "")
@@ -134,7 +140,7 @@ def test_collisions_and_approach(panda: Robot):
     allowed = {"", "collision_self", "collision_environment", "collision_object", "approach"}
     assert set(out["reason"]) <= allowed | {"out_of_reach", "joint_limits", "no_ik"}
     # a prebuilt checker does the same; another validator runs after it
-    same = check_reachability(grasps, panda, checker=checker, approach=ApproachConfig())
+    same = check_reachability(grasps, panda, approach, checker=checker)
     assert np.array_equal(same["reason"], out["reason"])
     vetoed = check_reachability(
         grasps, panda, checker=checker, validator=lambda q: np.full(len(q), "veto")
@@ -142,5 +148,5 @@ def test_collisions_and_approach(panda: Robot):
     assert not vetoed["reachable"].any()
     assert set(vetoed["reason"]) <= (allowed - {"", "approach"}) | {"veto", "out_of_reach"}
     assert "veto" in set(vetoed["reason"])
-    # without environment and object: pure IK, no clearance
+    # without a checker: pure IK, no clearance
     assert "clearance" not in check_reachability(grasps, panda).columns

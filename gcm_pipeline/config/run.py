@@ -475,7 +475,7 @@ class ApproachConfig(_Section):
 
     The pre-grasp is the grasp frame backed off by ``distance`` [m] along its
     z; the hand must move from there to the grasp in a straight line at fixed
-    orientation (see :mod:`gcm_pipeline.robot.approach`).
+    orientation (see :mod:`gcm_pipeline.reach.moves`).
 
     Attributes:
         distance: Length of the straight line [m] (0: no check).
@@ -498,7 +498,7 @@ class RetreatConfig(ApproachConfig):
     """Post-grasp retreat: the grasp frame moves ``distance`` along ``direction``.
 
     The gripper holds the object: it may touch it (see
-    :mod:`gcm_pipeline.robot.engine`).
+    :mod:`gcm_pipeline.reach.engine`).
 
     Attributes:
         direction: Direction of the move (normalised; must not be zero).

@@ -53,6 +53,7 @@ from gcm_pipeline.manifold.search import (
     search_near_rows,
 )
 from gcm_pipeline.manifold.surface import BLEND_METHODS, blend
+from gcm_pipeline.ranking.metrics import weighted_sum
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -446,25 +447,18 @@ class GraspManifold:
         weights = self._combined_weights()
         values = {name: self.metric_values(table, name) for name in weights}
         ref = self._reference_ranges(tuple(weights))
-        total = sum(weights.values())
-        score = np.zeros(len(table))
-        for name, w in weights.items():
-            lo, hi = ref[name]
-            x = values[name]
-            norm = (x - lo) / (hi - lo) if hi > lo else np.ones_like(x)
-            score += w / total * norm
-        return np.where(reach, score, np.nan)
+        return np.where(reach, weighted_sum(values, weights, ref, len(table)), np.nan)
 
     def _combined_weights(self) -> dict[str, float]:
         w = self._run(f"{_NO_CONFIG}: the combined metric takes the run's weights")
         return {k: float(v) for k, v in w.combined_weights.items() if v > 0}
 
     def _reference_ranges(self, names: tuple[str, ...]) -> dict[str, tuple[float, float]]:
+        from gcm_pipeline.ranking.metrics import value_range
+
         out = {}
         for name in names:
-            x = self.metric_values(self.grasps, name)
-            x = x[np.isfinite(x)]
-            out[name] = (float(x.min()), float(x.max())) if x.size else (0.0, 1.0)
+            out[name] = value_range(self.metric_values(self.grasps, name))
         return out
 
     def best(

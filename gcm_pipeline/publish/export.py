@@ -55,11 +55,11 @@ from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.errors import InputError, OutputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
+from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.robot.model import root_link
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
 from gcm_pipeline.sources.grippers import GRIPPERS
-from gcm_pipeline.stages.ranking import METRIC_COLUMNS
 from gcm_pipeline.table import GraspTable
 
 __all__ = ["EXPORT_FORMATS", "ExportResult", "export_run"]
@@ -325,7 +325,7 @@ def _grasp_quality(g: GraspTable, metric: str, path: Path) -> np.ndarray:
     """``grasp_quality`` per row: the ranking metric as the ranking counted it.
 
     ``inf`` (a ``margin`` with no unreachable point in reach) is the largest
-    finite value of the ranked rows, as :func:`gcm_pipeline.stages.ranking.rank`
+    finite value of the ranked rows, as :func:`gcm_pipeline.ranking.rank.rank`
     counts it (1.0 when none is finite), so the value is finite and never
     increases with the rank: MoveIt's pick sorts its grasps by it, best first.
 

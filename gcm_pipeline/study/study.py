@@ -533,7 +533,7 @@ class _Run:
             best_info["command"] = self._command(best)
             if best_dir is not None:
                 best_info["run_dir"] = str(best_dir)
-        from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+        from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
         metric = plan.base_config.ranking.metric
         return {

@@ -47,7 +47,7 @@ def placement_summary(grasps: Any, cfg: Config) -> dict[str, Any]:
         ``candidates, densified, reachable, coverage, candidates_reachable,
         best_metric, mean_metric, best_manipulability, mean_manipulability``.
     """
-    from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
     reachable = np.asarray(grasps["reachable"], dtype=bool)
     is_candidate = np.asarray(grasps["origin"]).astype(str) == "candidate"
@@ -162,7 +162,7 @@ class PlacementWorker:
     def _run(self, data: dict[str, Any]) -> dict[str, Any]:
         from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
         from gcm_pipeline.pipeline import Pipeline
-        from gcm_pipeline.stages.ranking import METRIC_COLUMNS
+        from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 
         cfg = Config.from_dict(data, source="placement config")
         # one IK process per worker: the study runs the workers in parallel

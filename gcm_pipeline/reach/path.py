@@ -1,18 +1,4 @@
-r"""Straight-line moves of the grasp frame: the pre-grasp approach and the post-grasp retreat.
-
-A move starts at a grasp pose :math:`T_g` (reached by :math:`q_g`) and
-translates the grasp frame by a vector :math:`d` (base frame) at fixed
-orientation:
-
-.. math::
-
-    T(s) = \operatorname{translate}(s\,d)\,T_g, \qquad s \in [0, 1].
-
-The **approach** is the move with :math:`d = -\mathrm{distance}\,z_g` (the
-pre-grasp lies behind the grasp along its approach axis; the robot runs it
-from :math:`s = 1` to :math:`s = 0`); the **retreat** moves ``distance`` along a
-direction given in the base or the grasp frame (see :class:`Move`). Both are
-computed from the grasp outwards.
+r"""Joint paths of straight-line moves, and their collision checks.
 
 The joint path is piecewise linear through waypoints (knots) on a grid
 :math:`SUBSTEPS` times finer than the steps :math:`s_k = k / \mathrm{steps}`
@@ -20,7 +6,7 @@ The joint path is piecewise linear through waypoints (knots) on a grid
 
 0. **Ends beyond reach**: a move whose end no configuration reaches within
    the IK tolerances fails (``no_ik``) without any IK; this is proved from
-   the Panda's elbow range (:func:`unreachable_ends`), not searched for.
+   the Panda's elbow range (:func:`~gcm_pipeline.reach.moves.unreachable_ends`), not searched for.
 1. **The end of the move**: one IK of the pose at :math:`s = 1` seeded with
    :math:`q_g` only (a solution elsewhere is of no use), to the IK tolerances
    (verified by Pinocchio FK, strictly inside the limits). Where that fails
@@ -35,32 +21,17 @@ The joint path is piecewise linear through waypoints (knots) on a grid
    of a segment's length: :math:`k` is the count expected to bring each part
    to ``_AIM`` of the tolerance) with new waypoints on the line, started from
    the segment's joint interpolation and converged by a few Levenberg-Marquardt
-   steps to a small share of the deviation budget (``_KNOT_TOLERANCE``): their
-   error is part of what the bound measures, so they need not meet the IK
-   tolerance. A waypoint that does not converge, a jump within one grid step
-   or a deviation within one fine step fails the move.
+   steps to a small share of the deviation budget (``KNOT_TOLERANCE`` of
+   :mod:`~gcm_pipeline.reach.waypoints`): their error is part of what the bound
+   measures, so they need not meet the IK tolerance. A waypoint that does not
+   converge, a jump within one grid step or a deviation within one fine step
+   fails the move.
 
 The bound is computed on the actual joint path, so the path is sound whatever
 its waypoints are: every gripper point stays within ``max_deviation`` of its
 line. A move whose first path collides at a grid point gets a second path with
 a waypoint at every grid point (:func:`check_moves`), so that a collision found
 does not depend on where the first path's waypoints fell.
-
-Deviation bound. Along a segment :math:`q(s) = q_a + s\,\Delta q` the grasp
-frame's position :math:`p(s)` has :math:`|p''| \le K = \sum_{j,k} r_{\max(j,k)}
-|\Delta q_j| |\Delta q_k|`, with :math:`r_k` a bound of the distance of the
-grasp frame from joint :math:`k`'s axis (the link lengths beyond it), because
-:math:`\partial^2 p / \partial q_j \partial q_k = a_j \times (a_k \times (p -
-o_k))` for :math:`j \le k`. Sampled at spacing :math:`h`, the distance of
-:math:`p(s)` from the line segment is at most the largest sampled distance plus
-:math:`K h^2 / 8` (the error of linear interpolation; the distance to a
-segment is convex). Likewise :math:`\|R''\|_F \le \tfrac{3}{\sqrt 2} A^2` with
-:math:`A = \sum_j |\Delta q_j|`, so :math:`\|R(s) - R_g\|_F` is at most its
-largest sample plus :math:`\tfrac{3}{8\sqrt 2} A^2 h^2`. A point of the gripper
-at distance at most :math:`\rho` from the grasp frame then leaves its straight
-path by at most ``position bound`` + :math:`\rho` ``rotation bound``: that is
-the deviation compared with ``max_deviation``. The samples are dense enough
-for the :math:`h^2` terms to use at most a quarter of it.
 
 Collisions are checked by :func:`check_moves` at every grid point
 :math:`s_k, k \ge 1` of the joint path (the grasp itself, :math:`k = 0`, is the
@@ -71,397 +42,32 @@ the retreat: the gripper holds the object, which moves with it).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.ik import PinocchioIKOptions, solve_ik, verify_solutions
-from gcm_pipeline.robot.ik.lm import levenberg_marquardt as _lm
-from gcm_pipeline.robot.ik.lm import pose_errors as _pose_errors
-from gcm_pipeline.robot.ik.panda import analytic_blocks as _analytic_blocks
-from gcm_pipeline.robot.ik.panda import analytic_solver
+from gcm_pipeline.reach.deviation import lever_arms, segment_bounds
+from gcm_pipeline.reach.moves import Move, MovePlan, MoveResult, unreachable_ends
+from gcm_pipeline.reach.waypoints import end_of_move, line_waypoints
+from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import Robot
 
-__all__ = [
-    "MOVE_REASONS",
-    "Move",
-    "MovePlan",
-    "MoveResult",
-    "SUBSTEPS",
-    "check_moves",
-    "gripper_radius",
-    "lever_arms",
-    "move_poses",
-    "plan_moves",
-    "unreachable_ends",
-]
-
-#: Why a move fails (``MoveResult.reason``), besides the checker's collision reasons.
-MOVE_REASONS = ("invalid", "no_ik", "joint_step", "deviation")
+__all__ = ["SUBSTEPS", "check_moves", "plan_moves"]
 
 #: Samples per unit of the segment parameter are chosen so that the h^2 terms
 #: of the deviation bound use at most this share of ``max_deviation``.
 _SLACK_SHARE = 0.25
-#: At most this many samples per segment (a segment needing more is split).
-_MAX_SAMPLES = 64
 #: Share of ``max_deviation`` a split segment's parts aim at.
 _AIM = 0.6
 #: Waypoints may sit this many times closer than the steps where the path bends.
 SUBSTEPS = 8
-#: Interior waypoints converge to this share of ``max_deviation`` (position) and
-#: of ``max_deviation / gripper_radius`` (orientation): their error is part of
-#: the deviation the bound measures, not an IK tolerance.
-_KNOT_TOLERANCE = 0.05
-#: LM options of the interior waypoints (they start close: early stall exits).
-_KNOT_OPTIONS = PinocchioIKOptions()
 #: Where one IK cannot reach the end of a move from the grasp, the line is
 #: followed in pieces of about this length [m] (continuation).
 _REACH = 0.025
 
-#: Joint-7 offsets [rad] around the start's where the closed form looks for the end of a
-#: move, and the largest joint change [rad] of an end it keeps (else LM from the start).
-_END_Q7 = np.array([0.0, -0.01, 0.01, -0.025, 0.025, -0.05, 0.05, -0.1, 0.1, -0.2, 0.2])
-_NEAR_END = 0.3
 
-
-@dataclass(frozen=True)
-class Move:
-    """A straight-line move of the grasp frame (plain values; the stage maps the config).
-
-    Attributes:
-        distance: Length of the move [m], >= 0 (0: nothing to check).
-        direction: Direction (3,), normalised here; in the grasp frame
-            (``frame="grasp"``) or the robot's base frame (``frame="base"``).
-        frame: ``"grasp"`` or ``"base"``.
-        steps: Grid steps along the line (collision samples, finest waypoints), >= 1.
-        max_joint_step: Largest change of any joint per grid step [rad], > 0.
-        max_deviation: Largest deviation of any gripper point from its straight
-            path [m], > 0.
-        holding: The gripper holds the object (a retreat): the caller checks
-            collisions with the object attached.
-    """
-
-    distance: float = 0.10
-    direction: tuple[float, float, float] = (0.0, 0.0, -1.0)
-    frame: str = "grasp"
-    steps: int = 10
-    max_joint_step: float = 0.25
-    max_deviation: float = 0.002
-    holding: bool = False
-
-    def __post_init__(self) -> None:
-        if not np.isfinite(self.distance) or self.distance < 0:
-            raise InputError(f"move distance must be >= 0 [m], got {self.distance!r}")
-        if int(self.steps) != self.steps or self.steps < 1:
-            raise InputError(f"move steps must be an int >= 1, got {self.steps!r}")
-        if not np.isfinite(self.max_joint_step) or self.max_joint_step <= 0:
-            raise InputError(f"move max_joint_step must be > 0 [rad], got {self.max_joint_step!r}")
-        if not np.isfinite(self.max_deviation) or self.max_deviation <= 0:
-            raise InputError(f"move max_deviation must be > 0 [m], got {self.max_deviation!r}")
-        if self.frame not in ("grasp", "base"):
-            raise InputError(f"move frame must be 'grasp' or 'base', got {self.frame!r}")
-        u = np.asarray(self.direction, dtype=float)
-        if u.shape != (3,) or not np.all(np.isfinite(u)) or not np.any(u):
-            raise InputError(f"move direction must be a non-zero 3-vector, got {self.direction!r}")
-        u = u / np.abs(u).max()  # first: the norm of [1e300, 1e300, 1e300] overflows
-        object.__setattr__(self, "direction", tuple((u / np.linalg.norm(u)).tolist()))
-        object.__setattr__(self, "steps", int(self.steps))
-
-    def offsets(self, poses: np.ndarray) -> np.ndarray:
-        """Displacement :math:`d` (M, 3) [m] of each grasp pose (M, 4, 4), base frame."""
-        u = np.asarray(self.direction)
-        if self.frame == "grasp":
-            return self.distance * (poses[:, :3, :3] @ u)
-        return np.broadcast_to(self.distance * u, (poses.shape[0], 3)).copy()
-
-
-class MovePlan(NamedTuple):
-    """Kinematics of N moves (:func:`plan_moves`).
-
-    Attributes:
-        ok: (N,) bool, the joint path exists within the bounds.
-        reason: (N,) str, ``''`` or one of :data:`MOVE_REASONS`.
-        failed_step: (N,) int, grid step 1..steps where tracking failed, 0 if ok.
-        q_path: (N, steps + 1, nq) [rad] joint path at the grid points (index 0
-            is the grasp); NaN rows where not ok.
-        deviation: (N,) bound of the gripper's deviation from its line [m] (NaN if not ok).
-        waypoints: (N,) int, IK waypoints solved after the grasp.
-        knots: (N, steps * substeps + 1, nq) [rad] the IK waypoints on the fine
-            grid ``s = j / (steps * substeps)``, NaN between them: the move is the
-            piecewise linear joint path through them (``q_path`` samples it).
-    """
-
-    ok: np.ndarray
-    reason: np.ndarray
-    failed_step: np.ndarray
-    q_path: np.ndarray
-    deviation: np.ndarray
-    waypoints: np.ndarray
-    knots: np.ndarray
-
-
-class MoveResult(NamedTuple):
-    """Kinematics and collisions of N moves (:func:`check_moves`).
-
-    Attributes:
-        ok: (N,) bool, the move is followable and collision-free at every grid point.
-        reason: (N,) str, ``''``, one of :data:`MOVE_REASONS` or a collision reason.
-        failed_step: (N,) int, first failing grid step (1..steps), 0 if ok.
-        q_end: (N, nq) [rad] configuration at the end of the move (the
-            pre-grasp of an approach), NaN where not ok.
-        q_path: (N, steps + 1, nq) joint path at the grid points (NaN where not ok).
-        deviation: (N,) deviation bound [m] (NaN where not ok).
-        knots: The IK waypoints (see :class:`MovePlan`), NaN where not ok.
-    """
-
-    ok: np.ndarray
-    reason: np.ndarray
-    failed_step: np.ndarray
-    q_end: np.ndarray
-    q_path: np.ndarray
-    deviation: np.ndarray
-    knots: np.ndarray
-
-
-def move_poses(poses: np.ndarray, offsets: np.ndarray, steps: int) -> np.ndarray:
-    """Grasp-frame poses at the grid points of moves.
-
-    Args:
-        poses: Grasp poses (N, 4, 4) [m].
-        offsets: Displacements (N, 3) [m] (see :meth:`Move.offsets`).
-        steps: Grid steps, >= 1.
-
-    Returns:
-        (steps + 1, N, 4, 4): index 0 is the grasp, ``steps`` the end of the move.
-    """
-    poses = np.asarray(poses, dtype=float)
-    frac = np.arange(steps + 1) / steps
-    out = np.broadcast_to(poses, (steps + 1, *poses.shape)).copy()
-    out[..., :3, 3] += frac[:, None, None] * offsets[None]
-    return out
-
-
-def gripper_radius(robot: Robot) -> float:
-    """Largest distance of a point of the gripper's collision geometry from the grasp frame [m].
-
-    The gripper is the body carrying the grasp frame and the links below it
-    (rigid in the reduced model); each geometry is bounded by the corners of
-    its local bounding box.
-    """
-    import pinocchio as pin
-
-    from gcm_pipeline.robot.collision import gripper_links
-
-    cached = robot.cache.get("gripper_radius")
-    if cached is not None:
-        return float(cached)
-    links = gripper_links(robot)
-    gm = robot.build_geometry("collision")
-    model = robot.model
-    data, gd = model.createData(), pin.GeometryData(gm)
-    pin.forwardKinematics(model, data, robot.home)
-    pin.updateGeometryPlacements(model, data, gm, gd)
-    pin.updateFramePlacement(model, data, robot.grasp_frame_id)
-    inv = data.oMf[robot.grasp_frame_id].inverse()
-    radius = 0.0
-    for k, go in enumerate(gm.geometryObjects):
-        if model.frames[go.parentFrame].name not in links:
-            continue
-        go.geometry.computeLocalAABB()
-        box = go.geometry.aabb_local
-        lo, hi = np.asarray(box.min_, dtype=float), np.asarray(box.max_, dtype=float)
-        corners = np.array(
-            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        )
-        m = (inv * gd.oMg[k]).homogeneous
-        pts = corners @ m[:3, :3].T + m[:3, 3]
-        radius = max(radius, float(np.linalg.norm(pts, axis=1).max()))
-    robot.cache["gripper_radius"] = radius
-    return radius
-
-
-def lever_arms(robot: Robot) -> np.ndarray:
-    """Bounds (nq,) [m] of the grasp frame's distance from each joint's axis, by q index.
-
-    The sum of the link offsets from the joint's origin to the grasp frame
-    (see :meth:`~gcm_pipeline.robot.chain.KinematicChain.link_lengths`).
-    """
-    chain = robot.chain
-    lengths = chain.link_lengths()  # joint k -> k+1 ..., last -> frame
-    beyond = np.cumsum(lengths[::-1])[::-1]  # from joint k's origin to the frame
-    out = np.zeros(robot.nq)
-    out[chain.q_index] = beyond
-    return out
-
-
-def _segment_bounds(
-    robot: Robot,
-    lever: np.ndarray,
-    q_a: np.ndarray,
-    q_b: np.ndarray,
-    start: np.ndarray,
-    rot0: np.ndarray,
-    offsets: np.ndarray,
-    radius: float,
-    budget: float,
-    reject_above: float = np.inf,
-) -> np.ndarray:
-    """Bound of the gripper's deviation (M,) [m] over the joint segments ``q_a -> q_b``.
-
-    Args:
-        robot: The robot.
-        lever: :func:`lever_arms` (nq,).
-        q_a: Segment starts (M, nq) [rad].
-        q_b: Segment ends (M, nq) [rad].
-        start: Start of each move's line, the grasp position (M, 3) [m].
-        rot0: Grasp orientation (M, 3, 3).
-        offsets: Each move's displacement (M, 3) [m].
-        radius: Largest distance of a gripper point from the grasp frame [m].
-        budget: What the h^2 terms may use [m]; more samples if needed.
-        reject_above: Segments whose deviation at the midpoint already exceeds
-            this [m] get that value (a lower bound of their bound) without
-            further samples.
-    """
-    m = q_a.shape[0]
-    if m == 0:
-        return np.zeros(0)
-    out = np.empty(m)
-    todo = np.arange(m)
-    compiled = kernels.get()
-    if np.isfinite(reject_above):
-        if compiled is not None:
-            dist, turn = _samples(
-                compiled, robot, q_a, q_b, np.zeros(m, dtype=np.intp), start, rot0, offsets
-            )
-            mid = dist + radius * turn
-        else:
-            mid = _sample_deviation(robot, 0.5 * (q_a + q_b), start, rot0, offsets, radius)
-        far = mid > reject_above
-        out[far] = mid[far]
-        todo = np.flatnonzero(~far)
-        if todo.size == 0:
-            return out
-        q_a, q_b, start, rot0, offsets = (
-            q_a[todo],
-            q_b[todo],
-            start[todo],
-            rot0[todo],
-            offsets[todo],
-        )
-        m = todo.size
-    dq = np.abs(q_b - q_a)
-    order = robot.chain.q_index
-    d = dq[:, order]
-    before = np.cumsum(d, axis=1) - d  # sum of |dq_j| over the joints before k
-    k_pos = np.sum(lever[order] * d * (d + 2.0 * before), axis=1)  # |p''| bound [m]
-    a_rot = dq.sum(axis=1)
-    k_rot = 3.0 / np.sqrt(2.0) * a_rot**2  # ||R''||_F bound
-    curvature = k_pos + radius * k_rot
-    # h^2 / 8 * curvature <= budget  ->  intervals n >= sqrt(curvature / (8 budget)),
-    # rounded up to a power of two so that rows share a few sample counts
-    need = np.sqrt(curvature / (8.0 * budget))
-    n_rows = np.clip(2 ** np.ceil(np.log2(np.maximum(need, 2.0))), 2, _MAX_SAMPLES).astype(np.intp)
-    if compiled is not None:
-        dist, turn = _samples(compiled, robot, q_a, q_b, n_rows, start, rot0, offsets)
-        h2 = 1.0 / n_rows**2
-        out[todo] = dist + k_pos * h2 / 8.0 + radius * (turn + k_rot * h2 / 8.0)
-        return out
-    res = np.empty(m)
-    for n in np.unique(n_rows).tolist():
-        sel = np.flatnonzero(n_rows == n)
-        s = np.linspace(0.0, 1.0, n + 1)
-        qa, qb = q_a[sel], q_b[sel]
-        qs = qa[:, None, :] + s[None, :, None] * (qb - qa)[:, None, :]
-        rot, pos = robot.chain.pose(qs.reshape(-1, robot.nq))
-        pos = pos.reshape(sel.size, n + 1, 3)
-        rot = rot.reshape(sel.size, n + 1, 9)
-        # distance of each sample from its move's line segment
-        d = offsets[sel]
-        rel = pos - start[sel, None, :]
-        t = (
-            np.einsum("msj,mj->ms", rel, d)
-            / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)[:, None]
-        )
-        t = np.clip(t, 0.0, 1.0)
-        dist = np.linalg.norm(rel - t[:, :, None] * d[:, None, :], axis=2).max(axis=1)
-        rdist = np.linalg.norm(rot - rot0[sel].reshape(-1, 1, 9), axis=2).max(axis=1)
-        h2 = 1.0 / n**2
-        res[sel] = dist + k_pos[sel] * h2 / 8.0 + radius * (rdist + k_rot[sel] * h2 / 8.0)
-    out[todo] = res
-    return out
-
-
-def _samples(compiled: Any, robot: Robot, *arrays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The compiled kernel's deviation samples (its arguments as C arrays)."""
-    out: tuple[np.ndarray, np.ndarray] = compiled.segment_samples(
-        *(np.ascontiguousarray(a) for a in arrays), *robot.chain.packed
-    )
-    return out
-
-
-def _sample_deviation(
-    robot: Robot,
-    q: np.ndarray,
-    start: np.ndarray,
-    rot0: np.ndarray,
-    offsets: np.ndarray,
-    radius: float,
-) -> np.ndarray:
-    """Sampled deviation (M,) [m] at configurations ``q`` (M, nq) [rad].
-
-    The distance of the grasp frame from its move's line segment plus
-    ``radius`` times the orientation change ``||R - R_g||_F``.
-    """
-    rot, pos = robot.chain.pose(q)
-    rel = pos - start
-    t = np.einsum("ij,ij->i", rel, offsets) / np.maximum(
-        np.einsum("ij,ij->i", offsets, offsets), 1e-300
-    )
-    t = np.clip(t, 0.0, 1.0)
-    dist = np.linalg.norm(rel - t[:, None] * offsets, axis=1)
-    rdist = np.linalg.norm((rot - rot0).reshape(-1, 9), axis=1)
-    return dist + radius * rdist
-
-
-def unreachable_ends(
-    robot: Robot,
-    poses: np.ndarray,
-    move: Move,
-    position_tolerance: float,
-    orientation_tolerance: float,
-) -> np.ndarray:
-    """Moves whose end no configuration reaches within the IK tolerances, (N,) bool.
-
-    A proof, not a search (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.unreachable`:
-    the end lies beyond what the elbow's limits let the arm reach, whatever
-    joint 7 is); such a move fails whatever configuration it starts from. All
-    False for a robot without the Panda's kinematics.
-
-    Args:
-        robot: The robot.
-        poses: Grasp poses (N, 4, 4) in the base frame [m].
-        move: The move.
-        position_tolerance: IK tolerance of the end of the move [m].
-        orientation_tolerance: IK tolerance [rad].
-    """
-    tg = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
-    solver = analytic_solver(robot)
-    if solver is None or move.distance == 0 or tg.shape[0] == 0:
-        return np.zeros(tg.shape[0], dtype=bool)
-    with np.errstate(invalid="ignore"):
-        out = solver.unreachable(
-            tg[:, :3, :3],
-            tg[:, :3, 3] + move.offsets(tg),
-            position_tolerance,
-            orientation_tolerance,
-            (robot.lower[3], robot.upper[3]),
-        )
-    return out & np.all(np.isfinite(tg), axis=(1, 2))
-
-
+# over 100 lines: the closures (fail, advance, check_grid, follow) share the batch's arrays
 def plan_moves(
     robot: Robot,
     poses: Any,
@@ -585,7 +191,7 @@ def plan_moves(
             target[:, :3, 3] += (at / fine_steps) * offsets[r]
             seed = knots[r, prev]
             if at < fine_steps:
-                q_new, conv = _waypoints(robot, seed, target, tol, gripper_radius)
+                q_new, conv = line_waypoints(robot, seed, target, tol, gripper_radius)
             else:
                 res = solve_ik(
                     robot,
@@ -666,7 +272,7 @@ def plan_moves(
     else:
         ends = tg[rows].copy()
         ends[:, :3, 3] += offsets[rows]
-        q_end, done = _end_of_move(
+        q_end, done = end_of_move(
             robot, ends, qg[rows], backend, position_tolerance, orientation_tolerance, ik_options
         )
         knots[rows[done], fine_steps] = q_end[done]
@@ -713,7 +319,7 @@ def plan_moves(
         over = jump > move.max_joint_step
         dev = np.full(s_row.size, np.inf)
         fine = np.flatnonzero(~over)
-        dev[fine] = _segment_bounds(
+        dev[fine] = segment_bounds(
             robot,
             lever_arms(robot),
             qa[fine],
@@ -767,131 +373,6 @@ def plan_moves(
     return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
 
 
-def _end_of_move(
-    robot: Robot,
-    ends: np.ndarray,
-    q_start: np.ndarray,
-    backend: str,
-    position_tolerance: float,
-    orientation_tolerance: float,
-    ik_options: dict[str, Any],
-) -> tuple[np.ndarray, np.ndarray]:
-    """IK of the end poses (M, 4, 4) seeded only from ``q_start`` (M, nq).
-
-    With the Panda's closed form (pinocchio backend) the end is first solved at
-    joint-7 values around the start's (offsets up to 0.2 rad), keeping the
-    solution whose largest joint change from the start is smallest, if that is
-    at most ``_NEAR_END`` [rad]. The other rows (no such solution: a window of
-    joint 7 between the samples, or a far end) get LM from the start, as
-    without the closed form.
-
-    Returns:
-        ``(q, reached)``: configurations (M, nq) and whether each reaches its
-        pose within the IK tolerances (verified by Pinocchio FK, strictly
-        inside the limits).
-    """
-    m = len(ends)
-    if backend != "pinocchio":
-        res = solve_ik(
-            robot,
-            ends,
-            backend,
-            position_tolerance=position_tolerance,
-            orientation_tolerance=orientation_tolerance,
-            seeds=q_start[:, None, :],
-            **ik_options,
-        )
-        return res.q, res.success
-    opts = PinocchioIKOptions.from_kwargs(ik_options)
-    q = np.full((m, robot.nq), np.nan)
-    conv = np.zeros(m, dtype=bool)
-    solver = analytic_solver(robot) if opts.analytic else None
-    if solver is not None and m:
-        eps = opts.limit_epsilon
-        lower, upper = robot.lower + eps, robot.upper - eps
-        start = np.clip(q_start, lower, upper)
-        q7 = np.clip(start[:, 6:7] + _END_Q7, lower[6], upper[6])
-        # only ends within _NEAR_END of the start in every joint can be kept
-        at, cand, _, _ = _analytic_blocks(
-            solver, ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper, (start, _NEAR_END)
-        )
-        change = np.max(np.abs(cand - start[at]), axis=1)
-        order = np.lexsort((change, at))
-        at, cand, change = at[order], cand[order], change[order]
-        first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]]) if at.size else at
-        near = first[change[first] <= _NEAR_END]
-        # exact away from singularities: a pick off its pose leaves the row to the LM
-        tol_p = position_tolerance * opts.inner_tolerance
-        tol_r = orientation_tolerance * opts.inner_tolerance
-        pe, re = _pose_errors(
-            robot.chain, cand[near], ends[at[near], :3, :3], ends[at[near], :3, 3]
-        )
-        near = near[(pe <= tol_p) & (re <= tol_r)]
-        q[at[near]], conv[at[near]] = cand[near], True
-    rest = np.flatnonzero(~conv)
-    if rest.size:
-        q[rest], conv[rest] = _lm_inside(
-            robot,
-            q_start[rest],
-            ends[rest],
-            position_tolerance * opts.inner_tolerance,
-            orientation_tolerance * opts.inner_tolerance,
-            opts,
-        )
-    reached = np.zeros(m, dtype=bool)
-    rows = np.flatnonzero(conv)
-    pe, re, inside = verify_solutions(robot, q[rows], ends[rows])
-    reached[rows] = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
-    return q, reached
-
-
-def _waypoints(
-    robot: Robot, seed: np.ndarray, target: np.ndarray, tol: float, radius: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Waypoints on the line: configurations (M, nq) near ``target`` poses (M, 4, 4).
-
-    Batched Levenberg-Marquardt from ``seed`` (M, nq), inside the joint limits,
-    to ``_KNOT_TOLERANCE`` of the deviation budget ``tol`` [m] (the orientation
-    scaled by the gripper ``radius`` [m]). Returns ``(q, converged)``.
-    """
-    return _lm_inside(
-        robot,
-        seed,
-        target,
-        _KNOT_TOLERANCE * tol,
-        _KNOT_TOLERANCE * tol / max(radius, 1e-3),
-        _KNOT_OPTIONS,
-    )
-
-
-def _lm_inside(
-    robot: Robot,
-    seed: np.ndarray,
-    target: np.ndarray,
-    tol_p: float,
-    tol_r: float,
-    opts: PinocchioIKOptions,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Batched LM from ``seed`` (M, nq) to ``target`` poses (M, 4, 4).
-
-    Kept ``opts.limit_epsilon`` inside the joint limits; returns ``(q, converged)``.
-    """
-    eps = opts.limit_epsilon
-    lower, upper = robot.lower + eps, robot.upper - eps
-    q, conv, _, _ = _lm(
-        robot.chain,
-        np.clip(seed, lower, upper),
-        target[:, :3, :3],
-        target[:, :3, 3],
-        lower,
-        upper,
-        tol_p,
-        tol_r,
-        opts,
-    )
-    return q, conv
-
-
 def _split_segments(
     robot: Robot,
     poses: np.ndarray,
@@ -910,7 +391,7 @@ def _split_segments(
     """Split segments ``split`` into ``parts`` pieces with new waypoints (in ``knots``).
 
     A new waypoint starts from the joint interpolation of its segment and
-    converges to its pose on the line within ``_KNOT_TOLERANCE`` of the
+    converges to its pose on the line within ``KNOT_TOLERANCE`` of the
     deviation budget (batched Levenberg-Marquardt, inside the joint limits);
     a row whose waypoint does not converge fails (``no_ik``).
 
@@ -927,7 +408,7 @@ def _split_segments(
     seed = qa + ((at - a) / (b - a))[:, None] * (qb - qa)
     target = poses[row].copy()
     target[:, :3, 3] += (at / fine_steps)[:, None] * offsets[row]
-    q_new, conv = _waypoints(robot, seed, target, tol, radius)
+    q_new, conv = line_waypoints(robot, seed, target, tol, radius)
     knots[row[conv], at[conv]] = q_new[conv]
     fail(row[~conv], at[~conv], "no_ik")
     # every split segment becomes its parts: boundaries sorted within each segment

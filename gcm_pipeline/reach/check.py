@@ -1,26 +1,25 @@
-"""Reachability stage: the config mapped onto the reachability engine.
+"""Reachability of a grasp table: the engine run on its poses, its columns added.
 
 Reads ``dq`` (world poses of the grasp frame) and, when present, the
 provenance columns ``origin``, ``vertices``, ``weights`` written by densify;
 adds ``reachable``, ``reason``, ``q``, ``pos_err``, ``rot_err``, the diagnostic
 columns ``q_pregrasp``, ``q_retreat``, ``q_rejected`` and, with a collision
-world, ``clearance``.
+checker, ``clearance``.
 
 The decision itself, IK, collisions, approach, retreat and re-solves, is made
-in one place, :class:`gcm_pipeline.robot.engine.ReachabilityEngine` (its
-module docstring states the sequence). This stage only maps the config:
-targets in the robot base frame are ``inv(base_pose) @ T_world``; the
-``environment`` and ``object`` sections become the
-:class:`~gcm_pipeline.robot.collision.CollisionChecker`; ``approach`` and
-``retreat`` become :class:`~gcm_pipeline.robot.approach.Move` objects (a world
-retreat direction is turned into the base frame); interpolated rows are seeded
-from the final solutions of their triangle's vertices, heaviest weight first.
+in one place, :class:`gcm_pipeline.reach.engine.ReachabilityEngine` (its
+module docstring states the sequence), configured by one
+:class:`~gcm_pipeline.reach.options.ReachOptions` (:mod:`gcm_pipeline.pipeline`
+maps a config onto it and onto the
+:class:`~gcm_pipeline.robot.collision.CollisionChecker`). Here: targets in the
+robot base frame are ``inv(base_pose) @ T_world``; interpolated rows are
+seeded from the final solutions of their triangle's vertices, heaviest weight
+first.
 
 Reasons (``''`` when reachable): ``out_of_reach``, ``joint_limits``,
 ``no_ik``, ``verification_failed``, ``collision_self``,
 ``collision_environment``, ``collision_object``, a ``validator``'s reasons,
-``approach`` and ``retreat``. Without ``environment``/``object`` sections (and
-no checker) the stage is pure IK.
+``approach`` and ``retreat``. Without a checker the check is pure IK.
 """
 
 from __future__ import annotations
@@ -33,29 +32,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.pipeline import make_checker
-from gcm_pipeline.robot.approach import Move
-from gcm_pipeline.robot.engine import ReachabilityEngine
+from gcm_pipeline.reach.engine import ReachabilityEngine
+from gcm_pipeline.reach.options import ReachOptions
 from gcm_pipeline.robot.ik import IKCandidates, Validator, world_to_base_targets
 from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:
-    from gcm_pipeline.config.run import (
-        ApproachConfig,
-        EnvironmentConfig,
-        ObjectConfig,
-        Pose,
-        RetreatConfig,
-    )
     from gcm_pipeline.robot.collision import CollisionChecker
 
 __all__ = [
-    "approach_move",
     "check_reachability",
     "make_engine",
     "progress_reporter",
-    "retreat_move",
     "world_to_base_targets",
 ]
 
@@ -63,45 +52,6 @@ log = logging.getLogger(__name__)
 
 #: Seconds between progress lines when stderr is not a terminal.
 PROGRESS_INTERVAL_S = 5.0
-
-
-def approach_move(approach: ApproachConfig | None) -> Move | None:
-    """The ``approach`` section as a :class:`Move` (backwards along the grasp frame's z)."""
-    if approach is None:
-        return None
-    return Move(
-        distance=approach.distance,
-        direction=(0.0, 0.0, -1.0),
-        frame="grasp",
-        steps=approach.steps,
-        max_joint_step=approach.max_joint_step,
-        max_deviation=approach.max_deviation,
-        holding=False,
-    )
-
-
-def retreat_move(
-    retreat: RetreatConfig | None, base_pose: Pose | np.ndarray | None = None
-) -> Move | None:
-    """The ``retreat`` section as a :class:`Move`; a world direction turned into the base frame."""
-    if retreat is None:
-        return None
-    direction = np.asarray(retreat.direction, dtype=float)
-    frame = "grasp"
-    if retreat.frame == "world":
-        frame = "base"
-        if base_pose is not None:
-            rot = base_pose.matrix()[:3, :3] if hasattr(base_pose, "matrix") else base_pose[:3, :3]
-            direction = np.asarray(rot, dtype=float).T @ direction
-    return Move(
-        distance=retreat.distance,
-        direction=tuple(direction.tolist()),
-        frame=frame,
-        steps=retreat.steps,
-        max_joint_step=retreat.max_joint_step,
-        max_deviation=retreat.max_deviation,
-        holding=True,
-    )
 
 
 def _neighbours(grasps: GraspTable) -> np.ndarray | None:
@@ -204,79 +154,58 @@ class progress_reporter:  # noqa: N801 - used like a function
 
 def make_engine(
     robot: Robot | RobotSpec,
+    options: ReachOptions | None = None,
     *,
-    base_pose: Pose | np.ndarray | None = None,
-    backend: str = "pinocchio",
-    position_tolerance: float = 1e-4,
-    orientation_tolerance: float = 1e-3,
-    validator: Validator | None = None,
-    workers: int | str = 1,
-    seed: int | None = None,
-    environment: EnvironmentConfig | None = None,
-    object_cfg: ObjectConfig | None = None,
-    approach: ApproachConfig | None = None,
-    retreat: RetreatConfig | None = None,
     checker: CollisionChecker | None = None,
-    alternatives: int = 4,
-    chunk_size: int | None = None,
-    solutions: int = 1,
-    **options: Any,
+    validator: Validator | None = None,
 ) -> ReachabilityEngine:
-    """The reachability engine of these config sections (build once, run many times).
+    """The reachability engine of these options (build once, run many times).
 
-    Args: as :func:`check_reachability` (``workers`` ``"auto"`` or 0: every core).
+    Args:
+        robot: A :class:`Robot` or a spec name/path.
+        options: The :class:`ReachOptions` (None: the defaults).
+        checker: A :class:`~gcm_pipeline.robot.collision.CollisionChecker`
+            (None: no collision checks, pure IK).
+        validator: Optional ``q (M, nq) -> (M,) str`` ('' = valid), an extra
+            check of grasp configurations after the collision check.
 
     Returns:
-        The :class:`~gcm_pipeline.robot.engine.ReachabilityEngine`; call its
+        The :class:`~gcm_pipeline.reach.engine.ReachabilityEngine`; call its
         ``close()`` (or use it in a ``with`` block) to stop its worker processes.
     """
     robot = as_robot(robot)
-    if seed is not None:
-        options.setdefault("random_seed", int(seed))
-    if checker is None and (environment is not None or object_cfg is not None):
-        checker = make_checker(robot, environment, object_cfg, base_pose)
+    opt = ReachOptions() if options is None else options
+    ik_options = dict(opt.ik_options)
+    if opt.seed is not None:
+        ik_options.setdefault("random_seed", int(opt.seed))
     return ReachabilityEngine(
         robot,
         checker,
-        backend=backend,
-        position_tolerance=position_tolerance,
-        orientation_tolerance=orientation_tolerance,
-        approach=approach_move(approach),
-        retreat=retreat_move(retreat, base_pose),
+        backend=opt.backend,
+        position_tolerance=opt.position_tolerance,
+        orientation_tolerance=opt.orientation_tolerance,
+        approach=opt.approach,
+        retreat=opt.retreat,
         validator=validator,
-        alternatives=alternatives,
-        workers="auto" if workers in (0, "auto") else workers,
-        chunk_size=chunk_size,
-        ik_options=options,
-        solutions=solutions,
+        alternatives=opt.alternatives,
+        workers="auto" if opt.workers in (0, "auto") else opt.workers,
+        chunk_size=opt.chunk_size,
+        ik_options=ik_options,
+        solutions=opt.solutions,
     )
 
 
 def check_reachability(
     grasps: GraspTable,
     robot: Robot | RobotSpec,
+    options: ReachOptions | None = None,
     *,
-    base_pose: Pose | np.ndarray | None = None,
-    backend: str = "pinocchio",
-    position_tolerance: float = 1e-4,
-    orientation_tolerance: float = 1e-3,
-    progress: bool = False,
-    validator: Validator | None = None,
-    workers: int | str = 1,
-    seed: int | None = None,
-    warm_start: bool = True,
-    seeds: Any = None,
-    return_candidates: bool = False,
-    environment: EnvironmentConfig | None = None,
-    object_cfg: ObjectConfig | None = None,
-    approach: ApproachConfig | None = None,
-    retreat: RetreatConfig | None = None,
     checker: CollisionChecker | None = None,
+    validator: Validator | None = None,
     engine: ReachabilityEngine | None = None,
-    alternatives: int = 4,
-    chunk_size: int | None = None,
-    solutions: int = 1,
-    **options: Any,
+    seeds: Any = None,
+    progress: bool = False,
+    return_candidates: bool = False,
 ) -> GraspTable | tuple[GraspTable, IKCandidates]:
     """Solve IK for every grasp, check collisions, approach and retreat; add the columns.
 
@@ -284,35 +213,19 @@ def check_reachability(
         grasps: Table with ``dq`` (N, 8) (world poses of the grasp frame) and
             optionally ``origin``, ``vertices``, ``weights`` (provenance).
         robot: A :class:`Robot` or a :class:`RobotSpec`.
-        base_pose: Robot base in the world, a config ``Pose`` or (4, 4) [m];
-            identity if None.
-        backend: IK backend, ``"pinocchio"`` or ``"mink"``.
-        position_tolerance: [m], > 0.
-        orientation_tolerance: [rad], > 0.
-        progress: Report per-target progress (a bar on a terminal, else a log
-            line every few seconds; see :class:`progress_reporter`).
+        options: The :class:`ReachOptions` (None: the defaults); with
+            ``engine``, only its ``base_pose`` and ``warm_start`` are used.
+        checker: A :class:`~gcm_pipeline.robot.collision.CollisionChecker`
+            in the base frame (None: no collision checks, pure IK).
         validator: Optional ``q (M, nq) -> (M,) str`` ('' = valid), an extra
             check of grasp configurations after the collision check.
-        workers: Processes (``"auto"`` or 0: every core this process may use).
-            The result does not depend on it.
-        seed: Random seed of the IK's seed library and restarts.
-        warm_start: Seed interpolated rows from their vertices' solutions.
+        engine: A prebuilt engine (:func:`make_engine`, reused across calls);
+            ``checker`` and ``validator`` are then ignored.
         seeds: Optional warm starts (N, K, nq) [rad], tried after the vertices'.
+        progress: Report per-target progress (a bar on a terminal, else a log
+            line every few seconds; see :class:`progress_reporter`).
         return_candidates: Also return every converged IK candidate of the
             first solve (before any check).
-        environment: The ``environment`` config section (collision world).
-        object_cfg: The ``object`` config section (the object to grasp).
-        approach: The ``approach`` config section (pre-grasp approach check).
-        retreat: The ``retreat`` config section (post-grasp retreat check).
-        checker: A prebuilt
-            :class:`~gcm_pipeline.robot.collision.CollisionChecker`; else one
-            is built from ``environment`` and ``object_cfg`` when either is given.
-        engine: A prebuilt engine (:func:`make_engine`, reused across calls);
-            the arguments that configure one are then ignored.
-        alternatives: Other IK solutions tried per grasp that fails a check.
-        chunk_size: Most targets per chunk of the engine (None: by backend).
-        solutions: IK branches kept per reachable grasp (the engine's step 4).
-        **options: Backend options (see :func:`~gcm_pipeline.robot.ik.solve_ik`).
 
     Returns:
         The table with ``reachable`` (N,) bool, ``reason`` (N,) str, ``q``
@@ -328,32 +241,15 @@ def check_reachability(
         InputError: Missing ``dq`` column, bad provenance, bad options.
         GeometryError: Non-unit dual quaternions or a non-rigid base pose.
     """
+    opt = ReachOptions() if options is None else options
     robot = as_robot(robot)
     if "dq" not in grasps:
         raise InputError(f"grasp table has no column 'dq'; columns: {', '.join(grasps.columns)}")
-    targets = world_to_base_targets(grasps["dq"], base_pose)
-    nb = _neighbours(grasps) if warm_start else None
+    targets = world_to_base_targets(grasps["dq"], opt.base_pose)
+    nb = _neighbours(grasps) if opt.warm_start else None
     own = engine is None
     if engine is None:
-        engine = make_engine(
-            robot,
-            base_pose=base_pose,
-            backend=backend,
-            position_tolerance=position_tolerance,
-            orientation_tolerance=orientation_tolerance,
-            validator=validator,
-            workers=workers,
-            seed=seed,
-            environment=environment,
-            object_cfg=object_cfg,
-            approach=approach,
-            retreat=retreat,
-            checker=checker,
-            alternatives=alternatives,
-            chunk_size=chunk_size,
-            solutions=solutions,
-            **options,
-        )
+        engine = make_engine(robot, opt, checker=checker, validator=validator)
     report = progress_reporter(len(grasps), enabled=progress)
     try:
         res = engine.run(

@@ -18,7 +18,7 @@ base frame), in :meth:`ReachabilityEngine.run`:
    a. collisions at the grasp (self, environment, object; the gripper may
       touch the object by the checker's contact tolerance), then a user's
       ``validator`` if given;
-   b. the **approach** (:mod:`~gcm_pipeline.robot.approach`): the straight line
+   b. the **approach** (:mod:`~gcm_pipeline.reach.moves`): the straight line
       from the pre-grasp to the grasp, followable with bounded joint steps and
       deviation, collision-free with no finger contact;
    c. the **retreat**: the straight line away from the grasp holding the
@@ -34,7 +34,7 @@ base frame), in :meth:`ReachabilityEngine.run`:
    is never re-tried). Nothing else is
    re-solved: a target with no IK solution had every seed already, and one
    whose solution failed a move that ends beyond reach (proved for the
-   Panda's kinematics, :func:`~gcm_pipeline.robot.approach.unreachable_ends`)
+   Panda's kinematics, :func:`~gcm_pipeline.reach.moves.unreachable_ends`)
    fails that move with any solution. Such moves are not planned either: they
    fail in 2 without IK.
 4. **More branches** (``solutions`` > 1): for every reachable target, further
@@ -64,55 +64,53 @@ and several chunks run at once on ``workers`` forked
 processes that inherit the robot, seed library and collision world.
 
 The engine takes plain arrays and shapes (a robot, a collision checker,
-:class:`~gcm_pipeline.robot.approach.Move` objects), no config;
-:mod:`gcm_pipeline.stages.reachability` maps a config onto it. Build it once
+:class:`~gcm_pipeline.reach.moves.Move` objects), no config;
+:mod:`gcm_pipeline.pipeline` maps a config onto it. Build it once
 and :meth:`~ReachabilityEngine.run` it on many target sets.
 """
 
 from __future__ import annotations
 
-import atexit
-import functools
 import multiprocessing as mp
 import time
-import weakref
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.reach.alternatives import merge_ik, other_solutions
+from gcm_pipeline.reach.moves import Move
+from gcm_pipeline.reach.options import shared_ik_options
+from gcm_pipeline.reach.result import (
+    AT_APPROACH,
+    AT_GRASP,
+    Branches,
+    CheckResult,
+    ReachResult,
+)
+from gcm_pipeline.reach.solution_checks import SolutionChecks
+from gcm_pipeline.reach.workers import (
+    POOLS,
+    WORKER,
+    blas_controller,
+    guided_chunks,
+    solve_in_worker,
+)
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.approach import Move, check_moves, gripper_radius, unreachable_ends
 from gcm_pipeline.robot.ik import (
     IKCandidates,
     IKResult,
     PinocchioIKOptions,
     check_targets,
     solve_ik,
-    verify_solutions,
 )
-from gcm_pipeline.robot.ik.analytic_6r import SixRAnalyticIK, branch_gap, six_r_solver, wide_joints
 from gcm_pipeline.robot.ik.pool import ForkPool
 from gcm_pipeline.robot.ik.pool import cores as _cores
 from gcm_pipeline.robot.ik.pool import worker_signals as _worker_signals
 from gcm_pipeline.robot.model import Robot
 
-__all__ = [
-    "REASON_APPROACH",
-    "REASON_RETREAT",
-    "Branches",
-    "CheckResult",
-    "ReachResult",
-    "ReachabilityEngine",
-    "available_cores",
-]
-
-REASON_APPROACH = "approach"
-REASON_RETREAT = "retreat"
-
-# how far a solution got through the checks of step 2
-_AT_GRASP, _AT_APPROACH, _AT_RETREAT, _PASSED = 0, 1, 2, 3
+__all__ = ["ReachabilityEngine", "available_cores"]
 
 #: Seeds of the re-solve (step 3) for the pinocchio backend: library
 #: neighbours and random restarts beyond the first solve's.
@@ -129,11 +127,6 @@ _SAME_SOLUTION = 1e-3
 
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
-#: Fewest targets of a chunk when a few thousand are shared out (see _guided_chunks).
-_LEAST_SHARE = 256
-
-#: Most closed-form branches of a 6R arm (EAIK: at most 16); step 3 tries every one.
-_MOST_BRANCHES = 16
 
 #: Seeds of the search for more branches (step 4, pinocchio backend).
 _BRANCH_LIBRARY = 16
@@ -143,89 +136,6 @@ _BRANCH_RESTARTS = 8
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity), at least 1."""
     return _cores()
-
-
-class CheckResult(NamedTuple):
-    """Step 2 for M solutions (:meth:`ReachabilityEngine.check`).
-
-    Attributes:
-        passed: (M,) bool, every check passed.
-        stage: (M,) int, how far the solution got: 0 failed at the grasp
-            (collision or validator), 1 failed the approach, 2 failed the
-            retreat, 3 passed.
-        reason: (M,) str, ``''`` or why it failed.
-        q_pregrasp: (M, nq) [rad] end of the approach (NaN without an approach
-            or where it failed).
-        q_retreat: (M, nq) [rad] end of the retreat (NaN likewise).
-    """
-
-    passed: np.ndarray
-    stage: np.ndarray
-    reason: np.ndarray
-    q_pregrasp: np.ndarray
-    q_retreat: np.ndarray
-
-
-class Branches(NamedTuple):
-    """Up to K verified solutions per target that pass every check (step 4).
-
-    Attributes:
-        q: (N, K, nq) [rad]; branch 0 is the answer of steps 1-3 (``ReachResult.q``);
-            NaN past ``count``.
-        q_pregrasp: (N, K, nq) [rad] end of each branch's approach (NaN likewise).
-        q_retreat: (N, K, nq) [rad] end of each branch's retreat.
-        clearance: (N, K) [m] distance of the arm to the world, or None
-            without a collision checker.
-        count: (N,) int, branches kept (0 for unreachable targets).
-    """
-
-    q: np.ndarray
-    q_pregrasp: np.ndarray
-    q_retreat: np.ndarray
-    clearance: np.ndarray | None
-    count: np.ndarray  # type: ignore[assignment]  # the field shadows tuple.count
-
-
-class ReachResult(NamedTuple):
-    """Result of :meth:`ReachabilityEngine.run` for N targets.
-
-    Attributes:
-        reachable: (N,) bool.
-        reason: (N,) str, ``''`` when reachable (see the module doc).
-        q: (N, nq) [rad] the solution; NaN rows when unreachable.
-        pos_err: (N,) [m] position error of the solution, or of the best IK
-            attempt when unreachable (NaN if none was made).
-        rot_err: (N,) [rad] orientation error, same rules.
-        clearance: (N,) [m] distance of the arm to the world (NaN when
-            unreachable), or None without a collision checker.
-        q_pregrasp: (N, nq) [rad] pre-grasp configuration (NaN when unreachable
-            or without an approach).
-        q_retreat: (N, nq) [rad] configuration at the end of the retreat.
-        q_rejected: (N, nq) [rad] for unreachable rows that had an IK solution,
-            the solution that failed the furthest check; NaN otherwise.
-        candidates: Every converged IK candidate of step 1 (``return_candidates``).
-        branches: Every kept branch when the engine keeps several
-            (``solutions`` > 1), else None.
-    """
-
-    reachable: np.ndarray
-    reason: np.ndarray
-    q: np.ndarray
-    pos_err: np.ndarray
-    rot_err: np.ndarray
-    clearance: np.ndarray | None
-    q_pregrasp: np.ndarray
-    q_retreat: np.ndarray
-    q_rejected: np.ndarray
-    candidates: IKCandidates | None = None
-    branches: Branches | None = None
-
-    def __repr__(self) -> str:
-        n = len(self.reachable)
-        ok = int(np.count_nonzero(self.reachable))
-        names, counts = np.unique(self.reason[~self.reachable].astype(str), return_counts=True)
-        fails = ", ".join(f"{r}: {c}" for r, c in zip(names, counts, strict=True))
-        return f"ReachResult({ok}/{n} reachable" + (f", {{{fails}}}" if fails else "") + ")"
 
 
 class ReachabilityEngine:
@@ -315,7 +225,18 @@ class ReachabilityEngine:
             raise InputError(
                 f"solution_separation must be a positive angle [rad], got {solution_separation!r}"
             )
-        self._radius = gripper_radius(robot) if (approach or retreat) else 0.0
+        self._checks = SolutionChecks(
+            robot,
+            checker,
+            validator,
+            approach,
+            retreat,
+            backend=backend,
+            position_tolerance=self.position_tolerance,
+            orientation_tolerance=self.orientation_tolerance,
+            ik_options=self.ik_options,
+            spent=self._spent,
+        )
         self._pool: Any = None
         self._pool_size = 0
         #: CPU time [s] of each step of the last :meth:`run`, summed over chunks
@@ -340,126 +261,22 @@ class ReachabilityEngine:
     def check_grasp(self, q: np.ndarray) -> np.ndarray:
         """The checks at the grasp of M solutions: collisions, then the validator.
 
-        Returns:
-            (M,) object array of reasons, ``''`` where both pass.
+        See :meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.at_grasp`.
         """
-        m = q.shape[0]
-        reason = np.full(m, "", dtype=object)
-        t0 = time.process_time()
-        if self.checker is not None and m:
-            reason[:] = np.asarray(self.checker.check(q), dtype=object)
-        self._spent("collisions", t0)
-        if self.validator is not None:
-            free = np.flatnonzero(reason == "")
-            if free.size:
-                why = np.asarray(self.validator(q[free]), dtype=object)
-                if why.shape != (free.size,):
-                    raise InputError(
-                        f"validator returned shape {why.shape}, expected ({free.size},)"
-                    )
-                reason[free] = why
-        return reason
+        return self._checks.at_grasp(q)
 
     def check(
         self, targets: np.ndarray, q: np.ndarray, at_grasp: np.ndarray | None = None
     ) -> CheckResult:
         """Step 2 for M solutions: collisions, validator, approach, retreat.
 
-        Args:
-            targets: Grasp poses (M, 4, 4) in the base frame [m].
-            q: Their IK solutions (M, nq) [rad], finite.
-            at_grasp: The reasons (M,) of the checks at the grasp (collisions and
-                validator, :meth:`check_grasp`) if already known.
-
-        Returns:
-            The :class:`CheckResult`.
+        See :meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.check`.
         """
-        m, nq = q.shape
-        if at_grasp is None:
-            reason = self.check_grasp(q)
-        else:
-            reason = np.asarray(at_grasp, dtype=object).copy()
-        stage = np.where(reason == "", _AT_APPROACH, _AT_GRASP)
-        q_pre = np.full((m, nq), np.nan)
-        q_ret = np.full((m, nq), np.nan)
-        for move, at, fail, out in (
-            (self.approach, _AT_APPROACH, REASON_APPROACH, q_pre),
-            (self.retreat, _AT_RETREAT, REASON_RETREAT, q_ret),
-        ):
-            rows = np.flatnonzero(stage == at)
-            t0 = time.process_time()
-            if move is not None and rows.size:
-                res = check_moves(
-                    self.robot,
-                    targets[rows],
-                    q[rows],
-                    move,
-                    self._path_collisions(move, targets[rows]),
-                    gripper_radius=self._radius,
-                    position_tolerance=self.position_tolerance,
-                    orientation_tolerance=self.orientation_tolerance,
-                    backend=self.backend,
-                    **self._shared_options(),
-                )
-                reason[rows[~res.ok]] = fail
-                out[rows] = res.q_end
-                rows = rows[res.ok]
-            stage[rows] = at + 1
-            self._spent(fail, t0)
-        return CheckResult(stage == _PASSED, stage, reason.astype(str), q_pre, q_ret)
-
-    def _hopeless(self, targets: np.ndarray, stage: np.ndarray) -> np.ndarray:
-        """Targets (M,) whose solution failed a move that no solution can pass.
-
-        ``stage`` (M,) is how far the target's solution got (:class:`CheckResult`);
-        one that failed the approach (or the retreat) whose end is proved beyond
-        reach (:func:`~gcm_pipeline.robot.approach.unreachable_ends`) fails it
-        whatever the configuration, so no other solution gets further.
-        """
-        out = np.zeros(len(targets), dtype=bool)
-        for move, at in ((self.approach, _AT_APPROACH), (self.retreat, _AT_RETREAT)):
-            rows = np.flatnonzero(stage == at)
-            if move is not None and rows.size:
-                out[rows] = unreachable_ends(
-                    self.robot,
-                    targets[rows],
-                    move,
-                    self.position_tolerance,
-                    self.orientation_tolerance,
-                )
-        return out
-
-    def _shared_options(self) -> dict[str, Any]:
-        """The IK options that hold for every IK of the engine, not only step 1.
-
-        That is whether the pinocchio backend uses the closed form.
-        """
-        if self.backend != "pinocchio":
-            return {}
-        return {k: v for k, v in self.ik_options.items() if k in ("analytic",)}
+        return self._checks.check(targets, q, at_grasp)
 
     def _spent(self, step: str, since: float) -> None:
         """Add the CPU time since ``since`` to ``timings[step]`` [s]."""
         self.timings[step] = self.timings.get(step, 0.0) + time.process_time() - since
-
-    def _path_collisions(
-        self, move: Move, targets: np.ndarray
-    ) -> Callable[[np.ndarray, np.ndarray], Any] | None:
-        """The collision check of a move's grid points (None without a checker).
-
-        The approach allows no contact; the retreat holds the object: it moves
-        with the grasp frame (its pose in the grasp frame is fixed at the grasp).
-        """
-        checker = self.checker
-        if checker is None:
-            return None
-        if not move.holding:
-            return lambda q, rows: checker.check(q, mode="approach")
-        obj = getattr(checker, "object", None)
-        if obj is None:
-            return lambda q, rows: checker.check(q, mode="retreat")
-        held = np.linalg.inv(targets) @ obj.placement
-        return lambda q, rows: checker.check(q, mode="retreat", carried=held[rows])
 
     # --- step 3 ------------------------------------------------------------------------
 
@@ -474,98 +291,24 @@ class ReachabilityEngine:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Other verified, distinct IK solutions of M targets, in seed order.
 
-        Args:
-            targets: (M, 4, 4) poses in the base frame.
-            q_first: (M, nq) the solution each must differ from.
-            count: Alternatives wanted per target (default ``alternatives``).
-            separation: Solutions closer than this in every joint are the same [rad].
-            library: Library seeds per target (pinocchio).
-            restarts: Random restarts per target (pinocchio).
-
-        Returns:
-            ``(index, rank, q, errors)``: target index (K,) into ``targets``,
-            rank of the alternative among its target's (K,), solutions (K, nq)
-            and ``(pos_err, rot_err)`` stacked (K, 2).
+        See :func:`~gcm_pipeline.reach.alternatives.other_solutions`; ``count``
+        None: ``alternatives`` per target (every closed-form branch of a 6R arm).
         """
-        k = self.alternatives if count is None else int(count)
-        nq = self.robot.nq
-        empty = (np.zeros(0, int), np.zeros(0, int), np.zeros((0, nq)), np.zeros((0, 2)))
-        six = self._six()
-        if six is not None:
-            # every branch in closed form, each at its 2 pi copy nearest home, nearest
-            # first; step 3 tries them all (the enumeration is complete and cheap)
-            eps = PinocchioIKOptions.limit_epsilon
-            idx, cq = six.solve(
-                targets[:, :3, :3],
-                targets[:, :3, 3],
-                self.robot.lower + eps,
-                self.robot.upper - eps,
-                self.robot.home,
-            )
-            order = np.lexsort((np.sum((cq - self.robot.home) ** 2, axis=1), idx))
-            idx, cq = idx[order], cq[order]
-            if count is None:
-                k = max(k, _MOST_BRANCHES)
-        else:
-            opts: dict[str, Any]
-            if self.backend == "pinocchio":
-                opts = {
-                    "min_solutions": 2 * (k + 1),
-                    "first_round_seeds": k + 1,
-                    "round_seeds": k + 1,
-                    "library_seeds": library,
-                    "random_restarts": restarts,
-                }
-            else:
-                opts = {"min_solutions": 2 * (k + 1)}
-            opts.update((key, v) for key, v in self.ik_options.items() if key == "random_seed")
-            opts.update(self._shared_options())
-            res = solve_ik(
-                self.robot,
-                targets,
-                self.backend,
-                position_tolerance=self.position_tolerance,
-                orientation_tolerance=self.orientation_tolerance,
-                return_all=True,
-                **opts,
-            )
-            cand = res.candidates
-            if cand is None or len(cand.index) == 0:
-                return empty
-            idx, cq = cand.index, cand.q
-        if len(idx) == 0:
-            return empty
-        pe, re, inside = verify_solutions(self.robot, cq, targets[idx])
-        good = (pe <= self.position_tolerance) & (re <= self.orientation_tolerance) & inside
-        idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
-        # distinct from the first solution and from the earlier alternatives of the same
-        # target (candidates are sorted by target, in seed order within a target), modulo
-        # 2 pi on the joints whose range exceeds a turn: q + 2 pi is the same arm shape
-        wide = wide_joints(self.robot.lower, self.robot.upper)
-        keep = np.max(branch_gap(cq, q_first[idx], wide), axis=1) >= separation
-        idx, cq, err = idx[keep], cq[keep], err[keep]
-        if len(idx) == 0:
-            return empty
-        pos = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
-        groups, group = np.unique(idx, return_inverse=True)
-        padded = np.full((len(groups), int(pos.max()) + 1, nq), np.nan)  # pads are never near
-        padded[group, pos] = cq
-        gap = np.max(branch_gap(padded[:, :, None], padded[:, None, :], wide), axis=3)
-        near = gap < separation  # NaN (a pad) compares False
-        earlier = np.tril(near, k=-1).any(axis=2)  # same as an earlier candidate
-        distinct = ~earlier[group, pos]
-        idx, cq, err = idx[distinct], cq[distinct], err[distinct]
-        rank = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
-        keep = rank < k
-        if not np.any(keep):
-            return empty
-        return idx[keep], rank[keep], cq[keep], err[keep]
-
-    def _six(self) -> SixRAnalyticIK | None:
-        """The closed-form branch solver of a 6R arm, unless the IK options turn it off."""
-        if self.ik_options.get("analytic", True) is False:
-            return None
-        return six_r_solver(self.robot)
+        return other_solutions(
+            self.robot,
+            targets,
+            q_first,
+            count=self.alternatives if count is None else int(count),
+            every_branch=count is None,
+            backend=self.backend,
+            position_tolerance=self.position_tolerance,
+            orientation_tolerance=self.orientation_tolerance,
+            ik_options=self.ik_options,
+            shared_options=shared_ik_options(self.backend, self.ik_options),
+            separation=separation,
+            library=library,
+            restarts=restarts,
+        )
 
     def _branches(
         self,
@@ -649,7 +392,7 @@ class ReachabilityEngine:
             lib = self.ik_options.get("library_seeds", PinocchioIKOptions.library_seeds)
             small["library_seeds"] = min(int(lib), _HOPELESS_LIBRARY)
         results = [ik(parts[0]), ik(parts[1], **small)]
-        return _merge_ik(parts, results, m, self.robot.nq)
+        return merge_ik(parts, results, m, self.robot.nq)
 
     def solve(
         self,
@@ -674,9 +417,10 @@ class ReachabilityEngine:
         """
         # the engine's parallelism is its worker processes: BLAS runs on one thread
         # (its threads only contend with them, and the matrices here are small)
-        with _blas_controller().limit(limits=1, user_api="blas"):
+        with blas_controller().limit(limits=1, user_api="blas"):
             return self._solve(targets, seeds, return_candidates, no_restarts)
 
+    # over 100 lines: steps 1-5 of a chunk share their per-target arrays through `record`
     def _solve(
         self,
         targets: np.ndarray,
@@ -726,7 +470,7 @@ class ReachabilityEngine:
         failing = record(np.flatnonzero(res.success), res.q[res.success], None)
         # step 3: other branches of the targets whose solution failed a check, except
         # where the move it failed ends beyond reach (no branch can pass it)
-        failing = failing[~self._hopeless(targets[failing], best[failing])]
+        failing = failing[~self._checks.hopeless(targets[failing], best[failing])]
         if failing.size and self.alternatives > 0:
             t0 = time.process_time()
             idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
@@ -744,14 +488,14 @@ class ReachabilityEngine:
             sel = np.flatnonzero((rank > 0) & ~reachable[who])
             if sel.size:
                 at_grasp = self.check_grasp(alt_q[sel])
-                stage = np.where(at_grasp == "", _AT_APPROACH, _AT_GRASP)
-                s = np.flatnonzero(stage == _AT_GRASP)  # failed at the grasp: the reasons
+                stage = np.where(at_grasp == "", AT_APPROACH, AT_GRASP)
+                s = np.flatnonzero(stage == AT_GRASP)  # failed at the grasp: the reasons
                 if s.size:
                     nan = np.full((s.size, nq), np.nan)
                     fails = np.zeros(s.size, dtype=bool)
                     chk = CheckResult(fails, stage[s], at_grasp[s].astype(str), nan, nan)
                     record(who[sel[s]], alt_q[sel[s]], alt_err[sel[s]], chk)
-                pending = np.flatnonzero(stage == _AT_APPROACH)  # positions in sel, rank order
+                pending = np.flatnonzero(stage == AT_APPROACH)  # positions in sel, rank order
                 while pending.size:
                     pending = pending[~reachable[who[sel[pending]]]]
                     if pending.size == 0:
@@ -800,6 +544,7 @@ class ReachabilityEngine:
 
     # --- the whole run ---------------------------------------------------------------------
 
+    # over 100 lines: the two phases (rows without, then with, neighbours) fill one set of arrays
     def run(
         self,
         targets: Any,
@@ -880,7 +625,7 @@ class ReachabilityEngine:
                     None if sub is None else sub[at],
                     None if hopeless is None else hopeless[at],
                 )
-                for at in _guided_chunks(rows.size, self.chunk_size, self.workers)
+                for at in guided_chunks(rows.size, self.chunk_size, self.workers)
             ]
             for (chunk_rows, *_), part in zip(
                 chunks, self._map(chunks, return_candidates), strict=True
@@ -944,7 +689,7 @@ class ReachabilityEngine:
             return
         pool = self._get_pool(len(work))
         try:
-            yield from pool.ordered(_solve_in_worker, work)
+            yield from pool.ordered(solve_in_worker, work)
         except BaseException:
             # Ctrl-C or a failing chunk: stop the workers before anything else
             self.close()
@@ -959,12 +704,12 @@ class ReachabilityEngine:
             # warm the caches (seed library, MuJoCo model) so that workers inherit them
             probe = self.robot.fk(self.robot.home)
             solve_ik(self.robot, probe, self.backend, **self.ik_options)
-            _blas_controller()  # it reads the loaded libraries (about 10 ms): once, here
+            blas_controller()  # it reads the loaded libraries (about 10 ms): once, here
             kernels.get()  # compiled or read from Numba's cache once, here, not per worker
-            _WORKER["engine"] = self
+            WORKER["engine"] = self
             self._pool = ForkPool(size, initializer=_worker_signals)
             self._pool_size = size
-            _POOLS.add(self)
+            POOLS.add(self)
         return self._pool
 
     def close(self) -> None:
@@ -984,80 +729,6 @@ class ReachabilityEngine:
         state = dict(self.__dict__)
         state["_pool"], state["_pool_size"] = None, 0
         return state
-
-
-# the engine of this worker process (set in the parent just before the pool forks)
-_WORKER: dict[str, ReachabilityEngine] = {}
-_POOLS: weakref.WeakSet[ReachabilityEngine] = weakref.WeakSet()
-
-
-def _solve_in_worker(
-    args: tuple[np.ndarray, np.ndarray | None, bool, np.ndarray | None],
-) -> dict[str, Any]:
-    return _WORKER["engine"].solve(*args)
-
-
-@atexit.register
-def _close_pools() -> None:
-    for engine in list(_POOLS):
-        engine.close()
-
-
-@functools.cache
-def _blas_controller() -> Any:
-    """The process's thread pools (BLAS), inspected once."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
-
-
-def _guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:
-    """Positions ``0..n-1`` in contiguous chunks of at most ``most``, shrinking at the end.
-
-    On several workers a chunk takes a share of what is left (guided
-    scheduling), at least ``most // 4``: large chunks while there is much to
-    do (fewer, larger NumPy calls), small ones at the end so that the workers
-    finish together. A set of at most ``most // 4`` is one chunk, solved on
-    this process (starting workers costs about as much as they save there);
-    up to ``workers`` times that, it is shared out equally, one chunk per
-    worker (3,000 targets on two: 1,500 each, not 2,048 and 952), but not
-    in chunks under ``_LEAST_SHARE`` (or ``most // 4`` if smaller). Results
-    do not depend on the chunks (every decision is per target).
-    """
-    least = max(most // 4, 1)
-    if workers > 1 and least < n <= workers * least:
-        least = most = max(-(-n // workers), min(least, _LEAST_SHARE))
-    out, a = [], 0
-    while a < n:
-        size = most if workers == 1 else min(most, max(least, -(-(n - a) // (2 * workers))))
-        out.append(np.arange(a, min(a + size, n)))
-        a += size
-    return out
-
-
-def _merge_ik(parts: list[np.ndarray], results: list[IKResult], m: int, nq: int) -> IKResult:
-    """One :class:`IKResult` of M targets from results of row subsets ``parts``."""
-    q = np.full((m, nq), np.nan)
-    success = np.zeros(m, dtype=bool)
-    pos_err = np.full(m, np.nan)
-    rot_err = np.full(m, np.nan)
-    reason = np.full(m, "", dtype=object)
-    for rows, r in zip(parts, results, strict=True):
-        q[rows], success[rows], reason[rows] = r.q, r.success, r.reason
-        pos_err[rows], rot_err[rows] = r.pos_err, r.rot_err
-    candidates = None
-    if results[0].candidates is not None:
-        cands = [r.candidates for r in results if r.candidates is not None]
-        index = np.concatenate([rows[c.index] for rows, c in zip(parts, cands, strict=True)])
-        order = np.argsort(index, kind="stable")
-        candidates = IKCandidates(
-            index[order],
-            np.concatenate([c.q for c in cands]).reshape(-1, nq)[order],
-            np.concatenate([c.reason for c in cands])[order],
-        )
-    return IKResult(
-        q, success, pos_err, rot_err, reason.astype(str), results[0].backend, candidates
-    )
 
 
 def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:

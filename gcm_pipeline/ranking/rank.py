@@ -14,7 +14,7 @@ metric name (configs)            column                  meaning
 ================================ ======================= ====================
 
 Three more metrics rank by columns of other stages (the collision checks,
-:mod:`gcm_pipeline.robot.collision`; the margin,
+:mod:`gcm_pipeline.reach.engine`; the margin,
 :mod:`gcm_pipeline.manifold.margin`):
 
 ================================ ======================= ====================
@@ -25,7 +25,7 @@ Three more metrics rank by columns of other stages (the collision checks,
                                                          point [m] (``inf``: none)
 ``combined``                     ``combined`` (added)    weighted sum of normalised
                                                          metrics, see
-                                                         :func:`combined_score`
+                                                         :func:`~gcm_pipeline.ranking.metrics.combined_score`
 ================================ ======================= ====================
 
 plus ``rank`` (N,) int: 1-based among the reachable grasps, by the chosen
@@ -36,31 +36,23 @@ unreachable grasps. ``top`` (N,) bool marks ranks 1..``top_k``.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
-from gcm_pipeline.robot.manipulability import METRICS, manipulability_metrics
+from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.ranking.metrics import (
+    DEFAULT_COMBINED_WEIGHTS,
+    METRIC_COLUMNS,
+    METRICS,
+    combined_score,
+    value_range,
+    weighted_sum,
+)
+from gcm_pipeline.robot.manipulability import manipulability_metrics
 from gcm_pipeline.robot.model import Robot, RobotSpec, as_robot
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["DEFAULT_COMBINED_WEIGHTS", "METRICS", "METRIC_COLUMNS", "combined_score", "rank"]
-
-#: Ranking metric (config name) -> the grasp-table column holding it.
-METRIC_COLUMNS: dict[str, str] = {
-    **METRICS,
-    "clearance": "clearance",
-    "margin": "margin",
-    "combined": "combined",
-}
-
-#: Weights of the ``combined`` metric when the config gives none.
-DEFAULT_COMBINED_WEIGHTS: dict[str, float] = {
-    "yoshikawa": 1.0,
-    "clearance": 0.5,
-    "joint_limit_margin": 0.2,
-}
+__all__ = ["branch_scores", "rank", "reachable_score"]
 
 
 def _finite_margin(values: np.ndarray, reachable: np.ndarray) -> np.ndarray:
@@ -96,7 +88,7 @@ def rank(
             as the largest finite margin).
         top_k: How many of the best grasps ``top`` marks (None: all reachable).
         weights: Metric name -> weight of the ``combined`` metric (None:
-            :data:`DEFAULT_COMBINED_WEIGHTS`);
+            :data:`~gcm_pipeline.ranking.metrics.DEFAULT_COMBINED_WEIGHTS`);
             ignored by the other metrics.
 
     Returns:
@@ -109,7 +101,7 @@ def rank(
             missing columns (``clearance`` names the metric that needs it),
             or ``q`` of the wrong width.
         ConfigError: Bad ``weights`` (see
-            :func:`combined_score`).
+            :func:`~gcm_pipeline.ranking.metrics.combined_score`).
     """
     if metric not in METRIC_COLUMNS:
         raise InputError(unknown_choice("ranking metric", metric, METRIC_COLUMNS))
@@ -172,83 +164,65 @@ def rank(
     return grasps.with_columns(**columns, rank=ranks, top=top, **extra)
 
 
-def combined_score(
-    columns: Mapping[str, Any],
-    weights: Mapping[str, float] | None = None,
+def reachable_score(
+    table: GraspTable,
+    robot: Robot,
     *,
-    mask: Any = None,
-    normalization: str = "minmax",
+    metric: str = "yoshikawa",
+    weights: Mapping[str, float] | None = None,
 ) -> np.ndarray:
-    r"""Weighted combination of ranking metrics, each normalised to [0, 1].
+    """A ranking metric of the rows checked so far (``reachable``, ``q``); NaN: unreachable.
 
-    .. math::
+    ``combined`` is normalised over the reachable rows of ``table`` (its
+    weights of metrics the table lacks are left out); ``margin`` (which needs
+    the finished manifold) falls back to Yoshikawa's index.
+    """
+    reach = np.asarray(table["reachable"], dtype=bool)
+    q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
+    values: dict[str, np.ndarray] = dict(manipulability_metrics(robot, q))
+    if "clearance" in table:
+        values["clearance"] = np.asarray(table["clearance"], dtype=np.float64)
+    if metric == "combined":
+        used = {k: v for k, v in (weights or {}).items() if k in values}
+        return combined_score(values, used or None, mask=reach)
+    return values.get(metric, values["yoshikawa"])
 
-        s_i = \sum_m \frac{w_m}{\sum_k w_k} \, \hat{x}_{m,i}, \qquad
-        \hat{x}_{m,i} = \frac{x_{m,i} - \min_j x_{m,j}}{\max_j x_{m,j} - \min_j x_{m,j}}
 
-    over the rows in ``mask`` (the reachable grasps), so that a weight is the
-    share of the score a metric can move, whatever its units (Yoshikawa's
-    index, clearance [m], joint-limit margin). A metric constant over the
-    rows contributes its full weight to every row. ``normalization="rank"``
-    uses ranks instead (``(rank - 1) / (n - 1)``, ties averaged): robust to
-    outliers. Every metric is "higher is better". Metrics of weight 0 are
-    ignored (their column may be missing).
+def branch_scores(
+    solutions: np.ndarray,
+    robot: Robot,
+    *,
+    metric: str = "yoshikawa",
+    weights: Mapping[str, float] | None = None,
+    clearance: np.ndarray | None = None,
+) -> np.ndarray:
+    """The ranking metric of every IK branch (N, K), higher is better.
+
+    ``combined`` normalises each metric over all branches of all grasps (NaN
+    branches aside); ``margin`` is the same for every branch of a grasp, so
+    branches are compared by Yoshikawa's index instead (also its weight in
+    ``combined`` is left out).
 
     Args:
-        columns: Metric name -> (N,) values (e.g. ``{"yoshikawa": t["manipulability"],
-            "clearance": t["clearance"], "joint_limit_margin": ...}``).
-        weights: Metric name -> weight >= 0, at least one > 0 (None:
-            :data:`DEFAULT_COMBINED_WEIGHTS`).
-        mask: (N,) bool rows to score (default: rows where every used metric is finite).
-        normalization: ``"minmax"`` or ``"rank"``.
-
-    Returns:
-        (N,) scores in [0, 1]; NaN outside ``mask`` or where a used metric is NaN.
-
-    Raises:
-        ConfigError: Negative or non-finite weight, all weights zero, or a
-            weighted metric without a column (names it and the columns given).
-        InputError: Columns of different lengths.
+        solutions: The branches (N, K, nq) [rad] (NaN past a grasp's last one).
+        robot: The robot.
+        metric: The ranking metric.
+        weights: The ``combined`` metric's weights (None or empty:
+            :data:`~gcm_pipeline.ranking.metrics.DEFAULT_COMBINED_WEIGHTS`).
+        clearance: The branches' clearance (N, K) [m], if checked.
     """
-    w = dict(DEFAULT_COMBINED_WEIGHTS if weights is None else weights)
-    if normalization not in ("minmax", "rank"):
-        raise ConfigError(unknown_choice("normalization", normalization, ("minmax", "rank")))
-    for name, value in w.items():
-        if not np.isfinite(value) or value < 0:
-            raise ConfigError(f"ranking.weights.{name} must be a number >= 0, got {value!r}")
-    used = {k: float(v) for k, v in w.items() if v > 0}
-    if not used:
-        raise ConfigError(
-            f"ranking.weights must have at least one positive weight, got {dict(w)!r}"
-        )
-    for name in used:
-        if name not in columns:
-            raise ConfigError(
-                f"ranking.weights.{name}: no such metric column; "
-                f"available: {', '.join(sorted(columns)) or '(none)'}"
-            )
-    cols = {k: np.asarray(columns[k], dtype=float) for k in used}
-    n = {len(c) for c in cols.values()}
-    if len(n) != 1:
-        raise InputError(
-            f"metric columns differ in length: { {k: len(c) for k, c in cols.items()} }"
-        )
-    size = n.pop()
-    finite = np.all([np.isfinite(c) for c in cols.values()], axis=0)
-    sel = finite if mask is None else (np.asarray(mask, dtype=bool) & finite)
-    total = sum(used.values())
-    score = np.zeros(size)
-    for name, weight in used.items():
-        x = cols[name][sel]
-        if x.size == 0:
-            continue
-        if normalization == "rank":
-            from scipy.stats import rankdata
-
-            norm = (rankdata(x) - 1.0) / (x.size - 1) if x.size > 1 else np.ones_like(x)
-        else:
-            lo, hi = float(np.min(x)), float(np.max(x))
-            norm = (x - lo) / (hi - lo) if hi > lo else np.ones_like(x)
-        score[sel] += weight / total * norm
-    score[~sel] = np.nan
-    return score
+    sol = np.asarray(solutions, dtype=np.float64)
+    n, k, nq = sol.shape
+    metrics = manipulability_metrics(robot, sol.reshape(-1, nq))
+    values = {name: v.reshape(n, k) for name, v in metrics.items()}
+    if clearance is not None:
+        values["clearance"] = np.asarray(clearance, dtype=np.float64)
+    if metric != "combined":
+        return values.get(metric, values["yoshikawa"])
+    used = {
+        name: float(w)
+        for name, w in (weights or DEFAULT_COMBINED_WEIGHTS).items()
+        if w > 0 and name in values
+    }
+    ranges = {name: value_range(values[name]) for name in used}
+    return weighted_sum(values, used, ranges, (n, k))

@@ -1,0 +1,165 @@
+"""Other IK solutions of a grasp: the re-solve of step 3 and the branches of step 4.
+
+Every candidate is verified (Pinocchio FK, tolerances, strictly inside the
+limits) and kept only if it is a different arm shape from the solution given
+and from the earlier candidates of its target (modulo 2 pi on the joints whose
+range exceeds a turn). A 6R arm with a closed form gets every branch of it;
+other arms search with the IK backend's seeds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from gcm_pipeline.robot.ik import IKCandidates, IKResult, solve_ik, verify_solutions
+from gcm_pipeline.robot.ik.analytic_6r import branch_gap, six_r_solver, wide_joints
+from gcm_pipeline.robot.ik.lm import PinocchioIKOptions
+from gcm_pipeline.robot.model import Robot
+
+__all__ = ["merge_ik", "other_solutions"]
+
+#: Most closed-form branches of a 6R arm (EAIK: at most 16); step 3 tries every one.
+_MOST_BRANCHES = 16
+
+
+# over 100 lines (a third of it the docstring): one batch from candidates to distinct ranks
+def other_solutions(
+    robot: Robot,
+    targets: np.ndarray,
+    q_first: np.ndarray,
+    *,
+    count: int,
+    every_branch: bool,
+    backend: str,
+    position_tolerance: float,
+    orientation_tolerance: float,
+    ik_options: Mapping[str, Any],
+    shared_options: Mapping[str, Any],
+    separation: float,
+    library: int,
+    restarts: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Other verified, distinct IK solutions of M targets, in seed order.
+
+    Args:
+        robot: The robot.
+        targets: (M, 4, 4) poses in the base frame.
+        q_first: (M, nq) the solution each must differ from.
+        count: Alternatives wanted per target.
+        every_branch: A 6R arm's closed form gives every branch (up to
+            ``_MOST_BRANCHES``) even if ``count`` is smaller.
+        backend: IK backend (without a closed form).
+        position_tolerance: [m].
+        orientation_tolerance: [rad].
+        ik_options: The engine's IK options (``analytic``, ``random_seed``).
+        shared_options: The IK options every IK of the engine uses.
+        separation: Solutions closer than this in every joint are the same [rad].
+        library: Library seeds per target (pinocchio).
+        restarts: Random restarts per target (pinocchio).
+
+    Returns:
+        ``(index, rank, q, errors)``: target index (K,) into ``targets``,
+        rank of the alternative among its target's (K,), solutions (K, nq)
+        and ``(pos_err, rot_err)`` stacked (K, 2).
+    """
+    k = count
+    nq = robot.nq
+    empty = (np.zeros(0, int), np.zeros(0, int), np.zeros((0, nq)), np.zeros((0, 2)))
+    six = None if ik_options.get("analytic", True) is False else six_r_solver(robot)
+    if six is not None:
+        # every branch in closed form, each at its 2 pi copy nearest home, nearest
+        # first; step 3 tries them all (the enumeration is complete and cheap)
+        eps = PinocchioIKOptions.limit_epsilon
+        idx, cq = six.solve(
+            targets[:, :3, :3],
+            targets[:, :3, 3],
+            robot.lower + eps,
+            robot.upper - eps,
+            robot.home,
+        )
+        order = np.lexsort((np.sum((cq - robot.home) ** 2, axis=1), idx))
+        idx, cq = idx[order], cq[order]
+        if every_branch:
+            k = max(k, _MOST_BRANCHES)
+    else:
+        opts: dict[str, Any]
+        if backend == "pinocchio":
+            opts = {
+                "min_solutions": 2 * (k + 1),
+                "first_round_seeds": k + 1,
+                "round_seeds": k + 1,
+                "library_seeds": library,
+                "random_restarts": restarts,
+            }
+        else:
+            opts = {"min_solutions": 2 * (k + 1)}
+        opts.update((key, v) for key, v in ik_options.items() if key == "random_seed")
+        opts.update(shared_options)
+        res = solve_ik(
+            robot,
+            targets,
+            backend,
+            position_tolerance=position_tolerance,
+            orientation_tolerance=orientation_tolerance,
+            return_all=True,
+            **opts,
+        )
+        cand = res.candidates
+        if cand is None or len(cand.index) == 0:
+            return empty
+        idx, cq = cand.index, cand.q
+    if len(idx) == 0:
+        return empty
+    pe, re, inside = verify_solutions(robot, cq, targets[idx])
+    good = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
+    idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
+    # distinct from the first solution and from the earlier alternatives of the same
+    # target (candidates are sorted by target, in seed order within a target), modulo
+    # 2 pi on the joints whose range exceeds a turn: q + 2 pi is the same arm shape
+    wide = wide_joints(robot.lower, robot.upper)
+    keep = np.max(branch_gap(cq, q_first[idx], wide), axis=1) >= separation
+    idx, cq, err = idx[keep], cq[keep], err[keep]
+    if len(idx) == 0:
+        return empty
+    pos = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
+    groups, group = np.unique(idx, return_inverse=True)
+    padded = np.full((len(groups), int(pos.max()) + 1, nq), np.nan)  # pads are never near
+    padded[group, pos] = cq
+    gap = np.max(branch_gap(padded[:, :, None], padded[:, None, :], wide), axis=3)
+    near = gap < separation  # NaN (a pad) compares False
+    earlier = np.tril(near, k=-1).any(axis=2)  # same as an earlier candidate
+    distinct = ~earlier[group, pos]
+    idx, cq, err = idx[distinct], cq[distinct], err[distinct]
+    rank = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
+    keep = rank < k
+    if not np.any(keep):
+        return empty
+    return idx[keep], rank[keep], cq[keep], err[keep]
+
+
+def merge_ik(parts: list[np.ndarray], results: list[IKResult], m: int, nq: int) -> IKResult:
+    """One :class:`IKResult` of M targets from results of row subsets ``parts``."""
+    q = np.full((m, nq), np.nan)
+    success = np.zeros(m, dtype=bool)
+    pos_err = np.full(m, np.nan)
+    rot_err = np.full(m, np.nan)
+    reason = np.full(m, "", dtype=object)
+    for rows, r in zip(parts, results, strict=True):
+        q[rows], success[rows], reason[rows] = r.q, r.success, r.reason
+        pos_err[rows], rot_err[rows] = r.pos_err, r.rot_err
+    candidates = None
+    if results[0].candidates is not None:
+        cands = [r.candidates for r in results if r.candidates is not None]
+        index = np.concatenate([rows[c.index] for rows, c in zip(parts, cands, strict=True)])
+        order = np.argsort(index, kind="stable")
+        candidates = IKCandidates(
+            index[order],
+            np.concatenate([c.q for c in cands]).reshape(-1, nq)[order],
+            np.concatenate([c.reason for c in cands])[order],
+        )
+    return IKResult(
+        q, success, pos_err, rot_err, reason.astype(str), results[0].backend, candidates
+    )

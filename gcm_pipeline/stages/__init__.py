@@ -1,1 +1,0 @@
-"""Pipeline stages: candidates, manifold, densify, reachability, ranking, publish."""

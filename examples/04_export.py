@@ -13,7 +13,6 @@ import pyarrow.parquet as pq
 import yaml
 
 import gcm_pipeline as gcm
-from gcm_pipeline.publish.export import export_run
 
 ROOT = Path(__file__).resolve().parent.parent
 out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(tempfile.mkdtemp(prefix="gcm-"))
@@ -24,14 +23,14 @@ run_dir = run.run(out / "flat", progress=False, force=True).run_dir
 print(f"run directory: {run_dir}")
 
 # The 10 best grasps as moveit_msgs/Grasp messages (ROS 2 field names), best first.
-moveit = export_run(run_dir, "moveit", top=10, out=out / "grasps_moveit.yaml")
+moveit = gcm.export_run(run_dir, "moveit", top=10, out=out / "grasps_moveit.yaml")
 grasps = yaml.safe_load(moveit.path.read_text())
 first = grasps[0]["grasp_pose"]
 print(f"{moveit.path.name}: {moveit.rows} grasps; the best in frame {first['header']['frame_id']}:")
 print("  position", first["pose"]["position"], "quality", grasps[0]["grasp_quality"])
 
 # Every grasp (reachable or not) as a Parquet table for pandas, polars or DuckDB.
-table = export_run(run_dir, "parquet", out=out / "grasps.parquet")
+table = gcm.export_run(run_dir, "parquet", out=out / "grasps.parquet")
 columns = pq.read_table(table.path)
 print(f"{table.path.name}: {columns.num_rows} rows, columns {columns.column_names[:8]} ...")
 reachable = sum(columns.column("reachable").to_pylist())

@@ -4,7 +4,7 @@ Run from the repository root::
 
     python benchmarks/bench_publish.py [--repeats 3]
 
-Times :func:`gcm_pipeline.publish.html.write_scene_html` (robot meshes,
+Times :func:`gcm_pipeline.outputs.html.write_scene_html` (robot meshes,
 object, table, batched grasp glyphs, manifold, top-k animation, camera, page
 written to disk) on synthetic grasp tables shaped like the pipeline's, and the
 start of a live viewer (loopback meshcat server + 1,000 grasps). Prints a
@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 from gcm_pipeline.config import Config  # noqa: E402
 from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_from_matrix  # noqa: E402
-from gcm_pipeline.publish import html, live  # noqa: E402
+from gcm_pipeline.outputs import html, live  # noqa: E402
 from gcm_pipeline.table import GraspTable  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "publish.json"

@@ -22,14 +22,15 @@ else:
 
     def __getattr__(name: str) -> Any:
         """The public names (and ``__all__``), or a subpackage, on first use (PEP 562)."""
-        if name == "__all__" or not name.startswith("_"):
+        if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}"):
+            # a subpackage (``from gcm_pipeline import interrupts``): no public name is one
+            value = importlib.import_module(f"{__name__}.{name}")
+        elif name == "__all__" or not name.startswith("_"):
             api = importlib.import_module("gcm_pipeline.api")
             if name == "__all__":
                 value = sorted(["__version__", *api.__all__])
             elif name in api.__all__:
                 value = getattr(api, name)
-            elif importlib.util.find_spec(f"{__name__}.{name}"):
-                value = importlib.import_module(f"{__name__}.{name}")
             else:
                 raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
         else:

@@ -332,7 +332,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _open_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: bool) -> None:
     """Publish to the live viewer; wait for Ctrl-C, or leave its server running."""
-    from gcm_pipeline.publish.live import open_viewer
+    from gcm_pipeline.outputs.live import open_viewer
 
     viewer = open_viewer(grasps, manifold, robot, config, detach=not wait)
     try:
@@ -405,7 +405,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    from gcm_pipeline.publish.plots import write_plots
+    from gcm_pipeline.outputs.plots import write_plots
     from gcm_pipeline.rundir.run import read_run
 
     run = read_run(args.run_dir)
@@ -513,7 +513,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from gcm_pipeline.publish.export import export_run
+    from gcm_pipeline.outputs.export import export_run
 
     result = export_run(args.run_dir, args.format, top=args.top, out=args.out)
     if args.quiet:
@@ -783,7 +783,7 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.robot_spec import load_robot
     from gcm_pipeline.config.run import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
-    from gcm_pipeline.publish.html import write_scene_html
+    from gcm_pipeline.outputs.html import write_scene_html
     from gcm_pipeline.table import GraspTable
 
     robot = load_robot(args.spec)

@@ -296,7 +296,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     if not (viewer or pub.meshcat):
         log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
         return robot
-    from gcm_pipeline.publish.live import probe_server
+    from gcm_pipeline.outputs.live import probe_server
 
     try:
         probe_server(pub.zmq_url, pub.connect_timeout_s)
@@ -886,7 +886,7 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     Returns:
         The files written.
     """
-    from gcm_pipeline.publish import html
+    from gcm_pipeline.outputs import html
 
     counts = {k: v for k, v in result.counts.items() if isinstance(v, int)}
     files = html.publish(
@@ -1060,7 +1060,7 @@ class RunResult:
         colormap, the manipulability range it spans and the colour and count
         of every unreachable reason.
         """
-        from gcm_pipeline.publish.scene import legend
+        from gcm_pipeline.outputs.scene import legend
 
         return {
             "counts": dict(self.counts),

@@ -9,7 +9,7 @@
 
 Each page holds its generated part between two marker lines; the text around them is
 written by hand. Run ``python scripts/gen_docs.py`` after changing a source and commit
-the result; ``tests/test_docs.py`` fails while a committed page is stale.
+the result; ``tests/acceptance/test_docs.py`` fails while a committed page is stale.
 """
 
 from __future__ import annotations
@@ -239,7 +239,7 @@ BENCH_NOTES: dict[str, str] = {
         "limits or `pin.computeCollisions` over every pair refute. `--before CHECKOUT` "
         "measures another checkout's code in the same run (`before`); `pipeline_ur5` times "
         "`gcm run` of the UR5 config (no HTML or plots, runs alternating). "
-        "`tests/test_branch_recall.py` asserts recall >= 0.99 and no false positive on a "
+        "`tests/robot/ik/test_branch_recall.py` asserts recall >= 0.99 and no false positive on a "
         "smaller run."
     ),
     "collision": (

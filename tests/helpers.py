@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -62,3 +63,15 @@ def run_gcm(
         env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
         cwd=cwd,
     )
+
+
+_B64 = re.compile(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)")
+
+
+def decode_commands(html: str) -> list[dict]:
+    """The meshcat commands embedded in a static scene page."""
+    import base64
+
+    import umsgpack
+
+    return [umsgpack.unpackb(base64.b64decode(m)) for m in _B64.findall(html)]

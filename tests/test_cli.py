@@ -289,7 +289,7 @@ def test_python_dash_m(tmp_path):
 
 
 def test_meshcat_viewer_opens_after_the_run(cli, out, monkeypatch):
-    from gcm_pipeline.publish import live
+    from gcm_pipeline.outputs import live
 
     events = []
 

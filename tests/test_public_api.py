@@ -89,3 +89,12 @@ def test_names_load_on_first_use_and_unknown_names_fail() -> None:
     assert "Pipeline" in dir(gcm_pipeline)
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         gcm_pipeline.nope  # noqa: B018
+
+
+def test_no_public_name_is_also_a_subpackage() -> None:
+    # a subpackage imported by anything becomes the package's attribute and would
+    # hide a public name of the same spelling (gcm_pipeline.publish, the function)
+    import pkgutil
+
+    subpackages = {m.name for m in pkgutil.iter_modules(gcm_pipeline.__path__)}
+    assert not subpackages & set(gcm_pipeline.__all__)

@@ -84,7 +84,7 @@ __all__ = [
 # Numbers and switches are strict: a bool is not a number (``--set
 # densify.subdivisions=true`` is an error, not 1), a number is not a bool, a
 # string is neither, a float with a fraction is not an int. Every int, float
-# and bool field of a section uses one of these (tests/test_config.py checks).
+# and bool field of a section uses one of these (tests/config/test_config.py checks).
 Bool = Annotated[bool, Strict()]
 FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 PositiveFloat = Annotated[float, Strict(), Field(gt=0, allow_inf_nan=False)]

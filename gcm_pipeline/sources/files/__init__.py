@@ -33,7 +33,7 @@ control points are at x = +-0.041 m) written as ``npy``/``npz``/``csv``, and the
 Panda's ``panda_hand_tcp`` (0.1034 m further along z, fingers closing along y) use
 ``grasp_to_tool: {xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``: the tool's y
 axis is then the gripper's +x axis, its origin the midpoint of the fingertips,
-its z the same approach (``tests/test_candidates.py`` checks this geometry).
+its z the same approach (``tests/sources/test_candidates.py`` checks this geometry).
 ``rpy_deg: [0, 0, 90]`` is the same grasp turned by 180 deg about the
 approach: the symmetric hand cannot tell the two apart, but the arm reaches
 them with joint 7 differing by pi, so the choice can change reachability.

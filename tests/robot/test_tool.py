@@ -240,11 +240,11 @@ def test_zero_reachable_says_why_and_what_to_try(tmp_path, caplog):
 
 def test_scene_draws_the_ur5_with_its_gripper(ur5):
     """The scene's robot is the visual model: the tool's boxes are drawn and posed with it."""
-    from test_publish import decode_commands
+    from helpers import decode_commands
 
     from gcm_pipeline.config import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
-    from gcm_pipeline.publish import html
+    from gcm_pipeline.outputs import html
     from gcm_pipeline.table import GraspTable
 
     q = ur5.home.copy()

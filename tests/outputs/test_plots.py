@@ -8,7 +8,7 @@ import pytest
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.charts import STANDOFF
-from gcm_pipeline.publish.plots import chart_axis_labels, chart_period
+from gcm_pipeline.outputs.plots import chart_axis_labels, chart_period
 from gcm_pipeline.table import GraspTable
 
 

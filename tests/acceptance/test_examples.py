@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import csv
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from helpers import ROOT
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
@@ -17,7 +17,6 @@ from gcm_pipeline.pipeline import build_manifold, generate_candidates
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
 from gcm_pipeline.rundir.run import read_run
 
-ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 import re
@@ -15,23 +14,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import umsgpack
+from helpers import decode_commands
 
 from gcm_pipeline.config import Config
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.publish import html as pub_html
-from gcm_pipeline.publish import live, plots, robot_view
-from gcm_pipeline.publish import scene as pub_scene
-from gcm_pipeline.publish.plots import PLOT_FILES, chart_points, write_plots
+from gcm_pipeline.outputs import html as pub_html
+from gcm_pipeline.outputs import live, plots, robot_view
+from gcm_pipeline.outputs import scene as pub_scene
+from gcm_pipeline.outputs.plots import PLOT_FILES, chart_points, write_plots
 from gcm_pipeline.table import GraspTable
-
-_B64 = re.compile(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)")
-
-
-def decode_commands(html: str) -> list[dict]:
-    """The meshcat commands embedded in a static scene page."""
-    return [umsgpack.unpackb(base64.b64decode(m)) for m in _B64.findall(html)]
 
 
 def f32(ext: umsgpack.Ext) -> np.ndarray:

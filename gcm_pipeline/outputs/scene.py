@@ -24,9 +24,9 @@ grasps N. Above :data:`FULL_GLYPH_LIMIT` grasps the gripper glyph (4 segments)
 becomes an approach stick (1 segment) to keep the scene light.
 
 The same scene is recorded into a self-contained page
-(:mod:`gcm_pipeline.publish.html`) or sent to a live meshcat server
-(:mod:`gcm_pipeline.publish.live`); the robot's part is drawn by
-:mod:`gcm_pipeline.publish.robot_view`.
+(:mod:`gcm_pipeline.outputs.html`) or sent to a live meshcat server
+(:mod:`gcm_pipeline.outputs.live`); the robot's part is drawn by
+:mod:`gcm_pipeline.outputs.robot_view`.
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ import numpy as np
 
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
-from gcm_pipeline.publish.plots import candidate_rows, reason_palette
-from gcm_pipeline.publish.robot_view import ROT_X90, RobotDrawer
+from gcm_pipeline.outputs.plots import candidate_rows, reason_palette
+from gcm_pipeline.outputs.robot_view import ROT_X90, RobotDrawer
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:

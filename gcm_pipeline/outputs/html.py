@@ -21,9 +21,9 @@ import umsgpack
 from meshcat.servers.tree import SceneTree, find_node, walk
 
 from gcm_pipeline.errors import PublishError
-from gcm_pipeline.publish.plots import write_plots
-from gcm_pipeline.publish.robot_view import ROT_X90
-from gcm_pipeline.publish.scene import SceneInfo, build_scene, stage_counts
+from gcm_pipeline.outputs.plots import write_plots
+from gcm_pipeline.outputs.robot_view import ROT_X90
+from gcm_pipeline.outputs.scene import SceneInfo, build_scene, stage_counts
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:

@@ -21,7 +21,7 @@ import umsgpack
 import zmq
 
 from gcm_pipeline.errors import PublishError
-from gcm_pipeline.publish.scene import SceneInfo, build_scene
+from gcm_pipeline.outputs.scene import SceneInfo, build_scene
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:

@@ -310,7 +310,7 @@ def test_refinement_stops_exactly_where_rounds_stop_adding():
 @pytest.fixture
 def panda_mesh(tmp_path, monkeypatch, panda):
     """One of the Panda's visual meshes, simplified once into an empty cache: (mesh, entry)."""
-    from gcm_pipeline.publish import robot_view
+    from gcm_pipeline.outputs import robot_view
 
     path = next(o.meshPath for o in panda.build_geometry("visual").geometryObjects if o.meshPath)
     monkeypatch.setenv("GCM_CACHE_DIR", str(tmp_path / "cache"))
@@ -331,7 +331,7 @@ def _npy(arr: np.ndarray) -> bytes:
 
 
 def test_a_mesh_cache_entry_that_is_a_named_pipe_is_simplified_again(panda_mesh):
-    from gcm_pipeline.publish import robot_view
+    from gcm_pipeline.outputs import robot_view
 
     path, entry, faces = panda_mesh
     entry.unlink()
@@ -351,7 +351,7 @@ def test_a_mesh_cache_header_claiming_a_terabyte_allocates_nothing(panda_mesh):
 
     import numpy.lib.format as npf
 
-    from gcm_pipeline.publish import robot_view
+    from gcm_pipeline.outputs import robot_view
 
     path, entry, faces = panda_mesh
     import io as _io

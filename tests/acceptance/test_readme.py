@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers import ROOT
 
 from gcm_pipeline.config import Config
 
-ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text(encoding="utf-8")
 #: The README and every docs page, by path relative to the repository root.
 PAGES = {"README.md": README} | {

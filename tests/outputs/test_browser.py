@@ -25,7 +25,7 @@ import umsgpack
 from gcm_pipeline.config import Config
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
-from gcm_pipeline.publish.html import publish
+from gcm_pipeline.outputs.html import publish
 from gcm_pipeline.table import GraspTable
 
 _B64 = re.compile(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)")

@@ -73,6 +73,7 @@ if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage run
     from gcm_pipeline.robot.model import Robot
 
 __all__ = [
+    "STEPS",
     "ConfigRunQueries",
     "Pipeline",
     "ReachabilityCheck",
@@ -1083,6 +1084,22 @@ class RunResult:
         )
 
 
+#: The steps of a run, in order (the progress bar, the timings and the order of
+#: :meth:`Pipeline.run` all follow this one list; the last two write the run directory).
+STEPS = (
+    "candidates",
+    "manifold",
+    "densify",
+    "robot",
+    "reachability",
+    "continuity",
+    "ranking",
+    "write",
+    "publish",
+)
+WRITE_STEPS = ("write", "publish")
+
+
 class Pipeline:
     """Runs every stage of a config in order.
 
@@ -1168,9 +1185,8 @@ class Pipeline:
         if write:
             out = transaction.check_output_dir(out, force=force, keep=keep)
         timings: dict[str, float] = {}
-        names = ["candidates", "manifold", "densify", "robot", "reachability", "ranking"]
-        if write:
-            names += ["write", "publish"]
+        names = [n for n in STEPS if write or n not in WRITE_STEPS]
+        expected = iter(names)
         # one bar over the stages (the slow ones, IK and publishing, take seconds);
         # tqdm hides it when stderr is not a terminal
         bar = tqdm(
@@ -1179,6 +1195,10 @@ class Pipeline:
 
         @contextmanager
         def stage(name: str) -> Iterator[None]:
+            # the steps run in the order of STEPS, each once: the one list
+            step = next(expected, None)
+            if step != name:
+                raise RuntimeError(f"pipeline step {name!r} runs where STEPS has {step!r}")
             t0 = time.perf_counter()
             log.debug("stage %s ...", name)
             bar.set_postfix_str(name)

@@ -150,19 +150,27 @@ def held(grace: float | None = None) -> Iterator[list[int]]:
 def deferred() -> Iterator[None]:
     """Hold Ctrl-C, SIGTERM and SIGHUP until the block is done (they arrive afterwards).
 
-    Blocks the signals (``pthread_sigmask``) instead of handling them: used
-    around the few renames that swap a run directory in, and around the
+    Used around the few renames that swap a run directory in, and around the
     clean-up after a failure, so that an interrupt cannot leave them half done.
+    A signal mask alone does not do it: it holds the signal in the main thread
+    only, the process's other threads (BLAS, tqdm, a pool's feeder) take it,
+    and Python then runs its handler in the main thread inside the block. So
+    the handlers *record* the signals while the block runs (:func:`held`),
+    and the first one is raised again once it is done.
     """
-    block = getattr(signal, "pthread_sigmask", None)
-    if block is None or threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = block(signal.SIG_BLOCK, _SIGNALS)
-    try:
-        yield
-    finally:
-        block(signal.SIG_SETMASK, previous)
+    block = getattr(signal, "pthread_sigmask", None)
+    with held() as got:
+        previous = block(signal.SIG_BLOCK, _SIGNALS) if block is not None else None
+        try:
+            yield
+        finally:
+            if previous is not None:
+                block(signal.SIG_SETMASK, previous)  # a pending signal is recorded now
+    if got:
+        signal.raise_signal(got[0])  # the handlers are back: delivered as usual
 
 
 def _deliver_late(late: threading.Event, signum: int) -> None:

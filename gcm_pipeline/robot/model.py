@@ -21,6 +21,7 @@ import difflib
 import logging
 import os
 import re
+import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -224,6 +225,8 @@ def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
             f"needed: {', '.join(close) or 'see robot_descriptions --help'}"
         )
     cache = _rd_cache_dir()
+    clone = _rd_clone_dir(desc.repository, cache)
+    fresh = clone is not None and not clone.exists()
     _rd_announce(desc.repository, cache)
     try:
         # its clone prints a progress bar and git's messages: kept out of the output
@@ -240,26 +243,38 @@ def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
             dirs = tuple(Path(d) for d in get_package_dirs(module))
             srdf_path = getattr(module, "SRDF_PATH", None)
     except Exception as exc:  # git, network, xacro: whatever the download raised
+        if fresh and clone is not None and clone.exists():
+            # a clone that failed leaves an empty repository, which robot_descriptions
+            # then takes for its cache and `git clone` (the message's advice) refuses
+            shutil.rmtree(clone, ignore_errors=True)
         raise RobotSpecError(_rd_fetch_error(name, desc.repository, cache, exc)) from None
     srdf = Path(srdf_path) if srdf_path and Path(srdf_path).is_file() else None
     _RD_PATHS[name] = (urdf, srdf, dirs)
     return _RD_PATHS[name]
 
 
-def _rd_announce(repository: str | None, cache: str) -> None:
-    """Say so when robot_descriptions is about to clone a repository (it may take minutes)."""
+def _rd_clone_dir(repository: str | None, cache: str) -> Path | None:
+    """Where robot_descriptions keeps the clone of ``repository`` (None: not a download)."""
     from robot_descriptions._repositories import REPOSITORIES
 
     repo = REPOSITORIES.get(repository or "")
     if repo is None:
-        return
+        return None
     commit = os.environ.get("ROBOT_DESCRIPTION_COMMIT")  # robot_descriptions' own variable
     sub = f"{repo.cache_path}-{commit}/{repo.cache_path}" if commit else repo.cache_path
-    if not os.path.isdir(os.path.join(cache, sub)):
+    return Path(cache) / sub
+
+
+def _rd_announce(repository: str | None, cache: str) -> None:
+    """Say so when robot_descriptions is about to clone a repository (it may take minutes)."""
+    from robot_descriptions._repositories import REPOSITORIES
+
+    clone = _rd_clone_dir(repository, cache)
+    if clone is not None and not clone.is_dir():
         log.warning(
             "robot_descriptions: cloning %s into %s (first use; this can take minutes)",
-            repo.url,
-            os.path.join(cache, sub),
+            REPOSITORIES[repository or ""].url,
+            clone,
         )
 
 

@@ -470,6 +470,8 @@ def test_a_robot_descriptions_model_not_in_the_cache_is_one_line(tmp_path, rd_en
         warnings=True,  # the notice that robot_descriptions is about to clone
     )
     assert "Cloning" not in proc.stdout + proc.stderr
+    # the failed clone leaves nothing behind: the message's advice (clone it there) works
+    assert not (tmp_path / "cache" / "ur_description").exists()
     for text, fragment in [
         ("ur10f_description", "unknown robot_descriptions model 'ur10f_description'"),
         (

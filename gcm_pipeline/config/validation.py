@@ -99,7 +99,17 @@ def describe(
     Returns:
         The problem; its message does not name the file (the caller prefixes it).
     """
-    err = _pick(exc.errors(include_url=False))
+    errors = exc.errors(include_url=False)
+    err = _pick(errors)
+    if err["type"] == "missing":
+        # a misspelt key is both unknown and missing: name the unknown one (its
+        # message suggests the key meant), not only the missing one
+        typo = [
+            e
+            for e in errors
+            if e["type"] == "extra_forbidden" and tuple(e["loc"][:-1]) == tuple(err["loc"][:-1])
+        ]
+        err = typo[0] if typo else err
     loc = _data_loc(data, list(err["loc"]), keep_last=err["type"] == "missing")
     key = dotted(loc)
     message = None if special is None else special(err, key, loc)

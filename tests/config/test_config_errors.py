@@ -84,3 +84,12 @@ def test_the_robot_package_takes_a_robot_not_a_name():
         InputError, match=r"robot must be a Robot or a RobotSpec.*load_robot.*'panda'"
     ):
         solve_ik("panda", np.eye(4)[None])
+
+
+def test_a_misspelt_required_key_is_named_with_the_key_meant(tmp_path):
+    # `candidate:` for `candidates:` is unknown and leaves `candidates` missing: the
+    # message names the typo and suggests the key, not only "missing 'candidates'"
+    data = {"object": BASE["object"], "candidate": BASE["candidates"]}
+    with pytest.raises(ConfigError) as exc:
+        load_config(_write(tmp_path / "run.yaml", data))
+    assert "unknown key 'candidate' (did you mean 'candidates'?)" in _one_line(exc)

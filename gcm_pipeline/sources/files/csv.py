@@ -104,7 +104,7 @@ def read_csv(
     if not np.all(np.isfinite(values)):
         i, k = (int(a[0]) for a in np.nonzero(~np.isfinite(values)))
         raise InputError(
-            f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {values[i, k]!r}"
+            f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {float(values[i, k])}"
         )
     check_positions(path, values[:, :3], lambda i: f"{path}:{lines[i]}")
     quat = values[:, 3:]

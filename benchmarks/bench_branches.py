@@ -48,6 +48,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -267,7 +268,7 @@ def run_arm(
     missed = np.flatnonzero(ref & ~reach)
     reasons = np.asarray(done["reason"]).astype(str)
     return {
-        "spec": name if ARMS[name] == "" else spec,
+        "spec": name if ARMS[name] == "" else os.path.relpath(spec, ROOT),
         "grasps": len(done),
         "reachable_stage": int(reach.sum()),
         "reachable_reference": int(ref.sum()),
@@ -344,10 +345,15 @@ def main() -> None:
     import gcm_pipeline
 
     result: dict[str, Any] = {
-        "command": " ".join(["python", *sys.argv]),
+        # the command as run from the repository root (no machine-specific paths)
+        "command": " ".join(
+            ["python", "benchmarks/bench_branches.py"]
+            + [a if not a.startswith("/") else os.path.relpath(a, ROOT) for a in sys.argv[1:]]
+        ),
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
         "load_before": os.getloadavg(),
-        "package": gcm_pipeline.__file__,
+        "package": gcm_pipeline.__version__,
         "arms": {},
     }
     for name in args.arms:

@@ -875,6 +875,8 @@ def test_a_long_csv_cell_is_refused_and_short_text_costs_its_size(tmp_path):
 def test_an_hdf5_text_declaring_a_huge_size_is_refused_before_it_is_read(tmp_path):
     """An 8 KiB file whose object/file declares 1.5 GB cost 1.5 GiB before it was refused."""
     h5py = pytest.importorskip("h5py")
+    if not Path("/proc/self/status").is_file():
+        pytest.skip("needs Linux's /proc/self/status (VmHWM)")
     path = tmp_path / "huge.h5"
     with h5py.File(path, "w") as f:
         f["grasps/transforms"] = np.tile(np.eye(4), (3, 1, 1))
@@ -890,7 +892,10 @@ def test_an_hdf5_text_declaring_a_huge_size_is_refused_before_it_is_read(tmp_pat
         "except InputError as exc:\n"
         "    print(exc)\n"
         "kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss\n"  # the HDF5 reader
-        "print(max(kids, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))\n"
+        # this process's own peak: VmHWM of its memory map. Not RUSAGE_SELF: Linux keeps
+        # the high-water mark of the process that exec'd it (pytest, 1.4 GB late in a run)
+        "hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM:')]\n"
+        "print(max(kids, int(hwm[0].split()[1])))\n"
     )
     import subprocess
     import sys
@@ -901,9 +906,9 @@ def test_an_hdf5_text_declaring_a_huge_size_is_refused_before_it_is_read(tmp_pat
         f"{path}: object/file declares 1,500,000,000 bytes (shape (), dtype |S1500000000); "
         "a text takes at most 4,096: the file is corrupt"
     )
-    # KiB: below the 1.5 GB declared (reading it cost 2.49 GB); the reader's peak was
-    # 88 MB in a developer venv and 1.04 GB in one fresh CI venv, not yet explained
-    assert int(kib) < 1_500_000_000 // 1024 * 0.9
+    # KiB: far below the 1.5 GB declared (reading it cost 2.49 GB); about 130 MB here,
+    # the interpreter and its libraries
+    assert int(kib) < 400_000
 
 
 def test_a_file_without_a_known_suffix_gets_a_suggestion(tmp_path):

@@ -15,7 +15,7 @@ DATA = ROOT / "tests" / "data"
 FLAT = CONFIGS / "flat_surface.yaml"
 BOTTLE = CONFIGS / "bottle_side.yaml"
 #: The robot specs shipped with the package (``load_robot("panda")`` reads panda.yaml).
-ROBOT_SPECS = ROOT / "gcm_pipeline" / "robots"
+ROBOT_SPECS = ROOT / "gcm_pipeline" / "robot" / "specs"
 #: ``gcm run`` without the HTML scene and the plots (the slow part of a small run).
 QUICK = ["--set", "publish.html=false", "--set", "publish.plots=false"]
 

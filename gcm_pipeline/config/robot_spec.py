@@ -1,6 +1,6 @@
 """Robot specs and their tools: YAML into the plain spec objects a :class:`Robot` is built from.
 
-A robot spec is a small YAML file (``gcm_pipeline/robots/<name>.yaml``)::
+A robot spec is a small YAML file (``gcm_pipeline/robot/specs/<name>.yaml``)::
 
     name: panda                          # required
     description: Franka Panda            # optional, free text
@@ -119,7 +119,7 @@ _RIGID_TOL = 1e-6
 
 
 def _spec_dir() -> Any:
-    return resources.files("gcm_pipeline") / "robots"
+    return resources.files("gcm_pipeline") / "robot" / "specs"
 
 
 def available_robots() -> list[str]:

@@ -1,7 +1,7 @@
 """Robot specs loaded into reduced Pinocchio models.
 
 A :class:`RobotSpec` is the plain, validated content of a robot spec file
-(``gcm_pipeline/robots/<name>.yaml``); :mod:`gcm_pipeline.config.robot_spec`
+(``gcm_pipeline/robot/specs/<name>.yaml``); :mod:`gcm_pipeline.config.robot_spec`
 reads and validates those files (``load_spec``, ``load_robot``). A
 :class:`Robot` is built from a spec: the model it names (an
 example-robot-data loader, a ``robot_descriptions`` module or a URDF), reduced

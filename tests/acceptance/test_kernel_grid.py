@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from helpers import BOTTLE, ROOT, run_gcm
+from helpers import BOTTLE, ROBOT_SPECS, run_gcm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -65,7 +65,7 @@ def user_urdf_spec(tmp_path_factory):
 
     rel = "ur_description/urdf/ur10_robot.urdf"
     robots = Path(getModelPath(rel))  # .../share/example-robot-data/robots
-    spec = yaml.safe_load((ROOT / "robots" / "ur5.yaml").read_text())
+    spec = yaml.safe_load((ROBOT_SPECS / "ur5.yaml").read_text())
     spec["name"] = "ur10_user"
     spec["description"] = "example-robot-data's UR10 URDF file with the UR5's tool"
     # its meshes are package://example-robot-data/robots/...: the folder above resolves them
@@ -154,7 +154,7 @@ def test_gcm_run_decides_the_same_with_gcm_jit_on_and_off(
 
 def test_a_bare_flange_decides_the_same_with_and_without_kernels(tmp_path):
     """No tool (the UR5's flange as the grasp frame): no gripper geometry, no contact pair."""
-    spec = yaml.safe_load((ROOT / "robots" / "ur5.yaml").read_text())
+    spec = yaml.safe_load((ROBOT_SPECS / "ur5.yaml").read_text())
     del spec["tool"]
     spec["grasp_frame"], spec["name"] = "tool0", "ur5_bare"
     path = tmp_path / "ur5_bare.yaml"

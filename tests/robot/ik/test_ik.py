@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT
+from helpers import ROBOT_SPECS
 from poses import backward_poses
 
 from gcm_pipeline.config.robot_spec import load_robot
@@ -84,7 +84,7 @@ def test_unreachable_targets_are_never_successes(panda: Robot):
 def test_joint_limits_reason(tmp_path: Path, panda: Robot):
     # joints 1 and 3 held near 0 (+-0.1 rad after the 0.1 rad margin): the arm cannot
     # turn to the side
-    spec = (ROOT / "robots" / "panda.yaml").read_text()
+    spec = (ROBOT_SPECS / "panda.yaml").read_text()
     spec += "joint_limits:\n  panda_joint1: [-0.2, 0.2]\n  panda_joint3: [-0.2, 0.2]\n"
     path = tmp_path / "narrow.yaml"
     path.write_text(spec)

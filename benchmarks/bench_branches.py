@@ -62,8 +62,14 @@ if "GCM_BENCH_CHILD" not in os.environ:
 from gcm_pipeline import pipeline as P  # noqa: E402
 from gcm_pipeline.config import load_config  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_to_matrix  # noqa: E402
-from gcm_pipeline.pipeline import make_checker  # noqa: E402
-from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt  # noqa: E402
+
+try:  # the package's layout; --before may name a checkout from before its moves
+    from gcm_pipeline.pipeline import make_checker
+    from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt
+except ImportError:  # pragma: no cover - a checkout of 0.1.0's layout
+    from gcm_pipeline.robot.ik_pinocchio import PinocchioIKOptions
+    from gcm_pipeline.robot.ik_pinocchio import _lm as levenberg_marquardt
+    from gcm_pipeline.stages.collision import make_checker
 from gcm_pipeline.robot.model import Robot  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"

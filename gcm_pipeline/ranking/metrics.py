@@ -22,7 +22,6 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from scipy.stats import rankdata
 
 from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
 from gcm_pipeline.robot.manipulability import METRICS
@@ -146,6 +145,10 @@ def combined_score(
     sel = finite if mask is None else (np.asarray(mask, dtype=bool) & finite)
     picked = {name: c[sel] for name, c in cols.items()}
     if normalization == "rank":
+        # scipy.stats costs 0.35 s to import, paid by every run if at the top; only
+        # rank normalisation needs it
+        from scipy.stats import rankdata
+
         m = int(sel.sum())
         picked = {
             name: (rankdata(x) - 1.0) / (m - 1) if m > 1 else np.ones_like(x)

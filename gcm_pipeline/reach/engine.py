@@ -105,6 +105,7 @@ from gcm_pipeline.robot.ik import (
     check_targets,
     solve_ik,
 )
+from gcm_pipeline.robot.ik.backend import check_neighbours, check_seeds
 from gcm_pipeline.robot.ik.pool import ForkPool
 from gcm_pipeline.robot.ik.pool import cores as _cores
 from gcm_pipeline.robot.ik.pool import worker_signals as _worker_signals
@@ -575,8 +576,9 @@ class ReachabilityEngine:
         """
         tgt = check_targets(targets)
         n, nq = tgt.shape[0], self.robot.nq
-        seed_arr = _check_seeds(seeds, n, nq)
-        nb = _check_neighbours(neighbours, n)
+        seed_arr = check_seeds(seeds, n, nq)
+        nb = check_neighbours(neighbours, n)
+        nb = None if nb is None else nb.astype(int)
         out: dict[str, Any] = {
             "reachable": np.zeros(n, dtype=bool),
             "reason": np.full(n, "", dtype=object),
@@ -729,29 +731,3 @@ class ReachabilityEngine:
         state = dict(self.__dict__)
         state["_pool"], state["_pool_size"] = None, 0
         return state
-
-
-def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:
-    if seeds is None:
-        return None
-    arr = np.asarray(seeds, dtype=float)
-    if arr.ndim == 2:
-        arr = arr[:, None, :]
-    if arr.ndim != 3 or arr.shape[0] != n or arr.shape[2] != nq:
-        raise InputError(f"seeds must have shape ({n}, K, {nq}), got {np.shape(seeds)}")
-    return arr
-
-
-def _check_neighbours(neighbours: Any, n: int) -> np.ndarray | None:
-    if neighbours is None:
-        return None
-    nb = np.asarray(neighbours)
-    if nb.ndim == 1:
-        nb = nb[:, None]
-    if nb.ndim != 2 or nb.shape[0] != n or not np.issubdtype(nb.dtype, np.integer):
-        raise InputError(
-            f"neighbours must be an int array of shape ({n}, K), got {np.shape(neighbours)}"
-        )
-    if np.any((nb < -1) | (nb >= n)):
-        raise InputError(f"neighbours must be row ids in [-1, {n - 1}]")
-    return nb.astype(int)

@@ -336,8 +336,8 @@ def solve_ik(
     tgt = check_targets(targets)
     n, nq = tgt.shape[0], robot.nq
     processes = _processes(workers)
-    seed_arr = _check_seeds(seeds, n, nq)
-    nb = _check_neighbours(neighbours, n)
+    seed_arr = check_seeds(seeds, n, nq)
+    nb = check_neighbours(neighbours, n)
     kwargs = dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
 
     q = np.full((n, nq), np.nan)
@@ -402,7 +402,7 @@ def _processes(workers: Any) -> int:
     return int(workers) if workers not in ("auto", 0) else cores()
 
 
-def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:
+def check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:
     """Warm starts as (n, K, nq) floats; one per target may come as (n, nq)."""
     if seeds is None:
         return None
@@ -414,7 +414,7 @@ def _check_seeds(seeds: Any, n: int, nq: int) -> np.ndarray | None:
     return seed_arr
 
 
-def _check_neighbours(neighbours: Any, n: int) -> np.ndarray | None:
+def check_neighbours(neighbours: Any, n: int) -> np.ndarray | None:
     """Neighbour rows as (n, K) ints in [-1, n - 1]; one per target may come as (n,)."""
     if neighbours is None:
         return None

@@ -344,6 +344,128 @@ def _check_srdf(name: str, srdf: Path) -> None:
         )
 
 
+def _locked_joints(spec: RobotSpec, full: Any) -> tuple[np.ndarray, list[int]]:
+    """The full model's configuration with the spec's locked joints set, and their ids."""
+    joint_names = [full.names[i] for i in range(1, full.njoints)]
+    locked_q = pin.neutral(full)
+    locked_ids = []
+    for jname, value in spec.locked_joints.items():
+        if not full.existJointName(jname):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: locked_joints: "
+                + unknown_choice("joint", jname, joint_names)
+            )
+        jid = full.getJointId(jname)
+        if full.joints[jid].nq != 1:
+            raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
+        iq = full.joints[jid].idx_q
+        lo, hi = full.lowerPositionLimit[iq], full.upperPositionLimit[iq]
+        if not lo - 1e-9 <= value <= hi + 1e-9:
+            raise RobotSpecError(
+                f"robot {spec.name!r}: locked_joints.{jname} = {value:g} is outside the "
+                f"joint's range [{lo:g}, {hi:g}]"
+            )
+        locked_q[iq] = value
+        locked_ids.append(jid)
+    return locked_q, locked_ids
+
+
+def _joint_ranges(
+    spec: RobotSpec, model: Any, prepared: PreparedUrdf, continuous: Mapping[str, Any], urdf: Path
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint ranges (nq,) [rad or m]: the model's, intersected with the spec's, less the margin."""
+    joint_names = tuple(model.names[i] for i in range(1, model.njoints))
+    lower = np.array(model.lowerPositionLimit, dtype=float)
+    upper = np.array(model.upperPositionLimit, dtype=float)
+    for jname, (lo, hi) in spec.joint_limits.items():
+        if jname not in joint_names:
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint_limits: " + unknown_choice("joint", jname, joint_names)
+            )
+        i = joint_names.index(jname)
+        lower[i], upper[i] = max(lower[i], lo), min(upper[i], hi)
+    for i, jname in enumerate(joint_names):
+        lo, hi = float(lower[i]), float(upper[i])
+        if not (abs(lo) <= MAX_JOINT_BOUND and abs(hi) <= MAX_JOINT_BOUND):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint {jname!r} has the range [{lo:g}, {hi:g}] in "
+                f"{str(urdf)!r}, beyond +-{MAX_JOINT_BOUND:g} (rad or m); give its real "
+                f"range in the spec: joint_limits: {{{jname}: [lower, upper]}}"
+            )
+    # the margin is in radians: revolute joints only (a prismatic range is in metres),
+    # and not a continuous joint's stated range of two turns (no limit to keep off)
+    revolute = np.zeros(model.nq, dtype=bool)
+    for j in range(1, model.njoints):
+        joint = model.joints[j]
+        limited = model.names[j] not in continuous or (model.names[j] in spec.joint_limits)
+        if joint.nq == 1 and limited and not joint.shortname()[10:].startswith("P"):
+            revolute[joint.idx_q] = True
+    lower += np.where(revolute, spec.limit_margin, 0.0)
+    upper -= np.where(revolute, spec.limit_margin, 0.0)
+    for i, jname in enumerate(joint_names):
+        if not lower[i] < upper[i]:
+            why = (
+                f" (the URDF gives it no lower/upper; give joint_limits: {{{jname}: "
+                "[lower, upper]})"
+                if jname in prepared.unbounded
+                else ""
+            )
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint {jname!r} has an empty range "
+                f"[{lower[i]:g}, {upper[i]:g}] after joint_limits and limit_margin "
+                f"({spec.limit_margin:g}){why}"
+            )
+    return lower, upper
+
+
+def _home(
+    spec: RobotSpec, joint_names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray
+) -> np.ndarray:
+    """The home configuration (nq,) [rad]: the spec's, else the middle of every range."""
+    if isinstance(spec.home, tuple):
+        if len(spec.home) != len(joint_names):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: home has {len(spec.home)} values, "
+                f"expected {len(joint_names)}"
+            )
+        home = np.array(spec.home, dtype=float)
+    else:
+        home = 0.5 * (lower + upper)
+        for jname, value in spec.home.items():
+            if jname not in joint_names:
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: home: " + unknown_choice("joint", jname, joint_names)
+                )
+            home[joint_names.index(jname)] = value
+    if np.any(home < lower) or np.any(home > upper):
+        raise RobotSpecError(
+            f"robot {spec.name!r}: home {home.tolist()} is outside the joint limits"
+        )
+    return home
+
+
+def _tool_shapes(spec: RobotSpec) -> dict[str, list[tuple[Any, Any, Any]]]:
+    """The tool's collision and visual shapes with their geometry and pose (meshes read now)."""
+    shapes_of: dict[str, list[tuple[Any, Any, Any]]] = {}
+    if spec.tool is None:
+        return shapes_of
+    tool, where = spec.tool, f"robot spec {str(spec.path)!r}: tool"
+    if not tool.collision:
+        log.warning(
+            "robot %r: the tool %r is a TCP only (no collision shapes): the hand is "
+            "not collision-checked, only the arm's links are",
+            spec.name,
+            tool.name,
+        )
+    for kind in ("collision", "visual"):
+        shapes = tool.collision if kind == "collision" else tool.visual
+        shapes_of[kind] = [
+            (s, shape_geometry(s, f"{where}.{kind}[{i}]"), tool.shape_pose(s))
+            for i, s in enumerate(shapes)
+        ]
+    return shapes_of
+
+
 class Robot:
     """A robot arm: reduced Pinocchio model, limits, home and grasp frame.
 
@@ -404,29 +526,9 @@ class Robot:
         if spec.tool is not None:
             _add_tool_frame(spec, full)
         self.full_model = full
-        joint_names = [full.names[i] for i in range(1, full.njoints)]
         if srdf is not None:
             _check_srdf(spec.name, srdf)
-        locked_q = pin.neutral(full)
-        locked_ids = []
-        for jname, value in spec.locked_joints.items():
-            if not full.existJointName(jname):
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: locked_joints: "
-                    + unknown_choice("joint", jname, joint_names)
-                )
-            jid = full.getJointId(jname)
-            if full.joints[jid].nq != 1:
-                raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
-            iq = full.joints[jid].idx_q
-            lo, hi = full.lowerPositionLimit[iq], full.upperPositionLimit[iq]
-            if not lo - 1e-9 <= value <= hi + 1e-9:
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: locked_joints.{jname} = {value:g} is outside the "
-                    f"joint's range [{lo:g}, {hi:g}]"
-                )
-            locked_q[iq] = value
-            locked_ids.append(jid)
+        locked_q, locked_ids = _locked_joints(spec, full)
         self.locked_q = locked_q
         model = pin.buildReducedModel(full, locked_ids, locked_q) if locked_ids else full.copy()
         self.model = model
@@ -443,91 +545,18 @@ class Robot:
         }
         self.chain = KinematicChain(model, self.grasp_frame_id)
 
-        lower = np.array(model.lowerPositionLimit, dtype=float)
-        upper = np.array(model.upperPositionLimit, dtype=float)
-        for jname, (lo, hi) in spec.joint_limits.items():
-            if jname not in self.joint_names:
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: joint_limits: "
-                    + unknown_choice("joint", jname, self.joint_names)
-                )
-            i = self.joint_names.index(jname)
-            lower[i], upper[i] = max(lower[i], lo), min(upper[i], hi)
-        for i, jname in enumerate(self.joint_names):
-            lo, hi = float(lower[i]), float(upper[i])
-            if not (abs(lo) <= MAX_JOINT_BOUND and abs(hi) <= MAX_JOINT_BOUND):
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: joint {jname!r} has the range [{lo:g}, {hi:g}] in "
-                    f"{str(urdf)!r}, beyond +-{MAX_JOINT_BOUND:g} (rad or m); give its real "
-                    f"range in the spec: joint_limits: {{{jname}: [lower, upper]}}"
-                )
-        # the margin is in radians: revolute joints only (a prismatic range is in metres),
-        # and not a continuous joint's stated range of two turns (no limit to keep off)
-        revolute = np.zeros(self.nq, dtype=bool)
-        for j in range(1, model.njoints):
-            joint = model.joints[j]
-            limited = model.names[j] not in self.continuous_joints or (
-                model.names[j] in spec.joint_limits
-            )
-            if joint.nq == 1 and limited and not joint.shortname()[10:].startswith("P"):
-                revolute[joint.idx_q] = True
-        lower += np.where(revolute, spec.limit_margin, 0.0)
-        upper -= np.where(revolute, spec.limit_margin, 0.0)
-        for i, jname in enumerate(self.joint_names):
-            if not lower[i] < upper[i]:
-                why = (
-                    f" (the URDF gives it no lower/upper; give joint_limits: {{{jname}: "
-                    "[lower, upper]})"
-                    if jname in prepared.unbounded
-                    else ""
-                )
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: joint {jname!r} has an empty range "
-                    f"[{lower[i]:g}, {upper[i]:g}] after joint_limits and limit_margin "
-                    f"({spec.limit_margin:g}){why}"
-                )
+        lower, upper = _joint_ranges(spec, model, prepared, self.continuous_joints, urdf)
         lower.setflags(write=False)
         upper.setflags(write=False)
         self.lower = lower
         self.upper = upper
 
-        if isinstance(spec.home, tuple):
-            if len(spec.home) != self.nq:
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: home has {len(spec.home)} values, expected {self.nq}"
-                )
-            home = np.array(spec.home, dtype=float)
-        else:
-            home = 0.5 * (lower + upper)
-            for jname, value in spec.home.items():
-                if jname not in self.joint_names:
-                    raise RobotSpecError(
-                        f"robot {spec.name!r}: home: "
-                        + unknown_choice("joint", jname, self.joint_names)
-                    )
-                home[self.joint_names.index(jname)] = value
-        if np.any(home < lower) or np.any(home > upper):
-            raise RobotSpecError(
-                f"robot {spec.name!r}: home {home.tolist()} is outside the joint limits"
-            )
+        home = _home(spec, self.joint_names, lower, upper)
         home.setflags(write=False)
         self.home = home
         self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}
         if spec.tool is not None:  # read the meshes now: a bad one fails before any work
-            tool, where = spec.tool, f"robot spec {str(spec.path)!r}: tool"
-            if not tool.collision:
-                log.warning(
-                    "robot %r: the tool %r is a TCP only (no collision shapes): the hand is "
-                    "not collision-checked, only the arm's links are",
-                    spec.name,
-                    tool.name,
-                )
-            for kind in ("collision", "visual"):
-                shapes = tool.collision if kind == "collision" else tool.visual
-                self._tool_shapes[kind] = [
-                    (s, shape_geometry(s, f"{where}.{kind}[{i}]"), tool.shape_pose(s))
-                    for i, s in enumerate(shapes)
-                ]
+            self._tool_shapes = _tool_shapes(spec)
         self.shoulder = self.chain.root_origin.copy()
         self.reach_bound = float(self.chain.link_lengths().sum())
         self.max_reach = min(self.reach_bound, self._maximise_reach() + 2e-3)

@@ -167,25 +167,7 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
         RobotSpecError: Unknown name (lists the available specs), unreadable
             file, unknown key (names it and suggests the closest) or bad value.
     """
-    text = str(name_or_path)
-    path: Path | None
-    if isinstance(name_or_path, os.PathLike) or text.endswith((".yaml", ".yml")) or os.sep in text:
-        path = Path(text).expanduser()
-        try:
-            found = path.is_file()
-        except (OSError, ValueError):
-            found = False
-        if not found:
-            raise RobotSpecError(f"robot spec file {clip(text)} does not exist")
-        raw = read_yaml_file(path, "robot spec", RobotSpecError)
-        path = path.resolve()
-    else:
-        names = available_robots()
-        if text not in names:  # (no file lookup: a name of 300 characters is no file name)
-            raise RobotSpecError(unknown_choice("robot", text, names))
-        res = _spec_dir() / f"{text}.yaml"
-        path = Path(str(res))
-        raw = load_yaml(res.read_text(encoding="utf-8"), str(path), RobotSpecError)
+    path, raw = _read_spec_file(name_or_path)
     where = f"robot spec {str(path)!r}"
     if not isinstance(raw, Mapping):
         raise RobotSpecError(f"{where}: expected a mapping at the top level, got {clip(raw)}")
@@ -225,29 +207,11 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
         str(k): _number(where, f"locked_joints.{k}", v)
         for k, v in _mapping(where, "locked_joints", raw.get("locked_joints")).items()
     }
-    home_raw = raw.get("home")
-    home: Mapping[str, float] | tuple[float, ...]
-    if home_raw is None:
-        home = {}
-    elif isinstance(home_raw, (list, tuple)):
-        home = tuple(_number(where, f"home[{i}]", v) for i, v in enumerate(home_raw))
-    else:
-        home = {
-            str(k): _number(where, f"home.{k}", v)
-            for k, v in _mapping(where, "home", home_raw).items()
-        }
+    home = _home_of(where, raw.get("home"))
     margin = _number(where, "limit_margin", raw.get("limit_margin", RobotSpec.limit_margin))
     if margin < 0:
         raise RobotSpecError(f"{where}: limit_margin must be >= 0, got {margin}")
-    limits: dict[str, tuple[float, float]] = {}
-    for k, v in _mapping(where, "joint_limits", raw.get("joint_limits")).items():
-        if not isinstance(v, (list, tuple)) or len(v) != 2:
-            raise RobotSpecError(f"{where}: joint_limits.{k} must be [lower, upper], got {clip(v)}")
-        lo = _number(where, f"joint_limits.{k}", v[0])
-        hi = _number(where, f"joint_limits.{k}", v[1])
-        if not lo < hi:
-            raise RobotSpecError(f"{where}: joint_limits.{k} needs lower < upper, got {clip(v)}")
-        limits[str(k)] = (lo, hi)
+    limits = _joint_limits_of(where, raw.get("joint_limits"))
     pkg = model.get("package_dirs") or []
     if isinstance(pkg, str):
         pkg = [pkg]
@@ -273,6 +237,58 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
     )
     _check_model_files(where, spec)
     return spec
+
+
+def _read_spec_file(name_or_path: str | os.PathLike[str]) -> tuple[Path, Any]:
+    """The spec's path and its YAML document: a shipped name or a file."""
+    text = str(name_or_path)
+    if isinstance(name_or_path, os.PathLike) or text.endswith((".yaml", ".yml")) or os.sep in text:
+        path = Path(text).expanduser()
+        try:
+            found = path.is_file()
+        except (OSError, ValueError):
+            found = False
+        if not found:
+            raise RobotSpecError(f"robot spec file {clip(text)} does not exist")
+        raw = read_yaml_file(path, "robot spec", RobotSpecError)
+        path = path.resolve()
+    else:
+        names = available_robots()
+        if text not in names:  # (no file lookup: a name of 300 characters is no file name)
+            raise RobotSpecError(unknown_choice("robot", text, names))
+        res = _spec_dir() / f"{text}.yaml"
+        path = Path(str(res))
+        raw = load_yaml(res.read_text(encoding="utf-8"), str(path), RobotSpecError)
+    return path, raw
+
+
+def _home_of(where: str, home_raw: Any) -> Mapping[str, float] | tuple[float, ...]:
+    """``home``: joint name -> value, or one value per joint [rad]; empty when not given."""
+    home: Mapping[str, float] | tuple[float, ...]
+    if home_raw is None:
+        home = {}
+    elif isinstance(home_raw, (list, tuple)):
+        home = tuple(_number(where, f"home[{i}]", v) for i, v in enumerate(home_raw))
+    else:
+        home = {
+            str(k): _number(where, f"home.{k}", v)
+            for k, v in _mapping(where, "home", home_raw).items()
+        }
+    return home
+
+
+def _joint_limits_of(where: str, raw_limits: Any) -> dict[str, tuple[float, float]]:
+    """``joint_limits``: joint name -> (lower, upper) [rad or m], lower < upper."""
+    limits: dict[str, tuple[float, float]] = {}
+    for k, v in _mapping(where, "joint_limits", raw_limits).items():
+        if not isinstance(v, (list, tuple)) or len(v) != 2:
+            raise RobotSpecError(f"{where}: joint_limits.{k} must be [lower, upper], got {clip(v)}")
+        lo = _number(where, f"joint_limits.{k}", v[0])
+        hi = _number(where, f"joint_limits.{k}", v[1])
+        if not lo < hi:
+            raise RobotSpecError(f"{where}: joint_limits.{k} needs lower < upper, got {clip(v)}")
+        limits[str(k)] = (lo, hi)
+    return limits
 
 
 def _check_model_files(where: str, spec: RobotSpec) -> None:

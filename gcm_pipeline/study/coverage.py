@@ -91,23 +91,11 @@ def write_coverage_png(
     cmap = "viridis"
     if plane is None:
         fig = Figure(figsize=(7.0, 3.6), dpi=110, layout="constrained")
-        ax = fig.add_subplot()
-        ok = [r for r in rows if not r.get("error")]
-        labels = [_label(r, swept) for r in ok]
-        cov = [float(r["coverage"]) for r in ok]
-        from matplotlib import colormaps
-
-        colours = [colormaps[cmap](norm(c)) for c in cov]
-        ax.bar(range(len(ok)), cov, color=colours)
-        ax.set_xticks(range(len(ok)), labels, rotation=60, ha="right", fontsize=7)
-        ax.set_ylabel("coverage (reachable fraction)")
-        ax.set_ylim(0, 1)
-        ax.set_title(title or "coverage per placement")
+        _bar_chart(fig.add_subplot(), rows, swept, title, cmap, norm)
         FigureCanvasAgg(fig).print_png(str(path))
         return path
 
-    pose, axes = plane
-    fx, fy = f"{pose}_{axes[0]}", f"{pose}_{axes[1]}" if len(axes) > 1 else None
+    pose = plane[0]
     grid_rows = [r for r in rows if int(r.get("round", 0)) == 0]
     panels: dict[tuple, list[Mapping[str, Any]]] = {}
     for r in grid_rows:
@@ -126,64 +114,8 @@ def write_coverage_png(
     axs = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).reshape(-1)
     image = None
     for ax, key in zip(axs, keys, strict=False):
-        members = panels[key]
-        xs = sorted({float(r[fx]) for r in members})
-        ys = sorted({float(r[fy]) for r in members}) if fy else [0.0]
-        grid = np.full((len(ys), len(xs)), np.nan)
-        failed = []
-        for r in members:
-            i = ys.index(float(r[fy])) if fy else 0
-            j = xs.index(float(r[fx]))
-            if r.get("error"):
-                failed.append((float(r[fx]), float(r[fy]) if fy else 0.0))
-                continue
-            grid[i, j] = np.fmax(grid[i, j], float(r["coverage"]))
-        image = ax.pcolormesh(
-            _edges(xs), _edges(ys), np.ma.masked_invalid(grid), cmap=cmap, norm=norm
-        )
-        if fy:
-            ax.set_aspect("equal")
-        refined = [
-            r
-            for r in rows
-            if int(r.get("round", 0)) > 0
-            and (merged or _panel_key(r, swept, pose) == key)
-            and str(r["object"]) == str(key[0])
-            and not r.get("error")
-        ]
-        if refined:
-            ax.scatter(
-                [float(r[fx]) for r in refined],
-                [float(r[fy]) if fy else 0.0 for r in refined],
-                c=[float(r["coverage"]) for r in refined],
-                cmap=cmap,
-                norm=norm,
-                s=14,
-                edgecolors="white",
-                linewidths=0.4,
-            )
-        if failed:
-            ax.scatter(*zip(*failed, strict=True), marker="x", c="0.5", s=20)
-        best = [r for r in rows if best_id is not None and int(r["id"]) == best_id]
-        if best and (merged or _panel_key(best[0], swept, pose) == key):
-            b = best[0]
-            if str(b["object"]) == str(key[0]):
-                ax.scatter(
-                    [float(b[fx])],
-                    [float(b[fy]) if fy else 0.0],
-                    marker="*",
-                    s=160,
-                    c="red",
-                    edgecolors="white",
-                    linewidths=0.8,
-                    zorder=5,
-                )
-        name = "object" if pose == "object" else "robot base"
-        ax.set_xlabel(f"{name} {axes[0]} [m]")
-        ax.set_ylabel(f"{name} {axes[1]} [m]" if fy else "")
-        ax.set_title(
-            (str(key[0]) + ", best over the rest") if merged else _panel_title(key, len(objects)),
-            fontsize=9,
+        image = _draw_panel(
+            ax, key, panels[key], rows, swept, plane, merged, best_id, len(objects), cmap, norm
         )
     for ax in axs[n:]:
         ax.set_visible(False)
@@ -193,6 +125,103 @@ def write_coverage_png(
         fig.suptitle(title, fontsize=10)
     FigureCanvasAgg(fig).print_png(str(path))
     return path
+
+
+def _bar_chart(
+    ax: Any,
+    rows: Sequence[Mapping[str, Any]],
+    swept: Mapping[str, Sequence[str]],
+    title: str,
+    cmap: str,
+    norm: Any,
+) -> None:
+    """Coverage per placement as bars (no plane of two swept position axes)."""
+    from matplotlib import colormaps
+
+    ok = [r for r in rows if not r.get("error")]
+    labels = [_label(r, swept) for r in ok]
+    cov = [float(r["coverage"]) for r in ok]
+    colours = [colormaps[cmap](norm(c)) for c in cov]
+    ax.bar(range(len(ok)), cov, color=colours)
+    ax.set_xticks(range(len(ok)), labels, rotation=60, ha="right", fontsize=7)
+    ax.set_ylabel("coverage (reachable fraction)")
+    ax.set_ylim(0, 1)
+    ax.set_title(title or "coverage per placement")
+
+
+def _draw_panel(
+    ax: Any,
+    key: tuple,
+    members: Sequence[Mapping[str, Any]],
+    rows: Sequence[Mapping[str, Any]],
+    swept: Mapping[str, Sequence[str]],
+    plane: tuple[str, Sequence[str]],
+    merged: bool,
+    best_id: int | None,
+    n_objects: int,
+    cmap: str,
+    norm: Any,
+) -> Any:
+    """One panel: the grid's coverage, the refined placements, failures and the best one."""
+    pose, axes = plane
+    fx, fy = f"{pose}_{axes[0]}", f"{pose}_{axes[1]}" if len(axes) > 1 else None
+    xs = sorted({float(r[fx]) for r in members})
+    ys = sorted({float(r[fy]) for r in members}) if fy else [0.0]
+    grid = np.full((len(ys), len(xs)), np.nan)
+    failed = []
+    for r in members:
+        i = ys.index(float(r[fy])) if fy else 0
+        j = xs.index(float(r[fx]))
+        if r.get("error"):
+            failed.append((float(r[fx]), float(r[fy]) if fy else 0.0))
+            continue
+        grid[i, j] = np.fmax(grid[i, j], float(r["coverage"]))
+    image = ax.pcolormesh(_edges(xs), _edges(ys), np.ma.masked_invalid(grid), cmap=cmap, norm=norm)
+    if fy:
+        ax.set_aspect("equal")
+    refined = [
+        r
+        for r in rows
+        if int(r.get("round", 0)) > 0
+        and (merged or _panel_key(r, swept, pose) == key)
+        and str(r["object"]) == str(key[0])
+        and not r.get("error")
+    ]
+    if refined:
+        ax.scatter(
+            [float(r[fx]) for r in refined],
+            [float(r[fy]) if fy else 0.0 for r in refined],
+            c=[float(r["coverage"]) for r in refined],
+            cmap=cmap,
+            norm=norm,
+            s=14,
+            edgecolors="white",
+            linewidths=0.4,
+        )
+    if failed:
+        ax.scatter(*zip(*failed, strict=True), marker="x", c="0.5", s=20)
+    best = [r for r in rows if best_id is not None and int(r["id"]) == best_id]
+    if best and (merged or _panel_key(best[0], swept, pose) == key):
+        b = best[0]
+        if str(b["object"]) == str(key[0]):
+            ax.scatter(
+                [float(b[fx])],
+                [float(b[fy]) if fy else 0.0],
+                marker="*",
+                s=160,
+                c="red",
+                edgecolors="white",
+                linewidths=0.8,
+                zorder=5,
+            )
+    name = "object" if pose == "object" else "robot base"
+    ax.set_xlabel(f"{name} {axes[0]} [m]")
+    ax.set_ylabel(f"{name} {axes[1]} [m]" if fy else "")
+    ax.set_title(
+        (str(key[0]) + ", best over the rest") if merged else _panel_title(key, n_objects),
+        fontsize=9,
+    )
+    return image
 
 
 def _edges(values: Sequence[float]) -> np.ndarray:

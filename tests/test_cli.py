@@ -424,7 +424,9 @@ def test_validate_and_run_reject_the_same_configs(cli, tmp_path, out, monkeypatc
     def boom(cfg):
         raise AssertionError("a stage ran")
 
-    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    # `gcm validate` looks the step up on the package, `Pipeline.run` in its module
+    for where in (pipeline, pipeline.run):
+        monkeypatch.setattr(where, "generate_candidates", boom)
     np.save(tmp_path / "g.npy", _poses(3))
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(FLAT.read_text())
@@ -447,7 +449,9 @@ def test_meshcat_flag_probes_the_server_before_the_run(cli, tmp_path, out, monke
     def boom(cfg):
         raise AssertionError("a stage ran")
 
-    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    # `gcm validate` looks the step up on the package, `Pipeline.run` in its module
+    for where in (pipeline, pipeline.run):
+        monkeypatch.setattr(where, "generate_candidates", boom)
     url = f"tcp://127.0.0.1:{_free_port()}"
     code, _, err = cli(
         "run",

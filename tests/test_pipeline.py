@@ -128,7 +128,7 @@ def test_output_problems_are_found_before_any_work(tmp_path, monkeypatch):
     def boom(cfg):
         raise AssertionError("stage ran")
 
-    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    monkeypatch.setattr(pipeline.run, "generate_candidates", boom)
     f = tmp_path / "file"
     f.write_text("x")
     with pytest.raises(OutputError):
@@ -156,7 +156,7 @@ def test_failure_leaves_nothing_behind(tmp_path, monkeypatch):
         (Path(out_dir) / "scene.html").write_text("half")
         raise RuntimeError("publish crashed")
 
-    monkeypatch.setattr(pipeline, "publish", broken_publish)
+    monkeypatch.setattr(pipeline.run, "publish", broken_publish)
     with pytest.raises(RuntimeError):
         Pipeline.from_yaml(FLAT, QUICK).run(tmp_path / "run", progress=False)
     assert list(tmp_path.iterdir()) == []
@@ -214,7 +214,7 @@ def test_preflight_names_the_key_before_any_work(tmp_path, monkeypatch):
     def boom(cfg):
         raise AssertionError("stage ran")
 
-    monkeypatch.setattr(pipeline, "generate_candidates", boom)
+    monkeypatch.setattr(pipeline.run, "generate_candidates", boom)
     cfg = load_config(FLAT, (*QUICK, "robot.spec=kuka"))
     with pytest.raises(RobotSpecError, match="^robot.spec: unknown robot 'kuka'"):
         pipeline.preflight(cfg)

@@ -1,0 +1,108 @@
+"""What a config refers to outside itself (files, robot spec, meshes, viewer), checked first."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from gcm_pipeline.config.run import Config, takes_config
+from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
+
+if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
+    from gcm_pipeline.robot.model import Robot
+
+log = logging.getLogger(__name__)
+
+
+def input_files(cfg: Config) -> dict[str, Path]:
+    """The files a config reads, keyed by their dotted config key.
+
+    ``candidates.path``, ``object.mesh``, ``environment.obstacles.<i>.mesh``
+    and ``robot.spec`` when it is a spec file rather than a shipped name.
+    """
+    files: dict[str, Path] = {}
+    if cfg.candidates.path is not None:
+        files["candidates.path"] = Path(cfg.candidates.path)
+    if cfg.object is not None and cfg.object.mesh is not None:
+        files["object.mesh"] = Path(cfg.object.mesh)
+    for i, obstacle in enumerate(cfg.environment.obstacles):
+        if obstacle.mesh is not None:
+            files[f"environment.obstacles.{i}.mesh"] = Path(obstacle.mesh)
+    spec = cfg.robot.spec
+    if spec.endswith((".yaml", ".yml")) or "/" in spec:
+        files["robot.spec"] = Path(spec)
+    return files
+
+
+@takes_config
+def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
+    """Check, before any work, what the config refers to outside itself.
+
+    ``gcm validate`` and ``gcm run`` (:meth:`Pipeline.run`) both call it:
+
+    - every file the config reads exists (:func:`input_files`); relative
+      paths were resolved against the config's folder;
+    - ``robot.spec`` names a shipped spec or a valid spec file whose model
+      exists; the robot is built (kinematics, locked joints inside their
+      ranges, a readable SRDF, collision meshes that load);
+    - the object and obstacle meshes load and have finite vertices;
+    - with the live viewer requested (``viewer`` or ``publish.meshcat``) and a
+      ``publish.zmq_url``, the meshcat server there answers within
+      ``publish.connect_timeout_s``; without the viewer a ``zmq_url`` is unused,
+      which is logged as a warning.
+
+    Args:
+        cfg: The config.
+        viewer: The live viewer is requested (``gcm run --meshcat``).
+
+    Returns:
+        The robot (the run uses it).
+
+    Raises:
+        RobotSpecError: ``robot.spec: ...``, unknown robot or invalid spec.
+        InputError: ``<key>: file not found: <path>``, or a mesh that does not load.
+        PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
+    """
+    from gcm_pipeline.config.robot_spec import load_spec
+    from gcm_pipeline.geometry.shapes import shape_geometry
+    from gcm_pipeline.robot.model import Robot
+
+    for key, path in input_files(cfg).items():
+        try:
+            found, there = path.is_file(), path.exists()
+        except (OSError, ValueError):
+            found = there = False
+        if not found:
+            what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
+                key, "mesh file"
+            )
+            if there:  # a directory, a device (/dev/zero), a pipe
+                raise InputError(f"{key}: {what} {path} is not a regular file")
+            raise InputError(
+                f"{key}: {what} not found: {path} (relative paths resolve against the "
+                "config's folder)"
+            )
+    try:
+        robot = Robot(load_spec(cfg.robot.spec))
+        robot.build_geometry("collision")
+    except RobotSpecError as exc:
+        raise type(exc)(f"robot.spec: {exc}") from exc
+    shapes: list[tuple[str, Any]] = [("object", cfg.object)]
+    shapes += [(f"environment.obstacles.{i}", o) for i, o in enumerate(cfg.environment.obstacles)]
+    for where, shape in shapes:
+        if shape is not None and shape.shape == "mesh":
+            shape_geometry("mesh", shape.dims, mesh=shape.mesh, scale=shape.scale, where=where)
+    pub = cfg.publish
+    if pub.zmq_url is None:
+        return robot
+    if not (viewer or pub.meshcat):
+        log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
+        return robot
+    from gcm_pipeline.outputs.live import probe_server
+
+    try:
+        probe_server(pub.zmq_url, pub.connect_timeout_s)
+    except PublishError as exc:
+        raise PublishError(f"publish.zmq_url: {exc}") from exc
+    return robot

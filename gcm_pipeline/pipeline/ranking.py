@@ -1,0 +1,74 @@
+"""The ``ranking`` step and the IK branch choice: a config onto :mod:`gcm_pipeline.ranking`."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gcm_pipeline.config.run import Config, takes_config
+from gcm_pipeline.table import GraspTable
+
+if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
+    from gcm_pipeline.manifold.build import Manifold
+    from gcm_pipeline.robot.model import Robot
+
+
+@takes_config
+def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
+    """The ranking metric of every IK branch (N, K) (``solutions`` column), higher is better.
+
+    ``combined`` normalises each metric over all branches of all reachable
+    grasps; ``margin`` is the same for every branch of a grasp, so branches are
+    compared by Yoshikawa's index instead (also its weight in ``combined`` is
+    left out).
+    """
+    from gcm_pipeline.ranking import rank as ranking
+
+    clearance = grasps["solutions_clearance"] if "solutions_clearance" in grasps else None
+    r = cfg.ranking
+    return ranking.branch_scores(
+        grasps["solutions"], robot, metric=r.metric, weights=r.weights, clearance=clearance
+    )
+
+
+@takes_config
+def select_branches(
+    grasps: GraspTable, manifold: Manifold, robot: Robot, cfg: Config
+) -> GraspTable:
+    """Choose one IK branch per grasp (``ik.select``; needs ``ik.solutions`` > 1).
+
+    See :mod:`gcm_pipeline.reach.branches`. A table without branch columns is
+    returned unchanged.
+    """
+    from gcm_pipeline.manifold.lattice import row_mesh
+    from gcm_pipeline.reach import branches as stage
+
+    if "solutions" not in grasps:
+        return grasps
+    edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
+    return stage.select_branches(
+        grasps,
+        edges,
+        branch_scores(grasps, robot, cfg),
+        method=cfg.ik.select,
+        threshold=cfg.continuity.threshold,
+    )
+
+
+@takes_config
+def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
+    """Manipulability metrics and ranks of the reachable grasps (``ranking``).
+
+    See :func:`gcm_pipeline.ranking.rank.rank`; the ``clearance`` and
+    ``combined`` metrics need the ``clearance`` column of the collision checks.
+
+    Returns:
+        The table with ``manipulability`` (and the other metric columns),
+        ``rank`` (1-based among reachable grasps, 0 for unreachable) and
+        ``top`` added.
+    """
+    from gcm_pipeline.ranking import rank as stage
+
+    r = cfg.ranking
+    return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, weights=r.weights)

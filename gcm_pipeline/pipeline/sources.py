@@ -1,0 +1,124 @@
+"""The ``candidates`` step: a config's grasp source (file, generator, sampler) as a table."""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from gcm_pipeline import sources
+from gcm_pipeline.config.run import CandidatesConfig, Config, takes_config
+from gcm_pipeline.errors import ConfigError, InputError
+from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.table import GraspTable
+
+if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
+    pass
+
+log = logging.getLogger(__name__)
+
+
+def candidate_poses(
+    cfg: Config, report: dict[str, Any] | None = None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """World poses (N, 4, 4) of the grasp frame and per-candidate columns: ``candidates`` -> source.
+
+    A file's poses go onto the grasp frame (:func:`~gcm_pipeline.sources.to_grasp_frame`)
+    and into the world by ``candidates.camera_pose``, else by the object pose for
+    ``frame: object``; generated and sampled grasps are mapped by ``grasp_to_tool``
+    (on the right) and the object pose. ``report`` gets ``grasp_frame`` when a
+    file's gripper frame was mapped.
+    """
+    c, obj = cfg.candidates, cfg.object
+    to_tool = None if c.grasp_to_tool is None else c.grasp_to_tool.matrix()
+    if c.source == "file":
+        assert c.path is not None
+        fmt = sources.file_format(c.path, c.format)
+        grasps = sources.read_grasps(
+            c.path, fmt, success_only=c.success_only, limit=c.limit, max_count=c.max_count
+        )
+        poses, choice = sources.to_grasp_frame(
+            grasps, c.path, fmt, gripper=c.gripper, grasp_to_tool=to_tool
+        )
+        if choice is not None and report is not None:
+            report["grasp_frame"] = choice.as_dict() | {"describe": choice.describe()}
+        if c.camera_pose is not None:
+            poses = c.camera_pose.matrix() @ poses
+        elif c.frame == "object":
+            if obj is None:
+                raise ConfigError("candidates.frame 'object' needs an 'object' section")
+            poses = obj.pose.matrix() @ poses
+        return poses, grasps.columns
+    rng = np.random.default_rng(c.seed if c.seed is not None else cfg.seed)
+    if c.source == "antipodal":
+        if obj is None:
+            raise ConfigError("candidates.source 'antipodal' samples an object: add 'object'")
+        gripper = sources.get_gripper(c.gripper or "franka_panda")
+        d = obj.dims
+        mesh = sources.object_mesh(
+            obj.shape, radius=d.radius, height=d.height, size=d.size, mesh=obj.mesh, scale=obj.scale
+        )
+        table = cfg.environment.table
+        poses, columns = sources.antipodal_candidates(
+            mesh,
+            c.count,
+            gripper,
+            rng,
+            shape=obj.shape,
+            friction=c.friction,
+            world=obj.pose.matrix(),
+            floor_z=None if table is None else table.height,
+        )
+        return (poses if to_tool is None else poses @ to_tool), columns
+    d = None if obj is None else obj.dims
+    poses = sources.generate(
+        c.source,
+        c.count,
+        rng,
+        shape=None if obj is None else obj.shape,
+        radius=None if d is None else d.radius,
+        height=None if d is None else d.height,
+        size=None if d is None else d.size,
+        depth=c.depth,
+        rings=c.rings,
+    )
+    sources.add_noise(poses, c.noise.position, c.noise.angle_deg, rng)
+    if to_tool is not None:  # generated grasps are mapped like imported ones
+        poses = poses @ to_tool
+    assert obj is not None
+    return obj.pose.matrix() @ poses, {}
+
+
+@takes_config
+def generate_candidates(cfg: Config, *, report: dict[str, Any] | None = None) -> GraspTable:
+    """The candidate grasp table of a config: ``dq`` (N, 8) and per-candidate columns.
+
+    Args:
+        cfg: The full config (``candidates``, ``object``, ``environment.table``, ``seed``).
+        report: A dict that gets ``grasp_frame``, how a grasp file's gripper
+            frame was mapped (:meth:`gcm_pipeline.sources.GripperChoice.as_dict`),
+            when the file has one.
+
+    Returns:
+        A table with ``dq``: unit dual quaternions [rw, rx, ry, rz, dw, dx, dy, dz]
+        of the grasp frame in the world, one row per candidate; for a grasp
+        file also ``source_id`` (the row in the file) and the file's own
+        columns (:func:`gcm_pipeline.sources.read_grasp_file`).
+
+    Raises:
+        ConfigError: A generator without a matching ``object`` section.
+        InputError: An unreadable or invalid grasp file, a file whose gripper
+            is unknown, or no grasp left.
+    """
+    poses, columns = candidate_poses(cfg, report)
+    if poses.shape[0] == 0:
+        raise InputError(f"candidates: no grasp left from {_describe_source(cfg.candidates)}")
+    log.info("candidates: %d from %s", poses.shape[0], _describe_source(cfg.candidates))
+    return GraspTable({"dq": dq_from_matrix(poses), **columns})
+
+
+def _describe_source(c: CandidatesConfig) -> str:
+    if c.source == "file":
+        return f"file {c.path}"
+    return f"generator {c.source!r}"

@@ -49,7 +49,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from gcm_pipeline import sources
-from gcm_pipeline.config.run import CandidatesConfig, Config, load_config, takes_config
+from gcm_pipeline.config.run import Config, load_config, takes_config
+from gcm_pipeline.config.sections import CandidatesConfig
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_pos_quat
 from gcm_pipeline.rundir import run as run_files
@@ -57,13 +58,12 @@ from gcm_pipeline.rundir import transaction
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the stage modules import Pinocchio: loaded when a stage runs
-    from gcm_pipeline.config.run import (
+    from gcm_pipeline.config.reach_sections import (
         ApproachConfig,
         EnvironmentConfig,
-        ObjectConfig,
-        Pose,
         RetreatConfig,
     )
+    from gcm_pipeline.config.sections import ObjectConfig, Pose
     from gcm_pipeline.manifold.build import Manifold
     from gcm_pipeline.manifold.query import GraspManifold
     from gcm_pipeline.reach.engine import ReachabilityEngine

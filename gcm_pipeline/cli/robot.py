@@ -50,12 +50,11 @@ def _shape_text(shape: Any) -> str:
 
 def robot_report(robot: Any) -> list[str]:
     """The lines ``gcm robot`` prints about a robot (see :func:`_cmd_robot`)."""
-    import numpy as np
-    import pinocchio as pin
+    return [*_joint_lines(robot), *_frame_and_tool_lines(robot), *_collision_lines(robot)]
 
-    from gcm_pipeline.robot.collision import CollisionChecker, gripper_links
-    from gcm_pipeline.robot.urdf import frame_kind
 
+def _joint_lines(robot: Any) -> list[str]:
+    """The robot's name, model source, joints (type, limits, home), locks and limit margin."""
     spec = robot.spec
     out = [
         f"robot {robot.name} ({spec.path})" + (f": {spec.description}" if spec.description else "")
@@ -92,6 +91,17 @@ def robot_report(robot: Any) -> list[str]:
         f"  limit margin {spec.limit_margin:g} rad (each revolute range above shrinks by it "
         "on both sides; continuous joints keep two turns)"
     )
+    return out
+
+
+def _frame_and_tool_lines(robot: Any) -> list[str]:
+    """The base, flange and grasp frames, the reach and the tool."""
+    import pinocchio as pin
+
+    from gcm_pipeline.robot.urdf import frame_kind
+
+    spec = robot.spec
+    out: list[str] = []
     fm = robot.full_model
     out.append(
         f"  frames       base {robot.urdf.root_link} (the URDF's root link; poses are in it)"
@@ -127,6 +137,18 @@ def robot_report(robot: Any) -> list[str]:
             out.append(
                 "               TCP only: no collision shapes, the hand is not collision-checked"
             )
+    return out
+
+
+def _collision_lines(robot: Any) -> list[str]:
+    """The collision shapes, the self-collision pairs checked and the link pairs left out."""
+    import numpy as np
+
+    from gcm_pipeline.robot.collision import CollisionChecker, gripper_links
+
+    model = robot.model
+    tool = robot.spec.tool
+    out: list[str] = []
     checker = CollisionChecker(robot, (), self_collision=True)
     links = checker.link_names
     kinds = np.asarray(checker.pair_kind)

@@ -2,8 +2,12 @@
 
 One home for everything a user writes in YAML:
 
-* :mod:`~gcm_pipeline.config.run`: the run config (:class:`Config`, its
-  sections, :func:`load_config`, ``--set`` overrides, the JSON schema);
+* :mod:`~gcm_pipeline.config.run`: the run config (:class:`Config`,
+  :func:`load_config`, ``--set`` overrides, the JSON schema); its sections are
+  in :mod:`~gcm_pipeline.config.sections` (field types, poses, shapes, object,
+  candidates, manifold, densify), :mod:`~gcm_pipeline.config.reach_sections`
+  (robot, ik, environment, approach, retreat, continuity) and
+  :mod:`~gcm_pipeline.config.output_sections` (ranking, publish, output);
 * :mod:`~gcm_pipeline.config.robot_spec`: robot specs and their tools
   (``load_spec``, ``load_robot``, ``available_robots``); imported by name, not
   here: it builds robots (Pinocchio), and a config is read without them;
@@ -19,31 +23,27 @@ input-size bounds (:mod:`gcm_pipeline.bounds`) sit in the bottom layer beside
 them too, and they sit below this package.
 """
 
-from gcm_pipeline.config.run import (
-    AdaptiveConfig,
+from gcm_pipeline.config.output_sections import OutputConfig, PublishConfig, RankingConfig
+from gcm_pipeline.config.reach_sections import (
     ApproachConfig,
-    CandidatesConfig,
-    Config,
     ContinuityConfig,
-    DensifyConfig,
     EnvironmentConfig,
     IKConfig,
+    ObstacleConfig,
+    RetreatConfig,
+    RobotConfig,
+    TableConfig,
+)
+from gcm_pipeline.config.run import Config, as_config, config_schema, load_config, takes_config
+from gcm_pipeline.config.sections import (
+    AdaptiveConfig,
+    CandidatesConfig,
+    DensifyConfig,
     ManifoldConfig,
     NoiseConfig,
     ObjectConfig,
-    ObstacleConfig,
-    OutputConfig,
     Pose,
-    PublishConfig,
-    RankingConfig,
-    RetreatConfig,
-    RobotConfig,
     ShapeDims,
-    TableConfig,
-    as_config,
-    config_schema,
-    load_config,
-    takes_config,
 )
 from gcm_pipeline.config.study import StudyFile, StudySpec, read_study
 from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file

@@ -8,15 +8,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.config.run import (
-    ApproachConfig,
-    Config,
-    EnvironmentConfig,
-    ObjectConfig,
-    Pose,
-    RetreatConfig,
-    takes_config,
-)
+from gcm_pipeline.config.reach_sections import ApproachConfig, EnvironmentConfig, RetreatConfig
+from gcm_pipeline.config.run import Config, takes_config
+from gcm_pipeline.config.sections import ObjectConfig, Pose
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs

@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gcm_pipeline import sources
-from gcm_pipeline.config.run import CandidatesConfig, Config, takes_config
+from gcm_pipeline.config.run import Config, takes_config
+from gcm_pipeline.config.sections import CandidatesConfig
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.table import GraspTable

@@ -1,0 +1,152 @@
+"""``gcm run``, ``gcm validate`` and ``gcm schema``: a config in, a run directory out."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from gcm_pipeline.cli.common import format_top, log, show_in_viewer
+from gcm_pipeline.errors import GcmError
+
+
+def add_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
+    """Add ``run``, ``validate`` and ``schema`` to the ``gcm`` subcommands."""
+    _add_run(sub, common)
+    _add_validate(sub, common)
+    sub.add_parser("schema", parents=[common], help="print the config's JSON Schema")
+
+
+def _add_run(sub: Any, common: argparse.ArgumentParser) -> None:
+    """``gcm run CONFIG``."""
+    run = sub.add_parser(
+        "run", parents=[common], help="run the pipeline on a config, write a run directory"
+    )
+    run.add_argument("config", metavar="CONFIG", type=Path, help="YAML config file")
+    run.add_argument(
+        "--set",
+        dest="overrides",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a config key, e.g. --set ik.backend=mink (repeatable)",
+    )
+    run.add_argument("--out", type=Path, metavar="DIR", help="run directory (overrides output.dir)")
+    run.add_argument(
+        "--force", action="store_true", help="replace an existing run directory when done"
+    )
+    run.add_argument("--meshcat", action="store_true", help="open the live meshcat viewer")
+    run.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="with --meshcat: do not wait for Ctrl-C",
+    )
+
+
+def _add_validate(sub: Any, common: argparse.ArgumentParser) -> None:
+    """``gcm validate CONFIG``."""
+    val = sub.add_parser("validate", parents=[common], help="check a config and print it")
+    val.add_argument("config", metavar="CONFIG", type=Path)
+    val.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[])
+
+
+def _viewer_command(args: argparse.Namespace, out: Path) -> str:
+    """The ``gcm run`` line that shows this run in the live viewer (same overrides)."""
+    words = ["gcm", "run", str(args.config)]
+    for assignment in args.overrides:
+        words += ["--set", assignment]
+    words += ["--meshcat", "--force", "--out", str(out)]
+    return shlex.join(words)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from gcm_pipeline.pipeline import Pipeline, unreachable_hint
+
+    pipeline = Pipeline.from_yaml(args.config, args.overrides)
+    cfg = pipeline.config
+    viewer = args.meshcat or cfg.publish.meshcat
+    if viewer and cfg.publish.zmq_url is None and (args.no_wait or not cfg.publish.wait):
+        flag = "--no-wait" if args.no_wait else "publish.wait: false"
+        raise GcmError(
+            f"{flag}: the meshcat server gcm starts stops when gcm returns, so its URL "
+            "would be dead; run meshcat-server yourself and set publish.zmq_url, or let "
+            "gcm wait for Ctrl-C"
+        )
+    t0 = time.perf_counter()
+    with logging_redirect_tqdm(loggers=[log]):  # log lines above the progress bar
+        result = pipeline.run(
+            args.out, progress=not args.quiet, force=args.force, viewer=args.meshcat
+        )
+    total = time.perf_counter() - t0
+    run_dir = result.run_dir
+    assert run_dir is not None
+    if args.quiet:
+        print(run_dir)
+    else:
+        c = result.counts
+        n = max(c["densified"], 1)
+        print(f"gcm run {args.config}")
+        print(f"  candidates    {c['candidates']}")
+        if result.grasp_frame:  # a grasp file's gripper frame: never mapped silently
+            print(f"  gripper       {result.grasp_frame['describe']}")
+        print(f"  triangles     {c['triangles']} ({c['triangles_dropped']} dropped)")
+        print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
+        share = 100 * c["reachable"] / n
+        print(f"  reachable     {c['reachable']} / {c['densified']} ({share:.1f} %)")
+        if c["reachable"] == 0 and c["densified"]:
+            print("  " + unreachable_hint(c["unreachable_by_reason"]))
+        timings = ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items())
+        print(f"  timings [s]   {timings}; total {total:.2f}")
+        top = result.top(min(5, cfg.ranking.top_k))
+        print(f"top {len(top)} grasps by {cfg.ranking.metric}:")
+        print(format_top(top, cfg.ranking.metric))
+        print(f"run directory: {run_dir}")
+        print("  " + ", ".join(p.name for p in result.files))
+        scene = run_dir / "scene.html"
+        if scene.exists():
+            print(f"open the scene: {scene.as_uri()}")
+        if not viewer:
+            print(f"live viewer:   {_viewer_command(args, run_dir)}")
+    if viewer:
+        wait = cfg.publish.wait and not args.no_wait
+        show_in_viewer(result.grasps, result.manifold, result.robot, result.config, wait=wait)
+    return 0
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config.run import load_config
+    from gcm_pipeline.pipeline import generate_candidates, preflight
+    from gcm_pipeline.robot import kernels
+
+    cfg = load_config(args.config, args.overrides)
+    with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
+        preflight(cfg)
+    n = len(generate_candidates(cfg))  # a grasp file is read and checked as a run reads it
+    c = cfg.candidates
+    obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
+    # comments first, then the resolved config: the output is itself a valid config
+    print(f"# {args.config}: ok")
+    print(f"#   candidates  {c.source}" + (f" {c.path}" if c.path else "") + f": {n:,} grasps")
+    print(f"#   object      {obj}")
+    print(f"#   robot       {cfg.robot.spec}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
+    print(f"#   output      {cfg.output.dir}")
+    print("# resolved config (defaults filled in, paths absolute):")
+    print(yaml.safe_dump(cfg.to_dict(), sort_keys=False, default_flow_style=None), end="")
+    return 0
+
+
+def _cmd_schema(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config.run import config_schema
+
+    print(json.dumps(config_schema(), indent=2))
+    return 0
+
+
+COMMANDS = {"run": _cmd_run, "validate": _cmd_validate, "schema": _cmd_schema}

@@ -1,0 +1,169 @@
+"""Run config sections of the robot and its checks.
+
+``robot``, ``ik``, ``environment`` (table, obstacles), ``approach``, ``retreat``
+and ``continuity``.
+"""
+
+from __future__ import annotations
+
+import typing
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, Strict, field_validator
+
+from gcm_pipeline.bounds import MAX_APPROACH_STEPS, MAX_IK_SOLUTIONS, MAX_IK_WORKERS, MAX_OBSTACLES
+from gcm_pipeline.config.sections import (
+    Bool,
+    Length,
+    NonNegLength,
+    Pose,
+    PositiveFloat,
+    PositiveLength,
+    Vec3,
+    _Section,
+    _ShapeSection,
+)
+
+
+class RobotConfig(_Section):
+    """Robot spec (a name under ``robots/`` or a YAML path) and its base pose in the world."""
+
+    spec: str = "panda"
+    base_pose: Pose = Pose()
+
+
+class IKConfig(_Section):
+    """Inverse kinematics backend, acceptance tolerances and parallelism.
+
+    Attributes:
+        backend: ``pinocchio`` (batched, default) or ``mink``.
+        position_tolerance: Largest position error of a solution [m].
+        orientation_tolerance: Largest orientation error of a solution [rad].
+        workers: Processes of the reachability engine: ``auto`` (the cores this
+            process may use) or a number. The results do not depend on it.
+        solutions: Distinct IK solutions (branches) kept per reachable grasp,
+            each verified and passing every check (``solutions.npz``); 1: only
+            the first one found.
+        select: Which branch a grasp takes when there are several: ``metric``
+            (the best by the ranking metric) or ``continuity`` (the one nearest
+            to its neighbours' on the manifold, fewer IK patches).
+    """
+
+    backend: Literal["pinocchio", "mink"] = "pinocchio"
+    position_tolerance: PositiveFloat = 1.0e-4
+    orientation_tolerance: PositiveFloat = 1.0e-3
+    workers: Literal["auto"] | Annotated[int, Strict(), Field(gt=0, le=MAX_IK_WORKERS)] = "auto"
+    solutions: Annotated[int, Strict(), Field(ge=1, le=MAX_IK_SOLUTIONS)] = 1
+    select: Literal["metric", "continuity"] = "metric"
+
+    @field_validator("workers", mode="before")
+    @classmethod
+    def _auto_or_count(cls, v: Any) -> Any:
+        if v == "auto" and isinstance(v, str):
+            return v
+        whole = isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+        if not whole or not 0 < v <= MAX_IK_WORKERS:
+            raise ValueError(
+                f"expected 'auto' or a whole number from 1 to {MAX_IK_WORKERS}, got {v!r}"
+            )
+        return int(v)
+
+
+class TableConfig(_Section):
+    """Support table: a box whose top face is at ``height`` [m] in the world."""
+
+    height: Length = 0.0
+    size: tuple[PositiveLength, PositiveLength, PositiveLength] = (2.0, 2.0, 0.05)
+    center_xy: tuple[Length, Length] = (0.0, 0.0)
+
+
+class ObstacleConfig(_ShapeSection):
+    """An extra collision obstacle in the world."""
+
+    shape: Literal["box", "cylinder", "sphere", "mesh"]
+    name: str | None = None
+
+
+class EnvironmentConfig(_Section):
+    """Collision world: the table (on by default), extra obstacles, the object."""
+
+    table: TableConfig | None = TableConfig()
+    obstacles: Annotated[tuple[ObstacleConfig, ...], Field(max_length=MAX_OBSTACLES)] = ()
+    check_object: Bool = True
+    self_collision: Bool = True
+    contact_tolerance: NonNegLength = 0.005
+
+
+class ApproachConfig(_Section):
+    """Pre-grasp approach check along the grasp frame's approach axis (z).
+
+    The pre-grasp is the grasp frame backed off by ``distance`` [m] along its
+    z; the hand must move from there to the grasp in a straight line at fixed
+    orientation (see :mod:`gcm_pipeline.reach.moves`).
+
+    Attributes:
+        distance: Length of the straight line [m] (0: no check).
+        steps: The line is cut into this many equal steps; the joint path is
+            collision-checked at the end of every step, and IK waypoints are
+            placed at most at every step.
+        max_joint_step: Largest change of any joint between the ends of one step [rad].
+        max_deviation: Largest distance [m] by which any point of the gripper
+            may leave its straight-line path (a bound over the whole path, not
+            only at the steps).
+    """
+
+    distance: NonNegLength = 0.10
+    steps: Annotated[int, Strict(), Field(gt=0, le=MAX_APPROACH_STEPS)] = 10
+    max_joint_step: PositiveFloat = 0.25
+    max_deviation: PositiveLength = 0.002
+
+
+class RetreatConfig(ApproachConfig):
+    """Post-grasp retreat: the grasp frame moves ``distance`` along ``direction``.
+
+    The gripper holds the object: it may touch it (see
+    :mod:`gcm_pipeline.reach.engine`).
+
+    Attributes:
+        direction: Direction of the move (normalised; must not be zero).
+        frame: ``world`` (e.g. ``[0, 0, 1]`` lifts straight up) or ``grasp``
+            (the grasp frame's axes: ``[0, 0, -1]`` backs out along the approach).
+    """
+
+    direction: Vec3 = (0.0, 0.0, 1.0)
+    frame: Literal["world", "grasp"] = "world"
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero_direction(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not any(v):  # any other length: the direction is what counts
+            raise ValueError(f"must not be the zero vector, got {list(v)}")
+        return v
+
+
+Metric = Literal[
+    "yoshikawa",
+    "translational",
+    "inverse_condition",
+    "joint_limit_margin",
+    "clearance",
+    "margin",
+    "combined",
+]
+_METRICS: tuple[str, ...] = typing.get_args(Metric)
+
+
+class ContinuityConfig(_Section):
+    """IK continuity between neighbouring grasps (see :mod:`gcm_pipeline.manifold.continuity`).
+
+    ``threshold`` [rad] is the largest joint jump (L-infinity) between
+    neighbours of one patch (one IK branch). With ``reseed``, grasps at the
+    border of a smaller patch are re-solved from their neighbours in a larger
+    one (collisions and approach checked as in the run) until patches stop
+    growing or ``max_rounds`` rounds have run.
+    """
+
+    threshold: PositiveFloat = 0.5
+    reseed: Bool = False
+    max_rounds: Annotated[int, Strict(), Field(ge=1, le=10_000)] = 100

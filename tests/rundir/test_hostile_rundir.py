@@ -1,6 +1,6 @@
 """Tampered run directories: ``read_run``, ``gcm show`` and ``gcm plot`` say one line.
 
-A good run is copied and one file changed (``summary.json``, ``manifold.npz``,
+A good run (``flat_run``) is copied and one file changed (``summary.json``, ``manifold.npz``,
 ``grasps.csv``); the reader names the file and what is wrong with it.
 """
 
@@ -12,18 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import FLAT, QUICK, ROOT, assert_one_line_error
+from helpers import ROOT, assert_one_line_error
 
-from gcm_pipeline.cli import main
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.rundir import run as run_files
-
-
-@pytest.fixture(scope="module")
-def good_run(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("good") / "run"
-    assert main(["run", str(FLAT), "--out", str(out), "-q", *QUICK]) == 0
-    return out
 
 
 def _edit_summary(change):
@@ -101,10 +93,10 @@ TAMPERED = {
 
 
 @pytest.mark.parametrize("case", sorted(TAMPERED))
-def test_tampered_run_directories(cli, tmp_path, good_run, case):
+def test_tampered_run_directories(cli, tmp_path, flat_run, case):
     tamper, fragment = TAMPERED[case]
     d = tmp_path / "run"
-    shutil.copytree(good_run, d)
+    shutil.copytree(flat_run, d)
     tamper(d)
     with pytest.raises(InputError, match=None) as info:
         run_files.read_run(d)
@@ -113,9 +105,9 @@ def test_tampered_run_directories(cli, tmp_path, good_run, case):
     assert_one_line_error(code, err, fragment)
 
 
-def test_plot_on_a_tampered_run_is_one_line(cli, tmp_path, good_run):
+def test_plot_on_a_tampered_run_is_one_line(cli, tmp_path, flat_run):
     d = tmp_path / "run"
-    shutil.copytree(good_run, d)
+    shutil.copytree(flat_run, d)
     TAMPERED["triangle ids out of range"][0](d)
     code, out, err = cli("plot", d)
     assert_one_line_error(code, err, "'triangles' has vertex ids outside")

@@ -43,6 +43,21 @@ def panda():
     return load_robot("panda")
 
 
+@pytest.fixture(scope="session")
+def flat_run(tmp_path_factory):
+    """A finished ``gcm run`` of configs/flat_surface.yaml (``QUICK``: no scene, no plots).
+
+    Shared by the session: tests read it; one that changes it copies it first.
+    """
+    from helpers import FLAT, QUICK
+
+    from gcm_pipeline.cli import main
+
+    out = tmp_path_factory.mktemp("flat") / "run"
+    assert main(["run", str(FLAT), "--out", str(out), "-q", *QUICK]) == 0
+    return out
+
+
 @pytest.fixture
 def cli(capsys):
     """``gcm ARGV`` in this process: ``cli(*argv) -> (exit code, stdout, stderr)``.

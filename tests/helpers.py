@@ -44,6 +44,11 @@ def assert_one_line_error(code: int, err: str, *fragments: str, warnings: bool =
     return lines[0]
 
 
+def gcm_env(**extra: str) -> dict[str, str]:
+    """This process's environment for a subprocess that imports this checkout's package."""
+    return {**os.environ, "PYTHONPATH": str(ROOT), **extra}
+
+
 def run_gcm(
     *argv: object,
     env: dict[str, str] | None = None,
@@ -60,7 +65,7 @@ def run_gcm(
         capture_output=True,
         text=True,
         timeout=timeout,
-        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+        env=gcm_env(**(env or {})),
         cwd=cwd,
     )
 

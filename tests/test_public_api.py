@@ -42,28 +42,6 @@ def test_module_all_resolves(module: str) -> None:
         assert hasattr(mod, name), f"{module}.__all__ lists {name!r} but it is not defined"
 
 
-def test_errors_share_one_root() -> None:
-    for name in (
-        "ConfigError",
-        "InputError",
-        "GeometryError",
-        "RobotSpecError",
-        "FrameNotFoundError",
-        "OutputError",
-        "PublishError",
-    ):
-        assert issubclass(getattr(gcm_pipeline, name), gcm_pipeline.GcmError)
-
-
-def test_unknown_choice_suggests_and_lists() -> None:
-    from gcm_pipeline.errors import unknown_choice
-
-    msg = unknown_choice("projection", "cylindrcal", ["xy", "pca", "cylindrical", "spherical"])
-    assert "did you mean 'cylindrical'" in msg
-    assert "valid: cylindrical, pca, spherical, xy" in msg
-    assert "\n" not in msg
-
-
 def test_the_command_line_starts_without_the_heavy_libraries() -> None:
     """``gcm`` installs its Ctrl-C handling before NumPy and Pinocchio load.
 

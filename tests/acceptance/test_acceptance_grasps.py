@@ -200,7 +200,7 @@ class Oracle:
         return not pin.computeCollisions(m, self.data, self.gm, self.gd, q, True)
 
 
-def test_acronym_grasps_on_a_thin_walled_mug(tmp_path):
+def test_acronym_grasps_on_a_thin_walled_mug(tmp_path, panda):
     parts = cup_parts()
     whole = trimesh.util.concatenate(parts)
     whole.export(tmp_path / "mug.stl")
@@ -225,7 +225,7 @@ manifold: {{projection: cylindrical}}
     assert cfg.environment.contact_tolerance == 0.005 and cfg.environment.table is not None
     grasps = gcm.generate_candidates(cfg)
     assert len(grasps) == len(good)  # the failed ones are dropped
-    robot = gcm.load_robot("panda")
+    robot = panda
     checked = gcm.check_reachability(grasps, robot, cfg)
     targets = dq_to_matrix(grasps["dq"])  # base frame = world frame here
     mug_pose = cfg.object.pose.matrix()

@@ -1,14 +1,13 @@
 """Every script in examples/ runs as a user runs it and prints what it promises.
 
 Each script runs in a subprocess (``python examples/NN_name.py OUT_DIR``, a
-fresh OUT_DIR) with the package this test imports; the assertions read its
+fresh OUT_DIR) with this checkout's package; the assertions read its
 printed output and the files it wrote.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
 import subprocess
 import sys
@@ -17,24 +16,17 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import yaml
-from helpers import ROOT
-
-import gcm_pipeline
+from helpers import ROOT, gcm_env
 
 EXAMPLES = ROOT / "examples"
 
 
 def run_example(name: str, out: Path) -> str:
     """Run ``examples/<name>`` into ``out``; its stdout (fails on a non-zero exit)."""
-    package_root = Path(gcm_pipeline.__file__).resolve().parents[1]
-    env = dict(
-        os.environ,
-        PYTHONPATH=os.pathsep.join([str(package_root), os.environ.get("PYTHONPATH", "")]),
-    )
     proc = subprocess.run(
         [sys.executable, str(EXAMPLES / name), str(out)],
         cwd=out.parent,  # not the repository: the scripts find their inputs themselves
-        env=env,
+        env=gcm_env(),
         capture_output=True,
         text=True,
         timeout=900,
@@ -137,12 +129,10 @@ def test_05_user_robot(tmp_path):
 
 def test_an_example_without_argument_writes_into_a_temp_folder(tmp_path):
     """No OUT_DIR: the script still runs and names a folder that exists."""
-    package_root = Path(gcm_pipeline.__file__).resolve().parents[1]
-    env = dict(os.environ, PYTHONPATH=str(package_root), TMPDIR=str(tmp_path))
     proc = subprocess.run(
         [sys.executable, str(EXAMPLES / "04_export.py")],
         cwd=tmp_path,
-        env=env,
+        env=gcm_env(TMPDIR=str(tmp_path)),
         capture_output=True,
         text=True,
     )

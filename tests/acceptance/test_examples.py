@@ -10,7 +10,6 @@ import pytest
 import yaml
 from helpers import ROOT
 
-from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.pipeline import build_manifold, generate_candidates
@@ -26,10 +25,9 @@ def test_the_examples_exist():
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
-def test_example_runs(path, tmp_path, capsys):
+def test_example_runs(path, tmp_path, cli):
     out = tmp_path / path.stem
-    code = main(["run", str(path), "--out", str(out), "--no-wait"])
-    text, err = capsys.readouterr()
+    code, text, err = cli("run", path, "--out", out, "--no-wait")
     assert code == 0, err
     assert "run directory:" in text
     cfg = load_config(path)

@@ -243,25 +243,17 @@ def test_an_hdf5_read_that_never_finishes_is_refused_in_one_line(monkeypatch):
 # --------------------------------------------------------------- tampered run directories
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("fuzz") / "run"
-    sets = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-    assert main(["run", str(FLAT), "--out", str(out), "-q", *sets]) == 0
-    return out
-
-
 @settings(FUZZ, max_examples=int(40 * SCALE))
 @given(
     name=st.sampled_from(["grasps.csv", "summary.json", "manifold.npz"]),
     mutations=mutations,
     cut=st.integers(0, 1 << 20),
 )
-def test_tampered_runs_show(capsys, run_dir, name, mutations, cut):
+def test_tampered_runs_show(capsys, flat_run, name, mutations, cut):
     """``gcm show`` on a run with one file damaged: the table, or one error line."""
     with tempfile.TemporaryDirectory(prefix="gcm-fuzz-") as d:
         copy = Path(d) / "run"
-        shutil.copytree(run_dir, copy)
+        shutil.copytree(flat_run, copy)
         data = bytearray((copy / name).read_bytes())
         for at, byte in mutations:
             data[at % len(data)] = byte

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import FLAT, QUICK, ROOT, assert_one_line_error
+from helpers import FLAT, QUICK, ROOT, assert_one_line_error, gcm_env, run_gcm
 
 from gcm_pipeline.cli import main
 
@@ -256,32 +256,14 @@ def test_usage_errors_are_one_line_and_exit_2(capsys, argv, fragment):
 
 def test_python_dash_m(tmp_path):
     out = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "gcm_pipeline",
-            "run",
-            str(FLAT),
-            "--out",
-            str(out),
-            "--quiet",
-            *QUICK,
-        ],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=tmp_path,
-        timeout=120,
-    )
+    proc = run_gcm("run", FLAT, "--out", out, "--quiet", *QUICK, cwd=tmp_path, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert (out / "grasps.csv").is_file()
     proc = subprocess.run(
         [sys.executable, "-m", "gcm_pipeline.cli", "run", str(FLAT), "--out", str(out)],
         capture_output=True,
         text=True,
-        env=env,
+        env=gcm_env(),
         cwd=tmp_path,
         timeout=120,
     )
@@ -539,6 +521,7 @@ def test_a_closed_pipe_is_not_a_traceback():
         [sys.executable, "-m", "gcm_pipeline", "schema"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
+        env=gcm_env(),
     )
     proc.stdout.close()  # before the interpreter has even started
     err = proc.stderr.read().decode()

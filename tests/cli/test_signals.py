@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import BOTTLE, FLAT, ROOT
+from helpers import BOTTLE, FLAT, QUICK, ROOT, gcm_env
 
 
 def _start(config: Path, out: Path, *sets: str, force: bool = False) -> subprocess.Popen:
@@ -32,6 +32,7 @@ def _start(config: Path, out: Path, *sets: str, force: bool = False) -> subproce
         text=True,
         start_new_session=True,  # its own process group, like a shell job
         cwd=out.parent,
+        env=gcm_env(),
     )
 
 
@@ -93,13 +94,10 @@ def test_a_killed_worker_ends_the_run_with_one_line(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_sigterm_while_writing_leaves_the_previous_run(tmp_path):
+def test_sigterm_while_writing_leaves_the_previous_run(cli, tmp_path):
     sig = "SIGTERM"
-    from gcm_pipeline.cli import main
-
     out = tmp_path / "run"
-    quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-    assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
+    assert cli("run", FLAT, "--out", out, "-q", *QUICK)[0] == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     proc = _start(FLAT, out, "densify.subdivisions=12", force=True)
     _wait_for(lambda: any(p.name.startswith(".run.tmp-") for p in tmp_path.iterdir()), proc)
@@ -112,9 +110,8 @@ def test_sigterm_while_writing_leaves_the_previous_run(tmp_path):
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
-def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
+def test_sighup_in_process_unwinds_like_ctrl_c(cli, tmp_path, monkeypatch):
     """``gcm`` turns SIGHUP (and SIGTERM) into an interrupt of the main thread."""
-    from gcm_pipeline.cli import main
     from gcm_pipeline.rundir import run as run_files
 
     written = run_files.write_run_files
@@ -127,39 +124,36 @@ def test_sighup_in_process_unwinds_like_ctrl_c(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(run_files, "write_run_files", hang_up)
     before = signal.getsignal(signal.SIGHUP)
     out = tmp_path / "run"
-    status = main(["run", str(FLAT), "--out", str(out), "--set", "publish.html=false"])
+    status, _, err = cli("run", FLAT, "--out", out, "--set", "publish.html=false")
     assert status == 128 + signal.SIGHUP
-    assert capsys.readouterr().err.strip().splitlines() == ["interrupted (SIGHUP)"]
+    assert err.strip().splitlines() == ["interrupted (SIGHUP)"]
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGHUP) == before  # handlers restored
 
 
-def _interrupted_rerun(tmp_path, capsys, monkeypatch, write_run_files):
+def _interrupted_rerun(cli, tmp_path, monkeypatch, write_run_files):
     """A complete run, then ``--force`` over it with ``write_run_files`` patched to get
     interrupted: one line, status 130, the first run kept as it was."""
-    from gcm_pipeline.cli import main
     from gcm_pipeline.rundir import run as run_files
 
     out = tmp_path / "run"
-    quick = ["--set", "publish.html=false", "--set", "publish.plots=false"]
-    assert main(["run", str(FLAT), "--out", str(out), "-q", *quick]) == 0
+    assert cli("run", FLAT, "--out", out, "-q", *QUICK)[0] == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    capsys.readouterr()
     monkeypatch.setattr(run_files, "write_run_files", write_run_files)
-    assert main(["run", str(FLAT), "--out", str(out), "--force", *quick]) == 130
-    assert capsys.readouterr().err.strip().splitlines() == ["interrupted"]
+    code, _, err = cli("run", FLAT, "--out", out, "--force", *QUICK)
+    assert code == 130
+    assert err.strip().splitlines() == ["interrupted"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
-    return out, quick
+    return out
 
 
-def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, monkeypatch):
+def test_an_interrupt_wrapped_by_a_library_is_still_one_line(cli, tmp_path, monkeypatch):
     """pydantic turns a Ctrl-C that arrives while it serialises a config into an error
     of its own, caused by the KeyboardInterrupt: ``gcm`` still says ``interrupted``
     (status 130), keeps the previous run, and ``gcm study`` says what it kept (if any)."""
     from pydantic import BaseModel, field_serializer
 
-    from gcm_pipeline.cli import main
     from gcm_pipeline.rundir import run as run_files
     from gcm_pipeline.study import Study
 
@@ -173,29 +167,30 @@ def test_an_interrupt_wrapped_by_a_library_is_still_one_line(tmp_path, capsys, m
     def wrapped(*args, **kwargs):
         Slow().model_dump()  # raises pydantic's error, caused by the interrupt
 
-    out, quick = _interrupted_rerun(tmp_path, capsys, monkeypatch, wrapped)
+    out = _interrupted_rerun(cli, tmp_path, monkeypatch, wrapped)
 
     monkeypatch.setattr(Study, "run", lambda self, *a, **k: wrapped())
     study = ROOT / "configs" / "studies" / "bottle_placement.yaml"
-    assert main(["study", str(study), "--out", str(tmp_path / "study"), "-q"]) == 130
-    assert capsys.readouterr().err == "interrupted\n"  # nothing finished: nothing kept
+    code, _, err = cli("study", study, "--out", tmp_path / "study", "-q")
+    assert code == 130
+    assert err == "interrupted\n"  # nothing finished: nothing kept
     (tmp_path / "study" / "placements").mkdir(parents=True)
     (tmp_path / "study" / "placements" / "000000.npz").write_bytes(b"")
-    assert main(["study", str(study), "--out", str(tmp_path / "study"), "-q"]) == 130
-    err = capsys.readouterr().err.strip().splitlines()
+    code, _, err = cli("study", study, "--out", tmp_path / "study", "-q")
+    assert code == 130
+    err = err.strip().splitlines()
     assert err[-1] == "interrupted" and "finished placements are kept" in err[0]
     # an error that is not an interrupt still shows as one
     monkeypatch.setattr(run_files, "write_run_files", lambda *a, **k: 1 / 0)
     with pytest.raises(ZeroDivisionError):
-        main(["run", str(FLAT), "--out", str(out), "--force", *quick])
+        cli("run", FLAT, "--out", out, "--force", *QUICK)
 
 
-def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeypatch):
+def test_an_interrupt_python_drops_still_stops_the_run(cli, tmp_path, monkeypatch):
     """An interrupt raised inside a finaliser is dropped by Python ("Exception
     ignored"): the run would go on and replace the previous one. The handler recorded
     it, so the swap does not happen: one line, status 130, the previous run kept."""
     from gcm_pipeline import Pipeline, interrupts, load_config
-    from gcm_pipeline.cli import main
     from gcm_pipeline.rundir import run as run_files
 
     class Finalised:
@@ -208,14 +203,14 @@ def test_an_interrupt_python_drops_still_stops_the_run(tmp_path, capsys, monkeyp
         Finalised()  # collected at once: the interrupt is raised and dropped
         return written(*args, **kwargs)
 
-    out, quick = _interrupted_rerun(tmp_path, capsys, monkeypatch, dropped)
+    out = _interrupted_rerun(cli, tmp_path, monkeypatch, dropped)
     # the handled interrupt does not outlive the command: the Python API and the next
     # command write their runs
     monkeypatch.setattr(run_files, "write_run_files", written)
     cfg = load_config(FLAT, ["publish.html=false", "publish.plots=false"])
     Pipeline(cfg).run(out_dir=tmp_path / "api", progress=False)
     assert (tmp_path / "api" / "summary.json").is_file()
-    assert main(["run", str(FLAT), "--out", str(out), "--force", "-q", *quick]) == 0
+    assert cli("run", FLAT, "--out", out, "--force", "-q", *QUICK)[0] == 0
 
 
 def test_gcm_answers_signals_while_it_loads_and_ignores_them_once_done(monkeypatch, capsys):
@@ -260,62 +255,8 @@ def test_sigterm_at_once_is_one_line(tmp_path):
         capture_output=True,
         text=True,
         timeout=120,
+        env=gcm_env(),
     )
     assert proc.returncode == 128 + signal.SIGTERM, proc.stderr
     assert proc.stderr.strip().splitlines() == ["interrupted (SIGTERM)"]
     assert list(tmp_path.iterdir()) == []
-
-
-def test_worker_pool_terminates_after_a_worker_died_waiting_for_work():
-    """An idle worker waits for a task holding the task queue's lock; killed then (a
-    SIGTERM to the process group), it never releases it. The engine's pool still
-    terminates (the standard one waits for that lock for ever)."""
-    import threading
-
-    from gcm_pipeline.robot.ik.pool import ForkPool
-
-    pool = ForkPool(1)
-    assert pool.apply(abs, (-3,)) == 3  # the worker is up, now idle in get()
-    worker = pool._pool[0]
-    time.sleep(0.2)
-    os.kill(worker.pid, signal.SIGKILL)
-    worker.join(timeout=10)
-    done = threading.Event()
-
-    def stop() -> None:
-        pool.terminate()
-        pool.join()
-        done.set()
-
-    threading.Thread(target=stop, daemon=True).start()
-    assert done.wait(timeout=30), "terminate() hung on the dead worker's lock"
-
-
-def test_an_interrupt_taken_by_another_thread_waits_for_the_swap_to_finish():
-    """While a run directory is swapped in, Ctrl-C waits, in a process with threads too.
-
-    A signal mask holds a signal in the main thread only: another thread (BLAS,
-    tqdm, a pool's feeder) takes it and Python raises it in the main thread in
-    the middle of the swap, which left the results missing or a hidden leftover.
-    """
-    import threading
-
-    from gcm_pipeline import interrupts
-
-    stop = threading.Event()
-    other = threading.Thread(target=stop.wait, daemon=True)  # a thread that may take it
-    other.start()
-    previous = interrupts.install()
-    steps = []
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            with interrupts.deferred():
-                os.kill(os.getpid(), signal.SIGINT)
-                for i in range(3):
-                    time.sleep(0.05)  # the handler would run here
-                    steps.append(i)
-        assert steps == [0, 1, 2]  # the whole block ran, then the interrupt came
-    finally:
-        interrupts.restore(previous)
-        interrupts.clear()
-        stop.set()

@@ -37,14 +37,23 @@ The ``tool`` section mounts a gripper on a bare flange and defines the grasp
       visual: [...]                    # optional, same format; default: the collision shapes
 
 The shapes, poses and fingers are described in :mod:`gcm_pipeline.robot.tool`
-(:class:`~gcm_pipeline.robot.tool.ToolSpec`). Lengths, positions, the opening
-and a mesh's scale are at most :data:`~gcm_pipeline.bounds.MAX_LENGTH`
-(1,000 m, or a factor) in magnitude, as in a run's config.
+(:class:`~gcm_pipeline.robot.tool.ToolSpec`); the section's models are in
+:mod:`gcm_pipeline.config.tool_spec`. Lengths, positions, the opening and a
+mesh's scale are at most :data:`~gcm_pipeline.bounds.MAX_LENGTH` (1,000 m, or
+a factor) in magnitude, as in a run's config.
 
-Every problem is a :class:`~gcm_pipeline.errors.RobotSpecError` of one line
-naming the spec file and the key (an unknown key in the words of
-:func:`~gcm_pipeline.config.validation.unknown_key`, as for run configs and
-studies); the file is read by :mod:`gcm_pipeline.safe_yaml`.
+The file (read by :mod:`gcm_pipeline.safe_yaml`) is validated by
+:class:`RobotSpecFile`, a frozen pydantic model with the run config's
+conventions: unknown keys are forbidden, numbers are strict (``true`` or
+``"0.1"`` is no number), strings are strings. :func:`build_spec` then makes
+the :class:`~gcm_pipeline.robot.model.RobotSpec` the robot layer takes,
+relative model and mesh paths resolved against the spec's folder, and the
+files it names are checked to exist. Every problem is a
+:class:`~gcm_pipeline.errors.RobotSpecError` of one line
+``robot spec '<path>': <key>: <problem>`` worded by
+:func:`~gcm_pipeline.config.validation.describe`, as for run configs and
+studies (an unknown key names the closest and the valid keys); list indices
+are written ``tool.collision[1].size``.
 """
 
 from __future__ import annotations
@@ -67,6 +76,7 @@ __all__ = [
     "ModelSource",
     "RobotSpecFile",
     "available_robots",
+    "build_spec",
     "load_robot",
     "load_spec",
 ]

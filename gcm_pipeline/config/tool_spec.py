@@ -138,8 +138,11 @@ class _Strict(BaseModel):
 
 
 class PoseSpec(_Strict):
-    """A rigid pose: ``xyz`` [m] and at most one of ``rpy`` [rad], ``rpy_deg``, ``quat``
-    ([w, x, y, z], unit) or ``matrix`` (4 x 4 rigid transform, with the position in it)."""
+    """A rigid pose: ``xyz`` [m] and at most one rotation.
+
+    The rotation is ``rpy`` [rad], ``rpy_deg``, ``quat`` ([w, x, y, z], unit) or
+    ``matrix`` (4 x 4 rigid transform, with the position in it).
+    """
 
     xyz: Point3 | None = None
     rpy: Point3 | None = None

@@ -52,8 +52,10 @@ class Problem:
 
 
 def dotted(loc: Iterable[Any], *, brackets: bool = False) -> str:
-    """A location as a dotted key: ``('sweep', 'objects', 0)`` -> ``sweep.objects.0``
-    (``sweep.objects[0]`` with ``brackets``)."""
+    """A location as a dotted key: ``('sweep', 'objects', 0)`` -> ``sweep.objects.0``.
+
+    With ``brackets`` list indices are ``sweep.objects[0]``.
+    """
     if not brackets:
         return ".".join(str(p) for p in loc)
     return "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".")

@@ -9,7 +9,8 @@ One home for everything a user writes in YAML:
   (robot, ik, environment, approach, retreat, continuity) and
   :mod:`~gcm_pipeline.config.output_sections` (ranking, publish, output);
 * :mod:`~gcm_pipeline.config.robot_spec`: robot specs and their tools
-  (``load_spec``, ``load_robot``, ``available_robots``); imported by name, not
+  (``load_spec``, ``load_robot``, ``available_robots``; the tool section's
+  models are in :mod:`~gcm_pipeline.config.tool_spec`); imported by name, not
   here: it builds robots (Pinocchio), and a config is read without them;
 * :mod:`~gcm_pipeline.config.study`: study files (:class:`StudySpec`,
   :func:`read_study`); planning and running them is :mod:`gcm_pipeline.study`'s;

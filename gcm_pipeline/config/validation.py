@@ -51,9 +51,14 @@ class Problem:
     kind: str
 
 
-def dotted(loc: Iterable[Any]) -> str:
-    """A location as a dotted key: ``('sweep', 'objects', 0)`` -> ``sweep.objects.0``."""
-    return ".".join(str(p) for p in loc)
+def dotted(loc: Iterable[Any], *, brackets: bool = False) -> str:
+    """A location as a dotted key: ``('sweep', 'objects', 0)`` -> ``sweep.objects.0``.
+
+    With ``brackets`` list indices are ``sweep.objects[0]``.
+    """
+    if not brackets:
+        return ".".join(str(p) for p in loc)
+    return "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".")
 
 
 def unknown_key(parent: str, key: Any, valid: Sequence[str], noun: str = "key") -> str:
@@ -82,6 +87,7 @@ def describe(
     model: type[BaseModel],
     *,
     special: Special | None = None,
+    brackets: bool = False,
 ) -> Problem:
     """The first error of ``model.model_validate(data)`` as one line.
 
@@ -95,6 +101,7 @@ def describe(
         model: The model it was validated against (for valid keys and tuple sizes).
         special: A front-end's own wording for some errors (return None to
             fall back to the common one).
+        brackets: Write list indices as ``tool.collision[1]`` (default ``tool.collision.1``).
 
     Returns:
         The problem; its message does not name the file (the caller prefixes it).
@@ -111,25 +118,30 @@ def describe(
         ]
         err = typo[0] if typo else err
     loc = _data_loc(data, list(err["loc"]), keep_last=err["type"] == "missing")
-    key = dotted(loc)
+    key = dotted(loc, brackets=brackets)
     message = None if special is None else special(err, key, loc)
     if message is None:
-        message = _common(err, key, loc, data, model)
+        message = _common(err, key, loc, data, model, brackets)
     return Problem(key=key, loc=tuple(loc), message=message, kind=err["type"])
 
 
 def _common(
-    err: dict[str, Any], key: str, loc: list[Any], data: Any, model: type[BaseModel]
+    err: dict[str, Any],
+    key: str,
+    loc: list[Any],
+    data: Any,
+    model: type[BaseModel],
+    brackets: bool = False,
 ) -> str:
     kind = err["type"]
     if kind == "extra_forbidden" and loc:
         at = _model_at(model, loc[:-1])
         valid = [f.alias or n for n, f in at.model_fields.items()] if at is not None else []
         noun = getattr(at, "key_noun", "key") if at is not None else "key"
-        return unknown_key(dotted(loc[:-1]), loc[-1], valid, noun)
+        return unknown_key(dotted(loc[:-1], brackets=brackets), loc[-1], valid, noun)
     if kind == "missing" and loc and isinstance(loc[-1], int):
         # a tuple with too few values: pydantic reports the first missing index
-        parent = dotted(loc[:-1])
+        parent = dotted(loc[:-1], brackets=brackets)
         got = _value_at(data, loc[:-1])
         n = len(got) if isinstance(got, (list, tuple)) else "?"
         return f"{parent}: expected {_tuple_len(model, loc[:-1])} values, got {n} ({clip(got)})"

@@ -70,7 +70,7 @@ def test_config_sketch_validates() -> None:
             _load_readme_spec(data)
             continue
         if "tool" in data:  # a robot spec's tool section (see Tools)
-            from gcm_pipeline.config.robot_spec import parse_tool
+            from gcm_pipeline.config.tool_spec import parse_tool
 
             tool = parse_tool(page, data["tool"], ROOT)
             assert data["grasp_frame"] and tool.collision

@@ -11,7 +11,8 @@ from helpers import BOTTLE, FLAT, QUICK, ROBOT_SPECS, ROOT, assert_one_line_erro
 
 import gcm_pipeline as gcm
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
-from gcm_pipeline.config.robot_spec import load_robot, load_spec, parse_pose
+from gcm_pipeline.config.robot_spec import load_robot, load_spec
+from gcm_pipeline.config.tool_spec import parse_pose
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import make_checker
@@ -130,32 +131,47 @@ def test_bottle_with_the_ur5_gives_a_plausible_answer(ur5):
     "changes, match",
     [
         (
-            {"collision": [{"name": "cover", "shape": "mesh", "mesh": "nowhere.stl"}]},
+            {
+                "collision": [{"name": "cover", "shape": "mesh", "mesh": "nowhere.stl"}],
+                "fingers": None,
+            },
             r"tool\.collision\[0\]\.mesh: file .*nowhere\.stl' does not exist",
         ),
         (
-            {"collision": [{"name": "cover", "shape": "mesh", "mesh": "empty.stl"}]},
+            {
+                "collision": [{"name": "cover", "shape": "mesh", "mesh": "empty.stl"}],
+                "fingers": None,
+            },
             r"tool\.collision\[0\]\.mesh: file .*empty\.stl' is empty",
         ),
-        ({"tcp": {"quat": [1.0, 0.1, 0, 0]}}, r"tool\.tcp\.quat is not a rotation"),
+        (
+            {"tcp": {"quat": [1.0, 0.1, 0, 0]}},
+            r"tool\.tcp\.quat: \[w, x, y, z\] has norm 1\.00499, not 1: not a rotation",
+        ),
         (
             {"tcp": {"matrix": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0.15], [0, 0, 0, 1]]}},
-            r"tool\.tcp\.matrix is not a rigid transform",
+            r"tool\.tcp\.matrix: not a rigid transform",
         ),
         (
             {"tcp": {"matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.15], [0, 0, 1, 1]]}},
-            r"tool\.tcp\.matrix is not a rigid transform: last row",
+            r"tool\.tcp\.matrix: not a rigid transform: last row",
         ),
         ({"mount": {"rpy_deg": [0, 0, 90], "quat": [1, 0, 0, 0]}}, r"tool\.mount: give one of"),
-        ({"collision": "box"}, r"tool\.collision must be a non-empty list"),
-        ({"fingers": None}, r"tool\.fingers: missing, but shapes finger_left, finger_right"),
+        ({"collision": "box"}, r"tool\.collision: Input should be a valid list \(got 'box'\)"),
+        (
+            {"fingers": None},
+            r"tool: shapes finger_left, finger_right are fingers, but fingers is missing",
+        ),
         ({"flange": None}, r"tool\.flange"),
         ({"gripper": "x"}, r"unknown key 'tool\.gripper'"),
         (
             {"collision": [{"name": "b", "shape": "box", "size": [0.1, -0.1, 0.1]}]},
-            r"tool\.collision\[0\]\.size must be > 0",
+            r"tool\.collision\[0\]\.size\[1\]: Input should be greater than 0 \(got -0\.1\)",
         ),
-        ({"collision": [{"name": "b", "shape": "cone"}]}, r"tool\.collision\[0\]\.shape: unknown"),
+        (
+            {"collision": [{"name": "b", "shape": "cone"}]},
+            r"tool\.collision\[0\]\.shape: unknown value 'cone'; valid: box, capsule, cylinder",
+        ),
     ],
 )
 def test_bad_tool_sections_name_the_key(tmp_path, changes, match):
@@ -299,11 +315,17 @@ def _bottle_config():
 @pytest.mark.parametrize(
     ("changes", "key"),
     [
-        ({"fingers": {"opening": 1e300}}, "tool.fingers.opening: 1e+300 is beyond +-1000"),
-        ({"tcp": {"xyz": [0, 0, 1e30]}}, "tool.tcp.xyz: 1e+30 is beyond +-1000"),
+        (
+            {"fingers": {"opening": 1e300}},
+            "tool.fingers.opening: Input should be less than or equal to 1000 (got 1e+300)",
+        ),
+        (
+            {"tcp": {"xyz": [0, 0, 1e30]}},
+            "tool.tcp.xyz[2]: Input should be less than or equal to 1000 (got 1e+30)",
+        ),
         (
             {"collision": [{"name": "b", "shape": "box", "size": [0.1, 1e20, 0.1]}]},
-            "tool.collision[0].size: 1e+20 is beyond",
+            "tool.collision[0].size[1]: Input should be less than or equal to 1000 (got 1e+20)",
         ),
     ],
 )

@@ -2,6 +2,7 @@
 
 * :mod:`~gcm_pipeline.reach.engine`: :class:`ReachabilityEngine`, the one place
   the decision is made (its module docstring states the sequence), with
+  :mod:`~gcm_pipeline.reach.chunk` (steps 1-5 of one chunk of targets),
   :mod:`~gcm_pipeline.reach.solution_checks` (step 2: collisions, validator,
   moves), :mod:`~gcm_pipeline.reach.alternatives` (steps 3-4: other IK
   solutions), :mod:`~gcm_pipeline.reach.workers` (chunks on worker processes)

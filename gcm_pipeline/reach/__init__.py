@@ -12,7 +12,8 @@
 * :mod:`~gcm_pipeline.reach.moves`: the straight-line approach and retreat,
   planned by :mod:`~gcm_pipeline.reach.path` through the waypoints of
   :mod:`~gcm_pipeline.reach.waypoints`, within the bound of
-  :mod:`~gcm_pipeline.reach.deviation`;
+  :mod:`~gcm_pipeline.reach.deviation`, their collisions checked by
+  :mod:`~gcm_pipeline.reach.move_check`;
 * :mod:`~gcm_pipeline.reach.check`: the engine run on a grasp table;
 * :mod:`~gcm_pipeline.reach.branches`: one IK branch per grasp out of several.
 """

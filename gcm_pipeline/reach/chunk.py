@@ -326,7 +326,7 @@ class ChunkSteps:
             if rows.size:
                 clearance[rows] = self.checker.clearance(ans.q[rows])
             self._spent("clearance", t0)
-        out = {
+        out: dict[str, Any] = {
             "reachable": ans.reachable,
             "reason": ans.reason.astype(str),
             "q": ans.q,

@@ -10,7 +10,7 @@ r = 3.5 cm, h = 22 cm at x = 0.5 m).
 * ``pinocchio_loop``: the reference, ``pin.computeCollisions`` in a Python loop
   over the same configurations with every pair (stop at first collision).
 * ``clearance``: :meth:`CollisionChecker.clearance` on the same configurations.
-* ``approach``: :func:`~gcm_pipeline.reach.path.check_moves` (10 steps over 10 cm) for IK
+* ``approach``: :func:`~gcm_pipeline.reach.move_check.check_moves` (10 steps over 10 cm) for IK
   solutions of top-down grasps over the table, per grasp.
 * ``check_mesh``: the same configurations against a thin-walled mesh object instead of
   the bottle (the mug of ``configs/data/mug.obj``, 3 mm wall, 784 triangles, at the
@@ -43,8 +43,8 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.reach.deviation import gripper_radius
+from gcm_pipeline.reach.move_check import check_moves
 from gcm_pipeline.reach.moves import Move
-from gcm_pipeline.reach.path import check_moves
 from gcm_pipeline.robot.ik import solve_ik
 
 MUG = Path(__file__).resolve().parents[1] / "configs" / "data" / "mug.obj"

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.pipeline.manifold import (
@@ -28,6 +27,7 @@ from gcm_pipeline.pipeline.queries import grasp_manifold
 from gcm_pipeline.pipeline.ranking import rank, select_branches
 from gcm_pipeline.pipeline.reach import ReachabilityCheck, check_reachability
 from gcm_pipeline.pipeline.sources import generate_candidates
+from gcm_pipeline.progress import bar as progress_bar
 from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.rundir import transaction
 from gcm_pipeline.table import GraspTable
@@ -220,10 +220,8 @@ class Pipeline:
         names = [n for n in STEPS if write or n not in WRITE_STEPS]
         expected = iter(names)
         # one bar over the stages (the slow ones, IK and publishing, take seconds);
-        # tqdm hides it when stderr is not a terminal
-        bar = tqdm(
-            total=len(names), desc="gcm", unit="stage", leave=False, disable=not progress or None
-        )
+        # hidden when stderr is not a terminal
+        bar = progress_bar(len(names), "gcm", "stage", enabled=progress, leave=False)
 
         @contextmanager
         def stage(name: str) -> Iterator[None]:

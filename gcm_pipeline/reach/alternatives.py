@@ -25,7 +25,6 @@ __all__ = ["merge_ik", "other_solutions"]
 _MOST_BRANCHES = 16
 
 
-# over 100 lines (a third of it the docstring): one batch from candidates to distinct ranks
 def other_solutions(
     robot: Robot,
     targets: np.ndarray,
@@ -113,6 +112,30 @@ def other_solutions(
         idx, cq = cand.index, cand.q
     if len(idx) == 0:
         return empty
+    return _verified_distinct(
+        robot, targets, q_first, idx, cq, k, separation, position_tolerance, orientation_tolerance
+    )
+
+
+def _verified_distinct(
+    robot: Robot,
+    targets: np.ndarray,
+    q_first: np.ndarray,
+    idx: np.ndarray,
+    cq: np.ndarray,
+    k: int,
+    separation: float,
+    position_tolerance: float,
+    orientation_tolerance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Of candidates ``cq`` of targets ``idx`` (sorted by target), the first ``k`` per target.
+
+    Kept: verified (Pinocchio FK within the tolerances, inside the limits) and
+    distinct from ``q_first`` and from the target's earlier candidates.
+    Returns ``(index, rank, q, errors)`` as :func:`other_solutions`.
+    """
+    nq = robot.nq
+    empty = (np.zeros(0, int), np.zeros(0, int), np.zeros((0, nq)), np.zeros((0, 2)))
     pe, re, inside = verify_solutions(robot, cq, targets[idx])
     good = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
     idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)

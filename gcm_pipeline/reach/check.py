@@ -25,13 +25,12 @@ Reasons (``''`` when reachable): ``out_of_reach``, ``joint_limits``,
 from __future__ import annotations
 
 import logging
-import sys
-import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.progress import Reporter
 from gcm_pipeline.reach.engine import ReachabilityEngine
 from gcm_pipeline.reach.options import ReachOptions
 from gcm_pipeline.robot.ik import IKCandidates, Validator, world_to_base_targets
@@ -44,14 +43,10 @@ if TYPE_CHECKING:
 __all__ = [
     "check_reachability",
     "make_engine",
-    "progress_reporter",
     "world_to_base_targets",
 ]
 
 log = logging.getLogger(__name__)
-
-#: Seconds between progress lines when stderr is not a terminal.
-PROGRESS_INTERVAL_S = 5.0
 
 
 def _neighbours(grasps: GraspTable) -> np.ndarray | None:
@@ -80,76 +75,6 @@ def _neighbours(grasps: GraspTable) -> np.ndarray | None:
     # a row never seeds itself
     vert = np.where(vert == np.arange(n)[:, None], -1, vert)
     return vert
-
-
-class progress_reporter:  # noqa: N801 - used like a function
-    """Per-target progress of the reachability stage: a bar on a terminal, else log lines.
-
-    On a terminal: a tqdm bar with rate and ETA. Otherwise (a log file, CI):
-    a line on stderr every :data:`PROGRESS_INTERVAL_S` seconds, and one at the
-    end when any was written (a short run writes none).
-
-    Args:
-        total: Number of targets.
-        enabled: False: report nothing.
-        desc: Label of the bar and the lines.
-    """
-
-    def __init__(self, total: int, enabled: bool = True, desc: str = "reachability") -> None:
-        self.total = int(total)
-        self.done = 0
-        self.desc = desc
-        self.start = time.perf_counter()
-        self.last = self.start
-        self.bar: Any = None
-        self.lines = 0
-        self.enabled = enabled and total > 0
-        if self.enabled and sys.stderr.isatty():
-            from tqdm.auto import tqdm
-
-            self.bar = tqdm(total=self.total, desc=desc, unit="pose", unit_scale=True, leave=False)
-
-    def __call__(self, count: int) -> None:
-        """``count`` more targets are finished."""
-        if not self.enabled:
-            return
-        self.done += count
-        if self.bar is not None:
-            self.bar.update(count)
-            return
-        now = time.perf_counter()
-        if now - self.last >= PROGRESS_INTERVAL_S and self.done < self.total:
-            self.last = now
-            self.lines += 1
-            print(self.line(now), file=sys.stderr, flush=True)
-
-    def line(self, now: float | None = None) -> str:
-        """``reachability: 12,000/56,294 poses (21 %), 4,100 poses/s, ETA 11 s``."""
-        now = time.perf_counter() if now is None else now
-        elapsed = max(now - self.start, 1e-9)
-        rate = self.done / elapsed
-        left = (self.total - self.done) / rate if rate > 0 else float("nan")
-        pct = 100.0 * self.done / max(self.total, 1)
-        eta = f", ETA {left:.0f} s" if self.done < self.total else f" in {elapsed:.1f} s"
-        return (
-            f"{self.desc}: {self.done:,}/{self.total:,} poses ({pct:.0f} %), "
-            f"{rate:,.0f} poses/s{eta}"
-        )
-
-    def close(self) -> None:
-        """Remove the bar (or write the last line)."""
-        if not self.enabled:
-            return
-        if self.bar is not None:
-            self.bar.close()
-        elif self.lines:
-            print(self.line(), file=sys.stderr, flush=True)
-
-    def __enter__(self) -> progress_reporter:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def make_engine(
@@ -223,7 +148,7 @@ def check_reachability(
             ``checker`` and ``validator`` are then ignored.
         seeds: Optional warm starts (N, K, nq) [rad], tried after the vertices'.
         progress: Report per-target progress (a bar on a terminal, else a log
-            line every few seconds; see :class:`progress_reporter`).
+            line every few seconds; see :class:`~gcm_pipeline.progress.Reporter`).
         return_candidates: Also return every converged IK candidate of the
             first solve (before any check).
 
@@ -250,7 +175,7 @@ def check_reachability(
     own = engine is None
     if engine is None:
         engine = make_engine(robot, opt, checker=checker, validator=validator)
-    report = progress_reporter(len(grasps), enabled=progress)
+    report = Reporter(len(grasps), enabled=progress, desc="reachability", unit="pose")
     try:
         res = engine.run(
             targets,

@@ -72,23 +72,15 @@ and :meth:`~ReachabilityEngine.run` it on many target sets.
 from __future__ import annotations
 
 import multiprocessing as mp
-import time
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.reach.alternatives import merge_ik, other_solutions
+from gcm_pipeline.reach.chunk import ChunkSteps
 from gcm_pipeline.reach.moves import Move
-from gcm_pipeline.reach.options import shared_ik_options
-from gcm_pipeline.reach.result import (
-    AT_APPROACH,
-    AT_GRASP,
-    Branches,
-    CheckResult,
-    ReachResult,
-)
+from gcm_pipeline.reach.result import Branches, ReachResult
 from gcm_pipeline.reach.solution_checks import SolutionChecks
 from gcm_pipeline.reach.workers import (
     POOLS,
@@ -98,13 +90,7 @@ from gcm_pipeline.reach.workers import (
     solve_in_worker,
 )
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.ik import (
-    IKCandidates,
-    IKResult,
-    PinocchioIKOptions,
-    check_targets,
-    solve_ik,
-)
+from gcm_pipeline.robot.ik import IKCandidates, check_targets, solve_ik
 from gcm_pipeline.robot.ik.backend import check_neighbours, check_seeds
 from gcm_pipeline.robot.ik.pool import ForkPool
 from gcm_pipeline.robot.ik.pool import cores as _cores
@@ -113,25 +99,11 @@ from gcm_pipeline.robot.model import Robot
 
 __all__ = ["ReachabilityEngine", "available_cores"]
 
-#: Seeds of the re-solve (step 3) for the pinocchio backend: library
-#: neighbours and random restarts beyond the first solve's.
-_RESOLVE_LIBRARY = 8
-_RESOLVE_RESTARTS = 0
-
-#: Library seeds of a row whose neighbours all failed IK (step 1; no random restarts).
-_HOPELESS_LIBRARY = 2
 #: IK reasons of a neighbour that tried its whole seed schedule and failed.
 _RAN_EVERY_SEED = ("no_ik", "joint_limits")
 
-#: Two solutions closer than this in every joint are the same branch [rad].
-_SAME_SOLUTION = 1e-3
-
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
-
-#: Seeds of the search for more branches (step 4, pinocchio backend).
-_BRANCH_LIBRARY = 16
-_BRANCH_RESTARTS = 8
 
 
 def available_cores() -> int:
@@ -139,7 +111,7 @@ def available_cores() -> int:
     return _cores()
 
 
-class ReachabilityEngine:
+class ReachabilityEngine(ChunkSteps):
     """IK, collision, approach and retreat checks of grasp poses (see the module doc).
 
     Args:
@@ -257,295 +229,8 @@ class ReachabilityEngine:
             f"workers={self.workers}, chunk_size={self.chunk_size})"
         )
 
-    # --- step 2 ------------------------------------------------------------------------
-
-    def check_grasp(self, q: np.ndarray) -> np.ndarray:
-        """The checks at the grasp of M solutions: collisions, then the validator.
-
-        See :meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.at_grasp`.
-        """
-        return self._checks.at_grasp(q)
-
-    def check(
-        self, targets: np.ndarray, q: np.ndarray, at_grasp: np.ndarray | None = None
-    ) -> CheckResult:
-        """Step 2 for M solutions: collisions, validator, approach, retreat.
-
-        See :meth:`~gcm_pipeline.reach.solution_checks.SolutionChecks.check`.
-        """
-        return self._checks.check(targets, q, at_grasp)
-
-    def _spent(self, step: str, since: float) -> None:
-        """Add the CPU time since ``since`` to ``timings[step]`` [s]."""
-        self.timings[step] = self.timings.get(step, 0.0) + time.process_time() - since
-
-    # --- step 3 ------------------------------------------------------------------------
-
-    def _alternatives(
-        self,
-        targets: np.ndarray,
-        q_first: np.ndarray,
-        count: int | None = None,
-        separation: float = _SAME_SOLUTION,
-        library: int = _RESOLVE_LIBRARY,
-        restarts: int = _RESOLVE_RESTARTS,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Other verified, distinct IK solutions of M targets, in seed order.
-
-        See :func:`~gcm_pipeline.reach.alternatives.other_solutions`; ``count``
-        None: ``alternatives`` per target (every closed-form branch of a 6R arm).
-        """
-        return other_solutions(
-            self.robot,
-            targets,
-            q_first,
-            count=self.alternatives if count is None else int(count),
-            every_branch=count is None,
-            backend=self.backend,
-            position_tolerance=self.position_tolerance,
-            orientation_tolerance=self.orientation_tolerance,
-            ik_options=self.ik_options,
-            shared_options=shared_ik_options(self.backend, self.ik_options),
-            separation=separation,
-            library=library,
-            restarts=restarts,
-        )
-
-    def _branches(
-        self,
-        targets: np.ndarray,
-        reachable: np.ndarray,
-        q: np.ndarray,
-        q_pre: np.ndarray,
-        q_ret: np.ndarray,
-    ) -> dict[str, np.ndarray]:
-        """Step 4: up to ``solutions`` branches per reachable target (arrays ``b_*``)."""
-        m, nq, k = len(targets), self.robot.nq, self.solutions
-        bq = np.full((m, k, nq), np.nan)
-        bpre = np.full((m, k, nq), np.nan)
-        bret = np.full((m, k, nq), np.nan)
-        count = reachable.astype(np.int64)
-        bq[:, 0], bpre[:, 0], bret[:, 0] = q, q_pre, q_ret
-        rows = np.flatnonzero(reachable)
-        if rows.size:
-            idx, rank, alt_q, _ = self._alternatives(
-                targets[rows],
-                q[rows],
-                count=2 * (k - 1),
-                separation=self.solution_separation,
-                library=_BRANCH_LIBRARY,
-                restarts=_BRANCH_RESTARTS,
-            )
-            if len(idx):
-                chk = self.check(targets[rows[idx]], alt_q)
-                ok = np.flatnonzero(chk.passed)  # sorted by target, then seed order
-                i = idx[ok]
-                slot = 1 + np.arange(len(i)) - np.searchsorted(i, i, side="left")
-                keep = slot < k
-                r, sl, o = rows[i[keep]], slot[keep], ok[keep]
-                bq[r, sl] = alt_q[o]
-                bpre[r, sl] = chk.q_pregrasp[o]
-                bret[r, sl] = chk.q_retreat[o]
-                np.maximum.at(count, r, sl + 1)
-        bclear = np.full((m, k), np.nan)
-        if self.checker is not None:
-            extra = np.isfinite(bq[:, 1:, 0])
-            if extra.any():
-                r, j = np.nonzero(extra)
-                bclear[r, j + 1] = self.checker.clearance(bq[r, j + 1])
-        return {
-            "b_q": bq,
-            "b_q_pregrasp": bpre,
-            "b_q_retreat": bret,
-            "b_clearance": bclear,
-            "b_count": count,
-        }
-
-    # --- one chunk: steps 1-5 -------------------------------------------------------------
-
-    def _first_solve(
-        self,
-        targets: np.ndarray,
-        seeds: np.ndarray | None,
-        return_candidates: bool,
-        no_restarts: np.ndarray | None,
-    ) -> IKResult:
-        """Step 1: the IK of every target; ``no_restarts`` rows without random restarts."""
-
-        def ik(rows: np.ndarray, **extra: Any) -> IKResult:
-            return solve_ik(
-                self.robot,
-                targets[rows],
-                self.backend,
-                position_tolerance=self.position_tolerance,
-                orientation_tolerance=self.orientation_tolerance,
-                seeds=None if seeds is None else seeds[rows],
-                return_all=return_candidates,
-                **{**self.ik_options, **extra},
-            )
-
-        m = len(targets)
-        if no_restarts is None or not np.any(no_restarts):
-            return ik(np.arange(m))
-        parts = [np.flatnonzero(~no_restarts), np.flatnonzero(no_restarts)]
-        small: dict[str, Any] = {"random_restarts": 0}
-        if self.backend == "pinocchio":
-            lib = self.ik_options.get("library_seeds", PinocchioIKOptions.library_seeds)
-            small["library_seeds"] = min(int(lib), _HOPELESS_LIBRARY)
-        results = [ik(parts[0]), ik(parts[1], **small)]
-        return merge_ik(parts, results, m, self.robot.nq)
-
-    def solve(
-        self,
-        targets: np.ndarray,
-        seeds: np.ndarray | None = None,
-        return_candidates: bool = False,
-        no_restarts: np.ndarray | None = None,
-    ) -> dict[str, Any]:
-        """Steps 1-5 for one chunk of validated targets (see :meth:`run`).
-
-        Args:
-            targets: Grasp poses (M, 4, 4) in the base frame [m].
-            seeds: Warm starts (M, K, nq) [rad] (NaN = none) or None.
-            return_candidates: Also return step 1's converged candidates.
-            no_restarts: (M,) bool, targets whose IK gets no random restarts and
-                fewer library seeds (every neighbour failed IK after its own
-                full schedule), or None.
-
-        Returns:
-            The :class:`ReachResult` fields as a dict (``candidates`` as a tuple
-            of arrays or None).
-        """
-        # the engine's parallelism is its worker processes: BLAS runs on one thread
-        # (its threads only contend with them, and the matrices here are small)
-        with blas_controller().limit(limits=1, user_api="blas"):
-            return self._solve(targets, seeds, return_candidates, no_restarts)
-
-    # over 100 lines: steps 1-5 of a chunk share their per-target arrays through `record`
-    def _solve(
-        self,
-        targets: np.ndarray,
-        seeds: np.ndarray | None,
-        return_candidates: bool,
-        no_restarts: np.ndarray | None,
-    ) -> dict[str, Any]:
-        nq = self.robot.nq
-        m = targets.shape[0]
-        self.timings = {}
-        t0 = time.process_time()
-        res = self._first_solve(targets, seeds, return_candidates, no_restarts)
-        self._spent("ik", t0)
-        reachable = np.zeros(m, dtype=bool)
-        reason = res.reason.astype(object)
-        q = np.full((m, nq), np.nan)
-        pos_err, rot_err = res.pos_err.copy(), res.rot_err.copy()
-        q_pre = np.full((m, nq), np.nan)
-        q_ret = np.full((m, nq), np.nan)
-        q_rejected = np.full((m, nq), np.nan)
-        best = np.full(m, -1)
-
-        def record(
-            rows: np.ndarray, qs: np.ndarray, err: np.ndarray | None, chk: CheckResult | None = None
-        ) -> np.ndarray:
-            """Check solutions ``qs`` of ``rows``; keep passes and the furthest failures.
-
-            ``chk``: their check, if already done.
-            """
-            if chk is None:
-                chk = self.check(targets[rows], qs)
-            ok = chk.passed
-            reachable[rows[ok]] = True
-            reason[rows[ok]] = ""
-            q[rows[ok]] = qs[ok]
-            q_pre[rows[ok]] = chk.q_pregrasp[ok]
-            q_ret[rows[ok]] = chk.q_retreat[ok]
-            if err is not None:
-                pos_err[rows[ok]], rot_err[rows[ok]] = err[ok, 0], err[ok, 1]
-            further = ~ok & (chk.stage > best[rows])
-            reason[rows[further]] = chk.reason[further]
-            q_rejected[rows[further]] = qs[further]
-            best[rows[further]] = chk.stage[further]
-            return rows[~ok]
-
-        # steps 1-2: the first solution of every target
-        failing = record(np.flatnonzero(res.success), res.q[res.success], None)
-        # step 3: other branches of the targets whose solution failed a check, except
-        # where the move it failed ends beyond reach (no branch can pass it)
-        failing = failing[~self._checks.hopeless(targets[failing], best[failing])]
-        if failing.size and self.alternatives > 0:
-            t0 = time.process_time()
-            idx, rank, alt_q, alt_err = self._alternatives(targets[failing], q_rejected[failing])
-            self._spent("alternatives", t0)
-            # in rank order: a target's first passing alternative is its answer. The
-            # first alternatives are checked alone; of the later ones, the checks at the
-            # grasp run in one batch, then the moves (the costly part) rank by rank: a
-            # target's next collision-free alternative only while none has passed
-            who = failing[idx]  # the target of each alternative
-            sel = np.flatnonzero((rank == 0) & ~reachable[who])
-            if sel.size:
-                record(
-                    who[sel], alt_q[sel], alt_err[sel], self.check(targets[who[sel]], alt_q[sel])
-                )
-            sel = np.flatnonzero((rank > 0) & ~reachable[who])
-            if sel.size:
-                at_grasp = self.check_grasp(alt_q[sel])
-                stage = np.where(at_grasp == "", AT_APPROACH, AT_GRASP)
-                s = np.flatnonzero(stage == AT_GRASP)  # failed at the grasp: the reasons
-                if s.size:
-                    nan = np.full((s.size, nq), np.nan)
-                    fails = np.zeros(s.size, dtype=bool)
-                    chk = CheckResult(fails, stage[s], at_grasp[s].astype(str), nan, nan)
-                    record(who[sel[s]], alt_q[sel[s]], alt_err[sel[s]], chk)
-                pending = np.flatnonzero(stage == AT_APPROACH)  # positions in sel, rank order
-                while pending.size:
-                    pending = pending[~reachable[who[sel[pending]]]]
-                    if pending.size == 0:
-                        break
-                    owner = who[sel[pending]]
-                    first = np.r_[True, owner[1:] != owner[:-1]]
-                    take, pending = pending[first], pending[~first]
-                    rows = sel[take]
-                    chk = self.check(targets[who[rows]], alt_q[rows], at_grasp[take])
-                    record(who[rows], alt_q[rows], alt_err[rows], chk)
-        q_rejected[reachable] = np.nan
-        # step 4: more branches of the reachable targets
-        branches = (
-            self._branches(targets, reachable, q, q_pre, q_ret) if self.solutions > 1 else None
-        )
-        # step 5: clearance of the reachable rows (and of every branch)
-        clearance = None
-        if self.checker is not None:
-            t0 = time.process_time()
-            clearance = np.full(m, np.nan)
-            rows = np.flatnonzero(reachable)
-            if rows.size:
-                clearance[rows] = self.checker.clearance(q[rows])
-            self._spent("clearance", t0)
-        out = {
-            "reachable": reachable,
-            "reason": reason.astype(str),
-            "q": q,
-            "pos_err": pos_err,
-            "rot_err": rot_err,
-            "clearance": clearance,
-            "q_pregrasp": q_pre,
-            "q_retreat": q_ret,
-            "q_rejected": q_rejected,
-            "candidates": None,
-            "timings": dict(self.timings),
-        }
-        if branches is not None:
-            out.update(branches)
-            if clearance is not None:
-                out["b_clearance"][:, 0] = clearance
-        if return_candidates and res.candidates is not None:
-            c = res.candidates
-            out["candidates"] = (c.index, c.q, c.reason)
-        return out
-
     # --- the whole run ---------------------------------------------------------------------
 
-    # over 100 lines: the two phases (rows without, then with, neighbours) fill one set of arrays
     def run(
         self,
         targets: Any,
@@ -579,26 +264,7 @@ class ReachabilityEngine:
         seed_arr = check_seeds(seeds, n, nq)
         nb = check_neighbours(neighbours, n)
         nb = None if nb is None else nb.astype(int)
-        out: dict[str, Any] = {
-            "reachable": np.zeros(n, dtype=bool),
-            "reason": np.full(n, "", dtype=object),
-            "q": np.full((n, nq), np.nan),
-            "pos_err": np.full(n, np.nan),
-            "rot_err": np.full(n, np.nan),
-            "clearance": np.full(n, np.nan) if self.checker is not None else None,
-            "q_pregrasp": np.full((n, nq), np.nan),
-            "q_retreat": np.full((n, nq), np.nan),
-            "q_rejected": np.full((n, nq), np.nan),
-        }
-        k = self.solutions
-        if k > 1:
-            out.update(
-                b_q=np.full((n, k, nq), np.nan),
-                b_q_pregrasp=np.full((n, k, nq), np.nan),
-                b_q_retreat=np.full((n, k, nq), np.nan),
-                b_clearance=np.full((n, k), np.nan),
-                b_count=np.zeros(n, dtype=np.int64),
-            )
+        out = _run_arrays(n, nq, self.solutions, self.checker is not None)
         cands: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         timings: dict[str, float] = {}
         if nb is None:
@@ -613,13 +279,7 @@ class ReachabilityEngine:
             hopeless = None
             if phase == 1:
                 assert nb is not None
-                ref = nb[rows]
-                warm = np.where((ref >= 0)[:, :, None], out["q"][np.clip(ref, 0, None)], np.nan)
-                sub = warm if sub is None else np.concatenate([warm, sub], axis=1)
-                # a short seed schedule where every neighbour failed IK after its own
-                # full one (out of reach: no seed ran, so it does not count)
-                no_ik = np.isin(out["reason"][np.clip(ref, 0, None)], _RAN_EVERY_SEED)
-                hopeless = np.all(no_ik | (ref < 0), axis=1) & np.any(ref >= 0, axis=1)
+                sub, hopeless = _neighbour_seeds(nb[rows], out, sub)
             chunks = [
                 (
                     rows[at],
@@ -643,38 +303,8 @@ class ReachabilityEngine:
                 if progress is not None:
                     progress(int(chunk_rows.size))
         self.timings = timings
-        candidates = None
-        if return_candidates:
-            if cands:
-                index = np.concatenate([c[0] for c in cands]).astype(int)
-                cq = np.concatenate([c[1] for c in cands]).reshape(-1, nq)
-                cr = np.concatenate([c[2] for c in cands]).astype(str)
-            else:
-                index, cq, cr = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
-            order = np.argsort(index, kind="stable")
-            candidates = IKCandidates(index[order], cq[order], cr[order])
-        branches = None
-        if k > 1:
-            branches = Branches(
-                q=out["b_q"],
-                q_pregrasp=out["b_q_pregrasp"],
-                q_retreat=out["b_q_retreat"],
-                clearance=out["b_clearance"] if self.checker is not None else None,
-                count=out["b_count"],
-            )
-        return ReachResult(
-            reachable=out["reachable"],
-            reason=out["reason"].astype(str),
-            q=out["q"],
-            pos_err=out["pos_err"],
-            rot_err=out["rot_err"],
-            clearance=out["clearance"],
-            q_pregrasp=out["q_pregrasp"],
-            q_retreat=out["q_retreat"],
-            q_rejected=out["q_rejected"],
-            candidates=candidates,
-            branches=branches,
-        )
+        candidates = _gather_candidates(cands, nq) if return_candidates else None
+        return _reach_result(out, candidates, self.solutions, self.checker is not None)
 
     # --- workers --------------------------------------------------------------------------
 
@@ -731,3 +361,85 @@ class ReachabilityEngine:
         state = dict(self.__dict__)
         state["_pool"], state["_pool_size"] = None, 0
         return state
+
+
+def _run_arrays(n: int, nq: int, k: int, clearance: bool) -> dict[str, Any]:
+    """The result arrays of a run of N targets, before any chunk (``k`` branches kept)."""
+    out: dict[str, Any] = {
+        "reachable": np.zeros(n, dtype=bool),
+        "reason": np.full(n, "", dtype=object),
+        "q": np.full((n, nq), np.nan),
+        "pos_err": np.full(n, np.nan),
+        "rot_err": np.full(n, np.nan),
+        "clearance": np.full(n, np.nan) if clearance else None,
+        "q_pregrasp": np.full((n, nq), np.nan),
+        "q_retreat": np.full((n, nq), np.nan),
+        "q_rejected": np.full((n, nq), np.nan),
+    }
+    if k > 1:
+        out.update(
+            b_q=np.full((n, k, nq), np.nan),
+            b_q_pregrasp=np.full((n, k, nq), np.nan),
+            b_q_retreat=np.full((n, k, nq), np.nan),
+            b_clearance=np.full((n, k), np.nan),
+            b_count=np.zeros(n, dtype=np.int64),
+        )
+    return out
+
+
+def _neighbour_seeds(
+    ref: np.ndarray, out: dict[str, Any], sub: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Seeds and short-schedule rows of the rows with neighbours ``ref`` (M, K).
+
+    The neighbours' final solutions come first, then the given seeds ``sub``; a
+    row gets a short seed schedule where every neighbour failed IK after its own
+    full one (out of reach: no seed ran, so it does not count).
+    """
+    warm = np.where((ref >= 0)[:, :, None], out["q"][np.clip(ref, 0, None)], np.nan)
+    seeds = warm if sub is None else np.concatenate([warm, sub], axis=1)
+    no_ik = np.isin(out["reason"][np.clip(ref, 0, None)], _RAN_EVERY_SEED)
+    hopeless = np.all(no_ik | (ref < 0), axis=1) & np.any(ref >= 0, axis=1)
+    return seeds, hopeless
+
+
+def _gather_candidates(
+    cands: list[tuple[np.ndarray, np.ndarray, np.ndarray]], nq: int
+) -> IKCandidates:
+    """The chunks' IK candidates (rows of the run), sorted by row."""
+    if cands:
+        index = np.concatenate([c[0] for c in cands]).astype(int)
+        cq = np.concatenate([c[1] for c in cands]).reshape(-1, nq)
+        cr = np.concatenate([c[2] for c in cands]).astype(str)
+    else:
+        index, cq, cr = np.zeros(0, int), np.zeros((0, nq)), np.zeros(0, str)
+    order = np.argsort(index, kind="stable")
+    return IKCandidates(index[order], cq[order], cr[order])
+
+
+def _reach_result(
+    out: dict[str, Any], candidates: IKCandidates | None, k: int, clearance: bool
+) -> ReachResult:
+    """The :class:`ReachResult` of a run's filled arrays (``k`` branches kept)."""
+    branches = None
+    if k > 1:
+        branches = Branches(
+            q=out["b_q"],
+            q_pregrasp=out["b_q_pregrasp"],
+            q_retreat=out["b_q_retreat"],
+            clearance=out["b_clearance"] if clearance else None,
+            count=out["b_count"],
+        )
+    return ReachResult(
+        reachable=out["reachable"],
+        reason=out["reason"].astype(str),
+        q=out["q"],
+        pos_err=out["pos_err"],
+        rot_err=out["rot_err"],
+        clearance=out["clearance"],
+        q_pregrasp=out["q_pregrasp"],
+        q_retreat=out["q_retreat"],
+        q_rejected=out["q_rejected"],
+        candidates=candidates,
+        branches=branches,
+    )

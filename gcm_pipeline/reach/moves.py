@@ -15,7 +15,7 @@ direction given in the base or the grasp frame (see :class:`Move`). Both are
 computed from the grasp outwards.
 
 The joint path of a move is planned by :func:`~gcm_pipeline.reach.path.plan_moves`
-and checked for collisions by :func:`~gcm_pipeline.reach.path.check_moves`;
+and checked for collisions by :func:`~gcm_pipeline.reach.move_check.check_moves`;
 the bound of its deviation from the line is :mod:`~gcm_pipeline.reach.deviation`.
 """
 
@@ -120,7 +120,7 @@ class MovePlan(NamedTuple):
 
 
 class MoveResult(NamedTuple):
-    """Kinematics and collisions of N moves (:func:`~gcm_pipeline.reach.path.check_moves`).
+    """Kinematics and collisions of N moves (:func:`~gcm_pipeline.reach.move_check.check_moves`).
 
     Attributes:
         ok: (N,) bool, the move is followable and collision-free at every grid point.

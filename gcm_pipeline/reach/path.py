@@ -1,4 +1,4 @@
-r"""Joint paths of straight-line moves, and their collision checks.
+r"""Joint paths of straight-line moves: waypoints on the line, bounded deviation between them.
 
 The joint path is piecewise linear through waypoints (knots) on a grid
 :math:`SUBSTEPS` times finer than the steps :math:`s_k = k / \mathrm{steps}`
@@ -29,31 +29,26 @@ The joint path is piecewise linear through waypoints (knots) on a grid
 
 The bound is computed on the actual joint path, so the path is sound whatever
 its waypoints are: every gripper point stays within ``max_deviation`` of its
-line. A move whose first path collides at a grid point gets a second path with
-a waypoint at every grid point (:func:`check_moves`), so that a collision found
-does not depend on where the first path's waypoints fell.
-
-Collisions are checked by :func:`check_moves` at every grid point
-:math:`s_k, k \ge 1` of the joint path (the grasp itself, :math:`k = 0`, is the
-caller's), with the check the caller gives (the approach: no contact allowed;
-the retreat: the gripper holds the object, which moves with it).
+line. The paths' collisions are checked by
+:func:`~gcm_pipeline.reach.move_check.check_moves`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.reach.deviation import lever_arms, segment_bounds
-from gcm_pipeline.reach.moves import Move, MovePlan, MoveResult, unreachable_ends
+from gcm_pipeline.reach.moves import Move, MovePlan, unreachable_ends
 from gcm_pipeline.reach.waypoints import end_of_move, line_waypoints
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import Robot
 
-__all__ = ["SUBSTEPS", "check_moves", "plan_moves"]
+__all__ = ["SUBSTEPS", "plan_moves"]
 
 #: Samples per unit of the segment parameter are chosen so that the h^2 terms
 #: of the deviation bound use at most this share of ``max_deviation``.
@@ -67,7 +62,6 @@ SUBSTEPS = 8
 _REACH = 0.025
 
 
-# over 100 lines: the closures (fail, advance, check_grid, follow) share the batch's arrays
 def plan_moves(
     robot: Robot,
     poses: Any,
@@ -97,7 +91,8 @@ def plan_moves(
         grid_knots: Start with a waypoint at every grid point (on the line
             within the waypoint tolerance) instead of none.
         knot_check: With ``grid_knots``: ``knot_check(q, move) -> reasons``
-            (as ``collisions`` of :func:`check_moves`) is called on the grid
+            (as ``collisions`` of
+            :func:`~gcm_pipeline.reach.move_check.check_moves`) is called on the grid
             waypoints found, in at most two batches (see ``check_first``); a
             move fails at its first waypoint that gets a reason, with that
             reason (the grid waypoints are the path's grid points). Ignored
@@ -116,22 +111,8 @@ def plan_moves(
     Raises:
         InputError: Arrays of the wrong shape.
     """
-    tg = np.asarray(poses, dtype=float)
-    if tg.ndim == 2:
-        tg = tg[None]
-    qg = np.asarray(q_start, dtype=float)
-    if qg.ndim == 1:
-        qg = qg[None]
+    tg, qg, check_first = _checked_inputs(robot, poses, q_start, check_first)
     n, nq, steps = tg.shape[0], robot.nq, move.steps
-    if tg.shape != (n, 4, 4) or qg.shape != (n, nq):
-        raise InputError(
-            f"poses must be (N, 4, 4) and q_start (N, {nq}) with the same N, "
-            f"got {tg.shape} and {qg.shape}"
-        )
-    if check_first is not None:
-        check_first = np.asarray(check_first)
-        if check_first.shape != (n,) or not np.issubdtype(check_first.dtype, np.integer):
-            raise InputError(f"check_first must be (N,) = ({n},) ints, got {check_first.shape}")
     ok = np.all(np.isfinite(qg), axis=1) & np.all(np.isfinite(tg), axis=(1, 2))
     reason = np.where(ok, "", "invalid").astype(object)
     failed = np.zeros(n, dtype=int)
@@ -148,8 +129,67 @@ def plan_moves(
         knots[~ok] = np.nan
         return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
 
+    batch = _MoveBatch(
+        robot=robot,
+        move=move,
+        tg=tg,
+        qg=qg,
+        offsets=move.offsets(tg),
+        ok=ok,
+        reason=reason,
+        failed=failed,
+        knots=knots,
+        failed_at=np.zeros(n, dtype=int),
+        gripper_radius=gripper_radius,
+        position_tolerance=position_tolerance,
+        orientation_tolerance=orientation_tolerance,
+        backend=backend,
+        ik_options=_end_ik_options(backend, ik_options),
+        grid_knots=grid_knots,
+        knot_check=knot_check,
+        check_first=check_first,
+    )
+    _reach_ends(batch)
+    _settle_segments(batch, deviation, waypoints)
+    _grid_path(batch, q_path)
+    q_path[~ok] = np.nan
+    knots[~ok] = np.nan
+    deviation[~ok] = np.nan
+    waypoints[~ok] = 0
+    return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
+
+
+def _checked_inputs(
+    robot: Robot, poses: Any, q_start: Any, check_first: Any
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``poses`` (N, 4, 4), ``q_start`` (N, nq) and ``check_first`` (N,) ints or None, checked.
+
+    Raises:
+        InputError: Arrays of the wrong shape.
+    """
+    tg = np.asarray(poses, dtype=float)
+    if tg.ndim == 2:
+        tg = tg[None]
+    qg = np.asarray(q_start, dtype=float)
+    if qg.ndim == 1:
+        qg = qg[None]
+    n, nq = tg.shape[0], robot.nq
+    if tg.shape != (n, 4, 4) or qg.shape != (n, nq):
+        raise InputError(
+            f"poses must be (N, 4, 4) and q_start (N, {nq}) with the same N, "
+            f"got {tg.shape} and {qg.shape}"
+        )
+    if check_first is not None:
+        check_first = np.asarray(check_first)
+        if check_first.shape != (n,) or not np.issubdtype(check_first.dtype, np.integer):
+            raise InputError(f"check_first must be (N,) = ({n},) ints, got {check_first.shape}")
+    return tg, qg, check_first
+
+
+def _end_ik_options(backend: str, ik_options: dict[str, Any]) -> dict[str, Any]:
+    """The options of the end's IK: seeded with the grasp's configuration only, unless given."""
     if backend == "pinocchio":
-        ik_options = {
+        return {
             "library_seeds": 0,
             "random_restarts": 0,
             "home_seed": False,
@@ -157,29 +197,74 @@ def plan_moves(
             "analytic_samples": 0,  # closed form at and around the last waypoint's joint 7
             **ik_options,
         }
-    elif backend == "mink":
-        ik_options = {"library_seeds": 0, "random_restarts": 0, "home_seed": False, **ik_options}
-    offsets = move.offsets(tg)
-    tol = move.max_deviation
+    if backend == "mink":
+        return {"library_seeds": 0, "random_restarts": 0, "home_seed": False, **ik_options}
+    return ik_options
 
-    def fail(rows: np.ndarray, at: np.ndarray, why: Any) -> None:
+
+@dataclass
+class _MoveBatch:
+    """One batch of N moves being planned: its inputs and the arrays the steps fill in.
+
+    ``ok``, ``reason`` and ``failed`` are the moves' verdicts so far (a move
+    fails once, at its first failure); ``knots`` (N, fine steps + 1, nq) the
+    waypoints found (NaN: none); ``failed_at`` the fine step where a move's
+    line following stopped.
+    """
+
+    robot: Robot
+    move: Move
+    tg: np.ndarray
+    qg: np.ndarray
+    offsets: np.ndarray
+    ok: np.ndarray
+    reason: np.ndarray
+    failed: np.ndarray
+    knots: np.ndarray
+    failed_at: np.ndarray
+    gripper_radius: float
+    position_tolerance: float
+    orientation_tolerance: float
+    backend: str
+    ik_options: dict[str, Any]
+    grid_knots: bool
+    knot_check: Callable[[np.ndarray, np.ndarray], Any] | None
+    check_first: np.ndarray | None
+
+    @property
+    def n(self) -> int:
+        """Moves in the batch."""
+        return self.tg.shape[0]
+
+    @property
+    def steps(self) -> int:
+        """Grid steps of every move."""
+        return self.move.steps
+
+    @property
+    def fine_steps(self) -> int:
+        """Positions of waypoints: ``SUBSTEPS`` per grid step."""
+        return self.move.steps * SUBSTEPS
+
+    def fail(self, rows: np.ndarray, at: np.ndarray, why: Any) -> None:
         """Rows fail at fine positions ``at`` (the first per row counts)."""
         if rows.size == 0:
             return
-        first = np.full(n, fine_steps)
+        first = np.full(self.n, self.fine_steps)
         np.minimum.at(first, rows, at)
         bad = np.unique(rows)
-        ok[bad] = False
-        reason[bad] = why if isinstance(why, str) else why[bad]
-        failed[bad] = np.minimum(first[bad] // sub + 1, steps)
+        self.ok[bad] = False
+        self.reason[bad] = why if isinstance(why, str) else why[bad]
+        self.failed[bad] = np.minimum(first[bad] // SUBSTEPS + 1, self.steps)
 
-    def advance(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray, pieces: int) -> np.ndarray:
+    def advance(self, rows: np.ndarray, lo: np.ndarray, hi: np.ndarray, pieces: int) -> np.ndarray:
         """Waypoints ``lo + 1 .. hi`` (per row) of the line cut in ``pieces``.
 
         Each starts from the previous one (waypoint 0 is the grasp); a waypoint
         that does not converge stops its row. Returns (M,) bool: the rows that
         got them all.
         """
+        fine_steps, knots = self.fine_steps, self.knots
         alive = np.ones(rows.size, dtype=bool)
         for i in range(1, pieces + 1):
             sel = np.flatnonzero(alive & (lo < i) & (i <= hi))
@@ -187,48 +272,51 @@ def plan_moves(
                 continue
             r = rows[sel]
             at, prev = (i * fine_steps) // pieces, ((i - 1) * fine_steps) // pieces
-            target = tg[r].copy()
-            target[:, :3, 3] += (at / fine_steps) * offsets[r]
+            target = self.tg[r].copy()
+            target[:, :3, 3] += (at / fine_steps) * self.offsets[r]
             seed = knots[r, prev]
             if at < fine_steps:
-                q_new, conv = line_waypoints(robot, seed, target, tol, gripper_radius)
+                q_new, conv = line_waypoints(
+                    self.robot, seed, target, self.move.max_deviation, self.gripper_radius
+                )
             else:
                 res = solve_ik(
-                    robot,
+                    self.robot,
                     target,
-                    backend,
-                    position_tolerance=position_tolerance,
-                    orientation_tolerance=orientation_tolerance,
+                    self.backend,
+                    position_tolerance=self.position_tolerance,
+                    orientation_tolerance=self.orientation_tolerance,
                     seeds=seed[:, None, :],
-                    **ik_options,
+                    **self.ik_options,
                 )
                 q_new, conv = res.q, res.success
             knots[r[conv], at] = q_new[conv]
-            failed_at[r[~conv]] = prev
+            self.failed_at[r[~conv]] = prev
             alive[sel[~conv]] = False
         return alive
 
-    def check_grid(rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+    def check_grid(self, rows: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
         """``knot_check`` on the grid waypoints ``lo + 1 .. hi`` found (per row), one batch.
 
         A row fails at its first waypoint the check rejects.
         """
-        k = np.arange(1, steps + 1)
-        grid = knots[rows[:, None], k * sub]  # (m, steps, nq), NaN where not found
+        sub = SUBSTEPS
+        k = np.arange(1, self.steps + 1)
+        grid = self.knots[rows[:, None], k * sub]  # (m, steps, nq), NaN where not found
         found = np.isfinite(grid[:, :, 0]) & (k > lo[:, None]) & (k <= hi[:, None])
         owner = np.broadcast_to(rows[:, None], found.shape)
         why = np.full(found.shape, "", dtype=object)
         if found.any():
-            assert knot_check is not None
-            why[found] = np.asarray(knot_check(grid[found], owner[found]), dtype=object)
+            assert self.knot_check is not None
+            why[found] = np.asarray(self.knot_check(grid[found], owner[found]), dtype=object)
         hit = why != ""
         bad = np.flatnonzero(hit.any(axis=1))
         first = hit[bad].argmax(axis=1)
-        row_why = np.full(n, "", dtype=object)
+        row_why = np.full(self.n, "", dtype=object)
         row_why[rows[bad]] = why[bad, first]
-        fail(rows[bad], (first + 1) * sub - 1, row_why)  # fails at grid step first + 1
+        self.fail(rows[bad], (first + 1) * sub - 1, row_why)  # fails at grid step first + 1
 
-    def follow(rows: np.ndarray, pieces: int) -> np.ndarray:
+    def follow(self, rows: np.ndarray, pieces: int) -> np.ndarray:
         """The rows that reach the end following the line from the grasp in pieces.
 
         Each waypoint starts from the previous one; a failure fails the row. With
@@ -240,50 +328,69 @@ def plan_moves(
         """
         start, zero = rows, np.zeros(rows.size, dtype=int)
         end = np.full(rows.size, pieces)
-        if knot_check is None or not grid_knots or rows.size == 0:
-            rows = rows[advance(rows, zero, end, pieces)]
+        if self.knot_check is None or not self.grid_knots or rows.size == 0:
+            rows = rows[self.advance(rows, zero, end, pieces)]
         else:
+            check_first = self.check_first
             pause = end if check_first is None else np.clip(check_first[rows], 1, pieces)
-            got = advance(rows, zero, pause, pieces)
-            check_grid(rows, zero, pause)
-            got &= ok[rows]
+            got = self.advance(rows, zero, pause, pieces)
+            self.check_grid(rows, zero, pause)
+            got &= self.ok[rows]
             more = got & (pause < pieces)
-            got[more] = advance(rows[more], pause[more], end[more], pieces)
-            check_grid(rows[more], pause[more], end[more])
-            rows = rows[got & ok[rows]]
-        knots[np.setdiff1d(start, rows), 1:] = np.nan
+            got[more] = self.advance(rows[more], pause[more], end[more], pieces)
+            self.check_grid(rows[more], pause[more], end[more])
+            rows = rows[got & self.ok[rows]]
+        self.knots[np.setdiff1d(start, rows), 1:] = np.nan
         return rows
 
+
+def _reach_ends(b: _MoveBatch) -> None:
+    """Steps 0 and 1: the ends of the moves (waypoints at the last fine step), or failures."""
+    ok, move, tg, offsets, knots = b.ok, b.move, b.tg, b.offsets, b.knots
     # 0. ends proved beyond reach fail at once, whatever the IK would try
     beyond = np.flatnonzero(
-        ok & unreachable_ends(robot, tg, move, position_tolerance, orientation_tolerance)
+        ok & unreachable_ends(b.robot, tg, move, b.position_tolerance, b.orientation_tolerance)
     )
-    fail(beyond, np.full(beyond.size, fine_steps), "no_ik")
+    b.fail(beyond, np.full(beyond.size, b.fine_steps), "no_ik")
 
     # 1. the end of the move: one IK seeded from the grasp's configuration; where it
     # fails, the line is followed from the grasp in pieces of about _REACH
     # (continuation: each waypoint started from the previous ones and converged to
     # the waypoint tolerance, the last to the IK tolerances)
-    failed_at = np.zeros(n, dtype=int)
-    pieces = int(np.clip(np.ceil(move.distance / _REACH), 1, steps))
+    pieces = int(np.clip(np.ceil(move.distance / _REACH), 1, b.steps))
     rows = np.flatnonzero(ok)
-    if grid_knots:
-        reached = follow(rows, steps)
+    if b.grid_knots:
+        reached = b.follow(rows, b.steps)
     else:
         ends = tg[rows].copy()
         ends[:, :3, 3] += offsets[rows]
         q_end, done = end_of_move(
-            robot, ends, qg[rows], backend, position_tolerance, orientation_tolerance, ik_options
+            b.robot,
+            ends,
+            b.qg[rows],
+            b.backend,
+            b.position_tolerance,
+            b.orientation_tolerance,
+            b.ik_options,
         )
-        knots[rows[done], fine_steps] = q_end[done]
+        knots[rows[done], b.fine_steps] = q_end[done]
         reached = rows[done]
         retry = rows[~done]
-        reached = np.union1d(reached, follow(retry, pieces))
+        reached = np.union1d(reached, b.follow(retry, pieces))
     lost = np.setdiff1d(rows, reached)
     lost = lost[ok[lost]]  # not those a knot check failed
-    fail(lost, failed_at[lost], "no_ik")
+    b.fail(lost, b.failed_at[lost], "no_ik")
 
-    # 2. segments between known waypoints: accepted under the deviation bound, else
+
+def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray) -> None:
+    """Step 2: every segment accepted under the bounds, or split, or its move failed.
+
+    ``deviation`` (N,) and ``waypoints`` (N,) get each move's largest bound and
+    its count of accepted segments.
+    """
+    robot, move, tg, offsets, knots, ok = b.robot, b.move, b.tg, b.offsets, b.knots, b.ok
+    sub, tol = SUBSTEPS, move.max_deviation
+    # segments between known waypoints: accepted under the deviation bound, else
     # split; a new waypoint starts from the segment's joint interpolation
     r_idx, pos = np.nonzero(np.isfinite(knots[:, :, 0]) & ok[:, None])
     inner = r_idx[1:] == r_idx[:-1]
@@ -302,10 +409,10 @@ def plan_moves(
                 s_b,
                 split,
                 parts[split],
-                fine_steps,
+                b.fine_steps,
                 tol,
-                gripper_radius,
-                fail,
+                b.gripper_radius,
+                b.fail,
             )
             keep = ok[s_row]
             s_row, s_a, s_b = s_row[keep], s_a[keep], s_b[keep]
@@ -327,7 +434,7 @@ def plan_moves(
             tg[s_row[fine], :3, 3],
             tg[s_row[fine], :3, :3],
             offsets[s_row[fine]],
-            gripper_radius,
+            b.gripper_radius,
             _SLACK_SHARE * tol,
             reject_above=tol,
         )
@@ -336,9 +443,9 @@ def plan_moves(
         np.add.at(waypoints, s_row[good], 1)
         # a jump within one grid step, a deviation within one fine step: the move fails
         dead = (over & (span <= sub)) | (~over & ~good & (span <= 1))
-        why = np.full(n, "deviation", dtype=object)
+        why = np.full(b.n, "deviation", dtype=object)
         why[s_row[dead & over]] = "joint_step"
-        fail(s_row[dead], s_a[dead], why)
+        b.fail(s_row[dead], s_a[dead], why)
         again = ~good & ~dead & ok[s_row]
         # the deviation falls with the square of a segment's length
         need = np.where(
@@ -347,10 +454,17 @@ def plan_moves(
         parts = np.clip(np.nan_to_num(need, nan=2.0, posinf=2.0), 2, np.maximum(span, 2))
         s_row, s_a, s_b, parts = s_row[again], s_a[again], s_b[again], parts[again].astype(int)
 
-    # the grid points on the piecewise linear path through the knots
-    rows = np.flatnonzero(ok)
+
+def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
+    """The grid points (in ``q_path``) on the piecewise linear path through the knots.
+
+    A move whose joints change by more than ``max_joint_step`` between two grid
+    points fails (``joint_step``).
+    """
+    sub, fine_steps, steps = SUBSTEPS, b.fine_steps, b.steps
+    rows = np.flatnonzero(b.ok)
     if rows.size:
-        kn = knots[rows]
+        kn = b.knots[rows]
         have = np.isfinite(kn[:, :, 0])
         idx = np.arange(fine_steps + 1)
         prev = np.maximum.accumulate(np.where(have, idx, 0), axis=1)
@@ -362,15 +476,10 @@ def plan_moves(
         f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
         q_path[rows] = ka + f * (kb - ka)
         # the change of every joint between consecutive grid points
-        big = np.abs(np.diff(q_path[rows], axis=1)).max(axis=2) > move.max_joint_step
+        big = np.abs(np.diff(q_path[rows], axis=1)).max(axis=2) > b.move.max_joint_step
         over = np.flatnonzero(big.any(axis=1))
         if over.size:
-            fail(rows[over], np.argmax(big[over], axis=1) * sub, "joint_step")
-    q_path[~ok] = np.nan
-    knots[~ok] = np.nan
-    deviation[~ok] = np.nan
-    waypoints[~ok] = 0
-    return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
+            b.fail(rows[over], np.argmax(big[over], axis=1) * sub, "joint_step")
 
 
 def _split_segments(
@@ -428,116 +537,3 @@ def _split_segments(
         np.concatenate([s_a[rest], start]),
         np.concatenate([s_b[rest], stop]),
     )
-
-
-def check_moves(
-    robot: Robot,
-    poses: Any,
-    q_start: Any,
-    move: Move,
-    collisions: Callable[[np.ndarray, np.ndarray], Any] | None,
-    *,
-    gripper_radius: float,
-    position_tolerance: float = 1e-4,
-    orientation_tolerance: float = 1e-3,
-    backend: str = "pinocchio",
-    **ik_options: Any,
-) -> MoveResult:
-    """Plan N moves (:func:`plan_moves`) and check their grid points for collisions.
-
-    A move whose path collides is planned once more with a waypoint at every
-    grid point (``grid_knots``) and accepted if that path is free.
-
-    Args:
-        robot: The robot.
-        poses: Grasp poses (N, 4, 4) in the base frame [m].
-        q_start: Configurations reaching them (N, nq) [rad].
-        move: The move.
-        collisions: ``collisions(q, move) -> reasons``: the collision reason
-            (``''`` = free) of configurations ``q`` (K, nq) on the moves with
-            indices ``move`` (K,), for the grid points ``k >= 1``; e.g.
-            ``lambda q, i: checker.check(q, mode="approach")``. None: no
-            collision checks.
-        gripper_radius: Largest distance of a gripper point from the grasp frame [m].
-        position_tolerance: IK tolerance [m].
-        orientation_tolerance: IK tolerance [rad].
-        backend: IK backend.
-        **ik_options: Further backend options.
-
-    Returns:
-        The :class:`MoveResult`.
-    """
-    opts = dict(
-        gripper_radius=gripper_radius,
-        position_tolerance=position_tolerance,
-        orientation_tolerance=orientation_tolerance,
-        backend=backend,
-        **ik_options,
-    )
-    tg = np.asarray(poses, dtype=float)
-    if tg.ndim == 2:
-        tg = tg[None]
-    q0 = np.asarray(q_start, dtype=float)
-    if q0.ndim == 1:
-        q0 = q0[None]
-    plan = plan_moves(robot, tg, q0, move, **opts)
-    # the plan's own arrays, changed in place (knots: (N, 8 steps + 1, nq) floats)
-    ok, failed, q_path, knots, dev = (
-        plan.ok,
-        plan.failed_step,
-        plan.q_path,
-        plan.knots,
-        plan.deviation,
-    )
-    reason = plan.reason.astype(object)
-    if collisions is not None and move.distance > 0:
-        rows = np.flatnonzero(ok)
-        hit_rows, why, first = _grid_collisions(collisions, q_path, rows, robot.nq)
-        ok[hit_rows] = False
-        reason[hit_rows] = why
-        failed[hit_rows] = first
-        if hit_rows.size:
-            # a path that collides gets a second plan with a waypoint at every grid
-            # point (on the line within the waypoint tolerance): a collision then
-            # does not depend on where the first plan's waypoints fell
-            again = plan_moves(
-                robot,
-                tg[hit_rows],
-                q0[hit_rows],
-                move,
-                grid_knots=True,
-                # a waypoint that collides fails its move at once (it is a grid point)
-                knot_check=lambda q, i: collisions(q, hit_rows[i]),
-                check_first=first,  # where the first path collided
-                **opts,
-            )
-            # its grid points are its waypoints, each checked as it was found
-            good = np.flatnonzero(again.ok)
-            r = hit_rows[good]
-            ok[r], reason[r], failed[r] = True, "", 0
-            q_path[r], knots[r] = again.q_path[good], again.knots[good]
-            dev[r] = again.deviation[good]
-    q_path[~ok] = np.nan
-    knots[~ok] = np.nan
-    dev[~ok] = np.nan
-    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, knots)
-
-
-def _grid_collisions(
-    collisions: Callable[[np.ndarray, np.ndarray], Any],
-    q_path: np.ndarray,
-    rows: np.ndarray,
-    nq: int,
-    ids: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rows of ``rows`` whose grid points ``k >= 1`` collide, their first reason and step."""
-    if rows.size == 0:
-        return rows, np.zeros(0, dtype=object), np.zeros(0, dtype=int)
-    steps = q_path.shape[1] - 1
-    samples = q_path[rows, 1:].reshape(-1, nq)
-    which = np.repeat(rows if ids is None else ids[rows], steps)
-    why = np.asarray(collisions(samples, which)).reshape(rows.size, steps)
-    hit = why != ""
-    bad = np.flatnonzero(hit.any(axis=1))
-    first = np.argmax(hit[bad], axis=1)
-    return rows[bad], why[bad, first], first + 1

@@ -1,7 +1,7 @@
 """Step 2 of the reachability engine: the checks of IK solutions.
 
 At the grasp: the collision checker, then the validator; then the approach
-and the retreat (:func:`~gcm_pipeline.reach.path.check_moves`), each only for
+and the retreat (:func:`~gcm_pipeline.reach.move_check.check_moves`), each only for
 the solutions that passed the checks before it. A move whose end is proved
 beyond reach fails whatever the solution (:meth:`SolutionChecks.hopeless`).
 """
@@ -16,9 +16,9 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.reach.deviation import gripper_radius
+from gcm_pipeline.reach.move_check import check_moves
 from gcm_pipeline.reach.moves import Move, unreachable_ends
 from gcm_pipeline.reach.options import shared_ik_options
-from gcm_pipeline.reach.path import check_moves
 from gcm_pipeline.reach.result import (
     AT_APPROACH,
     AT_GRASP,

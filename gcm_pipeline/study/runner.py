@@ -24,6 +24,7 @@ import logging
 import os
 import signal
 import socket
+import sys
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -34,7 +35,15 @@ from gcm_pipeline import interrupts
 from gcm_pipeline.errors import GcmError
 from gcm_pipeline.study.worker import PlacementWorker
 
-__all__ = ["EngineError", "Executor", "InlineExecutor", "RayExecutor", "probe_address"]
+__all__ = [
+    "EngineError",
+    "Executor",
+    "InlineExecutor",
+    "RayExecutor",
+    "check_local_workers",
+    "probe_address",
+    "ray_version",
+]
 
 log = logging.getLogger(__name__)
 
@@ -121,9 +130,7 @@ def probe_address(address: str, timeout: float = 5.0) -> None:
     # Ray replaces a loopback host by this machine's address before it connects
     # (and then retries for minutes): check the address it will really use
     try:
-        from ray._private.services import canonicalize_bootstrap_address
-
-        used = canonicalize_bootstrap_address(f"{host}:{port}")
+        used = _import_ray()._private.services.canonicalize_bootstrap_address(f"{host}:{port}")
     except Exception:  # a private helper of Ray: skip the check when it moved
         return
     try:
@@ -258,13 +265,11 @@ def _grpc_call(sock: socket.socket, authority: str, timeout: float, *, gcs: bool
 def _cluster_id_reply(message: bytes) -> str:
     """'' when ``message`` is a GCS's GetClusterId reply with a cluster id, else why not."""
     try:
-        from ray.core.generated.gcs_service_pb2 import (  # type: ignore[attr-defined]
-            GetClusterIdReply,
-        )
-
-        reply = GetClusterIdReply.FromString(message)
-    except ImportError:  # Ray moved its generated messages: an answer is good enough
+        reply_type = _import_ray().core.generated.gcs_service_pb2.GetClusterIdReply
+    except (EngineError, AttributeError):  # Ray moved its messages: an answer is good enough
         return ""
+    try:
+        reply = reply_type.FromString(message)
     except Exception:
         return f"the gRPC server there answered {_GCS_METHOD} with something else"
     if reply.status.code != 0 or not reply.cluster_id:
@@ -381,7 +386,14 @@ def check_local_workers(workers: int | None) -> None:
         )
 
 
+def ray_version() -> dict[str, str]:
+    """``{"ray": version}`` when this process imported Ray (a study on Ray), else ``{}``."""
+    ray = sys.modules.get("ray")
+    return {"ray": str(ray.__version__)} if ray is not None else {}
+
+
 def _import_ray() -> Any:
+    """Ray, imported on first use: the study's one import of it (no usage statistics)."""
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     try:
         import ray
@@ -494,7 +506,7 @@ class RayExecutor(Executor):
     def run(self, jobs: Iterable[dict[str, Any]]) -> Iterator[dict[str, Any]]:
         """Stream the jobs over the actors; yield results as they finish."""
         ray = self.ray
-        from ray.exceptions import RayActorError, RayError
+        RayActorError, RayError = ray.exceptions.RayActorError, ray.exceptions.RayError
 
         queue = iter(jobs)
         pending: dict[Any, tuple[int, int, dict[str, Any]]] = {}

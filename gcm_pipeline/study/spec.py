@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from gcm_pipeline import __version__
 from gcm_pipeline.bounds import MAX_STUDY_PLACEMENTS
 from gcm_pipeline.config.run import Config, config_from_data, resolve_paths
 from gcm_pipeline.config.study import (
@@ -39,6 +40,7 @@ from gcm_pipeline.config.study import (
     rounded,
 )
 from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.pipeline import input_files
 
 __all__ = ["Placement", "StudyPlan", "format_value", "load_study"]
 
@@ -493,9 +495,6 @@ class StudyPlan:
         """
         if self._key is not None:
             return self._key
-        from gcm_pipeline import __version__
-        from gcm_pipeline.pipeline import input_files
-
         files: dict[str, str] = {}
         for i in range(len(self._objects)):
             for name, path in input_files(self.object_config(i)).items():

@@ -20,13 +20,19 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.config.run import Config
 from gcm_pipeline.errors import GcmError
+from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix, dq_to_pos_quat
+from gcm_pipeline.pipeline import Pipeline
+from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
+from gcm_pipeline.robot.ik import solve_ik
 
 __all__ = ["PlacementWorker", "placement_summary"]
 
@@ -47,8 +53,6 @@ def placement_summary(grasps: Any, cfg: Config) -> dict[str, Any]:
         ``candidates, densified, reachable, coverage, candidates_reachable,
         best_metric, mean_metric, best_manipulability, mean_manipulability``.
     """
-    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
-
     reachable = np.asarray(grasps["reachable"], dtype=bool)
     is_candidate = np.asarray(grasps["origin"]).astype(str) == "candidate"
     metric = np.asarray(grasps[METRIC_COLUMNS[cfg.ranking.metric]], dtype=float)
@@ -74,8 +78,6 @@ def placement_summary(grasps: Any, cfg: Config) -> dict[str, Any]:
 
 def _pose7(dq: np.ndarray) -> np.ndarray:
     """Poses (N, 7) ``x, y, z, qw, qx, qy, qz`` (``qw >= 0``) of unit dual quaternions (N, 8)."""
-    from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
-
     pos, quat = dq_to_pos_quat(dq)
     quat = np.where(quat[:, :1] < 0, -quat, quat)
     return np.concatenate([pos, quat], axis=1)
@@ -101,10 +103,10 @@ class PlacementWorker:
 
     @staticmethod
     def _node() -> str:
+        # a Ray actor's process has imported Ray; an in-process worker asks nothing of it
+        ray = sys.modules.get("ray")
         try:
-            import ray
-
-            if ray.is_initialized():
+            if ray is not None and ray.is_initialized():
                 return str(ray.get_runtime_context().get_node_id())[:8]
         except Exception:  # pragma: no cover - not under Ray
             pass
@@ -113,16 +115,12 @@ class PlacementWorker:
     def _robot(self, spec: str) -> Any:
         robot = self._robots.get(spec)
         if robot is None:
-            from gcm_pipeline.config.robot_spec import load_robot
-
             robot = self._robots[spec] = load_robot(spec)
         return robot
 
     @staticmethod
     def _warm(robot: Any, seed: int) -> None:
         """Build the seed library (first IK call) and the collision geometry now."""
-        from gcm_pipeline.robot.ik import solve_ik
-
         targets = robot.fk(robot.random_configurations(4, seed=seed))
         solve_ik(robot, targets, random_seed=int(seed))
         robot.build_geometry("collision")
@@ -160,10 +158,6 @@ class PlacementWorker:
         return out
 
     def _run(self, data: dict[str, Any]) -> dict[str, Any]:
-        from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
-        from gcm_pipeline.pipeline import Pipeline
-        from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
-
         cfg = Config.from_dict(data, source="placement config")
         # one IK process per worker: the study runs the workers in parallel
         cfg = cfg.model_copy(update={"ik": cfg.ik.model_copy(update={"workers": 1})})

@@ -19,8 +19,9 @@ from gcm_pipeline.config import EnvironmentConfig
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.reach.deviation import gripper_radius
+from gcm_pipeline.reach.move_check import check_moves
 from gcm_pipeline.reach.moves import Move, move_poses
-from gcm_pipeline.reach.path import SUBSTEPS, check_moves, plan_moves
+from gcm_pipeline.reach.path import SUBSTEPS, plan_moves
 from gcm_pipeline.robot.collision import REASON_ENVIRONMENT, gripper_links
 from gcm_pipeline.robot.ik import solve_ik
 

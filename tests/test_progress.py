@@ -1,0 +1,68 @@
+"""The one progress helper: a bar on a terminal, log lines (or nothing) elsewhere."""
+
+from __future__ import annotations
+
+import io
+import re
+import sys
+
+from gcm_pipeline import progress
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_reporter_off_a_terminal_writes_lines_with_rate_and_eta(monkeypatch, capsys):
+    monkeypatch.setattr(progress, "PROGRESS_INTERVAL_S", 0.0)
+    with progress.Reporter(1000, desc="reachability", unit="pose") as report:
+        assert report.bar is None  # capsys' stderr is no terminal
+        report(250)
+        report(750)  # the last chunk: no line until close
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 2
+    assert re.fullmatch(
+        r"reachability: 250/1,000 poses \(25 %\), [\d,]+ poses/s, ETA \d+ s", lines[0]
+    )
+    assert re.fullmatch(
+        r"reachability: 1,000/1,000 poses \(100 %\), [\d,]+ poses/s in [\d.]+ s", lines[1]
+    )
+
+
+def test_reporter_writes_nothing_when_disabled_or_quick(capsys):
+    with progress.Reporter(10, enabled=False, desc="x") as report:
+        report(10)
+    with progress.Reporter(10, desc="x") as report:  # done before the first interval
+        report(10)
+    with progress.Reporter(0, desc="x") as report:
+        report(0)
+    assert capsys.readouterr().err == ""
+
+
+def test_reporter_on_a_terminal_draws_a_bar(monkeypatch):
+    term = _Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    with progress.Reporter(100, desc="reachability", unit="pose") as report:
+        assert report.bar is not None
+        report(40)
+    out = term.getvalue()
+    assert "reachability:" in out and "/100 " in out and "pose/s" in out  # unit_scale, rate
+
+
+def test_bar_is_silent_off_a_terminal_and_when_disabled(monkeypatch, capsys):
+    b = progress.bar(3, "gcm", "stage", leave=False)
+    b.set_postfix_str("ik")
+    b.update(3)
+    b.close()
+    assert b.disable and capsys.readouterr().err == ""
+    term = _Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    off = progress.bar(3, "gcm", "stage", enabled=False)
+    off.update(1)
+    off.close()
+    assert off.disable and term.getvalue() == ""
+    on = progress.bar(3, "study", "placement", initial=1)
+    on.update(1)
+    on.close()
+    assert "study" in term.getvalue() and "2/3" in term.getvalue()

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import grimp
 from helpers import ROOT
 
 PACKAGE = ROOT / "gcm_pipeline"
@@ -29,6 +30,40 @@ def test_import_contracts_are_kept():
     )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
     assert "0 broken" in proc.stdout, proc.stdout[-2000:]
+
+
+def _cycles(graph: grimp.ImportGraph) -> list[list[str]]:
+    """One import chain closing each cycle: ``[a, b, ..., a]`` for a direct import a -> b."""
+    cycles = []
+    for importer in sorted(graph.modules):
+        for imported in sorted(graph.find_modules_directly_imported_by(importer)):
+            back = graph.find_shortest_chain(importer=imported, imported=importer)
+            if back:
+                cycles.append([importer, *back])
+    return cycles
+
+
+def test_the_package_has_no_import_cycles():
+    # the layers contract forbids upward imports between layers; this also covers
+    # modules of one layer (pipeline.reach <-> pipeline.manifold, say). Imports under
+    # TYPE_CHECKING do not run, as in the contracts.
+    graph = grimp.build_graph("gcm_pipeline", cache_dir=None, exclude_type_checking_imports=True)
+    assert "gcm_pipeline.pipeline.run" in graph.modules  # this checkout's package
+    cycles = _cycles(graph)
+    assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_the_cycle_check_finds_a_cycle():
+    graph = grimp.ImportGraph()
+    for a, b in [("p.a", "p.b"), ("p.b", "p.c"), ("p.c", "p.a"), ("p.c", "p.d")]:
+        graph.add_import(importer=a, imported=b)
+    assert _cycles(graph) == [
+        ["p.a", "p.b", "p.c", "p.a"],
+        ["p.b", "p.c", "p.a", "p.b"],
+        ["p.c", "p.a", "p.b", "p.c"],
+    ]
+    graph.remove_import(importer="p.c", imported="p.a")
+    assert _cycles(graph) == []
 
 
 def _own_module(node: ast.AST) -> str | None:

@@ -22,11 +22,11 @@ else:
 
     def __getattr__(name: str) -> Any:
         """The public names (and ``__all__``), or a subpackage, on first use (PEP 562)."""
-        # api.py holds the one list; imported here so ``import gcm_pipeline`` stays light
         if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}"):
             # a subpackage (``from gcm_pipeline import interrupts``): no public name is one
             value = importlib.import_module(f"{__name__}.{name}")
         elif name == "__all__" or not name.startswith("_"):
+            # api.py holds the one list; imported here so that ``import gcm_pipeline`` stays light
             api = importlib.import_module("gcm_pipeline.api")
             if name == "__all__":
                 value = sorted(["__version__", *api.__all__])

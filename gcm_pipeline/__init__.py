@@ -26,6 +26,7 @@ else:
             # a subpackage (``from gcm_pipeline import interrupts``): no public name is one
             value = importlib.import_module(f"{__name__}.{name}")
         elif name == "__all__" or not name.startswith("_"):
+            # api.py holds the one list; imported here so that ``import gcm_pipeline`` stays light
             api = importlib.import_module("gcm_pipeline.api")
             if name == "__all__":
                 value = sorted(["__version__", *api.__all__])

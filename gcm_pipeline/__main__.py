@@ -17,6 +17,7 @@ def entry() -> int:
     """Run the ``gcm`` command line (``sys.argv``); returns the exit status."""
     try:
         interrupts.install()
+        # imported here, after the handlers: a Ctrl-C while the command line loads is handled
         from gcm_pipeline.cli import main
 
         return main()

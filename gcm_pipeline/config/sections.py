@@ -24,6 +24,7 @@ from gcm_pipeline.bounds import (
     MAX_LENGTH,
 )
 from gcm_pipeline.errors import unknown_choice
+from gcm_pipeline.sources.grippers import GRIPPERS
 
 # Numbers and switches are strict: a bool is not a number (``--set
 # densify.subdivisions=true`` is an error, not 1), a number is not a bool, a
@@ -242,10 +243,6 @@ class CandidatesConfig(_Section):
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
         if self.gripper is not None:
-            # here, not at the top: gcm_pipeline.sources loads SciPy and the file readers
-            # (about 1 s); a config that names no gripper is read without them
-            from gcm_pipeline.sources.grippers import GRIPPERS
-
             if self.gripper not in GRIPPERS:
                 raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
         if self.gripper is not None and self.grasp_to_tool is not None:

@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.manifold import adaptive, continuity
+from gcm_pipeline.manifold import build as manifold_build
+from gcm_pipeline.manifold import densify as manifold_densify
+from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.manifold.lattice import row_mesh
+from gcm_pipeline.manifold.margin import margin
 from gcm_pipeline.pipeline.reach import ReachabilityCheck, robot_from_config
+from gcm_pipeline.ranking import rank as ranking
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
-    from gcm_pipeline.manifold.build import Manifold
-    from gcm_pipeline.robot.model import Robot
 
 
 @takes_config
@@ -32,10 +35,8 @@ def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
     Returns:
         A :class:`gcm_pipeline.manifold.build.Manifold`.
     """
-    from gcm_pipeline.manifold import build as stage
-
     m = cfg.manifold
-    return stage.build_manifold(
+    return manifold_build.build_manifold(
         grasps,
         projection=m.projection,
         triangulator=m.triangulator,
@@ -58,10 +59,8 @@ def densify(grasps: GraspTable, manifold: Manifold, cfg: Config) -> GraspTable:
         All candidates (first, in input order) and the interpolated grasps,
         with ``dq, origin, triangle, vertices, weights``.
     """
-    from gcm_pipeline.manifold import densify as stage
-
     d = cfg.densify
-    return stage.densify(
+    return manifold_densify.densify(
         grasps,
         manifold,
         subdivisions=d.subdivisions,
@@ -79,8 +78,6 @@ def refinement_score(robot: Robot, cfg: Config) -> Callable[[GraspTable], np.nda
     ``margin`` (which needs the finished manifold) falls back to Yoshikawa's
     index.
     """
-    from gcm_pipeline.ranking import rank as ranking
-
     r = cfg.ranking
     return functools.partial(
         ranking.reachable_score, robot=robot, metric=r.metric, weights=r.weights
@@ -113,15 +110,13 @@ def densify_adaptive(
         ConfigError: No ``densify.adaptive`` section, or the table would grow
             beyond ``densify.max_poses``.
     """
-    from gcm_pipeline.manifold import adaptive as stage
-
     a = cfg.densify.adaptive
     if a is None:
         raise ConfigError("densify_adaptive needs a densify.adaptive section")
     own = check is None
     check = ReachabilityCheck(robot, cfg) if check is None else check
     try:
-        return stage.refine(
+        return adaptive.refine(
             grasps,
             manifold,
             check,
@@ -146,15 +141,15 @@ def adaptive_counts(grasps: GraspTable, manifold: Manifold, cfg: Config) -> dict
     made at each level), ``uniform_subdivisions`` and ``uniform_rows`` (the
     uniform lattice with ``2**max_level`` subdivisions).
     """
-    from gcm_pipeline.manifold.adaptive import uniform_size
-
     a = cfg.densify.adaptive
     assert a is not None
     levels, per_level = np.unique(np.asarray(grasps["level"]), return_counts=True)
     out = {"max_level": a.max_level, "ik_solves": len(grasps)}
     out.update({f"level_{k}": int(v) for k, v in zip(levels, per_level, strict=True)})
     out["uniform_subdivisions"] = 1 << a.max_level
-    out["uniform_rows"] = uniform_size(manifold.triangles, manifold.n_vertices, a.max_level)
+    out["uniform_rows"] = adaptive.uniform_size(
+        manifold.triangles, manifold.n_vertices, a.max_level
+    )
     return out
 
 
@@ -179,10 +174,6 @@ def add_continuity(
         re-seeding, ``patches_before_reseed``, ``reseeded`` (grasps that took a
         new solution) and ``reseed_ik_solves``.
     """
-    from gcm_pipeline.manifold import continuity as stage
-    from gcm_pipeline.manifold.lattice import row_mesh
-    from gcm_pipeline.manifold.margin import margin
-
     c = cfg.continuity
     edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
     counts: dict[str, int] = {}
@@ -190,7 +181,7 @@ def add_continuity(
         own = check is None
         check = ReachabilityCheck(robot_from_config(cfg), cfg) if check is None else check
         try:
-            grasps, report = stage.reseed(
+            grasps, report = continuity.reseed(
                 grasps, edges, check, threshold=c.threshold, max_rounds=c.max_rounds
             )
         finally:
@@ -201,7 +192,7 @@ def add_continuity(
             reseeded=report.moved,
             reseed_ik_solves=report.solved,
         )
-    cols = stage.continuity_columns(grasps, edges, c.threshold)
+    cols = continuity.continuity_columns(grasps, edges, c.threshold)
     counts = {"patches": int(cols["patch"].max(initial=-1) + 1), **counts}
     cols["margin"] = margin(
         np.asarray(grasps["dq"], dtype=np.float64),

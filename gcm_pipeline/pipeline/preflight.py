@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
-
-if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
-    from gcm_pipeline.robot.model import Robot
+from gcm_pipeline.geometry.shapes import shape_geometry
+from gcm_pipeline.outputs import live
+from gcm_pipeline.robot.model import Robot
 
 log = logging.getLogger(__name__)
 
@@ -64,10 +65,6 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         InputError: ``<key>: file not found: <path>``, or a mesh that does not load.
         PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
     """
-    from gcm_pipeline.config.robot_spec import load_spec
-    from gcm_pipeline.geometry.shapes import shape_geometry
-    from gcm_pipeline.robot.model import Robot
-
     for key, path in input_files(cfg).items():
         try:
             found, there = path.is_file(), path.exists()
@@ -99,10 +96,8 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     if not (viewer or pub.meshcat):
         log.warning("publish.zmq_url is set but the live viewer is off; add --meshcat")
         return robot
-    from gcm_pipeline.outputs.live import probe_server
-
     try:
-        probe_server(pub.zmq_url, pub.connect_timeout_s)
+        live.probe_server(pub.zmq_url, pub.connect_timeout_s)
     except PublishError as exc:
         raise PublishError(f"publish.zmq_url: {exc}") from exc
     return robot

@@ -5,20 +5,19 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.errors import InputError
+from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.manifold.query import GraspManifold
 from gcm_pipeline.pipeline.reach import ReachabilityCheck, robot_from_config
+from gcm_pipeline.ranking.metrics import DEFAULT_COMBINED_WEIGHTS
+from gcm_pipeline.robot.manipulability import manipulability_metrics
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
-    from gcm_pipeline.manifold.build import Manifold
-    from gcm_pipeline.manifold.query import GraspManifold
-    from gcm_pipeline.robot.model import Robot
 
 
 @dataclass(frozen=True)
@@ -39,8 +38,6 @@ class ConfigRunQueries:
     @property
     def combined_weights(self) -> Mapping[str, float]:
         """``ranking.weights``, else the default weights of the ``combined`` metric."""
-        from gcm_pipeline.ranking.metrics import DEFAULT_COMBINED_WEIGHTS
-
         return self.config.ranking.weights or DEFAULT_COMBINED_WEIGHTS
 
     def load_robot(self) -> Robot:
@@ -53,8 +50,6 @@ class ConfigRunQueries:
 
     def robot_metrics(self, robot: Robot, q: np.ndarray) -> Mapping[str, np.ndarray]:
         """The manipulability metrics of configurations ``q`` (N, nq) [rad]."""
-        from gcm_pipeline.robot.manipulability import manipulability_metrics
-
         return manipulability_metrics(robot, q)
 
 
@@ -67,8 +62,6 @@ def grasp_manifold(
     metric's ``L``; reachability, robot metrics and ranking weights come from
     the rest of ``cfg`` (:class:`ConfigRunQueries`).
     """
-    from gcm_pipeline.manifold.query import GraspManifold
-
     return GraspManifold(
         manifold,
         grasps,

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from gcm_pipeline.config.run import Config, takes_config
+from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.manifold.lattice import row_mesh
+from gcm_pipeline.ranking import rank as ranking
+from gcm_pipeline.reach import branches
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
-    from gcm_pipeline.manifold.build import Manifold
-    from gcm_pipeline.robot.model import Robot
 
 
 @takes_config
@@ -23,8 +22,6 @@ def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
     compared by Yoshikawa's index instead (also its weight in ``combined`` is
     left out).
     """
-    from gcm_pipeline.ranking import rank as ranking
-
     clearance = grasps["solutions_clearance"] if "solutions_clearance" in grasps else None
     r = cfg.ranking
     return ranking.branch_scores(
@@ -41,13 +38,10 @@ def select_branches(
     See :mod:`gcm_pipeline.reach.branches`. A table without branch columns is
     returned unchanged.
     """
-    from gcm_pipeline.manifold.lattice import row_mesh
-    from gcm_pipeline.reach import branches as stage
-
     if "solutions" not in grasps:
         return grasps
     edges = row_mesh(grasps, manifold.triangles, manifold.n_vertices).edges
-    return stage.select_branches(
+    return branches.select_branches(
         grasps,
         edges,
         branch_scores(grasps, robot, cfg),
@@ -68,7 +62,5 @@ def rank(grasps: GraspTable, robot: Robot, cfg: Config) -> GraspTable:
         ``rank`` (1-based among reachable grasps, 0 for unreachable) and
         ``top`` added.
     """
-    from gcm_pipeline.ranking import rank as stage
-
     r = cfg.ranking
-    return stage.rank(grasps, robot, metric=r.metric, top_k=r.top_k, weights=r.weights)
+    return ranking.rank(grasps, robot, metric=r.metric, top_k=r.top_k, weights=r.weights)

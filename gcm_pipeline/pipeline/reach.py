@@ -4,21 +4,22 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.config import robot_spec
 from gcm_pipeline.config.reach_sections import ApproachConfig, EnvironmentConfig, RetreatConfig
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig, Pose
+from gcm_pipeline.reach import check as reach_check
+from gcm_pipeline.reach.engine import ReachabilityEngine
+from gcm_pipeline.reach.moves import Move
+from gcm_pipeline.reach.options import ReachOptions
+from gcm_pipeline.robot import collision
+from gcm_pipeline.robot.collision import CollisionChecker, WorldShape
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
-    from gcm_pipeline.reach.engine import ReachabilityEngine
-    from gcm_pipeline.reach.moves import Move
-    from gcm_pipeline.reach.options import ReachOptions
-    from gcm_pipeline.robot.collision import CollisionChecker, WorldShape
-    from gcm_pipeline.robot.model import Robot
 
 log = logging.getLogger(__name__)
 
@@ -26,9 +27,7 @@ log = logging.getLogger(__name__)
 @takes_config
 def robot_from_config(cfg: Config) -> Robot:
     """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path)."""
-    from gcm_pipeline.config.robot_spec import load_robot as _load
-
-    return _load(cfg.robot.spec)
+    return robot_spec.load_robot(cfg.robot.spec)
 
 
 #: The same as :func:`robot_from_config` (``gcm_pipeline.load_robot`` is the
@@ -62,8 +61,6 @@ def collision_world(
         ConfigError: Unknown shape, missing or non-positive size.
         InputError: A mesh file is missing or unreadable (the message names it).
     """
-    from gcm_pipeline.robot import collision
-
     env = EnvironmentConfig() if environment is None else environment
     base_inv = np.linalg.inv(collision.as_transform(base_pose))
     world: list[WorldShape] = []
@@ -114,8 +111,6 @@ def make_checker(
         The :class:`~gcm_pipeline.robot.collision.CollisionChecker`; a world
         shape overlapping the robot's fixed links is logged as a warning.
     """
-    from gcm_pipeline.robot.collision import CollisionChecker
-
     env = EnvironmentConfig() if environment is None else environment
     checker = CollisionChecker(
         robot,
@@ -136,8 +131,6 @@ def make_checker(
 
 def approach_move(approach: ApproachConfig | None) -> Move | None:
     """The ``approach`` section as a :class:`Move` (backwards along the grasp frame's z)."""
-    from gcm_pipeline.reach.moves import Move
-
     if approach is None:
         return None
     return Move(
@@ -153,8 +146,6 @@ def approach_move(approach: ApproachConfig | None) -> Move | None:
 
 def retreat_move(retreat: RetreatConfig | None, base_pose: np.ndarray | None = None) -> Move | None:
     """The ``retreat`` section as a :class:`Move`; a world direction turned into the base frame."""
-    from gcm_pipeline.reach.moves import Move
-
     if retreat is None:
         return None
     direction = np.asarray(retreat.direction, dtype=float)
@@ -180,8 +171,6 @@ def reach_options(cfg: Config) -> ReachOptions:
 
     Reads ``ik``, ``robot.base_pose``, ``approach``, ``retreat`` and ``seed``.
     """
-    from gcm_pipeline.reach.options import ReachOptions
-
     ik = cfg.ik
     base_pose = cfg.robot.base_pose.matrix()
     return ReachOptions(
@@ -208,13 +197,11 @@ def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     collision world (:func:`check_reachability` with ``engine=``); close it (or
     use a ``with`` block) to stop its worker processes.
     """
-    from gcm_pipeline.reach import check as stage
-
     options = reach_options(cfg)
     checker = None
     if cfg.environment is not None or cfg.object is not None:
         checker = make_checker(robot, cfg.environment, cfg.object, options.base_pose)
-    return stage.make_engine(robot, options, checker=checker)
+    return reach_check.make_engine(robot, options, checker=checker)
 
 
 @takes_config
@@ -249,12 +236,10 @@ def check_reachability(
         The table with ``reachable, reason, q, pos_err, rot_err``,
         ``q_pregrasp, q_retreat, q_rejected`` (and ``clearance``) added.
     """
-    from gcm_pipeline.reach import check as stage
-
     own = engine is None
     eng = reachability_engine(robot, cfg) if engine is None else engine
     try:
-        done = stage.check_reachability(
+        done = reach_check.check_reachability(
             grasps, robot, reach_options(cfg), engine=eng, progress=progress
         )
     finally:
@@ -295,8 +280,6 @@ class ReachabilityCheck:
             A table of M rows: ``dq, reachable, reason, q, pos_err, rot_err``
             (and ``clearance`` with collisions), as the reachability stage.
         """
-        from gcm_pipeline.reach import check as stage
-
         cfg = self.config
         dq = np.asarray(dq, dtype=np.float64).reshape(-1, 8)
         table = GraspTable({"dq": dq})
@@ -304,7 +287,7 @@ class ReachabilityCheck:
             return _empty_reachability(
                 table, self.robot.nq, with_clearance=self.engine.checker is not None
             )
-        done = stage.check_reachability(
+        done = reach_check.check_reachability(
             table,
             self.robot,
             replace(reach_options(cfg), warm_start=False),

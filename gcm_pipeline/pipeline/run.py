@@ -9,11 +9,14 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from gcm_pipeline.config.run import Config, load_config
+from gcm_pipeline.manifold.build import Manifold
+from gcm_pipeline.manifold.query import GraspManifold
+from gcm_pipeline.outputs.scene import legend
 from gcm_pipeline.pipeline.manifold import (
     adaptive_counts,
     add_continuity,
@@ -28,14 +31,10 @@ from gcm_pipeline.pipeline.ranking import rank, select_branches
 from gcm_pipeline.pipeline.reach import ReachabilityCheck, check_reachability
 from gcm_pipeline.pipeline.sources import generate_candidates
 from gcm_pipeline.progress import bar as progress_bar
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.rundir import transaction
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
-    from gcm_pipeline.manifold.build import Manifold
-    from gcm_pipeline.manifold.query import GraspManifold
-    from gcm_pipeline.robot.model import Robot
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +92,6 @@ class RunResult:
         colormap, the manipulability range it spans and the colour and count
         of every unreachable reason.
         """
-        from gcm_pipeline.outputs.scene import legend
-
         return {
             "counts": dict(self.counts),
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},

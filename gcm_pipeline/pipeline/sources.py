@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -13,9 +13,6 @@ from gcm_pipeline.config.sections import CandidatesConfig
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
-    pass
 
 log = logging.getLogger(__name__)
 

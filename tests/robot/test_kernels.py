@@ -167,15 +167,25 @@ def test_gcm_jit_0_selects_the_numpy_code(monkeypatch, panda, compiled):
         kernels.get()
 
 
-def test_without_numba_the_numpy_code_is_used():
-    import gcm_pipeline.robot as package
+#: The modules that import Numba, by :func:`kernels.get` only.
+KERNEL_MODULES = [
+    "gcm_pipeline.robot.kernel_common",
+    "gcm_pipeline.robot.chain_kernel",
+    "gcm_pipeline.robot.collision.broadphase_kernel",
+    "gcm_pipeline.robot.ik.lm_kernel",
+    "gcm_pipeline.robot.ik.panda_kernel",
+]
 
+
+def test_without_numba_the_numpy_code_is_used():
     kernels._load.cache_clear()
     try:
         with pytest.MonkeyPatch.context() as mp:
             mp.setitem(sys.modules, "numba", None)  # import numba raises ImportError
-            mp.delitem(sys.modules, "gcm_pipeline.robot._compiled", raising=False)
-            mp.delattr(package, "_compiled", raising=False)
+            for name in KERNEL_MODULES:  # imported again, they would import numba
+                mp.delitem(sys.modules, name, raising=False)
+                parent, _, leaf = name.rpartition(".")
+                mp.delattr(sys.modules[parent], leaf, raising=False)
             assert kernels.get() is None
     finally:
         kernels._load.cache_clear()

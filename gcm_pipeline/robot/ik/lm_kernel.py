@@ -104,6 +104,44 @@ def _pose_error(trot: Any, tpos: Any, tcp: Any, e: Any) -> None:
         e[3], e[4], e[5] = v0, v1, v2
 
 
+@njit(cache=True, inline="always")
+def _clamp(
+    q: Any, step: Any, e: Any, jac: Any, lam: float, lower: Any, upper: Any, q_index: Any,
+    free: Any, over: Any, e_rest: Any, a: Any, y: Any, dq: Any,
+) -> None:  # fmt: skip
+    """The step ``step`` (nq,) from ``q`` kept in the limits, in place (clamped DLS).
+
+    Any joint outside its limits (one outside the chain too, as the NumPy code
+    tests every column) re-solves the step from the clipped one: the joints that
+    would cross a limit are frozen at it and the step is re-solved with the
+    others; then the step is clipped to the limits. ``free``, ``over``,
+    ``e_rest``, ``a``, ``y`` and ``dq`` are scratch arrays.
+    """
+    nq = step.shape[0]
+    nj = q_index.shape[0]
+    crossed = False
+    for j in range(nq):
+        crossed |= step[j] < lower[j] or step[j] > upper[j]
+    for k in range(nj):
+        j = q_index[k]
+        over[k] = step[j] < lower[j] or step[j] > upper[j]
+    if crossed:
+        for i in range(6):
+            e_rest[i] = e[i]
+        for k in range(nj):
+            j = q_index[k]
+            at = min(max(step[j], lower[j]), upper[j])
+            for i in range(6):
+                e_rest[i] -= jac[i, k] * (at - q[j])
+            step[j] = at
+            free[k] = not over[k]
+        _damped_step(jac, e_rest, lam, free, a, y, dq)
+        for k in range(nj):
+            step[q_index[k]] += dq[k]
+    for j in range(nq):
+        step[j] = min(max(step[j], lower[j]), upper[j])
+
+
 @njit(
     types.Tuple(
         (types.float64[:, ::1], types.boolean[::1], types.float64[::1], types.float64[::1])
@@ -205,31 +243,7 @@ def levenberg_marquardt(
             for k in range(nj):
                 step[q_index[k]] += dq[k]
             if clamp:
-                # any joint outside its limits (one outside the chain too, as the NumPy
-                # code tests every column) re-solves the step from the clipped one
-                crossed = False
-                for j in range(nq):
-                    crossed |= step[j] < lower[j] or step[j] > upper[j]
-                for k in range(nj):
-                    j = q_index[k]
-                    over[k] = step[j] < lower[j] or step[j] > upper[j]
-                if crossed:
-                    # the joints that would cross a limit are frozen at it and the
-                    # step is re-solved with the others (clamped DLS)
-                    for i in range(6):
-                        e_rest[i] = e[i]
-                    for k in range(nj):
-                        j = q_index[k]
-                        at = min(max(step[j], lower[j]), upper[j])
-                        for i in range(6):
-                            e_rest[i] -= jac[i, k] * (at - q[j])
-                        step[j] = at
-                        free[k] = not over[k]
-                    _damped_step(jac, e_rest, lam, free, a, y, dq)
-                    for k in range(nj):
-                        step[q_index[k]] += dq[k]
-                for j in range(nq):
-                    step[j] = min(max(step[j], lower[j]), upper[j])
+                _clamp(q, step, e, jac, lam, lower, upper, q_index, free, over, e_rest, a, y, dq)
             for j in range(nq):
                 q[j] = step[j]
     return q_out, converged, pos_err, rot_err

@@ -8,6 +8,7 @@ only (it imports Numba).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit, types
@@ -31,6 +32,29 @@ def _wrap(angle: float) -> float:
     if angle < -math.pi:
         angle += 2.0 * math.pi
     return angle
+
+
+@njit(cache=True, inline="always")
+def _frame4(
+    q6: float, s4: float, c4: float, ux: float, uy: float, x6: Any, y6: Any, u: Any,
+    x4: Any, y4: Any, z4: Any, z3: Any, w: Any,
+) -> float:  # fmt: skip
+    """Frame 4's axes ``x4``, ``y4``, ``z4`` and ``z3`` (3,) from joint 6 and the elbow, in place.
+
+    ``w`` is scratch; returns the z component of frame 3's x axis.
+    """
+    s6, c6 = math.sin(q6), math.cos(q6)
+    for a in range(3):
+        y4[a] = s6 * x6[a] + c6 * y6[a]
+        w[a] = (y4[a] - uy * u[a]) / ux
+    z4[0] = u[1] * w[2] - u[2] * w[1]
+    z4[1] = u[2] * w[0] - u[0] * w[2]
+    z4[2] = u[0] * w[1] - u[1] * w[0]
+    for a in range(3):
+        x4[a] = ux * u[a] - uy * w[a]
+    for a in range(3):
+        z3[a] = s4 * x4[a] + c4 * y4[a]
+    return c4 * x4[2] - s4 * y4[2]
 
 
 @njit(
@@ -112,18 +136,7 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims):
                     )  # fmt: skip
                     if not ok or (near and not abs(q6 - ref[i, 5]) <= reach):
                         continue
-                    s6, c6 = math.sin(q6), math.cos(q6)
-                    for a in range(3):
-                        y4[a] = s6 * x6[a] + c6 * y6[a]
-                        w[a] = (y4[a] - uy * u[a]) / ux
-                    z4[0] = u[1] * w[2] - u[2] * w[1]
-                    z4[1] = u[2] * w[0] - u[0] * w[2]
-                    z4[2] = u[0] * w[1] - u[1] * w[0]
-                    for a in range(3):
-                        x4[a] = ux * u[a] - uy * w[a]
-                    for a in range(3):
-                        z3[a] = s4 * x4[a] + c4 * y4[a]
-                    x3z = c4 * x4[2] - s4 * y4[2]
+                    x3z = _frame4(q6, s4, c4, ux, uy, x6, y6, u, x4, y4, z4, z3, w)
                     sb = math.hypot(z3[0], z3[1])
                     q5 = math.atan2(
                         x4[0] * z6[0] + x4[1] * z6[1] + x4[2] * z6[2],

@@ -61,7 +61,8 @@ from scipy.spatial.transform import Rotation
 from gcm_pipeline.bounds import MAX_LENGTH
 from gcm_pipeline.config.validation import unknown_key
 from gcm_pipeline.errors import RobotSpecError, clip, unknown_choice
-from gcm_pipeline.robot.model import Robot, RobotSpec, model_files
+from gcm_pipeline.robot.model import Robot, RobotSpec
+from gcm_pipeline.robot.model_files import model_files
 from gcm_pipeline.robot.tool import ToolShape, ToolSpec
 from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 

@@ -204,7 +204,7 @@ def _load() -> Kernels | None:
     except Exception as exc:  # any failure of Numba leaves the NumPy code
         log.warning(
             "compiled kernels failed to load (%s: %s), NumPy code used; if Numba's cache is "
-            "damaged, delete it (NUMBA_CACHE_DIR, or __pycache__ beside %s)",
+            "damaged, delete it (NUMBA_CACHE_DIR, or the __pycache__ folders under %s)",
             type(exc).__name__,
             exc,
             os.path.dirname(os.path.abspath(__file__)),
@@ -239,7 +239,11 @@ class _Kernel:
         self.dispatcher = dispatcher
         self.__name__ = dispatcher.__name__
         self.__doc__ = dispatcher.__doc__
-        scalar = {"bool": bool, "int": operator.index, "float": float}
+        scalar: dict[str, Callable[[Any], Any]] = {
+            "bool": bool,
+            "int": operator.index,
+            "float": float,
+        }
         self._convert: list[Callable[[Any], Any]] = [
             functools.partial(self._array, i, dtype, ndim) if kind == "array" else scalar[kind]
             for i, (kind, dtype, ndim) in enumerate(parameters)

@@ -176,6 +176,7 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
     decided = {kernels.FREE: 0, kernels.COLLIDES: 0}
     for k, (joint, verts, inv, beyond, deep) in boxes.items():
         status = compiled.hull_vs_box(tfs[joint], rows, verts, inv, beyond, deep)
+        assert compiled.hull_vs_box(tfs[joint], rows[:0], verts, inv, beyond, deep).shape == (0,)
         # the NumPy level 3 on every vertex: colliding when one lies deep inside,
         # free when all lie beyond one face plane
         halfs = screen.boxes[k][3]

@@ -69,7 +69,8 @@ from gcm_pipeline.config.sections import FiniteFloat, NonNegFloat
 from gcm_pipeline.config.tool_spec import ToolSection, build_tool, check_tool_files, spec_special
 from gcm_pipeline.config.validation import describe
 from gcm_pipeline.errors import RobotSpecError, clip, unknown_choice
-from gcm_pipeline.robot.model import Robot, RobotSpec, model_files
+from gcm_pipeline.robot.model import Robot, RobotSpec
+from gcm_pipeline.robot.model_files import model_files
 from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 
 __all__ = [

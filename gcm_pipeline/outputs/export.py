@@ -56,7 +56,7 @@ from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.errors import InputError, OutputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
-from gcm_pipeline.robot.model import root_link
+from gcm_pipeline.robot.model_files import root_link
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
 from gcm_pipeline.sources.grippers import GRIPPERS

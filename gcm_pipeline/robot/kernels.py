@@ -5,15 +5,22 @@ time, where the NumPy code runs array operation after array operation over
 all of them:
 
 * the batched forward kinematics and Jacobian of a chain
-  (:meth:`KinematicChain._forward <gcm_pipeline.robot.chain.KinematicChain>`);
+  (:meth:`KinematicChain._forward <gcm_pipeline.robot.chain.KinematicChain>`), and
+  the approach's deviation samples along joint segments
+  (:func:`~gcm_pipeline.reach.deviation.segment_bounds`):
+  :mod:`~gcm_pipeline.robot.chain_kernel`;
 * the IK's Levenberg-Marquardt iterations
-  (:func:`~gcm_pipeline.robot.ik.lm.levenberg_marquardt`), per (target, seed) pair;
+  (:func:`~gcm_pipeline.robot.ik.lm.levenberg_marquardt`), per (target, seed) pair:
+  :mod:`~gcm_pipeline.robot.ik.lm_kernel`;
 * the Panda's closed form (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.solve`),
-  per (target, joint-7 value);
-* the approach's deviation samples along joint segments (``approach._segment_bounds``);
+  per (target, joint-7 value): :mod:`~gcm_pipeline.robot.ik.panda_kernel`;
 * levels 1 and 2 of the collision broad phase (one bounding sphere per
   geometry, then the sphere covers), and level 3 (a robot polytope's hull
-  vertices against a box), see :mod:`gcm_pipeline.robot.collision`.
+  vertices against a box), see :mod:`gcm_pipeline.robot.collision`:
+  :mod:`~gcm_pipeline.robot.collision.broadphase_kernel`.
+
+Each kernel module sits beside its NumPy reference; what they share (signature
+types, the FMA, a chain's frames) is in :mod:`~gcm_pipeline.robot.kernel_common`.
 
 **Loading.** :func:`get` returns them, or None for the NumPy code. Importing
 the package does not import Numba: the first forward kinematics or collision
@@ -149,20 +156,37 @@ def suppressed() -> Iterator[None]:
         _SUPPRESSED = before
 
 
-def _import() -> Any:
-    """The module of the compiled kernels (importing it compiles them or reads the cache).
+def _import() -> Kernels | None:
+    """The compiled kernels (importing their modules compiles them or reads the cache).
 
     None when Numba's ``NUMBA_DISABLE_JIT`` is on: its kernels would run as
     Python (far too slow, and the FMA intrinsic cannot run at all).
     """
+    # The package's one guarded import of Numba: Numba and the kernel modules (which
+    # import it at their top) are imported here, on the first call, never at module
+    # top, so that importing the package does not import Numba.
     from numba.core import config
 
     if config.DISABLE_JIT:  # type: ignore[attr-defined]  # set at import, not declared
         log.info("NUMBA_DISABLE_JIT is on: the NumPy code is used")
         return None
-    from gcm_pipeline.robot import _compiled
+    from gcm_pipeline.robot import chain_kernel, kernel_common
+    from gcm_pipeline.robot.collision import broadphase_kernel
+    from gcm_pipeline.robot.ik import lm_kernel, panda_kernel
 
-    return _compiled
+    return Kernels(
+        *(
+            _Kernel(dispatcher, kernel_common.parameters(dispatcher))
+            for dispatcher in (
+                chain_kernel.chain_forward,
+                broadphase_kernel.broad_phase,
+                broadphase_kernel.hull_vs_box,
+                lm_kernel.levenberg_marquardt,
+                chain_kernel.segment_samples,
+                panda_kernel.panda_ik,
+            )
+        )
+    )
 
 
 @functools.cache
@@ -173,14 +197,14 @@ def _load() -> Kernels | None:
     notice.daemon = True
     notice.start()
     try:
-        _compiled = _import()
+        return _import()
     except ImportError as exc:
         log.warning("Numba cannot be imported (%s): the NumPy code is used", exc)
         return None
     except Exception as exc:  # any failure of Numba leaves the NumPy code
         log.warning(
             "compiled kernels failed to load (%s: %s), NumPy code used; if Numba's cache is "
-            "damaged, delete it (NUMBA_CACHE_DIR, or __pycache__ beside %s)",
+            "damaged, delete it (NUMBA_CACHE_DIR, or the __pycache__ folders under %s)",
             type(exc).__name__,
             exc,
             os.path.dirname(os.path.abspath(__file__)),
@@ -188,16 +212,6 @@ def _load() -> Kernels | None:
         return None
     finally:
         notice.cancel()
-    if _compiled is None:
-        return None
-    return Kernels(
-        _Kernel(_compiled.chain_forward),
-        _Kernel(_compiled.broad_phase),
-        _Kernel(_compiled.hull_vs_box),
-        _Kernel(_compiled.levenberg_marquardt),
-        _Kernel(_compiled.segment_samples),
-        _Kernel(_compiled.panda_ik),
-    )
 
 
 class _Kernel:
@@ -220,24 +234,20 @@ class _Kernel:
             argument: a caller's mistake, not an input to convert.
     """
 
-    def __init__(self, dispatcher: Any) -> None:
-        from numba import types
-        from numba.np.numpy_support import as_dtype
-
-        (signature,) = dispatcher.nopython_signatures  # compiled for exactly one
+    def __init__(self, dispatcher: Any, parameters: list[tuple[str, Any, int]]) -> None:
+        """A dispatcher and its arguments (``kernel_common.parameters``)."""
         self.dispatcher = dispatcher
         self.__name__ = dispatcher.__name__
         self.__doc__ = dispatcher.__doc__
-        self._convert: list[Callable[[Any], Any]] = []
-        for i, t in enumerate(signature.args):
-            if isinstance(t, types.Array):
-                self._convert.append(functools.partial(self._array, i, as_dtype(t.dtype), t.ndim))
-            elif isinstance(t, types.Boolean):
-                self._convert.append(bool)
-            elif isinstance(t, types.Integer):
-                self._convert.append(operator.index)
-            else:
-                self._convert.append(float)
+        scalar: dict[str, Callable[[Any], Any]] = {
+            "bool": bool,
+            "int": operator.index,
+            "float": float,
+        }
+        self._convert: list[Callable[[Any], Any]] = [
+            functools.partial(self._array, i, dtype, ndim) if kind == "array" else scalar[kind]
+            for i, (kind, dtype, ndim) in enumerate(parameters)
+        ]
 
     def _array(self, i: int, dtype: Any, ndim: int, value: Any) -> Any:
         a = np.asarray(value)

@@ -5,7 +5,9 @@ A :class:`RobotSpec` is the plain, validated content of a robot spec file
 reads and validates those files (``load_spec``, ``load_robot``). A
 :class:`Robot` is built from a spec: the model it names (an
 example-robot-data loader, a ``robot_descriptions`` module or a URDF), reduced
-to the arm's joints, with limits, home and the grasp frame. Another arm of
+to the arm's joints, with limits, home and the grasp frame. Where the model's
+files come from is :mod:`~gcm_pipeline.robot.model_files`; the locked joints,
+ranges and home of a spec, :mod:`~gcm_pipeline.robot.joints`. Another arm of
 example-robot-data is a new YAML file, not new code. Poses are expressed in the
 model's root frame (``universe``), called the *base frame*.
 
@@ -17,11 +19,7 @@ and type (a link and a joint of one name mean the link).
 
 from __future__ import annotations
 
-import difflib
 import logging
-import os
-import re
-import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +36,8 @@ from gcm_pipeline.errors import (
 )
 from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.joints import home_configuration, joint_ranges, locked_joints
+from gcm_pipeline.robot.model_files import check_srdf, model_files
 from gcm_pipeline.robot.tool import ToolSpec, shape_geometry
 from gcm_pipeline.robot.urdf import (
     PreparedUrdf,
@@ -47,18 +47,9 @@ from gcm_pipeline.robot.urdf import (
     resolve_frame,
 )
 
-__all__ = [
-    "Robot",
-    "RobotSpec",
-    "as_robot",
-    "model_files",
-    "root_link",
-]
+__all__ = ["Robot", "RobotSpec", "as_robot"]
 
 log = logging.getLogger(__name__)
-
-#: Largest joint bound accepted [rad or m]; a URDF's "unlimited" +-1e308 is refused.
-MAX_JOINT_BOUND = 1000.0
 
 
 @dataclass(frozen=True)
@@ -100,348 +91,6 @@ class RobotSpec:
     limit_margin: float = 0.1
     joint_limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     tool: ToolSpec | None = None
-
-
-def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
-    """URDF, SRDF and model directory of an example-robot-data loader."""
-    from example_robot_data.robots_loader import ROBOTS, getModelPath
-
-    if name not in ROBOTS:
-        raise RobotSpecError(unknown_choice("example_robot_data robot", name, ROBOTS))
-    loader = ROBOTS[name]
-    if not loader.urdf_filename:
-        raise RobotSpecError(
-            f"example_robot_data robot {name!r} is an SDF model ({loader.sdf_filename}); "
-            "only URDF models are read: give its URDF with model.urdf"
-        )
-    sub = f"{loader.path}/{loader.urdf_subpath}/{loader.urdf_filename}"
-    robots_dir = Path(getModelPath(sub)).resolve()
-    urdf = robots_dir / sub
-    srdf = None
-    if loader.srdf_filename:
-        cand = robots_dir / loader.path / loader.srdf_subpath / loader.srdf_filename
-        srdf = cand if cand.is_file() else None
-    return urdf, srdf, robots_dir / loader.path
-
-
-_MODEL_TOKEN = re.compile(r"([a-z]+)(\d+)([a-z]?)")
-
-
-def _model_tokens(text: str) -> dict[str, set[str]]:
-    """Model numbers in a name, by letter prefix: ``ur10e_description`` -> {ur: {ur10e}}."""
-    out: dict[str, set[str]] = {}
-    for part in re.split(r"[^a-z0-9]+", text.lower()):
-        m = _MODEL_TOKEN.fullmatch(part)
-        if m:
-            out.setdefault(m.group(1), set()).add(part)
-    return out
-
-
-def _urdf_robot_name(urdf: Path) -> str:
-    """``<robot name>`` of a URDF, read from its first 64 KiB ('' if not found)."""
-    try:
-        with open(urdf, "rb") as fh:
-            head = fh.read(1 << 16).decode("utf-8", errors="replace")
-    except OSError:
-        return ""
-    m = re.search(r"<robot\b[^>]*?\bname\s*=\s*[\"']([^\"']*)", head)
-    return m.group(1) if m else ""
-
-
-def _check_same_robot(source: str, name: str, urdf: Path) -> None:
-    """Refuse a loader that loads another robot's model.
-
-    Example-robot-data's ``ur3`` loads ``ur5_robot.urdf``: a model number in the
-    loader's name (ur3) that the URDF's file name and robot name contradict (ur5).
-    """
-    robot = _urdf_robot_name(urdf)
-    got: dict[str, set[str]] = {}
-    for text in (urdf.stem, robot):
-        for prefix, tokens in _model_tokens(text).items():
-            got.setdefault(prefix, set()).update(tokens)
-    for prefix, tokens in _model_tokens(name).items():
-        for token in tokens:
-            others = got.get(prefix, set())
-            if not others or token in others:
-                continue
-            ships = sorted(
-                (
-                    p
-                    for p in urdf.parent.glob("*.urdf")
-                    if token in _model_tokens(p.stem).get(prefix, ())
-                ),
-                key=lambda p: (p.stem != f"{token}_robot", p.name),
-            )
-            fix = (
-                f"use model: {{urdf: {ships[0]}}} instead"
-                if ships
-                else f"no URDF of the {token} ships beside it; give your own with model.urdf"
-            )
-            raise RobotSpecError(
-                f"model.{source} {name!r} loads another robot's model: {urdf.name} "
-                f"(robot {robot or '?'!r}, a {', '.join(sorted(others))}); {fix}"
-            )
-
-
-#: robot_descriptions modules resolved in this process: name -> (urdf, srdf, package dirs)
-_RD_PATHS: dict[str, tuple[Path, Path | None, tuple[Path, ...]]] = {}
-
-
-def _rd_cache_dir() -> str:
-    return os.path.expanduser(
-        os.environ.get("ROBOT_DESCRIPTIONS_CACHE", "~/.cache/robot_descriptions")
-    )
-
-
-def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
-    """URDF, SRDF and package folders of a ``robot_descriptions`` module.
-
-    Importing the module clones its repository into robot_descriptions' cache
-    (``ROBOT_DESCRIPTIONS_CACHE``, default ``~/.cache/robot_descriptions``) on first
-    use; a Xacro description is rendered to a URDF there (needs ``xacrodoc``).
-    """
-    import contextlib
-    import importlib
-    import io
-
-    if name in _RD_PATHS:
-        return _RD_PATHS[name]
-    try:
-        from robot_descriptions._descriptions import DESCRIPTIONS
-    except ImportError:  # pragma: no cover - a dependency of the package
-        raise RobotSpecError(
-            "model.robot_descriptions needs the package robot_descriptions "
-            "(pip install robot_descriptions)"
-        ) from None
-    if name not in DESCRIPTIONS:
-        urdf_names = [k for k, d in DESCRIPTIONS.items() if d.has_urdf]
-        raise RobotSpecError(unknown_choice("robot_descriptions model", name, urdf_names))
-    desc = DESCRIPTIONS[name]
-    if not desc.has_urdf:
-        urdf_names = [k for k, d in DESCRIPTIONS.items() if d.has_urdf]
-        close = difflib.get_close_matches(name.replace("_mj_", "_"), urdf_names, n=3, cutoff=0.5)
-        raise RobotSpecError(
-            f"model.robot_descriptions {name!r} is an MJCF (MuJoCo) model; a URDF one is "
-            f"needed: {', '.join(close) or 'see robot_descriptions --help'}"
-        )
-    cache = _rd_cache_dir()
-    clone = _rd_clone_dir(desc.repository, cache)
-    fresh = clone is not None and not clone.exists()
-    _rd_announce(desc.repository, cache)
-    try:
-        # its clone prints a progress bar and git's messages: kept out of the output
-        with (
-            contextlib.redirect_stdout(io.StringIO()),
-            contextlib.redirect_stderr(io.StringIO()),
-            captured_output(),
-        ):
-            from robot_descriptions._package_dirs import get_package_dirs
-            from robot_descriptions._xacro import get_urdf_path
-
-            module = importlib.import_module(f"robot_descriptions.{name}")
-            urdf = Path(get_urdf_path(module))
-            dirs = tuple(Path(d) for d in get_package_dirs(module))
-            srdf_path = getattr(module, "SRDF_PATH", None)
-    except Exception as exc:  # git, network, xacro: whatever the download raised
-        if fresh and clone is not None and clone.exists():
-            # a clone that failed leaves an empty repository, which robot_descriptions
-            # then takes for its cache and `git clone` (the message's advice) refuses
-            shutil.rmtree(clone, ignore_errors=True)
-        raise RobotSpecError(_rd_fetch_error(name, desc.repository, cache, exc)) from None
-    srdf = Path(srdf_path) if srdf_path and Path(srdf_path).is_file() else None
-    _RD_PATHS[name] = (urdf, srdf, dirs)
-    return _RD_PATHS[name]
-
-
-def _rd_clone_dir(repository: str | None, cache: str) -> Path | None:
-    """Where robot_descriptions keeps the clone of ``repository`` (None: not a download)."""
-    from robot_descriptions._repositories import REPOSITORIES
-
-    repo = REPOSITORIES.get(repository or "")
-    if repo is None:
-        return None
-    commit = os.environ.get("ROBOT_DESCRIPTION_COMMIT")  # robot_descriptions' own variable
-    sub = f"{repo.cache_path}-{commit}/{repo.cache_path}" if commit else repo.cache_path
-    return Path(cache) / sub
-
-
-def _rd_announce(repository: str | None, cache: str) -> None:
-    """Say so when robot_descriptions is about to clone a repository (it may take minutes)."""
-    from robot_descriptions._repositories import REPOSITORIES
-
-    clone = _rd_clone_dir(repository, cache)
-    if clone is not None and not clone.is_dir():
-        log.warning(
-            "robot_descriptions: cloning %s into %s (first use; this can take minutes)",
-            REPOSITORIES[repository or ""].url,
-            clone,
-        )
-
-
-def _rd_fetch_error(name: str, repository: str | None, cache: str, exc: Exception) -> str:
-    """One line: what could not be fetched, where it was expected, how to provide it."""
-    from robot_descriptions._repositories import REPOSITORIES
-
-    lines = [ln.strip(" '\"") for ln in str(exc).strip().splitlines() if ln.strip(" '\"")]
-    why = lines[-1] if lines else type(exc).__name__
-    why = why.removeprefix("stderr: ").strip(" '\"")[:200]
-    repo = REPOSITORIES.get(repository or "")
-    if repo is None:  # not a download: e.g. a Xacro that does not render
-        return f"model.robot_descriptions {name!r}: cannot be loaded: {why}"
-    target = os.path.join(cache, repo.cache_path)
-    return (
-        f"model.robot_descriptions {name!r}: not in the cache {cache} and cannot be fetched "
-        f"from {repo.url} ({why}); run once with network access, or clone that repository "
-        f"into {target} yourself (its commit {repo.commit[:12]} must be in it; "
-        "ROBOT_DESCRIPTIONS_CACHE sets the cache folder)"
-    )
-
-
-def model_files(spec: RobotSpec) -> tuple[Path, Path | None, tuple[Path, ...]]:
-    """URDF, SRDF and ``package://`` folders of a spec's model.
-
-    Raises:
-        RobotSpecError: An unknown loader or description, a loader that loads
-            another robot's model, a description that cannot be fetched.
-    """
-    if spec.example_robot_data is not None:
-        urdf, srdf, mesh_dir = _erd_paths(spec.example_robot_data)
-        _check_same_robot("example_robot_data", spec.example_robot_data, urdf)
-        return urdf, srdf, (mesh_dir.parent.parent.parent,)
-    if spec.robot_descriptions is not None:
-        urdf, srdf, dirs = _rd_paths(spec.robot_descriptions)
-        _check_same_robot("robot_descriptions", spec.robot_descriptions, urdf)
-        return urdf, srdf, dirs
-    assert spec.urdf is not None
-    return spec.urdf, spec.srdf, spec.package_dirs
-
-
-def root_link(spec: RobotSpec) -> str:
-    """Name of the root link of a spec's URDF (the robot's base frame).
-
-    Raises:
-        RobotSpecError: One line: the URDF is missing, not valid XML or has no root link.
-    """
-    urdf, _, dirs = model_files(spec)
-    if not urdf.is_file():
-        raise RobotSpecError(f"robot {spec.name!r}: URDF {str(urdf)!r} does not exist")
-    return prepare_urdf(urdf, dirs, spec.joint_limits, check_meshes=False).root_link
-
-
-def _check_srdf(name: str, srdf: Path) -> None:
-    """An SRDF that is not readable XML is an error of the spec (not a parser traceback)."""
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.parse(srdf).getroot()
-    except (OSError, ET.ParseError) as exc:
-        raise RobotSpecError(
-            f"robot {name!r}: SRDF {str(srdf)!r} is not readable XML: {exc}"
-        ) from None
-    if root.tag != "robot":
-        raise RobotSpecError(
-            f"robot {name!r}: SRDF {str(srdf)!r} has root <{clip(root.tag, 40)}>, expected <robot>"
-        )
-
-
-def _locked_joints(spec: RobotSpec, full: Any) -> tuple[np.ndarray, list[int]]:
-    """The full model's configuration with the spec's locked joints set, and their ids."""
-    joint_names = [full.names[i] for i in range(1, full.njoints)]
-    locked_q = pin.neutral(full)
-    locked_ids = []
-    for jname, value in spec.locked_joints.items():
-        if not full.existJointName(jname):
-            raise RobotSpecError(
-                f"robot {spec.name!r}: locked_joints: "
-                + unknown_choice("joint", jname, joint_names)
-            )
-        jid = full.getJointId(jname)
-        if full.joints[jid].nq != 1:
-            raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
-        iq = full.joints[jid].idx_q
-        lo, hi = full.lowerPositionLimit[iq], full.upperPositionLimit[iq]
-        if not lo - 1e-9 <= value <= hi + 1e-9:
-            raise RobotSpecError(
-                f"robot {spec.name!r}: locked_joints.{jname} = {value:g} is outside the "
-                f"joint's range [{lo:g}, {hi:g}]"
-            )
-        locked_q[iq] = value
-        locked_ids.append(jid)
-    return locked_q, locked_ids
-
-
-def _joint_ranges(
-    spec: RobotSpec, model: Any, prepared: PreparedUrdf, continuous: Mapping[str, Any], urdf: Path
-) -> tuple[np.ndarray, np.ndarray]:
-    """Joint ranges (nq,) [rad or m]: the model's, intersected with the spec's, less the margin."""
-    joint_names = tuple(model.names[i] for i in range(1, model.njoints))
-    lower = np.array(model.lowerPositionLimit, dtype=float)
-    upper = np.array(model.upperPositionLimit, dtype=float)
-    for jname, (lo, hi) in spec.joint_limits.items():
-        if jname not in joint_names:
-            raise RobotSpecError(
-                f"robot {spec.name!r}: joint_limits: " + unknown_choice("joint", jname, joint_names)
-            )
-        i = joint_names.index(jname)
-        lower[i], upper[i] = max(lower[i], lo), min(upper[i], hi)
-    for i, jname in enumerate(joint_names):
-        lo, hi = float(lower[i]), float(upper[i])
-        if not (abs(lo) <= MAX_JOINT_BOUND and abs(hi) <= MAX_JOINT_BOUND):
-            raise RobotSpecError(
-                f"robot {spec.name!r}: joint {jname!r} has the range [{lo:g}, {hi:g}] in "
-                f"{str(urdf)!r}, beyond +-{MAX_JOINT_BOUND:g} (rad or m); give its real "
-                f"range in the spec: joint_limits: {{{jname}: [lower, upper]}}"
-            )
-    # the margin is in radians: revolute joints only (a prismatic range is in metres),
-    # and not a continuous joint's stated range of two turns (no limit to keep off)
-    revolute = np.zeros(model.nq, dtype=bool)
-    for j in range(1, model.njoints):
-        joint = model.joints[j]
-        limited = model.names[j] not in continuous or (model.names[j] in spec.joint_limits)
-        if joint.nq == 1 and limited and not joint.shortname()[10:].startswith("P"):
-            revolute[joint.idx_q] = True
-    lower += np.where(revolute, spec.limit_margin, 0.0)
-    upper -= np.where(revolute, spec.limit_margin, 0.0)
-    for i, jname in enumerate(joint_names):
-        if not lower[i] < upper[i]:
-            why = (
-                f" (the URDF gives it no lower/upper; give joint_limits: {{{jname}: "
-                "[lower, upper]})"
-                if jname in prepared.unbounded
-                else ""
-            )
-            raise RobotSpecError(
-                f"robot {spec.name!r}: joint {jname!r} has an empty range "
-                f"[{lower[i]:g}, {upper[i]:g}] after joint_limits and limit_margin "
-                f"({spec.limit_margin:g}){why}"
-            )
-    return lower, upper
-
-
-def _home(
-    spec: RobotSpec, joint_names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray
-) -> np.ndarray:
-    """The home configuration (nq,) [rad]: the spec's, else the middle of every range."""
-    if isinstance(spec.home, tuple):
-        if len(spec.home) != len(joint_names):
-            raise RobotSpecError(
-                f"robot {spec.name!r}: home has {len(spec.home)} values, "
-                f"expected {len(joint_names)}"
-            )
-        home = np.array(spec.home, dtype=float)
-    else:
-        home = 0.5 * (lower + upper)
-        for jname, value in spec.home.items():
-            if jname not in joint_names:
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: home: " + unknown_choice("joint", jname, joint_names)
-                )
-            home[joint_names.index(jname)] = value
-    if np.any(home < lower) or np.any(home > upper):
-        raise RobotSpecError(
-            f"robot {spec.name!r}: home {home.tolist()} is outside the joint limits"
-        )
-    return home
 
 
 def _tool_shapes(spec: RobotSpec) -> dict[str, list[tuple[Any, Any, Any]]]:
@@ -527,8 +176,8 @@ class Robot:
             _add_tool_frame(spec, full)
         self.full_model = full
         if srdf is not None:
-            _check_srdf(spec.name, srdf)
-        locked_q, locked_ids = _locked_joints(spec, full)
+            check_srdf(spec.name, srdf)
+        locked_q, locked_ids = locked_joints(spec, full)
         self.locked_q = locked_q
         model = pin.buildReducedModel(full, locked_ids, locked_q) if locked_ids else full.copy()
         self.model = model
@@ -545,13 +194,13 @@ class Robot:
         }
         self.chain = KinematicChain(model, self.grasp_frame_id)
 
-        lower, upper = _joint_ranges(spec, model, prepared, self.continuous_joints, urdf)
+        lower, upper = joint_ranges(spec, model, prepared, self.continuous_joints, urdf)
         lower.setflags(write=False)
         upper.setflags(write=False)
         self.lower = lower
         self.upper = upper
 
-        home = _home(spec, self.joint_names, lower, upper)
+        home = home_configuration(spec, self.joint_names, lower, upper)
         home.setflags(write=False)
         self.home = home
         self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}

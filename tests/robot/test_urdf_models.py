@@ -20,8 +20,8 @@ from urdfs import UR5_JOINTS, arm_urdf, write_arm
 
 from gcm_pipeline.config.robot_spec import load_robot, load_spec
 from gcm_pipeline.errors import FrameNotFoundError, RobotSpecError
-from gcm_pipeline.robot import model as model_module
-from gcm_pipeline.robot.model import root_link
+from gcm_pipeline.robot import model_files
+from gcm_pipeline.robot.model_files import root_link
 from gcm_pipeline.robot.urdf import CONTINUOUS_RANGE, resolve_frame
 from gcm_pipeline.rundir.run import read_run
 
@@ -330,9 +330,9 @@ def test_no_other_example_robot_data_loader_is_refused():
     for name, loader in ROBOTS.items():
         if not loader.urdf_filename:
             continue
-        urdf = model_module._erd_paths(name)[0]
+        urdf = model_files._erd_paths(name)[0]
         try:
-            model_module._check_same_robot("example_robot_data", name, urdf)
+            model_files._check_same_robot("example_robot_data", name, urdf)
         except RobotSpecError:
             refused.append(name)
     assert refused == ["ur3"]
@@ -380,12 +380,12 @@ def _fake_cache(tmp_path: Path, cache_path: str, files: dict[str, str | Path]) -
 def rd_env(monkeypatch):
     """robot_descriptions modules imported afresh (their import clones), no https."""
     monkeypatch.setenv("GIT_ALLOW_PROTOCOL", "file")  # never a real download in a test
-    model_module._RD_PATHS.clear()
+    model_files._RD_PATHS.clear()
     for name in [m for m in sys.modules if m.startswith("robot_descriptions.")]:
         if not name.startswith("robot_descriptions._") and name != "robot_descriptions.loaders":
             monkeypatch.delitem(sys.modules, name)
     yield monkeypatch
-    model_module._RD_PATHS.clear()
+    model_files._RD_PATHS.clear()
 
 
 def test_a_robot_descriptions_model_loads_from_its_cache(tmp_path, rd_env, panda):

@@ -350,21 +350,10 @@ def solve_ik(
     far = _out_of_reach(robot, tgt, tol_p, tol_r)
     reason[far] = "out_of_reach"
 
-    phases: list[np.ndarray]
-    if nb is None:
-        phases = [np.flatnonzero(~far)]
-    else:
-        has_nb = np.any(nb >= 0, axis=1)
-        phases = [np.flatnonzero(~far & ~has_nb), np.flatnonzero(~far & has_nb)]
-    for phase, rows in enumerate(phases):
+    for phase, rows in enumerate(_phases(far, nb)):
         if rows.size == 0:
             continue
-        sub_seeds = None if seed_arr is None else seed_arr[rows]
-        if phase == 1:
-            assert nb is not None
-            ref = nb[rows]
-            warm = np.where((ref >= 0)[:, :, None], q[np.clip(ref, 0, None)], np.nan)
-            sub_seeds = warm if sub_seeds is None else np.concatenate([warm, sub_seeds], axis=1)
+        sub_seeds = _phase_seeds(phase, rows, seed_arr, nb, q)
         raw = run_backend(
             solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
         )
@@ -391,6 +380,30 @@ def solve_ik(
         backend=backend,
         candidates=_gather_candidates(cand, nq) if return_all else None,
     )
+
+
+def _phases(far: np.ndarray, nb: np.ndarray | None) -> list[np.ndarray]:
+    """The rows solved in each phase: without neighbours first, then those seeded by them."""
+    if nb is None:
+        return [np.flatnonzero(~far)]
+    has_nb = np.any(nb >= 0, axis=1)
+    return [np.flatnonzero(~far & ~has_nb), np.flatnonzero(~far & has_nb)]
+
+
+def _phase_seeds(
+    phase: int, rows: np.ndarray, seeds: np.ndarray | None, nb: np.ndarray | None, q: np.ndarray
+) -> np.ndarray | None:
+    """Seeds (len(rows), K, nq) of a phase's rows.
+
+    The neighbours' solutions ``q`` (second phase; NaN where none), then the given seeds.
+    """
+    sub_seeds = None if seeds is None else seeds[rows]
+    if phase == 1:
+        assert nb is not None
+        ref = nb[rows]
+        warm = np.where((ref >= 0)[:, :, None], q[np.clip(ref, 0, None)], np.nan)
+        sub_seeds = warm if sub_seeds is None else np.concatenate([warm, sub_seeds], axis=1)
+    return sub_seeds
 
 
 def _processes(workers: Any) -> int:

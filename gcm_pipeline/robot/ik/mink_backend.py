@@ -223,14 +223,7 @@ def solve(
     model, qidx = mujoco_model(robot)
     n, nq = targets.shape[0], robot.nq
     configuration = mink.Configuration(model)
-    task = mink.FrameTask(
-        frame_name=robot.grasp_frame,
-        frame_type="body",
-        position_cost=1.0,
-        orientation_cost=1.0,
-        gain=1.0,
-        lm_damping=0.0,
-    )
+    task = _frame_task(mink, robot.grasp_frame)
     limits = [mink.ConfigurationLimit(model, gain=opts.limit_gain)]
     tol_p = position_tolerance * opts.inner_tolerance
     tol_r = orientation_tolerance * opts.inner_tolerance
@@ -258,17 +251,8 @@ def solve(
         for q0 in _seed_list(given, lib.q[nearest[i]], robot.home, opts.home_seed, restarts):
             qpos[qidx] = np.clip(q0, robot.lower, robot.upper)
             configuration.update(qpos)
-            for _ in range(opts.max_iterations + 1):
-                pose = configuration.get_transform_frame_to_world(robot.grasp_frame, "body")
-                mat = pose.as_matrix()
-                pe = float(np.linalg.norm(mat[:3, 3] - tpos))
-                re = float(rotation_angle((trot.T @ mat[:3, :3])[None])[0])
-                if pe <= tol_p and re <= tol_r:
-                    break
-                vel = mink.solve_ik(
-                    configuration, [task], 1.0, opts.solver, damping=opts.damping, limits=limits
-                )
-                configuration.integrate_inplace(vel, 1.0)
+            pe, re = _descend(mink, configuration, task, limits, robot.grasp_frame, trot, tpos,
+                              (tol_p, tol_r), opts)  # fmt: skip
             q = configuration.q[qidx].copy()
             if not success[i] and (
                 pe + re / orientation_tolerance * position_tolerance
@@ -304,6 +288,49 @@ def solve(
         all_q=np.array(all_q).reshape(-1, nq),
         all_reason=np.array(all_reason, dtype=object),
     )
+
+
+def _frame_task(mink: Any, frame: str) -> Any:
+    """The task of the grasp frame (a body) in mink: position and orientation at equal costs."""
+    return mink.FrameTask(
+        frame_name=frame,
+        frame_type="body",
+        position_cost=1.0,
+        orientation_cost=1.0,
+        gain=1.0,
+        lm_damping=0.0,
+    )
+
+
+def _descend(
+    mink: Any,
+    configuration: Any,
+    task: Any,
+    limits: list[Any],
+    frame: str,
+    trot: np.ndarray,
+    tpos: np.ndarray,
+    tolerances: tuple[float, float],
+    opts: MinkIKOptions,
+) -> tuple[float, float]:
+    """Steps of mink from the configuration's q, in place, until the pose is in tolerance.
+
+    At most ``opts.max_iterations`` steps; returns the last pose's position error [m]
+    and rotation error [rad] from the target ``(trot, tpos)``.
+    """
+    tol_p, tol_r = tolerances
+    for _ in range(opts.max_iterations + 1):
+        pose = configuration.get_transform_frame_to_world(frame, "body")
+        mat = pose.as_matrix()
+        pe = float(np.linalg.norm(mat[:3, 3] - tpos))
+        re = float(rotation_angle((trot.T @ mat[:3, :3])[None])[0])
+        if pe <= tol_p and re <= tol_r:
+            break
+        vel = mink.solve_ik(
+            configuration, [task], 1.0, opts.solver, damping=opts.damping, limits=limits
+        )
+        configuration.integrate_inplace(vel, 1.0)
+    return pe, re
 
 
 def _seed_list(

@@ -210,8 +210,6 @@ class PandaAnalyticIK:
         )
         return (farthest < near - slack) | (closest > far + slack)
 
-    # one derivation in order (elbow, swivel, shoulder, wrist), each step's arrays feeding the
-    # next: cut into functions it would pass a dozen arrays around (reason for > 100 lines)
     def solve(
         self,
         rot: np.ndarray,
@@ -273,6 +271,21 @@ class PandaAnalyticIK:
                 self._dims,
             )
             return out
+        return self._solve_numpy(rot, pos, q7, lower, upper, near)
+
+    # one derivation in order (elbow, swivel, shoulder, wrist), each step's arrays feeding the
+    # next: cut into functions it would pass a dozen arrays around (reason for > 100 lines)
+    def _solve_numpy(
+        self,
+        rot: np.ndarray,
+        pos: np.ndarray,
+        q7: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        near: tuple[np.ndarray, float] | None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`solve` in NumPy, all (target, q7) rows at once (the kernel's reference)."""
+        n, k = q7.shape
 
         def within(j: int, angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """Angle of joint j moved a turn up where below its limit, and inside-mask.

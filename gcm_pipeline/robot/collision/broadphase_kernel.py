@@ -1,0 +1,202 @@
+"""Compiled kernels of the collision broad phase (levels 1 to 3).
+
+Kernels of :class:`~gcm_pipeline.robot.collision.broadphase.BroadPhase` (the NumPy
+reference, beside this module): :func:`broad_phase` (levels 1 and 2: one bounding
+sphere per geometry, then the sphere covers) and :func:`hull_vs_box` (level 3: a
+robot polytope's hull vertices against a box). Imported by
+:func:`gcm_pipeline.robot.kernels.get` only (it imports Numba).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numba import njit, types
+
+from gcm_pipeline.robot.kernel_common import F1, F2, F3, F4, I1
+
+
+@njit(cache=True, inline="always")
+def _place(tf: Any, centre: Any, out: Any) -> None:
+    """``out`` (3,) = the point ``centre`` (3,) fixed to a joint whose frame is ``tf`` (3, 4)."""
+    for r in range(3):
+        out[r] = tf[r, 0] * centre[0] + tf[r, 1] * centre[1] + tf[r, 2] * centre[2] + tf[r, 3]
+
+
+@njit(cache=True, inline="always")
+def _lower(p: Any, shape: Any) -> float:
+    """Lower bound of the distance from point ``p`` (3,) to a world shape (a packed row).
+
+    The row is ``ShapeBound.packed`` (:mod:`gcm_pipeline.robot.collision.broadphase`): the
+    shape's inverse placement's first three rows (12), its kind, radius, half
+    length, box centre (3), half sizes (3). The same bound as ``ShapeBound.lower``.
+    """
+    x = shape[0] * p[0] + shape[1] * p[1] + shape[2] * p[2] + shape[3]
+    y = shape[4] * p[0] + shape[5] * p[1] + shape[6] * p[2] + shape[7]
+    z = shape[8] * p[0] + shape[9] * p[1] + shape[10] * p[2] + shape[11]
+    kind = int(shape[12])
+    if kind == 0:  # sphere
+        return max(math.sqrt(x * x + y * y + z * z) - shape[13], 0.0)
+    if kind == 1:  # cylinder
+        radial = max(math.sqrt(x * x + y * y) - shape[13], 0.0)
+        axial = max(abs(z) - shape[14], 0.0)
+        return math.sqrt(radial * radial + axial * axial)
+    if kind == 2:  # capsule
+        along = z - min(max(z, -shape[14]), shape[14])
+        return max(math.sqrt(x * x + y * y + along * along) - shape[13], 0.0)
+    bx = max(abs(x - shape[15]) - shape[18], 0.0)  # box
+    by = max(abs(y - shape[16]) - shape[19], 0.0)
+    bz = max(abs(z - shape[17]) - shape[20], 0.0)
+    return math.sqrt(bx * bx + by * by + bz * bz)
+
+
+@njit(cache=True, inline="always")
+def _sq_gap(a: Any, b: Any) -> float:
+    """Squared distance of two points (3,)."""
+    d0 = a[0] - b[0]
+    d1 = a[1] - b[1]
+    d2 = a[2] - b[2]
+    return d0 * d0 + d1 * d1 + d2 * d2
+
+
+@njit(
+    types.boolean[:, ::1](F4, I1, F2, I1, F2, I1, I1, I1, F1, I1, I1, I1, I1, F1, F2),
+    cache=True,
+)
+def broad_phase(
+    tfs,
+    ball_joint,
+    ball_centre,
+    sphere_joint,
+    sphere_centre,
+    geom_a,
+    geom_b,
+    world,
+    limit1,
+    first_test,
+    n_tests,
+    sphere_a,
+    sphere_b,
+    limit2,
+    shapes,
+):
+    """Levels 1 and 2 of the broad phase: the (pair, configuration) entries left open.
+
+    Pair ``k`` is a self pair when ``world[k] < 0`` (geometries ``geom_a[k]``
+    and ``geom_b[k]``), else geometry ``geom_a[k]`` against the world shape
+    ``shapes[world[k]]``. It stays open in a configuration when (1) its
+    bounding spheres are within reach, ``|ca - cb|^2 <= limit1[k]`` (self) or
+    ``lower(ca) <= limit1[k]`` (world), and (2) one of its sphere tests
+    ``e = first_test[k] .. first_test[k] + n_tests[k] - 1`` is within reach:
+    ``|pa - pb|^2 <= limit2[e]`` or ``lower(pa) <= limit2[e]``. The limits
+    hold the radii, the margin and the slack.
+
+    Args:
+        tfs: Joint frames (J, N, 3, 4).
+        ball_joint: Joint of each geometry's bounding sphere (G,).
+        ball_centre: Their centres in the joints' frames (G, 3) [m].
+        sphere_joint: Joint of each cover sphere (S,).
+        sphere_centre: Their centres in the joints' frames (S, 3) [m].
+        geom_a: Robot geometry of each pair (P,).
+        geom_b: The other robot geometry of a self pair (P,).
+        world: Row of ``shapes`` of a world pair, -1 for a self pair (P,).
+        limit1: Level-1 limit of each pair (P,).
+        first_test: First sphere test of each pair (P,).
+        n_tests: Number of sphere tests of each pair (P,).
+        sphere_a: Robot-side cover sphere of each test (E,).
+        sphere_b: Other cover sphere of a self pair's test (E,).
+        limit2: Level-2 limit of each test (E,).
+        shapes: World shapes as packed rows (W, 21) (see :func:`_lower`).
+
+    Returns:
+        (P, N) bool: True where the pair is left open.
+    """
+    n = tfs.shape[1]
+    npairs = geom_a.shape[0]
+    open_ = np.zeros((npairs, n), dtype=np.bool_)
+    ball = np.empty((ball_joint.shape[0], 3))
+    sphere = np.empty((sphere_joint.shape[0], 3))
+    for i in range(n):
+        for g in range(ball_joint.shape[0]):
+            _place(tfs[ball_joint[g], i], ball_centre[g], ball[g])
+        placed = False
+        for k in range(npairs):
+            w = world[k]
+            # 1. one bounding sphere per geometry
+            if w < 0:
+                if _sq_gap(ball[geom_a[k]], ball[geom_b[k]]) > limit1[k]:
+                    continue
+            elif _lower(ball[geom_a[k]], shapes[w]) > limit1[k]:
+                continue
+            # 2. the sphere covers (all placed once per configuration, when first needed)
+            if not placed:
+                for e in range(sphere_joint.shape[0]):
+                    _place(tfs[sphere_joint[e], i], sphere_centre[e], sphere[e])
+                placed = True
+            for e in range(first_test[k], first_test[k] + n_tests[k]):
+                if w < 0:
+                    near = _sq_gap(sphere[sphere_a[e]], sphere[sphere_b[e]]) <= limit2[e]
+                else:
+                    near = _lower(sphere[sphere_a[e]], shapes[w]) <= limit2[e]
+                if near:
+                    open_[k, i] = True
+                    break
+    return open_
+
+
+@njit(types.int8[::1](F3, I1, F2, F2, F1, F1), cache=True)
+def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
+    """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
+
+    In the box's frame, ``x = inv @ T @ [v; 1]`` for each hull vertex ``v``.
+
+    Args:
+        tfs: Frames of the polytope's joint (N, 3, 4).
+        rows: Configurations to decide (M,).
+        verts: Hull vertices (3, V) in the joint's frame [m].
+        inv: The box's inverse placement (4, 4).
+        beyond: Free when, along one axis ``a``, every vertex has
+            ``x_a > beyond[a]`` or every vertex ``x_a < -beyond[a]`` (3,).
+        deep: Collides when a vertex has ``|x_a| < deep[a]`` on all three axes (3,).
+
+    Returns:
+        (M,) int8: 0 free, 1 collides, 2 undecided.
+    """
+    m = rows.shape[0]
+    out = np.empty(m, dtype=np.int8)
+    rot = np.empty((3, 3))
+    off = np.empty(3)
+    x = np.empty(3)
+    for r in range(m):
+        tf = tfs[rows[r]]
+        for a in range(3):
+            for b in range(4):
+                v = inv[a, 0] * tf[0, b] + inv[a, 1] * tf[1, b] + inv[a, 2] * tf[2, b]
+                if b < 3:
+                    rot[a, b] = v
+                else:
+                    off[a] = v + inv[a, 3]
+        above0 = above1 = above2 = below0 = below1 = below2 = True
+        inside = False
+        for v in range(verts.shape[1]):
+            for a in range(3):
+                x[a] = rot[a, 0] * verts[0, v] + rot[a, 1] * verts[1, v]
+                x[a] += rot[a, 2] * verts[2, v] + off[a]
+            above0 = above0 and x[0] > beyond[0]
+            below0 = below0 and x[0] < -beyond[0]
+            above1 = above1 and x[1] > beyond[1]
+            below1 = below1 and x[1] < -beyond[1]
+            above2 = above2 and x[2] > beyond[2]
+            below2 = below2 and x[2] < -beyond[2]
+            if abs(x[0]) < deep[0] and abs(x[1]) < deep[1] and abs(x[2]) < deep[2]:
+                inside = True
+                break
+        if inside:
+            out[r] = 1
+        elif above0 or below0 or above1 or below1 or above2 or below2:
+            out[r] = 0
+        else:
+            out[r] = 2
+    return out

@@ -1,0 +1,128 @@
+"""The arm's joints as a spec sets them: locked joints, joint ranges, home.
+
+Used when a :class:`~gcm_pipeline.robot.model.Robot` is built: the spec's locked
+joints (checked against the full model), each joint's range (the model's,
+intersected with the spec's ``joint_limits``, less ``limit_margin`` on revolute
+joints; an "unlimited" +-1e308 or an empty range refused in one line), and the
+home configuration (the spec's, else the middle of every range).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pinocchio as pin
+
+from gcm_pipeline.errors import RobotSpecError, unknown_choice
+from gcm_pipeline.robot.urdf import PreparedUrdf
+
+if TYPE_CHECKING:
+    from gcm_pipeline.robot.model import RobotSpec
+
+__all__ = ["MAX_JOINT_BOUND", "home_configuration", "joint_ranges", "locked_joints"]
+
+#: Largest joint bound accepted [rad or m]; a URDF's "unlimited" +-1e308 is refused.
+MAX_JOINT_BOUND = 1000.0
+
+
+def locked_joints(spec: RobotSpec, full: Any) -> tuple[np.ndarray, list[int]]:
+    """The full model's configuration with the spec's locked joints set, and their ids."""
+    joint_names = [full.names[i] for i in range(1, full.njoints)]
+    locked_q = pin.neutral(full)
+    locked_ids = []
+    for jname, value in spec.locked_joints.items():
+        if not full.existJointName(jname):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: locked_joints: "
+                + unknown_choice("joint", jname, joint_names)
+            )
+        jid = full.getJointId(jname)
+        if full.joints[jid].nq != 1:
+            raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
+        iq = full.joints[jid].idx_q
+        lo, hi = full.lowerPositionLimit[iq], full.upperPositionLimit[iq]
+        if not lo - 1e-9 <= value <= hi + 1e-9:
+            raise RobotSpecError(
+                f"robot {spec.name!r}: locked_joints.{jname} = {value:g} is outside the "
+                f"joint's range [{lo:g}, {hi:g}]"
+            )
+        locked_q[iq] = value
+        locked_ids.append(jid)
+    return locked_q, locked_ids
+
+
+def joint_ranges(
+    spec: RobotSpec, model: Any, prepared: PreparedUrdf, continuous: Mapping[str, Any], urdf: Path
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint ranges (nq,) [rad or m]: the model's, intersected with the spec's, less the margin."""
+    joint_names = tuple(model.names[i] for i in range(1, model.njoints))
+    lower = np.array(model.lowerPositionLimit, dtype=float)
+    upper = np.array(model.upperPositionLimit, dtype=float)
+    for jname, (lo, hi) in spec.joint_limits.items():
+        if jname not in joint_names:
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint_limits: " + unknown_choice("joint", jname, joint_names)
+            )
+        i = joint_names.index(jname)
+        lower[i], upper[i] = max(lower[i], lo), min(upper[i], hi)
+    for i, jname in enumerate(joint_names):
+        lo, hi = float(lower[i]), float(upper[i])
+        if not (abs(lo) <= MAX_JOINT_BOUND and abs(hi) <= MAX_JOINT_BOUND):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint {jname!r} has the range [{lo:g}, {hi:g}] in "
+                f"{str(urdf)!r}, beyond +-{MAX_JOINT_BOUND:g} (rad or m); give its real "
+                f"range in the spec: joint_limits: {{{jname}: [lower, upper]}}"
+            )
+    # the margin is in radians: revolute joints only (a prismatic range is in metres),
+    # and not a continuous joint's stated range of two turns (no limit to keep off)
+    revolute = np.zeros(model.nq, dtype=bool)
+    for j in range(1, model.njoints):
+        joint = model.joints[j]
+        limited = model.names[j] not in continuous or (model.names[j] in spec.joint_limits)
+        if joint.nq == 1 and limited and not joint.shortname()[10:].startswith("P"):
+            revolute[joint.idx_q] = True
+    lower += np.where(revolute, spec.limit_margin, 0.0)
+    upper -= np.where(revolute, spec.limit_margin, 0.0)
+    for i, jname in enumerate(joint_names):
+        if not lower[i] < upper[i]:
+            why = (
+                f" (the URDF gives it no lower/upper; give joint_limits: {{{jname}: "
+                "[lower, upper]})"
+                if jname in prepared.unbounded
+                else ""
+            )
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint {jname!r} has an empty range "
+                f"[{lower[i]:g}, {upper[i]:g}] after joint_limits and limit_margin "
+                f"({spec.limit_margin:g}){why}"
+            )
+    return lower, upper
+
+
+def home_configuration(
+    spec: RobotSpec, joint_names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray
+) -> np.ndarray:
+    """The home configuration (nq,) [rad]: the spec's, else the middle of every range."""
+    if isinstance(spec.home, tuple):
+        if len(spec.home) != len(joint_names):
+            raise RobotSpecError(
+                f"robot {spec.name!r}: home has {len(spec.home)} values, "
+                f"expected {len(joint_names)}"
+            )
+        home = np.array(spec.home, dtype=float)
+    else:
+        home = 0.5 * (lower + upper)
+        for jname, value in spec.home.items():
+            if jname not in joint_names:
+                raise RobotSpecError(
+                    f"robot {spec.name!r}: home: " + unknown_choice("joint", jname, joint_names)
+                )
+            home[joint_names.index(jname)] = value
+    if np.any(home < lower) or np.any(home > upper):
+        raise RobotSpecError(
+            f"robot {spec.name!r}: home {home.tolist()} is outside the joint limits"
+        )
+    return home

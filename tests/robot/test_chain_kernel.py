@@ -1,0 +1,132 @@
+"""The chain kernels (gcm_pipeline.robot.chain_kernel) against their NumPy references.
+
+Forward kinematics and Jacobians (``KinematicChain._forward``) on every chain
+shape (a whole arm, one with a tool, a sub-chain whose joints are not the first
+columns of q) and row count; the deviation samples along joint segments
+(``reach.deviation.segment_bounds``). Closed forms: values to tolerances far
+above round-off, and against Pinocchio; never the last bits.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from gcm_pipeline.config.robot_spec import load_robot
+from gcm_pipeline.robot.chain import KinematicChain
+
+#: Each test starts with the kernels on, whatever the environment says.
+pytestmark = pytest.mark.usefixtures("kernels_on")
+
+
+def _pin_frames(model, frame_id, q):
+    """Pose (rotations (N, 3, 3), positions (N, 3)) and world-aligned Jacobians of a
+    frame, by Pinocchio itself, one configuration at a time."""
+    data = model.createData()
+    rot, pos, jac = [], [], []
+    for qi in np.atleast_2d(q):
+        pin.computeJointJacobians(model, data, qi)
+        pin.updateFramePlacements(model, data)
+        placement = data.oMf[frame_id]
+        rot.append(placement.rotation.copy())
+        pos.append(placement.translation.copy())
+        jac.append(
+            pin.getFrameJacobian(model, data, frame_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        )
+    return np.array(rot), np.array(pos), np.array(jac)
+
+
+# --- forward kinematics -----------------------------------------------------------------
+
+
+def _chains(panda):
+    """Chains by name: (chain, the model, the frame's id in it)."""
+    ur5 = load_robot("ur5")
+    link4 = panda.model.getFrameId("panda_link4")
+    return {
+        "panda": (panda.chain, panda.model, panda.grasp_frame_id),
+        "ur5_tool": (ur5.chain, ur5.model, ur5.grasp_frame_id),
+        # joints 1-4 of 7: q_index is not 0..nq-1, the Jacobian's last columns are zero
+        "panda_link4": (KinematicChain(panda.model, link4), panda.model, link4),
+    }
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5_tool", "panda_link4"])
+@pytest.mark.parametrize("n", [0, 1, 1000])
+def test_fk_kernel_equals_numpy(compiled, panda, name, n, numpy_code):
+    """Forward kinematics is a closed form: no iteration amplifies round-off.
+
+    The kernel and the NumPy code sum in other orders on other CPUs; each
+    result is within a few ulps of the exact one, so they agree, and agree
+    with Pinocchio, to 1e-12 (about 5,000 ulps of values of order 1).
+    """
+    chain, model, frame_id = _chains(panda)[name]
+    rng = np.random.default_rng(n)
+    q = rng.uniform(-np.pi, np.pi, (n, chain.nq))
+    q.setflags(write=False)  # read-only arrays are taken too (a robot's home is one)
+    ref = numpy_code(chain._forward, q, True)
+    out = chain._forward(q, True)
+    for got, want in zip(out, ref, strict=True):
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    if name == "panda_link4":
+        assert list(chain.q_index) == [0, 1, 2, 3] and chain.nq == 7
+        assert not out[2][:, :, 4:].any()
+    rot, pos, jac = chain._forward(q, False)
+    assert jac is None
+    np.testing.assert_allclose(rot, ref[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(pos, ref[1], rtol=0, atol=1e-12)
+    # the public API, in chunks (a strided q is accepted too)
+    big = np.repeat(q, 3, axis=0)[::3] if n else q
+    np.testing.assert_allclose(chain.pose_jacobian(big)[2], ref[2], rtol=0, atol=1e-12)
+    # and what Pinocchio computes (the first 50 rows: a Python loop)
+    if n:
+        want = _pin_frames(model, frame_id, q[:50])
+        for got, exact in zip(out, want, strict=True):
+            np.testing.assert_allclose(got[:50], exact, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("reject", [np.inf, 2e-3])
+def test_segment_bound_kernel_equals_numpy(compiled, panda, reject, numpy_code):
+    from gcm_pipeline.reach.deviation import lever_arms, sample_deviation, segment_bounds
+
+    rng = np.random.default_rng(12)
+    n = 2000
+    q_a = panda.random_configurations(n, rng)
+    # short and long joint segments: 2 to 64 samples
+    q_b = q_a + rng.choice([0.005, 0.05, 0.3], size=(n, 1)) * rng.normal(size=q_a.shape)
+    rot, pos = panda.chain.pose(q_a)
+    offsets = rng.normal(0.0, 0.05, (n, 3))
+    offsets[:10] = 0.0  # a move of zero length
+    args = (panda, lever_arms(panda), q_a, q_b, pos, rot, offsets, 0.12, 1e-3, reject)
+    got = segment_bounds(*args)
+    ref = numpy_code(segment_bounds, *args)
+    # sums of a few samples' distances: round-off only (1e-9 is 10^7 ulps); except a
+    # segment whose midpoint lies within round-off of ``reject`` (its bound is either
+    # the midpoint's or the full one): none of the 2,000 here, on any CPU
+    mid = numpy_code(sample_deviation, panda, 0.5 * (q_a + q_b), pos, rot, offsets, 0.12)
+    sure = np.abs(mid - reject) > 1e-9
+    assert sure.all()
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)
+    assert np.unique(got > 5e-3).size == 2
+    # what matters: a segment whose midpoint exceeds ``reject`` is rejected; any other
+    # gets a bound, above the deviation sampled 8x finer than any row's samples
+    assert np.all(got[mid > reject] > reject)
+    s = np.linspace(0.0, 1.0, 513)
+    rows = np.arange(0, n, 10)
+    qs = q_a[rows, None] + s[None, :, None] * (q_b - q_a)[rows, None]
+    fine = sample_deviation(
+        panda,
+        qs.reshape(-1, panda.nq),
+        np.repeat(pos[rows], s.size, axis=0),
+        np.repeat(rot[rows], s.size, axis=0),
+        np.repeat(offsets[rows], s.size, axis=0),
+        0.12,
+    ).reshape(rows.size, s.size)
+    kept = mid[rows] <= reject
+    assert kept.sum() >= 10
+    assert np.all(got[rows][kept] >= fine.max(axis=1)[kept] - 1e-12)
+    # arrays in any memory layout (the kernel takes C arrays)
+    strided = (*args[:2], np.asfortranarray(q_a), q_b[:, ::-1][:, ::-1], *args[4:])
+    np.testing.assert_array_equal(segment_bounds(*strided), got)

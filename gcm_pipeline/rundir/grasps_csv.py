@@ -339,12 +339,14 @@ def check_csv_cells(path: Path, line: int, header: list[str] | None, row: list[s
         return
     k = max(range(len(row)), key=lambda j: len(row[j]))
     name = clip(header[k], 40) if header is not None and k < len(header) else f"#{k + 1}"
-    err = InputError(
+    raise InputError(
         f"{path}:{line}: column {name}: a cell of {len(row[k]):,} characters; a CSV cell "
-        f"holds at most {MAX_CSV_CELL} (gcm_pipeline.bounds.MAX_CSV_CELL)"
+        f"holds at most {MAX_CSV_CELL} (gcm_pipeline.bounds.MAX_CSV_CELL)",
+        path=path,
+        row=line,
+        key=name,
+        value=len(row[k]),
     )
-    err.path, err.row, err.key, err.value = path, line, name, len(row[k])  # type: ignore[attr-defined]
-    raise err
 
 
 def _switches(path: Path, text: np.ndarray, name: str, lines: list[int]) -> np.ndarray:

@@ -131,13 +131,14 @@ def check_positions(
         name = where(i) if where is not None else f"{path}: grasp {i} (0-based)"
         more = f" ({far.size:,} such grasps)" if far.size > 1 else ""
         xyz = ", ".join(f"{v:.6g}" for v in np.asarray(positions, dtype=float).reshape(-1, 3)[i])
-        err = InputError(
+        raise InputError(
             f"{name}: position ({xyz}) is {dist[i]:.3g} m from the file's origin, farther "
             f"than {MAX_GRASP_DISTANCE:g} m (gcm_pipeline.bounds.MAX_GRASP_DISTANCE): not a "
-            f"grasp in a robot's world; are the units metres?{more}"
+            f"grasp in a robot's world; are the units metres?{more}",
+            path=path,
+            row=i,
+            value=float(dist[i]),
         )
-        err.path, err.row, err.value = path, i, float(dist[i])  # type: ignore[attr-defined]
-        raise err
 
 
 def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:

@@ -34,10 +34,12 @@ def _refuse_nul(path: Path, chunk: int = 1 << 22) -> None:
                 at = data.find(b"\0")
                 if at >= 0:
                     line += data.count(b"\n", 0, at)
-                    raise InputError(f"{path}:{line}: NUL character in a CSV file")
+                    raise InputError(
+                        f"{path}:{line}: NUL character in a CSV file", path=path, row=line
+                    )
                 line += data.count(b"\n")
     except OSError as exc:
-        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}") from None
+        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}", path=path) from None
 
 
 def read_csv(
@@ -64,7 +66,8 @@ def read_csv(
                     if len(header) > _MAX_CSV_COLUMNS:
                         raise InputError(
                             f"{path}: header has {len(header):,} columns, at most "
-                            f"{_MAX_CSV_COLUMNS} are read"
+                            f"{_MAX_CSV_COLUMNS} are read",
+                            path=path,
                         )
                     continue
                 if len(rows) >= max_count:
@@ -73,27 +76,37 @@ def read_csv(
                 rows.append(row)
                 lines.append(reader.line_num)
     except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+        raise InputError(
+            f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})", path=path
+        ) from None
     except (OSError, csv.Error) as exc:
-        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}") from None
+        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}", path=path) from None
     if header is None:
-        raise InputError(f"{path}: empty CSV; expected a header row with {','.join(_CSV_POSE)}")
+        raise InputError(
+            f"{path}: empty CSV; expected a header row with {','.join(_CSV_POSE)}", path=path
+        )
     names = [h.strip().lower() for h in header]
     seen: set[str] = set()
     for name in names:
         if name in seen:
-            raise InputError(f"{path}: the header names column {clip(name)} twice")
+            raise InputError(f"{path}: the header names column {clip(name)} twice", path=path)
         seen.add(name)
     missing = [c for c in _CSV_POSE if c not in names]
     if missing:
         raise InputError(
             f"{path}: CSV header lacks column(s) {', '.join(missing)}; "
-            f"expected {','.join(_CSV_POSE)} (got {clip(','.join(names))})"
+            f"expected {','.join(_CSV_POSE)} (got {clip(','.join(names))})",
+            path=path,
         )
     width = len(names)
     for row, line in zip(rows, lines, strict=True):
         if len(row) != width:
-            raise InputError(f"{path}:{line}: row has {len(row)} fields, the header has {width}")
+            raise InputError(
+                f"{path}:{line}: row has {len(row)} fields, the header has {width}",
+                path=path,
+                row=line,
+                value=len(row),
+            )
     # Python strings, not a fixed-width array: that is as wide as the longest cell in every cell
     cells = np.empty((len(rows), width), dtype=object)
     if rows:
@@ -104,7 +117,11 @@ def read_csv(
     if not np.all(np.isfinite(values)):
         i, k = (int(a[0]) for a in np.nonzero(~np.isfinite(values)))
         raise InputError(
-            f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {float(values[i, k])}"
+            f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {float(values[i, k])}",
+            path=path,
+            row=lines[i],
+            key=_CSV_POSE[k],
+            value=float(values[i, k]),
         )
     check_positions(path, values[:, :3], lambda i: f"{path}:{lines[i]}")
     quat = values[:, 3:]
@@ -113,7 +130,10 @@ def read_csv(
     if bad.size:
         raise InputError(
             f"{path}:{lines[int(bad[0])]}: quaternion (qw,qx,qy,qz) has norm "
-            f"{norm[bad[0]]:.6g}, expected 1"
+            f"{norm[bad[0]]:.6g}, expected 1",
+            path=path,
+            row=lines[int(bad[0])],
+            value=float(norm[bad[0]]),
         )
     quat = quat / norm[:, None]
     poses = np.zeros((values.shape[0], 4, 4))
@@ -139,7 +159,11 @@ def _csv_floats(path: Path, col: np.ndarray, name: str, lines: list[int]) -> np.
             out[i] = float(text)
         except ValueError:
             raise InputError(
-                f"{path}:{lines[i]}: column {name!r}: not a number: {clip(text)}"
+                f"{path}:{lines[i]}: column {name!r}: not a number: {clip(text)}",
+                path=path,
+                row=lines[i],
+                key=name,
+                value=text,
             ) from None
     return out
 

@@ -140,10 +140,10 @@ class Config(_Section):
                 if key == k or key.startswith(k + ".") or (unknown and k.startswith(key + "."))
             ]
             if not given:
-                raise ConfigError(f"{source}: {message}") from None
+                raise problem.error(f"{source}: {message}") from None
             k = given[-1]
             named = message.startswith((f"{k}: ", f"{k}."))
-            raise ConfigError(f"--set {message}" if named else f"--set {k}: {message}") from None
+            raise problem.error(f"--set {message}" if named else f"--set {k}: {message}") from None
         except RecursionError:
             raise ConfigError(f"{source}: config nested too deeply") from None
 

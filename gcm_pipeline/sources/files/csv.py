@@ -51,9 +51,30 @@ def read_csv(
     other column is carried (integers, numbers with empty = NaN, or text).
     A UTF-8 byte order mark and blank lines are ignored.
     """
+    _refuse_nul(path)
+    header, rows, lines = _read_csv_rows(path, max_count)
+    names = _check_csv_header(path, header, rows, lines)
+    # Python strings, not a fixed-width array: that is as wide as the longest cell in every cell
+    cells = np.empty((len(rows), len(names)), dtype=object)
+    if rows:
+        cells[:] = rows
+    poses = _csv_poses(path, cells, names, lines)
+    success = None
+    if "success" in names:
+        success = _csv_floats(path, cells[:, names.index("success")], "success", lines) > 0.5
+    columns: dict[str, np.ndarray] = {}
+    taken: set[str] = {"source_id", "success"}
+    for k, raw in enumerate(header):
+        if names[k] in _CSV_POSE or names[k] == "success":
+            continue
+        columns[column_name(path, raw, taken)] = _csv_column(cells[:, k])
+    return poses, success, columns
+
+
+def _read_csv_rows(path: Path, max_count: int) -> tuple[list[str], list[list[str]], list[int]]:
+    """The header, the data rows and their line numbers (blank lines skipped)."""
     rows: list[list[str]] = []
     lines: list[int] = []
-    _refuse_nul(path)
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
@@ -85,6 +106,13 @@ def read_csv(
         raise InputError(
             f"{path}: empty CSV; expected a header row with {','.join(_CSV_POSE)}", path=path
         )
+    return header, rows, lines
+
+
+def _check_csv_header(
+    path: Path, header: list[str], rows: list[list[str]], lines: list[int]
+) -> list[str]:
+    """The column names (lower case); no name twice, the pose columns there, rows as wide."""
     names = [h.strip().lower() for h in header]
     seen: set[str] = set()
     for name in names:
@@ -107,11 +135,12 @@ def read_csv(
                 row=line,
                 value=len(row),
             )
-    # Python strings, not a fixed-width array: that is as wide as the longest cell in every cell
-    cells = np.empty((len(rows), width), dtype=object)
-    if rows:
-        cells[:] = rows
-    values = np.empty((len(rows), 7))
+    return names
+
+
+def _csv_poses(path: Path, cells: np.ndarray, names: list[str], lines: list[int]) -> np.ndarray:
+    """(N, 4, 4) poses from the x, y, z, qw, qx, qy, qz cells (checked, quaternion normalised)."""
+    values = np.empty((cells.shape[0], 7))
     for k, c in enumerate(_CSV_POSE):
         values[:, k] = _csv_floats(path, cells[:, names.index(c)], c, lines)
     if not np.all(np.isfinite(values)):
@@ -140,16 +169,7 @@ def read_csv(
     poses[:, :3, :3] = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
     poses[:, :3, 3] = values[:, :3]
     poses[:, 3, 3] = 1.0
-    success = None
-    if "success" in names:
-        success = _csv_floats(path, cells[:, names.index("success")], "success", lines) > 0.5
-    columns: dict[str, np.ndarray] = {}
-    taken: set[str] = {"source_id", "success"}
-    for k, raw in enumerate(header):
-        if names[k] in _CSV_POSE or names[k] == "success":
-            continue
-        columns[column_name(path, raw, taken)] = _csv_column(cells[:, k])
-    return poses, success, columns
+    return poses
 
 
 def _csv_floats(path: Path, col: np.ndarray, name: str, lines: list[int]) -> np.ndarray:

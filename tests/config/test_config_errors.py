@@ -122,3 +122,19 @@ def test_a_missing_key_names_the_key_and_no_value(tmp_path):
         load_config(_write(tmp_path / "run.yaml", {"object": BASE["object"]}))
     assert "missing required key 'candidates'" in _one_line(exc)
     assert (exc.value.key, exc.value.value, exc.value.choices) == ("candidates", None, None)
+
+
+@pytest.mark.parametrize(
+    ("assignment", "key", "message"),
+    [
+        ("ik.backend", None, "expected KEY=VALUE"),
+        ("ik..backend=mink", "ik..backend", "empty key part"),
+        ("ik.backend.x=1", "ik.backend.x", "'backend' is not a section"),
+    ],
+)
+def test_a_malformed_set_names_the_assignment(tmp_path, assignment, key, message):
+    cfg = _write(tmp_path / "run.yaml", {**BASE, "ik": {"backend": "pinocchio"}})
+    with pytest.raises(ConfigError, match=message) as exc:
+        load_config(cfg, [assignment])
+    assert _one_line(exc).startswith(f"--set '{assignment}'")
+    assert (exc.value.key, exc.value.value) == (key, assignment)

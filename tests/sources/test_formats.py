@@ -953,3 +953,16 @@ def test_an_unknown_gripper_carries_the_value_and_the_choices():
         get_gripper("franka_pandaa")
     assert (info.value.value, "franka_panda" in info.value.choices) == ("franka_pandaa", True)
     assert info.value.choices == tuple(sorted(info.value.choices))
+
+
+def test_an_unknown_grasp_file_format_carries_the_value_and_the_choices(tmp_path):
+    path = tmp_path / "g.txt"
+    path.write_text("x")
+    with pytest.raises(InputError, match="cannot tell the grasp file format") as info:
+        sources.read_grasp_file(path)
+    err = info.value
+    assert (err.path, err.key, err.value) == (path, "candidates.format", ".txt")
+    assert err.choices == ("acronym", "csv", "npy", "npz")
+    with pytest.raises(InputError, match="unknown grasp file format 'xyz'") as info:
+        sources.read_grasp_file(path, format="xyz")
+    assert (info.value.value, info.value.choices) == ("xyz", ("acronym", "csv", "npy", "npz"))

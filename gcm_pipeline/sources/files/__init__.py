@@ -210,6 +210,9 @@ def _infer_format(path: Path) -> str:
             f"{path}: cannot tell the grasp file format from the suffix {clip(suffix)}; "
             f"set candidates.format to one of: acronym, csv, npy, npz{looks}",
             path=path,
+            key="candidates.format",
+            value=suffix,
+            choices=("acronym", "csv", "npy", "npz"),
         )
     return fmt[suffix]
 
@@ -328,6 +331,9 @@ def read_grasp_file_gripper(
         raise InputError(
             f"{path}: unknown grasp file format {clip(fmt)}; valid: acronym, csv, npy, npz",
             path=path,
+            key="format",
+            value=fmt,
+            choices=("acronym", "csv", "npy", "npz"),
         )
     check_rigid(path, poses)
     if fmt != "csv":  # a CSV names the line, above

@@ -6,7 +6,10 @@ such an error as one line ``error: <message>`` and exits with status 2;
 any other exception is a bug and keeps its traceback.
 
 Messages name the key, file, row or value at fault and, where there is a
-closed set of valid values, list them (see :func:`unknown_choice`).
+closed set of valid values, list them (see :func:`unknown_choice`). The same
+evidence rides on the exception as attributes (``key``, ``value``,
+``choices``, ``path``, ``row``; None where not known), so a caller or a test
+reads it without parsing the message (see :func:`choice_error`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from __future__ import annotations
 import difflib
 import reprlib
 from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, TypeVar
 
 __all__ = [
     "ConfigError",
@@ -25,6 +30,7 @@ __all__ = [
     "PublishError",
     "RobotSpecError",
     "WorkerLostError",
+    "choice_error",
     "clip",
     "unknown_choice",
 ]
@@ -34,10 +40,38 @@ MAX_QUOTE = 200
 
 
 class GcmError(Exception):
-    """Root of every error a user of gcm_pipeline can cause."""
+    """Root of every error a user of gcm_pipeline can cause.
+
+    ``str(exc)`` is the one-line message; the keyword arguments are the
+    evidence it names, kept as attributes (None where not known).
+
+    Attributes:
+        key: Dotted config key or column at fault (``ik.backend``, ``qw``).
+        value: The value at fault, as given.
+        choices: The valid values of a closed set, sorted.
+        path: The file at fault.
+        row: The line of that file (1-based, as the message names it), or the
+            row of an array.
+    """
 
     #: The command line's exit status for it.
     exit_status = 2
+
+    def __init__(
+        self,
+        *args: object,
+        key: str | None = None,
+        value: Any = None,
+        choices: Iterable[str] | None = None,
+        path: str | Path | None = None,
+        row: int | None = None,
+    ) -> None:
+        super().__init__(*args)
+        self.key = key
+        self.value = value
+        self.choices = None if choices is None else tuple(choices)
+        self.path = path
+        self.row = row
 
 
 class ConfigError(GcmError):
@@ -107,6 +141,9 @@ def clip(value: object, limit: int = MAX_QUOTE) -> str:
     return text
 
 
+E = TypeVar("E", bound=GcmError)
+
+
 def unknown_choice(kind: str, value: object, choices: Iterable[str]) -> str:
     """Build the message for a value outside a closed set of names.
 
@@ -124,3 +161,30 @@ def unknown_choice(kind: str, value: object, choices: Iterable[str]) -> str:
     close = difflib.get_close_matches(str(text), names, n=1, cutoff=0.6)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return f"unknown {kind} {clip(value)}{hint}; valid: {', '.join(names)}"
+
+
+def choice_error(
+    cls: type[E],
+    kind: str,
+    value: object,
+    choices: Iterable[str],
+    *,
+    key: str | None = None,
+    prefix: str = "",
+) -> E:
+    """The error of a value outside a closed set: :func:`unknown_choice`'s message and evidence.
+
+    Args:
+        cls: The :class:`GcmError` subclass to build.
+        kind: What the value names, e.g. ``"projection"``.
+        value: The value given by the user.
+        choices: The valid names.
+        key: The config key or column that holds the value, where known.
+        prefix: Text put before the message (``"robot 'ur5': home: "``).
+
+    Returns:
+        ``cls(prefix + unknown_choice(kind, value, choices))`` with ``key``,
+        ``value`` and ``choices`` (sorted names) set; the caller raises it.
+    """
+    names = sorted(str(c) for c in choices)
+    return cls(prefix + unknown_choice(kind, value, names), key=key, value=value, choices=names)

@@ -5,8 +5,10 @@ returns a new table with its own columns added; the arrays of the columns it
 did not touch are shared, never copied, and no stage turns the poses into
 per-grasp Python objects.
 
-Columns: :data:`COLUMNS` names each with its shape, unit, the stage that adds
-it and its meaning (the run-directory reference of the docs is generated from it).
+Columns: :data:`COLUMNS` names each with its dtype, shape, unit, the stage
+that adds it, its meaning and the ``grasps.csv`` cells it is written as (the
+CSV's column order, its reader and the run-directory reference of the docs
+are generated from it).
 
 Per-candidate columns: a candidate source (an importer, the antipodal
 sampler) may add more 1-D columns to the candidate table, such as a
@@ -42,6 +44,10 @@ class Column:
         unit: Unit of the values (``""`` for none).
         stage: The stage that adds the column.
         meaning: What a value says.
+        csv: The cells ``grasps.csv`` writes it as among its leading columns,
+            in order (``q{j}``: one cell per joint, ``q1`` .. ``q{nq}``). Empty:
+            a 1-D column is written after them (with the further metric
+            columns), a wider one not at all.
     """
 
     dtype: str
@@ -49,26 +55,29 @@ class Column:
     unit: str
     stage: str
     meaning: str
+    csv: tuple[str, ...] = ()
 
 
-#: The grasp table's columns, in the order a run adds them: the single source of
-#: the run-directory reference (``docs/gen.py`` renders it into ``docs/run-directory.md``).
-#: Per-candidate columns of a source are listed in :data:`CANDIDATE_COLUMNS`.
+#: The grasp table's columns: the single source of ``grasps.csv``'s leading columns
+#: (the ``csv`` cells, in this order; :mod:`gcm_pipeline.rundir.grasps_csv` writes
+#: and reads them by ``dtype``) and of the run-directory reference
+#: (``scripts/gen_docs.py`` renders it into ``docs/run-directory.md``). The columns
+#: ``grasps.csv`` leads with come first, the others follow in the order a run adds
+#: them. Per-candidate columns of a source are listed in :data:`CANDIDATE_COLUMNS`.
 COLUMNS: dict[str, Column] = {
-    "dq": Column(
-        "float",
-        "(N, 8)",
-        "",
-        "candidates, densify",
-        "unit dual quaternion of the grasp frame in the world",
+    "rank": Column(
+        "int", "(N,)", "", "ranking", "1 = best among the reachable, 0 = unreachable", csv=("rank",)
     ),
-    "origin": Column("str", "(N,)", "", "densify", "`candidate` or `interpolated`"),
+    "origin": Column(
+        "str", "(N,)", "", "densify", "`candidate` or `interpolated`", csv=("origin",)
+    ),
     "triangle": Column(
         "int",
         "(N,)",
         "",
         "densify",
         "provenance: the manifold triangle of the row (-1 for candidates)",
+        csv=("triangle",),
     ),
     "vertices": Column(
         "int",
@@ -76,6 +85,7 @@ COLUMNS: dict[str, Column] = {
         "",
         "densify",
         "provenance: the triangle's three candidate rows (-1 for candidates)",
+        csv=("v1", "v2", "v3"),
     ),
     "weights": Column(
         "float",
@@ -83,16 +93,23 @@ COLUMNS: dict[str, Column] = {
         "",
         "densify",
         "provenance: barycentric weights of the blend (NaN for candidates)",
+        csv=("w1", "w2", "w3"),
     ),
-    "level": Column(
-        "int",
-        "(N,)",
+    "dq": Column(
+        "float",
+        "(N, 8)",
         "",
-        "densify (adaptive)",
-        "adaptive densification only: refinement level of the row (0 = candidate)",
+        "candidates, densify",
+        "unit dual quaternion of the grasp frame in the world",
+        csv=("x", "y", "z", "qw", "qx", "qy", "qz"),
     ),
     "reachable": Column(
-        "bool", "(N,)", "", "reachability", "an IK solution that passes every check exists"
+        "bool",
+        "(N,)",
+        "",
+        "reachability",
+        "an IK solution that passes every check exists",
+        csv=("reachable",),
     ),
     "reason": Column(
         "str",
@@ -101,10 +118,37 @@ COLUMNS: dict[str, Column] = {
         "reachability",
         "`''` or why not: `out_of_reach`, `no_ik`, `joint_limits`, `collision_self`, "
         "`collision_environment`, `collision_object`, `approach`, `retreat`",
+        csv=("reason",),
     ),
-    "q": Column("float", "(N, nq)", "rad", "reachability", "IK solution (NaN if none)"),
-    "pos_err": Column("float", "(N,)", "m", "reachability", "verified position error of `q`"),
-    "rot_err": Column("float", "(N,)", "rad", "reachability", "verified orientation error of `q`"),
+    "pos_err": Column(
+        "float", "(N,)", "m", "reachability", "verified position error of `q`", csv=("pos_err",)
+    ),
+    "rot_err": Column(
+        "float",
+        "(N,)",
+        "rad",
+        "reachability",
+        "verified orientation error of `q`",
+        csv=("rot_err",),
+    ),
+    "manipulability": Column(
+        "float",
+        "(N,)",
+        "",
+        "ranking",
+        "Yoshikawa index (6-D grasp-frame Jacobian)",
+        csv=("manipulability",),
+    ),
+    "q": Column(
+        "float", "(N, nq)", "rad", "reachability", "IK solution (NaN if none)", csv=("q{j}",)
+    ),
+    "level": Column(
+        "int",
+        "(N,)",
+        "",
+        "densify (adaptive)",
+        "adaptive densification only: refinement level of the row (0 = candidate)",
+    ),
     "q_pregrasp": Column(
         "float",
         "(N, nq)",
@@ -186,9 +230,6 @@ COLUMNS: dict[str, Column] = {
         "distance along the manifold to the nearest unreachable point "
         "(0 at the boundary and beyond, `inf` if none)",
     ),
-    "manipulability": Column(
-        "float", "(N,)", "", "ranking", "Yoshikawa index (6-D grasp-frame Jacobian)"
-    ),
     "manip_translation": Column(
         "float", "(N,)", "", "ranking", "translational Yoshikawa index (3 rows)"
     ),
@@ -205,7 +246,6 @@ COLUMNS: dict[str, Column] = {
         "ranking (`metric: combined`)",
         "weighted sum of the min-max normalised metrics",
     ),
-    "rank": Column("int", "(N,)", "", "ranking", "1 = best among the reachable, 0 = unreachable"),
     "top": Column("bool", "(N,)", "", "ranking", "among the `ranking.top_k` best"),
 }
 

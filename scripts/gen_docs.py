@@ -2,8 +2,8 @@
 
 - ``docs/configuration.md``: the config reference, from the run config's JSON Schema
   (``gcm schema``);
-- ``docs/run-directory.md``: the grasp-table columns, from ``gcm_pipeline.table.COLUMNS``,
-  and the ``grasps.csv`` column order, from ``gcm_pipeline.rundir.grasps_csv.CSV_COLUMNS``;
+- ``docs/run-directory.md``: the grasp-table columns and the ``grasps.csv`` column order,
+  from the column registry ``gcm_pipeline.table.COLUMNS``;
 - ``docs/benchmarks.md``: every figure of ``benchmarks/results/*.json`` with the command,
   date, machine and load the file records.
 
@@ -172,23 +172,29 @@ def render_configuration() -> str:
 
 
 def render_columns() -> str:
-    """The grasp-table columns and the grasps.csv column order."""
-    from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
+    """The grasp-table columns and the grasps.csv column order, from the column registry."""
     from gcm_pipeline.table import CANDIDATE_COLUMNS, COLUMNS
+
+    def cells(csv: tuple[str, ...]) -> str:  # a per-joint cell q{j}: `q1` .. `q{nq}`
+        each = [
+            f"`{c.format(j=1)}` .. `{c.replace('{j}', '{nq}')}`" if "{j}" in c else f"`{c}`"
+            for c in csv
+        ]
+        return ", ".join(each)
 
     out = [
         "#### Grasp table columns",
         "",
         f"From `gcm_pipeline.table.COLUMNS`; written by `{COMMAND}`.",
         "",
-        "| column | dtype | shape | unit | added by | meaning |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| column | dtype | shape | unit | added by | `grasps.csv` | meaning |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, col in COLUMNS.items():
         unit = f"[{col.unit}]" if col.unit else ""
         out.append(
             f"| `{name}` | {col.dtype} | {col.shape} | {unit} | {_cell(col.stage)} "
-            f"| {_cell(col.meaning)} |"
+            f"| {cells(col.csv)} | {_cell(col.meaning)} |"
         )
     out += [
         "",
@@ -205,12 +211,12 @@ def render_columns() -> str:
         "",
         "#### `grasps.csv` columns, in order",
         "",
-        "From `gcm_pipeline.rundir.grasps_csv.CSV_COLUMNS`: "
-        + ", ".join(f"`{c}`" for c in CSV_COLUMNS)
-        + ", then `q1` .. `q{nq}`, then the other metric columns (`clearance`, ...), then the "
-        "per-candidate columns. `v1, v2, v3` and `w1, w2, w3` are the table's `vertices` and "
-        "`weights`; `x, y, z, qw, qx, qy, qz` its `dq` as position [m] and quaternion "
-        "(`qw >= 0`).",
+        "The `grasps.csv` cells of the columns above, in their order: "
+        + ", ".join(cells(col.csv) for col in COLUMNS.values() if col.csv)
+        + ", then the other 1-D columns a run adds (`clearance`, ...) in the order it adds "
+        "them, then the per-candidate columns. `v1, v2, v3` and `w1, w2, w3` are the table's "
+        "`vertices` and `weights`; `x, y, z, qw, qx, qy, qz` its `dq` as position [m] and "
+        "quaternion (`qw >= 0`).",
     ]
     return "\n".join(out) + "\n"
 

@@ -1,9 +1,54 @@
-"""User errors (``gcm_pipeline.errors``): one root, ``GcmError``, and messages that list choices."""
+"""The error contract: one-line messages, and the evidence as attributes."""
 
 from __future__ import annotations
 
+import pickle
+from pathlib import Path
+
+import pytest
+
 import gcm_pipeline
-from gcm_pipeline.errors import GcmError, InputError, RobotSpecError, unknown_choice
+from gcm_pipeline.errors import (
+    ConfigError,
+    GcmError,
+    InputError,
+    RobotSpecError,
+    choice_error,
+    unknown_choice,
+)
+
+
+def test_an_error_without_evidence_keeps_its_message_and_has_none() -> None:
+    err = InputError("grasps.csv: empty file")
+    assert str(err) == "grasps.csv: empty file"
+    assert err.args == ("grasps.csv: empty file",)
+    assert (err.key, err.value, err.choices, err.path, err.row) == (None,) * 5
+
+
+def test_evidence_is_keyword_only_and_the_message_is_unchanged() -> None:
+    err = InputError("f.csv:3: column 'x': not a number: 'a'", path=Path("f.csv"), row=3, key="x")
+    assert str(err) == "f.csv:3: column 'x': not a number: 'a'"
+    assert (err.path, err.row, err.key) == (Path("f.csv"), 3, "x")
+    with pytest.raises(TypeError):
+        GcmError("m", lines=3)  # type: ignore[call-arg]
+
+
+def test_evidence_survives_pickling_as_a_worker_process_returns_it() -> None:
+    err = ConfigError("bad", key="ik.backend", value="pinochio", choices=["a", "b"])
+    back = pickle.loads(pickle.dumps(err))
+    assert type(back) is ConfigError and str(back) == "bad"
+    assert (back.key, back.value, back.choices) == ("ik.backend", "pinochio", ("a", "b"))
+
+
+def test_choice_error_has_unknown_choices_message_and_the_evidence() -> None:
+    err = choice_error(ConfigError, "IK backend", "pinochio", ("trac_ik", "pinocchio"), key="ik")
+    assert isinstance(err, ConfigError)
+    assert str(err) == unknown_choice("IK backend", "pinochio", ("trac_ik", "pinocchio"))
+    assert "did you mean 'pinocchio'?" in str(err)
+    assert (err.key, err.value, err.choices) == ("ik", "pinochio", ("pinocchio", "trac_ik"))
+    pre = choice_error(InputError, "joint", "j9", ["j1"], prefix="robot 'r': home: ")
+    assert str(pre).startswith("robot 'r': home: unknown joint 'j9'")
+    assert pre.key is None and pre.choices == ("j1",)
 
 
 def test_user_errors_are_gcm_errors():

@@ -38,3 +38,23 @@ def test_missing_column_names_the_columns() -> None:
         t["reachable"]
     assert "reachable" not in t
     assert t.get("reachable") is None
+
+
+def test_the_column_registry_is_complete_and_its_csv_cells_are_unique() -> None:
+    from gcm_pipeline.table import CANDIDATE_COLUMNS, COLUMNS
+
+    cells = [c for col in COLUMNS.values() for c in col.csv]
+    assert len(cells) == len(set(cells)), cells
+    for name, col in COLUMNS.items():
+        assert col.dtype in ("float", "int", "bool", "str"), name
+        assert col.shape.startswith("(N") and col.stage and col.meaning, name
+        assert name not in CANDIDATE_COLUMNS, name
+        # a cell names this column or none: no cell is another column's name
+        assert not set(col.csv) & (set(COLUMNS) - {name}), name
+        if any("{j}" in c for c in col.csv):  # per-joint: the one cell of an (N, nq) column
+            assert col.csv == ("q{j}",) and col.shape == "(N, nq)", name
+        elif col.shape == "(N,)":  # a 1-D column is one cell (dq: position and quaternion)
+            assert len(col.csv) <= 1, name
+    # the leading columns come first, in grasps.csv's order
+    leading = [bool(col.csv) for col in COLUMNS.values()]
+    assert leading == sorted(leading, reverse=True)

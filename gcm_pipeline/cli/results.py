@@ -105,7 +105,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
     from gcm_pipeline.rundir.run import read_run
 
     if args.top < 0:
-        raise GcmError(f"--top must be >= 0, got {args.top}")
+        raise GcmError(f"--top must be >= 0, got {args.top}", key="--top", value=args.top)
     run = read_run(args.run_dir)
     counts = run.summary.get("counts", {})
     metric = run.summary.get("ranking", {}).get("metric", "yoshikawa")

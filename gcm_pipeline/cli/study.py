@@ -57,7 +57,9 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from gcm_pipeline.study.store import POSE_COLUMNS
 
     if args.workers is not None and args.workers < 1:
-        raise GcmError(f"--workers must be >= 1, got {args.workers}")
+        raise GcmError(
+            f"--workers must be >= 1, got {args.workers}", key="--workers", value=args.workers
+        )
     study = Study.from_yaml(args.study)
     grid, extra = study.size()
     if not args.quiet:

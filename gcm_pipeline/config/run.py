@@ -140,10 +140,10 @@ class Config(_Section):
                 if key == k or key.startswith(k + ".") or (unknown and k.startswith(key + "."))
             ]
             if not given:
-                raise ConfigError(f"{source}: {message}") from None
+                raise problem.error(f"{source}: {message}") from None
             k = given[-1]
             named = message.startswith((f"{k}: ", f"{k}."))
-            raise ConfigError(f"--set {message}" if named else f"--set {k}: {message}") from None
+            raise problem.error(f"--set {message}" if named else f"--set {k}: {message}") from None
         except RecursionError:
             raise ConfigError(f"{source}: config nested too deeply") from None
 
@@ -175,11 +175,15 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
     taken as a plain string.
     """
     if "=" not in assignment:
-        raise ConfigError(f"--set {clip(assignment)}: expected KEY=VALUE, e.g. ik.backend=mink")
+        raise ConfigError(
+            f"--set {clip(assignment)}: expected KEY=VALUE, e.g. ik.backend=mink", value=assignment
+        )
     key, _, raw = assignment.partition("=")
     parts = key.strip().split(".")
     if not all(parts):
-        raise ConfigError(f"--set {clip(assignment)}: empty key part in {clip(key)}")
+        raise ConfigError(
+            f"--set {clip(assignment)}: empty key part in {clip(key)}", key=key, value=assignment
+        )
     value = load_yaml(raw, f"--set {key.strip()[:200]}", ConfigError, plain_on_syntax_error=True)
     node = data
     for part in parts[:-1]:
@@ -188,7 +192,11 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
             nxt = {}
             node[part] = nxt
         if not isinstance(nxt, dict):
-            raise ConfigError(f"--set {clip(assignment)}: {clip(part)} is not a section")
+            raise ConfigError(
+                f"--set {clip(assignment)}: {clip(part)} is not a section",
+                key=key.strip(),
+                value=assignment,
+            )
         node = nxt
     node[parts[-1]] = value
 

@@ -265,9 +265,8 @@ def parse_study(data: Any, name: str) -> StudySpec:
     try:
         return StudySpec.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(
-            f"{name}: {describe(exc, data, StudySpec, special=_special).message}"
-        ) from None
+        problem = describe(exc, data, StudySpec, special=_special)
+        raise problem.error(f"{name}: {problem.message}") from None
 
 
 @dataclass(frozen=True)

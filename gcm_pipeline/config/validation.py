@@ -25,7 +25,7 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
-from gcm_pipeline.errors import clip, unknown_choice
+from gcm_pipeline.errors import ConfigError, clip, unknown_choice
 
 __all__ = ["Problem", "describe", "dotted", "unknown_key"]
 
@@ -43,12 +43,27 @@ class Problem:
         loc: The same as keys and list indices.
         message: One line naming the key, the value and, for a closed set, the choices.
         kind: pydantic's error type (``extra_forbidden``, ``missing``, ...).
+        value: The value at fault as given (for an unknown key: the key; None
+            for a missing one).
+        choices: The valid values (or, for an unknown key, the section's keys),
+            sorted; None where the set is open.
     """
 
     key: str
     loc: tuple[Any, ...]
     message: str
     kind: str
+    value: Any = None
+    choices: tuple[str, ...] | None = None
+
+    def error(self, message: str) -> ConfigError:
+        """A :class:`~gcm_pipeline.errors.ConfigError` with ``message`` and this evidence.
+
+        Args:
+            message: The line to print (the caller's prefix, e.g. the file, and
+                :attr:`message`).
+        """
+        return ConfigError(message, key=self.key or None, value=self.value, choices=self.choices)
 
 
 def dotted(loc: Iterable[Any], *, brackets: bool = False) -> str:
@@ -122,7 +137,35 @@ def describe(
     message = None if special is None else special(err, key, loc)
     if message is None:
         message = _common(err, key, loc, data, model, brackets)
-    return Problem(key=key, loc=tuple(loc), message=message, kind=err["type"])
+    value, choices = _evidence(err, loc, model)
+    return Problem(key, tuple(loc), message, err["type"], value, choices)
+
+
+def _evidence(
+    err: dict[str, Any], loc: list[Any], model: type[BaseModel]
+) -> tuple[Any, tuple[str, ...] | None]:
+    """The value at fault and the valid choices (None where open) of an error."""
+    kind = err["type"]
+    if kind == "extra_forbidden" and loc:
+        return loc[-1], tuple(sorted(_valid_keys(model, loc[:-1])[0]))
+    if kind == "literal_error":
+        return err.get("input"), tuple(sorted(_literal_choices(err)))
+    if kind == "missing":
+        return None, None
+    return err.get("input"), None
+
+
+def _valid_keys(model: type[BaseModel], loc: list[Any]) -> tuple[list[str], str]:
+    """The keys of the section at ``loc`` and what they are called (``key``, ``pose key``)."""
+    at = _model_at(model, loc)
+    if at is None:
+        return [], "key"
+    return [f.alias or n for n, f in at.model_fields.items()], getattr(at, "key_noun", "key")
+
+
+def _literal_choices(err: dict[str, Any]) -> list[str]:
+    """The values a ``literal_error`` allows."""
+    return re.findall(r"'([^']*)'", str(err.get("ctx", {}).get("expected", "")))
 
 
 def _common(
@@ -135,9 +178,7 @@ def _common(
 ) -> str:
     kind = err["type"]
     if kind == "extra_forbidden" and loc:
-        at = _model_at(model, loc[:-1])
-        valid = [f.alias or n for n, f in at.model_fields.items()] if at is not None else []
-        noun = getattr(at, "key_noun", "key") if at is not None else "key"
+        valid, noun = _valid_keys(model, loc[:-1])
         return unknown_key(dotted(loc[:-1], brackets=brackets), loc[-1], valid, noun)
     if kind == "missing" and loc and isinstance(loc[-1], int):
         # a tuple with too few values: pydantic reports the first missing index
@@ -156,8 +197,7 @@ def _common(
             return f"{key}: at most {most:,} items, got {len(got):,}"
         return f"{key}: expected {size} values, got {len(got)} ({clip(got)})"
     if kind == "literal_error":
-        choices = re.findall(r"'([^']*)'", str(err.get("ctx", {}).get("expected", "")))
-        return f"{key}: " + unknown_choice("value", err["input"], choices)
+        return f"{key}: " + unknown_choice("value", err["input"], _literal_choices(err))
     if kind in ("model_type", "model_attributes_type", "dict_type"):
         got = err.get("input")
         return (

@@ -75,16 +75,19 @@ def npy_header(
         else:
             shape, _, dtype = np.lib.format.read_array_header_2_0(fh, _MAX_NPY_HEADER)
     except Exception as exc:  # the header is parsed as Python literals: anything can go wrong
-        raise InputError(f"{path}: {what} is not a .npy array: {clip(str(exc))}") from None
+        raise InputError(
+            f"{path}: {what} is not a .npy array: {clip(str(exc))}", path=path
+        ) from None
     if dtype.hasobject:
         raise InputError(
-            f"{path}: {what} holds Python objects (a pickle); only plain arrays are read"
+            f"{path}: {what} holds Python objects (a pickle); only plain arrays are read", path=path
         )
     need = fh.tell() + int(np.prod(shape, dtype=object)) * dtype.itemsize
     if need > available:
         raise InputError(
             f"{path}: {what} is truncated or corrupt: its header says shape {shape} "
-            f"({need:,} bytes) but there are {available:,}"
+            f"({need:,} bytes) but there are {available:,}",
+            path=path,
         )
     return tuple(int(k) for k in shape), dtype
 
@@ -106,7 +109,7 @@ def open_regular(path: str | Path) -> Any:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
             what = "a directory" if stat.S_ISDIR(mode) else "not a regular file (a pipe or device)"
-            raise InputError(f"{path}: it is {what}; a regular file is needed")
+            raise InputError(f"{path}: it is {what}; a regular file is needed", path=path)
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
@@ -137,14 +140,16 @@ def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str,
                 if not info.filename.endswith(".npy"):
                     raise InputError(
                         f"{path}: member {clip(info.filename)} is not a .npy array; an .npz "
-                        "holds arrays only"
+                        "holds arrays only",
+                        path=path,
                     )
                 infos[info.filename[: -len(".npy")]] = info
             total = sum(info.file_size for info in infos.values())
             if total > max_bytes:
                 raise InputError(
                     f"{path}: its arrays take {total:,} bytes, more than the {max_bytes:,} "
-                    "read here"
+                    "read here",
+                    path=path,
                 )
             arrays: dict[str, np.ndarray] = {}
             for name, info in infos.items():
@@ -164,9 +169,11 @@ def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str,
         EOFError,
         ValueError,
     ) as exc:
-        raise InputError(f"{path}: not a readable .npz archive: {clip(str(exc))}") from None
+        raise InputError(
+            f"{path}: not a readable .npz archive: {clip(str(exc))}", path=path
+        ) from None
     except NotImplementedError as exc:  # a compression method zipfile lacks
-        raise InputError(f"{path}: not a readable .npz archive: {exc}") from None
+        raise InputError(f"{path}: not a readable .npz archive: {exc}", path=path) from None
     return arrays
 
 
@@ -236,10 +243,10 @@ def read_manifold(path: str | Path, n_rows: int | None = None) -> Manifold:
     arrays = read_npz(path, max_bytes=_MAX_MANIFOLD_BYTES)
     missing = [k for k in ("chart", "triangles", "projection") if k not in arrays]
     if missing:
-        raise InputError(f"{path}: missing array(s) {', '.join(missing)}")
+        raise InputError(f"{path}: missing array(s) {', '.join(missing)}", path=path)
 
     def fail(name: str, what: str) -> InputError:
-        return InputError(f"{path}: array {name!r} {what}")
+        return InputError(f"{path}: array {name!r} {what}", path=path)
 
     chart = arrays["chart"]
     if chart.ndim != 2 or chart.shape[1] != 2 or chart.dtype.kind not in "fiu":

@@ -1,9 +1,10 @@
 """``grasps.csv``: the grasp table as CSV, written and read back (checked).
 
 One row per grasp, ranked rows first (rank 1 = best), then the unreachable
-ones in table order. Columns, in this order: ``rank, origin, triangle, v1,
+ones in table order. Columns, in this order: the ``csv`` cells of the column
+registry :data:`~gcm_pipeline.table.COLUMNS` (``rank, origin, triangle, v1,
 v2, v3, w1, w2, w3, x, y, z, qw, qx, qy, qz, reachable, reason, pos_err,
-rot_err, manipulability, q1 .. q{nq}``, then any further metric columns, then
+rot_err, manipulability, q1 .. q{nq}``), then any further metric columns, then
 the per-candidate columns of the source
 (:data:`~gcm_pipeline.table.CANDIDATE_COLUMNS`: ``score``, ``width``,
 ``source_id``, ...; integers as integers, strings quoted when needed). Poses
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +26,7 @@ import numpy as np
 from gcm_pipeline.bounds import MAX_CSV_CELL
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
-from gcm_pipeline.table import CANDIDATE_COLUMNS, GraspTable
+from gcm_pipeline.table import CANDIDATE_COLUMNS, COLUMNS, Column, GraspTable
 
 __all__ = [
     "CSV_COLUMNS",
@@ -34,34 +36,15 @@ __all__ = [
     "write_grasps_csv",
 ]
 
-#: Fixed leading columns of ``grasps.csv`` (then ``q1 .. q{nq}`` and extra metrics).
-CSV_COLUMNS = (
-    "rank",
-    "origin",
-    "triangle",
-    "v1",
-    "v2",
-    "v3",
-    "w1",
-    "w2",
-    "w3",
-    "x",
-    "y",
-    "z",
-    "qw",
-    "qx",
-    "qy",
-    "qz",
-    "reachable",
-    "reason",
-    "pos_err",
-    "rot_err",
-    "manipulability",
-)
+#: A per-joint cell of :attr:`~gcm_pipeline.table.Column.csv`: ``q{j}`` is ``q1 .. q{nq}``.
+PER_JOINT = "{j}"
 
-#: Table columns that grasps.csv writes under other names (or derives).
-_KNOWN = {"dq", "rank", "origin", "triangle", "vertices", "weights", "reachable", "reason"}
-_KNOWN |= {"q", "pos_err", "rot_err", "manipulability"}
+#: The leading columns of ``grasps.csv`` with fixed names, in order (then ``q1 .. q{nq}``):
+#: the ``csv`` cells of :data:`~gcm_pipeline.table.COLUMNS`.
+CSV_COLUMNS = tuple(c for col in COLUMNS.values() for c in col.csv if PER_JOINT not in c)
+
+#: Table columns that grasps.csv writes among its leading columns (under the names of their cells).
+_LEADING = {name: col for name, col in COLUMNS.items() if col.csv}
 
 
 # ------------------------------------------------------------ grasps.csv
@@ -87,6 +70,23 @@ def _ints(values: np.ndarray) -> list[str]:
     return [str(v) for v in np.asarray(values, dtype=np.int64).tolist()]
 
 
+def _bools(values: np.ndarray) -> list[str]:
+    return ["true" if b else "false" for b in np.asarray(values, dtype=bool).tolist()]
+
+
+def _strs(values: np.ndarray) -> list[str]:
+    return [_quote(str(s)) for s in np.asarray(values).tolist()]
+
+
+#: How a leading column's cells are written, by the registry's dtype.
+_FORMATS: dict[str, Callable[[np.ndarray], list[str]]] = {
+    "int": _ints,
+    "float": format_floats,
+    "bool": _bools,
+    "str": _strs,
+}
+
+
 def _row_order(grasps: GraspTable) -> np.ndarray:
     """Ranked rows by rank, then the unranked rows in table order."""
     n = len(grasps)
@@ -107,7 +107,7 @@ def _extra_columns(grasps: GraspTable) -> list[str]:
     extra = []
     for name in grasps.columns:
         col = grasps[name]
-        if name in _KNOWN or col.ndim != 1:
+        if name in _LEADING or col.ndim != 1:
             continue
         if np.issubdtype(col.dtype, np.number) or col.dtype == bool or col.dtype.kind in "US":
             extra.append(name)
@@ -144,40 +144,20 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
     order = _row_order(grasps)
     g = grasps.take(order)
     n = len(g)
-    empty = [""] * n
     csv_row = np.empty(n, dtype=np.int64)
     csv_row[order] = np.arange(n)
-    pos, quat = dq_to_pos_quat(g["dq"])
-    quat = np.where(quat[:, :1] < 0, -quat, quat)  # same rotation, qw >= 0
-
-    def col(name: str, fmt: Any) -> list[str]:
-        return fmt(g[name]) if name in g else empty
-
-    def bools(v: np.ndarray) -> list[str]:
-        return ["true" if b else "false" for b in np.asarray(v, dtype=bool).tolist()]
-
-    def strs(v: np.ndarray) -> list[str]:
-        return [_quote(str(s)) for s in np.asarray(v).tolist()]
-
-    cols: list[list[str]] = [col("rank", _ints), col("origin", strs), col("triangle", _ints)]
-    if "vertices" in g:  # table rows -> the data rows of this file that hold them
-        vert = np.asarray(g["vertices"], dtype=np.int64).reshape(n, 3)
-        ok = (vert >= 0) & (vert < n)
-        vert = np.where(ok, csv_row[np.where(ok, vert, 0)], vert)
-    for k in range(3):
-        cols.append(_ints(vert[:, k]) if "vertices" in g else empty)
-    for k in range(3):
-        cols.append(format_floats(g["weights"][:, k]) if "weights" in g else empty)
-    cols += [format_floats(pos[:, k]) for k in range(3)]
-    cols += [format_floats(quat[:, k]) for k in range(4)]
-    cols += [col("reachable", bools), col("reason", strs)]
-    cols += [col(name, format_floats) for name in ("pos_err", "rot_err", "manipulability")]
-    header = list(CSV_COLUMNS)
-    if "q" in g:
-        q = np.asarray(g["q"], dtype=float)
-        q = q.reshape(n, q.shape[1] if q.ndim == 2 else 1)
-        header += [f"q{j + 1}" for j in range(q.shape[1])]
-        cols += [format_floats(q[:, j]) for j in range(q.shape[1])]
+    header: list[str] = []
+    cols: list[list[str]] = []
+    for name, spec in _LEADING.items():
+        values = _leading_values(g, name, csv_row)
+        cells = list(spec.csv)
+        if PER_JOINT in spec.csv[0]:  # one cell per joint; none when the table has no q
+            width = 0 if values is None else values.shape[1]
+            cells = [spec.csv[0].format(j=j + 1) for j in range(width)]
+        header += cells
+        fmt = _FORMATS[spec.dtype]
+        for k in range(len(cells)):
+            cols.append([""] * n if values is None else fmt(values[:, k]))
     for name in _extra_columns(g):
         header.append(name)
         cols.append(_cells(np.asarray(g[name])))
@@ -187,13 +167,36 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
     return order
 
 
+def _leading_values(g: GraspTable, name: str, csv_row: np.ndarray) -> np.ndarray | None:
+    """(N, cells) values of a leading column as written; None when the table lacks it.
+
+    ``dq`` is written as position and quaternion (``qw >= 0``), ``vertices``
+    as the data rows of the file that hold them.
+    """
+    n = len(g)
+    if name not in g:
+        return None
+    if name == "dq":
+        pos, quat = dq_to_pos_quat(g["dq"])
+        quat = np.where(quat[:, :1] < 0, -quat, quat)  # same rotation, qw >= 0
+        return np.column_stack([pos, quat]).reshape(n, 7)
+    values = np.asarray(g[name])
+    values = values.reshape(n, values.shape[1] if values.ndim >= 2 else 1)
+    if name == "vertices":  # table rows -> the data rows of this file that hold them
+        vert = values.astype(np.int64)
+        ok = (vert >= 0) & (vert < n)
+        return np.where(ok, csv_row[np.where(ok, vert, 0)], vert)
+    return values
+
+
 def read_grasps_csv(path: str | Path) -> GraspTable:
     """Read ``grasps.csv`` back into a grasp table (``dq`` rebuilt from x..qz).
 
     Rows stay in file order (ranked first), so ``vertices`` (from ``v1, v2,
     v3``) index the table's rows. Columns: ``dq``, ``rank``, ``origin``,
     ``triangle``, ``vertices``, ``weights``, ``reachable``, ``reason``,
-    ``pos_err``, ``rot_err``, ``manipulability``, ``q`` and the further
+    ``pos_err``, ``rot_err``, ``manipulability``, ``q`` (the leading columns of
+    :data:`~gcm_pipeline.table.COLUMNS`, parsed by their dtype) and the further
     columns, as far as the file has them.
 
     The file is checked as it is read: unit quaternions, finite positions,
@@ -202,22 +205,49 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
 
     Raises:
         InputError: Missing file or columns, or a value that does not parse
-            (names the line and column).
+            (names the line and column; attributes ``path``, ``row``: the line,
+            ``key``: the column, ``value``: the cell).
     """
-    path = Path(path)
-    header, body, lines = _read_rows(path)
-    n = len(body)
-    # Python strings: a fixed-width array is as wide as the longest cell in every cell
-    cells = np.empty((n, len(header)), dtype=object)
-    if body:
-        cells[:] = body
-    raw = {name: cells[:, k] for k, name in enumerate(header)}
+    cells = _Cells(Path(path), *_read_rows(Path(path)))
+    cols: dict[str, Any] = {"dq": _read_pose(cells)}
+    for name, spec in _LEADING.items():
+        if name == "dq":
+            continue
+        names = _cell_names(spec, cells.header)
+        if names and all(c in cells.raw for c in names):
+            cols[name] = _read_leading(cells, name, spec, names, cols)
+    for name in cells.header:
+        if name in CSV_COLUMNS or name in cols or _is_per_joint(name):
+            continue
+        cols[name] = _parse_column(cells.raw[name])
+    return GraspTable(cols)
 
-    def bad(name: str, i: int, what: str) -> InputError:
-        return InputError(f"{path}:{lines[i]}: column {name!r}: {what}: {clip(str(raw[name][i]))}")
 
-    def floats(name: str) -> np.ndarray:
-        col = np.where(raw[name] == "", "nan", raw[name])
+class _Cells:
+    """The text cells of a ``grasps.csv`` by column, parsed with the line of a bad one named."""
+
+    def __init__(self, path: Path, header: list[str], body: list[list[str]], lines: list[int]):
+        self.path, self.header, self.lines, self.n = path, header, lines, len(body)
+        # Python strings: a fixed-width array is as wide as the longest cell in every cell
+        cells = np.empty((self.n, len(header)), dtype=object)
+        if body:
+            cells[:] = body
+        self.raw = {name: cells[:, k] for k, name in enumerate(header)}
+
+    def bad(self, name: str, i: int, what: str) -> InputError:
+        """The error of the cell of column ``name`` in data row ``i``."""
+        text = str(self.raw[name][i])
+        return InputError(
+            f"{self.path}:{self.lines[i]}: column {name!r}: {what}: {clip(text)}",
+            path=self.path,
+            row=self.lines[i],
+            key=name,
+            value=text,
+        )
+
+    def floats(self, name: str) -> np.ndarray:
+        """A float column (an empty cell is NaN)."""
+        col = np.where(self.raw[name] == "", "nan", self.raw[name])
         try:
             return col.astype(float)
         except ValueError:
@@ -225,69 +255,94 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
                 try:
                     float(text)
                 except ValueError:
-                    raise bad(name, i, "not a number") from None
+                    raise self.bad(name, i, "not a number") from None
             raise  # pragma: no cover
 
-    def ints(name: str) -> np.ndarray:
-        col = raw[name]
+    def ints(self, name: str) -> np.ndarray:
+        """An integer column (no empty cells)."""
+        col = self.raw[name]
         ok = np.array([re.fullmatch(r"-?[0-9]{1,18}", t) is not None for t in col.tolist()])
-        if n and not ok.all():
-            raise bad(name, int(np.flatnonzero(~ok)[0]), "not an integer")
-        return col.astype(np.int64).reshape(n)
+        if self.n and not ok.all():
+            raise self.bad(name, int(np.flatnonzero(~ok)[0]), "not an integer")
+        return col.astype(np.int64).reshape(self.n)
 
-    pos = np.column_stack([floats(c) for c in ("x", "y", "z")]).reshape(n, 3)
-    quat = np.column_stack([floats(c) for c in ("qw", "qx", "qy", "qz")]).reshape(n, 4)
+    def switches(self, name: str) -> np.ndarray:
+        """A boolean column of ``true`` / ``false`` cells."""
+        odd = ~np.isin(self.raw[name], ("true", "false"))
+        if odd.any():
+            raise self.bad(name, int(np.flatnonzero(odd)[0]), "not true or false")
+        return np.asarray(self.raw[name] == "true", dtype=bool)
+
+    def text(self, name: str) -> np.ndarray:
+        """A string column."""
+        return self.raw[name].astype(str)
+
+    def parse(self, names: list[str], dtype: str) -> np.ndarray:
+        """The cells ``names`` as one (N,) column or (N, len(names)) by the registry's dtype."""
+        read = {"float": self.floats, "int": self.ints, "bool": self.switches, "str": self.text}
+        parts = [read[dtype](c) for c in names]
+        if len(parts) == 1:
+            return parts[0]
+        return np.column_stack(parts).reshape(self.n, len(parts))
+
+
+def _read_pose(cells: _Cells) -> np.ndarray:
+    """``dq`` from the x, y, z, qw, qx, qy, qz cells (finite position, unit quaternion)."""
+    n, path = cells.n, cells.path
+    pose = cells.parse(list(COLUMNS["dq"].csv), "float")
+    pos, quat = pose[:, :3], pose[:, 3:]
     broken = ~np.isfinite(pos).all(axis=1) | ~np.isfinite(quat).all(axis=1)
     with np.errstate(invalid="ignore"):
         broken |= np.abs(np.linalg.norm(quat, axis=1) - 1.0) > 1e-6
     if broken.any():
         i = int(np.flatnonzero(broken)[0])
         raise InputError(
-            f"{path}:{lines[i]}: not a pose: x,y,z must be finite and qw,qx,qy,qz a unit "
-            f"quaternion, got {pos[i].tolist()} and {quat[i].tolist()}"
+            f"{path}:{cells.lines[i]}: not a pose: x,y,z must be finite and qw,qx,qy,qz a unit "
+            f"quaternion, got {pos[i].tolist()} and {quat[i].tolist()}",
+            path=path,
+            row=cells.lines[i],
+            value=pose[i].tolist(),
         )
-    cols: dict[str, Any] = {"dq": dq_from_pos_quat(pos, quat)}
-    if "rank" in raw:
-        cols["rank"] = ints("rank")
-        if (cols["rank"] < 0).any():
-            raise bad("rank", int(np.flatnonzero(cols["rank"] < 0)[0]), "negative")
-    if "origin" in raw:
-        cols["origin"] = raw["origin"].astype(str)
-        odd = ~np.isin(cols["origin"], ("candidate", "interpolated", ""))
+    return dq_from_pos_quat(pos.reshape(n, 3), quat.reshape(n, 4))
+
+
+def _read_leading(
+    cells: _Cells, name: str, spec: Column, names: list[str], cols: dict[str, Any]
+) -> np.ndarray:
+    """A leading column parsed by its dtype and checked (ids, rows, a reachable one's ``q``)."""
+    values = cells.parse(names, spec.dtype)
+    if PER_JOINT in spec.csv[0]:
+        values = values.reshape(cells.n, len(names))
+    if name == "rank" and (values < 0).any():
+        raise cells.bad("rank", int(np.flatnonzero(values < 0)[0]), "negative")
+    if name == "origin":
+        odd = ~np.isin(values, ("candidate", "interpolated", ""))
         if odd.any():
-            raise bad("origin", int(np.flatnonzero(odd)[0]), "not candidate or interpolated")
-    if "triangle" in raw:
-        cols["triangle"] = ints("triangle")
-    if all(c in raw for c in ("v1", "v2", "v3")):
-        vert = np.column_stack([ints(c) for c in ("v1", "v2", "v3")]).reshape(n, 3)
-        out = (vert < -1) | (vert >= n)
+            raise cells.bad("origin", int(np.flatnonzero(odd)[0]), "not candidate or interpolated")
+    if name == "vertices":
+        out = (values < -1) | (values >= cells.n)
         if out.any():
             i, k = (int(a[0]) for a in np.nonzero(out))
-            raise bad(f"v{k + 1}", i, f"not a row of this file (0..{n - 1})")
-        cols["vertices"] = vert
-    if all(c in raw for c in ("w1", "w2", "w3")):
-        cols["weights"] = np.column_stack([floats(c) for c in ("w1", "w2", "w3")]).reshape(n, 3)
-    if "reachable" in raw:
-        cols["reachable"] = _switches(path, raw["reachable"], "reachable", lines)
-    if "reason" in raw:
-        cols["reason"] = raw["reason"].astype(str)
-    for name in ("pos_err", "rot_err", "manipulability"):
-        if name in raw:
-            cols[name] = floats(name)
-    qnames = [h for h in header if h[:1] == "q" and h[1:].isdigit()]
-    if qnames:
-        cols["q"] = np.column_stack([floats(c) for c in qnames]).reshape(n, len(qnames))
-        if "reachable" in cols:  # a reachable grasp has its joint solution
-            odd = cols["reachable"] & ~np.isfinite(cols["q"]).all(axis=1)
-            if odd.any():
-                i = int(np.flatnonzero(odd)[0])
-                k = int(np.flatnonzero(~np.isfinite(cols["q"][i]))[0])
-                raise bad(qnames[k], i, "a reachable grasp needs a finite joint value")
-    for name in header:
-        if name in CSV_COLUMNS or name in qnames or name in cols:
-            continue
-        cols[name] = _parse_column(raw[name])
-    return GraspTable(cols)
+            raise cells.bad(names[k], i, f"not a row of this file (0..{cells.n - 1})")
+    if name == "q" and "reachable" in cols:  # a reachable grasp has its joint solution
+        odd = cols["reachable"] & ~np.isfinite(values).all(axis=1)
+        if odd.any():
+            i = int(np.flatnonzero(odd)[0])
+            k = int(np.flatnonzero(~np.isfinite(values[i]))[0])
+            raise cells.bad(names[k], i, "a reachable grasp needs a finite joint value")
+    return values
+
+
+def _cell_names(spec: Column, header: list[str]) -> list[str]:
+    """The cells a leading column is read from: its ``csv`` cells, or the file's q1, q2, ..."""
+    if PER_JOINT in spec.csv[0]:
+        return [h for h in header if _is_per_joint(h)]
+    return list(spec.csv)
+
+
+def _is_per_joint(name: str) -> bool:
+    """Whether a header cell is a per-joint one (``q1``, ``q2``, ...)."""
+    return name[:1] == "q" and name[1:].isdigit()
 
 
 def _read_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
@@ -308,23 +363,34 @@ def _read_rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
                     rows.append(row)
                     lines.append(reader.line_num)
     except FileNotFoundError:
-        raise InputError(f"not a run directory: {path} is missing") from None
+        raise InputError(f"not a run directory: {path} is missing", path=path) from None
     except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+        raise InputError(
+            f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})", path=path
+        ) from None
     except (OSError, csv.Error) as exc:
-        raise InputError(f"{path}: cannot read: {clip(str(exc))}") from None
+        raise InputError(f"{path}: cannot read: {clip(str(exc))}", path=path) from None
     if not rows:
-        raise InputError(f"{path}: empty file")
+        raise InputError(f"{path}: empty file", path=path)
     header, body, lines = rows[0], rows[1:], lines[1:]
     if len(set(header)) != len(header):
         twice = next(h for h in header if header.count(h) > 1)
-        raise InputError(f"{path}: the header names column {clip(twice)} twice")
-    missing = [c for c in ("x", "y", "z", "qw", "qx", "qy", "qz") if c not in header]
+        raise InputError(
+            f"{path}: the header names column {clip(twice)} twice", path=path, key=twice
+        )
+    missing = [c for c in COLUMNS["dq"].csv if c not in header]
     if missing:
-        raise InputError(f"{path}: missing column(s) {', '.join(missing)}")
+        raise InputError(
+            f"{path}: missing column(s) {', '.join(missing)}", path=path, key=missing[0]
+        )
     for row, line in zip(body, lines, strict=True):
         if len(row) != len(header):
-            raise InputError(f"{path}:{line}: {len(row)} fields, header has {len(header)}")
+            raise InputError(
+                f"{path}:{line}: {len(row)} fields, header has {len(header)}",
+                path=path,
+                row=line,
+                value=len(row),
+            )
     return header, body, lines
 
 
@@ -339,22 +405,14 @@ def check_csv_cells(path: Path, line: int, header: list[str] | None, row: list[s
         return
     k = max(range(len(row)), key=lambda j: len(row[j]))
     name = clip(header[k], 40) if header is not None and k < len(header) else f"#{k + 1}"
-    err = InputError(
+    raise InputError(
         f"{path}:{line}: column {name}: a cell of {len(row[k]):,} characters; a CSV cell "
-        f"holds at most {MAX_CSV_CELL} (gcm_pipeline.bounds.MAX_CSV_CELL)"
+        f"holds at most {MAX_CSV_CELL} (gcm_pipeline.bounds.MAX_CSV_CELL)",
+        path=path,
+        row=line,
+        key=name,
+        value=len(row[k]),
     )
-    err.path, err.row, err.key, err.value = path, line, name, len(row[k])  # type: ignore[attr-defined]
-    raise err
-
-
-def _switches(path: Path, text: np.ndarray, name: str, lines: list[int]) -> np.ndarray:
-    odd = ~np.isin(text, ("true", "false"))
-    if odd.any():
-        i = int(np.flatnonzero(odd)[0])
-        raise InputError(
-            f"{path}:{lines[i]}: column {name!r}: not true or false: {clip(str(text[i]))}"
-        )
-    return np.asarray(text == "true", dtype=bool)
 
 
 def _parse_column(values: Any) -> np.ndarray:

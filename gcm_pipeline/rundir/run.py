@@ -207,30 +207,40 @@ def read_summary(path: str | Path) -> dict[str, Any]:
         with path.open("rb") as fh:
             data = fh.read(_MAX_SUMMARY_BYTES + 1)
     except OSError as exc:
-        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}", path=path) from None
     if len(data) > _MAX_SUMMARY_BYTES:
-        raise InputError(f"{path}: larger than {_MAX_SUMMARY_BYTES >> 20} MiB; not a summary")
+        raise InputError(
+            f"{path}: larger than {_MAX_SUMMARY_BYTES >> 20} MiB; not a summary", path=path
+        )
     try:
         summary = json.loads(data.decode("utf-8"))
     except (ValueError, RecursionError) as exc:
-        raise InputError(f"{path}: not valid JSON: {clip(str(exc))}") from None
+        raise InputError(f"{path}: not valid JSON: {clip(str(exc))}", path=path) from None
     if not isinstance(summary, dict):
-        raise InputError(f"{path}: expected a JSON object, got {type(summary).__name__}")
+        raise InputError(f"{path}: expected a JSON object, got {type(summary).__name__}", path=path)
     counts = summary.get("counts", {})
     if not isinstance(counts, dict):
-        raise InputError(f"{path}: 'counts' must be an object, got {type(counts).__name__}")
+        raise InputError(
+            f"{path}: 'counts' must be an object, got {type(counts).__name__}", path=path
+        )
     for key, value in counts.items():
         ok = (isinstance(value, int) and not isinstance(value, bool)) or (
             isinstance(value, dict)
             and all(isinstance(v, int) and not isinstance(v, bool) for v in value.values())
         )
         if not ok:
-            raise InputError(f"{path}: counts.{str(key)[:60]} must be a count, got {clip(value)}")
+            raise InputError(
+                f"{path}: counts.{str(key)[:60]} must be a count, got {clip(value)}", path=path
+            )
     ranking = summary.get("ranking", {})
     if not isinstance(ranking, dict):
-        raise InputError(f"{path}: 'ranking' must be an object, got {type(ranking).__name__}")
+        raise InputError(
+            f"{path}: 'ranking' must be an object, got {type(ranking).__name__}", path=path
+        )
     if not isinstance(ranking.get("metric", ""), str):
-        raise InputError(f"{path}: ranking.metric must be a text, got {clip(ranking['metric'])}")
+        raise InputError(
+            f"{path}: ranking.metric must be a text, got {clip(ranking['metric'])}", path=path
+        )
     if not isinstance(ranking.get("top", []), list):
-        raise InputError(f"{path}: ranking.top must be a list")
+        raise InputError(f"{path}: ranking.top must be a list", path=path)
     return summary

@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.errors import ConfigError, InputError, choice_error
 
 __all__ = [
     "CONVENTIONS",
@@ -145,7 +145,7 @@ class GripperSpec:
             m[:, 0, 3] = d - self.finger_tip
             m[:, 3, 3] = 1.0
             return m[0] if depth is None or np.ndim(depth) == 0 else m
-        raise ConfigError(unknown_choice("gripper frame convention", convention, CONVENTIONS))
+        raise choice_error(ConfigError, "gripper frame convention", convention, CONVENTIONS)
 
     def __repr__(self) -> str:
         return (
@@ -212,7 +212,7 @@ def get_gripper(name: str) -> GripperSpec:
     try:
         return GRIPPERS[name]
     except KeyError:
-        raise ConfigError(unknown_choice("gripper", name, GRIPPERS)) from None
+        raise choice_error(ConfigError, "gripper", name, GRIPPERS) from None
 
 
 @dataclass(frozen=True)
@@ -310,7 +310,10 @@ def choose_gripper(
 
 
 def _refused(message: str, path: object, value: str | None) -> InputError:
-    err = InputError(message)
-    err.path, err.key, err.value = path, "candidates.gripper", value  # type: ignore[attr-defined]
-    err.choices = (*gripper_names(), "grasp_to_tool")  # type: ignore[attr-defined]
-    return err
+    return InputError(
+        message,
+        path=path,  # type: ignore[arg-type]
+        key="candidates.gripper",
+        value=value,
+        choices=(*gripper_names(), "grasp_to_tool"),
+    )

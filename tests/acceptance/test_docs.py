@@ -120,8 +120,14 @@ def test_column_registry_names_every_column_of_a_run() -> None:
     pipeline = gcm.Pipeline.from_yaml(ROOT / "configs" / "flat_surface.yaml", overrides)
     with tempfile.TemporaryDirectory() as tmp:
         result = pipeline.run(Path(tmp) / "run", progress=False)
+        header = (Path(tmp) / "run" / "grasps.csv").read_text().splitlines()[0].split(",")
     table = result.grasps
     assert not set(table.columns) - set(COLUMNS) - set(CANDIDATE_COLUMNS)
+    cells = {c for col in COLUMNS.values() for c in col.csv}  # grasps.csv: registered too
+    for cell in header:
+        assert cell in cells | set(COLUMNS) | set(CANDIDATE_COLUMNS) or re.fullmatch(
+            r"q[0-9]+", cell
+        ), cell
     kinds = {"float": "f", "int": "iu", "bool": "b", "str": "UO"}
     for name, col in COLUMNS.items():
         assert col.shape.startswith("(N") and col.stage and col.meaning, name

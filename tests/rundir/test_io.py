@@ -18,7 +18,7 @@ from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_to_matrix
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.rundir import arrays, grasps_csv, transaction
 from gcm_pipeline.rundir import run as run_files
-from gcm_pipeline.table import GraspTable
+from gcm_pipeline.table import CANDIDATE_COLUMNS, COLUMNS, GraspTable
 
 N, NC, NQ = 9, 3, 7
 
@@ -96,6 +96,91 @@ def test_csv_header_order_and_ranked_rows_first(tmp_path):
     assert {r[16] for r in rows[1:]} == {"true", "false"}
     text = path.read_text()
     assert "nan" not in text and "\r" not in text
+
+
+def test_grasps_csv_leads_with_the_documented_columns():
+    """The file format users parse: a registry edit must not reorder or rename these."""
+    assert grasps_csv.CSV_COLUMNS == (
+        *("rank", "origin", "triangle", "v1", "v2", "v3", "w1", "w2", "w3"),
+        *("x", "y", "z", "qw", "qx", "qy", "qz", "reachable", "reason"),
+        *("pos_err", "rot_err", "manipulability"),
+    )
+
+
+def _every_registered_column(n: int, nq: int = 3, k: int = 2) -> GraspTable:
+    """A table with every column of the registry (by its dtype and shape) and two per-candidate."""
+    rng = np.random.default_rng(1)
+    dims = {"N": n, "nq": nq, "K": k, "3": 3, "8": 8}
+    make = {
+        "float": lambda shape: rng.uniform(-1, 1, shape),
+        "int": lambda shape: rng.integers(-1, n, shape),
+        "bool": lambda shape: rng.integers(0, 2, shape).astype(bool),
+        "str": lambda shape: np.full(shape, "candidate"),
+    }
+    cols = {}
+    for name, col in COLUMNS.items():
+        shape = tuple(dims[d.strip()] for d in col.shape.strip("()").split(",") if d.strip())
+        cols[name] = make[col.dtype](shape)
+    t = np.tile(np.eye(4), (n, 1, 1))
+    t[:, :3, 3] = rng.uniform(-1, 1, (n, 3))
+    cols["dq"] = dq_from_matrix(t)
+    cols["rank"] = np.arange(n)
+    cols["q"] = np.where(cols["reachable"][:, None], cols["q"], np.nan)
+    return GraspTable({**cols, "score": rng.uniform(0, 1, n), "source_id": np.arange(n)})
+
+
+def test_every_column_grasps_csv_writes_is_in_the_registry(tmp_path):
+    """A column the writer emits (under its own or a cell name) must be a registered column."""
+    g = _every_registered_column(6)
+    path = tmp_path / "grasps.csv"
+    grasps_csv.write_grasps_csv(g, path)
+    header = path.read_text().splitlines()[0].split(",")
+    cells = {c: name for name, col in COLUMNS.items() for c in col.csv}
+    registered = []
+    for h in header:
+        if h in cells or h in CANDIDATE_COLUMNS:
+            registered.append(h)
+        elif h[:1] == "q" and h[1:].isdigit():
+            registered.append("q{j}")
+        else:
+            assert h in COLUMNS and not COLUMNS[h].csv and COLUMNS[h].shape == "(N,)", h
+            registered.append(h)
+    # leading cells in registry order, then the other 1-D columns, then the per-candidate ones
+    lead = [c for col in COLUMNS.values() for c in col.csv]
+    expected_q = [f"q{j}" for j in (1, 2, 3)]
+    assert header[: len(lead) + 2] == lead[:-1] + expected_q
+    rest = [n for n, c in COLUMNS.items() if not c.csv and c.shape == "(N,)"]
+    assert header[len(lead) + 2 :] == [*rest, "score", "source_id"]
+    back = grasps_csv.read_grasps_csv(path)
+    for name, col in COLUMNS.items():  # every written column is read back with its dtype
+        if col.csv or col.shape == "(N,)":
+            kinds = {"float": "f", "int": "iu", "bool": "b", "str": "U"}[col.dtype]
+            assert back[name].dtype.kind in kinds, (name, back[name].dtype)
+
+
+def test_a_bad_cell_of_grasps_csv_carries_the_file_line_column_and_text(tmp_path):
+    path = tmp_path / "grasps.csv"
+    grasps_csv.write_grasps_csv(_table(), path)
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[3].split(",")
+    row[header.index("pos_err")] = "fast"
+    path.write_text("\n".join([*lines[:3], ",".join(row), *lines[4:]]) + "\n")
+    with pytest.raises(InputError) as info:
+        grasps_csv.read_grasps_csv(path)
+    assert str(info.value) == f"{path}:4: column 'pos_err': not a number: 'fast'"
+    err = info.value
+    assert (err.path, err.row, err.key, err.value) == (path, 4, "pos_err", "fast")
+    row[header.index("pos_err")] = "0"
+    row[header.index("qw")] = "2"
+    path.write_text("\n".join([*lines[:3], ",".join(row), *lines[4:]]) + "\n")
+    with pytest.raises(InputError, match="not a pose") as info:
+        grasps_csv.read_grasps_csv(path)
+    assert (info.value.path, info.value.row) == (path, 4)
+    path.write_text("\n".join([*lines[:3], ",".join(row[:-1]), *lines[4:]]) + "\n")
+    with pytest.raises(InputError, match="fields, header has") as info:
+        grasps_csv.read_grasps_csv(path)
+    assert (info.value.path, info.value.row, info.value.value) == (path, 4, len(row) - 1)
 
 
 def test_csv_round_trip_is_exact(tmp_path):
@@ -413,6 +498,7 @@ def test_a_long_cell_in_grasps_csv_is_refused_and_text_costs_its_size(tmp_path):
         f"{path}:4: column 'reason': a cell of 100,000 characters; a CSV cell holds at most "
         "256 (gcm_pipeline.bounds.MAX_CSV_CELL)"
     )
+    assert (info.value.path, info.value.row, info.value.value) == (path, 4, 100_000)
 
 
 # ------------------------------------------------- replacement: concurrency, permissions

@@ -919,3 +919,50 @@ def test_a_file_without_a_known_suffix_gets_a_suggestion(tmp_path):
         r"format: acronym\)$",
     ):
         generate_candidates(config({"path": str(path)}))
+
+
+@pytest.mark.parametrize(
+    ("cell", "key", "what"),
+    [("abc", "y", "not a number"), ("inf", "y", "non-finite value inf")],
+)
+def test_a_bad_csv_grasp_cell_carries_file_line_and_column(tmp_path, cell, key, what):
+    path = tmp_path / "g.csv"
+    path.write_text(f"x,y,z,qw,qx,qy,qz\n0.1,0,0.2,1,0,0,0\n\n0.1,{cell},0.2,1,0,0,0\n")
+    with pytest.raises(InputError) as info:
+        sources.read_grasp_file(path)
+    assert str(info.value).startswith(f"{path}:4: column 'y': {what}")
+    assert (info.value.path, info.value.row, info.value.key) == (path, 4, key)
+
+
+def test_a_csv_grasp_row_of_the_wrong_width_and_a_bad_quaternion_carry_the_line(tmp_path):
+    path = tmp_path / "g.csv"
+    path.write_text("x,y,z,qw,qx,qy,qz\n0.1,0,0.2,1,0,0,0\n0.1,0,0.2,1,0,0\n")
+    with pytest.raises(InputError) as info:
+        sources.read_grasp_file(path)
+    assert (info.value.path, info.value.row, info.value.value) == (path, 3, 6)
+    path.write_text("x,y,z,qw,qx,qy,qz\n0.1,0,0.2,1,0,0,0\n0.1,0,0.2,2,0,0,0\n")
+    with pytest.raises(InputError, match="has norm 2, expected 1") as info:
+        sources.read_grasp_file(path)
+    assert (info.value.path, info.value.row, info.value.value) == (path, 3, 2.0)
+
+
+def test_an_unknown_gripper_carries_the_value_and_the_choices():
+    from gcm_pipeline.sources.grippers import get_gripper
+
+    with pytest.raises(ConfigError) as info:
+        get_gripper("franka_pandaa")
+    assert (info.value.value, "franka_panda" in info.value.choices) == ("franka_pandaa", True)
+    assert info.value.choices == tuple(sorted(info.value.choices))
+
+
+def test_an_unknown_grasp_file_format_carries_the_value_and_the_choices(tmp_path):
+    path = tmp_path / "g.txt"
+    path.write_text("x")
+    with pytest.raises(InputError, match="cannot tell the grasp file format") as info:
+        sources.read_grasp_file(path)
+    err = info.value
+    assert (err.path, err.key, err.value) == (path, "candidates.format", ".txt")
+    assert err.choices == ("acronym", "csv", "npy", "npz")
+    with pytest.raises(InputError, match="unknown grasp file format 'xyz'") as info:
+        sources.read_grasp_file(path, format="xyz")
+    assert (info.value.value, info.value.choices) == ("xyz", ("acronym", "csv", "npy", "npz"))

@@ -144,7 +144,8 @@ def read_grasps(
             if grasps.success is None:
                 raise InputError(
                     f"{path}: candidates.success_only needs success labels, but this {fmt} "
-                    "file has none (graspgen: grasps.object_in_gripper)"
+                    "file has none (graspgen: grasps.object_in_gripper)",
+                    path=path,
                 )
             grasps = grasps.take(np.flatnonzero(grasps.success))
         if limit is not None:
@@ -207,7 +208,11 @@ def _infer_format(path: Path) -> str:
         )
         raise InputError(
             f"{path}: cannot tell the grasp file format from the suffix {clip(suffix)}; "
-            f"set candidates.format to one of: acronym, csv, npy, npz{looks}"
+            f"set candidates.format to one of: acronym, csv, npy, npz{looks}",
+            path=path,
+            key="candidates.format",
+            value=suffix,
+            choices=("acronym", "csv", "npy", "npz"),
         )
     return fmt[suffix]
 
@@ -324,7 +329,11 @@ def read_grasp_file_gripper(
         poses, success, gripper = read_acronym(path, max_count)
     else:
         raise InputError(
-            f"{path}: unknown grasp file format {clip(fmt)}; valid: acronym, csv, npy, npz"
+            f"{path}: unknown grasp file format {clip(fmt)}; valid: acronym, csv, npy, npz",
+            path=path,
+            key="format",
+            value=fmt,
+            choices=("acronym", "csv", "npy", "npz"),
         )
     check_rigid(path, poses)
     if fmt != "csv":  # a CSV names the line, above
@@ -338,7 +347,8 @@ def read_grasp_file_gripper(
             raise InputError(
                 f"{path}: candidates.success_only needs success labels, but this {fmt} file "
                 "has none (npz: 'success' array, csv: 'success' column, acronym: "
-                "grasps/qualities/flex/object_in_gripper)"
+                "grasps/qualities/flex/object_in_gripper)",
+                path=path,
             )
         keep = np.flatnonzero(success)
     if limit is not None:

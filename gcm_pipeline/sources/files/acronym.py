@@ -46,7 +46,7 @@ def read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray, st
         import h5py  # noqa: F401
     except ImportError:
         raise InputError(
-            f"{path}: reading ACRONYM HDF5 files needs h5py: {ACRONYM_INSTALL_HINT}"
+            f"{path}: reading ACRONYM HDF5 files needs h5py: {ACRONYM_INSTALL_HINT}", path=path
         ) from None
 
     if "fork" not in mp.get_all_start_methods():  # pragma: no cover - not POSIX
@@ -76,13 +76,14 @@ def read_acronym(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray, st
     if late:
         raise InputError(
             f"{path}: the HDF5 library did not finish reading it in {limit:.0f} s; "
-            "the file is corrupt"
+            "the file is corrupt",
+            path=path,
         )
     if result is None:
         code = child.exitcode or 0
         what = signal.Signals(-code).name if code < 0 else f"exit status {code}"
         raise InputError(
-            f"{path}: reading it crashed the HDF5 library ({what}); the file is corrupt"
+            f"{path}: reading it crashed the HDF5 library ({what}); the file is corrupt", path=path
         )
     if result[0] == "error":
         raise InputError(result[1])
@@ -112,18 +113,25 @@ def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarr
             for key in ("grasps/transforms", "grasps/qualities/flex/object_in_gripper"):
                 where = key
                 if key not in fh:
-                    raise InputError(f"{path}: not an ACRONYM grasp file: missing dataset {key!r}")
+                    raise InputError(
+                        f"{path}: not an ACRONYM grasp file: missing dataset {key!r}", path=path
+                    )
                 node = fh[key]
                 if not isinstance(node, h5py.Dataset):
-                    raise InputError(f"{path}: {key} is a {type(node).__name__}, not a dataset")
+                    raise InputError(
+                        f"{path}: {key} is a {type(node).__name__}, not a dataset", path=path
+                    )
                 if node.dtype.kind not in "biuf":
-                    raise InputError(f"{path}: {key} must hold numbers, got dtype {node.dtype}")
+                    raise InputError(
+                        f"{path}: {key} must hold numbers, got dtype {node.dtype}", path=path
+                    )
                 datasets[key] = node
             where = "grasps/transforms"
             tf = datasets["grasps/transforms"]
             if len(tf.shape) != 3 or tf.shape[1:] != (4, 4):
                 raise InputError(
-                    f"{path}: grasps/transforms must have shape (N, 4, 4), got {tf.shape}"
+                    f"{path}: grasps/transforms must have shape (N, 4, 4), got {tf.shape}",
+                    path=path,
                 )
             check_count(path, tf.shape[0], max_count)
             poses = as_poses(path, np.asarray(tf[()]), "grasps/transforms")
@@ -131,7 +139,8 @@ def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarr
             quality = datasets[where]
             if quality.size != poses.shape[0]:
                 raise InputError(
-                    f"{path}: {where} has {quality.size} values, expected {poses.shape[0]}"
+                    f"{path}: {where} has {quality.size} values, expected {poses.shape[0]}",
+                    path=path,
                 )
             success = success_labels(path, np.asarray(quality[()]), poses.shape[0], where)
             where = "object"
@@ -142,7 +151,7 @@ def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarr
         raise
     except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
         raise InputError(
-            f"{path}: corrupt or unreadable HDF5 file (at {where}): {clip(str(exc))}"
+            f"{path}: corrupt or unreadable HDF5 file (at {where}): {clip(str(exc))}", path=path
         ) from None
     if name is not None:
         log.info("%s: ACRONYM grasps of %s (scale %g)", path, name, scale)
@@ -160,12 +169,13 @@ def _h5_small(path: Path, node: Any, h5py: Any, key: str, what: str, max_bytes: 
         InputError: Not a dataset, or more than ``max_bytes`` declared.
     """
     if not isinstance(node, h5py.Dataset):
-        raise InputError(f"{path}: {key} must be {what}, got a {type(node).__name__}")
+        raise InputError(f"{path}: {key} must be {what}, got a {type(node).__name__}", path=path)
     declared = int(np.prod(node.shape, dtype=object)) * node.dtype.itemsize
     if declared > max_bytes:
         raise InputError(
             f"{path}: {key} declares {declared:,} bytes (shape {node.shape}, dtype "
-            f"{node.dtype}); {what} takes at most {max_bytes:,}: the file is corrupt"
+            f"{node.dtype}); {what} takes at most {max_bytes:,}: the file is corrupt",
+            path=path,
         )
     return node[()]
 
@@ -183,7 +193,7 @@ def _h5_text(path: Path, fh: Any, h5py: Any, key: str) -> str | None:
         except UnicodeDecodeError:
             raw = None
     if not isinstance(raw, str) or len(raw) > MAX_HDF5_TEXT:
-        raise InputError(f"{path}: {key} must be a text, got {clip(raw)}")
+        raise InputError(f"{path}: {key} must be a text, got {clip(raw)}", path=path)
     return raw
 
 
@@ -196,8 +206,10 @@ def _acronym_object(path: Path, fh: Any, h5py: Any) -> tuple[str | None, float]:
         if isinstance(raw, np.ndarray) and raw.size == 1:
             raw = raw.reshape(-1)[0]
         if isinstance(raw, (bool, np.bool_)) or not isinstance(raw, (int, float, np.number)):
-            raise InputError(f"{path}: object/scale must be a number, got {clip(raw)}")
+            raise InputError(f"{path}: object/scale must be a number, got {clip(raw)}", path=path)
         scale = float(raw)
         if not (math.isfinite(scale) and scale > 0):
-            raise InputError(f"{path}: object/scale must be a positive number, got {scale!r}")
+            raise InputError(
+                f"{path}: object/scale must be a positive number, got {scale!r}", path=path
+            )
     return name, scale

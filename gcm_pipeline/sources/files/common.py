@@ -58,7 +58,8 @@ def check_count(path: Path, n: int, max_count: int) -> None:
     if n > max_count:
         raise InputError(
             f"{path}: holds {n:,} grasps, more than candidates.max_count ({max_count:,}); "
-            "raise candidates.max_count to read it"
+            "raise candidates.max_count to read it",
+            path=path,
         )
 
 
@@ -69,7 +70,8 @@ def check_bytes(path: Path, size: int, max_count: int, per_grasp: int, what: str
         raise InputError(
             f"{path}: {what} take {size:,} bytes, more than {max_count:,} grasps "
             f"(candidates.max_count) need (at most {limit:,}); raise candidates.max_count "
-            "to read it"
+            "to read it",
+            path=path,
         )
 
 
@@ -131,22 +133,23 @@ def check_positions(
         name = where(i) if where is not None else f"{path}: grasp {i} (0-based)"
         more = f" ({far.size:,} such grasps)" if far.size > 1 else ""
         xyz = ", ".join(f"{v:.6g}" for v in np.asarray(positions, dtype=float).reshape(-1, 3)[i])
-        err = InputError(
+        raise InputError(
             f"{name}: position ({xyz}) is {dist[i]:.3g} m from the file's origin, farther "
             f"than {MAX_GRASP_DISTANCE:g} m (gcm_pipeline.bounds.MAX_GRASP_DISTANCE): not a "
-            f"grasp in a robot's world; are the units metres?{more}"
+            f"grasp in a robot's world; are the units metres?{more}",
+            path=path,
+            row=i,
+            value=float(dist[i]),
         )
-        err.path, err.row, err.value = path, i, float(dist[i])  # type: ignore[attr-defined]
-        raise err
 
 
 def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
     """Return ``poses`` as float (N, 4, 4) or raise naming the first non-rigid row."""
     arr = np.asarray(poses)
     if arr.ndim != 3 or arr.shape[1:] != (4, 4):
-        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}")
+        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}", path=path)
     if arr.dtype.kind not in "fiu":
-        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}")
+        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}", path=path)
     arr = arr.astype(float)
     if len(arr) == 0:
         return arr
@@ -159,7 +162,8 @@ def check_poses(path: Path, poses: np.ndarray, what: str) -> np.ndarray:
     if bad.size:
         more = f" ({bad.size} bad rows in all)" if bad.size > 1 else ""
         raise InputError(
-            f"{path}: {what}: grasp {int(bad[0])} (0-based) is not a rigid transform{more}"
+            f"{path}: {what}: grasp {int(bad[0])} (0-based) is not a rigid transform{more}",
+            path=path,
         )
     check_positions(path, arr[:, :3, 3])
     return arr
@@ -189,15 +193,17 @@ def check_rigid(path: Path, poses: np.ndarray) -> None:
     else:
         why = "has a reflection (det R < 0)"
     more = f" ({bad.size} bad rows in all)" if bad.size > 1 else ""
-    raise InputError(f"{path}: grasp {i} (0-based row) is not a rigid transform: {why}{more}")
+    raise InputError(
+        f"{path}: grasp {i} (0-based row) is not a rigid transform: {why}{more}", path=path
+    )
 
 
 def as_poses(path: Path, arr: np.ndarray, what: str) -> np.ndarray:
     """``arr`` as float (N, 4, 4), or raise naming its shape or dtype."""
     if arr.ndim != 3 or arr.shape[1:] != (4, 4):
-        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}")
+        raise InputError(f"{path}: {what} must have shape (N, 4, 4), got {arr.shape}", path=path)
     if arr.dtype.kind not in "fiu":
-        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}")
+        raise InputError(f"{path}: {what} must be real numbers, got dtype {arr.dtype}", path=path)
     return np.asarray(arr, dtype=float)
 
 
@@ -205,9 +211,9 @@ def success_labels(path: Path, values: np.ndarray, n: int, what: str) -> np.ndar
     """(n,) bool success labels from 0/1 numbers, or raise naming ``what``."""
     values = np.asarray(values).reshape(-1)
     if values.shape[0] != n:
-        raise InputError(f"{path}: {what} has {values.shape[0]} values, expected {n}")
+        raise InputError(f"{path}: {what} has {values.shape[0]} values, expected {n}", path=path)
     if values.dtype.kind not in "biuf":
-        raise InputError(f"{path}: {what} must be 0/1 values, got dtype {values.dtype}")
+        raise InputError(f"{path}: {what} must be 0/1 values, got dtype {values.dtype}", path=path)
     return values.astype(float) > 0.5
 
 
@@ -216,9 +222,9 @@ def vector(path: Path, value: Any, n: int, what: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=float).reshape(-1)
     except (TypeError, ValueError):
-        raise InputError(f"{path}: {what} must be numbers") from None
+        raise InputError(f"{path}: {what} must be numbers", path=path) from None
     if arr.shape[0] != n:
-        raise InputError(f"{path}: {what} has {arr.shape[0]} values, expected {n}")
+        raise InputError(f"{path}: {what} has {arr.shape[0]} values, expected {n}", path=path)
     return arr
 
 
@@ -230,9 +236,12 @@ def column_name(path: Path, raw: str, taken: set[str]) -> str:
     if name in RESERVED_COLUMNS or re.fullmatch(r"q[0-9]+", name):
         raise InputError(
             f"{path}: column {clip(raw)} has the name of a grasps.csv column; rename it "
-            f"(e.g. input_{name})"
+            f"(e.g. input_{name})",
+            path=path,
         )
     if name in taken:
-        raise InputError(f"{path}: two columns are named {clip(name)}; rename one of them")
+        raise InputError(
+            f"{path}: two columns are named {clip(name)}; rename one of them", path=path
+        )
     taken.add(name)
     return name

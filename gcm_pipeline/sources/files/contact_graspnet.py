@@ -63,7 +63,8 @@ def read_contact_graspnet(
     if "pred_grasps_cam" not in arrays:
         raise InputError(
             f"{path}: not a Contact-GraspNet prediction file: no array 'pred_grasps_cam' "
-            f"(arrays: {', '.join(arrays) or 'none'})"
+            f"(arrays: {', '.join(arrays) or 'none'})",
+            path=path,
         )
     grasps = _segments(arrays["pred_grasps_cam"])
     scores = _segments(arrays["scores"]) if "scores" in arrays else {}
@@ -78,7 +79,7 @@ def read_contact_graspnet(
         total = sum(int(np.size(v)) // 16 for v in grasps.values())
     except (TypeError, ValueError):  # ragged lists
         raise InputError(
-            f"{path}: pred_grasps_cam must map segments to (M, 4, 4) arrays of poses"
+            f"{path}: pred_grasps_cam must map segments to (M, 4, 4) arrays of poses", path=path
         ) from None
     check_count(path, total, max_count)
     for key in keys:
@@ -90,7 +91,8 @@ def read_contact_graspnet(
         if raw.ndim not in (2, 3) or raw.shape[-2:] != (4, 4):
             raise InputError(
                 f"{path}: {what} must be an (M, 4, 4) array of poses, got "
-                f"{type(value).__name__} of shape {raw.shape}"
+                f"{type(value).__name__} of shape {raw.shape}",
+                path=path,
             )
         poses = check_poses(path, raw.reshape(-1, 4, 4), what)
         m = len(poses)
@@ -110,7 +112,7 @@ def read_contact_graspnet(
         except (TypeError, ValueError, OverflowError):
             seg = keys.index(key)
         if abs(seg) >= 2**62:
-            raise InputError(f"{path}: segment id {clip(key, 40)} is not an integer id")
+            raise InputError(f"{path}: segment id {clip(key, 40)} is not an integer id", path=path)
         cols["segment"].append(np.full(m, seg, dtype=np.int64))
         cols["source_id"].append(np.arange(m, dtype=np.int64))
     if not parts:

@@ -34,10 +34,12 @@ def _refuse_nul(path: Path, chunk: int = 1 << 22) -> None:
                 at = data.find(b"\0")
                 if at >= 0:
                     line += data.count(b"\n", 0, at)
-                    raise InputError(f"{path}:{line}: NUL character in a CSV file")
+                    raise InputError(
+                        f"{path}:{line}: NUL character in a CSV file", path=path, row=line
+                    )
                 line += data.count(b"\n")
     except OSError as exc:
-        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}") from None
+        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}", path=path) from None
 
 
 def read_csv(
@@ -49,77 +51,14 @@ def read_csv(
     other column is carried (integers, numbers with empty = NaN, or text).
     A UTF-8 byte order mark and blank lines are ignored.
     """
-    rows: list[list[str]] = []
-    lines: list[int] = []
     _refuse_nul(path)
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as fh:
-            reader = csv.reader(fh)
-            header: list[str] | None = None
-            for row in reader:
-                if not any(cell.strip() for cell in row):
-                    continue  # blank line
-                if header is None:
-                    header = row
-                    if len(header) > _MAX_CSV_COLUMNS:
-                        raise InputError(
-                            f"{path}: header has {len(header):,} columns, at most "
-                            f"{_MAX_CSV_COLUMNS} are read"
-                        )
-                    continue
-                if len(rows) >= max_count:
-                    check_count(path, len(rows) + 1, max_count)
-                check_csv_cells(path, reader.line_num, header, row)
-                rows.append(row)
-                lines.append(reader.line_num)
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    except (OSError, csv.Error) as exc:
-        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}") from None
-    if header is None:
-        raise InputError(f"{path}: empty CSV; expected a header row with {','.join(_CSV_POSE)}")
-    names = [h.strip().lower() for h in header]
-    seen: set[str] = set()
-    for name in names:
-        if name in seen:
-            raise InputError(f"{path}: the header names column {clip(name)} twice")
-        seen.add(name)
-    missing = [c for c in _CSV_POSE if c not in names]
-    if missing:
-        raise InputError(
-            f"{path}: CSV header lacks column(s) {', '.join(missing)}; "
-            f"expected {','.join(_CSV_POSE)} (got {clip(','.join(names))})"
-        )
-    width = len(names)
-    for row, line in zip(rows, lines, strict=True):
-        if len(row) != width:
-            raise InputError(f"{path}:{line}: row has {len(row)} fields, the header has {width}")
+    header, rows, lines = _read_csv_rows(path, max_count)
+    names = _check_csv_header(path, header, rows, lines)
     # Python strings, not a fixed-width array: that is as wide as the longest cell in every cell
-    cells = np.empty((len(rows), width), dtype=object)
+    cells = np.empty((len(rows), len(names)), dtype=object)
     if rows:
         cells[:] = rows
-    values = np.empty((len(rows), 7))
-    for k, c in enumerate(_CSV_POSE):
-        values[:, k] = _csv_floats(path, cells[:, names.index(c)], c, lines)
-    if not np.all(np.isfinite(values)):
-        i, k = (int(a[0]) for a in np.nonzero(~np.isfinite(values)))
-        raise InputError(
-            f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {float(values[i, k])}"
-        )
-    check_positions(path, values[:, :3], lambda i: f"{path}:{lines[i]}")
-    quat = values[:, 3:]
-    norm = np.linalg.norm(quat, axis=1)
-    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
-    if bad.size:
-        raise InputError(
-            f"{path}:{lines[int(bad[0])]}: quaternion (qw,qx,qy,qz) has norm "
-            f"{norm[bad[0]]:.6g}, expected 1"
-        )
-    quat = quat / norm[:, None]
-    poses = np.zeros((values.shape[0], 4, 4))
-    poses[:, :3, :3] = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
-    poses[:, :3, 3] = values[:, :3]
-    poses[:, 3, 3] = 1.0
+    poses = _csv_poses(path, cells, names, lines)
     success = None
     if "success" in names:
         success = _csv_floats(path, cells[:, names.index("success")], "success", lines) > 0.5
@@ -132,6 +71,107 @@ def read_csv(
     return poses, success, columns
 
 
+def _read_csv_rows(path: Path, max_count: int) -> tuple[list[str], list[list[str]], list[int]]:
+    """The header, the data rows and their line numbers (blank lines skipped)."""
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            header: list[str] | None = None
+            for row in reader:
+                if not any(cell.strip() for cell in row):
+                    continue  # blank line
+                if header is None:
+                    header = row
+                    if len(header) > _MAX_CSV_COLUMNS:
+                        raise InputError(
+                            f"{path}: header has {len(header):,} columns, at most "
+                            f"{_MAX_CSV_COLUMNS} are read",
+                            path=path,
+                        )
+                    continue
+                if len(rows) >= max_count:
+                    check_count(path, len(rows) + 1, max_count)
+                check_csv_cells(path, reader.line_num, header, row)
+                rows.append(row)
+                lines.append(reader.line_num)
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})", path=path
+        ) from None
+    except (OSError, csv.Error) as exc:
+        raise InputError(f"{path}: cannot read CSV: {clip(str(exc))}", path=path) from None
+    if header is None:
+        raise InputError(
+            f"{path}: empty CSV; expected a header row with {','.join(_CSV_POSE)}", path=path
+        )
+    return header, rows, lines
+
+
+def _check_csv_header(
+    path: Path, header: list[str], rows: list[list[str]], lines: list[int]
+) -> list[str]:
+    """The column names (lower case); no name twice, the pose columns there, rows as wide."""
+    names = [h.strip().lower() for h in header]
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            raise InputError(f"{path}: the header names column {clip(name)} twice", path=path)
+        seen.add(name)
+    missing = [c for c in _CSV_POSE if c not in names]
+    if missing:
+        raise InputError(
+            f"{path}: CSV header lacks column(s) {', '.join(missing)}; "
+            f"expected {','.join(_CSV_POSE)} (got {clip(','.join(names))})",
+            path=path,
+        )
+    width = len(names)
+    for row, line in zip(rows, lines, strict=True):
+        if len(row) != width:
+            raise InputError(
+                f"{path}:{line}: row has {len(row)} fields, the header has {width}",
+                path=path,
+                row=line,
+                value=len(row),
+            )
+    return names
+
+
+def _csv_poses(path: Path, cells: np.ndarray, names: list[str], lines: list[int]) -> np.ndarray:
+    """(N, 4, 4) poses from the x, y, z, qw, qx, qy, qz cells (checked, quaternion normalised)."""
+    values = np.empty((cells.shape[0], 7))
+    for k, c in enumerate(_CSV_POSE):
+        values[:, k] = _csv_floats(path, cells[:, names.index(c)], c, lines)
+    if not np.all(np.isfinite(values)):
+        i, k = (int(a[0]) for a in np.nonzero(~np.isfinite(values)))
+        raise InputError(
+            f"{path}:{lines[i]}: column {_CSV_POSE[k]!r}: non-finite value {float(values[i, k])}",
+            path=path,
+            row=lines[i],
+            key=_CSV_POSE[k],
+            value=float(values[i, k]),
+        )
+    check_positions(path, values[:, :3], lambda i: f"{path}:{lines[i]}")
+    quat = values[:, 3:]
+    norm = np.linalg.norm(quat, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+    if bad.size:
+        raise InputError(
+            f"{path}:{lines[int(bad[0])]}: quaternion (qw,qx,qy,qz) has norm "
+            f"{norm[bad[0]]:.6g}, expected 1",
+            path=path,
+            row=lines[int(bad[0])],
+            value=float(norm[bad[0]]),
+        )
+    quat = quat / norm[:, None]
+    poses = np.zeros((values.shape[0], 4, 4))
+    poses[:, :3, :3] = Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix()
+    poses[:, :3, 3] = values[:, :3]
+    poses[:, 3, 3] = 1.0
+    return poses
+
+
 def _csv_floats(path: Path, col: np.ndarray, name: str, lines: list[int]) -> np.ndarray:
     out = np.empty(len(col))
     for i, text in enumerate(col.tolist()):
@@ -139,7 +179,11 @@ def _csv_floats(path: Path, col: np.ndarray, name: str, lines: list[int]) -> np.
             out[i] = float(text)
         except ValueError:
             raise InputError(
-                f"{path}:{lines[i]}: column {name!r}: not a number: {clip(text)}"
+                f"{path}:{lines[i]}: column {name!r}: not a number: {clip(text)}",
+                path=path,
+                row=lines[i],
+                key=name,
+                value=text,
             ) from None
     return out
 

@@ -50,7 +50,7 @@ def _read_structured(path: Path, max_count: int) -> Any:
         check_bytes(path, path.stat().st_size, max_count, _TEXT_BYTES_PER_GRASP, "its grasps")
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from None
+        raise InputError(f"{path}: cannot read: {exc}", path=path) from None
     max_values = max(_YAML_VALUES_PER_GRASP * max_count, 100_000)
     if path.suffix.lower() == ".json":
         # a value takes up to ~70 bytes parsed ("[]," is 3 bytes of text and a list of 56):
@@ -60,14 +60,19 @@ def _read_structured(path: Path, max_count: int) -> Any:
             raise InputError(
                 f"{path}: holds about {values:,} JSON values, more than {max_count:,} grasps "
                 f"(candidates.max_count) need (at most {max_values:,}); raise "
-                "candidates.max_count to read it"
+                "candidates.max_count to read it",
+                path=path,
             )
         try:
             return json.loads(text)
         except ValueError as exc:
-            raise InputError(f"{path}: not valid JSON: {' '.join(str(exc).split())}") from None
+            raise InputError(
+                f"{path}: not valid JSON: {' '.join(str(exc).split())}", path=path
+            ) from None
         except RecursionError:
-            raise InputError(f"{path}: not a GraspGen grasp file: JSON nested too deeply") from None
+            raise InputError(
+                f"{path}: not a GraspGen grasp file: JSON nested too deeply", path=path
+            ) from None
     return load_yaml(text.removeprefix("\ufeff"), str(path), InputError, max_values=max_values)
 
 
@@ -94,7 +99,8 @@ def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     if not isinstance(data, dict):
         raise InputError(
             f"{path}: not a GraspGen grasp file: expected a mapping with 'grasps', "
-            f"got {type(data).__name__}"
+            f"got {type(data).__name__}",
+            path=path,
         )
     if data.get("format") == "isaac_grasp":
         return _read_isaac_grasp(path, data, max_count)
@@ -102,14 +108,17 @@ def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     if not isinstance(grasps, dict) or "transforms" not in grasps:
         raise InputError(
             f"{path}: not a GraspGen grasp file: expected 'grasps: {{transforms: [...]}}' "
-            f"or 'format: isaac_grasp' (keys: {', '.join(map(str, data)) or 'none'})"
+            f"or 'format: isaac_grasp' (keys: {', '.join(map(str, data)) or 'none'})",
+            path=path,
         )
     if isinstance(grasps["transforms"], list):
         check_count(path, len(grasps["transforms"]), max_count)
     try:
         raw = np.asarray(grasps["transforms"], dtype=float)
     except (TypeError, ValueError):
-        raise InputError(f"{path}: grasps.transforms must be (N, 4, 4) numbers") from None
+        raise InputError(
+            f"{path}: grasps.transforms must be (N, 4, 4) numbers", path=path
+        ) from None
     if raw.size == 0:
         raw = raw.reshape(0, 4, 4)
     poses = check_poses(path, raw, "grasps.transforms")
@@ -137,7 +146,7 @@ def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
 def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> ImportedGrasps:
     grasps = data.get("grasps")
     if not isinstance(grasps, dict):
-        raise InputError(f"{path}: isaac_grasp file without a 'grasps' mapping")
+        raise InputError(f"{path}: isaac_grasp file without a 'grasps' mapping", path=path)
     n = len(grasps)
     check_count(path, n, max_count)
     pos = np.empty((n, 3))
@@ -154,11 +163,12 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> Impor
         except (KeyError, TypeError, ValueError):
             raise InputError(
                 f"{path}: grasp {clip(name)}: expected position: [x, y, z] and "
-                "orientation: {w: .., xyz: [x, y, z]}"
+                "orientation: {w: .., xyz: [x, y, z]}",
+                path=path,
             ) from None
         if not np.isfinite(pos[i]).all():
             raise InputError(
-                f"{path}: grasp {clip(name)}: position {pos[i].tolist()} is not finite"
+                f"{path}: grasp {clip(name)}: position {pos[i].tolist()} is not finite", path=path
             )
     check_positions(path, pos, lambda i: f"{path}: grasp {clip(list(grasps)[i])}")
     norm = np.linalg.norm(quat, axis=1)
@@ -166,7 +176,7 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> Impor
     if bad.size:
         name = list(grasps)[int(bad[0])]
         raise InputError(
-            f"{path}: grasp {clip(name)}: orientation has norm {norm[bad[0]]:.6g}, not 1"
+            f"{path}: grasp {clip(name)}: orientation has norm {norm[bad[0]]:.6g}, not 1", path=path
         )
     poses = np.zeros((n, 4, 4))
     if n:

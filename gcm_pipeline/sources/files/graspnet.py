@@ -53,7 +53,8 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
         if not names:
             raise InputError(
                 f"{path}: expected one array of GraspNet rows (N, {GRASPNET_ROW}) or "
-                f"'grasp_group_array'; arrays: {', '.join(arrays) or 'none'}"
+                f"'grasp_group_array'; arrays: {', '.join(arrays) or 'none'}",
+                path=path,
             )
         rows = arrays[names[0]]
     else:
@@ -64,12 +65,13 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     rows = rows.astype(float)
     bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
     if bad.size:
-        raise InputError(f"{path}: row {int(bad[0])} (0-based) has non-finite values")
+        raise InputError(f"{path}: row {int(bad[0])} (0-based) has non-finite values", path=path)
     bad = np.flatnonzero(np.abs(rows[:, 16]) >= 2.0**53)
     if bad.size:
         raise InputError(
             f"{path}: row {int(bad[0])} (0-based): object_id {rows[bad[0], 16]:g} is not an "
-            "integer id"
+            "integer id",
+            path=path,
         )
     n = len(rows)
     poses = np.zeros((n, 4, 4))
@@ -90,7 +92,8 @@ def _check_graspnet_shape(path: Path, shape: tuple[int, ...], dtype: np.dtype[An
     if len(shape) != 2 or shape[1] != GRASPNET_ROW or dtype.kind not in "fiu":
         raise InputError(
             f"{path}: expected GraspNet rows (N, {GRASPNET_ROW}) = [score, width, height, "
-            f"depth, R (9), t (3), object_id], got shape {shape} dtype {dtype}"
+            f"depth, R (9), t (3), object_id], got shape {shape} dtype {dtype}",
+            path=path,
         )
 
 
@@ -104,6 +107,8 @@ def _read_graspnet_npy(path: Path, max_count: int) -> np.ndarray:
             fh.seek(0)
             return np.lib.format.read_array(fh, allow_pickle=False)
     except OSError as exc:
-        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}", path=path) from None
     except ValueError as exc:
-        raise InputError(f"{path}: not a readable .npy array: {clip(str(exc))}") from None
+        raise InputError(
+            f"{path}: not a readable .npy array: {clip(str(exc))}", path=path
+        ) from None

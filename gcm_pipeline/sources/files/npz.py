@@ -58,5 +58,7 @@ def _npz_poses_name(path: Path, headers: dict[str, tuple[tuple[int, ...], Any]])
     three_d = [k for k, (shape, _) in headers.items() if len(shape) == 3]
     if len(three_d) != 1:
         names = ", ".join(clip(k, 40) for k in list(headers)[:20]) or "none"
-        raise InputError(f"{path}: expected an array 'transforms' (N, 4, 4); arrays: {names}")
+        raise InputError(
+            f"{path}: expected an array 'transforms' (N, 4, 4); arrays: {names}", path=path
+        )
     return three_d[0]

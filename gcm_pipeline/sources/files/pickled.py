@@ -121,7 +121,8 @@ def read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
                             raise InputError(
                                 f"{path}: array {clip(name)}: its pickle takes more than "
                                 f"{_MAX_PICKLE_STEPS:,} steps (a dict of arrays takes a few "
-                                "per array); save it as plain arrays"
+                                "per array); save it as plain arrays",
+                                path=path,
                             ) from None
                         values += _count_values(path, name, value, budget - values)
                         out[name] = value
@@ -142,7 +143,9 @@ def read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
         NotImplementedError,
         pickle.UnpicklingError,
     ) as exc:
-        raise InputError(f"{path}: not a readable .npz archive: {clip(str(exc))}") from None
+        raise InputError(
+            f"{path}: not a readable .npz archive: {clip(str(exc))}", path=path
+        ) from None
     return out
 
 
@@ -177,7 +180,8 @@ def _count_values(path: Path, name: str, value: Any, budget: int) -> int:
 
     too_many = InputError(
         f"{path}: array {clip(name)} expands to more than {budget:,} numbers, more than "
-        "candidates.max_count grasps need; raise candidates.max_count to read it"
+        "candidates.max_count grasps need; raise candidates.max_count to read it",
+        path=path,
     )
     # by id and depth: an object referred to again at the same depth is not walked again
     totals: dict[tuple[int, int], int] = {}
@@ -190,7 +194,8 @@ def _count_values(path: Path, name: str, value: Any, budget: int) -> int:
         if depth >= _MAX_NESTING:
             raise InputError(
                 f"{path}: array {clip(name)} nests lists or dicts more than "
-                f"{_MAX_NESTING} levels deep"
+                f"{_MAX_NESTING} levels deep",
+                path=path,
             )
         n = size(v)
         for child in children(v):

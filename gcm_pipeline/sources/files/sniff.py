@@ -136,8 +136,9 @@ def check_format(path: Path, fmt: str) -> None:
         hint = "use format: " + (f"{', '.join(most)} or {last}" if most else last)
     else:
         hint = "no grasp format reads it; save the grasps with numpy.save / numpy.savez"
-    err = InputError(
-        f"{path}: format {fmt} reads {_WHAT[fmt]}, but this is {found.description}; {hint}"
+    raise InputError(
+        f"{path}: format {fmt} reads {_WHAT[fmt]}, but this is {found.description}; {hint}",
+        path=path,
+        value=found.kind,
+        choices=found.formats,
     )
-    err.path, err.value, err.choices = path, found.kind, found.formats  # type: ignore[attr-defined]
-    raise err

@@ -93,7 +93,7 @@ class RunResult:
         colormap, the manipulability range it spans and the colour and count
         of every unreachable reason.
         """
-        from gcm_pipeline.outputs.scene import legend
+        from gcm_pipeline.outputs.scene_glyphs import legend
 
         return {
             "counts": dict(self.counts),

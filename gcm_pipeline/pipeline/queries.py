@@ -23,7 +23,7 @@ if TYPE_CHECKING:  # the step modules import Pinocchio: loaded when a step runs
 
 @dataclass(frozen=True)
 class ConfigRunQueries:
-    """A run's config as the manifold queries take it (a :class:`~.manifold.query.RunQueries`).
+    """A run's config as the queries take it (a :class:`~.manifold.run_queries.RunQueries`).
 
     Args:
         config: The run's config.

@@ -1,21 +1,28 @@
-"""The ``publish`` step: a config onto the scene's options; the best grasps as plain dicts."""
+"""The ``publish`` step and exports: a config onto the options of :mod:`gcm_pipeline.outputs`.
+
+Also the best grasps of a run as plain dicts.
+"""
 
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gcm_pipeline.config.reach_sections import ObstacleConfig, TableConfig
-from gcm_pipeline.config.run import Config, takes_config
+from gcm_pipeline.config.robot_spec import load_spec
+from gcm_pipeline.config.run import Config, load_config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
-from gcm_pipeline.outputs import html, live
+from gcm_pipeline.outputs import export, html, live
+from gcm_pipeline.outputs.export import ExportResult, MoveItOptions
 from gcm_pipeline.outputs.scene import PublishOptions, SceneOptions
 from gcm_pipeline.outputs.scene_shapes import SceneShape, SceneTable
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
-from gcm_pipeline.robot.model import Robot
+from gcm_pipeline.robot.model import Robot, root_link
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the run module imports this one
@@ -103,6 +110,87 @@ def open_viewer(
     See :func:`gcm_pipeline.outputs.live.open_viewer`.
     """
     return live.open_viewer(grasps, manifold, robot, publish_options(cfg), detach=detach)
+
+
+@dataclass(frozen=True)
+class ConfigRunExport:
+    """A run's config as an export takes it (a :class:`~.outputs.export.RunConfig`).
+
+    Args:
+        config: The run's config.
+    """
+
+    config: Config
+
+    @property
+    def ranking_metric(self) -> str:
+        """The run's ranking metric (``ranking.metric``)."""
+        return self.config.ranking.metric
+
+    def moveit(self) -> MoveItOptions:
+        """The MoveIt export's options of the config and its robot spec.
+
+        Reads ``robot`` (the spec's root and grasp frames and locked joints,
+        ``base_pose``), ``ranking.metric``, ``approach`` and ``retreat``.
+        """
+        cfg = self.config
+        spec = load_spec(cfg.robot.spec)
+        retreat = cfg.retreat
+        return MoveItOptions(
+            root_frame=root_link(spec),
+            grasp_frame=spec.grasp_frame,
+            locked_joints=dict(spec.locked_joints),
+            base_pose=cfg.robot.base_pose.matrix(),
+            metric=cfg.ranking.metric,
+            approach_distance=cfg.approach.distance if cfg.approach is not None else 0.0,
+            retreat_direction=None if retreat is None else retreat.direction,
+            retreat_frame="world" if retreat is None else retreat.frame,
+            retreat_distance=0.0 if retreat is None else retreat.distance,
+        )
+
+
+def read_run_config(path: Path) -> ConfigRunExport:
+    """A run directory's ``config.yaml`` as an export takes it.
+
+    Raises:
+        ConfigError: Not a valid config.
+    """
+    return ConfigRunExport(load_config(path))
+
+
+def export_run(
+    run_dir: str | os.PathLike[str],
+    format: str,
+    *,
+    top: int | None = None,
+    out: str | os.PathLike[str] | None = None,
+) -> ExportResult:
+    """Export a run directory's grasps: MoveIt grasps (YAML), Parquet or NPZ.
+
+    See :func:`gcm_pipeline.outputs.export.export_run` (the run's
+    ``config.yaml`` is read by :func:`read_run_config`).
+
+    Args:
+        run_dir: A run directory written by ``gcm run``.
+        format: ``moveit``, ``parquet`` or ``npz``.
+        top: Keep only the ``top`` best-ranked reachable grasps (moveit
+            always exports ranked grasps only; default all of them).
+        out: The file to write (default: ``RUN_DIR/`` + the format's name in
+            :data:`~gcm_pipeline.outputs.export.EXPORT_FORMATS`). Written
+            atomically; a symbolic link is kept and the file it names is replaced.
+
+    Returns:
+        The file and the number of grasps written.
+
+    Raises:
+        InputError: Not a run directory, unknown format, ``top < 1``, ``out``
+            naming one of the run's own files, or no reachable grasp to
+            export (after an empty, valid file is written).
+        ConfigError: The run's ``config.yaml`` is not a valid config.
+        OutputError: The file cannot be written, or ``out`` is a directory, a
+            device or a pipe.
+    """
+    return export.export_run(run_dir, format, read_config=read_run_config, top=top, out=out)
 
 
 def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[dict[str, Any]]:

@@ -17,7 +17,7 @@ import numpy as np
 
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
-from gcm_pipeline.outputs.plots import reason_palette
+from gcm_pipeline.outputs.plots import colormap, reason_palette
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -124,9 +124,7 @@ def legend(grasps: GraspTable) -> dict[str, Any]:
 
 
 def _cmap() -> Any:
-    from matplotlib import colormaps
-
-    return colormaps[_COLORMAP]
+    return colormap(_COLORMAP)
 
 
 def grasp_poses(grasps: GraspTable) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,7 @@ from gcm_pipeline.config import Config  # noqa: E402
 from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_from_matrix  # noqa: E402
 from gcm_pipeline.outputs import html, live  # noqa: E402
+from gcm_pipeline.pipeline.outputs import publish_options, scene_options  # noqa: E402
 from gcm_pipeline.table import GraspTable  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "publish.json"
@@ -93,13 +94,13 @@ def grasp_table(robot, n: int, seed: int = 0) -> tuple[GraspTable, SimpleNamespa
 
 def bench_html(robot, n: int, repeats: int) -> dict:
     grasps, manifold = grasp_table(robot, n)
-    cfg = config()
+    options = scene_options(config())
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "scene.html"
         for _ in range(repeats):
             t0 = time.perf_counter()
-            info = html.write_scene_html(path, grasps, manifold, robot, cfg)
+            info = html.write_scene_html(path, grasps, manifold, robot, options)
             runs.append(time.perf_counter() - t0)
         size = path.stat().st_size
     return {
@@ -114,11 +115,13 @@ def bench_html(robot, n: int, repeats: int) -> dict:
 
 def bench_live(robot, n: int, repeats: int) -> dict:
     grasps, manifold = grasp_table(robot, n)
-    cfg = Config.from_dict({**config().to_dict(), "publish": {"meshcat": True}})
+    options = publish_options(
+        Config.from_dict({**config().to_dict(), "publish": {"meshcat": True}})
+    )
     runs = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        viewer = live.open_viewer(grasps, manifold, robot, cfg)
+        viewer = live.open_viewer(grasps, manifold, robot, options)
         runs.append(time.perf_counter() - t0)
         viewer.close()
     return {"grasps": n, "median_s": statistics.median(runs), "runs_s": runs}

@@ -30,7 +30,6 @@ from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.locate import Location
 from gcm_pipeline.manifold.query import GraspManifold
 from gcm_pipeline.manifold.search import BestGrasps, NearestReachable
-from gcm_pipeline.outputs.export import export_run
 from gcm_pipeline.pipeline import (
     Pipeline,
     RunResult,
@@ -42,6 +41,7 @@ from gcm_pipeline.pipeline import (
     publish,
     rank,
 )
+from gcm_pipeline.pipeline.outputs import export_run
 from gcm_pipeline.ranking.metrics import combined_score
 from gcm_pipeline.robot.collision import CollisionChecker
 from gcm_pipeline.robot.ik import IKResult, solve_ik

@@ -78,7 +78,7 @@ def format_top(top: list[dict[str, Any]], metric: str = "yoshikawa") -> str:
 
 def show_in_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: bool) -> None:
     """Publish to the live viewer; wait for Ctrl-C, or leave its server running."""
-    from gcm_pipeline.outputs.live import open_viewer
+    from gcm_pipeline.pipeline.outputs import open_viewer
 
     viewer = open_viewer(grasps, manifold, robot, config, detach=not wait)
     try:

@@ -229,7 +229,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from gcm_pipeline.outputs.export import export_run
+    from gcm_pipeline.pipeline.outputs import export_run
 
     result = export_run(args.run_dir, args.format, top=args.top, out=args.out)
     if args.quiet:

@@ -202,6 +202,7 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.run import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
     from gcm_pipeline.outputs.html import write_scene_html
+    from gcm_pipeline.pipeline.outputs import scene_options
     from gcm_pipeline.table import GraspTable
 
     robot = load_robot(args.spec)
@@ -228,7 +229,7 @@ def _cmd_robot(args: argparse.Namespace) -> int:
                 "manipulability": np.ones(1),
             }
         )
-        info = write_scene_html(args.out, tcp, None, robot, cfg)
+        info = write_scene_html(args.out, tcp, None, robot, scene_options(cfg))
         print(
             f"  scene        {args.out}: {', '.join(info.paths)} ({info.meshcat_objects} meshcat "
             "objects; the robot at home, its grasp frame drawn as a gripper glyph)"

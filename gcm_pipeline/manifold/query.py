@@ -27,14 +27,15 @@ tolerances, collision world and approach check), warm-started from the IK
 solutions of nearby rows, so neighbouring grasps keep the same IK branch. This
 module never reads a config: what the queries need from the run (its robot,
 its reachability check, the robot's metrics, the ranking's weights) comes
-through a :class:`RunQueries` object, which :mod:`gcm_pipeline.pipeline` builds
-from the run's config; a ``cfg`` passed to a query is handed back to it unread.
+through a :class:`~gcm_pipeline.manifold.run_queries.RunQueries` object, which
+:mod:`gcm_pipeline.pipeline` builds from the run's config; a ``cfg`` passed to
+a query is handed back to it unread.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, Protocol
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -45,6 +46,7 @@ from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, 
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.lattice import RowMesh, interpolate, row_memberships, row_mesh
 from gcm_pipeline.manifold.locate import Location, TriangleLocator, as_query_poses
+from gcm_pipeline.manifold.run_queries import PoseCheck, RunQueries
 from gcm_pipeline.manifold.search import (
     BestGrasps,
     NearestReachable,
@@ -53,14 +55,12 @@ from gcm_pipeline.manifold.search import (
     search_near_rows,
 )
 from gcm_pipeline.manifold.surface import BLEND_METHODS, blend
-from gcm_pipeline.ranking.metrics import weighted_sum
+from gcm_pipeline.ranking.metrics import value_range, weighted_sum
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
     "QUERY_METRICS",
     "GraspManifold",
-    "PoseCheck",
-    "RunQueries",
 ]
 
 #: Metrics :meth:`GraspManifold.best` optimises (the ranking metrics).
@@ -78,48 +78,6 @@ QUERY_METRICS = (
 _ROBOT_METRICS = ("yoshikawa", "translational", "inverse_condition", "joint_limit_margin")
 
 _NO_CONFIG = "this manifold has no config"
-
-
-class PoseCheck(Protocol):
-    """Checks grasp poses the way the run's reachability stage does (one robot, one config)."""
-
-    robot: Any
-    config: Any
-
-    def __call__(self, dq: np.ndarray, seeds: np.ndarray | None = None) -> GraspTable:
-        """Rows ``dq, reachable, reason, q, ...`` for poses (M, 8), warm starts (M, K, nq)."""
-        ...
-
-    def close(self) -> None:
-        """Stop any worker processes."""
-        ...
-
-
-class RunQueries(Protocol):
-    """What the queries take from the run beyond its geometry.
-
-    :mod:`gcm_pipeline.pipeline` implements it from the run's config; this
-    module hands ``config`` (or a ``cfg`` given to a query) back to it unread.
-    """
-
-    #: The run's config (``GraspManifold.config``), opaque here.
-    config: Any
-    #: The ranking metric :meth:`GraspManifold.best` optimises by default.
-    ranking_metric: str
-    #: Metric -> weight of the ``combined`` metric (the run's ranking weights).
-    combined_weights: Mapping[str, float]
-
-    def load_robot(self) -> Any:
-        """The run's robot."""
-        ...
-
-    def reachability(self, robot: Any, cfg: Any) -> PoseCheck:
-        """A check of poses with ``robot`` as a run with config ``cfg`` does it."""
-        ...
-
-    def robot_metrics(self, robot: Any, q: np.ndarray) -> Mapping[str, np.ndarray]:
-        """The robot's metrics (``yoshikawa`` ...) of configurations (N, nq) [rad]."""
-        ...
 
 
 class GraspManifold:
@@ -454,8 +412,6 @@ class GraspManifold:
         return {k: float(v) for k, v in w.combined_weights.items() if v > 0}
 
     def _reference_ranges(self, names: tuple[str, ...]) -> dict[str, tuple[float, float]]:
-        from gcm_pipeline.ranking.metrics import value_range
-
         out = {}
         for name in names:
             out[name] = value_range(self.metric_values(self.grasps, name))

@@ -43,29 +43,65 @@ from __future__ import annotations
 import csv
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.config import Config, load_config
-from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.errors import InputError, OutputError, unknown_choice
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
-from gcm_pipeline.robot.model_files import root_link
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
 from gcm_pipeline.sources.grippers import GRIPPERS
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["EXPORT_FORMATS", "ExportResult", "export_run"]
+__all__ = ["EXPORT_FORMATS", "ExportResult", "MoveItOptions", "RunConfig", "export_run"]
 
 #: Export formats and their default file names (inside the run directory).
 EXPORT_FORMATS = {"moveit": "grasps_moveit.yaml", "parquet": "grasps.parquet", "npz": "grasps.npz"}
+
+
+@dataclass(frozen=True, eq=False)
+class MoveItOptions:
+    """What a MoveIt export takes from the run's config and robot spec.
+
+    Attributes:
+        root_frame: The robot's root frame (``header.frame_id`` of the poses).
+        grasp_frame: The spec's grasp frame.
+        locked_joints: The spec's locked joints and their values [rad or m].
+        base_pose: The robot's base in the world (4, 4) [m].
+        metric: The run's ranking metric (``grasp_quality``).
+        approach_distance: The checked approach distance [m] (0: none).
+        retreat_direction: The retreat's direction (None: the approach reversed).
+        retreat_frame: ``world`` or ``grasp``: the frame of ``retreat_direction``.
+        retreat_distance: The retreat's distance [m].
+    """
+
+    root_frame: str
+    grasp_frame: str
+    locked_joints: Mapping[str, float]
+    base_pose: np.ndarray
+    metric: str
+    approach_distance: float = 0.0
+    retreat_direction: tuple[float, float, float] | None = None
+    retreat_frame: str = "world"
+    retreat_distance: float = 0.0
+
+
+class RunConfig(Protocol):
+    """A run's ``config.yaml`` as an export takes it (:mod:`gcm_pipeline.pipeline` reads it)."""
+
+    #: The run's ranking metric.
+    ranking_metric: str
+
+    def moveit(self) -> MoveItOptions:
+        """The MoveIt export's options (reads the run's robot spec)."""
+        ...
 
 
 class ExportResult(NamedTuple):
@@ -84,6 +120,7 @@ def export_run(
     run_dir: str | os.PathLike[str],
     format: str,
     *,
+    read_config: Callable[[Path], RunConfig],
     top: int | None = None,
     out: str | os.PathLike[str] | None = None,
 ) -> ExportResult:
@@ -92,6 +129,8 @@ def export_run(
     Args:
         run_dir: A run directory written by ``gcm run``.
         format: ``moveit``, ``parquet`` or ``npz``.
+        read_config: Reads the run's ``config.yaml`` (its path), e.g.
+            :func:`gcm_pipeline.pipeline.outputs.read_run_config`.
         top: Keep only the ``top`` best-ranked reachable grasps (moveit
             always exports ranked grasps only; default all of them).
         out: The file to write (default: ``RUN_DIR/`` + the format's name in
@@ -123,11 +162,11 @@ def export_run(
     grasps = read_grasps_csv(run / "grasps.csv")  # file order: ranked first
     # the exact x..qz of the file (the dq column rebuilt from them may differ by an ulp)
     grasps = grasps.with_columns(pose7=_csv_pose(run / "grasps.csv", len(grasps)))
-    config = load_config(run / "config.yaml")
+    config = read_config(run / "config.yaml")
     ranked = np.asarray(grasps["rank"]) > 0 if "rank" in grasps else np.zeros(len(grasps), bool)
     if format == "moveit":  # from every ranked row, before --top keeps some
         grasps = grasps.with_columns(
-            grasp_quality=_grasp_quality(grasps, config.ranking.metric, run / "grasps.csv")
+            grasp_quality=_grasp_quality(grasps, config.ranking_metric, run / "grasps.csv")
         )
     if format == "moveit" or top is not None:
         rows = np.flatnonzero(ranked)
@@ -135,7 +174,7 @@ def export_run(
             rows = rows[:top]
         grasps = grasps.take(rows)
     writers: dict[str, Callable[[GraspTable, Path], None]] = {
-        "moveit": lambda g, p: _write_moveit(g, config, p),
+        "moveit": lambda g, p: _write_moveit(g, config.moveit(), p),
         "parquet": _write_parquet,
         "npz": _write_npz,
     }
@@ -391,21 +430,16 @@ def _posture(frame: str, joints: list[str], positions: list[float], t: float) ->
     return {"header": _header(frame), "joint_names": list(joints), "points": points}
 
 
-def _robot_frames(config: Config) -> tuple[str, str, dict[str, float]]:
-    """Root frame, grasp frame and locked joints of the run's robot spec."""
-    spec = load_spec(config.robot.spec)
-    return root_link(spec), spec.grasp_frame, dict(spec.locked_joints)
-
-
-def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
-    root, tool, locked = _robot_frames(config)
-    base = config.robot.base_pose.matrix()
+def _write_moveit(g: GraspTable, options: MoveItOptions, path: Path) -> None:
+    root, tool = options.root_frame, options.grasp_frame
+    locked = dict(options.locked_joints)
+    base = options.base_pose
     n = len(g)
     world = dq_to_matrix(np.asarray(g["dq"], dtype=float).reshape(n, 8))
     in_base = np.linalg.inv(base) @ world
     pos = in_base[:, :3, 3]
     quat = Rotation.from_matrix(in_base[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
-    metric = config.ranking.metric
+    metric = options.metric
     quality = np.asarray(g["grasp_quality"], dtype=float)
     width = np.asarray(g["width"], dtype=float) if "width" in g else np.full(n, np.nan)
     gripper = next(
@@ -415,16 +449,15 @@ def _write_moveit(g: GraspTable, config: Config, path: Path) -> None:
     joints = list(gripper.finger_joints) if gripper is not None else []
     open_pos = [float(locked[j]) for j in joints]
     hand_frame = gripper.hand_frame if gripper is not None else tool
-    d_app = config.approach.distance if config.approach is not None else 0.0
-    retreat = config.retreat
-    if retreat is not None:
-        direction = np.asarray(retreat.direction, dtype=float)
+    d_app = options.approach_distance
+    if options.retreat_direction is not None:
+        direction = np.asarray(options.retreat_direction, dtype=float)
         direction = direction / np.linalg.norm(direction)
-        if retreat.frame == "world":
+        if options.retreat_frame == "world":
             retreat_frame, retreat_dir = root, np.linalg.inv(base)[:3, :3] @ direction
         else:
             retreat_frame, retreat_dir = tool, direction
-        d_ret = float(retreat.distance)
+        d_ret = float(options.retreat_distance)
     else:  # the approach reversed
         retreat_frame, retreat_dir, d_ret = tool, np.array([0.0, 0.0, -1.0]), d_app
     rank = np.asarray(g["rank"]) if "rank" in g else np.arange(1, n + 1)

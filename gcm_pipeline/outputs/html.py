@@ -13,22 +13,24 @@ import base64
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import meshcat
 import numpy as np
 import umsgpack
-from meshcat.servers.tree import SceneTree, find_node, walk
 
 from gcm_pipeline.errors import PublishError
+from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.plots import write_plots
 from gcm_pipeline.outputs.robot_view import ROT_X90
-from gcm_pipeline.outputs.scene import SceneInfo, build_scene, stage_counts
+from gcm_pipeline.outputs.scene import (
+    PublishOptions,
+    SceneInfo,
+    SceneOptions,
+    build_scene,
+    stage_counts,
+)
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:
-    from gcm_pipeline.config import Config
-    from gcm_pipeline.robot.model import Robot
 
 __all__ = [
     "publish",
@@ -49,7 +51,8 @@ class _RecordingWindow:
     """
 
     def __init__(self) -> None:
-        self.tree = SceneTree()
+        self._trees = load_meshcat().servers.tree
+        self.tree = self._trees.SceneTree()
         self.web_url = ""
         self.zmq_url = ""
         self.n_objects = 0
@@ -59,7 +62,7 @@ class _RecordingWindow:
         kind = data["type"]
         path = [p for p in data["path"].split("/") if p]
         packed = umsgpack.packb(data)
-        node = find_node(self.tree, path)
+        node = self._trees.find_node(self.tree, path)
         if kind == "set_object":
             node.object = packed
             node.properties = []
@@ -72,10 +75,10 @@ class _RecordingWindow:
             node.animation = packed
         elif kind == "delete":
             if path:
-                parent = find_node(self.tree, path[:-1])
+                parent = self._trees.find_node(self.tree, path[:-1])
                 parent.pop(path[-1], None)
             else:
-                self.tree = SceneTree()
+                self.tree = self._trees.SceneTree()
         else:  # pragma: no cover - meshcat sends only the above
             raise PublishError(f"unsupported meshcat command {kind!r}")
 
@@ -85,7 +88,7 @@ class _RecordingWindow:
     def commands(self) -> list[bytes]:
         """The msgpack-encoded commands in the order the server would replay them."""
         out: list[bytes] = []
-        for node in walk(self.tree):
+        for node in self._trees.walk(self.tree):
             if node.object is not None:
                 out.append(node.object)
             out.extend(node.properties)
@@ -97,7 +100,7 @@ class _RecordingWindow:
 
     def static_html(self, extra_js: str = "", title: str = "gcm_pipeline scene") -> str:
         """The self-contained page: meshcat's viewer script and the recorded commands."""
-        js_path = Path(meshcat.__file__).parent / "viewer" / "dist" / "main.min.js"
+        js_path = Path(load_meshcat().__file__).parent / "viewer" / "dist" / "main.min.js"
         viewer_js = js_path.read_text(encoding="utf-8")
         parts = []
         for blob in self.commands():
@@ -150,7 +153,7 @@ def _orbit_js(target: Sequence[float]) -> str:
 
 
 def render_scene_html(
-    grasps: GraspTable, manifold: Any, robot: Robot | None, config: Config
+    grasps: GraspTable, manifold: Any, robot: Robot | None, options: SceneOptions
 ) -> tuple[str, SceneInfo]:
     """Build the scene without a server and return the self-contained HTML page.
 
@@ -158,14 +161,14 @@ def render_scene_html(
         grasps: The grasp table.
         manifold: The manifold or None.
         robot: The robot or None.
-        config: The run config.
+        options: The scene's options.
 
     Returns:
         The page (opens from disk, no server) and what it holds.
     """
     window = _RecordingWindow()
-    vis = meshcat.Visualizer(window=window)
-    info = build_scene(vis, grasps, manifold, robot, config, orbit_target=True)
+    vis = load_meshcat().Visualizer(window=window)
+    info = build_scene(vis, grasps, manifold, robot, options, orbit_target=True)
     return window.static_html(extra_js=_orbit_js(info.camera["target"])), info
 
 
@@ -174,10 +177,10 @@ def write_scene_html(
     grasps: GraspTable,
     manifold: Any,
     robot: Robot | None,
-    config: Config,
+    options: SceneOptions,
 ) -> SceneInfo:
     """Write the self-contained HTML scene to ``path`` (see :func:`render_scene_html`)."""
-    html, info = render_scene_html(grasps, manifold, robot, config)
+    html, info = render_scene_html(grasps, manifold, robot, options)
     path = Path(path)
     try:
         path.write_text(html, encoding="utf-8")
@@ -190,22 +193,22 @@ def publish(
     grasps: GraspTable,
     manifold: Any,
     robot: Robot | None,
-    config: Config,
+    options: PublishOptions,
     out_dir: str | os.PathLike[str],
     counts: Mapping[str, int] | None = None,
 ) -> list[Path]:
-    """Write the files ``config.publish`` asks for into ``out_dir``.
+    """Write the files ``options`` asks for into ``out_dir``.
 
-    ``scene.html`` (when ``publish.html``) and ``manifold.png``,
-    ``manipulability_hist.png``, ``counts.png`` (when ``publish.plots``). The
-    live viewer is separate (:func:`open_viewer`), called once the run
+    ``scene.html`` (when ``options.html``) and ``manifold.png``,
+    ``manipulability_hist.png``, ``counts.png`` (when ``options.plots``). The
+    live viewer is separate (:func:`~gcm_pipeline.outputs.live.open_viewer`), called once the run
     directory is complete.
 
     Args:
         grasps: The grasp table.
         manifold: The manifold or None.
         robot: The robot or None.
-        config: The run config.
+        options: What to publish, and the scene's options.
         out_dir: An existing directory.
         counts: Per-stage counts for the bar chart (default: :func:`stage_counts`).
 
@@ -217,10 +220,10 @@ def publish(
     """
     out = Path(out_dir)
     written: list[Path] = []
-    if config.publish.html:
+    if options.html:
         path = out / "scene.html"
-        write_scene_html(path, grasps, manifold, robot, config)
+        write_scene_html(path, grasps, manifold, robot, options.scene)
         written.append(path)
-    if config.publish.plots:
+    if options.plots:
         written += write_plots(grasps, manifold, counts or stage_counts(grasps, manifold), out)
     return written

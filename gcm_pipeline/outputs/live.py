@@ -14,19 +14,16 @@ import sys
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import meshcat
 import umsgpack
 import zmq
 
 from gcm_pipeline.errors import PublishError
-from gcm_pipeline.outputs.scene import SceneInfo, build_scene
+from gcm_pipeline.outputs.meshcat_lib import load_meshcat
+from gcm_pipeline.outputs.scene import PublishOptions, SceneInfo, build_scene
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
-
-if TYPE_CHECKING:
-    from gcm_pipeline.config import Config
-    from gcm_pipeline.robot.model import Robot
 
 __all__ = [
     "Viewer",
@@ -260,23 +257,23 @@ def open_viewer(
     grasps: GraspTable,
     manifold: Any,
     robot: Robot | None,
-    config: Config,
+    options: PublishOptions,
     *,
     detach: bool = False,
 ) -> Viewer:
     """Publish the scene to a live meshcat server.
 
-    With ``config.publish.zmq_url`` None, meshcat's server is started on
+    With ``options.zmq_url`` None, meshcat's server is started on
     127.0.0.1 (ZMQ and HTTP) and stopped by :meth:`Viewer.close` (unless
     ``detach``: then it keeps serving the scene after this process exits,
     until its ``server_pid`` is stopped); otherwise the server at ``zmq_url``
-    is probed within ``publish.connect_timeout_s`` and used.
+    is probed within ``options.connect_timeout_s`` and used.
 
     Args:
         grasps: The grasp table.
         manifold: The manifold or None.
         robot: The robot or None.
-        config: The run config.
+        options: The server (``zmq_url``, ``connect_timeout_s``) and the scene.
         detach: Leave a server started here running after :meth:`Viewer.close`.
 
     Returns:
@@ -286,19 +283,19 @@ def open_viewer(
         PublishError: The server is unreachable within the time bound (names the
             URL), cannot start, or stops answering.
     """
-    timeout = float(config.publish.connect_timeout_s)
+    timeout = float(options.connect_timeout_s)
     proc = None
-    if config.publish.zmq_url is None:
+    if options.zmq_url is None:
         proc, zmq_url, web_url = _start_server(max(timeout, 20.0), detach=detach)
     else:
-        zmq_url = config.publish.zmq_url
+        zmq_url = options.zmq_url
         web_url = probe_server(zmq_url, timeout)
     window = None
     try:
         # large scenes take a while to forward: allow more than the connect bound
         window = _ZmqWindow(zmq_url, web_url, max(timeout, 60.0))
-        vis = meshcat.Visualizer(window=window)
-        info = build_scene(vis, grasps, manifold, robot, config)
+        vis = load_meshcat().Visualizer(window=window)
+        info = build_scene(vis, grasps, manifold, robot, options.scene)
     except BaseException:
         if window is not None:
             window.close()

@@ -24,6 +24,7 @@ __all__ = [
     "chart_axis_labels",
     "chart_period",
     "chart_points",
+    "colormap",
     "reason_palette",
     "write_plots",
 ]
@@ -82,6 +83,13 @@ _AXIS_NAMES = {
     "spherical": ("stereographic u", "stereographic v"),
 }
 _COUNT_ORDER = ("candidates", "triangles", "triangles_dropped", "densified", "reachable")
+
+
+def colormap(name: str) -> Any:
+    """A matplotlib colormap by name (matplotlib, imported by this module, loads on first use)."""
+    from matplotlib import colormaps
+
+    return colormaps[name]
 
 
 def _figure(size: tuple[float, float] = (6.4, 4.8)) -> Any:
@@ -250,9 +258,7 @@ def _plot_levels(grasps: GraspTable, manifold: Any, path: Path) -> Path:
     reach = np.asarray(grasps.get("reachable", np.ones(len(grasps), bool)), dtype=bool)
     placed = np.all(np.isfinite(pts), axis=1)
     size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
-    from matplotlib import colormaps
-
-    cmap = colormaps["plasma"]
+    cmap = colormap("plasma")
     top = max(int(level.max(initial=0)), 1)
     for lv in range(int(level.max(initial=-1)) + 1):
         colour = cmap(0.85 * lv / top)
@@ -283,9 +289,7 @@ def _plot_patches(grasps: GraspTable, manifold: Any, path: Path) -> Path:
     patch = np.asarray(grasps["patch"], dtype=np.int64)
     placed = np.all(np.isfinite(pts), axis=1)
     size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
-    from matplotlib import colormaps
-
-    tab = colormaps["tab10"]
+    tab = colormap("tab10")
     ids, counts = np.unique(patch[patch >= 0], return_counts=True)
     for k, (pid, n) in enumerate(zip(ids.tolist(), counts.tolist(), strict=True)):
         sel = placed & (patch == pid)
@@ -378,9 +382,7 @@ def _plot_hist(grasps: GraspTable, path: Path) -> Path:
     if values.size:
         bins = int(np.clip(np.sqrt(values.size), 10, 60))
         _, edges, patches = ax.hist(values, bins=bins, edgecolor="white", linewidth=0.4)
-        from matplotlib import colormaps
-
-        cmap = colormaps["viridis"]
+        cmap = colormap("viridis")
         lo, hi = float(values.min()), float(values.max())
         span = hi - lo if hi > lo else 1.0
         for left, right, patch in zip(edges[:-1], edges[1:], patches, strict=True):

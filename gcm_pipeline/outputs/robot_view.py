@@ -18,20 +18,20 @@ import stat
 import time
 import warnings
 from collections.abc import Sequence
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import meshcat.geometry as mg
+import coal
 import numpy as np
+import pinocchio as pin
 import umsgpack
-from meshcat.animation import Animation
 
 from gcm_pipeline.errors import InputError, OutputError, PublishError
+from gcm_pipeline.outputs.meshcat_lib import load_meshcat
+from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.rundir.arrays import read_npz
 from gcm_pipeline.rundir.transaction import atomic_file
-
-if TYPE_CHECKING:
-    from gcm_pipeline.robot.model import Robot
 
 __all__ = [
     "ANIMATION_BLEND_LIMIT",
@@ -65,9 +65,6 @@ class RobotDrawer:
     """
 
     def __init__(self, vis: Any, robot: Robot, base: np.ndarray) -> None:
-        import pinocchio as pin
-
-        self.pin = pin
         model = robot.model
         visual = _visual_model(robot)
         for obj in visual.geometryObjects:
@@ -86,7 +83,6 @@ class RobotDrawer:
 
     def placements(self, q: np.ndarray) -> list[tuple[str, np.ndarray]]:
         """Scene path and transform (4, 4) of every visual object at ``q``."""
-        pin = self.pin
         pin.forwardKinematics(self.model, self.data, q)
         pin.updateGeometryPlacements(self.model, self.data, self.visual, self.vdata)
         out = []
@@ -98,7 +94,6 @@ class RobotDrawer:
 
     def joint_points(self, q: np.ndarray, base: np.ndarray) -> np.ndarray:
         """World positions (J, 3) of the robot's joint origins at ``q`` (for framing)."""
-        pin = self.pin
         pin.forwardKinematics(self.model, self.data, q)
         pts = np.array([m.translation for m in self.data.oMi])
         return pts @ base[:3, :3].T + base[:3, 3]
@@ -107,14 +102,14 @@ class RobotDrawer:
         self, vis: Any, qs: np.ndarray, blend_limit: float = ANIMATION_BLEND_LIMIT
     ) -> tuple[float, int]:
         """Set the top-k animation (:func:`animation_keys`); its duration [s] and cuts."""
-        anim = Animation(default_framerate=_ANIM_FPS)
+        anim = load_meshcat().animation.Animation(default_framerate=_ANIM_FPS)
         keys, cuts = animation_keys(qs, blend_limit)
         for frame, q in keys:
             self._keyframe(anim, vis, frame, q)
         vis.set_animation(anim, play=True, repetitions=1)
         return (keys[-1][0] + 1) / _ANIM_FPS, cuts
 
-    def _keyframe(self, anim: Animation, vis: Any, frame: int, q: np.ndarray) -> None:
+    def _keyframe(self, anim: Any, vis: Any, frame: int, q: np.ndarray) -> None:
         with anim.at_frame(vis, frame) as f:
             for path, t in self.placements(q):
                 f[path].set_transform(t)
@@ -168,42 +163,58 @@ MESH_FACE_BUDGET = 6000
 _MIN_SIMPLIFY_FACES = 300
 
 
-class _PackedMesh(mg.Geometry):
-    """A three.js ``BufferGeometry``: float32 positions, a uint16 (or uint32) index.
+def packed_mesh(vertices: np.ndarray, faces: np.ndarray) -> Any:
+    """A three.js ``BufferGeometry``: float32 positions (V, 3), a uint16 (or uint32) index (F, 3).
 
+    A meshcat ``Geometry`` (the class is made on first use, when meshcat loads).
     The viewer computes vertex normals for a geometry without them.
     """
+    return _packed_mesh_class()(vertices, faces)
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        super().__init__()
-        self.vertices = np.ascontiguousarray(vertices, dtype=np.float32)
-        small = len(self.vertices) < 65536
-        self.faces = np.ascontiguousarray(faces, dtype=np.uint16 if small else np.uint32)
 
-    def lower(self, object_data: Any) -> dict[str, Any]:
-        index_type, code = (
-            ("Uint16Array", 20) if self.faces.dtype == np.uint16 else ("Uint32Array", 22)
-        )
-        return {
-            "uuid": self.uuid,
-            "type": "BufferGeometry",
-            "data": {
-                "attributes": {
-                    "position": {
-                        "itemSize": 3,
-                        "type": "Float32Array",
-                        "array": umsgpack.Ext(23, self.vertices.tobytes()),
+@functools.cache
+def _packed_mesh_class() -> type:
+    """The class of :func:`packed_mesh`, made once meshcat (its base class) is loaded."""
+    mg = load_meshcat().geometry
+
+    class PackedMesh(mg.Geometry):
+        """A three.js ``BufferGeometry``: float32 positions, a uint16 (or uint32) index.
+
+        The viewer computes vertex normals for a geometry without them.
+        """
+
+        def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+            super().__init__()
+            self.vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+            small = len(self.vertices) < 65536
+            self.faces = np.ascontiguousarray(faces, dtype=np.uint16 if small else np.uint32)
+
+        def lower(self, object_data: Any) -> dict[str, Any]:
+            index_type, code = (
+                ("Uint16Array", 20) if self.faces.dtype == np.uint16 else ("Uint32Array", 22)
+            )
+            return {
+                "uuid": self.uuid,
+                "type": "BufferGeometry",
+                "data": {
+                    "attributes": {
+                        "position": {
+                            "itemSize": 3,
+                            "type": "Float32Array",
+                            "array": umsgpack.Ext(23, self.vertices.tobytes()),
+                            "normalized": False,
+                        }
+                    },
+                    "index": {
+                        "itemSize": 1,
+                        "type": index_type,
+                        "array": umsgpack.Ext(code, self.faces.tobytes()),
                         "normalized": False,
-                    }
+                    },
                 },
-                "index": {
-                    "itemSize": 1,
-                    "type": index_type,
-                    "array": umsgpack.Ext(code, self.faces.tobytes()),
-                    "normalized": False,
-                },
-            },
-        }
+            }
+
+    return PackedMesh
 
 
 #: Version of the simplified-mesh cache files (bump when their content changes).
@@ -255,7 +266,7 @@ def _simplified_mesh_cached(
     if groups is None:
         groups = _simplify_mesh(path, budget)
         _write_mesh_cache(cache, groups)
-    return [(color, _PackedMesh(verts, faces)) for color, verts, faces in groups]
+    return [(color, packed_mesh(verts, faces)) for color, verts, faces in groups]
 
 
 _MeshGroups = list[tuple[int, np.ndarray, np.ndarray]]
@@ -264,8 +275,6 @@ _MeshGroups = list[tuple[int, np.ndarray, np.ndarray]]
 @functools.cache
 def _simplifier_versions() -> str:
     """Versions of the libraries behind :func:`_simplify_mesh`, for the cache key."""
-    from importlib.metadata import PackageNotFoundError, version
-
     out = []
     for dist in ("trimesh", "fast-simplification", "numpy"):
         try:
@@ -414,8 +423,7 @@ def _rgba_hex(rgba: Sequence[float]) -> int:
 
 def _draw_geometry(node: Any, obj: Any) -> None:
     """Draw one visual ``GeometryObject`` under ``node`` (meshes and coal primitives)."""
-    import coal
-
+    mg = load_meshcat().geometry
     geom = obj.geometry
     color = _rgba_hex(obj.meshColor) if obj.overrideMaterial else None
     opacity = float(obj.meshColor[3]) if obj.overrideMaterial else 1.0
@@ -446,7 +454,7 @@ def _draw_geometry(node: Any, obj: Any) -> None:
     elif hasattr(geom, "num_tris") and geom.num_tris > 0:  # a mesh built in memory
         verts = np.array([geom.vertices(i) for i in range(geom.num_vertices)])
         tris = np.array([list(geom.tri_indices(i)) for i in range(geom.num_tris)])
-        node["0"].set_object(_PackedMesh(verts, tris), material(default))
+        node["0"].set_object(packed_mesh(verts, tris), material(default))
     else:
         warnings.warn(
             f"robot visual {obj.name!r}: geometry {type(geom).__name__} is not drawn",

@@ -1,18 +1,86 @@
-"""The ``publish`` step and the best grasps of a run as plain dicts."""
+"""The ``publish`` step and exports: a config onto the options of :mod:`gcm_pipeline.outputs`.
+
+Also the best grasps of a run as plain dicts.
+"""
 
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.config.run import Config, takes_config
+from gcm_pipeline.config.reach_sections import ObstacleConfig, TableConfig
+from gcm_pipeline.config.robot_spec import load_spec
+from gcm_pipeline.config.run import Config, load_config, takes_config
+from gcm_pipeline.config.sections import ObjectConfig
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
+from gcm_pipeline.outputs import export, html, live
+from gcm_pipeline.outputs.export import ExportResult, MoveItOptions
+from gcm_pipeline.outputs.scene import PublishOptions, SceneOptions
+from gcm_pipeline.outputs.scene_shapes import SceneShape, SceneTable
+from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
+from gcm_pipeline.robot.model import Robot
+from gcm_pipeline.robot.model_files import root_link
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the run module imports this one
     from gcm_pipeline.pipeline.run import RunResult
+
+
+def scene_shape(section: ObjectConfig | ObstacleConfig) -> SceneShape:
+    """The ``object`` or an ``environment.obstacles`` entry as a scene shape."""
+    dims = section.dims
+    return SceneShape(
+        shape=section.shape,
+        pose=section.pose.matrix(),
+        radius=dims.radius,
+        height=dims.height,
+        size=dims.size,
+        mesh=section.mesh,
+        scale=section.scale,
+        name=section.name if isinstance(section, ObstacleConfig) else None,
+    )
+
+
+def scene_table(table: TableConfig | None) -> SceneTable | None:
+    """The ``environment.table`` section as the scene's support table."""
+    if table is None:
+        return None
+    return SceneTable(height=table.height, size=table.size, center_xy=table.center_xy)
+
+
+@takes_config
+def scene_options(cfg: Config) -> SceneOptions:
+    """The scene of a run's config.
+
+    Reads ``robot.base_pose``, ``ranking.top_k``, ``continuity.threshold`` (the
+    animation's blend limit), ``object`` and ``environment`` (table, obstacles).
+    """
+    env = cfg.environment
+    return SceneOptions(
+        base_pose=cfg.robot.base_pose.matrix(),
+        top_k=cfg.ranking.top_k,
+        blend_limit=cfg.continuity.threshold,
+        object=None if cfg.object is None else scene_shape(cfg.object),
+        table=scene_table(env.table),
+        obstacles=tuple(scene_shape(obs) for obs in env.obstacles),
+    )
+
+
+@takes_config
+def publish_options(cfg: Config) -> PublishOptions:
+    """What a run publishes (section ``publish``) and its scene (:func:`scene_options`)."""
+    pub = cfg.publish
+    return PublishOptions(
+        scene=scene_options(cfg),
+        html=pub.html,
+        plots=pub.plots,
+        zmq_url=pub.zmq_url,
+        connect_timeout_s=pub.connect_timeout_s,
+    )
 
 
 @takes_config
@@ -22,13 +90,108 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
     Returns:
         The files written.
     """
-    from gcm_pipeline.outputs import html
-
     counts = {k: v for k, v in result.counts.items() if isinstance(v, int)}
     files = html.publish(
-        result.grasps, result.manifold, result.robot, cfg, Path(out_dir), counts=counts
+        result.grasps,
+        result.manifold,
+        result.robot,
+        publish_options(cfg),
+        Path(out_dir),
+        counts=counts,
     )
     return list(files)
+
+
+@takes_config
+def open_viewer(
+    grasps: GraspTable, manifold: Any, robot: Robot | None, cfg: Config, *, detach: bool = False
+) -> live.Viewer:
+    """Publish the scene of ``cfg`` to a live meshcat server (``publish.zmq_url``).
+
+    See :func:`gcm_pipeline.outputs.live.open_viewer`.
+    """
+    return live.open_viewer(grasps, manifold, robot, publish_options(cfg), detach=detach)
+
+
+@dataclass(frozen=True)
+class ConfigRunExport:
+    """A run's config as an export takes it (a :class:`~.outputs.export.RunConfig`).
+
+    Args:
+        config: The run's config.
+    """
+
+    config: Config
+
+    @property
+    def ranking_metric(self) -> str:
+        """The run's ranking metric (``ranking.metric``)."""
+        return self.config.ranking.metric
+
+    def moveit(self) -> MoveItOptions:
+        """The MoveIt export's options of the config and its robot spec.
+
+        Reads ``robot`` (the spec's root and grasp frames and locked joints,
+        ``base_pose``), ``ranking.metric``, ``approach`` and ``retreat``.
+        """
+        cfg = self.config
+        spec = load_spec(cfg.robot.spec)
+        retreat = cfg.retreat
+        return MoveItOptions(
+            root_frame=root_link(spec),
+            grasp_frame=spec.grasp_frame,
+            locked_joints=dict(spec.locked_joints),
+            base_pose=cfg.robot.base_pose.matrix(),
+            metric=cfg.ranking.metric,
+            approach_distance=cfg.approach.distance if cfg.approach is not None else 0.0,
+            retreat_direction=None if retreat is None else retreat.direction,
+            retreat_frame="world" if retreat is None else retreat.frame,
+            retreat_distance=0.0 if retreat is None else retreat.distance,
+        )
+
+
+def read_run_config(path: Path) -> ConfigRunExport:
+    """A run directory's ``config.yaml`` as an export takes it.
+
+    Raises:
+        ConfigError: Not a valid config.
+    """
+    return ConfigRunExport(load_config(path))
+
+
+def export_run(
+    run_dir: str | os.PathLike[str],
+    format: str,
+    *,
+    top: int | None = None,
+    out: str | os.PathLike[str] | None = None,
+) -> ExportResult:
+    """Export a run directory's grasps: MoveIt grasps (YAML), Parquet or NPZ.
+
+    See :func:`gcm_pipeline.outputs.export.export_run` (the run's
+    ``config.yaml`` is read by :func:`read_run_config`).
+
+    Args:
+        run_dir: A run directory written by ``gcm run``.
+        format: ``moveit``, ``parquet`` or ``npz``.
+        top: Keep only the ``top`` best-ranked reachable grasps (moveit
+            always exports ranked grasps only; default all of them).
+        out: The file to write (default: ``RUN_DIR/`` + the format's name in
+            :data:`~gcm_pipeline.outputs.export.EXPORT_FORMATS`). Written
+            atomically; a symbolic link is kept and the file it names is replaced.
+
+    Returns:
+        The file and the number of grasps written.
+
+    Raises:
+        InputError: Not a run directory, unknown format, ``top < 1``, ``out``
+            naming one of the run's own files, or no reachable grasp to
+            export (after an empty, valid file is written).
+        ConfigError: The run's ``config.yaml`` is not a valid config.
+        OutputError: The file cannot be written, or ``out`` is a directory, a
+            device or a pipe.
+    """
+    return export.export_run(run_dir, format, read_config=read_run_config, top=top, out=out)
 
 
 def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[dict[str, Any]]:
@@ -38,8 +201,6 @@ def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[di
     ``manipulability``, the ranking metric's column when it is another one,
     and ``q``. Rows without a ``rank`` column, or unranked (rank 0), are left out.
     """
-    from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
-
     if "rank" not in grasps or n <= 0:
         return []
     rank_col = np.asarray(grasps["rank"])

@@ -22,7 +22,7 @@ from gcm_pipeline.table import GraspTable
 
 @dataclass(frozen=True)
 class ConfigRunQueries:
-    """A run's config as the manifold queries take it (a :class:`~.manifold.query.RunQueries`).
+    """A run's config as the queries take it (a :class:`~.manifold.run_queries.RunQueries`).
 
     Args:
         config: The run's config.

@@ -16,7 +16,7 @@ import numpy as np
 from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.query import GraspManifold
-from gcm_pipeline.outputs.scene import legend
+from gcm_pipeline.outputs.scene_glyphs import legend
 from gcm_pipeline.pipeline.manifold import (
     adaptive_counts,
     add_continuity,

@@ -26,6 +26,7 @@ from gcm_pipeline.config import Config
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.outputs.html import publish
+from gcm_pipeline.pipeline.outputs import publish_options
 from gcm_pipeline.table import GraspTable
 
 _B64 = re.compile(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)")
@@ -176,7 +177,7 @@ def test_scene_renders_in_headless_chromium(tmp_path: Path, panda):
             "publish": {"html": True, "plots": False},
         }
     )
-    (html,) = publish(grasps, manifold, robot, cfg, tmp_path)
+    (html,) = publish(grasps, manifold, robot, publish_options(cfg), tmp_path)
     assert html.name == "scene.html"
 
     # the scene tree holds the expected paths (commands are base64 msgpack)
@@ -220,7 +221,7 @@ def test_scene_size_and_ur5_renders_whole(tmp_path: Path, panda):
     cfg = Config.from_dict(
         {"candidates": {"source": "file", "path": "x.npy"}, "publish": {"plots": False}}
     )
-    (html,) = publish(grasps, manifold, panda, cfg, tmp_path)
+    (html,) = publish(grasps, manifold, panda, publish_options(cfg), tmp_path)
     assert html.stat().st_size <= 5_000_000, html.stat().st_size
 
     ur5 = load_robot("ur5")
@@ -246,7 +247,7 @@ def test_scene_size_and_ur5_renders_whole(tmp_path: Path, panda):
         )
         out = tmp_path / label
         out.mkdir()
-        (page,) = publish(one, None, robot, cfg, out)
+        (page,) = publish(one, None, robot, publish_options(cfg), out)
         if robot is None:  # same camera as the page with the robot
             text = (tmp_path / "with" / "scene.html").read_text(encoding="utf-8")
             page.write_text(_without_robot(text), encoding="utf-8")

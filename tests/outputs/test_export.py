@@ -19,8 +19,8 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.outputs.export import export_run
 from gcm_pipeline.pipeline import Pipeline
+from gcm_pipeline.pipeline.outputs import export_run
 
 BASE_XYZ = [0.05, -0.02, 0.0]
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -11,19 +12,22 @@ import urllib.request
 from pathlib import Path
 from types import SimpleNamespace
 
+import meshcat
 import numpy as np
 import pytest
 import umsgpack
-from helpers import decode_commands
+from helpers import ROOT, decode_commands
 
 from gcm_pipeline.config import Config
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.outputs import html as pub_html
-from gcm_pipeline.outputs import live, plots, robot_view
+from gcm_pipeline.outputs import live, plots, robot_view, scene_glyphs
 from gcm_pipeline.outputs import scene as pub_scene
 from gcm_pipeline.outputs.plots import PLOT_FILES, chart_points, write_plots
+from gcm_pipeline.outputs.scene_shapes import SceneShape, SceneTable, translation
+from gcm_pipeline.pipeline.outputs import publish_options, scene_options
 from gcm_pipeline.table import GraspTable
 
 
@@ -115,7 +119,7 @@ def by_path(commands: list[dict]) -> dict[str, list[dict]]:
 @pytest.fixture(scope="module")
 def scene(robot):
     grasps, manifold = make_scene(robot)
-    html, info = pub_html.render_scene_html(grasps, manifold, robot, make_config())
+    html, info = pub_html.render_scene_html(grasps, manifold, robot, scene_options(make_config()))
     return grasps, manifold, html, info
 
 
@@ -178,7 +182,7 @@ def test_scene_animation_cuts_between_branches(robot):
     q[top[1]] = base + 0.05
     q[top[2]] = base + np.r_[1.5, np.zeros(robot.nq - 1)]  # another branch
     grasps = grasps.with_columns(q=q)
-    html, info = pub_html.render_scene_html(grasps, manifold, robot, make_config())
+    html, info = pub_html.render_scene_html(grasps, manifold, robot, scene_options(make_config()))
     assert info.top_k == 3 and info.animation_cuts == 2
     (anim,) = [c for c in decode_commands(html) if c["type"] == "set_animation"]
     clip = next(c["clip"] for c in anim["animations"] if c["path"].endswith("panda_link1_0"))
@@ -187,7 +191,7 @@ def test_scene_animation_cuts_between_branches(robot):
     assert len(times) == 4 * 2 + (robot_view._ANIM_MOVE - 1)
     cfg = make_config()
     cfg = Config.from_dict({**cfg.to_dict(), "continuity": {"threshold": 3.0}})
-    _, info = pub_html.render_scene_html(grasps, manifold, robot, cfg)
+    _, info = pub_html.render_scene_html(grasps, manifold, robot, scene_options(cfg))
     assert info.animation_cuts == 0  # the threshold of one branch is continuity.threshold
 
 
@@ -201,32 +205,29 @@ def test_glyphs_are_batched(robot):
     for n in (30, 3000):
         grasps, manifold = make_scene(robot, n)
         window = pub_html._RecordingWindow()
-        import meshcat
-
-        info = pub_scene.build_scene(
-            meshcat.Visualizer(window=window), grasps, manifold, robot, make_config()
-        )
+        vis = meshcat.Visualizer(window=window)
+        info = pub_scene.build_scene(vis, grasps, manifold, robot, scene_options(make_config()))
         counts[n] = window.n_objects
         assert info.meshcat_objects == window.n_objects
         commands = [umsgpack.unpackb(b) for b in window.commands()]
         obj = _object_of(commands, "/meshcat/grasps/reachable")
         assert obj["object"]["type"] == "LineSegments"
         pos = obj["geometries"][0]["data"]["attributes"]["position"]
-        assert f32(pos["array"]).size == info.n_reachable * len(pub_scene._GRIPPER) * 3
+        assert f32(pos["array"]).size == info.n_reachable * len(scene_glyphs._GRIPPER) * 3
     assert counts[30] == counts[3000]
 
 
 def test_large_tables_switch_to_sticks(robot, monkeypatch):
-    monkeypatch.setattr(pub_scene, "FULL_GLYPH_LIMIT", 10)
+    monkeypatch.setattr(scene_glyphs, "FULL_GLYPH_LIMIT", 10)
     grasps, manifold = make_scene(robot, 60)
-    _, info = pub_html.render_scene_html(grasps, manifold, None, make_config())
+    _, info = pub_html.render_scene_html(grasps, manifold, None, scene_options(make_config()))
     assert info.glyph == "stick"
 
 
 def test_colors(scene):
     grasps, _, html, info = scene
     commands = decode_commands(html)
-    nv = len(pub_scene._GRIPPER)
+    nv = len(scene_glyphs._GRIPPER)
     reach = _object_of(commands, "/meshcat/grasps/reachable")
     rgb = f32(reach["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
     assert reach["materials"][0]["vertexColors"] == 2
@@ -247,7 +248,7 @@ def test_colors(scene):
     assert np.allclose(other, plots.REASON_COLORS["collision_self"])
     leg = info.legend
     json.dumps(info.to_dict())  # JSON-ready for the run summary
-    assert leg == pub_scene.legend(grasps)
+    assert leg == scene_glyphs.legend(grasps)
     assert leg["colormap"] == "viridis"
     assert leg["metric_range"] == pytest.approx([lo, hi])
     assert set(leg["unreachable"]) == {"no_ik", "collision_self"}
@@ -284,7 +285,7 @@ def test_objects_and_table(tmp_path: Path):
                 "environment": {"table": {"height": -0.1}},
             }
         )
-        html, info = pub_html.render_scene_html(GraspTable(), None, None, cfg)
+        html, info = pub_html.render_scene_html(GraspTable(), None, None, scene_options(cfg))
         commands = by_path(decode_commands(html))
         assert "/meshcat/object/shape" in commands
         table = [c for c in commands["/meshcat/environment/table"] if c["type"] == "set_transform"]
@@ -298,7 +299,7 @@ def test_objects_and_table(tmp_path: Path):
             "candidates": {"source": "file", "path": "g.npy"},
         }
     )
-    html, info = pub_html.render_scene_html(GraspTable(), None, None, cfg)
+    html, info = pub_html.render_scene_html(GraspTable(), None, None, scene_options(cfg))
     commands = by_path(decode_commands(html))
     (shape,) = [c for c in commands["/meshcat/object/shape"] if c["type"] == "set_object"]
     assert shape["object"]["geometries"][0]["format"] == "obj"
@@ -307,21 +308,25 @@ def test_objects_and_table(tmp_path: Path):
     cfg = Config.from_dict(
         {"candidates": {"source": "file", "path": "g.npy"}, "environment": {"table": None}}
     )
-    _, info = pub_html.render_scene_html(GraspTable(), None, None, cfg)
+    _, info = pub_html.render_scene_html(GraspTable(), None, None, scene_options(cfg))
     assert info.paths == ()
 
 
 def test_publish_writes_what_config_asks(robot, tmp_path: Path):
     grasps, manifold = make_scene(robot)
-    paths = pub_html.publish(grasps, manifold, robot, make_config(html=True, plots=True), tmp_path)
+    paths = pub_html.publish(
+        grasps, manifold, robot, publish_options(make_config(html=True, plots=True)), tmp_path
+    )
     assert [p.name for p in paths] == ["scene.html", *PLOT_FILES]
     assert all(p.is_file() and p.stat().st_size > 1000 for p in paths)
     only_plots = tmp_path / "plots"
     only_plots.mkdir()
-    paths = pub_html.publish(grasps, manifold, robot, make_config(html=False), only_plots)
+    paths = pub_html.publish(
+        grasps, manifold, robot, publish_options(make_config(html=False)), only_plots
+    )
     assert [p.name for p in paths] == list(PLOT_FILES)
     neither = make_config(html=False, plots=False)
-    assert pub_html.publish(grasps, manifold, robot, neither, tmp_path) == []
+    assert pub_html.publish(grasps, manifold, robot, publish_options(neither), tmp_path) == []
 
 
 def test_plots(robot, tmp_path: Path):
@@ -367,7 +372,7 @@ def test_unreachable_server_fails_fast(robot):
     cfg = make_config(meshcat=True, zmq_url=url, connect_timeout_s=0.5)
     start = time.monotonic()
     with pytest.raises(PublishError, match=re.escape(url)):
-        live.open_viewer(grasps, manifold, robot, cfg)
+        live.open_viewer(grasps, manifold, robot, publish_options(cfg))
     assert time.monotonic() - start < 5.0
     with pytest.raises(PublishError, match="invalid meshcat zmq_url"):
         live.probe_server("not a url", 0.5)
@@ -375,7 +380,7 @@ def test_unreachable_server_fails_fast(robot):
 
 def test_live_viewer(robot):
     grasps, manifold = make_scene(robot, 30)
-    viewer = live.open_viewer(grasps, manifold, robot, make_config(meshcat=True))
+    viewer = live.open_viewer(grasps, manifold, robot, publish_options(make_config(meshcat=True)))
     try:
         assert viewer.owns_server
         assert viewer.url.startswith("http://127.0.0.1:")
@@ -390,7 +395,10 @@ def test_live_viewer(robot):
         assert set(viewer.info.paths) == set(pub_scene.SCENE_PATHS)
         # a second client connects to the running server through zmq_url
         other = live.open_viewer(
-            grasps, manifold, None, make_config(meshcat=True, zmq_url=viewer.zmq_url)
+            grasps,
+            manifold,
+            None,
+            publish_options(make_config(meshcat=True, zmq_url=viewer.zmq_url)),
         )
         assert other.url == viewer.url and not other.owns_server
         other.close()
@@ -448,7 +456,7 @@ def test_robot_meshes_are_whole_and_embedded_once(name):
     cfg = Config.from_dict(
         {"robot": {"spec": name}, "candidates": {"source": "file", "path": "x.npy"}}
     )
-    html, _ = pub_html.render_scene_html(grasps, None, robot, cfg)
+    html, _ = pub_html.render_scene_html(grasps, None, robot, scene_options(cfg))
     commands = decode_commands(html)
     links = _robot_mesh_points(commands)
     visual = robot.build_geometry("visual")
@@ -503,7 +511,9 @@ def test_primitive_tool_geometry_in_the_visual_model_is_drawn(monkeypatch):
     cfg = Config.from_dict(
         {"robot": {"spec": "ur5"}, "candidates": {"source": "file", "path": "x.npy"}}
     )
-    commands = decode_commands(pub_html.render_scene_html(grasps, None, robot, cfg)[0])
+    commands = decode_commands(
+        pub_html.render_scene_html(grasps, None, robot, scene_options(cfg))[0]
+    )
     box = [c for c in commands if c["path"] == "/meshcat/robot/visuals/tool_palm/0"]
     assert box and box[0]["object"]["geometries"][0]["type"] == "BoxGeometry"
     geom = box[0]["object"]["geometries"][0]
@@ -595,3 +605,56 @@ def test_the_mesh_cache_follows_an_obj_files_materials(tmp_path, monkeypatch):
     assert [c for c, _ in robot_view._simplified_mesh(str(mesh))] == [0x0000FF]
     assert len(list((tmp_path / "cache" / "meshes").iterdir())) == 2
     robot_view._simplified_mesh_cached.cache_clear()
+
+
+def test_the_scene_takes_plain_options_without_a_config(tmp_path: Path):
+    """A scene drawn from SceneOptions equals the one of the config they are mapped from."""
+    cfg = Config.from_dict(
+        {
+            "object": {"shape": "sphere", "dims": {"radius": 0.04}, "pose": {"xyz": [0.4, 0, 0]}},
+            "candidates": {"source": "file", "path": "g.npy"},
+            "environment": {
+                "table": {"height": -0.1},
+                "obstacles": [
+                    {"shape": "box", "dims": {"size": [0.1, 0.1, 0.1]}, "name": "crate"},
+                    {"shape": "sphere", "dims": {"radius": 0.02}, "pose": {"xyz": [0, 1, 0]}},
+                ],
+            },
+        }
+    )
+    options = scene_options(cfg)
+    assert options.object.shape == "sphere" and options.object.radius == 0.04
+    assert [o.name for o in options.obstacles] == ["crate", None]
+    np.testing.assert_array_equal(options.obstacles[1].pose[:3, 3], [0.0, 1.0, 0.0])
+    plain = pub_scene.SceneOptions(
+        object=SceneShape("sphere", translation((0.4, 0.0, 0.0)), radius=0.04),
+        table=SceneTable(height=-0.1),
+        obstacles=(
+            SceneShape("box", np.eye(4), size=(0.1, 0.1, 0.1), name="crate"),
+            SceneShape("sphere", translation((0.0, 1.0, 0.0)), radius=0.02),
+        ),
+    )
+    html, from_config = pub_html.render_scene_html(GraspTable(), None, None, options)
+    _, from_plain = pub_html.render_scene_html(GraspTable(), None, None, plain)
+    assert from_config.paths == from_plain.paths == ("/object", "/environment")
+    assert from_config.camera == from_plain.camera
+    paths = {c["path"] for c in decode_commands(html)}
+    assert {"/meshcat/environment/crate/shape", "/meshcat/environment/obstacle_1/shape"} <= paths
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        options.top_k = 3  # type: ignore[misc]
+    assert not options.base_pose.flags.writeable
+
+
+def test_meshcat_loads_only_when_a_scene_is_drawn():
+    """Importing the pipeline (and so this package) does not load meshcat and its server."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, gcm_pipeline.pipeline, gcm_pipeline.outputs.html, gcm_pipeline.outputs.live; "
+        "print(sorted(m for m in ('meshcat', 'tornado') if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    assert out.stdout.strip() == "[]"

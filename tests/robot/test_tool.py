@@ -261,6 +261,7 @@ def test_scene_draws_the_ur5_with_its_gripper(ur5):
     from gcm_pipeline.config import Config
     from gcm_pipeline.geometry.dualquat import dq_from_matrix
     from gcm_pipeline.outputs import html
+    from gcm_pipeline.pipeline.outputs import scene_options
     from gcm_pipeline.table import GraspTable
 
     q = ur5.home.copy()
@@ -268,7 +269,7 @@ def test_scene_draws_the_ur5_with_its_gripper(ur5):
     cfg = Config.from_dict(
         {"robot": {"spec": "ur5"}, "candidates": {"source": "file", "path": "x.npy"}}
     )
-    commands = decode_commands(html.render_scene_html(grasps, None, ur5, cfg)[0])
+    commands = decode_commands(html.render_scene_html(grasps, None, ur5, scene_options(cfg))[0])
     paths = {c["path"] for c in commands}
     for name in ("coupling", "body", "finger_left", "finger_right"):
         assert any(p.startswith(f"/meshcat/robot/visuals/tool/{name}") for p in paths), name

@@ -18,6 +18,12 @@ PACKAGE = ROOT / "gcm_pipeline"
 # - __init__.py: the public API of api.py, re-exported on first use (PEP 562);
 # - __main__.py: the command line, imported after the signal handlers are installed.
 LAZY_ON_PURPOSE = ("cli/", "__init__.py", "__main__.py")
+# (module, function) whose own-module imports stay inside the function, and why
+GUARDED_IMPORTS = {
+    # the compiled kernel modules import Numba at their top and compile (or read the
+    # cache) on import: they are Numba's guarded import, done on the first call only
+    ("robot/kernels.py", "_import"),
+}
 
 
 def test_import_contracts_are_kept():
@@ -120,7 +126,12 @@ def test_the_library_imports_its_own_modules_at_module_top():
         rel = path.relative_to(PACKAGE).as_posix()
         if rel.startswith(LAZY_ON_PURPOSE):  # (top-level __init__ and __main__ only)
             continue
-        lazy += [f"gcm_pipeline/{rel}:{hit}" for hit in _imports_inside_functions(path)]
+        hits = _imports_inside_functions(path)
+        lazy += [
+            f"gcm_pipeline/{rel}:{hit}"
+            for hit in hits
+            if (rel, hit.rsplit("(in ", 1)[1].rstrip(")")) not in GUARDED_IMPORTS
+        ]
     assert not lazy, "import these at module top:\n" + "\n".join(lazy)
 
 

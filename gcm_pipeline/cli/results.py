@@ -193,6 +193,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
                 distance=float(answer.distance[i]),
                 triangle=int(answer.triangle[i]),
                 weights=answer.weights[i].tolist(),
+                row=int(answer.vertex[i]),
                 position=pos[i].tolist(),
                 quaternion=quat[i].tolist(),
                 q=answer.q[i].tolist(),
@@ -216,10 +217,10 @@ def _cmd_query(args: argparse.Namespace) -> int:
         if not item["found"]:
             print("  no reachable grasp found near it")
             continue
-        print(
-            f"  nearest reachable grasp   {item['distance']:.4f} m away "
-            f"(triangle {item['triangle']}, world frame)"
-        )
+        where = f"triangle {item['triangle']}"
+        if item["row"] >= 0:
+            where = f"candidate row {item['row']}, in no triangle"
+        print(f"  nearest reachable grasp   {item['distance']:.4f} m away ({where}, world frame)")
         cells = [*item["position"], *item["quaternion"]]
         print("  " + "  ".join(f"{c:>9}" for c in ("x", "y", "z", "qw", "qx", "qy", "qz")))
         print("  " + "  ".join(f"{c:9.4f}" for c in cells))

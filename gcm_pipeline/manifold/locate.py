@@ -1,21 +1,31 @@
 r"""Nearest points of the grasp manifold: :class:`TriangleLocator`, :func:`as_query_poses`.
 
 :class:`TriangleLocator` answers "which point of the manifold is nearest to
-this pose" for batches of queries, exactly up to the projection's tolerance:
+this pose" for batches of queries, exactly up to the projection's tolerance.
+The manifold is its triangles plus its isolated points: candidates that no
+kept triangle uses are points of the manifold too (a query at one's exact
+pose finds it at distance 0).
 
+0. the nearest isolated point of each query comes from a KD-tree over their
+   features (both quaternion signs; the metric is Euclidean there, so this
+   is exact);
 1. every triangle gets a bounding slab in the 7-D features (centre, best-fit
    plane, in-plane extent, thickness, measured on a lattice of its points and
    enlarged for the curvature between them), so the distance from a query to
    any point of the triangle has a cheap lower bound;
-2. the distance to beat starts at a point of the manifold: the nearest point
-   of a coarse lattice on the triangle of the query's nearest centre;
+2. the distance to beat starts at a point of the manifold: the nearer of the
+   nearest isolated point and the nearest point of a coarse lattice on the
+   triangle of the query's nearest centre;
 3. triangles whose centre lies within that distance plus their size (ball
    queries in KD-trees over the centres, both quaternion signs) are bounded;
    per query, in the order of their bounds, the lowest is projected first,
    then every other whose bound is still below the distance found. A pruned
    triangle's bound is at or above a distance already reached, so it holds
    no nearer point: the answer equals projecting onto every triangle
-   (``TriangleLocator.locate(..., exhaustive=True)``).
+   (``TriangleLocator.locate(..., exhaustive=True)``) and taking the nearer
+   of that and the nearest isolated point. (An isolated point lowers the
+   distance to beat; it is a point of the manifold, so every pruning
+   argument still holds.)
 """
 
 from __future__ import annotations
@@ -44,16 +54,21 @@ class Location(NamedTuple):
     """Nearest manifold points of M query poses.
 
     Attributes:
-        triangle: (M,) int index of the triangle holding the nearest point.
-        weights: (M, 3) barycentric weights of that point in its triangle.
+        triangle: (M,) int index of the triangle holding the nearest point;
+            -1 where it is an isolated point (see ``vertex``).
+        weights: (M, 3) barycentric weights of that point in its triangle;
+            ``(1, 0, 0)`` at an isolated point.
         distance: (M,) pose-metric distance [m] from the query to it.
         dq: (M, 8) the nearest point itself (unit dual quaternion, world).
+        vertex: (M,) int id of the isolated point that is nearest (for a
+            grasp manifold: its candidate row); -1 where a triangle holds it.
     """
 
     triangle: np.ndarray
     weights: np.ndarray
     distance: np.ndarray
     dq: np.ndarray
+    vertex: np.ndarray
 
 
 # --------------------------------------------------------------------------- query poses
@@ -193,14 +208,22 @@ class TriangleLocator:
     candidate first (started at its in-plane foot point), then onto every
     other whose bound is below the distance found.
 
+    Isolated points (``points``) are part of the manifold too: the nearest
+    of them (a KD-tree over their features, exact) is a candidate answer
+    and, when nearer than the lattice point, the first distance to beat.
+
     Args:
-        corners: (T, 3, 8) vertex poses of the T triangles (world).
+        corners: (T, 3, 8) vertex poses of the T triangles (world); T may be
+            0 when there are points.
+        points: (P, 8) poses of the isolated points (world), or None.
+        point_ids: (P,) int ids reported for them in :attr:`Location.vertex`
+            (default ``0 .. P - 1``).
         method: The blend, ``dlb`` or ``dib``.
         orientation_scale: ``L`` [m/rad] of the pose metric.
         subdivisions: Lattice subdivisions of the bounding points.
 
     Raises:
-        GeometryError: No triangle, wrong shapes, unknown method.
+        GeometryError: Neither a triangle nor a point, wrong shapes, unknown method.
     """
 
     #: Factor on the bounds measured on the lattice, covering the blend between its points.
@@ -218,6 +241,8 @@ class TriangleLocator:
         self,
         corners: npt.ArrayLike,
         *,
+        points: npt.ArrayLike | None = None,
+        point_ids: npt.ArrayLike | None = None,
         method: str = "dlb",
         orientation_scale: float = ORIENTATION_SCALE,
         subdivisions: int = 6,
@@ -225,15 +250,36 @@ class TriangleLocator:
         corners = np.asarray(corners, dtype=np.float64)
         if corners.ndim != 3 or corners.shape[1:] != (3, 8):
             raise GeometryError(f"triangle corners must have shape (T, 3, 8), got {corners.shape}")
-        if len(corners) == 0:
-            raise GeometryError("the manifold has no triangle to locate poses on")
+        pts = np.zeros((0, 8)) if points is None else np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 8:
+            raise GeometryError(f"isolated points must have shape (P, 8), got {pts.shape}")
+        ids = np.arange(len(pts)) if point_ids is None else np.asarray(point_ids, dtype=np.int64)
+        if ids.shape != (len(pts),):
+            raise GeometryError(f"point_ids must have shape ({len(pts)},), got {ids.shape}")
+        if len(corners) == 0 and len(pts) == 0:
+            raise GeometryError("the manifold has no triangle and no point to locate poses on")
         if method not in BLEND_METHODS:
             raise GeometryError(unknown_choice("blend method", method, BLEND_METHODS))
         self.corners = corners
+        self.points = pts
+        self.point_ids = ids
         self.method = method
         self.orientation_scale = float(orientation_scale)
+        self._point_tree = None
+        if len(pts):
+            feat = pose_features(pts, self.orientation_scale)
+            self._point_tree = cKDTree(np.concatenate((feat, feat * _FLIP)), leafsize=self.LEAF)
+        self._groups: list[tuple[np.ndarray, cKDTree, float]] = []
+        #: Largest in-plane radius [m] of a triangle's bounding slab (0 without triangles).
+        self.spacing = 0.0
+        if len(corners):
+            self._index_triangles(int(subdivisions))
+
+    def _index_triangles(self, subdivisions: int) -> None:
+        """The triangles' bounding slabs, size groups and KD-trees (see the class docstring)."""
+        corners, method = self.corners, self.method
         t = len(corners)
-        lat = _lattice(int(subdivisions))
+        lat = _lattice(subdivisions)
         pts = blend(np.repeat(corners, len(lat), axis=0), np.tile(lat, (t, 1)), method)
         pts = pts.reshape(t, len(lat), 8)
         # features with the quaternion sign of each triangle's first corner
@@ -291,7 +337,6 @@ class TriangleLocator:
             np.repeat(corners, len(up), axis=0), np.tile(up, (t, 1)), method
         ).reshape(t, len(up), 8)
         self._centre_tree = cKDTree(both @ self._axes, leafsize=self.LEAF)
-        #: Largest in-plane radius [m] of a triangle's bounding slab.
         self.spacing = float(self._radius.max())
 
     def __len__(self) -> int:
@@ -301,7 +346,8 @@ class TriangleLocator:
     def __repr__(self) -> str:
         return (
             f"TriangleLocator({len(self)} triangles in {len(self._groups)} size groups, "
-            f"method={self.method!r}, orientation_scale={self.orientation_scale} m/rad)"
+            f"{len(self.points)} isolated points, method={self.method!r}, "
+            f"orientation_scale={self.orientation_scale} m/rad)"
         )
 
     def locate(
@@ -320,7 +366,7 @@ class TriangleLocator:
         """
         q = np.asarray(queries, dtype=np.float64).reshape(-1, 8)
         m = len(q)
-        if exhaustive:
+        if exhaustive and len(self):
             batch = max(1, min(batch, 65536 // len(self)))
         tri = np.zeros(m, dtype=np.int64)
         w = np.zeros((m, 3))
@@ -328,8 +374,18 @@ class TriangleLocator:
         for a in range(0, m, batch):
             sl = slice(a, min(a + batch, m))
             tri[sl], w[sl], d[sl] = self._locate(q[sl], exhaustive)
-        dq = blend(self.corners[tri], w, self.method) if m else np.zeros((0, 8))
-        return Location(tri, w, d, dq)
+        # isolated points are coded -1 - p in ``tri`` (below every triangle id)
+        iso = tri < 0
+        point = -1 - tri[iso]
+        vertex = np.full(m, -1, dtype=np.int64)
+        vertex[iso] = self.point_ids[point]
+        dq = np.zeros((m, 8))
+        on = ~iso
+        if on.any():
+            dq[on] = blend(self.corners[tri[on]], w[on], self.method)
+        dq[iso] = self.points[point]
+        tri[iso] = -1
+        return Location(tri, w, d, dq, vertex)
 
     def _bounds(
         self, feat: np.ndarray, rows: np.ndarray, tris: np.ndarray, limit: np.ndarray
@@ -427,6 +483,24 @@ class TriangleLocator:
         rows = np.arange(len(q))
         return tri, self._up_w[j], d[rows, j]
 
+    def _nearest_point(
+        self, q: np.ndarray, feat: np.ndarray, tri: np.ndarray, w: np.ndarray, d: np.ndarray
+    ) -> None:
+        """Where the nearest isolated point beats ``d``, it becomes the answer (``-1 - p``).
+
+        The KD-tree holds both quaternion signs of the points' features, where
+        the pose metric is Euclidean: its nearest neighbour is exact.
+        """
+        if self._point_tree is None:
+            return
+        _, idx = self._point_tree.query(feat, k=1)
+        p = np.asarray(idx, dtype=np.int64) % len(self.points)
+        dp = pose_distance(self.points[p], q, self.orientation_scale)
+        closer = dp < d
+        tri[closer] = -1 - p[closer]
+        w[closer] = (1.0, 0.0, 0.0)
+        d[closer] = dp[closer]
+
     def _locate(
         self, q: np.ndarray, exhaustive: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -434,7 +508,13 @@ class TriangleLocator:
         rows = np.arange(m)
         feat = pose_features(q, self.orientation_scale)
         # a point of the manifold near each query: an answer, and the distance to beat
-        best_tri, best_w, best_d = self._upper(q, feat)
+        if len(self):
+            best_tri, best_w, best_d = self._upper(q, feat)
+        else:
+            best_tri, best_w, best_d = np.zeros(m, np.int64), np.zeros((m, 3)), np.full(m, np.inf)
+        self._nearest_point(q, feat, best_tri, best_w, best_d)
+        if not len(self):
+            return best_tri, best_w, best_d
         if exhaustive:
             r2 = np.repeat(rows, len(self))
             t2 = np.tile(np.arange(len(self)), m)

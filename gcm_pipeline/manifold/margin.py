@@ -16,6 +16,12 @@ margin is 0 at the boundary and on every unreachable row. A reachable grasp
 with no unreachable point anywhere on its part of the manifold has margin
 ``inf``. The manifold's own outer border is not a boundary: the margin
 measures reachability, not the extent of the candidate set.
+
+A row on no edge of the mesh (a candidate that no triangle uses: an
+isolated point of the manifold) has margin 0 even when reachable: the
+manifold around it is the point itself, so no drift along it is known to
+stay reachable. (``inf`` would rank such a row, about whose neighbourhood
+the run knows nothing, above every row with a measured margin.)
 """
 
 from __future__ import annotations
@@ -44,13 +50,16 @@ def margin(
         orientation_scale: ``L`` [m/rad] of the pose metric.
 
     Returns:
-        (N,) margins: 0 for unreachable rows, ``inf`` where no unreachable
-        point can be reached along the mesh.
+        (N,) margins: 0 for unreachable rows and for rows on no edge
+        (isolated), ``inf`` where no unreachable point can be reached along
+        the mesh.
     """
     reach = np.asarray(reachable, dtype=bool)
     n = len(reach)
-    out = np.where(reach, np.inf, 0.0)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    linked = np.zeros(n, dtype=bool)
+    linked[e.ravel()] = True
+    out = np.where(reach & linked, np.inf, 0.0)
     if not len(e) or reach.all() or not reach.any():
         return out
     length = pose_distance(dq[e[:, 0]], dq[e[:, 1]], orientation_scale)
@@ -70,5 +79,6 @@ def margin(
     weight = np.maximum(weight, 1e-300)
     graph = coo_matrix((weight, (rows, cols)), shape=(n + 1, n + 1)).tocsr()
     dist = dijkstra(graph, directed=False, indices=n)
-    out[reach] = dist[:n][reach]
+    inner_rows = reach & linked
+    out[inner_rows] = dist[:n][inner_rows]
     return out

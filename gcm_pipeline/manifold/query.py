@@ -42,12 +42,13 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
-from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_features
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.lattice import RowMesh, interpolate, row_memberships, row_mesh
 from gcm_pipeline.manifold.locate import Location, TriangleLocator, as_query_poses
 from gcm_pipeline.manifold.run_queries import PoseCheck, RunQueries
 from gcm_pipeline.manifold.search import (
+    Answers,
     BestGrasps,
     NearestReachable,
     first_unique,
@@ -158,10 +159,18 @@ class GraspManifold:
 
     @property
     def locator(self) -> TriangleLocator:
-        """The nearest-point index over the triangles (built on first use)."""
+        """The nearest-point index over the triangles and isolated candidates (built on first use).
+
+        Candidates that no triangle uses (:attr:`~gcm_pipeline.manifold.build.
+        Manifold.unused`) are points of the manifold: ``locate`` reports one
+        as ``triangle`` -1 with its row in ``vertex``.
+        """
         if self._locator is None:
+            unused = self.mesh.unused
             self._locator = TriangleLocator(
                 self.poses[self.triangles],
+                points=self.poses[unused],
+                point_ids=unused,
                 method=self.method,
                 orientation_scale=self.orientation_scale,
             )
@@ -253,9 +262,14 @@ class GraspManifold:
         Args:
             poses: (M, 4, 4) or (M, 8) query poses in the world (one pose: (4, 4) or (8,)).
 
+        A candidate that no triangle uses is a point of the manifold too: at
+        its exact pose the answer is that candidate, ``triangle`` -1 and its
+        row in ``vertex``.
+
         Returns:
             :class:`~gcm_pipeline.manifold.locate.Location`: ``triangle``
-            (M,), ``weights`` (M, 3), ``distance`` (M,) [m], ``dq`` (M, 8).
+            (M,), ``weights`` (M, 3), ``distance`` (M,) [m], ``dq`` (M, 8),
+            ``vertex`` (M,) (the isolated candidate's row, else -1).
 
         Raises:
             GeometryError: Query poses not rigid, not finite or of a wrong shape.
@@ -326,32 +340,9 @@ class GraspManifold:
         nq = check.robot.nq
         rows_ok, q_table = self._reachable_rows()
         loc = self.locator.locate(query)
-        out_dq = np.full((m, 8), np.nan)
-        out_q = np.full((m, nq), np.nan)
-        out_d = np.full(m, np.inf)
-        out_t = np.full(m, -1, dtype=np.int64)
-        out_w = np.full((m, 3), np.nan)
+        answer = Answers(query, nq, self.orientation_scale)
         if m == 0:
-            return NearestReachable(
-                out_dq, out_q, out_d, out_t, out_w, np.zeros(0, bool), loc.distance
-            )
-
-        def offer(
-            i: np.ndarray, dq: np.ndarray, q: np.ndarray, t: np.ndarray, w: np.ndarray
-        ) -> None:
-            if not len(i):
-                return
-            d = pose_distance(dq, query[i], self.orientation_scale)
-            # several offers for one query: keep the nearest (lexsort by distance)
-            order = np.lexsort((d, i))
-            i, dq, q, t, w, d = i[order], dq[order], q[order], t[order], w[order], d[order]
-            first = np.r_[True, i[1:] != i[:-1]]
-            i, dq, q, t, w, d = i[first], dq[first], q[first], t[first], w[first], d[first]
-            better = d < out_d[i]
-            i = i[better]
-            out_dq[i], out_q[i], out_d[i] = dq[better], q[better], d[better]
-            out_t[i], out_w[i] = t[better], w[better]
-
+            return answer.result(loc.distance)
         # nearest reachable rows of every query (pose metric, both quaternion signs)
         k = min(int(neighbours), rows_ok.size)
         near = np.zeros((m, 0), dtype=np.int64)
@@ -365,19 +356,27 @@ class GraspManifold:
             near = first_unique(idx, k)
             near = rows_ok[near]
         # 1. the nearest manifold point, warm-started from its vertices and the nearest rows
-        tri_rows = self.triangles[loc.triangle]
-        by_weight = np.take_along_axis(tri_rows, np.argsort(-loc.weights, axis=1), axis=1)
+        own = np.repeat(np.maximum(loc.vertex, 0)[:, None], 3, axis=1)  # an isolated candidate
+        on = loc.triangle >= 0
+        own[on] = self.triangles[loc.triangle[on]]
+        by_weight = np.take_along_axis(own, np.argsort(-loc.weights, axis=1), axis=1)
         seed_rows = np.concatenate((by_weight, near), axis=1)
         res = check(loc.dq, q_table[seed_rows])
         ok = np.asarray(res["reachable"], dtype=bool)
-        idx_ok = np.flatnonzero(ok)
-        offer(idx_ok, loc.dq[ok], np.asarray(res["q"])[ok], loc.triangle[ok], loc.weights[ok])
+        answer.offer(
+            np.flatnonzero(ok),
+            loc.dq[ok],
+            np.asarray(res["q"])[ok],
+            loc.triangle[ok],
+            loc.weights[ok],
+            loc.vertex[ok],
+        )
         todo = np.flatnonzero(~ok)
         if todo.size and k > 0:
-            search_near_rows(self, query, todo, near[todo], q_table, check, bisections, offer)
-        found = np.isfinite(out_d)
-        out_d[~found] = np.nan
-        return NearestReachable(out_dq, out_q, out_d, out_t, out_w, found, loc.distance)
+            search_near_rows(
+                self, query, todo, near[todo], q_table, check, bisections, answer.offer
+            )
+        return answer.result(loc.distance)
 
     # ------------------------------------------------------------ optimisation
     def metric_values(self, table: GraspTable, metric: str) -> np.ndarray:
@@ -437,12 +436,16 @@ class GraspManifold:
         approach) and its metric computed from its own solution; a move is
         taken only if it is reachable, in ``region`` and strictly better. So
         each result is at least as good as the row it started from, and the
-        first one at least as good as the best row of the run.
+        first one at least as good as the best row of the run. A candidate in
+        no triangle (an isolated point of the manifold) is a start like any
+        row; with nowhere to climb, its result is the row itself (``triangle``
+        -1, weights ``(1, 0, 0)``).
 
         Args:
             metric: One of :data:`QUERY_METRICS` (default: the run's ranking metric).
-            region: None (the whole manifold), triangle ids, or a callable
-                taking poses (M, 8) and returning a boolean mask (M,).
+            region: None (the whole manifold), triangle ids (no isolated
+                candidate is in them), or a callable taking poses (M, 8) and
+                returning a boolean mask (M,).
             starts: How many of the best rows to start from.
             iterations: Pattern-search iterations.
             robot: The robot (default: the run's).
@@ -463,7 +466,7 @@ class GraspManifold:
         rows_ok, q_table = self._reachable_rows()
         row_values = self.metric_values(self.grasps, metric)
         inside = self._region_mask(region)
-        mem_row, mem_tri, mem_w = row_memberships(self.grasps, self.triangles, self.mesh.n_vertices)
+        mem_row, mem_tri, mem_w = self._memberships()
         in_region = inside(mem_tri, self.grasps["dq"][mem_row])
         candidates = np.unique(mem_row[in_region])
         candidates = candidates[np.isin(candidates, rows_ok) & np.isfinite(row_values[candidates])]
@@ -471,32 +474,29 @@ class GraspManifold:
             raise InputError(f"no reachable row with a finite {metric!r} in the region")
         order = np.lexsort((candidates, -row_values[candidates]))
         start_rows = candidates[order][: max(1, int(starts))]
-        # one search per (start row, triangle around it)
+        # one search per (start row, triangle around it); an isolated row stays where it is
         sel = np.isin(mem_row, start_rows) & in_region
         s_row, t, w = mem_row[sel], mem_tri[sel], mem_w[sel].copy()
-        w, q_cur, val, dq_cur = pattern_search(
-            self,
-            t,
-            w,
-            q_table[s_row].copy(),
-            row_values[s_row].copy(),
-            np.asarray(self.grasps["dq"])[s_row].copy(),
-            step=0.5 * self._cell_size(),
-            iterations=int(iterations),
-            check=check,
-            values=lambda res, tri, wt: self._point_values(res, metric, tri, wt),
-            inside=inside,
-        )
+        q_cur, val = q_table[s_row].copy(), row_values[s_row].copy()
+        dq_cur = np.asarray(self.grasps["dq"])[s_row].copy()
+        move = t >= 0
+        if move.any():
+            w[move], q_cur[move], val[move], dq_cur[move] = pattern_search(
+                self,
+                t[move],
+                w[move],
+                q_cur[move],
+                val[move],
+                dq_cur[move],
+                step=0.5 * self._cell_size(),
+                iterations=int(iterations),
+                check=check,
+                values=lambda res, tri, wt: self._point_values(res, metric, tri, wt),
+                inside=inside,
+            )
         # best search per start row, then best first
         order = np.lexsort((-val, s_row))
-        s_row, t, w, q_cur, val, dq_cur = (
-            s_row[order],
-            t[order],
-            w[order],
-            q_cur[order],
-            val[order],
-            dq_cur[order],
-        )
+        s_row, t, w, q_cur, val, dq_cur = (a[order] for a in (s_row, t, w, q_cur, val, dq_cur))
         first = np.r_[True, s_row[1:] != s_row[:-1]]
         keep = np.flatnonzero(first)
         keep = keep[np.lexsort((s_row[keep], -val[keep]))]
@@ -509,6 +509,19 @@ class GraspManifold:
             start_row=s_row[keep],
             start_value=row_values[s_row[keep]],
             metric=metric,
+        )
+
+    def _memberships(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every (row, triangle, weights) of :func:`row_memberships`, then the isolated ones.
+
+        An isolated candidate (in no triangle) is ``(row, -1, (1, 0, 0))``.
+        """
+        mem_row, mem_tri, mem_w = row_memberships(self.grasps, self.triangles, self.mesh.n_vertices)
+        alone = self.mesh.unused
+        return (
+            np.concatenate((mem_row, alone)),
+            np.concatenate((mem_tri, np.full(len(alone), -1, dtype=np.int64))),
+            np.concatenate((mem_w, np.tile([1.0, 0.0, 0.0], (len(alone), 1)))),
         )
 
     def _point_values(
@@ -557,4 +570,4 @@ class GraspManifold:
             raise InputError(f"region triangle ids must be in 0..{len(self) - 1}")
         allowed = np.zeros(len(self), dtype=bool)
         allowed[ids] = True
-        return lambda tri, dq: allowed[tri]
+        return lambda tri, dq: (tri >= 0) & allowed[np.maximum(tri, 0)]

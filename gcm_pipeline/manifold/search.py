@@ -15,12 +15,14 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from gcm_pipeline.geometry.pose_metric import pose_distance
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.lattice import row_memberships
 from gcm_pipeline.manifold.surface import blend, project_onto_triangles
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
+    "Answers",
     "BestGrasps",
     "NearestReachable",
     "Surface",
@@ -38,12 +40,16 @@ class NearestReachable(NamedTuple):
         q: (M, nq) its IK solution [rad], verified by Pinocchio FK, collision
             free and approachable as in the run.
         distance: (M,) pose-metric distance [m] from the query to the grasp.
-        triangle: (M,) manifold triangle of the grasp (-1 if none).
-        weights: (M, 3) its barycentric weights there.
+        triangle: (M,) manifold triangle of the grasp; -1 if none was found
+            or the grasp is an isolated candidate (see ``vertex``).
+        weights: (M, 3) its barycentric weights there (``(1, 0, 0)`` at an
+            isolated candidate, NaN if none was found).
         found: (M,) bool, False when no reachable grasp was found near the query.
         located: (M,) distance [m] from the query to the manifold itself
             (``GraspManifold.locate``); equal to ``distance`` when the
             nearest manifold point is reachable.
+        vertex: (M,) table row of the grasp when it is a candidate in no
+            triangle (an isolated point of the manifold), else -1.
     """
 
     dq: np.ndarray
@@ -53,6 +59,63 @@ class NearestReachable(NamedTuple):
     weights: np.ndarray
     found: np.ndarray
     located: np.ndarray
+    vertex: np.ndarray
+
+
+class Answers:
+    """The nearest reachable grasp offered so far for each of M queries.
+
+    Args:
+        query: (M, 8) the query poses.
+        nq: Joints of the robot.
+        orientation_scale: ``L`` [m/rad] of the pose metric.
+    """
+
+    def __init__(self, query: np.ndarray, nq: int, orientation_scale: float) -> None:
+        m = len(query)
+        self.query = query
+        self.orientation_scale = orientation_scale
+        self.dq = np.full((m, 8), np.nan)
+        self.q = np.full((m, nq), np.nan)
+        self.distance = np.full(m, np.inf)
+        self.triangle = np.full(m, -1, dtype=np.int64)
+        self.weights = np.full((m, 3), np.nan)
+        self.vertex = np.full(m, -1, dtype=np.int64)
+
+    def offer(
+        self,
+        i: np.ndarray,
+        dq: np.ndarray,
+        q: np.ndarray,
+        t: np.ndarray,
+        w: np.ndarray,
+        v: np.ndarray,
+    ) -> None:
+        """Offer reachable grasps to queries ``i``; each query keeps the nearest.
+
+        ``dq`` the grasps, ``q`` their solutions, ``t`` their triangles, ``w``
+        their weights, ``v`` their rows when isolated (else -1).
+        """
+        if not len(i):
+            return
+        d = pose_distance(dq, self.query[i], self.orientation_scale)
+        # several offers for one query: keep the nearest (lexsort by distance)
+        order = np.lexsort((d, i))
+        i, dq, q, t, w, v, d = (a[order] for a in (i, dq, q, t, w, v, d))
+        first = np.r_[True, i[1:] != i[:-1]]
+        i, dq, q, t, w, v, d = (a[first] for a in (i, dq, q, t, w, v, d))
+        better = d < self.distance[i]
+        i = i[better]
+        self.dq[i], self.q[i], self.distance[i] = dq[better], q[better], d[better]
+        self.triangle[i], self.weights[i], self.vertex[i] = t[better], w[better], v[better]
+
+    def result(self, located: np.ndarray) -> NearestReachable:
+        """The answers, with the distances ``located`` to the manifold."""
+        found = np.isfinite(self.distance)
+        distance = np.where(found, self.distance, np.nan)
+        return NearestReachable(
+            self.dq, self.q, distance, self.triangle, self.weights, found, located, self.vertex
+        )
 
 
 class BestGrasps(NamedTuple):
@@ -62,8 +125,9 @@ class BestGrasps(NamedTuple):
         dq: (K, 8) the grasps (world), points of the manifold.
         q: (K, nq) their verified IK solutions [rad].
         value: (K,) the metric at each grasp (same scale as the run's column).
-        triangle: (K,) manifold triangle of each grasp.
-        weights: (K, 3) barycentric weights there.
+        triangle: (K,) manifold triangle of each grasp; -1 for an isolated
+            candidate (the grasp is then ``start_row`` itself).
+        weights: (K, 3) barycentric weights there (``(1, 0, 0)`` if isolated).
         start_row: (K,) the table row each search started from.
         start_value: (K,) the metric of that row; ``value >= start_value``.
         metric: The metric's name.
@@ -111,11 +175,13 @@ def search_near_rows(
 ) -> None:
     """Step 2 of ``GraspManifold.nearest_reachable`` for the queries ``todo``.
 
-    Each query is projected onto the triangles around its nearest reachable
-    rows; a reachable projection is offered, an unreachable one is bisected
-    from the row towards it (``bisections`` halvings) and the last reachable
-    point is offered. ``offer(queries, dq, q, triangles, weights)`` keeps the
-    nearest per query.
+    Each near row, re-checked from its own solution, is offered itself (so
+    the answer is never farther than the nearest reachable row, whether or
+    not a triangle uses it). Each query is then projected onto the triangles
+    around its nearest reachable rows; a reachable projection is offered, an
+    unreachable one is bisected from the row towards it (``bisections``
+    halvings) and the last reachable point is offered. ``offer(queries, dq,
+    q, triangles, weights, isolated rows)`` keeps the nearest per query.
     """
     n_v = m.mesh.n_vertices
     mem_row, mem_tri, mem_w = row_memberships(m.grasps, m.triangles, n_v)
@@ -135,6 +201,16 @@ def search_near_rows(
     lo = np.searchsorted(mem_row, r, side="left")
     hi = np.searchsorted(mem_row, r, side="right")
     counts = hi - lo
+    alone = counts == 0  # rows in no triangle: isolated points of the manifold
+    ra = r[alone]
+    offer(
+        qi[alone],
+        np.asarray(m.grasps["dq"])[ra],
+        q_row[ra],
+        np.full(len(ra), -1, dtype=np.int64),
+        np.tile([1.0, 0.0, 0.0], (len(ra), 1)),
+        ra,
+    )
     pair_q = np.repeat(qi, counts)
     pair_r = np.repeat(r, counts)
     pos = (
@@ -144,7 +220,8 @@ def search_near_rows(
     )
     pair_t, pair_w0 = mem_tri[pos], mem_w[pos]
     row_dq = np.asarray(m.grasps["dq"])[pair_r]
-    offer(pair_q, row_dq, q_row[pair_r], pair_t, pair_w0)
+    none = np.full(len(pair_q), -1, dtype=np.int64)
+    offer(pair_q, row_dq, q_row[pair_r], pair_t, pair_w0, none)
     if not len(pair_q):
         return
     corners = m.poses[m.triangles[pair_t]]
@@ -159,7 +236,7 @@ def search_near_rows(
     y = blend(corners, w_y, m.method)
     res = check(y, q_row[pair_r][:, None, :])
     ok = np.asarray(res["reachable"], dtype=bool)
-    offer(pair_q[ok], y[ok], np.asarray(res["q"])[ok], pair_t[ok], w_y[ok])
+    offer(pair_q[ok], y[ok], np.asarray(res["q"])[ok], pair_t[ok], w_y[ok], none[ok])
     b = np.flatnonzero(~ok)
     s_lo = np.zeros(len(b))
     s_hi = np.ones(len(b))
@@ -179,7 +256,8 @@ def search_near_rows(
     if moved.any():
         bb = b[moved]
         w = (1.0 - s_lo[moved])[:, None] * pair_w0[bb] + s_lo[moved][:, None] * w_y[bb]
-        offer(pair_q[bb], blend(corners[bb], w, m.method), q_lo[moved], pair_t[bb], w)
+        pts = blend(corners[bb], w, m.method)
+        offer(pair_q[bb], pts, q_lo[moved], pair_t[bb], w, none[bb])
 
 
 def pattern_search(

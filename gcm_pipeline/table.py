@@ -228,7 +228,7 @@ COLUMNS: dict[str, Column] = {
         "m",
         "continuity",
         "distance along the manifold to the nearest unreachable point "
-        "(0 at the boundary and beyond, `inf` if none)",
+        "(0 at the boundary and beyond and on a candidate in no triangle, `inf` if none)",
     ),
     "manip_translation": Column(
         "float", "(N,)", "", "ranking", "translational Yoshikawa index (3 rows)"

@@ -153,7 +153,7 @@ def _cells(s: int) -> tuple[np.ndarray, np.ndarray]:
 def _dedupe(rows: np.ndarray, tris: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
     """Distinct (row, triangle) pairs, sorted."""
     key = np.sort(rows * t + tris)
-    key = key[np.r_[True, key[1:] != key[:-1]]]
+    key = key[np.r_[True, key[1:] != key[:-1]]] if key.size else key
     return key // t, key % t
 
 

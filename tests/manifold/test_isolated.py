@@ -132,6 +132,9 @@ def test_isolated_points_are_points_of_the_manifold(seed: int) -> None:
     # exhaustive search with the points gives the same answer
     full = loc.locate(queries, exhaustive=True)
     assert np.all(np.abs(full.distance - got.distance) <= 1e-12)
+    # and so does one query at a time (a batch with nothing left to search)
+    one = loc.locate(queries, batch=1)
+    assert np.array_equal(one.distance, got.distance)
     # an isolated answer names its point; a triangle answer names no point
     iso = got.vertex >= 0
     assert np.array_equal(iso, got.triangle == -1)
@@ -140,6 +143,19 @@ def test_isolated_points_are_points_of_the_manifold(seed: int) -> None:
     # at a point's exact pose the answer is that point
     at = got.distance[-len(points) :]
     assert np.all(at == 0.0)
+
+
+def test_a_query_at_an_isolated_point_far_from_every_triangle() -> None:
+    # no triangle is near enough to be searched at all (each query alone, as gcm query asks)
+    tri = dq_exp(np.c_[np.zeros((3, 3)), np.eye(3) * 0.01]).reshape(1, 3, 8)
+    point = dq_exp(np.array([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0]]))
+    loc = TriangleLocator(tri, points=point, point_ids=[7])
+    for q in (point, point[:, [0, 1, 2, 3, 4, 5, 6, 7]] * [[-1] * 8]):  # both quaternion signs
+        got = loc.locate(q)
+        assert got.vertex.tolist() == [7] and got.triangle.tolist() == [-1]
+        assert got.distance.tolist() == [0.0]
+    near_tri = loc.locate(tri[0, :1])
+    assert near_tri.triangle.tolist() == [0] and near_tri.distance[0] < 1e-9
 
 
 def test_locator_needs_a_triangle_or_a_point() -> None:

@@ -240,7 +240,10 @@ class GraspManifold:
         bad = (tri < 0) | (tri >= len(self))
         if bad.any():
             i = int(np.argmax(bad))
-            raise GeometryError(f"triangle id {int(tri[i])} at {i} is outside 0..{len(self) - 1}")
+            hint = " (-1: an isolated candidate, its pose is Location.dq)" if tri[i] == -1 else ""
+            raise GeometryError(
+                f"triangle id {int(tri[i])} at {i} is outside 0..{len(self) - 1}{hint}"
+            )
         off = ~np.isfinite(w).all(axis=1) | (w < -1e-12).any(axis=1)
         off |= np.abs(w.sum(axis=1) - 1.0) > 1e-9
         if off.any():

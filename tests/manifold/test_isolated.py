@@ -188,6 +188,8 @@ def test_the_mug_has_isolated_reachable_rows(mug: gcm.GraspManifold) -> None:
     loc = mug.locate(mug.poses[iso])
     assert np.array_equal(loc.vertex, iso) and np.all(loc.triangle == -1)
     assert np.all(loc.distance == 0.0)
+    with pytest.raises(gcm.GeometryError, match="-1: an isolated candidate"):
+        mug.sample(loc.triangle[:1], loc.weights[:1])
     # and their margin is 0 (isolated), though reachable
     assert np.all(np.asarray(mug.grasps["margin"])[iso] == 0.0)
 

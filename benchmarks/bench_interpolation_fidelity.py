@@ -78,6 +78,8 @@ TOLERANCES_MM = (0.0, 0.5, 1.0, 2.0, 5.0)
 HEADLINE_MM = 1.0
 TARGET_RATIO = 0.9
 SAMPLE_SPACING = 0.0015  # [m] surface samples for the depth
+ANGLE_BINS_DEG = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 180.0)
+EDGE_BINS_MM = (0.0, 20.0, 40.0, 60.0, 80.0, float("inf"))
 
 
 class Penetration:
@@ -207,14 +209,13 @@ def to_file_frame(dq: np.ndarray, cfg: Config, report: dict[str, Any]) -> np.nda
 def rates(depths: np.ndarray, crossing_margin: dict[float, np.ndarray]) -> dict[str, Any]:
     """Non-penetrating shares, one per tolerance of :data:`TOLERANCES_MM`."""
     n = len(depths)
-    nan = float("nan")
     return {
         "count": int(n),
         "non_penetrating": [
-            float(np.mean(depths <= t / 1000.0)) if n else nan for t in TOLERANCES_MM
+            float(np.mean(depths <= t / 1000.0)) if n else None for t in TOLERANCES_MM
         ],
         "coal_margin_non_penetrating": [
-            float(np.mean(~crossing_margin[t])) if n else nan for t in TOLERANCES_MM
+            float(np.mean(~crossing_margin[t])) if n else None for t in TOLERANCES_MM
         ],
     }
 
@@ -263,67 +264,126 @@ def bench_set(name: str, h5: Path, args: argparse.Namespace, base: dict) -> dict
     for success_only, label, manifold in runs:
         label = f"{label}, success_only" if success_only else label
         cfg = run_config(h5, mesh, scale, manifold, base["densify"], success_only)
-        report: dict[str, Any] = {}
-        grasps = generate_candidates(cfg, report=report)
-        t1 = time.perf_counter()
-        man = build_manifold(grasps, cfg)
-        t2 = time.perf_counter()
-        dense = densify(grasps, man, cfg)
-        t3 = time.perf_counter()
-        back = to_file_frame(np.asarray(dense["dq"]), cfg, report)
-        src = np.asarray(dense["source_id"])
-        cand = np.flatnonzero(np.asarray(dense["origin"]) == "candidate")
-        err = np.abs(back[cand] - transforms[src[cand]]).max()
-        if err > 1e-9:
-            sys.exit(f"error: {name} {label}: candidates map back {err:.3g} off the file")
-        success = success_file[src[: len(grasps)]]
-        rows, vertex_ids = simplex_rows(dense, success)
-        many = args.max_rows is not None and len(rows) > args.max_rows
-        pick = rng.choice(rows, args.max_rows, replace=False) if many else rows
-        vd, vh = measure(pen, back[vertex_ids])
-        rd, rh = measure(pen, back[np.sort(pick)])
-        r_rates, v_rates = rates(rd, rh), rates(vd, vh)
-        head = TOLERANCES_MM.index(HEADLINE_MM)
-        v, r = v_rates["non_penetrating"][head], r_rates["non_penetrating"][head]
-        simplices = np.asarray(getattr(man, "triangles", np.zeros((0, 3))))
-        row = {
-            "variant": label,
-            "success_only": success_only,
-            "manifold": {k: v for k, v in manifold.items() if k in STRUCTURE_KEYS},
-            "candidates": len(grasps),
-            "simplices": int(len(simplices)),
-            "interpolated_rows": int(len(dense) - len(cand)),
-            "interpolated_all_successful": int(len(rows)),
-            "interpolated_measured": int(len(pick)),
-            "vertices": v_rates,
-            "interpolated": r_rates,
-            "ratio": [
-                _ratio(a, b)
-                for a, b in zip(r_rates["non_penetrating"], v_rates["non_penetrating"], strict=True)
-            ],
-            "headline": {
-                "tolerance_mm": HEADLINE_MM,
-                "vertices_rate": v,
-                "interpolated_rate": r,
-                "interpolated_rate_stderr": float(np.sqrt(r * (1 - r) / max(len(pick), 1))),
-                "ratio": _ratio(r, v),
-                "target_met": bool(_ratio(r, v) >= TARGET_RATIO),
-            },
-            "roundtrip_max_error": float(err),
-            "seconds": {"manifold": round(t2 - t1, 4), "densify": round(t3 - t2, 4)},
-        }
-        out["variants"].append(row)
+        row = bench_variant(cfg, pen, transforms, success_file, args.max_rows, rng)
+        out["variants"].append({"variant": label, "success_only": success_only, **row})
+        h = row["headline"]
         print(
-            f"  {label:46s} simplices {row['simplices']:6d}  rows {len(rows):6d} "
-            f"(measured {len(pick):5d})  vertices {len(vertex_ids):5d}  "
-            f"non-penetrating @1mm: vertices {v:.3f}  interpolated {r:.3f}  "
-            f"ratio {_ratio(r, v):.3f}"
+            f"  {label:46s} simplices {row['simplices']:6d}  rows "
+            f"{row['interpolated_all_successful']:6d} (measured {row['interpolated_measured']:5d})"
+            f"  vertices {row['vertices']['count']:5d}  non-penetrating @1mm: vertices "
+            f"{_f(h['vertices_rate'])}  interpolated {_f(h['interpolated_rate'])}  "
+            f"ratio {_f(h['ratio'])}"
         )
     return out
 
 
-def _ratio(a: float, b: float) -> float:
-    return float(a / b) if b > 0 else float("nan")
+def bench_variant(
+    cfg: Config,
+    pen: Penetration,
+    transforms: np.ndarray,
+    success_file: np.ndarray,
+    max_rows: int | None,
+    rng: np.random.Generator,
+) -> dict[str, Any]:
+    """Build, densify, map back and measure one config."""
+    report: dict[str, Any] = {}
+    grasps = generate_candidates(cfg, report=report)
+    t1 = time.perf_counter()
+    man = build_manifold(grasps, cfg)
+    t2 = time.perf_counter()
+    dense = densify(grasps, man, cfg)
+    t3 = time.perf_counter()
+    back = to_file_frame(np.asarray(dense["dq"]), cfg, report)
+    src = np.asarray(dense["source_id"])
+    cand = np.flatnonzero(np.asarray(dense["origin"]) == "candidate")
+    err = np.abs(back[cand] - transforms[src[cand]]).max()
+    if err > 1e-9:
+        sys.exit(f"error: {cfg.manifold}: candidates map back {err:.3g} off the file")
+    success = success_file[src[: len(grasps)]]
+    rows, vertex_ids = simplex_rows(dense, success)
+    many = max_rows is not None and len(rows) > max_rows
+    pick = np.sort(rng.choice(rows, max_rows, replace=False) if many else rows)
+    vd, vh = measure(pen, back[vertex_ids])
+    rd, rh = measure(pen, back[pick])
+    r_rates, v_rates = rates(rd, rh), rates(vd, vh)
+    head = TOLERANCES_MM.index(HEADLINE_MM)
+    v, r = v_rates["non_penetrating"][head], r_rates["non_penetrating"][head]
+    ratio = _ratio(r, v)
+    deep = rd[rd > HEADLINE_MM / 1000.0] * 1000.0
+    tcp = dq_to_matrix(np.asarray(dense["dq"])[: len(grasps)])
+    verts = np.asarray(dense["vertices"], dtype=np.int64)[pick]
+    return {
+        "manifold": {
+            k: v for k, v in cfg.manifold.model_dump(mode="json").items() if k in STRUCTURE_KEYS
+        },
+        "candidates": len(grasps),
+        "simplices": int(len(np.asarray(getattr(man, "triangles", np.zeros((0, 3)))))),
+        "interpolated_rows": int(len(dense) - len(cand)),
+        "interpolated_all_successful": int(len(rows)),
+        "interpolated_measured": int(len(pick)),
+        "vertices": v_rates,
+        "interpolated": r_rates,
+        "ratio": [
+            _ratio(a, b)
+            for a, b in zip(r_rates["non_penetrating"], v_rates["non_penetrating"], strict=True)
+        ],
+        "headline": {
+            "vertices_rate": v,
+            "interpolated_rate": r,
+            "interpolated_rate_stderr": (
+                None if r is None else float(np.sqrt(r * (1 - r) / len(pick)))
+            ),
+            "ratio": ratio,
+            "target_met": ratio is not None and ratio >= TARGET_RATIO,
+            "penetrating_depth_mm_median": float(np.median(deep)) if len(deep) else 0.0,
+        },
+        "by_simplex_angle": spread_table(
+            _spread(tcp, verts, "angle"), rd, ANGLE_BINS_DEG, "max_vertex_angle_deg"
+        ),
+        "by_simplex_edge": spread_table(
+            _spread(tcp, verts, "length") * 1000.0, rd, EDGE_BINS_MM, "longest_edge_mm"
+        ),
+        "roundtrip_max_error": float(err),
+        "seconds": {"manifold": round(t2 - t1, 4), "densify": round(t3 - t2, 4)},
+    }
+
+
+def _spread(tcp: np.ndarray, verts: np.ndarray, what: str) -> np.ndarray:
+    """Per row, the largest angle [deg] or distance [m] between two of its simplex's vertices."""
+    out = np.zeros(len(verts))
+    k = verts.shape[1]
+    for i in range(k):
+        for j in range(i + 1, k):
+            a, b = verts[:, i], verts[:, j]
+            both = (a >= 0) & (b >= 0)
+            ta, tb = tcp[np.where(both, a, 0)], tcp[np.where(both, b, 0)]
+            if what == "angle":
+                cos = (np.einsum("nij,nij->n", ta[:, :3, :3], tb[:, :3, :3]) - 1.0) / 2.0
+                value = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+            else:
+                value = np.linalg.norm(ta[:, :3, 3] - tb[:, :3, 3], axis=1)
+            out = np.maximum(out, np.where(both, value, 0.0))
+    return out
+
+
+def spread_table(
+    spread: np.ndarray, depths: np.ndarray, edges: tuple[float, ...], name: str
+) -> dict[str, Any]:
+    """Rows and their non-penetrating share (headline tolerance) per bin of ``spread``."""
+    bins = np.digitize(spread, edges[1:-1])
+    ok = depths <= HEADLINE_MM / 1000.0
+    counts = [int(np.sum(bins == i)) for i in range(len(edges) - 1)]
+    shares = [float(np.mean(ok[bins == i])) if c else None for i, c in enumerate(counts)]
+    return {name: list(edges), "rows": counts, "non_penetrating": shares}
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    """``a / b``, None (null in the JSON) when either is missing or ``b`` is 0."""
+    return float(a / b) if a is not None and b else None
+
+
+def _f(x: float | None) -> str:
+    return f"{x:7.3f}" if x is not None else "      -"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -376,9 +436,9 @@ def print_table(sets: dict[str, Any]) -> None:
     for name, s in sets.items():
         for v in s["variants"]:
             label = f"{name} {v['variant']}"
-            vv = "  ".join(f"{x:7.3f}" for x in v["vertices"]["non_penetrating"])
-            rr = "  ".join(f"{x:7.3f}" for x in v["interpolated"]["non_penetrating"])
-            ra = "  ".join(f"{x:7.3f}" for x in v["ratio"])
+            vv = "  ".join(_f(x) for x in v["vertices"]["non_penetrating"])
+            rr = "  ".join(_f(x) for x in v["interpolated"]["non_penetrating"])
+            ra = "  ".join(_f(x) for x in v["ratio"])
             print(f"{label:52s}{vv}   vertices ({v['vertices']['count']})")
             print(f"{'':52s}{rr}   interpolated ({v['interpolated']['count']})")
             print(f"{'':52s}{ra}   ratio")

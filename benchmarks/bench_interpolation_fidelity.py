@@ -28,6 +28,9 @@ A pose penetrates at tolerance ``t`` when the surfaces cross with depth > ``t``
 ``t = 1 mm``; the rate at every tolerance is reported, and as a cross-check
 coal's own criterion (collision with ``security_margin = -t``).
 
+A control shows the test sees penetration: the successful grasps moved 20 mm
+further along their approach (``control_pushed_20mm``).
+
 Rates: the vertices (distinct successful candidates used by a kept simplex all
 of whose vertices are successful), every successful candidate, and the
 interpolated rows whose simplex vertices are all successful (all of them, or a
@@ -78,6 +81,7 @@ TOLERANCES_MM = (0.0, 0.5, 1.0, 2.0, 5.0)
 HEADLINE_MM = 1.0
 TARGET_RATIO = 0.9
 SAMPLE_SPACING = 0.0015  # [m] surface samples for the depth
+PUSH = 0.02  # [m] the control: successful grasps moved this far along their approach
 ANGLE_BINS_DEG = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 180.0)
 EDGE_BINS_MM = (0.0, 20.0, 40.0, 60.0, 80.0, float("inf"))
 
@@ -259,6 +263,10 @@ def bench_set(name: str, h5: Path, args: argparse.Namespace, base: dict) -> dict
     d, hits = measure(pen, transforms[ok_ids])
     out["successful_candidates"] = rates(d, hits)
     out["failed_candidates"] = rates(*measure(pen, transforms[~success_file]))
+    # a control that the test sees penetration: successful grasps pushed along their approach
+    pushed = transforms[ok_ids].copy()
+    pushed[:, :3, 3] += PUSH * pushed[:, :3, 2]
+    out[f"control_pushed_{PUSH * 1000:g}mm"] = rates(*measure(pen, pushed))
     rng = np.random.default_rng(0)
     runs = [(only, *v) for only in (False, True) for v in variants(base["manifold"])]
     for success_only, label, manifold in runs:
@@ -317,7 +325,7 @@ def bench_variant(
             k: v for k, v in cfg.manifold.model_dump(mode="json").items() if k in STRUCTURE_KEYS
         },
         "candidates": len(grasps),
-        "simplices": int(len(np.asarray(getattr(man, "triangles", np.zeros((0, 3)))))),
+        "simplices": _simplex_count(man),
         "interpolated_rows": int(len(dense) - len(cand)),
         "interpolated_all_successful": int(len(rows)),
         "interpolated_measured": int(len(pick)),
@@ -346,6 +354,15 @@ def bench_variant(
         "roundtrip_max_error": float(err),
         "seconds": {"manifold": round(t2 - t1, 4), "densify": round(t3 - t2, 4)},
     }
+
+
+def _simplex_count(man: Any) -> int:
+    """Kept simplices of a manifold (``simplices`` or, for the charts, ``triangles``)."""
+    for name in ("simplices", "triangles"):
+        found = getattr(man, name, None)
+        if found is not None:
+            return int(len(np.asarray(found)))
+    raise SystemExit(f"error: {type(man).__name__} has neither simplices nor triangles")
 
 
 def _spread(tcp: np.ndarray, verts: np.ndarray, what: str) -> np.ndarray:

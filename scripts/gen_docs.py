@@ -273,7 +273,9 @@ BENCH_NOTES: dict[str, str] = {
         "interpolated rows. Non-penetrating share at each tolerance (`coal_margin_*`: coal's "
         "own criterion, `security_margin = -tolerance`); target: `headline.ratio` >= 0.9 at "
         "1 mm. `by_simplex_angle` / `by_simplex_edge`: the measured rows and their share at "
-        "1 mm by their simplex's largest vertex-to-vertex angle / edge (bin edges listed)."
+        "1 mm by their simplex's largest vertex-to-vertex angle / edge (bin edges listed). "
+        "`control_pushed_20mm`: the successful grasps moved 20 mm along their approach (the "
+        "test sees penetration)."
     ),
     "ik": (
         "The Panda on targets that are FK of uniform random configurations (reachable), "

@@ -7,7 +7,7 @@ The map between the two depends on the gripper and on the file's convention;
 a :class:`GripperSpec` holds it, with the gripper's opening limit and finger
 depth (used by the antipodal sampler).
 
-Conventions (``T_tool = T_file @ to_tool``):
+Conventions (``T_tool = T_file @ to_tool``; back: ``T_file = T_tool @ from_tool``):
 
 =============== ============================================= =====================
 convention      file frame                                    used by

@@ -259,6 +259,24 @@ BENCH_NOTES: dict[str, str] = {
         "Dual-quaternion conversions and DLB on a million poses, Qhull and Bowyer-Watson "
         "on uniform random points, and the densify stage with DLB and DIB."
     ),
+    "interpolation_fidelity": (
+        "ACRONYM's mug and table (`examples/grasps/*.h5`) imported as a config imports them "
+        "(`format: acronym`, `frame: object`), manifold and densify as in "
+        "`configs/from_file.yaml`, for that file's settings and every value of every structure "
+        "option of the schema (`manifold.projection`, `manifold.structure` when present), on all "
+        "grasps and with `success_only`. Rows are mapped back to ACRONYM's gripper frame "
+        "(`GripperSpec.from_tool`; the candidates come back to the file's transforms) and "
+        "ACRONYM's Franka collision mesh is tested against the scaled object mesh: coal's BVH "
+        "test for a crossing, the depth as the deepest sampled point (1.5 mm spacing) of either "
+        "surface inside the other solid. `vertices`: distinct successful candidates of the kept "
+        "simplices whose vertices are all successful; `interpolated`: those simplices' "
+        "interpolated rows. Non-penetrating share at each tolerance (`coal_margin_*`: coal's "
+        "own criterion, `security_margin = -tolerance`); target: `headline.ratio` >= 0.9 at "
+        "1 mm. `by_simplex_angle` / `by_simplex_edge`: the measured rows and their share at "
+        "1 mm by their simplex's largest vertex-to-vertex angle / edge (bin edges listed). "
+        "`control_pushed_20mm`: the successful grasps moved 20 mm along their approach (the "
+        "test sees penetration)."
+    ),
     "ik": (
         "The Panda on targets that are FK of uniform random configurations (reachable), "
         "targets beyond 1.3 m from the shoulder (`unreachable`) and unreachable targets "

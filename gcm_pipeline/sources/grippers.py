@@ -7,7 +7,7 @@ The map between the two depends on the gripper and on the file's convention;
 a :class:`GripperSpec` holds it, with the gripper's opening limit and finger
 depth (used by the antipodal sampler).
 
-Conventions (``T_tool = T_file @ to_tool``):
+Conventions (``T_tool = T_file @ to_tool``; back: ``T_file = T_tool @ from_tool``):
 
 =============== ============================================= =====================
 convention      file frame                                    used by
@@ -146,6 +146,23 @@ class GripperSpec:
             m[:, 3, 3] = 1.0
             return m[0] if depth is None or np.ndim(depth) == 0 else m
         raise choice_error(ConfigError, "gripper frame convention", convention, CONVENTIONS)
+
+    def from_tool(self, convention: str, depth: np.ndarray | float | None = None) -> np.ndarray:
+        """The inverse of :meth:`to_tool`: the robot's grasp frame back to the file's gripper frame.
+
+        ``T_file = T_tool @ from_tool``; e.g. to place a gripper's own
+        collision mesh (given in its file frame) at a grasp of the table.
+
+        Returns:
+            (4, 4), or (N, 4, 4) for an array ``depth``.
+        """
+        m = self.to_tool(convention, depth)
+        inv = np.zeros_like(m)
+        rot_t = np.swapaxes(m[..., :3, :3], -1, -2)
+        inv[..., :3, :3] = rot_t
+        inv[..., :3, 3] = -np.einsum("...ij,...j->...i", rot_t, m[..., :3, 3])
+        inv[..., 3, 3] = 1.0
+        return inv
 
     def __repr__(self) -> str:
         return (

@@ -308,6 +308,13 @@ class Pipeline:
             "reachable": int(np.count_nonzero(grasps["reachable"])),
             "unreachable_by_reason": unreachable,
         }
+        if manifold.isolation is not None:  # the families structure says why, and its bounds
+            counts["families"] = {
+                "families": int(manifold.family.max(initial=-1) + 1),
+                "isolated_by_reason": manifold.isolated_counts,
+                "max_edge_length": manifold.max_edge_length,
+                "max_edge_angle_deg": manifold.max_edge_angle_deg,
+            }
         _warn_empty(counts, cfg)
         if adaptive:
             counts["adaptive"] = adaptive_counts(grasps, manifold, cfg)

@@ -25,13 +25,12 @@ def face_grasps(seed: int = 0, per_face: int = 60) -> tuple[np.ndarray, np.ndarr
     """Grasps on the six faces of a 10 cm cube (approach along the inward normal).
 
     Per face: random tool points on the face, yaw about the approach within
-    +-15 deg, plus a few stray grasps (a lone one, a lone pair). Returns the
+    +-15 deg; a fan of 8 orientations at one point of face 0; a few stray
+    grasps (a lone one, a lone pair). Returns the
     poses (N, 8) and the face of each grasp (the family it must belong to).
     """
     rng = np.random.default_rng(seed)
-    normals = np.array(
-        [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float
-    )
+    normals = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
     dq, face = [], []
     for f, n in enumerate(normals):
         base = Rotation.align_vectors([-n], [[0.0, 0.0, 1.0]])[0]  # tool z = -n (into the cube)
@@ -44,6 +43,12 @@ def face_grasps(seed: int = 0, per_face: int = 60) -> tuple[np.ndarray, np.ndarr
         xyzw = (base * yaw).as_quat()
         dq.append(dq_from_pos_quat(pos, np.column_stack((xyzw[:, 3], xyzw[:, :3]))))
         face += [f] * per_face
+    # a fan: many orientations at one position (the paper's known problem 1)
+    fan = Rotation.from_euler("z", np.arange(-14.0, 15.0, 4.0)[:, None], degrees=True)
+    xyzw = (Rotation.align_vectors([-normals[0]], [[0.0, 0.0, 1.0]])[0] * fan).as_quat()
+    centre = np.repeat([0.5 * np.array([0.5, 0.0, 0.3]) + 0.05 * normals[0]], len(xyzw), axis=0)
+    dq.append(dq_from_pos_quat(centre, np.column_stack((xyzw[:, 3], xyzw[:, :3]))))
+    face += [0] * len(xyzw)
     dq = np.concatenate(dq)
     lone = dq[:1].copy()
     lone[:, 4:] = dq_from_pos_quat(dq_translation(dq[:1]) + [0, 0, 1.0], dq[:1, :4])[:, 4:]
@@ -130,9 +135,7 @@ def test_families_are_deterministic(faces: dict) -> None:
 
 def test_unset_bounds_come_from_the_spacing(faces: dict) -> None:
     dq = faces["dq"][faces["face"] < 6]
-    fm = family_triangles(
-        dq, max_edge_length=None, max_edge_angle_deg=None, orientation_scale=0.1
-    )
+    fm = family_triangles(dq, max_edge_length=None, max_edge_angle_deg=None, orientation_scale=0.1)
     d = pose_distance(dq[:, None], dq[None])
     np.fill_diagonal(d, np.inf)
     spacing = SPACING_FACTOR * np.median(np.sort(d, axis=1)[:, 1])
@@ -221,3 +224,16 @@ def test_densify_adaptive_continuity_and_locate_on_families(tmp_path) -> None:
     used = np.unique(m.triangles)
     loc = gm.locate(np.asarray(g["dq"])[used])
     assert np.all(loc.distance <= 1e-9)  # every linked candidate is a point of the manifold
+
+
+def test_a_line_of_grasps_no_chart_can_triangulate_is_still_linked() -> None:
+    # six grasps 1 cm apart on a line, one orientation: collinear in every
+    # chart, yet every triple of consecutive grasps is within the bounds
+    pos = np.column_stack((0.4 + 0.01 * np.arange(6), np.zeros(6), np.full(6, 0.1)))
+    dq = dq_from_pos_quat(pos, np.tile([0.0, 1.0, 0.0, 0.0], (6, 1)))
+    m = build_manifold(
+        GraspTable({"dq": dq}), structure="families", max_edge_length=0.025, max_edge_angle_deg=5
+    )
+    assert sorted(np.unique(m.triangles).tolist()) == list(range(6))
+    assert np.all(np.abs(np.diff(np.sort(m.triangles, axis=1), axis=1)) <= 2)  # neighbours only
+    assert set(m.isolation.tolist()) == {""}

@@ -266,9 +266,8 @@ def main() -> int:
         sets.append((name, t, section, False))
     if not args.quick:
         sets.append(("synthetic_10k", synthetic(), None, True))
-    print(
-        f"{'set':15s} {'N':>6s} {'L [m]':>7s} {'A[deg]':>5s} {'link':>6s}  structure: linked/linkable / build"
-    )
+    head = f"{'set':15s} {'N':>6s} {'L [m]':>7s} {'A[deg]':>5s} {'link':>6s}"
+    print(f"{head}  structure: linked share of linkable / build time")
     results = {name: bench_set(name, t, s, repeats, loc) for name, t, s, loc in sets}
     if args.quick:
         return 0

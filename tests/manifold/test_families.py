@@ -14,6 +14,7 @@ from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_from_pos_quat, 
 from gcm_pipeline.geometry.pose_metric import pose_distance
 from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.families import SPACING_FACTOR, family_triangles
+from gcm_pipeline.outputs.plots import candidate_coverage, plot_coverage
 from gcm_pipeline.rundir.arrays import read_manifold, write_manifold
 from gcm_pipeline.table import GraspTable
 
@@ -155,6 +156,16 @@ def test_manifold_npz_keeps_families_and_reasons(faces: dict, tmp_path) -> None:
     assert np.array_equal(back.isolation, m.isolation)
     assert np.array_equal(back.triangles, m.triangles)
     assert back.max_edge_length == LENGTH and back.max_edge_angle_deg == ANGLE
+
+
+def test_coverage_figure_says_linked_and_isolated(faces: dict, tmp_path) -> None:
+    m = faces["m"]
+    cover = candidate_coverage(m)
+    reasons, counts = np.unique(cover[cover != "linked"], return_counts=True)
+    assert dict(zip(reasons.tolist(), counts.tolist(), strict=True)) == m.isolated_counts
+    assert (cover == "linked").sum() == len(np.unique(m.triangles))
+    path = plot_coverage(GraspTable({"dq": faces["dq"]}), m, tmp_path / "coverage.png")
+    assert path.stat().st_size > 10_000 and path.read_bytes()[:4] == b"\x89PNG"
 
 
 def test_chart_structure_is_unchanged_and_a_projection_selects_it() -> None:

@@ -194,6 +194,36 @@ def candidate_poses(grasps: GraspTable) -> np.ndarray:
     return dq
 
 
+def _families(
+    dq: np.ndarray,
+    triangulator: str,
+    max_edge_length: float | None,
+    max_edge_angle_deg: float | None,
+    orientation_scale: float,
+) -> Manifold:
+    """The manifold of the ``families`` structure (:mod:`gcm_pipeline.manifold.families`)."""
+    fm = family_triangles(
+        dq,
+        max_edge_length=max_edge_length,
+        max_edge_angle_deg=max_edge_angle_deg,
+        orientation_scale=orientation_scale,
+        triangulator=triangulator,
+    )
+    return Manifold(
+        chart=fm.chart,
+        triangles=fm.triangles,
+        dropped=fm.dropped,
+        dropped_reason=fm.dropped_reason,
+        projection="families",
+        triangulator=triangulator,
+        structure="families",
+        family=fm.family,
+        isolation=fm.isolation,
+        max_edge_length=fm.max_edge_length,
+        max_edge_angle_deg=fm.max_edge_angle_deg,
+    )
+
+
 # --------------------------------------------------------------------------- stage
 def build_manifold(
     grasps: GraspTable,
@@ -249,26 +279,7 @@ def build_manifold(
             raise GeometryError(f"{name} must be in (0, {upper:g}], got {value!r}")
     dq = candidate_poses(grasps)
     if structure == "families":
-        fm = family_triangles(
-            dq,
-            max_edge_length=max_edge_length,
-            max_edge_angle_deg=max_edge_angle_deg,
-            orientation_scale=orientation_scale,
-            triangulator=triangulator,
-        )
-        return Manifold(
-            chart=fm.chart,
-            triangles=fm.triangles,
-            dropped=fm.dropped,
-            dropped_reason=fm.dropped_reason,
-            projection="families",
-            triangulator=triangulator,
-            structure="families",
-            family=fm.family,
-            isolation=fm.isolation,
-            max_edge_length=fm.max_edge_length,
-            max_edge_angle_deg=fm.max_edge_angle_deg,
-        )
+        return _families(dq, triangulator, max_edge_length, max_edge_angle_deg, orientation_scale)
     pose = dq_to_matrix(dq)
     pos, approach = pose[:, :3, 3], pose[:, :3, 2]
     frame_arr = None if frame is None else np.asarray(frame, dtype=np.float64)

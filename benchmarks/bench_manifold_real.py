@@ -233,7 +233,8 @@ def bench_set(
             table, length, angle, {"structure": "chart", "projection": proj}, repeats, link
         )
     if with_locate:
-        out["families"]["locate_queries_per_s"] = locate_rate(table, repeats)
+        out["families"]["locate_queries_per_s"] = rate = locate_rate(table, repeats)
+        print(f"{name:15s} locate on the families' triangles: {rate:,.0f} queries/s")
     print(
         f"{name:15s} {len(dq):6d} {length:7.4f} {angle:5.1f} {link.mean():6.1%}  "
         + "  ".join(

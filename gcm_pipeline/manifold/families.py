@@ -160,9 +160,9 @@ def _neighbour_pairs(
     radius = np.hypot(length, 4.0 * scale * np.sin(angle / 4.0)) * (1 + 1e-9) + 1e-12
     tree = cKDTree(np.concatenate((feats, _flipped(feats))))
     raw = tree.query_pairs(radius, output_type="ndarray") % n
-    raw = np.sort(raw, axis=1)
-    raw = raw[raw[:, 0] != raw[:, 1]]
-    pairs = np.unique(raw, axis=0) if len(raw) else np.zeros((0, 2), dtype=np.int64)
+    raw = raw[raw[:, 0] != raw[:, 1]].astype(np.int64)
+    keys = np.unique(_pair_keys(raw[:, 0], raw[:, 1], n))  # sorted, each pair once
+    pairs = np.column_stack((keys // n, keys % n))
     pos = dq_translation(dq)
     ok = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) <= length
     ok &= dq_angle_distance(dq[pairs[:, 0]], dq[pairs[:, 1]]) <= angle
@@ -275,7 +275,7 @@ def _unique_tris(parts: list[np.ndarray]) -> np.ndarray:
     if not parts:
         return np.zeros((0, 3), dtype=np.int64)
     tris = np.concatenate(parts).astype(np.int64)
-    _, first = np.unique(np.sort(tris, axis=1), axis=0, return_index=True)
+    _, first = np.unique(_tri_keys(tris, int(tris.max()) + 1), return_index=True)
     return tris[np.sort(first)]
 
 

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
-from gcm_pipeline.errors import GeometryError
+from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_from_pos_quat, dq_translation
 from gcm_pipeline.geometry.pose_metric import pose_distance
 from gcm_pipeline.manifold.build import build_manifold
@@ -156,6 +156,11 @@ def test_manifold_npz_keeps_families_and_reasons(faces: dict, tmp_path) -> None:
     assert np.array_equal(back.isolation, m.isolation)
     assert np.array_equal(back.triangles, m.triangles)
     assert back.max_edge_length == LENGTH and back.max_edge_angle_deg == ANGLE
+    arrays = dict(np.load(tmp_path / "manifold.npz"))
+    arrays["family"] = arrays["family"][:-1]  # one value short
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(InputError, match="array 'family' must be"):
+        read_manifold(tmp_path / "bad.npz")
 
 
 def test_coverage_figure_says_linked_and_isolated(faces: dict, tmp_path) -> None:

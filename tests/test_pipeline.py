@@ -237,7 +237,8 @@ def test_a_run_never_replaces_the_folder_of_its_config(tmp_path):
 
 
 def test_counts_break_down_dropped_and_unreachable(tmp_path):
-    cfg = load_config(ROOT / "configs" / "box.yaml", QUICK)
+    chart = ("manifold.structure=chart", "manifold.projection=spherical")  # drops triangles
+    cfg = load_config(ROOT / "configs" / "box.yaml", (*QUICK, *chart))
     result = Pipeline(cfg).run(progress=False, write=False)
     c = result.counts
     assert sum(c["dropped_by_reason"].values()) == c["triangles_dropped"] > 0

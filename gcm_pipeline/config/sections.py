@@ -279,18 +279,32 @@ GENERATOR_SHAPES = {"plane": "plane", "cylinder_side": "cylinder", "box": "box",
 
 
 class ManifoldConfig(_Section):
-    """Delaunay manifold over a 2-D chart of the grasp positions.
+    """Triangles linking the grasp candidates (see docs/concepts.md, *The manifold*).
 
+    ``structure``: ``families`` links grasps near in the pose metric, one
+    chart per family, and derives unset bounds from the data's spacing;
+    ``chart`` is the paper's one 2-D chart of the positions (``projection``)
+    with Delaunay triangles pruned by the bounds (unset: no pruning). A
+    section that names a ``projection`` but no ``structure`` is the chart
+    structure (as before ``structure`` existed); ``families`` ignores it.
     ``orientation_scale`` [m/rad] weighs orientation against position in the
     manifold's pose metric (nearest points, the ``margin`` column): a
     rotation of 1 rad counts like a move of this length.
     """
 
+    structure: Literal["families", "chart"] = "families"
     projection: Literal["xy", "pca", "cylindrical", "spherical"] = "xy"
     triangulator: Literal["qhull", "bowyer_watson"] = "qhull"
     max_edge_length: PositiveLength | None = None
     max_edge_angle_deg: Annotated[float, Strict(), Field(gt=0, le=180)] | None = None
     orientation_scale: PositiveFloat = 0.1
+
+    @model_validator(mode="before")
+    @classmethod
+    def _structure(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "projection" in data and "structure" not in data:
+            return {**data, "structure": "chart"}
+        return data
 
 
 class AdaptiveConfig(_Section):

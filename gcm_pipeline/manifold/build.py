@@ -1,7 +1,11 @@
-"""Manifold stage: a Delaunay mesh linking the grasp candidates.
+"""Manifold stage: triangles linking the grasp candidates.
 
-The paper (section III) projects the grasp positions onto the XY plane,
-drops the orientation and triangulates the 2-D points. The triangles are
+Two structures (``structure``): ``families`` links grasps that are near in
+the pose metric, each family of grasps in its own chart
+(:mod:`gcm_pipeline.manifold.families`); ``chart`` is the paper's.
+
+The paper (section III) projects the grasp positions onto the XY plane, drops
+the orientation and triangulates the 2-D points. The triangles are
 the cells inside which :mod:`gcm_pipeline.manifold.densify` blends poses.
 The 2-D charts (``projection``: ``xy``, ``pca``, ``cylindrical``,
 ``spherical``) and their triangulation are in :mod:`gcm_pipeline.manifold.charts`.
@@ -28,10 +32,15 @@ import numpy.typing as npt
 from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
 from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_to_matrix
+from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE
 from gcm_pipeline.manifold.charts import PROJECTIONS, chart_triangles
+from gcm_pipeline.manifold.families import family_triangles
 from gcm_pipeline.table import GraspTable
 
-__all__ = ["Manifold", "build_manifold", "candidate_poses"]
+__all__ = ["STRUCTURES", "Manifold", "build_manifold", "candidate_poses"]
+
+#: Manifold structures: pose-metric families or the paper's one 2-D chart.
+STRUCTURES = ("chart", "families")
 
 _EMPTY_TRIS = np.zeros((0, 3), dtype=np.int64)
 
@@ -54,6 +63,15 @@ class Manifold:
         period: Period [m] of the chart's first coordinate (one turn,
             ``2 pi R`` for ``cylindrical``, ``R`` the chart's reference
             radius), else ``None``.
+        structure: ``chart`` or ``families`` (then ``projection`` is
+            ``families`` and ``chart`` the families' atlas).
+        family: (N,) family of each candidate (``families``; -1 for a
+            duplicate pose), else None.
+        isolation: (N,) why a candidate is in no triangle (``families``:
+            ``""``, ``duplicate``, ``no_neighbour``, ``no_triple``), else None.
+        max_edge_length: The position bound every triangle keeps [m]
+            (``families``: the given or derived one), else None.
+        max_edge_angle_deg: The orientation bound [deg] (``families``), else None.
     """
 
     chart: np.ndarray
@@ -64,9 +82,22 @@ class Manifold:
     triangulator: str = "qhull"
     frame: np.ndarray | None = None
     period: float | None = None
+    structure: str = "chart"
+    family: np.ndarray | None = None
+    isolation: np.ndarray | None = None
+    max_edge_length: float | None = None
+    max_edge_angle_deg: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("chart", "triangles", "dropped", "dropped_reason", "frame"):
+        for name in (
+            "chart",
+            "triangles",
+            "dropped",
+            "dropped_reason",
+            "frame",
+            "family",
+            "isolation",
+        ):
             arr = getattr(self, name)
             if isinstance(arr, np.ndarray):
                 arr.setflags(write=False)
@@ -87,6 +118,14 @@ class Manifold:
         used = np.zeros(len(self.chart), dtype=bool)
         used[self.triangles.ravel()] = True
         return np.flatnonzero(~used)
+
+    @property
+    def isolated_counts(self) -> dict[str, int]:
+        """Candidates in no kept triangle, per reason (``unused`` for the chart structure)."""
+        if self.isolation is None:
+            return {"unused": len(self.unused)} if len(self.unused) else {}
+        reasons = self.isolation[self.isolation != ""]
+        return dict(sorted(Counter(reasons.tolist()).items()))
 
     @property
     def dropped_counts(self) -> dict[str, int]:
@@ -120,8 +159,9 @@ class Manifold:
     def __repr__(self) -> str:
         reasons = ", ".join(f"{k}: {v}" for k, v in self.dropped_counts.items())
         dropped = f"{len(self.dropped)} dropped" + (f" ({reasons})" if reasons else "")
+        head = "" if self.structure == "chart" else f"structure={self.structure!r}, "
         return (
-            f"Manifold(projection={self.projection!r}, triangulator={self.triangulator!r}, "
+            f"Manifold({head}projection={self.projection!r}, triangulator={self.triangulator!r}, "
             f"{self.n_vertices} vertices, {len(self.triangles)} triangles, {dropped}, "
             f"{len(self.unused)} unused)"
         )
@@ -154,20 +194,57 @@ def candidate_poses(grasps: GraspTable) -> np.ndarray:
     return dq
 
 
+def _families(
+    dq: np.ndarray,
+    triangulator: str,
+    max_edge_length: float | None,
+    max_edge_angle_deg: float | None,
+    orientation_scale: float,
+) -> Manifold:
+    """The manifold of the ``families`` structure (:mod:`gcm_pipeline.manifold.families`)."""
+    fm = family_triangles(
+        dq,
+        max_edge_length=max_edge_length,
+        max_edge_angle_deg=max_edge_angle_deg,
+        orientation_scale=orientation_scale,
+        triangulator=triangulator,
+    )
+    return Manifold(
+        chart=fm.chart,
+        triangles=fm.triangles,
+        dropped=fm.dropped,
+        dropped_reason=fm.dropped_reason,
+        projection="families",
+        triangulator=triangulator,
+        structure="families",
+        family=fm.family,
+        isolation=fm.isolation,
+        max_edge_length=fm.max_edge_length,
+        max_edge_angle_deg=fm.max_edge_angle_deg,
+    )
+
+
 # --------------------------------------------------------------------------- stage
 def build_manifold(
     grasps: GraspTable,
     *,
+    structure: str = "chart",
     projection: str = "xy",
     triangulator: str = "qhull",
     max_edge_length: float | None = None,
     max_edge_angle_deg: float | None = None,
     frame: npt.ArrayLike | None = None,
+    orientation_scale: float = ORIENTATION_SCALE,
 ) -> Manifold:
-    """Triangulate the candidates on a 2-D chart and prune long or twisted triangles.
+    """Triangulate the candidates and prune long or twisted triangles.
 
     Args:
         grasps: Candidate table with column ``dq`` (N, 8), world-frame grasp poses.
+        structure: ``chart`` (the paper's: one 2-D chart of all candidates,
+            ``projection``) or ``families`` (grasps near in the pose metric,
+            one chart per family; ``projection`` and ``frame`` unused,
+            unset bounds derived from the data's spacing; see
+            :mod:`gcm_pipeline.manifold.families`).
         projection: Chart: ``xy`` (the paper's), ``pca``, ``cylindrical`` or
             ``spherical`` (see :mod:`gcm_pipeline.manifold.charts`).
         triangulator: ``qhull`` (default) or ``bowyer_watson`` (the paper's).
@@ -177,6 +254,7 @@ def build_manifold(
             differ by more than this [deg]; ``None`` keeps all.
         frame: (4, 4) pose of the object frame in the world, used by the
             cylindrical and spherical charts (z axis, origin).
+        orientation_scale: ``L`` [m/rad] of the pose metric (``families``).
 
     Returns:
         The :class:`Manifold`.
@@ -187,6 +265,8 @@ def build_manifold(
             thresholds, or candidates all duplicate or collinear in the chart.
         InputError: If ``grasps`` has no ``dq`` column.
     """
+    if structure not in STRUCTURES:
+        raise GeometryError(unknown_choice("structure", structure, STRUCTURES))
     if projection not in PROJECTIONS:
         raise GeometryError(unknown_choice("projection", projection, PROJECTIONS))
     if triangulator not in TRIANGULATORS:
@@ -198,6 +278,8 @@ def build_manifold(
         if value is not None and not (0 < float(value) <= upper):
             raise GeometryError(f"{name} must be in (0, {upper:g}], got {value!r}")
     dq = candidate_poses(grasps)
+    if structure == "families":
+        return _families(dq, triangulator, max_edge_length, max_edge_angle_deg, orientation_scale)
     pose = dq_to_matrix(dq)
     pos, approach = pose[:, :3, 3], pose[:, :3, 2]
     frame_arr = None if frame is None else np.asarray(frame, dtype=np.float64)

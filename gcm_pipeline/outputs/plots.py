@@ -1,4 +1,4 @@
-"""PNG plots of a run: the manifold chart, the manipulability histogram, stage counts.
+"""PNG plots of a run: the manifold chart, coverage, the manipulability histogram, counts.
 
 Figures are drawn with matplotlib's object API on the Agg canvas (no pyplot,
 no global backend switch), so plotting works headless and from threads.
@@ -18,17 +18,22 @@ from gcm_pipeline.geometry.dualquat import dq_translation
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
+    "COVERAGE_FILE",
     "PLOT_FILES",
     "REASON_COLORS",
     "candidate_rows",
     "chart_axis_labels",
     "chart_period",
+    "candidate_coverage",
     "chart_points",
     "colormap",
+    "plot_coverage",
     "reason_palette",
     "write_plots",
 ]
 
+#: The coverage figure (:func:`plot_coverage`), written for a manifold with ``isolation``.
+COVERAGE_FILE = "coverage.png"
 #: File names written by :func:`write_plots`, in order.
 PLOT_FILES = ("manifold.png", "manipulability_hist.png", "counts.png")
 
@@ -424,6 +429,81 @@ def _plot_counts(counts: Mapping[str, int], path: Path) -> Path:
     return _save(fig, path)
 
 
+# --------------------------------------------------------------------------- coverage
+_COVERAGE_COLORS = {
+    "linked": (0.13, 0.55, 0.13),
+    "no_neighbour": (0.85, 0.10, 0.10),
+    "no_triple": (1.00, 0.55, 0.00),
+    "duplicate": (0.45, 0.45, 0.45),
+    "unused": (0.85, 0.10, 0.10),
+}
+
+
+def candidate_coverage(manifold: Any) -> np.ndarray:
+    """(N,) per candidate ``linked`` or why it is in no triangle."""
+    n = len(manifold.chart)
+    used = np.zeros(n, dtype=bool)
+    used[np.asarray(manifold.triangles, dtype=np.int64).ravel()] = True
+    isolation = getattr(manifold, "isolation", None)
+    out = np.where(used, "linked", "unused").astype("<U12")
+    if isolation is not None:
+        iso = np.asarray(isolation).astype(str)
+        out[~used] = np.where(iso[~used] == "", "unused", iso[~used])
+    return out
+
+
+def plot_coverage(grasps: GraspTable, manifold: Any, path: Path) -> Path:
+    """Write the coverage figure (see the module docstring) to ``path``."""
+    n = len(manifold.chart)
+    rows = candidate_rows(grasps, n)
+    pos = dq_translation(np.asarray(grasps["dq"], dtype=np.float64)[rows])
+    tris = np.asarray(manifold.triangles, dtype=np.int64).reshape(-1, 3)
+    fig = _figure((12.0, 5.6))
+    left = fig.add_subplot(1, 2, 1, projection="3d")
+    right = fig.add_subplot(1, 2, 2, projection="3d")
+    if len(tris):
+        from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+        seg = pos[tris[:, [0, 1, 1, 2, 2, 0]]].reshape(-1, 2, 3)
+        left.add_collection3d(Line3DCollection(seg, colors="0.6", linewidths=0.3, alpha=0.6))
+    if "reachable" in grasps:
+        ok = np.asarray(grasps["reachable"], dtype=bool)[rows]
+        for mask, color, label in ((ok, "#2ca02c", "reachable"), (~ok, "0.55", "unreachable")):
+            left.scatter(*pos[mask].T, s=6, color=color, label=f"{label} ({mask.sum()})")
+    else:
+        left.scatter(*pos.T, s=6, color="k", label=f"candidates ({n})")
+    left.set_title(f"Manifold: {len(tris)} triangles on {n} candidates")
+    cover = candidate_coverage(manifold)
+    for reason in sorted(set(cover.tolist()), key=lambda r: (r != "linked", r)):
+        mask = cover == reason
+        right.scatter(
+            *pos[mask].T,
+            s=6 if reason == "linked" else 18,
+            color=_COVERAGE_COLORS.get(reason, (0.2, 0.2, 0.8)),
+            label=f"{reason} ({mask.sum()})",
+        )
+    structure = getattr(manifold, "structure", "chart")
+    right.set_title(f"Coverage ({structure} structure): linked and isolated candidates")
+    for ax in (left, right):
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        _equal_axes(ax, pos)
+        ax.legend(loc="upper left", fontsize=8)
+    return _save(fig, path)
+
+
+def _equal_axes(ax: Any, pos: np.ndarray) -> None:
+    """Equal scale on the three axes around the points."""
+    if not len(pos):
+        return
+    centre = 0.5 * (pos.min(axis=0) + pos.max(axis=0))
+    half = max(0.5 * float(np.ptp(pos, axis=0).max()), 1e-3)
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_zlim(centre[2] - half, centre[2] + half)
+
+
 def write_plots(
     grasps: GraspTable,
     manifold: Any,
@@ -434,7 +514,8 @@ def write_plots(
 
     A table with a ``level`` column (adaptive densification) also gets
     ``levels.png``, one with a ``patch`` column (IK continuity) and a reachable
-    grasp ``patches.png``.
+    grasp ``patches.png``, a manifold of the families structure (``isolation``)
+    ``coverage.png`` (:func:`plot_coverage`).
 
     Args:
         grasps: The grasp table (``reachable``, ``manipulability``, ``origin``,
@@ -447,8 +528,8 @@ def write_plots(
         out_dir: An existing directory.
 
     Returns:
-        The paths: the three of :data:`PLOT_FILES`, then ``levels.png`` and
-        ``patches.png`` when written.
+        The paths: the three of :data:`PLOT_FILES`, then ``levels.png``,
+        ``patches.png`` and ``coverage.png`` when written.
 
     Raises:
         PublishError: ``out_dir`` is not a directory or a file cannot be written.
@@ -465,4 +546,6 @@ def write_plots(
         paths.append(_plot_levels(grasps, manifold, out / "levels.png"))
     if "patch" in grasps and manifold is not None and (np.asarray(grasps["patch"]) >= 0).any():
         paths.append(_plot_patches(grasps, manifold, out / "patches.png"))
+    if getattr(manifold, "isolation", None) is not None and "dq" in grasps:
+        paths.append(plot_coverage(grasps, manifold, out / COVERAGE_FILE))
     return paths

@@ -23,7 +23,7 @@ from gcm_pipeline.table import GraspTable
 
 @takes_config
 def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
-    """Delaunay manifold over the candidates' chart (config section ``manifold``).
+    """The manifold's triangles over the candidates (config section ``manifold``).
 
     The object pose (if the config has an ``object``) is the frame of the
     cylindrical and spherical charts.
@@ -38,11 +38,13 @@ def build_manifold(grasps: GraspTable, cfg: Config) -> Manifold:
     m = cfg.manifold
     return manifold_build.build_manifold(
         grasps,
+        structure=m.structure,
         projection=m.projection,
         triangulator=m.triangulator,
         max_edge_length=m.max_edge_length,
         max_edge_angle_deg=m.max_edge_angle_deg,
         frame=cfg.object.pose.matrix() if cfg.object is not None else None,
+        orientation_scale=m.orientation_scale,
     )
 
 

@@ -308,6 +308,16 @@ class Pipeline:
             "reachable": int(np.count_nonzero(grasps["reachable"])),
             "unreachable_by_reason": unreachable,
         }
+        if manifold.isolation is not None:  # the families structure: how many, why isolated
+            counts["families"] = int(manifold.family.max(initial=-1) + 1)
+            counts["isolated_by_reason"] = manifold.isolated_counts
+            log.info(
+                "manifold: %d families, bounds %.4g m / %.4g deg, isolated: %s",
+                counts["families"],
+                manifold.max_edge_length,
+                manifold.max_edge_angle_deg,
+                counts["isolated_by_reason"] or "none",
+            )
         _warn_empty(counts, cfg)
         if adaptive:
             counts["adaptive"] = adaptive_counts(grasps, manifold, cfg)

@@ -185,8 +185,8 @@ def _manifold_arrays(manifold: Manifold) -> dict[str, Any]:
     arrays: dict[str, Any] = {}
     for f in dataclasses.fields(manifold):
         value = getattr(manifold, f.name)
-        if value is None:
-            continue
+        if value is None or (f.name == "structure" and value == "chart"):
+            continue  # the chart structure's file is the paper's, as before
         arr = np.asarray(value)
         if arr.dtype == object:
             arr = arr.astype(str)
@@ -274,6 +274,11 @@ def read_manifold(path: str | Path, n_rows: int | None = None) -> Manifold:
             raise fail("frame", f"must be a (4, 4) transform, got {frame.shape}")
     if "period" in arrays and (arrays["period"].ndim != 0 or arrays["period"].dtype.kind != "f"):
         raise fail("period", "must be a number")
+    for name, kinds in (("family", "iu"), ("isolation", "U")):
+        if name in arrays and (
+            arrays[name].shape != (n_v,) or arrays[name].dtype.kind not in kinds
+        ):
+            raise fail(name, f"must be ({n_v},) values, got {arrays[name].shape}")
     ids = arrays.get("vertex_ids", np.arange(n_v, dtype=np.int64))
     if ids.shape != (n_v,) or ids.dtype.kind not in "iu":
         raise fail("vertex_ids", f"must be ({n_v},) integers, got {ids.shape} {ids.dtype}")

@@ -1,0 +1,409 @@
+r"""The ``families`` structure: triangles between grasps that are near in SE(3).
+
+The paper's chart (:mod:`gcm_pipeline.manifold.charts`) projects the grasp
+positions onto one plane; on a synthesiser's real output (many orientations
+at one position, grasps from several sides, clusters) most of its triangles
+then join grasps far apart in orientation and are pruned, and half the
+candidates end up in no triangle. This structure links grasps by the
+package's pose metric (:mod:`gcm_pipeline.geometry.pose_metric`) instead:
+
+1. **Neighbours.** Two candidates are neighbours when their positions are at
+   most ``max_edge_length`` [m] apart *and* their orientations at most
+   ``max_edge_angle_deg`` (found with a KD-tree over the pose features
+   ``[p, 2 L r]``, both quaternion signs, then checked exactly).
+2. **Families.** The connected components of the neighbour graph. Grasps from
+   different sides of an object, or with approach/closing axes further apart
+   than the bounds allow, fall into different families; no triangle ever
+   joins two families.
+3. **A chart per family.** The two principal axes of the family's pose
+   features (sign-aligned to the family's first grasp): a local linear
+   embedding in the pose metric, position and orientation together. The
+   chart is triangulated (``qhull`` or the paper's ``bowyer_watson``) and a
+   triangle is kept only when its three edges are neighbour pairs, i.e.
+   within both bounds (pruned ones are reported as ``edge_length`` /
+   ``edge_angle`` like the chart structure's).
+4. **Fill.** A candidate still in no triangle but *linkable* (two of its
+   neighbours are neighbours of each other) gets the triangle with it and
+   two such neighbours whose longest pose-metric edge is shortest. So every
+   linkable candidate is in a triangle and every triangle is within the
+   bounds. Filled triangles may overlap chart triangles (the structure is a
+   set of triangles, not a surface without overlaps).
+
+Each candidate gets its ``family`` (-1 for one whose pose duplicates an
+earlier row) and why it is in no triangle (``isolation``): ``""`` linked,
+``no_neighbour`` (no other grasp within the bounds), ``no_triple`` (no two of
+its neighbours are neighbours of each other) or ``duplicate`` (same pose as
+an earlier row, within 1e-9 m).
+
+Bounds
+------
+Unset bounds are derived from the data's spacing: ``s`` = the median
+pose-metric distance from a candidate to its second-nearest other candidate;
+``max_edge_length`` = :data:`SPACING_FACTOR` ``* s`` and
+``max_edge_angle_deg`` = the angle that counts as that length in the pose
+metric (``SPACING_FACTOR * s / L`` rad), capped at :data:`MAX_DEFAULT_ANGLE_DEG`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from gcm_pipeline.errors import GeometryError
+from gcm_pipeline.geometry.bowyer_watson import delaunay
+from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_translation
+from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
+
+__all__ = [
+    "ISOLATION_REASONS",
+    "MAX_DEFAULT_ANGLE_DEG",
+    "SPACING_FACTOR",
+    "FamilyMesh",
+    "default_bounds",
+    "family_triangles",
+]
+
+#: Default bounds are this many times the data's spacing (see the module docstring).
+SPACING_FACTOR = 2.5
+#: Cap [deg] of the default ``max_edge_angle_deg``.
+MAX_DEFAULT_ANGLE_DEG = 60.0
+#: Why a candidate is in no triangle (``""``: it is in one).
+ISOLATION_REASONS = ("", "duplicate", "no_neighbour", "no_triple")
+
+_DUPLICATE = 1e-9  # [m] pose-metric distance under which two rows are one pose
+_SMALL_FAMILY = 30  # families up to this size are one patch
+_GAP = 0.5  # gap between family charts in the atlas, in units of max_edge_length
+
+
+@dataclass(frozen=True)
+class FamilyMesh:
+    """The triangles of the ``families`` structure and what it says of each candidate.
+
+    Attributes:
+        chart: (N, 2) atlas coordinates [m]: each family's own chart, families
+            side by side (for plots; distances between families mean nothing).
+        triangles: (T, 3) candidate row ids, every edge within the bounds.
+        dropped: (D, 3) chart triangles pruned by the bounds.
+        dropped_reason: (D,) ``edge_length`` or ``edge_angle``.
+        family: (N,) family id per candidate (-1 for duplicates), largest family 0.
+        isolation: (N,) reason a candidate is in no triangle (:data:`ISOLATION_REASONS`).
+        max_edge_length: The position bound used [m].
+        max_edge_angle_deg: The orientation bound used [deg].
+    """
+
+    chart: np.ndarray
+    triangles: np.ndarray
+    dropped: np.ndarray
+    dropped_reason: np.ndarray
+    family: np.ndarray
+    isolation: np.ndarray
+    max_edge_length: float
+    max_edge_angle_deg: float
+
+
+# --------------------------------------------------------------------------- bounds
+def default_bounds(
+    dq: np.ndarray,
+    orientation_scale: float,
+    max_edge_length: float | None = None,
+    max_edge_angle_deg: float | None = None,
+) -> tuple[float, float]:
+    """The bounds ``(max_edge_length [m], max_edge_angle_deg)``, unset ones from the spacing.
+
+    Raises:
+        GeometryError: If the grasps have fewer than 3 distinct poses (no
+            spacing to derive a bound from, nothing to link).
+    """
+    if max_edge_length is not None and max_edge_angle_deg is not None:
+        return float(max_edge_length), float(max_edge_angle_deg)
+    feats = pose_features(dq, orientation_scale)
+    tree = cKDTree(np.concatenate((feats, _flipped(feats))))
+    k = min(len(feats) * 2, 8)
+    dist, _ = tree.query(feats, k=k)
+    # the nearest hits are the row itself and its duplicates: skip zero distances
+    nonzero = np.where(dist > _DUPLICATE, dist, np.inf)
+    nonzero.sort(axis=1)
+    second = nonzero[:, 1] if k > 1 else np.full(len(feats), np.inf)
+    finite = second[np.isfinite(second)]
+    if not len(finite):
+        raise GeometryError(
+            f"the {len(dq)} grasps have fewer than 3 distinct poses: nothing to link "
+            "(give more grasps, or set manifold.max_edge_length and max_edge_angle_deg)"
+        )
+    spacing = SPACING_FACTOR * float(np.median(finite))
+    length = spacing if max_edge_length is None else float(max_edge_length)
+    if max_edge_angle_deg is None:
+        angle = min(MAX_DEFAULT_ANGLE_DEG, float(np.degrees(spacing / orientation_scale)))
+    else:
+        angle = float(max_edge_angle_deg)
+    return length, angle
+
+
+def _flipped(feats: np.ndarray) -> np.ndarray:
+    out = feats.copy()
+    out[:, 3:] *= -1.0
+    return out
+
+
+# --------------------------------------------------------------------------- graph
+def _neighbour_pairs(
+    dq: np.ndarray, length: float, angle_deg: float, scale: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique pairs (P, 2), i < j, within both bounds, and their pose distances."""
+    n = len(dq)
+    feats = pose_features(dq, scale)
+    angle = np.deg2rad(angle_deg)
+    radius = np.hypot(length, 4.0 * scale * np.sin(angle / 4.0)) * (1 + 1e-9) + 1e-12
+    tree = cKDTree(np.concatenate((feats, _flipped(feats))))
+    raw = tree.query_pairs(radius, output_type="ndarray") % n
+    raw = raw[raw[:, 0] != raw[:, 1]].astype(np.int64)
+    keys = np.unique(_pair_keys(raw[:, 0], raw[:, 1], n))  # sorted, each pair once
+    pairs = np.column_stack((keys // n, keys % n))
+    pos = dq_translation(dq)
+    ok = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) <= length
+    ok &= dq_angle_distance(dq[pairs[:, 0]], dq[pairs[:, 1]]) <= angle
+    pairs = pairs[ok].astype(np.int64)
+    return pairs, pose_distance(dq[pairs[:, 0]], dq[pairs[:, 1]], scale)
+
+
+def _pair_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    return np.minimum(a, b) * n + np.maximum(a, b)
+
+
+def _has_pair(keys: np.ndarray, a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """Whether (a, b) are neighbour pairs; ``keys`` sorted pair keys."""
+    q = _pair_keys(a, b, n)
+    at = np.minimum(np.searchsorted(keys, q), max(len(keys) - 1, 0))
+    return (keys[at] == q) if len(keys) else np.zeros(q.shape, dtype=bool)
+
+
+def _duplicates(n: int, pairs: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(N,) the first row with the same pose as each row (itself when none)."""
+    rep = np.arange(n)
+    dup = pairs[dist <= _DUPLICATE]
+    if len(dup):
+        graph = coo_matrix((np.ones(len(dup)), (dup[:, 0], dup[:, 1])), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        first = np.full(label.max() + 1, n)
+        np.minimum.at(first, label, np.arange(n))
+        rep = first[label]
+    return rep
+
+
+# --------------------------------------------------------------------------- charts
+def _family_chart(feats: np.ndarray) -> np.ndarray:
+    """(M, 2) coordinates of a family's pose features on their two principal axes."""
+    rel = feats - feats.mean(axis=0)
+    if len(rel) < 2:
+        return np.zeros((len(rel), 2))
+    _, _, vt = np.linalg.svd(rel, full_matrices=False)
+    axes = vt[:2].T
+    for k in range(axes.shape[1]):  # deterministic signs
+        if axes[np.argmax(np.abs(axes[:, k])), k] < 0:
+            axes[:, k] *= -1
+    out = np.zeros((len(rel), 2))
+    out[:, : axes.shape[1]] = rel @ axes
+    return out
+
+
+def _chart_tris(chart: np.ndarray, triangulator: str) -> np.ndarray:
+    if len(chart) < 3:
+        return np.zeros((0, 3), dtype=np.int64)
+    try:
+        return delaunay(chart, triangulator)
+    except GeometryError:  # collinear family: the fill step links it
+        return np.zeros((0, 3), dtype=np.int64)
+
+
+def _atlas(charts: list[tuple[np.ndarray, np.ndarray]], n: int, gap: float) -> np.ndarray:
+    """Lay the family charts side by side in rows (largest first)."""
+    out = np.zeros((n, 2))
+    boxes = [np.ptp(c, axis=0) if len(c) else np.zeros(2) for _, c in charts]
+    width = max(
+        float(np.sqrt(sum((b[0] + gap) * (b[1] + gap) for b in boxes))) * 1.5,
+        max((b[0] for b in boxes), default=0.0),
+    )
+    x = y = row_h = 0.0
+    for (rows, c), box in zip(charts, boxes, strict=True):
+        if x > 0 and x + box[0] > width:
+            x, y, row_h = 0.0, y - row_h - gap, 0.0
+        out[rows] = c - c.min(axis=0) + (x, y - box[1]) if len(c) else (x, y)
+        x += box[0] + gap
+        row_h = max(row_h, box[1])
+    return out
+
+
+def _patches(local: np.ndarray, radius: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Overlapping patches of a family, each small enough for one flat chart.
+
+    Centres are picked greedily (row order) until every row is within
+    ``radius / 2`` of one; a patch is the rows within ``radius`` of its centre
+    (``ball``, family-local indices) and ``core`` (M,) marks the family rows
+    within ``radius / 2`` of it. A family no wider than ``radius`` is one patch.
+    """
+    m = len(local)
+    everything = (np.arange(m), np.ones(m, dtype=bool))
+    if m <= _SMALL_FAMILY or float(np.ptp(local, axis=0).max()) <= radius:
+        return [everything]
+    tree = cKDTree(local)
+    covered = np.zeros(m, dtype=bool)
+    out = []
+    for c in range(m):
+        if covered[c]:
+            continue
+        ball = np.asarray(tree.query_ball_point(local[c], radius), dtype=np.int64)
+        near = np.linalg.norm(local[ball] - local[c], axis=1) <= 0.5 * radius
+        core = np.zeros(m, dtype=bool)
+        core[ball[near]] = True
+        covered |= core
+        out.append((np.sort(ball), core))
+    return out
+
+
+def _tri_keys(tris: np.ndarray, n: int) -> np.ndarray:
+    t = np.sort(tris, axis=1)
+    return (t[:, 0] * n + t[:, 1]) * n + t[:, 2]
+
+
+def _unique_tris(parts: list[np.ndarray]) -> np.ndarray:
+    """The triangles of ``parts`` once each (first occurrence, order kept)."""
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return np.zeros((0, 3), dtype=np.int64)
+    tris = np.concatenate(parts).astype(np.int64)
+    _, first = np.unique(_tri_keys(tris, int(tris.max()) + 1), return_index=True)
+    return tris[np.sort(first)]
+
+
+# --------------------------------------------------------------------------- fill
+def _fill(
+    dq: np.ndarray,
+    scale: float,
+    pairs: np.ndarray,
+    dist: np.ndarray,
+    keys: np.ndarray,
+    covered: np.ndarray,
+    candidates: np.ndarray,
+) -> list[tuple[int, int, int]]:
+    """One triangle for each candidate row still uncovered, where it has one.
+
+    The triangle with the row and two neighbours that are neighbours of each
+    other whose longest pose-metric edge is shortest (rows in ``candidates``
+    order; the two others count as covered from then on).
+    """
+    n = len(dq)
+    order = np.argsort(np.concatenate((pairs[:, 0], pairs[:, 1])), kind="stable")
+    other = np.concatenate((pairs[:, 1], pairs[:, 0]))[order]
+    d_other = np.concatenate((dist, dist))[order]
+    start = np.searchsorted(np.concatenate((pairs[:, 0], pairs[:, 1]))[order], np.arange(n + 1))
+    added: list[tuple[int, int, int]] = []
+    for i in candidates:
+        if covered[i]:
+            continue
+        nb, d = other[start[i] : start[i + 1]], d_other[start[i] : start[i + 1]]
+        if len(nb) < 2:
+            continue
+        a, b = np.triu_indices(len(nb), 1)
+        ok = _has_pair(keys, nb[a], nb[b], n)
+        if not ok.any():
+            continue
+        a, b = a[ok], b[ok]
+        longest = np.maximum(np.maximum(d[a], d[b]), pose_distance(dq[nb[a]], dq[nb[b]], scale))
+        best = int(np.argmin(longest))
+        tri = (int(i), int(nb[a[best]]), int(nb[b[best]]))
+        added.append(tri)
+        covered[list(tri)] = True
+    return added
+
+
+# --------------------------------------------------------------------------- stage
+def _prune_reason(dq: np.ndarray, tris: np.ndarray, length: float) -> np.ndarray:
+    """Why each triangle was pruned: ``edge_length`` (a position edge too long), ``edge_angle``."""
+    p = dq_translation(dq)[tris]
+    longest = np.linalg.norm(p - np.roll(p, -1, axis=1), axis=2).max(axis=1)
+    return np.where(longest > length, "edge_length", "edge_angle").astype("<U11")
+
+
+def family_triangles(
+    dq: np.ndarray,
+    *,
+    max_edge_length: float | None,
+    max_edge_angle_deg: float | None,
+    orientation_scale: float,
+    triangulator: str = "qhull",
+) -> FamilyMesh:
+    """Build the ``families`` structure over validated poses (see the module docstring).
+
+    Args:
+        dq: (N, 8) unit dual quaternions of the candidates (N >= 3).
+        max_edge_length: Position bound [m], or None for the default.
+        max_edge_angle_deg: Orientation bound [deg], or None for the default.
+        orientation_scale: ``L`` [m/rad] of the pose metric.
+        triangulator: ``qhull`` or ``bowyer_watson`` for the family charts.
+
+    Raises:
+        GeometryError: Fewer than 3 distinct poses when a bound is to be derived.
+    """
+    n = len(dq)
+    length, angle = default_bounds(dq, orientation_scale, max_edge_length, max_edge_angle_deg)
+    pairs, dist = _neighbour_pairs(dq, length, angle, orientation_scale)
+    rep = _duplicates(n, pairs, dist)
+    unique = rep == np.arange(n)
+    keep = unique[pairs[:, 0]] & unique[pairs[:, 1]]
+    pairs, dist = pairs[keep], dist[keep]
+    keys = np.sort(_pair_keys(pairs[:, 0], pairs[:, 1], n))
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    # families numbered by size (largest first), ties by first row; duplicates -1
+    fam_rows = [np.flatnonzero((label == lab) & unique) for lab in np.unique(label[unique])]
+    fam_rows.sort(key=lambda r: (-len(r), int(r[0])))
+    family = np.full(n, -1, dtype=np.int64)
+    feats = pose_features(dq, orientation_scale)
+    charts: list[tuple[np.ndarray, np.ndarray]] = []
+    kept: list[np.ndarray] = []
+    dropped: list[np.ndarray] = []
+    reach = float(np.hypot(length, 4.0 * orientation_scale * np.sin(np.deg2rad(angle) / 4.0)))
+    for f, rows in enumerate(fam_rows):
+        family[rows] = f
+        r = dq[rows, :4]
+        sign = np.where(r @ r[0] < 0, -1.0, 1.0)
+        local = np.concatenate((feats[rows, :3], (2.0 * orientation_scale) * sign[:, None] * r), 1)
+        charts.append((rows, _family_chart(local)))
+        for ball, core in _patches(local, 1.5 * reach):
+            chart = charts[-1][1] if len(ball) == len(rows) else _family_chart(local[ball])
+            tris = ball[_chart_tris(chart, triangulator)]
+            tris = tris[core[tris].any(axis=1)] if len(tris) else tris
+            ok = np.ones(len(tris), dtype=bool)
+            for a, b in ((0, 1), (1, 2), (2, 0)):
+                ok &= _has_pair(keys, rows[tris[:, a]], rows[tris[:, b]], n)
+            kept.append(rows[tris[ok]])
+            dropped.append(rows[tris[~ok]])
+    tris = _unique_tris(kept)
+    dropped_tris = _unique_tris(dropped)
+    if len(dropped_tris) and len(tris):  # pruned in one patch, kept in another
+        dropped_tris = dropped_tris[~np.isin(_tri_keys(dropped_tris, n), _tri_keys(tris, n))]
+    covered = np.zeros(n, dtype=bool)
+    covered[tris.ravel()] = True
+    extra = _fill(dq, orientation_scale, pairs, dist, keys, covered, np.flatnonzero(unique))
+    if extra:
+        tris = np.concatenate((tris, np.asarray(extra, dtype=np.int64)))
+    degree = np.bincount(pairs.ravel(), minlength=n)
+    isolation = np.full(n, "", dtype="<U12")
+    isolation[~covered & (degree > 0)] = "no_triple"
+    isolation[~covered & (degree == 0)] = "no_neighbour"
+    isolation[~unique] = "duplicate"
+    family[~unique] = -1
+    return FamilyMesh(
+        chart=_atlas(charts, n, _GAP * length),
+        triangles=tris.astype(np.int64),
+        dropped=dropped_tris.astype(np.int64),
+        dropped_reason=_prune_reason(dq, dropped_tris, length),
+        family=family,
+        isolation=isolation,
+        max_edge_length=length,
+        max_edge_angle_deg=angle,
+    )

@@ -312,6 +312,8 @@ class Pipeline:
         if adaptive:
             counts["adaptive"] = adaptive_counts(grasps, manifold, cfg)
         counts["continuity"] = continuity
+        if "selection" in source:  # candidates.min_score / limit: what the file gave
+            counts["selection"] = source["selection"]
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
         result.grasp_frame = source.get("grasp_frame")
         if not write:

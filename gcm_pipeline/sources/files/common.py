@@ -262,7 +262,7 @@ def score_column(
         name = where(i) if where is not None else f"{path}: {key}: grasp {i} (0-based)"
         more = f" ({bad.size:,} such grasps)" if bad.size > 1 else ""
         raise InputError(
-            f"{name}: score is {arr[i]!r}; every score must be a finite number{more}",
+            f"{name}: score is {float(arr[i])}; every score must be a finite number{more}",
             path=path,
             key=key,
             row=i,

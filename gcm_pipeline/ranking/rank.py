@@ -71,6 +71,38 @@ def _finite_margin(values: np.ndarray, reachable: np.ndarray) -> np.ndarray:
     return m
 
 
+def _check_columns(grasps: GraspTable, metric: str, weights: Mapping[str, float] | None) -> None:
+    """Refuse a table without a column the metric (or a ``combined`` weight) needs."""
+    weight_of = (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get
+    needs_clearance = metric == "clearance" or (
+        metric == "combined" and weight_of("clearance", 0) > 0
+    )
+    if needs_clearance and "clearance" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'clearance' column of the collision "
+            f"checks (reachability with an environment or object); "
+            f"columns: {', '.join(grasps.columns)}"
+        )
+    needs_margin = metric == "margin" or (metric == "combined" and weight_of("margin", 0) > 0)
+    if needs_margin and "margin" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'margin' column (the pipeline adds it "
+            f"after reachability); columns: {', '.join(grasps.columns)}"
+        )
+    needs_score = metric == "score" or (metric == "combined" and weight_of("score", 0) > 0)
+    if needs_score and "score" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'score' column (a grasp file's quality or "
+            f"the antipodal sampler's); columns: {', '.join(grasps.columns)}"
+        )
+    for col in ("reachable", "q"):
+        if col not in grasps:
+            raise InputError(
+                f"ranking needs column {col!r} (run reachability first); "
+                f"columns: {', '.join(grasps.columns)}"
+            )
+
+
 def rank(
     grasps: GraspTable,
     robot: Robot | RobotSpec,
@@ -113,34 +145,7 @@ def rank(
     ):
         raise InputError(f"top_k must be an int >= 0 or None, got {top_k!r}")
     robot = as_robot(robot)
-    weight_of = (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get
-    needs_clearance = metric == "clearance" or (
-        metric == "combined" and weight_of("clearance", 0) > 0
-    )
-    if needs_clearance and "clearance" not in grasps:
-        raise InputError(
-            f"ranking metric {metric!r} needs the 'clearance' column of the collision "
-            f"checks (reachability with an environment or object); "
-            f"columns: {', '.join(grasps.columns)}"
-        )
-    needs_margin = metric == "margin" or (metric == "combined" and weight_of("margin", 0) > 0)
-    if needs_margin and "margin" not in grasps:
-        raise InputError(
-            f"ranking metric {metric!r} needs the 'margin' column (the pipeline adds it "
-            f"after reachability); columns: {', '.join(grasps.columns)}"
-        )
-    needs_score = metric == "score" or (metric == "combined" and weight_of("score", 0) > 0)
-    if needs_score and "score" not in grasps:
-        raise InputError(
-            f"ranking metric {metric!r} needs the 'score' column (a grasp file's quality or "
-            f"the antipodal sampler's); columns: {', '.join(grasps.columns)}"
-        )
-    for col in ("reachable", "q"):
-        if col not in grasps:
-            raise InputError(
-                f"ranking needs column {col!r} (run reachability first); "
-                f"columns: {', '.join(grasps.columns)}"
-            )
+    _check_columns(grasps, metric, weights)
     n = len(grasps)
     reachable = np.asarray(grasps["reachable"], dtype=bool)
     q = np.asarray(grasps["q"], dtype=float)

@@ -190,7 +190,7 @@ class CandidatesConfig(_Section):
             file without a score is an error.
         limit: ``file``: keep at most this many grasps (after filtering): the best
             by ``score`` when the file has one (ties: the earlier row), else the
-            first ones; the log and ``summary.json`` (``counts.selection``) say which.
+            first ones; the log and ``summary.json`` (``selection``) say which.
         gripper: The gripper whose frame convention maps the file's poses onto the
             robot's grasp frame (:mod:`gcm_pipeline.sources.grippers`; default: the
             gripper the file names, else the format's dataset gripper, ``franka_panda``

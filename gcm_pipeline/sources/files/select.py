@@ -6,7 +6,7 @@ In that order: ``success_only`` keeps the grasps labelled successful,
 best ``limit`` of the rest by ``score`` when the file has one (ties: the
 earlier row), else the first ``limit`` in file order. Kept grasps stay in file
 order. The log says which rule ``limit`` used, and :class:`Selection` records
-it (the run's ``summary.json``, ``counts.selection``).
+it (the run's ``summary.json``, ``selection``).
 """
 
 from __future__ import annotations

@@ -327,3 +327,20 @@ def test_interpolated_rows_carry_the_blended_score(tmp_path):
     np.testing.assert_allclose(table["score"][new], (w * candidates["score"][v]).sum(axis=1))
     np.testing.assert_array_equal(table["score"][~new], [0.2, 1.0, 0.5])
     assert 0.2 < table["score"][new].min() and table["score"][new].max() < 1.0
+
+
+def test_min_score_filters_the_antipodal_samplers_grasps():
+    def sampled(**extra: object):
+        cfg = Config.from_dict(
+            {
+                "object": {"shape": "box", "dims": {"size": [0.05, 0.07, 0.12]}},
+                "candidates": {"source": "antipodal", "count": 40, "seed": 1, **extra},
+            }
+        )
+        return generate_candidates(cfg)
+
+    every, kept = sampled(), sampled(min_score=0.97)
+    want = every["score"] >= 0.97
+    assert 0 < want.sum() < len(want)  # the bound splits this sample
+    np.testing.assert_array_equal(kept["score"], every["score"][want])
+    np.testing.assert_array_equal(kept["dq"], every["dq"][want])

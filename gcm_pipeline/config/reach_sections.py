@@ -149,6 +149,7 @@ Metric = Literal[
     "joint_limit_margin",
     "clearance",
     "margin",
+    "score",
     "combined",
 ]
 _METRICS: tuple[str, ...] = typing.get_args(Metric)

@@ -185,7 +185,12 @@ class CandidatesConfig(_Section):
             grasp_to_tool``), for every source. ACRONYM's Franka frame written as
             ``npy``/``npz``/``csv`` needs ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
         success_only: ``file``: keep only grasps labelled successful.
-        limit: ``file``: keep at most this many grasps (the first ones, after filtering).
+        min_score: ``file``, ``antipodal``: keep only grasps whose ``score`` (the
+            file's quality, the sampler's antipodal quality) is at least this; a
+            file without a score is an error.
+        limit: ``file``: keep at most this many grasps (after filtering): the best
+            by ``score`` when the file has one (ties: the earlier row), else the
+            first ones; the log and ``summary.json`` (``selection``) say which.
         gripper: The gripper whose frame convention maps the file's poses onto the
             robot's grasp frame (:mod:`gcm_pipeline.sources.grippers`; default: the
             gripper the file names, else the format's dataset gripper, ``franka_panda``
@@ -214,6 +219,7 @@ class CandidatesConfig(_Section):
     frame: Literal["object", "world"] = "world"
     grasp_to_tool: Pose | None = None
     success_only: Bool = False
+    min_score: FiniteFloat | None = None
     limit: PositiveInt | None = None
     gripper: str | None = None
     camera_pose: Pose | None = None
@@ -224,6 +230,11 @@ class CandidatesConfig(_Section):
     def _file_needs_path(self) -> CandidatesConfig:
         if self.source == "file" and self.path is None:
             raise ValueError("source 'file' needs 'path'")
+        if self.min_score is not None and self.source not in ("file", "antipodal"):
+            raise ValueError(
+                f"min_score: generator {self.source!r} gives no score; min_score applies to "
+                "source 'file' (a file with a score) or 'antipodal'"
+            )
         if self.source != "file" and self.count > self.max_count:
             raise ValueError(
                 f"count {self.count:,} is above candidates.max_count ({self.max_count:,}); "

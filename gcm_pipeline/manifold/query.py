@@ -73,6 +73,7 @@ QUERY_METRICS = (
     "clearance",
     "combined",
     "margin",
+    "score",
 )
 
 #: The metrics of :data:`QUERY_METRICS` the robot computes from a configuration.
@@ -400,7 +401,7 @@ class GraspManifold:
             robot = self.robot
             run = self._run(f"{_NO_CONFIG}: pass robot= and cfg= to the query")
             return run.robot_metrics(robot, q)[metric]
-        if metric in ("clearance", "margin"):
+        if metric in ("clearance", "margin", "score"):
             if metric not in table:
                 raise InputError(f"metric {metric!r} needs the {metric!r} column; the run has none")
             return np.where(reach, np.asarray(table[metric], dtype=np.float64), np.nan)
@@ -530,15 +531,17 @@ class GraspManifold:
     def _point_values(
         self, res: GraspTable, metric: str, tri: np.ndarray, w: np.ndarray
     ) -> np.ndarray:
-        """Metric of checked new points; ``margin`` is interpolated from the rows."""
-        if metric == "margin":
-            if "margin" not in self.grasps:
-                raise InputError("metric 'margin' needs the 'margin' column; the run has none")
-            m = interpolate(self.row_mesh, self.grasps["margin"], tri, w)
+        """Metric of checked new points; ``margin`` and ``score`` are interpolated from the rows."""
+        if metric in ("margin", "score"):
+            if metric not in self.grasps:
+                raise InputError(f"metric {metric!r} needs the {metric!r} column; the run has none")
+            m = interpolate(self.row_mesh, self.grasps[metric], tri, w)
             return np.where(np.asarray(res["reachable"], dtype=bool), m, np.nan)
-        if metric == "combined" and "margin" in self._combined_weights():
-            m = interpolate(self.row_mesh, self.grasps["margin"], tri, w)
-            res = res.with_columns(margin=m)
+        for name in ("margin", "score"):  # not computed from a configuration: interpolated
+            if metric == "combined" and name in self._combined_weights():
+                res = res.with_columns(
+                    **{name: interpolate(self.row_mesh, self.grasps[name], tri, w)}
+                )
         return self.metric_values(res, metric)
 
     def _cell_size(self) -> float:

@@ -18,9 +18,9 @@ def branch_scores(grasps: GraspTable, robot: Robot, cfg: Config) -> np.ndarray:
     """The ranking metric of every IK branch (N, K) (``solutions`` column), higher is better.
 
     ``combined`` normalises each metric over all branches of all reachable
-    grasps; ``margin`` is the same for every branch of a grasp, so branches are
-    compared by Yoshikawa's index instead (also its weight in ``combined`` is
-    left out).
+    grasps; ``margin`` and ``score`` are the same for every branch of a grasp, so
+    branches are compared by Yoshikawa's index instead (also their weights in
+    ``combined`` are left out).
     """
     clearance = grasps["solutions_clearance"] if "solutions_clearance" in grasps else None
     r = cfg.ranking

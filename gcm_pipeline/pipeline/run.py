@@ -59,6 +59,8 @@ class RunResult:
         grasp_frame: How a grasp file's gripper frame was mapped onto the
             robot's grasp frame (``format``, ``gripper``, ``chosen_by``,
             ``file_gripper``, ``describe``), None for other sources.
+        selection: What ``candidates.min_score`` and ``limit`` kept of a grasp
+            file (:class:`gcm_pipeline.sources.files.select.Selection`), None when neither is set.
     """
 
     grasps: GraspTable
@@ -70,6 +72,7 @@ class RunResult:
     run_dir: Path | None = None
     files: list[Path] = field(default_factory=list)
     grasp_frame: dict[str, Any] | None = None
+    selection: dict[str, Any] | None = None
 
     @functools.cached_property
     def grasp_manifold(self) -> GraspManifold:
@@ -97,6 +100,7 @@ class RunResult:
             "timings_s": {k: round(v, 6) for k, v in self.timings.items()},
             "ranking": {"metric": self.config.ranking.metric, "top": self.top()},
             **({"grasp_frame": self.grasp_frame} if self.grasp_frame else {}),
+            **({"selection": self.selection} if self.selection else {}),
             "legend": legend(self.grasps),
             "config": self.config.to_dict(),
             "versions": run_files.versions(),
@@ -324,6 +328,7 @@ class Pipeline:
         counts["continuity"] = continuity
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
         result.grasp_frame = source.get("grasp_frame")
+        result.selection = source.get("selection")
         if not write:
             return result
         with transaction.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:

@@ -34,8 +34,15 @@ def candidate_poses(
         assert c.path is not None
         fmt = sources.file_format(c.path, c.format)
         grasps = sources.read_grasps(
-            c.path, fmt, success_only=c.success_only, limit=c.limit, max_count=c.max_count
+            c.path,
+            fmt,
+            success_only=c.success_only,
+            min_score=c.min_score,
+            limit=c.limit,
+            max_count=c.max_count,
         )
+        if report is not None and (c.min_score is not None or c.limit is not None):
+            report["selection"] = grasps.selection.as_dict()
         poses, choice = sources.to_grasp_frame(
             grasps, c.path, fmt, gripper=c.gripper, grasp_to_tool=to_tool
         )
@@ -68,6 +75,13 @@ def candidate_poses(
             world=obj.pose.matrix(),
             floor_z=None if table is None else table.height,
         )
+        if c.min_score is not None:
+            keep = columns["score"] >= c.min_score
+            log.info(
+                "candidates: min_score %g keeps %d of %d sampled grasps",
+                *(c.min_score, np.count_nonzero(keep), len(keep)),
+            )
+            poses, columns = poses[keep], {k: v[keep] for k, v in columns.items()}
         return (poses if to_tool is None else poses @ to_tool), columns
     d = None if obj is None else obj.dims
     poses = sources.generate(
@@ -112,6 +126,7 @@ def generate_candidates(cfg: Config, *, report: dict[str, Any] | None = None) ->
     poses, columns = candidate_poses(cfg, report)
     if poses.shape[0] == 0:
         raise InputError(f"candidates: no grasp left from {_describe_source(cfg.candidates)}")
+    _check_score_metric(cfg, columns)
     log.info("candidates: %d from %s", poses.shape[0], _describe_source(cfg.candidates))
     return GraspTable({"dq": dq_from_matrix(poses), **columns})
 
@@ -120,3 +135,20 @@ def _describe_source(c: CandidatesConfig) -> str:
     if c.source == "file":
         return f"file {c.path}"
     return f"generator {c.source!r}"
+
+
+def _check_score_metric(cfg: Config, columns: dict[str, np.ndarray]) -> None:
+    """Refuse ranking by ``score`` (``ranking.metric``, a ``combined`` weight) without one."""
+    r = cfg.ranking
+    key = "ranking.metric" if r.metric == "score" else None
+    if r.metric == "combined" and (r.weights or {}).get("score", 0) > 0:
+        key = "ranking.weights.score"
+    if key is None or "score" in columns:
+        return
+    raise ConfigError(
+        f"{key}: 'score' ranks by the source's grasp quality, but "
+        f"{_describe_source(cfg.candidates)} gives none (a grasp file's score, "
+        "or source 'antipodal'); choose another metric",
+        key=key,
+        value="score",
+    )

@@ -2,7 +2,8 @@ r"""The ranking metrics: their names, their columns and the ``combined`` metric.
 
 Four metrics come from the arm's kinematics (:mod:`gcm_pipeline.robot.manipulability`),
 two from other steps (``clearance`` from the collision checks, ``margin`` from
-the manifold), and ``combined`` weighs them:
+the manifold), one from the source (``score``: the synthesiser's grasp quality),
+and ``combined`` weighs them:
 
 .. math::
 
@@ -40,6 +41,7 @@ METRIC_COLUMNS: dict[str, str] = {
     **METRICS,
     "clearance": "clearance",
     "margin": "margin",
+    "score": "score",
     "combined": "combined",
 }
 

@@ -13,7 +13,7 @@ metric name (configs)            column                  meaning
 ``joint_limit_margin``           ``joint_limit_margin``  normalised, in [0, 1]
 ================================ ======================= ====================
 
-Three more metrics rank by columns of other stages (the collision checks,
+Four more metrics rank by columns of other stages or of the source (the collision checks,
 :mod:`gcm_pipeline.reach.engine`; the margin,
 :mod:`gcm_pipeline.manifold.margin`):
 
@@ -23,6 +23,9 @@ Three more metrics rank by columns of other stages (the collision checks,
 ``margin``                       ``margin``              distance along the manifold
                                                          to the nearest unreachable
                                                          point [m] (``inf``: none)
+``score``                        ``score``               the source's grasp quality
+                                                         (a file's score, blended on
+                                                         interpolated rows)
 ``combined``                     ``combined`` (added)    weighted sum of normalised
                                                          metrics, see
                                                          :func:`~gcm_pipeline.ranking.metrics.combined_score`
@@ -68,6 +71,38 @@ def _finite_margin(values: np.ndarray, reachable: np.ndarray) -> np.ndarray:
     return m
 
 
+def _check_columns(grasps: GraspTable, metric: str, weights: Mapping[str, float] | None) -> None:
+    """Refuse a table without a column the metric (or a ``combined`` weight) needs."""
+    weight_of = (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get
+    needs_clearance = metric == "clearance" or (
+        metric == "combined" and weight_of("clearance", 0) > 0
+    )
+    if needs_clearance and "clearance" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'clearance' column of the collision "
+            f"checks (reachability with an environment or object); "
+            f"columns: {', '.join(grasps.columns)}"
+        )
+    needs_margin = metric == "margin" or (metric == "combined" and weight_of("margin", 0) > 0)
+    if needs_margin and "margin" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'margin' column (the pipeline adds it "
+            f"after reachability); columns: {', '.join(grasps.columns)}"
+        )
+    needs_score = metric == "score" or (metric == "combined" and weight_of("score", 0) > 0)
+    if needs_score and "score" not in grasps:
+        raise InputError(
+            f"ranking metric {metric!r} needs the 'score' column (a grasp file's quality or "
+            f"the antipodal sampler's); columns: {', '.join(grasps.columns)}"
+        )
+    for col in ("reachable", "q"):
+        if col not in grasps:
+            raise InputError(
+                f"ranking needs column {col!r} (run reachability first); "
+                f"columns: {', '.join(grasps.columns)}"
+            )
+
+
 def rank(
     grasps: GraspTable,
     robot: Robot | RobotSpec,
@@ -84,8 +119,8 @@ def rank(
         robot: A :class:`Robot` or a :class:`RobotSpec`.
         metric: Ranking metric, one of :data:`METRIC_COLUMNS`: ``yoshikawa``,
             ``translational``, ``inverse_condition``, ``joint_limit_margin``,
-            ``clearance``, ``margin``, ``combined`` (``margin``: ``inf`` counts
-            as the largest finite margin).
+            ``clearance``, ``margin``, ``score``, ``combined`` (``margin``: ``inf``
+            counts as the largest finite margin; ``score`` needs the ``score`` column).
         top_k: How many of the best grasps ``top`` marks (None: all reachable).
         weights: Metric name -> weight of the ``combined`` metric (None:
             :data:`~gcm_pipeline.ranking.metrics.DEFAULT_COMBINED_WEIGHTS`);
@@ -110,28 +145,7 @@ def rank(
     ):
         raise InputError(f"top_k must be an int >= 0 or None, got {top_k!r}")
     robot = as_robot(robot)
-    weight_of = (DEFAULT_COMBINED_WEIGHTS if weights is None else weights).get
-    needs_clearance = metric == "clearance" or (
-        metric == "combined" and weight_of("clearance", 0) > 0
-    )
-    if needs_clearance and "clearance" not in grasps:
-        raise InputError(
-            f"ranking metric {metric!r} needs the 'clearance' column of the collision "
-            f"checks (reachability with an environment or object); "
-            f"columns: {', '.join(grasps.columns)}"
-        )
-    needs_margin = metric == "margin" or (metric == "combined" and weight_of("margin", 0) > 0)
-    if needs_margin and "margin" not in grasps:
-        raise InputError(
-            f"ranking metric {metric!r} needs the 'margin' column (the pipeline adds it "
-            f"after reachability); columns: {', '.join(grasps.columns)}"
-        )
-    for col in ("reachable", "q"):
-        if col not in grasps:
-            raise InputError(
-                f"ranking needs column {col!r} (run reachability first); "
-                f"columns: {', '.join(grasps.columns)}"
-            )
+    _check_columns(grasps, metric, weights)
     n = len(grasps)
     reachable = np.asarray(grasps["reachable"], dtype=bool)
     q = np.asarray(grasps["q"], dtype=float)
@@ -147,11 +161,15 @@ def rank(
             scored["clearance"] = _finite_margin(grasps["clearance"], reachable)
         if "margin" in grasps:
             scored["margin"] = _finite_margin(grasps["margin"], reachable)
+        if "score" in grasps:
+            scored["score"] = np.asarray(grasps["score"], dtype=float)
         key = extra["combined"] = combined_score(scored, weights, mask=reachable)
     elif metric == "clearance":
         key = _finite_margin(grasps["clearance"], reachable)
     elif metric == "margin":
         key = _finite_margin(grasps["margin"], reachable)
+    elif metric == "score":
+        key = np.asarray(grasps["score"], dtype=float)
     else:
         key = columns[METRICS[metric]]
     rows = np.flatnonzero(reachable & np.isfinite(key))
@@ -175,13 +193,16 @@ def reachable_score(
 
     ``combined`` is normalised over the reachable rows of ``table`` (its
     weights of metrics the table lacks are left out); ``margin`` (which needs
-    the finished manifold) falls back to Yoshikawa's index.
+    the finished manifold) falls back to Yoshikawa's index, as does ``score``
+    on a table without one.
     """
     reach = np.asarray(table["reachable"], dtype=bool)
     q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
     values: dict[str, np.ndarray] = dict(manipulability_metrics(robot, q))
     if "clearance" in table:
         values["clearance"] = np.asarray(table["clearance"], dtype=np.float64)
+    if "score" in table:
+        values["score"] = np.where(reach, np.asarray(table["score"], dtype=np.float64), np.nan)
     if metric == "combined":
         used = {k: v for k, v in (weights or {}).items() if k in values}
         return combined_score(values, used or None, mask=reach)
@@ -199,9 +220,9 @@ def branch_scores(
     """The ranking metric of every IK branch (N, K), higher is better.
 
     ``combined`` normalises each metric over all branches of all grasps (NaN
-    branches aside); ``margin`` is the same for every branch of a grasp, so
-    branches are compared by Yoshikawa's index instead (also its weight in
-    ``combined`` is left out).
+    branches aside); ``margin`` and ``score`` are the same for every branch of
+    a grasp, so branches are compared by Yoshikawa's index instead (also their
+    weights in ``combined`` are left out).
 
     Args:
         solutions: The branches (N, K, nq) [rad] (NaN past a grasp's last one).

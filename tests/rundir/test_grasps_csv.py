@@ -14,7 +14,7 @@ def test_extra_csv_columns_are_carried_to_grasps_csv(cli, tmp_path):
         "ID,x,y,z,qw,qx,qy,qz,score,Grasp Label,success\n"
         "17,0.45,0,0.25,0,1,0,0,0.9,a,1\n"
         "23,0.45,0.1,0.25,0,1,0,0,0.7,b,1\n"
-        "42,0.55,0,0.25,0,1,0,0,,c,0\n"
+        "42,0.55,0,0.25,0,1,0,0,0.2,c,0\n"  # every row needs a score: an empty one is NaN
         "51,0.55,0.1,0.25,0,1,0,0,0.5,d,1\n"
     )
     cfg.write_text(

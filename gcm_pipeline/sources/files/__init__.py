@@ -56,6 +56,7 @@ from gcm_pipeline.sources.files.graspgen import read_graspgen
 from gcm_pipeline.sources.files.graspnet import read_graspnet
 from gcm_pipeline.sources.files.npy import read_npy
 from gcm_pipeline.sources.files.npz import read_npz
+from gcm_pipeline.sources.files.select import Selection, select_grasps
 from gcm_pipeline.sources.files.sniff import check_format, sniff
 from gcm_pipeline.sources.grippers import GripperChoice, choose_gripper, get_gripper
 
@@ -65,6 +66,7 @@ __all__ = [
     "IMPORT_FORMATS",
     "READERS",
     "ImportedGrasps",
+    "Selection",
     "file_format",
     "load_grasp_file",
     "read_contact_graspnet",
@@ -117,22 +119,25 @@ def read_grasps(
     fmt: str | None,
     *,
     success_only: bool = False,
+    min_score: float | None = None,
     limit: int | None = None,
     max_count: int = DEFAULT_MAX_CANDIDATES,
 ) -> ImportedGrasps:
-    """The grasps of a file in any format, as stored, filtered by success and ``limit``.
+    """The grasps of a file in any format, as stored, filtered (:mod:`~.select`).
 
     Args:
         path: The grasp file.
         fmt: Its format (:func:`file_format`; None: from the suffix).
         success_only: Keep only successful grasps (needs success labels).
-        limit: Keep at most this many (the first ones, after filtering).
+        min_score: Keep only grasps whose ``score`` is at least this (needs a score).
+        limit: Keep at most this many (after the filters above): the best by
+            ``score`` when the file has one (ties: file order), else the first.
         max_count: Most grasps the file may hold (``candidates.max_count``).
 
     Returns:
         The grasps; ``convention`` is ``tool`` for ``npy``/``npz``/``csv``
         (poses of the robot's grasp frame) and the format's gripper-frame
-        convention otherwise.
+        convention otherwise; ``selection`` says what was kept.
 
     Raises:
         InputError: See :func:`read_grasp_file` and the format's reader.
@@ -140,22 +145,24 @@ def read_grasps(
     if fmt in READERS:
         assert fmt is not None
         grasps = READERS[fmt](path, max_count=max_count)
-        if success_only:
-            if grasps.success is None:
-                raise InputError(
-                    f"{path}: candidates.success_only needs success labels, but this {fmt} "
-                    "file has none (graspgen: grasps.object_in_gripper)",
-                    path=path,
-                )
-            grasps = grasps.take(np.flatnonzero(grasps.success))
-        if limit is not None:
-            grasps = grasps.take(np.arange(min(limit, len(grasps.poses))))
-        return grasps
-    # the built-in readers filter; source_id and success as without a gripper
-    poses, columns, gripper = read_grasp_file_gripper(
-        path, format=fmt, success_only=success_only, limit=limit, max_count=max_count
+    else:
+        poses, columns, gripper = _read_builtin(path, fmt, max_count)
+        conv = "base" if fmt == "acronym" else "tool"
+        grasps = ImportedGrasps(poses, conv, columns, columns.get("success"), gripper=gripper)
+    if "source_id" not in grasps.columns:  # an empty file
+        grasps.columns["source_id"] = np.arange(len(grasps.poses), dtype=np.int64)
+    keep, selection = select_grasps(
+        path,
+        fmt,
+        grasps.columns,
+        grasps.success,
+        success_only=success_only,
+        min_score=min_score,
+        limit=limit,
     )
-    return ImportedGrasps(poses, "base" if fmt == "acronym" else "tool", columns, gripper=gripper)
+    grasps = grasps.take(keep)
+    grasps.selection = selection
+    return grasps
 
 
 def to_grasp_frame(
@@ -306,6 +313,21 @@ def read_grasp_file_gripper(
     max_count: int = DEFAULT_MAX_CANDIDATES,
 ) -> tuple[np.ndarray, dict[str, np.ndarray], str | None]:
     """:func:`read_grasp_file`, plus the gripper the file names (ACRONYM's ``gripper/type``)."""
+    poses, columns, gripper = _read_builtin(path, format, max_count)
+    keep, _ = select_grasps(
+        path, format, columns, columns.get("success"), success_only=success_only, limit=limit
+    )
+    columns = {k: v[keep] for k, v in columns.items()}
+    return np.ascontiguousarray(poses[keep], dtype=float), columns, gripper
+
+
+def _read_builtin(
+    path: str | Path, format: str | None, max_count: int
+) -> tuple[np.ndarray, dict[str, np.ndarray], str | None]:
+    """Poses, columns (``source_id``, ``success``, ``score``, ...), gripper: unfiltered.
+
+    For the built-in formats ``npy``, ``npz``, ``csv`` and ``acronym``.
+    """
     path = Path(path)
     try:
         if not path.exists():
@@ -341,19 +363,6 @@ def read_grasp_file_gripper(
     columns = {"source_id": np.arange(len(poses), dtype=np.int64), **columns}
     if success is not None:
         columns["success"] = success
-    keep: np.ndarray | None = None
-    if success_only:
-        if success is None:
-            raise InputError(
-                f"{path}: candidates.success_only needs success labels, but this {fmt} file "
-                "has none (npz: 'success' array, csv: 'success' column, acronym: "
-                "grasps/qualities/flex/object_in_gripper)",
-                path=path,
-            )
-        keep = np.flatnonzero(success)
-    if limit is not None:
-        keep = (np.arange(len(poses)) if keep is None else keep)[:limit]
-    if keep is not None:
-        poses = poses[keep]
-        columns = {k: v[keep] for k, v in columns.items()}
+    if fmt == "acronym":  # its quality: object_in_gripper, 0/1 (see acronym.py)
+        columns["score"] = np.asarray(success, dtype=np.float64)
     return np.ascontiguousarray(poses, dtype=float), columns, gripper

@@ -3,6 +3,10 @@
 Layout: ``grasps/transforms`` (N, 4, 4) poses of the Franka hand's base in the
 object mesh frame [m], ``grasps/qualities/flex/object_in_gripper`` (N,) 0/1
 success, optional ``object/file``, ``object/scale`` and ``gripper/type``.
+The ``score`` column is ``object_in_gripper`` (1.0: the object stayed in the
+simulated gripper, 0.0: it fell out): the one quality ACRONYM states per grasp.
+Its ``object_motion_during_{closing,shaking}_{linear,angular}`` datasets
+(how far the object moved, in mixed units) are not read and not turned into a score.
 Reading needs the optional extra ``acronym`` (h5py, :data:`ACRONYM_INSTALL_HINT`).
 """
 
@@ -19,7 +23,7 @@ import numpy as np
 
 from gcm_pipeline.bounds import MAX_HDF5_TEXT
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.sources.files.common import as_poses, check_count, success_labels
+from gcm_pipeline.sources.files.common import as_poses, check_count, score_column, success_labels
 
 __all__ = ["ACRONYM_INSTALL_HINT", "read_acronym"]
 
@@ -142,7 +146,8 @@ def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarr
                     f"{path}: {where} has {quality.size} values, expected {poses.shape[0]}",
                     path=path,
                 )
-            success = success_labels(path, np.asarray(quality[()]), poses.shape[0], where)
+            raw = score_column(path, quality[()], poses.shape[0], where)  # the score's source
+            success = success_labels(path, raw, poses.shape[0], where)
             where = "object"
             name, scale = _acronym_object(path, fh, h5py)
             where = "gripper/type"

@@ -32,6 +32,7 @@ __all__ = [
     "check_positions",
     "check_rigid",
     "column_name",
+    "score_column",
     "success_labels",
     "vector",
 ]
@@ -87,6 +88,8 @@ class ImportedGrasps:
         success: (N,) bool success labels, or None.
         depth: (N,) ``center`` convention: fingertip depth past the centre [m].
         gripper: The gripper named in the file, if any.
+        selection: What :func:`~gcm_pipeline.sources.files.read_grasps` kept
+            (:class:`~gcm_pipeline.sources.files.select.Selection`), once filtered.
     """
 
     poses: np.ndarray
@@ -95,6 +98,7 @@ class ImportedGrasps:
     success: np.ndarray | None = None
     depth: np.ndarray | None = None
     gripper: str | None = None
+    selection: Any = None
 
     def take(self, index: np.ndarray) -> ImportedGrasps:
         """The rows selected by an integer index or boolean mask."""
@@ -215,6 +219,56 @@ def success_labels(path: Path, values: np.ndarray, n: int, what: str) -> np.ndar
     if values.dtype.kind not in "biuf":
         raise InputError(f"{path}: {what} must be 0/1 values, got dtype {values.dtype}", path=path)
     return values.astype(float) > 0.5
+
+
+def score_column(
+    path: Path,
+    values: Any,
+    n: int,
+    key: str,
+    where: Callable[[int], str] | None = None,
+) -> np.ndarray:
+    """A file's grasp quality as the ``score`` column: (n,) finite float64, or raise.
+
+    A score of the wrong length, not a number, NaN or infinite is bad input
+    (a broken export), never a grasp to drop silently: the message names the
+    file, the key and the first bad row.
+
+    Args:
+        path: The file (for messages).
+        values: The file's scores.
+        n: How many grasps the file holds.
+        key: Where the file stores them (``column 'score'``, ``grasps.confidences``).
+        where: How a message names row ``i`` (default ``"<path>: <key>: grasp <i> (0-based)"``).
+
+    Raises:
+        InputError: Names the key and, for a non-finite score, the row (attributes
+            ``path``, ``key``, ``row``, ``value``).
+    """
+    try:
+        arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {key}: scores must be numbers", path=path, key=key) from None
+    if arr.shape[0] != n:
+        raise InputError(
+            f"{path}: {key} has {arr.shape[0]:,} scores for {n:,} grasps; one score per grasp",
+            path=path,
+            key=key,
+            value=arr.shape[0],
+        )
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        i = int(bad[0])
+        name = where(i) if where is not None else f"{path}: {key}: grasp {i} (0-based)"
+        more = f" ({bad.size:,} such grasps)" if bad.size > 1 else ""
+        raise InputError(
+            f"{name}: score is {float(arr[i])}; every score must be a finite number{more}",
+            path=path,
+            key=key,
+            row=i,
+            value=float(arr[i]),
+        )
+    return arr
 
 
 def vector(path: Path, value: Any, n: int, what: str) -> np.ndarray:

@@ -18,7 +18,13 @@ import numpy as np
 
 from gcm_pipeline.bounds import DEFAULT_MAX_CANDIDATES
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.sources.files.common import ImportedGrasps, check_count, check_poses, vector
+from gcm_pipeline.sources.files.common import (
+    ImportedGrasps,
+    check_count,
+    check_poses,
+    score_column,
+    vector,
+)
 from gcm_pipeline.sources.files.pickled import read_npz_members
 from gcm_pipeline.sources.files.sniff import check_format
 
@@ -49,7 +55,8 @@ def read_contact_graspnet(
 
     Returns:
         Gripper base poses (``base`` convention) in the camera frame with
-        ``score``, ``width`` (``gripper_openings`` when present, else NaN),
+        ``score`` (the file's ``scores``; no column when it has none),
+        ``width`` (``gripper_openings`` when present, else NaN),
         ``segment`` (the segment id) and ``source_id`` (the row inside its
         segment).
 
@@ -97,10 +104,15 @@ def read_contact_graspnet(
         poses = check_poses(path, raw.reshape(-1, 4, 4), what)
         m = len(poses)
         parts.append(poses)
-        score = scores.get(key)
-        cols["score"].append(
-            np.full(m, np.nan) if score is None else vector(path, score, m, f"scores[{key}]")
-        )
+        if "scores" in arrays:  # a file without scores has no score column
+            if key not in scores:
+                raise InputError(
+                    f"{path}: scores has no entry for segment {clip(key, 40)}; "
+                    "pred_grasps_cam has one",
+                    path=path,
+                    key=f"scores[{clip(key, 40)}]",
+                )
+            cols["score"].append(score_column(path, scores[key], m, f"scores[{clip(key, 40)}]"))
         width = openings.get(key)
         cols["width"].append(
             np.full(m, np.nan)
@@ -117,5 +129,5 @@ def read_contact_graspnet(
         cols["source_id"].append(np.arange(m, dtype=np.int64))
     if not parts:
         return ImportedGrasps(np.zeros((0, 4, 4)), "base", {})
-    columns = {k: np.concatenate(v) for k, v in cols.items()}
+    columns = {k: np.concatenate(v) for k, v in cols.items() if v}
     return ImportedGrasps(np.concatenate(parts), "base", columns)

@@ -11,7 +11,12 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.rundir.grasps_csv import check_csv_cells
-from gcm_pipeline.sources.files.common import check_count, check_positions, column_name
+from gcm_pipeline.sources.files.common import (
+    check_count,
+    check_positions,
+    column_name,
+    score_column,
+)
 
 __all__ = ["read_csv"]
 
@@ -48,7 +53,8 @@ def read_csv(
     """Poses, ``success`` labels (or None) and carried columns of a grasp CSV file.
 
     Quaternions (w, x, y, z) within 1e-3 of unit norm are normalised; every
-    other column is carried (integers, numbers with empty = NaN, or text).
+    other column is carried (integers, numbers with empty = NaN, or text); a
+    ``score`` column is the grasps' quality, a finite number in every row.
     A UTF-8 byte order mark and blank lines are ignored.
     """
     _refuse_nul(path)
@@ -67,7 +73,14 @@ def read_csv(
     for k, raw in enumerate(header):
         if names[k] in _CSV_POSE or names[k] == "success":
             continue
-        columns[column_name(path, raw, taken)] = _csv_column(cells[:, k])
+        name = column_name(path, raw, taken)
+        if name == "score":  # the file's quality: numbers, one a row (an empty cell is NaN)
+            scores = _csv_floats(path, cells[:, k], raw, lines, empty=np.nan)
+            columns[name] = score_column(
+                path, scores, len(poses), f"column {raw!r}", where=lambda i: f"{path}:{lines[i]}"
+            )
+            continue
+        columns[name] = _csv_column(cells[:, k])
     return poses, success, columns
 
 
@@ -172,11 +185,13 @@ def _csv_poses(path: Path, cells: np.ndarray, names: list[str], lines: list[int]
     return poses
 
 
-def _csv_floats(path: Path, col: np.ndarray, name: str, lines: list[int]) -> np.ndarray:
+def _csv_floats(
+    path: Path, col: np.ndarray, name: str, lines: list[int], empty: float | None = None
+) -> np.ndarray:
     out = np.empty(len(col))
     for i, text in enumerate(col.tolist()):
         try:
-            out[i] = float(text)
+            out[i] = empty if empty is not None and not text.strip() else float(text)
         except ValueError:
             raise InputError(
                 f"{path}:{lines[i]}: column {name!r}: not a number: {clip(text)}",

@@ -30,6 +30,7 @@ from gcm_pipeline.sources.files.common import (
     check_count,
     check_poses,
     check_positions,
+    score_column,
     vector,
 )
 from gcm_pipeline.sources.files.sniff import check_format
@@ -126,7 +127,7 @@ def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     columns: dict[str, np.ndarray] = {}
     for key in ("confidences", "confidence", "scores"):
         if key in grasps:
-            columns["score"] = vector(path, grasps[key], n, f"grasps.{key}")
+            columns["score"] = score_column(path, grasps[key], n, f"grasps.{key}")
             break
     success = None
     if "object_in_gripper" in grasps:
@@ -152,6 +153,7 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> Impor
     pos = np.empty((n, 3))
     quat = np.empty((n, 4))  # w, x, y, z
     score = np.full(n, np.nan)
+    scored = np.zeros(n, dtype=bool)
     for i, (name, g) in enumerate(grasps.items()):
         try:
             pos[i] = np.asarray(g["position"], dtype=float).reshape(3)
@@ -159,7 +161,7 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> Impor
             quat[i, 0] = float(o["w"])
             quat[i, 1:] = np.asarray(o["xyz"], dtype=float).reshape(3)
             if "confidence" in g:
-                score[i] = float(g["confidence"])
+                score[i], scored[i] = float(g["confidence"]), True
         except (KeyError, TypeError, ValueError):
             raise InputError(
                 f"{path}: grasp {clip(name)}: expected position: [x, y, z] and "
@@ -183,5 +185,19 @@ def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> Impor
         poses[:, :3, :3] = Rotation.from_quat((quat / norm[:, None])[:, [1, 2, 3, 0]]).as_matrix()
     poses[:, :3, 3] = pos
     poses[:, 3, 3] = 1.0
-    columns = {"score": score, "source_id": np.arange(n, dtype=np.int64)}
+    columns = {"source_id": np.arange(n, dtype=np.int64)}
+    if scored.any():  # all or none: a file without confidences has no score column
+        names = list(grasps)
+        if not scored.all():
+            i = int(np.flatnonzero(~scored)[0])
+            raise InputError(
+                f"{path}: grasp {clip(names[i])} has no confidence, though "
+                f"{int(scored.sum()):,} of {n:,} grasps have one",
+                path=path,
+                key="confidence",
+                row=i,
+            )
+        columns["score"] = score_column(
+            path, score, n, "confidence", where=lambda i: f"{path}: grasp {clip(names[i])}"
+        )
     return ImportedGrasps(poses, "base", columns)

@@ -17,7 +17,12 @@ import numpy as np
 from gcm_pipeline.bounds import DEFAULT_MAX_CANDIDATES
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.rundir.arrays import npy_header
-from gcm_pipeline.sources.files.common import ImportedGrasps, check_count, check_poses
+from gcm_pipeline.sources.files.common import (
+    ImportedGrasps,
+    check_count,
+    check_poses,
+    score_column,
+)
 from gcm_pipeline.sources.files.pickled import read_npz_members
 from gcm_pipeline.sources.files.sniff import check_format, sniff
 
@@ -63,6 +68,7 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     _check_graspnet_shape(path, rows.shape, rows.dtype)
     check_count(path, len(rows), max_count)
     rows = rows.astype(float)
+    score_column(path, rows[:, 0], len(rows), "column 0 (score)")
     bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
     if bad.size:
         raise InputError(f"{path}: row {int(bad[0])} (0-based) has non-finite values", path=path)

@@ -10,7 +10,13 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.rundir.arrays import read_npz as read_npz_arrays
-from gcm_pipeline.sources.files.common import as_poses, check_count, column_name, success_labels
+from gcm_pipeline.sources.files.common import (
+    as_poses,
+    check_count,
+    column_name,
+    score_column,
+    success_labels,
+)
 
 __all__ = ["read_npz"]
 
@@ -27,6 +33,8 @@ def read_npz(
 
     The poses are array ``transforms`` (or ``poses``, or the only 3-D array);
     other 1-D arrays of one number or string per grasp are carried as columns.
+    An array ``score`` is the grasps' quality: one finite number per grasp
+    (:func:`~gcm_pipeline.sources.files.common.score_column`).
     """
     arrays = read_npz_arrays(
         path,
@@ -42,6 +50,10 @@ def read_npz(
     columns: dict[str, np.ndarray] = {}
     taken: set[str] = {"source_id", "success"}
     for name, values in arrays.items():
+        if name == "score":  # the file's quality: validated, never skipped
+            taken.add("score")
+            columns["score"] = score_column(path, values, len(poses), "array 'score'")
+            continue
         if values.ndim != 1 or len(values) != len(poses) or values.dtype.kind not in "biufU":
             log.info(
                 "%s: array %r %s is not one value per grasp; not read", path, name, values.shape

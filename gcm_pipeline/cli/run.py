@@ -122,10 +122,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.run import load_config
-    from gcm_pipeline.pipeline import generate_candidates, preflight
+    from gcm_pipeline.pipeline import generate_candidates, place_file_object, preflight
     from gcm_pipeline.robot import kernels
 
-    cfg = load_config(args.config, args.overrides)
+    cfg = place_file_object(load_config(args.config, args.overrides))
     with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
         preflight(cfg)
     n = len(generate_candidates(cfg))  # a grasp file is read and checked as a run reads it

@@ -166,10 +166,10 @@ class PlacementConfig(_Section):
 
     The mesh rests in one of its stable poses (trimesh's): ``upright`` (the
     one that keeps the mesh's own +z up, as it was modelled) or a number, the
-    stable poses ranked by probability (0: the most probable; a mug's lies it on
-    its side). It is turned by ``yaw_deg`` about
-    the vertical, the centre of its footprint at ``xy`` [m] and its lowest
-    point on the table top (``environment.table.height``, else z = 0).
+    stable poses ranked by probability (0: the most probable; a mug's lies it
+    on its side). It is turned by ``yaw_deg`` about the vertical, the centre
+    of its footprint at ``xy`` [m] and its lowest point on the table top
+    (``environment.table.height``, else z = 0).
     """
 
     xy: tuple[Length, Length] = (0.5, 0.0)

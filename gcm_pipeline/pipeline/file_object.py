@@ -12,6 +12,7 @@ from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig, Pose
 from gcm_pipeline.sources import file_format
 from gcm_pipeline.sources.file_object import (
+    MESH_KEYS,
     find_mesh,
     load_scaled,
     named_object,
@@ -51,7 +52,7 @@ def place_file_object(cfg: Config) -> Config:
     if name is None or fmt is None:
         return cfg
     mesh_path = find_mesh(path, name, fmt, c.mesh_root)
-    what = f"{path}: object mesh {mesh_path}"
+    what = f"{path}: {MESH_KEYS[fmt]} -> {mesh_path}"
     mesh = load_scaled(mesh_path, scale, what)
     table = cfg.environment.table
     p = c.placement

@@ -28,7 +28,7 @@ from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.sources.files.acronym import read_acronym, read_acronym_object
 from gcm_pipeline.sources.files.graspgen import graspgen_object
 
-__all__ = ["Placement", "find_mesh", "named_object", "stable_placement"]
+__all__ = ["MESH_KEYS", "Placement", "find_mesh", "load_scaled", "named_object", "stable_placement"]
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,11 @@ class Placement:
 def load_scaled(mesh_path: Path, scale: float, what: str) -> Any:
     """The mesh file as a ``trimesh.Trimesh`` scaled to metres.
 
+    Args:
+        mesh_path: The mesh file.
+        scale: Its scale (file units -> metres).
+        what: How messages name it (e.g. ``<grasp file>: object/file -> <mesh>``).
+
     Raises:
         InputError: Unreadable, no triangles, or a vertex that is not finite (names ``what``).
     """
@@ -119,14 +124,12 @@ def load_scaled(mesh_path: Path, scale: float, what: str) -> Any:
         mesh = trimesh.load(str(mesh_path), force="mesh")
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise InputError(
-            f"{what}: cannot read mesh {mesh_path}: {clip(str(exc))}", path=mesh_path
+            f"{what}: cannot read the mesh: {clip(str(exc))}", path=mesh_path
         ) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError(f"{what}: mesh {mesh_path} has no triangles", path=mesh_path)
+        raise InputError(f"{what}: the mesh has no triangles", path=mesh_path)
     if not np.isfinite(mesh.vertices).all():
-        raise InputError(
-            f"{what}: mesh {mesh_path} has a vertex that is not finite", path=mesh_path
-        )
+        raise InputError(f"{what}: the mesh has a vertex that is not finite", path=mesh_path)
     mesh.apply_scale(scale)
     return mesh
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+import yaml
 from helpers import DATA
 
 from gcm_pipeline.config.run import Config
@@ -195,3 +196,42 @@ def test_placement_keys_are_validated():
         with pytest.raises(ConfigError, match="candidates.placement"):
             _config(MUG_H5, placement=bad)
     assert math.isclose(_config(MUG_H5).candidates.placement.xy[0], 0.5)
+
+
+def test_the_scene_frames_the_placed_mesh_by_its_geometry_not_its_origin(tmp_path):
+    from gcm_pipeline.outputs.scene_shapes import object_points
+    from gcm_pipeline.pipeline.outputs import scene_shape
+
+    _far_origin_box(tmp_path / "meshes" / "Box" / "b.obj")
+    h5 = _h5(tmp_path / "grasps" / "Box_b.h5", "meshes/Box/b.obj")
+    cfg = place_file_object(_config(h5))
+    pts = object_points(scene_shape(cfg.object))
+    lo, hi = _world_mesh(cfg).bounds
+    assert pts.min(axis=0) == pytest.approx(lo, abs=1e-9)
+    assert pts.max(axis=0) == pytest.approx(hi, abs=1e-9)
+    assert np.linalg.norm(cfg.object.pose.matrix()[:2, 3]) > 2.0  # the origin, far away
+
+
+def test_a_graspgen_file_names_its_mesh_too(tmp_path):
+    (tmp_path / "objects").mkdir()
+    shutil.copy(MUG_OBJ, tmp_path / "objects" / "mug.obj")
+    t = np.eye(4)
+    t[:3, 3] = (0.0, 0.0, 0.15)
+    path = tmp_path / "grasps" / "mug.yaml"
+    path.parent.mkdir()
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "object": {"file": "objects/mug.obj", "scale": MUG_SCALE},
+                "gripper": {"name": "franka_panda"},
+                "grasps": {"transforms": [t.tolist()], "object_in_gripper": [1]},
+            }
+        )
+    )
+    cfg = place_file_object(_config(path, format="graspgen"))
+    assert Path(cfg.object.mesh) == tmp_path / "objects" / "mug.obj"
+    assert cfg.object.scale == pytest.approx(MUG_SCALE)
+    assert _world_mesh(cfg).bounds[0, 2] == pytest.approx(0.0, abs=1e-9)
+    path.write_text(path.read_text().replace(f"scale: {MUG_SCALE}", "scale: -2.0"))
+    with pytest.raises(InputError, match=r"object\.scale must be a positive number, got -2\.0"):
+        place_file_object(_config(path, format="graspgen"))

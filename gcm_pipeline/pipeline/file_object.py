@@ -9,7 +9,7 @@ from pathlib import Path
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config.run import Config, takes_config
-from gcm_pipeline.config.sections import ObjectConfig, Pose
+from gcm_pipeline.config.sections import ObjectConfig, PlacementConfig, Pose
 from gcm_pipeline.sources import file_format
 from gcm_pipeline.sources.file_object import (
     MESH_KEYS,
@@ -40,9 +40,11 @@ def place_file_object(cfg: Config) -> Config:
             stable pose index is out of range.
     """
     c = cfg.candidates
-    unused = sorted({"mesh_root", "placement"} & c.model_fields_set)
-    if cfg.object is not None and unused:
-        log.warning("candidates.%s: not used, the 'object' section gives the object", unused[0])
+    if cfg.object is not None and (c.mesh_root is not None or c.placement != PlacementConfig()):
+        log.warning(
+            "candidates.%s: not used, the 'object' section gives the object",
+            "mesh_root" if c.mesh_root is not None else "placement",
+        )
     if c.source != "file" or cfg.object is not None or c.frame is not None:
         return cfg
     assert c.path is not None

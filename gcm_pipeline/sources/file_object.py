@@ -28,7 +28,15 @@ from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.sources.files.acronym import read_acronym, read_acronym_object
 from gcm_pipeline.sources.files.graspgen import graspgen_object
 
-__all__ = ["MESH_KEYS", "Placement", "find_mesh", "load_scaled", "named_object", "stable_placement"]
+__all__ = [
+    "MESH_KEYS",
+    "Placement",
+    "find_mesh",
+    "load_scaled",
+    "named_object",
+    "stable_placement",
+    "warn_if_open",
+]
 
 log = logging.getLogger(__name__)
 
@@ -154,13 +162,6 @@ def stable_placement(
             ``candidates.placement.stable_pose``).
     """
     watertight = bool(mesh.is_watertight)
-    if not watertight:
-        log.warning(
-            "%s: the mesh is not watertight (not a closed surface): the contact model cannot "
-            "tell whether a gripper piece lies wholly inside it (collision checks see only "
-            "crossings of its surface), and the antipodal sampler's inside tests may be wrong",
-            what,
-        )
     transforms, probs = trimesh.poses.compute_stable_poses(mesh)
     order = np.argsort(-np.asarray(probs), kind="stable")
     transforms = np.asarray(transforms, dtype=float)[order]
@@ -206,3 +207,27 @@ def _heading_zero(rest: np.ndarray) -> np.ndarray:
     turn = np.eye(4)
     turn[:2, :2] = [[c, -s], [s, c]]
     return turn @ rest
+
+
+def warn_if_open(mesh_path: Path, scale: float, what: str) -> bool:
+    """Warn once when the object mesh is not watertight; whether it is closed.
+
+    The contact model (:mod:`gcm_pipeline.robot.collision.contact`) decides
+    that a gripper piece lies wholly inside a mesh object by a winding-number
+    inside test, and the antipodal sampler rejects fingers inside the object the
+    same way: both need a closed surface. On an open mesh only crossings of its
+    surface are seen. A mesh that cannot be read is left to the caller.
+    """
+    try:
+        mesh = load_scaled(mesh_path, scale, what)
+    except InputError:
+        return True
+    if mesh.is_watertight:
+        return True
+    log.warning(
+        "%s: the mesh is not watertight (not a closed surface): the contact model cannot "
+        "tell whether a gripper piece lies wholly inside it (collision checks see only "
+        "crossings of its surface), and the antipodal sampler's inside tests may be wrong",
+        what,
+    )
+    return False

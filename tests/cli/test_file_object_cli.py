@@ -121,3 +121,30 @@ def test_an_out_of_range_stable_pose_is_one_line(cli, tmp_path):
     trimesh.creation.box(extents=(0.05, 0.05, 0.1)).export(tmp_path / "g" / "x.obj")
     code, _, err = cli("validate", _config(tmp_path, grasps, placement={"stable_pose": 40}))
     assert_one_line_error(code, err, "candidates.placement.stable_pose: 40 is out of range")
+
+
+def test_an_open_object_mesh_in_the_config_warns_once_too(cli, tmp_path):
+    box = trimesh.creation.box(extents=(0.05, 0.05, 0.1))
+    box.update_faces(np.flatnonzero(box.face_normals[:, 2] < 0.9))  # no lid
+    box.export(tmp_path / "open.obj")
+    grasps = tmp_path / "g.npy"
+    t = np.tile(np.eye(4), (3, 1, 1))
+    t[:, 0, 3] = [0.0, 0.01, 0.02]
+    np.save(grasps, t)
+    for source in ("file", "antipodal"):
+        cand = {"source": source, "path": str(grasps), "frame": "object"}
+        if source == "antipodal":
+            cand = {"source": "antipodal", "count": 4}
+        cfg = tmp_path / f"{source}.yaml"
+        cfg.write_text(
+            yaml.safe_dump(
+                {
+                    "object": {"shape": "mesh", "mesh": str(tmp_path / "open.obj")},
+                    "candidates": cand,
+                }
+            )
+        )
+        code, _, err = cli("validate", cfg)
+        assert code == 0, err
+        assert err.count("not watertight") == 1, (source, err)
+        assert "contact model cannot tell whether a gripper piece lies wholly inside" in err

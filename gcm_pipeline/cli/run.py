@@ -96,6 +96,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"  candidates    {c['candidates']}")
         if result.grasp_frame:  # a grasp file's gripper frame: never mapped silently
             print(f"  gripper       {result.grasp_frame['describe']}")
+        placed = result.config.object
+        if cfg.object is None and placed is not None and placed.mesh is not None:
+            xy = ", ".join(f"{v:g}" for v in result.config.candidates.placement.xy)
+            print(f"  object        {Path(placed.mesh).name} (named by the file) at [{xy}]")
         print(f"  triangles     {c['triangles']} ({c['triangles_dropped']} dropped)")
         print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
         share = 100 * c["reachable"] / n

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from helpers import DATA, assert_one_line_error
+from helpers import DATA, QUICK, assert_one_line_error
 
 h5py = pytest.importorskip("h5py")
 trimesh = pytest.importorskip("trimesh")
@@ -23,6 +23,7 @@ def _grasp_file(folder: Path, name: str = "meshes/Box/x.obj", scale: float = 1.0
     t = np.tile(np.eye(4), (3, 1, 1))
     t[:, :3, :3] = np.diag([1.0, -1.0, -1.0])
     t[:, 0, 3] = [-0.01, 0.0, 0.01]
+    t[:, 1, 3] = [0.0, 0.01, 0.0]
     t[:, 2, 3] = 0.2
     with h5py.File(path, "w") as f:
         f["grasps/transforms"] = t
@@ -148,3 +149,17 @@ def test_an_open_object_mesh_in_the_config_warns_once_too(cli, tmp_path):
         assert code == 0, err
         assert err.count("not watertight") == 1, (source, err)
         assert "contact model cannot tell whether a gripper piece lies wholly inside" in err
+
+
+def test_run_says_which_object_it_placed(cli, tmp_path):
+    grasps = _grasp_file(tmp_path / "data" / "grasps")
+    (tmp_path / "data" / "meshes" / "Box").mkdir(parents=True)
+    trimesh.creation.box(extents=(0.05, 0.05, 0.1)).export(tmp_path / "data/meshes/Box/x.obj")
+    cfg = _config(tmp_path, grasps, placement={"xy": [0.4, 0.1]})
+    out = tmp_path / "run"
+    code, text, err = cli("run", cfg, "--out", out, *QUICK)
+    assert code == 0, err
+    assert "  object        x.obj (named by the file) at [0.4, 0.1]" in text
+    saved = yaml.safe_load((out / "config.yaml").read_text())  # re-runs the same scene
+    assert saved["object"]["mesh"] == str(tmp_path / "data/meshes/Box/x.obj")
+    assert saved["candidates"]["frame"] == "object"

@@ -159,10 +159,19 @@ def stable_placement(
 
     Raises:
         InputError: ``index`` is not below the number of stable poses (key
-            ``candidates.placement.stable_pose``).
+            ``candidates.placement.stable_pose``), or the mesh is flat (no
+            stable pose).
     """
     watertight = bool(mesh.is_watertight)
-    transforms, probs = trimesh.poses.compute_stable_poses(mesh)
+    # an open mesh has no volume to weigh: its convex hull's centre of mass stands in
+    try:
+        com = mesh.center_mass if watertight else mesh.convex_hull.center_mass
+        transforms, probs = trimesh.poses.compute_stable_poses(mesh, center_mass=com)
+    except Exception as exc:  # qhull on a flat or degenerate mesh
+        raise InputError(
+            f"{what}: the mesh has no stable pose on a table (flat or degenerate: "
+            f"{clip(' '.join(str(exc).split()))})",
+        ) from None
     order = np.argsort(-np.asarray(probs), kind="stable")
     transforms = np.asarray(transforms, dtype=float)[order]
     if index is None:  # the mesh's +z in each resting pose is row 2 of its rotation

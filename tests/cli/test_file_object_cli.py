@@ -163,3 +163,12 @@ def test_run_says_which_object_it_placed(cli, tmp_path):
     saved = yaml.safe_load((out / "config.yaml").read_text())  # re-runs the same scene
     assert saved["object"]["mesh"] == str(tmp_path / "data/meshes/Box/x.obj")
     assert saved["candidates"]["frame"] == "object"
+
+
+def test_a_flat_mesh_is_one_line(cli, tmp_path):
+    grasps = _grasp_file(tmp_path / "g")
+    (tmp_path / "g" / "x.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
+    code, _, err = cli("validate", _config(tmp_path, grasps))
+    assert_one_line_error(
+        code, err, str(grasps), "object/file", "the mesh has no stable pose on a table"
+    )

@@ -96,6 +96,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"  candidates    {c['candidates']}")
         if result.grasp_frame:  # a grasp file's gripper frame: never mapped silently
             print(f"  gripper       {result.grasp_frame['describe']}")
+        placed = result.config.object
+        if cfg.object is None and placed is not None and placed.mesh is not None:
+            xy = ", ".join(f"{v:g}" for v in result.config.candidates.placement.xy)
+            print(f"  object        {Path(placed.mesh).name} (named by the file) at [{xy}]")
         print(f"  triangles     {c['triangles']} ({c['triangles_dropped']} dropped)")
         print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
         share = 100 * c["reachable"] / n
@@ -122,10 +126,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.run import load_config
-    from gcm_pipeline.pipeline import generate_candidates, preflight
+    from gcm_pipeline.pipeline import generate_candidates, place_file_object, preflight
     from gcm_pipeline.robot import kernels
 
-    cfg = load_config(args.config, args.overrides)
+    cfg = place_file_object(load_config(args.config, args.overrides))
     with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
         preflight(cfg)
     n = len(generate_candidates(cfg))  # a grasp file is read and checked as a run reads it

@@ -262,9 +262,10 @@ def config_from_data(
 def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_OUTPUT_DIR) -> None:
     """Make the paths in the config absolute, relative ones against ``base``.
 
-    ``candidates.path``, ``object.mesh``, ``environment.obstacles[].mesh``,
-    ``output.dir`` (``default_out`` when missing) and a ``robot.spec`` that is
-    a path (ends in ``.yaml``/``.yml`` or has a ``/``) become absolute
+    ``candidates.path``, ``candidates.mesh_root``, ``object.mesh``,
+    ``environment.obstacles[].mesh``, ``output.dir`` (``default_out`` when
+    missing) and a ``robot.spec`` that is a path (ends in ``.yaml``/``.yml``
+    or has a ``/``) become absolute
     (normalised, symlinks kept); ``base`` is absolute.
 
     Raises:
@@ -283,6 +284,7 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
         section[key] = os.path.abspath(p if p.is_absolute() else base / p)
 
     fix(data.get("candidates"), "path", "candidates.path")
+    fix(data.get("candidates"), "mesh_root", "candidates.mesh_root")
     fix(data.get("object"), "mesh", "object.mesh")
     fix(data.get("robot"), "spec", "robot.spec", only_paths=True)
     env = data.get("environment")

@@ -161,6 +161,22 @@ class NoiseConfig(_Section):
     angle_deg: NonNegFloat = 0.0
 
 
+class PlacementConfig(_Section):
+    """Where the object a grasp file names stands on the table (``candidates.placement``).
+
+    The mesh rests in one of its stable poses (trimesh's): ``upright`` (the
+    one that keeps the mesh's own +z up, as it was modelled) or a number, the
+    stable poses ranked by probability (0: the most probable; a mug's lies it
+    on its side). It is turned by ``yaw_deg`` about the vertical, the centre
+    of its footprint at ``xy`` [m] and its lowest point on the table top
+    (``environment.table.height``, else z = 0).
+    """
+
+    xy: tuple[Length, Length] = (0.5, 0.0)
+    yaw_deg: FiniteFloat = 0.0
+    stable_pose: Literal["upright"] | Annotated[int, Strict(), Field(ge=0)] = "upright"
+
+
 class CandidatesConfig(_Section):
     """Where the grasp candidates come from: a generator or a file.
 
@@ -179,7 +195,9 @@ class CandidatesConfig(_Section):
             (default 0 for ``plane``, 0.01 otherwise).
         path: ``file``: the grasp file (relative to the config file's directory).
         format: ``file``: ``acronym`` | ``npy`` | ``npz`` | ``csv`` (default: from the suffix).
-        frame: ``file``: the poses are in the ``world`` or the ``object`` frame.
+        frame: ``file``: the poses are in the ``world`` or the ``object`` frame
+            (default: ``object`` when the object comes from the grasp file, see
+            ``mesh_root``, else ``world``).
         grasp_to_tool: Fixed transform from the file's (or the generator's) gripper frame
             to the robot's grasp frame, applied on the right (``T_tool = T_grasp @
             grasp_to_tool``), for every source. ACRONYM's Franka frame written as
@@ -204,6 +222,13 @@ class CandidatesConfig(_Section):
             in which the file's grasps are given.
         max_count: Ceiling of ``count`` and of the rows of a grasp file (checked
             before anything is read or generated; see :mod:`gcm_pipeline.bounds`).
+        mesh_root: ``acronym``/``graspgen`` files that name their object's mesh: the
+            folder the name is relative to (relative to the config file's directory;
+            default: ACRONYM's layout, the parent of the grasp file's folder, then
+            the grasp file's folder). Without an ``object`` section and ``frame``
+            the named mesh, scaled by the file's scale, becomes the object and the
+            grasps follow it (``frame: object``).
+        placement: Where that object stands (:class:`PlacementConfig`).
     """
 
     source: Literal["plane", "cylinder_side", "box", "sphere", "file", "antipodal"]
@@ -216,7 +241,7 @@ class CandidatesConfig(_Section):
     format: (
         Literal["acronym", "npy", "npz", "csv", "graspgen", "contact_graspnet", "graspnet"] | None
     ) = None
-    frame: Literal["object", "world"] = "world"
+    frame: Literal["object", "world"] | None = None
     grasp_to_tool: Pose | None = None
     success_only: Bool = False
     min_score: FiniteFloat | None = None
@@ -225,6 +250,8 @@ class CandidatesConfig(_Section):
     camera_pose: Pose | None = None
     max_count: PositiveInt = DEFAULT_MAX_CANDIDATES
     friction: PositiveFloat = 0.5
+    mesh_root: Path | None = None
+    placement: PlacementConfig = PlacementConfig()
 
     @model_validator(mode="after")
     def _file_needs_path(self) -> CandidatesConfig:

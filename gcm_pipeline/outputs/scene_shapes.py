@@ -98,7 +98,7 @@ def shape_view(obj: SceneShape, *, load_mesh: bool = True) -> tuple[Any, np.ndar
     Returns:
         The meshcat geometry, its transform (4, 4) in the shape's frame, and
         a few points (K, 3) in the shape's frame spanning it (for framing the
-        camera; the frame's origin alone for a mesh).
+        camera; a mesh's bounding-box corners).
 
     Raises:
         PublishError: A mesh file that does not exist or has an unsupported format.
@@ -125,7 +125,7 @@ def shape_view(obj: SceneShape, *, load_mesh: bool = True) -> tuple[Any, np.ndar
         return mg.Sphere(r), np.eye(4), np.array([[-r] * 3, [r] * 3])
     # mesh
     if not load_mesh:
-        return None, np.eye(4), np.zeros((1, 3))
+        return None, np.eye(4), _mesh_corners(Path(obj.mesh), obj.scale)
     path = Path(obj.mesh)
     if not path.is_file():
         raise PublishError(f"object mesh {str(path)!r} does not exist")
@@ -140,7 +140,28 @@ def shape_view(obj: SceneShape, *, load_mesh: bool = True) -> tuple[Any, np.ndar
             f"object mesh {str(path)!r}: unsupported format {ext!r}; valid: .dae, .obj, .stl"
         )
     local = np.diag([obj.scale, obj.scale, obj.scale, 1.0])
-    return loaders[ext](str(path)), local, np.zeros((1, 3))
+    return loaders[ext](str(path)), local, _mesh_corners(path, obj.scale)
+
+
+def _mesh_corners(path: Path, scale: float) -> np.ndarray:
+    """The corners (8, 3) of a mesh file's bounding box, scaled [m, mesh frame].
+
+    A mesh's origin can lie far from its geometry (ACRONYM's table: 2.7 m);
+    the camera frames these corners. The origin alone (1, 3) when the file
+    cannot be read.
+    """
+    try:
+        import trimesh
+
+        mesh: Any = trimesh.load(str(path), force="mesh", process=False)
+        lo, hi = np.asarray(mesh.bounds, dtype=float) * scale
+    except Exception:  # drawing the mesh reports an unreadable file
+        return np.zeros((1, 3))
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        return np.zeros((1, 3))
+    return np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
 
 
 def object_points(obj: SceneShape) -> np.ndarray:

@@ -39,6 +39,7 @@ meshcat server at ``publish.zmq_url``.
 
 from __future__ import annotations
 
+from gcm_pipeline.pipeline.file_object import place_file_object
 from gcm_pipeline.pipeline.manifold import (
     add_continuity,
     build_manifold,
@@ -108,6 +109,7 @@ __all__ = [
     "input_files",
     "load_manifold",
     "make_checker",
+    "place_file_object",
     "preflight",
     "publish",
     "rank",

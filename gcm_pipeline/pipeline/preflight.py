@@ -12,6 +12,7 @@ from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
 from gcm_pipeline.robot.model import Robot
+from gcm_pipeline.sources.file_object import warn_if_open
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,9 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     - ``robot.spec`` names a shipped spec or a valid spec file whose model
       exists; the robot is built (kinematics, locked joints inside their
       ranges, a readable SRDF, collision meshes that load);
-    - the object and obstacle meshes load and have finite vertices;
+    - the object and obstacle meshes load and have finite vertices; an object
+      mesh that is not watertight is warned about (the contact model needs a
+      closed mesh);
     - with the live viewer requested (``viewer`` or ``publish.meshcat``) and a
       ``publish.zmq_url``, the meshcat server there answers within
       ``publish.connect_timeout_s``; without the viewer a ``zmq_url`` is unused,
@@ -90,6 +93,9 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     for where, shape in shapes:
         if shape is not None and shape.shape == "mesh":
             shape_geometry("mesh", shape.dims, mesh=shape.mesh, scale=shape.scale, where=where)
+    obj = cfg.object
+    if obj is not None and obj.mesh is not None and cfg.candidates.source != "antipodal":
+        warn_if_open(Path(obj.mesh), obj.scale, f"object.mesh {obj.mesh}")  # the sampler warns
     pub = cfg.publish
     if pub.zmq_url is None:
         return robot

@@ -17,6 +17,7 @@ from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.query import GraspManifold
 from gcm_pipeline.outputs.scene_glyphs import legend
+from gcm_pipeline.pipeline.file_object import place_file_object
 from gcm_pipeline.pipeline.manifold import (
     adaptive_counts,
     add_continuity,
@@ -207,7 +208,8 @@ class Pipeline:
                 checked before any work where possible. Nothing is left
                 behind on failure.
         """
-        cfg = self.config
+        # the object a grasp file names, stood on the table (before anything reads cfg.object)
+        cfg = self.config = place_file_object(self.config)
         out = Path(out_dir) if out_dir is not None else Path(cfg.output.dir)
         keep = self._inputs()
         # what the config refers to first: a bad robot spec is not hidden behind "--force"

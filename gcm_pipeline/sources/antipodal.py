@@ -115,7 +115,12 @@ def object_mesh(
         raise InputError(f"object.mesh {mesh}: no triangles")
     loaded.apply_scale(scale)
     if not loaded.is_watertight:
-        log.warning("object.mesh %s is not watertight: inside tests may be wrong", mesh)
+        log.warning(
+            "object.mesh %s is not watertight (not a closed surface): the antipodal sampler's "
+            "inside tests may be wrong, and the contact model cannot tell whether a gripper "
+            "piece lies wholly inside it (collision checks see only crossings of its surface)",
+            mesh,
+        )
     elif loaded.volume < 0:  # faces wound inside out: normals point into the object
         log.info("object.mesh %s: faces wound inside out; turned", mesh)
         loaded.invert()

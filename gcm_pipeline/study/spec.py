@@ -264,7 +264,7 @@ class StudyPlan:
                     f"sweep.object_pose: {name}: the config has no 'object' section to move"
                 )
             c = cfg.candidates
-            if c.source == "file" and c.frame == "world":
+            if c.source == "file" and c.frame != "object":  # None: world, with an object
                 raise ConfigError(
                     f"sweep.object_pose: {name}: candidates.frame is 'world', so the grasps "
                     "would not move with the object; give the file's grasps in the object "

@@ -193,12 +193,15 @@ def test_acronym_file_missing_key(cli, tmp_path, out):
 
 def test_acronym_file_runs(cli, tmp_path, out):
     h5py = pytest.importorskip("h5py")
+    trimesh = pytest.importorskip("trimesh")
     path = tmp_path / "grasps.h5"
     with h5py.File(path, "w") as f:
         f["grasps/transforms"] = _poses(4)
         f["grasps/qualities/flex/object_in_gripper"] = np.array([1, 1, 0, 1])
         f["object/file"] = "meshes/Box/x.obj"
         f["object/scale"] = 1.0
+    (tmp_path / "meshes" / "Box").mkdir(parents=True)  # the mesh the file names, found
+    trimesh.creation.box(extents=(0.04, 0.04, 0.1)).export(tmp_path / "meshes/Box/x.obj")
     text = GRASP_FILE_CFG.format(path=path, fmt="acronym").replace(
         "format: acronym", "format: acronym, success_only: true"
     )

@@ -25,7 +25,7 @@ from gcm_pipeline.bounds import MAX_HDF5_TEXT
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.sources.files.common import as_poses, check_count, score_column, success_labels
 
-__all__ = ["ACRONYM_INSTALL_HINT", "read_acronym"]
+__all__ = ["ACRONYM_INSTALL_HINT", "read_acronym", "read_acronym_object"]
 
 log = logging.getLogger(__name__)
 
@@ -218,3 +218,26 @@ def _acronym_object(path: Path, fh: Any, h5py: Any) -> tuple[str | None, float]:
                 f"{path}: object/scale must be a positive number, got {scale!r}", path=path
             )
     return name, scale
+
+
+def read_acronym_object(path: Path) -> tuple[str | None, float]:
+    """``object/file`` (None when missing) and ``object/scale`` (1 when missing) of a file.
+
+    Read in this process: call it after :func:`read_acronym` has read the
+    same file in a child (which checks both keys), so a corrupt file has
+    already been refused.
+
+    Raises:
+        InputError: An unreadable file, or a scale that is not a positive finite number.
+    """
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as fh:
+            return _acronym_object(path, fh, h5py)
+    except InputError:
+        raise
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
+        raise InputError(
+            f"{path}: corrupt or unreadable HDF5 file (at object): {clip(str(exc))}", path=path
+        ) from None

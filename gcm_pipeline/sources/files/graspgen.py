@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,7 @@ from gcm_pipeline.sources.files.common import (
 )
 from gcm_pipeline.sources.files.sniff import check_format
 
-__all__ = ["read_graspgen"]
+__all__ = ["graspgen_object", "read_graspgen"]
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +143,32 @@ def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     return ImportedGrasps(
         poses, "base", columns, success, gripper=str(gripper) if gripper else None
     )
+
+
+def graspgen_object(path: str | Path, max_count: int) -> tuple[str | None, float]:
+    """``object.file`` (None when the file names no mesh) and ``object.scale`` (default 1).
+
+    Raises:
+        InputError: An unreadable file, a ``file`` that is not a text, or a
+            scale that is not a positive finite number.
+    """
+    path = Path(path)
+    data = _read_structured(path, max_count)
+    obj = data.get("object") if isinstance(data, dict) else None
+    if not isinstance(obj, dict) or obj.get("file") is None:
+        return None, 1.0
+    name, scale = obj["file"], obj.get("scale", 1.0)
+    if not isinstance(name, str) or not name:
+        raise InputError(f"{path}: object.file must be a mesh path, got {clip(name)}", path=path)
+    if isinstance(scale, list) and len(scale) == 1:
+        scale = scale[0]
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)):
+        raise InputError(f"{path}: object.scale must be a number, got {clip(scale)}", path=path)
+    if not (math.isfinite(scale) and scale > 0):
+        raise InputError(
+            f"{path}: object.scale must be a positive number, got {scale!r}", path=path
+        )
+    return name, float(scale)
 
 
 def _read_isaac_grasp(path: Path, data: dict[str, Any], max_count: int) -> ImportedGrasps:

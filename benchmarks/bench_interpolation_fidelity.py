@@ -183,6 +183,11 @@ def variants(base_manifold: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
             else:
                 labels.append(f"{key}={choice}")
                 sections.append(section)
+            if key == "structure" and choice == "families":
+                # the families structure with the bounds it derives from the data
+                derived = {k: v for k, v in section.items() if not k.startswith("max_edge")}
+                labels.append("structure=families, derived bounds")
+                sections.append(derived)
     return list(zip(labels, sections, strict=True))
 
 

@@ -13,7 +13,7 @@ from gcm_pipeline.errors import GeometryError, InputError
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_from_pos_quat, dq_translation
 from gcm_pipeline.geometry.pose_metric import pose_distance
 from gcm_pipeline.manifold.build import build_manifold
-from gcm_pipeline.manifold.families import SPACING_FACTOR, family_triangles
+from gcm_pipeline.manifold.families import ANGLE_FACTOR, LENGTH_FACTOR, family_triangles
 from gcm_pipeline.outputs.plots import candidate_coverage, plot_coverage
 from gcm_pipeline.rundir.arrays import read_manifold, write_manifold
 from gcm_pipeline.table import GraspTable
@@ -139,9 +139,10 @@ def test_unset_bounds_come_from_the_spacing(faces: dict) -> None:
     fm = family_triangles(dq, max_edge_length=None, max_edge_angle_deg=None, orientation_scale=0.1)
     d = pose_distance(dq[:, None], dq[None])
     np.fill_diagonal(d, np.inf)
-    spacing = SPACING_FACTOR * np.median(np.sort(d, axis=1)[:, 1])
-    assert fm.max_edge_length == pytest.approx(spacing, rel=1e-9)
-    assert fm.max_edge_angle_deg == pytest.approx(min(60.0, np.degrees(spacing / 0.1)), rel=1e-9)
+    spacing = np.median(np.sort(d, axis=1)[:, 1])
+    assert fm.max_edge_length == pytest.approx(LENGTH_FACTOR * spacing, rel=1e-9)
+    angle = min(60.0, np.degrees(ANGLE_FACTOR * spacing / 0.1))
+    assert fm.max_edge_angle_deg == pytest.approx(angle, rel=1e-9)
     used = np.zeros(len(dq), dtype=bool)
     used[fm.triangles.ravel()] = True
     assert np.array_equal(used, linkable(neighbours(dq, fm.max_edge_length, fm.max_edge_angle_deg)))

@@ -350,11 +350,16 @@ def _warn_empty(counts: Mapping[str, Any], cfg: Config) -> None:
     if counts["triangles"] == 0:
         dropped = counts["dropped_by_reason"]
         why = ", ".join(f"{k} {v}" for k, v in dropped.items())
+        other = (
+            "manifold.structure: families"
+            if cfg.manifold.structure == "chart"
+            else "unsetting them (bounds from the data)"
+        )
         log.warning(
             "no triangle is left%s, so no grasp was interpolated; raise "
-            "manifold.max_edge_length / manifold.max_edge_angle_deg or try another "
-            "manifold.projection",
+            "manifold.max_edge_length / manifold.max_edge_angle_deg or try %s",
             f" (dropped: {why})" if why else "",
+            other,
         )
     if counts["reachable"] == 0 and counts["densified"]:
         log.warning("%s", unreachable_hint(counts["unreachable_by_reason"]))

@@ -4,6 +4,7 @@ Run from the repository root::
 
     python benchmarks/bench_query_guarantee.py              # writes results/query_guarantee.json
     python benchmarks/bench_query_guarantee.py --quick      # 300 candidates, prints only
+    python benchmarks/bench_query_guarantee.py --structure families   # the default structure
 
 The set: ACRONYM's mug (``Mug_*.h5``, its 1,290 successful grasps) with the mug's
 mesh (``meshes/Mug/*.obj``) scaled by the file's ``object/scale`` and stood on
@@ -59,7 +60,13 @@ DATA = Path("/work/data/acronym/data/examples")
 NOISE = {"near": (0.01, np.deg2rad(3.0)), "far": (0.05, np.deg2rad(15.0))}
 
 
-def mug_config(data: Path, out: Path, limit: int | None) -> Path:
+MANIFOLDS = {
+    "chart": "{projection: cylindrical, max_edge_length: 0.08, max_edge_angle_deg: 50}",
+    "families": "{structure: families}",  # the bounds it derives from the data
+}
+
+
+def mug_config(data: Path, out: Path, limit: int | None, structure: str = "chart") -> Path:
     """Write the run's config for ACRONYM's mug (mesh and scale as its file names them)."""
     import h5py
     import trimesh
@@ -85,7 +92,7 @@ candidates:
   format: acronym
   frame: object
   success_only: true
-{limit_line}manifold: {{projection: cylindrical, max_edge_length: 0.08, max_edge_angle_deg: 50}}
+{limit_line}manifold: {MANIFOLDS[structure]}
 densify: {{subdivisions: 2, method: dlb}}
 environment: {{table: {{height: 0.0}}}}
 publish: {{html: false, plots: false}}
@@ -254,11 +261,17 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="300 candidates, no JSON")
     parser.add_argument("--before", default="b4a6eca", help="git revision of the old locator")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument(
+        "--structure",
+        choices=sorted(MANIFOLDS),
+        default="chart",
+        help="the manifold's structure (families: results/query_guarantee_families.json)",
+    )
     args = parser.parse_args()
     limit = 300 if args.quick else None
     n = 2000 if args.quick else 10000
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = gcm.load_config(mug_config(args.data, Path(tmp), limit))
+        cfg = gcm.load_config(mug_config(args.data, Path(tmp), limit, args.structure))
         t0 = time.perf_counter()
         run = gcm.Pipeline(cfg).run(out_dir=Path(tmp) / "run", progress=False)
         run_s = time.perf_counter() - t0
@@ -322,9 +335,13 @@ def main() -> None:
                 f"points): {x['locate_queries_per_s']:,.0f} queries/s{was}"
             )
     if not args.quick:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-        print(f"wrote {RESULTS}")
+        out = RESULTS
+        if args.structure != "chart":
+            out = RESULTS.with_name(f"query_guarantee_{args.structure}.json")
+        result["structure"] = args.structure
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+        print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -214,21 +214,6 @@ def _top_solutions(grasps: GraspTable, k: int) -> np.ndarray:
     return q[order[:k]]
 
 
-def _top_solutions(grasps: GraspTable, k: int) -> np.ndarray:
-    """Configurations (<= k, nq) of the best-ranked reachable grasps, best first."""
-    if "q" not in grasps:
-        return np.empty((0, 0))
-    q = np.asarray(grasps["q"], dtype=float)
-    if "rank" in grasps:
-        rank = np.asarray(grasps["rank"], dtype=np.int64)
-        order = np.flatnonzero(rank > 0)
-        order = order[np.argsort(rank[order], kind="stable")]
-    else:
-        order = np.flatnonzero(column(grasps, "reachable", False).astype(bool))
-    order = order[np.all(np.isfinite(q[order]), axis=1)] if len(order) else order
-    return q[order[:k]]
-
-
 def build_scene(
     vis: Any,
     grasps: GraspTable,

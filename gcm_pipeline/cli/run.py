@@ -55,6 +55,23 @@ def _add_validate(sub: Any, common: argparse.ArgumentParser) -> None:
     val.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[])
 
 
+def _triangles_line(c: dict[str, Any]) -> str:
+    """The triangle count, with what it says about the candidates.
+
+    The families structure reports how many candidates its triangles link and
+    why the rest are isolated (its pruned chart triangles are only a step of
+    the build); the chart structure how many triangles the bounds dropped.
+    """
+    if "families" not in c:
+        return f"{c['triangles']} ({c['triangles_dropped']} dropped)"
+    isolated = c.get("isolated_by_reason", {})
+    linked = c["candidates"] - sum(isolated.values())
+    why = ", ".join(f"{k} {v}" for k, v in isolated.items())
+    fams = f"{c['families']} famil{'y' if c['families'] == 1 else 'ies'}"
+    tail = f"; isolated: {why}" if why else ""
+    return f"{c['triangles']} in {fams}; {linked} of {c['candidates']} candidates linked{tail}"
+
+
 def _viewer_command(args: argparse.Namespace, out: Path) -> str:
     """The ``gcm run`` line that shows this run in the live viewer (same overrides)."""
     words = ["gcm", "run", str(args.config)]
@@ -100,7 +117,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if cfg.object is None and placed is not None and placed.mesh is not None:
             xy = ", ".join(f"{v:g}" for v in result.config.candidates.placement.xy)
             print(f"  object        {Path(placed.mesh).name} (named by the file) at [{xy}]")
-        print(f"  triangles     {c['triangles']} ({c['triangles_dropped']} dropped)")
+        print(f"  triangles     {_triangles_line(c)}")
         print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
         share = 100 * c["reachable"] / n
         print(f"  reachable     {c['reachable']} / {c['densified']} ({share:.1f} %)")

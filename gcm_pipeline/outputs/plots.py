@@ -15,6 +15,7 @@ import numpy as np
 
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.geometry.dualquat import dq_translation
+from gcm_pipeline.outputs.pose_view import PoseView, equal_axes
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -87,6 +88,8 @@ _AXIS_NAMES = {
     "cylindrical": ("arc length R·θ", "height along the axis"),
     "spherical": ("stereographic u", "stereographic v"),
 }
+_PATCH_LABELS = 8  # patches named in the legend (the largest; ids are by size)
+_RINGS = 300  # candidates ringed in the world view up to this many
 _COUNT_ORDER = ("candidates", "triangles", "triangles_dropped", "densified", "reachable")
 
 
@@ -235,7 +238,7 @@ def _chart_figure(grasps: GraspTable, manifold: Any) -> tuple[Any, Any, np.ndarr
     return fig, ax, pts, projection
 
 
-def _finish_chart(fig: Any, ax: Any, projection: str, title: str, path: Path) -> Path:
+def _finish_chart(ax: Any, projection: str, title: str) -> None:
     u_label, v_label = chart_axis_labels(projection)
     ax.set_xlabel(u_label)
     ax.set_ylabel(v_label)
@@ -253,28 +256,56 @@ def _finish_chart(fig: Any, ax: Any, projection: str, title: str, path: Path) ->
             if hasattr(handle, "set_sizes"):
                 handle.set_sizes([24.0])
     ax.grid(alpha=0.25)
-    return _save(fig, path)
+
+
+class _ChartView:
+    """The one 2-D chart of the ``chart`` structure, with the interface of :class:`PoseView`."""
+
+    def __init__(self, grasps: GraspTable, manifold: Any) -> None:
+        self.fig, self.ax, self.pts, self.projection = _chart_figure(grasps, manifold)
+        self.placed = np.all(np.isfinite(self.pts), axis=1)
+        self.colorbar_axes = self.legend_axes = self.ax
+
+    def scatter(self, sel: np.ndarray, *, label: str | None = None, **kw: Any) -> Any:
+        sel = sel & self.placed
+        return self.ax.scatter(self.pts[sel, 0], self.pts[sel, 1], label=label, **kw)
+
+    def finish(self, title: str) -> None:
+        _finish_chart(self.ax, self.projection, title)
+
+
+def _view(grasps: GraspTable, manifold: Any, what: str) -> tuple[Any, str]:
+    """The view to draw on and the title's suffix for the manifold's structure.
+
+    The ``families`` structure is drawn in the world (:class:`PoseView`), the
+    ``chart`` structure in its chart.
+    """
+    if getattr(manifold, "structure", "chart") != "families" or "dq" not in grasps:
+        return _ChartView(grasps, manifold), what
+    view = PoseView(
+        _figure((12.0, 5.8)), grasps, manifold, candidate_rows(grasps, len(manifold.chart))
+    )
+    fams = int(np.max(manifold.family, initial=-1)) + 1
+    return view, f"{what}, {len(manifold.triangles)} triangles in {fams} families"
 
 
 def _plot_levels(grasps: GraspTable, manifold: Any, path: Path) -> Path:
-    """Adaptive refinement: rows in the chart coloured by level, unreachable as crosses."""
-    fig, ax, pts, projection = _chart_figure(grasps, manifold)
+    """Adaptive refinement: rows coloured by level, unreachable as crosses."""
+    view, suffix = _view(grasps, manifold, "")
     level = np.asarray(grasps["level"], dtype=np.int64)
     reach = np.asarray(grasps.get("reachable", np.ones(len(grasps), bool)), dtype=bool)
-    placed = np.all(np.isfinite(pts), axis=1)
     size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
     cmap = colormap("plasma")
     top = max(int(level.max(initial=0)), 1)
     for lv in range(int(level.max(initial=-1)) + 1):
         colour = cmap(0.85 * lv / top)
         for ok, marker in ((True, "o"), (False, "x")):
-            sel = placed & (level == lv) & (reach == ok)
+            sel = _placed(view, (level == lv) & (reach == ok))
             if not sel.any():
                 continue
             label = f"level {lv}, {'reachable' if ok else 'unreachable'} ({int(sel.sum())})"
-            ax.scatter(
-                pts[sel, 0],
-                pts[sel, 1],
+            view.scatter(
+                sel,
                 s=size if ok else size * 1.3,
                 marker=marker,
                 color=colour,
@@ -285,35 +316,37 @@ def _plot_levels(grasps: GraspTable, manifold: Any, path: Path) -> Path:
                 rasterized=len(grasps) > 5000,
             )
     title = f"Adaptive refinement: {len(grasps):,} grasps, levels 0..{int(level.max(initial=0))}"
-    return _finish_chart(fig, ax, projection, title, path)
+    view.finish(title + suffix)
+    return _save(view.fig, path)
 
 
 def _plot_patches(grasps: GraspTable, manifold: Any, path: Path) -> Path:
     """IK continuity: reachable rows coloured by patch (one IK branch each)."""
-    fig, ax, pts, projection = _chart_figure(grasps, manifold)
+    view, suffix = _view(grasps, manifold, "")
     patch = np.asarray(grasps["patch"], dtype=np.int64)
-    placed = np.all(np.isfinite(pts), axis=1)
     size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
     tab = colormap("tab10")
     ids, counts = np.unique(patch[patch >= 0], return_counts=True)
     for k, (pid, n) in enumerate(zip(ids.tolist(), counts.tolist(), strict=True)):
-        sel = placed & (patch == pid)
-        label = f"patch {pid} ({n})" if k < 8 else None
-        ax.scatter(
-            pts[sel, 0],
-            pts[sel, 1],
+        view.scatter(
+            patch == pid,
             s=size,
             color=tab(pid % 10),
             edgecolors="none",
-            label=label,
+            label=f"patch {pid} ({n})" if k < _PATCH_LABELS else None,
             zorder=3,
             rasterized=len(grasps) > 5000,
         )
-    bad = placed & (patch < 0)
+    if len(ids) > _PATCH_LABELS:  # the rest share the ten colours: say so in the legend
+        rest = int(counts[_PATCH_LABELS:].sum())
+        more = len(ids) - _PATCH_LABELS
+        view.legend_axes.plot(
+            [], [], "o", color="0.4", markersize=4, label=f"{more} smaller patches ({rest} grasps)"
+        )
+    bad = patch < 0
     if bad.any():
-        ax.scatter(
-            pts[bad, 0],
-            pts[bad, 1],
+        view.scatter(
+            bad,
             s=size,
             marker="x",
             color="0.7",
@@ -322,25 +355,24 @@ def _plot_patches(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             zorder=2,
             rasterized=len(grasps) > 5000,
         )
-    title = f"IK branches: {len(ids)} patches"
-    return _finish_chart(fig, ax, projection, title, path)
+    view.finish(f"IK branches: {len(ids)} patches" + suffix)
+    return _save(view.fig, path)
 
 
 def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
-    fig, ax, pts, projection = _chart_figure(grasps, manifold)
+    """Reachable rows coloured by manipulability, unreachable ones by reason, candidates ringed."""
+    view, suffix = _view(grasps, manifold, "")
     chart = np.asarray(getattr(manifold, "chart", np.empty((0, 2))), dtype=float)
     reach = np.asarray(grasps.get("reachable", np.zeros(len(grasps), bool)), dtype=bool)
     manip = np.asarray(grasps.get("manipulability", np.full(len(grasps), np.nan)), dtype=float)
-    placed = np.all(np.isfinite(pts), axis=1)
     size = float(np.clip(3000.0 / max(len(grasps), 1), 1.0, 30.0))
-    bad = placed & ~reach
+    bad = ~reach
     reasons = np.asarray(grasps.get("reason", np.full(len(grasps), "no_ik"))).astype(str)
     reasons = np.where(reasons == "", "no_ik", reasons)
-    for reason, rgb in reason_palette(reasons[bad]).items():
-        sel = bad & (reasons == reason)
-        ax.scatter(
-            pts[sel, 0],
-            pts[sel, 1],
+    for reason, rgb in reason_palette(reasons[_placed(view, bad)]).items():
+        sel = _placed(view, bad & (reasons == reason))
+        view.scatter(
+            sel,
             s=size,
             marker="x",
             color=rgb,
@@ -349,11 +381,10 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             zorder=2,
             rasterized=len(grasps) > 5000,
         )
-    good = placed & reach & np.isfinite(manip)
+    good = _placed(view, reach & np.isfinite(manip))
     if good.any():
-        sc = ax.scatter(
-            pts[good, 0],
-            pts[good, 1],
+        sc = view.scatter(
+            good,
             s=size,
             c=manip[good],
             cmap="viridis",
@@ -362,12 +393,12 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             rasterized=len(grasps) > 5000,
             edgecolors="none",
         )
-        fig.colorbar(sc, ax=ax, label="manipulability [-]")
+        view.fig.colorbar(sc, ax=view.colorbar_axes, label="manipulability [-]")
     cand = np.asarray(grasps.get("origin", np.array([], dtype=str))).astype(str) == "candidate"
-    if cand.any() and len(chart):
-        ax.scatter(
-            pts[cand, 0],
-            pts[cand, 1],
+    # rings stay readable up to a few hundred candidates; beyond, coverage.png shows them
+    if cand.any() and len(chart) and (isinstance(view, _ChartView) or cand.sum() <= _RINGS):
+        view.scatter(
+            cand,
             s=28,
             facecolors="none",
             edgecolors="crimson",
@@ -375,7 +406,15 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             label="candidates",
             zorder=4,
         )
-    return _finish_chart(fig, ax, projection, "Grasp manifold in its 2-D chart", path)
+    title = "Grasp manifold in its 2-D chart" if isinstance(view, _ChartView) else "Grasp manifold"
+    view.finish(title + suffix)
+    return _save(view.fig, path)
+
+
+def _placed(view: Any, sel: np.ndarray) -> np.ndarray:
+    """``sel`` restricted to the rows the view can place (all rows in the world view)."""
+    placed = getattr(view, "placed", None)
+    return sel if placed is None else sel & placed
 
 
 def _plot_hist(grasps: GraspTable, path: Path) -> Path:
@@ -488,20 +527,9 @@ def plot_coverage(grasps: GraspTable, manifold: Any, path: Path) -> Path:
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_zlabel("z [m]")
-        _equal_axes(ax, pos)
+        equal_axes(ax, pos)
         ax.legend(loc="upper left", fontsize=8)
     return _save(fig, path)
-
-
-def _equal_axes(ax: Any, pos: np.ndarray) -> None:
-    """Equal scale on the three axes around the points."""
-    if not len(pos):
-        return
-    centre = 0.5 * (pos.min(axis=0) + pos.max(axis=0))
-    half = max(0.5 * float(np.ptp(pos, axis=0).max()), 1e-3)
-    ax.set_xlim(centre[0] - half, centre[0] + half)
-    ax.set_ylim(centre[1] - half, centre[1] + half)
-    ax.set_zlim(centre[2] - half, centre[2] + half)
 
 
 def write_plots(

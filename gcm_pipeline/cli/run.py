@@ -55,6 +55,21 @@ def _add_validate(sub: Any, common: argparse.ArgumentParser) -> None:
     val.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[])
 
 
+def _selection_note(selection: dict[str, Any] | None) -> str:
+    """`` (of N in the file: ...)`` when the run kept only some of a file's grasps."""
+    if not selection or selection["kept"] >= selection["read"]:
+        return ""
+    why = []
+    if selection["success_only"]:
+        why.append("labelled successful")
+    if selection["min_score"] is not None:
+        why.append(f"score >= {selection['min_score']:g}")
+    if selection["limit"] is not None and selection["kept"] == selection["limit"]:
+        best = "the first" if selection["limit_by"] == "file order" else "the best by score"
+        why.append(f"{best} {selection['limit']}")
+    return f" (of {selection['read']} in the file: {', '.join(why)})"
+
+
 def _triangles_line(c: dict[str, Any]) -> str:
     """The triangle count, with what it says about the candidates.
 
@@ -110,7 +125,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         c = result.counts
         n = max(c["densified"], 1)
         print(f"gcm run {args.config}")
-        print(f"  candidates    {c['candidates']}")
+        print(f"  candidates    {c['candidates']}{_selection_note(result.selection)}")
         if result.grasp_frame:  # a grasp file's gripper frame: never mapped silently
             print(f"  gripper       {result.grasp_frame['describe']}")
         placed = result.config.object

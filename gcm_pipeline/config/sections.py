@@ -202,7 +202,11 @@ class CandidatesConfig(_Section):
             to the robot's grasp frame, applied on the right (``T_tool = T_grasp @
             grasp_to_tool``), for every source. ACRONYM's Franka frame written as
             ``npy``/``npz``/``csv`` needs ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
-        success_only: ``file``: keep only grasps labelled successful.
+        success_only: ``file``: keep only grasps labelled successful (ACRONYM's
+            ``object_in_gripper``, a ``success`` column). Default: whenever the
+            file has such labels (a grasp its simulation saw fail is not a
+            candidate); ``false`` keeps every grasp; ``true`` without labels is
+            an error.
         min_score: ``file``, ``antipodal``: keep only grasps whose ``score`` (the
             file's quality, the sampler's antipodal quality) is at least this; a
             file without a score is an error.
@@ -243,7 +247,7 @@ class CandidatesConfig(_Section):
     ) = None
     frame: Literal["object", "world"] | None = None
     grasp_to_tool: Pose | None = None
-    success_only: Bool = False
+    success_only: Bool | None = None
     min_score: FiniteFloat | None = None
     limit: PositiveInt | None = None
     gripper: str | None = None

@@ -60,8 +60,9 @@ class RunResult:
         grasp_frame: How a grasp file's gripper frame was mapped onto the
             robot's grasp frame (``format``, ``gripper``, ``chosen_by``,
             ``file_gripper``, ``describe``), None for other sources.
-        selection: What ``candidates.min_score`` and ``limit`` kept of a grasp
-            file (:class:`gcm_pipeline.sources.files.select.Selection`), None when neither is set.
+        selection: What ``candidates.success_only``, ``min_score`` and ``limit``
+            kept of a grasp file (:class:`gcm_pipeline.sources.files.select.Selection`),
+            None when the run kept every grasp of the file and set neither of the others.
     """
 
     grasps: GraspTable

@@ -41,7 +41,8 @@ def candidate_poses(
             limit=c.limit,
             max_count=c.max_count,
         )
-        if report is not None and (c.min_score is not None or c.limit is not None):
+        filtered = grasps.selection.kept < grasps.selection.read
+        if report is not None and (filtered or c.min_score is not None or c.limit is not None):
             report["selection"] = grasps.selection.as_dict()
         poses, choice = sources.to_grasp_frame(
             grasps, c.path, fmt, gripper=c.gripper, grasp_to_tool=to_tool

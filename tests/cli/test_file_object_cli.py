@@ -172,3 +172,27 @@ def test_a_flat_mesh_is_one_line(cli, tmp_path):
     assert_one_line_error(
         code, err, str(grasps), "object/file", "the mesh has no stable pose on a table"
     )
+
+
+def test_a_file_that_labels_success_keeps_the_successful_grasps_and_says_so(cli, tmp_path):
+    """ACRONYM's negatives are grasps its simulation saw fail: not candidates by default."""
+    grasps = _grasp_file(tmp_path / "data" / "grasps")
+    with h5py.File(grasps, "r+") as f:  # a fourth grasp, labelled failed
+        t = np.concatenate([f["grasps/transforms"][()], f["grasps/transforms"][:1]])
+        t[3, 2, 3] = 0.25
+        del f["grasps/transforms"], f["grasps/qualities/flex/object_in_gripper"]
+        f["grasps/transforms"] = t
+        f["grasps/qualities/flex/object_in_gripper"] = np.array([1.0, 1.0, 1.0, 0.0])
+    (tmp_path / "data" / "meshes" / "Box").mkdir(parents=True)
+    trimesh.creation.box(extents=(0.05, 0.05, 0.1)).export(tmp_path / "data/meshes/Box/x.obj")
+    for extra, kept, note in (
+        ({}, [0, 1, 2], " (of 4 in the file: labelled successful)"),
+        ({"success_only": False}, [0, 1, 2, 3], ""),
+    ):
+        out = tmp_path / f"run{len(kept)}"
+        code, text, err = cli("run", _config(tmp_path, grasps, **extra), "--out", out, *QUICK)
+        assert code == 0, err
+        assert f"  candidates    {len(kept)}{note}\n" in text
+        table = np.genfromtxt(out / "grasps.csv", delimiter=",", names=True, dtype=None)
+        origin = table["origin"].astype(str)
+        assert sorted(table["source_id"][origin == "candidate"].tolist()) == kept

@@ -116,7 +116,8 @@ def test_graspgen_json_dataset_layout(tmp_path):
             }
         )
     )
-    cfg = config({"path": str(path), "frame": "object", "gripper": "franka_panda"})
+    every = {"path": str(path), "frame": "object", "gripper": "franka_panda", "success_only": False}
+    cfg = config(every)
     assert cfg.candidates.format == "graspgen"  # from the suffix
     poses, table = imported(cfg)
     assert_pose(poses[0], expected_tool())
@@ -128,6 +129,9 @@ def test_graspgen_json_dataset_layout(tmp_path):
     )
     poses, table = imported(only)
     assert len(poses) == 1 and table["score"].tolist() == [0.9]
+    # by default a file with success labels keeps the successful grasps only
+    poses, table = imported(config({k: v for k, v in every.items() if k != "success_only"}))
+    assert len(poses) == 1 and table["source_id"].tolist() == [0]
 
 
 def test_graspgen_isaac_grasp_yaml(tmp_path):

@@ -48,7 +48,12 @@ def test_acronym_rows_map_back_to_the_file_and_blends_stay_rigid():
                 "dims": {"radius": 0.04, "height": 0.1},
                 "pose": MUG_POSE,
             },
-            "candidates": {"source": "file", "path": str(MUG_H5), "frame": "object"},
+            "candidates": {
+                "source": "file",
+                "path": str(MUG_H5),
+                "frame": "object",
+                "success_only": False,
+            },
             "manifold": {"max_edge_length": 0.08, "max_edge_angle_deg": 50},
             "densify": {"subdivisions": 2},
         }

@@ -66,19 +66,23 @@ def _cfg(path: Path, **candidates: object) -> Config:
 
 def test_acronym_score_is_object_in_gripper():
     success = _mug_success()
-    grasps = sources.read_grasps(MUG_H5, "acronym")
+    grasps = sources.read_grasps(MUG_H5, "acronym", success_only=False)
     score = grasps.columns["score"]
     assert score.dtype == np.float64 and len(score) == len(success) == 2000
     np.testing.assert_array_equal(score, success.astype(float))
     assert 0.6 < score.mean() < 0.7  # 1,290 of 2,000 grasps held the mug
     only = sources.read_grasps(MUG_H5, "acronym", success_only=True)
     assert len(only.poses) == int(success.sum()) and (only.columns["score"] == 1.0).all()
+    # the default: a file that labels success keeps its successful grasps, and says so
+    default = sources.read_grasps(MUG_H5, "acronym")
+    np.testing.assert_array_equal(default.columns["source_id"], np.flatnonzero(success))
+    assert default.selection.success_only and default.selection.read == 2000
 
 
 def test_acronym_limit_keeps_the_successful_grasps_first_in_file_order(caplog):
     success = _mug_success()
     with caplog.at_level(logging.INFO, logger="gcm_pipeline"):
-        grasps = sources.read_grasps(MUG_H5, "acronym", limit=50)
+        grasps = sources.read_grasps(MUG_H5, "acronym", success_only=False, limit=50)
     # the best 50 by score are successful ones; ties broken by row: the first 50 of them
     np.testing.assert_array_equal(grasps.columns["source_id"], np.flatnonzero(success)[:50])
     assert grasps.selection.limit_by == "score" and grasps.selection.kept == 50

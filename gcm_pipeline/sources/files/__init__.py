@@ -118,7 +118,7 @@ def read_grasps(
     path: str | Path,
     fmt: str | None,
     *,
-    success_only: bool = False,
+    success_only: bool | None = None,
     min_score: float | None = None,
     limit: int | None = None,
     max_count: int = DEFAULT_MAX_CANDIDATES,
@@ -128,7 +128,8 @@ def read_grasps(
     Args:
         path: The grasp file.
         fmt: Its format (:func:`file_format`; None: from the suffix).
-        success_only: Keep only successful grasps (needs success labels).
+        success_only: Keep only successful grasps (True needs success labels;
+            None: when the file has them).
         min_score: Keep only grasps whose ``score`` is at least this (needs a score).
         limit: Keep at most this many (after the filters above): the best by
             ``score`` when the file has one (ties: file order), else the first.

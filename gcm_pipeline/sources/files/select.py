@@ -1,6 +1,8 @@
 """Which grasps of a file a run keeps: ``success_only``, ``min_score``, then ``limit``.
 
-In that order: ``success_only`` keeps the grasps labelled successful,
+In that order: ``success_only`` keeps the grasps labelled successful (by
+default, ``None``, whenever the file labels them: ACRONYM's negatives are
+grasps its simulation saw fail, not candidates),
 ``min_score`` those whose ``score`` (the file's quality, see
 :mod:`gcm_pipeline.sources.files`) is at least it, and ``limit`` keeps the
 best ``limit`` of the rest by ``score`` when the file has one (ties: the
@@ -43,7 +45,7 @@ class Selection:
     Attributes:
         read: Grasps in the file.
         kept: Grasps kept.
-        success_only: ``candidates.success_only``.
+        success_only: Whether only the grasps labelled successful were kept.
         min_score: ``candidates.min_score`` (None: not set).
         limit: ``candidates.limit`` (None: not set).
         limit_by: ``score`` (the best by score) or ``file order`` (the first;
@@ -68,7 +70,7 @@ def select_grasps(
     columns: dict[str, np.ndarray],
     success: np.ndarray | None,
     *,
-    success_only: bool = False,
+    success_only: bool | None = None,
     min_score: float | None = None,
     limit: int | None = None,
 ) -> tuple[np.ndarray, Selection]:
@@ -79,7 +81,8 @@ def select_grasps(
         fmt: Its format (for messages).
         columns: Its per-grasp columns (``score`` when it has one).
         success: (N,) bool success labels, or None.
-        success_only: Keep only the grasps labelled successful.
+        success_only: Keep only the grasps labelled successful; None: when
+            the file has success labels.
         min_score: Keep only grasps with ``score >= min_score``.
         limit: Keep at most this many: the best by ``score`` (ties: file
             order), else the first.
@@ -103,6 +106,14 @@ def select_grasps(
                 key="candidates.success_only",
             )
         keep = keep[np.asarray(success, dtype=bool)]
+    elif success_only is None and success is not None:
+        keep = keep[np.asarray(success, dtype=bool)]
+        success_only = True
+        log.info(
+            "candidates: %s: keeps the %d of %d grasps labelled successful "
+            "(candidates.success_only: false keeps them all)",
+            *(path, keep.size, n),
+        )
     score = columns.get("score")
     if min_score is not None:
         if score is None:
@@ -139,5 +150,5 @@ def select_grasps(
             keep = keep[:limit]
         else:
             log.info("candidates: %s: limit %d keeps all %d grasps", path, limit, keep.size)
-    selection = Selection(n, int(keep.size), success_only, min_score, limit, limit_by)
+    selection = Selection(n, int(keep.size), bool(success_only), min_score, limit, limit_by)
     return keep, selection

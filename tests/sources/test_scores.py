@@ -281,7 +281,10 @@ def test_min_score_then_limit_in_the_candidate_step(tmp_path):
     }
     table = generate_candidates(_cfg(path, min_score=0.6))
     assert table["source_id"].tolist() == [1, 3, 5]  # score >= 0.6, the bound kept
-    with pytest.raises(InputError, match="no grasp left"):
+    with pytest.raises(
+        InputError,
+        match=r"min_score 0.95 keeps none of its 6 grasps \(their scores are 0.1 to 0.9\)",
+    ):
         generate_candidates(_cfg(path, min_score=0.95))
 
 
@@ -348,3 +351,21 @@ def test_min_score_filters_the_antipodal_samplers_grasps():
     assert 0 < want.sum() < len(want)  # the bound splits this sample
     np.testing.assert_array_equal(kept["score"], every["score"][want])
     np.testing.assert_array_equal(kept["dq"], every["dq"][want])
+
+
+def test_a_filter_that_keeps_nothing_says_which_and_why(tmp_path):
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, 0, 3] = np.arange(4) * 0.01
+    path = tmp_path / "g.npz"
+    np.savez(path, transforms=poses, success=np.zeros(4), score=[0.1, 0.2, 0.3, 0.4])
+    with pytest.raises(InputError) as info:
+        sources.read_grasps(path, "npz")
+    assert str(info.value) == (
+        f"{path}: none of its 4 grasps is labelled successful "
+        "(candidates.success_only: false keeps them all)"
+    )
+    assert info.value.key == "candidates.success_only"
+    with pytest.raises(InputError, match=r"min_score 0.5 keeps none of its 4 grasps \(their "):
+        sources.read_grasps(path, "npz", success_only=False, min_score=0.5)
+    kept = sources.read_grasps(path, "npz", success_only=False, min_score=0.3)
+    assert kept.columns["source_id"].tolist() == [2, 3]

@@ -109,6 +109,13 @@ def select_grasps(
     elif success_only is None and success is not None:
         keep = keep[np.asarray(success, dtype=bool)]
         success_only = True
+        if n and not keep.size:
+            raise InputError(
+                f"{path}: none of its {n} grasps is labelled successful "
+                "(candidates.success_only: false keeps them all)",
+                path=path,
+                key="candidates.success_only",
+            )
         log.info(
             "candidates: %s: keeps the %d of %d grasps labelled successful "
             "(candidates.success_only: false keeps them all)",
@@ -125,7 +132,16 @@ def select_grasps(
                 value=min_score,
             )
         before = keep.size
-        keep = keep[score[keep] >= min_score]
+        scores = score[keep]
+        keep = keep[scores >= min_score]
+        if before and not keep.size:
+            raise InputError(
+                f"{path}: candidates.min_score {min_score:g} keeps none of its {before} grasps "
+                f"(their scores are {scores.min():.4g} to {scores.max():.4g})",
+                path=path,
+                key="candidates.min_score",
+                value=min_score,
+            )
         log.info(
             "candidates: %s: min_score %g keeps %d of %d grasps", path, min_score, keep.size, before
         )

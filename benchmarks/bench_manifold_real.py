@@ -7,8 +7,8 @@ Run from the repository root::
 
 Sets: the public ACRONYM mug and table (``/work/data/acronym`` or
 ``$ACRONYM_EXAMPLES``, successful grasps only, read by the package's
-importer, format ``acronym``), a GraspGenX inference output
-(``tests/data/graspgen/ginger_grasps.yml``, 50 grasps, see its README),
+importer, format ``acronym``), GraspGen and GraspGenX inference output
+(``tests/data/graspgen/``, 18-50 grasps a set, see its README),
 Contact-GraspNet predictions found under ``--data DIR`` (or
 ``$GCM_REAL_DATA``) as ``DIR/contact_graspnet/**/predictions_*.npz``, the
 package's antipodal mug (``configs/mug_antipodal.yaml``), the box and the
@@ -85,9 +85,14 @@ from gcm_pipeline.table import GraspTable
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "manifold_real.json"
 ACRONYM = Path(os.environ.get("ACRONYM_EXAMPLES", "/work/data/acronym/data/examples"))
-GRASPGEN = ROOT / "tests" / "data" / "graspgen" / "ginger_grasps.yml"
-#: the openarm gripper of the GraspGenX fork that made the file: fingertips 0.068 m along +z
-OPENARM_TOOL = {"xyz": [0.0, 0.0, 0.068]}
+#: GraspGen(X) inference output (tests/data/graspgen/README.md) and each gripper's fingertip
+#: offset along +z: the GraspGenX fork's openarm gripper, GraspGen's Robotiq 2F-140 (depth)
+GRASPGEN = {
+    "graspgen_ginger": ("ginger_grasps.yml", 0.068),
+    "graspgen_mesh": ("example_mesh_antipodal.yaml", 0.195),
+    "graspgen_cloud": ("example_pointcloud_antipodal.yaml", 0.195),
+    "graspgen_cloud_cf": ("example_pointcloud_collisionfree_antipodal.yaml", 0.195),
+}
 #: camera 0.8 m above the table looking straight down (any pose gives the same figures)
 CAMERA = {"xyz": [0.5, 0.0, 0.8], "rpy_deg": [180.0, 0.0, 0.0]}
 PROJECTIONS = ("xy", "pca", "cylindrical", "spherical")
@@ -323,14 +328,10 @@ def main() -> int:
             print(f"acronym {stem}: not found under {ACRONYM} (set ACRONYM_EXAMPLES)")
         else:
             sets.append((f"acronym_{stem.lower()}", t, None, stem == "Mug"))
-    sets.append(
-        (
-            "graspgen_ginger",
-            from_file(GRASPGEN, "graspgen", grasp_to_tool=OPENARM_TOOL),
-            None,
-            False,
-        )
-    )
+    for name, (file, depth) in GRASPGEN.items():
+        path = ROOT / "tests" / "data" / "graspgen" / file
+        t = from_file(path, "graspgen", grasp_to_tool={"xyz": [0.0, 0.0, depth]})
+        sets.append((name, t, None, False))
     sets += [(name, t, None, False) for name, t in contact_graspnet(args.data)]
     for name in ("mug_antipodal", "box", "bottle_side"):
         t, section = from_config(name)

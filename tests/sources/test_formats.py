@@ -130,26 +130,34 @@ def test_graspgen_json_dataset_layout(tmp_path):
     assert len(poses) == 1 and table["score"].tolist() == [0.9]
 
 
-def test_graspgen_isaac_grasp_yaml_real_inference_output():
-    """50 grasps GraspGenX wrote for a scanned ginger (tests/data/graspgen/README.md):
-    every pose and confidence in file order, the fingertips 0.068 m along +z."""
-    path = DATA / "graspgen" / "ginger_grasps.yml"
+@pytest.mark.parametrize(
+    "name, count, depth",
+    [
+        ("ginger_grasps.yml", 50, 0.068),  # GraspGenX, openarm gripper
+        ("example_mesh_antipodal.yaml", 40, 0.195),  # GraspGen, Robotiq 2F-140
+        ("example_pointcloud_collisionfree_antipodal.yaml", 18, 0.195),
+    ],
+)
+def test_graspgen_isaac_grasp_yaml_real_inference_output(name, count, depth):
+    """Public GraspGen(X) output (tests/data/graspgen/README.md): every pose and confidence
+    in file order, the fingertips ``depth`` along the base frame's +z."""
+    path = DATA / "graspgen" / name
     grasps = yaml.safe_load(path.read_text())["grasps"]
     got = sources.read_grasps(path, "graspgen")
     assert got.convention == "base" and got.gripper is None  # the file names no gripper
-    assert len(got.poses) == len(grasps) == 50
+    assert len(got.poses) == len(grasps) == count
     for m, (name, g) in zip(got.poses, grasps.items(), strict=True):
         q = [*g["orientation"]["xyz"], g["orientation"]["w"]]
         np.testing.assert_allclose(m[:3, 3], g["position"], atol=1e-12, err_msg=name)
         np.testing.assert_allclose(m[:3, :3], Rotation.from_quat(q).as_matrix(), atol=1e-9)
     np.testing.assert_allclose(got.columns["score"], [g["confidence"] for g in grasps.values()])
-    # read as a user would, with the openarm gripper's fingertip offset
+    # read as a user would, with the gripper's fingertip offset
     poses, table = imported(
-        config({"path": str(path), "frame": "object", "grasp_to_tool": {"xyz": [0, 0, 0.068]}})
+        config({"path": str(path), "frame": "object", "grasp_to_tool": {"xyz": [0, 0, depth]}})
     )
-    tips = got.poses[:, :3, 3] + 0.068 * got.poses[:, :3, 2]
+    tips = got.poses[:, :3, 3] + depth * got.poses[:, :3, 2]
     np.testing.assert_allclose(poses[:, :3, 3] - np.array(BOX_XYZ), tips, atol=1e-9)
-    assert table["score"].max() == pytest.approx(0.9679833054542542)
+    assert table["score"].max() == pytest.approx(max(g["confidence"] for g in grasps.values()))
 
 
 def test_graspgen_isaac_grasp_yaml(tmp_path):

@@ -18,8 +18,8 @@ centre, approach into it, yaw within +-20 deg), for the build-time target.
 
 The Contact-GraspNet files are not in the repository (NVIDIA Source Code
 License, non-commercial). Public ones: github.com/FrankJIE09/contact_graspnet
-``results/predictions_{1,7,12}.npz`` (commit c6ec21a; written by the
-original ``inference.py`` on the repository's ``test_data`` scenes), e.g.::
+``results/predictions_{1,7,12}.npz`` (commit c6ec21a; that fork's
+``inference.py`` output for scenes of 7-12 segmented objects), e.g.::
 
     git clone https://github.com/FrankJIE09/contact_graspnet /tmp/cgn
     mkdir -p DIR/contact_graspnet && cp /tmp/cgn/results/predictions_*.npz DIR/contact_graspnet/

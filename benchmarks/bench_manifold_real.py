@@ -7,11 +7,27 @@ Run from the repository root::
 
 Sets: the public ACRONYM mug and table (``/work/data/acronym`` or
 ``$ACRONYM_EXAMPLES``, successful grasps only, read by the package's
-importer, format ``acronym``), the package's antipodal mug
-(``configs/mug_antipodal.yaml``), the box and the bottle ring of
-``configs/``, and ``synthetic_10k``: 10 ACRONYM-like families of 1,000
-grasps (tool points on 8 x 8 cm patches 5 cm from a centre, approach into
-it, yaw within +-20 deg), for the build-time target.
+importer, format ``acronym``), GraspGen and GraspGenX inference output
+(``tests/data/graspgen/``, 18-50 grasps a set, see its README),
+Contact-GraspNet predictions found under ``--data DIR`` (or
+``$GCM_REAL_DATA``) as ``DIR/contact_graspnet/**/predictions_*.npz``, the
+package's antipodal mug (``configs/mug_antipodal.yaml``), the box and the
+bottle ring of ``configs/``, and ``synthetic_10k``: 10 ACRONYM-like
+families of 1,000 grasps (tool points on 8 x 8 cm patches 5 cm from a
+centre, approach into it, yaw within +-20 deg), for the build-time target.
+
+The Contact-GraspNet files are not in the repository (NVIDIA Source Code
+License, non-commercial). Public ones: github.com/FrankJIE09/contact_graspnet
+``results/predictions_{1,7,12}.npz`` (commit c6ec21a; that fork's
+``inference.py`` output for scenes of 7-12 segmented objects), e.g.::
+
+    git clone https://github.com/FrankJIE09/contact_graspnet /tmp/cgn
+    mkdir -p DIR/contact_graspnet && cp /tmp/cgn/results/predictions_*.npz DIR/contact_graspnet/
+    python benchmarks/bench_manifold_real.py --data DIR
+
+They are read as a user would (``format: contact_graspnet``) with the camera
+looking straight down; the pose metric does not depend on the camera pose
+(a rigid motion of the whole set), so neither do the figures.
 
 Per set and structure (``families``, and ``chart`` with each projection as
 the reference, all with the same bounds: the config's when it has them, else
@@ -69,27 +85,50 @@ from gcm_pipeline.table import GraspTable
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "manifold_real.json"
 ACRONYM = Path(os.environ.get("ACRONYM_EXAMPLES", "/work/data/acronym/data/examples"))
+#: GraspGen(X) inference output (tests/data/graspgen/README.md) and each gripper's fingertip
+#: offset along +z: the GraspGenX fork's openarm gripper, GraspGen's Robotiq 2F-140 (depth)
+GRASPGEN = {
+    "graspgen_ginger": ("ginger_grasps.yml", 0.068),
+    "graspgen_mesh": ("example_mesh_antipodal.yaml", 0.195),
+    "graspgen_cloud": ("example_pointcloud_antipodal.yaml", 0.195),
+    "graspgen_cloud_cf": ("example_pointcloud_collisionfree_antipodal.yaml", 0.195),
+}
+#: camera 0.8 m above the table looking straight down (any pose gives the same figures)
+CAMERA = {"xyz": [0.5, 0.0, 0.8], "rpy_deg": [180.0, 0.0, 0.0]}
 PROJECTIONS = ("xy", "pca", "cylindrical", "spherical")
 TARGETS = {"linked_share_of_linkable": 0.95, "build_s_10k": 2.0, "locate_queries_per_s": 10_000}
+
+
+def from_file(path: str | Path, fmt: str, **options: Any) -> GraspTable:
+    """A grasp file read by the package's importer, as a user's config would."""
+    candidates = {"source": "file", "path": str(path), "format": fmt, "frame": "world"}
+    cfg = gcm.Config.model_validate(
+        {"robot": {"spec": "panda"}, "candidates": {**candidates, **options}}
+    )
+    return gcm.generate_candidates(cfg)
 
 
 def acronym(stem: str) -> GraspTable | None:
     files = sorted(glob.glob(str(ACRONYM / "grasps" / f"{stem}_*.h5")))
     if not files:
         return None
-    cfg = gcm.Config.model_validate(
-        {
-            "robot": {"spec": "panda"},
-            "candidates": {
-                "source": "file",
-                "path": files[0],
-                "format": "acronym",
-                "success_only": True,
-                "frame": "world",
-            },
-        }
-    )
-    return gcm.generate_candidates(cfg)
+    return from_file(files[0], "acronym", success_only=True)
+
+
+def contact_graspnet(data: Path | None) -> list[tuple[str, GraspTable]]:
+    """``DIR/contact_graspnet/**/predictions_*.npz``, one set per file."""
+    if data is None:
+        return []
+    files = sorted((data / "contact_graspnet").glob("**/predictions_*.npz"))
+    if not files:
+        print(f"contact_graspnet: no predictions_*.npz under {data / 'contact_graspnet'}")
+    return [
+        (
+            f"cgn_{f.stem.removeprefix('predictions_')}",
+            from_file(f, "contact_graspnet", camera_pose=CAMERA),
+        )
+        for f in files
+    ]
 
 
 def from_config(name: str) -> tuple[GraspTable, Any]:
@@ -259,6 +298,14 @@ def bench_set(
         ),
         flush=True,
     )
+    fam = out["families"]
+    if "error" not in fam:
+        print(
+            f"{'':15s} families: {fam['triangles']} triangles, {fam['in_simplex']} of {len(dq)} "
+            f"candidates in one ({fam['in_simplex_share']:.1%}); longest edge "
+            f"{fam['max_edge_m']:.4f} m, widest angle {fam['max_angle_deg']:.1f} deg; "
+            f"inside bounds: {fam['inside_bounds']}"
+        )
     return out
 
 
@@ -266,6 +313,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repeats, no 10,000 set, no JSON")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=os.environ.get("GCM_REAL_DATA"),
+        help="folder with contact_graspnet/**/predictions_*.npz (default: $GCM_REAL_DATA)",
+    )
     args = ap.parse_args()
     repeats = 1 if args.quick else args.repeats
     sets: list[tuple[str, GraspTable, Any, bool]] = []
@@ -275,6 +328,11 @@ def main() -> int:
             print(f"acronym {stem}: not found under {ACRONYM} (set ACRONYM_EXAMPLES)")
         else:
             sets.append((f"acronym_{stem.lower()}", t, None, stem == "Mug"))
+    for name, (file, depth) in GRASPGEN.items():
+        path = ROOT / "tests" / "data" / "graspgen" / file
+        t = from_file(path, "graspgen", grasp_to_tool={"xyz": [0.0, 0.0, depth]})
+        sets.append((name, t, None, False))
+    sets += [(name, t, None, False) for name, t in contact_graspnet(args.data)]
     for name in ("mug_antipodal", "box", "bottle_side"):
         t, section = from_config(name)
         sets.append((name, t, section, False))
@@ -289,7 +347,8 @@ def main() -> int:
         "benchmark": "manifold_real",
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
-        "command": "python benchmarks/bench_manifold_real.py",
+        "command": "python benchmarks/bench_manifold_real.py"
+        + (" --data DIR" if args.data else ""),
         "repeats": repeats,
         "targets": TARGETS,
         **results,

@@ -134,6 +134,36 @@ def test_graspgen_json_dataset_layout(tmp_path):
     assert len(poses) == 1 and table["source_id"].tolist() == [0]
 
 
+@pytest.mark.parametrize(
+    "name, count, depth",
+    [
+        ("ginger_grasps.yml", 50, 0.068),  # GraspGenX, openarm gripper
+        ("example_mesh_antipodal.yaml", 40, 0.195),  # GraspGen, Robotiq 2F-140
+        ("example_pointcloud_collisionfree_antipodal.yaml", 18, 0.195),
+    ],
+)
+def test_graspgen_isaac_grasp_yaml_real_inference_output(name, count, depth):
+    """Public GraspGen(X) output (tests/data/graspgen/README.md): every pose and confidence
+    in file order, the fingertips ``depth`` along the base frame's +z."""
+    path = DATA / "graspgen" / name
+    grasps = yaml.safe_load(path.read_text())["grasps"]
+    got = sources.read_grasps(path, "graspgen")
+    assert got.convention == "base" and got.gripper is None  # the file names no gripper
+    assert len(got.poses) == len(grasps) == count
+    for m, (name, g) in zip(got.poses, grasps.items(), strict=True):
+        q = [*g["orientation"]["xyz"], g["orientation"]["w"]]
+        np.testing.assert_allclose(m[:3, 3], g["position"], atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(m[:3, :3], Rotation.from_quat(q).as_matrix(), atol=1e-9)
+    np.testing.assert_allclose(got.columns["score"], [g["confidence"] for g in grasps.values()])
+    # read as a user would, with the gripper's fingertip offset
+    poses, table = imported(
+        config({"path": str(path), "frame": "object", "grasp_to_tool": {"xyz": [0, 0, depth]}})
+    )
+    tips = got.poses[:, :3, 3] + depth * got.poses[:, :3, 2]
+    np.testing.assert_allclose(poses[:, :3, 3] - np.array(BOX_XYZ), tips, atol=1e-9)
+    assert table["score"].max() == pytest.approx(max(g["confidence"] for g in grasps.values()))
+
+
 def test_graspgen_isaac_grasp_yaml(tmp_path):
     base = graspgen_base_in_object()
     q = Rotation.from_matrix(base[:3, :3]).as_quat()  # x, y, z, w
@@ -199,6 +229,41 @@ def test_contact_graspnet_npz_in_the_camera_frame(tmp_path):
     np.testing.assert_allclose(table["score"], [0.5, 0.2, 0.8], rtol=1e-6)
     np.testing.assert_allclose(table["width"], [0.04, 0.06, 0.05])
     assert table["source_id"].tolist() == [0, 0, 1]
+
+
+def test_contact_graspnet_float_segment_keys_and_an_empty_segment(tmp_path):
+    """The layout of public predictions (github.com/FrankJIE09/contact_graspnet results/):
+    segment ids saved as np.float32 keys, a segment with no grasps, no gripper_openings."""
+    g = cgn_grasp(0.06).astype(np.float32)
+    path = tmp_path / "predictions_7.npz"
+    np.savez(
+        path,
+        pred_grasps_cam={
+            np.float32(2.0): np.stack([g, g]),
+            np.float32(8.0): np.zeros((0, 4, 4), np.float32),
+            np.float32(10.0): g[None],
+        },
+        scores={
+            np.float32(2.0): np.array([0.3, 0.6], np.float32),
+            np.float32(8.0): np.zeros(0, np.float32),
+            np.float32(10.0): np.array([0.9], np.float32),
+        },
+        contact_pts={
+            np.float32(2.0): np.zeros((2, 3), np.float32),
+            np.float32(8.0): np.zeros((0, 3), np.float32),
+            np.float32(10.0): np.zeros((1, 3), np.float32),
+        },
+    )
+    cam = {"xyz": CAM[:3, 3].tolist(), "rpy_deg": [180, 0, 0]}
+    poses, table = imported(
+        config({"path": str(path), "format": "contact_graspnet", "camera_pose": cam})
+    )
+    assert len(poses) == 3  # the empty segment adds no row
+    for m in poses:
+        assert_pose(m, expected_tool())
+    assert table["segment"].tolist() == [2, 2, 10]  # numeric order, not "10" < "2"
+    np.testing.assert_allclose(table["score"], [0.3, 0.6, 0.9], rtol=1e-6)
+    assert np.isnan(table["width"]).all()
 
 
 def test_contact_graspnet_needs_a_camera_pose():

@@ -15,7 +15,7 @@ import pytest
 from helpers import ROOT, assert_one_line_error
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.sources import read_grasp_file
+from gcm_pipeline.sources.files import read_grasp_file
 
 
 def _poses(n: int) -> np.ndarray:

@@ -7,6 +7,7 @@ wrong encodings), and ``gcm validate`` reading the candidates as a run does.
 from __future__ import annotations
 
 import io as _io
+import re
 import zipfile
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from helpers import ROOT, assert_one_line_error
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.sources.files import read_grasp_file
+from gcm_pipeline.sources.files.acronym import read_acronym_object
 
 
 def _poses(n: int) -> np.ndarray:
@@ -195,6 +197,17 @@ def test_corrupted_hdf5_bytes(tmp_path):
     path.write_bytes(bytes(raw))
     with pytest.raises(InputError, match="HDF5"):
         read_grasp_file(path)
+
+
+def test_hdf5_library_errors_name_the_file_and_the_place(tmp_path):
+    # the grasps are read in a child process, the object's name and scale again in
+    # this one (objects from the grasp file): both refuse with the same line
+    path = _h5(tmp_path, lambda f, h: f.update({"object/file": h.SoftLink("/nowhere")}))
+    line = rf"^{re.escape(str(path))}: corrupt or unreadable HDF5 file \(at object\): \S"
+    with pytest.raises(InputError, match=line):
+        read_grasp_file(path)
+    with pytest.raises(InputError, match=line):
+        read_acronym_object(path)
 
 
 # ---------------------------------------------------------- through gcm validate

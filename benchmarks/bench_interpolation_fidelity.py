@@ -68,7 +68,7 @@ from gcm_pipeline.config.sections import ManifoldConfig  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_to_matrix  # noqa: E402
 from gcm_pipeline.geometry.meshes import read_mesh  # noqa: E402
 from gcm_pipeline.pipeline import build_manifold, densify, generate_candidates  # noqa: E402
-from gcm_pipeline.sources import get_gripper  # noqa: E402
+from gcm_pipeline.sources.grippers import get_gripper  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "interpolation_fidelity.json"

@@ -5,17 +5,21 @@ from __future__ import annotations
 import pickle
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import gcm_pipeline
 from gcm_pipeline.errors import (
     ConfigError,
     GcmError,
+    GeometryError,
     InputError,
     RobotSpecError,
     choice_error,
     unknown_choice,
 )
+from gcm_pipeline.geometry.bowyer_watson import delaunay
+from gcm_pipeline.robot.manipulability import manipulability
 
 
 def test_an_error_without_evidence_keeps_its_message_and_has_none() -> None:
@@ -74,3 +78,20 @@ def test_unknown_choice_suggests_and_lists() -> None:
     assert "did you mean 'cylindrical'" in msg
     assert "valid: cylindrical, pca, spherical, xy" in msg
     assert "\n" not in msg
+
+
+def test_library_refusals_of_an_unknown_name_carry_the_evidence() -> None:
+    # the package's own checks build these errors with choice_error: the same one-line
+    # message as unknown_choice, plus the value and the sorted choices to act on
+    with pytest.raises(GeometryError) as tri:
+        delaunay(np.eye(3)[:, :2], method="qhul")
+    assert str(tri.value) == (
+        "unknown triangulator 'qhul' (did you mean 'qhull'?); valid: bowyer_watson, qhull"
+    )
+    assert (tri.value.value, tri.value.choices) == ("qhul", ("bowyer_watson", "qhull"))
+    with pytest.raises(InputError) as metric:
+        manipulability(None, np.zeros((1, 7)), metric="yoshikawaa")
+    assert str(metric.value).startswith("unknown manipulability metric 'yoshikawaa'")
+    assert metric.value.value == "yoshikawaa"
+    assert metric.value.choices == tuple(sorted(metric.value.choices))
+    assert "yoshikawa" in metric.value.choices

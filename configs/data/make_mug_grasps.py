@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gcm_pipeline.config import Pose
-from gcm_pipeline.sources import poses_cylinder_side
+from gcm_pipeline.sources.generators import poses_cylinder_side
 
 RADIUS, HEIGHT = 0.04, 0.10
 

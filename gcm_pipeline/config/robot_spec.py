@@ -68,7 +68,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Strict, ValidationEr
 from gcm_pipeline.config.sections import FiniteFloat, NonNegFloat
 from gcm_pipeline.config.tool_spec import ToolSection, build_tool, check_tool_files, spec_special
 from gcm_pipeline.config.validation import describe
-from gcm_pipeline.errors import RobotSpecError, clip, unknown_choice
+from gcm_pipeline.errors import RobotSpecError, choice_error, clip
 from gcm_pipeline.robot.model import Robot, RobotSpec
 from gcm_pipeline.robot.model_files import model_files
 from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
@@ -231,7 +231,7 @@ def _read_spec_file(name_or_path: str | os.PathLike[str]) -> tuple[Path, Any]:
     else:
         names = available_robots()
         if text not in names:  # (no file lookup: a name of 300 characters is no file name)
-            raise RobotSpecError(unknown_choice("robot", text, names))
+            raise choice_error(RobotSpecError, "robot", text, names)
         res = _spec_dir() / f"{text}.yaml"
         path = Path(str(res))
         raw = load_yaml(res.read_text(encoding="utf-8"), str(path), RobotSpecError)

@@ -40,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import Delaunay, QhullError
 
-from gcm_pipeline.errors import GeometryError, unknown_choice
+from gcm_pipeline.errors import GeometryError, choice_error
 
 __all__ = ["TRIANGULATORS", "bowyer_watson", "check_triangulable", "delaunay"]
 
@@ -364,7 +364,7 @@ def delaunay(points: npt.ArrayLike, method: str = "qhull") -> np.ndarray:
             points, or points that are all duplicates or all collinear.
     """
     if method not in TRIANGULATORS:
-        raise GeometryError(unknown_choice("triangulator", method, TRIANGULATORS))
+        raise choice_error(GeometryError, "triangulator", method, TRIANGULATORS)
     if method == "bowyer_watson":
         return bowyer_watson(points)
     unit, ids = _prepare(points)

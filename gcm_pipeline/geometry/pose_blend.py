@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from gcm_pipeline.errors import GeometryError, unknown_choice
+from gcm_pipeline.errors import GeometryError, choice_error
 from gcm_pipeline.geometry.dualquat import (
     as_dq,
     dq_conj,
@@ -157,7 +157,7 @@ def dlb(
             weights or weights not summing to 1 (tolerance 1e-9).
     """
     if pivot not in _PIVOTS:
-        raise GeometryError(unknown_choice("DLB pivot", pivot, _PIVOTS))
+        raise choice_error(GeometryError, "DLB pivot", pivot, _PIVOTS)
     dqs, w = _blend_inputs(dqs, weights, check)
     ws = _aligned_weights(dqs, w, pivot)
     if dqs.ndim == 2:

@@ -17,7 +17,7 @@ from typing import Any
 import coal
 import numpy as np
 
-from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.errors import ConfigError, InputError, choice_error
 from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 
 __all__ = ["PLANE_THICKNESS", "SHAPES", "shape_geometry"]
@@ -110,4 +110,4 @@ def shape_geometry(
             )
         _positive(where, "scale", scale)
         return _load_mesh(mesh, scale, where), centre
-    raise ConfigError(f"{where}: " + unknown_choice("shape", shape, SHAPES))
+    raise choice_error(ConfigError, "shape", shape, SHAPES, prefix=f"{where}: ")

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.bounds import MAX_ADAPTIVE_LEVEL, check_size
-from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, choice_error
 from gcm_pipeline.manifold.build import Manifold, candidate_poses
 from gcm_pipeline.manifold.densify import fill_column
 from gcm_pipeline.manifold.surface import blend
@@ -142,7 +142,7 @@ def _check_options(
         raise GeometryError(f"adaptive min_level must be in 0..{max_level}, got {min_level}")
     for c in criteria:
         if c not in CRITERIA:
-            raise GeometryError(unknown_choice("refinement criterion", c, CRITERIA))
+            raise choice_error(GeometryError, "refinement criterion", c, CRITERIA)
     if not 0 < metric_threshold <= 1 or not np.isfinite(metric_threshold):
         raise GeometryError(f"metric_threshold must be in (0, 1], got {metric_threshold!r}")
     if "metric" in criteria and score is None:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, choice_error
 from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_to_matrix
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE
@@ -266,11 +266,11 @@ def build_manifold(
         InputError: If ``grasps`` has no ``dq`` column.
     """
     if structure not in STRUCTURES:
-        raise GeometryError(unknown_choice("structure", structure, STRUCTURES))
+        raise choice_error(GeometryError, "structure", structure, STRUCTURES)
     if projection not in PROJECTIONS:
-        raise GeometryError(unknown_choice("projection", projection, PROJECTIONS))
+        raise choice_error(GeometryError, "projection", projection, PROJECTIONS)
     if triangulator not in TRIANGULATORS:
-        raise GeometryError(unknown_choice("triangulator", triangulator, TRIANGULATORS))
+        raise choice_error(GeometryError, "triangulator", triangulator, TRIANGULATORS)
     for name, value, upper in (
         ("max_edge_length", max_edge_length, np.inf),
         ("max_edge_angle_deg", max_edge_angle_deg, 180.0),

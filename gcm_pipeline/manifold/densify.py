@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.bounds import check_size, lattice_size
-from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, choice_error
 from gcm_pipeline.geometry.dualquat import dq_translation
 from gcm_pipeline.geometry.pose_blend import dib, dlb
 from gcm_pipeline.manifold.build import Manifold, candidate_poses
@@ -255,7 +255,7 @@ def densify(
         InputError: If ``grasps`` has no ``dq`` column.
     """
     if method not in DENSIFY_METHODS:
-        raise GeometryError(unknown_choice("densify method", method, DENSIFY_METHODS))
+        raise choice_error(GeometryError, "densify method", method, DENSIFY_METHODS)
     if "dq" not in grasps:
         raise InputError(f"grasp table has no column 'dq'; columns: {', '.join(grasps.columns)}")
     dq_in = np.asarray(grasps["dq"])

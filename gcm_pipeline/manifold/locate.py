@@ -38,7 +38,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.bounds import MAX_LENGTH
-from gcm_pipeline.errors import GeometryError, unknown_choice
+from gcm_pipeline.errors import GeometryError, choice_error
 from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_translation
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance, pose_features
 from gcm_pipeline.manifold.surface import BLEND_METHODS, blend, project_onto_triangles
@@ -259,7 +259,7 @@ class TriangleLocator:
         if len(corners) == 0 and len(pts) == 0:
             raise GeometryError("the manifold has no triangle and no point to locate poses on")
         if method not in BLEND_METHODS:
-            raise GeometryError(unknown_choice("blend method", method, BLEND_METHODS))
+            raise choice_error(GeometryError, "blend method", method, BLEND_METHODS)
         self.corners = corners
         self.points = pts
         self.point_ids = ids

@@ -41,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, choice_error
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_features
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.lattice import RowMesh, interpolate, row_memberships, row_mesh
@@ -114,7 +114,7 @@ class GraspManifold:
         orientation_scale: float = ORIENTATION_SCALE,
     ) -> None:
         if method not in BLEND_METHODS:
-            raise GeometryError(unknown_choice("blend method", method, BLEND_METHODS))
+            raise choice_error(GeometryError, "blend method", method, BLEND_METHODS)
         if "dq" not in grasps:
             raise InputError("the grasp table of a manifold needs a 'dq' column")
         n_v = mesh.n_vertices
@@ -394,7 +394,7 @@ class GraspManifold:
             InputError: Unknown metric, or a column the metric needs is missing.
         """
         if metric not in QUERY_METRICS:
-            raise InputError(unknown_choice("metric", metric, QUERY_METRICS))
+            raise choice_error(InputError, "metric", metric, QUERY_METRICS)
         reach = np.asarray(table["reachable"], dtype=bool)
         q = np.where(reach[:, None], np.asarray(table["q"], dtype=np.float64), np.nan)
         if metric in _ROBOT_METRICS:
@@ -465,7 +465,7 @@ class GraspManifold:
         if metric is None:
             metric = self.run.ranking_metric if self.run is not None else "yoshikawa"
         if metric not in QUERY_METRICS:
-            raise InputError(unknown_choice("metric", metric, QUERY_METRICS))
+            raise choice_error(InputError, "metric", metric, QUERY_METRICS)
         check = self._checker(robot, cfg)
         rows_ok, q_table = self._reachable_rows()
         row_values = self.metric_values(self.grasps, metric)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gcm_pipeline.errors import GeometryError, unknown_choice
+from gcm_pipeline.errors import GeometryError, choice_error
 from gcm_pipeline.geometry.dualquat import dq_translation, quat_mul
 from gcm_pipeline.geometry.pose_blend import dib, dlb
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_distance
@@ -45,7 +45,7 @@ def blend(corners: np.ndarray, weights: np.ndarray, method: str = "dlb") -> np.n
         GeometryError: Unknown method (the weights are trusted: >= 0, sum 1).
     """
     if method not in BLEND_METHODS:
-        raise GeometryError(unknown_choice("blend method", method, BLEND_METHODS))
+        raise choice_error(GeometryError, "blend method", method, BLEND_METHODS)
     corners = np.asarray(corners, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     if method == "dlb":

@@ -52,7 +52,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.errors import InputError, OutputError, unknown_choice
+from gcm_pipeline.errors import InputError, OutputError, choice_error
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
@@ -149,7 +149,7 @@ def export_run(
             device or a pipe.
     """
     if format not in EXPORT_FORMATS:
-        raise InputError(unknown_choice("export format", format, EXPORT_FORMATS))
+        raise choice_error(InputError, "export format", format, EXPORT_FORMATS)
     if top is not None and top < 1:
         raise InputError(f"--top must be >= 1, got {top}")
     run = Path(run_dir)

@@ -10,7 +10,6 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig, PlacementConfig, Pose
-from gcm_pipeline.sources import file_format
 from gcm_pipeline.sources.file_object import (
     MESH_KEYS,
     find_mesh,
@@ -18,6 +17,7 @@ from gcm_pipeline.sources.file_object import (
     named_object,
     stable_placement,
 )
+from gcm_pipeline.sources.files import file_format
 
 log = logging.getLogger(__name__)
 

@@ -7,11 +7,14 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline import sources
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import CandidatesConfig
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.sources.antipodal import antipodal_candidates, object_mesh
+from gcm_pipeline.sources.files import file_format, read_grasps, to_grasp_frame
+from gcm_pipeline.sources.generators import add_noise, generate
+from gcm_pipeline.sources.grippers import get_gripper
 from gcm_pipeline.table import GraspTable
 
 log = logging.getLogger(__name__)
@@ -22,7 +25,7 @@ def candidate_poses(
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """World poses (N, 4, 4) of the grasp frame and per-candidate columns: ``candidates`` -> source.
 
-    A file's poses go onto the grasp frame (:func:`~gcm_pipeline.sources.to_grasp_frame`)
+    A file's poses go onto the grasp frame (:func:`~gcm_pipeline.sources.files.to_grasp_frame`)
     and into the world by ``candidates.camera_pose``, else by the object pose for
     ``frame: object``; generated and sampled grasps are mapped by ``grasp_to_tool``
     (on the right) and the object pose. ``report`` gets ``grasp_frame`` when a
@@ -32,8 +35,8 @@ def candidate_poses(
     to_tool = None if c.grasp_to_tool is None else c.grasp_to_tool.matrix()
     if c.source == "file":
         assert c.path is not None
-        fmt = sources.file_format(c.path, c.format)
-        grasps = sources.read_grasps(
+        fmt = file_format(c.path, c.format)
+        grasps = read_grasps(
             c.path,
             fmt,
             success_only=c.success_only,
@@ -44,7 +47,7 @@ def candidate_poses(
         filtered = grasps.selection.kept < grasps.selection.read
         if report is not None and (filtered or c.min_score is not None or c.limit is not None):
             report["selection"] = grasps.selection.as_dict()
-        poses, choice = sources.to_grasp_frame(
+        poses, choice = to_grasp_frame(
             grasps, c.path, fmt, gripper=c.gripper, grasp_to_tool=to_tool
         )
         if choice is not None and report is not None:
@@ -60,13 +63,13 @@ def candidate_poses(
     if c.source == "antipodal":
         if obj is None:
             raise ConfigError("candidates.source 'antipodal' samples an object: add 'object'")
-        gripper = sources.get_gripper(c.gripper or "franka_panda")
+        gripper = get_gripper(c.gripper or "franka_panda")
         d = obj.dims
-        mesh = sources.object_mesh(
+        mesh = object_mesh(
             obj.shape, radius=d.radius, height=d.height, size=d.size, mesh=obj.mesh, scale=obj.scale
         )
         table = cfg.environment.table
-        poses, columns = sources.antipodal_candidates(
+        poses, columns = antipodal_candidates(
             mesh,
             c.count,
             gripper,
@@ -85,7 +88,7 @@ def candidate_poses(
             poses, columns = poses[keep], {k: v[keep] for k, v in columns.items()}
         return (poses if to_tool is None else poses @ to_tool), columns
     d = None if obj is None else obj.dims
-    poses = sources.generate(
+    poses = generate(
         c.source,
         c.count,
         rng,
@@ -96,7 +99,7 @@ def candidate_poses(
         depth=c.depth,
         rings=c.rings,
     )
-    sources.add_noise(poses, c.noise.position, c.noise.angle_deg, rng)
+    add_noise(poses, c.noise.position, c.noise.angle_deg, rng)
     if to_tool is not None:  # generated grasps are mapped like imported ones
         poses = poses @ to_tool
     assert obj is not None
@@ -110,14 +113,14 @@ def generate_candidates(cfg: Config, *, report: dict[str, Any] | None = None) ->
     Args:
         cfg: The full config (``candidates``, ``object``, ``environment.table``, ``seed``).
         report: A dict that gets ``grasp_frame``, how a grasp file's gripper
-            frame was mapped (:meth:`gcm_pipeline.sources.GripperChoice.as_dict`),
+            frame was mapped (:meth:`gcm_pipeline.sources.grippers.GripperChoice.as_dict`),
             when the file has one.
 
     Returns:
         A table with ``dq``: unit dual quaternions [rw, rx, ry, rz, dw, dx, dy, dz]
         of the grasp frame in the world, one row per candidate; for a grasp
         file also ``source_id`` (the row in the file) and the file's own
-        columns (:func:`gcm_pipeline.sources.read_grasp_file`).
+        columns (:func:`gcm_pipeline.sources.files.read_grasp_file`).
 
     Raises:
         ConfigError: A generator without a matching ``object`` section.

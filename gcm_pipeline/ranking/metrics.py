@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.errors import ConfigError, InputError, choice_error
 from gcm_pipeline.robot.manipulability import METRICS
 
 __all__ = [
@@ -121,7 +121,7 @@ def combined_score(
     """
     w = dict(DEFAULT_COMBINED_WEIGHTS if weights is None else weights)
     if normalization not in ("minmax", "rank"):
-        raise ConfigError(unknown_choice("normalization", normalization, ("minmax", "rank")))
+        raise choice_error(ConfigError, "normalization", normalization, ("minmax", "rank"))
     for name, value in w.items():
         if not np.isfinite(value) or value < 0:
             raise ConfigError(f"ranking.weights.{name} must be a number >= 0, got {value!r}")

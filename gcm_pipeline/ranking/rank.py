@@ -42,7 +42,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.errors import InputError, choice_error
 from gcm_pipeline.ranking.metrics import (
     DEFAULT_COMBINED_WEIGHTS,
     METRIC_COLUMNS,
@@ -139,7 +139,7 @@ def rank(
             :func:`~gcm_pipeline.ranking.metrics.combined_score`).
     """
     if metric not in METRIC_COLUMNS:
-        raise InputError(unknown_choice("ranking metric", metric, METRIC_COLUMNS))
+        raise choice_error(InputError, "ranking metric", metric, METRIC_COLUMNS)
     if top_k is not None and (
         isinstance(top_k, bool) or not isinstance(top_k, (int, np.integer)) or top_k < 0
     ):

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
-from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.errors import InputError, choice_error
 from gcm_pipeline.manifold.continuity import patches
 from gcm_pipeline.table import GraspTable
 
@@ -153,7 +153,7 @@ def select_branches(
             wrong shape.
     """
     if method not in SELECT_METHODS:
-        raise InputError(unknown_choice("ik.select", method, SELECT_METHODS))
+        raise choice_error(InputError, "ik.select", method, SELECT_METHODS, key="ik.select")
     for col in ("solutions", "n_solutions", "reachable"):
         if col not in grasps:
             raise InputError(f"choosing IK branches needs column {col!r} (ik.solutions > 1)")

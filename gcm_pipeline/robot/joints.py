@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pinocchio as pin
 
-from gcm_pipeline.errors import RobotSpecError, unknown_choice
+from gcm_pipeline.errors import RobotSpecError, choice_error
 from gcm_pipeline.robot.urdf import PreparedUrdf
 
 if TYPE_CHECKING:
@@ -35,9 +35,13 @@ def locked_joints(spec: RobotSpec, full: Any) -> tuple[np.ndarray, list[int]]:
     locked_ids = []
     for jname, value in spec.locked_joints.items():
         if not full.existJointName(jname):
-            raise RobotSpecError(
-                f"robot {spec.name!r}: locked_joints: "
-                + unknown_choice("joint", jname, joint_names)
+            raise choice_error(
+                RobotSpecError,
+                "joint",
+                jname,
+                joint_names,
+                key="locked_joints",
+                prefix=f"robot {spec.name!r}: locked_joints: ",
             )
         jid = full.getJointId(jname)
         if full.joints[jid].nq != 1:
@@ -63,8 +67,13 @@ def joint_ranges(
     upper = np.array(model.upperPositionLimit, dtype=float)
     for jname, (lo, hi) in spec.joint_limits.items():
         if jname not in joint_names:
-            raise RobotSpecError(
-                f"robot {spec.name!r}: joint_limits: " + unknown_choice("joint", jname, joint_names)
+            raise choice_error(
+                RobotSpecError,
+                "joint",
+                jname,
+                joint_names,
+                key="joint_limits",
+                prefix=f"robot {spec.name!r}: joint_limits: ",
             )
         i = joint_names.index(jname)
         lower[i], upper[i] = max(lower[i], lo), min(upper[i], hi)
@@ -117,8 +126,13 @@ def home_configuration(
         home = 0.5 * (lower + upper)
         for jname, value in spec.home.items():
             if jname not in joint_names:
-                raise RobotSpecError(
-                    f"robot {spec.name!r}: home: " + unknown_choice("joint", jname, joint_names)
+                raise choice_error(
+                    RobotSpecError,
+                    "joint",
+                    jname,
+                    joint_names,
+                    key="home",
+                    prefix=f"robot {spec.name!r}: home: ",
                 )
             home[joint_names.index(jname)] = value
     if np.any(home < lower) or np.any(home > upper):

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.errors import InputError, choice_error
 
 __all__ = [
     "METRICS",
@@ -183,7 +183,7 @@ def manipulability(robot: Any, q: Any, metric: str = "yoshikawa") -> np.ndarray:
         InputError: Unknown metric (lists the valid ones).
     """
     if metric not in METRICS:
-        raise InputError(unknown_choice("manipulability metric", metric, METRICS))
+        raise choice_error(InputError, "manipulability metric", metric, METRICS)
     qs = np.asarray(q, dtype=float)
     if metric == "joint_limit_margin":
         return joint_limit_margin(qs, robot.lower, robot.upper)

@@ -28,12 +28,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from gcm_pipeline.errors import (
-    InputError,
-    RobotSpecError,
-    clip,
-    unknown_choice,
-)
+from gcm_pipeline.errors import InputError, RobotSpecError, choice_error, clip
 from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.joints import home_configuration, joint_ranges, locked_joints
@@ -326,7 +321,7 @@ class Robot:
         """
         kinds = {"collision": pin.GeometryType.COLLISION, "visual": pin.GeometryType.VISUAL}
         if kind not in kinds:
-            raise RobotSpecError(unknown_choice("geometry kind", kind, kinds))
+            raise choice_error(RobotSpecError, "geometry kind", kind, kinds)
         # loaded from the URDF and its meshes once per robot; each caller gets a copy
         # it may extend (a placement study builds many collision worlds on one robot)
         cached = self.cache.get(("geometry", kind))

@@ -30,7 +30,7 @@ from example_robot_data.robots_loader import ROBOTS, getModelPath
 from robot_descriptions._descriptions import DESCRIPTIONS
 from robot_descriptions._repositories import REPOSITORIES
 
-from gcm_pipeline.errors import RobotSpecError, clip, unknown_choice
+from gcm_pipeline.errors import RobotSpecError, choice_error, clip
 from gcm_pipeline.robot.urdf import captured_output, prepare_urdf
 
 if TYPE_CHECKING:
@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 def _erd_paths(name: str) -> tuple[Path, Path | None, Path]:
     """URDF, SRDF and model directory of an example-robot-data loader."""
     if name not in ROBOTS:
-        raise RobotSpecError(unknown_choice("example_robot_data robot", name, ROBOTS))
+        raise choice_error(RobotSpecError, "example_robot_data robot", name, ROBOTS)
     loader = ROBOTS[name]
     if not loader.urdf_filename:
         raise RobotSpecError(
@@ -141,7 +141,7 @@ def _rd_paths(name: str) -> tuple[Path, Path | None, tuple[Path, ...]]:
         return _RD_PATHS[name]
     if name not in DESCRIPTIONS:
         urdf_names = [k for k, d in DESCRIPTIONS.items() if d.has_urdf]
-        raise RobotSpecError(unknown_choice("robot_descriptions model", name, urdf_names))
+        raise choice_error(RobotSpecError, "robot_descriptions model", name, urdf_names)
     desc = DESCRIPTIONS[name]
     if not desc.has_urdf:
         urdf_names = [k for k, d in DESCRIPTIONS.items() if d.has_urdf]

@@ -29,8 +29,7 @@ from pydantic import BaseModel
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import ConfigError, InputError
-from gcm_pipeline.sources import read_grasp_file
-from gcm_pipeline.sources.files import acronym
+from gcm_pipeline.sources.files import acronym, read_grasp_file
 
 #: Examples per test (more with GCM_FUZZ_SCALE=10, e.g., for a longer hunt).
 SCALE = float(os.environ.get("GCM_FUZZ_SCALE", "1"))

@@ -159,12 +159,12 @@ def test_limit_margin_and_joint_limits(tmp_path: Path, panda: Robot):
     np.testing.assert_allclose(robot.lower[1:], panda.lower[1:] - 0.1 + 0.05)
 
 
-def test_robot_package_exports_resolve_without_mink():
+def test_ik_package_exports_resolve_without_mink():
     import subprocess
     import sys
 
     code = (
-        "import sys, gcm_pipeline.robot as r; "
+        "import sys, gcm_pipeline.robot.ik as r; "
         "assert all(hasattr(r, n) for n in r.__all__); "
         "assert 'mink' not in sys.modules and 'mujoco' not in sys.modules"
     )

@@ -15,8 +15,8 @@ from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates
-from gcm_pipeline.sources import get_gripper
 from gcm_pipeline.sources.antipodal import _gripper_points
+from gcm_pipeline.sources.grippers import get_gripper
 
 PANDA = get_gripper("franka_panda")
 MU = 0.5

@@ -11,7 +11,7 @@ from gcm_pipeline.config import Config, Pose
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import candidate_poses, generate_candidates
-from gcm_pipeline.sources import ACRONYM_INSTALL_HINT, load_grasp_file
+from gcm_pipeline.sources.files import ACRONYM_INSTALL_HINT, load_grasp_file
 from gcm_pipeline.table import GraspTable
 
 OBJECTS = {

@@ -21,12 +21,13 @@ import yaml
 from helpers import DATA, assert_one_line_error
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline import sources
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates
+from gcm_pipeline.sources.files import read_contact_graspnet, read_grasp_file
+from gcm_pipeline.sources.grippers import get_gripper
 
 BOX_SIZE = (0.10, 0.06, 0.10)
 BOX_XYZ = (0.5, 0.0, 0.05)  # the box stands on the table: top face at z = 0.10
@@ -69,7 +70,7 @@ def assert_pose(m: np.ndarray, want: np.ndarray) -> None:
 
 
 def test_registry_base_convention_is_the_acronym_grasp_to_tool():
-    g = sources.get_gripper("franka_panda")
+    g = get_gripper("franka_panda")
     # the README's hand-written map for ACRONYM files
     want = config(
         {"path": "x.npy", "grasp_to_tool": {"xyz": [0, 0, 0.1034], "rpy_deg": [0, 0, -90]}}
@@ -80,7 +81,7 @@ def test_registry_base_convention_is_the_acronym_grasp_to_tool():
 
 def test_registry_unknown_gripper_lists_the_known_ones():
     with pytest.raises(ConfigError, match="unknown gripper 'robotiq'.*valid: franka_panda"):
-        sources.get_gripper("robotiq")
+        get_gripper("robotiq")
     with pytest.raises(ConfigError, match="candidates.*unknown gripper 'panda_hand'.*franka_panda"):
         config({"path": "g.json", "gripper": "panda_hand"})
 
@@ -282,7 +283,7 @@ def test_contact_graspnet_never_runs_pickled_code(tmp_path):
     with zipfile.ZipFile(path, "w") as zf:
         zf.writestr("pred_grasps_cam.npy", buf.getvalue())
     with pytest.raises(InputError, match="refusing to load"):
-        sources.read_contact_graspnet(path)
+        read_contact_graspnet(path)
     assert not (tmp_path / "pwned").exists()
     assert pickle  # the stdlib module the attack would need is not what we use to read
 
@@ -308,14 +309,14 @@ def test_contact_graspnet_pickle_that_expands_is_refused_before_it_is_built(tmp_
     with pytest.raises(
         InputError, match=r"array 'pred_grasps_cam' expands to more than 64,131,072"
     ):
-        sources.read_contact_graspnet(path)
+        read_contact_graspnet(path)
     # nested without end
     deep: list = [[1.0]]
     for _ in range(50):
         deep = [deep]
     path = _object_npz(tmp_path / "deep.npz", pred_grasps_cam={0: deep})
     with pytest.raises(InputError, match="nests lists or dicts more than 8 levels deep"):
-        sources.read_contact_graspnet(path)
+        read_contact_graspnet(path)
     # a pickle of DUP opcodes: 1 byte each, a reference each, before anything can be counted
     header = io.BytesIO()
     np.lib.format.write_array_header_1_0(
@@ -324,23 +325,23 @@ def test_contact_graspnet_pickle_that_expands_is_refused_before_it_is_built(tmp_
     dups = header.getvalue() + b"\x80\x02N" + b"2" * 5_000_000 + b"."
     _npz_member(tmp_path / "dup.npz", "pred_grasps_cam", dups)
     with pytest.raises(InputError, match="its pickle takes more than 1,000,000 steps"):
-        sources.read_contact_graspnet(tmp_path / "dup.npz")
+        read_contact_graspnet(tmp_path / "dup.npz")
     # a chain of shared lists nested deeper than 8 (each object once in a memo by id)
     chain: list = [[1.0]]
     for _ in range(20):
         chain = [chain, chain]
     path = _object_npz(tmp_path / "chain.npz", pred_grasps_cam={0: chain})
     with pytest.raises(InputError, match="more than 8 levels deep"):
-        sources.read_contact_graspnet(path)
+        read_contact_graspnet(path)
     # ragged lists: one line
     path = _object_npz(tmp_path / "ragged.npz", pred_grasps_cam={0: [[1, 2], [3]]})
     with pytest.raises(InputError, match=r"must map segments to \(M, 4, 4\) arrays"):
-        sources.read_contact_graspnet(path)
+        read_contact_graspnet(path)
     # the layout Contact-GraspNet writes (dicts of arrays) reads, scores as a list too
     path = _object_npz(
         tmp_path / "ok.npz", pred_grasps_cam={3: np.stack([pose, pose])}, scores={3: [0.5, 0.25]}
     )
-    got = sources.read_contact_graspnet(path)
+    got = read_contact_graspnet(path)
     assert got.poses.shape == (2, 4, 4) and got.columns["score"].tolist() == [0.5, 0.25]
     assert got.columns["segment"].tolist() == [3, 3]
 
@@ -356,7 +357,7 @@ def graspnet_row(
     where the Panda's are when its TCP is at the top face (8.9 mm past it, see
     test_panda_fingertips_are_finger_tip_past_the_tcp)."""
     if tips is None:
-        tips = TOP + sources.get_gripper("franka_panda").finger_tip * APPROACH
+        tips = TOP + get_gripper("franka_panda").finger_tip * APPROACH
     r = np.column_stack([APPROACH, CLOSING, np.cross(APPROACH, CLOSING)])
     center = tips - depth * APPROACH
     return np.r_[score, 0.06, 0.02, depth, r.reshape(-1), center, object_id]
@@ -455,7 +456,7 @@ def test_graspnet_fingertips_land_where_graspnet_draws_them(tmp_path):
     the centre. The Panda's fingertips are ``finger_tip`` past its TCP (example-robot-data's
     finger meshes end 8.9 mm past panda_hand_tcp), so the TCP sits ``depth - finger_tip``
     past the centre and the real fingertips touch the face, not 9 mm below it."""
-    g = sources.get_gripper("franka_panda")
+    g = get_gripper("franka_panda")
     assert 0.008 < g.finger_tip < 0.010
     path = tmp_path / "gg.npy"
     np.save(path, np.stack([graspnet_row(0.01, tips=TOP), graspnet_row(0.04, tips=TOP)]))
@@ -490,7 +491,7 @@ def test_panda_fingertips_are_finger_tip_past_the_tcp(panda):
         w = v @ gdata.oMg[i].rotation.T + gdata.oMg[i].translation
         tips.append(((w - tcp.translation) @ tcp.rotation)[:, 2].max())
     assert tips
-    np.testing.assert_allclose(max(tips), sources.get_gripper("franka_panda").finger_tip, atol=5e-4)
+    np.testing.assert_allclose(max(tips), get_gripper("franka_panda").finger_tip, atol=5e-4)
 
 
 # ------------------------------------------- hostile files: one line, no crash
@@ -685,7 +686,7 @@ def test_acronym_without_gripper_uses_the_dataset_gripper_and_says_so():
     np.testing.assert_array_equal(default["dq"], named["dq"])
     np.testing.assert_array_equal(default["dq"], suffix["dq"])
     # the file's hand base frames are 0.1034 m behind the TCP along the approach
-    from gcm_pipeline.sources import read_grasp_file
+    from gcm_pipeline.sources.files import read_grasp_file
 
     base, _ = read_grasp_file(MUG_H5, success_only=True)
     obj = mug_config().object.pose.matrix()
@@ -929,7 +930,7 @@ def test_a_long_csv_cell_is_refused_and_short_text_costs_its_size(tmp_path):
     # one text cell of 250 characters: the old 2-D text array took 20,000 x 8 x 250 x 4 bytes
     rows[501] = "0.1,0,0.2,1,0,0,0," + "b" * 250
     path.write_text("\n".join(rows) + "\n")
-    from gcm_pipeline.sources import read_grasp_file
+    from gcm_pipeline.sources.files import read_grasp_file
 
     tracemalloc.start()
     try:
@@ -955,7 +956,7 @@ def test_an_hdf5_text_declaring_a_huge_size_is_refused_before_it_is_read(tmp_pat
     code = (
         "import resource, sys\n"
         "from gcm_pipeline.errors import InputError\n"
-        "from gcm_pipeline.sources import read_grasp_file\n"
+        "from gcm_pipeline.sources.files import read_grasp_file\n"
         "try:\n"
         f"    read_grasp_file({str(path)!r})\n"
         "except InputError as exc:\n"
@@ -998,7 +999,7 @@ def test_a_bad_csv_grasp_cell_carries_file_line_and_column(tmp_path, cell, key, 
     path = tmp_path / "g.csv"
     path.write_text(f"x,y,z,qw,qx,qy,qz\n0.1,0,0.2,1,0,0,0\n\n0.1,{cell},0.2,1,0,0,0\n")
     with pytest.raises(InputError) as info:
-        sources.read_grasp_file(path)
+        read_grasp_file(path)
     assert str(info.value).startswith(f"{path}:4: column 'y': {what}")
     assert (info.value.path, info.value.row, info.value.key) == (path, 4, key)
 
@@ -1007,11 +1008,11 @@ def test_a_csv_grasp_row_of_the_wrong_width_and_a_bad_quaternion_carry_the_line(
     path = tmp_path / "g.csv"
     path.write_text("x,y,z,qw,qx,qy,qz\n0.1,0,0.2,1,0,0,0\n0.1,0,0.2,1,0,0\n")
     with pytest.raises(InputError) as info:
-        sources.read_grasp_file(path)
+        read_grasp_file(path)
     assert (info.value.path, info.value.row, info.value.value) == (path, 3, 6)
     path.write_text("x,y,z,qw,qx,qy,qz\n0.1,0,0.2,1,0,0,0\n0.1,0,0.2,2,0,0,0\n")
     with pytest.raises(InputError, match="has norm 2, expected 1") as info:
-        sources.read_grasp_file(path)
+        read_grasp_file(path)
     assert (info.value.path, info.value.row, info.value.value) == (path, 3, 2.0)
 
 
@@ -1028,10 +1029,10 @@ def test_an_unknown_grasp_file_format_carries_the_value_and_the_choices(tmp_path
     path = tmp_path / "g.txt"
     path.write_text("x")
     with pytest.raises(InputError, match="cannot tell the grasp file format") as info:
-        sources.read_grasp_file(path)
+        read_grasp_file(path)
     err = info.value
     assert (err.path, err.key, err.value) == (path, "candidates.format", ".txt")
     assert err.choices == ("acronym", "csv", "npy", "npz")
     with pytest.raises(InputError, match="unknown grasp file format 'xyz'") as info:
-        sources.read_grasp_file(path, format="xyz")
+        read_grasp_file(path, format="xyz")
     assert (info.value.value, info.value.choices) == ("xyz", ("acronym", "csv", "npy", "npz"))

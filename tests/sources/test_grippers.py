@@ -10,7 +10,8 @@ from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import build_manifold, densify, generate_candidates
-from gcm_pipeline.sources import get_gripper, read_grasp_file
+from gcm_pipeline.sources.files import read_grasp_file
+from gcm_pipeline.sources.grippers import get_gripper
 
 ACRONYM = DATA / "acronym"
 MUG_H5 = ACRONYM / "Mug_10f6e09036350e92b3f21f1137c3c347_0.0002682457830986903.h5"

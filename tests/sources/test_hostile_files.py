@@ -7,6 +7,7 @@ wrong encodings), and ``gcm validate`` reading the candidates as a run does.
 from __future__ import annotations
 
 import io as _io
+import re
 import zipfile
 from pathlib import Path
 
@@ -15,7 +16,10 @@ import pytest
 from helpers import ROOT, assert_one_line_error
 
 from gcm_pipeline.errors import InputError
-from gcm_pipeline.sources import read_grasp_file
+from gcm_pipeline.sources.files import read_grasp_file
+from gcm_pipeline.sources.files.acronym import read_acronym_object
+from gcm_pipeline.sources.files.common import RESERVED_COLUMNS
+from gcm_pipeline.table import COLUMNS
 
 
 def _poses(n: int) -> np.ndarray:
@@ -79,6 +83,11 @@ BROKEN_FILES = {
     "npz no poses": ("g.npz", _npz_bytes(a=np.zeros(3), b=np.zeros(3)), "'transforms'"),
     "csv duplicate columns": ("g.csv", b"x,y,z,qw,qx,qy,qz,x\n0,0,0,1,0,0,0,1\n", "twice"),
     "csv reserved column": ("g.csv", b"x,y,z,qw,qx,qy,qz,rank\n0,0,0,1,0,0,0,1\n", "rename it"),
+    "csv grasp-table column": (
+        "g.csv",
+        b"x,y,z,qw,qx,qy,qz,patch\n0,0,0,1,0,0,0,1\n",
+        "has the name of a grasp-table column; rename it (e.g. input_patch)",
+    ),
     "csv not utf-8": ("g.csv", b"x,y,z,qw,qx,qy,qz\n0,0,0,1,0,0,0\n# caf\xe9\n", "not UTF-8"),
     "csv huge field": (
         "g.csv",
@@ -103,6 +112,16 @@ def test_broken_grasp_files_are_one_line_errors(tmp_path, case):
     msg = str(info.value)
     assert str(path) in msg and fragment in msg, msg
     assert "\n" not in msg and len(msg) < 600
+
+
+@pytest.mark.parametrize("name", sorted(COLUMNS))
+def test_every_column_a_run_adds_is_reserved(tmp_path, name):
+    # a file's column of that name would be overwritten by the run's (or pass for it)
+    header = "x,y,z,qw,qx,qy,qz," + name.upper()  # names are matched in lower case
+    (tmp_path / "g.csv").write_text(header + "\n0,0,0,1,0,0,0,1\n")
+    with pytest.raises(InputError, match=f"rename it \\(e.g. input_{name}\\)"):
+        read_grasp_file(tmp_path / "g.csv")
+    assert name in RESERVED_COLUMNS
 
 
 def test_file_sizes_are_checked_against_max_count_before_reading(tmp_path):
@@ -195,6 +214,17 @@ def test_corrupted_hdf5_bytes(tmp_path):
     path.write_bytes(bytes(raw))
     with pytest.raises(InputError, match="HDF5"):
         read_grasp_file(path)
+
+
+def test_hdf5_library_errors_name_the_file_and_the_place(tmp_path):
+    # the grasps are read in a child process, the object's name and scale again in
+    # this one (objects from the grasp file): both refuse with the same line
+    path = _h5(tmp_path, lambda f, h: f.update({"object/file": h.SoftLink("/nowhere")}))
+    line = rf"^{re.escape(str(path))}: corrupt or unreadable HDF5 file \(at object\): \S"
+    with pytest.raises(InputError, match=line):
+        read_grasp_file(path)
+    with pytest.raises(InputError, match=line):
+        read_acronym_object(path)
 
 
 # ---------------------------------------------------------- through gcm validate

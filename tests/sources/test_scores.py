@@ -16,10 +16,10 @@ import pytest
 import yaml
 from helpers import DATA
 
-from gcm_pipeline import sources
 from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.pipeline import build_manifold, densify, generate_candidates
+from gcm_pipeline.sources.files import read_grasps
 
 MUG_H5 = DATA / "acronym" / "Mug_10f6e09036350e92b3f21f1137c3c347_0.0002682457830986903.h5"
 SUCCESS = "grasps/qualities/flex/object_in_gripper"
@@ -66,15 +66,15 @@ def _cfg(path: Path, **candidates: object) -> Config:
 
 def test_acronym_score_is_object_in_gripper():
     success = _mug_success()
-    grasps = sources.read_grasps(MUG_H5, "acronym", success_only=False)
+    grasps = read_grasps(MUG_H5, "acronym", success_only=False)
     score = grasps.columns["score"]
     assert score.dtype == np.float64 and len(score) == len(success) == 2000
     np.testing.assert_array_equal(score, success.astype(float))
     assert 0.6 < score.mean() < 0.7  # 1,290 of 2,000 grasps held the mug
-    only = sources.read_grasps(MUG_H5, "acronym", success_only=True)
+    only = read_grasps(MUG_H5, "acronym", success_only=True)
     assert len(only.poses) == int(success.sum()) and (only.columns["score"] == 1.0).all()
     # the default: a file that labels success keeps its successful grasps, and says so
-    default = sources.read_grasps(MUG_H5, "acronym")
+    default = read_grasps(MUG_H5, "acronym")
     np.testing.assert_array_equal(default.columns["source_id"], np.flatnonzero(success))
     assert default.selection.success_only and default.selection.read == 2000
 
@@ -82,7 +82,7 @@ def test_acronym_score_is_object_in_gripper():
 def test_acronym_limit_keeps_the_successful_grasps_first_in_file_order(caplog):
     success = _mug_success()
     with caplog.at_level(logging.INFO, logger="gcm_pipeline"):
-        grasps = sources.read_grasps(MUG_H5, "acronym", success_only=False, limit=50)
+        grasps = read_grasps(MUG_H5, "acronym", success_only=False, limit=50)
     # the best 50 by score are successful ones; ties broken by row: the first 50 of them
     np.testing.assert_array_equal(grasps.columns["source_id"], np.flatnonzero(success)[:50])
     assert grasps.selection.limit_by == "score" and grasps.selection.kept == 50
@@ -99,7 +99,7 @@ def test_acronym_nan_quality_names_the_file_and_row(tmp_path):
         del fh[SUCCESS]
         fh[SUCCESS] = values
     with pytest.raises(InputError) as info:
-        sources.read_grasps(path, "acronym")
+        read_grasps(path, "acronym")
     msg = str(info.value)
     assert "\n" not in msg and str(path) in msg and SUCCESS in msg and "grasp 7 " in msg
 
@@ -115,7 +115,7 @@ def _graspgen(path: Path, confidences: list[float]) -> Path:
 
 
 def test_graspgen_confidences_are_the_score(tmp_path):
-    grasps = sources.read_grasps(_graspgen(tmp_path / "g.json", [0.2, 0.9, 0.5]), "graspgen")
+    grasps = read_grasps(_graspgen(tmp_path / "g.json", [0.2, 0.9, 0.5]), "graspgen")
     np.testing.assert_array_equal(grasps.columns["score"], [0.2, 0.9, 0.5])
 
 
@@ -129,7 +129,7 @@ def test_graspgen_confidences_are_the_score(tmp_path):
 def test_graspgen_bad_confidences_are_one_line_errors(tmp_path, confidences, fragments):
     path = _graspgen(tmp_path / "g.json", confidences)
     with pytest.raises(InputError) as info:
-        sources.read_grasps(path, "graspgen")
+        read_grasps(path, "graspgen")
     msg = str(info.value)
     assert "\n" not in msg and str(path) in msg
     for fragment in fragments:
@@ -148,14 +148,14 @@ def _isaac(path: Path, confidences: list[float | None]) -> Path:
 
 
 def test_isaac_grasp_scores_are_all_or_none(tmp_path):
-    scored = sources.read_grasps(_isaac(tmp_path / "a.yaml", [0.3, 0.6]), "graspgen")
+    scored = read_grasps(_isaac(tmp_path / "a.yaml", [0.3, 0.6]), "graspgen")
     np.testing.assert_array_equal(scored.columns["score"], [0.3, 0.6])
-    none = sources.read_grasps(_isaac(tmp_path / "b.yaml", [None, None]), "graspgen")
+    none = read_grasps(_isaac(tmp_path / "b.yaml", [None, None]), "graspgen")
     assert "score" not in none.columns  # no confidence in the file: no score, not NaN
     with pytest.raises(InputError, match=r"grasp 'grasp_1' has no confidence, though 1 of 2"):
-        sources.read_grasps(_isaac(tmp_path / "c.yaml", [0.3, None]), "graspgen")
+        read_grasps(_isaac(tmp_path / "c.yaml", [0.3, None]), "graspgen")
     with pytest.raises(InputError, match=r"grasp 'grasp_0': score is nan"):
-        sources.read_grasps(_isaac(tmp_path / "d.yaml", [float("nan"), 0.2]), "graspgen")
+        read_grasps(_isaac(tmp_path / "d.yaml", [float("nan"), 0.2]), "graspgen")
 
 
 # ---------------------------------------------------------- Contact-GraspNet
@@ -165,19 +165,19 @@ def test_contact_graspnet_scores(tmp_path):
     poses = _poses(3)
     path = tmp_path / "predictions.npz"
     np.savez(path, pred_grasps_cam={2: poses[:2], 5: poses[2:]}, scores={2: [0.4, 0.7], 5: [0.1]})
-    got = sources.read_grasps(path, "contact_graspnet")
+    got = read_grasps(path, "contact_graspnet")
     np.testing.assert_allclose(got.columns["score"], [0.4, 0.7, 0.1])
     np.savez(path, pred_grasps_cam={2: poses})
-    assert "score" not in sources.read_grasps(path, "contact_graspnet").columns
+    assert "score" not in read_grasps(path, "contact_graspnet").columns
     np.savez(path, pred_grasps_cam={2: poses[:2], 5: poses[2:]}, scores={2: [0.4, 0.7]})
     with pytest.raises(InputError, match=r"scores has no entry for segment 5"):
-        sources.read_grasps(path, "contact_graspnet")
+        read_grasps(path, "contact_graspnet")
     np.savez(path, pred_grasps_cam={2: poses}, scores={2: [0.4, np.nan, 0.1]})
     with pytest.raises(InputError, match=r"scores\[2\]: grasp 1 \(0-based\): score is nan"):
-        sources.read_grasps(path, "contact_graspnet")
+        read_grasps(path, "contact_graspnet")
     np.savez(path, pred_grasps_cam={2: poses}, scores={2: [0.4, 0.1]})
     with pytest.raises(InputError, match=r"scores\[2\] has 2 scores for 3 grasps"):
-        sources.read_grasps(path, "contact_graspnet")
+        read_grasps(path, "contact_graspnet")
 
 
 # ------------------------------------------------------------------ GraspNet
@@ -190,11 +190,11 @@ def test_graspnet_score_column(tmp_path):
     rows[:, 0] = [0.3, 0.8, 0.1]
     path = tmp_path / "g.npy"
     np.save(path, rows)
-    np.testing.assert_allclose(sources.read_grasps(path, "graspnet").columns["score"], rows[:, 0])
+    np.testing.assert_allclose(read_grasps(path, "graspnet").columns["score"], rows[:, 0])
     rows[2, 0] = np.nan
     np.save(path, rows)
     with pytest.raises(InputError, match=r"column 0 \(score\): grasp 2 \(0-based\): score is nan"):
-        sources.read_grasps(path, "graspnet")
+        read_grasps(path, "graspnet")
 
 
 # ------------------------------------------------------------------ npz, csv, npy
@@ -202,39 +202,39 @@ def test_graspnet_score_column(tmp_path):
 
 def test_npz_score_array(tmp_path):
     path = _npz(tmp_path / "g.npz", 3, score=np.array([1, 3, 2]))
-    score = sources.read_grasps(path, "npz").columns["score"]
+    score = read_grasps(path, "npz").columns["score"]
     assert score.dtype == np.float64 and score.tolist() == [1.0, 3.0, 2.0]  # blendable floats
     path = _npz(tmp_path / "g.npz", 3, score=np.array([0.5, 0.2]))
     with pytest.raises(InputError) as info:  # was skipped with a log line: now an error
-        sources.read_grasps(path, "npz")
+        read_grasps(path, "npz")
     assert str(path) in str(info.value) and "array 'score' has 2 scores for 3 grasps" in str(
         info.value
     )
     path = _npz(tmp_path / "g.npz", 3, score=np.array([0.5, np.inf, 0.2]))
     with pytest.raises(InputError, match=r"array 'score': grasp 1 \(0-based\): score is inf"):
-        sources.read_grasps(path, "npz")
+        read_grasps(path, "npz")
 
 
 def test_csv_score_column(tmp_path):
     path = _csv(tmp_path / "g.csv", ["1", "0", "2"])
-    score = sources.read_grasps(path, "csv").columns["score"]
+    score = read_grasps(path, "csv").columns["score"]
     assert score.dtype == np.float64 and score.tolist() == [1.0, 0.0, 2.0]
     path = _csv(tmp_path / "g.csv", ["0.5", "", "0.2"])  # an empty cell on line 3
     with pytest.raises(InputError) as info:
-        sources.read_grasps(path, "csv")
+        read_grasps(path, "csv")
     assert f"{path}:3: score is nan" in str(info.value) and info.value.row == 1
     path = _csv(tmp_path / "g.csv", ["0.5", "good", "0.2"])
     with pytest.raises(InputError, match=r"g.csv:3: column 'score': not a number: 'good'"):
-        sources.read_grasps(path, "csv")
+        read_grasps(path, "csv")
 
 
 def test_a_file_without_a_score_has_none_and_min_score_names_the_key(tmp_path):
     path = tmp_path / "g.npy"
     np.save(path, _poses(3))
-    grasps = sources.read_grasps(path, "npy")
+    grasps = read_grasps(path, "npy")
     assert "score" not in grasps.columns
     with pytest.raises(InputError) as info:
-        sources.read_grasps(path, "npy", min_score=0.5)
+        read_grasps(path, "npy", min_score=0.5)
     assert info.value.key == "candidates.min_score" and "has none" in str(info.value)
 
 
@@ -252,7 +252,7 @@ def test_a_file_without_a_score_has_none_and_min_score_names_the_key(tmp_path):
 )
 def test_limit_keeps_the_best_by_score_in_file_order(tmp_path, scores, limit, rows):
     path = _npz(tmp_path / "g.npz", len(scores), score=np.array(scores))
-    got = sources.read_grasps(path, "npz", limit=limit)
+    got = read_grasps(path, "npz", limit=limit)
     assert got.columns["source_id"].tolist() == rows
     np.testing.assert_array_equal(got.poses, _poses(len(scores))[rows])
 
@@ -261,7 +261,7 @@ def test_limit_without_a_score_keeps_the_first_and_says_so(tmp_path, caplog):
     path = tmp_path / "g.npy"
     np.save(path, _poses(5))
     with caplog.at_level(logging.INFO, logger="gcm_pipeline"):
-        got = sources.read_grasps(path, "npy", limit=2)
+        got = read_grasps(path, "npy", limit=2)
     assert got.columns["source_id"].tolist() == [0, 1] and got.selection.limit_by == "file order"
     assert "keeps the first 2 of 5 grasps in file order (the file has no score)" in caplog.text
 
@@ -359,13 +359,13 @@ def test_a_filter_that_keeps_nothing_says_which_and_why(tmp_path):
     path = tmp_path / "g.npz"
     np.savez(path, transforms=poses, success=np.zeros(4), score=[0.1, 0.2, 0.3, 0.4])
     with pytest.raises(InputError) as info:
-        sources.read_grasps(path, "npz")
+        read_grasps(path, "npz")
     assert str(info.value) == (
         f"{path}: none of its 4 grasps is labelled successful "
         "(candidates.success_only: false keeps them all)"
     )
     assert info.value.key == "candidates.success_only"
     with pytest.raises(InputError, match=r"min_score 0.5 keeps none of its 4 grasps \(their "):
-        sources.read_grasps(path, "npz", success_only=False, min_score=0.5)
-    kept = sources.read_grasps(path, "npz", success_only=False, min_score=0.3)
+        read_grasps(path, "npz", success_only=False, min_score=0.5)
+    kept = read_grasps(path, "npz", success_only=False, min_score=0.3)
     assert kept.columns["source_id"].tolist() == [2, 3]

@@ -33,7 +33,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 
-from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.errors import ConfigError, InputError, choice_error
 from gcm_pipeline.robot.chain import JointFrames
 from gcm_pipeline.robot.collision.broadphase import (
     BLOCK,
@@ -68,6 +68,8 @@ from gcm_pipeline.robot.model import Robot
 
 __all__ = ["CollisionChecker"]
 
+#: The kinds a world shape may have.
+_WORLD_KINDS = ("environment", "object")
 #: The reasons as a fixed-width string array (no object arrays to convert).
 _REASON_DTYPE = f"<U{max(len(r) for r in REASONS.values())}"
 #: Fewer configurations than this go to coal's AABB-tree pools instead of the
@@ -136,11 +138,9 @@ class CollisionChecker(ClearanceQueries):
         if len(objects) > 1:
             raise ConfigError(f"at most one object shape, got {[s.name for s in objects]}")
         for s in self.world:
-            if s.kind not in ("environment", "object"):
-                raise ConfigError(
-                    f"world shape {s.name!r}: "
-                    + unknown_choice("kind", s.kind, ("environment", "object"))
-                )
+            if s.kind not in _WORLD_KINDS:
+                where = f"world shape {s.name!r}: "
+                raise choice_error(ConfigError, "kind", s.kind, _WORLD_KINDS, prefix=where)
         self.object = objects[0] if objects else None
 
         model = robot.model
@@ -327,7 +327,7 @@ class CollisionChecker(ClearanceQueries):
             InputError: Unknown mode or ``carried`` of the wrong shape.
         """
         if mode not in MODE_BIT:
-            raise InputError(unknown_choice("collision mode", mode, MODES))
+            raise choice_error(InputError, "collision mode", mode, MODES)
         qs = self.robot.as_configurations(q)
         n = len(qs)
         held = None

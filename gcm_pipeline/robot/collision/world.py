@@ -17,7 +17,7 @@ from typing import Any
 import coal
 import numpy as np
 
-from gcm_pipeline.errors import ConfigError, InputError, unknown_choice
+from gcm_pipeline.errors import ConfigError, InputError, choice_error
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.robot.collision.contact import erode_convex
 
@@ -139,7 +139,7 @@ def obstacle_shape(
         InputError: A mesh file is missing or unreadable (the message names it).
     """
     if shape not in ENVIRONMENT_SHAPES:
-        raise ConfigError(f"{where}: " + unknown_choice("shape", shape, ENVIRONMENT_SHAPES))
+        raise choice_error(ConfigError, "shape", shape, ENVIRONMENT_SHAPES, prefix=f"{where}: ")
     made = shape_geometry(shape, dims, mesh=mesh, scale=scale, where=where)
     assert made is not None
     geom, centre = made

@@ -42,7 +42,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from gcm_pipeline.errors import GeometryError, InputError, unknown_choice
+from gcm_pipeline.errors import GeometryError, InputError, choice_error
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.ik import mink_backend, pinocchio_backend
 from gcm_pipeline.robot.ik.answer import BackendAnswer
@@ -166,7 +166,7 @@ class IKResult:
 def _backend(name: str) -> IKBackend:
     solve = _SOLVERS.get(name) if isinstance(name, str) else None
     if solve is None:
-        raise InputError(unknown_choice("IK backend", name, BACKENDS))
+        raise choice_error(InputError, "IK backend", name, BACKENDS)
     return solve
 
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import InputError, unknown_choice
+from gcm_pipeline.errors import InputError, choice_error
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.manipulability import yoshikawa
 
@@ -138,7 +138,7 @@ class PinocchioIKOptions:
         names = cls.__dataclass_fields__
         for key in options:
             if key not in names:
-                raise InputError(unknown_choice("pinocchio IK option", key, names))
+                raise choice_error(InputError, "pinocchio IK option", key, names)
         # whole numbers (the stall test compares with two iterations back; a damping of
         # at least 1e-12 keeps J J^T + lam I positive definite in floats)
         wholes = (
@@ -168,10 +168,12 @@ class PinocchioIKOptions:
                     f"got {value!r}"
                 )
         if options.get("unseeded", "home") not in ("home", "library"):
-            raise InputError(
-                unknown_choice(
-                    "pinocchio IK option unseeded", options["unseeded"], ("home", "library")
-                )
+            raise choice_error(
+                InputError,
+                "pinocchio IK option unseeded",
+                options["unseeded"],
+                ("home", "library"),
+                key="unseeded",
             )
         if not isinstance(options.get("analytic", True), (bool, np.bool_)):
             raise InputError(

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from gcm_pipeline.errors import InputError, RobotSpecError, unknown_choice
+from gcm_pipeline.errors import InputError, RobotSpecError, choice_error
 from gcm_pipeline.robot.ik.answer import BackendAnswer
 from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, rotation_angle
 from gcm_pipeline.robot.ik.seeds import restart_seeds, seed_library
@@ -81,7 +81,7 @@ class MinkIKOptions:
         names = cls.__dataclass_fields__
         for key in options:
             if key not in names:
-                raise InputError(unknown_choice("mink IK option", key, names))
+                raise choice_error(InputError, "mink IK option", key, names)
         return cls(**options)
 
 

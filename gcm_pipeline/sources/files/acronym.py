@@ -12,10 +12,13 @@ Reading needs the optional extra ``acronym`` (h5py, :data:`ACRONYM_INSTALL_HINT`
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import multiprocessing as mp
 import signal
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -106,58 +109,84 @@ def _acronym_child(send: Any, path: Path, max_count: int) -> None:
         send.close()
 
 
+#: What the HDF5 library (through h5py) raises on a corrupt or unreadable file.
+_HDF5_ERRORS = (OSError, KeyError, RuntimeError, ValueError, TypeError)
+
+
+@dataclass
+class _Place:
+    """Where in an HDF5 file reading is (``object``, ``grasps/transforms``), for the message."""
+
+    at: str
+
+
+@contextlib.contextmanager
+def _hdf5_file(path: Path, at: str = "the file") -> Iterator[tuple[Any, _Place]]:
+    """The open file ``path`` and the place being read; a library error is an :class:`InputError`.
+
+    Any error the HDF5 library raises while the file is opened, read or
+    closed becomes ``corrupt or unreadable HDF5 file (at <place>)``, naming
+    the file and ``place.at`` as the reader last set it; an
+    :class:`InputError` raised inside passes unchanged.
+    """
+    import h5py
+
+    place = _Place(at)
+    try:
+        with h5py.File(path, "r") as fh:
+            yield fh, place
+    except InputError:
+        raise
+    except _HDF5_ERRORS as exc:
+        raise InputError(
+            f"{path}: corrupt or unreadable HDF5 file (at {place.at}): {clip(str(exc))}", path=path
+        ) from None
+
+
 def _read_acronym_here(path: Path, max_count: int) -> tuple[np.ndarray, np.ndarray, str | None]:
     """Poses, success labels and ``gripper/type`` (e.g. ``panda``, or None) of an ACRONYM file."""
     import h5py
 
-    where = "the file"
-    try:
-        with h5py.File(path, "r") as fh:
-            datasets = {}
-            for key in ("grasps/transforms", "grasps/qualities/flex/object_in_gripper"):
-                where = key
-                if key not in fh:
-                    raise InputError(
-                        f"{path}: not an ACRONYM grasp file: missing dataset {key!r}", path=path
-                    )
-                node = fh[key]
-                if not isinstance(node, h5py.Dataset):
-                    raise InputError(
-                        f"{path}: {key} is a {type(node).__name__}, not a dataset", path=path
-                    )
-                if node.dtype.kind not in "biuf":
-                    raise InputError(
-                        f"{path}: {key} must hold numbers, got dtype {node.dtype}", path=path
-                    )
-                datasets[key] = node
-            where = "grasps/transforms"
-            tf = datasets["grasps/transforms"]
-            if len(tf.shape) != 3 or tf.shape[1:] != (4, 4):
+    with _hdf5_file(path) as (fh, where):
+        datasets = {}
+        for key in ("grasps/transforms", "grasps/qualities/flex/object_in_gripper"):
+            where.at = key
+            if key not in fh:
                 raise InputError(
-                    f"{path}: grasps/transforms must have shape (N, 4, 4), got {tf.shape}",
-                    path=path,
+                    f"{path}: not an ACRONYM grasp file: missing dataset {key!r}", path=path
                 )
-            check_count(path, tf.shape[0], max_count)
-            poses = as_poses(path, np.asarray(tf[()]), "grasps/transforms")
-            where = "grasps/qualities/flex/object_in_gripper"
-            quality = datasets[where]
-            if quality.size != poses.shape[0]:
+            node = fh[key]
+            if not isinstance(node, h5py.Dataset):
                 raise InputError(
-                    f"{path}: {where} has {quality.size} values, expected {poses.shape[0]}",
-                    path=path,
+                    f"{path}: {key} is a {type(node).__name__}, not a dataset", path=path
                 )
-            raw = score_column(path, quality[()], poses.shape[0], where)  # the score's source
-            success = success_labels(path, raw, poses.shape[0], where)
-            where = "object"
-            name, scale = _acronym_object(path, fh, h5py)
-            where = "gripper/type"
-            gripper = _h5_text(path, fh, h5py, "gripper/type")
-    except InputError:
-        raise
-    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
-        raise InputError(
-            f"{path}: corrupt or unreadable HDF5 file (at {where}): {clip(str(exc))}", path=path
-        ) from None
+            if node.dtype.kind not in "biuf":
+                raise InputError(
+                    f"{path}: {key} must hold numbers, got dtype {node.dtype}", path=path
+                )
+            datasets[key] = node
+        where.at = "grasps/transforms"
+        tf = datasets["grasps/transforms"]
+        if len(tf.shape) != 3 or tf.shape[1:] != (4, 4):
+            raise InputError(
+                f"{path}: grasps/transforms must have shape (N, 4, 4), got {tf.shape}",
+                path=path,
+            )
+        check_count(path, tf.shape[0], max_count)
+        poses = as_poses(path, np.asarray(tf[()]), "grasps/transforms")
+        where.at = "grasps/qualities/flex/object_in_gripper"
+        quality = datasets[where.at]
+        if quality.size != poses.shape[0]:
+            raise InputError(
+                f"{path}: {where.at} has {quality.size} values, expected {poses.shape[0]}",
+                path=path,
+            )
+        raw = score_column(path, quality[()], poses.shape[0], where.at)  # the score's source
+        success = success_labels(path, raw, poses.shape[0], where.at)
+        where.at = "object"
+        name, scale = _acronym_object(path, fh, h5py)
+        where.at = "gripper/type"
+        gripper = _h5_text(path, fh, h5py, "gripper/type")
     if name is not None:
         log.info("%s: ACRONYM grasps of %s (scale %g)", path, name, scale)
     return poses, success, gripper
@@ -232,12 +261,5 @@ def read_acronym_object(path: Path) -> tuple[str | None, float]:
     """
     import h5py
 
-    try:
-        with h5py.File(path, "r") as fh:
-            return _acronym_object(path, fh, h5py)
-    except InputError:
-        raise
-    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
-        raise InputError(
-            f"{path}: corrupt or unreadable HDF5 file (at object): {clip(str(exc))}", path=path
-        ) from None
+    with _hdf5_file(path, "object") as (fh, _):
+        return _acronym_object(path, fh, h5py)

@@ -20,8 +20,8 @@ import numpy as np
 
 from gcm_pipeline.bounds import MAX_GRASP_DISTANCE
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.robot.manipulability import METRICS
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
+from gcm_pipeline.table import COLUMNS
 
 __all__ = [
     "ImportedGrasps",
@@ -43,15 +43,11 @@ RIGID_TOL = 1e-4
 #: Bytes of slack on top of what ``max_count`` grasps take (object, gripper, comments).
 SLACK_BYTES = 1 << 20
 
-#: Names a carried column must not have: ``grasps.csv``'s and the grasp table's columns
-#: (the ranking metrics' columns, ``clearance``, ``margin`` and ``combined`` among them).
-RESERVED_COLUMNS = frozenset(
-    {
-        *CSV_COLUMNS,
-        *METRICS.values(),
-        *("dq", "vertices", "weights", "q", "top", "clearance", "margin", "combined"),
-    }
-)
+#: Names a carried column must not have: the columns a run adds to the grasp table (the
+#: registry :data:`gcm_pipeline.table.COLUMNS`: metrics, ``clearance``, ``patch``, ``q``,
+#: ...) and the cells ``grasps.csv`` writes them as (``x``, ``qw``, ``v1``, ...; the
+#: per-joint ``q1 .. q{nq}`` are matched by pattern).
+RESERVED_COLUMNS = frozenset({*COLUMNS, *CSV_COLUMNS})
 
 
 def check_count(path: Path, n: int, max_count: int) -> None:
@@ -288,9 +284,10 @@ def column_name(path: Path, raw: str, taken: set[str]) -> str:
     if name[0].isdigit():
         name = "c_" + name
     if name in RESERVED_COLUMNS or re.fullmatch(r"q[0-9]+", name):
+        csv = name in CSV_COLUMNS or re.fullmatch(r"q[0-9]+", name)
         raise InputError(
-            f"{path}: column {clip(raw)} has the name of a grasps.csv column; rename it "
-            f"(e.g. input_{name})",
+            f"{path}: column {clip(raw)} has the name of a "
+            f"{'grasps.csv' if csv else 'grasp-table'} column; rename it (e.g. input_{name})",
             path=path,
         )
     if name in taken:

@@ -26,7 +26,7 @@ from gcm_pipeline.config import Config
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates
-from gcm_pipeline.sources.files import read_contact_graspnet, read_grasp_file
+from gcm_pipeline.sources.files import read_contact_graspnet, read_grasp_file, read_grasps
 from gcm_pipeline.sources.grippers import get_gripper
 
 BOX_SIZE = (0.10, 0.06, 0.10)
@@ -148,7 +148,7 @@ def test_graspgen_isaac_grasp_yaml_real_inference_output(name, count, depth):
     in file order, the fingertips ``depth`` along the base frame's +z."""
     path = DATA / "graspgen" / name
     grasps = yaml.safe_load(path.read_text())["grasps"]
-    got = sources.read_grasps(path, "graspgen")
+    got = read_grasps(path, "graspgen")
     assert got.convention == "base" and got.gripper is None  # the file names no gripper
     assert len(got.poses) == len(grasps) == count
     for m, (name, g) in zip(got.poses, grasps.items(), strict=True):

@@ -93,16 +93,19 @@ def test_a_study_of_the_file_object_matches_a_run_at_its_best_placement(tmp_path
     table_z = load_config(MUG).environment.table.height
     for r in rows:  # the pose columns: where the mug stands (y and z not swept)
         assert (r["object_y"], r["object_z"]) == (0.0, table_z)
-    # the grasps move with the mug: the same poses in its frame at every placement
-    with np.load(out / "reachability.npz") as npz:
-        assert npz["same_grasps"].all()
+    # the grasps move with the mug: the file's grasps have the same pose in its frame at
+    # every placement, and every row (interpolated too) is the placed mug's pose times its
+    # pose in the mug's frame (reachability.npz's grasp_pose_object)
     arrays = {r["id"]: _arrays(out, r["id"]) for r in rows}
-    local = arrays[0]["pose_object"]
-    assert {r["densified"] for r in rows} == {len(local)} and len(local) > 30
+    first = arrays[rows[0]["id"]]
+    local = _matrix(first["pose_object"][first["is_candidate"]])
+    assert len(local) == 30 and all(r["densified"] > 30 for r in rows)
     for r in rows:
+        a = arrays[r["id"]]
+        assert np.allclose(_matrix(a["pose_object"][a["is_candidate"]]), local, atol=1e-9)
         cfg = place_file_object(load_config(MUG, list(r["overrides"])))
-        world = cfg.object.pose.matrix() @ _matrix(local)
-        assert np.allclose(world, _matrix(arrays[r["id"]]["pose"]), atol=1e-9)
+        world = cfg.object.pose.matrix() @ _matrix(a["pose_object"])
+        assert np.allclose(world, _matrix(a["pose"]), atol=1e-9)
     # the best placement is what gcm run gives at that placement
     best = result.best
     assert best["reachable"] == max(r["reachable"] for r in rows)
@@ -130,3 +133,13 @@ def test_sweeping_the_height_of_a_file_object_is_one_line(tmp_path, capsys):
     code = main(["study", str(path), "--out", str(out)])
     assert_one_line_error(code, capsys.readouterr().err, "sweep.object_pose.z", "x, y and yaw_deg")
     assert not out.exists()
+
+
+def test_the_example_study_of_the_acronym_mug_plans_its_grid():
+    study = Study.from_yaml(CONFIGS / "studies" / "acronym_mug_placement.yaml")
+    grid = study.placements()
+    assert len(grid) == 36
+    assert grid[-1].overrides[-2:] == (
+        "candidates.placement.xy=[0.65, 0.25]",
+        "candidates.placement.yaw_deg=270.0",
+    )

@@ -143,3 +143,12 @@ def test_the_example_study_of_the_acronym_mug_plans_its_grid():
         "candidates.placement.xy=[0.65, 0.25]",
         "candidates.placement.yaw_deg=270.0",
     )
+
+
+@pytest.mark.parametrize("command", ["validate", "run"])
+def test_a_study_file_given_as_a_run_config_says_what_it_is(command, capsys):
+    path = CONFIGS / "studies" / "acronym_mug_placement.yaml"
+    code = main([command, str(path)])
+    assert_one_line_error(
+        code, capsys.readouterr().err, "a placement study (base, sweep)", f"gcm study {path}"
+    )

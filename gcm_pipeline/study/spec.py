@@ -189,8 +189,11 @@ class StudyPlan:
         """``x, y, z, yaw_deg`` of object ``index`` in ``cfg`` when its grasp file names it.
 
         The centre of its footprint on the table and its yaw
-        (``candidates.placement``); None for an object the config gives.
+        (``candidates.placement``); None for an object the config gives, and
+        when the study does not sweep ``object_pose`` (its objects are not read).
         """
+        if self.spec.sweep.object_pose is None:
+            return None
         if not isinstance(self._object_target(index), PlacementTarget):
             return None
         p, table = cfg.candidates.placement, cfg.environment.table
@@ -487,8 +490,9 @@ class StudyPlan:
         if self._key is not None:
             return self._key
         files: dict[str, str] = {}
-        for i in range(len(self._objects)):  # with the mesh a grasp file names
-            for name, path in input_files(self._placed_config(i)).items():
+        for i in range(len(self._objects)):  # placed: with the mesh its grasp file names
+            cfg = self._placed[i] if i in self._placed else self.object_config(i)
+            for name, path in input_files(cfg).items():
                 files[f"{i}:{name}"] = _file_digest(path)
         data = {
             "gcm_pipeline": __version__,

@@ -10,6 +10,8 @@ process (``engine="inline"``), no Ray.
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import yaml
@@ -152,3 +154,16 @@ def test_a_study_file_given_as_a_run_config_says_what_it_is(command, capsys):
     assert_one_line_error(
         code, capsys.readouterr().err, "a placement study (base, sweep)", f"gcm study {path}"
     )
+
+
+def test_the_study_key_covers_the_mesh_the_grasp_file_names(tmp_path):
+    """Another mesh under the same name is another study (a rerun does not resume it)."""
+    data_dir = tmp_path / "acronym"
+    shutil.copytree(CONFIGS.parent / "tests" / "data" / "acronym", data_dir)
+    base = yaml.safe_load(MUG.read_text())
+    base["candidates"]["path"] = str(next(data_dir.glob("*.h5")))
+    study = {"base": base, "sweep": {"object_pose": {"x": [0.4, 0.5]}}}
+    key = load_study(study).key()
+    mesh = next(data_dir.glob("*.obj"))
+    mesh.write_text(mesh.read_text() + "\n# the same mesh, another file\n")
+    assert load_study(study).key() != key

@@ -250,6 +250,11 @@ def config_from_data(
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config is a mapping of sections, got {type(data).__name__}")
+    if "sweep" in data and "base" in data:  # not "unknown key 'base'"
+        raise ConfigError(
+            f"{path}: a placement study (base, sweep), not a run config; "
+            f"run it with gcm study {path} --out DIR (it is checked before any work)"
+        )
     if isinstance(overrides, str):  # one assignment, not its characters one by one
         overrides = (overrides,)
     for assignment in overrides:

@@ -94,11 +94,20 @@ class StudyResult:
         )
 
 
-def _pose_columns(cfg: Config) -> dict[str, float]:
+def _pose_columns(cfg: Config, file_object: list[float] | None) -> dict[str, float]:
+    """A placement's pose columns: its object's and its robot base's.
+
+    ``file_object``: ``x, y, z, yaw_deg`` of an object its grasp file names
+    (:meth:`StudyPlan.file_object_pose`), else None (the config's ``object.pose``).
+    """
     out: dict[str, float] = {}
     poses = {"object": cfg.object.pose if cfg.object is not None else None}
     poses["base"] = cfg.robot.base_pose
     for prefix, pose in poses.items():
+        if prefix == "object" and file_object is not None:  # candidates.placement
+            keys = ("object_x", "object_y", "object_z", "object_yaw_deg")
+            out.update(zip(keys, file_object, strict=True))
+            continue
         if pose is None:
             for a in ("x", "y", "z", "yaw_deg"):
                 out[f"{prefix}_{a}"] = math.nan
@@ -142,7 +151,8 @@ class StudyRun:
                 self._finished(row, {})
                 continue
             # swept keys keep the sweep's values; the others come from the config
-            row.update({k: v for k, v in _pose_columns(cfg).items() if math.isnan(row[k])})
+            placed = self.plan.file_object_pose(self.plan.object_names.index(p.object), cfg)
+            row.update({k: v for k, v in _pose_columns(cfg, placed).items() if math.isnan(row[k])})
             self._meta[p.id] = row
             yield {"id": p.id, "config": cfg.to_dict()}
 

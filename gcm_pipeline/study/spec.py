@@ -8,7 +8,10 @@ the position in the world, ``yaw_deg`` [deg] the yaw of the pose's
 roll-pitch-yaw; axes that are not swept keep the base config's value.
 Moving the object moves its candidates with it (generated candidates and
 files in the object frame are placed by the object pose; a file in the world
-frame is refused, its grasps would stay behind).
+frame is refused, its grasps would stay behind). An object its grasp file
+names (no ``object`` section) moves by ``candidates.placement``: ``x, y``
+are the centre of its footprint on the table, ``yaw_deg`` its turn about the
+vertical; its stable pose fixes its height, so ``z`` is refused.
 """
 
 from __future__ import annotations
@@ -25,7 +28,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from gcm_pipeline import __version__
 from gcm_pipeline.bounds import MAX_STUDY_PLACEMENTS
@@ -40,22 +42,10 @@ from gcm_pipeline.config.study import (
     rounded,
 )
 from gcm_pipeline.errors import ConfigError
-from gcm_pipeline.pipeline import input_files
+from gcm_pipeline.pipeline import input_files, place_file_object
+from gcm_pipeline.study.targets import PlacementTarget, PoseTarget, format_value
 
-__all__ = ["Placement", "StudyPlan", "format_value", "load_study"]
-
-
-def format_value(value: Any) -> str:
-    """A value as flow YAML for a ``--set KEY=VALUE`` override (floats round-trip).
-
-    PyYAML writes floats with :func:`repr` and a ``.0`` before an exponent, so
-    ``yaml.safe_load`` reads back the same float (``1e-05`` alone would be a string).
-    """
-    text = yaml.safe_dump(value, default_flow_style=True, width=math.inf, sort_keys=False)
-    text = text.strip()
-    if text.endswith("\n...") or text.endswith("..."):
-        text = text[: text.rfind("...")].strip()
-    return text
+__all__ = ["Placement", "StudyPlan", "load_study"]
 
 
 # ------------------------------------------------------------------ placements
@@ -89,38 +79,6 @@ class Placement:
             if pose:
                 parts.append(prefix + " " + " ".join(f"{k} {v:g}" for k, v in pose.items()))
         return ", ".join(parts)
-
-
-class _Target:
-    """A pose the sweep moves: its config key and the base config's value."""
-
-    def __init__(self, key: str, pose: dict[str, Any] | None) -> None:
-        pose = pose or {}
-        self.key = key
-        self.xyz = [float(v) for v in pose.get("xyz", (0.0, 0.0, 0.0))]
-        if pose.get("rpy_deg") is not None:
-            self.rot_key, rot = "rpy_deg", pose["rpy_deg"]
-        elif pose.get("rpy") is not None:
-            self.rot_key, rot = "rpy", pose["rpy"]
-        else:
-            self.rot_key, rot = "rpy_deg", (0.0, 0.0, 0.0)
-        self.rot = [float(v) for v in rot]
-
-    def overrides(self, values: dict[str, float]) -> list[str]:
-        out = []
-        if any(a in values for a in ("x", "y", "z")):
-            xyz = [values.get(a, self.xyz[i]) for i, a in enumerate(("x", "y", "z"))]
-            out.append(f"{self.key}.xyz={format_value(xyz)}")
-        if "yaw_deg" in values:
-            yaw = values["yaw_deg"]
-            if self.rot_key == "rpy":
-                yaw = math.radians(yaw)
-            rot = [self.rot[0], self.rot[1], yaw]
-            out.append(f"{self.key}.{self.rot_key}={format_value(rot)}")
-        return out
-
-    def xyz_of(self, values: dict[str, float]) -> list[float]:
-        return [values.get(a, self.xyz[i]) for i, a in enumerate(("x", "y", "z"))]
 
 
 #: Position axes of a pose sweep and their coordinate index.
@@ -167,7 +125,8 @@ class StudyPlan:
         self.study_dir = study_dir
         self._key: str | None = None
         self._objects = self._object_entries()
-        self._targets: dict[int, _Target] = {}
+        self._targets: dict[int, PoseTarget] = {}
+        self._placed: dict[int, Config] = {}
         self.base_config = self.resolve(list(spec.set), where="base config")
         self._check()
         # counted per axis, so a study far too large is refused before it is built
@@ -214,17 +173,42 @@ class StudyPlan:
             out.append((entry.name, sets))
         return out
 
-    def _object_target(self, index: int) -> _Target:
+    def _object_target(self, index: int) -> PoseTarget:
         if index not in self._targets:
             cfg = self.object_config(index)
-            pose = cfg.object.pose.model_dump() if cfg.object is not None else None
-            self._targets[index] = _Target("object.pose", pose)
+            if cfg.object is None and self._placed_config(index).object is not None:
+                table = cfg.environment.table
+                z = 0.0 if table is None else table.height
+                self._targets[index] = PlacementTarget(cfg.candidates.placement.xy, z)
+            else:
+                pose = cfg.object.pose.model_dump() if cfg.object is not None else None
+                self._targets[index] = PoseTarget("object.pose", pose)
         return self._targets[index]
 
-    def _base_target(self) -> _Target:
+    def file_object_pose(self, index: int, cfg: Config) -> list[float] | None:
+        """``x, y, z, yaw_deg`` of object ``index`` in ``cfg`` when its grasp file names it.
+
+        The centre of its footprint on the table and its yaw
+        (``candidates.placement``); None for an object the config gives, and
+        when the study does not sweep ``object_pose`` (its objects are not read).
+        """
+        if self.spec.sweep.object_pose is None:
+            return None
+        if not isinstance(self._object_target(index), PlacementTarget):
+            return None
+        p, table = cfg.candidates.placement, cfg.environment.table
+        return [*p.xy, 0.0 if table is None else table.height, p.yaw_deg]
+
+    def _placed_config(self, index: int) -> Config:
+        """Object ``index``'s config with the object its grasp file names, if any, placed."""
+        if index not in self._placed:
+            self._placed[index] = place_file_object(self.object_config(index))
+        return self._placed[index]
+
+    def _base_target(self) -> PoseTarget:
         if -1 not in self._targets:
             pose = self.base_config.robot.base_pose.model_dump()
-            self._targets[-1] = _Target("robot.base_pose", pose)
+            self._targets[-1] = PoseTarget("robot.base_pose", pose)
         return self._targets[-1]
 
     def object_config(self, index: int) -> Config:
@@ -256,12 +240,22 @@ class StudyPlan:
                     "give a box {min: [x, y], max: [x, y]}"
                 )
         for i, name in enumerate(self.object_names):
-            cfg = self.object_config(i)
             if sweep.object_pose is None:
                 continue
+            cfg = self._placed_config(i)
             if cfg.object is None:
                 raise ConfigError(
-                    f"sweep.object_pose: {name}: the config has no 'object' section to move"
+                    f"sweep.object_pose: {name}: the config has no 'object' section to move "
+                    "(nor a grasp file that names its object)"
+                )
+            if sweep.object_pose.z is not None and isinstance(
+                self._object_target(i), PlacementTarget
+            ):
+                raise ConfigError(
+                    f"sweep.object_pose.z: {name}: the object comes from the grasp file and "
+                    "stands on the table in a stable pose (candidates.placement), which fixes "
+                    "its height; sweep x, y and yaw_deg",
+                    key="sweep.object_pose.z",
                 )
             c = cfg.candidates
             if c.source == "file" and c.frame != "object":  # None: world, with an object
@@ -311,7 +305,7 @@ class StudyPlan:
         return axis >= len(box.min) or box.min[axis] <= value <= box.max[axis]
 
     def _count_poses(
-        self, pose: PoseSweep | None, axes: dict[str, list[float]], target: _Target
+        self, pose: PoseSweep | None, axes: dict[str, list[float]], target: PoseTarget
     ) -> int:
         """How many of the combinations of ``axes`` lie inside ``pose``'s region."""
         n = len(axes.get("yaw_deg", [0.0]))
@@ -355,7 +349,7 @@ class StudyPlan:
         return out
 
     def _poses_in_region(
-        self, pose: PoseSweep | None, axes: dict[str, list[float]], target: _Target
+        self, pose: PoseSweep | None, axes: dict[str, list[float]], target: PoseTarget
     ) -> list[dict[str, float]]:
         """The combinations of ``axes`` inside ``pose``'s region, in grid order.
 
@@ -496,8 +490,9 @@ class StudyPlan:
         if self._key is not None:
             return self._key
         files: dict[str, str] = {}
-        for i in range(len(self._objects)):
-            for name, path in input_files(self.object_config(i)).items():
+        for i in range(len(self._objects)):  # placed: with the mesh its grasp file names
+            cfg = self._placed[i] if i in self._placed else self.object_config(i)
+            for name, path in input_files(cfg).items():
                 files[f"{i}:{name}"] = _file_digest(path)
         data = {
             "gcm_pipeline": __version__,

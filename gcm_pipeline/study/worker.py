@@ -163,7 +163,10 @@ class PlacementWorker:
         cfg = cfg.model_copy(update={"ik": cfg.ik.model_copy(update={"workers": 1})})
         robot = self._robot(cfg.robot.spec)
         # the pipeline's own sequence of stages (what gcm run does), on this worker's robot
-        grasps = Pipeline(cfg).run(progress=False, write=False, robot=robot).grasps
+        result = Pipeline(cfg).run(progress=False, write=False, robot=robot)
+        grasps = result.grasps
+        # the run's config: an object its grasp file names is in it, placed on the table
+        cfg = result.config
         reachable = np.asarray(grasps["reachable"], dtype=bool)
         object_pose = cfg.object.pose.matrix() if cfg.object is not None else np.eye(4)
         local = dq_from_matrix(np.linalg.inv(object_pose) @ dq_to_matrix(grasps["dq"]))

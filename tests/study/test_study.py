@@ -32,8 +32,8 @@ from gcm_pipeline.pipeline import generate_candidates
 from gcm_pipeline.rundir.grasps_csv import read_grasps_csv
 from gcm_pipeline.study import Study, load_study
 from gcm_pipeline.study.runner import probe_address
-from gcm_pipeline.study.spec import format_value
 from gcm_pipeline.study.store import CSV_COLUMNS, StudyDir
+from gcm_pipeline.study.targets import format_value
 
 # Ray swaps a loopback address for the machine's own when a driver joins a
 # cluster, unless this is off; Ray reads it when first imported, so it is set

@@ -64,6 +64,38 @@ class Selection:
         return asdict(self)
 
 
+def _successful(
+    path: str | Path, what: str, n: int, success: np.ndarray | None, success_only: bool | None
+) -> tuple[np.ndarray, bool]:
+    """The rows ``success_only`` keeps (ascending), and whether it filtered by success."""
+    keep = np.arange(n)
+    if success_only:
+        if success is None:
+            raise InputError(
+                f"{path}: candidates.success_only needs success labels, but {what} has none "
+                f"({_SUCCESS_SOURCES})",
+                path=path,
+                key="candidates.success_only",
+            )
+        return keep[np.asarray(success, dtype=bool)], True
+    if success_only is False or success is None:
+        return keep, False
+    keep = keep[np.asarray(success, dtype=bool)]  # the default: the file labels success
+    if n and not keep.size:
+        raise InputError(
+            f"{path}: none of its {n} grasps is labelled successful "
+            "(candidates.success_only: false keeps them all)",
+            path=path,
+            key="candidates.success_only",
+        )
+    log.info(
+        "candidates: %s: keeps the %d of %d grasps labelled successful "
+        "(candidates.success_only: false keeps them all)",
+        *(path, keep.size, n),
+    )
+    return keep, True
+
+
 def select_grasps(
     path: str | Path,
     fmt: str | None,
@@ -95,32 +127,8 @@ def select_grasps(
             without a score (names the key and the file).
     """
     n = len(columns["source_id"])
-    keep = np.arange(n)
     what = f"this {fmt} file" if fmt else "this file"
-    if success_only:
-        if success is None:
-            raise InputError(
-                f"{path}: candidates.success_only needs success labels, but {what} has none "
-                f"({_SUCCESS_SOURCES})",
-                path=path,
-                key="candidates.success_only",
-            )
-        keep = keep[np.asarray(success, dtype=bool)]
-    elif success_only is None and success is not None:
-        keep = keep[np.asarray(success, dtype=bool)]
-        success_only = True
-        if n and not keep.size:
-            raise InputError(
-                f"{path}: none of its {n} grasps is labelled successful "
-                "(candidates.success_only: false keeps them all)",
-                path=path,
-                key="candidates.success_only",
-            )
-        log.info(
-            "candidates: %s: keeps the %d of %d grasps labelled successful "
-            "(candidates.success_only: false keeps them all)",
-            *(path, keep.size, n),
-        )
+    keep, success_only = _successful(path, what, n, success, success_only)
     score = columns.get("score")
     if min_score is not None:
         if score is None:

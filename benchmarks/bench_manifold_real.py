@@ -78,7 +78,7 @@ from gcm_pipeline.geometry.dualquat import (
     dq_translation,
 )
 from gcm_pipeline.manifold.build import build_manifold
-from gcm_pipeline.manifold.families import default_bounds
+from gcm_pipeline.manifold.families import BOUND_TOLERANCE, default_bounds
 from gcm_pipeline.manifold.locate import TriangleLocator
 from gcm_pipeline.table import GraspTable
 
@@ -223,7 +223,8 @@ def one(
         "max_angle_deg": float(widest.max(initial=0.0)),
         "median_angle_deg": float(np.median(widest)) if len(widest) else 0.0,
         "inside_bounds": bool(
-            np.all(longest <= length * (1 + 1e-12)) and np.all(widest <= angle + 1e-9)
+            np.all(longest <= length * (1 + BOUND_TOLERANCE))
+            and np.all(widest <= angle * (1 + BOUND_TOLERANCE))
         ),
         "build_s": t,
     }

@@ -10,7 +10,8 @@ package's pose metric (:mod:`gcm_pipeline.geometry.pose_metric`) instead:
 1. **Neighbours.** Two candidates are neighbours when their positions are at
    most ``max_edge_length`` [m] apart *and* their orientations at most
    ``max_edge_angle_deg`` (found with a KD-tree over the pose features
-   ``[p, 2 L r]``, both quaternion signs, then checked exactly).
+   ``[p, 2 L r]``, both quaternion signs, then checked exactly, a pair on a
+   bound counting as within it: :data:`BOUND_TOLERANCE`).
 2. **Families.** The connected components of the neighbour graph. Grasps from
    different sides of an object, or with approach/closing axes further apart
    than the bounds allow, fall into different families; no triangle ever
@@ -64,6 +65,7 @@ from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_translation
 from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
 
 __all__ = [
+    "BOUND_TOLERANCE",
     "ISOLATION_REASONS",
     "MAX_DEFAULT_ANGLE_DEG",
     "ANGLE_FACTOR",
@@ -82,6 +84,11 @@ MAX_DEFAULT_ANGLE_DEG = 60.0
 #: Why a candidate is in no triangle (``""``: it is in one).
 ISOLATION_REASONS = ("", "duplicate", "no_neighbour", "no_triple")
 
+#: Relative tolerance of the bound tests: a pair at most ``(1 + BOUND_TOLERANCE)`` times
+#: a bound is within it. Grasp sets on a lattice (ACRONYM's 30-degree steps) put many pairs
+#: exactly on a round bound (60 degrees); without it rounding, which moves with the set's
+#: placement in the world and with the CPU, decides whether such a pair is linked.
+BOUND_TOLERANCE = 1e-9
 _DUPLICATE = 1e-9  # [m] pose-metric distance under which two rows are one pose
 _SMALL_FAMILY = 30  # families up to this size are one patch
 _GAP = 0.5  # gap between family charts in the atlas, in units of max_edge_length
@@ -173,8 +180,9 @@ def _neighbour_pairs(
     keys = np.unique(_pair_keys(raw[:, 0], raw[:, 1], n))  # sorted, each pair once
     pairs = np.column_stack((keys // n, keys % n))
     pos = dq_translation(dq)
-    ok = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) <= length
-    ok &= dq_angle_distance(dq[pairs[:, 0]], dq[pairs[:, 1]]) <= angle
+    tie = 1.0 + BOUND_TOLERANCE  # a pair exactly on a bound is in, however it rounds
+    ok = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) <= length * tie
+    ok &= dq_angle_distance(dq[pairs[:, 0]], dq[pairs[:, 1]]) <= angle * tie
     pairs = pairs[ok].astype(np.int64)
     return pairs, pose_distance(dq[pairs[:, 0]], dq[pairs[:, 1]], scale)
 

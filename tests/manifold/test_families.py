@@ -10,7 +10,12 @@ from scipy.spatial.transform import Rotation
 import gcm_pipeline as gcm
 from gcm_pipeline.cli import main
 from gcm_pipeline.errors import GeometryError, InputError
-from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_from_pos_quat, dq_translation
+from gcm_pipeline.geometry.dualquat import (
+    dq_angle_distance,
+    dq_from_pos_quat,
+    dq_mul,
+    dq_translation,
+)
 from gcm_pipeline.geometry.pose_metric import pose_distance
 from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.families import ANGLE_FACTOR, LENGTH_FACTOR, family_triangles
@@ -254,3 +259,36 @@ def test_a_line_of_grasps_no_chart_can_triangulate_is_still_linked() -> None:
     assert sorted(np.unique(m.triangles).tolist()) == list(range(6))
     assert np.all(np.abs(np.diff(np.sort(m.triangles, axis=1), axis=1)) <= 2)  # neighbours only
     assert set(m.isolation.tolist()) == {""}
+
+
+def test_a_lattice_set_on_the_bound_gives_the_same_structure_wherever_it_stands() -> None:
+    """Grasps from above in exact 30-degree roll steps, with the angle bound at 30 degrees.
+
+    Like ACRONYM's sets (orientations in exact steps), many pairs lie exactly on
+    the bound. They are linked at any placement of the set in the world, so
+    rounding (which moves with the placement and the CPU) does not decide the
+    families or which candidates are linked.
+    """
+    down = Rotation.from_euler("x", 180, degrees=True)
+    local = []
+    for x in range(3):
+        for y in range(3):
+            for roll in (0.0, 30.0, 60.0):
+                xyzw = (down * Rotation.from_euler("z", roll, degrees=True)).as_quat()
+                pos = [0.01 * x, 0.01 * y, 0.1]
+                local.append(dq_from_pos_quat(pos, np.r_[xyzw[3], xyzw[:3]]))
+    local = np.asarray(local)
+    rng = np.random.default_rng(7)
+    for k in range(40):
+        xyzw = Rotation.random(random_state=rng).as_quat() if k else np.array([0, 0, 0, 1.0])
+        place = dq_from_pos_quat(
+            rng.uniform(-1, 1, 3) if k else np.zeros(3), np.r_[xyzw[3], xyzw[:3]]
+        )
+        fm = family_triangles(
+            dq_mul(place, local),
+            max_edge_length=0.015,
+            max_edge_angle_deg=30.0,
+            orientation_scale=0.1,
+        )
+        assert fm.family.tolist() == [0] * len(local), k  # the roll layers link: one family
+        assert fm.isolation.tolist() == [""] * len(local), k

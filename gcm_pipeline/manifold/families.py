@@ -337,6 +337,17 @@ def _fill(
     return added
 
 
+def _canonical(tris: np.ndarray) -> np.ndarray:
+    """Triangles with ascending vertex ids, in ascending order: the same set, the same rows.
+
+    The charts a family is triangulated in turn with the grasp set (their axes
+    are principal axes of world features), so the triangles' order and
+    orientation would; their densified rows would too.
+    """
+    t = np.sort(np.asarray(tris, dtype=np.int64).reshape(-1, 3), axis=1)
+    return t[np.lexsort(t.T[::-1])]
+
+
 # --------------------------------------------------------------------------- stage
 def _prune_reason(dq: np.ndarray, tris: np.ndarray, length: float) -> np.ndarray:
     """Why each triangle was pruned: ``edge_length`` (a position edge too long), ``edge_angle``."""
@@ -416,7 +427,7 @@ def family_triangles(
     family[~unique] = -1
     return FamilyMesh(
         chart=_atlas(charts, n, _GAP * length),
-        triangles=tris.astype(np.int64),
+        triangles=_canonical(tris),
         dropped=dropped_tris.astype(np.int64),
         dropped_reason=_prune_reason(dq, dropped_tris, length),
         family=family,

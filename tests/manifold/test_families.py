@@ -292,3 +292,23 @@ def test_a_lattice_set_on_the_bound_gives_the_same_structure_wherever_it_stands(
         )
         assert fm.family.tolist() == [0] * len(local), k  # the roll layers link: one family
         assert fm.isolation.tolist() == [""] * len(local), k
+
+
+def test_a_turned_and_moved_set_gives_the_same_triangles_in_the_same_order(faces: dict) -> None:
+    """The triangles (and so the densified rows) of a grasp set do not depend on where it stands.
+
+    A study compares one object's grasps row by row across placements.
+    """
+    dq, first = faces["dq"], faces["m"]
+    rng = np.random.default_rng(11)
+    for k in range(5):
+        xyzw = Rotation.random(random_state=rng).as_quat()
+        place = dq_from_pos_quat(rng.uniform(-1, 1, 3), np.r_[xyzw[3], xyzw[:3]])
+        m = build_manifold(
+            GraspTable({"dq": dq_mul(place, dq)}),
+            structure="families",
+            max_edge_length=LENGTH,
+            max_edge_angle_deg=ANGLE,
+        )
+        np.testing.assert_array_equal(m.triangles, first.triangles, err_msg=str(k))
+        np.testing.assert_array_equal(m.family, first.family, err_msg=str(k))

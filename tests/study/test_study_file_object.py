@@ -95,9 +95,9 @@ def test_a_study_of_the_file_object_matches_a_run_at_its_best_placement(tmp_path
     table_z = load_config(MUG).environment.table.height
     for r in rows:  # the pose columns: where the mug stands (y and z not swept)
         assert (r["object_y"], r["object_z"]) == (0.0, table_z)
-    # the grasps move with the mug: the file's grasps have the same pose in its frame at
-    # every placement, and every row (interpolated too) is the placed mug's pose times its
-    # pose in the mug's frame (reachability.npz's grasp_pose_object)
+    # the grasps move with the mug: every row (interpolated too) has the same pose in the
+    # mug's frame at every placement (reachability.npz's same_grasps), and is the placed
+    # mug's pose times that pose (reachability.npz's grasp_pose_object)
     arrays = {r["id"]: _arrays(out, r["id"]) for r in rows}
     first = arrays[rows[0]["id"]]
     local = _matrix(first["pose_object"][first["is_candidate"]])
@@ -105,6 +105,8 @@ def test_a_study_of_the_file_object_matches_a_run_at_its_best_placement(tmp_path
     for r in rows:
         a = arrays[r["id"]]
         assert np.allclose(_matrix(a["pose_object"][a["is_candidate"]]), local, atol=1e-9)
+        # and the densified rows too, row by row: the manifold does not turn with the mug
+        assert np.allclose(_matrix(a["pose_object"]), _matrix(first["pose_object"]), atol=1e-9)
         cfg = place_file_object(load_config(MUG, list(r["overrides"])))
         world = cfg.object.pose.matrix() @ _matrix(a["pose_object"])
         assert np.allclose(world, _matrix(a["pose"]), atol=1e-9)

@@ -364,8 +364,11 @@ def test_generator_needs_matching_object():
 
 def test_no_grasp_left_is_an_error(tmp_path):
     path = tmp_path / "g.npz"
-    np.savez(path, transforms=_random_poses(3), success=np.zeros(3))
+    np.savez(path, transforms=np.zeros((0, 4, 4)), success=np.zeros(0))
     with pytest.raises(InputError, match="no grasp left"):
+        generate_candidates(_file_cfg(path, success_only=True))
+    np.savez(path, transforms=_random_poses(3), success=np.zeros(3))
+    with pytest.raises(InputError, match="none of its 3 grasps is labelled successful"):
         generate_candidates(_file_cfg(path, success_only=True))
 
 

@@ -369,3 +369,14 @@ def test_a_filter_that_keeps_nothing_says_which_and_why(tmp_path):
         read_grasps(path, "npz", success_only=False, min_score=0.5)
     kept = read_grasps(path, "npz", success_only=False, min_score=0.3)
     assert kept.columns["source_id"].tolist() == [2, 3]
+
+
+def test_success_only_true_on_a_file_of_failures_says_so(tmp_path):
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 0, 3] = np.arange(3) * 0.01
+    path = tmp_path / "g.npz"
+    np.savez(path, transforms=poses, success=np.zeros(3))
+    with pytest.raises(InputError) as info:
+        read_grasps(path, "npz", success_only=True)
+    assert str(info.value).startswith(f"{path}: none of its 3 grasps is labelled successful")
+    assert info.value.key == "candidates.success_only"

@@ -77,10 +77,9 @@ def _successful(
                 path=path,
                 key="candidates.success_only",
             )
-        return keep[np.asarray(success, dtype=bool)], True
-    if success_only is False or success is None:
+    elif success_only is False or success is None:
         return keep, False
-    keep = keep[np.asarray(success, dtype=bool)]  # the default: the file labels success
+    keep = keep[np.asarray(success, dtype=bool)]  # asked for, or the file labels success
     if n and not keep.size:
         raise InputError(
             f"{path}: none of its {n} grasps is labelled successful "

@@ -285,7 +285,10 @@ def _view(grasps: GraspTable, manifold: Any, what: str) -> tuple[Any, str]:
     view = PoseView(
         _figure((12.0, 5.8)), grasps, manifold, candidate_rows(grasps, len(manifold.chart))
     )
-    fams = int(np.max(manifold.family, initial=-1)) + 1
+    family = getattr(manifold, "family", None)
+    if family is None:  # a manifold.npz without it: no count to give
+        return view, f"{what}, {len(manifold.triangles)} triangles"
+    fams = int(np.max(family, initial=-1)) + 1
     return view, f"{what}, {len(manifold.triangles)} triangles in {fams} families"
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 
@@ -101,3 +102,11 @@ def test_the_run_says_how_many_candidates_the_families_link(tmp_path, capsys) ->
     assert f"{c['triangles']} in {c['families']} families; " in line
     assert f"{linked} of {c['candidates']} candidates linked" in line
     assert "dropped" not in line  # the pruned chart triangles are a build step, not a loss
+
+
+def test_families_plots_of_a_manifold_without_family_labels(tmp_path) -> None:
+    grasps = _table(60, np.random.default_rng(5))
+    fam = build_manifold(grasps, structure="families")
+    bare = dataclasses.replace(fam, family=None, isolation=None)  # a hand-written manifold.npz
+    names = {p.name for p in write_plots(grasps, bare, {"candidates": len(grasps)}, tmp_path)}
+    assert {"manifold.png", "patches.png"} <= names

@@ -27,16 +27,22 @@ from gcm_pipeline.table import GraspTable
 
 __all__ = ["PoseView", "approach_angles", "equal_axes"]
 
+#: Horizontal length of a unit axis below which it is vertical (rounding noise of a rotation).
+_VERTICAL = 1e-9
+
 
 def approach_angles(dq: np.ndarray) -> np.ndarray:
     """(N, 2) azimuth and elevation [deg] of each grasp frame's z axis in the world.
 
     Azimuth ``atan2(z_y, z_x)`` in (-180, 180], elevation ``asin(z_z)`` in
-    [-90, 90] (``-90``: the gripper approaches straight down).
+    [-90, 90] (``-90``: the gripper approaches straight down). A vertical
+    axis has no azimuth: 0 (not the rounding noise of its x and y, which
+    would scatter grasps from straight above along the whole azimuth axis).
     """
     rot = dq_to_matrix(np.asarray(dq, dtype=np.float64).reshape(-1, 8))[:, :3, :3]
     z = rot[:, :, 2]
-    az = np.degrees(np.arctan2(z[:, 1], z[:, 0]))
+    vertical = np.hypot(z[:, 0], z[:, 1]) < _VERTICAL
+    az = np.where(vertical, 0.0, np.degrees(np.arctan2(z[:, 1], z[:, 0])))
     el = np.degrees(np.arcsin(np.clip(z[:, 2], -1.0, 1.0)))
     return np.column_stack((az, el))
 

@@ -43,6 +43,14 @@ def test_approach_angles_name_where_the_gripper_comes_from() -> None:
     np.testing.assert_allclose(angles[2, 1], 0.0, atol=1e-9)
 
 
+def test_grasps_from_straight_above_share_one_approach_direction() -> None:
+    # four grasps turned about the vertical: one approach direction, one point in the panel
+    yaw = Rotation.from_euler("z", np.array([0.0, 90.0, 180.0, 37.0])[:, None], degrees=True)
+    angles = approach_angles(_dq(yaw * Rotation.from_euler("x", 180, degrees=True)))
+    np.testing.assert_allclose(angles[:, 1], -90.0, atol=1e-9)
+    np.testing.assert_array_equal(angles[:, 0], angles[0, 0])
+
+
 def _table(n: int, rng: np.random.Generator) -> GraspTable:
     """Grasps on a 4 cm patch at three orientations a quarter turn apart, half reachable."""
     rot = Rotation.from_euler("z", rng.choice([0.0, 90.0, 180.0], n)[:, None], degrees=True) * (

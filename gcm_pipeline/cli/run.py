@@ -164,12 +164,14 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     cfg = place_file_object(load_config(args.config, args.overrides))
     with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
         preflight(cfg)
-    n = len(generate_candidates(cfg))  # a grasp file is read and checked as a run reads it
+    report: dict[str, Any] = {}
+    n = len(generate_candidates(cfg, report=report))  # a grasp file is read as a run reads it
     c = cfg.candidates
     obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
     # comments first, then the resolved config: the output is itself a valid config
     print(f"# {args.config}: ok")
-    print(f"#   candidates  {c.source}" + (f" {c.path}" if c.path else "") + f": {n:,} grasps")
+    line = f"#   candidates  {c.source}" + (f" {c.path}" if c.path else "") + f": {n:,} grasps"
+    print(line + _selection_note(report.get("selection")))
     print(f"#   object      {obj}")
     print(f"#   robot       {cfg.robot.spec}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
     print(f"#   output      {cfg.output.dir}")

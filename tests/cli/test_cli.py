@@ -562,3 +562,12 @@ def test_show_top_zero_prints_only_the_counts(cli, out):
     code, text, err = cli("show", out, "--top", "0")
     assert code == 0, err
     assert "reachable" in text and "no reachable grasp" not in text and "grasps by" not in text
+
+
+def test_validate_says_why_it_keeps_some_of_a_files_grasps(cli, tmp_path):
+    np.savez(tmp_path / "g.npz", transforms=_poses(4), success=[1, 0, 1, 1])
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("candidates: {source: file, path: g.npz}\n")
+    code, text, _ = cli("validate", cfg)
+    assert code == 0
+    assert ": 3 grasps (of 4 in the file: labelled successful)\n" in text

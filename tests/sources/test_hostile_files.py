@@ -248,3 +248,23 @@ def test_validate_reads_the_grasp_file_and_refuses_nul_characters(cli, tmp_path)
     broken.write_bytes(b"\x93NUMPY this is not a grasp file")
     code, _, err = cli("validate", cfg, "--set", f"candidates.path={broken}")
     assert_one_line_error(code, err, str(broken))
+
+
+def test_a_nan_success_label_is_refused_not_read_as_a_failure(tmp_path):
+    from gcm_pipeline.sources.files import read_grasps
+
+    success = [1.0, float("nan"), 0.0]
+    np.savez(tmp_path / "g.npz", transforms=_poses(3), success=success)
+    with pytest.raises(InputError, match=r"array 'success': grasp 1 \(0-based\): success label"):
+        read_grasps(tmp_path / "g.npz", "npz", success_only=False)
+    pos = _poses(3)[:, :3, 3]
+    rows = [f"{x},{y},{z},0,1,0,0,{s}" for (x, y, z), s in zip(pos, success, strict=True)]
+    (tmp_path / "g.csv").write_text("x,y,z,qw,qx,qy,qz,success\n" + "\n".join(rows) + "\n")
+    with pytest.raises(InputError, match=r"g\.csv:3: column 'success': success label is nan"):
+        read_grasps(tmp_path / "g.csv", "csv")
+    grasps = "\n".join(f"  - {p.tolist()}" for p in _poses(3))
+    (tmp_path / "g.yaml").write_text(
+        f"grasps:\n transforms:\n{grasps}\n object_in_gripper: [1, .nan, 0]\n"
+    )
+    with pytest.raises(InputError, match=r"grasps.object_in_gripper: grasp 1 \(0-based\)"):
+        read_grasps(tmp_path / "g.yaml", "graspgen")

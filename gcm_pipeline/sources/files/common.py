@@ -207,14 +207,37 @@ def as_poses(path: Path, arr: np.ndarray, what: str) -> np.ndarray:
     return np.asarray(arr, dtype=float)
 
 
-def success_labels(path: Path, values: np.ndarray, n: int, what: str) -> np.ndarray:
-    """(n,) bool success labels from 0/1 numbers, or raise naming ``what``."""
+def success_labels(
+    path: Path,
+    values: np.ndarray,
+    n: int,
+    what: str,
+    where: Callable[[int], str] | None = None,
+) -> np.ndarray:
+    """(n,) bool success labels from 0/1 numbers, or raise naming ``what``.
+
+    A NaN label is bad input (a broken export), not a failure to drop
+    silently: the message names the first such row (``where(i)``, default
+    ``"<path>: <what>: grasp <i> (0-based)"``).
+    """
     values = np.asarray(values).reshape(-1)
     if values.shape[0] != n:
         raise InputError(f"{path}: {what} has {values.shape[0]} values, expected {n}", path=path)
     if values.dtype.kind not in "biuf":
         raise InputError(f"{path}: {what} must be 0/1 values, got dtype {values.dtype}", path=path)
-    return values.astype(float) > 0.5
+    values = values.astype(float)
+    bad = np.flatnonzero(np.isnan(values))
+    if bad.size:
+        i = int(bad[0])
+        name = where(i) if where is not None else f"{path}: {what}: grasp {i} (0-based)"
+        more = f" ({bad.size:,} such grasps)" if bad.size > 1 else ""
+        raise InputError(
+            f"{name}: success label is nan; every label must be 0 or 1{more}",
+            path=path,
+            key=what,
+            row=i,
+        )
+    return values > 0.5
 
 
 def score_column(

@@ -16,6 +16,7 @@ from gcm_pipeline.sources.files.common import (
     check_positions,
     column_name,
     score_column,
+    success_labels,
 )
 
 __all__ = ["read_csv"]
@@ -67,7 +68,10 @@ def read_csv(
     poses = _csv_poses(path, cells, names, lines)
     success = None
     if "success" in names:
-        success = _csv_floats(path, cells[:, names.index("success")], "success", lines) > 0.5
+        labels = _csv_floats(path, cells[:, names.index("success")], "success", lines)
+        success = success_labels(
+            path, labels, len(labels), "success", lambda i: f"{path}:{lines[i]}: column 'success'"
+        )
     columns: dict[str, np.ndarray] = {}
     taken: set[str] = {"source_id", "success"}
     for k, raw in enumerate(header):

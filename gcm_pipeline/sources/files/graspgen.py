@@ -32,6 +32,7 @@ from gcm_pipeline.sources.files.common import (
     check_poses,
     check_positions,
     score_column,
+    success_labels,
     vector,
 )
 from gcm_pipeline.sources.files.sniff import check_format
@@ -132,7 +133,8 @@ def read_graspgen(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
             break
     success = None
     if "object_in_gripper" in grasps:
-        success = vector(path, grasps["object_in_gripper"], n, "grasps.object_in_gripper") > 0.5
+        labels = vector(path, grasps["object_in_gripper"], n, "grasps.object_in_gripper")
+        success = success_labels(path, labels, n, "grasps.object_in_gripper")
     columns["source_id"] = np.arange(n, dtype=np.int64)
     obj = data.get("object")
     if isinstance(obj, dict) and "file" in obj:

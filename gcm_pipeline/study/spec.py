@@ -41,7 +41,7 @@ from gcm_pipeline.config.study import (
     read_study,
     rounded,
 )
-from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.errors import ConfigError, GcmError
 from gcm_pipeline.pipeline import input_files, place_file_object
 from gcm_pipeline.study.targets import PlacementTarget, PoseTarget, format_value
 
@@ -491,7 +491,10 @@ class StudyPlan:
             return self._key
         files: dict[str, str] = {}
         for i in range(len(self._objects)):  # placed: with the mesh its grasp file names
-            cfg = self._placed[i] if i in self._placed else self.object_config(i)
+            try:  # whatever the sweep: an edited mesh is another study, not a resume
+                cfg = self._placed_config(i)
+            except GcmError:  # an unreadable file fails its own placements, not the study
+                cfg = self.object_config(i)
             for name, path in input_files(cfg).items():
                 files[f"{i}:{name}"] = _file_digest(path)
         data = {

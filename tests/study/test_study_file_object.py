@@ -164,8 +164,12 @@ def test_the_study_key_covers_the_mesh_the_grasp_file_names(tmp_path):
     shutil.copytree(CONFIGS.parent / "tests" / "data" / "acronym", data_dir)
     base = yaml.safe_load(MUG.read_text())
     base["candidates"]["path"] = str(next(data_dir.glob("*.h5")))
-    study = {"base": base, "sweep": {"object_pose": {"x": [0.4, 0.5]}}}
-    key = load_study(study).key()
+    studies = [
+        {"base": base, "sweep": {"object_pose": {"x": [0.4, 0.5]}}},
+        {"base": base, "sweep": {"base_pose": {"x": [0.0, -0.1]}}},  # the object not swept
+    ]
+    keys = [load_study(study).key() for study in studies]
     mesh = next(data_dir.glob("*.obj"))
     mesh.write_text(mesh.read_text() + "\n# the same mesh, another file\n")
-    assert load_study(study).key() != key
+    for study, key in zip(studies, keys, strict=True):
+        assert load_study(study).key() != key

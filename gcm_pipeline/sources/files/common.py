@@ -226,18 +226,39 @@ def success_labels(
     if values.dtype.kind not in "biuf":
         raise InputError(f"{path}: {what} must be 0/1 values, got dtype {values.dtype}", path=path)
     values = values.astype(float)
-    bad = np.flatnonzero(np.isnan(values))
-    if bad.size:
-        i = int(bad[0])
-        name = where(i) if where is not None else f"{path}: {what}: grasp {i} (0-based)"
-        more = f" ({bad.size:,} such grasps)" if bad.size > 1 else ""
-        raise InputError(
-            f"{name}: success label is nan; every label must be 0 or 1{more}",
-            path=path,
-            key=what,
-            row=i,
-        )
+    _refuse_first_bad(
+        path,
+        what,
+        np.isnan(values),
+        where,
+        lambda i: "success label is nan",
+        "every label must be 0 or 1",
+    )
     return values > 0.5
+
+
+def _refuse_first_bad(
+    path: Path,
+    key: str,
+    bad: np.ndarray,
+    where: Callable[[int], str] | None,
+    problem: Callable[[int], str],
+    rule: str,
+    value: Callable[[int], Any] | None = None,
+) -> None:
+    """Raise naming the first row of mask ``bad`` (``where(i)``), its problem and the rule.
+
+    ``where`` defaults to ``"<path>: <key>: grasp <i> (0-based)"``; more than
+    one bad row is counted in the message.
+    """
+    rows = np.flatnonzero(bad)
+    if not rows.size:
+        return
+    i = int(rows[0])
+    name = where(i) if where is not None else f"{path}: {key}: grasp {i} (0-based)"
+    more = f" ({rows.size:,} such grasps)" if rows.size > 1 else ""
+    evidence = {} if value is None else {"value": value(i)}
+    raise InputError(f"{name}: {problem(i)}; {rule}{more}", path=path, key=key, row=i, **evidence)
 
 
 def score_column(
@@ -275,18 +296,15 @@ def score_column(
             key=key,
             value=arr.shape[0],
         )
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        i = int(bad[0])
-        name = where(i) if where is not None else f"{path}: {key}: grasp {i} (0-based)"
-        more = f" ({bad.size:,} such grasps)" if bad.size > 1 else ""
-        raise InputError(
-            f"{name}: score is {float(arr[i])}; every score must be a finite number{more}",
-            path=path,
-            key=key,
-            row=i,
-            value=float(arr[i]),
-        )
+    _refuse_first_bad(
+        path,
+        key,
+        ~np.isfinite(arr),
+        where,
+        lambda i: f"score is {float(arr[i])}",
+        "every score must be a finite number",
+        lambda i: float(arr[i]),
+    )
     return arr
 
 

@@ -353,7 +353,8 @@ def _prune_reason(dq: np.ndarray, tris: np.ndarray, length: float) -> np.ndarray
     """Why each triangle was pruned: ``edge_length`` (a position edge too long), ``edge_angle``."""
     p = dq_translation(dq)[tris]
     longest = np.linalg.norm(p - np.roll(p, -1, axis=1), axis=2).max(axis=1)
-    return np.where(longest > length, "edge_length", "edge_angle").astype("<U11")
+    too_long = longest > length * (1.0 + BOUND_TOLERANCE)  # as the bound tests read it
+    return np.where(too_long, "edge_length", "edge_angle").astype("<U11")
 
 
 def family_triangles(

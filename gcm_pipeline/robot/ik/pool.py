@@ -17,6 +17,7 @@ import multiprocessing as mp
 import multiprocessing.pool
 import os
 import signal
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
@@ -91,6 +92,42 @@ class ForkPool(multiprocessing.pool.Pool):
 
     def __init__(self, processes: int, initializer: Any = None) -> None:
         super().__init__(processes, initializer=initializer, context=mp.get_context("fork"))
+        self._first_pids = {p.pid for p in self._pool}  # type: ignore[attr-defined]
+        self._abandoned = False
+
+    def terminate(self) -> None:
+        """Stop the workers; after a worker died, without waiting on the queues.
+
+        A worker killed while it sends its result holds the result queue's
+        write lock and leaves half a message in the pipe: the standard
+        teardown then waits for ever, on that lock (to send its own sentinel)
+        or on the result thread (reading the rest of the message). When a
+        worker has died, the others are killed and the pool's threads (daemon
+        threads, blocked on the dead worker's pipe) are left behind.
+        """
+        handler = self._worker_handler  # type: ignore[attr-defined]
+        handler._state = multiprocessing.pool.TERMINATE  # no new workers from here on
+        self._change_notifier.put(None)  # type: ignore[attr-defined]
+        if handler.is_alive() and threading.current_thread() is not handler:
+            handler.join(timeout=_HANDLER_WAIT)
+        procs = list(self._pool)  # type: ignore[attr-defined]
+        died = any(p.exitcode is not None for p in procs)
+        if not died and {p.pid for p in procs} == self._first_pids:
+            super().terminate()
+            return
+        self._abandoned = True
+        self._state = multiprocessing.pool.TERMINATE  # type: ignore[attr-defined]
+        self._terminate.cancel()  # type: ignore[attr-defined]
+        for p in procs:
+            if p.exitcode is None:
+                p.kill()
+        for p in procs:
+            p.join(timeout=_HANDLER_WAIT)
+
+    def join(self) -> None:
+        """Wait for the workers (only for them after a worker died, see :meth:`terminate`)."""
+        if not self._abandoned:
+            super().join()
 
     def ordered(self, func: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
         """``imap(func, items)``: results in order, as they come.
@@ -131,6 +168,8 @@ def cores() -> int:
 
 #: How often the workers are looked at while a result is awaited [s].
 _WORKER_POLL = 0.25
+#: How long a teardown waits for the pool's worker thread and for a killed worker [s].
+_HANDLER_WAIT = 5.0
 
 
 def _worker_death(pid: int | None, code: int) -> str:

@@ -23,8 +23,7 @@ from gcm_pipeline.bounds import (
     MAX_ADAPTIVE_LEVEL,
     MAX_LENGTH,
 )
-from gcm_pipeline.errors import unknown_choice
-from gcm_pipeline.sources.grippers import GRIPPERS
+from gcm_pipeline.sources.grippers import check_gripper_ref
 
 # Numbers and switches are strict: a bool is not a number (``--set
 # densify.subdivisions=true`` is an error, not 1), a number is not a bool, a
@@ -285,8 +284,7 @@ class CandidatesConfig(_Section):
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
         if self.gripper is not None:
-            if self.gripper not in GRIPPERS:
-                raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
+            check_gripper_ref(self.gripper)  # a shipped name or a YAML path
         if self.gripper is not None and self.grasp_to_tool is not None:
             raise ValueError("give 'gripper' or 'grasp_to_tool', not both")
         if self.gripper is not None and self.source == "file" and self.format in _POSE_FORMATS:

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator, model_validator
 
 from gcm_pipeline.bounds import (
     DEFAULT_MAX_CANDIDATES,
@@ -281,10 +281,13 @@ class CandidatesConfig(_Section):
                 data = {**data, "format": "graspgen"}
         return data
 
+    @field_validator("gripper")
+    @classmethod
+    def _gripper_ref(cls, v: str | None) -> str | None:
+        return v if v is None else check_gripper_ref(v)  # a shipped name or a YAML path
+
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
-        if self.gripper is not None:
-            check_gripper_ref(self.gripper)  # a shipped name or a YAML path
         if self.gripper is not None and self.grasp_to_tool is not None:
             raise ValueError("give 'gripper' or 'grasp_to_tool', not both")
         if self.gripper is not None and self.source == "file" and self.format in _POSE_FORMATS:

@@ -57,12 +57,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gcm_pipeline.errors import ConfigError, InputError, choice_error, unknown_choice
-from gcm_pipeline.robot.tool import ToolSpec
+
+if TYPE_CHECKING:  # the robot layer loads coal: configs read the gripper names without it
+    from gcm_pipeline.robot.tool import ToolSpec
 
 __all__ = [
     "CONVENTIONS",

@@ -123,7 +123,7 @@ def sampler_gripper(cfg: Config) -> GripperSpec:
     c, tool = cfg.candidates, cfg.robot.tool
     if c.gripper is not None and tool is not None:
         sampled, mounted = load_gripper(c.gripper), load_gripper(tool, "robot.tool")
-        if sampled is not mounted:
+        if (sampled.name, sampled.path) != (mounted.name, mounted.path):
             raise ConfigError(
                 f"candidates.gripper: {c.gripper!r} samples grasps for another hand than the "
                 f"robot carries (robot.tool {tool!r}); drop candidates.gripper to sample for "

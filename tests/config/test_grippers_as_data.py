@@ -252,3 +252,15 @@ def test_a_suction_gripper_file_with_fingers_is_refused(tmp_path):
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match=r"cup\.yaml.*suction gripper has no fingers.*max_width"):
         load_gripper(path)
+
+
+def test_the_same_gripper_file_in_both_keys_is_no_mismatch(tmp_path):
+    path = _gripper_file(tmp_path)
+    cfg = Config.from_dict(
+        {
+            "robot": {"spec": "ur5", "tool": str(path)},
+            "object": {"shape": "cylinder", "dims": {"radius": 0.035, "height": 0.22}},
+            "candidates": {"source": "antipodal", "count": 5, "gripper": str(path)},
+        }
+    )
+    assert sampler_gripper(cfg).path == path.resolve()

@@ -63,12 +63,12 @@ import h5py  # noqa: E402
 import trimesh  # noqa: E402
 
 from gcm_pipeline.config import Config  # noqa: E402
+from gcm_pipeline.config.gripper_spec import load_gripper  # noqa: E402
 from gcm_pipeline.config.run import read_yaml  # noqa: E402
 from gcm_pipeline.config.sections import ManifoldConfig  # noqa: E402
 from gcm_pipeline.geometry.dualquat import dq_to_matrix  # noqa: E402
 from gcm_pipeline.geometry.meshes import read_mesh  # noqa: E402
 from gcm_pipeline.pipeline import build_manifold, densify, generate_candidates  # noqa: E402
-from gcm_pipeline.sources.grippers import get_gripper  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "interpolation_fidelity.json"
@@ -210,7 +210,7 @@ def run_config(
 # --------------------------------------------------------------------------- measuring
 def to_file_frame(dq: np.ndarray, cfg: Config, report: dict[str, Any]) -> np.ndarray:
     """World grasp-frame poses (dual quaternions) -> ACRONYM gripper frame in the mesh frame."""
-    spec = get_gripper(report["grasp_frame"]["gripper"])
+    spec = load_gripper(report["grasp_frame"]["gripper"])
     obj = cfg.object.pose.matrix() if cfg.object is not None else np.eye(4)
     return np.linalg.inv(obj) @ dq_to_matrix(dq) @ spec.from_tool("base")
 

@@ -85,13 +85,16 @@ from gcm_pipeline.table import GraspTable
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "manifold_real.json"
 ACRONYM = Path(os.environ.get("ACRONYM_EXAMPLES", "/work/data/acronym/data/examples"))
-#: GraspGen(X) inference output (tests/data/graspgen/README.md) and each gripper's fingertip
-#: offset along +z: the GraspGenX fork's openarm gripper, GraspGen's Robotiq 2F-140 (depth)
+#: GraspGen(X) inference output (tests/data/graspgen/README.md) and how its gripper frame maps
+#: onto the grasp frame: the GraspGenX fork's openarm gripper (fingertips 0.068 m along +z, not
+#: in the registry), GraspGen's Robotiq 2F-140 (the registry's robotiq_2f_140)
+OPENARM = {"grasp_to_tool": {"xyz": [0.0, 0.0, 0.068]}}
+ROBOTIQ_140 = {"gripper": "robotiq_2f_140"}
 GRASPGEN = {
-    "graspgen_ginger": ("ginger_grasps.yml", 0.068),
-    "graspgen_mesh": ("example_mesh_antipodal.yaml", 0.195),
-    "graspgen_cloud": ("example_pointcloud_antipodal.yaml", 0.195),
-    "graspgen_cloud_cf": ("example_pointcloud_collisionfree_antipodal.yaml", 0.195),
+    "graspgen_ginger": ("ginger_grasps.yml", OPENARM),
+    "graspgen_mesh": ("example_mesh_antipodal.yaml", ROBOTIQ_140),
+    "graspgen_cloud": ("example_pointcloud_antipodal.yaml", ROBOTIQ_140),
+    "graspgen_cloud_cf": ("example_pointcloud_collisionfree_antipodal.yaml", ROBOTIQ_140),
 }
 #: camera 0.8 m above the table looking straight down (any pose gives the same figures)
 CAMERA = {"xyz": [0.5, 0.0, 0.8], "rpy_deg": [180.0, 0.0, 0.0]}
@@ -329,9 +332,9 @@ def main() -> int:
             print(f"acronym {stem}: not found under {ACRONYM} (set ACRONYM_EXAMPLES)")
         else:
             sets.append((f"acronym_{stem.lower()}", t, None, stem == "Mug"))
-    for name, (file, depth) in GRASPGEN.items():
+    for name, (file, frame) in GRASPGEN.items():
         path = ROOT / "tests" / "data" / "graspgen" / file
-        t = from_file(path, "graspgen", grasp_to_tool={"xyz": [0.0, 0.0, depth]})
+        t = from_file(path, "graspgen", **frame)
         sets.append((name, t, None, False))
     sets += [(name, t, None, False) for name, t in contact_graspnet(args.data)]
     for name in ("mug_antipodal", "box", "bottle_side"):

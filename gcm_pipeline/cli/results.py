@@ -249,7 +249,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
     if not isinstance(run.summary.get("config"), dict):
         raise GcmError(f"{args.run_dir}: summary.json holds no config; cannot draw the scene")
     cfg = Config.from_dict(run.summary["config"], source=str(args.run_dir / "summary.json"))
-    robot = load_robot(cfg.robot.spec)
+    robot = load_robot(cfg.robot.spec, cfg.robot.tool)
     if not args.quiet:
         n = int(run.grasps["reachable"].sum()) if "reachable" in run.grasps else 0
         print(f"run {run.run_dir}: {len(run.grasps)} grasps, {n} reachable")

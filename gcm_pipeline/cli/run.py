@@ -173,7 +173,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     line = f"#   candidates  {c.source}" + (f" {c.path}" if c.path else "") + f": {n:,} grasps"
     print(line + _selection_note(report.get("selection")))
     print(f"#   object      {obj}")
-    print(f"#   robot       {cfg.robot.spec}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
+    robot = cfg.robot.spec + (f" with {cfg.robot.tool}" if cfg.robot.tool else "")
+    print(f"#   robot       {robot}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
     print(f"#   output      {cfg.output.dir}")
     print("# resolved config (defaults filled in, paths absolute):")
     print(yaml.safe_dump(cfg.to_dict(), sort_keys=False, default_flow_style=None), end="")

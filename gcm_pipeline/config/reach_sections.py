@@ -24,13 +24,29 @@ from gcm_pipeline.config.sections import (
     _Section,
     _ShapeSection,
 )
+from gcm_pipeline.sources.grippers import check_gripper_ref
 
 
 class RobotConfig(_Section):
-    """Robot spec (a name under ``robots/`` or a YAML path) and its base pose in the world."""
+    """Robot spec (a name under ``robots/`` or a YAML path), its base pose and tool.
+
+    Attributes:
+        spec: A shipped spec name or a spec YAML path.
+        base_pose: The robot's base in the world.
+        tool: A gripper of the registry (``robotiq_2f_85``) or a gripper YAML
+            path, mounted instead of the tool the spec mounts on its bare
+            flange (the UR5's); a spec whose hand is part of its model (the
+            Panda) has none to replace.
+    """
 
     spec: str = "panda"
     base_pose: Pose = Pose()
+    tool: str | None = None
+
+    @field_validator("tool")
+    @classmethod
+    def _gripper(cls, v: str | None) -> str | None:
+        return v if v is None else check_gripper_ref(v)
 
 
 class IKConfig(_Section):

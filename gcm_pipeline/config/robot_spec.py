@@ -65,6 +65,7 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Strict, ValidationError, model_validator
 
+from gcm_pipeline.config.gripper_spec import load_gripper, mount_gripper
 from gcm_pipeline.config.sections import FiniteFloat, NonNegFloat
 from gcm_pipeline.config.tool_spec import ToolSection, build_tool, check_tool_files, spec_special
 from gcm_pipeline.config.validation import describe
@@ -153,12 +154,15 @@ def available_robots() -> list[str]:
     )
 
 
-def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
+def load_spec(name_or_path: str | os.PathLike[str], tool: str | None = None) -> RobotSpec:
     """Read and validate a robot spec.
 
     Args:
         name_or_path: A shipped spec name (``"panda"``, ``"ur5"``) or a path
             to a YAML file.
+        tool: ``robot.tool``: a registry gripper's name or a gripper YAML
+            path, mounted instead of the spec's own tool
+            (:func:`~gcm_pipeline.config.gripper_spec.mount_gripper`).
 
     Returns:
         The validated spec.
@@ -168,6 +172,8 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
             file, unknown key (names it and suggests the closest), bad value, or
             a file it names (model, mesh) that does not exist; one line
             ``robot spec '<path>': <key>: <problem>``.
+        ConfigError: ``robot.tool: ...``: an unknown or invalid gripper, or a
+            spec without a tool section (no bare flange).
     """
     path, raw = _read_spec_file(name_or_path)
     where = f"robot spec {str(path)!r}"
@@ -182,6 +188,8 @@ def load_spec(name_or_path: str | os.PathLike[str]) -> RobotSpec:
     if spec.tool is not None:
         check_tool_files(where, spec.tool)
     _check_model_files(where, spec)
+    if tool is not None:
+        spec = mount_gripper(spec, load_gripper(tool, "robot.tool"))
     return spec
 
 
@@ -258,12 +266,13 @@ def _check_model_files(where: str, spec: RobotSpec) -> None:
             raise RobotSpecError(f"{where}: model.package_dirs: {str(d)!r} is not a directory")
 
 
-def load_robot(name_or_path: str | os.PathLike[str] | Robot) -> Robot:
+def load_robot(name_or_path: str | os.PathLike[str] | Robot, tool: str | None = None) -> Robot:
     """Load a robot from a shipped spec name or a spec file.
 
     Args:
         name_or_path: ``"panda"``, ``"ur5"`` (see :func:`available_robots`), a path
             to a YAML spec, or a :class:`Robot` (returned as is).
+        tool: ``robot.tool``, a gripper mounted instead of the spec's tool (:func:`load_spec`).
 
     Returns:
         The robot.
@@ -274,4 +283,4 @@ def load_robot(name_or_path: str | os.PathLike[str] | Robot) -> Robot:
     """
     if isinstance(name_or_path, Robot):
         return name_or_path
-    return Robot(load_spec(name_or_path))
+    return Robot(load_spec(name_or_path, tool))

@@ -269,8 +269,8 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
 
     ``candidates.path``, ``candidates.mesh_root``, ``object.mesh``,
     ``environment.obstacles[].mesh``, ``output.dir`` (``default_out`` when
-    missing) and a ``robot.spec`` that is a path (ends in ``.yaml``/``.yml``
-    or has a ``/``) become absolute
+    missing) and a ``robot.spec``, ``robot.tool`` or ``candidates.gripper``
+    that is a path (ends in ``.yaml``/``.yml`` or has a ``/``) become absolute
     (normalised, symlinks kept); ``base`` is absolute.
 
     Raises:
@@ -292,6 +292,8 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
     fix(data.get("candidates"), "mesh_root", "candidates.mesh_root")
     fix(data.get("object"), "mesh", "object.mesh")
     fix(data.get("robot"), "spec", "robot.spec", only_paths=True)
+    fix(data.get("robot"), "tool", "robot.tool", only_paths=True)
+    fix(data.get("candidates"), "gripper", "candidates.gripper", only_paths=True)
     env = data.get("environment")
     if isinstance(env, dict) and isinstance(env.get("obstacles"), list):
         for i, obstacle in enumerate(env["obstacles"]):

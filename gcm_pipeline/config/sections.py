@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator, model_validator
 
 from gcm_pipeline.bounds import (
     DEFAULT_MAX_CANDIDATES,
@@ -23,8 +23,7 @@ from gcm_pipeline.bounds import (
     MAX_ADAPTIVE_LEVEL,
     MAX_LENGTH,
 )
-from gcm_pipeline.errors import unknown_choice
-from gcm_pipeline.sources.grippers import GRIPPERS
+from gcm_pipeline.sources.grippers import check_gripper_ref
 
 # Numbers and switches are strict: a bool is not a number (``--set
 # densify.subdivisions=true`` is an error, not 1), a number is not a bool, a
@@ -282,11 +281,13 @@ class CandidatesConfig(_Section):
                 data = {**data, "format": "graspgen"}
         return data
 
+    @field_validator("gripper")
+    @classmethod
+    def _gripper_ref(cls, v: str | None) -> str | None:
+        return v if v is None else check_gripper_ref(v)  # a shipped name or a YAML path
+
     @model_validator(mode="after")
     def _gripper_and_camera(self) -> CandidatesConfig:
-        if self.gripper is not None:
-            if self.gripper not in GRIPPERS:
-                raise ValueError(unknown_choice("gripper", self.gripper, GRIPPERS))
         if self.gripper is not None and self.grasp_to_tool is not None:
             raise ValueError("give 'gripper' or 'grasp_to_tool', not both")
         if self.gripper is not None and self.source == "file" and self.format in _POSE_FORMATS:

@@ -57,7 +57,6 @@ from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
-from gcm_pipeline.sources.grippers import GRIPPERS
 from gcm_pipeline.table import GraspTable
 
 __all__ = ["EXPORT_FORMATS", "ExportResult", "MoveItOptions", "RunConfig", "export_run"]
@@ -80,6 +79,9 @@ class MoveItOptions:
         retreat_direction: The retreat's direction (None: the approach reversed).
         retreat_frame: ``world`` or ``grasp``: the frame of ``retreat_direction``.
         retreat_distance: The retreat's distance [m].
+        finger_joints: The hand's finger joints among ``locked_joints`` (the
+            postures' joints; none: empty postures).
+        hand_frame: The hand's base link (the postures' frame; None: the grasp frame).
     """
 
     root_frame: str
@@ -91,6 +93,8 @@ class MoveItOptions:
     retreat_direction: tuple[float, float, float] | None = None
     retreat_frame: str = "world"
     retreat_distance: float = 0.0
+    finger_joints: tuple[str, ...] = ()
+    hand_frame: str | None = None
 
 
 class RunConfig(Protocol):
@@ -442,13 +446,9 @@ def _write_moveit(g: GraspTable, options: MoveItOptions, path: Path) -> None:
     metric = options.metric
     quality = np.asarray(g["grasp_quality"], dtype=float)
     width = np.asarray(g["width"], dtype=float) if "width" in g else np.full(n, np.nan)
-    gripper = next(
-        (s for s in GRIPPERS.values() if s.finger_joints and set(s.finger_joints) <= set(locked)),
-        None,
-    )
-    joints = list(gripper.finger_joints) if gripper is not None else []
+    joints = list(options.finger_joints)
     open_pos = [float(locked[j]) for j in joints]
-    hand_frame = gripper.hand_frame if gripper is not None else tool
+    hand_frame = options.hand_frame or tool
     d_app = options.approach_distance
     if options.retreat_direction is not None:
         direction = np.asarray(options.retreat_direction, dtype=float)

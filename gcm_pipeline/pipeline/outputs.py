@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gcm_pipeline.config.gripper_spec import gripper_registry
 from gcm_pipeline.config.reach_sections import ObstacleConfig, TableConfig
 from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.config.run import Config, load_config, takes_config
@@ -135,8 +136,17 @@ class ConfigRunExport:
         ``base_pose``), ``ranking.metric``, ``approach`` and ``retreat``.
         """
         cfg = self.config
-        spec = load_spec(cfg.robot.spec)
+        spec = load_spec(cfg.robot.spec, cfg.robot.tool)
         retreat = cfg.retreat
+        locked = set(spec.locked_joints)
+        hand = next(  # a registry hand that the model carries, its fingers locked
+            (
+                g
+                for g in gripper_registry().values()
+                if g.finger_joints and set(g.finger_joints) <= locked
+            ),
+            None,
+        )
         return MoveItOptions(
             root_frame=root_link(spec),
             grasp_frame=spec.grasp_frame,
@@ -147,6 +157,8 @@ class ConfigRunExport:
             retreat_direction=None if retreat is None else retreat.direction,
             retreat_frame="world" if retreat is None else retreat.frame,
             retreat_distance=0.0 if retreat is None else retreat.distance,
+            finger_joints=() if hand is None else hand.finger_joints,
+            hand_frame=None if hand is None else hand.hand_frame,
         )
 
 

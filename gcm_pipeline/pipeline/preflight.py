@@ -6,6 +6,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from gcm_pipeline.config.gripper_spec import load_gripper
 from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
@@ -13,6 +14,7 @@ from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.sources.file_object import warn_if_open
+from gcm_pipeline.sources.grippers import is_gripper_path
 
 log = logging.getLogger(__name__)
 
@@ -20,8 +22,9 @@ log = logging.getLogger(__name__)
 def input_files(cfg: Config) -> dict[str, Path]:
     """The files a config reads, keyed by their dotted config key.
 
-    ``candidates.path``, ``object.mesh``, ``environment.obstacles.<i>.mesh``
-    and ``robot.spec`` when it is a spec file rather than a shipped name.
+    ``candidates.path``, ``object.mesh``, ``environment.obstacles.<i>.mesh``,
+    ``robot.spec`` when it is a spec file rather than a shipped name, and
+    ``robot.tool`` / ``candidates.gripper`` when they are gripper files.
     """
     files: dict[str, Path] = {}
     if cfg.candidates.path is not None:
@@ -34,6 +37,12 @@ def input_files(cfg: Config) -> dict[str, Path]:
     spec = cfg.robot.spec
     if spec.endswith((".yaml", ".yml")) or "/" in spec:
         files["robot.spec"] = Path(spec)
+    for key, gripper in (
+        ("robot.tool", cfg.robot.tool),
+        ("candidates.gripper", cfg.candidates.gripper),
+    ):
+        if gripper is not None and is_gripper_path(gripper):
+            files[key] = Path(gripper)
     return files
 
 
@@ -45,6 +54,8 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
 
     - every file the config reads exists (:func:`input_files`); relative
       paths were resolved against the config's folder;
+    - ``candidates.gripper`` and ``robot.tool`` name a registry gripper or
+      a valid gripper file; ``robot.tool`` is mounted on the spec's flange;
     - ``robot.spec`` names a shipped spec or a valid spec file whose model
       exists; the robot is built (kinematics, locked joints inside their
       ranges, a readable SRDF, collision meshes that load);
@@ -74,17 +85,22 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         except (OSError, ValueError):
             found = there = False
         if not found:
-            what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
-                key, "mesh file"
-            )
+            what = {
+                "candidates.path": "grasp file",
+                "robot.spec": "robot spec file",
+                "robot.tool": "gripper file",
+                "candidates.gripper": "gripper file",
+            }.get(key, "mesh file")
             if there:  # a directory, a device (/dev/zero), a pipe
                 raise InputError(f"{key}: {what} {path} is not a regular file")
             raise InputError(
                 f"{key}: {what} not found: {path} (relative paths resolve against the "
                 "config's folder)"
             )
+    if cfg.candidates.gripper is not None:
+        load_gripper(cfg.candidates.gripper)  # a bad gripper file fails before any work
     try:
-        robot = Robot(load_spec(cfg.robot.spec))
+        robot = Robot(load_spec(cfg.robot.spec, cfg.robot.tool))
         robot.build_geometry("collision")
     except RobotSpecError as exc:
         raise type(exc)(f"robot.spec: {exc}") from exc

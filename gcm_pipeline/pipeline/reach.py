@@ -26,8 +26,8 @@ log = logging.getLogger(__name__)
 
 @takes_config
 def robot_from_config(cfg: Config) -> Robot:
-    """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path)."""
-    return robot_spec.load_robot(cfg.robot.spec)
+    """The robot of ``cfg.robot.spec`` (a shipped name or a spec YAML path) with ``robot.tool``."""
+    return robot_spec.load_robot(cfg.robot.spec, cfg.robot.tool)
 
 
 #: The same as :func:`robot_from_config` (``gcm_pipeline.load_robot`` is the

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.config.gripper_spec import gripper_registry, load_gripper
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import CandidatesConfig
 from gcm_pipeline.errors import ConfigError, InputError
@@ -14,7 +15,7 @@ from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.sources.antipodal import antipodal_candidates, object_mesh
 from gcm_pipeline.sources.files import file_format, read_grasps, to_grasp_frame
 from gcm_pipeline.sources.generators import add_noise, generate
-from gcm_pipeline.sources.grippers import get_gripper
+from gcm_pipeline.sources.grippers import GripperSpec
 from gcm_pipeline.table import GraspTable
 
 log = logging.getLogger(__name__)
@@ -47,8 +48,14 @@ def candidate_poses(
         filtered = grasps.selection.kept < grasps.selection.read
         if report is not None and (filtered or c.min_score is not None or c.limit is not None):
             report["selection"] = grasps.selection.as_dict()
+        configured = None if c.gripper is None else load_gripper(c.gripper)
         poses, choice = to_grasp_frame(
-            grasps, c.path, fmt, gripper=c.gripper, grasp_to_tool=to_tool
+            grasps,
+            c.path,
+            fmt,
+            gripper=configured,
+            grasp_to_tool=to_tool,
+            registry=gripper_registry(),
         )
         if choice is not None and report is not None:
             report["grasp_frame"] = choice.as_dict() | {"describe": choice.describe()}
@@ -63,7 +70,7 @@ def candidate_poses(
     if c.source == "antipodal":
         if obj is None:
             raise ConfigError("candidates.source 'antipodal' samples an object: add 'object'")
-        gripper = get_gripper(c.gripper or "franka_panda")
+        gripper = sampler_gripper(cfg)
         d = obj.dims
         mesh = object_mesh(
             obj.shape, radius=d.radius, height=d.height, size=d.size, mesh=obj.mesh, scale=obj.scale
@@ -104,6 +111,31 @@ def candidate_poses(
         poses = poses @ to_tool
     assert obj is not None
     return obj.pose.matrix() @ poses, {}
+
+
+def sampler_gripper(cfg: Config) -> GripperSpec:
+    """The antipodal sampler's hand: ``candidates.gripper``, else ``robot.tool``, else the Panda's.
+
+    Raises:
+        ConfigError: ``candidates.gripper`` and ``robot.tool`` name different
+            grippers (grasps sampled for one hand, checked with another).
+    """
+    c, tool = cfg.candidates, cfg.robot.tool
+    if c.gripper is not None and tool is not None:
+        sampled, mounted = load_gripper(c.gripper), load_gripper(tool, "robot.tool")
+        if (sampled.name, sampled.path) != (mounted.name, mounted.path):
+            raise ConfigError(
+                f"candidates.gripper: {c.gripper!r} samples grasps for another hand than the "
+                f"robot carries (robot.tool {tool!r}); drop candidates.gripper to sample for "
+                "the robot's tool",
+                key="candidates.gripper",
+                value=c.gripper,
+            )
+    if c.gripper is not None:
+        return load_gripper(c.gripper)
+    if tool is not None:
+        return load_gripper(tool, "robot.tool")
+    return load_gripper("franka_panda")
 
 
 @takes_config

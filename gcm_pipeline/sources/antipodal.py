@@ -346,7 +346,7 @@ def antipodal_candidates(
     Args:
         mesh: The object (:func:`object_mesh`) in its own frame.
         count: Number of grasps wanted.
-        gripper: The gripper (``candidates.gripper``).
+        gripper: The gripper (``candidates.gripper``, else ``robot.tool``'s).
         rng: Random generator.
         shape: The object's shape (for the message).
         friction: Friction coefficient of the contacts.
@@ -358,7 +358,16 @@ def antipodal_candidates(
 
     Raises:
         InputError: No antipodal grasp found.
+        ConfigError: A gripper without fingers (a suction cup).
     """
+    if gripper.kind != "parallel_jaw":
+        raise ConfigError(
+            f"candidates.source 'antipodal': gripper {gripper.name!r} is a {gripper.kind} "
+            "gripper; the sampler places two fingers (a parallel_jaw gripper such as "
+            "franka_panda, robotiq_2f_85, robotiq_2f_140)",
+            key="candidates.gripper",
+            value=gripper.name,
+        )
     world = np.eye(4) if world is None else world
     poses, columns = sample_antipodal(
         mesh, count, gripper, rng, friction=friction, world=world, floor_z=floor_z

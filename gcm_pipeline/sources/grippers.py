@@ -41,36 +41,51 @@ A file with none of these or naming an unknown gripper is refused with the
 choices (:func:`choose_gripper`); the choice is logged and kept in
 ``summary.json``'s ``grasp_frame`` (:class:`GripperChoice`).
 
-This registry is about grasp files and sampling; the robot's own tool
-geometry (collision shapes on the flange) lives in the robot spec.
+The registry is data: one YAML file per gripper in ``gcm_pipeline/grippers/``
+(:func:`shipped_grippers`), or a user's own file, read and validated by
+:mod:`gcm_pipeline.config.gripper_spec` into a :class:`GripperSpec`. The same
+definition maps grasp files (:meth:`GripperSpec.to_tool`), sizes the antipodal
+sampler's hand and, as :attr:`GripperSpec.tool`, is the tool mounted on an
+arm's flange (``robot.tool``).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.errors import ConfigError, InputError, choice_error
+from gcm_pipeline.errors import ConfigError, InputError, choice_error, unknown_choice
+
+if TYPE_CHECKING:  # the robot layer loads coal: configs read the gripper names without it
+    from gcm_pipeline.robot.tool import ToolSpec
 
 __all__ = [
     "CONVENTIONS",
     "DATASET_GRIPPERS",
-    "GRIPPERS",
+    "KINDS",
     "GripperChoice",
     "GripperSpec",
+    "check_gripper_ref",
     "choose_gripper",
     "find_gripper",
-    "get_gripper",
-    "gripper_names",
+    "is_gripper_path",
+    "registry_dir",
+    "shipped_grippers",
 ]
 
 log = logging.getLogger(__name__)
 
 #: Frame conventions of grasp files (see the module docstring).
 CONVENTIONS = ("base", "center")
+#: Kinds of gripper: two fingers closing on the object, or a suction cup.
+KINDS = ("parallel_jaw", "suction")
 
 
 @dataclass(frozen=True)
@@ -86,8 +101,11 @@ class GripperSpec:
             contacts at most this deep.
         base_to_tcp: Distance from the hand's base frame to the fingertip
             midpoint (the robot's grasp frame) along the approach [m].
-        closing_axis_tool: The robot's grasp frame axis along which the
-            fingers close (``"y"`` for ``panda_hand_tcp``).
+        kind: ``parallel_jaw`` or ``suction`` (no fingers: ``max_width`` is
+            0 and the antipodal sampler refuses it).
+        closing_axis: The axis of the hand's base frame along which the
+            fingers close (``x`` in the ACRONYM/GraspGen convention); the
+            robot's grasp frame closes along its y.
         finger_joints: The hand's finger joints in robot models (exported
             postures; a robot spec that locks them carries this hand).
         hand_frame: The hand's base link in robot models.
@@ -100,6 +118,11 @@ class GripperSpec:
             collision check points).
         aliases: Other names grasp files give this gripper (ACRONYM's
             ``gripper/type``, GraspGen's gripper name).
+        tool: The gripper as a tool for an arm's flange: its collision and
+            visual shapes in its base frame, ``mount`` (base in the flange
+            frame), ``tcp`` (= ``to_tool("base")``); ``flange`` is filled in
+            when it is mounted (``robot.tool``). None: not given.
+        path: The YAML file it was read from.
     """
 
     name: str
@@ -107,7 +130,8 @@ class GripperSpec:
     max_width: float
     finger_depth: float
     base_to_tcp: float
-    closing_axis_tool: str = "y"
+    kind: str = "parallel_jaw"
+    closing_axis: str = "x"
     finger_joints: tuple[str, ...] = ()
     hand_frame: str = ""
     finger_length: float = 0.037
@@ -116,6 +140,8 @@ class GripperSpec:
     finger_width: float = 0.021
     palm_size: tuple[float, float, float] = (0.064, 0.208, 0.092)
     aliases: tuple[str, ...] = ()
+    tool: ToolSpec | None = None
+    path: Path | None = None
 
     def to_tool(self, convention: str, depth: np.ndarray | float | None = None) -> np.ndarray:
         """The right-hand transform from a file's gripper frame to the robot's grasp frame.
@@ -131,9 +157,10 @@ class GripperSpec:
             (4, 4), or (N, 4, 4) for an array ``depth``: ``T_tool = T_file @ to_tool``.
         """
         if convention == "base":
-            # tool z = file z (approach); tool y = file x (closing); tool x = y x z = -file y
             m = np.eye(4)
-            m[:3, :3] = [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+            if self.closing_axis == "x":
+                # tool z = file z (approach); tool y = file x (closing); tool x = y x z = -file y
+                m[:3, :3] = [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
             m[2, 3] = self.base_to_tcp
             return m
         if convention == "center":
@@ -171,28 +198,6 @@ class GripperSpec:
         )
 
 
-#: Known grippers by name.
-GRIPPERS: dict[str, GripperSpec] = {
-    "franka_panda": GripperSpec(
-        name="franka_panda",
-        description="Franka Hand (Panda): 80 mm stroke, TCP 0.1034 m from the hand base",
-        max_width=0.08,
-        finger_depth=0.03,
-        base_to_tcp=0.1034,
-        finger_joints=("panda_finger_joint1", "panda_finger_joint2"),
-        hand_frame="panda_hand",
-        # the sizes of example-robot-data's Panda hand and finger collision
-        # geometry, measured in the panda_hand_tcp frame with the fingers open
-        finger_length=0.037,
-        finger_tip=0.009,
-        finger_thickness=0.026,
-        finger_width=0.021,
-        palm_size=(0.064, 0.208, 0.092),
-        # ACRONYM's gripper/type; its mesh file and GraspGen's config name the hand so too
-        aliases=("panda", "franka", "franka_gripper", "panda_gripper"),
-    ),
-}
-
 #: The gripper a format's dataset was made with, for files that name none. ACRONYM's
 #: grasps are all for the Franka hand (``gripper/type: panda``); Contact-GraspNet is
 #: trained on ACRONYM; GraspNet-1Billion's grasp-centre rows fit any parallel-jaw hand,
@@ -206,30 +211,44 @@ DATASET_GRIPPERS: dict[str, str] = {
 }
 
 
-def gripper_names() -> list[str]:
-    """Names of the known grippers, sorted."""
-    return sorted(GRIPPERS)
+def registry_dir() -> Any:
+    """The folder of the shipped gripper YAML files (``gcm_pipeline/grippers``)."""
+    return resources.files("gcm_pipeline") / "grippers"
 
 
-def find_gripper(name: str) -> GripperSpec | None:
+def shipped_grippers() -> list[str]:
+    """Names of the grippers shipped with the package (their YAML files' stems), sorted."""
+    return sorted(
+        p.name[: -len(".yaml")] for p in registry_dir().iterdir() if p.name.endswith(".yaml")
+    )
+
+
+def is_gripper_path(text: str) -> bool:
+    """Whether ``candidates.gripper`` / ``robot.tool`` names a file, not a shipped gripper."""
+    return text.endswith((".yaml", ".yml")) or "/" in text or os.sep in text
+
+
+def check_gripper_ref(text: str) -> str:
+    """A shipped gripper's name or a YAML path, as the config takes it.
+
+    Raises:
+        ValueError: Neither (the message lists the shipped grippers).
+    """
+    if not is_gripper_path(text) and text not in shipped_grippers():
+        raise ValueError(
+            unknown_choice("gripper", text, shipped_grippers())
+            + " (or a path to a gripper YAML file)"
+        )
+    return text
+
+
+def find_gripper(name: str, registry: Mapping[str, GripperSpec]) -> GripperSpec | None:
     """The gripper a file calls ``name`` (a registry name or an alias, any case), or None."""
     key = name.strip().lower()
-    for spec in GRIPPERS.values():
+    for spec in registry.values():
         if key == spec.name or key in spec.aliases:
             return spec
     return None
-
-
-def get_gripper(name: str) -> GripperSpec:
-    """The gripper called ``name``.
-
-    Raises:
-        ConfigError: An unknown name (lists the known ones).
-    """
-    try:
-        return GRIPPERS[name]
-    except KeyError:
-        raise choice_error(ConfigError, "gripper", name, GRIPPERS) from None
 
 
 @dataclass(frozen=True)
@@ -273,16 +292,22 @@ class GripperChoice:
 
 
 def choose_gripper(
-    path: object, fmt: str, configured: str | None, mapped: bool, file_gripper: str | None
+    path: object,
+    fmt: str,
+    configured: GripperSpec | None,
+    mapped: bool,
+    file_gripper: str | None,
+    registry: Mapping[str, GripperSpec],
 ) -> GripperChoice:
     """The gripper whose frame the file's poses are in (see the module docstring).
 
     Args:
         path: The file (for messages).
         fmt: Its format (one of :data:`~gcm_pipeline.sources.files.GRIPPER_FORMATS`).
-        configured: ``candidates.gripper``.
+        configured: ``candidates.gripper``, read.
         mapped: Whether ``candidates.grasp_to_tool`` is given.
         file_gripper: The gripper the file names, if any.
+        registry: The shipped grippers by name (a file's gripper is looked up here).
 
     Raises:
         InputError: The file names a gripper the registry does not know, or
@@ -292,10 +317,10 @@ def choose_gripper(
     """
     if mapped:
         return GripperChoice(fmt, None, "grasp_to_tool", file_gripper)
-    known = ", ".join(gripper_names())
+    known = ", ".join(sorted(registry))
     if configured is not None:
-        spec = get_gripper(configured)
-        if file_gripper is not None and find_gripper(file_gripper) is not spec:
+        spec = configured
+        if file_gripper is not None and find_gripper(file_gripper, registry) is not spec:
             log.warning(
                 "%s: grasps made for gripper %r are mapped onto %r (candidates.gripper)",
                 path,
@@ -304,7 +329,7 @@ def choose_gripper(
             )
         return GripperChoice(fmt, spec.name, "config", file_gripper)
     if file_gripper is not None:
-        found = find_gripper(file_gripper)
+        found = find_gripper(file_gripper, registry)
         if found is None:
             raise _refused(
                 f"{path}: its grasps are for gripper {file_gripper!r}, which the gripper "
@@ -313,6 +338,7 @@ def choose_gripper(
                 "map it as a known one",
                 path,
                 file_gripper,
+                registry,
             )
         return GripperChoice(fmt, found.name, "file", file_gripper)
     if fmt in DATASET_GRIPPERS:
@@ -323,14 +349,17 @@ def choose_gripper(
         f"{known}) or candidates.grasp_to_tool",
         path,
         None,
+        registry,
     )
 
 
-def _refused(message: str, path: object, value: str | None) -> InputError:
+def _refused(
+    message: str, path: object, value: str | None, registry: Mapping[str, GripperSpec]
+) -> InputError:
     return InputError(
         message,
         path=path,  # type: ignore[arg-type]
         key="candidates.gripper",
         value=value,
-        choices=(*gripper_names(), "grasp_to_tool"),
+        choices=(*sorted(registry), "grasp_to_tool"),
     )

@@ -93,12 +93,12 @@ class PlacementWorker:
     """
 
     def __init__(self, warm: dict[str, Any] | None = None) -> None:
-        self._robots: dict[str, Any] = {}
+        self._robots: dict[tuple[str, str | None], Any] = {}
         self.node = self._node()
         self.pid = os.getpid()
         if warm is not None:
             cfg = Config.from_dict(warm, source="study base config")
-            robot = self._robot(cfg.robot.spec)
+            robot = self._robot(cfg.robot.spec, cfg.robot.tool)
             self._warm(robot, cfg.seed)
 
     @staticmethod
@@ -112,10 +112,10 @@ class PlacementWorker:
             pass
         return "local"
 
-    def _robot(self, spec: str) -> Any:
-        robot = self._robots.get(spec)
+    def _robot(self, spec: str, tool: str | None) -> Any:
+        robot = self._robots.get((spec, tool))
         if robot is None:
-            robot = self._robots[spec] = load_robot(spec)
+            robot = self._robots[(spec, tool)] = load_robot(spec, tool)
         return robot
 
     @staticmethod
@@ -161,7 +161,7 @@ class PlacementWorker:
         cfg = Config.from_dict(data, source="placement config")
         # one IK process per worker: the study runs the workers in parallel
         cfg = cfg.model_copy(update={"ik": cfg.ik.model_copy(update={"workers": 1})})
-        robot = self._robot(cfg.robot.spec)
+        robot = self._robot(cfg.robot.spec, cfg.robot.tool)
         # the pipeline's own sequence of stages (what gcm run does), on this worker's robot
         result = Pipeline(cfg).run(progress=False, write=False, robot=robot)
         grasps = result.grasps

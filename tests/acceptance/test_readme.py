@@ -69,6 +69,12 @@ def test_config_sketch_validates() -> None:
         if "model" in data:  # a robot spec of a user's URDF: written and loaded
             _load_readme_spec(data)
             continue
+        if "base_to_tcp" in data:  # a gripper file (see Grippers)
+            from gcm_pipeline.config.gripper_spec import parse_gripper
+
+            gripper = parse_gripper(data, ROOT / "my_gripper.yaml", page)
+            assert gripper.tool is not None and gripper.tool.collision
+            continue
         if "tool" in data:  # a robot spec's tool section (see Tools)
             from gcm_pipeline.config.tool_spec import parse_tool
 

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from gcm_pipeline.config import Config
+from gcm_pipeline.config.gripper_spec import load_gripper
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates
 from gcm_pipeline.sources.antipodal import _gripper_points
-from gcm_pipeline.sources.grippers import get_gripper
 
-PANDA = get_gripper("franka_panda")
+PANDA = load_gripper("franka_panda")
 MU = 0.5
 
 

@@ -23,11 +23,11 @@ from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config
+from gcm_pipeline.config.gripper_spec import load_gripper
 from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates
 from gcm_pipeline.sources.files import read_contact_graspnet, read_grasp_file, read_grasps
-from gcm_pipeline.sources.grippers import get_gripper
 
 BOX_SIZE = (0.10, 0.06, 0.10)
 BOX_XYZ = (0.5, 0.0, 0.05)  # the box stands on the table: top face at z = 0.10
@@ -70,7 +70,7 @@ def assert_pose(m: np.ndarray, want: np.ndarray) -> None:
 
 
 def test_registry_base_convention_is_the_acronym_grasp_to_tool():
-    g = get_gripper("franka_panda")
+    g = load_gripper("franka_panda")
     # the README's hand-written map for ACRONYM files
     want = config(
         {"path": "x.npy", "grasp_to_tool": {"xyz": [0, 0, 0.1034], "rpy_deg": [0, 0, -90]}}
@@ -81,7 +81,7 @@ def test_registry_base_convention_is_the_acronym_grasp_to_tool():
 
 def test_registry_unknown_gripper_lists_the_known_ones():
     with pytest.raises(ConfigError, match="unknown gripper 'robotiq'.*valid: franka_panda"):
-        get_gripper("robotiq")
+        load_gripper("robotiq")
     with pytest.raises(ConfigError, match="candidates.*unknown gripper 'panda_hand'.*franka_panda"):
         config({"path": "g.json", "gripper": "panda_hand"})
 
@@ -357,7 +357,7 @@ def graspnet_row(
     where the Panda's are when its TCP is at the top face (8.9 mm past it, see
     test_panda_fingertips_are_finger_tip_past_the_tcp)."""
     if tips is None:
-        tips = TOP + get_gripper("franka_panda").finger_tip * APPROACH
+        tips = TOP + load_gripper("franka_panda").finger_tip * APPROACH
     r = np.column_stack([APPROACH, CLOSING, np.cross(APPROACH, CLOSING)])
     center = tips - depth * APPROACH
     return np.r_[score, 0.06, 0.02, depth, r.reshape(-1), center, object_id]
@@ -456,7 +456,7 @@ def test_graspnet_fingertips_land_where_graspnet_draws_them(tmp_path):
     the centre. The Panda's fingertips are ``finger_tip`` past its TCP (example-robot-data's
     finger meshes end 8.9 mm past panda_hand_tcp), so the TCP sits ``depth - finger_tip``
     past the centre and the real fingertips touch the face, not 9 mm below it."""
-    g = get_gripper("franka_panda")
+    g = load_gripper("franka_panda")
     assert 0.008 < g.finger_tip < 0.010
     path = tmp_path / "gg.npy"
     np.save(path, np.stack([graspnet_row(0.01, tips=TOP), graspnet_row(0.04, tips=TOP)]))
@@ -491,7 +491,7 @@ def test_panda_fingertips_are_finger_tip_past_the_tcp(panda):
         w = v @ gdata.oMg[i].rotation.T + gdata.oMg[i].translation
         tips.append(((w - tcp.translation) @ tcp.rotation)[:, 2].max())
     assert tips
-    np.testing.assert_allclose(max(tips), get_gripper("franka_panda").finger_tip, atol=5e-4)
+    np.testing.assert_allclose(max(tips), load_gripper("franka_panda").finger_tip, atol=5e-4)
 
 
 # ------------------------------------------- hostile files: one line, no crash
@@ -720,13 +720,14 @@ def imported_report(cfg: Config, report: dict):
 
 
 def test_a_file_whose_gripper_is_unknown_is_refused_with_the_choices(tmp_path):
-    path = _acronym_file(tmp_path / "g.h5", "robotiq_2f_85")
+    path = _acronym_file(tmp_path / "g.h5", "barrett_bh8")
     with pytest.raises(InputError) as info:
         generate_candidates(config({"path": str(path), "frame": "object"}))
     msg = str(info.value)
-    assert "'robotiq_2f_85'" in msg and "known: franka_panda" in msg and "grasp_to_tool" in msg
-    assert info.value.value == "robotiq_2f_85"
-    assert info.value.choices == ("franka_panda", "grasp_to_tool")
+    assert "'barrett_bh8'" in msg and "known: franka_panda" in msg and "grasp_to_tool" in msg
+    assert info.value.value == "barrett_bh8"
+    registry = ("franka_panda", "robotiq_2f_140", "robotiq_2f_85", "single_suction_cup_30mm")
+    assert info.value.choices == (*registry, "grasp_to_tool")
     assert str(path) in msg and "\n" not in msg
     # an explicit map is the way out, and is reported
     report: dict = {}
@@ -735,12 +736,17 @@ def test_a_file_whose_gripper_is_unknown_is_refused_with_the_choices(tmp_path):
         report=report,
     )
     assert report["grasp_frame"]["chosen_by"] == "grasp_to_tool"
-    assert report["grasp_frame"]["file_gripper"] == "robotiq_2f_85"
+    assert report["grasp_frame"]["file_gripper"] == "barrett_bh8"
 
 
 @pytest.mark.parametrize(
     ("named", "outcome"),
-    [(None, "refused"), ("franka_panda", "file"), ({"name": "robotiq_2f_140"}, "unknown")],
+    [
+        (None, "refused"),
+        ("franka_panda", "file"),
+        ({"name": "robotiq_2f_140"}, "robotiq"),
+        ({"name": "barrett_bh8"}, "unknown"),
+    ],
 )
 def test_graspgen_grippers(tmp_path, named, outcome):
     """GraspGen publishes grasps for several grippers: its file must say which, or the config."""
@@ -756,6 +762,18 @@ def test_graspgen_grippers(tmp_path, named, outcome):
         assert_pose(poses[0], expected_tool())
         assert report["grasp_frame"]["chosen_by"] == "file"
         return
+    if outcome == "robotiq":  # the registry's 2F-140: TCP 0.195 m out (GraspGen's depth)
+        poses, _ = imported_report(cfg, report)
+        base = graspgen_base_in_object()
+        base[:3, 3] += BOX_XYZ  # the object's pose: a translation
+        np.testing.assert_allclose(poses[0][:3, 3], base[:3, 3] + 0.195 * base[:3, 2], atol=1e-9)
+        np.testing.assert_allclose(poses[0][:3, 1], base[:3, 0], atol=1e-9)  # closing: base x
+        np.testing.assert_allclose(poses[0][:3, 2], base[:3, 2], atol=1e-9)  # approach: base z
+        assert report["grasp_frame"] == report["grasp_frame"] | {
+            "gripper": "robotiq_2f_140",
+            "chosen_by": "file",
+        }
+        return
     with pytest.raises(InputError) as info:
         generate_candidates(cfg)
     msg = str(info.value)
@@ -763,7 +781,7 @@ def test_graspgen_grippers(tmp_path, named, outcome):
     if outcome == "refused":
         assert "does not name its gripper" in msg and "candidates.gripper" in msg
     else:
-        assert "'robotiq_2f_140'" in msg
+        assert "'barrett_bh8'" in msg
     # the config settles it
     poses, _ = imported_report(
         config({"path": str(path), "frame": "object", "gripper": "franka_panda"}), report
@@ -1017,10 +1035,10 @@ def test_a_csv_grasp_row_of_the_wrong_width_and_a_bad_quaternion_carry_the_line(
 
 
 def test_an_unknown_gripper_carries_the_value_and_the_choices():
-    from gcm_pipeline.sources.grippers import get_gripper
+    from gcm_pipeline.config.gripper_spec import load_gripper
 
     with pytest.raises(ConfigError) as info:
-        get_gripper("franka_pandaa")
+        load_gripper("franka_pandaa")
     assert (info.value.value, "franka_panda" in info.value.choices) == ("franka_pandaa", True)
     assert info.value.choices == tuple(sorted(info.value.choices))
 

@@ -7,11 +7,11 @@ import pytest
 from helpers import DATA
 
 from gcm_pipeline.config import Config
+from gcm_pipeline.config.gripper_spec import load_gripper
 from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import build_manifold, densify, generate_candidates
 from gcm_pipeline.sources.files import read_grasp_file
-from gcm_pipeline.sources.grippers import get_gripper
 
 ACRONYM = DATA / "acronym"
 MUG_H5 = ACRONYM / "Mug_10f6e09036350e92b3f21f1137c3c347_0.0002682457830986903.h5"
@@ -23,7 +23,7 @@ MUG_POSE = {"xyz": [0.5, -0.1, -0.0514], "rpy_deg": [0, 0, 30]}
     [("base", None), ("center", None), ("center", 0.02), ("center", np.array([0.0, 0.01, 0.03]))],
 )
 def test_from_tool_undoes_to_tool(convention, depth):
-    spec = get_gripper("franka_panda")
+    spec = load_gripper("franka_panda")
     to, back = spec.to_tool(convention, depth), spec.from_tool(convention, depth)
     assert back.shape == to.shape
     np.testing.assert_allclose(to @ back, np.broadcast_to(np.eye(4), to.shape), atol=1e-15)
@@ -32,7 +32,7 @@ def test_from_tool_undoes_to_tool(convention, depth):
 
 def test_from_tool_names_the_conventions_on_a_bad_one():
     with pytest.raises(ConfigError, match="base.*center"):
-        get_gripper("franka_panda").from_tool("tip")
+        load_gripper("franka_panda").from_tool("tip")
 
 
 def test_acronym_rows_map_back_to_the_file_and_blends_stay_rigid():
@@ -62,7 +62,7 @@ def test_acronym_rows_map_back_to_the_file_and_blends_stay_rigid():
     report: dict = {}
     grasps = generate_candidates(cfg, report=report)
     dense = densify(grasps, build_manifold(grasps, cfg), cfg)
-    spec = get_gripper(report["grasp_frame"]["gripper"])
+    spec = load_gripper(report["grasp_frame"]["gripper"])
     world = dq_to_matrix(np.asarray(dense["dq"]))
     back = np.linalg.inv(cfg.object.pose.matrix()) @ world @ spec.from_tool("base")
 

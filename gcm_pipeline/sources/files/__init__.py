@@ -42,6 +42,7 @@ them with joint 7 differing by pi, so the choice can change reachability.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +59,7 @@ from gcm_pipeline.sources.files.npy import read_npy
 from gcm_pipeline.sources.files.npz import read_npz
 from gcm_pipeline.sources.files.select import Selection, select_grasps
 from gcm_pipeline.sources.files.sniff import check_format, sniff
-from gcm_pipeline.sources.grippers import GripperChoice, choose_gripper, get_gripper
+from gcm_pipeline.sources.grippers import GripperChoice, GripperSpec, choose_gripper
 
 __all__ = [
     "ACRONYM_INSTALL_HINT",
@@ -171,8 +172,9 @@ def to_grasp_frame(
     path: str | Path,
     fmt: str | None,
     *,
-    gripper: str | None = None,
+    gripper: GripperSpec | None = None,
     grasp_to_tool: np.ndarray | None = None,
+    registry: Mapping[str, GripperSpec] | None = None,
 ) -> tuple[np.ndarray, GripperChoice | None]:
     """Poses (N, 4, 4) of the robot's grasp frame, and how a gripper frame was mapped.
 
@@ -180,9 +182,12 @@ def to_grasp_frame(
         grasps: As :func:`read_grasps` read them.
         path: The file (for messages).
         fmt: Its format (None: ``npy``/``npz``/``csv`` told by the suffix).
-        gripper: The configured gripper (``candidates.gripper``), if any.
+        gripper: The configured gripper (``candidates.gripper``, read), if any.
         grasp_to_tool: (4, 4) the file's frame -> the robot's grasp frame, on
             the right (``candidates.grasp_to_tool``), if given.
+        registry: The shipped grippers by name, where a gripper the file names
+            (or its dataset's) is looked up
+            (:func:`~gcm_pipeline.config.gripper_spec.gripper_registry`).
 
     Returns:
         ``(poses, choice)``: ``choice`` is None for poses of the grasp frame
@@ -196,12 +201,15 @@ def to_grasp_frame(
     if fmt not in GRIPPER_FORMATS:
         return (poses if grasp_to_tool is None else poses @ grasp_to_tool), None
     assert fmt is not None
-    choice = choose_gripper(path, fmt, gripper, grasp_to_tool is not None, grasps.gripper)
+    known = {} if registry is None else registry
+    choice = choose_gripper(path, fmt, gripper, grasp_to_tool is not None, grasps.gripper, known)
     log.info("candidates: %s: gripper frame of %s", path, choice.describe())
     if grasp_to_tool is not None:
         return poses @ grasp_to_tool, choice
     assert choice.gripper is not None
-    return poses @ get_gripper(choice.gripper).to_tool(grasps.convention, grasps.depth), choice
+    spec = gripper if choice.chosen_by == "config" else known[choice.gripper]
+    assert spec is not None
+    return poses @ spec.to_tool(grasps.convention, grasps.depth), choice
 
 
 def _infer_format(path: Path) -> str:

@@ -20,14 +20,18 @@ log = logging.getLogger(__name__)
 def input_files(cfg: Config) -> dict[str, Path]:
     """The files a config reads, keyed by their dotted config key.
 
-    ``candidates.path``, ``object.mesh``, ``environment.obstacles.<i>.mesh``
-    and ``robot.spec`` when it is a spec file rather than a shipped name.
+    ``candidates.path``, ``object.mesh``, ``objects.<i>.mesh``,
+    ``environment.obstacles.<i>.mesh`` and ``robot.spec`` when it is a spec
+    file rather than a shipped name.
     """
     files: dict[str, Path] = {}
     if cfg.candidates.path is not None:
         files["candidates.path"] = Path(cfg.candidates.path)
     if cfg.object is not None and cfg.object.mesh is not None:
         files["object.mesh"] = Path(cfg.object.mesh)
+    for i, obj in enumerate(cfg.objects or ()):
+        if obj.mesh is not None:
+            files[f"objects.{i}.mesh"] = Path(obj.mesh)
     for i, obstacle in enumerate(cfg.environment.obstacles):
         if obstacle.mesh is not None:
             files[f"environment.obstacles.{i}.mesh"] = Path(obstacle.mesh)
@@ -35,6 +39,29 @@ def input_files(cfg: Config) -> dict[str, Path]:
     if spec.endswith((".yaml", ".yml")) or "/" in spec:
         files["robot.spec"] = Path(spec)
     return files
+
+
+def check_input_files(cfg: Config) -> None:
+    """Check that every file of :func:`input_files` is there and is a regular file.
+
+    Raises:
+        InputError: ``<key>: <what> not found: <path>`` (or not a regular file).
+    """
+    for key, path in input_files(cfg).items():
+        try:
+            found, there = path.is_file(), path.exists()
+        except (OSError, ValueError):
+            found = there = False
+        if not found:
+            what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
+                key, "mesh file"
+            )
+            if there:  # a directory, a device (/dev/zero), a pipe
+                raise InputError(f"{key}: {what} {path} is not a regular file")
+            raise InputError(
+                f"{key}: {what} not found: {path} (relative paths resolve against the "
+                "config's folder)"
+            )
 
 
 @takes_config
@@ -68,21 +95,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         InputError: ``<key>: file not found: <path>``, or a mesh that does not load.
         PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
     """
-    for key, path in input_files(cfg).items():
-        try:
-            found, there = path.is_file(), path.exists()
-        except (OSError, ValueError):
-            found = there = False
-        if not found:
-            what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
-                key, "mesh file"
-            )
-            if there:  # a directory, a device (/dev/zero), a pipe
-                raise InputError(f"{key}: {what} {path} is not a regular file")
-            raise InputError(
-                f"{key}: {what} not found: {path} (relative paths resolve against the "
-                "config's folder)"
-            )
+    check_input_files(cfg)
     try:
         robot = Robot(load_spec(cfg.robot.spec))
         robot.build_geometry("collision")

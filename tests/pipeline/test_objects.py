@@ -1,0 +1,210 @@
+"""Several objects in one run: the target's grasps, the other objects obstacles; ``target: all``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from helpers import CONFIGS, QUICK, assert_one_line_error
+
+from gcm_pipeline.config import Config, load_config
+from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
+from gcm_pipeline.pipeline import Pipeline, make_checker, run_objects, target_config
+from gcm_pipeline.rundir.run import read_run
+
+TWO = CONFIGS / "two_objects.yaml"
+
+
+def _data() -> dict:
+    return yaml.safe_load(TWO.read_text())
+
+
+def _xyz(grasps) -> np.ndarray:
+    """The grasp positions (N, 3) [m]."""
+    return dq_to_pos_quat(grasps["dq"])[0]
+
+
+def _run(data: dict):
+    return Pipeline(Config.from_dict(data)).run(write=False, progress=False)
+
+
+@pytest.fixture(scope="module")
+def bottle_alone():
+    """The bottle's grasps with the bottle alone on the table (the classic ``object``)."""
+    data = _data()
+    data["object"] = {k: v for k, v in data.pop("objects")[0].items() if k != "name"}
+    del data["target"]
+    return _run(data)
+
+
+@pytest.fixture(scope="module")
+def bottle_and_can():
+    return _run(_data())
+
+
+def test_the_other_object_blocks_grasps_of_the_target(bottle_alone, bottle_and_can):
+    alone, both = bottle_alone.grasps, bottle_and_can.grasps
+    # the same grasps of the same object: only the world differs
+    assert np.array_equal(alone["dq"], both["dq"])
+    was, now = np.asarray(alone["reachable"]), np.asarray(both["reachable"])
+    blocked = was & ~now
+    assert bottle_and_can.counts["reachable"] < bottle_alone.counts["reachable"]
+    assert blocked.sum() >= 10, blocked.sum()
+    reasons = np.asarray(both["reason"])[blocked]
+    assert set(reasons) <= {"collision_environment", "approach"}, set(reasons)
+    assert (reasons == "collision_environment").mean() > 0.5, reasons
+    # the blocked grasps are on the can's side (+y) of the bottle
+    assert np.mean(np.sign(_xyz(both)[blocked, 1])) > 0.8
+    # and what their arm hits is the can (the rejected solution, checked on its own)
+    checker = make_checker(
+        bottle_and_can.robot, bottle_and_can.config.environment, bottle_and_can.config.object
+    )
+    for i in np.flatnonzero(blocked & (np.asarray(both["reason"]) == "collision_environment")):
+        pairs = checker.colliding_pairs(both["q_rejected"][i])
+        assert any("can" in (a, b) for a, b, _ in pairs), pairs
+
+
+def test_the_target_is_the_object_not_an_obstacle(bottle_alone):
+    """``objects`` with the bottle alone runs exactly as ``object``: the contact model applies."""
+    data = _data()
+    data["objects"] = data["objects"][:1]
+    one = _run(data)
+    assert np.array_equal(one.grasps["reachable"], bottle_alone.grasps["reachable"])
+    assert list(one.grasps["reason"]) == list(bottle_alone.grasps["reason"])
+    assert one.config.object == bottle_alone.config.object
+    assert one.config.environment.obstacles == ()
+
+
+def test_the_run_records_the_target_as_object_and_the_others_as_obstacles(bottle_and_can):
+    cfg = bottle_and_can.config
+    assert cfg.objects is None and cfg.target is None
+    assert cfg.object.shape == "cylinder" and cfg.object.dims.height == 0.22
+    (can,) = cfg.environment.obstacles
+    assert can.name == "can" and can.pose.xyz == (0.5, 0.11, 0.0)
+    # the recorded config runs as it ran
+    assert target_config(cfg) is cfg
+
+
+def test_target_all_gives_each_object_its_own_run(cli, tmp_path):
+    out = tmp_path / "all"
+    code, text, err = cli("run", TWO, "--set", "target=all", "--out", out, *QUICK)
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["objects"]) == ["bottle", "can"]
+    assert Config.from_dict(yaml.safe_load((out / "config.yaml").read_text())).target == "all"
+    centres = {"bottle": (0.5, 0.0), "can": (0.5, 0.11)}
+    for name, other in (("bottle", "can"), ("can", "bottle")):
+        run = read_run(out / "objects" / name)
+        entry = summary["objects"][name]
+        assert entry["reachable"] == int(np.count_nonzero(run.grasps["reachable"])) > 0
+        assert entry["densified"] == len(run.grasps)
+        cfg = Config.from_dict(yaml.safe_load((out / "objects" / name / "config.yaml").read_text()))
+        assert cfg.object.pose.xyz[:2] == centres[name]
+        assert [o.name for o in cfg.environment.obstacles] == [other]
+        # the candidates are this object's: on a ring around its axis
+        xy = _xyz(run.grasps)[: entry["candidates"], :2]
+        radius = np.linalg.norm(xy - centres[name], axis=1)
+        assert np.ptp(radius) < 0.01, radius
+        assert "collision_environment" in entry["unreachable_by_reason"]
+        code, text, err = cli("show", out / "objects" / name)
+        assert code == 0, err
+    code, _, err = cli("show", out)
+    assert_one_line_error(code, err, "objects/", "bottle, can")
+
+
+def test_run_objects_matches_the_single_target_run(tmp_path, bottle_and_can):
+    cfg = load_config(TWO, ["target=all", "publish.html=false"])
+    result = run_objects(cfg, tmp_path / "all", progress=False)
+    bottle = result.results["bottle"]
+    assert bottle.run_dir == tmp_path / "all" / "objects" / "bottle"
+    assert np.array_equal(bottle.grasps["reachable"], bottle_and_can.grasps["reachable"])
+
+
+def test_pipeline_run_refuses_target_all():
+    with pytest.raises(ConfigError, match="target: 'all'"):
+        Pipeline(load_config(TWO, ["target=all"])).run(write=False, progress=False)
+
+
+def _objects(**extra):
+    """Two named cylinders (and ``extra`` keys of the config)."""
+    obj = {"shape": "cylinder", "dims": {"radius": 0.03, "height": 0.1}}
+    return {
+        "objects": [
+            {**obj, "name": "a", "pose": {"xyz": [0.5, 0.0, 0.0]}},
+            {**obj, "name": "b", "pose": {"xyz": [0.5, 0.2, 0.0]}},
+        ],
+        "target": "a",
+        "candidates": {"source": "cylinder_side", "count": 9},
+        **extra,
+    }
+
+
+def _swap(data, key, value):
+    data = json.loads(json.dumps(data))
+    node = data
+    *path, last = key
+    for k in path:
+        node = node[k]
+    if value is None:
+        del node[last]
+    else:
+        node[last] = value
+    return data
+
+
+BAD = {
+    "unknown target": (("target",), "mug", ["unknown target 'mug'", "valid: a, all, b"]),
+    "duplicate name": (("objects", 1, "name"), "a", ["objects.1.name", "'a' is used twice"]),
+    "reserved name": (("objects", 0, "name"), "all", ["objects.0.name", "'all' is reserved"]),
+    "bad name": (("objects", 0, "name"), "a/b", ["objects.0.name", "a/b"]),
+    "empty list": (("objects",), [], ["objects: the list is empty"]),
+    "no target": (("target",), None, ["give 'target'", "a, b or 'all'"]),
+    "object too": (("object",), {"shape": "sphere", "dims": {"radius": 0.02}}, ["not both"]),
+    "plane obstacle": (
+        ("objects", 1),
+        {"name": "tray", "shape": "plane", "dims": {"size": [0.2, 0.2]}},
+        ["objects.1 (tray)", "plane"],
+    ),
+    "shape for generator": (
+        ("objects", 0),
+        {"name": "a", "shape": "sphere", "dims": {"radius": 0.02}},
+        ["objects[a].shape 'sphere'", "cylinder_side"],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+@pytest.mark.parametrize("command", ["validate", "run"])
+def test_bad_objects_are_one_line_errors_and_nothing_is_written(cli, tmp_path, case, command):
+    key, value, fragments = BAD[case]
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(_swap(_objects(), key, value)))
+    out = tmp_path / "out"
+    args = ("--out", out) if command == "run" else ()
+    code, text, err = cli(command, path, *args)
+    assert_one_line_error(code, err, str(path), *fragments)
+    assert text == "" and not out.exists()
+
+
+def test_target_without_objects_is_an_error(cli, tmp_path):
+    path = tmp_path / "cfg.yaml"
+    data = yaml.safe_load((CONFIGS / "bottle_side.yaml").read_text())
+    path.write_text(yaml.safe_dump({**data, "target": "bottle"}))
+    code, text, err = cli("validate", path)
+    assert_one_line_error(code, err, "target 'bottle' needs an 'objects' list")
+
+
+@pytest.mark.parametrize("target", ["a", "all"])
+def test_a_missing_mesh_is_named_by_its_objects_key(cli, tmp_path, target):
+    data = _objects(target=target)
+    data["objects"][1] = {"name": "b", "shape": "mesh", "mesh": "no/such.obj"}
+    data["candidates"] = {"source": "antipodal", "count": 4}
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    code, text, err = cli("run", path, "--out", out)
+    assert_one_line_error(code, err, "objects.1.mesh", "no/such.obj")
+    assert not out.exists()

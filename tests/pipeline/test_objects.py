@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import yaml
-from helpers import CONFIGS, QUICK, assert_one_line_error
+from helpers import CONFIGS, QUICK, assert_one_line_error, decode_commands
 
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import ConfigError
@@ -208,3 +208,12 @@ def test_a_missing_mesh_is_named_by_its_objects_key(cli, tmp_path, target):
     code, text, err = cli("run", path, "--out", out)
     assert_one_line_error(code, err, "objects.1.mesh", "no/such.obj")
     assert not out.exists()
+
+
+def test_the_scene_draws_the_other_objects_as_obstacles(cli, tmp_path):
+    out = tmp_path / "two"
+    code, _, err = cli("run", TWO, "--out", out, "--set", "publish.plots=false")
+    assert code == 0, err
+    paths = {c.get("path", "") for c in decode_commands((out / "scene.html").read_text())}
+    assert {"/meshcat/object/shape", "/meshcat/environment/can/shape"} <= paths
+    assert not any("bottle" in p for p in paths)

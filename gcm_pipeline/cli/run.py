@@ -12,7 +12,6 @@ from typing import Any
 import yaml
 
 from gcm_pipeline.cli.common import format_top, log, show_in_viewer
-from gcm_pipeline.config.objects import TARGET_ALL
 from gcm_pipeline.errors import GcmError
 
 
@@ -100,6 +99,7 @@ def _viewer_command(args: argparse.Namespace, out: Path) -> str:
 def _cmd_run(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
+    from gcm_pipeline.config.objects import TARGET_ALL
     from gcm_pipeline.pipeline import Pipeline, unreachable_hint
 
     pipeline = Pipeline.from_yaml(args.config, args.overrides)
@@ -189,6 +189,7 @@ def _run_objects(args: argparse.Namespace, cfg: Any) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config.objects import TARGET_ALL
     from gcm_pipeline.config.run import load_config
     from gcm_pipeline.pipeline import place_file_object, preflight, target_config
     from gcm_pipeline.pipeline.objects import target_names

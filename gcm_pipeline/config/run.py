@@ -151,8 +151,13 @@ class Config(_Section):
             raise ConfigError(f"{source}: config nested too deeply") from None
 
     def to_dict(self) -> dict[str, Any]:
-        """The resolved config as plain JSON/YAML-ready data (all defaults filled in)."""
-        return self.model_dump(mode="json")
+        """The resolved config as plain JSON/YAML-ready data (all defaults filled in).
+
+        ``objects`` and ``target`` appear only when set (a run's recorded config has
+        neither: see :mod:`gcm_pipeline.pipeline.objects`).
+        """
+        unset = {k for k in ("objects", "target") if getattr(self, k) is None}
+        return self.model_dump(mode="json", exclude=unset)
 
 
 def _shape_key(obj: ObjectConfig) -> str:

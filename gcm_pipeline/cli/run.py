@@ -132,7 +132,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if result.grasp_frame:  # a grasp file's gripper frame: never mapped silently
             print(f"  gripper       {result.grasp_frame['describe']}")
         placed = result.config.object
-        if cfg.object is None and placed is not None and placed.mesh is not None:
+        if cfg.objects is not None:  # the target, the others obstacles
+            others = [o.name for o in cfg.objects if o.name != cfg.target]
+            print(f"  object        {cfg.target}; obstacles: {', '.join(others) or 'none'}")
+        elif cfg.object is None and placed is not None and placed.mesh is not None:
             xy = ", ".join(f"{v:g}" for v in result.config.candidates.placement.xy)
             print(f"  object        {Path(placed.mesh).name} (named by the file) at [{xy}]")
         print(f"  triangles     {_triangles_line(c)}")

@@ -12,7 +12,13 @@ from helpers import CONFIGS, QUICK, assert_one_line_error, decode_commands
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
-from gcm_pipeline.pipeline import Pipeline, make_checker, run_objects, target_config
+from gcm_pipeline.pipeline import (
+    Pipeline,
+    generate_candidates,
+    make_checker,
+    run_objects,
+    target_config,
+)
 from gcm_pipeline.rundir.run import read_run
 
 TWO = CONFIGS / "two_objects.yaml"
@@ -217,3 +223,62 @@ def test_the_scene_draws_the_other_objects_as_obstacles(cli, tmp_path):
     paths = {c.get("path", "") for c in decode_commands((out / "scene.html").read_text())}
     assert {"/meshcat/object/shape", "/meshcat/environment/can/shape"} <= paths
     assert not any("bottle" in p for p in paths)
+
+
+def test_meshes_and_primitives_each_their_own_target(tmp_path):
+    """``target: all`` over a mesh and a box, antipodal grasps sampled on each in turn."""
+    data = {
+        "objects": [
+            {
+                "name": "mug",
+                "shape": "mesh",
+                "mesh": str(CONFIGS / "data" / "mug.obj"),
+                "pose": {"xyz": [0.5, 0.1, 0.0], "rpy_deg": [0, 0, 150]},
+            },
+            {
+                "name": "block",
+                "shape": "box",
+                "dims": {"size": [0.06, 0.06, 0.15]},
+                "pose": {"xyz": [0.5, 0.0, 0.075]},
+            },
+        ],
+        "target": "all",
+        "candidates": {"source": "antipodal", "count": 40, "gripper": "franka_panda"},
+        "densify": {"subdivisions": 2},
+        "publish": {"html": False, "plots": False},
+    }
+    result = run_objects(Config.from_dict(data), tmp_path / "all", progress=False)
+    mug, block = result.results["mug"], result.results["block"]
+    assert mug.config.object.shape == "mesh" and block.config.object.shape == "box"
+    assert [o.shape for o in block.config.environment.obstacles] == ["mesh"]
+    centres = {"mug": (0.5, 0.1), "block": (0.5, 0.0)}
+    for name, run in result.results.items():
+        assert run.counts["reachable"] > 0
+        # the candidates are sampled on this object: nearer its centre than the other's
+        xy = _xyz(run.grasps)[: run.counts["candidates"], :2]
+        (other_centre,) = [c for n, c in centres.items() if n != name]
+        own = np.linalg.norm(xy - centres[name], axis=1)
+        other = np.linalg.norm(xy - other_centre, axis=1)
+        assert own.mean() < other.mean() and own.max() < 0.1, (name, own, other)
+    assert np.linalg.norm(_xyz(block.grasps)[:, :2] - centres["block"], axis=1).max() < 0.05
+    # a grasp of the block the mug (a mesh obstacle) blocks
+    reasons = np.asarray(block.grasps["reason"])
+    checker = make_checker(block.robot, block.config.environment, block.config.object)
+    hits = [
+        any("mug" in (a, b) for a, b, _ in checker.colliding_pairs(block.grasps["q_rejected"][i]))
+        for i in np.flatnonzero(reasons == "collision_environment")
+    ]
+    assert any(hits), reasons
+
+
+@pytest.mark.parametrize("target", ["a", "b"])
+def test_a_grasp_file_in_the_object_frame_follows_the_target(tmp_path, target):
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, :3, 3] = [[0.0, 0.0, 0.05], [0.01, 0.0, 0.06], [0.0, 0.01, 0.07]]
+    np.save(tmp_path / "g.npy", poses)
+    data = _objects(target=target)
+    data["candidates"] = {"source": "file", "path": str(tmp_path / "g.npy"), "frame": "object"}
+    cfg = target_config(Config.from_dict(data))
+    xyz = _xyz(generate_candidates(cfg))
+    origin = {"a": [0.5, 0.0, 0.0], "b": [0.5, 0.2, 0.0]}[target]
+    assert np.allclose(xyz, poses[:, :3, 3] + origin)

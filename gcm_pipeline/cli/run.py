@@ -37,6 +37,7 @@ def _add_run(sub: Any, common: argparse.ArgumentParser) -> None:
         help="override a config key, e.g. --set ik.backend=mink (repeatable)",
     )
     run.add_argument("--out", type=Path, metavar="DIR", help="run directory (overrides output.dir)")
+    _add_target(run)
     run.add_argument(
         "--force", action="store_true", help="replace an existing run directory when done"
     )
@@ -53,6 +54,22 @@ def _add_validate(sub: Any, common: argparse.ArgumentParser) -> None:
     val = sub.add_parser("validate", parents=[common], help="check a config and print it")
     val.add_argument("config", metavar="CONFIG", type=Path)
     val.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[])
+    _add_target(val)
+
+
+def _add_target(parser: argparse.ArgumentParser) -> None:
+    """``--target NAME|all``: the same as ``--set target=NAME`` (a config with ``objects``)."""
+    parser.add_argument(
+        "--target",
+        metavar="NAME",
+        help="the object of 'objects' whose grasps are analysed, or all (each in turn)",
+    )
+
+
+def _target_override(args: argparse.Namespace) -> None:
+    """Fold ``--target`` into the overrides (the viewer command repeats them)."""
+    if args.target is not None:
+        args.overrides = [*args.overrides, f"target={args.target}"]
 
 
 def _selection_note(selection: dict[str, Any] | None) -> str:
@@ -102,6 +119,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.objects import TARGET_ALL
     from gcm_pipeline.pipeline import Pipeline, unreachable_hint
 
+    _target_override(args)
     pipeline = Pipeline.from_yaml(args.config, args.overrides)
     cfg = pipeline.config
     if cfg.target == TARGET_ALL:
@@ -198,6 +216,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from gcm_pipeline.pipeline.objects import target_names
     from gcm_pipeline.robot import kernels
 
+    _target_override(args)
     given = load_config(args.config, args.overrides)
     lines: list[str] = []
     for name in target_names(given) or [None]:  # each object's run config (target: all)

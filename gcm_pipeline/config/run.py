@@ -6,7 +6,8 @@ re-parse dicts. Unknown keys are errors that name the key and suggest the
 closest valid one; every error is a :class:`~gcm_pipeline.errors.ConfigError`
 whose message names the file, the dotted key and the value at fault.
 
-Sections (see DESIGN.md): ``seed``, ``robot``, ``object``, ``candidates``,
+Sections (see DESIGN.md): ``seed``, ``robot``, ``object`` (or ``objects`` and
+``target``, :mod:`~gcm_pipeline.config.objects`), ``candidates``,
 ``manifold``, ``densify``, ``ik``, ``environment``, ``approach``, ``retreat``,
 ``continuity``, ``ranking``, ``publish``, ``output``. Only ``candidates`` is required.
 The section models live in :mod:`~gcm_pipeline.config.sections` (field types,
@@ -281,7 +282,7 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
     """Make the paths in the config absolute, relative ones against ``base``.
 
     ``candidates.path``, ``candidates.mesh_root``, ``object.mesh``,
-    ``environment.obstacles[].mesh``, ``output.dir`` (``default_out`` when
+    ``objects[].mesh``, ``environment.obstacles[].mesh``, ``output.dir`` (``default_out`` when
     missing) and a ``robot.spec`` that is a path (ends in ``.yaml``/``.yml``
     or has a ``/``) become absolute
     (normalised, symlinks kept); ``base`` is absolute.

@@ -96,7 +96,7 @@ def test_the_run_records_the_target_as_object_and_the_others_as_obstacles(bottle
 
 def test_target_all_gives_each_object_its_own_run(cli, tmp_path):
     out = tmp_path / "all"
-    code, text, err = cli("run", TWO, "--set", "target=all", "--out", out, *QUICK)
+    code, text, err = cli("run", TWO, "--target", "all", "--out", out, *QUICK)
     assert code == 0, err
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["objects"]) == ["bottle", "can"]
@@ -282,3 +282,14 @@ def test_a_grasp_file_in_the_object_frame_follows_the_target(tmp_path, target):
     xyz = _xyz(generate_candidates(cfg))
     origin = {"a": [0.5, 0.0, 0.0], "b": [0.5, 0.2, 0.0]}[target]
     assert np.allclose(xyz, poses[:, :3, 3] + origin)
+
+
+def test_object_meshes_resolve_against_the_config_folder(tmp_path, monkeypatch):
+    data = _objects()
+    data["objects"][1] = {"name": "b", "shape": "mesh", "mesh": "meshes/b.obj"}
+    (tmp_path / "cfgs").mkdir()
+    path = tmp_path / "cfgs" / "cfg.yaml"
+    path.write_text(yaml.safe_dump(data))
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(path)
+    assert cfg.objects[1].mesh == tmp_path / "cfgs" / "meshes" / "b.obj"

@@ -10,7 +10,7 @@ import yaml
 from helpers import CONFIGS, QUICK, assert_one_line_error, decode_commands
 
 from gcm_pipeline.config import Config, load_config
-from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.errors import ConfigError, OutputError
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.pipeline import (
     Pipeline,
@@ -127,6 +127,13 @@ def test_run_objects_matches_the_single_target_run(tmp_path, bottle_and_can):
     bottle = result.results["bottle"]
     assert bottle.run_dir == tmp_path / "all" / "objects" / "bottle"
     assert np.array_equal(bottle.grasps["reachable"], bottle_and_can.grasps["reachable"])
+    # a previous objects directory is replaced with force only; it is no run directory
+    with pytest.raises(OutputError, match="already exists"):
+        run_objects(cfg, tmp_path / "all", progress=False)
+    again = run_objects(cfg, tmp_path / "all", progress=False, force=True)
+    assert again.run_dir == tmp_path / "all" and len(again.results) == 2
+    with pytest.raises(OutputError, match="objects directory, not a run directory"):
+        Pipeline(target_config(cfg, "can")).run(tmp_path / "all", progress=False, force=True)
 
 
 def test_pipeline_run_refuses_target_all():

@@ -15,7 +15,7 @@ from gcm_pipeline.config.objects import TARGET_ALL, NamedObjectConfig
 from gcm_pipeline.config.reach_sections import ObstacleConfig
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig
-from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.errors import ConfigError, choice_error
 from gcm_pipeline.pipeline.preflight import check_input_files
 
 __all__ = ["target_config", "target_names"]
@@ -60,9 +60,14 @@ def target_config(cfg: Config, name: str | None = None) -> Config:
     check_input_files(cfg)
     name = cfg.target if name is None else name
     names = [o.name for o in cfg.objects]
+    if name == TARGET_ALL:
+        raise ConfigError(
+            f"target: 'all' runs each object in turn; one object's config needs its name "
+            f"(one of {', '.join(names)})",
+            key="target",
+        )
     if name not in names:
-        wanted = "an object name (target: all runs each object)" if name == TARGET_ALL else name
-        raise ConfigError(f"target: {wanted!s} is not one of {', '.join(names)}", key="target")
+        raise choice_error(ConfigError, "target", name, names, key="target")
     target = next(o for o in cfg.objects if o.name == name)
     others = tuple(_as_obstacle(o) for o in cfg.objects if o.name != name)
     env = cfg.environment.model_copy(update={"obstacles": (*cfg.environment.obstacles, *others)})

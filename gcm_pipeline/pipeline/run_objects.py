@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from gcm_pipeline.config.run import Config
+from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.pipeline.objects import target_config
 from gcm_pipeline.pipeline.preflight import input_files, preflight
 from gcm_pipeline.pipeline.run import Pipeline, RunResult
@@ -39,6 +40,8 @@ class ObjectsResult:
         results: Object name -> its run's result (``run_dir`` under the top directory).
         config: The config as given (``objects``, ``target: all``).
         run_dir: The top directory, or None when nothing was written.
+        files: The files and folders of the top directory (``config.yaml``,
+            ``objects``, ``summary.json``).
     """
 
     results: dict[str, RunResult]
@@ -95,14 +98,13 @@ def run_objects(
     """
     configs = {o.name: target_config(cfg, o.name) for o in cfg.objects or ()}
     if not configs:
-        raise ValueError("run_objects needs a config with 'objects'")
+        raise ConfigError("objects: run_objects needs a config with an 'objects' list")
     out = Path(out_dir) if out_dir is not None else Path(cfg.output.dir)
     keep = [*input_files(cfg).values(), *([Path(source).absolute()] if source else [])]
     if robot is None:
         # the first object's config holds every object (its target and the others as
         # obstacles): one check covers every mesh, and one robot serves every run
         robot = preflight(next(iter(configs.values())))
-    out = transaction.check_output_dir(out, force=force, keep=keep, kind=OBJECTS_KIND)
     results: dict[str, RunResult] = {}
     with transaction.atomic_dir(out, kind=OBJECTS_KIND, force=force, keep=keep) as tmp:
         for name, sub in configs.items():

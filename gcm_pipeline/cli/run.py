@@ -37,6 +37,7 @@ def _add_run(sub: Any, common: argparse.ArgumentParser) -> None:
         help="override a config key, e.g. --set ik.backend=mink (repeatable)",
     )
     run.add_argument("--out", type=Path, metavar="DIR", help="run directory (overrides output.dir)")
+    _add_target(run)
     run.add_argument(
         "--force", action="store_true", help="replace an existing run directory when done"
     )
@@ -53,6 +54,22 @@ def _add_validate(sub: Any, common: argparse.ArgumentParser) -> None:
     val = sub.add_parser("validate", parents=[common], help="check a config and print it")
     val.add_argument("config", metavar="CONFIG", type=Path)
     val.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[])
+    _add_target(val)
+
+
+def _add_target(parser: argparse.ArgumentParser) -> None:
+    """``--target NAME|all``: the same as ``--set target=NAME`` (a config with ``objects``)."""
+    parser.add_argument(
+        "--target",
+        metavar="NAME",
+        help="the object of 'objects' whose grasps are analysed, or all (each in turn)",
+    )
+
+
+def _target_override(args: argparse.Namespace) -> None:
+    """Fold ``--target`` into the overrides (the viewer command repeats them)."""
+    if args.target is not None:
+        args.overrides = [*args.overrides, f"target={args.target}"]
 
 
 def _selection_note(selection: dict[str, Any] | None) -> str:
@@ -99,10 +116,14 @@ def _viewer_command(args: argparse.Namespace, out: Path) -> str:
 def _cmd_run(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
+    from gcm_pipeline.config.objects import TARGET_ALL
     from gcm_pipeline.pipeline import Pipeline, unreachable_hint
 
+    _target_override(args)
     pipeline = Pipeline.from_yaml(args.config, args.overrides)
     cfg = pipeline.config
+    if cfg.target == TARGET_ALL:
+        return _run_objects(args, cfg)
     viewer = args.meshcat or cfg.publish.meshcat
     if viewer and cfg.publish.zmq_url is None and (args.no_wait or not cfg.publish.wait):
         flag = "--no-wait" if args.no_wait else "publish.wait: false"
@@ -129,7 +150,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if result.grasp_frame:  # a grasp file's gripper frame: never mapped silently
             print(f"  gripper       {result.grasp_frame['describe']}")
         placed = result.config.object
-        if cfg.object is None and placed is not None and placed.mesh is not None:
+        if cfg.objects is not None:  # the target, the others obstacles
+            others = [o.name for o in cfg.objects if o.name != cfg.target]
+            print(f"  object        {cfg.target}; obstacles: {', '.join(others) or 'none'}")
+        elif cfg.object is None and placed is not None and placed.mesh is not None:
             xy = ", ".join(f"{v:g}" for v in result.config.candidates.placement.xy)
             print(f"  object        {Path(placed.mesh).name} (named by the file) at [{xy}]")
         print(f"  triangles     {_triangles_line(c)}")
@@ -156,29 +180,76 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_objects(args: argparse.Namespace, cfg: Any) -> int:
+    """``gcm run`` of a ``target: all`` config: one run directory per object."""
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from gcm_pipeline.pipeline import run_objects
+
+    if args.meshcat or cfg.publish.meshcat:
+        raise GcmError("target: all writes one run per object; show one with gcm show --meshcat")
+    with logging_redirect_tqdm(loggers=[log]):
+        result = run_objects(
+            cfg, args.out, progress=not args.quiet, force=args.force, source=args.config
+        )
+    assert result.run_dir is not None
+    if args.quiet:
+        print(result.run_dir)
+        return 0
+    print(f"gcm run {args.config} (target: all)")
+    for name, sub in result.results.items():
+        c = sub.counts
+        share = 100 * c["reachable"] / max(c["densified"], 1)
+        print(
+            f"  {name:<14}{c['candidates']} candidates, reachable {c['reachable']} / "
+            f"{c['densified']} ({share:.1f} %)  {sub.run_dir}"
+        )
+    print(f"run directory: {result.run_dir}")
+    print("  " + ", ".join(p.name for p in result.files))
+    return 0
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
+    from gcm_pipeline.config.objects import TARGET_ALL
     from gcm_pipeline.config.run import load_config
-    from gcm_pipeline.pipeline import generate_candidates, place_file_object, preflight
+    from gcm_pipeline.pipeline import place_file_object, preflight, target_config
+    from gcm_pipeline.pipeline.objects import target_names
     from gcm_pipeline.robot import kernels
 
-    cfg = place_file_object(load_config(args.config, args.overrides))
-    with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
-        preflight(cfg)
-    report: dict[str, Any] = {}
-    n = len(generate_candidates(cfg, report=report))  # a grasp file is read as a run reads it
-    c = cfg.candidates
-    obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
+    _target_override(args)
+    given = load_config(args.config, args.overrides)
+    lines: list[str] = []
+    for name in target_names(given) or [None]:  # each object's run config (target: all)
+        cfg = place_file_object(target_config(given, name))
+        with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
+            preflight(cfg)
+        lines += _validate_lines(cfg, name)
+    cfg = given if given.target == TARGET_ALL else cfg
     # comments first, then the resolved config: the output is itself a valid config
     print(f"# {args.config}: ok")
-    line = f"#   candidates  {c.source}" + (f" {c.path}" if c.path else "") + f": {n:,} grasps"
-    print(line + _selection_note(report.get("selection")))
-    print(f"#   object      {obj}")
+    print("\n".join(lines))
     robot = cfg.robot.spec + (f" with {cfg.robot.tool}" if cfg.robot.tool else "")
     print(f"#   robot       {robot}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
     print(f"#   output      {cfg.output.dir}")
     print("# resolved config (defaults filled in, paths absolute):")
     print(yaml.safe_dump(cfg.to_dict(), sort_keys=False, default_flow_style=None), end="")
     return 0
+
+
+def _validate_lines(cfg: Any, name: str | None) -> list[str]:
+    """The candidates and object lines of ``gcm validate`` (per object with ``objects``)."""
+    from gcm_pipeline.pipeline import generate_candidates
+
+    report: dict[str, Any] = {}
+    n = len(generate_candidates(cfg, report=report))  # a grasp file is read as a run reads it
+    c = cfg.candidates
+    obj = f"{cfg.object.shape} at {list(cfg.object.pose.xyz)}" if cfg.object else "none"
+    if name is not None:
+        obj = f"{name}: {obj}"
+        others = [o.name for o in cfg.environment.obstacles if o.name is not None]
+        obj += f" (obstacles: {', '.join(others)})" if others else ""
+    line = f"#   candidates  {c.source}" + (f" {c.path}" if c.path else "") + f": {n:,} grasps"
+    return [line + _selection_note(report.get("selection")), f"#   object      {obj}"]
 
 
 def _cmd_schema(args: argparse.Namespace) -> int:

@@ -6,7 +6,8 @@ re-parse dicts. Unknown keys are errors that name the key and suggest the
 closest valid one; every error is a :class:`~gcm_pipeline.errors.ConfigError`
 whose message names the file, the dotted key and the value at fault.
 
-Sections (see DESIGN.md): ``seed``, ``robot``, ``object``, ``candidates``,
+Sections (see DESIGN.md): ``seed``, ``robot``, ``object`` (or ``objects`` and
+``target``, :mod:`~gcm_pipeline.config.objects`), ``candidates``,
 ``manifold``, ``densify``, ``ik``, ``environment``, ``approach``, ``retreat``,
 ``continuity``, ``ranking``, ``publish``, ``output``. Only ``candidates`` is required.
 The section models live in :mod:`~gcm_pipeline.config.sections` (field types,
@@ -24,11 +25,13 @@ import inspect
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, ParamSpec, TypeVar
+from typing import Annotated, Any, ParamSpec, TypeVar
 
 import numpy as np
-from pydantic import ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
+from gcm_pipeline.bounds import MAX_OBSTACLES
+from gcm_pipeline.config.objects import NamedObjectConfig, check_objects
 from gcm_pipeline.config.output_sections import OutputConfig, PublishConfig, RankingConfig
 from gcm_pipeline.config.reach_sections import (
     ApproachConfig,
@@ -67,6 +70,8 @@ class Config(_Section):
     seed: Seed = 0
     robot: RobotConfig = RobotConfig()
     object: ObjectConfig | None = None
+    objects: Annotated[tuple[NamedObjectConfig, ...], Field(max_length=MAX_OBSTACLES)] | None = None
+    target: str | None = None
     candidates: CandidatesConfig
     manifold: ManifoldConfig = ManifoldConfig()
     densify: DensifyConfig = DensifyConfig()
@@ -82,19 +87,18 @@ class Config(_Section):
     @model_validator(mode="after")
     def _object_for_candidates(self) -> Config:
         c = self.candidates
-        shape = GENERATOR_SHAPES.get(c.source)
-        if shape is not None and (self.object is None or self.object.shape != shape):
-            got = (
-                "no 'object' section"
-                if self.object is None
-                else f"object.shape {self.object.shape!r}"
-            )
-            raise ValueError(
-                f"candidates.source {c.source!r} needs object.shape {shape!r}, got {got}"
-            )
-        if c.source == "antipodal" and self.object is None:
+        free = MAX_OBSTACLES - len(self.environment.obstacles)
+        # the object(s) whose grasps are analysed (see gcm_pipeline.config.objects)
+        for obj in check_objects(self.object, self.objects, self.target, free) or (None,):
+            shape = GENERATOR_SHAPES.get(c.source)
+            if shape is not None and (obj is None or obj.shape != shape):
+                got = "no 'object' section" if obj is None else f"{_shape_key(obj)} {obj.shape!r}"
+                raise ValueError(
+                    f"candidates.source {c.source!r} needs object.shape {shape!r}, got {got}"
+                )
+        if c.source == "antipodal" and self.object is None and self.objects is None:
             raise ValueError("candidates.source 'antipodal' samples an object: add 'object'")
-        if c.source == "file" and c.frame == "object" and self.object is None:
+        if c.source == "file" and c.frame == "object" and not (self.object or self.objects):
             raise ValueError("candidates.frame 'object' needs an 'object' section (its pose)")
         return self
 
@@ -148,8 +152,18 @@ class Config(_Section):
             raise ConfigError(f"{source}: config nested too deeply") from None
 
     def to_dict(self) -> dict[str, Any]:
-        """The resolved config as plain JSON/YAML-ready data (all defaults filled in)."""
-        return self.model_dump(mode="json")
+        """The resolved config as plain JSON/YAML-ready data (all defaults filled in).
+
+        ``objects`` and ``target`` appear only when set (a run's recorded config has
+        neither: see :mod:`gcm_pipeline.pipeline.objects`).
+        """
+        unset = {k for k in ("objects", "target") if getattr(self, k) is None}
+        return self.model_dump(mode="json", exclude=unset)
+
+
+def _shape_key(obj: ObjectConfig) -> str:
+    """``object.shape`` or ``objects[<name>].shape``: where an object's shape was given."""
+    return f"objects[{obj.name}].shape" if isinstance(obj, NamedObjectConfig) else "object.shape"
 
 
 def _plain(data: Any, source: str, depth: int = 0) -> Any:
@@ -268,8 +282,8 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
     """Make the paths in the config absolute, relative ones against ``base``.
 
     ``candidates.path``, ``candidates.mesh_root``, ``object.mesh``,
-    ``environment.obstacles[].mesh``, ``output.dir`` (``default_out`` when
-    missing) and a ``robot.spec``, ``robot.tool`` or ``candidates.gripper``
+    ``objects[].mesh``, ``environment.obstacles[].mesh``, ``output.dir`` (``default_out``
+    when missing) and a ``robot.spec``, ``robot.tool`` or ``candidates.gripper``
     that is a path (ends in ``.yaml``/``.yml`` or has a ``/``) become absolute
     (normalised, symlinks kept); ``base`` is absolute.
 
@@ -291,6 +305,9 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
     fix(data.get("candidates"), "path", "candidates.path")
     fix(data.get("candidates"), "mesh_root", "candidates.mesh_root")
     fix(data.get("object"), "mesh", "object.mesh")
+    if isinstance(data.get("objects"), list):
+        for i, obj in enumerate(data["objects"]):
+            fix(obj, "mesh", f"objects.{i}.mesh")
     fix(data.get("robot"), "spec", "robot.spec", only_paths=True)
     fix(data.get("robot"), "tool", "robot.tool", only_paths=True)
     fix(data.get("candidates"), "gripper", "candidates.gripper", only_paths=True)

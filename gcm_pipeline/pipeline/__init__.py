@@ -46,6 +46,7 @@ from gcm_pipeline.pipeline.manifold import (
     densify,
     densify_adaptive,
 )
+from gcm_pipeline.pipeline.objects import target_config
 from gcm_pipeline.pipeline.outputs import (
     publish,
     top_grasps,
@@ -84,6 +85,7 @@ from gcm_pipeline.pipeline.run import (
     RunResult,
     unreachable_hint,
 )
+from gcm_pipeline.pipeline.run_objects import ObjectsResult, run_objects
 from gcm_pipeline.pipeline.sources import (
     candidate_poses,
     generate_candidates,
@@ -92,6 +94,7 @@ from gcm_pipeline.pipeline.sources import (
 __all__ = [
     "STEPS",
     "ConfigRunQueries",
+    "ObjectsResult",
     "Pipeline",
     "ReachabilityCheck",
     "RunResult",
@@ -117,7 +120,9 @@ __all__ = [
     "reachability_engine",
     "retreat_move",
     "robot_from_config",
+    "run_objects",
     "select_branches",
+    "target_config",
     "top_grasps",
     "unreachable_hint",
 ]

@@ -22,15 +22,19 @@ log = logging.getLogger(__name__)
 def input_files(cfg: Config) -> dict[str, Path]:
     """The files a config reads, keyed by their dotted config key.
 
-    ``candidates.path``, ``object.mesh``, ``environment.obstacles.<i>.mesh``,
-    ``robot.spec`` when it is a spec file rather than a shipped name, and
-    ``robot.tool`` / ``candidates.gripper`` when they are gripper files.
+    ``candidates.path``, ``object.mesh``, ``objects.<i>.mesh``,
+    ``environment.obstacles.<i>.mesh``, ``robot.spec`` when it is a spec file
+    rather than a shipped name, and ``robot.tool`` / ``candidates.gripper`` when
+    they are gripper files.
     """
     files: dict[str, Path] = {}
     if cfg.candidates.path is not None:
         files["candidates.path"] = Path(cfg.candidates.path)
     if cfg.object is not None and cfg.object.mesh is not None:
         files["object.mesh"] = Path(cfg.object.mesh)
+    for i, obj in enumerate(cfg.objects or ()):
+        if obj.mesh is not None:
+            files[f"objects.{i}.mesh"] = Path(obj.mesh)
     for i, obstacle in enumerate(cfg.environment.obstacles):
         if obstacle.mesh is not None:
             files[f"environment.obstacles.{i}.mesh"] = Path(obstacle.mesh)
@@ -44,6 +48,32 @@ def input_files(cfg: Config) -> dict[str, Path]:
         if gripper is not None and is_gripper_path(gripper):
             files[key] = Path(gripper)
     return files
+
+
+def check_input_files(cfg: Config) -> None:
+    """Check that every file of :func:`input_files` is there and is a regular file.
+
+    Raises:
+        InputError: ``<key>: <what> not found: <path>`` (or not a regular file).
+    """
+    for key, path in input_files(cfg).items():
+        try:
+            found, there = path.is_file(), path.exists()
+        except (OSError, ValueError):
+            found = there = False
+        if not found:
+            what = {
+                "candidates.path": "grasp file",
+                "robot.spec": "robot spec file",
+                "robot.tool": "gripper file",
+                "candidates.gripper": "gripper file",
+            }.get(key, "mesh file")
+            if there:  # a directory, a device (/dev/zero), a pipe
+                raise InputError(f"{key}: {what} {path} is not a regular file")
+            raise InputError(
+                f"{key}: {what} not found: {path} (relative paths resolve against the "
+                "config's folder)"
+            )
 
 
 @takes_config
@@ -79,24 +109,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         InputError: ``<key>: file not found: <path>``, or a mesh that does not load.
         PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
     """
-    for key, path in input_files(cfg).items():
-        try:
-            found, there = path.is_file(), path.exists()
-        except (OSError, ValueError):
-            found = there = False
-        if not found:
-            what = {
-                "candidates.path": "grasp file",
-                "robot.spec": "robot spec file",
-                "robot.tool": "gripper file",
-                "candidates.gripper": "gripper file",
-            }.get(key, "mesh file")
-            if there:  # a directory, a device (/dev/zero), a pipe
-                raise InputError(f"{key}: {what} {path} is not a regular file")
-            raise InputError(
-                f"{key}: {what} not found: {path} (relative paths resolve against the "
-                "config's folder)"
-            )
+    check_input_files(cfg)
     if cfg.candidates.gripper is not None:
         load_gripper(cfg.candidates.gripper)  # a bad gripper file fails before any work
     try:

@@ -13,7 +13,9 @@ from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.config.objects import TARGET_ALL
 from gcm_pipeline.config.run import Config, load_config
+from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.query import GraspManifold
 from gcm_pipeline.outputs.scene_glyphs import legend
@@ -25,6 +27,7 @@ from gcm_pipeline.pipeline.manifold import (
     densify,
     densify_adaptive,
 )
+from gcm_pipeline.pipeline.objects import target_config
 from gcm_pipeline.pipeline.outputs import publish, top_grasps
 from gcm_pipeline.pipeline.preflight import input_files, preflight
 from gcm_pipeline.pipeline.queries import grasp_manifold
@@ -209,8 +212,15 @@ class Pipeline:
                 checked before any work where possible. Nothing is left
                 behind on failure.
         """
-        # the object a grasp file names, stood on the table (before anything reads cfg.object)
-        cfg = self.config = place_file_object(self.config)
+        if self.config.target == TARGET_ALL:
+            raise ConfigError(
+                "target: 'all' analyses each object in its own run directory: run it with "
+                "gcm run, or gcm_pipeline.pipeline.run_objects(...)",
+                key="target",
+            )
+        # the target of 'objects' and the object a grasp file names, stood on the table
+        # (before anything reads cfg.object)
+        cfg = self.config = place_file_object(target_config(self.config))
         out = Path(out_dir) if out_dir is not None else Path(cfg.output.dir)
         keep = self._inputs()
         # what the config refers to first: a bad robot spec is not hidden behind "--force"

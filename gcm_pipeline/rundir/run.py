@@ -166,7 +166,9 @@ def read_run(run_dir: str | Path) -> RunData:
         f for f in ("grasps.csv", "summary.json", "manifold.npz") if not (run_dir / f).is_file()
     ]
     if missing:
-        raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}")
+        runs = sorted(p.parent.name for p in (run_dir / "objects").glob("*/grasps.csv"))
+        hint = f"; it holds one run per object in objects/: {', '.join(runs)}" if runs else ""
+        raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}{hint}")
     summary = read_summary(run_dir / "summary.json")
     grasps = read_grasps_csv(run_dir / "grasps.csv")
     manifold = read_manifold(run_dir / "manifold.npz", n_rows=len(grasps))

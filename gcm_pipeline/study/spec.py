@@ -31,6 +31,7 @@ import numpy as np
 
 from gcm_pipeline import __version__
 from gcm_pipeline.bounds import MAX_STUDY_PLACEMENTS
+from gcm_pipeline.config.objects import TARGET_ALL
 from gcm_pipeline.config.run import Config, config_from_data, resolve_paths
 from gcm_pipeline.config.study import (
     DECIMALS,
@@ -147,9 +148,12 @@ class StudyPlan:
         # another study: its key differs), resolved as load_config resolves it
         path = self.base_path or (self.source or self.study_dir / "study.yaml")
         try:
-            return config_from_data(copy.deepcopy(self.base_data), path, list(overrides))
+            cfg = config_from_data(copy.deepcopy(self.base_data), path, list(overrides))
+            if cfg.target == TARGET_ALL:  # one run per object: not one placement's run
+                raise ConfigError(f"{path}: target: a study runs one target object, not 'all'")
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}" if where else str(exc)) from None
+        return cfg
 
     def _object_entries(self) -> list[tuple[str, list[str]]]:
         """(name, overrides) of each object; one entry named after the base's object when none."""

@@ -12,7 +12,12 @@ from helpers import ROOT
 
 from gcm_pipeline.config import Config, load_config
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
-from gcm_pipeline.pipeline import build_manifold, generate_candidates, place_file_object
+from gcm_pipeline.pipeline import (
+    build_manifold,
+    generate_candidates,
+    place_file_object,
+    target_config,
+)
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS
 from gcm_pipeline.rundir.run import read_run
 
@@ -45,8 +50,9 @@ def test_example_runs(path, tmp_path, cli):
     assert counts["densified"] > counts["candidates"]
     # a meaningful share of the grasps is reachable for the Panda at the origin
     assert counts["reachable"] >= 0.25 * counts["densified"], counts
-    # the run's config: the object a grasp file names, placed (configs/acronym_mug.yaml)
-    cfg = place_file_object(cfg)
+    # the run's config: the object a grasp file names, placed (configs/acronym_mug.yaml);
+    # the target as the object, the other objects obstacles (configs/two_objects.yaml)
+    cfg = place_file_object(target_config(cfg))
     assert Config.from_dict(yaml.safe_load((out / "config.yaml").read_text())) == cfg
 
     with (out / "grasps.csv").open() as fh:

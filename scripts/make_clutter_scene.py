@@ -7,7 +7,9 @@ acronym``, ``configs/data/mug.obj`` (segment 2), a box (segment 3) and a
 cylinder (segment 4). A virtual pinhole camera (OpenCV convention: x right,
 y down, z forward; intrinsics ``K``) sees them; trimesh's ray caster (Embree
 when installed, else its pure-Python caster) shoots one ray through every
-pixel centre and records the first hit.
+pixel and records the first hit (pixel (row v, column u) looks along
+``((u - cx) / fx, (v - cy) / fy, 1)``, the convention of Contact-GraspNet's
+``depth2pc``).
 
 Written into ``--out`` (default ``tests/data/clutter``):
 
@@ -15,8 +17,9 @@ Written into ``--out`` (default ``tests/data/clutter``):
     Contact-GraspNet's input layout (``load_available_input_data`` of its
     ``data.py``): ``depth`` (H, W) float32 [m] along the camera's z, 0 where
     the ray hits nothing; ``K`` (3, 3) float64; ``segmap`` (H, W) uint8, the
-    segment of the hit (0 = table or nothing); ``rgb`` (H, W, 3) uint8 in RGB
-    order, a flat colour per segment shaded by the angle of the ray to the
+    segment of the hit (0 = table or nothing); ``rgb`` (H, W, 3) uint8 in BGR
+    order as OpenCV reads an image (Contact-GraspNet's loader turns it into
+    RGB), a flat colour per segment shaded by the angle of the ray to the
     surface. Depths are rounded to 0.1 mm (like a depth sensor's step).
 ``scene.ply``
     The same hits as a binary point cloud in the camera frame (xyz float32,
@@ -126,7 +129,7 @@ def render(objects: list[dict], K: np.ndarray, cam: np.ndarray, width: int, heig
     """Ray-cast every pixel centre: depth [m], segment, rgb and the camera-frame hits.
 
     Returns:
-        depth (H, W) float32, segmap (H, W) uint8, rgb (H, W, 3) uint8.
+        depth (H, W) float32, segmap (H, W) uint8, rgb (H, W, 3) uint8 (RGB order).
     """
     meshes, seg_of_face = [], []
     for o in objects:
@@ -136,7 +139,7 @@ def render(objects: list[dict], K: np.ndarray, cam: np.ndarray, width: int, heig
         seg_of_face.append(np.full(len(m.faces), o["segment"], dtype=np.uint8))
     world = trimesh.util.concatenate(meshes)
     seg_of_face = np.concatenate(seg_of_face)
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64) + 0.5
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     rays_cam = np.stack(
         [(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1
     ).reshape(-1, 3)
@@ -163,8 +166,8 @@ def back_project(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """Camera-frame points (M, 3) of the pixels with a depth, and their (row, col) (M, 2)."""
     rows, cols = np.nonzero(depth > 0)
     z = depth[rows, cols].astype(np.float64)
-    x = (cols + 0.5 - K[0, 2]) * z / K[0, 0]
-    y = (rows + 0.5 - K[1, 2]) * z / K[1, 1]
+    x = (cols - K[0, 2]) * z / K[0, 0]
+    y = (rows - K[1, 2]) * z / K[1, 1]
     return np.column_stack([x, y, z]), np.column_stack([rows, cols])
 
 
@@ -224,7 +227,8 @@ def main() -> None:
     K = intrinsics(args.width, args.height, args.fov)
     depth, segmap, rgb = render(objects, K, cam, args.width, args.height)
     args.out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(args.out / "scene.npz", depth=depth, K=K, segmap=segmap, rgb=rgb)
+    bgr = np.ascontiguousarray(rgb[..., ::-1])  # as cv2.imread gives it
+    np.savez_compressed(args.out / "scene.npz", depth=depth, K=K, segmap=segmap, rgb=bgr)
     stride = np.zeros_like(depth, dtype=bool)
     stride[:: args.ply_stride, :: args.ply_stride] = True
     points, pix = back_project(np.where(stride, depth, 0), K)

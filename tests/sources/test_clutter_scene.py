@@ -46,9 +46,7 @@ def camera(meta) -> np.ndarray:
 def world_points(arrays, meta, rows, cols) -> np.ndarray:
     """Pixels (row, col) back-projected with K and the camera pose into the world."""
     K, z = arrays["K"], arrays["depth"][rows, cols].astype(float)
-    cam = np.column_stack(
-        [(cols + 0.5 - K[0, 2]) * z / K[0, 0], (rows + 0.5 - K[1, 2]) * z / K[1, 1], z]
-    )
+    cam = np.column_stack([(cols - K[0, 2]) * z / K[0, 0], (rows - K[1, 2]) * z / K[1, 1], z])
     pose = camera(meta)
     return cam @ pose[:3, :3].T + pose[:3, 3]
 
@@ -68,6 +66,10 @@ def test_scene_is_contact_graspnets_input_layout(scene):
     ids = {o["segment"] for o in meta["objects"]}
     assert set(np.unique(arrays["segmap"][hit]).tolist()) == ids
     assert np.all(arrays["segmap"][~hit] == 0) and np.all(arrays["rgb"][~hit] == 0)
+    # BGR as OpenCV reads an image: the red target mug is high in channel 2, the blue one in 0
+    bgr = arrays["rgb"].astype(float)
+    red, blue = (bgr[arrays["segmap"] == s].mean(axis=0) for s in (1, 2))
+    assert red[2] > 2 * red[0] and blue[0] > 2 * blue[2]
     for o in meta["objects"]:
         assert o["pixels"] == np.count_nonzero(arrays["segmap"][hit] == o["segment"]) > 500
 

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.errors import PublishError
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.plots import colormap
 from gcm_pipeline.table import GraspTable
@@ -64,10 +65,15 @@ class SceneCloud:
     def __post_init__(self) -> None:
         pts = np.asarray(self.points, dtype=float).reshape(-1, 3)
         n = len(pts)
-        for key in ("colors", "segments"):
+        for key, width in (("colors", 3), ("segments", None)):
             value = getattr(self, key)
-            if value is not None and len(value) != n:
-                raise ValueError(f"SceneCloud {key} has {len(value)} rows, points has {n}")
+            if value is None:
+                continue
+            shape = np.shape(value)
+            if shape[:1] != (n,) or (width is not None and shape[1:] != (width,)):
+                raise PublishError(
+                    f"point cloud {self.name!r}: {key} has shape {shape}, points has {n} rows"
+                )
         object.__setattr__(self, "points", pts)
 
 

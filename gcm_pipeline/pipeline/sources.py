@@ -62,7 +62,7 @@ def candidate_poses(
             to_world = obj.pose.matrix()
         if to_world is None:
             return poses, grasps.columns
-        return to_world @ poses, move_contacts(grasps.columns, to_world)
+        return to_world @ poses, _move_contacts(grasps.columns, to_world)
     rng = np.random.default_rng(c.seed if c.seed is not None else cfg.seed)
     if c.source == "antipodal":
         if obj is None:
@@ -110,7 +110,7 @@ def candidate_poses(
     return obj.pose.matrix() @ poses, {}
 
 
-def move_contacts(columns: dict[str, np.ndarray], pose: np.ndarray) -> dict[str, np.ndarray]:
+def _move_contacts(columns: dict[str, np.ndarray], pose: np.ndarray) -> dict[str, np.ndarray]:
     """``columns`` with the contact point (``contact_x/y/z``) moved by ``pose`` like the grasps."""
     if not all(k in columns for k in CONTACT_COLUMNS):
         return columns

@@ -12,6 +12,7 @@ import umsgpack
 from helpers import DATA
 
 from gcm_pipeline.config import Config, Pose
+from gcm_pipeline.errors import PublishError
 from gcm_pipeline.outputs.html import render_scene_html
 from gcm_pipeline.outputs.scene import SCENE_PATHS, SceneOptions
 from gcm_pipeline.outputs.scene_cloud import (
@@ -144,8 +145,10 @@ def test_a_cloud_with_segments_but_no_colours_is_coloured_by_segment():
 
 
 def test_a_cloud_of_mismatched_colours_is_refused():
-    with pytest.raises(ValueError, match="colors has 2 rows, points has 3"):
+    with pytest.raises(PublishError, match=r"colors has shape \(2, 3\), points has 3 rows"):
         SceneCloud(np.zeros((3, 3)), np.zeros((2, 3), np.uint8))
+    with pytest.raises(PublishError, match=r"segments has shape \(4,\)"):
+        SceneCloud(np.zeros((3, 3)), segments=np.zeros(4))
 
 
 def test_the_live_viewer_holds_the_cloud_and_the_contacts():

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import DATA
+from helpers import DATA, assert_one_line_error
 
 from gcm_pipeline.config import Config, Pose
 from gcm_pipeline.errors import InputError
@@ -91,8 +91,10 @@ def test_a_file_without_contact_points_has_no_contact_columns(tmp_path):
 @pytest.mark.parametrize(
     "contact_pts, fragment",
     [
-        (np.zeros((3, 3)), r"contact_pts\[1\] must be an \(2, 3\) array"),
-        (np.zeros((2, 2)), r"contact_pts\[1\] must be an \(2, 3\) array"),
+        (np.zeros((3, 3)), r"contact_pts\[1\] must be a \(2, 3\) array"),
+        (np.zeros((2, 2)), r"contact_pts\[1\] must be a \(2, 3\) array"),
+        (np.zeros((3, 2)), r"contact_pts\[1\] must be a \(2, 3\) array"),
+        (np.zeros(6), r"contact_pts\[1\] must be a \(2, 3\) array"),
         (np.array([[0, 0, np.inf], [0, 0, 0]]), r"contact_pts\[1\] has an infinite"),
         (np.array([["a", "b", "c"]] * 2), r"contact_pts\[1\] must be numbers"),
     ],
@@ -102,3 +104,18 @@ def test_contact_points_of_another_shape_are_refused(tmp_path, contact_pts, frag
     np.savez(path, pred_grasps_cam={1: np.stack([np.eye(4)] * 2)}, contact_pts={1: contact_pts})
     with pytest.raises(InputError, match=fragment):
         read_contact_graspnet(path)
+
+
+def test_gcm_run_refuses_bad_contact_points_in_one_line(tmp_path, cli):
+    path = tmp_path / "predictions.npz"
+    np.savez(path, pred_grasps_cam={1: np.stack([np.eye(4)] * 2)}, contact_pts={1: np.zeros(6)})
+    cfg = tmp_path / "run.yaml"
+    cfg.write_text(
+        "object: {shape: box, dims: {size: [0.05, 0.05, 0.1]}}\n"
+        f"candidates: {{source: file, path: {path}, format: contact_graspnet, "
+        "camera_pose: {xyz: [0.5, 0, 0.8], rpy_deg: [180, 0, 0]}}\n"
+    )
+    out = tmp_path / "out"
+    code, _, err = cli("run", cfg, "--out", out)
+    assert_one_line_error(code, err, str(path), "contact_pts[1]", "(2, 3)", "shape (6,)")
+    assert not out.exists()

@@ -157,12 +157,12 @@ def _contact_points(path: Path, value: Any, m: int, key: Any) -> np.ndarray:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"{path}: {what} must be numbers", path=path) from None
-    if arr.size != 3 * m or (arr.ndim != 2 and arr.size):
+    if arr.shape != (m, 3):
         raise InputError(
-            f"{path}: {what} must be an ({m}, 3) array of points, one per grasp of "
+            f"{path}: {what} must be a ({m}, 3) array of points, one per grasp of "
             f"pred_grasps_cam[{clip(key, 40)}], got shape {arr.shape}",
             path=path,
         )
     if np.isinf(arr).any():
         raise InputError(f"{path}: {what} has an infinite coordinate", path=path)
-    return arr.reshape(m, 3)
+    return arr

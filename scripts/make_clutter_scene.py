@@ -29,9 +29,11 @@ Written into ``--out`` (default ``tests/data/clutter``):
     as dicts keyed by segment id, here ``{1: ...}``): up to ``--grasps`` of the
     ACRONYM file's successful grasps of the mug, as Franka-hand base poses in
     the camera frame, and each grasp's contact point: where a ray from the
-    +x finger's pad along the closing direction (-x of the hand) first meets
+    -x finger's pad along its closing direction (+x of the hand) first meets
     the mug, tried from the fingertip (z = 0.1034 m) back along the pad; a
-    grasp whose rays all miss is left out. No ``scores`` (ACRONYM has none).
+    grasp whose rays all miss is left out. Contact-GraspNet's own
+    predictions put the contact there too (at x = -width / 2, y = 0,
+    z = 0.1034 m in the hand's frame). No ``scores`` (ACRONYM has none).
 ``scene.json``
     The camera pose (``xyz``, ``rpy_deg`` as a config's ``camera_pose`` takes
     it, and the 4x4 matrix), the image size, and every object's segment,
@@ -198,8 +200,8 @@ def mug_grasps(mug: dict, count: int, seed: int) -> tuple[np.ndarray, np.ndarray
         todo = np.flatnonzero(np.isnan(contact[:, 0]))
         if not len(todo):
             break
-        origin = poses[todo] @ np.array([FINGER_X, 0.0, z, 1.0])
-        direction = -poses[todo][:, :3, 0]
+        origin = poses[todo] @ np.array([-FINGER_X, 0.0, z, 1.0])
+        direction = poses[todo][:, :3, 0]
         hits, ray, _ = mesh.ray.intersects_location(origin[:, :3], direction, multiple_hits=False)
         ok = np.linalg.norm(hits - origin[ray, :3], axis=1) <= 2 * FINGER_X
         contact[todo[ray[ok]]] = hits[ok]

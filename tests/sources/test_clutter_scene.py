@@ -108,12 +108,14 @@ def test_grasp_contacts_lie_on_the_mug_between_the_fingers(scene, script):
     mesh.apply_transform(np.asarray(mug["pose"]))
     _, dist, _ = trimesh.proximity.closest_point(mesh, pts)
     assert dist.max() < 1e-4
-    # in the hand's frame: on the closing line (y = 0), on the finger pads' depth
+    # in the hand's frame: on the closing line (y = 0), on the finger pads' depth, on the side of
+    # the -x finger (where Contact-GraspNet's predictions put it: x = -width / 2)
     local = np.einsum("nji,nj->ni", world[:, :3, :3], pts - world[:, :3, 3])
     assert np.abs(local[:, 1]).max() < 1e-4
     assert np.all(local[:, 2] <= script.FINGERTIP_Z + 1e-4)
     assert np.all(local[:, 2] >= script.FINGERTIP_Z - script.PAD_LENGTH - 1e-4)
     assert np.all(np.abs(local[:, 0]) <= script.FINGER_X)
+    assert np.mean(local[:, 0] <= 1e-3) > 0.95  # past the centre only on a thin wall
 
 
 def test_the_readme_command_rebuilds_the_scene(tmp_path, scene):

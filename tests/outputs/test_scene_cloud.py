@@ -114,6 +114,7 @@ def test_large_clouds_share_the_point_budget_and_keep_their_colours():
     html, info = render_scene_html(grasps, None, None, SceneOptions(clouds=clouds))
     assert info.cloud_points == {"big": 75_000, "small": 25_000}
     assert sum(info.cloud_points.values()) == MAX_CLOUD_POINTS
+    assert len(html) < 5_000_000  # 200,000 points give a page under 5 MB
     objs = scene_objects(html)
     # a subset of the cloud's own points, each with its own colour
     pts = objs["/cloud/small"]["position"]

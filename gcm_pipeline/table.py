@@ -259,7 +259,9 @@ FILL_RULES = ("blend", "missing")
 #: Known per-candidate columns and their fill rule (any other extra column is
 #: filled with ``missing``). ``score``: the source's grasp quality (the
 #: synthesiser's confidence or score, the sampler's antipodal quality), ``width``:
-#: finger opening [m]; ids name the candidate's origin and are not blended.
+#: finger opening [m]; ids name the candidate's origin and are not blended;
+#: ``contact_x``, ``contact_y``, ``contact_z``: the synthesiser's contact point
+#: in the world [m] (Contact-GraspNet's ``contact_pts``), none for a blend.
 CANDIDATE_COLUMNS: dict[str, str] = {
     "score": "blend",
     "width": "blend",
@@ -268,6 +270,9 @@ CANDIDATE_COLUMNS: dict[str, str] = {
     "object_id": "missing",
     "segment": "missing",
     "success": "missing",
+    "contact_x": "missing",
+    "contact_y": "missing",
+    "contact_z": "missing",
 }
 
 

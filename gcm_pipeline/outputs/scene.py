@@ -16,11 +16,15 @@ path                        content
 ``/grasps/unreachable``     one ``LineSegments`` object: grey for ``no_ik``,
                             a fixed colour per other ``reason``
 ``/manifold``               the manifold's triangles (translucent) and edges
+``/cloud/<name>``           each scene point cloud (``Points``; RGB, else by
+                            segment, else by height; subsampled)
+``/contacts``               the grasps' contact points (``Points``, magenta)
 =========================== ==================================================
 
 Glyphs are batched, one meshcat object per grasp class
 (:mod:`gcm_pipeline.outputs.scene_glyphs`); the object and the environment
-are drawn by :mod:`gcm_pipeline.outputs.scene_shapes`, the robot by
+are drawn by :mod:`gcm_pipeline.outputs.scene_shapes`, the point clouds and
+contact points by :mod:`gcm_pipeline.outputs.scene_cloud`, the robot by
 :mod:`gcm_pipeline.outputs.robot_view`, and the camera is placed by
 :mod:`gcm_pipeline.outputs.scene_camera`.
 
@@ -44,6 +48,7 @@ from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.plots import candidate_rows
 from gcm_pipeline.outputs.robot_view import ANIMATION_BLEND_LIMIT, RobotDrawer
 from gcm_pipeline.outputs.scene_camera import frame_scene, set_camera
+from gcm_pipeline.outputs.scene_cloud import SceneCloud, cloud_corners, draw_clouds, draw_contacts
 from gcm_pipeline.outputs.scene_glyphs import (
     column,
     draw_grasps,
@@ -78,6 +83,8 @@ SCENE_PATHS = (
     "/grasps/reachable",
     "/grasps/unreachable",
     "/manifold",
+    "/cloud",
+    "/contacts",
 )
 
 
@@ -96,6 +103,7 @@ class SceneOptions:
         object: The grasped object, or None.
         table: The support table, or None.
         obstacles: The other obstacles of the environment.
+        clouds: The scene's point clouds (world frame).
     """
 
     base_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -104,12 +112,14 @@ class SceneOptions:
     object: SceneShape | None = None
     table: SceneTable | None = SceneTable()
     obstacles: tuple[SceneShape, ...] = ()
+    clouds: tuple[SceneCloud, ...] = ()
 
     def __post_init__(self) -> None:
         base = np.array(self.base_pose, dtype=float)
         base.setflags(write=False)
         object.__setattr__(self, "base_pose", base)
         object.__setattr__(self, "obstacles", tuple(self.obstacles))
+        object.__setattr__(self, "clouds", tuple(self.clouds))
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,6 +158,8 @@ class SceneInfo:
         animation_s: Duration of the robot animation [s].
         animation_cuts: Steps of the animation that cut to the next solution
             (another IK branch) instead of blending to it.
+        cloud_points: Points drawn of each point cloud, by name (subsampled).
+        contacts: Contact points drawn.
     """
 
     paths: tuple[str, ...]
@@ -160,6 +172,8 @@ class SceneInfo:
     top_k: int
     animation_s: float
     animation_cuts: int = 0
+    cloud_points: dict[str, int] = field(default_factory=dict)
+    contacts: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """Return the info as plain JSON-ready data."""
@@ -266,6 +280,12 @@ def build_scene(
         paths += draw_object(vis, options.object)
         frame_pts.append(object_points(options.object))
     paths += draw_environment(vis, options.table, options.obstacles)
+    cloud_paths, cloud_points = draw_clouds(vis, options.clouds)
+    paths += cloud_paths
+    if cloud_points:
+        frame_pts.append(cloud_corners(options.clouds))
+    contact_paths, n_contacts = draw_contacts(vis, grasps)
+    paths += contact_paths
     gpaths, glyph, n_r, n_u = draw_grasps(vis, grasps, rot, trans) if n else ([], "none", 0, 0)
     paths += gpaths
     paths += _draw_manifold(vis, grasps, manifold, trans)
@@ -285,6 +305,8 @@ def build_scene(
         top_k=n_top,
         animation_s=anim_s,
         animation_cuts=cuts,
+        cloud_points=cloud_points,
+        contacts=n_contacts,
     )
 
 

@@ -14,6 +14,7 @@ from gcm_pipeline.errors import ConfigError, InputError
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.sources.antipodal import antipodal_candidates, object_mesh
 from gcm_pipeline.sources.files import file_format, read_grasps, to_grasp_frame
+from gcm_pipeline.sources.files.contact_graspnet import CONTACT_COLUMNS
 from gcm_pipeline.sources.generators import add_noise, generate
 from gcm_pipeline.sources.grippers import GripperSpec
 from gcm_pipeline.table import GraspTable
@@ -59,13 +60,16 @@ def candidate_poses(
         )
         if choice is not None and report is not None:
             report["grasp_frame"] = choice.as_dict() | {"describe": choice.describe()}
+        to_world = None
         if c.camera_pose is not None:
-            poses = c.camera_pose.matrix() @ poses
+            to_world = c.camera_pose.matrix()
         elif c.frame == "object":
             if obj is None:
                 raise ConfigError("candidates.frame 'object' needs an 'object' section")
-            poses = obj.pose.matrix() @ poses
-        return poses, grasps.columns
+            to_world = obj.pose.matrix()
+        if to_world is None:
+            return poses, grasps.columns
+        return to_world @ poses, _move_contacts(grasps.columns, to_world)
     rng = np.random.default_rng(c.seed if c.seed is not None else cfg.seed)
     if c.source == "antipodal":
         if obj is None:
@@ -136,6 +140,14 @@ def sampler_gripper(cfg: Config) -> GripperSpec:
     if tool is not None:
         return load_gripper(tool, "robot.tool")
     return load_gripper("franka_panda")
+
+
+def _move_contacts(columns: dict[str, np.ndarray], pose: np.ndarray) -> dict[str, np.ndarray]:
+    """``columns`` with the contact point (``contact_x/y/z``) moved by ``pose`` like the grasps."""
+    if not all(k in columns for k in CONTACT_COLUMNS):
+        return columns
+    pts = np.column_stack([columns[k] for k in CONTACT_COLUMNS]) @ pose[:3, :3].T + pose[:3, 3]
+    return columns | dict(zip(CONTACT_COLUMNS, pts.T, strict=True))
 
 
 @takes_config

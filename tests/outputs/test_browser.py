@@ -260,9 +260,14 @@ def test_scene_size_and_ur5_renders_whole(tmp_path: Path, panda):
     assert sizes.max() >= 0.98 * sizes.sum(), sorted(sizes.tolist())[-5:]
 
 
-def _without_robot(html: str) -> str:
-    """The same page (same camera) with the robot hidden by one more meshcat command."""
-    hide = {"type": "set_property", "path": "/meshcat/robot", "property": "visible", "value": False}
+def _without_robot(html: str, path: str = "/robot") -> str:
+    """The same page (same camera) with ``path`` (the robot) hidden by one more meshcat command."""
+    hide = {
+        "type": "set_property",
+        "path": f"/meshcat{path}",
+        "property": "visible",
+        "value": False,
+    }
     b64 = base64.b64encode(umsgpack.packb(hide)).decode("ascii")
     extra = (
         f'fetch("data:application/octet-binary;base64,{b64}")\n'
@@ -272,3 +277,52 @@ def _without_robot(html: str) -> str:
     marker = "viewer.controls.update();"
     assert marker in html
     return html.replace(marker, marker + "\n" + extra, 1)
+
+
+def test_cloud_and_contact_points_render(tmp_path: Path):
+    """The clutter scene's cloud and its grasps' contact points are drawn where they are.
+
+    The pixels of each are the difference between the page and the same page
+    with that scene path hidden: the cloud's are the scene's own colours (the
+    file's RGB: the tan table, the red target mug), the contacts' magenta, on
+    the mug.
+    """
+    from PIL import Image
+    from test_scene_cloud import clutter_cloud, clutter_grasps, scene_objects
+
+    from gcm_pipeline.outputs.html import write_scene_html
+    from gcm_pipeline.outputs.scene import SceneOptions
+
+    cloud, meta = clutter_cloud()
+    grasps = clutter_grasps(meta)
+    page = tmp_path / "scene.html"
+    info = write_scene_html(page, grasps, None, None, SceneOptions(clouds=(cloud,)))
+    objs = scene_objects(page.read_text(encoding="utf-8"))
+    assert len(objs["/cloud/scene"]["position"]) == info.cloud_points["scene"] == len(cloud.points)
+    assert len(objs["/contacts"]["position"]) == info.contacts == 150
+    images = {}
+    for label in ("all", "/cloud", "/contacts"):
+        out = tmp_path / label.strip("/")
+        out.mkdir()
+        html = page.read_text(encoding="utf-8")
+        shown = out / "scene.html"
+        shown.write_text(html if label == "all" else _without_robot(html, label), "utf-8")
+        screenshot(shown, out / "scene.png", out / "profile")
+        images[label] = np.asarray(Image.open(out / "scene.png").convert("RGB")).astype(int)
+    full = images["all"]
+    # the cloud: a large patch in the scene's own colours (the file's RGB)
+    diff = np.abs(full - images["/cloud"]).sum(axis=2) > 30
+    r, g, b = full[..., 0], full[..., 1], full[..., 2]
+    assert diff.sum() > 0.03 * diff.size, diff.sum()
+    tan = diff & (r > g) & (g > b) & (r - b > 30)
+    mug = diff & (r > 2 * g) & (r > 2 * b)  # the red target mug's points
+    assert tan.sum() > 0.5 * diff.sum() and mug.sum() > 100, (tan.sum(), mug.sum(), diff.sum())
+    # the contacts: magenta squares on the target mug
+    diff = np.abs(full - images["/contacts"]).sum(axis=2) > 30
+    magenta = diff & (r > 150) & (b > 150) & (g < 0.6 * r)
+    assert magenta.sum() > 100 and magenta.sum() > 0.3 * diff.sum(), (magenta.sum(), diff.sum())
+    rows, cols = np.nonzero(mug)
+    top, bottom, left, right = rows.min() - 40, rows.max() + 40, cols.min() - 40, cols.max() + 40
+    rows, cols = np.nonzero(magenta)
+    on_mug = (rows >= top) & (rows <= bottom) & (cols >= left) & (cols <= right)
+    assert on_mug.mean() > 0.95, on_mug.mean()

@@ -7,6 +7,10 @@ gripper base poses in the camera frame (OpenCV: x right, y down, z forward),
 [m]; plain arrays (no dict) are one segment (-1). Source: Contact-GraspNet's
 ``inference.py`` (``np.savez`` of ``pred_grasps_cam``, ``scores``,
 ``contact_pts``; later versions add ``gripper_openings``).
+
+The contact points become the per-candidate columns ``contact_x``,
+``contact_y``, ``contact_z`` (:data:`CONTACT_COLUMNS`), in the camera frame
+here; the ``candidates`` step moves them with the poses (``camera_pose``).
 """
 
 from __future__ import annotations
@@ -28,7 +32,10 @@ from gcm_pipeline.sources.files.common import (
 from gcm_pipeline.sources.files.pickled import read_npz_members
 from gcm_pipeline.sources.files.sniff import check_format
 
-__all__ = ["read_contact_graspnet"]
+__all__ = ["CONTACT_COLUMNS", "read_contact_graspnet"]
+
+#: The per-candidate columns of a grasp's contact point [m] (``contact_pts``).
+CONTACT_COLUMNS = ("contact_x", "contact_y", "contact_z")
 
 
 def _segments(value: Any) -> dict[Any, np.ndarray]:
@@ -57,8 +64,10 @@ def read_contact_graspnet(
         Gripper base poses (``base`` convention) in the camera frame with
         ``score`` (the file's ``scores``; no column when it has none),
         ``width`` (``gripper_openings`` when present, else NaN),
-        ``segment`` (the segment id) and ``source_id`` (the row inside its
-        segment).
+        ``segment`` (the segment id), ``source_id`` (the row inside its
+        segment) and, when the file has ``contact_pts``, the contact point
+        in the camera frame as ``contact_x``, ``contact_y``, ``contact_z``
+        [m] (NaN for a segment without contact points).
 
     Raises:
         InputError: Not an ``.npz`` with ``pred_grasps_cam``, inconsistent
@@ -76,12 +85,14 @@ def read_contact_graspnet(
     grasps = _segments(arrays["pred_grasps_cam"])
     scores = _segments(arrays["scores"]) if "scores" in arrays else {}
     openings = _segments(arrays["gripper_openings"]) if "gripper_openings" in arrays else {}
+    contacts = _segments(arrays["contact_pts"]) if "contact_pts" in arrays else None
     try:
         keys = sorted(grasps, key=lambda k: float(k))
     except (TypeError, ValueError):
         keys = sorted(grasps, key=str)
     parts: list[np.ndarray] = []
     cols: dict[str, list[Any]] = {"score": [], "width": [], "segment": [], "source_id": []}
+    points: list[np.ndarray] = []
     try:
         total = sum(int(np.size(v)) // 16 for v in grasps.values())
     except (TypeError, ValueError):  # ragged lists
@@ -119,6 +130,8 @@ def read_contact_graspnet(
             if width is None
             else vector(path, width, m, f"gripper_openings[{key}]")
         )
+        if contacts is not None:
+            points.append(_contact_points(path, contacts.get(key), m, key))
         try:
             seg = int(float(key))
         except (TypeError, ValueError, OverflowError):
@@ -130,4 +143,26 @@ def read_contact_graspnet(
     if not parts:
         return ImportedGrasps(np.zeros((0, 4, 4)), "base", {})
     columns = {k: np.concatenate(v) for k, v in cols.items() if v}
+    if points:
+        columns.update(zip(CONTACT_COLUMNS, np.concatenate(points).T, strict=True))
     return ImportedGrasps(np.concatenate(parts), "base", columns)
+
+
+def _contact_points(path: Path, value: Any, m: int, key: Any) -> np.ndarray:
+    """(m, 3) contact points of a segment [m] (NaN when the file has none for it)."""
+    if value is None:
+        return np.full((m, 3), np.nan)
+    what = f"contact_pts[{clip(key, 40)}]"
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {what} must be numbers", path=path) from None
+    if arr.shape != (m, 3):
+        raise InputError(
+            f"{path}: {what} must be a ({m}, 3) array of points, one per grasp of "
+            f"pred_grasps_cam[{clip(key, 40)}], got shape {arr.shape}",
+            path=path,
+        )
+    if np.isinf(arr).any():
+        raise InputError(f"{path}: {what} has an infinite coordinate", path=path)
+    return arr

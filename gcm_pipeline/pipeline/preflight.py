@@ -31,6 +31,10 @@ def input_files(cfg: Config) -> dict[str, Path]:
     for i, obstacle in enumerate(cfg.environment.obstacles):
         if obstacle.mesh is not None:
             files[f"environment.obstacles.{i}.mesh"] = Path(obstacle.mesh)
+    for i, cloud in enumerate(cfg.environment.point_clouds):
+        files[f"environment.point_clouds.{i}.path"] = Path(cloud.path)
+        if cloud.segmap is not None:
+            files[f"environment.point_clouds.{i}.segmap"] = Path(cloud.segmap)
     spec = cfg.robot.spec
     if spec.endswith((".yaml", ".yml")) or "/" in spec:
         files["robot.spec"] = Path(spec)
@@ -75,7 +79,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
             found = there = False
         if not found:
             what = {"candidates.path": "grasp file", "robot.spec": "robot spec file"}.get(
-                key, "mesh file"
+                key, "cloud file" if ".point_clouds." in key else "mesh file"
             )
             if there:  # a directory, a device (/dev/zero), a pipe
                 raise InputError(f"{key}: {what} {path} is not a regular file")

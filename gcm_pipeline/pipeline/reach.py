@@ -12,6 +12,7 @@ from gcm_pipeline.config import robot_spec
 from gcm_pipeline.config.reach_sections import ApproachConfig, EnvironmentConfig, RetreatConfig
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig, Pose
+from gcm_pipeline.pipeline.clouds import cloud_world
 from gcm_pipeline.reach import check as reach_check
 from gcm_pipeline.reach.engine import ReachabilityEngine
 from gcm_pipeline.reach.moves import Move
@@ -39,6 +40,7 @@ def collision_world(
     environment: EnvironmentConfig | None = None,
     object_cfg: ObjectConfig | None = None,
     base_pose: Pose | np.ndarray | None = None,
+    camera_pose: Pose | None = None,
 ) -> list[WorldShape]:
     """The collision world of the config sections, in the robot's base frame.
 
@@ -47,12 +49,17 @@ def collision_world(
     * the ``environment.obstacles`` (box, cylinder, sphere, mesh; placed like
       the object: a cylinder stands on its base along its frame's z, boxes and
       spheres are centred on their frame);
+    * the ``environment.point_clouds``, as octree tiles
+      (:func:`~gcm_pipeline.pipeline.clouds.cloud_world`; ``camera_pose`` is
+      ``candidates.camera_pose``, for camera-frame clouds without their own);
     * the ``object`` (kind ``object``) unless ``environment.check_object`` is off.
 
     Args:
         environment: Config section (None: the default, a table at z = 0).
         object_cfg: Config ``object`` section or None.
         base_pose: Robot base in the world (Pose or (4, 4)); None: identity.
+        camera_pose: ``candidates.camera_pose``: the pose of camera-frame clouds
+            that give none.
 
     Returns:
         The :class:`~gcm_pipeline.robot.collision.WorldShape` list.
@@ -80,6 +87,7 @@ def collision_world(
                 where=f"environment.obstacles[{i}]",
             )
         )
+    world += cloud_world(env, object_cfg, base_inv, camera_pose)
     if object_cfg is not None and env.check_object:
         o = object_cfg
         world.append(
@@ -97,6 +105,7 @@ def make_checker(
     base_pose: Pose | np.ndarray | None = None,
     *,
     threads: int = 1,
+    camera_pose: Pose | None = None,
 ) -> CollisionChecker:
     """The collision checker of a run (``environment``, ``object``, ``robot.base_pose``).
 
@@ -106,6 +115,7 @@ def make_checker(
         object_cfg: Config ``object`` section or None.
         base_pose: Robot base in the world (Pose or (4, 4)); None: identity.
         threads: Threads for the batched checks.
+        camera_pose: ``candidates.camera_pose`` (see :func:`collision_world`).
 
     Returns:
         The :class:`~gcm_pipeline.robot.collision.CollisionChecker`; a world
@@ -114,7 +124,7 @@ def make_checker(
     env = EnvironmentConfig() if environment is None else environment
     checker = CollisionChecker(
         robot,
-        collision_world(env, object_cfg, base_pose),
+        collision_world(env, object_cfg, base_pose, camera_pose),
         contact_tolerance=env.contact_tolerance,
         self_collision=env.self_collision,
         threads=threads,
@@ -200,7 +210,13 @@ def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     options = reach_options(cfg)
     checker = None
     if cfg.environment is not None or cfg.object is not None:
-        checker = make_checker(robot, cfg.environment, cfg.object, options.base_pose)
+        checker = make_checker(
+            robot,
+            cfg.environment,
+            cfg.object,
+            options.base_pose,
+            camera_pose=cfg.candidates.camera_pose,
+        )
     return reach_check.make_engine(robot, options, checker=checker)
 
 

@@ -95,8 +95,9 @@ class PointCloud:
 def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Packed int64 keys (N,) of the voxels holding points (N, 3) [m] (world grid).
 
-    The key of octomap (coal's octrees): the coordinate in single precision
-    times ``1 / voxel_size``, rounded down; so the voxels are the octree's cells.
+    The key of coal's octrees (octomap, as ``coal.makeOctree`` inserts points): the
+    coordinate times ``1 / voxel_size``, rounded down; so the voxels are the
+    octree's cells (also for points on a cell's boundary).
 
     Raises:
         InputError: A point beyond the grid's reach (:func:`grid_reach`).
@@ -112,8 +113,7 @@ def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
             "caps it at 1000 m); wrong units or camera_pose?",
             row=i,
         )
-    single = pts.astype(np.float32).astype(np.float64)
-    k = np.floor(single * (1.0 / voxel_size)).astype(np.int64) + _OFFSET
+    k = np.floor(pts * (1.0 / voxel_size)).astype(np.int64) + _OFFSET
     return (k[:, 0] << (2 * _BITS)) | (k[:, 1] << _BITS) | k[:, 2]
 
 

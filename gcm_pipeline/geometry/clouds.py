@@ -106,12 +106,12 @@ def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     reach = grid_reach(voxel_size)
     far = np.abs(pts) >= reach
     if far.any():
-        i = int(np.flatnonzero(far.any(axis=1))[0])
+        p = pts[int(np.flatnonzero(far.any(axis=1))[0])]
         raise InputError(
-            f"cloud point {i} {pts[i].tolist()} lies {reach:g} m or more from the world "
-            f"origin along an axis: beyond an octree of {voxel_size} m voxels (bounds.MAX_LENGTH "
-            "caps it at 1000 m); wrong units or camera_pose?",
-            row=i,
+            f"cloud point {p.tolist()} lies {reach:g} m or more from the world origin along an "
+            f"axis: beyond an octree of {voxel_size} m voxels (bounds.MAX_LENGTH caps it at "
+            f"{MAX_LENGTH:g} m); wrong units or camera_pose?",
+            value=p.tolist(),
         )
     k = np.floor(pts * (1.0 / voxel_size)).astype(np.int64) + _OFFSET
     return (k[:, 0] << (2 * _BITS)) | (k[:, 1] << _BITS) | k[:, 2]
@@ -164,7 +164,10 @@ class VoxelGrid:
         """Add world points (M, 3) [m] (finite), their segments (M,) and colours (M, 3) uint8."""
         if not len(points):
             return
-        keys = voxel_keys(points, self.voxel_size)
+        try:
+            keys = voxel_keys(points, self.voxel_size)
+        except InputError as exc:
+            raise InputError(f"{self.where}: {exc}", value=exc.value) from None
         seg = (
             np.full(len(keys), NO_SEGMENT, np.int64)
             if segments is None

@@ -11,6 +11,7 @@ from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
+from gcm_pipeline.pipeline.clouds import scene_clouds
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.sources.file_object import warn_if_open
 
@@ -52,6 +53,8 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     - ``robot.spec`` names a shipped spec or a valid spec file whose model
       exists; the robot is built (kinematics, locked joints inside their
       ranges, a readable SRDF, collision meshes that load);
+    - the ``environment.point_clouds`` read (:func:`~gcm_pipeline.pipeline.clouds.scene_clouds`,
+      kept for the run);
     - the object and obstacle meshes load and have finite vertices; an object
       mesh that is not watertight is warned about (the contact model needs a
       closed mesh);
@@ -97,6 +100,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     for where, shape in shapes:
         if shape is not None and shape.shape == "mesh":
             shape_geometry("mesh", shape.dims, mesh=shape.mesh, scale=shape.scale, where=where)
+    scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)  # read once, kept
     obj = cfg.object
     if obj is not None and obj.mesh is not None and cfg.candidates.source != "antipodal":
         warn_if_open(Path(obj.mesh), obj.scale, f"object.mesh {obj.mesh}")  # the sampler warns

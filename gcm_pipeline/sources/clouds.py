@@ -122,7 +122,7 @@ def read_cloud(opt: CloudOptions) -> PointCloud:
         ),
         0,
     )
-    grid = VoxelGrid(opt.voxel_size, where=opt.where)
+    grid = VoxelGrid(opt.voxel_size, where=f"{opt.where}: {path}")
     for chunk in _chunks(path, opt, counts):
         _add(grid, chunk, opt, counts)
     if counts["kept"] == 0:

@@ -117,6 +117,9 @@ class PointCloudConfig(_Section):
         crop_min, crop_max: Corners of a world box; points outside are dropped
             (e.g. the table's own points: ``crop_min: [-1, -1, 0.005]``).
         exclude_segments: Segment ids that are not obstacles (the target object's).
+        exclude_grasp_segment: Candidates with a ``segment`` column (Contact-GraspNet's
+            per-segment predictions): each grasp is checked without its own segment
+            (an interpolated grasp: its vertices' segment when they share one).
         exclude_object_distance: Points within this distance of the ``object`` are
             dropped [m] (the object's own points; it is checked as its shape).
         name: Name of the cloud (default ``cloud_<i>``).
@@ -140,6 +143,7 @@ class PointCloudConfig(_Section):
     crop_min: Point3 | None = None
     crop_max: Point3 | None = None
     exclude_segments: tuple[Annotated[int, Strict()], ...] = ()
+    exclude_grasp_segment: Bool = True
     exclude_object_distance: NonNegLength | None = None
     name: str | None = None
 

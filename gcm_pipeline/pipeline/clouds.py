@@ -16,15 +16,25 @@ import numpy as np
 from gcm_pipeline.config.reach_sections import EnvironmentConfig, PointCloudConfig
 from gcm_pipeline.config.sections import ObjectConfig, Pose
 from gcm_pipeline.errors import ConfigError
-from gcm_pipeline.geometry.clouds import PointCloud
+from gcm_pipeline.geometry.clouds import NO_SEGMENT, PointCloud
 from gcm_pipeline.robot import collision
 from gcm_pipeline.robot.collision.clouds import cloud_shapes, within_distance
 from gcm_pipeline.robot.collision.world import WorldShape
 from gcm_pipeline.sources.clouds import CloudOptions, read_cloud
+from gcm_pipeline.table import GraspTable
 
 log = logging.getLogger(__name__)
 
-__all__ = ["cloud_options", "cloud_world", "scene_clouds"]
+__all__ = [
+    "cloud_options",
+    "cloud_summary",
+    "cloud_world",
+    "grasp_segments",
+    "scene_clouds",
+    "segment_groups",
+    "table_merge",
+    "table_subset",
+]
 
 #: The last clouds read: (key, clouds).
 _LAST: list[tuple[Any, list[PointCloud]]] = []
@@ -140,12 +150,90 @@ def cloud_world(
     object_cfg: ObjectConfig | None,
     base_inv: np.ndarray,
     camera_pose: Pose | None = None,
+    grasp_segment: int | None = None,
 ) -> list[WorldShape]:
-    """The clouds' octree tiles (kind ``environment``) in the robot's base frame."""
+    """The clouds' octree tiles (kind ``environment``) in the robot's base frame.
+
+    ``grasp_segment``: the segment of the grasps checked, left out of the clouds
+    with ``exclude_grasp_segment`` (a voxel another segment shares stays).
+    """
     shapes: list[WorldShape] = []
-    for cloud in scene_clouds(environment, object_cfg, camera_pose):
-        shapes += cloud_shapes(cloud.occupied(), cloud.voxel_size, base_inv, cloud.name)
+    if environment is None:
+        return shapes
+    clouds = scene_clouds(environment, object_cfg, camera_pose)
+    for pc, cloud in zip(environment.point_clouds, clouds, strict=True):
+        drop = () if grasp_segment is None or not pc.exclude_grasp_segment else (grasp_segment,)
+        points = cloud.occupied(drop)
+        if not len(points):
+            continue  # the grasps' own segment is the whole cloud
+        shapes += cloud_shapes(points, cloud.voxel_size, base_inv, cloud.name)
     return shapes
+
+
+def grasp_segments(grasps: GraspTable) -> np.ndarray:
+    """Each row's segment (N,) int64: its ``segment``, or its vertices' when they share one.
+
+    -1 where there is none (no column, or vertices of several segments).
+    """
+    n = len(grasps)
+    if "segment" not in grasps:
+        return np.full(n, NO_SEGMENT, np.int64)
+    seg = np.asarray(grasps["segment"], dtype=np.int64).copy()
+    if "vertices" in grasps:
+        vert = np.asarray(grasps["vertices"], dtype=np.int64)
+        ok = (vert >= 0) & (vert < n)
+        own = np.where(ok, seg[np.clip(vert, 0, max(n - 1, 0))], NO_SEGMENT)
+        first = own[:, 0]
+        agree = np.all(ok, axis=1) & np.all(own == first[:, None], axis=1)
+        fill = (seg == NO_SEGMENT) & agree
+        seg[fill] = first[fill]
+    return seg
+
+
+def segment_groups(
+    grasps: GraspTable, environment: EnvironmentConfig | None
+) -> list[tuple[int | None, np.ndarray]] | None:
+    """Rows grouped by their segment when a cloud excludes each grasp's own, else None.
+
+    Returns ``[(segment or None, rows), ...]`` (None: rows without a segment,
+    checked against the whole clouds).
+    """
+    if environment is None or "segment" not in grasps:
+        return None
+    if not any(pc.exclude_grasp_segment for pc in environment.point_clouds):
+        return None
+    seg = grasp_segments(grasps)
+    groups: list[tuple[int | None, np.ndarray]] = []
+    for s in np.unique(seg).tolist():
+        groups.append((None if s == NO_SEGMENT else int(s), np.flatnonzero(seg == s)))
+    return groups
+
+
+def table_subset(grasps: GraspTable, rows: np.ndarray) -> GraspTable:
+    """Rows of a table, its ``vertices`` row ids renumbered (-1: a row left out)."""
+    sub = grasps.take(rows)
+    if "vertices" not in sub:
+        return sub
+    index = np.full(len(grasps) + 1, -1, np.int64)
+    index[rows] = np.arange(len(rows))
+    vert = np.asarray(sub["vertices"], dtype=np.int64)
+    inside = (vert >= 0) & (vert < len(grasps))
+    return sub.with_columns(vertices=np.where(inside, index[np.where(inside, vert, -1)], -1))
+
+
+def table_merge(grasps: GraspTable, parts: list[tuple[np.ndarray, GraspTable]]) -> GraspTable:
+    """``grasps`` with the columns the parts (rows, table) added, each row from its part."""
+    n = len(grasps)
+    new: dict[str, np.ndarray] = {}
+    # every column but the renumbered vertices (the input's come back as they went)
+    names = [c for c in parts[0][1].columns if c != "vertices"]
+    for name in names:
+        arrays = [np.asarray(t[name]) for _, t in parts]
+        out = np.zeros((n, *arrays[0].shape[1:]), dtype=np.result_type(*arrays))
+        for (rows, _), arr in zip(parts, arrays, strict=True):
+            out[rows] = arr
+        new[name] = out
+    return grasps.with_columns(**new)
 
 
 def cloud_summary(clouds: list[PointCloud]) -> list[dict[str, Any]]:

@@ -31,7 +31,7 @@ from gcm_pipeline.config.sections import Pose
 VOXEL = 0.01
 K = np.array([[280.0, 0.0, 160.0], [0.0, 280.0, 120.0], [0.0, 0.0, 1.0]])
 H, W = 240, 320
-EYE = np.array([1.0, 0.05, 0.5])
+EYE = np.array([0.3, -0.45, 0.55])
 BOTTLE_SEGMENT = 1
 
 
@@ -173,3 +173,68 @@ def test_a_camera_cloud_without_a_pose_is_refused(scene_run):
     res = run_gcm("run", tmp / "nopose.yaml", "-q", *QUICK)
     assert_one_line_error(res.returncode, res.stderr, "environment.point_clouds[0]", "camera_pose")
     assert not (tmp / "refused").exists()
+
+
+def _contact_graspnet_run(tmp, name, pose, rpy, **cloud):
+    """``gcm run`` of bottle grasps written as Contact-GraspNet predictions (segment 1)."""
+    from gcm_pipeline.config.run import load_config
+    from gcm_pipeline.geometry.dualquat import dq_to_matrix
+    from gcm_pipeline.pipeline import generate_candidates
+
+    world = dq_to_matrix(generate_candidates(load_config(BOTTLE))["dq"])
+    cam = np.linalg.inv(pose) @ world
+    pred = np.empty((), dtype=object)
+    pred[()] = {BOTTLE_SEGMENT: cam}
+    scores = np.empty((), dtype=object)
+    scores[()] = {BOTTLE_SEGMENT: np.linspace(0.2, 0.9, len(cam))}
+    np.savez(tmp / "pred.npz", pred_grasps_cam=pred, scores=scores)
+    cfg = yaml.safe_load((tmp / "scene.yaml").read_text())
+    camera = {"xyz": EYE.tolist(), "rpy": rpy}
+    cfg["candidates"] = {
+        "source": "file",
+        "format": "contact_graspnet",
+        "path": "pred.npz",
+        "camera_pose": camera,
+        "grasp_to_tool": {"xyz": [0, 0, 0]},  # the file's poses are the TCP's
+    }
+    cfg["environment"]["point_clouds"] = [
+        {"path": "scene.npz", "voxel_size": VOXEL, **cloud}  # the candidates' camera_pose
+    ]
+    cfg["output"] = {"dir": name}
+    (tmp / f"{name}.yaml").write_text(yaml.safe_dump(cfg))
+    res = run_gcm("run", tmp / f"{name}.yaml", "-q", *QUICK)
+    assert res.returncode == 0, res.stderr
+    return tmp / name
+
+
+def test_each_contact_graspnet_grasp_is_checked_without_its_own_segment(scene_run):
+    tmp, pose = scene_run
+    _, rpy = _camera()
+    auto = _contact_graspnet_run(tmp, "auto", pose, rpy)
+    whole = _contact_graspnet_run(tmp, "whole", pose, rpy, exclude_grasp_segment=False)
+    by_hand = _contact_graspnet_run(
+        tmp, "by_hand", pose, rpy, exclude_grasp_segment=False, exclude_segments=[BOTTLE_SEGMENT]
+    )
+
+    def by_pose(run):
+        """reachable, reason, q of each grasp, by its pose (rows are in rank order)."""
+        q = np.load(run / "configurations.npz")["q"]
+        with open(run / "grasps.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        pose = [tuple(r[k] for k in ("x", "y", "z", "qw", "qx", "qy", "qz")) for r in rows]
+        return {
+            p: (r["reachable"] == "true", r["reason"], qi)
+            for p, r, qi in zip(pose, rows, q, strict=True)
+        }
+
+    got, alone, hand = by_pose(auto), by_pose(whole), by_pose(by_hand)
+    assert got.keys() == alone.keys() == hand.keys()
+    assert sum(v[0] for v in got.values()) > 20
+    # its own points only block grasps: with them, a reachable grasp may collide
+    blocked = [p for p in got if got[p][0] and not alone[p][0]]
+    assert not [p for p in got if alone[p][0] and not got[p][0]]
+    assert len(blocked) >= 5 and {alone[p][1] for p in blocked} == {"collision_environment"}
+    # the same as listing the bottle's segment by hand
+    for p, (ok, reason, qi) in got.items():
+        assert (ok, reason) == hand[p][:2]
+        np.testing.assert_array_equal(qi, hand[p][2])

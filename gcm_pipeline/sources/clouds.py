@@ -123,8 +123,11 @@ def read_cloud(opt: CloudOptions) -> PointCloud:
         0,
     )
     grid = VoxelGrid(opt.voxel_size, where=f"{opt.where}: {path}")
-    for chunk in _chunks(path, opt, counts):
-        _add(grid, chunk, opt, counts)
+    try:
+        for chunk in _chunks(path, opt, counts):
+            _add(grid, chunk, opt, counts)
+    except OSError as exc:
+        raise InputError(f"{opt.where}: {path}: {exc.strerror or exc}", path=path) from None
     if counts["kept"] == 0:
         told = ", ".join(f"{k} {v:,}" for k, v in counts.items() if v)
         raise InputError(

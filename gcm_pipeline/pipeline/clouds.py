@@ -18,7 +18,7 @@ from gcm_pipeline.config.sections import ObjectConfig, Pose
 from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.geometry.clouds import NO_SEGMENT, PointCloud
 from gcm_pipeline.robot import collision
-from gcm_pipeline.robot.collision.clouds import cloud_shapes, within_distance
+from gcm_pipeline.robot.collision.clouds import MAX_TILES, cloud_shapes, within_distance
 from gcm_pipeline.robot.collision.world import WorldShape
 from gcm_pipeline.sources.clouds import CloudOptions, read_cloud
 from gcm_pipeline.table import GraspTable
@@ -154,6 +154,9 @@ def cloud_world(
 ) -> list[WorldShape]:
     """The clouds' octree tiles (kind ``environment``) in the robot's base frame.
 
+    At most :data:`~gcm_pipeline.robot.collision.clouds.MAX_TILES` tiles in all
+    (shared by the clouds, at least one each).
+
     ``grasp_segment``: the segment of the grasps checked, left out of the clouds
     with ``exclude_grasp_segment`` (a voxel another segment shares stays).
     """
@@ -161,12 +164,14 @@ def cloud_world(
     if environment is None:
         return shapes
     clouds = scene_clouds(environment, object_cfg, camera_pose)
+    # one budget of tiles for all clouds: each tile costs the checker an obstacle's memory
+    per_cloud = max(1, MAX_TILES // max(1, len(clouds)))
     for pc, cloud in zip(environment.point_clouds, clouds, strict=True):
         drop = () if grasp_segment is None or not pc.exclude_grasp_segment else (grasp_segment,)
         points = cloud.occupied(drop)
         if not len(points):
             continue  # the grasps' own segment is the whole cloud
-        shapes += cloud_shapes(points, cloud.voxel_size, base_inv, cloud.name)
+        shapes += cloud_shapes(points, cloud.voxel_size, base_inv, cloud.name, per_cloud)
     return shapes
 
 

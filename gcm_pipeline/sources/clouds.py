@@ -128,6 +128,18 @@ def read_cloud(opt: CloudOptions) -> PointCloud:
             _add(grid, chunk, opt, counts)
     except OSError as exc:
         raise InputError(f"{opt.where}: {path}: {exc.strerror or exc}", path=path) from None
+    except InputError as exc:
+        if str(exc).startswith(opt.where):
+            raise
+        # every message names the config key first (the readers name the file)
+        raise InputError(
+            f"{opt.where}: {exc}",
+            key=opt.where,
+            value=exc.value,
+            choices=exc.choices,
+            path=exc.path or path,
+            row=exc.row,
+        ) from None
     if counts["kept"] == 0:
         told = ", ".join(f"{k} {v:,}" for k, v in counts.items() if v)
         raise InputError(
@@ -332,7 +344,10 @@ def _array_chunks(
             path=path,
         )
     if colors is not None and tuple(colors.shape) != (shape[0], 3):
-        raise InputError(f"{path}: xyz_color must be (N, 3) like xyz, got {tuple(colors.shape)}")
+        raise InputError(
+            f"{opt.where}: {path}: xyz_color must be (N, 3) like xyz, got {tuple(colors.shape)}",
+            path=path,
+        )
     for a in range(0, shape[0], CLOUD_CHUNK):
         m = min(CLOUD_CHUNK, shape[0] - a)
         pts = np.asarray(rows.read(m), dtype=np.float64)
@@ -383,7 +398,9 @@ def _depth_chunks(
     """Depth rows, block by block, as camera-frame points (``depth2pc``)."""
     kk = _check_intrinsics(path, k, opt)
     if len(depth.shape) != 2:
-        raise InputError(f"{path}: depth must be (H, W), got shape {tuple(depth.shape)}")
+        raise InputError(
+            f"{opt.where}: {path}: depth must be (H, W), got shape {tuple(depth.shape)}", path=path
+        )
     h, w = depth.shape
     if seg is None and opt.segmap is not None:
         seg = _MemRows(_read_segmap(opt))
@@ -396,7 +413,9 @@ def _depth_chunks(
         )
     if rgb is not None and tuple(rgb.shape[:2]) != (h, w):
         raise InputError(
-            f"{path}: rgb is {tuple(rgb.shape)}, the depth image ({h}, {w}); same size needed"
+            f"{opt.where}: {path}: rgb is {tuple(rgb.shape)}, the depth image ({h}, {w}); "
+            "they must be the same size",
+            path=path,
         )
     u = np.arange(w, dtype=np.float64)
     block = max(1, CLOUD_CHUNK // max(w, 1))

@@ -99,7 +99,7 @@ class PointCloudConfig(_Section):
 
     Read from ``.npy`` (N, 3) points or (H, W) depth, ``.npz`` (Contact-GraspNet's
     scene layout: ``depth``, ``K``, ``segmap``, ``rgb``, or ``xyz``, ``xyz_color``),
-    ``.ply`` or ``.pcd``; voxelised on the world grid while reading and checked
+    ``.ply``, ``.pcd`` or a ``.png`` depth image (GraspNet-1Billion's); voxelised on the world grid while reading and checked
     as octrees.
 
     Attributes:
@@ -110,8 +110,8 @@ class PointCloudConfig(_Section):
         intrinsics: A depth image's camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``
             (default: the ``.npz``'s ``K``).
         depth_scale: Depth units to metres (0.001 for millimetres).
-        segmap: A ``.npy`` (H, W) of segment ids for a depth image (default: the
-            ``.npz``'s ``segmap``).
+        segmap: A ``.npy`` or label ``.png`` (H, W) of segment ids for a depth image
+            (default: the ``.npz``'s ``segmap``).
         voxel_size: Edge of the voxels [m] (>= 0.001): the resolution of the obstacle.
         max_depth: Points farther than this along the camera's z are dropped [m].
         crop_min, crop_max: Corners of a world box; points outside are dropped

@@ -12,6 +12,10 @@ Formats (by suffix):
     ``xyz`` (N, 3) with optional ``xyz_color`` (N, 3).
 ``.ply``
     Vertices (and their colours) read by trimesh.
+``.png``
+    A single-channel depth image (16-bit millimetres: ``depth_scale: 0.001``),
+    as GraspNet-1Billion and Contact-GraspNet store them; ``intrinsics`` and
+    an optional ``segmap`` (``.npy`` or a label ``.png``) from the config.
 ``.pcd``
     PCL's format, ``DATA ascii`` or ``binary``, fields ``x y z`` (and ``rgb``);
     ``binary_compressed`` is refused (convert it with ``pcl_convert_pcd_ascii_binary``).
@@ -35,18 +39,26 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
 from gcm_pipeline.bounds import CLOUD_CHUNK, MAX_CLOUD_FILE_BYTES
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.geometry.clouds import PointCloud, VoxelGrid
 from gcm_pipeline.rundir.arrays import npy_header, open_regular
+from gcm_pipeline.sources.files.cloud_formats import (
+    Chunk,
+    MemRows,
+    Rows,
+    as_colors,
+    pcd_chunks,
+    ply_chunks,
+    read_png,
+)
 from gcm_pipeline.sources.files.pickled import read_pickled_npy
 
 __all__ = ["CLOUD_FORMATS", "CloudOptions", "read_cloud"]
 
 #: Suffixes of the cloud files read.
-CLOUD_FORMATS = (".npy", ".npz", ".ply", ".pcd")
+CLOUD_FORMATS = (".npy", ".npz", ".ply", ".pcd", ".png")
 
 
 @dataclass(frozen=True)
@@ -81,24 +93,6 @@ class CloudOptions:
     exclude: Callable[[np.ndarray], np.ndarray] | None = None
     name: str = "cloud"
     where: str = "cloud"
-
-
-class _Chunk:
-    """Points (M, 3) in the file's frame with optional segments (M,) and colours (M, 3)."""
-
-    __slots__ = ("colors", "points", "segments")
-
-    def __init__(
-        self, points: np.ndarray, segments: np.ndarray | None, colors: np.ndarray | None
-    ) -> None:
-        self.points, self.segments, self.colors = points, segments, colors
-
-    def take(self, keep: np.ndarray) -> _Chunk:
-        return _Chunk(
-            self.points[keep],
-            None if self.segments is None else self.segments[keep],
-            None if self.colors is None else self.colors[keep],
-        )
 
 
 def read_cloud(opt: CloudOptions) -> PointCloud:
@@ -148,7 +142,7 @@ def read_cloud(opt: CloudOptions) -> PointCloud:
     return grid.cloud(counts=counts, name=opt.name, source=str(path))
 
 
-def _add(grid: VoxelGrid, chunk: _Chunk, opt: CloudOptions, counts: dict[str, int]) -> None:
+def _add(grid: VoxelGrid, chunk: Chunk, opt: CloudOptions, counts: dict[str, int]) -> None:
     """Filter one chunk (file frame) and add what is left to the grid."""
     finite = np.all(np.isfinite(chunk.points), axis=1)
     counts["non_finite"] += int(np.count_nonzero(~finite))
@@ -180,7 +174,7 @@ def _add(grid: VoxelGrid, chunk: _Chunk, opt: CloudOptions, counts: dict[str, in
 # ------------------------------------------------------------------ formats
 
 
-def _chunks(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chunk]:
+def _chunks(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chunk]:
     suffix = path.suffix.lower()
     if suffix not in CLOUD_FORMATS:
         raise InputError(
@@ -191,50 +185,19 @@ def _chunks(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_
             choices=CLOUD_FORMATS,
         )
     if suffix == ".ply":
-        yield from _ply(path, opt, counts)
+        yield from ply_chunks(path, opt.where, counts)
+    elif suffix == ".png":
+        depth = MemRows(read_png(path, opt.where))
+        yield from _depth_chunks(path, depth, opt.intrinsics, None, None, opt, counts)
     elif suffix == ".pcd":
-        yield from _pcd(path, opt, counts)
+        yield from pcd_chunks(path, opt.where, counts)
     elif suffix == ".npz":
         yield from _npz(path, opt, counts)
     else:
         yield from _npy(path, opt, counts)
 
 
-class _Rows:
-    """Rows of one .npy array (a file or an .npz member), read in order, block by block."""
-
-    def __init__(self, path: Path, fh: Any, available: int, what: str) -> None:
-        self.path, self.fh, self.what = path, fh, what
-        version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
-        else:
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
-        if dtype.hasobject:
-            raise InputError(f"{path}: {what} holds Python objects; plain arrays only", path=path)
-        if fortran and len(shape) > 1:
-            raise InputError(f"{path}: {what} is stored in Fortran order; save it in C order")
-        if not np.issubdtype(dtype, np.number):
-            raise InputError(f"{path}: {what} has dtype {dtype}; numbers are needed", path=path)
-        self.shape, self.dtype = tuple(int(k) for k in shape), dtype
-        self.row_items = int(np.prod(self.shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
-        need = int(np.prod(self.shape, dtype=np.int64)) * dtype.itemsize + fh.tell()
-        if need > available:
-            raise InputError(
-                f"{path}: {what} is truncated: its header says shape {self.shape} "
-                f"({need:,} bytes) but there are {available:,}",
-                path=path,
-            )
-
-    def read(self, rows: int) -> np.ndarray:
-        n = rows * self.row_items
-        data = self.fh.read(n * self.dtype.itemsize)
-        if len(data) != n * self.dtype.itemsize:
-            raise InputError(f"{self.path}: {self.what} is truncated", path=self.path)
-        return np.frombuffer(data, dtype=self.dtype).reshape(rows, *self.shape[1:])
-
-
-def _npy(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chunk]:
+def _npy(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chunk]:
     with open_regular(path) as fh:
         size = path.stat().st_size
         shape, dtype = _peek_header(path, fh)
@@ -250,11 +213,11 @@ def _npy(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chu
             if not isinstance(value, dict):
                 raise InputError(f"{path}: a pickled .npy must hold a dict of arrays", path=path)
             yield from _scene_dict(
-                path, {k: _MemRows(np.asarray(v)) for k, v in value.items()}, opt, counts
+                path, {k: MemRows(np.asarray(v)) for k, v in value.items()}, opt, counts
             )
             return
         fh.seek(0)
-        rows = _Rows(path, fh, size, "the array")
+        rows = Rows(path, fh, size, "the array")
         yield from _array_chunks(path, rows, opt, counts, None, None)
 
 
@@ -270,19 +233,7 @@ def _peek_header(path: Path, fh: Any) -> tuple[tuple[int, ...], np.dtype[Any]]:
     return shape, dtype
 
 
-class _MemRows:
-    """An in-memory array with the :class:`_Rows` interface."""
-
-    def __init__(self, arr: np.ndarray) -> None:
-        self.arr, self.shape, self.dtype, self.at = arr, arr.shape, arr.dtype, 0
-
-    def read(self, rows: int) -> np.ndarray:
-        out = self.arr[self.at : self.at + rows]
-        self.at += rows
-        return out
-
-
-def _npz(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chunk]:
+def _npz(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chunk]:
     try:
         with open_regular(path) as raw, zipfile.ZipFile(raw) as zf:
             infos = {i.filename[:-4]: i for i in zf.infolist() if i.filename.endswith(".npy")}
@@ -291,7 +242,7 @@ def _npz(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chu
                 for name, info in infos.items():
                     if name in ("depth", "K", "segmap", "seg", "rgb", "xyz", "xyz_color"):
                         fh = zf.open(info)
-                        opened[name] = _Rows(path, fh, info.file_size, f"array {name!r}")
+                        opened[name] = Rows(path, fh, info.file_size, f"array {name!r}")
                 yield from _scene_dict(path, opened, opt, counts)
             finally:
                 for rows in opened.values():
@@ -304,7 +255,7 @@ def _npz(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chu
 
 def _scene_dict(
     path: Path, arrays: dict[str, Any], opt: CloudOptions, counts: dict[str, int]
-) -> Iterator[_Chunk]:
+) -> Iterator[Chunk]:
     """Contact-GraspNet's scene keys: ``depth`` + ``K`` (+ ``segmap``, ``rgb``) or ``xyz``."""
     if "depth" in arrays:
         seg = arrays.get("segmap", arrays.get("seg"))
@@ -331,7 +282,7 @@ def _array_chunks(
     counts: dict[str, int],
     segments: Any,
     colors: Any,
-) -> Iterator[_Chunk]:
+) -> Iterator[Chunk]:
     """An (N, 3) array of points, or (H, W) depth."""
     shape = rows.shape
     if len(shape) == 2 and shape[1] != 3:
@@ -352,14 +303,7 @@ def _array_chunks(
         m = min(CLOUD_CHUNK, shape[0] - a)
         pts = np.asarray(rows.read(m), dtype=np.float64)
         counts["read"] += m
-        yield _Chunk(pts, None, None if colors is None else _as_colors(colors.read(m)))
-
-
-def _as_colors(c: np.ndarray) -> np.ndarray:
-    c = np.asarray(c)
-    if np.issubdtype(c.dtype, np.floating) and c.size and np.nanmax(c) <= 1.0:
-        c = c * 255.0
-    return np.clip(np.nan_to_num(c), 0, 255).astype(np.uint8)
+        yield Chunk(pts, None, None if colors is None else as_colors(colors.read(m)))
 
 
 def _check_intrinsics(path: Path, k: np.ndarray | None, opt: CloudOptions) -> np.ndarray:
@@ -394,7 +338,7 @@ def _depth_chunks(
     rgb: Any,
     opt: CloudOptions,
     counts: dict[str, int],
-) -> Iterator[_Chunk]:
+) -> Iterator[Chunk]:
     """Depth rows, block by block, as camera-frame points (``depth2pc``)."""
     kk = _check_intrinsics(path, k, opt)
     if len(depth.shape) != 2:
@@ -403,7 +347,7 @@ def _depth_chunks(
         )
     h, w = depth.shape
     if seg is None and opt.segmap is not None:
-        seg = _MemRows(_read_segmap(opt))
+        seg = MemRows(_read_segmap(opt))
     if seg is not None and tuple(seg.shape) != (h, w):
         raise InputError(
             f"{opt.where}: {path}: the segmentation is {tuple(seg.shape)}, the depth image "
@@ -433,16 +377,18 @@ def _depth_chunks(
         pts[:, 0] = (u[uu] - kk[0, 2]) * zz / kk[0, 0]
         pts[:, 1] = (vv + a - kk[1, 2]) * zz / kk[1, 1]
         pts[:, 2] = zz
-        yield _Chunk(
+        yield Chunk(
             pts,
             None if segs is None else segs[vv, uu],
-            None if cols is None else _as_colors(cols[vv, uu]),
+            None if cols is None else as_colors(cols[vv, uu]),
         )
 
 
 def _read_segmap(opt: CloudOptions) -> np.ndarray:
     assert opt.segmap is not None
     path = Path(opt.segmap)
+    if path.suffix.lower() == ".png":
+        return read_png(path, f"{opt.where}.segmap")
     try:
         with open_regular(path) as fh:
             shape, dtype = npy_header(path, fh, "the segmentation", path.stat().st_size)
@@ -453,126 +399,3 @@ def _read_segmap(opt: CloudOptions) -> np.ndarray:
     if not np.issubdtype(dtype, np.integer) and not np.issubdtype(dtype, np.floating):
         raise InputError(f"{opt.where}.segmap: {path}: dtype {dtype} is not a number", path=path)
     return np.asarray(arr)
-
-
-def _ply(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chunk]:
-    _check_whole(path, opt)
-    try:
-        loaded = trimesh.load(str(path), process=False)
-    except Exception as exc:  # trimesh raises many kinds on a bad file
-        raise InputError(f"{opt.where}: {path}: not a readable .ply: {clip(str(exc))}") from None
-    pts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
-    cols = getattr(loaded, "colors", None)
-    if cols is None or len(cols) != len(pts):
-        visual = getattr(loaded, "visual", None)
-        cols = getattr(visual, "vertex_colors", None)
-    cols = None if cols is None or len(cols) != len(pts) else np.asarray(cols)[:, :3]
-    counts["read"] += len(pts)
-    for a in range(0, len(pts), CLOUD_CHUNK):
-        sl = slice(a, a + CLOUD_CHUNK)
-        yield _Chunk(pts[sl], None, None if cols is None else _as_colors(cols[sl]))
-
-
-def _check_whole(path: Path, opt: CloudOptions) -> None:
-    size = path.stat().st_size
-    if size > MAX_CLOUD_FILE_BYTES:
-        raise InputError(
-            f"{opt.where}: {path}: {size:,} bytes is above {MAX_CLOUD_FILE_BYTES:,} "
-            f"(bounds.MAX_CLOUD_FILE_BYTES) for a {path.suffix} read whole; save the points "
-            "as an (N, 3) .npy (read in chunks)",
-            path=path,
-        )
-
-
-_PCD_TYPES = {
-    ("F", 4): "f4",
-    ("F", 8): "f8",
-    ("U", 1): "u1",
-    ("U", 2): "u2",
-    ("U", 4): "u4",
-    ("I", 1): "i1",
-    ("I", 2): "i2",
-    ("I", 4): "i4",
-    ("U", 8): "u8",
-    ("I", 8): "i8",
-}
-
-
-def _pcd(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[_Chunk]:
-    with open_regular(path) as fh:
-        head: dict[str, list[str]] = {}
-        for _ in range(64):
-            line = fh.readline(4096).decode("ascii", "replace").strip()
-            if not line or line.startswith("#"):
-                continue
-            key, *vals = line.split()
-            head[key.upper()] = vals
-            if key.upper() == "DATA":
-                break
-        data = (head.get("DATA") or ["?"])[0].lower()
-        if data == "binary_compressed":
-            raise InputError(
-                f"{opt.where}: {path}: PCD 'DATA binary_compressed' is not read; convert it "
-                "to binary or ascii (pcl_convert_pcd_ascii_binary in.pcd out.pcd 1)",
-                path=path,
-            )
-        if data not in ("ascii", "binary") or "FIELDS" not in head:
-            raise InputError(f"{opt.where}: {path}: not a PCD file (no FIELDS/DATA header)")
-        fields = head["FIELDS"]
-        try:
-            sizes = [int(s) for s in head.get("SIZE", ["4"] * len(fields))]
-            types = head.get("TYPE", ["F"] * len(fields))
-            counts_ = [int(c) for c in head.get("COUNT", ["1"] * len(fields))]
-            n = int(head.get("POINTS", head.get("WIDTH", ["0"]))[0])
-            dtype = np.dtype(
-                [
-                    (f"{f}_{i}" if f == "_" else f, _PCD_TYPES[(t.upper(), s)], (c,))
-                    for i, (f, s, t, c) in enumerate(
-                        zip(fields, sizes, types, counts_, strict=True)
-                    )
-                ]
-            )
-        except (KeyError, ValueError, TypeError) as exc:
-            raise InputError(f"{opt.where}: {path}: bad PCD header: {clip(str(exc))}") from None
-        if not {"x", "y", "z"} <= set(fields):
-            raise InputError(f"{opt.where}: {path}: PCD fields {fields} lack x, y, z", path=path)
-        has_rgb = "rgb" in fields or "rgba" in fields
-        start = fh.tell()
-        if data == "binary":
-            size = path.stat().st_size
-            if start + n * dtype.itemsize > size:
-                raise InputError(f"{path}: PCD holds fewer than its {n:,} POINTS", path=path)
-            for a in range(0, n, CLOUD_CHUNK):
-                m = min(CLOUD_CHUNK, n - a)
-                rec = np.frombuffer(fh.read(m * dtype.itemsize), dtype=dtype)
-                counts["read"] += m
-                yield _pcd_chunk(rec, has_rgb)
-            return
-        while True:
-            raw = [fh.readline() for _ in range(min(CLOUD_CHUNK, 65536))]
-            lines = [ln.decode("ascii", "replace") for ln in raw if ln.strip()]
-            if not lines:
-                return
-            try:
-                vals = np.loadtxt(lines, dtype=np.float64, ndmin=2)
-            except ValueError as exc:
-                raise InputError(f"{path}: bad PCD ascii data: {clip(str(exc))}") from None
-            rec = np.zeros(len(vals), dtype=dtype)
-            col = 0
-            for name in dtype.names or ():
-                c = dtype[name].shape[0] if dtype[name].shape else 1
-                rec[name] = vals[:, col : col + c].astype(dtype[name].base).reshape(rec[name].shape)
-                col += c
-            counts["read"] += len(rec)
-            yield _pcd_chunk(rec, has_rgb)
-
-
-def _pcd_chunk(rec: np.ndarray, has_rgb: bool) -> _Chunk:
-    pts = np.stack([rec[k].reshape(len(rec), -1)[:, 0].astype(np.float64) for k in "xyz"], axis=1)
-    cols = None
-    if has_rgb:
-        key = "rgb" if "rgb" in (rec.dtype.names or ()) else "rgba"
-        packed = np.ascontiguousarray(rec[key].reshape(len(rec), -1)[:, 0])
-        u = packed.view(np.uint32) if packed.dtype.itemsize == 4 else packed.astype(np.uint32)
-        cols = np.stack([(u >> 16) & 255, (u >> 8) & 255, u & 255], axis=1).astype(np.uint8)
-    return _Chunk(pts, None, cols)

@@ -15,6 +15,7 @@ from gcm_pipeline.geometry.clouds import VoxelGrid
 from gcm_pipeline.rundir.clouds import read_clouds, write_clouds
 from gcm_pipeline.sources import clouds as source
 from gcm_pipeline.sources.clouds import CloudOptions, read_cloud
+from gcm_pipeline.sources.files import cloud_formats
 
 K = [[100.0, 0.0, 16.0], [0.0, 100.0, 12.0], [0.0, 0.0, 1.0]]
 
@@ -193,7 +194,7 @@ def test_too_many_voxels_and_too_large_whole_files_are_refused(tmp_path, monkeyp
         grid.add(np.random.default_rng(5).uniform(0, 1, (5000, 3)))
         grid.cloud(counts={}, name="c", source="")
     trimesh.PointCloud(np.zeros((10, 3))).export(tmp_path / "c.ply")
-    monkeypatch.setattr(source, "MAX_CLOUD_FILE_BYTES", 10)
+    monkeypatch.setattr(cloud_formats, "MAX_CLOUD_FILE_BYTES", 10)
     with pytest.raises(InputError, match="MAX_CLOUD_FILE_BYTES"):
         read_cloud(CloudOptions(tmp_path / "c.ply"))
 
@@ -207,3 +208,30 @@ def test_a_bad_cloud_stops_the_run_before_anything_is_written(tmp_path):
     res = run_gcm("run", tmp_path / "run.yaml", "-q", *QUICK)
     assert_one_line_error(res.returncode, res.stderr, "environment.point_clouds[0]", "intrinsics")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_png_depth_image_in_millimetres_with_a_label_png(tmp_path):
+    """GraspNet-1Billion's layout: depth/0000.png (uint16 mm), label/0000.png, camK.npy."""
+    from PIL import Image
+
+    depth_mm = np.full((24, 32), 800, np.uint16)
+    depth_mm[0, 0] = 0
+    label = np.zeros((24, 32), np.uint8)
+    label[:6] = 3
+    Image.fromarray(depth_mm).save(tmp_path / "depth.png")
+    Image.fromarray(label).save(tmp_path / "label.png")
+    np.savez(tmp_path / "s.npz", depth=depth_mm / 1000.0, K=np.array(K), segmap=label)
+    png = read_cloud(
+        CloudOptions(
+            tmp_path / "depth.png",
+            intrinsics=np.array(K),
+            depth_scale=0.001,
+            segmap=tmp_path / "label.png",
+        )
+    )
+    ref = read_cloud(CloudOptions(tmp_path / "s.npz"))
+    np.testing.assert_allclose(png.points, ref.points)
+    np.testing.assert_array_equal(png.segments, ref.segments)
+    assert png.counts["no_depth"] == 1
+    with pytest.raises(InputError, match="needs intrinsics"):
+        read_cloud(CloudOptions(tmp_path / "depth.png", where="environment.point_clouds[0]"))

@@ -99,8 +99,8 @@ class PointCloudConfig(_Section):
 
     Read from ``.npy`` (N, 3) points or (H, W) depth, ``.npz`` (Contact-GraspNet's
     scene layout: ``depth``, ``K``, ``segmap``, ``rgb``, or ``xyz``, ``xyz_color``),
-    ``.ply``, ``.pcd`` or a ``.png`` depth image (GraspNet-1Billion's); voxelised on the world grid while reading and checked
-    as octrees.
+    ``.ply``, ``.pcd`` or a ``.png`` depth image (GraspNet-1Billion's); voxelised
+    on the world grid while reading and checked as octrees.
 
     Attributes:
         path: The cloud file (relative to the config file's directory).

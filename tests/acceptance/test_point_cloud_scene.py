@@ -124,23 +124,8 @@ def test_reachable_grasps_do_not_touch_the_raw_cloud(scene_run):
     assert reasons.get("collision_environment", 0) > 10  # the clutter blocks grasps
     assert reachable.sum() > 20
     q = np.load(out / "configurations.npz")["q"][reachable]
-
-    robot = load_robot("panda")
-    model, gm = robot.model, robot.build_geometry("collision")
-    data, gd = model.createData(), pin.GeometryData(gm)
     tree = coal.makeOctree(_raw_points(tmp / "scene.npz", pose), VOXEL)
-    identity = coal.Transform3s(np.eye(3), np.zeros(3))
-    hits = []
-    for i, qi in enumerate(q):
-        pin.forwardKinematics(model, data, qi)
-        pin.updateGeometryPlacements(model, data, gm, gd)
-        for g, go in enumerate(gm.geometryObjects):
-            m = gd.oMg[g]
-            req, res = coal.CollisionRequest(), coal.CollisionResult()
-            tf = coal.Transform3s(m.rotation, m.translation)
-            if coal.collide(go.geometry, tf, tree, identity, req, res):
-                hits.append((i, go.name))
-    assert hits == []
+    assert _robot_hits(q, tree) == []
 
 
 def test_the_run_records_and_saves_the_cloud(scene_run):
@@ -238,3 +223,55 @@ def test_each_contact_graspnet_grasp_is_checked_without_its_own_segment(scene_ru
     for p, (ok, reason, qi) in got.items():
         assert (ok, reason) == hand[p][:2]
         np.testing.assert_array_equal(qi, hand[p][2])
+
+
+def _robot_hits(q, tree):
+    """(row, geometry) pairs where the robot at ``q`` (M, nq) collides with ``tree`` (coal)."""
+    robot = load_robot("panda")
+    model, gm = robot.model, robot.build_geometry("collision")
+    data, gd = model.createData(), pin.GeometryData(gm)
+    identity = coal.Transform3s(np.eye(3), np.zeros(3))
+    hits = []
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(model, data, qi)
+        pin.updateGeometryPlacements(model, data, gm, gd)
+        for g, go in enumerate(gm.geometryObjects):
+            m = gd.oMg[g]
+            req, res = coal.CollisionRequest(), coal.CollisionResult()
+            tf = coal.Transform3s(m.rotation, m.translation)
+            if coal.collide(go.geometry, tf, tree, identity, req, res):
+                hits.append((i, go.name))
+    return hits
+
+
+def test_points_near_the_object_are_excluded_by_distance(scene_run):
+    """``exclude_object_distance`` instead of the segment: the same check, 0 collisions."""
+    tmp, pose = scene_run
+    cfg = yaml.safe_load((tmp / "scene.yaml").read_text())
+    cloud = cfg["environment"]["point_clouds"][0]
+    del cloud["exclude_segments"]
+    cloud["exclude_object_distance"] = 0.005
+    cfg["output"] = {"dir": "near"}
+    (tmp / "near.yaml").write_text(yaml.safe_dump(cfg))
+    res = run_gcm("run", tmp / "near.yaml", "-q", *QUICK)
+    assert res.returncode == 0, res.stderr
+    out = tmp / "near"
+    (summary,) = json.loads((out / "summary.json").read_text())["point_clouds"]
+    seg = np.load(tmp / "scene.npz")["segmap"]
+    # every bottle point, nothing else (the clutter stands centimetres away)
+    assert summary["counts"]["excluded_object"] == np.count_nonzero(seg == BOTTLE_SEGMENT)
+    with open(out / "grasps.csv", newline="") as fh:
+        reachable = np.array([row["reachable"] == "true" for row in csv.DictReader(fh)])
+    assert reachable.sum() > 20
+    # the raw points minus those within 5 mm of the bottle (a solid cylinder), by hand
+    data = np.load(tmp / "scene.npz")
+    depth = data["depth"]
+    v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
+    z = depth[v, u]
+    cam = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+    world = cam @ pose[:3, :3].T + pose[:3, 3]
+    radial = np.maximum(np.hypot(world[:, 0] - 0.5, world[:, 1]) - 0.035, 0.0)
+    axial = np.maximum(np.abs(world[:, 2] - 0.11) - 0.11, 0.0)
+    far = np.hypot(radial, axial) > 0.005
+    q = np.load(out / "configurations.npz")["q"][reachable]
+    assert _robot_hits(q, coal.makeOctree(world[far], VOXEL)) == []

@@ -26,7 +26,10 @@ from helpers import BOTTLE, QUICK, assert_one_line_error, run_gcm
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config.robot_spec import load_robot
+from gcm_pipeline.config.run import load_config
 from gcm_pipeline.config.sections import Pose
+from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.pipeline import generate_candidates
 
 VOXEL = 0.01
 K = np.array([[280.0, 0.0, 160.0], [0.0, 280.0, 120.0], [0.0, 0.0, 1.0]])
@@ -162,10 +165,6 @@ def test_a_camera_cloud_without_a_pose_is_refused(scene_run):
 
 def _contact_graspnet_run(tmp, name, pose, rpy, **cloud):
     """``gcm run`` of bottle grasps written as Contact-GraspNet predictions (segment 1)."""
-    from gcm_pipeline.config.run import load_config
-    from gcm_pipeline.geometry.dualquat import dq_to_matrix
-    from gcm_pipeline.pipeline import generate_candidates
-
     world = dq_to_matrix(generate_candidates(load_config(BOTTLE))["dq"])
     cam = np.linalg.inv(pose) @ world
     pred = np.empty((), dtype=object)

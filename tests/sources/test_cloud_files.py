@@ -9,6 +9,7 @@ import pytest
 import trimesh
 import yaml
 from helpers import BOTTLE, QUICK, assert_one_line_error, run_gcm
+from PIL import Image
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.geometry.clouds import VoxelGrid
@@ -212,8 +213,6 @@ def test_a_bad_cloud_stops_the_run_before_anything_is_written(tmp_path):
 
 def test_a_png_depth_image_in_millimetres_with_a_label_png(tmp_path):
     """GraspNet-1Billion's layout: depth/0000.png (uint16 mm), label/0000.png, camK.npy."""
-    from PIL import Image
-
     depth_mm = np.full((24, 32), 800, np.uint16)
     depth_mm[0, 0] = 0
     label = np.zeros((24, 32), np.uint8)

@@ -17,6 +17,12 @@ r = 3.5 cm, h = 22 cm at x = 0.5 m).
   bottle's place): the contact model erodes the gripper's pieces and tests whether a
   piece lies inside the mesh (see :mod:`gcm_pipeline.robot.collision.contact`); the reference is
   Pinocchio's loop over the same pairs (which lacks the inside test).
+* ``check_cloud``: the same configurations with a cluttered scene as a 100k-point cloud
+  (surfaces of eight boxes, cylinders and spheres around the bottle, sampled) added as
+  ``environment.point_clouds`` (1 cm voxels, coal octree tiles); ``cloud_read_s`` reads
+  and voxelises the ``.npy``; the reference is Pinocchio's loop over the same pairs, and
+  the checker must agree with it on every configuration. ``ratios`` compares the rates
+  of one run (the machine is shared: rates of different runs are not comparable).
 
 The machine is shared: every figure is the median of ``--repeats`` runs.
 
@@ -31,21 +37,26 @@ import os
 import platform
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a clone, no install
 
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.pipeline import make_checker
+from gcm_pipeline.pipeline.clouds import cloud_options, scene_clouds
 from gcm_pipeline.reach.deviation import gripper_radius
 from gcm_pipeline.reach.move_check import check_moves
 from gcm_pipeline.reach.moves import Move
+from gcm_pipeline.robot.collision.clouds import octree
 from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.sources.clouds import read_cloud
 
 MUG = Path(__file__).resolve().parents[1] / "configs" / "data" / "mug.obj"
 BOTTLE = {
@@ -83,6 +94,38 @@ def top_down_grasps(n: int, seed: int = 0) -> np.ndarray:
     return out
 
 
+def clutter_cloud(path: Path, n: int = 100_000, seed: int = 0) -> None:
+    """Write ``n`` points sampled on eight objects around the bottle to ``path`` (.npy)."""
+    rng = np.random.default_rng(seed)
+    meshes = []
+    for i, (x, y) in enumerate(
+        [
+            (0.35, -0.25),
+            (0.4, 0.25),
+            (0.55, -0.2),
+            (0.6, 0.2),
+            (0.7, -0.05),
+            (0.7, 0.3),
+            (0.35, 0.1),
+            (0.65, -0.35),
+        ]
+    ):
+        h = rng.uniform(0.08, 0.3)
+        if i % 3 == 0:
+            m = trimesh.creation.box((rng.uniform(0.04, 0.1), rng.uniform(0.04, 0.1), h))
+            m.apply_translation((0, 0, h / 2))
+        elif i % 3 == 1:
+            m = trimesh.creation.cylinder(rng.uniform(0.02, 0.05), h)
+            m.apply_translation((0, 0, h / 2))
+        else:
+            m = trimesh.creation.icosphere(3, rng.uniform(0.03, 0.06))
+            m.apply_translation((0, 0, 0.06))
+        m.apply_translation((x, y, 0.0))
+        meshes.append(m)
+    scene = trimesh.util.concatenate(meshes)
+    np.save(path, np.asarray(scene.sample(n, seed=seed)))
+
+
 def timed(fn, repeats: int) -> tuple[float, object]:
     times, out = [], None
     for _ in range(repeats):
@@ -90,6 +133,51 @@ def timed(fn, repeats: int) -> tuple[float, object]:
         out = fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times), out
+
+
+def cloud_results(robot, obj, q, m, args, results) -> None:
+    """The ``check_cloud`` figures (see the module doc)."""
+    n = len(q)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "clutter.npy"
+        clutter_cloud(path)
+        env = EnvironmentConfig.model_validate(
+            {"point_clouds": [{"path": str(path), "frame": "world", "voxel_size": 0.01}]}
+        )
+        dt, cloud = timed(
+            lambda: read_cloud(cloud_options(0, env.point_clouds[0], obj, None)), args.repeats
+        )
+        results["cloud_points"] = cloud.counts["read"]
+        results["cloud_voxels"] = cloud.counts["voxels"]
+        results["cloud_read_s"] = dt
+        dt, _ = timed(lambda: octree(cloud.points, 0.01), args.repeats)
+        results["cloud_octree_build_s"] = dt
+        scene_clouds(env, obj)  # read once (kept), as a run does
+        t0 = time.perf_counter()
+        checker = make_checker(robot, env, obj)
+        results["cloud_checker_build_s"] = time.perf_counter() - t0
+    results["cloud_tiles"] = sum(s.name.startswith("cloud_0_") for s in checker.world)
+    dt, reasons = timed(lambda: checker.check(q), args.repeats)
+    results["check_cloud_threads1_per_s"] = n / dt
+    kinds, counts = np.unique(np.asarray(reasons), return_counts=True)
+    results["cloud_reasons"] = {
+        str(k) or "free": int(v) for k, v in zip(kinds, counts, strict=True)
+    }
+    model, gm = robot.model, checker.geom_model
+    data, gd = model.createData(), pin.GeometryData(gm)
+
+    def loop() -> np.ndarray:
+        return np.array([pin.computeCollisions(model, data, gm, gd, qi, True) for qi in q[:m]])
+
+    dt, hit = timed(loop, args.repeats)
+    results["cloud_pinocchio_loop_per_s"] = m / dt
+    assert np.array_equal(hit, np.asarray(reasons)[:m] != ""), "checker disagrees with Pinocchio"
+    rate = results["check_cloud_threads1_per_s"]
+    results["ratios"] = {
+        "cloud_vs_primitives": rate / results["check_threads1_per_s"],
+        "cloud_vs_mesh": rate / results["check_mesh_threads1_per_s"],
+        "cloud_vs_pinocchio_loop": rate / results["cloud_pinocchio_loop_per_s"],
+    }
 
 
 def main() -> None:
@@ -176,6 +264,7 @@ def main() -> None:
     results["mesh_inside_only"] = int(
         np.count_nonzero((np.asarray(mesh_reasons)[:m] != "") & ~hit2)
     )
+    cloud_results(robot, obj, q, m, args, results)
     results["machine"] = {
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),

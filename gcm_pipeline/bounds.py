@@ -28,6 +28,12 @@ fixed ones are bounds of the config schema:
   plans at most 1,000,000 placements even with ``--force`` (above
   ``max_placements``, default 1,000, it needs ``--force``). The count is
   worked out per axis before any placement is built.
+- Point clouds (``environment.point_clouds``): at most
+  :data:`MAX_POINT_CLOUDS` clouds; each is read in chunks of
+  :data:`CLOUD_CHUNK` points and voxelised while reading, so memory follows
+  the occupied voxels (at most :data:`MAX_CLOUD_VOXELS` per cloud), not the
+  points (.npy, .npz, .pcd ascii/binary, depth images); formats read whole
+  (``.ply``, a pickled ``.npy`` dict) at most :data:`MAX_CLOUD_FILE_BYTES`.
 - YAML files and ``--set`` values: 1 MiB, depth 64, 100,000 values after
   aliases (:mod:`gcm_pipeline.safe_yaml`).
 - A study directory's ``study.json``: 16 MiB (a study writes a few kB
@@ -52,8 +58,11 @@ from gcm_pipeline.errors import ConfigError
 __all__ = [
     "DEFAULT_MAX_CANDIDATES",
     "DEFAULT_MAX_POSES",
+    "CLOUD_CHUNK",
     "MAX_ADAPTIVE_LEVEL",
     "MAX_APPROACH_STEPS",
+    "MAX_CLOUD_FILE_BYTES",
+    "MAX_CLOUD_VOXELS",
     "MAX_CSV_CELL",
     "MAX_GRASP_DISTANCE",
     "MAX_HDF5_TEXT",
@@ -61,6 +70,7 @@ __all__ = [
     "MAX_IK_WORKERS",
     "MAX_LENGTH",
     "MAX_OBSTACLES",
+    "MAX_POINT_CLOUDS",
     "MAX_RANGE_STEPS",
     "MAX_STUDY_PLACEMENTS",
     "check_size",
@@ -84,6 +94,14 @@ MAX_HDF5_TEXT = 4096
 #: Most ``environment.obstacles`` (each costs the collision checker about 4.5 MB).
 MAX_OBSTACLES = 100
 MAX_RANGE_STEPS = 1_000_000
+#: Most ``environment.point_clouds``.
+MAX_POINT_CLOUDS = 16
+#: Points (or depth pixels) read and voxelised at a time.
+CLOUD_CHUNK = 1 << 20
+#: Most occupied (voxel, segment) rows of one cloud (about 40 bytes each).
+MAX_CLOUD_VOXELS = 20_000_000
+#: Largest cloud file read whole (``.ply`` through trimesh, a pickled ``.npy`` dict) [bytes].
+MAX_CLOUD_FILE_BYTES = 1 << 30
 MAX_STUDY_PLACEMENTS = 1_000_000
 
 

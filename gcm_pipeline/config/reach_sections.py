@@ -7,16 +7,25 @@ and ``continuity``.
 from __future__ import annotations
 
 import typing
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, Strict, field_validator
+from pydantic import Field, Strict, field_validator, model_validator
 
-from gcm_pipeline.bounds import MAX_APPROACH_STEPS, MAX_IK_SOLUTIONS, MAX_IK_WORKERS, MAX_OBSTACLES
+from gcm_pipeline.bounds import (
+    MAX_APPROACH_STEPS,
+    MAX_IK_SOLUTIONS,
+    MAX_IK_WORKERS,
+    MAX_OBSTACLES,
+    MAX_POINT_CLOUDS,
+)
 from gcm_pipeline.config.sections import (
     Bool,
+    FiniteFloat,
     Length,
     NonNegLength,
+    Point3,
     Pose,
     PositiveFloat,
     PositiveLength,
@@ -101,11 +110,77 @@ class ObstacleConfig(_ShapeSection):
     name: str | None = None
 
 
+class PointCloudConfig(_Section):
+    """A scene point cloud as an obstacle (see docs/point-clouds.md).
+
+    Read from ``.npy`` (N, 3) points or (H, W) depth, ``.npz`` (Contact-GraspNet's
+    scene layout: ``depth``, ``K``, ``segmap``, ``rgb``, or ``xyz``, ``xyz_color``),
+    ``.ply``, ``.pcd`` or a ``.png`` depth image (GraspNet-1Billion's); voxelised
+    on the world grid while reading and checked as octrees.
+
+    Attributes:
+        path: The cloud file (relative to the config file's directory).
+        frame: ``camera`` (the camera's optical frame, OpenCV: x right, y down,
+            z forward; placed by ``camera_pose``) or ``world``.
+        camera_pose: The camera's pose in the world (default: ``candidates.camera_pose``).
+        intrinsics: A depth image's camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``
+            (default: the ``.npz``'s ``K``).
+        depth_scale: Depth units to metres (0.001 for millimetres).
+        segmap: A ``.npy`` or label ``.png`` (H, W) of segment ids for a depth image
+            (default: the ``.npz``'s ``segmap``).
+        voxel_size: Edge of the voxels [m] (>= 0.001): the resolution of the obstacle.
+        max_depth: Points farther than this along the camera's z are dropped [m].
+        crop_min, crop_max: Corners of a world box; points outside are dropped
+            (e.g. the table's own points: ``crop_min: [-1, -1, 0.005]``).
+        exclude_segments: Segment ids that are not obstacles (the target object's).
+        exclude_grasp_segment: Candidates with a ``segment`` column (Contact-GraspNet's
+            per-segment predictions): each grasp is checked without its own segment
+            (an interpolated grasp: its vertices' segment when they share one).
+        exclude_object_distance: Points within this distance of the ``object`` are
+            dropped [m] (the object's own points; it is checked as its shape).
+        name: Name of the cloud (default ``cloud_<i>``).
+    """
+
+    path: Path
+    frame: Literal["camera", "world"] = "camera"
+    camera_pose: Pose | None = None
+    intrinsics: (
+        tuple[
+            tuple[FiniteFloat, FiniteFloat, FiniteFloat],
+            tuple[FiniteFloat, FiniteFloat, FiniteFloat],
+            tuple[FiniteFloat, FiniteFloat, FiniteFloat],
+        ]
+        | None
+    ) = None
+    depth_scale: PositiveFloat = 1.0
+    segmap: Path | None = None
+    voxel_size: Annotated[float, Strict(), Field(ge=0.001, le=1.0, allow_inf_nan=False)] = 0.01
+    max_depth: PositiveLength | None = None
+    crop_min: Point3 | None = None
+    crop_max: Point3 | None = None
+    exclude_segments: tuple[Annotated[int, Strict()], ...] = ()
+    exclude_grasp_segment: Bool = True
+    exclude_object_distance: NonNegLength | None = None
+    name: str | None = None
+
+    @model_validator(mode="after")
+    def _frame_keys(self) -> PointCloudConfig:
+        if self.frame == "world" and self.camera_pose is not None:
+            raise ValueError("'camera_pose' applies to frame 'camera'")
+        if self.frame == "world" and self.max_depth is not None:
+            raise ValueError("'max_depth' is a camera-frame depth; it applies to frame 'camera'")
+        if self.crop_min is not None and self.crop_max is not None:
+            if any(a > b for a, b in zip(self.crop_min, self.crop_max, strict=True)):
+                raise ValueError(f"crop_min {list(self.crop_min)} exceeds crop_max")
+        return self
+
+
 class EnvironmentConfig(_Section):
-    """Collision world: the table (on by default), extra obstacles, the object."""
+    """Collision world: the table (on by default), extra obstacles, point clouds, the object."""
 
     table: TableConfig | None = TableConfig()
     obstacles: Annotated[tuple[ObstacleConfig, ...], Field(max_length=MAX_OBSTACLES)] = ()
+    point_clouds: Annotated[tuple[PointCloudConfig, ...], Field(max_length=MAX_POINT_CLOUDS)] = ()
     check_object: Bool = True
     self_collision: Bool = True
     contact_tolerance: NonNegLength = 0.005

@@ -282,9 +282,11 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
     """Make the paths in the config absolute, relative ones against ``base``.
 
     ``candidates.path``, ``candidates.mesh_root``, ``object.mesh``,
-    ``objects[].mesh``, ``environment.obstacles[].mesh``, ``output.dir`` (``default_out``
-    when missing) and a ``robot.spec``, ``robot.tool`` or ``candidates.gripper``
-    that is a path (ends in ``.yaml``/``.yml`` or has a ``/``) become absolute
+    ``objects[].mesh``, ``environment.obstacles[].mesh``,
+    ``environment.point_clouds[].path`` and ``segmap``, ``output.dir``
+    (``default_out`` when missing) and a ``robot.spec``, ``robot.tool`` or
+    ``candidates.gripper`` that is a path (ends in ``.yaml``/``.yml`` or has a
+    ``/``) become absolute
     (normalised, symlinks kept); ``base`` is absolute.
 
     Raises:
@@ -315,6 +317,10 @@ def resolve_paths(data: dict[str, Any], base: Path, default_out: str = DEFAULT_O
     if isinstance(env, dict) and isinstance(env.get("obstacles"), list):
         for i, obstacle in enumerate(env["obstacles"]):
             fix(obstacle, "mesh", f"environment.obstacles.{i}.mesh")
+    if isinstance(env, dict) and isinstance(env.get("point_clouds"), list):
+        for i, cloud in enumerate(env["point_clouds"]):
+            fix(cloud, "path", f"environment.point_clouds.{i}.path")
+            fix(cloud, "segmap", f"environment.point_clouds.{i}.segmap")
     if data.get("output") is None:
         data["output"] = {}
     output = data["output"]

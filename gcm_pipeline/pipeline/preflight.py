@@ -12,6 +12,7 @@ from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
+from gcm_pipeline.pipeline.clouds import scene_clouds
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.sources.file_object import warn_if_open
 from gcm_pipeline.sources.grippers import is_gripper_path
@@ -38,6 +39,10 @@ def input_files(cfg: Config) -> dict[str, Path]:
     for i, obstacle in enumerate(cfg.environment.obstacles):
         if obstacle.mesh is not None:
             files[f"environment.obstacles.{i}.mesh"] = Path(obstacle.mesh)
+    for i, cloud in enumerate(cfg.environment.point_clouds):
+        files[f"environment.point_clouds.{i}.path"] = Path(cloud.path)
+        if cloud.segmap is not None:
+            files[f"environment.point_clouds.{i}.segmap"] = Path(cloud.segmap)
     spec = cfg.robot.spec
     if spec.endswith((".yaml", ".yml")) or "/" in spec:
         files["robot.spec"] = Path(spec)
@@ -67,7 +72,7 @@ def check_input_files(cfg: Config) -> None:
                 "robot.spec": "robot spec file",
                 "robot.tool": "gripper file",
                 "candidates.gripper": "gripper file",
-            }.get(key, "mesh file")
+            }.get(key, "cloud file" if ".point_clouds." in key else "mesh file")
             if there:  # a directory, a device (/dev/zero), a pipe
                 raise InputError(f"{key}: {what} {path} is not a regular file")
             raise InputError(
@@ -89,6 +94,8 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     - ``robot.spec`` names a shipped spec or a valid spec file whose model
       exists; the robot is built (kinematics, locked joints inside their
       ranges, a readable SRDF, collision meshes that load);
+    - the ``environment.point_clouds`` read (:func:`~gcm_pipeline.pipeline.clouds.scene_clouds`,
+      kept for the run);
     - the object and obstacle meshes load and have finite vertices; an object
       mesh that is not watertight is warned about (the contact model needs a
       closed mesh);
@@ -122,6 +129,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     for where, shape in shapes:
         if shape is not None and shape.shape == "mesh":
             shape_geometry("mesh", shape.dims, mesh=shape.mesh, scale=shape.scale, where=where)
+    scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)  # read once, kept
     obj = cfg.object
     if obj is not None and obj.mesh is not None and cfg.candidates.source != "antipodal":
         warn_if_open(Path(obj.mesh), obj.scale, f"object.mesh {obj.mesh}")  # the sampler warns

@@ -12,6 +12,7 @@ from gcm_pipeline.config import robot_spec
 from gcm_pipeline.config.reach_sections import ApproachConfig, EnvironmentConfig, RetreatConfig
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig, Pose
+from gcm_pipeline.pipeline.clouds import cloud_world, segment_groups, table_merge, table_subset
 from gcm_pipeline.reach import check as reach_check
 from gcm_pipeline.reach.engine import ReachabilityEngine
 from gcm_pipeline.reach.moves import Move
@@ -39,6 +40,8 @@ def collision_world(
     environment: EnvironmentConfig | None = None,
     object_cfg: ObjectConfig | None = None,
     base_pose: Pose | np.ndarray | None = None,
+    camera_pose: Pose | None = None,
+    grasp_segment: int | None = None,
 ) -> list[WorldShape]:
     """The collision world of the config sections, in the robot's base frame.
 
@@ -47,12 +50,18 @@ def collision_world(
     * the ``environment.obstacles`` (box, cylinder, sphere, mesh; placed like
       the object: a cylinder stands on its base along its frame's z, boxes and
       spheres are centred on their frame);
+    * the ``environment.point_clouds``, as octree tiles
+      (:func:`~gcm_pipeline.pipeline.clouds.cloud_world`; ``camera_pose`` is
+      ``candidates.camera_pose``, for camera-frame clouds without their own);
     * the ``object`` (kind ``object``) unless ``environment.check_object`` is off.
 
     Args:
         environment: Config section (None: the default, a table at z = 0).
         object_cfg: Config ``object`` section or None.
         base_pose: Robot base in the world (Pose or (4, 4)); None: identity.
+        camera_pose: ``candidates.camera_pose``: the pose of camera-frame clouds
+            that give none.
+        grasp_segment: The segment of the grasps checked (left out of the clouds).
 
     Returns:
         The :class:`~gcm_pipeline.robot.collision.WorldShape` list.
@@ -80,6 +89,7 @@ def collision_world(
                 where=f"environment.obstacles[{i}]",
             )
         )
+    world += cloud_world(env, object_cfg, base_inv, camera_pose, grasp_segment)
     if object_cfg is not None and env.check_object:
         o = object_cfg
         world.append(
@@ -97,6 +107,8 @@ def make_checker(
     base_pose: Pose | np.ndarray | None = None,
     *,
     threads: int = 1,
+    camera_pose: Pose | None = None,
+    grasp_segment: int | None = None,
 ) -> CollisionChecker:
     """The collision checker of a run (``environment``, ``object``, ``robot.base_pose``).
 
@@ -106,6 +118,8 @@ def make_checker(
         object_cfg: Config ``object`` section or None.
         base_pose: Robot base in the world (Pose or (4, 4)); None: identity.
         threads: Threads for the batched checks.
+        camera_pose: ``candidates.camera_pose`` (see :func:`collision_world`).
+        grasp_segment: See :func:`collision_world`.
 
     Returns:
         The :class:`~gcm_pipeline.robot.collision.CollisionChecker`; a world
@@ -114,7 +128,7 @@ def make_checker(
     env = EnvironmentConfig() if environment is None else environment
     checker = CollisionChecker(
         robot,
-        collision_world(env, object_cfg, base_pose),
+        collision_world(env, object_cfg, base_pose, camera_pose, grasp_segment),
         contact_tolerance=env.contact_tolerance,
         self_collision=env.self_collision,
         threads=threads,
@@ -187,7 +201,9 @@ def reach_options(cfg: Config) -> ReachOptions:
 
 
 @takes_config
-def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
+def reachability_engine(
+    robot: Robot, cfg: Config, *, grasp_segment: int | None = None
+) -> ReachabilityEngine:
     """The reachability engine of a config.
 
     Reads ``ik``, ``environment``, ``object``, ``approach``, ``retreat``,
@@ -195,12 +211,20 @@ def reachability_engine(robot: Robot, cfg: Config) -> ReachabilityEngine:
     ``environment`` and ``object`` sections become the collision checker).
     Build it once to check many pose sets with the same robot, seed library and
     collision world (:func:`check_reachability` with ``engine=``); close it (or
-    use a ``with`` block) to stop its worker processes.
+    use a ``with`` block) to stop its worker processes. ``grasp_segment``: the
+    segment of the grasps it checks, left out of the point clouds.
     """
     options = reach_options(cfg)
     checker = None
     if cfg.environment is not None or cfg.object is not None:
-        checker = make_checker(robot, cfg.environment, cfg.object, options.base_pose)
+        checker = make_checker(
+            robot,
+            cfg.environment,
+            cfg.object,
+            options.base_pose,
+            camera_pose=cfg.candidates.camera_pose,
+            grasp_segment=grasp_segment,
+        )
     return reach_check.make_engine(robot, options, checker=checker)
 
 
@@ -230,12 +254,24 @@ def check_reachability(
         progress: Show per-target progress (a bar on a terminal, else a log
             line every few seconds).
         engine: The engine of :func:`reachability_engine` for this config, to
-            reuse one across calls (default: built for this call and closed).
+            reuse one across calls (default: built for this call and closed;
+            with point clouds that leave out each grasp's own segment, one per
+            segment, :func:`~gcm_pipeline.pipeline.clouds.segment_groups`).
 
     Returns:
         The table with ``reachable, reason, q, pos_err, rot_err``,
         ``q_pregrasp, q_retreat, q_rejected`` (and ``clearance``) added.
     """
+    groups = segment_groups(grasps, cfg.environment) if engine is None else None
+    if groups is not None:  # each grasp without its own segment of the clouds
+        parts = []
+        for segment, rows in groups:
+            with reachability_engine(robot, cfg, grasp_segment=segment) as eng:
+                part = check_reachability(
+                    table_subset(grasps, rows), robot, cfg, progress=progress, engine=eng
+                )
+            parts.append((rows, part))
+        return table_merge(grasps, parts)
     own = engine is None
     eng = reachability_engine(robot, cfg) if engine is None else engine
     try:
@@ -272,6 +308,13 @@ class ReachabilityCheck:
         self.config = cfg
         self.solved = 0
         self.engine = reachability_engine(robot, cfg)
+        segmented = cfg.candidates.format == "contact_graspnet"  # grasps with a segment
+        if segmented and any(pc.exclude_grasp_segment for pc in cfg.environment.point_clouds):
+            log.warning(
+                "densify.adaptive and continuity.reseed check poses against the whole "
+                "point clouds: each grasp's own segment is left out in the reachability "
+                "stage only; list the target's segment in exclude_segments"
+            )
 
     def __call__(self, dq: np.ndarray, seeds: np.ndarray | None = None) -> GraspTable:
         """Check poses (M, 8) (world) with optional warm starts (M, K, nq) [rad].

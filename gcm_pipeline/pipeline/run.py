@@ -16,9 +16,11 @@ import numpy as np
 from gcm_pipeline.config.objects import TARGET_ALL
 from gcm_pipeline.config.run import Config, load_config
 from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.geometry.clouds import PointCloud
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.query import GraspManifold
 from gcm_pipeline.outputs.scene_glyphs import legend
+from gcm_pipeline.pipeline.clouds import cloud_summary, scene_clouds
 from gcm_pipeline.pipeline.file_object import place_file_object
 from gcm_pipeline.pipeline.manifold import (
     adaptive_counts,
@@ -38,6 +40,7 @@ from gcm_pipeline.progress import bar as progress_bar
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.rundir import transaction
+from gcm_pipeline.rundir.clouds import CLOUD_FILE, write_clouds
 from gcm_pipeline.table import GraspTable
 
 log = logging.getLogger(__name__)
@@ -66,6 +69,8 @@ class RunResult:
         selection: What ``candidates.success_only``, ``min_score`` and ``limit``
             kept of a grasp file (:class:`gcm_pipeline.sources.files.select.Selection`),
             None when the run kept every grasp of the file and set neither of the others.
+        clouds: The processed ``environment.point_clouds`` (world frame, voxelised;
+            written to ``cloud.npz``).
     """
 
     grasps: GraspTable
@@ -78,6 +83,7 @@ class RunResult:
     files: list[Path] = field(default_factory=list)
     grasp_frame: dict[str, Any] | None = None
     selection: dict[str, Any] | None = None
+    clouds: list[PointCloud] = field(default_factory=list)
 
     @functools.cached_property
     def grasp_manifold(self) -> GraspManifold:
@@ -106,6 +112,7 @@ class RunResult:
             "ranking": {"metric": self.config.ranking.metric, "top": self.top()},
             **({"grasp_frame": self.grasp_frame} if self.grasp_frame else {}),
             **({"selection": self.selection} if self.selection else {}),
+            **({"point_clouds": cloud_summary(self.clouds)} if self.clouds else {}),
             "legend": legend(self.grasps),
             "config": self.config.to_dict(),
             "versions": run_files.versions(),
@@ -342,11 +349,14 @@ class Pipeline:
         result = RunResult(grasps, manifold, robot, counts, timings, cfg)
         result.grasp_frame = source.get("grasp_frame")
         result.selection = source.get("selection")
+        result.clouds = scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)
         if not write:
             return result
         with transaction.atomic_run_dir(out, force=force, keep=self._inputs()) as tmp:
             with stage("write"):
                 run_files.write_run_files(tmp, grasps, manifold, cfg.to_dict())
+                if result.clouds:
+                    write_clouds(result.clouds, tmp / CLOUD_FILE)
             with stage("publish"):
                 published = publish(result, cfg, tmp)
             run_files.write_summary(result.summary(), tmp / "summary.json")

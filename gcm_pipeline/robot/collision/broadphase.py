@@ -43,6 +43,7 @@ __all__ = [
     "beyond_a_face",
     "height_over_face",
     "in_frame",
+    "octree_box",
     "row_matmul",
     "squared_norms",
     "stacked",
@@ -63,7 +64,8 @@ class ShapeBound:
     """Lower bound of the distance from points to a placed coal geometry (exact for primitives).
 
     Boxes, spheres, cylinders and capsules give the exact distance (0 inside);
-    any other geometry the distance to its local bounding box.
+    an octree the distance to the box around its occupied cells
+    (:func:`octree_box`), any other geometry to its local bounding box.
     """
 
     def __init__(self, geometry: Any, placement: np.ndarray) -> None:
@@ -82,6 +84,10 @@ class ShapeBound:
             self.half = float(geometry.halfLength)
         elif isinstance(geometry, coal.Box):
             self.halfs = np.asarray(geometry.halfSide, dtype=float)
+        elif isinstance(geometry, coal.OcTree):
+            lo, hi = octree_box(geometry)
+            self.centre = 0.5 * (lo + hi)
+            self.halfs = 0.5 * (hi - lo)
         else:
             geometry.computeLocalAABB()
             box = geometry.aabb_local
@@ -196,6 +202,19 @@ class ShapeBound:
         if self.kind == "capsule":
             return self.radius * np.sqrt(squared_norms(n)) + self.half * np.abs(n[..., 2])
         return row_matmul(n, self.centre) + row_matmul(np.abs(n), self.halfs)
+
+
+def octree_box(tree: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (3,), (3,) of the box holding every occupied cell of a coal octree [m].
+
+    From the cells themselves (centre +- half their size), grown by 1e-6 m:
+    coal's own bounding box is in single precision and may fall short by ~1e-8 m.
+    """
+    cells = np.array([np.asarray(b) for b in tree.toBoxes()], dtype=float).reshape(-1, 6)
+    if not len(cells):
+        return np.zeros(3), np.zeros(3)
+    half = 0.5 * cells[:, 3:4]
+    return (cells[:, :3] - half).min(axis=0) - 1e-6, (cells[:, :3] + half).max(axis=0) + 1e-6
 
 
 def squared_norms(v: np.ndarray) -> np.ndarray:

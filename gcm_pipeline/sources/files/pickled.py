@@ -21,7 +21,7 @@ from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.rundir.arrays import npy_header
 from gcm_pipeline.sources.files.common import SLACK_BYTES, check_bytes
 
-__all__ = ["read_npz_members"]
+__all__ = ["read_npz_members", "read_pickled_npy"]
 
 #: Bytes a grasp may take in a binary (.npy/.npz) file: a pose, scores, contacts,
 #: openings and pickle framing.
@@ -147,6 +147,42 @@ def read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
             f"{path}: not a readable .npz archive: {clip(str(exc))}", path=path
         ) from None
     return out
+
+
+def read_pickled_npy(path: Path, max_values: int) -> Any:
+    """The object a ``.npy`` file holding a pickle (a 0-d object array) stores.
+
+    Contact-GraspNet's ``.npy`` scenes are pickled dicts of arrays; read by
+    :class:`_ArrayUnpickler` (no code runs), at most ``max_values`` numbers.
+
+    Raises:
+        InputError: Not a pickled ``.npy``, a pickle of anything else, too large.
+    """
+    try:
+        with open(path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                np.lib.format.read_array_header_1_0(fh)
+            else:
+                np.lib.format.read_array_header_2_0(fh)
+            try:
+                value = _ArrayUnpickler(fh).load()
+            except _TooManySteps:
+                raise InputError(
+                    f"{path}: its pickle takes more than {_MAX_PICKLE_STEPS:,} steps; save "
+                    "it as plain arrays",
+                    path=path,
+                ) from None
+    except InputError:
+        raise
+    except (OSError, ValueError, EOFError, TypeError, pickle.UnpicklingError) as exc:
+        raise InputError(
+            f"{path}: not a readable pickled .npy: {clip(str(exc))}", path=path
+        ) from None
+    _count_values(path, "(the file)", value, max_values)
+    if isinstance(value, np.ndarray) and value.dtype.hasobject and value.shape == ():
+        value = value.item()
+    return value
 
 
 #: Levels of lists, dicts and object arrays a pickled member may nest.

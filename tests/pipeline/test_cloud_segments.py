@@ -1,0 +1,92 @@
+"""The reachability stage's grouping of grasps by their segment (point clouds)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from gcm_pipeline.config.reach_sections import EnvironmentConfig, PointCloudConfig
+from gcm_pipeline.config.sections import Pose
+from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.pipeline.clouds import (
+    cloud_options,
+    grasp_segments,
+    segment_groups,
+    table_merge,
+    table_subset,
+)
+from gcm_pipeline.table import GraspTable
+
+
+def _table():
+    # rows 0-3 candidates of segments 5, 5, 8, 8; rows 4-6 interpolated
+    return GraspTable(
+        {
+            "dq": np.tile([1.0, 0, 0, 0, 0, 0, 0, 0], (7, 1)),
+            "segment": np.array([5, 5, 8, 8, -1, -1, -1]),
+            "vertices": np.array(
+                [[-1, -1, -1]] * 4 + [[0, 1, 0], [2, 3, 2], [0, 2, 3]], dtype=np.int64
+            ),
+        }
+    )
+
+
+def test_interpolated_grasps_take_their_vertices_segment_when_they_share_one():
+    np.testing.assert_array_equal(grasp_segments(_table()), [5, 5, 8, 8, 5, 8, -1])
+
+
+def test_groups_need_a_cloud_that_leaves_the_grasp_segment_out(tmp_path):
+    env = EnvironmentConfig(point_clouds=[{"path": tmp_path / "c.npy", "frame": "world"}])
+    groups = segment_groups(_table(), env)
+    assert [(s, r.tolist()) for s, r in groups] == [(None, [6]), (5, [0, 1, 4]), (8, [2, 3, 5])]
+    off = EnvironmentConfig(
+        point_clouds=[
+            {"path": tmp_path / "c.npy", "frame": "world", "exclude_grasp_segment": False}
+        ]
+    )
+    assert segment_groups(_table(), off) is None
+    assert segment_groups(_table(), EnvironmentConfig()) is None
+
+
+def test_subsets_renumber_vertices_and_merge_back_in_row_order():
+    table = _table()
+    rows = np.array([2, 3, 5])
+    sub = table_subset(table, rows)
+    np.testing.assert_array_equal(sub["vertices"][2], [0, 1, 0])
+    parts = [
+        (r, table_subset(table, r).with_columns(reason=np.array([f"r{i}" for i in r])))
+        for r in (np.array([0, 1, 4, 6]), rows)
+    ]
+    merged = table_merge(table, parts)
+    assert merged["reason"].tolist() == [f"r{i}" for i in range(7)]
+    np.testing.assert_array_equal(merged["vertices"], table["vertices"])
+
+
+def test_cloud_keys_are_checked_with_the_config(tmp_path):
+
+    path = tmp_path / "c.npy"
+    for bad, words in [
+        ({"frame": "world", "camera_pose": {"xyz": [0, 0, 1]}}, "applies to frame 'camera'"),
+        ({"frame": "world", "max_depth": 1.0}, "max_depth"),
+        ({"crop_min": [0, 0, 1], "crop_max": [1, 1, 0]}, "exceeds crop_max"),
+        ({"voxel_size": 0.0005}, "greater than or equal to 0.001"),
+        ({"intrinsics": [[1, 0, 0], [0, 1, 0]]}, "intrinsics"),
+        ({"voxel": 0.01}, "voxel"),
+    ]:
+        with pytest.raises(ValidationError, match=words):
+            PointCloudConfig(path=path, **bad)
+
+
+def test_a_camera_cloud_takes_the_candidates_camera_pose(tmp_path):
+
+    pc = PointCloudConfig(path=tmp_path / "c.npy")
+    with pytest.raises(ConfigError, match=r"environment.point_clouds\[2\]: frame 'camera' needs"):
+        cloud_options(2, pc, None, None)
+    cam = Pose(xyz=(0.5, 0.0, 0.8), rpy_deg=(180.0, 0.0, 0.0))
+    np.testing.assert_array_equal(cloud_options(0, pc, None, cam).camera_pose, cam.matrix())
+    own = PointCloudConfig(path=tmp_path / "c.npy", camera_pose={"xyz": [1, 2, 3]})
+    assert cloud_options(0, own, None, cam).camera_pose[:3, 3].tolist() == [1, 2, 3]
+    near = PointCloudConfig(path=tmp_path / "c.npy", frame="world", exclude_object_distance=0.01)
+    with pytest.raises(ConfigError, match="exclude_object_distance needs an 'object'"):
+        cloud_options(0, near, None, None)

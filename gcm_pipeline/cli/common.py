@@ -76,11 +76,13 @@ def format_top(top: list[dict[str, Any]], metric: str = "yoshikawa") -> str:
     return "\n".join(lines)
 
 
-def show_in_viewer(grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: bool) -> None:
+def show_in_viewer(
+    grasps: Any, manifold: Any, robot: Any, config: Any, *, wait: bool, clouds: Any = ()
+) -> None:
     """Publish to the live viewer; wait for Ctrl-C, or leave its server running."""
     from gcm_pipeline.pipeline.outputs import open_viewer
 
-    viewer = open_viewer(grasps, manifold, robot, config, detach=not wait)
+    viewer = open_viewer(grasps, manifold, robot, config, detach=not wait, clouds=clouds)
     try:
         print(f"meshcat viewer: {viewer.url}", flush=True)
         if wait:

@@ -243,6 +243,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_view(args: argparse.Namespace) -> int:
     from gcm_pipeline.config.robot_spec import load_robot
     from gcm_pipeline.config.run import Config
+    from gcm_pipeline.rundir.clouds import CLOUD_FILE, read_clouds
     from gcm_pipeline.rundir.run import read_run
 
     run = read_run(args.run_dir)
@@ -253,7 +254,9 @@ def _cmd_view(args: argparse.Namespace) -> int:
     if not args.quiet:
         n = int(run.grasps["reachable"].sum()) if "reachable" in run.grasps else 0
         print(f"run {run.run_dir}: {len(run.grasps)} grasps, {n} reachable")
-    show_in_viewer(run.grasps, run.manifold, robot, cfg, wait=not args.no_wait)
+    cloud_file = Path(args.run_dir) / CLOUD_FILE
+    clouds = read_clouds(cloud_file) if cloud_file.is_file() else []
+    show_in_viewer(run.grasps, run.manifold, robot, cfg, wait=not args.no_wait, clouds=clouds)
     return 0
 
 

@@ -176,7 +176,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
             print(f"live viewer:   {_viewer_command(args, run_dir)}")
     if viewer:
         wait = cfg.publish.wait and not args.no_wait
-        show_in_viewer(result.grasps, result.manifold, result.robot, result.config, wait=wait)
+        show_in_viewer(
+            result.grasps,
+            result.manifold,
+            result.robot,
+            result.config,
+            wait=wait,
+            clouds=result.clouds,
+        )
     return 0
 
 

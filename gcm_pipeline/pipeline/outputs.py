@@ -6,6 +6,7 @@ Also the best grasps of a run as plain dicts.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -17,10 +18,12 @@ from gcm_pipeline.config.reach_sections import ObstacleConfig, TableConfig
 from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.config.run import Config, load_config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig
+from gcm_pipeline.geometry.clouds import PointCloud
 from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
 from gcm_pipeline.outputs import export, html, live
 from gcm_pipeline.outputs.export import ExportResult, MoveItOptions
 from gcm_pipeline.outputs.scene import PublishOptions, SceneOptions
+from gcm_pipeline.outputs.scene_cloud import SceneCloud
 from gcm_pipeline.outputs.scene_shapes import SceneShape, SceneTable
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.robot.model import Robot
@@ -53,9 +56,16 @@ def scene_table(table: TableConfig | None) -> SceneTable | None:
     return SceneTable(height=table.height, size=table.size, center_xy=table.center_xy)
 
 
+def scene_cloud(cloud: PointCloud) -> SceneCloud:
+    """A run's processed point cloud as the scene draws it (a point per voxel)."""
+    return SceneCloud(
+        cloud.points, cloud.colors, cloud.segments, name=cloud.name, point_size=cloud.voxel_size
+    )
+
+
 @takes_config
-def scene_options(cfg: Config) -> SceneOptions:
-    """The scene of a run's config.
+def scene_options(cfg: Config, clouds: Sequence[PointCloud] = ()) -> SceneOptions:
+    """The scene of a run's config and its processed point clouds.
 
     Reads ``robot.base_pose``, ``ranking.top_k``, ``continuity.threshold`` (the
     animation's blend limit), ``object`` and ``environment`` (table, obstacles).
@@ -68,15 +78,16 @@ def scene_options(cfg: Config) -> SceneOptions:
         object=None if cfg.object is None else scene_shape(cfg.object),
         table=scene_table(env.table),
         obstacles=tuple(scene_shape(obs) for obs in env.obstacles),
+        clouds=tuple(scene_cloud(c) for c in clouds),
     )
 
 
 @takes_config
-def publish_options(cfg: Config) -> PublishOptions:
+def publish_options(cfg: Config, clouds: Sequence[PointCloud] = ()) -> PublishOptions:
     """What a run publishes (section ``publish``) and its scene (:func:`scene_options`)."""
     pub = cfg.publish
     return PublishOptions(
-        scene=scene_options(cfg),
+        scene=scene_options(cfg, clouds),
         html=pub.html,
         plots=pub.plots,
         zmq_url=pub.zmq_url,
@@ -96,7 +107,7 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
         result.grasps,
         result.manifold,
         result.robot,
-        publish_options(cfg),
+        publish_options(cfg, result.clouds),
         Path(out_dir),
         counts=counts,
     )
@@ -105,13 +116,20 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
 
 @takes_config
 def open_viewer(
-    grasps: GraspTable, manifold: Any, robot: Robot | None, cfg: Config, *, detach: bool = False
+    grasps: GraspTable,
+    manifold: Any,
+    robot: Robot | None,
+    cfg: Config,
+    *,
+    detach: bool = False,
+    clouds: Sequence[PointCloud] = (),
 ) -> live.Viewer:
-    """Publish the scene of ``cfg`` to a live meshcat server (``publish.zmq_url``).
+    """Publish the scene of ``cfg`` (and its point clouds) to a live meshcat server.
 
-    See :func:`gcm_pipeline.outputs.live.open_viewer`.
+    See :func:`gcm_pipeline.outputs.live.open_viewer` (``publish.zmq_url``).
     """
-    return live.open_viewer(grasps, manifold, robot, publish_options(cfg), detach=detach)
+    options = publish_options(cfg, clouds)
+    return live.open_viewer(grasps, manifold, robot, options, detach=detach)
 
 
 @dataclass(frozen=True)

@@ -166,3 +166,23 @@ def test_the_live_viewer_holds_the_cloud_and_the_contacts():
         assert len(objs["/contacts"]["position"]) == viewer.info.contacts == 150
     finally:
         viewer.close()
+
+
+def test_a_run_with_a_cloud_draws_it_and_its_contacts(tmp_path):
+    from helpers import CONFIGS, run_gcm
+
+    from gcm_pipeline.rundir.clouds import read_clouds
+
+    out = tmp_path / "run"
+    proc = run_gcm(
+        "run", CONFIGS / "clutter_scene.yaml", "--out", out, "--set", "publish.plots=false"
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (cloud,) = read_clouds(out / "cloud.npz")
+    objs = scene_objects((out / "scene.html").read_text(encoding="utf-8"))
+    drawn = objs["/cloud/clutter"]
+    assert len(drawn["position"]) == len(cloud.points) > 100
+    np.testing.assert_allclose(drawn["position"], cloud.points, atol=1e-6)
+    np.testing.assert_allclose(drawn["color"] * 255, cloud.colors, atol=0.01)
+    assert objs["/cloud/clutter"]["size"] == cloud.voxel_size
+    assert len(objs["/contacts"]["position"]) == 150  # one per candidate, none interpolated

@@ -23,11 +23,13 @@ answers.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import coal
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision.pairs import Pair
@@ -74,6 +76,11 @@ class ShapeBound:
         self.centre = np.zeros(3)
         #: the shape itself (a primitive), not a box around it
         self.exact = isinstance(geometry, (coal.Sphere, coal.Cylinder, coal.Capsule, coal.Box))
+        #: an octree's occupied cells (a k-d tree of their centres) and the largest
+        #: cell's half diagonal: a point's distance to the cells is at least its
+        #: distance to the nearest centre minus that
+        self.cells: Any = None
+        self.cell_reach = 0.0
         if isinstance(geometry, coal.Sphere):
             self.kind, self.radius = "sphere", float(geometry.radius)
         elif isinstance(geometry, coal.Cylinder):
@@ -88,6 +95,7 @@ class ShapeBound:
             lo, hi = octree_box(geometry)
             self.centre = 0.5 * (lo + hi)
             self.halfs = 0.5 * (hi - lo)
+            self.cells, self.cell_reach = octree_cells(geometry)
         else:
             geometry.computeLocalAABB()
             box = geometry.aabb_local
@@ -136,6 +144,7 @@ class ShapeBound:
             np.sqrt(out, out=out)
             out -= self.radius
         else:
+            local = None if self.cells is None else loc.T.copy()
             loc -= self.centre[:, None]
             np.abs(loc, out=loc)
             loc -= self.halfs[:, None]
@@ -143,7 +152,11 @@ class ShapeBound:
             loc *= loc
             out = x + y
             out += z
-            return np.sqrt(out, out=out).reshape(shape)
+            np.sqrt(out, out=out)
+            if local is not None:  # an octree: its cells bound tighter than its box
+                near, _ = self.cells.query(local)
+                np.maximum(out, near - self.cell_reach, out=out)
+            return out.reshape(shape)
         return np.maximum(out, 0.0, out=out).reshape(shape)
 
     def packed(self) -> np.ndarray:
@@ -215,6 +228,19 @@ def octree_box(tree: Any) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(3), np.zeros(3)
     half = 0.5 * cells[:, 3:4]
     return (cells[:, :3] - half).min(axis=0) - 1e-6, (cells[:, :3] + half).max(axis=0) + 1e-6
+
+
+def octree_cells(tree: Any) -> tuple[Any, float]:
+    """A k-d tree of a coal octree's occupied cell centres and the largest half diagonal [m].
+
+    Every point of a cell lies within the half diagonal of its centre, so a
+    point's distance to the occupied cells is at least its distance to the
+    nearest centre minus the largest half diagonal.
+    """
+    cells = np.array([np.asarray(b) for b in tree.toBoxes()], dtype=float).reshape(-1, 6)
+    if not len(cells):
+        return cKDTree(np.full((1, 3), 1e30)), 0.0
+    return cKDTree(cells[:, :3]), float(cells[:, 3].max()) * 0.5 * math.sqrt(3.0) + 1e-6
 
 
 def squared_norms(v: np.ndarray) -> np.ndarray:

@@ -119,6 +119,19 @@ def test_target_all_gives_each_object_its_own_run(cli, tmp_path):
         assert code == 0, err
     code, _, err = cli("show", out)
     assert_one_line_error(code, err, "objects/", "bottle, can")
+    code, _, err = cli("export", out, "--format", "npz")
+    assert_one_line_error(code, err, "objects/", "bottle, can")
+    assert not (out / "grasps.npz").exists()
+
+
+@pytest.mark.parametrize("how", [("--meshcat",), ("--set", "publish.meshcat=true")])
+def test_target_all_with_the_live_viewer_says_how_to_view_one(cli, tmp_path, how):
+    out = tmp_path / "all"
+    code, text, err = cli("run", TWO, "--target", "all", "--out", out, *how)
+    key = "--meshcat" if how == ("--meshcat",) else "publish.meshcat"
+    line = assert_one_line_error(code, err, key, "bottle, can", "--target NAME", "gcm view")
+    assert "gcm show" not in line  # it has no live viewer
+    assert text == "" and not out.exists()
 
 
 def test_run_objects_matches_the_single_target_run(tmp_path, bottle_and_can):

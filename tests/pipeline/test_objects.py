@@ -313,3 +313,16 @@ def test_object_meshes_resolve_against_the_config_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     cfg = load_config(path)
     assert cfg.objects[1].mesh == tmp_path / "cfgs" / "meshes" / "b.obj"
+
+
+def test_a_study_moving_the_object_of_an_objects_config_says_what_to_give(cli, tmp_path):
+    study = tmp_path / "study.yaml"
+    study.write_text(
+        yaml.safe_dump({"base": str(TWO), "sweep": {"object_pose": {"x": [0.4, 0.5]}}})
+    )
+    out = tmp_path / "study"
+    code, text, err = cli("study", study, "--out", out, "--workers", "1")
+    assert_one_line_error(
+        code, err, "sweep.object_pose", "'objects'", "target 'bottle'", "base_pose"
+    )
+    assert not out.exists()

@@ -184,6 +184,7 @@ def _swap(data, key, value):
 BAD = {
     "unknown target": (("target",), "mug", ["unknown target 'mug'", "valid: a, all, b"]),
     "duplicate name": (("objects", 1, "name"), "a", ["objects.1.name", "'a' is used twice"]),
+    "name differing in case": (("objects", 1, "name"), "A", ["objects.1.name", "'A'", "case"]),
     "reserved name": (("objects", 0, "name"), "all", ["objects.0.name", "'all' is reserved"]),
     "bad name": (("objects", 0, "name"), "a/b", ["objects.0.name", "a/b"]),
     "empty list": (("objects",), [], ["objects: the list is empty"]),

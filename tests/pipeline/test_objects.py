@@ -327,3 +327,22 @@ def test_a_study_moving_the_object_of_an_objects_config_says_what_to_give(cli, t
         code, err, "sweep.object_pose", "'objects'", "target 'bottle'", "base_pose"
     )
     assert not out.exists()
+
+
+def test_an_object_without_a_candidate_under_target_all_is_named_and_nothing_written(cli, tmp_path):
+    data = _objects(target="all")
+    data["objects"][1] = {
+        "name": "boulder",
+        "shape": "sphere",
+        "dims": {"radius": 0.3},
+        "pose": {"xyz": [0.5, 0.8, 0.3]},
+    }
+    data["candidates"] = {"source": "antipodal", "count": 4}
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    code, text, err = cli("run", path, "--out", out, *QUICK)
+    assert_one_line_error(
+        code, err, "objects[boulder]: ", "no collision-free antipodal grasp", warnings=True
+    )
+    assert not out.exists()

@@ -147,6 +147,10 @@ def test_run_objects_matches_the_single_target_run(tmp_path, bottle_and_can):
     assert again.run_dir == tmp_path / "all" and len(again.results) == 2
     with pytest.raises(OutputError, match="objects directory, not a run directory"):
         Pipeline(target_config(cfg, "can")).run(tmp_path / "all", progress=False, force=True)
+    single = tmp_path / "single"
+    Pipeline(target_config(cfg, "can")).run(single, progress=False)
+    with pytest.raises(OutputError, match="a gcm run directory, not an objects directory;"):
+        run_objects(cfg, single, progress=False, force=True)
 
 
 def test_pipeline_run_refuses_target_all():

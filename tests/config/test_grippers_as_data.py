@@ -286,6 +286,25 @@ def test_a_gripper_mesh_that_is_no_regular_file_is_named_so(tmp_path, what):
         load_gripper(path)
 
 
+def test_a_gripper_mesh_that_does_not_load_is_named_by_the_gripper_file(tmp_path, cli):
+    (tmp_path / "body.stl").write_text("not a mesh\n")
+    body = {"name": "body", "shape": "mesh", "mesh": "body.stl"}
+    fingers = yaml.safe_load((REGISTRY / "robotiq_2f_85.yaml").read_text())["collision"][1:]
+    gripper = _gripper_file(tmp_path, collision=[body, *fingers])
+    cfg = tmp_path / "c.yaml"
+    doc = {
+        "robot": {"spec": "ur5", "tool": str(gripper)},
+        "object": {"shape": "cylinder", "dims": {"radius": 0.035, "height": 0.22}},
+        "candidates": {"source": "cylinder_side", "count": 9},
+    }
+    cfg.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "run"
+    code, _, err = cli("run", cfg, "--out", out, *QUICK)
+    line = assert_one_line_error(code, err, "robot.tool: gripper", "g.yaml", "collision[0].mesh")
+    assert "ur5.yaml" not in line  # the robot spec is not at fault
+    assert not out.exists()
+
+
 def test_a_suction_gripper_file_with_fingers_is_refused(tmp_path):
     doc = yaml.safe_load((REGISTRY / "single_suction_cup_30mm.yaml").read_text())
     doc["max_width"] = 0.05

@@ -213,21 +213,48 @@ def mug_grasps(mug: dict, count: int, seed: int) -> tuple[np.ndarray, np.ndarray
     return world @ poses[keep], points
 
 
+def bounded(kind: type, low: float, high: float | None = None, *, open_: bool = False):
+    """An argparse type: a finite ``kind`` in [low, high] ((low, high) with ``open_``)."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            what = "an integer" if kind is int else "a number"
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        inside = low < value if open_ else low <= value
+        if high is not None:
+            inside = inside and (value < high if open_ else value <= high)
+        if not (math.isfinite(value) and inside):
+            lo, hi = ("(", ")") if open_ else ("[", "]")
+            span = f"in {lo}{low}, {high}{hi}" if high is not None else f">= {low}"
+            raise argparse.ArgumentTypeError(f"{text} is not {span}")
+        return value
+
+    return parse
+
+
 def main() -> None:
-    """Render the scene and write its files."""
+    """Render the scene and write its files (every argument checked before any work)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=ROOT / "tests/data/clutter")
-    parser.add_argument("--width", type=int, default=320)
-    parser.add_argument("--height", type=int, default=240)
-    parser.add_argument("--fov", type=float, default=45.0, help="horizontal field of view [deg]")
-    parser.add_argument("--ply-stride", type=int, default=3)
-    parser.add_argument("--grasps", type=int, default=150)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--width", type=bounded(int, 1, 4096), default=320)
+    parser.add_argument("--height", type=bounded(int, 1, 4096), default=240)
+    parser.add_argument(
+        "--fov",
+        type=bounded(float, 0, 180, open_=True),
+        default=45.0,
+        help="horizontal field of view [deg]",
+    )
+    parser.add_argument("--ply-stride", type=bounded(int, 1), default=3)
+    parser.add_argument("--grasps", type=bounded(int, 1), default=150)
+    parser.add_argument("--seed", type=bounded(int, 0, 2**32 - 1), default=0)
     args = parser.parse_args()
     objects = scene_objects()
     cam = Pose(xyz=CAMERA_XYZ, rpy_deg=CAMERA_RPY_DEG).matrix()
     K = intrinsics(args.width, args.height, args.fov)
     depth, segmap, rgb = render(objects, K, cam, args.width, args.height)
+    world_poses, contacts = mug_grasps(objects[1], args.grasps, args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
     bgr = np.ascontiguousarray(rgb[..., ::-1])  # as cv2.imread gives it
     np.savez_compressed(args.out / "scene.npz", depth=depth, K=K, segmap=segmap, rgb=bgr)
@@ -235,7 +262,6 @@ def main() -> None:
     stride[:: args.ply_stride, :: args.ply_stride] = True
     points, pix = back_project(np.where(stride, depth, 0), K)
     write_ply(args.out / "scene.ply", points, rgb[pix[:, 0], pix[:, 1]])
-    world_poses, contacts = mug_grasps(objects[1], args.grasps, args.seed)
     to_cam = np.linalg.inv(cam)
     pred = to_cam @ world_poses
     pts = contacts @ to_cam[:3, :3].T + to_cam[:3, 3]

@@ -217,7 +217,13 @@ def _run_objects(args: argparse.Namespace, cfg: Any) -> int:
     from gcm_pipeline.pipeline import run_objects
 
     if args.meshcat or cfg.publish.meshcat:
-        raise GcmError("target: all writes one run per object; show one with gcm show --meshcat")
+        key = "--meshcat" if args.meshcat else "publish.meshcat"
+        names = ", ".join(o.name for o in cfg.objects)
+        raise GcmError(
+            f"{key}: target: all writes one run per object ({names}), the live viewer shows "
+            "one: run one with --target NAME --meshcat, or open one with gcm view "
+            "OUT/objects/NAME"
+        )
     with logging_redirect_tqdm(loggers=[log]):
         result = run_objects(
             cfg, args.out, progress=not args.quiet, force=args.force, source=args.config

@@ -273,9 +273,11 @@ def mount_gripper(spec: RobotSpec, gripper: GripperSpec, key: str = "robot.tool"
     """
     if spec.tool is None:
         raise ConfigError(
-            f"{key}: robot {spec.name!r} has no tool section: its hand is part of its model "
-            f"(grasp frame {spec.grasp_frame!r}); robot.tool replaces the tool a spec mounts "
-            "on a bare flange (e.g. ur5's on tool0)",
+            f"{key}: robot {spec.name!r} (grasp frame {spec.grasp_frame!r}) has no tool "
+            f"section, so no flange to mount {gripper.name!r} on: robot.tool replaces the tool "
+            "a spec mounts on a bare flange (e.g. ur5's on tool0); a hand that is part of the "
+            "model (the Panda's) is not replaced, a bare arm's spec names its flange in a tool "
+            "section",
             key=key,
             value=gripper.name,
         )

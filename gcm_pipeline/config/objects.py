@@ -78,6 +78,12 @@ def check_objects(
             raise ValueError(f"objects.{i}.name: {name!r} is reserved (target: all)")
         if name in names[:i]:
             raise ValueError(f"objects.{i}.name: {name!r} is used twice; names are unique")
+        same = [n for n in names[:i] if n.lower() == name.lower()]
+        if same:  # objects/<name> folders: one folder on a case-insensitive file system
+            raise ValueError(
+                f"objects.{i}.name: {name!r} differs from {same[0]!r} only in case; names are "
+                "unique ignoring case (each names a folder objects/<name>)"
+            )
     if target is None:
         raise ValueError(f"objects: give 'target', one of {', '.join(names)} or {TARGET_ALL!r}")
     if target != TARGET_ALL and target not in names:

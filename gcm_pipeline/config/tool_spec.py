@@ -345,7 +345,8 @@ def check_tool_files(where: str, tool: ToolSpec) -> None:
                 continue
             at = f"{where}: tool.{key}[{i}].mesh"
             if not shape.mesh.is_file():
-                raise RobotSpecError(f"{at}: file {str(shape.mesh)!r} does not exist")
+                what = "is not a regular file" if shape.mesh.exists() else "does not exist"
+                raise RobotSpecError(f"{at}: file {str(shape.mesh)!r} {what}")
             if shape.mesh.stat().st_size == 0:
                 raise RobotSpecError(f"{at}: file {str(shape.mesh)!r} is empty")
 

@@ -56,6 +56,7 @@ from gcm_pipeline.errors import InputError, OutputError, choice_error
 from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
+from gcm_pipeline.rundir.run import objects_hint
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
 from gcm_pipeline.table import GraspTable
 
@@ -158,7 +159,8 @@ def export_run(
         raise InputError(f"--top must be >= 1, got {top}")
     run = Path(run_dir)
     if not (run / "grasps.csv").is_file() or not (run / "config.yaml").is_file():
-        raise InputError(f"not a run directory: {run} (needs grasps.csv and config.yaml)")
+        hint = objects_hint(run)
+        raise InputError(f"not a run directory: {run} (needs grasps.csv and config.yaml){hint}")
     if out is not None and os.fspath(out).endswith(("/", os.sep)):
         raise OutputError(f"cannot write {os.fspath(out)}: a file name, not a folder, is needed")
     path = _output_file(Path(out) if out is not None else run / EXPORT_FORMATS[format])

@@ -9,13 +9,14 @@ from typing import Any
 from gcm_pipeline.config.gripper_spec import load_gripper
 from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.config.run import Config, takes_config
-from gcm_pipeline.errors import InputError, PublishError, RobotSpecError
+from gcm_pipeline.errors import ConfigError, InputError, PublishError, RobotSpecError
+from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
 from gcm_pipeline.pipeline.clouds import scene_clouds
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.sources.file_object import warn_if_open
-from gcm_pipeline.sources.grippers import is_gripper_path
+from gcm_pipeline.sources.grippers import GripperSpec, is_gripper_path
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,26 @@ def check_input_files(cfg: Config) -> None:
             )
 
 
+def _check_gripper_meshes(gripper: GripperSpec, key: str) -> None:
+    """Every mesh of a gripper file's shapes loads (else: the key, the file and the shape)."""
+    assert gripper.tool is not None
+    lists = [("collision", gripper.tool.collision)]
+    if gripper.tool.visual is not gripper.tool.collision:
+        lists.append(("visual", gripper.tool.visual))
+    for kind, shapes in lists:
+        for i, shape in enumerate(shapes):
+            if shape.mesh is None:
+                continue
+            try:
+                read_mesh(shape.mesh, shape.scale)
+            except MeshReadError as exc:
+                raise ConfigError(
+                    f"{key}: gripper {str(gripper.path)!r}: {kind}[{i}].mesh: {exc}",
+                    key=key,
+                    path=gripper.path,
+                ) from None
+
+
 @takes_config
 def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     """Check, before any work, what the config refers to outside itself.
@@ -117,8 +138,12 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         PublishError: ``publish.zmq_url: ...``, no meshcat server answers there.
     """
     check_input_files(cfg)
-    if cfg.candidates.gripper is not None:
-        load_gripper(cfg.candidates.gripper)  # a bad gripper file fails before any work
+    for key, gripper in (
+        ("candidates.gripper", cfg.candidates.gripper),
+        ("robot.tool", cfg.robot.tool),
+    ):
+        if gripper is not None:  # a bad gripper file fails before any work, naming its key
+            _check_gripper_meshes(load_gripper(gripper, key), key)
     try:
         robot = Robot(load_spec(cfg.robot.spec, cfg.robot.tool))
         robot.build_geometry("collision")

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from gcm_pipeline.config.run import Config
-from gcm_pipeline.errors import ConfigError
+from gcm_pipeline.errors import ConfigError, GcmError
 from gcm_pipeline.pipeline.objects import target_config
 from gcm_pipeline.pipeline.preflight import input_files, preflight
 from gcm_pipeline.pipeline.run import Pipeline, RunResult
@@ -110,7 +110,11 @@ def run_objects(
         for name, sub in configs.items():
             log.info("object %s: %d of %d", name, len(results) + 1, len(configs))
             pipeline = Pipeline(sub, source=source)
-            results[name] = pipeline.run(tmp / "objects" / name, progress, robot=robot)
+            try:
+                results[name] = pipeline.run(tmp / "objects" / name, progress, robot=robot)
+            except GcmError as exc:  # which object's run failed (nothing is written)
+                evidence = {k: getattr(exc, k) for k in ("key", "value", "choices", "path", "row")}
+                raise type(exc)(f"objects[{name}]: {exc}", **evidence) from exc
         result = ObjectsResult(results, cfg)
         run_files.write_config(cfg.to_dict(), tmp / "config.yaml")
         run_files.write_summary(result.summary(), tmp / "summary.json")

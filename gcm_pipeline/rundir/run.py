@@ -41,6 +41,7 @@ __all__ = [
     "RUN_FILES",
     "RunData",
     "json_clean",
+    "objects_hint",
     "read_run",
     "read_summary",
     "versions",
@@ -140,6 +141,12 @@ class RunData(NamedTuple):
     run_dir: Path
 
 
+def objects_hint(run_dir: Path) -> str:
+    """What a ``target: all`` folder holds, for a 'not a run directory' message ('' if not one)."""
+    runs = sorted(p.parent.name for p in (run_dir / "objects").glob("*/grasps.csv"))
+    return f"; it holds one run per object in objects/: {', '.join(runs)}" if runs else ""
+
+
 def read_run(run_dir: str | Path) -> RunData:
     """Read a run directory written by ``gcm run`` / :meth:`Pipeline.run`.
 
@@ -166,8 +173,7 @@ def read_run(run_dir: str | Path) -> RunData:
         f for f in ("grasps.csv", "summary.json", "manifold.npz") if not (run_dir / f).is_file()
     ]
     if missing:
-        runs = sorted(p.parent.name for p in (run_dir / "objects").glob("*/grasps.csv"))
-        hint = f"; it holds one run per object in objects/: {', '.join(runs)}" if runs else ""
+        hint = objects_hint(run_dir)
         raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}{hint}")
     summary = read_summary(run_dir / "summary.json")
     grasps = read_grasps_csv(run_dir / "grasps.csv")

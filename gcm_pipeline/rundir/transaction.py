@@ -199,8 +199,8 @@ def _check_replaceable(
         other = (read_marker(out) or {}).get("kind")
         if other is not None and other != kind:
             raise OutputError(
-                f"refusing to replace {out}: it is a gcm {other[:40]} directory, not a "
-                f"{kind} directory; choose another --out"
+                f"refusing to replace {out}: it is a gcm {other[:40]} directory, not "
+                f"{'an' if kind[:1] in 'aeiou' else 'a'} {kind} directory; choose another --out"
             )
         raise OutputError(
             f"refusing to replace {out}: it is not a gcm {kind} directory (no valid {MARKER} "

@@ -247,6 +247,13 @@ class StudyPlan:
             if sweep.object_pose is None:
                 continue
             cfg = self._placed_config(i)
+            if cfg.object is None and cfg.objects is not None:
+                raise ConfigError(
+                    f"sweep.object_pose: the base config lists 'objects' (target {cfg.target!r}) "
+                    "and a study moves one 'object': give the target as 'object' and the other "
+                    "objects as environment.obstacles, or sweep base_pose",
+                    key="sweep.object_pose",
+                )
             if cfg.object is None:
                 raise ConfigError(
                     f"sweep.object_pose: {name}: the config has no 'object' section to move "

@@ -105,6 +105,29 @@ def test_relative_links_resolve(page: Path) -> None:
             )
 
 
+# a repository path named in a shipped file's comments or a data README (docs/robots.md)
+_REPO_PATH = re.compile(
+    r"(?<![\w/.])((?:docs|configs|scripts|benchmarks|tests|gcm_pipeline)/[\w./-]*\w"
+    r"\.(?:md|yaml|py|npz|json|obj))"
+)
+
+
+def _shipped_texts() -> list[Path]:
+    globs = ("gcm_pipeline/grippers/*.yaml", "gcm_pipeline/robot/specs/*.yaml", "configs/**/*.yaml")
+    return [
+        *(p for g in globs for p in sorted(ROOT.glob(g))),
+        *sorted(ROOT.glob("tests/data/*/README.md")),
+    ]
+
+
+@pytest.mark.parametrize("text", _shipped_texts(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_repository_paths_named_in_shipped_files_exist(text: Path) -> None:
+    for name in _REPO_PATH.findall(text.read_text(encoding="utf-8")):
+        assert (ROOT / name).exists(), (
+            f"{text.relative_to(ROOT)} names {name}, which does not exist"
+        )
+
+
 def test_column_registry_names_every_column_of_a_run() -> None:
     """docs/run-directory.md is generated from COLUMNS: a column a run adds must be there."""
     import gcm_pipeline as gcm

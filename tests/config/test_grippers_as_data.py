@@ -245,6 +245,66 @@ def test_grippers_that_do_not_fit_are_refused(tmp_path, cli, changes, fragments)
     assert not out.exists()
 
 
+def test_robot_tool_on_a_bare_arm_spec_without_a_tool_section_says_what_it_needs(tmp_path, cli):
+    spec = tmp_path / "bare.yaml"
+    spec.write_text(
+        yaml.safe_dump(
+            {"name": "bare", "model": {"example_robot_data": "ur5"}, "grasp_frame": "tool0"}
+        )
+    )
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        yaml.safe_dump(
+            {
+                "robot": {"spec": str(spec), "tool": "robotiq_2f_85"},
+                "object": {"shape": "cylinder", "dims": {"radius": 0.035, "height": 0.22}},
+                "candidates": {"source": "cylinder_side", "count": 9},
+            }
+        )
+    )
+    code, _, err = cli("validate", cfg)
+    line = assert_one_line_error(
+        code, err, "robot.tool", "'bare'", "'robotiq_2f_85'", "tool section"
+    )
+    assert "its hand is part of its model" not in line  # a bare arm has no hand
+
+
+@pytest.mark.parametrize("what", ["dir", "device"])
+def test_a_gripper_mesh_that_is_no_regular_file_is_named_so(tmp_path, what):
+    mesh = tmp_path / "m.stl" if what == "dir" else "/dev/zero"
+    if what == "dir":
+        mesh.mkdir()
+    body = {"name": "body", "shape": "mesh", "mesh": str(mesh)}
+    path = _gripper_file(
+        tmp_path,
+        collision=[
+            body,
+            *yaml.safe_load((REGISTRY / "robotiq_2f_85.yaml").read_text())["collision"][1:],
+        ],
+    )
+    with pytest.raises(ConfigError, match=r"collision\[0\]\.mesh: file .* is not a regular file"):
+        load_gripper(path)
+
+
+def test_a_gripper_mesh_that_does_not_load_is_named_by_the_gripper_file(tmp_path, cli):
+    (tmp_path / "body.stl").write_text("not a mesh\n")
+    body = {"name": "body", "shape": "mesh", "mesh": "body.stl"}
+    fingers = yaml.safe_load((REGISTRY / "robotiq_2f_85.yaml").read_text())["collision"][1:]
+    gripper = _gripper_file(tmp_path, collision=[body, *fingers])
+    cfg = tmp_path / "c.yaml"
+    doc = {
+        "robot": {"spec": "ur5", "tool": str(gripper)},
+        "object": {"shape": "cylinder", "dims": {"radius": 0.035, "height": 0.22}},
+        "candidates": {"source": "cylinder_side", "count": 9},
+    }
+    cfg.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "run"
+    code, _, err = cli("run", cfg, "--out", out, *QUICK)
+    line = assert_one_line_error(code, err, "robot.tool: gripper", "g.yaml", "collision[0].mesh")
+    assert "ur5.yaml" not in line  # the robot spec is not at fault
+    assert not out.exists()
+
+
 def test_a_suction_gripper_file_with_fingers_is_refused(tmp_path):
     doc = yaml.safe_load((REGISTRY / "single_suction_cup_30mm.yaml").read_text())
     doc["max_width"] = 0.05

@@ -119,6 +119,19 @@ def test_target_all_gives_each_object_its_own_run(cli, tmp_path):
         assert code == 0, err
     code, _, err = cli("show", out)
     assert_one_line_error(code, err, "objects/", "bottle, can")
+    code, _, err = cli("export", out, "--format", "npz")
+    assert_one_line_error(code, err, "objects/", "bottle, can")
+    assert not (out / "grasps.npz").exists()
+
+
+@pytest.mark.parametrize("how", [("--meshcat",), ("--set", "publish.meshcat=true")])
+def test_target_all_with_the_live_viewer_says_how_to_view_one(cli, tmp_path, how):
+    out = tmp_path / "all"
+    code, text, err = cli("run", TWO, "--target", "all", "--out", out, *how)
+    key = "--meshcat" if how == ("--meshcat",) else "publish.meshcat"
+    line = assert_one_line_error(code, err, key, "bottle, can", "--target NAME", "gcm view")
+    assert "gcm show" not in line  # it has no live viewer
+    assert text == "" and not out.exists()
 
 
 def test_run_objects_matches_the_single_target_run(tmp_path, bottle_and_can):
@@ -134,6 +147,10 @@ def test_run_objects_matches_the_single_target_run(tmp_path, bottle_and_can):
     assert again.run_dir == tmp_path / "all" and len(again.results) == 2
     with pytest.raises(OutputError, match="objects directory, not a run directory"):
         Pipeline(target_config(cfg, "can")).run(tmp_path / "all", progress=False, force=True)
+    single = tmp_path / "single"
+    Pipeline(target_config(cfg, "can")).run(single, progress=False)
+    with pytest.raises(OutputError, match="a gcm run directory, not an objects directory;"):
+        run_objects(cfg, single, progress=False, force=True)
 
 
 def test_pipeline_run_refuses_target_all():
@@ -171,6 +188,7 @@ def _swap(data, key, value):
 BAD = {
     "unknown target": (("target",), "mug", ["unknown target 'mug'", "valid: a, all, b"]),
     "duplicate name": (("objects", 1, "name"), "a", ["objects.1.name", "'a' is used twice"]),
+    "name differing in case": (("objects", 1, "name"), "A", ["objects.1.name", "'A'", "case"]),
     "reserved name": (("objects", 0, "name"), "all", ["objects.0.name", "'all' is reserved"]),
     "bad name": (("objects", 0, "name"), "a/b", ["objects.0.name", "a/b"]),
     "empty list": (("objects",), [], ["objects: the list is empty"]),
@@ -300,3 +318,35 @@ def test_object_meshes_resolve_against_the_config_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     cfg = load_config(path)
     assert cfg.objects[1].mesh == tmp_path / "cfgs" / "meshes" / "b.obj"
+
+
+def test_a_study_moving_the_object_of_an_objects_config_says_what_to_give(cli, tmp_path):
+    study = tmp_path / "study.yaml"
+    study.write_text(
+        yaml.safe_dump({"base": str(TWO), "sweep": {"object_pose": {"x": [0.4, 0.5]}}})
+    )
+    out = tmp_path / "study"
+    code, text, err = cli("study", study, "--out", out, "--workers", "1")
+    assert_one_line_error(
+        code, err, "sweep.object_pose", "'objects'", "target 'bottle'", "base_pose"
+    )
+    assert not out.exists()
+
+
+def test_an_object_without_a_candidate_under_target_all_is_named_and_nothing_written(cli, tmp_path):
+    data = _objects(target="all")
+    data["objects"][1] = {
+        "name": "boulder",
+        "shape": "sphere",
+        "dims": {"radius": 0.3},
+        "pose": {"xyz": [0.5, 0.8, 0.3]},
+    }
+    data["candidates"] = {"source": "antipodal", "count": 4}
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    code, text, err = cli("run", path, "--out", out, *QUICK)
+    assert_one_line_error(
+        code, err, "objects[boulder]: ", "no collision-free antipodal grasp", warnings=True
+    )
+    assert not out.exists()

@@ -136,3 +136,29 @@ def test_the_readme_command_rebuilds_the_scene(tmp_path, scene):
         np.testing.assert_allclose(z["depth"][same], arrays["depth"][same], atol=2e-4)
         np.testing.assert_array_equal(z["K"], arrays["K"])
     assert json.loads((tmp_path / "scene.json").read_text())["grasps"] == meta["grasps"]
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--width", "0"], "--width: 0 is not in [1, 4096]"),
+        (["--fov", "180"], "--fov: 180 is not in (0, 180)"),
+        (["--fov", "nan"], "--fov: nan"),
+        (["--grasps", "-1"], "--grasps: -1 is not >= 1"),
+        (["--seed", "-1"], "--seed: -1"),
+        (["--ply-stride", "0"], "--ply-stride: 0 is not >= 1"),
+    ],
+)
+def test_bad_arguments_are_refused_before_anything_is_written(tmp_path, args, fragment):
+    out = tmp_path / "scene"
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), "--out", str(out), *args],
+        env=gcm_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert fragment in proc.stderr.splitlines()[-1]
+    assert not out.exists()

@@ -106,6 +106,17 @@ def test_contact_points_of_another_shape_are_refused(tmp_path, contact_pts, frag
         read_contact_graspnet(path)
 
 
+def test_contact_points_of_a_segment_without_grasps_are_refused(tmp_path):
+    """Keys off by one (0.. instead of 1..) would otherwise leave every contact NaN."""
+    path = tmp_path / "p.npz"
+    poses = {1: np.stack([np.eye(4)] * 2), 2: np.stack([np.eye(4)])}
+    np.savez(path, pred_grasps_cam=poses, contact_pts={0: np.zeros((2, 3)), 1: np.zeros((1, 3))})
+    with pytest.raises(
+        InputError, match=r"contact_pts has segment 0, which pred_grasps_cam has not"
+    ):
+        read_contact_graspnet(path)
+
+
 def test_gcm_run_refuses_bad_contact_points_in_one_line(tmp_path, cli):
     path = tmp_path / "predictions.npz"
     np.savez(path, pred_grasps_cam={1: np.stack([np.eye(4)] * 2)}, contact_pts={1: np.zeros(6)})

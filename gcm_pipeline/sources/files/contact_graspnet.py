@@ -86,6 +86,7 @@ def read_contact_graspnet(
     scores = _segments(arrays["scores"]) if "scores" in arrays else {}
     openings = _segments(arrays["gripper_openings"]) if "gripper_openings" in arrays else {}
     contacts = _segments(arrays["contact_pts"]) if "contact_pts" in arrays else None
+    _check_contact_segments(path, contacts, grasps)
     try:
         keys = sorted(grasps, key=lambda k: float(k))
     except (TypeError, ValueError):
@@ -146,6 +147,18 @@ def read_contact_graspnet(
     if points:
         columns.update(zip(CONTACT_COLUMNS, np.concatenate(points).T, strict=True))
     return ImportedGrasps(np.concatenate(parts), "base", columns)
+
+
+def _check_contact_segments(path: Path, contacts: dict | None, grasps: dict) -> None:
+    """Every segment of ``contact_pts`` has grasps (the file's dicts share their keys)."""
+    stray = [k for k in contacts or () if k not in grasps]
+    if stray:  # keys off by one would leave every contact point NaN
+        raise InputError(
+            f"{path}: contact_pts has segment {clip(stray[0], 40)}, which pred_grasps_cam has "
+            f"not (its segments: {clip(', '.join(str(k) for k in grasps), 80)})",
+            path=path,
+            key=f"contact_pts[{clip(stray[0], 40)}]",
+        )
 
 
 def _contact_points(path: Path, value: Any, m: int, key: Any) -> np.ndarray:

@@ -215,9 +215,10 @@ class CandidatesConfig(_Section):
         gripper: The gripper whose frame convention maps the file's poses onto the
             robot's grasp frame (:mod:`gcm_pipeline.sources.grippers`; default: the
             gripper the file names, else the format's dataset gripper, ``franka_panda``
-            for ``acronym``, ``contact_graspnet``, ``graspnet``; a ``graspgen`` file
-            naming none needs it), or whose opening and finger depth the ``antipodal``
-            sampler uses. Replaces ``grasp_to_tool``.
+            for ``acronym``, ``contact_graspnet``, ``graspnet``, else ``robot.tool``;
+            a ``graspgen`` file naming none on a robot without a tool needs it), or
+            whose opening and finger depth the ``antipodal`` sampler uses. Replaces
+            ``grasp_to_tool``.
         friction: ``antipodal``: friction coefficient of the contacts (the cone's half
             angle is ``atan(friction)``).
         camera_pose: ``contact_graspnet`` (required) and ``graspnet``: the pose in the

@@ -57,6 +57,7 @@ def candidate_poses(
             gripper=configured,
             grasp_to_tool=to_tool,
             registry=gripper_registry(),
+            tool=None if cfg.robot.tool is None else load_gripper(cfg.robot.tool, "robot.tool"),
         )
         if choice is not None and report is not None:
             report["grasp_frame"] = choice.as_dict() | {"describe": choice.describe()}

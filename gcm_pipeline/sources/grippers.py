@@ -36,10 +36,10 @@ height along z) and its 17-value grasp rows.
 
 A file's gripper is, in this order: ``candidates.gripper``; the gripper the
 file names (ACRONYM's ``gripper/type``, GraspGen's ``gripper``), which the
-registry must know; the format's dataset gripper (:data:`DATASET_GRIPPERS`).
-A file with none of these or naming an unknown gripper is refused with the
-choices (:func:`choose_gripper`); the choice is logged and kept in
-``summary.json``'s ``grasp_frame`` (:class:`GripperChoice`).
+registry must know; the format's dataset gripper (:data:`DATASET_GRIPPERS`);
+the robot's tool (``robot.tool``). A file with none of these or naming an
+unknown gripper is refused with the choices (:func:`choose_gripper`); the
+choice is logged and kept in ``summary.json``'s ``grasp_frame`` (:class:`GripperChoice`).
 
 The registry is data: one YAML file per gripper in ``gcm_pipeline/grippers/``
 (:func:`shipped_grippers`), or a user's own file, read and validated by
@@ -258,7 +258,8 @@ class GripperChoice:
     Attributes:
         format: The file's format.
         gripper: The registry gripper used, or None (``grasp_to_tool``).
-        chosen_by: ``config`` (``candidates.gripper``), ``file`` (the gripper
+        chosen_by: ``config`` (``candidates.gripper``), ``robot_tool`` (``robot.tool``,
+            for a file that names no gripper), ``file`` (the gripper
             the file names), ``dataset`` (the format's dataset gripper,
             :data:`DATASET_GRIPPERS`) or ``grasp_to_tool``.
         file_gripper: The gripper as the file names it, if it does.
@@ -278,6 +279,7 @@ class GripperChoice:
             "config": "candidates.gripper",
             "file": "named by the file",
             "dataset": f"the {self.format} dataset's gripper",
+            "robot_tool": "the robot's tool, robot.tool: the file names no gripper",
         }[self.chosen_by]
         return f"{self.gripper} ({why}{named if self.chosen_by != 'file' else ''})"
 
@@ -298,6 +300,7 @@ def choose_gripper(
     mapped: bool,
     file_gripper: str | None,
     registry: Mapping[str, GripperSpec],
+    tool: GripperSpec | None = None,
 ) -> GripperChoice:
     """The gripper whose frame the file's poses are in (see the module docstring).
 
@@ -308,6 +311,8 @@ def choose_gripper(
         mapped: Whether ``candidates.grasp_to_tool`` is given.
         file_gripper: The gripper the file names, if any.
         registry: The shipped grippers by name (a file's gripper is looked up here).
+        tool: The robot's tool (``robot.tool``), read: the gripper of a file that
+            names none and whose format has no dataset gripper.
 
     Raises:
         InputError: The file names a gripper the registry does not know, or
@@ -343,10 +348,13 @@ def choose_gripper(
         return GripperChoice(fmt, found.name, "file", file_gripper)
     if fmt in DATASET_GRIPPERS:
         return GripperChoice(fmt, DATASET_GRIPPERS[fmt], "dataset")
+    if tool is not None:  # grasps made for the hand the robot carries
+        return GripperChoice(fmt, tool.name, "robot_tool")
     raise _refused(
         f"{path}: this {fmt} file does not name its gripper, and {fmt} grasps are made for "
         "several grippers whose frames differ; set candidates.gripper (one of: "
-        f"{known}) or candidates.grasp_to_tool",
+        f"{known}), robot.tool (the hand the robot carries, if these are its grasps) or "
+        "candidates.grasp_to_tool",
         path,
         None,
         registry,

@@ -25,6 +25,7 @@ from gcm_pipeline.sources.grippers import shipped_grippers
 
 REGISTRY = ROOT / "gcm_pipeline" / "grippers"
 ROBOTIQ_140 = DATA / "graspgen" / "example_mesh_antipodal.yaml"
+MUG_H5 = next((DATA / "acronym").glob("Mug_*.h5"))
 
 
 @pytest.fixture(scope="module")
@@ -62,6 +63,35 @@ def test_a_graspgen_robotiq_file_imports_by_name_as_the_hand_made_transform_did(
     np.testing.assert_allclose(named[:, :3, 1], hand[:, :3, 0], atol=1e-9)  # closing: file x
     assert report["grasp_frame"]["gripper"] == "robotiq_2f_140"
     assert report["grasp_frame"]["chosen_by"] == "config"
+
+
+def test_a_graspgen_file_naming_no_gripper_takes_the_robots_tool():
+    """A GraspGen file names no gripper: on a robot carrying a registry hand
+    (``robot.tool``) its grasps are that hand's, mapped as if ``candidates.gripper``
+    named it, and the run says so; a file that names its gripper (ACRONYM's Franka
+    hand) keeps that one whatever the robot carries."""
+    base = {"source": "file", "path": str(ROBOTIQ_140), "format": "graspgen", "frame": "world"}
+    named = Config.from_dict({"candidates": {**base, "gripper": "robotiq_2f_140"}})
+    carried = Config.from_dict(
+        {"robot": {"spec": "ur5", "tool": "robotiq_2f_140"}, "candidates": base}
+    )
+    report: dict = {}
+    by_tool = dq_to_matrix(generate_candidates(carried, report=report)["dq"])
+    np.testing.assert_allclose(by_tool, dq_to_matrix(generate_candidates(named)["dq"]), atol=1e-12)
+    assert report["grasp_frame"]["chosen_by"] == "robot_tool"
+    assert "the robot's tool" in report["grasp_frame"]["describe"]
+    with pytest.raises(InputError, match="robot.tool"):  # no tool: refused, the key named
+        generate_candidates(Config.from_dict({"candidates": base}))
+    acronym = {"source": "file", "path": str(MUG_H5), "format": "acronym"}
+    report = {}
+    generate_candidates(
+        Config.from_dict(
+            {"robot": {"spec": "ur5", "tool": "robotiq_2f_85"}, "candidates": acronym}
+        ),
+        report=report,
+    )
+    assert report["grasp_frame"]["gripper"] == "franka_panda"
+    assert report["grasp_frame"]["chosen_by"] == "file"  # the file names the Franka hand
 
 
 def test_a_users_gripper_file_maps_like_the_shipped_one(tmp_path):

@@ -175,6 +175,7 @@ def to_grasp_frame(
     gripper: GripperSpec | None = None,
     grasp_to_tool: np.ndarray | None = None,
     registry: Mapping[str, GripperSpec] | None = None,
+    tool: GripperSpec | None = None,
 ) -> tuple[np.ndarray, GripperChoice | None]:
     """Poses (N, 4, 4) of the robot's grasp frame, and how a gripper frame was mapped.
 
@@ -188,6 +189,8 @@ def to_grasp_frame(
         registry: The shipped grippers by name, where a gripper the file names
             (or its dataset's) is looked up
             (:func:`~gcm_pipeline.config.gripper_spec.gripper_registry`).
+        tool: The robot's tool (``robot.tool``, read): the gripper of a file
+            that names none and has no dataset gripper.
 
     Returns:
         ``(poses, choice)``: ``choice`` is None for poses of the grasp frame
@@ -202,12 +205,14 @@ def to_grasp_frame(
         return (poses if grasp_to_tool is None else poses @ grasp_to_tool), None
     assert fmt is not None
     known = {} if registry is None else registry
-    choice = choose_gripper(path, fmt, gripper, grasp_to_tool is not None, grasps.gripper, known)
+    choice = choose_gripper(
+        path, fmt, gripper, grasp_to_tool is not None, grasps.gripper, known, tool
+    )
     log.info("candidates: %s: gripper frame of %s", path, choice.describe())
     if grasp_to_tool is not None:
         return poses @ grasp_to_tool, choice
     assert choice.gripper is not None
-    spec = gripper if choice.chosen_by == "config" else known[choice.gripper]
+    spec = {"config": gripper, "robot_tool": tool}.get(choice.chosen_by) or known[choice.gripper]
     assert spec is not None
     return poses @ spec.to_tool(grasps.convention, grasps.depth), choice
 

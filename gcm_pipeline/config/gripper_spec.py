@@ -42,7 +42,7 @@ from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
 
 from gcm_pipeline.config.sections import NonNegLength, PositiveLength
 from gcm_pipeline.config.tool_spec import (
@@ -55,7 +55,7 @@ from gcm_pipeline.config.tool_spec import (
     check_tool_files,
     spec_special,
 )
-from gcm_pipeline.config.validation import describe
+from gcm_pipeline.config.validation import validated_file
 from gcm_pipeline.errors import ConfigError, RobotSpecError, choice_error, clip
 from gcm_pipeline.safe_yaml import load_yaml, read_yaml_file
 from gcm_pipeline.sources.grippers import (
@@ -197,13 +197,7 @@ def parse_gripper(raw: Any, path: Path, where: str) -> GripperSpec:
     Raises:
         ConfigError: One line naming the key at fault.
     """
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{where}: expected a mapping at the top level, got {clip(raw)}")
-    try:
-        f = GripperFile.model_validate(raw)
-    except ValidationError as exc:
-        problem = describe(exc, raw, GripperFile, special=spec_special, brackets=True)
-        raise ConfigError(f"{where}: {problem.message}") from None
+    f = validated_file(raw, GripperFile, where, ConfigError, spec_special)
     spec = _spec(f, path)
     assert spec.tool is not None
     try:

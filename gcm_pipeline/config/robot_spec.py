@@ -63,12 +63,12 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Strict, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Strict, model_validator
 
 from gcm_pipeline.config.gripper_spec import load_gripper, mount_gripper
 from gcm_pipeline.config.sections import FiniteFloat, NonNegFloat
 from gcm_pipeline.config.tool_spec import ToolSection, build_tool, check_tool_files, spec_special
-from gcm_pipeline.config.validation import describe
+from gcm_pipeline.config.validation import validated_file
 from gcm_pipeline.errors import RobotSpecError, choice_error, clip
 from gcm_pipeline.robot.model import Robot, RobotSpec
 from gcm_pipeline.robot.model_files import model_files
@@ -177,13 +177,7 @@ def load_spec(name_or_path: str | os.PathLike[str], tool: str | None = None) -> 
     """
     path, raw = _read_spec_file(name_or_path)
     where = f"robot spec {str(path)!r}"
-    if not isinstance(raw, dict):
-        raise RobotSpecError(f"{where}: expected a mapping at the top level, got {clip(raw)}")
-    try:
-        spec_file = RobotSpecFile.model_validate(raw)
-    except ValidationError as exc:
-        problem = describe(exc, raw, RobotSpecFile, special=spec_special, brackets=True)
-        raise RobotSpecError(f"{where}: {problem.message}") from None
+    spec_file = validated_file(raw, RobotSpecFile, where, RobotSpecError, spec_special)
     spec = build_spec(spec_file, path)
     if spec.tool is not None:
         check_tool_files(where, spec.tool)

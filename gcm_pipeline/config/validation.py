@@ -21,13 +21,15 @@ import types
 import typing
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
 from gcm_pipeline.errors import ConfigError, clip, unknown_choice
 
-__all__ = ["Problem", "describe", "dotted", "unknown_key"]
+__all__ = ["Problem", "describe", "dotted", "unknown_key", "validated_file"]
+
+M = TypeVar("M", bound=BaseModel)
 
 #: A front-end's own wording for some errors: (error, dotted key, location) -> message or None.
 Special = Callable[[dict[str, Any], str, list[Any]], "str | None"]
@@ -94,6 +96,35 @@ def unknown_key(parent: str, key: Any, valid: Sequence[str], noun: str = "key") 
     close = difflib.get_close_matches(str(key), names, n=1)
     hint = f" (did you mean {(f'{parent}.{close[0]}' if parent else close[0])!r}?)" if close else ""
     return f"unknown {noun} {clip(full)}{hint}; valid keys here: {', '.join(names)}"
+
+
+def validated_file(
+    raw: Any,
+    model: type[M],
+    where: str,
+    error: type[Exception],
+    special: Special | None = None,
+) -> M:
+    """A spec file's document (robot, gripper) validated by ``model``, or one line.
+
+    Args:
+        raw: The document as read from YAML.
+        model: The file's pydantic model.
+        where: What the message names first (the file).
+        error: The error type to raise.
+        special: A front-end's own wording (:func:`describe`).
+
+    Raises:
+        error: ``<where>: <key>: <problem>`` (list indices in brackets), or a
+            document that is not a mapping.
+    """
+    if not isinstance(raw, dict):
+        raise error(f"{where}: expected a mapping at the top level, got {clip(raw)}")
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        problem = describe(exc, raw, model, special=special, brackets=True)
+        raise error(f"{where}: {problem.message}") from None
 
 
 def describe(

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import stat
+import struct
 import zipfile
 import zlib
 from pathlib import Path
@@ -30,9 +31,26 @@ from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.table import GraspTable
 
+#: What reading a damaged zip archive (an ``.npz``) raises: besides zipfile's own
+#: errors, a member name cut to nothing at a NUL byte fails ``is_dir()`` with an
+#: IndexError, a damaged extra field with struct.error, and a compression method
+#: zipfile lacks with NotImplementedError.
+ZIP_ERRORS = (
+    zipfile.BadZipFile,
+    zipfile.LargeZipFile,
+    zlib.error,
+    OSError,
+    EOFError,
+    ValueError,
+    IndexError,
+    struct.error,
+    NotImplementedError,
+)
+
 __all__ = [
     "CONFIGURATION_COLUMNS",
     "SOLUTION_COLUMNS",
+    "ZIP_ERRORS",
     "manifold_vertex_rows",
     "npy_header",
     "open_regular",
@@ -161,19 +179,11 @@ def read_npz(path: str | Path, *, max_bytes: int, keep: Any = None) -> dict[str,
                     arrays[name] = np.lib.format.read_array(fh, allow_pickle=False)
     except InputError:
         raise
-    except (
-        zipfile.BadZipFile,
-        zipfile.LargeZipFile,
-        zlib.error,
-        OSError,
-        EOFError,
-        ValueError,
-    ) as exc:
+    except ZIP_ERRORS as exc:
         raise InputError(
-            f"{path}: not a readable .npz archive: {clip(str(exc))}", path=path
+            f"{path}: not a readable .npz archive: {clip(str(exc) or type(exc).__name__)}",
+            path=path,
         ) from None
-    except NotImplementedError as exc:  # a compression method zipfile lacks
-        raise InputError(f"{path}: not a readable .npz archive: {exc}", path=path) from None
     return arrays
 
 

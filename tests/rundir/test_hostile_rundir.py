@@ -117,3 +117,17 @@ def test_plot_on_a_tampered_run_is_one_line(cli, tmp_path, flat_run):
 def test_show_on_a_file_names_its_folder(cli):
     code, _, err = cli("show", ROOT / "README.md")
     assert_one_line_error(code, err, "README.md is a file (give its folder)")
+
+
+def test_an_npz_member_name_cut_at_a_nul_byte_is_one_line(cli, tmp_path, flat_run):
+    """zipfile cuts a member name at a NUL byte; a name cut to nothing failed ``is_dir()``
+    with an IndexError (found by the fuzz test): ``gcm show`` says one line instead."""
+    run = tmp_path / "run"
+    shutil.copytree(flat_run, run)
+    data = bytearray((run / "manifold.npz").read_bytes())
+    entry = data.find(b"PK\x01\x02")  # the first central directory entry
+    data[entry + 46] = 0  # the first byte of its file name
+    (run / "manifold.npz").write_bytes(bytes(data))
+    code, _, err = cli("show", run)
+    assert_one_line_error(code, err)
+    assert "manifold.npz: not a readable .npz archive" in err

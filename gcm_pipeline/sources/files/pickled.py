@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.rundir.arrays import npy_header
+from gcm_pipeline.rundir.arrays import ZIP_ERRORS, npy_header
 from gcm_pipeline.sources.files.common import SLACK_BYTES, check_bytes
 
 __all__ = ["read_npz_members", "read_pickled_npy"]
@@ -133,16 +133,7 @@ def read_npz_members(path: Path, max_count: int) -> dict[str, Any]:
                     out[name] = np.lib.format.read_array(fh, allow_pickle=False)
     except InputError:
         raise
-    except (
-        zipfile.BadZipFile,
-        OSError,
-        ValueError,
-        EOFError,
-        TypeError,
-        SyntaxError,
-        NotImplementedError,
-        pickle.UnpicklingError,
-    ) as exc:
+    except (*ZIP_ERRORS, TypeError, SyntaxError, pickle.UnpicklingError) as exc:
         raise InputError(
             f"{path}: not a readable .npz archive: {clip(str(exc))}", path=path
         ) from None

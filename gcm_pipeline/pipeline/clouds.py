@@ -26,6 +26,7 @@ from gcm_pipeline.table import GraspTable
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "cloud_key",
     "cloud_options",
     "cloud_summary",
     "cloud_world",
@@ -173,6 +174,16 @@ def cloud_world(
             continue  # the grasps' own segment is the whole cloud
         shapes += cloud_shapes(points, cloud.voxel_size, base_inv, cloud.name, per_cloud)
     return shapes
+
+
+def cloud_key(environment: EnvironmentConfig, shape: str) -> str | None:
+    """The config location of the cloud a world shape (``<name>_<tile>``) is a tile of, or None."""
+    for i, pc in enumerate(environment.point_clouds):
+        name = pc.name or f"cloud_{i}"
+        head, _, tile = shape.rpartition("_")
+        if head == name and tile.isdigit():
+            return f"environment.point_clouds[{i}] ({name})"
+    return None
 
 
 def grasp_segments(grasps: GraspTable) -> np.ndarray:

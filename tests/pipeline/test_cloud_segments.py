@@ -16,6 +16,7 @@ from gcm_pipeline.pipeline.clouds import (
     table_merge,
     table_subset,
 )
+from gcm_pipeline.pipeline.reach import make_checker
 from gcm_pipeline.table import GraspTable
 
 
@@ -90,3 +91,20 @@ def test_a_camera_cloud_takes_the_candidates_camera_pose(tmp_path):
     near = PointCloudConfig(path=tmp_path / "c.npy", frame="world", exclude_object_distance=0.01)
     with pytest.raises(ConfigError, match="exclude_object_distance needs an 'object'"):
         cloud_options(0, near, None, None)
+
+
+def test_a_cloud_around_the_base_is_one_warning_naming_its_config_key(panda, tmp_path, caplog):
+    """The cloud's tiles all overlap the base: one warning, naming the cloud, not each tile."""
+    pts = np.random.default_rng(0).uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.3], (5000, 3))
+    np.save(tmp_path / "c.npy", pts)
+    env = EnvironmentConfig(
+        table=None, point_clouds=[{"path": tmp_path / "c.npy", "frame": "world", "name": "shelf"}]
+    )
+    with caplog.at_level("WARNING"):
+        checker = make_checker(panda, env, None)
+    tiles = {shape for _, shape in checker.static_collisions}
+    assert len(tiles) > 1  # the tiles shelf_0, shelf_1, ... collide on their own
+    lines = [r.getMessage() for r in caplog.records if "overlaps the robot" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("environment.point_clouds[0] (shelf) overlaps the robot's fixed")
+    assert "crop_min/crop_max" in lines[0]

@@ -224,7 +224,12 @@ def _npy(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chun
             if not isinstance(value, dict):
                 raise InputError(f"{path}: a pickled .npy must hold a dict of arrays", path=path)
             yield from _scene_dict(
-                path, {k: MemRows(np.asarray(v)) for k, v in value.items()}, opt, counts
+                # a key set to None (no segmap, no rgb) is a key left out
+                path,
+                {k: MemRows(np.asarray(v)) for k, v in value.items() if v is not None},
+                opt,
+                counts,
+                sorted(f"{k}" + (" (None)" if v is None else "") for k, v in value.items()),
             )
             return
         fh.seek(0)
@@ -284,6 +289,7 @@ def _scene_dict(
         k = opt.intrinsics
         if k is None and "K" in arrays:
             kk = arrays["K"]
+            _real(path, kk, opt, "K")
             k = np.asarray(kk.read(kk.shape[0] if kk.shape else 1), dtype=np.float64)
         yield from _depth_chunks(path, arrays["depth"], k, seg, arrays.get("rgb"), opt, counts)
     elif "xyz" in arrays:
@@ -311,7 +317,7 @@ def _array_chunks(
 ) -> Iterator[Chunk]:
     """An (N, 3) array of points, or (H, W) depth."""
     shape = rows.shape
-    _real(path, rows, opt)
+    _real(path, rows, opt, "the points")
     if len(shape) == 2 and shape[1] != 3:
         yield from _depth_chunks(path, rows, opt.intrinsics, None, None, opt, counts)
         return
@@ -349,11 +355,11 @@ def points_only(path: Path, opt: CloudOptions, what: str) -> None:
             )
 
 
-def _real(path: Path, rows: Any, opt: CloudOptions) -> None:
+def _real(path: Path, rows: Any, opt: CloudOptions, what: str = "the array") -> None:
     """Refuse an array that is not real numbers (complex, bool, strings, objects)."""
     if np.dtype(rows.dtype).kind not in "iuf":
         raise InputError(
-            f"{opt.where}: {path}: dtype {rows.dtype}: real numbers are needed",
+            f"{opt.where}: {path}: {what} has dtype {rows.dtype}: real numbers are needed",
             path=path,
             value=str(rows.dtype),
         )
@@ -408,7 +414,7 @@ def _depth_chunks(
             path=path,
             value=list(seg.shape),
         )
-    _real(path, depth, opt)
+    _real(path, depth, opt, "the depth image")
     if np.dtype(depth.dtype).kind in "iu" and opt.depth_scale == 1.0:
         raise InputError(
             f"{opt.where}.depth_scale: {path}: an integer ({depth.dtype}) depth image is in "

@@ -139,3 +139,26 @@ HEADER = (
 def test_a_pcd_with_a_bad_header_is_refused_in_one_line(tmp_path, fields, fragments):
     (tmp_path / "c.pcd").write_text(HEADER.format(**fields) + "1 2 3\n")
     _refused(tmp_path / "c.pcd", "bad PCD header", *fragments)
+
+
+def test_a_pickled_scene_dict_with_none_for_absent_keys_is_read(tmp_path):
+    """``load_available_input_data`` gives ``segmap = None`` when there is none; saved so."""
+    np.save(tmp_path / "s.npy", {"depth": _depth(), "K": K, "segmap": None, "rgb": None})
+    np.savez(tmp_path / "s.npz", depth=_depth(), K=K)
+    a = read_cloud(CloudOptions(tmp_path / "s.npy"))
+    np.testing.assert_array_equal(a.points, read_cloud(CloudOptions(tmp_path / "s.npz")).points)
+    assert a.segments is None or set(a.segments.tolist()) == {-1}
+
+
+@pytest.mark.parametrize(
+    ("k", "fragments"),
+    [
+        (None, ["needs intrinsics"]),
+        ("abc", ["K has dtype <U3"]),
+        ({"fx": 1.0}, ["K has dtype object"]),
+    ],
+)
+def test_a_pickled_scene_dict_with_a_bad_k_is_refused_in_one_line(tmp_path, k, fragments):
+    """A K that is not an array crashed with an IndexError."""
+    np.save(tmp_path / "s.npy", {"depth": _depth(), "K": k})
+    _refused(tmp_path / "s.npy", *fragments)

@@ -98,8 +98,9 @@ class MemRows:
         self.arr, self.shape, self.dtype, self.at = arr, arr.shape, arr.dtype, 0
 
     def read(self, rows: int) -> np.ndarray:
-        """The next ``rows`` rows."""
-        out = self.arr[self.at : self.at + rows]
+        """The next ``rows`` rows (a 0-d array: its one value)."""
+        out = self.arr.reshape(-1)[self.at : self.at + rows] if self.arr.ndim == 0 else None
+        out = self.arr[self.at : self.at + rows] if out is None else out
         self.at += rows
         return out
 

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
+import yaml
+from helpers import BOTTLE, QUICK, assert_one_line_error, run_gcm
 from pydantic import ValidationError
 
 from gcm_pipeline.config.reach_sections import EnvironmentConfig, PointCloudConfig
@@ -108,3 +112,42 @@ def test_a_cloud_around_the_base_is_one_warning_naming_its_config_key(panda, tmp
     assert len(lines) == 1, lines
     assert lines[0].startswith("environment.point_clouds[0] (shelf) overlaps the robot's fixed")
     assert "crop_min/crop_max" in lines[0]
+
+
+_BALL = {"shape": "sphere", "dims": {"radius": 0.01}, "pose": {"xyz": [2.0, 2.0, 2.0]}}
+
+
+@pytest.mark.parametrize(
+    ("env", "fragment"),
+    [
+        (
+            {"point_clouds": [{"path": "a.npy", "name": "s"}, {"path": "b.npy", "name": "s"}]},
+            "point_clouds[1]: name 's' is taken by point_clouds[0]",
+        ),
+        (
+            {"obstacles": [_BALL, {**_BALL, "name": "obstacle_0"}]},
+            "obstacles[1]: name 'obstacle_0' is taken by obstacles[0]",
+        ),
+        (
+            {"obstacles": [_BALL], "point_clouds": [{"path": "a.npy", "name": "obstacle"}]},
+            "name 'obstacle_0' is the name of a tile of point_clouds[0]",
+        ),
+        ({"obstacles": [{**_BALL, "name": "table"}]}, "name 'table' is taken by the table"),
+    ],
+)
+def test_world_shapes_with_the_same_name_are_refused(env, fragment):
+    """Two shapes of one name crashed the collision checker (it finds shapes by name)."""
+    with pytest.raises(ValidationError, match=re.escape(fragment)):
+        EnvironmentConfig.model_validate(env)
+
+
+def test_two_clouds_of_one_name_stop_the_run_in_one_line(tmp_path):
+    np.save(tmp_path / "c.npy", np.random.default_rng(0).uniform(0.4, 0.6, (100, 3)))
+    cfg = yaml.safe_load(BOTTLE.read_text())
+    cloud = {"path": "c.npy", "frame": "world", "name": "s"}
+    cfg["environment"] = {"point_clouds": [cloud, cloud]}
+    cfg["output"] = {"dir": "out"}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(cfg))
+    res = run_gcm("run", tmp_path / "run.yaml", "-q", *QUICK)
+    assert_one_line_error(res.returncode, res.stderr, "point_clouds[1]", "'s'")
+    assert not (tmp_path / "out").exists()

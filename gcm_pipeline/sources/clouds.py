@@ -365,11 +365,14 @@ def _real(path: Path, rows: Any, opt: CloudOptions, what: str = "the array") -> 
         )
 
 
-def _check_intrinsics(path: Path, k: np.ndarray | None, opt: CloudOptions) -> np.ndarray:
+def _check_intrinsics(
+    path: Path, k: np.ndarray | None, opt: CloudOptions, shape: tuple[int, ...]
+) -> np.ndarray:
     if k is None:
         raise InputError(
-            f"{opt.where}: {path}: a depth image needs intrinsics: give {opt.where}.intrinsics "
-            "[[fx, 0, cx], [0, fy, cy], [0, 0, 1]] or a 'K' array in the .npz",
+            f"{opt.where}: {path}: a depth image {tuple(shape)} needs intrinsics: give "
+            f"{opt.where}.intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] or a 'K' array in "
+            "the .npz (points are (N, 3))",
             path=path,
         )
     k = np.asarray(k, dtype=np.float64)
@@ -399,11 +402,11 @@ def _depth_chunks(
     counts: dict[str, int],
 ) -> Iterator[Chunk]:
     """Depth rows, block by block, as camera-frame points (``depth2pc``)."""
-    kk = _check_intrinsics(path, k, opt)
     if len(depth.shape) != 2:
         raise InputError(
             f"{opt.where}: {path}: depth must be (H, W), got shape {tuple(depth.shape)}", path=path
         )
+    kk = _check_intrinsics(path, k, opt, depth.shape)
     h, w = depth.shape
     if seg is None and opt.segmap is not None:
         seg = MemRows(_read_segmap(opt))

@@ -162,3 +162,9 @@ def test_a_pickled_scene_dict_with_a_bad_k_is_refused_in_one_line(tmp_path, k, f
     """A K that is not an array crashed with an IndexError."""
     np.save(tmp_path / "s.npy", {"depth": _depth(), "K": k})
     _refused(tmp_path / "s.npy", *fragments)
+
+
+def test_an_array_that_is_not_n_by_3_says_it_was_taken_for_a_depth_image(tmp_path):
+    """An (N, 6) xyz + rgb array is read as a depth image: the message says so and why."""
+    np.save(tmp_path / "c.npy", np.ones((100, 6)))
+    _refused(tmp_path / "c.npy", "a depth image (100, 6) needs intrinsics", "points are (N, 3)")

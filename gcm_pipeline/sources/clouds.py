@@ -408,7 +408,7 @@ def _depth_chunks(
         )
     kk = _check_intrinsics(path, k, opt, depth.shape)
     h, w = depth.shape
-    if seg is None and opt.segmap is not None:
+    if opt.segmap is not None:  # the config's segmap overrides the file's (as intrinsics K)
         seg = MemRows(_read_segmap(opt))
     if seg is not None and tuple(seg.shape) != (h, w):
         raise InputError(

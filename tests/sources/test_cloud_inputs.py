@@ -168,3 +168,15 @@ def test_an_array_that_is_not_n_by_3_says_it_was_taken_for_a_depth_image(tmp_pat
     """An (N, 6) xyz + rgb array is read as a depth image: the message says so and why."""
     np.save(tmp_path / "c.npy", np.ones((100, 6)))
     _refused(tmp_path / "c.npy", "a depth image (100, 6) needs intrinsics", "points are (N, 3)")
+
+
+def test_the_configs_segmap_overrides_the_npz_segmap(tmp_path):
+    """``segmap`` (default: the .npz's) was ignored when the .npz had one."""
+    own = np.zeros((24, 32), np.int64)
+    given = np.zeros((24, 32), np.int64)
+    given[:6] = 7
+    np.save(tmp_path / "seg.npy", given)
+    np.savez(tmp_path / "s.npz", depth=_depth(), K=K, segmap=own)
+    cloud = read_cloud(CloudOptions(tmp_path / "s.npz", segmap=tmp_path / "seg.npy"))
+    assert set(cloud.segments.tolist()) == {0, 7}
+    assert set(read_cloud(CloudOptions(tmp_path / "s.npz")).segments.tolist()) <= {0, -1}

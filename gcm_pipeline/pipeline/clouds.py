@@ -141,6 +141,13 @@ def scene_clouds(
             c["excluded_segments"] + c["excluded_object"],
             *(c["voxels"], cloud.voxel_size),
         )
+        if pc.exclude_segments and not c["excluded_segments"]:
+            ids = [] if cloud.segments is None else np.unique(cloud.segments).tolist()
+            log.warning(
+                "environment.point_clouds[%d].exclude_segments %s matched no point of %s "
+                "(its segment ids: %s)",
+                *(i, list(pc.exclude_segments), pc.path, ids[:20]),
+            )
         clouds.append(cloud)
     _LAST[:] = [(key, clouds)]
     return clouds

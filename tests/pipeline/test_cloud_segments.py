@@ -16,6 +16,7 @@ from gcm_pipeline.errors import ConfigError
 from gcm_pipeline.pipeline.clouds import (
     cloud_options,
     grasp_segments,
+    scene_clouds,
     segment_groups,
     table_merge,
     table_subset,
@@ -151,3 +152,18 @@ def test_two_clouds_of_one_name_stop_the_run_in_one_line(tmp_path):
     res = run_gcm("run", tmp_path / "run.yaml", "-q", *QUICK)
     assert_one_line_error(res.returncode, res.stderr, "point_clouds[1]", "'s'")
     assert not (tmp_path / "out").exists()
+
+
+def test_exclude_segments_that_match_no_point_are_a_warning(tmp_path, caplog):
+    """A typo in exclude_segments would leave the target's points in as an obstacle."""
+    seg = np.zeros((24, 32), np.int64)
+    seg[:6] = 4
+    k = [[100.0, 0.0, 16.0], [0.0, 100.0, 12.0], [0.0, 0.0, 1.0]]
+    np.savez(tmp_path / "s.npz", depth=np.full((24, 32), 0.8), K=np.array(k), segmap=seg)
+    cloud = {"path": tmp_path / "s.npz", "camera_pose": {"xyz": [0.0, 0.0, 1.0]}}
+    with caplog.at_level("WARNING"):
+        scene_clouds(EnvironmentConfig(point_clouds=[{**cloud, "exclude_segments": [4]}]))
+        assert "matched no point" not in caplog.text
+        scene_clouds(EnvironmentConfig(point_clouds=[{**cloud, "exclude_segments": [5]}]))
+    assert "point_clouds[0].exclude_segments [5] matched no point" in caplog.text
+    assert "(its segment ids: [0, 4])" in caplog.text

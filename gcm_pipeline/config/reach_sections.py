@@ -185,6 +185,30 @@ class EnvironmentConfig(_Section):
     self_collision: Bool = True
     contact_tolerance: NonNegLength = 0.005
 
+    @model_validator(mode="after")
+    def _unique_names(self) -> EnvironmentConfig:
+        # the collision checker finds the world's shapes by name: each needs its own
+        taken = {"table": "the table", "object": "the object"}
+        for i, obs in enumerate(self.obstacles):
+            name = obs.name or f"obstacle_{i}"
+            if name in taken:
+                raise ValueError(f"obstacles[{i}]: name {name!r} is taken by {taken[name]}")
+            taken[name] = f"obstacles[{i}]"
+        clouds: dict[str, str] = {}
+        for i, pc in enumerate(self.point_clouds):
+            name = pc.name or f"cloud_{i}"
+            if name in clouds:
+                raise ValueError(f"point_clouds[{i}]: name {name!r} is taken by {clouds[name]}")
+            clouds[name] = f"point_clouds[{i}]"
+        for shape, owner in taken.items():  # a cloud's tiles are <name>_0, <name>_1, ...
+            head, _, tile = shape.rpartition("_")
+            if tile.isdigit() and head in clouds:
+                raise ValueError(
+                    f"{owner}: name {shape!r} is the name of a tile of {clouds[head]} "
+                    f"({head!r}); rename one of them"
+                )
+        return self
+
 
 class ApproachConfig(_Section):
     """Pre-grasp approach check along the grasp frame's approach axis (z).

@@ -26,6 +26,7 @@ from gcm_pipeline.table import GraspTable
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "cloud_key",
     "cloud_options",
     "cloud_summary",
     "cloud_world",
@@ -140,6 +141,13 @@ def scene_clouds(
             c["excluded_segments"] + c["excluded_object"],
             *(c["voxels"], cloud.voxel_size),
         )
+        if pc.exclude_segments and not c["excluded_segments"]:
+            ids = [] if cloud.segments is None else np.unique(cloud.segments).tolist()
+            log.warning(
+                "environment.point_clouds[%d].exclude_segments %s matched no point of %s "
+                "(its segment ids: %s)",
+                *(i, list(pc.exclude_segments), pc.path, ids[:20]),
+            )
         clouds.append(cloud)
     _LAST[:] = [(key, clouds)]
     return clouds
@@ -173,6 +181,16 @@ def cloud_world(
             continue  # the grasps' own segment is the whole cloud
         shapes += cloud_shapes(points, cloud.voxel_size, base_inv, cloud.name, per_cloud)
     return shapes
+
+
+def cloud_key(environment: EnvironmentConfig, shape: str) -> str | None:
+    """The config location of the cloud a world shape (``<name>_<tile>``) is a tile of, or None."""
+    for i, pc in enumerate(environment.point_clouds):
+        name = pc.name or f"cloud_{i}"
+        head, _, tile = shape.rpartition("_")
+        if head == name and tile.isdigit():
+            return f"environment.point_clouds[{i}] ({name})"
+    return None
 
 
 def grasp_segments(grasps: GraspTable) -> np.ndarray:

@@ -12,7 +12,13 @@ from gcm_pipeline.config import robot_spec
 from gcm_pipeline.config.reach_sections import ApproachConfig, EnvironmentConfig, RetreatConfig
 from gcm_pipeline.config.run import Config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig, Pose
-from gcm_pipeline.pipeline.clouds import cloud_world, segment_groups, table_merge, table_subset
+from gcm_pipeline.pipeline.clouds import (
+    cloud_key,
+    cloud_world,
+    segment_groups,
+    table_merge,
+    table_subset,
+)
 from gcm_pipeline.reach import check as reach_check
 from gcm_pipeline.reach.engine import ReachabilityEngine
 from gcm_pipeline.reach.moves import Move
@@ -133,12 +139,18 @@ def make_checker(
         self_collision=env.self_collision,
         threads=threads,
     )
+    told = set()
     for link, shape in checker.static_collisions:
+        cloud = cloud_key(env, shape)  # a cloud's tiles: one warning per cloud
+        if (cloud or shape, link) in told:
+            continue
+        told.add((cloud or shape, link))
         log.warning(
             "%s overlaps the robot's fixed %s: every configuration collides "
-            "(move it, or the robot: robot.base_pose)",
-            shape,
+            "(%s, or the robot: robot.base_pose)",
+            cloud or shape,
             link,
+            "move it" if cloud is None else "crop it: crop_min/crop_max or max_depth; or move it",
         )
     return checker
 

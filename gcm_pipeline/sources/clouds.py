@@ -9,7 +9,8 @@ Formats (by suffix):
     Contact-GraspNet's scene layout (``load_available_input_data``): ``depth``
     (H, W), ``K`` (3, 3) intrinsics, optional ``segmap`` (or ``seg``) (H, W)
     segment ids and ``rgb`` (H, W, 3) stored BGR as OpenCV reads it; or
-    ``xyz`` (N, 3) with optional ``xyz_color`` (N, 3).
+    ``xyz`` (N, 3) with optional ``xyz_color`` (N, 3); or ``pc_full`` (N, 3)
+    with optional ``pc_colors`` (N, 3, BGR) as Contact-GraspNet's inference keeps them.
 ``.ply``
     Vertices (and their colours) read by trimesh.
 ``.png``
@@ -159,7 +160,15 @@ def _add(grid: VoxelGrid, chunk: Chunk, opt: CloudOptions, counts: dict[str, int
         inside = np.all((chunk.points >= lo) & (chunk.points <= hi), axis=1)
         counts["outside_crop"] += int(np.count_nonzero(~inside))
         chunk = chunk.take(inside)
-    if opt.exclude_segments and chunk.segments is not None:
+    if opt.exclude_segments and chunk.segments is None:
+        raise InputError(
+            f"{opt.where}: {opt.path}: exclude_segments {list(opt.exclude_segments)} needs "
+            "segment ids, and this cloud has none: give a depth image's segmap (or the "
+            ".npz's 'segmap'), or drop exclude_segments",
+            key=f"{opt.where}.exclude_segments",
+            path=opt.path,
+        )
+    if opt.exclude_segments:
         other = ~np.isin(chunk.segments, np.asarray(opt.exclude_segments, dtype=np.int64))
         counts["excluded_segments"] += int(np.count_nonzero(~other))
         chunk = chunk.take(other)
@@ -184,6 +193,8 @@ def _chunks(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[C
             value=suffix,
             choices=CLOUD_FORMATS,
         )
+    if suffix in (".ply", ".pcd"):
+        points_only(path, opt, f"points ({suffix})")
     if suffix == ".ply":
         yield from ply_chunks(path, opt.where, counts)
     elif suffix == ".png":
@@ -213,7 +224,12 @@ def _npy(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chun
             if not isinstance(value, dict):
                 raise InputError(f"{path}: a pickled .npy must hold a dict of arrays", path=path)
             yield from _scene_dict(
-                path, {k: MemRows(np.asarray(v)) for k, v in value.items()}, opt, counts
+                # a key set to None (no segmap, no rgb) is a key left out
+                path,
+                {k: MemRows(np.asarray(v)) for k, v in value.items() if v is not None},
+                opt,
+                counts,
+                sorted(f"{k}" + (" (None)" if v is None else "") for k, v in value.items()),
             )
             return
         fh.seek(0)
@@ -240,10 +256,10 @@ def _npz(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chun
             opened = {}
             try:
                 for name, info in infos.items():
-                    if name in ("depth", "K", "segmap", "seg", "rgb", "xyz", "xyz_color"):
+                    if name in _SCENE_KEYS:
                         fh = zf.open(info)
                         opened[name] = Rows(path, fh, info.file_size, f"array {name!r}")
-                yield from _scene_dict(path, opened, opt, counts)
+                yield from _scene_dict(path, opened, opt, counts, sorted(infos))
             finally:
                 for rows in opened.values():
                     rows.fh.close()
@@ -253,24 +269,39 @@ def _npz(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chun
         raise InputError(f"{path}: not a readable .npz: {clip(str(exc))}", path=path) from None
 
 
+#: The keys of a Contact-GraspNet scene read from an ``.npz`` (or a pickled ``.npy`` dict).
+_SCENE_KEYS = ("depth", "K", "segmap", "seg", "rgb", "xyz", "xyz_color", "pc_full", "pc_colors")
+
+
 def _scene_dict(
-    path: Path, arrays: dict[str, Any], opt: CloudOptions, counts: dict[str, int]
+    path: Path,
+    arrays: dict[str, Any],
+    opt: CloudOptions,
+    counts: dict[str, int],
+    members: list[str] | None = None,
 ) -> Iterator[Chunk]:
-    """Contact-GraspNet's scene keys: ``depth`` + ``K`` (+ ``segmap``, ``rgb``) or ``xyz``."""
+    """Contact-GraspNet's scene keys: ``depth`` + ``K`` (+ ``segmap``, ``rgb``) or ``xyz``.
+
+    ``pc_full`` (+ ``pc_colors``, BGR) as its inference gives them is read like ``xyz``.
+    """
     if "depth" in arrays:
         seg = arrays.get("segmap", arrays.get("seg"))
         k = opt.intrinsics
         if k is None and "K" in arrays:
             kk = arrays["K"]
+            _real(path, kk, opt, "K")
             k = np.asarray(kk.read(kk.shape[0] if kk.shape else 1), dtype=np.float64)
         yield from _depth_chunks(path, arrays["depth"], k, seg, arrays.get("rgb"), opt, counts)
     elif "xyz" in arrays:
         yield from _array_chunks(path, arrays["xyz"], opt, counts, None, arrays.get("xyz_color"))
+    elif "pc_full" in arrays:
+        bgr = arrays.get("pc_colors")
+        yield from _array_chunks(path, arrays["pc_full"], opt, counts, None, bgr, bgr=True)
     else:
         raise InputError(
             f"{opt.where}: {path}: no cloud in it: Contact-GraspNet's scene keys are "
-            f"'depth' + 'K' (+ 'segmap', 'rgb') or 'xyz' (+ 'xyz_color'); it has "
-            f"{sorted(arrays)}",
+            f"'depth' + 'K' (+ 'segmap', 'rgb'), 'xyz' (+ 'xyz_color') or 'pc_full' "
+            f"(+ 'pc_colors'); it has {sorted(arrays) if members is None else members}",
             path=path,
         )
 
@@ -282,9 +313,11 @@ def _array_chunks(
     counts: dict[str, int],
     segments: Any,
     colors: Any,
+    bgr: bool = False,
 ) -> Iterator[Chunk]:
     """An (N, 3) array of points, or (H, W) depth."""
     shape = rows.shape
+    _real(path, rows, opt, "the points")
     if len(shape) == 2 and shape[1] != 3:
         yield from _depth_chunks(path, rows, opt.intrinsics, None, None, opt, counts)
         return
@@ -294,23 +327,52 @@ def _array_chunks(
             f"{tuple(shape)}",
             path=path,
         )
+    points_only(path, opt, f"(N, 3) points, shape {tuple(shape)}")
     if colors is not None and tuple(colors.shape) != (shape[0], 3):
         raise InputError(
-            f"{opt.where}: {path}: xyz_color must be (N, 3) like xyz, got {tuple(colors.shape)}",
+            f"{opt.where}: {path}: the colours must be (N, 3) like the points, got "
+            f"{tuple(colors.shape)}",
             path=path,
         )
     for a in range(0, shape[0], CLOUD_CHUNK):
         m = min(CLOUD_CHUNK, shape[0] - a)
         pts = np.asarray(rows.read(m), dtype=np.float64)
         counts["read"] += m
-        yield Chunk(pts, None, None if colors is None else as_colors(colors.read(m)))
+        cols = None if colors is None else np.asarray(colors.read(m))
+        if cols is not None and bgr:
+            cols = cols[:, ::-1]
+        yield Chunk(pts, None, None if cols is None else as_colors(cols))
 
 
-def _check_intrinsics(path: Path, k: np.ndarray | None, opt: CloudOptions) -> np.ndarray:
+def points_only(path: Path, opt: CloudOptions, what: str) -> None:
+    """Refuse a depth image's keys (``intrinsics``, ``segmap``) for a file of points."""
+    for key in ("intrinsics", "segmap"):
+        if getattr(opt, key) is not None:
+            raise InputError(
+                f"{opt.where}.{key}: applies to a depth image, and {path} holds {what}; drop {key}",
+                key=f"{opt.where}.{key}",
+                path=path,
+            )
+
+
+def _real(path: Path, rows: Any, opt: CloudOptions, what: str = "the array") -> None:
+    """Refuse an array that is not real numbers (complex, bool, strings, objects)."""
+    if np.dtype(rows.dtype).kind not in "iuf":
+        raise InputError(
+            f"{opt.where}: {path}: {what} has dtype {rows.dtype}: real numbers are needed",
+            path=path,
+            value=str(rows.dtype),
+        )
+
+
+def _check_intrinsics(
+    path: Path, k: np.ndarray | None, opt: CloudOptions, shape: tuple[int, ...]
+) -> np.ndarray:
     if k is None:
         raise InputError(
-            f"{opt.where}: {path}: a depth image needs intrinsics: give {opt.where}.intrinsics "
-            "[[fx, 0, cx], [0, fy, cy], [0, 0, 1]] or a 'K' array in the .npz",
+            f"{opt.where}: {path}: a depth image {tuple(shape)} needs intrinsics: give "
+            f"{opt.where}.intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] or a 'K' array in "
+            "the .npz (points are (N, 3))",
             path=path,
         )
     k = np.asarray(k, dtype=np.float64)
@@ -340,13 +402,13 @@ def _depth_chunks(
     counts: dict[str, int],
 ) -> Iterator[Chunk]:
     """Depth rows, block by block, as camera-frame points (``depth2pc``)."""
-    kk = _check_intrinsics(path, k, opt)
     if len(depth.shape) != 2:
         raise InputError(
             f"{opt.where}: {path}: depth must be (H, W), got shape {tuple(depth.shape)}", path=path
         )
+    kk = _check_intrinsics(path, k, opt, depth.shape)
     h, w = depth.shape
-    if seg is None and opt.segmap is not None:
+    if opt.segmap is not None:  # the config's segmap overrides the file's (as intrinsics K)
         seg = MemRows(_read_segmap(opt))
     if seg is not None and tuple(seg.shape) != (h, w):
         raise InputError(
@@ -355,10 +417,18 @@ def _depth_chunks(
             path=path,
             value=list(seg.shape),
         )
-    if rgb is not None and tuple(rgb.shape[:2]) != (h, w):
+    _real(path, depth, opt, "the depth image")
+    if np.dtype(depth.dtype).kind in "iu" and opt.depth_scale == 1.0:
         raise InputError(
-            f"{opt.where}: {path}: rgb is {tuple(rgb.shape)}, the depth image ({h}, {w}); "
-            "they must be the same size",
+            f"{opt.where}.depth_scale: {path}: an integer ({depth.dtype}) depth image is in "
+            "sensor units, not metres: give depth_scale (0.001 for millimetres)",
+            key=f"{opt.where}.depth_scale",
+            path=path,
+        )
+    if rgb is not None and (tuple(rgb.shape[:2]) != (h, w) or tuple(rgb.shape[2:]) not in _RGB):
+        raise InputError(
+            f"{opt.where}: {path}: rgb is {tuple(rgb.shape)}; it must be ({h}, {w}, 3) like "
+            f"the depth image ({h}, {w})",
             path=path,
         )
     u = np.arange(w, dtype=np.float64)
@@ -366,7 +436,7 @@ def _depth_chunks(
     for a in range(0, h, block):
         m = min(block, h - a)
         z = np.asarray(depth.read(m), dtype=np.float64) * opt.depth_scale
-        segs = None if seg is None else np.asarray(seg.read(m)).astype(np.int64)
+        segs = None if seg is None else segment_ids(np.asarray(seg.read(m)), path, opt)
         cols = None if rgb is None else np.asarray(rgb.read(m))[..., 2::-1]  # BGR -> RGB
         counts["read"] += z.size
         valid = ~(z <= 0)  # NaN stays (dropped and counted as non-finite)
@@ -384,6 +454,34 @@ def _depth_chunks(
         )
 
 
+#: The channels of an ``rgb`` image (BGR, or BGRA).
+_RGB = ((3,), (4,))
+
+
+def segment_ids(seg: np.ndarray, path: Path, opt: CloudOptions) -> np.ndarray:
+    """Segment ids (int64) of a block of a segmentation: whole numbers only."""
+    if seg.dtype.kind == "f":
+        bad = ~np.isfinite(seg) | (seg != np.round(seg)) | (np.abs(seg) > 2.0**53)
+    elif seg.dtype.kind == "u" and seg.dtype.itemsize == 8:
+        bad = seg > np.iinfo(np.int64).max
+    elif seg.dtype.kind in "iub":
+        return seg.astype(np.int64)
+    else:
+        raise InputError(
+            f"{opt.where}: {path}: the segmentation has dtype {seg.dtype}; segment ids are "
+            "whole numbers",
+            path=path,
+        )
+    if np.any(bad):
+        raise InputError(
+            f"{opt.where}: {path}: the segmentation holds {seg[bad].flat[0].item()}; segment ids "
+            "are whole numbers",
+            path=path,
+            value=seg[bad].flat[0].item(),
+        )
+    return seg.astype(np.int64)
+
+
 def _read_segmap(opt: CloudOptions) -> np.ndarray:
     assert opt.segmap is not None
     path = Path(opt.segmap)
@@ -396,6 +494,6 @@ def _read_segmap(opt: CloudOptions) -> np.ndarray:
             arr = np.lib.format.read_array(fh, allow_pickle=False)
     except OSError as exc:
         raise InputError(f"{opt.where}.segmap: {path}: {exc}", path=path) from None
-    if not np.issubdtype(dtype, np.integer) and not np.issubdtype(dtype, np.floating):
+    if dtype.kind not in "iufb":
         raise InputError(f"{opt.where}.segmap: {path}: dtype {dtype} is not a number", path=path)
     return np.asarray(arr)

@@ -98,8 +98,9 @@ class MemRows:
         self.arr, self.shape, self.dtype, self.at = arr, arr.shape, arr.dtype, 0
 
     def read(self, rows: int) -> np.ndarray:
-        """The next ``rows`` rows."""
-        out = self.arr[self.at : self.at + rows]
+        """The next ``rows`` rows (a 0-d array: its one value)."""
+        out = self.arr.reshape(-1)[self.at : self.at + rows] if self.arr.ndim == 0 else None
+        out = self.arr[self.at : self.at + rows] if out is None else out
         self.at += rows
         return out
 
@@ -202,21 +203,7 @@ def pcd_chunks(path: Path, where: str, counts: dict[str, int]) -> Iterator[Chunk
         if data not in ("ascii", "binary") or "FIELDS" not in head:
             raise InputError(f"{where}: {path}: not a PCD file (no FIELDS/DATA header)")
         fields = head["FIELDS"]
-        try:
-            sizes = [int(s) for s in head.get("SIZE", ["4"] * len(fields))]
-            types = head.get("TYPE", ["F"] * len(fields))
-            counts_ = [int(c) for c in head.get("COUNT", ["1"] * len(fields))]
-            n = int(head.get("POINTS", head.get("WIDTH", ["0"]))[0])
-            dtype = np.dtype(
-                [
-                    (f"{f}_{i}" if f == "_" else f, _PCD_TYPES[(t.upper(), s)], (c,))
-                    for i, (f, s, t, c) in enumerate(
-                        zip(fields, sizes, types, counts_, strict=True)
-                    )
-                ]
-            )
-        except (KeyError, ValueError, TypeError) as exc:
-            raise InputError(f"{where}: {path}: bad PCD header: {clip(str(exc))}") from None
+        dtype, n = _pcd_dtype(head, fields, path, where)
         if not {"x", "y", "z"} <= set(fields):
             raise InputError(f"{where}: {path}: PCD fields {fields} lack x, y, z", path=path)
         has_rgb = "rgb" in fields or "rgba" in fields
@@ -248,6 +235,43 @@ def pcd_chunks(path: Path, where: str, counts: dict[str, int]) -> Iterator[Chunk
                 col += c
             counts["read"] += len(rec)
             yield pcd_chunk(rec, has_rgb)
+
+
+def _pcd_dtype(
+    head: dict[str, list[str]], fields: list[str], path: Path, where: str
+) -> tuple[np.dtype[Any], int]:
+    """The record dtype and the point count a PCD header gives."""
+    rows = {
+        "SIZE": head.get("SIZE", ["4"] * len(fields)),
+        "TYPE": head.get("TYPE", ["F"] * len(fields)),
+        "COUNT": head.get("COUNT", ["1"] * len(fields)),
+    }
+    for key, vals in rows.items():
+        if len(vals) != len(fields):
+            raise InputError(
+                f"{where}: {path}: bad PCD header: {key} has {len(vals)} entries, FIELDS "
+                f"{len(fields)} ({' '.join(fields)})",
+                path=path,
+            )
+    try:
+        sizes = [int(v) for v in rows["SIZE"]]
+        counts = [int(v) for v in rows["COUNT"]]
+        n = int(head.get("POINTS", head.get("WIDTH", ["0"]))[0])
+    except ValueError as exc:
+        raise InputError(f"{where}: {path}: bad PCD header: {clip(str(exc))}") from None
+    cols = []
+    for i, (f, size, t, c) in enumerate(zip(fields, sizes, rows["TYPE"], counts, strict=True)):
+        if (t.upper(), size) not in _PCD_TYPES or c < 1:
+            raise InputError(
+                f"{where}: {path}: bad PCD header: field {f!r} has TYPE {t}, SIZE {size}, "
+                f"COUNT {c}; types F 4/8, I and U 1/2/4/8, COUNT >= 1",
+                path=path,
+            )
+        cols.append((f"{f}_{i}" if f == "_" else f, _PCD_TYPES[(t.upper(), size)], (c,)))
+    try:
+        return np.dtype(cols), n
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{where}: {path}: bad PCD header: {clip(str(exc))}") from None
 
 
 def pcd_chunk(rec: np.ndarray, has_rgb: bool) -> Chunk:

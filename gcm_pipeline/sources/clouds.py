@@ -44,7 +44,7 @@ import numpy as np
 from gcm_pipeline.bounds import CLOUD_CHUNK, MAX_CLOUD_FILE_BYTES
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.geometry.clouds import PointCloud, VoxelGrid
-from gcm_pipeline.rundir.arrays import npy_header, open_regular
+from gcm_pipeline.rundir.arrays import ZIP_ERRORS, npy_header, open_regular
 from gcm_pipeline.sources.files.cloud_formats import (
     Chunk,
     MemRows,
@@ -265,8 +265,9 @@ def _npz(path: Path, opt: CloudOptions, counts: dict[str, int]) -> Iterator[Chun
                     rows.fh.close()
     except InputError:
         raise
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable .npz: {clip(str(exc))}", path=path) from None
+    except ZIP_ERRORS as exc:
+        why = clip(str(exc) or type(exc).__name__)
+        raise InputError(f"{path}: not a readable .npz: {why}", path=path) from None
 
 
 #: The keys of a Contact-GraspNet scene read from an ``.npz`` (or a pickled ``.npy`` dict).

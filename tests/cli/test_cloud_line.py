@@ -37,3 +37,23 @@ def test_non_finite_depth_is_dropped_and_counted(cli, tmp_path):
     assert status == 0, out
     line = next(ln for ln in out.splitlines() if ln.lstrip().startswith("cloud "))
     assert "3,205 not finite (dropped)" in line, line
+
+
+def test_a_cloud_npz_with_a_member_name_cut_at_a_nul_byte_is_one_line(cli, tmp_path):
+    """zipfile cuts a member name at a NUL byte; cut to nothing, it raised IndexError."""
+    from io import BytesIO
+
+    from helpers import assert_one_line_error
+
+    buf = BytesIO()
+    np.savez(buf, xyz=np.random.default_rng(0).uniform(0.3, 0.6, (100, 3)))
+    data = bytearray(buf.getvalue())
+    data[data.find(b"PK\x01\x02") + 46] = 0  # the first byte of the first member's name
+    (tmp_path / "cloud.npz").write_bytes(bytes(data))
+    status, _, err = cli(
+        "run", CLUTTER, "--out", tmp_path / "run", *QUIET,
+        "--set", f"environment.point_clouds=[{{path: {tmp_path / 'cloud.npz'}, frame: world}}]",
+    )  # fmt: skip
+    assert_one_line_error(status, err)
+    assert "cloud.npz" in err
+    assert not (tmp_path / "run").exists()

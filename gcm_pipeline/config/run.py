@@ -199,20 +199,43 @@ def _set_override(data: dict[str, Any], assignment: str) -> None:
             f"--set {clip(assignment)}: empty key part in {clip(key)}", key=key, value=assignment
         )
     value = load_yaml(raw, f"--set {key.strip()[:200]}", ConfigError, plain_on_syntax_error=True)
-    node = data
-    for part in parts[:-1]:
-        nxt = node.get(part)
-        if nxt is None:
-            nxt = {}
-            node[part] = nxt
-        if not isinstance(nxt, dict):
+    node: Any = data
+    for depth, part in enumerate(parts[:-1]):
+        if isinstance(node, list):  # an entry of a list: environment.point_clouds.0.voxel_size
+            nxt = node[_list_index(node, parts, depth, assignment)]
+        else:
+            nxt = node.get(part)
+            if nxt is None:
+                nxt = {}
+                node[part] = nxt
+        if not isinstance(nxt, (dict, list)):
             raise ConfigError(
                 f"--set {clip(assignment)}: {clip(part)} is not a section",
                 key=key.strip(),
                 value=assignment,
             )
         node = nxt
-    node[parts[-1]] = value
+    if isinstance(node, list):
+        node[_list_index(node, parts, len(parts) - 1, assignment)] = value
+    else:
+        node[parts[-1]] = value
+
+
+def _list_index(entries: list[Any], parts: list[str], at: int, assignment: str) -> int:
+    """The list index ``parts[at]`` of ``--set``, checked against the list's length."""
+    part, listed = parts[at], ".".join(parts[:at])
+    if part.isascii() and part.isdigit() and int(part) < len(entries):
+        return int(part)
+    n = len(entries)
+    how = (
+        f"is a list of {n} entr{'y' if n == 1 else 'ies'}; give an index from 0 to {n - 1} "
+        f"after it, got {clip(part)}"
+        if n
+        else "is an empty list; set the whole list instead, e.g. --set KEY=[{...}]"
+    )
+    raise ConfigError(
+        f"--set {clip(assignment)}: {clip(listed)} {how}", key=".".join(parts), value=assignment
+    )
 
 
 def read_yaml(path: Path) -> Any:

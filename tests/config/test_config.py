@@ -180,6 +180,26 @@ def test_overrides_apply_to_any_key():
     assert cfg.approach is not None and cfg.approach.distance == 0.05
 
 
+def test_overrides_reach_an_entry_of_a_list():
+    """``--set environment.point_clouds.0.voxel_size=0.02``: a list entry by its index."""
+    clutter = ROOT / "configs" / "clutter_scene.yaml"
+    cfg = load_config(clutter, ["environment.point_clouds.0.voxel_size=0.02"])
+    assert cfg.environment.point_clouds[0].voxel_size == 0.02
+    assert cfg.environment.point_clouds[0].exclude_segments == (1,)  # the rest kept
+    cfg = load_config(clutter, ["environment.point_clouds.0={path: x.npy, frame: world}"])
+    assert cfg.environment.point_clouds[0].frame == "world"
+    for bad, said in [
+        ("environment.point_clouds.1.voxel_size=0.02", "a list of 1 entry; give an index from 0"),
+        ("environment.point_clouds.x=0.02", "got 'x'"),
+        ("environment.point_clouds.-1.name=a", "got '-1'"),
+    ]:
+        with pytest.raises(ConfigError, match="environment.point_clouds' is a list") as info:
+            load_config(clutter, [bad])
+        assert said in str(info.value)
+    with pytest.raises(ConfigError, match="is an empty list; set the whole list"):
+        load_config(clutter, ["environment.point_clouds=[]", "environment.point_clouds.0.name=a"])
+
+
 @pytest.mark.parametrize(
     ("override", "expected"),
     [

@@ -51,6 +51,30 @@ def common_options(debug_help: bool = True) -> Parser:
     return p
 
 
+#: Why points of a cloud were not kept, as ``gcm run`` and ``gcm show`` name them.
+_CLOUD_DROPS = {
+    "non_finite": "not finite (dropped)",
+    "no_depth": "no depth",
+    "beyond_max_depth": "beyond max_depth",
+    "outside_crop": "outside the crop",
+    "excluded_segments": "in excluded segments",
+    "excluded_object": "near the object",
+}
+
+
+def cloud_line(name: str, voxel_size: float, counts: dict[str, Any]) -> str:
+    """``name: K of N points kept -> V voxels of S cm (why the others were not)``."""
+    why = ", ".join(
+        f"{counts[k]:,} {what}"
+        for k, what in _CLOUD_DROPS.items()
+        if isinstance(counts.get(k), int) and counts[k]
+    )
+    return (
+        f"{name}: {counts['kept']:,} of {counts['read']:,} points kept -> "
+        f"{counts['voxels']:,} voxels of {100 * voxel_size:g} cm" + (f" ({why})" if why else "")
+    )
+
+
 def _fmt(v: Any, width: int = 9) -> str:
     if isinstance(v, float):
         return f"{v:{width}.4f}" if abs(v) < 1e4 else f"{v:{width}.3g}"

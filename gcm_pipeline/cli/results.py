@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from gcm_pipeline.cli.common import format_top, show_in_viewer
+from gcm_pipeline.cli.common import cloud_line, format_top, show_in_viewer
 from gcm_pipeline.errors import GcmError
 
 
@@ -100,6 +100,25 @@ def _fmt_count(v: Any) -> str:
     return str(v)
 
 
+def _summary_clouds(summary: dict[str, Any]) -> list[tuple[str, float, dict[str, int]]]:
+    """The point clouds ``summary.json`` records, as ``(name, voxel size, counts)``.
+
+    Entries that are not what a run writes (a hand-edited summary) are left out:
+    ``gcm show`` reports what it can read.
+    """
+    out = []
+    for entry in summary.get("point_clouds") or []:
+        if not isinstance(entry, dict):
+            continue
+        name, size, counts = entry.get("name"), entry.get("voxel_size"), entry.get("counts")
+        whole = isinstance(counts, dict) and all(
+            isinstance(counts.get(k), int) for k in ("read", "kept", "voxels")
+        )
+        if isinstance(name, str) and isinstance(size, (int, float)) and whole:
+            out.append((name, float(size), counts))
+    return out
+
+
 def _cmd_show(args: argparse.Namespace) -> int:
     from gcm_pipeline.pipeline import top_grasps
     from gcm_pipeline.rundir.run import read_run
@@ -112,6 +131,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
     print(f"run {run.run_dir}")
     if counts:
         print("  " + ", ".join(f"{k} {_fmt_count(v)}" for k, v in counts.items()))
+    for cloud in _summary_clouds(run.summary):
+        print(f"  cloud {cloud_line(*cloud)}")
     if args.top == 0:
         return 0
     top = top_grasps(run.grasps, args.top, metric)

@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-from gcm_pipeline.cli.common import format_top, log, show_in_viewer
+from gcm_pipeline.cli.common import cloud_line, format_top, log, show_in_viewer
 from gcm_pipeline.errors import GcmError
 
 
@@ -70,27 +70,6 @@ def _target_override(args: argparse.Namespace) -> None:
     """Fold ``--target`` into the overrides (the viewer command repeats them)."""
     if args.target is not None:
         args.overrides = [*args.overrides, f"target={args.target}"]
-
-
-#: Why points of a cloud were not kept, as ``gcm run`` names them.
-_CLOUD_DROPS = {
-    "non_finite": "not finite (dropped)",
-    "no_depth": "no depth",
-    "beyond_max_depth": "beyond max_depth",
-    "outside_crop": "outside the crop",
-    "excluded_segments": "in excluded segments",
-    "excluded_object": "near the object",
-}
-
-
-def _cloud_line(cloud: Any) -> str:
-    """``name: K of N points kept -> V voxels of S cm (why the others were not)``."""
-    c = cloud.counts
-    why = ", ".join(f"{c[k]:,} {what}" for k, what in _CLOUD_DROPS.items() if c.get(k))
-    return (
-        f"{cloud.name}: {c['kept']:,} of {c['read']:,} points kept -> {c['voxels']:,} voxels "
-        f"of {100 * cloud.voxel_size:g} cm" + (f" ({why})" if why else "")
-    )
 
 
 def _selection_note(selection: dict[str, Any] | None) -> str:
@@ -178,7 +157,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             xy = ", ".join(f"{v:g}" for v in result.config.candidates.placement.xy)
             print(f"  object        {Path(placed.mesh).name} (named by the file) at [{xy}]")
         for cloud in result.clouds:
-            print(f"  cloud         {_cloud_line(cloud)}")
+            print(f"  cloud         {cloud_line(cloud.name, cloud.voxel_size, cloud.counts)}")
         print(f"  triangles     {_triangles_line(c)}")
         print(f"  densified     {c['densified']} ({c['interpolated']} interpolated)")
         share = 100 * c["reachable"] / n

@@ -57,3 +57,18 @@ def test_a_cloud_npz_with_a_member_name_cut_at_a_nul_byte_is_one_line(cli, tmp_p
     assert_one_line_error(status, err)
     assert "cloud.npz" in err
     assert not (tmp_path / "run").exists()
+
+
+def test_gcm_show_prints_the_runs_clouds_and_skips_a_damaged_entry(cli, tmp_path):
+    import json
+
+    run = tmp_path / "run"
+    assert cli("run", CLUTTER, "--out", run, *QUIET)[0] == 0
+    status, out, _ = cli("show", run, "--top", "0")
+    assert status == 0
+    assert "  cloud clutter: 12,511 of 76,800 points kept -> 973 voxels of 1 cm" in out
+    summary = json.loads((run / "summary.json").read_text())
+    summary["point_clouds"] = [7, {"name": "x", "voxel_size": "big", "counts": {}}]
+    (run / "summary.json").write_text(json.dumps(summary))
+    status, out, err = cli("show", run, "--top", "0")
+    assert status == 0 and "cloud" not in out and not err

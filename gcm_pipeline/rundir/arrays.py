@@ -53,6 +53,7 @@ __all__ = [
     "ZIP_ERRORS",
     "manifold_vertex_rows",
     "npy_header",
+    "npy_layout",
     "open_regular",
     "read_manifold",
     "read_npz",
@@ -73,6 +74,17 @@ def npy_header(
 ) -> tuple[tuple[int, ...], np.dtype[Any]]:
     """Shape and dtype of the .npy array at ``fh``; refuses a header that promises too much.
 
+    :func:`npy_layout` with the storage order left out.
+    """
+    shape, _, dtype = npy_layout(path, fh, what, available)
+    return shape, dtype
+
+
+def npy_layout(
+    path: Path, fh: Any, what: str, available: int
+) -> tuple[tuple[int, ...], bool, np.dtype[Any]]:
+    """Shape, Fortran order and dtype of the .npy array at ``fh`` (see below).
+
     Nothing is allocated: a header that claims 10^10 poses in a 1 kB file
     is an error here, not a MemoryError later.
 
@@ -89,9 +101,9 @@ def npy_header(
     try:
         version = np.lib.format.read_magic(fh)
         if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(fh, _MAX_NPY_HEADER)
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh, _MAX_NPY_HEADER)
         else:
-            shape, _, dtype = np.lib.format.read_array_header_2_0(fh, _MAX_NPY_HEADER)
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh, _MAX_NPY_HEADER)
     except Exception as exc:  # the header is parsed as Python literals: anything can go wrong
         raise InputError(
             f"{path}: {what} is not a .npy array: {clip(str(exc))}", path=path
@@ -107,7 +119,7 @@ def npy_header(
             f"({need:,} bytes) but there are {available:,}",
             path=path,
         )
-    return tuple(int(k) for k in shape), dtype
+    return tuple(int(k) for k in shape), bool(fortran), dtype
 
 
 def open_regular(path: str | Path) -> Any:

@@ -19,7 +19,7 @@ from PIL import Image
 
 from gcm_pipeline.bounds import CLOUD_CHUNK, MAX_CLOUD_FILE_BYTES
 from gcm_pipeline.errors import InputError, clip
-from gcm_pipeline.rundir.arrays import open_regular
+from gcm_pipeline.rundir.arrays import npy_layout, open_regular
 
 __all__ = [
     "MAX_PNG_PIXELS",
@@ -61,26 +61,13 @@ class Rows:
 
     def __init__(self, path: Path, fh: Any, available: int, what: str) -> None:
         self.path, self.fh, self.what = path, fh, what
-        version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
-        else:
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
-        if dtype.hasobject:
-            raise InputError(f"{path}: {what} holds Python objects; plain arrays only", path=path)
+        shape, fortran, dtype = npy_layout(path, fh, what, available)  # size checked there
         if fortran and len(shape) > 1:
             raise InputError(f"{path}: {what} is stored in Fortran order; save it in C order")
         if not np.issubdtype(dtype, np.number):
             raise InputError(f"{path}: {what} has dtype {dtype}; numbers are needed", path=path)
-        self.shape, self.dtype = tuple(int(k) for k in shape), dtype
+        self.shape, self.dtype = shape, dtype
         self.row_items = int(np.prod(self.shape[1:], dtype=np.int64)) if len(shape) > 1 else 1
-        need = int(np.prod(self.shape, dtype=np.int64)) * dtype.itemsize + fh.tell()
-        if need > available:
-            raise InputError(
-                f"{path}: {what} is truncated: its header says shape {self.shape} "
-                f"({need:,} bytes) but there are {available:,}",
-                path=path,
-            )
 
     def read(self, rows: int) -> np.ndarray:
         """The next ``rows`` rows."""

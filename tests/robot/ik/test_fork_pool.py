@@ -7,11 +7,25 @@ import signal
 import time
 
 
+def _terminates(pool, timeout: float = 30.0) -> bool:
+    """Whether ``pool.terminate(); pool.join()`` returns within ``timeout`` seconds."""
+    import threading
+
+    done = threading.Event()
+
+    def stop() -> None:
+        pool.terminate()
+        pool.join()
+        done.set()
+
+    threading.Thread(target=stop, daemon=True).start()
+    return done.wait(timeout=timeout)
+
+
 def test_worker_pool_terminates_after_a_worker_died_waiting_for_work():
     """An idle worker waits for a task holding the task queue's lock; killed then (a
     SIGTERM to the process group), it never releases it. The engine's pool still
     terminates (the standard one waits for that lock for ever)."""
-    import threading
 
     from gcm_pipeline.robot.ik.pool import ForkPool
 
@@ -21,15 +35,7 @@ def test_worker_pool_terminates_after_a_worker_died_waiting_for_work():
     time.sleep(0.2)
     os.kill(worker.pid, signal.SIGKILL)
     worker.join(timeout=10)
-    done = threading.Event()
-
-    def stop() -> None:
-        pool.terminate()
-        pool.join()
-        done.set()
-
-    threading.Thread(target=stop, daemon=True).start()
-    assert done.wait(timeout=30), "terminate() hung on the dead worker's lock"
+    assert _terminates(pool), "terminate() hung on the dead worker's lock"
 
 
 def _die_while_sending(_: int) -> None:
@@ -48,7 +54,6 @@ def test_worker_pool_terminates_after_a_worker_died_sending_its_result():
     """A worker killed while it sends its result (the out-of-memory killer, a SIGKILL)
     holds the result queue's write lock and leaves half a message: the run reports the
     lost worker, and the pool still terminates (the standard one waits for ever)."""
-    import threading
 
     import pytest
 
@@ -59,13 +64,5 @@ def test_worker_pool_terminates_after_a_worker_died_sending_its_result():
     with pytest.raises(WorkerLostError, match="killed by SIGKILL"):
         list(pool.ordered(_die_while_sending, [0]))
     workers = list(pool._pool)
-    done = threading.Event()
-
-    def stop() -> None:
-        pool.terminate()
-        pool.join()
-        done.set()
-
-    threading.Thread(target=stop, daemon=True).start()
-    assert done.wait(timeout=30), "terminate() hung on the dead worker's half-sent result"
+    assert _terminates(pool), "terminate() hung on the dead worker's half-sent result"
     assert all(p.exitcode is not None for p in workers)  # no worker left behind

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from browser import chromium
 from helpers import assert_one_line_error, run_gcm
-from test_browser import chromium
 from test_export import make_run
 
 _SIZE = (1024, 768)

@@ -141,13 +141,33 @@ def _cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_base_pose(summary: dict[str, Any]) -> Any:
+    """The robot base (4, 4) of a run's resolved config, or None if it has none."""
+    from pydantic import ValidationError
+
+    from gcm_pipeline.config.sections import Pose
+
+    pose = summary.get("config", {}).get("robot", {}).get("base_pose")
+    if not isinstance(pose, dict):
+        return None
+    try:
+        return Pose(**pose).matrix()
+    except (ValidationError, TypeError, ValueError):
+        return None
+
+
 def _cmd_plot(args: argparse.Namespace) -> int:
     from gcm_pipeline.outputs.plots import write_plots
     from gcm_pipeline.rundir.run import read_run
 
     run = read_run(args.run_dir)
     counts = {k: v for k, v in run.summary.get("counts", {}).items() if isinstance(v, int)}
-    paths = write_plots(run.grasps, run.manifold, counts, run.run_dir)
+    top = run.summary.get("ranking", {}).get("top")
+    if isinstance(top, list):
+        counts.setdefault("top", len(top))
+    paths = write_plots(
+        run.grasps, run.manifold, counts, run.run_dir, base_pose=_run_base_pose(run.summary)
+    )
     for p in paths:
         print(p)
     return 0

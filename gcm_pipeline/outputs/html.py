@@ -225,5 +225,6 @@ def publish(
         write_scene_html(path, grasps, manifold, robot, options.scene)
         written.append(path)
     if options.plots:
-        written += write_plots(grasps, manifold, counts or stage_counts(grasps, manifold), out)
+        counts = counts or stage_counts(grasps, manifold)
+        written += write_plots(grasps, manifold, counts, out, base_pose=options.scene.base_pose)
     return written

@@ -1,5 +1,12 @@
 """PNG plots of a run: the manifold chart, coverage, the manipulability histogram, counts.
 
+Each plot has a function returning its figure (``manifold_figure``,
+``patches_figure``, ``levels_figure``, ``hist_figure``, ``counts_figure``) and
+:func:`write_plots` saves them. ``counts.png`` shows the stages in pipeline
+order on a linear scale with the unreachable grasps stacked by reason; the
+chart plots are fitted to their data and mark the robot side
+(:func:`robot_side`) when given the robot's base pose.
+
 Figures are drawn with matplotlib's object API on the Agg canvas (no pyplot,
 no global backend switch), so plotting works headless and from threads.
 """
@@ -8,6 +15,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,14 +30,25 @@ __all__ = [
     "COVERAGE_FILE",
     "PLOT_FILES",
     "REASON_COLORS",
+    "RobotSide",
+    "StageBar",
+    "candidate_coverage",
     "candidate_rows",
     "chart_axis_labels",
     "chart_period",
-    "candidate_coverage",
     "chart_points",
     "colormap",
+    "counts_figure",
+    "hist_figure",
+    "levels_figure",
+    "manifold_figure",
+    "patch_sizes",
+    "patches_figure",
     "plot_coverage",
     "reason_palette",
+    "robot_side",
+    "stage_bars",
+    "unreachable_reasons",
     "write_plots",
 ]
 
@@ -89,6 +108,7 @@ _AXIS_NAMES = {
     "spherical": ("stereographic u", "stereographic v"),
 }
 _PATCH_LABELS = 8  # patches named in the legend (the largest; ids are by size)
+_MANIP_LABEL = "manipulability: Yoshikawa index √det(J Jᵀ)"
 _RINGS = 300  # candidates ringed in the world view up to this many
 _COUNT_ORDER = ("candidates", "triangles", "triangles_dropped", "densified", "reachable")
 
@@ -203,23 +223,158 @@ def chart_points(grasps: GraspTable, manifold: Any, period: float | None = None)
     return out
 
 
-def _chart_figure(grasps: GraspTable, manifold: Any) -> tuple[Any, Any, np.ndarray, str]:
+@dataclass(frozen=True)
+class RobotSide:
+    """Where the robot base lies as seen in a manifold's 2-D chart (:func:`robot_side`).
+
+    Attributes:
+        kind: ``u`` (cylindrical: ``value`` the chart u [m] of the side facing
+            the base, drawn as a vertical line), ``ray`` (spherical: ``value``
+            the unit direction from the chart origin along which the grasps
+            face the base; the stereographic chart keeps the azimuth) or
+            ``point`` (``xy`` / ``pca``: ``value`` the base position in the
+            chart plane [m]).
+        value: ``()`` for ``u``, ``(2,)`` otherwise.
+    """
+
+    kind: str
+    value: np.ndarray
+
+
+def robot_side(manifold: Any, base_pose: Any) -> RobotSide | None:
+    """The robot base's side in the manifold's chart, or None where it has none.
+
+    The chart frame (``manifold.frame``, (4, 4), the object frame for the
+    cylindrical and spherical charts) gives the direction ``d`` from its origin
+    to the base's position in chart axes. Cylindrical: ``u = R atan2(d_y, d_x)``
+    with ``R = period / (2 pi)`` (in ``[-period / 2, period / 2)`` like the
+    chart); spherical: the unit ``(d_x, d_y)``; ``xy`` and ``pca``: ``(d_x, d_y)``.
+    None without a base pose or a frame (the ``xy`` chart's frame is the
+    world's), for a base on the axis or above the centre, and for other
+    projections and the ``families`` structure.
+
+    Args:
+        manifold: Object with ``projection``, ``frame`` and ``period``.
+        base_pose: The robot base in the world (4, 4) [m], or None.
+    """
+    projection = getattr(manifold, "projection", None)
+    frame = getattr(manifold, "frame", None)
+    if base_pose is None or getattr(manifold, "structure", "chart") != "chart":
+        return None
+    if frame is None and projection == "xy":
+        frame = np.eye(4)
+    if frame is None or projection not in ("cylindrical", "spherical", "xy", "pca"):
+        return None
+    frame = np.asarray(frame, dtype=float)
+    d = (np.asarray(base_pose, dtype=float)[:3, 3] - frame[:3, 3]) @ frame[:3, :3]
+    if projection in ("xy", "pca"):
+        return RobotSide("point", d[:2].copy())
+    flat = float(np.hypot(d[0], d[1]))
+    if flat < 1e-9 * max(float(np.linalg.norm(d)), 1e-300) or flat == 0.0:
+        return None
+    if projection == "spherical":
+        return RobotSide("ray", d[:2] / flat)
+    period = getattr(manifold, "period", None)
+    if period is None:
+        return None
+    theta = float(np.arctan2(d[1], d[0]))
+    theta = theta - 2 * np.pi if theta >= np.pi else theta
+    return RobotSide("u", np.asarray(float(period) * theta / (2 * np.pi)))
+
+
+_ROBOT_SIDE_COLOR = "0.15"
+
+
+def _mark_robot_side(ax: Any, side: RobotSide, period: float | None) -> None:
+    """Draw ``side`` on chart axes whose limits are set (module :func:`robot_side`)."""
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    style = {"color": _ROBOT_SIDE_COLOR, "linestyle": "--", "linewidth": 1.2, "zorder": 5}
+    text = {"color": _ROBOT_SIDE_COLOR, "fontsize": "small", "zorder": 6}
+    if side.kind == "u":
+        u = float(side.value)
+        copies = [u] if not period else u + period * np.arange(-2, 3)
+        label = "robot side (facing the base)"
+        for x in (c for c in copies if x0 <= c <= x1):
+            ax.axvline(x, label=label, **style)
+            ax.text(x, 1.01, "robot side", transform=ax.get_xaxis_transform(), ha="center", **text)
+            label = None
+        return
+    centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
+    half = np.array([0.5 * (x1 - x0), 0.5 * (y1 - y0)])
+    if side.kind == "ray":
+        start, direction = np.zeros(2), np.asarray(side.value, dtype=float)
+    else:
+        point = np.asarray(side.value, dtype=float)
+        if np.all(np.abs(point - centre) <= half):  # inside the limits: mark the base itself
+            ax.plot(
+                *point, marker="s", color=_ROBOT_SIDE_COLOR, ls="", label="robot base", zorder=6
+            )
+            return
+        start, direction = centre, point - centre
+        direction = direction / np.linalg.norm(direction)
+    # where the ray leaves the axes (inset a little), from ``start``
+    with np.errstate(divide="ignore"):
+        reach = (
+            np.where(direction > 0, (centre + half - start), (centre - half - start)) / direction
+        )
+    end = start + 0.96 * float(np.min(np.where(np.isfinite(reach), reach, np.inf))) * direction
+    if side.kind == "ray":
+        ax.plot(*np.column_stack((start, end)), label="robot side (facing the base)", **style)
+        ax.text(*end, "robot side", ha="right" if direction[0] > 0 else "left", **text)
+    else:
+        tail = end - 0.18 * np.min(2 * half) * direction
+        ax.annotate(
+            "robot base",
+            xy=end,
+            xytext=tail,
+            ha="center",
+            arrowprops={"arrowstyle": "->", "color": _ROBOT_SIDE_COLOR},
+            **text,
+        )
+
+
+def _fit_limits(ax: Any, xy: np.ndarray, margin: float = 0.04) -> bool:
+    """Fit the axes' limits to the points (a small margin); equal aspect when it reads.
+
+    Returns:
+        True when the axes are to scale (equal aspect: both chart axes share a
+        unit and the data are at most 3 times longer one way than the other);
+        False when they are stretched to fill the plot.
+    """
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    if not len(xy):
+        return True
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    span = hi - lo
+    span = np.where(span > 0, span, max(float(span.max()), 1e-3))
+    ax.set_xlim(lo[0] - margin * span[0], hi[0] + margin * span[0])
+    ax.set_ylim(lo[1] - margin * span[1], hi[1] + margin * span[1])
+    ratio = float(span[1] / span[0])
+    if 1.0 / 3.0 <= ratio <= 3.0:
+        ax.set_aspect("equal", adjustable="box")
+        return True
+    ax.set_aspect("auto")
+    return False
+
+
+def _chart_figure(grasps: GraspTable, manifold: Any) -> tuple[Any, Any, np.ndarray, np.ndarray]:
     """A figure with the manifold's triangles drawn in its chart.
 
     Returns:
-        ``(fig, ax, pts, projection)``: ``pts`` (N, 2) the chart coordinates of
-        every row (NaN where a row cannot be placed).
+        ``(fig, ax, pts, corners)``: ``pts`` (N, 2) the chart coordinates of
+        every row (NaN where a row cannot be placed), ``corners`` (T, 3, 2) the
+        triangles' corners (unwrapped across a periodic seam).
     """
     fig = _figure((7.0, 6.0))
     ax = fig.add_subplot()
-    projection = str(getattr(manifold, "projection", "") or "")
     chart = np.asarray(getattr(manifold, "chart", np.empty((0, 2))), dtype=float)
     tris = np.asarray(getattr(manifold, "triangles", np.empty((0, 3))), dtype=np.int64)
     period = chart_period(grasps, manifold) if len(chart) else None
+    corners = np.empty((0, 3, 2))
     if len(chart) and len(tris):
         from matplotlib.collections import PolyCollection
 
-        corners = _unwrap(chart[tris], period)
+        corners = _unwrap(chart[tris.reshape(-1, 3)], period)
         ax.add_collection(
             PolyCollection(
                 list(corners),
@@ -230,58 +385,75 @@ def _chart_figure(grasps: GraspTable, manifold: Any) -> tuple[Any, Any, np.ndarr
                 label=f"triangles ({len(tris)})",
             )
         )
-        ax.update_datalim(corners.reshape(-1, 2))
-        ax.autoscale_view()
     pts = (
         chart_points(grasps, manifold, period) if len(chart) else np.full((len(grasps), 2), np.nan)
     )
-    return fig, ax, pts, projection
-
-
-def _finish_chart(ax: Any, projection: str, title: str) -> None:
-    u_label, v_label = chart_axis_labels(projection)
-    ax.set_xlabel(u_label)
-    ax.set_ylabel(v_label)
-    ax.set_title(f"{title} ({projection} projection)" if projection else title)
-    ax.set_aspect("equal", adjustable="datalim")
-    if ax.get_legend_handles_labels()[0]:
-        legend = ax.legend(
-            loc="upper center",
-            bbox_to_anchor=(0.5, -0.13),
-            ncols=2,
-            fontsize="small",
-            frameon=False,
-        )
-        for handle in legend.legend_handles:
-            if hasattr(handle, "set_sizes"):
-                handle.set_sizes([24.0])
-    ax.grid(alpha=0.25)
+    return fig, ax, pts, corners
 
 
 class _ChartView:
-    """The one 2-D chart of the ``chart`` structure, with the interface of :class:`PoseView`."""
+    """The one 2-D chart of the ``chart`` structure, with the interface of :class:`PoseView`.
 
-    def __init__(self, grasps: GraspTable, manifold: Any) -> None:
-        self.fig, self.ax, self.pts, self.projection = _chart_figure(grasps, manifold)
+    Its axes are fitted to the rows and triangles drawn (:func:`_fit_limits`)
+    and the robot side marked (:func:`robot_side`) when ``base_pose`` is given.
+    """
+
+    def __init__(self, grasps: GraspTable, manifold: Any, base_pose: Any = None) -> None:
+        self.fig, self.ax, self.pts, self.corners = _chart_figure(grasps, manifold)
+        self.projection = str(getattr(manifold, "projection", "") or "")
         self.placed = np.all(np.isfinite(self.pts), axis=1)
         self.colorbar_axes = self.legend_axes = self.ax
+        self.period = chart_period(grasps, manifold) if len(self.pts) and manifold else None
+        self.side = None if manifold is None else robot_side(manifold, base_pose)
 
     def scatter(self, sel: np.ndarray, *, label: str | None = None, **kw: Any) -> Any:
         sel = sel & self.placed
         return self.ax.scatter(self.pts[sel, 0], self.pts[sel, 1], label=label, **kw)
 
     def finish(self, title: str) -> None:
-        _finish_chart(self.ax, self.projection, title)
+        """Fit the limits, mark the robot side, label the axes, the legend below."""
+        ax = self.ax
+        to_scale = _fit_limits(ax, np.vstack((self.pts[self.placed], self.corners.reshape(-1, 2))))
+        if self.side is not None:
+            _mark_robot_side(ax, self.side, self.period)
+        u_label, v_label = chart_axis_labels(self.projection)
+        ax.set_xlabel(u_label)
+        ax.set_ylabel(v_label)
+        head, _, tail = title.partition("\n")  # the projection goes on the first line
+        lines = [f"{head} ({self.projection} projection)" if self.projection else head]
+        lines += [tail] if tail else []
+        if not to_scale:
+            lines[-1] += "; axes not to scale" if tail else "\naxes not to scale"
+        pad = 16.0 if self.side is not None and self.side.kind == "u" else 6.0  # "robot side"
+        ax.set_title("\n".join(lines), fontsize="medium", pad=pad)
+        entries = len(ax.get_legend_handles_labels()[0])
+        if entries:
+            legend = ax.legend(
+                loc="upper center",
+                bbox_to_anchor=(0.5, -0.13),
+                ncols=2,
+                fontsize="small",
+                frameon=False,
+            )
+            for handle in legend.legend_handles:
+                if hasattr(handle, "set_sizes"):
+                    handle.set_sizes([24.0])
+        ax.grid(alpha=0.25)
+        x0, x1 = ax.get_xlim()
+        y0, y1 = ax.get_ylim()
+        # the plot's height follows the data's (to scale) or a readable strip
+        shape = float(np.clip((y1 - y0) / (x1 - x0), 0.45, 1.15)) if x1 > x0 else 0.8
+        self.fig.set_size_inches(7.0, 5.0 * shape + 1.4 + 0.19 * ((entries + 1) // 2))
 
 
-def _view(grasps: GraspTable, manifold: Any, what: str) -> tuple[Any, str]:
+def _view(grasps: GraspTable, manifold: Any, what: str, base_pose: Any = None) -> tuple[Any, str]:
     """The view to draw on and the title's suffix for the manifold's structure.
 
     The ``families`` structure is drawn in the world (:class:`PoseView`), the
-    ``chart`` structure in its chart.
+    ``chart`` structure in its chart (with the robot side from ``base_pose``).
     """
     if getattr(manifold, "structure", "chart") != "families" or "dq" not in grasps:
-        return _ChartView(grasps, manifold), what
+        return _ChartView(grasps, manifold, base_pose), what
     view = PoseView(
         _figure((12.0, 5.8)), grasps, manifold, candidate_rows(grasps, len(manifold.chart))
     )
@@ -292,12 +464,16 @@ def _view(grasps: GraspTable, manifold: Any, what: str) -> tuple[Any, str]:
     return view, f"{what}, {len(manifold.triangles)} triangles in {fams} families"
 
 
-def _plot_levels(grasps: GraspTable, manifold: Any, path: Path) -> Path:
-    """Adaptive refinement: rows coloured by level, unreachable as crosses."""
-    view, suffix = _view(grasps, manifold, "")
+def _marker_size(grasps: GraspTable, smallest: float = 2.0) -> float:
+    return float(np.clip(3000.0 / max(len(grasps), 1), smallest, 30.0))
+
+
+def levels_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> Any:
+    """``levels.png``: adaptive refinement, rows coloured by level, unreachable as crosses."""
+    view, suffix = _view(grasps, manifold, "", base_pose)
     level = np.asarray(grasps["level"], dtype=np.int64)
     reach = np.asarray(grasps.get("reachable", np.ones(len(grasps), bool)), dtype=bool)
-    size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
+    size = _marker_size(grasps)
     cmap = colormap("plasma")
     top = max(int(level.max(initial=0)), 1)
     for lv in range(int(level.max(initial=-1)) + 1):
@@ -320,31 +496,61 @@ def _plot_levels(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             )
     title = f"Adaptive refinement: {len(grasps):,} grasps, levels 0..{int(level.max(initial=0))}"
     view.finish(title + suffix)
-    return _save(view.fig, path)
+    return view.fig
 
 
-def _plot_patches(grasps: GraspTable, manifold: Any, path: Path) -> Path:
-    """IK continuity: reachable rows coloured by patch (one IK branch each)."""
-    view, suffix = _view(grasps, manifold, "")
+#: Colours of the named patches: matplotlib's tab10 without its grey, which marks the rest.
+_PATCH_COLORS = tuple(i for i in range(10) if i != 7)
+
+
+def patch_sizes(grasps: GraspTable) -> list[tuple[int, int]]:
+    """``(patch id, grasps)`` of every patch, largest first (ties by id)."""
     patch = np.asarray(grasps["patch"], dtype=np.int64)
-    size = float(np.clip(3000.0 / max(len(grasps), 1), 2.0, 30.0))
-    tab = colormap("tab10")
     ids, counts = np.unique(patch[patch >= 0], return_counts=True)
-    for k, (pid, n) in enumerate(zip(ids.tolist(), counts.tolist(), strict=True)):
+    return sorted(zip(ids.tolist(), counts.tolist(), strict=True), key=lambda p: (-p[1], p[0]))
+
+
+def patches_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> Any:
+    """``patches.png``: reachable rows coloured by IK patch (one branch each).
+
+    The :data:`_PATCH_LABELS` largest patches each get their own colour and a
+    legend entry ``patch <id>: <n> grasps``; the others share one grey and one
+    entry; the title says how many patches there are and which are coloured.
+    """
+    view, suffix = _view(grasps, manifold, "", base_pose)
+    patch = np.asarray(grasps["patch"], dtype=np.int64)
+    size = _marker_size(grasps)
+    tab = colormap("tab10")
+    sizes = patch_sizes(grasps)
+    named, rest = sizes[:_PATCH_LABELS], sizes[_PATCH_LABELS:]
+    raster = len(grasps) > 5000
+    for k, (pid, n) in enumerate(named):
+        colour = tab(_PATCH_COLORS[k % len(_PATCH_COLORS)])
+        label = f"patch {pid}: {n:,} grasps"
         view.scatter(
             patch == pid,
             s=size,
-            color=tab(pid % 10),
+            color=colour,
             edgecolors="none",
-            label=f"patch {pid} ({n})" if k < _PATCH_LABELS else None,
+            label=label,
             zorder=3,
-            rasterized=len(grasps) > 5000,
+            rasterized=raster,
         )
-    if len(ids) > _PATCH_LABELS:  # the rest share the ten colours: say so in the legend
-        rest = int(counts[_PATCH_LABELS:].sum())
-        more = len(ids) - _PATCH_LABELS
-        view.legend_axes.plot(
-            [], [], "o", color="0.4", markersize=4, label=f"{more} smaller patches ({rest} grasps)"
+    title = f"IK patches (branches): {len(sizes)} patch{'es' if len(sizes) != 1 else ''}"
+    if rest:
+        others = np.isin(patch, [pid for pid, _ in rest])
+        n_rest = int(others.sum())
+        view.scatter(
+            others,
+            s=size,
+            color="0.45",
+            edgecolors="none",
+            zorder=3,
+            rasterized=raster,
+            label=f"other {len(rest)} patches: {n_rest:,} grasps",
+        )
+        title += (
+            f"\nthe {len(named)} largest coloured, the other {len(rest)} ({n_rest:,} grasps) grey"
         )
     bad = patch < 0
     if bad.any():
@@ -352,23 +558,27 @@ def _plot_patches(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             bad,
             s=size,
             marker="x",
-            color="0.7",
+            color="0.78",
             linewidths=0.6,
-            label=f"unreachable ({int(bad.sum())})",
+            label=f"unreachable: {int(bad.sum()):,} grasps",
             zorder=2,
-            rasterized=len(grasps) > 5000,
+            rasterized=raster,
         )
-    view.finish(f"IK branches: {len(ids)} patches" + suffix)
-    return _save(view.fig, path)
+    view.finish(title + suffix)
+    return view.fig
 
 
-def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
-    """Reachable rows coloured by manipulability, unreachable ones by reason, candidates ringed."""
-    view, suffix = _view(grasps, manifold, "")
+def manifold_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> Any:
+    """``manifold.png``: reachable rows by manipulability, unreachable by reason, candidates ringed.
+
+    The candidates are ringed in the chart view, and in the world view up to
+    a few hundred of them (beyond, ``coverage.png`` shows them).
+    """
+    view, suffix = _view(grasps, manifold, "", base_pose)
     chart = np.asarray(getattr(manifold, "chart", np.empty((0, 2))), dtype=float)
     reach = np.asarray(grasps.get("reachable", np.zeros(len(grasps), bool)), dtype=bool)
     manip = np.asarray(grasps.get("manipulability", np.full(len(grasps), np.nan)), dtype=float)
-    size = float(np.clip(3000.0 / max(len(grasps), 1), 1.0, 30.0))
+    size = _marker_size(grasps, 1.0)
     bad = ~reach
     reasons = np.asarray(grasps.get("reason", np.full(len(grasps), "no_ik"))).astype(str)
     reasons = np.where(reasons == "", "no_ik", reasons)
@@ -396,9 +606,8 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
             rasterized=len(grasps) > 5000,
             edgecolors="none",
         )
-        view.fig.colorbar(sc, ax=view.colorbar_axes, label="manipulability [-]")
+        view.fig.colorbar(sc, ax=view.colorbar_axes, label=_MANIP_LABEL)
     cand = np.asarray(grasps.get("origin", np.array([], dtype=str))).astype(str) == "candidate"
-    # rings stay readable up to a few hundred candidates; beyond, coverage.png shows them
     if cand.any() and len(chart) and (isinstance(view, _ChartView) or cand.sum() <= _RINGS):
         view.scatter(
             cand,
@@ -411,7 +620,7 @@ def _plot_manifold(grasps: GraspTable, manifold: Any, path: Path) -> Path:
         )
     title = "Grasp manifold in its 2-D chart" if isinstance(view, _ChartView) else "Grasp manifold"
     view.finish(title + suffix)
-    return _save(view.fig, path)
+    return view.fig
 
 
 def _placed(view: Any, sel: np.ndarray) -> np.ndarray:
@@ -420,7 +629,12 @@ def _placed(view: Any, sel: np.ndarray) -> np.ndarray:
     return sel if placed is None else sel & placed
 
 
-def _plot_hist(grasps: GraspTable, path: Path) -> Path:
+def hist_figure(grasps: GraspTable) -> Any:
+    """``manipulability_hist.png``: the reachable grasps' manipulability, binned.
+
+    The bars take the colour of their values in ``manifold.png``'s colour
+    bar (viridis over the same range); the median is marked.
+    """
     fig = _figure()
     ax = fig.add_subplot()
     reach = np.asarray(grasps.get("reachable", np.zeros(len(grasps), bool)), dtype=bool)
@@ -443,32 +657,209 @@ def _plot_hist(grasps: GraspTable, path: Path) -> Path:
         ax.legend(fontsize="small")
     else:
         ax.text(0.5, 0.5, "no reachable grasp", ha="center", va="center", transform=ax.transAxes)
-    ax.set_xlabel("manipulability [-]")
-    ax.set_ylabel("reachable grasps [count]")
-    ax.set_title(f"Manipulability of the reachable grasps (n = {values.size})")
+    ax.set_xlabel(_MANIP_LABEL)
+    ax.set_ylabel("reachable grasps per bin")
+    ax.set_title(f"Manipulability of the reachable grasps: {values.size:,} of {len(grasps):,}")
     ax.grid(alpha=0.25, axis="y")
-    return _save(fig, path)
+    ax.set_axisbelow(True)
+    return fig
 
 
-def _plot_counts(counts: Mapping[str, int], path: Path) -> Path:
-    fig = _figure()
+@dataclass(frozen=True)
+class StageBar:
+    """One bar of ``counts.png``: its segments from the bottom up and the note above it.
+
+    Attributes:
+        key: The stage (``candidates``, ``triangles``, ``densified``,
+            ``unreachable``, ``reachable``, ``top``).
+        label: Tick label.
+        segments: ``(name, count, colour)`` from the bottom up; ``colour``
+            (r, g, b) in [0, 1].
+        note: Text above the bar (the total, and its share of the densified grasps).
+    """
+
+    key: str
+    label: str
+    segments: tuple[tuple[str, int, tuple[float, float, float]], ...]
+    note: str
+
+    @property
+    def total(self) -> int:
+        """Height of the bar: the sum of its segments."""
+        return sum(n for _, n, _ in self.segments)
+
+
+_STAGE_COLORS = {
+    "candidates": (0.29, 0.56, 0.85),
+    "triangles": (0.50, 0.50, 0.50),
+    "triangles_dropped": (0.80, 0.80, 0.80),
+    "densified": (0.35, 0.64, 0.41),
+    "reachable": (0.13, 0.57, 0.55),  # viridis' middle: the colour of a metric, not a reason
+    "top": (0.99, 0.91, 0.14),
+    "unreachable": (0.62, 0.62, 0.62),
+}
+
+
+def _share(n: int, of: int | None) -> str:
+    """``"1,044"`` or ``"659 (63 %)"`` of ``of``."""
+    return f"{n:,}" if not of else f"{n:,} ({100.0 * n / of:.0f} %)"
+
+
+def unreachable_reasons(
+    grasps: GraspTable | None, counts: Mapping[str, int]
+) -> dict[str, int] | None:
+    """Unreachable grasps by reason, most first; None if the table does not give them.
+
+    From the table's ``reachable`` and ``reason`` columns (an empty reason is
+    ``unknown``), when the table is the one ``counts`` describes (its length is
+    ``counts["densified"]`` and its reachable rows ``counts["reachable"]``).
+    """
+    if grasps is None or "reachable" not in grasps or "reason" not in grasps:
+        return None
+    reach = np.asarray(grasps["reachable"], dtype=bool)
+    if counts.get("densified", len(reach)) != len(reach):
+        return None
+    if counts.get("reachable", int(reach.sum())) != int(reach.sum()):
+        return None
+    reasons = np.asarray(grasps["reason"]).astype(str)[~reach]
+    names, n = np.unique(np.where(reasons == "", "unknown", reasons), return_counts=True)
+    pairs = sorted(zip(names.tolist(), n.tolist(), strict=True), key=lambda p: (-p[1], p[0]))
+    return {str(k): int(v) for k, v in pairs}
+
+
+def stage_bars(counts: Mapping[str, int], grasps: GraspTable | None = None) -> list[StageBar]:
+    """The bars of ``counts.png`` in pipeline order (the stages ``counts`` has).
+
+    candidates -> manifold triangles (kept, then dropped) -> densified grasps ->
+    unreachable (one segment per reason, most frequent at the bottom) ->
+    reachable -> top-k. The unreachable, reachable and top-k notes give their
+    share of the densified grasps. ``counts["top"]`` or else the table's ``top``
+    column gives the top-k bar.
+
+    Args:
+        counts: Per-stage counts (``summary["counts"]``' whole numbers).
+        grasps: The table the counts describe (its reasons), or None.
+    """
+    c = _STAGE_COLORS
+    bars: list[StageBar] = []
+    if "candidates" in counts:
+        n = int(counts["candidates"])
+        bars.append(
+            StageBar("candidates", "candidates", (("candidates", n, c["candidates"]),), f"{n:,}")
+        )
+    if "triangles" in counts:
+        kept, dropped = int(counts["triangles"]), int(counts.get("triangles_dropped", 0))
+        segs = [("kept", kept, c["triangles"])]
+        if dropped:
+            segs.append(("dropped", dropped, c["triangles_dropped"]))
+        note = f"{kept:,}" + (f" (+{dropped:,} dropped)" if dropped else "")
+        bars.append(StageBar("triangles", "manifold\ntriangles", tuple(segs), note))
+    total = int(counts["densified"]) if "densified" in counts else None
+    if total is not None:
+        bars.append(
+            StageBar(
+                "densified",
+                "densified\ngrasps",
+                (("densified", total, c["densified"]),),
+                f"{total:,}",
+            )
+        )
+    if "reachable" in counts:
+        reachable = int(counts["reachable"])
+        if total is not None:
+            reasons = unreachable_reasons(grasps, counts) or (
+                {"unknown": total - reachable} if total > reachable else {}
+            )
+            palette = reason_palette(list(reasons))
+            palette.update({"unknown": c["unreachable"]} if "unknown" in reasons else {})
+            segs = tuple((r, n, palette[r]) for r, n in reasons.items())
+            bars.append(
+                StageBar(
+                    "unreachable",
+                    "unreachable\n(by reason)",
+                    segs,
+                    _share(sum(reasons.values()), total),
+                )
+            )
+        bars.append(
+            StageBar(
+                "reachable",
+                "reachable",
+                (("reachable", reachable, c["reachable"]),),
+                _share(reachable, total),
+            )
+        )
+    top = counts.get("top")
+    if top is None and grasps is not None and "top" in grasps:
+        top = int(np.count_nonzero(grasps["top"]))
+    if top:
+        bars.append(
+            StageBar(
+                "top", "top-k\n(ranked)", (("top", int(top), c["top"]),), _share(int(top), total)
+            )
+        )
+    return bars
+
+
+def counts_figure(counts: Mapping[str, int], grasps: GraspTable | None = None) -> Any:
+    """The figure of ``counts.png``: :func:`stage_bars` on a linear scale.
+
+    One bar container per segment (its ``gid`` ``"<stage>:<segment>"``; the
+    unreachable bar's segments labelled ``"<reason>: <count>"`` for the
+    legend), the notes above the bars, the counts of the reasons inside their
+    segments when they fit; the dropped triangles hatched.
+
+    Returns:
+        The matplotlib figure (one axes).
+    """
+    fig = _figure((7.4, 4.8))
     ax = fig.add_subplot()
-    keys = [k for k in _COUNT_ORDER if k in counts] + [k for k in counts if k not in _COUNT_ORDER]
-    values = [int(counts[k]) for k in keys]
-    colors = ["#4a90d9", "#7f7f7f", "#c7c7c7", "#5aa469", "#21918c"]
-    bars = ax.bar(
-        range(len(keys)), values, color=[colors[i % len(colors)] for i in range(len(keys))]
-    )
-    ax.bar_label(bars, labels=[f"{v:,}" for v in values], padding=2, fontsize="small")
-    ax.set_xticks(range(len(keys)), [k.replace("_", "\n") for k in keys])
-    ax.set_ylabel("count [-]")
-    ax.set_title("Per-stage counts")
-    if values and max(values) > 0 and max(values) > 50 * max(1, min(v for v in values if v > 0)):
-        ax.set_yscale("log")
-        ax.set_ylabel("count [-] (log scale)")
-    ax.margins(y=0.12)
+    bars = stage_bars(counts, grasps)
+    top = max((b.total for b in bars), default=0)
+    for i, bar in enumerate(bars):
+        bottom = 0
+        for name, n, colour in bar.segments:
+            reason = bar.key == "unreachable"
+            cont = ax.bar(
+                [i],
+                [n],
+                bottom=[bottom],
+                color=[colour],
+                edgecolor="white",
+                linewidth=0.6,
+                hatch="///" if name == "dropped" else None,
+                label=f"{name}: {n:,}" if reason else None,
+                gid=f"{bar.key}:{name}",
+            )
+            if reason and n >= 0.045 * top:
+                ax.bar_label(cont, labels=[f"{n:,}"], label_type="center", fontsize="x-small")
+            bottom += n
+        ax.text(i, bar.total, bar.note, ha="center", va="bottom", fontsize="small")
+    ax.set_xticks(range(len(bars)), [b.label for b in bars])
+    ax.set_yscale("linear")
+    ax.set_ylim(0, max(top, 1) * 1.12)
+    ax.set_ylabel("count (grasps; triangles for the manifold)")
+    by_key = {b.key: b for b in bars}
+    title = "Per-stage counts"
+    if "reachable" in by_key and "densified" in by_key:
+        n, of = by_key["reachable"].total, by_key["densified"].total
+        title += f": {n:,} of {of:,} grasps reachable" + (
+            f" ({100.0 * n / of:.0f} %)" if of else ""
+        )
+    ax.set_title(title)
+    if ax.get_legend_handles_labels()[0]:
+        handles, labels = ax.get_legend_handles_labels()
+        ax.legend(
+            handles[::-1],
+            labels[::-1],
+            fontsize="x-small",
+            loc="best",
+            title="unreachable, by reason",
+            title_fontsize="x-small",
+        )
     ax.grid(alpha=0.25, axis="y")
-    return _save(fig, path)
+    ax.set_axisbelow(True)
+    return fig
 
 
 # --------------------------------------------------------------------------- coverage
@@ -540,6 +931,7 @@ def write_plots(
     manifold: Any,
     counts: Mapping[str, int],
     out_dir: str | os.PathLike[str],
+    base_pose: Any = None,
 ) -> list[Path]:
     """Write ``manifold.png``, ``manipulability_hist.png`` and ``counts.png`` (and more).
 
@@ -557,6 +949,8 @@ def write_plots(
             (``candidates``, ``triangles``, ``triangles_dropped``, ``densified``,
             ``reachable``; other keys are plotted after these).
         out_dir: An existing directory.
+        base_pose: The robot base in the world (4, 4) [m]: the chart plots mark
+            the robot side (:func:`robot_side`); None: not marked.
 
     Returns:
         The paths: the three of :data:`PLOT_FILES`, then ``levels.png``,
@@ -569,14 +963,14 @@ def write_plots(
     if not out.is_dir():
         raise PublishError(f"plot directory {str(out)!r} does not exist")
     paths = [
-        _plot_manifold(grasps, manifold, out / PLOT_FILES[0]),
-        _plot_hist(grasps, out / PLOT_FILES[1]),
-        _plot_counts(counts, out / PLOT_FILES[2]),
+        _save(manifold_figure(grasps, manifold, base_pose), out / PLOT_FILES[0]),
+        _save(hist_figure(grasps), out / PLOT_FILES[1]),
+        _save(counts_figure(counts, grasps), out / PLOT_FILES[2]),
     ]
     if "level" in grasps and manifold is not None:
-        paths.append(_plot_levels(grasps, manifold, out / "levels.png"))
+        paths.append(_save(levels_figure(grasps, manifold, base_pose), out / "levels.png"))
     if "patch" in grasps and manifold is not None and (np.asarray(grasps["patch"]) >= 0).any():
-        paths.append(_plot_patches(grasps, manifold, out / "patches.png"))
+        paths.append(_save(patches_figure(grasps, manifold, base_pose), out / "patches.png"))
     if getattr(manifold, "isolation", None) is not None and "dq" in grasps:
         paths.append(plot_coverage(grasps, manifold, out / COVERAGE_FILE))
     return paths

@@ -321,40 +321,59 @@ def _mark_robot_side(ax: Any, side: RobotSide, period: float | None) -> None:
     if side.kind == "ray":
         ax.plot(*np.column_stack((start, end)), label="robot side (facing the base)", **style)
         ax.text(*end, "robot side", ha="right" if direction[0] > 0 else "left", **text)
-    else:
-        tail = end - 0.18 * np.min(2 * half) * direction
-        ax.annotate(
-            "robot base",
-            xy=end,
-            xytext=tail,
-            ha="center",
-            arrowprops={"arrowstyle": "->", "color": _ROBOT_SIDE_COLOR},
-            **text,
+    else:  # an arrow at the edge toward the base; the legend says what it is
+        tail = end - 0.15 * np.min(2 * half) * direction
+        arrow = {"arrowstyle": "-|>", "color": _ROBOT_SIDE_COLOR, "linewidth": 1.5}
+        ax.annotate("", xy=end, xytext=tail, arrowprops=arrow, zorder=6)
+        away = float(np.linalg.norm(np.asarray(side.value) - centre))
+        ax.plot(
+            [],
+            [],
+            marker=">",
+            color=_ROBOT_SIDE_COLOR,
+            label=f"toward the robot base ({away:.2f} m from the middle)",
         )
 
 
-def _fit_limits(ax: Any, xy: np.ndarray, margin: float = 0.04) -> bool:
+#: Longer side [in] of a chart's axes box; its shape follows the data within _BOX_SHAPE.
+_BOX = 5.2
+_BOX_SHAPE = (0.45, 1.6)  # height / width: a strip at most 2.2 times wider, at most 1.6 taller
+
+
+def _fit_limits(ax: Any, xy: np.ndarray, margin: float = 0.04) -> tuple[bool, float, float]:
     """Fit the axes' limits to the points (a small margin); equal aspect when it reads.
 
+    The axes box takes the data's shape (height / width clipped to
+    :data:`_BOX_SHAPE`). Data at most 3 times longer one way than the other
+    are drawn to scale (equal aspect by widening one range, little since the
+    box has the data's shape; the box itself keeps its size, and so its
+    colour bar's); longer strips fill the box and are not to scale.
+
     Returns:
-        True when the axes are to scale (equal aspect: both chart axes share a
-        unit and the data are at most 3 times longer one way than the other);
-        False when they are stretched to fill the plot.
+        ``(to_scale, width, height)``: the box size [in] the figure is made for.
     """
     xy = xy[np.all(np.isfinite(xy), axis=1)]
     if not len(xy):
-        return True
+        return True, _BOX, _BOX * 0.8
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     span = hi - lo
-    span = np.where(span > 0, span, max(float(span.max()), 1e-3))
-    ax.set_xlim(lo[0] - margin * span[0], hi[0] + margin * span[0])
-    ax.set_ylim(lo[1] - margin * span[1], hi[1] + margin * span[1])
+    span = np.where(span > 0, span, max(float(span.max()), 1e-3)) * (1.0 + 2.0 * margin)
+    centre = 0.5 * (lo + hi)
     ratio = float(span[1] / span[0])
-    if 1.0 / 3.0 <= ratio <= 3.0:
-        ax.set_aspect("equal", adjustable="box")
-        return True
-    ax.set_aspect("auto")
-    return False
+    shape = float(np.clip(ratio, *_BOX_SHAPE))
+    width, height = (_BOX, _BOX * shape) if shape <= 1.0 else (_BOX / shape, _BOX)
+    to_scale = 1.0 / 3.0 <= ratio <= 3.0
+    if to_scale:  # equal aspect; the shorter range widened to fill the box
+        ax.update_datalim(np.vstack((lo, hi)))
+        ax.set_xmargin(margin)
+        ax.set_ymargin(margin)
+        ax.autoscale_view()
+        ax.set_aspect("equal", adjustable="datalim")
+    else:
+        ax.set_xlim(centre[0] - 0.5 * span[0], centre[0] + 0.5 * span[0])
+        ax.set_ylim(centre[1] - 0.5 * span[1], centre[1] + 0.5 * span[1])
+        ax.set_aspect("auto")
+    return to_scale, width, height
 
 
 def _chart_figure(grasps: GraspTable, manifold: Any) -> tuple[Any, Any, np.ndarray, np.ndarray]:
@@ -413,7 +432,9 @@ class _ChartView:
     def finish(self, title: str) -> None:
         """Fit the limits, mark the robot side, label the axes, the legend below."""
         ax = self.ax
-        to_scale = _fit_limits(ax, np.vstack((self.pts[self.placed], self.corners.reshape(-1, 2))))
+        to_scale, *box = _fit_limits(
+            ax, np.vstack((self.pts[self.placed], self.corners.reshape(-1, 2)))
+        )
         if self.side is not None:
             _mark_robot_side(ax, self.side, self.period)
         u_label, v_label = chart_axis_labels(self.projection)
@@ -439,11 +460,7 @@ class _ChartView:
                 if hasattr(handle, "set_sizes"):
                     handle.set_sizes([24.0])
         ax.grid(alpha=0.25)
-        x0, x1 = ax.get_xlim()
-        y0, y1 = ax.get_ylim()
-        # the plot's height follows the data's (to scale) or a readable strip
-        shape = float(np.clip((y1 - y0) / (x1 - x0), 0.45, 1.15)) if x1 > x0 else 0.8
-        self.fig.set_size_inches(7.0, 5.0 * shape + 1.4 + 0.19 * ((entries + 1) // 2))
+        self.fig.set_size_inches(box[0] + 2.2, box[1] + 1.5 + 0.19 * ((entries + 1) // 2))
 
 
 def _view(grasps: GraspTable, manifold: Any, what: str, base_pose: Any = None) -> tuple[Any, str]:
@@ -503,6 +520,11 @@ def levels_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> A
 _PATCH_COLORS = tuple(i for i in range(10) if i != 7)
 
 
+def _plural(n: int, word: str) -> str:
+    """``"1 grasp"``, ``"1,044 grasps"``, ``"2 patches"``."""
+    return f"{n:,} {word}" if n == 1 else f"{n:,} {word}{'es' if word.endswith('ch') else 's'}"
+
+
 def patch_sizes(grasps: GraspTable) -> list[tuple[int, int]]:
     """``(patch id, grasps)`` of every patch, largest first (ties by id)."""
     patch = np.asarray(grasps["patch"], dtype=np.int64)
@@ -526,7 +548,7 @@ def patches_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> 
     raster = len(grasps) > 5000
     for k, (pid, n) in enumerate(named):
         colour = tab(_PATCH_COLORS[k % len(_PATCH_COLORS)])
-        label = f"patch {pid}: {n:,} grasps"
+        label = f"patch {pid}: {_plural(n, 'grasp')}"
         view.scatter(
             patch == pid,
             s=size,
@@ -536,7 +558,7 @@ def patches_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> 
             zorder=3,
             rasterized=raster,
         )
-    title = f"IK patches (branches): {len(sizes)} patch{'es' if len(sizes) != 1 else ''}"
+    title = f"IK patches (branches): {_plural(len(sizes), 'patch')}"
     if rest:
         others = np.isin(patch, [pid for pid, _ in rest])
         n_rest = int(others.sum())
@@ -547,10 +569,11 @@ def patches_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> 
             edgecolors="none",
             zorder=3,
             rasterized=raster,
-            label=f"other {len(rest)} patches: {n_rest:,} grasps",
+            label=f"other {_plural(len(rest), 'patch')}: {_plural(n_rest, 'grasp')}",
         )
         title += (
-            f"\nthe {len(named)} largest coloured, the other {len(rest)} ({n_rest:,} grasps) grey"
+            f"\nthe {len(named)} largest coloured, the other {len(rest)} "
+            f"({_plural(n_rest, 'grasp')}) grey"
         )
     bad = patch < 0
     if bad.any():
@@ -560,7 +583,7 @@ def patches_figure(grasps: GraspTable, manifold: Any, base_pose: Any = None) -> 
             marker="x",
             color="0.78",
             linewidths=0.6,
-            label=f"unreachable: {int(bad.sum()):,} grasps",
+            label=f"unreachable: {_plural(int(bad.sum()), 'grasp')}",
             zorder=2,
             rasterized=raster,
         )

@@ -31,6 +31,7 @@ __all__ = [
     "PLOT_FILES",
     "REASON_COLORS",
     "RobotSide",
+    "approach_from_base",
     "StageBar",
     "candidate_coverage",
     "candidate_rows",
@@ -270,7 +271,7 @@ def robot_side(manifold: Any, base_pose: Any) -> RobotSide | None:
     if projection in ("xy", "pca"):
         return RobotSide("point", d[:2].copy())
     flat = float(np.hypot(d[0], d[1]))
-    if flat < 1e-9 * max(float(np.linalg.norm(d)), 1e-300) or flat == 0.0:
+    if flat == 0.0 or flat <= 0.01 * float(np.linalg.norm(d)):  # (nearly) on the axis
         return None
     if projection == "spherical":
         return RobotSide("ray", d[:2] / flat)
@@ -283,6 +284,25 @@ def robot_side(manifold: Any, base_pose: Any) -> RobotSide | None:
 
 
 _ROBOT_SIDE_COLOR = "0.15"
+
+
+def approach_from_base(grasps: GraspTable, base_pose: Any) -> float | None:
+    """Azimuth [deg] of an approach from the robot base toward the grasps' centre.
+
+    The approach direction (grasp frame z) of a grasp on the side of the
+    object facing the robot points from the base toward the object: its
+    azimuth ``atan2(c_y - b_y, c_x - b_x)`` in (-180, 180], with ``c`` the
+    mean grasp position and ``b`` the base position (the approach-direction
+    panel of the ``families`` structure's plots marks it). None without a
+    base pose or grasps, or with the base (nearly) straight below or above the centre.
+    """
+    if base_pose is None or "dq" not in grasps or not len(grasps):
+        return None
+    pos = dq_translation(np.asarray(grasps["dq"], dtype=float))
+    d = pos[np.all(np.isfinite(pos), axis=1)].mean(axis=0) - np.asarray(base_pose)[:3, 3]
+    if np.hypot(d[0], d[1]) <= 0.01 * np.linalg.norm(d):  # within 0.6 deg of vertical
+        return None
+    return float(np.degrees(np.arctan2(d[1], d[0])))
 
 
 def _mark_robot_side(ax: Any, side: RobotSide, period: float | None) -> None:
@@ -474,6 +494,12 @@ def _view(grasps: GraspTable, manifold: Any, what: str, base_pose: Any = None) -
     view = PoseView(
         _figure((12.0, 5.8)), grasps, manifold, candidate_rows(grasps, len(manifold.chart))
     )
+    azimuth = approach_from_base(grasps, base_pose)
+    if azimuth is not None:
+        style = {"color": _ROBOT_SIDE_COLOR, "linestyle": "--", "linewidth": 1.2}
+        view.directions.axvline(azimuth, **style)
+        # a proxy on the axes whose handles make the figure's legend
+        view.legend_axes.plot([], [], label="approach from the robot side", **style)
     family = getattr(manifold, "family", None)
     if family is None:  # a manifold.npz without it: no count to give
         return view, f"{what}, {len(manifold.triangles)} triangles"

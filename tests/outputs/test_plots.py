@@ -14,6 +14,7 @@ from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.charts import STANDOFF
 from gcm_pipeline.outputs.plots import (
+    approach_from_base,
     chart_axis_labels,
     chart_period,
     counts_figure,
@@ -312,3 +313,22 @@ def test_a_flat_run_is_drawn_to_scale_with_an_arrow_to_the_base(flat_run):
     assert np.dot(tip - tail, -centre) > 0  # toward the origin
     assert ax.get_xlim()[0] <= tip[0] <= ax.get_xlim()[1]
     assert ax.get_ylim()[0] <= tip[1] <= ax.get_ylim()[1]
+
+
+def test_families_plots_mark_the_approach_from_the_robot():
+    grasps = GraspTable({"dq": axis_grasps()})
+    base = np.eye(4)
+    base[:3, 3] = [-1.0, 0.0, 0.3]  # the grasps' centre is straight +x of the base
+    assert approach_from_base(grasps, base) == pytest.approx(0.0, abs=0.2)
+    base[:3, 3] = [0.0, 1.0, 0.0]  # +y of the base: approached toward -y
+    assert approach_from_base(grasps, base) == pytest.approx(-90.0, abs=0.2)
+    base[:3, 3] = [0.0, 0.0, -1.0]  # straight below: no horizontal direction
+    assert approach_from_base(grasps, base) is None
+    m = build_manifold(grasps, structure="families", max_edge_length=0.1, max_edge_angle_deg=60)
+    base[:3, 3] = [0.0, 1.0, 0.0]
+    fig = manifold_figure(grasps, m, base)
+    directions = fig.axes[1]
+    lines = [ln for ln in directions.get_lines() if ln.get_linestyle() == "--"]
+    assert len(lines) == 1 and lines[0].get_xdata()[0] == pytest.approx(-90.0, abs=0.2)
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "approach from the robot side" in legend

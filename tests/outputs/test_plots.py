@@ -332,3 +332,16 @@ def test_families_plots_mark_the_approach_from_the_robot():
     assert len(lines) == 1 and lines[0].get_xdata()[0] == pytest.approx(-90.0, abs=0.2)
     legend = [t.get_text() for t in fig.legends[0].get_texts()]
     assert "approach from the robot side" in legend
+
+
+def test_gcm_plot_takes_the_base_from_the_runs_config(flat_run):
+    from gcm_pipeline.cli.results import _run_base_pose
+
+    run = read_run(flat_run)
+    np.testing.assert_allclose(_run_base_pose(run.summary), np.eye(4), atol=1e-12)
+    moved = {"config": {"robot": {"base_pose": {"xyz": [0.1, 0.2, 0.0], "rpy_deg": [0, 0, 90]}}}}
+    expected = np.array([[0.0, -1, 0, 0.1], [1, 0, 0, 0.2], [0, 0, 1, 0], [0, 0, 0, 1]])
+    np.testing.assert_allclose(_run_base_pose(moved), expected, atol=1e-12)
+    # a summary without a usable base: the plots are drawn without the robot side
+    assert _run_base_pose({}) is None
+    assert _run_base_pose({"config": {"robot": {"base_pose": {"xyz": "here"}}}}) is None

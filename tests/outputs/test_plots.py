@@ -13,8 +13,8 @@ import pytest
 from gcm_pipeline.geometry.dualquat import dq_from_matrix
 from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.charts import STANDOFF
+from gcm_pipeline.outputs.chart_marks import approach_from_base, robot_side
 from gcm_pipeline.outputs.plots import (
-    approach_from_base,
     chart_axis_labels,
     chart_period,
     counts_figure,
@@ -23,7 +23,6 @@ from gcm_pipeline.outputs.plots import (
     patch_sizes,
     patches_figure,
     reason_palette,
-    robot_side,
     stage_bars,
     unreachable_reasons,
 )

@@ -180,7 +180,9 @@ def export_run(
         export_mcap.check_rosbags()
     writers: dict[str, Callable[[GraspTable, Path], None]] = {
         "moveit": lambda g, p: _write_moveit(g, moveit, p, configurations if trajectory else None),
-        "mcap": lambda g, p: _write_mcap(g, everything, configurations, moveit, config, p, run),
+        "mcap": lambda g, p: _write_mcap(
+            g, everything, configurations, moveit, config, p, run, path
+        ),
         "parquet": _write_parquet,
         "npz": _write_npz,
     }
@@ -485,8 +487,12 @@ def _write_mcap(
     config: RunConfig,
     path: Path,
     run: Path,
+    target: Path,
 ) -> None:
-    """The ROS 2 bag (:func:`gcm_pipeline.outputs.export_mcap.write_mcap`)."""
+    """The ROS 2 bag (:func:`gcm_pipeline.outputs.export_mcap.write_mcap`) into ``path``.
+
+    ``target``: the file ``path`` becomes (the bag's metadata names it).
+    """
     scene = config.scene()
     export_mcap.write_mcap(
         path,
@@ -496,4 +502,5 @@ def _write_mcap(
         options,
         (scene.object, scene.table, scene.obstacles),
         _start_ns(run),
+        target.name,
     )

@@ -30,6 +30,8 @@ branch). Writing needs the optional extra ``ros`` (rosbags,
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -333,6 +335,7 @@ def write_mcap(
     options: MoveItOptions,
     scene: tuple[SceneShape | None, SceneTable | None, Sequence[SceneShape]],
     start_ns: int,
+    name: str = "grasps.mcap",
 ) -> None:
     """Write the bag into the new file ``path`` (the module's topics).
 
@@ -344,15 +347,17 @@ def write_mcap(
         options: The run's MoveIt options (frames, approach, retreat, joints).
         scene: The object, the table and the obstacles.
         start_ns: The first log time [ns since the epoch].
+        name: The file's final name (the bag's metadata names it).
     """
     rosbags = _rosbags()
     store = typestore()
     k = len(ranked)
     stamps = start_ns + GRASP_PERIOD_NS * np.arange(1, k + 1, dtype=np.int64)
     grasps = grasp_messages(ranked, options, world_frame=WORLD_FRAME, stamps=stamps)
-    tmp_dir = path.parent / f".{path.name}.bag"
+    work = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    bag = work / Path(name).stem  # rosbags writes the folder bag/ with bag/<stem>.mcap
     writer = rosbags.rosbag2.Writer(
-        tmp_dir, version=9, storage_plugin=rosbags.rosbag2.StoragePlugin.MCAP
+        bag, version=9, storage_plugin=rosbags.rosbag2.StoragePlugin.MCAP
     )
     try:
         with writer:
@@ -378,12 +383,9 @@ def write_mcap(
                 q = [np.asarray(configurations[c][i], dtype=float) for c in _CONFIGURATIONS]
                 half = t + GRASP_PERIOD_NS // 2
                 put("/grasp_trajectories", half, arm_trajectory(options, *q, ns=half))
-        (tmp_dir / f"{tmp_dir.name}.mcap").replace(path)
+        (bag / f"{bag.name}.mcap").replace(path)
     finally:
-        for f in tmp_dir.glob("*") if tmp_dir.is_dir() else ():
-            f.unlink()
-        if tmp_dir.is_dir():
-            tmp_dir.rmdir()
+        shutil.rmtree(work, ignore_errors=True)
 
 
 #: The configurations of an arm trajectory, in ``configurations.npz``.

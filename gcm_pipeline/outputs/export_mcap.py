@@ -30,6 +30,7 @@ branch). Writing needs the optional extra ``ros`` (rosbags,
 
 from __future__ import annotations
 
+import functools
 import shutil
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -116,6 +117,12 @@ def _rosbags() -> Any:
     return rosbags
 
 
+@functools.cache
+def _nodetype() -> Any:
+    """The node kinds of rosbags' message fields (``Nodetype``), looked up once."""
+    return _rosbags().typesys.store.Nodetype
+
+
 def check_rosbags() -> None:
     """Raise :class:`InputError` (one line, :data:`ROS_INSTALL_HINT`) unless rosbags imports."""
     _rosbags()
@@ -137,7 +144,7 @@ def typestore() -> Any:
 
 def _default(store: Any, node: int, spec: Any) -> Any:
     """The default value of a field (0, "", an empty sequence, a default message)."""
-    nodetype = _rosbags().typesys.store.Nodetype
+    nodetype = _nodetype()
     if node == nodetype.NAME:
         return ros_message(store, spec, {})
     if node == nodetype.SEQUENCE:
@@ -149,7 +156,7 @@ def _default(store: Any, node: int, spec: Any) -> Any:
 
 
 def _value(store: Any, node: int, spec: Any, value: Any) -> Any:
-    nodetype = _rosbags().typesys.store.Nodetype
+    nodetype = _nodetype()
     if node == nodetype.NAME:
         return ros_message(store, spec, value)
     if node in (nodetype.SEQUENCE, nodetype.ARRAY):

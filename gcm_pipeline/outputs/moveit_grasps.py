@@ -102,7 +102,7 @@ def _translation(
 
 def _point(positions: Any, t: float) -> dict[str, Any]:
     return {
-        "positions": [float(p) for p in positions],
+        "positions": np.asarray(positions, dtype=float).tolist(),
         "velocities": [],
         "accelerations": [],
         "effort": [],

@@ -83,8 +83,10 @@ _RANKED_ONLY = ("moveit", "mcap")
 class RunConfig(Protocol):
     """A run's ``config.yaml`` as an export takes it (:mod:`gcm_pipeline.pipeline` reads it)."""
 
-    #: The run's ranking metric.
-    ranking_metric: str
+    @property
+    def ranking_metric(self) -> str:
+        """The run's ranking metric."""
+        ...
 
     def moveit(self) -> MoveItOptions:
         """The MoveIt export's options (reads the run's robot spec)."""
@@ -172,20 +174,21 @@ def export_run(
     if format in _RANKED_ONLY or top is not None:
         rows = np.flatnonzero(ranked)[:top]
         grasps = grasps.take(rows)
-    moveit = config.moveit() if format in _RANKED_ONLY else None
-    configurations: dict[str, np.ndarray] = {}
-    if moveit is not None and (format == "mcap" or trajectory):
-        configurations = _configurations(run / "configurations.npz", n, moveit.joint_names, rows)
-    if format == "mcap":
-        export_mcap.check_rosbags()
     writers: dict[str, Callable[[GraspTable, Path], None]] = {
-        "moveit": lambda g, p: _write_moveit(g, moveit, p, configurations if trajectory else None),
-        "mcap": lambda g, p: _write_mcap(
-            g, everything, configurations, moveit, config, p, run, path
-        ),
         "parquet": _write_parquet,
         "npz": _write_npz,
     }
+    if format in _RANKED_ONLY:
+        moveit = config.moveit()
+        conf: dict[str, np.ndarray] | None = None
+        if format == "mcap" or trajectory:
+            conf = _configurations(run / "configurations.npz", n, moveit.joint_names, rows)
+        if format == "mcap":
+            export_mcap.check_rosbags()
+        writers["moveit"] = lambda g, p: _write_moveit(g, moveit, p, conf)
+        writers["mcap"] = lambda g, p: _write_mcap(
+            g, everything, conf or {}, moveit, config, p, run, path
+        )
     _atomic(path, lambda tmp: writers[format](grasps, tmp))
     if (format in _RANKED_ONLY or top is not None) and len(grasps) == 0:
         raise InputError(

@@ -186,7 +186,9 @@ def ros_message(store: Any, typename: str, data: Mapping[str, Any]) -> Any:
         raise KeyError(f"{typename} has no field {sorted(unknown)}")
     return msgdef.cls(
         **{
-            name: _value(store, *spec, data[name]) if name in data else _default(store, *spec)
+            name: _value(store, spec[0], spec[1], data[name])
+            if name in data
+            else _default(store, spec[0], spec[1])
             for name, spec in msgdef.fields
         }
     )
@@ -389,7 +391,7 @@ def write_mcap(
                 put("/grasps", t, grasps[i])
                 q = [np.asarray(configurations[c][i], dtype=float) for c in _CONFIGURATIONS]
                 half = t + GRASP_PERIOD_NS // 2
-                put("/grasp_trajectories", half, arm_trajectory(options, *q, ns=half))
+                put("/grasp_trajectories", half, arm_trajectory(options, q[0], q[1], q[2], half))
         (bag / f"{bag.name}.mcap").replace(path)
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -11,7 +11,8 @@ topic                   type                                    messages
                                                                 root frame (the run's base pose)
 ``/scene_markers``      ``visualization_msgs/msg/MarkerArray``  one: the object, the table, the
                                                                 obstacles and an arrow per grasp
-                                                                (green reachable, red not)
+                                                                (green reachable, red not; at
+                                                                most :data:`MAX_ARROWS` each)
 ``/grasps``             ``moveit_msgs/msg/Grasp``               one per reachable grasp, best
                                                                 first, ``grasp_pose`` in ``world``
 ``/grasp_trajectories`` ``trajectory_msgs/msg/JointTrajectory`` one per reachable grasp, best
@@ -48,10 +49,12 @@ from gcm_pipeline.table import GraspTable
 
 __all__ = [
     "GRASP_PERIOD_NS",
+    "MAX_ARROWS",
     "MOVEIT_MSGS",
     "ROS_INSTALL_HINT",
     "TOPICS",
     "check_rosbags",
+    "grasp_arrows",
     "WORLD_FRAME",
     "ros_message",
     "scene_markers",
@@ -100,6 +103,9 @@ _UNREACHABLE_RGBA = (0.85, 0.16, 0.16, 0.6)
 _OBJECT_RGBA = (0.85, 0.64, 0.25, 0.7)
 _TABLE_RGBA = (0.78, 0.76, 0.73, 1.0)
 _OBSTACLE_RGBA = (0.5, 0.5, 0.55, 0.8)
+#: Most grasp arrows of each class (reachable, unreachable) in the scene's markers (about
+#: 300 bytes each).
+MAX_ARROWS = 20_000
 #: A grasp arrow: length along the approach, ending at the grasp frame [m].
 _ARROW_LENGTH = 0.05
 #: Marker types (visualization_msgs/Marker).
@@ -259,8 +265,7 @@ def scene_markers(
 
     Namespaces ``object``, ``table``, ``obstacles`` (id: the obstacle's index),
     ``grasps_reachable`` (id: the rank) and ``grasps_unreachable`` (id: the
-    row in ``grasps.csv``); an arrow ends at the grasp frame's origin and
-    points along its approach axis (+z).
+    row in ``grasps.csv``): :func:`grasp_arrows`.
     """
     markers = []
     if obj is not None:
@@ -269,36 +274,44 @@ def scene_markers(
         sx, sy, sz = table.size
         centre = np.eye(4)
         centre[:3, 3] = (*table.center_xy, table.height - sz / 2)
-        markers.append(
-            _marker(
-                "table",
-                0,
-                stamp_ns,
-                _TABLE_RGBA,
-                type=_CUBE,
-                pose=_pose(centre),
-                scale=_xyz((sx, sy, sz)),
-            )  # fmt: skip
-        )
+        fields = {"type": _CUBE, "pose": _pose(centre), "scale": _xyz((sx, sy, sz))}
+        markers.append(_marker("table", 0, stamp_ns, _TABLE_RGBA, **fields))
     for i, obstacle in enumerate(obstacles):
         fields = _shape_marker(obstacle)
         markers.append(_marker("obstacles", i, stamp_ns, _OBSTACLE_RGBA, **fields))
+    return {"markers": markers + grasp_arrows(everything, stamp_ns)}
+
+
+def grasp_arrows(everything: GraspTable, stamp_ns: int) -> list[dict[str, Any]]:
+    """An arrow marker per grasp, at most :data:`MAX_ARROWS` of each class.
+
+    An arrow ends at the grasp frame's origin and points along its approach
+    axis (+z). Reachable grasps (green, id: the rank; the best-ranked when
+    there are more than :data:`MAX_ARROWS`), unreachable ones (red, id: the
+    row; evenly spaced rows when there are more).
+    """
     n = len(everything)
     world = dq_to_matrix(np.asarray(everything["dq"], dtype=float).reshape(n, 8))
     tip = world[:, :3, 3]
     tail = tip - _ARROW_LENGTH * world[:, :3, 2]
     reachable = np.asarray(everything["reachable"], dtype=bool)
     rank = np.asarray(everything["rank"]) if "rank" in everything else np.zeros(n, int)
+    good = np.flatnonzero(reachable)
+    good = good[np.argsort(np.where(rank[good] > 0, rank[good], n + good), kind="stable")]
+    bad = np.flatnonzero(~reachable)
+    if len(bad) > MAX_ARROWS:
+        bad = bad[np.linspace(0, len(bad) - 1, MAX_ARROWS).astype(int)]
     arrow = {"type": _ARROW, "pose": _pose(np.eye(4)), "scale": _xyz((0.002, 0.005, 0.008))}
-    for i in range(n):
-        ns_name, marker_id, rgba = (
-            ("grasps_reachable", int(rank[i]), _REACHABLE_RGBA)
-            if reachable[i]
-            else ("grasps_unreachable", i, _UNREACHABLE_RGBA)
-        )
-        points = [_xyz(tail[i]), _xyz(tip[i])]
-        markers.append(_marker(ns_name, marker_id, stamp_ns, rgba, **arrow, points=points))
-    return {"markers": markers}
+    markers = []
+    for ns_name, rows, rgba in (
+        ("grasps_reachable", good[:MAX_ARROWS], _REACHABLE_RGBA),
+        ("grasps_unreachable", bad, _UNREACHABLE_RGBA),
+    ):
+        for i in rows:
+            marker_id = int(rank[i]) if reachable[i] and rank[i] > 0 else int(i)
+            points = [_xyz(tail[i]), _xyz(tip[i])]
+            markers.append(_marker(ns_name, marker_id, stamp_ns, rgba, **arrow, points=points))
+    return markers
 
 
 def _tf_static(options: MoveItOptions, stamp_ns: int) -> dict[str, Any]:

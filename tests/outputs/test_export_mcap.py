@@ -352,3 +352,59 @@ def test_without_rosbags_the_mcap_export_names_the_extra(run, tmp_path, capsys, 
 def test_the_topics_table_is_what_the_bag_holds(bag):
     assert [topic for topic, *_ in read_bag(bag)][:2] == list(TOPICS)[:2]
     assert {(topic, kind) for topic, kind, *_ in read_bag(bag)} == set(TOPICS.items())
+
+
+# ------------------------------------------------------------------ markers
+
+
+def test_each_scene_shape_becomes_its_marker_and_serialises():
+    from gcm_pipeline.outputs import export_mcap
+    from gcm_pipeline.outputs.scene_shapes import SceneShape, SceneTable
+    from gcm_pipeline.table import GraspTable
+
+    at = np.eye(4)
+    at[:3, 3] = [0.5, 0.1, 0.0]
+    mug = CONFIGS / "data" / "mug.obj"
+    shapes = [
+        SceneShape("cylinder", at, radius=0.03, height=0.2),
+        SceneShape("sphere", at, radius=0.04),
+        SceneShape("plane", at, size=(0.3, 0.2)),
+        SceneShape("mesh", at, mesh=mug, scale=0.5),
+    ]
+    empty = GraspTable({"dq": np.zeros((0, 8)), "reachable": np.zeros(0, bool)})
+    array = export_mcap.scene_markers(empty, shapes[0], SceneTable(height=0.7), shapes[1:], 5)
+    store = typestore()
+    msg = ros_message(store, "visualization_msgs/msg/MarkerArray", array)
+    store.serialize_cdr(msg, "visualization_msgs/msg/MarkerArray")  # a valid message
+    cylinder, table, sphere, plane, mesh = msg.markers
+    assert [m.type for m in msg.markers] == [3, 1, 2, 1, 10]
+    assert [m.ns for m in msg.markers] == ["object", "table", "obstacles", "obstacles", "obstacles"]
+    assert [m.id for m in msg.markers[2:]] == [0, 1, 2]
+    # a marker cylinder is centred; the scene's stands on its base
+    c = cylinder.pose.position
+    assert (c.x, c.y, c.z) == pytest.approx((0.5, 0.1, 0.1))
+    assert (cylinder.scale.x, cylinder.scale.y, cylinder.scale.z) == pytest.approx(
+        (0.06, 0.06, 0.2)
+    )
+    assert table.pose.position.z + table.scale.z / 2 == pytest.approx(0.7)
+    assert (sphere.scale.x, sphere.scale.z) == pytest.approx((0.08, 0.08))
+    assert (plane.scale.x, plane.scale.y, plane.scale.z) == pytest.approx((0.3, 0.2, 0.002))
+    assert mesh.mesh_resource == mug.resolve().as_uri() and mesh.scale.x == 0.5
+    assert {stamp_ns(m.header) for m in msg.markers} == {5}
+
+
+def test_grasp_arrows_keep_the_best_ranked_and_spread_the_rest(run, monkeypatch):
+    from gcm_pipeline.outputs import export_mcap
+    from gcm_pipeline.rundir.grasps_csv import read_grasps_csv
+
+    grasps = read_grasps_csv(run / "grasps.csv")
+    reachable = np.asarray(grasps["reachable"], bool)
+    monkeypatch.setattr(export_mcap, "MAX_ARROWS", 5)
+    arrows = export_mcap.grasp_arrows(grasps, 0)
+    good = [m for m in arrows if m["ns"] == "grasps_reachable"]
+    bad = [m for m in arrows if m["ns"] == "grasps_unreachable"]
+    assert [m["id"] for m in good] == [1, 2, 3, 4, 5]
+    rows = np.flatnonzero(~reachable)
+    assert len(rows) > 5 and len(bad) == 5
+    assert bad[0]["id"] == rows[0] and bad[-1]["id"] == rows[-1]
+    assert all(not reachable[m["id"]] for m in bad)

@@ -408,3 +408,18 @@ def test_grasp_arrows_keep_the_best_ranked_and_spread_the_rest(run, monkeypatch)
     assert len(rows) > 5 and len(bad) == 5
     assert bad[0]["id"] == rows[0] and bad[-1]["id"] == rows[-1]
     assert all(not reachable[m["id"]] for m in bad)
+
+
+def test_top_keeps_the_best_grasps_and_their_trajectories(run, tmp_path):
+    from gcm_pipeline import export_run
+
+    out = tmp_path / "top.mcap"
+    assert export_run(run, "mcap", top=3, out=out).rows == 3
+    msgs = read_bag(out)
+    grasps = [m for topic, _, _, m in msgs if topic == "/grasps"]
+    trajectories = [m for topic, _, _, m in msgs if topic == "/grasp_trajectories"]
+    assert [g.id for g in grasps] == ["rank_1", "rank_2", "rank_3"]
+    _, _, rows = ranked_rows(run)
+    with np.load(run / "configurations.npz") as data:
+        q = data["q"][rows[:3]]
+    np.testing.assert_array_equal([t.points[1].positions for t in trajectories], q)

@@ -258,6 +258,13 @@ BENCH_NOTES: dict[str, str] = {
         "tiles) added (`cloud_*`, `check_cloud_*`; the checker agrees with Pinocchio's loop on "
         "every configuration) and the rates' `ratios` in that one run."
     ),
+    "export": (
+        "`gcm export` of the bottle example's run (`configs/bottle_side.yaml`, no HTML or "
+        "plots) in every format, in one process after a warm-up export (rosbags imported, "
+        "the robot loaded): the median time of writing the file and its size; for the ROS 2 "
+        "bag (`mcap`) the serialised bytes of each topic. `moveit_trajectory` is "
+        "`--format moveit --trajectory`."
+    ),
     "geometry": (
         "Dual-quaternion conversions and DLB on a million poses, Qhull and Bowyer-Watson "
         "on uniform random points, and the densify stage with DLB and DIB."

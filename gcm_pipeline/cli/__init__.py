@@ -5,7 +5,7 @@
 config's JSON Schema; ``gcm show RUN_DIR`` prints the top-ranked grasps of a
 run; ``gcm plot RUN_DIR`` writes its plots; ``gcm query RUN_DIR --pose ...``
 prints the nearest reachable grasp of a run's manifold to a pose; ``gcm export
-RUN_DIR --format moveit | parquet | npz`` exports its grasps; ``gcm view RUN_DIR``
+RUN_DIR --format moveit | mcap | parquet | npz`` exports its grasps; ``gcm view RUN_DIR``
 opens a saved run in the live meshcat viewer (nothing is recomputed);
 ``gcm study STUDY --out DIR`` runs a placement study on Ray and writes the
 study directory; ``gcm robot SPEC`` prints what a robot spec configures (joints,

@@ -68,11 +68,21 @@ def _add_query(sub: Any, common: argparse.ArgumentParser) -> None:
 def _add_export(sub: Any, common: argparse.ArgumentParser) -> None:
     """``gcm export RUN_DIR --format ...``."""
     export = sub.add_parser(
-        "export", parents=[common], help="export a run's grasps (MoveIt YAML, Parquet, NPZ)"
+        "export",
+        parents=[common],
+        help="export a run's grasps (MoveIt YAML, ROS 2 bag, Parquet, NPZ)",
     )
     export.add_argument("run_dir", metavar="RUN_DIR", type=Path)
     export.add_argument(
-        "--format", required=True, choices=["moveit", "parquet", "npz"], help="export format"
+        "--format",
+        required=True,
+        choices=["moveit", "mcap", "parquet", "npz"],
+        help="export format (mcap: a ROS 2 bag)",
+    )
+    export.add_argument(
+        "--trajectory",
+        action="store_true",
+        help="moveit: each grasp with the arm's joint trajectory approach-grasp-retreat",
     )
     export.add_argument(
         "--top", type=int, metavar="N", help="only the N best-ranked reachable grasps"
@@ -273,7 +283,9 @@ def _cmd_query(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     from gcm_pipeline.pipeline.outputs import export_run
 
-    result = export_run(args.run_dir, args.format, top=args.top, out=args.out)
+    result = export_run(
+        args.run_dir, args.format, top=args.top, out=args.out, trajectory=args.trajectory
+    )
     if args.quiet:
         print(result.path)
     else:

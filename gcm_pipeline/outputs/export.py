@@ -1,11 +1,16 @@
-"""Exporters of a finished run: MoveIt grasps (YAML), Parquet, NPZ.
+"""Exporters of a finished run: MoveIt grasps (YAML), ROS 2 bag (MCAP), Parquet, NPZ.
 
 ========== ===================================================================
 format     file
 ========== ===================================================================
 ``moveit`` a YAML list of ``moveit_msgs/Grasp`` messages (ROS 2 field names:
            ``header.stamp.{sec, nanosec}``), one per reachable grasp, best
-           first; readable with any YAML parser, no ROS needed
+           first; readable with any YAML parser, no ROS needed; with
+           ``trajectory=True`` each also has a ``trajectory`` entry, the
+           arm's ``trajectory_msgs/JointTrajectory`` approach -> grasp -> retreat
+``mcap``   a ROS 2 bag in one MCAP file (:mod:`~gcm_pipeline.outputs.export_mcap`):
+           ``/grasps`` (``moveit_msgs/Grasp``), ``/grasp_trajectories``
+           (``JointTrajectory``), ``/scene_markers``, ``/tf_static``
 ``parquet`` the grasp table as in ``grasps.csv`` (same rows, same order, same
            column names; ``q`` one list column instead of ``q1 .. qN``), for
            pandas / polars / DuckDB; a cell empty in ``grasps.csv`` is null
@@ -14,17 +19,11 @@ format     file
            world poses of the grasp frame
 ========== ===================================================================
 
-``moveit_msgs/Grasp`` fields (from the message definition in moveit_msgs):
-``id``; ``pre_grasp_posture`` / ``grasp_posture`` (``trajectory_msgs/
-JointTrajectory`` of the hand's finger joints); ``grasp_pose``
-(``geometry_msgs/PoseStamped``); ``grasp_quality``; ``pre_grasp_approach``,
-``post_grasp_retreat``, ``post_place_retreat`` (``GripperTranslation``:
-``direction`` as a ``Vector3Stamped``, ``desired_distance``,
-``min_distance``); ``max_contact_force``; ``allowed_touch_objects``.
-
-Here ``grasp_pose`` is the pose of the robot spec's grasp frame (the Panda's
+The messages' mappings are built by :mod:`~gcm_pipeline.outputs.moveit_grasps`.
+In the YAML, ``grasp_pose`` is the pose of the robot spec's grasp frame (the Panda's
 ``panda_hand_tcp``) in the robot's root frame (``header.frame_id``, e.g.
-``panda_link0``): the pose the pipeline checked. MoveIt's pick pipeline reads
+``panda_link0``): the pose the pipeline checked; in the bag it is in ``world``
+(``/tf_static`` places the root frame). MoveIt's pick pipeline reads
 ``grasp_pose`` as the pose of the end effector's parent link; configure the
 end effector on the grasp frame, or offset the poses. ``grasp_quality`` is
 the run's ranking metric as the ranking counted it (``margin``: ``inf``, no
@@ -35,77 +34,66 @@ and never increases down the list: MoveIt's pick tries grasps in decreasing
 distance); ``post_grasp_retreat`` follows the config's ``retreat`` when the
 run has one, else the approach reversed. Finger postures use the gripper
 registry's finger joints when the robot's spec locks them (open as locked;
-closed to half the grasp's ``width`` per finger when known, else 0).
+closed to half the grasp's ``width`` per finger when known, else 0). The
+arm trajectories come from ``configurations.npz`` (``q_pregrasp``, ``q``,
+``q_retreat``), with the robot's joint names.
 """
 
 from __future__ import annotations
 
 import csv
-import math
 import os
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable
+from datetime import datetime
 from pathlib import Path
-from typing import Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.errors import InputError, OutputError, choice_error
-from gcm_pipeline.geometry.dualquat import dq_to_matrix, dq_to_pos_quat
+from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
+from gcm_pipeline.outputs import export_mcap
+from gcm_pipeline.outputs.moveit_grasps import MoveItOptions, arm_trajectory, grasp_messages
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
+from gcm_pipeline.rundir.arrays import read_npz
 from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
 from gcm_pipeline.rundir.run import objects_hint
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
 from gcm_pipeline.table import GraspTable
 
+if TYPE_CHECKING:
+    from gcm_pipeline.outputs.scene import SceneOptions
+
 __all__ = ["EXPORT_FORMATS", "ExportResult", "MoveItOptions", "RunConfig", "export_run"]
 
 #: Export formats and their default file names (inside the run directory).
-EXPORT_FORMATS = {"moveit": "grasps_moveit.yaml", "parquet": "grasps.parquet", "npz": "grasps.npz"}
+EXPORT_FORMATS = {
+    "moveit": "grasps_moveit.yaml",
+    "mcap": "grasps.mcap",
+    "parquet": "grasps.parquet",
+    "npz": "grasps.npz",
+}
 
-
-@dataclass(frozen=True, eq=False)
-class MoveItOptions:
-    """What a MoveIt export takes from the run's config and robot spec.
-
-    Attributes:
-        root_frame: The robot's root frame (``header.frame_id`` of the poses).
-        grasp_frame: The spec's grasp frame.
-        locked_joints: The spec's locked joints and their values [rad or m].
-        base_pose: The robot's base in the world (4, 4) [m].
-        metric: The run's ranking metric (``grasp_quality``).
-        approach_distance: The checked approach distance [m] (0: none).
-        retreat_direction: The retreat's direction (None: the approach reversed).
-        retreat_frame: ``world`` or ``grasp``: the frame of ``retreat_direction``.
-        retreat_distance: The retreat's distance [m].
-        finger_joints: The hand's finger joints among ``locked_joints`` (the
-            postures' joints; none: empty postures).
-        hand_frame: The hand's base link (the postures' frame; None: the grasp frame).
-    """
-
-    root_frame: str
-    grasp_frame: str
-    locked_joints: Mapping[str, float]
-    base_pose: np.ndarray
-    metric: str
-    approach_distance: float = 0.0
-    retreat_direction: tuple[float, float, float] | None = None
-    retreat_frame: str = "world"
-    retreat_distance: float = 0.0
-    finger_joints: tuple[str, ...] = ()
-    hand_frame: str | None = None
+#: Formats of the reachable grasps only, best first (``--top`` or not).
+_RANKED_ONLY = ("moveit", "mcap")
 
 
 class RunConfig(Protocol):
     """A run's ``config.yaml`` as an export takes it (:mod:`gcm_pipeline.pipeline` reads it)."""
 
-    #: The run's ranking metric.
-    ranking_metric: str
+    @property
+    def ranking_metric(self) -> str:
+        """The run's ranking metric."""
+        ...
 
     def moveit(self) -> MoveItOptions:
         """The MoveIt export's options (reads the run's robot spec)."""
+        ...
+
+    def scene(self) -> SceneOptions:
+        """The run's scene: its object, table and obstacles (the bag's markers)."""
         ...
 
 
@@ -128,27 +116,32 @@ def export_run(
     read_config: Callable[[Path], RunConfig],
     top: int | None = None,
     out: str | os.PathLike[str] | None = None,
+    trajectory: bool = False,
 ) -> ExportResult:
     """Export a run directory's grasps.
 
     Args:
         run_dir: A run directory written by ``gcm run``.
-        format: ``moveit``, ``parquet`` or ``npz``.
+        format: ``moveit``, ``mcap``, ``parquet`` or ``npz``.
         read_config: Reads the run's ``config.yaml`` (its path), e.g.
             :func:`gcm_pipeline.pipeline.outputs.read_run_config`.
-        top: Keep only the ``top`` best-ranked reachable grasps (moveit
-            always exports ranked grasps only; default all of them).
+        top: Keep only the ``top`` best-ranked reachable grasps (moveit and
+            mcap always export ranked grasps only; default all of them).
         out: The file to write (default: ``RUN_DIR/`` + the format's name in
             :data:`EXPORT_FORMATS`). Written atomically; a symbolic link is
             kept and the file it names is replaced.
+        trajectory: ``moveit``: give each grasp a ``trajectory`` entry, the
+            arm's joint trajectory approach -> grasp -> retreat.
 
     Returns:
         The file and the number of grasps written.
 
     Raises:
         InputError: Not a run directory, unknown format, ``top < 1``, ``out``
-            naming one of the run's own files, or no reachable grasp to
-            export (after an empty, valid file is written).
+            naming one of the run's own files, ``trajectory`` with another
+            format than ``moveit``, a missing or damaged ``configurations.npz``
+            (``mcap``, ``trajectory``), rosbags not installed (``mcap``), or no
+            reachable grasp to export (after an empty, valid file is written).
         ConfigError: The run's ``config.yaml`` is not a valid config.
         OutputError: The file cannot be written, or ``out`` is a directory, a
             device or a pipe.
@@ -157,6 +150,8 @@ def export_run(
         raise choice_error(InputError, "export format", format, EXPORT_FORMATS)
     if top is not None and top < 1:
         raise InputError(f"--top must be >= 1, got {top}")
+    if trajectory and format != "moveit":
+        raise InputError(f"--trajectory is for --format moveit (the {format} export has none)")
     run = Path(run_dir)
     if not (run / "grasps.csv").is_file() or not (run / "config.yaml").is_file():
         hint = objects_hint(run)
@@ -165,31 +160,88 @@ def export_run(
         raise OutputError(f"cannot write {os.fspath(out)}: a file name, not a folder, is needed")
     path = _output_file(Path(out) if out is not None else run / EXPORT_FORMATS[format])
     _check_not_the_run(run, path)
-    grasps = read_grasps_csv(run / "grasps.csv")  # file order: ranked first
+    everything = read_grasps_csv(run / "grasps.csv")  # file order: ranked first
     # the exact x..qz of the file (the dq column rebuilt from them may differ by an ulp)
-    grasps = grasps.with_columns(pose7=_csv_pose(run / "grasps.csv", len(grasps)))
+    grasps = everything.with_columns(pose7=_csv_pose(run / "grasps.csv", len(everything)))
     config = read_config(run / "config.yaml")
-    ranked = np.asarray(grasps["rank"]) > 0 if "rank" in grasps else np.zeros(len(grasps), bool)
-    if format == "moveit":  # from every ranked row, before --top keeps some
+    n = len(grasps)
+    ranked = np.asarray(grasps["rank"]) > 0 if "rank" in grasps else np.zeros(n, bool)
+    if format in _RANKED_ONLY:  # from every ranked row, before --top keeps some
         grasps = grasps.with_columns(
             grasp_quality=_grasp_quality(grasps, config.ranking_metric, run / "grasps.csv")
         )
-    if format == "moveit" or top is not None:
-        rows = np.flatnonzero(ranked)
-        if top is not None:
-            rows = rows[:top]
+    rows = np.arange(n)
+    if format in _RANKED_ONLY or top is not None:
+        rows = np.flatnonzero(ranked)[:top]
         grasps = grasps.take(rows)
     writers: dict[str, Callable[[GraspTable, Path], None]] = {
-        "moveit": lambda g, p: _write_moveit(g, config.moveit(), p),
         "parquet": _write_parquet,
         "npz": _write_npz,
     }
+    if format in _RANKED_ONLY:
+        moveit = config.moveit()
+        conf: dict[str, np.ndarray] | None = None
+        if format == "mcap" or trajectory:
+            conf = _configurations(run / "configurations.npz", n, moveit.joint_names, rows)
+        if format == "mcap":
+            export_mcap.check_rosbags()
+        writers["moveit"] = lambda g, p: _write_moveit(g, moveit, p, conf)
+        writers["mcap"] = lambda g, p: _write_mcap(
+            g, everything, conf or {}, moveit, config, p, run, path
+        )
     _atomic(path, lambda tmp: writers[format](grasps, tmp))
-    if (format == "moveit" or top is not None) and len(grasps) == 0:
+    if (format in _RANKED_ONLY or top is not None) and len(grasps) == 0:
         raise InputError(
             f"{run}: no reachable grasp to export; wrote an empty {format} file {path}"
         )
     return ExportResult(path, len(grasps))
+
+
+#: The configurations an arm trajectory takes from ``configurations.npz``.
+_TRAJECTORY_COLUMNS = ("q_pregrasp", "q", "q_retreat")
+
+
+def _configurations(
+    path: Path, n: int, joint_names: tuple[str, ...], rows: np.ndarray
+) -> dict[str, np.ndarray]:
+    """``q_pregrasp``, ``q``, ``q_retreat`` of ``configurations.npz`` at ``rows`` (K, nq).
+
+    Raises:
+        InputError: The file is missing, damaged, or its arrays are not
+            (grasps.csv rows, the robot's joints).
+    """
+    if not path.is_file():
+        raise InputError(
+            f"{path.parent}: no configurations.npz (the joint solutions the trajectories "
+            "need); run gcm run again",
+            path=path,
+        )
+    nq = len(joint_names)
+    arrays = read_npz(
+        path,
+        max_bytes=4 * 8 * max(n, 1) * max(nq, 1) + 4096,
+        keep=lambda name, shape, dtype: name in _TRAJECTORY_COLUMNS,
+    )
+    for name in _TRAJECTORY_COLUMNS:
+        a = arrays.get(name)
+        if a is None or a.shape != (n, nq) or a.dtype.kind != "f":
+            what = "missing" if a is None else f"{a.dtype} {a.shape}"
+            raise InputError(
+                f"{path}: array {name!r} is {what}; expected float ({n}, {nq}): one row per "
+                f"row of grasps.csv, one column per joint of the robot",
+                path=path,
+            )
+    return {name: arrays[name][rows] for name in _TRAJECTORY_COLUMNS}
+
+
+def _start_ns(run: Path) -> int:
+    """The run's creation time (its marker) [ns since the epoch]; 0 when unknown."""
+    created = (read_marker(run) or {}).get("created")
+    try:
+        when = datetime.fromisoformat(str(created).replace("Z", "+00:00"))
+    except ValueError:
+        return 0
+    return int(when.timestamp()) * 1_000_000_000 if when.tzinfo is not None else 0
 
 
 _POSE7 = ("x", "y", "z", "qw", "qx", "qy", "qz")
@@ -403,95 +455,55 @@ def _grasp_quality(g: GraspTable, metric: str, path: Path) -> np.ndarray:
     return value
 
 
-def _stamp() -> dict[str, int]:
-    return {"sec": 0, "nanosec": 0}
-
-
-def _header(frame: str) -> dict[str, Any]:
-    return {"stamp": _stamp(), "frame_id": frame}
-
-
-def _translation(frame: str, vector: np.ndarray, distance: float, min_distance: float) -> dict:
-    x, y, z = (float(v) for v in vector)
-    return {
-        "direction": {"header": _header(frame), "vector": {"x": x, "y": y, "z": z}},
-        "desired_distance": float(distance),
-        "min_distance": float(min_distance),
-    }
-
-
-def _posture(frame: str, joints: list[str], positions: list[float], t: float) -> dict:
-    points = []
-    if joints:
-        sec = int(math.floor(t))
-        points = [
-            {
-                "positions": [float(p) for p in positions],
-                "velocities": [],
-                "accelerations": [],
-                "effort": [],
-                "time_from_start": {"sec": sec, "nanosec": int(round((t - sec) * 1e9))},
-            }
-        ]
-    return {"header": _header(frame), "joint_names": list(joints), "points": points}
-
-
-def _write_moveit(g: GraspTable, options: MoveItOptions, path: Path) -> None:
-    root, tool = options.root_frame, options.grasp_frame
-    locked = dict(options.locked_joints)
-    base = options.base_pose
-    n = len(g)
-    world = dq_to_matrix(np.asarray(g["dq"], dtype=float).reshape(n, 8))
-    in_base = np.linalg.inv(base) @ world
-    pos = in_base[:, :3, 3]
-    quat = Rotation.from_matrix(in_base[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
-    metric = options.metric
-    quality = np.asarray(g["grasp_quality"], dtype=float)
-    width = np.asarray(g["width"], dtype=float) if "width" in g else np.full(n, np.nan)
-    joints = list(options.finger_joints)
-    open_pos = [float(locked[j]) for j in joints]
-    hand_frame = options.hand_frame or tool
-    d_app = options.approach_distance
-    if options.retreat_direction is not None:
-        direction = np.asarray(options.retreat_direction, dtype=float)
-        direction = direction / np.linalg.norm(direction)
-        if options.retreat_frame == "world":
-            retreat_frame, retreat_dir = root, np.linalg.inv(base)[:3, :3] @ direction
-        else:
-            retreat_frame, retreat_dir = tool, direction
-        d_ret = float(options.retreat_distance)
-    else:  # the approach reversed
-        retreat_frame, retreat_dir, d_ret = tool, np.array([0.0, 0.0, -1.0]), d_app
-    rank = np.asarray(g["rank"]) if "rank" in g else np.arange(1, n + 1)
-    grasps = []
-    for i in range(n):
-        closed = [0.5 * width[i] if np.isfinite(width[i]) else 0.0] * len(joints)
-        x, y, z = (float(v) for v in pos[i])
-        qx, qy, qz, qw = (float(v) for v in quat[i])
-        grasps.append(
-            {
-                "id": f"rank_{int(rank[i])}",
-                "pre_grasp_posture": _posture(hand_frame, joints, open_pos, 0.0),
-                "grasp_posture": _posture(hand_frame, joints, closed, 1.0),
-                "grasp_pose": {
-                    "header": _header(root),
-                    "pose": {
-                        "position": {"x": x, "y": y, "z": z},
-                        "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
-                    },
-                },
-                "grasp_quality": float(quality[i]),
-                "pre_grasp_approach": _translation(tool, np.array([0, 0, 1.0]), d_app, d_app),
-                "post_grasp_retreat": _translation(retreat_frame, retreat_dir, d_ret, d_ret),
-                "post_place_retreat": _translation("", np.zeros(3), 0.0, 0.0),
-                "max_contact_force": 0.0,
-                "allowed_touch_objects": [],
-            }
-        )
+def _write_moveit(
+    g: GraspTable,
+    options: MoveItOptions,
+    path: Path,
+    configurations: dict[str, np.ndarray] | None,
+) -> None:
+    """The YAML list of Grasp mappings; with ``configurations``, each with a ``trajectory``."""
+    grasps = grasp_messages(g, options)
+    if configurations is not None:
+        for i, grasp in enumerate(grasps):
+            q = [configurations[c][i] for c in _TRAJECTORY_COLUMNS]
+            grasp["trajectory"] = arm_trajectory(options, *q)
+    root, tool, metric = options.root_frame, options.grasp_frame, options.metric
     head = (
-        f"# moveit_msgs/Grasp list (ROS 2 field names), {n} grasps, best first.\n"
+        f"# moveit_msgs/Grasp list (ROS 2 field names), {len(g)} grasps, best first.\n"
         f"# grasp_pose: the grasp frame {tool!r} in the robot root frame {root!r};\n"
         f"# grasp_quality: the ranking metric {metric!r} (inf: the largest finite value).\n"
     )
+    if configurations is not None:
+        head += (
+            "# trajectory: the arm's trajectory_msgs/JointTrajectory (not a Grasp field):\n"
+            "# pre-grasp (0 s), grasp (1 s), retreat (2 s), nominal times.\n"
+        )
     text = yaml.safe_dump(grasps, sort_keys=False, default_flow_style=None, width=100)
     path.write_text(head + text, encoding="utf-8")
+
+
+def _write_mcap(
+    g: GraspTable,
+    everything: GraspTable,
+    configurations: dict[str, np.ndarray],
+    options: MoveItOptions,
+    config: RunConfig,
+    path: Path,
+    run: Path,
+    target: Path,
+) -> None:
+    """The ROS 2 bag (:func:`gcm_pipeline.outputs.export_mcap.write_mcap`) into ``path``.
+
+    ``target``: the file ``path`` becomes (the bag's metadata names it).
+    """
+    scene = config.scene()
+    export_mcap.write_mcap(
+        path,
+        g,
+        everything,
+        configurations,
+        options,
+        (scene.object, scene.table, scene.obstacles),
+        _start_ns(run),
+        target.name,
+    )

@@ -15,7 +15,7 @@ import numpy as np
 
 from gcm_pipeline.config.gripper_spec import gripper_registry
 from gcm_pipeline.config.reach_sections import ObstacleConfig, TableConfig
-from gcm_pipeline.config.robot_spec import load_spec
+from gcm_pipeline.config.robot_spec import load_robot, load_spec
 from gcm_pipeline.config.run import Config, load_config, takes_config
 from gcm_pipeline.config.sections import ObjectConfig
 from gcm_pipeline.geometry.clouds import PointCloud
@@ -151,10 +151,12 @@ class ConfigRunExport:
         """The MoveIt export's options of the config and its robot spec.
 
         Reads ``robot`` (the spec's root and grasp frames and locked joints,
-        ``base_pose``), ``ranking.metric``, ``approach`` and ``retreat``.
+        ``base_pose``, the model's arm joints), ``ranking.metric``, ``approach``
+        and ``retreat``.
         """
         cfg = self.config
         spec = load_spec(cfg.robot.spec, cfg.robot.tool)
+        robot = load_robot(cfg.robot.spec, cfg.robot.tool)
         retreat = cfg.retreat
         locked = set(spec.locked_joints)
         hand = next(  # a registry hand that the model carries, its fingers locked
@@ -177,7 +179,12 @@ class ConfigRunExport:
             retreat_distance=0.0 if retreat is None else retreat.distance,
             finger_joints=() if hand is None else hand.finger_joints,
             hand_frame=None if hand is None else hand.hand_frame,
+            joint_names=robot.joint_names,
         )
+
+    def scene(self) -> SceneOptions:
+        """The run's scene (:func:`scene_options`; no point clouds)."""
+        return scene_options(self.config)
 
 
 def read_run_config(path: Path) -> ConfigRunExport:
@@ -195,33 +202,38 @@ def export_run(
     *,
     top: int | None = None,
     out: str | os.PathLike[str] | None = None,
+    trajectory: bool = False,
 ) -> ExportResult:
-    """Export a run directory's grasps: MoveIt grasps (YAML), Parquet or NPZ.
+    """Export a run directory's grasps: MoveIt grasps (YAML), a ROS 2 bag, Parquet or NPZ.
 
     See :func:`gcm_pipeline.outputs.export.export_run` (the run's
     ``config.yaml`` is read by :func:`read_run_config`).
 
     Args:
         run_dir: A run directory written by ``gcm run``.
-        format: ``moveit``, ``parquet`` or ``npz``.
-        top: Keep only the ``top`` best-ranked reachable grasps (moveit
-            always exports ranked grasps only; default all of them).
+        format: ``moveit``, ``mcap``, ``parquet`` or ``npz``.
+        top: Keep only the ``top`` best-ranked reachable grasps (moveit and
+            mcap always export ranked grasps only; default all of them).
         out: The file to write (default: ``RUN_DIR/`` + the format's name in
             :data:`~gcm_pipeline.outputs.export.EXPORT_FORMATS`). Written
             atomically; a symbolic link is kept and the file it names is replaced.
+        trajectory: ``moveit``: each grasp with the arm's joint trajectory.
 
     Returns:
         The file and the number of grasps written.
 
     Raises:
         InputError: Not a run directory, unknown format, ``top < 1``, ``out``
-            naming one of the run's own files, or no reachable grasp to
+            naming one of the run's own files, no usable ``configurations.npz``
+            (mcap, trajectory), rosbags missing (mcap), or no reachable grasp to
             export (after an empty, valid file is written).
         ConfigError: The run's ``config.yaml`` is not a valid config.
         OutputError: The file cannot be written, or ``out`` is a directory, a
             device or a pipe.
     """
-    return export.export_run(run_dir, format, read_config=read_run_config, top=top, out=out)
+    return export.export_run(
+        run_dir, format, read_config=read_run_config, top=top, out=out, trajectory=trajectory
+    )
 
 
 def top_grasps(grasps: GraspTable, n: int, metric: str = "yoshikawa") -> list[dict[str, Any]]:

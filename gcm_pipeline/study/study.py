@@ -100,6 +100,21 @@ class Study:
                 config is invalid.
             OutputError: ``out_dir`` cannot hold this study.
         """
+        keep = self.check_inputs(force=force)
+        return StudyDir(out_dir).check(self.plan.key(), keep=keep)
+
+    def check_inputs(self, *, force: bool = False) -> list[Path]:
+        """The checks of :meth:`check` but the output directory's (``gcm validate``).
+
+        Returns:
+            The input files (the study file, the base config, the files each
+            object reads): the study directory must not hold them.
+
+        Raises:
+            ConfigError: The study is too large (without ``force``), or a placement
+                config is invalid.
+            InputError: An input file is missing or unreadable.
+        """
         grid, extra = self.size()
         limit = self.plan.spec.max_placements
         more = f" + up to {extra:,} from refinement" if extra else ""
@@ -130,7 +145,7 @@ class Study:
                         raise InputError(f"{where}: {key}: file not found: {path}")
             seen.add(p.object)
             keep += list(input_files(cfg).values())
-        return StudyDir(out_dir).check(self.plan.key(), keep=keep)
+        return keep
 
     def run(
         self,

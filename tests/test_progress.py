@@ -66,3 +66,54 @@ def test_bar_is_silent_off_a_terminal_and_when_disabled(monkeypatch, capsys):
     on.update(1)
     on.close()
     assert "study" in term.getvalue() and "2/3" in term.getvalue()
+
+
+def test_line_bar_off_a_terminal_prints_lines_while_nothing_finishes(monkeypatch, capsys):
+    """A study's placements: lines from a thread every interval, with rate, eta and postfix."""
+    import time
+
+    monkeypatch.setenv(progress.INTERVAL_ENV, "0.05")
+    b = progress.bar(48, "study", "placement", lines=True, initial=2)
+    assert isinstance(b, progress.LineBar)
+    time.sleep(0.2)  # nothing finished: lines all the same
+    b.update(10)
+    b.set_postfix_str("best 0.806 (#7)")
+    time.sleep(0.2)
+    b.close()
+    b.close()  # once only
+    lines = capsys.readouterr().err.splitlines()
+    assert re.fullmatch(r"study: 2/48 placements, none finished yet \(\d+ s\)", lines[0])
+    later = [ln for ln in lines if ln.startswith("study: 12/48")]
+    assert later and re.fullmatch(
+        r"study: 12/48 placements, [\d.,]+ placements/s, eta \d+ s, best 0\.806 \(#7\)",
+        later[0],
+    )
+    assert lines[-1] == later[-1] and len(lines) >= 4
+
+
+def test_line_bar_says_nothing_when_closed_before_its_first_line(monkeypatch, capsys):
+    monkeypatch.setenv(progress.INTERVAL_ENV, "60")
+    b = progress.bar(3, "study", "placement", lines=True)
+    b.update(3)
+    b.close()
+    assert capsys.readouterr().err == ""
+
+
+def test_the_interval_comes_from_the_environment_when_it_is_a_positive_number(monkeypatch):
+    for value, want in (("2.5", 2.5), ("0", 5.0), ("-1", 5.0), ("nan", 5.0), ("x", 5.0)):
+        monkeypatch.setenv(progress.INTERVAL_ENV, value)
+        assert progress.interval() == want
+    monkeypatch.delenv(progress.INTERVAL_ENV)
+    assert progress.interval() == progress.PROGRESS_INTERVAL_S
+
+
+def test_on_a_terminal_or_disabled_a_line_bar_is_never_made(monkeypatch, capsys):
+    off = progress.bar(3, "study", "placement", lines=True, enabled=False)
+    assert not isinstance(off, progress.LineBar) and off.disable
+    term = _Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    on = progress.bar(3, "study", "placement", lines=True)
+    assert not isinstance(on, progress.LineBar)
+    on.update(1)
+    on.close()
+    assert "1/3" in term.getvalue()

@@ -219,9 +219,11 @@ class Study:
         elif resumed and self._grid_done(store):
             # a resumed study whose grid is finished may have nothing left to run:
             # Ray starts only if a refinement round still has placements to run
-            executor = _Deferred(lambda: runner.RayExecutor(workers, address, warm))
+            executor = _Deferred(
+                lambda: runner.RayExecutor(workers, address, warm, progress=progress)
+            )
         else:
-            executor = runner.RayExecutor(workers, address, warm)
+            executor = runner.RayExecutor(workers, address, warm, progress=progress)
         run = StudyRun(self.plan, store, executor, progress=progress)
         try:
             store.create({"key": plan.key(), "created": time.time(), **plan.to_dict()})

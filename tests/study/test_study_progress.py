@@ -1,4 +1,4 @@
-"""gcm study without a terminal: Ray's start-up said as such, then a progress line every few seconds.
+"""gcm study off a terminal: Ray's start-up said as such, then a progress line every few s.
 
 A real study on Ray started on this machine, in a subprocess whose stderr is a
 pipe (no terminal), read line by line as it comes.

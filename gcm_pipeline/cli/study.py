@@ -1,4 +1,4 @@
-"""``gcm study STUDY --out DIR``: a placement study on Ray, and its printout."""
+"""``gcm study STUDY --out DIR`` (a placement study on Ray) and ``gcm validate STUDY``."""
 
 from __future__ import annotations
 

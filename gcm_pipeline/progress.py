@@ -75,8 +75,10 @@ def bar(
 
 
 def _rate(rate: float) -> str:
-    """``3.1`` (two significant digits below 10), ``41`` or ``4,100``."""
-    return f"{rate:,.0f}" if rate >= 10 else f"{rate:.2g}"
+    """``0.045``, ``3.1``, ``41`` or ``4,100``."""
+    if rate >= 10:
+        return f"{rate:,.0f}"
+    return f"{rate:.1f}" if rate >= 0.1 else f"{rate:.2g}"
 
 
 class LineBar:

@@ -137,6 +137,22 @@ def test_without_best_show_says_it_is_missing_and_the_others_say_so(cli, copy):
         assert_one_line_error(code, err, f"not a run directory: {copy}", "has no best/")
 
 
+def test_an_unfinished_study_says_so_and_how_to_finish_it(cli, copy):
+    path = copy / "summary.json"
+    summary = json.loads(path.read_text())
+    summary.update(complete=False)
+    summary["counts"].update(placements=9)
+    path.write_text(json.dumps(summary))
+    shutil.rmtree(copy / "best")
+    code, text, err = cli("show", copy)
+    assert code == 0, err
+    assert (
+        "  placements  6 of 9 finished (0 failed), 1 round(s); not complete: run the study "
+        "again to finish it\n"
+    ) in text
+    assert f"gcm study {summary['study']['source']} --out {copy} writes it" in text
+
+
 def test_without_placements_show_is_one_line(cli, copy):
     shutil.rmtree(copy / "placements")
     code, _, err = cli("show", copy)

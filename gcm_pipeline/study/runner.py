@@ -403,6 +403,17 @@ def _import_ray() -> Any:
     return ray
 
 
+def _starting_line(workers: int | None, address: str | None) -> str:
+    """``study: starting Ray (2 workers)...`` (or joining a cluster, or Ray already running)."""
+    running = sys.modules.get("ray")
+    if running is not None and running.is_initialized():
+        return "study: using the Ray this process runs already..."
+    if address is not None:
+        return f"study: joining the Ray cluster at {address}..."
+    n = workers or os.cpu_count() or 1
+    return f"study: starting Ray ({n} worker{'s' * (n != 1)})..."
+
+
 class RayExecutor(Executor):
     """Placements on Ray actors, one :class:`PlacementWorker` per CPU used.
 
@@ -434,14 +445,7 @@ class RayExecutor(Executor):
         if workers is not None and workers < 1:
             raise EngineError(f"--workers must be >= 1, got {workers}")
         t0 = time.perf_counter()
-        running = sys.modules.get("ray")
-        if running is not None and running.is_initialized():
-            note("study: using the Ray this process runs already...", enabled=progress)
-        elif address is None:
-            n = workers or os.cpu_count() or 1
-            note(f"study: starting Ray ({n} worker{'s' * (n != 1)})...", enabled=progress)
-        else:
-            note(f"study: joining the Ray cluster at {address}...", enabled=progress)
+        note(_starting_line(workers, address), enabled=progress)
         ray = self.ray = _import_ray()
         if address is not None:
             probe_address(address)

@@ -34,6 +34,16 @@ PROGRESS_INTERVAL_S = 5.0
 INTERVAL_ENV = "GCM_PROGRESS_INTERVAL_S"
 
 
+#: When this process last printed a progress line (``time.perf_counter``).
+_last_line = [0.0]
+
+
+def _say(text: str) -> None:
+    """Print a progress line on stderr and note when."""
+    _last_line[0] = time.perf_counter()
+    print(text, file=sys.stderr, flush=True)
+
+
 def interval() -> float:
     """Seconds between progress lines off a terminal (``GCM_PROGRESS_INTERVAL_S`` or the default).
 
@@ -53,7 +63,14 @@ def note(text: str, *, enabled: bool = True) -> None:
 
 
 def bar(
-    total: int, desc: str, unit: str, *, enabled: bool = True, lines: bool = False, **options: Any
+    total: int,
+    desc: str,
+    unit: str,
+    *,
+    enabled: bool = True,
+    lines: bool = False,
+    stages: bool = False,
+    **options: Any,
 ) -> Any:
     """A tqdm bar on stderr, shown when ``enabled`` and stderr is a terminal.
 
@@ -67,10 +84,12 @@ def bar(
         unit: What an item is (``"stage"``, ``"placement"``).
         enabled: False: never shown.
         lines: Off a terminal, print progress lines (:class:`LineBar`).
+        stages: The lines name the running stage (its postfix) instead of a rate.
         **options: Further tqdm options (``leave``, ``initial``, ``unit_scale``, ...).
     """
     if enabled and lines and not sys.stderr.isatty():
-        return LineBar(total, desc, unit, initial=int(options.get("initial", 0)))
+        initial = int(options.get("initial", 0))
+        return LineBar(total, desc, unit, initial=initial, stages=stages)
     return tqdm(total=total, desc=desc, unit=unit, disable=not enabled or None, **options)
 
 
@@ -93,20 +112,30 @@ class LineBar:
     study uses: ``update``, ``total``, ``n``, ``set_postfix_str``, ``refresh``,
     ``close``.
 
+    With ``stages`` the items are a run's stages, too unequal for a rate: the
+    lines name a stage that has run for an interval (the postfix) and for how
+    long, ``gcm: stage 9/9 (publish) for 5 s``; short stages print nothing,
+    and none comes within an interval of another progress line (the
+    reachability stage prints its own).
+
     Args:
         total: Number of items.
         desc: Label of the lines.
         unit: What an item is (the lines say ``units``).
         initial: Items already done when it starts.
+        stages: The items are stages (see above).
     """
 
-    def __init__(self, total: int, desc: str, unit: str, *, initial: int = 0) -> None:
+    def __init__(
+        self, total: int, desc: str, unit: str, *, initial: int = 0, stages: bool = False
+    ) -> None:
+        self.stages = stages
         self.total = int(total)
         self.n = self.initial = int(initial)
         self.desc, self.unit = desc, unit
         self.postfix = ""
         self.lines = 0
-        self.start = time.perf_counter()
+        self.start = self._stage_start = time.perf_counter()
         self._stop = threading.Event()
         self._every = max(interval(), 0.05)
         self._thread = threading.Thread(target=self._tick, name="gcm-progress", daemon=True)
@@ -114,17 +143,28 @@ class LineBar:
 
     def _tick(self) -> None:
         while not self._stop.wait(self._every):
-            self._print()
+            if not self.stages:
+                self._print()
+                continue
+            now, enough = time.perf_counter(), 0.9 * self._every
+            if now - self._stage_start >= enough and now - _last_line[0] >= enough:
+                self._print()  # a long stage, and no other progress line meanwhile
 
     def _print(self) -> None:
         self.lines += 1
-        print(self.line(), file=sys.stderr, flush=True)
+        _say(self.line())
 
     def line(self) -> str:
         """The current line."""
         elapsed = max(time.perf_counter() - self.start, 1e-9)
         done = self.n - self.initial
         units = f"{self.unit}s"
+        if self.stages:
+            if self.n >= self.total:
+                return f"{self.desc}: {self.n}/{self.total} {units} in {elapsed:.1f} s"
+            running = f" ({self.postfix})" if self.postfix else ""
+            took = time.perf_counter() - self._stage_start
+            return f"{self.desc}: {self.unit} {self.n + 1}/{self.total}{running} for {took:.0f} s"
         text = f"{self.desc}: {self.n:,}/{self.total:,} {units}"
         if done <= 0:
             text += f", none finished yet ({elapsed:.0f} s)"
@@ -140,8 +180,9 @@ class LineBar:
         self.n += count
 
     def set_postfix_str(self, text: str) -> None:
-        """Text appended to the lines (``best 0.806 (#7)``)."""
+        """Text appended to the lines (``best 0.806 (#7)``); with ``stages``, the stage begun."""
         self.postfix = text
+        self._stage_start = time.perf_counter()
 
     def refresh(self) -> None:
         """Nothing to redraw (a tqdm method)."""
@@ -199,7 +240,7 @@ class Reporter:
         if now - self.last >= self.every and self.done < self.total:
             self.last = now
             self.lines += 1
-            print(self.line(now), file=sys.stderr, flush=True)
+            _say(self.line(now))
 
     def line(self, now: float | None = None) -> str:
         """``reachability: 12,000/56,294 poses (21 %), 4,100 poses/s, ETA 11 s``."""
@@ -222,7 +263,7 @@ class Reporter:
         if self.bar is not None:
             self.bar.close()
         elif self.lines:
-            print(self.line(), file=sys.stderr, flush=True)
+            _say(self.line())
 
     def __enter__(self) -> Reporter:
         return self

@@ -167,7 +167,8 @@ class Study:
             address: An existing Ray cluster to join (``HOST:PORT``,
                 ``ray://HOST:PORT`` or ``auto``); None starts Ray here.
             force: Run a study larger than its ``max_placements``.
-            progress: Show a progress bar over the placements.
+            progress: Show a progress bar over the placements (off a terminal: a line
+                every few seconds, and one each when Ray starts and is ready).
             engine: ``ray``, or ``inline`` (this process, one placement after
                 the other: the reference for Ray's overhead).
             best_run: Write ``best/``, the full run directory of the best placement.

@@ -2,8 +2,9 @@
 
 ``gcm run CONFIG`` runs the whole pipeline and writes the run directory;
 ``gcm validate CONFIG`` only checks a config; ``gcm schema`` prints the
-config's JSON Schema; ``gcm show RUN_DIR`` prints the top-ranked grasps of a
-run; ``gcm plot RUN_DIR`` writes its plots; ``gcm query RUN_DIR --pose ...``
+config's JSON Schema (``gcm validate STUDY`` checks a study file); ``gcm show
+RUN_DIR`` prints the top-ranked grasps of a run (or a study directory's
+summary); ``gcm plot RUN_DIR`` writes its plots; ``gcm query RUN_DIR --pose ...``
 prints the nearest reachable grasp of a run's manifold to a pose; ``gcm export
 RUN_DIR --format moveit | mcap | parquet | npz`` exports its grasps; ``gcm view RUN_DIR``
 opens a saved run in the live meshcat viewer (nothing is recomputed);
@@ -16,8 +17,9 @@ User errors (:class:`~gcm_pipeline.errors.GcmError`) print one line
 with ``--debug``); anything else is a bug and keeps its traceback.
 
 The commands live in :mod:`~gcm_pipeline.cli.run` (run, validate, schema),
-:mod:`~gcm_pipeline.cli.results` (show, plot, query, export, view),
-:mod:`~gcm_pipeline.cli.study` and :mod:`~gcm_pipeline.cli.robot`; each adds
+:mod:`~gcm_pipeline.cli.results` (show, plot, query, export, view; on a study
+directory :mod:`~gcm_pipeline.cli.study_dir`), :mod:`~gcm_pipeline.cli.study`
+(study, and validate of a study file) and :mod:`~gcm_pipeline.cli.robot`; each adds
 its subparsers and imports its heavy libraries only when it runs, so that
 ``gcm --help`` starts without NumPy, SciPy or Pinocchio.
 """

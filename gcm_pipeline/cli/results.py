@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from gcm_pipeline.cli.common import cloud_line, format_top, show_in_viewer
+from gcm_pipeline.cli.study_dir import best_run_for, is_study_dir, show_study
 from gcm_pipeline.errors import GcmError
 
 
@@ -26,9 +27,19 @@ def add_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
 
 def _add_show(sub: Any, common: argparse.ArgumentParser) -> None:
     """``gcm show RUN_DIR``."""
-    show = sub.add_parser("show", parents=[common], help="print the top grasps of a run")
-    show.add_argument("run_dir", metavar="RUN_DIR", type=Path)
-    show.add_argument("--top", type=int, default=10, metavar="N", help="rows to show (10)")
+    show = sub.add_parser(
+        "show",
+        parents=[common],
+        help="print the top grasps of a run, or the summary of a study directory",
+        description="A run directory: its counts and top-ranked grasps. A study directory "
+        "(gcm study --out DIR): its placements, coverage, best placement, engine and "
+        "timings, the top placements by coverage and where best/ (the best placement's "
+        "run), study.html and coverage.png are.",
+    )
+    show.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="run or study directory")
+    show.add_argument(
+        "--top", type=int, default=10, metavar="N", help="rows (grasps or placements) to show (10)"
+    )
 
 
 def _add_plot(sub: Any, common: argparse.ArgumentParser) -> None:
@@ -45,9 +56,11 @@ def _add_query(sub: Any, common: argparse.ArgumentParser) -> None:
         help="nearest reachable grasp of a run's manifold to a pose",
         description="Find the grasp of the run's continuous manifold nearest to each pose "
         "that the robot reaches (IK, collisions and approach as in the run) and print it "
-        "with its joint solution. Distances: position [m] plus 0.1 m per radian of rotation.",
+        "with its joint solution. Distances: position [m] plus 0.1 m per radian of rotation. "
+        "Given a study directory, the query runs on its best placement's run (best/), with a "
+        "note on stderr.",
     )
-    query.add_argument("run_dir", metavar="RUN_DIR", type=Path)
+    query.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="run (or study) directory")
     query.add_argument(
         "--pose",
         nargs=7,
@@ -135,6 +148,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
     if args.top < 0:
         raise GcmError(f"--top must be >= 0, got {args.top}", key="--top", value=args.top)
+    if is_study_dir(args.run_dir):
+        return show_study(args.run_dir, args.top)
     run = read_run(args.run_dir)
     counts = run.summary.get("counts", {})
     metric = run.summary.get("ranking", {}).get("metric", "yoshikawa")
@@ -226,7 +241,8 @@ def _cmd_query(args: argparse.Namespace) -> int:
     from gcm_pipeline.geometry.dualquat import dq_to_pos_quat
     from gcm_pipeline.pipeline import load_manifold
 
-    with load_manifold(args.run_dir) as manifold:
+    run_dir = best_run_for(args.run_dir, "query")
+    with load_manifold(run_dir) as manifold:
         poses = _query_poses(args.pose, args.frame, manifold.config)
         answer = manifold.nearest_reachable(poses)
     pos, quat = dq_to_pos_quat(np.nan_to_num(answer.dq))
@@ -255,7 +271,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
         return 0
     reach = np.asarray(manifold.grasps.get("reachable", np.zeros(0, bool)), dtype=bool)
     print(
-        f"run {args.run_dir} ({len(manifold)} triangles, {int(reach.sum())} of "
+        f"run {run_dir} ({len(manifold)} triangles, {int(reach.sum())} of "
         f"{len(manifold.grasps)} rows reachable)"
     )
     for i, item in enumerate(items, start=1):

@@ -51,8 +51,15 @@ def _add_run(sub: Any, common: argparse.ArgumentParser) -> None:
 
 def _add_validate(sub: Any, common: argparse.ArgumentParser) -> None:
     """``gcm validate CONFIG``."""
-    val = sub.add_parser("validate", parents=[common], help="check a config and print it")
-    val.add_argument("config", metavar="CONFIG", type=Path)
+    val = sub.add_parser(
+        "validate",
+        parents=[common],
+        help="check a config (or a study file) and print it",
+        description="Check a run config and print it resolved, or check a study file (its "
+        "sweep, its base config, the first placement of each object) and print what "
+        "gcm study would run. The kind is told by the keys: base/sweep make a study file.",
+    )
+    val.add_argument("config", metavar="CONFIG", type=Path, help="run config or study file")
     val.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[])
     _add_target(val)
 
@@ -225,8 +232,13 @@ def _run_objects(args: argparse.Namespace, cfg: Any) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
+    from gcm_pipeline.cli.study import validate_study
     from gcm_pipeline.config.objects import TARGET_ALL
-    from gcm_pipeline.config.run import load_config
+    from gcm_pipeline.config.run import load_config, read_yaml
+    from gcm_pipeline.config.study import file_kind
+
+    if file_kind(read_yaml(args.config), str(args.config)) == "study":
+        return validate_study(args)
     from gcm_pipeline.pipeline import place_file_object, preflight, target_config
     from gcm_pipeline.pipeline.objects import target_names
     from gcm_pipeline.robot import kernels

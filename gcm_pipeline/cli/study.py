@@ -1,4 +1,4 @@
-"""``gcm study STUDY --out DIR``: a placement study on Ray, and its printout."""
+"""``gcm study STUDY --out DIR`` (a placement study on Ray) and ``gcm validate STUDY``."""
 
 from __future__ import annotations
 
@@ -135,6 +135,101 @@ def _cmd_study(args: argparse.Namespace) -> int:
     print(f"  reproduce   {best['command']}")
     print(f"study directory: {result.out_dir}")
     print("  " + ", ".join(p.name + ("/" if p.is_dir() else "") for p in result.files))
+    return 0
+
+
+def _axis_text(name: str, spec: Any) -> str:
+    """``x 7 values 0.2 .. 0.8`` (a range) or ``yaw_deg [0, 20]`` (a list)."""
+    from gcm_pipeline.config.study import RangeSpec
+
+    if isinstance(spec, RangeSpec):
+        if spec.steps == 1:
+            return f"{name} [{spec.start:g}]"
+        return f"{name} {spec.steps} values {spec.start:g} .. {spec.to:g}"
+    return f"{name} [{', '.join(f'{v:g}' for v in spec)}]"
+
+
+def _sweep_lines(plan: Any) -> list[str]:
+    """One ``#   sweep`` line per swept pose, and the objects."""
+    from gcm_pipeline.config.study import AXES, BoxRegion
+
+    sweep = plan.spec.sweep
+    lines = []
+    for key in ("object_pose", "base_pose"):
+        pose = getattr(sweep, key)
+        if pose is None:
+            continue
+        cells = [_axis_text(a, getattr(pose, a)) for a in AXES if getattr(pose, a) is not None]
+        if isinstance(pose.region, BoxRegion):
+            cells.append(f"region box {list(pose.region.min)} .. {list(pose.region.max)}")
+        elif pose.region is not None:
+            cells.append(f"region {pose.region}")
+        lines.append(f"#   {key:<12}{'; '.join(cells)}")
+    names = plan.object_names
+    lines.append(f"#   {'objects':<12}{', '.join(names)}")
+    return lines
+
+
+def _placements_line(study: Any) -> str:
+    """``#   placements  98 (of 98 combinations) + up to ...; max_placements 200``."""
+    plan = study.plan
+    grid, extra = study.size()
+    combos = len(plan.object_names)
+    for pose in (plan.spec.sweep.object_pose, plan.spec.sweep.base_pose):
+        if pose is not None:
+            combos *= math.prod(len(v) for v in pose.axes().values())
+    text = f"#   placements  {grid:,}"
+    if combos != grid:
+        text += f" (of {combos:,} combinations; the others lie outside the region)"
+    refine = plan.spec.refine
+    if extra and refine is not None:
+        rounds = plan.refine_rounds()
+        text += f" + up to {extra:,} from refinement ({rounds} round(s), shrink {refine.shrink:g})"
+    limit = plan.spec.max_placements
+    if grid + extra > limit:
+        return text + f"; more than max_placements {limit:,}: gcm study needs --force"
+    return text + f"; max_placements {limit:,}"
+
+
+def validate_study(args: argparse.Namespace) -> int:
+    """``gcm validate STUDY``: check a study file and print what ``gcm study`` would run.
+
+    The study file, its base config with the study's ``set``, the first
+    placement of each object (``gcm run``'s preflight once: robot, meshes,
+    files) and the size limits are checked as ``gcm study`` checks them
+    before any work; the study directory is not.
+    """
+    import yaml
+
+    from gcm_pipeline.robot import kernels
+    from gcm_pipeline.study import Study
+
+    given = [f for f, v in (("--set", args.overrides), ("--target", args.target)) if v]
+    if given:
+        raise GcmError(
+            f"{given[0]}: {args.config} is a study file; give its overrides in its 'set' key "
+            "(per object: sweep.objects[].set)",
+            key=given[0],
+        )
+    study = Study.from_yaml(args.config)
+    with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
+        study.check_inputs(force=True)
+    plan = study.plan
+    base = str(plan.base_path) if plan.base_path else "inline"
+    print(f"# {args.config}: ok (a study file)")
+    sets = f", set: {', '.join(plan.spec.set)}" if plan.spec.set else ""
+    print(f"#   base        {base} (a valid run config{sets})")
+    print("\n".join(_sweep_lines(plan)))
+    print(_placements_line(study))
+    cfg = plan.base_config
+    robot = cfg.robot.spec + (f" with {cfg.robot.tool}" if cfg.robot.tool else "")
+    print(f"#   robot       {robot}, ik {cfg.ik.backend}, ranking {cfg.ranking.metric}")
+    print(f"#   run it      gcm study {args.config} --out DIR")
+    print("# the study (base path absolute):")
+    data = plan.spec.model_dump(mode="json", by_alias=True, exclude_none=True)
+    if plan.base_path is not None:
+        data["base"] = str(plan.base_path)
+    print(yaml.safe_dump(data, sort_keys=False, default_flow_style=None), end="")
     return 0
 
 

@@ -26,6 +26,7 @@ position in the world, ``yaw_deg`` [deg] the yaw of the pose's roll-pitch-yaw.
 from __future__ import annotations
 
 import collections
+import difflib
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -36,7 +37,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 
 from gcm_pipeline.bounds import MAX_LENGTH, MAX_RANGE_STEPS
-from gcm_pipeline.config.run import read_yaml
+from gcm_pipeline.config.run import Config, read_yaml
 from gcm_pipeline.config.validation import describe
 from gcm_pipeline.errors import ConfigError, clip
 
@@ -52,6 +53,7 @@ __all__ = [
     "StudyFile",
     "StudySpec",
     "Sweep",
+    "file_kind",
     "parse_study",
     "read_study",
     "rounded",
@@ -238,6 +240,45 @@ def rounded(values: Iterable[float]) -> list[float]:
 
 
 # ------------------------------------------------------------------ reading
+
+#: The keys only a study file has at its top (``set``, ``refine``, ``max_placements`` too).
+STUDY_MARKS = ("base", "sweep")
+
+
+def file_kind(data: Any, name: str) -> Literal["run", "study"]:
+    """Whether a YAML document is a run config or a study file (``gcm validate``).
+
+    A mapping with ``base`` or ``sweep`` is a study file (a wrong key in it is
+    then reported as the study's); one with any run config section a run
+    config; one with only the study's other keys (``set``, ``refine``,
+    ``max_placements``) a study file missing its ``base``; one whose keys are
+    close to one kind's (``candidats``) that kind, so that its message names
+    the key meant.
+
+    Raises:
+        ConfigError: Neither: ``<name>: neither a run config nor a study file
+            (tried both: ...)``, with the keys found.
+    """
+    if isinstance(data, dict) and data:
+        keys = {str(k) for k in data}
+        if keys & set(STUDY_MARKS):
+            return "study"
+        if keys & set(Config.model_fields):
+            return "run"
+        if keys & set(StudySpec.model_fields):
+            return "study"
+        # a misspelt key ('candidats') is reported by its kind, with the key it meant
+        for kind, valid in (("run", Config.model_fields), ("study", StudySpec.model_fields)):
+            if any(difflib.get_close_matches(k, list(valid), n=1, cutoff=0.8) for k in keys):
+                return kind  # type: ignore[return-value]
+        got = f"its keys: {', '.join(sorted(keys)[:8])}"
+    else:
+        got = "it is empty" if data in (None, {}) else f"it holds {clip(data)}"
+    raise ConfigError(
+        f"{name}: neither a run config nor a study file (tried both: a run config is a "
+        f"mapping of sections such as robot, object, candidates; a study file has base and "
+        f"sweep); {got}"
+    )
 
 
 def _special(err: dict[str, Any], key: str, loc: list[Any]) -> str | None:

@@ -241,8 +241,10 @@ class Pipeline:
         names = [n for n in STEPS if write or n not in WRITE_STEPS]
         expected = iter(names)
         # one bar over the stages (the slow ones, IK and publishing, take seconds);
-        # hidden when stderr is not a terminal
-        bar = progress_bar(len(names), "gcm", "stage", enabled=progress, leave=False)
+        # when stderr is not a terminal, a line naming the running stage every few seconds
+        bar = progress_bar(
+            len(names), "gcm", "stage", enabled=progress, leave=False, lines=True, stages=True
+        )
 
         @contextmanager
         def stage(name: str) -> Iterator[None]:

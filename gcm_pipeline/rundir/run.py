@@ -35,6 +35,7 @@ from gcm_pipeline.rundir.arrays import (
     write_solutions,
 )
 from gcm_pipeline.rundir.grasps_csv import read_grasps_csv, write_grasps_csv
+from gcm_pipeline.rundir.transaction import is_project_dir
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -142,7 +143,23 @@ class RunData(NamedTuple):
 
 
 def objects_hint(run_dir: Path) -> str:
-    """What a ``target: all`` folder holds, for a 'not a run directory' message ('' if not one)."""
+    """What the folder is instead, for a 'not a run directory' message ('' if nothing known).
+
+    A ``target: all`` folder: its runs per object. A study directory (marker
+    kind ``study``): where its best placement's run is (``best/``), or that
+    it has none yet, and ``gcm show`` for the study itself.
+    """
+    if is_project_dir(run_dir, "study"):
+        best = run_dir / "best"
+        if is_project_dir(best, "run"):
+            return (
+                f"; it is a study directory: its best placement's run is {best} "
+                f"(gcm show {run_dir} summarises the study)"
+            )
+        return (
+            f"; it is a study directory and has no best/ (the best placement's run) yet: the "
+            f"study did not finish or ran with --no-best (gcm show {run_dir} summarises it)"
+        )
     runs = sorted(p.parent.name for p in (run_dir / "objects").glob("*/grasps.csv"))
     return f"; it holds one run per object in objects/: {', '.join(runs)}" if runs else ""
 
@@ -172,6 +189,8 @@ def read_run(run_dir: str | Path) -> RunData:
     missing = [
         f for f in ("grasps.csv", "summary.json", "manifold.npz") if not (run_dir / f).is_file()
     ]
+    if is_project_dir(run_dir, "study"):  # its files are not what it lacks
+        raise InputError(f"not a run directory: {run_dir}{objects_hint(run_dir)}", path=run_dir)
     if missing:
         hint = objects_hint(run_dir)
         raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}{hint}")

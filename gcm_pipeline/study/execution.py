@@ -27,6 +27,7 @@ from gcm_pipeline.config.run import Config
 from gcm_pipeline.errors import GcmError
 from gcm_pipeline.pipeline import Pipeline
 from gcm_pipeline.progress import bar as progress_bar
+from gcm_pipeline.progress import note
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.rundir import transaction
@@ -222,6 +223,7 @@ class StudyRun:
             enabled=self.progress,
             initial=sum(1 for p in grid if p.id in self.rows),
             dynamic_ncols=True,
+            lines=True,  # off a terminal: a line every few seconds
         )
         try:
             self.placements = list(grid)
@@ -451,7 +453,7 @@ class StudyRun:
                 old = None
             if old == run_files.json_clean(cfg.to_dict()):
                 return out
-        log.info("study: writing best/ (placement %s)", best["id"])
+        note(f"study: writing best/, the run of placement #{best['id']}", enabled=self.progress)
         Pipeline(cfg, source=self.plan.base_path).run(out, progress=self.progress, force=True)
         return out
 

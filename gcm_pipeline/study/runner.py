@@ -33,6 +33,7 @@ from urllib.parse import urlsplit
 
 from gcm_pipeline import interrupts
 from gcm_pipeline.errors import GcmError
+from gcm_pipeline.progress import note
 from gcm_pipeline.study.worker import PlacementWorker
 
 __all__ = [
@@ -402,6 +403,17 @@ def _import_ray() -> Any:
     return ray
 
 
+def _starting_line(workers: int | None, address: str | None) -> str:
+    """``study: starting Ray (2 workers)...`` (or joining a cluster, or Ray already running)."""
+    running = sys.modules.get("ray")
+    if running is not None and running.is_initialized():
+        return "study: using the Ray this process runs already..."
+    if address is not None:
+        return f"study: joining the Ray cluster at {address}..."
+    n = workers or os.cpu_count() or 1
+    return f"study: starting Ray ({n} worker{'s' * (n != 1)})..."
+
+
 class RayExecutor(Executor):
     """Placements on Ray actors, one :class:`PlacementWorker` per CPU used.
 
@@ -411,6 +423,9 @@ class RayExecutor(Executor):
         address: An existing Ray cluster (``HOST:PORT``, ``ray://HOST:PORT``,
             ``auto``); None starts Ray on this machine for this study.
         warm: The base config dict each actor builds its robot from at start.
+        progress: Say on stderr that Ray starts (``study: starting Ray (2
+            workers)...``) and when it is ready (``study: Ray ready in 6.2 s``,
+            its workers' robots built).
 
     Raises:
         EngineError: The cluster cannot be reached, or it (without ``address``:
@@ -424,10 +439,13 @@ class RayExecutor(Executor):
         workers: int | None = None,
         address: str | None = None,
         warm: dict[str, Any] | None = None,
+        *,
+        progress: bool = False,
     ) -> None:
         if workers is not None and workers < 1:
             raise EngineError(f"--workers must be >= 1, got {workers}")
         t0 = time.perf_counter()
+        note(_starting_line(workers, address), enabled=progress)
         ray = self.ray = _import_ray()
         if address is not None:
             probe_address(address)
@@ -486,6 +504,11 @@ class RayExecutor(Executor):
             self.close()
             raise
         self.startup_s = time.perf_counter() - t0
+        note(
+            f"study: Ray ready in {self.startup_s:.1f} s ({self.workers} worker"
+            f"{'s' * (self.workers != 1)} on {self.nodes} node{'s' * (self.nodes != 1)})",
+            enabled=progress,
+        )
 
     def _new_actor(self) -> Any:
         return self._actor_cls.remote(self._warm)

@@ -100,6 +100,21 @@ class Study:
                 config is invalid.
             OutputError: ``out_dir`` cannot hold this study.
         """
+        keep = self.check_inputs(force=force)
+        return StudyDir(out_dir).check(self.plan.key(), keep=keep)
+
+    def check_inputs(self, *, force: bool = False) -> list[Path]:
+        """The checks of :meth:`check` but the output directory's (``gcm validate``).
+
+        Returns:
+            The input files (the study file, the base config, the files each
+            object reads): the study directory must not hold them.
+
+        Raises:
+            ConfigError: The study is too large (without ``force``), or a placement
+                config is invalid.
+            InputError: An input file is missing or unreadable.
+        """
         grid, extra = self.size()
         limit = self.plan.spec.max_placements
         more = f" + up to {extra:,} from refinement" if extra else ""
@@ -130,7 +145,7 @@ class Study:
                         raise InputError(f"{where}: {key}: file not found: {path}")
             seen.add(p.object)
             keep += list(input_files(cfg).values())
-        return StudyDir(out_dir).check(self.plan.key(), keep=keep)
+        return keep
 
     def run(
         self,
@@ -152,7 +167,8 @@ class Study:
             address: An existing Ray cluster to join (``HOST:PORT``,
                 ``ray://HOST:PORT`` or ``auto``); None starts Ray here.
             force: Run a study larger than its ``max_placements``.
-            progress: Show a progress bar over the placements.
+            progress: Show a progress bar over the placements (off a terminal: a line
+                every few seconds, and one each when Ray starts and is ready).
             engine: ``ray``, or ``inline`` (this process, one placement after
                 the other: the reference for Ray's overhead).
             best_run: Write ``best/``, the full run directory of the best placement.
@@ -204,9 +220,11 @@ class Study:
         elif resumed and self._grid_done(store):
             # a resumed study whose grid is finished may have nothing left to run:
             # Ray starts only if a refinement round still has placements to run
-            executor = _Deferred(lambda: runner.RayExecutor(workers, address, warm))
+            executor = _Deferred(
+                lambda: runner.RayExecutor(workers, address, warm, progress=progress)
+            )
         else:
-            executor = runner.RayExecutor(workers, address, warm)
+            executor = runner.RayExecutor(workers, address, warm, progress=progress)
         run = StudyRun(self.plan, store, executor, progress=progress)
         try:
             store.create({"key": plan.key(), "created": time.time(), **plan.to_dict()})

@@ -488,7 +488,7 @@ def test_gcm_study_on_a_full_file_system_is_one_line(tiny_tmpfs, tmp_path, capsy
     code = (
         "import sys\n"
         "from gcm_pipeline.study import runner\n"
-        "runner.RayExecutor = lambda workers, address, warm: runner.InlineExecutor(warm)\n"
+        "runner.RayExecutor = lambda workers, address, warm, **_: runner.InlineExecutor(warm)\n"
         "from gcm_pipeline.cli import main\n"
         f"sys.exit(main(['study', {str(path)!r}, '--out', {str(out)!r}, '-q', '--no-best']))\n"
     )

@@ -21,7 +21,9 @@ import zmq
 
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
+from gcm_pipeline.outputs.robot_view import RobotPoser
 from gcm_pipeline.outputs.scene import PublishOptions, SceneInfo, build_scene
+from gcm_pipeline.outputs.scene_page import set_tour
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
 
@@ -296,6 +298,8 @@ def open_viewer(
         window = _ZmqWindow(zmq_url, web_url, max(timeout, 60.0))
         vis = load_meshcat().Visualizer(window=window)
         info = build_scene(vis, grasps, manifold, robot, options.scene)
+        if robot is not None:
+            info, _ = set_tour(vis, grasps, RobotPoser(robot), options.scene, info)
     except BaseException:
         if window is not None:
             window.close()

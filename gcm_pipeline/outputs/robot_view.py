@@ -259,8 +259,9 @@ def tour_keys(
         if show_pre:
             assert pre is not None
             keys += [(frame, pre), (frame + _ANIM_REST, pre)]
-            frame = _interpolate(keys, frame + _ANIM_REST, pre, q)
-        keys.append((frame, q))
+            frame = _interpolate(keys, frame + _ANIM_REST, pre, q)  # ends on (frame, q)
+        else:
+            keys.append((frame, q))
         frame += _ANIM_HOLD
         keys.append((frame, q))
         if show_ret:

@@ -118,20 +118,26 @@ def _layer(
 # -- the tour -------------------------------------------------------------------------
 
 
-def _ranked_rows(grasps: GraspTable) -> np.ndarray:
-    """Rows of the reachable grasps with a finite ``q``, best first (by ``rank``)."""
+def _ranked_rows(grasps: GraspTable, posable: bool = True) -> np.ndarray:
+    """Rows of the reachable grasps best first (by ``rank``; then the unranked ones).
+
+    With ``posable`` only rows with a finite ``q`` (none without the column).
+    """
     n = len(grasps)
-    if "q" not in grasps or not n:
+    if not n or (posable and "q" not in grasps):
         return np.zeros(0, dtype=np.int64)
-    q = np.asarray(grasps["q"], dtype=float).reshape(n, -1)
+    reach = column(grasps, "reachable", False).astype(bool)
     if "rank" in grasps:
         rank = np.asarray(grasps["rank"], dtype=np.int64)
-        rows = np.flatnonzero(rank > 0)
-        rows = rows[np.argsort(rank[rows], kind="stable")]
+        ranked = np.flatnonzero(rank > 0)
+        ranked = ranked[np.argsort(rank[ranked], kind="stable")]
+        rows = np.concatenate([ranked, np.flatnonzero(reach & (rank <= 0))])
     else:
-        reach = np.asarray(grasps.get("reachable", np.zeros(n, bool)), dtype=bool)
         rows = np.flatnonzero(reach)
-    return rows[np.all(np.isfinite(q[rows]), axis=1)] if len(rows) else rows
+    if posable and len(rows):
+        q = np.asarray(grasps["q"], dtype=float).reshape(n, -1)
+        rows = rows[np.all(np.isfinite(q[rows]), axis=1)]
+    return rows.astype(np.int64)
 
 
 def _configs(grasps: GraspTable, name: str, rows: np.ndarray) -> np.ndarray | None:
@@ -198,12 +204,8 @@ def _finite_or_none(values: np.ndarray) -> list[float | None]:
 
 def _pickable(grasps: GraspTable) -> tuple[np.ndarray, int]:
     """Rows the page can pick (reachable by rank, then unreachable), and how many reachable."""
-    n = len(grasps)
-    reach = np.asarray(grasps.get("reachable", np.zeros(n, bool)), dtype=bool)
-    ranked = _ranked_rows(grasps)
-    if "q" not in grasps:  # no configurations: reachable grasps in row order, not posed
-        ranked = np.flatnonzero(reach)
-    ranked = ranked[:PICK_LIMIT]
+    reach = column(grasps, "reachable", False).astype(bool)
+    ranked = _ranked_rows(grasps, posable=False)[:PICK_LIMIT]
     unreach = np.flatnonzero(~reach)
     if len(unreach) > PICK_LIMIT:
         unreach = unreach[np.linspace(0, len(unreach) - 1, PICK_LIMIT).astype(np.int64)]
@@ -299,7 +301,7 @@ def page_data(
     return {
         "counts": {
             "total": n,
-            "reachable": int(np.asarray(grasps.get("reachable", np.zeros(n, bool))).sum()),
+            "reachable": int(column(grasps, "reachable", False).astype(bool).sum()),
             "pickable": len(rows),
         },
         "layers": layers,

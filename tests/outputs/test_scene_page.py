@@ -345,3 +345,70 @@ def test_no_reachable_grasp_and_no_configurations(tmp_path, panda):
         else:
             assert empty is None and entries == 5  # ranked, listed, but not posed
             assert "no configuration in the table" in details
+
+
+def _odd_joints():
+    """A Pinocchio model with the joint kinds Pinocchio's URDF reader makes besides RX/RY/RZ:
+    unaligned revolute and prismatic axes, a continuous (cos, sin) joint, a tool on a fixed
+    placement; box visuals, one scaled."""
+    import coal
+    import pinocchio as pin
+
+    model = pin.Model()
+    geom = pin.GeometryModel()
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    joints = [
+        pin.JointModelRUBZ(),
+        pin.JointModelRevoluteUnaligned(*axis),
+        pin.JointModelPrismaticUnaligned(*axis[::-1]),
+        pin.JointModelPY(),
+        pin.JointModelRX(),
+    ]
+    parent = 0
+    rng = np.random.default_rng(2)
+    for i, joint in enumerate(joints):
+        place = pin.SE3(pin.exp3(rng.normal(size=3)), rng.normal(0.0, 0.2, 3))
+        parent = model.addJoint(parent, joint, place, f"j{i}")
+        obj = pin.GeometryObject(f"box{i}", parent, pin.SE3.Random(), coal.Box(0.05, 0.04, 0.03))
+        obj.meshScale = np.array([1.0, 2.0, 0.5]) if i == 2 else np.ones(3)
+        geom.addGeometryObject(obj)
+    tool = model.addFrame(pin.Frame("tool", parent, 0, pin.SE3.Random(), pin.FrameType.OP_FRAME))
+    robot = type("Odd", (), {})()
+    robot.model, robot.visual_model, robot.grasp_frame_id = model, geom, tool
+    robot.nq, robot.home = model.nq, pin.neutral(model)
+    return robot
+
+
+def test_the_pages_forward_kinematics_is_pinocchios(tmp_path, panda):
+    """Panda, UR5 with its tool, a URDF arm of primitives with a fixed flange, and
+    Pinocchio's other 1-dof joint kinds: the page's placements equal Pinocchio's."""
+    import pinocchio as pin
+    from urdfs import write_arm
+
+    from gcm_pipeline.config.robot_spec import load_robot
+
+    robots = {
+        "panda": panda,
+        "ur5": load_robot("ur5"),
+        "arm": load_robot(write_arm(tmp_path / "arm")),
+        "odd": _odd_joints(),
+    }
+    for label, robot in robots.items():
+        out = tmp_path / label
+        out.mkdir(exist_ok=True)
+        write_scene_html(out / "scene.html", GraspTable(), None, robot, SceneOptions())
+        lim = np.full(robot.model.nq, 2.0)
+        qs = [pin.randomConfiguration(robot.model, -lim, lim) for _ in range(3)]
+        poser = RobotPoser(robot)
+        with open_page(out, out / "scene.html") as page:
+            assert page.eval("gcm.data.kinematics.unsupported") == []
+            for q in qs:
+                shown = page.eval(f"gcm.placements({q.tolist()})")
+                tool = np.array(page.eval(f"gcm.toolPose({q.tolist()})")).reshape(4, 4)
+                for (path, m), (want_path, want) in zip(shown, poser.placements(q), strict=True):
+                    assert path == want_path
+                    np.testing.assert_allclose(np.reshape(m, (4, 4)), want, atol=1e-12)
+                pin.framesForwardKinematics(robot.model, poser.data, q)
+                want_tool = poser.data.oMf[robot.grasp_frame_id].homogeneous
+                np.testing.assert_allclose(tool, want_tool, atol=1e-12, err_msg=label)
+            assert page.errors == [], label

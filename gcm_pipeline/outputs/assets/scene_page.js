@@ -203,15 +203,17 @@
   }
 
   function showMarker(k) {
+    // under meshcat's root, in the world's own (z-up) coordinates
     if (!marker) {
       marker = new THREE.Mesh(
-        new THREE.SphereGeometry(0.008, 12, 8),
+        new THREE.SphereGeometry(0.01, 16, 12),
         new THREE.MeshBasicMaterial({ color: 0xff00ff, depthTest: false })
       );
       marker.renderOrder = 10;
-      viewer.scene.add(marker);
+      viewer.scene_tree.find(["meshcat"]).object.add(marker);
     }
-    marker.position.copy(worldToThree(position(k)));
+    var p = position(k);
+    marker.position.set(p[0], p[1], p[2]);
     marker.visible = true;
   }
 

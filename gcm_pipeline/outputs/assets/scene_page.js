@@ -207,7 +207,7 @@
     if (!marker) {
       marker = new THREE.Mesh(
         new THREE.SphereGeometry(0.01, 16, 12),
-        new THREE.MeshBasicMaterial({ color: 0xff00ff, depthTest: false })
+        new THREE.MeshBasicMaterial({ color: 0xff00ff, depthTest: false, transparent: true, opacity: 0.95 })
       );
       marker.renderOrder = 10;
       viewer.scene_tree.find(["meshcat"]).object.add(marker);

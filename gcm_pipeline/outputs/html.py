@@ -34,6 +34,7 @@ from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
+    "live_page_html",
     "publish",
     "render_scene_html",
     "write_scene_html",
@@ -159,6 +160,63 @@ _HTML = """<!DOCTYPE html>
 """
 
 
+_LIVE_HTML = """<!DOCTYPE html>
+<html>
+    <head> <meta charset=utf-8> <title>{title}</title> </head>
+    <body>
+        <div id="meshcat-pane">
+        </div>
+        <script>
+{mainminjs}
+        </script>
+        <style>
+            body {{margin: 0; }}
+            #meshcat-pane {{
+                width: 100vw;
+                height: 100vh;
+                overflow: hidden;
+            }}
+        </style>
+{panel}
+        <script>
+            var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
+            viewer.connect();
+            (function wait(t0) {{
+                if (window.gcm && (gcm.arrived() || performance.now() - t0 > {wait_ms})) {{
+                    gcm.init();
+                }} else {{
+                    setTimeout(function () {{ wait(t0); }}, 200);
+                }}
+            }})(performance.now());
+        </script>
+    </body>
+</html>
+"""
+#: The live page waits this long for the scene before it builds its panel anyway [ms].
+_LIVE_WAIT_MS = 30000
+
+
+def _panel_html(data: dict[str, Any]) -> str:
+    js, css = page_assets()
+    return f"<style>\n{css}</style>\n{data_script(data)}\n<script>\n{js}</script>"
+
+
+def live_page_html(data: dict[str, Any], title: str = "gcm_pipeline scene (live)") -> str:
+    """The live viewer's page: meshcat's viewer fed over its server's websocket, and the panel.
+
+    Args:
+        data: The panel's data (:func:`~gcm_pipeline.outputs.scene_page.page_data`).
+        title: The page's title.
+    """
+    js_path = Path(load_meshcat().__file__).parent / "viewer" / "dist" / "main.min.js"
+    return _LIVE_HTML.format(
+        title=title,
+        mainminjs=js_path.read_text(encoding="utf-8"),
+        panel=_panel_html(data),
+        wait_ms=_LIVE_WAIT_MS,
+    )
+
+
 def _orbit_js(target: Sequence[float]) -> str:
     """Script that turns the page's orbit controls about ``target`` (world, [m])."""
     x, y, z = (float(v) for v in ROT_X90.T @ np.asarray(target, dtype=float))
@@ -195,8 +253,7 @@ def render_scene_html(
         poser = RobotPoser(robot)
         info, tour = set_tour(vis, grasps, poser, options, info)
     data = page_data(grasps, robot, options, info, poser=poser, tour=tour)
-    js, css = page_assets()
-    panel = f"<style>\n{css}</style>\n{data_script(data)}\n<script>\n{js}</script>"
+    panel = _panel_html(data)
     html = window.static_html(extra_js=_orbit_js(info.camera["target"]), panel=panel)
     return html, info
 

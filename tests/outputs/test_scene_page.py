@@ -412,3 +412,36 @@ def test_the_pages_forward_kinematics_is_pinocchios(tmp_path, panda):
                 want_tool = poser.data.oMf[robot.grasp_frame_id].homogeneous
                 np.testing.assert_allclose(tool, want_tool, atol=1e-12, err_msg=label)
             assert page.errors == [], label
+
+
+def test_the_live_viewer_serves_the_page_with_its_panel(tmp_path, panda):
+    from gcm_pipeline.outputs import live
+    from gcm_pipeline.outputs.scene import PublishOptions
+
+    grasps = approach_table(panda)
+    options = PublishOptions(scene=SceneOptions(top_k=5, blend_limit=1.0))
+    viewer = live.open_viewer(grasps, None, panda, options)
+    try:
+        assert viewer.panel and viewer.info.animation_cuts == 5
+        with Page(tmp_path / "profile", size=SIZE) as page:
+            page.open(viewer.url)
+            page.wait_for("window.gcm && gcm.state.ready", 40)
+            counts = page.eval(
+                """[...document.querySelectorAll('#gcm-legend .gcm-class')].map(e =>
+                    [e.dataset.group, Number(e.dataset.count)])"""
+            )
+            k, (x, y) = _pickable_grasp(page)
+            page.click(x, y)
+            assert page.eval("gcm.state.selected") == k
+            page.wait_for("!gcm.state.playing", 20)
+            shown = visual_matrices(page)
+            row = page.eval(f"gcm.data.grasps.row[{k}]")
+            assert page.errors == []
+    finally:
+        viewer.close()
+    reach = np.asarray(grasps["reachable"])
+    assert sum(n for g, n in counts if g == "reachable") == reach.sum()
+    assert sum(n for g, n in counts if g == "unreachable") == (~reach).sum()
+    q = np.asarray(grasps["q"], dtype=float)[row]
+    for path, t in RobotPoser(panda).placements(q):
+        np.testing.assert_allclose(shown[path], ROOT @ t, atol=1e-5, err_msg=path)

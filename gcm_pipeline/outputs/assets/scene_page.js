@@ -437,8 +437,32 @@
     document.body.appendChild(panel);
   }
 
+  function data() {
+    if (!D) D = JSON.parse(document.getElementById("gcm-data").textContent);
+    return D;
+  }
+
+  function exists(path) {
+    var node = viewer.scene_tree;
+    var parts = meshcatPath(path);
+    for (var i = 0; i < parts.length; i++) {
+      node = node.children[parts[i]];
+      if (node === undefined) return false;
+    }
+    return true;
+  }
+
+  // the live page: has the server sent the scene (every layer, the robot, the tour)?
+  function arrived() {
+    var d = data();
+    if (!d.layers.every(function (l) { return exists(l.path); })) return false;
+    if (d.kinematics && !d.kinematics.visuals.every(function (v) { return exists(v.path); })) return false;
+    return !d.tour.length || (viewer.animator && viewer.animator.actions.length > 0);
+  }
+
   function init() {
-    D = JSON.parse(document.getElementById("gcm-data").textContent);
+    if (state.ready) return;
+    data();
     G.n = D.grasps.row.length;
     G.position = decode(D.grasps.position);
     ["q", "q_pregrasp", "q_retreat", "q_rejected"].forEach(function (name) { G[name] = decode(D.grasps[name]); });
@@ -453,6 +477,7 @@
 
   window.gcm = {
     init: init,
+    arrived: arrived,
     state: state,
     select: select,
     pick: pick,

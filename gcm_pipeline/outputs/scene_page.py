@@ -26,7 +26,8 @@ fed by one JSON document (:func:`page_data`):
 
 The pickable grasps are capped (:data:`PICK_LIMIT` reachable ones by rank and
 as many unreachable ones, evenly spread), their configurations stored as
-base64 float64 (exact), positions as float32.
+base64 float64 (exact: ``q``, ``q_pregrasp``, ``q_retreat`` of the reachable
+ones, ``q_rejected`` of the unreachable ones), positions as float32.
 
 The top-k tour (:func:`set_tour`) replaces the scene's animation: per grasp
 the approach, the grasp held and the retreat, then a cut to the next grasp
@@ -290,9 +291,15 @@ def page_data(
         if name in grasps:
             col = np.asarray(grasps[name], dtype=float)[rows]
             picked[name] = _finite_or_none(col)
-    for name in ("q", "q_pregrasp", "q_retreat", "q_rejected"):
+    # configurations of the reachable picks (first), rejected ones of the unreachable (after)
+    for name, part in (
+        ("q", rows[:n_reach]),
+        ("q_pregrasp", rows[:n_reach]),
+        ("q_retreat", rows[:n_reach]),
+        ("q_rejected", rows[n_reach:]),
+    ):
         if name in grasps:
-            picked[name] = _b64(np.asarray(grasps[name], dtype=float).reshape(n, -1)[rows], "<f8")
+            picked[name] = _b64(np.asarray(grasps[name], dtype=float).reshape(n, -1)[part], "<f8")
     kin = None
     if robot is not None:
         poser = poser or RobotPoser(robot)

@@ -162,7 +162,7 @@ def _pickable_grasp(page: Page) -> tuple[int, list[float]]:
         """(() => {
         const rect = viewer.renderer.domElement.getBoundingClientRect();
         const n = gcm.data.grasps.row.length;
-        const xy = [...Array(n).keys()].map(k => gcm.project(k));
+        const xy = gcm.projectAll();
         for (let k = 0; k < n; k++) {
             if (!gcm.data.grasps.reachable[k] || !xy[k]) continue;
             const [x, y] = xy[k];
@@ -445,3 +445,38 @@ def test_the_live_viewer_serves_the_page_with_its_panel(tmp_path, panda):
     q = np.asarray(grasps["q"], dtype=float)[row]
     for path, t in RobotPoser(panda).placements(q):
         np.testing.assert_allclose(shown[path], ROOT @ t, atol=1e-5, err_msg=path)
+
+
+def test_layers_come_from_the_scene_or_are_derived(page_file):
+    """``info.layers`` (per-reason paths, rank bands) is used as given; without it the layers
+    are derived from ``info.paths`` and the legend, and each picked grasp names its layer."""
+    from types import SimpleNamespace
+
+    from gcm_pipeline.outputs.scene_page import page_data, scene_layers
+
+    grasps, info, _ = page_file
+    derived = scene_layers(info)
+    paths = [layer["path"] for layer in derived]
+    assert paths == list(info.paths)
+    by_path = {layer["path"]: layer for layer in derived}
+    assert by_path["/grasps/reachable"]["count"] == 120
+    assert by_path["/grasps/unreachable"]["classes"] == [
+        {"label": "no_ik", "color": info.legend["unreachable"]["no_ik"]["color"], "count": 30}
+    ]
+    given = [
+        {"path": "/grasps/reachable/top", "group": "reachable", "label": "top 5",
+         "color": None, "count": 5, "visible": True},
+        {"path": "/grasps/reachable/rest", "group": "reachable", "label": "rest",
+         "color": None, "count": 115, "visible": True},
+        {"path": "/grasps/unreachable/no_ik", "group": "unreachable", "label": "no_ik",
+         "color": "#999999", "count": 30, "visible": False},
+        {"path": "/robot", "group": "scene", "label": "robot", "color": None, "count": None,
+         "visible": True},
+    ]  # fmt: skip
+    scene = SimpleNamespace(**{**info.to_dict(), "layers": given})
+    assert scene_layers(scene) == given
+    data = page_data(grasps, None, SceneOptions(top_k=5), scene)
+    layer = data["grasps"]["layer"]
+    reach = data["grasps"]["reachable"]
+    assert layer[:5] == [0] * 5 and set(layer[5:120]) == {1} and reach[:120] == [True] * 120
+    assert set(layer[120:]) == {2} and data["top_k"] == 5 and data["kinematics"] is None

@@ -248,7 +248,7 @@
       detailRow(table, "approach", pre ? "q_pregrasp -> q" : "none");
       detailRow(table, "retreat", ret ? "q -> q_retreat" : "none");
     }
-    var rejected = !reach ? rowOf(G.q_rejected, k) : null;
+    var rejected = !reach ? rowOf(G.q_rejected, k - G.nReach) : null;
     var posed = false;
     if (q) {
       posed = pose(q);
@@ -288,23 +288,37 @@
     return true;
   }
 
-  function project(k) {
+  // screen position [CSS px] of grasp k (null: behind the camera); view from projector()
+  function projector() {
     var cam = viewer.camera;
     cam.updateMatrixWorld(true);
+    var root = viewer.scene_tree.find(["meshcat"]).object;
+    root.updateMatrixWorld(true);
+    var m = new THREE.Matrix4().multiplyMatrices(cam.projectionMatrix, cam.matrixWorldInverse);
+    m.multiply(root.matrixWorld);
     var rect = viewer.renderer.domElement.getBoundingClientRect();
-    var v = worldToThree(position(k)).project(cam);
-    if (v.z > 1 || v.z < -1) return null;
-    return [rect.left + (v.x + 1) / 2 * rect.width, rect.top + (1 - v.y) / 2 * rect.height];
+    var v = new THREE.Vector3();
+    return function (k) {
+      var p = position(k);
+      v.set(p[0], p[1], p[2]).applyMatrix4(m);
+      if (v.z > 1 || v.z < -1) return null;
+      return [rect.left + (v.x + 1) / 2 * rect.width, rect.top + (1 - v.y) / 2 * rect.height];
+    };
+  }
+
+  function project(k) {
+    return projector()(k);
   }
 
   function pick(x, y) {
     var shown = D.layers.map(function (_, i) { return layerShown(i); });
     var best = [null, null], bestD = [Infinity, Infinity];
     var r2 = D.pick_radius_px * D.pick_radius_px;
+    var proj = projector();
     for (var k = 0; k < G.n; k++) {
       var li = D.grasps.layer[k];
       if (li < 0 || !shown[li]) continue;
-      var s = project(k);
+      var s = proj(k);
       if (!s) continue;
       var d = (s[0] - x) * (s[0] - x) + (s[1] - y) * (s[1] - y);
       var c = D.grasps.reachable[k] ? 0 : 1;
@@ -464,6 +478,7 @@
     if (state.ready) return;
     data();
     G.n = D.grasps.row.length;
+    G.nReach = D.grasps.reachable.filter(function (r) { return r; }).length;
     G.position = decode(D.grasps.position);
     ["q", "q_pregrasp", "q_retreat", "q_rejected"].forEach(function (name) { G[name] = decode(D.grasps[name]); });
     build();
@@ -482,6 +497,12 @@
     select: select,
     pick: pick,
     project: project,
+    projectAll: function () {
+      var proj = projector();
+      var out = [];
+      for (var k = 0; k < G.n; k++) out.push(proj(k));
+      return out;
+    },
     fk: function (q) { return fk(q); },
     placements: function (q) { return placements(q); },
     toolPose: function (q) { return toolPose(q); },

@@ -172,11 +172,11 @@ def set_tour(
     if not tour.moves:
         return dataclasses.replace(info, animation_s=0.0, animation_cuts=0), []
     anim_s, cuts = poser.animate(vis, q, float(options.blend_limit), pre, ret)
-    rank = np.asarray(grasps["rank"]) if "rank" in grasps else np.arange(1, len(grasps) + 1)
+    rank = np.asarray(grasps["rank"])[rows] if "rank" in grasps else np.arange(1, len(rows) + 1)
     segments = [
         {
             "row": int(rows[s.index]),
-            "rank": int(rank[rows[s.index]]),
+            "rank": int(rank[s.index]),
             "start_s": s.start / _FPS,
             "end_s": s.end / _FPS,
             "approach": s.approach,
@@ -345,7 +345,15 @@ def page_assets() -> tuple[str, str]:
     return js, css
 
 
+def _plain(value: Any) -> Any:
+    """A NumPy scalar or array as plain JSON data (for layers given by the scene)."""
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON data")
+
+
 def data_script(data: dict[str, Any]) -> str:
-    """``data`` as an inert JSON script element (``</`` escaped)."""
-    text = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
+    """``data`` as an inert JSON script element (every ``<`` escaped: no tag can end it)."""
+    text = json.dumps(data, separators=(",", ":"), allow_nan=False, default=_plain)
+    text = text.replace("<", "\\u003c")
     return f'<script id="gcm-data" type="application/json">{text}</script>'

@@ -21,8 +21,9 @@ fed by one JSON document (:func:`page_data`):
 - **Forward kinematics in the page**: the arm is posed from the robot's
   kinematic tree (:func:`~gcm_pipeline.outputs.robot_view.kinematic_tree`:
   joint placements, kinds, axes of the Pinocchio model), so any pose is
-  exact, not precomputed. A model with a joint type the page does not know
-  is not posed (the panel says so); the details still show.
+  exact, not precomputed. For a model with a joint type the page does not
+  know, the :data:`FALLBACK_LIMIT` best grasps are posed from visual
+  placements computed here (no motion; the panel says so).
 
 The pickable grasps are capped (:data:`PICK_LIMIT` reachable ones by rank and
 as many unreachable ones, evenly spread), their configurations stored as
@@ -53,6 +54,7 @@ from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
+    "FALLBACK_LIMIT",
     "PICK_LIMIT",
     "PICK_RADIUS_PX",
     "page_assets",
@@ -63,6 +65,9 @@ __all__ = [
 
 #: Pickable grasps of each kind (reachable by rank, unreachable spread evenly).
 PICK_LIMIT = 2000
+#: Reachable grasps posed from precomputed placements when the page cannot move the
+#: robot's joints (a joint type its forward kinematics does not know).
+FALLBACK_LIMIT = 200
 #: A click picks the nearest drawn grasp within this distance on screen [CSS px].
 PICK_RADIUS_PX = 12.0
 _FPS = 30
@@ -234,6 +239,21 @@ def _grasp_layers(layers: list[dict[str, Any]], reach: np.ndarray, reason: np.nd
     return out
 
 
+def _fallback_placements(grasps: GraspTable, poser: RobotPoser, rows: np.ndarray) -> dict[str, Any]:
+    """Visual placements (m, V * 16, row-major) at ``q`` of the best :data:`FALLBACK_LIMIT` rows.
+
+    For a robot whose joint types the page cannot move: those grasps are posed
+    from these (no motion); a row without a finite ``q`` gets NaN.
+    """
+    q = np.asarray(grasps["q"], dtype=float).reshape(len(grasps), -1)[rows[:FALLBACK_LIMIT]]
+    n_vis = len(poser.visual.geometryObjects)
+    out = np.full((len(q), n_vis * 16), np.nan)
+    for i, qi in enumerate(q):
+        if np.all(np.isfinite(qi)):
+            out[i] = np.concatenate([t.reshape(-1) for _, t in poser.placements(qi)])
+    return _b64(out, "<f8")
+
+
 def _colorbar(legend: dict[str, Any]) -> dict[str, Any]:
     name = str(legend.get("colormap", "viridis"))
     cmap = colormap(name)
@@ -304,6 +324,8 @@ def page_data(
     if robot is not None:
         poser = poser or RobotPoser(robot)
         kin = kinematic_tree(poser, getattr(robot, "grasp_frame_id", None))
+        if kin["unsupported"] and "q" in grasps:
+            kin["placements"] = _fallback_placements(grasps, poser, rows[:n_reach])
     base = np.asarray(options.base_pose, dtype=float)
     return {
         "counts": {
@@ -324,6 +346,7 @@ def page_data(
         "blend_limit": float(options.blend_limit),
         "pick_radius_px": PICK_RADIUS_PX,
         "pick_limit": PICK_LIMIT,
+        "fallback_limit": FALLBACK_LIMIT,
     }
 
 

@@ -347,7 +347,7 @@ def test_no_reachable_grasp_and_no_configurations(tmp_path, panda):
             assert "no configuration in the table" in details
 
 
-def _odd_joints():
+def _odd_joints(extra=None):
     """A Pinocchio model with the joint kinds Pinocchio's URDF reader makes besides RX/RY/RZ:
     unaligned revolute and prismatic axes, a continuous (cos, sin) joint, a tool on a fixed
     placement; box visuals, one scaled."""
@@ -363,6 +363,7 @@ def _odd_joints():
         pin.JointModelPrismaticUnaligned(*axis[::-1]),
         pin.JointModelPY(),
         pin.JointModelRX(),
+        *([extra] if extra is not None else []),
     ]
     parent = 0
     rng = np.random.default_rng(2)
@@ -480,3 +481,44 @@ def test_layers_come_from_the_scene_or_are_derived(page_file):
     reach = data["grasps"]["reachable"]
     assert layer[:5] == [0] * 5 and set(layer[5:120]) == {1} and reach[:120] == [True] * 120
     assert set(layer[120:]) == {2} and data["top_k"] == 5 and data["kinematics"] is None
+
+
+def test_joint_types_the_page_cannot_move_are_posed_from_placements(tmp_path):
+    """A spherical joint: the best grasps are posed from Pinocchio's placements, no motion."""
+    import pinocchio as pin
+
+    from gcm_pipeline.geometry.dualquat import dq_from_matrix
+
+    robot = _odd_joints(pin.JointModelSpherical())
+    poser = RobotPoser(robot)
+    lim = np.full(robot.model.nq, 2.0)
+    q = np.array([pin.randomConfiguration(robot.model, -lim, lim) for _ in range(3)])
+    tcp = []
+    for qi in q:
+        pin.framesForwardKinematics(robot.model, poser.data, qi)
+        tcp.append(poser.data.oMf[robot.grasp_frame_id].homogeneous)
+    grasps = GraspTable(
+        {
+            "dq": dq_from_matrix(np.array(tcp)),
+            "reachable": np.ones(3, bool),
+            "reason": np.full(3, ""),
+            "q": q,
+            "manipulability": np.array([0.1, 0.2, 0.3]),
+            "rank": np.array([2, 1, 3]),
+        }
+    )
+    html = tmp_path / "scene.html"
+    write_scene_html(html, grasps, None, robot, SceneOptions(top_k=3))
+    with open_page(tmp_path, html) as page:
+        assert page.eval("gcm.data.kinematics.unsupported") == ["JointModelSpherical"]
+        hint = page.eval("document.getElementById('gcm-hint').textContent")
+        assert "JointModelSpherical" in hint and "precomputed" in hint
+        for k in (0, 2):
+            assert page.eval(f"gcm.select({k})") is True
+            row = page.eval(f"gcm.data.grasps.row[{k}]")
+            shown = visual_matrices(page)
+            for path, t in poser.placements(q[row]):
+                np.testing.assert_allclose(shown[path], ROOT @ t, atol=1e-5, err_msg=path)
+        assert page.eval("gcm.state.playing") is False
+        assert "without motion" in page.eval("document.getElementById('gcm-details').textContent")
+        assert page.errors == []

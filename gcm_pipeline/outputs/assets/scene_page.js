@@ -109,6 +109,21 @@
     return !!(D.kinematics && D.kinematics.unsupported.length === 0);
   }
 
+  // a robot whose joints the page cannot move: placements computed by Pinocchio (rows k)
+  function poseFallback(k) {
+    var fb = G.fallback;
+    if (!fb || k >= fb.data.length / fb.width) return false;
+    var base = k * fb.width;
+    if (!isFinite(fb.data[base])) return false;
+    D.kinematics.visuals.forEach(function (v, i) {
+      var o = base + 16 * i, col = new Array(16);
+      for (var r = 0; r < 4; r++) for (var c = 0; c < 4; c++) col[4 * c + r] = fb.data[o + 4 * r + c];
+      viewer.set_transform(meshcatPath(v.path), col);
+    });
+    viewer.set_dirty();
+    return true;
+  }
+
   function pose(q) {
     if (!canPose() || !q) return false;
     placements(q).forEach(function (pm) {
@@ -250,7 +265,14 @@
     }
     var rejected = !reach ? rowOf(G.q_rejected, k - G.nReach) : null;
     var posed = false;
-    if (q) {
+    if (q && !canPose()) {
+      stopMotion();
+      posed = poseFallback(k);
+      if (posed) {
+        state.posed = q.slice();
+        detailRow(table, "arm", "posed from precomputed placements, without motion");
+      }
+    } else if (q) {
       posed = pose(q);
       if (posed && play !== false) playMotion(q, pre, ret);
     } else if (rejected) {
@@ -263,7 +285,8 @@
     }
     if (!posed && (q || rejected)) {
       detailRow(table, "arm", D.kinematics
-        ? "not posed: joint types " + D.kinematics.unsupported.join(", ") + " are not supported here"
+        ? "not posed: joint types " + D.kinematics.unsupported.join(", ") + " are not supported here" +
+          " (only the " + D.fallback_limit + " best grasps are)"
         : "not posed: the scene has no robot");
     } else if (!q && !rejected) {
       detailRow(table, "arm", reach ? "not posed: no configuration in the table" : "not posed");
@@ -445,7 +468,8 @@
     panel.appendChild(el("div", { id: "gcm-details" }, "click a grasp in the view or in the list"));
     var hint = "Click a grasp (within " + D.pick_radius_px + " px) to pose the arm and play its approach and retreat.";
     if (D.kinematics && D.kinematics.unsupported.length) {
-      hint += " The arm is not posed: joint types " + D.kinematics.unsupported.join(", ") + " are not supported here.";
+      hint += " Joint types " + D.kinematics.unsupported.join(", ") + " are not supported here: the " +
+        D.fallback_limit + " best grasps are posed from precomputed placements, without motion.";
     }
     panel.appendChild(el("div", { id: "gcm-hint" }, hint));
     document.body.appendChild(panel);
@@ -481,6 +505,7 @@
     G.nReach = D.grasps.reachable.filter(function (r) { return r; }).length;
     G.position = decode(D.grasps.position);
     ["q", "q_pregrasp", "q_retreat", "q_rejected"].forEach(function (name) { G[name] = decode(D.grasps[name]); });
+    G.fallback = D.kinematics ? decode(D.kinematics.placements) : null;
     build();
     D.layers.forEach(function (l) { if (l.visible === false) setLayer(l.path, false); });
     var pane = document.getElementById("meshcat-pane");

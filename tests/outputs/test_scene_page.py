@@ -156,26 +156,30 @@ def test_a_toggle_hides_exactly_one_layer(tmp_path, page_file):
         assert page.errors == []
 
 
-def _pickable_grasp(page: Page) -> tuple[int, list[float]]:
-    """The best-ranked reachable grasp inside the view with no other grasp within 3 px."""
+def _pickable_grasp(page: Page, reachable: bool = True) -> tuple[int, list[float]]:
+    """The first (best-ranked) grasp of that kind inside the view with no other grasp within
+    3 px (an unreachable one: no reachable grasp within 14 px, which a click would prefer)."""
     found = page.eval(
-        """(() => {
+        f"""(() => {{
+        const want = {str(reachable).lower()};
         const rect = viewer.renderer.domElement.getBoundingClientRect();
-        const n = gcm.data.grasps.row.length;
+        const g = gcm.data.grasps, n = g.row.length;
         const xy = gcm.projectAll();
-        for (let k = 0; k < n; k++) {
-            if (!gcm.data.grasps.reachable[k] || !xy[k]) continue;
+        for (let k = 0; k < n; k++) {{
+            if (g.reachable[k] !== want || !xy[k]) continue;
             const [x, y] = xy[k];
             if (x < rect.left + 20 || x > rect.right - 20) continue;
             if (y < rect.top + 40 || y > rect.bottom - 20) continue;
             let clear = true;
-            for (let j = 0; j < n; j++) {
-                if (j !== k && xy[j] && Math.hypot(xy[j][0] - x, xy[j][1] - y) < 3) clear = false;
-            }
+            for (let j = 0; j < n; j++) {{
+                if (j === k || !xy[j]) continue;
+                const d = Math.hypot(xy[j][0] - x, xy[j][1] - y);
+                if (d < 3 || (!want && g.reachable[j] && d < 14)) clear = false;
+            }}
             if (clear) return [k, xy[k]];
-        }
+        }}
         return null;
-    })()"""
+    }})()"""
     )
     assert found is not None
     return found[0], found[1]
@@ -230,8 +234,9 @@ def test_picking_a_top_k_entry_and_an_unreachable_grasp(tmp_path, page_file, pan
         q = np.asarray(grasps["q"])[entries[2]]
         np.testing.assert_allclose(page.eval("gcm.state.posed"), q, atol=1e-12)
         # an unreachable grasp: its reason, and the rejected solution marked as such
-        k = page.eval("gcm.data.grasps.reachable.indexOf(false)")
-        page.eval(f"gcm.select({k})")
+        k, (x, y) = _pickable_grasp(page, reachable=False)
+        page.click(x, y)
+        assert page.eval("gcm.state.selected") == k
         details = page.eval("document.getElementById('gcm-details').textContent")
         assert "reasonno_ik" in details and "rejected solution" in details
         assert page.eval("gcm.state.rejected") is True

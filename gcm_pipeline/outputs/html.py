@@ -21,7 +21,7 @@ import umsgpack
 from gcm_pipeline.errors import PublishError
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.plots import write_plots
-from gcm_pipeline.outputs.robot_view import ROT_X90
+from gcm_pipeline.outputs.robot_view import ROT_X90, RobotPoser
 from gcm_pipeline.outputs.scene import (
     PublishOptions,
     SceneInfo,
@@ -29,10 +29,12 @@ from gcm_pipeline.outputs.scene import (
     build_scene,
     stage_counts,
 )
+from gcm_pipeline.outputs.scene_page import data_script, page_assets, page_data, set_tour
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
+    "live_page_html",
     "publish",
     "render_scene_html",
     "write_scene_html",
@@ -98,20 +100,30 @@ class _RecordingWindow:
                 out.append(node.animation)
         return out
 
-    def static_html(self, extra_js: str = "", title: str = "gcm_pipeline scene") -> str:
-        """The self-contained page: meshcat's viewer script and the recorded commands."""
+    def static_html(
+        self, extra_js: str = "", title: str = "gcm_pipeline scene", panel: str = ""
+    ) -> str:
+        """The self-contained page: meshcat's viewer script and the recorded commands.
+
+        ``panel`` (HTML: the side panel's data, style and script) is inserted after
+        the viewer; its script's ``gcm.init()`` runs once every command is applied.
+        """
         js_path = Path(load_meshcat().__file__).parent / "viewer" / "dist" / "main.min.js"
         viewer_js = js_path.read_text(encoding="utf-8")
         parts = []
         for blob in self.commands():
             b64 = base64.b64encode(blob).decode("ascii")
             parts.append(
-                f'fetch("data:application/octet-binary;base64,{b64}")\n'
+                f'gcmCommands.push(fetch("data:application/octet-binary;base64,{b64}")\n'
                 "    .then(res => res.arrayBuffer())\n"
-                "    .then(buffer => viewer.handle_command_bytearray(new Uint8Array(buffer)));\n"
+                "    .then(buffer => viewer.handle_command_bytearray(new Uint8Array(buffer))));\n"
             )
         return _HTML.format(
-            title=title, mainminjs=viewer_js, commands="".join(parts), extra=extra_js
+            title=title,
+            mainminjs=viewer_js,
+            commands="".join(parts),
+            extra=extra_js,
+            panel=panel,
         )
 
 
@@ -124,10 +136,38 @@ _HTML = """<!DOCTYPE html>
         <script>
 {mainminjs}
         </script>
+        <style>
+            body {{margin: 0; }}
+            #meshcat-pane {{
+                width: 100vw;
+                height: 100vh;
+                overflow: hidden;
+            }}
+        </style>
+{panel}
         <script>
             var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
+            var gcmCommands = [];
 {commands}
 {extra}
+            Promise.all(gcmCommands).then(() => {{
+                if (window.gcm) {{ window.gcm.init(); }}
+            }});
+        </script>
+        <script id="embedded-json"></script>
+    </body>
+</html>
+"""
+
+
+_LIVE_HTML = """<!DOCTYPE html>
+<html>
+    <head> <meta charset=utf-8> <title>{title}</title> </head>
+    <body>
+        <div id="meshcat-pane">
+        </div>
+        <script>
+{mainminjs}
         </script>
         <style>
             body {{margin: 0; }}
@@ -137,10 +177,44 @@ _HTML = """<!DOCTYPE html>
                 overflow: hidden;
             }}
         </style>
-        <script id="embedded-json"></script>
+{panel}
+        <script>
+            var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
+            viewer.connect();
+            (function wait(t0) {{
+                if (window.gcm && (gcm.arrived() || performance.now() - t0 > {wait_ms})) {{
+                    gcm.init();
+                }} else {{
+                    setTimeout(function () {{ wait(t0); }}, 200);
+                }}
+            }})(performance.now());
+        </script>
     </body>
 </html>
 """
+#: The live page waits this long for the scene before it builds its panel anyway [ms].
+_LIVE_WAIT_MS = 30000
+
+
+def _panel_html(data: dict[str, Any]) -> str:
+    js, css = page_assets()
+    return f"<style>\n{css}</style>\n{data_script(data)}\n<script>\n{js}</script>"
+
+
+def live_page_html(data: dict[str, Any], title: str = "gcm_pipeline scene (live)") -> str:
+    """The live viewer's page: meshcat's viewer fed over its server's websocket, and the panel.
+
+    Args:
+        data: The panel's data (:func:`~gcm_pipeline.outputs.scene_page.page_data`).
+        title: The page's title.
+    """
+    js_path = Path(load_meshcat().__file__).parent / "viewer" / "dist" / "main.min.js"
+    return _LIVE_HTML.format(
+        title=title,
+        mainminjs=js_path.read_text(encoding="utf-8"),
+        panel=_panel_html(data),
+        wait_ms=_LIVE_WAIT_MS,
+    )
 
 
 def _orbit_js(target: Sequence[float]) -> str:
@@ -157,6 +231,10 @@ def render_scene_html(
 ) -> tuple[str, SceneInfo]:
     """Build the scene without a server and return the self-contained HTML page.
 
+    The scene (:func:`~gcm_pipeline.outputs.scene.build_scene`), its top-k tour
+    (:func:`~gcm_pipeline.outputs.scene_page.set_tour`) and the side panel
+    around the viewer (:mod:`gcm_pipeline.outputs.scene_page`).
+
     Args:
         grasps: The grasp table.
         manifold: The manifold or None.
@@ -169,7 +247,15 @@ def render_scene_html(
     window = _RecordingWindow()
     vis = load_meshcat().Visualizer(window=window)
     info = build_scene(vis, grasps, manifold, robot, options, orbit_target=True)
-    return window.static_html(extra_js=_orbit_js(info.camera["target"])), info
+    poser = None
+    tour: list[dict[str, Any]] = []
+    if robot is not None:
+        poser = RobotPoser(robot)
+        info, tour = set_tour(vis, grasps, poser, options, info)
+    data = page_data(grasps, robot, options, info, poser=poser, tour=tour)
+    panel = _panel_html(data)
+    html = window.static_html(extra_js=_orbit_js(info.camera["target"]), panel=panel)
+    return html, info
 
 
 def write_scene_html(

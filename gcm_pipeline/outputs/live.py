@@ -2,7 +2,10 @@
 
 :func:`open_viewer` starts meshcat's own server on the loopback interface, or
 connects to a running one after a time-bounded probe, so an absent server is
-a :class:`~gcm_pipeline.errors.PublishError`, not a hang.
+a :class:`~gcm_pipeline.errors.PublishError`, not a hang. A server started
+here serves, at its viewer URL, the same page as ``scene.html`` with its side
+panel (:mod:`gcm_pipeline.outputs.scene_page`), its scene arriving over the
+websocket; another meshcat server serves meshcat's own page.
 """
 
 from __future__ import annotations
@@ -20,8 +23,11 @@ import umsgpack
 import zmq
 
 from gcm_pipeline.errors import PublishError
+from gcm_pipeline.outputs.html import live_page_html
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
+from gcm_pipeline.outputs.robot_view import RobotPoser
 from gcm_pipeline.outputs.scene import PublishOptions, SceneInfo, build_scene
+from gcm_pipeline.outputs.scene_page import page_data, set_tour
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
 
@@ -58,13 +64,37 @@ class _App(tornado.web.Application):
     def listen(self, port, address="127.0.0.1", **kwargs):
         return super().listen(port, address="127.0.0.1", **kwargs)
 
+class _Page(tornado.web.RequestHandler):
+    # the viewer's page: gcm's page with its panel once sent, else meshcat's own
+    def initialize(self, bridge):
+        self.bridge = bridge
+
+    def get(self):
+        page = self.bridge.gcm_page
+        if page is None:
+            with open(os.path.join(z.VIEWER_ROOT, z.VIEWER_HTML), "rb") as fh:
+                page = fh.read()
+        self.set_header("Content-Type", "text/html; charset=utf-8")
+        self.set_header("Cache-Control", "no-store")
+        self.write(page)
+
 class _Bridge(z.ZMQWebSocketBridge):
+    gcm_page = None
+
     def make_app(self):
         return _App([
+            (r"/static/", _Page, {"bridge": self}),
             (r"/static/(.*)", z.StaticFileHandlerNoCache,
              {"path": z.VIEWER_ROOT, "default_filename": z.VIEWER_HTML}),
             (r"/", z.WebSocketHandler, {"bridge": self}),
         ])
+
+    def handle_zmq(self, frames):
+        if frames[0] == b"gcm_page" and len(frames) == 3:
+            self.gcm_page = bytes(frames[2])
+            self.zmq_socket.send(b"ok")
+        else:
+            super().handle_zmq(frames)
 
 bridge = _Bridge(host="127.0.0.1")
 print("zmq_url=" + bridge.zmq_url, flush=True)
@@ -146,6 +176,11 @@ class _ZmqWindow:
         ]
         _request(self._sock, frames, data["type"], self.zmq_url, self.timeout_s)
 
+    def send_page(self, html: str) -> bool:
+        """Give the server the viewer's page (gcm's server serves it; others answer no)."""
+        frames = [b"gcm_page", b"", html.encode("utf-8")]
+        return _request(self._sock, frames, "gcm_page", self.zmq_url, self.timeout_s) == b"ok"
+
     def get_scene(self) -> str:
         return _request(
             self._sock, [b"get_scene"], "get_scene", self.zmq_url, self.timeout_s
@@ -225,6 +260,8 @@ class Viewer:
         server_pid: Process id of the server started by :func:`open_viewer`
             (None for a server at ``publish.zmq_url``); a detached server
             keeps running after :meth:`close` until this process is stopped.
+        panel: The server serves the page with the side panel at :attr:`url`
+            (a server started here does; another meshcat server serves its own page).
     """
 
     url: str
@@ -233,6 +270,7 @@ class Viewer:
     visualizer: Any = field(repr=False)
     owns_server: bool = False
     server_pid: int | None = None
+    panel: bool = False
     closed: bool = False
     _proc: subprocess.Popen[bytes] | None = field(default=None, repr=False)
     _finalizer: Any = field(default=None, repr=False)
@@ -296,6 +334,12 @@ def open_viewer(
         window = _ZmqWindow(zmq_url, web_url, max(timeout, 60.0))
         vis = load_meshcat().Visualizer(window=window)
         info = build_scene(vis, grasps, manifold, robot, options.scene)
+        poser = RobotPoser(robot) if robot is not None else None
+        tour: list[dict[str, Any]] = []
+        if poser is not None:
+            info, tour = set_tour(vis, grasps, poser, options.scene, info)
+        data = page_data(grasps, robot, options.scene, info, poser=poser, tour=tour)
+        panel = window.send_page(live_page_html(data))
     except BaseException:
         if window is not None:
             window.close()
@@ -308,6 +352,7 @@ def open_viewer(
         visualizer=vis,
         owns_server=proc is not None and not detach,
         server_pid=None if proc is None else proc.pid,
+        panel=panel,
         _proc=proc,
     )
     if detach:

@@ -2,8 +2,10 @@
 
 Every object of the robot's visual ``GeometryModel`` is drawn under
 ``/robot/visuals/<name>``, posed by Pinocchio's forward kinematics at the
-top-ranked solution; an animation steps through the top-k solutions,
-blending on one IK branch and cutting across them (:func:`animation_keys`).
+top-ranked solution; the top-k tour shows each solution's approach, the grasp
+and its retreat, and cuts between grasps, never blending across them
+(:func:`tour_keys`). :func:`kinematic_tree` exports the kinematics for the
+page's own forward kinematics (:mod:`gcm_pipeline.outputs.scene_page`).
 Robot meshes are read with trimesh, grouped by colour and simplified
 (:func:`_simplified_mesh`), cached per file in :func:`mesh_cache_dir`.
 """
@@ -18,6 +20,7 @@ import stat
 import time
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -38,14 +41,19 @@ __all__ = [
     "MESH_FACE_BUDGET",
     "ROT_X90",
     "RobotDrawer",
-    "animation_keys",
+    "RobotPoser",
+    "Tour",
+    "TourSegment",
+    "kinematic_tree",
+    "tour_keys",
     "mesh_cache_dir",
 ]
 _ANIM_FPS = 30
-_ANIM_HOLD = 15  # frames a solution is held [1/fps s]
-_ANIM_MOVE = 9  # frames of joint-space interpolation to the next solution
-#: Largest joint jump [rad] (L-infinity) the animation blends across: one IK branch
-#: (the default ``continuity.threshold``); beyond it, the animation cuts.
+_ANIM_HOLD = 15  # frames a grasp is held [1/fps s]
+_ANIM_MOVE = 15  # frames of an approach or a retreat (joint-space interpolation)
+_ANIM_REST = 6  # frames the pre-grasp and the retreat's end are held
+#: Largest joint jump [rad] (L-infinity) an approach or a retreat is interpolated
+#: across: one IK branch (the default ``continuity.threshold``); beyond it, a cut.
 ANIMATION_BLEND_LIMIT = 0.5
 
 # three.js cameras look along -z with y up; meshcat's camera hangs under
@@ -53,7 +61,68 @@ ANIMATION_BLEND_LIMIT = 0.5
 ROT_X90 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
-class RobotDrawer:
+class RobotPoser:
+    """Poses of a :class:`Robot`'s visual objects: Pinocchio's forward kinematics, no drawing.
+
+    The scene paths are ``robot/visuals/<name>`` (relative to the meshcat root),
+    in the ``/robot`` frame (which carries the robot's base pose).
+    """
+
+    def __init__(self, robot: Robot) -> None:
+        self.model = robot.model
+        self.visual = _visual_model(robot)
+        self.data = self.model.createData()
+        self.vdata = pin.GeometryData(self.visual)
+
+    def placements(self, q: np.ndarray, scaled: bool = True) -> list[tuple[str, np.ndarray]]:
+        """Scene path and transform (4, 4) of every visual object at ``q``.
+
+        With ``scaled`` the columns of the rotation carry the object's mesh
+        scale (the static transform); without it the transform is rigid (an
+        animation key: meshcat animates position and orientation only).
+        """
+        pin.forwardKinematics(self.model, self.data, q)
+        pin.updateGeometryPlacements(self.model, self.data, self.visual, self.vdata)
+        out = []
+        for gid, obj in enumerate(self.visual.geometryObjects):
+            t = self.vdata.oMg[gid].homogeneous.copy()
+            if scaled:
+                t[:3, :3] = t[:3, :3] * np.asarray(obj.meshScale)[None, :]
+            out.append((f"robot/visuals/{obj.name}", t))
+        return out
+
+    def joint_points(self, q: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """World positions (J, 3) of the robot's joint origins at ``q`` (for framing)."""
+        pin.forwardKinematics(self.model, self.data, q)
+        pts = np.array([m.translation for m in self.data.oMi])
+        return pts @ base[:3, :3].T + base[:3, 3]
+
+    def animate(
+        self,
+        vis: Any,
+        qs: np.ndarray,
+        blend_limit: float = ANIMATION_BLEND_LIMIT,
+        pregrasp: np.ndarray | None = None,
+        retreat: np.ndarray | None = None,
+    ) -> tuple[float, int]:
+        """Set the top-k tour (:func:`tour_keys`) on ``vis``; its duration [s] and cuts.
+
+        A tour without a motion (one grasp, no pre-grasp, no retreat) is not set:
+        ``(0.0, 0)``.
+        """
+        tour = tour_keys(qs, pregrasp, retreat, blend_limit)
+        if not tour.moves:
+            return 0.0, 0
+        anim = load_meshcat().animation.Animation(default_framerate=_ANIM_FPS)
+        for frame, q in tour.keys:
+            with anim.at_frame(vis, frame) as f:
+                for path, t in self.placements(q, scaled=False):
+                    f[path].set_transform(t)
+        vis.set_animation(anim, play=True, repetitions=1)
+        return tour.duration_s, tour.cuts
+
+
+class RobotDrawer(RobotPoser):
     """The visual geometry of a :class:`Robot` under ``/robot/visuals/<name>``.
 
     Every object of the robot's visual ``GeometryModel`` is drawn (meshes,
@@ -65,94 +134,231 @@ class RobotDrawer:
     """
 
     def __init__(self, vis: Any, robot: Robot, base: np.ndarray) -> None:
-        model = robot.model
-        visual = _visual_model(robot)
-        for obj in visual.geometryObjects:
+        super().__init__(robot)
+        for obj in self.visual.geometryObjects:
             _draw_geometry(vis[f"robot/visuals/{obj.name}"], obj)
         vis["robot"].set_transform(base)
         self.vis = vis
-        self.model = model
-        self.visual = visual
-        self.data = model.createData()
-        self.vdata = pin.GeometryData(visual)
 
     def display(self, q: np.ndarray) -> None:
         """Pose the robot's visuals at ``q``."""
         for path, t in self.placements(q):
             self.vis[path].set_transform(t)
 
-    def placements(self, q: np.ndarray) -> list[tuple[str, np.ndarray]]:
-        """Scene path and transform (4, 4) of every visual object at ``q``."""
-        pin.forwardKinematics(self.model, self.data, q)
-        pin.updateGeometryPlacements(self.model, self.data, self.visual, self.vdata)
-        out = []
-        for gid, obj in enumerate(self.visual.geometryObjects):
-            t = self.vdata.oMg[gid].homogeneous.copy()
-            t[:3, :3] = t[:3, :3] * np.asarray(obj.meshScale)[None, :]
-            out.append((f"robot/visuals/{obj.name}", t))
-        return out
 
-    def joint_points(self, q: np.ndarray, base: np.ndarray) -> np.ndarray:
-        """World positions (J, 3) of the robot's joint origins at ``q`` (for framing)."""
-        pin.forwardKinematics(self.model, self.data, q)
-        pts = np.array([m.translation for m in self.data.oMi])
-        return pts @ base[:3, :3].T + base[:3, 3]
+@dataclass(frozen=True)
+class TourSegment:
+    """One grasp of the tour: its index in the tour's solutions and its frames.
 
-    def animate(
-        self, vis: Any, qs: np.ndarray, blend_limit: float = ANIMATION_BLEND_LIMIT
-    ) -> tuple[float, int]:
-        """Set the top-k animation (:func:`animation_keys`); its duration [s] and cuts."""
-        anim = load_meshcat().animation.Animation(default_framerate=_ANIM_FPS)
-        keys, cuts = animation_keys(qs, blend_limit)
-        for frame, q in keys:
-            self._keyframe(anim, vis, frame, q)
-        vis.set_animation(anim, play=True, repetitions=1)
-        return (keys[-1][0] + 1) / _ANIM_FPS, cuts
+    Attributes:
+        index: Index of the grasp in the solutions given to :func:`tour_keys`.
+        start: First frame (the pre-grasp, else the grasp).
+        end: Last frame (the retreat's end, else the end of the hold).
+        approach: The approach (pre-grasp to grasp) is shown.
+        retreat: The retreat (grasp to retreat's end) is shown.
+    """
 
-    def _keyframe(self, anim: Any, vis: Any, frame: int, q: np.ndarray) -> None:
-        with anim.at_frame(vis, frame) as f:
-            for path, t in self.placements(q):
-                f[path].set_transform(t)
+    index: int
+    start: int
+    end: int
+    approach: bool
+    retreat: bool
 
 
-def animation_keys(
-    qs: np.ndarray, blend_limit: float = ANIMATION_BLEND_LIMIT
-) -> tuple[list[tuple[int, np.ndarray]], int]:
-    """Keyframes of the top-k animation: each solution held, then the next one.
+@dataclass(frozen=True)
+class Tour:
+    """Keyframes of the top-k tour (:func:`tour_keys`).
 
-    Two consecutive solutions (and the last and the first, which closes the
-    loop) within ``blend_limit`` [rad] of each other in every joint are on one
-    IK branch: the animation blends between them in joint space. Farther apart
-    they are on different branches, and a joint-space blend would swing the arm
-    through poses nobody checked: the animation **cuts**, keying the next
-    solution on the very next frame, with no configuration in between.
+    Attributes:
+        keys: ``(frame, q)`` in frame order; two keys on one frame are a cut
+            (the first ends a motion, the second starts the next one).
+        cuts: Number of cuts.
+        segments: One per grasp, in tour order.
+        moves: Whether anything moves (else there is nothing to animate).
+    """
+
+    keys: list[tuple[int, np.ndarray]]
+    cuts: int
+    segments: list[TourSegment]
+    moves: bool
+
+    @property
+    def duration_s(self) -> float:
+        """Duration of the tour [s]."""
+        return (self.keys[-1][0] / _ANIM_FPS) if self.keys else 0.0
+
+
+def _move_ok(q: np.ndarray, other: np.ndarray | None, blend_limit: float) -> bool:
+    return (
+        other is not None
+        and bool(np.all(np.isfinite(other)))
+        and float(np.max(np.abs(other - q), initial=0.0)) <= blend_limit
+    )
+
+
+def _interpolate(
+    keys: list[tuple[int, np.ndarray]], frame: int, a: np.ndarray, b: np.ndarray
+) -> int:
+    """Key the joint-space line a -> b over :data:`_ANIM_MOVE` frames after ``frame``."""
+    for s in range(1, _ANIM_MOVE + 1):
+        keys.append((frame + s, a + (b - a) * (s / _ANIM_MOVE)))
+    return frame + _ANIM_MOVE
+
+
+def tour_keys(
+    qs: np.ndarray,
+    pregrasp: np.ndarray | None = None,
+    retreat: np.ndarray | None = None,
+    blend_limit: float = ANIMATION_BLEND_LIMIT,
+) -> Tour:
+    """Keyframes of the top-k tour: approach, hold, retreat per grasp; cuts between grasps.
+
+    For each grasp, best first: the pre-grasp held, the joint-space line from
+    the pre-grasp to the grasp (the approach), the grasp held, the line from
+    the grasp to the retreat's end, that end held; then the tour **cuts** to
+    the next grasp's first pose (two keys on one frame: nothing is shown in
+    between). After the last grasp it cuts back to the first grasp's
+    configuration, the one the static scene shows. It never blends from one
+    grasp to another (another IK branch, possibly far away): every pose it
+    shows lies on one grasp's checked approach or retreat, interpolated in
+    joint space between the configurations the run stored.
+
+    A pre-grasp or retreat configuration that is missing (NaN: no approach
+    configured, or none found) is left out: that grasp is held and cut. One
+    farther than ``blend_limit`` [rad] from the grasp in some joint (another
+    branch: the run's path between them is not a straight joint-space line)
+    is shown by a cut instead of a blend.
 
     Args:
-        qs: (k, nq) solutions, best first.
-        blend_limit: Largest joint jump [rad] (L-infinity) blended across.
+        qs: (k, nq) grasp configurations, best first.
+        pregrasp: (k, nq) pre-grasp configurations, or None.
+        retreat: (k, nq) configurations at the retreat's end, or None.
+        blend_limit: Largest joint jump [rad] (L-infinity) interpolated across.
 
     Returns:
-        ``(frame, q)`` keyframes in frame order, and the number of cuts.
+        The tour (keys, cuts, segments).
     """
-    qs = np.asarray(qs, dtype=float)
-    seq = [*qs, qs[0]] if len(qs) > 1 else list(qs)
+    qs = np.asarray(qs, dtype=float).reshape(len(qs), -1) if len(qs) else np.empty((0, 0))
     keys: list[tuple[int, np.ndarray]] = []
+    segments: list[TourSegment] = []
     frame = 0
     cuts = 0
-    for i, q in enumerate(seq):
+    moves = len(qs) > 1
+    for i, q in enumerate(qs):
+        pre = None if pregrasp is None else np.asarray(pregrasp[i], dtype=float)
+        ret = None if retreat is None else np.asarray(retreat[i], dtype=float)
+        start = frame
         if i > 0:
-            prev = seq[i - 1]
-            if np.max(np.abs(q - prev), initial=0.0) <= blend_limit:
-                for s in range(1, _ANIM_MOVE):
-                    keys.append((frame, prev + (q - prev) * (s / _ANIM_MOVE)))
-                    frame += 1
-            else:
-                cuts += 1
-        keys.append((frame, q))
+            cuts += 1  # the previous grasp's last key sits on this frame too
+        show_pre = _move_ok(q, pre, blend_limit)
+        show_ret = _move_ok(q, ret, blend_limit)
+        if pre is not None and np.all(np.isfinite(pre)) and not show_pre:
+            keys += [(frame, pre), (frame + _ANIM_REST, pre)]
+            frame += _ANIM_REST
+            cuts += 1
+        if show_pre:
+            assert pre is not None
+            keys += [(frame, pre), (frame + _ANIM_REST, pre)]
+            frame = _interpolate(keys, frame + _ANIM_REST, pre, q)  # ends on (frame, q)
+        else:
+            keys.append((frame, q))
         frame += _ANIM_HOLD
         keys.append((frame, q))
-        frame += 1
-    return keys, cuts
+        if show_ret:
+            assert ret is not None
+            frame = _interpolate(keys, frame, q, ret)
+            frame += _ANIM_REST
+            keys.append((frame, ret))
+        moves = moves or show_pre or show_ret
+        segments.append(TourSegment(i, start, frame, show_pre, show_ret))
+    if moves and len(qs):
+        keys.append((frame, qs[0]))  # back to the first grasp: the static scene's pose
+        cuts += 1
+    return Tour(keys, cuts, segments, moves)
+
+
+#: Pinocchio joint types the page's forward kinematics knows: kind and axis.
+_JOINT_KINDS: dict[str, tuple[str, tuple[float, float, float] | None]] = {
+    "JointModelRX": ("revolute", (1.0, 0.0, 0.0)),
+    "JointModelRY": ("revolute", (0.0, 1.0, 0.0)),
+    "JointModelRZ": ("revolute", (0.0, 0.0, 1.0)),
+    "JointModelRevoluteUnaligned": ("revolute", None),
+    "JointModelRUBX": ("continuous", (1.0, 0.0, 0.0)),
+    "JointModelRUBY": ("continuous", (0.0, 1.0, 0.0)),
+    "JointModelRUBZ": ("continuous", (0.0, 0.0, 1.0)),
+    "JointModelRevoluteUnboundedUnaligned": ("continuous", None),
+    "JointModelPX": ("prismatic", (1.0, 0.0, 0.0)),
+    "JointModelPY": ("prismatic", (0.0, 1.0, 0.0)),
+    "JointModelPZ": ("prismatic", (0.0, 0.0, 1.0)),
+    "JointModelPrismaticUnaligned": ("prismatic", None),
+}
+
+
+def _rows(m: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(m, dtype=float).reshape(-1)]
+
+
+def kinematic_tree(poser: RobotPoser, tool_frame: int | None = None) -> dict[str, Any]:
+    """The robot's kinematics for forward kinematics in the page, JSON-ready.
+
+    Joints in Pinocchio's order (parents first): ``parent`` (0: the base),
+    ``placement`` (4 x 4 row-major, in the parent joint's frame), ``kind``
+    (``revolute``: angle q; ``continuous``: (cos, sin) in two entries of q;
+    ``prismatic``: offset q), ``axis`` (unit, joint frame) and ``idx_q``. A
+    fixed URDF joint is no joint in Pinocchio: what it carries (a tool) is
+    placed on its moving parent. Visual objects: ``path``, ``joint``,
+    ``placement`` and ``scale``; the transform of one is
+    ``oMi[joint] @ placement`` with its rotation's columns scaled by ``scale``,
+    exactly :meth:`RobotPoser.placements`.
+
+    Args:
+        poser: The robot's visual poses.
+        tool_frame: Id of the grasp frame (its joint and placement are exported), or None.
+
+    Returns:
+        ``{"nq", "joints", "visuals", "tool", "unsupported"}``; ``unsupported``
+        names joint types the page cannot move (then it does not pose the arm).
+    """
+    model = poser.model
+    joints = []
+    unsupported = []
+    for j in range(1, model.njoints):
+        joint = model.joints[j]
+        name = joint.shortname()
+        kind, axis = _JOINT_KINDS.get(name, ("", None))
+        if not kind:
+            unsupported.append(name)
+        elif axis is None:
+            axis = tuple(float(v) for v in np.asarray(joint.extract().axis, dtype=float))
+        joints.append(
+            {
+                "parent": int(model.parents[j]),
+                "placement": _rows(model.jointPlacements[j].homogeneous),
+                "kind": kind or name,
+                "axis": list(axis) if axis is not None else [0.0, 0.0, 1.0],
+                "idx_q": int(joint.idx_q),
+            }
+        )
+    visuals = [
+        {
+            "path": f"robot/visuals/{obj.name}",
+            "joint": int(obj.parentJoint),
+            "placement": _rows(obj.placement.homogeneous),
+            "scale": [float(v) for v in np.asarray(obj.meshScale, dtype=float)],
+        }
+        for obj in poser.visual.geometryObjects
+    ]
+    tool = None
+    if tool_frame is not None:
+        frame = model.frames[tool_frame]
+        tool = {"joint": int(frame.parentJoint), "placement": _rows(frame.placement.homogeneous)}
+    return {
+        "nq": int(model.nq),
+        "joints": joints,
+        "visuals": visuals,
+        "tool": tool,
+        "unsupported": sorted(set(unsupported)),
+    }
 
 
 # -- robot meshes -----------------------------------------------------------------------

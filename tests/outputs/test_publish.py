@@ -148,33 +148,8 @@ def test_animation_steps_through_top_k(scene):
     assert info.top_k == 3 and info.animation_s > 1.0
 
 
-def test_animation_keys_never_blend_between_branches():
-    a = np.array([0.0, 0.5, 0.0, -2.0, 0.0, 1.5, 0.8])
-    qs = np.stack([a, a + 0.1, a + np.r_[2.0, np.zeros(6)], a + np.r_[2.0, 0.2, np.zeros(5)]])
-    keys, cuts = robot_view.animation_keys(qs, blend_limit=0.5)
-    assert cuts == 2  # 2 -> 3 (joint 1 turns by 1.9 rad) and 4 -> 1 (closing the loop)
-    frames = [f for f, _ in keys]
-    assert frames == sorted(frames) and len(set(frames)) == len(frames)
-    on_branch = [np.abs(qs - q).max(axis=1) for _, q in keys]
-    for (f0, q0), (f1, q1) in zip(keys, keys[1:], strict=False):
-        if np.abs(q1 - q0).max() > 0.5:  # across branches: one solution to the next, at once
-            assert f1 == f0 + 1
-            assert any(np.array_equal(q0, s) for s in qs)
-            assert any(np.array_equal(q1, s) for s in qs)
-    # every key is a solution or a blend of two solutions of one branch
-    for (_, q), dist in zip(keys, on_branch, strict=True):
-        assert dist.min() == 0.0 or np.sort(dist)[:2].max() <= 0.5 + 1e-12, q
-    # within one branch the animation blends (frames between the two held solutions)
-    blended = [q for _, q in keys if np.abs(qs - q).max(axis=1).min() > 0]
-    assert len(blended) == 2 * (robot_view._ANIM_MOVE - 1)  # 1 -> 2 and 3 -> 4
-    # a limit above every jump blends everywhere; one solution has no animation step
-    assert robot_view.animation_keys(qs, blend_limit=10.0)[1] == 0
-    assert (
-        robot_view.animation_keys(qs[:1])[1] == 0 and len(robot_view.animation_keys(qs[:1])[0]) == 2
-    )
-
-
-def test_scene_animation_cuts_between_branches(robot):
+def test_scene_tour_cuts_between_grasps(robot):
+    """The tour never blends from one grasp to the next, whatever the blend limit."""
     grasps, manifold = make_scene(robot)
     rank = np.asarray(grasps["rank"])
     q = np.array(grasps["q"])
@@ -185,16 +160,16 @@ def test_scene_animation_cuts_between_branches(robot):
     q[top[2]] = base + np.r_[1.5, np.zeros(robot.nq - 1)]  # another branch
     grasps = grasps.with_columns(q=q)
     html, info = pub_html.render_scene_html(grasps, manifold, robot, scene_options(make_config()))
-    assert info.top_k == 3 and info.animation_cuts == 2
+    assert info.top_k == 3 and info.animation_cuts == 3  # 1 -> 2, 2 -> 3, 3 -> 1
     (anim,) = [c for c in decode_commands(html) if c["type"] == "set_animation"]
     clip = next(c["clip"] for c in anim["animations"] if c["path"].endswith("panda_link1_0"))
     times = [k["time"] for k in clip["tracks"][0]["keys"]]
-    # 4 held solutions (2 keys each), one blend of 8 frames: no frames across the cuts
-    assert len(times) == 4 * 2 + (robot_view._ANIM_MOVE - 1)
+    # 3 held grasps (2 keys each) and the cut back to the first: nothing in between
+    assert len(times) == 3 * 2 + 1 and len(set(times)) == 4
     cfg = make_config()
     cfg = Config.from_dict({**cfg.to_dict(), "continuity": {"threshold": 3.0}})
     _, info = pub_html.render_scene_html(grasps, manifold, robot, scene_options(cfg))
-    assert info.animation_cuts == 0  # the threshold of one branch is continuity.threshold
+    assert info.animation_cuts == 3
 
 
 def _object_of(commands: list[dict], path: str) -> dict:

@@ -453,8 +453,7 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
         return
     if row.get("coverage") is None or not set(ARRAYS) <= set(arrays) <= {*ARRAYS, *REPORT_ARRAYS}:
         raise ValueError(f"a finished placement needs coverage and the arrays {', '.join(ARRAYS)}")
-    _check_report_arrays(arrays)
-    arrays = {k: v for k, v in arrays.items() if k in ARRAYS}
+    full, arrays = arrays, {k: v for k, v in arrays.items() if k in ARRAYS}
     if not 0.0 <= row["coverage"] <= 1.0:
         raise ValueError(f"coverage {row['coverage']!r} is not within [0, 1]")
     lengths = {k: (v.shape[0] if v.ndim else None) for k, v in arrays.items()}
@@ -484,6 +483,7 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
         )
     if total and abs(row["coverage"] - reached / total) > 1e-12:
         raise ValueError(f"coverage {row['coverage']!r} is not {reached} / {total}")
+    _check_report_arrays(full)
 
 
 def _check_report_arrays(arrays: Mapping[str, np.ndarray]) -> None:

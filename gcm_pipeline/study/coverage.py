@@ -216,9 +216,9 @@ def _draw_panel(
             c=[float(r["coverage"]) for r in refined],
             cmap=cmap,
             norm=norm,
-            s=36,
+            s=_dot_size(ax, refined, fx, fy),
             edgecolors="0.15",
-            linewidths=0.5,
+            linewidths=0.3,
             zorder=4,
         )
     if failed:
@@ -245,6 +245,19 @@ def _draw_panel(
         fontsize=9,
     )
     return image
+
+
+def _dot_size(ax: Any, rows: Sequence[Mapping[str, Any]], fx: str, fy: str | None) -> float:
+    """Marker area [pt^2] of the refined dots: at most 6 pt wide, never overlapping."""
+    pts = np.array([(float(r[fx]), float(r[fy]) if fy else 0.0) for r in rows])
+    if len(pts) < 2:
+        return 36.0
+    box = ax.get_window_extent()
+    x0, x1 = ax.get_xlim()
+    scale = box.width / max(abs(x1 - x0), 1e-12) * 72.0 / ax.get_figure().dpi  # pt per metre
+    gaps = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(len(pts)) * 1e9
+    width = float(np.clip(0.7 * gaps.min() * scale, 2.0, 6.0))
+    return width * width
 
 
 def _cell_values(ax: Any, xs: Sequence[float], ys: Sequence[float], grid: np.ndarray) -> None:

@@ -170,7 +170,9 @@ def _swept(rows: Sequence[Mapping[str, Any]]) -> dict[str, list[str]]:
 def _metric(path: Path) -> str:
     try:
         summary = json.loads((path / "summary.json").read_text(encoding="utf-8"))
-        return str(summary.get("ranking", {}).get("metric") or summary.get("metric") or "metric")
+        metric = summary.get("metric")  # {"name", "column"} (older studies: the name)
+        name = metric.get("name") if isinstance(metric, dict) else metric
+        return str(name or "metric")
     except (OSError, ValueError, AttributeError):
         return "metric"
 

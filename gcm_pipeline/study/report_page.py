@@ -16,6 +16,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.robot_view import ROT_X90
 from gcm_pipeline.study import coverage
@@ -63,7 +65,8 @@ def coverage_svg(report: StudyReport) -> str:
             and str(r["object"]) == str(key[0])
             and (merged or coverage.panel_key(r, report.swept, plane[0]) == key)
         ]
-        out.append(_panel_svg(title, members, refined, plane))
+        best = int(report.best["id"]) if report.best else None
+        out.append(_panel_svg(title, members, refined, plane, best))
     return "\n".join(out)
 
 
@@ -82,6 +85,7 @@ def _panel_svg(
     members: Sequence[Mapping[str, Any]],
     refined: Sequence[Mapping[str, Any]],
     plane: tuple[str, Sequence[str]],
+    best_id: int | None,
 ) -> str:
     pose, axes = plane
     fx = f"{pose}_{axes[0]}"
@@ -127,14 +131,26 @@ def _panel_svg(
             f'fill="{fill}"/><text x="{(x0 + x1) / 2:.1f}" y="{(y0 + y1) / 2 + 4:.1f}" '
             f'class="{"light" if dark else "darktext"}">{text}</text></g>'
         )
+    spots = np.array([(px(float(r[fx])), py(float(r[fy]) if fy else 0.0)) for r in refined])
+    radius = 6.0
+    if len(spots) > 1:  # no overlap: a third of the closest two dots' distance
+        gaps = np.linalg.norm(spots[:, None] - spots[None], axis=-1) + np.eye(len(spots)) * 1e9
+        radius = float(np.clip(gaps.min() / 3.0, 2.0, 6.0))
     for r in refined:
         fill, text = _cell_label(r)
         parts.append(
             f'<g class="dot" data-pid="{int(r["id"])}"><title>placement {int(r["id"])} '
             f"(refined): {text}</title>"
             f'<circle cx="{px(float(r[fx])):.1f}" cy="{py(float(r[fy]) if fy else 0.0):.1f}" '
-            f'r="6" fill="{fill}"/></g>'
+            f'r="{radius:.1f}" fill="{fill}"/></g>'
         )
+    for r in [*members, *refined]:
+        if int(r["id"]) == best_id:
+            bx, by = px(float(r[fx])), py(float(r[fy]) if fy else 0.0)
+            parts.append(
+                f'<text class="best" x="{bx:.1f}" y="{by - 7:.1f}">&#9733;<title>best placement '
+                f"{best_id}</title></text>"
+            )
     if mark is not None:
         name = "robot base" if other == "base" else "object"
         mx, my = px(mark[0]), py(mark[1])
@@ -223,8 +239,6 @@ def _table(report: StudyReport) -> str:
 
 
 def _orbit_target(scene: StudyScene) -> list[float]:
-    import numpy as np
-
     return [float(v) for v in ROT_X90.T @ np.asarray(scene.camera_target, dtype=float)]
 
 
@@ -250,7 +264,7 @@ def render_page(report: StudyReport, scene: StudyScene, data: dict[str, Any]) ->
     )
     return (
         _PAGE.replace("%TITLE%", _esc(f"study {report.path.name}"))
-        .replace("%HEADER%", _esc(f"Study {report.path}") + f" — {best_line}")
+        .replace("%HEADER%", _esc(f"Study {report.path.name}") + f" — {best_line}")
         .replace("%BANNER%", "".join(f"<p class='warn'>{_esc(b)}</p>" for b in banner))
         .replace("%MAPS%", coverage_svg(report))
         .replace("%TABLE%", _table(report))
@@ -275,9 +289,9 @@ svg text {font-size: 10px; text-anchor: middle;}
 svg text.title {text-anchor: start; font-size: 11px; font-weight: bold;}
 svg text.ytick {text-anchor: end;} svg .marker text {text-anchor: start; fill: #d62728;}
 svg text.light {fill: #fff;} svg text.darktext {fill: #000;}
-svg .axis {stroke: #444;}
+svg .axis {stroke: #444;} svg text.best {fill: #d62728; font-size: 15px; pointer-events: none;}
 .cell, .dot {cursor: pointer;} .cell rect {stroke: #fff; stroke-width: 1;}
-.dot circle {stroke: #222; stroke-width: 0.8;}
+.dot circle {stroke: #222; stroke-width: 0.4;}
 .sel rect, .sel circle {stroke: #ff2d2d !important; stroke-width: 3 !important;}
 table {border-collapse: collapse; margin-top: 8px; font-size: 12px;}
 th, td {border: 1px solid #ddd; padding: 2px 6px; text-align: right;}
@@ -331,7 +345,13 @@ function counts(p) {
 function showPlacement(p) {
   var msg = [];
   var k = D.objects.findIndex(o => o.name === p.object);
-  if (p.obj) { setT("object", p.obj); }
+  if (p.obj) {  // keep the object where the camera looks: move the camera with it
+    var o3 = node("object").object.position;
+    var d = [p.obj[12] - o3.x, p.obj[13] - o3.y, p.obj[14] - o3.z];
+    var dv = new viewer.camera.position.constructor(d[0], d[2], -d[1]);  // z-up -> three's y-up
+    viewer.camera.position.add(dv); viewer.controls.target.add(dv); viewer.controls.update();
+    setT("object", p.obj);
+  }
   if (p.base) { setT("robot", p.base); }
   if (p.links) p.links.forEach((m, i) => setT(D.links[i], m));
   D.objects.forEach((o, i) => {

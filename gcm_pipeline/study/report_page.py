@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 __all__ = ["coverage_svg", "render_page"]
 
 _W = 230  # plot width [px] of a panel
-_M = (46, 14, 14, 40)  # margins left, right, top, bottom [px]
+_M = (46, 56, 14, 40)  # margins left, right (room for the marker label), top, bottom [px]
 
 
 def _esc(text: Any) -> str:

@@ -194,3 +194,26 @@ def test_clicking_a_cell_loads_that_placements_scene(study_dir, tmp_path):
                 assert values[top] == want(finite), (key, want)
         page.screenshot(tmp_path / "study_report.png")
         assert page.errors == []
+
+
+def _page_data(page: str) -> dict:
+    start = page.index('<script id="study-data" type="application/json">')
+    text = page[page.index(">", start) + 1 : page.index("</script>", start)]
+    return json.loads(text.replace("<\\/", "</"))
+
+
+def test_a_base_sweep_places_the_robot_of_each_placement_as_its_config_does(tmp_path):
+    from gcm_pipeline.study import load_study
+
+    sweep = {"base_pose": {"x": [0.0, -0.1], "y": [0.0, 0.1], "yaw_deg": [0, 30]}}
+    out = _run(tmp_path, sweep)
+    page = (out / "study.html").read_text()
+    assert "robot base x [m]" in page and ">object</text>" in page  # the object marked instead
+    plan = load_study(tmp_path / "study.yaml")
+    records = {p["id"]: p for p in _page_data(page)["placements"]}
+    assert len(records) == 8
+    for placement in plan.grid():
+        want = plan.resolve(placement.overrides).robot.base_pose.matrix()
+        got = np.array(records[placement.id]["base"]).reshape(4, 4, order="F")
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        assert len(records[placement.id]["links"]) == len(_page_data(page)["links"])

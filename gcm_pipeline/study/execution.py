@@ -419,10 +419,11 @@ class StudyRun:
         files.append(store.write_json("summary.json", summary))
         if best_dir is not None:
             files.append(best_dir)
-        try:  # the report is a view of the files above: failing to draw it loses nothing
-            files.append(write_study_html(store.path))
-        except Exception as exc:
-            log.warning("study: study.html not written: %s", " ".join(str(exc).split())[:300])
+        if complete:  # not while an interrupt waits: gcm plot STUDY_DIR writes it later
+            try:  # the report is a view of the files above: failing to draw it loses nothing
+                files.append(write_study_html(store.path))
+            except Exception as exc:
+                log.warning("study: study.html not written: %s", " ".join(str(exc).split())[:300])
         clean = [{k: v for k, v in r.items() if k != "arrays"} for r in rows]
         return StudyResult(
             store.path, clean, summary["best"], summary, complete=complete, files=files

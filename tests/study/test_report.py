@@ -217,3 +217,20 @@ def test_a_base_sweep_places_the_robot_of_each_placement_as_its_config_does(tmp_
         got = np.array(records[placement.id]["base"]).reshape(4, 4, order="F")
         np.testing.assert_allclose(got, want, atol=1e-6)
         assert len(records[placement.id]["links"]) == len(_page_data(page)["links"])
+
+
+def test_a_report_that_cannot_be_written_warns_once_and_keeps_the_results(
+    tmp_path, monkeypatch, caplog
+):
+    from gcm_pipeline.study import execution
+
+    def full_disk(path):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(execution, "write_study_html", full_disk)
+    out = _run(tmp_path, {"object_pose": {"x": [0.45, 0.55]}})
+    assert not (out / "study.html").exists()
+    for name in ("placements.csv", "reachability.npz", "summary.json", "coverage.png"):
+        assert (out / name).is_file(), name
+    warned = [r.getMessage() for r in caplog.records if "study.html" in r.getMessage()]
+    assert warned == ["study: study.html not written: [Errno 28] No space left on device"]

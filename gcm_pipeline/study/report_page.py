@@ -320,7 +320,7 @@ var COMMANDS = %COMMANDS%;
 _SCRIPT = r"""
 var D = JSON.parse(document.getElementById("study-data").textContent);
 var byId = new Map(D.placements.map(p => [p.id, p]));
-var viewer = null;
+var viewer = null, lastObj = null;
 function b64bytes(s) {
   var b = atob(s), u = new Uint8Array(b.length);
   for (var i = 0; i < b.length; i++) u[i] = b.charCodeAt(i);
@@ -345,12 +345,20 @@ function counts(p) {
 function showPlacement(p) {
   var msg = [];
   var k = D.objects.findIndex(o => o.name === p.object);
-  if (p.obj) {  // keep the object where the camera looks: move the camera with it
-    var o3 = node("object").object.position;
-    var d = [p.obj[12] - o3.x, p.obj[13] - o3.y, p.obj[14] - o3.z];
-    var dv = new viewer.camera.position.constructor(d[0], d[2], -d[1]);  // z-up -> three's y-up
-    viewer.camera.position.add(dv); viewer.controls.target.add(dv); viewer.controls.update();
-    setT("object", p.obj);
+  D.objects.forEach((o, i) => {
+    var n = o.shape && node(o.shape);
+    if (n) n.object.visible = (i === k);
+  });
+  var shape = k >= 0 ? D.objects[k].shape : "";
+  if (!shape) msg.push("this object's shape is not drawn");
+  if (p.obj && shape) {  // keep the object where the camera looks: move the camera with it
+    if (lastObj) {
+      var d = [p.obj[12] - lastObj[0], p.obj[13] - lastObj[1], p.obj[14] - lastObj[2]];
+      var dv = new viewer.camera.position.constructor(d[0], d[2], -d[1]);  // z-up -> y-up
+      viewer.camera.position.add(dv); viewer.controls.target.add(dv); viewer.controls.update();
+    }
+    lastObj = [p.obj[12], p.obj[13], p.obj[14]];
+    setT(shape, p.obj);
   }
   if (p.base) { setT("robot", p.base); }
   if (p.links) p.links.forEach((m, i) => setT(D.links[i], m));
@@ -367,8 +375,6 @@ function showPlacement(p) {
     }
     attr.needsUpdate = true;
   } else if (k >= 0) msg.push("its grasps differ from the object's first placement: not drawn");
-  if (p.object !== D.placements.find(q => q.id === D.best).object)
-    msg.push("the object drawn is the best placement's shape");
   viewer.set_dirty();
   return msg;
 }

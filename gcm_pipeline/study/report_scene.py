@@ -37,6 +37,8 @@ from gcm_pipeline.outputs.plots import reason_palette
 from gcm_pipeline.outputs.robot_view import RobotDrawer
 from gcm_pipeline.outputs.scene import build_scene
 from gcm_pipeline.outputs.scene_glyphs import line_segments
+from gcm_pipeline.outputs.scene_shapes import draw_object
+from gcm_pipeline.pipeline import place_file_object
 from gcm_pipeline.pipeline.outputs import scene_options
 from gcm_pipeline.study.spec import load_study
 from gcm_pipeline.table import GraspTable
@@ -148,7 +150,8 @@ class StudyScene:
 
     Attributes:
         commands: meshcat commands (base64 msgpack) that draw the best placement.
-        objects: Per object ``{"name", "path", "n"}`` (its glyph object, grasps).
+        objects: Per object ``{"name", "path", "n", "shape"}`` (its glyph object,
+            grasps, and the scene path of its shape: ``""`` when not drawn).
         classes: Per status byte ``{"name", "rgb"}``: 0 reachable, then reasons.
         links: Scene paths of the robot's visual objects (``robot/visuals/<name>``).
         message: Why there is no 3-D scene ("" when there is one).
@@ -229,6 +232,20 @@ def _classes(report: StudyReport) -> list[dict[str, Any]]:
     return out
 
 
+def _plan(report: StudyReport) -> Any:
+    """The study's plan, from the study file ``study.json`` names."""
+    meta = json.loads((report.path / "study.json").read_text(encoding="utf-8"))
+    if not isinstance(meta, dict) or not meta.get("source"):
+        raise GcmError("study.json names no study file")
+    return load_study(meta["source"])
+
+
+def _placement_config(plan: Any, row: Mapping[str, Any]) -> Any:
+    """A placement's config as its run saw it (an object its grasp file names, placed)."""
+    cfg = plan.resolve(list(row.get("overrides") or []), where=f"placement {row['id']}")
+    return place_file_object(cfg) if cfg.object is None else cfg
+
+
 def _best_config(report: StudyReport) -> Any:
     """The best placement's config: ``best/config.yaml``, else the study file's."""
     best = report.best
@@ -236,12 +253,36 @@ def _best_config(report: StudyReport) -> Any:
         raise GcmError("no placement finished")
     path = report.path / "best" / "config.yaml"
     if path.is_file():
-        return load_config(path)
-    meta = json.loads((report.path / "study.json").read_text(encoding="utf-8"))
-    if not meta.get("source"):
-        raise GcmError("no best/ run directory and study.json names no study file")
-    plan = load_study(meta["source"])
-    return plan.resolve(list(best.get("overrides") or []), where=f"placement {best['id']}")
+        cfg = load_config(path)
+        return place_file_object(cfg) if cfg.object is None else cfg
+    return _placement_config(_plan(report), best)
+
+
+def _draw_other_objects(scene: StudyScene, report: StudyReport, vis: Any) -> None:
+    """Draw the shape of every object but the best placement's under ``/study_objects/o<k>``."""
+    best = str(report.best["object"]) if report.best else ""
+    for o in scene.objects:
+        o["shape"] = "object" if o["name"] == best else ""
+    others = [o for o in scene.objects if not o["shape"]]
+    if not others:
+        return
+    try:
+        plan = _plan(report)
+    except (GcmError, OSError, ValueError) as exc:
+        log.warning("study report: other objects' shapes not drawn: %s", exc)
+        return
+    for o in others:
+        row = next(r for r in report.rows if str(r["object"]) == o["name"])
+        try:
+            shape = scene_options(_placement_config(plan, row)).object
+        except (GcmError, OSError, ValueError) as exc:
+            log.warning("study report: %s not drawn: %s", o["name"], exc)
+            continue
+        if shape is not None:
+            node = f"study_objects/{o['path'].rsplit('/', 1)[-1]}"
+            draw_object(vis[node], shape)
+            vis[f"{node}/object"].set_property("visible", False)
+            o["shape"] = f"{node}/object"
 
 
 def _glyphs(pose_object: np.ndarray, status: np.ndarray, classes: list[dict[str, Any]]) -> Any:
@@ -305,6 +346,7 @@ def _record(scene: StudyScene, report: StudyReport, cfg: Any, robot: Any) -> Non
     placed = scene._drawer.placements(home)
     scene.links = [path for path, _ in placed]
     scene._home = [_colmajor(t) for _, t in placed]
+    _draw_other_objects(scene, report, vis)
     for o in scene.objects:
         status = np.zeros(o["n"], dtype=np.int64)
         vis[o["path"]].set_object(_glyphs(scene._refs[o["name"]], status, scene.classes))

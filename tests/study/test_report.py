@@ -234,3 +234,36 @@ def test_a_report_that_cannot_be_written_warns_once_and_keeps_the_results(
         assert (out / name).is_file(), name
     warned = [r.getMessage() for r in caplog.records if "study.html" in r.getMessage()]
     assert warned == ["study: study.html not written: [Errno 28] No space left on device"]
+
+
+def test_each_object_of_a_study_is_shown_with_its_own_shape_and_grasps(tmp_path):
+    can = {"shape": "cylinder", "dims": {"radius": 0.033, "height": 0.12}}
+    sweep = {
+        "object_pose": {"x": [0.45, 0.55]},
+        "objects": [
+            {"name": "bottle"},
+            {"name": "can", "object": can, "set": ["candidates.count=12"]},
+        ],
+    }
+    out = _run(tmp_path, sweep)
+    page_path = out / "study.html"
+    data = _page_data(page_path.read_text())
+    objects = {o["name"]: o for o in data["objects"]}
+    assert set(objects) == {"bottle", "can"} and all(o["shape"] for o in objects.values())
+    can_id = next(p["id"] for p in data["placements"] if p["object"] == "can")
+    with Page(tmp_path / "profile", size=(900, 600)) as page:
+        page.open(page_path)
+        page.wait_for("window.studyReady === true", timeout_s=40)
+        page.eval(f"selectPlacement({can_id})")
+        visible = page.eval(
+            "D.objects.map(o => [o.name, node(o.shape).object.visible,"
+            " node(o.path).object.visible])"
+        )
+        want_pose, want_reachable = _expected(out, can_id)
+        assert page.eval("window.studyShown") == {"id": can_id, "reachable": want_reachable}
+        shape = objects["can"]["shape"]
+        matrix = "(o => { o.updateMatrix(); return Array.from(o.matrix.elements); })"
+        got = np.array(page.eval(f"{matrix}(node('{shape}').object)")).reshape(4, 4, order="F")
+        np.testing.assert_allclose(got, want_pose, atol=1e-5)
+        assert page.errors == []
+    assert sorted(map(tuple, visible)) == [("bottle", False, False), ("can", True, True)]

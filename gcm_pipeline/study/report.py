@@ -57,6 +57,7 @@ class StudyReport:
         swept: ``{"object": [axes], "base": [axes]}`` (the pose keys that vary).
         best: The best placement's row (None: no placement finished).
         metric: The ranking metric's name.
+        warnings: One line per part file that was skipped (the page shows them).
     """
 
     path: Path

@@ -249,8 +249,7 @@ def _placement_config(plan: Any, row: Mapping[str, Any]) -> Any:
 def _best_config(report: StudyReport) -> Any:
     """The best placement's config: ``best/config.yaml``, else the study file's."""
     best = report.best
-    if best is None:
-        raise GcmError("no placement finished")
+    assert best is not None
     path = report.path / "best" / "config.yaml"
     if path.is_file():
         cfg = load_config(path)
@@ -304,13 +303,17 @@ def build_study_scene(report: StudyReport) -> StudyScene:
     scene = StudyScene(classes=_classes(report))
     first: dict[str, int] = {}
     for r in report.rows:
-        if int(r["id"]) in report.parts and str(r["object"]) not in first:
+        part = report.parts.get(int(r["id"]), {})
+        if "pose_object" in part and str(r["object"]) not in first:  # finished, not failed
             first[str(r["object"])] = int(r["id"])
     scene._refs = {o: np.asarray(report.parts[p]["pose_object"]) for o, p in first.items()}
     scene.objects = [
         {"name": o, "path": f"study_grasps/o{k}", "n": len(scene._refs[o])}
         for k, o in enumerate(first)
     ]
+    if report.best is None:  # every placement failed: the maps and the table say so
+        scene.message = "no 3-D scene: no placement finished"
+        return scene
     try:
         cfg = _best_config(report)
         robot = load_robot(cfg.robot.spec, cfg.robot.tool)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import yaml
 from cdp import Page
-from helpers import BOTTLE, assert_one_line_error
+from helpers import BOTTLE, ROOT, assert_one_line_error
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.study import Study
@@ -267,3 +267,21 @@ def test_each_object_of_a_study_is_shown_with_its_own_shape_and_grasps(tmp_path)
         np.testing.assert_allclose(got, want_pose, atol=1e-5)
         assert page.errors == []
     assert sorted(map(tuple, visible)) == [("bottle", False, False), ("can", True, True)]
+
+
+def test_a_study_whose_every_placement_failed_renders_its_failures(tmp_path):
+    broken = tmp_path / "broken.npy"
+    broken.write_bytes(b"\x93NUMPY this is not a grasp file")
+    data = {
+        "base": str(ROOT / "configs" / "from_file.yaml"),
+        "set": ["densify.subdivisions=1", f"candidates.path={broken}", "publish.html=false"],
+        "sweep": {"object_pose": {"x": [0.40, 0.45]}},
+    }
+    path = tmp_path / "study.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    Study.from_yaml(path).run(out, engine="inline", progress=False, best_run=False)
+    page = (out / "study.html").read_text()
+    assert set(_cells(page).values()) == {"failed"}
+    assert "no 3-D scene: no placement finished" in page
+    assert "No placement reaches any grasp" in page

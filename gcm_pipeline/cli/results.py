@@ -44,7 +44,11 @@ def _add_show(sub: Any, common: argparse.ArgumentParser) -> None:
 
 def _add_plot(sub: Any, common: argparse.ArgumentParser) -> None:
     """``gcm plot RUN_DIR``."""
-    plot = sub.add_parser("plot", parents=[common], help="write the plots of a run")
+    plot = sub.add_parser(
+        "plot",
+        parents=[common],
+        help="write the plots of a run (of a study directory: coverage.png and study.html)",
+    )
     plot.add_argument("run_dir", metavar="RUN_DIR", type=Path)
 
 
@@ -184,7 +188,14 @@ def _run_base_pose(summary: dict[str, Any]) -> Any:
 def _cmd_plot(args: argparse.Namespace) -> int:
     from gcm_pipeline.outputs.plots import write_plots
     from gcm_pipeline.rundir.run import read_run
+    from gcm_pipeline.rundir.transaction import is_project_dir
 
+    if is_project_dir(args.run_dir, "study"):
+        from gcm_pipeline.study.report import plot_study
+
+        for p in plot_study(args.run_dir):
+            print(p)
+        return 0
     run = read_run(args.run_dir)
     counts = {k: v for k, v in run.summary.get("counts", {}).items() if isinstance(v, int)}
     top = run.summary.get("ranking", {}).get("top")

@@ -4,8 +4,9 @@
 one base config (each one the base plus ``--set`` style overrides, the same
 answer as ``gcm run`` with those overrides) on Ray actors and write a study
 directory: ``placements.csv``, ``reachability.npz``, ``summary.json``,
-``coverage.png`` and ``best/``. See :mod:`gcm_pipeline.study.study` for the
-sequence, :mod:`~gcm_pipeline.study.execution` for one run of it,
+``coverage.png``, ``best/`` and ``study.html`` (:mod:`~gcm_pipeline.study.report`).
+See :mod:`gcm_pipeline.study.study` for the sequence,
+:mod:`~gcm_pipeline.study.execution` for one run of it,
 :mod:`~gcm_pipeline.study.spec` for the study file,
 :mod:`~gcm_pipeline.study.store` for the directory and
 :mod:`~gcm_pipeline.study.runner` for Ray. Ray is imported only when a study

@@ -19,7 +19,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["MAX_PANELS", "write_coverage_png"]
+__all__ = [
+    "MAX_PANELS",
+    "grid_panels",
+    "panel_key",
+    "panel_title",
+    "plane_of",
+    "write_coverage_png",
+]
 
 #: Most panels in one figure.
 MAX_PANELS = 12
@@ -31,7 +38,7 @@ _FIELDS = {
 }
 
 
-def _plane(swept: Mapping[str, Sequence[str]]) -> tuple[str, list[str]] | None:
+def plane_of(swept: Mapping[str, Sequence[str]]) -> tuple[str, list[str]] | None:
     """The pose whose position axes span the panels, and which of x, y are swept."""
     for pose in ("object", "base"):
         axes = [a for a in _POS if a in swept.get(pose, ())]
@@ -40,7 +47,8 @@ def _plane(swept: Mapping[str, Sequence[str]]) -> tuple[str, list[str]] | None:
     return None
 
 
-def _panel_key(row: Mapping[str, Any], swept: Mapping[str, Sequence[str]], plane: str) -> tuple:
+def panel_key(row: Mapping[str, Any], swept: Mapping[str, Sequence[str]], plane: str) -> tuple:
+    """The panel of a placement: its object and its values of the other swept keys."""
     key: list[Any] = [row["object"]]
     for pose in ("object", "base"):
         for a in swept.get(pose, ()):
@@ -50,7 +58,29 @@ def _panel_key(row: Mapping[str, Any], swept: Mapping[str, Sequence[str]], plane
     return tuple(key)
 
 
-def _panel_title(key: tuple, n_objects: int) -> str:
+def grid_panels(
+    rows: Sequence[Mapping[str, Any]], swept: Mapping[str, Sequence[str]], pose: str
+) -> tuple[dict[tuple, list[Mapping[str, Any]]], bool]:
+    """The grid's (round 0) placements by panel, and whether panels were merged.
+
+    One panel per value of the swept keys other than ``pose``'s x-y; beyond
+    :data:`MAX_PANELS` one panel per object (``merged``: a cell then shows the
+    best coverage over the rest).
+    """
+    grid_rows = [r for r in rows if int(r.get("round", 0)) == 0]
+    panels: dict[tuple, list[Mapping[str, Any]]] = {}
+    for r in grid_rows:
+        panels.setdefault(panel_key(r, swept, pose), []).append(r)
+    if len(panels) <= MAX_PANELS:
+        return panels, False
+    panels = {}
+    for r in grid_rows:
+        panels.setdefault((r["object"],), []).append(r)
+    return panels, True
+
+
+def panel_title(key: tuple, n_objects: int) -> str:
+    """A panel's title (``object yaw 20°``), the object named when there are several."""
     parts = [str(key[0])] if n_objects > 1 else []
     for pose, axis, value in key[1:]:
         unit = "°" if axis.endswith("_deg") else " m"
@@ -86,7 +116,7 @@ def write_coverage_png(
 
     path = Path(path)
     objects = list(dict.fromkeys(str(r["object"]) for r in rows))
-    plane = _plane(swept)
+    plane = plane_of(swept)
     norm = Normalize(0.0, 1.0)
     cmap = "viridis"
     if plane is None:
@@ -95,18 +125,8 @@ def write_coverage_png(
         FigureCanvasAgg(fig).print_png(str(path))
         return path
 
-    pose = plane[0]
-    grid_rows = [r for r in rows if int(r.get("round", 0)) == 0]
-    panels: dict[tuple, list[Mapping[str, Any]]] = {}
-    for r in grid_rows:
-        panels.setdefault(_panel_key(r, swept, pose), []).append(r)
+    panels, merged = grid_panels(rows, swept, plane[0])
     keys = list(panels)
-    merged = len(keys) > MAX_PANELS
-    if merged:  # one panel per object: the best coverage over the other keys
-        panels = {}
-        for r in grid_rows:
-            panels.setdefault((r["object"],), []).append(r)
-        keys = list(panels)
     n = len(keys)
     ncols = min(n, 4)
     nrows = math.ceil(n / ncols)
@@ -179,11 +199,13 @@ def _draw_panel(
     image = ax.pcolormesh(_edges(xs), _edges(ys), np.ma.masked_invalid(grid), cmap=cmap, norm=norm)
     if fy:
         ax.set_aspect("equal")
+    _mark_base(ax, members, pose, fy is not None)
+    _cell_values(ax, xs, ys, grid)
     refined = [
         r
         for r in rows
         if int(r.get("round", 0)) > 0
-        and (merged or _panel_key(r, swept, pose) == key)
+        and (merged or panel_key(r, swept, pose) == key)
         and str(r["object"]) == str(key[0])
         and not r.get("error")
     ]
@@ -194,14 +216,15 @@ def _draw_panel(
             c=[float(r["coverage"]) for r in refined],
             cmap=cmap,
             norm=norm,
-            s=14,
-            edgecolors="white",
-            linewidths=0.4,
+            s=_dot_size(ax, refined, fx, fy),
+            edgecolors="0.15",
+            linewidths=0.3,
+            zorder=4,
         )
     if failed:
         ax.scatter(*zip(*failed, strict=True), marker="x", c="0.5", s=20)
     best = [r for r in rows if best_id is not None and int(r["id"]) == best_id]
-    if best and (merged or _panel_key(best[0], swept, pose) == key):
+    if best and (merged or panel_key(best[0], swept, pose) == key):
         b = best[0]
         if str(b["object"]) == str(key[0]):
             ax.scatter(
@@ -218,10 +241,61 @@ def _draw_panel(
     ax.set_xlabel(f"{name} {axes[0]} [m]")
     ax.set_ylabel(f"{name} {axes[1]} [m]" if fy else "")
     ax.set_title(
-        (str(key[0]) + ", best over the rest") if merged else _panel_title(key, n_objects),
+        (str(key[0]) + ", best over the rest") if merged else panel_title(key, n_objects),
         fontsize=9,
     )
     return image
+
+
+def _dot_size(ax: Any, rows: Sequence[Mapping[str, Any]], fx: str, fy: str | None) -> float:
+    """Marker area [pt^2] of the refined dots: at most 6 pt wide, never overlapping."""
+    pts = np.array([(float(r[fx]), float(r[fy]) if fy else 0.0) for r in rows])
+    if len(pts) < 2:
+        return 36.0
+    box = ax.get_window_extent()
+    x0, x1 = ax.get_xlim()
+    scale = box.width / max(abs(x1 - x0), 1e-12) * 72.0 / ax.get_figure().dpi  # pt per metre
+    gaps = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(len(pts)) * 1e9
+    width = float(np.clip(0.7 * gaps.min() * scale, 2.0, 6.0))
+    return width * width
+
+
+def _cell_values(ax: Any, xs: Sequence[float], ys: Sequence[float], grid: np.ndarray) -> None:
+    """Print each cell's coverage in it when the cells are large enough to read it."""
+    box = ax.get_window_extent()  # before layout: the subplot's share of the figure
+    ex, ey = _edges(xs), _edges(ys)
+    x0, x1 = ax.get_xlim()
+    y0, y1 = ax.get_ylim()
+    cell_w = box.width * min(np.diff(ex)) / max(abs(x1 - x0), 1e-12)
+    cell_h = box.height * min(np.diff(ey)) / max(abs(y1 - y0), 1e-12)
+    if cell_w < 26 or cell_h < 11:
+        return
+    size = max(5.0, min(8.0, cell_w / 4.0))
+    for i, y in enumerate(ys):
+        for j, x in enumerate(xs):
+            v = grid[i, j]
+            if np.isfinite(v):
+                colour = "black" if v > 0.6 else "white"
+                ax.text(x, y, f"{v:.2f}", ha="center", va="center", fontsize=size, color=colour)
+
+
+def _mark_base(ax: Any, members: Sequence[Mapping[str, Any]], pose: str, plane_xy: bool) -> None:
+    """Mark the robot base (or, when the base is what moves, the object) in the panel's frame."""
+    other = "base" if pose == "object" else "object"
+    spots = {
+        (float(r.get(f"{other}_x") or 0.0), float(r.get(f"{other}_y") or 0.0)) for r in members
+    }
+    if len(spots) != 1 or not plane_xy:
+        return
+    (x, y) = next(iter(spots))
+    name = "robot base" if other == "base" else "object"
+    marker = "s" if other == "base" else "o"
+    ax.scatter([x], [y], marker=marker, s=70, c="#d62728", edgecolors="white", zorder=6)
+    ax.annotate(
+        name, (x, y), xytext=(6, 6), textcoords="offset points", fontsize=7, color="#d62728"
+    )
+    ax.update_datalim([(x, y)])
+    ax.autoscale_view()
 
 
 def _edges(values: Sequence[float]) -> np.ndarray:

@@ -5,8 +5,8 @@ does once the study and its directory are checked: it sends the placements of
 each round to an executor (:mod:`gcm_pipeline.study.runner`), records every
 finished one in the study directory (:mod:`gcm_pipeline.study.store`), re-grids
 around each object's best placement (:func:`best_row`) and writes
-``placements.csv``, ``reachability.npz``, ``summary.json``, ``coverage.png``
-and ``best/``; :class:`StudyResult` is what it returns.
+``placements.csv``, ``reachability.npz``, ``summary.json``, ``coverage.png``,
+``best/`` and ``study.html``; :class:`StudyResult` is what it returns.
 """
 
 from __future__ import annotations
@@ -33,8 +33,9 @@ from gcm_pipeline.rundir import run as run_files
 from gcm_pipeline.rundir import transaction
 from gcm_pipeline.safe_yaml import read_yaml_file
 from gcm_pipeline.study import coverage, runner
+from gcm_pipeline.study.report import write_study_html
 from gcm_pipeline.study.spec import Placement, StudyPlan
-from gcm_pipeline.study.store import POSE_COLUMNS, StudyDir
+from gcm_pipeline.study.store import POSE_COLUMNS, REPORT_ARRAYS, StudyDir
 
 __all__ = ["StudyResult", "StudyRun", "best_row"]
 
@@ -185,7 +186,14 @@ class StudyRun:
     def _collect(self, result: dict[str, Any]) -> None:
         row = dict(self._meta.pop(int(result["id"])))
         arrays: dict[str, np.ndarray] = {}
-        for key in ("reachable_mask", "metric", "manipulability", "pose", "pose_object"):
+        for key in (
+            "reachable_mask",
+            "metric",
+            "manipulability",
+            "pose",
+            "pose_object",
+            *REPORT_ARRAYS,
+        ):
             if key in result:
                 arrays[key] = np.asarray(result.pop(key))
         if "is_candidate" in result:
@@ -413,6 +421,11 @@ class StudyRun:
         files.append(store.write_json("summary.json", summary))
         if best_dir is not None:
             files.append(best_dir)
+        if complete:  # not while an interrupt waits: gcm plot STUDY_DIR writes it later
+            try:  # the report is a view of the files above: failing to draw it loses nothing
+                files.append(write_study_html(store.path))
+            except Exception as exc:
+                log.warning("study: study.html not written: %s", " ".join(str(exc).split())[:300])
         clean = [{k: v for k, v in r.items() if k != "arrays"} for r in rows]
         return StudyResult(
             store.path, clean, summary["best"], summary, complete=complete, files=files

@@ -9,12 +9,16 @@ Layout::
     study.json          what study this is (its key, the study file, the base config);
                         written first, checked on every rerun
     placements/000042.npz
-                        one finished placement (row + grasp arrays), written atomically
+                        one finished placement (row + grasp arrays, and for the
+                        report each grasp's reason code and the best grasp's q),
+                        written atomically
     placements.csv      one row per finished placement, by id
     reachability.npz    placements x grasps: reachable, metric, manipulability
     summary.json        best placement, counts, engine, workers, timings, versions
     coverage.png        coverage heat map over the x-y grid
     best/               the full run directory of the best placement (gcm run)
+    study.html          the report: coverage maps, placements table, a placement's
+                        3-D scene (:mod:`gcm_pipeline.study.report`)
 
 Every file is written to a temporary name in its folder and renamed, so a
 killed study leaves only complete files; ``placements/`` is the record a
@@ -55,6 +59,7 @@ __all__ = [
     "POSE_COLUMNS",
     "StudyDir",
     "atomic_write",
+    "read_part",
 ]
 
 log = logging.getLogger(__name__)
@@ -82,13 +87,24 @@ CSV_COLUMNS = ("id", "round", "object", *POSE_COLUMNS, *_RESULTS, "node", "error
 #: Per-grasp arrays of a placement part.
 ARRAYS = ("reachable_mask", "metric", "manipulability", "pose", "pose_object", "is_candidate")
 
+#: Arrays a part may add for the study report (older parts lack them): per-grasp
+#: ``reason_code`` (uint8, 0 reachable, k the k-th of ``reason_names``) and ``q_best``.
+REPORT_ARRAYS = ("reason_code", "reason_names", "q_best")
+
 #: Numeric fields of a placement's row.
 _NUMBERS = (*_RESULTS, *POSE_COLUMNS)
 
 _LOCK = ".study.lock"
 
 #: The files a study writes at the top of its directory.
-OUTPUT_FILES = ("study.json", "placements.csv", "reachability.npz", "summary.json", "coverage.png")
+OUTPUT_FILES = (
+    "study.json",
+    "placements.csv",
+    "reachability.npz",
+    "summary.json",
+    "coverage.png",
+    "study.html",
+)
 
 #: Most bytes of ``study.json`` (a study writes its study file and base config there: kB).
 MAX_META_BYTES = 16 * 1024**2
@@ -355,13 +371,7 @@ class StudyDir:
             if not path.stem.isdigit():
                 continue
             try:
-                # sizes from the headers first: a compressed member may unpack to gigabytes
-                data = arrays.read_npz(path, max_bytes=_MAX_PART_BYTES)
-                row = json.loads(str(data.pop("row")))
-                if not isinstance(row, dict):
-                    raise ValueError("its row is not a JSON object")
-                row["arrays"] = data
-                _check_part(int(path.stem), row)
+                row = read_part(path)
             except Exception as exc:  # a damaged file: run the placement again
                 log.warning("study: ignoring %s, placement runs again (%s)", path, exc)
                 continue
@@ -404,6 +414,25 @@ class StudyDir:
         return path
 
 
+def read_part(path: Path) -> dict[str, Any]:
+    """One placement part: its row with its arrays under ``arrays``.
+
+    Raises:
+        Exception: The file cannot be read or does not hold what
+            :meth:`StudyDir.write_part` writes (the message says what).
+    """
+    # sizes from the headers first: a compressed member may unpack to gigabytes
+    data = arrays.read_npz(path, max_bytes=_MAX_PART_BYTES)
+    if "row" not in data:
+        raise ValueError("it has no row")
+    row = json.loads(str(data.pop("row")))
+    if not isinstance(row, dict):
+        raise ValueError("its row is not a JSON object")
+    row["arrays"] = data
+    _check_part(int(path.stem), row)
+    return row
+
+
 def _check_part(pid: int, row: Mapping[str, Any]) -> None:
     """Raise ValueError unless ``row`` is a part as :meth:`StudyDir.write_part` writes one."""
     if type(row.get("id")) is not int or row["id"] != pid:
@@ -422,8 +451,9 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
     arrays = row["arrays"]
     if row.get("error"):
         return
-    if row.get("coverage") is None or set(arrays) != set(ARRAYS):
+    if row.get("coverage") is None or not set(ARRAYS) <= set(arrays) <= {*ARRAYS, *REPORT_ARRAYS}:
         raise ValueError(f"a finished placement needs coverage and the arrays {', '.join(ARRAYS)}")
+    full, arrays = arrays, {k: v for k, v in arrays.items() if k in ARRAYS}
     if not 0.0 <= row["coverage"] <= 1.0:
         raise ValueError(f"coverage {row['coverage']!r} is not within [0, 1]")
     lengths = {k: (v.shape[0] if v.ndim else None) for k, v in arrays.items()}
@@ -453,6 +483,21 @@ def _check_part(pid: int, row: Mapping[str, Any]) -> None:
         )
     if total and abs(row["coverage"] - reached / total) > 1e-12:
         raise ValueError(f"coverage {row['coverage']!r} is not {reached} / {total}")
+    _check_report_arrays(full)
+
+
+def _check_report_arrays(arrays: Mapping[str, np.ndarray]) -> None:
+    """Raise ValueError unless the report's optional arrays agree with the mask."""
+    if "reason_code" in arrays:
+        code, names = arrays["reason_code"], arrays.get("reason_names", np.empty(0, str))
+        mask = arrays["reachable_mask"]
+        if code.dtype != np.uint8 or code.shape != mask.shape or names.dtype.kind != "U":
+            raise ValueError(f"reason_code has shape {code.shape} and dtype {code.dtype}")
+        if np.any((code == 0) != mask) or int(code.max(initial=0)) > names.shape[0]:
+            raise ValueError("reason_code does not agree with reachable_mask and reason_names")
+    q = arrays.get("q_best")
+    if q is not None and (q.ndim != 1 or q.dtype.kind != "f"):
+        raise ValueError(f"q_best has shape {q.shape} and dtype {q.dtype}")
 
 
 def _cell(value: Any) -> str:

@@ -142,7 +142,10 @@ class PlacementWorker:
             ``reachable_mask`` (G,) bool, ``metric`` (G,) and ``manipulability``
             (G,) (NaN where unreachable), ``pose`` (G, 7)
             world grasp poses ``x, y, z, qw, qx, qy, qz``, ``pose_object`` (G, 7)
-            the same in the object's frame and ``is_candidate`` (G,).
+            the same in the object's frame, ``is_candidate`` (G,), and for the
+            study report ``reason_code`` (G,) uint8 (0 reachable, k: the k-th of
+            ``reason_names``), ``reason_names`` (K,) and ``q_best`` (nq,) the
+            top-ranked grasp's configuration (empty when none is reachable).
             A failure (any exception but an interrupt) comes back as
             ``error = "<Type>: <message>"``.
         """
@@ -180,5 +183,23 @@ class PlacementWorker:
             pose=_pose7(grasps["dq"]),
             pose_object=_pose7(local),
             is_candidate=np.asarray(grasps["origin"]).astype(str) == "candidate",
+            **_reasons_and_best_q(grasps, reachable),
         )
         return row
+
+
+def _reasons_and_best_q(grasps: Any, reachable: np.ndarray) -> dict[str, np.ndarray]:
+    """``reason_code``, ``reason_names`` and ``q_best`` of a ranked grasp table (the report's)."""
+    n = len(grasps)
+    reason = np.asarray(grasps["reason"]).astype(str) if "reason" in grasps else np.full(n, "")
+    reason = np.where(reachable, "", np.where(reason == "", "unreachable", reason))
+    names, codes = np.unique(reason[~reachable], return_inverse=True)
+    code = np.zeros(n, dtype=np.uint8)
+    code[~reachable] = np.minimum(codes + 1, 255)
+    q_best = np.empty(0)
+    if "q" in grasps and "rank" in grasps and reachable.any():
+        rank = np.asarray(grasps["rank"], dtype=np.int64)
+        ranked = np.flatnonzero(rank > 0)
+        if ranked.size:
+            q_best = np.asarray(grasps["q"], dtype=float)[ranked[np.argmin(rank[ranked])]]
+    return {"reason_code": code, "reason_names": names.astype(str), "q_best": q_best}

@@ -97,7 +97,8 @@ class GripperGlyph:
         opening: Distance between the fingers (the gripper's largest opening) [m].
         finger_length: From the grasp frame's origin back to the palm [m].
         finger_tip: How far the fingertips reach past the origin [m].
-        palm_width: The palm's extent along the closing axis [m].
+        finger_thickness: A finger's size along the closing axis: the palm bar
+            spans the fingers' outer faces [m].
         palm_depth: The palm's extent along the approach: the stem's length [m].
         cup_radius: A suction cup's lip radius [m].
         cup_depth: A suction cup's depth behind its lip (the origin) [m].
@@ -108,7 +109,7 @@ class GripperGlyph:
     opening: float = 0.08
     finger_length: float = 0.037
     finger_tip: float = 0.009
-    palm_width: float = 0.208
+    finger_thickness: float = 0.026
     palm_depth: float = 0.092
     cup_radius: float = 0.015
     cup_depth: float = 0.069
@@ -122,7 +123,7 @@ class GripperGlyph:
             value = getattr(self, key)
             if not (math.isfinite(value) and value > 0.0):
                 raise PublishError(f"gripper glyph {self.name!r}: {key} {value!r} is not > 0")
-        for key in ("finger_tip", "palm_width"):
+        for key in ("finger_tip", "finger_thickness"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value >= 0.0):
                 raise PublishError(f"gripper glyph {self.name!r}: {key} {value!r} is not >= 0")
@@ -132,7 +133,7 @@ class GripperGlyph:
         if self.kind == "suction":
             return self._cup()
         h, back = self.opening / 2.0, -self.finger_length
-        palm = max(self.palm_width, self.opening) / 2.0
+        palm = h + self.finger_thickness
         tick = min(0.25 * self.opening, 0.01)  # the pads, pointing the way the fingers close
         return np.array(
             [

@@ -103,9 +103,10 @@ def gripper_glyph(gripper: GripperSpec | None) -> GripperGlyph:
     """The scene's outline of ``gripper`` (None: the default, the Franka Hand's sizes).
 
     A parallel-jaw gripper: fingers at ``max_width``, ``finger_length`` and
-    ``finger_tip`` along the approach, the palm's extent along the closing axis
-    and along the approach (``hand.palm_size`` y, z). A suction cup: the
-    radius and length of its first cylinder shape (else GraspGen's 30 mm cup).
+    ``finger_tip`` along the approach, the palm bar across the fingers
+    (``finger_thickness``) and the stem as deep as the palm (``hand.palm_size``
+    z). A suction cup: the radius and length of its first cylinder shape
+    (else GraspGen's 30 mm cup).
     """
     if gripper is None:
         return GripperGlyph()
@@ -122,7 +123,7 @@ def gripper_glyph(gripper: GripperSpec | None) -> GripperGlyph:
         opening=gripper.max_width,
         finger_length=gripper.finger_length,
         finger_tip=gripper.finger_tip,
-        palm_width=gripper.palm_size[1],
+        finger_thickness=gripper.finger_thickness,
         palm_depth=gripper.palm_size[2],
     )
 

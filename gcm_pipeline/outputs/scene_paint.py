@@ -5,7 +5,8 @@ REACH's heat map, built into the scene. The object's surface is sampled
 grasp is placed on the surface at its *anchor*: its contact point when the
 table has ``contact_x``, ``contact_y``, ``contact_z``, else the point where
 its approach axis meets the surface (among the surface points that face the
-oncoming gripper, the one nearest the axis). A surface point's value is the
+oncoming gripper, the one nearest the axis; a grasp away from the object, or
+whose axis misses it, paints nothing). A surface point's value is the
 share of reachable grasps among the (at most :data:`NEIGHBOURS`) anchors
 within a radius of it (:func:`paint_radius`, from the object's size); a point
 with no anchor that near has no value and is drawn dark grey.
@@ -96,15 +97,20 @@ def paint_radius(points: np.ndarray) -> float:
 
 
 def _entry_points(
-    origins: np.ndarray, approach: np.ndarray, surface: np.ndarray, normals: np.ndarray
+    origins: np.ndarray,
+    approach: np.ndarray,
+    surface: np.ndarray,
+    normals: np.ndarray,
+    radius: float,
 ) -> np.ndarray:
     """Per grasp, the surface point where its approach axis meets the surface (K, 3).
 
     Among the surface points facing the oncoming gripper (normal against the
-    approach), the one nearest the approach axis; the nearest point when
-    none faces it (an open mesh). Distances by products (BLAS), in chunks.
+    approach), the one nearest the approach axis; NaN when the axis passes
+    farther than ``radius`` from every one (the grasp is not at the object).
+    Distances by products (BLAS), in chunks.
     """
-    out = np.empty((len(origins), 3))
+    out = np.full((len(origins), 3), np.nan)
     s = surface.astype(np.float32)
     ss = np.einsum("mi,mi->m", s, s)
     n_t = normals.T.astype(np.float32)
@@ -115,25 +121,35 @@ def _entry_points(
         along = a @ s.T - np.einsum("ki,ki->k", o, a)[:, None]
         perp = np.where(a @ n_t < 0.0, v2 - along**2, np.inf)
         best = np.argmin(perp, axis=1)
-        none = ~np.isfinite(perp[np.arange(len(o)), best])
-        if none.any():
-            best[none] = np.argmin(v2[none], axis=1)
-        out[lo : lo + len(o)] = surface[best]
+        hit = perp[np.arange(len(o)), best] <= radius**2
+        out[lo : lo + len(o)][hit] = surface[best[hit]]
     return out
 
 
 def _anchors(
-    grasps: GraspTable, rows: np.ndarray, surface: np.ndarray, normals: np.ndarray
+    grasps: GraspTable, rows: np.ndarray, surface: np.ndarray, normals: np.ndarray, radius: float
 ) -> np.ndarray:
-    """Where each grasp of ``rows`` sits on the surface (K, 3): contact, else approach entry."""
+    """Where each grasp of ``rows`` sits on the surface (K, 3): contact, else approach entry.
+
+    NaN for a grasp without a contact point whose frame lies farther from
+    the object than ``radius`` beyond its bounding sphere, or whose approach
+    axis misses it.
+    """
     out = np.full((len(rows), 3), np.nan)
     if all(k in grasps for k in _CONTACTS):
         out = np.column_stack([np.asarray(grasps[k], dtype=float)[rows] for k in _CONTACTS])
     todo = ~np.all(np.isfinite(out), axis=1)
     if todo.any():
         m = dq_to_matrix(np.asarray(grasps["dq"], dtype=float)[rows[todo]])
+        centre = 0.5 * (surface.min(axis=0) + surface.max(axis=0))
+        reach = float(np.linalg.norm(surface - centre, axis=1).max()) + radius
+        near = np.linalg.norm(m[:, :3, 3] - centre, axis=1) <= reach
         coarse = slice(None, None, _ENTRY_STRIDE)
-        out[todo] = _entry_points(m[:, :3, 3], m[:, :3, 2], surface[coarse], normals[coarse])
+        entry = np.full((len(m), 3), np.nan)
+        entry[near] = _entry_points(
+            m[near, :3, 3], m[near, :3, 2], surface[coarse], normals[coarse], radius
+        )
+        out[todo] = entry
     return out
 
 
@@ -196,7 +212,7 @@ def reachability_paint(
     share = np.full(len(surface), np.nan)
     if not len(rows):
         return PaintResult(surface, share, radius, spacing)
-    anchors = _anchors(grasps, rows, surface, normals)
+    anchors = _anchors(grasps, rows, surface, normals, radius)
     ok = np.all(np.isfinite(anchors), axis=1)
     anchors, good = anchors[ok], np.asarray(reachable, dtype=bool)[rows[ok]]
     if not len(anchors):

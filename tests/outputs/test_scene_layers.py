@@ -253,6 +253,19 @@ def test_paint_tells_the_reachable_side_from_the_other():
     assert np.all(paint.share[plus][np.isfinite(paint.share[plus])] == 1.0)
     assert np.isfinite(paint.share[minus]).mean() > 0.9
     assert np.all(paint.share[minus][np.isfinite(paint.share[minus])] == 0.0)
+    # grasps away from the object paint nothing, even when their axes point at it
+    dq = np.asarray(grasps["dq"])
+    far = np.tile(np.eye(4), (50, 1, 1))
+    far[:, :3, :3] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]  # approach +x
+    far[:, :3, 3] = [-0.5, 0.1, 0.2]  # 1 m before the -x side
+    more = GraspTable(
+        {
+            "dq": np.concatenate([dq, dq_from_matrix(far)]),
+            "reachable": np.r_[np.asarray(grasps["reachable"]), np.ones(50, bool)],
+        }
+    )
+    again = reachability_paint(box, more, np.asarray(more["reachable"]))
+    np.testing.assert_array_equal(again.share, paint.share)
     # contact points, when the table has them, place the grasps instead
     swapped = grasps.with_columns(
         contact_x=np.where(np.asarray(grasps["reachable"]), 0.45, 0.55),

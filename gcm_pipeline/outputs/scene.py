@@ -230,7 +230,8 @@ class SceneInfo:
         lod: Level of detail: ``{"glyph_budget", "point_budget", "glyphs",
             "points", "classes": {path: {"count", "glyphs", "points"}}}``,
             grasps drawn as glyphs and as dots (the rest are not drawn).
-        paint: The object painted by reachability (None when not drawn):
+        paint: The object painted by reachability (None without an object or
+            grasps; drawn only when ``painted`` > 0, no grasp being near it):
             ``{"points", "painted", "mean", "histogram" (10 bins over [0, 1]),
             "bins", "radius", "spacing", "colormap", "no_data_color"}``.
     """
@@ -375,8 +376,9 @@ def _draw_surroundings(
         paint = draw_paint(vis, obj, grasps, reachable) if options.paint and len(grasps) else None
         if paint is not None:
             paint_info = paint.summary()
-            label = "object painted by reachability (share of nearby grasps reachable)"
-            layers.append(layer("/object_reachability", label, len(paint.share)))
+            if paint_info["painted"]:  # drawn only when a grasp is near the object
+                label = "object painted by reachability (share of nearby grasps reachable)"
+                layers.append(layer("/object_reachability", label, len(paint.share)))
     env_paths, n_env = draw_environment(vis, options.table, options.obstacles)
     if env_paths:
         color = f"#{TABLE_COLOR:06x}"

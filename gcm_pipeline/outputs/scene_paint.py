@@ -231,14 +231,18 @@ def draw_paint(vis: Any, obj: SceneShape, grasps: GraspTable, reachable: np.ndar
     """Draw the painted object at ``/object_reachability``.
 
     Returns:
-        The :class:`PaintResult`, or None when the object cannot be sampled
-        (a warning says why; the rest of the scene is drawn).
+        The :class:`PaintResult`, drawn only when a grasp is near the object
+        (the object is not covered by a grey skin of no data); None when the
+        object cannot be sampled (a warning says why; the rest of the scene
+        is drawn).
     """
     try:
         paint = reachability_paint(obj, grasps, reachable)
     except GcmError as exc:
         warnings.warn(f"object not painted by reachability: {exc}", stacklevel=3)
         return None
+    if not np.isfinite(paint.share).any():
+        return paint
     colors = np.tile(np.asarray(NO_DATA_COLOR, dtype=np.float32), (len(paint.share), 1))
     ok = np.isfinite(paint.share)
     colors[ok] = colormap(PAINT_COLORMAP)(paint.share[ok])[:, :3]

@@ -22,7 +22,7 @@ from gcm_pipeline.outputs import html as pub_html
 from gcm_pipeline.outputs import plots, scene_glyphs
 from gcm_pipeline.outputs import scene as pub_scene
 from gcm_pipeline.outputs.scene_envelope import envelope_points
-from gcm_pipeline.outputs.scene_glyphs import GripperGlyph, grasp_classes
+from gcm_pipeline.outputs.scene_glyphs import GripperGlyph, grasp_classes, grasp_positions
 from gcm_pipeline.outputs.scene_paint import reachability_paint
 from gcm_pipeline.outputs.scene_shapes import SceneShape, translation
 from gcm_pipeline.pipeline.outputs import gripper_glyph, scene_options
@@ -89,10 +89,18 @@ def n_vertices(obj: dict) -> int:
     return len(f32(obj["geometries"][0]["data"]["attributes"]["position"]["array"])) // 3
 
 
+def under(grasps: GraspTable) -> dict:
+    """An ``object`` section: a can under the reachable grasps, which reach down onto it."""
+    pos = grasp_positions(grasps)[np.asarray(grasps["reachable"])].mean(axis=0)
+    xyz = (pos - [0.0, 0.0, 0.15]).tolist()
+    return {"shape": "cylinder", "dims": {"radius": 0.08, "height": 0.1}, "pose": {"xyz": xyz}}
+
+
 @pytest.fixture(scope="module")
 def drawn(panda):
     grasps = table(panda)
-    html, info = pub_html.render_scene_html(grasps, None, panda, scene_options(config()))
+    options = scene_options(config(object=under(grasps)))
+    html, info = pub_html.render_scene_html(grasps, None, panda, options)
     return grasps, decode_commands(html), info
 
 

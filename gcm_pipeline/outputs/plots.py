@@ -52,10 +52,11 @@ REASON_COLORS: dict[str, tuple[float, float, float]] = {
     "collision_object": (0.97, 0.55, 0.78),
     "approach": (0.55, 0.04, 0.27),
     "retreat": (0.78, 0.58, 0.55),
+    "unchecked": (1.00, 1.00, 1.00),
 }
 _EXTRA_REASON_COLORS = (
     (0.40, 0.00, 0.00),
-    (1.00, 1.00, 1.00),
+    (0.75, 0.00, 0.45),
     (0.10, 0.10, 0.10),
     (0.93, 0.38, 0.45),
     (0.70, 0.20, 0.55),

@@ -322,11 +322,11 @@ BENCH_NOTES: dict[str, str] = {
         '`pip install ".[bench]"`.'
     ),
     "publish": (
-        "Building and writing `scene.html` (above 20,000 grasps per class the glyph is a "
-        "single approach stick; the first scene of a process also simplifies and caches "
-        "the robot meshes), and the live viewer on a loopback server. Glyphs are batched into "
-        "one meshcat object per class, so the number of meshcat objects does not grow with "
-        "the grasps."
+        "Building and writing `scene.html` (at most 20,000 grasps drawn as gripper outlines "
+        "and 200,000 as dots, the object painted by reachability and the reach envelope; the "
+        "first scene of a process also simplifies and caches the robot meshes), and the live "
+        "viewer on a loopback server. Glyphs are batched into at most two meshcat objects per "
+        "grasp class, so the number of meshcat objects does not grow with the grasps."
     ),
     "study": (
         "Placements of the bottle (`bottle_side.yaml`) over a grid, placements/s of the "

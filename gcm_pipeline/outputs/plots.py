@@ -63,23 +63,27 @@ COVERAGE_FILE = "coverage.png"
 PLOT_FILES = ("manifold.png", "manipulability_hist.png", "counts.png")
 
 #: Colour [r, g, b] in [0, 1] of unreachable grasps by ``reason``; other reasons
-#: take the next colour of a small extra palette in sorted order.
+#: take the next colour of a small extra palette in sorted order. Greys, reds,
+#: pinks and browns: hues and lightnesses that viridis (dark purple, blue, teal,
+#: green, yellow) never takes, so a reason never reads as a metric value, and no
+#: orange beside viridis' yellow.
 REASON_COLORS: dict[str, tuple[float, float, float]] = {
-    "out_of_reach": (0.80, 0.80, 0.80),
-    "no_ik": (0.62, 0.62, 0.62),
-    "joint_limits": (0.36, 0.36, 0.36),
-    "collision_self": (1.00, 0.50, 0.05),
-    "collision_environment": (0.60, 0.35, 0.20),
-    "collision_object": (0.85, 0.10, 0.10),
-    "approach": (0.97, 0.45, 0.70),
+    "out_of_reach": (0.82, 0.82, 0.82),
+    "no_ik": (0.58, 0.58, 0.58),
+    "joint_limits": (0.33, 0.33, 0.33),
+    "collision_self": (0.84, 0.11, 0.16),
+    "collision_environment": (0.55, 0.34, 0.27),
+    "collision_object": (0.97, 0.55, 0.78),
+    "approach": (0.55, 0.04, 0.27),
+    "retreat": (0.78, 0.58, 0.55),
+    "unchecked": (1.00, 1.00, 1.00),
 }
-# Kept clear of viridis' purple-blue-green-yellow so reasons never read as a metric.
 _EXTRA_REASON_COLORS = (
-    (0.55, 0.00, 0.00),
-    (1.00, 0.78, 0.55),
+    (0.40, 0.00, 0.00),
+    (0.75, 0.00, 0.45),
     (0.10, 0.10, 0.10),
-    (0.85, 0.65, 0.65),
-    (0.75, 0.55, 0.35),
+    (0.93, 0.38, 0.45),
+    (0.70, 0.20, 0.55),
 )
 
 

@@ -21,6 +21,8 @@ from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.robot_view import ROT_X90
 
 __all__ = [
+    "OBJECT_COLOR",
+    "TABLE_COLOR",
     "SceneShape",
     "SceneTable",
     "draw_environment",
@@ -29,6 +31,12 @@ __all__ = [
     "shape_view",
     "translation",
 ]
+
+
+#: Colour of the object (0xRRGGBB).
+OBJECT_COLOR = 0xD9A441
+#: Colour of the support table (0xRRGGBB).
+TABLE_COLOR = 0xC8C3BA
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,7 +183,7 @@ def draw_object(vis: Any, obj: SceneShape) -> list[str]:
     """Draw the grasped object under ``/object``; the scene paths drawn."""
     mg = load_meshcat().geometry
     geometry, local, _ = shape_view(obj)
-    material = mg.MeshPhongMaterial(color=0xD9A441, opacity=0.7, transparent=True)
+    material = mg.MeshPhongMaterial(color=OBJECT_COLOR, opacity=0.7, transparent=True)
     vis["object"].set_transform(obj.pose)
     vis["object/shape"].set_object(geometry, material)
     vis["object/shape"].set_transform(local)
@@ -184,20 +192,22 @@ def draw_object(vis: Any, obj: SceneShape) -> list[str]:
 
 def draw_environment(
     vis: Any, table: SceneTable | None, obstacles: Sequence[SceneShape]
-) -> list[str]:
-    """Draw the support table and the obstacles; the scene paths drawn."""
+) -> tuple[list[str], int]:
+    """Draw the support table and the obstacles; the scene paths and the shapes drawn."""
     mg = load_meshcat().geometry
     paths: list[str] = []
+    drawn = 0
     if table is not None:
         sx, sy, sz = table.size
         cx, cy = table.center_xy
-        material = mg.MeshLambertMaterial(color=0xC8C3BA)
+        material = mg.MeshLambertMaterial(color=TABLE_COLOR)
         vis["environment/table"].set_object(mg.Box([sx, sy, sz]), material)
         vis["environment/table"].set_transform(translation((cx, cy, table.height - sz / 2)))
         # the table replaces meshcat's grid, which would z-fight with its top
         vis["/Grid"].set_property("visible", False)
         vis["/Axes"].set_property("visible", False)
         paths.append("/environment")
+        drawn += 1
     for i, obs in enumerate(obstacles):
         if obs.shape == "mesh" and (obs.mesh is None or not Path(obs.mesh).is_file()):
             warnings.warn(f"obstacle {i}: mesh {obs.mesh} not found; not drawn", stacklevel=3)
@@ -208,6 +218,7 @@ def draw_environment(
         vis[f"environment/{name}"].set_transform(obs.pose)
         vis[f"environment/{name}/shape"].set_object(geometry, material)
         vis[f"environment/{name}/shape"].set_transform(local)
+        drawn += 1
         if "/environment" not in paths:
             paths.append("/environment")
-    return paths
+    return paths, drawn

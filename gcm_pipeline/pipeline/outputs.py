@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gcm_pipeline.config.gripper_spec import gripper_registry
+from gcm_pipeline.config.gripper_spec import gripper_registry, load_gripper
 from gcm_pipeline.config.reach_sections import ObstacleConfig, TableConfig
 from gcm_pipeline.config.robot_spec import load_robot, load_spec
 from gcm_pipeline.config.run import Config, load_config, takes_config
@@ -24,10 +24,12 @@ from gcm_pipeline.outputs import export, html, live
 from gcm_pipeline.outputs.export import ExportResult, MoveItOptions
 from gcm_pipeline.outputs.scene import PublishOptions, SceneOptions
 from gcm_pipeline.outputs.scene_cloud import SceneCloud
+from gcm_pipeline.outputs.scene_glyphs import GripperGlyph
 from gcm_pipeline.outputs.scene_shapes import SceneShape, SceneTable
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.robot.model_files import root_link
+from gcm_pipeline.sources.grippers import GripperSpec
 from gcm_pipeline.table import GraspTable
 
 if TYPE_CHECKING:  # the run module imports this one
@@ -63,12 +65,80 @@ def scene_cloud(cloud: PointCloud) -> SceneCloud:
     )
 
 
+def _carried_hand(cfg: Config) -> GripperSpec | None:
+    """The registry hand that the robot's model carries (its finger joints locked), or None."""
+    locked = set(load_spec(cfg.robot.spec, cfg.robot.tool).locked_joints)
+    return next(
+        (
+            g
+            for g in gripper_registry().values()
+            if g.finger_joints and set(g.finger_joints) <= locked
+        ),
+        None,
+    )
+
+
+def run_gripper(cfg: Config, file_gripper: str | None = None) -> GripperSpec | None:
+    """The gripper a run's grasps are for, or None when the run does not say.
+
+    In this order: ``candidates.gripper``; ``file_gripper`` (the registry
+    gripper a grasp file was mapped by, ``RunResult.grasp_frame``);
+    ``robot.tool``; the registry hand the robot's model carries (the Panda's);
+    for the antipodal sampler its default hand (``franka_panda``).
+    """
+    c = cfg.candidates
+    if c.gripper is not None:
+        return load_gripper(c.gripper)
+    if file_gripper is not None and file_gripper in gripper_registry():
+        return gripper_registry()[file_gripper]
+    if cfg.robot.tool is not None:
+        return load_gripper(cfg.robot.tool, "robot.tool")
+    hand = _carried_hand(cfg)
+    if hand is None and c.source == "antipodal":
+        return load_gripper("franka_panda")
+    return hand
+
+
+def gripper_glyph(gripper: GripperSpec | None) -> GripperGlyph:
+    """The scene's outline of ``gripper`` (None: the default, the Franka Hand's sizes).
+
+    A parallel-jaw gripper: fingers at ``max_width``, ``finger_length`` and
+    ``finger_tip`` along the approach, the palm bar across the fingers
+    (``finger_thickness``) and the stem as deep as the palm (``hand.palm_size``
+    z). A suction cup: the radius and length of its first cylinder shape
+    (else GraspGen's 30 mm cup).
+    """
+    if gripper is None:
+        return GripperGlyph()
+    if gripper.kind == "suction":
+        shapes = () if gripper.tool is None else gripper.tool.collision
+        cyl = next((sh for sh in shapes if sh.shape == "cylinder" and len(sh.size) == 2), None)
+        if cyl is None:
+            return GripperGlyph(name=gripper.name, kind="suction")
+        return GripperGlyph(
+            name=gripper.name, kind="suction", cup_radius=cyl.size[0], cup_depth=cyl.size[1]
+        )
+    return GripperGlyph(
+        name=gripper.name,
+        opening=gripper.max_width,
+        finger_length=gripper.finger_length,
+        finger_tip=gripper.finger_tip,
+        finger_thickness=gripper.finger_thickness,
+        palm_depth=gripper.palm_size[2],
+    )
+
+
 @takes_config
-def scene_options(cfg: Config, clouds: Sequence[PointCloud] = ()) -> SceneOptions:
+def scene_options(
+    cfg: Config, clouds: Sequence[PointCloud] = (), file_gripper: str | None = None
+) -> SceneOptions:
     """The scene of a run's config and its processed point clouds.
 
-    Reads ``robot.base_pose``, ``ranking.top_k``, ``continuity.threshold`` (the
-    animation's blend limit), ``object`` and ``environment`` (table, obstacles).
+    Reads ``robot.base_pose``, ``ranking.top_k`` (the animation and the top
+    band of reachable grasps), ``continuity.threshold`` (the animation's blend
+    limit), ``object``, ``environment`` (table, obstacles) and the run's
+    gripper (:func:`run_gripper`; ``file_gripper``: the gripper a grasp file
+    was mapped by) for the grasp glyphs.
     """
     env = cfg.environment
     return SceneOptions(
@@ -79,15 +149,18 @@ def scene_options(cfg: Config, clouds: Sequence[PointCloud] = ()) -> SceneOption
         table=scene_table(env.table),
         obstacles=tuple(scene_shape(obs) for obs in env.obstacles),
         clouds=tuple(scene_cloud(c) for c in clouds),
+        gripper=gripper_glyph(run_gripper(cfg, file_gripper)),
     )
 
 
 @takes_config
-def publish_options(cfg: Config, clouds: Sequence[PointCloud] = ()) -> PublishOptions:
+def publish_options(
+    cfg: Config, clouds: Sequence[PointCloud] = (), file_gripper: str | None = None
+) -> PublishOptions:
     """What a run publishes (section ``publish``) and its scene (:func:`scene_options`)."""
     pub = cfg.publish
     return PublishOptions(
-        scene=scene_options(cfg, clouds),
+        scene=scene_options(cfg, clouds, file_gripper),
         html=pub.html,
         plots=pub.plots,
         zmq_url=pub.zmq_url,
@@ -107,7 +180,7 @@ def publish(result: RunResult, cfg: Config, out_dir: str | Path) -> list[Path]:
         result.grasps,
         result.manifold,
         result.robot,
-        publish_options(cfg, result.clouds),
+        publish_options(cfg, result.clouds, (result.grasp_frame or {}).get("gripper")),
         Path(out_dir),
         counts=counts,
     )

@@ -126,8 +126,9 @@ def scene(robot):
 def test_scene_paths(scene):
     _, _, html, info = scene
     paths = {c["path"] for c in decode_commands(html)}
-    # a point cloud and contact points have their own scene (test_scene_cloud.py)
-    drawn = set(pub_scene.SCENE_PATHS) - {"/cloud", "/contacts"}
+    # a point cloud and contact points have their own scene (test_scene_cloud.py); no
+    # grasp is near the object to paint it (test_scene_layers.py)
+    drawn = set(pub_scene.SCENE_PATHS) - {"/cloud", "/contacts", "/object_reachability"}
     for sub in drawn:
         assert any(p == "/meshcat" + sub or p.startswith("/meshcat" + sub + "/") for p in paths), (
             sub
@@ -183,46 +184,45 @@ def test_glyphs_are_batched(robot):
         grasps, manifold = make_scene(robot, n)
         window = pub_html._RecordingWindow()
         vis = meshcat.Visualizer(window=window)
-        info = pub_scene.build_scene(vis, grasps, manifold, robot, scene_options(make_config()))
+        options = scene_options(make_config())
+        info = pub_scene.build_scene(vis, grasps, manifold, robot, options)
         counts[n] = window.n_objects
         assert info.meshcat_objects == window.n_objects
         commands = [umsgpack.unpackb(b) for b in window.commands()]
-        obj = _object_of(commands, "/meshcat/grasps/reachable")
-        assert obj["object"]["type"] == "LineSegments"
-        pos = obj["geometries"][0]["data"]["attributes"]["position"]
-        assert f32(pos["array"]).size == info.n_reachable * len(scene_glyphs._GRIPPER) * 3
+        size = 0
+        for band in ("top", "rest"):
+            obj = _object_of(commands, f"/meshcat/grasps/reachable/{band}/glyphs")
+            assert obj["object"]["type"] == "LineSegments"
+            size += f32(obj["geometries"][0]["data"]["attributes"]["position"]["array"]).size
+        assert size == info.n_reachable * len(options.gripper.template()) * 3
     assert counts[30] == counts[3000]
-
-
-def test_large_tables_switch_to_sticks(robot, monkeypatch):
-    monkeypatch.setattr(scene_glyphs, "FULL_GLYPH_LIMIT", 10)
-    grasps, manifold = make_scene(robot, 60)
-    _, info = pub_html.render_scene_html(grasps, manifold, None, scene_options(make_config()))
-    assert info.glyph == "stick"
 
 
 def test_colors(scene):
     grasps, _, html, info = scene
     commands = decode_commands(html)
-    nv = len(scene_glyphs._GRIPPER)
-    reach = _object_of(commands, "/meshcat/grasps/reachable")
-    rgb = f32(reach["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
-    assert reach["materials"][0]["vertexColors"] == 2
-    manip = np.asarray(grasps["manipulability"])[np.asarray(grasps["reachable"])]
+    nv = len(scene_options(make_config()).gripper.template())
+    manip = np.asarray(grasps["manipulability"])
+    reachable = np.asarray(grasps["reachable"])
+    lo, hi = manip[reachable].min(), manip[reachable].max()
     from matplotlib import colormaps
 
     viridis = colormaps["viridis"]
-    lo, hi = manip.min(), manip.max()
-    expected = viridis((manip - lo) / (hi - lo))[:, :3]
-    np.testing.assert_allclose(rgb[::nv], expected, atol=1e-6)
-    assert np.ptp(rgb, axis=0).max() > 0.5  # a range of colours, not one
-    unreach = _object_of(commands, "/meshcat/grasps/unreachable")
-    urgb = f32(unreach["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
-    reasons = np.asarray(grasps["reason"])[~np.asarray(grasps["reachable"])]
-    grey = urgb[::nv][reasons == "no_ik"]
-    assert np.allclose(grey, grey[:, :1]) and np.allclose(grey, plots.REASON_COLORS["no_ik"])
-    other = urgb[::nv][reasons == "collision_self"]
-    assert np.allclose(other, plots.REASON_COLORS["collision_self"])
+    classes = {c.path: c for c in scene_glyphs.grasp_classes(grasps, 3)}
+    spread = []
+    for band in ("top", "rest"):
+        obj = _object_of(commands, f"/meshcat/grasps/reachable/{band}/glyphs")
+        rgb = f32(obj["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
+        assert obj["materials"][0]["vertexColors"] == 2
+        rows = classes[f"/grasps/reachable/{band}"].rows
+        expected = viridis((manip[rows] - lo) / (hi - lo))[:, :3]
+        np.testing.assert_allclose(rgb[::nv], expected, atol=1e-6)
+        spread.append(rgb)
+    assert np.ptp(np.concatenate(spread), axis=0).max() > 0.5  # a range of colours, not one
+    for reason in ("no_ik", "collision_self"):
+        obj = _object_of(commands, f"/meshcat/grasps/unreachable/{reason}/glyphs")
+        urgb = f32(obj["geometries"][0]["data"]["attributes"]["color"]["array"]).reshape(-1, 3)
+        assert np.allclose(urgb, plots.REASON_COLORS[reason], atol=1e-6)
     leg = info.legend
     json.dumps(info.to_dict())  # JSON-ready for the run summary
     assert leg == scene_glyphs.legend(grasps)
@@ -230,6 +230,7 @@ def test_colors(scene):
     assert leg["metric_range"] == pytest.approx([lo, hi])
     assert set(leg["unreachable"]) == {"no_ik", "collision_self"}
     assert leg["unreachable"]["no_ik"]["count"] == 10
+    assert leg["unreachable"]["no_ik"]["path"] == "/grasps/unreachable/no_ik"
 
 
 def test_camera_frames_scene(scene):
@@ -368,8 +369,9 @@ def test_live_viewer(robot):
         # the server holds the scene: its static page carries our objects
         html = viewer.visualizer.window.get_scene()
         paths = {c["path"] for c in decode_commands(html)}
-        assert "/meshcat/grasps/reachable" in paths and "/meshcat/object/shape" in paths
-        assert set(viewer.info.paths) == set(pub_scene.SCENE_PATHS) - {"/cloud", "/contacts"}
+        assert "/meshcat/grasps/reachable/top/glyphs" in paths and "/meshcat/object/shape" in paths
+        not_drawn = {"/cloud", "/contacts", "/object_reachability"}
+        assert set(viewer.info.paths) == set(pub_scene.SCENE_PATHS) - not_drawn
         # a second client connects to the running server through zmq_url
         other = live.open_viewer(
             grasps,

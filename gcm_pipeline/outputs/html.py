@@ -34,6 +34,7 @@ from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
+    "RecordingWindow",
     "live_page_html",
     "publish",
     "render_scene_html",
@@ -44,10 +45,10 @@ __all__ = [
 # -- recording window and static HTML ---------------------------------------------------
 
 
-class _RecordingWindow:
+class RecordingWindow:
     """Stands in for meshcat's ZMQ window: keeps the scene tree like ``meshcat-server``.
 
-    ``meshcat.Visualizer(window=_RecordingWindow())`` draws without a server;
+    ``meshcat.Visualizer(window=RecordingWindow())`` draws without a server;
     :meth:`static_html` then builds the page that the server's ``get_scene``
     would return (same tree walk, same command encoding).
     """
@@ -60,6 +61,7 @@ class _RecordingWindow:
         self.n_objects = 0
 
     def send(self, command: Any) -> None:
+        """Apply one meshcat command to the scene tree, as the server would."""
         data = command.lower()
         kind = data["type"]
         path = [p for p in data["path"].split("/") if p]
@@ -85,6 +87,7 @@ class _RecordingWindow:
             raise PublishError(f"unsupported meshcat command {kind!r}")
 
     def get_image(self) -> None:  # pragma: no cover - no browser behind it
+        """Refuse: a recording has no browser to capture an image from."""
         raise PublishError("a recorded scene has no browser to capture an image from")
 
     def commands(self) -> list[bytes]:
@@ -244,7 +247,7 @@ def render_scene_html(
     Returns:
         The page (opens from disk, no server) and what it holds.
     """
-    window = _RecordingWindow()
+    window = RecordingWindow()
     vis = load_meshcat().Visualizer(window=window)
     info = build_scene(vis, grasps, manifold, robot, options, orbit_target=True)
     poser = None

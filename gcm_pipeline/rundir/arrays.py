@@ -57,6 +57,7 @@ __all__ = [
     "open_regular",
     "read_manifold",
     "read_npz",
+    "read_configurations",
     "write_configurations",
     "write_manifold",
     "write_solutions",
@@ -343,6 +344,42 @@ def write_configurations(grasps: GraspTable, path: str | Path, order: np.ndarray
     }
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)
+
+
+#: Columns of ``configurations.npz`` that ``grasps.csv`` does not hold (``q`` it does).
+EXTRA_CONFIGURATION_COLUMNS = ("q_pregrasp", "q_retreat", "q_rejected")
+
+
+def read_configurations(path: str | Path, n: int, nq: int) -> dict[str, np.ndarray]:
+    """The approach, retreat and rejected configurations of ``configurations.npz`` (csv order).
+
+    Args:
+        path: The file (absent: nothing read).
+        n: Rows of ``grasps.csv``.
+        nq: Joints of the run's configurations (the ``q1 .. qN`` columns).
+
+    Returns:
+        ``{name: (n, nq) float}`` for each of :data:`EXTRA_CONFIGURATION_COLUMNS` the file holds.
+
+    Raises:
+        InputError: The file is damaged, or an array is not (n, nq) float (names it).
+    """
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    arrays = read_npz(
+        path,
+        max_bytes=len(CONFIGURATION_COLUMNS) * 8 * max(n, 1) * max(nq, 1) + 4096,
+        keep=lambda name, shape, dtype: name in EXTRA_CONFIGURATION_COLUMNS,
+    )
+    for name, a in arrays.items():
+        if a.shape != (n, nq) or a.dtype.kind != "f":
+            raise InputError(
+                f"{path}: array {name!r} is {a.dtype} {a.shape}; expected float ({n}, {nq}): "
+                "one row per row of grasps.csv, one column per joint",
+                path=path,
+            )
+    return {name: np.asarray(a, dtype=float) for name, a in arrays.items()}
 
 
 #: Branch columns written to ``solutions.npz`` (``ik.solutions`` > 1) and their names there.

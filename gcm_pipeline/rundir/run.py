@@ -29,6 +29,7 @@ from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.rundir.arrays import (
     manifold_vertex_rows,
+    read_configurations,
     read_manifold,
     write_configurations,
     write_manifold,
@@ -196,6 +197,10 @@ def read_run(run_dir: str | Path) -> RunData:
         raise InputError(f"not a run directory: {run_dir} lacks {', '.join(missing)}{hint}")
     summary = read_summary(run_dir / "summary.json")
     grasps = read_grasps_csv(run_dir / "grasps.csv")
+    if "q" in grasps and np.ndim(grasps["q"]) == 2:  # the approach and retreat of each row
+        nq = np.shape(grasps["q"])[1]
+        extra = read_configurations(run_dir / "configurations.npz", len(grasps), nq)
+        grasps = grasps.with_columns(**extra) if extra else grasps
     manifold = read_manifold(run_dir / "manifold.npz", n_rows=len(grasps))
     vertex_rows = manifold_vertex_rows(run_dir / "manifold.npz", len(manifold.chart))
     if "vertices" in grasps and len(grasps):

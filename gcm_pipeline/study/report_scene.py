@@ -10,9 +10,9 @@ needs to show that placement: its object and base transforms (column-major,
 as three.js reads them), one status byte per grasp and the robot's visual
 placements at ``q_best``.
 
-The recording window mirrors :mod:`gcm_pipeline.outputs.html`'s (private
-there): it keeps the scene tree as ``meshcat-server`` does and returns the
-commands to replay in the page.
+The scene is recorded by :class:`gcm_pipeline.outputs.html.RecordingWindow`,
+which keeps the scene tree as ``meshcat-server`` does; its commands are
+replayed in the page.
 """
 
 from __future__ import annotations
@@ -26,17 +26,17 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import umsgpack
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.config.run import load_config
 from gcm_pipeline.errors import GcmError
-from gcm_pipeline.geometry.dualquat import dq_from_matrix
+from gcm_pipeline.geometry.dualquat import dq_from_matrix, dq_from_pos_quat, dq_to_matrix
+from gcm_pipeline.outputs.html import RecordingWindow
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.plots import reason_palette
 from gcm_pipeline.outputs.robot_view import RobotDrawer
 from gcm_pipeline.outputs.scene import build_scene
-from gcm_pipeline.outputs.scene_glyphs import line_segments
+from gcm_pipeline.outputs.scene_glyphs import GripperGlyph, line_segments
 from gcm_pipeline.outputs.scene_shapes import draw_object
 from gcm_pipeline.pipeline import place_file_object
 from gcm_pipeline.pipeline.outputs import scene_options
@@ -54,30 +54,12 @@ log = logging.getLogger(__name__)
 REACHABLE_RGB = (0.17, 0.63, 0.17)
 UNKNOWN_RGB = (0.55, 0.55, 0.55)
 
-# gripper glyph in the grasp frame (z approach, fingers along y): 4 segments [m]
-_W, _F, _S = 0.025, 0.025, 0.02
-_GLYPH = np.array(
-    [
-        [0, -_W, 0], [0, -_W, -_F], [0, _W, 0], [0, _W, -_F],
-        [0, -_W, -_F], [0, _W, -_F], [0, 0, -_F], [0, 0, -_F - _S],
-    ],
-    dtype=float,
-)  # fmt: skip
-
 
 def pose_matrices(pose7: np.ndarray) -> np.ndarray:
-    """(N, 4, 4) transforms of poses (N, 7) ``x, y, z, qw, qx, qy, qz``."""
+    """Transforms (N, 4, 4) of poses (N, 7) ``x, y, z, qw, qx, qy, qz`` (zero quat: identity)."""
     p = np.asarray(pose7, dtype=float).reshape(-1, 7)
-    w, x, y, z = (p[:, 3 + i] for i in range(4))
-    norm = np.sqrt(w * w + x * x + y * y + z * z)
-    norm[norm == 0] = 1.0
-    w, x, y, z = w / norm, x / norm, y / norm, z / norm
-    out = np.tile(np.eye(4), (len(p), 1, 1))
-    out[:, 0, :3] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], 1)
-    out[:, 1, :3] = np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], 1)
-    out[:, 2, :3] = np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1)
-    out[:, :3, 3] = p[:, :3]
-    return out
+    quat = np.where(np.all(p[:, 3:] == 0.0, axis=1)[:, None], [1.0, 0.0, 0.0, 0.0], p[:, 3:])
+    return dq_to_matrix(dq_from_pos_quat(p[:, :3], quat, check=False))
 
 
 def _colmajor(m: np.ndarray) -> list[float]:
@@ -87,48 +69,6 @@ def _colmajor(m: np.ndarray) -> list[float]:
 def _rz(deg: float) -> np.ndarray:
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-class _Recorder:
-    """Stands in for meshcat's ZMQ window and keeps the scene tree (see the module docstring)."""
-
-    def __init__(self) -> None:
-        self._trees = load_meshcat().servers.tree
-        self.tree = self._trees.SceneTree()
-        self.web_url = self.zmq_url = ""
-        self.n_objects = 0
-
-    def send(self, command: Any) -> None:
-        data = command.lower()
-        kind = data["type"]
-        path = [p for p in data["path"].split("/") if p]
-        packed = umsgpack.packb(data)
-        node = self._trees.find_node(self.tree, path)
-        if kind == "set_object":
-            node.object, node.properties = packed, []
-            self.n_objects += 1
-        elif kind == "set_transform":
-            node.transform = packed
-        elif kind == "set_property":
-            node.properties.append(packed)
-        elif kind == "set_animation":
-            node.animation = packed
-        elif kind == "delete" and path:
-            self._trees.find_node(self.tree, path[:-1]).pop(path[-1], None)
-        elif kind == "delete":
-            self.tree = self._trees.SceneTree()
-
-    def commands(self) -> list[str]:
-        """The commands (base64 msgpack) in the order the server replays them."""
-        out: list[bytes] = []
-        for node in self._trees.walk(self.tree):
-            if node.object is not None:
-                out.append(node.object)
-            out.extend(node.properties)
-            for blob in (node.transform, node.animation):
-                if blob is not None:
-                    out.append(blob)
-        return [base64.b64encode(b).decode("ascii") for b in out]
 
 
 class _NullVis:
@@ -284,12 +224,18 @@ def _draw_other_objects(scene: StudyScene, report: StudyReport, vis: Any) -> Non
             o["shape"] = f"{node}/object"
 
 
-def _glyphs(pose_object: np.ndarray, status: np.ndarray, classes: list[dict[str, Any]]) -> Any:
-    """One ``LineSegments``: a gripper glyph per grasp (object frame), coloured by status."""
+def _glyphs(
+    pose_object: np.ndarray,
+    status: np.ndarray,
+    classes: list[dict[str, Any]],
+    gripper: GripperGlyph,
+) -> Any:
+    """One ``LineSegments``: the gripper's outline per grasp (object frame), coloured by status."""
     mats = pose_matrices(pose_object)
-    verts = np.einsum("nij,vj->nvi", mats[:, :3, :3], _GLYPH) + mats[:, None, :3, 3]
+    template = gripper.template()
+    verts = np.einsum("nij,vj->nvi", mats[:, :3, :3], template) + mats[:, None, :3, 3]
     rgb = np.array([c["rgb"] for c in classes], dtype=float)
-    colours = np.repeat(rgb[np.minimum(status, len(rgb) - 1)], len(_GLYPH), axis=0)
+    colours = np.repeat(rgb[np.minimum(status, len(rgb) - 1)], len(template), axis=0)
     return line_segments(verts.reshape(-1, 3), colours, 1.0)
 
 
@@ -337,7 +283,7 @@ def _record(scene: StudyScene, report: StudyReport, cfg: Any, robot: Any) -> Non
             "reachable": np.asarray(a["reachable_mask"], dtype=bool),
         }
     )
-    window = _Recorder()
+    window = RecordingWindow()
     vis = load_meshcat().Visualizer(window=window)
     info = build_scene(vis, table, None, robot, opts, orbit_target=True)
     vis["grasps"].delete()
@@ -352,6 +298,8 @@ def _record(scene: StudyScene, report: StudyReport, cfg: Any, robot: Any) -> Non
     _draw_other_objects(scene, report, vis)
     for o in scene.objects:
         status = np.zeros(o["n"], dtype=np.int64)
-        vis[o["path"]].set_object(_glyphs(scene._refs[o["name"]], status, scene.classes))
-    scene.commands = window.commands()
+        vis[o["path"]].set_object(
+            _glyphs(scene._refs[o["name"]], status, scene.classes, opts.gripper)
+        )
+    scene.commands = [base64.b64encode(b).decode("ascii") for b in window.commands()]
     scene.camera_target = [float(v) for v in info.camera["target"]]

@@ -182,7 +182,7 @@ def test_glyphs_are_batched(robot):
     counts = {}
     for n in (30, 3000):
         grasps, manifold = make_scene(robot, n)
-        window = pub_html._RecordingWindow()
+        window = pub_html.RecordingWindow()
         vis = meshcat.Visualizer(window=window)
         options = scene_options(make_config())
         info = pub_scene.build_scene(vis, grasps, manifold, robot, options)

@@ -385,7 +385,7 @@ def test_palette_stays_clear_of_viridis():
 
 def test_live_scene_has_the_same_layers(panda):
     grasps = table(panda, n=30)
-    window = pub_html._RecordingWindow()
+    window = pub_html.RecordingWindow()
     vis = meshcat.Visualizer(window=window)
     info = pub_scene.build_scene(vis, grasps, None, panda, scene_options(config()))
     _, static = pub_html.render_scene_html(grasps, None, panda, scene_options(config()))

@@ -99,7 +99,8 @@ class GripperGlyph:
         finger_tip: How far the fingertips reach past the origin [m].
         finger_thickness: A finger's size along the closing axis: the palm bar
             spans the fingers' outer faces [m].
-        palm_depth: The palm's extent along the approach: the stem's length [m].
+        palm_depth: The palm's extent along the approach: the stem's length, at most
+            half the opening (:meth:`stem`) [m].
         cup_radius: A suction cup's lip radius [m].
         cup_depth: A suction cup's depth behind its lip (the origin) [m].
     """
@@ -144,13 +145,21 @@ class GripperGlyph:
                 [0.0, -palm, back],
                 [0.0, palm, back],
                 [0.0, 0.0, back],
-                [0.0, 0.0, back - self.palm_depth],
+                [0.0, 0.0, back - self.stem()],
                 [0.0, -h, 0.0],
                 [0.0, -h + tick, 0.0],
                 [0.0, h, 0.0],
                 [0.0, h - tick, 0.0],
             ]
         )
+
+    def stem(self) -> float:
+        """Length of the approach stem behind the palm [m].
+
+        The palm's depth, at most half the opening, so that many grasps around an
+        object read as grippers, not as a brush of long sticks.
+        """
+        return min(self.palm_depth, 0.5 * self.opening)
 
     def _cup(self) -> np.ndarray:
         r, d = self.cup_radius, self.cup_depth

@@ -1,7 +1,8 @@
 """The object painted by reachability: per surface point, the share of nearby grasps reachable.
 
-REACH's heat map, built into the scene. The object's surface is sampled
-(:data:`PAINT_POINTS` points, evenly by area, the same on every run); each
+REACH's heat map, built into the scene. The object's surface is remeshed
+into a skin of about :data:`PAINT_POINTS` vertices (long edges split, a large
+mesh decimated; the same on every run); each
 grasp is placed on the surface at its *anchor*: its contact point when the
 table has ``contact_x``, ``contact_y``, ``contact_z``, else the point where
 its approach axis meets the surface (among the surface points that face the
@@ -11,9 +12,10 @@ share of reachable grasps among the (at most :data:`NEIGHBOURS`) anchors
 within a radius of it (:func:`paint_radius`, from the object's size); a point
 with no anchor that near has no value and is drawn dark grey.
 
-The points are drawn as one meshcat ``Points`` object at
-``/object_reachability``, coloured by :data:`PAINT_COLORMAP` (red: none
-reachable, blue: all reachable), a colormap apart from the glyphs' viridis.
+The skin is drawn as one vertex-coloured mesh at ``/object_reachability``,
+0.5 mm outside the object, coloured by :data:`PAINT_COLORMAP` (red: none
+reachable, blue: all reachable; between vertices the colours blend), a
+colormap apart from the glyphs' viridis.
 Above :data:`MAX_PAINT_GRASPS` grasps a uniform sample of them paints.
 """
 
@@ -27,8 +29,9 @@ import numpy as np
 
 from gcm_pipeline.errors import GcmError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
+from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.plots import colormap
-from gcm_pipeline.outputs.scene_glyphs import hex_color, points_object
+from gcm_pipeline.outputs.scene_glyphs import hex_color
 from gcm_pipeline.outputs.scene_shapes import SceneShape
 from gcm_pipeline.sources.antipodal import object_mesh
 from gcm_pipeline.table import GraspTable
@@ -42,6 +45,7 @@ __all__ = [
     "paint_radius",
     "reachability_paint",
     "surface_samples",
+    "surface_skin",
 ]
 
 #: Surface points painted.
@@ -58,34 +62,98 @@ MAX_PAINT_GRASPS = 20_000
 #: within the neighbourhood's radius of where the axis meets the surface).
 _ENTRY_STRIDE = 3
 _HIST_BINS = 10
+#: How far the painted skin lies outside the object's surface (no z-fighting) [m].
+_SKIN_OFFSET = 0.0005
+#: Most faces of the painted skin (a larger mesh is decimated).
+_MAX_SKIN_FACES = 20_000
 _CHUNK = 2000
 _CONTACTS = ("contact_x", "contact_y", "contact_z")
 
 
-def surface_samples(obj: SceneShape, count: int = PAINT_POINTS) -> tuple[np.ndarray, np.ndarray]:
-    """Points (M, 3) on the object's surface and their outward normals (M, 3), in the world.
+def _object_trimesh(obj: SceneShape) -> Any:
+    """The object's surface as a trimesh in its own frame."""
+    import trimesh
+
+    if obj.shape == "plane":
+        sx, sy = obj.size or (0.1, 0.1)
+        return trimesh.creation.box(extents=[sx, sy, 0.002])
+    return object_mesh(
+        obj.shape,
+        radius=obj.radius,
+        height=obj.height,
+        size=obj.size,
+        mesh=obj.mesh,
+        scale=obj.scale,
+    )
+
+
+def _cylinder_skin(radius: float, height: float, edge: float) -> Any:
+    """A closed cylinder (axis z, base at z = 0 as the object's), vertices about ``edge`` apart."""
+    import trimesh
+
+    n_r = max(int(np.ceil(radius / edge)), 1)
+    n_h = max(int(np.ceil(height / edge)), 1)
+    r = np.r_[
+        np.linspace(0.0, radius, n_r + 1),
+        np.full(n_h - 1, radius),
+        np.linspace(radius, 0.0, n_r + 1),
+    ]
+    z = np.r_[
+        np.full(n_r + 1, 0.0),
+        np.linspace(0.0, height, n_h + 1)[1:-1],
+        np.full(n_r + 1, height),
+    ]
+    sections = max(int(np.ceil(2.0 * np.pi * radius / edge)), 8)
+    mesh = trimesh.creation.revolve(np.column_stack([r, z]), sections=sections)
+    mesh.merge_vertices()
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.fix_normals()
+    return mesh
+
+
+def surface_skin(obj: SceneShape, count: int = PAINT_POINTS) -> tuple[Any, Any, Any]:
+    """The object's surface as a skin of about ``count`` vertices, in the world.
+
+    Long edges are split until the vertices are about evenly spaced (a
+    cylinder is a revolved profile); a skin of more than
+    :data:`_MAX_SKIN_FACES` faces (a large mesh) is then decimated.
+
+    Returns:
+        Vertices (M, 3), their outward normals (M, 3) and the faces (F, 3).
 
     Raises:
         GcmError: A mesh file that cannot be read.
     """
     import trimesh
 
-    if obj.shape == "plane":
-        sx, sy = obj.size or (0.1, 0.1)
-        mesh = trimesh.creation.box(extents=[sx, sy, 0.002])
+    mesh = _object_trimesh(obj)
+    edge = float(np.sqrt(max(float(mesh.area), 1e-12) / (0.43 * count)))
+    if obj.shape == "cylinder":  # trimesh's has long thin sides: revolve a profile instead
+        skin = _cylinder_skin(float(obj.radius or 0.0), float(obj.height or 0.0), edge)
     else:
-        mesh = object_mesh(
-            obj.shape,
-            radius=obj.radius,
-            height=obj.height,
-            size=obj.size,
-            mesh=obj.mesh,
-            scale=obj.scale,
-        )
-    pts, faces = trimesh.sample.sample_surface_even(mesh, count, seed=0)
-    normals = np.asarray(mesh.face_normals, dtype=float)[faces]
+        verts, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=edge)
+        skin = trimesh.Trimesh(verts, faces, process=True)
+    if len(skin.faces) > _MAX_SKIN_FACES:  # a large mesh
+        try:
+            skin = skin.simplify_quadric_decimation(face_count=_MAX_SKIN_FACES)
+        except (ImportError, ValueError):  # the skin stays right, only larger
+            pass
     rot, t = obj.pose[:3, :3], obj.pose[:3, 3]
-    return np.asarray(pts, dtype=float) @ rot.T + t, normals @ rot.T
+    normals = np.asarray(skin.vertex_normals, dtype=float) @ rot.T
+    points = np.asarray(skin.vertices, dtype=float) @ rot.T + t
+    return points, normals, np.asarray(skin.faces, dtype=np.int64)
+
+
+def surface_samples(obj: SceneShape, count: int = PAINT_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Points (M, 3) on the object's surface and their outward normals (M, 3), in the world.
+
+    The vertices of :func:`surface_skin`.
+
+    Raises:
+        GcmError: A mesh file that cannot be read.
+    """
+    points, normals, _ = surface_skin(obj, count)
+    return points, normals
 
 
 def paint_radius(points: np.ndarray) -> float:
@@ -162,12 +230,16 @@ class PaintResult:
         share: Share of reachable grasps near each (M,); NaN: no grasp near.
         radius: The neighbourhood's radius [m].
         spacing: Median distance between neighbouring surface points [m].
+        normals: Outward normals (M, 3) of the points.
+        faces: Triangles (F, 3) of the skin whose vertices the points are.
     """
 
     points: np.ndarray
     share: np.ndarray
     radius: float
     spacing: float
+    normals: np.ndarray
+    faces: np.ndarray
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: points, painted (with a value), mean share, a histogram over [0, 1]."""
@@ -202,7 +274,7 @@ def reachability_paint(
     """
     from scipy.spatial import cKDTree
 
-    surface, normals = surface_samples(obj, count)
+    surface, normals, faces = surface_skin(obj, count)
     radius = paint_radius(surface)
     spacing = float(np.median(cKDTree(surface).query(surface, k=2)[0][:, 1]))
     rows = np.arange(len(grasps))
@@ -211,12 +283,12 @@ def reachability_paint(
         rows = np.sort(rng.choice(len(rows), size=MAX_PAINT_GRASPS, replace=False))
     share = np.full(len(surface), np.nan)
     if not len(rows):
-        return PaintResult(surface, share, radius, spacing)
+        return PaintResult(surface, share, radius, spacing, normals, faces)
     anchors = _anchors(grasps, rows, surface, normals, radius)
     ok = np.all(np.isfinite(anchors), axis=1)
     anchors, good = anchors[ok], np.asarray(reachable, dtype=bool)[rows[ok]]
     if not len(anchors):
-        return PaintResult(surface, share, radius, spacing)
+        return PaintResult(surface, share, radius, spacing, normals, faces)
     k = min(NEIGHBOURS, len(anchors))
     dist, idx = cKDTree(anchors).query(surface, k=k, distance_upper_bound=radius)
     dist, idx = dist.reshape(len(surface), k), idx.reshape(len(surface), k)
@@ -224,7 +296,7 @@ def reachability_paint(
     hits = np.where(near, good[np.minimum(idx, len(anchors) - 1)], False).sum(axis=1)
     n_near = near.sum(axis=1)
     share[n_near > 0] = hits[n_near > 0] / n_near[n_near > 0]
-    return PaintResult(surface, share, radius, spacing)
+    return PaintResult(surface, share, radius, spacing, normals, faces)
 
 
 def draw_paint(vis: Any, obj: SceneShape, grasps: GraspTable, reachable: np.ndarray) -> Any:
@@ -246,6 +318,9 @@ def draw_paint(vis: Any, obj: SceneShape, grasps: GraspTable, reachable: np.ndar
     colors = np.tile(np.asarray(NO_DATA_COLOR, dtype=np.float32), (len(paint.share), 1))
     ok = np.isfinite(paint.share)
     colors[ok] = colormap(PAINT_COLORMAP)(paint.share[ok])[:, :3]
-    size = 1.5 * paint.spacing  # the squares overlap a little: a closed skin
-    vis["object_reachability"].set_object(points_object(paint.points, colors, size))
+    mg = load_meshcat().geometry
+    skin = (paint.points + _SKIN_OFFSET * paint.normals).astype(np.float32)
+    geometry = mg.TriangularMeshGeometry(skin, paint.faces.astype(np.uint32), color=colors)
+    material = mg.MeshLambertMaterial(vertexColors=True)
+    vis["object_reachability"].set_object(geometry, material)
     return paint

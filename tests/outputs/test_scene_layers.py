@@ -295,7 +295,7 @@ def test_painted_scene_and_its_summary():
     (lay,) = [lay for lay in info.layers if lay["path"] == "/object_reachability"]
     assert lay["count"] == info.paint["points"] > 1000
     obj = objects(decode_commands(html))["/meshcat/object_reachability"]
-    assert obj["object"]["type"] == "Points" and n_vertices(obj) == lay["count"]
+    assert obj["object"]["type"] == "Mesh" and n_vertices(obj) == lay["count"]
     hist = info.paint["histogram"]
     assert hist[0] > 100 and hist[-1] > 100  # the two sides: 0 and 1
     assert 0.2 < info.paint["mean"] < 0.8

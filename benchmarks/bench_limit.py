@@ -7,14 +7,15 @@ One run measures, on the Panda, the table and the bottle of
 * **IK per pose** on 2,000 reachable targets (forward kinematics of random
   in-limit configurations): gcm's default backend (batched LM), and, when
   ``frankik`` is installed (``pip install ".[bench]"``), the analytic frankik
-  library called per pose (its ``fk`` is gcm's grasp frame): ``ik_sample_q7``
-  (q7 sampled, every branch: the library's full IK) and ``ik_full`` with the
-  target's own q7 given (the closed form alone, every branch: a lower bound, it
-  needs q7 from elsewhere); a success is a finite solution whose frankik FK is
-  within 0.1 mm / 1 mrad of the target. (``ik`` and ``ik_sample_q7`` without
-  ``full_ik`` keep only the seed's branch and solve few random targets.) EAIK's closed form is for
-  6R arms (see ``bench_branches.py``): it does not apply to the 7R Panda.
-  The fastest IK with recall >= 99 % is the model's ``t_ik``.
+  library called per pose (its ``fk`` gives gcm's grasp frame, its IK takes the
+  flange: the target times the hand's inverse offset): ``ik_sample_q7`` (q7
+  sampled, every branch: the library's full IK) and ``ik_full`` with the
+  target's own q7 given (the closed form alone, every branch: a lower bound
+  that needs q7 from elsewhere); a success is a finite solution whose frankik FK
+  is within 0.1 mm / 1 mrad of the target. EAIK's closed form is for 6R arms
+  (see ``bench_branches.py``): it does not apply to the 7R Panda. The model's
+  ``t_ik`` is the fastest IK with recall >= 99 % (the closed form given q7 is
+  not an IK of the pose alone).
 * **Collision checks per configuration**, on two sets: ``front`` (random
   configurations with the hand in front of the robot above the table, as
   ``bench_collision.py``) and ``stage`` (a random sample of the configurations
@@ -22,20 +23,24 @@ One run measures, on the Panda, the table and the bottle of
   counting run below). On each: gcm's :meth:`CollisionChecker.check` on the
   whole array (its use in the stage) and one configuration per call;
   Pinocchio's loop (``pin.computeCollisions`` over every pair, stop at first:
-  coal's exact answer, the reference of the disagreement counts); and VAMP's
-  Panda checker where built (``benchmarks/vamp/build_vamp.sh``), run in its own
-  venv (``--vamp-python``) by ``benchmarks/vamp/vamp_check.py``: ``validate``
-  one configuration per call (through its Python binding: the binding's call
-  cost is included and reported) and ``validate_motion`` on the stage's
-  approach motions (grasp -> pre-grasp, joint-space segments checked by VAMP
-  in SIMD blocks of 8 interpolated configurations at its resolution), against
-  gcm's check of the same interpolated configurations in ``approach`` mode.
+  coal's exact answer, on the first ``--loop-configs``); and VAMP's Panda
+  checker where built (``benchmarks/vamp/build_vamp.sh``, a venv given by
+  ``--vamp-python``): through its Python binding (``vamp_py_*``,
+  ``benchmarks/vamp/vamp_check.py``: ``validate``, one configuration per call,
+  the binding's call cost included) and in C++ (``vamp_cpp_*``,
+  ``benchmarks/vamp/vamp_bench.cc``: the same ``validate_motion<Panda, 8, 1>(q,
+  q)`` one configuration per call, and ``Panda::fkcc<8>`` on blocks of 8
+  distinct configurations that gcm finds free, VAMP's best case).
   VAMP's scene: the table as four cuboids around the base's footprint (see
-  ``BASE_HOLE``), the bottle (a cylinder) as a capsule
-  with the cylinder's axis as segment (VAMP has no flat-capped cylinder: the
-  capsule is the cylinder plus two half-balls); VAMP approximates the links by
-  spheres, so its decisions are compared with coal's (counts of each kind of
-  disagreement).
+  ``BASE_HOLE``), the bottle (a cylinder) as a capsule on the cylinder's axis
+  (VAMP has no flat-capped cylinder: the capsule adds a half-ball at each
+  end). VAMP approximates the links by spheres: its decisions are compared with
+  coal's (``vamp_disagreements_with_coal``, first ``--loop-configs``) and with
+  gcm's exact ones on the whole set (``vamp_disagreements_with_gcm``).
+* **Approach motions in blocks** (``approach_blocks``): VAMP's
+  ``validate_motion`` (binding) on the stage's grasp -> pre-grasp joint-space
+  segments (blocks of 8 interpolated configurations at its resolution), against
+  gcm's ``approach``-mode check of the same interpolated configurations.
 * **Checks per pose**: one run of the stage on the dense bottle (80 side
   grasps, subdivisions 28, approach 10 cm / 10 steps: ``bench_pipeline.py``'s
   work) with ``ik.workers: 1`` and :meth:`CollisionChecker.check` and
@@ -45,7 +50,7 @@ One run measures, on the Panda, the table and the bottle of
   ``--repeats`` runs) as a fraction of the limit
   ``1 / (t_ik + checks_per_pose * t_check)`` with ``t_check`` the fastest
   measured check per configuration (VAMP's blocks where built), and of the
-  limit at gcm's own check rate.
+  limit at gcm's own check rate on the stage's configurations.
 
 Rates of different runs are not comparable (the machine is shared): the report
 gives ratios of one run, medians of ``--repeats``, and the load average.
@@ -267,10 +272,44 @@ def vamp_scene(checker: CollisionChecker) -> list[dict[str, Any]]:
     return scene
 
 
+def _scene_text(scene: list[dict[str, Any]]) -> str:
+    """The scene in ``vamp_bench``'s text format (see benchmarks/vamp/vamp_bench.cc)."""
+    lines = []
+    for item in scene:
+        ((kind, p),) = item.items()
+        if kind == "cuboid":
+            vals = [*p["center"], *p["euler_xyz"], *p["half_extents"]]
+        elif kind == "capsule":
+            vals = [*p["center"], *p["euler_xyz"], p["radius"], p["length"]]
+        else:
+            vals = [*p["center"], p["radius"]]
+        lines.append(" ".join([kind, *(f"{float(v):.9g}" for v in vals)]))
+    return "\n".join(lines) + "\n"
+
+
+def run_vamp_cpp(
+    binary: Path, scene: list, q: np.ndarray, free: np.ndarray, repeats: int
+) -> dict[str, Any]:
+    """``vamp_bench`` (C++, no binding in the loop): one per call and blocks of free ones."""
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        (d / "scene.txt").write_text(_scene_text(scene))
+        np.ascontiguousarray(q, dtype=np.float32).tofile(d / "q.bin")
+        np.ascontiguousarray(free, dtype=np.float32).tofile(d / "free.bin")
+        cmd = [str(binary), str(d / "scene.txt"), str(d / "q.bin"), str(len(q))]
+        cmd += [str(d / "free.bin"), str(len(free)), str(repeats), str(d / "valid.bin")]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            return {"error": proc.stderr.strip()}
+        out = json.loads(proc.stdout)
+        out["valid"] = np.fromfile(d / "valid.bin", dtype=np.uint8).astype(bool)
+    return out
+
+
 def run_vamp(
     python: str, scene: list, q: np.ndarray, pairs: np.ndarray, repeats: int
 ) -> dict[str, Any] | str:
-    """VAMP's figures from its own venv, or why there are none."""
+    """VAMP's figures through its Python binding, from its own venv, or why there are none."""
     if not Path(python).exists():
         return f"no VAMP venv at {python} (benchmarks/vamp/build_vamp.sh builds it)"
     with tempfile.TemporaryDirectory() as tmp:
@@ -317,14 +356,32 @@ def check_figures(
     gcm_hit = np.asarray(reasons)[:m] != ""
     out["gcm_differs_from_pinocchio"] = int(np.count_nonzero(gcm_hit != hit))
     out["colliding_fraction_coal"] = float(np.mean(hit))
-    vamp = run_vamp(args.vamp_python, vamp_scene(checker), q, np.zeros((0, 2, 7)), args.repeats)
+    scene = vamp_scene(checker)
+    vamp = run_vamp(args.vamp_python, scene, q, np.zeros((0, 2, 7)), args.repeats)
     if isinstance(vamp, str):
         out["vamp"] = vamp
         return out
-    out["vamp_s_per_config"] = vamp["validate_s_per_call"]
-    out["vamp_empty_binding_call_s"] = vamp["empty_call_s"]
-    out["vamp_disagreements_with_coal"] = disagreements(np.asarray(vamp["valid"])[:m], hit)
-    out["ratio_gcm_over_vamp_rate"] = out["vamp_s_per_config"] / out["gcm_s_per_config"]
+    out["vamp_py_s_per_config"] = vamp["validate_s_per_call"]
+    out["vamp_py_empty_binding_call_s"] = vamp["empty_call_s"]
+    out["vamp_py_disagreements_with_coal"] = disagreements(np.asarray(vamp["valid"])[:m], hit)
+    binary = Path(args.vamp_python).parent / "vamp_bench"
+    if not binary.exists():
+        out["vamp_cpp"] = f"no {binary} (benchmarks/vamp/build_vamp.sh builds it)"
+        return out
+    free = q[np.asarray(reasons) == ""]
+    cpp = run_vamp_cpp(binary, scene, q, free, args.repeats)
+    if "error" in cpp:
+        out["vamp_cpp"] = cpp["error"]
+        return out
+    out["vamp_cpp_s_per_config"] = cpp["one_per_call_s_per_config"]
+    out["vamp_cpp_block_s_per_config"] = cpp["block_s_per_config"]
+    out["vamp_cpp_blocks"] = {k: cpp[k] for k in ("blocks", "free_blocks", "rake")}
+    out["vamp_cpp_same_as_binding"] = bool(np.array_equal(cpp["valid"], vamp["valid"]))
+    out["vamp_disagreements_with_coal"] = disagreements(cpp["valid"][:m], hit)
+    out["vamp_disagreements_with_gcm_all"] = disagreements(cpp["valid"], np.asarray(reasons) != "")
+    g = out["gcm_s_per_config"]
+    out["ratio_gcm_rate_over_vamp_one_per_call"] = out["vamp_cpp_s_per_config"] / g
+    out["ratio_gcm_rate_over_vamp_blocks"] = out["vamp_cpp_block_s_per_config"] / g
     return out
 
 
@@ -369,12 +426,16 @@ def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
     """The cost model's limits and the stage's fraction of each."""
     ik_name, t_ik = best_ik(report["ik"])
     cpp = report["stage_counts"]["checks_per_pose"]
-    checks = {"gcm": report["checks"]["stage"]["gcm_s_per_config"]}
-    for key, fig in (("vamp_one_per_call", report["checks"]["stage"]),):
-        if "vamp_s_per_config" in fig:
-            checks[key] = fig["vamp_s_per_config"]
+    stage = report["checks"]["stage"]
+    checks = {"gcm": stage["gcm_s_per_config"]}
+    for key, name in (
+        ("vamp_cpp_s_per_config", "vamp_one_per_call"),
+        ("vamp_cpp_block_s_per_config", "vamp_blocks_of_free"),
+    ):
+        if key in stage:
+            checks[name] = stage[key]
     if "vamp_s_per_config" in report.get("approach_blocks", {}):
-        checks["vamp_blocks"] = report["approach_blocks"]["vamp_s_per_config"]
+        checks["vamp_py_approach_motions"] = report["approach_blocks"]["vamp_s_per_config"]
     best = min(checks, key=checks.__getitem__)
     limit = 1.0 / (t_ik + cpp * checks[best])
     limit_gcm = 1.0 / (t_ik + cpp * checks["gcm"])
@@ -423,10 +484,12 @@ def main() -> None:
     report["machine"] = {
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),
-        "load_average_start": load_start,
-        "load_average_end": os.getloadavg(),
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "pinocchio": pin.__version__,
     }
+    report["command"] = " ".join(["python benchmarks/bench_limit.py", *sys.argv[1:]])
+    report["load_average_start"] = load_start
+    report["load_average_end"] = os.getloadavg()
+    report["date"] = time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime())
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     print(json.dumps(report, indent=2))

@@ -26,6 +26,9 @@
 # and checks the SHA-256 VAMP expects, then places it where VAMP's
 # file(DOWNLOAD) finds it already present (CMake then skips the download).
 #
+# Result: VENV with the `vamp` package (robots sphere, ur5, panda by default)
+# and VENV/bin/vamp_bench, the C++ harness of benchmarks/vamp/vamp_bench.cc.
+#
 # Usage:  benchmarks/vamp/build_vamp.sh SNAP [VENV] [WORK]
 #   SNAP  directory holding the five snapshots above
 #   VENV  venv to create/use (default /work/vampvenv)
@@ -90,3 +93,14 @@ echo "117cbf2711572f113bab262933eb5187b08cfc06dce0714a1ee94f2183ddc3ec  $BUILD/c
 
 # 5. Smoke test.
 "$VENV/bin/python" -c "import vamp; print('vamp', vamp.robots)"
+
+# 6. The C++ timing harness of bench_limit.py (VAMP's checker without the Python
+#    binding in the loop), against the sdist's headers, with the flags of VAMP's
+#    cmake/CompilerSettings.cmake for a Release build on x86_64 with GCC.
+HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+g++ -std=c++17 -O3 -march=native -mavx2 -fno-math-errno -fno-signed-zeros -fno-trapping-math \
+    -fno-rounding-math -ffp-contract=fast -fassociative-math -Wno-ignored-attributes \
+    -I "$SRC/src/impl" -I /usr/include/eigen3 -I "$SNAP/pdqsort" -I "$SNAP/nigh/src" \
+    -I "$SNAP/SIMDxorshift/include" \
+    "$HERE/vamp_bench.cc" -o "$VENV/bin/vamp_bench"
+echo "built $VENV/bin/vamp_bench"

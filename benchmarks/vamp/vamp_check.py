@@ -7,7 +7,8 @@ gcm_pipeline and this script imports nothing of it).
 
 ``IN.npz`` holds ``robot`` (VAMP's module name, e.g. ``panda``), ``scene``
 (a JSON list of primitives: ``{"cuboid": {center, euler_xyz, half_extents}}``,
-``{"capsule": {center, euler_xyz, radius, length}}`` (segment along the local z),, ``{"sphere": {center, radius}}``),
+``{"capsule": {center, euler_xyz, radius, length}}`` (segment along the local
+z), ``{"sphere": {center, radius}}``),
 ``q`` (N, dof) configurations checked one per call (``validate``: one SIMD
 block whose lanes all hold the configuration), ``pairs`` (M, 2, dof): motions
 checked with ``validate_motion`` (blocks of interpolated configurations at VAMP's

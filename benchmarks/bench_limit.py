@@ -249,10 +249,18 @@ def vamp_scene(checker: CollisionChecker) -> list[dict[str, Any]]:
             raise SystemExit(f"bench_limit: {shape.name} is rotated; only axis-aligned shapes")
         c = t[:3, 3].tolist()
         if isinstance(g, coal.Box) and shape.support:
-            scene.extend(_support_boxes(t[:3, 3], np.asarray(g.halfSide)))
+            boxes = _support_boxes(t[:3, 3], np.asarray(g.halfSide))
+            scene.extend({"cuboid": {**b["cuboid"], "name": shape.name}} for b in boxes)
         elif isinstance(g, coal.Box):
             scene.append(
-                {"cuboid": {"center": c, "euler_xyz": [0, 0, 0], "half_extents": list(g.halfSide)}}
+                {
+                    "cuboid": {
+                        "center": c,
+                        "euler_xyz": [0, 0, 0],
+                        "half_extents": list(g.halfSide),
+                        "name": shape.name,
+                    }
+                }
             )
         elif isinstance(g, coal.Cylinder):
             scene.append(
@@ -262,11 +270,12 @@ def vamp_scene(checker: CollisionChecker) -> list[dict[str, Any]]:
                         "euler_xyz": [0, 0, 0],
                         "radius": g.radius,
                         "length": 2 * g.halfLength,
+                        "name": shape.name,
                     }
                 }
             )
         elif isinstance(g, coal.Sphere):
-            scene.append({"sphere": {"center": c, "radius": g.radius}})
+            scene.append({"sphere": {"center": c, "radius": g.radius, "name": shape.name}})
         else:
             raise SystemExit(f"bench_limit: {shape.name} ({type(g).__name__}) has no VAMP shape")
     return scene
@@ -307,7 +316,12 @@ def run_vamp_cpp(
 
 
 def run_vamp(
-    python: str, scene: list, q: np.ndarray, pairs: np.ndarray, repeats: int
+    python: str,
+    scene: list,
+    q: np.ndarray,
+    pairs: np.ndarray,
+    repeats: int,
+    exact_collides: np.ndarray | None = None,
 ) -> dict[str, Any] | str:
     """VAMP's figures through its Python binding, from its own venv, or why there are none."""
     if not Path(python).exists():
@@ -317,6 +331,7 @@ def run_vamp(
         np.savez(
             inp, robot="panda", scene=json.dumps(scene), q=q.astype(np.float32),
             pairs=pairs.astype(np.float32), repeats=repeats,
+            exact_collides=np.zeros(0, bool) if exact_collides is None else exact_collides,
         )  # fmt: skip
         proc = subprocess.run(
             [python, str(VAMP_SCRIPT), str(inp), str(out)], capture_output=True, text=True
@@ -341,6 +356,17 @@ def disagreements(vamp_valid: np.ndarray, exact_hit: np.ndarray) -> dict[str, in
     }
 
 
+def explain_counts(explained: list[dict[str, Any]], exact: np.ndarray) -> dict[str, int]:
+    """VAMP's disagreements with the exact answer by what VAMP's spheres hit."""
+    out: dict[str, int] = {}
+    for e in explained:
+        side = "vamp_collision_exact_free" if not exact[e["index"]] else "vamp_free_exact_collision"
+        hits = [*e["environment"], *(["self"] if e["self"] else [])]
+        key = f"{side}: {'+'.join(hits) or 'nothing'}"
+        out[key] = out.get(key, 0) + 1
+    return dict(sorted(out.items()))
+
+
 def check_figures(
     robot: Robot, checker: CollisionChecker, q: np.ndarray, args: argparse.Namespace
 ) -> dict[str, Any]:
@@ -357,10 +383,12 @@ def check_figures(
     out["gcm_differs_from_pinocchio"] = int(np.count_nonzero(gcm_hit != hit))
     out["colliding_fraction_coal"] = float(np.mean(hit))
     scene = vamp_scene(checker)
-    vamp = run_vamp(args.vamp_python, scene, q, np.zeros((0, 2, 7)), args.repeats)
+    exact = np.asarray(reasons) != ""  # gcm's exact answer (= coal's on the loop's rows)
+    vamp = run_vamp(args.vamp_python, scene, q, np.zeros((0, 2, 7)), args.repeats, exact)
     if isinstance(vamp, str):
         out["vamp"] = vamp
         return out
+    out["vamp_disagreements_explained"] = explain_counts(vamp["explain"], exact)
     out["vamp_py_s_per_config"] = vamp["validate_s_per_call"]
     out["vamp_py_empty_binding_call_s"] = vamp["empty_call_s"]
     out["vamp_py_disagreements_with_coal"] = disagreements(np.asarray(vamp["valid"])[:m], hit)
@@ -378,7 +406,8 @@ def check_figures(
     out["vamp_cpp_blocks"] = {k: cpp[k] for k in ("blocks", "free_blocks", "rake")}
     out["vamp_cpp_same_as_binding"] = bool(np.array_equal(cpp["valid"], vamp["valid"]))
     out["vamp_disagreements_with_coal"] = disagreements(cpp["valid"][:m], hit)
-    out["vamp_disagreements_with_gcm_all"] = disagreements(cpp["valid"], np.asarray(reasons) != "")
+    gcm_all = disagreements(cpp["valid"], exact)
+    out["vamp_disagreements_with_gcm"] = {k.replace("coal", "gcm"): v for k, v in gcm_all.items()}
     g = out["gcm_s_per_config"]
     out["ratio_gcm_rate_over_vamp_one_per_call"] = out["vamp_cpp_s_per_config"] / g
     out["ratio_gcm_rate_over_vamp_blocks"] = out["vamp_cpp_block_s_per_config"] / g

@@ -12,7 +12,10 @@ z), ``{"sphere": {center, radius}}``),
 ``q`` (N, dof) configurations checked one per call (``validate``: one SIMD
 block whose lanes all hold the configuration), ``pairs`` (M, 2, dof): motions
 checked with ``validate_motion`` (blocks of interpolated configurations at VAMP's
-resolution), and ``repeats``. Writes the validity of each configuration and
+resolution), ``exact_collides`` (N,) the exact answer (empty: none): every configuration
+on which VAMP disagrees with it is explained by ``debug`` (the names of the
+primitives its spheres hit, and whether a self-collision pair is hit), and
+``repeats``. Writes the validity of each configuration and
 motion, and the median seconds per call of each loop, with the cost of an
 empty binding call (``dimension()``) in the same loop for reference.
 """
@@ -33,14 +36,19 @@ def environment(scene: list[dict]) -> vamp.Environment:
     for item in scene:
         ((kind, p),) = item.items()
         if kind == "cuboid":
-            env.add_cuboid(vamp.Cuboid(p["center"], p["euler_xyz"], p["half_extents"]))
+            c = vamp.Cuboid(p["center"], p["euler_xyz"], p["half_extents"])
+            c.name = p.get("name", "")
+            env.add_cuboid(c)
         elif kind == "capsule":
             # (the binding's endpoints constructor assigns into unconstructed memory
             # and crashes in 0.6.4: the centre form is used)
             c = vamp.Cylinder(p["center"], p["euler_xyz"], p["radius"], p["length"])
+            c.name = p.get("name", "")
             env.add_capsule(c)
         elif kind == "sphere":
-            env.add_sphere(vamp.Sphere(p["center"], p["radius"]))
+            c = vamp.Sphere(p["center"], p["radius"])
+            c.name = p.get("name", "")
+            env.add_sphere(c)
         else:
             raise SystemExit(f"vamp_check: unknown primitive {kind!r}")
     return env
@@ -76,6 +84,13 @@ def main() -> None:
         dt, ok = timed(lambda: [motion(a, b, env) for a, b in pairs], repeats)
         out["validate_motion_s_per_call"] = dt / len(pairs)
         out["motion_valid"] = [bool(v) for v in ok]
+    out["explain"] = []
+    exact = np.asarray(data["exact_collides"], dtype=bool)
+    disagree = np.flatnonzero(np.asarray(out["valid"]) == exact[: len(qs)]) if exact.size else []
+    for i in disagree[:2000]:
+        spheres, self_pairs = module.debug(qs[i], env)
+        names = sorted({name for hits in spheres for name in hits})
+        out["explain"].append({"index": int(i), "environment": names, "self": bool(self_pairs)})
     out["resolution"] = float(module.resolution())
     out["n_spheres"] = int(module.n_spheres())
     out["simd_lanes"] = 8

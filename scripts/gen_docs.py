@@ -248,6 +248,21 @@ BENCH_NOTES: dict[str, str] = {
         "`tests/robot/ik/test_branch_recall.py` asserts recall >= 0.99 and no false positive on a "
         "smaller run."
     ),
+    "limit": (
+        "Issue 33's cost model in one run (Panda, table and bottle): IK per pose (gcm's "
+        "default backend; frankik's full IK with q7 sampled and its closed form given q7, "
+        "when installed), collision checks per configuration on random `front` "
+        "configurations and on a sample of those the reachability stage checks (`stage`): "
+        "gcm, Pinocchio's loop (coal, exact) and VAMP's sphere-model checker through its "
+        "binding (`vamp_py_*`) and in C++ (`vamp_cpp_*`: one per call, and blocks of 8 free "
+        "configurations), with VAMP's disagreements with the exact answer; the share of free "
+        "configurations that gcm's generated outer link spheres prove free (`outer_spheres`); "
+        "the stage's counted "
+        "checks per pose (check wrapped in the benchmark); and the stage's rate on one process "
+        "as a fraction of the limit `1 / (t_ik + checks_per_pose * t_check)` "
+        "(`model.stage_fraction_of_limit`). VAMP is built by `benchmarks/vamp/build_vamp.sh` "
+        "(see the development page)."
+    ),
     "collision": (
         "Random configurations of the Panda checked against the table, the bottle and "
         "itself (`check_threads1/2`), against Pinocchio's own `computeCollisions` loop over "

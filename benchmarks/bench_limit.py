@@ -1,0 +1,609 @@
+#!/usr/bin/env python
+"""Benchmark: the reachability stage against its per-core limit (issue 33's cost model).
+
+One run measures, on the Panda, the table and the bottle of
+``configs/bottle_side.yaml`` (the world of ``bench_collision.py``):
+
+* **IK per pose** on 2,000 reachable targets (forward kinematics of random
+  in-limit configurations): gcm's default backend (batched LM), and, when
+  ``frankik`` is installed (``pip install ".[bench]"``), the analytic frankik
+  library called per pose (its ``fk`` gives gcm's grasp frame, its IK takes the
+  flange: the target times the hand's inverse offset): ``ik_sample_q7`` (60
+  samples of q7 over its range, every branch: the library's full IK) and ``ik_full`` with the
+  target's own q7 given (the closed form alone, every branch: a lower bound
+  that needs q7 from elsewhere); a success is a finite solution whose frankik FK
+  is within 0.1 mm / 1 mrad of the target. EAIK's closed form is for 6R arms
+  (see ``bench_branches.py``): it does not apply to the 7R Panda. The model's
+  ``t_ik`` is the fastest IK with recall >= 99 % (the closed form given q7 is
+  not an IK of the pose alone).
+* **Collision checks per configuration**, on two sets: ``front`` (random
+  configurations with the hand in front of the robot above the table, as
+  ``bench_collision.py``) and ``stage`` (a random sample of the configurations
+  the reachability stage really checked on the dense bottle, recorded by the
+  counting run below). On each: gcm's :meth:`CollisionChecker.check` on the
+  whole array (its use in the stage) and one configuration per call;
+  Pinocchio's loop (``pin.computeCollisions`` over every pair, stop at first:
+  coal's exact answer, on the first ``--loop-configs``); and VAMP's Panda
+  checker where built (``benchmarks/vamp/build_vamp.sh``, a venv given by
+  ``--vamp-python``): through its Python binding (``vamp_py_*``,
+  ``benchmarks/vamp/vamp_check.py``: ``validate``, one configuration per call,
+  the binding's call cost included) and in C++ (``vamp_cpp_*``,
+  ``benchmarks/vamp/vamp_bench.cc``: the same ``validate_motion<Panda, 8, 1>(q,
+  q)`` one configuration per call, and ``Panda::fkcc<8>`` on blocks of 8
+  distinct configurations that gcm finds free, VAMP's best case).
+  VAMP's scene: the table as four cuboids around the base's footprint (see
+  ``BASE_HOLE``), the bottle (a cylinder) as a capsule on the cylinder's axis
+  (VAMP has no flat-capped cylinder: the capsule adds a half-ball at each
+  end). VAMP approximates the links by spheres: its decisions are compared with
+  coal's (``vamp_disagreements_with_coal``, first ``--loop-configs``) and with
+  gcm's exact ones on the whole set (``vamp_disagreements_with_gcm``).
+* **Outer spheres** (``outer_spheres``, first ``--loop-configs`` of each set):
+  the configurations that the generated outer link spheres
+  (:mod:`gcm_pipeline.robot.collision.link_spheres`, not yet used by the
+  checker) prove free, pair by pair of the checker's collision pairs (sphere
+  against sphere, or against the world box / cylinder exactly), as a fraction
+  of those coal finds free; ``proven_free_but_colliding`` must be 0.
+* **Approach motions in blocks** (``approach_blocks``): VAMP's
+  ``validate_motion`` (binding) on the stage's grasp -> pre-grasp joint-space
+  segments (blocks of 8 interpolated configurations at its resolution), against
+  gcm's ``approach``-mode check of the same interpolated configurations.
+* **Checks per pose**: one run of the stage on the dense bottle (80 side
+  grasps, subdivisions 28, approach 10 cm / 10 steps: ``bench_pipeline.py``'s
+  work) with ``ik.workers: 1`` and :meth:`CollisionChecker.check` and
+  :meth:`CollisionChecker.clearance` wrapped (in this process only, the library
+  is not changed) to count the rows checked, by mode.
+* **The stage's rate** (same work, one process, unwrapped, median of
+  ``--repeats`` runs) as a fraction of the limit
+  ``1 / (t_ik + checks_per_pose * t_check)`` with ``t_check`` the fastest
+  check per configuration measured on the stage's configurations (VAMP's C++
+  blocks where built; the approach-motion figure is not used: an invalid motion
+  stops early, so its per-configuration cost is an estimate), and of the limit
+  at gcm's own check rate.
+
+Rates of different runs are not comparable (the machine is shared): the report
+gives ratios of one run, medians of ``--repeats``, and the load average.
+
+Run from the repository root: ``python benchmarks/bench_limit.py`` (about two
+minutes); writes ``benchmarks/results/limit.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_collision import BOTTLE, front_configurations, timed  # noqa: E402
+from bench_pipeline import DENSE, stage_run  # noqa: E402
+
+from gcm_pipeline.config import EnvironmentConfig, ObjectConfig  # noqa: E402
+from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
+from gcm_pipeline.pipeline import make_checker  # noqa: E402
+from gcm_pipeline.robot.collision import CollisionChecker  # noqa: E402
+from gcm_pipeline.robot.collision.link_spheres import geometry_spheres  # noqa: E402
+from gcm_pipeline.robot.ik import solve_ik  # noqa: E402
+from gcm_pipeline.robot.model import Robot  # noqa: E402
+
+VAMP_SCRIPT = ROOT / "benchmarks" / "vamp" / "vamp_check.py"
+TOL_P, TOL_R = 1e-4, 1e-3
+#: frankik's q7 sampling span [deg] (60 samples): the arm's whole q7 range; the
+#: library's default, 40, finds only 54-59 % of random reachable targets.
+Q7_SPAN_DEG = 330
+
+
+# --- IK -----------------------------------------------------------------------------------
+
+
+def _frankik_ok(frankik: Any, target: np.ndarray, q: Any) -> bool:
+    q = np.asarray(q, dtype=float).reshape(-1, 7)
+    q = q[np.all(np.isfinite(q), axis=1)]
+    for qi in q:
+        t = frankik.fk(qi)
+        rot = np.linalg.norm(pin.log3(t[:3, :3].T @ target[:3, :3]))
+        if np.linalg.norm(t[:3, 3] - target[:3, 3]) <= TOL_P and rot <= TOL_R:
+            return True
+    return False
+
+
+def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
+    """Seconds per pose and recall of each IK on ``n`` reachable targets."""
+    rng = np.random.default_rng(0)
+    q = robot.random_configurations(n, rng)
+    targets = robot.fk_pinocchio(q)
+    solve_ik(robot, targets[:50])  # compiled kernels loaded before timing
+    dt, res = timed(lambda: solve_ik(robot, targets), repeats)
+    out: dict[str, Any] = {
+        "targets": n,
+        "gcm_s_per_pose": dt / n,
+        "gcm_recall": float(np.mean(res.success)),
+    }
+    try:
+        import frankik
+    except ImportError:
+        out["frankik"] = "not installed"
+        return out
+    # frankik's fk gives the hand's TCP (gcm's grasp frame); its IK takes the
+    # flange: the TCP pose times the inverse of the hand's offset
+    c = np.sqrt(0.5)
+    hand = np.array([[c, c, 0, 0], [-c, c, 0, 0], [0, 0, 1, 0.1034], [0, 0, 0, 1]])
+    tcp = [np.asarray(frankik.fk(qi)) for qi in q]
+    flange = [t @ np.linalg.inv(hand) for t in tcp]
+    home = np.asarray(frankik.kQDefault, dtype=float)
+    dt, sols = timed(
+        lambda: [frankik.ik_sample_q7(t, home, False, 60, Q7_SPAN_DEG, True) for t in flange],
+        repeats,
+    )
+    out["frankik_sampled_q7_s_per_pose"] = dt / n
+    out["frankik_sampled_q7_samples_span_deg"] = [60, Q7_SPAN_DEG]
+    out["frankik_sampled_q7_recall"] = float(
+        np.mean([_frankik_ok(frankik, t, s) for t, s in zip(tcp, sols, strict=True)])
+    )
+    dt, sols = timed(
+        lambda: [
+            frankik.ik_full(t, home, float(qi[6]), False) for t, qi in zip(flange, q, strict=True)
+        ],
+        repeats,
+    )
+    out["frankik_closed_form_given_q7_s_per_pose"] = dt / n
+    out["frankik_closed_form_given_q7_recall"] = float(
+        np.mean([_frankik_ok(frankik, t, s) for t, s in zip(tcp, sols, strict=True)])
+    )
+    return out
+
+
+def best_ik(ik: dict[str, Any]) -> tuple[str, float]:
+    """The fastest IK with recall >= 99 % (the closed form given q7 is no full IK)."""
+    options = [("gcm", ik["gcm_s_per_pose"], ik["gcm_recall"])]
+    if "frankik_sampled_q7_s_per_pose" in ik:
+        options.append(
+            ("frankik", ik["frankik_sampled_q7_s_per_pose"], ik["frankik_sampled_q7_recall"])
+        )
+    name, t, _ = min((o for o in options if o[2] >= 0.99), key=lambda o: o[1])
+    return name, t
+
+
+# --- the stage: counted checks and its rate -------------------------------------------------
+
+
+def counted_stage(sample: int) -> dict[str, Any]:
+    """One stage run (one process) with check/clearance wrapped to count rows."""
+    counts: dict[str, int] = {"check_calls": 0, "clearance_rows": 0}
+    kept: list[np.ndarray] = []
+    rng = np.random.default_rng(1)
+    check, clearance = CollisionChecker.check, CollisionChecker.clearance
+
+    def counting_check(self, q, mode="grasp", carried=None):  # type: ignore[no-untyped-def]
+        qs = np.asarray(q, dtype=float).reshape(-1, self.robot.nq)
+        counts["check_calls"] += 1
+        counts[f"check_rows_{mode}"] = counts.get(f"check_rows_{mode}", 0) + len(qs)
+        kept.append(qs[rng.random(len(qs)) < 0.05])
+        return check(self, q, mode, carried)
+
+    def counting_clearance(self, q, *a, **k):  # type: ignore[no-untyped-def]
+        counts["clearance_rows"] += len(np.asarray(q, dtype=float).reshape(-1, self.robot.nq))
+        return clearance(self, q, *a, **k)
+
+    CollisionChecker.check = counting_check  # type: ignore[method-assign]
+    CollisionChecker.clearance = counting_clearance  # type: ignore[method-assign]
+    try:
+        run = stage_run(DENSE, "1")
+    finally:
+        CollisionChecker.check = check  # type: ignore[method-assign]
+        CollisionChecker.clearance = clearance  # type: ignore[method-assign]
+    rows = sum(v for k, v in counts.items() if k.startswith("check_rows_"))
+    seen = np.concatenate(kept) if kept else np.zeros((0, 7))
+    seen = seen[np.all(np.isfinite(seen), axis=1)]
+    pick = np.random.default_rng(2).permutation(len(seen))[:sample]
+    done = run["grasps"]
+    ok = np.asarray(done["reachable"], dtype=bool)
+    return {
+        "poses": run["poses"],
+        "counts": counts,
+        "checks_per_pose": rows / run["poses"],
+        "clearance_per_pose": counts["clearance_rows"] / run["poses"],
+        "configurations": seen[pick],
+        "approach": (np.asarray(done["q"])[ok], np.asarray(done["q_pregrasp"])[ok]),
+    }
+
+
+# --- collision checks -------------------------------------------------------------------------
+
+
+#: Half-width [m] of the square of the table under the robot's base left out of
+#: VAMP's table: VAMP's link0 sphere (r 8 cm, centre 5 cm up) reaches 3 cm into
+#: the table, which gcm exempts (base links touching their support are not
+#: checked against it); VAMP has no such exemption, so the table is four boxes
+#: around the base's footprint.
+BASE_HOLE = 0.08
+
+
+def _support_boxes(c: np.ndarray, half: np.ndarray) -> list[dict[str, Any]]:
+    """A support box (centre ``c``, half extents ``half``) less the base's footprint."""
+    h, (hx, hy, hz) = BASE_HOLE, half
+    parts = [  # (x range, y range) of four boxes around |x|, |y| < h
+        ((h, hx), (-hy, hy)),
+        ((-hx, -h), (-hy, hy)),
+        ((-h, h), (h, hy)),
+        ((-h, h), (-hy, -h)),
+    ]
+    return [
+        {
+            "cuboid": {
+                "center": [c[0] + (x0 + x1) / 2, c[1] + (y0 + y1) / 2, c[2]],
+                "euler_xyz": [0, 0, 0],
+                "half_extents": [(x1 - x0) / 2, (y1 - y0) / 2, hz],
+            }
+        }
+        for (x0, x1), (y0, y1) in parts
+    ]
+
+
+def vamp_scene(checker: CollisionChecker) -> list[dict[str, Any]]:
+    """The checker's world as VAMP primitives (boxes, cylinders as capsules, spheres)."""
+    import coal
+
+    scene: list[dict[str, Any]] = []
+    for shape in checker.world:
+        g, t = shape.geometry, np.asarray(shape.placement)
+        if not np.allclose(t[:3, :3], np.eye(3)):
+            raise SystemExit(f"bench_limit: {shape.name} is rotated; only axis-aligned shapes")
+        c = t[:3, 3].tolist()
+        if isinstance(g, coal.Box) and shape.support:
+            boxes = _support_boxes(t[:3, 3], np.asarray(g.halfSide))
+            scene.extend({"cuboid": {**b["cuboid"], "name": shape.name}} for b in boxes)
+        elif isinstance(g, coal.Box):
+            scene.append(
+                {
+                    "cuboid": {
+                        "center": c,
+                        "euler_xyz": [0, 0, 0],
+                        "half_extents": list(g.halfSide),
+                        "name": shape.name,
+                    }
+                }
+            )
+        elif isinstance(g, coal.Cylinder):
+            scene.append(
+                {
+                    "capsule": {
+                        "center": c,
+                        "euler_xyz": [0, 0, 0],
+                        "radius": g.radius,
+                        "length": 2 * g.halfLength,
+                        "name": shape.name,
+                    }
+                }
+            )
+        elif isinstance(g, coal.Sphere):
+            scene.append({"sphere": {"center": c, "radius": g.radius, "name": shape.name}})
+        else:
+            raise SystemExit(f"bench_limit: {shape.name} ({type(g).__name__}) has no VAMP shape")
+    return scene
+
+
+def _scene_text(scene: list[dict[str, Any]]) -> str:
+    """The scene in ``vamp_bench``'s text format (see benchmarks/vamp/vamp_bench.cc)."""
+    lines = []
+    for item in scene:
+        ((kind, p),) = item.items()
+        if kind == "cuboid":
+            vals = [*p["center"], *p["euler_xyz"], *p["half_extents"]]
+        elif kind == "capsule":
+            vals = [*p["center"], *p["euler_xyz"], p["radius"], p["length"]]
+        else:
+            vals = [*p["center"], p["radius"]]
+        lines.append(" ".join([kind, *(f"{float(v):.9g}" for v in vals)]))
+    return "\n".join(lines) + "\n"
+
+
+def run_vamp_cpp(
+    binary: Path, scene: list, q: np.ndarray, free: np.ndarray, repeats: int
+) -> dict[str, Any]:
+    """``vamp_bench`` (C++, no binding in the loop): one per call and blocks of free ones."""
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        (d / "scene.txt").write_text(_scene_text(scene))
+        np.ascontiguousarray(q, dtype=np.float32).tofile(d / "q.bin")
+        np.ascontiguousarray(free, dtype=np.float32).tofile(d / "free.bin")
+        cmd = [str(binary), str(d / "scene.txt"), str(d / "q.bin"), str(len(q))]
+        cmd += [str(d / "free.bin"), str(len(free)), str(repeats), str(d / "valid.bin")]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            return {"error": proc.stderr.strip()}
+        out = json.loads(proc.stdout)
+        out["valid"] = np.fromfile(d / "valid.bin", dtype=np.uint8).astype(bool)
+    return out
+
+
+def run_vamp(
+    python: str,
+    scene: list,
+    q: np.ndarray,
+    pairs: np.ndarray,
+    repeats: int,
+    exact_collides: np.ndarray | None = None,
+) -> dict[str, Any] | str:
+    """VAMP's figures through its Python binding, from its own venv, or why there are none."""
+    if not Path(python).exists():
+        return f"no VAMP venv at {python} (benchmarks/vamp/build_vamp.sh builds it)"
+    with tempfile.TemporaryDirectory() as tmp:
+        inp, out = Path(tmp) / "in.npz", Path(tmp) / "out.json"
+        np.savez(
+            inp, robot="panda", scene=json.dumps(scene), q=q.astype(np.float32),
+            pairs=pairs.astype(np.float32), repeats=repeats,
+            exact_collides=np.zeros(0, bool) if exact_collides is None else exact_collides,
+        )  # fmt: skip
+        proc = subprocess.run(
+            [python, str(VAMP_SCRIPT), str(inp), str(out)], capture_output=True, text=True
+        )
+        if proc.returncode != 0:
+            return "VAMP failed: " + (proc.stderr.strip().splitlines() or ["?"])[-1]
+        return json.loads(out.read_text())
+
+
+def pin_loop(robot: Robot, checker: CollisionChecker, q: np.ndarray) -> np.ndarray:
+    """coal's exact answer through Pinocchio (every pair, stop at first): (N,) collides."""
+    model, gm = robot.model, checker.geom_model
+    data, gd = model.createData(), pin.GeometryData(gm)
+    return np.array([pin.computeCollisions(model, data, gm, gd, qi, True) for qi in q])
+
+
+def disagreements(vamp_valid: np.ndarray, exact_hit: np.ndarray) -> dict[str, int]:
+    return {
+        "vamp_collision_coal_free": int(np.count_nonzero(~vamp_valid & ~exact_hit)),
+        "vamp_free_coal_collision": int(np.count_nonzero(vamp_valid & exact_hit)),
+        "configurations": len(exact_hit),
+    }
+
+
+def explain_counts(explained: list[dict[str, Any]], exact: np.ndarray) -> dict[str, int]:
+    """VAMP's disagreements with the exact answer by what VAMP's spheres hit."""
+    out: dict[str, int] = {}
+    for e in explained:
+        side = "vamp_collision_exact_free" if not exact[e["index"]] else "vamp_free_exact_collision"
+        hits = [*e["environment"], *(["self"] if e["self"] else [])]
+        key = f"{side}: {'+'.join(hits) or 'nothing'}"
+        out[key] = out.get(key, 0) + 1
+    return dict(sorted(out.items()))
+
+
+def _world_gap(centres: np.ndarray, go: Any) -> np.ndarray | None:
+    """Distance from points (..., 3) [world] to a world box or cylinder; None: other shape."""
+    import coal
+
+    t = np.asarray(go.placement.homogeneous)
+    p = (centres - t[:3, 3]) @ t[:3, :3]  # in the shape's frame
+    g = go.geometry
+    if isinstance(g, coal.Box):
+        return np.linalg.norm(np.maximum(np.abs(p) - np.asarray(g.halfSide), 0.0), axis=-1)
+    if isinstance(g, coal.Cylinder):
+        dr = np.maximum(np.linalg.norm(p[..., :2], axis=-1) - g.radius, 0.0)
+        dz = np.maximum(np.abs(p[..., 2]) - g.halfLength, 0.0)
+        return np.hypot(dr, dz)
+    return None
+
+
+def outer_sphere_figures(
+    robot: Robot, checker: CollisionChecker, q: np.ndarray, hit: np.ndarray
+) -> dict[str, Any]:
+    """How many configurations the outer link spheres prove free, against coal's answer.
+
+    Every collision pair of the checker's geometry model is tested with the outer
+    spheres of its robot geometries (:func:`geometry_spheres`) against the other
+    geometry's spheres or the world box / cylinder exactly; a configuration whose
+    pairs are all apart is proven free. Conservative: none may collide by coal.
+    """
+    gm, model = checker.geom_model, robot.model
+    data = model.createData()
+    nr = checker.n_robot_geoms
+    covers = [geometry_spheres(gm.geometryObjects[i].geometry) for i in range(nr)]
+    local = []
+    for i, cov in enumerate(covers):
+        pl = gm.geometryObjects[i].placement
+        local.append(cov.centres @ np.asarray(pl.rotation).T + np.asarray(pl.translation))
+    joint = [int(gm.geometryObjects[i].parentJoint) for i in range(nr)]
+    world = np.empty((len(q), sum(len(c) for c in local), 3))
+    start = np.cumsum([0] + [len(c) for c in local])
+    for k, qk in enumerate(q):
+        pin.forwardKinematics(model, data, qk)
+        for i in range(nr):
+            m = data.oMi[joint[i]]
+            world[k, start[i] : start[i + 1]] = local[i] @ np.asarray(m.rotation).T + m.translation
+    near = np.zeros(len(q), dtype=bool)
+    for pair in gm.collisionPairs:
+        a, b = int(pair.first), int(pair.second)
+        if a >= nr:
+            a, b = b, a
+        ca, ra = world[:, start[a] : start[a + 1]], covers[a].radii
+        if b < nr:
+            cb, rb = world[:, start[b] : start[b + 1]], covers[b].radii
+            d = np.linalg.norm(ca[:, :, None] - cb[:, None, :], axis=-1) - ra[:, None] - rb
+            near |= np.any(d <= 0, axis=(1, 2))
+            continue
+        gap = _world_gap(ca, gm.geometryObjects[b])
+        near |= np.ones(len(q), bool) if gap is None else np.any(gap <= ra, axis=1)
+    free = ~hit
+    return {
+        "spheres": int(start[-1]),
+        "configurations": len(q),
+        "exact_free": int(np.count_nonzero(free)),
+        "proven_free": int(np.count_nonzero(~near)),
+        "proven_free_fraction_of_free": float(np.count_nonzero(~near) / max(1, free.sum())),
+        "proven_free_but_colliding": int(np.count_nonzero(~near & hit)),
+    }
+
+
+def check_figures(
+    robot: Robot, checker: CollisionChecker, q: np.ndarray, args: argparse.Namespace
+) -> dict[str, Any]:
+    """gcm (array, per call), Pinocchio's loop and VAMP on one set of configurations."""
+    n, m = len(q), min(len(q), args.loop_configs)
+    out: dict[str, Any] = {"configurations": n}
+    dt, reasons = timed(lambda: checker.check(q), args.repeats)
+    out["gcm_s_per_config"] = dt / n
+    dt, _ = timed(lambda: [checker.check(qi) for qi in q[:m]], args.repeats)
+    out["gcm_one_per_call_s_per_config"] = dt / m
+    dt, hit = timed(lambda: pin_loop(robot, checker, q[:m]), args.repeats)
+    out["pinocchio_loop_s_per_config"] = dt / m
+    gcm_hit = np.asarray(reasons)[:m] != ""
+    out["gcm_differs_from_pinocchio"] = int(np.count_nonzero(gcm_hit != hit))
+    out["colliding_fraction_coal"] = float(np.mean(hit))
+    out["outer_spheres"] = outer_sphere_figures(robot, checker, q[:m], hit)
+    scene = vamp_scene(checker)
+    exact = np.asarray(reasons) != ""  # gcm's exact answer (= coal's on the loop's rows)
+    vamp = run_vamp(args.vamp_python, scene, q, np.zeros((0, 2, 7)), args.repeats, exact)
+    if isinstance(vamp, str):
+        out["vamp"] = vamp
+        return out
+    out["vamp_disagreements_explained"] = explain_counts(vamp["explain"], exact)
+    out["vamp_py_s_per_config"] = vamp["validate_s_per_call"]
+    out["vamp_py_empty_binding_call_s"] = vamp["empty_call_s"]
+    out["vamp_py_disagreements_with_coal"] = disagreements(np.asarray(vamp["valid"])[:m], hit)
+    binary = Path(args.vamp_python).parent / "vamp_bench"
+    if not binary.exists():
+        out["vamp_cpp"] = f"no {binary} (benchmarks/vamp/build_vamp.sh builds it)"
+        return out
+    free = q[np.asarray(reasons) == ""]
+    cpp = run_vamp_cpp(binary, scene, q, free, max(15, args.repeats))  # loops of a few ms
+    if "error" in cpp:
+        out["vamp_cpp"] = cpp["error"]
+        return out
+    out["vamp_cpp_s_per_config"] = cpp["one_per_call_s_per_config"]
+    out["vamp_cpp_block_s_per_config"] = cpp["block_s_per_config"]
+    out["vamp_cpp_blocks"] = {k: cpp[k] for k in ("blocks", "free_blocks", "rake")}
+    out["vamp_cpp_same_as_binding"] = bool(np.array_equal(cpp["valid"], vamp["valid"]))
+    out["vamp_disagreements_with_coal"] = disagreements(cpp["valid"][:m], hit)
+    gcm_all = disagreements(cpp["valid"], exact)
+    out["vamp_disagreements_with_gcm"] = {k.replace("coal", "gcm"): v for k, v in gcm_all.items()}
+    g = out["gcm_s_per_config"]
+    out["ratio_gcm_rate_over_vamp_one_per_call"] = out["vamp_cpp_s_per_config"] / g
+    out["ratio_gcm_rate_over_vamp_blocks"] = out["vamp_cpp_block_s_per_config"] / g
+    return out
+
+
+def motion_figures(
+    robot: Robot, checker: CollisionChecker, grasp: np.ndarray, pre: np.ndarray, args: Any
+) -> dict[str, Any]:
+    """VAMP's blocks on the approach motions against gcm on the same interpolated rows."""
+    k = min(len(grasp), args.motions)
+    pairs = np.stack([grasp[:k], pre[:k]], axis=1)
+    vamp = run_vamp(args.vamp_python, vamp_scene(checker), pairs[:1, 0], pairs, args.repeats)
+    if isinstance(vamp, str):
+        return {"vamp": vamp}
+    res, lanes = vamp["resolution"], vamp["simd_lanes"]
+    dist = np.linalg.norm((pre[:k] - grasp[:k]).astype(np.float32), axis=1)
+    blocks = np.maximum(np.ceil(dist / lanes * res), 1).astype(int)
+    # the configurations VAMP checks: lanes * blocks per motion, evenly along it
+    rows = [
+        grasp[i] + np.outer(np.arange(1, lanes * b + 1) / (lanes * b), pre[i] - grasp[i])
+        for i, b in enumerate(blocks)
+    ]
+    qs = np.concatenate(rows)
+    dt, reasons = timed(lambda: checker.check(qs, mode="approach"), args.repeats)
+    valid = np.asarray(vamp["motion_valid"])
+    out = {
+        "motions": k,
+        "configurations": len(qs),
+        "vamp_valid_motions": int(np.count_nonzero(valid)),
+        "vamp_s_per_motion": vamp["validate_motion_s_per_call"],
+        # exact when every motion is valid (an invalid one stops at its first bad block)
+        "vamp_s_per_config": vamp["validate_motion_s_per_call"] * k / len(qs),
+        "gcm_approach_s_per_config": dt / len(qs),
+        "gcm_free_configurations": int(np.count_nonzero(np.asarray(reasons) == "")),
+    }
+    out["ratio_gcm_over_vamp_rate"] = out["vamp_s_per_config"] / out["gcm_approach_s_per_config"]
+    return out
+
+
+# --- the report -----------------------------------------------------------------------------
+
+
+def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
+    """The cost model's limits and the stage's fraction of each."""
+    ik_name, t_ik = best_ik(report["ik"])
+    cpp = report["stage_counts"]["checks_per_pose"]
+    stage = report["checks"]["stage"]
+    checks = {"gcm": stage["gcm_s_per_config"]}
+    for key, name in (
+        ("vamp_cpp_s_per_config", "vamp_one_per_call"),
+        ("vamp_cpp_block_s_per_config", "vamp_blocks_of_free"),
+    ):
+        if key in stage:
+            checks[name] = stage[key]
+    best = min(checks, key=checks.__getitem__)
+    limit = 1.0 / (t_ik + cpp * checks[best])
+    limit_gcm = 1.0 / (t_ik + cpp * checks["gcm"])
+    return {
+        "t_ik_s": t_ik,
+        "t_ik_from": ik_name,
+        "checks_per_pose": cpp,
+        "t_check_s": checks,
+        "t_check_from": best,
+        "limit_poses_per_s": limit,
+        "limit_at_gcm_checks_poses_per_s": limit_gcm,
+        "stage_poses_per_s_one_process": stage_rate,
+        "stage_fraction_of_limit": stage_rate / limit,
+        "stage_fraction_of_limit_at_gcm_checks": stage_rate / limit_gcm,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ik-targets", type=int, default=2000)
+    parser.add_argument("--configs", type=int, default=20000)
+    parser.add_argument("--loop-configs", type=int, default=3000, help="per-call loops")
+    parser.add_argument("--motions", type=int, default=2000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--vamp-python", default=os.environ.get("GCM_VAMP_PYTHON", "/work/vampvenv/bin/python")
+    )
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "limit.json")
+    args = parser.parse_args()
+    load_start = os.getloadavg()
+    robot = load_robot("panda")
+    checker = make_checker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
+    report: dict[str, Any] = {"ik": ik_figures(robot, args.ik_targets, args.repeats)}
+    counted = counted_stage(args.configs)
+    report["stage_counts"] = {
+        k: v for k, v in counted.items() if k not in ("configurations", "approach")
+    }
+    report["checks"] = {
+        "front": check_figures(robot, checker, front_configurations(robot, args.configs), args),
+        "stage": check_figures(robot, checker, counted["configurations"], args),
+    }
+    report["approach_blocks"] = motion_figures(robot, checker, *counted["approach"], args)
+    walls = [stage_run(DENSE, "1")["wall_s"] for _ in range(args.repeats)]
+    report["stage_wall_s_runs"] = walls
+    report["model"] = model_figures(report, counted["poses"] / float(np.median(walls)))
+    report["machine"] = {
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "pinocchio": pin.__version__,
+        "vamp_python": args.vamp_python,
+    }
+    report["command"] = " ".join(["python benchmarks/bench_limit.py", *sys.argv[1:]])
+    report["load_average_start"] = load_start
+    report["load_average_end"] = os.getloadavg()
+    report["date"] = time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime())
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    print(json.dumps(report, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark: the reachability stage against its per-core limit (issue 33's cost model).
+"""Benchmark: the reachability stage against its per-core limit.
 
 One run measures, on the Panda, the table and the bottle of
 ``configs/bottle_side.yaml`` (the world of ``bench_collision.py``):
@@ -24,7 +24,7 @@ One run measures, on the Panda, the table and the bottle of
   whole array (its use in the stage) and one configuration per call;
   Pinocchio's loop (``pin.computeCollisions`` over every pair, stop at first:
   coal's exact answer, on the first ``--loop-configs``); and VAMP's Panda
-  checker where built (``benchmarks/vamp/build_vamp.sh``, a venv given by
+  checker where installed (a venv of its own given by
   ``--vamp-python``): through its Python binding (``vamp_py_*``,
   ``benchmarks/vamp/vamp_check.py``: ``validate``, one configuration per call,
   the binding's call cost included) and in C++ (``vamp_cpp_*``,
@@ -338,8 +338,8 @@ def run_vamp(
     exact_collides: np.ndarray | None = None,
 ) -> dict[str, Any] | str:
     """VAMP's figures through its Python binding, from its own venv, or why there are none."""
-    if not Path(python).exists():
-        return f"no VAMP venv at {python} (benchmarks/vamp/build_vamp.sh builds it)"
+    if not python or not Path(python).is_file():
+        return f"no VAMP venv at {python!r} (give --vamp-python: a venv with vamp-planner)"
     with tempfile.TemporaryDirectory() as tmp:
         inp, out = Path(tmp) / "in.npz", Path(tmp) / "out.json"
         np.savez(
@@ -475,7 +475,7 @@ def check_figures(
     out["vamp_py_disagreements_with_coal"] = disagreements(np.asarray(vamp["valid"])[:m], hit)
     binary = Path(args.vamp_python).parent / "vamp_bench"
     if not binary.exists():
-        out["vamp_cpp"] = f"no {binary} (benchmarks/vamp/build_vamp.sh builds it)"
+        out["vamp_cpp"] = f"no {binary} (benchmarks/vamp/vamp_bench.cc compiled beside that python)"
         return out
     free = q[np.asarray(reasons) == ""]
     cpp = run_vamp_cpp(binary, scene, q, free, max(15, args.repeats))  # loops of a few ms
@@ -569,7 +569,7 @@ def main() -> None:
     parser.add_argument("--motions", type=int, default=2000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument(
-        "--vamp-python", default=os.environ.get("GCM_VAMP_PYTHON", "/work/vampvenv/bin/python")
+        "--vamp-python", default=os.environ.get("GCM_VAMP_PYTHON", "")
     )
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "limit.json")
     args = parser.parse_args()

@@ -249,7 +249,7 @@ BENCH_NOTES: dict[str, str] = {
         "smaller run."
     ),
     "limit": (
-        "Issue 33's cost model in one run (Panda, table and bottle): IK per pose (gcm's "
+        "The reachability stage's cost model in one run (Panda, table and bottle): IK per pose (gcm's "
         "default backend; frankik's full IK with q7 sampled and its closed form given q7, "
         "when installed), collision checks per configuration on random `front` "
         "configurations and on a sample of those the reachability stage checks (`stage`): "
@@ -260,8 +260,8 @@ BENCH_NOTES: dict[str, str] = {
         "the stage's counted "
         "checks per pose (check wrapped in the benchmark); and the stage's rate on one process "
         "as a fraction of the limit `1 / (t_ik + checks_per_pose * t_check)` "
-        "(`model.stage_fraction_of_limit`). VAMP is built by `benchmarks/vamp/build_vamp.sh` "
-        "(see the development page)."
+        "(`model.stage_fraction_of_limit`). VAMP runs from a venv of its own, given to the "
+        "benchmark (see the development page)."
     ),
     "collision": (
         "Random configurations of the Panda checked against the table, the bottle and "

@@ -1,6 +1,6 @@
 // VAMP's Panda collision check timed in C++ (no Python binding in the loop).
 //
-// Built by benchmarks/vamp/build_vamp.sh against the headers of the vamp-planner
+// Compiled against the headers of the vamp-planner
 // source package (header-only: vamp/robots/panda.hh) and Eigen; run by
 // benchmarks/bench_limit.py.  Not part of gcm_pipeline.
 //

@@ -2,8 +2,7 @@
 
 Called by ``benchmarks/bench_limit.py`` as
 ``<vamp venv>/bin/python benchmarks/vamp/vamp_check.py IN.npz OUT.json``
-(VAMP is built by ``benchmarks/vamp/build_vamp.sh``; it is no dependency of
-gcm_pipeline and this script imports nothing of it).
+(VAMP is no dependency of gcm_pipeline and this script imports nothing of it).
 
 ``IN.npz`` holds ``robot`` (VAMP's module name, e.g. ``panda``), ``scene``
 (a JSON list of primitives: ``{"cuboid": {center, euler_xyz, half_extents}}``,

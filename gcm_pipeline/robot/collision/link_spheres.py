@@ -18,7 +18,7 @@ exact geometry too). This is the model VAMP's checker hand-writes per robot
   sphere per slab through every vertex and edge crossing of the slab), which
   contains every triangle, and the solid too for a convex piece.
 
-Not wired into the checker (issue 33's first step): :func:`link_spheres`
+Not wired into the checker yet: :func:`link_spheres`
 builds the model, :func:`sphere_counts` reports its size.
 """
 

@@ -568,9 +568,7 @@ def main() -> None:
     parser.add_argument("--loop-configs", type=int, default=3000, help="per-call loops")
     parser.add_argument("--motions", type=int, default=2000)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument(
-        "--vamp-python", default=os.environ.get("GCM_VAMP_PYTHON", "")
-    )
+    parser.add_argument("--vamp-python", default=os.environ.get("GCM_VAMP_PYTHON", ""))
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "limit.json")
     args = parser.parse_args()
     load_start = os.getloadavg()

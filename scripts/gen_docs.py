@@ -249,9 +249,9 @@ BENCH_NOTES: dict[str, str] = {
         "smaller run."
     ),
     "limit": (
-        "The reachability stage's cost model in one run (Panda, table and bottle): IK per pose (gcm's "
-        "default backend; frankik's full IK with q7 sampled and its closed form given q7, "
-        "when installed), collision checks per configuration on random `front` "
+        "The reachability stage's cost model in one run (Panda, table and bottle): IK per "
+        "pose (gcm's default backend; frankik's full IK with q7 sampled and its closed form "
+        "given q7, when installed), collision checks per configuration on random `front` "
         "configurations and on a sample of those the reachability stage checks (`stage`): "
         "gcm, Pinocchio's loop (coal, exact) and VAMP's sphere-model checker through its "
         "binding (`vamp_py_*`) and in C++ (`vamp_cpp_*`: one per call, and blocks of 8 free "

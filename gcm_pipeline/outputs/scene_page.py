@@ -77,48 +77,12 @@ _FPS = 30
 
 
 def scene_layers(info: SceneInfo) -> list[dict[str, Any]]:
-    """The scene's layers: ``info.layers`` when the scene lists them, else derived.
+    """The scene's layers (``info.layers``), each a fresh dict.
 
     Each layer: ``{"path", "group", "label", "color", "count", "visible"}``
-    (``group``: ``reachable``, ``unreachable`` or ``scene``). Derived from
-    ``info.paths`` and ``info.legend``: one layer per grasp class path and
-    per scene path; a layer that holds several classes (all unreachable
-    reasons in one object) lists them under ``classes``.
+    (``group``: ``reachable``, ``unreachable`` or ``scene``).
     """
-    given = getattr(info, "layers", None)
-    if given:
-        return [dict(layer) for layer in given]
-    legend = info.legend or {}
-    unreach = legend.get("unreachable", {}) or {}
-    out: list[dict[str, Any]] = []
-    for path in info.paths:
-        if path == "/grasps/reachable":
-            layer = _layer(path, "reachable", "reachable", None, int(legend.get("reachable", 0)))
-        elif path == "/grasps/unreachable":
-            classes = [
-                {"label": str(r), "color": v.get("color"), "count": int(v.get("count", 0))}
-                for r, v in unreach.items()
-            ]
-            total = sum(c["count"] for c in classes)
-            layer = _layer(path, "unreachable", "unreachable (all reasons)", None, total)
-            layer["classes"] = classes
-        else:
-            layer = _layer(path, "scene", path.strip("/"), None, None)
-        out.append(layer)
-    return out
-
-
-def _layer(
-    path: str, group: str, label: str, color: str | None, count: int | None
-) -> dict[str, Any]:
-    return {
-        "path": path,
-        "group": group,
-        "label": label,
-        "color": color,
-        "count": count,
-        "visible": True,
-    }
+    return [dict(layer) for layer in info.layers]
 
 
 # -- the tour -------------------------------------------------------------------------
@@ -218,23 +182,26 @@ def _pickable(grasps: GraspTable) -> tuple[np.ndarray, int]:
     return np.concatenate([ranked, unreach]).astype(np.int64), len(ranked)
 
 
-def _grasp_layers(layers: list[dict[str, Any]], reach: np.ndarray, reason: np.ndarray) -> list[int]:
-    """Index of the layer that draws each picked grasp (-1: none)."""
+def _grasp_layers(
+    layers: list[dict[str, Any]], legend: dict[str, Any], reach: np.ndarray, reason: np.ndarray
+) -> list[int]:
+    """Index of the layer that draws each picked grasp (-1: none).
+
+    The picks are ordered best first, so the first ``count`` reachable ones are the
+    top band's; an unreachable grasp is in its reason's layer (the legend's ``path``).
+    """
     index = {layer["path"]: i for i, layer in enumerate(layers)}
     top = index.get("/grasps/reachable/top")
     n_top = int(layers[top]["count"] or 0) if top is not None else 0
+    reason_path = {
+        str(r): str(v.get("path", "")) for r, v in (legend.get("unreachable") or {}).items()
+    }
     out = []
     for k, (r, why) in enumerate(zip(reach, reason, strict=True)):
         if r:
-            if top is not None and k < n_top:
-                path = "/grasps/reachable/top"
-            elif "/grasps/reachable/rest" in index:
-                path = "/grasps/reachable/rest"
-            else:
-                path = "/grasps/reachable"
+            path = "/grasps/reachable/top" if k < n_top else "/grasps/reachable/rest"
         else:
-            own = f"/grasps/unreachable/{why}"
-            path = own if own in index else "/grasps/unreachable"
+            path = reason_path.get(str(why), "")
         out.append(index.get(path, -1))
     return out
 
@@ -305,7 +272,7 @@ def page_data(
         "reachable": reach.tolist(),
         "reason": reason.tolist(),
         "position": _b64(pos.reshape(-1, 3), "<f4"),
-        "layer": _grasp_layers(layers, reach, reason),
+        "layer": _grasp_layers(layers, info.legend or {}, reach, reason),
     }
     for name in ("rank", "manipulability", "clearance"):
         if name in grasps:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import html
 import json
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -262,17 +263,19 @@ def render_page(report: StudyReport, scene: StudyScene, data: dict[str, Any]) ->
         if best
         else "no placement finished"
     )
-    return (
-        _PAGE.replace("%TITLE%", _esc(f"study {report.path.name}"))
-        .replace("%HEADER%", _esc(f"Study {report.path.name}") + f" — {best_line}")
-        .replace("%BANNER%", "".join(f"<p class='warn'>{_esc(b)}</p>" for b in banner))
-        .replace("%MAPS%", coverage_svg(report))
-        .replace("%TABLE%", _table(report))
-        .replace("%VIEWERJS%", viewer_js.replace("</script", "<\\/script"))
-        .replace("%COMMANDS%", json.dumps(scene.commands))
-        .replace("%DATA%", json.dumps(data).replace("</", "<\\/"))
-        .replace("%SCRIPT%", _SCRIPT)
-    )
+    parts = {
+        "TITLE": _esc(f"study {report.path.name}"),
+        "HEADER": _esc(f"Study {report.path.name}") + f" — {best_line}",
+        "BANNER": "".join(f"<p class='warn'>{_esc(b)}</p>" for b in banner),
+        "MAPS": coverage_svg(report),
+        "TABLE": _table(report),
+        "VIEWERJS": viewer_js.replace("</script", "<\\/script"),
+        "COMMANDS": json.dumps(scene.commands),
+        "DATA": json.dumps(data).replace("</", "<\\/"),
+        "SCRIPT": _SCRIPT,
+    }
+    # one pass: a name in the study (a part of a value) never becomes a placeholder
+    return re.sub(r"%([A-Z]+)%", lambda m: parts.get(m.group(1), m.group(0)), _PAGE)
 
 
 _PAGE = """<!DOCTYPE html>
@@ -321,6 +324,10 @@ _SCRIPT = r"""
 var D = JSON.parse(document.getElementById("study-data").textContent);
 var byId = new Map(D.placements.map(p => [p.id, p]));
 var viewer = null, lastObj = null;
+function esc(s) {  // text into HTML: names and messages come from files
+  return String(s).replace(/[&<>"']/g, c => ({"&": "&amp;", "<": "&lt;", ">": "&gt;",
+    '"': "&quot;", "'": "&#39;"})[c]);
+}
 function b64bytes(s) {
   var b = atob(s), u = new Uint8Array(b.length);
   for (var i = 0; i < b.length; i++) u[i] = b.charCodeAt(i);
@@ -384,20 +391,20 @@ function selectPlacement(pid) {
   document.querySelectorAll(".sel").forEach(e => e.classList.remove("sel"));
   document.querySelectorAll('[data-pid="' + pid + '"]').forEach(e => e.classList.add("sel"));
   document.body.dataset.selected = String(pid);
-  var info = "placement #" + pid + " (" + p.object + ")";
+  var info = "placement #" + pid + " (" + esc(p.object) + ")";
   var msg = [];
-  if (p.missing) msg.push(p.missing + ": not shown");
-  else if (p.error) msg.push("failed: " + p.error);
+  if (p.missing) msg.push(esc(p.missing) + ": not shown");
+  else if (p.error) msg.push("failed: " + esc(p.error));
   else if (viewer && p.status) {
     msg = showPlacement(p);
     info += ": coverage " + (p.coverage || 0).toFixed(3) + ", " + p.reachable + " / " +
             p.densified + " reachable";
     var c = counts(p);
     info += "<br>" + D.classes.map((k, i) => c[i] ? '<span class="swatch" style="background:rgb(' +
-      k.rgb.map(x => Math.round(255 * x)).join(",") + ')"></span>' + k.name + " " + c[i] : "")
+      k.rgb.map(x => Math.round(255 * x)).join(",") + ')"></span>' + esc(k.name) + " " + c[i] : "")
       .join("");
     window.studyShown = {id: pid, reachable: c[0]};
-  } else if (D.scene) msg.push(D.scene);
+  } else if (D.scene) msg.push(esc(D.scene));
   document.getElementById("info").innerHTML = info + (msg.length ? "<br>" + msg.join("; ") : "");
 }
 document.querySelectorAll("[data-pid]").forEach(e =>

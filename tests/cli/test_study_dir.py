@@ -85,7 +85,16 @@ def test_show_prints_the_study_summary_and_where_best_is(cli, study_dir):
         in lines
     )
     assert f"coverage map: {study_dir / 'coverage.png'}" in lines
-    assert f"study report: missing ({study_dir / 'study.html'})" in lines
+    # the study wrote its report; without it, show says it is missing
+    assert f"study report: {(study_dir / 'study.html').as_uri()}" in lines
+    report = study_dir / "study.html"
+    report.rename(study_dir / "study.html.away")
+    try:
+        code, text, err = cli("show", study_dir)
+    finally:
+        (study_dir / "study.html.away").rename(report)
+    assert code == 0, err
+    assert f"study report: missing ({report})" in text.splitlines()
     # and the run it points to is one gcm show reads
     code, text, err = cli("show", study_dir / "best", "--top", "1")
     assert code == 0 and text.startswith(f"run {study_dir / 'best'}"), err

@@ -133,9 +133,17 @@ def test_a_toggle_hides_exactly_one_layer(tmp_path, page_file):
             .object.visible])))()"""
     with open_page(tmp_path, html) as page:
         before = page.eval(js_visible)
-        assert set(before) >= {"/grasps/reachable", "/grasps/unreachable", "/robot"}
-        assert all(before.values())
-        target = "/grasps/unreachable"
+        assert set(before) >= {
+            "/grasps/reachable/top",
+            "/grasps/reachable/rest",
+            "/grasps/unreachable/no_ik",
+            "/robot",
+        }
+        assert {k: v for k, v in before.items() if k != "/envelope"} == dict.fromkeys(
+            set(before) - {"/envelope"}, True
+        )
+        assert before["/envelope"] is False  # the reach envelope starts hidden
+        target = "/grasps/unreachable/no_ik"
         box = page.eval(
             f"""(() => {{ const r = document.querySelector('input[data-path="{target}"]')
                 .getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; }})()"""
@@ -402,7 +410,9 @@ def test_the_pages_forward_kinematics_is_pinocchios(tmp_path, panda):
     for label, robot in robots.items():
         out = tmp_path / label
         out.mkdir(exist_ok=True)
-        write_scene_html(out / "scene.html", GraspTable(), None, robot, SceneOptions())
+        # the hand-built model is no Robot (no limits or fk): no reach envelope for it
+        options = SceneOptions(envelope=label != "odd")
+        write_scene_html(out / "scene.html", GraspTable(), None, robot, options)
         lim = np.full(robot.model.nq, 2.0)
         qs = [pin.randomConfiguration(robot.model, -lim, lim) for _ in range(3)]
         poser = RobotPoser(robot)
@@ -453,39 +463,24 @@ def test_the_live_viewer_serves_the_page_with_its_panel(tmp_path, panda):
         np.testing.assert_allclose(shown[path], ROOT @ t, atol=1e-5, err_msg=path)
 
 
-def test_layers_come_from_the_scene_or_are_derived(page_file):
-    """``info.layers`` (per-reason paths, rank bands) is used as given; without it the layers
-    are derived from ``info.paths`` and the legend, and each picked grasp names its layer."""
-    from types import SimpleNamespace
-
+def test_layers_come_from_the_scene_and_each_grasp_names_its_layer(page_file):
+    """``info.layers`` (per-reason paths, rank bands) is used as given, and each pickable
+    grasp names the layer it is drawn in (a hidden layer's grasps are not picked)."""
     from gcm_pipeline.outputs.scene_page import page_data, scene_layers
 
     grasps, info, _ = page_file
-    derived = scene_layers(info)
-    paths = [layer["path"] for layer in derived]
-    assert paths == list(info.paths)
-    by_path = {layer["path"]: layer for layer in derived}
-    assert by_path["/grasps/reachable"]["count"] == 120
-    assert by_path["/grasps/unreachable"]["classes"] == [
-        {"label": "no_ik", "color": info.legend["unreachable"]["no_ik"]["color"], "count": 30}
-    ]
-    given = [
-        {"path": "/grasps/reachable/top", "group": "reachable", "label": "top 5",
-         "color": None, "count": 5, "visible": True},
-        {"path": "/grasps/reachable/rest", "group": "reachable", "label": "rest",
-         "color": None, "count": 115, "visible": True},
-        {"path": "/grasps/unreachable/no_ik", "group": "unreachable", "label": "no_ik",
-         "color": "#999999", "count": 30, "visible": False},
-        {"path": "/robot", "group": "scene", "label": "robot", "color": None, "count": None,
-         "visible": True},
-    ]  # fmt: skip
-    scene = SimpleNamespace(**{**info.to_dict(), "layers": given})
-    assert scene_layers(scene) == given
-    data = page_data(grasps, None, SceneOptions(top_k=5), scene)
-    layer = data["grasps"]["layer"]
+    assert scene_layers(info) == info.layers
+    by_path = {layer["path"]: layer for layer in info.layers}
+    assert by_path["/grasps/reachable/top"]["count"] == 5  # the page's top_k
+    assert by_path["/grasps/reachable/rest"]["count"] == 115
+    assert by_path["/grasps/unreachable/no_ik"]["count"] == 30
+    data = page_data(grasps, None, SceneOptions(top_k=5), info)
+    paths = [layer["path"] for layer in data["layers"]]
+    layer = [paths[i] for i in data["grasps"]["layer"]]
     reach = data["grasps"]["reachable"]
-    assert layer[:5] == [0] * 5 and set(layer[5:120]) == {1} and reach[:120] == [True] * 120
-    assert set(layer[120:]) == {2} and data["top_k"] == 5 and data["kinematics"] is None
+    assert layer[:5] == ["/grasps/reachable/top"] * 5 and reach[:120] == [True] * 120
+    assert set(layer[5:120]) == {"/grasps/reachable/rest"}
+    assert set(layer[120:]) == {"/grasps/unreachable/no_ik"}
 
 
 def test_joint_types_the_page_cannot_move_are_posed_from_placements(tmp_path):
@@ -513,7 +508,7 @@ def test_joint_types_the_page_cannot_move_are_posed_from_placements(tmp_path):
         }
     )
     html = tmp_path / "scene.html"
-    write_scene_html(html, grasps, None, robot, SceneOptions(top_k=3))
+    write_scene_html(html, grasps, None, robot, SceneOptions(top_k=3, envelope=False))
     with open_page(tmp_path, html) as page:
         assert page.eval("gcm.data.kinematics.unsupported") == ["JointModelSpherical"]
         hint = page.eval("document.getElementById('gcm-hint').textContent")

@@ -372,8 +372,7 @@
   }
 
   function layerRow(layer) {
-    var aggregate = !!layer.classes;
-    var cls = "gcm-layer" + (aggregate || layer.group === "scene" ? "" : " gcm-class");
+    var cls = "gcm-layer" + (layer.group === "scene" ? "" : " gcm-class");
     var row = el("label", {
       class: cls,
       "data-path": layer.path,
@@ -392,16 +391,6 @@
     row.appendChild(sw);
     row.appendChild(el("span", { class: "gcm-label" }, layer.label));
     if (layer.count !== null && layer.count !== undefined) row.appendChild(el("span", { class: "gcm-count" }, layer.count));
-    return row;
-  }
-
-  function classRow(c) {
-    var row = el("div", { class: "gcm-class gcm-sub", "data-group": "unreachable", "data-class": c.label, "data-count": c.count });
-    var sw = el("span", { class: "gcm-swatch" });
-    if (c.color) sw.style.background = c.color;
-    row.appendChild(sw);
-    row.appendChild(el("span", { class: "gcm-label" }, c.label));
-    row.appendChild(el("span", { class: "gcm-count" }, c.count));
     return row;
   }
 
@@ -426,10 +415,7 @@
       var layers = D.layers.filter(function (l) { return l.group === g[0]; });
       if (!layers.length) return;
       sec.appendChild(el("h2", null, g[1]));
-      layers.forEach(function (l) {
-        sec.appendChild(layerRow(l));
-        (l.classes || []).forEach(function (c) { sec.appendChild(classRow(c)); });
-      });
+      layers.forEach(function (l) { sec.appendChild(layerRow(l)); });
       if (g[0] === "reachable") sec.appendChild(colorbar());
     });
     panel.appendChild(sec);

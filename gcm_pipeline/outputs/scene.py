@@ -9,9 +9,9 @@ path                               content
 ``/robot``                         the robot's visual geometry (every object of
                                    its visual model: meshes read by trimesh and
                                    simplified, primitives), posed at the
-                                   top-ranked solution, and an animation stepping
-                                   through the top-k solutions (blending on one
-                                   IK branch, cutting across them)
+                                   top-ranked solution, and a tour of the top-k
+                                   (each grasp's approach, the grasp, its
+                                   retreat; a cut to the next grasp)
 ``/object``                        the grasped object (primitive or mesh)
 ``/object_reachability``           the object painted by reachability: per
                                    surface point the share of nearby grasps
@@ -137,8 +137,9 @@ class SceneOptions:
         base_pose: The robot's base in the world (4, 4) [m].
         top_k: Best-ranked solutions in the robot animation, and the top band
             of the reachable grasps (``/grasps/reachable/top``).
-        blend_limit: Largest joint jump [rad] the animation blends across (one
-            IK branch; the run's ``continuity.threshold``); beyond it, it cuts.
+        blend_limit: Largest joint jump [rad] of an approach or retreat the tour
+            shows as a motion (one IK branch; the run's ``continuity.threshold``);
+            beyond it, the tour cuts.
         object: The grasped object, or None.
         table: The support table, or None.
         obstacles: The other obstacles of the environment.
@@ -209,8 +210,8 @@ class SceneInfo:
         camera: ``{"position": [x, y, z], "target": [x, y, z]}`` in the world [m].
         top_k: Number of solutions in the robot animation.
         animation_s: Duration of the robot animation [s].
-        animation_cuts: Steps of the animation that cut to the next solution
-            (another IK branch) instead of blending to it.
+        animation_cuts: Cuts of the tour (to the next grasp, or over an approach
+            or retreat that leaves the IK branch).
         cloud_points: Points drawn of each point cloud, by name (subsampled).
         contacts: Contact points drawn.
         layers: Every toggleable path drawn, in legend order, each

@@ -14,18 +14,9 @@ from pathlib import Path
 import pytest
 import yaml
 from helpers import BOTTLE, assert_one_line_error
+from helpers import SMALL_STUDY as SMALL
 
 from gcm_pipeline.study import Study
-
-#: A small bottle: 2 rings of 9 candidates, 45 grasps.
-SMALL = [
-    "candidates.count=18",
-    "manifold.max_edge_length=0.15",
-    "densify.subdivisions=2",
-    "approach.steps=4",
-    "publish.html=false",
-    "publish.plots=false",
-]
 
 
 @pytest.fixture(scope="module")

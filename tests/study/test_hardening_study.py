@@ -25,21 +25,12 @@ import numpy as np
 import pytest
 import yaml
 from helpers import BOTTLE, QUICK, ROOT, assert_one_line_error
+from helpers import SMALL_STUDY as SMALL
 
 from gcm_pipeline import interrupts
 from gcm_pipeline.cli import main
 from gcm_pipeline.study import Study
 from gcm_pipeline.study.runner import EngineError, probe_address
-
-#: A small bottle: 45 grasps, about 0.4 s per placement (as in test_study.py).
-SMALL = [
-    "candidates.count=18",
-    "manifold.max_edge_length=0.15",
-    "densify.subdivisions=2",
-    "approach.steps=4",
-    "publish.html=false",
-    "publish.plots=false",
-]
 
 
 def _study_file(tmp_path: Path, sweep: dict | None = None, **extra) -> Path:

@@ -19,19 +19,11 @@ import pytest
 import yaml
 from cdp import Page
 from helpers import BOTTLE, ROOT, assert_one_line_error
+from helpers import SMALL_STUDY as SMALL
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.study import Study
 from gcm_pipeline.study.report_scene import pose_matrices
-
-SMALL = [
-    "candidates.count=18",
-    "manifold.max_edge_length=0.15",
-    "densify.subdivisions=2",
-    "approach.steps=4",
-    "publish.html=false",
-    "publish.plots=false",
-]
 
 
 def _run(folder: Path, sweep: dict) -> Path:

@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import yaml
 from helpers import BOTTLE, ROOT, assert_one_line_error
+from helpers import SMALL_STUDY as SMALL
 
 from gcm_pipeline.cli import main
 from gcm_pipeline.config import Config, load_config
@@ -41,15 +42,6 @@ from gcm_pipeline.study.targets import format_value
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 
 FROM_FILE = ROOT / "configs" / "from_file.yaml"
-#: A small bottle: 2 rings of 9 candidates, 45 grasps (about 0.4 s per placement).
-SMALL = [
-    "candidates.count=18",
-    "manifold.max_edge_length=0.15",
-    "densify.subdivisions=2",
-    "approach.steps=4",
-    "publish.html=false",
-    "publish.plots=false",
-]
 
 
 def _study_file(tmp_path: Path, data: dict, name: str = "study.yaml") -> Path:

@@ -15,16 +15,7 @@ import time
 
 import yaml
 from helpers import BOTTLE, gcm_env
-
-#: A small bottle: 2 rings of 9 candidates, 45 grasps (about 0.4 s per placement).
-SMALL = [
-    "candidates.count=18",
-    "manifold.max_edge_length=0.15",
-    "densify.subdivisions=2",
-    "approach.steps=4",
-    "publish.html=false",
-    "publish.plots=false",
-]
+from helpers import SMALL_STUDY as SMALL
 
 PROGRESS = re.compile(r"study: (\d+)/(\d+) placements, ")
 

@@ -216,3 +216,12 @@ def test_a_folder_with_a_foreign_marker_is_not_a_study(cli, tmp_path):
     (tmp_path / "x" / ".gcm.json").write_text('{"kind": "study"}')  # not gcm_pipeline's marker
     code, _, err = cli("show", tmp_path / "x")
     assert_one_line_error(code, err, "not a run directory")
+
+
+def test_show_on_a_relative_study_path_prints_the_reports_address(cli, copy, monkeypatch):
+    code, _, err = cli("plot", copy)
+    assert code == 0, err
+    monkeypatch.chdir(copy.parent)
+    code, text, err = cli("show", copy.name)
+    assert code == 0, err
+    assert f"study report: {(copy / 'study.html').resolve().as_uri()}" in text.splitlines()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import html
 import json
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -262,17 +263,24 @@ def render_page(report: StudyReport, scene: StudyScene, data: dict[str, Any]) ->
         if best
         else "no placement finished"
     )
-    return (
-        _PAGE.replace("%TITLE%", _esc(f"study {report.path.name}"))
-        .replace("%HEADER%", _esc(f"Study {report.path.name}") + f" — {best_line}")
-        .replace("%BANNER%", "".join(f"<p class='warn'>{_esc(b)}</p>" for b in banner))
-        .replace("%MAPS%", coverage_svg(report))
-        .replace("%TABLE%", _table(report))
-        .replace("%VIEWERJS%", viewer_js.replace("</script", "<\\/script"))
-        .replace("%COMMANDS%", json.dumps(scene.commands))
-        .replace("%DATA%", json.dumps(data).replace("</", "<\\/"))
-        .replace("%SCRIPT%", _SCRIPT)
-    )
+    fields = {
+        "TITLE": _esc(f"study {report.path.name}"),
+        "HEADER": _esc(f"Study {report.path.name}") + f" — {best_line}",
+        "BANNER": "".join(f"<p class='warn'>{_esc(b)}</p>" for b in banner),
+        "MAPS": coverage_svg(report),
+        "TABLE": _table(report),
+        "VIEWERJS": viewer_js.replace("</script", "<\\/script"),
+        "COMMANDS": _script_json(scene.commands),
+        "DATA": _script_json(data),
+        "SCRIPT": _SCRIPT,
+    }
+    # one pass: a field's text (a directory or object name) is never searched for placeholders
+    return re.sub(r"%([A-Z]+)%", lambda m: fields.get(m.group(1), m.group(0)), _PAGE)
+
+
+def _script_json(value: Any) -> str:
+    """JSON for inside a <script>: every '<' escaped, so no text can close or comment it."""
+    return json.dumps(value).replace("<", "\\u003c")
 
 
 _PAGE = """<!DOCTYPE html>
@@ -378,13 +386,16 @@ function showPlacement(p) {
   viewer.set_dirty();
   return msg;
 }
+function esc(s) {
+  return String(s).replace(/[&<>"']/g, c => "&#" + c.charCodeAt(0) + ";");
+}
 function selectPlacement(pid) {
   var p = byId.get(pid);
   if (!p) return;
   document.querySelectorAll(".sel").forEach(e => e.classList.remove("sel"));
   document.querySelectorAll('[data-pid="' + pid + '"]').forEach(e => e.classList.add("sel"));
   document.body.dataset.selected = String(pid);
-  var info = "placement #" + pid + " (" + p.object + ")";
+  var info = "placement #" + pid + " (" + esc(p.object) + ")";
   var msg = [];
   if (p.missing) msg.push(p.missing + ": not shown");
   else if (p.error) msg.push("failed: " + p.error);
@@ -394,11 +405,12 @@ function selectPlacement(pid) {
             p.densified + " reachable";
     var c = counts(p);
     info += "<br>" + D.classes.map((k, i) => c[i] ? '<span class="swatch" style="background:rgb(' +
-      k.rgb.map(x => Math.round(255 * x)).join(",") + ')"></span>' + k.name + " " + c[i] : "")
+      k.rgb.map(x => Math.round(255 * x)).join(",") + ')"></span>' + esc(k.name) + " " + c[i] : "")
       .join("");
     window.studyShown = {id: pid, reachable: c[0]};
   } else if (D.scene) msg.push(D.scene);
-  document.getElementById("info").innerHTML = info + (msg.length ? "<br>" + msg.join("; ") : "");
+  var note = msg.length ? "<br>" + esc(msg.join("; ")) : "";
+  document.getElementById("info").innerHTML = info + note;
 }
 document.querySelectorAll("[data-pid]").forEach(e =>
   e.addEventListener("click", () => selectPlacement(Number(e.dataset.pid))));

@@ -85,7 +85,7 @@ def test_show_prints_the_study_summary_and_where_best_is(cli, study_dir):
         in lines
     )
     assert f"coverage map: {study_dir / 'coverage.png'}" in lines
-    assert f"study report: missing ({study_dir / 'study.html'})" in lines
+    assert f"study report: {(study_dir / 'study.html').as_uri()}" in lines
     # and the run it points to is one gcm show reads
     code, text, err = cli("show", study_dir / "best", "--top", "1")
     assert code == 0 and text.startswith(f"run {study_dir / 'best'}"), err

@@ -208,6 +208,7 @@ def read_overview(path: str | os.PathLike[str]) -> StudyOverview:
     parts = sum(1 for p in (study / "placements").glob("[0-9]*.npz") if p.stem.isdigit())
     summary = _read_summary(study / "summary.json")
     rows = _read_rows(study / "placements.csv")
+    _check_best(summary, rows, study)
     best = study / "best"
     report, png = study / "study.html", study / "coverage.png"
     return StudyOverview(
@@ -219,6 +220,22 @@ def read_overview(path: str | os.PathLike[str]) -> StudyOverview:
         report if report.is_file() else None,
         png if png.is_file() else None,
     )
+
+
+def _check_best(summary: StudySummary, rows: list[PlacementRow], study: Path) -> None:
+    """``summary.json``'s best placement is a row of ``placements.csv``, with its coverage."""
+    b = summary.best
+    if b is None:
+        return
+    row = next((r for r in rows if r.id == b.id), None)
+    where = f"{study / 'summary.json'}: best placement #{b.id}"
+    if row is None:
+        raise InputError(f"{where} is not in placements.csv; run the study again into {study}")
+    if row.coverage is None or abs(row.coverage - b.coverage) > 1e-9:
+        raise InputError(
+            f"{where} has coverage {b.coverage:g} but {row.coverage} in placements.csv; "
+            f"run the study again into {study}"
+        )
 
 
 def _read_text(path: Path, what: str) -> str:

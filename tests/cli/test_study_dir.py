@@ -175,8 +175,13 @@ def test_without_summary_show_is_one_line(cli, copy):
         (lambda s: s["engine"].update(workers=-1), "engine.workers"),
         (lambda s: s.update(timings_s={"total": "slow"}), "timings_s.total"),
         (lambda s: s.pop("complete"), "complete"),
+        (lambda s: s["best"].update(id=999), "best placement #999 is not in placements.csv"),
+        (lambda s: s["best"].update(coverage=0.0123), "has coverage 0.0123 but "),
     ],
-    ids=["count-type", "count-sum", "coverage", "command", "workers", "timings", "complete"],
+    ids=[
+        *("count-type", "count-sum", "coverage", "command", "workers", "timings", "complete"),
+        *("best-id", "best-coverage"),
+    ],
 )
 def test_a_tampered_summary_is_one_line_naming_the_key(cli, copy, change, fragment):
     path = copy / "summary.json"

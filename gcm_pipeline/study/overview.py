@@ -5,7 +5,8 @@ and checks it before anything is printed: the ``.gcm.json`` marker of kind
 ``study``, ``placements/`` (the record of finished placements),
 ``summary.json`` (validated by :class:`StudySummary`: a hand-edited or
 damaged file is one line naming the key) and ``placements.csv`` (the
-coverage of every placement, for the median and the top placements). It
+coverage of every placement, for the median and the top placements; the
+summary's best placement must be one of its rows, with that row's coverage). It
 also says where the best placement's run (``best/``), ``study.html`` and
 ``coverage.png`` are, and which of them are missing.
 

@@ -283,6 +283,20 @@ def _number(path: Path, line: int, row: dict[str, str], key: str) -> float | Non
     return value
 
 
+def _count(path: Path, line: int, row: dict[str, str], key: str) -> int | None:
+    """A count cell: empty, or a whole number >= 0 (not 1e999, not -3, not 2.5)."""
+    value = _number(path, line, row, key)
+    if value is None:
+        return None
+    if not math.isfinite(value) or value < 0 or value != int(value):
+        raise InputError(
+            f"{path}: line {line}: {key} is not a whole number >= 0: {clip(row[key])}",
+            path=path,
+            row=line,
+        )
+    return int(value)
+
+
 def _read_rows(path: Path) -> list[PlacementRow]:
     text = _read_text(path, "the study stopped before it wrote it; run the study again")
     reader = csv.DictReader(text.splitlines())
@@ -300,7 +314,7 @@ def _read_rows(path: Path) -> list[PlacementRow]:
         cov = None if row["error"] else _number(path, line, row, "coverage")
         if cov is not None and not 0.0 <= cov <= 1.0:
             raise InputError(f"{path}: line {line}: coverage {cov!r} is not within [0, 1]")
-        reach, dense = (_number(path, line, row, k) for k in ("reachable", "densified"))
+        reach, dense = (_count(path, line, row, k) for k in ("reachable", "densified"))
         pose = {k: v for k in POSE_COLUMNS if (v := _number(path, line, row, k)) is not None}
         rows.append(
             PlacementRow(
@@ -308,8 +322,8 @@ def _read_rows(path: Path) -> list[PlacementRow]:
                 row["object"] or "",
                 pose,
                 cov,
-                None if reach is None else int(reach),
-                None if dense is None else int(dense),
+                reach,
+                dense,
             )
         )
     return sorted(rows, key=lambda r: r.id)

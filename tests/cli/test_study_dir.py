@@ -203,17 +203,27 @@ def test_a_summary_that_is_not_a_studys_is_one_line(cli, copy, text, fragment):
     assert_one_line_error(code, err, str(copy / "summary.json"), fragment)
 
 
-def test_a_tampered_placements_csv_is_one_line_naming_the_line(cli, copy):
+@pytest.mark.parametrize(
+    ("key", "value", "fragment"),
+    [
+        ("coverage", "lots", "coverage is not a number: 'lots'"),
+        ("reachable", "1e999", "reachable is not a whole number >= 0: '1e999'"),
+        ("densified", "-3", "densified is not a whole number >= 0: '-3'"),
+        ("reachable", "2.5", "reachable is not a whole number >= 0: '2.5'"),
+    ],
+    ids=["coverage-text", "reachable-inf", "densified-negative", "reachable-fraction"],
+)
+def test_a_tampered_placements_csv_is_one_line_naming_the_line(cli, copy, key, value, fragment):
     path = copy / "placements.csv"
     with open(path) as f:
         rows = list(csv.DictReader(f))
-    rows[1]["coverage"] = "lots"
+    rows[1][key] = value
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]), lineterminator="\n")
         writer.writeheader()
         writer.writerows(rows)
     code, _, err = cli("show", copy)
-    assert_one_line_error(code, err, f"{path}: line 3: coverage is not a number: 'lots'")
+    assert_one_line_error(code, err, f"{path}: line 3: {fragment}")
 
 
 def test_a_folder_with_a_foreign_marker_is_not_a_study(cli, tmp_path):

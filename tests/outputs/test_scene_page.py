@@ -402,7 +402,9 @@ def test_the_pages_forward_kinematics_is_pinocchios(tmp_path, panda):
     for label, robot in robots.items():
         out = tmp_path / label
         out.mkdir(exist_ok=True)
-        write_scene_html(out / "scene.html", GraspTable(), None, robot, SceneOptions())
+        write_scene_html(
+            out / "scene.html", GraspTable(), None, robot, SceneOptions(envelope=False)
+        )
         lim = np.full(robot.model.nq, 2.0)
         qs = [pin.randomConfiguration(robot.model, -lim, lim) for _ in range(3)]
         poser = RobotPoser(robot)
@@ -513,7 +515,7 @@ def test_joint_types_the_page_cannot_move_are_posed_from_placements(tmp_path):
         }
     )
     html = tmp_path / "scene.html"
-    write_scene_html(html, grasps, None, robot, SceneOptions(top_k=3))
+    write_scene_html(html, grasps, None, robot, SceneOptions(top_k=3, envelope=False))
     with open_page(tmp_path, html) as page:
         assert page.eval("gcm.data.kinematics.unsupported") == ["JointModelSpherical"]
         hint = page.eval("document.getElementById('gcm-hint').textContent")

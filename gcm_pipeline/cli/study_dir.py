@@ -123,14 +123,14 @@ def _where_lines(o: Any) -> None:
         print(f"  look at it  gcm show {o.best_run}  (also gcm view, query, export on it)")
         scene = o.best_run / "scene.html"
         if scene.is_file():
-            print(f"  its scene   {scene.as_uri()}")
+            print(f"  its scene   {scene.resolve().as_uri()}")
     elif o.summary.best is not None:
         print(
             f"best placement's run: missing ({o.path / 'best'}): the study did not finish or "
             f"ran with --no-best; {o.resume_command()} writes it"
         )
     if o.report is not None:
-        print(f"study report: {o.report.as_uri()}")
+        print(f"study report: {o.report.resolve().as_uri()}")
     else:
         print(f"study report: missing ({o.path / 'study.html'})")
     if o.coverage_png is not None:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import umsgpack
 
-from gcm_pipeline.errors import PublishError
+from gcm_pipeline.errors import OutputError, PublishError
 from gcm_pipeline.outputs.meshcat_lib import load_meshcat
 from gcm_pipeline.outputs.plots import write_plots
 from gcm_pipeline.outputs.robot_view import ROT_X90, RobotPoser
@@ -31,6 +31,7 @@ from gcm_pipeline.outputs.scene import (
 )
 from gcm_pipeline.outputs.scene_page import data_script, page_assets, page_data, set_tour
 from gcm_pipeline.robot.model import Robot
+from gcm_pipeline.rundir.transaction import atomic_file
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -268,11 +269,23 @@ def write_scene_html(
     robot: Robot | None,
     options: SceneOptions,
 ) -> SceneInfo:
-    """Write the self-contained HTML scene to ``path`` (see :func:`render_scene_html`)."""
+    """Write the self-contained HTML scene to ``path`` (see :func:`render_scene_html`).
+
+    The page is written to a temporary sibling and renamed: a full disk or
+    Ctrl-C leaves the old file (or none), never half a page. A symbolic link
+    is written through.
+    """
     html, info = render_scene_html(grasps, manifold, robot, options)
     path = Path(path)
+    if path.is_symlink():
+        path = path.resolve()
+    if path.exists() and not path.is_file():  # a directory, /dev/null: a rename would replace it
+        raise PublishError(f"cannot write scene {str(path)!r}: it is not a regular file")
     try:
-        path.write_text(html, encoding="utf-8")
+        with atomic_file(path) as tmp:
+            tmp.write_text(html, encoding="utf-8")
+    except OutputError as exc:
+        raise PublishError(str(exc)) from exc
     except OSError as exc:
         raise PublishError(f"cannot write scene {str(path)!r}: {exc}") from exc
     return info

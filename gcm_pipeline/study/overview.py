@@ -5,7 +5,8 @@ and checks it before anything is printed: the ``.gcm.json`` marker of kind
 ``study``, ``placements/`` (the record of finished placements),
 ``summary.json`` (validated by :class:`StudySummary`: a hand-edited or
 damaged file is one line naming the key) and ``placements.csv`` (the
-coverage of every placement, for the median and the top placements). It
+coverage of every placement, for the median and the top placements; the
+summary's best placement must be one of its rows, with that row's coverage). It
 also says where the best placement's run (``best/``), ``study.html`` and
 ``coverage.png`` are, and which of them are missing.
 
@@ -208,6 +209,7 @@ def read_overview(path: str | os.PathLike[str]) -> StudyOverview:
     parts = sum(1 for p in (study / "placements").glob("[0-9]*.npz") if p.stem.isdigit())
     summary = _read_summary(study / "summary.json")
     rows = _read_rows(study / "placements.csv")
+    _check_best(summary, rows, study)
     best = study / "best"
     report, png = study / "study.html", study / "coverage.png"
     return StudyOverview(
@@ -219,6 +221,22 @@ def read_overview(path: str | os.PathLike[str]) -> StudyOverview:
         report if report.is_file() else None,
         png if png.is_file() else None,
     )
+
+
+def _check_best(summary: StudySummary, rows: list[PlacementRow], study: Path) -> None:
+    """``summary.json``'s best placement is a row of ``placements.csv``, with its coverage."""
+    b = summary.best
+    if b is None:
+        return
+    row = next((r for r in rows if r.id == b.id), None)
+    where = f"{study / 'summary.json'}: best placement #{b.id}"
+    if row is None:
+        raise InputError(f"{where} is not in placements.csv; run the study again into {study}")
+    if row.coverage is None or abs(row.coverage - b.coverage) > 1e-9:
+        raise InputError(
+            f"{where} has coverage {b.coverage:g} but {row.coverage} in placements.csv; "
+            f"run the study again into {study}"
+        )
 
 
 def _read_text(path: Path, what: str) -> str:
@@ -265,6 +283,20 @@ def _number(path: Path, line: int, row: dict[str, str], key: str) -> float | Non
     return value
 
 
+def _count(path: Path, line: int, row: dict[str, str], key: str) -> int | None:
+    """A count cell: empty, or a whole number >= 0 (not 1e999, not -3, not 2.5)."""
+    value = _number(path, line, row, key)
+    if value is None:
+        return None
+    if not math.isfinite(value) or value < 0 or value != int(value):
+        raise InputError(
+            f"{path}: line {line}: {key} is not a whole number >= 0: {clip(row[key])}",
+            path=path,
+            row=line,
+        )
+    return int(value)
+
+
 def _read_rows(path: Path) -> list[PlacementRow]:
     text = _read_text(path, "the study stopped before it wrote it; run the study again")
     reader = csv.DictReader(text.splitlines())
@@ -282,7 +314,7 @@ def _read_rows(path: Path) -> list[PlacementRow]:
         cov = None if row["error"] else _number(path, line, row, "coverage")
         if cov is not None and not 0.0 <= cov <= 1.0:
             raise InputError(f"{path}: line {line}: coverage {cov!r} is not within [0, 1]")
-        reach, dense = (_number(path, line, row, k) for k in ("reachable", "densified"))
+        reach, dense = (_count(path, line, row, k) for k in ("reachable", "densified"))
         pose = {k: v for k in POSE_COLUMNS if (v := _number(path, line, row, k)) is not None}
         rows.append(
             PlacementRow(
@@ -290,8 +322,8 @@ def _read_rows(path: Path) -> list[PlacementRow]:
                 row["object"] or "",
                 pose,
                 cov,
-                None if reach is None else int(reach),
-                None if dense is None else int(dense),
+                reach,
+                dense,
             )
         )
     return sorted(rows, key=lambda r: r.id)

@@ -263,19 +263,24 @@ def render_page(report: StudyReport, scene: StudyScene, data: dict[str, Any]) ->
         if best
         else "no placement finished"
     )
-    parts = {
+    fields = {
         "TITLE": _esc(f"study {report.path.name}"),
         "HEADER": _esc(f"Study {report.path.name}") + f" — {best_line}",
         "BANNER": "".join(f"<p class='warn'>{_esc(b)}</p>" for b in banner),
         "MAPS": coverage_svg(report),
         "TABLE": _table(report),
         "VIEWERJS": viewer_js.replace("</script", "<\\/script"),
-        "COMMANDS": json.dumps(scene.commands),
-        "DATA": json.dumps(data).replace("</", "<\\/"),
+        "COMMANDS": _script_json(scene.commands),
+        "DATA": _script_json(data),
         "SCRIPT": _SCRIPT,
     }
-    # one pass: a name in the study (a part of a value) never becomes a placeholder
-    return re.sub(r"%([A-Z]+)%", lambda m: parts.get(m.group(1), m.group(0)), _PAGE)
+    # one pass: a field's text (a directory or object name) is never searched for placeholders
+    return re.sub(r"%([A-Z]+)%", lambda m: fields.get(m.group(1), m.group(0)), _PAGE)
+
+
+def _script_json(value: Any) -> str:
+    """JSON for inside a <script>: every '<' escaped, so no text can close or comment it."""
+    return json.dumps(value).replace("<", "\\u003c")
 
 
 _PAGE = """<!DOCTYPE html>
@@ -324,10 +329,6 @@ _SCRIPT = r"""
 var D = JSON.parse(document.getElementById("study-data").textContent);
 var byId = new Map(D.placements.map(p => [p.id, p]));
 var viewer = null, lastObj = null;
-function esc(s) {  // text into HTML: names and messages come from files
-  return String(s).replace(/[&<>"']/g, c => ({"&": "&amp;", "<": "&lt;", ">": "&gt;",
-    '"': "&quot;", "'": "&#39;"})[c]);
-}
 function b64bytes(s) {
   var b = atob(s), u = new Uint8Array(b.length);
   for (var i = 0; i < b.length; i++) u[i] = b.charCodeAt(i);
@@ -385,6 +386,9 @@ function showPlacement(p) {
   viewer.set_dirty();
   return msg;
 }
+function esc(s) {
+  return String(s).replace(/[&<>"']/g, c => "&#" + c.charCodeAt(0) + ";");
+}
 function selectPlacement(pid) {
   var p = byId.get(pid);
   if (!p) return;
@@ -393,8 +397,8 @@ function selectPlacement(pid) {
   document.body.dataset.selected = String(pid);
   var info = "placement #" + pid + " (" + esc(p.object) + ")";
   var msg = [];
-  if (p.missing) msg.push(esc(p.missing) + ": not shown");
-  else if (p.error) msg.push("failed: " + esc(p.error));
+  if (p.missing) msg.push(p.missing + ": not shown");
+  else if (p.error) msg.push("failed: " + p.error);
   else if (viewer && p.status) {
     msg = showPlacement(p);
     info += ": coverage " + (p.coverage || 0).toFixed(3) + ", " + p.reachable + " / " +
@@ -404,8 +408,9 @@ function selectPlacement(pid) {
       k.rgb.map(x => Math.round(255 * x)).join(",") + ')"></span>' + esc(k.name) + " " + c[i] : "")
       .join("");
     window.studyShown = {id: pid, reachable: c[0]};
-  } else if (D.scene) msg.push(esc(D.scene));
-  document.getElementById("info").innerHTML = info + (msg.length ? "<br>" + msg.join("; ") : "");
+  } else if (D.scene) msg.push(D.scene);
+  var note = msg.length ? "<br>" + esc(msg.join("; ")) : "";
+  document.getElementById("info").innerHTML = info + note;
 }
 document.querySelectorAll("[data-pid]").forEach(e =>
   e.addEventListener("click", () => selectPlacement(Number(e.dataset.pid))));

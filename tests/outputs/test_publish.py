@@ -637,3 +637,27 @@ def test_meshcat_loads_only_when_a_scene_is_drawn():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
     )
     assert out.stdout.strip() == "[]"
+
+
+def test_a_scene_that_cannot_be_written_whole_leaves_the_old_page(tmp_path):
+    """A file-size limit (as a full disk) cuts the write: the old page stays, no temporary."""
+    import subprocess
+    import sys
+
+    page = tmp_path / "panda.html"
+    page.write_text("old page")
+    script = (
+        "import resource, signal, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))\n"
+        "from gcm_pipeline.cli import main\n"
+        "sys.exit(main(['robot', 'panda', '--out', sys.argv[1]]))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(page)], capture_output=True, text=True, env=env
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("error: cannot write scene ") and "Traceback" not in done.stderr
+    assert page.read_text() == "old page"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["panda.html"]

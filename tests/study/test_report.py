@@ -8,6 +8,7 @@ scene shows that placement.
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import shutil
@@ -63,8 +64,6 @@ def test_a_study_writes_a_report_with_a_cell_per_placement_and_its_value(study_d
 
 
 def _csv(study_dir: Path) -> list[dict]:
-    import csv
-
     with open(study_dir / "placements.csv", newline="") as fh:
         return list(csv.DictReader(fh))
 
@@ -185,6 +184,37 @@ def test_clicking_a_cell_loads_that_placements_scene(study_dir, tmp_path):
                 finite = [v for v in values.values() if np.isfinite(v)]
                 assert values[top] == want(finite), (key, want)
         page.screenshot(tmp_path / "study_report.png")
+        assert page.errors == []
+
+
+EVIL = '<img src=x onerror="window.PWNED=1"><!--<script>'
+
+
+def test_names_with_markup_are_shown_as_text_not_run(study_dir, tmp_path):
+    """An object name and a directory name with markup or placeholders stay text."""
+    out = tmp_path / "s%DATA%x"
+    shutil.copytree(study_dir, out)
+    rows = _csv(out)
+    rows[1]["object"] = EVIL  # its part is gone: the page takes the name from the CSV
+    (out / "placements" / f"{int(rows[1]['id']):06d}.npz").unlink()
+    with open(out / "placements.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    assert main(["plot", str(out)]) == 0
+    pid = int(rows[1]["id"])
+    with Page(tmp_path / "profile", size=(800, 500)) as page:
+        page.open(out / "study.html")
+        page.wait_for("window.studyReady === true", timeout_s=40)
+        assert page.eval("document.title") == f"study {out.name}"
+        page.eval(
+            f"document.querySelector('.cell[data-pid=\"{pid}\"]').dispatchEvent("
+            "new MouseEvent('click', {bubbles: true}))"
+        )
+        page.wait_for(f"document.body.dataset.selected === '{pid}'", timeout_s=10)
+        assert EVIL in page.eval("document.getElementById('info').textContent")
+        assert page.eval("document.querySelectorAll('img').length") == 0
+        assert page.eval("window.PWNED === undefined")
         assert page.errors == []
 
 

@@ -84,6 +84,19 @@ def test_grid_order_overrides_and_values_round_trip(tmp_path):
         assert yaml.safe_load(format_value([v]))[0] == v
 
 
+def test_a_pose_override_is_written_as_yaml_writes_it():
+    """The fast path for number lists gives PyYAML's text (placements' overrides unchanged)."""
+    rng = np.random.default_rng(0)
+    values = [1e-05, -2.5e-12, 1e16, 1.5e300, 5e-324, -0.0, 0.0, 3, -7, 0.1 + 0.2]
+    values += [float("nan"), float("inf"), float("-inf")]
+    values += list(rng.normal(0.0, 1.0, 200) * 10.0 ** rng.integers(-20, 20, 200))
+    for i in range(0, len(values), 3):
+        chunk = [v if isinstance(v, int) else float(v) for v in values[i : i + 3]]
+        want = yaml.safe_dump(chunk, default_flow_style=True, width=float("inf")).strip()
+        assert format_value(chunk) == want
+    assert format_value([True, 1.0]) == "[true, 1.0]"  # not numbers: YAML's own dump
+
+
 def test_yaw_keeps_radians_when_the_base_uses_rpy(tmp_path):
     base = tmp_path / "base.yaml"
     data = yaml.safe_load(BOTTLE.read_text())

@@ -18,6 +18,7 @@ replayed in the page.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import logging
 import math
@@ -275,7 +276,8 @@ def _record(scene: StudyScene, report: StudyReport, cfg: Any, robot: Any) -> Non
     """Draw the best placement's scene into a recording and keep what the records need."""
     best = report.best
     assert best is not None
-    opts = scene_options(cfg)
+    # no painted object: its paint is one placement's, and the page moves the object
+    opts = dataclasses.replace(scene_options(cfg), paint=False)
     a = report.parts[int(best["id"])]
     table = GraspTable(
         {

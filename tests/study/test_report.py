@@ -173,6 +173,9 @@ def test_clicking_a_cell_loads_that_placements_scene(study_dir, tmp_path):
         np.testing.assert_allclose(got, want_pose, atol=1e-5)
         base = np.array(page.eval(f"{matrix}(node('robot').object)")).reshape(4, 4, order="F")
         np.testing.assert_allclose(base, np.eye(4), atol=1e-6)  # the study moves the object
+        # no layer of the best placement left behind where the object was (its painted skin)
+        tops = page.eval('Object.keys(viewer.scene_tree.find(["meshcat"]).children)')
+        assert "object" in tops and "object_reachability" not in tops
         # the table row is highlighted with the cell, and sorting keeps it
         assert page.eval(f"document.querySelector('tr[data-pid=\"{pid}\"]').className") == "sel"
         cov = {int(r["id"]): float(r["coverage"]) for r in rows}

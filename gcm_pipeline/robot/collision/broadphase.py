@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.collision.pairs import Pair
+from gcm_pipeline.robot.collision.pairs import Pair, hull_pair_pool
 from gcm_pipeline.robot.collision.spheres import POLYTOPES, RobotCover, hull_vertices
 
 __all__ = [
@@ -273,7 +273,9 @@ class BroadPhase:
 
     A base class of the checker: its methods use the checker's robot geometry
     (``_gm``), pairs (``_pairs``), sphere covers (``_cover``), joint frames
-    (``_frames``) and narrow phase (``_run``, ``_pair_pool``).
+    (``_frames``) and narrow phase (``_run``, ``_pair_pool``; the convex-hull
+    pre-check's ``_hull_pools`` and ``_mesh_hulls``, built when a pair first
+    reaches coal, with the robot's ``_model``).
     """
 
     _gm: Any
@@ -284,6 +286,10 @@ class BroadPhase:
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
     _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any]]]
     _bounds: dict[int, ShapeBound]
+    _model: Any
+    threads: int
+    _hull_pools: dict[int, Any]
+    _mesh_hulls: dict[int, Any]
     _hulls: dict[int, tuple[int, np.ndarray]]
     _run: Callable[[Any, np.ndarray], np.ndarray]
 
@@ -444,7 +450,7 @@ class BroadPhase:
                 hit[rows[inside], k] = True
                 rows = rows[~(beyond_a_face(local, lim) | inside)]
             if rows.size:
-                hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
+                hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
         return hit
 
     def _pair_hits_compiled(
@@ -468,7 +474,7 @@ class BroadPhase:
                 hit[rows[status == kernels.COLLIDES], k] = True
                 rows = rows[status == kernels.UNDECIDED]
             if rows.size:
-                hit[rows, k] = self._run(self._pair_pool[screen.pairs[k]], q[rows])
+                hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
         return hit
 
     def _compiled_screen(self, screen: Screen) -> tuple[tuple[Any, ...], dict[int, Any]]:
@@ -519,6 +525,27 @@ class BroadPhase:
         }
         self._compiled_args[id(screen)] = (screen, broad, boxes)
         return broad, boxes
+
+    def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:
+        """Coal's answer for pair ``c`` (an index of ``_pairs``) in configurations (M, nq).
+
+        A pair with a robot mesh is first checked on the convex hulls
+        (:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`, touching within
+        :data:`~gcm_pipeline.robot.collision.pairs.HULL_MARGIN`): apart there, apart
+        here; coal checks the meshes only where the hulls touch. The same answers.
+        """
+        if c not in self._hull_pools:
+            self._hull_pools[c] = hull_pair_pool(
+                self._model, self._gm, self._pairs[c], self.threads, self._mesh_hulls
+            )
+        hull = self._hull_pools[c]
+        if hull is None:
+            return self._run(self._pair_pool[c], q)
+        out = self._run(hull, q)
+        touch = np.flatnonzero(out)
+        if touch.size:
+            out[touch] = self._run(self._pair_pool[c], q[touch])
+        return out
 
     def _bounds_for(self, w: int) -> ShapeBound:
         bound = self._bounds.get(w)

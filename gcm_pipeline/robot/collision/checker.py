@@ -182,6 +182,11 @@ class CollisionChecker(ClearanceQueries):
             for w in {p.b for p in pairs if p.kind != "self"}
         }
         self._hulls = robot.cache.setdefault("collision_hulls", {})
+        #: the narrow phase's convex-hull pre-check: pools by pair, hulls by geometry
+        #: (built when a pair first reaches coal)
+        self._model = model
+        self._hull_pools = {}
+        self._mesh_hulls = {}
         self._init_pools(pairs, link_of)
 
         # the mesh object as a solid: pieces wholly inside it

@@ -73,7 +73,10 @@ __all__ = [
     "add_eroded_gripper",
     "checked_pairs",
     "coal_transform",
+    "HULL_MARGIN",
+    "convex_hull",
     "gripper_links",
+    "hull_pair_pool",
     "pair_pool",
     "robot_geometry",
     "se3",
@@ -352,6 +355,65 @@ def pair_pool(model: Any, gm: Any, pair: Pair, threads: int) -> Any:
     pool = pin.GeometryPool(model, km, threads)
     for i in range(pool.size()):
         without_cached_guess(pool.getGeometryData(i))
+    return pool
+
+
+#: Distance [m] below which a pair's convex hulls count as touching in
+#: :func:`hull_pair_pool` (far above coal's GJK tolerance, 1e-6).
+HULL_MARGIN = 1e-4
+
+
+def convex_hull(geometry: Any) -> Any:
+    """The convex hull (a ``coal.ConvexBase``) of a coal mesh's vertices; None if it has none.
+
+    Only a ``BVHModelBase`` (a mesh) has one here; primitives, convex pieces and
+    octrees give None.
+    """
+    if not isinstance(geometry, coal.BVHModelBase):
+        return None
+    try:
+        mesh = geometry.clone()
+        mesh.buildConvexHull(True, "Qt")
+        return mesh.convex
+    except Exception:  # a degenerate mesh (flat, too few points): no hull, no pre-check
+        return None
+
+
+def hull_pair_pool(model: Any, gm: Any, pair: Pair, threads: int, hulls: dict[int, Any]) -> Any:
+    """A pool checking one pair with each mesh replaced by its convex hull, or None.
+
+    Its collision requests count the hulls as touching within :data:`HULL_MARGIN`;
+    a hull contains its mesh, so a configuration this pool finds free is free
+    for :func:`pair_pool` too. None when neither geometry is a mesh, or when the
+    world side of the pair is not a primitive (a mesh, a point cloud). ``hulls``
+    caches the hull of each geometry index (None: no hull).
+    """
+    if pair.kind != "self" and not isinstance(gm.geometryObjects[pair.b].geometry, PRIMITIVES):
+        # a world mesh or point cloud: its hull would touch the robot wherever the
+        # shape is concave (a mug's opening), doubling coal's calls
+        return None
+    objs = []
+    for g in (pair.a, pair.b):
+        go = gm.geometryObjects[g]
+        if g not in hulls:
+            hulls[g] = convex_hull(go.geometry)
+        if hulls[g] is None:
+            objs.append(go)
+        else:
+            objs.append(
+                pin.GeometryObject(go.name, go.parentJoint, go.parentFrame, go.placement, hulls[g])
+            )
+    if all(hulls[g] is None for g in (pair.a, pair.b)):
+        return None
+    km = pin.GeometryModel()
+    for go in objs:
+        km.addGeometryObject(go)
+    km.addCollisionPair(pin.CollisionPair(0, 1))
+    pool = pin.GeometryPool(model, km, threads)
+    for i in range(pool.size()):
+        gd = without_cached_guess(pool.getGeometryData(i))
+        for req in gd.collisionRequests:
+            req.security_margin = HULL_MARGIN
     return pool
 
 

@@ -12,10 +12,12 @@ it knows no config. Which pairs are checked in which mode:
 **Narrow phase**: coal, through
 ``pin.computeCollisionsInParallel`` on a pool holding the pair's two
 geometries, only for the (configuration, pair) entries the broad phase left
-open. Batches of fewer than ``_FEW`` configurations go to coal's own broad
-phase (AABB-tree pools) instead, which costs less to set up, and so do all
-batches of a checker with ``threads`` > 1 (those pools run in parallel in C++;
-the NumPy broad phase does not). A pair of two
+open. A pair with a robot mesh is first checked on the convex hulls of its
+meshes (:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`): coal's
+mesh-mesh test runs only where the hulls touch. Batches of fewer than ``_FEW``
+configurations go to coal's own broad phase (AABB-tree pools) instead, which
+costs less to set up, and so do all batches of a checker with ``threads`` > 1
+(those pools run in parallel in C++; the NumPy broad phase does not). A pair of two
 geometries fixed to the world (the base link against an obstacle that
 overlaps it) collides in every configuration or in none: it is decided once,
 when the checker is built. :meth:`CollisionChecker.clearance`

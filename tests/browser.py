@@ -16,7 +16,22 @@ from pathlib import Path
 
 import pytest
 
-__all__ = ["chromium"]
+__all__ = ["HEADLESS", "chromium"]
+
+#: Flags of every headless Chromium the tests start: software GL (no GPU here), and no
+#: background connections (this machine's closed network refuses them, many at a time).
+HEADLESS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+)
 
 
 _INSTALL: dict[str, str | None] = {}

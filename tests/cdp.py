@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from browser import chromium
+from browser import HEADLESS, chromium
 
 __all__ = ["CDPError", "Page"]
 
@@ -68,16 +68,7 @@ class Page:
         rep_r, rep_w = os.pipe()  # the browser writes replies on fd 4, we read them
         args = [
             chromium(),
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--enable-unsafe-swiftshader",
-            "--use-angle=swiftshader",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
+            *HEADLESS,
             "--allow-file-access-from-files",
             "--remote-debugging-pipe",
             f"--user-data-dir={profile}",

@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import umsgpack
-from browser import chromium
+from browser import HEADLESS, chromium
 
 from gcm_pipeline.config import Config
 from gcm_pipeline.config.robot_spec import load_robot
@@ -41,16 +41,7 @@ def screenshot(html: Path, png: Path, profile: Path) -> None:
     for attempt in range(3):
         cmd = [
             chromium(),
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--enable-unsafe-swiftshader",
-            "--use-angle=swiftshader",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
+            *HEADLESS,
             f"--user-data-dir={profile}-{attempt}",
             f"--window-size={_SIZE[0]},{_SIZE[1]}",
             # 3 s of virtual time load and draw the scene; with 8 s Chromium drew in software

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from browser import chromium
+from browser import HEADLESS, chromium
 from helpers import assert_one_line_error, run_gcm
 from test_export import make_run
 
@@ -141,15 +141,7 @@ def test_gcm_view_draws_a_saved_run_in_chromium(run, tmp_path):
         browser = subprocess.Popen(
             [
                 chromium(),
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--enable-unsafe-swiftshader",
-                "--use-angle=swiftshader",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
+                *HEADLESS,
                 f"--user-data-dir={tmp_path / 'profile'}",
                 f"--window-size={_SIZE[0]},{_SIZE[1]}",
                 f"--remote-debugging-port={port}",

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.collision.pairs import Pair, hull_pair_pool
+from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, Pair, hull_pair_pool
 from gcm_pipeline.robot.collision.spheres import POLYTOPES, RobotCover, hull_vertices
 
 __all__ = [
@@ -51,9 +51,10 @@ __all__ = [
     "stacked",
 ]
 
-#: A pair is ruled out by the broad phase when its lower bound exceeds this [m]
-#: (far above the round-off of the vectorised kinematics, ~1e-12 m).
-BROAD_MARGIN = 1e-7
+#: A pair is ruled out by the broad phase when its lower bound exceeds this [m]:
+#: coal's narrow phase counts a pair within ``GJK_MARGIN`` as touching, plus a
+#: margin far above the round-off of the vectorised kinematics (~1e-12 m).
+BROAD_MARGIN = GJK_MARGIN + 1e-7
 #: Configurations placed per block by the broad phase (temporaries stay in cache).
 BLOCK = 2048
 #: A hull vertex this deep inside a box [m] makes the pair collide without coal.

@@ -12,9 +12,13 @@ it knows no config. Which pairs are checked in which mode:
 **Narrow phase**: coal, through
 ``pin.computeCollisionsInParallel`` on a pool holding the pair's two
 geometries, only for the (configuration, pair) entries the broad phase left
-open. A pair with a robot mesh is first checked on the convex hulls of its
-meshes (:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`): coal's
-mesh-mesh test runs only where the hulls touch. Batches of fewer than ``_FEW``
+open. Two geometries within coal's GJK tolerance (1e-6 m) of each other count
+as touching: asked without contact information, coal can otherwise answer
+"free" for overlaps of any depth
+(:func:`~gcm_pipeline.robot.collision.pairs.checker_requests`). A pair with
+a robot mesh is first checked on the convex hulls of its meshes
+(:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`): coal's mesh-mesh
+test runs only where the hulls touch. Batches of fewer than ``_FEW``
 configurations go to coal's own broad phase (AABB-tree pools) instead, which
 costs less to set up, and so do all batches of a checker with ``threads`` > 1
 (those pools run in parallel in C++; the NumPy broad phase does not). A pair of two
@@ -53,6 +57,7 @@ from gcm_pipeline.robot.collision.pairs import (
     REASONS,
     Pair,
     checked_pairs,
+    checker_requests,
     coal_transform,
     gripper_links,
     pair_pool,
@@ -107,7 +112,9 @@ class CollisionChecker(ClearanceQueries):
         world: The world shapes.
         geom_model: ``pin.GeometryModel`` with the robot links, the eroded
             gripper pieces (mesh object), the world shapes and *every* pair of
-            the ``grasp`` mode active; usable with ``pin.computeCollisions``.
+            the ``grasp`` mode active; usable with ``pin.computeCollisions``
+            (on data prepared by :func:`~gcm_pipeline.robot.collision.pairs.checker_requests`
+            for the checker's answers).
         pair_kind: Kind of each pair of ``geom_model.collisionPairs`` (P,) str.
         n_robot_geoms: Number of robot geometries (the first ones of ``geom_model``).
         gripper_geoms: Indices of the gripper geometries.
@@ -206,7 +213,7 @@ class CollisionChecker(ClearanceQueries):
         self.geom_model = full
         self.pair_kind = np.array(kinds, dtype=object)
         self._data = model.createData()
-        self._full_data = pin.GeometryData(full)
+        self._full_data = checker_requests(pin.GeometryData(full))
 
         self._init_clearance(gm, pairs, world_ids, joint_of, gripper)
 

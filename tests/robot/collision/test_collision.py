@@ -21,7 +21,7 @@ from gcm_pipeline.robot.collision import (
     CollisionChecker,
     WorldShape,
 )
-from gcm_pipeline.robot.collision.pairs import without_cached_guess
+from gcm_pipeline.robot.collision.pairs import checker_requests
 
 BOTTLE = {
     "shape": "cylinder",
@@ -524,9 +524,10 @@ def _every_pair_reasons(robot, checker, qs, mode):
             gm.addCollisionPair(pin.CollisionPair(p.a, p.b))
             kinds.append(p.kind)
     kinds = np.array(kinds)
-    # the checker's GJK setting: no guess carried over from the previous query (with it,
-    # answers within about 1e-5 m of contact depend on the queries before)
-    gd, data = without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
+    # the checker's coal settings: no GJK guess carried over from the previous query (with
+    # it, answers within about 1e-5 m of contact depend on the queries before), and GJK's
+    # "within tolerance" end counted as contact (pairs.checker_requests)
+    gd, data = checker_requests(pin.GeometryData(gm)), robot.model.createData()
     out = []
     for q in qs:
         pin.computeCollisions(robot.model, data, gm, gd, q, False)
@@ -681,7 +682,7 @@ def _every_pair_hits(robot, checker, qs, screen):
     for k in screen.pairs:
         p = checker._pairs[k]
         gm.addCollisionPair(pin.CollisionPair(p.a, p.b))
-    gd, data = without_cached_guess(pin.GeometryData(gm)), robot.model.createData()
+    gd, data = checker_requests(pin.GeometryData(gm)), robot.model.createData()
     out = np.zeros((len(qs), screen.pairs.size), dtype=bool)
     for i, q in enumerate(qs):
         pin.computeCollisions(robot.model, data, gm, gd, q, False)

@@ -13,8 +13,7 @@ of meshes) cannot collide; (2) nor can one whose sphere covers are apart.
 (3) A robot polytope against a box (the table, box obstacles) is free when
 its convex hull's vertices all lie beyond the plane of one face of the box,
 and collides when one of them lies more than 0.1 mm inside the box (the
-vertex of one of its triangles; coal, called as Pinocchio calls it, misses
-box-box penetrations of a few 1e-5 m, so shallower ones are left to it).
+vertex of one of its triangles; shallower ones are left to coal).
 These levels only skip work, they never change an answer (tested pair by pair
 against coal on every pair). The compiled kernels (:mod:`gcm_pipeline.robot.kernels`)
 run the same three levels one configuration at a time, conservatively: the same
@@ -57,9 +56,10 @@ __all__ = [
 BROAD_MARGIN = GJK_MARGIN + 1e-7
 #: Configurations placed per block by the broad phase (temporaries stay in cache).
 BLOCK = 2048
-#: A hull vertex this deep inside a box [m] makes the pair collide without coal.
-#: coal, called without contact information as Pinocchio calls it, misses box-box
-#: penetrations of up to a few 1e-5 m; shallower ones are left to it.
+#: A hull vertex this deep inside a box [m] makes the pair collide without coal;
+#: shallower ones are left to coal. (Called as Pinocchio calls it, without the margin of
+#: :func:`~gcm_pipeline.robot.collision.pairs.checker_requests`, coal missed box-box
+#: penetrations up to 0.3 mm: 19 of 20,000 random overlaps of 1e-7 to 3e-4 m.)
 INSIDE_DEPTH = 1e-4
 
 

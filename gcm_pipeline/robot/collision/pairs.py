@@ -35,7 +35,9 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
     triangles, collides too.
 
 When a configuration collides in more than one way, the reason is the first of
-environment, self, object.
+environment, self, object. A pair collides when coal finds its two geometries
+overlapping or within its GJK tolerance, 1e-6 m, of each other
+(:func:`checker_requests`).
 
 **Modes** (:meth:`~gcm_pipeline.robot.collision.checker.CollisionChecker.check`):
 ``grasp`` is the above; ``approach`` allows no contact (the gripper against the

@@ -155,7 +155,7 @@ def _around_the_bottle(robot, n, seed):
     t[:, :3, 2] = z
     t[:, :3, 1] = [0.0, 0.0, 1.0]
     t[:, :3, 0] = np.cross(t[:, :3, 1], z)
-    centre = np.stack([0.5 + 0.0 * a, 0.0 * a, rng.uniform(0.03, 0.2, n)], axis=1)
+    centre = np.column_stack([np.full(n, 0.5), np.zeros(n), rng.uniform(0.03, 0.2, n)])
     back = rng.uniform(-0.01, 0.06, n)[:, None]  # frame behind the axis: the hand reaches it
     side = rng.uniform(-0.02, 0.02, n)[:, None]
     t[:, :3, 3] = centre - back * z + side * t[:, :3, 1]
@@ -163,7 +163,7 @@ def _around_the_bottle(robot, n, seed):
     return res.q[res.success]
 
 
-def _bisected(checker, q, mode, steps=14, most=120):
+def _bisected(checker, q, mode, steps=14, most=200):
     """Both sides of contact: free and colliding configurations bisected ``steps`` times."""
     hit = checker.check(q, mode) != ""
     free, coll = q[~hit], q[hit]
@@ -181,9 +181,9 @@ def case(request, tmp_path_factory):
     cfg = _config(request.param, tmp_path_factory)
     robot = P.robot_from_config(cfg)
     checker = make_checker(robot, cfg.environment, cfg.object)
-    assert {checker.link_names[g] for g in checker.gripper_geoms} <= _GRIPPER[request.param]
+    assert {checker.link_names[g] for g in checker.gripper_geoms} == _GRIPPER[request.param]
     rules = Rules(robot, checker.world, _GRIPPER[request.param], checker.contact_tolerance)
-    q = np.concatenate([robot.random_configurations(200, 3), _around_the_bottle(robot, 200, 4)])
+    q = np.concatenate([robot.random_configurations(300, 3), _around_the_bottle(robot, 300, 4)])
     q = np.concatenate([q, _bisected(checker, q, "grasp"), _bisected(checker, q, "approach")])
     return checker, q, rules.reasons(q, ("grasp", "approach"))
 

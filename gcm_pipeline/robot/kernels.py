@@ -15,8 +15,9 @@ all of them:
 * the Panda's closed form (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.solve`),
   per (target, joint-7 value): :mod:`~gcm_pipeline.robot.ik.panda_kernel`;
 * levels 1 and 2 of the collision broad phase (one bounding sphere per
-  geometry, then the sphere covers), and level 3 (a robot polytope's hull
-  vertices against a box), see :mod:`gcm_pipeline.robot.collision`:
+  geometry, then the sphere covers), level 3 (a robot polytope's hull
+  vertices against a box) and level 4 (its longest edges inside a world
+  primitive), see :mod:`gcm_pipeline.robot.collision`:
   :mod:`~gcm_pipeline.robot.collision.broadphase_kernel`.
 
 Each kernel module sits beside its NumPy reference; what they share (signature
@@ -55,6 +56,8 @@ The NumPy code is the reference.
   (free when all hull vertices lie beyond one face plane by the margin plus
   the slack, colliding when one lies deeper than the depth plus the slack):
   whatever it decides, the NumPy level decides the same; coal the rest.
+* Level 4 (edges inside a primitive): colliding only where an edge point lies
+  deeper than the depth plus the slack: the NumPy level decides the same.
 * The closed form: the same arithmetic and the same solutions; the angles
   differ by round-off (1e-13 rad measured; acos near +-1 can amplify an
   ulp to 2e-8 rad).
@@ -119,6 +122,7 @@ class Kernels(NamedTuple):
         chain_forward: Forward kinematics and Jacobian of a chain, (N, ...) at once.
         broad_phase: Levels 1 and 2: the (pair, configuration) entries left open.
         hull_vs_box: Level 3: :data:`FREE`, :data:`COLLIDES` or :data:`UNDECIDED`.
+        edges_inside: Level 4: where a robot polytope's edge lies inside a world primitive.
         levenberg_marquardt: The IK's Levenberg-Marquardt iterations, per (target, seed).
         segment_samples: The approach's deviation samples along joint segments.
         panda_ik: The Panda's closed-form IK, per (target, q7).
@@ -130,6 +134,7 @@ class Kernels(NamedTuple):
     levenberg_marquardt: Callable[..., Any]
     segment_samples: Callable[..., Any]
     panda_ik: Callable[..., Any]
+    edges_inside: Callable[..., Any]
 
 
 def get() -> Kernels | None:
@@ -184,6 +189,7 @@ def _import() -> Kernels | None:
                 lm_kernel.levenberg_marquardt,
                 chain_kernel.segment_samples,
                 panda_kernel.panda_ik,
+                broadphase_kernel.edges_inside,
             )
         )
     )

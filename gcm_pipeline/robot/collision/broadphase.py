@@ -1,6 +1,6 @@
 """The broad phase: which (configuration, pair) entries coal must decide.
 
-Vectorised over all configurations (NumPy), in three levels. Every robot
+Vectorised over all configurations (NumPy), in four levels. Every robot
 collision geometry is covered by a few spheres
 (:func:`~gcm_pipeline.robot.collision.spheres.sphere_cover`: the geometry
 cut into slabs along its long axis, each slab's part inside one sphere, so the
@@ -13,10 +13,14 @@ of meshes) cannot collide; (2) nor can one whose sphere covers are apart.
 (3) A robot polytope against a box (the table, box obstacles) is free when
 its convex hull's vertices all lie beyond the plane of one face of the box,
 and collides when one of them lies more than 0.1 mm inside the box (the
-vertex of one of its triangles; shallower ones are left to coal).
+vertex of one of its triangles; shallower ones are left to coal). (4) A robot
+polytope against a box, a sphere or a cylinder collides when a point of one of
+its :data:`EDGE_COUNT` longest triangle edges lies more than 0.1 mm inside the
+shape (:func:`segments_inside`: an edge is part of the surface coal checks; a
+long link crossing a thin table has no vertex inside it).
 These levels only skip work, they never change an answer (tested pair by pair
 against coal on every pair). The compiled kernels (:mod:`gcm_pipeline.robot.kernels`)
-run the same three levels one configuration at a time, conservatively: the same
+run the same four levels one configuration at a time, conservatively: the same
 answers.
 """
 
@@ -32,11 +36,17 @@ from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, Pair, hull_pair_pool
-from gcm_pipeline.robot.collision.spheres import POLYTOPES, RobotCover, hull_vertices
+from gcm_pipeline.robot.collision.spheres import (
+    POLYTOPES,
+    RobotCover,
+    hull_vertices,
+    polytope_edges,
+)
 
 __all__ = [
     "BLOCK",
     "BROAD_MARGIN",
+    "EDGE_COUNT",
     "INSIDE_DEPTH",
     "BroadPhase",
     "Screen",
@@ -46,6 +56,7 @@ __all__ = [
     "in_frame",
     "octree_box",
     "row_matmul",
+    "segments_inside",
     "squared_norms",
     "stacked",
 ]
@@ -56,8 +67,13 @@ __all__ = [
 BROAD_MARGIN = GJK_MARGIN + 1e-7
 #: Configurations placed per block by the broad phase (temporaries stay in cache).
 BLOCK = 2048
-#: A hull vertex this deep inside a box [m] makes the pair collide without coal;
-#: shallower ones are left to coal. (Called as Pinocchio calls it, without the margin of
+#: Edges of a robot polytope tested against a world primitive (level 4), longest first.
+EDGE_COUNT = 64
+#: World primitives the edges of level 4 are tested against.
+EDGE_SHAPES = (coal.Box, coal.Sphere, coal.Cylinder)
+#: A hull vertex (level 3) or a point of an edge (level 4) this deep inside a box
+#: [m] makes the pair collide without coal; shallower ones are left to coal.
+#: (Called as Pinocchio calls it, without the margin of
 #: :func:`~gcm_pipeline.robot.collision.pairs.checker_requests`, coal missed box-box
 #: penetrations up to 0.3 mm: 19 of 20,000 random overlaps of 1e-7 to 3e-4 m.)
 INSIDE_DEPTH = 1e-4
@@ -267,6 +283,9 @@ class Screen(NamedTuple):
     bound: np.ndarray
     # robot polytope vs box, by column: (joint, hull vertices (3, V), inverse placement, halfs)
     boxes: dict[int, tuple[int, np.ndarray, np.ndarray, np.ndarray]]
+    # robot polytope vs a box, sphere or cylinder, by column: (joint, edge ends (3, E)
+    # and (3, E), the shape's inverse placement (4, 4), its packed row (21,))
+    edges: dict[int, tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
 
 
 class BroadPhase:
@@ -285,13 +304,14 @@ class BroadPhase:
     _frames: Any
     _pair_pool: list[Any]
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
-    _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any]]]
+    _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any]]]
     _bounds: dict[int, ShapeBound]
     _model: Any
     threads: int
     _hull_pools: dict[int, Any]
     _mesh_hulls: dict[int, Any]
     _hulls: dict[int, tuple[int, np.ndarray]]
+    _edge_cache: dict[int, tuple[int, np.ndarray, np.ndarray]]
     _run: Callable[[Any, np.ndarray], np.ndarray]
 
     def _hull(self, g: int) -> tuple[int, np.ndarray]:
@@ -300,11 +320,18 @@ class BroadPhase:
             self._hulls[g] = hull_vertices(self._gm.geometryObjects[g], self._frames)
         return self._hulls[g]
 
+    def _edges(self, g: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """:data:`EDGE_COUNT` longest edges of robot polytope ``g``: ``(joint, (E, 3), (E, 3))``."""
+        if g not in self._edge_cache:
+            go = self._gm.geometryObjects[g]
+            self._edge_cache[g] = polytope_edges(go, self._frames, EDGE_COUNT)
+        return self._edge_cache[g]
+
     def _screen(self, cols: list[int]) -> Screen:
         """The broad phase of the pairs ``cols`` (indices of ``self._pairs``) of one mode."""
         cov, gm = self._cover, self._gm
         sa, sb, bound = [], [], []
-        boxes = {}
+        boxes, edges = {}, {}
         for k, c in enumerate(cols):
             p = self._pairs[c]
             own = np.arange(cov.start[p.owner], cov.start[p.owner + 1])
@@ -319,14 +346,15 @@ class BroadPhase:
             sb.append(np.full(own.size, -1))
             bound.append(cov.radius[own])
             shape = gm.geometryObjects[p.b]
-            if (
-                p.a == p.owner
-                and isinstance(shape.geometry, coal.Box)
-                and isinstance(gm.geometryObjects[p.a].geometry, POLYTOPES)
-            ):
-                inv = np.linalg.inv(shape.placement.homogeneous)
+            if p.a != p.owner or not isinstance(gm.geometryObjects[p.a].geometry, POLYTOPES):
+                continue
+            inv = np.linalg.inv(shape.placement.homogeneous)
+            if isinstance(shape.geometry, coal.Box):
                 joint, verts = self._hull(p.a)
                 boxes[k] = (joint, verts.T.copy(), inv, np.asarray(shape.geometry.halfSide))
+            if isinstance(shape.geometry, EDGE_SHAPES):
+                joint, ea, eb = self._edges(p.a)
+                edges[k] = (joint, ea.T.copy(), eb.T.copy(), inv, self._bounds_for(p.b).packed())
         pairs = [self._pairs[c] for c in cols]
         count = np.array([x.size for x in sa], dtype=int)
 
@@ -345,6 +373,7 @@ class BroadPhase:
             cat(sb, int),
             cat(bound, float),
             boxes,
+            edges,
         )
 
     def _place(
@@ -450,6 +479,16 @@ class BroadPhase:
                 inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
                 hit[rows[inside], k] = True
                 rows = rows[~(beyond_a_face(local, lim) | inside)]
+            # 4. the polytope's longest edges inside a primitive
+            edge = screen.edges.get(k)
+            if edge is not None and rows.size:
+                joint, ea, eb, inv, packed = edge
+                frame = (rots[joint], poss[joint], inv)
+                inside = segments_inside(
+                    in_frame(frame, rows, ea), in_frame(frame, rows, eb), packed, INSIDE_DEPTH
+                )
+                hit[rows[inside], k] = True
+                rows = rows[~inside]
             if rows.size:
                 hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
         return hit
@@ -463,7 +502,7 @@ class BroadPhase:
         and coal pair by pair.
         """
         tfs = stacked(frames.transforms)
-        broad, boxes = self._compiled_screen(screen)
+        broad, boxes, edges = self._compiled_screen(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
         hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
         for k in np.flatnonzero(open_.any(axis=1)).tolist():
@@ -474,11 +513,19 @@ class BroadPhase:
                 status = compiled.hull_vs_box(tfs[joint], rows, *limits)
                 hit[rows[status == kernels.COLLIDES], k] = True
                 rows = rows[status == kernels.UNDECIDED]
+            edge = edges.get(k)
+            if edge is not None and rows.size:
+                joint, *ends = edge
+                inside = compiled.edges_inside(tfs[joint], rows, *ends)
+                hit[rows[inside], k] = True
+                rows = rows[~inside]
             if rows.size:
                 hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
         return hit
 
-    def _compiled_screen(self, screen: Screen) -> tuple[tuple[Any, ...], dict[int, Any]]:
+    def _compiled_screen(
+        self, screen: Screen
+    ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any]]:
         """The compiled broad phase's arguments for ``screen`` (built once per screen).
 
         Returns the arguments of ``broad_phase`` after the frames, and the
@@ -488,7 +535,7 @@ class BroadPhase:
         """
         known = self._compiled_args.get(id(screen))
         if known is not None and known[0] is screen:
-            return known[1], known[2]
+            return known[1], known[2], known[3]
         cov, slack = self._cover, kernels.SLACK
         worlds = sorted({int(w) for w in screen.world.tolist() if w >= 0})
         # explicit dtypes: without a world shape or a pair these lists are empty
@@ -524,8 +571,12 @@ class BroadPhase:
             )
             for k, (joint, verts, inv, halfs) in screen.boxes.items()
         }
-        self._compiled_args[id(screen)] = (screen, broad, boxes)
-        return broad, boxes
+        edges = {
+            k: (joint, ea, eb, packed, INSIDE_DEPTH + slack)
+            for k, (joint, ea, eb, inv, packed) in screen.edges.items()
+        }
+        self._compiled_args[id(screen)] = (screen, broad, boxes, edges)
+        return broad, boxes, edges
 
     def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:
         """Coal's answer for pair ``c`` (an index of ``_pairs``) in configurations (M, nq).
@@ -628,3 +679,68 @@ def beyond_a_face(local: np.ndarray, lim: np.ndarray) -> np.ndarray:
     return (
         np.all(local > lim + BROAD_MARGIN, axis=2) | np.all(local < -lim - BROAD_MARGIN, axis=2)
     ).any(axis=1)
+
+
+def segments_inside(a: np.ndarray, b: np.ndarray, row: np.ndarray, depth: float) -> np.ndarray:
+    """Whether a point of one of the segments ``a``-``b`` lies deeper than ``depth`` in a primitive.
+
+    Level 4 of the broad phase: such a point is a point of the robot geometry
+    (an edge of its triangles) inside the world shape, a contact coal finds.
+
+    Args:
+        a: First ends (M, 3, E) in the shape's frame [m].
+        b: Second ends (M, 3, E).
+        row: The shape's :meth:`ShapeBound.packed` row: a box, a sphere or a
+            cylinder (along z); any other kind gives False.
+        depth: [m], >= 0: the shape shrunk by it must hold the point.
+
+    Returns:
+        (M,) bool.
+    """
+    kind = kernels.SHAPE_KINDS[int(row[12])]
+    d = b - a
+    m, _, e = a.shape
+    lo, hi = np.zeros((m, e)), np.ones((m, e))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if kind == "box":
+            half = row[18:21] - depth
+            if np.any(half <= 0.0):
+                return np.zeros(m, dtype=bool)
+            for ax in range(3):
+                _clip(lo, hi, a[:, ax] - row[15 + ax], d[:, ax], half[ax])
+        elif kind == "sphere":
+            r = row[13] - depth
+            dd = np.einsum("mie,mie->me", d, d)
+            t = np.clip(-np.einsum("mie,mie->me", a, d) / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
+            p = a + t[:, None, :] * d
+            return bool(r > 0.0) & (np.einsum("mie,mie->me", p, p) < r * r).any(axis=1)
+        elif kind == "cylinder":
+            r, half = row[13] - depth, row[14] - depth
+            if r <= 0.0 or half <= 0.0:
+                return np.zeros(m, dtype=bool)
+            _clip(lo, hi, a[:, 2], d[:, 2], half)
+            qa = d[:, 0] ** 2 + d[:, 1] ** 2
+            qb = 2.0 * (a[:, 0] * d[:, 0] + a[:, 1] * d[:, 1])
+            qc = a[:, 0] ** 2 + a[:, 1] ** 2 - r * r
+            disc = qb * qb - 4.0 * qa * qc
+            root = np.sqrt(np.maximum(disc, 0.0))
+            flat = qa <= 0.0  # parallel to the axis: inside for all t, or for none
+            t0 = np.where(flat, np.where(qc < 0.0, -np.inf, np.inf), (-qb - root) / (2.0 * qa))
+            t1 = np.where(flat, np.where(qc < 0.0, np.inf, -np.inf), (-qb + root) / (2.0 * qa))
+            t0 = np.where(~flat & (disc <= 0.0), np.inf, t0)
+            np.maximum(lo, t0, out=lo)
+            np.minimum(hi, t1, out=hi)
+        else:
+            return np.zeros(m, dtype=bool)
+    return (lo < hi).any(axis=1)
+
+
+def _clip(lo: np.ndarray, hi: np.ndarray, x: np.ndarray, dx: np.ndarray, half: float) -> None:
+    """Narrow ``[lo, hi]`` (M, E) to the t with ``|x + t dx| < half`` (one slab), in place."""
+    flat = dx == 0.0
+    t0 = (-half - x) / dx
+    t1 = (half - x) / dx
+    enter = np.where(flat, np.where(np.abs(x) < half, -np.inf, np.inf), np.minimum(t0, t1))
+    leave = np.where(flat, np.where(np.abs(x) < half, np.inf, -np.inf), np.maximum(t0, t1))
+    np.maximum(lo, enter, out=lo)
+    np.minimum(hi, leave, out=hi)

@@ -1,9 +1,10 @@
-"""Compiled kernels of the collision broad phase (levels 1 to 3).
+"""Compiled kernels of the collision broad phase (levels 1 to 4).
 
 Kernels of :class:`~gcm_pipeline.robot.collision.broadphase.BroadPhase` (the NumPy
 reference, beside this module): :func:`broad_phase` (levels 1 and 2: one bounding
-sphere per geometry, then the sphere covers) and :func:`hull_vs_box` (level 3: a
-robot polytope's hull vertices against a box). Imported by
+sphere per geometry, then the sphere covers), :func:`hull_vs_box` (level 3: a
+robot polytope's hull vertices against a box) and :func:`edges_inside` (level 4:
+its longest edges inside a box, sphere or cylinder). Imported by
 :func:`gcm_pipeline.robot.kernels.get` only (it imports Numba).
 """
 
@@ -146,6 +147,28 @@ def broad_phase(
     return open_
 
 
+@njit(cache=True, inline="always")
+def _beyond_nearest_face(rot: Any, off: Any, verts: Any, mid: Any, beyond: Any) -> bool:
+    """Whether every vertex lies beyond the plane of the box face nearest their centroid.
+
+    One coordinate per vertex, stopping at the first vertex short of the plane: the
+    free configurations of :func:`hull_vs_box` are mostly proven by this face
+    alone; the full test runs where it fails (the same answers).
+    """
+    axis, gap = 0, -np.inf
+    for a in range(3):
+        c = rot[a, 0] * mid[0] + rot[a, 1] * mid[1] + rot[a, 2] * mid[2] + off[a]
+        if abs(c) - beyond[a] > gap:
+            axis, gap = a, abs(c) - beyond[a]
+            sign = 1.0 if c >= 0.0 else -1.0
+    r0, r1, r2, o, lim = rot[axis, 0], rot[axis, 1], rot[axis, 2], off[axis], beyond[axis]
+    for v in range(verts.shape[1]):
+        x = r0 * verts[0, v] + r1 * verts[1, v] + r2 * verts[2, v] + o
+        if not sign * x > lim:
+            return False
+    return True
+
+
 @njit(types.int8[::1](F3, I1, F2, F2, F1, F1), cache=True)
 def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
@@ -169,6 +192,11 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     rot = np.empty((3, 3))
     off = np.empty(3)
     x = np.empty(3)
+    nv = verts.shape[1]
+    mid = np.zeros(3)  # the vertices' centroid, the joint's frame
+    for v in range(nv):
+        for a in range(3):
+            mid[a] += verts[a, v] / nv
     for r in range(m):
         tf = tfs[rows[r]]
         for a in range(3):
@@ -178,6 +206,9 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
                     rot[a, b] = v
                 else:
                     off[a] = v + inv[a, 3]
+        if _beyond_nearest_face(rot, off, verts, mid, beyond):
+            out[r] = 0
+            continue
         above0 = above1 = above2 = below0 = below1 = below2 = True
         inside = False
         for v in range(verts.shape[1]):
@@ -199,4 +230,108 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
             out[r] = 0
         else:
             out[r] = 2
+    return out
+
+
+@njit(cache=True, inline="always")
+def _slab(x: float, dx: float, half: float, lo: float, hi: float) -> tuple[float, float]:
+    """``[lo, hi]`` narrowed to the t with ``|x + t dx| < half``."""
+    if dx == 0.0:
+        if abs(x) < half:
+            return lo, hi
+        return 1.0, 0.0
+    t0 = (-half - x) / dx
+    t1 = (half - x) / dx
+    if t0 > t1:
+        t0, t1 = t1, t0
+    return max(lo, t0), min(hi, t1)
+
+
+@njit(cache=True, inline="always")
+def _segment_inside(a: Any, b: Any, shape: Any, depth: float) -> bool:
+    """Whether a point of the segment ``a``-``b`` (shape frame) lies deeper than ``depth`` in it."""
+    kind = int(shape[12])
+    dx, dy, dz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    lo, hi = 0.0, 1.0
+    if kind == 3:  # box
+        hx, hy, hz = shape[18] - depth, shape[19] - depth, shape[20] - depth
+        if hx <= 0.0 or hy <= 0.0 or hz <= 0.0:
+            return False
+        lo, hi = _slab(a[0] - shape[15], dx, hx, lo, hi)
+        lo, hi = _slab(a[1] - shape[16], dy, hy, lo, hi)
+        lo, hi = _slab(a[2] - shape[17], dz, hz, lo, hi)
+        return lo < hi
+    if kind == 0:  # sphere
+        r = shape[13] - depth
+        if r <= 0.0:
+            return False
+        dd = dx * dx + dy * dy + dz * dz
+        t = 0.0
+        if dd > 0.0:
+            t = min(max(-(a[0] * dx + a[1] * dy + a[2] * dz) / dd, 0.0), 1.0)
+        px, py, pz = a[0] + t * dx, a[1] + t * dy, a[2] + t * dz
+        return px * px + py * py + pz * pz < r * r
+    if kind == 1:  # cylinder along z
+        r, half = shape[13] - depth, shape[14] - depth
+        if r <= 0.0 or half <= 0.0:
+            return False
+        lo, hi = _slab(a[2], dz, half, lo, hi)
+        qa = dx * dx + dy * dy
+        qc = a[0] * a[0] + a[1] * a[1] - r * r
+        if qa <= 0.0:
+            return qc < 0.0 and lo < hi
+        qb = 2.0 * (a[0] * dx + a[1] * dy)
+        disc = qb * qb - 4.0 * qa * qc
+        if disc <= 0.0:
+            return False
+        root = math.sqrt(disc)
+        lo = max(lo, (-qb - root) / (2.0 * qa))
+        hi = min(hi, (-qb + root) / (2.0 * qa))
+        return lo < hi
+    return False
+
+
+@njit(types.boolean[::1](F3, I1, F2, F2, F1, types.float64), cache=True)
+def edges_inside(tfs, rows, ends_a, ends_b, shape, depth):
+    """Level 4 of the broad phase: a robot polytope's edges inside a world primitive.
+
+    The edge ends are placed by the joint's frame, then taken into the shape's
+    frame by its packed row's inverse placement (as :func:`_lower`).
+
+    Args:
+        tfs: Frames of the polytope's joint (N, 3, 4).
+        rows: Configurations to decide (M,).
+        ends_a: First ends of the edges (3, E) in the joint's frame [m].
+        ends_b: Second ends (3, E).
+        shape: The world shape's packed row (21,): a box, sphere or cylinder.
+        depth: A point must lie deeper than this inside the shape [m].
+
+    Returns:
+        (M,) bool: True where an edge reaches deeper than ``depth`` (the pair collides).
+    """
+    m = rows.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    rot = np.empty((3, 3))
+    off = np.empty(3)
+    a = np.empty(3)
+    b = np.empty(3)
+    for r in range(m):
+        tf = tfs[rows[r]]
+        for i in range(3):
+            for j in range(4):
+                v = shape[4 * i] * tf[0, j] + shape[4 * i + 1] * tf[1, j]
+                v += shape[4 * i + 2] * tf[2, j]
+                if j < 3:
+                    rot[i, j] = v
+                else:
+                    off[i] = v + shape[4 * i + 3]
+        for e in range(ends_a.shape[1]):
+            for i in range(3):
+                a[i] = rot[i, 0] * ends_a[0, e] + rot[i, 1] * ends_a[1, e]
+                a[i] += rot[i, 2] * ends_a[2, e] + off[i]
+                b[i] = rot[i, 0] * ends_b[0, e] + rot[i, 1] * ends_b[1, e]
+                b[i] += rot[i, 2] * ends_b[2, e] + off[i]
+            if _segment_inside(a, b, shape, depth):
+                out[r] = True
+                break
     return out

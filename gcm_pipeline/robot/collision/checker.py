@@ -191,6 +191,7 @@ class CollisionChecker(ClearanceQueries):
             for w in {p.b for p in pairs if p.kind != "self"}
         }
         self._hulls = robot.cache.setdefault("collision_hulls", {})
+        self._edge_cache = robot.cache.setdefault("collision_edges", {})
         #: the narrow phase's convex-hull pre-check: pools by pair, hulls by geometry
         #: (built when a pair first reaches coal)
         self._model = model

@@ -24,6 +24,7 @@ __all__ = [
     "SphereCover",
     "geometry_mesh",
     "hull_vertices",
+    "polytope_edges",
     "robot_covers",
     "sphere_cover",
 ]
@@ -194,3 +195,22 @@ def hull_vertices(go: Any, frames: JointFrames) -> tuple[int, np.ndarray]:
         j, np.asarray(go.placement.rotation), np.asarray(go.placement.translation)
     )
     return j, pts @ rot.T + trans
+
+
+def polytope_edges(go: Any, frames: JointFrames, count: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """The ``count`` longest edges of a robot polytope's triangles, longest first.
+
+    ``(joint, ends (E, 3), other ends (E, 3))`` in its joint's rotated frame. Every edge lies on the geometry
+    as coal checks it (a mesh's surface, a convex piece's or a box's solid), so a
+    point of an edge inside a world shape is a contact with it.
+    """
+    pts, tris = geometry_mesh(go.geometry)
+    edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [0, 2]]]), axis=1)
+    edges = np.unique(edges, axis=0) if edges.size else edges.reshape(0, 2)
+    length = np.linalg.norm(pts[edges[:, 0]] - pts[edges[:, 1]], axis=1)
+    edges = edges[np.argsort(-length, kind="stable")[:count]]
+    j = int(go.parentJoint)
+    rot, trans = frames.local(
+        j, np.asarray(go.placement.rotation), np.asarray(go.placement.translation)
+    )
+    return j, pts[edges[:, 0]] @ rot.T + trans, pts[edges[:, 1]] @ rot.T + trans

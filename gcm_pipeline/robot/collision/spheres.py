@@ -200,9 +200,10 @@ def hull_vertices(go: Any, frames: JointFrames) -> tuple[int, np.ndarray]:
 def polytope_edges(go: Any, frames: JointFrames, count: int) -> tuple[int, np.ndarray, np.ndarray]:
     """The ``count`` longest edges of a robot polytope's triangles, longest first.
 
-    ``(joint, ends (E, 3), other ends (E, 3))`` in its joint's rotated frame. Every edge lies on the geometry
-    as coal checks it (a mesh's surface, a convex piece's or a box's solid), so a
-    point of an edge inside a world shape is a contact with it.
+    ``(joint, ends (E, 3), other ends (E, 3))`` in its joint's rotated frame.
+    Every edge lies on the geometry as coal checks it (a mesh's surface, a convex
+    piece's or a box's solid), so a point of an edge inside a world shape is a
+    contact with it.
     """
     pts, tris = geometry_mesh(go.geometry)
     edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [0, 2]]]), axis=1)

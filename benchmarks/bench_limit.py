@@ -93,6 +93,7 @@ from bench_pipeline import DENSE, stage_run  # noqa: E402
 from gcm_pipeline.config import EnvironmentConfig, ObjectConfig  # noqa: E402
 from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
 from gcm_pipeline.pipeline import make_checker  # noqa: E402
+from gcm_pipeline.reach.waypoints import end_of_move  # noqa: E402
 from gcm_pipeline.robot.collision import CollisionChecker  # noqa: E402
 from gcm_pipeline.robot.collision.link_spheres import geometry_spheres  # noqa: E402
 from gcm_pipeline.robot.ik import solve_ik  # noqa: E402
@@ -131,6 +132,15 @@ def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
         "gcm_s_per_pose": dt / n,
         "gcm_recall": float(np.mean(res.success)),
     }
+    # the end of an approach move: the pose 10 cm back along its own approach
+    # axis, solved from the grasp's configuration as the stage does
+    ends = targets.copy()
+    ends[:, :3, 3] -= 0.1 * targets[:, :3, 2]
+    dt, (_, reached) = timed(
+        lambda: end_of_move(robot, ends, q, "pinocchio", TOL_P, TOL_R, {}), repeats
+    )
+    out["gcm_move_end_s_per_pose"] = dt / n
+    out["gcm_move_end_reached"] = float(np.mean(reached))
     try:
         import frankik
     except ImportError:
@@ -179,6 +189,40 @@ def best_ik(ik: dict[str, Any]) -> tuple[str, float]:
 # --- the stage: counted checks and its rate -------------------------------------------------
 
 
+#: Where the stage calls IK, by purpose: the module and the name it calls.
+IK_CALLERS = {
+    "first": ("gcm_pipeline.reach.chunk", "solve_ik"),
+    "alternatives": ("gcm_pipeline.reach.alternatives", "solve_ik"),
+    "move_end_lm": ("gcm_pipeline.reach.waypoints", "solve_ik"),
+    "move_continuation": ("gcm_pipeline.reach.path", "solve_ik"),
+    "move_end": ("gcm_pipeline.reach.path", "end_of_move"),
+}
+
+
+def _count_ik_rows() -> dict[str, Any]:
+    """Wrap each IK call of the stage (in this process) to count its target rows by purpose.
+
+    ``move_end`` counts the end poses of approach and retreat moves given to
+    :func:`~gcm_pipeline.reach.waypoints.end_of_move` (the Panda's closed form
+    first); ``move_end_lm`` the rows of those it hands to LM.
+    """
+    import importlib
+
+    rows: dict[str, Any] = {"_originals": []}
+    for purpose, (module_name, name) in IK_CALLERS.items():
+        module = importlib.import_module(module_name)
+        original = getattr(module, name)
+        rows[purpose] = 0
+
+        def counting(robot, targets, *a, _p=purpose, _f=original, **k):  # type: ignore[no-untyped-def]
+            rows[_p] += len(np.asarray(targets).reshape(-1, 4, 4))
+            return _f(robot, targets, *a, **k)
+
+        setattr(module, name, counting)
+        rows["_originals"].append((module, name, original))
+    return rows
+
+
 def counted_stage(sample: int) -> dict[str, Any]:
     """One stage run (one process) with check/clearance wrapped to count rows."""
     counts: dict[str, int] = {"check_calls": 0, "clearance_rows": 0}
@@ -199,11 +243,15 @@ def counted_stage(sample: int) -> dict[str, Any]:
 
     CollisionChecker.check = counting_check  # type: ignore[method-assign]
     CollisionChecker.clearance = counting_clearance  # type: ignore[method-assign]
+    ik_rows = _count_ik_rows()
     try:
         run = stage_run(DENSE, "1")
     finally:
         CollisionChecker.check = check  # type: ignore[method-assign]
         CollisionChecker.clearance = clearance  # type: ignore[method-assign]
+        for module, name, original in ik_rows.pop("_originals"):  # type: ignore[attr-defined]
+            setattr(module, name, original)
+    counts.update({f"ik_rows_{k}": v for k, v in ik_rows.items()})
     rows = sum(v for k, v in counts.items() if k.startswith("check_rows_"))
     seen = np.concatenate(kept) if kept else np.zeros((0, 7))
     seen = seen[np.all(np.isfinite(seen), axis=1)]
@@ -214,6 +262,7 @@ def counted_stage(sample: int) -> dict[str, Any]:
         "poses": run["poses"],
         "counts": counts,
         "checks_per_pose": rows / run["poses"],
+        "ik_rows_per_pose": sum(ik_rows.values()) / run["poses"],
         "clearance_per_pose": counts["clearance_rows"] / run["poses"],
         "configurations": seen[pick],
         "approach": (np.asarray(done["q"])[ok], np.asarray(done["q_pregrasp"])[ok]),
@@ -547,6 +596,12 @@ def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
     best = min(checks, key=checks.__getitem__)
     limit = 1.0 / (t_ik + cpp * checks[best])
     limit_gcm = 1.0 / (t_ik + cpp * checks["gcm"])
+    # the moves' ends are IK the stage cannot skip (one per approach or retreat
+    # planned): the limit with them, at the measured cost of one move end
+    counts = report["stage_counts"]["counts"]
+    moves = counts.get("ik_rows_move_end", 0) / report["stage_counts"]["poses"]
+    t_move = report["ik"]["gcm_move_end_s_per_pose"]
+    limit_moves = 1.0 / (t_ik + moves * t_move + cpp * checks[best])
     return {
         "t_ik_s": t_ik,
         "t_ik_from": ik_name,
@@ -558,6 +613,10 @@ def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
         "stage_poses_per_s_one_process": stage_rate,
         "stage_fraction_of_limit": stage_rate / limit,
         "stage_fraction_of_limit_at_gcm_checks": stage_rate / limit_gcm,
+        "move_ends_per_pose": moves,
+        "t_move_end_s": t_move,
+        "limit_with_move_ends_poses_per_s": limit_moves,
+        "stage_fraction_of_limit_with_move_ends": stage_rate / limit_moves,
     }
 
 
@@ -584,8 +643,11 @@ def main() -> None:
         "stage": check_figures(robot, checker, counted["configurations"], args),
     }
     report["approach_blocks"] = motion_figures(robot, checker, *counted["approach"], args)
-    walls = [stage_run(DENSE, "1")["wall_s"] for _ in range(args.repeats)]
+    runs = [stage_run(DENSE, "1") for _ in range(args.repeats)]
+    walls = [r["wall_s"] for r in runs]
     report["stage_wall_s_runs"] = walls
+    # where the stage's time goes (CPU seconds by step, the median run)
+    report["stage_cpu_s_by_step"] = runs[int(np.argsort(walls)[len(walls) // 2])]["cpu_s_by_step"]
     report["model"] = model_figures(report, counted["poses"] / float(np.median(walls)))
     report["machine"] = {
         "cpu_count": os.cpu_count(),

@@ -87,19 +87,29 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_collision import BOTTLE, front_configurations, timed  # noqa: E402
+from bench_collision import front_configurations, timed  # noqa: E402
 from bench_pipeline import DENSE, stage_run  # noqa: E402
 
-from gcm_pipeline.config import EnvironmentConfig, ObjectConfig  # noqa: E402
-from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
-from gcm_pipeline.pipeline import make_checker  # noqa: E402
+from gcm_pipeline.config import load_config  # noqa: E402
+from gcm_pipeline.pipeline import make_checker, robot_from_config  # noqa: E402
 from gcm_pipeline.reach.waypoints import end_of_move  # noqa: E402
 from gcm_pipeline.robot.collision import CollisionChecker  # noqa: E402
 from gcm_pipeline.robot.collision.link_spheres import geometry_spheres  # noqa: E402
 from gcm_pipeline.robot.ik import solve_ik  # noqa: E402
+from gcm_pipeline.robot.ik.analytic_6r import nearest_copy  # noqa: E402
 from gcm_pipeline.robot.model import Robot  # noqa: E402
 
 VAMP_SCRIPT = ROOT / "benchmarks" / "vamp" / "vamp_check.py"
+#: The run config of each robot: its arm, tool and world (the dense work: ``DENSE``).
+CONFIGS = {
+    "panda": ROOT / "configs" / "bottle_side.yaml",
+    "ur5": ROOT / "configs" / "bottle_side_ur5.yaml",
+}
+#: Why the UR5 has no VAMP figures.
+NO_VAMP_UR5 = (
+    "not run: VAMP's ur5 model is the bare arm (no gripper), not the UR5 with its "
+    "Robotiq 2F-85 checked here"
+)
 TOL_P, TOL_R = 1e-4, 1e-3
 #: frankik's q7 sampling span [deg] (60 samples): the arm's whole q7 range; the
 #: library's default, 40, finds only 54-59 % of random reachable targets.
@@ -120,8 +130,12 @@ def _frankik_ok(frankik: Any, target: np.ndarray, q: Any) -> bool:
     return False
 
 
-def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
-    """Seconds per pose and recall of each IK on ``n`` reachable targets."""
+def ik_figures(name: str, robot: Robot, n: int, repeats: int) -> dict[str, Any]:
+    """Seconds per pose and recall of each IK on ``n`` reachable targets.
+
+    gcm's default backend and its move end on every arm; frankik on the Panda,
+    EAIK's closed form on a 6R arm.
+    """
     rng = np.random.default_rng(0)
     q = robot.random_configurations(n, rng)
     targets = robot.fk_pinocchio(q)
@@ -141,11 +155,20 @@ def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
     )
     out["gcm_move_end_s_per_pose"] = dt / n
     out["gcm_move_end_reached"] = float(np.mean(reached))
+    if name == "panda":
+        out.update(frankik_figures(q, repeats))
+    elif robot.nq == 6:
+        out.update(eaik_figures(robot, q, targets, repeats))
+    return out
+
+
+def frankik_figures(q: np.ndarray, repeats: int) -> dict[str, Any]:
+    """The Panda's analytic frankik library per pose (see the module doc), or why not."""
     try:
         import frankik
     except ImportError:
-        out["frankik"] = "not installed"
-        return out
+        return {"frankik": "not installed"}
+    n, out = len(q), dict[str, Any]()
     # frankik's fk gives the hand's TCP (gcm's grasp frame); its IK takes the
     # flange: the TCP pose times the inverse of the hand's offset
     c = np.sqrt(0.5)
@@ -175,12 +198,67 @@ def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
     return out
 
 
+def _eaik_recall(robot: Robot, targets: np.ndarray, sols: list[Any]) -> float:
+    """Share of targets with an exact EAIK branch, at a copy inside the limits, on the pose."""
+    ok = np.zeros(len(targets), dtype=bool)
+    for i, (t, sol) in enumerate(zip(targets, sols, strict=True)):
+        qs = np.asarray(sol.Q, dtype=float).reshape(-1, robot.nq)
+        qs = qs[~np.asarray(sol.is_LS, dtype=bool).reshape(-1)]
+        if not len(qs):
+            continue
+        home = np.broadcast_to(robot.home, qs.shape)
+        qs = nearest_copy(qs, home, robot.lower, robot.upper)
+        qs = qs[np.all(np.isfinite(qs), axis=1)]
+        if not len(qs):
+            continue
+        fk = robot.fk_pinocchio(qs)
+        dp = np.linalg.norm(fk[:, :3, 3] - t[:3, 3], axis=1)
+        dr = [np.linalg.norm(pin.log3(t[:3, :3].T @ f[:3, :3])) for f in fk]
+        ok[i] = bool(np.any((dp <= TOL_P) & (np.asarray(dr) <= TOL_R)))
+    return float(np.mean(ok))
+
+
+def eaik_figures(robot: Robot, q: np.ndarray, targets: np.ndarray, repeats: int) -> dict[str, Any]:
+    """EAIK's closed form (every branch) per pose on a 6R arm, or why there is none.
+
+    The EAIK robot is built from Pinocchio's kinematics
+    (``bench_branches.eaik_from_pinocchio``); called one pose per call
+    (``calculate_IK``) and on the whole array on one thread
+    (``calculate_IK_batched``). A target is solved when some exact branch, at
+    its 2π copy inside the limits nearest home, is on the pose (0.1 mm / 1 mrad).
+    """
+    try:
+        from bench_branches import eaik_from_pinocchio
+    except ImportError:
+        return {"eaik": "not installed"}
+    bot = eaik_from_pinocchio(robot)
+    if not bot.has_known_decomposition():
+        return {"eaik": "EAIK knows no decomposition of this arm"}
+    poses = [np.ascontiguousarray(t) for t in targets]
+    n, out = len(poses), dict[str, Any]()
+    dt, sols = timed(lambda: [bot.calculate_IK(t) for t in poses], repeats)
+    out["eaik_one_per_call_s_per_pose"] = dt / n
+    out["eaik_recall"] = _eaik_recall(robot, targets, sols)
+    dt, sols = timed(lambda: bot.calculate_IK_batched(poses, 1), repeats)
+    out["eaik_batched_one_thread_s_per_pose"] = dt / n
+    out["eaik_batched_recall"] = _eaik_recall(robot, targets, sols)
+    out["eaik_branches_per_pose"] = float(
+        np.mean([np.count_nonzero(~np.asarray(s.is_LS, dtype=bool)) for s in sols])
+    )
+    return out
+
+
 def best_ik(ik: dict[str, Any]) -> tuple[str, float]:
-    """The fastest IK with recall >= 99 % (the closed form given q7 is no full IK)."""
+    """The fastest IK with recall >= 99 % (frankik's closed form given q7 is no full IK)."""
     options = [("gcm", ik["gcm_s_per_pose"], ik["gcm_recall"])]
     if "frankik_sampled_q7_s_per_pose" in ik:
         options.append(
             ("frankik", ik["frankik_sampled_q7_s_per_pose"], ik["frankik_sampled_q7_recall"])
+        )
+    if "eaik_one_per_call_s_per_pose" in ik:
+        options.append(("eaik", ik["eaik_one_per_call_s_per_pose"], ik["eaik_recall"]))
+        options.append(
+            ("eaik_batched", ik["eaik_batched_one_thread_s_per_pose"], ik["eaik_batched_recall"])
         )
     name, t, _ = min((o for o in options if o[2] >= 0.99), key=lambda o: o[1])
     return name, t
@@ -223,8 +301,8 @@ def _count_ik_rows() -> dict[str, Any]:
     return rows
 
 
-def counted_stage(sample: int) -> dict[str, Any]:
-    """One stage run (one process) with check/clearance wrapped to count rows."""
+def counted_stage(config: Path, sample: int) -> dict[str, Any]:
+    """One stage run of ``config`` (one process) with check/clearance wrapped to count rows."""
     counts: dict[str, int] = {"check_calls": 0, "clearance_rows": 0}
     kept: list[np.ndarray] = []
     rng = np.random.default_rng(1)
@@ -245,7 +323,7 @@ def counted_stage(sample: int) -> dict[str, Any]:
     CollisionChecker.clearance = counting_clearance  # type: ignore[method-assign]
     ik_rows = _count_ik_rows()
     try:
-        run = stage_run(DENSE, "1")
+        run = stage_run(DENSE, "1", config)
     finally:
         CollisionChecker.check = check  # type: ignore[method-assign]
         CollisionChecker.clearance = clearance  # type: ignore[method-assign]
@@ -253,7 +331,7 @@ def counted_stage(sample: int) -> dict[str, Any]:
             setattr(module, name, original)
     counts.update({f"ik_rows_{k}": v for k, v in ik_rows.items()})
     rows = sum(v for k, v in counts.items() if k.startswith("check_rows_"))
-    seen = np.concatenate(kept) if kept else np.zeros((0, 7))
+    seen = np.concatenate(kept) if kept else np.zeros((0, run["robot"].nq))
     seen = seen[np.all(np.isfinite(seen), axis=1)]
     pick = np.random.default_rng(2).permutation(len(seen))[:sample]
     done = run["grasps"]
@@ -473,6 +551,7 @@ def outer_sphere_figures(
             m = data.oMi[joint[i]]
             world[k, start[i] : start[i + 1]] = local[i] @ np.asarray(m.rotation).T + m.translation
     near = np.zeros(len(q), dtype=bool)
+    by_pair: dict[str, int] = {}
     for pair in gm.collisionPairs:
         a, b = int(pair.first), int(pair.second)
         if a >= nr:
@@ -481,12 +560,18 @@ def outer_sphere_figures(
         if b < nr:
             cb, rb = world[:, start[b] : start[b + 1]], covers[b].radii
             d = np.linalg.norm(ca[:, :, None] - cb[:, None, :], axis=-1) - ra[:, None] - rb
-            near |= np.any(d <= 0, axis=(1, 2))
-            continue
-        gap = _world_gap(ca, gm.geometryObjects[b])
-        near |= np.ones(len(q), bool) if gap is None else np.any(gap <= ra, axis=1)
+            touch = np.any(d <= 0, axis=(1, 2))
+        else:
+            gap = _world_gap(ca, gm.geometryObjects[b])
+            touch = np.ones(len(q), bool) if gap is None else np.any(gap <= ra, axis=1)
+        near |= touch
+        names = f"{gm.geometryObjects[a].name}|{gm.geometryObjects[b].name}"
+        by_pair[names] = int(np.count_nonzero(touch & ~hit))
     free = ~hit
+    top = sorted(by_pair.items(), key=lambda kv: -kv[1])[:5]
     return {
+        # the pairs whose spheres touch on the most exact-free configurations
+        "pairs_touching_most_on_free": dict(top),
         "spheres": int(start[-1]),
         "configurations": len(q),
         "exact_free": int(np.count_nonzero(free)),
@@ -497,9 +582,9 @@ def outer_sphere_figures(
 
 
 def check_figures(
-    robot: Robot, checker: CollisionChecker, q: np.ndarray, args: argparse.Namespace
+    robot: Robot, checker: CollisionChecker, q: np.ndarray, args: argparse.Namespace, vamp: bool
 ) -> dict[str, Any]:
-    """gcm (array, per call), Pinocchio's loop and VAMP on one set of configurations."""
+    """gcm (array, per call), Pinocchio's loop and (``vamp``) VAMP on one set of configurations."""
     n, m = len(q), min(len(q), args.loop_configs)
     out: dict[str, Any] = {"configurations": n}
     dt, reasons = timed(lambda: checker.check(q), args.repeats)
@@ -512,8 +597,28 @@ def check_figures(
     out["gcm_differs_from_pinocchio"] = int(np.count_nonzero(gcm_hit != hit))
     out["colliding_fraction_coal"] = float(np.mean(hit))
     out["outer_spheres"] = outer_sphere_figures(robot, checker, q[:m], hit)
+    if not vamp:
+        out["vamp"] = NO_VAMP_UR5
+        return out
+    out.update(vamp_check_figures(checker, q, np.asarray(reasons) != "", hit, args))
+    if "vamp_cpp_s_per_config" in out:
+        g = out["gcm_s_per_config"]
+        out["ratio_gcm_rate_over_vamp_one_per_call"] = out["vamp_cpp_s_per_config"] / g
+        out["ratio_gcm_rate_over_vamp_blocks"] = out["vamp_cpp_block_s_per_config"] / g
+    return out
+
+
+def vamp_check_figures(
+    checker: CollisionChecker,
+    q: np.ndarray,
+    exact: np.ndarray,
+    hit: np.ndarray,
+    args: argparse.Namespace,
+) -> dict[str, Any]:
+    """VAMP's Panda checker (binding, C++) on ``q``: against gcm's ``exact``, coal's ``hit``."""
+    m = len(hit)
+    out: dict[str, Any] = {}
     scene = vamp_scene(checker)
-    exact = np.asarray(reasons) != ""  # gcm's exact answer (= coal's on the loop's rows)
     vamp = run_vamp(args.vamp_python, scene, q, np.zeros((0, 2, 7)), args.repeats, exact)
     if isinstance(vamp, str):
         out["vamp"] = vamp
@@ -526,7 +631,7 @@ def check_figures(
     if not binary.exists():
         out["vamp_cpp"] = f"no {binary} (benchmarks/vamp/vamp_bench.cc compiled beside that python)"
         return out
-    free = q[np.asarray(reasons) == ""]
+    free = q[~exact]
     cpp = run_vamp_cpp(binary, scene, q, free, max(15, args.repeats))  # loops of a few ms
     if "error" in cpp:
         out["vamp_cpp"] = cpp["error"]
@@ -538,9 +643,6 @@ def check_figures(
     out["vamp_disagreements_with_coal"] = disagreements(cpp["valid"][:m], hit)
     gcm_all = disagreements(cpp["valid"], exact)
     out["vamp_disagreements_with_gcm"] = {k.replace("coal", "gcm"): v for k, v in gcm_all.items()}
-    g = out["gcm_s_per_config"]
-    out["ratio_gcm_rate_over_vamp_one_per_call"] = out["vamp_cpp_s_per_config"] / g
-    out["ratio_gcm_rate_over_vamp_blocks"] = out["vamp_cpp_block_s_per_config"] / g
     return out
 
 
@@ -602,6 +704,7 @@ def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
     moves = counts.get("ik_rows_move_end", 0) / report["stage_counts"]["poses"]
     t_move = report["ik"]["gcm_move_end_s_per_pose"]
     limit_moves = 1.0 / (t_ik + moves * t_move + cpp * checks[best])
+    limit_moves_gcm = 1.0 / (t_ik + moves * t_move + cpp * checks["gcm"])
     return {
         "t_ik_s": t_ik,
         "t_ik_from": ik_name,
@@ -617,11 +720,87 @@ def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
         "t_move_end_s": t_move,
         "limit_with_move_ends_poses_per_s": limit_moves,
         "stage_fraction_of_limit_with_move_ends": stage_rate / limit_moves,
+        "limit_with_move_ends_at_gcm_checks_poses_per_s": limit_moves_gcm,
+        "stage_fraction_of_limit_with_move_ends_at_gcm_checks": stage_rate / limit_moves_gcm,
     }
+
+
+#: The figures set side by side for every robot run: name -> path in its section.
+SIDE_BY_SIDE = {
+    "t_ik_s": ("model", "t_ik_s"),
+    "t_ik_from": ("model", "t_ik_from"),
+    "gcm_ik_s_per_pose": ("ik", "gcm_s_per_pose"),
+    "checks_per_pose": ("model", "checks_per_pose"),
+    "move_ends_per_pose": ("model", "move_ends_per_pose"),
+    "t_move_end_s": ("model", "t_move_end_s"),
+    "gcm_check_stage_s_per_config": ("checks", "stage", "gcm_s_per_config"),
+    "gcm_check_front_s_per_config": ("checks", "front", "gcm_s_per_config"),
+    "gcm_differs_from_pinocchio_stage": ("checks", "stage", "gcm_differs_from_pinocchio"),
+    "gcm_differs_from_pinocchio_front": ("checks", "front", "gcm_differs_from_pinocchio"),
+    "outer_spheres_proven_free_stage": (
+        "checks", "stage", "outer_spheres", "proven_free_fraction_of_free"
+    ),
+    "stage_poses_per_s_one_process": ("model", "stage_poses_per_s_one_process"),
+    "t_check_from": ("model", "t_check_from"),
+    "stage_fraction_of_limit": ("model", "stage_fraction_of_limit"),
+    "stage_fraction_of_limit_at_gcm_checks": ("model", "stage_fraction_of_limit_at_gcm_checks"),
+    "stage_fraction_of_limit_with_move_ends": ("model", "stage_fraction_of_limit_with_move_ends"),
+    "stage_fraction_of_limit_with_move_ends_at_gcm_checks": (
+        "model", "stage_fraction_of_limit_with_move_ends_at_gcm_checks"
+    ),
+}  # fmt: skip
+
+
+def side_by_side(robots: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Each :data:`SIDE_BY_SIDE` figure of every robot run: figure -> robot -> value."""
+    out: dict[str, dict[str, Any]] = {}
+    for figure, path in SIDE_BY_SIDE.items():
+        for name, section in robots.items():
+            value: Any = section
+            for key in path:
+                value = value.get(key) if isinstance(value, dict) else None
+            out.setdefault(figure, {})[name] = value
+    return out
+
+
+def robot_report(name: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Every figure of one robot (``CONFIGS[name]``, the dense work ``DENSE``)."""
+    load_start = os.getloadavg()
+    cfg = load_config(CONFIGS[name], DENSE)
+    robot = robot_from_config(cfg)
+    checker = make_checker(robot, cfg.environment, cfg.object, cfg.robot.base_pose.matrix())
+    vamp = name == "panda"  # VAMP's ur5 is the bare arm: see NO_VAMP_UR5
+    report: dict[str, Any] = {
+        "config": str(CONFIGS[name].relative_to(ROOT)),
+        "overrides": DENSE,
+        "ik": ik_figures(name, robot, args.ik_targets, args.repeats),
+    }
+    counted = counted_stage(CONFIGS[name], args.configs)
+    report["stage_counts"] = {
+        k: v for k, v in counted.items() if k not in ("configurations", "approach")
+    }
+    front = front_configurations(robot, args.configs)
+    report["checks"] = {
+        "front": check_figures(robot, checker, front, args, vamp),
+        "stage": check_figures(robot, checker, counted["configurations"], args, vamp),
+    }
+    if vamp:
+        report["approach_blocks"] = motion_figures(robot, checker, *counted["approach"], args)
+    else:
+        report["approach_blocks"] = {"vamp": NO_VAMP_UR5}
+    runs = [stage_run(DENSE, "1", CONFIGS[name]) for _ in range(args.repeats)]
+    walls = [r["wall_s"] for r in runs]
+    report["stage_wall_s_runs"] = walls
+    # where the stage's time goes (CPU seconds by step, the median run)
+    report["stage_cpu_s_by_step"] = runs[int(np.argsort(walls)[len(walls) // 2])]["cpu_s_by_step"]
+    report["model"] = model_figures(report, counted["poses"] / float(np.median(walls)))
+    report["load_average"] = {"start": load_start, "end": os.getloadavg()}
+    return report
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robot", choices=("panda", "ur5", "both"), default="both")
     parser.add_argument("--ik-targets", type=int, default=2000)
     parser.add_argument("--configs", type=int, default=20000)
     parser.add_argument("--loop-configs", type=int, default=3000, help="per-call loops")
@@ -631,24 +810,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "limit.json")
     args = parser.parse_args()
     load_start = os.getloadavg()
-    robot = load_robot("panda")
-    checker = make_checker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
-    report: dict[str, Any] = {"ik": ik_figures(robot, args.ik_targets, args.repeats)}
-    counted = counted_stage(args.configs)
-    report["stage_counts"] = {
-        k: v for k, v in counted.items() if k not in ("configurations", "approach")
-    }
-    report["checks"] = {
-        "front": check_figures(robot, checker, front_configurations(robot, args.configs), args),
-        "stage": check_figures(robot, checker, counted["configurations"], args),
-    }
-    report["approach_blocks"] = motion_figures(robot, checker, *counted["approach"], args)
-    runs = [stage_run(DENSE, "1") for _ in range(args.repeats)]
-    walls = [r["wall_s"] for r in runs]
-    report["stage_wall_s_runs"] = walls
-    # where the stage's time goes (CPU seconds by step, the median run)
-    report["stage_cpu_s_by_step"] = runs[int(np.argsort(walls)[len(walls) // 2])]["cpu_s_by_step"]
-    report["model"] = model_figures(report, counted["poses"] / float(np.median(walls)))
+    names = list(CONFIGS) if args.robot == "both" else [args.robot]
+    robots = {name: robot_report(name, args) for name in names}
+    report: dict[str, Any] = {"side_by_side": side_by_side(robots), "robots": robots}
     report["machine"] = {
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),

@@ -1,8 +1,12 @@
 #!/usr/bin/env python
 """Benchmark: the reachability stage against its per-core limit.
 
-One run measures, on the Panda, the table and the bottle of
-``configs/bottle_side.yaml`` (the world of ``bench_collision.py``):
+One run measures, for each robot of ``--robot`` (default ``both``), on the
+table and the bottle of its run config (``CONFIGS``): the Panda of
+``configs/bottle_side.yaml`` (the world of ``bench_collision.py``) and the UR5
+with its Robotiq 2F-85 of ``configs/bottle_side_ur5.yaml`` (the same world;
+robot and tool built by the pipeline from the config); the dense work is
+``bench_pipeline.DENSE`` on either config. On each robot:
 
 * **IK per pose** on 2,000 reachable targets (forward kinematics of random
   in-limit configurations): gcm's default backend (batched LM), and, when
@@ -12,10 +16,17 @@ One run measures, on the Panda, the table and the bottle of
   samples of q7 over its range, every branch: the library's full IK) and ``ik_full`` with the
   target's own q7 given (the closed form alone, every branch: a lower bound
   that needs q7 from elsewhere); a success is a finite solution whose frankik FK
-  is within 0.1 mm / 1 mrad of the target. EAIK's closed form is for 6R arms
-  (see ``bench_branches.py``): it does not apply to the 7R Panda. The model's
-  ``t_ik`` is the fastest IK with recall >= 99 % (the closed form given q7 is
-  not an IK of the pose alone).
+  is within 0.1 mm / 1 mrad of the target. On the UR5 (a 6R arm: gcm's
+  default backend is itself EAIK's closed form, then LM where it has no
+  branch), EAIK's closed form alone when ``eaik`` is installed (the robot built
+  from Pinocchio's kinematics as ``bench_branches.py`` does; every branch,
+  ``calculate_IK`` one pose per call and ``calculate_IK_batched`` on one
+  thread; a success is an exact branch with a 2π copy inside the limits on
+  the target). ``gcm_move_end_*``: gcm's IK of the end of an approach move
+  (the pose 10 cm back along its approach axis) from the grasp's
+  configuration, as the stage solves it. The model's ``t_ik`` is the fastest
+  IK with recall >= 99 % (frankik's closed form given q7 is not an IK of the
+  pose alone).
 * **Collision checks per configuration**, on two sets: ``front`` (random
   configurations with the hand in front of the robot above the table, as
   ``bench_collision.py``) and ``stage`` (a random sample of the configurations
@@ -37,13 +48,17 @@ One run measures, on the Panda, the table and the bottle of
   end). VAMP approximates the links by spheres: its decisions are compared with
   coal's (``vamp_disagreements_with_coal``, first ``--loop-configs``) and with
   gcm's exact ones on the whole set (``vamp_disagreements_with_gcm``).
+  VAMP is not run on the UR5 (``vamp`` says why): VAMP's ``ur5`` model is the
+  bare arm, without the gripper, so it is not the robot checked here.
 * **Outer spheres** (``outer_spheres``, first ``--loop-configs`` of each set):
   the configurations that the generated outer link spheres
   (:mod:`gcm_pipeline.robot.collision.link_spheres`, not yet used by the
   checker) prove free, pair by pair of the checker's collision pairs (sphere
   against sphere, or against the world box / cylinder exactly), as a fraction
-  of those coal finds free; ``proven_free_but_colliding`` must be 0.
-* **Approach motions in blocks** (``approach_blocks``): VAMP's
+  of those coal finds free; ``proven_free_but_colliding`` must be 0;
+  ``pairs_touching_most_on_free``: the pairs whose spheres touch on the most
+  configurations coal finds free (what keeps the spheres from proving more).
+* **Approach motions in blocks** (``approach_blocks``, Panda only): VAMP's
   ``validate_motion`` (binding) on the stage's grasp -> pre-grasp joint-space
   segments (blocks of 8 interpolated configurations at its resolution), against
   gcm's ``approach``-mode check of the same interpolated configurations.
@@ -51,20 +66,29 @@ One run measures, on the Panda, the table and the bottle of
   grasps, subdivisions 28, approach 10 cm / 10 steps: ``bench_pipeline.py``'s
   work) with ``ik.workers: 1`` and :meth:`CollisionChecker.check` and
   :meth:`CollisionChecker.clearance` wrapped (in this process only, the library
-  is not changed) to count the rows checked, by mode.
+  is not changed) to count the rows checked, by mode; the stage's IK calls are
+  wrapped too, to count their target rows by purpose (``IK_CALLERS``).
 * **The stage's rate** (same work, one process, unwrapped, median of
   ``--repeats`` runs) as a fraction of the limit
   ``1 / (t_ik + checks_per_pose * t_check)`` with ``t_check`` the fastest
   check per configuration measured on the stage's configurations (VAMP's C++
   blocks where built; the approach-motion figure is not used: an invalid motion
   stops early, so its per-configuration cost is an estimate), and of the limit
-  at gcm's own check rate.
+  at gcm's own check rate (``*_at_gcm_checks``: the UR5's only limit, and the
+  one to compare between the robots). ``*_with_move_ends``: the limit with
+  the moves' ends (IK the stage cannot skip, ``move_ends_per_pose`` of them at
+  ``t_move_end_s`` each) added.
+
+``side_by_side`` sets the main figures of the robots next to each other;
+``robots.<name>`` holds every figure of one robot, with the load average over
+its part of the run.
 
 Rates of different runs are not comparable (the machine is shared): the report
 gives ratios of one run, medians of ``--repeats``, and the load average.
 
-Run from the repository root: ``python benchmarks/bench_limit.py`` (about two
-minutes); writes ``benchmarks/results/limit.json``.
+Run from the repository root: ``python benchmarks/bench_limit.py
+[--robot panda|ur5|both] [--vamp-python VENV/bin/python]`` (a few minutes per
+robot); writes ``benchmarks/results/limit.json``.
 """
 
 from __future__ import annotations

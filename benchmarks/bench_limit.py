@@ -1,8 +1,12 @@
 #!/usr/bin/env python
 """Benchmark: the reachability stage against its per-core limit.
 
-One run measures, on the Panda, the table and the bottle of
-``configs/bottle_side.yaml`` (the world of ``bench_collision.py``):
+One run measures, for each robot of ``--robot`` (default ``both``), on the
+table and the bottle of its run config (``CONFIGS``): the Panda of
+``configs/bottle_side.yaml`` (the world of ``bench_collision.py``) and the UR5
+with its Robotiq 2F-85 of ``configs/bottle_side_ur5.yaml`` (the same world;
+robot and tool built by the pipeline from the config); the dense work is
+``bench_pipeline.DENSE`` on either config. On each robot:
 
 * **IK per pose** on 2,000 reachable targets (forward kinematics of random
   in-limit configurations): gcm's default backend (batched LM), and, when
@@ -12,10 +16,17 @@ One run measures, on the Panda, the table and the bottle of
   samples of q7 over its range, every branch: the library's full IK) and ``ik_full`` with the
   target's own q7 given (the closed form alone, every branch: a lower bound
   that needs q7 from elsewhere); a success is a finite solution whose frankik FK
-  is within 0.1 mm / 1 mrad of the target. EAIK's closed form is for 6R arms
-  (see ``bench_branches.py``): it does not apply to the 7R Panda. The model's
-  ``t_ik`` is the fastest IK with recall >= 99 % (the closed form given q7 is
-  not an IK of the pose alone).
+  is within 0.1 mm / 1 mrad of the target. On the UR5 (a 6R arm: gcm's
+  default backend is itself EAIK's closed form, then LM where it has no
+  branch), EAIK's closed form alone when ``eaik`` is installed (the robot built
+  from Pinocchio's kinematics as ``bench_branches.py`` does; every branch,
+  ``calculate_IK`` one pose per call and ``calculate_IK_batched`` on one
+  thread; a success is an exact branch with a 2π copy inside the limits on
+  the target). ``gcm_move_end_*``: gcm's IK of the end of an approach move
+  (the pose 10 cm back along its approach axis) from the grasp's
+  configuration, as the stage solves it. The model's ``t_ik`` is the fastest
+  IK with recall >= 99 % (frankik's closed form given q7 is not an IK of the
+  pose alone).
 * **Collision checks per configuration**, on two sets: ``front`` (random
   configurations with the hand in front of the robot above the table, as
   ``bench_collision.py``) and ``stage`` (a random sample of the configurations
@@ -37,13 +48,17 @@ One run measures, on the Panda, the table and the bottle of
   end). VAMP approximates the links by spheres: its decisions are compared with
   coal's (``vamp_disagreements_with_coal``, first ``--loop-configs``) and with
   gcm's exact ones on the whole set (``vamp_disagreements_with_gcm``).
+  VAMP is not run on the UR5 (``vamp`` says why): VAMP's ``ur5`` model is the
+  bare arm, without the gripper, so it is not the robot checked here.
 * **Outer spheres** (``outer_spheres``, first ``--loop-configs`` of each set):
   the configurations that the generated outer link spheres
   (:mod:`gcm_pipeline.robot.collision.link_spheres`, not yet used by the
   checker) prove free, pair by pair of the checker's collision pairs (sphere
   against sphere, or against the world box / cylinder exactly), as a fraction
-  of those coal finds free; ``proven_free_but_colliding`` must be 0.
-* **Approach motions in blocks** (``approach_blocks``): VAMP's
+  of those coal finds free; ``proven_free_but_colliding`` must be 0;
+  ``pairs_touching_most_on_free``: the pairs whose spheres touch on the most
+  configurations coal finds free (what keeps the spheres from proving more).
+* **Approach motions in blocks** (``approach_blocks``, Panda only): VAMP's
   ``validate_motion`` (binding) on the stage's grasp -> pre-grasp joint-space
   segments (blocks of 8 interpolated configurations at its resolution), against
   gcm's ``approach``-mode check of the same interpolated configurations.
@@ -51,20 +66,29 @@ One run measures, on the Panda, the table and the bottle of
   grasps, subdivisions 28, approach 10 cm / 10 steps: ``bench_pipeline.py``'s
   work) with ``ik.workers: 1`` and :meth:`CollisionChecker.check` and
   :meth:`CollisionChecker.clearance` wrapped (in this process only, the library
-  is not changed) to count the rows checked, by mode.
+  is not changed) to count the rows checked, by mode; the stage's IK calls are
+  wrapped too, to count their target rows by purpose (``IK_CALLERS``).
 * **The stage's rate** (same work, one process, unwrapped, median of
   ``--repeats`` runs) as a fraction of the limit
   ``1 / (t_ik + checks_per_pose * t_check)`` with ``t_check`` the fastest
   check per configuration measured on the stage's configurations (VAMP's C++
   blocks where built; the approach-motion figure is not used: an invalid motion
   stops early, so its per-configuration cost is an estimate), and of the limit
-  at gcm's own check rate.
+  at gcm's own check rate (``*_at_gcm_checks``: the UR5's only limit, and the
+  one to compare between the robots). ``*_with_move_ends``: the limit with
+  the moves' ends (IK the stage cannot skip, ``move_ends_per_pose`` of them at
+  ``t_move_end_s`` each) added.
+
+``side_by_side`` sets the main figures of the robots next to each other;
+``robots.<name>`` holds every figure of one robot, with the load average over
+its part of the run.
 
 Rates of different runs are not comparable (the machine is shared): the report
 gives ratios of one run, medians of ``--repeats``, and the load average.
 
-Run from the repository root: ``python benchmarks/bench_limit.py`` (about two
-minutes); writes ``benchmarks/results/limit.json``.
+Run from the repository root: ``python benchmarks/bench_limit.py
+[--robot panda|ur5|both] [--vamp-python VENV/bin/python]`` (a few minutes per
+robot); writes ``benchmarks/results/limit.json``.
 """
 
 from __future__ import annotations
@@ -87,18 +111,29 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_collision import BOTTLE, front_configurations, timed  # noqa: E402
+from bench_collision import front_configurations, timed  # noqa: E402
 from bench_pipeline import DENSE, stage_run  # noqa: E402
 
-from gcm_pipeline.config import EnvironmentConfig, ObjectConfig  # noqa: E402
-from gcm_pipeline.config.robot_spec import load_robot  # noqa: E402
-from gcm_pipeline.pipeline import make_checker  # noqa: E402
+from gcm_pipeline.config import load_config  # noqa: E402
+from gcm_pipeline.pipeline import make_checker, robot_from_config  # noqa: E402
+from gcm_pipeline.reach.waypoints import end_of_move  # noqa: E402
 from gcm_pipeline.robot.collision import CollisionChecker  # noqa: E402
 from gcm_pipeline.robot.collision.link_spheres import geometry_spheres  # noqa: E402
 from gcm_pipeline.robot.ik import solve_ik  # noqa: E402
+from gcm_pipeline.robot.ik.analytic_6r import nearest_copy  # noqa: E402
 from gcm_pipeline.robot.model import Robot  # noqa: E402
 
 VAMP_SCRIPT = ROOT / "benchmarks" / "vamp" / "vamp_check.py"
+#: The run config of each robot: its arm, tool and world (the dense work: ``DENSE``).
+CONFIGS = {
+    "panda": ROOT / "configs" / "bottle_side.yaml",
+    "ur5": ROOT / "configs" / "bottle_side_ur5.yaml",
+}
+#: Why the UR5 has no VAMP figures.
+NO_VAMP_UR5 = (
+    "not run: VAMP's ur5 model is the bare arm (no gripper), not the UR5 with its "
+    "Robotiq 2F-85 checked here"
+)
 TOL_P, TOL_R = 1e-4, 1e-3
 #: frankik's q7 sampling span [deg] (60 samples): the arm's whole q7 range; the
 #: library's default, 40, finds only 54-59 % of random reachable targets.
@@ -119,8 +154,12 @@ def _frankik_ok(frankik: Any, target: np.ndarray, q: Any) -> bool:
     return False
 
 
-def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
-    """Seconds per pose and recall of each IK on ``n`` reachable targets."""
+def ik_figures(name: str, robot: Robot, n: int, repeats: int) -> dict[str, Any]:
+    """Seconds per pose and recall of each IK on ``n`` reachable targets.
+
+    gcm's default backend and its move end on every arm; frankik on the Panda,
+    EAIK's closed form on a 6R arm.
+    """
     rng = np.random.default_rng(0)
     q = robot.random_configurations(n, rng)
     targets = robot.fk_pinocchio(q)
@@ -131,11 +170,29 @@ def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
         "gcm_s_per_pose": dt / n,
         "gcm_recall": float(np.mean(res.success)),
     }
+    # the end of an approach move: the pose 10 cm back along its own approach
+    # axis, solved from the grasp's configuration as the stage does
+    ends = targets.copy()
+    ends[:, :3, 3] -= 0.1 * targets[:, :3, 2]
+    dt, (_, reached) = timed(
+        lambda: end_of_move(robot, ends, q, "pinocchio", TOL_P, TOL_R, {}), repeats
+    )
+    out["gcm_move_end_s_per_pose"] = dt / n
+    out["gcm_move_end_reached"] = float(np.mean(reached))
+    if name == "panda":
+        out.update(frankik_figures(q, repeats))
+    elif robot.nq == 6:
+        out.update(eaik_figures(robot, q, targets, repeats))
+    return out
+
+
+def frankik_figures(q: np.ndarray, repeats: int) -> dict[str, Any]:
+    """The Panda's analytic frankik library per pose (see the module doc), or why not."""
     try:
         import frankik
     except ImportError:
-        out["frankik"] = "not installed"
-        return out
+        return {"frankik": "not installed"}
+    n, out = len(q), dict[str, Any]()
     # frankik's fk gives the hand's TCP (gcm's grasp frame); its IK takes the
     # flange: the TCP pose times the inverse of the hand's offset
     c = np.sqrt(0.5)
@@ -165,12 +222,67 @@ def ik_figures(robot: Robot, n: int, repeats: int) -> dict[str, Any]:
     return out
 
 
+def _eaik_recall(robot: Robot, targets: np.ndarray, sols: list[Any]) -> float:
+    """Share of targets with an exact EAIK branch, at a copy inside the limits, on the pose."""
+    ok = np.zeros(len(targets), dtype=bool)
+    for i, (t, sol) in enumerate(zip(targets, sols, strict=True)):
+        qs = np.asarray(sol.Q, dtype=float).reshape(-1, robot.nq)
+        qs = qs[~np.asarray(sol.is_LS, dtype=bool).reshape(-1)]
+        if not len(qs):
+            continue
+        home = np.broadcast_to(robot.home, qs.shape)
+        qs = nearest_copy(qs, home, robot.lower, robot.upper)
+        qs = qs[np.all(np.isfinite(qs), axis=1)]
+        if not len(qs):
+            continue
+        fk = robot.fk_pinocchio(qs)
+        dp = np.linalg.norm(fk[:, :3, 3] - t[:3, 3], axis=1)
+        dr = [np.linalg.norm(pin.log3(t[:3, :3].T @ f[:3, :3])) for f in fk]
+        ok[i] = bool(np.any((dp <= TOL_P) & (np.asarray(dr) <= TOL_R)))
+    return float(np.mean(ok))
+
+
+def eaik_figures(robot: Robot, q: np.ndarray, targets: np.ndarray, repeats: int) -> dict[str, Any]:
+    """EAIK's closed form (every branch) per pose on a 6R arm, or why there is none.
+
+    The EAIK robot is built from Pinocchio's kinematics
+    (``bench_branches.eaik_from_pinocchio``); called one pose per call
+    (``calculate_IK``) and on the whole array on one thread
+    (``calculate_IK_batched``). A target is solved when some exact branch, at
+    its 2π copy inside the limits nearest home, is on the pose (0.1 mm / 1 mrad).
+    """
+    try:
+        from bench_branches import eaik_from_pinocchio
+    except ImportError:
+        return {"eaik": "not installed"}
+    bot = eaik_from_pinocchio(robot)
+    if not bot.has_known_decomposition():
+        return {"eaik": "EAIK knows no decomposition of this arm"}
+    poses = [np.ascontiguousarray(t) for t in targets]
+    n, out = len(poses), dict[str, Any]()
+    dt, sols = timed(lambda: [bot.calculate_IK(t) for t in poses], repeats)
+    out["eaik_one_per_call_s_per_pose"] = dt / n
+    out["eaik_recall"] = _eaik_recall(robot, targets, sols)
+    dt, sols = timed(lambda: bot.calculate_IK_batched(poses, 1), repeats)
+    out["eaik_batched_one_thread_s_per_pose"] = dt / n
+    out["eaik_batched_recall"] = _eaik_recall(robot, targets, sols)
+    out["eaik_branches_per_pose"] = float(
+        np.mean([np.count_nonzero(~np.asarray(s.is_LS, dtype=bool)) for s in sols])
+    )
+    return out
+
+
 def best_ik(ik: dict[str, Any]) -> tuple[str, float]:
-    """The fastest IK with recall >= 99 % (the closed form given q7 is no full IK)."""
+    """The fastest IK with recall >= 99 % (frankik's closed form given q7 is no full IK)."""
     options = [("gcm", ik["gcm_s_per_pose"], ik["gcm_recall"])]
     if "frankik_sampled_q7_s_per_pose" in ik:
         options.append(
             ("frankik", ik["frankik_sampled_q7_s_per_pose"], ik["frankik_sampled_q7_recall"])
+        )
+    if "eaik_one_per_call_s_per_pose" in ik:
+        options.append(("eaik", ik["eaik_one_per_call_s_per_pose"], ik["eaik_recall"]))
+        options.append(
+            ("eaik_batched", ik["eaik_batched_one_thread_s_per_pose"], ik["eaik_batched_recall"])
         )
     name, t, _ = min((o for o in options if o[2] >= 0.99), key=lambda o: o[1])
     return name, t
@@ -179,8 +291,42 @@ def best_ik(ik: dict[str, Any]) -> tuple[str, float]:
 # --- the stage: counted checks and its rate -------------------------------------------------
 
 
-def counted_stage(sample: int) -> dict[str, Any]:
-    """One stage run (one process) with check/clearance wrapped to count rows."""
+#: Where the stage calls IK, by purpose: the module and the name it calls.
+IK_CALLERS = {
+    "first": ("gcm_pipeline.reach.chunk", "solve_ik"),
+    "alternatives": ("gcm_pipeline.reach.alternatives", "solve_ik"),
+    "move_end_lm": ("gcm_pipeline.reach.waypoints", "solve_ik"),
+    "move_continuation": ("gcm_pipeline.reach.path", "solve_ik"),
+    "move_end": ("gcm_pipeline.reach.path", "end_of_move"),
+}
+
+
+def _count_ik_rows() -> dict[str, Any]:
+    """Wrap each IK call of the stage (in this process) to count its target rows by purpose.
+
+    ``move_end`` counts the end poses of approach and retreat moves given to
+    :func:`~gcm_pipeline.reach.waypoints.end_of_move` (the Panda's closed form
+    first); ``move_end_lm`` the rows of those it hands to LM.
+    """
+    import importlib
+
+    rows: dict[str, Any] = {"_originals": []}
+    for purpose, (module_name, name) in IK_CALLERS.items():
+        module = importlib.import_module(module_name)
+        original = getattr(module, name)
+        rows[purpose] = 0
+
+        def counting(robot, targets, *a, _p=purpose, _f=original, **k):  # type: ignore[no-untyped-def]
+            rows[_p] += len(np.asarray(targets).reshape(-1, 4, 4))
+            return _f(robot, targets, *a, **k)
+
+        setattr(module, name, counting)
+        rows["_originals"].append((module, name, original))
+    return rows
+
+
+def counted_stage(config: Path, sample: int) -> dict[str, Any]:
+    """One stage run of ``config`` (one process) with check/clearance wrapped to count rows."""
     counts: dict[str, int] = {"check_calls": 0, "clearance_rows": 0}
     kept: list[np.ndarray] = []
     rng = np.random.default_rng(1)
@@ -199,13 +345,17 @@ def counted_stage(sample: int) -> dict[str, Any]:
 
     CollisionChecker.check = counting_check  # type: ignore[method-assign]
     CollisionChecker.clearance = counting_clearance  # type: ignore[method-assign]
+    ik_rows = _count_ik_rows()
     try:
-        run = stage_run(DENSE, "1")
+        run = stage_run(DENSE, "1", config)
     finally:
         CollisionChecker.check = check  # type: ignore[method-assign]
         CollisionChecker.clearance = clearance  # type: ignore[method-assign]
+        for module, name, original in ik_rows.pop("_originals"):  # type: ignore[attr-defined]
+            setattr(module, name, original)
+    counts.update({f"ik_rows_{k}": v for k, v in ik_rows.items()})
     rows = sum(v for k, v in counts.items() if k.startswith("check_rows_"))
-    seen = np.concatenate(kept) if kept else np.zeros((0, 7))
+    seen = np.concatenate(kept) if kept else np.zeros((0, run["robot"].nq))
     seen = seen[np.all(np.isfinite(seen), axis=1)]
     pick = np.random.default_rng(2).permutation(len(seen))[:sample]
     done = run["grasps"]
@@ -214,6 +364,7 @@ def counted_stage(sample: int) -> dict[str, Any]:
         "poses": run["poses"],
         "counts": counts,
         "checks_per_pose": rows / run["poses"],
+        "ik_rows_per_pose": sum(ik_rows.values()) / run["poses"],
         "clearance_per_pose": counts["clearance_rows"] / run["poses"],
         "configurations": seen[pick],
         "approach": (np.asarray(done["q"])[ok], np.asarray(done["q_pregrasp"])[ok]),
@@ -424,6 +575,7 @@ def outer_sphere_figures(
             m = data.oMi[joint[i]]
             world[k, start[i] : start[i + 1]] = local[i] @ np.asarray(m.rotation).T + m.translation
     near = np.zeros(len(q), dtype=bool)
+    by_pair: dict[str, int] = {}
     for pair in gm.collisionPairs:
         a, b = int(pair.first), int(pair.second)
         if a >= nr:
@@ -432,12 +584,18 @@ def outer_sphere_figures(
         if b < nr:
             cb, rb = world[:, start[b] : start[b + 1]], covers[b].radii
             d = np.linalg.norm(ca[:, :, None] - cb[:, None, :], axis=-1) - ra[:, None] - rb
-            near |= np.any(d <= 0, axis=(1, 2))
-            continue
-        gap = _world_gap(ca, gm.geometryObjects[b])
-        near |= np.ones(len(q), bool) if gap is None else np.any(gap <= ra, axis=1)
+            touch = np.any(d <= 0, axis=(1, 2))
+        else:
+            gap = _world_gap(ca, gm.geometryObjects[b])
+            touch = np.ones(len(q), bool) if gap is None else np.any(gap <= ra, axis=1)
+        near |= touch
+        names = f"{gm.geometryObjects[a].name}|{gm.geometryObjects[b].name}"
+        by_pair[names] = int(np.count_nonzero(touch & ~hit))
     free = ~hit
+    top = sorted(by_pair.items(), key=lambda kv: -kv[1])[:5]
     return {
+        # the pairs whose spheres touch on the most exact-free configurations
+        "pairs_touching_most_on_free": dict(top),
         "spheres": int(start[-1]),
         "configurations": len(q),
         "exact_free": int(np.count_nonzero(free)),
@@ -448,9 +606,9 @@ def outer_sphere_figures(
 
 
 def check_figures(
-    robot: Robot, checker: CollisionChecker, q: np.ndarray, args: argparse.Namespace
+    robot: Robot, checker: CollisionChecker, q: np.ndarray, args: argparse.Namespace, vamp: bool
 ) -> dict[str, Any]:
-    """gcm (array, per call), Pinocchio's loop and VAMP on one set of configurations."""
+    """gcm (array, per call), Pinocchio's loop and (``vamp``) VAMP on one set of configurations."""
     n, m = len(q), min(len(q), args.loop_configs)
     out: dict[str, Any] = {"configurations": n}
     dt, reasons = timed(lambda: checker.check(q), args.repeats)
@@ -463,8 +621,28 @@ def check_figures(
     out["gcm_differs_from_pinocchio"] = int(np.count_nonzero(gcm_hit != hit))
     out["colliding_fraction_coal"] = float(np.mean(hit))
     out["outer_spheres"] = outer_sphere_figures(robot, checker, q[:m], hit)
+    if not vamp:
+        out["vamp"] = NO_VAMP_UR5
+        return out
+    out.update(vamp_check_figures(checker, q, np.asarray(reasons) != "", hit, args))
+    if "vamp_cpp_s_per_config" in out:
+        g = out["gcm_s_per_config"]
+        out["ratio_gcm_rate_over_vamp_one_per_call"] = out["vamp_cpp_s_per_config"] / g
+        out["ratio_gcm_rate_over_vamp_blocks"] = out["vamp_cpp_block_s_per_config"] / g
+    return out
+
+
+def vamp_check_figures(
+    checker: CollisionChecker,
+    q: np.ndarray,
+    exact: np.ndarray,
+    hit: np.ndarray,
+    args: argparse.Namespace,
+) -> dict[str, Any]:
+    """VAMP's Panda checker (binding, C++) on ``q``: against gcm's ``exact``, coal's ``hit``."""
+    m = len(hit)
+    out: dict[str, Any] = {}
     scene = vamp_scene(checker)
-    exact = np.asarray(reasons) != ""  # gcm's exact answer (= coal's on the loop's rows)
     vamp = run_vamp(args.vamp_python, scene, q, np.zeros((0, 2, 7)), args.repeats, exact)
     if isinstance(vamp, str):
         out["vamp"] = vamp
@@ -477,7 +655,7 @@ def check_figures(
     if not binary.exists():
         out["vamp_cpp"] = f"no {binary} (benchmarks/vamp/vamp_bench.cc compiled beside that python)"
         return out
-    free = q[np.asarray(reasons) == ""]
+    free = q[~exact]
     cpp = run_vamp_cpp(binary, scene, q, free, max(15, args.repeats))  # loops of a few ms
     if "error" in cpp:
         out["vamp_cpp"] = cpp["error"]
@@ -489,9 +667,6 @@ def check_figures(
     out["vamp_disagreements_with_coal"] = disagreements(cpp["valid"][:m], hit)
     gcm_all = disagreements(cpp["valid"], exact)
     out["vamp_disagreements_with_gcm"] = {k.replace("coal", "gcm"): v for k, v in gcm_all.items()}
-    g = out["gcm_s_per_config"]
-    out["ratio_gcm_rate_over_vamp_one_per_call"] = out["vamp_cpp_s_per_config"] / g
-    out["ratio_gcm_rate_over_vamp_blocks"] = out["vamp_cpp_block_s_per_config"] / g
     return out
 
 
@@ -547,6 +722,13 @@ def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
     best = min(checks, key=checks.__getitem__)
     limit = 1.0 / (t_ik + cpp * checks[best])
     limit_gcm = 1.0 / (t_ik + cpp * checks["gcm"])
+    # the moves' ends are IK the stage cannot skip (one per approach or retreat
+    # planned): the limit with them, at the measured cost of one move end
+    counts = report["stage_counts"]["counts"]
+    moves = counts.get("ik_rows_move_end", 0) / report["stage_counts"]["poses"]
+    t_move = report["ik"]["gcm_move_end_s_per_pose"]
+    limit_moves = 1.0 / (t_ik + moves * t_move + cpp * checks[best])
+    limit_moves_gcm = 1.0 / (t_ik + moves * t_move + cpp * checks["gcm"])
     return {
         "t_ik_s": t_ik,
         "t_ik_from": ik_name,
@@ -558,11 +740,91 @@ def model_figures(report: dict[str, Any], stage_rate: float) -> dict[str, Any]:
         "stage_poses_per_s_one_process": stage_rate,
         "stage_fraction_of_limit": stage_rate / limit,
         "stage_fraction_of_limit_at_gcm_checks": stage_rate / limit_gcm,
+        "move_ends_per_pose": moves,
+        "t_move_end_s": t_move,
+        "limit_with_move_ends_poses_per_s": limit_moves,
+        "stage_fraction_of_limit_with_move_ends": stage_rate / limit_moves,
+        "limit_with_move_ends_at_gcm_checks_poses_per_s": limit_moves_gcm,
+        "stage_fraction_of_limit_with_move_ends_at_gcm_checks": stage_rate / limit_moves_gcm,
     }
+
+
+#: The figures set side by side for every robot run: name -> path in its section.
+SIDE_BY_SIDE = {
+    "t_ik_s": ("model", "t_ik_s"),
+    "t_ik_from": ("model", "t_ik_from"),
+    "gcm_ik_s_per_pose": ("ik", "gcm_s_per_pose"),
+    "checks_per_pose": ("model", "checks_per_pose"),
+    "move_ends_per_pose": ("model", "move_ends_per_pose"),
+    "t_move_end_s": ("model", "t_move_end_s"),
+    "gcm_check_stage_s_per_config": ("checks", "stage", "gcm_s_per_config"),
+    "gcm_check_front_s_per_config": ("checks", "front", "gcm_s_per_config"),
+    "gcm_differs_from_pinocchio_stage": ("checks", "stage", "gcm_differs_from_pinocchio"),
+    "gcm_differs_from_pinocchio_front": ("checks", "front", "gcm_differs_from_pinocchio"),
+    "outer_spheres_proven_free_stage": (
+        "checks", "stage", "outer_spheres", "proven_free_fraction_of_free"
+    ),
+    "stage_poses_per_s_one_process": ("model", "stage_poses_per_s_one_process"),
+    "t_check_from": ("model", "t_check_from"),
+    "stage_fraction_of_limit": ("model", "stage_fraction_of_limit"),
+    "stage_fraction_of_limit_at_gcm_checks": ("model", "stage_fraction_of_limit_at_gcm_checks"),
+    "stage_fraction_of_limit_with_move_ends": ("model", "stage_fraction_of_limit_with_move_ends"),
+    "stage_fraction_of_limit_with_move_ends_at_gcm_checks": (
+        "model", "stage_fraction_of_limit_with_move_ends_at_gcm_checks"
+    ),
+}  # fmt: skip
+
+
+def side_by_side(robots: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Each :data:`SIDE_BY_SIDE` figure of every robot run: figure -> robot -> value."""
+    out: dict[str, dict[str, Any]] = {}
+    for figure, path in SIDE_BY_SIDE.items():
+        for name, section in robots.items():
+            value: Any = section
+            for key in path:
+                value = value.get(key) if isinstance(value, dict) else None
+            out.setdefault(figure, {})[name] = value
+    return out
+
+
+def robot_report(name: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Every figure of one robot (``CONFIGS[name]``, the dense work ``DENSE``)."""
+    load_start = os.getloadavg()
+    cfg = load_config(CONFIGS[name], DENSE)
+    robot = robot_from_config(cfg)
+    checker = make_checker(robot, cfg.environment, cfg.object, cfg.robot.base_pose.matrix())
+    vamp = name == "panda"  # VAMP's ur5 is the bare arm: see NO_VAMP_UR5
+    report: dict[str, Any] = {
+        "config": str(CONFIGS[name].relative_to(ROOT)),
+        "overrides": DENSE,
+        "ik": ik_figures(name, robot, args.ik_targets, args.repeats),
+    }
+    counted = counted_stage(CONFIGS[name], args.configs)
+    report["stage_counts"] = {
+        k: v for k, v in counted.items() if k not in ("configurations", "approach")
+    }
+    front = front_configurations(robot, args.configs)
+    report["checks"] = {
+        "front": check_figures(robot, checker, front, args, vamp),
+        "stage": check_figures(robot, checker, counted["configurations"], args, vamp),
+    }
+    if vamp:
+        report["approach_blocks"] = motion_figures(robot, checker, *counted["approach"], args)
+    else:
+        report["approach_blocks"] = {"vamp": NO_VAMP_UR5}
+    runs = [stage_run(DENSE, "1", CONFIGS[name]) for _ in range(args.repeats)]
+    walls = [r["wall_s"] for r in runs]
+    report["stage_wall_s_runs"] = walls
+    # where the stage's time goes (CPU seconds by step, the median run)
+    report["stage_cpu_s_by_step"] = runs[int(np.argsort(walls)[len(walls) // 2])]["cpu_s_by_step"]
+    report["model"] = model_figures(report, counted["poses"] / float(np.median(walls)))
+    report["load_average"] = {"start": load_start, "end": os.getloadavg()}
+    return report
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robot", choices=("panda", "ur5", "both"), default="both")
     parser.add_argument("--ik-targets", type=int, default=2000)
     parser.add_argument("--configs", type=int, default=20000)
     parser.add_argument("--loop-configs", type=int, default=3000, help="per-call loops")
@@ -572,21 +834,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "limit.json")
     args = parser.parse_args()
     load_start = os.getloadavg()
-    robot = load_robot("panda")
-    checker = make_checker(robot, EnvironmentConfig(), ObjectConfig.model_validate(BOTTLE))
-    report: dict[str, Any] = {"ik": ik_figures(robot, args.ik_targets, args.repeats)}
-    counted = counted_stage(args.configs)
-    report["stage_counts"] = {
-        k: v for k, v in counted.items() if k not in ("configurations", "approach")
-    }
-    report["checks"] = {
-        "front": check_figures(robot, checker, front_configurations(robot, args.configs), args),
-        "stage": check_figures(robot, checker, counted["configurations"], args),
-    }
-    report["approach_blocks"] = motion_figures(robot, checker, *counted["approach"], args)
-    walls = [stage_run(DENSE, "1")["wall_s"] for _ in range(args.repeats)]
-    report["stage_wall_s_runs"] = walls
-    report["model"] = model_figures(report, counted["poses"] / float(np.median(walls)))
+    names = list(CONFIGS) if args.robot == "both" else [args.robot]
+    robots = {name: robot_report(name, args) for name in names}
+    report: dict[str, Any] = {"side_by_side": side_by_side(robots), "robots": robots}
     report["machine"] = {
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),

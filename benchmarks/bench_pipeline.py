@@ -135,9 +135,12 @@ def dense_targets(n: int, rng: np.random.Generator) -> np.ndarray:
     return np.linalg.inv(base) @ world[rows]
 
 
-def stage_run(overrides: list[str], workers: str) -> dict[str, Any]:
-    """The reachability stage on the dense bottle manifold: time, result, breakdown."""
-    cfg = load_config(CONFIG, [*overrides, f"ik.workers={workers}"])
+def stage_run(overrides: list[str], workers: str, config: Path = CONFIG) -> dict[str, Any]:
+    """The reachability stage on the dense bottle manifold: time, result, breakdown.
+
+    ``config``: the run config whose robot and world are used (the Panda's bottle by default).
+    """
+    cfg = load_config(config, [*overrides, f"ik.workers={workers}"])
     candidates = P.generate_candidates(cfg)
     manifold = P.build_manifold(candidates, cfg)
     grasps = P.densify(candidates, manifold, cfg)

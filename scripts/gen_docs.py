@@ -249,9 +249,12 @@ BENCH_NOTES: dict[str, str] = {
         "smaller run."
     ),
     "limit": (
-        "The reachability stage's cost model in one run (Panda, table and bottle): IK per "
-        "pose (gcm's default backend; frankik's full IK with q7 sampled and its closed form "
-        "given q7, when installed), collision checks per configuration on random `front` "
+        "The reachability stage's cost model in one run, for the Panda and the UR5 with its "
+        "Robotiq 2F-85 (`robots.panda`, `robots.ur5`; their main figures in `side_by_side`), "
+        "each on the table and bottle of its config with the same dense work: IK per "
+        "pose (gcm's default backend; on the Panda frankik's full IK with q7 sampled and its "
+        "closed form given q7, on the UR5 EAIK's closed form, when installed), collision "
+        "checks per configuration on random `front` "
         "configurations and on a sample of those the reachability stage checks (`stage`): "
         "gcm, Pinocchio's loop (coal, exact) and VAMP's sphere-model checker through its "
         "binding (`vamp_py_*`) and in C++ (`vamp_cpp_*`: one per call, and blocks of 8 free "
@@ -260,8 +263,10 @@ BENCH_NOTES: dict[str, str] = {
         "the stage's counted "
         "checks per pose (check wrapped in the benchmark); and the stage's rate on one process "
         "as a fraction of the limit `1 / (t_ik + checks_per_pose * t_check)` "
-        "(`model.stage_fraction_of_limit`). VAMP runs from a venv of its own, given to the "
-        "benchmark (see the development page)."
+        "(`model.stage_fraction_of_limit`; `*_at_gcm_checks` at gcm's check rate, "
+        "`*_with_move_ends` with the IK of the moves' ends added). VAMP runs from a venv of "
+        "its own, given to the benchmark (see the development page); it is not run on the UR5 "
+        "(VAMP's `ur5` is the bare arm, without the gripper)."
     ),
     "collision": (
         "Random configurations of the Panda checked against the table, the bottle and "

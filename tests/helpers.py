@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 #: The repository's root (this checkout, wherever a test file sits under ``tests/``).
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,6 +29,22 @@ SMALL_STUDY = [
     "publish.html=false",
     "publish.plots=false",
 ]
+
+
+def complete_answers(gd: Any) -> Any:
+    """``gd`` (a ``pin.GeometryData``) asking coal for its complete collision answer.
+
+    Contact information on, so EPA runs whenever GJK finds contact. Pinocchio's
+    default requests ask without it, and coal's ``collide`` then can call
+    overlapping geometry free where GJK ends within its tolerance of the origin
+    (overlapping cylinders came back free 0.58 mm deep, see
+    ``tests/robot/collision/test_near_contact.py``). An independent reference
+    (``pin.computeCollisions`` over every pair) prepares its data with this; it
+    shares nothing with the checker's own requests.
+    """
+    for req in gd.collisionRequests:
+        req.enable_contact = True
+    return gd
 
 
 def assert_one_line_error(code: int, err: str, *fragments: str, warnings: bool = False) -> str:

@@ -9,11 +9,11 @@ written to an ACRONYM HDF5 file (with some failed grasps to drop) and read back 
 ``format: acronym`` with ACRONYM's Franka frame mapped by ``grasp_to_tool``.
 
 An independent check (the unreduced example-robot-data model with its own SRDF pairs,
-coal on the original mesh and on the table, Pinocchio FK and joint limits) decides which
-grasps have a collision-free IK solution: a grasp is *reachable in truth* when any IK
-candidate found with a generous seed budget passes it. The pipeline, with default
-settings, must report at least 99 % of those reachable (recall) and none it reports
-reachable may fail the check (0 false positives).
+coal's complete answer (contact information on) on the original mesh and on the table,
+Pinocchio FK and joint limits) decides which grasps have a collision-free IK solution:
+a grasp is *reachable in truth* when any IK candidate found with a generous seed budget
+passes it. The pipeline, with default settings, must report at least 99 % of those
+reachable (recall) and none it reports reachable may fail the check (0 false positives).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from gcm_pipeline.robot.ik import solve_ik
 
 trimesh = pytest.importorskip("trimesh")
 h5py = pytest.importorskip("h5py")
+from helpers import complete_answers  # noqa: E402
 from thin_walled import coal_transform, cup_parts, to_bvh  # noqa: E402
 
 BASE_TO_TCP = 0.1034  # [m] ACRONYM's Franka hand base -> fingertip midpoint
@@ -182,7 +183,9 @@ class Oracle:
             if i != link0:
                 gm.addCollisionPair(pin.CollisionPair(i, it))
             gm.addCollisionPair(pin.CollisionPair(i, io))
-        self.gm, self.gd, self.data = gm, pin.GeometryData(gm), self.model.createData()
+        # coal's complete answer on every pair (contact information on)
+        self.gm, self.gd = gm, complete_answers(pin.GeometryData(gm))
+        self.data = self.model.createData()
         self.tcp = self.model.getFrameId("panda_hand_tcp")
 
     def free(self, q7, target=None):

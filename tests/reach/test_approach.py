@@ -4,7 +4,8 @@ The soundness tests re-check accepted moves without the module's bounds: the
 joint path is sampled densely and every corner of the gripper's collision
 geometry, placed by Pinocchio's own kinematics, must stay within
 ``max_deviation`` of its straight line; every grid point must be collision-free
-for Pinocchio's ``computeCollisions`` over all pairs.
+for Pinocchio's ``computeCollisions`` over all pairs (coal's complete answer:
+contact information on).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import dataclasses
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers import complete_answers
 
 from gcm_pipeline.config import EnvironmentConfig
 from gcm_pipeline.errors import InputError
@@ -280,7 +282,7 @@ def _dense_deviation(robot, knots, offset, per_step=40):
 def _exhaustive_collisions(robot, checker, q):
     """Every pair of the checker's full geometry model, Pinocchio's own loop: colliding?"""
     gm = checker.geom_model
-    gd = pin.GeometryData(gm)
+    gd = complete_answers(pin.GeometryData(gm))
     data = robot.model.createData()
     return pin.computeCollisions(robot.model, data, gm, gd, q, False)
 

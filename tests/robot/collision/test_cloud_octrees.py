@@ -7,6 +7,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import trimesh
+from helpers import complete_answers
 
 from gcm_pipeline.geometry.clouds import VoxelGrid
 from gcm_pipeline.robot.collision import CollisionChecker
@@ -129,7 +130,7 @@ def _coal_reference(robot, centres, qs):
     w = gm.addGeometryObject(pin.GeometryObject("cloud", 0, 0, se3(np.eye(4)), tree))
     for i in range(n):
         gm.addCollisionPair(pin.CollisionPair(i, w))
-    data, gd = model.createData(), pin.GeometryData(gm)
+    data, gd = model.createData(), complete_answers(pin.GeometryData(gm))
     return np.array([pin.computeCollisions(model, data, gm, gd, q, False) for q in qs])
 
 

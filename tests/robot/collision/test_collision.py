@@ -7,6 +7,7 @@ import example_robot_data
 import numpy as np
 import pinocchio as pin
 import pytest
+from helpers import complete_answers
 from scipy.spatial.transform import Rotation
 
 from gcm_pipeline.config import Config, EnvironmentConfig, ObjectConfig, ObstacleConfig
@@ -159,7 +160,7 @@ def test_agrees_with_pinocchio_compute_collisions(robot):
     )
     c = make_checker(robot, env, ObjectConfig.model_validate(BOTTLE))
     model, gm, kinds = _oracle([0.5, 0.0, 0.0], obstacle)
-    data, gd = model.createData(), pin.GeometryData(gm)
+    data, gd = model.createData(), complete_answers(pin.GeometryData(gm))
     rng = np.random.default_rng(7)
     qs = robot.random_configurations(600, rng)
     # plus configurations near the bottle: perturbed home poses leaning forward

@@ -2,11 +2,12 @@
 
 The whole pipeline runs (candidates -> manifold -> densify -> reachability with
 collision and approach checks -> ranking); then every reachable grasp's
-configuration is checked by Pinocchio's own ``computeCollisions`` on a world
-built here from the config values, on the *unreduced* example-robot-data model
-and its own collision geometry (fingers set to the spec's opening), sharing no
-code with the stage: no arm link below the table or through it, no arm link in
-the bottle, the gripper at most ``contact_tolerance`` deep in it, no self-collision.
+configuration is checked by Pinocchio's own ``computeCollisions`` (coal's complete
+answer: contact information on) on a world built here from the config values, on
+the *unreduced* example-robot-data model and its own collision geometry (fingers
+set to the spec's opening), sharing no code with the stage: no arm link below the
+table or through it, no arm link in the bottle, the gripper at most
+``contact_tolerance`` deep in it, no self-collision.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import example_robot_data
 import numpy as np
 import pinocchio as pin
 import pytest
-from helpers import BOTTLE
+from helpers import BOTTLE, complete_answers
 
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import Pipeline
@@ -86,7 +87,7 @@ def test_bottle_side_reachable_grasps_are_collision_free(run):
     assert rejected.sum() + (reasons == "approach").sum() > 0
 
     model, gm, kinds = _world(cfg)
-    data, gd = model.createData(), pin.GeometryData(gm)
+    data, gd = model.createData(), complete_answers(pin.GeometryData(gm))
     fingers = list(run.robot.spec.locked_joints.values())  # open: 0.04 m each
     q_all = np.asarray(g["q"], dtype=float)[reachable]
     assert np.all(np.isfinite(q_all))
@@ -138,7 +139,7 @@ def test_bottle_side_reachable_grasps_have_an_approach_and_a_pregrasp(run):
     for k, cp in enumerate(gm.collisionPairs):
         if cp.second == core:
             gm.collisionPairs[k] = pin.CollisionPair(int(cp.first), bottle)
-    data, gd = model.createData(), pin.GeometryData(gm)
+    data, gd = model.createData(), complete_answers(pin.GeometryData(gm))
     fingers = list(run.robot.spec.locked_joints.values())
     base = cfg.robot.base_pose.matrix()
     back = np.eye(4)

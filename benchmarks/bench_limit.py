@@ -33,8 +33,15 @@ robot and tool built by the pipeline from the config); the dense work is
   the reachability stage really checked on the dense bottle, recorded by the
   counting run below). On each: gcm's :meth:`CollisionChecker.check` on the
   whole array (its use in the stage) and one configuration per call;
-  Pinocchio's loop (``pin.computeCollisions`` over every pair, stop at first:
-  coal's exact answer, on the first ``--loop-configs``); and VAMP's Panda
+  Pinocchio's loop (``pin.computeCollisions`` over every pair, stop at first, on
+  the first ``--loop-configs``), timed with Pinocchio's default requests (the
+  speed figure); coal's exact answer, which every comparison uses
+  (``gcm_differs_from_pinocchio``, ``colliding_fraction_coal``, the outer
+  spheres, VAMP's disagreements with coal), is the same loop asking coal's
+  complete answer (contact information on, ``bench_collision.complete_answers``:
+  without it coal's ``collide`` can call overlapping geometry free), untimed;
+  ``pinocchio_default_missed`` counts the configurations the timed loop called
+  free that the complete answer finds colliding; and VAMP's Panda
   checker where installed (a venv of its own given by
   ``--vamp-python``): through its Python binding (``vamp_py_*``,
   ``benchmarks/vamp/vamp_check.py``: ``validate``, one configuration per call,
@@ -111,7 +118,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_collision import front_configurations, timed  # noqa: E402
+from bench_collision import complete_answers, front_configurations, timed  # noqa: E402
 from bench_pipeline import DENSE, stage_run  # noqa: E402
 
 from gcm_pipeline.config import load_config  # noqa: E402
@@ -506,10 +513,19 @@ def run_vamp(
         return json.loads(out.read_text())
 
 
-def pin_loop(robot: Robot, checker: CollisionChecker, q: np.ndarray) -> np.ndarray:
-    """coal's exact answer through Pinocchio (every pair, stop at first): (N,) collides."""
+def pin_loop(
+    robot: Robot, checker: CollisionChecker, q: np.ndarray, complete: bool = False
+) -> np.ndarray:
+    """Pinocchio's loop over the checker's pairs (stop at first): (N,) collides.
+
+    ``complete``: coal's exact answer (contact information on,
+    :func:`bench_collision.complete_answers`); else Pinocchio's default requests,
+    the speed reference, which can call overlapping geometry free.
+    """
     model, gm = robot.model, checker.geom_model
     data, gd = model.createData(), pin.GeometryData(gm)
+    if complete:
+        complete_answers(gd)
     return np.array([pin.computeCollisions(model, data, gm, gd, qi, True) for qi in q])
 
 
@@ -615,8 +631,10 @@ def check_figures(
     out["gcm_s_per_config"] = dt / n
     dt, _ = timed(lambda: [checker.check(qi) for qi in q[:m]], args.repeats)
     out["gcm_one_per_call_s_per_config"] = dt / m
-    dt, hit = timed(lambda: pin_loop(robot, checker, q[:m]), args.repeats)
+    dt, fast = timed(lambda: pin_loop(robot, checker, q[:m]), args.repeats)
     out["pinocchio_loop_s_per_config"] = dt / m
+    hit = pin_loop(robot, checker, q[:m], complete=True)  # the exact answer
+    out["pinocchio_default_missed"] = int(np.count_nonzero(hit & ~np.asarray(fast)))
     gcm_hit = np.asarray(reasons)[:m] != ""
     out["gcm_differs_from_pinocchio"] = int(np.count_nonzero(gcm_hit != hit))
     out["colliding_fraction_coal"] = float(np.mean(hit))

@@ -15,7 +15,10 @@ r = 3.5 cm, h = 22 cm at x = 0.5 m).
   same loop asking coal's complete answer instead (contact information on:
   :func:`complete_answers`), untimed; ``*pinocchio_default_missed`` counts the
   configurations the timed loop called free that the complete answer finds
-  colliding.
+  colliding. The two can differ only within about a micrometre of contact (the
+  checker counts geometry within 1e-6 m as touching; coal's complete answer
+  called some pairs 1.0-1.4e-6 m apart colliding), where random configurations
+  do not fall.
 * ``clearance``: :meth:`CollisionChecker.clearance` on the same configurations.
 * ``approach``: :func:`~gcm_pipeline.reach.move_check.check_moves` (10 steps over 10 cm) for IK
   solutions of top-down grasps over the table, per grasp.

@@ -50,6 +50,7 @@ from gcm_pipeline.robot.collision.broadphase import (
 from gcm_pipeline.robot.collision.clearance import ClearanceQueries
 from gcm_pipeline.robot.collision.contact import SolidMesh, interior_point, mesh_arrays
 from gcm_pipeline.robot.collision.pairs import (
+    GJK_MARGIN,
     KINDS,
     MODE_BIT,
     MODES,
@@ -434,7 +435,10 @@ class CollisionChecker(ClearanceQueries):
         pose = grasp_pose @ held  # the object in the base frame
         centres = car.cover.centres @ np.swapaxes(pose[:, :3, :3], 1, 2) + pose[:, None, :3, 3]
         gm = self._gm
+        # the checker's rule for every narrow-phase answer (pairs.checker_requests)
         req = coal.CollisionRequest()
+        req.gjk_tolerance = GJK_MARGIN
+        req.security_margin = GJK_MARGIN
         res = coal.CollisionResult()
         obj_geom = car.shape.geometry
         if kind == "environment":

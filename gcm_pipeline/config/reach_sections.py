@@ -65,8 +65,12 @@ class IKConfig(_Section):
         backend: ``pinocchio`` (batched, default) or ``mink``.
         position_tolerance: Largest position error of a solution [m].
         orientation_tolerance: Largest orientation error of a solution [rad].
-        workers: Processes of the reachability engine: ``auto`` (the cores this
-            process may use) or a number. The results do not depend on it.
+        workers: Processes of the reachability engine: ``auto`` or a number.
+            ``auto`` decides per run: one process, unless the run has at least
+            two full chunks (16,384 poses) per extra worker and other jobs
+            leave cores at least 80 % idle (read from ``/proc/stat`` over
+            0.1 s); then one worker per such core, at most the cores this
+            process may use. The results do not depend on it.
         solutions: Distinct IK solutions (branches) kept per reachable grasp,
             each verified and passing every check (``solutions.npz``); 1: only
             the first one found.

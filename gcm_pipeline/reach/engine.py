@@ -85,8 +85,10 @@ from gcm_pipeline.reach.solution_checks import SolutionChecks
 from gcm_pipeline.reach.workers import (
     POOLS,
     WORKER,
+    auto_workers,
     blas_controller,
     guided_chunks,
+    idle_cores,
     solve_in_worker,
 )
 from gcm_pipeline.robot import kernels
@@ -129,7 +131,9 @@ class ReachabilityEngine(ChunkSteps):
             ``q (M, nq) -> (M,) str`` (``''`` = valid), run after the collision check.
         alternatives: Other IK solutions tried per target that fails a check (0:
             none; a 6R arm with closed-form branches tries every branch).
-        workers: Processes (1: this one; ``"auto"``: :func:`available_cores`).
+        workers: Processes (1: this one; ``"auto"``: at most :func:`available_cores`,
+            per run as :func:`~gcm_pipeline.reach.workers.auto_workers` decides from
+            the run's size and the cores other processes leave idle).
         chunk_size: Most targets per chunk (memory and progress granularity); on
             several workers the last chunks are smaller, so they finish together.
             None: 8,192 for the pinocchio backend (fewer, larger NumPy calls),
@@ -179,11 +183,15 @@ class ReachabilityEngine(ChunkSteps):
         if int(alternatives) != alternatives or alternatives < 0:
             raise InputError(f"alternatives must be an int >= 0, got {alternatives!r}")
         self.alternatives = int(alternatives)
-        if workers == "auto":
+        #: ``workers: auto``: each run decides its worker count (:func:`auto_workers`).
+        self.auto = isinstance(workers, str) and workers == "auto"
+        if self.auto:
             workers = available_cores()
         if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
             raise InputError(f"workers must be 'auto' or an int >= 1, got {workers!r}")
         self.workers = int(workers)
+        #: Worker processes of the last run (``auto``: decided per run).
+        self.workers_used = self.workers
         if chunk_size is None:
             chunk_size = _CHUNK.get(backend, _CHUNK["mink"])
         if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
@@ -265,6 +273,7 @@ class ReachabilityEngine(ChunkSteps):
         nb = check_neighbours(neighbours, n)
         nb = None if nb is None else nb.astype(int)
         out = _run_arrays(n, nq, self.solutions, self.checker is not None)
+        self.workers_used = self._workers_for(n)
         cands: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         timings: dict[str, float] = {}
         if nb is None:
@@ -287,7 +296,7 @@ class ReachabilityEngine(ChunkSteps):
                     None if sub is None else sub[at],
                     None if hopeless is None else hopeless[at],
                 )
-                for at in guided_chunks(rows.size, self.chunk_size, self.workers)
+                for at in guided_chunks(rows.size, self.chunk_size, self.workers_used)
             ]
             for (chunk_rows, *_), part in zip(
                 chunks, self._map(chunks, return_candidates), strict=True
@@ -308,6 +317,14 @@ class ReachabilityEngine(ChunkSteps):
 
     # --- workers --------------------------------------------------------------------------
 
+    def _workers_for(self, n: int) -> int:
+        """Worker processes for a run of ``n`` targets: ``workers``, or auto's decision."""
+        if not self.auto or self.workers == 1:
+            return self.workers
+        if auto_workers(n, self.chunk_size, self.workers, None) == 1:
+            return 1  # too small to share out: the load need not be measured
+        return auto_workers(n, self.chunk_size, self.workers, idle_cores())
+
     def _map(
         self,
         chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]],
@@ -315,7 +332,7 @@ class ReachabilityEngine(ChunkSteps):
     ) -> Iterator[dict[str, Any]]:
         """Solve the chunks in order, on this process or the worker pool."""
         work = [(tgt[rows], sub, cands, hopeless) for rows, tgt, sub, hopeless in chunks]
-        if self.workers == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
+        if self.workers_used == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
             for args in work:
                 yield self.solve(*args)
             return
@@ -329,9 +346,11 @@ class ReachabilityEngine(ChunkSteps):
 
     def _get_pool(self, chunks: int) -> Any:
         """The worker processes, no more than ``chunks`` (64 workers for 5 chunks: 5)."""
-        size = min(self.workers, chunks)
-        if self._pool is not None and self._pool_size < size:
-            self.close()  # a larger run than the pool was started for
+        size = min(self.workers_used, chunks)
+        if self._pool is not None and (
+            self._pool_size < size or (self.auto and self._pool_size > size)
+        ):
+            self.close()  # a larger run than the pool was started for, or auto chose fewer
         if self._pool is None:
             # warm the caches (seed library, MuJoCo model) so that workers inherit them
             probe = self.robot.fk(self.robot.home)

@@ -3,23 +3,43 @@
 A run is cut into contiguous chunks (:func:`guided_chunks`); with several
 workers, the engine forks a pool whose processes inherit it (:data:`WORKER`,
 set just before the fork) and solve chunks with :func:`solve_in_worker`. The
-pools still open are closed at exit.
+pools still open are closed at exit. How many workers ``workers: auto`` forks
+for a run is :func:`auto_workers`'s decision, from the run's size and the idle
+capacity of this process's cores (:func:`idle_cores`).
 """
 
 from __future__ import annotations
 
 import atexit
 import functools
+import math
+import os
+import time
 import weakref
 from typing import Any, Protocol
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-__all__ = ["POOLS", "WORKER", "Solver", "blas_controller", "guided_chunks", "solve_in_worker"]
+__all__ = [
+    "POOLS",
+    "WORKER",
+    "Solver",
+    "auto_workers",
+    "blas_controller",
+    "guided_chunks",
+    "idle_cores",
+    "solve_in_worker",
+]
 
 #: Fewest targets of a chunk when a few thousand are shared out (see guided_chunks).
 _LEAST_SHARE = 256
+#: Chunks each worker of ``workers: auto`` must have at least (see auto_workers).
+AUTO_CHUNKS_PER_WORKER = 2
+#: Fraction of a core that must be idle for ``workers: auto`` to count it (see auto_workers).
+AUTO_IDLE_CORE = 0.8
+#: How long :func:`idle_cores` watches the cores [s].
+IDLE_WINDOW = 0.1
 
 
 class Solver(Protocol):
@@ -86,3 +106,56 @@ def guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:
         out.append(np.arange(a, min(a + size, n)))
         a += size
     return out
+
+
+def auto_workers(n: int, chunk_size: int, cores: int, idle: float | None) -> int:
+    """Worker processes for ``workers: auto`` on a run of ``n`` targets (at least 1).
+
+    The fewest of: the ``cores`` this process may use; one worker per
+    ``AUTO_CHUNKS_PER_WORKER`` full chunks of ``chunk_size`` targets (below
+    that, forking and the smaller chunks cost more than a second worker
+    saves); and the cores other processes leave idle, ``idle`` [cores] from
+    :func:`idle_cores`, each counted when at least ``AUTO_IDLE_CORE`` of it
+    is idle (a worker that has to share its core with another job's process
+    slows the run down more than it adds). ``idle`` None (not measurable):
+    the cores. Only the worker count depends on the load, never a result.
+    """
+    by_size = n // max(1, AUTO_CHUNKS_PER_WORKER * chunk_size)
+    by_load = cores if idle is None else math.floor(idle + 1.0 - AUTO_IDLE_CORE)
+    return max(1, min(cores, by_size, by_load))
+
+
+def _cpu_times(cpus: set[int]) -> tuple[float, float] | None:
+    """Idle and total jiffies of ``cpus`` summed, from ``/proc/stat`` (None: unreadable)."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            lines = f.readlines()
+    except OSError:
+        return None
+    idle = total = 0.0
+    for line in lines:
+        name, *fields = line.split()
+        if not name.startswith("cpu") or name == "cpu" or int(name[3:]) not in cpus:
+            continue
+        ticks = [float(x) for x in fields[:8]]  # user nice system idle iowait irq softirq steal
+        idle += ticks[3] + ticks[4]
+        total += sum(ticks)
+    return idle, total
+
+
+def idle_cores(window: float = IDLE_WINDOW) -> float | None:
+    """Idle capacity [cores] of the cores this process may use, over ``window`` seconds.
+
+    Read from the kernel's per-CPU times (``/proc/stat``) before and after
+    ``window`` (this process sleeps meanwhile, so the figure is what the
+    machine's other processes leave); None where they cannot be read.
+    """
+    cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+    before = _cpu_times(cpus)
+    if before is None or before[1] == 0:
+        return None
+    time.sleep(window)
+    after = _cpu_times(cpus)
+    if after is None or after[1] <= before[1]:
+        return None
+    return len(cpus) * (after[0] - before[0]) / (after[1] - before[1])

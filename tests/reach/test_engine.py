@@ -16,7 +16,7 @@ from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates, make_checker
 from gcm_pipeline.reach.engine import _RAN_EVERY_SEED, ReachabilityEngine, available_cores
 from gcm_pipeline.reach.moves import Move, move_poses
-from gcm_pipeline.reach.workers import guided_chunks
+from gcm_pipeline.reach.workers import auto_workers, guided_chunks, idle_cores
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 
 BOTTLE = {
@@ -276,3 +276,37 @@ def test_no_more_workers_start_than_there_are_chunks(robot, checker, grasps):
         more = eng.run(grasps)  # more chunks: a larger pool
         assert eng._pool_size == len(guided_chunks(n, 16, 64)) == 18
         np.testing.assert_array_equal(more.reachable, eng.run(grasps).reachable)
+
+
+@pytest.mark.parametrize(
+    ("n", "cores", "idle", "workers"),
+    [
+        (56294, 2, 2.0, 2),  # dense bottle, idle machine: both cores
+        (56294, 2, 1.85, 2),  # a core counts when 80 % of it is idle
+        (56294, 2, 1.7, 1),  # another job takes a third of a core: one worker
+        (56294, 2, 1.0, 1),  # a CPU hog on one core
+        (56294, 2, 0.0, 1),  # every core busy
+        (56294, 2, None, 2),  # load not readable: the cores
+        (56294, 8, 8.0, 3),  # 3 workers of two full chunks each
+        (16383, 2, 2.0, 1),  # under two full chunks per worker: not worth forking
+        (16384, 2, 2.0, 1),
+        (32768, 2, 2.0, 2),
+        (10**6, 64, 7.5, 7),
+        (10**6, 1, 4.0, 1),
+    ],
+)
+def test_auto_workers_from_size_and_idle_cores(n, cores, idle, workers):
+    assert auto_workers(n, 8192, cores, idle) == workers
+
+
+def test_idle_cores_is_within_the_cores_this_process_may_use():
+    idle = idle_cores(0.05)
+    assert idle is None or 0.0 <= idle <= len(os.sched_getaffinity(0))
+
+
+def test_auto_runs_a_small_set_on_this_process(robot, checker, grasps, result):
+    with ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto") as eng:
+        other = eng.run(grasps)
+        assert eng.workers == available_cores() and eng.workers_used == 1
+        assert eng._pool is None  # nothing forked
+    np.testing.assert_array_equal(other.reachable, result.reachable)

@@ -68,9 +68,9 @@ class IKConfig(_Section):
         workers: Processes of the reachability engine: ``auto`` or a number.
             ``auto`` decides per run: one process, unless the run has at least
             two full chunks (16,384 poses) per extra worker and other jobs
-            leave cores at least 80 % idle (read from ``/proc/stat`` over
-            0.1 s); then one worker per such core, at most the cores this
-            process may use. The results do not depend on it.
+            leave cores at least 80 % idle (read from ``/proc/stat`` while the
+            first chunk runs on this process); then the rest on one worker per
+            such core, at most the cores this process may use. The results do not depend on it.
         solutions: Distinct IK solutions (branches) kept per reachable grasp,
             each verified and passing every check (``solutions.npz``); 1: only
             the first one found.

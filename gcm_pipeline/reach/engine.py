@@ -85,10 +85,10 @@ from gcm_pipeline.reach.solution_checks import SolutionChecks
 from gcm_pipeline.reach.workers import (
     POOLS,
     WORKER,
+    IdleProbe,
     auto_workers,
     blas_controller,
     guided_chunks,
-    idle_cores,
     solve_in_worker,
 )
 from gcm_pipeline.robot import kernels
@@ -318,24 +318,42 @@ class ReachabilityEngine(ChunkSteps):
     # --- workers --------------------------------------------------------------------------
 
     def _workers_for(self, n: int) -> int:
-        """Worker processes for a run of ``n`` targets: ``workers``, or auto's decision."""
-        if not self.auto or self.workers == 1:
+        """Most worker processes for a run of ``n`` targets: ``workers``, or auto's by size.
+
+        ``auto`` may take fewer: :meth:`_map` watches the machine's load while
+        it solves the first chunk on this process, then decides.
+        """
+        if not self.auto:
             return self.workers
-        if auto_workers(n, self.chunk_size, self.workers, None) == 1:
-            return 1  # too small to share out: the load need not be measured
-        return auto_workers(n, self.chunk_size, self.workers, idle_cores())
+        return auto_workers(n, self.chunk_size, self.workers, None)
 
     def _map(
         self,
         chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]],
         cands: bool,
     ) -> Iterator[dict[str, Any]]:
-        """Solve the chunks in order, on this process or the worker pool."""
+        """Solve the chunks in order, on this process or the worker pool.
+
+        ``workers: auto``: the first chunk on this process while an
+        :class:`IdleProbe` watches the cores, then the rest on as many workers
+        as :func:`auto_workers` decides from what is left and the idle cores.
+        """
         work = [(tgt[rows], sub, cands, hopeless) for rows, tgt, sub, hopeless in chunks]
         if self.workers_used == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
             for args in work:
                 yield self.solve(*args)
             return
+        if self.auto:
+            probe = IdleProbe()
+            yield self.solve(*work[0])
+            work = work[1:]
+            left = sum(len(args[0]) for args in work)
+            idle = probe.idle_cores()
+            self.workers_used = auto_workers(left, self.chunk_size, self.workers_used, idle)
+            if self.workers_used == 1 or len(work) < 2:
+                for args in work:
+                    yield self.solve(*args)
+                return
         pool = self._get_pool(len(work))
         try:
             yield from pool.ordered(solve_in_worker, work)

@@ -5,7 +5,7 @@ workers, the engine forks a pool whose processes inherit it (:data:`WORKER`,
 set just before the fork) and solve chunks with :func:`solve_in_worker`. The
 pools still open are closed at exit. How many workers ``workers: auto`` forks
 for a run is :func:`auto_workers`'s decision, from the run's size and the idle
-capacity of this process's cores (:func:`idle_cores`).
+capacity of this process's cores (:class:`IdleProbe`).
 """
 
 from __future__ import annotations
@@ -24,11 +24,11 @@ from threadpoolctl import ThreadpoolController
 __all__ = [
     "POOLS",
     "WORKER",
+    "IdleProbe",
     "Solver",
     "auto_workers",
     "blas_controller",
     "guided_chunks",
-    "idle_cores",
     "solve_in_worker",
 ]
 
@@ -38,8 +38,6 @@ _LEAST_SHARE = 256
 AUTO_CHUNKS_PER_WORKER = 2
 #: Fraction of a core that must be idle for ``workers: auto`` to count it (see auto_workers).
 AUTO_IDLE_CORE = 0.8
-#: How long :func:`idle_cores` watches the cores [s].
-IDLE_WINDOW = 0.1
 
 
 class Solver(Protocol):
@@ -115,7 +113,7 @@ def auto_workers(n: int, chunk_size: int, cores: int, idle: float | None) -> int
     ``AUTO_CHUNKS_PER_WORKER`` full chunks of ``chunk_size`` targets (below
     that, forking and the smaller chunks cost more than a second worker
     saves); and the cores other processes leave idle, ``idle`` [cores] from
-    :func:`idle_cores`, each counted when at least ``AUTO_IDLE_CORE`` of it
+    :class:`IdleProbe`, each counted when at least ``AUTO_IDLE_CORE`` of it
     is idle (a worker that has to share its core with another job's process
     slows the run down more than it adds). ``idle`` None (not measurable):
     the cores. Only the worker count depends on the load, never a result.
@@ -143,19 +141,29 @@ def _cpu_times(cpus: set[int]) -> tuple[float, float] | None:
     return idle, total
 
 
-def idle_cores(window: float = IDLE_WINDOW) -> float | None:
-    """Idle capacity [cores] of the cores this process may use, over ``window`` seconds.
+class IdleProbe:
+    """The capacity [cores] other processes leave idle, from now until :meth:`idle_cores`.
 
-    Read from the kernel's per-CPU times (``/proc/stat``) before and after
-    ``window`` (this process sleeps meanwhile, so the figure is what the
-    machine's other processes leave); None where they cannot be read.
+    Read from the kernel's per-CPU times (``/proc/stat``) of the cores this
+    process may use, at the start and at the end; this process's own CPU
+    time meanwhile is not counted as busy, so the probe can watch while the
+    process works (the engine solves its first chunk meanwhile: measuring
+    costs no time).
     """
-    cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
-    before = _cpu_times(cpus)
-    if before is None or before[1] == 0:
-        return None
-    time.sleep(window)
-    after = _cpu_times(cpus)
-    if after is None or after[1] <= before[1]:
-        return None
-    return len(cpus) * (after[0] - before[0]) / (after[1] - before[1])
+
+    def __init__(self) -> None:
+        self.cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+        self.start = _cpu_times(self.cpus)
+        self.wall = time.perf_counter()
+        self.own = time.process_time()
+
+    def idle_cores(self) -> float | None:
+        """Cores other processes left idle since the probe started; None: not readable."""
+        end = _cpu_times(self.cpus)
+        wall = time.perf_counter() - self.wall
+        if self.start is None or end is None or end[1] <= self.start[1] or wall <= 0:
+            return None
+        n = len(self.cpus)
+        busy = n * (1.0 - (end[0] - self.start[0]) / (end[1] - self.start[1]))
+        own = (time.process_time() - self.own) / wall
+        return min(float(n), max(0.0, n - max(0.0, busy - own)))

@@ -16,7 +16,7 @@ from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates, make_checker
 from gcm_pipeline.reach.engine import _RAN_EVERY_SEED, ReachabilityEngine, available_cores
 from gcm_pipeline.reach.moves import Move, move_poses
-from gcm_pipeline.reach.workers import auto_workers, guided_chunks, idle_cores
+from gcm_pipeline.reach.workers import IdleProbe, auto_workers, guided_chunks
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 
 BOTTLE = {
@@ -299,9 +299,26 @@ def test_auto_workers_from_size_and_idle_cores(n, cores, idle, workers):
     assert auto_workers(n, 8192, cores, idle) == workers
 
 
-def test_idle_cores_is_within_the_cores_this_process_may_use():
-    idle = idle_cores(0.05)
+def test_idle_probe_is_within_the_cores_this_process_may_use():
+    probe = IdleProbe()
+    sum(i * i for i in range(200_000))  # this process's own work is not counted as busy
+    idle = probe.idle_cores()
     assert idle is None or 0.0 <= idle <= len(os.sched_getaffinity(0))
+
+
+def test_auto_decides_after_the_first_chunk_and_keeps_the_answers(robot, checker, grasps, result):
+    # small chunks: enough of them for auto to consider workers, whatever it decides
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto")
+    eng.chunk_size = 4
+    with eng:
+        other = eng.run(grasps)
+        assert 1 <= eng.workers_used <= available_cores()
+        assert (eng._pool is not None) == (eng.workers_used > 1)
+    for a, b in zip(result, other, strict=True):
+        if a is None:
+            assert b is None
+        else:
+            np.testing.assert_array_equal(a, b)
 
 
 def test_auto_runs_a_small_set_on_this_process(robot, checker, grasps, result):

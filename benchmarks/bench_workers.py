@@ -12,13 +12,15 @@ Two conditions, in one run: **idle** (whatever else the machine runs) and
 **hog**: a busy loop pinned to core 0 (``taskset -c 0``, a child process of
 this benchmark, killed after). In each condition the settings are
 interleaved (1, 2, auto, 1, 2, auto, ...) so that the machine's load hits
-them alike; the figures are medians over ``--repeats``. The ratio that the
+them alike; the figures are medians over ``--repeats`` (5). The ratio that the
 issue's target reads is ``auto / one worker`` (at least 1 wanted), per
-condition. Also recorded: how many workers ``auto`` chose in each run and the
-load average before and after.
+condition, also paired (each repeat's auto run over the one-worker run of
+the same repeat, median of those ratios: slow drifts of the load cancel).
+Also recorded: how many workers ``auto`` chose in each run and the load
+average before and after.
 
 Run from the repository root: ``python benchmarks/bench_workers.py``
-(about two minutes); writes ``benchmarks/results/workers.json``.
+(about three minutes); writes ``benchmarks/results/workers.json``.
 """
 
 from __future__ import annotations
@@ -95,12 +97,19 @@ def condition(grasps: Any, repeats: int) -> dict[str, Any]:
         out["workers_auto"]["poses_per_s"] / out["workers_1"]["poses_per_s"]
     )
     out["ratio_two_over_one"] = out["workers_2"]["poses_per_s"] / out["workers_1"]["poses_per_s"]
+    # paired: each repeat's auto (or 2) run over that repeat's one-worker run, so that
+    # the slow drifts of the machine's load cancel; the median of those ratios
+    for s, key in (("auto", "ratio_auto_over_one_paired"), ("2", "ratio_two_over_one_paired")):
+        pairs = [
+            b["poses_per_s"] / a["poses_per_s"] for a, b in zip(runs["1"], runs[s], strict=True)
+        ]
+        out[key] = float(np.median(pairs))
     return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=3, help="runs per setting (median)")
+    parser.add_argument("--repeats", type=int, default=5, help="runs per setting (median)")
     parser.add_argument("--no-hog", action="store_true", help="only the idle condition")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "workers.json"))
     args = parser.parse_args()
@@ -114,7 +123,7 @@ def main() -> None:
         "work": "bottle_side, 80 side grasps, subdivisions 28, approach 10 cm, table + bottle",
         "poses": len(grasps),
         "command": "python benchmarks/bench_workers.py"
-        + (f" --repeats {args.repeats}" if args.repeats != 3 else ""),
+        + (f" --repeats {args.repeats}" if args.repeats != 5 else ""),
         "load_average_start": os.getloadavg(),
     }
     report["idle"] = condition(grasps, max(1, args.repeats))
@@ -143,7 +152,9 @@ def main() -> None:
         )
         print(f"{name}: poses/s {rates}")
         print(
-            f"  auto/one {c['ratio_auto_over_one']:.2f}, two/one {c['ratio_two_over_one']:.2f}, "
+            f"  auto/one {c['ratio_auto_over_one']:.2f} (paired "
+            f"{c['ratio_auto_over_one_paired']:.2f}), two/one {c['ratio_two_over_one']:.2f} "
+            f"(paired {c['ratio_two_over_one_paired']:.2f}), "
             f"identical reachable flags: {c['identical_reachable']}"
         )
     print(

@@ -354,9 +354,11 @@ BENCH_NOTES: dict[str, str] = {
     "workers": (
         "The reachability stage on the dense bottle (about 56,000 poses, as `pipeline`) with "
         "`ik.workers` 1, 2 and `auto`, each run a fresh engine (the pool's start-up charged to "
-        "it), settings interleaved, medians of three runs, in two conditions in one run: "
+        "it), settings interleaved, medians of five runs, in two conditions in one run: "
         "`idle` (whatever else the machine runs) and `hog_on_core_0` (a busy loop pinned to "
-        "core 0 by `taskset`). `ratio_auto_over_one` is the target (at least 1); "
+        "core 0 by `taskset`). `ratio_auto_over_one` is the target (at least 1); the "
+        "`_paired` ratios are medians of each repeat's run over that repeat's one-worker run "
+        "(the machine is shared: single runs of the same setting differ by up to 2x here); "
         "`workers_used`: how many workers each run forked (`auto` decides per run from the "
         "run's size and the idle capacity of the cores, see `ik.workers`); "
         "`identical_reachable`: every run's reachable flags are the same."

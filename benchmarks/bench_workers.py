@@ -1,26 +1,31 @@
 #!/usr/bin/env python
-"""The reachability stage on 1 worker, 2 workers and ``workers: auto``, idle and under a CPU hog.
+"""``workers: auto`` against one worker on the reachability stage: idle, one core hogged, both.
 
 Work: the dense bottle of ``bench_pipeline.py`` (``configs/bottle_side.yaml``
 with 80 side grasps and ``subdivisions: 28``, about 56,000 poses, approach on,
 table and bottle in the collision world). Each run builds a fresh engine
 (:func:`gcm_pipeline.pipeline.reachability_engine`) and times
 :func:`gcm_pipeline.check_reachability` end to end, so the worker pool's
-start-up is charged to the run that needs it.
+start-up is charged to the run that forks it.
 
-Two conditions, in one run: **idle** (whatever else the machine runs) and
-**hog**: a busy loop pinned to core 0 (``taskset -c 0``, a child process of
-this benchmark, killed after). In each condition the settings are
-interleaved (1, 2, auto, 1, 2, auto, ...) so that the machine's load hits
-them alike; the figures are medians over ``--repeats`` (5). The ratio that the
-issue's target reads is ``auto / one worker`` (at least 1 wanted), per
-condition, also paired (each repeat's auto run over the one-worker run of
-the same repeat, median of those ratios: slow drifts of the load cancel).
-Also recorded: how many workers ``auto`` chose in each run and the load
-average before and after.
+Three scenarios, in one run: **idle** (whatever else the machine runs),
+**hog_core_0** (a busy loop pinned to core 0 by ``taskset``) and
+**hog_all_cores** (one pinned busy loop per core); the loops are child
+processes of this benchmark, killed after their scenario. A scenario is
+``--pairs`` (7) pairs of runs, ``auto`` and ``1`` back to back, the order
+alternating from pair to pair (auto, one; one, auto; ...) so that neither
+setting always runs first. The machine is shared (single runs of one setting
+differ by up to 3.5x here), so the figure is the **median of the per-pair
+ratios** auto/one (the target: at least 1), with their spread (quartiles,
+least and most). Per auto run the benchmark records how many workers auto
+chose and the idle cores it read: where it chose 1, auto ran exactly the
+one-worker code (the same chunks on this process), so any departure of that
+pair's ratio from 1 is the machine's noise. Also recorded: the load
+average (``os.getloadavg``) before every pair and at the end, and whether
+every run gave the same reachable flags.
 
 Run from the repository root: ``python benchmarks/bench_workers.py``
-(about three minutes); writes ``benchmarks/results/workers.json``.
+(about eight minutes on 2 cores); writes ``benchmarks/results/workers.json``.
 """
 
 from __future__ import annotations
@@ -43,23 +48,24 @@ sys.path.insert(0, str(ROOT))  # run from a clone, no install
 
 from gcm_pipeline import pipeline as P  # noqa: E402
 from gcm_pipeline.config import load_config  # noqa: E402
+from gcm_pipeline.reach.engine import available_cores  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 DENSE = ["candidates.count=80", "densify.subdivisions=28"]
-SETTINGS = ("1", "2", "auto")
 
 
-def hog() -> subprocess.Popen[bytes]:
-    """A busy loop on core 0 (pinned with ``taskset`` where it exists)."""
+def hogs(cores: list[int]) -> list[subprocess.Popen[bytes]]:
+    """One busy loop per core in ``cores``, pinned there with ``taskset``."""
+    if cores and shutil.which("taskset") is None:
+        sys.exit("bench_workers: the hog scenarios need taskset (util-linux)")
     loop = [sys.executable, "-c", "while True: pass"]
-    cmd = ["taskset", "-c", "0", *loop] if shutil.which("taskset") else loop
-    proc = subprocess.Popen(cmd)
-    time.sleep(1.0)  # let it show up in the kernel's counters
-    return proc
+    procs = [subprocess.Popen(["taskset", "-c", str(c), *loop]) for c in cores]
+    time.sleep(1.0)  # let them show up in the kernel's counters
+    return procs
 
 
 def one_run(grasps: Any, workers: str) -> dict[str, Any]:
-    """The stage on ``grasps`` with ``ik.workers=workers``: wall time and the workers used."""
+    """The stage on ``grasps`` with ``ik.workers=workers``: its rate and the workers used."""
     cfg = load_config(CONFIG, [*DENSE, f"ik.workers={workers}"])
     robot = P.robot_from_config(cfg)
     engine = P.reachability_engine(robot, cfg)
@@ -72,98 +78,106 @@ def one_run(grasps: Any, workers: str) -> dict[str, Any]:
     return {
         "wall_s": wall,
         "poses_per_s": len(done) / wall,
-        "workers_used": int(getattr(engine, "workers_used", engine.workers)),
+        "workers_used": int(engine.workers_used),
+        "idle_seen": engine.idle_seen,
         "reachable": np.asarray(done["reachable"]).copy(),
     }
 
 
-def condition(grasps: Any, repeats: int) -> dict[str, Any]:
-    """Every setting ``repeats`` times, interleaved: medians, runs, workers used."""
-    runs: dict[str, list[dict[str, Any]]] = {s: [] for s in SETTINGS}
-    for _ in range(repeats):
-        for s in SETTINGS:
-            runs[s].append(one_run(grasps, s))
-    first = runs[SETTINGS[0]][0]["reachable"]
-    same = all(np.array_equal(r["reachable"], first) for rs in runs.values() for r in rs)
-    out: dict[str, Any] = {"identical_reachable": bool(same)}
-    for s, rs in runs.items():
-        rates = [r["poses_per_s"] for r in rs]
-        out[f"workers_{s}"] = {
-            "poses_per_s": float(np.median(rates)),
-            "runs_poses_per_s": [round(x) for x in rates],
-            "workers_used": [r["workers_used"] for r in rs],
-        }
-    out["ratio_auto_over_one"] = (
-        out["workers_auto"]["poses_per_s"] / out["workers_1"]["poses_per_s"]
+def spread(x: list[float]) -> dict[str, float]:
+    """Median, quartiles, least and most of ``x``."""
+    q = np.percentile(x, [0, 25, 50, 75, 100])
+    return dict(
+        zip(("min", "q1", "median", "q3", "max"), (round(float(v), 3) for v in q), strict=True)
     )
-    out["ratio_two_over_one"] = out["workers_2"]["poses_per_s"] / out["workers_1"]["poses_per_s"]
-    # paired: each repeat's auto (or 2) run over that repeat's one-worker run, so that
-    # the slow drifts of the machine's load cancel; the median of those ratios
-    for s, key in (("auto", "ratio_auto_over_one_paired"), ("2", "ratio_two_over_one_paired")):
-        pairs = [
-            b["poses_per_s"] / a["poses_per_s"] for a, b in zip(runs["1"], runs[s], strict=True)
-        ]
-        out[key] = float(np.median(pairs))
-    return out
+
+
+def scenario(grasps: Any, pairs: int, hog_cores: list[int]) -> dict[str, Any]:
+    """``pairs`` pairs of an auto and a one-worker run, alternating, under hogs on ``hog_cores``."""
+    procs = hogs(hog_cores)
+    rows, flags = [], []
+    try:
+        for i in range(pairs):
+            load = os.getloadavg()[0]
+            order = ("auto", "1") if i % 2 == 0 else ("1", "auto")
+            got = {s: one_run(grasps, s) for s in order}
+            flags += [got["auto"].pop("reachable"), got["1"].pop("reachable")]
+            rows.append(
+                {
+                    "first": order[0],
+                    "load_1min": round(load, 2),
+                    "auto_poses_per_s": round(got["auto"]["poses_per_s"]),
+                    "one_poses_per_s": round(got["1"]["poses_per_s"]),
+                    "ratio": round(got["auto"]["poses_per_s"] / got["1"]["poses_per_s"], 3),
+                    "auto_workers": got["auto"]["workers_used"],
+                    "auto_idle_cores_seen": None
+                    if got["auto"]["idle_seen"] is None
+                    else round(got["auto"]["idle_seen"], 2),
+                }
+            )
+            print(f"  pair {i + 1}: {rows[-1]}", flush=True)
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    ratios = [r["ratio"] for r in rows]
+    forked = [r["ratio"] for r in rows if r["auto_workers"] > 1]
+    return {
+        "hog_cores": hog_cores,
+        "ratio_auto_over_one": spread(ratios),
+        "ratio_where_auto_forked": spread(forked) if forked else None,
+        "auto_workers": [r["auto_workers"] for r in rows],
+        "one_poses_per_s": spread([r["one_poses_per_s"] for r in rows]),
+        "auto_poses_per_s": spread([r["auto_poses_per_s"] for r in rows]),
+        "identical_reachable": all(np.array_equal(f, flags[0]) for f in flags),
+        "pairs": rows,
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=5, help="runs per setting (median)")
-    parser.add_argument("--no-hog", action="store_true", help="only the idle condition")
+    parser.add_argument("--pairs", type=int, default=7, help="auto/one pairs per scenario")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "workers.json"))
     args = parser.parse_args()
+    if args.pairs < 1:
+        sys.exit("bench_workers: --pairs must be at least 1")
 
     t_start = time.time()
     cfg = load_config(CONFIG, DENSE)
     candidates = P.generate_candidates(cfg)
     grasps = P.densify(candidates, P.build_manifold(candidates, cfg), cfg)
     one_run(grasps, "1")  # warm-up: caches, compiled kernels
+    cores = sorted(os.sched_getaffinity(0))
     report: dict[str, Any] = {
         "work": "bottle_side, 80 side grasps, subdivisions 28, approach 10 cm, table + bottle",
         "poses": len(grasps),
         "command": "python benchmarks/bench_workers.py"
-        + (f" --repeats {args.repeats}" if args.repeats != 5 else ""),
-        "load_average_start": os.getloadavg(),
+        + (f" --pairs {args.pairs}" if args.pairs != 7 else ""),
+        "load_average_start": [round(x, 2) for x in os.getloadavg()],
     }
-    report["idle"] = condition(grasps, max(1, args.repeats))
-    if not args.no_hog:
-        proc = hog()
-        try:
-            report["hog_on_core_0"] = condition(grasps, max(1, args.repeats))
-        finally:
-            proc.kill()
-            proc.wait()
-    report.update(
-        load_average_end=os.getloadavg(),
-        duration_s=time.time() - t_start,
-        date_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        cores=os.cpu_count(),
-        versions={"python": platform.python_version(), "numpy": np.__version__},
-    )
-    for name in ("idle", "hog_on_core_0"):
-        if name not in report:
-            continue
-        c = report[name]
-        rates = ", ".join(
-            f"{s}: {c[f'workers_{s}']['poses_per_s']:,.0f} "
-            f"(used {c[f'workers_{s}']['workers_used']})"
-            for s in SETTINGS
-        )
-        print(f"{name}: poses/s {rates}")
+    for name, hog_cores in (
+        ("idle", []),
+        ("hog_core_0", cores[:1]),
+        ("hog_all_cores", cores),
+    ):
+        print(f"{name}: hogs on cores {hog_cores}", flush=True)
+        report[name] = scenario(grasps, args.pairs, hog_cores)
+        r = report[name]["ratio_auto_over_one"]
         print(
-            f"  auto/one {c['ratio_auto_over_one']:.2f} (paired "
-            f"{c['ratio_auto_over_one_paired']:.2f}), two/one {c['ratio_two_over_one']:.2f} "
-            f"(paired {c['ratio_two_over_one_paired']:.2f}), "
-            f"identical reachable flags: {c['identical_reachable']}"
+            f"{name}: auto/one median {r['median']:.3f} (quartiles {r['q1']:.3f}-{r['q3']:.3f}, "
+            f"range {r['min']:.3f}-{r['max']:.3f}), auto chose {report[name]['auto_workers']}",
+            flush=True,
         )
-    print(
-        f"load average at start {report['load_average_start'][0]:.2f}, end "
-        f"{report['load_average_end'][0]:.2f}"
+    report.update(
+        load_average_end=[round(x, 2) for x in os.getloadavg()],
+        duration_s=round(time.time() - t_start),
+        date_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        cores=available_cores(),
+        versions={"python": platform.python_version(), "numpy": np.__version__},
     )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")
 
 

@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -89,6 +90,7 @@ from gcm_pipeline.reach.workers import (
     auto_workers,
     blas_controller,
     guided_chunks,
+    quota_cores,
     solve_in_worker,
 )
 from gcm_pipeline.robot import kernels
@@ -106,6 +108,27 @@ _RAN_EVERY_SEED = ("no_ik", "joint_limits")
 
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
+#: Worker processes start by forking (they inherit the engine); elsewhere one process.
+_CAN_FORK = "fork" in mp.get_all_start_methods()
+
+
+@dataclass(frozen=True)
+class _Phase:
+    """The targets of one phase of a run and what each chunk of them is solved with."""
+
+    targets: np.ndarray  # (M, 4, 4)
+    seeds: np.ndarray | None  # (M, K, nq) or None
+    hopeless: np.ndarray | None  # (M,) bool or None
+    candidates: bool  # return step 1's candidates
+
+    def args(self, at: np.ndarray) -> tuple[Any, ...]:
+        """:meth:`ReachabilityEngine.solve`'s arguments for the positions ``at``."""
+        return (
+            self.targets[at],
+            None if self.seeds is None else self.seeds[at],
+            self.candidates,
+            None if self.hopeless is None else self.hopeless[at],
+        )
 
 
 def available_cores() -> int:
@@ -186,12 +209,14 @@ class ReachabilityEngine(ChunkSteps):
         #: ``workers: auto``: each run decides its worker count (:func:`auto_workers`).
         self.auto = isinstance(workers, str) and workers == "auto"
         if self.auto:
-            workers = available_cores()
+            workers = quota_cores(available_cores())
         if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
             raise InputError(f"workers must be 'auto' or an int >= 1, got {workers!r}")
         self.workers = int(workers)
         #: Worker processes of the last run (``auto``: decided per run).
         self.workers_used = self.workers
+        #: ``auto``: the idle cores its last decision read (None: none read, or unreadable).
+        self.idle_seen: float | None = None
         if chunk_size is None:
             chunk_size = _CHUNK.get(backend, _CHUNK["mink"])
         if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
@@ -273,7 +298,6 @@ class ReachabilityEngine(ChunkSteps):
         nb = check_neighbours(neighbours, n)
         nb = None if nb is None else nb.astype(int)
         out = _run_arrays(n, nq, self.solutions, self.checker is not None)
-        self.workers_used = self._workers_for(n)
         cands: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         timings: dict[str, float] = {}
         if nb is None:
@@ -281,6 +305,7 @@ class ReachabilityEngine(ChunkSteps):
         else:
             has_nb = np.any(nb >= 0, axis=1)
             phases = [np.flatnonzero(~has_nb), np.flatnonzero(has_nb)]
+        used = 1
         for phase, rows in enumerate(phases):
             if rows.size == 0:
                 continue
@@ -289,18 +314,9 @@ class ReachabilityEngine(ChunkSteps):
             if phase == 1:
                 assert nb is not None
                 sub, hopeless = _neighbour_seeds(nb[rows], out, sub)
-            chunks = [
-                (
-                    rows[at],
-                    tgt,
-                    None if sub is None else sub[at],
-                    None if hopeless is None else hopeless[at],
-                )
-                for at in guided_chunks(rows.size, self.chunk_size, self.workers_used)
-            ]
-            for (chunk_rows, *_), part in zip(
-                chunks, self._map(chunks, return_candidates), strict=True
-            ):
+            work = _Phase(tgt[rows], sub, hopeless, return_candidates)
+            for at, part in self._solve_phase(work):
+                chunk_rows = rows[at]
                 for key, arr in out.items():
                     if arr is not None:
                         arr[chunk_rows] = part[key]
@@ -311,50 +327,46 @@ class ReachabilityEngine(ChunkSteps):
                     cands.append((chunk_rows[i], cq, cr))
                 if progress is not None:
                     progress(int(chunk_rows.size))
+            used = max(used, self.workers_used)
+        self.workers_used = used
         self.timings = timings
         candidates = _gather_candidates(cands, nq) if return_candidates else None
         return _reach_result(out, candidates, self.solutions, self.checker is not None)
 
     # --- workers --------------------------------------------------------------------------
 
-    def _workers_for(self, n: int) -> int:
-        """Most worker processes for a run of ``n`` targets: ``workers``, or auto's by size.
+    def _solve_phase(self, work: _Phase) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
+        """Each chunk's positions in ``work`` and its solved part, in order.
 
-        ``auto`` may take fewer: :meth:`_map` watches the machine's load while
-        it solves the first chunk on this process, then decides.
+        A fixed ``workers``: :func:`guided_chunks` of the whole phase on that
+        many processes. ``workers: auto``: the first full chunk on this
+        process while an :class:`IdleProbe` watches the cores, then the rest on
+        as many workers as :func:`auto_workers` decides from what is left and
+        the idle cores; when that is one, the chunks are one worker's chunks.
         """
-        if not self.auto:
-            return self.workers
-        return auto_workers(n, self.chunk_size, self.workers, None)
+        n, start = len(work.targets), 0
+        workers = self.workers
+        self.idle_seen = None
+        if self.auto:
+            workers = auto_workers(n - self.chunk_size, self.chunk_size, self.workers, None)
+            if workers > 1 and _CAN_FORK:
+                probe = IdleProbe()
+                first = np.arange(self.chunk_size)
+                yield first, self.solve(*work.args(first))
+                start = self.chunk_size
+                self.idle_seen = probe.idle_cores()
+                workers = auto_workers(n - start, self.chunk_size, workers, self.idle_seen)
+        ats = [at + start for at in guided_chunks(n - start, self.chunk_size, workers)]
+        self.workers_used = min(workers, len(ats)) if len(ats) > 1 and _CAN_FORK else 1
+        yield from zip(ats, self._map([work.args(at) for at in ats], workers), strict=True)
 
-    def _map(
-        self,
-        chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]],
-        cands: bool,
-    ) -> Iterator[dict[str, Any]]:
-        """Solve the chunks in order, on this process or the worker pool.
-
-        ``workers: auto``: the first chunk on this process while an
-        :class:`IdleProbe` watches the cores, then the rest on as many workers
-        as :func:`auto_workers` decides from what is left and the idle cores.
-        """
-        work = [(tgt[rows], sub, cands, hopeless) for rows, tgt, sub, hopeless in chunks]
-        if self.workers_used == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
+    def _map(self, work: list[tuple[Any, ...]], workers: int) -> Iterator[dict[str, Any]]:
+        """Solve the chunks (:meth:`solve`'s arguments) in order, here or on ``workers``."""
+        if workers == 1 or len(work) < 2 or not _CAN_FORK:
             for args in work:
                 yield self.solve(*args)
             return
-        if self.auto:
-            probe = IdleProbe()
-            yield self.solve(*work[0])
-            work = work[1:]
-            left = sum(len(args[0]) for args in work)
-            idle = probe.idle_cores()
-            self.workers_used = auto_workers(left, self.chunk_size, self.workers_used, idle)
-            if self.workers_used == 1 or len(work) < 2:
-                for args in work:
-                    yield self.solve(*args)
-                return
-        pool = self._get_pool(len(work))
+        pool = self._get_pool(min(workers, len(work)))
         try:
             yield from pool.ordered(solve_in_worker, work)
         except BaseException:
@@ -362,9 +374,8 @@ class ReachabilityEngine(ChunkSteps):
             self.close()
             raise
 
-    def _get_pool(self, chunks: int) -> Any:
-        """The worker processes, no more than ``chunks`` (64 workers for 5 chunks: 5)."""
-        size = min(self.workers_used, chunks)
+    def _get_pool(self, size: int) -> Any:
+        """``size`` worker processes (the chunks' count at most: 64 workers for 5 chunks: 5)."""
         if self._pool is not None and (
             self._pool_size < size or (self.auto and self._pool_size > size)
         ):

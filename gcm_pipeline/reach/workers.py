@@ -29,6 +29,7 @@ __all__ = [
     "auto_workers",
     "blas_controller",
     "guided_chunks",
+    "quota_cores",
     "solve_in_worker",
 ]
 
@@ -121,6 +122,33 @@ def auto_workers(n: int, chunk_size: int, cores: int, idle: float | None) -> int
     by_size = n // max(1, AUTO_CHUNKS_PER_WORKER * chunk_size)
     by_load = cores if idle is None else math.floor(idle + 1.0 - AUTO_IDLE_CORE)
     return max(1, min(cores, by_size, by_load))
+
+
+def quota_cores(cores: int, root: str = "/sys/fs/cgroup") -> int:
+    """``cores``, or fewer when a CPU quota of the cgroup allows fewer (at least 1).
+
+    The quota of the cgroup mounted at ``root`` (cgroup v2 ``cpu.max``, or v1
+    ``cpu/cpu.cfs_quota_us`` over ``cpu.cfs_period_us``), rounded down: 1.5
+    CPUs' worth of time is one worker's full core, and a second worker would
+    only share it. No quota or nothing readable: ``cores``.
+    """
+    for quota_file, period_file in (
+        ("cpu.max", None),
+        ("cpu/cpu.cfs_quota_us", "cpu/cpu.cfs_period_us"),
+    ):
+        try:
+            with open(os.path.join(root, quota_file), encoding="ascii") as f:
+                fields = f.read().split()
+            if period_file is not None:
+                with open(os.path.join(root, period_file), encoding="ascii") as f:
+                    fields += f.read().split()
+            quota, period = float(fields[0]), float(fields[1])
+        except (OSError, ValueError, IndexError):
+            continue  # "max" (v2) or not this cgroup version
+        if quota > 0 and period > 0:  # v1 says -1 for none
+            return max(1, min(cores, int(quota // period)))
+        return cores
+    return cores
 
 
 def _cpu_times(cpus: set[int]) -> tuple[float, float] | None:

@@ -8,10 +8,12 @@ table and bottle in the collision world). Each run builds a fresh engine
 :func:`gcm_pipeline.check_reachability` end to end, so the worker pool's
 start-up is charged to the run that forks it.
 
-Three scenarios, in one run: **idle** (whatever else the machine runs),
-**hog_core_0** (a busy loop pinned to core 0 by ``taskset``) and
-**hog_all_cores** (one pinned busy loop per core); the loops are child
-processes of this benchmark, killed after their scenario. A scenario is
+Four scenarios, in one run: **idle** (whatever else the machine runs),
+**hog_core_0** (a busy loop pinned to core 0 by ``taskset``),
+**hog_all_cores** (one pinned busy loop per core) and **hog_core_0_late**
+(the loop on core 0 starts 1.5 s into each run, after auto has read an
+idle machine and decided: the load auto cannot see); the loops are child
+processes of this benchmark, killed after their scenario or run. A scenario is
 ``--pairs`` (7) pairs of runs, ``auto`` and ``1`` back to back, the order
 alternating from pair to pair (auto, one; one, auto; ...) so that neither
 setting always runs first. The machine is shared (single runs of one setting
@@ -25,7 +27,7 @@ average (``os.getloadavg``) before every pair and at the end, and whether
 every run gave the same reachable flags.
 
 Run from the repository root: ``python benchmarks/bench_workers.py``
-(about eight minutes on 2 cores); writes ``benchmarks/results/workers.json``.
+(about eight minutes on 2 cores, more under load); writes ``benchmarks/results/workers.json``.
 """
 
 from __future__ import annotations
@@ -52,29 +54,43 @@ from gcm_pipeline.reach.engine import available_cores  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 DENSE = ["candidates.count=80", "densify.subdivisions=28"]
+#: When the late hogs start, into a run [s]: after auto's first chunk (about 0.5 s idle).
+LATE_S = 1.5
 
 
 def hogs(cores: list[int]) -> list[subprocess.Popen[bytes]]:
     """One busy loop per core in ``cores``, pinned there with ``taskset``."""
-    if cores and shutil.which("taskset") is None:
-        sys.exit("bench_workers: the hog scenarios need taskset (util-linux)")
     loop = [sys.executable, "-c", "while True: pass"]
     procs = [subprocess.Popen(["taskset", "-c", str(c), *loop]) for c in cores]
     time.sleep(1.0)  # let them show up in the kernel's counters
     return procs
 
 
-def one_run(grasps: Any, workers: str) -> dict[str, Any]:
-    """The stage on ``grasps`` with ``ik.workers=workers``: its rate and the workers used."""
+def late_hog(core: int, delay: float) -> subprocess.Popen[bytes]:
+    """A busy loop that starts on ``core`` ``delay`` seconds from now."""
+    loop = f"import time; time.sleep({delay})\nwhile True: pass"
+    return subprocess.Popen(["taskset", "-c", str(core), sys.executable, "-c", loop])
+
+
+def one_run(grasps: Any, workers: str, late: list[int] | None = None) -> dict[str, Any]:
+    """The stage on ``grasps`` with ``ik.workers=workers``: its rate and the workers used.
+
+    ``late``: cores that a busy loop takes ``LATE_S`` into the run (after auto decided).
+    """
     cfg = load_config(CONFIG, [*DENSE, f"ik.workers={workers}"])
     robot = P.robot_from_config(cfg)
     engine = P.reachability_engine(robot, cfg)
+    procs = []
     try:
+        procs = [late_hog(c, LATE_S) for c in late or []]
         t0 = time.perf_counter()
         done = P.check_reachability(grasps, robot, cfg, engine=engine)
         wall = time.perf_counter() - t0
     finally:
         engine.close()
+        for p in procs:
+            p.kill()
+            p.wait()
     return {
         "wall_s": wall,
         "poses_per_s": len(done) / wall,
@@ -92,15 +108,20 @@ def spread(x: list[float]) -> dict[str, float]:
     )
 
 
-def scenario(grasps: Any, pairs: int, hog_cores: list[int]) -> dict[str, Any]:
-    """``pairs`` pairs of an auto and a one-worker run, alternating, under hogs on ``hog_cores``."""
+def scenario(
+    grasps: Any, pairs: int, hog_cores: list[int], late: list[int] | None = None
+) -> dict[str, Any]:
+    """``pairs`` pairs of an auto and a one-worker run, alternating, under hogs on ``hog_cores``.
+
+    ``late``: cores whose busy loop starts during each run (see :func:`one_run`).
+    """
     procs = hogs(hog_cores)
     rows, flags = [], []
     try:
         for i in range(pairs):
             load = os.getloadavg()[0]
             order = ("auto", "1") if i % 2 == 0 else ("1", "auto")
-            got = {s: one_run(grasps, s) for s in order}
+            got = {s: one_run(grasps, s, late) for s in order}
             flags += [got["auto"].pop("reachable"), got["1"].pop("reachable")]
             rows.append(
                 {
@@ -124,13 +145,14 @@ def scenario(grasps: Any, pairs: int, hog_cores: list[int]) -> dict[str, Any]:
     forked = [r["ratio"] for r in rows if r["auto_workers"] > 1]
     return {
         "hog_cores": hog_cores,
+        "late_hog_cores": late or [],
         "ratio_auto_over_one": spread(ratios),
         "ratio_where_auto_forked": spread(forked) if forked else None,
-        "auto_workers": [r["auto_workers"] for r in rows],
         "one_poses_per_s": spread([r["one_poses_per_s"] for r in rows]),
         "auto_poses_per_s": spread([r["auto_poses_per_s"] for r in rows]),
         "identical_reachable": all(np.array_equal(f, flags[0]) for f in flags),
-        "pairs": rows,
+        # pair by pair, in order (one list per column)
+        "pairs": {key: [r[key] for r in rows] for key in rows[0]},
     }
 
 
@@ -141,6 +163,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.pairs < 1:
         sys.exit("bench_workers: --pairs must be at least 1")
+    if shutil.which("taskset") is None:
+        sys.exit("bench_workers: the hog scenarios need taskset (util-linux)")
 
     t_start = time.time()
     cfg = load_config(CONFIG, DENSE)
@@ -155,13 +179,15 @@ def main() -> None:
         + (f" --pairs {args.pairs}" if args.pairs != 7 else ""),
         "load_average_start": [round(x, 2) for x in os.getloadavg()],
     }
-    for name, hog_cores in (
-        ("idle", []),
-        ("hog_core_0", cores[:1]),
-        ("hog_all_cores", cores),
+    for name, hog_cores, late in (
+        ("idle", [], []),
+        ("hog_core_0", cores[:1], []),
+        ("hog_all_cores", cores, []),
+        ("hog_core_0_late", [], cores[:1]),
     ):
-        print(f"{name}: hogs on cores {hog_cores}", flush=True)
-        report[name] = scenario(grasps, args.pairs, hog_cores)
+        when = f", from {LATE_S} s into each run on cores {late}" if late else ""
+        print(f"{name}: hogs on cores {hog_cores}{when}", flush=True)
+        report[name] = scenario(grasps, args.pairs, hog_cores, late)
         r = report[name]["ratio_auto_over_one"]
         print(
             f"{name}: auto/one median {r['median']:.3f} (quartiles {r['q1']:.3f}-{r['q3']:.3f}, "

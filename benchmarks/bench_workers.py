@@ -14,7 +14,7 @@ Four scenarios, in one run: **idle** (whatever else the machine runs),
 (the loop on core 0 starts 1.5 s into each run, after auto has read an
 idle machine and decided: the load auto cannot see); the loops are child
 processes of this benchmark, killed after their scenario or run. A scenario is
-``--pairs`` (7) pairs of runs, ``auto`` and ``1`` back to back, the order
+``--pairs`` (9) pairs of runs, ``auto`` and ``1`` back to back, the order
 alternating from pair to pair (auto, one; one, auto; ...) so that neither
 setting always runs first. The machine is shared (single runs of one setting
 differ by up to 3.5x here), so the figure is the **median of the per-pair
@@ -22,12 +22,15 @@ ratios** auto/one (the target: at least 1), with their spread (quartiles,
 least and most). Per auto run the benchmark records how many workers auto
 chose and the idle cores it read: where it chose 1, auto ran exactly the
 one-worker code (the same chunks on this process), so any departure of that
-pair's ratio from 1 is the machine's noise. Also recorded: the load
+pair's ratio from 1 is the machine's noise (``ratio_where_auto_chose_one``; the
+pairs where it forked: ``ratio_where_auto_forked``). Also recorded: the load
 average (``os.getloadavg``) before every pair and at the end, and whether
-every run gave the same reachable flags.
+every run gave the same reachable flags, and per run the CPU the rest of the
+machine used meanwhile (``others_cores_*``, in cores: the hogs and other jobs),
+so that a pair whose two runs met different loads can be told apart.
 
 Run from the repository root: ``python benchmarks/bench_workers.py``
-(about eight minutes on 2 cores, more under load); writes ``benchmarks/results/workers.json``.
+(about ten minutes on 2 cores, more under load); writes ``benchmarks/results/workers.json``.
 """
 
 from __future__ import annotations
@@ -72,10 +75,22 @@ def late_hog(core: int, delay: float) -> subprocess.Popen[bytes]:
     return subprocess.Popen(["taskset", "-c", str(core), sys.executable, "-c", loop])
 
 
+def cpu_now() -> tuple[float, float, float]:
+    """The machine's busy CPU time, this process's and its reaped children's [s], the clock."""
+    with open("/proc/stat", encoding="ascii") as f:
+        ticks = [float(x) for x in f.readline().split()[1:9]]  # the "cpu" line: every core
+    busy = (sum(ticks) - ticks[3] - ticks[4]) / os.sysconf("SC_CLK_TCK")  # not idle, iowait
+    t = os.times()
+    return busy, t.user + t.system + t.children_user + t.children_system, time.perf_counter()
+
+
 def one_run(grasps: Any, workers: str, late: list[int] | None = None) -> dict[str, Any]:
     """The stage on ``grasps`` with ``ik.workers=workers``: its rate and the workers used.
 
     ``late``: cores that a busy loop takes ``LATE_S`` into the run (after auto decided).
+    ``others_cores``: the CPU the rest of the machine used meanwhile (the hogs, other
+    jobs) [cores]: the machine's busy time less the stage's (this process and its
+    workers, reaped by ``engine.close``), over the wall time.
     """
     cfg = load_config(CONFIG, [*DENSE, f"ik.workers={workers}"])
     robot = P.robot_from_config(cfg)
@@ -83,19 +98,23 @@ def one_run(grasps: Any, workers: str, late: list[int] | None = None) -> dict[st
     procs = []
     try:
         procs = [late_hog(c, LATE_S) for c in late or []]
+        start = cpu_now()
         t0 = time.perf_counter()
         done = P.check_reachability(grasps, robot, cfg, engine=engine)
         wall = time.perf_counter() - t0
     finally:
         engine.close()
+        end = cpu_now()  # before the late hogs are reaped: their time is the others'
         for p in procs:
             p.kill()
             p.wait()
+    others = ((end[0] - start[0]) - (end[1] - start[1])) / (end[2] - start[2])
     return {
         "wall_s": wall,
         "poses_per_s": len(done) / wall,
         "workers_used": int(engine.workers_used),
         "idle_seen": engine.idle_seen,
+        "others_cores": others,
         "reachable": np.asarray(done["reachable"]).copy(),
     }
 
@@ -134,6 +153,8 @@ def scenario(
                     "auto_idle_cores_seen": None
                     if got["auto"]["idle_seen"] is None
                     else round(got["auto"]["idle_seen"], 2),
+                    "others_cores_auto_run": round(got["auto"]["others_cores"], 2),
+                    "others_cores_one_run": round(got["1"]["others_cores"], 2),
                 }
             )
             print(f"  pair {i + 1}: {rows[-1]}", flush=True)
@@ -143,11 +164,13 @@ def scenario(
             p.wait()
     ratios = [r["ratio"] for r in rows]
     forked = [r["ratio"] for r in rows if r["auto_workers"] > 1]
+    same = [r["ratio"] for r in rows if r["auto_workers"] == 1]
     return {
         "hog_cores": hog_cores,
         "late_hog_cores": late or [],
         "ratio_auto_over_one": spread(ratios),
         "ratio_where_auto_forked": spread(forked) if forked else None,
+        "ratio_where_auto_chose_one": spread(same) if same else None,
         "one_poses_per_s": spread([r["one_poses_per_s"] for r in rows]),
         "auto_poses_per_s": spread([r["auto_poses_per_s"] for r in rows]),
         "identical_reachable": all(np.array_equal(f, flags[0]) for f in flags),
@@ -158,7 +181,7 @@ def scenario(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--pairs", type=int, default=7, help="auto/one pairs per scenario")
+    parser.add_argument("--pairs", type=int, default=9, help="auto/one pairs per scenario")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "workers.json"))
     args = parser.parse_args()
     if args.pairs < 1:
@@ -176,7 +199,7 @@ def main() -> None:
         "work": "bottle_side, 80 side grasps, subdivisions 28, approach 10 cm, table + bottle",
         "poses": len(grasps),
         "command": "python benchmarks/bench_workers.py"
-        + (f" --pairs {args.pairs}" if args.pairs != 7 else ""),
+        + (f" --pairs {args.pairs}" if args.pairs != 9 else ""),
         "load_average_start": [round(x, 2) for x in os.getloadavg()],
     }
     for name, hog_cores, late in (
@@ -188,10 +211,10 @@ def main() -> None:
         when = f", from {LATE_S} s into each run on cores {late}" if late else ""
         print(f"{name}: hogs on cores {hog_cores}{when}", flush=True)
         report[name] = scenario(grasps, args.pairs, hog_cores, late)
-        r = report[name]["ratio_auto_over_one"]
+        r, chose = report[name]["ratio_auto_over_one"], report[name]["pairs"]["auto_workers"]
         print(
             f"{name}: auto/one median {r['median']:.3f} (quartiles {r['q1']:.3f}-{r['q3']:.3f}, "
-            f"range {r['min']:.3f}-{r['max']:.3f}), auto chose {report[name]['auto_workers']}",
+            f"range {r['min']:.3f}-{r['max']:.3f}), auto chose {chose}",
             flush=True,
         )
     report.update(

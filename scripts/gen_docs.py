@@ -352,16 +352,20 @@ BENCH_NOTES: dict[str, str] = {
         "count is the same in every run."
     ),
     "workers": (
-        "The reachability stage on the dense bottle (about 56,000 poses, as `pipeline`) with "
-        "`ik.workers` 1, 2 and `auto`, each run a fresh engine (the pool's start-up charged to "
-        "it), settings interleaved, medians of five runs, in two conditions in one run: "
-        "`idle` (whatever else the machine runs) and `hog_on_core_0` (a busy loop pinned to "
-        "core 0 by `taskset`). `ratio_auto_over_one` is the target (at least 1); the "
-        "`_paired` ratios are medians of each repeat's run over that repeat's one-worker run "
-        "(the machine is shared: single runs of the same setting differ by up to 2x here); "
-        "`workers_used`: how many workers each run forked (`auto` decides per run from the "
-        "run's size and the idle capacity of the cores, see `ik.workers`); "
-        "`identical_reachable`: every run's reachable flags are the same."
+        "`ik.workers: auto` against one worker on the reachability stage of the dense bottle "
+        "(about 56,000 poses, as `pipeline`), each run a fresh engine (the pool's start-up "
+        "charged to it), in pairs of back-to-back runs whose order alternates (auto first, "
+        "then one first, ...), in four scenarios in one run: `idle` (whatever else the machine "
+        "runs), `hog_core_0` (a busy loop pinned to core 0 by `taskset`), `hog_all_cores` (one "
+        "per core) and `hog_core_0_late` (the loop on core 0 starts 1.5 s into each run, after "
+        "auto has decided). `ratio_auto_over_one` is the target (median at least 1): the spread "
+        "(min, quartiles, max) of the per-pair ratios of poses/s, auto over one; "
+        "`ratio_where_auto_forked` the same over the pairs where auto forked workers. "
+        "`pairs.auto_workers` says what auto chose in each pair: where it chose 1, auto ran the "
+        "one-worker code itself (the same chunks on this process), so those pairs' ratios show "
+        "the machine's noise (it is shared with other jobs; `pairs.load_1min` is the load "
+        "average before each pair); `pairs.auto_idle_cores_seen` the idle cores auto read "
+        "during its first chunk; `identical_reachable`: every run's reachable flags are the same."
     ),
 }
 

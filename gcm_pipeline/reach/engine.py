@@ -305,7 +305,7 @@ class ReachabilityEngine(ChunkSteps):
         else:
             has_nb = np.any(nb >= 0, axis=1)
             phases = [np.flatnonzero(~has_nb), np.flatnonzero(has_nb)]
-        used = 1
+        used, self.idle_seen = 1, None
         for phase, rows in enumerate(phases):
             if rows.size == 0:
                 continue
@@ -346,7 +346,6 @@ class ReachabilityEngine(ChunkSteps):
         """
         n, start = len(work.targets), 0
         workers = self.workers
-        self.idle_seen = None
         if self.auto:
             workers = auto_workers(n - self.chunk_size, self.chunk_size, self.workers, None)
             if workers > 1 and _CAN_FORK:

@@ -4,8 +4,9 @@ A run is cut into contiguous chunks (:func:`guided_chunks`); with several
 workers, the engine forks a pool whose processes inherit it (:data:`WORKER`,
 set just before the fork) and solve chunks with :func:`solve_in_worker`. The
 pools still open are closed at exit. How many workers ``workers: auto`` forks
-for a run is :func:`auto_workers`'s decision, from the run's size and the idle
-capacity of this process's cores (:class:`IdleProbe`).
+for a run is :func:`auto_workers`'s decision, from the run's size, the cores
+this process may use (:func:`quota_cores`) and their idle capacity, read
+while the run's first chunk is solved (:class:`IdleProbe`).
 """
 
 from __future__ import annotations
@@ -108,16 +109,18 @@ def guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:
 
 
 def auto_workers(n: int, chunk_size: int, cores: int, idle: float | None) -> int:
-    """Worker processes for ``workers: auto`` on a run of ``n`` targets (at least 1).
+    """Worker processes for ``workers: auto`` on ``n`` targets left to solve (at least 1).
 
-    The fewest of: the ``cores`` this process may use; one worker per
-    ``AUTO_CHUNKS_PER_WORKER`` full chunks of ``chunk_size`` targets (below
-    that, forking and the smaller chunks cost more than a second worker
-    saves); and the cores other processes leave idle, ``idle`` [cores] from
-    :class:`IdleProbe`, each counted when at least ``AUTO_IDLE_CORE`` of it
-    is idle (a worker that has to share its core with another job's process
-    slows the run down more than it adds). ``idle`` None (not measurable):
-    the cores. Only the worker count depends on the load, never a result.
+    The fewest of: the ``cores`` this process may use (:func:`quota_cores`);
+    one worker per ``AUTO_CHUNKS_PER_WORKER`` full chunks of ``chunk_size``
+    targets (below that, forking and the smaller chunks cost more than a
+    second worker saves); and the cores other processes leave idle, ``idle``
+    [cores] from :class:`IdleProbe`, each counted when at least
+    ``AUTO_IDLE_CORE`` of it is idle (a core another job keeps busy is left
+    to it). ``idle`` None (not measurable): the cores. The engine calls it
+    after its first chunk, with ``n`` the targets after that chunk. Only the
+    worker count depends on the load, never a result;
+    ``benchmarks/bench_workers.py`` measures it against one worker.
     """
     by_size = n // max(1, AUTO_CHUNKS_PER_WORKER * chunk_size)
     by_load = cores if idle is None else math.floor(idle + 1.0 - AUTO_IDLE_CORE)

@@ -288,14 +288,15 @@ def test_no_more_workers_start_than_there_are_chunks(robot, checker, grasps):
         (56294, 2, 0.0, 1),  # every core busy
         (56294, 2, None, 2),  # load not readable: the cores
         (56294, 8, 8.0, 3),  # 3 workers of two full chunks each
-        (16383, 2, 2.0, 1),  # under two full chunks per worker: not worth forking
-        (16384, 2, 2.0, 1),
-        (32768, 2, 2.0, 2),
+        (16383, 2, 2.0, 1),  # under two full chunks per worker left: not worth forking
+        (32767, 2, 2.0, 1),
+        (32768, 2, 2.0, 2),  # a run of 40,960: its first chunk, then 2 x 2 chunks
         (10**6, 64, 7.5, 7),
-        (10**6, 1, 4.0, 1),
+        (10**6, 1, 4.0, 1),  # one core: this process only
     ],
 )
 def test_auto_workers_from_size_and_idle_cores(n, cores, idle, workers):
+    # n: the targets left after the first chunk, which auto solves on this process
     assert auto_workers(n, 8192, cores, idle) == workers
 
 

@@ -154,9 +154,11 @@ class ReachabilityEngine(ChunkSteps):
             ``q (M, nq) -> (M,) str`` (``''`` = valid), run after the collision check.
         alternatives: Other IK solutions tried per target that fails a check (0:
             none; a 6R arm with closed-form branches tries every branch).
-        workers: Processes (1: this one; ``"auto"``: at most :func:`available_cores`,
-            per run as :func:`~gcm_pipeline.reach.workers.auto_workers` decides from
-            the run's size and the cores other processes leave idle).
+        workers: Processes (1: this one; ``"auto"``: at most :func:`available_cores`
+            within a cgroup CPU quota, per run as
+            :func:`~gcm_pipeline.reach.workers.auto_workers` decides from the run's
+            size and the cores other processes leave idle while the first chunk
+            runs on this process; when it decides one, the run is ``workers=1``'s).
         chunk_size: Most targets per chunk (memory and progress granularity); on
             several workers the last chunks are smaller, so they finish together.
             None: 8,192 for the pinocchio backend (fewer, larger NumPy calls),

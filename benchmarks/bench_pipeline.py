@@ -178,7 +178,7 @@ def stage_run(overrides: list[str], workers: str, config: Path = CONFIG) -> dict
         "reachable": int(np.count_nonzero(done["reachable"])),
         "reasons": {str(k) or "reachable": int(v) for k, v in zip(reasons, counts, strict=True)},
         "cpu_s_by_step": {k: round(v, 3) for k, v in engine.timings.items()},
-        "workers": engine.workers,
+        "workers": engine.workers_used,
     }
 
 

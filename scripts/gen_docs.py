@@ -364,6 +364,26 @@ BENCH_NOTES: dict[str, str] = {
         "reference met a busier moment); `identical_results`: every placement's reachable "
         "count is the same in every run."
     ),
+    "workers": (
+        "`ik.workers: auto` against one worker on the reachability stage of the dense bottle "
+        "(about 56,000 poses, as `pipeline`), each run a fresh engine (the pool's start-up "
+        "charged to it), in pairs of back-to-back runs whose order alternates (auto first, "
+        "then one first, ...), in four scenarios in one run: `idle` (whatever else the machine "
+        "runs), `hog_core_0` (a busy loop pinned to core 0 by `taskset`), `hog_all_cores` (one "
+        "per core) and `hog_core_0_late` (the loop on core 0 starts 1.5 s into each run, after "
+        "auto has decided). `ratio_auto_over_one` is the target (median at least 1): the spread "
+        "(min, quartiles, max) of the per-pair ratios of poses/s, auto over one; "
+        "`ratio_where_auto_forked` and `ratio_where_auto_chose_one` the same over the pairs "
+        "where auto forked workers and where it did not. `pairs.auto_workers` says what auto "
+        "chose in each pair: where it chose 1, auto ran the one-worker code itself (the same "
+        "chunks on this process), so those pairs' ratios show the machine's noise: it is shared "
+        "with other jobs, and `pairs.others_cores_auto_run` and `pairs.others_cores_one_run` "
+        "are the CPU the rest of the machine (hogs and other jobs) used during each run [cores], "
+        "so a far-off ratio can be traced to a load that changed between the pair's two runs "
+        "(`pairs.load_1min`: the load average before each pair). "
+        "`pairs.auto_idle_cores_seen`: the idle cores auto read during its first chunk; "
+        "`identical_reachable`: every run's reachable flags are the same."
+    ),
 }
 
 _META_DATE = ("date", "date_utc", "time")

@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -85,8 +86,11 @@ from gcm_pipeline.reach.solution_checks import SolutionChecks
 from gcm_pipeline.reach.workers import (
     POOLS,
     WORKER,
+    IdleProbe,
+    auto_workers,
     blas_controller,
     guided_chunks,
+    quota_cores,
     solve_in_worker,
 )
 from gcm_pipeline.robot import kernels
@@ -104,6 +108,27 @@ _RAN_EVERY_SEED = ("no_ik", "joint_limits")
 
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
+#: Worker processes start by forking (they inherit the engine); elsewhere one process.
+_CAN_FORK = "fork" in mp.get_all_start_methods()
+
+
+@dataclass(frozen=True)
+class _Phase:
+    """The targets of one phase of a run and what each chunk of them is solved with."""
+
+    targets: np.ndarray  # (M, 4, 4)
+    seeds: np.ndarray | None  # (M, K, nq) or None
+    hopeless: np.ndarray | None  # (M,) bool or None
+    candidates: bool  # return step 1's candidates
+
+    def args(self, at: np.ndarray) -> tuple[Any, ...]:
+        """:meth:`ReachabilityEngine.solve`'s arguments for the positions ``at``."""
+        return (
+            self.targets[at],
+            None if self.seeds is None else self.seeds[at],
+            self.candidates,
+            None if self.hopeless is None else self.hopeless[at],
+        )
 
 
 def available_cores() -> int:
@@ -129,7 +154,11 @@ class ReachabilityEngine(ChunkSteps):
             ``q (M, nq) -> (M,) str`` (``''`` = valid), run after the collision check.
         alternatives: Other IK solutions tried per target that fails a check (0:
             none; a 6R arm with closed-form branches tries every branch).
-        workers: Processes (1: this one; ``"auto"``: :func:`available_cores`).
+        workers: Processes (1: this one; ``"auto"``: at most :func:`available_cores`
+            within a cgroup CPU quota, per run as
+            :func:`~gcm_pipeline.reach.workers.auto_workers` decides from the run's
+            size and the cores other processes leave idle while the first chunk
+            runs on this process; when it decides one, the run is ``workers=1``'s).
         chunk_size: Most targets per chunk (memory and progress granularity); on
             several workers the last chunks are smaller, so they finish together.
             None: 8,192 for the pinocchio backend (fewer, larger NumPy calls),
@@ -179,11 +208,17 @@ class ReachabilityEngine(ChunkSteps):
         if int(alternatives) != alternatives or alternatives < 0:
             raise InputError(f"alternatives must be an int >= 0, got {alternatives!r}")
         self.alternatives = int(alternatives)
-        if workers == "auto":
-            workers = available_cores()
+        #: ``workers: auto``: each run decides its worker count (:func:`auto_workers`).
+        self.auto = isinstance(workers, str) and workers == "auto"
+        if self.auto:
+            workers = quota_cores(available_cores())
         if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
             raise InputError(f"workers must be 'auto' or an int >= 1, got {workers!r}")
         self.workers = int(workers)
+        #: Worker processes of the last run (``auto``: decided per run).
+        self.workers_used = self.workers
+        #: ``auto``: the idle cores its last decision read (None: none read, or unreadable).
+        self.idle_seen: float | None = None
         if chunk_size is None:
             chunk_size = _CHUNK.get(backend, _CHUNK["mink"])
         if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
@@ -272,6 +307,7 @@ class ReachabilityEngine(ChunkSteps):
         else:
             has_nb = np.any(nb >= 0, axis=1)
             phases = [np.flatnonzero(~has_nb), np.flatnonzero(has_nb)]
+        used, self.idle_seen = 1, None
         for phase, rows in enumerate(phases):
             if rows.size == 0:
                 continue
@@ -280,18 +316,9 @@ class ReachabilityEngine(ChunkSteps):
             if phase == 1:
                 assert nb is not None
                 sub, hopeless = _neighbour_seeds(nb[rows], out, sub)
-            chunks = [
-                (
-                    rows[at],
-                    tgt,
-                    None if sub is None else sub[at],
-                    None if hopeless is None else hopeless[at],
-                )
-                for at in guided_chunks(rows.size, self.chunk_size, self.workers)
-            ]
-            for (chunk_rows, *_), part in zip(
-                chunks, self._map(chunks, return_candidates), strict=True
-            ):
+            work = _Phase(tgt[rows], sub, hopeless, return_candidates)
+            for at, part in self._solve_phase(work):
+                chunk_rows = rows[at]
                 for key, arr in out.items():
                     if arr is not None:
                         arr[chunk_rows] = part[key]
@@ -302,24 +329,45 @@ class ReachabilityEngine(ChunkSteps):
                     cands.append((chunk_rows[i], cq, cr))
                 if progress is not None:
                     progress(int(chunk_rows.size))
+            used = max(used, self.workers_used)
+        self.workers_used = used
         self.timings = timings
         candidates = _gather_candidates(cands, nq) if return_candidates else None
         return _reach_result(out, candidates, self.solutions, self.checker is not None)
 
     # --- workers --------------------------------------------------------------------------
 
-    def _map(
-        self,
-        chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]],
-        cands: bool,
-    ) -> Iterator[dict[str, Any]]:
-        """Solve the chunks in order, on this process or the worker pool."""
-        work = [(tgt[rows], sub, cands, hopeless) for rows, tgt, sub, hopeless in chunks]
-        if self.workers == 1 or len(work) < 2 or "fork" not in mp.get_all_start_methods():
+    def _solve_phase(self, work: _Phase) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
+        """Each chunk's positions in ``work`` and its solved part, in order.
+
+        A fixed ``workers``: :func:`guided_chunks` of the whole phase on that
+        many processes. ``workers: auto``: the first full chunk on this
+        process while an :class:`IdleProbe` watches the cores, then the rest on
+        as many workers as :func:`auto_workers` decides from what is left and
+        the idle cores; when that is one, the chunks are one worker's chunks.
+        """
+        n, start = len(work.targets), 0
+        workers = self.workers
+        if self.auto:
+            workers = auto_workers(n - self.chunk_size, self.chunk_size, self.workers, None)
+            if workers > 1 and _CAN_FORK:
+                probe = IdleProbe()
+                first = np.arange(self.chunk_size)
+                yield first, self.solve(*work.args(first))
+                start = self.chunk_size
+                self.idle_seen = probe.idle_cores()
+                workers = auto_workers(n - start, self.chunk_size, workers, self.idle_seen)
+        ats = [at + start for at in guided_chunks(n - start, self.chunk_size, workers)]
+        self.workers_used = min(workers, len(ats)) if len(ats) > 1 and _CAN_FORK else 1
+        yield from zip(ats, self._map([work.args(at) for at in ats], workers), strict=True)
+
+    def _map(self, work: list[tuple[Any, ...]], workers: int) -> Iterator[dict[str, Any]]:
+        """Solve the chunks (:meth:`solve`'s arguments) in order, here or on ``workers``."""
+        if workers == 1 or len(work) < 2 or not _CAN_FORK:
             for args in work:
                 yield self.solve(*args)
             return
-        pool = self._get_pool(len(work))
+        pool = self._get_pool(min(workers, len(work)))
         try:
             yield from pool.ordered(solve_in_worker, work)
         except BaseException:
@@ -327,11 +375,12 @@ class ReachabilityEngine(ChunkSteps):
             self.close()
             raise
 
-    def _get_pool(self, chunks: int) -> Any:
-        """The worker processes, no more than ``chunks`` (64 workers for 5 chunks: 5)."""
-        size = min(self.workers, chunks)
-        if self._pool is not None and self._pool_size < size:
-            self.close()  # a larger run than the pool was started for
+    def _get_pool(self, size: int) -> Any:
+        """``size`` worker processes (the chunks' count at most: 64 workers for 5 chunks: 5)."""
+        if self._pool is not None and (
+            self._pool_size < size or (self.auto and self._pool_size > size)
+        ):
+            self.close()  # a larger run than the pool was started for, or auto chose fewer
         if self._pool is None:
             # warm the caches (seed library, MuJoCo model) so that workers inherit them
             probe = self.robot.fk(self.robot.home)

@@ -31,8 +31,9 @@ class ReachOptions:
         retreat: The post-grasp retreat, in the base or the grasp frame (None:
             not checked).
         alternatives: Other IK solutions tried per grasp that fails a check.
-        workers: Processes (``"auto"`` or 0: every core this process may use).
-            The result does not depend on it.
+        workers: Processes (``"auto"`` or 0: decided per run, from its size
+            and the idle cores; see ``ReachabilityEngine``). The result does
+            not depend on it.
         chunk_size: Most targets per chunk of the engine (None: by backend).
         solutions: IK branches kept per reachable grasp (the engine's step 4).
         seed: Random seed of the IK's seed library and restarts.

@@ -3,23 +3,43 @@
 A run is cut into contiguous chunks (:func:`guided_chunks`); with several
 workers, the engine forks a pool whose processes inherit it (:data:`WORKER`,
 set just before the fork) and solve chunks with :func:`solve_in_worker`. The
-pools still open are closed at exit.
+pools still open are closed at exit. How many workers ``workers: auto`` forks
+for a run is :func:`auto_workers`'s decision, from the run's size, the cores
+this process may use (:func:`quota_cores`) and their idle capacity, read
+while the run's first chunk is solved (:class:`IdleProbe`).
 """
 
 from __future__ import annotations
 
 import atexit
 import functools
+import math
+import os
+import time
 import weakref
 from typing import Any, Protocol
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-__all__ = ["POOLS", "WORKER", "Solver", "blas_controller", "guided_chunks", "solve_in_worker"]
+__all__ = [
+    "POOLS",
+    "WORKER",
+    "IdleProbe",
+    "Solver",
+    "auto_workers",
+    "blas_controller",
+    "guided_chunks",
+    "quota_cores",
+    "solve_in_worker",
+]
 
 #: Fewest targets of a chunk when a few thousand are shared out (see guided_chunks).
 _LEAST_SHARE = 256
+#: Chunks each worker of ``workers: auto`` must have at least (see auto_workers).
+AUTO_CHUNKS_PER_WORKER = 2
+#: Fraction of a core that must be idle for ``workers: auto`` to count it (see auto_workers).
+AUTO_IDLE_CORE = 0.8
 
 
 class Solver(Protocol):
@@ -86,3 +106,95 @@ def guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:
         out.append(np.arange(a, min(a + size, n)))
         a += size
     return out
+
+
+def auto_workers(n: int, chunk_size: int, cores: int, idle: float | None) -> int:
+    """Worker processes for ``workers: auto`` on ``n`` targets left to solve (at least 1).
+
+    The fewest of: the ``cores`` this process may use (:func:`quota_cores`);
+    one worker per ``AUTO_CHUNKS_PER_WORKER`` full chunks of ``chunk_size``
+    targets (below that, forking and the smaller chunks cost more than a
+    second worker saves); and the cores other processes leave idle, ``idle``
+    [cores] from :class:`IdleProbe`, each counted when at least
+    ``AUTO_IDLE_CORE`` of it is idle (a core another job keeps busy is left
+    to it). ``idle`` None (not measurable): the cores. The engine calls it
+    after its first chunk, with ``n`` the targets after that chunk. Only the
+    worker count depends on the load, never a result;
+    ``benchmarks/bench_workers.py`` measures it against one worker.
+    """
+    by_size = n // max(1, AUTO_CHUNKS_PER_WORKER * chunk_size)
+    by_load = cores if idle is None else math.floor(idle + 1.0 - AUTO_IDLE_CORE)
+    return max(1, min(cores, by_size, by_load))
+
+
+def quota_cores(cores: int, root: str = "/sys/fs/cgroup") -> int:
+    """``cores``, or fewer when a CPU quota of the cgroup allows fewer (at least 1).
+
+    The quota of the cgroup mounted at ``root`` (cgroup v2 ``cpu.max``, or v1
+    ``cpu/cpu.cfs_quota_us`` over ``cpu.cfs_period_us``), rounded down: 1.5
+    CPUs' worth of time is one worker's full core, and a second worker would
+    only share it. No quota or nothing readable: ``cores``.
+    """
+    for quota_file, period_file in (
+        ("cpu.max", None),
+        ("cpu/cpu.cfs_quota_us", "cpu/cpu.cfs_period_us"),
+    ):
+        try:
+            with open(os.path.join(root, quota_file), encoding="ascii") as f:
+                fields = f.read().split()
+            if period_file is not None:
+                with open(os.path.join(root, period_file), encoding="ascii") as f:
+                    fields += f.read().split()
+            quota, period = float(fields[0]), float(fields[1])
+        except (OSError, ValueError, IndexError):
+            continue  # "max" (v2) or not this cgroup version
+        if quota > 0 and period > 0:  # v1 says -1 for none
+            return max(1, min(cores, int(quota // period)))
+        return cores
+    return cores
+
+
+def _cpu_times(cpus: set[int]) -> tuple[float, float] | None:
+    """Idle and total jiffies of ``cpus`` summed, from ``/proc/stat`` (None: unreadable)."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            lines = f.readlines()
+    except OSError:
+        return None
+    idle = total = 0.0
+    for line in lines:
+        name, *fields = line.split()
+        if not name.startswith("cpu") or name == "cpu" or int(name[3:]) not in cpus:
+            continue
+        ticks = [float(x) for x in fields[:8]]  # user nice system idle iowait irq softirq steal
+        idle += ticks[3] + ticks[4]
+        total += sum(ticks)
+    return idle, total
+
+
+class IdleProbe:
+    """The capacity [cores] other processes leave idle, from now until :meth:`idle_cores`.
+
+    Read from the kernel's per-CPU times (``/proc/stat``) of the cores this
+    process may use, at the start and at the end; this process's own CPU
+    time meanwhile is not counted as busy, so the probe can watch while the
+    process works (the engine solves its first chunk meanwhile: measuring
+    costs no time).
+    """
+
+    def __init__(self) -> None:
+        self.cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+        self.start = _cpu_times(self.cpus)
+        self.wall = time.perf_counter()
+        self.own = time.process_time()
+
+    def idle_cores(self) -> float | None:
+        """Cores other processes left idle since the probe started; None: not readable."""
+        end = _cpu_times(self.cpus)
+        wall = time.perf_counter() - self.wall
+        if self.start is None or end is None or end[1] <= self.start[1] or wall <= 0:
+            return None
+        n = len(self.cpus)
+        busy = n * (1.0 - (end[0] - self.start[0]) / (end[1] - self.start[1]))
+        own = (time.process_time() - self.own) / wall
+        return min(float(n), max(0.0, n - max(0.0, busy - own)))

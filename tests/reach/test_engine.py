@@ -16,7 +16,7 @@ from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates, make_checker
 from gcm_pipeline.reach.engine import _RAN_EVERY_SEED, ReachabilityEngine, available_cores
 from gcm_pipeline.reach.moves import Move, move_poses
-from gcm_pipeline.reach.workers import guided_chunks
+from gcm_pipeline.reach.workers import IdleProbe, auto_workers, guided_chunks, quota_cores
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
 
 BOTTLE = {
@@ -276,3 +276,87 @@ def test_no_more_workers_start_than_there_are_chunks(robot, checker, grasps):
         more = eng.run(grasps)  # more chunks: a larger pool
         assert eng._pool_size == len(guided_chunks(n, 16, 64)) == 18
         np.testing.assert_array_equal(more.reachable, eng.run(grasps).reachable)
+
+
+@pytest.mark.parametrize(
+    ("n", "cores", "idle", "workers"),
+    [
+        (56294, 2, 2.0, 2),  # dense bottle, idle machine: both cores
+        (56294, 2, 1.85, 2),  # a core counts when 80 % of it is idle
+        (56294, 2, 1.7, 1),  # another job takes a third of a core: one worker
+        (56294, 2, 1.0, 1),  # a CPU hog on one core
+        (56294, 2, 0.0, 1),  # every core busy
+        (56294, 2, None, 2),  # load not readable: the cores
+        (56294, 8, 8.0, 3),  # 3 workers of two full chunks each
+        (16383, 2, 2.0, 1),  # under two full chunks per worker left: not worth forking
+        (32767, 2, 2.0, 1),
+        (32768, 2, 2.0, 2),  # a run of 40,960: its first chunk, then 2 x 2 chunks
+        (10**6, 64, 7.5, 7),
+        (10**6, 1, 4.0, 1),  # one core: this process only
+    ],
+)
+def test_auto_workers_from_size_and_idle_cores(n, cores, idle, workers):
+    # n: the targets left after the first chunk, which auto solves on this process
+    assert auto_workers(n, 8192, cores, idle) == workers
+
+
+def test_idle_probe_is_within_the_cores_this_process_may_use():
+    probe = IdleProbe()
+    sum(i * i for i in range(200_000))  # this process's own work is not counted as busy
+    idle = probe.idle_cores()
+    assert idle is None or 0.0 <= idle <= len(os.sched_getaffinity(0))
+
+
+def test_auto_decides_after_the_first_chunk_and_keeps_the_answers(robot, checker, grasps, result):
+    # chunks of 4: enough of them for auto to consider a second worker, whatever it
+    # decides from the load it reads; the answers are one worker's either way
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto")
+    eng.chunk_size = 4
+    sizes: list[int] = []
+    with eng:
+        other = eng.run(grasps, progress=sizes.append)
+        left = len(grasps) - 4
+        cores = eng.workers  # the cores this process may use, within a CPU quota
+        assert eng.workers_used == auto_workers(left, 4, cores, eng.idle_seen)
+        assert (eng._pool is not None) == (eng.workers_used > 1)
+    if cores > 1:  # the first chunk on this process, the rest chunked for the choice
+        assert eng.idle_seen is None or 0.0 <= eng.idle_seen <= cores
+        want = [4] + [c.size for c in guided_chunks(left, 4, eng.workers_used)]
+        assert sizes == want
+    if eng.workers_used == 1:  # exactly one worker's chunks
+        assert sizes == [c.size for c in guided_chunks(len(grasps), 4, 1)]
+    for a, b in zip(result, other, strict=True):
+        if a is None:
+            assert b is None
+        else:
+            np.testing.assert_array_equal(a, b)
+
+
+def test_auto_runs_a_small_set_on_this_process(robot, checker, grasps, result):
+    with ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto") as eng:
+        other = eng.run(grasps)
+        assert eng.workers == quota_cores(available_cores()) and eng.workers_used == 1
+        assert eng._pool is None and eng.idle_seen is None  # nothing forked, nothing read
+    np.testing.assert_array_equal(other.reachable, result.reachable)
+
+
+@pytest.mark.parametrize(
+    ("files", "cores", "want"),
+    [
+        ({}, 2, 2),  # no cgroup files: the cores
+        ({"cpu.max": "max 100000"}, 2, 2),  # v2, no quota
+        ({"cpu.max": "150000 100000"}, 2, 1),  # 1.5 CPUs: one full core
+        ({"cpu.max": "50000 100000"}, 2, 1),  # under a core: still one process
+        ({"cpu.max": "400000 100000"}, 2, 2),  # more quota than cores: the cores
+        ({"cpu.max": "250000 100000"}, 8, 2),
+        ({"cpu/cpu.cfs_quota_us": "-1", "cpu/cpu.cfs_period_us": "100000"}, 2, 2),  # v1, none
+        ({"cpu/cpu.cfs_quota_us": "100000", "cpu/cpu.cfs_period_us": "100000"}, 4, 1),
+        ({"cpu/cpu.cfs_quota_us": "300000", "cpu/cpu.cfs_period_us": "100000"}, 4, 3),
+        ({"cpu.max": "garbage"}, 2, 2),  # unreadable: the cores
+    ],
+)
+def test_auto_honours_a_cgroup_cpu_quota(tmp_path, files, cores, want):
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text + "\n")
+    assert quota_cores(cores, str(tmp_path)) == want

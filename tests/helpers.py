@@ -31,6 +31,17 @@ SMALL_STUDY = [
 ]
 
 
+def random_rigid(rng: Any, reach: float = 0.2) -> Any:
+    """A random rigid transform (4, 4): a uniform rotation, a translation within ``reach`` [m]."""
+    import numpy as np
+
+    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    tf = np.eye(4)
+    tf[:3, :3] = rot * np.sign(np.linalg.det(rot))
+    tf[:3, 3] = rng.uniform(-reach, reach, 3)
+    return tf
+
+
 def complete_answers(gd: Any) -> Any:
     """``gd`` (a ``pin.GeometryData``) asking coal for its complete collision answer.
 

@@ -13,7 +13,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 import pytest
-from helpers import ROOT
+from helpers import ROOT, random_rigid
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -244,15 +244,6 @@ _SHAPES = {
 }
 
 
-def _rigid(rng):
-    """A random rigid transform (4, 4)."""
-    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    tf = np.eye(4)
-    tf[:3, :3] = rot * np.sign(np.linalg.det(rot))
-    tf[:3, 3] = rng.uniform(-0.2, 0.2, 3)
-    return tf
-
-
 @pytest.mark.parametrize("kind", [*_SHAPES, "self pair"])
 @pytest.mark.parametrize("n", [0, 1, 3000])
 def test_levels_1_and_2_bound_each_shape_kind_as_numpy(compiled, kind, n):
@@ -274,7 +265,7 @@ def test_levels_1_and_2_bound_each_shape_kind_as_numpy(compiled, kind, n):
         world, shapes = -1, np.zeros((0, 21))
         want = np.linalg.norm(points - tfs[1, :, :, 3], axis=1)
     else:
-        bound = ShapeBound(_SHAPES[kind](), _rigid(rng))
+        bound = ShapeBound(_SHAPES[kind](), random_rigid(rng))
         world, shapes = 0, bound.packed()[None]
         want = bound.lower(points)
         assert bound.exact == ("box)" not in kind)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import coal
 import numpy as np
 import pytest
-from helpers import ROOT
+from helpers import ROOT, random_rigid
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -41,14 +41,6 @@ _SHAPES = {
 }
 
 
-def _placement(rng):
-    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    tf = np.eye(4)
-    tf[:3, :3] = rot * np.sign(np.linalg.det(rot))
-    tf[:3, 3] = rng.uniform(-0.2, 0.2, 3)
-    return tf
-
-
 def _sampled_depth(bound, points):
     """How deep points (..., 3) in the shape's frame lie inside it (< 0: outside) [m]."""
     x, y, z = points[..., 0], points[..., 1], points[..., 2]
@@ -64,7 +56,7 @@ def test_segments_inside_geometry(compiled, kind):
     """Segments (M rows of E) through, near and beside the shape: the NumPy and compiled
     answers agree with points sampled along them, and with each other."""
     rng = np.random.default_rng(len(kind))
-    placement = _placement(rng)
+    placement = random_rigid(rng)
     bound = ShapeBound(_SHAPES[kind](), placement)
     m, e = 500, 4
     centre = placement[:3, 3]

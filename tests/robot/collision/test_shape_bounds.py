@@ -15,6 +15,7 @@ import coal
 import numpy as np
 import pytest
 import trimesh
+from helpers import random_rigid
 
 from gcm_pipeline.geometry.meshes import read_mesh
 from gcm_pipeline.robot import kernels
@@ -49,14 +50,6 @@ SHAPES = {
 }
 
 
-def _placement(rng: np.random.Generator) -> np.ndarray:
-    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    tf = np.eye(4)
-    tf[:3, :3] = rot * np.sign(np.linalg.det(rot))
-    tf[:3, 3] = rng.uniform(-0.3, 0.3, 3)
-    return tf
-
-
 def _coal_distance(geometry, placement: np.ndarray, centre: np.ndarray, radius: float) -> float:
     req, res = coal.DistanceRequest(), coal.DistanceResult()
     return coal.distance(
@@ -82,7 +75,7 @@ def test_sphere_bound_never_exceeds_coal_distance(kind, tmp_path):
     exact (equal to coal's distance) for the primitives; never vacuous."""
     make, exact = SHAPES[kind]
     rng = np.random.default_rng(sum(map(ord, kind)))
-    geometry, placement = make(tmp_path), _placement(rng)
+    geometry, placement = make(tmp_path), random_rigid(rng, 0.3)
     bound = ShapeBound(geometry, placement)
     assert bound.exact == exact
     # centres in a shell from inside the shape to 20 cm outside, radii 0-4 cm

@@ -294,6 +294,12 @@ class JointFrames:
             trans[j] = pre @ np.asarray(placement.translation)
             self._post[j] = ra.T
         self._placement = _homogeneous(rot, trans)
+        #: ``(parent, q_index, placement)``: the joints as the compiled kernel takes them
+        self.packed = (
+            np.ascontiguousarray(self.parent, np.intp),
+            np.ascontiguousarray(self.q_index, np.intp),
+            self._placement,
+        )
 
     def local(
         self, joint: int, rot: np.ndarray, trans: np.ndarray
@@ -315,13 +321,18 @@ class JointFrames:
         """
         q = np.asarray(q, dtype=float)
         n = q.shape[0]
-        turn = np.exp(-1j * q)
-        frames = np.empty((self.njoints, n, 3, 4))  # (N, 3, 4) transforms, see _joint_frame
-        frames[0] = np.eye(4)[:3]
-        for j in range(1, self.njoints):
-            p = self.parent[j]
-            cur = frames[j]
-            parent = frames[p] if p else None
-            _joint_frame(cur, parent, self._placement[j], turn[:, self.q_index[j]])
+        compiled = kernels.get()
+        # the kernel reads without bounds checks: other shapes get the NumPy code's errors
+        if compiled is not None and q.ndim == 2 and q.shape[1] == self.njoints - 1:
+            frames = compiled.joint_frames(np.cos(q), np.sin(q), *self.packed)
+        else:
+            turn = np.exp(-1j * q)
+            frames = np.empty((self.njoints, n, 3, 4))  # (N, 3, 4) transforms, see _joint_frame
+            frames[0] = np.eye(4)[:3]
+            for j in range(1, self.njoints):
+                p = self.parent[j]
+                cur = frames[j]
+                parent = frames[p] if p else None
+                _joint_frame(cur, parent, self._placement[j], turn[:, self.q_index[j]])
         tfs = list(frames)
         return Frames([t[:, :, :3] for t in tfs], [t[:, :, 3] for t in tfs], tfs)

@@ -2,6 +2,8 @@
 
 * :func:`chain_forward`: the kernel of :meth:`KinematicChain._forward
   <gcm_pipeline.robot.chain.KinematicChain>` (its NumPy reference, beside this module);
+* :func:`joint_frames`: the kernel of :meth:`JointFrames.compute
+  <gcm_pipeline.robot.chain.JointFrames>` (every joint's frame, for the collision checks);
 * :func:`segment_samples`: the deviation samples of
   :func:`gcm_pipeline.reach.deviation.segment_bounds` (its NumPy reference lives in
   the reach package, a layer above the robot's: the kernel stays here, with the
@@ -18,7 +20,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from gcm_pipeline.robot.kernel_common import F2, F3, I1, frames, jacobian_columns
+from gcm_pipeline.robot.kernel_common import F2, F3, I1, dot4, fma, frames, jacobian_columns
 
 
 @njit(
@@ -141,3 +143,52 @@ def segment_samples(q_a, q_b, intervals, start, rot0, offsets, q_index, placemen
                     squared += (tcp[a, b] - rot0[r, a, b]) ** 2
             turned[r] = max(turned[r], math.sqrt(squared))
     return dist, turned
+
+
+@njit(types.float64[:, :, :, ::1](F2, F2, I1, I1, F3), cache=True)
+def joint_frames(cos_q, sin_q, parent, q_index, placement):
+    """:meth:`~gcm_pipeline.robot.chain.JointFrames.compute`, one configuration at a time.
+
+    ``frame[j] = frame[parent[j]] @ placement[j]``, then turned about z by its
+    angle as in :func:`~gcm_pipeline.robot.kernel_common.frames` (the summation
+    order of NumPy's: OpenBLAS's FMA chain, the complex product's FMAs; the
+    angle's cosine and sine from NumPy's ``cos`` and ``sin``, so the frames equal
+    the NumPy code's to round-off, not to the bit);
+    joint 0 is the identity and a child of joint 0 starts from its placement.
+
+    Args:
+        cos_q: Cosines of the configurations' angles (N, nq) (NumPy's vectorised
+            cosine: the kernel's scalar one costs more than all its products).
+        sin_q: Their sines (N, nq).
+        parent: Parent of each joint (J,).
+        q_index: Column of ``q`` of each joint, unused for joint 0 (J,).
+        placement: Joint placements (J, 4, 4), axes turned onto z.
+
+    Returns:
+        Every joint's frame (J, N, 3, 4).
+    """
+    n = cos_q.shape[0]
+    nj = parent.shape[0]
+    out = np.empty((nj, n, 3, 4))
+    for i in range(n):
+        for r in range(3):
+            for col in range(4):
+                out[0, i, r, col] = 1.0 if r == col else 0.0
+        for j in range(1, nj):
+            p = parent[j]
+            f = out[j, i]
+            for r in range(3):
+                if p == 0:
+                    for col in range(4):
+                        f[r, col] = placement[j, r, col]
+                else:
+                    for col in range(4):
+                        f[r, col] = dot4(out[p, i], r, placement[j], col)
+            c = cos_q[i, q_index[j]]
+            s = -sin_q[i, q_index[j]]
+            for r in range(3):
+                x = f[r, 0]
+                y = f[r, 1]
+                f[r, 0] = fma(x, c, -(y * s))
+                f[r, 1] = fma(x, s, y * c)
+    return out

@@ -9,9 +9,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from helpers import ROBOT_SPECS, ROOT
+from urdfs import write_arm
 
 from gcm_pipeline.config.robot_spec import available_robots, load_robot
 from gcm_pipeline.errors import FrameNotFoundError, GcmError, RobotSpecError
+from gcm_pipeline.robot.chain import JointFrames
 from gcm_pipeline.robot.model import Robot
 
 PANDA_SPEC = ROBOT_SPECS / "panda.yaml"
@@ -187,3 +189,30 @@ def test_default_limit_margin_keeps_joints_off_their_limits(tmp_path: Path, pand
     np.testing.assert_array_equal(zero.upper, np.asarray(model.upperPositionLimit))
     ur5 = load_robot("ur5")
     np.testing.assert_allclose(ur5.upper, np.asarray(ur5.model.upperPositionLimit) - 0.1)
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5", "user_arm"])
+def test_joint_frames_equal_pinocchio_compiled_and_numpy(name, tmp_path, compiled, numpy_code):
+    """Every joint's frame (the collision checks' kinematics): the compiled kernel and the
+    NumPy code against Pinocchio's joint placements, and against each other to 1e-12."""
+    robot = load_robot(write_arm(tmp_path) if name == "user_arm" else name)
+    frames = JointFrames(robot.model)
+    q = robot.random_configurations(300, 4)
+    got = np.stack(frames.compute(q).transforms)  # (J, N, 3, 4), the rotated convention
+    ref = np.stack(numpy_code(frames.compute, q).transforms)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    model, data = robot.model, robot.data
+    for i, qi in enumerate(q[:50]):
+        pin.forwardKinematics(model, data, qi)
+        for j in range(1, model.njoints):
+            # a point and a direction given in Pinocchio's joint frame, placed both ways
+            rot, trans = frames.local(j, np.eye(3), np.array([0.01, -0.02, 0.03]))
+            mine = got[j, i, :, :3] @ trans + got[j, i, :, 3]
+            np.testing.assert_allclose(
+                mine, data.oMi[j].act(np.array([0.01, -0.02, 0.03])), atol=1e-12
+            )
+            np.testing.assert_allclose(got[j, i, :, :3] @ rot, data.oMi[j].rotation, atol=1e-12)
+    # a single configuration, other shapes and dtypes: the kernel or the NumPy code's errors
+    one = np.stack(frames.compute(q[:1].astype(np.float32)).transforms)
+    np.testing.assert_allclose(one, got[:, :1], atol=1e-6)
+    assert np.stack(frames.compute(q[:0]).transforms).shape == (model.njoints, 0, 3, 4)

@@ -46,6 +46,7 @@ from gcm_pipeline.robot.collision.spheres import (
 __all__ = [
     "BLOCK",
     "BROAD_MARGIN",
+    "COMPILED_BLOCK",
     "EDGE_COUNT",
     "INSIDE_DEPTH",
     "BroadPhase",
@@ -67,6 +68,11 @@ __all__ = [
 BROAD_MARGIN = GJK_MARGIN + 1e-7
 #: Configurations placed per block by the broad phase (temporaries stay in cache).
 BLOCK = 2048
+#: Configurations per block with the compiled kernels: they keep no temporaries of
+#: the block's size but the frames (16,384 configurations of the Panda: 14 MB), and
+#: each pair left open costs a few calls per block (on 20,000 random Panda
+#: configurations, 1.76 us per configuration in blocks of 2,048, 1.44 us in one).
+COMPILED_BLOCK = 16384
 #: Edges of a robot polytope tested against a world primitive (level 4), longest first.
 EDGE_COUNT = 64
 #: World primitives the edges of level 4 are tested against.

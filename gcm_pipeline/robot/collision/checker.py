@@ -40,10 +40,12 @@ import numpy as np
 import pinocchio as pin
 
 from gcm_pipeline.errors import ConfigError, InputError, choice_error
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.chain import JointFrames
 from gcm_pipeline.robot.collision.broadphase import (
     BLOCK,
     BROAD_MARGIN,
+    COMPILED_BLOCK,
     Screen,
     ShapeBound,
 )
@@ -351,8 +353,10 @@ class CollisionChecker(ClearanceQueries):
             held = np.broadcast_to(np.asarray(carried, dtype=float), (n, 4, 4))
         reason = np.full(n, "", dtype=_REASON_DTYPE)
         rows = np.flatnonzero(np.all(np.isfinite(qs), axis=1))
-        for a in range(0, rows.size, BLOCK):
-            block = rows[a : a + BLOCK]
+        # the compiled levels keep no large temporaries: larger blocks, fewer calls per pair
+        step = BLOCK if kernels.get() is None else COMPILED_BLOCK
+        for a in range(0, rows.size, step):
+            block = rows[a : a + step]
             reason[block] = self._check_block(
                 qs[block], MODE_BIT[mode], None if held is None else held[block]
             )

@@ -71,7 +71,7 @@ BLOCK = 2048
 #: Configurations per block with the compiled kernels: they keep no temporaries of
 #: the block's size but the frames (16,384 configurations of the Panda: 14 MB), and
 #: each pair left open costs a few calls per block (on 20,000 random Panda
-#: configurations, 1.76 us per configuration in blocks of 2,048, 1.44 us in one).
+#: configurations, 1.76 us per configuration in blocks of 2,048, 1.52 us in these).
 COMPILED_BLOCK = 16384
 #: Edges of a robot polytope tested against a world primitive (level 4), longest first.
 EDGE_COUNT = 64
@@ -422,8 +422,10 @@ class BroadPhase:
         one whose sphere covers are. A robot polytope against a box is free if
         its hull vertices all lie beyond one face's plane, and collides if one
         of them lies ``INSIDE_DEPTH`` inside the box (a vertex of one of its
-        triangles, or of the solid). coal's narrow phase decides the rest, pair
-        by pair, only on the configurations left.
+        triangles, or of the solid). A robot polytope against a box, sphere or
+        cylinder collides if a point of one of its longest edges lies that deep
+        inside the shape. coal's narrow phase decides the rest, pair by pair,
+        only on the configurations left.
         """
         if screen.pairs.size == 0:  # e.g. no table, no object, no self-collision
             return np.zeros((len(q), 0), dtype=bool)
@@ -534,10 +536,12 @@ class BroadPhase:
     ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any]]:
         """The compiled broad phase's arguments for ``screen`` (built once per screen).
 
-        Returns the arguments of ``broad_phase`` after the frames, and the
-        level-3 arguments ``(joint, vertices, inverse placement, beyond, deep)``
-        of each column with a box. Each limit is the NumPy level's plus
-        :data:`~gcm_pipeline.robot.kernels.SLACK` (level 3: minus it, for the depth).
+        Returns the arguments of ``broad_phase`` after the frames, the level-3
+        arguments ``(joint, vertices, inverse placement, beyond, deep)`` of each
+        column with a box, and the level-4 arguments ``(joint, edge ends, other
+        ends, packed shape, depth)`` of each column with a primitive. Each limit
+        is the NumPy level's plus :data:`~gcm_pipeline.robot.kernels.SLACK`
+        (levels 3 and 4: the depths plus it too, stricter).
         """
         known = self._compiled_args.get(id(screen))
         if known is not None and known[0] is screen:

@@ -131,7 +131,8 @@ class RecordingWindow:
         )
 
 
-_HTML = """<!DOCTYPE html>
+#: The start of both pages: meshcat's viewer pane, its script, and the panel.
+_PAGE_HEAD = """<!DOCTYPE html>
 <html>
     <head> <meta charset=utf-8> <title>{title}</title> </head>
     <body>
@@ -149,7 +150,11 @@ _HTML = """<!DOCTYPE html>
             }}
         </style>
 {panel}
-        <script>
+"""
+
+_HTML = (
+    _PAGE_HEAD
+    + """        <script>
             var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
             var gcmCommands = [];
 {commands}
@@ -162,27 +167,12 @@ _HTML = """<!DOCTYPE html>
     </body>
 </html>
 """
+)
 
 
-_LIVE_HTML = """<!DOCTYPE html>
-<html>
-    <head> <meta charset=utf-8> <title>{title}</title> </head>
-    <body>
-        <div id="meshcat-pane">
-        </div>
-        <script>
-{mainminjs}
-        </script>
-        <style>
-            body {{margin: 0; }}
-            #meshcat-pane {{
-                width: 100vw;
-                height: 100vh;
-                overflow: hidden;
-            }}
-        </style>
-{panel}
-        <script>
+_LIVE_HTML = (
+    _PAGE_HEAD
+    + """        <script>
             var viewer = new MeshCat.Viewer(document.getElementById("meshcat-pane"));
             viewer.connect();
             (function wait(t0) {{
@@ -196,6 +186,7 @@ _LIVE_HTML = """<!DOCTYPE html>
     </body>
 </html>
 """
+)
 #: The live page waits this long for the scene before it builds its panel anyway [ms].
 _LIVE_WAIT_MS = 30000
 

@@ -101,6 +101,8 @@ robot); writes ``benchmarks/results/limit.json``.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib
 import json
 import os
 import platform
@@ -108,6 +110,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -308,28 +311,31 @@ IK_CALLERS = {
 }
 
 
-def _count_ik_rows() -> dict[str, Any]:
-    """Wrap each IK call of the stage (in this process) to count its target rows by purpose.
+@contextlib.contextmanager
+def _counting_ik_rows() -> Iterator[dict[str, int]]:
+    """Inside the block, each IK call of the stage (in this process) counts its target rows.
 
-    ``move_end`` counts the end poses of approach and retreat moves given to
-    :func:`~gcm_pipeline.reach.waypoints.end_of_move` (the Panda's closed form
-    first); ``move_end_lm`` the rows of those it hands to LM.
+    By purpose (:data:`IK_CALLERS`): ``move_end`` counts the end poses of approach
+    and retreat moves given to :func:`~gcm_pipeline.reach.waypoints.end_of_move`
+    (the Panda's closed form first); ``move_end_lm`` the rows of those it hands to LM.
     """
-    import importlib
-
-    rows: dict[str, Any] = {"_originals": []}
+    rows = dict.fromkeys(IK_CALLERS, 0)
+    originals = []
     for purpose, (module_name, name) in IK_CALLERS.items():
         module = importlib.import_module(module_name)
         original = getattr(module, name)
-        rows[purpose] = 0
 
         def counting(robot, targets, *a, _p=purpose, _f=original, **k):  # type: ignore[no-untyped-def]
             rows[_p] += len(np.asarray(targets).reshape(-1, 4, 4))
             return _f(robot, targets, *a, **k)
 
         setattr(module, name, counting)
-        rows["_originals"].append((module, name, original))
-    return rows
+        originals.append((module, name, original))
+    try:
+        yield rows
+    finally:
+        for module, name, original in originals:
+            setattr(module, name, original)
 
 
 def counted_stage(config: Path, sample: int) -> dict[str, Any]:
@@ -352,14 +358,12 @@ def counted_stage(config: Path, sample: int) -> dict[str, Any]:
 
     CollisionChecker.check = counting_check  # type: ignore[method-assign]
     CollisionChecker.clearance = counting_clearance  # type: ignore[method-assign]
-    ik_rows = _count_ik_rows()
     try:
-        run = stage_run(DENSE, "1", config)
+        with _counting_ik_rows() as ik_rows:
+            run = stage_run(DENSE, "1", config)
     finally:
         CollisionChecker.check = check  # type: ignore[method-assign]
         CollisionChecker.clearance = clearance  # type: ignore[method-assign]
-        for module, name, original in ik_rows.pop("_originals"):  # type: ignore[attr-defined]
-            setattr(module, name, original)
     counts.update({f"ik_rows_{k}": v for k, v in ik_rows.items()})
     rows = sum(v for k, v in counts.items() if k.startswith("check_rows_"))
     seen = np.concatenate(kept) if kept else np.zeros((0, run["robot"].nq))

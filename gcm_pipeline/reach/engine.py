@@ -106,6 +106,10 @@ __all__ = ["ReachabilityEngine", "available_cores"]
 #: IK reasons of a neighbour that tried its whole seed schedule and failed.
 _RAN_EVERY_SEED = ("no_ik", "joint_limits")
 
+#: ``workers: auto`` reads the idle cores while this process solves the first
+#: ``chunk_size // AUTO_PROBE_SHARE`` targets (2,048 of the default 8,192: about 0.1 s
+#: of the Panda's stage), then forks (see :meth:`ReachabilityEngine._solve_phase`).
+AUTO_PROBE_SHARE = 4
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
 #: Worker processes start by forking (they inherit the engine); elsewhere one process.
@@ -341,23 +345,33 @@ class ReachabilityEngine(ChunkSteps):
         """Each chunk's positions in ``work`` and its solved part, in order.
 
         A fixed ``workers``: :func:`guided_chunks` of the whole phase on that
-        many processes. ``workers: auto``: the first full chunk on this
+        many processes. ``workers: auto``: the first quarter chunk on this
         process while an :class:`IdleProbe` watches the cores, then the rest on
         as many workers as :func:`auto_workers` decides from what is left and
-        the idle cores; when that is one, the chunks are one worker's chunks.
+        the idle cores; when that is one, the rest of the first chunk and then
+        one worker's chunks (the chunks of ``workers: 1``, the first cut in two).
         """
         n, start = len(work.targets), 0
         workers = self.workers
         if self.auto:
-            workers = auto_workers(n - self.chunk_size, self.chunk_size, self.workers, None)
+            # the probe's chunk: long enough for the kernel's CPU times (10 ms ticks),
+            # short enough that the other cores do not wait long for the decision
+            probe_size = max(1, self.chunk_size // AUTO_PROBE_SHARE)
+            workers = auto_workers(n - probe_size, self.chunk_size, self.workers, None)
             if workers > 1 and _CAN_FORK:
                 probe = IdleProbe()
-                first = np.arange(self.chunk_size)
+                first = np.arange(probe_size)
                 yield first, self.solve(*work.args(first))
-                start = self.chunk_size
+                start = probe_size
                 self.idle_seen = probe.idle_cores()
                 workers = auto_workers(n - start, self.chunk_size, workers, self.idle_seen)
-        ats = [at + start for at in guided_chunks(n - start, self.chunk_size, workers)]
+        if workers == 1 and 0 < start < n:
+            # one worker: the rest of the first chunk, then the chunks of ``workers: 1``
+            first_end = min(n, self.chunk_size)
+            ats = [np.arange(start, first_end)]
+            ats += [at + first_end for at in guided_chunks(n - first_end, self.chunk_size, 1)]
+        else:
+            ats = [at + start for at in guided_chunks(n - start, self.chunk_size, workers)]
         self.workers_used = min(workers, len(ats)) if len(ats) > 1 and _CAN_FORK else 1
         yield from zip(ats, self._map([work.args(at) for at in ats], workers), strict=True)
 

@@ -464,15 +464,15 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
     sub, fine_steps, steps = SUBSTEPS, b.fine_steps, b.steps
     rows = np.flatnonzero(b.ok)
     if rows.size:
-        kn = b.knots[rows]
-        have = np.isfinite(kn[:, :, 0])
+        # the knots on each side of every grid point (gathered, not the whole knot array)
+        have = np.isfinite(b.knots[rows, :, 0])
         idx = np.arange(fine_steps + 1)
         prev = np.maximum.accumulate(np.where(have, idx, 0), axis=1)
         nxt = np.minimum.accumulate(np.where(have, idx, fine_steps)[:, ::-1], axis=1)[:, ::-1]
         grid = np.arange(steps + 1) * sub
         pa, pb = prev[:, grid], nxt[:, grid]
-        ka = np.take_along_axis(kn, pa[:, :, None], axis=1)
-        kb = np.take_along_axis(kn, pb[:, :, None], axis=1)
+        ka = b.knots[rows[:, None], pa]
+        kb = b.knots[rows[:, None], pb]
         f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
         q_path[rows] = ka + f * (kb - ka)
         # the change of every joint between consecutive grid points

@@ -14,7 +14,12 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates, make_checker
-from gcm_pipeline.reach.engine import _RAN_EVERY_SEED, ReachabilityEngine, available_cores
+from gcm_pipeline.reach.engine import (
+    _RAN_EVERY_SEED,
+    AUTO_PROBE_SHARE,
+    ReachabilityEngine,
+    available_cores,
+)
 from gcm_pipeline.reach.moves import Move, move_poses
 from gcm_pipeline.reach.workers import IdleProbe, auto_workers, guided_chunks, quota_cores
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
@@ -308,23 +313,27 @@ def test_idle_probe_is_within_the_cores_this_process_may_use():
 
 
 def test_auto_decides_after_the_first_chunk_and_keeps_the_answers(robot, checker, grasps, result):
-    # chunks of 4: enough of them for auto to consider a second worker, whatever it
+    # chunks of 8: enough of them for auto to consider a second worker, whatever it
     # decides from the load it reads; the answers are one worker's either way
     eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto")
-    eng.chunk_size = 4
+    eng.chunk_size = 8
+    probe = 8 // AUTO_PROBE_SHARE  # solved on this process while auto reads the cores
     sizes: list[int] = []
     with eng:
         other = eng.run(grasps, progress=sizes.append)
-        left = len(grasps) - 4
+        left = len(grasps) - probe
         cores = eng.workers  # the cores this process may use, within a CPU quota
-        assert eng.workers_used == auto_workers(left, 4, cores, eng.idle_seen)
+        assert eng.workers_used == auto_workers(left, 8, cores, eng.idle_seen)
         assert (eng._pool is not None) == (eng.workers_used > 1)
-    if cores > 1:  # the first chunk on this process, the rest chunked for the choice
+    one = [c.size for c in guided_chunks(len(grasps), 8, 1)]
+    if cores > 1:
         assert eng.idle_seen is None or 0.0 <= eng.idle_seen <= cores
-        want = [4] + [c.size for c in guided_chunks(left, 4, eng.workers_used)]
-        assert sizes == want
-    if eng.workers_used == 1:  # exactly one worker's chunks
-        assert sizes == [c.size for c in guided_chunks(len(grasps), 4, 1)]
+        if eng.workers_used > 1:  # the probe's chunk, the rest chunked for the choice
+            assert sizes == [probe] + [c.size for c in guided_chunks(left, 8, eng.workers_used)]
+        else:  # one worker's chunks, the first cut in two
+            assert sizes == [probe, one[0] - probe] + one[1:]
+    else:  # nothing probed: exactly one worker's chunks
+        assert sizes == one
     for a, b in zip(result, other, strict=True):
         if a is None:
             assert b is None

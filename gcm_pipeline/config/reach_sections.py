@@ -66,15 +66,15 @@ class IKConfig(_Section):
         position_tolerance: Largest position error of a solution [m].
         orientation_tolerance: Largest orientation error of a solution [rad].
         workers: Processes of the reachability engine: ``auto`` or a number.
-            ``auto`` decides per run: the first chunk (8,192 poses with
+            ``auto`` decides per run: a quarter chunk (2,048 poses with
             pinocchio) runs on this process while auto reads how busy the
             cores are (``/proc/stat``, this process's own use not counted);
             then one worker per core that other jobs leave at least 80 %
             idle, no more than the cores this process may use (CPU affinity,
             a cgroup CPU quota rounded down) nor one per two full chunks of
-            what is left. When that is one (a busy machine, or under 40,960
+            what is left. When that is one (a busy machine, or under 34,816
             poses on two cores), the rest runs on this process in the chunks
-            of ``workers: 1``. The results do not depend on it.
+            of ``workers: 1`` (the first one cut in two). The results do not depend on it.
         solutions: Distinct IK solutions (branches) kept per reachable grasp,
             each verified and passing every check (``solutions.npz``); 1: only
             the first one found.

@@ -161,7 +161,7 @@ class ReachabilityEngine(ChunkSteps):
         workers: Processes (1: this one; ``"auto"``: at most :func:`available_cores`
             within a cgroup CPU quota, per run as
             :func:`~gcm_pipeline.reach.workers.auto_workers` decides from the run's
-            size and the cores other processes leave idle while the first chunk
+            size and the cores other processes leave idle while a quarter chunk
             runs on this process; when it decides one, the run is ``workers=1``'s).
         chunk_size: Most targets per chunk (memory and progress granularity); on
             several workers the last chunks are smaller, so they finish together.

@@ -6,7 +6,7 @@ set just before the fork) and solve chunks with :func:`solve_in_worker`. The
 pools still open are closed at exit. How many workers ``workers: auto`` forks
 for a run is :func:`auto_workers`'s decision, from the run's size, the cores
 this process may use (:func:`quota_cores`) and their idle capacity, read
-while the run's first chunk is solved (:class:`IdleProbe`).
+while the run's first quarter chunk is solved (:class:`IdleProbe`).
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def auto_workers(n: int, chunk_size: int, cores: int, idle: float | None) -> int
     [cores] from :class:`IdleProbe`, each counted when at least
     ``AUTO_IDLE_CORE`` of it is idle (a core another job keeps busy is left
     to it). ``idle`` None (not measurable): the cores. The engine calls it
-    after its first chunk, with ``n`` the targets after that chunk. Only the
+    after its probe's chunk, with ``n`` the targets after that chunk. Only the
     worker count depends on the load, never a result;
     ``benchmarks/bench_workers.py`` measures it against one worker.
     """
@@ -178,7 +178,7 @@ class IdleProbe:
     Read from the kernel's per-CPU times (``/proc/stat``) of the cores this
     process may use, at the start and at the end; this process's own CPU
     time meanwhile is not counted as busy, so the probe can watch while the
-    process works (the engine solves its first chunk meanwhile: measuring
+    process works (the engine solves a quarter chunk meanwhile: measuring
     costs no time).
     """
 

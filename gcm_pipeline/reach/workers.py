@@ -12,7 +12,6 @@ while the run's first quarter chunk is solved (:class:`IdleProbe`).
 from __future__ import annotations
 
 import atexit
-import functools
 import math
 import os
 import time
@@ -20,7 +19,8 @@ import weakref
 from typing import Any, Protocol
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
+
+from gcm_pipeline.robot.kernels import blas_controller
 
 __all__ = [
     "POOLS",
@@ -76,12 +76,6 @@ def solve_in_worker(
 def _close_pools() -> None:
     for engine in list(POOLS):
         engine.close()
-
-
-@functools.cache
-def blas_controller() -> Any:
-    """The process's thread pools (BLAS), inspected once."""
-    return ThreadpoolController()
 
 
 def guided_chunks(n: int, most: int, workers: int) -> list[np.ndarray]:

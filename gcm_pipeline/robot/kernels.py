@@ -97,7 +97,18 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["COLLIDES", "FREE", "SHAPE_KINDS", "SLACK", "UNDECIDED", "Kernels", "get", "suppressed"]
+__all__ = [
+    "COLLIDES",
+    "FREE",
+    "SHAPE_KINDS",
+    "SLACK",
+    "UNDECIDED",
+    "Kernels",
+    "blas_controller",
+    "get",
+    "one_blas_thread",
+    "suppressed",
+]
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +154,35 @@ class Kernels(NamedTuple):
     panda_ik: Callable[..., Any]
     edges_inside: Callable[..., Any]
     joint_frames: Callable[..., Any]
+
+
+@functools.cache
+def blas_controller() -> Any:
+    """The process's thread pools (BLAS), inspected once (it reads the loaded libraries)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
+#: Fewest rows for which :func:`one_blas_thread` limits the pools (the limit costs ~8 us).
+_BLAS_LIMIT_ROWS = 64
+
+
+@contextlib.contextmanager
+def one_blas_thread(rows: int = _BLAS_LIMIT_ROWS) -> Iterator[None]:
+    """BLAS on one thread meanwhile, for work of ``rows`` rows (fewer: left as it is).
+
+    The checks' matrix products are thin (rows by 3 by a link's vertices): BLAS's
+    threads gain nothing there, and on a core another job keeps busy they wait
+    for each other (``clearance`` of the dense bottle's reachable rows: 1.9x slower
+    beside one busy process on two cores). The reachability engine runs every
+    chunk so; this is for the checks called on their own.
+    """
+    if rows < _BLAS_LIMIT_ROWS:
+        yield
+        return
+    with blas_controller().limit(limits=1, user_api="blas"):
+        yield
 
 
 def get() -> Kernels | None:

@@ -329,3 +329,20 @@ def test_a_kernel_converts_safely_or_says_why(compiled, panda):
         np.zeros((0, 21)),
     )  # fmt: skip
     assert out.shape == (0, 4)
+
+
+def test_one_blas_thread_limits_and_restores_the_pools():
+    from threadpoolctl import threadpool_info
+
+    from gcm_pipeline.robot.kernels import one_blas_thread
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before  # NumPy's BLAS is loaded
+    with one_blas_thread(10):  # small work: left as it is
+        assert blas_threads() == before
+    with one_blas_thread(1000):
+        assert blas_threads() == [1] * len(before)
+    assert blas_threads() == before

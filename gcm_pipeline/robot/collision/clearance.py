@@ -14,6 +14,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision.broadphase import (
     BLOCK,
     BroadPhase,
@@ -126,6 +127,14 @@ class ClearanceQueries(BroadPhase):
         rows = np.flatnonzero(finite)
         if self._dist_model is None or rows.size == 0:
             return out
+        with kernels.one_blas_thread(rows.size):
+            self._clearance_blocks(qs, rows, out, precision)
+        return out
+
+    def _clearance_blocks(
+        self, qs: np.ndarray, rows: np.ndarray, out: np.ndarray, precision: float
+    ) -> None:
+        """:meth:`clearance` of the finite configurations ``qs[rows]``, into ``out``."""
         model, data = self.robot.model, self._data
         dm, dd = self._dist_model, self._dist_data
         cov = self._cover
@@ -170,7 +179,6 @@ class ClearanceQueries(BroadPhase):
                     if d < best:
                         best = d
                 out[n] = best
-        return out
 
     def _vertex_distances(
         self, frames: Any, need: np.ndarray, precision: float

@@ -367,8 +367,8 @@ class ReachabilityEngine(ChunkSteps):
                 workers = auto_workers(n - start, self.chunk_size, workers, self.idle_seen)
         if workers == 1 and 0 < start < n:
             # one worker: the rest of the first chunk, then the chunks of ``workers: 1``
-            first_end = min(n, self.chunk_size)
-            ats = [np.arange(start, first_end)]
+            first_end = max(start, min(n, self.chunk_size))
+            ats = [np.arange(start, first_end)] if first_end > start else []
             ats += [at + first_end for at in guided_chunks(n - first_end, self.chunk_size, 1)]
         else:
             ats = [at + start for at in guided_chunks(n - start, self.chunk_size, workers)]

@@ -341,6 +341,31 @@ def test_auto_decides_after_the_first_chunk_and_keeps_the_answers(robot, checker
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("chunk", [1, 2, 3, 8])
+@pytest.mark.parametrize("idle", [0.0, None])
+def test_auto_chunks_for_either_decision(robot, checker, grasps, result, monkeypatch, chunk, idle):
+    # the load auto reads, fixed: 0 idle cores (one worker) or unreadable (every core)
+    monkeypatch.setattr(IdleProbe, "idle_cores", lambda self: idle)
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto")
+    eng.chunk_size = chunk
+    probe = max(1, chunk // AUTO_PROBE_SHARE)
+    sizes: list[int] = []
+    with eng:
+        other = eng.run(grasps, progress=sizes.append)
+        cores = eng.workers
+    assert sum(sizes) == len(grasps) and min(sizes) > 0
+    one = [c.size for c in guided_chunks(len(grasps), chunk, 1)]
+    if cores == 1:
+        assert sizes == one
+    elif idle == 0.0:  # the probe's chunk, the rest of the first one, then one worker's
+        assert eng.workers_used == 1
+        assert sizes == ([probe, chunk - probe] if chunk > probe else [probe]) + one[1:]
+    else:
+        assert eng.workers_used == min(cores, (len(grasps) - probe) // (2 * chunk))
+    np.testing.assert_array_equal(other.reachable, result.reachable)
+    np.testing.assert_array_equal(other.q, result.q)
+
+
 def test_auto_runs_a_small_set_on_this_process(robot, checker, grasps, result):
     with ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto") as eng:
         other = eng.run(grasps)

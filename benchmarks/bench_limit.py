@@ -74,7 +74,12 @@ robot and tool built by the pipeline from the config); the dense work is
   work) with ``ik.workers: 1`` and :meth:`CollisionChecker.check` and
   :meth:`CollisionChecker.clearance` wrapped (in this process only, the library
   is not changed) to count the rows checked, by mode; the stage's IK calls are
-  wrapped too, to count their target rows by purpose (``IK_CALLERS``).
+  wrapped too, to count their target rows by purpose (``IK_CALLERS``). The
+  wrappers also sum the wall time inside the calls: ``wall_s_per_pose`` splits
+  that run's time per pose into IK by purpose, checks, clearance and ``rest``
+  (the moves' planning: interior waypoints, deviation bounds, grid paths; the
+  proofs that ends are out of reach; bookkeeping), the part of the stage the
+  cost model below leaves out besides the moves' IK.
 * **The stage's rate** (same work, one process, unwrapped, median of
   ``--repeats`` runs) as a fraction of the limit
   ``1 / (t_ik + checks_per_pose * t_check)`` with ``t_check`` the fastest
@@ -318,8 +323,11 @@ def _counting_ik_rows() -> Iterator[dict[str, int]]:
     By purpose (:data:`IK_CALLERS`): ``move_end`` counts the end poses of approach
     and retreat moves given to :func:`~gcm_pipeline.reach.waypoints.end_of_move`
     (the Panda's closed form first); ``move_end_lm`` the rows of those it hands to LM.
+    ``rows["seconds"]`` sums each purpose's wall time inside its calls (``move_end_lm``
+    is part of ``move_end``'s).
     """
-    rows = dict.fromkeys(IK_CALLERS, 0)
+    rows: dict[str, Any] = dict.fromkeys(IK_CALLERS, 0)
+    rows["seconds"] = dict.fromkeys(IK_CALLERS, 0.0)
     originals = []
     for purpose, (module_name, name) in IK_CALLERS.items():
         module = importlib.import_module(module_name)
@@ -327,7 +335,11 @@ def _counting_ik_rows() -> Iterator[dict[str, int]]:
 
         def counting(robot, targets, *a, _p=purpose, _f=original, **k):  # type: ignore[no-untyped-def]
             rows[_p] += len(np.asarray(targets).reshape(-1, 4, 4))
-            return _f(robot, targets, *a, **k)
+            t0 = time.perf_counter()
+            try:
+                return _f(robot, targets, *a, **k)
+            finally:
+                rows["seconds"][_p] += time.perf_counter() - t0
 
         setattr(module, name, counting)
         originals.append((module, name, original))
@@ -341,6 +353,7 @@ def _counting_ik_rows() -> Iterator[dict[str, int]]:
 def counted_stage(config: Path, sample: int) -> dict[str, Any]:
     """One stage run of ``config`` (one process) with check/clearance wrapped to count rows."""
     counts: dict[str, int] = {"check_calls": 0, "clearance_rows": 0}
+    seconds = {"check": 0.0, "clearance": 0.0}
     kept: list[np.ndarray] = []
     rng = np.random.default_rng(1)
     check, clearance = CollisionChecker.check, CollisionChecker.clearance
@@ -350,11 +363,19 @@ def counted_stage(config: Path, sample: int) -> dict[str, Any]:
         counts["check_calls"] += 1
         counts[f"check_rows_{mode}"] = counts.get(f"check_rows_{mode}", 0) + len(qs)
         kept.append(qs[rng.random(len(qs)) < 0.05])
-        return check(self, q, mode, carried)
+        t0 = time.perf_counter()
+        try:
+            return check(self, q, mode, carried)
+        finally:
+            seconds["check"] += time.perf_counter() - t0
 
     def counting_clearance(self, q, *a, **k):  # type: ignore[no-untyped-def]
         counts["clearance_rows"] += len(np.asarray(q, dtype=float).reshape(-1, self.robot.nq))
-        return clearance(self, q, *a, **k)
+        t0 = time.perf_counter()
+        try:
+            return clearance(self, q, *a, **k)
+        finally:
+            seconds["clearance"] += time.perf_counter() - t0
 
     CollisionChecker.check = counting_check  # type: ignore[method-assign]
     CollisionChecker.clearance = counting_clearance  # type: ignore[method-assign]
@@ -364,6 +385,7 @@ def counted_stage(config: Path, sample: int) -> dict[str, Any]:
     finally:
         CollisionChecker.check = check  # type: ignore[method-assign]
         CollisionChecker.clearance = clearance  # type: ignore[method-assign]
+    ik_seconds = ik_rows.pop("seconds")
     counts.update({f"ik_rows_{k}": v for k, v in ik_rows.items()})
     rows = sum(v for k, v in counts.items() if k.startswith("check_rows_"))
     seen = np.concatenate(kept) if kept else np.zeros((0, run["robot"].nq))
@@ -377,9 +399,31 @@ def counted_stage(config: Path, sample: int) -> dict[str, Any]:
         "checks_per_pose": rows / run["poses"],
         "ik_rows_per_pose": sum(ik_rows.values()) / run["poses"],
         "clearance_per_pose": counts["clearance_rows"] / run["poses"],
+        "wall_s_per_pose": _wall_per_pose(run, seconds, ik_seconds),
         "configurations": seen[pick],
         "approach": (np.asarray(done["q"])[ok], np.asarray(done["q_pregrasp"])[ok]),
     }
+
+
+def _wall_per_pose(
+    run: dict[str, Any], seconds: dict[str, float], ik_seconds: dict[str, float]
+) -> dict[str, float]:
+    """Where the counted run's time went, per pose [s]: IK by purpose, checks, the rest.
+
+    The wrapped calls' own wall time (the wrappers' bookkeeping is in the rest):
+    ``ik_*`` by purpose (``move_end`` includes its LM rows), ``check`` every
+    configuration check (the approach's grid points, its waypoints' checks, the
+    grasps), ``clearance``; ``rest`` is everything else of the stage: the moves'
+    planning (interior waypoints, deviation bounds, grid paths), the proofs
+    that move ends are out of reach, the engine's bookkeeping.
+    """
+    n = run["poses"]
+    out = {f"ik_{k}": v / n for k, v in ik_seconds.items() if k != "move_end_lm"}
+    out["check"] = seconds["check"] / n
+    out["clearance"] = seconds["clearance"] / n
+    out["total"] = run["wall_s"] / n
+    out["rest"] = out["total"] - sum(v for k, v in out.items() if k != "total")
+    return out
 
 
 # --- collision checks -------------------------------------------------------------------------
@@ -794,6 +838,11 @@ SIDE_BY_SIDE = {
     "stage_fraction_of_limit_with_move_ends_at_gcm_checks": (
         "model", "stage_fraction_of_limit_with_move_ends_at_gcm_checks"
     ),
+    "counted_run_s_per_pose_total": ("stage_counts", "wall_s_per_pose", "total"),
+    "counted_run_s_per_pose_ik_first": ("stage_counts", "wall_s_per_pose", "ik_first"),
+    "counted_run_s_per_pose_ik_move_end": ("stage_counts", "wall_s_per_pose", "ik_move_end"),
+    "counted_run_s_per_pose_check": ("stage_counts", "wall_s_per_pose", "check"),
+    "counted_run_s_per_pose_rest": ("stage_counts", "wall_s_per_pose", "rest"),
 }  # fmt: skip
 
 

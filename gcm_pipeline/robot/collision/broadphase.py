@@ -564,7 +564,9 @@ class BroadPhase:
             (np.sqrt(screen.bound) + slack) ** 2,
             screen.bound + BROAD_MARGIN + slack,
         )
-        args = [cov.ball_joint, cov.ball_centre, cov.joint, cov.centre, screen.geom_a]
+        # a geometry's cover spheres are on its joint, the bounding sphere's
+        assert np.array_equal(cov.joint, np.repeat(cov.ball_joint, np.diff(cov.start)))
+        args = [cov.ball_joint, cov.ball_centre, cov.centre, cov.start, screen.geom_a]
         args += [screen.geom_b, world, limit1, screen.first_test, screen.n_tests]
         args += [screen.sphere_a, screen.sphere_b, limit2, shapes]
         # indices as intp, all C-contiguous (the kernels' signature)

@@ -274,9 +274,10 @@ def test_levels_1_and_2_bound_each_shape_kind_as_numpy(compiled, kind, n):
     for limit in (0.0, 0.01, 0.05, 0.2):
         # a self pair's limits are squared distances
         lim = np.full(1, limit**2 if world < 0 else limit)
+        # geometries 0 and 1, each one sphere at its joint's origin
         open_ = compiled.broad_phase(
-            tfs, joints, origin, joints, origin, zero, one, np.full(1, world), lim, zero, one,
-            zero, one, lim, shapes,
+            tfs, joints, origin, origin, np.arange(3), zero, one, np.full(1, world), lim, zero,
+            one, zero, one, lim, shapes,
         )[0]  # fmt: skip
         assert open_.shape == (n,)
         assert np.all(want[open_] <= limit + 1e-9)

@@ -417,6 +417,9 @@ class BroadPhase:
     def _pair_hits(self, q: np.ndarray, frames: Any, screen: Screen) -> np.ndarray:
         """Which pairs of ``screen`` collide in each configuration, (N, P) bool.
 
+        The transpose of a C-contiguous (P, N) array: a pair's configurations are
+        contiguous (``hit.T[pairs].any(axis=0)`` reads whole rows).
+
         Broad phase, in three levels: a pair whose geometries' bounding spheres
         are apart (from each other, or from the world shape) is free; so is
         one whose sphere covers are. A robot polytope against a box is free if
@@ -454,7 +457,7 @@ class BroadPhase:
             g = screen.geom_a[at]
             lb = self._bounds_for(w).lower_xyz(xyz[:, g]) - cov.ball_radius[g][:, None]
             open_[at] = lb <= BROAD_MARGIN
-        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
         for k in np.flatnonzero(open_.any(axis=1)).tolist():
             rows = np.flatnonzero(open_[k])
             # 2. the sphere covers
@@ -485,7 +488,7 @@ class BroadPhase:
                 rows = rows[height <= BROAD_MARGIN]
                 local = in_frame((rots[joint], poss[joint], inv), rows, verts)
                 inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
-                hit[rows[inside], k] = True
+                hit[k, rows[inside]] = True
                 rows = rows[~(beyond_a_face(local, lim) | inside)]
             # 4. the polytope's longest edges inside a primitive
             edge = screen.edges.get(k)
@@ -495,11 +498,11 @@ class BroadPhase:
                 inside = segments_inside(
                     in_frame(frame, rows, ea), in_frame(frame, rows, eb), packed, INSIDE_DEPTH
                 )
-                hit[rows[inside], k] = True
+                hit[k, rows[inside]] = True
                 rows = rows[~inside]
             if rows.size:
-                hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
-        return hit
+                hit[k, rows] = self._narrow(int(screen.pairs[k]), q[rows])
+        return hit.T
 
     def _pair_hits_compiled(
         self, compiled: kernels.Kernels, q: np.ndarray, frames: Any, screen: Screen
@@ -512,24 +515,24 @@ class BroadPhase:
         tfs = stacked(frames.transforms)
         broad, boxes, edges = self._compiled_screen(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
-        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
+        hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
         for k in np.flatnonzero(open_.any(axis=1)).tolist():
             rows = np.flatnonzero(open_[k])
             box = boxes.get(k)
             if box is not None:
                 joint, *limits = box
                 status = compiled.hull_vs_box(tfs[joint], rows, *limits)
-                hit[rows[status == kernels.COLLIDES], k] = True
+                hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
             edge = edges.get(k)
             if edge is not None and rows.size:
                 joint, *ends = edge
                 inside = compiled.edges_inside(tfs[joint], rows, *ends)
-                hit[rows[inside], k] = True
+                hit[k, rows[inside]] = True
                 rows = rows[~inside]
             if rows.size:
-                hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
-        return hit
+                hit[k, rows] = self._narrow(int(screen.pairs[k]), q[rows])
+        return hit.T
 
     def _compiled_screen(
         self, screen: Screen

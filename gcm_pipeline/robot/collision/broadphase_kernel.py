@@ -81,6 +81,40 @@ def _place_balls(tfs: Any, i0: int, m: int, ball_joint: Any, ball_centre: Any, b
 
 
 @njit(cache=True, inline="always")
+def _world_level1(a: Any, m: int, s: Any, lim: float, near: Any) -> None:
+    """``near[i]`` (m,): ``_lower(a[:, i], s) <= lim`` for points ``a`` (3, m).
+
+    :func:`_lower`'s bound, written out with the shape's numbers read once and one
+    loop per kind: LLVM vectorises these loops (not one that inlines :func:`_lower`);
+    the shape kinds' tests compare both.
+    """
+    r00, r01, r02, t0, r10, r11, r12, t1 = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
+    r20, r21, r22, t2, radius, half = s[8], s[9], s[10], s[11], s[13], s[14]
+    cx, cy, cz, hx, hy, hz = s[15], s[16], s[17], s[18], s[19], s[20]
+    kind = int(s[12])
+    for i in range(m):
+        p0, p1, p2 = a[0, i], a[1, i], a[2, i]
+        x = r00 * p0 + r01 * p1 + r02 * p2 + t0
+        y = r10 * p0 + r11 * p1 + r12 * p2 + t1
+        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
+        if kind == 0:  # sphere
+            bound = max(math.sqrt(x * x + y * y + z * z) - radius, 0.0)
+        elif kind == 1:  # cylinder
+            radial = max(math.sqrt(x * x + y * y) - radius, 0.0)
+            axial = max(abs(z) - half, 0.0)
+            bound = math.sqrt(radial * radial + axial * axial)
+        elif kind == 2:  # capsule
+            along = z - min(max(z, -half), half)
+            bound = max(math.sqrt(x * x + y * y + along * along) - radius, 0.0)
+        else:  # box
+            bx = max(abs(x - cx) - hx, 0.0)
+            by = max(abs(y - cy) - hy, 0.0)
+            bz = max(abs(z - cz) - hz, 0.0)
+            bound = math.sqrt(bx * bx + by * by + bz * bz)
+        near[i] = bound <= lim
+
+
+@njit(cache=True, inline="always")
 def _level1(
     ball: Any, m: int, geom_a: Any, geom_b: Any, world: Any, limit1: Any, shapes: Any, near: Any
 ) -> None:
@@ -97,30 +131,7 @@ def _level1(
                 d2 = a[2, i] - b[2, i]
                 near[k, i] = d0 * d0 + d1 * d1 + d2 * d2 <= lim
         else:
-            s = shapes[w]
-            kind = int(s[12])
-            for i in range(m):
-                # _lower's bound, written out: LLVM vectorises this loop, not one that
-                # inlines _lower (its returns); the shape kinds' tests compare both
-                p0, p1, p2 = a[0, i], a[1, i], a[2, i]
-                x = s[0] * p0 + s[1] * p1 + s[2] * p2 + s[3]
-                y = s[4] * p0 + s[5] * p1 + s[6] * p2 + s[7]
-                z = s[8] * p0 + s[9] * p1 + s[10] * p2 + s[11]
-                if kind == 0:  # sphere
-                    bound = max(math.sqrt(x * x + y * y + z * z) - s[13], 0.0)
-                elif kind == 1:  # cylinder
-                    radial = max(math.sqrt(x * x + y * y) - s[13], 0.0)
-                    axial = max(abs(z) - s[14], 0.0)
-                    bound = math.sqrt(radial * radial + axial * axial)
-                elif kind == 2:  # capsule
-                    along = z - min(max(z, -s[14]), s[14])
-                    bound = max(math.sqrt(x * x + y * y + along * along) - s[13], 0.0)
-                else:  # box
-                    bx = max(abs(x - s[15]) - s[18], 0.0)
-                    by = max(abs(y - s[16]) - s[19], 0.0)
-                    bz = max(abs(z - s[17]) - s[20], 0.0)
-                    bound = math.sqrt(bx * bx + by * by + bz * bz)
-                near[k, i] = bound <= lim
+            _world_level1(a, m, shapes[w], lim, near[k])
 
 
 @njit(cache=True, inline="always")

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, Pair, hull_pair_pool
+from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, KINDS, Pair, hull_pair_pool
 from gcm_pipeline.robot.collision.spheres import (
     POLYTOPES,
     RobotCover,
@@ -414,11 +414,16 @@ class BroadPhase:
         assert out is not None
         return out
 
-    def _pair_hits(self, q: np.ndarray, frames: Any, screen: Screen) -> np.ndarray:
+    def _pair_hits(
+        self, q: np.ndarray, frames: Any, screen: Screen, first: bool = False
+    ) -> np.ndarray:
         """Which pairs of ``screen`` collide in each configuration, (N, P) bool.
 
-        The transpose of a C-contiguous (P, N) array: a pair's configurations are
-        contiguous (``hit.T[pairs].any(axis=0)`` reads whole rows).
+        The transpose of a C-contiguous (P, N) array (a pair's configurations contiguous).
+
+        With ``first``, each configuration's first kind of collision only (in the order
+        of ``pairs.KINDS``, the reasons'): the pairs run kind by kind, each skipping the
+        configurations an earlier one hits (its entries there stay False).
 
         Broad phase, in three levels: a pair whose geometries' bounding spheres
         are apart (from each other, or from the world shape) is free; so is
@@ -434,7 +439,7 @@ class BroadPhase:
             return np.zeros((len(q), 0), dtype=bool)
         compiled = kernels.get()
         if compiled is not None:
-            return self._pair_hits_compiled(compiled, q, frames, screen)
+            return self._pair_hits_compiled(compiled, q, frames, screen, first)
         cov, rots, poss = self._cover, frames[0], frames[1]
         # 1. one bounding sphere per robot geometry
         ball = self._place(frames, cov.ball_joint, cov.ball_centre)  # (N, G, 3)
@@ -458,8 +463,11 @@ class BroadPhase:
             lb = self._bounds_for(w).lower_xyz(xyz[:, g]) - cov.ball_radius[g][:, None]
             open_[at] = lb <= BROAD_MARGIN
         hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
-        for k in np.flatnonzero(open_.any(axis=1)).tolist():
-            rows = np.flatnonzero(open_[k])
+        decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
+        for k in _open_pairs(open_, screen, first):
+            rows = np.flatnonzero(open_[k] & ~decided)
+            if rows.size == 0:
+                continue
             # 2. the sphere covers
             span = slice(screen.first_test[k], screen.first_test[k] + screen.n_tests[k])
             a, b, bound = screen.sphere_a[span], screen.sphere_b[span], screen.bound[span]
@@ -502,10 +510,17 @@ class BroadPhase:
                 rows = rows[~inside]
             if rows.size:
                 hit[k, rows] = self._narrow(int(screen.pairs[k]), q[rows])
+            if first:
+                decided |= hit[k]
         return hit.T
 
     def _pair_hits_compiled(
-        self, compiled: kernels.Kernels, q: np.ndarray, frames: Any, screen: Screen
+        self,
+        compiled: kernels.Kernels,
+        q: np.ndarray,
+        frames: Any,
+        screen: Screen,
+        first: bool = False,
     ) -> np.ndarray:
         """:meth:`_pair_hits` by the compiled kernels (see :mod:`~gcm_pipeline.robot.kernels`).
 
@@ -516,8 +531,11 @@ class BroadPhase:
         broad, boxes, edges = self._compiled_screen(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
         hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
-        for k in np.flatnonzero(open_.any(axis=1)).tolist():
-            rows = np.flatnonzero(open_[k])
+        decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
+        for k in _open_pairs(open_, screen, first):
+            rows = np.flatnonzero(open_[k] & ~decided) if first else np.flatnonzero(open_[k])
+            if rows.size == 0:
+                continue
             box = boxes.get(k)
             if box is not None:
                 joint, *limits = box
@@ -532,6 +550,8 @@ class BroadPhase:
                 rows = rows[~inside]
             if rows.size:
                 hit[k, rows] = self._narrow(int(screen.pairs[k]), q[rows])
+            if first:
+                decided |= hit[k]
         return hit.T
 
     def _compiled_screen(
@@ -620,6 +640,20 @@ class BroadPhase:
             go = self._gm.geometryObjects[w]
             bound = self._bounds[w] = ShapeBound(go.geometry, go.placement.homogeneous)
         return bound
+
+
+def _open_pairs(open_: np.ndarray, screen: Screen, first: bool) -> list[int]:
+    """The columns of ``screen`` that ``open_`` (P, N) leaves open in some configuration.
+
+    With ``first`` (:meth:`BroadPhase._pair_hits`), kind by kind in the order of
+    :data:`~gcm_pipeline.robot.collision.pairs.KINDS` (stable: the screen's order
+    within a kind).
+    """
+    cols = np.flatnonzero(open_.any(axis=1))
+    if first:
+        rank = np.array([KINDS.index(kind) for kind in screen.kind[cols].tolist()], dtype=int)
+        cols = cols[np.argsort(rank, kind="stable")]
+    return cols.tolist()
 
 
 def stacked(tfs: list[np.ndarray]) -> np.ndarray:

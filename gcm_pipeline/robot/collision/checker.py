@@ -379,7 +379,8 @@ class CollisionChecker(ClearanceQueries):
         else:
             screen = self._screens[bit]
             all_frames = self._frames.compute(q)
-            by_pair = self._pair_hits(q, all_frames, screen).T  # (P, N), C-contiguous
+            # each configuration's first kind of collision only: its reason
+            by_pair = self._pair_hits(q, all_frames, screen, first=True).T  # (P, N)
             left = np.ones(n, dtype=bool)  # no reason yet
             for kind in KINDS:
                 some = by_pair[screen.kind == kind].any(axis=0) & left

@@ -137,7 +137,8 @@ def test_the_kernels_leave_open_what_numpy_leaves_open(compiled, bottle, mode, n
     checker, qs, _ = bottle
     ref = _coal_calls(checker, lambda: numpy_code(checker.check, qs, mode))
     out = _coal_calls(checker, lambda: checker.check(qs, mode))
-    assert sum(len(v) for v in ref.values()) > 1000
+    # (a configuration's pairs after its first collision are not sent: 590 in grasp mode)
+    assert sum(len(v) for v in ref.values()) > 400
     for pool, rows in ref.items():
         assert rows <= out.get(pool, set())
     # conservative, not loose: only entries within the slack of a threshold are added

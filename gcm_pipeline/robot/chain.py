@@ -324,7 +324,7 @@ class JointFrames:
         compiled = kernels.get()
         # the kernel reads without bounds checks: other shapes get the NumPy code's errors
         if compiled is not None and q.ndim == 2 and q.shape[1] == self.njoints - 1:
-            frames = compiled.joint_frames(np.cos(q), np.sin(q), *self.packed)
+            frames = compiled.joint_frames(*compiled.cos_sin(q), *self.packed)
         else:
             turn = np.exp(-1j * q)
             frames = np.empty((self.njoints, n, 3, 4))  # (N, 3, 4) transforms, see _joint_frame

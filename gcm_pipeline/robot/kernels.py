@@ -60,8 +60,9 @@ The NumPy code is the reference.
 * Level 4 (edges inside a primitive): colliding only where an edge point lies
   deeper than the depth plus the slack: the NumPy level decides the same.
 * Every joint's frame (the collision checks' kinematics): the products in
-  the same order as the NumPy code's, the angles' cosines and sines from
-  NumPy's ``cos`` and ``sin`` (the NumPy code takes them from ``exp(-i q)``):
+  the same order as the NumPy code's, the angles' cosines and sines from one
+  vectorised range reduction and fdlibm's polynomials (``chain_kernel.cos_sin``,
+  within an ulp or two of libm's; the NumPy code takes them from ``exp(-i q)``):
   equal to round-off (tested to 1e-12, and against Pinocchio). Everything
   that uses them decides with margins far above round-off.
 * The closed form: the same arithmetic and the same solutions; the angles
@@ -144,6 +145,7 @@ class Kernels(NamedTuple):
         levenberg_marquardt: The IK's Levenberg-Marquardt iterations, per (target, seed).
         segment_samples: The approach's deviation samples along joint segments.
         panda_ik: The Panda's closed-form IK, per (target, q7).
+        cos_sin: The cosines and sines of angles (N, M), both from one range reduction.
     """
 
     chain_forward: Callable[..., Any]
@@ -154,6 +156,7 @@ class Kernels(NamedTuple):
     panda_ik: Callable[..., Any]
     edges_inside: Callable[..., Any]
     joint_frames: Callable[..., Any]
+    cos_sin: Callable[..., Any]
 
 
 @functools.cache
@@ -239,6 +242,7 @@ def _import() -> Kernels | None:
                 panda_kernel.panda_ik,
                 broadphase_kernel.edges_inside,
                 chain_kernel.joint_frames,
+                chain_kernel.cos_sin,
             )
         )
     )

@@ -130,3 +130,40 @@ def test_segment_bound_kernel_equals_numpy(compiled, panda, reject, numpy_code):
     # arrays in any memory layout (the kernel takes C arrays)
     strided = (*args[:2], np.asfortranarray(q_a), q_b[:, ::-1][:, ::-1], *args[4:])
     np.testing.assert_array_equal(segment_bounds(*strided), got)
+
+
+# --- cosines and sines of the joint frames ----------------------------------------------
+
+
+def test_cos_sin_kernel_equals_numpy_cos_sin(compiled):
+    """``cos_sin`` (one range reduction and fdlibm's polynomials, vectorised) against
+    NumPy's ``cos`` and ``sin`` (libm): within two ulps of each value, or 1e-20 absolute
+    near a zero; libm's own values beyond the reduced range, inf and nan included."""
+    rng = np.random.default_rng(3)
+    k = np.arange(-3000, 3001)[:, None]
+    cases = {
+        "joint angles": rng.uniform(-2 * np.pi, 2 * np.pi, (5000, 7)),
+        "wide": rng.uniform(-1e5, 1e5, (4000, 5)),
+        # at and around every quadrant's boundary: the reduction's cancellation and the
+        # quadrant's selection (k/4 rounds half to even)
+        "near k pi/2": k * (np.pi / 2) + np.array([0.0, 1e-15, -1e-12, 1e-8, -0.785, 0.785]),
+        "tiny": np.array([[0.0, -0.0, 1e-300, 5e-324, -1e-8, 1e-20]]),
+        "libm's": np.array([[1e5 + 1, -3e10, 1e300, -np.inf, np.inf, np.nan]]),
+        "one": np.array([[0.3]]),
+        "none": np.zeros((0, 7)),
+    }
+    for name, q in cases.items():
+        cos, sin = compiled.cos_sin(q)
+        assert cos.shape == sin.shape == q.shape, name
+        with np.errstate(invalid="ignore"):
+            for got, ref in ((cos, np.cos(q)), (sin, np.sin(q))):
+                np.testing.assert_array_equal(np.isnan(got), np.isnan(ref), err_msg=name)
+                ok = np.isfinite(ref)
+                err = np.abs(got[ok] - ref[ok])
+                assert np.all(err <= np.maximum(2 * np.spacing(np.abs(ref[ok])), 1e-20)), name
+    # a strided, read-only input: the same values as its C-contiguous copy
+    q = cases["joint angles"]
+    view = np.asfortranarray(q)[:, ::2]
+    view.flags.writeable = False
+    for got, ref in zip(compiled.cos_sin(view), compiled.cos_sin(q[:, ::2].copy()), strict=True):
+        np.testing.assert_array_equal(got, ref)

@@ -324,7 +324,7 @@ def test_a_kernel_converts_safely_or_says_why(compiled, panda):
     # no pair, no world shape: nothing open (the broad phase of an empty screen)
     empty_i, empty_f = np.zeros(0, int), np.zeros(0)
     out = compiled.broad_phase(
-        np.zeros((3, 4, 3, 4)), empty_i, np.zeros((0, 3)), empty_i, np.zeros((0, 3)),
+        np.zeros((3, 4, 3, 4)), empty_i, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(1, int),
         empty_f, empty_f, empty_f, empty_f, empty_f, empty_f, empty_f, empty_f, empty_f,
         np.zeros((0, 21)),
     )  # fmt: skip

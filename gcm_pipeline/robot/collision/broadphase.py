@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, Pair, hull_pair_pool
+from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, KINDS, Pair, hull_pair_pool
 from gcm_pipeline.robot.collision.spheres import (
     POLYTOPES,
     RobotCover,
@@ -414,8 +414,16 @@ class BroadPhase:
         assert out is not None
         return out
 
-    def _pair_hits(self, q: np.ndarray, frames: Any, screen: Screen) -> np.ndarray:
+    def _pair_hits(
+        self, q: np.ndarray, frames: Any, screen: Screen, first: bool = False
+    ) -> np.ndarray:
         """Which pairs of ``screen`` collide in each configuration, (N, P) bool.
+
+        The transpose of a C-contiguous (P, N) array (a pair's configurations contiguous).
+
+        With ``first``, each configuration's first kind of collision only (in the order
+        of ``pairs.KINDS``, the reasons'): the pairs run kind by kind, each skipping the
+        configurations an earlier one hits (its entries there stay False).
 
         Broad phase, in three levels: a pair whose geometries' bounding spheres
         are apart (from each other, or from the world shape) is free; so is
@@ -431,7 +439,7 @@ class BroadPhase:
             return np.zeros((len(q), 0), dtype=bool)
         compiled = kernels.get()
         if compiled is not None:
-            return self._pair_hits_compiled(compiled, q, frames, screen)
+            return self._pair_hits_compiled(compiled, q, frames, screen, first)
         cov, rots, poss = self._cover, frames[0], frames[1]
         # 1. one bounding sphere per robot geometry
         ball = self._place(frames, cov.ball_joint, cov.ball_centre)  # (N, G, 3)
@@ -454,9 +462,12 @@ class BroadPhase:
             g = screen.geom_a[at]
             lb = self._bounds_for(w).lower_xyz(xyz[:, g]) - cov.ball_radius[g][:, None]
             open_[at] = lb <= BROAD_MARGIN
-        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
-        for k in np.flatnonzero(open_.any(axis=1)).tolist():
-            rows = np.flatnonzero(open_[k])
+        hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
+        decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
+        for k in _open_pairs(open_, screen, first):
+            rows = np.flatnonzero(open_[k] & ~decided)
+            if rows.size == 0:
+                continue
             # 2. the sphere covers
             span = slice(screen.first_test[k], screen.first_test[k] + screen.n_tests[k])
             a, b, bound = screen.sphere_a[span], screen.sphere_b[span], screen.bound[span]
@@ -485,7 +496,7 @@ class BroadPhase:
                 rows = rows[height <= BROAD_MARGIN]
                 local = in_frame((rots[joint], poss[joint], inv), rows, verts)
                 inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
-                hit[rows[inside], k] = True
+                hit[k, rows[inside]] = True
                 rows = rows[~(beyond_a_face(local, lim) | inside)]
             # 4. the polytope's longest edges inside a primitive
             edge = screen.edges.get(k)
@@ -495,14 +506,21 @@ class BroadPhase:
                 inside = segments_inside(
                     in_frame(frame, rows, ea), in_frame(frame, rows, eb), packed, INSIDE_DEPTH
                 )
-                hit[rows[inside], k] = True
+                hit[k, rows[inside]] = True
                 rows = rows[~inside]
             if rows.size:
-                hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
-        return hit
+                hit[k, rows] = self._narrow(int(screen.pairs[k]), q[rows])
+            if first:
+                decided |= hit[k]
+        return hit.T
 
     def _pair_hits_compiled(
-        self, compiled: kernels.Kernels, q: np.ndarray, frames: Any, screen: Screen
+        self,
+        compiled: kernels.Kernels,
+        q: np.ndarray,
+        frames: Any,
+        screen: Screen,
+        first: bool = False,
     ) -> np.ndarray:
         """:meth:`_pair_hits` by the compiled kernels (see :mod:`~gcm_pipeline.robot.kernels`).
 
@@ -512,24 +530,29 @@ class BroadPhase:
         tfs = stacked(frames.transforms)
         broad, boxes, edges = self._compiled_screen(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
-        hit = np.zeros((len(q), screen.pairs.size), dtype=bool)
-        for k in np.flatnonzero(open_.any(axis=1)).tolist():
-            rows = np.flatnonzero(open_[k])
+        hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
+        decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
+        for k in _open_pairs(open_, screen, first):
+            rows = np.flatnonzero(open_[k] & ~decided) if first else np.flatnonzero(open_[k])
+            if rows.size == 0:
+                continue
             box = boxes.get(k)
             if box is not None:
                 joint, *limits = box
                 status = compiled.hull_vs_box(tfs[joint], rows, *limits)
-                hit[rows[status == kernels.COLLIDES], k] = True
+                hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
             edge = edges.get(k)
             if edge is not None and rows.size:
                 joint, *ends = edge
                 inside = compiled.edges_inside(tfs[joint], rows, *ends)
-                hit[rows[inside], k] = True
+                hit[k, rows[inside]] = True
                 rows = rows[~inside]
             if rows.size:
-                hit[rows, k] = self._narrow(int(screen.pairs[k]), q[rows])
-        return hit
+                hit[k, rows] = self._narrow(int(screen.pairs[k]), q[rows])
+            if first:
+                decided |= hit[k]
+        return hit.T
 
     def _compiled_screen(
         self, screen: Screen
@@ -564,7 +587,9 @@ class BroadPhase:
             (np.sqrt(screen.bound) + slack) ** 2,
             screen.bound + BROAD_MARGIN + slack,
         )
-        args = [cov.ball_joint, cov.ball_centre, cov.joint, cov.centre, screen.geom_a]
+        # a geometry's cover spheres are on its joint, the bounding sphere's
+        assert np.array_equal(cov.joint, np.repeat(cov.ball_joint, np.diff(cov.start)))
+        args = [cov.ball_joint, cov.ball_centre, cov.centre, cov.start, screen.geom_a]
         args += [screen.geom_b, world, limit1, screen.first_test, screen.n_tests]
         args += [screen.sphere_a, screen.sphere_b, limit2, shapes]
         # indices as intp, all C-contiguous (the kernels' signature)
@@ -615,6 +640,20 @@ class BroadPhase:
             go = self._gm.geometryObjects[w]
             bound = self._bounds[w] = ShapeBound(go.geometry, go.placement.homogeneous)
         return bound
+
+
+def _open_pairs(open_: np.ndarray, screen: Screen, first: bool) -> list[int]:
+    """The columns of ``screen`` that ``open_`` (P, N) leaves open in some configuration.
+
+    With ``first`` (:meth:`BroadPhase._pair_hits`), kind by kind in the order of
+    :data:`~gcm_pipeline.robot.collision.pairs.KINDS` (stable: the screen's order
+    within a kind).
+    """
+    cols = np.flatnonzero(open_.any(axis=1))
+    if first:
+        rank = np.array([KINDS.index(kind) for kind in screen.kind[cols].tolist()], dtype=int)
+        cols = cols[np.argsort(rank, kind="stable")]
+    return cols.tolist()
 
 
 def stacked(tfs: list[np.ndarray]) -> np.ndarray:

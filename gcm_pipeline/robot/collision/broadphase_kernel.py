@@ -62,16 +62,95 @@ def _sq_gap(a: Any, b: Any) -> float:
     return d0 * d0 + d1 * d1 + d2 * d2
 
 
+#: Configurations whose level 1 the broad phase computes together, one pair at a time
+#: (a loop LLVM vectorises); their bounding spheres (3 coordinates each) stay in the
+#: L1 cache.
+CHUNK = 64
+
+
+@njit(cache=True, inline="always")
+def _place_balls(tfs: Any, i0: int, m: int, ball_joint: Any, ball_centre: Any, ball: Any) -> None:
+    """``ball[g, :, i]`` (G, 3, m): bounding sphere g's centre in configuration ``i0 + i``."""
+    for g in range(ball_joint.shape[0]):
+        j = ball_joint[g]
+        c0, c1, c2 = ball_centre[g, 0], ball_centre[g, 1], ball_centre[g, 2]
+        for r in range(3):
+            for i in range(m):
+                tf = tfs[j, i0 + i]
+                ball[g, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
+
+
+@njit(cache=True, inline="always")
+def _world_level1(a: Any, m: int, s: Any, lim: float, near: Any) -> None:
+    """``near[i]`` (m,): ``_lower(a[:, i], s) <= lim`` for points ``a`` (3, m).
+
+    :func:`_lower`'s bound, written out with the shape's numbers read once and one
+    loop per kind: LLVM vectorises these loops (not one that inlines :func:`_lower`);
+    the shape kinds' tests compare both.
+    """
+    r00, r01, r02, t0, r10, r11, r12, t1 = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
+    r20, r21, r22, t2, radius, half = s[8], s[9], s[10], s[11], s[13], s[14]
+    cx, cy, cz, hx, hy, hz = s[15], s[16], s[17], s[18], s[19], s[20]
+    kind = int(s[12])
+    for i in range(m):
+        p0, p1, p2 = a[0, i], a[1, i], a[2, i]
+        x = r00 * p0 + r01 * p1 + r02 * p2 + t0
+        y = r10 * p0 + r11 * p1 + r12 * p2 + t1
+        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
+        if kind == 0:  # sphere
+            bound = max(math.sqrt(x * x + y * y + z * z) - radius, 0.0)
+        elif kind == 1:  # cylinder
+            radial = max(math.sqrt(x * x + y * y) - radius, 0.0)
+            axial = max(abs(z) - half, 0.0)
+            bound = math.sqrt(radial * radial + axial * axial)
+        elif kind == 2:  # capsule
+            along = z - min(max(z, -half), half)
+            bound = max(math.sqrt(x * x + y * y + along * along) - radius, 0.0)
+        else:  # box
+            bx = max(abs(x - cx) - hx, 0.0)
+            by = max(abs(y - cy) - hy, 0.0)
+            bz = max(abs(z - cz) - hz, 0.0)
+            bound = math.sqrt(bx * bx + by * by + bz * bz)
+        near[i] = bound <= lim
+
+
+@njit(cache=True, inline="always")
+def _level1(
+    ball: Any, m: int, geom_a: Any, geom_b: Any, world: Any, limit1: Any, shapes: Any, near: Any
+) -> None:
+    """``near[k, i]`` (P, m): pair k's bounding spheres within reach in configuration i."""
+    for k in range(geom_a.shape[0]):
+        a = ball[geom_a[k]]
+        lim = limit1[k]
+        w = world[k]
+        if w < 0:
+            b = ball[geom_b[k]]
+            for i in range(m):
+                d0 = a[0, i] - b[0, i]
+                d1 = a[1, i] - b[1, i]
+                d2 = a[2, i] - b[2, i]
+                near[k, i] = d0 * d0 + d1 * d1 + d2 * d2 <= lim
+        else:
+            _world_level1(a, m, shapes[w], lim, near[k])
+
+
+@njit(cache=True, inline="always")
+def _place_spheres(tf: Any, start: Any, g: int, sphere_centre: Any, sphere: Any) -> None:
+    """Geometry g's cover spheres ``start[g] .. start[g + 1] - 1``, placed by its frame ``tf``."""
+    for e in range(start[g], start[g + 1]):
+        _place(tf, sphere_centre[e], sphere[e])
+
+
 @njit(
-    types.boolean[:, ::1](F4, I1, F2, I1, F2, I1, I1, I1, F1, I1, I1, I1, I1, F1, F2),
+    types.boolean[:, ::1](F4, I1, F2, F2, I1, I1, I1, I1, F1, I1, I1, I1, I1, F1, F2),
     cache=True,
 )
 def broad_phase(
     tfs,
     ball_joint,
     ball_centre,
-    sphere_joint,
     sphere_centre,
+    sphere_start,
     geom_a,
     geom_b,
     world,
@@ -94,20 +173,28 @@ def broad_phase(
     ``|pa - pb|^2 <= limit2[e]`` or ``lower(pa) <= limit2[e]``. The limits
     hold the radii, the margin and the slack.
 
+    Level 1 runs over :data:`CHUNK` configurations at a time, pair by pair
+    (vectorised, no branch per pair); level 2 configuration by configuration,
+    for the pairs level 1 left open, placing a geometry's cover spheres the
+    first time a pair needs them in that configuration. The same arithmetic as
+    one configuration at a time, so the same answers.
+
     Args:
         tfs: Joint frames (J, N, 3, 4).
-        ball_joint: Joint of each geometry's bounding sphere (G,).
-        ball_centre: Their centres in the joints' frames (G, 3) [m].
-        sphere_joint: Joint of each cover sphere (S,).
-        sphere_centre: Their centres in the joints' frames (S, 3) [m].
+        ball_joint: Joint of each geometry (G,): its bounding sphere's and its cover
+            spheres' (:func:`~gcm_pipeline.robot.collision.spheres.robot_covers`).
+        ball_centre: The bounding spheres' centres in the joints' frames (G, 3) [m].
+        sphere_centre: Cover sphere centres in the joints' frames (S, 3) [m].
+        sphere_start: Cover spheres of geometry g:
+            ``sphere_start[g] .. sphere_start[g + 1] - 1`` (G + 1,).
         geom_a: Robot geometry of each pair (P,).
         geom_b: The other robot geometry of a self pair (P,).
         world: Row of ``shapes`` of a world pair, -1 for a self pair (P,).
         limit1: Level-1 limit of each pair (P,).
         first_test: First sphere test of each pair (P,).
         n_tests: Number of sphere tests of each pair (P,).
-        sphere_a: Robot-side cover sphere of each test (E,).
-        sphere_b: Other cover sphere of a self pair's test (E,).
+        sphere_a: Cover sphere of ``geom_a`` of each test (E,).
+        sphere_b: Cover sphere of ``geom_b`` of a self pair's test (E,).
         limit2: Level-2 limit of each test (E,).
         shapes: World shapes as packed rows (W, 21) (see :func:`_lower`).
 
@@ -116,34 +203,39 @@ def broad_phase(
     """
     n = tfs.shape[1]
     npairs = geom_a.shape[0]
+    ngeoms = ball_joint.shape[0]
     open_ = np.zeros((npairs, n), dtype=np.bool_)
-    ball = np.empty((ball_joint.shape[0], 3))
-    sphere = np.empty((sphere_joint.shape[0], 3))
-    for i in range(n):
-        for g in range(ball_joint.shape[0]):
-            _place(tfs[ball_joint[g], i], ball_centre[g], ball[g])
-        placed = False
-        for k in range(npairs):
-            w = world[k]
-            # 1. one bounding sphere per geometry
-            if w < 0:
-                if _sq_gap(ball[geom_a[k]], ball[geom_b[k]]) > limit1[k]:
+    ball = np.empty((ngeoms, 3, CHUNK))
+    near = np.empty((npairs, CHUNK), dtype=np.bool_)
+    sphere = np.empty((sphere_centre.shape[0], 3))
+    placed = np.full(ngeoms, -1)  # the configuration whose spheres of geometry g are placed
+    for i0 in range(0, n, CHUNK):
+        m = min(CHUNK, n - i0)
+        # 1. one bounding sphere per geometry
+        _place_balls(tfs, i0, m, ball_joint, ball_centre, ball)
+        _level1(ball, m, geom_a, geom_b, world, limit1, shapes, near)
+        # 2. the sphere covers
+        for i in range(i0, i0 + m):
+            for k in range(npairs):
+                if not near[k, i - i0]:
                     continue
-            elif _lower(ball[geom_a[k]], shapes[w]) > limit1[k]:
-                continue
-            # 2. the sphere covers (all placed once per configuration, when first needed)
-            if not placed:
-                for e in range(sphere_joint.shape[0]):
-                    _place(tfs[sphere_joint[e], i], sphere_centre[e], sphere[e])
-                placed = True
-            for e in range(first_test[k], first_test[k] + n_tests[k]):
-                if w < 0:
-                    near = _sq_gap(sphere[sphere_a[e]], sphere[sphere_b[e]]) <= limit2[e]
-                else:
-                    near = _lower(sphere[sphere_a[e]], shapes[w]) <= limit2[e]
-                if near:
-                    open_[k, i] = True
-                    break
+                w = world[k]
+                g = geom_a[k]
+                if placed[g] != i:
+                    _place_spheres(tfs[ball_joint[g], i], sphere_start, g, sphere_centre, sphere)
+                    placed[g] = i
+                g = geom_b[k]
+                if w < 0 and placed[g] != i:
+                    _place_spheres(tfs[ball_joint[g], i], sphere_start, g, sphere_centre, sphere)
+                    placed[g] = i
+                for e in range(first_test[k], first_test[k] + n_tests[k]):
+                    if w < 0:
+                        hit = _sq_gap(sphere[sphere_a[e]], sphere[sphere_b[e]]) <= limit2[e]
+                    else:
+                        hit = _lower(sphere[sphere_a[e]], shapes[w]) <= limit2[e]
+                    if hit:
+                        open_[k, i] = True
+                        break
     return open_
 
 

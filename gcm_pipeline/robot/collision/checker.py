@@ -379,10 +379,13 @@ class CollisionChecker(ClearanceQueries):
         else:
             screen = self._screens[bit]
             all_frames = self._frames.compute(q)
-            hit = self._pair_hits(q, all_frames, screen)
+            # each configuration's first kind of collision only: its reason
+            by_pair = self._pair_hits(q, all_frames, screen, first=True).T  # (P, N)
+            left = np.ones(n, dtype=bool)  # no reason yet
             for kind in KINDS:
-                some = np.flatnonzero(hit[:, screen.kind == kind].any(axis=1) & (reason == ""))
+                some = by_pair[screen.kind == kind].any(axis=0) & left
                 reason[some] = REASONS[kind]
+                left &= ~some
         static = self._static_reason.get(bit)
         if static is not None:
             # a static pair collides in every configuration: its kind unless an earlier one

@@ -137,7 +137,8 @@ def test_the_kernels_leave_open_what_numpy_leaves_open(compiled, bottle, mode, n
     checker, qs, _ = bottle
     ref = _coal_calls(checker, lambda: numpy_code(checker.check, qs, mode))
     out = _coal_calls(checker, lambda: checker.check(qs, mode))
-    assert sum(len(v) for v in ref.values()) > 1000
+    # (a configuration's pairs after its first collision are not sent: 590 in grasp mode)
+    assert sum(len(v) for v in ref.values()) > 400
     for pool, rows in ref.items():
         assert rows <= out.get(pool, set())
     # conservative, not loose: only entries within the slack of a threshold are added
@@ -274,9 +275,10 @@ def test_levels_1_and_2_bound_each_shape_kind_as_numpy(compiled, kind, n):
     for limit in (0.0, 0.01, 0.05, 0.2):
         # a self pair's limits are squared distances
         lim = np.full(1, limit**2 if world < 0 else limit)
+        # geometries 0 and 1, each one sphere at its joint's origin
         open_ = compiled.broad_phase(
-            tfs, joints, origin, joints, origin, zero, one, np.full(1, world), lim, zero, one,
-            zero, one, lim, shapes,
+            tfs, joints, origin, origin, np.arange(3), zero, one, np.full(1, world), lim, zero,
+            one, zero, one, lim, shapes,
         )[0]  # fmt: skip
         assert open_.shape == (n,)
         assert np.all(want[open_] <= limit + 1e-9)

@@ -22,7 +22,7 @@ from gcm_pipeline.robot.collision import (
     CollisionChecker,
     WorldShape,
 )
-from gcm_pipeline.robot.collision.pairs import checker_requests
+from gcm_pipeline.robot.collision.pairs import KINDS, checker_requests
 
 BOTTLE = {
     "shape": "cylinder",
@@ -691,13 +691,21 @@ def _every_pair_hits(robot, checker, qs, screen):
     return out
 
 
-def test_broad_phase_pair_by_pair_with_rotated_boxes(robot):
+def _first_kind(hit, screen):
+    """Each configuration's first kind (index of KINDS) ``hit`` (N, P) has, else len(KINDS)."""
+    rank = np.array([KINDS.index(k) for k in screen.kind.tolist()])
+    return np.where(hit, rank, len(KINDS)).min(axis=1, initial=len(KINDS))
+
+
+def test_broad_phase_pair_by_pair_with_rotated_boxes(robot, monkeypatch):
     """Every pair's answer equals coal's, with tilted boxes (the hull-vertex shortcut) around.
 
     A tilted box obstacle over the bottle, a tilted box object and a tilted
     table: configurations near all of them (IK of poses on and around them)
     and random ones. Each of the three broad-phase levels decides some pairs,
-    and coal the rest; no decision differs from coal's on that pair.
+    and coal the rest; no decision differs from coal's on that pair. Asked for
+    each configuration's first kind only (``first``, what the reasons need), both
+    paths give the complete answer's first kind, with fewer pairs decided.
     """
     from gcm_pipeline.robot.ik import solve_ik
 
@@ -738,6 +746,14 @@ def test_broad_phase_pair_by_pair_with_rotated_boxes(robot):
         ref = _every_pair_hits(robot, c, qs, screen)
         bad = np.argwhere(got != ref)
         assert bad.size == 0, [(int(i), c._pairs[screen.pairs[k]]) for i, k in bad[:5]]
+        for jit in ("1", "0"):  # the compiled kernels, the NumPy code
+            monkeypatch.setenv("GCM_JIT", jit)
+            first = c._pair_hits(qs, c._frames.compute(qs), screen, first=True)
+            np.testing.assert_array_equal(_first_kind(first, screen), _first_kind(ref, screen))
+            assert not (first & ~ref).any()
+            # configurations with two kinds of collision, or two pairs: skipped
+            assert first.sum() < ref.sum()
+        monkeypatch.delenv("GCM_JIT")
         # the test exercises every kind and both box outcomes
         for kind in ("environment", "self", "object"):
             assert ref[:, screen.kind == kind].any(), kind

@@ -20,9 +20,10 @@ setting always runs first. The machine is shared (single runs of one setting
 differ by up to 3.5x here), so the figure is the **median of the per-pair
 ratios** auto/one (the target: at least 1), with their spread (quartiles,
 least and most). Per auto run the benchmark records how many workers auto
-chose and the idle cores it read: where it chose 1, auto ran exactly the
-one-worker code (the same chunks on this process), so any departure of that
-pair's ratio from 1 is the machine's noise (``ratio_where_auto_chose_one``; the
+chose and the idle cores it read: where it chose 1, auto ran the one-worker
+code on this process (the same chunks, the first cut in two where it probed),
+so that pair's ratio shows what the probe costs and the machine's noise
+(``ratio_where_auto_chose_one``; the
 pairs where it forked: ``ratio_where_auto_forked``). Also recorded: the load
 average (``os.getloadavg``) before every pair and at the end, and whether
 every run gave the same reachable flags, and per run the CPU the rest of the
@@ -57,7 +58,7 @@ from gcm_pipeline.reach.engine import available_cores  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 DENSE = ["candidates.count=80", "densify.subdivisions=28"]
-#: When the late hogs start, into a run [s]: after auto's first chunk (about 0.5 s idle).
+#: When the late hogs start, into a run [s]: after auto's probe (a quarter chunk, about 0.1 s).
 LATE_S = 1.5
 
 

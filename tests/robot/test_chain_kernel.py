@@ -167,3 +167,12 @@ def test_cos_sin_kernel_equals_numpy_cos_sin(compiled):
     view.flags.writeable = False
     for got, ref in zip(compiled.cos_sin(view), compiled.cos_sin(q[:, ::2].copy()), strict=True):
         np.testing.assert_array_equal(got, ref)
+
+
+def test_cos_sin_keeps_the_sign_of_a_zero_sine(compiled):
+    """``sin(-0.0)`` is ``-0.0`` (libm's, NumPy's); the polynomial ``r + r z p(z)`` alone
+    gives ``+0.0`` (``-0.0 + 0.0``)."""
+    q = np.array([[-0.0, 0.0, -5e-324, 5e-324]])
+    cos, sin = compiled.cos_sin(q)
+    np.testing.assert_array_equal(np.signbit(sin), np.signbit(np.sin(q)))
+    np.testing.assert_array_equal(cos, np.cos(q))

@@ -346,3 +346,41 @@ def test_one_blas_thread_limits_and_restores_the_pools():
     with one_blas_thread(1000):
         assert blas_threads() == [1] * len(before)
     assert blas_threads() == before
+
+
+def test_one_blas_thread_holds_while_any_threads_block_is_open():
+    """Overlapping ``one_blas_thread`` blocks on two threads (two checkers' ``clearance``
+    at once): BLAS stays on one thread until the last block leaves, then the pools have
+    their thread counts from before (each block restoring the limits it found gave the
+    second block two threads after the first left, or left 1 for good)."""
+    import threading
+
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from gcm_pipeline.robot.kernels import one_blas_thread
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    first_in, second_in, first_out = threading.Event(), threading.Event(), threading.Event()
+    seen = {}
+
+    def second() -> None:  # enters after the first block, leaves after it
+        first_in.wait(10)
+        with one_blas_thread(1000):
+            second_in.set()
+            first_out.wait(10)
+            seen["alone"] = blas_threads()
+
+    with threadpool_limits(limits=2, user_api="blas"):  # more than one, on any machine
+        before = blas_threads()
+        assert before and all(n == 2 for n in before)
+        other = threading.Thread(target=second)
+        other.start()
+        with one_blas_thread(1000):
+            first_in.set()
+            assert second_in.wait(10)
+        first_out.set()
+        other.join(10)
+        assert seen["alone"] == [1] * len(before)
+        assert blas_threads() == before

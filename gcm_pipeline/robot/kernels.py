@@ -180,8 +180,13 @@ def one_blas_thread(rows: int = _BLAS_LIMIT_ROWS) -> Iterator[None]:
     for each other (``clearance`` of the dense bottle's reachable rows: 1.9x slower
     beside one busy process on two cores). The reachability engine runs every
     chunk so; this is for the checks called on their own.
+
+    On the main thread only: the pools are process-wide, and blocks overlapping
+    on several threads would each restore the limits they found (the last to
+    leave could leave BLAS on one thread for good); OpenBLAS also ignores a
+    limit set from another thread. Elsewhere the pools are left as they are.
     """
-    if rows < _BLAS_LIMIT_ROWS:
+    if rows < _BLAS_LIMIT_ROWS or threading.current_thread() is not threading.main_thread():
         yield
         return
     with blas_controller().limit(limits=1, user_api="blas"):

@@ -196,6 +196,7 @@ def cos_sin(q):
         r = ((x - k * PIO2_1) - k * PIO2_2) - k * PIO2_2T
         z = r * r
         s = r + r * z * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))))
+        s = math.copysign(s, r)  # sin r has r's sign; -0.0 + 0.0 alone would give +0.0
         hz = 0.5 * z
         w = 1.0 - hz
         poly = z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))))

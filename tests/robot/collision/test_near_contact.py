@@ -262,3 +262,31 @@ def test_overlapping_links_are_not_free(tmp_path):
         assert inside > depth, (a, b, inside)
         assert checker.check(q)[0] == "collision_self", (a, b)
         assert (a, b) in {(x[:-2], y[:-2]) for x, y, _ in checker.colliding_pairs(q)}
+
+
+def test_carried_object_decisions_at_contact_equal_the_numpy_codes(case, numpy_code):
+    """``retreat`` with a carried object, both sides of contact bisected to the last
+    bit: the compiled path decides as the NumPy code does (the carried object's narrow
+    phase places the arm links by the joint frames, the kernels' cosines and sines)."""
+    checker, q, _ = case
+    # the object held as at the grasps around the bottle (case's rows 300..599)
+    grasps = np.linalg.inv(checker.robot.fk(q[300:600])) @ checker.object.placement
+    held_all = grasps[np.random.default_rng(5).integers(len(grasps), size=len(q))]
+
+    def check(x, rows):
+        return checker.check(x, "retreat", carried=held_all[rows])
+
+    hit = check(q, np.arange(len(q))) != ""
+    free, coll = np.flatnonzero(~hit), np.flatnonzero(hit)
+    m = min(free.size, coll.size, 300)
+    a, b, rows = q[free[:m]].copy(), q[coll[:m]].copy(), free[:m]
+    for _ in range(60):
+        mid = 0.5 * (a + b)
+        mh = check(mid, rows) != ""
+        b[mh], a[~mh] = mid[mh], mid[~mh]
+    near = np.concatenate([a, b])
+    both = np.concatenate([rows, rows])
+    got = check(near, both)
+    ref = numpy_code(check, near, both)
+    bad = np.flatnonzero(got != ref)
+    assert bad.size == 0, [(int(i), str(got[i]), str(ref[i])) for i in bad[:5]]

@@ -308,11 +308,16 @@ class JointFrames:
         post = self._post[joint]
         return post @ rot, post @ trans
 
-    def compute(self, q: np.ndarray) -> Frames:
+    def compute(self, q: np.ndarray, libm: bool = False) -> Frames:
         """Frames of every joint (index 0: the universe).
 
         Args:
             q: Configurations (N, nq) [rad].
+            libm: The compiled path takes the angles' cosines and sines from
+                NumPy's ``cos`` and ``sin`` (libm), not from ``cos_sin`` (an ulp
+                or two apart): the frames of the NumPy code to the bit, for the
+                decisions that use them without a margin (coal's answer for the
+                carried object, a point in the mesh object).
 
         Returns:
             The :class:`Frames`: per joint, rotations (N, 3, 3) in the rotated
@@ -324,7 +329,8 @@ class JointFrames:
         compiled = kernels.get()
         # the kernel reads without bounds checks: other shapes get the NumPy code's errors
         if compiled is not None and q.ndim == 2 and q.shape[1] == self.njoints - 1:
-            frames = compiled.joint_frames(*compiled.cos_sin(q), *self.packed)
+            cos_sin = (np.cos(q), np.sin(q)) if libm else compiled.cos_sin(q)
+            frames = compiled.joint_frames(*cos_sin, *self.packed)
         else:
             turn = np.exp(-1j * q)
             frames = np.empty((self.njoints, n, 3, 4))  # (N, 3, 4) transforms, see _joint_frame

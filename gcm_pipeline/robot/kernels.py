@@ -63,8 +63,10 @@ The NumPy code is the reference.
   the same order as the NumPy code's, the angles' cosines and sines from one
   vectorised range reduction and fdlibm's polynomials (``chain_kernel.cos_sin``,
   within an ulp or two of libm's; the NumPy code takes them from ``exp(-i q)``):
-  equal to round-off (tested to 1e-12, and against Pinocchio). Everything
-  that uses them decides with margins far above round-off.
+  equal to round-off (tested to 1e-12, and against Pinocchio). The broad
+  phase decides with margins far above round-off; the checks that use the
+  frames without one (coal's answer for a carried object, a point in a mesh
+  object) take libm's ``cos`` and ``sin``: the NumPy code's frames to the bit.
 * The closed form: the same arithmetic and the same solutions; the angles
   differ by round-off (1e-13 rad measured; acos near +-1 can amplify an
   ulp to 2e-8 rad).

@@ -365,7 +365,6 @@ class CollisionChecker(ClearanceQueries):
     def _check_block(self, q: np.ndarray, bit: int, held: np.ndarray | None) -> np.ndarray:
         n = len(q)
         reason = np.full(n, "", dtype=_REASON_DTYPE)
-        all_frames = None
         if n < _FEW or self.threads > 1:
             pool = self._mode_pool.get(bit)
             todo = np.flatnonzero(self._run(pool, q)) if pool is not None else np.zeros(0, int)
@@ -394,10 +393,8 @@ class CollisionChecker(ClearanceQueries):
             reason[later] = static
         free = np.flatnonzero(reason == "")
         if free.size and (self._solid is not None or held is not None):
-            if all_frames is None:
-                frames = self._frames.compute(q[free])
-            else:
-                frames = all_frames.take(free)
+            # these decide without a margin: libm's cosines, as the NumPy code's frames
+            frames = self._frames.compute(q[free], libm=True)
             if self._solid is not None:
                 inside = self._inside_object(frames, np.arange(free.size), bit)
                 reason[free[inside]] = REASON_OBJECT
@@ -499,7 +496,7 @@ class CollisionChecker(ClearanceQueries):
         pin.computeCollisions(self.robot.model, self._data, gm, gd, qs, False)
         out = []
         if self._solid is not None:
-            frames = self._frames.compute(qs[None])
+            frames = self._frames.compute(qs[None], libm=True)  # as check decides
             inside = self._inside_pieces(frames)
             out += [
                 (self._solid_names[k], "object (inside)", "object") for k in np.flatnonzero(inside)

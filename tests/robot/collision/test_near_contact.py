@@ -264,10 +264,15 @@ def test_overlapping_links_are_not_free(tmp_path):
         assert (a, b) in {(x[:-2], y[:-2]) for x, y, _ in checker.colliding_pairs(q)}
 
 
-def test_carried_object_decisions_at_contact_equal_the_numpy_codes(case, numpy_code):
-    """``retreat`` with a carried object, both sides of contact bisected to the last
-    bit: the compiled path decides as the NumPy code does (the carried object's narrow
-    phase places the arm links by the joint frames, the kernels' cosines and sines)."""
+def test_carried_object_decisions_at_contact_follow_the_frames(case, numpy_code):
+    """``retreat`` with a carried object, both sides of contact bisected to the last bit.
+
+    The carried object's narrow phase places the arm links by the joint frames, with no
+    margin: at contact its answer follows their last bits. Where the compiled path's
+    frames (libm's cosines and sines) equal the NumPy code's to the bit, as on this
+    machine's CPU, it must decide as the NumPy code does; another CPU's OpenBLAS can
+    sum the NumPy code's frames in another order, and those rows are not compared.
+    """
     checker, q, _ = case
     # the object held as at the grasps around the bottle (case's rows 300..599)
     grasps = np.linalg.inv(checker.robot.fk(q[300:600])) @ checker.object.placement
@@ -286,7 +291,14 @@ def test_carried_object_decisions_at_contact_equal_the_numpy_codes(case, numpy_c
         b[mh], a[~mh] = mid[mh], mid[~mh]
     near = np.concatenate([a, b])
     both = np.concatenate([rows, rows])
+
+    def frames(x):
+        return np.stack(checker._frames.compute(x, libm=True).transforms, axis=1)
+
+    same = np.all(frames(near) == numpy_code(frames, near), axis=(1, 2, 3))
+    if not same.any():
+        pytest.skip("no configuration whose frames both paths compute to the bit on this CPU")
     got = check(near, both)
     ref = numpy_code(check, near, both)
-    bad = np.flatnonzero(got != ref)
+    bad = np.flatnonzero((got != ref) & same)
     assert bad.size == 0, [(int(i), str(got[i]), str(ref[i])) for i in bad[:5]]

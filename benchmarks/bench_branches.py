@@ -215,7 +215,8 @@ def complete_answers(gd: Any) -> Any:
     default requests ask without it, and coal's ``collide`` then can call
     overlapping geometry free (GJK ending within its tolerance of the origin,
     at any depth). Written here, not the checker's requests: the re-check shares
-    no code with the checker's narrow phase.
+    no code with the checker's narrow phase; nor imported from ``bench_collision``,
+    whose imports need the current layout (a ``--before`` child runs an older one).
     """
     for req in gd.collisionRequests:
         req.enable_contact = True

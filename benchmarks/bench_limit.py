@@ -317,17 +317,27 @@ IK_CALLERS = {
 
 
 @contextlib.contextmanager
-def _counting_ik_rows() -> Iterator[dict[str, int]]:
+def _adding_time(into: dict[str, float], key: str) -> Iterator[None]:
+    """Adds the block's wall time [s] to ``into[key]``."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        into[key] += time.perf_counter() - t0
+
+
+@contextlib.contextmanager
+def _counting_ik_rows() -> Iterator[tuple[dict[str, int], dict[str, float]]]:
     """Inside the block, each IK call of the stage (in this process) counts its target rows.
 
     By purpose (:data:`IK_CALLERS`): ``move_end`` counts the end poses of approach
     and retreat moves given to :func:`~gcm_pipeline.reach.waypoints.end_of_move`
     (the Panda's closed form first); ``move_end_lm`` the rows of those it hands to LM.
-    ``rows["seconds"]`` sums each purpose's wall time inside its calls (``move_end_lm``
-    is part of ``move_end``'s).
+    Yields ``(rows, seconds)``: ``seconds`` sums each purpose's wall time inside its
+    calls (``move_end_lm``'s is part of ``move_end``'s).
     """
-    rows: dict[str, Any] = dict.fromkeys(IK_CALLERS, 0)
-    rows["seconds"] = dict.fromkeys(IK_CALLERS, 0.0)
+    rows = dict.fromkeys(IK_CALLERS, 0)
+    seconds = dict.fromkeys(IK_CALLERS, 0.0)
     originals = []
     for purpose, (module_name, name) in IK_CALLERS.items():
         module = importlib.import_module(module_name)
@@ -335,16 +345,13 @@ def _counting_ik_rows() -> Iterator[dict[str, int]]:
 
         def counting(robot, targets, *a, _p=purpose, _f=original, **k):  # type: ignore[no-untyped-def]
             rows[_p] += len(np.asarray(targets).reshape(-1, 4, 4))
-            t0 = time.perf_counter()
-            try:
+            with _adding_time(seconds, _p):
                 return _f(robot, targets, *a, **k)
-            finally:
-                rows["seconds"][_p] += time.perf_counter() - t0
 
         setattr(module, name, counting)
         originals.append((module, name, original))
     try:
-        yield rows
+        yield rows, seconds
     finally:
         for module, name, original in originals:
             setattr(module, name, original)
@@ -363,29 +370,22 @@ def counted_stage(config: Path, sample: int) -> dict[str, Any]:
         counts["check_calls"] += 1
         counts[f"check_rows_{mode}"] = counts.get(f"check_rows_{mode}", 0) + len(qs)
         kept.append(qs[rng.random(len(qs)) < 0.05])
-        t0 = time.perf_counter()
-        try:
+        with _adding_time(seconds, "check"):
             return check(self, q, mode, carried)
-        finally:
-            seconds["check"] += time.perf_counter() - t0
 
     def counting_clearance(self, q, *a, **k):  # type: ignore[no-untyped-def]
         counts["clearance_rows"] += len(np.asarray(q, dtype=float).reshape(-1, self.robot.nq))
-        t0 = time.perf_counter()
-        try:
+        with _adding_time(seconds, "clearance"):
             return clearance(self, q, *a, **k)
-        finally:
-            seconds["clearance"] += time.perf_counter() - t0
 
     CollisionChecker.check = counting_check  # type: ignore[method-assign]
     CollisionChecker.clearance = counting_clearance  # type: ignore[method-assign]
     try:
-        with _counting_ik_rows() as ik_rows:
+        with _counting_ik_rows() as (ik_rows, ik_seconds):
             run = stage_run(DENSE, "1", config)
     finally:
         CollisionChecker.check = check  # type: ignore[method-assign]
         CollisionChecker.clearance = clearance  # type: ignore[method-assign]
-    ik_seconds = ik_rows.pop("seconds")
     counts.update({f"ik_rows_{k}": v for k, v in ik_rows.items()})
     rows = sum(v for k, v in counts.items() if k.startswith("check_rows_"))
     seen = np.concatenate(kept) if kept else np.zeros((0, run["robot"].nq))

@@ -22,7 +22,7 @@ Correctness in the same run: every reachable row is re-verified by Pinocchio
 FK (a fresh ``pin.Data``), the strict joint limits and an independent
 collision check (``pin.computeCollisions`` over every pair of the grasp's
 world, with contact information on: coal's complete answer, see
-:func:`complete_answers`), so the false-positive count is measured, not assumed.
+:func:`bench_collision.complete_answers`), so the false-positive count is measured, not assumed.
 
 Also reported: the breakdown of the stage's CPU time by step (summed over
 workers), peak memory (this process and its workers). ``--million`` adds a
@@ -51,6 +51,8 @@ import pinocchio as pin
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a clone, no install
+
+from bench_collision import complete_answers  # noqa: E402
 
 from gcm_pipeline import pipeline as P  # noqa: E402
 from gcm_pipeline.config import load_config  # noqa: E402
@@ -90,20 +92,6 @@ def tracik_rate(robot: Robot, targets: np.ndarray) -> tuple[float, float]:
         r = pytracik.ik(solver, seed, t[0, 3], t[1, 3], t[2, 3], x, y, z, w)
         ok += r[0] >= 0
     return len(targets) / (time.perf_counter() - t0), ok / len(targets)
-
-
-def complete_answers(gd: Any) -> Any:
-    """``gd`` (a ``pin.GeometryData``) asking coal for its complete answer: contact on.
-
-    With contact information EPA runs whenever GJK finds contact; Pinocchio's
-    default requests ask without it, and coal's ``collide`` then can call
-    overlapping geometry free (GJK ending within its tolerance of the origin,
-    at any depth). Written here, not the checker's requests: the re-check shares
-    no code with the checker's narrow phase.
-    """
-    for req in gd.collisionRequests:
-        req.enable_contact = True
-    return gd
 
 
 def verify(robot: Robot, cfg: Any, grasps: Any) -> dict[str, int]:

@@ -365,6 +365,10 @@ class CollisionChecker(ClearanceQueries):
     def _check_block(self, q: np.ndarray, bit: int, held: np.ndarray | None) -> np.ndarray:
         n = len(q)
         reason = np.full(n, "", dtype=_REASON_DTYPE)
+        # the mesh object and a carried object decide on the frames without a margin:
+        # libm's cosines then, the NumPy code's frames to the bit (see JointFrames.compute)
+        exact = self._solid is not None or held is not None
+        all_frames = None
         if n < _FEW or self.threads > 1:
             pool = self._mode_pool.get(bit)
             todo = np.flatnonzero(self._run(pool, q)) if pool is not None else np.zeros(0, int)
@@ -377,7 +381,7 @@ class CollisionChecker(ClearanceQueries):
                 todo = todo[~hit]
         else:
             screen = self._screens[bit]
-            all_frames = self._frames.compute(q)
+            all_frames = self._frames.compute(q, libm=exact)
             # each configuration's first kind of collision only: its reason
             by_pair = self._pair_hits(q, all_frames, screen, first=True).T  # (P, N)
             left = np.ones(n, dtype=bool)  # no reason yet
@@ -392,9 +396,11 @@ class CollisionChecker(ClearanceQueries):
             later = np.isin(reason, ["", *order[order.index(static) + 1 :]])
             reason[later] = static
         free = np.flatnonzero(reason == "")
-        if free.size and (self._solid is not None or held is not None):
-            # these decide without a margin: libm's cosines, as the NumPy code's frames
-            frames = self._frames.compute(q[free], libm=True)
+        if free.size and exact:
+            if all_frames is None:
+                frames = self._frames.compute(q[free], libm=True)
+            else:
+                frames = all_frames.take(free)
             if self._solid is not None:
                 inside = self._inside_object(frames, np.arange(free.size), bit)
                 reason[free[inside]] = REASON_OBJECT

@@ -32,6 +32,8 @@ so that a pair whose two runs met different loads can be told apart.
 
 Run from the repository root: ``python benchmarks/bench_workers.py``
 (about ten minutes on 2 cores, more under load); writes ``benchmarks/results/workers.json``.
+``--scenarios hog_core_0,hog_all_cores --pairs 25`` runs a subset with more pairs (to resolve
+a ratio near 1) and writes ``workers_<names>.json`` beside it.
 """
 
 from __future__ import annotations
@@ -58,6 +60,14 @@ from gcm_pipeline.reach.engine import available_cores  # noqa: E402
 
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 DENSE = ["candidates.count=80", "densify.subdivisions=28"]
+RESULTS = ROOT / "benchmarks" / "results"
+#: Scenario name -> (cores with a busy loop all along, cores with one from LATE_S), of the cores.
+SCENARIOS: dict[str, Any] = {
+    "idle": lambda cores: ([], []),
+    "hog_core_0": lambda cores: (cores[:1], []),
+    "hog_all_cores": lambda cores: (cores, []),
+    "hog_core_0_late": lambda cores: ([], cores[:1]),
+}
 #: When the late hogs start, into a run [s]: after auto's probe (a quarter chunk, about 0.1 s).
 LATE_S = 1.5
 
@@ -183,10 +193,29 @@ def scenario(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--pairs", type=int, default=9, help="auto/one pairs per scenario")
-    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "workers.json"))
+    parser.add_argument(
+        "--scenarios",
+        default=",".join(SCENARIOS),
+        help=f"comma-separated subset of {', '.join(SCENARIOS)} (default: all)",
+    )
+    parser.add_argument(
+        "--out",
+        help="JSON file (default: benchmarks/results/workers.json for every scenario, "
+        "workers_<names>.json for a subset)",
+    )
     args = parser.parse_args()
     if args.pairs < 1:
         sys.exit("bench_workers: --pairs must be at least 1")
+    names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    unknown = [s for s in names if s not in SCENARIOS]
+    if unknown or not names:
+        sys.exit(f"bench_workers: --scenarios: unknown {unknown}; choose from {list(SCENARIOS)}")
+    every = set(names) == set(SCENARIOS)
+    out = (
+        Path(args.out)
+        if args.out
+        else RESULTS / ("workers.json" if every else f"workers_{'_'.join(names)}.json")
+    )
     if shutil.which("taskset") is None:
         sys.exit("bench_workers: the hog scenarios need taskset (util-linux)")
 
@@ -200,15 +229,12 @@ def main() -> None:
         "work": "bottle_side, 80 side grasps, subdivisions 28, approach 10 cm, table + bottle",
         "poses": len(grasps),
         "command": "python benchmarks/bench_workers.py"
-        + (f" --pairs {args.pairs}" if args.pairs != 9 else ""),
+        + (f" --pairs {args.pairs}" if args.pairs != 9 else "")
+        + ("" if every else f" --scenarios {','.join(names)}"),
         "load_average_start": [round(x, 2) for x in os.getloadavg()],
     }
-    for name, hog_cores, late in (
-        ("idle", [], []),
-        ("hog_core_0", cores[:1], []),
-        ("hog_all_cores", cores, []),
-        ("hog_core_0_late", [], cores[:1]),
-    ):
+    for name in names:
+        hog_cores, late = SCENARIOS[name](cores)
         when = f", from {LATE_S} s into each run on cores {late}" if late else ""
         print(f"{name}: hogs on cores {hog_cores}{when}", flush=True)
         report[name] = scenario(grasps, args.pairs, hog_cores, late)
@@ -225,7 +251,6 @@ def main() -> None:
         cores=available_cores(),
         versions={"python": platform.python_version(), "numpy": np.__version__},
     )
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")

@@ -235,10 +235,11 @@ class _Knots:
     def __setitem__(self, index: tuple[np.ndarray, Any], values: np.ndarray) -> None:
         """Waypoints ``values`` (M, nq) at ``index = (rows (M,), at (M,) or one int)``."""
         rows, at = index
-        at = np.broadcast_to(at, rows.shape)
         keep = np.isfinite(values[:, 0])
-        self.slot[rows[~keep], at[~keep]] = -1
-        rows, at, values = rows[keep], at[keep], values[keep]
+        if not keep.all():
+            at = np.broadcast_to(at, rows.shape)
+            self.slot[rows[~keep], at[~keep]] = -1
+            rows, at, values = rows[keep], at[keep], values[keep]
         end = self.size + rows.size
         if end > self.q.shape[0]:
             grown = np.empty((max(end, 2 * self.q.shape[0]), self.q.shape[1]))
@@ -381,9 +382,10 @@ class _MoveBatch:
         Each waypoint starts from the previous one; a failure fails the row. With
         ``knot_check`` (``pieces == steps``: the waypoints are the grid points) the
         waypoints are checked in batches: each row's up to its ``check_first``
-        step, then, for the rows still free, the rest of the line. A row fails at
-        its first waypoint the check rejects, as if each had been checked when
-        found (later ones only start from it).
+        step (short of the end: the end's IK, the dearest waypoint, is solved
+        only for rows still free), then, for the rows still free, the rest of the
+        line. A row fails at its first waypoint the check rejects, as if each
+        had been checked when found (later ones only start from it).
         """
         start, zero = rows, np.zeros(rows.size, dtype=int)
         end = np.full(rows.size, pieces)
@@ -391,7 +393,8 @@ class _MoveBatch:
             rows = rows[self.advance(rows, zero, end, pieces)]
         else:
             check_first = self.check_first
-            pause = end if check_first is None else np.clip(check_first[rows], 1, pieces)
+            last = max(pieces - 1, 1)
+            pause = end if check_first is None else np.clip(check_first[rows], 1, last)
             got = self.advance(rows, zero, pause, pieces)
             self.check_grid(rows, zero, pause)
             got &= self.ok[rows]
@@ -502,9 +505,10 @@ def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray
         np.add.at(waypoints, s_row[good], 1)
         # a jump within one grid step, a deviation within one fine step: the move fails
         dead = (over & (span <= sub)) | (~over & ~good & (span <= 1))
-        why = np.full(b.n, "deviation", dtype=object)
-        why[s_row[dead & over]] = "joint_step"
-        b.fail(s_row[dead], s_a[dead], why)
+        if dead.any():
+            why = np.full(b.n, "deviation", dtype=object)
+            why[s_row[dead & over]] = "joint_step"
+            b.fail(s_row[dead], s_a[dead], why)
         again = ~good & ~dead & ok[s_row]
         # the deviation falls with the square of a segment's length
         need = np.where(
@@ -539,7 +543,11 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
         path = ka + f * (kb - ka)
         q_path[rows] = path
         # the change of every joint between consecutive grid points
-        big = np.abs(np.diff(path, axis=1)).max(axis=2) > b.move.max_joint_step
+        step = np.abs(np.diff(path, axis=1))
+        most = step[:, :, 0]
+        for j in range(1, step.shape[2]):  # the max over joints (NaN stays), in fewer passes
+            most = np.maximum(most, step[:, :, j])
+        big = most > b.move.max_joint_step
         over = np.flatnonzero(big.any(axis=1))
         if over.size:
             b.fail(rows[over], np.argmax(big[over], axis=1) * sub, "joint_step")

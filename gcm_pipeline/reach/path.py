@@ -229,7 +229,9 @@ class _Knots:
     def __getitem__(self, index: tuple[Any, Any]) -> np.ndarray:
         slot = self.slot[index]
         out = self.q[slot]
-        out[slot < 0] = np.nan
+        none = slot < 0
+        if none.any():
+            out[none] = np.nan
         return out
 
     def __setitem__(self, index: tuple[np.ndarray, Any], values: np.ndarray) -> None:

@@ -404,7 +404,9 @@ class _MoveBatch:
             got[more] = self.advance(rows[more], pause[more], end[more], pieces)
             self.check_grid(rows[more], pause[more], end[more])
             rows = rows[got & self.ok[rows]]
-        self.knots.clear(np.setdiff1d(start, rows))
+        lost = np.ones(self.n, dtype=bool)
+        lost[rows] = False
+        self.knots.clear(start[lost[start]])
         return rows
 
 
@@ -438,11 +440,10 @@ def _reach_ends(b: _MoveBatch) -> None:
             b.ik_options,
         )
         knots[rows[done], b.fine_steps] = q_end[done]
-        reached = rows[done]
-        retry = rows[~done]
-        reached = np.union1d(reached, b.follow(retry, pieces))
-    lost = np.setdiff1d(rows, reached)
-    lost = lost[ok[lost]]  # not those a knot check failed
+        reached = np.concatenate([rows[done], b.follow(rows[~done], pieces)])
+    got = np.zeros(b.n, dtype=bool)
+    got[reached] = True
+    lost = rows[~got[rows] & ok[rows]]  # not those a knot check failed
     b.fail(lost, b.failed_at[lost], "no_ik")
 
 
@@ -531,16 +532,19 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
     if rows.size:
         # the knots on each side of every grid point: the last at or before it and
         # the first at or after it (a move still ok has knots at 0 and at the end)
-        r_idx, pos = np.nonzero(b.knots.slot[rows] >= 0)
+        slot = b.knots.slot[rows]
+        r_idx, pos = np.nonzero(slot >= 0)
+        slot = slot[r_idx, pos]
         width = fine_steps + 1
         grid = np.arange(steps + 1) * sub
         keys = r_idx * width + pos  # sorted
         query = (np.arange(rows.size)[:, None] * width + grid).ravel()
         shape = (rows.size, steps + 1)
-        pa = pos[np.searchsorted(keys, query, side="right") - 1].reshape(shape)
-        pb = pos[np.searchsorted(keys, query, side="left")].reshape(shape)
-        ka = b.knots[rows[:, None], pa]
-        kb = b.knots[rows[:, None], pb]
+        before = np.searchsorted(keys, query, side="right") - 1
+        after = np.searchsorted(keys, query, side="left")
+        pa, pb = pos[before].reshape(shape), pos[after].reshape(shape)
+        ka = b.knots.q[slot[before]].reshape(*shape, -1)
+        kb = b.knots.q[slot[after]].reshape(*shape, -1)
         f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
         path = ka + f * (kb - ka)
         q_path[rows] = path

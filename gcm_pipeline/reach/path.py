@@ -216,8 +216,9 @@ class _Knots:
 
     def __init__(self, q0: np.ndarray, positions: int) -> None:
         n, nq = q0.shape
-        self.slot = np.full((n, positions), -1, dtype=np.int32 if 3 * n < 2**30 else np.int64)
         self.q = np.empty((3 * n, nq))
+        small = self.q.shape[0] <= np.iinfo(np.int32).max  # slots widen as q grows
+        self.slot = np.full((n, positions), -1, dtype=np.int32 if small else np.int64)
         self.size = 0
         self[np.arange(n), 0] = q0
 
@@ -247,6 +248,8 @@ class _Knots:
             grown = np.empty((max(end, 2 * self.q.shape[0]), self.q.shape[1]))
             grown[: self.size] = self.q[: self.size]
             self.q = grown
+            if grown.shape[0] > np.iinfo(self.slot.dtype).max:
+                self.slot = self.slot.astype(np.int64)
         self.q[self.size : end] = values
         self.slot[rows, at] = np.arange(self.size, end)
         self.size = end

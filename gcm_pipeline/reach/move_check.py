@@ -34,6 +34,7 @@ def check_moves(
     position_tolerance: float = 1e-4,
     orientation_tolerance: float = 1e-3,
     backend: str = "pinocchio",
+    knots: bool = True,
     **ik_options: Any,
 ) -> MoveResult:
     """Plan N moves (:func:`plan_moves`) and check their grid points for collisions.
@@ -55,6 +56,8 @@ def check_moves(
         position_tolerance: IK tolerance [m].
         orientation_tolerance: IK tolerance [rad].
         backend: IK backend.
+        knots: False: the result's ``knots`` is None (for a caller that needs
+            only the verdicts and the paths).
         **ik_options: Further backend options.
 
     Returns:
@@ -73,9 +76,9 @@ def check_moves(
     q0 = np.asarray(q_start, dtype=float)
     if q0.ndim == 1:
         q0 = q0[None]
-    plan = plan_moves(robot, tg, q0, move, **opts)
-    # the plan's own arrays, changed in place (knots: (N, 8 steps + 1, nq) floats)
-    ok, failed, q_path, knots, dev = (
+    plan = plan_moves(robot, tg, q0, move, knots=knots, **opts)
+    # the plan's own arrays, changed in place (waypoints: (N, 8 steps + 1, nq) floats)
+    ok, failed, q_path, waypoints, dev = (
         plan.ok,
         plan.failed_step,
         plan.q_path,
@@ -102,18 +105,21 @@ def check_moves(
                 # a waypoint that collides fails its move at once (it is a grid point)
                 knot_check=lambda q, i: collisions(q, hit_rows[i]),
                 check_first=first,  # where the first path collided
+                knots=knots,
                 **opts,
             )
             # its grid points are its waypoints, each checked as it was found
             good = np.flatnonzero(again.ok)
             r = hit_rows[good]
             ok[r], reason[r], failed[r] = True, "", 0
-            q_path[r], knots[r] = again.q_path[good], again.knots[good]
-            dev[r] = again.deviation[good]
+            q_path[r], dev[r] = again.q_path[good], again.deviation[good]
+            if waypoints is not None:
+                waypoints[r] = again.knots[good]
     q_path[~ok] = np.nan
-    knots[~ok] = np.nan
+    if waypoints is not None:
+        waypoints[~ok] = np.nan
     dev[~ok] = np.nan
-    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, knots)
+    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, waypoints)
 
 
 def _grid_collisions(

@@ -108,6 +108,7 @@ class MovePlan(NamedTuple):
         knots: (N, steps * substeps + 1, nq) [rad] the IK waypoints on the fine
             grid ``s = j / (steps * substeps)``, NaN between them: the move is the
             piecewise linear joint path through them (``q_path`` samples it).
+            None where the caller did not ask for them (``knots=False``).
     """
 
     ok: np.ndarray
@@ -116,7 +117,7 @@ class MovePlan(NamedTuple):
     q_path: np.ndarray
     deviation: np.ndarray
     waypoints: np.ndarray
-    knots: np.ndarray
+    knots: np.ndarray | None
 
 
 class MoveResult(NamedTuple):
@@ -130,7 +131,8 @@ class MoveResult(NamedTuple):
             pre-grasp of an approach), NaN where not ok.
         q_path: (N, steps + 1, nq) joint path at the grid points (NaN where not ok).
         deviation: (N,) deviation bound [m] (NaN where not ok).
-        knots: The IK waypoints (see :class:`MovePlan`), NaN where not ok.
+        knots: The IK waypoints (see :class:`MovePlan`), NaN where not ok; None
+            where the caller did not ask for them (``knots=False``).
     """
 
     ok: np.ndarray
@@ -139,7 +141,7 @@ class MoveResult(NamedTuple):
     q_end: np.ndarray
     q_path: np.ndarray
     deviation: np.ndarray
-    knots: np.ndarray
+    knots: np.ndarray | None
 
 
 def move_poses(poses: np.ndarray, offsets: np.ndarray, steps: int) -> np.ndarray:

@@ -75,6 +75,7 @@ def plan_moves(
     grid_knots: bool = False,
     knot_check: Callable[[np.ndarray, np.ndarray], Any] | None = None,
     check_first: Any = None,
+    knots: bool = True,
     **ik_options: Any,
 ) -> MovePlan:
     """Joint paths of N moves from their grasps, batched over the moves (see module doc).
@@ -102,6 +103,8 @@ def plan_moves(
             line is followed (e.g. where its first path collided: most moves
             fail there, and their later waypoints are never computed). The
             result does not depend on it. None: the whole line, then the checks.
+        knots: False: the plan's ``knots`` is None (for a caller that needs only
+            the path: the (N, 8 steps + 1, nq) array is not built).
         **ik_options: Further backend options of the end's IK (seeded only
             with the grasp's configuration unless given otherwise).
 
@@ -119,15 +122,14 @@ def plan_moves(
     q_path = np.full((n, steps + 1, nq), np.nan)
     deviation = np.where(ok, 0.0, np.nan)
     waypoints = np.zeros(n, dtype=int)
-    sub = SUBSTEPS
-    fine_steps = steps * sub
-    knots = np.full((n, fine_steps + 1, nq), np.nan)
-    knots[:, 0] = qg
+    fine_steps = steps * SUBSTEPS
     if move.distance == 0 or not np.any(ok):
         q_path[ok] = qg[ok, None, :]
-        knots[:, 1:] = np.where(ok[:, None, None], qg[:, None, :], np.nan)
-        knots[~ok] = np.nan
-        return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
+        dense = None
+        if knots:
+            dense = np.full((n, fine_steps + 1, nq), np.nan)
+            dense[ok] = qg[ok, None, :]
+        return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, dense)
 
     batch = _MoveBatch(
         robot=robot,
@@ -138,7 +140,7 @@ def plan_moves(
         ok=ok,
         reason=reason,
         failed=failed,
-        knots=knots,
+        knots=_Knots(qg, fine_steps + 1),
         failed_at=np.zeros(n, dtype=int),
         gripper_radius=gripper_radius,
         position_tolerance=position_tolerance,
@@ -153,10 +155,10 @@ def plan_moves(
     _settle_segments(batch, deviation, waypoints)
     _grid_path(batch, q_path)
     q_path[~ok] = np.nan
-    knots[~ok] = np.nan
     deviation[~ok] = np.nan
     waypoints[~ok] = 0
-    return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, knots)
+    dense = batch.knots.dense(ok) if knots else None
+    return MovePlan(ok, reason.astype(str), failed, q_path, deviation, waypoints, dense)
 
 
 def _checked_inputs(
@@ -202,13 +204,76 @@ def _end_ik_options(backend: str, ik_options: dict[str, Any]) -> dict[str, Any]:
     return ik_options
 
 
+class _Knots:
+    """The waypoints found so far, by move and fine position: ``knots[rows, at]``.
+
+    A compact stand-in for the (N, positions, nq) array of :attr:`MovePlan.knots`
+    (most positions of most moves stay empty): ``slot`` (N, positions) indexes the
+    rows of ``q`` (-1: none). Reading an empty position gives NaN, as that array
+    would; a waypoint whose first joint is not finite counts as none (as there);
+    :meth:`dense` builds the array.
+    """
+
+    def __init__(self, q0: np.ndarray, positions: int) -> None:
+        n, nq = q0.shape
+        self.q = np.empty((3 * n, nq))
+        small = self.q.shape[0] <= np.iinfo(np.int32).max  # slots widen as q grows
+        self.slot = np.full((n, positions), -1, dtype=np.int32 if small else np.int64)
+        self.size = 0
+        self[np.arange(n), 0] = q0
+
+    @property
+    def have(self) -> np.ndarray:
+        """(N, positions) bool: where a waypoint is known."""
+        return self.slot >= 0
+
+    def __getitem__(self, index: tuple[Any, Any]) -> np.ndarray:
+        slot = self.slot[index]
+        out = self.q[slot]
+        none = slot < 0
+        if none.any():
+            out[none] = np.nan
+        return out
+
+    def __setitem__(self, index: tuple[np.ndarray, Any], values: np.ndarray) -> None:
+        """Waypoints ``values`` (M, nq) at ``index = (rows (M,), at (M,) or one int)``."""
+        rows, at = index
+        keep = np.isfinite(values[:, 0])
+        if not keep.all():
+            at = np.broadcast_to(at, rows.shape)
+            self.slot[rows[~keep], at[~keep]] = -1
+            rows, at, values = rows[keep], at[keep], values[keep]
+        end = self.size + rows.size
+        if end > self.q.shape[0]:
+            grown = np.empty((max(end, 2 * self.q.shape[0]), self.q.shape[1]))
+            grown[: self.size] = self.q[: self.size]
+            self.q = grown
+            if grown.shape[0] > np.iinfo(self.slot.dtype).max:
+                self.slot = self.slot.astype(np.int64)
+        self.q[self.size : end] = values
+        self.slot[rows, at] = np.arange(self.size, end)
+        self.size = end
+
+    def clear(self, rows: np.ndarray) -> None:
+        """Forget every waypoint of ``rows`` but the first (the grasp)."""
+        self.slot[rows, 1:] = -1
+
+    def dense(self, ok: np.ndarray) -> np.ndarray:
+        """The (N, positions, nq) array of the waypoints of the rows ``ok``, NaN elsewhere."""
+        n, positions = self.slot.shape
+        out = np.full((n, positions, self.q.shape[1]), np.nan)
+        r, p = np.nonzero(self.have & ok[:, None])
+        out[r, p] = self.q[self.slot[r, p]]
+        return out
+
+
 @dataclass
 class _MoveBatch:
     """One batch of N moves being planned: its inputs and the arrays the steps fill in.
 
     ``ok``, ``reason`` and ``failed`` are the moves' verdicts so far (a move
-    fails once, at its first failure); ``knots`` (N, fine steps + 1, nq) the
-    waypoints found (NaN: none); ``failed_at`` the fine step where a move's
+    fails once, at its first failure); ``knots`` the waypoints found (at the
+    fine positions 0 .. fine steps); ``failed_at`` the fine step where a move's
     line following stopped.
     """
 
@@ -220,7 +285,7 @@ class _MoveBatch:
     ok: np.ndarray
     reason: np.ndarray
     failed: np.ndarray
-    knots: np.ndarray
+    knots: _Knots
     failed_at: np.ndarray
     gripper_radius: float
     position_tolerance: float
@@ -322,9 +387,10 @@ class _MoveBatch:
         Each waypoint starts from the previous one; a failure fails the row. With
         ``knot_check`` (``pieces == steps``: the waypoints are the grid points) the
         waypoints are checked in batches: each row's up to its ``check_first``
-        step, then, for the rows still free, the rest of the line. A row fails at
-        its first waypoint the check rejects, as if each had been checked when
-        found (later ones only start from it).
+        step (short of the end: the end's IK, the dearest waypoint, is solved
+        only for rows still free), then, for the rows still free, the rest of the
+        line. A row fails at its first waypoint the check rejects, as if each
+        had been checked when found (later ones only start from it).
         """
         start, zero = rows, np.zeros(rows.size, dtype=int)
         end = np.full(rows.size, pieces)
@@ -332,7 +398,8 @@ class _MoveBatch:
             rows = rows[self.advance(rows, zero, end, pieces)]
         else:
             check_first = self.check_first
-            pause = end if check_first is None else np.clip(check_first[rows], 1, pieces)
+            last = max(pieces - 1, 1)
+            pause = end if check_first is None else np.clip(check_first[rows], 1, last)
             got = self.advance(rows, zero, pause, pieces)
             self.check_grid(rows, zero, pause)
             got &= self.ok[rows]
@@ -340,7 +407,9 @@ class _MoveBatch:
             got[more] = self.advance(rows[more], pause[more], end[more], pieces)
             self.check_grid(rows[more], pause[more], end[more])
             rows = rows[got & self.ok[rows]]
-        self.knots[np.setdiff1d(start, rows), 1:] = np.nan
+        lost = np.ones(self.n, dtype=bool)
+        lost[rows] = False
+        self.knots.clear(start[lost[start]])
         return rows
 
 
@@ -374,11 +443,10 @@ def _reach_ends(b: _MoveBatch) -> None:
             b.ik_options,
         )
         knots[rows[done], b.fine_steps] = q_end[done]
-        reached = rows[done]
-        retry = rows[~done]
-        reached = np.union1d(reached, b.follow(retry, pieces))
-    lost = np.setdiff1d(rows, reached)
-    lost = lost[ok[lost]]  # not those a knot check failed
+        reached = np.concatenate([rows[done], b.follow(rows[~done], pieces)])
+    got = np.zeros(b.n, dtype=bool)
+    got[reached] = True
+    lost = rows[~got[rows] & ok[rows]]  # not those a knot check failed
     b.fail(lost, b.failed_at[lost], "no_ik")
 
 
@@ -392,7 +460,7 @@ def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray
     sub, tol = SUBSTEPS, move.max_deviation
     # segments between known waypoints: accepted under the deviation bound, else
     # split; a new waypoint starts from the segment's joint interpolation
-    r_idx, pos = np.nonzero(np.isfinite(knots[:, :, 0]) & ok[:, None])
+    r_idx, pos = np.nonzero(knots.have & ok[:, None])
     inner = r_idx[1:] == r_idx[:-1]
     s_row, s_a, s_b = r_idx[1:][inner], pos[:-1][inner], pos[1:][inner]
     parts = np.ones(s_row.size, dtype=int)
@@ -443,9 +511,10 @@ def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray
         np.add.at(waypoints, s_row[good], 1)
         # a jump within one grid step, a deviation within one fine step: the move fails
         dead = (over & (span <= sub)) | (~over & ~good & (span <= 1))
-        why = np.full(b.n, "deviation", dtype=object)
-        why[s_row[dead & over]] = "joint_step"
-        b.fail(s_row[dead], s_a[dead], why)
+        if dead.any():
+            why = np.full(b.n, "deviation", dtype=object)
+            why[s_row[dead & over]] = "joint_step"
+            b.fail(s_row[dead], s_a[dead], why)
         again = ~good & ~dead & ok[s_row]
         # the deviation falls with the square of a segment's length
         need = np.where(
@@ -464,19 +533,30 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
     sub, fine_steps, steps = SUBSTEPS, b.fine_steps, b.steps
     rows = np.flatnonzero(b.ok)
     if rows.size:
-        # the knots on each side of every grid point (gathered, not the whole knot array)
-        have = np.isfinite(b.knots[rows, :, 0])
-        idx = np.arange(fine_steps + 1)
-        prev = np.maximum.accumulate(np.where(have, idx, 0), axis=1)
-        nxt = np.minimum.accumulate(np.where(have, idx, fine_steps)[:, ::-1], axis=1)[:, ::-1]
+        # the knots on each side of every grid point: the last at or before it and
+        # the first at or after it (a move still ok has knots at 0 and at the end)
+        slot = b.knots.slot[rows]
+        r_idx, pos = np.nonzero(slot >= 0)
+        slot = slot[r_idx, pos]
+        width = fine_steps + 1
         grid = np.arange(steps + 1) * sub
-        pa, pb = prev[:, grid], nxt[:, grid]
-        ka = b.knots[rows[:, None], pa]
-        kb = b.knots[rows[:, None], pb]
+        keys = r_idx * width + pos  # sorted
+        query = (np.arange(rows.size)[:, None] * width + grid).ravel()
+        shape = (rows.size, steps + 1)
+        before = np.searchsorted(keys, query, side="right") - 1
+        after = np.searchsorted(keys, query, side="left")
+        pa, pb = pos[before].reshape(shape), pos[after].reshape(shape)
+        ka = b.knots.q[slot[before]].reshape(*shape, -1)
+        kb = b.knots.q[slot[after]].reshape(*shape, -1)
         f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
-        q_path[rows] = ka + f * (kb - ka)
+        path = ka + f * (kb - ka)
+        q_path[rows] = path
         # the change of every joint between consecutive grid points
-        big = np.abs(np.diff(q_path[rows], axis=1)).max(axis=2) > b.move.max_joint_step
+        step = np.abs(np.diff(path, axis=1))
+        most = step[:, :, 0]
+        for j in range(1, step.shape[2]):  # the max over joints (NaN stays), in fewer passes
+            most = np.maximum(most, step[:, :, j])
+        big = most > b.move.max_joint_step
         over = np.flatnonzero(big.any(axis=1))
         if over.size:
             b.fail(rows[over], np.argmax(big[over], axis=1) * sub, "joint_step")
@@ -486,7 +566,7 @@ def _split_segments(
     robot: Robot,
     poses: np.ndarray,
     offsets: np.ndarray,
-    knots: np.ndarray,
+    knots: _Knots,
     s_row: np.ndarray,
     s_a: np.ndarray,
     s_b: np.ndarray,

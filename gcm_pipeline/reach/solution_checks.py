@@ -137,6 +137,7 @@ class SolutionChecks:
                     position_tolerance=self.position_tolerance,
                     orientation_tolerance=self.orientation_tolerance,
                     backend=self.backend,
+                    knots=False,  # only the verdicts and the ends are kept
                     **shared_ik_options(self.backend, self.ik_options),
                 )
                 reason[rows[~res.ok]] = fail

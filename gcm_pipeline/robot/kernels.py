@@ -148,6 +148,9 @@ class Kernels(NamedTuple):
         segment_samples: The approach's deviation samples along joint segments.
         panda_ik: The Panda's closed-form IK, per (target, q7).
         cos_sin: The cosines and sines of angles (N, M), both from one range reduction.
+        sphere_bounds: The clearance pairs' lower bounds from the sphere covers.
+        face_distances: The clearance's exact distances of a polytope over a box's face.
+        vertex_distances: The clearance's bounds from a polytope's nearest hull vertex.
     """
 
     chain_forward: Callable[..., Any]
@@ -159,6 +162,9 @@ class Kernels(NamedTuple):
     edges_inside: Callable[..., Any]
     joint_frames: Callable[..., Any]
     cos_sin: Callable[..., Any]
+    sphere_bounds: Callable[..., Any]
+    face_distances: Callable[..., Any]
+    vertex_distances: Callable[..., Any]
 
 
 @functools.cache
@@ -234,7 +240,7 @@ def _import() -> Kernels | None:
         log.info("NUMBA_DISABLE_JIT is on: the NumPy code is used")
         return None
     from gcm_pipeline.robot import chain_kernel, kernel_common
-    from gcm_pipeline.robot.collision import broadphase_kernel
+    from gcm_pipeline.robot.collision import broadphase_kernel, clearance_kernel
     from gcm_pipeline.robot.ik import lm_kernel, panda_kernel
 
     return Kernels(
@@ -250,6 +256,9 @@ def _import() -> Kernels | None:
                 broadphase_kernel.edges_inside,
                 chain_kernel.joint_frames,
                 chain_kernel.cos_sin,
+                clearance_kernel.sphere_bounds,
+                clearance_kernel.face_distances,
+                clearance_kernel.vertex_distances,
             )
         )
     )

@@ -3,7 +3,10 @@
 The same sphere covers as the broad phase give lower bounds; coal's exact
 distance runs only for pairs that can still be the nearest, and hull vertices
 give exact or near-exact distances to primitives without coal (see
-:meth:`ClearanceQueries.clearance`).
+:meth:`ClearanceQueries.clearance`). The steps before coal run as compiled
+kernels (:mod:`~gcm_pipeline.robot.collision.clearance_kernel`) when
+:func:`~gcm_pipeline.robot.kernels.get` gives them; the NumPy code here is their
+reference (``GCM_JIT=0``).
 """
 
 from __future__ import annotations

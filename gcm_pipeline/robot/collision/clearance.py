@@ -273,7 +273,9 @@ class ClearanceQueries(BroadPhase):
             np.array([-1 if h is None else h[0] for h in vhulls], dtype=np.intp),
             spheres[5],
             _starts([np.zeros((0, 3)) if h is None else h[1] for h in vhulls]),
-            _stack([np.zeros((0, 3)) if h is None else h[1] for h in vhulls]),
+            np.ascontiguousarray(
+                _stack([np.zeros((0, 3)) if h is None else h[1] for h in vhulls]).T
+            ),
             shapes,
         )
         self._packed = _Packed(spheres, faces, vertices, np.flatnonzero(octree))

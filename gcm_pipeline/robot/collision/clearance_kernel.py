@@ -19,10 +19,48 @@ from typing import Any
 import numpy as np
 from numba import njit, types
 
-from gcm_pipeline.robot.collision.broadphase_kernel import _lower, _place
+from gcm_pipeline.robot.collision.broadphase_kernel import _place
 from gcm_pipeline.robot.kernel_common import F1, F2, F4, I1
 
 B2 = types.Array(types.boolean, 2, "C", readonly=True)
+
+
+#: Configurations whose sphere bounds are computed together, sphere by sphere (a
+#: loop LLVM vectorises; their spheres' centres stay in the L1 cache).
+CHUNK = 64
+
+
+@njit(cache=True, inline="always")
+def _min_bound(a: Any, m: int, s: Any, radius: float, best: Any) -> None:
+    """``best[i] = min(best[i], lower(a[:, i]) - radius)`` for points ``a`` (3, m).
+
+    ``ShapeBound.lower`` (``broadphase_kernel._lower``), written out with the
+    shape's numbers read once, as ``broadphase_kernel._world_level1``.
+    """
+    r00, r01, r02, t0, r10, r11, r12, t1 = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
+    r20, r21, r22, t2, rad, half = s[8], s[9], s[10], s[11], s[13], s[14]
+    cx, cy, cz, hx, hy, hz = s[15], s[16], s[17], s[18], s[19], s[20]
+    kind = int(s[12])
+    for i in range(m):
+        p0, p1, p2 = a[0, i], a[1, i], a[2, i]
+        x = r00 * p0 + r01 * p1 + r02 * p2 + t0
+        y = r10 * p0 + r11 * p1 + r12 * p2 + t1
+        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
+        if kind == 0:  # sphere
+            bound = max(math.sqrt(x * x + y * y + z * z) - rad, 0.0)
+        elif kind == 1:  # cylinder
+            radial = max(math.sqrt(x * x + y * y) - rad, 0.0)
+            axial = max(abs(z) - half, 0.0)
+            bound = math.sqrt(radial * radial + axial * axial)
+        elif kind == 2:  # capsule
+            along = z - min(max(z, -half), half)
+            bound = max(math.sqrt(x * x + y * y + along * along) - rad, 0.0)
+        else:  # box
+            bx = max(abs(x - cx) - hx, 0.0)
+            by = max(abs(y - cy) - hy, 0.0)
+            bz = max(abs(z - cz) - hz, 0.0)
+            bound = math.sqrt(bx * bx + by * by + bz * bz)
+        best[i] = min(best[i], bound - radius)
 
 
 @njit(types.float64[:, ::1](F4, I1, F2, F1, I1, I1, I1, F2), cache=True)
@@ -42,19 +80,25 @@ def sphere_bounds(tfs, sphere_joint, sphere_centre, radius, start, owner, world,
     n = tfs.shape[1]
     npair = owner.shape[0]
     out = np.empty((n, npair))
-    placed = np.empty((sphere_joint.shape[0], 3))
-    for i in range(n):
+    placed = np.empty((sphere_joint.shape[0], 3, CHUNK))
+    best = np.empty(CHUNK)
+    for i0 in range(0, n, CHUNK):
+        m = min(CHUNK, n - i0)
         for e in range(sphere_joint.shape[0]):
-            _place(tfs[sphere_joint[e], i], sphere_centre[e], placed[e])
+            j = sphere_joint[e]
+            c0, c1, c2 = sphere_centre[e, 0], sphere_centre[e, 1], sphere_centre[e, 2]
+            for r in range(3):
+                for i in range(m):
+                    tf = tfs[j, i0 + i]
+                    placed[e, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
         for p in range(npair):
             g = owner[p]
             shape = shapes[world[p]]
-            best = np.inf
+            best[:] = np.inf
             for e in range(start[g], start[g + 1]):
-                d = _lower(placed[e], shape) - radius[e]
-                if d < best:
-                    best = d
-            out[i, p] = best
+                _min_bound(placed[e], m, shape, radius[e], best)
+            for i in range(m):
+                out[i0 + i, p] = best[i]
     return out
 
 
@@ -195,6 +239,74 @@ def _support(n: Any, shape: Any) -> float:
     return s + (abs(n[0]) * shape[18] + abs(n[1]) * shape[19] + abs(n[2]) * shape[20])
 
 
+@njit(cache=True, inline="always")
+def _gap_lengths(s: Any, pts: Any, nv: int, dist: Any) -> None:
+    """``dist[k]``: the distance of point ``pts[:, k]`` (3, nv) from a primitive (packed row).
+
+    ``|p - nearest(p)|`` as :func:`_nearest` computes it, one loop per kind with the
+    shape's numbers read once (a loop LLVM vectorises).
+    """
+    kind = int(s[12])
+    radius, half = s[13], s[14]
+    px, py, pz = pts[0], pts[1], pts[2]
+    if kind == 1:  # cylinder
+        for k in range(nv):
+            x, y, z = px[k], py[k], pz[k]
+            f = min(1.0, radius / max(math.sqrt(x * x + y * y), 1e-300))
+            gx, gy, gz = x - x * f, y - y * f, z - min(max(z, -half), half)
+            dist[k] = math.sqrt(gx * gx + gy * gy + gz * gz)
+    elif kind == 3:  # box
+        cx, cy, cz, hx, hy, hz = s[15], s[16], s[17], s[18], s[19], s[20]
+        for k in range(nv):
+            gx = px[k] - (cx + min(max(px[k] - cx, -hx), hx))
+            gy = py[k] - (cy + min(max(py[k] - cy, -hy), hy))
+            gz = pz[k] - (cz + min(max(pz[k] - cz, -hz), hz))
+            dist[k] = math.sqrt(gx * gx + gy * gy + gz * gz)
+    else:  # sphere, capsule: about a point of the axis
+        for k in range(nv):
+            x, y = px[k], py[k]
+            a = min(max(pz[k], -half), half) if kind == 2 else 0.0
+            z = pz[k] - a
+            norm = math.sqrt(x * x + y * y + z * z)
+            f = radius / max(norm, 1e-300) if norm > radius else 1.0
+            gx, gy, gz = x - x * f, y - y * f, z - z * f
+            dist[k] = math.sqrt(gx * gx + gy * gy + gz * gz)
+
+
+@njit(cache=True, inline="always")
+def _vertex_bounds(tf: Any, s: Any, verts: Any, v0: int, nv: int, pts: Any, dist: Any) -> Any:
+    """``(U, L)`` of one pair: its nearest hull vertex's distance, the separating plane's."""
+    rot = np.empty((3, 4))  # the joint's frame in the shape's frame: [inv R | inv p + t]
+    for r in range(3):
+        for c in range(4):
+            rot[r, c] = s[4 * r] * tf[0, c] + s[4 * r + 1] * tf[1, c] + s[4 * r + 2] * tf[2, c]
+        rot[r, 3] += s[4 * r + 3]
+    for r in range(3):
+        r0, r1, r2, r3 = rot[r, 0], rot[r, 1], rot[r, 2], rot[r, 3]
+        out = pts[r]
+        for k in range(nv):
+            out[k] = r0 * verts[0, v0 + k] + r1 * verts[1, v0 + k] + r2 * verts[2, v0 + k] + r3
+    _gap_lengths(s, pts, nv, dist)
+    best, at = np.inf, 0
+    for k in range(nv):
+        if dist[k] < best:
+            best, at = dist[k], k
+    if not best > 0:
+        return best, np.nan
+    p = np.empty(3)
+    near = np.empty(3)
+    for r in range(3):
+        p[r] = pts[r, at]
+    _nearest(p, s, near)
+    for r in range(3):
+        near[r] = (p[r] - near[r]) / best  # the normal
+    low = np.inf
+    for k in range(nv):
+        h = pts[0, k] * near[0] + pts[1, k] * near[1] + pts[2, k] * near[2]
+        low = min(low, h)
+    return best, low - _support(near, s)
+
+
 @njit(
     types.UniTuple(types.float64[:, ::1], 2)(F4, B2, I1, I1, I1, F2, F2, types.float64),
     cache=True,
@@ -210,52 +322,27 @@ def vertex_distances(tfs, need, pair_joint, pair_shape, vstart, verts, shapes, p
         pair_joint: Each pair's robot joint, -1 for a pair without vertex bounds (P,).
         pair_shape: Each pair's row of ``shapes`` (P,).
         vstart: Pair p's hull vertices are ``vstart[p] .. vstart[p + 1] - 1`` (P + 1,).
-        verts: The hull vertices in their joint's frame (V, 3).
+        verts: The hull vertices in their joint's frame, coordinates first (3, V).
         shapes: The world primitives as packed rows (W, 21).
         precision: Bounds are kept where ``U - L <= precision``.
     """
     n, npair = need.shape
     upper = np.full((n, npair), np.nan)
     lower = np.full((n, npair), np.nan)
-    pts = np.empty((max(verts.shape[0], 1), 3))
-    near = np.empty(3)
-    gap = np.empty(3)
-    rot = np.empty((3, 4))  # the joint's frame in the shape's frame: [inv R | inv p + t]
+    size = 1
+    for p in range(npair):
+        size = max(size, vstart[p + 1] - vstart[p])
+    pts = np.empty((3, size))
+    dist = np.empty(size)
     for i in range(n):
         for p in range(npair):
             if not need[i, p] or pair_joint[p] < 0:
                 continue
             tf = tfs[pair_joint[p], i]
             s = shapes[pair_shape[p]]
-            for r in range(3):
-                for c in range(4):
-                    rot[r, c] = (
-                        s[4 * r] * tf[0, c] + s[4 * r + 1] * tf[1, c] + s[4 * r + 2] * tf[2, c]
-                    )
-                rot[r, 3] += s[4 * r + 3]
             v0, nv = vstart[p], vstart[p + 1] - vstart[p]
-            best = np.inf
-            for k in range(nv):
-                x = verts[v0 + k]
-                for r in range(3):
-                    pts[k, r] = rot[r, 0] * x[0] + rot[r, 1] * x[1] + rot[r, 2] * x[2] + rot[r, 3]
-                _nearest(pts[k], s, near)
-                d0, d1, d2 = pts[k, 0] - near[0], pts[k, 1] - near[1], pts[k, 2] - near[2]
-                d = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                if d < best:
-                    best = d
-                    gap[0], gap[1], gap[2] = d0, d1, d2
-            if not best > 0:
-                continue
-            n0, n1, n2 = gap[0] / best, gap[1] / best, gap[2] / best
-            low = np.inf
-            for k in range(nv):
-                h = pts[k, 0] * n0 + pts[k, 1] * n1 + pts[k, 2] * n2
-                if h < low:
-                    low = h
-            gap[0], gap[1], gap[2] = n0, n1, n2
-            low -= _support(gap, s)
-            if best - low <= precision:
+            best, low = _vertex_bounds(tf, s, verts, v0, nv, pts, dist)
+            if best > 0 and best - low <= precision:
                 upper[i, p] = best
                 lower[i, p] = low
     return upper, lower

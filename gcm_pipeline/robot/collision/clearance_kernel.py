@@ -274,9 +274,13 @@ def _gap_lengths(s: Any, pts: Any, nv: int, dist: Any) -> None:
 
 
 @njit(cache=True, inline="always")
-def _vertex_bounds(tf: Any, s: Any, verts: Any, v0: int, nv: int, pts: Any, dist: Any) -> Any:
-    """``(U, L)`` of one pair: its nearest hull vertex's distance, the separating plane's."""
-    rot = np.empty((3, 4))  # the joint's frame in the shape's frame: [inv R | inv p + t]
+def _vertex_bounds(tf: Any, s: Any, verts: Any, v0: int, nv: int, work: Any, pts: Any) -> Any:
+    """``(U, L)`` of one pair: its nearest hull vertex's distance, the separating plane's.
+
+    ``work`` (5, 4) and ``pts`` (4, nv) are scratch space (no allocation per pair).
+    """
+    rot = work[:3]  # the joint's frame in the shape's frame: [inv R | inv p + t]
+    dist = pts[3]
     for r in range(3):
         for c in range(4):
             rot[r, c] = s[4 * r] * tf[0, c] + s[4 * r + 1] * tf[1, c] + s[4 * r + 2] * tf[2, c]
@@ -293,8 +297,7 @@ def _vertex_bounds(tf: Any, s: Any, verts: Any, v0: int, nv: int, pts: Any, dist
             best, at = dist[k], k
     if not best > 0:
         return best, np.nan
-    p = np.empty(3)
-    near = np.empty(3)
+    p, near = work[3], work[4]
     for r in range(3):
         p[r] = pts[r, at]
     _nearest(p, s, near)
@@ -332,8 +335,8 @@ def vertex_distances(tfs, need, pair_joint, pair_shape, vstart, verts, shapes, p
     size = 1
     for p in range(npair):
         size = max(size, vstart[p + 1] - vstart[p])
-    pts = np.empty((3, size))
-    dist = np.empty(size)
+    work = np.empty((5, 4))
+    pts = np.empty((4, size))
     for i in range(n):
         for p in range(npair):
             if not need[i, p] or pair_joint[p] < 0:
@@ -341,7 +344,7 @@ def vertex_distances(tfs, need, pair_joint, pair_shape, vstart, verts, shapes, p
             tf = tfs[pair_joint[p], i]
             s = shapes[pair_shape[p]]
             v0, nv = vstart[p], vstart[p + 1] - vstart[p]
-            best, low = _vertex_bounds(tf, s, verts, v0, nv, pts, dist)
+            best, low = _vertex_bounds(tf, s, verts, v0, nv, work, pts)
             if best > 0 and best - low <= precision:
                 upper[i, p] = best
                 lower[i, p] = low

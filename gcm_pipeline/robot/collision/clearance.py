@@ -165,7 +165,7 @@ class ClearanceQueries(BroadPhase):
         for a in range(0, rows.size, BLOCK):
             block = rows[a : a + BLOCK]
             frames = self._frames.compute(qs[block])
-            if packed is None:
+            if compiled is None or packed is None:
                 exact, bound = self._bounds_and_faces(frames)
             else:
                 tfs = stacked(frames.transforms)
@@ -180,7 +180,7 @@ class ClearanceQueries(BroadPhase):
             # the nearest hull vertex's distance where it is within precision of the pair's
             # (its lower bound stays the pair's bound: what it may still be)
             need &= precision > 0
-            if packed is None:
+            if compiled is None or packed is None:
                 upper, lower = self._vertex_distances(frames, need, precision)
             else:
                 upper, lower = compiled.vertex_distances(tfs, need, *packed.vertices, precision)
@@ -248,8 +248,8 @@ class ClearanceQueries(BroadPhase):
         worlds = np.unique(self._dist_world)
         shapes = np.array([self._bounds_for(int(w)).packed() for w in worlds.tolist()])
         octree = [self._bounds_for(int(w)).cells is not None for w in self._dist_world.tolist()]
-        spheres = (cov.joint, cov.centre, cov.radius, cov.start, self._dist_owner)
-        spheres += (np.searchsorted(worlds, self._dist_world), shapes)
+        world = np.searchsorted(worlds, self._dist_world)
+        spheres = (cov.joint, cov.centre, cov.radius, cov.start, self._dist_owner, world, shapes)
         boxes = self._box_pairs
         order = sorted(boxes, key=lambda k: (-int(cov.ball_joint[boxes[k][2]]), k))
         hulls = [self._hull(boxes[k][2]) for k in order]
@@ -271,7 +271,7 @@ class ClearanceQueries(BroadPhase):
         vhulls = [self._hull(vertex[p][0]) if p in vertex else None for p in range(npair)]
         vertices = (
             np.array([-1 if h is None else h[0] for h in vhulls], dtype=np.intp),
-            spheres[5],
+            world,
             _starts([np.zeros((0, 3)) if h is None else h[1] for h in vhulls]),
             np.ascontiguousarray(
                 _stack([np.zeros((0, 3)) if h is None else h[1] for h in vhulls]).T

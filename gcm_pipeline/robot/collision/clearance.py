@@ -217,11 +217,18 @@ class ClearanceQueries(BroadPhase):
         bound = self._sphere_bounds(centres)
         return self._face_distances(frames, centres, bound), bound
 
-    def _sphere_bounds(self, centres: np.ndarray) -> np.ndarray:
-        """Lower bounds (N, P) of the pairs' distances from the placed cover spheres (N, S, 3)."""
+    def _sphere_bounds(self, centres: np.ndarray, bound: np.ndarray | None = None) -> np.ndarray:
+        """Lower bounds (N, P) of the pairs' distances from the placed cover spheres (N, S, 3).
+
+        ``bound``: only the pairs of its NaN columns, into it.
+        """
         cov = self._cover
-        bound = np.empty((centres.shape[0], self._dist_owner.size))
-        for w in np.unique(self._dist_world).tolist():
+        worlds = self._dist_world
+        if bound is None:
+            bound = np.empty((centres.shape[0], self._dist_owner.size))
+        else:
+            worlds = worlds[np.isnan(bound).any(axis=0)]
+        for w in np.unique(worlds).tolist():
             cols = np.flatnonzero(self._dist_world == w)
             d = self._bounds_for(w).lower(centres) - cov.radius
             per_owner = np.minimum.reduceat(d, cov.start[:-1], axis=1)
@@ -235,8 +242,8 @@ class ClearanceQueries(BroadPhase):
         bound = compiled.sphere_bounds(tfs, *packed.spheres)
         if packed.octree_cols.size:  # its cells bound tighter than the kernel's box
             cov = self._cover
-            centres = self._place(frames, cov.joint, cov.centre)
-            bound[:, packed.octree_cols] = self._sphere_bounds(centres)[:, packed.octree_cols]
+            bound[:, packed.octree_cols] = np.nan
+            self._sphere_bounds(self._place(frames, cov.joint, cov.centre), bound)
         return bound
 
     def _clearance_packed(self) -> _Packed:

@@ -1,8 +1,8 @@
 """Compiled kernels of the clearance (distances of the robot to the world).
 
 Kernels of :class:`~gcm_pipeline.robot.collision.clearance.ClearanceQueries` (the NumPy
-reference, beside this module), one configuration at a time:
-:func:`sphere_bounds` (the pairs' lower bounds from the sphere covers, as
+reference, beside this module), one configuration at a time (the sphere bounds
+:data:`CHUNK` at a time): :func:`sphere_bounds` (the pairs' lower bounds from the sphere covers, as
 ``ShapeBound.lower`` minus the radius, the minimum over each pair's spheres),
 :func:`face_distances` (exact distances of a robot polytope in the region of one face
 of a box) and :func:`vertex_distances` (a polytope's nearest hull vertex and the

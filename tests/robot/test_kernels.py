@@ -6,8 +6,8 @@ layout, dtype and row count a NumPy reference takes reaches its kernel, and
 answers as the reference; shapes a kernel does not expect get the reference's
 errors. And the whole reachability check with and without the kernels. Each
 kernel against its reference: the test module beside the kernel's
-(``test_chain_kernel``, ``collision/test_broadphase_kernel``, ``ik/test_lm_kernel``,
-``ik/test_panda_kernel``).
+(``test_chain_kernel``, ``collision/test_broadphase_kernel``,
+``collision/test_clearance_kernel``, ``ik/test_lm_kernel``, ``ik/test_panda_kernel``).
 
 What is compared is what a user relies on, with tolerances that hold on any
 x86-64 or arm64 CPU (another CPU changes the NumPy code's last bits: OpenBLAS
@@ -83,6 +83,7 @@ KERNEL_MODULES = [
     "gcm_pipeline.robot.kernel_common",
     "gcm_pipeline.robot.chain_kernel",
     "gcm_pipeline.robot.collision.broadphase_kernel",
+    "gcm_pipeline.robot.collision.clearance_kernel",
     "gcm_pipeline.robot.ik.lm_kernel",
     "gcm_pipeline.robot.ik.panda_kernel",
 ]

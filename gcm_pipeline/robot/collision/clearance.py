@@ -3,12 +3,15 @@
 The same sphere covers as the broad phase give lower bounds; coal's exact
 distance runs only for pairs that can still be the nearest, and hull vertices
 give exact or near-exact distances to primitives without coal (see
-:meth:`ClearanceQueries.clearance`).
+:meth:`ClearanceQueries.clearance`). The steps before coal run as compiled
+kernels (:mod:`~gcm_pipeline.robot.collision.clearance_kernel`) when
+:func:`~gcm_pipeline.robot.kernels.get` gives them; the NumPy code here is their
+reference (``GCM_JIT=0``).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import coal
 import numpy as np
@@ -22,11 +25,31 @@ from gcm_pipeline.robot.collision.broadphase import (
     in_frame,
     row_matmul,
     squared_norms,
+    stacked,
 )
 from gcm_pipeline.robot.collision.pairs import MODE_BIT, Pair, without_cached_guess
 from gcm_pipeline.robot.collision.spheres import POLYTOPES
 
 __all__ = ["ClearanceQueries"]
+
+
+class _Packed(NamedTuple):
+    """The arguments of the clearance's compiled kernels (:mod:`.clearance_kernel`)."""
+
+    spheres: tuple[np.ndarray, ...]  # sphere_bounds
+    faces: tuple[np.ndarray, ...]  # face_distances, but the bounds
+    vertices: tuple[np.ndarray, ...]  # vertex_distances, between need and precision
+    octree_cols: np.ndarray  # pairs against an octree: bounded by NumPy (its cells)
+
+
+def _starts(parts: list[np.ndarray]) -> np.ndarray:
+    """Offsets (K + 1,) of parts (V_k, 3) stacked by :func:`_stack`."""
+    return np.concatenate([[0], np.cumsum([len(p) for p in parts])]).astype(np.intp)
+
+
+def _stack(parts: list[np.ndarray]) -> np.ndarray:
+    """Parts (V_k, 3) as one (V, 3) float array."""
+    return np.concatenate([np.zeros((0, 3)), *parts]).astype(float).reshape(-1, 3)
 
 
 class ClearanceQueries(BroadPhase):
@@ -137,35 +160,38 @@ class ClearanceQueries(BroadPhase):
         """:meth:`clearance` of the finite configurations ``qs[rows]``, into ``out``."""
         model, data = self.robot.model, self._data
         dm, dd = self._dist_model, self._dist_data
-        cov = self._cover
+        compiled = kernels.get()
+        packed = None if compiled is None else self._clearance_packed()
         for a in range(0, rows.size, BLOCK):
             block = rows[a : a + BLOCK]
             frames = self._frames.compute(qs[block])
-            centres = self._place(frames, cov.joint, cov.centre)
-            bound = np.empty((block.size, self._dist_owner.size))
-            for w in np.unique(self._dist_world).tolist():
-                cols = np.flatnonzero(self._dist_world == w)
-                d = self._bounds_for(w).lower(centres) - cov.radius
-                per_owner = np.minimum.reduceat(d, cov.start[:-1], axis=1)
-                bound[:, cols] = per_owner[:, self._dist_owner[cols]]
-            # exact distances to boxes where a link lies in the region of one face, and
+            if compiled is None or packed is None:
+                exact, bound = self._bounds_and_faces(frames)
+            else:
+                tfs = stacked(frames.transforms)
+                bound = self._sphere_bounds_compiled(compiled, packed, frames, tfs)
+                exact = compiled.face_distances(tfs, *packed.faces, bound)
+            # exact: distances to boxes where a link lies in the region of one face, and
             # where they can still be the nearest
-            exact = self._face_distances(frames, centres, bound)
             known = np.isfinite(exact)
             bound[known] = exact[known]
             best0 = np.where(known, exact, np.inf).min(axis=1)
             need = ~known & (bound < best0[:, None] - precision)
             # the nearest hull vertex's distance where it is within precision of the pair's
             # (its lower bound stays the pair's bound: what it may still be)
-            upper, lower = self._vertex_distances(frames, need & (precision > 0), precision)
+            need &= precision > 0
+            if compiled is None or packed is None:
+                upper, lower = self._vertex_distances(frames, need, precision)
+            else:
+                upper, lower = compiled.vertex_distances(tfs, need, *packed.vertices, precision)
             found = np.isfinite(upper)
             exact[found], known[found], bound[found] = upper[found], True, lower[found]
             best0 = np.where(known, exact, np.inf).min(axis=1)
             # coal only for rows with a pair that may still be nearer than best - precision
             need = ~known & (bound < best0[:, None] - precision)
-            todo = np.flatnonzero(need.any(axis=1))
-            easy = np.setdiff1d(np.arange(block.size), todo)
-            out[block[easy]] = best0[easy]
+            open_ = need.any(axis=1)
+            todo = np.flatnonzero(open_)
+            out[block[~open_]] = best0[~open_]
             order = np.argsort(bound[todo], axis=1)
             for k, i in enumerate(todo.tolist()):
                 n = int(block[i])
@@ -179,6 +205,88 @@ class ClearanceQueries(BroadPhase):
                     if d < best:
                         best = d
                 out[n] = best
+
+    def _bounds_and_faces(self, frames: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The NumPy reference of a block's first steps: exact face distances and bounds.
+
+        Returns ``(exact, bound)`` (N, P): :meth:`_face_distances` and the pairs'
+        lower bounds from the sphere covers (:meth:`_sphere_bounds`).
+        """
+        cov = self._cover
+        centres = self._place(frames, cov.joint, cov.centre)
+        bound = self._sphere_bounds(centres)
+        return self._face_distances(frames, centres, bound), bound
+
+    def _sphere_bounds(self, centres: np.ndarray, bound: np.ndarray | None = None) -> np.ndarray:
+        """Lower bounds (N, P) of the pairs' distances from the placed cover spheres (N, S, 3).
+
+        ``bound``: only the pairs of its NaN columns, into it.
+        """
+        cov = self._cover
+        worlds = self._dist_world
+        if bound is None:
+            bound = np.empty((centres.shape[0], self._dist_owner.size))
+        else:
+            worlds = worlds[np.isnan(bound).any(axis=0)]
+        for w in np.unique(worlds).tolist():
+            cols = np.flatnonzero(self._dist_world == w)
+            d = self._bounds_for(w).lower(centres) - cov.radius
+            per_owner = np.minimum.reduceat(d, cov.start[:-1], axis=1)
+            bound[:, cols] = per_owner[:, self._dist_owner[cols]]
+        return bound
+
+    def _sphere_bounds_compiled(
+        self, compiled: Any, packed: _Packed, frames: Any, tfs: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`_sphere_bounds` by the compiled kernel (an octree's columns by NumPy)."""
+        bound = compiled.sphere_bounds(tfs, *packed.spheres)
+        if packed.octree_cols.size:  # its cells bound tighter than the kernel's box
+            cov = self._cover
+            bound[:, packed.octree_cols] = np.nan
+            self._sphere_bounds(self._place(frames, cov.joint, cov.centre), bound)
+        return bound
+
+    def _clearance_packed(self) -> _Packed:
+        """The compiled kernels' arguments (built once per checker)."""
+        packed = getattr(self, "_packed", None)
+        if packed is not None:
+            return packed
+        cov = self._cover
+        worlds = np.unique(self._dist_world)
+        shapes = np.array([self._bounds_for(int(w)).packed() for w in worlds.tolist()])
+        octree = [self._bounds_for(int(w)).cells is not None for w in self._dist_world.tolist()]
+        world = np.searchsorted(worlds, self._dist_world)
+        spheres = (cov.joint, cov.centre, cov.radius, cov.start, self._dist_owner, world, shapes)
+        boxes = self._box_pairs
+        order = sorted(boxes, key=lambda k: (-int(cov.ball_joint[boxes[k][2]]), k))
+        hulls = [self._hull(boxes[k][2]) for k in order]
+        faces = (
+            cov.joint,
+            cov.centre,
+            cov.radius,
+            cov.start,
+            np.array([j for j, _ in hulls], dtype=np.intp),
+            np.array(order, dtype=np.intp),
+            np.array([boxes[k][2] for k in order], dtype=np.intp),
+            np.array([boxes[k][0][:3].reshape(-1) for k in order]).reshape(-1, 12),
+            _starts([v for _, v in hulls]),
+            _stack([v for _, v in hulls]),
+            np.array([boxes[k][1] for k in order]).reshape(-1, 3),
+        )
+        npair = self._dist_owner.size
+        vertex = self._vertex_pairs
+        vhulls = [self._hull(vertex[p][0]) if p in vertex else None for p in range(npair)]
+        vertices = (
+            np.array([-1 if h is None else h[0] for h in vhulls], dtype=np.intp),
+            world,
+            _starts([np.zeros((0, 3)) if h is None else h[1] for h in vhulls]),
+            np.ascontiguousarray(
+                _stack([np.zeros((0, 3)) if h is None else h[1] for h in vhulls]).T
+            ),
+            shapes,
+        )
+        self._packed = _Packed(spheres, faces, vertices, np.flatnonzero(octree))
+        return self._packed
 
     def _vertex_distances(
         self, frames: Any, need: np.ndarray, precision: float

@@ -66,8 +66,12 @@ def branch_gap(a: np.ndarray, b: np.ndarray, wide: np.ndarray) -> np.ndarray:
     (the same arm shape): ``q`` and ``q + 2π`` on a joint of range 4π have gap 0.
     """
     d = np.abs(np.asarray(a, dtype=float) - np.asarray(b, dtype=float))
-    wrapped = np.abs(np.remainder(d + np.pi, 2.0 * np.pi) - np.pi)
-    return np.where(wide, wrapped, d)
+    wide = np.asarray(wide, dtype=bool)
+    if not wide.any():
+        return d  # no joint turns more than once (the Panda): nothing to wrap
+    wrapped = np.abs(np.remainder(d[..., wide] + np.pi, 2.0 * np.pi) - np.pi)
+    d[..., wide] = wrapped
+    return d
 
 
 def nearest_copy(

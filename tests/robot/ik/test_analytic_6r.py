@@ -148,3 +148,22 @@ def test_alternatives_are_other_arm_shapes_not_whole_turns(arm: Robot, analytic:
         # every branch but the rejected one (the limits are not binding here)
         np.testing.assert_array_equal(np.bincount(idx, minlength=40) + 1, np.bincount(every))
         assert rank.max() >= 4  # more than `alternatives`: all of them
+
+
+@pytest.mark.parametrize(
+    "wide", [np.zeros(7, bool), np.array([1, 0, 1, 0, 0, 1, 1], bool), np.ones(6, bool)]
+)
+def test_branch_gap_wraps_only_the_wide_joints(wide: np.ndarray) -> None:
+    """A whole turn is no gap on a joint of range over 2 pi, a gap of 2 pi on any other."""
+    rng = np.random.default_rng(3)
+    nq = wide.size
+    a = rng.uniform(-3.0, 3.0, (50, 1, nq))
+    turns = rng.integers(-2, 3, (1, 4, nq)).astype(float)
+    b = a + 2.0 * np.pi * turns + rng.uniform(-0.1, 0.1, (1, 4, nq))  # broadcast (50, 4, nq)
+    gap = branch_gap(a, b, wide)
+    assert gap.shape == (50, 4, nq)
+    plain = np.abs(a - b)
+    assert np.array_equal(gap[..., ~wide], np.broadcast_to(plain, gap.shape)[..., ~wide])
+    assert np.all(gap[..., wide] <= 0.1 + 1e-12)  # the turns removed, the small part kept
+    assert np.all(gap >= 0.0)
+    assert np.isnan(branch_gap(np.full(nq, np.nan), np.zeros(nq), wide)).all()

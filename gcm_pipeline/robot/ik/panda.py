@@ -423,9 +423,11 @@ def analytic_blocks(
     """:meth:`PandaAnalyticIK.solve` in blocks of targets, without repeats.
 
     Blocks bound the memory; a repeat is one joint-7 value given twice to a
-    target (e.g. two offsets clipped to a limit): its first column is kept.
+    target (e.g. two offsets clipped to a limit): its first column is kept
+    (the later ones are not solved: NaN is outside joint 7's limits).
     ``near``: ``(reference (N, 7), reach)``, as for the solver.
     """
+    q7 = _first_of_repeats(np.asarray(q7, dtype=float))
     n, k = q7.shape
     step = max(1, _ANALYTIC_ROWS // max(k, 1))
     starts = range(0, max(n, 1), step)
@@ -444,11 +446,19 @@ def analytic_blocks(
     cq = np.concatenate([p[1] for p in parts])
     branch = np.concatenate([p[2] for p in parts])
     column = np.concatenate([p[3] for p in parts])
-    values = np.sort(q7, axis=1)
-    if at.size and np.any(values[:, 1:] == values[:, :-1]):
-        order = np.lexsort((column, cq[:, 6], branch, at))
-        key = np.column_stack([at[order], branch[order], cq[order, 6]])
-        repeat = np.r_[False, np.all(key[1:] == key[:-1], axis=1)]
-        keep = np.sort(order[~repeat])  # back to the solver's order
-        at, cq, branch, column = at[keep], cq[keep], branch[keep], column[keep]
     return at, cq, branch, column
+
+
+def _first_of_repeats(q7: np.ndarray) -> np.ndarray:
+    """``q7`` (N, K) with every value a row already has in an earlier column set to NaN."""
+    if q7.ndim != 2 or q7.shape[1] < 2:
+        return q7
+    order = np.argsort(q7, axis=1, kind="stable")  # equal values: earlier column first
+    values = np.take_along_axis(q7, order, axis=1)
+    repeat = values[:, 1:] == values[:, :-1]
+    if not repeat.any():
+        return q7
+    r, c = np.nonzero(repeat)
+    out = q7.copy()
+    out[r, order[r, c + 1]] = np.nan
+    return out

@@ -389,3 +389,27 @@ def test_reach_proof_allows_for_rotations_orthonormal_only_to_1e6(panda: Robot) 
     assert res.reason[0] != "out_of_reach"
     with pytest.raises(ValueError, match="elbow_limits"):
         solver.unreachable(target[None, :3, :3], target[None, :3, 3], elbow_limits=(-1.0, -2.0))
+
+
+def test_a_joint7_value_given_twice_is_solved_once_in_its_first_column(panda: Robot) -> None:
+    """Repeats (offsets clipped to a limit) add no solution and keep the first column's."""
+    solver = analytic_solver(panda)
+    assert solver is not None
+    q = panda.random_configurations(40, np.random.default_rng(21))
+    rot, pos = _pin_pose(panda, q)
+    distinct = np.stack([q[:, 6], q[:, 6] - 0.3, q[:, 6] + 0.2], axis=1)
+    distinct = np.clip(distinct, panda.lower[6], panda.upper[6])
+    with_repeats = distinct[:, [0, 1, 0, 2, 1, 1]]  # columns 2, 4, 5 repeat earlier ones
+    at, cq, branch, column = panda_ik.analytic_blocks(
+        solver, rot, pos, with_repeats, panda.lower, panda.upper
+    )
+    ref_at, ref_q, ref_branch, ref_column = panda_ik.analytic_blocks(
+        solver, rot, pos, distinct, panda.lower, panda.upper
+    )
+    assert set(np.unique(column)) <= {0, 1, 3}  # the repeats' columns never appear
+    np.testing.assert_array_equal(at, ref_at)
+    np.testing.assert_array_equal(cq, ref_q)
+    np.testing.assert_array_equal(branch, ref_branch)
+    np.testing.assert_array_equal(column, np.array([0, 1, 3])[ref_column])
+    key = np.column_stack([at, branch, cq[:, 6]])
+    assert len(np.unique(key, axis=0)) == len(key)  # every solution once

@@ -17,6 +17,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 
+from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision.broadphase import (
     BLOCK,
@@ -142,8 +143,13 @@ class ClearanceQueries(BroadPhase):
         Returns:
             (N,) distances [m]; ``inf`` when there is nothing to measure against,
             NaN for non-finite configurations.
+
+        Raises:
+            InputError: ``precision`` is not a finite distance >= 0.
         """
         qs = self.robot.as_configurations(q)
+        if not 0 <= float(precision) < np.inf:  # NaN would measure no pair
+            raise InputError(f"precision must be a finite distance >= 0 [m], got {precision!r}")
         out = np.full(len(qs), np.inf)
         finite = np.all(np.isfinite(qs), axis=1)
         out[~finite] = np.nan

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numba import njit, types
 
-from gcm_pipeline.robot.collision.broadphase_kernel import _place
+from gcm_pipeline.robot.collision.broadphase_kernel import _place, _place_balls
 from gcm_pipeline.robot.kernel_common import F1, F2, F4, I1
 
 B2 = types.Array(types.boolean, 2, "C", readonly=True)
@@ -84,13 +84,7 @@ def sphere_bounds(tfs, sphere_joint, sphere_centre, radius, start, owner, world,
     best = np.empty(CHUNK)
     for i0 in range(0, n, CHUNK):
         m = min(CHUNK, n - i0)
-        for e in range(sphere_joint.shape[0]):
-            j = sphere_joint[e]
-            c0, c1, c2 = sphere_centre[e, 0], sphere_centre[e, 1], sphere_centre[e, 2]
-            for r in range(3):
-                for i in range(m):
-                    tf = tfs[j, i0 + i]
-                    placed[e, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
+        _place_balls(tfs, i0, m, sphere_joint, sphere_centre, placed)
         for p in range(npair):
             g = owner[p]
             shape = shapes[world[p]]

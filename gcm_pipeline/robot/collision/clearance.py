@@ -86,6 +86,7 @@ class ClearanceQueries(BroadPhase):
             or (p.kind == "object" and p.a not in gripper and p.modes & MODE_BIT["grasp"])
         ]
         self._dist_model: Any = None
+        self._packed: _Packed | None = None  # the compiled kernels' arguments, when asked
         if dist:
             dm = gm.copy()
             dm.removeAllCollisionPairs()
@@ -254,9 +255,8 @@ class ClearanceQueries(BroadPhase):
 
     def _clearance_packed(self) -> _Packed:
         """The compiled kernels' arguments (built once per checker)."""
-        packed = getattr(self, "_packed", None)
-        if packed is not None:
-            return packed
+        if self._packed is not None:
+            return self._packed
         cov = self._cover
         worlds = np.unique(self._dist_world)
         shapes = np.array([self._bounds_for(int(w)).packed() for w in worlds.tolist()])

@@ -81,37 +81,53 @@ def _place_balls(tfs: Any, i0: int, m: int, ball_joint: Any, ball_centre: Any, b
 
 
 @njit(cache=True, inline="always")
+def _shape_numbers(s: Any) -> Any:
+    """A packed shape row's numbers, read once before a loop over points.
+
+    ``(placement, kind, radius, half, box)``: the inverse placement's first three
+    rows (12), the kind's index, the radius, the half height, and a box's centre
+    and half sizes (6) (:func:`_lower`'s row).
+    """
+    placement = (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11])
+    return placement, int(s[12]), s[13], s[14], (s[15], s[16], s[17], s[18], s[19], s[20])
+
+
+@njit(cache=True, inline="always")
+def _point_bound(p0: float, p1: float, p2: float, shape: Any) -> float:
+    """:func:`_lower` of the point (p0, p1, p2) from a shape's :func:`_shape_numbers`.
+
+    Its distance from the primitive, 0 inside; with the numbers as locals of the
+    caller's loop, LLVM vectorises the loop (not one that inlines :func:`_lower`).
+    """
+    t, kind, radius, half, box = shape
+    x = t[0] * p0 + t[1] * p1 + t[2] * p2 + t[3]
+    y = t[4] * p0 + t[5] * p1 + t[6] * p2 + t[7]
+    z = t[8] * p0 + t[9] * p1 + t[10] * p2 + t[11]
+    if kind == 0:  # sphere
+        return max(math.sqrt(x * x + y * y + z * z) - radius, 0.0)
+    if kind == 1:  # cylinder
+        radial = max(math.sqrt(x * x + y * y) - radius, 0.0)
+        axial = max(abs(z) - half, 0.0)
+        return math.sqrt(radial * radial + axial * axial)
+    if kind == 2:  # capsule
+        along = z - min(max(z, -half), half)
+        return max(math.sqrt(x * x + y * y + along * along) - radius, 0.0)
+    bx = max(abs(x - box[0]) - box[3], 0.0)  # box
+    by = max(abs(y - box[1]) - box[4], 0.0)
+    bz = max(abs(z - box[2]) - box[5], 0.0)
+    return math.sqrt(bx * bx + by * by + bz * bz)
+
+
+@njit(cache=True, inline="always")
 def _world_level1(a: Any, m: int, s: Any, lim: float, near: Any) -> None:
     """``near[i]`` (m,): ``_lower(a[:, i], s) <= lim`` for points ``a`` (3, m).
 
-    :func:`_lower`'s bound, written out with the shape's numbers read once and one
-    loop per kind: LLVM vectorises these loops (not one that inlines :func:`_lower`);
-    the shape kinds' tests compare both.
+    :func:`_lower`'s bound by :func:`_point_bound`, the shape's numbers read once
+    (the shape kinds' tests compare both).
     """
-    r00, r01, r02, t0, r10, r11, r12, t1 = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
-    r20, r21, r22, t2, radius, half = s[8], s[9], s[10], s[11], s[13], s[14]
-    cx, cy, cz, hx, hy, hz = s[15], s[16], s[17], s[18], s[19], s[20]
-    kind = int(s[12])
+    shape = _shape_numbers(s)
     for i in range(m):
-        p0, p1, p2 = a[0, i], a[1, i], a[2, i]
-        x = r00 * p0 + r01 * p1 + r02 * p2 + t0
-        y = r10 * p0 + r11 * p1 + r12 * p2 + t1
-        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
-        if kind == 0:  # sphere
-            bound = max(math.sqrt(x * x + y * y + z * z) - radius, 0.0)
-        elif kind == 1:  # cylinder
-            radial = max(math.sqrt(x * x + y * y) - radius, 0.0)
-            axial = max(abs(z) - half, 0.0)
-            bound = math.sqrt(radial * radial + axial * axial)
-        elif kind == 2:  # capsule
-            along = z - min(max(z, -half), half)
-            bound = max(math.sqrt(x * x + y * y + along * along) - radius, 0.0)
-        else:  # box
-            bx = max(abs(x - cx) - hx, 0.0)
-            by = max(abs(y - cy) - hy, 0.0)
-            bz = max(abs(z - cz) - hz, 0.0)
-            bound = math.sqrt(bx * bx + by * by + bz * bz)
-        near[i] = bound <= lim
+        near[i] = _point_bound(a[0, i], a[1, i], a[2, i], shape) <= lim
 
 
 @njit(cache=True, inline="always")

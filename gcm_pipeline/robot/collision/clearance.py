@@ -17,6 +17,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 
+from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision.broadphase import (
     BLOCK,
@@ -85,6 +86,7 @@ class ClearanceQueries(BroadPhase):
             or (p.kind == "object" and p.a not in gripper and p.modes & MODE_BIT["grasp"])
         ]
         self._dist_model: Any = None
+        self._packed: _Packed | None = None  # the compiled kernels' arguments, when asked
         if dist:
             dm = gm.copy()
             dm.removeAllCollisionPairs()
@@ -142,8 +144,13 @@ class ClearanceQueries(BroadPhase):
         Returns:
             (N,) distances [m]; ``inf`` when there is nothing to measure against,
             NaN for non-finite configurations.
+
+        Raises:
+            InputError: ``precision`` is not a finite distance >= 0.
         """
         qs = self.robot.as_configurations(q)
+        if not 0 <= float(precision) < np.inf:  # NaN would measure no pair
+            raise InputError(f"precision must be a finite distance >= 0 [m], got {precision!r}")
         out = np.full(len(qs), np.inf)
         finite = np.all(np.isfinite(qs), axis=1)
         out[~finite] = np.nan
@@ -248,9 +255,8 @@ class ClearanceQueries(BroadPhase):
 
     def _clearance_packed(self) -> _Packed:
         """The compiled kernels' arguments (built once per checker)."""
-        packed = getattr(self, "_packed", None)
-        if packed is not None:
-            return packed
+        if self._packed is not None:
+            return self._packed
         cov = self._cover
         worlds = np.unique(self._dist_world)
         shapes = np.array([self._bounds_for(int(w)).packed() for w in worlds.tolist()])

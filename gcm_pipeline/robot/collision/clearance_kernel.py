@@ -19,7 +19,12 @@ from typing import Any
 import numpy as np
 from numba import njit, types
 
-from gcm_pipeline.robot.collision.broadphase_kernel import _place
+from gcm_pipeline.robot.collision.broadphase_kernel import (
+    _place,
+    _place_balls,
+    _point_bound,
+    _shape_numbers,
+)
 from gcm_pipeline.robot.kernel_common import F1, F2, F4, I1
 
 B2 = types.Array(types.boolean, 2, "C", readonly=True)
@@ -34,33 +39,12 @@ CHUNK = 64
 def _min_bound(a: Any, m: int, s: Any, radius: float, best: Any) -> None:
     """``best[i] = min(best[i], lower(a[:, i]) - radius)`` for points ``a`` (3, m).
 
-    ``ShapeBound.lower`` (``broadphase_kernel._lower``), written out with the
-    shape's numbers read once, as ``broadphase_kernel._world_level1``.
+    ``ShapeBound.lower`` of the packed shape row ``s``, its numbers read once, as
+    ``broadphase_kernel._world_level1``.
     """
-    r00, r01, r02, t0, r10, r11, r12, t1 = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
-    r20, r21, r22, t2, rad, half = s[8], s[9], s[10], s[11], s[13], s[14]
-    cx, cy, cz, hx, hy, hz = s[15], s[16], s[17], s[18], s[19], s[20]
-    kind = int(s[12])
+    shape = _shape_numbers(s)
     for i in range(m):
-        p0, p1, p2 = a[0, i], a[1, i], a[2, i]
-        x = r00 * p0 + r01 * p1 + r02 * p2 + t0
-        y = r10 * p0 + r11 * p1 + r12 * p2 + t1
-        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
-        if kind == 0:  # sphere
-            bound = max(math.sqrt(x * x + y * y + z * z) - rad, 0.0)
-        elif kind == 1:  # cylinder
-            radial = max(math.sqrt(x * x + y * y) - rad, 0.0)
-            axial = max(abs(z) - half, 0.0)
-            bound = math.sqrt(radial * radial + axial * axial)
-        elif kind == 2:  # capsule
-            along = z - min(max(z, -half), half)
-            bound = max(math.sqrt(x * x + y * y + along * along) - rad, 0.0)
-        else:  # box
-            bx = max(abs(x - cx) - hx, 0.0)
-            by = max(abs(y - cy) - hy, 0.0)
-            bz = max(abs(z - cz) - hz, 0.0)
-            bound = math.sqrt(bx * bx + by * by + bz * bz)
-        best[i] = min(best[i], bound - radius)
+        best[i] = min(best[i], _point_bound(a[0, i], a[1, i], a[2, i], shape) - radius)
 
 
 @njit(types.float64[:, ::1](F4, I1, F2, F1, I1, I1, I1, F2), cache=True)
@@ -84,13 +68,7 @@ def sphere_bounds(tfs, sphere_joint, sphere_centre, radius, start, owner, world,
     best = np.empty(CHUNK)
     for i0 in range(0, n, CHUNK):
         m = min(CHUNK, n - i0)
-        for e in range(sphere_joint.shape[0]):
-            j = sphere_joint[e]
-            c0, c1, c2 = sphere_centre[e, 0], sphere_centre[e, 1], sphere_centre[e, 2]
-            for r in range(3):
-                for i in range(m):
-                    tf = tfs[j, i0 + i]
-                    placed[e, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
+        _place_balls(tfs, i0, m, sphere_joint, sphere_centre, placed)
         for p in range(npair):
             g = owner[p]
             shape = shapes[world[p]]

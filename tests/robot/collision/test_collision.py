@@ -117,6 +117,15 @@ def test_batch_shapes_and_nonfinite(robot, checker):
         checker.check(np.zeros((2, 3)))
 
 
+@pytest.mark.parametrize("precision", [float("nan"), float("inf"), -1e-3])
+def test_clearance_rejects_a_precision_that_is_not_a_distance(robot, checker, precision):
+    # a NaN precision measured no pair: rows far above their minimum, or inf on a robot
+    # without polytopes; one clear error instead
+    with pytest.raises(InputError, match="precision"):
+        checker.clearance(robot.home, precision)
+    assert checker.clearance(robot.home, 0) == checker.clearance(robot.home, 0.0)
+
+
 def _oracle(obj_pose, obstacle_xyz):
     """Independent world on the *unreduced* example-robot-data model and its own geometry."""
     erd = example_robot_data.load("panda")

@@ -19,9 +19,10 @@ as touching: asked without contact information, coal can otherwise answer
 a robot mesh is first checked on the convex hulls of its meshes
 (:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`): coal's mesh-mesh
 test runs only where the hulls touch. Batches of fewer than ``_FEW``
-configurations go to coal's own broad phase (AABB-tree pools) instead, which
-costs less to set up, and so do all batches of a checker with ``threads`` > 1
-(those pools run in parallel in C++; the NumPy broad phase does not). A pair of two
+configurations (``_FEW_COMPILED`` with the compiled kernels) go to coal's own
+broad phase (AABB-tree pools) instead, which costs less to set up, and so do
+all batches of a checker with ``threads`` > 1 (those pools run in parallel in
+C++; the NumPy broad phase does not). A pair of two
 geometries fixed to the world (the base link against an obstacle that
 overlaps it) collides in every configuration or in none: it is decided once,
 when the checker is built. :meth:`CollisionChecker.clearance`
@@ -85,6 +86,9 @@ _REASON_DTYPE = f"<U{max(len(r) for r in REASONS.values())}"
 #: Fewer configurations than this go to coal's AABB-tree pools instead of the
 #: NumPy broad phase (its set-up costs about as much as 100 configurations).
 _FEW = 128
+#: The same with the compiled kernels: their set-up (about 100 us on the Panda's
+#: bottle scene) costs less than coal's pools from about 16 configurations on.
+_FEW_COMPILED = 16
 
 
 class _CarriedObject(NamedTuple):
@@ -369,7 +373,7 @@ class CollisionChecker(ClearanceQueries):
         # libm's cosines then, the NumPy code's frames to the bit (see JointFrames.compute)
         exact = self._solid is not None or held is not None
         all_frames = None
-        if n < _FEW or self.threads > 1:
+        if n < (_FEW if kernels.get() is None else _FEW_COMPILED) or self.threads > 1:
             pool = self._mode_pool.get(bit)
             todo = np.flatnonzero(self._run(pool, q)) if pool is not None else np.zeros(0, int)
             for kind in KINDS:

@@ -18,7 +18,10 @@ from gcm_pipeline.outputs.scene import SceneOptions
 #: Wall time the 2,000,000-grasp page has to load and draw its grasps [s].
 _BUDGET_S = 60.0
 
+#: The grasp layers' vertex counts once every scene command has run (the page's panel
+#: is built then: ``gcm.state.ready``); null before, as the layers arrive one by one.
 _DRAWN = """(() => {
+  if (!(window.gcm && gcm.state.ready)) return null;
   const node = viewer.scene_tree.find(["meshcat", "grasps"]);
   let glyphs = 0, points = 0;
   node.object.traverse(o => {

@@ -77,8 +77,8 @@ def check_moves(
     if q0.ndim == 1:
         q0 = q0[None]
     plan = plan_moves(robot, tg, q0, move, knots=knots, **opts)
-    # the plan's own arrays, changed in place (waypoints: (N, 8 steps + 1, nq) floats)
-    ok, failed, q_path, waypoints, dev = (
+    # the plan's own arrays, changed in place (knots: (N, 8 steps + 1, nq) floats or None)
+    ok, failed, q_path, plan_knots, dev = (
         plan.ok,
         plan.failed_step,
         plan.q_path,
@@ -113,13 +113,13 @@ def check_moves(
             r = hit_rows[good]
             ok[r], reason[r], failed[r] = True, "", 0
             q_path[r], dev[r] = again.q_path[good], again.deviation[good]
-            if waypoints is not None:
-                waypoints[r] = again.knots[good]
+            if plan_knots is not None:
+                plan_knots[r] = again.knots[good]
     q_path[~ok] = np.nan
-    if waypoints is not None:
-        waypoints[~ok] = np.nan
+    if plan_knots is not None:
+        plan_knots[~ok] = np.nan
     dev[~ok] = np.nan
-    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, waypoints)
+    return MoveResult(ok, reason.astype(str), failed, q_path[:, -1].copy(), q_path, dev, plan_knots)
 
 
 def _grid_collisions(

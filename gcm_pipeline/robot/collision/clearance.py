@@ -149,7 +149,11 @@ class ClearanceQueries(BroadPhase):
             InputError: ``precision`` is not a finite distance >= 0.
         """
         qs = self.robot.as_configurations(q)
-        if not 0 <= float(precision) < np.inf:  # NaN would measure no pair
+        try:
+            valid = 0 <= float(precision) < np.inf  # NaN would measure no pair
+        except (TypeError, ValueError):
+            valid = False
+        if not valid:
             raise InputError(f"precision must be a finite distance >= 0 [m], got {precision!r}")
         out = np.full(len(qs), np.inf)
         finite = np.all(np.isfinite(qs), axis=1)
@@ -264,7 +268,7 @@ class ClearanceQueries(BroadPhase):
         world = np.searchsorted(worlds, self._dist_world)
         spheres = (cov.joint, cov.centre, cov.radius, cov.start, self._dist_owner, world, shapes)
         boxes = self._box_pairs
-        order = sorted(boxes, key=lambda k: (-int(cov.ball_joint[boxes[k][2]]), k))
+        order = self._box_order()
         hulls = [self._hull(boxes[k][2]) for k in order]
         faces = (
             cov.joint,
@@ -293,6 +297,16 @@ class ClearanceQueries(BroadPhase):
         )
         self._packed = _Packed(spheres, faces, vertices, np.flatnonzero(octree))
         return self._packed
+
+    def _box_order(self) -> list[int]:
+        """The box pairs' columns in the order both face-distance codes visit them.
+
+        The links farthest along the chain first (at a grasp they are usually the
+        nearest), then by column: a fixed order, so a row's result does not depend
+        on the other rows of its batch.
+        """
+        cov, boxes = self._cover, self._box_pairs
+        return sorted(boxes, key=lambda k: (-int(cov.ball_joint[boxes[k][2]]), k))
 
     def _vertex_distances(
         self, frames: Any, need: np.ndarray, precision: float
@@ -359,8 +373,7 @@ class ClearanceQueries(BroadPhase):
         cov = self._cover
         rots, poss = frames.rots, frames.poss
         pairs = self._box_pairs
-        cols = sorted(pairs, key=lambda k: (-int(cov.ball_joint[pairs[k][2]]), k))
-        for col in cols:
+        for col in self._box_order():
             inv, halfs, g = pairs[col]
             sph = np.arange(cov.start[g], cov.start[g + 1])
             may = np.flatnonzero(bound[:, col] < best)

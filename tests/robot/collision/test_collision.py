@@ -117,7 +117,7 @@ def test_batch_shapes_and_nonfinite(robot, checker):
         checker.check(np.zeros((2, 3)))
 
 
-@pytest.mark.parametrize("precision", [float("nan"), float("inf"), -1e-3])
+@pytest.mark.parametrize("precision", [float("nan"), float("inf"), -1e-3, "1 mm", None])
 def test_clearance_rejects_a_precision_that_is_not_a_distance(robot, checker, precision):
     # a NaN precision measured no pair: rows far above their minimum, or inf on a robot
     # without polytopes; one clear error instead

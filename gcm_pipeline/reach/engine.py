@@ -106,10 +106,15 @@ __all__ = ["ReachabilityEngine", "available_cores"]
 #: IK reasons of a neighbour that tried its whole seed schedule and failed.
 _RAN_EVERY_SEED = ("no_ik", "joint_limits")
 
-#: ``workers: auto`` reads the idle cores while this process solves the first
-#: ``chunk_size // AUTO_PROBE_SHARE`` targets (2,048 of the default 8,192: about 0.1 s
-#: of the Panda's stage), then forks (see :meth:`ReachabilityEngine._solve_phase`).
+#: ``workers: auto`` reads the idle cores from the run's start while this process
+#: works alone; when a phase starts before it has read them for ``AUTO_WATCH_S``, it
+#: solves the first ``chunk_size // AUTO_PROBE_SHARE`` targets (2,048 of the default
+#: 8,192: about 0.1 s of the Panda's stage) meanwhile, then forks (see
+#: :meth:`ReachabilityEngine._solve_phase`).
 AUTO_PROBE_SHARE = 4
+#: Shortest reading of the idle cores ``workers: auto`` decides on [s]: ten ticks of the
+#: kernel's 10 ms per-CPU times, so that a core's idle share is read to about 10 %.
+AUTO_WATCH_S = 0.1
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
 #: Worker processes start by forking (they inherit the engine); elsewhere one process.
@@ -161,8 +166,10 @@ class ReachabilityEngine(ChunkSteps):
         workers: Processes (1: this one; ``"auto"``: at most :func:`available_cores`
             within a cgroup CPU quota, per run as
             :func:`~gcm_pipeline.reach.workers.auto_workers` decides from the run's
-            size and the cores other processes leave idle while a quarter chunk
-            runs on this process; when it decides one, the run is ``workers=1``'s).
+            size and the cores other processes leave idle, read while this
+            process works alone: from the run's start, or a quarter chunk more
+            when that was under 0.1 s; when it decides one, the run is
+            ``workers=1``'s).
         chunk_size: Most targets per chunk (memory and progress granularity); on
             several workers the last chunks are smaller, so they finish together.
             None: 8,192 for the pinocchio backend (fewer, larger NumPy calls),
@@ -250,6 +257,7 @@ class ReachabilityEngine(ChunkSteps):
             spent=self._spent,
         )
         self._pool: Any = None
+        self._watch: IdleProbe | None = None  # what workers: auto reads during a run
         self._pool_size = 0
         #: CPU time [s] of each step of the last :meth:`run`, summed over chunks
         #: and workers: ``ik``, ``collisions``, ``approach``, ``retreat``,
@@ -312,6 +320,8 @@ class ReachabilityEngine(ChunkSteps):
             has_nb = np.any(nb >= 0, axis=1)
             phases = [np.flatnonzero(~has_nb), np.flatnonzero(has_nb)]
         used, self.idle_seen = 1, None
+        # what auto reads: the cores' idle time from here, while this process works alone
+        self._watch = IdleProbe() if self.auto and _CAN_FORK else None
         for phase, rows in enumerate(phases):
             if rows.size == 0:
                 continue
@@ -334,6 +344,8 @@ class ReachabilityEngine(ChunkSteps):
                 if progress is not None:
                     progress(int(chunk_rows.size))
             used = max(used, self.workers_used)
+            if self.workers_used > 1:  # the workers' CPU would read as other jobs' load
+                self._watch = None
         self.workers_used = used
         self.timings = timings
         candidates = _gather_candidates(cands, nq) if return_candidates else None
@@ -345,11 +357,16 @@ class ReachabilityEngine(ChunkSteps):
         """Each chunk's positions in ``work`` and its solved part, in order.
 
         A fixed ``workers``: :func:`guided_chunks` of the whole phase on that
-        many processes. ``workers: auto``: the first quarter chunk on this
-        process while an :class:`IdleProbe` watches the cores, then the rest on
-        as many workers as :func:`auto_workers` decides from what is left and
-        the idle cores; when that is one, the rest of the first chunk and then
-        one worker's chunks (the chunks of ``workers: 1``, the first cut in two).
+        many processes. ``workers: auto``: as many workers as :func:`auto_workers`
+        decides from the phase's size and the idle cores an :class:`IdleProbe`
+        read since the run started (while this process worked alone: the
+        set-up, a first phase solved here). When it has read them for less
+        than ``AUTO_WATCH_S`` (or workers ran since), the first quarter chunk
+        runs on this process meanwhile, and the decision is for the rest; one
+        worker then solves the rest of the first chunk and one worker's chunks
+        (the chunks of ``workers: 1``, the first cut in two). A decision read
+        from the run's start costs no chunk: one worker solves exactly the
+        chunks of ``workers: 1``.
         """
         n, start = len(work.targets), 0
         workers = self.workers
@@ -359,11 +376,13 @@ class ReachabilityEngine(ChunkSteps):
             probe_size = max(1, self.chunk_size // AUTO_PROBE_SHARE)
             workers = auto_workers(n - probe_size, self.chunk_size, self.workers, None)
             if workers > 1 and _CAN_FORK:
-                probe = IdleProbe()
-                first = np.arange(probe_size)
-                yield first, self.solve(*work.args(first))
-                start = probe_size
-                self.idle_seen = probe.idle_cores()
+                watch = self._watch
+                if watch is None or watch.watched_s() < AUTO_WATCH_S:
+                    watch = watch if watch is not None else IdleProbe()
+                    first = np.arange(probe_size)
+                    yield first, self.solve(*work.args(first))
+                    start = probe_size
+                self.idle_seen = watch.idle_cores()
                 workers = auto_workers(n - start, self.chunk_size, workers, self.idle_seen)
         if workers == 1 and 0 < start < n:
             # one worker: the rest of the first chunk, then the chunks of ``workers: 1``

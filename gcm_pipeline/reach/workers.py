@@ -6,7 +6,7 @@ set just before the fork) and solve chunks with :func:`solve_in_worker`. The
 pools still open are closed at exit. How many workers ``workers: auto`` forks
 for a run is :func:`auto_workers`'s decision, from the run's size, the cores
 this process may use (:func:`quota_cores`) and their idle capacity, read
-while the run's first quarter chunk is solved (:class:`IdleProbe`).
+from the run's start while this process works alone (:class:`IdleProbe`).
 """
 
 from __future__ import annotations
@@ -112,7 +112,8 @@ def auto_workers(n: int, chunk_size: int, cores: int, idle: float | None) -> int
     [cores] from :class:`IdleProbe`, each counted when at least
     ``AUTO_IDLE_CORE`` of it is idle (a core another job keeps busy is left
     to it). ``idle`` None (not measurable): the cores. The engine calls it
-    after its probe's chunk, with ``n`` the targets after that chunk. Only the
+    when a phase starts (after a probe's chunk when it had read the cores for
+    too short a time), with ``n`` the targets left to solve. Only the
     worker count depends on the load, never a result;
     ``benchmarks/bench_workers.py`` measures it against one worker.
     """
@@ -172,8 +173,9 @@ class IdleProbe:
     Read from the kernel's per-CPU times (``/proc/stat``) of the cores this
     process may use, at the start and at the end; this process's own CPU
     time meanwhile is not counted as busy, so the probe can watch while the
-    process works (the engine solves a quarter chunk meanwhile: measuring
-    costs no time).
+    process works (the engine goes on with its run meanwhile: measuring
+    costs no time). It reads nothing of its children: their CPU time is
+    counted as other processes'.
     """
 
     def __init__(self) -> None:
@@ -181,6 +183,10 @@ class IdleProbe:
         self.start = _cpu_times(self.cpus)
         self.wall = time.perf_counter()
         self.own = time.process_time()
+
+    def watched_s(self) -> float:
+        """Wall time since the probe started [s]."""
+        return time.perf_counter() - self.wall
 
     def idle_cores(self) -> float | None:
         """Cores other processes left idle since the probe started; None: not readable."""

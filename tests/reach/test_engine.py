@@ -14,6 +14,7 @@ from gcm_pipeline.config import EnvironmentConfig, ObjectConfig, load_config
 from gcm_pipeline.errors import InputError, WorkerLostError
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.pipeline import generate_candidates, make_checker
+from gcm_pipeline.reach import engine as engine_module
 from gcm_pipeline.reach.engine import (
     _RAN_EVERY_SEED,
     AUTO_PROBE_SHARE,
@@ -364,6 +365,70 @@ def test_auto_chunks_for_either_decision(robot, checker, grasps, result, monkeyp
         assert eng.workers_used == min(cores, (len(grasps) - probe) // (2 * chunk))
     np.testing.assert_array_equal(other.reachable, result.reachable)
     np.testing.assert_array_equal(other.q, result.q)
+
+
+def _two_phases(n: int, first: int) -> np.ndarray:
+    """Neighbours (n, 1) making a run of two phases: rows ``0..first-1`` alone, then the rest."""
+    nb = np.full((n, 1), -1)
+    nb[first:, 0] = np.arange(n - first) % first
+    return nb
+
+
+@pytest.mark.parametrize("idle", [0.0, None])
+def test_auto_decides_from_the_runs_start_without_a_probe_chunk(
+    robot, checker, grasps, monkeypatch, idle
+):
+    # a first phase solved on this process, read long enough: the second phase is
+    # chunked for the decision at once, with no quarter chunk solved first
+    monkeypatch.setattr(engine_module, "AUTO_WATCH_S", 0.0)
+    monkeypatch.setattr(IdleProbe, "idle_cores", lambda self: idle)
+    nb = _two_phases(len(grasps), 8)
+    one = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, chunk_size=4)
+    want = one.run(grasps, neighbours=nb)
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto")
+    eng.chunk_size = 4
+    sizes: list[int] = []
+    with eng:
+        got = eng.run(grasps, neighbours=nb, progress=sizes.append)
+        cores, used = eng.workers, eng.workers_used
+    rest = len(grasps) - 8
+    first = [c.size for c in guided_chunks(8, 4, 1)]  # too few for a second worker
+    if cores == 1 or idle == 0.0:  # exactly the chunks of workers: 1
+        assert used == 1
+        assert sizes == first + [c.size for c in guided_chunks(rest, 4, 1)]
+    else:
+        assert used == min(cores, rest // 8) > 1
+        assert sizes == first + [c.size for c in guided_chunks(rest, 4, used)]
+    for field in ("reachable", "reason", "q", "q_pregrasp", "q_retreat", "clearance"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+
+
+def test_auto_probes_again_after_its_workers_ran(robot, checker, grasps, monkeypatch):
+    # workers that ran in the first phase would read as other jobs' load: the second
+    # phase reads the cores afresh, over a quarter chunk solved on this process
+    monkeypatch.setattr(engine_module, "AUTO_WATCH_S", 0.0)
+    monkeypatch.setattr(IdleProbe, "idle_cores", lambda self: None)  # every core idle
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto")
+    eng.chunk_size = 4
+    if eng.workers < 2:
+        pytest.skip("one core: auto never forks")
+    started: list[float] = []
+    real = IdleProbe.__init__
+
+    def count(self: IdleProbe) -> None:
+        started.append(1.0)
+        real(self)
+
+    monkeypatch.setattr(IdleProbe, "__init__", count)
+    sizes: list[int] = []
+    with eng:
+        eng.run(grasps, neighbours=_two_phases(len(grasps), 40), progress=sizes.append)
+    assert eng.workers_used > 1
+    assert len(started) == 2  # the run's, then the second phase's
+    at = np.cumsum(sizes)
+    assert 40 in at  # the first phase's chunks end there
+    second = sizes[int(np.flatnonzero(at == 40)[0]) + 1 :]
+    assert second[0] == 1  # the probe's chunk: 4 // AUTO_PROBE_SHARE
 
 
 def test_auto_runs_a_small_set_on_this_process(robot, checker, grasps, result):

@@ -21,8 +21,9 @@ differ by up to 3.5x here), so the figure is the **median of the per-pair
 ratios** auto/one (the target: at least 1), with their spread (quartiles,
 least and most). Per auto run the benchmark records how many workers auto
 chose and the idle cores it read: where it chose 1, auto ran the one-worker
-code on this process (the same chunks, the first cut in two where it probed),
-so that pair's ratio shows what the probe costs and the machine's noise
+code on this process (the same chunks; the first cut in two where it solved a
+quarter chunk to read the cores longer), so that pair's ratio shows what the
+probe costs and the machine's noise
 (``ratio_where_auto_chose_one``; the
 pairs where it forked: ``ratio_where_auto_forked``). Also recorded: the load
 average (``os.getloadavg``) before every pair and at the end, and whether

@@ -115,6 +115,9 @@ AUTO_PROBE_SHARE = 4
 #: Shortest reading of the idle cores ``workers: auto`` decides on [s]: ten ticks of the
 #: kernel's 10 ms per-CPU times, so that a core's idle share is read to about 10 %.
 AUTO_WATCH_S = 0.1
+#: Oldest reading ``workers: auto`` decides on [s]: a run's first phase that took longer
+#: is read afresh (the load may have changed), over a quarter chunk.
+AUTO_WATCH_RECENT_S = 1.0
 #: Default most targets per chunk, by backend (see ``chunk_size``).
 _CHUNK = {"pinocchio": 8192, "mink": 2048}
 #: Worker processes start by forking (they inherit the engine); elsewhere one process.
@@ -361,7 +364,8 @@ class ReachabilityEngine(ChunkSteps):
         decides from the phase's size and the idle cores an :class:`IdleProbe`
         read since the run started (while this process worked alone: the
         set-up, a first phase solved here). When it has read them for less
-        than ``AUTO_WATCH_S`` (or workers ran since), the first quarter chunk
+        than ``AUTO_WATCH_S`` or more than ``AUTO_WATCH_RECENT_S`` (or workers
+        ran since), the first quarter chunk
         runs on this process meanwhile, and the decision is for the rest; one
         worker then solves the rest of the first chunk and one worker's chunks
         (the chunks of ``workers: 1``, the first cut in two). A decision read
@@ -377,6 +381,8 @@ class ReachabilityEngine(ChunkSteps):
             workers = auto_workers(n - probe_size, self.chunk_size, self.workers, None)
             if workers > 1 and _CAN_FORK:
                 watch = self._watch
+                if watch is not None and watch.watched_s() > AUTO_WATCH_RECENT_S:
+                    watch = None  # an old reading: the load may have changed since
                 if watch is None or watch.watched_s() < AUTO_WATCH_S:
                     watch = watch if watch is not None else IdleProbe()
                     first = np.arange(probe_size)

@@ -403,6 +403,24 @@ def test_auto_decides_from_the_runs_start_without_a_probe_chunk(
         np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
 
 
+def test_auto_reads_an_old_reading_afresh(robot, checker, grasps, monkeypatch):
+    # a first phase that took longer than AUTO_WATCH_RECENT_S: the load may have
+    # changed, so the second phase reads the cores again over a quarter chunk
+    monkeypatch.setattr(engine_module, "AUTO_WATCH_S", 0.0)
+    monkeypatch.setattr(engine_module, "AUTO_WATCH_RECENT_S", -1.0)  # every reading is old
+    monkeypatch.setattr(IdleProbe, "idle_cores", lambda self: 0.0)  # one worker
+    eng = ReachabilityEngine(robot, checker, approach=APPROACH, retreat=LIFT, workers="auto")
+    eng.chunk_size = 4
+    if eng.workers < 2:
+        pytest.skip("one core: auto never reads the load")
+    sizes: list[int] = []
+    with eng:
+        eng.run(grasps, neighbours=_two_phases(len(grasps), 8), progress=sizes.append)
+    assert eng.workers_used == 1
+    rest = [c.size for c in guided_chunks(len(grasps) - 8, 4, 1)]
+    assert sizes == [4, 4] + [1, 3] + rest[1:]  # the first phase, then probe + rest of chunk
+
+
 def test_auto_probes_again_after_its_workers_ran(robot, checker, grasps, monkeypatch):
     # workers that ran in the first phase would read as other jobs' load: the second
     # phase reads the cores afresh, over a quarter chunk solved on this process

@@ -381,7 +381,8 @@ BENCH_NOTES: dict[str, str] = {
         "are the CPU the rest of the machine (hogs and other jobs) used during each run [cores], "
         "so a far-off ratio can be traced to a load that changed between the pair's two runs "
         "(`pairs.load_1min`: the load average before each pair). "
-        "`pairs.auto_idle_cores_seen`: the idle cores auto read during its first chunk; "
+        "`pairs.auto_idle_cores_seen`: the idle cores auto read (from the run's start, or "
+        "over a first quarter chunk when that was too short); "
         "`identical_reachable`: every run's reachable flags are the same."
     ),
 }

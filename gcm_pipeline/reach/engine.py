@@ -260,7 +260,6 @@ class ReachabilityEngine(ChunkSteps):
             spent=self._spent,
         )
         self._pool: Any = None
-        self._watch: IdleProbe | None = None  # what workers: auto reads during a run
         self._pool_size = 0
         #: CPU time [s] of each step of the last :meth:`run`, summed over chunks
         #: and workers: ``ik``, ``collisions``, ``approach``, ``retreat``,
@@ -324,7 +323,7 @@ class ReachabilityEngine(ChunkSteps):
             phases = [np.flatnonzero(~has_nb), np.flatnonzero(has_nb)]
         used, self.idle_seen = 1, None
         # what auto reads: the cores' idle time from here, while this process works alone
-        self._watch = IdleProbe() if self.auto and _CAN_FORK else None
+        watch = IdleProbe() if self.auto and _CAN_FORK else None
         for phase, rows in enumerate(phases):
             if rows.size == 0:
                 continue
@@ -334,7 +333,7 @@ class ReachabilityEngine(ChunkSteps):
                 assert nb is not None
                 sub, hopeless = _neighbour_seeds(nb[rows], out, sub)
             work = _Phase(tgt[rows], sub, hopeless, return_candidates)
-            for at, part in self._solve_phase(work):
+            for at, part in self._solve_phase(work, watch):
                 chunk_rows = rows[at]
                 for key, arr in out.items():
                     if arr is not None:
@@ -348,7 +347,7 @@ class ReachabilityEngine(ChunkSteps):
                     progress(int(chunk_rows.size))
             used = max(used, self.workers_used)
             if self.workers_used > 1:  # the workers' CPU would read as other jobs' load
-                self._watch = None
+                watch = None
         self.workers_used = used
         self.timings = timings
         candidates = _gather_candidates(cands, nq) if return_candidates else None
@@ -356,21 +355,23 @@ class ReachabilityEngine(ChunkSteps):
 
     # --- workers --------------------------------------------------------------------------
 
-    def _solve_phase(self, work: _Phase) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
+    def _solve_phase(
+        self, work: _Phase, watch: IdleProbe | None
+    ) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
         """Each chunk's positions in ``work`` and its solved part, in order.
 
         A fixed ``workers``: :func:`guided_chunks` of the whole phase on that
         many processes. ``workers: auto``: as many workers as :func:`auto_workers`
-        decides from the phase's size and the idle cores an :class:`IdleProbe`
-        read since the run started (while this process worked alone: the
-        set-up, a first phase solved here). When it has read them for less
-        than ``AUTO_WATCH_S`` or more than ``AUTO_WATCH_RECENT_S`` (or workers
-        ran since), the first quarter chunk
-        runs on this process meanwhile, and the decision is for the rest; one
-        worker then solves the rest of the first chunk and one worker's chunks
-        (the chunks of ``workers: 1``, the first cut in two). A decision read
-        from the run's start costs no chunk: one worker solves exactly the
-        chunks of ``workers: 1``.
+        decides from the phase's size and the idle cores ``watch`` read since
+        the run started, while this process worked alone (the set-up, a first
+        phase solved here; None once workers ran: their CPU reads as other
+        jobs'). When it has read them for less than ``AUTO_WATCH_S`` or more
+        than ``AUTO_WATCH_RECENT_S``, or there is none, the first quarter chunk
+        runs on this process while it reads on (or a new one reads), and the
+        decision is for the rest; one worker then solves the rest of the first
+        chunk and one worker's chunks (the chunks of ``workers: 1``, the first
+        cut in two). A decision read from the run's start costs no chunk: one
+        worker solves exactly the chunks of ``workers: 1``.
         """
         n, start = len(work.targets), 0
         workers = self.workers
@@ -380,7 +381,6 @@ class ReachabilityEngine(ChunkSteps):
             probe_size = max(1, self.chunk_size // AUTO_PROBE_SHARE)
             workers = auto_workers(n - probe_size, self.chunk_size, self.workers, None)
             if workers > 1 and _CAN_FORK:
-                watch = self._watch
                 if watch is not None and watch.watched_s() > AUTO_WATCH_RECENT_S:
                     watch = None  # an old reading: the load may have changed since
                 if watch is None or watch.watched_s() < AUTO_WATCH_S:

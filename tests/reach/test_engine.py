@@ -430,11 +430,11 @@ def test_auto_probes_again_after_its_workers_ran(robot, checker, grasps, monkeyp
     eng.chunk_size = 4
     if eng.workers < 2:
         pytest.skip("one core: auto never forks")
-    started: list[float] = []
+    started: list[IdleProbe] = []
     real = IdleProbe.__init__
 
     def count(self: IdleProbe) -> None:
-        started.append(1.0)
+        started.append(self)
         real(self)
 
     monkeypatch.setattr(IdleProbe, "__init__", count)

@@ -44,6 +44,7 @@ __all__ = [
     "SixRAnalyticIK",
     "branch_gap",
     "nearest_copy",
+    "repeated_branches",
     "six_r_solver",
     "six_round",
     "wide_joints",
@@ -89,6 +90,35 @@ def nearest_copy(
     inside_b = (base >= lower) & (base <= upper)
     inside_o = (other >= lower) & (other <= upper)
     return np.where(inside_b, base, np.where(inside_o, other, np.nan))
+
+
+def repeated_branches(idx: np.ndarray, q: np.ndarray, n: int) -> np.ndarray:
+    """(M,) bool: the answers that repeat an earlier answer of their target.
+
+    ``idx`` (M,) sorted target of each answer (of ``n`` targets), ``q`` (M, 6)
+    its angles in (-π, π]. Two answers are one branch when they are closer than
+    ``_SAME_BRANCH`` modulo 2π in every joint; every answer is compared with
+    every earlier one of its target, the repeats included. The pairs are
+    narrowed joint by joint: most pairs of two branches differ in their first
+    joints, so the later joints are compared for few of them.
+    """
+    rank = np.arange(idx.size) - np.searchsorted(idx, idx, side="left")
+    repeat = np.zeros(idx.size, dtype=bool)
+    k = int(rank.max(initial=-1)) + 1
+    if k < 2:
+        return repeat
+    slot = np.full((n, k), -1, dtype=np.int64)  # the answer at each (target, rank)
+    slot[idx, rank] = np.arange(idx.size)
+    a, b = np.triu_indices(k, 1)  # rank a before rank b
+    a, b = slot[:, a].ravel(), slot[:, b].ravel()
+    pair = (a >= 0) & (b >= 0)
+    a, b = a[pair], b[pair]
+    for j in range(q.shape[1]):
+        d = np.abs(q[a, j] - q[b, j])
+        near = np.minimum(d, 2.0 * np.pi - d) < _SAME_BRANCH
+        a, b = a[near], b[near]
+    repeat[b] = True
+    return repeat
 
 
 class SixRAnalyticIK:
@@ -168,28 +198,18 @@ class SixRAnalyticIK:
         poses[:, :3, 3] = pos
         poses[:, 3, 3] = 1.0
         sols = self._robot.IK_batched(poses, 1) if n else []
-        qs = [np.asarray(s.Q, dtype=float).reshape(-1, 6) for s in sols]
-        counts = np.array([len(q) for q in qs], dtype=int)
+        qs = [s.Q for s in sols]  # (k, 6) float64 each
+        counts = np.fromiter((len(q) for q in qs), dtype=int, count=len(qs))
         if counts.sum() == 0:
             return np.zeros(0, dtype=int), np.zeros((0, 6))
-        q = np.concatenate(qs)
-        ls = np.concatenate([np.asarray(s.is_LS, dtype=bool).reshape(-1) for s in sols])
+        q = np.concatenate([q for q in qs if len(q)], dtype=float).reshape(-1, 6)
+        ls = np.concatenate([s.is_LS for s in sols], dtype=bool)
         idx = np.repeat(np.arange(n), counts)
         keep = ~ls & np.all(np.isfinite(q), axis=1)
         idx, q = idx[keep], np.remainder(q[keep] + np.pi, 2.0 * np.pi) - np.pi
         # at singularities EAIK may give one branch twice: keep its first
-        rank = np.arange(idx.size) - np.searchsorted(idx, idx, side="left")
-        k = int(rank.max(initial=-1)) + 1
-        if k > 1:
-            padded = np.full((n, k, 6), np.nan)
-            padded[idx, rank] = q
-            d = np.abs(padded[:, :, None, :] - padded[:, None, :, :])  # angles in (-pi, pi]
-            gap = np.minimum(d, 2.0 * np.pi - d)
-            same = np.all(gap < _SAME_BRANCH, axis=3)  # NaN pads are never the same
-            earlier = np.tril(same, k=-1).any(axis=2)
-            first = ~earlier[idx, rank]
-            idx, q = idx[first], q[first]
-        return idx, q
+        first = ~repeated_branches(idx, q, n)
+        return idx[first], q[first]
 
     def solve(
         self,

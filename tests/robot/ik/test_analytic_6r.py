@@ -14,6 +14,7 @@ from gcm_pipeline.robot.ik.analytic_6r import (
     SixRAnalyticIK,
     branch_gap,
     nearest_copy,
+    repeated_branches,
     six_r_solver,
     wide_joints,
 )
@@ -167,3 +168,36 @@ def test_branch_gap_wraps_only_the_wide_joints(wide: np.ndarray) -> None:
     assert np.all(gap[..., wide] <= 0.1 + 1e-12)  # the turns removed, the small part kept
     assert np.all(gap >= 0.0)
     assert np.isnan(branch_gap(np.full(nq, np.nan), np.zeros(nq), wide)).all()
+
+
+def test_repeated_branches_are_the_answers_equal_to_an_earlier_one_modulo_2pi() -> None:
+    """Against every pair, written out: a repeat is within 1e-6 of an earlier answer in all joints.
+
+    Groups of up to 17 answers, joints drawn from five values (so pairs share
+    joints, as a UR's branches share the shoulder's), with planted copies a
+    hair inside and outside the tolerance, some across the wrap at +-pi.
+    """
+    rng = np.random.default_rng(11)
+    values = np.array([-np.pi, -1.0, 0.0, 1.0, np.nextafter(np.pi, 0.0)])
+    repeats = 0
+    for trial in range(400):
+        n = int(rng.integers(0, 30))
+        idx = np.repeat(np.arange(n), rng.integers(0, 18, n))
+        m = idx.size
+        if trial % 2:
+            q = rng.choice(values, size=(m, 6))
+        else:
+            q = rng.uniform(-np.pi, np.pi, (m, 6))
+        for i in rng.integers(0, max(m, 1), m // 2 if m else 0):
+            j = int(rng.choice(np.flatnonzero(idx == idx[i])))
+            hair = rng.choice([0.0, 0.5e-6, 0.99e-6, 1.01e-6, 3e-6], 6) * rng.choice([-1, 1], 6)
+            q[j] = np.remainder(q[i] + hair + np.pi, 2.0 * np.pi) - np.pi
+        expected = np.zeros(m, dtype=bool)
+        for b in range(m):
+            for a in range(b):
+                if idx[a] == idx[b]:
+                    d = np.abs(q[a] - q[b])
+                    expected[b] |= bool(np.all(np.minimum(d, 2.0 * np.pi - d) < 1e-6))
+        assert np.array_equal(repeated_branches(idx, q, n), expected), trial
+        repeats += int(expected.sum())
+    assert repeats > 300  # the planted copies are there to be found

@@ -15,7 +15,12 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.robot.ik import IKCandidates, IKResult, solve_ik, verify_solutions
-from gcm_pipeline.robot.ik.analytic_6r import branch_gap, six_r_solver, wide_joints
+from gcm_pipeline.robot.ik.analytic_6r import (
+    branch_gap,
+    same_as_earlier,
+    six_r_solver,
+    wide_joints,
+)
 from gcm_pipeline.robot.ik.lm import PinocchioIKOptions
 from gcm_pipeline.robot.model import Robot
 
@@ -136,25 +141,23 @@ def _verified_distinct(
     """
     nq = robot.nq
     empty = (np.zeros(0, int), np.zeros(0, int), np.zeros((0, nq)), np.zeros((0, 2)))
-    pe, re, inside = verify_solutions(robot, cq, targets[idx])
-    good = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
-    idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
     # distinct from the first solution and from the earlier alternatives of the same
     # target (candidates are sorted by target, in seed order within a target), modulo
     # 2 pi on the joints whose range exceeds a turn: q + 2 pi is the same arm shape
     wide = wide_joints(robot.lower, robot.upper)
+    # the first solution's copies go before the verification: dropped either way
     keep = np.max(branch_gap(cq, q_first[idx], wide), axis=1) >= separation
-    idx, cq, err = idx[keep], cq[keep], err[keep]
+    idx, cq = idx[keep], cq[keep]
+    pe, re, inside = verify_solutions(robot, cq, targets[idx])
+    good = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
+    idx, cq, err = idx[good], cq[good], np.stack([pe[good], re[good]], axis=1)
     if len(idx) == 0:
         return empty
-    pos = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
-    groups, group = np.unique(idx, return_inverse=True)
-    padded = np.full((len(groups), int(pos.max()) + 1, nq), np.nan)  # pads are never near
-    padded[group, pos] = cq
-    gap = np.max(branch_gap(padded[:, :, None], padded[:, None, :], wide), axis=3)
-    near = gap < separation  # NaN (a pad) compares False
-    earlier = np.tril(near, k=-1).any(axis=2)  # same as an earlier candidate
-    distinct = ~earlier[group, pos]
+
+    def close(j: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return branch_gap(x[:, None], y[:, None], wide[j : j + 1])[:, 0] < separation
+
+    distinct = ~same_as_earlier(idx, cq, close)
     idx, cq, err = idx[distinct], cq[distinct], err[distinct]
     rank = np.arange(len(idx)) - np.searchsorted(idx, idx, side="left")
     keep = rank < k

@@ -33,6 +33,7 @@ branch to its targets, nearest the preferred configuration first.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -45,6 +46,7 @@ __all__ = [
     "branch_gap",
     "nearest_copy",
     "repeated_branches",
+    "same_as_earlier",
     "six_r_solver",
     "six_round",
     "wide_joints",
@@ -92,33 +94,44 @@ def nearest_copy(
     return np.where(inside_b, base, np.where(inside_o, other, np.nan))
 
 
-def repeated_branches(idx: np.ndarray, q: np.ndarray, n: int) -> np.ndarray:
-    """(M,) bool: the answers that repeat an earlier answer of their target.
+def same_as_earlier(
+    group: np.ndarray, q: np.ndarray, close: Callable[[int, np.ndarray, np.ndarray], np.ndarray]
+) -> np.ndarray:
+    """(M,) bool: the rows of ``q`` (M, nq) close to an earlier row of their group in every joint.
 
-    ``idx`` (M,) sorted target of each answer (of ``n`` targets), ``q`` (M, 6)
-    its angles in (-π, π]. Two answers are one branch when they are closer than
-    ``_SAME_BRANCH`` modulo 2π in every joint; every answer is compared with
-    every earlier one of its target, the repeats included. The pairs are
-    narrowed joint by joint: most pairs of two branches differ in their first
-    joints, so the later joints are compared for few of them.
+    ``group`` (M,) is sorted; ``close(j, x, y)`` says per pair whether joint
+    ``j``'s angles ``x`` and ``y`` (K,) are close. Every row is compared with
+    every earlier row of its group (those found to repeat included). The pairs
+    are narrowed joint by joint: two distinct solutions mostly differ in their
+    first joints, so few pairs reach the later ones.
     """
-    rank = np.arange(idx.size) - np.searchsorted(idx, idx, side="left")
-    repeat = np.zeros(idx.size, dtype=bool)
-    k = int(rank.max(initial=-1)) + 1
-    if k < 2:
-        return repeat
-    slot = np.full((n, k), -1, dtype=np.int64)  # the answer at each (target, rank)
-    slot[idx, rank] = np.arange(idx.size)
-    a, b = np.triu_indices(k, 1)  # rank a before rank b
-    a, b = slot[:, a].ravel(), slot[:, b].ravel()
-    pair = (a >= 0) & (b >= 0)
-    a, b = a[pair], b[pair]
+    m = group.size
+    first = np.searchsorted(group, group, side="left")
+    rank = np.arange(m) - first  # earlier rows of the group
+    b = np.repeat(np.arange(m), rank)
+    a = np.arange(b.size) - np.repeat(np.cumsum(rank) - rank, rank) + first[b]
     for j in range(q.shape[1]):
-        d = np.abs(q[a, j] - q[b, j])
-        near = np.minimum(d, 2.0 * np.pi - d) < _SAME_BRANCH
+        near = close(j, q[a, j], q[b, j])
         a, b = a[near], b[near]
+    repeat = np.zeros(m, dtype=bool)
     repeat[b] = True
     return repeat
+
+
+def _same_angle(j: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Angles in (-π, π] closer than ``_SAME_BRANCH`` modulo 2π (any joint ``j``)."""
+    d = np.abs(x - y)
+    return np.minimum(d, 2.0 * np.pi - d) < _SAME_BRANCH
+
+
+def repeated_branches(idx: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(M,) bool: EAIK's answers that repeat an earlier answer of their target.
+
+    ``idx`` (M,) sorted target of each answer, ``q`` (M, 6) its angles in
+    (-π, π]: two answers closer than ``_SAME_BRANCH`` modulo 2π in every joint
+    are one branch (:func:`same_as_earlier`).
+    """
+    return same_as_earlier(idx, q, _same_angle)
 
 
 class SixRAnalyticIK:
@@ -208,7 +221,7 @@ class SixRAnalyticIK:
         keep = ~ls & np.all(np.isfinite(q), axis=1)
         idx, q = idx[keep], np.remainder(q[keep] + np.pi, 2.0 * np.pi) - np.pi
         # at singularities EAIK may give one branch twice: keep its first
-        first = ~repeated_branches(idx, q, n)
+        first = ~repeated_branches(idx, q)
         return idx[first], q[first]
 
     def solve(

@@ -15,6 +15,7 @@ from gcm_pipeline.robot.ik.analytic_6r import (
     branch_gap,
     nearest_copy,
     repeated_branches,
+    same_as_earlier,
     six_r_solver,
     wide_joints,
 )
@@ -170,13 +171,24 @@ def test_branch_gap_wraps_only_the_wide_joints(wide: np.ndarray) -> None:
     assert np.isnan(branch_gap(np.full(nq, np.nan), np.zeros(nq), wide)).all()
 
 
-def test_repeated_branches_are_the_answers_equal_to_an_earlier_one_modulo_2pi() -> None:
-    """Against every pair, written out: a repeat is within 1e-6 of an earlier answer in all joints.
+WIDE = np.array([1, 0, 1, 0, 0, 1], bool)
 
-    Groups of up to 17 answers, joints drawn from five values (so pairs share
+
+def _by_branch_gap(j: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return branch_gap(x[:, None], y[:, None], WIDE[j : j + 1])[:, 0] < 1e-3
+
+
+@pytest.mark.parametrize("how", ["repeated_branches", "branch_gap"])
+def test_same_as_earlier_finds_the_rows_close_to_an_earlier_row_of_their_group(how: str) -> None:
+    """Against every pair written out: a repeat is close to an earlier row in all joints.
+
+    Groups of up to 17 rows, joints drawn from five values (so pairs share
     joints, as a UR's branches share the shoulder's), with planted copies a
-    hair inside and outside the tolerance, some across the wrap at +-pi.
+    hair inside and outside the tolerance, some across the wrap at +-pi (EAIK's
+    repeated answers, 1e-6 modulo 2 pi; the alternatives' ``branch_gap`` below
+    1e-3, modulo 2 pi on the wide joints only).
     """
+    tol = 1e-6 if how == "repeated_branches" else 1e-3
     rng = np.random.default_rng(11)
     values = np.array([-np.pi, -1.0, 0.0, 1.0, np.nextafter(np.pi, 0.0)])
     repeats = 0
@@ -190,14 +202,20 @@ def test_repeated_branches_are_the_answers_equal_to_an_earlier_one_modulo_2pi() 
             q = rng.uniform(-np.pi, np.pi, (m, 6))
         for i in rng.integers(0, max(m, 1), m // 2 if m else 0):
             j = int(rng.choice(np.flatnonzero(idx == idx[i])))
-            hair = rng.choice([0.0, 0.5e-6, 0.99e-6, 1.01e-6, 3e-6], 6) * rng.choice([-1, 1], 6)
+            hair = rng.choice([0.0, 0.5, 0.99, 1.01, 3.0], 6) * tol * rng.choice([-1, 1], 6)
             q[j] = np.remainder(q[i] + hair + np.pi, 2.0 * np.pi) - np.pi
         expected = np.zeros(m, dtype=bool)
         for b in range(m):
             for a in range(b):
                 if idx[a] == idx[b]:
                     d = np.abs(q[a] - q[b])
-                    expected[b] |= bool(np.all(np.minimum(d, 2.0 * np.pi - d) < 1e-6))
-        assert np.array_equal(repeated_branches(idx, q, n), expected), trial
+                    wrap = np.ones(6, bool) if how == "repeated_branches" else WIDE
+                    d[wrap] = np.minimum(d[wrap], 2.0 * np.pi - d[wrap])
+                    expected[b] |= bool(np.all(d < tol))
+        if how == "repeated_branches":
+            got = repeated_branches(idx, q)
+        else:
+            got = same_as_earlier(idx, q, _by_branch_gap)
+        assert np.array_equal(got, expected), trial
         repeats += int(expected.sum())
     assert repeats > 300  # the planted copies are there to be found

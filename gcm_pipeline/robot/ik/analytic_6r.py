@@ -275,41 +275,81 @@ def six_round(six: SixRAnalyticIK, ctx: SolveContext, pref: np.ndarray) -> np.nd
     ``first_round_seeds`` when the best manipulability decides, else 1) in
     order of distance, verified by the chain's forward kinematics; with a
     validator, in batches of ranks 0, 1, 2-3, 4-7, ... for the targets still
-    short of valid ones.
+    short of valid ones. A branch is verified only when it may be offered: a
+    target's nearest first, its others where that one is off its pose or the
+    target needs more (the same branches are offered as if all were verified).
 
     Returns:
         The targets (K,) that got an exact branch inside the limits: every one
         of their branches has been offered (the enumeration is complete).
     """
-    opts, tally, trot, tpos = ctx.opts, ctx.tally, ctx.trot, ctx.tpos
+    opts, tally = ctx.opts, ctx.tally
     n_valid = tally.n_valid
     least = ctx.first if ctx.by_manipulability else 1
-    at, cq = six.solve(trot, tpos, ctx.lower, ctx.upper, pref)
-    if at.size == 0:
-        return at
-    pe, re = pose_errors(ctx.chain, cq, trot[at], tpos[at])
-    conv = (pe <= ctx.tol_p) & (re <= ctx.tol_r)
-    at, cq, pe, re = at[conv], cq[conv], pe[conv], re[conv]
+    at, cq = six.solve(ctx.trot, ctx.tpos, ctx.lower, ctx.upper, pref)
     if at.size == 0:
         return at
     dist = np.sum((cq - pref[at]) ** 2, axis=1)
     order = np.lexsort((dist, at))
-    at, cq, pe, re, dist = at[order], cq[order], pe[order], re[order], dist[order]
-    rank = rank_in_runs(at)
-    top = int(rank.max()) + 1
+    at, cq, dist = at[order], cq[order], dist[order]
+    heads = np.flatnonzero(np.r_[True, at[1:] != at[:-1]])
+    branches = _Verified(ctx, at, cq)
+    branches.verify(heads)  # each target's nearest
+    branches.verify_targets(~branches.conv & branches.known)  # where that one is off its pose
+    # the batches of ranks up to the most branches of a target (no rank beyond: empty)
+    top = int(np.max(np.diff(np.r_[heads, at.size])))
     bounds = [0, top]
     if ctx.validate:
         bounds = [0, *(1 << i for i in range(max(1, top).bit_length())), top]
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
         short = n_valid[at] < opts.min_solutions
         need = np.maximum(np.maximum(opts.min_solutions - n_valid[at], 1), least)
-        take = short & (rank >= lo) & (rank < hi)
+        # the targets that may take a branch past their nearest: all of theirs verified
+        if lo > 0:
+            branches.verify_targets(short)
+        elif not ctx.validate:
+            branches.verify_targets(short & (need > 1))
+        rows = np.flatnonzero(branches.conv)  # by target, nearest first
+        rank = rank_in_runs(at[rows])
+        take = short[rows] & (rank >= lo) & (rank < hi)
         if not ctx.validate:
-            take &= rank < need
-        rows = np.flatnonzero(take)
+            take &= rank < need[rows]
+        rows = rows[take]
         if rows.size == 0:
             continue
         ids = at[rows]
-        tally.attempted(ids, pe[rows], re[rows], cq[rows])
+        tally.attempted(ids, branches.pe[rows], branches.re[rows], cq[rows])
         tally.accept(ids, cq[rows], 1.0 / (1.0 + dist[rows]))
-    return np.unique(at)
+    return np.unique(at[branches.conv])
+
+
+class _Verified:
+    """The branches ``cq`` of targets ``at`` (sorted), verified by the chain's FK as needed.
+
+    ``known`` says which are verified, ``pe``/``re`` their errors (NaN until
+    verified), ``conv`` which of them are within the IK tolerances.
+    """
+
+    def __init__(self, ctx: SolveContext, at: np.ndarray, cq: np.ndarray) -> None:
+        self.ctx, self.at, self.cq = ctx, at, cq
+        self.pe = np.full(at.size, np.nan)
+        self.re = np.full(at.size, np.nan)
+        self.known = np.zeros(at.size, dtype=bool)
+        self.conv = np.zeros(at.size, dtype=bool)
+
+    def verify(self, rows: np.ndarray) -> None:
+        """Verify the branches ``rows`` (not yet verified)."""
+        if rows.size == 0:
+            return
+        ctx, ids = self.ctx, self.at[rows]
+        pe, re = pose_errors(ctx.chain, self.cq[rows], ctx.trot[ids], ctx.tpos[ids])
+        self.pe[rows], self.re[rows], self.known[rows] = pe, re, True
+        self.conv[rows] = (pe <= ctx.tol_p) & (re <= ctx.tol_r)
+
+    def verify_targets(self, rows: np.ndarray) -> None:
+        """Verify every branch of the targets of ``rows`` (M,) bool not yet verified."""
+        if not rows.any():
+            return
+        whole = np.zeros(self.ctx.tally.n_valid.size, dtype=bool)
+        whole[self.at[rows]] = True
+        self.verify(np.flatnonzero(whole[self.at] & ~self.known))

@@ -25,7 +25,10 @@ all batches of a checker with ``threads`` > 1 (those pools run in parallel in
 C++; the NumPy broad phase does not). A pair of two
 geometries fixed to the world (the base link against an obstacle that
 overlaps it) collides in every configuration or in none: it is decided once,
-when the checker is built. :meth:`CollisionChecker.clearance`
+when the checker is built, and so is a link that no joint lifts or lowers over a
+world box it clears at home (a UR's shoulder over the table:
+:mod:`~gcm_pipeline.robot.collision.apart`), free in every configuration.
+:meth:`CollisionChecker.clearance`
 (:mod:`~gcm_pipeline.robot.collision.clearance`) uses the same
 spheres as lower bounds and runs coal's exact distance only for pairs that can
 still be the nearest.
@@ -43,6 +46,7 @@ import pinocchio as pin
 from gcm_pipeline.errors import ConfigError, InputError, choice_error
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.chain import JointFrames
+from gcm_pipeline.robot.collision.apart import pairs_apart
 from gcm_pipeline.robot.collision.broadphase import (
     BLOCK,
     BROAD_MARGIN,
@@ -89,6 +93,9 @@ _FEW = 128
 #: The same with the compiled kernels: their set-up (about 100 us on the Panda's
 #: bottle scene) costs less than coal's pools from about 16 configurations on.
 _FEW_COMPILED = 16
+#: A link is dropped against a box it clears by more than the broad phase's margin
+#: plus this at home, its height over the box unchanged by any joint [m].
+_APART_SLACK = 1e-6
 
 
 class _CarriedObject(NamedTuple):
@@ -131,6 +138,8 @@ class CollisionChecker(ClearanceQueries):
         static_collisions: ``(robot link, world shape)`` pairs fixed to the
             world that collide (an obstacle overlapping the base link): every
             configuration collides.
+        pairs_apart: ``(robot link, world shape)`` pairs no configuration
+            brings together, not checked (:mod:`~gcm_pipeline.robot.collision.apart`).
     """
 
     def __init__(
@@ -256,7 +265,14 @@ class CollisionChecker(ClearanceQueries):
             for k in fixed
             if self._run(self._pair_pool[k], np.asarray(robot.home, dtype=float)[None])[0]
         }
-        moving = [k for k in range(len(pairs)) if k not in fixed]
+        # a link that no joint lifts or lowers over a box's face (a UR's shoulder over
+        # the table): above it at home, above it always (level 3 would call it free in
+        # every configuration): not checked at all
+        apart = pairs_apart(robot, gm, pairs, BROAD_MARGIN + _APART_SLACK)
+        moving = [k for k in range(len(pairs)) if k not in fixed and k not in apart]
+        self.pairs_apart = tuple(
+            (link_of[pairs[k].owner], gm.geometryObjects[pairs[k].b].name) for k in sorted(apart)
+        )
         self.static_collisions = tuple(
             (link_of[pairs[k].owner], gm.geometryObjects[pairs[k].b].name)
             for k in sorted(static_hit)

@@ -17,7 +17,8 @@ all of them:
   per (target, joint-7 value): :mod:`~gcm_pipeline.robot.ik.panda_kernel`;
 * levels 1 and 2 of the collision broad phase (one bounding sphere per
   geometry, then the sphere covers), level 3 (a robot polytope's hull
-  vertices against a box) and level 4 (its longest edges inside a world
+  vertices against a box of the world, or against a robot box in the
+  frames of the box's joint) and level 4 (its longest edges inside a world
   primitive), see :mod:`gcm_pipeline.robot.collision`:
   :mod:`~gcm_pipeline.robot.collision.broadphase_kernel`;
 * the clearance's steps before coal (the pairs' sphere bounds, the exact

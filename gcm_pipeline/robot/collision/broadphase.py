@@ -10,7 +10,8 @@ configurations at once by vectorised forward kinematics
 spheres are apart (from each other, or from the world shape: exact point
 distances for boxes, cylinders, spheres and capsules, the local bounding box
 of meshes) cannot collide; (2) nor can one whose sphere covers are apart.
-(3) A robot polytope against a box (the table, box obstacles) is free when
+(3) A robot polytope against a box (the table, box obstacles, and a robot's
+own box: a gripper body from the registry against an arm link) is free when
 its convex hull's vertices all lie beyond the plane of one face of the box,
 and collides when one of them lies more than 0.1 mm inside the box (the
 vertex of one of its triangles; shallower ones are left to coal). (4) A robot
@@ -292,6 +293,10 @@ class Screen(NamedTuple):
     # robot polytope vs a box, sphere or cylinder, by column: (joint, edge ends (3, E)
     # and (3, E), the shape's inverse placement (4, 4), its packed row (21,))
     edges: dict[int, tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+    # robot polytope vs a robot box (self pairs), by column: (the polytope's joint,
+    # its hull vertices (3, V), the box's joint, the box's inverse placement in that
+    # joint's frame (4, 4), halfs)
+    self_boxes: dict[int, tuple[int, np.ndarray, int, np.ndarray, np.ndarray]]
 
 
 class BroadPhase:
@@ -337,7 +342,7 @@ class BroadPhase:
         """The broad phase of the pairs ``cols`` (indices of ``self._pairs``) of one mode."""
         cov, gm = self._cover, self._gm
         sa, sb, bound = [], [], []
-        boxes, edges = {}, {}
+        boxes, edges, self_boxes = {}, {}, {}
         for k, c in enumerate(cols):
             p = self._pairs[c]
             own = np.arange(cov.start[p.owner], cov.start[p.owner + 1])
@@ -347,6 +352,9 @@ class BroadPhase:
                 sa.append(ia)
                 sb.append(ib)
                 bound.append((cov.radius[ia] + cov.radius[ib] + BROAD_MARGIN) ** 2)
+                box = self._self_box(p.a, p.b)
+                if box is not None:
+                    self_boxes[k] = box
                 continue
             sa.append(own)
             sb.append(np.full(own.size, -1))
@@ -380,7 +388,35 @@ class BroadPhase:
             cat(bound, float),
             boxes,
             edges,
+            self_boxes,
         )
+
+    def _self_box(
+        self, a: int, b: int
+    ) -> tuple[int, np.ndarray, int, np.ndarray, np.ndarray] | None:
+        """Level 3 of a self pair: a robot polytope against a robot box, or None.
+
+        ``(polytope's joint, hull vertices (3, V), box's joint, the box's inverse
+        placement in its joint's frame (4, 4), halfs)`` for the robot geometries
+        ``a`` and ``b`` (either may be the box).
+        """
+        gm = self._gm
+        for box, poly in ((b, a), (a, b)):
+            shape = gm.geometryObjects[box]
+            if not isinstance(shape.geometry, coal.Box):
+                continue
+            if not isinstance(gm.geometryObjects[poly].geometry, POLYTOPES):
+                continue
+            joint, verts = self._hull(poly)
+            box_joint = int(shape.parentJoint)
+            rot, trans = self._frames.local(
+                box_joint, np.asarray(shape.placement.rotation), shape.placement.translation
+            )
+            placement = np.eye(4)
+            placement[:3, :3], placement[:3, 3] = rot, trans
+            halfs = np.asarray(shape.geometry.halfSide, dtype=float)
+            return joint, verts.T.copy(), box_joint, np.linalg.inv(placement), halfs
+        return None
 
     def _place(
         self,
@@ -427,7 +463,8 @@ class BroadPhase:
 
         Broad phase, in three levels: a pair whose geometries' bounding spheres
         are apart (from each other, or from the world shape) is free; so is
-        one whose sphere covers are. A robot polytope against a box is free if
+        one whose sphere covers are. A robot polytope against a box (of the
+        world, or a robot's own against another link) is free if
         its hull vertices all lie beyond one face's plane, and collides if one
         of them lies ``INSIDE_DEPTH`` inside the box (a vertex of one of its
         triangles, or of the solid). A robot polytope against a box, sphere or
@@ -479,7 +516,16 @@ class BroadPhase:
                 lb = self._bounds_for(int(screen.world[k])).lower(ca) - bound
                 near = (lb <= BROAD_MARGIN).any(axis=1)
             rows = rows[near]
-            # 3. hull vertices against a box
+            # 3. hull vertices against a box (of the world, or of the robot)
+            own_box = screen.self_boxes.get(k)
+            if own_box is not None and rows.size:
+                joint, verts, box_joint, inv, halfs = own_box
+                rel = relative_frames(rots, poss, joint, box_joint, rows)
+                local = in_frame((*rel, inv), np.arange(rows.size), verts)
+                lim = halfs[None, :, None]
+                inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
+                hit[k, rows[inside]] = True
+                rows = rows[~(beyond_a_face(local, lim) | inside)]
             box = screen.boxes.get(k)
             if box is not None and rows.size:
                 joint, verts, inv, halfs = box
@@ -529,6 +575,7 @@ class BroadPhase:
         """
         tfs = stacked(frames.transforms)
         broad, boxes, edges = self._compiled_screen(screen)
+        self_boxes = self._compiled_self_boxes(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
         hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
         decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
@@ -540,6 +587,13 @@ class BroadPhase:
             if box is not None:
                 joint, *limits = box
                 status = compiled.hull_vs_box(tfs[joint], rows, *limits)
+                hit[k, rows[status == kernels.COLLIDES]] = True
+                rows = rows[status == kernels.UNDECIDED]
+            own_box = self_boxes.get(k)
+            if own_box is not None:
+                joint, box_joint, *limits = own_box
+                rel = relative_transforms(tfs, joint, box_joint, rows)
+                status = compiled.hull_vs_box(rel, np.arange(rows.size), *limits)
                 hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
             edge = edges.get(k)
@@ -613,6 +667,32 @@ class BroadPhase:
         self._compiled_args[id(screen)] = (screen, broad, boxes, edges)
         return broad, boxes, edges
 
+    def _compiled_self_boxes(self, screen: Screen) -> dict[int, tuple[Any, ...]]:
+        """Level 3's kernel arguments of the self pairs with a box (built once per screen).
+
+        ``(polytope's joint, box's joint, vertices, inverse placement, beyond,
+        deep)`` by column, the limits the NumPy level's plus
+        :data:`~gcm_pipeline.robot.kernels.SLACK` (stricter), as for world boxes.
+        """
+        key = ("self_boxes", id(screen))
+        known = self._compiled_args.get(key)
+        if known is not None and known[0] is screen:
+            return known[1]
+        slack = kernels.SLACK
+        args = {
+            k: (
+                joint,
+                box_joint,
+                np.ascontiguousarray(verts, float),
+                np.ascontiguousarray(inv, float),
+                halfs + (BROAD_MARGIN + slack),
+                halfs - (INSIDE_DEPTH + slack),
+            )
+            for k, (joint, verts, box_joint, inv, halfs) in screen.self_boxes.items()
+        }
+        self._compiled_args[key] = (screen, args)
+        return args
+
     def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:
         """Coal's answer for pair ``c`` (an index of ``_pairs``) in configurations (M, nq).
 
@@ -683,6 +763,30 @@ def row_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if a.ndim == 2 and a.shape[0] == 1:
         return (np.concatenate([a, a]) @ b)[:1]
     return a @ b
+
+
+def relative_frames(
+    rots: Any, poss: Any, joint: int, base: int, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint ``joint``'s frames in joint ``base``'s, for configurations ``rows``.
+
+    ``rots[j]`` (N, 3, 3) and ``poss[j]`` (N, 3) are joint j's frames in the base
+    frame. Returns rotations (M, 3, 3) and origins (M, 3): ``Rb^T Ra`` and
+    ``Rb^T (pa - pb)``.
+    """
+    rb = rots[base][rows]
+    rot = np.einsum("nji,njk->nik", rb, rots[joint][rows])
+    pos = np.einsum("nji,nj->ni", rb, poss[joint][rows] - poss[base][rows])
+    return rot, pos
+
+
+def relative_transforms(tfs: np.ndarray, joint: int, base: int, rows: np.ndarray) -> np.ndarray:
+    """:func:`relative_frames` from stacked frames ``tfs`` (J, N, 3, 4), as (M, 3, 4)."""
+    a, b = tfs[joint][rows], tfs[base][rows]
+    out = np.empty((rows.size, 3, 4))
+    out[:, :, :3] = np.einsum("nji,njk->nik", b[:, :, :3], a[:, :, :3])
+    out[:, :, 3] = np.einsum("nji,nj->ni", b[:, :, :3], a[:, :, 3] - b[:, :, 3])
+    return out
 
 
 def in_frame(frame: tuple[Any, Any, np.ndarray], rows: np.ndarray, points: np.ndarray) -> Any:

@@ -30,13 +30,26 @@ _AXES = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0)}
 _AXES["JointModelRZ"] = (0.0, 0.0, 1.0)
 
 
+#: The half turn about x: maps z onto -z (its own inverse).
+_FLIP = np.diag([1.0, -1.0, -1.0])
+
+
 def _z_to(axis: np.ndarray) -> np.ndarray:
-    """A rotation that maps the z axis onto the unit vector ``axis``."""
+    """A rotation that maps the z axis onto the unit vector ``axis``.
+
+    Rodrigues' formula about ``z x axis`` divides by ``1 + cos``, which loses
+    every digit as the axis nears -z (a URDF axis ``0 -8.7e-08 -1``, a float32
+    export of -z, gave joint origins 4.7 mm off). An axis below the xy plane
+    is first flipped to the upper half by the half turn about x, so the
+    division is by at least 1.
+    """
+    if axis[2] < 0.0:
+        return _FLIP @ _z_to(_FLIP @ axis)
     z = np.array([0.0, 0.0, 1.0])
     v = np.cross(z, axis)
     c = float(axis @ z)
     if np.linalg.norm(v) < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+        return np.eye(3)
     k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
     return np.eye(3) + k + k @ k / (1.0 + c)
 

@@ -191,6 +191,56 @@ def test_default_limit_margin_keeps_joints_off_their_limits(tmp_path: Path, pand
     np.testing.assert_allclose(ur5.upper, np.asarray(ur5.model.upperPositionLimit) - 0.1)
 
 
+#: Joint axes a URDF may give near -z: a float32 export of -z, a hair off it, and further.
+_NEAR_MINUS_Z = {
+    "shoulder_pan_joint": "0 -8.742278e-08 -1",
+    "shoulder_lift_joint": "0 1e-8 -1",
+    "elbow_joint": "1e-6 0 -1",
+    "wrist_1_joint": "0 0.6 -0.8",
+    "wrist_2_joint": "0 0 -1",
+    "wrist_3_joint": "-0.3 1e-5 -0.9",
+}
+
+
+def _arm_with_axes(folder: Path, axes: dict[str, str]) -> Path:
+    """The test arm with the given joints' axes replaced."""
+    spec = write_arm(folder)
+    urdf = folder / "arm.urdf"
+    text = urdf.read_text()
+    for joint, axis in axes.items():
+        head = f'<joint name="{joint}"'
+        start = text.index(head)
+        at = text.index("<axis xyz=", start)
+        end = text.index("/>", at)
+        text = text[:at] + f'<axis xyz="{axis}"' + text[end:]
+    urdf.write_text(text)
+    return spec
+
+
+@pytest.mark.parametrize("compiled_on", [True, False])
+def test_axes_near_minus_z_give_pinocchio_s_frames(tmp_path, compiled_on, compiled, numpy_code):
+    """Regression: a joint axis within 1e-5 rad of -z (not exactly -z) put the joint frames
+    of the collision checks and of the chain millimetres off Pinocchio's (4.7 mm for a float32
+    -z), and a hair off (1e-8) made them NaN."""
+    robot = load_robot(_arm_with_axes(tmp_path, _NEAR_MINUS_Z))
+    q = robot.random_configurations(200, 9)
+    frames = JointFrames(robot.model)
+    got = np.stack((frames.compute(q) if compiled_on else numpy_code(frames.compute, q)).transforms)
+    fk = robot.fk(q) if compiled_on else numpy_code(robot.fk, q)
+    model, data = robot.model, robot.data
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(model, data, qi)
+        pin.updateFramePlacements(model, data)
+        np.testing.assert_allclose(fk[i], data.oMf[robot.grasp_frame_id].homogeneous, atol=1e-12)
+        for j in range(1, model.njoints):
+            rot, trans = frames.local(j, np.eye(3), np.array([0.01, -0.02, 0.03]))
+            mine = got[j, i, :, :3] @ trans + got[j, i, :, 3]
+            np.testing.assert_allclose(
+                mine, data.oMi[j].act(np.array([0.01, -0.02, 0.03])), atol=1e-12
+            )
+            np.testing.assert_allclose(got[j, i, :, :3] @ rot, data.oMi[j].rotation, atol=1e-12)
+
+
 @pytest.mark.parametrize("name", ["panda", "ur5", "user_arm"])
 def test_joint_frames_equal_pinocchio_compiled_and_numpy(name, tmp_path, compiled, numpy_code):
     """Every joint's frame (the collision checks' kinematics): the compiled kernel and the

@@ -316,6 +316,7 @@ class BroadPhase:
     _pair_pool: list[Any]
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
     _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any]]]
+    _compiled_self: dict[int, tuple[Screen, dict[int, tuple[Any, ...]]]]
     _bounds: dict[int, ShapeBound]
     _model: Any
     threads: int
@@ -674,8 +675,7 @@ class BroadPhase:
         deep)`` by column, the limits the NumPy level's plus
         :data:`~gcm_pipeline.robot.kernels.SLACK` (stricter), as for world boxes.
         """
-        key = ("self_boxes", id(screen))
-        known = self._compiled_args.get(key)
+        known = self._compiled_self.get(id(screen))
         if known is not None and known[0] is screen:
             return known[1]
         slack = kernels.SLACK
@@ -690,7 +690,7 @@ class BroadPhase:
             )
             for k, (joint, verts, box_joint, inv, halfs) in screen.self_boxes.items()
         }
-        self._compiled_args[key] = (screen, args)
+        self._compiled_self[id(screen)] = (screen, args)
         return args
 
     def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:

@@ -200,6 +200,8 @@ class CollisionChecker(ClearanceQueries):
         self._groups = {}
         #: the arguments of the compiled broad phase, by screen (see _compiled_screen)
         self._compiled_args = {}
+        #: and of its robot-box level (see _compiled_self_boxes)
+        self._compiled_self = {}
         self._bounds = {
             w: ShapeBound(
                 gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous

@@ -232,13 +232,17 @@ def test_axes_near_minus_z_give_pinocchio_s_frames(tmp_path, compiled_on, compil
         pin.forwardKinematics(model, data, qi)
         pin.updateFramePlacements(model, data)
         np.testing.assert_allclose(fk[i], data.oMf[robot.grasp_frame_id].homogeneous, atol=1e-12)
-        for j in range(1, model.njoints):
-            rot, trans = frames.local(j, np.eye(3), np.array([0.01, -0.02, 0.03]))
-            mine = got[j, i, :, :3] @ trans + got[j, i, :, 3]
-            np.testing.assert_allclose(
-                mine, data.oMi[j].act(np.array([0.01, -0.02, 0.03])), atol=1e-12
-            )
-            np.testing.assert_allclose(got[j, i, :, :3] @ rot, data.oMi[j].rotation, atol=1e-12)
+        _assert_frames_are_pinocchio_s(frames, got[:, i], model, data)
+
+
+def _assert_frames_are_pinocchio_s(frames, got, model, data) -> None:
+    """``got`` (J, 3, 4), one configuration's joint frames, against ``data.oMi`` (after FK)."""
+    for j in range(1, model.njoints):
+        # a point and a direction given in Pinocchio's joint frame, placed both ways
+        rot, trans = frames.local(j, np.eye(3), np.array([0.01, -0.02, 0.03]))
+        mine = got[j, :, :3] @ trans + got[j, :, 3]
+        np.testing.assert_allclose(mine, data.oMi[j].act(np.array([0.01, -0.02, 0.03])), atol=1e-12)
+        np.testing.assert_allclose(got[j, :, :3] @ rot, data.oMi[j].rotation, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["panda", "ur5", "user_arm"])
@@ -254,14 +258,7 @@ def test_joint_frames_equal_pinocchio_compiled_and_numpy(name, tmp_path, compile
     model, data = robot.model, robot.data
     for i, qi in enumerate(q[:50]):
         pin.forwardKinematics(model, data, qi)
-        for j in range(1, model.njoints):
-            # a point and a direction given in Pinocchio's joint frame, placed both ways
-            rot, trans = frames.local(j, np.eye(3), np.array([0.01, -0.02, 0.03]))
-            mine = got[j, i, :, :3] @ trans + got[j, i, :, 3]
-            np.testing.assert_allclose(
-                mine, data.oMi[j].act(np.array([0.01, -0.02, 0.03])), atol=1e-12
-            )
-            np.testing.assert_allclose(got[j, i, :, :3] @ rot, data.oMi[j].rotation, atol=1e-12)
+        _assert_frames_are_pinocchio_s(frames, got[:, i], model, data)
     # a single configuration, other shapes and dtypes: the kernel or the NumPy code's errors
     one = np.stack(frames.compute(q[:1].astype(np.float32)).transforms)
     np.testing.assert_allclose(one, got[:, :1], atol=1e-6)

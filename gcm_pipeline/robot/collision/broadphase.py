@@ -10,18 +10,21 @@ configurations at once by vectorised forward kinematics
 spheres are apart (from each other, or from the world shape: exact point
 distances for boxes, cylinders, spheres and capsules, the local bounding box
 of meshes) cannot collide; (2) nor can one whose sphere covers are apart.
-(3) A robot polytope against a box (the table, box obstacles, and a robot's
-own box: a gripper body from the registry against an arm link) is free when
-its convex hull's vertices all lie beyond the plane of one face of the box,
-and collides when one of them lies more than 0.1 mm inside the box (the
-vertex of one of its triangles; shallower ones are left to coal). (4) A robot
+(3) A robot polytope against a box (the table, box obstacles; with the
+compiled kernels also a robot's own box: a gripper body from the registry
+against an arm link) is free when its convex hull's vertices all lie beyond
+the plane of one face of the box, and collides when one of them lies more
+than 0.1 mm inside the box (the vertex of one of its triangles; shallower
+ones are left to coal). (4) A robot
 polytope against a box, a sphere or a cylinder collides when a point of one of
 its :data:`EDGE_COUNT` longest triangle edges lies more than 0.1 mm inside the
 shape (:func:`segments_inside`: an edge is part of the surface coal checks; a
 long link crossing a thin table has no vertex inside it).
 These levels only skip work, they never change an answer (tested pair by pair
 against coal on every pair). The compiled kernels (:mod:`gcm_pipeline.robot.kernels`)
-run the same four levels one configuration at a time, conservatively: the same
+run the same four levels one configuration at a time, conservatively, and
+level 3 on a robot's own boxes too (the NumPy code leaves those pairs to coal:
+its test of every vertex costs more there than coal's hull check): the same
 answers.
 """
 
@@ -465,7 +468,7 @@ class BroadPhase:
         Broad phase, in three levels: a pair whose geometries' bounding spheres
         are apart (from each other, or from the world shape) is free; so is
         one whose sphere covers are. A robot polytope against a box (of the
-        world, or a robot's own against another link) is free if
+        world; compiled, also a robot's own against another link) is free if
         its hull vertices all lie beyond one face's plane, and collides if one
         of them lies ``INSIDE_DEPTH`` inside the box (a vertex of one of its
         triangles, or of the solid). A robot polytope against a box, sphere or
@@ -517,34 +520,12 @@ class BroadPhase:
                 lb = self._bounds_for(int(screen.world[k])).lower(ca) - bound
                 near = (lb <= BROAD_MARGIN).any(axis=1)
             rows = rows[near]
-            # 3. hull vertices against a box (of the world, or of the robot)
-            own_box = screen.self_boxes.get(k)
-            if own_box is not None and rows.size:
-                joint, verts, box_joint, inv, halfs = own_box
-                rel = relative_frames(rots, poss, joint, box_joint, rows)
-                local = in_frame((*rel, inv), np.arange(rows.size), verts)
-                lim = halfs[None, :, None]
-                inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
-                hit[k, rows[inside]] = True
-                rows = rows[~(beyond_a_face(local, lim) | inside)]
+            # 3. hull vertices against a world box (a robot box: compiled only, below)
             box = screen.boxes.get(k)
             if box is not None and rows.size:
-                joint, verts, inv, halfs = box
-                lim = halfs[None, :, None]
-
-                # the face nearest the geometry's bounding sphere first: its lowest
-                # hull vertex over that face's plane (one coordinate), then all of them
-                g = screen.geom_a[k]
-                centre = row_matmul(ball[rows, g], inv[:3, :3].T) + inv[:3, 3]
-                axis = np.argmax(np.abs(centre) - halfs, axis=1)
-                sign = np.where(centre[np.arange(rows.size), axis] >= 0, 1.0, -1.0)
-                frame = (rots[joint][rows], poss[joint][rows], inv)
-                height = height_over_face(frame, verts, halfs, axis, sign)
-                rows = rows[height <= BROAD_MARGIN]
-                local = in_frame((rots[joint], poss[joint], inv), rows, verts)
-                inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
+                rows, inside = _world_box_level(frames, rows, box, ball[rows, screen.geom_a[k]])
                 hit[k, rows[inside]] = True
-                rows = rows[~(beyond_a_face(local, lim) | inside)]
+                rows = rows[~inside]
             # 4. the polytope's longest edges inside a primitive
             edge = screen.edges.get(k)
             if edge is not None and rows.size:
@@ -765,23 +746,41 @@ def row_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a @ b
 
 
-def relative_frames(
-    rots: Any, poss: Any, joint: int, base: int, rows: np.ndarray
+def _world_box_level(
+    frames: Any,
+    rows: np.ndarray,
+    box: tuple[int, np.ndarray, np.ndarray, np.ndarray],
+    centre: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Joint ``joint``'s frames in joint ``base``'s, for configurations ``rows``.
+    """Level 3 of a robot polytope against a world box (NumPy), for configurations ``rows``.
 
-    ``rots[j]`` (N, 3, 3) and ``poss[j]`` (N, 3) are joint j's frames in the base
-    frame. Returns rotations (M, 3, 3) and origins (M, 3): ``Rb^T Ra`` and
-    ``Rb^T (pa - pb)``.
+    ``centre`` (M, 3) is the polytope's bounding sphere's centre per row. The
+    face nearest it first: its lowest hull vertex over that face's plane (one
+    coordinate), then all vertices. Returns the rows left undecided or
+    colliding, and which of them collide (a vertex deeper than
+    ``INSIDE_DEPTH``); the others were free.
     """
-    rb = rots[base][rows]
-    rot = np.einsum("nji,njk->nik", rb, rots[joint][rows])
-    pos = np.einsum("nji,nj->ni", rb, poss[joint][rows] - poss[base][rows])
-    return rot, pos
+    rots, poss = frames[0], frames[1]
+    joint, verts, inv, halfs = box
+    lim = halfs[None, :, None]
+    local_centre = row_matmul(centre, inv[:3, :3].T) + inv[:3, 3]
+    axis = np.argmax(np.abs(local_centre) - halfs, axis=1)
+    sign = np.where(local_centre[np.arange(rows.size), axis] >= 0, 1.0, -1.0)
+    frame = (rots[joint][rows], poss[joint][rows], inv)
+    height = height_over_face(frame, verts, halfs, axis, sign)
+    rows = rows[height <= BROAD_MARGIN]
+    local = in_frame((rots[joint], poss[joint], inv), rows, verts)
+    inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
+    keep = beyond_a_face(local, lim) & ~inside  # free: dropped
+    return rows[~keep], inside[~keep]
 
 
 def relative_transforms(tfs: np.ndarray, joint: int, base: int, rows: np.ndarray) -> np.ndarray:
-    """:func:`relative_frames` from stacked frames ``tfs`` (J, N, 3, 4), as (M, 3, 4)."""
+    """Joint ``joint``'s frames in joint ``base``'s, for configurations ``rows``: (M, 3, 4).
+
+    ``tfs`` (J, N, 3, 4) are the joints' frames in the base frame: the result is
+    ``Rb^T Ra`` and ``Rb^T (pa - pb)``.
+    """
     a, b = tfs[joint][rows], tfs[base][rows]
     out = np.empty((rows.size, 3, 4))
     out[:, :, :3] = np.einsum("nji,njk->nik", b[:, :, :3], a[:, :, :3])

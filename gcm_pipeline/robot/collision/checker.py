@@ -198,10 +198,8 @@ class CollisionChecker(ClearanceQueries):
         self._cover = cover
         #: _place's grouping of points by joint, by the joints' bytes
         self._groups = {}
-        #: the arguments of the compiled broad phase, by screen (see _compiled_screen)
-        self._compiled_args = {}
-        #: and of its robot-box level (see _compiled_self_boxes)
-        self._compiled_self = {}
+        #: the compiled broad phase's arguments by screen (_compiled_screen, _compiled_self_boxes)
+        self._compiled_args, self._compiled_self = {}, {}
         self._bounds = {
             w: ShapeBound(
                 gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous

@@ -55,6 +55,7 @@ def pairs_apart(robot: Robot, gm: Any, pairs: list[Pair], margin: float) -> set[
     pin.computeJointJacobians(model, data, home)
     gd = pin.GeometryData(gm)
     pin.updateGeometryPlacements(model, data, gm, gd, home)
+    motions = _joint_motions(model, data)
     apart = set()
     for k, p in enumerate(pairs):
         link, shape = gm.geometryObjects[p.a], gm.geometryObjects[p.b]
@@ -63,34 +64,57 @@ def pairs_apart(robot: Robot, gm: Any, pairs: list[Pair], margin: float) -> set[
         if not isinstance(shape.geometry, coal.Box):
             continue
         box = gd.oMg[p.b]
+        rot = np.asarray(box.rotation)
+        # the faces whose heights no joint changes (most links: none, and no mesh is read)
+        axes = [
+            a for a in range(3) if _heights_fixed(model, motions, int(link.parentJoint), rot[:, a])
+        ]
+        if not axes:
+            continue
         half = np.asarray(shape.geometry.halfSide, dtype=float)
         points, _ = geometry_mesh(link.geometry)
         placed = gd.oMg[p.a]
         world = points @ np.asarray(placed.rotation).T + np.asarray(placed.translation)
-        local = (world - np.asarray(box.translation)) @ np.asarray(box.rotation)
-        for axis in range(3):
+        local = (world - np.asarray(box.translation)) @ rot
+        for axis in axes:
             x = local[:, axis]
-            beyond = bool(np.all(x > half[axis] + margin) or np.all(x < -half[axis] - margin))
-            normal = np.asarray(box.rotation)[:, axis]
-            if beyond and _heights_fixed(model, data, int(link.parentJoint), normal):
+            if np.all(x > half[axis] + margin) or np.all(x < -half[axis] - margin):
                 apart.add(k)
                 break
     return apart
 
 
-def _heights_fixed(model: Any, data: Any, joint: int, normal: np.ndarray) -> bool:
+def _joint_motions(model: Any, data: Any) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """Per joint, the linear and angular parts of its motion at home (None: not one DoF).
+
+    ``data`` holds the joint Jacobians at home (``computeJointJacobians``).
+    """
+    out: list[tuple[np.ndarray, np.ndarray] | None] = [None]
+    for j in range(1, model.njoints):
+        joint = model.joints[j]
+        if joint.nv != 1:
+            out.append(None)
+            continue
+        col = pin.getJointJacobian(model, data, j, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[
+            :, joint.idx_v
+        ]
+        out.append((col[:3].copy(), col[3:].copy()))
+    return out
+
+
+def _heights_fixed(
+    model: Any, motions: list[tuple[np.ndarray, np.ndarray] | None], joint: int, normal: np.ndarray
+) -> bool:
     """Whether every joint from the base to ``joint`` keeps heights along ``normal``.
 
     Each must move one coordinate (``nv == 1``) and, at home, turn about an
     axis parallel to ``normal`` or slide perpendicular to it.
     """
     while joint > 0:
-        if model.joints[joint].nv != 1:
+        motion = motions[joint]
+        if motion is None:
             return False
-        col = pin.getJointJacobian(model, data, joint, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[
-            :, model.joints[joint].idx_v
-        ]
-        linear, angular = col[:3], col[3:]
+        linear, angular = motion
         if np.linalg.norm(np.cross(angular, normal)) > AXIS_TOLERANCE:
             return False
         if abs(float(linear @ normal)) > AXIS_TOLERANCE:

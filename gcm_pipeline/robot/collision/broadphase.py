@@ -296,10 +296,10 @@ class Screen(NamedTuple):
     # robot polytope vs a box, sphere or cylinder, by column: (joint, edge ends (3, E)
     # and (3, E), the shape's inverse placement (4, 4), its packed row (21,))
     edges: dict[int, tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
-    # robot polytope vs a robot box (self pairs), by column: (the polytope's joint,
-    # its hull vertices (3, V), the box's joint, the box's inverse placement in that
-    # joint's frame (4, 4), halfs)
-    self_boxes: dict[int, tuple[int, np.ndarray, int, np.ndarray, np.ndarray]]
+    # robot polytope vs a robot box (self pairs; compiled level 3 only), by column: (the
+    # polytope's joint, the box's joint, the polytope's hull vertices (3, V), the box's
+    # inverse placement in its joint's frame (4, 4), halfs)
+    self_boxes: dict[int, tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]
 
 
 class BroadPhase:
@@ -319,7 +319,6 @@ class BroadPhase:
     _pair_pool: list[Any]
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
     _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any]]]
-    _compiled_self: dict[int, tuple[Screen, dict[int, tuple[Any, ...]]]]
     _bounds: dict[int, ShapeBound]
     _model: Any
     threads: int
@@ -397,10 +396,10 @@ class BroadPhase:
 
     def _self_box(
         self, a: int, b: int
-    ) -> tuple[int, np.ndarray, int, np.ndarray, np.ndarray] | None:
+    ) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray] | None:
         """Level 3 of a self pair: a robot polytope against a robot box, or None.
 
-        ``(polytope's joint, hull vertices (3, V), box's joint, the box's inverse
+        ``(polytope's joint, box's joint, hull vertices (3, V), the box's inverse
         placement in its joint's frame (4, 4), halfs)`` for the robot geometries
         ``a`` and ``b`` (either may be the box).
         """
@@ -419,7 +418,7 @@ class BroadPhase:
             placement = np.eye(4)
             placement[:3, :3], placement[:3, 3] = rot, trans
             halfs = np.asarray(shape.geometry.halfSide, dtype=float)
-            return joint, verts.T.copy(), box_joint, np.linalg.inv(placement), halfs
+            return joint, box_joint, verts.T.copy(), np.linalg.inv(placement), halfs
         return None
 
     def _place(
@@ -557,7 +556,6 @@ class BroadPhase:
         """
         tfs = stacked(frames.transforms)
         broad, boxes, edges = self._compiled_screen(screen)
-        self_boxes = self._compiled_self_boxes(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
         hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
         decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
@@ -571,11 +569,16 @@ class BroadPhase:
                 status = compiled.hull_vs_box(tfs[joint], rows, *limits)
                 hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
-            own_box = self_boxes.get(k)
+            own_box = screen.self_boxes.get(k)
             if own_box is not None:
-                joint, box_joint, *limits = own_box
+                # in the frames of the box's joint; the limits as for a world box
+                joint, box_joint, verts, inv, halfs = own_box
                 rel = relative_transforms(tfs, joint, box_joint, rows)
-                status = compiled.hull_vs_box(rel, np.arange(rows.size), *limits)
+                beyond, deep = (
+                    halfs + (BROAD_MARGIN + kernels.SLACK),
+                    halfs - (INSIDE_DEPTH + kernels.SLACK),
+                )
+                status = compiled.hull_vs_box(rel, np.arange(rows.size), verts, inv, beyond, deep)
                 hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
             edge = edges.get(k)
@@ -648,31 +651,6 @@ class BroadPhase:
         }
         self._compiled_args[id(screen)] = (screen, broad, boxes, edges)
         return broad, boxes, edges
-
-    def _compiled_self_boxes(self, screen: Screen) -> dict[int, tuple[Any, ...]]:
-        """Level 3's kernel arguments of the self pairs with a box (built once per screen).
-
-        ``(polytope's joint, box's joint, vertices, inverse placement, beyond,
-        deep)`` by column, the limits the NumPy level's plus
-        :data:`~gcm_pipeline.robot.kernels.SLACK` (stricter), as for world boxes.
-        """
-        known = self._compiled_self.get(id(screen))
-        if known is not None and known[0] is screen:
-            return known[1]
-        slack = kernels.SLACK
-        args = {
-            k: (
-                joint,
-                box_joint,
-                np.ascontiguousarray(verts, float),
-                np.ascontiguousarray(inv, float),
-                halfs + (BROAD_MARGIN + slack),
-                halfs - (INSIDE_DEPTH + slack),
-            )
-            for k, (joint, verts, box_joint, inv, halfs) in screen.self_boxes.items()
-        }
-        self._compiled_self[id(screen)] = (screen, args)
-        return args
 
     def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:
         """Coal's answer for pair ``c`` (an index of ``_pairs``) in configurations (M, nq).

@@ -198,8 +198,8 @@ class CollisionChecker(ClearanceQueries):
         self._cover = cover
         #: _place's grouping of points by joint, by the joints' bytes
         self._groups = {}
-        #: the compiled broad phase's arguments by screen (_compiled_screen, _compiled_self_boxes)
-        self._compiled_args, self._compiled_self = {}, {}
+        #: the arguments of the compiled broad phase, by screen (see _compiled_screen)
+        self._compiled_args = {}
         self._bounds = {
             w: ShapeBound(
                 gm.geometryObjects[w].geometry, gm.geometryObjects[w].placement.homogeneous
@@ -270,12 +270,11 @@ class CollisionChecker(ClearanceQueries):
         # every configuration): not checked at all
         apart = pairs_apart(robot, gm, pairs, BROAD_MARGIN + _APART_SLACK)
         moving = [k for k in range(len(pairs)) if k not in fixed and k not in apart]
-        self.pairs_apart = tuple(
-            (link_of[pairs[k].owner], gm.geometryObjects[pairs[k].b].name) for k in sorted(apart)
-        )
-        self.static_collisions = tuple(
-            (link_of[pairs[k].owner], gm.geometryObjects[pairs[k].b].name)
-            for k in sorted(static_hit)
+        self.pairs_apart, self.static_collisions = (
+            tuple(
+                (link_of[pairs[k].owner], gm.geometryObjects[pairs[k].b].name) for k in sorted(ks)
+            )
+            for ks in (apart, static_hit)
         )
         # a few configurations: coal's own broad phase (an AABB tree) per mode, and per
         # mode and kind for the reason of those that collide (no NumPy set-up cost)

@@ -333,10 +333,11 @@ def test_level_3_of_a_robot_box_agrees_with_coal_and_the_numpy_level(compiled):
     qs[:, 4] = rng.uniform(-2.5, 2.5, 4000)
     frames = checker._frames.compute(qs)
     rows = np.arange(len(qs))
-    joint, verts, box_joint, inv, halfs = screen.self_boxes[k]
+    joint, box_joint, verts, inv, halfs = screen.self_boxes[k]
     rel = relative_transforms(np.stack(frames.transforms), joint, box_joint, rows)
-    args = checker._compiled_self_boxes(screen)[k]
-    status = compiled.hull_vs_box(rel, rows, *args[2:])
+    slack = kernels.SLACK  # the limits of _pair_hits_compiled
+    beyond, deep = halfs + (BROAD_MARGIN + slack), halfs - (INSIDE_DEPTH + slack)
+    status = compiled.hull_vs_box(rel, rows, verts, inv, beyond, deep)
     local = in_frame((rel[:, :, :3], rel[:, :, 3], inv), rows, verts)
     lim = halfs[None, :, None]
     inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)

@@ -94,15 +94,22 @@ def plan_moves(
         knot_check: With ``grid_knots``: ``knot_check(q, move) -> reasons``
             (as ``collisions`` of
             :func:`~gcm_pipeline.reach.move_check.check_moves`) is called on the grid
-            waypoints found, in at most two batches (see ``check_first``); a
+            waypoints found (the grid waypoints are the path's grid points); a
             move fails at its first waypoint that gets a reason, with that
-            reason (the grid waypoints are the path's grid points). Ignored
-            without ``grid_knots``.
+            reason (with ``check_first``: at the first in its order of
+            checks). Ignored without ``grid_knots``.
         check_first: With ``knot_check``: per move (N,) the grid step up to
-            which its waypoints are found and checked before the rest of its
-            line is followed (e.g. where its first path collided: most moves
-            fail there, and their later waypoints are never computed). The
-            result does not depend on it. None: the whole line, then the checks.
+            which its waypoints are found, before the rest of its line is
+            followed (e.g. where its first path collided: most moves fail
+            there, and their later waypoints are never computed). The waypoint
+            at that step is checked first, then the earlier ones, then the
+            inner ones after it, then the end's: a move that collides at that
+            step fails there, whatever an earlier waypoint would give, and its
+            end's IK is solved only if every other waypoint is free. Which
+            moves pass, and their paths, do not depend on it: for a caller
+            that needs only those (the second plan of
+            :func:`~gcm_pipeline.reach.move_check.check_moves`). None: the
+            whole line, then the checks.
         knots: False: the plan's ``knots`` is None (for a caller that needs only
             the path: the (N, 8 steps + 1, nq) array is not built).
         **ik_options: Further backend options of the end's IK (seeded only
@@ -385,28 +392,40 @@ class _MoveBatch:
         """The rows that reach the end following the line from the grasp in pieces.
 
         Each waypoint starts from the previous one; a failure fails the row. With
-        ``knot_check`` (``pieces == steps``: the waypoints are the grid points) the
-        waypoints are checked in batches: each row's up to its ``check_first``
-        step (short of the end: the end's IK, the dearest waypoint, is solved
-        only for rows still free), then, for the rows still free, the rest of the
-        line. A row fails at its first waypoint the check rejects, as if each
-        had been checked when found (later ones only start from it).
+        ``knot_check`` (``pieces == steps``: the waypoints are the grid points)
+        the waypoints are checked too: without ``check_first`` all at once when
+        the line is followed, a row failing at its first waypoint the check
+        rejects. With it, each row's waypoints up to its ``check_first`` step
+        are found, the one at that step is checked (where the first path
+        collided: most rows fail there), then the earlier ones; then the rest
+        of the line's inner waypoints are found and checked, and last the
+        end's (its IK is the dearest waypoint) for the rows still free. The
+        rows that pass do not depend on ``check_first``; a row that fails may
+        fail at another of its failures (see :func:`plan_moves`).
         """
         start, zero = rows, np.zeros(rows.size, dtype=int)
         end = np.full(rows.size, pieces)
         if self.knot_check is None or not self.grid_knots or rows.size == 0:
             rows = rows[self.advance(rows, zero, end, pieces)]
-        else:
-            check_first = self.check_first
-            last = max(pieces - 1, 1)
-            pause = end if check_first is None else np.clip(check_first[rows], 1, last)
-            got = self.advance(rows, zero, pause, pieces)
-            self.check_grid(rows, zero, pause)
-            got &= self.ok[rows]
-            more = got & (pause < pieces)
-            got[more] = self.advance(rows[more], pause[more], end[more], pieces)
-            self.check_grid(rows[more], pause[more], end[more])
+        elif self.check_first is None:
+            got = self.advance(rows, zero, end, pieces)
+            self.check_grid(rows, zero, end)
             rows = rows[got & self.ok[rows]]
+        else:
+            pause = np.clip(self.check_first[rows], 1, max(pieces - 1, 1))
+            got = self.advance(rows, zero, pause, pieces)
+            for lo, hi in ((pause - 1, pause), (zero, pause - 1)):
+                self.check_grid(rows[got], lo[got], hi[got])
+                got &= self.ok[rows]
+            # the rest of the line: its inner waypoints, then the end's
+            for lo, hi in ((pause, np.maximum(end - 1, pause)), (np.maximum(end - 1, pause), end)):
+                sel = np.flatnonzero(got & (lo < hi))
+                found = self.advance(rows[sel], lo[sel], hi[sel], pieces)
+                got[sel] = found
+                sel = sel[found]
+                self.check_grid(rows[sel], lo[sel], hi[sel])
+                got &= self.ok[rows]
+            rows = rows[got]
         lost = np.ones(self.n, dtype=bool)
         lost[rows] = False
         self.knots.clear(start[lost[start]])

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.robot.ik import solve_ik, verify_solutions
+from gcm_pipeline.robot.ik.candidates import first_smallest
 from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt, pose_errors
 from gcm_pipeline.robot.ik.panda import analytic_blocks, analytic_solver
 from gcm_pipeline.robot.model import Robot
@@ -83,9 +84,7 @@ def end_of_move(
             solver, ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper, (start, _NEAR_END)
         )
         change = np.max(np.abs(cand - start[at]), axis=1)
-        order = np.lexsort((change, at))
-        at, cand, change = at[order], cand[order], change[order]
-        first = np.flatnonzero(np.r_[True, at[1:] != at[:-1]]) if at.size else at
+        first = first_smallest(at, change)  # per end, the solution changing least
         near = first[change[first] <= _NEAR_END]
         # exact away from singularities: a pick off its pose leaves the row to the LM
         tol_p = position_tolerance * opts.inner_tolerance

@@ -20,13 +20,32 @@ import numpy as np
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, yoshikawa_of
 
-__all__ = ["SolveContext", "Tally", "rank_in_runs"]
+__all__ = ["SolveContext", "Tally", "first_smallest", "rank_in_runs"]
 
 
 def rank_in_runs(key: np.ndarray) -> np.ndarray:
     """Position of each element in its run of equal consecutive ``key`` values."""
     start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     return np.arange(key.size) - np.repeat(start, np.diff(np.r_[start, key.size]))
+
+
+def first_smallest(key: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """Per distinct ``key``, in key order, the index of its smallest ``value`` (the first of ties).
+
+    The rows a stable sort by ``(key, value)`` puts first in each group
+    (``np.lexsort((value, key))``); without sorting when ``key`` is
+    non-decreasing and ``value`` finite (candidates grouped by target).
+    """
+    key, value = np.asarray(key), np.asarray(value)
+    if key.size == 0:
+        return np.zeros(0, dtype=np.intp)
+    if np.all(key[1:] >= key[:-1]) and np.all(np.isfinite(value)):
+        start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        low = np.minimum.reduceat(value, start)
+        hit = np.flatnonzero(value == np.repeat(low, np.diff(np.r_[start, key.size])))
+        return hit[np.r_[True, key[hit[1:]] != key[hit[:-1]]]]
+    order = np.lexsort((value, key))
+    return order[np.r_[True, key[order[1:]] != key[order[:-1]]]]
 
 
 @dataclass(eq=False)

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from gcm_pipeline.robot.ik.candidates import SolveContext, rank_in_runs
+from gcm_pipeline.robot.ik.candidates import SolveContext, first_smallest, rank_in_runs
 from gcm_pipeline.robot.ik.lm import pose_errors
 from gcm_pipeline.robot.ik.panda import PandaAnalyticIK, analytic_blocks
 from gcm_pipeline.robot.ik.seeds import SeedLibrary, seed_library
@@ -188,7 +188,10 @@ def closed_form_rounds(
         # lever-weighted: a radian at the shoulder moves the hand far more than
         # one at the wrist, so "nearest the preferred posture" is in metres
         dist = np.sum(((cq - pref[todo[at]]) * levers) ** 2, axis=1)
-        if ctx.one_each:  # per target, the nearest to the preferred configuration
+        if ctx.one_each and not ctx.validate:
+            # one answer each: only each target's nearest is offered (rank 0)
+            order = first_smallest(at, dist)
+        elif ctx.one_each:  # per target, the nearest to the preferred configuration
             order = np.lexsort((dist, at))
         else:
             # per target, the nearest of each branch first (nearest branch first),

@@ -101,7 +101,8 @@ def plan_moves(
         check_first: With ``knot_check``: per move (N,) the grid step up to
             which its waypoints are found, before the rest of its line is
             followed (e.g. where its first path collided: most moves fail
-            there, and their later waypoints are never computed). The waypoint
+            there, and their later waypoints are never computed), clipped to
+            ``1 .. steps - 1`` (the end is never checked first). The waypoint
             at that step is checked first, then the earlier ones, then the
             inner ones after it, then the end's: a move that collides at that
             step fails there, whatever an earlier waypoint would give, and its

@@ -277,11 +277,41 @@ def _beyond_nearest_face(rot: Any, off: Any, verts: Any, mid: Any, beyond: Any) 
     return True
 
 
+#: How far [m] the box of :func:`_enclosing_corners` reaches beyond the vertices: far more
+#: than the rounding of a vertex's or a corner's coordinates (about 1e-15 m), so that
+#: a corner beyond a face puts every vertex beyond it in floating point too.
+CORNER_PAD = 1e-9
+
+
+@njit(cache=True)
+def _enclosing_corners(verts: Any) -> tuple[Any, Any]:
+    """The corners (3, 8) and centre (3,) of the vertices' box in their frame, padded.
+
+    Every vertex (3, V) is a convex combination of the corners, ``CORNER_PAD``
+    inside the box: a plane every corner lies beyond by ``d`` has every vertex
+    beyond it by more than ``d``.
+    """
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = verts[a].min() - CORNER_PAD
+        hi[a] = verts[a].max() + CORNER_PAD
+    corners = np.empty((3, 8))
+    for c in range(8):
+        for a in range(3):
+            corners[a, c] = hi[a] if (c >> a) & 1 else lo[a]
+    return corners, 0.5 * (lo + hi)
+
+
 @njit(types.int8[::1](F3, I1, F2, F2, F1, F1), cache=True)
 def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
 
     In the box's frame, ``x = inv @ T @ [v; 1]`` for each hull vertex ``v``.
+    The 8 corners of the vertices' box in the joint's frame
+    (:func:`_enclosing_corners`) are tested first: beyond a face, every vertex
+    is, and the row is free at the cost of 8 vertices (the UR5's upper arm
+    over the table: 171). The same answers as testing the vertices.
 
     Args:
         tfs: Frames of the polytope's joint (N, 3, 4).
@@ -305,6 +335,7 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     for v in range(nv):
         for a in range(3):
             mid[a] += verts[a, v] / nv
+    corners, centre = _enclosing_corners(verts)
     for r in range(m):
         tf = tfs[rows[r]]
         for a in range(3):
@@ -314,6 +345,10 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
                     rot[a, b] = v
                 else:
                     off[a] = v + inv[a, 3]
+        # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
+        if nv > 8 and _beyond_nearest_face(rot, off, corners, centre, beyond):
+            out[r] = 0
+            continue
         if _beyond_nearest_face(rot, off, verts, mid, beyond):
             out[r] = 0
             continue

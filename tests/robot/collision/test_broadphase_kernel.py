@@ -207,6 +207,24 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
     assert decided[kernels.FREE] > 1000 and decided[kernels.COLLIDES] > 100
 
 
+def test_level_3_corners_hold_every_vertex():
+    """Level 3 first tests the corners of a box around the hull's vertices: a corner
+    beyond a face puts every vertex beyond it only if each vertex lies inside that box,
+    by more than the rounding of its coordinates."""
+    from gcm_pipeline.robot.collision.broadphase_kernel import CORNER_PAD, _enclosing_corners
+
+    rng = np.random.default_rng(3)
+    for scale in (1e-3, 0.1, 2.0):
+        verts = rng.normal(size=(3, 60)) * scale + rng.normal(size=(3, 1))
+        corners, centre = _enclosing_corners(np.ascontiguousarray(verts))
+        lo, hi = corners.min(axis=1), corners.max(axis=1)
+        assert corners.shape == (3, 8) and np.unique(corners.T, axis=0).shape == (8, 3)
+        np.testing.assert_allclose(centre, 0.5 * (lo + hi))
+        assert np.all(verts - lo[:, None] >= 0.999 * CORNER_PAD)
+        assert np.all(hi[:, None] - verts >= 0.999 * CORNER_PAD)
+        assert CORNER_PAD > 1e3 * np.spacing(np.abs(verts).max() + 10.0)
+
+
 def test_kernel_limits_are_the_numpy_ones_plus_the_slack(bottle):
     checker, _, _ = bottle
     screen = checker._screens[1]

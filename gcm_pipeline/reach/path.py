@@ -91,26 +91,17 @@ def plan_moves(
         backend: IK backend of the end of the move.
         grid_knots: Start with a waypoint at every grid point (on the line
             within the waypoint tolerance) instead of none.
-        knot_check: With ``grid_knots``: ``knot_check(q, move) -> reasons``
-            (as ``collisions`` of
-            :func:`~gcm_pipeline.reach.move_check.check_moves`) is called on the grid
-            waypoints found (the grid waypoints are the path's grid points); a
-            move fails at its first waypoint that gets a reason, with that
-            reason (with ``check_first``: at the first in its order of
-            checks). Ignored without ``grid_knots``.
-        check_first: With ``knot_check``: per move (N,) the grid step up to
-            which its waypoints are found, before the rest of its line is
-            followed (e.g. where its first path collided: most moves fail
-            there, and their later waypoints are never computed), clipped to
-            ``1 .. steps - 1`` (the end is never checked first). The waypoint
-            at that step is checked first, then the earlier ones, then the
-            inner ones after it, then the end's: a move that collides at that
-            step fails there, whatever an earlier waypoint would give, and its
-            end's IK is solved only if every other waypoint is free. Which
-            moves pass, and their paths, do not depend on it: for a caller
-            that needs only those (the second plan of
-            :func:`~gcm_pipeline.reach.move_check.check_moves`). None: the
-            whole line, then the checks.
+        knot_check: With ``grid_knots``: ``knot_check(q, move) -> reasons`` (as
+            ``collisions`` of :func:`~gcm_pipeline.reach.move_check.check_moves`)
+            on the grid waypoints found; a move fails at its first waypoint
+            (in the order of checks) that gets a reason, with that reason.
+        check_first: With ``knot_check``: per move (N,) the grid step, clipped to
+            ``1 .. steps - 1``, up to which its waypoints are found first (where
+            its first path collided: most moves fail there). That waypoint is
+            checked first, then the earlier ones, the later inner ones, the
+            end's (its IK only if every other waypoint is free). Which moves
+            pass, and their paths, do not depend on it (a failing move's reason
+            may); None: the whole line, then the checks in order.
         knots: False: the plan's ``knots`` is None (for a caller that needs only
             the path: the (N, 8 steps + 1, nq) array is not built).
         **ik_options: Further backend options of the end's IK (seeded only

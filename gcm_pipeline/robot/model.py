@@ -110,6 +110,27 @@ def _tool_shapes(spec: RobotSpec) -> dict[str, list[tuple[Any, Any, Any]]]:
     return shapes_of
 
 
+def _check_mimic(spec: RobotSpec, prepared: PreparedUrdf) -> None:
+    """Refuse a mimic joint the spec leaves free, or locks while its leader moves.
+
+    Pinocchio (without ``mimic=True``) reads a mimic joint as an independent joint: free,
+    the IK would move it on its own; locked with a free leader, it would not follow.
+    """
+    locked = spec.locked_joints
+    for joint, leader in prepared.mimic.items():
+        if joint not in locked:
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint {joint!r} mimics {leader!r} in the URDF; mimic "
+                f"joints are not supported as free joints: lock it (locked_joints: "
+                f"{{{joint}: value}})"
+            )
+        if leader not in locked and leader in prepared.moving:
+            raise RobotSpecError(
+                f"robot {spec.name!r}: joint {joint!r} is locked but mimics {leader!r}, which "
+                f"is free: it would not follow; lock {leader!r} too"
+            )
+
+
 class Robot:
     """A robot arm: reduced Pinocchio model, limits, home and grasp frame.
 
@@ -173,6 +194,7 @@ class Robot:
         if srdf is not None:
             check_srdf(spec.name, srdf)
         locked_q, locked_ids = locked_joints(spec, full)
+        _check_mimic(spec, prepared)
         self.locked_q = locked_q
         model = pin.buildReducedModel(full, locked_ids, locked_q) if locked_ids else full.copy()
         self.model = model

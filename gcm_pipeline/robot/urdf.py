@@ -17,6 +17,9 @@ builds the model from:
   they are; relative paths against the URDF's folder, then ``package_dirs``.
   A mesh that is not found is one line naming the link, the mesh and where it
   was looked for.
+- **A moving joint with the zero axis** is one line (Pinocchio would divide by
+  its norm). **Mimic joints** are recorded (:attr:`PreparedUrdf.mimic`): the
+  robot refuses one its spec leaves free.
 
 :func:`build_model` builds the Pinocchio model with urdfdom's console output
 captured at the file-descriptor level (urdfdom prints its errors on stderr
@@ -35,7 +38,7 @@ import sys
 import tempfile
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pinocchio as pin
@@ -99,6 +102,8 @@ class PreparedUrdf:
             reads [0, 0]; the spec's ``joint_limits`` range is written in when given).
         meshes: Every mesh of every link.
         package_dirs: Folders that resolved ``package://`` URIs (for other readers).
+        mimic: Joints with a ``<mimic>`` element, each with the joint it follows.
+        moving: Joints of a moving type (revolute, continuous, prismatic, ...: not fixed).
     """
 
     path: Path
@@ -109,6 +114,8 @@ class PreparedUrdf:
     unbounded: tuple[str, ...]
     meshes: tuple[MeshRef, ...]
     package_dirs: tuple[Path, ...]
+    mimic: Mapping[str, str] = field(default_factory=dict)
+    moving: frozenset[str] = frozenset()
 
 
 @contextlib.contextmanager
@@ -205,6 +212,22 @@ def _joint_limit(joint: ET.Element, rng: tuple[float, float]) -> None:
     limit.set("velocity", limit.get("velocity", "0"))
 
 
+def _check_axis(joint: ET.Element, name: str, where: str) -> None:
+    """Refuse a moving joint whose ``<axis>`` is zero (Pinocchio divides by its norm)."""
+    axis = joint.find("axis")
+    if joint.get("type") not in ("revolute", "continuous", "prismatic") or axis is None:
+        return
+    try:
+        xyz = [float(v) for v in axis.get("xyz", "1 0 0").split()]
+    except ValueError:
+        return  # urdfdom names the malformed vector
+    if len(xyz) == 3 and all(map(math.isfinite, xyz)) and not any(xyz):
+        raise RobotSpecError(
+            f"{where}: joint {name!r} has the zero axis {axis.get('xyz')!r}; "
+            "give the direction it turns about (or slides along)"
+        )
+
+
 def prepare_urdf(
     path: Path,
     package_dirs: Sequence[Path] = (),
@@ -232,12 +255,16 @@ def prepare_urdf(
     limits = dict(joint_limits or {})
     continuous: dict[str, tuple[float, float]] = {}
     unbounded: list[str] = []
+    mimic: dict[str, str] = {}
     children = set()
     for joint in root.findall("joint"):
         child = joint.find("child")
         if child is not None:
             children.add(child.get("link"))
         name = str(joint.get("name"))
+        _check_axis(joint, name, where)
+        if joint.find("mimic") is not None:
+            mimic[name] = str(joint.find("mimic").get("joint"))  # type: ignore[union-attr]
         if joint.get("type") == "continuous":
             rng = limits.get(name, CONTINUOUS_RANGE)
             joint.set("type", "revolute")
@@ -291,6 +318,10 @@ def prepare_urdf(
         unbounded=tuple(unbounded),
         meshes=tuple(meshes),
         package_dirs=tuple(dict.fromkeys([*pkg_dirs, folder])),
+        mimic=mimic,
+        moving=frozenset(
+            str(j.get("name")) for j in root.findall("joint") if j.get("type") != "fixed"
+        ),
     )
 
 

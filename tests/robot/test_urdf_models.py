@@ -575,3 +575,58 @@ def test_a_revolute_joint_without_lower_upper_takes_the_specs_range(tmp_path):
     robot = load_robot(spec)
     np.testing.assert_allclose(robot.lower, -3.0 + 0.1)  # the spec's range, less the margin
     np.testing.assert_allclose(robot.upper, 3.0 - 0.1)
+
+
+# ------------------------------------------------------------- zero axes and mimic joints
+
+
+def _elbow(spec: Path, extra: str) -> Path:
+    """Put ``extra`` into the elbow joint's element, before its closing tag."""
+    urdf = spec.parent / "arm.urdf"
+    lines = urdf.read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if '<joint name="elbow_joint"' in line)
+    lines[i] = lines[i].replace("</joint>", extra + "</joint>")
+    urdf.write_text("\n".join(lines))
+    return spec
+
+
+def test_a_zero_joint_axis_is_one_line(cli, tmp_path):
+    # Pinocchio normalises the axis: 0/0 made every joint frame NaN and the seed library's
+    # k-d tree raised a traceback in the middle of the run
+    spec = write_arm(tmp_path / "z")
+    urdf = spec.parent / "arm.urdf"
+    text = urdf.read_text()
+    elbow = next(line for line in text.splitlines() if '<joint name="elbow_joint"' in line)
+    axis = elbow.split('<axis xyz="')[1].split('"')[0]
+    urdf.write_text(
+        text.replace(elbow, elbow.replace(f'<axis xyz="{axis}"/>', '<axis xyz="0 0 0"/>'))
+    )
+    with pytest.raises(RobotSpecError, match=r"joint 'elbow_joint' has the zero axis '0 0 0'"):
+        load_robot(spec)
+    code, _, err = cli(
+        "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", tmp_path / "run", *QUICK
+    )
+    assert_one_line_error(code, err, "elbow_joint", "zero axis")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_free_mimic_joint_is_refused_a_locked_one_loads(tmp_path):
+    # Pinocchio (without mimic=True) reads a mimic joint as an independent joint: the IK
+    # moved it freely, so every answer was one the arm cannot take
+    spec = _elbow(write_arm(tmp_path / "m"), '<mimic joint="shoulder_lift_joint"/>')
+    with pytest.raises(
+        RobotSpecError,
+        match=r"joint 'elbow_joint' mimics 'shoulder_lift_joint' in the URDF.*"
+        r"lock it \(locked_joints: \{elbow_joint: value\}\)",
+    ):
+        load_robot(spec)
+    text = spec.read_text()
+    spec.write_text(text + "locked_joints: {elbow_joint: 0.5}\n")
+    with pytest.raises(
+        RobotSpecError,
+        match=r"joint 'elbow_joint' is locked but mimics 'shoulder_lift_joint', which is free",
+    ):
+        load_robot(spec)
+    spec.write_text(text + "locked_joints: {elbow_joint: 0.5, shoulder_lift_joint: 0.5}\n")
+    robot = load_robot(spec)
+    assert robot.nq == 4 and "elbow_joint" not in robot.joint_names

@@ -146,8 +146,10 @@ class ObjectConfig(_ShapeSection):
     """The object being grasped; ``pose`` is its frame in the world.
 
     Cylinders stand on their base with the axis along the frame's z (the base
-    at z = 0 of the frame); boxes and spheres are centred on the frame origin;
-    a plane lies in the frame's xy plane.
+    at z = 0 of the frame); boxes and spheres are centred on the frame origin
+    (standing on the table: z at half their height); a plane lies in the
+    frame's xy plane. An object reaching more than 1 mm into the table is
+    warned about.
     """
 
     shape: Literal["cylinder", "box", "sphere", "plane", "mesh"]

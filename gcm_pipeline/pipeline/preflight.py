@@ -6,6 +6,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gcm_pipeline.config.gripper_spec import load_gripper
 from gcm_pipeline.config.robot_spec import load_spec
 from gcm_pipeline.config.run import Config, takes_config
@@ -14,11 +16,24 @@ from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
 from gcm_pipeline.pipeline.clouds import scene_clouds
+from gcm_pipeline.robot.collision import depth_into, object_shape, table_shape
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.sources.file_object import warn_if_open
 from gcm_pipeline.sources.grippers import GripperSpec, is_gripper_path
 
 log = logging.getLogger(__name__)
+
+#: An object reaching deeper than this into the table is warned about [m] (one standing
+#: on it touches it: depth 0; a ``plane`` object, 1 mm thick, lying on it: 0.5 mm).
+SUNK_DEPTH = 1e-3
+#: Where each object shape has its pose (what a sunk object's warning reminds of).
+_PLACED = {
+    "box": "a box is centred on its pose",
+    "sphere": "a sphere is centred on its pose",
+    "cylinder": "a cylinder stands on its base at its pose",
+    "plane": "a plane is centred on its pose",
+    "mesh": "a mesh is placed as its file defines it",
+}
 
 
 def input_files(cfg: Config) -> dict[str, Path]:
@@ -103,6 +118,35 @@ def _check_gripper_meshes(gripper: GripperSpec, key: str) -> None:
 
 
 @takes_config
+def warn_sunk_objects(cfg: Config) -> None:
+    """Warn about the object reaching more than ``SUNK_DEPTH`` into the table.
+
+    A box or sphere placed like the bottle (``xyz: [x, y, 0]``) sinks half into
+    the table: the world is as written, but most of its grasps and moves then
+    collide with the table, which a user seldom means. (With ``objects``, each
+    object is the run's object once: :func:`~gcm_pipeline.pipeline.objects.target_config`.)
+    """
+    table, obj = cfg.environment.table, cfg.object
+    if table is None or obj is None:
+        return
+    top = table_shape(table.size, table.center_xy, table.height, np.eye(4))
+    shape = object_shape(
+        obj.shape, obj.dims, obj.pose.matrix(), np.eye(4), mesh=obj.mesh, scale=obj.scale
+    )
+    depth = depth_into(shape, top)
+    if depth > SUNK_DEPTH:
+        name = getattr(obj, "name", None)
+        log.warning(
+            "%s reaches %.1f mm into the table (its top at z = %g; %s): grasps near the "
+            "table will collide with it; to stand it on the table, raise its pose's z by %.4g",
+            "the object" if name is None else f"object {name!r}",
+            1e3 * depth,
+            table.height,
+            _PLACED.get(obj.shape, obj.shape),
+            depth,
+        )
+
+
 def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     """Check, before any work, what the config refers to outside itself.
 
@@ -119,7 +163,8 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
       kept for the run);
     - the object and obstacle meshes load and have finite vertices; an object
       mesh that is not watertight is warned about (the contact model needs a
-      closed mesh);
+      closed mesh), and so is an object sunk into the table
+      (:func:`warn_sunk_objects`);
     - with the live viewer requested (``viewer`` or ``publish.meshcat``) and a
       ``publish.zmq_url``, the meshcat server there answers within
       ``publish.connect_timeout_s``; without the viewer a ``zmq_url`` is unused,
@@ -155,6 +200,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         if shape is not None and shape.shape == "mesh":
             shape_geometry("mesh", shape.dims, mesh=shape.mesh, scale=shape.scale, where=where)
     scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)  # read once, kept
+    warn_sunk_objects(cfg)
     obj = cfg.object
     if obj is not None and obj.mesh is not None and cfg.candidates.source != "antipodal":
         warn_if_open(Path(obj.mesh), obj.scale, f"object.mesh {obj.mesh}")  # the sampler warns

@@ -30,6 +30,7 @@ from gcm_pipeline.robot.collision.spheres import SphereCover, sphere_cover
 from gcm_pipeline.robot.collision.world import (
     WorldShape,
     as_transform,
+    depth_into,
     object_shape,
     obstacle_shape,
     table_shape,
@@ -45,6 +46,7 @@ __all__ = [
     "SphereCover",
     "WorldShape",
     "as_transform",
+    "depth_into",
     "gripper_links",
     "object_shape",
     "obstacle_shape",

@@ -26,6 +26,7 @@ __all__ = [
     "PRIMITIVES",
     "WorldShape",
     "as_transform",
+    "depth_into",
     "erode_primitive",
     "object_shape",
     "obstacle_shape",
@@ -168,6 +169,34 @@ def object_shape(
     made = shape_geometry(shape, dims, mesh=mesh, scale=scale, where=where)
     assert made is not None
     return WorldShape("object", made[0], base_inv @ pose @ made[1], "object")
+
+
+def depth_into(shape: WorldShape, support: WorldShape) -> float:
+    """How deep [m] ``shape`` reaches into the box ``support`` (0: apart or touching).
+
+    coal's penetration depth (its signed distance) for a primitive; for a mesh,
+    whose distance stops at 0, the depth of its lowest vertex under the box's
+    top face (the box's +z face: the table's top).
+    """
+    req = coal.DistanceRequest()
+    req.enable_signed_distance = True
+    a, b = shape.placement, support.placement
+    d = coal.distance(
+        shape.geometry,
+        coal.Transform3s(a[:3, :3], a[:3, 3]),
+        support.geometry,
+        coal.Transform3s(b[:3, :3], b[:3, 3]),
+        req,
+        coal.DistanceResult(),
+    )
+    if d > 0.0:
+        return 0.0
+    if not isinstance(shape.geometry, coal.BVHModelBase):
+        return float(-d)
+    verts = np.asarray(shape.geometry.vertices(), dtype=float).reshape(-1, 3)
+    verts = verts @ a[:3, :3].T + a[:3, 3]
+    top = (b[:3, 3] + b[:3, 2] * float(support.geometry.halfSide[2])) @ b[:3, 2]
+    return max(0.0, float(top - (verts @ b[:3, 2]).min()))
 
 
 def erode_primitive(geometry: Any, distance: float) -> Any | None:

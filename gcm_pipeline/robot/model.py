@@ -204,6 +204,13 @@ class Robot:
         where = f"robot {spec.name!r}"
         self.grasp_frame = spec.grasp_frame
         self.grasp_frame_id = resolve_frame(model, spec.grasp_frame, "grasp frame", where)
+        if model.frames[self.grasp_frame_id].parentJoint == 0:
+            # on the base: the IK can move nothing, every grasp would read "out of reach"
+            raise RobotSpecError(
+                f"{where}: no free joint moves the grasp frame {spec.grasp_frame!r} (it is "
+                "fixed to the base, or every joint between them is locked): free the joints "
+                "of its arm or name a frame on the arm"
+            )
         #: the grasp frame's index in ``full_model``
         self.full_grasp_frame_id = resolve_frame(full, spec.grasp_frame, "grasp frame", where)
         self.continuous_joints = {

@@ -630,3 +630,26 @@ def test_a_free_mimic_joint_is_refused_a_locked_one_loads(tmp_path):
     spec.write_text(text + "locked_joints: {elbow_joint: 0.5, shoulder_lift_joint: 0.5}\n")
     robot = load_robot(spec)
     assert robot.nq == 4 and "elbow_joint" not in robot.joint_names
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        "",  # the grasp frame on the base link itself
+        # the shoulder link, whose one joint is locked (the joints after it stay free)
+        "locked_joints: {shoulder_pan_joint: 0.0}\n",
+    ],
+)
+def test_a_grasp_frame_no_free_joint_moves_is_one_line(cli, tmp_path, extra):
+    # the IK can move nothing: every grasp read "out_of_reach", with the hint to move
+    # the object closer
+    spec = write_arm(tmp_path / "b", extra)
+    frame = "base_link" if not extra else "shoulder_link"
+    spec.write_text(spec.read_text().replace("grasp_frame: tool0", f"grasp_frame: {frame}"))
+    with pytest.raises(RobotSpecError, match=rf"no free joint moves the grasp frame '{frame}'"):
+        load_robot(spec)
+    code, _, err = cli(
+        "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", tmp_path / "run", *QUICK
+    )
+    assert_one_line_error(code, err, "no free joint moves the grasp frame")
+    assert not (tmp_path / "run").exists()

@@ -122,7 +122,7 @@ def test_gcm_run_refuses_bad_contact_points_in_one_line(tmp_path, cli):
     np.savez(path, pred_grasps_cam={1: np.stack([np.eye(4)] * 2)}, contact_pts={1: np.zeros(6)})
     cfg = tmp_path / "run.yaml"
     cfg.write_text(
-        "object: {shape: box, dims: {size: [0.05, 0.05, 0.1]}}\n"
+        "object: {shape: box, dims: {size: [0.05, 0.05, 0.1]}, pose: {xyz: [0, 0, 0.05]}}\n"
         f"candidates: {{source: file, path: {path}, format: contact_graspnet, "
         "camera_pose: {xyz: [0.5, 0, 0.8], rpy_deg: [180, 0, 0]}}\n"
     )

@@ -101,8 +101,10 @@ def _joint_axis(model: pin.Model, j: int) -> np.ndarray:
     if kind == "JointModelRevoluteUnaligned":
         axis = np.asarray(jm.extract().axis, dtype=float).copy()
         return axis / np.linalg.norm(axis)
+    name = model.names[j]
     raise RobotSpecError(
-        f"joint {model.names[j]!r} has unsupported type {kind}; only revolute joints are supported"
+        f"joint {name!r} has unsupported type {kind}; only revolute joints are supported: "
+        f"lock it at a value (locked_joints: {{{name}: value}})"
     )
 
 

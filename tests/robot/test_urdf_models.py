@@ -653,3 +653,18 @@ def test_a_grasp_frame_no_free_joint_moves_is_one_line(cli, tmp_path, extra):
     )
     assert_one_line_error(code, err, "no free joint moves the grasp frame")
     assert not (tmp_path / "run").exists()
+
+
+def test_a_free_prismatic_joint_is_one_line_that_says_to_lock_it(cli, tmp_path):
+    # only revolute joints are solved; a prismatic torso or finger must be locked
+    spec = write_arm(tmp_path / "p", joint_type={"elbow_joint": "prismatic"})
+    code, _, err = cli(
+        "run", BOTTLE, "--set", f"robot.spec={spec}", "--out", tmp_path / "run", *QUICK
+    )
+    assert_one_line_error(
+        code, err, "robot.spec:", "'elbow_joint'", "only revolute", "locked_joints: {elbow_joint:"
+    )
+    assert not (tmp_path / "run").exists()
+    spec.write_text(spec.read_text() + "locked_joints: {elbow_joint: 0.05}\n")
+    robot = load_robot(spec)
+    assert robot.nq == 5 and "elbow_joint" not in robot.joint_names

@@ -147,6 +147,7 @@ def warn_sunk_objects(cfg: Config) -> None:
         )
 
 
+@takes_config
 def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     """Check, before any work, what the config refers to outside itself.
 

@@ -108,3 +108,16 @@ def test_depth_into_the_table_of_each_shape():
     for z, want in ((0.1 - lowest, 0.0), (0.1 - lowest - 0.03, 0.03), (0.5, 0.0)):
         shape = object_shape("mesh", None, at(z), np.eye(4), mesh=mesh, scale=0.0002682458)
         assert depth_into(shape, table) == pytest.approx(want, abs=1e-6), z
+
+
+def test_preflight_takes_a_plain_mapping_like_every_stage(caplog):
+    """The Python API's stage functions take a config or a plain mapping."""
+    import yaml
+
+    data = yaml.safe_load(BOX.read_text())
+    data["object"]["pose"]["xyz"] = [0.45, -0.15, 0.0]  # half in the table
+    data["output"] = {"dir": "unused"}
+    with caplog.at_level("WARNING"):
+        robot = preflight(data)
+    assert robot.nq == 7
+    assert any("reaches 75.0 mm into the table" in r.getMessage() for r in caplog.records)

@@ -16,7 +16,7 @@ from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
 from gcm_pipeline.pipeline.clouds import scene_clouds
-from gcm_pipeline.robot.collision import depth_into, object_shape, table_shape
+from gcm_pipeline.robot.collision import WorldShape, depth_into, object_shape, table_shape
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.sources.file_object import warn_if_open
 from gcm_pipeline.sources.grippers import GripperSpec, is_gripper_path
@@ -118,22 +118,21 @@ def _check_gripper_meshes(gripper: GripperSpec, key: str) -> None:
 
 
 @takes_config
-def warn_sunk_objects(cfg: Config) -> None:
+def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
     """Warn about the object reaching more than ``SUNK_DEPTH`` into the table.
 
     A box or sphere placed like the bottle (``xyz: [x, y, 0]``) sinks half into
     the table: the world is as written, but most of its grasps and moves then
     collide with the table, which a user seldom means. (With ``objects``, each
     object is the run's object once: :func:`~gcm_pipeline.pipeline.objects.target_config`.)
+    ``placed``: the object's shape in the world if already built (a mesh is not
+    read again).
     """
     table, obj = cfg.environment.table, cfg.object
     if table is None or obj is None:
         return
     top = table_shape(table.size, table.center_xy, table.height, np.eye(4))
-    shape = object_shape(
-        obj.shape, obj.dims, obj.pose.matrix(), np.eye(4), mesh=obj.mesh, scale=obj.scale
-    )
-    depth = depth_into(shape, top)
+    depth = depth_into(_object_in_world(obj) if placed is None else placed, top)
     if depth > SUNK_DEPTH:
         name = getattr(obj, "name", None)
         log.warning(
@@ -145,6 +144,13 @@ def warn_sunk_objects(cfg: Config) -> None:
             _PLACED.get(obj.shape, obj.shape),
             depth,
         )
+
+
+def _object_in_world(obj: Any) -> WorldShape:
+    """The config's object as a shape in the world frame (a mesh object's file is read)."""
+    return object_shape(
+        obj.shape, obj.dims, obj.pose.matrix(), np.eye(4), mesh=obj.mesh, scale=obj.scale
+    )
 
 
 @takes_config
@@ -195,14 +201,15 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
         robot.build_geometry("collision")
     except RobotSpecError as exc:
         raise type(exc)(f"robot.spec: {exc}") from exc
-    shapes: list[tuple[str, Any]] = [("object", cfg.object)]
-    shapes += [(f"environment.obstacles.{i}", o) for i, o in enumerate(cfg.environment.obstacles)]
-    for where, shape in shapes:
-        if shape is not None and shape.shape == "mesh":
-            shape_geometry("mesh", shape.dims, mesh=shape.mesh, scale=shape.scale, where=where)
-    scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)  # read once, kept
-    warn_sunk_objects(cfg)
     obj = cfg.object
+    # the object's shape once: its mesh loads here, and the table check reads it
+    placed = None if obj is None else _object_in_world(obj)
+    for i, o in enumerate(cfg.environment.obstacles):
+        if o.shape == "mesh":
+            where = f"environment.obstacles.{i}"
+            shape_geometry("mesh", o.dims, mesh=o.mesh, scale=o.scale, where=where)
+    scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)  # read once, kept
+    warn_sunk_objects(cfg, placed)
     if obj is not None and obj.mesh is not None and cfg.candidates.source != "antipodal":
         warn_if_open(Path(obj.mesh), obj.scale, f"object.mesh {obj.mesh}")  # the sampler warns
     pub = cfg.publish

@@ -15,6 +15,10 @@ all of them:
   :mod:`~gcm_pipeline.robot.ik.lm_kernel`;
 * the Panda's closed form (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.solve`),
   per (target, joint-7 value): :mod:`~gcm_pipeline.robot.ik.panda_kernel`;
+* a 6R arm's closed-form branches after EAIK's answers (exact ones, one branch
+  once, each at its 2 pi copy nearest a reference inside the limits:
+  :meth:`~gcm_pipeline.robot.ik.analytic_6r.SixRAnalyticIK.solve`), per target:
+  :mod:`~gcm_pipeline.robot.ik.analytic_6r_kernel`;
 * levels 1 and 2 of the collision broad phase (one bounding sphere per
   geometry, then the sphere covers), level 3 (a robot polytope's hull
   vertices against a box of the world, or against a robot box in the
@@ -80,6 +84,9 @@ The NumPy code is the reference.
 * The closed form: the same arithmetic and the same solutions; the angles
   differ by round-off (1e-13 rad measured; acos near +-1 can amplify an
   ulp to 2e-8 rad).
+* A 6R arm's branches: the NumPy code's operations on each angle, each
+  rounded once (IEEE: fmod and rint are exact), in the same order: the same
+  branches and angles to the bit.
 * The LM iterates each pair alone and solves its 6x6 system by Cholesky,
   and the deviation samples step each joint's sine and cosine by angle
   addition: their numbers differ from the NumPy code's in the last digits
@@ -161,6 +168,7 @@ class Kernels(NamedTuple):
         sphere_bounds: The clearance pairs' lower bounds from the sphere covers.
         face_distances: The clearance's exact distances of a polytope over a box's face.
         vertex_distances: The clearance's bounds from a polytope's nearest hull vertex.
+        six_r_branches: A 6R arm's closed-form branches from EAIK's answers, per target.
     """
 
     chain_forward: Callable[..., Any]
@@ -175,6 +183,7 @@ class Kernels(NamedTuple):
     sphere_bounds: Callable[..., Any]
     face_distances: Callable[..., Any]
     vertex_distances: Callable[..., Any]
+    six_r_branches: Callable[..., Any]
 
 
 @functools.cache
@@ -251,7 +260,7 @@ def _import() -> Kernels | None:
         return None
     from gcm_pipeline.robot import chain_kernel, kernel_common
     from gcm_pipeline.robot.collision import broadphase_kernel, clearance_kernel
-    from gcm_pipeline.robot.ik import lm_kernel, panda_kernel
+    from gcm_pipeline.robot.ik import analytic_6r_kernel, lm_kernel, panda_kernel
 
     return Kernels(
         *(
@@ -269,6 +278,7 @@ def _import() -> Kernels | None:
                 clearance_kernel.sphere_bounds,
                 clearance_kernel.face_distances,
                 clearance_kernel.vertex_distances,
+                analytic_6r_kernel.six_r_branches,
             )
         )
     )

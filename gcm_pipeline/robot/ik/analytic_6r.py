@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.ik.candidates import SolveContext, rank_in_runs
 from gcm_pipeline.robot.ik.lm import pose_errors
 
@@ -206,23 +207,34 @@ class SixRAnalyticIK:
             answer, grouped by target in EAIK's order.
         """
         n = len(rot)
-        poses = np.zeros((n, 4, 4))
-        poses[:, :3, :3] = rot
-        poses[:, :3, 3] = pos
-        poses[:, 3, 3] = 1.0
-        sols = self._robot.IK_batched(poses, 1) if n else []
-        qs = [s.Q for s in sols]  # (k, 6) float64 each
-        counts = np.fromiter((len(q) for q in qs), dtype=int, count=len(qs))
-        if counts.sum() == 0:
+        counts, q, exact = self._answers(rot, pos)
+        if q.shape[0] == 0:
             return np.zeros(0, dtype=int), np.zeros((0, 6))
-        q = np.concatenate([q for q in qs if len(q)], dtype=float).reshape(-1, 6)
-        ls = np.concatenate([s.is_LS for s in sols], dtype=bool)
         idx = np.repeat(np.arange(n), counts)
-        keep = ~ls & np.all(np.isfinite(q), axis=1)
+        keep = exact & np.all(np.isfinite(q), axis=1)
         idx, q = idx[keep], np.remainder(q[keep] + np.pi, 2.0 * np.pi) - np.pi
         # at singularities EAIK may give one branch twice: keep its first
         first = ~repeated_branches(idx, q)
         return idx[first], q[first]
+
+    def _answers(
+        self, rot: np.ndarray, pos: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """EAIK's answers for N poses: count per pose (N,), angles (M, 6), exact (M,) bool."""
+        n = len(rot)
+        poses = np.zeros((n, 4, 4))
+        poses[:, :3, :3] = rot
+        poses[:, :3, 3] = pos
+        poses[:, 3, 3] = 1.0
+        qs, ls = [], []
+        for s in self._robot.IK_batched(poses, 1) if n else []:
+            qs.append(s.Q)  # (k, 6) float64
+            ls.append(s.is_LS)
+        counts = np.fromiter((len(x) for x in qs), dtype=np.intp, count=n)
+        if counts.sum() == 0:
+            return counts, np.zeros((0, 6)), np.zeros(0, dtype=bool)
+        q = np.concatenate([x for x in qs if len(x)], dtype=float).reshape(-1, 6)
+        return counts, q, ~np.concatenate(ls, dtype=bool)
 
     def solve(
         self,
@@ -250,6 +262,13 @@ class SixRAnalyticIK:
         rot = np.asarray(rot, dtype=float).reshape(-1, 3, 3)
         pos = np.asarray(pos, dtype=float).reshape(-1, 3)
         ref = np.broadcast_to(np.asarray(reference, dtype=float), (len(rot), 6))
+        compiled = kernels.get()
+        if compiled is not None and np.shape(lower) == np.shape(upper) == (6,):
+            counts, answers, exact = self._answers(rot, pos)
+            found: tuple[np.ndarray, np.ndarray] = compiled.six_r_branches(
+                answers, counts, exact, ref, lower, upper, _SAME_BRANCH
+            )
+            return found
         idx, q = self.raw(rot, pos)
         if idx.size == 0:
             return idx, q

@@ -156,18 +156,20 @@ class ChunkSteps:
         separation: float = _SAME_SOLUTION,
         library: int = _RESOLVE_LIBRARY,
         restarts: int = _RESOLVE_RESTARTS,
+        every_branch: bool | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Other verified, distinct IK solutions of M targets, in seed order.
 
         See :func:`~gcm_pipeline.reach.alternatives.other_solutions`; ``count``
-        None: ``alternatives`` per target (every closed-form branch of a 6R arm).
+        None: ``alternatives`` per target; every closed-form branch of a 6R arm
+        when ``count`` is None or ``every_branch``.
         """
         return other_solutions(
             self.robot,
             targets,
             q_first,
             count=self.alternatives if count is None else int(count),
-            every_branch=count is None,
+            every_branch=count is None if every_branch is None else every_branch,
             backend=self.backend,
             position_tolerance=self.position_tolerance,
             orientation_tolerance=self.orientation_tolerance,
@@ -202,6 +204,9 @@ class ChunkSteps:
                 separation=self.solution_separation,
                 library=_BRANCH_LIBRARY,
                 restarts=_BRANCH_RESTARTS,
+                # a 6R arm's closed form: every branch (the nearest 2 (K - 1) to home
+                # could all fail a check while a farther one passes)
+                every_branch=True,
             )
             if len(idx):
                 chk = self.check(targets[rows[idx]], alt_q)

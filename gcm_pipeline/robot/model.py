@@ -188,6 +188,11 @@ class Robot:
         self.urdf_xml = prepared.xml
         self.package_dirs = prepared.package_dirs
         full = build_model(prepared)
+        # reduced without the tool's frame, which is then added to it: buildReducedModel
+        # finds a frame's parent frame by name alone, and a flange named by a link and a
+        # joint alike (Sawyer's right_hand) would make it raise (the tool's frame is the
+        # last, so the frames before it have the same indices in both)
+        bare = self._bare_model = full.copy()
         if spec.tool is not None:
             _add_tool_frame(spec, full)
         self.full_model = full
@@ -196,7 +201,12 @@ class Robot:
         locked_q, locked_ids = locked_joints(spec, full)
         _check_mimic(spec, prepared)
         self.locked_q = locked_q
-        model = pin.buildReducedModel(full, locked_ids, locked_q) if locked_ids else full.copy()
+        if locked_ids:
+            model = pin.buildReducedModel(bare, locked_ids, locked_q)
+            if spec.tool is not None:
+                _add_tool_frame(spec, model)
+        else:
+            model = full.copy()
         self.model = model
         self.data = model.createData()
         self.nq = int(model.nq)
@@ -375,7 +385,7 @@ class Robot:
             if self.full_model.existJointName(j)
         ]
         if locked:
-            _, geom = pin.buildReducedModel(self.full_model, geom, locked, self.locked_q)
+            _, geom = pin.buildReducedModel(self._bare_model, geom, locked, self.locked_q)
         if self.spec.tool is not None:
             self._add_tool_geometry(geom, kind)
         return geom

@@ -13,6 +13,7 @@ from gcm_pipeline.cli import main
 from gcm_pipeline.manifold.continuity import patches
 from gcm_pipeline.manifold.lattice import row_mesh
 from gcm_pipeline.pipeline import branch_scores, make_checker
+from gcm_pipeline.robot.ik.analytic_6r import six_r_solver
 from gcm_pipeline.rundir.grasps_csv import read_grasps_csv
 
 SMALL = ["candidates.count=45", "densify.subdivisions=3", "ik.solutions=4"]
@@ -98,6 +99,33 @@ def test_solutions_npz_in_csv_order(runs: dict) -> None:
         assert np.array_equal(s["q"][rows, chosen[rows]], c["q"][rows])
     table = read_grasps_csv(run.run_dir / "grasps.csv")
     assert np.array_equal(table["solution"], chosen)
+
+
+def test_a_6r_arm_keeps_every_passing_closed_form_branch(tmp_path: Path) -> None:
+    # the branches step asked the closed form for the 2 (K - 1) branches nearest home
+    # only: on the UR5's bottle with K = 2 and no approach, 269 of 344 reachable grasps
+    # kept one branch while a second, farther one was in the limits and free
+    k = 2
+    over = ["robot.spec=ur5", "candidates.count=24", "densify.subdivisions=2", f"ik.solutions={k}"]
+    over += ["approach=null", "publish.html=false", "publish.plots=false", "ik.workers=1"]
+    cfg = gcm.load_config(BOTTLE, over)
+    run = gcm.Pipeline(cfg).run(tmp_path / "run", progress=False)
+    g, robot = run.grasps, run.robot
+    base = cfg.robot.base_pose.matrix()
+    target = np.linalg.inv(base) @ gcm.dq_to_matrix(np.asarray(g["dq"]))
+    six = six_r_solver(robot)
+    assert six is not None
+    eps = 1e-9  # the closed form's branches strictly inside the limits, as the engine asks
+    idx, cq = six.solve(
+        target[:, :3, :3], target[:, :3, 3], robot.lower + eps, robot.upper - eps, robot.home
+    )
+    free = make_checker(robot, cfg.environment, cfg.object, base).check(cq) == ""
+    n_free = np.bincount(idx[free], minlength=len(target))
+    reach = np.asarray(g["reachable"])
+    assert np.array_equal(reach, n_free > 0)
+    kept = np.asarray(g["n_solutions"])
+    assert (n_free[reach] >= k).sum() > 20
+    assert np.array_equal(kept[reach], np.minimum(k, n_free[reach]))
 
 
 @pytest.mark.parametrize("value", ["0", "17", "-1", "true", "2.5"])

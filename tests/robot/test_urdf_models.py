@@ -66,6 +66,26 @@ def test_a_link_and_a_joint_of_one_name_resolve_to_the_link(tmp_path):
     assert tooled.build_geometry("collision").ngeoms == 7
 
 
+def test_a_tool_on_a_flange_named_by_a_link_and_a_joint_with_a_locked_joint(tmp_path):
+    # Sawyer's right_hand is a link and a joint: locking any joint (its head_pan) made
+    # Pinocchio's buildReducedModel raise "Several frames match the filter" (a traceback)
+    extra = TCP_ONLY + "locked_joints: {shoulder_pan_joint: 0.3}\n"
+    robots = [
+        load_robot(_with_grasp_frame(write_arm(tmp_path / name, extra, **kw), "tcp"))
+        for name, kw in (("plain", {}), ("dup", {"flange_joint": "tool0"}))
+    ]
+    bare = load_robot(write_arm(tmp_path / "bare"))
+    q = robots[0].random_configurations(50, seed=4)
+    full_q = np.hstack([np.full((50, 1), 0.3), q])  # the locked joint at its value
+    want = bare.fk(full_q) @ _translation(0.15)
+    for robot in robots:
+        assert robot.nq == 5
+        np.testing.assert_allclose(robot.fk(q), want, atol=1e-12)
+        np.testing.assert_allclose(robot.fk_pinocchio(q), want, atol=1e-12)
+        assert robot.tool_tcp_link()[0] == "tool0"
+        assert robot.build_geometry("collision").ngeoms == 7
+
+
 def _translation(z: float) -> np.ndarray:
     t = np.eye(4)
     t[2, 3] = z

@@ -28,7 +28,9 @@ reason. It is applied to every converged candidate before one is chosen, so a
 target whose first solution collides keeps trying other seeds; if no valid
 candidate remains, the last validator reason is the row's reason. With
 ``return_all=True`` the result also lists every converged candidate
-(:class:`IKCandidates`), valid or not.
+(:class:`IKCandidates`), valid or not; the pinocchio backend can also hand
+them, as it finds them, to a ``settle`` callback that stops the search for the
+targets that need no more.
 
 A backend is a function of the :class:`IKBackend` protocol; it returns raw,
 unverified answers, which :func:`solve_ik` verifies.
@@ -297,6 +299,7 @@ def solve_ik(
     validator: Validator | None = None,
     return_all: bool = False,
     workers: int | str = 1,
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     **options: Any,
 ) -> IKResult:
     """Solve the inverse kinematics of the grasp frame for N target poses.
@@ -317,6 +320,11 @@ def solve_ik(
         return_all: Also return every converged candidate (``result.candidates``).
         workers: Processes to split the targets over (``"auto"`` or ``0``: the
             cores this process may run on).
+        settle: With ``return_all`` (pinocchio backend, in this process):
+            ``(index (M,), q (M, nq)) -> (N,) bool`` is given every candidate
+            once, as the backend's stages find them (a target's in the order
+            of ``result.candidates``; ``index`` into ``targets``), and returns
+            the targets that need no more: the later stages skip them.
         **options: Backend options, e.g. ``max_iterations`` (see
             :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` and
             :class:`~gcm_pipeline.robot.ik.mink_backend.MinkIKOptions`).
@@ -339,6 +347,8 @@ def solve_ik(
     seed_arr = check_seeds(seeds, n, nq)
     nb = check_neighbours(neighbours, n)
     kwargs = dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
+    if settle is not None and (backend != "pinocchio" or not return_all):
+        raise InputError("settle needs the pinocchio backend and return_all")
 
     q = np.full((n, nq), np.nan)
     success = np.zeros(n, dtype=bool)
@@ -354,6 +364,8 @@ def solve_ik(
         if rows.size == 0:
             continue
         sub_seeds = _phase_seeds(phase, rows, seed_arr, nb, q)
+        if settle is not None:
+            kwargs["settle"] = _settle_rows(settle, rows)
         raw = run_backend(
             solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
         )
@@ -380,6 +392,17 @@ def solve_ik(
         backend=backend,
         candidates=_gather_candidates(cand, nq) if return_all else None,
     )
+
+
+def _settle_rows(
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray], rows: np.ndarray
+) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``settle`` of all the targets as a callback of the backend's targets ``rows``."""
+
+    def local(index: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return np.asarray(settle(rows[index], q), dtype=bool)[rows]
+
+    return local
 
 
 def _phases(far: np.ndarray, nb: np.ndarray | None) -> list[np.ndarray]:

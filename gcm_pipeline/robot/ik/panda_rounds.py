@@ -80,7 +80,7 @@ def seeded_round(
     """
     opts, tally, trot, tpos = ctx.opts, ctx.tally, ctx.trot, ctx.tpos
     lower, upper, n_valid = ctx.lower, ctx.upper, ctx.tally.n_valid
-    todo = np.flatnonzero(n_valid < opts.min_solutions)
+    todo = ctx.short()
     if todo.size == 0:
         return
     parts = []
@@ -146,7 +146,7 @@ def closed_form_rounds(
         seeds: Given seeds (N, K, nq) [rad] or None.
         pref: Preferred configuration per target (N, nq) [rad], inside the limits.
     """
-    opts, n_valid = ctx.opts, ctx.tally.n_valid
+    opts = ctx.opts
     lower, upper = ctx.lower, ctx.upper
     k = opts.analytic_samples
     levers = joint_levers(ctx.robot)
@@ -165,7 +165,8 @@ def closed_form_rounds(
         seeded_round(solver, seed_library(ctx.robot, opts), seeds, ctx)
     tried = np.zeros(0)
     for with_pref, samples in rounds:
-        todo = np.flatnonzero(n_valid < opts.min_solutions)
+        ctx.tally.checkpoint()  # the settled targets need no more candidates
+        todo = ctx.short()
         if todo.size == 0:
             break
         grid = np.linspace(lower[6], upper[6], samples)  # the ends too: some poses need them

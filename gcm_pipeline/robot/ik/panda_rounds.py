@@ -101,9 +101,10 @@ def seeded_round(
     seed = col // _NEAR_Q7.size  # the seed each solution came from
     dist = np.sum((cq - near[at, seed]) ** 2, axis=1)
     dist = np.where(np.isfinite(dist), dist, np.inf)
-    order = np.lexsort((dist, seed, at))
-    at, cq, seed, dist = at[order], cq[order], seed[order], dist[order]
-    first = np.r_[True, (at[1:] != at[:-1]) | (seed[1:] != seed[:-1])] & np.isfinite(dist)
+    # the nearest of each (target, seed), the first of ties; the solutions come
+    # grouped by target, then column (so seed)
+    first = first_smallest(at.astype(np.int64) * near.shape[1] + seed, dist)
+    first = first[np.isfinite(dist[first])]
     at, cq, seed = at[first], cq[first], seed[first]
     # one solution reached from two seeds counts once
     key = np.round(cq, 9)

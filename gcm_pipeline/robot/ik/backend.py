@@ -320,11 +320,9 @@ def solve_ik(
         return_all: Also return every converged candidate (``result.candidates``).
         workers: Processes to split the targets over (``"auto"`` or ``0``: the
             cores this process may run on).
-        settle: With ``return_all`` (pinocchio backend, in this process):
-            ``(index (M,), q (M, nq)) -> (N,) bool`` is given every candidate
-            once, as the backend's stages find them (a target's in the order
-            of ``result.candidates``; ``index`` into ``targets``), and returns
-            the targets that need no more: the later stages skip them.
+        settle: With ``return_all`` (pinocchio): ``(index, q) -> (N,) bool`` gets every
+            candidate once as the stages find them (in ``result.candidates``' order per
+            target) and returns the targets that need no more (later stages skip them).
         **options: Backend options, e.g. ``max_iterations`` (see
             :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` and
             :class:`~gcm_pipeline.robot.ik.mink_backend.MinkIKOptions`).
@@ -346,9 +344,7 @@ def solve_ik(
     processes = _processes(workers)
     seed_arr = check_seeds(seeds, n, nq)
     nb = check_neighbours(neighbours, n)
-    kwargs = dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
-    if settle is not None and (backend != "pinocchio" or not return_all):
-        raise InputError("settle needs the pinocchio backend and return_all")
+    kwargs = _backend_kwargs(options, tol_p, tol_r, backend, return_all, settle)
 
     q = np.full((n, nq), np.nan)
     success = np.zeros(n, dtype=bool)
@@ -364,11 +360,8 @@ def solve_ik(
         if rows.size == 0:
             continue
         sub_seeds = _phase_seeds(phase, rows, seed_arr, nb, q)
-        if settle is not None:
-            kwargs["settle"] = _settle_rows(settle, rows)
-        raw = run_backend(
-            solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
-        )
+        kw = kwargs if settle is None else {**kwargs, "settle": _settle_rows(settle, rows)}
+        raw = run_backend(solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kw)
         ok, good, q_rows, pe, re = _verify(robot, tgt[rows], raw, tol_p, tol_r)
         pos_err[rows] = raw.pos_err
         rot_err[rows] = raw.rot_err
@@ -392,6 +385,20 @@ def solve_ik(
         backend=backend,
         candidates=_gather_candidates(cand, nq) if return_all else None,
     )
+
+
+def _backend_kwargs(
+    options: dict[str, Any],
+    tol_p: float,
+    tol_r: float,
+    backend: str,
+    return_all: bool,
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+) -> dict[str, Any]:
+    """The backend's options with the tolerances; a ``settle`` it cannot take is an error."""
+    if settle is not None and (backend != "pinocchio" or not return_all):
+        raise InputError("settle needs the pinocchio backend and return_all")
+    return dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
 
 
 def _settle_rows(

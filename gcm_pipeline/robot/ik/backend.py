@@ -320,9 +320,9 @@ def solve_ik(
         return_all: Also return every converged candidate (``result.candidates``).
         workers: Processes to split the targets over (``"auto"`` or ``0``: the
             cores this process may run on).
-        settle: With ``return_all`` (pinocchio): ``(index, q) -> (N,) bool`` gets every
-            candidate once as the stages find them (in ``result.candidates``' order per
-            target) and returns the targets that need no more (later stages skip them).
+        settle: With ``return_all`` (pinocchio): ``(index, q) -> (N,) bool`` gets each
+            candidate once as the stages find them (a target's in the order of
+            ``result.candidates``), returns the targets that need no more (then skipped).
         **options: Backend options, e.g. ``max_iterations`` (see
             :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` and
             :class:`~gcm_pipeline.robot.ik.mink_backend.MinkIKOptions`).

@@ -125,7 +125,6 @@ def solve(
         closed_form_rounds(solver, ctx, seeds, pref)
     if closed_form and ctx.one_each and seeds is not None and seeds.shape[1]:
         _nearer_from_seeds(ctx, has, pref)
-    tally.checkpoint()
     lm_rounds(ctx, seeds, complete, solver is not None and opts.analytic_samples > 0)
     success = tally.n_valid > 0
     if opts.manipulability_steps > 0 and np.any(success):

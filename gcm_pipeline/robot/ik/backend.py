@@ -28,7 +28,9 @@ reason. It is applied to every converged candidate before one is chosen, so a
 target whose first solution collides keeps trying other seeds; if no valid
 candidate remains, the last validator reason is the row's reason. With
 ``return_all=True`` the result also lists every converged candidate
-(:class:`IKCandidates`), valid or not.
+(:class:`IKCandidates`), valid or not; the pinocchio backend can also hand
+them, as it finds them, to a ``settle`` callback that stops the search for the
+targets that need no more.
 
 A backend is a function of the :class:`IKBackend` protocol; it returns raw,
 unverified answers, which :func:`solve_ik` verifies.
@@ -297,6 +299,7 @@ def solve_ik(
     validator: Validator | None = None,
     return_all: bool = False,
     workers: int | str = 1,
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     **options: Any,
 ) -> IKResult:
     """Solve the inverse kinematics of the grasp frame for N target poses.
@@ -317,6 +320,9 @@ def solve_ik(
         return_all: Also return every converged candidate (``result.candidates``).
         workers: Processes to split the targets over (``"auto"`` or ``0``: the
             cores this process may run on).
+        settle: With ``return_all`` (pinocchio): ``(index, q) -> (N,) bool`` gets each
+            candidate once as the stages find them (a target's in the order of
+            ``result.candidates``), returns the targets that need no more (then skipped).
         **options: Backend options, e.g. ``max_iterations`` (see
             :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` and
             :class:`~gcm_pipeline.robot.ik.mink_backend.MinkIKOptions`).
@@ -338,7 +344,7 @@ def solve_ik(
     processes = _processes(workers)
     seed_arr = check_seeds(seeds, n, nq)
     nb = check_neighbours(neighbours, n)
-    kwargs = dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
+    kwargs = _backend_kwargs(options, tol_p, tol_r, backend, return_all, settle)
 
     q = np.full((n, nq), np.nan)
     success = np.zeros(n, dtype=bool)
@@ -354,9 +360,8 @@ def solve_ik(
         if rows.size == 0:
             continue
         sub_seeds = _phase_seeds(phase, rows, seed_arr, nb, q)
-        raw = run_backend(
-            solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kwargs
-        )
+        kw = kwargs if settle is None else {**kwargs, "settle": _settle_rows(settle, rows)}
+        raw = run_backend(solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kw)
         ok, good, q_rows, pe, re = _verify(robot, tgt[rows], raw, tol_p, tol_r)
         pos_err[rows] = raw.pos_err
         rot_err[rows] = raw.rot_err
@@ -380,6 +385,31 @@ def solve_ik(
         backend=backend,
         candidates=_gather_candidates(cand, nq) if return_all else None,
     )
+
+
+def _backend_kwargs(
+    options: dict[str, Any],
+    tol_p: float,
+    tol_r: float,
+    backend: str,
+    return_all: bool,
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+) -> dict[str, Any]:
+    """The backend's options with the tolerances; a ``settle`` it cannot take is an error."""
+    if settle is not None and (backend != "pinocchio" or not return_all):
+        raise InputError("settle needs the pinocchio backend and return_all")
+    return dict(options, position_tolerance=tol_p, orientation_tolerance=tol_r)
+
+
+def _settle_rows(
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray], rows: np.ndarray
+) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``settle`` of all the targets as a callback of the backend's targets ``rows``."""
+
+    def local(index: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return np.asarray(settle(rows[index], q), dtype=bool)[rows]
+
+    return local
 
 
 def _phases(far: np.ndarray, nb: np.ndarray | None) -> list[np.ndarray]:

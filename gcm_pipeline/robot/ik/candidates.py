@@ -6,7 +6,9 @@ forms, seeded LM rounds, the manipulability raise). Each stage gets one
 converged candidates to the context's :class:`Tally`, which applies the
 validator, counts valid solutions per target, keeps the best one, records the
 best attempt of each target (for the error report of failures) and, with
-``return_all``, every candidate.
+``return_all``, every candidate; a ``settle`` callback given those candidates
+between the stages may mark targets that need no more (the later stages skip
+them).
 """
 
 from __future__ import annotations
@@ -65,6 +67,10 @@ class Tally:
         att_r: Orientation error of the best attempt per target (N,) [rad].
         att_q: Configuration of the best attempt (N, nq) [rad].
         last_reason: The validator's last reason per target (N,), '' if none.
+        settle: Optional ``(index (M,), q (M, nq)) -> (N,) bool``: with
+            ``return_all``, given every candidate once, in the order recorded
+            (:meth:`checkpoint`); returns the targets that need no more candidates.
+        settled: Targets (N,) the stages skip (``settle`` said so).
     """
 
     chain: Any
@@ -81,6 +87,10 @@ class Tally:
     all_index: list[np.ndarray] = field(default_factory=list)
     all_q: list[np.ndarray] = field(default_factory=list)
     all_reason: list[np.ndarray] = field(default_factory=list)
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    settled: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    #: Blocks of ``all_index`` already given to ``settle``.
+    offered: int = 0
 
     @classmethod
     def empty(
@@ -91,8 +101,11 @@ class Tally:
         validator: Callable[[np.ndarray], np.ndarray] | None,
         return_all: bool,
         by_manipulability: bool,
+        settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     ) -> Tally:
         """A tally of ``n`` targets without any candidate yet."""
+        if settle is not None and not return_all:
+            raise InputError("settle needs return_all (it is given the candidates)")
         return cls(
             chain=chain,
             validator=validator,
@@ -105,7 +118,19 @@ class Tally:
             att_r=np.full(n, np.inf),
             att_q=np.full((n, nq), np.nan),
             last_reason=np.full(n, "", dtype=object),
+            settle=settle,
+            settled=np.zeros(n, dtype=bool),
         )
+
+    def checkpoint(self) -> None:
+        """Give ``settle`` the candidates recorded since the last checkpoint; mark the settled."""
+        if self.settle is None or self.offered == len(self.all_index):
+            return
+        new = slice(self.offered, len(self.all_index))
+        self.offered = len(self.all_index)
+        index = np.concatenate(self.all_index[new])
+        q = np.concatenate(self.all_q[new])
+        self.settled |= np.asarray(self.settle(index, q), dtype=bool)
 
     def accept(self, cids: np.ndarray, cq: np.ndarray, rank: np.ndarray) -> None:
         """Record converged candidates ``cq`` of targets ``cids``.
@@ -197,6 +222,11 @@ class SolveContext:
     def by_manipulability(self) -> bool:
         """Whether a target keeps its solution of best manipulability among several."""
         return self.tally.by_manipulability
+
+    def short(self) -> np.ndarray:
+        """Targets still short of ``opts.min_solutions`` valid solutions and not settled."""
+        tally = self.tally
+        return np.flatnonzero((tally.n_valid < self.opts.min_solutions) & ~tally.settled)
 
     @property
     def one_each(self) -> bool:

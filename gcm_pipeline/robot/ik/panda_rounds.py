@@ -80,7 +80,7 @@ def seeded_round(
     """
     opts, tally, trot, tpos = ctx.opts, ctx.tally, ctx.trot, ctx.tpos
     lower, upper, n_valid = ctx.lower, ctx.upper, ctx.tally.n_valid
-    todo = np.flatnonzero(n_valid < opts.min_solutions)
+    todo = ctx.short()
     if todo.size == 0:
         return
     parts = []
@@ -93,7 +93,11 @@ def seeded_round(
     q7s = np.clip(near[:, :, 6:7] + _NEAR_Q7, lower[6], upper[6]).reshape(m, -1)
     ok7 = np.isfinite(q7s)
     q7s = np.where(ok7, q7s, lower[6] - 1.0)  # outside the limits: no solution
-    at, cq, _, col = analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
+    # per (target, seed): its nearest solution is wanted (the kernel skips branches
+    # farther than one found)
+    at, cq, _, col = analytic_blocks(
+        solver, trot[todo], tpos[todo], q7s, lower, upper, nearest=(near, _NEAR_Q7.size)
+    )
     real = ok7[at, col]  # not from a NaN seed's placeholder
     at, cq, col = at[real], cq[real], col[real]
     if at.size == 0:
@@ -101,9 +105,10 @@ def seeded_round(
     seed = col // _NEAR_Q7.size  # the seed each solution came from
     dist = np.sum((cq - near[at, seed]) ** 2, axis=1)
     dist = np.where(np.isfinite(dist), dist, np.inf)
-    order = np.lexsort((dist, seed, at))
-    at, cq, seed, dist = at[order], cq[order], seed[order], dist[order]
-    first = np.r_[True, (at[1:] != at[:-1]) | (seed[1:] != seed[:-1])] & np.isfinite(dist)
+    # the nearest of each (target, seed), the first of ties; the solutions come
+    # grouped by target, then column (so seed)
+    first = first_smallest(at.astype(np.int64) * near.shape[1] + seed, dist)
+    first = first[np.isfinite(dist[first])]
     at, cq, seed = at[first], cq[first], seed[first]
     # one solution reached from two seeds counts once
     key = np.round(cq, 9)
@@ -146,7 +151,7 @@ def closed_form_rounds(
         seeds: Given seeds (N, K, nq) [rad] or None.
         pref: Preferred configuration per target (N, nq) [rad], inside the limits.
     """
-    opts, n_valid = ctx.opts, ctx.tally.n_valid
+    opts = ctx.opts
     lower, upper = ctx.lower, ctx.upper
     k = opts.analytic_samples
     levers = joint_levers(ctx.robot)
@@ -165,7 +170,8 @@ def closed_form_rounds(
         seeded_round(solver, seed_library(ctx.robot, opts), seeds, ctx)
     tried = np.zeros(0)
     for with_pref, samples in rounds:
-        todo = np.flatnonzero(n_valid < opts.min_solutions)
+        ctx.tally.checkpoint()  # the settled targets need no more candidates
+        todo = ctx.short()
         if todo.size == 0:
             break
         grid = np.linspace(lower[6], upper[6], samples)  # the ends too: some poses need them

@@ -72,6 +72,7 @@ def solve(
     seeds: np.ndarray | None = None,
     validator: Callable[[np.ndarray], np.ndarray] | None = None,
     return_all: bool = False,
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     **options: Any,
 ) -> BackendAnswer:
     """Solve IK for targets with the batched LM (raw, unverified results).
@@ -85,6 +86,9 @@ def solve(
         validator: Optional ``q (M, nq) -> (M,) str`` reasons ('' = valid),
             applied to converged candidates before one is chosen.
         return_all: Also return every converged candidate.
+        settle: With ``return_all``, ``(index (M,), q (M, nq)) -> (N,) bool``:
+            given every candidate once, in order, between the stages; the later
+            stages skip the targets it returns True for (they need no more).
         **options: :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` fields.
 
     Returns:
@@ -95,7 +99,14 @@ def solve(
     """
     opts = PinocchioIKOptions.from_kwargs(options)
     ctx = _context(
-        robot, targets, position_tolerance, orientation_tolerance, opts, validator, return_all
+        robot,
+        targets,
+        position_tolerance,
+        orientation_tolerance,
+        opts,
+        validator,
+        return_all,
+        settle,
     )
     n, tally = ctx.n, ctx.tally
     solver = analytic_solver(robot) if opts.analytic else None
@@ -131,6 +142,7 @@ def solve(
             validator,
         )
     reason = _diagnose_failures(ctx, success)
+    tally.checkpoint()  # the last candidates: settle has seen every one
     if not return_all:
         return BackendAnswer(tally.best_q, success, tally.att_p, tally.att_r, reason)
     nq = robot.nq
@@ -156,6 +168,7 @@ def _context(
     opts: PinocchioIKOptions,
     validator: Callable[[np.ndarray], np.ndarray] | None,
     return_all: bool,
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> SolveContext:
     """The targets, limits, tolerances and an empty tally of one solve call."""
     n = targets.shape[0]
@@ -176,7 +189,9 @@ def _context(
         position_tolerance=position_tolerance,
         orientation_tolerance=orientation_tolerance,
         opts=opts,
-        tally=Tally.empty(n, robot.nq, robot.chain, validator, return_all, by_manipulability),
+        tally=Tally.empty(
+            n, robot.nq, robot.chain, validator, return_all, by_manipulability, settle
+        ),
     )
 
 

@@ -211,6 +211,22 @@ def _worker(args: tuple[np.ndarray, np.ndarray | None]) -> BackendAnswer:
     )
 
 
+def _chunk_kwargs(
+    kwargs: dict[str, Any],
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+    a: int,
+    b: int,
+) -> dict[str, Any]:
+    """The backend options of the chunk of targets ``a:b`` (its own ``settle`` indices)."""
+    if settle is None:
+        return kwargs
+
+    def local(index: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return np.asarray(settle(index + a, q), dtype=bool)[a:b]
+
+    return {**kwargs, "settle": local}
+
+
 def run_backend(
     solve: Callable[..., BackendAnswer],
     robot: Robot,
@@ -226,10 +242,17 @@ def run_backend(
     Chunks of at most 16,384 targets (a multiple of the workers when they run
     in parallel: at least two targets per worker and the fork start method);
     the chunks' answers are concatenated in order, candidate rows re-indexed.
+    A ``settle`` callback among ``kwargs`` keeps the chunks in this process.
     Ctrl-C or SIGTERM while the workers run stops them (no half-done pool).
     """
     n = targets.shape[0]
-    parallel = workers > 1 and n >= 2 * workers and "fork" in mp.get_all_start_methods()
+    settle = kwargs.get("settle")
+    parallel = (
+        workers > 1
+        and n >= 2 * workers
+        and "fork" in mp.get_all_start_methods()
+        and settle is None  # a callback of this process
+    )
     n_chunks = -(-n // _CHUNK)
     if parallel:
         n_chunks = workers * -(-n_chunks // workers)  # a multiple of the workers
@@ -251,7 +274,14 @@ def run_backend(
             raise
     else:
         parts = [
-            solve(robot, t, seeds=s, validator=validator, return_all=return_all, **kwargs)
-            for t, s in chunks
+            solve(
+                robot,
+                t,
+                seeds=s,
+                validator=validator,
+                return_all=return_all,
+                **_chunk_kwargs(kwargs, settle, a, b),
+            )
+            for (t, s), a, b in zip(chunks, bounds[:-1], bounds[1:], strict=True)
         ]
     return BackendAnswer.concatenate(parts, list(bounds[:-1]), return_all)

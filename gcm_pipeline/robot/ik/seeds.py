@@ -171,7 +171,8 @@ def lm_rounds(
     given seeds, the library neighbours and home (``round_seeds`` at a time,
     ``first_round_seeds`` in the first), then one last round with all the
     random restarts at once, longer runs and a lenient stall exit. Targets
-    ``complete`` (every closed-form branch offered) are skipped.
+    ``complete`` (every closed-form branch offered) or settled (the tally's
+    ``settle`` needs no more of them, asked before each round) are skipped.
     """
     opts, tally = ctx.opts, ctx.tally
     schedule = SeedSchedule(ctx, seeds, closed_form_searched)
@@ -182,7 +183,9 @@ def lm_rounds(
     c = 0
     r = 0
     while c < n_rounds:
-        todo = np.flatnonzero((tally.n_valid < opts.min_solutions) & ~complete)
+        tally.checkpoint()  # the settled targets need no more candidates
+        todo = ctx.short()
+        todo = todo[~complete[todo]]
         run_opts = opts
         if c < n_fixed:
             if r == 0:

@@ -51,3 +51,41 @@ def test_closed_form_kernel_equals_numpy(
     if near:
         assert np.all(np.abs(got[1] - q[got[0]]) <= 0.3)
     assert solver.solve(rot[:0], pos[:0], q7[:0], panda.lower, panda.upper)[1].shape == (0, 7)
+
+
+@pytest.mark.parametrize("group", [1, 3, 9])
+def test_nearest_per_group_leaves_out_only_farther_solutions(compiled, panda, group):
+    """With ``nearest``, the kernel's solutions are a subset of all of them, in the same
+    order, and hold the nearest of each (target, group of columns) and its ties."""
+    from gcm_pipeline.robot.ik.candidates import first_smallest
+    from gcm_pipeline.robot.ik.panda import analytic_solver
+
+    solver = analytic_solver(panda)
+    rng = np.random.default_rng(29)
+    q = panda.random_configurations(600, rng)
+    rot, pos = panda.chain.pose(q)
+    offsets = np.array([0.0, -0.05, 0.05, -0.1, 0.1, -0.2, 0.2, -0.4, 0.4])
+    q7 = np.clip(q[:, 6:7] + offsets, panda.lower[6], panda.upper[6])  # 9 columns
+    n_groups = -(-9 // group)
+    ref = panda.random_configurations(600 * n_groups, rng).reshape(600, n_groups, 7)
+    ref[:5] = np.nan  # no reference: nothing left out
+    ref[5:10, :, :] = q[5:10, None, :]  # the target's own configuration: distance 0
+    full = solver.solve(rot, pos, q7, panda.lower, panda.upper)
+    got = solver.solve(rot, pos, q7, panda.lower, panda.upper, nearest=(ref, group))
+    key = [np.column_stack([a[0], a[3], a[2]]) for a in (full, got)]
+    rows = {tuple(r): i for i, r in enumerate(key[0].tolist())}
+    where = np.array([rows[tuple(r)] for r in key[1].tolist()])
+    assert np.all(np.diff(where) > 0)  # a subset, in order
+    np.testing.assert_array_equal(got[1], full[1][where])  # the same angles, bit for bit
+    assert len(got[0]) < 0.8 * len(full[0])  # the farther branches were left out
+    assert set(got[0][np.isin(got[0], np.arange(5))]) == set(full[0][full[0] < 5])
+
+    def nearest(at, cq, col):
+        grp = at * n_groups + col // group
+        dist = np.sum((cq - ref[at, col // group]) ** 2, axis=1)
+        pick = first_smallest(grp, np.where(np.isfinite(dist), dist, np.inf))
+        return grp[pick], cq[pick]
+
+    want, have = nearest(full[0], full[1], full[3]), nearest(got[0], got[1], got[3])
+    for a, b in zip(want, have, strict=True):
+        np.testing.assert_array_equal(a, b)

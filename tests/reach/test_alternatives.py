@@ -1,0 +1,83 @@
+"""Other IK solutions of a grasp (reach.alternatives): the early stop keeps the answers.
+
+The default backend hands its candidates to ``other_solutions`` as it finds
+them and stops searching for a target once its first alternatives are known.
+The answers must be exactly those of verifying every candidate of a full
+search (``_verified_distinct``), as before the early stop.
+"""
+
+import numpy as np
+import pytest
+
+from gcm_pipeline.reach.alternatives import _verified_distinct, other_solutions
+from gcm_pipeline.robot.ik import solve_ik
+
+TOL_P, TOL_R = 1e-4, 1e-3
+
+
+def _targets(robot, n, seed):
+    """Poses of random configurations inside the limits, and those configurations."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(robot.lower, robot.upper, size=(n, robot.nq))
+    return robot.fk_pinocchio(q), q
+
+
+def _full_search(robot, targets, q_first, k, separation, library, restarts, ik_options):
+    """``other_solutions`` without the early stop: every candidate, then verified."""
+    opts = {
+        "min_solutions": 2 * (k + 1),
+        "first_round_seeds": k + 1,
+        "round_seeds": k + 1,
+        "library_seeds": library,
+        "random_restarts": restarts,
+        **ik_options,
+    }
+    res = solve_ik(
+        robot,
+        targets,
+        "pinocchio",
+        position_tolerance=TOL_P,
+        orientation_tolerance=TOL_R,
+        return_all=True,
+        **opts,
+    )
+    cand = res.candidates
+    return _verified_distinct(
+        robot, targets, q_first, cand.index, cand.q, k, separation, TOL_P, TOL_R
+    )
+
+
+@pytest.mark.parametrize(
+    ("k", "separation", "library", "restarts", "analytic", "n"),
+    [
+        (4, 1e-3, 8, 0, True, 120),  # the re-solve of step 3
+        (4, 0.3, 16, 8, True, 60),  # the branches of step 4, a wide separation
+        (1, 1e-3, 8, 0, True, 60),
+        (2, 1e-3, 4, 2, False, 25),  # the LM alone
+    ],
+)
+def test_early_stop_gives_the_full_searchs_answers(
+    panda, k, separation, library, restarts, analytic, n
+):
+    targets, q_first = _targets(panda, n, seed=k + library)
+    ik_options = {"random_seed": 0, "analytic": analytic}
+    got = other_solutions(
+        panda,
+        targets,
+        q_first,
+        count=k,
+        every_branch=False,
+        backend="pinocchio",
+        position_tolerance=TOL_P,
+        orientation_tolerance=TOL_R,
+        ik_options=ik_options,
+        shared_options={"analytic": analytic},
+        separation=separation,
+        library=library,
+        restarts=restarts,
+    )
+    want = _full_search(panda, targets, q_first, k, separation, library, restarts, ik_options)
+    assert len(got[0]) > 0
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype
+        np.testing.assert_array_equal(g, w)  # bit for bit: same rows, order, q, errors

@@ -218,7 +218,6 @@ class PandaAnalyticIK:
         lower: np.ndarray,
         upper: np.ndarray,
         near: tuple[np.ndarray, float] | None = None,
-        nearest: tuple[np.ndarray, int] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every closed-form solution inside the joint limits, for each (target, :math:`q_7`).
 
@@ -236,12 +235,6 @@ class PandaAnalyticIK:
                 [rad] of ``reference[index]`` (N, 7) in every joint (exactly
                 those of all the solutions; the others are not computed past
                 the joint that leaves).
-            nearest: ``(reference, group)``: where only the solution nearest
-                ``reference[index, column // group]`` (N, G, 7) [rad] among each
-                ``group`` consecutive columns is wanted (squared distance summed
-                over the joints, in any order; the first of ties): the compiled
-                kernel leaves out solutions that cannot be it (a branch already
-                farther than one found); that one and its ties always come.
 
         Returns:
             ``(index, q, branch, column)``: target index (M,), configuration
@@ -262,7 +255,6 @@ class PandaAnalyticIK:
             and np.shape(pos) == (n, 3)
             and lower.shape == upper.shape == (7,)
             and (near is None or np.shape(near[0]) == (n, 7))
-            and (nearest is None or np.shape(nearest[0]) == (n, -(-k // nearest[1]), 7))
         )
         if compiled is not None and shapes_fit:
             r7 = rot @ self.tool_rotation.T
@@ -277,8 +269,6 @@ class PandaAnalyticIK:
                 0.0 if near is None else float(near[1]),
                 near is not None,
                 self._dims,
-                np.zeros((0, 0, 7)) if nearest is None else nearest[0],
-                0 if nearest is None else int(nearest[1]),
             )
             return out
         return self._solve_numpy(rot, pos, q7, lower, upper, near)
@@ -429,15 +419,13 @@ def analytic_blocks(
     lower: np.ndarray,
     upper: np.ndarray,
     near: tuple[np.ndarray, float] | None = None,
-    nearest: tuple[np.ndarray, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`PandaAnalyticIK.solve` in blocks of targets, without repeats.
 
     Blocks bound the memory; a repeat is one joint-7 value given twice to a
     target (e.g. two offsets clipped to a limit): its first column is kept
     (the later ones are not solved: NaN is outside joint 7's limits).
-    ``near``: ``(reference (N, 7), reach)``, and ``nearest``: ``(reference
-    (N, G, 7), group)``, as for the solver.
+    ``near``: ``(reference (N, 7), reach)``, as for the solver.
     """
     q7 = _first_of_repeats(np.asarray(q7, dtype=float))
     n, k = q7.shape
@@ -451,7 +439,6 @@ def analytic_blocks(
             lower,
             upper,
             None if near is None else (near[0][a : a + step], near[1]),
-            None if nearest is None else (nearest[0][a : a + step], nearest[1]),
         )
         for a in starts
     ]

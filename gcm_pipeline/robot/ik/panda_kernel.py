@@ -57,43 +57,18 @@ def _frame4(
     return c4 * x4[2] - s4 * y4[2]
 
 
-#: A branch is skipped when already this much (relative) farther from its group's
-#: reference than a solution found: far above the rounding of a sum of 7 squares in
-#: any order (7 ulp), so whatever order the caller sums in, the nearest is returned.
-_FARTHER = 1e-9
-
-
-@njit(cache=True, inline="always")
-def _farther(partial: float, best: float) -> bool:
-    """Whether a partial squared distance already exceeds the best one by ``_FARTHER``."""
-    return partial > best * (1.0 + _FARTHER)
-
-
-@njit(cache=True, inline="always")
-def _squared_distance(q: Any, b: Any) -> float:
-    """Squared distance of configurations ``q`` and ``b`` (7,) [rad^2]."""
-    dist = 0.0
-    for j in range(7):
-        dist += (q[j] - b[j]) ** 2
-    return dist
-
-
-# one closed form in nested loops (elbow, joint 6, shoulder) sharing a dozen scalars: cut
-# into functions it would pass them all around (reason for > 100 lines)
 @njit(
     types.Tuple((I1W, types.float64[:, ::1], I1W, I1W))(
-        F3, F2, F2, F1, F1, F2, types.float64, types.boolean, F1, F3, types.intp
+        F3, F2, F2, F1, F1, F2, types.float64, types.boolean, F1
     ),
     cache=True,
     error_model="numpy",
 )
-def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, bound, group):
+def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims):
     """:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.solve`, one (target, q7) at a time.
 
     The same closed form and pruning (see that module); the solutions come out
-    in the same order: by target, column of ``q7``, branch. With ``group``, a
-    branch already farther (joints 7 and 4, then 6, then all) from its group's
-    reference than a solution found is left out: the nearest and its ties stay.
+    in the same order: by target, column of ``q7``, branch.
 
     Args:
         r7: Rotations of DH frame 7 of the targets (N, 3, 3).
@@ -105,8 +80,6 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, bound, group):
         reach: With ``near``: largest change from the reference in every joint [rad].
         near: Only the solutions within ``reach`` of ``ref``.
         dims: ``(k, rho4, gamma, a4, a5, a7, d1, d3, d5)`` of the solver.
-        bound: With ``group`` > 0: references (N, cols // group, 7) [rad].
-        group: Columns per group of the nearest search, 0 for none.
 
     Returns:
         ``(index, q, branch, column)`` (M,), (M, 7), (M,), (M,).
@@ -124,12 +97,8 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, bound, group):
     x4, y4, z4, z3, w = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     q = np.empty(7)
     count = 0
-    best = np.inf  # the group's nearest squared distance so far (none without groups)
-    b = np.zeros(7)  # the group's reference
     for i in range(n):
         for col in range(cols):
-            if group > 0 and col % group == 0:
-                best, b[:] = np.inf, bound[i, col // group]
             q7v = q7[i, col]
             if not lower[6] <= q7v <= upper[6] or (near and not abs(q7v - ref[i, 6]) <= reach):
                 continue
@@ -155,9 +124,6 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, bound, group):
                                       lower[3], upper[3])  # fmt: skip
                 if not ok or (near and not abs(q4 - ref[i, 3]) <= reach):
                     continue
-                d74 = (q7v - b[6]) ** 2 + (q4 - b[3]) ** 2
-                if _farther(d74, best):
-                    continue
                 c4, s4 = math.cos(q4), math.sin(q4)
                 ux = (a5 + a4 * c4 + d3 * s4) / length
                 uy = (d5 - a4 * s4 + d3 * c4) / length
@@ -169,8 +135,6 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, bound, group):
                         lower[5], upper[5],
                     )  # fmt: skip
                     if not ok or (near and not abs(q6 - ref[i, 5]) <= reach):
-                        continue
-                    if _farther(d74 + (q6 - b[5]) ** 2, best):
                         continue
                     x3z = _frame4(q6, s4, c4, ux, uy, x6, y6, u, x4, y4, z4, z3, w)
                     sb = math.hypot(z3[0], z3[1])
@@ -194,11 +158,6 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, bound, group):
                                 ok &= abs(q[j] - ref[i, j]) <= reach
                         if not ok:
                             continue
-                        if group > 0:
-                            dist = _squared_distance(q, b)
-                            if _farther(dist, best):
-                                continue
-                            best = min(best, dist)
                         out_t[count] = i
                         out_q[count] = q
                         out_b[count] = 4 * elbow + 2 * wrist + shoulder

@@ -93,11 +93,7 @@ def seeded_round(
     q7s = np.clip(near[:, :, 6:7] + _NEAR_Q7, lower[6], upper[6]).reshape(m, -1)
     ok7 = np.isfinite(q7s)
     q7s = np.where(ok7, q7s, lower[6] - 1.0)  # outside the limits: no solution
-    # per (target, seed): its nearest solution is wanted (the kernel skips branches
-    # farther than one found)
-    at, cq, _, col = analytic_blocks(
-        solver, trot[todo], tpos[todo], q7s, lower, upper, nearest=(near, _NEAR_Q7.size)
-    )
+    at, cq, _, col = analytic_blocks(solver, trot[todo], tpos[todo], q7s, lower, upper)
     real = ok7[at, col]  # not from a NaN seed's placeholder
     at, cq, col = at[real], cq[real], col[real]
     if at.size == 0:

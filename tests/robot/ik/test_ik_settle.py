@@ -1,4 +1,4 @@
-"""solve_ik's ``settle``: every candidate once, in order; the settled targets searched no more."""
+"""solve_ik's ``settle`` callback: every candidate once, in order; settled targets searched no more."""
 
 import numpy as np
 import pytest

@@ -59,7 +59,8 @@ The NumPy code is the reference.
   few more that stay open, with the same answers.
 * Level 3: stricter than the NumPy level on both sides by :data:`SLACK`
   (free when all hull vertices lie beyond one face plane by the margin plus
-  the slack, colliding when one lies deeper than the depth plus the slack):
+  the slack, colliding when one lies deeper than the depth plus the slack;
+  against a cylinder, its cap planes and one side plane, the same way):
   whatever it decides, the NumPy level decides the same; coal the rest.
 * Level 4 (edges inside a primitive): colliding only where an edge point lies
   deeper than the depth plus the slack: the NumPy level decides the same.
@@ -141,7 +142,7 @@ _COMPILING = (
     "compiling the package's kernels with Numba (once per install, about 20 s; "
     "later runs read them from Numba's cache)"
 )
-#: Level-3 answers of :attr:`Kernels.hull_vs_box`.
+#: Level-3 answers of :attr:`Kernels.hull_vs_box` and :attr:`Kernels.hull_vs_cylinder`.
 FREE, COLLIDES, UNDECIDED = 0, 1, 2
 
 
@@ -161,6 +162,8 @@ class Kernels(NamedTuple):
         sphere_bounds: The clearance pairs' lower bounds from the sphere covers.
         face_distances: The clearance's exact distances of a polytope over a box's face.
         vertex_distances: The clearance's bounds from a polytope's nearest hull vertex.
+        hull_vs_cylinder: Level 3 against a cylinder: :data:`FREE`, :data:`COLLIDES` or
+            :data:`UNDECIDED`.
     """
 
     chain_forward: Callable[..., Any]
@@ -175,6 +178,7 @@ class Kernels(NamedTuple):
     sphere_bounds: Callable[..., Any]
     face_distances: Callable[..., Any]
     vertex_distances: Callable[..., Any]
+    hull_vs_cylinder: Callable[..., Any]
 
 
 @functools.cache
@@ -269,6 +273,7 @@ def _import() -> Kernels | None:
                 clearance_kernel.sphere_bounds,
                 clearance_kernel.face_distances,
                 clearance_kernel.vertex_distances,
+                broadphase_kernel.hull_vs_cylinder,
             )
         )
     )

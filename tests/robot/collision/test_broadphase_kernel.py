@@ -142,7 +142,7 @@ def test_the_kernels_leave_open_what_numpy_leaves_open(compiled, bottle, mode, n
     ref = _coal_calls(checker, lambda: numpy_code(checker.check, qs, mode))
     out = _coal_calls(checker, lambda: checker.check(qs, mode))
     # (a configuration's pairs after its first collision are not sent: 590 in grasp mode)
-    assert sum(len(v) for v in ref.values()) > 400
+    assert sum(len(v) for v in ref.values()) > 300
     screen = checker._screens[MODE_BIT[mode]]
     own_box = set()
     for k in screen.self_boxes:
@@ -163,7 +163,7 @@ def test_open_pairs_contain_the_colliding_ones(compiled, bottle):
     checker, qs, _ = bottle
     screen = checker._screens[1]
     frames = checker._frames.compute(qs[:2048])
-    broad, _, _ = checker._compiled_screen(screen)
+    broad, _, _, _ = checker._compiled_screen(screen)
     open_ = compiled.broad_phase(_stacked_checked(frames), *broad)
     hit = checker._pair_hits_compiled(compiled, qs[:2048], frames, screen)
     assert hit.any() and not (hit.T & ~open_).any()
@@ -184,7 +184,7 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
     frames = checker._frames.compute(qs)
     rots, poss = frames.rots, frames.poss
     tfs = np.stack(frames.transforms)
-    _, boxes, _ = checker._compiled_screen(screen)
+    _, boxes, _, _ = checker._compiled_screen(screen)
     assert boxes
     rows = np.arange(len(qs))
     decided = {kernels.FREE: 0, kernels.COLLIDES: 0}
@@ -228,7 +228,7 @@ def test_level_3_corners_hold_every_vertex():
 def test_kernel_limits_are_the_numpy_ones_plus_the_slack(bottle):
     checker, _, _ = bottle
     screen = checker._screens[1]
-    broad, boxes, _ = checker._compiled_screen(screen)
+    broad, boxes, _, _ = checker._compiled_screen(screen)
     assert checker._compiled_screen(screen)[0] is broad  # built once
     world, limit1 = broad[6], broad[7]
     own = world < 0

@@ -17,9 +17,8 @@ from __future__ import annotations
 import coal
 import numpy as np
 import pytest
-import trimesh
 from helpers import ROOT
-from urdfs import write_arm
+from urdfs import write_arm, write_concave_forearm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -34,15 +33,6 @@ pytestmark = pytest.mark.usefixtures("kernels_on")
 _ROBOTS = ("panda", "ur5_robotiq", "user_arm")
 
 
-def _forearm_stl(path):
-    """A concave forearm: the cylinder of ``arm_urdf`` with a block beside it (two solids)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rod = trimesh.creation.cylinder(radius=0.04, height=0.28, sections=24)
-    block = trimesh.creation.box(extents=[0.05, 0.05, 0.08])
-    block.apply_translation([0.07, 0.0, 0.08])
-    trimesh.util.concatenate([rod, block]).export(path)
-
-
 def _checker(name, tmp_path_factory):
     if name == "panda":
         cfg = load_config(ROOT / "configs" / "bottle_side.yaml")
@@ -50,7 +40,7 @@ def _checker(name, tmp_path_factory):
         cfg = load_config(ROOT / "configs" / "bottle_side_ur5.yaml")
     else:
         folder = tmp_path_factory.mktemp("arm")
-        _forearm_stl(folder / "meshes" / "forearm.stl")
+        write_concave_forearm(folder / "meshes" / "forearm.stl")
         spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
         cfg = load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
     robot = P.robot_from_config(cfg)

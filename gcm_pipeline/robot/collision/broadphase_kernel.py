@@ -286,21 +286,39 @@ CORNER_PAD = 1e-9
 
 @njit(cache=True)
 def _enclosing_corners(verts: Any) -> tuple[Any, Any]:
-    """The corners (3, 8) and centre (3,) of the vertices' box in their frame, padded.
+    """The corners (3, 8 K) of K boxes holding the vertices, padded; the centre (3,) of all.
 
-    Every vertex (3, V) is a convex combination of the corners, ``CORNER_PAD``
-    inside the box: a plane every corner lies beyond by ``d`` has every vertex
-    beyond it by more than ``d``.
+    In the vertices' frame. A long hull (its longest extent more than twice the
+    next: an arm link) is cut across the middle of that extent and each half
+    gets its own box (K = 2), which hugs the hull closer than one box does;
+    otherwise one box (K = 1). Every vertex (3, V) is a convex combination of
+    the corners of its half's box, ``CORNER_PAD`` inside it: a plane every
+    corner lies beyond by ``d`` has every vertex beyond it by more than ``d``.
     """
     lo = np.empty(3)
     hi = np.empty(3)
     for a in range(3):
         lo[a] = verts[a].min() - CORNER_PAD
         hi[a] = verts[a].max() + CORNER_PAD
-    corners = np.empty((3, 8))
-    for c in range(8):
-        for a in range(3):
-            corners[a, c] = hi[a] if (c >> a) & 1 else lo[a]
+    extent = hi - lo
+    order = np.argsort(extent)
+    long = order[2]
+    parts = 2 if extent[long] > 2.0 * extent[order[1]] else 1
+    cut = 0.5 * (lo[long] + hi[long])
+    corners = np.empty((3, 8 * parts))
+    for p in range(parts):
+        # the half p of the vertices (both halves hold the vertices on the cut)
+        plo = np.full(3, np.inf)
+        phi = np.full(3, -np.inf)
+        for v in range(verts.shape[1]):
+            x = verts[long, v]
+            if parts == 1 or (x <= cut if p == 0 else x >= cut):
+                for a in range(3):
+                    plo[a] = min(plo[a], verts[a, v])
+                    phi[a] = max(phi[a], verts[a, v])
+        for c in range(8):
+            for a in range(3):
+                corners[a, 8 * p + c] = phi[a] + CORNER_PAD if (c >> a) & 1 else plo[a] - CORNER_PAD
     return corners, 0.5 * (lo + hi)
 
 
@@ -309,10 +327,11 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
 
     In the box's frame, ``x = inv @ T @ [v; 1]`` for each hull vertex ``v``.
-    The 8 corners of the vertices' box in the joint's frame
-    (:func:`_enclosing_corners`) are tested first: beyond a face, every vertex
-    is, and the row is free at the cost of 8 vertices (the UR5's upper arm
-    over the table: 171). The same answers as testing the vertices.
+    The 8 corners of the vertices' box in the joint's frame, or the 16 of the
+    two halves' boxes of a long hull (:func:`_enclosing_corners`), are tested
+    first: beyond a face, every vertex is, and the row is free at the cost of
+    8 or 16 vertices (the UR5's upper arm over the table: 171; its forearm
+    against the 2F-85's body: 220). The same answers as testing the vertices.
 
     Args:
         tfs: Frames of the polytope's joint (N, 3, 4).
@@ -347,7 +366,7 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
                 else:
                     off[a] = v + inv[a, 3]
         # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
-        if nv > 8 and _beyond_nearest_face(rot, off, corners, centre, beyond):
+        if nv > corners.shape[1] and _beyond_nearest_face(rot, off, corners, centre, beyond):
             out[r] = 0
             continue
         if _beyond_nearest_face(rot, off, verts, mid, beyond):

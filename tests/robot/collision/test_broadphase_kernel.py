@@ -208,21 +208,33 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
 
 
 def test_level_3_corners_hold_every_vertex():
-    """Level 3 first tests the corners of a box around the hull's vertices: a corner
-    beyond a face puts every vertex beyond it only if each vertex lies inside that box,
-    by more than the rounding of its coordinates."""
+    """Level 3 first tests the corners of a box around the hull's vertices (of two boxes,
+    one per half, for a long hull): a corner beyond a face puts every vertex beyond it only
+    if each vertex lies inside one of the boxes, by more than the rounding of its
+    coordinates."""
     from gcm_pipeline.robot.collision.broadphase_kernel import CORNER_PAD, _enclosing_corners
 
     rng = np.random.default_rng(3)
-    for scale in (1e-3, 0.1, 2.0):
-        verts = rng.normal(size=(3, 60)) * scale + rng.normal(size=(3, 1))
-        corners, centre = _enclosing_corners(np.ascontiguousarray(verts))
-        lo, hi = corners.min(axis=1), corners.max(axis=1)
-        assert corners.shape == (3, 8) and np.unique(corners.T, axis=0).shape == (8, 3)
-        np.testing.assert_allclose(centre, 0.5 * (lo + hi))
-        assert np.all(verts - lo[:, None] >= 0.999 * CORNER_PAD)
-        assert np.all(hi[:, None] - verts >= 0.999 * CORNER_PAD)
-        assert CORNER_PAD > 1e3 * np.spacing(np.abs(verts).max() + 10.0)
+    for stretch, parts in (((1.0, 1.0, 1.0), 1), ((0.3, 4.0, 0.5), 2), ((1.0, 0.2, 2.5), 2)):
+        for scale in (1e-3, 0.1, 2.0):
+            verts = rng.normal(size=(3, 60)) * np.array(stretch)[:, None] * scale
+            verts += rng.normal(size=(3, 1))
+            corners, centre = _enclosing_corners(np.ascontiguousarray(verts))
+            assert corners.shape == (3, 8 * parts)
+            lo, hi = verts.min(axis=1), verts.max(axis=1)
+            np.testing.assert_allclose(centre, 0.5 * (lo + hi))
+            held = np.zeros(verts.shape[1], dtype=bool)
+            for box in np.split(corners, parts, axis=1):
+                assert np.unique(box.T, axis=0).shape == (8, 3)
+                blo, bhi = box.min(axis=1)[:, None], box.max(axis=1)[:, None]
+                held |= np.all(verts - blo >= 0.999 * CORNER_PAD, axis=0) & np.all(
+                    bhi - verts >= 0.999 * CORNER_PAD, axis=0
+                )
+            assert held.all()
+            if parts == 2:  # the halves' boxes are smaller than the whole's
+                assert (np.ptp(corners[:, :8], axis=1) < hi - lo + 3 * CORNER_PAD).all()
+                assert np.ptp(corners[:, :8], axis=1).max() < 0.7 * (hi - lo).max()
+            assert CORNER_PAD > 1e3 * np.spacing(np.abs(verts).max() + 10.0)
 
 
 def test_kernel_limits_are_the_numpy_ones_plus_the_slack(bottle):

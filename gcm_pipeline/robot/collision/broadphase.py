@@ -42,7 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, KINDS, Pair, hull_pair_pool
+from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, KINDS, PIECES, Pair, hull_pair_pool
 from gcm_pipeline.robot.collision.spheres import (
     POLYTOPES,
     RobotCover,
@@ -314,8 +314,8 @@ class BroadPhase:
     A base class of the checker: its methods use the checker's robot geometry
     (``_gm``), pairs (``_pairs``), sphere covers (``_cover``), joint frames
     (``_frames``) and narrow phase (``_run``, ``_pair_pool``; the convex-hull
-    pre-check's ``_hull_pools`` and ``_mesh_hulls``, built when a pair first
-    reaches coal, with the robot's ``_model``).
+    pre-check's ``_hull_pools``, ``_piece_pools`` and ``_mesh_hulls``, built when
+    a pair first reaches coal, with the robot's ``_model``).
     """
 
     _gm: Any
@@ -329,6 +329,7 @@ class BroadPhase:
     _model: Any
     threads: int
     _hull_pools: dict[int, Any]
+    _piece_pools: dict[int, Any]
     _mesh_hulls: dict[int, Any]
     _hulls: dict[int, tuple[int, np.ndarray]]
     _edge_cache: dict[int, tuple[int, np.ndarray, np.ndarray]]
@@ -698,7 +699,10 @@ class BroadPhase:
         A pair with a robot mesh is first checked on the convex hulls
         (:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`, touching within
         :data:`~gcm_pipeline.robot.collision.pairs.HULL_MARGIN`): apart there, apart
-        here; coal checks the meshes only where the hulls touch. The same answers.
+        here. Where they touch, a long mesh's pieces' hulls next
+        (:func:`~gcm_pipeline.robot.collision.pairs.hull_pieces`; the UR5's forearm
+        beside the bottle): apart there, apart here too. coal checks the meshes only
+        where those touch. The same answers.
         """
         if c not in self._hull_pools:
             self._hull_pools[c] = hull_pair_pool(
@@ -709,6 +713,15 @@ class BroadPhase:
             return self._run(self._pair_pool[c], q)
         out = self._run(hull, q)
         touch = np.flatnonzero(out)
+        if touch.size:
+            if c not in self._piece_pools:
+                self._piece_pools[c] = hull_pair_pool(
+                    self._model, self._gm, self._pairs[c], self.threads, self._mesh_hulls, PIECES
+                )
+            pieces = self._piece_pools[c]
+            if pieces is not None:
+                out[touch] = self._run(pieces, q[touch])
+                touch = touch[out[touch]]
         if touch.size:
             out[touch] = self._run(self._pair_pool[c], q[touch])
         return out

@@ -324,13 +324,15 @@ class BroadPhase:
     _frames: Any
     _pair_pool: list[Any]
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
-    _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any]]]
+    _compiled_args: dict[
+        int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any]]
+    ]
     _bounds: dict[int, ShapeBound]
     _model: Any
     threads: int
     _hull_pools: dict[int, Any]
     _piece_pools: dict[int, Any]
-    _mesh_hulls: dict[int, Any]
+    _mesh_hulls: dict[tuple[int, int], Any]
     _hulls: dict[int, tuple[int, np.ndarray]]
     _edge_cache: dict[int, tuple[int, np.ndarray, np.ndarray]]
     _run: Callable[[Any, np.ndarray], np.ndarray]

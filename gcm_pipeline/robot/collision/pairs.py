@@ -470,7 +470,7 @@ def hull_pair_pool(
     gm: Any,
     pair: Pair,
     threads: int,
-    hulls: dict[Any, Any],
+    hulls: dict[tuple[int, int], Any],
     pieces: int = 1,
 ) -> Any:
     """A pool checking one pair with each mesh replaced by its convex hull, or None.

@@ -61,7 +61,9 @@ The NumPy code is the reference.
   (free when all hull vertices lie beyond one face plane by the margin plus
   the slack, colliding when one lies deeper than the depth plus the slack;
   against a cylinder, its cap planes and one side plane, the same way):
-  whatever it decides, the NumPy level decides the same; coal the rest.
+  whatever it decides, the NumPy level decides the same (against a robot's
+  box or a cylinder the NumPy code leaves the pair to coal; its reference
+  level is tested against the kernel); coal the rest.
 * Level 4 (edges inside a primitive): colliding only where an edge point lies
   deeper than the depth plus the slack: the NumPy level decides the same.
 * Every joint's frame (the collision checks' kinematics): the products in

@@ -15,10 +15,10 @@ compiled kernels also a robot's own box: a gripper body from the registry
 against an arm link) is free when its convex hull's vertices all lie beyond
 the plane of one face of the box, and collides when one of them lies more
 than 0.1 mm inside the box (the vertex of one of its triangles; shallower
-ones are left to coal). Against a cylinder (the bottle) the same, with its
-cap planes and the side plane tangent to it across the direction from its
-axis to the vertices' centroid (a plane the whole cylinder lies behind).
-(4) A robot
+ones are left to coal). With the compiled kernels, against a cylinder (the
+bottle) the same, with its cap planes and the side plane tangent to it
+across the direction from its axis to the vertices' centroid (a plane the
+whole cylinder lies behind). (4) A robot
 polytope against a box, a sphere or a cylinder collides when a point of one of
 its :data:`EDGE_COUNT` longest triangle edges lies more than 0.1 mm inside the
 shape (:func:`segments_inside`: an edge is part of the surface coal checks; a
@@ -28,7 +28,10 @@ against coal on every pair). The compiled kernels (:mod:`gcm_pipeline.robot.kern
 run the same four levels one configuration at a time, conservatively, and
 level 3 on a robot's own boxes too (the NumPy code leaves those pairs to coal:
 its test of every vertex costs more there than coal's hull check): the same
-answers.
+answers. The NumPy code leaves a robot polytope against a robot box or a
+cylinder to coal (:func:`_world_cylinder_level` is the reference of the
+cylinder's kernel): its test of every vertex costs more there than coal's hull
+check (the UR5's dense bottle: 0.33 s on 61,006 rows, to save coal 0.07 s).
 """
 
 from __future__ import annotations
@@ -545,12 +548,6 @@ class BroadPhase:
                 rows, inside = _world_box_level(frames, rows, box, ball[rows, screen.geom_a[k]])
                 hit[k, rows[inside]] = True
                 rows = rows[~inside]
-            # 3. hull vertices against a world cylinder
-            cyl = screen.cylinders.get(k)
-            if cyl is not None and rows.size:
-                rows, inside = _world_cylinder_level(frames, rows, cyl)
-                hit[k, rows[inside]] = True
-                rows = rows[~inside]
             # 4. the polytope's longest edges inside a primitive
             edge = screen.edges.get(k)
             if edge is not None and rows.size:
@@ -813,12 +810,14 @@ def _world_cylinder_level(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Level 3 of a robot polytope against a world cylinder (NumPy), for configurations ``rows``.
 
-    In the cylinder's frame (axis z): free when every hull vertex lies more than
-    ``BROAD_MARGIN`` beyond a cap's plane, or beyond the side plane tangent to the
-    cylinder across the direction from its axis to the vertices' centroid;
-    colliding when a vertex lies deeper than ``INSIDE_DEPTH`` inside it (a hull
-    vertex is a point of the geometry). Returns the rows left undecided or
-    colliding, and which of them collide; the others were free.
+    The reference of the compiled ``hull_vs_cylinder``, not called by the NumPy
+    broad phase (see the module's doc). In the cylinder's frame (axis z): free
+    when every hull vertex lies more than ``BROAD_MARGIN`` beyond a cap's plane,
+    or beyond the side plane tangent to the cylinder across the direction from
+    its axis to the vertices' centroid; colliding when a vertex lies deeper than
+    ``INSIDE_DEPTH`` inside it (a hull vertex is a point of the geometry).
+    Returns the rows left undecided or colliding, and which of them collide;
+    the others were free.
     """
     rots, poss = frames[0], frames[1]
     joint, verts, inv, radius, half = cyl

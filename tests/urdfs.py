@@ -84,6 +84,20 @@ def arm_urdf(
     return "\n".join(out)
 
 
+def write_concave_forearm(path: Path) -> None:
+    """An STL forearm for ``arm_urdf(mesh=..., mesh_link="forearm_link")``: concave.
+
+    The cylinder of ``arm_urdf`` with a block beside it (two solids in one mesh).
+    """
+    import trimesh
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rod = trimesh.creation.cylinder(radius=0.04, height=0.28, sections=24)
+    block = trimesh.creation.box(extents=[0.05, 0.05, 0.08])
+    block.apply_translation([0.07, 0.0, 0.08])
+    trimesh.util.concatenate([rod, block]).export(path)
+
+
 def write_arm(folder: Path, spec_extra: str = "", *, urdf_name: str = "arm.urdf", **kw) -> Path:
     """Write ``arm.urdf`` and ``spec.yaml`` (grasp frame ``tool0``) in ``folder``; the spec."""
     folder.mkdir(parents=True, exist_ok=True)

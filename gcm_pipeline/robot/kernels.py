@@ -63,8 +63,11 @@ The NumPy code is the reference.
   few more that stay open, with the same answers.
 * Level 3: stricter than the NumPy level on both sides by :data:`SLACK`
   (free when all hull vertices lie beyond one face plane by the margin plus
-  the slack, colliding when one lies deeper than the depth plus the slack):
-  whatever it decides, the NumPy level decides the same; coal the rest.
+  the slack, colliding when one lies deeper than the depth plus the slack;
+  against a cylinder, its cap planes and one side plane, the same way):
+  whatever it decides, the NumPy level decides the same (against a robot's
+  box or a cylinder the NumPy code leaves the pair to coal; its reference
+  level is tested against the kernel); coal the rest.
 * Level 4 (edges inside a primitive): colliding only where an edge point lies
   deeper than the depth plus the slack: the NumPy level decides the same.
 * Every joint's frame (the collision checks' kinematics): the products in
@@ -148,7 +151,7 @@ _COMPILING = (
     "compiling the package's kernels with Numba (once per install, about 20 s; "
     "later runs read them from Numba's cache)"
 )
-#: Level-3 answers of :attr:`Kernels.hull_vs_box`.
+#: Level-3 answers of :attr:`Kernels.hull_vs_box` and :attr:`Kernels.hull_vs_cylinder`.
 FREE, COLLIDES, UNDECIDED = 0, 1, 2
 
 
@@ -169,6 +172,8 @@ class Kernels(NamedTuple):
         face_distances: The clearance's exact distances of a polytope over a box's face.
         vertex_distances: The clearance's bounds from a polytope's nearest hull vertex.
         six_r_branches: A 6R arm's closed-form branches from EAIK's answers, per target.
+        hull_vs_cylinder: Level 3 against a cylinder: :data:`FREE`, :data:`COLLIDES` or
+            :data:`UNDECIDED`.
     """
 
     chain_forward: Callable[..., Any]
@@ -184,6 +189,7 @@ class Kernels(NamedTuple):
     face_distances: Callable[..., Any]
     vertex_distances: Callable[..., Any]
     six_r_branches: Callable[..., Any]
+    hull_vs_cylinder: Callable[..., Any]
 
 
 @functools.cache
@@ -279,6 +285,7 @@ def _import() -> Kernels | None:
                 clearance_kernel.face_distances,
                 clearance_kernel.vertex_distances,
                 analytic_6r_kernel.six_r_branches,
+                broadphase_kernel.hull_vs_cylinder,
             )
         )
     )

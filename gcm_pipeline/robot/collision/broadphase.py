@@ -15,7 +15,10 @@ compiled kernels also a robot's own box: a gripper body from the registry
 against an arm link) is free when its convex hull's vertices all lie beyond
 the plane of one face of the box, and collides when one of them lies more
 than 0.1 mm inside the box (the vertex of one of its triangles; shallower
-ones are left to coal). (4) A robot
+ones are left to coal). With the compiled kernels, against a cylinder (the
+bottle) the same, with its cap planes and the side plane tangent to it
+across the direction from its axis to the vertices' centroid (a plane the
+whole cylinder lies behind). (4) A robot
 polytope against a box, a sphere or a cylinder collides when a point of one of
 its :data:`EDGE_COUNT` longest triangle edges lies more than 0.1 mm inside the
 shape (:func:`segments_inside`: an edge is part of the surface coal checks; a
@@ -25,7 +28,10 @@ against coal on every pair). The compiled kernels (:mod:`gcm_pipeline.robot.kern
 run the same four levels one configuration at a time, conservatively, and
 level 3 on a robot's own boxes too (the NumPy code leaves those pairs to coal:
 its test of every vertex costs more there than coal's hull check): the same
-answers.
+answers. The NumPy code leaves a robot polytope against a robot box or a
+cylinder to coal (:func:`_world_cylinder_level` is the reference of the
+cylinder's kernel): its test of every vertex costs more there than coal's hull
+check (the UR5's dense bottle: 0.33 s on 61,006 rows, to save coal 0.07 s).
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.robot import kernels
-from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, KINDS, Pair, hull_pair_pool
+from gcm_pipeline.robot.collision.pairs import GJK_MARGIN, KINDS, PIECES, Pair, hull_pair_pool
 from gcm_pipeline.robot.collision.spheres import (
     POLYTOPES,
     RobotCover,
@@ -300,6 +306,9 @@ class Screen(NamedTuple):
     # polytope's joint, the box's joint, the polytope's hull vertices (3, V), the box's
     # inverse placement in its joint's frame (4, 4), halfs)
     self_boxes: dict[int, tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]
+    # robot polytope vs a world cylinder, by column: (joint, hull vertices (3, V), the
+    # cylinder's inverse placement (4, 4), its radius, its half length)
+    cylinders: dict[int, tuple[int, np.ndarray, np.ndarray, float, float]]
 
 
 class BroadPhase:
@@ -308,8 +317,8 @@ class BroadPhase:
     A base class of the checker: its methods use the checker's robot geometry
     (``_gm``), pairs (``_pairs``), sphere covers (``_cover``), joint frames
     (``_frames``) and narrow phase (``_run``, ``_pair_pool``; the convex-hull
-    pre-check's ``_hull_pools`` and ``_mesh_hulls``, built when a pair first
-    reaches coal, with the robot's ``_model``).
+    pre-check's ``_hull_pools``, ``_piece_pools`` and ``_mesh_hulls``, built when
+    a pair first reaches coal, with the robot's ``_model``).
     """
 
     _gm: Any
@@ -318,12 +327,15 @@ class BroadPhase:
     _frames: Any
     _pair_pool: list[Any]
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
-    _compiled_args: dict[int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any]]]
+    _compiled_args: dict[
+        int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any]]
+    ]
     _bounds: dict[int, ShapeBound]
     _model: Any
     threads: int
     _hull_pools: dict[int, Any]
-    _mesh_hulls: dict[int, Any]
+    _piece_pools: dict[int, Any]
+    _mesh_hulls: dict[tuple[int, int], Any]
     _hulls: dict[int, tuple[int, np.ndarray]]
     _edge_cache: dict[int, tuple[int, np.ndarray, np.ndarray]]
     _run: Callable[[Any, np.ndarray], np.ndarray]
@@ -345,7 +357,7 @@ class BroadPhase:
         """The broad phase of the pairs ``cols`` (indices of ``self._pairs``) of one mode."""
         cov, gm = self._cover, self._gm
         sa, sb, bound = [], [], []
-        boxes, edges, self_boxes = {}, {}, {}
+        boxes, edges, self_boxes, cylinders = {}, {}, {}, {}
         for k, c in enumerate(cols):
             p = self._pairs[c]
             own = np.arange(cov.start[p.owner], cov.start[p.owner + 1])
@@ -369,6 +381,16 @@ class BroadPhase:
             if isinstance(shape.geometry, coal.Box):
                 joint, verts = self._hull(p.a)
                 boxes[k] = (joint, verts.T.copy(), inv, np.asarray(shape.geometry.halfSide))
+            if isinstance(shape.geometry, coal.Cylinder):
+                joint, verts = self._hull(p.a)
+                cyl = shape.geometry
+                cylinders[k] = (
+                    joint,
+                    verts.T.copy(),
+                    inv,
+                    float(cyl.radius),
+                    float(cyl.halfLength),
+                )
             if isinstance(shape.geometry, EDGE_SHAPES):
                 joint, ea, eb = self._edges(p.a)
                 edges[k] = (joint, ea.T.copy(), eb.T.copy(), inv, self._bounds_for(p.b).packed())
@@ -392,6 +414,7 @@ class BroadPhase:
             boxes,
             edges,
             self_boxes,
+            cylinders,
         )
 
     def _self_box(
@@ -555,7 +578,7 @@ class BroadPhase:
         and coal pair by pair.
         """
         tfs = stacked(frames.transforms)
-        broad, boxes, edges = self._compiled_screen(screen)
+        broad, boxes, edges, cylinders = self._compiled_screen(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
         hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
         decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
@@ -567,6 +590,12 @@ class BroadPhase:
             if box is not None:
                 joint, *limits = box
                 status = compiled.hull_vs_box(tfs[joint], rows, *limits)
+                hit[k, rows[status == kernels.COLLIDES]] = True
+                rows = rows[status == kernels.UNDECIDED]
+            cyl = cylinders.get(k)
+            if cyl is not None:
+                joint, *limits = cyl
+                status = compiled.hull_vs_cylinder(tfs[joint], rows, *limits)
                 hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
             own_box = screen.self_boxes.get(k)
@@ -595,19 +624,21 @@ class BroadPhase:
 
     def _compiled_screen(
         self, screen: Screen
-    ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any]]:
+    ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any]]:
         """The compiled broad phase's arguments for ``screen`` (built once per screen).
 
         Returns the arguments of ``broad_phase`` after the frames, the level-3
         arguments ``(joint, vertices, inverse placement, beyond, deep)`` of each
-        column with a box, and the level-4 arguments ``(joint, edge ends, other
-        ends, packed shape, depth)`` of each column with a primitive. Each limit
+        column with a box, the level-4 arguments ``(joint, edge ends, other
+        ends, packed shape, depth)`` of each column with a primitive, and the
+        level-3 arguments ``(joint, vertices, inverse placement, (radius, half
+        length, beyond, deep))`` of each column with a cylinder. Each limit
         is the NumPy level's plus :data:`~gcm_pipeline.robot.kernels.SLACK`
         (levels 3 and 4: the depths plus it too, stricter).
         """
         known = self._compiled_args.get(id(screen))
         if known is not None and known[0] is screen:
-            return known[1], known[2], known[3]
+            return known[1], known[2], known[3], known[4]
         cov, slack = self._cover, kernels.SLACK
         worlds = sorted({int(w) for w in screen.world.tolist() if w >= 0})
         # explicit dtypes: without a world shape or a pair these lists are empty
@@ -649,8 +680,17 @@ class BroadPhase:
             k: (joint, ea, eb, packed, INSIDE_DEPTH + slack)
             for k, (joint, ea, eb, inv, packed) in screen.edges.items()
         }
-        self._compiled_args[id(screen)] = (screen, broad, boxes, edges)
-        return broad, boxes, edges
+        cylinders = {
+            k: (
+                joint,
+                np.ascontiguousarray(verts, float),
+                np.ascontiguousarray(inv, float),
+                np.array([radius, half, BROAD_MARGIN + slack, INSIDE_DEPTH + slack]),
+            )
+            for k, (joint, verts, inv, radius, half) in screen.cylinders.items()
+        }
+        self._compiled_args[id(screen)] = (screen, broad, boxes, edges, cylinders)
+        return broad, boxes, edges, cylinders
 
     def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:
         """Coal's answer for pair ``c`` (an index of ``_pairs``) in configurations (M, nq).
@@ -658,7 +698,10 @@ class BroadPhase:
         A pair with a robot mesh is first checked on the convex hulls
         (:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`, touching within
         :data:`~gcm_pipeline.robot.collision.pairs.HULL_MARGIN`): apart there, apart
-        here; coal checks the meshes only where the hulls touch. The same answers.
+        here. Where they touch, a long mesh's pieces' hulls next
+        (:func:`~gcm_pipeline.robot.collision.pairs.hull_pieces`; the UR5's forearm
+        beside the bottle): apart there, apart here too. coal checks the meshes only
+        where those touch. The same answers.
         """
         if c not in self._hull_pools:
             self._hull_pools[c] = hull_pair_pool(
@@ -669,6 +712,15 @@ class BroadPhase:
             return self._run(self._pair_pool[c], q)
         out = self._run(hull, q)
         touch = np.flatnonzero(out)
+        if touch.size:
+            if c not in self._piece_pools:
+                self._piece_pools[c] = hull_pair_pool(
+                    self._model, self._gm, self._pairs[c], self.threads, self._mesh_hulls, PIECES
+                )
+            pieces = self._piece_pools[c]
+            if pieces is not None:
+                out[touch] = self._run(pieces, q[touch])
+                touch = touch[out[touch]]
         if touch.size:
             out[touch] = self._run(self._pair_pool[c], q[touch])
         return out
@@ -750,6 +802,39 @@ def _world_box_level(
     local = in_frame((rots[joint], poss[joint], inv), rows, verts)
     inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
     keep = beyond_a_face(local, lim) & ~inside  # free: dropped
+    return rows[~keep], inside[~keep]
+
+
+def _world_cylinder_level(
+    frames: Any, rows: np.ndarray, cyl: tuple[int, np.ndarray, np.ndarray, float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Level 3 of a robot polytope against a world cylinder (NumPy), for configurations ``rows``.
+
+    The reference of the compiled ``hull_vs_cylinder``, not called by the NumPy
+    broad phase (see the module's doc). In the cylinder's frame (axis z): free
+    when every hull vertex lies more than ``BROAD_MARGIN`` beyond a cap's plane,
+    or beyond the side plane tangent to the cylinder across the direction from
+    its axis to the vertices' centroid; colliding when a vertex lies deeper than
+    ``INSIDE_DEPTH`` inside it (a hull vertex is a point of the geometry).
+    Returns the rows left undecided or colliding, and which of them collide;
+    the others were free.
+    """
+    rots, poss = frames[0], frames[1]
+    joint, verts, inv, radius, half = cyl
+    frame = (rots[joint], poss[joint], inv)
+    x, y, z = in_frame(frame, rows, verts).transpose(1, 0, 2)  # (M, V) each
+    mid = in_frame(frame, rows, verts.mean(axis=1, keepdims=True))[:, :, 0]  # (M, 3)
+    norm = np.hypot(mid[:, 0], mid[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = mid[:, :2] / norm[:, None]
+    side = (norm > 0.0) & np.all(u[:, :1] * x + u[:, 1:] * y > radius + BROAD_MARGIN, axis=1)
+    caps = np.all(z > half + BROAD_MARGIN, axis=1) | np.all(z < -half - BROAD_MARGIN, axis=1)
+    inner = radius - INSIDE_DEPTH
+    inside = np.zeros(rows.size, dtype=bool)
+    if inner > 0.0 and half > INSIDE_DEPTH:
+        deep = (x * x + y * y < inner * inner) & (np.abs(z) < half - INSIDE_DEPTH)
+        inside = deep.any(axis=1)
+    keep = (caps | side) & ~inside  # free: dropped
     return rows[~keep], inside[~keep]
 
 

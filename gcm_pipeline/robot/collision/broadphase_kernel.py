@@ -2,9 +2,10 @@
 
 Kernels of :class:`~gcm_pipeline.robot.collision.broadphase.BroadPhase` (the NumPy
 reference, beside this module): :func:`broad_phase` (levels 1 and 2: one bounding
-sphere per geometry, then the sphere covers), :func:`hull_vs_box` (level 3: a
-robot polytope's hull vertices against a box) and :func:`edges_inside` (level 4:
-its longest edges inside a box, sphere or cylinder). Imported by
+sphere per geometry, then the sphere covers), :func:`hull_vs_box` and
+:func:`hull_vs_cylinder` (level 3: a robot polytope's hull vertices against a box,
+a cylinder) and :func:`edges_inside` (level 4: its longest edges inside a box,
+sphere or cylinder). Imported by
 :func:`gcm_pipeline.robot.kernels.get` only (it imports Numba).
 """
 
@@ -285,21 +286,39 @@ CORNER_PAD = 1e-9
 
 @njit(cache=True)
 def _enclosing_corners(verts: Any) -> tuple[Any, Any]:
-    """The corners (3, 8) and centre (3,) of the vertices' box in their frame, padded.
+    """The corners (3, 8 K) of K boxes holding the vertices, padded; the centre (3,) of all.
 
-    Every vertex (3, V) is a convex combination of the corners, ``CORNER_PAD``
-    inside the box: a plane every corner lies beyond by ``d`` has every vertex
-    beyond it by more than ``d``.
+    In the vertices' frame. A long hull (its longest extent more than twice the
+    next: an arm link) is cut across the middle of that extent and each half
+    gets its own box (K = 2), which hugs the hull closer than one box does;
+    otherwise one box (K = 1). Every vertex (3, V) is a convex combination of
+    the corners of its half's box, ``CORNER_PAD`` inside it: a plane every
+    corner lies beyond by ``d`` has every vertex beyond it by more than ``d``.
     """
     lo = np.empty(3)
     hi = np.empty(3)
     for a in range(3):
         lo[a] = verts[a].min() - CORNER_PAD
         hi[a] = verts[a].max() + CORNER_PAD
-    corners = np.empty((3, 8))
-    for c in range(8):
-        for a in range(3):
-            corners[a, c] = hi[a] if (c >> a) & 1 else lo[a]
+    extent = hi - lo
+    order = np.argsort(extent)
+    long = order[2]
+    parts = 2 if extent[long] > 2.0 * extent[order[1]] else 1
+    cut = 0.5 * (lo[long] + hi[long])
+    corners = np.empty((3, 8 * parts))
+    for p in range(parts):
+        # the half p of the vertices (both halves hold the vertices on the cut)
+        plo = np.full(3, np.inf)
+        phi = np.full(3, -np.inf)
+        for v in range(verts.shape[1]):
+            x = verts[long, v]
+            if parts == 1 or (x <= cut if p == 0 else x >= cut):
+                for a in range(3):
+                    plo[a] = min(plo[a], verts[a, v])
+                    phi[a] = max(phi[a], verts[a, v])
+        for c in range(8):
+            for a in range(3):
+                corners[a, 8 * p + c] = phi[a] + CORNER_PAD if (c >> a) & 1 else plo[a] - CORNER_PAD
     return corners, 0.5 * (lo + hi)
 
 
@@ -308,10 +327,11 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
 
     In the box's frame, ``x = inv @ T @ [v; 1]`` for each hull vertex ``v``.
-    The 8 corners of the vertices' box in the joint's frame
-    (:func:`_enclosing_corners`) are tested first: beyond a face, every vertex
-    is, and the row is free at the cost of 8 vertices (the UR5's upper arm
-    over the table: 171). The same answers as testing the vertices.
+    The 8 corners of the vertices' box in the joint's frame, or the 16 of the
+    two halves' boxes of a long hull (:func:`_enclosing_corners`), are tested
+    first: beyond a face, every vertex is, and the row is free at the cost of
+    8 or 16 vertices (the UR5's upper arm over the table: 171; its forearm
+    against the 2F-85's body: 220). The same answers as testing the vertices.
 
     Args:
         tfs: Frames of the polytope's joint (N, 3, 4).
@@ -346,7 +366,7 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
                 else:
                     off[a] = v + inv[a, 3]
         # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
-        if nv > 8 and _beyond_nearest_face(rot, off, corners, centre, beyond):
+        if nv > corners.shape[1] and _beyond_nearest_face(rot, off, corners, centre, beyond):
             out[r] = 0
             continue
         if _beyond_nearest_face(rot, off, verts, mid, beyond):
@@ -477,4 +497,77 @@ def edges_inside(tfs, rows, ends_a, ends_b, shape, depth):
             if _segment_inside(a, b, shape, depth):
                 out[r] = True
                 break
+    return out
+
+
+@njit(cache=True, inline="always")
+def _in_shape_frame(inv: Any, tf: Any, rot: Any, off: Any) -> None:
+    """``rot`` (3, 3), ``off`` (3,): the joint frame ``tf`` (3, 4) in a shape's, ``inv @ tf``."""
+    for a in range(3):
+        for b in range(4):
+            v = inv[a, 0] * tf[0, b] + inv[a, 1] * tf[1, b] + inv[a, 2] * tf[2, b]
+            if b < 3:
+                rot[a, b] = v
+            else:
+                off[a] = v + inv[a, 3]
+
+
+@njit(types.int8[::1](F3, I1, F2, F2, F1), cache=True)
+def hull_vs_cylinder(tfs, rows, verts, inv, limits):
+    """Level 3 of the broad phase against a cylinder: a robot polytope's hull vertices.
+
+    In the cylinder's frame (axis z), ``x = inv @ T @ [v; 1]`` for each hull
+    vertex ``v``. Free when every vertex lies beyond a cap's plane, or beyond the
+    side plane tangent to the cylinder across the direction ``u`` from its axis to
+    the vertices' centroid (``u . x > radius + beyond``, a plane the cylinder lies
+    wholly behind); collides when a vertex lies deeper than ``deep`` inside it
+    (``x^2 + y^2 < (radius - deep)^2`` and ``|z| < half - deep``): a hull vertex
+    is a vertex of the geometry's triangles, a point of it.
+
+    Args:
+        tfs: Frames of the polytope's joint (N, 3, 4).
+        rows: Configurations to decide (M,).
+        verts: Hull vertices (3, V) in the joint's frame [m].
+        inv: The cylinder's inverse placement (4, 4).
+        limits: ``(radius, half length, beyond, deep)`` (4,) [m].
+
+    Returns:
+        (M,) int8: 0 free, 1 collides, 2 undecided.
+    """
+    radius, half, beyond, deep = limits[0], limits[1], limits[2], limits[3]
+    inner = radius - deep
+    inner_sq = inner * inner if inner > 0.0 and half > deep else -1.0  # no depth test
+    m = rows.shape[0]
+    nv = verts.shape[1]
+    out = np.empty(m, dtype=np.int8)
+    rot = np.empty((3, 3))
+    off = np.empty(3)
+    mid = np.zeros(3)  # the vertices' centroid, the joint's frame
+    for v in range(nv):
+        for a in range(3):
+            mid[a] += verts[a, v] / nv
+    for r in range(m):
+        _in_shape_frame(inv, tfs[rows[r]], rot, off)
+        cx = rot[0, 0] * mid[0] + rot[0, 1] * mid[1] + rot[0, 2] * mid[2] + off[0]
+        cy = rot[1, 0] * mid[0] + rot[1, 1] * mid[1] + rot[1, 2] * mid[2] + off[1]
+        norm = math.sqrt(cx * cx + cy * cy)
+        ux, uy = (cx / norm, cy / norm) if norm > 0.0 else (0.0, 0.0)
+        above = below = side = True
+        inside = False
+        for v in range(nv):
+            x = rot[0, 0] * verts[0, v] + rot[0, 1] * verts[1, v] + rot[0, 2] * verts[2, v] + off[0]
+            y = rot[1, 0] * verts[0, v] + rot[1, 1] * verts[1, v] + rot[1, 2] * verts[2, v] + off[1]
+            z = rot[2, 0] * verts[0, v] + rot[2, 1] * verts[1, v] + rot[2, 2] * verts[2, v] + off[2]
+            above = above and z > half + beyond
+            below = below and z < -half - beyond
+            side = side and ux * x + uy * y > radius + beyond
+            if x * x + y * y < inner_sq and abs(z) < half - deep:
+                inside = True
+                break
+        if inside:
+            out[r] = 1
+        elif above or below or (side and norm > 0.0):
+            out[r] = 0
+        else:
+            out[r] = 2
     return out

@@ -17,8 +17,10 @@ as touching: asked without contact information, coal can otherwise answer
 "free" for overlaps of any depth
 (:func:`~gcm_pipeline.robot.collision.pairs.checker_requests`). A pair with
 a robot mesh is first checked on the convex hulls of its meshes
-(:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`): coal's mesh-mesh
-test runs only where the hulls touch. Batches of fewer than ``_FEW``
+(:func:`~gcm_pipeline.robot.collision.pairs.hull_pair_pool`), where they touch
+on the hulls of a long mesh's pieces
+(:func:`~gcm_pipeline.robot.collision.pairs.hull_pieces`): coal's mesh test
+runs only where those touch. Batches of fewer than ``_FEW``
 configurations (``_FEW_COMPILED`` with the compiled kernels) go to coal's own
 broad phase (AABB-tree pools) instead, which costs less to set up, and so do
 all batches of a checker with ``threads`` > 1 (those pools run in parallel in
@@ -212,6 +214,7 @@ class CollisionChecker(ClearanceQueries):
         #: (built when a pair first reaches coal)
         self._model = model
         self._hull_pools = {}
+        self._piece_pools = {}
         self._mesh_hulls = {}
         self._init_pools(pairs, link_of)
 

@@ -56,7 +56,7 @@ import coal
 import numpy as np
 import pinocchio as pin
 
-from gcm_pipeline.robot.collision.contact import NotConvexError, erode_convex
+from gcm_pipeline.robot.collision.contact import NotConvexError, erode_convex, mesh_arrays
 from gcm_pipeline.robot.collision.world import PRIMITIVES, WorldShape, erode_primitive
 from gcm_pipeline.robot.model import Robot
 
@@ -78,9 +78,11 @@ __all__ = [
     "coal_transform",
     "GJK_MARGIN",
     "HULL_MARGIN",
+    "PIECES",
     "convex_hull",
     "gripper_links",
     "hull_pair_pool",
+    "hull_pieces",
     "pair_pool",
     "robot_geometry",
     "se3",
@@ -392,14 +394,30 @@ def pair_pool(model: Any, gm: Any, pair: Pair, threads: int) -> Any:
 HULL_MARGIN = 1e-4
 
 
+#: Thinnest spread of a point set (its smallest singular value over its largest) that
+#: coal's convex hull is asked to hull: coal 3 crashes (a segmentation fault, no
+#: exception) on a flat set, and on one 1e-9 thick; 1e-6 was hulled.
+SOLID_SPREAD = 1e-4
+
+
+def _solid(points: np.ndarray) -> bool:
+    """Whether points (K, 3) span a volume that coal can hull (:data:`SOLID_SPREAD`)."""
+    if len(points) < 4:
+        return False
+    spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return bool(spread[2] > SOLID_SPREAD * spread[0])
+
+
 def convex_hull(geometry: Any) -> Any:
     """The convex hull (a ``coal.ConvexBase``) of a coal mesh's vertices; None if it has none.
 
     Only a ``BVHModelBase`` (a mesh) has one here; primitives, convex pieces and
-    octrees give None.
+    octrees give None, and so does a flat mesh (:data:`SOLID_SPREAD`).
     """
     if not isinstance(geometry, coal.BVHModelBase):
         return None
+    if not _solid(np.asarray(geometry.vertices(), dtype=float).reshape(-1, 3)):
+        return None  # flat: coal would crash; no hull, no pre-check
     try:
         mesh = geometry.clone()
         mesh.buildConvexHull(True, "Qt")
@@ -408,36 +426,95 @@ def convex_hull(geometry: Any) -> Any:
         return None
 
 
-def hull_pair_pool(model: Any, gm: Any, pair: Pair, threads: int, hulls: dict[int, Any]) -> Any:
+#: Pieces a long robot mesh is cut into for the convex-hull pre-check (:func:`hull_pieces`).
+PIECES = 3
+
+
+def hull_pieces(geometry: Any, pieces: int = PIECES) -> list[Any] | None:
+    """Convex hulls (``coal.ConvexBase``) whose union holds a coal mesh; None if it has none.
+
+    A long mesh (its vertices' longest extent more than twice the next: an arm
+    link) is cut across that extent into ``pieces`` slabs of equal width, each
+    triangle going to the slab of its centroid, and each slab's triangles get
+    their own hull: every triangle lies in its piece's hull, so the hulls hold
+    the mesh, closer than one hull does where the link is concave (the UR5's
+    forearm between its two joints). Any other mesh, or a piece qhull cannot
+    hull (flat: :data:`SOLID_SPREAD`), gives the whole mesh's :func:`convex_hull`.
+    """
+    whole = convex_hull(geometry)
+    if whole is None or pieces < 2:
+        return None if whole is None else [whole]
+    verts, tris = mesh_arrays(geometry)
+    used = verts[np.unique(tris)]
+    extent = np.sort(used.max(axis=0) - used.min(axis=0))
+    if extent[2] <= 2.0 * extent[1]:
+        return [whole]
+    axis = int(np.argmax(used.max(axis=0) - used.min(axis=0)))
+    centre = verts[tris].mean(axis=1)[:, axis]
+    lo, hi = used[:, axis].min(), used[:, axis].max()
+    slab = np.clip(((centre - lo) / (hi - lo) * pieces).astype(int), 0, pieces - 1)
+    out = []
+    for k in range(pieces):
+        points = verts[np.unique(tris[slab == k])]
+        if not _solid(points):  # a flat piece (a cap's triangles only): coal would crash
+            return [whole]
+        vec = coal.StdVec_Vec3s()
+        for point in points:
+            vec.append(point)
+        out.append(coal.Convex.convexHull(vec, True, "Qt"))
+    return out
+
+
+def hull_pair_pool(
+    model: Any,
+    gm: Any,
+    pair: Pair,
+    threads: int,
+    hulls: dict[tuple[int, int], Any],
+    pieces: int = 1,
+) -> Any:
     """A pool checking one pair with each mesh replaced by its convex hull, or None.
 
-    Its collision requests count the hulls as touching within :data:`HULL_MARGIN`;
-    a hull contains its mesh, so a configuration this pool finds free is free
-    for :func:`pair_pool` too. None when neither geometry is a mesh, or when the
-    world side of the pair is not a primitive (a mesh, a point cloud). ``hulls``
-    caches the hull of each geometry index (None: no hull).
+    With ``pieces`` > 1, each long mesh is replaced by the hulls of its pieces
+    (:func:`hull_pieces`) and every piece of one side is checked against every
+    piece of the other: the pool's answer is whether any of them touch. Its
+    collision requests count the hulls as touching within :data:`HULL_MARGIN`;
+    the hulls hold their mesh, so a configuration this pool finds free is free
+    for :func:`pair_pool` too. None when neither geometry is a mesh (with
+    ``pieces`` > 1: neither is cut into pieces), or when the world side of the
+    pair is not a primitive (a mesh, a point cloud). ``hulls`` caches the hulls
+    of each geometry index and piece count (None: no hull).
     """
     if pair.kind != "self" and not isinstance(gm.geometryObjects[pair.b].geometry, PRIMITIVES):
         # a world mesh or point cloud: its hull would touch the robot wherever the
         # shape is concave (a mug's opening), doubling coal's calls
         return None
-    objs = []
+    sides = []
     for g in (pair.a, pair.b):
         go = gm.geometryObjects[g]
-        if g not in hulls:
-            hulls[g] = convex_hull(go.geometry)
-        if hulls[g] is None:
-            objs.append(go)
+        if (g, pieces) not in hulls:
+            hulls[g, pieces] = hull_pieces(go.geometry, pieces)
+        own = hulls[g, pieces]
+        if own is None:
+            sides.append([go])
         else:
-            objs.append(
-                pin.GeometryObject(go.name, go.parentJoint, go.parentFrame, go.placement, hulls[g])
+            sides.append(
+                [
+                    pin.GeometryObject(go.name, go.parentJoint, go.parentFrame, go.placement, h)
+                    for h in own
+                ]
             )
-    if all(hulls[g] is None for g in (pair.a, pair.b)):
+    if all(hulls[g, pieces] is None for g in (pair.a, pair.b)):
         return None
+    if pieces > 1 and len(sides[0]) == 1 and len(sides[1]) == 1:
+        return None  # no piece closer than the whole hull
     km = pin.GeometryModel()
-    for go in objs:
+    for go in [*sides[0], *sides[1]]:
         km.addGeometryObject(go)
-    km.addCollisionPair(pin.CollisionPair(0, 1))
+    first = len(sides[0])
+    for i in range(first):
+        for j in range(len(sides[1])):
+            km.addCollisionPair(pin.CollisionPair(i, first + j))
     pool = pin.GeometryPool(model, km, threads)
     for i in range(pool.size()):
         gd = checker_requests(pool.getGeometryData(i))

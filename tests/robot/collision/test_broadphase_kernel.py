@@ -135,8 +135,9 @@ def test_the_kernels_leave_open_what_numpy_leaves_open(compiled, bottle, mode, n
 
     For a pair without a box that is the set levels 1 and 2 leave open; with a
     world box, what level 3 leaves undecided after them. A pair of a robot
-    polytope and a robot box (the Panda's finger boxes) gets level 3 from the
-    kernels only: they send a subset of NumPy's rows there.
+    polytope and a robot box (the Panda's finger boxes) or a cylinder (the
+    bottle) gets level 3 from the kernels only: they send a subset of NumPy's
+    rows there.
     """
     checker, qs, _ = bottle
     ref = _coal_calls(checker, lambda: numpy_code(checker.check, qs, mode))
@@ -144,16 +145,20 @@ def test_the_kernels_leave_open_what_numpy_leaves_open(compiled, bottle, mode, n
     # (a configuration's pairs after its first collision are not sent: 590 in grasp mode)
     assert sum(len(v) for v in ref.values()) > 400
     screen = checker._screens[MODE_BIT[mode]]
-    own_box = set()
-    for k in screen.self_boxes:
-        c = int(screen.pairs[k])
-        own_box |= {id(checker._pair_pool[c]), id(checker._hull_pools.get(c))}
+    own_box, cylinder = set(), set()
+    for cols, pools in ((screen.self_boxes, own_box), (screen.cylinders, cylinder)):
+        for k in cols:
+            c = int(screen.pairs[k])
+            pools |= {id(checker._pair_pool[c]), id(checker._hull_pools.get(c))}
+            pools.add(id(checker._piece_pools.get(c)))
     for pool, rows in ref.items():
-        if pool in own_box:
+        if pool in own_box | cylinder:
             assert out.get(pool, set()) <= rows
         else:
             assert rows <= out.get(pool, set())
     assert any(pool in own_box for pool in ref)  # the robot-box level was exercised
+    # the cylinder level was exercised: the kernels send fewer rows there
+    assert sum(len(ref[p]) - len(out.get(p, set())) for p in ref if p in cylinder) > 50
     # conservative, not loose: only entries within the slack of a threshold are added
     extra = sum(len(out[p] - ref.get(p, set())) for p in out)
     assert extra <= 0.01 * sum(len(v) for v in ref.values())
@@ -163,7 +168,7 @@ def test_open_pairs_contain_the_colliding_ones(compiled, bottle):
     checker, qs, _ = bottle
     screen = checker._screens[1]
     frames = checker._frames.compute(qs[:2048])
-    broad, _, _ = checker._compiled_screen(screen)
+    broad, _, _, _ = checker._compiled_screen(screen)
     open_ = compiled.broad_phase(_stacked_checked(frames), *broad)
     hit = checker._pair_hits_compiled(compiled, qs[:2048], frames, screen)
     assert hit.any() and not (hit.T & ~open_).any()
@@ -184,7 +189,7 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
     frames = checker._frames.compute(qs)
     rots, poss = frames.rots, frames.poss
     tfs = np.stack(frames.transforms)
-    _, boxes, _ = checker._compiled_screen(screen)
+    _, boxes, _, _ = checker._compiled_screen(screen)
     assert boxes
     rows = np.arange(len(qs))
     decided = {kernels.FREE: 0, kernels.COLLIDES: 0}
@@ -208,27 +213,39 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
 
 
 def test_level_3_corners_hold_every_vertex():
-    """Level 3 first tests the corners of a box around the hull's vertices: a corner
-    beyond a face puts every vertex beyond it only if each vertex lies inside that box,
-    by more than the rounding of its coordinates."""
+    """Level 3 first tests the corners of a box around the hull's vertices (of two boxes,
+    one per half, for a long hull): a corner beyond a face puts every vertex beyond it only
+    if each vertex lies inside one of the boxes, by more than the rounding of its
+    coordinates."""
     from gcm_pipeline.robot.collision.broadphase_kernel import CORNER_PAD, _enclosing_corners
 
     rng = np.random.default_rng(3)
-    for scale in (1e-3, 0.1, 2.0):
-        verts = rng.normal(size=(3, 60)) * scale + rng.normal(size=(3, 1))
-        corners, centre = _enclosing_corners(np.ascontiguousarray(verts))
-        lo, hi = corners.min(axis=1), corners.max(axis=1)
-        assert corners.shape == (3, 8) and np.unique(corners.T, axis=0).shape == (8, 3)
-        np.testing.assert_allclose(centre, 0.5 * (lo + hi))
-        assert np.all(verts - lo[:, None] >= 0.999 * CORNER_PAD)
-        assert np.all(hi[:, None] - verts >= 0.999 * CORNER_PAD)
-        assert CORNER_PAD > 1e3 * np.spacing(np.abs(verts).max() + 10.0)
+    for stretch, parts in (((1.0, 1.0, 1.0), 1), ((0.3, 4.0, 0.5), 2), ((1.0, 0.2, 2.5), 2)):
+        for scale in (1e-3, 0.1, 2.0):
+            verts = rng.normal(size=(3, 60)) * np.array(stretch)[:, None] * scale
+            verts += rng.normal(size=(3, 1))
+            corners, centre = _enclosing_corners(np.ascontiguousarray(verts))
+            assert corners.shape == (3, 8 * parts)
+            lo, hi = verts.min(axis=1), verts.max(axis=1)
+            np.testing.assert_allclose(centre, 0.5 * (lo + hi))
+            held = np.zeros(verts.shape[1], dtype=bool)
+            for box in np.split(corners, parts, axis=1):
+                assert np.unique(box.T, axis=0).shape == (8, 3)
+                blo, bhi = box.min(axis=1)[:, None], box.max(axis=1)[:, None]
+                held |= np.all(verts - blo >= 0.999 * CORNER_PAD, axis=0) & np.all(
+                    bhi - verts >= 0.999 * CORNER_PAD, axis=0
+                )
+            assert held.all()
+            if parts == 2:  # the halves' boxes are smaller than the whole's
+                assert (np.ptp(corners[:, :8], axis=1) < hi - lo + 3 * CORNER_PAD).all()
+                assert np.ptp(corners[:, :8], axis=1).max() < 0.7 * (hi - lo).max()
+            assert CORNER_PAD > 1e3 * np.spacing(np.abs(verts).max() + 10.0)
 
 
 def test_kernel_limits_are_the_numpy_ones_plus_the_slack(bottle):
     checker, _, _ = bottle
     screen = checker._screens[1]
-    broad, boxes, _ = checker._compiled_screen(screen)
+    broad, boxes, _, _ = checker._compiled_screen(screen)
     assert checker._compiled_screen(screen)[0] is broad  # built once
     world, limit1 = broad[6], broad[7]
     own = world < 0

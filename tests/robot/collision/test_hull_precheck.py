@@ -19,28 +19,21 @@ import numpy as np
 import pytest
 import trimesh
 from helpers import ROOT
-from urdfs import write_arm
+from scipy.spatial import ConvexHull
+from urdfs import write_arm, write_concave_forearm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
 from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot.collision.checker import CollisionChecker
-from gcm_pipeline.robot.collision.pairs import convex_hull, hull_pair_pool
+from gcm_pipeline.robot.collision.contact import mesh_arrays
+from gcm_pipeline.robot.collision.pairs import PIECES, convex_hull, hull_pair_pool, hull_pieces
 from gcm_pipeline.robot.collision.world import WorldShape
 
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
 
 _ROBOTS = ("panda", "ur5_robotiq", "user_arm")
-
-
-def _forearm_stl(path):
-    """A concave forearm: the cylinder of ``arm_urdf`` with a block beside it (two solids)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rod = trimesh.creation.cylinder(radius=0.04, height=0.28, sections=24)
-    block = trimesh.creation.box(extents=[0.05, 0.05, 0.08])
-    block.apply_translation([0.07, 0.0, 0.08])
-    trimesh.util.concatenate([rod, block]).export(path)
 
 
 def _checker(name, tmp_path_factory):
@@ -50,7 +43,7 @@ def _checker(name, tmp_path_factory):
         cfg = load_config(ROOT / "configs" / "bottle_side_ur5.yaml")
     else:
         folder = tmp_path_factory.mktemp("arm")
-        _forearm_stl(folder / "meshes" / "forearm.stl")
+        write_concave_forearm(folder / "meshes" / "forearm.stl")
         spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
         cfg = load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
     robot = P.robot_from_config(cfg)
@@ -116,6 +109,7 @@ def test_hull_apart_only_where_meshes_apart(case):
     checker, q = case
     pooled = 0
     ruled_out = 0
+    by_pieces = 0  # configurations the pieces rule out where the whole hulls touch
     for c, pair in enumerate(checker._pairs):
         pool = hull_pair_pool(checker._model, checker._gm, pair, 1, {})
         if pool is None:
@@ -125,7 +119,60 @@ def test_hull_apart_only_where_meshes_apart(case):
         mesh_hit = checker._run(checker._pair_pool[c], q)
         assert not np.any(mesh_hit & ~hull_hit), (pair, np.flatnonzero(mesh_hit & ~hull_hit))
         ruled_out += int(np.count_nonzero(~hull_hit))
+        pieces = hull_pair_pool(checker._model, checker._gm, pair, 1, {}, PIECES)
+        if pieces is not None:
+            piece_hit = checker._run(pieces, q)
+            assert not np.any(mesh_hit & ~piece_hit), (pair, np.flatnonzero(mesh_hit & ~piece_hit))
+            assert not np.any(piece_hit & ~hull_hit), pair  # the pieces lie in the hull
+            by_pieces += int(np.count_nonzero(hull_hit & ~piece_hit))
     assert pooled > 0 and ruled_out > 0
+    if checker.robot.name == "ur5":  # its forearm's pieces beside the bottle
+        assert by_pieces > 0
+
+
+@pytest.mark.parametrize("name", _ROBOTS)
+def test_hull_pieces_hold_every_triangle(name, tmp_path_factory):
+    """Each triangle of a robot mesh lies in the hull of one of its pieces (1e-9 m)."""
+    checker = _checker(name, tmp_path_factory)
+    cut = 0
+    for go in list(checker._gm.geometryObjects)[: checker.n_robot_geoms]:
+        pieces = hull_pieces(go.geometry)
+        if pieces is None:
+            continue
+        verts, tris = mesh_arrays(go.geometry)
+        held = np.zeros(len(tris), dtype=bool)
+        for piece in pieces:
+            planes = ConvexHull(np.array(piece.points(), dtype=float).reshape(-1, 3)).equations
+            inside = (verts @ planes[:, :3].T + planes[:, 3] <= 1e-9).all(axis=1)
+            held |= inside[tris].all(axis=1)
+        assert held.all(), (name, go.name, np.flatnonzero(~held)[:5])
+        cut += len(pieces) > 1
+    assert cut > 0 or name == "user_arm"  # its concave forearm has a flat piece: whole
+
+
+def test_a_flat_mesh_is_checked_without_a_hull(tmp_path):
+    """A robot link whose mesh is flat (a plate of two triangles) gets no hull (coal crashed
+    building it) and its pairs the same answers as coal's on the meshes."""
+    plate = trimesh.Trimesh(
+        [[-0.05, -0.05, 0.0], [0.05, -0.05, 0.0], [0.05, 0.05, 0.0], [-0.05, 0.05, 0.0]],
+        [[0, 1, 2], [0, 2, 3]],
+        process=False,
+    )
+    (tmp_path / "meshes").mkdir()
+    plate.export(tmp_path / "meshes" / "plate.stl")
+    spec = write_arm(tmp_path, mesh="meshes/plate.stl", mesh_link="wrist_3_link")
+    cfg = load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
+    checker = make_checker(P.robot_from_config(cfg), cfg.environment, cfg.object)
+    flat = [
+        go.geometry
+        for go in checker._gm.geometryObjects
+        if isinstance(go.geometry, coal.BVHModelBase) and go.name.startswith("wrist_3")
+    ]
+    assert flat and convex_hull(flat[0]) is None and hull_pieces(flat[0]) is None
+    q = checker.robot.random_configurations(2000, 2)
+    got = checker.check(q)
+    np.testing.assert_array_equal(got, _without_precheck(checker, q))
+    assert "" in set(got.tolist()) and len(set(got.tolist())) >= 2
 
 
 def test_no_hull_pool_against_a_world_mesh_or_cloud():

@@ -1,0 +1,194 @@
+"""Level 3 of the broad phase against a cylinder: a robot polytope's hull vertices.
+
+A robot polytope (a mesh, a convex piece, a box) against a world cylinder (the
+bottle, and the bottle shrunk by the contact tolerance for the gripper) is free
+when all its hull vertices lie more than ``BROAD_MARGIN`` beyond a cap's plane or
+the side plane across the direction from the axis to their centroid, and
+collides when one of them lies deeper than ``INSIDE_DEPTH`` inside (a hull
+vertex is a vertex of the geometry's triangles). Checked here, for the Panda,
+the UR5 with the Robotiq 2F-85 and a user URDF (a concave mesh forearm) in the
+bottle's world, on configurations near contact (IK solutions around the bottle
+and, pair by pair, both sides of its contact bisected to 1e-4 rad):
+
+* every (pair, configuration) the compiled kernel or the NumPy level decides,
+  coal (as the checker asks it) decides the same, and both sides are decided
+  often;
+* the kernel decides only what the NumPy level decides the same, and
+  everything the NumPy level decides with its limits 2e-9 m stricter (the
+  kernel's slack is 1e-9 m): a comparison by tolerance, valid on any CPU;
+* the checker's decisions with the level equal those of a checker without it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import ROOT
+from urdfs import write_arm, write_concave_forearm
+
+from gcm_pipeline import pipeline as P
+from gcm_pipeline.config import load_config
+from gcm_pipeline.pipeline import make_checker
+from gcm_pipeline.robot import kernels
+from gcm_pipeline.robot.collision import broadphase
+from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, INSIDE_DEPTH, stacked
+from gcm_pipeline.robot.collision.pairs import MODE_BIT
+from gcm_pipeline.robot.ik import solve_ik
+
+#: Each test starts with the kernels on, whatever the environment says.
+pytestmark = pytest.mark.usefixtures("kernels_on")
+
+_ROBOTS = ("panda", "ur5_robotiq", "user_arm")
+
+
+def _checker(name, tmp_path_factory):
+    if name == "panda":
+        cfg = load_config(ROOT / "configs" / "bottle_side.yaml")
+    elif name == "ur5_robotiq":
+        cfg = load_config(ROOT / "configs" / "bottle_side_ur5.yaml")
+    else:
+        folder = tmp_path_factory.mktemp("arm")
+        write_concave_forearm(folder / "meshes" / "forearm.stl")
+        spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
+        cfg = load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
+    robot = P.robot_from_config(cfg)
+    return make_checker(robot, cfg.environment, cfg.object)
+
+
+def _around_the_bottle(robot, n, seed):
+    """IK solutions with the grasp frame within 25 cm of the bottle's axis, any heading."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0.0, 2.0 * np.pi, n)
+    t = np.tile(np.eye(4), (n, 1, 1))
+    z = -np.stack([np.cos(a), np.sin(a), rng.uniform(-0.5, 0.5, n)], axis=1)
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    y = np.cross(z, rng.normal(size=(n, 3)))
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    t[:, :3, 0], t[:, :3, 1], t[:, :3, 2] = np.cross(y, z), y, z
+    reach = rng.uniform(0.0, 0.25, n)[:, None]
+    t[:, :3, 3] = [0.5, 0.0, 0.0] + np.column_stack([np.zeros((n, 2)), rng.uniform(0, 0.3, n)])
+    t[:, :3, 3] -= reach * z
+    res = solve_ik(robot, t)
+    return res.q[res.success]
+
+
+def _columns(checker):
+    """The cylinder columns of the grasp and approach screens: [(screen, column, pair)]."""
+    out = []
+    for mode in ("grasp", "approach"):
+        screen = checker._screens[MODE_BIT[mode]]
+        out += [(screen, k, int(screen.pairs[k])) for k in screen.cylinders]
+    return out
+
+
+def _near_contact(checker, q, c, steps=14, most=150):
+    """Both sides of pair ``c``'s contact: free and colliding rows bisected ``steps`` times."""
+    pool = checker._pair_pool[c]
+    hit = checker._run(pool, q)
+    m = min(int(hit.sum()), int((~hit).sum()), most)
+    if m == 0:
+        return q[:0]
+    a, b = q[~hit][:m].copy(), q[hit][:m].copy()
+    for _ in range(steps):
+        mid = 0.5 * (a + b)
+        mh = checker._run(pool, mid)
+        b[mh], a[~mh] = mid[mh], mid[~mh]
+    return np.concatenate([a, b])
+
+
+@pytest.fixture(scope="module", params=_ROBOTS)
+def case(request, tmp_path_factory):
+    """A checker, and per cylinder column configurations near that pair's contact."""
+    checker = _checker(request.param, tmp_path_factory)
+    robot = checker.robot
+    q = np.concatenate([robot.random_configurations(400, 7), _around_the_bottle(robot, 600, 8)])
+    near = {c: np.concatenate([q, _near_contact(checker, q, c)]) for _, _, c in _columns(checker)}
+    plain = _checker(request.param, tmp_path_factory)  # the same without the level
+    for screen in plain._screens.values():
+        screen.cylinders.clear()
+    return request.param, checker, near, plain
+
+
+def _numpy_level(checker, screen, k, q):
+    """The NumPy level's status of column ``k`` on every row of ``q`` (kernels' codes)."""
+    frames = checker._frames.compute(q)
+    rows, inside = broadphase._world_cylinder_level(
+        (frames.rots, frames.poss), np.arange(len(q)), screen.cylinders[k]
+    )
+    status = np.full(len(q), kernels.FREE, dtype=np.int8)
+    status[rows] = np.where(inside, kernels.COLLIDES, kernels.UNDECIDED)
+    return status
+
+
+def _kernel_level(compiled, checker, screen, k, q):
+    frames = checker._frames.compute(q)
+    joint, *limits = checker._compiled_screen(screen)[3][k]
+    return compiled.hull_vs_cylinder(stacked(frames.transforms)[joint], np.arange(len(q)), *limits)
+
+
+def test_cylinder_level_decides_as_coal(compiled, case):
+    """Every row either level decides, coal decides the same; it decides both ways."""
+    name, checker, near, _ = case
+    columns = _columns(checker)
+    assert columns, name  # arm links and gripper pieces against the bottle
+    decided = {kernels.FREE: 0, kernels.COLLIDES: 0}
+    for screen, k, c in columns:
+        q = near[c]
+        coal_hit = checker._run(checker._pair_pool[c], q)
+        for status in (
+            _kernel_level(compiled, checker, screen, k, q),
+            _numpy_level(checker, screen, k, q),
+        ):
+            wrong_free = (status == kernels.FREE) & coal_hit
+            wrong_hit = (status == kernels.COLLIDES) & ~coal_hit
+            assert not wrong_free.any(), (name, checker._pairs[c], np.flatnonzero(wrong_free)[:5])
+            assert not wrong_hit.any(), (name, checker._pairs[c], np.flatnonzero(wrong_hit)[:5])
+            for s in decided:
+                decided[s] += int((status == s).sum())
+    assert decided[kernels.FREE] > 500 and decided[kernels.COLLIDES] > 100, (name, decided)
+
+
+def test_kernel_decides_within_the_slack_of_numpy(compiled, case, monkeypatch):
+    """The kernel's decisions lie between the NumPy level's and its with limits 2e-9 m stricter."""
+    name, checker, near, _ = case
+    for screen, k, c in _columns(checker):
+        q = near[c]
+        got = _kernel_level(compiled, checker, screen, k, q)
+        loose = _numpy_level(checker, screen, k, q)
+        monkeypatch.setattr(broadphase, "BROAD_MARGIN", BROAD_MARGIN + 2 * kernels.SLACK)
+        monkeypatch.setattr(broadphase, "INSIDE_DEPTH", INSIDE_DEPTH + 2 * kernels.SLACK)
+        strict = _numpy_level(checker, screen, k, q)
+        monkeypatch.undo()
+        decided = got != kernels.UNDECIDED
+        assert np.array_equal(got[decided], loose[decided]), (name, checker._pairs[c])
+        sure = strict != kernels.UNDECIDED
+        assert np.array_equal(got[sure], strict[sure]), (name, checker._pairs[c])
+        assert compiled.hull_vs_cylinder(
+            np.zeros((1, 3, 4)),
+            np.zeros(0, dtype=np.intp),
+            *checker._compiled_screen(screen)[3][k][1:],
+        ).shape == (0,)
+
+
+def test_kernel_limits_are_the_numpy_ones_plus_the_slack(case):
+    _, checker, _, _ = case
+    for screen, k, _ in _columns(checker):
+        _, verts, inv, limits = checker._compiled_screen(screen)[3][k]
+        _, verts0, inv0, radius, half = screen.cylinders[k]
+        np.testing.assert_array_equal(verts, verts0)
+        np.testing.assert_array_equal(inv, inv0)
+        np.testing.assert_array_equal(
+            limits, [radius, half, BROAD_MARGIN + kernels.SLACK, INSIDE_DEPTH + kernels.SLACK]
+        )
+
+
+@pytest.mark.parametrize("mode", ["grasp", "approach"])
+def test_same_decisions_without_the_level(case, mode, numpy_code):
+    """The checker's answers equal those of the same checker with the level's columns removed."""
+    _, checker, near, plain = case
+    q = np.concatenate(list(near.values()))
+    got = checker.check(q, mode)
+    ref = numpy_code(checker.check, q, mode)
+    np.testing.assert_array_equal(got, plain.check(q, mode))
+    np.testing.assert_array_equal(ref, got)
+    assert {"", "collision_object"} <= set(got.tolist())

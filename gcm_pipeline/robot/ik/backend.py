@@ -332,7 +332,8 @@ def solve_ik(
 
     Raises:
         InputError: Unknown backend or option, tolerance <= 0, bad seeds or
-            neighbours.
+            neighbours; ``settle`` without the pinocchio backend and
+            ``return_all``, or answering other than (N,).
         GeometryError: Targets of the wrong shape, non-finite or non-rigid.
     """
     robot = as_robot(robot)

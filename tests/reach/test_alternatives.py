@@ -81,3 +81,39 @@ def test_early_stop_gives_the_full_searchs_answers(
     for g, w in zip(got, want, strict=True):
         assert g.dtype == w.dtype
         np.testing.assert_array_equal(g, w)  # bit for bit: same rows, order, q, errors
+
+
+def test_early_stop_on_an_arm_with_joints_wider_than_a_turn() -> None:
+    # the UR5's LM alone (no closed form): five joints of +-2 pi, where q and q + 2 pi
+    # are one arm shape; the first solutions given at the other 2 pi copy of half of
+    # the poses' configurations, so their copies must be dropped as the full search does
+    from gcm_pipeline.config.robot_spec import load_robot
+    from gcm_pipeline.robot.ik.analytic_6r import wide_joints
+
+    ur5 = load_robot("ur5")
+    targets, q = _targets(ur5, 24, seed=8)
+    shift = np.where(wide_joints(ur5.lower, ur5.upper), 2 * np.pi, 0.0)
+    shifted = np.where(q + shift <= ur5.upper, q + shift, q - shift)
+    q_first = np.where((np.arange(24) % 2 == 0)[:, None], shifted, q)
+    ik_options = {"random_seed": 0, "analytic": False}
+    k, separation, library, restarts = 3, 1e-3, 8, 4
+    got = other_solutions(
+        ur5,
+        targets,
+        q_first,
+        count=k,
+        every_branch=False,
+        backend="pinocchio",
+        position_tolerance=TOL_P,
+        orientation_tolerance=TOL_R,
+        ik_options=ik_options,
+        shared_options={"analytic": False},
+        separation=separation,
+        library=library,
+        restarts=restarts,
+    )
+    want = _full_search(ur5, targets, q_first, k, separation, library, restarts, ik_options)
+    assert len(got[0]) > 24
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype
+        np.testing.assert_array_equal(g, w)

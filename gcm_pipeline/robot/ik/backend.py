@@ -332,7 +332,8 @@ def solve_ik(
 
     Raises:
         InputError: Unknown backend or option, tolerance <= 0, bad seeds or
-            neighbours.
+            neighbours; ``settle`` without the pinocchio backend and
+            ``return_all``, or answering other than (N,).
         GeometryError: Targets of the wrong shape, non-finite or non-rigid.
     """
     robot = as_robot(robot)
@@ -360,7 +361,7 @@ def solve_ik(
         if rows.size == 0:
             continue
         sub_seeds = _phase_seeds(phase, rows, seed_arr, nb, q)
-        kw = kwargs if settle is None else {**kwargs, "settle": _settle_rows(settle, rows)}
+        kw = kwargs if settle is None else {**kwargs, "settle": _settle_rows(settle, rows, n)}
         raw = run_backend(solve, robot, tgt[rows], sub_seeds, validator, return_all, processes, kw)
         ok, good, q_rows, pe, re = _verify(robot, tgt[rows], raw, tol_p, tol_r)
         pos_err[rows] = raw.pos_err
@@ -402,12 +403,15 @@ def _backend_kwargs(
 
 
 def _settle_rows(
-    settle: Callable[[np.ndarray, np.ndarray], np.ndarray], rows: np.ndarray
+    settle: Callable[[np.ndarray, np.ndarray], np.ndarray], rows: np.ndarray, n: int
 ) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """``settle`` of all the targets as a callback of the backend's targets ``rows``."""
+    """``settle`` of all ``n`` targets as a callback of the backend's targets ``rows``."""
 
     def local(index: np.ndarray, q: np.ndarray) -> np.ndarray:
-        return np.asarray(settle(rows[index], q), dtype=bool)[rows]
+        settled = np.asarray(settle(rows[index], q))
+        if settled.shape != (n,):
+            raise InputError(f"settle returned shape {settled.shape}, expected ({n},)")
+        return settled.astype(bool)[rows]
 
     return local
 

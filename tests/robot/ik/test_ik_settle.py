@@ -1,4 +1,4 @@
-"""solve_ik's ``settle`` callback: every candidate once, in order; settled targets searched no more."""
+"""solve_ik's ``settle`` callback: each candidate once, in order; the settled searched no more."""
 
 import numpy as np
 import pytest
@@ -92,3 +92,21 @@ def test_settle_needs_pinocchio_and_return_all(panda):
         solve_ik(panda, targets, settle=lambda i, q: np.zeros(2, bool))
     with pytest.raises(InputError, match="settle"):
         solve_ik(panda, targets, "mink", return_all=True, settle=lambda i, q: np.zeros(2, bool))
+
+
+@pytest.mark.parametrize(
+    "answer",
+    [True, None, "n - 1", "n + 1", "(n, 1)", "empty"],
+)
+def test_a_settle_answer_of_the_wrong_shape_is_one_line(panda, answer):
+    # it used to surface as an IndexError or a broadcast ValueError from inside the
+    # stages (or, one entry too long, pass unnoticed)
+    n = 8
+    targets = _targets(panda, n)
+    shapes = {"n - 1": (n - 1,), "n + 1": (n + 1,), "(n, 1)": (n, 1), "empty": (0,)}
+
+    def settle(index, q):
+        return np.zeros(shapes[answer], dtype=bool) if answer in shapes else answer
+
+    with pytest.raises(InputError, match=rf"settle returned shape .*, expected \({n},\)"):
+        solve_ik(panda, targets, "pinocchio", return_all=True, settle=settle, **OPTS)

@@ -323,6 +323,7 @@ def solve_ik(
         settle: With ``return_all`` (pinocchio): ``(index, q) -> (N,) bool`` gets each
             candidate once as the stages find them (a target's in the order of
             ``result.candidates``), returns the targets that need no more (then skipped).
+            The search then runs in this process, whatever ``workers`` says.
         **options: Backend options, e.g. ``max_iterations`` (see
             :class:`~gcm_pipeline.robot.ik.lm.PinocchioIKOptions` and
             :class:`~gcm_pipeline.robot.ik.mink_backend.MinkIKOptions`).

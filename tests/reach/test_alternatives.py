@@ -47,6 +47,27 @@ def _full_search(robot, targets, q_first, k, separation, library, restarts, ik_o
     )
 
 
+def _both(robot, targets, q_first, k, separation, library, restarts, ik_options):
+    """``other_solutions`` (with the early stop) and the full search, on the same inputs."""
+    got = other_solutions(
+        robot,
+        targets,
+        q_first,
+        count=k,
+        every_branch=False,
+        backend="pinocchio",
+        position_tolerance=TOL_P,
+        orientation_tolerance=TOL_R,
+        ik_options=ik_options,
+        shared_options={"analytic": ik_options["analytic"]},
+        separation=separation,
+        library=library,
+        restarts=restarts,
+    )
+    want = _full_search(robot, targets, q_first, k, separation, library, restarts, ik_options)
+    return got, want
+
+
 @pytest.mark.parametrize(
     ("k", "separation", "library", "restarts", "analytic", "n"),
     [
@@ -61,22 +82,7 @@ def test_early_stop_gives_the_full_searchs_answers(
 ):
     targets, q_first = _targets(panda, n, seed=k + library)
     ik_options = {"random_seed": 0, "analytic": analytic}
-    got = other_solutions(
-        panda,
-        targets,
-        q_first,
-        count=k,
-        every_branch=False,
-        backend="pinocchio",
-        position_tolerance=TOL_P,
-        orientation_tolerance=TOL_R,
-        ik_options=ik_options,
-        shared_options={"analytic": analytic},
-        separation=separation,
-        library=library,
-        restarts=restarts,
-    )
-    want = _full_search(panda, targets, q_first, k, separation, library, restarts, ik_options)
+    got, want = _both(panda, targets, q_first, k, separation, library, restarts, ik_options)
     assert len(got[0]) > 0
     for g, w in zip(got, want, strict=True):
         assert g.dtype == w.dtype
@@ -97,22 +103,7 @@ def test_early_stop_on_an_arm_with_joints_wider_than_a_turn() -> None:
     q_first = np.where((np.arange(24) % 2 == 0)[:, None], shifted, q)
     ik_options = {"random_seed": 0, "analytic": False}
     k, separation, library, restarts = 3, 1e-3, 8, 4
-    got = other_solutions(
-        ur5,
-        targets,
-        q_first,
-        count=k,
-        every_branch=False,
-        backend="pinocchio",
-        position_tolerance=TOL_P,
-        orientation_tolerance=TOL_R,
-        ik_options=ik_options,
-        shared_options={"analytic": False},
-        separation=separation,
-        library=library,
-        restarts=restarts,
-    )
-    want = _full_search(ur5, targets, q_first, k, separation, library, restarts, ik_options)
+    got, want = _both(ur5, targets, q_first, k, separation, library, restarts, ik_options)
     assert len(got[0]) > 24
     for g, w in zip(got, want, strict=True):
         assert g.dtype == w.dtype

@@ -586,18 +586,16 @@ class BroadPhase:
             rows = np.flatnonzero(open_[k] & ~decided) if first else np.flatnonzero(open_[k])
             if rows.size == 0:
                 continue
-            box = boxes.get(k)
-            if box is not None:
-                joint, *limits = box
-                status = compiled.hull_vs_box(tfs[joint], rows, *limits)
-                hit[k, rows[status == kernels.COLLIDES]] = True
-                rows = rows[status == kernels.UNDECIDED]
-            cyl = cylinders.get(k)
-            if cyl is not None:
-                joint, *limits = cyl
-                status = compiled.hull_vs_cylinder(tfs[joint], rows, *limits)
-                hit[k, rows[status == kernels.COLLIDES]] = True
-                rows = rows[status == kernels.UNDECIDED]
+            for level, pools in (
+                (compiled.hull_vs_box, boxes),
+                (compiled.hull_vs_cylinder, cylinders),
+            ):
+                shape = pools.get(k)
+                if shape is not None:
+                    joint, *limits = shape
+                    status = level(tfs[joint], rows, *limits)
+                    hit[k, rows[status == kernels.COLLIDES]] = True
+                    rows = rows[status == kernels.UNDECIDED]
             own_box = screen.self_boxes.get(k)
             if own_box is not None:
                 # in the frames of the box's joint; the limits as for a world box

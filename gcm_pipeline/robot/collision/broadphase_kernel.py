@@ -322,6 +322,18 @@ def _enclosing_corners(verts: Any) -> tuple[Any, Any]:
     return corners, 0.5 * (lo + hi)
 
 
+@njit(cache=True, inline="always")
+def _in_shape_frame(inv: Any, tf: Any, rot: Any, off: Any) -> None:
+    """``rot`` (3, 3), ``off`` (3,): the joint frame ``tf`` (3, 4) in a shape's, ``inv @ tf``."""
+    for a in range(3):
+        for b in range(4):
+            v = inv[a, 0] * tf[0, b] + inv[a, 1] * tf[1, b] + inv[a, 2] * tf[2, b]
+            if b < 3:
+                rot[a, b] = v
+            else:
+                off[a] = v + inv[a, 3]
+
+
 @njit(types.int8[::1](F3, I1, F2, F2, F1, F1), cache=True)
 def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
@@ -357,14 +369,7 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
             mid[a] += verts[a, v] / nv
     corners, centre = _enclosing_corners(verts)
     for r in range(m):
-        tf = tfs[rows[r]]
-        for a in range(3):
-            for b in range(4):
-                v = inv[a, 0] * tf[0, b] + inv[a, 1] * tf[1, b] + inv[a, 2] * tf[2, b]
-                if b < 3:
-                    rot[a, b] = v
-                else:
-                    off[a] = v + inv[a, 3]
+        _in_shape_frame(inv, tfs[rows[r]], rot, off)
         # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
         if nv > corners.shape[1] and _beyond_nearest_face(rot, off, corners, centre, beyond):
             out[r] = 0
@@ -498,18 +503,6 @@ def edges_inside(tfs, rows, ends_a, ends_b, shape, depth):
                 out[r] = True
                 break
     return out
-
-
-@njit(cache=True, inline="always")
-def _in_shape_frame(inv: Any, tf: Any, rot: Any, off: Any) -> None:
-    """``rot`` (3, 3), ``off`` (3,): the joint frame ``tf`` (3, 4) in a shape's, ``inv @ tf``."""
-    for a in range(3):
-        for b in range(4):
-            v = inv[a, 0] * tf[0, b] + inv[a, 1] * tf[1, b] + inv[a, 2] * tf[2, b]
-            if b < 3:
-                rot[a, b] = v
-            else:
-                off[a] = v + inv[a, 3]
 
 
 @njit(types.int8[::1](F3, I1, F2, F2, F1), cache=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 # (joint, parent link, child link, origin xyz, origin rpy, axis): the UR5 of example-robot-data
 UR5_JOINTS = [
@@ -105,3 +106,29 @@ def write_arm(folder: Path, spec_extra: str = "", *, urdf_name: str = "arm.urdf"
     spec = folder / "spec.yaml"
     spec.write_text(f"name: arm\nmodel: {{urdf: {urdf_name}}}\ngrasp_frame: tool0\n" + spec_extra)
     return spec
+
+
+def bottle_checker(name: str, folder: Path) -> Any:
+    """The collision checker of the bottle scene for ``panda``, ``ur5_robotiq`` or ``user_arm``.
+
+    ``user_arm``: :func:`write_arm` with :func:`write_concave_forearm` as its forearm's
+    mesh, written in ``folder``.
+    """
+    from gcm_pipeline import pipeline
+
+    cfg = _bottle_config(name, folder)
+    return pipeline.make_checker(pipeline.robot_from_config(cfg), cfg.environment, cfg.object)
+
+
+def _bottle_config(name: str, folder: Path) -> Any:
+    from helpers import CONFIGS
+
+    from gcm_pipeline.config import load_config
+
+    if name == "panda":
+        return load_config(CONFIGS / "bottle_side.yaml")
+    if name == "ur5_robotiq":
+        return load_config(CONFIGS / "bottle_side_ur5.yaml")
+    write_concave_forearm(folder / "meshes" / "forearm.stl")
+    spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
+    return load_config(CONFIGS / "bottle_side.yaml", [f"robot.spec={spec}"])

@@ -23,12 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import ROOT
-from urdfs import write_arm, write_concave_forearm
+from urdfs import bottle_checker
 
-from gcm_pipeline import pipeline as P
-from gcm_pipeline.config import load_config
-from gcm_pipeline.pipeline import make_checker
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision import broadphase
 from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, INSIDE_DEPTH, stacked
@@ -42,17 +38,7 @@ _ROBOTS = ("panda", "ur5_robotiq", "user_arm")
 
 
 def _checker(name, tmp_path_factory):
-    if name == "panda":
-        cfg = load_config(ROOT / "configs" / "bottle_side.yaml")
-    elif name == "ur5_robotiq":
-        cfg = load_config(ROOT / "configs" / "bottle_side_ur5.yaml")
-    else:
-        folder = tmp_path_factory.mktemp("arm")
-        write_concave_forearm(folder / "meshes" / "forearm.stl")
-        spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
-        cfg = load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
-    robot = P.robot_from_config(cfg)
-    return make_checker(robot, cfg.environment, cfg.object)
+    return bottle_checker(name, tmp_path_factory.mktemp("arm"))
 
 
 def _around_the_bottle(robot, n, seed):

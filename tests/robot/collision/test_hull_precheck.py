@@ -20,7 +20,7 @@ import pytest
 import trimesh
 from helpers import ROOT
 from scipy.spatial import ConvexHull
-from urdfs import write_arm, write_concave_forearm
+from urdfs import bottle_checker, write_arm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -37,17 +37,7 @@ _ROBOTS = ("panda", "ur5_robotiq", "user_arm")
 
 
 def _checker(name, tmp_path_factory):
-    if name == "panda":
-        cfg = load_config(ROOT / "configs" / "bottle_side.yaml")
-    elif name == "ur5_robotiq":
-        cfg = load_config(ROOT / "configs" / "bottle_side_ur5.yaml")
-    else:
-        folder = tmp_path_factory.mktemp("arm")
-        write_concave_forearm(folder / "meshes" / "forearm.stl")
-        spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
-        cfg = load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
-    robot = P.robot_from_config(cfg)
-    return make_checker(robot, cfg.environment, cfg.object)
+    return bottle_checker(name, tmp_path_factory.mktemp("arm"))
 
 
 def _without_precheck(checker, q, mode="grasp", carried=None):

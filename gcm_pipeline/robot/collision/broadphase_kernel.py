@@ -151,11 +151,86 @@ def _level1(
             _world_level1(a, m, shapes[w], lim, near[k])
 
 
+#: Level 2 tests every configuration of a chunk for a pair (a loop LLVM vectorises)
+#: when level 1 left at least one in this many open there; else only the open ones,
+#: each up to its first test within reach.
+DENSE = 4
+
+
 @njit(cache=True, inline="always")
-def _place_spheres(tf: Any, start: Any, g: int, sphere_centre: Any, sphere: Any) -> None:
-    """Geometry g's cover spheres ``start[g] .. start[g + 1] - 1``, placed by its frame ``tf``."""
-    for e in range(start[g], start[g + 1]):
-        _place(tf, sphere_centre[e], sphere[e])
+def _place_cover(
+    tfs: Any, i0: int, m: int, j: int, e0: int, e1: int, centre: Any, sphere: Any
+) -> None:
+    """``sphere[e, :, i]`` (S, 3, m): cover spheres ``e0 .. e1 - 1`` of joint j placed.
+
+    In configuration ``i0 + i``; the arithmetic of :func:`_place_balls`.
+    """
+    for e in range(e0, e1):
+        c0, c1, c2 = centre[e, 0], centre[e, 1], centre[e, 2]
+        for r in range(3):
+            for i in range(m):
+                tf = tfs[j, i0 + i]
+                sphere[e, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
+
+
+@njit(cache=True, inline="always")
+def _level2_open(
+    m: int, near: Any, tests: Any, w: int, pair_tests: Any, shapes: Any, sphere: Any, out: Any
+) -> None:
+    """``out[i]`` (m,): a pair's level 2 in the configurations level 1 left open (``near``).
+
+    Configuration by configuration, its tests ``tests`` until the first within
+    reach. ``pair_tests`` is ``(sphere_a, sphere_b, limit2)``, ``w`` the pair's
+    world shape (-1: a self pair), ``sphere`` the placed covers (S, 3, CHUNK).
+    """
+    sphere_a, sphere_b, limit2 = pair_tests
+    for i in range(m):
+        out[i] = False
+        if not near[i]:
+            continue
+        for e in tests:
+            a = sphere[sphere_a[e]]
+            if w < 0:
+                b = sphere[sphere_b[e]]
+                d0 = a[0, i] - b[0, i]
+                d1 = a[1, i] - b[1, i]
+                d2 = a[2, i] - b[2, i]
+                hit = d0 * d0 + d1 * d1 + d2 * d2 <= limit2[e]
+            else:
+                bound = _point_bound(a[0, i], a[1, i], a[2, i], _shape_numbers(shapes[w]))
+                hit = bound <= limit2[e]
+            if hit:
+                out[i] = True
+                break
+
+
+@njit(cache=True, inline="always")
+def _level2_all(
+    m: int, near: Any, tests: Any, w: int, pair_tests: Any, shapes: Any, sphere: Any, out: Any
+) -> None:
+    """:func:`_level2_open` by every test in every configuration (vectorised), then ``near``.
+
+    The same arithmetic per test, so the same answers; ``out`` (CHUNK,) is
+    used as scratch.
+    """
+    sphere_a, sphere_b, limit2 = pair_tests
+    out[:m] = False
+    for e in tests:
+        a = sphere[sphere_a[e]]
+        lim = limit2[e]
+        if w < 0:
+            b = sphere[sphere_b[e]]
+            for i in range(m):
+                d0 = a[0, i] - b[0, i]
+                d1 = a[1, i] - b[1, i]
+                d2 = a[2, i] - b[2, i]
+                out[i] |= d0 * d0 + d1 * d1 + d2 * d2 <= lim
+        else:
+            shape = _shape_numbers(shapes[w])
+            for i in range(m):
+                out[i] |= _point_bound(a[0, i], a[1, i], a[2, i], shape) <= lim
+    for i in range(m):
+        out[i] = out[i] and near[i]
 
 
 @njit(
@@ -191,10 +266,13 @@ def broad_phase(
     hold the radii, the margin and the slack.
 
     Level 1 runs over :data:`CHUNK` configurations at a time, pair by pair
-    (vectorised, no branch per pair); level 2 configuration by configuration,
-    for the pairs level 1 left open, placing a geometry's cover spheres the
-    first time a pair needs them in that configuration. The same arithmetic as
-    one configuration at a time, so the same answers.
+    (vectorised, no branch per pair); level 2
+    chunk by chunk too: the cover spheres of the geometries of the pairs level 1
+    left open are placed for the whole chunk, then pair by pair, every test in
+    every configuration (vectorised) where level 1 left at least one in
+    :data:`DENSE` open, else the open configurations one by one, each up to its
+    first test within reach. The same arithmetic as one configuration at a
+    time, so the same answers.
 
     Args:
         tfs: Joint frames (J, N, 3, 4).
@@ -224,35 +302,38 @@ def broad_phase(
     open_ = np.zeros((npairs, n), dtype=np.bool_)
     ball = np.empty((ngeoms, 3, CHUNK))
     near = np.empty((npairs, CHUNK), dtype=np.bool_)
-    sphere = np.empty((sphere_centre.shape[0], 3))
-    placed = np.full(ngeoms, -1)  # the configuration whose spheres of geometry g are placed
+    sphere = np.empty((sphere_centre.shape[0], 3, CHUNK))
+    count = np.empty(npairs, dtype=np.intp)
+    need = np.empty(ngeoms, dtype=np.bool_)
+    hit = np.empty(CHUNK, dtype=np.bool_)
+    pair_tests = (sphere_a, sphere_b, limit2)
     for i0 in range(0, n, CHUNK):
         m = min(CHUNK, n - i0)
         # 1. one bounding sphere per geometry
         _place_balls(tfs, i0, m, ball_joint, ball_centre, ball)
         _level1(ball, m, geom_a, geom_b, world, limit1, shapes, near)
-        # 2. the sphere covers
-        for i in range(i0, i0 + m):
-            for k in range(npairs):
-                if not near[k, i - i0]:
-                    continue
-                w = world[k]
-                g = geom_a[k]
-                if placed[g] != i:
-                    _place_spheres(tfs[ball_joint[g], i], sphere_start, g, sphere_centre, sphere)
-                    placed[g] = i
-                g = geom_b[k]
-                if w < 0 and placed[g] != i:
-                    _place_spheres(tfs[ball_joint[g], i], sphere_start, g, sphere_centre, sphere)
-                    placed[g] = i
-                for e in range(first_test[k], first_test[k] + n_tests[k]):
-                    if w < 0:
-                        hit = _sq_gap(sphere[sphere_a[e]], sphere[sphere_b[e]]) <= limit2[e]
-                    else:
-                        hit = _lower(sphere[sphere_a[e]], shapes[w]) <= limit2[e]
-                    if hit:
-                        open_[k, i] = True
-                        break
+        # 2. the sphere covers, of the geometries of the pairs left open
+        need[:] = False
+        for k in range(npairs):
+            count[k] = 0
+            for i in range(m):
+                count[k] += near[k, i]
+            if count[k] > 0:
+                need[geom_a[k]] = True
+                if world[k] < 0:
+                    need[geom_b[k]] = True
+        for g in range(ngeoms):
+            if need[g]:
+                e0, e1 = sphere_start[g], sphere_start[g + 1]
+                _place_cover(tfs, i0, m, ball_joint[g], e0, e1, sphere_centre, sphere)
+        for k in range(npairs):
+            tests = range(first_test[k], first_test[k] + n_tests[k])
+            if count[k] * DENSE >= m:
+                _level2_all(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
+                open_[k, i0 : i0 + m] = hit[:m]
+            elif count[k] > 0:
+                _level2_open(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
+                open_[k, i0 : i0 + m] = hit[:m]
     return open_
 
 

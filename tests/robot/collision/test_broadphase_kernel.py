@@ -387,3 +387,72 @@ def test_level_3_of_a_robot_box_agrees_with_coal_and_the_numpy_level(compiled):
         if pair.modes & 1:
             ref |= checker._run(checker._pair_pool[c], qs)
     np.testing.assert_array_equal(checker.check(qs) != "", ref)
+
+
+def _broad_phase_one_by_one(tfs, broad):
+    """Levels 1 and 2 (P, N) configuration by configuration, pair by pair, test by test.
+
+    Python floats: the kernel's arithmetic in its order (each placed point as
+    ``_place``, the bounds as ``_lower``), so the answers must be equal.
+    """
+    (ball_joint, ball_centre, sphere_centre, _, geom_a, geom_b, world, limit1,
+     first_test, n_tests, sphere_a, sphere_b, limit2, shapes) = broad  # fmt: skip
+    from gcm_pipeline.robot.collision import broadphase_kernel as bk  # imports Numba
+
+    place, lower = bk._place.py_func, bk._lower.py_func
+    out = np.zeros((geom_a.size, tfs.shape[1]), dtype=bool)
+    for i in range(tfs.shape[1]):
+        ball = np.empty((ball_joint.size, 3))
+        for g, j in enumerate(ball_joint):
+            place(tfs[j, i], ball_centre[g], ball[g])
+        sphere = np.empty((sphere_centre.shape[0], 3))
+        for e in range(sphere.shape[0]):
+            # a cover sphere's joint: its geometry's (the bounding sphere's)
+            g = np.searchsorted(broad[3], e, side="right") - 1
+            place(tfs[ball_joint[g], i], sphere_centre[e], sphere[e])
+        for k in range(geom_a.size):
+            w = world[k]
+            if w < 0:
+                d = ball[geom_a[k]] - ball[geom_b[k]]
+                near = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= limit1[k]
+            else:
+                near = lower(ball[geom_a[k]], shapes[w]) <= limit1[k]
+            for e in range(first_test[k], first_test[k] + n_tests[k]) if near else ():
+                a = sphere[sphere_a[e]]
+                if w < 0:
+                    d = a - sphere[sphere_b[e]]
+                    bound = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                else:
+                    bound = lower(a, shapes[w])
+                if bound <= limit2[e]:
+                    out[k, i] = True
+                    break
+    return out
+
+
+def test_levels_1_and_2_equal_one_configuration_at_a_time(compiled, bottle):
+    """The chunked kernel's answers are those of each (pair, configuration) on its own.
+
+    Both ways of level 2 are exercised: every test over a chunk where level 1
+    left many configurations open, the open ones alone where it left few.
+    """
+    from gcm_pipeline.robot.collision import broadphase_kernel as bk
+
+    checker, qs, _ = bottle
+    screen = checker._screens[1]
+    frames = checker._frames.compute(qs[:300])
+    broad, _, _, _ = checker._compiled_screen(screen)
+    tfs = stacked(frames.transforms)
+    open_ = compiled.broad_phase(tfs, *broad)
+    want = _broad_phase_one_by_one(tfs, broad)
+    np.testing.assert_array_equal(open_, want)
+    assert 0 < want.sum() < want.size
+    # level 1's open counts per (pair, chunk) (one test, always within reach):
+    # both of level 2's ways ran
+    ones = (np.ones_like(broad[9]),)
+    inf = np.full_like(broad[12], np.inf)
+    level1 = compiled.broad_phase(tfs, *broad[:9], *ones, broad[10], broad[11], inf, broad[13])
+    counts = [level1[:, i : i + bk.CHUNK].sum(axis=1) for i in range(0, 300, bk.CHUNK)]
+    m = np.minimum(bk.CHUNK, 300 - np.arange(0, 300, bk.CHUNK))[:, None]
+    counts = np.array(counts)
+    assert (counts * bk.DENSE >= m).any() and ((counts > 0) & (counts * bk.DENSE < m)).any()

@@ -63,6 +63,15 @@ def _sq_gap(a: Any, b: Any) -> float:
     return d0 * d0 + d1 * d1 + d2 * d2
 
 
+@njit(cache=True, inline="always")
+def _column_gap(a: Any, b: Any, i: int) -> float:
+    """Squared distance of the points ``a[:, i]`` and ``b[:, i]`` (columns of (3, m) arrays)."""
+    d0 = a[0, i] - b[0, i]
+    d1 = a[1, i] - b[1, i]
+    d2 = a[2, i] - b[2, i]
+    return d0 * d0 + d1 * d1 + d2 * d2
+
+
 #: Configurations whose level 1 the broad phase computes together, one pair at a time
 #: (a loop LLVM vectorises); their bounding spheres (3 coordinates each) stay in the
 #: L1 cache.
@@ -70,15 +79,20 @@ CHUNK = 64
 
 
 @njit(cache=True, inline="always")
+def _place_point(tfs: Any, i0: int, m: int, j: int, centre: Any, k: int, out: Any) -> None:
+    """``out[k, :, i]`` (3, m): point ``centre[k]`` of joint j's frame in configuration i0 + i."""
+    c0, c1, c2 = centre[k, 0], centre[k, 1], centre[k, 2]
+    for r in range(3):
+        for i in range(m):
+            tf = tfs[j, i0 + i]
+            out[k, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
+
+
+@njit(cache=True, inline="always")
 def _place_balls(tfs: Any, i0: int, m: int, ball_joint: Any, ball_centre: Any, ball: Any) -> None:
     """``ball[g, :, i]`` (G, 3, m): bounding sphere g's centre in configuration ``i0 + i``."""
     for g in range(ball_joint.shape[0]):
-        j = ball_joint[g]
-        c0, c1, c2 = ball_centre[g, 0], ball_centre[g, 1], ball_centre[g, 2]
-        for r in range(3):
-            for i in range(m):
-                tf = tfs[j, i0 + i]
-                ball[g, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
+        _place_point(tfs, i0, m, ball_joint[g], ball_centre, g, ball)
 
 
 @njit(cache=True, inline="always")
@@ -143,10 +157,7 @@ def _level1(
         if w < 0:
             b = ball[geom_b[k]]
             for i in range(m):
-                d0 = a[0, i] - b[0, i]
-                d1 = a[1, i] - b[1, i]
-                d2 = a[2, i] - b[2, i]
-                near[k, i] = d0 * d0 + d1 * d1 + d2 * d2 <= lim
+                near[k, i] = _column_gap(a, b, i) <= lim
         else:
             _world_level1(a, m, shapes[w], lim, near[k])
 
@@ -166,11 +177,7 @@ def _place_cover(
     In configuration ``i0 + i``; the arithmetic of :func:`_place_balls`.
     """
     for e in range(e0, e1):
-        c0, c1, c2 = centre[e, 0], centre[e, 1], centre[e, 2]
-        for r in range(3):
-            for i in range(m):
-                tf = tfs[j, i0 + i]
-                sphere[e, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
+        _place_point(tfs, i0, m, j, centre, e, sphere)
 
 
 @njit(cache=True, inline="always")
@@ -191,11 +198,7 @@ def _level2_open(
         for e in tests:
             a = sphere[sphere_a[e]]
             if w < 0:
-                b = sphere[sphere_b[e]]
-                d0 = a[0, i] - b[0, i]
-                d1 = a[1, i] - b[1, i]
-                d2 = a[2, i] - b[2, i]
-                hit = d0 * d0 + d1 * d1 + d2 * d2 <= limit2[e]
+                hit = _column_gap(a, sphere[sphere_b[e]], i) <= limit2[e]
             else:
                 bound = _point_bound(a[0, i], a[1, i], a[2, i], _shape_numbers(shapes[w]))
                 hit = bound <= limit2[e]
@@ -221,10 +224,7 @@ def _level2_all(
         if w < 0:
             b = sphere[sphere_b[e]]
             for i in range(m):
-                d0 = a[0, i] - b[0, i]
-                d1 = a[1, i] - b[1, i]
-                d2 = a[2, i] - b[2, i]
-                out[i] |= d0 * d0 + d1 * d1 + d2 * d2 <= lim
+                out[i] |= _column_gap(a, b, i) <= lim
         else:
             shape = _shape_numbers(shapes[w])
             for i in range(m):

@@ -148,8 +148,8 @@ class ObjectConfig(_ShapeSection):
     Cylinders stand on their base with the axis along the frame's z (the base
     at z = 0 of the frame); boxes and spheres are centred on the frame origin
     (standing on the table: z at half their height); a plane lies in the
-    frame's xy plane. An object reaching more than 1 mm into the table is
-    warned about.
+    frame's xy plane. An object reaching more than 1 mm into the table, or
+    lying under it, is warned about.
     """
 
     shape: Literal["cylinder", "box", "sphere", "plane", "mesh"]

@@ -16,7 +16,13 @@ from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.geometry.shapes import shape_geometry
 from gcm_pipeline.outputs import live
 from gcm_pipeline.pipeline.clouds import scene_clouds
-from gcm_pipeline.robot.collision import WorldShape, depth_into, object_shape, table_shape
+from gcm_pipeline.robot.collision import (
+    WorldShape,
+    depth_below,
+    depth_into,
+    object_shape,
+    table_shape,
+)
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.sources.file_object import warn_if_open
 from gcm_pipeline.sources.grippers import GripperSpec, is_gripper_path
@@ -26,6 +32,8 @@ log = logging.getLogger(__name__)
 #: An object reaching deeper than this into the table is warned about [m] (one standing
 #: on it touches it: depth 0; a ``plane`` object, 1 mm thick, lying on it: 0.5 mm).
 SUNK_DEPTH = 1e-3
+#: How far below the table's top an object still counts as under the table [m].
+_COLUMN_DEPTH = 1e3
 #: Where each object shape has its pose (what a sunk object's warning reminds of).
 _PLACED = {
     "box": "a box is centred on its pose",
@@ -119,29 +127,42 @@ def _check_gripper_meshes(gripper: GripperSpec, key: str) -> None:
 
 @takes_config
 def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
-    """Warn about the object reaching more than ``SUNK_DEPTH`` into the table.
+    """Warn about the object reaching more than ``SUNK_DEPTH`` into the table, or under it.
 
     A box or sphere placed like the bottle (``xyz: [x, y, 0]``) sinks half into
     the table: the world is as written, but most of its grasps and moves then
     collide with the table, which a user seldom means. (With ``objects``, each
     object is the run's object once: :func:`~gcm_pipeline.pipeline.objects.target_config`.)
     ``placed``: the object's shape in the world if already built (a mesh is not
-    read again).
+    read again). An object wholly under the slab (a sign slip in its z) is
+    warned about too, with its lowest point's depth under the top.
     """
     table, obj = cfg.environment.table, cfg.object
     if table is None or obj is None:
         return
-    top = table_shape(table.size, table.center_xy, table.height, np.eye(4))
-    depth = depth_into(_object_in_world(obj) if placed is None else placed, top)
+    shape = _object_in_world(obj) if placed is None else placed
+    # over or under the table's top face (its column, from the top far down)? then the
+    # depth of its lowest point under the top: what to raise it by, whatever the slab
+    column = (table.size[0], table.size[1], _COLUMN_DEPTH)
+    if depth_into(shape, table_shape(column, table.center_xy, table.height, np.eye(4))) <= 0:
+        return
+    depth = depth_below(shape, table.height)
     if depth > SUNK_DEPTH:
+        slab = table_shape(table.size, table.center_xy, table.height, np.eye(4))
+        under = depth_into(shape, slab) <= 0  # wholly under the slab
         name = getattr(obj, "name", None)
         log.warning(
-            "%s reaches %.1f mm into the table (its top at z = %g; %s): grasps near the "
-            "table will collide with it; to stand it on the table, raise its pose's z by %.4g",
+            "%s %s (its top at z = %g; %s): %s; to stand it on the table, raise its pose's "
+            "z by %.4g",
             "the object" if name is None else f"object {name!r}",
-            1e3 * depth,
+            f"lies under the table, {1e3 * depth:.1f} mm below its top"
+            if under
+            else f"reaches {1e3 * depth:.1f} mm into the table",
             table.height,
             _PLACED.get(obj.shape, obj.shape),
+            "the arm must reach through the table to grasp it"
+            if under
+            else "grasps near the table will collide with it",
             depth,
         )
 

@@ -57,19 +57,31 @@ BOX = ROOT / "configs" / "box.yaml"  # a 6 x 6 x 15 cm box standing on the table
         (["object.pose.xyz=[0.45,-0.15,0.05]"], 25.0),
         (["object.pose.xyz=[0.45,-0.15,0]", "environment.table=null"], None),  # no table
         (["object.pose.xyz=[3.0,-0.15,0]"], None),  # beside the 2 m table
+        # wholly under the slab (z's sign slipped): how far its lowest point is below the top
+        (["object.pose.xyz=[0.45,-0.15,-0.5]"], -575.0),
+        (["object.pose.xyz=[0.45,-0.15,-0.5]", "environment.table.size=[2,2,0.5]"], 575.0),
+        (["object.pose.xyz=[3.0,-0.15,-0.5]"], None),  # beside the table, below its top
     ],
 )
 def test_an_object_sunk_into_the_table_is_warned_about(cli, overrides, depth_mm):
-    """`gcm validate` (and `gcm run`'s preflight) says how deep, why, and how to lift it."""
+    """`gcm validate` (and `gcm run`'s preflight) says how deep, why, and how to lift it.
+
+    A negative ``depth_mm``: the object is wholly under the table's slab.
+    """
     args = [a for o in overrides for a in ("--set", o)]
     code, _, err = cli("validate", BOX, *args)
     assert code == 0, err
-    sunk = [line for line in err.splitlines() if "into the table" in line]
+    sunk = [line for line in err.splitlines() if "the table" in line and "raise its" in line]
     if depth_mm is None:
         assert sunk == []
     else:
         assert len(sunk) == 1
-        assert f"reaches {depth_mm:.1f} mm into the table" in sunk[0]
+        if depth_mm < 0:
+            depth_mm = -depth_mm
+            assert f"lies under the table, {depth_mm:.1f} mm below its top" in sunk[0]
+            assert "the arm must reach through the table" in sunk[0]
+        else:
+            assert f"reaches {depth_mm:.1f} mm into the table" in sunk[0]
         assert "a box is centred on its pose" in sunk[0]
         assert f"raise its pose's z by {depth_mm / 1e3:.4g}" in sunk[0]
 
@@ -78,7 +90,7 @@ def test_depth_into_the_table_of_each_shape():
     """coal's penetration depth for primitives, the lowest vertex for a mesh."""
     import numpy as np
 
-    from gcm_pipeline.robot.collision import depth_into, object_shape, table_shape
+    from gcm_pipeline.robot.collision import depth_below, depth_into, object_shape, table_shape
 
     table = table_shape((2.0, 2.0, 0.05), (0.0, 0.0), 0.1, np.eye(4))  # top at z = 0.1
 
@@ -108,6 +120,19 @@ def test_depth_into_the_table_of_each_shape():
     for z, want in ((0.1 - lowest, 0.0), (0.1 - lowest - 0.03, 0.03), (0.5, 0.0)):
         shape = object_shape("mesh", None, at(z), np.eye(4), mesh=mesh, scale=0.0002682458)
         assert depth_into(shape, table) == pytest.approx(want, abs=1e-6), z
+        # under the top, the slab or not: the lowest vertex
+        below = max(0.0, 0.1 - lowest - z)
+        assert depth_below(shape, 0.1) == pytest.approx(below, abs=1e-9), z
+    # the lowest point under a plane, in the slab or far below it
+    for shape, pose, want in [
+        ("box", at(-2.0), 2.25),  # a 0.3 m box: lowest at -2.15
+        ("box", at(-2.0, np.pi / 2), 2.2),  # turned: the 0.2 m side vertical
+        ("sphere", at(0.08), 0.06),
+        ("cylinder", at(-1.0), 1.1),  # its base at its pose
+        ("cylinder", at(0.2), 0.0),  # above
+    ]:
+        got = depth_below(object_shape(shape, Dims, pose, np.eye(4)), 0.1)
+        assert got == pytest.approx(want, abs=1e-9), (shape, pose[2, 3], got)
 
 
 def test_preflight_takes_a_plain_mapping_like_every_stage(caplog):

@@ -30,6 +30,7 @@ from gcm_pipeline.robot.collision.spheres import SphereCover, sphere_cover
 from gcm_pipeline.robot.collision.world import (
     WorldShape,
     as_transform,
+    depth_below,
     depth_into,
     object_shape,
     obstacle_shape,
@@ -46,6 +47,7 @@ __all__ = [
     "SphereCover",
     "WorldShape",
     "as_transform",
+    "depth_below",
     "depth_into",
     "gripper_links",
     "object_shape",

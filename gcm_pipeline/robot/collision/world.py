@@ -199,6 +199,29 @@ def depth_into(shape: WorldShape, support: WorldShape) -> float:
     return max(0.0, float(top - (verts @ b[:3, 2]).min()))
 
 
+def depth_below(shape: WorldShape, height: float) -> float:
+    """How far [m] the lowest point of ``shape`` lies below the plane z = ``height`` (0: above).
+
+    Exact: coal's signed distance to the half-space under the plane for a primitive,
+    the lowest vertex for a mesh.
+    """
+    a = shape.placement
+    if isinstance(shape.geometry, coal.BVHModelBase):
+        verts = np.asarray(shape.geometry.vertices(), dtype=float).reshape(-1, 3)
+        return max(0.0, float(height - (verts @ a[2, :3] + a[2, 3]).min()))
+    req = coal.DistanceRequest()
+    req.enable_signed_distance = True
+    d = coal.distance(
+        shape.geometry,
+        coal.Transform3s(a[:3, :3], a[:3, 3]),
+        coal.Halfspace(np.array([0.0, 0.0, 1.0]), float(height)),
+        coal.Transform3s(),
+        req,
+        coal.DistanceResult(),
+    )
+    return max(0.0, float(-d))
+
+
 def erode_primitive(geometry: Any, distance: float) -> Any | None:
     """A coal primitive shrunk by ``distance`` [m] on every side (exact), or None.
 

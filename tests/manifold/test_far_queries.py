@@ -32,7 +32,7 @@ def _far(n: int, seed: int) -> np.ndarray:
 
 
 def _lattice_distance(corners: np.ndarray, queries: np.ndarray, s: int) -> np.ndarray:
-    """Distance from each query to the nearest point of an s-subdivided lattice of every triangle."""
+    """Distance from each query to the nearest point of every triangle's s-lattice."""
     lat = _cells(s)[1].reshape(-1, 3)
     t = np.repeat(np.arange(len(corners)), len(lat))
     feat = pose_features(blend(corners[t], np.tile(lat, (len(corners), 1))))

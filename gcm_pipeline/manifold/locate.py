@@ -1,7 +1,10 @@
 r"""Nearest points of the grasp manifold: :class:`TriangleLocator`, :func:`as_query_poses`.
 
 :class:`TriangleLocator` answers "which point of the manifold is nearest to
-this pose" for batches of queries, exactly up to the projection's tolerance.
+this pose" for batches of queries, exactly up to the projection's tolerance
+(a projection is a local minimum: far from the manifold, a metre or more, a
+triangle can hold several and the point found may be a little farther than
+the nearest; :mod:`gcm_pipeline.manifold.surface`).
 The manifold is its triangles plus its isolated points: candidates that no
 kept triangle uses are points of the manifold too (a query at one's exact
 pose finds it at distance 0).

@@ -350,12 +350,14 @@ class GraspManifold:
         # nearest reachable rows of every query (pose metric, both quaternion signs)
         k = min(int(neighbours), rows_ok.size)
         near = np.zeros((m, 0), dtype=np.int64)
+        d_near = np.full(m, np.inf)  # distance to the nearest reachable row
         if k > 0:
             feat = pose_features(self.grasps["dq"][rows_ok], self.orientation_scale)
             flip = feat.copy()
             flip[:, 3:] *= -1.0
             tree = cKDTree(np.concatenate((feat, flip)))
-            _, idx = tree.query(pose_features(query, self.orientation_scale), k=2 * k)
+            dist, idx = tree.query(pose_features(query, self.orientation_scale), k=2 * k)
+            d_near = np.asarray(dist).reshape(m, 2 * k)[:, 0]
             idx = np.asarray(idx).reshape(m, 2 * k) % rows_ok.size
             near = first_unique(idx, k)
             near = rows_ok[near]
@@ -375,7 +377,9 @@ class GraspManifold:
             loc.weights[ok],
             loc.vertex[ok],
         )
-        todo = np.flatnonzero(~ok)
+        # a projection is a local minimum: where a reachable row is nearer than
+        # the located point (far from the manifold), step 2 offers the rows too
+        todo = np.flatnonzero(~ok | (loc.distance > d_near + 1e-12))
         if todo.size and k > 0:
             search_near_rows(
                 self, query, todo, near[todo], q_table, check, bisections, answer.offer

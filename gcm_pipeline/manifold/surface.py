@@ -17,9 +17,17 @@ barycentric weights: the blend surface is linearised (DLB: analytic Jacobian
 of the normalised blend; DIB: finite differences) and the Gauss-Newton model
 is minimised exactly over the triangle (interior, else the best point of the
 three edges). It starts from the query's foot point in the triangle's plane.
+A step is halved until the point it reaches is nearer than the current one
+(far from a triangle the Gauss-Newton model overshoots, to a corner farther
+than the start), so a projection never ends farther than where it started;
+a triangle that the query's quaternion may meet with either sign is projected
+once with each sign held. The result is a local minimum: far from the
+manifold a triangle can hold several.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -227,7 +235,7 @@ def project_onto_triangles(
     *,
     method: str = "dlb",
     orientation_scale: float = ORIENTATION_SCALE,
-    iterations: int = 8,
+    iterations: int = 32,
     tolerance: float = 1e-8,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nearest point of each blended triangle to a query pose (local minimum, batched).
@@ -268,30 +276,144 @@ def project_onto_triangles(
         def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
             return _dib_model(corners[rows], uv)
 
-    uv = np.array(uv0, dtype=np.float64)
-    p_q = dq_translation(queries)
-    r_q = queries[:, :4]
-    scale = 2.0 * orientation_scale
+    # a pair whose surface may meet the query's quaternion with either sign (a
+    # corner's dot product with it is not of the others' sign) has a kink where
+    # the nearer sign switches, and a local minimum on each side of it: it is
+    # projected once with each sign held (the nearer end is kept)
+    dots = np.einsum("pkc,pc->pk", _signed_to_first(corners[:, :, :4]), queries[:, :4])
+    two = np.flatnonzero((dots.min(axis=1) <= 0.0) & (dots.max(axis=1) >= 0.0))
+    pair = np.concatenate((np.arange(len(queries)), two))
+    held = np.zeros(len(pair))
+    held[len(queries) :] = -1.0
+    held[two] = 1.0
+    uv = np.array(uv0, dtype=np.float64)[pair]
+    _descend(
+        model,
+        dq_translation(queries)[pair],
+        queries[pair, :4],
+        pair,
+        uv,
+        held,
+        2.0 * orientation_scale,
+        iterations,
+        tolerance,
+    )
+    w = np.column_stack((1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]))
+    w = np.clip(w, 0.0, 1.0)
+    w /= w.sum(axis=1, keepdims=True)
+    w = _snap(w)
+    d = pose_distance(blend(corners[pair], w, method), queries[pair], orientation_scale)
+    n = len(queries)
+    other = d[n:] < d[two]
+    w_out, d_out = w[:n], d[:n]
+    w_out[two[other]], d_out[two[other]] = w[n:][other], d[n:][other]
+    return w_out, d_out
+
+
+def _signed_to_first(r: np.ndarray) -> np.ndarray:
+    """Rotations (P, 3, 4) of a triangle's corners, each signed to agree with the first."""
+    return r * np.where(np.einsum("pkc,pc->pk", r, r[:, 0]) < 0, -1.0, 1.0)[:, :, None]
+
+
+def _descend(
+    model: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, ...]],
+    p_q: np.ndarray,
+    r_q: np.ndarray,
+    pair: np.ndarray,
+    uv: np.ndarray,
+    held: np.ndarray,
+    scale: float,
+    iterations: int,
+    tolerance: float,
+) -> None:
+    """Gauss-Newton steps on ``uv`` (K, 2) in place, each taken only where it descends.
+
+    Row k projects query ``(p_q[k], r_q[k])`` onto the surface of pair
+    ``pair[k]`` (``model``'s rows); ``held[k]`` is the sign of the query's
+    quaternion held throughout (0: the nearer one at each step).
+    """
+
+    def signs(k: np.ndarray, r: np.ndarray) -> np.ndarray:
+        free = np.where(np.einsum("pc,pc->p", r, r_q[k]) < 0, -1.0, 1.0)
+        return np.where(held[k] == 0.0, free, held[k])
+
+    def cost(k: np.ndarray, p: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Squared pose distance of surface points (p, r) to the queries ``k``."""
+        dr = r - signs(k, r)[:, None] * r_q[k]
+        return np.sum((p - p_q[k]) ** 2, axis=1) + scale**2 * np.sum(dr**2, axis=1)
+
     active = np.arange(len(uv))
+    at = model(pair, uv)  # the surface at uv[active], with its Jacobians
     for _ in range(iterations):
         if not active.size:
             break
-        p, r, dp, dr = model(active, uv[active])
-        sign = np.where(np.einsum("pc,pc->p", r, r_q[active]) < 0, -1.0, 1.0)
+        p, r, dp, dr = at
+        sign = signs(active, r)
         res = np.concatenate((p - p_q[active], scale * (r - sign[:, None] * r_q[active])), axis=1)
         jac = np.concatenate((dp, scale * dr), axis=1)  # (P, 7, 2)
         h = np.einsum("pki,pkj->pij", jac, jac)
         g = np.einsum("pki,pk->pi", jac, res)
         new = _qp_triangle(uv[active], h, g)
-        moved = np.abs(new - uv[active]).max(axis=1)
+        new, at = _backtrack(model, cost, pair, active, uv[active], new, at, tolerance)
+        moved = np.abs(new - uv[active]).max(axis=1) > tolerance
         uv[active] = new
-        active = active[moved > tolerance]
-    w = np.column_stack((1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]))
-    w = np.clip(w, 0.0, 1.0)
-    w /= w.sum(axis=1, keepdims=True)
-    w = _snap(w)
-    pts = blend(corners, w, method)
-    return w, pose_distance(pts, queries, orientation_scale)
+        active = active[moved]
+        at = tuple(a[moved] for a in at)
+
+
+#: Halvings of a Gauss-Newton step that does not bring the surface nearer.
+_HALVINGS = 12
+
+
+def _backtrack(
+    model: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, ...]],
+    cost: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    pair: np.ndarray,
+    rows: np.ndarray,
+    uv: np.ndarray,
+    new: np.ndarray,
+    at: tuple[np.ndarray, ...],
+    tolerance: float,
+) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """The step ``uv -> new`` halved until the surface point is no farther than now.
+
+    ``at`` is the surface at ``uv`` (``model``'s four arrays); returns the
+    points reached and the surface there.
+
+    Far from a triangle its points are all about as far, and the Gauss-Newton
+    model (which leaves out the residual times the surface's curvature)
+    overshoots, to a corner farther than the start; a halved step along the
+    same direction stays inside the triangle (it is convex). A step that no
+    halving makes descend is not taken, so a projection never ends farther
+    than where it started.
+    """
+    now = cost(rows, at[0], at[1])
+    out = new.copy()
+    there = tuple(a.copy() for a in at)
+    t = np.ones(len(uv))
+    todo = np.arange(len(uv))
+    for _ in range(_HALVINGS + 1):
+        trial = model(pair[rows[todo]], out[todo])
+        for whole, part in zip(there, trial, strict=True):
+            whole[todo] = part
+        worse = cost(rows[todo], trial[0], trial[1]) > now[todo]
+        todo = todo[worse]
+        # a step already below the tolerance is not halved further (near the
+        # minimum its cost differs from the current one by rounding only)
+        t[todo] *= 0.5
+        step = t[todo, None] * (new[todo] - uv[todo])
+        tiny = np.abs(step).max(axis=1) <= tolerance
+        stay, todo = todo[tiny], todo[~tiny]
+        out[stay] = uv[stay]
+        for whole, part in zip(there, at, strict=True):
+            whole[stay] = part[stay]
+        if not todo.size:
+            return out, there
+        out[todo] = uv[todo] + step[~tiny]
+    out[todo] = uv[todo]
+    for whole, part in zip(there, at, strict=True):
+        whole[todo] = part[todo]
+    return out, there
 
 
 def _snap(w: np.ndarray, eps: float = 1e-12) -> np.ndarray:

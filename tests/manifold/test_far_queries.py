@@ -50,15 +50,16 @@ def corners() -> np.ndarray:
     return np.asarray(cand["dq"])[mesh.triangles]
 
 
-def test_a_projection_never_ends_farther_than_its_start(corners: np.ndarray) -> None:
+@pytest.mark.parametrize("method", ["dlb", "dib"])
+def test_a_projection_never_ends_farther_than_its_start(corners: np.ndarray, method: str) -> None:
     q = _far(300, 3)
     t = np.random.default_rng(4).integers(0, len(corners), len(q))
     uv0 = np.random.default_rng(5).dirichlet((1, 1, 1), len(q))[:, 1:]
     w0 = np.column_stack((1 - uv0.sum(axis=1), uv0))
-    start = pose_distance(blend(corners[t], w0), q)
-    w, d = project_onto_triangles(q, corners[t], uv0)
+    start = pose_distance(blend(corners[t], w0, method), q)
+    w, d = project_onto_triangles(q, corners[t], uv0, method=method)
     assert np.all(d <= start + 1e-12)
-    assert np.allclose(pose_distance(blend(corners[t], w), q), d, atol=1e-12)
+    assert np.allclose(pose_distance(blend(corners[t], w, method), q), d, atol=1e-12)
 
 
 def test_locate_far_from_the_manifold_matches_brute_force(corners: np.ndarray) -> None:

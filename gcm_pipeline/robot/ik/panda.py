@@ -218,6 +218,7 @@ class PandaAnalyticIK:
         lower: np.ndarray,
         upper: np.ndarray,
         near: tuple[np.ndarray, float] | None = None,
+        nearest_to: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every closed-form solution inside the joint limits, for each (target, :math:`q_7`).
 
@@ -235,6 +236,10 @@ class PandaAnalyticIK:
                 [rad] of ``reference[index]`` (N, 7) in every joint (exactly
                 those of all the solutions; the others are not computed past
                 the joint that leaves).
+            nearest_to: ``(pref, levers)``: only each target's solution nearest
+                ``pref[index]`` (N, 7) [rad] in the distance
+                ``sum(((q - pref[index]) * levers) ** 2)`` (7,) [m/rad] (the first
+                of ties in the order below); the compiled kernel keeps only those.
 
         Returns:
             ``(index, q, branch, column)``: target index (M,), configuration
@@ -255,6 +260,8 @@ class PandaAnalyticIK:
             and np.shape(pos) == (n, 3)
             and lower.shape == upper.shape == (7,)
             and (near is None or np.shape(near[0]) == (n, 7))
+            and (nearest_to is None or np.shape(nearest_to[0]) == (n, 7))
+            and (nearest_to is None or np.shape(nearest_to[1]) == (7,))
         )
         if compiled is not None and shapes_fit:
             r7 = rot @ self.tool_rotation.T
@@ -269,9 +276,18 @@ class PandaAnalyticIK:
                 0.0 if near is None else float(near[1]),
                 near is not None,
                 self._dims,
+                np.zeros((0, 7)) if nearest_to is None else np.ascontiguousarray(nearest_to[0]),
+                np.zeros(7) if nearest_to is None else np.ascontiguousarray(nearest_to[1]),
             )
             return out
-        return self._solve_numpy(rot, pos, q7, lower, upper, near)
+        out = self._solve_numpy(rot, pos, q7, lower, upper, near)
+        if nearest_to is None or out[0].size == 0:
+            return out
+        pref, levers = nearest_to
+        dist = np.sum(((out[1] - pref[out[0]]) * levers) ** 2, axis=1)
+        order = np.lexsort((dist, out[0]))  # stable: the first of ties
+        first = order[np.r_[True, out[0][order][1:] != out[0][order][:-1]]]
+        return out[0][first], out[1][first], out[2][first], out[3][first]
 
     # one derivation in order (elbow, swivel, shoulder, wrist), each step's arrays feeding the
     # next: cut into functions it would pass a dozen arrays around (reason for > 100 lines)
@@ -419,13 +435,15 @@ def analytic_blocks(
     lower: np.ndarray,
     upper: np.ndarray,
     near: tuple[np.ndarray, float] | None = None,
+    nearest_to: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`PandaAnalyticIK.solve` in blocks of targets, without repeats.
 
     Blocks bound the memory; a repeat is one joint-7 value given twice to a
     target (e.g. two offsets clipped to a limit): its first column is kept
     (the later ones are not solved: NaN is outside joint 7's limits).
-    ``near``: ``(reference (N, 7), reach)``, as for the solver.
+    ``near``: ``(reference (N, 7), reach)``; ``nearest_to``: ``(pref (N, 7),
+    levers (7,))``, as for the solver.
     """
     q7 = _first_of_repeats(np.asarray(q7, dtype=float))
     n, k = q7.shape
@@ -439,6 +457,7 @@ def analytic_blocks(
             lower,
             upper,
             None if near is None else (near[0][a : a + step], near[1]),
+            None if nearest_to is None else (nearest_to[0][a : a + step], nearest_to[1]),
         )
         for a in starts
     ]

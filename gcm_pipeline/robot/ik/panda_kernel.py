@@ -57,18 +57,62 @@ def _frame4(
     return c4 * x4[2] - s4 * y4[2]
 
 
+@njit(cache=True, inline="always")
+def _frame6(
+    r7: Any, p7: Any, i: int, q7v: float, a7: float, d1: float, x6: Any, y6: Any, z6: Any, u: Any
+) -> None:
+    """Frame 6's axes of target ``i`` at joint 7 ``q7v`` and ``u`` = O6 - O2, in place."""
+    c7, s7 = math.cos(q7v), math.sin(q7v)
+    # x6 = R7 (c7, -s7, 0), z6 = R7 (s7, c7, 0), y6 = -z7
+    for a in range(3):
+        x6[a] = r7[i, a, 0] * c7 - r7[i, a, 1] * s7
+        z6[a] = r7[i, a, 0] * s7 + r7[i, a, 1] * c7
+        y6[a] = -r7[i, a, 2]
+        u[a] = p7[i, a] - a7 * x6[a]
+    u[2] = u[2] - d1
+
+
+@njit(cache=True, inline="always")
+def _kept(q: Any, i: int, lower: Any, upper: Any, ref: Any, reach: float, near: bool) -> bool:
+    """Whether ``q`` is inside the limits (with ``near``: within ``reach`` of ``ref[i]``).
+
+    Joints 1, 2, 3 and 5 are moved a turn up where below their limits, in place.
+    """
+    ok = True
+    for j in (0, 1, 2, 4):
+        q[j], inside = _into_limits(q[j], lower[j], upper[j])
+        ok &= inside
+    if ok and near:
+        for j in range(7):
+            ok &= abs(q[j] - ref[i, j]) <= reach
+    return ok
+
+
+@njit(cache=True, inline="always")
+def _lever_distance(q: Any, pref: Any, i: int, levers: Any) -> float:
+    """``sum(((q - pref[i]) * levers) ** 2)``, summed in joint order as NumPy sums a row."""
+    d = 0.0
+    for j in range(7):
+        e = (q[j] - pref[i, j]) * levers[j]
+        d += e * e
+    return d
+
+
 @njit(
     types.Tuple((I1W, types.float64[:, ::1], I1W, I1W))(
-        F3, F2, F2, F1, F1, F2, types.float64, types.boolean, F1
+        F3, F2, F2, F1, F1, F2, types.float64, types.boolean, F1, F2, F1
     ),
     cache=True,
     error_model="numpy",
 )
-def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims):
+def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, pref, levers):
     """:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.solve`, one (target, q7) at a time.
 
     The same closed form and pruning (see that module); the solutions come out
-    in the same order: by target, column of ``q7``, branch.
+    in the same order: by target, column of ``q7``, branch. With ``pref`` of
+    (N, 7) rows (else (0, 7)): only each target's solution nearest ``pref[i]``
+    in the ``levers``-weighted distance (the first of ties), as
+    :meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.nearest`.
 
     Args:
         r7: Rotations of DH frame 7 of the targets (N, 3, 3).
@@ -80,6 +124,8 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims):
         reach: With ``near``: largest change from the reference in every joint [rad].
         near: Only the solutions within ``reach`` of ``ref``.
         dims: ``(k, rho4, gamma, a4, a5, a7, d1, d3, d5)`` of the solver.
+        pref: Preferred configurations (N, 7) [rad], or (0, 7): every solution.
+        levers: Weight of each joint in the distance to ``pref`` (7,) [m/rad].
 
     Returns:
         ``(index, q, branch, column)`` (M,), (M, 7), (M,), (M,).
@@ -88,28 +134,23 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims):
     k_, rho4, gamma, a4, a5, a7, d1, d3, d5 = (
         dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], dims[6], dims[7], dims[8]
     )  # fmt: skip
-    cap = n * cols * 8
+    cap = n if pref.shape[0] > 0 else n * cols * 8
     out_t = np.empty(cap, dtype=np.intp)
     out_q = np.empty((cap, 7))
     out_b = np.empty(cap, dtype=np.intp)
     out_c = np.empty(cap, dtype=np.intp)
     x6, y6, z6, u = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     x4, y4, z4, z3, w = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    q = np.empty(7)
+    q, best_q = np.empty(7), np.empty(7)
+    nearest = pref.shape[0] > 0
     count = 0
     for i in range(n):
+        best, best_b, best_c = np.inf, 0, 0
         for col in range(cols):
             q7v = q7[i, col]
             if not lower[6] <= q7v <= upper[6] or (near and not abs(q7v - ref[i, 6]) <= reach):
                 continue
-            c7, s7 = math.cos(q7v), math.sin(q7v)
-            # frame 6: x6 = R7 (c7, -s7, 0), z6 = R7 (s7, c7, 0), y6 = -z7; O6 - O2
-            for a in range(3):
-                x6[a] = r7[i, a, 0] * c7 - r7[i, a, 1] * s7
-                z6[a] = r7[i, a, 0] * s7 + r7[i, a, 1] * c7
-                y6[a] = -r7[i, a, 2]
-                u[a] = p7[i, a] - a7 * x6[a]
-            u[2] = u[2] - d1
+            _frame6(r7, p7, i, q7v, a7, d1, x6, y6, z6, u)
             length2 = u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
             half = math.acos((length2 - k_) / rho4)  # NaN out of reach
             length = math.sqrt(length2)
@@ -149,18 +190,20 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims):
                         q[1] = math.atan2(sign * sb, z3[2])
                         q[2] = math.atan2(-sign * z4[2], -sign * x3z)
                         q[3], q[4], q[5], q[6] = q4, q5, q6, q7v
-                        ok = True
-                        for j in (0, 1, 2, 4):
-                            q[j], inside = _into_limits(q[j], lower[j], upper[j])
-                            ok &= inside
-                        if ok and near:
-                            for j in range(7):
-                                ok &= abs(q[j] - ref[i, j]) <= reach
-                        if not ok:
+                        if not _kept(q, i, lower, upper, ref, reach, near):
                             continue
-                        out_t[count] = i
+                        b = 4 * elbow + 2 * wrist + shoulder
+                        if nearest:
+                            d = _lever_distance(q, pref, i, levers)
+                            if d < best:
+                                best, best_b, best_c = d, b, col
+                                best_q[:] = q
+                            continue
+                        out_t[count], out_b[count], out_c[count] = i, b, col
                         out_q[count] = q
-                        out_b[count] = 4 * elbow + 2 * wrist + shoulder
-                        out_c[count] = col
                         count += 1
+        if best < np.inf:
+            out_t[count], out_b[count], out_c[count] = i, best_b, best_c
+            out_q[count] = best_q
+            count += 1
     return out_t[:count].copy(), out_q[:count].copy(), out_b[:count].copy(), out_c[:count].copy()

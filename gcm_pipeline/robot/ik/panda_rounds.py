@@ -182,17 +182,24 @@ def closed_form_rounds(
             [np.clip(near, lower[6], upper[6]), np.broadcast_to(grid, (todo.size, samples))],
             axis=1,
         )
+        # lever-weighted: a radian at the shoulder moves the hand far more than
+        # one at the wrist, so "nearest the preferred posture" is in metres
+        only_nearest = ctx.one_each and not ctx.validate
         at, cq, branch, _ = analytic_blocks(
-            solver, ctx.trot[todo], ctx.tpos[todo], q7s, lower, upper
+            solver,
+            ctx.trot[todo],
+            ctx.tpos[todo],
+            q7s,
+            lower,
+            upper,
+            # one answer each: only each target's nearest is offered (rank 0)
+            nearest_to=(pref[todo], levers) if only_nearest else None,
         )
         if at.size == 0:
             continue
-        # lever-weighted: a radian at the shoulder moves the hand far more than
-        # one at the wrist, so "nearest the preferred posture" is in metres
         dist = np.sum(((cq - pref[todo[at]]) * levers) ** 2, axis=1)
-        if ctx.one_each and not ctx.validate:
-            # one answer each: only each target's nearest is offered (rank 0)
-            order = first_smallest(at, dist)
+        if only_nearest:
+            order = np.arange(at.size)
         elif ctx.one_each:  # per target, the nearest to the preferred configuration
             order = np.lexsort((dist, at))
         else:

@@ -7,6 +7,8 @@ inside the limits.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -51,3 +53,43 @@ def test_closed_form_kernel_equals_numpy(
     if near:
         assert np.all(np.abs(got[1] - q[got[0]]) <= 0.3)
     assert solver.solve(rot[:0], pos[:0], q7[:0], panda.lower, panda.upper)[1].shape == (0, 7)
+
+
+def test_nearest_kernel_keeps_the_first_nearest_of_every_solution(compiled, panda, numpy_code):
+    """``nearest_to``: per target, the solution the full list's first smallest distance picks.
+
+    Against the kernel's own full list bit for bit (the same closed form, the
+    distance summed in NumPy's order); against the NumPy code the same choices up
+    to round-off (a tie within 1e-9 may break either way).
+    """
+    from gcm_pipeline.robot.ik.candidates import first_smallest
+    from gcm_pipeline.robot.ik.panda import analytic_solver
+    from gcm_pipeline.robot.ik.panda_rounds import joint_levers
+
+    solver = analytic_solver(panda)
+    rng = np.random.default_rng(29)
+    q = panda.random_configurations(3000, rng)
+    rot, pos = panda.chain.pose(q)
+    q7 = q[:, 6:7] + np.array([0.0, -0.05, 0.05, 0.4, -1.5, 3.5, 0.0])  # a repeat, too
+    pos[:20] += 5.0  # out of reach: no solution
+    pref = panda.random_configurations(3000, rng)
+    levers = joint_levers(panda)
+    args = (rot, pos, q7, panda.lower, panda.upper)
+    full = solver.solve(*args)
+    dist = np.sum(((full[1] - pref[full[0]]) * levers) ** 2, axis=1)
+    first = first_smallest(full[0], dist)
+    got = solver.solve(*args, nearest_to=(pref, levers))
+    for a, b in zip(got, full, strict=True):
+        np.testing.assert_array_equal(a, b[first])
+    assert got[0].size > 2900 and np.all(np.diff(got[0]) > 0)
+    ref = numpy_code(functools.partial(solver.solve, nearest_to=(pref, levers)), *args)
+    np.testing.assert_array_equal(got[0], ref[0])
+    d_got = np.sum(((got[1] - pref[got[0]]) * levers) ** 2, axis=1)
+    d_ref = np.sum(((ref[1] - pref[ref[0]]) * levers) ** 2, axis=1)
+    np.testing.assert_allclose(d_got, d_ref, rtol=0, atol=1e-9)
+    same = (got[2] == ref[2]) & (got[3] == ref[3])
+    assert same.mean() >= 0.999
+    np.testing.assert_allclose(got[1][same], ref[1][same], rtol=0, atol=1e-6)
+    for run in (solver.solve, functools.partial(numpy_code, solver.solve)):  # nothing solved
+        none = run(rot[:20], pos[:20], q7[:20], panda.lower, panda.upper, None, (pref[:20], levers))
+        assert none[0].shape == (0,) and none[1].shape == (0, 7)

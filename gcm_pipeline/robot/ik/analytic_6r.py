@@ -33,6 +33,7 @@ branch to its targets, nearest the preferred configuration first.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from typing import Any
 
@@ -55,6 +56,10 @@ __all__ = [
 
 #: Two EAIK answers closer than this modulo 2π in every joint are one branch [rad].
 _SAME_BRANCH = 1e-6
+#: Poses whose EAIK answers a solver keeps for a later call with the same pose (two
+#: chunks of the engine's 8,192 targets: a chunk's targets are solved again after its
+#: moves' end poses).
+_RECENT_POSES = 16384
 
 
 def wide_joints(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -146,6 +151,9 @@ class SixRAnalyticIK:
     def __init__(self, robot: Any) -> None:
         self._robot = robot
         self.family = str(robot.getKinematicFamily())
+        # EAIK's answers of the poses solved last (:meth:`_answers`), by the pose's bytes,
+        # oldest first: (angles (k, 6), is_LS (k,))
+        self._recent: dict[bytes, tuple[Any, Any]] = {}
 
     @classmethod
     def for_chain(
@@ -220,16 +228,29 @@ class SixRAnalyticIK:
     def _answers(
         self, rot: np.ndarray, pos: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """EAIK's answers for N poses: count per pose (N,), angles (M, 6), exact (M,) bool."""
+        """EAIK's answers for N poses: count per pose (N,), angles (M, 6), exact (M,) bool.
+
+        A pose equal to one of the last ``_RECENT_POSES`` solved (bit for
+        bit) takes their answers again: EAIK's answer is a function of the
+        pose (a stage solves a chunk's targets, then the same targets again
+        for their other branches where the first failed a check).
+        """
         n = len(rot)
         poses = np.zeros((n, 4, 4))
         poses[:, :3, :3] = rot
         poses[:, :3, 3] = pos
         poses[:, 3, 3] = 1.0
-        qs, ls = [], []
-        for s in self._robot.IK_batched(poses, 1) if n else []:
-            qs.append(s.Q)  # (k, 6) float64
-            ls.append(s.is_LS)
+        recent = self._recent
+        keys = poses.reshape(n, 16).view(np.dtype((np.void, 128))).ravel().tolist()
+        known = [recent.get(k) for k in keys]
+        new = [i for i, a in enumerate(known) if a is None]
+        if new:
+            for i, s in zip(new, self._robot.IK_batched(poses[new], 1), strict=True):
+                known[i] = recent[keys[i]] = (s.Q, s.is_LS)  # (k, 6) float64, (k,)
+            for k in list(itertools.islice(recent, max(len(recent) - _RECENT_POSES, 0))):
+                del recent[k]  # the oldest
+        qs = [a[0] for a in known]
+        ls = [a[1] for a in known]
         counts = np.fromiter((len(x) for x in qs), dtype=np.intp, count=n)
         if counts.sum() == 0:
             return counts, np.zeros((0, 6)), np.zeros(0, dtype=bool)

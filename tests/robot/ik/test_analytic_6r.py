@@ -9,7 +9,7 @@ from helpers import CONFIGS
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.chain import KinematicChain
-from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.ik import analytic_6r, solve_ik
 from gcm_pipeline.robot.ik.analytic_6r import (
     SixRAnalyticIK,
     branch_gap,
@@ -259,3 +259,35 @@ def test_same_as_earlier_finds_the_rows_close_to_an_earlier_row_of_their_group(h
         assert np.array_equal(got, expected), trial
         repeats += int(expected.sum())
     assert repeats > 300  # the planted copies are there to be found
+
+
+def test_poses_solved_again_get_eaiks_answers_to_the_bit(
+    arm: Robot, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a solver keeps the answers of the poses it solved last: a pose solved again (in
+    # any order, mixed with new ones, twice in one call) gets them, as a fresh solver
+    # would give them; only the last ``_RECENT_POSES`` are kept
+    monkeypatch.setattr(analytic_6r, "_RECENT_POSES", 150)
+    q = arm.random_configurations(400, np.random.default_rng(11))
+    poses = _pin_pose(arm, q)
+    rot, pos = poses[:, :3, :3], poses[:, :3, 3]
+    solver = SixRAnalyticIK.for_chain(arm.chain)
+    assert solver is not None
+    solver.raw(rot[:200], pos[:200])
+    assert len(solver._recent) == 150  # the oldest 50 dropped
+    again = np.random.default_rng(3).permutation(np.r_[np.arange(20, 260), np.arange(100, 130)])
+    for take in (again, np.arange(400)[::-1]):
+        fresh = SixRAnalyticIK.for_chain(arm.chain)
+        assert fresh is not None
+        for want, got in zip(
+            fresh._answers(rot[take], pos[take]), solver._answers(rot[take], pos[take]), strict=True
+        ):
+            assert want.dtype == got.dtype
+            assert np.array_equal(want, got)
+        assert len(solver._recent) <= 150
+    idx, cq = solver.solve(rot, pos, arm.lower, arm.upper, arm.home)
+    fresh = SixRAnalyticIK.for_chain(arm.chain)
+    assert fresh is not None
+    want_idx, want_q = fresh.solve(rot, pos, arm.lower, arm.upper, arm.home)
+    assert np.array_equal(idx, want_idx)
+    assert np.array_equal(cq, want_q)

@@ -242,16 +242,15 @@ class SixRAnalyticIK:
         poses[:, 3, 3] = 1.0
         recent = self._recent
         keys = poses.reshape(n, 16).view(np.dtype((np.void, 128))).ravel().tolist()
-        known = [recent.get(k) for k in keys]
+        known = list(map(recent.get, keys))
         new = [i for i, a in enumerate(known) if a is None]
         if new:
             for i, s in zip(new, self._robot.IK_batched(poses[new], 1), strict=True):
                 known[i] = recent[keys[i]] = (s.Q, s.is_LS)  # (k, 6) float64, (k,)
             for k in list(itertools.islice(recent, max(len(recent) - _RECENT_POSES, 0))):
-                del recent[k]  # the oldest
-        qs = [a[0] for a in known]
-        ls = [a[1] for a in known]
-        counts = np.fromiter((len(x) for x in qs), dtype=np.intp, count=n)
+                recent.pop(k, None)  # the oldest
+        qs, ls = zip(*known, strict=True) if n else ((), ())
+        counts = np.fromiter(map(len, qs), dtype=np.intp, count=n)
         if counts.sum() == 0:
             return counts, np.zeros((0, 6)), np.zeros(0, dtype=bool)
         q = np.concatenate([x for x in qs if len(x)], dtype=float).reshape(-1, 6)

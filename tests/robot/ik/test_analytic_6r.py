@@ -274,7 +274,7 @@ def test_poses_solved_again_get_eaiks_answers_to_the_bit(
     solver = SixRAnalyticIK.for_chain(arm.chain)
     assert solver is not None
     solver.raw(rot[:200], pos[:200])
-    assert len(solver._recent) == 150  # the oldest 50 dropped
+    assert len(solver._recent.slot_of) == 150  # the oldest 50 dropped
     again = np.random.default_rng(3).permutation(np.r_[np.arange(20, 260), np.arange(100, 130)])
     for take in (again, np.arange(400)[::-1]):
         fresh = SixRAnalyticIK.for_chain(arm.chain)
@@ -284,10 +284,46 @@ def test_poses_solved_again_get_eaiks_answers_to_the_bit(
         ):
             assert want.dtype == got.dtype
             assert np.array_equal(want, got)
-        assert len(solver._recent) <= 150
+        assert len(solver._recent.slot_of) <= 150
     idx, cq = solver.solve(rot, pos, arm.lower, arm.upper, arm.home)
     fresh = SixRAnalyticIK.for_chain(arm.chain)
     assert fresh is not None
     want_idx, want_q = fresh.solve(rot, pos, arm.lower, arm.upper, arm.home)
     assert np.array_equal(idx, want_idx)
     assert np.array_equal(cq, want_q)
+
+
+def test_the_ring_of_recent_answers_grows_wraps_and_never_maps_a_pose_to_another() -> None:
+    # synthetic answers: pose p has p % 4 + (p > 20) * 5 answers, angle rows p + rank / 10
+    ring = analytic_6r._RecentAnswers(8)
+    stored: dict[bytes, int] = {}
+
+    def keep(poses: list[int]) -> None:
+        counts = np.array([p % 4 + (p > 20) * 5 for p in poses], dtype=np.intp)
+        q = np.concatenate(
+            [
+                np.full((c, 6), p + np.arange(c)[:, None] / 10)
+                for p, c in zip(poses, counts, strict=True)
+            ]
+        )
+        exact = np.concatenate([np.arange(c) % 2 == 0 for c in counts])
+        ring.keep([bytes([p]) * 8 for p in poses], counts, q, exact)
+        stored.update({bytes([p]) * 8: p for p in poses})
+
+    keep([1, 2, 3])
+    keep([4, 5, 2, 2])  # a pose twice in one call, and one kept before
+    keep(list(range(21, 31)))  # more than the ring holds, and more answers per pose (grows)
+    keep([6, 7])
+    for key, slot in ring.slot_of.items():
+        p = stored[key]
+        c = p % 4 + (p > 20) * 5
+        assert ring.count[slot] == c
+        q, exact = ring.answers(np.full(c, slot), np.arange(c))
+        assert np.array_equal(q, np.full((c, 6), p + np.arange(c)[:, None] / 10))
+        assert np.array_equal(exact, np.arange(c) % 2 == 0)
+    # the last 8 poses kept are found; nothing older
+    assert sorted(stored[k] for k in ring.slot_of) == [6, 7, 25, 26, 27, 28, 29, 30]
+    assert np.array_equal(
+        ring.find([bytes([p]) * 8 for p in (1, 30, 6)]),
+        [-1, ring.slot_of[bytes([30]) * 8], ring.slot_of[bytes([6]) * 8]],
+    )

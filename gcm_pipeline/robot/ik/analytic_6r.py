@@ -29,6 +29,12 @@ the project is verified.
 
 The default backend's stage for such an arm, :func:`six_round`, offers every
 branch to its targets, nearest the preferred configuration first.
+
+**Poses solved again.** A solver keeps EAIK's answers of the last 16,384 poses
+it solved (plain arrays, by the pose's bytes) and gives them again for a pose
+equal to one of them to the bit: EAIK's answer is a function of the pose. The
+reachability stage asks again for a chunk's targets whose first branch failed
+a check (their other branches) and for the ends of moves planned twice.
 """
 
 from __future__ import annotations

@@ -29,10 +29,18 @@ the project is verified.
 
 The default backend's stage for such an arm, :func:`six_round`, offers every
 branch to its targets, nearest the preferred configuration first.
+
+**Poses solved again.** A solver keeps EAIK's answers of the last 16,384 poses
+it solved (plain arrays, by the pose's bytes) and gives them again for a pose
+equal to one of them to the bit: EAIK's answer is a function of the pose. The
+reachability stage asks again for a chunk's targets whose first branch failed
+a check (their other branches) and for the ends of moves planned twice.
 """
 
 from __future__ import annotations
 
+import collections
+import itertools
 from collections.abc import Callable
 from typing import Any
 
@@ -55,6 +63,12 @@ __all__ = [
 
 #: Two EAIK answers closer than this modulo 2π in every joint are one branch [rad].
 _SAME_BRANCH = 1e-6
+#: Poses whose EAIK answers a solver keeps for a later call with the same pose (two
+#: chunks of the engine's 8,192 targets: a chunk's targets are solved again after its
+#: moves' end poses).
+_RECENT_POSES = 16384
+#: Defaults of ``dict.pop`` over a map.
+_NONES = itertools.repeat(None)
 
 
 def wide_joints(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -135,6 +149,69 @@ def repeated_branches(idx: np.ndarray, q: np.ndarray) -> np.ndarray:
     return same_as_earlier(idx, q, _same_angle)
 
 
+class _RecentAnswers:
+    """EAIK's answers of the last ``size`` poses solved, by the pose's bytes (a ring of slots).
+
+    Plain arrays and a dict of ints: no objects for the garbage collector to
+    walk (a tuple per pose cost more than EAIK saved).
+    """
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.slot_of: dict[bytes, int] = {}
+        self.key_at: list[bytes | None] = [None] * size  # the key in each slot
+        self.count = np.zeros(size, dtype=np.intp)
+        self.q = np.zeros((size, 0, 6))  # (slot, answer, joint)
+        self.exact = np.zeros((size, 0), dtype=bool)
+        self.next = 0
+
+    def find(self, keys: list[bytes]) -> np.ndarray:
+        """The slot (N,) of each pose's key, -1 where its answers are not kept."""
+        found = map(self.slot_of.get, keys, itertools.repeat(-1))
+        return np.fromiter(found, dtype=np.intp, count=len(keys))
+
+    def keep(self, keys: list[bytes], counts: np.ndarray, q: np.ndarray, exact: np.ndarray) -> None:
+        """Keep the answers of new poses (the last ``size``), over the oldest kept.
+
+        ``counts`` (M,) answers per pose, ``q`` (sum, 6) and ``exact`` (sum,)
+        grouped by pose, as :meth:`SixRAnalyticIK._answers` returns them.
+        """
+        m = len(keys)
+        if m == 0 or self.size == 0:
+            return
+        width = int(counts.max())
+        if width > self.q.shape[1]:  # room for the most answers of one pose
+            q_old, exact_old = self.q, self.exact
+            self.q = np.zeros((self.size, width, 6))
+            self.exact = np.zeros((self.size, width), dtype=bool)
+            self.q[:, : q_old.shape[1]], self.exact[:, : exact_old.shape[1]] = q_old, exact_old
+        start = np.cumsum(counts) - counts
+        take = np.arange(max(m - self.size, 0), m)  # the last ``size``
+        slots = (self.next + np.arange(take.size)) % self.size
+        self.next = int((self.next + take.size) % self.size)
+        # the overwritten slots' keys go first (a key kept twice loses both: a miss, not a
+        # wrong answer), then the new keys take the slots
+        slot_of, key_at = self.slot_of, self.key_at
+        taken, at = keys[m - take.size :], slots.tolist()
+        collections.deque(map(slot_of.pop, map(key_at.__getitem__, at), _NONES), maxlen=0)
+        collections.deque(map(key_at.__setitem__, at, taken), maxlen=0)
+        slot_of.update(zip(taken, at, strict=True))
+        c = counts[take]
+        self.count[slots] = c
+        of = np.repeat(np.arange(take.size), c)
+        rank = np.arange(of.size) - (np.cumsum(c) - c)[of]
+        if take.size < m:  # the answers of the poses kept
+            q, exact = q[start[take][of] + rank], exact[start[take][of] + rank]
+        at_slot = slots[of] * self.q.shape[1] + rank  # rows of the flat buffers
+        self.q.reshape(-1, 6)[at_slot] = q
+        self.exact.reshape(-1)[at_slot] = exact
+
+    def answers(self, slot: np.ndarray, rank: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Answers ``rank`` (K,) of the poses in slots ``slot`` (K,): angles (K, 6), exact (K,)."""
+        at_slot = slot * self.q.shape[1] + rank
+        return self.q.reshape(-1, 6)[at_slot], self.exact.reshape(-1)[at_slot]
+
+
 class SixRAnalyticIK:
     """All closed-form IK branches of a 6R chain (see the module doc).
 
@@ -146,6 +223,7 @@ class SixRAnalyticIK:
     def __init__(self, robot: Any) -> None:
         self._robot = robot
         self.family = str(robot.getKinematicFamily())
+        self._recent = _RecentAnswers(_RECENT_POSES)  # EAIK's answers of the last poses
 
     @classmethod
     def for_chain(
@@ -220,21 +298,50 @@ class SixRAnalyticIK:
     def _answers(
         self, rot: np.ndarray, pos: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """EAIK's answers for N poses: count per pose (N,), angles (M, 6), exact (M,) bool."""
+        """EAIK's answers for N poses: count per pose (N,), angles (M, 6), exact (M,) bool.
+
+        A pose equal to one of the last ``_RECENT_POSES`` solved (bit for
+        bit) takes their answers again: EAIK's answer is a function of the
+        pose (a stage solves a chunk's targets, then the same targets again
+        for their other branches where the first failed a check).
+        """
         n = len(rot)
         poses = np.zeros((n, 4, 4))
         poses[:, :3, :3] = rot
         poses[:, :3, 3] = pos
         poses[:, 3, 3] = 1.0
-        qs, ls = [], []
-        for s in self._robot.IK_batched(poses, 1) if n else []:
-            qs.append(s.Q)  # (k, 6) float64
-            ls.append(s.is_LS)
-        counts = np.fromiter((len(x) for x in qs), dtype=np.intp, count=n)
-        if counts.sum() == 0:
+        keys = poses.reshape(n, 16).view(np.dtype((np.void, 128))).ravel().tolist()
+        slot = self._recent.find(keys)
+        new = np.flatnonzero(slot < 0)
+        counts = np.zeros(n, dtype=np.intp)
+        counts[slot >= 0] = self._recent.count[slot[slot >= 0]]
+        q_new, exact_new = np.zeros((0, 6)), np.zeros(0, dtype=bool)
+        if new.size:
+            qs, ls = [], []
+            for s in self._robot.IK_batched(poses[new], 1):
+                qs.append(s.Q)  # (k, 6) float64
+                ls.append(s.is_LS)
+            counts[new] = np.fromiter(map(len, qs), dtype=np.intp, count=new.size)
+            if counts[new].sum():
+                q_new = np.concatenate([x for x in qs if len(x)], dtype=float).reshape(-1, 6)
+                exact_new = ~np.concatenate(ls, dtype=bool)
+        total = int(counts.sum())
+        q, exact = q_new, exact_new
+        if total and new.size < n:
+            # each pose's answers in order: the new ones as EAIK gave them, the others kept
+            of = np.repeat(np.arange(n), counts)  # the pose of each answer
+            rank = np.arange(total) - (np.cumsum(counts) - counts)[of]
+            fresh = slot[of] < 0
+            q = np.empty((total, 6))
+            exact = np.empty(total, dtype=bool)
+            q[fresh], exact[fresh] = q_new, exact_new
+            kept = ~fresh
+            q[kept], exact[kept] = self._recent.answers(slot[of[kept]], rank[kept])
+        # then the new poses' answers are kept (over the oldest: after the reads above)
+        self._recent.keep([keys[i] for i in new.tolist()], counts[new], q_new, exact_new)
+        if total == 0:
             return counts, np.zeros((0, 6)), np.zeros(0, dtype=bool)
-        q = np.concatenate([x for x in qs if len(x)], dtype=float).reshape(-1, 6)
-        return counts, q, ~np.concatenate(ls, dtype=bool)
+        return counts, q, exact
 
     def solve(
         self,

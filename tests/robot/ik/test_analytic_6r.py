@@ -9,7 +9,7 @@ from helpers import CONFIGS
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.chain import KinematicChain
-from gcm_pipeline.robot.ik import solve_ik
+from gcm_pipeline.robot.ik import analytic_6r, solve_ik
 from gcm_pipeline.robot.ik.analytic_6r import (
     SixRAnalyticIK,
     branch_gap,
@@ -259,3 +259,71 @@ def test_same_as_earlier_finds_the_rows_close_to_an_earlier_row_of_their_group(h
         assert np.array_equal(got, expected), trial
         repeats += int(expected.sum())
     assert repeats > 300  # the planted copies are there to be found
+
+
+def test_poses_solved_again_get_eaiks_answers_to_the_bit(
+    arm: Robot, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a solver keeps the answers of the poses it solved last: a pose solved again (in
+    # any order, mixed with new ones, twice in one call) gets them, as a fresh solver
+    # would give them; only the last ``_RECENT_POSES`` are kept
+    monkeypatch.setattr(analytic_6r, "_RECENT_POSES", 150)
+    q = arm.random_configurations(400, np.random.default_rng(11))
+    poses = _pin_pose(arm, q)
+    rot, pos = poses[:, :3, :3], poses[:, :3, 3]
+    solver = SixRAnalyticIK.for_chain(arm.chain)
+    assert solver is not None
+    solver.raw(rot[:200], pos[:200])
+    assert len(solver._recent.slot_of) == 150  # the oldest 50 dropped
+    again = np.random.default_rng(3).permutation(np.r_[np.arange(20, 260), np.arange(100, 130)])
+    for take in (again, np.arange(400)[::-1]):
+        fresh = SixRAnalyticIK.for_chain(arm.chain)
+        assert fresh is not None
+        for want, got in zip(
+            fresh._answers(rot[take], pos[take]), solver._answers(rot[take], pos[take]), strict=True
+        ):
+            assert want.dtype == got.dtype
+            assert np.array_equal(want, got)
+        assert len(solver._recent.slot_of) <= 150
+    idx, cq = solver.solve(rot, pos, arm.lower, arm.upper, arm.home)
+    fresh = SixRAnalyticIK.for_chain(arm.chain)
+    assert fresh is not None
+    want_idx, want_q = fresh.solve(rot, pos, arm.lower, arm.upper, arm.home)
+    assert np.array_equal(idx, want_idx)
+    assert np.array_equal(cq, want_q)
+
+
+def test_the_ring_of_recent_answers_grows_wraps_and_never_maps_a_pose_to_another() -> None:
+    # synthetic answers: pose p has p % 4 + (p > 20) * 5 answers, angle rows p + rank / 10
+    ring = analytic_6r._RecentAnswers(8)
+    stored: dict[bytes, int] = {}
+
+    def keep(poses: list[int]) -> None:
+        counts = np.array([p % 4 + (p > 20) * 5 for p in poses], dtype=np.intp)
+        q = np.concatenate(
+            [
+                np.full((c, 6), p + np.arange(c)[:, None] / 10)
+                for p, c in zip(poses, counts, strict=True)
+            ]
+        )
+        exact = np.concatenate([np.arange(c) % 2 == 0 for c in counts])
+        ring.keep([bytes([p]) * 8 for p in poses], counts, q, exact)
+        stored.update({bytes([p]) * 8: p for p in poses})
+
+    keep([1, 2, 3])
+    keep([4, 5, 2, 2])  # a pose twice in one call, and one kept before
+    keep(list(range(21, 31)))  # more than the ring holds, and more answers per pose (grows)
+    keep([6, 7])
+    for key, slot in ring.slot_of.items():
+        p = stored[key]
+        c = p % 4 + (p > 20) * 5
+        assert ring.count[slot] == c
+        q, exact = ring.answers(np.full(c, slot), np.arange(c))
+        assert np.array_equal(q, np.full((c, 6), p + np.arange(c)[:, None] / 10))
+        assert np.array_equal(exact, np.arange(c) % 2 == 0)
+    # the last 8 poses kept are found; nothing older
+    assert sorted(stored[k] for k in ring.slot_of) == [6, 7, 25, 26, 27, 28, 29, 30]
+    assert np.array_equal(
+        ring.find([bytes([p]) * 8 for p in (1, 30, 6)]),
+        [-1, ring.slot_of[bytes([30]) * 8], ring.slot_of[bytes([6]) * 8]],
+    )

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from gcm_pipeline.errors import PublishError
+from gcm_pipeline.errors import OutputError, PublishError
 from gcm_pipeline.geometry.dualquat import dq_translation
 from gcm_pipeline.outputs.chart_marks import (
     ROBOT_SIDE_COLOR,
@@ -31,6 +31,7 @@ from gcm_pipeline.outputs.chart_marks import (
     robot_side,
 )
 from gcm_pipeline.outputs.pose_view import PoseView, equal_axes
+from gcm_pipeline.rundir.transaction import atomic_file
 from gcm_pipeline.table import GraspTable
 
 __all__ = [
@@ -139,9 +140,11 @@ def _figure(size: tuple[float, float] = (6.4, 4.8)) -> Any:
 
 
 def _save(fig: Any, path: Path) -> Path:
+    """Write ``fig`` as the PNG ``path``, whole or not at all (a temporary sibling renamed)."""
     try:
-        fig.savefig(path, dpi=_DPI)
-    except OSError as exc:
+        with atomic_file(path) as tmp:
+            fig.savefig(tmp, dpi=_DPI, format="png")
+    except (OSError, OutputError) as exc:
         raise PublishError(f"cannot write plot {str(path)!r}: {exc}") from exc
     return path
 

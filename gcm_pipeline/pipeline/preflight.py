@@ -83,13 +83,14 @@ def check_input_files(cfg: Config) -> None:
     """Check that every file of :func:`input_files` is there and is a regular file.
 
     Raises:
-        InputError: ``<key>: <what> not found: <path>`` (or not a regular file).
+        InputError: ``<key>: <what> not found: <path>`` (or not a regular file,
+            or a symbolic link to nothing).
     """
     for key, path in input_files(cfg).items():
         try:
-            found, there = path.is_file(), path.exists()
+            found, there, link = path.is_file(), path.exists(), path.is_symlink()
         except (OSError, ValueError):
-            found = there = False
+            found = there = link = False
         if not found:
             what = {
                 "candidates.path": "grasp file",
@@ -99,6 +100,11 @@ def check_input_files(cfg: Config) -> None:
             }.get(key, "cloud file" if ".point_clouds." in key else "mesh file")
             if there:  # a directory, a device (/dev/zero), a pipe
                 raise InputError(f"{key}: {what} {path} is not a regular file")
+            if link:  # ls shows it: "not found" would send the user looking
+                raise InputError(
+                    f"{key}: {what} {path} is a symbolic link that leads to no file "
+                    "(dangling, or a loop of links)"
+                )
             raise InputError(
                 f"{key}: {what} not found: {path} (relative paths resolve against the "
                 "config's folder)"

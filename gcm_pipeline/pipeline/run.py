@@ -391,7 +391,8 @@ def _warn_empty(counts: Mapping[str, Any], cfg: Config) -> None:
 #: What to try when most grasps fail for a reason (see :func:`unreachable_hint`).
 _HINTS = {
     "out_of_reach": "the grasps lie beyond the arm's reach: move the object (object.pose) "
-    "or the robot (robot.base_pose) closer",
+    "or the robot (robot.base_pose) closer, and check that a grasp file's positions are in "
+    "metres (not millimetres)",
     "no_ik": "no IK solution: these grasp orientations may be impossible for this arm here; "
     "try another robot.base_pose or grasps approached from other sides",
     "joint_limits": "the solutions leave the joint limits: check the robot spec's joint_limits "

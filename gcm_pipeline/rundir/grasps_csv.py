@@ -197,7 +197,8 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
     ``triangle``, ``vertices``, ``weights``, ``reachable``, ``reason``,
     ``pos_err``, ``rot_err``, ``manipulability``, ``q`` (the leading columns of
     :data:`~gcm_pipeline.table.COLUMNS`, parsed by their dtype) and the further
-    columns, as far as the file has them.
+    columns, as far as the file has them (the blended candidate columns
+    ``score`` and ``width`` as floats, empty = NaN).
 
     The file is checked as it is read: unit quaternions, finite positions,
     ``true``/``false`` switches, integer ids, ``v1..v3`` that name rows of the
@@ -218,6 +219,9 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
             cols[name] = _read_leading(cells, name, spec, names, cols)
     for name in cells.header:
         if name in CSV_COLUMNS or name in cols or _is_per_joint(name):
+            continue
+        if CANDIDATE_COLUMNS.get(name) == "blend":  # score, width: floats by contract
+            cols[name] = cells.floats(name)
             continue
         cols[name] = _parse_column(cells.raw[name])
     return GraspTable(cols)

@@ -131,6 +131,13 @@ def ply_chunks(path: Path, where: str, counts: dict[str, int]) -> Iterator[Chunk
     except Exception as exc:  # trimesh raises many kinds on a bad file
         raise InputError(f"{where}: {path}: not a readable .ply: {clip(str(exc))}") from None
     pts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    declared = _ply_vertices(path)
+    if declared is not None and declared != len(pts):  # an ascii file cut short
+        raise InputError(
+            f"{where}: {path}: the PLY holds {len(pts):,} point{'s' if len(pts) != 1 else ''}, "
+            f"its header says element vertex {declared}",
+            path=path,
+        )
     cols = getattr(loaded, "colors", None)
     if cols is None or len(cols) != len(pts):
         visual = getattr(loaded, "visual", None)
@@ -140,6 +147,17 @@ def ply_chunks(path: Path, where: str, counts: dict[str, int]) -> Iterator[Chunk
     for a in range(0, len(pts), CLOUD_CHUNK):
         sl = slice(a, a + CLOUD_CHUNK)
         yield Chunk(pts[sl], None, None if cols is None else as_colors(cols[sl]))
+
+
+def _ply_vertices(path: Path) -> int | None:
+    """The vertex count a ``.ply`` header declares (``element vertex N``), or None."""
+    with path.open("rb") as fh:
+        head = fh.read(65536).split(b"end_header", 1)[0]
+    for line in head.decode("ascii", "replace").splitlines():
+        parts = line.split()
+        if parts[:2] == ["element", "vertex"] and len(parts) == 3 and parts[2].isdigit():
+            return int(parts[2])
+    return None
 
 
 def check_whole(path: Path, where: str) -> None:
@@ -205,23 +223,54 @@ def pcd_chunks(path: Path, where: str, counts: dict[str, int]) -> Iterator[Chunk
                 counts["read"] += m
                 yield pcd_chunk(rec, has_rgb)
             return
-        while True:
-            raw = [fh.readline() for _ in range(min(CLOUD_CHUNK, 65536))]
-            lines = [ln.decode("ascii", "replace") for ln in raw if ln.strip()]
-            if not lines:
-                return
-            try:
-                vals = np.loadtxt(lines, dtype=np.float64, ndmin=2)
-            except ValueError as exc:
-                raise InputError(f"{path}: bad PCD ascii data: {clip(str(exc))}") from None
-            rec = np.zeros(len(vals), dtype=dtype)
-            col = 0
-            for name in dtype.names or ():
-                c = dtype[name].shape[0] if dtype[name].shape else 1
-                rec[name] = vals[:, col : col + c].astype(dtype[name].base).reshape(rec[name].shape)
-                col += c
-            counts["read"] += len(rec)
-            yield pcd_chunk(rec, has_rgb)
+        points = n if "POINTS" in head else None
+        yield from _pcd_ascii(fh, path, where, dtype, points, has_rgb, counts)
+
+
+def _pcd_ascii(
+    fh: Any,
+    path: Path,
+    where: str,
+    dtype: np.dtype[Any],
+    n: int | None,
+    has_rgb: bool,
+    counts: dict[str, int],
+) -> Iterator[Chunk]:
+    """The rows of a ``DATA ascii`` PCD, as many as its ``POINTS`` (when it has one) says."""
+    width = sum(dtype[name].shape[0] if dtype[name].shape else 1 for name in dtype.names or ())
+    total = 0
+    while True:
+        raw = [fh.readline() for _ in range(min(CLOUD_CHUNK, 65536))]
+        lines = [ln.decode("ascii", "replace") for ln in raw if ln.strip()]
+        if not lines:
+            if n is not None and total != n:  # cut short: fewer obstacles than the camera saw
+                raise InputError(
+                    f"{where}: {path}: the PCD holds {total:,} point{'s' if total != 1 else ''}, "
+                    f"its header says POINTS {n}",
+                    path=path,
+                )
+            return
+        try:
+            vals = np.loadtxt(lines, dtype=np.float64, ndmin=2)
+        except ValueError as exc:
+            raise InputError(f"{where}: {path}: bad PCD ascii data: {clip(str(exc))}") from None
+        if vals.shape[1] != width:
+            raise InputError(
+                f"{where}: {path}: bad PCD ascii data: rows of {vals.shape[1]} values; "
+                f"FIELDS and COUNT give {width}",
+                path=path,
+            )
+        total += len(vals)
+        if n is not None and total > n:
+            raise InputError(f"{where}: {path}: the PCD holds more than its POINTS {n}", path=path)
+        rec = np.zeros(len(vals), dtype=dtype)
+        col = 0
+        for name in dtype.names or ():
+            c = dtype[name].shape[0] if dtype[name].shape else 1
+            rec[name] = vals[:, col : col + c].astype(dtype[name].base).reshape(rec[name].shape)
+            col += c
+        counts["read"] += len(rec)
+        yield pcd_chunk(rec, has_rgb)
 
 
 def _pcd_dtype(
@@ -246,6 +295,8 @@ def _pcd_dtype(
         n = int(head.get("POINTS", head.get("WIDTH", ["0"]))[0])
     except ValueError as exc:
         raise InputError(f"{where}: {path}: bad PCD header: {clip(str(exc))}") from None
+    if n < 0:
+        raise InputError(f"{where}: {path}: bad PCD header: POINTS {n}", path=path)
     cols = []
     for i, (f, size, t, c) in enumerate(zip(fields, sizes, rows["TYPE"], counts, strict=True)):
         if (t.upper(), size) not in _PCD_TYPES or c < 1:

@@ -35,6 +35,7 @@ __all__ = [
     "score_column",
     "success_labels",
     "vector",
+    "width_column",
 ]
 
 #: Tolerance of the rigidity checks of imported matrices.
@@ -216,9 +217,10 @@ def success_labels(
 ) -> np.ndarray:
     """(n,) bool success labels from 0/1 numbers, or raise naming ``what``.
 
-    A NaN label is bad input (a broken export), not a failure to drop
-    silently: the message names the first such row (``where(i)``, default
-    ``"<path>: <what>: grasp <i> (0-based)"``).
+    A label other than 0 or 1 (NaN, 0.5, 7, -1) is bad input (a broken export
+    or a probability), not a grasp to keep or drop by a threshold: the message
+    names the first such row (``where(i)``, default ``"<path>: <what>: grasp
+    <i> (0-based)"``) and its value.
     """
     values = np.asarray(values).reshape(-1)
     if values.shape[0] != n:
@@ -229,12 +231,13 @@ def success_labels(
     _refuse_first_bad(
         path,
         what,
-        np.isnan(values),
+        (values != 0.0) & (values != 1.0),
         where,
-        lambda i: "success label is nan",
+        lambda i: f"success label is {float(values[i])!r}",
         "every label must be 0 or 1",
+        lambda i: float(values[i]),
     )
-    return values > 0.5
+    return values == 1.0
 
 
 def _refuse_first_bad(
@@ -303,6 +306,58 @@ def score_column(
         where,
         lambda i: f"score is {float(arr[i])}",
         "every score must be a finite number",
+        lambda i: float(arr[i]),
+    )
+    return arr
+
+
+def width_column(
+    path: Path,
+    values: Any,
+    n: int,
+    key: str,
+    where: Callable[[int], str] | None = None,
+) -> np.ndarray:
+    """A file's finger opening as the ``width`` column: (n,) float64 [m], or raise.
+
+    NaN is an unknown width (an empty CSV cell; the MoveIt export then closes
+    the fingers fully). Text, a negative or an infinite width is bad input
+    (it would become the export's finger posture): the message names the
+    file, the key and the first bad row.
+
+    Args:
+        path: The file (for messages).
+        values: The file's widths.
+        n: How many grasps the file holds.
+        key: Where the file stores them (``column 'width'``, ``gripper_openings[3]``).
+        where: How a message names row ``i`` (default ``"<path>: <key>: grasp <i> (0-based)"``).
+
+    Raises:
+        InputError: Names the key and, for a bad width, the row (attributes
+            ``path``, ``key``, ``row``, ``value``).
+    """
+    try:
+        if np.asarray(values).dtype.kind in "USaMmV":  # text, times: never a width
+            raise TypeError
+        arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {key}: widths must be numbers [m]", path=path, key=key) from None
+    if arr.shape[0] != n:
+        raise InputError(
+            f"{path}: {key} has {arr.shape[0]:,} widths for {n:,} grasps; one width per grasp",
+            path=path,
+            key=key,
+            value=arr.shape[0],
+        )
+    with np.errstate(invalid="ignore"):
+        bad = np.isinf(arr) | (arr < 0.0)
+    _refuse_first_bad(
+        path,
+        key,
+        bad,
+        where,
+        lambda i: f"width {float(arr[i])!r}",
+        "a finger opening is a finite number >= 0 [m] (empty or NaN: unknown)",
         lambda i: float(arr[i]),
     )
     return arr

@@ -27,7 +27,7 @@ from gcm_pipeline.sources.files.common import (
     check_count,
     check_poses,
     score_column,
-    vector,
+    width_column,
 )
 from gcm_pipeline.sources.files.pickled import read_npz_members
 from gcm_pipeline.sources.files.sniff import check_format
@@ -129,7 +129,7 @@ def read_contact_graspnet(
         cols["width"].append(
             np.full(m, np.nan)
             if width is None
-            else vector(path, width, m, f"gripper_openings[{key}]")
+            else width_column(path, width, m, f"gripper_openings[{clip(key, 40)}]")
         )
         if contacts is not None:
             points.append(_contact_points(path, contacts.get(key), m, key))

@@ -17,6 +17,7 @@ from gcm_pipeline.sources.files.common import (
     column_name,
     score_column,
     success_labels,
+    width_column,
 )
 
 __all__ = ["read_csv"]
@@ -55,7 +56,8 @@ def read_csv(
 
     Quaternions (w, x, y, z) within 1e-3 of unit norm are normalised; every
     other column is carried (integers, numbers with empty = NaN, or text); a
-    ``score`` column is the grasps' quality, a finite number in every row.
+    ``score`` column is the grasps' quality, a finite number in every row; a
+    ``width`` column the finger opening, a number >= 0 or empty in every row.
     A UTF-8 byte order mark and blank lines are ignored.
     """
     _refuse_nul(path)
@@ -82,6 +84,16 @@ def read_csv(
             scores = _csv_floats(path, cells[:, k], raw, lines, empty=np.nan)
             columns[name] = score_column(
                 path, scores, len(poses), f"column {raw!r}", where=lambda i: f"{path}:{lines[i]}"
+            )
+            continue
+        if name == "width":  # the finger opening [m]: numbers (an empty cell is unknown)
+            widths = _csv_floats(path, cells[:, k], raw, lines, empty=np.nan)
+            columns[name] = width_column(
+                path,
+                widths,
+                len(poses),
+                f"column {raw!r}",
+                where=lambda i, raw=raw: f"{path}:{lines[i]}: column {raw!r}",
             )
             continue
         columns[name] = _csv_column(cells[:, k])

@@ -21,7 +21,9 @@ from gcm_pipeline.sources.files.common import (
     ImportedGrasps,
     check_count,
     check_poses,
+    check_positions,
     score_column,
+    width_column,
 )
 from gcm_pipeline.sources.files.pickled import read_npz_members
 from gcm_pipeline.sources.files.sniff import check_format, sniff
@@ -45,7 +47,9 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
         [m], ``object_id`` and ``source_id`` (row in the file); ``depth`` [m].
 
     Raises:
-        InputError: Not a (N, 17) real array, non-rigid rotation, bad values.
+        InputError: Not a (N, 17) real array, non-rigid rotation, bad values
+            (a negative width, an ``object_id`` that is not a whole number, a
+            fingertip farther than ``MAX_GRASP_DISTANCE`` from the origin).
     """
     path = Path(path)
     check_format(path, "graspnet")
@@ -72,22 +76,30 @@ def read_graspnet(path: str | Path, *, max_count: int = DEFAULT_MAX_CANDIDATES) 
     bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
     if bad.size:
         raise InputError(f"{path}: row {int(bad[0])} (0-based) has non-finite values", path=path)
-    bad = np.flatnonzero(np.abs(rows[:, 16]) >= 2.0**53)
+    bad = np.flatnonzero((np.abs(rows[:, 16]) >= 2.0**53) | (rows[:, 16] != np.rint(rows[:, 16])))
     if bad.size:
         raise InputError(
             f"{path}: row {int(bad[0])} (0-based): object_id {rows[bad[0], 16]:g} is not an "
             "integer id",
             path=path,
+            row=int(bad[0]),
+            value=float(rows[bad[0], 16]),
         )
     n = len(rows)
+    width = width_column(
+        path, rows[:, 1], n, "column 1 (width)", where=lambda i: f"{path}: row {i} (0-based)"
+    )
     poses = np.zeros((n, 4, 4))
     poses[:, :3, :3] = rows[:, 4:13].reshape(n, 3, 3)
     poses[:, :3, 3] = rows[:, 13:16]
     poses[:, 3, 3] = 1.0
     poses = check_poses(path, poses, "rotation/translation")
+    # the fingertips, `depth` past the centre along the approach (x): as bounded as the centre
+    tips = rows[:, 13:16] + rows[:, 3:4] * poses[:, :3, 0]
+    check_positions(path, tips, lambda i: f"{path}: row {i} (0-based): fingertips")
     columns = {
         "score": rows[:, 0].copy(),
-        "width": rows[:, 1].copy(),
+        "width": width,
         "object_id": np.rint(rows[:, 16]).astype(np.int64),
         "source_id": np.arange(n, dtype=np.int64),
     }

@@ -16,6 +16,7 @@ from gcm_pipeline.sources.files.common import (
     column_name,
     score_column,
     success_labels,
+    width_column,
 )
 
 __all__ = ["read_npz"]
@@ -34,7 +35,9 @@ def read_npz(
     The poses are array ``transforms`` (or ``poses``, or the only 3-D array);
     other 1-D arrays of one number or string per grasp are carried as columns.
     An array ``score`` is the grasps' quality: one finite number per grasp
-    (:func:`~gcm_pipeline.sources.files.common.score_column`).
+    (:func:`~gcm_pipeline.sources.files.common.score_column`); an array
+    ``width`` the finger opening, one number per grasp
+    (:func:`~gcm_pipeline.sources.files.common.width_column`).
     """
     arrays = read_npz_arrays(
         path,
@@ -53,6 +56,10 @@ def read_npz(
         if name == "score":  # the file's quality: validated, never skipped
             taken.add("score")
             columns["score"] = score_column(path, values, len(poses), "array 'score'")
+            continue
+        if name == "width":  # the finger opening [m]: one number per grasp
+            taken.add("width")
+            columns["width"] = width_column(path, values, len(poses), "array 'width'")
             continue
         if values.ndim != 1 or len(values) != len(poses) or values.dtype.kind not in "biufU":
             log.info(

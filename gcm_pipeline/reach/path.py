@@ -555,15 +555,21 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
         query = (np.arange(rows.size)[:, None] * width + grid).ravel()
         shape = (rows.size, steps + 1)
         before = np.searchsorted(keys, query, side="right") - 1
-        after = np.searchsorted(keys, query, side="left")
+        # the first at or after: that knot where one sits on the grid point, else the next
+        # (the keys are distinct)
+        after = before + (keys[before] != query)
         pa, pb = pos[before].reshape(shape), pos[after].reshape(shape)
         ka = b.knots.q[slot[before]].reshape(*shape, -1)
-        kb = b.knots.q[slot[after]].reshape(*shape, -1)
         f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
-        path = ka + f * (kb - ka)
+        # ka + f * (kb - ka), in one array
+        path = b.knots.q[slot[after]].reshape(*shape, -1)
+        path -= ka
+        path *= f
+        path += ka
         q_path[rows] = path
         # the change of every joint between consecutive grid points
-        step = np.abs(np.diff(path, axis=1))
+        step = np.subtract(path[:, 1:], path[:, :-1])
+        np.abs(step, out=step)
         most = step[:, :, 0]
         for j in range(1, step.shape[2]):  # the max over joints (NaN stays), in fewer passes
             most = np.maximum(most, step[:, :, j])

@@ -203,6 +203,17 @@ def _end_ik_options(backend: str, ik_options: dict[str, Any]) -> dict[str, Any]:
     return ik_options
 
 
+def _nonzero_2d(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.nonzero`` of a 2-D ``mask``: its rows and columns, in row-major order.
+
+    By one search of the flat mask (about 4x faster than ``np.nonzero`` on the
+    knots' slots: a few positions of 81 set per row).
+    """
+    flat = np.flatnonzero(mask)
+    row = flat // mask.shape[1]
+    return row, flat - row * mask.shape[1]
+
+
 class _Knots:
     """The waypoints found so far, by move and fine position: ``knots[rows, at]``.
 
@@ -261,7 +272,7 @@ class _Knots:
         """The (N, positions, nq) array of the waypoints of the rows ``ok``, NaN elsewhere."""
         n, positions = self.slot.shape
         out = np.full((n, positions, self.q.shape[1]), np.nan)
-        r, p = np.nonzero(self.have & ok[:, None])
+        r, p = _nonzero_2d(self.have & ok[:, None])
         out[r, p] = self.q[self.slot[r, p]]
         return out
 
@@ -471,7 +482,7 @@ def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray
     sub, tol = SUBSTEPS, move.max_deviation
     # segments between known waypoints: accepted under the deviation bound, else
     # split; a new waypoint starts from the segment's joint interpolation
-    r_idx, pos = np.nonzero(knots.have & ok[:, None])
+    r_idx, pos = _nonzero_2d(knots.have & ok[:, None])
     inner = r_idx[1:] == r_idx[:-1]
     s_row, s_a, s_b = r_idx[1:][inner], pos[:-1][inner], pos[1:][inner]
     parts = np.ones(s_row.size, dtype=int)
@@ -547,7 +558,7 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
         # the knots on each side of every grid point: the last at or before it and
         # the first at or after it (a move still ok has knots at 0 and at the end)
         slot = b.knots.slot[rows]
-        r_idx, pos = np.nonzero(slot >= 0)
+        r_idx, pos = _nonzero_2d(slot >= 0)
         slot = slot[r_idx, pos]
         width = fine_steps + 1
         grid = np.arange(steps + 1) * sub

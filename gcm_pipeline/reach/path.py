@@ -44,7 +44,7 @@ import numpy as np
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.reach.deviation import lever_arms, segment_bounds
 from gcm_pipeline.reach.moves import Move, MovePlan, unreachable_ends
-from gcm_pipeline.reach.waypoints import end_of_move, line_waypoints
+from gcm_pipeline.reach.waypoints import end_of_move, largest_change, line_waypoints
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import Robot
 
@@ -512,7 +512,7 @@ def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray
         span = s_b - s_a
         # the change per grid step: segments of a step or more change every step
         # alike; shorter ones may not change more than one step's worth
-        jump = np.max(np.abs(qb - qa), axis=1) * sub / np.maximum(span, sub)
+        jump = largest_change(qb, qa) * sub / np.maximum(span, sub)
         over = jump > move.max_joint_step
         dev = np.full(s_row.size, np.inf)
         fine = np.flatnonzero(~over)

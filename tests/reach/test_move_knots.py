@@ -15,6 +15,7 @@ from gcm_pipeline.reach.deviation import gripper_radius
 from gcm_pipeline.reach.move_check import check_moves
 from gcm_pipeline.reach.moves import Move
 from gcm_pipeline.reach.path import SUBSTEPS, _Knots, _nonzero_2d, plan_moves
+from gcm_pipeline.reach.waypoints import largest_change
 
 APPROACH = Move(distance=0.10, direction=(0, 0, -1), frame="grasp", steps=10)
 
@@ -78,6 +79,17 @@ def test_nonzero_2d_is_numpys(shape, fill):
     for g, w in zip(got, want, strict=True):
         assert g.dtype == w.dtype
         np.testing.assert_array_equal(g, w)
+
+
+@pytest.mark.parametrize("rows", [0, 1, 500])
+def test_largest_change_is_numpys_max(rows):
+    """Per row, the largest joint change: ``np.max(np.abs(q - ref), axis=1)``, NaN included."""
+    rng = np.random.default_rng(8)
+    q, ref = rng.normal(size=(2, rows, 7))
+    if rows > 3:
+        q[1, 4], ref[2, 0], q[3, 6] = np.nan, np.nan, np.inf
+    want = np.max(np.abs(q - ref), axis=1)
+    assert largest_change(q, ref).tobytes() == want.tobytes()
 
 
 def _grid_path_from_dense(knots, steps):

@@ -245,7 +245,7 @@ def _level2_all(
 ) -> None:
     """:func:`_level2_open` by every test in every configuration (vectorised), then ``near``.
 
-    The same arithmetic per test, so the same answers; ``out`` (CHUNK,) is
+    The same arithmetic per test, so the same answers; ``out`` (m,) is
     used as scratch.
     """
     sphere_a, sphere_b, limit2 = pair_tests
@@ -263,6 +263,46 @@ def _level2_all(
                 out[i] |= _point_bound(a[0, i], a[1, i], a[2, i], shape) <= lim
     for i in range(m):
         out[i] = out[i] and near[i]
+
+
+@njit(cache=True, inline="always")
+def _level2_pairs(
+    i0: int,
+    m: int,
+    near: Any,
+    count: Any,
+    whole: Any,
+    pairs: Any,
+    pair_tests: Any,
+    shapes: Any,
+    sphere: Any,
+    few: Any,
+    open_: Any,
+) -> int:
+    """Level 2 of a chunk's pairs whose covers are placed for it, pair by pair.
+
+    In every configuration at once or in the open ones (:data:`DENSE`), into
+    ``open_[k, i0 : i0 + m]``; the other open pairs go to ``few`` (for
+    :func:`_level2_each`). Returns how many did.
+    """
+    geom_a, geom_b, world, first_test, n_tests = pairs
+    hit = np.empty(m, dtype=np.bool_)
+    nfew = 0
+    for k in range(geom_a.shape[0]):
+        if count[k] == 0:
+            continue
+        tests = range(first_test[k], first_test[k] + n_tests[k])
+        placed = whole[geom_a[k]] and (world[k] >= 0 or whole[geom_b[k]])
+        if count[k] * DENSE >= m or (placed and count[k] * 2 * DENSE >= m):
+            _level2_all(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
+        elif placed:
+            _level2_open(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
+        else:
+            few[nfew] = k
+            nfew += 1
+            continue
+        open_[k, i0 : i0 + m] = hit
+    return nfew
 
 
 @njit(cache=True, inline="always")
@@ -380,7 +420,6 @@ def broad_phase(
     whole = np.empty(ngeoms, dtype=np.intp)
     placed = np.full(ngeoms, -1)
     few = np.empty(npairs, dtype=np.intp)
-    hit = np.empty(CHUNK, dtype=np.bool_)
     cover = (ball_joint, sphere_centre, sphere_start, whole, placed)
     pairs = (geom_a, geom_b, world, first_test, n_tests)
     pair_tests = (sphere_a, sphere_b, limit2)
@@ -395,21 +434,9 @@ def broad_phase(
             if whole[g]:
                 e0, e1 = sphere_start[g], sphere_start[g + 1]
                 _place_cover(tfs, i0, m, ball_joint[g], e0, e1, sphere_centre, sphere)
-        nfew = 0
-        for k in range(npairs):
-            if count[k] == 0:
-                continue
-            tests = range(first_test[k], first_test[k] + n_tests[k])
-            placed_ = whole[geom_a[k]] and (world[k] >= 0 or whole[geom_b[k]])
-            if count[k] * DENSE >= m or (placed_ and count[k] * 2 * DENSE >= m):
-                _level2_all(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
-            elif placed_:
-                _level2_open(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
-            else:
-                few[nfew] = k
-                nfew += 1
-                continue
-            open_[k, i0 : i0 + m] = hit[:m]
+        nfew = _level2_pairs(
+            i0, m, near, count, whole, pairs, pair_tests, shapes, sphere, few, open_
+        )
         # the others configuration by configuration, their covers placed on the way
         _level2_each(tfs, i0, m, near, few[:nfew], cover, pairs, pair_tests, shapes, sphere, open_)
     return open_

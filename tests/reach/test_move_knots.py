@@ -14,7 +14,8 @@ import pytest
 from gcm_pipeline.reach.deviation import gripper_radius
 from gcm_pipeline.reach.move_check import check_moves
 from gcm_pipeline.reach.moves import Move
-from gcm_pipeline.reach.path import SUBSTEPS, _Knots, plan_moves
+from gcm_pipeline.reach.path import SUBSTEPS, _Knots, _nonzero_2d, plan_moves
+from gcm_pipeline.reach.waypoints import largest_change
 
 APPROACH = Move(distance=0.10, direction=(0, 0, -1), frame="grasp", steps=10)
 
@@ -67,6 +68,28 @@ def test_knot_store_reads_as_the_dense_array():
     ok = rng.random(n) < 0.7
     want = np.where((ok[:, None] & have)[:, :, None], dense, np.nan)
     np.testing.assert_array_equal(store.dense(ok), want)
+
+
+@pytest.mark.parametrize("shape", [(40, 81), (1, 5), (7, 1), (0, 4), (3, 0)])
+@pytest.mark.parametrize("fill", [0.0, 0.05, 1.0])
+def test_nonzero_2d_is_numpys(shape, fill):
+    """The knots' flat search gives ``np.nonzero``'s rows and columns, in its order."""
+    mask = np.random.default_rng(5).random(shape) < fill
+    got, want = _nonzero_2d(mask), np.nonzero(mask)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype
+        np.testing.assert_array_equal(g, w)
+
+
+@pytest.mark.parametrize("rows", [0, 1, 500])
+def test_largest_change_is_numpys_max(rows):
+    """Per row, the largest joint change: ``np.max(np.abs(q - ref), axis=1)``, NaN included."""
+    rng = np.random.default_rng(8)
+    q, ref = rng.normal(size=(2, rows, 7))
+    if rows > 3:
+        q[1, 4], ref[2, 0], q[3, 6] = np.nan, np.nan, np.inf
+    want = np.max(np.abs(q - ref), axis=1)
+    assert largest_change(q, ref).tobytes() == want.tobytes()
 
 
 def _grid_path_from_dense(knots, steps):

@@ -82,9 +82,9 @@ CHUNK = 64
 def _place_point(tfs: Any, i0: int, m: int, j: int, centre: Any, k: int, out: Any) -> None:
     """``out[k, :, i]`` (3, m): point ``centre[k]`` of joint j's frame in configuration i0 + i."""
     c0, c1, c2 = centre[k, 0], centre[k, 1], centre[k, 2]
-    for r in range(3):
-        for i in range(m):
-            tf = tfs[j, i0 + i]
+    for i in range(m):
+        tf = tfs[j, i0 + i]
+        for r in range(3):
             out[k, r, i] = tf[r, 0] * c0 + tf[r, 1] * c1 + tf[r, 2] * c2 + tf[r, 3]
 
 
@@ -162,9 +162,15 @@ def _level1(
             _world_level1(a, m, shapes[w], lim, near[k])
 
 
-#: Level 2 tests every configuration of a chunk for a pair (a loop LLVM vectorises)
-#: when level 1 left at least one in this many open there; else only the open ones,
-#: each up to its first test within reach.
+#: Level 2's routes through a chunk, pair by pair (``count``: the configurations level 1
+#: left open there, of ``m``). A pair with ``count * DENSE >= m`` is tested in every
+#: configuration at once (a loop LLVM vectorises), as is one with
+#: ``count * 2 * DENSE >= m`` whose covers are placed for the chunk anyway; the others
+#: in their open configurations only, each up to its first test within reach. A
+#: geometry's covers are placed for the whole chunk (vectorised) when the counts of
+#: its pairs add up to ``m / DENSE``, else in the configurations that need them, one by
+#: one (random Panda configurations: ~5 of 64 open per pair, and every cover placed
+#: for every chunk cost 0.1 us per configuration, a tenth of the check).
 DENSE = 4
 
 
@@ -181,30 +187,56 @@ def _place_cover(
 
 
 @njit(cache=True, inline="always")
+def _plan_chunk(m: int, near: Any, geom_a: Any, geom_b: Any, world: Any, count: Any, whole: Any):
+    """Level 2's plan of a chunk: ``count[k]`` (P,) and ``whole[g]`` (G,), by :data:`DENSE`.
+
+    ``count[k]``: the configurations of the chunk's ``m`` that level 1 left open
+    for pair k (``near`` (P, m)); ``whole[g]``: geometry g's covers are placed for
+    the whole chunk (its pairs' counts add up to ``m / DENSE``).
+    """
+    whole[:] = 0
+    for k in range(geom_a.shape[0]):
+        c = 0
+        for i in range(m):
+            c += near[k, i]
+        count[k] = c
+        whole[geom_a[k]] += c
+        if world[k] < 0:
+            whole[geom_b[k]] += c
+    for g in range(whole.shape[0]):
+        whole[g] = whole[g] * DENSE >= m
+
+
+@njit(cache=True, inline="always")
+def _first_within(i: int, tests: Any, w: int, pair_tests: Any, shapes: Any, sphere: Any) -> bool:
+    """Whether one of a pair's ``tests`` is within reach in column i of the placed covers.
+
+    ``pair_tests`` is ``(sphere_a, sphere_b, limit2)``, ``w`` the pair's world
+    shape (-1: a self pair), ``sphere`` the placed covers (S, 3, CHUNK).
+    """
+    sphere_a, sphere_b, limit2 = pair_tests
+    for e in tests:
+        a = sphere[sphere_a[e]]
+        if w < 0:
+            hit = _column_gap(a, sphere[sphere_b[e]], i) <= limit2[e]
+        else:
+            hit = _point_bound(a[0, i], a[1, i], a[2, i], _shape_numbers(shapes[w])) <= limit2[e]
+        if hit:
+            return True
+    return False
+
+
+@njit(cache=True, inline="always")
 def _level2_open(
     m: int, near: Any, tests: Any, w: int, pair_tests: Any, shapes: Any, sphere: Any, out: Any
 ) -> None:
     """``out[i]`` (m,): a pair's level 2 in the configurations level 1 left open (``near``).
 
     Configuration by configuration, its tests ``tests`` until the first within
-    reach. ``pair_tests`` is ``(sphere_a, sphere_b, limit2)``, ``w`` the pair's
-    world shape (-1: a self pair), ``sphere`` the placed covers (S, 3, CHUNK).
+    reach (:func:`_first_within`).
     """
-    sphere_a, sphere_b, limit2 = pair_tests
     for i in range(m):
-        out[i] = False
-        if not near[i]:
-            continue
-        for e in tests:
-            a = sphere[sphere_a[e]]
-            if w < 0:
-                hit = _column_gap(a, sphere[sphere_b[e]], i) <= limit2[e]
-            else:
-                bound = _point_bound(a[0, i], a[1, i], a[2, i], _shape_numbers(shapes[w]))
-                hit = bound <= limit2[e]
-            if hit:
-                out[i] = True
-                break
+        out[i] = near[i] and _first_within(i, tests, w, pair_tests, shapes, sphere)
 
 
 @njit(cache=True, inline="always")
@@ -213,7 +245,7 @@ def _level2_all(
 ) -> None:
     """:func:`_level2_open` by every test in every configuration (vectorised), then ``near``.
 
-    The same arithmetic per test, so the same answers; ``out`` (CHUNK,) is
+    The same arithmetic per test, so the same answers; ``out`` (m,) is
     used as scratch.
     """
     sphere_a, sphere_b, limit2 = pair_tests
@@ -231,6 +263,86 @@ def _level2_all(
                 out[i] |= _point_bound(a[0, i], a[1, i], a[2, i], shape) <= lim
     for i in range(m):
         out[i] = out[i] and near[i]
+
+
+@njit(cache=True, inline="always")
+def _level2_pairs(
+    i0: int,
+    m: int,
+    near: Any,
+    count: Any,
+    whole: Any,
+    pairs: Any,
+    pair_tests: Any,
+    shapes: Any,
+    sphere: Any,
+    few: Any,
+    open_: Any,
+) -> int:
+    """Level 2 of a chunk's pairs whose covers are placed for it, pair by pair.
+
+    In every configuration at once or in the open ones (:data:`DENSE`), into
+    ``open_[k, i0 : i0 + m]``; the other open pairs go to ``few`` (for
+    :func:`_level2_each`). Returns how many did.
+    """
+    geom_a, geom_b, world, first_test, n_tests = pairs
+    hit = np.empty(m, dtype=np.bool_)
+    nfew = 0
+    for k in range(geom_a.shape[0]):
+        if count[k] == 0:
+            continue
+        tests = range(first_test[k], first_test[k] + n_tests[k])
+        placed = whole[geom_a[k]] and (world[k] >= 0 or whole[geom_b[k]])
+        if count[k] * DENSE >= m or (placed and count[k] * 2 * DENSE >= m):
+            _level2_all(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
+        elif placed:
+            _level2_open(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
+        else:
+            few[nfew] = k
+            nfew += 1
+            continue
+        open_[k, i0 : i0 + m] = hit
+    return nfew
+
+
+@njit(cache=True, inline="always")
+def _level2_each(
+    tfs: Any,
+    i0: int,
+    m: int,
+    near: Any,
+    few: Any,
+    cover: Any,
+    pairs: Any,
+    pair_tests: Any,
+    shapes: Any,
+    sphere: Any,
+    open_: Any,
+) -> None:
+    """Level 2 of the pairs ``few`` configuration by configuration, placing covers on the way.
+
+    A geometry's covers not placed for the whole chunk (``cover`` is
+    ``(ball_joint, sphere_centre, sphere_start, whole, placed)``; ``placed[g]``:
+    the configuration they were last placed in) are placed in column i of
+    ``sphere`` when a pair first needs them in configuration ``i0 + i``.
+    ``pairs`` is ``(geom_a, geom_b, world, first_test, n_tests)``.
+    """
+    ball_joint, sphere_centre, sphere_start, whole, placed = cover
+    geom_a, geom_b, world, first_test, n_tests = pairs
+    for i in range(m):
+        for k in few:
+            if not near[k, i]:
+                continue
+            w = world[k]
+            for g in (geom_a[k], geom_b[k] if w < 0 else geom_a[k]):
+                if not whole[g] and placed[g] != i0 + i:
+                    placed[g] = i0 + i
+                    e0, e1 = sphere_start[g], sphere_start[g + 1]
+                    _place_cover(
+                        tfs, i0 + i, 1, ball_joint[g], e0, e1, sphere_centre, sphere[:, :, i:]
+                    )
+            tests = range(first_test[k], first_test[k] + n_tests[k])
+            open_[k, i0 + i] = _first_within(i, tests, w, pair_tests, shapes, sphere)
 
 
 @njit(
@@ -266,13 +378,14 @@ def broad_phase(
     hold the radii, the margin and the slack.
 
     Level 1 runs over :data:`CHUNK` configurations at a time, pair by pair
-    (vectorised, no branch per pair); level 2
-    chunk by chunk too: the cover spheres of the geometries of the pairs level 1
-    left open are placed for the whole chunk, then pair by pair, every test in
-    every configuration (vectorised) where level 1 left at least one in
-    :data:`DENSE` open, else the open configurations one by one, each up to its
-    first test within reach. The same arithmetic as one configuration at a
-    time, so the same answers.
+    (vectorised, no branch per pair); level 2 chunk by chunk too, by the routes
+    of :data:`DENSE`: the cover spheres of the geometries many of the chunk's
+    configurations need are placed for the whole chunk, then the pairs many
+    configurations left open are tested in all of them (vectorised), the others
+    in their open ones, each up to its first test within reach (pair by pair
+    where their covers are placed for the chunk, else configuration by
+    configuration, placing the covers a configuration needs). The same
+    arithmetic as one configuration at a time, so the same answers.
 
     Args:
         tfs: Joint frames (J, N, 3, 4).
@@ -304,36 +417,28 @@ def broad_phase(
     near = np.empty((npairs, CHUNK), dtype=np.bool_)
     sphere = np.empty((sphere_centre.shape[0], 3, CHUNK))
     count = np.empty(npairs, dtype=np.intp)
-    need = np.empty(ngeoms, dtype=np.bool_)
-    hit = np.empty(CHUNK, dtype=np.bool_)
+    whole = np.empty(ngeoms, dtype=np.intp)
+    placed = np.full(ngeoms, -1)
+    few = np.empty(npairs, dtype=np.intp)
+    cover = (ball_joint, sphere_centre, sphere_start, whole, placed)
+    pairs = (geom_a, geom_b, world, first_test, n_tests)
     pair_tests = (sphere_a, sphere_b, limit2)
     for i0 in range(0, n, CHUNK):
         m = min(CHUNK, n - i0)
         # 1. one bounding sphere per geometry
         _place_balls(tfs, i0, m, ball_joint, ball_centre, ball)
         _level1(ball, m, geom_a, geom_b, world, limit1, shapes, near)
-        # 2. the sphere covers, of the geometries of the pairs left open
-        need[:] = False
-        for k in range(npairs):
-            count[k] = 0
-            for i in range(m):
-                count[k] += near[k, i]
-            if count[k] > 0:
-                need[geom_a[k]] = True
-                if world[k] < 0:
-                    need[geom_b[k]] = True
+        # 2. the sphere covers: those many configurations need, for the whole chunk
+        _plan_chunk(m, near, geom_a, geom_b, world, count, whole)
         for g in range(ngeoms):
-            if need[g]:
+            if whole[g]:
                 e0, e1 = sphere_start[g], sphere_start[g + 1]
                 _place_cover(tfs, i0, m, ball_joint[g], e0, e1, sphere_centre, sphere)
-        for k in range(npairs):
-            tests = range(first_test[k], first_test[k] + n_tests[k])
-            if count[k] * DENSE >= m:
-                _level2_all(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
-                open_[k, i0 : i0 + m] = hit[:m]
-            elif count[k] > 0:
-                _level2_open(m, near[k], tests, world[k], pair_tests, shapes, sphere, hit)
-                open_[k, i0 : i0 + m] = hit[:m]
+        nfew = _level2_pairs(
+            i0, m, near, count, whole, pairs, pair_tests, shapes, sphere, few, open_
+        )
+        # the others configuration by configuration, their covers placed on the way
+        _level2_each(tfs, i0, m, near, few[:nfew], cover, pairs, pair_tests, shapes, sphere, open_)
     return open_
 
 

@@ -433,8 +433,10 @@ def _broad_phase_one_by_one(tfs, broad):
 def test_levels_1_and_2_equal_one_configuration_at_a_time(compiled, bottle):
     """The chunked kernel's answers are those of each (pair, configuration) on its own.
 
-    Both ways of level 2 are exercised: every test over a chunk where level 1
-    left many configurations open, the open ones alone where it left few.
+    Every route of level 2 is exercised: every test over a chunk where level 1
+    left many configurations open, the open ones alone where it left few (pair
+    by pair with covers placed for the chunk, configuration by configuration
+    with covers placed there).
     """
     from gcm_pipeline.robot.collision import broadphase_kernel as bk
 
@@ -452,7 +454,17 @@ def test_levels_1_and_2_equal_one_configuration_at_a_time(compiled, bottle):
     ones = (np.ones_like(broad[9]),)
     inf = np.full_like(broad[12], np.inf)
     level1 = compiled.broad_phase(tfs, *broad[:9], *ones, broad[10], broad[11], inf, broad[13])
-    counts = [level1[:, i : i + bk.CHUNK].sum(axis=1) for i in range(0, 300, bk.CHUNK)]
-    m = np.minimum(bk.CHUNK, 300 - np.arange(0, 300, bk.CHUNK))[:, None]
-    counts = np.array(counts)
-    assert (counts * bk.DENSE >= m).any() and ((counts > 0) & (counts * bk.DENSE < m)).any()
+    geom_a, geom_b, world = broad[4], broad[5], broad[6]
+    routes = set()
+    for i0 in range(0, 300, bk.CHUNK):
+        near = level1[:, i0 : i0 + bk.CHUNK]
+        m = near.shape[1]
+        count = np.empty(geom_a.size, dtype=np.intp)
+        whole = np.empty(broad[0].size, dtype=np.intp)
+        bk._plan_chunk.py_func(m, near, geom_a, geom_b, world, count, whole)
+        placed = (whole[geom_a] > 0) & ((world >= 0) | (whole[geom_b] > 0))
+        every = (count * bk.DENSE >= m) | (placed & (count * 2 * bk.DENSE >= m))
+        routes |= {"all"} if (every & (count > 0)).any() else set()
+        routes |= {"open"} if (placed & ~every & (count > 0)).any() else set()
+        routes |= {"each"} if (~placed & (count > 0)).any() else set()
+    assert routes == {"all", "open", "each"}

@@ -20,6 +20,7 @@ from gcm_pipeline.robot.collision import (
     WorldShape,
     depth_below,
     depth_into,
+    lift_out_of,
     object_shape,
     table_shape,
 )
@@ -143,10 +144,13 @@ def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
     shape = _object_in_world(obj) if placed is None else placed
     # over or under the table's top face (its column, from the top far down)? then the
     # depth of its lowest point under the top: what to raise it by, whatever the slab
-    column = (table.size[0], table.size[1], _COLUMN_DEPTH)
-    if depth_into(shape, table_shape(column, table.center_xy, table.height, np.eye(4))) <= 0:
+    column = table_shape(
+        (table.size[0], table.size[1], _COLUMN_DEPTH), table.center_xy, table.height, np.eye(4)
+    )
+    if depth_into(shape, column) <= 0:
         return
-    depth = depth_below(shape, table.height)
+    # the lift that clears the column: a part beside the table may hang lower
+    depth = lift_out_of(shape, column, depth_below(shape, table.height) + 1e-6)
     if depth > SUNK_DEPTH:
         slab = table_shape(table.size, table.center_xy, table.height, np.eye(4))
         under = depth_into(shape, slab) <= 0  # wholly under the slab

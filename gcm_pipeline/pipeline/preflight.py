@@ -127,7 +127,9 @@ def _check_gripper_meshes(gripper: GripperSpec, key: str) -> None:
 
 
 @takes_config
-def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
+def warn_sunk_objects(
+    cfg: Config, placed: WorldShape | None = None, name: str | None = None
+) -> None:
     """Warn about the object reaching more than ``SUNK_DEPTH`` into the table, or under it.
 
     A box or sphere placed like the bottle (``xyz: [x, y, 0]``) sinks half into
@@ -136,7 +138,8 @@ def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
     object is the run's object once: :func:`~gcm_pipeline.pipeline.objects.target_config`.)
     ``placed``: the object's shape in the world if already built (a mesh is not
     read again). An object wholly under the slab (a sign slip in its z) is
-    warned about too, with its lowest point's depth under the top.
+    warned about too, with its lowest point's depth under the top. ``name``: the
+    object's name in ``objects`` (the warning says which).
     """
     table, obj = cfg.environment.table, cfg.object
     if table is None or obj is None:
@@ -154,7 +157,6 @@ def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
     if depth > SUNK_DEPTH:
         slab = table_shape(table.size, table.center_xy, table.height, np.eye(4))
         under = depth_into(shape, slab) <= 0  # wholly under the slab
-        name = getattr(obj, "name", None)
         log.warning(
             "%s %s (its top at z = %g; %s): %s; to stand it on the table, raise its pose's "
             "z by %.4g",
@@ -179,7 +181,7 @@ def _object_in_world(obj: Any) -> WorldShape:
 
 
 @takes_config
-def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
+def preflight(cfg: Config, *, viewer: bool = False, name: str | None = None) -> Robot:
     """Check, before any work, what the config refers to outside itself.
 
     ``gcm validate`` and ``gcm run`` (:meth:`Pipeline.run`) both call it:
@@ -205,6 +207,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     Args:
         cfg: The config.
         viewer: The live viewer is requested (``gcm run --meshcat``).
+        name: The object's name in ``objects`` (warnings say which object).
 
     Returns:
         The robot (the run uses it).
@@ -234,7 +237,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
             where = f"environment.obstacles.{i}"
             shape_geometry("mesh", o.dims, mesh=o.mesh, scale=o.scale, where=where)
     scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)  # read once, kept
-    warn_sunk_objects(cfg, placed)
+    warn_sunk_objects(cfg, placed, name)
     if obj is not None and obj.mesh is not None and cfg.candidates.source != "antipodal":
         warn_if_open(Path(obj.mesh), obj.scale, f"object.mesh {obj.mesh}")  # the sampler warns
     pub = cfg.publish

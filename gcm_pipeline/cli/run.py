@@ -249,7 +249,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     for name in target_names(given) or [None]:  # each object's run config (target: all)
         cfg = place_file_object(target_config(given, name))
         with kernels.suppressed():  # a check: not worth loading (or compiling) the kernels
-            preflight(cfg)
+            preflight(cfg, name=name)
         lines += _validate_lines(cfg, name)
     cfg = given if given.target == TARGET_ALL else cfg
     # comments first, then the resolved config: the output is itself a valid config

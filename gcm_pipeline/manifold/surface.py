@@ -272,9 +272,14 @@ def project_onto_triangles(
             return out
 
     else:
+        # DIB signs its output like the heaviest corner: a triangle with a corner of
+        # the other sign would change sign inside (a jump for a held sign); signed
+        # to agree with the first, the same poses keep one sign
+        first = np.einsum("pkc,pc->pk", corners[:, :, :4], corners[:, 0, :4])
+        signed = corners * np.where(first < 0, -1.0, 1.0)[:, :, None]
 
         def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
-            return _dib_model(corners[rows], uv)
+            return _dib_model(signed[rows], uv)
 
     # a pair whose surface may meet the query's quaternion with either sign (a
     # corner's dot product with it is not of the others' sign) has a kink where

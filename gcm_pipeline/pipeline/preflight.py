@@ -20,6 +20,7 @@ from gcm_pipeline.robot.collision import (
     WorldShape,
     depth_below,
     depth_into,
+    lift_out_of,
     object_shape,
     table_shape,
 )
@@ -132,7 +133,9 @@ def _check_gripper_meshes(gripper: GripperSpec, key: str) -> None:
 
 
 @takes_config
-def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
+def warn_sunk_objects(
+    cfg: Config, placed: WorldShape | None = None, name: str | None = None
+) -> None:
     """Warn about the object reaching more than ``SUNK_DEPTH`` into the table, or under it.
 
     A box or sphere placed like the bottle (``xyz: [x, y, 0]``) sinks half into
@@ -141,7 +144,8 @@ def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
     object is the run's object once: :func:`~gcm_pipeline.pipeline.objects.target_config`.)
     ``placed``: the object's shape in the world if already built (a mesh is not
     read again). An object wholly under the slab (a sign slip in its z) is
-    warned about too, with its lowest point's depth under the top.
+    warned about too, with its lowest point's depth under the top. ``name``: the
+    object's name in ``objects`` (the warning says which).
     """
     table, obj = cfg.environment.table, cfg.object
     if table is None or obj is None:
@@ -149,14 +153,16 @@ def warn_sunk_objects(cfg: Config, placed: WorldShape | None = None) -> None:
     shape = _object_in_world(obj) if placed is None else placed
     # over or under the table's top face (its column, from the top far down)? then the
     # depth of its lowest point under the top: what to raise it by, whatever the slab
-    column = (table.size[0], table.size[1], _COLUMN_DEPTH)
-    if depth_into(shape, table_shape(column, table.center_xy, table.height, np.eye(4))) <= 0:
+    column = table_shape(
+        (table.size[0], table.size[1], _COLUMN_DEPTH), table.center_xy, table.height, np.eye(4)
+    )
+    if depth_into(shape, column) <= 0:
         return
-    depth = depth_below(shape, table.height)
+    # the lift that clears the column: a part beside the table may hang lower
+    depth = lift_out_of(shape, column, depth_below(shape, table.height) + 1e-6)
     if depth > SUNK_DEPTH:
         slab = table_shape(table.size, table.center_xy, table.height, np.eye(4))
         under = depth_into(shape, slab) <= 0  # wholly under the slab
-        name = getattr(obj, "name", None)
         log.warning(
             "%s %s (its top at z = %g; %s): %s; to stand it on the table, raise its pose's "
             "z by %.4g",
@@ -181,7 +187,7 @@ def _object_in_world(obj: Any) -> WorldShape:
 
 
 @takes_config
-def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
+def preflight(cfg: Config, *, viewer: bool = False, name: str | None = None) -> Robot:
     """Check, before any work, what the config refers to outside itself.
 
     ``gcm validate`` and ``gcm run`` (:meth:`Pipeline.run`) both call it:
@@ -207,6 +213,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
     Args:
         cfg: The config.
         viewer: The live viewer is requested (``gcm run --meshcat``).
+        name: The object's name in ``objects`` (warnings say which object).
 
     Returns:
         The robot (the run uses it).
@@ -236,7 +243,7 @@ def preflight(cfg: Config, *, viewer: bool = False) -> Robot:
             where = f"environment.obstacles.{i}"
             shape_geometry("mesh", o.dims, mesh=o.mesh, scale=o.scale, where=where)
     scene_clouds(cfg.environment, cfg.object, cfg.candidates.camera_pose)  # read once, kept
-    warn_sunk_objects(cfg, placed)
+    warn_sunk_objects(cfg, placed, name)
     if obj is not None and obj.mesh is not None and cfg.candidates.source != "antipodal":
         warn_if_open(Path(obj.mesh), obj.scale, f"object.mesh {obj.mesh}")  # the sampler warns
     pub = cfg.publish

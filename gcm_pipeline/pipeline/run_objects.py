@@ -18,7 +18,7 @@ from typing import Any
 from gcm_pipeline.config.run import Config
 from gcm_pipeline.errors import ConfigError, GcmError
 from gcm_pipeline.pipeline.objects import target_config
-from gcm_pipeline.pipeline.preflight import input_files, preflight
+from gcm_pipeline.pipeline.preflight import input_files, preflight, warn_sunk_objects
 from gcm_pipeline.pipeline.run import Pipeline, RunResult
 from gcm_pipeline.robot.model import Robot
 from gcm_pipeline.rundir import run as run_files
@@ -104,7 +104,10 @@ def run_objects(
     if robot is None:
         # the first object's config holds every object (its target and the others as
         # obstacles): one check covers every mesh, and one robot serves every run
-        robot = preflight(next(iter(configs.values())))
+        first, *others = configs
+        robot = preflight(configs[first], name=first)
+        for name in others:  # the table check of each object (its runs skip the preflight)
+            warn_sunk_objects(configs[name], name=name)
     results: dict[str, RunResult] = {}
     with transaction.atomic_dir(out, kind=OBJECTS_KIND, force=force, keep=keep) as tmp:
         for name, sub in configs.items():

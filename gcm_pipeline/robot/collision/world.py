@@ -222,6 +222,33 @@ def depth_below(shape: WorldShape, height: float) -> float:
     return max(0.0, float(-d))
 
 
+def lift_out_of(shape: WorldShape, support: WorldShape, most: float) -> float:
+    """How far [m] ``shape`` must rise along z to leave the box ``support`` (0: apart).
+
+    Only the part of ``shape`` over or in the box counts (a part beside it may hang
+    lower): bisection on coal's distance over ``[0, most]`` (to about 1e-6 m, coal's
+    GJK tolerance), ``most`` a lift known to clear it (e.g. :func:`depth_below` the
+    box's top, plus that tolerance).
+    """
+    b, a = support.placement, shape.placement
+    box = coal.Transform3s(b[:3, :3], b[:3, 3])
+    req = coal.DistanceRequest()
+
+    def apart(t: float) -> bool:
+        at = coal.Transform3s(a[:3, :3], a[:3, 3] + np.array([0.0, 0.0, t]))
+        return (
+            coal.distance(shape.geometry, at, support.geometry, box, req, coal.DistanceResult()) > 0
+        )
+
+    if apart(0.0):
+        return 0.0
+    lo, hi = 0.0, float(most)
+    while hi - lo > 1e-9:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if apart(mid) else (mid, hi)
+    return hi
+
+
 def erode_primitive(geometry: Any, distance: float) -> Any | None:
     """A coal primitive shrunk by ``distance`` [m] on every side (exact), or None.
 

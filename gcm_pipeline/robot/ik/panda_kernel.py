@@ -145,7 +145,7 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, pref, levers):
     nearest = pref.shape[0] > 0
     count = 0
     for i in range(n):
-        best, best_b, best_c = np.inf, 0, 0
+        best, best_b, best_c = np.inf, 0, -1  # best_c -1: none yet
         for col in range(cols):
             q7v = q7[i, col]
             if not lower[6] <= q7v <= upper[6] or (near and not abs(q7v - ref[i, 6]) <= reach):
@@ -195,14 +195,15 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, pref, levers):
                         b = 4 * elbow + 2 * wrist + shoulder
                         if nearest:
                             d = _lever_distance(q, pref, i, levers)
-                            if d < best:
+                            # NumPy's stable sort: the first smallest, NaN after any number
+                            if best_c < 0 or d < best or (best != best and d == d):
                                 best, best_b, best_c = d, b, col
                                 best_q[:] = q
                             continue
                         out_t[count], out_b[count], out_c[count] = i, b, col
                         out_q[count] = q
                         count += 1
-        if best < np.inf:
+        if best_c >= 0:
             out_t[count], out_b[count], out_c[count] = i, best_b, best_c
             out_q[count] = best_q
             count += 1

@@ -89,6 +89,16 @@ def _kept(q: Any, i: int, lower: Any, upper: Any, ref: Any, reach: float, near: 
 
 
 @njit(cache=True, inline="always")
+def _emit(
+    out_t: Any, out_q: Any, out_b: Any, out_c: Any, count: int, i: int, q: Any, b: int, c: int
+) -> int:
+    """Write solution ``q`` (target ``i``, branch ``b``, column ``c``) at row ``count``."""
+    out_t[count], out_b[count], out_c[count] = i, b, c
+    out_q[count] = q
+    return count + 1
+
+
+@njit(cache=True, inline="always")
 def _lever_distance(q: Any, pref: Any, i: int, levers: Any) -> float:
     """``sum(((q - pref[i]) * levers) ** 2)``, summed in joint order as NumPy sums a row."""
     d = 0.0
@@ -200,11 +210,7 @@ def panda_ik(r7, p7, q7, lower, upper, ref, reach, near, dims, pref, levers):
                                 best, best_b, best_c = d, b, col
                                 best_q[:] = q
                             continue
-                        out_t[count], out_b[count], out_c[count] = i, b, col
-                        out_q[count] = q
-                        count += 1
+                        count = _emit(out_t, out_q, out_b, out_c, count, i, q, b, col)
         if best_c >= 0:
-            out_t[count], out_b[count], out_c[count] = i, best_b, best_c
-            out_q[count] = best_q
-            count += 1
+            count = _emit(out_t, out_q, out_b, out_c, count, i, best_q, best_b, best_c)
     return out_t[:count].copy(), out_q[:count].copy(), out_b[:count].copy(), out_c[:count].copy()

@@ -264,6 +264,24 @@ def _refuse_first_bad(
     raise InputError(f"{name}: {problem(i)}; {rule}{more}", path=path, key=key, row=i, **evidence)
 
 
+def _per_grasp(
+    path: Path, values: Any, n: int, key: str, noun: str, not_numbers: str
+) -> np.ndarray:
+    """``values`` as (n,) float64, one ``noun`` per grasp, or one line naming the key."""
+    try:
+        arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {key}: {not_numbers}", path=path, key=key) from None
+    if arr.shape[0] != n:
+        raise InputError(
+            f"{path}: {key} has {arr.shape[0]:,} {noun}s for {n:,} grasps; one {noun} per grasp",
+            path=path,
+            key=key,
+            value=arr.shape[0],
+        )
+    return arr
+
+
 def score_column(
     path: Path,
     values: Any,
@@ -288,17 +306,7 @@ def score_column(
         InputError: Names the key and, for a non-finite score, the row (attributes
             ``path``, ``key``, ``row``, ``value``).
     """
-    try:
-        arr = np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: {key}: scores must be numbers", path=path, key=key) from None
-    if arr.shape[0] != n:
-        raise InputError(
-            f"{path}: {key} has {arr.shape[0]:,} scores for {n:,} grasps; one score per grasp",
-            path=path,
-            key=key,
-            value=arr.shape[0],
-        )
+    arr = _per_grasp(path, values, n, key, "score", "scores must be numbers")
     _refuse_first_bad(
         path,
         key,
@@ -336,19 +344,9 @@ def width_column(
         InputError: Names the key and, for a bad width, the row (attributes
             ``path``, ``key``, ``row``, ``value``).
     """
-    try:
-        if np.asarray(values).dtype.kind in "USaMmV":  # text, times: never a width
-            raise TypeError
-        arr = np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: {key}: widths must be numbers [m]", path=path, key=key) from None
-    if arr.shape[0] != n:
-        raise InputError(
-            f"{path}: {key} has {arr.shape[0]:,} widths for {n:,} grasps; one width per grasp",
-            path=path,
-            key=key,
-            value=arr.shape[0],
-        )
+    if np.asarray(values).dtype.kind in "USaMmV":  # text, times: never a width
+        raise InputError(f"{path}: {key}: widths must be numbers [m]", path=path, key=key)
+    arr = _per_grasp(path, values, n, key, "width", "widths must be numbers [m]")
     with np.errstate(invalid="ignore"):
         bad = np.isinf(arr) | (arr < 0.0)
     _refuse_first_bad(

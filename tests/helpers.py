@@ -42,6 +42,18 @@ def random_rigid(rng: Any, reach: float = 0.2) -> Any:
     return tf
 
 
+def triangle_corners(config: Path = BOTTLE) -> Any:
+    """The corners (T, 3, 8) of every triangle of a config's manifold, as dual quaternions."""
+    import numpy as np
+
+    import gcm_pipeline as gcm
+
+    cfg = gcm.load_config(config)
+    cand = gcm.generate_candidates(cfg)
+    mesh = gcm.build_manifold(cand, cfg)
+    return np.asarray(cand["dq"])[mesh.triangles]
+
+
 def complete_answers(gd: Any) -> Any:
     """``gd`` (a ``pin.GeometryData``) asking coal for its complete collision answer.
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import BOTTLE
+from helpers import BOTTLE, triangle_corners
 from scipy.spatial import cKDTree
 
 import gcm_pipeline as gcm
@@ -44,10 +44,7 @@ def _lattice_distance(corners: np.ndarray, queries: np.ndarray, s: int) -> np.nd
 
 @pytest.fixture(scope="module")
 def corners() -> np.ndarray:
-    cfg = gcm.load_config(BOTTLE)
-    cand = gcm.generate_candidates(cfg)
-    mesh = gcm.build_manifold(cand, cfg)
-    return np.asarray(cand["dq"])[mesh.triangles]
+    return triangle_corners()
 
 
 @pytest.mark.parametrize("method", ["dlb", "dib"])

@@ -11,19 +11,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import BOTTLE
+from helpers import triangle_corners
 
-import gcm_pipeline as gcm
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat
 from gcm_pipeline.manifold.surface import project_onto_triangles
 
 
 @pytest.fixture(scope="module")
 def corners() -> np.ndarray:
-    cfg = gcm.load_config(BOTTLE)
-    cand = gcm.generate_candidates(cfg)
-    mesh = gcm.build_manifold(cand, cfg)
-    return np.asarray(cand["dq"])[mesh.triangles]
+    return triangle_corners()
 
 
 @pytest.mark.parametrize("method", ["dlb", "dib"])

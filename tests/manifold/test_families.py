@@ -312,3 +312,45 @@ def test_a_turned_and_moved_set_gives_the_same_triangles_in_the_same_order(faces
         )
         np.testing.assert_array_equal(m.triangles, first.triangles, err_msg=str(k))
         np.testing.assert_array_equal(m.family, first.family, err_msg=str(k))
+
+
+def _repeated(dq: np.ndarray, copies: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``dq`` with each pose ``copies`` times in shuffled order, every third copy sign-flipped.
+
+    Returns the rows and the first row of each pose, in the order of ``dq``'s poses' first
+    appearance (ascending).
+    """
+    rng = np.random.default_rng(seed)
+    pose = rng.permutation(np.repeat(np.arange(len(dq)), copies))
+    rows = dq[pose].copy()
+    rows[::3] *= -1.0  # q and -q are one pose
+    _, first = np.unique(pose, return_index=True)
+    return rows, np.sort(first)
+
+
+@pytest.mark.parametrize("bounds", [(None, None), (LENGTH, ANGLE)])
+def test_exact_duplicate_rows_get_what_the_distinct_poses_get(bounds) -> None:
+    # 24 poses 2,000 times each: the neighbour search once ran on every copy (O(N^2) pairs
+    # of identical rows, minutes), and the spacing skipped every row with 8 copies or more
+    # (a false "fewer than 3 distinct poses"). Each pose now counts once.
+    dq, _ = face_grasps(per_face=24)
+    rows, first = _repeated(dq[:24], 2000)
+    length, angle = bounds
+    kw = {"max_edge_length": length, "max_edge_angle_deg": angle, "orientation_scale": 0.1}
+    fm = family_triangles(rows, **kw)
+    one = family_triangles(rows[first], **kw)
+    assert len(one.triangles) >= 10 and (one.isolation == "").sum() >= 12  # a real mesh
+    assert (fm.max_edge_length, fm.max_edge_angle_deg) == (
+        one.max_edge_length,
+        one.max_edge_angle_deg,
+    )
+    assert np.array_equal(fm.triangles, first[one.triangles])
+    assert np.array_equal(fm.dropped, first[one.dropped])
+    assert np.array_equal(fm.dropped_reason, one.dropped_reason)
+    assert np.array_equal(fm.family[first], one.family)
+    assert np.array_equal(fm.isolation[first], one.isolation)
+    assert np.array_equal(fm.chart[first], one.chart)
+    dup = np.ones(len(rows), dtype=bool)
+    dup[first] = False
+    assert np.all(fm.family[dup] == -1) and np.all(fm.isolation[dup] == "duplicate")
+    assert np.all(fm.chart[dup] == 0.0)

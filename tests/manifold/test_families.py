@@ -202,6 +202,9 @@ def test_all_grasps_at_one_pose_and_two_grasps_are_one_line_errors(tmp_path, cap
         build_manifold(same, structure="families")
     with pytest.raises(GeometryError, match="at least 3 grasp poses"):
         build_manifold(GraspTable({"dq": dq[:2]}), structure="families")
+    two = GraspTable({"dq": np.concatenate((dq[:2], dq[:2], -dq[:2]))})  # 2 poses, 6 rows
+    with pytest.raises(GeometryError, match="the 6 grasps have fewer than 3 distinct poses"):
+        build_manifold(two, structure="families")
     # with bounds given, one pose is a defined manifold with no triangle
     m = build_manifold(same, structure="families", max_edge_length=0.01, max_edge_angle_deg=5)
     assert len(m.triangles) == 0 and m.isolation.tolist() == ["no_neighbour"] + ["duplicate"] * 9

@@ -85,6 +85,7 @@ __all__ = [
     "FamilyMesh",
     "default_bounds",
     "family_triangles",
+    "first_rows",
 ]
 
 #: The default ``max_edge_length`` is this many times the data's spacing (module docstring).
@@ -194,7 +195,13 @@ def _too_few(total: int) -> GeometryError:
 
 
 def _distinct_rows(dq: np.ndarray) -> np.ndarray:
-    """(U,) ascending: the rows that are no exact repeat of an earlier row.
+    """(U,) ascending: the rows that are no exact repeat of an earlier row (:func:`first_rows`)."""
+    rep = first_rows(dq)
+    return np.flatnonzero(rep == np.arange(len(dq)))
+
+
+def first_rows(dq: np.ndarray) -> np.ndarray:
+    """(N,) the first row with exactly the pose of each row (the row itself when none before).
 
     Rows are one pose when they are equal value for value, or one is the other
     negated (``q`` and ``-q``); nearly equal rows are left to :func:`_duplicates`.
@@ -204,8 +211,9 @@ def _distinct_rows(dq: np.ndarray) -> np.ndarray:
     canon = np.where(lead[:, None] < 0.0, -dq, dq) + 0.0  # + 0.0: -0.0 is 0.0
     # finite values, one zero: equal bytes are equal values (and 8x faster than axis=0)
     rows = np.ascontiguousarray(canon, dtype=np.float64)
-    _, first = np.unique(rows.view(np.dtype((np.void, 8 * rows.shape[1]))), return_index=True)
-    return np.sort(first).astype(np.int64)
+    keys = rows.view(np.dtype((np.void, 8 * rows.shape[1]))).reshape(-1)
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return first[inverse.reshape(-1)].astype(np.int64)
 
 
 def _flipped(feats: np.ndarray) -> np.ndarray:

@@ -357,3 +357,23 @@ def test_exact_duplicate_rows_get_what_the_distinct_poses_get(bounds) -> None:
     dup[first] = False
     assert np.all(fm.family[dup] == -1) and np.all(fm.isolation[dup] == "duplicate")
     assert np.all(fm.chart[dup] == 0.0)
+
+
+@pytest.mark.parametrize("triangulator", ["qhull", "bowyer_watson"])
+def test_exact_duplicate_rows_are_one_vertex_of_the_cylindrical_chart(triangulator) -> None:
+    # the cylindrical chart's tie-breaking offsets once parted the copies of a pose: each copy
+    # a vertex (a million rows, a million vertices for Bowyer-Watson), triangles among copies
+    dq, _ = face_grasps(per_face=24)
+    rows, first = _repeated(dq[:24], 500)
+    m = build_manifold(
+        GraspTable({"dq": rows}),
+        structure="chart",
+        projection="cylindrical",
+        triangulator=triangulator,
+        max_edge_length=0.03,
+        frame=np.eye(4),
+    )
+    assert len(m.triangles) >= 10
+    assert np.isin(m.triangles, first).all()  # only the first row of each pose
+    pose = np.unique(np.abs(rows), axis=0, return_inverse=True)[1].reshape(-1)
+    assert np.array_equal(m.chart, m.chart[first][np.argsort(pose[first])][pose])

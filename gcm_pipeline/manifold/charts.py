@@ -19,6 +19,9 @@ Charts (``projection``)
                 in ``theta`` with period ``2 pi R``: it is triangulated with
                 copies shifted by one turn and every triangle is kept once, so
                 the mesh closes around the object with no seam at +-pi.
+                Tiny per-pose offsets break co-circular ties; exact repeats
+                of a pose share them, so they are one point (in no
+                triangle), as in the other charts.
                 ``theta`` of the stored chart is in [-pi, pi); a triangle over
                 the seam is counter-clockwise in the unwrapped chart.
 ``spherical``   stereographic projection (scaled by ``2 R``, dimensionless
@@ -211,7 +214,11 @@ def _chart_radius(standoff_dist: np.ndarray, projection: str) -> float:
 
 
 def _cylindrical(
-    pos: np.ndarray, approach: np.ndarray, frame: np.ndarray | None, triangulator: str
+    pos: np.ndarray,
+    approach: np.ndarray,
+    frame: np.ndarray | None,
+    triangulator: str,
+    same: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
@@ -234,6 +241,8 @@ def _cylindrical(
     turn = 2 * np.pi * radius
     extent = float(np.ptp(chart, axis=0).max())
     jitter = np.random.default_rng(0).uniform(-0.5, 0.5, (n, 2)) * (_JITTER * extent)
+    if same is not None:  # a repeated pose is one point (the triangulation drops the repeats)
+        jitter = jitter[same]
     base = chart + jitter
     ext = np.concatenate((base - (turn, 0.0), base, base + (turn, 0.0)))
     tris_ext = _triangulate(ext, "cylindrical", triangulator)
@@ -309,6 +318,7 @@ def chart_triangles(
     projection: str,
     triangulator: str,
     frame: np.ndarray | None,
+    same: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float | None]:
     """Chart and triangulate grasp positions (see the module docstring).
 
@@ -318,6 +328,10 @@ def chart_triangles(
         projection: One of :data:`PROJECTIONS` (trusted).
         triangulator: ``qhull`` or ``bowyer_watson`` (trusted).
         frame: (4, 4) object frame for the cylindrical and spherical charts, or None.
+        same: (N,) the first row of each row's pose (exact repeats), or None
+            (all distinct). The cylindrical chart's tie-breaking offsets are
+            per pose, so repeats stay one point, in no triangle, as in the
+            other charts (a million repeats would be a million vertices).
 
     Returns:
         ``(chart (N, 2), triangles (T, 3), frame, period)``: the frame the
@@ -329,7 +343,7 @@ def chart_triangles(
             collinear in the chart.
     """
     if projection == "cylindrical":
-        return _cylindrical(pos, approach, frame, triangulator)
+        return _cylindrical(pos, approach, frame, triangulator, same)
     if projection == "spherical":
         chart, tris, used_frame = _spherical(pos, approach, frame, triangulator)
     else:

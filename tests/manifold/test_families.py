@@ -202,6 +202,9 @@ def test_all_grasps_at_one_pose_and_two_grasps_are_one_line_errors(tmp_path, cap
         build_manifold(same, structure="families")
     with pytest.raises(GeometryError, match="at least 3 grasp poses"):
         build_manifold(GraspTable({"dq": dq[:2]}), structure="families")
+    two = GraspTable({"dq": np.concatenate((dq[:2], dq[:2], -dq[:2]))})  # 2 poses, 6 rows
+    with pytest.raises(GeometryError, match="the 6 grasps have fewer than 3 distinct poses"):
+        build_manifold(two, structure="families")
     # with bounds given, one pose is a defined manifold with no triangle
     m = build_manifold(same, structure="families", max_edge_length=0.01, max_edge_angle_deg=5)
     assert len(m.triangles) == 0 and m.isolation.tolist() == ["no_neighbour"] + ["duplicate"] * 9
@@ -312,3 +315,65 @@ def test_a_turned_and_moved_set_gives_the_same_triangles_in_the_same_order(faces
         )
         np.testing.assert_array_equal(m.triangles, first.triangles, err_msg=str(k))
         np.testing.assert_array_equal(m.family, first.family, err_msg=str(k))
+
+
+def _repeated(dq: np.ndarray, copies: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``dq`` with each pose ``copies`` times in shuffled order, every third copy sign-flipped.
+
+    Returns the rows and the first row of each pose, in the order of ``dq``'s poses' first
+    appearance (ascending).
+    """
+    rng = np.random.default_rng(seed)
+    pose = rng.permutation(np.repeat(np.arange(len(dq)), copies))
+    rows = dq[pose].copy()
+    rows[::3] *= -1.0  # q and -q are one pose
+    _, first = np.unique(pose, return_index=True)
+    return rows, np.sort(first)
+
+
+@pytest.mark.parametrize("bounds", [(None, None), (LENGTH, ANGLE)])
+def test_exact_duplicate_rows_get_what_the_distinct_poses_get(bounds) -> None:
+    # 24 poses 2,000 times each: the neighbour search once ran on every copy (O(N^2) pairs
+    # of identical rows, minutes), and the spacing skipped every row with 8 copies or more
+    # (a false "fewer than 3 distinct poses"). Each pose now counts once.
+    dq, _ = face_grasps(per_face=24)
+    rows, first = _repeated(dq[:24], 2000)
+    length, angle = bounds
+    kw = {"max_edge_length": length, "max_edge_angle_deg": angle, "orientation_scale": 0.1}
+    fm = family_triangles(rows, **kw)
+    one = family_triangles(rows[first], **kw)
+    assert len(one.triangles) >= 10 and (one.isolation == "").sum() >= 12  # a real mesh
+    assert (fm.max_edge_length, fm.max_edge_angle_deg) == (
+        one.max_edge_length,
+        one.max_edge_angle_deg,
+    )
+    assert np.array_equal(fm.triangles, first[one.triangles])
+    assert np.array_equal(fm.dropped, first[one.dropped])
+    assert np.array_equal(fm.dropped_reason, one.dropped_reason)
+    assert np.array_equal(fm.family[first], one.family)
+    assert np.array_equal(fm.isolation[first], one.isolation)
+    assert np.array_equal(fm.chart[first], one.chart)
+    dup = np.ones(len(rows), dtype=bool)
+    dup[first] = False
+    assert np.all(fm.family[dup] == -1) and np.all(fm.isolation[dup] == "duplicate")
+    assert np.all(fm.chart[dup] == 0.0)
+
+
+@pytest.mark.parametrize("triangulator", ["qhull", "bowyer_watson"])
+def test_exact_duplicate_rows_are_one_vertex_of_the_cylindrical_chart(triangulator) -> None:
+    # the cylindrical chart's tie-breaking offsets once parted the copies of a pose: each copy
+    # a vertex (a million rows, a million vertices for Bowyer-Watson), triangles among copies
+    dq, _ = face_grasps(per_face=24)
+    rows, first = _repeated(dq[:24], 500)
+    m = build_manifold(
+        GraspTable({"dq": rows}),
+        structure="chart",
+        projection="cylindrical",
+        triangulator=triangulator,
+        max_edge_length=0.03,
+        frame=np.eye(4),
+    )
+    assert len(m.triangles) >= 10
+    assert np.isin(m.triangles, first).all()  # only the first row of each pose
+    pose = np.unique(np.abs(rows), axis=0, return_inverse=True)[1].reshape(-1)
+    assert np.array_equal(m.chart, m.chart[first][np.argsort(pose[first])][pose])

@@ -73,6 +73,14 @@ except ImportError:  # pragma: no cover - a checkout of 0.1.0's layout
     from gcm_pipeline.stages.collision import make_checker
 from gcm_pipeline.robot.model import Robot  # noqa: E402
 
+try:  # a 6R solver keeps its last poses' EAIK answers; --before may predate that
+    from gcm_pipeline.robot.ik.analytic_6r import forget_answers
+except ImportError:  # pragma: no cover - a checkout whose solver keeps none
+
+    def forget_answers(robot: Any) -> None:
+        """Nothing to forget."""
+
+
 CONFIG = ROOT / "configs" / "bottle_side.yaml"
 UR10 = ROOT / "configs" / "robots" / "ur10.yaml"
 ARMS = {"ur5": "ur5", "ur10_spec": str(UR10), "ur10_limited": ""}
@@ -269,6 +277,7 @@ def run_arm(
     walls = []
     try:
         for _ in range(repeats):
+            forget_answers(robot)  # each repeat solves as the first did
             t0 = time.perf_counter()
             done = P.check_reachability(grasps, robot, cfg, engine=engine)
             walls.append(time.perf_counter() - t0)

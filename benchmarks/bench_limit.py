@@ -135,7 +135,7 @@ from gcm_pipeline.reach.waypoints import end_of_move  # noqa: E402
 from gcm_pipeline.robot.collision import CollisionChecker  # noqa: E402
 from gcm_pipeline.robot.collision.link_spheres import geometry_spheres  # noqa: E402
 from gcm_pipeline.robot.ik import solve_ik  # noqa: E402
-from gcm_pipeline.robot.ik.analytic_6r import nearest_copy  # noqa: E402
+from gcm_pipeline.robot.ik.analytic_6r import forget_answers, nearest_copy  # noqa: E402
 from gcm_pipeline.robot.model import Robot  # noqa: E402
 
 VAMP_SCRIPT = ROOT / "benchmarks" / "vamp" / "vamp_check.py"
@@ -179,7 +179,8 @@ def ik_figures(name: str, robot: Robot, n: int, repeats: int) -> dict[str, Any]:
     q = robot.random_configurations(n, rng)
     targets = robot.fk_pinocchio(q)
     solve_ik(robot, targets[:50])  # compiled kernels loaded before timing
-    dt, res = timed(lambda: solve_ik(robot, targets), repeats)
+    # each repeat solves as the first did (a 6R solver keeps its last poses' answers)
+    dt, res = timed(lambda: (forget_answers(robot), solve_ik(robot, targets))[1], repeats)
     out: dict[str, Any] = {
         "targets": n,
         "gcm_s_per_pose": dt / n,
@@ -190,7 +191,11 @@ def ik_figures(name: str, robot: Robot, n: int, repeats: int) -> dict[str, Any]:
     ends = targets.copy()
     ends[:, :3, 3] -= 0.1 * targets[:, :3, 2]
     dt, (_, reached) = timed(
-        lambda: end_of_move(robot, ends, q, "pinocchio", TOL_P, TOL_R, {}), repeats
+        lambda: (
+            forget_answers(robot),
+            end_of_move(robot, ends, q, "pinocchio", TOL_P, TOL_R, {}),
+        )[1],
+        repeats,
     )
     out["gcm_move_end_s_per_pose"] = dt / n
     out["gcm_move_end_reached"] = float(np.mean(reached))

@@ -53,6 +53,7 @@ from gcm_pipeline.robot.ik.lm import pose_errors
 __all__ = [
     "SixRAnalyticIK",
     "branch_gap",
+    "forget_answers",
     "nearest_copy",
     "repeated_branches",
     "same_as_earlier",
@@ -382,6 +383,17 @@ class SixRAnalyticIK:
         q = nearest_copy(q, ref[idx], lower, upper)
         keep = np.all(np.isfinite(q), axis=1)
         return idx[keep], q[keep]
+
+
+def forget_answers(robot: Any) -> None:
+    """Drop the EAIK answers ``robot``'s 6R solver keeps (if it has one).
+
+    For timing the same poses again as the first time (a benchmark's repeats):
+    otherwise the repeats take the kept answers instead of solving.
+    """
+    solver = robot.cache.get(("analytic_6r",))
+    if solver is not None:
+        solver._recent = _RecentAnswers(_RECENT_POSES)
 
 
 def six_r_solver(robot: Any) -> SixRAnalyticIK | None:

@@ -327,3 +327,19 @@ def test_the_ring_of_recent_answers_grows_wraps_and_never_maps_a_pose_to_another
         ring.find([bytes([p]) * 8 for p in (1, 30, 6)]),
         [-1, ring.slot_of[bytes([30]) * 8], ring.slot_of[bytes([6]) * 8]],
     )
+
+
+def test_forget_answers_makes_the_robots_solver_solve_again(arm: Robot) -> None:
+    """A benchmark's repeat times solving, not the kept answers; the answers stay the same."""
+    q = arm.random_configurations(50, np.random.default_rng(5))
+    poses = _pin_pose(arm, q)
+    solver = analytic_6r.six_r_solver(arm)
+    assert solver is not None
+    first = solver._answers(poses[:, :3, :3], poses[:, :3, 3])
+    assert len(solver._recent.slot_of) >= 50
+    analytic_6r.forget_answers(arm)
+    assert len(solver._recent.slot_of) == 0
+    again = solver._answers(poses[:, :3, :3], poses[:, :3, 3])
+    for want, got in zip(first, again, strict=True):
+        assert np.array_equal(want, got)
+    analytic_6r.forget_answers(arm)  # a robot whose solver holds nothing: no error

@@ -44,7 +44,12 @@ import numpy as np
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.reach.deviation import lever_arms, segment_bounds
 from gcm_pipeline.reach.moves import Move, MovePlan, unreachable_ends
-from gcm_pipeline.reach.waypoints import end_of_move, largest_change, line_waypoints
+from gcm_pipeline.reach.waypoints import (
+    end_of_move,
+    largest_change,
+    line_waypoints,
+    max_over_joints,
+)
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import Robot
 
@@ -581,9 +586,7 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
         # the change of every joint between consecutive grid points
         step = np.subtract(path[:, 1:], path[:, :-1])
         np.abs(step, out=step)
-        most = step[:, :, 0]
-        for j in range(1, step.shape[2]):  # the max over joints (NaN stays), in fewer passes
-            most = np.maximum(most, step[:, :, j])
+        most = max_over_joints(step)
         big = most > b.move.max_joint_step
         over = np.flatnonzero(big.any(axis=1))
         if over.size:

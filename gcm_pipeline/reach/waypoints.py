@@ -20,7 +20,7 @@ from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt, po
 from gcm_pipeline.robot.ik.panda import analytic_blocks, analytic_solver
 from gcm_pipeline.robot.model import Robot
 
-__all__ = ["KNOT_TOLERANCE", "end_of_move", "largest_change", "line_waypoints"]
+__all__ = ["KNOT_TOLERANCE", "end_of_move", "largest_change", "line_waypoints", "max_over_joints"]
 
 #: Interior waypoints converge to this share of ``max_deviation`` (position) and
 #: of ``max_deviation / gripper_radius`` (orientation): their error is part of
@@ -110,15 +110,19 @@ def end_of_move(
 
 
 def largest_change(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """``np.max(np.abs(q - ref), axis=1)`` of (M, nq) arrays, NaN staying NaN.
+    """``np.max(np.abs(q - ref), axis=1)`` of (M, nq) arrays, NaN staying NaN."""
+    return max_over_joints(np.abs(q - ref))
 
-    One pass per joint: NumPy reduces a short last axis slowly (5,000 rows of 7
-    joints: 24 us instead of 384 us).
+
+def max_over_joints(d: np.ndarray) -> np.ndarray:
+    """``np.max(d, axis=-1)``, NaN staying NaN, in one pass per joint (the last axis).
+
+    NumPy reduces a short last axis slowly (5,000 rows of 7 joints: 24 us
+    instead of 384 us).
     """
-    d = np.abs(q - ref)
-    out = d[:, 0].copy()
-    for j in range(1, d.shape[1]):
-        np.maximum(out, d[:, j], out=out)
+    out = d[..., 0].copy()
+    for j in range(1, d.shape[-1]):
+        np.maximum(out, d[..., j], out=out)
     return out
 
 

@@ -237,7 +237,10 @@ def _pcd_ascii(
     counts: dict[str, int],
 ) -> Iterator[Chunk]:
     """The rows of a ``DATA ascii`` PCD, as many as its ``POINTS`` (when it has one) says."""
-    width = sum(dtype[name].shape[0] if dtype[name].shape else 1 for name in dtype.names or ())
+    fields = [
+        (name, dtype[name].shape[0] if dtype[name].shape else 1) for name in dtype.names or ()
+    ]
+    width = sum(c for _, c in fields)
     total = 0
     while True:
         raw = [fh.readline() for _ in range(min(CLOUD_CHUNK, 65536))]
@@ -265,8 +268,7 @@ def _pcd_ascii(
             raise InputError(f"{where}: {path}: the PCD holds more than its POINTS {n}", path=path)
         rec = np.zeros(len(vals), dtype=dtype)
         col = 0
-        for name in dtype.names or ():
-            c = dtype[name].shape[0] if dtype[name].shape else 1
+        for name, c in fields:
             rec[name] = vals[:, col : col + c].astype(dtype[name].base).reshape(rec[name].shape)
             col += c
         counts["read"] += len(rec)

@@ -253,6 +253,7 @@ def project_onto_triangles(
         ``(weights (P, 3), distance (P,))``: the local minimiser and its
         pose-metric distance [m] (from the exact blend, :func:`blend`).
     """
+    signed = _signed_to_first(corners)
     if method == "dlb":
         # corners signed once where that holds for every weight (the same
         # model either way, up to rounding; chosen per triangle, never per batch)
@@ -275,8 +276,6 @@ def project_onto_triangles(
         # DIB signs its output like the heaviest corner: a triangle with a corner of
         # the other sign would change sign inside (a jump for a held sign); signed
         # to agree with the first, the same poses keep one sign
-        first = np.einsum("pkc,pc->pk", corners[:, :, :4], corners[:, 0, :4])
-        signed = corners * np.where(first < 0, -1.0, 1.0)[:, :, None]
 
         def model(rows: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
             return _dib_model(signed[rows], uv)
@@ -285,7 +284,7 @@ def project_onto_triangles(
     # corner's dot product with it is not of the others' sign) has a kink where
     # the nearer sign switches, and a local minimum on each side of it: it is
     # projected once with each sign held (the nearer end is kept)
-    dots = np.einsum("pkc,pc->pk", _signed_to_first(corners[:, :, :4]), queries[:, :4])
+    dots = np.einsum("pkc,pc->pk", signed[:, :, :4], queries[:, :4])
     two = np.flatnonzero((dots.min(axis=1) <= 0.0) & (dots.max(axis=1) >= 0.0))
     pair = np.concatenate((np.arange(len(queries)), two))
     held = np.zeros(len(pair))
@@ -315,9 +314,10 @@ def project_onto_triangles(
     return w_out, d_out
 
 
-def _signed_to_first(r: np.ndarray) -> np.ndarray:
-    """Rotations (P, 3, 4) of a triangle's corners, each signed to agree with the first."""
-    return r * np.where(np.einsum("pkc,pc->pk", r, r[:, 0]) < 0, -1.0, 1.0)[:, :, None]
+def _signed_to_first(corners: np.ndarray) -> np.ndarray:
+    """A triangle's corners (P, 3, 8), each signed so its rotation agrees with the first's."""
+    r = corners[:, :, :4]
+    return corners * np.where(np.einsum("pkc,pc->pk", r, r[:, 0]) < 0, -1.0, 1.0)[:, :, None]
 
 
 def _descend(

@@ -321,7 +321,8 @@ class Robot:
         """
         qs = self.as_configurations(q)
         out = np.empty((qs.shape[0], 4, 4))
-        model, data, fid = self.model, self.data, self.grasp_frame_id
+        # a Data of this call's own: threads sharing the robot must not overwrite each other's
+        model, data, fid = self.model, self.model.createData(), self.grasp_frame_id
         fk, frame = pin.forwardKinematics, pin.updateFramePlacement
         for i, qi in enumerate(qs):
             fk(model, data, qi)

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import collections
 import itertools
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -225,6 +226,7 @@ class SixRAnalyticIK:
         self._robot = robot
         self.family = str(robot.getKinematicFamily())
         self._recent = _RecentAnswers(_RECENT_POSES)  # EAIK's answers of the last poses
+        self._lock = threading.Lock()  # one thread at a time reads and keeps them
 
     @classmethod
     def for_chain(
@@ -304,8 +306,17 @@ class SixRAnalyticIK:
         A pose equal to one of the last ``_RECENT_POSES`` solved (bit for
         bit) takes their answers again: EAIK's answer is a function of the
         pose (a stage solves a chunk's targets, then the same targets again
-        for their other branches where the first failed a check).
+        for their other branches where the first failed a check). Threads
+        sharing the solver take turns (the kept answers are read and replaced
+        in one step).
         """
+        with self._lock:
+            return self._answers_of(rot, pos)
+
+    def _answers_of(
+        self, rot: np.ndarray, pos: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_answers` inside the lock."""
         n = len(rot)
         poses = np.zeros((n, 4, 4))
         poses[:, :3, :3] = rot
@@ -393,7 +404,8 @@ def forget_answers(robot: Any) -> None:
     """
     solver = robot.cache.get(("analytic_6r",))
     if solver is not None:
-        solver._recent = _RecentAnswers(_RECENT_POSES)
+        with solver._lock:
+            solver._recent = _RecentAnswers(_RECENT_POSES)
 
 
 def six_r_solver(robot: Any) -> SixRAnalyticIK | None:

@@ -343,3 +343,45 @@ def test_forget_answers_makes_the_robots_solver_solve_again(arm: Robot) -> None:
     for want, got in zip(first, again, strict=True):
         assert np.array_equal(want, got)
     analytic_6r.forget_answers(arm)  # a robot whose solver holds nothing: no error
+
+
+def test_threads_sharing_a_solver_get_each_poses_own_answers(
+    arm: Robot, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Python API users may solve from several threads with one robot: the kept
+    answers (a small ring here, overwritten all the time) never give one pose's
+    answers to another."""
+    import sys
+    import threading
+
+    monkeypatch.setattr(analytic_6r, "_RECENT_POSES", 64)
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as Python allows
+    try:
+        q = arm.random_configurations(600, np.random.default_rng(17))
+        poses = _pin_pose(arm, q)
+        rot, pos = poses[:, :3, :3], poses[:, :3, 3]
+        fresh = SixRAnalyticIK.for_chain(arm.chain)
+        assert fresh is not None
+        want = [fresh.raw(rot[i : i + 1], pos[i : i + 1]) for i in range(len(rot))]
+        shared = SixRAnalyticIK.for_chain(arm.chain)
+        assert shared is not None
+        wrong: list[int] = []
+
+        def work(seed: int) -> None:
+            rng = np.random.default_rng(seed)
+            for _ in range(60):
+                take = rng.choice(len(rot), size=int(rng.integers(1, 40)), replace=True)
+                idx, got = shared.raw(rot[take], pos[take])
+                for k, t in enumerate(take.tolist()):
+                    if not np.array_equal(got[idx == k], want[t][1]):
+                        wrong.append(t)
+
+        threads = [threading.Thread(target=work, args=(s,)) for s in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(interval)
+    assert wrong == []

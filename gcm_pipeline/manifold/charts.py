@@ -19,9 +19,8 @@ Charts (``projection``)
                 in ``theta`` with period ``2 pi R``: it is triangulated with
                 copies shifted by one turn and every triangle is kept once, so
                 the mesh closes around the object with no seam at +-pi.
-                Tiny per-pose offsets break co-circular ties; exact repeats
-                of a pose share them, so they are one point (in no
-                triangle), as in the other charts.
+                Tiny per-pose offsets break co-circular ties; repeats of a
+                pose share them (see below).
                 ``theta`` of the stored chart is in [-pi, pi); a triangle over
                 the seam is counter-clockwise in the unwrapped chart.
 ``spherical``   stereographic projection (scaled by ``2 R``, dimensionless
@@ -30,6 +29,10 @@ Charts (``projection``)
                 spherical one; triangles whose circumcircle contains the pole
                 are left out (grasp sets rarely surround the pole).
 =============== ===============================================================
+
+Every chart triangulates each row's pose at its first row's point: repeats
+of a pose (exact, or within 1e-5 m: :mod:`gcm_pipeline.manifold.repeats`)
+are one point, in no triangle; the chart keeps each row's own coordinates.
 
 The cylindrical and spherical charts use the object frame ``frame`` (its z
 axis is the cylinder axis / the direction away from the pole, its origin the
@@ -243,7 +246,7 @@ def _cylindrical(
     jitter = np.random.default_rng(0).uniform(-0.5, 0.5, (n, 2)) * (_JITTER * extent)
     if same is not None:  # a repeated pose is one point (the triangulation drops the repeats)
         jitter = jitter[same]
-    base = chart + jitter
+    base = _at_first(chart, same) + jitter
     ext = np.concatenate((base - (turn, 0.0), base, base + (turn, 0.0)))
     tris_ext = _triangulate(ext, "cylindrical", triangulator)
     ids = tris_ext % n
@@ -268,8 +271,17 @@ def _cylindrical(
     return chart, tris[np.sort(first)], _pose(centre, rot), turn
 
 
+def _at_first(chart: np.ndarray, same: np.ndarray | None) -> np.ndarray:
+    """Each row's chart point moved to its pose's first row's (no move for exact repeats)."""
+    return chart if same is None else chart[same]
+
+
 def _spherical(
-    pos: np.ndarray, approach: np.ndarray, frame: np.ndarray | None, triangulator: str
+    pos: np.ndarray,
+    approach: np.ndarray,
+    frame: np.ndarray | None,
+    triangulator: str,
+    same: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
@@ -296,11 +308,12 @@ def _spherical(
             "(straight below the centre)"
         )
     chart = 2.0 * radius * u[:, :2] / denom[:, None]
-    return chart, _triangulate(chart, "spherical", triangulator), _pose(centre, rot)
+    tris = _triangulate(_at_first(chart, same), "spherical", triangulator)
+    return chart, tris, _pose(centre, rot)
 
 
 def _planar(
-    pos: np.ndarray, projection: str, triangulator: str
+    pos: np.ndarray, projection: str, triangulator: str, same: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if projection == "xy":
         chart = pos[:, :2].copy()
@@ -309,7 +322,7 @@ def _planar(
         centre, axes = _principal_axes(pos)
         chart = (pos - centre) @ axes[:, :2]
         frame = _pose(centre, axes)
-    return chart, _triangulate(chart, projection, triangulator), frame
+    return chart, _triangulate(_at_first(chart, same), projection, triangulator), frame
 
 
 def chart_triangles(
@@ -328,10 +341,12 @@ def chart_triangles(
         projection: One of :data:`PROJECTIONS` (trusted).
         triangulator: ``qhull`` or ``bowyer_watson`` (trusted).
         frame: (4, 4) object frame for the cylindrical and spherical charts, or None.
-        same: (N,) the first row of each row's pose (exact repeats), or None
-            (all distinct). The cylindrical chart's tie-breaking offsets are
-            per pose, so repeats stay one point, in no triangle, as in the
-            other charts (a million repeats would be a million vertices).
+        same: (N,) the first row of each row's pose (exact and near repeats,
+            :func:`~gcm_pipeline.manifold.repeats.same_pose_rows`), or None
+            (all distinct). Each row is triangulated at its first row's
+            point (and the cylindrical chart's tie-breaking offset), so
+            repeats are one point, in no triangle (a million copies of a
+            pose would be a million vertices, their triangles slivers).
 
     Returns:
         ``(chart (N, 2), triangles (T, 3), frame, period)``: the frame the
@@ -345,7 +360,7 @@ def chart_triangles(
     if projection == "cylindrical":
         return _cylindrical(pos, approach, frame, triangulator, same)
     if projection == "spherical":
-        chart, tris, used_frame = _spherical(pos, approach, frame, triangulator)
+        chart, tris, used_frame = _spherical(pos, approach, frame, triangulator, same)
     else:
-        chart, tris, used_frame = _planar(pos, projection, triangulator)
+        chart, tris, used_frame = _planar(pos, projection, triangulator, same)
     return chart, tris, used_frame, None

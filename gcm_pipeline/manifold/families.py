@@ -75,6 +75,7 @@ from gcm_pipeline.errors import GeometryError
 from gcm_pipeline.geometry.bowyer_watson import delaunay
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_translation
 from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
+from gcm_pipeline.manifold.repeats import first_rows, same_pose_rows
 
 __all__ = [
     "BOUND_TOLERANCE",
@@ -150,7 +151,7 @@ def default_bounds(
     """
     if max_edge_length is not None and max_edge_angle_deg is not None:
         return float(max_edge_length), float(max_edge_angle_deg)
-    first = _distinct_rows(dq)
+    first = _distinct_rows(dq, orientation_scale)
     return _bounds(dq[first], len(dq), orientation_scale, max_edge_length, max_edge_angle_deg)
 
 
@@ -194,26 +195,10 @@ def _too_few(total: int) -> GeometryError:
     )
 
 
-def _distinct_rows(dq: np.ndarray) -> np.ndarray:
-    """(U,) ascending: the rows that are no exact repeat of an earlier row (:func:`first_rows`)."""
-    rep = first_rows(dq)
+def _distinct_rows(dq: np.ndarray, orientation_scale: float) -> np.ndarray:
+    """(U,) ascending: the rows that repeat no earlier row (:func:`~.repeats.same_pose_rows`)."""
+    rep = same_pose_rows(dq, orientation_scale)
     return np.flatnonzero(rep == np.arange(len(dq)))
-
-
-def first_rows(dq: np.ndarray) -> np.ndarray:
-    """(N,) the first row with exactly the pose of each row (the row itself when none before).
-
-    Rows are one pose when they are equal value for value, or one is the other
-    negated (``q`` and ``-q``); nearly equal rows are left to :func:`_duplicates`.
-    """
-    n = len(dq)
-    lead = dq[np.arange(n), np.argmax(dq[:, :4] != 0.0, axis=1)]  # first non-zero of r
-    canon = np.where(lead[:, None] < 0.0, -dq, dq) + 0.0  # + 0.0: -0.0 is 0.0
-    # finite values, one zero: equal bytes are equal values (and 8x faster than axis=0)
-    rows = np.ascontiguousarray(canon, dtype=np.float64)
-    keys = rows.view(np.dtype((np.void, 8 * rows.shape[1]))).reshape(-1)
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    return first[inverse.reshape(-1)].astype(np.int64)
 
 
 def _flipped(feats: np.ndarray) -> np.ndarray:
@@ -434,7 +419,7 @@ def family_triangles(
     Raises:
         GeometryError: Fewer than 3 distinct poses when a bound is to be derived.
     """
-    first = _distinct_rows(dq)
+    first = _distinct_rows(dq, orientation_scale)
     bounds = _bounds(dq[first], len(dq), orientation_scale, max_edge_length, max_edge_angle_deg)
     if len(first) == len(dq):
         return _family_mesh(dq, *bounds, orientation_scale, triangulator)

@@ -1,0 +1,141 @@
+r"""Repeated grasps: rows of a grasp set that are one pose, exactly or nearly.
+
+Grasp files repeat poses: a synthesiser emits the same grasp twice, files are
+concatenated, or the same grasps come back after a round trip through
+float32 or a text format with fewer digits. The manifold stage treats such
+rows as **one pose**: the structure is built over the first row of each pose
+and every other row is a repeat of it (``duplicate`` in the ``families``
+structure, in no triangle in either structure; each row is still checked and
+answered in the run's table).
+
+Two rows are one pose when
+
+* they are equal value for value, or one is the other with the quaternion
+  negated (``q`` and ``-q``): **exact repeats** (:func:`first_rows`), or
+* they are at most :data:`NEAR_REPEAT` (1e-5 m) apart in the pose metric
+  (:mod:`gcm_pipeline.geometry.pose_metric`; 1e-5 rad of turn counts as
+  1e-6 m): **near repeats** (:func:`same_pose_rows`).
+
+:data:`NEAR_REPEAT` is a tenth of the IK's default tolerances (1e-4 m, and
+1e-3 rad, which counts as 1e-4 m in the metric) and about 3,000 times under
+the bounds the ``families`` structure derives on ACRONYM's mug (0.031 m): an
+IK solution of one row is a solution of the other, and no triangle could
+join them. It is above what float32 (about 3e-8 m on a pose 1 m from the
+origin) or six significant digits (about 1e-6 m) change.
+
+Near repeats are found in O(N log N), without a neighbour search among the
+copies of one pose (thousands of copies of a pose at ~the same place made the
+k-d tree searches quadratic):
+
+1. Rows sharing a cell of a grid of side :data:`NEAR_REPEAT` ``/ (2 sqrt 7)``
+   over the pose features ``[p, 2 L r]`` (``r_w >= 0``) are within
+   ``NEAR_REPEAT / 2`` of each other: each is a repeat of the cell's first row.
+2. The cells' first rows, in row order: a row with another within
+   :data:`NEAR_REPEAT` (a k-d tree over them, both quaternion signs where
+   ``r_w`` is small enough for the sign to matter) and not yet a repeat keeps
+   its pose; the rows within :data:`NEAR_REPEAT` of it that are not yet
+   repeats become repeats of it.
+
+So a kept row is the first row of its pose, kept rows are more than
+:data:`NEAR_REPEAT` apart, and a repeat lies within 1.5 :data:`NEAR_REPEAT`
+of its kept row. A set with no two rows within :data:`NEAR_REPEAT` (no cell
+holds two rows) is left as it is.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gcm_pipeline.geometry.pose_metric import pose_features
+
+__all__ = ["NEAR_REPEAT", "first_rows", "same_pose_rows"]
+
+#: [m] pose-metric distance within which two grasp rows are one pose (module docstring).
+NEAR_REPEAT = 1e-5
+_CELL = NEAR_REPEAT / (2.0 * np.sqrt(7.0))  # grid side: a cell's diagonal is NEAR_REPEAT / 2
+_CHUNK = 1 << 15  # points per k-d tree query call (a signal waits for at most one)
+
+
+def first_rows(dq: np.ndarray) -> np.ndarray:
+    """(N,) the first row with exactly the pose of each row (the row itself when none before).
+
+    Rows are one pose when they are equal value for value, or one is the other
+    negated (``q`` and ``-q``); for nearly equal rows see :func:`same_pose_rows`.
+    """
+    n = len(dq)
+    lead = dq[np.arange(n), np.argmax(dq[:, :4] != 0.0, axis=1)]  # first non-zero of r
+    canon = np.where(lead[:, None] < 0.0, -dq, dq) + 0.0  # + 0.0: -0.0 is 0.0
+    # finite values, one zero: equal bytes are equal values (and 8x faster than axis=0)
+    rows = np.ascontiguousarray(canon, dtype=np.float64)
+    keys = rows.view(np.dtype((np.void, 8 * rows.shape[1]))).reshape(-1)
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return first[inverse.reshape(-1)].astype(np.int64)
+
+
+def same_pose_rows(dq: np.ndarray, orientation_scale: float) -> np.ndarray:
+    """(N,) the kept row of each row's pose, exact and near repeats (module docstring).
+
+    Args:
+        dq: (N, 8) unit dual quaternions (finite).
+        orientation_scale: ``L`` [m/rad] of the pose metric.
+
+    Returns:
+        ``rep`` (N,): ``rep[i] <= i`` is the first row of row ``i``'s pose;
+        ``rep[i] == i`` for the rows kept. Without near repeats it is
+        :func:`first_rows`.
+    """
+    rep = first_rows(dq)
+    first = np.flatnonzero(rep == np.arange(len(dq)))
+    if len(first) < 2:
+        return rep
+    feats = pose_features(dq[first], orientation_scale)
+    cell = _cell_firsts(feats)  # (U,) index into first of each row's cell's first row
+    reps = np.flatnonzero(cell == np.arange(len(first)))
+    lead = _leaders(feats[reps])  # (R,) index into reps
+    if len(reps) == len(first) and np.array_equal(lead, np.arange(len(reps))):
+        return rep  # no near repeats
+    # a cell's row -> the cell's first row -> its kept row; reps ascending, so searchsorted
+    kept = first[reps[lead[np.searchsorted(reps, cell)]]]
+    return kept[np.searchsorted(first, rep)]
+
+
+def _cell_firsts(feats: np.ndarray) -> np.ndarray:
+    """(U,) the first row sharing each row's grid cell (side :data:`_CELL`)."""
+    key = np.ascontiguousarray(np.floor(feats / _CELL).astype(np.int64))
+    void = key.view(np.dtype((np.void, 8 * key.shape[1]))).reshape(-1)
+    _, first, inverse = np.unique(void, return_index=True, return_inverse=True)
+    return first[inverse.reshape(-1)].astype(np.int64)
+
+
+def _leaders(feats: np.ndarray) -> np.ndarray:
+    """(R,) the kept row of each row, greedily in row order (step 2 of the module docstring).
+
+    Rows are more than :data:`NEAR_REPEAT` / 2 apart already, so a ball holds few.
+    """
+    r = len(feats)
+    if r < 2:
+        return np.arange(r)
+    # the other sign of r only where it can come within reach: 2 L |r_w| <= NEAR_REPEAT
+    turn = np.flatnonzero(feats[:, 3] <= NEAR_REPEAT)
+    flipped = feats[turn].copy()
+    flipped[:, 3:] *= -1.0
+    ids = np.concatenate((np.arange(r), turn))
+    tree = cKDTree(np.concatenate((feats, flipped)))
+    near = np.zeros(r, dtype=bool)
+    k = min(3, len(ids))  # the row, its own flip, one more: one other if any is in reach
+    for lo in range(0, r, _CHUNK):
+        dist, at = tree.query(feats[lo : lo + _CHUNK], k=k, distance_upper_bound=NEAR_REPEAT)
+        found = np.isfinite(dist) & (dist <= NEAR_REPEAT)
+        other = ids[np.minimum(at, len(ids) - 1)] != np.arange(lo, lo + len(dist))[:, None]
+        near[lo : lo + len(dist)] = (found & other).any(axis=1)
+    lead = np.arange(r)
+    done = np.zeros(r, dtype=bool)
+    for i in np.flatnonzero(near):
+        if done[i]:
+            continue
+        hits = ids[np.asarray(tree.query_ball_point(feats[i], NEAR_REPEAT), dtype=np.int64)]
+        hits = hits[~done[hits]]
+        lead[hits] = i
+        done[hits] = True
+    return lead

@@ -19,8 +19,6 @@ Charts (``projection``)
                 in ``theta`` with period ``2 pi R``: it is triangulated with
                 copies shifted by one turn and every triangle is kept once, so
                 the mesh closes around the object with no seam at +-pi.
-                Tiny per-pose offsets break co-circular ties; repeats of a
-                pose share them (see below).
                 ``theta`` of the stored chart is in [-pi, pi); a triangle over
                 the seam is counter-clockwise in the unwrapped chart.
 ``spherical``   stereographic projection (scaled by ``2 R``, dimensionless
@@ -30,9 +28,11 @@ Charts (``projection``)
                 are left out (grasp sets rarely surround the pole).
 =============== ===============================================================
 
-Every chart triangulates each row's pose at its first row's point: repeats
-of a pose (exact, or within 1e-5 m: :mod:`gcm_pipeline.manifold.repeats`)
-are one point, in no triangle; the chart keeps each row's own coordinates.
+Repeats of a pose (exact, or within 1e-5 m in the pose metric:
+:mod:`gcm_pipeline.manifold.repeats`) are one point: the chart is made and
+triangulated over the first row of each pose, each pose once (so the
+chart's frame and radius do not follow how often a pose is repeated), and
+every repeat takes its first row's chart point; repeats are in no triangle.
 
 The cylindrical and spherical charts use the object frame ``frame`` (its z
 axis is the cylinder axis / the direction away from the pole, its origin the
@@ -217,11 +217,7 @@ def _chart_radius(standoff_dist: np.ndarray, projection: str) -> float:
 
 
 def _cylindrical(
-    pos: np.ndarray,
-    approach: np.ndarray,
-    frame: np.ndarray | None,
-    triangulator: str,
-    same: np.ndarray | None,
+    pos: np.ndarray, approach: np.ndarray, frame: np.ndarray | None, triangulator: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
@@ -244,9 +240,7 @@ def _cylindrical(
     turn = 2 * np.pi * radius
     extent = float(np.ptp(chart, axis=0).max())
     jitter = np.random.default_rng(0).uniform(-0.5, 0.5, (n, 2)) * (_JITTER * extent)
-    if same is not None:  # a repeated pose is one point (the triangulation drops the repeats)
-        jitter = jitter[same]
-    base = _at_first(chart, same) + jitter
+    base = chart + jitter
     ext = np.concatenate((base - (turn, 0.0), base, base + (turn, 0.0)))
     tris_ext = _triangulate(ext, "cylindrical", triangulator)
     ids = tris_ext % n
@@ -271,17 +265,8 @@ def _cylindrical(
     return chart, tris[np.sort(first)], _pose(centre, rot), turn
 
 
-def _at_first(chart: np.ndarray, same: np.ndarray | None) -> np.ndarray:
-    """Each row's chart point moved to its pose's first row's (no move for exact repeats)."""
-    return chart if same is None else chart[same]
-
-
 def _spherical(
-    pos: np.ndarray,
-    approach: np.ndarray,
-    frame: np.ndarray | None,
-    triangulator: str,
-    same: np.ndarray | None,
+    pos: np.ndarray, approach: np.ndarray, frame: np.ndarray | None, triangulator: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
@@ -308,12 +293,11 @@ def _spherical(
             "(straight below the centre)"
         )
     chart = 2.0 * radius * u[:, :2] / denom[:, None]
-    tris = _triangulate(_at_first(chart, same), "spherical", triangulator)
-    return chart, tris, _pose(centre, rot)
+    return chart, _triangulate(chart, "spherical", triangulator), _pose(centre, rot)
 
 
 def _planar(
-    pos: np.ndarray, projection: str, triangulator: str, same: np.ndarray | None
+    pos: np.ndarray, projection: str, triangulator: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if projection == "xy":
         chart = pos[:, :2].copy()
@@ -322,7 +306,7 @@ def _planar(
         centre, axes = _principal_axes(pos)
         chart = (pos - centre) @ axes[:, :2]
         frame = _pose(centre, axes)
-    return chart, _triangulate(_at_first(chart, same), projection, triangulator), frame
+    return chart, _triangulate(chart, projection, triangulator), frame
 
 
 def chart_triangles(
@@ -343,10 +327,10 @@ def chart_triangles(
         frame: (4, 4) object frame for the cylindrical and spherical charts, or None.
         same: (N,) the first row of each row's pose (exact and near repeats,
             :func:`~gcm_pipeline.manifold.repeats.same_pose_rows`), or None
-            (all distinct). Each row is triangulated at its first row's
-            point (and the cylindrical chart's tie-breaking offset), so
-            repeats are one point, in no triangle (a million copies of a
-            pose would be a million vertices, their triangles slivers).
+            (all distinct). The chart is made over the first rows, each
+            once; a repeat takes its first row's chart point and is in no
+            triangle (a million copies of a pose would be a million
+            vertices, their triangles slivers).
 
     Returns:
         ``(chart (N, 2), triangles (T, 3), frame, period)``: the frame the
@@ -357,10 +341,33 @@ def chart_triangles(
         GeometryError: A non-rigid frame, or candidates all duplicate or
             collinear in the chart.
     """
+    n = len(pos)
+    kept = None if same is None else np.flatnonzero(same == np.arange(n))
+    if kept is None or len(kept) == n:
+        return _chart_triangles(pos, approach, projection, triangulator, frame)
+    if len(kept) < 3:
+        many = GeometryError(
+            f"points are degenerate: only {len(kept)} distinct of {n} (all duplicates)"
+        )
+        raise _chart_error(projection, many)
+    chart, tris, used_frame, period = _chart_triangles(
+        pos[kept], approach[kept], projection, triangulator, frame
+    )
+    return chart[np.searchsorted(kept, same)], kept[tris], used_frame, period
+
+
+def _chart_triangles(
+    pos: np.ndarray,
+    approach: np.ndarray,
+    projection: str,
+    triangulator: str,
+    frame: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float | None]:
+    """:func:`chart_triangles` over rows of which no two are one pose."""
     if projection == "cylindrical":
-        return _cylindrical(pos, approach, frame, triangulator, same)
+        return _cylindrical(pos, approach, frame, triangulator)
     if projection == "spherical":
-        chart, tris, used_frame = _spherical(pos, approach, frame, triangulator, same)
+        chart, tris, used_frame = _spherical(pos, approach, frame, triangulator)
     else:
-        chart, tris, used_frame = _planar(pos, projection, triangulator, same)
+        chart, tris, used_frame = _planar(pos, projection, triangulator)
     return chart, tris, used_frame, None

@@ -66,10 +66,31 @@ def first_rows(dq: np.ndarray) -> np.ndarray:
     n = len(dq)
     lead = dq[np.arange(n), np.argmax(dq[:, :4] != 0.0, axis=1)]  # first non-zero of r
     canon = np.where(lead[:, None] < 0.0, -dq, dq) + 0.0  # + 0.0: -0.0 is 0.0
-    # finite values, one zero: equal bytes are equal values (and 8x faster than axis=0)
-    rows = np.ascontiguousarray(canon, dtype=np.float64)
-    keys = rows.view(np.dtype((np.void, 8 * rows.shape[1]))).reshape(-1)
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    # finite values, one zero: equal bytes are equal values
+    return _first_equal(np.ascontiguousarray(canon, dtype=np.float64).view(np.uint64))
+
+
+def _first_equal(keys: np.ndarray) -> np.ndarray:
+    """(N,) the first row equal to each row of ``keys`` (N, K) uint64 (itself when none before).
+
+    Rows are grouped by a 64-bit hash (a stable sort of N integers: 0.1 s for a million
+    rows, where a sort of the rows' bytes takes 1 s in one call a signal waits for); a
+    hash shared by unequal rows falls back to sorting the rows themselves.
+    """
+    n = len(keys)
+    h = np.full(n, 0xCBF29CE484222325, dtype=np.uint64)
+    for col in keys.T:  # FNV-1a over 64-bit words; uint64 arithmetic wraps
+        h = (h ^ col) * np.uint64(0x100000001B3)
+        h ^= h >> np.uint64(31)
+    order = np.argsort(h, kind="stable")
+    hs = h[order]
+    start = np.flatnonzero(np.concatenate(([True], hs[1:] != hs[:-1])))
+    rep = np.empty(n, dtype=np.int64)
+    rep[order] = order[np.repeat(start, np.diff(np.append(start, n)))]
+    if (keys == keys[rep]).all():
+        return rep
+    void = np.ascontiguousarray(keys).view(np.dtype((np.void, 8 * keys.shape[1]))).reshape(-1)
+    _, first, inverse = np.unique(void, return_index=True, return_inverse=True)
     return first[inverse.reshape(-1)].astype(np.int64)
 
 
@@ -102,10 +123,7 @@ def same_pose_rows(dq: np.ndarray, orientation_scale: float) -> np.ndarray:
 
 def _cell_firsts(feats: np.ndarray) -> np.ndarray:
     """(U,) the first row sharing each row's grid cell (side :data:`_CELL`)."""
-    key = np.ascontiguousarray(np.floor(feats / _CELL).astype(np.int64))
-    void = key.view(np.dtype((np.void, 8 * key.shape[1]))).reshape(-1)
-    _, first, inverse = np.unique(void, return_index=True, return_inverse=True)
-    return first[inverse.reshape(-1)].astype(np.int64)
+    return _first_equal(np.floor(feats / _CELL).astype(np.int64).view(np.uint64))
 
 
 def _leaders(feats: np.ndarray) -> np.ndarray:

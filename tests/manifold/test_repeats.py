@@ -18,7 +18,7 @@ from gcm_pipeline.geometry.dualquat import (
 )
 from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
 from gcm_pipeline.manifold.build import build_manifold
-from gcm_pipeline.manifold.repeats import NEAR_REPEAT, first_rows, same_pose_rows
+from gcm_pipeline.manifold.repeats import NEAR_REPEAT, _first_equal, first_rows, same_pose_rows
 from gcm_pipeline.table import GraspTable
 
 SCALE = 0.1
@@ -197,3 +197,20 @@ def test_every_row_of_a_file_of_near_copies_is_answered(tmp_path) -> None:
     assert np.array_equal(reachable, reachable[_first_of_pose(pose)])
     assert np.array_equal(reachable[first], np.asarray(one.grasps["reachable"], bool)[:24])
     assert len(g) - 600 == len(one.grasps) - 24  # the same interpolated rows
+
+
+def test_rows_sharing_a_hash_are_still_told_apart() -> None:
+    # two-word rows made to share _first_equal's hash: the first word's hash h1 xor the
+    # second word is what the second round mixes, so (a, b) and (a', b ^ h1(a) ^ h1(a'))
+    # collide; the rows are compared, and sorted themselves when a hash is shared
+    def h1(a: int) -> int:
+        h = ((0xCBF29CE484222325 ^ a) * 0x100000001B3) % 2**64
+        return h ^ (h >> 31)
+
+    a, b, a2 = 5, 7, 11
+    keys = np.array([[a, b], [a2, b ^ h1(a) ^ h1(a2)], [a, b], [3, 3]], dtype=np.uint64)
+    assert np.array_equal(_first_equal(keys), [0, 1, 0, 3])
+    rng = np.random.default_rng(0)
+    many = rng.integers(0, 3, (5000, 3)).astype(np.uint64)
+    _, first, inverse = np.unique(many, axis=0, return_index=True, return_inverse=True)
+    assert np.array_equal(_first_equal(many), first[inverse.reshape(-1)])

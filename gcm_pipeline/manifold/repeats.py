@@ -14,7 +14,7 @@ Two rows are one pose when
   negated (``q`` and ``-q``): **exact repeats** (:func:`first_rows`), or
 * they are at most :data:`NEAR_REPEAT` (1e-5 m) apart in the pose metric
   (:mod:`gcm_pipeline.geometry.pose_metric`; 1e-5 rad of turn counts as
-  1e-6 m): **near repeats** (:func:`same_pose_rows`).
+  1e-6 m at the default ``L``): **near repeats** (:func:`same_pose_rows`).
 
 :data:`NEAR_REPEAT` is a tenth of the IK's default tolerances (1e-4 m, and
 1e-3 rad, which counts as 1e-4 m in the metric) and about 3,000 times under
@@ -123,7 +123,12 @@ def same_pose_rows(dq: np.ndarray, orientation_scale: float) -> np.ndarray:
 
 def _cell_firsts(feats: np.ndarray) -> np.ndarray:
     """(U,) the first row sharing each row's grid cell (side :data:`_CELL`)."""
-    return _first_equal(np.floor(feats / _CELL).astype(np.int64).view(np.uint64))
+    scaled = np.floor(feats / _CELL)
+    far = ~(np.abs(scaled) < 2.0**60).all(axis=1)  # beyond int64 (1e12 m away): a cell each
+    key = np.where(far[:, None], 0.0, scaled).astype(np.int64)
+    key[far, 0] = 2**62
+    key[far, 1] = np.flatnonzero(far)
+    return _first_equal(key.view(np.uint64))
 
 
 def _leaders(feats: np.ndarray) -> np.ndarray:

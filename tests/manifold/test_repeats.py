@@ -83,9 +83,12 @@ def test_rows_farther_apart_than_the_tolerance_stay_apart() -> None:
         (dq_from_pos_quat(pos, quat), dq_from_pos_quat(pos[:1] + 0 * pos, turned))
     )
     rows = np.concatenate((rows, rows[:5]))  # and five exact repeats
+    far = dq_from_pos_quat([[1e15, 0, 0], [1e15 + 1, 0, 0], [1e15, 0, 0]], quat[:3])
+    rows = np.concatenate((rows, far))  # 1e15 m out (beyond the grid's integers), 1 m apart
     gap = cdist(pose_features(rows[:80], SCALE), pose_features(rows[:80], SCALE))
     assert gap[np.triu_indices(80, 1)].min() > NEAR_REPEAT
     assert np.array_equal(same_pose_rows(rows, SCALE), first_rows(rows))
+    assert first_rows(rows)[-1] == len(rows) - 3
 
 
 def test_kept_rows_are_apart_and_repeats_near_them() -> None:

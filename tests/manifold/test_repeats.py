@@ -18,7 +18,13 @@ from gcm_pipeline.geometry.dualquat import (
 )
 from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
 from gcm_pipeline.manifold.build import build_manifold
-from gcm_pipeline.manifold.repeats import NEAR_REPEAT, _first_equal, first_rows, same_pose_rows
+from gcm_pipeline.manifold.repeats import (
+    NEAR_REPEAT,
+    _crowded,
+    _first_equal,
+    first_rows,
+    same_pose_rows,
+)
 from gcm_pipeline.table import GraspTable
 
 SCALE = 0.1
@@ -217,3 +223,19 @@ def test_rows_sharing_a_hash_are_still_told_apart() -> None:
     many = rng.integers(0, 3, (5000, 3)).astype(np.uint64)
     _, first, inverse = np.unique(many, axis=0, return_index=True, return_inverse=True)
     assert np.array_equal(_first_equal(many), first[inverse.reshape(-1)])
+
+
+def test_the_grids_miss_no_row_with_another_within_reach() -> None:
+    # pairs just within reach, in every direction and at every place against the grids'
+    # cells (the exact search after them sees only the rows they keep)
+    rng = np.random.default_rng(5)
+    n = 4000
+    base = rng.uniform(-0.5, 0.5, (n, 7))
+    step = rng.normal(size=(n, 7))
+    step[: n // 2, 3:] = 0.0  # half of them moved in position only
+    step *= rng.uniform(0.5, 0.999, (n, 1)) * NEAR_REPEAT / np.linalg.norm(step, axis=1)[:, None]
+    feats = np.concatenate((base, base + step, rng.uniform(-0.5, 0.5, (n, 7))))
+    feats[:, 3] = np.abs(feats[:, 3]) + 0.01  # r_w > 0 (no sign to try)
+    crowded = _crowded(feats)
+    assert crowded[: 2 * n].all()
+    assert crowded[2 * n :].sum() < n // 100  # the lone rows mostly left out

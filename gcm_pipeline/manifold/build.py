@@ -34,7 +34,8 @@ from gcm_pipeline.geometry.bowyer_watson import TRIANGULATORS
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_to_matrix
 from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE
 from gcm_pipeline.manifold.charts import PROJECTIONS, chart_triangles
-from gcm_pipeline.manifold.families import family_triangles, first_rows
+from gcm_pipeline.manifold.families import family_triangles
+from gcm_pipeline.manifold.repeats import same_pose_rows
 from gcm_pipeline.table import GraspTable
 
 __all__ = ["STRUCTURES", "Manifold", "build_manifold", "candidate_poses"]
@@ -285,7 +286,7 @@ def build_manifold(
     frame_arr = None if frame is None else np.asarray(frame, dtype=np.float64)
 
     chart, tris, used_frame, period = chart_triangles(
-        pos, approach, projection, triangulator, frame_arr, first_rows(dq)
+        pos, approach, projection, triangulator, frame_arr, same_pose_rows(dq, orientation_scale)
     )
 
     reason = np.full(len(tris), "", dtype="<U11")

@@ -19,9 +19,6 @@ Charts (``projection``)
                 in ``theta`` with period ``2 pi R``: it is triangulated with
                 copies shifted by one turn and every triangle is kept once, so
                 the mesh closes around the object with no seam at +-pi.
-                Tiny per-pose offsets break co-circular ties; exact repeats
-                of a pose share them, so they are one point (in no
-                triangle), as in the other charts.
                 ``theta`` of the stored chart is in [-pi, pi); a triangle over
                 the seam is counter-clockwise in the unwrapped chart.
 ``spherical``   stereographic projection (scaled by ``2 R``, dimensionless
@@ -30,6 +27,12 @@ Charts (``projection``)
                 spherical one; triangles whose circumcircle contains the pole
                 are left out (grasp sets rarely surround the pole).
 =============== ===============================================================
+
+Repeats of a pose (exact, or within 1e-5 m in the pose metric:
+:mod:`gcm_pipeline.manifold.repeats`) are one point: the chart is made and
+triangulated over the first row of each pose, each pose once (so the
+chart's frame and radius do not follow how often a pose is repeated), and
+every repeat takes its first row's chart point; repeats are in no triangle.
 
 The cylindrical and spherical charts use the object frame ``frame`` (its z
 axis is the cylinder axis / the direction away from the pole, its origin the
@@ -214,11 +217,7 @@ def _chart_radius(standoff_dist: np.ndarray, projection: str) -> float:
 
 
 def _cylindrical(
-    pos: np.ndarray,
-    approach: np.ndarray,
-    frame: np.ndarray | None,
-    triangulator: str,
-    same: np.ndarray | None,
+    pos: np.ndarray, approach: np.ndarray, frame: np.ndarray | None, triangulator: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     if frame is not None:
         centre, rot = _frame_axes(frame)
@@ -241,8 +240,6 @@ def _cylindrical(
     turn = 2 * np.pi * radius
     extent = float(np.ptp(chart, axis=0).max())
     jitter = np.random.default_rng(0).uniform(-0.5, 0.5, (n, 2)) * (_JITTER * extent)
-    if same is not None:  # a repeated pose is one point (the triangulation drops the repeats)
-        jitter = jitter[same]
     base = chart + jitter
     ext = np.concatenate((base - (turn, 0.0), base, base + (turn, 0.0)))
     tris_ext = _triangulate(ext, "cylindrical", triangulator)
@@ -328,10 +325,12 @@ def chart_triangles(
         projection: One of :data:`PROJECTIONS` (trusted).
         triangulator: ``qhull`` or ``bowyer_watson`` (trusted).
         frame: (4, 4) object frame for the cylindrical and spherical charts, or None.
-        same: (N,) the first row of each row's pose (exact repeats), or None
-            (all distinct). The cylindrical chart's tie-breaking offsets are
-            per pose, so repeats stay one point, in no triangle, as in the
-            other charts (a million repeats would be a million vertices).
+        same: (N,) the first row of each row's pose (exact and near repeats,
+            :func:`~gcm_pipeline.manifold.repeats.same_pose_rows`), or None
+            (all distinct). The chart is made over the first rows, each
+            once; a repeat takes its first row's chart point and is in no
+            triangle (a million copies of a pose would be a million
+            vertices, their triangles slivers).
 
     Returns:
         ``(chart (N, 2), triangles (T, 3), frame, period)``: the frame the
@@ -342,8 +341,31 @@ def chart_triangles(
         GeometryError: A non-rigid frame, or candidates all duplicate or
             collinear in the chart.
     """
+    n = len(pos)
+    kept = None if same is None else np.flatnonzero(same == np.arange(n))
+    if kept is None or len(kept) == n:
+        return _chart_triangles(pos, approach, projection, triangulator, frame)
+    if len(kept) < 3:
+        many = GeometryError(
+            f"points are degenerate: only {len(kept)} distinct of {n} (all duplicates)"
+        )
+        raise _chart_error(projection, many)
+    chart, tris, used_frame, period = _chart_triangles(
+        pos[kept], approach[kept], projection, triangulator, frame
+    )
+    return chart[np.searchsorted(kept, same)], kept[tris], used_frame, period
+
+
+def _chart_triangles(
+    pos: np.ndarray,
+    approach: np.ndarray,
+    projection: str,
+    triangulator: str,
+    frame: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float | None]:
+    """:func:`chart_triangles` over rows of which no two are one pose."""
     if projection == "cylindrical":
-        return _cylindrical(pos, approach, frame, triangulator, same)
+        return _cylindrical(pos, approach, frame, triangulator)
     if projection == "spherical":
         chart, tris, used_frame = _spherical(pos, approach, frame, triangulator)
     else:

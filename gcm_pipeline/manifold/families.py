@@ -33,16 +33,15 @@ package's pose metric (:mod:`gcm_pipeline.geometry.pose_metric`) instead:
 Each candidate gets its ``family`` (-1 for one whose pose duplicates an
 earlier row) and why it is in no triangle (``isolation``): ``""`` linked,
 ``no_neighbour`` (no other grasp within the bounds), ``no_triple`` (no two of
-its neighbours are neighbours of each other) or ``duplicate`` (same pose as
-an earlier row, within 1e-9 m).
+its neighbours are neighbours of each other) or ``duplicate`` (the same pose
+as an earlier row: an exact repeat, or within 1e-5 m, see *Repeats*).
 
 Bounds
 ------
 Unset bounds are derived from the data's spacing: ``s`` = the median
 pose-metric distance from a candidate to its second-nearest other candidate,
-each distinct pose counted once (a row repeated exactly, also as ``-q``,
-counts as one candidate however often it is repeated; rows within 1e-9 m of
-another are skipped as its neighbours);
+each distinct pose counted once (a pose repeated, exactly or within 1e-5 m,
+counts as one candidate however often it is repeated);
 ``max_edge_length`` = :data:`LENGTH_FACTOR` ``* s`` and
 ``max_edge_angle_deg`` = the angle that counts as :data:`ANGLE_FACTOR` ``* s``
 in the pose metric (``ANGLE_FACTOR * s / L`` rad), capped at
@@ -52,14 +51,17 @@ long edge is what makes a blended grasp cut into the object: on ACRONYM's mug
 factors 1.25 / 1.5 / 2.5 keep 1.00 / 0.96 / 0.82 of the vertices'
 non-penetration rate, while the angle factor 2.5 links 99.6 % of them.
 
-Exact repeats
--------------
-Rows equal value for value to an earlier row (or to its negation) are set
-aside before any of this: the structure is built over the distinct rows and
-each repeat then gets ``family`` -1, ``isolation`` ``duplicate`` and chart
-``(0, 0)``, as a near-duplicate does. The result is the one the near-duplicate
-handling gives, without a k-d tree over thousands of copies of one point (a
-million rows of 24 poses took minutes in the tree's search; now about a second).
+Repeats
+-------
+Rows that are one pose with an earlier row, exactly (also as ``-q``) or
+within :data:`~gcm_pipeline.manifold.repeats.NEAR_REPEAT` (1e-5 m in the pose
+metric: float32 copies, text round trips, a synthesiser's jittered copies;
+:mod:`gcm_pipeline.manifold.repeats`), are set aside before any of this: the
+structure is built over the first row of each pose and every other row gets
+``family`` -1, ``isolation`` ``duplicate`` and chart ``(0, 0)``. Thousands of
+copies of a pose at ~the same place made the k-d tree searches quadratic (a
+million rows of 24 poses took minutes; 24,000 rows with 1e-9 m jitter 88 s);
+now about a second for a million rows.
 """
 
 from __future__ import annotations
@@ -75,6 +77,7 @@ from gcm_pipeline.errors import GeometryError
 from gcm_pipeline.geometry.bowyer_watson import delaunay
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_translation
 from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
+from gcm_pipeline.manifold.repeats import first_rows, same_pose_rows
 
 __all__ = [
     "BOUND_TOLERANCE",
@@ -102,7 +105,7 @@ ISOLATION_REASONS = ("", "duplicate", "no_neighbour", "no_triple")
 #: exactly on a round bound (60 degrees); without it rounding, which moves with the set's
 #: placement in the world and with the CPU, decides whether such a pair is linked.
 BOUND_TOLERANCE = 1e-9
-_DUPLICATE = 1e-9  # [m] pose-metric distance under which two rows are one pose
+_SELF = 1e-9  # [m] a spacing query's hits this near are the row itself (rows repeat none)
 _SMALL_FAMILY = 30  # families up to this size are one patch
 _GAP = 0.5  # gap between family charts in the atlas, in units of max_edge_length
 
@@ -150,7 +153,7 @@ def default_bounds(
     """
     if max_edge_length is not None and max_edge_angle_deg is not None:
         return float(max_edge_length), float(max_edge_angle_deg)
-    first = _distinct_rows(dq)
+    first = _distinct_rows(dq, orientation_scale)
     return _bounds(dq[first], len(dq), orientation_scale, max_edge_length, max_edge_angle_deg)
 
 
@@ -161,7 +164,7 @@ def _bounds(
     max_edge_length: float | None,
     max_edge_angle_deg: float | None,
 ) -> tuple[float, float]:
-    """:func:`default_bounds` over rows without exact duplicates (``total``: rows given)."""
+    """:func:`default_bounds` over rows of which no two are one pose (``total``: rows given)."""
     if len(dq) < 3 and (max_edge_length is None or max_edge_angle_deg is None):
         raise _too_few(total)
     if max_edge_length is not None and max_edge_angle_deg is not None:
@@ -170,8 +173,8 @@ def _bounds(
     tree = cKDTree(np.concatenate((feats, _flipped(feats))))
     k = min(len(feats) * 2, 8)
     dist, _ = tree.query(feats, k=k)
-    # the nearest hits are the row itself and its near-duplicates: skip zero distances
-    nonzero = np.where(dist > _DUPLICATE, dist, np.inf)
+    # the nearest hit is the row itself (no two rows are one pose): skip zero distances
+    nonzero = np.where(dist > _SELF, dist, np.inf)
     nonzero.sort(axis=1)
     second = nonzero[:, 1] if k > 1 else np.full(len(feats), np.inf)
     finite = second[np.isfinite(second)]
@@ -194,26 +197,10 @@ def _too_few(total: int) -> GeometryError:
     )
 
 
-def _distinct_rows(dq: np.ndarray) -> np.ndarray:
-    """(U,) ascending: the rows that are no exact repeat of an earlier row (:func:`first_rows`)."""
-    rep = first_rows(dq)
+def _distinct_rows(dq: np.ndarray, orientation_scale: float) -> np.ndarray:
+    """(U,) ascending: the rows that repeat no earlier row (:func:`~.repeats.same_pose_rows`)."""
+    rep = same_pose_rows(dq, orientation_scale)
     return np.flatnonzero(rep == np.arange(len(dq)))
-
-
-def first_rows(dq: np.ndarray) -> np.ndarray:
-    """(N,) the first row with exactly the pose of each row (the row itself when none before).
-
-    Rows are one pose when they are equal value for value, or one is the other
-    negated (``q`` and ``-q``); nearly equal rows are left to :func:`_duplicates`.
-    """
-    n = len(dq)
-    lead = dq[np.arange(n), np.argmax(dq[:, :4] != 0.0, axis=1)]  # first non-zero of r
-    canon = np.where(lead[:, None] < 0.0, -dq, dq) + 0.0  # + 0.0: -0.0 is 0.0
-    # finite values, one zero: equal bytes are equal values (and 8x faster than axis=0)
-    rows = np.ascontiguousarray(canon, dtype=np.float64)
-    keys = rows.view(np.dtype((np.void, 8 * rows.shape[1]))).reshape(-1)
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    return first[inverse.reshape(-1)].astype(np.int64)
 
 
 def _flipped(feats: np.ndarray) -> np.ndarray:
@@ -253,19 +240,6 @@ def _has_pair(keys: np.ndarray, a: np.ndarray, b: np.ndarray, n: int) -> np.ndar
     q = _pair_keys(a, b, n)
     at = np.minimum(np.searchsorted(keys, q), max(len(keys) - 1, 0))
     return (keys[at] == q) if len(keys) else np.zeros(q.shape, dtype=bool)
-
-
-def _duplicates(n: int, pairs: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(N,) the first row with the same pose as each row (itself when none)."""
-    rep = np.arange(n)
-    dup = pairs[dist <= _DUPLICATE]
-    if len(dup):
-        graph = coo_matrix((np.ones(len(dup)), (dup[:, 0], dup[:, 1])), shape=(n, n))
-        _, label = connected_components(graph, directed=False)
-        first = np.full(label.max() + 1, n)
-        np.minimum.at(first, label, np.arange(n))
-        rep = first[label]
-    return rep
 
 
 # --------------------------------------------------------------------------- charts
@@ -434,11 +408,11 @@ def family_triangles(
     Raises:
         GeometryError: Fewer than 3 distinct poses when a bound is to be derived.
     """
-    first = _distinct_rows(dq)
+    first = _distinct_rows(dq, orientation_scale)
     bounds = _bounds(dq[first], len(dq), orientation_scale, max_edge_length, max_edge_angle_deg)
     if len(first) == len(dq):
         return _family_mesh(dq, *bounds, orientation_scale, triangulator)
-    # exact repeats: the distinct poses alone (a k-d tree over thousands of copies of one
+    # repeats: the distinct poses alone (a k-d tree over thousands of copies of one
     # point searches for minutes), each repeat a duplicate of its pose's first row
     one = _family_mesh(dq[first], *bounds, orientation_scale, triangulator)
     n = len(dq)
@@ -463,18 +437,14 @@ def family_triangles(
 def _family_mesh(
     dq: np.ndarray, length: float, angle: float, orientation_scale: float, triangulator: str
 ) -> FamilyMesh:
-    """:func:`family_triangles` with its bounds (rows that are no exact repeats are cheap)."""
+    """:func:`family_triangles` with its bounds, over rows of which no two are one pose."""
     n = len(dq)
     pairs, dist = _neighbour_pairs(dq, length, angle, orientation_scale)
-    rep = _duplicates(n, pairs, dist)
-    unique = rep == np.arange(n)
-    keep = unique[pairs[:, 0]] & unique[pairs[:, 1]]
-    pairs, dist = pairs[keep], dist[keep]
     keys = np.sort(_pair_keys(pairs[:, 0], pairs[:, 1], n))
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
-    # families numbered by size (largest first), ties by first row; duplicates -1
-    fam_rows = [np.flatnonzero((label == lab) & unique) for lab in np.unique(label[unique])]
+    # families numbered by size (largest first), ties by first row
+    fam_rows = [np.flatnonzero(label == lab) for lab in np.unique(label)]
     fam_rows.sort(key=lambda r: (-len(r), int(r[0])))
     family = np.full(n, -1, dtype=np.int64)
     feats = pose_features(dq, orientation_scale)
@@ -503,15 +473,13 @@ def _family_mesh(
         dropped_tris = dropped_tris[~np.isin(_tri_keys(dropped_tris, n), _tri_keys(tris, n))]
     covered = np.zeros(n, dtype=bool)
     covered[tris.ravel()] = True
-    extra = _fill(dq, orientation_scale, pairs, dist, keys, covered, np.flatnonzero(unique))
+    extra = _fill(dq, orientation_scale, pairs, dist, keys, covered, np.arange(n))
     if extra:
         tris = np.concatenate((tris, np.asarray(extra, dtype=np.int64)))
     degree = np.bincount(pairs.ravel(), minlength=n)
     isolation = np.full(n, "", dtype="<U12")
     isolation[~covered & (degree > 0)] = "no_triple"
     isolation[~covered & (degree == 0)] = "no_neighbour"
-    isolation[~unique] = "duplicate"
-    family[~unique] = -1
     return FamilyMesh(
         chart=_atlas(charts, n, _GAP * length),
         triangles=_canonical(tris),

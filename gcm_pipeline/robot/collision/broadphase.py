@@ -597,15 +597,16 @@ class BroadPhase:
                     hit[k, rows[status == kernels.COLLIDES]] = True
                     rows = rows[status == kernels.UNDECIDED]
             own_box = screen.self_boxes.get(k)
-            if own_box is not None:
+            if own_box is not None and rows.size:
                 # in the frames of the box's joint; the limits as for a world box
                 joint, box_joint, verts, inv, halfs = own_box
-                rel = relative_transforms(tfs, joint, box_joint, rows)
                 beyond, deep = (
                     halfs + (BROAD_MARGIN + kernels.SLACK),
                     halfs - (INSIDE_DEPTH + kernels.SLACK),
                 )
-                status = compiled.hull_vs_box(rel, np.arange(rows.size), verts, inv, beyond, deep)
+                status = compiled.hull_vs_robot_box(
+                    tfs, joint, box_joint, rows, verts, inv, beyond, deep
+                )
                 hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
             edge = edges.get(k)
@@ -840,7 +841,9 @@ def relative_transforms(tfs: np.ndarray, joint: int, base: int, rows: np.ndarray
     """Joint ``joint``'s frames in joint ``base``'s, for configurations ``rows``: (M, 3, 4).
 
     ``tfs`` (J, N, 3, 4) are the joints' frames in the base frame: the result is
-    ``Rb^T Ra`` and ``Rb^T (pa - pb)``.
+    ``Rb^T Ra`` and ``Rb^T (pa - pb)``. The reference of the frames the compiled
+    ``hull_vs_robot_box`` places a hull by (the NumPy code leaves a robot's own
+    box to coal).
     """
     a, b = tfs[joint][rows], tfs[base][rows]
     out = np.empty((rows.size, 3, 4))

@@ -2,10 +2,11 @@
 
 Kernels of :class:`~gcm_pipeline.robot.collision.broadphase.BroadPhase` (the NumPy
 reference, beside this module): :func:`broad_phase` (levels 1 and 2: one bounding
-sphere per geometry, then the sphere covers), :func:`hull_vs_box` and
-:func:`hull_vs_cylinder` (level 3: a robot polytope's hull vertices against a box,
-a cylinder) and :func:`edges_inside` (level 4: its longest edges inside a box,
-sphere or cylinder). Imported by
+sphere per geometry, then the sphere covers), :func:`hull_vs_box`,
+:func:`hull_vs_robot_box` and :func:`hull_vs_cylinder` (level 3: a robot polytope's
+hull vertices against a world box, a robot's own box, a cylinder) and
+:func:`edges_inside` (level 4: its longest edges inside a box, sphere or cylinder).
+Imported by
 :func:`gcm_pipeline.robot.kernels.get` only (it imports Numba).
 """
 
@@ -520,6 +521,55 @@ def _in_shape_frame(inv: Any, tf: Any, rot: Any, off: Any) -> None:
                 off[a] = v + inv[a, 3]
 
 
+@njit(cache=True, inline="always")
+def _hull_box_status(
+    rot: Any, off: Any, verts: Any, mid: Any, corners: Any, centre: Any, beyond: Any, deep: Any
+) -> int:
+    """Level 3 of one configuration: the hull ``verts`` (3, V) placed by ``rot``, ``off``.
+
+    ``rot`` (3, 3) and ``off`` (3,) take the joint's frame into the box's; ``mid``
+    is the vertices' centroid and ``corners``, ``centre`` the boxes of
+    :func:`_enclosing_corners`. Returns 0 free, 1 collides, 2 undecided (see
+    :func:`hull_vs_box`).
+    """
+    nv = verts.shape[1]
+    # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
+    if nv > corners.shape[1] and _beyond_nearest_face(rot, off, corners, centre, beyond):
+        return 0
+    if _beyond_nearest_face(rot, off, verts, mid, beyond):
+        return 0
+    above0 = above1 = above2 = below0 = below1 = below2 = True
+    for v in range(nv):
+        x0 = rot[0, 0] * verts[0, v] + rot[0, 1] * verts[1, v]
+        x0 += rot[0, 2] * verts[2, v] + off[0]
+        x1 = rot[1, 0] * verts[0, v] + rot[1, 1] * verts[1, v]
+        x1 += rot[1, 2] * verts[2, v] + off[1]
+        x2 = rot[2, 0] * verts[0, v] + rot[2, 1] * verts[1, v]
+        x2 += rot[2, 2] * verts[2, v] + off[2]
+        above0 = above0 and x0 > beyond[0]
+        below0 = below0 and x0 < -beyond[0]
+        above1 = above1 and x1 > beyond[1]
+        below1 = below1 and x1 < -beyond[1]
+        above2 = above2 and x2 > beyond[2]
+        below2 = below2 and x2 < -beyond[2]
+        if abs(x0) < deep[0] and abs(x1) < deep[1] and abs(x2) < deep[2]:
+            return 1
+    if above0 or below0 or above1 or below1 or above2 or below2:
+        return 0
+    return 2
+
+
+@njit(cache=True, inline="always")
+def _centroid(verts: Any) -> Any:
+    """The centroid (3,) of vertices (3, V), summed in the order of :func:`hull_vs_box`."""
+    nv = verts.shape[1]
+    mid = np.zeros(3)
+    for v in range(nv):
+        for a in range(3):
+            mid[a] += verts[a, v] / nv
+    return mid
+
+
 @njit(types.int8[::1](F3, I1, F2, F2, F1, F1), cache=True)
 def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
@@ -547,43 +597,52 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     out = np.empty(m, dtype=np.int8)
     rot = np.empty((3, 3))
     off = np.empty(3)
-    x = np.empty(3)
-    nv = verts.shape[1]
-    mid = np.zeros(3)  # the vertices' centroid, the joint's frame
-    for v in range(nv):
-        for a in range(3):
-            mid[a] += verts[a, v] / nv
+    mid = _centroid(verts)  # the joint's frame
     corners, centre = _enclosing_corners(verts)
     for r in range(m):
         _in_shape_frame(inv, tfs[rows[r]], rot, off)
-        # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
-        if nv > corners.shape[1] and _beyond_nearest_face(rot, off, corners, centre, beyond):
-            out[r] = 0
-            continue
-        if _beyond_nearest_face(rot, off, verts, mid, beyond):
-            out[r] = 0
-            continue
-        above0 = above1 = above2 = below0 = below1 = below2 = True
-        inside = False
-        for v in range(verts.shape[1]):
-            for a in range(3):
-                x[a] = rot[a, 0] * verts[0, v] + rot[a, 1] * verts[1, v]
-                x[a] += rot[a, 2] * verts[2, v] + off[a]
-            above0 = above0 and x[0] > beyond[0]
-            below0 = below0 and x[0] < -beyond[0]
-            above1 = above1 and x[1] > beyond[1]
-            below1 = below1 and x[1] < -beyond[1]
-            above2 = above2 and x[2] > beyond[2]
-            below2 = below2 and x[2] < -beyond[2]
-            if abs(x[0]) < deep[0] and abs(x[1]) < deep[1] and abs(x[2]) < deep[2]:
-                inside = True
-                break
-        if inside:
-            out[r] = 1
-        elif above0 or below0 or above1 or below1 or above2 or below2:
-            out[r] = 0
-        else:
-            out[r] = 2
+        out[r] = _hull_box_status(rot, off, verts, mid, corners, centre, beyond, deep)
+    return out
+
+
+@njit(types.int8[::1](F4, types.intp, types.intp, I1, F2, F2, F1, F1), cache=True)
+def hull_vs_robot_box(tfs, joint, box_joint, rows, verts, inv, beyond, deep):
+    """:func:`hull_vs_box` against a robot's own box (a gripper body from the registry).
+
+    The polytope's joint frame is taken into the box's joint's (``Rb^T Ra``,
+    ``Rb^T (pa - pb)``, the arithmetic of ``broadphase.relative_transforms``)
+    configuration by configuration, then into the box's frame by ``inv`` (its
+    inverse placement on that joint): no (M, 3, 4) array of relative frames.
+
+    Args:
+        tfs: Every joint's frames (J, N, 3, 4).
+        joint: The polytope's joint.
+        box_joint: The box's joint.
+        rows: Configurations to decide (M,).
+        verts: Hull vertices (3, V) in the polytope's joint's frame [m].
+        inv: The box's inverse placement in its joint's frame (4, 4).
+        beyond: As :func:`hull_vs_box` (3,).
+        deep: As :func:`hull_vs_box` (3,).
+
+    Returns:
+        (M,) int8: 0 free, 1 collides, 2 undecided.
+    """
+    m = rows.shape[0]
+    out = np.empty(m, dtype=np.int8)
+    rel = np.empty((3, 4))
+    rot = np.empty((3, 3))
+    off = np.empty(3)
+    mid = _centroid(verts)
+    corners, centre = _enclosing_corners(verts)
+    for r in range(m):
+        a, b = tfs[joint, rows[r]], tfs[box_joint, rows[r]]
+        for i in range(3):
+            for k in range(3):
+                rel[i, k] = b[0, i] * a[0, k] + b[1, i] * a[1, k] + b[2, i] * a[2, k]
+            d0, d1, d2 = a[0, 3] - b[0, 3], a[1, 3] - b[1, 3], a[2, 3] - b[2, 3]
+            rel[i, 3] = b[0, i] * d0 + b[1, i] * d1 + b[2, i] * d2
+        _in_shape_frame(inv, rel, rot, off)
+        out[r] = _hull_box_status(rot, off, verts, mid, corners, centre, beyond, deep)
     return out
 
 
@@ -721,10 +780,7 @@ def hull_vs_cylinder(tfs, rows, verts, inv, limits):
     out = np.empty(m, dtype=np.int8)
     rot = np.empty((3, 3))
     off = np.empty(3)
-    mid = np.zeros(3)  # the vertices' centroid, the joint's frame
-    for v in range(nv):
-        for a in range(3):
-            mid[a] += verts[a, v] / nv
+    mid = _centroid(verts)  # the joint's frame
     for r in range(m):
         _in_shape_frame(inv, tfs[rows[r]], rot, off)
         cx = rot[0, 0] * mid[0] + rot[0, 1] * mid[1] + rot[0, 2] * mid[2] + off[0]

@@ -373,6 +373,14 @@ def test_level_3_of_a_robot_box_agrees_with_coal_and_the_numpy_level(compiled):
     slack = kernels.SLACK  # the limits of _pair_hits_compiled
     beyond, deep = halfs + (BROAD_MARGIN + slack), halfs - (INSIDE_DEPTH + slack)
     status = compiled.hull_vs_box(rel, rows, verts, inv, beyond, deep)
+    # the fused kernel places the hull by the same relative frames, row by row
+    tfs = stacked(frames.transforms)
+    some = rng.permutation(len(qs))[:3000]
+    fused = compiled.hull_vs_robot_box(tfs, joint, box_joint, some, verts, inv, beyond, deep)
+    np.testing.assert_array_equal(fused, status[some])
+    assert compiled.hull_vs_robot_box(
+        tfs, joint, box_joint, some[:0], verts, inv, beyond, deep
+    ).shape == (0,)
     local = in_frame((rel[:, :, :3], rel[:, :, 3], inv), rows, verts)
     lim = halfs[None, :, None]
     inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)

@@ -177,6 +177,8 @@ class Kernels(NamedTuple):
             :data:`UNDECIDED`.
         hull_vs_robot_box: Level 3 against a robot's own box, in its joint's frame:
             :data:`FREE`, :data:`COLLIDES` or :data:`UNDECIDED`.
+        hulls_apart: Level 3 of two robot polytopes: where a face of one's box
+            separates them (free).
     """
 
     chain_forward: Callable[..., Any]
@@ -194,6 +196,7 @@ class Kernels(NamedTuple):
     six_r_branches: Callable[..., Any]
     hull_vs_cylinder: Callable[..., Any]
     hull_vs_robot_box: Callable[..., Any]
+    hulls_apart: Callable[..., Any]
 
 
 @functools.cache
@@ -291,6 +294,7 @@ def _import() -> Kernels | None:
                 analytic_6r_kernel.six_r_branches,
                 broadphase_kernel.hull_vs_cylinder,
                 broadphase_kernel.hull_vs_robot_box,
+                broadphase_kernel.hulls_apart,
             )
         )
     )

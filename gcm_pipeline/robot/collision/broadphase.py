@@ -309,6 +309,10 @@ class Screen(NamedTuple):
     # robot polytope vs a world cylinder, by column: (joint, hull vertices (3, V), the
     # cylinder's inverse placement (4, 4), its radius, its half length)
     cylinders: dict[int, tuple[int, np.ndarray, np.ndarray, float, float]]
+    # two robot polytopes (self pairs; compiled level 3 only), by column: each one's
+    # (joint, hull vertices (3, V), the box of those vertices in its joint's frame as
+    # (centre, half sizes) (2, 3)), a's then b's
+    self_hulls: dict[int, tuple[tuple[int, np.ndarray, np.ndarray], ...]]
 
 
 class BroadPhase:
@@ -327,9 +331,7 @@ class BroadPhase:
     _frames: Any
     _pair_pool: list[Any]
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
-    _compiled_args: dict[
-        int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any]]
-    ]
+    _compiled_args: dict[int, tuple[Any, ...]]
     _bounds: dict[int, ShapeBound]
     _model: Any
     threads: int
@@ -346,6 +348,16 @@ class BroadPhase:
             self._hulls[g] = hull_vertices(self._gm.geometryObjects[g], self._frames)
         return self._hulls[g]
 
+    def _hull_box(self, g: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """Robot polytope ``g``'s ``(joint, hull vertices (3, V), their box (2, 3))``.
+
+        The box, (centre, half sizes) in the joint's frame, holds the vertices,
+        so the hull and the geometry.
+        """
+        joint, verts = self._hull(g)
+        lo, hi = verts.min(axis=0), verts.max(axis=0)
+        return joint, verts.T.copy(), np.array([0.5 * (lo + hi), 0.5 * (hi - lo)])
+
     def _edges(self, g: int) -> tuple[int, np.ndarray, np.ndarray]:
         """:data:`EDGE_COUNT` longest edges of robot polytope ``g``: ``(joint, (E, 3), (E, 3))``."""
         if g not in self._edge_cache:
@@ -357,7 +369,7 @@ class BroadPhase:
         """The broad phase of the pairs ``cols`` (indices of ``self._pairs``) of one mode."""
         cov, gm = self._cover, self._gm
         sa, sb, bound = [], [], []
-        boxes, edges, self_boxes, cylinders = {}, {}, {}, {}
+        boxes, edges, self_boxes, cylinders, self_hulls = {}, {}, {}, {}, {}
         for k, c in enumerate(cols):
             p = self._pairs[c]
             own = np.arange(cov.start[p.owner], cov.start[p.owner + 1])
@@ -370,6 +382,8 @@ class BroadPhase:
                 box = self._self_box(p.a, p.b)
                 if box is not None:
                     self_boxes[k] = box
+                if all(isinstance(gm.geometryObjects[g].geometry, POLYTOPES) for g in (p.a, p.b)):
+                    self_hulls[k] = (self._hull_box(p.a), self._hull_box(p.b))
                 continue
             sa.append(own)
             sb.append(np.full(own.size, -1))
@@ -415,6 +429,7 @@ class BroadPhase:
             edges,
             self_boxes,
             cylinders,
+            self_hulls,
         )
 
     def _self_box(
@@ -578,7 +593,7 @@ class BroadPhase:
         and coal pair by pair.
         """
         tfs = stacked(frames.transforms)
-        broad, boxes, edges, cylinders = self._compiled_screen(screen)
+        broad, boxes, edges, cylinders, apart = self._compiled_screen(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
         hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
         decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
@@ -609,6 +624,10 @@ class BroadPhase:
                 )
                 hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
+            hulls = apart.get(k)
+            if hulls is not None and rows.size:
+                (ja, va, box_a), (jb, vb, box_b) = hulls
+                rows = rows[~compiled.hulls_apart(tfs, ja, jb, rows, va, box_a, vb, box_b)]
             edge = edges.get(k)
             if edge is not None and rows.size:
                 joint, *ends = edge
@@ -623,7 +642,7 @@ class BroadPhase:
 
     def _compiled_screen(
         self, screen: Screen
-    ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any]]:
+    ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any], dict[int, Any]]:
         """The compiled broad phase's arguments for ``screen`` (built once per screen).
 
         Returns the arguments of ``broad_phase`` after the frames, the level-3
@@ -631,13 +650,17 @@ class BroadPhase:
         column with a box, the level-4 arguments ``(joint, edge ends, other
         ends, packed shape, depth)`` of each column with a primitive, and the
         level-3 arguments ``(joint, vertices, inverse placement, (radius, half
-        length, beyond, deep))`` of each column with a cylinder. Each limit
-        is the NumPy level's plus :data:`~gcm_pipeline.robot.kernels.SLACK`
-        (levels 3 and 4: the depths plus it too, stricter).
+        length, beyond, deep))`` of each column with a cylinder, and the
+        level-3 arguments ``((joint, vertices, box), (joint, vertices, box))``
+        of each column of two robot polytopes (each box's half sizes plus the
+        margin). Each limit is the NumPy level's plus
+        :data:`~gcm_pipeline.robot.kernels.SLACK` (levels 3 and 4: the depths
+        plus it too, stricter); two polytopes' boxes are the margin and the
+        slack wider (no NumPy level).
         """
         known = self._compiled_args.get(id(screen))
         if known is not None and known[0] is screen:
-            return known[1], known[2], known[3], known[4]
+            return known[1], known[2], known[3], known[4], known[5]
         cov, slack = self._cover, kernels.SLACK
         worlds = sorted({int(w) for w in screen.world.tolist() if w >= 0})
         # explicit dtypes: without a world shape or a pair these lists are empty
@@ -688,8 +711,15 @@ class BroadPhase:
             )
             for k, (joint, verts, inv, radius, half) in screen.cylinders.items()
         }
-        self._compiled_args[id(screen)] = (screen, broad, boxes, edges, cylinders)
-        return broad, boxes, edges, cylinders
+        apart = {
+            k: tuple(
+                (joint, verts, box + np.array([[0.0], [BROAD_MARGIN + slack]]))
+                for joint, verts, box in hulls
+            )
+            for k, hulls in screen.self_hulls.items()
+        }
+        self._compiled_args[id(screen)] = (screen, broad, boxes, edges, cylinders, apart)
+        return broad, boxes, edges, cylinders, apart
 
     def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:
         """Coal's answer for pair ``c`` (an index of ``_pairs``) in configurations (M, nq).

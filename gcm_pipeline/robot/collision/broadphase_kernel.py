@@ -4,7 +4,8 @@ Kernels of :class:`~gcm_pipeline.robot.collision.broadphase.BroadPhase` (the Num
 reference, beside this module): :func:`broad_phase` (levels 1 and 2: one bounding
 sphere per geometry, then the sphere covers), :func:`hull_vs_box`,
 :func:`hull_vs_robot_box` and :func:`hull_vs_cylinder` (level 3: a robot polytope's
-hull vertices against a world box, a robot's own box, a cylinder) and
+hull vertices against a world box, a robot's own box, a cylinder), :func:`hulls_apart`
+(level 3 of two robot polytopes: a face of one's box between them) and
 :func:`edges_inside` (level 4: its longest edges inside a box, sphere or cylinder).
 Imported by
 :func:`gcm_pipeline.robot.kernels.get` only (it imports Numba).
@@ -605,6 +606,21 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     return out
 
 
+@njit(cache=True, inline="always")
+def _frame_in(tfs: Any, j: int, base: int, i: int, rel: Any) -> None:
+    """``rel`` (3, 4): joint j's frame in joint ``base``'s in configuration i.
+
+    ``Rb^T Ra`` and ``Rb^T (pa - pb)`` (the arithmetic of
+    ``broadphase.relative_transforms``).
+    """
+    a, b = tfs[j, i], tfs[base, i]
+    d0, d1, d2 = a[0, 3] - b[0, 3], a[1, 3] - b[1, 3], a[2, 3] - b[2, 3]
+    for r in range(3):
+        for k in range(3):
+            rel[r, k] = b[0, r] * a[0, k] + b[1, r] * a[1, k] + b[2, r] * a[2, k]
+        rel[r, 3] = b[0, r] * d0 + b[1, r] * d1 + b[2, r] * d2
+
+
 @njit(types.int8[::1](F4, types.intp, types.intp, I1, F2, F2, F1, F1), cache=True)
 def hull_vs_robot_box(tfs, joint, box_joint, rows, verts, inv, beyond, deep):
     """:func:`hull_vs_box` against a robot's own box (a gripper body from the registry).
@@ -635,14 +651,79 @@ def hull_vs_robot_box(tfs, joint, box_joint, rows, verts, inv, beyond, deep):
     mid = _centroid(verts)
     corners, centre = _enclosing_corners(verts)
     for r in range(m):
-        a, b = tfs[joint, rows[r]], tfs[box_joint, rows[r]]
-        for i in range(3):
-            for k in range(3):
-                rel[i, k] = b[0, i] * a[0, k] + b[1, i] * a[1, k] + b[2, i] * a[2, k]
-            d0, d1, d2 = a[0, 3] - b[0, 3], a[1, 3] - b[1, 3], a[2, 3] - b[2, 3]
-            rel[i, 3] = b[0, i] * d0 + b[1, i] * d1 + b[2, i] * d2
+        _frame_in(tfs, joint, box_joint, rows[r], rel)
         _in_shape_frame(inv, rel, rot, off)
         out[r] = _hull_box_status(rot, off, verts, mid, corners, centre, beyond, deep)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _beyond_box(
+    tfs: Any,
+    j: int,
+    base: int,
+    i: int,
+    verts: Any,
+    box: Any,
+    mid: Any,
+    corners: Any,
+    centre: Any,
+    scratch: Any,
+) -> bool:
+    """Whether every vertex (3, V) of joint j lies beyond a face of joint ``base``'s ``box``.
+
+    In configuration i; ``box`` is (centre, half sizes plus the margin) in
+    ``base``'s frame, ``mid``, ``corners`` and ``centre`` the vertices' centroid and
+    boxes (:func:`_hull_box_status`'s), ``scratch`` three arrays (3, 4), (3, 3), (3,).
+    """
+    rel, rot, off = scratch
+    _frame_in(tfs, j, base, i, rel)
+    for a in range(3):
+        for k in range(3):
+            rot[a, k] = rel[a, k]
+        off[a] = rel[a, 3] - box[0, a]
+    never = (-1.0, -1.0, -1.0)  # no vertex is this deep: never "collides"
+    return _hull_box_status(rot, off, verts, mid, corners, centre, box[1], never) == 0
+
+
+@njit(types.boolean[::1](F4, types.intp, types.intp, I1, F2, F2, F2, F2), cache=True)
+def hulls_apart(tfs, joint_a, joint_b, rows, verts_a, box_a, verts_b, box_b):
+    """Level 3 of a self pair of two robot polytopes: a face of one's box between them.
+
+    Each polytope's hull vertices lie in a box of its joint's frame (the box of
+    those vertices: it holds the hull, so the geometry). The pair is free where
+    every hull vertex of b lies beyond the plane of one face of a's box by more
+    than the margin, or every one of a beyond a face of b's box: the plane
+    separates the two hulls (the test of :func:`hull_vs_box`, its corners first,
+    never "collides": a vertex inside the other's box is no contact).
+
+    Args:
+        tfs: Every joint's frames (J, N, 3, 4).
+        joint_a: Polytope a's joint.
+        joint_b: Polytope b's joint.
+        rows: Configurations to decide (M,).
+        verts_a: a's hull vertices (3, Va) in its joint's frame [m].
+        box_a: a's box (2, 3): its centre in the joint's frame, then its half
+            sizes plus the margin (a vertex beyond that is apart) [m].
+        verts_b: As ``verts_a``, of b (3, Vb).
+        box_b: As ``box_a``, of b.
+
+    Returns:
+        (M,) bool: True where the pair is proved free.
+    """
+    m = rows.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    scratch = (np.empty((3, 4)), np.empty((3, 3)), np.empty(3))
+    mid_a, mid_b = _centroid(verts_a), _centroid(verts_b)
+    corners_a, centre_a = _enclosing_corners(verts_a)
+    corners_b, centre_b = _enclosing_corners(verts_b)
+    for r in range(m):
+        i = rows[r]
+        out[r] = _beyond_box(
+            tfs, joint_b, joint_a, i, verts_b, box_a, mid_b, corners_b, centre_b, scratch
+        ) or _beyond_box(
+            tfs, joint_a, joint_b, i, verts_a, box_b, mid_a, corners_a, centre_a, scratch
+        )
     return out
 
 

@@ -840,7 +840,9 @@ def _world_cylinder_level(
     """Level 3 of a robot polytope against a world cylinder (NumPy), for configurations ``rows``.
 
     The reference of the compiled ``hull_vs_cylinder``, not called by the NumPy
-    broad phase (see the module's doc). In the cylinder's frame (axis z): free
+    broad phase (see the module's doc). Free when the whole cylinder lies more
+    than ``BROAD_MARGIN`` beyond a face of the box of the hull vertices in the
+    joint's frame. In the cylinder's frame (axis z): free
     when every hull vertex lies more than ``BROAD_MARGIN`` beyond a cap's plane,
     or beyond the side plane tangent to the cylinder across the direction from
     its axis to the vertices' centroid; colliding when a vertex lies deeper than
@@ -863,7 +865,16 @@ def _world_cylinder_level(
     if inner > 0.0 and half > INSIDE_DEPTH:
         deep = (x * x + y * y < inner * inner) & (np.abs(z) < half - INSIDE_DEPTH)
         inside = deep.any(axis=1)
-    keep = (caps | side) & ~inside  # free: dropped
+    # the cylinder in the joint's frame: centre R^T (P - p), axis R^T A
+    rot = inv[:3, :3] @ rots[joint][rows]  # the joint's frame in the cylinder's
+    off = row_matmul(poss[joint][rows], inv[:3, :3].T) + inv[:3, 3]
+    centre = -np.einsum("nji,nj->ni", rot, off)
+    axis = rot[:, 2, :]
+    reach = half * np.abs(axis) + radius * np.sqrt(np.maximum(1.0 - axis * axis, 0.0))
+    lo, hi = verts.min(axis=1), verts.max(axis=1)
+    gap = np.abs(centre - 0.5 * (lo + hi)) - reach
+    boxed = np.any(gap > 0.5 * (hi - lo) + BROAD_MARGIN, axis=1)
+    keep = (caps | side | boxed) & ~inside  # free: dropped
     return rows[~keep], inside[~keep]
 
 

@@ -831,15 +831,48 @@ def edges_inside(tfs, rows, ends_a, ends_b, shape, depth):
     return out
 
 
+@njit(cache=True)
+def _vertex_box(verts: Any) -> Any:
+    """The box (2, 3) of vertices (3, V): its centre, then its half sizes."""
+    box = np.empty((2, 3))
+    for a in range(3):
+        lo, hi = verts[a].min(), verts[a].max()
+        box[0, a], box[1, a] = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    return box
+
+
+@njit(cache=True, inline="always")
+def _cylinder_beyond_box(
+    rot: Any, off: Any, radius: float, half: float, box: Any, beyond: float
+) -> bool:
+    """Whether a cylinder lies wholly beyond a face of ``box`` (2, 3), by more than ``beyond``.
+
+    ``rot``, ``off`` take the box's frame (a joint's) into the cylinder's (axis
+    z, centred): there the cylinder's centre is ``-rot^T off`` and its axis
+    ``rot[2]``. Along the box's axis ``a`` the cylinder's extent from its centre is
+    ``half |axis_a| + radius sqrt(1 - axis_a^2)`` (a solid cylinder's support).
+    """
+    for a in range(3):
+        c = -(rot[0, a] * off[0] + rot[1, a] * off[1] + rot[2, a] * off[2]) - box[0, a]
+        ax = rot[2, a]
+        reach = half * abs(ax) + radius * math.sqrt(max(1.0 - ax * ax, 0.0))
+        gap = box[1, a] + beyond
+        if c - reach > gap or -c - reach > gap:
+            return True
+    return False
+
+
 @njit(types.int8[::1](F3, I1, F2, F2, F1), cache=True)
 def hull_vs_cylinder(tfs, rows, verts, inv, limits):
     """Level 3 of the broad phase against a cylinder: a robot polytope's hull vertices.
 
     In the cylinder's frame (axis z), ``x = inv @ T @ [v; 1]`` for each hull
-    vertex ``v``. Free when every vertex lies beyond a cap's plane, or beyond the
-    side plane tangent to the cylinder across the direction ``u`` from its axis to
-    the vertices' centroid (``u . x > radius + beyond``, a plane the cylinder lies
-    wholly behind); collides when a vertex lies deeper than ``deep`` inside it
+    vertex ``v``. Free when the whole cylinder lies beyond a face of the box of
+    the vertices in the joint's frame (:func:`_cylinder_beyond_box`: the UR5's
+    upper arm beside the bottle), when every vertex lies beyond a cap's plane, or
+    beyond the side plane tangent to the cylinder across the direction ``u`` from
+    its axis to the vertices' centroid (``u . x > radius + beyond``, a plane the
+    cylinder lies wholly behind); collides when a vertex lies deeper than ``deep`` inside it
     (``x^2 + y^2 < (radius - deep)^2`` and ``|z| < half - deep``): a hull vertex
     is a vertex of the geometry's triangles, a point of it.
 
@@ -862,8 +895,12 @@ def hull_vs_cylinder(tfs, rows, verts, inv, limits):
     rot = np.empty((3, 3))
     off = np.empty(3)
     mid = _centroid(verts)  # the joint's frame
+    box = _vertex_box(verts)
     for r in range(m):
         _in_shape_frame(inv, tfs[rows[r]], rot, off)
+        if _cylinder_beyond_box(rot, off, radius, half, box, beyond):
+            out[r] = 0
+            continue
         cx = rot[0, 0] * mid[0] + rot[0, 1] * mid[1] + rot[0, 2] * mid[2] + off[0]
         cy = rot[1, 0] * mid[0] + rot[1, 1] * mid[1] + rot[1, 2] * mid[2] + off[1]
         norm = math.sqrt(cx * cx + cy * cy)

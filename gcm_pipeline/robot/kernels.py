@@ -151,7 +151,8 @@ _COMPILING = (
     "compiling the package's kernels with Numba (once per install, about 20 s; "
     "later runs read them from Numba's cache)"
 )
-#: Level-3 answers of :attr:`Kernels.hull_vs_box` and :attr:`Kernels.hull_vs_cylinder`.
+#: Level-3 answers of :attr:`Kernels.hull_vs_box`, :attr:`Kernels.hull_vs_robot_box` and
+#: :attr:`Kernels.hull_vs_cylinder`.
 FREE, COLLIDES, UNDECIDED = 0, 1, 2
 
 
@@ -174,6 +175,10 @@ class Kernels(NamedTuple):
         six_r_branches: A 6R arm's closed-form branches from EAIK's answers, per target.
         hull_vs_cylinder: Level 3 against a cylinder: :data:`FREE`, :data:`COLLIDES` or
             :data:`UNDECIDED`.
+        hull_vs_robot_box: Level 3 against a robot's own box, in its joint's frame:
+            :data:`FREE`, :data:`COLLIDES` or :data:`UNDECIDED`.
+        hulls_apart: Level 3 of two robot polytopes: where a face of one's box
+            separates them (free).
     """
 
     chain_forward: Callable[..., Any]
@@ -190,6 +195,8 @@ class Kernels(NamedTuple):
     vertex_distances: Callable[..., Any]
     six_r_branches: Callable[..., Any]
     hull_vs_cylinder: Callable[..., Any]
+    hull_vs_robot_box: Callable[..., Any]
+    hulls_apart: Callable[..., Any]
 
 
 @functools.cache
@@ -286,6 +293,8 @@ def _import() -> Kernels | None:
                 clearance_kernel.vertex_distances,
                 analytic_6r_kernel.six_r_branches,
                 broadphase_kernel.hull_vs_cylinder,
+                broadphase_kernel.hull_vs_robot_box,
+                broadphase_kernel.hulls_apart,
             )
         )
     )

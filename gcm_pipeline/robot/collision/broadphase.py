@@ -309,6 +309,10 @@ class Screen(NamedTuple):
     # robot polytope vs a world cylinder, by column: (joint, hull vertices (3, V), the
     # cylinder's inverse placement (4, 4), its radius, its half length)
     cylinders: dict[int, tuple[int, np.ndarray, np.ndarray, float, float]]
+    # two robot polytopes (self pairs; compiled level 3 only), by column: each one's
+    # (joint, hull vertices (3, V), the box of those vertices in its joint's frame as
+    # (centre, half sizes) (2, 3)), a's then b's
+    self_hulls: dict[int, tuple[tuple[int, np.ndarray, np.ndarray], ...]]
 
 
 class BroadPhase:
@@ -327,9 +331,7 @@ class BroadPhase:
     _frames: Any
     _pair_pool: list[Any]
     _groups: dict[bytes, list[tuple[int, np.ndarray]]]
-    _compiled_args: dict[
-        int, tuple[Screen, tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any]]
-    ]
+    _compiled_args: dict[int, tuple[Any, ...]]
     _bounds: dict[int, ShapeBound]
     _model: Any
     threads: int
@@ -346,6 +348,16 @@ class BroadPhase:
             self._hulls[g] = hull_vertices(self._gm.geometryObjects[g], self._frames)
         return self._hulls[g]
 
+    def _hull_box(self, g: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """Robot polytope ``g``'s ``(joint, hull vertices (3, V), their box (2, 3))``.
+
+        The box, (centre, half sizes) in the joint's frame, holds the vertices,
+        so the hull and the geometry.
+        """
+        joint, verts = self._hull(g)
+        lo, hi = verts.min(axis=0), verts.max(axis=0)
+        return joint, verts.T.copy(), np.array([0.5 * (lo + hi), 0.5 * (hi - lo)])
+
     def _edges(self, g: int) -> tuple[int, np.ndarray, np.ndarray]:
         """:data:`EDGE_COUNT` longest edges of robot polytope ``g``: ``(joint, (E, 3), (E, 3))``."""
         if g not in self._edge_cache:
@@ -357,7 +369,7 @@ class BroadPhase:
         """The broad phase of the pairs ``cols`` (indices of ``self._pairs``) of one mode."""
         cov, gm = self._cover, self._gm
         sa, sb, bound = [], [], []
-        boxes, edges, self_boxes, cylinders = {}, {}, {}, {}
+        boxes, edges, self_boxes, cylinders, self_hulls = {}, {}, {}, {}, {}
         for k, c in enumerate(cols):
             p = self._pairs[c]
             own = np.arange(cov.start[p.owner], cov.start[p.owner + 1])
@@ -370,6 +382,8 @@ class BroadPhase:
                 box = self._self_box(p.a, p.b)
                 if box is not None:
                     self_boxes[k] = box
+                if all(isinstance(gm.geometryObjects[g].geometry, POLYTOPES) for g in (p.a, p.b)):
+                    self_hulls[k] = (self._hull_box(p.a), self._hull_box(p.b))
                 continue
             sa.append(own)
             sb.append(np.full(own.size, -1))
@@ -415,6 +429,7 @@ class BroadPhase:
             edges,
             self_boxes,
             cylinders,
+            self_hulls,
         )
 
     def _self_box(
@@ -578,7 +593,7 @@ class BroadPhase:
         and coal pair by pair.
         """
         tfs = stacked(frames.transforms)
-        broad, boxes, edges, cylinders = self._compiled_screen(screen)
+        broad, boxes, edges, cylinders, apart = self._compiled_screen(screen)
         open_ = compiled.broad_phase(tfs, *broad)  # (P, N)
         hit = np.zeros((screen.pairs.size, len(q)), dtype=bool)  # (P, N), returned as (N, P)
         decided = np.zeros(len(q), dtype=bool)  # ``first``: hit by a pair before
@@ -597,17 +612,22 @@ class BroadPhase:
                     hit[k, rows[status == kernels.COLLIDES]] = True
                     rows = rows[status == kernels.UNDECIDED]
             own_box = screen.self_boxes.get(k)
-            if own_box is not None:
+            if own_box is not None and rows.size:
                 # in the frames of the box's joint; the limits as for a world box
                 joint, box_joint, verts, inv, halfs = own_box
-                rel = relative_transforms(tfs, joint, box_joint, rows)
                 beyond, deep = (
                     halfs + (BROAD_MARGIN + kernels.SLACK),
                     halfs - (INSIDE_DEPTH + kernels.SLACK),
                 )
-                status = compiled.hull_vs_box(rel, np.arange(rows.size), verts, inv, beyond, deep)
+                status = compiled.hull_vs_robot_box(
+                    tfs, joint, box_joint, rows, verts, inv, beyond, deep
+                )
                 hit[k, rows[status == kernels.COLLIDES]] = True
                 rows = rows[status == kernels.UNDECIDED]
+            hulls = apart.get(k)
+            if hulls is not None and rows.size:
+                (ja, va, box_a), (jb, vb, box_b) = hulls
+                rows = rows[~compiled.hulls_apart(tfs, ja, jb, rows, va, box_a, vb, box_b)]
             edge = edges.get(k)
             if edge is not None and rows.size:
                 joint, *ends = edge
@@ -622,7 +642,7 @@ class BroadPhase:
 
     def _compiled_screen(
         self, screen: Screen
-    ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any]]:
+    ) -> tuple[tuple[Any, ...], dict[int, Any], dict[int, Any], dict[int, Any], dict[int, Any]]:
         """The compiled broad phase's arguments for ``screen`` (built once per screen).
 
         Returns the arguments of ``broad_phase`` after the frames, the level-3
@@ -630,13 +650,17 @@ class BroadPhase:
         column with a box, the level-4 arguments ``(joint, edge ends, other
         ends, packed shape, depth)`` of each column with a primitive, and the
         level-3 arguments ``(joint, vertices, inverse placement, (radius, half
-        length, beyond, deep))`` of each column with a cylinder. Each limit
-        is the NumPy level's plus :data:`~gcm_pipeline.robot.kernels.SLACK`
-        (levels 3 and 4: the depths plus it too, stricter).
+        length, beyond, deep))`` of each column with a cylinder, and the
+        level-3 arguments ``((joint, vertices, box), (joint, vertices, box))``
+        of each column of two robot polytopes (each box's half sizes plus the
+        margin). Each limit is the NumPy level's plus
+        :data:`~gcm_pipeline.robot.kernels.SLACK` (levels 3 and 4: the depths
+        plus it too, stricter); two polytopes' boxes are the margin and the
+        slack wider (no NumPy level).
         """
         known = self._compiled_args.get(id(screen))
         if known is not None and known[0] is screen:
-            return known[1], known[2], known[3], known[4]
+            return known[1], known[2], known[3], known[4], known[5]
         cov, slack = self._cover, kernels.SLACK
         worlds = sorted({int(w) for w in screen.world.tolist() if w >= 0})
         # explicit dtypes: without a world shape or a pair these lists are empty
@@ -687,8 +711,15 @@ class BroadPhase:
             )
             for k, (joint, verts, inv, radius, half) in screen.cylinders.items()
         }
-        self._compiled_args[id(screen)] = (screen, broad, boxes, edges, cylinders)
-        return broad, boxes, edges, cylinders
+        apart = {
+            k: tuple(
+                (joint, verts, box + np.array([[0.0], [BROAD_MARGIN + slack]]))
+                for joint, verts, box in hulls
+            )
+            for k, hulls in screen.self_hulls.items()
+        }
+        self._compiled_args[id(screen)] = (screen, broad, boxes, edges, cylinders, apart)
+        return broad, boxes, edges, cylinders, apart
 
     def _narrow(self, c: int, q: np.ndarray) -> np.ndarray:
         """Coal's answer for pair ``c`` (an index of ``_pairs``) in configurations (M, nq).
@@ -809,7 +840,9 @@ def _world_cylinder_level(
     """Level 3 of a robot polytope against a world cylinder (NumPy), for configurations ``rows``.
 
     The reference of the compiled ``hull_vs_cylinder``, not called by the NumPy
-    broad phase (see the module's doc). In the cylinder's frame (axis z): free
+    broad phase (see the module's doc). Free when the whole cylinder lies more
+    than ``BROAD_MARGIN`` beyond a face of the box of the hull vertices in the
+    joint's frame. In the cylinder's frame (axis z): free
     when every hull vertex lies more than ``BROAD_MARGIN`` beyond a cap's plane,
     or beyond the side plane tangent to the cylinder across the direction from
     its axis to the vertices' centroid; colliding when a vertex lies deeper than
@@ -832,7 +865,16 @@ def _world_cylinder_level(
     if inner > 0.0 and half > INSIDE_DEPTH:
         deep = (x * x + y * y < inner * inner) & (np.abs(z) < half - INSIDE_DEPTH)
         inside = deep.any(axis=1)
-    keep = (caps | side) & ~inside  # free: dropped
+    # the cylinder in the joint's frame: centre R^T (P - p), axis R^T A
+    rot = inv[:3, :3] @ rots[joint][rows]  # the joint's frame in the cylinder's
+    off = row_matmul(poss[joint][rows], inv[:3, :3].T) + inv[:3, 3]
+    centre = -np.einsum("nji,nj->ni", rot, off)
+    axis = rot[:, 2, :]
+    reach = half * np.abs(axis) + radius * np.sqrt(np.maximum(1.0 - axis * axis, 0.0))
+    lo, hi = verts.min(axis=1), verts.max(axis=1)
+    gap = np.abs(centre - 0.5 * (lo + hi)) - reach
+    boxed = np.any(gap > 0.5 * (hi - lo) + BROAD_MARGIN, axis=1)
+    keep = (caps | side | boxed) & ~inside  # free: dropped
     return rows[~keep], inside[~keep]
 
 
@@ -840,7 +882,9 @@ def relative_transforms(tfs: np.ndarray, joint: int, base: int, rows: np.ndarray
     """Joint ``joint``'s frames in joint ``base``'s, for configurations ``rows``: (M, 3, 4).
 
     ``tfs`` (J, N, 3, 4) are the joints' frames in the base frame: the result is
-    ``Rb^T Ra`` and ``Rb^T (pa - pb)``.
+    ``Rb^T Ra`` and ``Rb^T (pa - pb)``. The reference of the frames the compiled
+    ``hull_vs_robot_box`` places a hull by (the NumPy code leaves a robot's own
+    box to coal).
     """
     a, b = tfs[joint][rows], tfs[base][rows]
     out = np.empty((rows.size, 3, 4))

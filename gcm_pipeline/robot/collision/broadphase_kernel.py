@@ -2,10 +2,12 @@
 
 Kernels of :class:`~gcm_pipeline.robot.collision.broadphase.BroadPhase` (the NumPy
 reference, beside this module): :func:`broad_phase` (levels 1 and 2: one bounding
-sphere per geometry, then the sphere covers), :func:`hull_vs_box` and
-:func:`hull_vs_cylinder` (level 3: a robot polytope's hull vertices against a box,
-a cylinder) and :func:`edges_inside` (level 4: its longest edges inside a box,
-sphere or cylinder). Imported by
+sphere per geometry, then the sphere covers), :func:`hull_vs_box`,
+:func:`hull_vs_robot_box` and :func:`hull_vs_cylinder` (level 3: a robot polytope's
+hull vertices against a world box, a robot's own box, a cylinder), :func:`hulls_apart`
+(level 3 of two robot polytopes: a face of one's box between them) and
+:func:`edges_inside` (level 4: its longest edges inside a box, sphere or cylinder).
+Imported by
 :func:`gcm_pipeline.robot.kernels.get` only (it imports Numba).
 """
 
@@ -520,6 +522,55 @@ def _in_shape_frame(inv: Any, tf: Any, rot: Any, off: Any) -> None:
                 off[a] = v + inv[a, 3]
 
 
+@njit(cache=True, inline="always")
+def _hull_box_status(
+    rot: Any, off: Any, verts: Any, mid: Any, corners: Any, centre: Any, beyond: Any, deep: Any
+) -> int:
+    """Level 3 of one configuration: the hull ``verts`` (3, V) placed by ``rot``, ``off``.
+
+    ``rot`` (3, 3) and ``off`` (3,) take the joint's frame into the box's; ``mid``
+    is the vertices' centroid and ``corners``, ``centre`` the boxes of
+    :func:`_enclosing_corners`. Returns 0 free, 1 collides, 2 undecided (see
+    :func:`hull_vs_box`).
+    """
+    nv = verts.shape[1]
+    # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
+    if nv > corners.shape[1] and _beyond_nearest_face(rot, off, corners, centre, beyond):
+        return 0
+    if _beyond_nearest_face(rot, off, verts, mid, beyond):
+        return 0
+    above0 = above1 = above2 = below0 = below1 = below2 = True
+    for v in range(nv):
+        x0 = rot[0, 0] * verts[0, v] + rot[0, 1] * verts[1, v]
+        x0 += rot[0, 2] * verts[2, v] + off[0]
+        x1 = rot[1, 0] * verts[0, v] + rot[1, 1] * verts[1, v]
+        x1 += rot[1, 2] * verts[2, v] + off[1]
+        x2 = rot[2, 0] * verts[0, v] + rot[2, 1] * verts[1, v]
+        x2 += rot[2, 2] * verts[2, v] + off[2]
+        above0 = above0 and x0 > beyond[0]
+        below0 = below0 and x0 < -beyond[0]
+        above1 = above1 and x1 > beyond[1]
+        below1 = below1 and x1 < -beyond[1]
+        above2 = above2 and x2 > beyond[2]
+        below2 = below2 and x2 < -beyond[2]
+        if abs(x0) < deep[0] and abs(x1) < deep[1] and abs(x2) < deep[2]:
+            return 1
+    if above0 or below0 or above1 or below1 or above2 or below2:
+        return 0
+    return 2
+
+
+@njit(cache=True, inline="always")
+def _centroid(verts: Any) -> Any:
+    """The centroid (3,) of vertices (3, V), summed in the order of :func:`hull_vs_box`."""
+    nv = verts.shape[1]
+    mid = np.zeros(3)
+    for v in range(nv):
+        for a in range(3):
+            mid[a] += verts[a, v] / nv
+    return mid
+
+
 @njit(types.int8[::1](F3, I1, F2, F2, F1, F1), cache=True)
 def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     """Level 3 of the broad phase: a robot polytope's hull vertices against a box.
@@ -547,43 +598,132 @@ def hull_vs_box(tfs, rows, verts, inv, beyond, deep):
     out = np.empty(m, dtype=np.int8)
     rot = np.empty((3, 3))
     off = np.empty(3)
-    x = np.empty(3)
-    nv = verts.shape[1]
-    mid = np.zeros(3)  # the vertices' centroid, the joint's frame
-    for v in range(nv):
-        for a in range(3):
-            mid[a] += verts[a, v] / nv
+    mid = _centroid(verts)  # the joint's frame
     corners, centre = _enclosing_corners(verts)
     for r in range(m):
         _in_shape_frame(inv, tfs[rows[r]], rot, off)
-        # the 8 corners of a box holding the hull first: beyond a face, so is every vertex
-        if nv > corners.shape[1] and _beyond_nearest_face(rot, off, corners, centre, beyond):
-            out[r] = 0
-            continue
-        if _beyond_nearest_face(rot, off, verts, mid, beyond):
-            out[r] = 0
-            continue
-        above0 = above1 = above2 = below0 = below1 = below2 = True
-        inside = False
-        for v in range(verts.shape[1]):
-            for a in range(3):
-                x[a] = rot[a, 0] * verts[0, v] + rot[a, 1] * verts[1, v]
-                x[a] += rot[a, 2] * verts[2, v] + off[a]
-            above0 = above0 and x[0] > beyond[0]
-            below0 = below0 and x[0] < -beyond[0]
-            above1 = above1 and x[1] > beyond[1]
-            below1 = below1 and x[1] < -beyond[1]
-            above2 = above2 and x[2] > beyond[2]
-            below2 = below2 and x[2] < -beyond[2]
-            if abs(x[0]) < deep[0] and abs(x[1]) < deep[1] and abs(x[2]) < deep[2]:
-                inside = True
-                break
-        if inside:
-            out[r] = 1
-        elif above0 or below0 or above1 or below1 or above2 or below2:
-            out[r] = 0
-        else:
-            out[r] = 2
+        out[r] = _hull_box_status(rot, off, verts, mid, corners, centre, beyond, deep)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _frame_in(tfs: Any, j: int, base: int, i: int, rel: Any) -> None:
+    """``rel`` (3, 4): joint j's frame in joint ``base``'s in configuration i.
+
+    ``Rb^T Ra`` and ``Rb^T (pa - pb)`` (the arithmetic of
+    ``broadphase.relative_transforms``).
+    """
+    a, b = tfs[j, i], tfs[base, i]
+    d0, d1, d2 = a[0, 3] - b[0, 3], a[1, 3] - b[1, 3], a[2, 3] - b[2, 3]
+    for r in range(3):
+        for k in range(3):
+            rel[r, k] = b[0, r] * a[0, k] + b[1, r] * a[1, k] + b[2, r] * a[2, k]
+        rel[r, 3] = b[0, r] * d0 + b[1, r] * d1 + b[2, r] * d2
+
+
+@njit(types.int8[::1](F4, types.intp, types.intp, I1, F2, F2, F1, F1), cache=True)
+def hull_vs_robot_box(tfs, joint, box_joint, rows, verts, inv, beyond, deep):
+    """:func:`hull_vs_box` against a robot's own box (a gripper body from the registry).
+
+    The polytope's joint frame is taken into the box's joint's (``Rb^T Ra``,
+    ``Rb^T (pa - pb)``, the arithmetic of ``broadphase.relative_transforms``)
+    configuration by configuration, then into the box's frame by ``inv`` (its
+    inverse placement on that joint): no (M, 3, 4) array of relative frames.
+
+    Args:
+        tfs: Every joint's frames (J, N, 3, 4).
+        joint: The polytope's joint.
+        box_joint: The box's joint.
+        rows: Configurations to decide (M,).
+        verts: Hull vertices (3, V) in the polytope's joint's frame [m].
+        inv: The box's inverse placement in its joint's frame (4, 4).
+        beyond: As :func:`hull_vs_box` (3,).
+        deep: As :func:`hull_vs_box` (3,).
+
+    Returns:
+        (M,) int8: 0 free, 1 collides, 2 undecided.
+    """
+    m = rows.shape[0]
+    out = np.empty(m, dtype=np.int8)
+    rel = np.empty((3, 4))
+    rot = np.empty((3, 3))
+    off = np.empty(3)
+    mid = _centroid(verts)
+    corners, centre = _enclosing_corners(verts)
+    for r in range(m):
+        _frame_in(tfs, joint, box_joint, rows[r], rel)
+        _in_shape_frame(inv, rel, rot, off)
+        out[r] = _hull_box_status(rot, off, verts, mid, corners, centre, beyond, deep)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _beyond_box(
+    tfs: Any,
+    j: int,
+    base: int,
+    i: int,
+    verts: Any,
+    box: Any,
+    mid: Any,
+    corners: Any,
+    centre: Any,
+    scratch: Any,
+) -> bool:
+    """Whether every vertex (3, V) of joint j lies beyond a face of joint ``base``'s ``box``.
+
+    In configuration i; ``box`` is (centre, half sizes plus the margin) in
+    ``base``'s frame, ``mid``, ``corners`` and ``centre`` the vertices' centroid and
+    boxes (:func:`_hull_box_status`'s), ``scratch`` three arrays (3, 4), (3, 3), (3,).
+    """
+    rel, rot, off = scratch
+    _frame_in(tfs, j, base, i, rel)
+    for a in range(3):
+        for k in range(3):
+            rot[a, k] = rel[a, k]
+        off[a] = rel[a, 3] - box[0, a]
+    never = (-1.0, -1.0, -1.0)  # no vertex is this deep: never "collides"
+    return _hull_box_status(rot, off, verts, mid, corners, centre, box[1], never) == 0
+
+
+@njit(types.boolean[::1](F4, types.intp, types.intp, I1, F2, F2, F2, F2), cache=True)
+def hulls_apart(tfs, joint_a, joint_b, rows, verts_a, box_a, verts_b, box_b):
+    """Level 3 of a self pair of two robot polytopes: a face of one's box between them.
+
+    Each polytope's hull vertices lie in a box of its joint's frame (the box of
+    those vertices: it holds the hull, so the geometry). The pair is free where
+    every hull vertex of b lies beyond the plane of one face of a's box by more
+    than the margin, or every one of a beyond a face of b's box: the plane
+    separates the two hulls (the test of :func:`hull_vs_box`, its corners first,
+    never "collides": a vertex inside the other's box is no contact).
+
+    Args:
+        tfs: Every joint's frames (J, N, 3, 4).
+        joint_a: Polytope a's joint.
+        joint_b: Polytope b's joint.
+        rows: Configurations to decide (M,).
+        verts_a: a's hull vertices (3, Va) in its joint's frame [m].
+        box_a: a's box (2, 3): its centre in the joint's frame, then its half
+            sizes plus the margin (a vertex beyond that is apart) [m].
+        verts_b: As ``verts_a``, of b (3, Vb).
+        box_b: As ``box_a``, of b.
+
+    Returns:
+        (M,) bool: True where the pair is proved free.
+    """
+    m = rows.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    scratch = (np.empty((3, 4)), np.empty((3, 3)), np.empty(3))
+    mid_a, mid_b = _centroid(verts_a), _centroid(verts_b)
+    corners_a, centre_a = _enclosing_corners(verts_a)
+    corners_b, centre_b = _enclosing_corners(verts_b)
+    for r in range(m):
+        i = rows[r]
+        out[r] = _beyond_box(
+            tfs, joint_b, joint_a, i, verts_b, box_a, mid_b, corners_b, centre_b, scratch
+        ) or _beyond_box(
+            tfs, joint_a, joint_b, i, verts_a, box_b, mid_a, corners_a, centre_a, scratch
+        )
     return out
 
 
@@ -691,15 +831,48 @@ def edges_inside(tfs, rows, ends_a, ends_b, shape, depth):
     return out
 
 
+@njit(cache=True)
+def _vertex_box(verts: Any) -> Any:
+    """The box (2, 3) of vertices (3, V): its centre, then its half sizes."""
+    box = np.empty((2, 3))
+    for a in range(3):
+        lo, hi = verts[a].min(), verts[a].max()
+        box[0, a], box[1, a] = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    return box
+
+
+@njit(cache=True, inline="always")
+def _cylinder_beyond_box(
+    rot: Any, off: Any, radius: float, half: float, box: Any, beyond: float
+) -> bool:
+    """Whether a cylinder lies wholly beyond a face of ``box`` (2, 3), by more than ``beyond``.
+
+    ``rot``, ``off`` take the box's frame (a joint's) into the cylinder's (axis
+    z, centred): there the cylinder's centre is ``-rot^T off`` and its axis
+    ``rot[2]``. Along the box's axis ``a`` the cylinder's extent from its centre is
+    ``half |axis_a| + radius sqrt(1 - axis_a^2)`` (a solid cylinder's support).
+    """
+    for a in range(3):
+        c = -(rot[0, a] * off[0] + rot[1, a] * off[1] + rot[2, a] * off[2]) - box[0, a]
+        ax = rot[2, a]
+        reach = half * abs(ax) + radius * math.sqrt(max(1.0 - ax * ax, 0.0))
+        gap = box[1, a] + beyond
+        if c - reach > gap or -c - reach > gap:
+            return True
+    return False
+
+
 @njit(types.int8[::1](F3, I1, F2, F2, F1), cache=True)
 def hull_vs_cylinder(tfs, rows, verts, inv, limits):
     """Level 3 of the broad phase against a cylinder: a robot polytope's hull vertices.
 
     In the cylinder's frame (axis z), ``x = inv @ T @ [v; 1]`` for each hull
-    vertex ``v``. Free when every vertex lies beyond a cap's plane, or beyond the
-    side plane tangent to the cylinder across the direction ``u`` from its axis to
-    the vertices' centroid (``u . x > radius + beyond``, a plane the cylinder lies
-    wholly behind); collides when a vertex lies deeper than ``deep`` inside it
+    vertex ``v``. Free when the whole cylinder lies beyond a face of the box of
+    the vertices in the joint's frame (:func:`_cylinder_beyond_box`: the UR5's
+    upper arm beside the bottle), when every vertex lies beyond a cap's plane, or
+    beyond the side plane tangent to the cylinder across the direction ``u`` from
+    its axis to the vertices' centroid (``u . x > radius + beyond``, a plane the
+    cylinder lies wholly behind); collides when a vertex lies deeper than ``deep`` inside it
     (``x^2 + y^2 < (radius - deep)^2`` and ``|z| < half - deep``): a hull vertex
     is a vertex of the geometry's triangles, a point of it.
 
@@ -721,12 +894,13 @@ def hull_vs_cylinder(tfs, rows, verts, inv, limits):
     out = np.empty(m, dtype=np.int8)
     rot = np.empty((3, 3))
     off = np.empty(3)
-    mid = np.zeros(3)  # the vertices' centroid, the joint's frame
-    for v in range(nv):
-        for a in range(3):
-            mid[a] += verts[a, v] / nv
+    mid = _centroid(verts)  # the joint's frame
+    box = _vertex_box(verts)
     for r in range(m):
         _in_shape_frame(inv, tfs[rows[r]], rot, off)
+        if _cylinder_beyond_box(rot, off, radius, half, box, beyond):
+            out[r] = 0
+            continue
         cx = rot[0, 0] * mid[0] + rot[0, 1] * mid[1] + rot[0, 2] * mid[2] + off[0]
         cy = rot[1, 0] * mid[0] + rot[1, 1] * mid[1] + rot[1, 2] * mid[2] + off[1]
         norm = math.sqrt(cx * cx + cy * cy)

@@ -135,9 +135,9 @@ def test_the_kernels_leave_open_what_numpy_leaves_open(compiled, bottle, mode, n
 
     For a pair without a box that is the set levels 1 and 2 leave open; with a
     world box, what level 3 leaves undecided after them. A pair of a robot
-    polytope and a robot box (the Panda's finger boxes) or a cylinder (the
-    bottle) gets level 3 from the kernels only: they send a subset of NumPy's
-    rows there.
+    polytope and a robot box (the Panda's finger boxes), of two robot polytopes
+    (the Panda's links) or of a robot polytope and a cylinder (the bottle) gets
+    level 3 from the kernels only: they send a subset of NumPy's rows there.
     """
     checker, qs, _ = bottle
     ref = _coal_calls(checker, lambda: numpy_code(checker.check, qs, mode))
@@ -145,18 +145,24 @@ def test_the_kernels_leave_open_what_numpy_leaves_open(compiled, bottle, mode, n
     # (a configuration's pairs after its first collision are not sent: 590 in grasp mode)
     assert sum(len(v) for v in ref.values()) > 400
     screen = checker._screens[MODE_BIT[mode]]
-    own_box, cylinder = set(), set()
-    for cols, pools in ((screen.self_boxes, own_box), (screen.cylinders, cylinder)):
+    own_box, cylinder, hulls = set(), set(), set()
+    for cols, pools in (
+        (screen.self_boxes, own_box),
+        (screen.cylinders, cylinder),
+        (screen.self_hulls, hulls),
+    ):
         for k in cols:
             c = int(screen.pairs[k])
             pools |= {id(checker._pair_pool[c]), id(checker._hull_pools.get(c))}
             pools.add(id(checker._piece_pools.get(c)))
     for pool, rows in ref.items():
-        if pool in own_box | cylinder:
+        if pool in own_box | cylinder | hulls:
             assert out.get(pool, set()) <= rows
         else:
             assert rows <= out.get(pool, set())
     assert any(pool in own_box for pool in ref)  # the robot-box level was exercised
+    # the two polytopes' level was exercised: the kernels send fewer rows there
+    assert sum(len(ref[p]) - len(out.get(p, set())) for p in ref if p in hulls) > 50
     # the cylinder level was exercised: the kernels send fewer rows there
     assert sum(len(ref[p]) - len(out.get(p, set())) for p in ref if p in cylinder) > 50
     # conservative, not loose: only entries within the slack of a threshold are added
@@ -168,7 +174,7 @@ def test_open_pairs_contain_the_colliding_ones(compiled, bottle):
     checker, qs, _ = bottle
     screen = checker._screens[1]
     frames = checker._frames.compute(qs[:2048])
-    broad, _, _, _ = checker._compiled_screen(screen)
+    broad, _, _, _, _ = checker._compiled_screen(screen)
     open_ = compiled.broad_phase(_stacked_checked(frames), *broad)
     hit = checker._pair_hits_compiled(compiled, qs[:2048], frames, screen)
     assert hit.any() and not (hit.T & ~open_).any()
@@ -189,7 +195,7 @@ def test_level_3_agrees_with_numpy_wherever_it_decides(compiled, bottle):
     frames = checker._frames.compute(qs)
     rots, poss = frames.rots, frames.poss
     tfs = np.stack(frames.transforms)
-    _, boxes, _, _ = checker._compiled_screen(screen)
+    _, boxes, _, _, _ = checker._compiled_screen(screen)
     assert boxes
     rows = np.arange(len(qs))
     decided = {kernels.FREE: 0, kernels.COLLIDES: 0}
@@ -245,7 +251,7 @@ def test_level_3_corners_hold_every_vertex():
 def test_kernel_limits_are_the_numpy_ones_plus_the_slack(bottle):
     checker, _, _ = bottle
     screen = checker._screens[1]
-    broad, boxes, _, _ = checker._compiled_screen(screen)
+    broad, boxes, _, _, _ = checker._compiled_screen(screen)
     assert checker._compiled_screen(screen)[0] is broad  # built once
     world, limit1 = broad[6], broad[7]
     own = world < 0
@@ -373,6 +379,14 @@ def test_level_3_of_a_robot_box_agrees_with_coal_and_the_numpy_level(compiled):
     slack = kernels.SLACK  # the limits of _pair_hits_compiled
     beyond, deep = halfs + (BROAD_MARGIN + slack), halfs - (INSIDE_DEPTH + slack)
     status = compiled.hull_vs_box(rel, rows, verts, inv, beyond, deep)
+    # the fused kernel places the hull by the same relative frames, row by row
+    tfs = stacked(frames.transforms)
+    some = rng.permutation(len(qs))[:3000]
+    fused = compiled.hull_vs_robot_box(tfs, joint, box_joint, some, verts, inv, beyond, deep)
+    np.testing.assert_array_equal(fused, status[some])
+    assert compiled.hull_vs_robot_box(
+        tfs, joint, box_joint, some[:0], verts, inv, beyond, deep
+    ).shape == (0,)
     local = in_frame((rel[:, :, :3], rel[:, :, 3], inv), rows, verts)
     lim = halfs[None, :, None]
     inside = np.all(np.abs(local) < lim - INSIDE_DEPTH, axis=1).any(axis=1)
@@ -443,7 +457,7 @@ def test_levels_1_and_2_equal_one_configuration_at_a_time(compiled, bottle):
     checker, qs, _ = bottle
     screen = checker._screens[1]
     frames = checker._frames.compute(qs[:300])
-    broad, _, _, _ = checker._compiled_screen(screen)
+    broad, _, _, _, _ = checker._compiled_screen(screen)
     tfs = stacked(frames.transforms)
     open_ = compiled.broad_phase(tfs, *broad)
     want = _broad_phase_one_by_one(tfs, broad)

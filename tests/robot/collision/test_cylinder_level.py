@@ -178,3 +178,51 @@ def test_same_decisions_without_the_level(case, mode, numpy_code):
     np.testing.assert_array_equal(got, plain.check(q, mode))
     np.testing.assert_array_equal(ref, got)
     assert {"", "collision_object"} <= set(got.tolist())
+
+
+def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):
+    """A link beside the bottle (the UR5's upper arm): the cylinder beyond a face of the box
+    of its vertices. Rows free only so are free by coal, and there are many of them.
+
+    Independent of the levels' code: the box from the vertices, the cylinder as 2,000
+    points of its surface (a solid's support is on its surface) placed in the joint's
+    frame; the planes' tests as the module doc states them.
+    """
+    name, checker, near, _ = case
+    if name != "ur5_robotiq":
+        pytest.skip("the UR5's upper arm beside the bottle")
+    t = np.linspace(0.0, 2.0 * np.pi, 50, endpoint=False)
+    only_box = 0
+    for screen, k, c in _columns(checker):
+        joint, verts, inv, radius, half = screen.cylinders[k]
+        q = near[c]
+        status = _kernel_level(compiled, checker, screen, k, q)
+        frames = checker._frames.compute(q)
+        rot, pos = frames.rots[joint], frames.poss[joint]
+        place = np.linalg.inv(inv)
+        # the cylinder's rims and axis-parallel lines, in the base frame, then the joint's
+        zs = np.linspace(-half, half, 20)
+        ring = np.stack(
+            np.broadcast_arrays(radius * np.cos(t)[:, None], radius * np.sin(t)[:, None], zs[None]),
+            -1,
+        )
+        pts = ring.reshape(-1, 3) @ place[:3, :3].T + place[:3, 3]
+        local = np.einsum("nji,npj->npi", rot, pts[None] - pos[:, None])  # (N, P, 3)
+        lo, hi = verts.min(axis=1), verts.max(axis=1)
+        beyond = (local.min(axis=1) > hi + BROAD_MARGIN) | (local.max(axis=1) < lo - BROAD_MARGIN)
+        x, y, z = (
+            np.einsum("ij,njv->niv", inv[:3, :3], np.einsum("nij,jv->niv", rot, verts))
+            + (pos @ inv[:3, :3].T + inv[:3, 3])[:, :, None]
+        ).transpose(1, 0, 2)
+        caps = np.all(z > half + BROAD_MARGIN, axis=1) | np.all(z < -half - BROAD_MARGIN, axis=1)
+        mid = np.stack([x.mean(1), y.mean(1)], 1)
+        u = mid / np.linalg.norm(mid, axis=1, keepdims=True)
+        side = np.all(u[:, :1] * x + u[:, 1:] * y > radius + BROAD_MARGIN, axis=1)
+        box_only = (status == kernels.FREE) & ~caps & ~side
+        assert np.all(beyond.any(axis=1)[box_only]), (
+            checker._pairs[c],
+            np.flatnonzero(box_only & ~beyond.any(axis=1))[:5],
+        )
+        assert not checker._run(checker._pair_pool[c], q[box_only]).any()
+        only_box += int(box_only.sum())
+    assert only_box > 100, only_box

@@ -114,7 +114,7 @@ def test_edges_inside_only_where_coal_collides(compiled, world):
     decided = 0
     for bit in (MODE_BIT["grasp"], MODE_BIT["approach"]):
         screen = checker._screens[bit]
-        _, _, edges, _ = checker._compiled_screen(screen)
+        _, _, edges, _, _ = checker._compiled_screen(screen)
         assert edges, name  # meshes against the table and the bottle
         for k, (joint, *ends) in edges.items():
             inside = compiled.edges_inside(tfs[joint], np.arange(len(q)), *ends)

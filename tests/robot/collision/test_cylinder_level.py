@@ -180,6 +180,7 @@ def test_same_decisions_without_the_level(case, mode, numpy_code):
     assert {"", "collision_object"} <= set(got.tolist())
 
 
+@pytest.mark.parametrize("case", ["ur5_robotiq"], indirect=True)
 def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):
     """A link beside the bottle (the UR5's upper arm): the cylinder beyond a face of the box
     of its vertices. Rows free only so are free by coal, and there are many of them.
@@ -188,9 +189,7 @@ def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):
     points of its surface (a solid's support is on its surface) placed in the joint's
     frame; the planes' tests as the module doc states them.
     """
-    name, checker, near, _ = case
-    if name != "ur5_robotiq":
-        pytest.skip("the UR5's upper arm beside the bottle")
+    _, checker, near, _ = case
     t = np.linspace(0.0, 2.0 * np.pi, 50, endpoint=False)
     only_box = 0
     for screen, k, c in _columns(checker):

@@ -131,6 +131,32 @@ def _check_mimic(spec: RobotSpec, prepared: PreparedUrdf) -> None:
             )
 
 
+def _check_all_joints_move_the_grasp_frame(robot: Robot) -> None:
+    """Refuse free joints that do not move the grasp frame (a head, wheels, fingers).
+
+    The IK cannot decide them (their Jacobian columns are zero): each would keep
+    whatever value its seed had (home, a library or random configuration), so
+    collisions would be checked with, and solutions report, arbitrary postures of
+    them. The message lists them at their home values, ready to lock.
+    """
+    on_chain = {int(j) for j in robot.chain.joint_ids}
+    model = robot.model
+    idle = [j for j in range(1, model.njoints) if j not in on_chain]
+    if not idle:
+        return
+    names = [str(model.names[j]) for j in idle]
+    values = ", ".join(
+        f"{n}: {float(robot.home[model.joints[j].idx_q]):.4g}"
+        for n, j in zip(names, idle, strict=True)
+    )
+    raise RobotSpecError(
+        f"robot {robot.name!r}: {len(idle)} free joint(s) do not move the grasp frame "
+        f"{robot.grasp_frame!r}: {', '.join(names)}; the IK cannot set them, so every "
+        f"solution would hold them at arbitrary values: lock them "
+        f"(locked_joints: {{{values}}})"
+    )
+
+
 class Robot:
     """A robot arm: reduced Pinocchio model, limits, home and grasp frame.
 
@@ -237,6 +263,7 @@ class Robot:
         home = home_configuration(spec, self.joint_names, lower, upper)
         home.setflags(write=False)
         self.home = home
+        _check_all_joints_move_the_grasp_frame(self)
         self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}
         if spec.tool is not None:  # read the meshes now: a bad one fails before any work
             self._tool_shapes = _tool_shapes(spec)

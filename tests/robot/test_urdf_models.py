@@ -717,3 +717,23 @@ def test_a_free_joint_that_does_not_move_the_grasp_frame_is_refused_with_the_loc
     spec.write_text(spec.read_text() + "locked_joints: {head_joint: 0.5}\n")
     robot = load_robot(spec)
     assert robot.nq == 6 and robot.joint_names == tuple(j[0] for j in UR5_JOINTS)
+
+
+def test_a_tcp_only_tool_on_a_hand_of_the_model_says_the_hand_is_checked(cli, tmp_path):
+    # Unitree Z1, Bravo 7: the gripper's links are in the URDF, fixed below the flange a
+    # TCP-only tool is mounted on; they are collision-checked, and the warning said not
+    jaw = (
+        '  <link name="jaw"><collision><geometry><box size="0.02 0.08 0.06"/></geometry>'
+        "</collision></link>\n"
+        '  <joint name="jaw_joint" type="fixed"><parent link="tool0"/><child link="jaw"/>'
+        '<origin xyz="0 0 0.03"/></joint>\n'
+    )
+    spec = _with_grasp_frame(write_arm(tmp_path, TCP_ONLY), "tcp")
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(urdf.read_text().replace("</robot>", jaw + "</robot>"))
+    code, out, err = cli("robot", spec)
+    assert code == 0, err
+    assert "not collision-checked" not in out + err
+    assert "the hand is the model's links at or below the flange, collision-checked: jaw" in out
+    geometry = load_robot(spec).build_geometry()
+    assert any(g.name.startswith("jaw") for g in geometry.geometryObjects)

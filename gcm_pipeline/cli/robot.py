@@ -133,6 +133,12 @@ def _frame_and_tool_lines(robot: Any) -> list[str]:
         if tool.collision:
             shapes = ", ".join(_shape_text(s) for s in tool.collision)
             out.append(f"               collision shapes: {shapes}")
+        elif robot.model_hand_links:
+            links = ", ".join(robot.model_hand_links)
+            out.append(
+                "               TCP only: no collision shapes; the hand is the model's links "
+                f"at or below the flange, collision-checked: {links}"
+            )
         else:
             out.append(
                 "               TCP only: no collision shapes, the hand is not collision-checked"

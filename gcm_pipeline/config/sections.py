@@ -203,6 +203,9 @@ class CandidatesConfig(_Section):
             to the robot's grasp frame, applied on the right (``T_tool = T_grasp @
             grasp_to_tool``), for every source. ACRONYM's Franka frame written as
             ``npy``/``npz``/``csv`` needs ``{xyz: [0, 0, 0.1034], rpy_deg: [0, 0, -90]}``.
+            Generated and sampled grasps (z = approach) may only be shifted and turned
+            about z: the approach, retreat and manifold take the grasp frame's z as the
+            approach, so a map that turns z is refused.
         success_only: ``file``: keep only grasps labelled successful (ACRONYM's
             ``object_in_gripper``, a ``success`` column). Default: whenever the
             file has such labels (a grasp its simulation saw fail is not a
@@ -299,6 +302,18 @@ class CandidatesConfig(_Section):
                 f"graspgen, contact_graspnet, graspnet); {self.format} poses are taken as "
                 "the robot's grasp frame (use grasp_to_tool)"
             )
+        if self.source != "file" and self.grasp_to_tool is not None:
+            # generated and sampled grasps follow the convention (z = approach); the
+            # approach, retreat, manifold bounds and scene take the mapped frame's z as
+            # the approach, so a map that turns z makes them all move sideways
+            tilt = math.degrees(math.acos(min(1.0, self.grasp_to_tool.matrix()[2, 2])))
+            if tilt > 1e-6:
+                raise ValueError(
+                    f"'grasp_to_tool' turns the approach axis (z) of {self.source} grasps by "
+                    f"{tilt:.3g} deg; the approach, retreat and manifold take the grasp "
+                    "frame's z as the approach: give the robot a grasp frame that follows "
+                    "the convention (its spec's tool.tcp) and turn grasp_to_tool about z only"
+                )
         if self.camera_pose is not None and not (
             self.source == "file" and self.format in ("contact_graspnet", "graspnet")
         ):

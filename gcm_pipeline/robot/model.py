@@ -88,13 +88,49 @@ class RobotSpec:
     tool: ToolSpec | None = None
 
 
-def _tool_shapes(spec: RobotSpec) -> dict[str, list[tuple[Any, Any, Any]]]:
-    """The tool's collision and visual shapes with their geometry and pose (meshes read now)."""
+def _links_below(full: pin.Model, prepared: PreparedUrdf, flange: str, where: str) -> list[str]:
+    """The URDF links with collision geometry at or below the flange frame (a hand in the model).
+
+    A TCP-only tool on such a flange (a gripper link of the model, as the Z1's
+    ``gripperStator``) still has its hand collision-checked: the model's links.
+    """
+    import xml.etree.ElementTree as ET
+
+    root = resolve_frame(full, flange, "tool.flange", where)
+    with_collision = {
+        link.get("name")
+        for link in ET.fromstring(prepared.xml).iter("link")
+        if link.find("collision") is not None
+    }
+    # the flange's own link counts when it is mounted (a fixed joint), not when a joint
+    # moves it (a bare wrist link such as the Bravo's link7 is the arm's, not a hand)
+    mounted = full.frames[int(full.frames[root].parentFrame)].type == pin.FrameType.FIXED_JOINT
+    below: list[str] = []
+    for i, f in enumerate(full.frames):
+        if f.type != pin.FrameType.BODY or f.name not in with_collision:
+            continue
+        if i == root and not mounted:
+            continue
+        j, seen = i, set()
+        while j not in seen and j > 0 and j != root:
+            seen.add(j)
+            j = int(full.frames[j].parentFrame)
+        if j == root:
+            below.append(str(f.name))
+    return below
+
+
+def _tool_shapes(spec: RobotSpec, hand_links: list[str]) -> dict[str, list[tuple[Any, Any, Any]]]:
+    """The tool's collision and visual shapes with their geometry and pose (meshes read now).
+
+    ``hand_links``: the model's links at or below the flange (no warning for a TCP-only
+    tool on a hand the model has).
+    """
     shapes_of: dict[str, list[tuple[Any, Any, Any]]] = {}
     if spec.tool is None:
         return shapes_of
     tool, where = spec.tool, f"robot spec {str(spec.path)!r}: tool"
-    if not tool.collision:
+    if not tool.collision and not hand_links:
         log.warning(
             "robot %r: the tool %r is a TCP only (no collision shapes): the hand is "
             "not collision-checked, only the arm's links are",
@@ -129,6 +165,32 @@ def _check_mimic(spec: RobotSpec, prepared: PreparedUrdf) -> None:
                 f"robot {spec.name!r}: joint {joint!r} is locked but mimics {leader!r}, which "
                 f"is free: it would not follow; lock {leader!r} too"
             )
+
+
+def _check_all_joints_move_the_grasp_frame(robot: Robot) -> None:
+    """Refuse free joints that do not move the grasp frame (a head, wheels, fingers).
+
+    The IK cannot decide them (their Jacobian columns are zero): each would keep
+    whatever value its seed had (home, a library or random configuration), so
+    collisions would be checked with, and solutions report, arbitrary postures of
+    them. The message lists them at their home values, ready to lock.
+    """
+    on_chain = {int(j) for j in robot.chain.joint_ids}
+    model = robot.model
+    idle = [j for j in range(1, model.njoints) if j not in on_chain]
+    if not idle:
+        return
+    names = [str(model.names[j]) for j in idle]
+    values = ", ".join(
+        f"{n}: {float(robot.home[model.joints[j].idx_q]):.4g}"
+        for n, j in zip(names, idle, strict=True)
+    )
+    raise RobotSpecError(
+        f"robot {robot.name!r}: {len(idle)} free joint(s) do not move the grasp frame "
+        f"{robot.grasp_frame!r}: {', '.join(names)}; the IK cannot set them, so every "
+        f"solution would hold them at arbitrary values: lock them "
+        f"(locked_joints: {{{values}}})"
+    )
 
 
 class Robot:
@@ -237,9 +299,13 @@ class Robot:
         home = home_configuration(spec, self.joint_names, lower, upper)
         home.setflags(write=False)
         self.home = home
+        _check_all_joints_move_the_grasp_frame(self)
         self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}
+        #: the model's links with collision geometry at or below the tool's flange
+        self.model_hand_links: list[str] = []
         if spec.tool is not None:  # read the meshes now: a bad one fails before any work
-            self._tool_shapes = _tool_shapes(spec)
+            self.model_hand_links = _links_below(full, prepared, spec.tool.flange, where)
+            self._tool_shapes = _tool_shapes(spec, self.model_hand_links)
         self.shoulder = self.chain.root_origin.copy()
         self.reach_bound = float(self.chain.link_lengths().sum())
         self.max_reach = min(self.reach_bound, self._maximise_reach() + 2e-3)

@@ -236,6 +236,25 @@ def test_grasp_to_tool_applies_to_generators():
     np.testing.assert_allclose(b, a @ offset, atol=1e-9)
 
 
+def test_grasp_to_tool_that_turns_generated_grasps_approach_axis_is_refused():
+    # mapping the generators' TCP (z = approach) onto an end-effector frame whose z is not
+    # the approach (Kinova's j2s6s200_end_effector: approach along x) made the IK targets
+    # right but the approach and retreat move along the wrong axis and the manifold's
+    # angle bounds drop most triangles (20 of 126 kept on the bottle instead of 115)
+    proc = run_gcm(
+        "validate",
+        BOTTLE,
+        "--set",
+        "candidates.grasp_to_tool={xyz: [0, 0, 0.03], rpy_deg: [0, -90, 0]}",
+    )
+    assert_one_line_error(
+        proc.returncode,
+        proc.stderr,
+        "'grasp_to_tool' turns the approach axis (z) of cylinder_side grasps by 90 deg",
+        "tool.tcp",
+    )
+
+
 def test_zero_reachable_says_why_and_what_to_try(tmp_path, caplog):
     """The UR5's bare flange (no tool) at the bottle: nothing reachable, and a hint."""
     spec = yaml.safe_load(yaml.safe_dump(UR5_SPEC))

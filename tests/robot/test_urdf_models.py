@@ -688,3 +688,52 @@ def test_a_free_prismatic_joint_is_one_line_that_says_to_lock_it(cli, tmp_path):
     spec.write_text(spec.read_text() + "locked_joints: {elbow_joint: 0.05}\n")
     robot = load_robot(spec)
     assert robot.nq == 5 and "elbow_joint" not in robot.joint_names
+
+
+# ------------------------------------------------- free joints that do not move the grasp frame
+
+
+def test_a_free_joint_that_does_not_move_the_grasp_frame_is_refused_with_the_lock(tmp_path):
+    # a mobile manipulator's head or wheels, a hand's fingers beside its grasp frame: the
+    # IK cannot set them (zero Jacobian columns), so they kept their seeds' arbitrary
+    # values (random restarts, the seed library) in every solution and collision check
+    head = (
+        '  <link name="head_link"><collision><geometry><box size="0.05 0.05 0.05"/>'
+        "</geometry></collision></link>\n"
+        '  <joint name="head_joint" type="revolute"><parent link="base_link"/>'
+        '<child link="head_link"/><origin xyz="-0.3 0 0.5"/><axis xyz="0 0 1"/>'
+        '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>\n'
+    )
+    spec = write_arm(tmp_path)
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(urdf.read_text().replace("</robot>", head + "</robot>"))
+    proc = run_gcm("robot", str(spec))
+    assert_one_line_error(
+        proc.returncode,
+        proc.stderr,
+        "1 free joint(s) do not move the grasp frame 'tool0': head_joint",
+        "locked_joints: {head_joint: 0}",
+    )
+    spec.write_text(spec.read_text() + "locked_joints: {head_joint: 0.5}\n")
+    robot = load_robot(spec)
+    assert robot.nq == 6 and robot.joint_names == tuple(j[0] for j in UR5_JOINTS)
+
+
+def test_a_tcp_only_tool_on_a_hand_of_the_model_says_the_hand_is_checked(cli, tmp_path):
+    # Unitree Z1, Bravo 7: the gripper's links are in the URDF, fixed below the flange a
+    # TCP-only tool is mounted on; they are collision-checked, and the warning said not
+    jaw = (
+        '  <link name="jaw"><collision><geometry><box size="0.02 0.08 0.06"/></geometry>'
+        "</collision></link>\n"
+        '  <joint name="jaw_joint" type="fixed"><parent link="tool0"/><child link="jaw"/>'
+        '<origin xyz="0 0 0.03"/></joint>\n'
+    )
+    spec = _with_grasp_frame(write_arm(tmp_path, TCP_ONLY), "tcp")
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(urdf.read_text().replace("</robot>", jaw + "</robot>"))
+    code, out, err = cli("robot", spec)
+    assert code == 0, err
+    assert "not collision-checked" not in out + err
+    assert "the hand is the model's links at or below the flange, collision-checked: jaw" in out
+    geometry = load_robot(spec).build_geometry()
+    assert any(g.name.startswith("jaw") for g in geometry.geometryObjects)

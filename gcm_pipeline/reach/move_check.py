@@ -133,7 +133,7 @@ def _grid_collisions(
     if rows.size == 0:
         return rows, np.zeros(0, dtype=object), np.zeros(0, dtype=int)
     steps = q_path.shape[1] - 1
-    samples = q_path[rows, 1:].reshape(-1, nq)
+    samples = q_path[:, 1:].take(rows, axis=0).reshape(-1, nq)  # faster than q_path[rows, 1:]
     which = np.repeat(rows if ids is None else ids[rows], steps)
     why = np.asarray(collisions(samples, which)).reshape(rows.size, steps)
     hit = why != ""

@@ -242,9 +242,14 @@ class _Knots:
         """(N, positions) bool: where a waypoint is known."""
         return self.slot >= 0
 
+    def _flat(self, rows: Any, at: Any) -> Any:
+        """Positions of ``slot[rows, at]`` in the flat ``slot`` (broadcast as indexing does)."""
+        return rows * self.slot.shape[1] + at
+
     def __getitem__(self, index: tuple[Any, Any]) -> np.ndarray:
-        slot = self.slot[index]
-        out = self.q[slot]
+        # np.take on flat positions: NumPy's fancy indexing gathers rows several times slower
+        slot = self.slot.take(self._flat(*index))
+        out = self.q.take(slot, axis=0)
         none = slot < 0
         if none.any():
             out[none] = np.nan
@@ -266,7 +271,7 @@ class _Knots:
             if grown.shape[0] > np.iinfo(self.slot.dtype).max:
                 self.slot = self.slot.astype(np.int64)
         self.q[self.size : end] = values
-        self.slot[rows, at] = np.arange(self.size, end)
+        np.put(self.slot, self._flat(rows, at), np.arange(self.size, end))
         self.size = end
 
     def clear(self, rows: np.ndarray) -> None:
@@ -332,7 +337,9 @@ class _MoveBatch:
             return
         first = np.full(self.n, self.fine_steps)
         np.minimum.at(first, rows, at)
-        bad = np.unique(rows)
+        hit = np.zeros(self.n, dtype=bool)
+        hit[rows] = True
+        bad = np.flatnonzero(hit)  # np.unique(rows), without its sort
         self.ok[bad] = False
         self.reason[bad] = why if isinstance(why, str) else why[bad]
         self.failed[bad] = np.minimum(first[bad] // SUBSTEPS + 1, self.steps)
@@ -352,8 +359,8 @@ class _MoveBatch:
                 continue
             r = rows[sel]
             at, prev = (i * fine_steps) // pieces, ((i - 1) * fine_steps) // pieces
-            target = self.tg[r].copy()
-            target[:, :3, 3] += (at / fine_steps) * self.offsets[r]
+            target = self.tg.take(r, axis=0)
+            target[:, :3, 3] += (at / fine_steps) * self.offsets.take(r, axis=0)
             seed = knots[r, prev]
             if at < fine_steps:
                 q_new, conv = line_waypoints(
@@ -458,12 +465,12 @@ def _reach_ends(b: _MoveBatch) -> None:
     if b.grid_knots:
         reached = b.follow(rows, b.steps)
     else:
-        ends = tg[rows].copy()
-        ends[:, :3, 3] += offsets[rows]
+        ends = tg.take(rows, axis=0)
+        ends[:, :3, 3] += offsets.take(rows, axis=0)
         q_end, done = end_of_move(
             b.robot,
             ends,
-            b.qg[rows],
+            b.qg.take(rows, axis=0),
             b.backend,
             b.position_tolerance,
             b.orientation_tolerance,
@@ -485,6 +492,9 @@ def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray
     """
     robot, move, tg, offsets, knots, ok = b.robot, b.move, b.tg, b.offsets, b.knots, b.ok
     sub, tol = SUBSTEPS, move.max_deviation
+    # the lines' starts and orientations as whole arrays: rows by np.take (NumPy's fancy
+    # indexing gathers them several times slower, mixed with slices far slower)
+    line_start, line_rot = np.ascontiguousarray(tg[:, :3, 3]), np.ascontiguousarray(tg[:, :3, :3])
     # segments between known waypoints: accepted under the deviation bound, else
     # split; a new waypoint starts from the segment's joint interpolation
     r_idx, pos = _nonzero_2d(knots.have & ok[:, None])
@@ -521,14 +531,15 @@ def _settle_segments(b: _MoveBatch, deviation: np.ndarray, waypoints: np.ndarray
         over = jump > move.max_joint_step
         dev = np.full(s_row.size, np.inf)
         fine = np.flatnonzero(~over)
+        on = s_row.take(fine)
         dev[fine] = segment_bounds(
             robot,
             lever_arms(robot),
-            qa[fine],
-            qb[fine],
-            tg[s_row[fine], :3, 3],
-            tg[s_row[fine], :3, :3],
-            offsets[s_row[fine]],
+            qa.take(fine, axis=0),
+            qb.take(fine, axis=0),
+            line_start.take(on, axis=0),
+            line_rot.take(on, axis=0),
+            offsets.take(on, axis=0),
             b.gripper_radius,
             _SLACK_SHARE * tol,
             reject_above=tol,
@@ -562,23 +573,24 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
     if rows.size:
         # the knots on each side of every grid point: the last at or before it and
         # the first at or after it (a move still ok has knots at 0 and at the end)
-        slot = b.knots.slot[rows]
-        r_idx, pos = _nonzero_2d(slot >= 0)
-        slot = slot[r_idx, pos]
+        # (np.take throughout: NumPy's fancy indexing gathers several times slower)
+        slot = b.knots.slot.take(rows, axis=0)
         width = fine_steps + 1
+        keys = np.flatnonzero(slot >= 0)  # row * width + position, sorted
+        pos = keys % width
+        slot = slot.take(keys)
         grid = np.arange(steps + 1) * sub
-        keys = r_idx * width + pos  # sorted
         query = (np.arange(rows.size)[:, None] * width + grid).ravel()
         shape = (rows.size, steps + 1)
         before = np.searchsorted(keys, query, side="right") - 1
         # the first at or after: that knot where one sits on the grid point, else the next
         # (the keys are distinct)
-        after = before + (keys[before] != query)
-        pa, pb = pos[before].reshape(shape), pos[after].reshape(shape)
-        ka = b.knots.q[slot[before]].reshape(*shape, -1)
+        after = before + (keys.take(before) != query)
+        pa, pb = pos.take(before).reshape(shape), pos.take(after).reshape(shape)
+        ka = b.knots.q.take(slot.take(before), axis=0).reshape(*shape, -1)
         f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
         # ka + f * (kb - ka), in one array
-        path = b.knots.q[slot[after]].reshape(*shape, -1)
+        path = b.knots.q.take(slot.take(after), axis=0).reshape(*shape, -1)
         path -= ka
         path *= f
         path += ka
@@ -626,8 +638,8 @@ def _split_segments(
     row = s_row[owner]
     qa, qb = knots[row, a], knots[row, b]
     seed = qa + ((at - a) / (b - a))[:, None] * (qb - qa)
-    target = poses[row].copy()
-    target[:, :3, 3] += (at / fine_steps)[:, None] * offsets[row]
+    target = poses.take(row, axis=0)
+    target[:, :3, 3] += (at / fine_steps)[:, None] * offsets.take(row, axis=0)
     q_new, conv = line_waypoints(robot, seed, target, tol, radius)
     knots[row[conv], at[conv]] = q_new[conv]
     fail(row[~conv], at[~conv], "no_ik")

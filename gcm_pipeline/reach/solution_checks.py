@@ -127,12 +127,13 @@ class SolutionChecks:
             rows = np.flatnonzero(stage == at)
             t0 = time.process_time()
             if move is not None and rows.size:
+                on = targets.take(rows, axis=0)
                 res = check_moves(
                     self.robot,
-                    targets[rows],
-                    q[rows],
+                    on,
+                    q.take(rows, axis=0),
                     move,
-                    self.path_collisions(move, targets[rows]),
+                    self.path_collisions(move, on),
                     gripper_radius=self.radius,
                     position_tolerance=self.position_tolerance,
                     orientation_tolerance=self.orientation_tolerance,

@@ -83,28 +83,35 @@ def end_of_move(
         at, cand, _, _ = analytic_blocks(
             solver, ends[:, :3, :3], ends[:, :3, 3], q7, lower, upper, (start, _NEAR_END)
         )
-        change = largest_change(cand, start[at])
+        # (rows by np.take: NumPy's fancy indexing gathers them several times slower)
+        change = largest_change(cand, start.take(at, axis=0))
         first = first_smallest(at, change)  # per end, the solution changing least
         near = first[change[first] <= _NEAR_END]
         # exact away from singularities: a pick off its pose leaves the row to the LM
         tol_p = position_tolerance * opts.inner_tolerance
         tol_r = orientation_tolerance * opts.inner_tolerance
-        pe, re = pose_errors(robot.chain, cand[near], ends[at[near], :3, :3], ends[at[near], :3, 3])
+        end = ends.take(at.take(near), axis=0)
+        pe, re = pose_errors(
+            robot.chain,
+            cand.take(near, axis=0),
+            np.ascontiguousarray(end[:, :3, :3]),
+            np.ascontiguousarray(end[:, :3, 3]),
+        )
         near = near[(pe <= tol_p) & (re <= tol_r)]
         q[at[near]], conv[at[near]] = cand[near], True
     rest = np.flatnonzero(~conv)
     if rest.size:
         q[rest], conv[rest] = _lm_inside(
             robot,
-            q_start[rest],
-            ends[rest],
+            q_start.take(rest, axis=0),
+            ends.take(rest, axis=0),
             position_tolerance * opts.inner_tolerance,
             orientation_tolerance * opts.inner_tolerance,
             opts,
         )
     reached = np.zeros(m, dtype=bool)
     rows = np.flatnonzero(conv)
-    pe, re, inside = verify_solutions(robot, q[rows], ends[rows])
+    pe, re, inside = verify_solutions(robot, q.take(rows, axis=0), ends.take(rows, axis=0))
     reached[rows] = (pe <= position_tolerance) & (re <= orientation_tolerance) & inside
     return q, reached
 

@@ -222,7 +222,8 @@ def read_grasps_csv_pose(path: str | Path) -> tuple[GraspTable, np.ndarray]:
     """
     path = Path(path)
     split = csv_text.read_text_columns(path)
-    if split is not None:  # Arrow's split; any doubt or fault: Python's, which names it
+    if split is not None and all(c in split[0] for c in COLUMNS["dq"].csv):
+        # Arrow's split; any doubt or fault: Python's reader, which names it
         try:
             return _table(csv_text.ArrowCells(path, *split))
         except (csv_text.Fallback, InputError):

@@ -12,7 +12,7 @@ the Python code writes and accepts:
   (a fraction between 1e-4 and 1e16), gets its exponent padded to two digits
   (below 1e-4 or from 1e16 on), ``.0`` appended (a whole number under 1e16),
   and :func:`repr` for any other (inf, 1e-5 .. 1e-4, whole numbers past
-  1e10 that Arrow writes with an exponent). :func:`arrow_floats_ok` checks
+  1e10 that Arrow writes with an exponent); NaN is ``""``. :func:`arrow_floats_ok` checks
   these rules once per process on values of every kind and falls back to
   :func:`repr` for every cell if they do not hold.
 - **reading**: a file is split by Arrow only when it has no ``"`` and no
@@ -89,7 +89,8 @@ def _arrow_floats(x: np.ndarray, repr_cells: Callable[[np.ndarray], list[str]], 
         fraction = has_dot & ~has_e & finite & (ax >= 1e-4)  # 0.000123, 12.5: repr's layout
         exponent = has_e & finite & (ax != 0) & ((ax < 1e-4) | (ax >= 1e16))  # 3.2e-9
         whole = ~has_dot & ~has_e & finite & (ax < 1e16)  # 12, 0, -0
-    other = ~(fraction | exponent | whole)  # NaN, inf, 1e-5..1e-4, 1.5e+10 ...
+    nan = np.isnan(x)
+    other = ~(fraction | exponent | whole | nan)  # inf, 1e-5..1e-4, 1.5e+10 ...
     if exponent.any():  # repr writes at least two exponent digits
         text = pc.replace_substring_regex(text, r"e([-+])([0-9])$", r"e\10\2")
     if whole.any():  # repr writes whole numbers with ".0"
@@ -97,6 +98,8 @@ def _arrow_floats(x: np.ndarray, repr_cells: Callable[[np.ndarray], list[str]], 
     if other.any():
         fixed = pa.array(repr_cells(x[other]), type=pa.string())
         text = pc.replace_with_mask(text, pa.array(other), fixed)
+    if nan.any():
+        text = pc.if_else(pa.array(nan), "", text)
     return text
 
 

@@ -11,6 +11,12 @@ the per-candidate columns of the source
 are the grasp frame in the world (quaternion with ``qw >= 0``). Floats are
 written with :func:`repr` (they round-trip exactly); NaN is an empty cell;
 booleans are ``true`` / ``false``.
+
+The text is made and split in C++ (:mod:`gcm_pipeline.rundir.csv_text`:
+Arrow, the same bytes as the Python writer and the same table as the Python
+reader, a few seconds for a million rows); a file Arrow cannot vouch for
+(quotes, a carriage return, any fault) is read by the Python reader here, whose errors
+name the file, the line and the column.
 """
 
 from __future__ import annotations

@@ -146,7 +146,9 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
         header not counted), not table rows.
     """
     order = _row_order(grasps)
-    g = grasps.take(order)
+    extra = _extra_columns(grasps)
+    written = [c for c in grasps.columns if c in _LEADING or c in extra]
+    g = GraspTable({c: grasps[c] for c in written}).take(order)  # not q_pregrasp, solutions ...
     n = len(g)
     csv_row = np.empty(n, dtype=np.int64)
     csv_row[order] = np.arange(n)
@@ -161,7 +163,7 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
         header += cells
         fmt = _FORMATS[spec.dtype]
         cols += [(fmt, None if values is None else values[:, k]) for k in range(len(cells))]
-    for name in _extra_columns(g):
+    for name in extra:
         header.append(name)
         cols.append((_cells, np.asarray(g[name])))
     with Path(path).open("wb") as fh:

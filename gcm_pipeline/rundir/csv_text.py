@@ -175,13 +175,17 @@ def empty_cells(n: int) -> Any:
 
 def write_rows(fh: BinaryIO, columns: Sequence[Any]) -> None:
     r"""Write the rows of equal-length Arrow text columns: cells joined by ``,``, rows by ``\n``."""
+    import pyarrow as pa
     import pyarrow.compute as pc
 
     if not columns or len(columns[0]) == 0:
         return
-    last = pc.binary_join_element_wise(columns[-1], "", "\n")  # the cell, then the newline
-    rows = pc.binary_join_element_wise(*columns[:-1], last, ",") if len(columns) > 1 else last
-    offsets = np.frombuffer(rows.buffers()[1], dtype=np.int32)
+    text = pa.large_string()  # 64-bit offsets: any length of text
+    wide = [c.cast(text) for c in columns]
+    empty, newline, comma = (pa.scalar(s, text) for s in ("", "\n", ","))
+    last = pc.binary_join_element_wise(wide[-1], empty, newline)  # the cell, then the newline
+    rows = pc.binary_join_element_wise(*wide[:-1], last, comma) if len(wide) > 1 else last
+    offsets = np.frombuffer(rows.buffers()[1], dtype=np.int64)
     first, end = int(offsets[rows.offset]), int(offsets[rows.offset + len(rows)])
     fh.write(memoryview(rows.buffers()[2])[first:end])
 
@@ -219,17 +223,19 @@ def read_text_columns(path: Path) -> tuple[list[str], dict[str, Any]] | None:
         return None
     if max(map(len, names)) > MAX_CSV_CELL:
         return None
+    # one thread: the callers' own workers (forked after a read) share the cores
+    read = pv.ReadOptions(skip_rows=1, column_names=names, block_size=1 << 22, use_threads=False)
+    convert = pv.ConvertOptions(
+        column_types={n: pa.string() for n in names}, null_values=[""], strings_can_be_null=True
+    )
     try:
-        table = pv.read_csv(
-            pa.memory_map(str(path)),
-            read_options=pv.ReadOptions(skip_rows=1, column_names=names, block_size=1 << 22),
-            parse_options=pv.ParseOptions(quote_char=False, ignore_empty_lines=True),
-            convert_options=pv.ConvertOptions(
-                column_types={n: pa.string() for n in names},
-                null_values=[""],
-                strings_can_be_null=True,
-            ),
-        )
+        with pa.memory_map(str(path)) as source:
+            table = pv.read_csv(
+                source,
+                read_options=read,
+                parse_options=pv.ParseOptions(quote_char=False, ignore_empty_lines=True),
+                convert_options=convert,
+            )
     except (pa.ArrowException, OSError):  # a row of another width, bad UTF-8: Python says where
         return None
     columns = {n: table.column(n) for n in names}

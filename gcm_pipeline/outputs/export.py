@@ -41,7 +41,6 @@ arm trajectories come from ``configurations.npz`` (``q_pregrasp``, ``q``,
 
 from __future__ import annotations
 
-import csv
 import os
 from collections.abc import Callable
 from datetime import datetime
@@ -58,7 +57,7 @@ from gcm_pipeline.outputs import export_mcap
 from gcm_pipeline.outputs.moveit_grasps import MoveItOptions, arm_trajectory, grasp_messages
 from gcm_pipeline.ranking.metrics import METRIC_COLUMNS
 from gcm_pipeline.rundir.arrays import read_npz
-from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv
+from gcm_pipeline.rundir.grasps_csv import CSV_COLUMNS, read_grasps_csv_pose
 from gcm_pipeline.rundir.run import objects_hint
 from gcm_pipeline.rundir.transaction import atomic_file, read_marker
 from gcm_pipeline.table import GraspTable
@@ -160,9 +159,9 @@ def export_run(
         raise OutputError(f"cannot write {os.fspath(out)}: a file name, not a folder, is needed")
     path = _output_file(Path(out) if out is not None else run / EXPORT_FORMATS[format])
     _check_not_the_run(run, path)
-    everything = read_grasps_csv(run / "grasps.csv")  # file order: ranked first
+    everything, pose7 = read_grasps_csv_pose(run / "grasps.csv")  # file order: ranked first
     # the exact x..qz of the file (the dq column rebuilt from them may differ by an ulp)
-    grasps = everything.with_columns(pose7=_csv_pose(run / "grasps.csv", len(everything)))
+    grasps = everything.with_columns(pose7=pose7)
     config = read_config(run / "config.yaml")
     n = len(grasps)
     ranked = np.asarray(grasps["rank"]) > 0 if "rank" in grasps else np.zeros(n, bool)
@@ -242,18 +241,6 @@ def _start_ns(run: Path) -> int:
     except ValueError:
         return 0
     return int(when.timestamp()) * 1_000_000_000 if when.tzinfo is not None else 0
-
-
-_POSE7 = ("x", "y", "z", "qw", "qx", "qy", "qz")
-
-
-def _csv_pose(path: Path, n: int) -> np.ndarray:
-    """The ``x, y, z, qw, qx, qy, qz`` columns of ``grasps.csv`` as written (N, 7)."""
-    # read as read_grasps_csv reads it (which has checked the file): BOM and blank lines
-    with path.open(newline="", encoding="utf-8-sig") as fh:
-        rows = [row for row in csv.reader(fh) if any(cell.strip() for cell in row)]
-    cols = [rows[0].index(c) for c in _POSE7]
-    return np.array([[float(row[j]) for j in cols] for row in rows[1:]]).reshape(n, 7)
 
 
 #: Files of a run directory an export never replaces (every file ``gcm run`` writes).

@@ -11,6 +11,12 @@ the per-candidate columns of the source
 are the grasp frame in the world (quaternion with ``qw >= 0``). Floats are
 written with :func:`repr` (they round-trip exactly); NaN is an empty cell;
 booleans are ``true`` / ``false``.
+
+The text is made and split in C++ (:mod:`gcm_pipeline.rundir.csv_text`:
+Arrow, the same bytes as the Python writer and the same table as the Python
+reader, a few seconds for a million rows); a file Arrow cannot vouch for
+(quotes, a carriage return, any fault) is read by the Python reader here, whose errors
+name the file, the line and the column.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import numpy as np
 from gcm_pipeline.bounds import MAX_CSV_CELL
 from gcm_pipeline.errors import InputError, clip
 from gcm_pipeline.geometry.dualquat import dq_from_pos_quat, dq_to_pos_quat
+from gcm_pipeline.rundir import csv_text
 from gcm_pipeline.table import CANDIDATE_COLUMNS, COLUMNS, Column, GraspTable
 
 __all__ = [
@@ -33,6 +40,7 @@ __all__ = [
     "check_csv_cells",
     "format_floats",
     "read_grasps_csv",
+    "read_grasps_csv_pose",
     "write_grasps_csv",
 ]
 
@@ -66,23 +74,19 @@ def _quote(text: str) -> str:
     return text
 
 
-def _ints(values: np.ndarray) -> list[str]:
-    return [str(v) for v in np.asarray(values, dtype=np.int64).tolist()]
+def _floats(values: np.ndarray) -> Any:
+    return csv_text.float_cells(values, format_floats)
 
 
-def _bools(values: np.ndarray) -> list[str]:
-    return ["true" if b else "false" for b in np.asarray(values, dtype=bool).tolist()]
+def _strs(values: np.ndarray) -> Any:
+    return csv_text.text_cells(values, _quote)
 
 
-def _strs(values: np.ndarray) -> list[str]:
-    return [_quote(str(s)) for s in np.asarray(values).tolist()]
-
-
-#: How a leading column's cells are written, by the registry's dtype.
-_FORMATS: dict[str, Callable[[np.ndarray], list[str]]] = {
-    "int": _ints,
-    "float": format_floats,
-    "bool": _bools,
+#: How a leading column's cells are written (Arrow text), by the registry's dtype.
+_FORMATS: dict[str, Callable[[np.ndarray], Any]] = {
+    "int": csv_text.int_cells,
+    "float": _floats,
+    "bool": csv_text.bool_cells,
     "str": _strs,
 }
 
@@ -116,16 +120,16 @@ def _extra_columns(grasps: GraspTable) -> list[str]:
     ]
 
 
-def _cells(values: np.ndarray) -> list[str]:
-    """CSV cells of a 1-D column by dtype: bool, int, float (repr) or quoted text."""
+def _cells(values: np.ndarray) -> Any:
+    """Arrow text cells of a 1-D column by dtype: bool, int, float (repr) or quoted text."""
     kind = values.dtype.kind
     if kind == "b":
-        return ["true" if b else "false" for b in values.tolist()]
+        return csv_text.bool_cells(values)
     if kind in "iu":
-        return _ints(values)
+        return csv_text.int_cells(values)
     if kind in "US":
-        return [_quote(str(v)) for v in values.tolist()]
-    return format_floats(values)
+        return _strs(values)
+    return _floats(values)
 
 
 def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
@@ -142,12 +146,14 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
         header not counted), not table rows.
     """
     order = _row_order(grasps)
-    g = grasps.take(order)
+    extra = _extra_columns(grasps)
+    written = [c for c in grasps.columns if c in _LEADING or c in extra]
+    g = GraspTable({c: grasps[c] for c in written}).take(order)  # not q_pregrasp, solutions ...
     n = len(g)
     csv_row = np.empty(n, dtype=np.int64)
     csv_row[order] = np.arange(n)
     header: list[str] = []
-    cols: list[list[str]] = []
+    cols: list[tuple[Callable[[np.ndarray], Any], np.ndarray | None]] = []
     for name, spec in _LEADING.items():
         values = _leading_values(g, name, csv_row)
         cells = list(spec.csv)
@@ -156,14 +162,19 @@ def write_grasps_csv(grasps: GraspTable, path: str | Path) -> np.ndarray:
             cells = [spec.csv[0].format(j=j + 1) for j in range(width)]
         header += cells
         fmt = _FORMATS[spec.dtype]
-        for k in range(len(cells)):
-            cols.append([""] * n if values is None else fmt(values[:, k]))
-    for name in _extra_columns(g):
+        cols += [(fmt, None if values is None else values[:, k]) for k in range(len(cells))]
+    for name in extra:
         header.append(name)
-        cols.append(_cells(np.asarray(g[name])))
-    with Path(path).open("w", newline="", encoding="utf-8") as fh:
-        fh.write(",".join(header) + "\n")
-        fh.writelines(",".join(row) + "\n" for row in zip(*cols, strict=True))
+        cols.append((_cells, np.asarray(g[name])))
+    with Path(path).open("wb") as fh:
+        fh.write((",".join(header) + "\n").encode("utf-8"))
+        for start in range(0, n, csv_text.CHUNK_ROWS):
+            part = slice(start, min(start + csv_text.CHUNK_ROWS, n))
+            size = part.stop - part.start
+            csv_text.write_rows(
+                fh,
+                [csv_text.empty_cells(size) if v is None else fmt(v[part]) for fmt, v in cols],
+            )
     return order
 
 
@@ -209,8 +220,29 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
             (names the line and column; attributes ``path``, ``row``: the line,
             ``key``: the column, ``value``: the cell).
     """
-    cells = _Cells(Path(path), *_read_rows(Path(path)))
-    cols: dict[str, Any] = {"dq": _read_pose(cells)}
+    return read_grasps_csv_pose(path)[0]
+
+
+def read_grasps_csv_pose(path: str | Path) -> tuple[GraspTable, np.ndarray]:
+    """:func:`read_grasps_csv` and the (N, 7) ``x, y, z, qw, qx, qy, qz`` cells as written.
+
+    (``dq`` rebuilt from them may differ from them by an ulp.)
+    """
+    path = Path(path)
+    split = csv_text.read_text_columns(path)
+    if split is not None and all(c in split[0] for c in COLUMNS["dq"].csv):
+        # Arrow's split; any doubt or fault: Python's reader, which names it
+        try:
+            return _table(csv_text.ArrowCells(path, *split))
+        except (csv_text.Fallback, InputError):
+            pass
+    return _table(_Cells(path, *_read_rows(path)))
+
+
+def _table(cells: _Cells | csv_text.ArrowCells) -> tuple[GraspTable, np.ndarray]:
+    """The grasp table of the cells (checked) and its pose cells (N, 7)."""
+    pose = cells.parse(list(COLUMNS["dq"].csv), "float")
+    cols: dict[str, Any] = {"dq": _read_pose(cells, pose)}
     for name, spec in _LEADING.items():
         if name == "dq":
             continue
@@ -223,8 +255,8 @@ def read_grasps_csv(path: str | Path) -> GraspTable:
         if CANDIDATE_COLUMNS.get(name) == "blend":  # score, width: floats by contract
             cols[name] = cells.floats(name)
             continue
-        cols[name] = _parse_column(cells.raw[name])
-    return GraspTable(cols)
+        cols[name] = cells.column(name, _parse_column)
+    return GraspTable(cols), pose.reshape(cells.n, 7)
 
 
 class _Cells:
@@ -281,6 +313,10 @@ class _Cells:
         """A string column."""
         return self.raw[name].astype(str)
 
+    def column(self, name: str, parse: Callable[[Any], np.ndarray]) -> np.ndarray:
+        """A further column, as ``parse`` reads it."""
+        return parse(self.raw[name])
+
     def parse(self, names: list[str], dtype: str) -> np.ndarray:
         """The cells ``names`` as one (N,) column or (N, len(names)) by the registry's dtype."""
         read = {"float": self.floats, "int": self.ints, "bool": self.switches, "str": self.text}
@@ -290,10 +326,10 @@ class _Cells:
         return np.column_stack(parts).reshape(self.n, len(parts))
 
 
-def _read_pose(cells: _Cells) -> np.ndarray:
+def _read_pose(cells: _Cells | csv_text.ArrowCells, pose: np.ndarray) -> np.ndarray:
     """``dq`` from the x, y, z, qw, qx, qy, qz cells (finite position, unit quaternion)."""
     n, path = cells.n, cells.path
-    pose = cells.parse(list(COLUMNS["dq"].csv), "float")
+    pose = pose.reshape(n, 7)
     pos, quat = pose[:, :3], pose[:, 3:]
     broken = ~np.isfinite(pos).all(axis=1) | ~np.isfinite(quat).all(axis=1)
     with np.errstate(invalid="ignore"):
@@ -311,7 +347,11 @@ def _read_pose(cells: _Cells) -> np.ndarray:
 
 
 def _read_leading(
-    cells: _Cells, name: str, spec: Column, names: list[str], cols: dict[str, Any]
+    cells: _Cells | csv_text.ArrowCells,
+    name: str,
+    spec: Column,
+    names: list[str],
+    cols: dict[str, Any],
 ) -> np.ndarray:
     """A leading column parsed by its dtype and checked (ids, rows, a reachable one's ``q``)."""
     values = cells.parse(names, spec.dtype)

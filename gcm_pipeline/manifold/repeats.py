@@ -204,8 +204,9 @@ def _leaders(feats: np.ndarray) -> np.ndarray:
     tree = cKDTree(np.concatenate((feats, flipped)))
     near = np.zeros(r, dtype=bool)
     k = min(3, len(ids))  # the row, its own flip, one more: one other if any is in reach
+    reach = np.nextafter(NEAR_REPEAT, np.inf)  # query's bound is strict: d <= NEAR_REPEAT
     for lo in range(0, r, _CHUNK):
-        dist, at = tree.query(feats[lo : lo + _CHUNK], k=k, distance_upper_bound=NEAR_REPEAT)
+        dist, at = tree.query(feats[lo : lo + _CHUNK], k=k, distance_upper_bound=reach)
         found = np.isfinite(dist) & (dist <= NEAR_REPEAT)
         other = ids[np.minimum(at, len(ids) - 1)] != np.arange(lo, lo + len(dist))[:, None]
         near[lo : lo + len(dist)] = (found & other).any(axis=1)

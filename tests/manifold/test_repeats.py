@@ -112,6 +112,15 @@ def test_kept_rows_are_apart_and_repeats_near_them() -> None:
     assert pose_distance(rows, rows[rep], SCALE).max() <= 1.5 * NEAR_REPEAT
 
 
+def test_rows_exactly_the_tolerance_apart_are_one_pose() -> None:
+    # "at most NEAR_REPEAT apart": a distance of exactly 1e-5 m (x = 0 and x = 1e-5) is in
+    # reach, so the second row is a repeat of the first (kept rows are more than it apart)
+    quat = np.array([[1.0, 0.0, 0.0, 0.0]] * 3)
+    rows = dq_from_pos_quat([[0.0, 0.0, 0.0], [NEAR_REPEAT, 0.0, 0.0], [0.5, 0.0, 0.0]], quat)
+    assert pose_distance(rows[0], rows[1], SCALE) == NEAR_REPEAT
+    assert same_pose_rows(rows, SCALE).tolist() == [0, 0, 2]
+
+
 def test_a_half_turn_with_either_quaternion_sign_is_one_pose() -> None:
     # r_w ~ 0: the copies' features take opposite signs of r (grid cells far apart)
     m = np.diag([1.0, -1.0, -1.0, 1.0])  # a half turn about x: r = (0, 1, 0, 0)

@@ -159,11 +159,20 @@ def text_cells(values: np.ndarray, quote: Callable[[str], str]) -> Any:
     import pyarrow.compute as pc
 
     arr = np.asarray(values).reshape(-1)
-    if arr.dtype.kind != "U":  # bytes, objects: str() of each, as Python writes them
+    if arr.dtype.kind != "U" or _inner_nul(arr):  # bytes, objects: str() of each, as Python
         return pa.array([quote(str(s)) for s in arr.tolist()], type=pa.string())
     coded = pc.dictionary_encode(pa.array(arr, type=pa.string()))
     quoted = pa.array([quote(s) for s in coded.dictionary.to_pylist()], type=pa.string())
     return pc.take(quoted, coded.indices)
+
+
+def _inner_nul(arr: np.ndarray) -> bool:
+    """Whether a ``<U`` string holds a NUL before its end (Arrow's conversion cuts it there)."""
+    if arr.dtype.itemsize == 0 or len(arr) == 0:
+        return False
+    codes = np.ascontiguousarray(arr).view(np.uint32).reshape(len(arr), -1)
+    # a NUL with a character after it (numpy pads strings with NULs at the end only)
+    return bool(((codes[:, :-1] == 0) & (codes[:, 1:] != 0)).any())
 
 
 def empty_cells(n: int) -> Any:

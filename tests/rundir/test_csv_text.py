@@ -175,6 +175,17 @@ def test_edge_values_without_text_are_read_by_arrow_bit_for_bit(tmp_path):
     assert np.signbit(table["metric"][np.asarray(table["metric"]) == 0]).any()  # -0.0 kept
 
 
+def test_text_with_a_nul_is_written_whole(tmp_path):
+    # Arrow's conversion of a numpy <U array ends a string at its first NUL
+    grasps = _edge_table(n_random=0)
+    words = np.array(["a\x00b", "\x00x", "c"])
+    grasps = grasps.with_columns(label=words[np.arange(len(grasps)) % 3])
+    new, old = tmp_path / "new.csv", tmp_path / "old.csv"
+    G.write_grasps_csv(grasps, new)
+    python_write(grasps, old)
+    assert b"a\x00b" in new.read_bytes() and new.read_bytes() == old.read_bytes()
+
+
 @pytest.mark.parametrize("n", [0, 1, csv_text.CHUNK_ROWS + 3])
 def test_sizes_byte_identical(tmp_path, n):
     grasps = _edge_table(n_random=0)

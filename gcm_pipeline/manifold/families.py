@@ -66,6 +66,7 @@ now about a second for a million rows.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,6 +109,11 @@ BOUND_TOLERANCE = 1e-9
 _SELF = 1e-9  # [m] a spacing query's hits this near are the row itself (rows repeat none)
 _SMALL_FAMILY = 30  # families up to this size are one patch
 _GAP = 0.5  # gap between family charts in the atlas, in units of max_edge_length
+# The k-d tree searches run in blocks of rows, each one call into scipy's C code: Python
+# handles a signal (Ctrl-C, SIGTERM) only between such calls, so a block must be short.
+_QUERY_BLOCK = 1 << 15  # rows of one nearest-neighbour query block (the spacing)
+_BLOCK_PAIRS = 1 << 19  # hits one block of the neighbour search aims at
+_FIRST_BLOCK, _MIN_BLOCK, _MAX_BLOCK = 256, 16, 1 << 16  # rows of those blocks
 
 
 @dataclass(frozen=True)
@@ -172,7 +178,13 @@ def _bounds(
     feats = pose_features(dq, orientation_scale)
     tree = cKDTree(np.concatenate((feats, _flipped(feats))))
     k = min(len(feats) * 2, 8)
-    dist, _ = tree.query(feats, k=k)
+    # row blocks: each row's answer is its own, and an interrupt is handled between blocks
+    dist = np.concatenate(
+        [
+            tree.query(feats[a : a + _QUERY_BLOCK], k=k)[0]
+            for a in range(0, len(feats), _QUERY_BLOCK)
+        ]
+    ).reshape(len(feats), k)
     # the nearest hit is the row itself (no two rows are one pose): skip zero distances
     nonzero = np.where(dist > _SELF, dist, np.inf)
     nonzero.sort(axis=1)
@@ -213,22 +225,53 @@ def _flipped(feats: np.ndarray) -> np.ndarray:
 def _neighbour_pairs(
     dq: np.ndarray, length: float, angle_deg: float, scale: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted unique pairs (P, 2), i < j, within both bounds, and their pose distances."""
+    """Sorted unique pairs (P, 2), i < j, within both bounds, and their pose distances.
+
+    The k-d tree is searched in blocks of rows (:func:`_ball_pairs`), so that a
+    Ctrl-C or SIGTERM is handled within a block's time, not the whole search's.
+    """
     n = len(dq)
     feats = pose_features(dq, scale)
     angle = np.deg2rad(angle_deg)
     radius = np.hypot(length, 4.0 * scale * np.sin(angle / 4.0)) * (1 + 1e-9) + 1e-12
     tree = cKDTree(np.concatenate((feats, _flipped(feats))))
-    raw = tree.query_pairs(radius, output_type="ndarray") % n
-    raw = raw[raw[:, 0] != raw[:, 1]].astype(np.int64)
-    keys = np.unique(_pair_keys(raw[:, 0], raw[:, 1], n))  # sorted, each pair once
-    pairs = np.column_stack((keys // n, keys % n))
     pos = dq_translation(dq)
     tie = 1.0 + BOUND_TOLERANCE  # a pair exactly on a bound is in, however it rounds
-    ok = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) <= length * tie
-    ok &= dq_angle_distance(dq[pairs[:, 0]], dq[pairs[:, 1]]) <= angle * tie
-    pairs = pairs[ok].astype(np.int64)
+    parts = []
+    for keys in _ball_pairs(tree, feats, radius):  # ascending blocks of sorted keys
+        pairs = np.column_stack((keys // n, keys % n))
+        ok = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) <= length * tie
+        ok &= dq_angle_distance(dq[pairs[:, 0]], dq[pairs[:, 1]]) <= angle * tie
+        parts.append(pairs[ok])
+    pairs = np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 2), np.int64)
     return pairs, pose_distance(dq[pairs[:, 0]], dq[pairs[:, 1]], scale)
+
+
+def _ball_pairs(tree: cKDTree, feats: np.ndarray, radius: float) -> Iterator[np.ndarray]:
+    """The pair keys ``i * n + j`` (i < j) of rows within ``radius`` in ``tree``, by blocks of i.
+
+    ``tree`` holds the (n) features and then their sign-flipped copies; a hit
+    ``j >= n`` is row ``j - n``. The same pairs as ``tree.query_pairs(radius)``
+    taken modulo n, without a row's pair with its own copy (a pair and its
+    flipped twin are one distance, exactly), in one C call per block of rows:
+    a block is sized from the previous block's hits per row to about
+    :data:`_BLOCK_PAIRS` hits. Each block's keys are sorted and unique, and
+    the blocks come in ascending order of i.
+    """
+    n = len(feats)
+    start, size = 0, _FIRST_BLOCK
+    while start < n:
+        stop = min(n, start + size)
+        hits = cKDTree(feats[start:stop]).sparse_distance_matrix(
+            tree, radius, output_type="ndarray"
+        )
+        i = hits["i"].astype(np.int64) + start
+        j = hits["j"].astype(np.int64) % n
+        keys = np.sort(i[i < j] * n + j[i < j])  # np.unique is 10x slower on these
+        yield keys[np.r_[True, keys[1:] != keys[:-1]]] if len(keys) else keys
+        per_row = max(len(hits) / (stop - start), 1.0)
+        size = int(min(max(_BLOCK_PAIRS / per_row, _MIN_BLOCK), _MAX_BLOCK))
+        start = stop
 
 
 def _pair_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:

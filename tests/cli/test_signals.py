@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import BOTTLE, FLAT, QUICK, ROOT, gcm_env
 
@@ -260,3 +261,54 @@ def test_sigterm_at_once_is_one_line(tmp_path):
     assert proc.returncode == 128 + signal.SIGTERM, proc.stderr
     assert proc.stderr.strip().splitlines() == ["interrupted (SIGTERM)"]
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs /proc (Linux)")
+def test_sigterm_inside_the_neighbour_search_of_many_grasps_stops_at_once(tmp_path):
+    """30,000 random grasps with wide bounds: the families' k-d tree search finds tens of
+    millions of pairs (one scipy call of about half a minute when it was not cut into
+    blocks; Python handles a signal only between such calls). A SIGTERM a second into
+    it ends the run with its one line and status 143 within seconds, nothing left."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    poses = np.zeros((30_000, 4, 4))
+    poses[:, :3, :3] = Rotation.random(len(poses), random_state=1).as_matrix()
+    poses[:, :3, 3] = rng.uniform(-0.05, 0.05, (len(poses), 3)) + (0.0, 0.0, 0.05)
+    poses[:, 3, 3] = 1.0
+    np.save(tmp_path / "grasps.npy", poses)
+    config = tmp_path / "many.yaml"
+    config.write_text(
+        "robot: {spec: panda}\n"
+        "object: {shape: cylinder, dims: {radius: 0.04, height: 0.1}, pose: {xyz: [0.45, 0, 0]}}\n"
+        "candidates: {source: file, path: grasps.npy, format: npy, frame: object}\n"
+        "manifold: {structure: families, max_edge_length: 0.1, max_edge_angle_deg: 60}\n"
+        "publish: {html: false, plots: false}\n"
+    )
+    out = tmp_path / "out" / "run"
+    out.parent.mkdir()
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gcm_pipeline", "run", str(config), "--out", str(out), "-v"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env=gcm_env(TMPDIR=str(scratch)),
+    )
+    for line in proc.stderr:  # the log names each stage when it is done
+        if "stage candidates" in line:
+            break
+    else:
+        pytest.fail(f"the run ended before its manifold stage (status {proc.wait()})")
+    time.sleep(1.0)  # the tree is built in milliseconds: this is inside its search
+    assert proc.poll() is None
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    status, lines = _finish(proc)
+    waited = time.monotonic() - t0
+    assert status == 128 + signal.SIGTERM, lines
+    assert lines[-1] == "interrupted (SIGTERM)"
+    assert waited < 5.0, f"{waited:.1f} s from SIGTERM to exit"  # not a speed figure: was 10-200 s
+    assert list(out.parent.iterdir()) == [] and list(scratch.iterdir()) == []

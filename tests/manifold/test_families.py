@@ -377,3 +377,100 @@ def test_exact_duplicate_rows_are_one_vertex_of_the_cylindrical_chart(triangulat
     assert np.isin(m.triangles, first).all()  # only the first row of each pose
     pose = np.unique(np.abs(rows), axis=0, return_inverse=True)[1].reshape(-1)
     assert np.array_equal(m.chart, m.chart[first][np.argsort(pose[first])][pose])
+
+
+def _query_pairs_reference(dq: np.ndarray, length: float, angle_deg: float, scale: float):
+    """The neighbour search in one call (``query_pairs``), as it was before the blocks."""
+    from scipy.spatial import cKDTree
+
+    from gcm_pipeline.manifold import families as fam
+
+    n = len(dq)
+    feats = fam.pose_features(dq, scale)
+    angle = np.deg2rad(angle_deg)
+    radius = np.hypot(length, 4.0 * scale * np.sin(angle / 4.0)) * (1 + 1e-9) + 1e-12
+    tree = cKDTree(np.concatenate((feats, fam._flipped(feats))))
+    raw = tree.query_pairs(radius, output_type="ndarray") % n
+    raw = raw[raw[:, 0] != raw[:, 1]].astype(np.int64)
+    keys = np.unique(fam._pair_keys(raw[:, 0], raw[:, 1], n))
+    pairs = np.column_stack((keys // n, keys % n))
+    pos = dq_translation(dq)
+    tie = 1.0 + fam.BOUND_TOLERANCE
+    ok = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1) <= length * tie
+    ok &= dq_angle_distance(dq[pairs[:, 0]], dq[pairs[:, 1]]) <= angle * tie
+    pairs = pairs[ok].astype(np.int64)
+    return keys, pairs, pose_distance(dq[pairs[:, 0]], dq[pairs[:, 1]], scale)
+
+
+def _block_inputs() -> list[tuple[np.ndarray, float, float]]:
+    """Grasp sets for the block tests: faces (a fan, near strays), a lattice on the bound,
+    random poses with near-duplicates and sign-flipped rows."""
+    rng = np.random.default_rng(3)
+    down = Rotation.from_euler("x", 180, degrees=True)
+    lattice = []
+    for x in range(4):
+        for y in range(4):
+            for roll in (0.0, 30.0, 60.0, 90.0):
+                xyzw = (down * Rotation.from_euler("z", roll, degrees=True)).as_quat()
+                lattice.append(
+                    dq_from_pos_quat([0.01 * x, 0.01 * y, 0.1], np.r_[xyzw[3], xyzw[:3]])
+                )
+    n = 600
+    xyzw = Rotation.random(n, random_state=rng.integers(2**31)).as_quat()
+    rand = dq_from_pos_quat(
+        rng.uniform(-0.05, 0.05, (n, 3)), np.column_stack((xyzw[:, 3], xyzw[:, :3]))
+    )
+    rand[::7] *= -1.0  # the other sign of the same pose
+    near = rand[:40] + rng.normal(0.0, 1e-12, (40, 8))  # near-duplicates, not exact repeats
+    rand = np.concatenate((rand, near / np.linalg.norm(near[:, :4], axis=1, keepdims=True)))
+    return [
+        (face_grasps()[0], LENGTH, ANGLE),
+        (np.asarray(lattice), 0.01, 30.0),
+        (rand, 0.02, 35.0),
+    ]
+
+
+def test_the_neighbour_search_in_blocks_finds_the_pairs_of_one_search(monkeypatch) -> None:
+    """The k-d tree is searched in blocks of rows (so a signal is handled between them):
+    small blocks crossing every kind of input give the pairs, the order and the
+    distances of the one-call search bit for bit, and the same raw pairs."""
+    from gcm_pipeline.manifold import families as fam
+
+    for dq, length, angle in _block_inputs():
+        keys, ref_pairs, ref_dist = _query_pairs_reference(dq, length, angle, 0.1)
+        for first, low, high, aim in ((3, 1, 7, 10), (1, 1, 1, 1), (50, 16, 64, 200)):
+            monkeypatch.setattr(fam, "_FIRST_BLOCK", first)
+            monkeypatch.setattr(fam, "_MIN_BLOCK", low)
+            monkeypatch.setattr(fam, "_MAX_BLOCK", high)
+            monkeypatch.setattr(fam, "_BLOCK_PAIRS", aim)
+            pairs, dist = fam._neighbour_pairs(dq, length, angle, 0.1)
+            assert pairs.dtype == ref_pairs.dtype and np.array_equal(pairs, ref_pairs)
+            assert np.array_equal(dist, ref_dist)
+            feats = fam.pose_features(dq, 0.1)
+            tree = fam.cKDTree(np.concatenate((feats, fam._flipped(feats))))
+            radius = np.hypot(length, 0.4 * np.sin(np.deg2rad(angle) / 4.0)) * (1 + 1e-9) + 1e-12
+            blocks = list(fam._ball_pairs(tree, feats, radius))
+            assert len(blocks) > 1
+            assert np.array_equal(np.concatenate(blocks), keys)  # sorted, each pair once
+        assert len(ref_pairs) > 50
+
+
+def test_the_structure_is_the_same_whatever_the_block_sizes(monkeypatch) -> None:
+    """The whole families structure, bounds derived, with tiny blocks: every array equal."""
+    from gcm_pipeline.manifold import families as fam
+
+    for dq, _, _ in _block_inputs():
+        whole = family_triangles(
+            dq, max_edge_length=None, max_edge_angle_deg=None, orientation_scale=0.1
+        )
+        monkeypatch.setattr(fam, "_QUERY_BLOCK", 7)
+        monkeypatch.setattr(fam, "_FIRST_BLOCK", 5)
+        monkeypatch.setattr(fam, "_MAX_BLOCK", 9)
+        small = family_triangles(
+            dq, max_edge_length=None, max_edge_angle_deg=None, orientation_scale=0.1
+        )
+        monkeypatch.undo()
+        for name in whole.__dataclass_fields__:
+            a, b = getattr(whole, name), getattr(small, name)
+            assert np.array_equal(a, b), name
+            assert np.asarray(a).dtype == np.asarray(b).dtype, name

@@ -111,7 +111,7 @@ _SMALL_FAMILY = 30  # families up to this size are one patch
 _GAP = 0.5  # gap between family charts in the atlas, in units of max_edge_length
 # The k-d tree searches run in blocks of rows, each one call into scipy's C code: Python
 # handles a signal (Ctrl-C, SIGTERM) only between such calls, so a block must be short.
-_QUERY_BLOCK = 1 << 15  # rows of one nearest-neighbour query block (the spacing)
+_QUERY_BLOCK = 1 << 12  # rows of one nearest-neighbour query block (the spacing)
 _BLOCK_PAIRS = 1 << 19  # hits one block of the neighbour search aims at
 _FIRST_BLOCK, _MIN_BLOCK, _MAX_BLOCK = 256, 16, 1 << 16  # rows of those blocks
 

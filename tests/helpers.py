@@ -133,3 +133,38 @@ def decode_commands(html: str) -> list[dict]:
     import umsgpack
 
     return [umsgpack.unpackb(base64.b64decode(m)) for m in _B64.findall(html)]
+
+
+def pair_contact(checker: Any, q: Any, c: int, steps: int = 14, most: int = 150) -> Any:
+    """Both sides of a checker's pair ``c``'s contact: ``most`` free and colliding rows of
+    ``q``, each pair of them bisected ``steps`` times towards the contact."""
+    import numpy as np
+
+    pool = checker._pair_pool[c]
+    hit = checker._run(pool, q)
+    m = min(int(hit.sum()), int((~hit).sum()), most)
+    if m == 0:
+        return q[:0]
+    a, b = q[~hit][:m].copy(), q[hit][:m].copy()
+    for _ in range(steps):
+        mid = 0.5 * (a + b)
+        mh = checker._run(pool, mid)
+        b[mh], a[~mh] = mid[mh], mid[~mh]
+    return np.concatenate([a, b])
+
+
+def in_threads(work: Any, count: int) -> None:
+    """Run ``work(k)`` for k in range(count) on as many threads at once, switching between
+    them as often as Python allows; returns when all are done."""
+    import threading
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=work, args=(k,)) for k in range(count)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(interval)

@@ -259,7 +259,29 @@ def _longest(columns: Any) -> int:
     return max(int(pc.max(pc.binary_length(c)).as_py() or 0) for c in columns)
 
 
-class ArrowCells:
+class ColumnsByType:
+    """:meth:`parse` of the two ``grasps.csv`` readers (Arrow's and Python's cells).
+
+    A subclass has ``n`` rows and the methods ``floats``, ``ints``,
+    ``switches`` and ``text`` of one column name each.
+    """
+
+    n: int
+    floats: Callable[[str], np.ndarray]
+    ints: Callable[[str], np.ndarray]
+    switches: Callable[[str], np.ndarray]
+    text: Callable[[str], np.ndarray]
+
+    def parse(self, names: list[str], dtype: str) -> np.ndarray:
+        """The cells ``names`` as one (N,) column or (N, len(names)) by the registry's dtype."""
+        read = {"float": self.floats, "int": self.ints, "bool": self.switches, "str": self.text}
+        parts = [read[dtype](c) for c in names]
+        if len(parts) == 1:
+            return parts[0]
+        return np.column_stack(parts).reshape(self.n, len(parts))
+
+
+class ArrowCells(ColumnsByType):
     """The text columns of :func:`read_text_columns`, converted as the Python reader converts.
 
     The columns are Arrow text (an empty cell null). The methods match the
@@ -341,14 +363,6 @@ class ArrowCells:
         coded = pc.dictionary_encode(self.raw[name].fill_null("").combine_chunks())
         words = np.array(coded.dictionary.to_pylist(), dtype=str)
         return words[coded.indices.to_numpy(zero_copy_only=False)].reshape(self.n)
-
-    def parse(self, names: list[str], dtype: str) -> np.ndarray:
-        """The cells ``names`` as one (N,) column or (N, len(names)) by the registry's dtype."""
-        read = {"float": self.floats, "int": self.ints, "bool": self.switches, "str": self.text}
-        parts = [read[dtype](c) for c in names]
-        if len(parts) == 1:
-            return parts[0]
-        return np.column_stack(parts).reshape(self.n, len(parts))
 
     def column(self, name: str, parse: Callable[[Any], np.ndarray]) -> np.ndarray:
         """A further column: bool, int, float (empty = NaN) or text, as Python's ``parse``."""

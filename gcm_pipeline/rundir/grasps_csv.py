@@ -259,7 +259,7 @@ def _table(cells: _Cells | csv_text.ArrowCells) -> tuple[GraspTable, np.ndarray]
     return GraspTable(cols), pose.reshape(cells.n, 7)
 
 
-class _Cells:
+class _Cells(csv_text.ColumnsByType):
     """The text cells of a ``grasps.csv`` by column, parsed with the line of a bad one named."""
 
     def __init__(self, path: Path, header: list[str], body: list[list[str]], lines: list[int]):
@@ -316,14 +316,6 @@ class _Cells:
     def column(self, name: str, parse: Callable[[Any], np.ndarray]) -> np.ndarray:
         """A further column, as ``parse`` reads it."""
         return parse(self.raw[name])
-
-    def parse(self, names: list[str], dtype: str) -> np.ndarray:
-        """The cells ``names`` as one (N,) column or (N, len(names)) by the registry's dtype."""
-        read = {"float": self.floats, "int": self.ints, "bool": self.switches, "str": self.text}
-        parts = [read[dtype](c) for c in names]
-        if len(parts) == 1:
-            return parts[0]
-        return np.column_stack(parts).reshape(self.n, len(parts))
 
 
 def _read_pose(cells: _Cells | csv_text.ArrowCells, pose: np.ndarray) -> np.ndarray:

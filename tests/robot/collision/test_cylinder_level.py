@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import pair_contact
 from urdfs import bottle_checker
 
 from gcm_pipeline.robot import kernels
@@ -67,28 +68,13 @@ def _columns(checker):
     return out
 
 
-def _near_contact(checker, q, c, steps=14, most=150):
-    """Both sides of pair ``c``'s contact: free and colliding rows bisected ``steps`` times."""
-    pool = checker._pair_pool[c]
-    hit = checker._run(pool, q)
-    m = min(int(hit.sum()), int((~hit).sum()), most)
-    if m == 0:
-        return q[:0]
-    a, b = q[~hit][:m].copy(), q[hit][:m].copy()
-    for _ in range(steps):
-        mid = 0.5 * (a + b)
-        mh = checker._run(pool, mid)
-        b[mh], a[~mh] = mid[mh], mid[~mh]
-    return np.concatenate([a, b])
-
-
 @pytest.fixture(scope="module", params=_ROBOTS)
 def case(request, tmp_path_factory):
     """A checker, and per cylinder column configurations near that pair's contact."""
     checker = _checker(request.param, tmp_path_factory)
     robot = checker.robot
     q = np.concatenate([robot.random_configurations(400, 7), _around_the_bottle(robot, 600, 8)])
-    near = {c: np.concatenate([q, _near_contact(checker, q, c)]) for _, _, c in _columns(checker)}
+    near = {c: np.concatenate([q, pair_contact(checker, q, c)]) for _, _, c in _columns(checker)}
     plain = _checker(request.param, tmp_path_factory)  # the same without the level
     for screen in plain._screens.values():
         screen.cylinders.clear()

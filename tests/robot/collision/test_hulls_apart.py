@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import pair_contact
 from urdfs import bottle_checker
 
 from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, stacked
@@ -41,21 +42,6 @@ def _columns(checker):
     return out
 
 
-def _near_contact(checker, q, c, steps=14, most=100):
-    """Both sides of pair ``c``'s contact: free and colliding rows bisected ``steps`` times."""
-    pool = checker._pair_pool[c]
-    hit = checker._run(pool, q)
-    m = min(int(hit.sum()), int((~hit).sum()), most)
-    if m == 0:
-        return q[:0]
-    a, b = q[~hit][:m].copy(), q[hit][:m].copy()
-    for _ in range(steps):
-        mid = 0.5 * (a + b)
-        mh = checker._run(pool, mid)
-        b[mh], a[~mh] = mid[mh], mid[~mh]
-    return np.concatenate([a, b])
-
-
 @pytest.fixture(scope="module", params=_ROBOTS)
 def case(request, tmp_path_factory):
     """A checker, per two-polytope column configurations near that pair's contact, and
@@ -63,7 +49,8 @@ def case(request, tmp_path_factory):
     checker = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
     q = checker.robot.random_configurations(3000, 11)
     near = {
-        c: np.concatenate([q[:600], _near_contact(checker, q, c)]) for *_, c in _columns(checker)
+        c: np.concatenate([q[:600], pair_contact(checker, q, c, most=100)])
+        for *_, c in _columns(checker)
     }
     plain = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
     for screen in plain._screens.values():

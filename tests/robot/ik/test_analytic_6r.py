@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-from helpers import CONFIGS
+from helpers import CONFIGS, in_threads
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.chain import KinematicChain
@@ -351,37 +351,25 @@ def test_threads_sharing_a_solver_get_each_poses_own_answers(
     """Python API users may solve from several threads with one robot: the kept
     answers (a small ring here, overwritten all the time) never give one pose's
     answers to another."""
-    import sys
-    import threading
-
     monkeypatch.setattr(analytic_6r, "_RECENT_POSES", 64)
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)  # switch threads as often as Python allows
-    try:
-        q = arm.random_configurations(600, np.random.default_rng(17))
-        poses = _pin_pose(arm, q)
-        rot, pos = poses[:, :3, :3], poses[:, :3, 3]
-        fresh = SixRAnalyticIK.for_chain(arm.chain)
-        assert fresh is not None
-        want = [fresh.raw(rot[i : i + 1], pos[i : i + 1]) for i in range(len(rot))]
-        shared = SixRAnalyticIK.for_chain(arm.chain)
-        assert shared is not None
-        wrong: list[int] = []
+    q = arm.random_configurations(600, np.random.default_rng(17))
+    poses = _pin_pose(arm, q)
+    rot, pos = poses[:, :3, :3], poses[:, :3, 3]
+    fresh = SixRAnalyticIK.for_chain(arm.chain)
+    assert fresh is not None
+    want = [fresh.raw(rot[i : i + 1], pos[i : i + 1]) for i in range(len(rot))]
+    shared = SixRAnalyticIK.for_chain(arm.chain)
+    assert shared is not None
+    wrong: list[int] = []
 
-        def work(seed: int) -> None:
-            rng = np.random.default_rng(seed)
-            for _ in range(60):
-                take = rng.choice(len(rot), size=int(rng.integers(1, 40)), replace=True)
-                idx, got = shared.raw(rot[take], pos[take])
-                for k, t in enumerate(take.tolist()):
-                    if not np.array_equal(got[idx == k], want[t][1]):
-                        wrong.append(t)
+    def work(seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        for _ in range(60):
+            take = rng.choice(len(rot), size=int(rng.integers(1, 40)), replace=True)
+            idx, got = shared.raw(rot[take], pos[take])
+            for k, t in enumerate(take.tolist()):
+                if not np.array_equal(got[idx == k], want[t][1]):
+                    wrong.append(t)
 
-        threads = [threading.Thread(target=work, args=(s,)) for s in range(4)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-    finally:
-        sys.setswitchinterval(interval)
+    in_threads(work, 4)
     assert wrong == []

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import sys
-import threading
-
 import numpy as np
 import pytest
+from helpers import in_threads
 
 from gcm_pipeline.config.robot_spec import load_robot
 from gcm_pipeline.robot.ik import solve_ik
@@ -26,16 +24,7 @@ def test_threads_sharing_a_robot_get_one_threads_answers(name: str) -> None:
     def work(k: int) -> None:
         got[k] = [solve_ik(arm, targets) for _ in range(4)]
 
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)  # switch threads as often as Python allows
-    try:
-        threads = [threading.Thread(target=work, args=(k,)) for k in range(3)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-    finally:
-        sys.setswitchinterval(interval)
+    in_threads(work, 3)  # switching threads as often as Python allows
     assert sorted(got) == [0, 1, 2]
     for answers in got.values():
         for answer in answers:

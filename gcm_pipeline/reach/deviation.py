@@ -184,9 +184,11 @@ def _curvature_sums(
 
     ``k_pos = sum_k lever_k d_k (d_k + 2 before_k)`` over the chain's joints
     ``order`` (``before_k``: the sum of ``d`` over the joints before k) and
-    ``a_rot = sum_j dq_j``, each summed joint by joint, left to right: the
-    order in which NumPy's ``cumsum`` and ``sum`` over a row add (equal to the
-    bit), without their slow reductions along a short last axis.
+    ``a_rot = sum_j dq_j``, each summed joint by joint, left to right, without
+    NumPy's slow reductions along a short last axis. ``cumsum`` adds in this
+    order, and ``sum`` over a row of up to 7 values too (equal to the bit);
+    over 8 or more NumPy adds in pairwise blocks, so an arm with 8 or more
+    joints may differ from ``sum`` in the last bit (a bound either way).
     """
     lev = lever[order]
     k_pos = np.zeros(dq.shape[0])

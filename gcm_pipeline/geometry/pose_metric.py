@@ -27,7 +27,7 @@ import numpy.typing as npt
 
 from gcm_pipeline.geometry.dualquat import dq_translation
 
-__all__ = ["ORIENTATION_SCALE", "pose_distance", "pose_features"]
+__all__ = ["ORIENTATION_SCALE", "other_sign_features", "pose_distance", "pose_features"]
 
 #: Length scale ``L`` [m/rad] of the orientation term of the pose metric.
 ORIENTATION_SCALE = 0.1
@@ -43,6 +43,16 @@ def pose_features(dq: npt.ArrayLike, orientation_scale: float = ORIENTATION_SCAL
     r = dq[..., :4]
     sign = np.where(r[..., :1] < 0, -1.0, 1.0)
     return np.concatenate((dq_translation(dq), (2.0 * orientation_scale) * sign * r), axis=-1)
+
+
+def other_sign_features(feats: np.ndarray) -> np.ndarray:
+    """The embeddings (..., 7) of :func:`pose_features` with ``r`` negated (the other sign).
+
+    With both in a KD-tree, a pose's distance to any other is to one of the two.
+    """
+    out = np.array(feats, dtype=np.float64)
+    out[..., 3:] *= -1.0
+    return out
 
 
 def pose_distance(

@@ -77,7 +77,11 @@ from scipy.spatial import cKDTree
 from gcm_pipeline.errors import GeometryError
 from gcm_pipeline.geometry.bowyer_watson import delaunay
 from gcm_pipeline.geometry.dualquat import dq_angle_distance, dq_translation
-from gcm_pipeline.geometry.pose_metric import pose_distance, pose_features
+from gcm_pipeline.geometry.pose_metric import (
+    other_sign_features,
+    pose_distance,
+    pose_features,
+)
 from gcm_pipeline.manifold.repeats import first_rows, same_pose_rows
 
 __all__ = [
@@ -176,7 +180,7 @@ def _bounds(
     if max_edge_length is not None and max_edge_angle_deg is not None:
         return float(max_edge_length), float(max_edge_angle_deg)
     feats = pose_features(dq, orientation_scale)
-    tree = cKDTree(np.concatenate((feats, _flipped(feats))))
+    tree = cKDTree(np.concatenate((feats, other_sign_features(feats))))
     k = min(len(feats) * 2, 8)
     # row blocks: each row's answer is its own, and an interrupt is handled between blocks
     dist = np.concatenate(
@@ -215,12 +219,6 @@ def _distinct_rows(dq: np.ndarray, orientation_scale: float) -> np.ndarray:
     return np.flatnonzero(rep == np.arange(len(dq)))
 
 
-def _flipped(feats: np.ndarray) -> np.ndarray:
-    out = feats.copy()
-    out[:, 3:] *= -1.0
-    return out
-
-
 # --------------------------------------------------------------------------- graph
 def _neighbour_pairs(
     dq: np.ndarray, length: float, angle_deg: float, scale: float
@@ -234,7 +232,7 @@ def _neighbour_pairs(
     feats = pose_features(dq, scale)
     angle = np.deg2rad(angle_deg)
     radius = np.hypot(length, 4.0 * scale * np.sin(angle / 4.0)) * (1 + 1e-9) + 1e-12
-    tree = cKDTree(np.concatenate((feats, _flipped(feats))))
+    tree = cKDTree(np.concatenate((feats, other_sign_features(feats))))
     pos = dq_translation(dq)
     tie = 1.0 + BOUND_TOLERANCE  # a pair exactly on a bound is in, however it rounds
     parts = []

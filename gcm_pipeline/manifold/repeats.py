@@ -51,7 +51,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gcm_pipeline.geometry.pose_metric import pose_features
+from gcm_pipeline.geometry.pose_metric import other_sign_features, pose_features
 
 __all__ = ["NEAR_REPEAT", "first_rows", "same_pose_rows"]
 
@@ -198,8 +198,7 @@ def _leaders(feats: np.ndarray) -> np.ndarray:
         return np.arange(r)
     # the other sign of r only where it can come within reach: 2 L |r_w| <= NEAR_REPEAT
     turn = np.flatnonzero(feats[:, 3] <= NEAR_REPEAT)
-    flipped = feats[turn].copy()
-    flipped[:, 3:] *= -1.0
+    flipped = other_sign_features(feats[turn])
     ids = np.concatenate((np.arange(r), turn))
     tree = cKDTree(np.concatenate((feats, flipped)))
     near = np.zeros(r, dtype=bool)

@@ -16,7 +16,7 @@ from gcm_pipeline.geometry.dualquat import (
     dq_mul,
     dq_translation,
 )
-from gcm_pipeline.geometry.pose_metric import pose_distance
+from gcm_pipeline.geometry.pose_metric import other_sign_features, pose_distance
 from gcm_pipeline.manifold.build import build_manifold
 from gcm_pipeline.manifold.families import ANGLE_FACTOR, LENGTH_FACTOR, family_triangles
 from gcm_pipeline.outputs.plots import candidate_coverage, plot_coverage
@@ -389,7 +389,7 @@ def _query_pairs_reference(dq: np.ndarray, length: float, angle_deg: float, scal
     feats = fam.pose_features(dq, scale)
     angle = np.deg2rad(angle_deg)
     radius = np.hypot(length, 4.0 * scale * np.sin(angle / 4.0)) * (1 + 1e-9) + 1e-12
-    tree = cKDTree(np.concatenate((feats, fam._flipped(feats))))
+    tree = cKDTree(np.concatenate((feats, other_sign_features(feats))))
     raw = tree.query_pairs(radius, output_type="ndarray") % n
     raw = raw[raw[:, 0] != raw[:, 1]].astype(np.int64)
     keys = np.unique(fam._pair_keys(raw[:, 0], raw[:, 1], n))
@@ -447,7 +447,7 @@ def test_the_neighbour_search_in_blocks_finds_the_pairs_of_one_search(monkeypatc
             assert pairs.dtype == ref_pairs.dtype and np.array_equal(pairs, ref_pairs)
             assert np.array_equal(dist, ref_dist)
             feats = fam.pose_features(dq, 0.1)
-            tree = fam.cKDTree(np.concatenate((feats, fam._flipped(feats))))
+            tree = fam.cKDTree(np.concatenate((feats, other_sign_features(feats))))
             radius = np.hypot(length, 0.4 * np.sin(np.deg2rad(angle) / 4.0)) * (1 + 1e-9) + 1e-12
             blocks = list(fam._ball_pairs(tree, feats, radius))
             assert len(blocks) > 1

@@ -28,6 +28,7 @@ import numpy as np
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.robot.ik.panda import analytic_solver
+from gcm_pipeline.robot.ik.reach_6r import six_r_reach
 from gcm_pipeline.robot.model import Robot
 
 __all__ = [
@@ -171,10 +172,14 @@ def unreachable_ends(
 ) -> np.ndarray:
     """Moves whose end no configuration reaches within the IK tolerances, (N,) bool.
 
-    A proof, not a search (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.unreachable`:
-    the end lies beyond what the elbow's limits let the arm reach, whatever
-    joint 7 is); such a move fails whatever configuration it starts from. All
-    False for a robot without the Panda's kinematics.
+    A proof, not a search: for the Panda's kinematics the end lies beyond what
+    the elbow's limits let the arm reach, whatever joint 7 is
+    (:meth:`~gcm_pipeline.robot.ik.panda.PandaAnalyticIK.unreachable`); for a
+    6R arm of the UR geometry the links between the parallel axes are too
+    short for the end's wrist point on every branch
+    (:meth:`~gcm_pipeline.robot.ik.reach_6r.SixRReach.unreachable`). Such a
+    move fails whatever configuration it starts from. All False for any other
+    robot.
 
     Args:
         robot: The robot.
@@ -185,14 +190,15 @@ def unreachable_ends(
     """
     tg = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
     solver = analytic_solver(robot)
-    if solver is None or move.distance == 0 or tg.shape[0] == 0:
+    reach = six_r_reach(robot) if solver is None else None
+    if (solver is None and reach is None) or move.distance == 0 or tg.shape[0] == 0:
         return np.zeros(tg.shape[0], dtype=bool)
+    rot, end = tg[:, :3, :3], tg[:, :3, 3] + move.offsets(tg)
     with np.errstate(invalid="ignore"):
-        out = solver.unreachable(
-            tg[:, :3, :3],
-            tg[:, :3, 3] + move.offsets(tg),
-            position_tolerance,
-            orientation_tolerance,
-            (robot.lower[3], robot.upper[3]),
-        )
+        if solver is not None:
+            elbow = (robot.lower[3], robot.upper[3])
+            out = solver.unreachable(rot, end, position_tolerance, orientation_tolerance, elbow)
+        else:
+            assert reach is not None
+            out = reach.unreachable(rot, end, position_tolerance, orientation_tolerance)
     return out & np.all(np.isfinite(tg), axis=(1, 2))

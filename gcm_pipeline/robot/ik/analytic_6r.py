@@ -50,6 +50,7 @@ import numpy as np
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.ik.candidates import SolveContext, rank_in_runs
 from gcm_pipeline.robot.ik.lm import pose_errors
+from gcm_pipeline.robot.ik.reach_6r import joint_frames
 
 __all__ = [
     "SixRAnalyticIK",
@@ -250,17 +251,8 @@ class SixRAnalyticIK:
             from eaik.IK_Homogeneous import HomogeneousRobot
         except ImportError:  # pragma: no cover - eaik is a dependency
             return None
-        # each joint's frame at q = 0 (its axis is z in the chain's convention) and
-        # the grasp frame, in the base frame
-        _, placement, tool = chain.packed
-        frames = np.empty((7, 4, 4))
-        t = np.eye(4)
-        for k in range(6):
-            t = t @ placement[k]
-            frames[k] = t
-        frames[6] = t @ tool
         try:
-            robot = HomogeneousRobot(frames)
+            robot = HomogeneousRobot(joint_frames(chain))
             if not robot.hasKnownDecomposition():
                 return None
             rng = np.random.default_rng(0x6E41C)

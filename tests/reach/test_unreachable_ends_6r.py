@@ -23,8 +23,10 @@ def bottle_ur5():
     """The UR5 with its 2F-85, its checker and the bottle example's 72 side grasps."""
     cfg = load_config(UR5_BOTTLE)
     robot = P.robot_from_config(cfg)
-    return robot, P.make_checker(robot, cfg.environment, cfg.object), dq_to_matrix(
-        P.generate_candidates(cfg)["dq"]
+    return (
+        robot,
+        P.make_checker(robot, cfg.environment, cfg.object),
+        dq_to_matrix(P.generate_candidates(cfg)["dq"]),
     )
 
 

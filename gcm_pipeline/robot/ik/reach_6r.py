@@ -86,17 +86,17 @@ def _meet(p1: np.ndarray, d1: np.ndarray, p2: np.ndarray, d2: np.ndarray) -> np.
 
 @dataclass(frozen=True)
 class SixRReach:
-    """The reach test of a 6R arm of the UR geometry (see the module doc).
+    r"""The reach test of a 6R arm of the UR geometry (see the module doc).
 
     Attributes:
         shoulder: :math:`S` (3,), where axes 1 and 2 meet, base frame [m].
         axis1: Direction of axis 1 (3,), base frame.
         plane: (2, 3) orthonormal directions normal to axis 1.
-        offset: :math:`d = n \\cdot (W - S)` [m].
+        offset: :math:`d = n \cdot (W - S)` [m].
         wrist: :math:`W` (3,) in the grasp frame [m].
         wrist_axis: :math:`z_6` (3,) in the grasp frame.
         lever: :math:`c`, the offset of :math:`W` from axis 4 along axis 5 [m].
-        reach: :math:`\\ell_2 + \\ell_3` [m].
+        reach: :math:`\ell_2 + \ell_3` [m].
     """
 
     shoulder: np.ndarray

@@ -184,7 +184,6 @@ class SixRReach:
         pos = np.asarray(pos, dtype=float).reshape(-1, 3)
         d, c = self.offset, self.lever
         w = pos + rot @ self.wrist - self.shoulder  # W - S
-        z6 = rot @ self.wrist_axis
         x, y = w @ self.plane[0], w @ self.plane[1]
         rho = np.hypot(x, y)  # distance of W from axis 1
         # how far W and z6 may be from the target's, for a configuration within the
@@ -194,7 +193,38 @@ class SixRReach:
             + (orientation_tolerance + _SKEW) * float(np.linalg.norm(self.wrist))
             + _ROUND_OFF
         )
-        turned = orientation_tolerance + _SKEW
+        out = np.zeros(len(pos), dtype=bool)
+        with np.errstate(invalid="ignore"):
+            # on every branch L <= |W - S - d n| + |c| = sqrt(|W - S|^2 - d^2) + |c|: a
+            # target within that bound of the links' reach is not proved (most are not)
+            bound = self.reach - abs(c)
+            far = np.einsum("ij,ij->i", w, w) - d * d > bound * abs(bound)
+            rows = np.flatnonzero(far | (rho <= abs(d) + moved))
+        if rows.size:
+            out[rows] = self._proved(
+                rot.take(rows, axis=0), w[rows], x[rows], y[rows], rho[rows], moved,
+                orientation_tolerance + _SKEW,
+            )  # fmt: skip
+        return out & np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(rot), axis=(1, 2))
+
+    def _proved(
+        self,
+        rot: np.ndarray,
+        w: np.ndarray,
+        x: np.ndarray,
+        y: np.ndarray,
+        rho: np.ndarray,
+        moved: float,
+        turned: float,
+    ) -> np.ndarray:
+        """:meth:`unreachable` of M targets, each branch bounded.
+
+        Rotations (M, 3, 3), ``W - S`` (M, 3) and its coordinates ``x``, ``y``
+        (M,) normal to axis 1, at distance ``rho`` (M,) from it; ``moved`` [m]
+        and ``turned`` [rad] bound how far W and z6 may be off them.
+        """
+        d, c = self.offset, self.lever
+        z6 = rot @ self.wrist_axis
         with np.errstate(invalid="ignore", divide="ignore"):
             # the shoulder directions phi = theta +- acos(d / rho) turn by at most
             # asin(moved / rho) + max |d (acos(d / r)) / dr| * moved over r >= rho - moved
@@ -204,7 +234,7 @@ class SixRReach:
             )
             theta = np.arctan2(y, x)
             half = np.arccos(np.clip(d / rho, -1.0, 1.0))
-            least = np.full(len(pos), np.inf)
+            least = np.full(len(w), np.inf)
             for sign in (1.0, -1.0):
                 phi = theta + sign * half
                 n = np.cos(phi)[:, None] * self.plane[0] + np.sin(phi)[:, None] * self.plane[1]
@@ -220,7 +250,7 @@ class SixRReach:
                     least = np.minimum(least, span - margin)
             # every shoulder direction leaves the links too short, or there is none
             out: np.ndarray = ((near > abs(d)) & (least > self.reach)) | (rho + moved < abs(d))
-        return out & np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(rot), axis=(1, 2))
+        return out
 
 
 def six_r_reach(robot: Any) -> SixRReach | None:

@@ -168,3 +168,19 @@ def in_threads(work: Any, count: int) -> None:
             t.join()
     finally:
         sys.setswitchinterval(interval)
+
+
+def tilted_elbow_chain(ur5: Any) -> Any:
+    """The UR5's chain with its elbow axis tilted by 0.05 rad: no longer parallel to the
+    shoulder's and wrist 1's (no UR geometry, no decomposition EAIK knows)."""
+    import numpy as np
+    import pinocchio as pin
+
+    from gcm_pipeline.robot.chain import KinematicChain
+
+    model = ur5.model.copy()
+    j = model.getJointId("elbow_joint")
+    placement = model.jointPlacements[j].copy()
+    placement.rotation = placement.rotation @ pin.exp3(np.array([0.05, 0.0, 0.0]))
+    model.jointPlacements[j] = placement
+    return KinematicChain(model, ur5.grasp_frame_id)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pinocchio as pin
 
 from gcm_pipeline.geometry.dualquat import dq_to_matrix
 from gcm_pipeline.robot.model import Robot
@@ -42,3 +43,14 @@ def equal_up_to_sign(a: np.ndarray, b: np.ndarray, atol: float = 1e-10) -> bool:
     """
     s = np.sign(np.einsum("...i,...i->...", a[..., :4], b[..., :4]))[..., None]
     return np.allclose(a, s * b, atol=atol)
+
+
+def pin_poses(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """Grasp-frame poses (N, 4, 4) of configurations ``q`` (N, nq) by Pinocchio itself."""
+    data = robot.model.createData()
+    out = np.empty((len(q), 4, 4))
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(robot.model, data, qi)
+        pin.updateFramePlacements(robot.model, data)
+        out[i] = data.oMf[robot.grasp_frame_id].homogeneous
+    return out

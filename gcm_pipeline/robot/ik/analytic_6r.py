@@ -50,6 +50,7 @@ import numpy as np
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.ik.candidates import SolveContext, rank_in_runs
 from gcm_pipeline.robot.ik.lm import pose_errors
+from gcm_pipeline.robot.ik.per_robot import per_robot
 from gcm_pipeline.robot.ik.reach_6r import joint_frames
 
 __all__ = [
@@ -402,11 +403,7 @@ def forget_answers(robot: Any) -> None:
 
 def six_r_solver(robot: Any) -> SixRAnalyticIK | None:
     """The closed-form branch solver (EAIK) of ``robot``'s 6R arm (cached), or None."""
-    key = ("analytic_6r",)
-    if key not in robot.cache:
-        robot.cache[key] = SixRAnalyticIK.for_chain(robot.chain)
-    solver: SixRAnalyticIK | None = robot.cache[key]
-    return solver
+    return per_robot(robot, ("analytic_6r",), SixRAnalyticIK.for_chain)
 
 
 def six_round(six: SixRAnalyticIK, ctx: SolveContext, pref: np.ndarray) -> np.ndarray:

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from gcm_pipeline.robot import kernels
+from gcm_pipeline.robot.ik.per_robot import per_robot
 
 __all__ = ["PandaAnalyticIK", "analytic_blocks", "analytic_solver"]
 
@@ -420,11 +421,7 @@ class PandaAnalyticIK:
 
 def analytic_solver(robot: Any) -> PandaAnalyticIK | None:
     """The closed-form solver of ``robot``'s arm (cached), or None if it has none."""
-    key = ("analytic_ik",)
-    if key not in robot.cache:
-        robot.cache[key] = PandaAnalyticIK.for_chain(robot.chain)
-    solver: PandaAnalyticIK | None = robot.cache[key]
-    return solver
+    return per_robot(robot, ("analytic_ik",), PandaAnalyticIK.for_chain)
 
 
 def analytic_blocks(

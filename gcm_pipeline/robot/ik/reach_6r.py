@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+from gcm_pipeline.robot.ik.per_robot import per_robot
+
 __all__ = ["SixRReach", "joint_frames", "six_r_reach"]
 
 #: Axes closer than this to parallel, perpendicular or meeting count as such [m, rad].
@@ -255,8 +257,4 @@ class SixRReach:
 
 def six_r_reach(robot: Any) -> SixRReach | None:
     """The reach test of ``robot``'s arm (cached) if it has the UR geometry, else None."""
-    key = ("reach_6r",)
-    if key not in robot.cache:
-        robot.cache[key] = SixRReach.for_chain(robot.chain)
-    test: SixRReach | None = robot.cache[key]
-    return test
+    return per_robot(robot, ("reach_6r",), SixRReach.for_chain)

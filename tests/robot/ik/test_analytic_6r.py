@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-import pinocchio as pin
 import pytest
-from helpers import CONFIGS, in_threads
+from helpers import CONFIGS, in_threads, tilted_elbow_chain
+from poses import pin_poses
 
 from gcm_pipeline.config.robot_spec import load_robot
-from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.ik import analytic_6r, solve_ik
 from gcm_pipeline.robot.ik.analytic_6r import (
     SixRAnalyticIK,
@@ -30,17 +29,6 @@ def arm(request: pytest.FixtureRequest) -> Robot:
     return load_robot("ur5" if request.param == "ur5" else UR10_SPEC)
 
 
-def _pin_pose(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """Grasp-frame poses (N, 4, 4) by Pinocchio itself (no project code)."""
-    data = robot.model.createData()
-    out = np.empty((len(q), 4, 4))
-    for i, qi in enumerate(q):
-        pin.forwardKinematics(robot.model, data, qi)
-        pin.updateFramePlacements(robot.model, data)
-        out[i] = data.oMf[robot.grasp_frame_id].homogeneous
-    return out
-
-
 def test_which_arms_get_closed_form_branches(panda) -> None:
     assert six_r_solver(panda) is None  # 7 joints: its own closed form
     ur5 = load_robot("ur5")
@@ -48,12 +36,7 @@ def test_which_arms_get_closed_form_branches(panda) -> None:
     assert isinstance(six_r_solver(load_robot(UR10_SPEC)), SixRAnalyticIK)
     # a UR5 whose elbow axis is tilted by 0.05 rad (no longer parallel to the shoulder's
     # and wrist 1's) has no decomposition EAIK knows: the iterative solver keeps it
-    model = ur5.model.copy()
-    j = model.getJointId("elbow_joint")
-    placement = model.jointPlacements[j].copy()
-    placement.rotation = placement.rotation @ pin.exp3(np.array([0.05, 0.0, 0.0]))
-    model.jointPlacements[j] = placement
-    assert SixRAnalyticIK.for_chain(KinematicChain(model, ur5.grasp_frame_id)) is None
+    assert SixRAnalyticIK.for_chain(tilted_elbow_chain(ur5)) is None
 
 
 def test_every_branch_is_exact_distinct_inside_the_limits_and_the_original_is_one(
@@ -62,10 +45,10 @@ def test_every_branch_is_exact_distinct_inside_the_limits_and_the_original_is_on
     solver = six_r_solver(arm)
     assert solver is not None
     q = arm.random_configurations(500, np.random.default_rng(7))
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     idx, cq = solver.solve(poses[:, :3, :3], poses[:, :3, 3], arm.lower, arm.upper, arm.home)
     assert idx.size >= 500
-    reached = _pin_pose(arm, cq)
+    reached = pin_poses(arm, cq)
     assert np.max(np.linalg.norm(reached[:, :3, 3] - poses[idx, :3, 3], axis=1)) < 1e-9
     assert np.max(np.abs(reached[:, :3, :3] - poses[idx, :3, :3])) < 1e-9
     assert np.all(arm.within_limits(cq, strict=False))
@@ -85,7 +68,7 @@ def test_each_branch_comes_at_its_copy_nearest_the_reference(arm: Robot) -> None
     solver = six_r_solver(arm)
     assert solver is not None
     q = np.array([[-0.3, -1.2, 1.4, -1.9, -1.6, -0.2]])
-    pose = _pin_pose(arm, q)
+    pose = pin_poses(arm, q)
     # near home: the copy in (-pi, pi]; near q + 2 pi on the wide joints: that copy
     shifted = q + np.where(wide_joints(arm.lower, arm.upper), 2 * np.pi, 0.0)
     for ref in (q[0], shifted[0]):
@@ -107,7 +90,7 @@ def test_nearest_copy_keeps_the_limits() -> None:
 def test_solve_ik_takes_the_branch_nearest_the_seed(arm: Robot) -> None:
     q = arm.random_configurations(200, np.random.default_rng(3))
     q = np.clip(q, arm.lower + 0.1, arm.upper - 0.1)
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     res = solve_ik(arm, poses, seeds=q[:, None, :] + 0.01)
     assert res.success.all()
     np.testing.assert_allclose(res.q, q, atol=1e-6)  # the seed's own branch and copy
@@ -136,7 +119,7 @@ def test_solve_ik_takes_the_nearest_branch_the_validator_accepts(arm: Robot) -> 
     lower, upper = arm.lower + eps, arm.upper - eps
     rng = np.random.default_rng(21)
     q = np.clip(arm.random_configurations(300, rng), lower, upper)
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     home = np.clip(arm.home, lower, upper)
 
     def validator(c: np.ndarray) -> np.ndarray:
@@ -171,7 +154,7 @@ def test_alternatives_are_other_arm_shapes_not_whole_turns(arm: Robot, analytic:
 
     q = arm.random_configurations(40, np.random.default_rng(5))
     q = np.clip(q, arm.lower + 0.1, arm.upper - 0.1)
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     engine = ReachabilityEngine(arm, alternatives=4, ik_options={"analytic": analytic})
     # the rejected solution, given at a copy a turn away where the limits allow it
     wide = wide_joints(arm.lower, arm.upper)
@@ -269,7 +252,7 @@ def test_poses_solved_again_get_eaiks_answers_to_the_bit(
     # would give them; only the last ``_RECENT_POSES`` are kept
     monkeypatch.setattr(analytic_6r, "_RECENT_POSES", 150)
     q = arm.random_configurations(400, np.random.default_rng(11))
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     rot, pos = poses[:, :3, :3], poses[:, :3, 3]
     solver = SixRAnalyticIK.for_chain(arm.chain)
     assert solver is not None
@@ -332,7 +315,7 @@ def test_the_ring_of_recent_answers_grows_wraps_and_never_maps_a_pose_to_another
 def test_forget_answers_makes_the_robots_solver_solve_again(arm: Robot) -> None:
     """A benchmark's repeat times solving, not the kept answers; the answers stay the same."""
     q = arm.random_configurations(50, np.random.default_rng(5))
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     solver = analytic_6r.six_r_solver(arm)
     assert solver is not None
     first = solver._answers(poses[:, :3, :3], poses[:, :3, 3])
@@ -353,7 +336,7 @@ def test_threads_sharing_a_solver_get_each_poses_own_answers(
     answers to another."""
     monkeypatch.setattr(analytic_6r, "_RECENT_POSES", 64)
     q = arm.random_configurations(600, np.random.default_rng(17))
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     rot, pos = poses[:, :3, :3], poses[:, :3, 3]
     fresh = SixRAnalyticIK.for_chain(arm.chain)
     assert fresh is not None

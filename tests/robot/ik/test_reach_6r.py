@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-from helpers import CONFIGS
+from helpers import CONFIGS, tilted_elbow_chain
+from poses import pin_poses
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
 from gcm_pipeline.config.robot_spec import load_robot
-from gcm_pipeline.robot.chain import KinematicChain
 from gcm_pipeline.robot.ik.analytic_6r import six_r_solver
 from gcm_pipeline.robot.ik.lm import PinocchioIKOptions, levenberg_marquardt
 from gcm_pipeline.robot.ik.reach_6r import SixRReach, six_r_reach
@@ -25,17 +25,6 @@ def arm(request: pytest.FixtureRequest) -> Robot:
     if request.param == "ur10":
         return load_robot(CONFIGS / "robots" / "ur10.yaml")
     return P.robot_from_config(load_config(CONFIGS / "bottle_side_ur5.yaml"))
-
-
-def _pin_pose(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """Grasp-frame poses (N, 4, 4) by Pinocchio itself (no project code)."""
-    data = robot.model.createData()
-    out = np.empty((len(q), 4, 4))
-    for i, qi in enumerate(q):
-        pin.forwardKinematics(robot.model, data, qi)
-        pin.updateFramePlacements(robot.model, data)
-        out[i] = data.oMf[robot.grasp_frame_id].homogeneous
-    return out
 
 
 def _stretched(robot: Robot, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -61,12 +50,7 @@ def test_ur_arms_get_the_test_and_others_do_not(panda) -> None:
     assert test.reach == pytest.approx(0.425 + 0.39225, abs=1e-12)
     assert isinstance(six_r_reach(load_robot(CONFIGS / "robots" / "ur10.yaml")), SixRReach)
     # an elbow axis tilted by 0.05 rad is no longer parallel to the shoulder's: no test
-    model = ur5.model.copy()
-    j = model.getJointId("elbow_joint")
-    placement = model.jointPlacements[j].copy()
-    placement.rotation = placement.rotation @ pin.exp3(np.array([0.05, 0.0, 0.0]))
-    model.jointPlacements[j] = placement
-    assert SixRReach.for_chain(KinematicChain(model, ur5.grasp_frame_id)) is None
+    assert SixRReach.for_chain(tilted_elbow_chain(ur5)) is None
 
 
 def test_poses_the_arm_reaches_are_never_proved_unreachable(arm: Robot) -> None:
@@ -75,7 +59,7 @@ def test_poses_the_arm_reaches_are_never_proved_unreachable(arm: Robot) -> None:
     rng = np.random.default_rng(3)
     # anywhere, and at the edge of the reach (elbow nearly straight), any joint angles
     q = np.concatenate([rng.uniform(-np.pi, np.pi, size=(3000, 6)), _stretched(arm, 3000, rng)])
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     rot, pos = poses[:, :3, :3], poses[:, :3, 3]
     assert not test.unreachable(rot, pos).any()
     # a target within the tolerances of a reached pose: some configuration reaches it
@@ -89,7 +73,7 @@ def test_poses_beyond_the_links_are_proved_as_eaik_finds_no_answer(arm: Robot) -
     assert test is not None and six is not None
     rng = np.random.default_rng(5)
     q = _stretched(arm, 400, rng)
-    poses = _pin_pose(arm, q)
+    poses = pin_poses(arm, q)
     # each grasp frame carried 1 cm further from the shoulder, orientation kept: some
     # leave the reach (the elbow cannot stretch further), some another branch reaches
     away = poses[:, :3, 3] - test.shoulder
@@ -118,7 +102,7 @@ def test_poses_beyond_the_links_are_proved_as_eaik_finds_no_answer(arm: Robot) -
         arm.chain, seeds, targets[:, :3, :3], targets[:, :3, 3], -unlimited, unlimited,
         TOL_P, TOL_R, PinocchioIKOptions(max_iterations=200, stall_ratio=0.0), clamp=False,
     )[0]  # fmt: skip
-    reached = _pin_pose(arm, qf)
+    reached = pin_poses(arm, qf)
     pe = np.linalg.norm(reached[:, :3, 3] - targets[:, :3, 3], axis=1)
     turn = np.einsum("nji,njk->nik", reached[:, :3, :3], targets[:, :3, :3])
     re = np.arccos(np.clip((np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))

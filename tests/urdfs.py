@@ -37,6 +37,7 @@ def arm_urdf(
     flange_joint: str = "tool0_joint",
     mesh: str | None = None,
     mesh_link: str = "wrist_3_link",
+    geometry: dict[str, str] | None = None,
     name: str = "arm",
 ) -> str:
     """URDF text of a UR5-like arm ending in a ``tool0`` flange (z out of the flange).
@@ -48,12 +49,16 @@ def arm_urdf(
             link of one name).
         mesh: A mesh filename used as ``mesh_link``'s visual and collision geometry
             instead of its cylinder.
+        geometry: Link -> the ``<geometry>`` element's content of its visual and
+            collision (e.g. ``<box size="0.1 0.1 0.2"/>``), instead of its cylinder.
         name: The robot's name.
     """
     out = [f'<?xml version="1.0"?>\n<robot name="{name}">']
     for link, (r, length, xyz, rpy) in SHAPES.items():
         if mesh is not None and link == mesh_link:
             geom = f'<geometry><mesh filename="{mesh}"/></geometry>'
+        elif geometry is not None and link in geometry:
+            geom = f"<geometry>{geometry[link]}</geometry>"
         else:
             geom = f'<geometry><cylinder radius="{r}" length="{length}"/></geometry>'
         out.append(
@@ -108,11 +113,41 @@ def write_arm(folder: Path, spec_extra: str = "", *, urdf_name: str = "arm.urdf"
     return spec
 
 
+#: The links of :func:`write_mixed_arm` other than its cylinders: a sphere, boxes and a
+#: mesh (the concave forearm of :func:`write_concave_forearm` is the other mesh).
+MIXED_GEOMETRY = {
+    "shoulder_link": '<sphere radius="0.065"/>',
+    "wrist_1_link": '<box size="0.07 0.07 0.12"/>',
+    "wrist_2_link": '<mesh filename="meshes/wrist_2.stl"/>',
+    "wrist_3_link": '<box size="0.07 0.07 0.04"/>',
+}
+
+
+def write_mixed_arm(folder: Path) -> Path:
+    """:func:`write_arm` with every kind of URDF geometry, meshes as STL files; the spec.
+
+    Cylinders (base, upper arm), a sphere (shoulder), the concave mesh forearm of
+    :func:`write_concave_forearm`, boxes (wrists 1 and 3, the gripper) and a convex
+    mesh (wrist 2, a stretched icosphere): self pairs of two polytopes (the forearm
+    against wrists 2 and 3, wrist 1 against wrist 3), two of them against a box.
+    """
+    import trimesh
+
+    write_concave_forearm(folder / "meshes" / "forearm.stl")
+    wrist = trimesh.creation.icosphere(subdivisions=1, radius=0.04)
+    wrist.vertices *= [1.0, 1.0, 1.4]
+    wrist.export(folder / "meshes" / "wrist_2.stl")
+    return write_arm(
+        folder, mesh="meshes/forearm.stl", mesh_link="forearm_link", geometry=MIXED_GEOMETRY
+    )
+
+
 def bottle_checker(name: str, folder: Path) -> Any:
-    """The collision checker of the bottle scene for ``panda``, ``ur5_robotiq`` or ``user_arm``.
+    """The collision checker of the bottle scene for ``panda``, ``ur5_robotiq``,
+    ``user_arm`` or ``user_mixed``.
 
     ``user_arm``: :func:`write_arm` with :func:`write_concave_forearm` as its forearm's
-    mesh, written in ``folder``.
+    mesh; ``user_mixed``: :func:`write_mixed_arm`; written in ``folder``.
     """
     from gcm_pipeline import pipeline
 
@@ -129,6 +164,9 @@ def _bottle_config(name: str, folder: Path) -> Any:
         return load_config(CONFIGS / "bottle_side.yaml")
     if name == "ur5_robotiq":
         return load_config(CONFIGS / "bottle_side_ur5.yaml")
-    write_concave_forearm(folder / "meshes" / "forearm.stl")
-    spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
+    if name == "user_mixed":
+        spec = write_mixed_arm(folder)
+    else:
+        write_concave_forearm(folder / "meshes" / "forearm.stl")
+        spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
     return load_config(CONFIGS / "bottle_side.yaml", [f"robot.spec={spec}"])

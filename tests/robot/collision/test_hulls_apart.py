@@ -3,9 +3,10 @@
 Each robot polytope's hull vertices lie in a box of its joint's frame; a self
 pair of two polytopes is free where every hull vertex of one lies more than
 ``BROAD_MARGIN`` beyond the plane of a face of the other's box (compiled only:
-``hulls_apart``). Checked for the Panda and the UR5 with the Robotiq 2F-85 (its
-links against each other and against the gripper's body, a box, and fingers;
-the user URDF of the other levels' tests has no self pair of two polytopes), on
+``hulls_apart``). Checked for the Panda, the UR5 with the Robotiq 2F-85 (its
+links against each other and against the gripper's body, a box, and fingers)
+and a user URDF (``write_mixed_arm``: its concave mesh forearm against the
+convex mesh and the box of wrists 2 and 3, and the boxes of wrists 1 and 3), on
 configurations near contact
 (random configurations and, pair by pair, both sides of its contact bisected
 to 1e-4 rad):
@@ -30,7 +31,7 @@ from gcm_pipeline.robot.collision.pairs import MODE_BIT
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
 
-_ROBOTS = ("panda", "ur5_robotiq")
+_ROBOTS = ("panda", "ur5_robotiq", "user_mixed")
 
 
 def _columns(checker):

@@ -16,8 +16,10 @@ rules count, on geometry placed by Pinocchio's own kinematics.
   ``approach``, against the bottle shrunk by the contact tolerance (radius and
   half-height minus it) in ``grasp``.
 
-Robots: the Panda, the UR5 with the Robotiq 2F-85 and a user URDF
-(``write_arm``: cylinders), in the bottle's world. Configurations: random ones,
+Robots: the Panda, the UR5 with the Robotiq 2F-85 and two user URDFs
+(``write_arm``: cylinders; ``write_mixed_arm``: cylinders, a sphere, boxes, a
+concave and a convex STL mesh, so every level of the broad phase), in the
+bottle's world. Configurations: random ones,
 IK solutions with the grasp frame around the bottle, and both sides of
 contact bisected 14 times between free and colliding ones in each mode.
 
@@ -36,7 +38,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from helpers import ROOT
-from urdfs import write_arm
+from urdfs import write_arm, write_mixed_arm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
@@ -52,6 +54,7 @@ _GRIPPER = {
     "panda": {"panda_hand", "panda_leftfinger", "panda_rightfinger"},
     "ur5_robotiq": {"tool0"},
     "user_arm": {"wrist_3_link"},  # tool0, the grasp frame, is a link without geometry
+    "user_mixed": {"wrist_3_link"},
 }
 
 
@@ -60,7 +63,8 @@ def _config(name, tmp_path_factory):
         return load_config(ROOT / "configs" / "bottle_side.yaml")
     if name == "ur5_robotiq":
         return load_config(ROOT / "configs" / "bottle_side_ur5.yaml")
-    spec = write_arm(tmp_path_factory.mktemp("arm"))
+    folder = tmp_path_factory.mktemp("arm")
+    spec = write_mixed_arm(folder) if name == "user_mixed" else write_arm(folder)
     return load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
 
 

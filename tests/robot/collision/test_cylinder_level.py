@@ -6,8 +6,8 @@ when all its hull vertices lie more than ``BROAD_MARGIN`` beyond a cap's plane o
 the side plane across the direction from the axis to their centroid, and
 collides when one of them lies deeper than ``INSIDE_DEPTH`` inside (a hull
 vertex is a vertex of the geometry's triangles). Checked here, for the Panda,
-the UR5 with the Robotiq 2F-85 and a user URDF (a concave mesh forearm) in the
-bottle's world, on configurations near contact (IK solutions around the bottle
+the UR5 with the Robotiq 2F-85 and two user URDFs (a concave mesh forearm;
+``write_mixed_arm``: that forearm, boxes and a convex mesh) in the bottle's world, on configurations near contact (IK solutions around the bottle
 and, pair by pair, both sides of its contact bisected to 1e-4 rad):
 
 * every (pair, configuration) the compiled kernel or the NumPy level decides,
@@ -35,7 +35,7 @@ from gcm_pipeline.robot.ik import solve_ik
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
 
-_ROBOTS = ("panda", "ur5_robotiq", "user_arm")
+_ROBOTS = ("panda", "ur5_robotiq", "user_arm", "user_mixed")
 
 
 def _checker(name, tmp_path_factory):
@@ -166,10 +166,10 @@ def test_same_decisions_without_the_level(case, mode, numpy_code):
     assert {"", "collision_object"} <= set(got.tolist())
 
 
-@pytest.mark.parametrize("case", ["ur5_robotiq"], indirect=True)
 def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):
     """A link beside the bottle (the UR5's upper arm): the cylinder beyond a face of the box
-    of its vertices. Rows free only so are free by coal, and there are many of them.
+    of its vertices. Rows free only so are free by coal, and there are many of them (on
+    every robot; the fewest on the Panda).
 
     Independent of the levels' code: the box from the vertices, the cylinder as 2,000
     points of its surface (a solid's support is on its surface) placed in the joint's
@@ -210,4 +210,4 @@ def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):
         )
         assert not checker._run(checker._pair_pool[c], q[box_only]).any()
         only_box += int(box_only.sum())
-    assert only_box > 100, only_box
+    assert only_box > (10 if case[0] == "panda" else 100), only_box  # the Panda's: 19

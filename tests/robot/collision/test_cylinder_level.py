@@ -7,8 +7,9 @@ the side plane across the direction from the axis to their centroid, and
 collides when one of them lies deeper than ``INSIDE_DEPTH`` inside (a hull
 vertex is a vertex of the geometry's triangles). Checked here, for the Panda,
 the UR5 with the Robotiq 2F-85 and two user URDFs (a concave mesh forearm;
-``write_mixed_arm``: that forearm, boxes and a convex mesh) in the bottle's world, on configurations near contact (IK solutions around the bottle
-and, pair by pair, both sides of its contact bisected to 1e-4 rad):
+``write_mixed_arm``: that forearm, boxes and a convex mesh) in the bottle's world,
+on configurations near contact (IK solutions around the bottle and, pair by pair,
+both sides of its contact bisected to 1e-4 rad):
 
 * every (pair, configuration) the compiled kernel or the NumPy level decides,
   coal (as the checker asks it) decides the same, and both sides are decided

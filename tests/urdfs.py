@@ -155,6 +155,54 @@ def bottle_checker(name: str, folder: Path) -> Any:
     return pipeline.make_checker(pipeline.robot_from_config(cfg), cfg.environment, cfg.object)
 
 
+def level_columns(checker: Any, level: str) -> list[tuple[Any, int, int]]:
+    """The columns of a broad-phase level (a ``Screen`` attribute: ``self_hulls``,
+    ``self_boxes``, ``cylinders``) in the grasp and approach screens: [(screen, column,
+    pair)]."""
+    from gcm_pipeline.robot.collision.pairs import MODE_BIT
+
+    out = []
+    for mode in ("grasp", "approach"):
+        screen = checker._screens[MODE_BIT[mode]]
+        out += [(screen, k, int(screen.pairs[k])) for k in getattr(screen, level)]
+    return out
+
+
+def level_case(name: str, tmp_path_factory: Any, level: str, seed: int, keep: int) -> Any:
+    """``(name, checker, near, plain)`` for a level's tests in the bottle scene.
+
+    ``near``: per column of the level, ``keep`` of 3,000 random configurations and both
+    sides of that column's pair's contact (``pair_contact``); ``plain``: the same checker
+    with the level's columns removed.
+    """
+    import numpy as np
+    from helpers import pair_contact
+
+    checker = bottle_checker(name, tmp_path_factory.mktemp("arm"))
+    q = checker.robot.random_configurations(3000, seed)
+    near = {
+        c: np.concatenate([q[:keep], pair_contact(checker, q, c, most=100)])
+        for *_, c in level_columns(checker, level)
+    }
+    plain = bottle_checker(name, tmp_path_factory.mktemp("arm"))
+    for screen in plain._screens.values():
+        getattr(screen, level).clear()
+    return name, checker, near, plain
+
+
+def assert_same_without_level(case: Any, mode: str, numpy_code: Any, reasons: set[str]) -> None:
+    """A :func:`level_case`'s checker decides as its ``plain`` twin and as the NumPy code on
+    every ``near`` configuration in ``mode``, and gives at least ``reasons``."""
+    import numpy as np
+
+    _, checker, near, plain = case
+    q = np.concatenate(list(near.values()))
+    got = checker.check(q, mode)
+    np.testing.assert_array_equal(got, plain.check(q, mode))
+    np.testing.assert_array_equal(numpy_code(checker.check, q, mode), got)
+    assert reasons <= set(got.tolist())
+
+
 def _bottle_config(name: str, folder: Path) -> Any:
     from helpers import CONFIGS
 

@@ -25,12 +25,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers import pair_contact
-from urdfs import bottle_checker
+from urdfs import assert_same_without_level, bottle_checker, level_columns
 
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision import broadphase
 from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, INSIDE_DEPTH, stacked
-from gcm_pipeline.robot.collision.pairs import MODE_BIT
 from gcm_pipeline.robot.ik import solve_ik
 
 #: Each test starts with the kernels on, whatever the environment says.
@@ -61,12 +60,8 @@ def _around_the_bottle(robot, n, seed):
 
 
 def _columns(checker):
-    """The cylinder columns of the grasp and approach screens: [(screen, column, pair)]."""
-    out = []
-    for mode in ("grasp", "approach"):
-        screen = checker._screens[MODE_BIT[mode]]
-        out += [(screen, k, int(screen.pairs[k])) for k in screen.cylinders]
-    return out
+    """The cylinder columns: [(screen, column, pair)]."""
+    return level_columns(checker, "cylinders")
 
 
 @pytest.fixture(scope="module", params=_ROBOTS)
@@ -158,13 +153,7 @@ def test_kernel_limits_are_the_numpy_ones_plus_the_slack(case):
 @pytest.mark.parametrize("mode", ["grasp", "approach"])
 def test_same_decisions_without_the_level(case, mode, numpy_code):
     """The checker's answers equal those of the same checker with the level's columns removed."""
-    _, checker, near, plain = case
-    q = np.concatenate(list(near.values()))
-    got = checker.check(q, mode)
-    ref = numpy_code(checker.check, q, mode)
-    np.testing.assert_array_equal(got, plain.check(q, mode))
-    np.testing.assert_array_equal(ref, got)
-    assert {"", "collision_object"} <= set(got.tolist())
+    assert_same_without_level(case, mode, numpy_code, {"", "collision_object"})
 
 
 def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):

@@ -22,11 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import pair_contact
-from urdfs import bottle_checker
+from urdfs import assert_same_without_level, level_case, level_columns
 
 from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, stacked
-from gcm_pipeline.robot.collision.pairs import MODE_BIT
 
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
@@ -35,28 +33,15 @@ _ROBOTS = ("panda", "ur5_robotiq", "user_mixed")
 
 
 def _columns(checker):
-    """The two-polytope columns of the grasp and approach screens: [(screen, column, pair)]."""
-    out = []
-    for mode in ("grasp", "approach"):
-        screen = checker._screens[MODE_BIT[mode]]
-        out += [(screen, k, int(screen.pairs[k])) for k in screen.self_hulls]
-    return out
+    """The two-polytope columns: [(screen, column, pair)]."""
+    return level_columns(checker, "self_hulls")
 
 
 @pytest.fixture(scope="module", params=_ROBOTS)
 def case(request, tmp_path_factory):
     """A checker, per two-polytope column configurations near that pair's contact, and
     the same checker without the level."""
-    checker = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
-    q = checker.robot.random_configurations(3000, 11)
-    near = {
-        c: np.concatenate([q[:600], pair_contact(checker, q, c, most=100)])
-        for *_, c in _columns(checker)
-    }
-    plain = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
-    for screen in plain._screens.values():
-        screen.self_hulls.clear()
-    return request.param, checker, near, plain
+    return level_case(request.param, tmp_path_factory, "self_hulls", seed=11, keep=600)
 
 
 def test_the_boxes_hold_every_hull_vertex(case):
@@ -95,9 +80,4 @@ def test_free_only_where_coal_is_free(compiled, case):
 @pytest.mark.parametrize("mode", ["grasp", "approach"])
 def test_same_decisions_without_the_level(case, mode, numpy_code):
     """The checker's answers equal those of the same checker without the level, and NumPy's."""
-    _, checker, near, plain = case
-    q = np.concatenate(list(near.values()))
-    got = checker.check(q, mode)
-    np.testing.assert_array_equal(got, plain.check(q, mode))
-    np.testing.assert_array_equal(numpy_code(checker.check, q, mode), got)
-    assert {"", "collision_self"} <= set(got.tolist())
+    assert_same_without_level(case, mode, numpy_code, {"", "collision_self"})

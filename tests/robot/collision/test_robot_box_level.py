@@ -22,12 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import pair_contact
-from urdfs import bottle_checker
+from urdfs import assert_same_without_level, level_case, level_columns
 
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, INSIDE_DEPTH, stacked
-from gcm_pipeline.robot.collision.pairs import MODE_BIT
 
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
@@ -35,35 +33,17 @@ pytestmark = pytest.mark.usefixtures("kernels_on")
 _ROBOTS = ("panda", "ur5_robotiq", "user_mixed")
 
 
-def _columns(checker):
-    """The robot-box columns of the grasp and approach screens: [(screen, column, pair)]."""
-    out = []
-    for mode in ("grasp", "approach"):
-        screen = checker._screens[MODE_BIT[mode]]
-        out += [(screen, k, int(screen.pairs[k])) for k in screen.self_boxes]
-    return out
-
-
 @pytest.fixture(scope="module", params=_ROBOTS)
 def case(request, tmp_path_factory):
     """A checker, per robot-box column configurations near that pair's contact, and the
     same checker without the level."""
-    checker = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
-    q = checker.robot.random_configurations(3000, 13)
-    near = {
-        c: np.concatenate([q[:400], pair_contact(checker, q, c, most=100)])
-        for *_, c in _columns(checker)
-    }
-    plain = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
-    for screen in plain._screens.values():
-        screen.self_boxes.clear()
-    return request.param, checker, near, plain
+    return level_case(request.param, tmp_path_factory, "self_boxes", seed=13, keep=400)
 
 
 def test_robot_box_level_decides_as_coal(compiled, case):
     """Every row the kernel decides, coal decides the same; it decides both ways."""
     name, checker, near, _ = case
-    columns = _columns(checker)
+    columns = level_columns(checker, "self_boxes")
     assert columns, name
     counts = {kernels.FREE: 0, kernels.COLLIDES: 0, "coal free": 0, "coal hit": 0}
     for screen, k, c in columns:
@@ -92,9 +72,4 @@ def test_robot_box_level_decides_as_coal(compiled, case):
 @pytest.mark.parametrize("mode", ["grasp", "approach"])
 def test_same_decisions_without_the_robot_box_level(case, mode, numpy_code):
     """The checker's answers equal those of the same checker without the level, and NumPy's."""
-    _, checker, near, plain = case
-    q = np.concatenate(list(near.values()))
-    got = checker.check(q, mode)
-    np.testing.assert_array_equal(got, plain.check(q, mode))
-    np.testing.assert_array_equal(numpy_code(checker.check, q, mode), got)
-    assert {"", "collision_self"} <= set(got.tolist())
+    assert_same_without_level(case, mode, numpy_code, {"", "collision_self"})

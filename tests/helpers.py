@@ -135,6 +135,22 @@ def decode_commands(html: str) -> list[dict]:
     return [umsgpack.unpackb(base64.b64decode(m)) for m in _B64.findall(html)]
 
 
+def decision_contact(checker: Any, q: Any, mode: str, steps: int = 14, most: int = 200) -> Any:
+    """Both sides of a checker's decision in ``mode``: ``most`` free and colliding rows of
+    ``q``, each pair of them bisected ``steps`` times towards the contact."""
+    import numpy as np
+
+    hit = checker.check(q, mode) != ""
+    free, coll = q[~hit], q[hit]
+    m = min(len(free), len(coll), most)
+    a, b = free[:m].copy(), coll[:m].copy()
+    for _ in range(steps):
+        mid = 0.5 * (a + b)
+        mh = checker.check(mid, mode) != ""
+        b[mh], a[~mh] = mid[mh], mid[~mh]
+    return np.concatenate([a, b])
+
+
 def pair_contact(checker: Any, q: Any, c: int, steps: int = 14, most: int = 150) -> Any:
     """Both sides of a checker's pair ``c``'s contact: ``most`` free and colliding rows of
     ``q``, each pair of them bisected ``steps`` times towards the contact."""
@@ -151,6 +167,28 @@ def pair_contact(checker: Any, q: Any, c: int, steps: int = 14, most: int = 150)
         mh = checker._run(pool, mid)
         b[mh], a[~mh] = mid[mh], mid[~mh]
     return np.concatenate([a, b])
+
+
+def around_the_bottle(robot: Any, n: int, seed: int) -> Any:
+    """IK solutions with the grasp frame near the bottle of ``configs/bottle_side.yaml``
+    (0.5 m ahead, 22 cm tall), approaching its axis, off by cm."""
+    import numpy as np
+
+    from gcm_pipeline.robot.ik import solve_ik
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-np.pi / 2, np.pi / 2, n) + np.pi  # the side facing the robot
+    t = np.tile(np.eye(4), (n, 1, 1))
+    z = -np.stack([np.cos(a), np.sin(a), np.zeros(n)], axis=1)  # toward the axis
+    t[:, :3, 2] = z
+    t[:, :3, 1] = [0.0, 0.0, 1.0]
+    t[:, :3, 0] = np.cross(t[:, :3, 1], z)
+    centre = np.column_stack([np.full(n, 0.5), np.zeros(n), rng.uniform(0.03, 0.2, n)])
+    back = rng.uniform(-0.01, 0.06, n)[:, None]  # frame behind the axis: the hand reaches it
+    side = rng.uniform(-0.02, 0.02, n)[:, None]
+    t[:, :3, 3] = centre - back * z + side * t[:, :3, 1]
+    res = solve_ik(robot, t)
+    return res.q[res.success]
 
 
 def in_threads(work: Any, count: int) -> None:

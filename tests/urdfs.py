@@ -37,6 +37,7 @@ def arm_urdf(
     flange_joint: str = "tool0_joint",
     mesh: str | None = None,
     mesh_link: str = "wrist_3_link",
+    geometry: dict[str, str] | None = None,
     name: str = "arm",
 ) -> str:
     """URDF text of a UR5-like arm ending in a ``tool0`` flange (z out of the flange).
@@ -48,12 +49,16 @@ def arm_urdf(
             link of one name).
         mesh: A mesh filename used as ``mesh_link``'s visual and collision geometry
             instead of its cylinder.
+        geometry: Link -> the ``<geometry>`` element's content of its visual and
+            collision (e.g. ``<box size="0.1 0.1 0.2"/>``), instead of its cylinder.
         name: The robot's name.
     """
     out = [f'<?xml version="1.0"?>\n<robot name="{name}">']
     for link, (r, length, xyz, rpy) in SHAPES.items():
         if mesh is not None and link == mesh_link:
             geom = f'<geometry><mesh filename="{mesh}"/></geometry>'
+        elif geometry is not None and link in geometry:
+            geom = f"<geometry>{geometry[link]}</geometry>"
         else:
             geom = f'<geometry><cylinder radius="{r}" length="{length}"/></geometry>'
         out.append(
@@ -108,16 +113,94 @@ def write_arm(folder: Path, spec_extra: str = "", *, urdf_name: str = "arm.urdf"
     return spec
 
 
+#: The links of :func:`write_mixed_arm` other than its cylinders: a sphere, boxes and a
+#: mesh (the concave forearm of :func:`write_concave_forearm` is the other mesh).
+MIXED_GEOMETRY = {
+    "shoulder_link": '<sphere radius="0.065"/>',
+    "wrist_1_link": '<box size="0.07 0.07 0.12"/>',
+    "wrist_2_link": '<mesh filename="meshes/wrist_2.stl"/>',
+    "wrist_3_link": '<box size="0.07 0.07 0.04"/>',
+}
+
+
+def write_mixed_arm(folder: Path) -> Path:
+    """:func:`write_arm` with every kind of URDF geometry, meshes as STL files; the spec.
+
+    Cylinders (base, upper arm), a sphere (shoulder), the concave mesh forearm of
+    :func:`write_concave_forearm`, boxes (wrists 1 and 3, the gripper) and a convex
+    mesh (wrist 2, a stretched icosphere): self pairs of two polytopes (the forearm
+    against wrists 2 and 3, wrist 1 against wrist 3), two of them against a box.
+    """
+    import trimesh
+
+    write_concave_forearm(folder / "meshes" / "forearm.stl")
+    wrist = trimesh.creation.icosphere(subdivisions=1, radius=0.04)
+    wrist.vertices *= [1.0, 1.0, 1.4]
+    wrist.export(folder / "meshes" / "wrist_2.stl")
+    return write_arm(
+        folder, mesh="meshes/forearm.stl", mesh_link="forearm_link", geometry=MIXED_GEOMETRY
+    )
+
+
 def bottle_checker(name: str, folder: Path) -> Any:
-    """The collision checker of the bottle scene for ``panda``, ``ur5_robotiq`` or ``user_arm``.
+    """The collision checker of the bottle scene for ``panda``, ``ur5_robotiq``,
+    ``user_arm`` or ``user_mixed``.
 
     ``user_arm``: :func:`write_arm` with :func:`write_concave_forearm` as its forearm's
-    mesh, written in ``folder``.
+    mesh; ``user_mixed``: :func:`write_mixed_arm`; written in ``folder``.
     """
     from gcm_pipeline import pipeline
 
     cfg = _bottle_config(name, folder)
     return pipeline.make_checker(pipeline.robot_from_config(cfg), cfg.environment, cfg.object)
+
+
+def level_columns(checker: Any, level: str) -> list[tuple[Any, int, int]]:
+    """The columns of a broad-phase level (a ``Screen`` attribute: ``self_hulls``,
+    ``self_boxes``, ``cylinders``) in the grasp and approach screens: [(screen, column,
+    pair)]."""
+    from gcm_pipeline.robot.collision.pairs import MODE_BIT
+
+    out = []
+    for mode in ("grasp", "approach"):
+        screen = checker._screens[MODE_BIT[mode]]
+        out += [(screen, k, int(screen.pairs[k])) for k in getattr(screen, level)]
+    return out
+
+
+def level_case(name: str, tmp_path_factory: Any, level: str, seed: int, keep: int) -> Any:
+    """``(name, checker, near, plain)`` for a level's tests in the bottle scene.
+
+    ``near``: per column of the level, ``keep`` of 3,000 random configurations and both
+    sides of that column's pair's contact (``pair_contact``); ``plain``: the same checker
+    with the level's columns removed.
+    """
+    import numpy as np
+    from helpers import pair_contact
+
+    checker = bottle_checker(name, tmp_path_factory.mktemp("arm"))
+    q = checker.robot.random_configurations(3000, seed)
+    near = {
+        c: np.concatenate([q[:keep], pair_contact(checker, q, c, most=100)])
+        for *_, c in level_columns(checker, level)
+    }
+    plain = bottle_checker(name, tmp_path_factory.mktemp("arm"))
+    for screen in plain._screens.values():
+        getattr(screen, level).clear()
+    return name, checker, near, plain
+
+
+def assert_same_without_level(case: Any, mode: str, numpy_code: Any, reasons: set[str]) -> None:
+    """A :func:`level_case`'s checker decides as its ``plain`` twin and as the NumPy code on
+    every ``near`` configuration in ``mode``, and gives at least ``reasons``."""
+    import numpy as np
+
+    _, checker, near, plain = case
+    q = np.concatenate(list(near.values()))
+    got = checker.check(q, mode)
+    np.testing.assert_array_equal(got, plain.check(q, mode))
+    np.testing.assert_array_equal(numpy_code(checker.check, q, mode), got)
+    assert reasons <= set(got.tolist())
 
 
 def _bottle_config(name: str, folder: Path) -> Any:
@@ -129,6 +212,9 @@ def _bottle_config(name: str, folder: Path) -> Any:
         return load_config(CONFIGS / "bottle_side.yaml")
     if name == "ur5_robotiq":
         return load_config(CONFIGS / "bottle_side_ur5.yaml")
-    write_concave_forearm(folder / "meshes" / "forearm.stl")
-    spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
+    if name == "user_mixed":
+        spec = write_mixed_arm(folder)
+    else:
+        write_concave_forearm(folder / "meshes" / "forearm.stl")
+        spec = write_arm(folder, mesh="meshes/forearm.stl", mesh_link="forearm_link")
     return load_config(CONFIGS / "bottle_side.yaml", [f"robot.spec={spec}"])

@@ -6,9 +6,10 @@ when all its hull vertices lie more than ``BROAD_MARGIN`` beyond a cap's plane o
 the side plane across the direction from the axis to their centroid, and
 collides when one of them lies deeper than ``INSIDE_DEPTH`` inside (a hull
 vertex is a vertex of the geometry's triangles). Checked here, for the Panda,
-the UR5 with the Robotiq 2F-85 and a user URDF (a concave mesh forearm) in the
-bottle's world, on configurations near contact (IK solutions around the bottle
-and, pair by pair, both sides of its contact bisected to 1e-4 rad):
+the UR5 with the Robotiq 2F-85 and two user URDFs (a concave mesh forearm;
+``write_mixed_arm``: that forearm, boxes and a convex mesh) in the bottle's world,
+on configurations near contact (IK solutions around the bottle and, pair by pair,
+both sides of its contact bisected to 1e-4 rad):
 
 * every (pair, configuration) the compiled kernel or the NumPy level decides,
   coal (as the checker asks it) decides the same, and both sides are decided
@@ -24,18 +25,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers import pair_contact
-from urdfs import bottle_checker
+from urdfs import assert_same_without_level, bottle_checker, level_columns
 
 from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.collision import broadphase
 from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, INSIDE_DEPTH, stacked
-from gcm_pipeline.robot.collision.pairs import MODE_BIT
 from gcm_pipeline.robot.ik import solve_ik
 
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
 
-_ROBOTS = ("panda", "ur5_robotiq", "user_arm")
+_ROBOTS = ("panda", "ur5_robotiq", "user_arm", "user_mixed")
 
 
 def _checker(name, tmp_path_factory):
@@ -60,12 +60,8 @@ def _around_the_bottle(robot, n, seed):
 
 
 def _columns(checker):
-    """The cylinder columns of the grasp and approach screens: [(screen, column, pair)]."""
-    out = []
-    for mode in ("grasp", "approach"):
-        screen = checker._screens[MODE_BIT[mode]]
-        out += [(screen, k, int(screen.pairs[k])) for k in screen.cylinders]
-    return out
+    """The cylinder columns: [(screen, column, pair)]."""
+    return level_columns(checker, "cylinders")
 
 
 @pytest.fixture(scope="module", params=_ROBOTS)
@@ -157,19 +153,13 @@ def test_kernel_limits_are_the_numpy_ones_plus_the_slack(case):
 @pytest.mark.parametrize("mode", ["grasp", "approach"])
 def test_same_decisions_without_the_level(case, mode, numpy_code):
     """The checker's answers equal those of the same checker with the level's columns removed."""
-    _, checker, near, plain = case
-    q = np.concatenate(list(near.values()))
-    got = checker.check(q, mode)
-    ref = numpy_code(checker.check, q, mode)
-    np.testing.assert_array_equal(got, plain.check(q, mode))
-    np.testing.assert_array_equal(ref, got)
-    assert {"", "collision_object"} <= set(got.tolist())
+    assert_same_without_level(case, mode, numpy_code, {"", "collision_object"})
 
 
-@pytest.mark.parametrize("case", ["ur5_robotiq"], indirect=True)
 def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):
     """A link beside the bottle (the UR5's upper arm): the cylinder beyond a face of the box
-    of its vertices. Rows free only so are free by coal, and there are many of them.
+    of its vertices. Rows free only so are free by coal, and there are many of them (on
+    every robot; the fewest on the Panda).
 
     Independent of the levels' code: the box from the vertices, the cylinder as 2,000
     points of its surface (a solid's support is on its surface) placed in the joint's
@@ -210,4 +200,4 @@ def test_the_vertex_box_decides_where_the_planes_do_not(compiled, case):
         )
         assert not checker._run(checker._pair_pool[c], q[box_only]).any()
         only_box += int(box_only.sum())
-    assert only_box > 100, only_box
+    assert only_box > (10 if case[0] == "panda" else 100), only_box  # the Panda's: 19

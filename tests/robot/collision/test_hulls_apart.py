@@ -3,9 +3,10 @@
 Each robot polytope's hull vertices lie in a box of its joint's frame; a self
 pair of two polytopes is free where every hull vertex of one lies more than
 ``BROAD_MARGIN`` beyond the plane of a face of the other's box (compiled only:
-``hulls_apart``). Checked for the Panda and the UR5 with the Robotiq 2F-85 (its
-links against each other and against the gripper's body, a box, and fingers;
-the user URDF of the other levels' tests has no self pair of two polytopes), on
+``hulls_apart``). Checked for the Panda, the UR5 with the Robotiq 2F-85 (its
+links against each other and against the gripper's body, a box, and fingers)
+and a user URDF (``write_mixed_arm``: its concave mesh forearm against the
+convex mesh and the box of wrists 2 and 3, and the boxes of wrists 1 and 3), on
 configurations near contact
 (random configurations and, pair by pair, both sides of its contact bisected
 to 1e-4 rad):
@@ -21,41 +22,26 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import pair_contact
-from urdfs import bottle_checker
+from urdfs import assert_same_without_level, level_case, level_columns
 
 from gcm_pipeline.robot.collision.broadphase import BROAD_MARGIN, stacked
-from gcm_pipeline.robot.collision.pairs import MODE_BIT
 
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
 
-_ROBOTS = ("panda", "ur5_robotiq")
+_ROBOTS = ("panda", "ur5_robotiq", "user_mixed")
 
 
 def _columns(checker):
-    """The two-polytope columns of the grasp and approach screens: [(screen, column, pair)]."""
-    out = []
-    for mode in ("grasp", "approach"):
-        screen = checker._screens[MODE_BIT[mode]]
-        out += [(screen, k, int(screen.pairs[k])) for k in screen.self_hulls]
-    return out
+    """The two-polytope columns: [(screen, column, pair)]."""
+    return level_columns(checker, "self_hulls")
 
 
 @pytest.fixture(scope="module", params=_ROBOTS)
 def case(request, tmp_path_factory):
     """A checker, per two-polytope column configurations near that pair's contact, and
     the same checker without the level."""
-    checker = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
-    q = checker.robot.random_configurations(3000, 11)
-    near = {
-        c: np.concatenate([q[:600], pair_contact(checker, q, c, most=100)])
-        for *_, c in _columns(checker)
-    }
-    plain = bottle_checker(request.param, tmp_path_factory.mktemp("arm"))
-    for screen in plain._screens.values():
-        screen.self_hulls.clear()
-    return request.param, checker, near, plain
+    return level_case(request.param, tmp_path_factory, "self_hulls", seed=11, keep=600)
 
 
 def test_the_boxes_hold_every_hull_vertex(case):
@@ -94,9 +80,4 @@ def test_free_only_where_coal_is_free(compiled, case):
 @pytest.mark.parametrize("mode", ["grasp", "approach"])
 def test_same_decisions_without_the_level(case, mode, numpy_code):
     """The checker's answers equal those of the same checker without the level, and NumPy's."""
-    _, checker, near, plain = case
-    q = np.concatenate(list(near.values()))
-    got = checker.check(q, mode)
-    np.testing.assert_array_equal(got, plain.check(q, mode))
-    np.testing.assert_array_equal(numpy_code(checker.check, q, mode), got)
-    assert {"", "collision_self"} <= set(got.tolist())
+    assert_same_without_level(case, mode, numpy_code, {"", "collision_self"})

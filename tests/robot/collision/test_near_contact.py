@@ -16,8 +16,10 @@ rules count, on geometry placed by Pinocchio's own kinematics.
   ``approach``, against the bottle shrunk by the contact tolerance (radius and
   half-height minus it) in ``grasp``.
 
-Robots: the Panda, the UR5 with the Robotiq 2F-85 and a user URDF
-(``write_arm``: cylinders), in the bottle's world. Configurations: random ones,
+Robots: the Panda, the UR5 with the Robotiq 2F-85 and two user URDFs
+(``write_arm``: cylinders; ``write_mixed_arm``: cylinders, a sphere, boxes, a
+concave and a convex STL mesh, so every level of the broad phase), in the
+bottle's world. Configurations: random ones,
 IK solutions with the grasp frame around the bottle, and both sides of
 contact bisected 14 times between free and colliding ones in each mode.
 
@@ -35,13 +37,12 @@ import coal
 import numpy as np
 import pinocchio as pin
 import pytest
-from helpers import ROOT
-from urdfs import write_arm
+from helpers import ROOT, around_the_bottle, decision_contact
+from urdfs import write_arm, write_mixed_arm
 
 from gcm_pipeline import pipeline as P
 from gcm_pipeline.config import load_config
 from gcm_pipeline.pipeline import make_checker
-from gcm_pipeline.robot.ik import solve_ik
 
 #: Each test starts with the kernels on, whatever the environment says.
 pytestmark = pytest.mark.usefixtures("kernels_on")
@@ -52,6 +53,7 @@ _GRIPPER = {
     "panda": {"panda_hand", "panda_leftfinger", "panda_rightfinger"},
     "ur5_robotiq": {"tool0"},
     "user_arm": {"wrist_3_link"},  # tool0, the grasp frame, is a link without geometry
+    "user_mixed": {"wrist_3_link"},
 }
 
 
@@ -60,7 +62,8 @@ def _config(name, tmp_path_factory):
         return load_config(ROOT / "configs" / "bottle_side.yaml")
     if name == "ur5_robotiq":
         return load_config(ROOT / "configs" / "bottle_side_ur5.yaml")
-    spec = write_arm(tmp_path_factory.mktemp("arm"))
+    folder = tmp_path_factory.mktemp("arm")
+    spec = write_mixed_arm(folder) if name == "user_mixed" else write_arm(folder)
     return load_config(ROOT / "configs" / "bottle_side.yaml", [f"robot.spec={spec}"])
 
 
@@ -146,36 +149,6 @@ def _collide(x, y):
     return coal.collide(*x, *y, coal.CollisionRequest(), coal.CollisionResult()) > 0
 
 
-def _around_the_bottle(robot, n, seed):
-    """IK solutions with the grasp frame near the bottle, approaching its axis, off by cm."""
-    rng = np.random.default_rng(seed)
-    a = rng.uniform(-np.pi / 2, np.pi / 2, n) + np.pi  # the side facing the robot
-    t = np.tile(np.eye(4), (n, 1, 1))
-    z = -np.stack([np.cos(a), np.sin(a), np.zeros(n)], axis=1)  # toward the axis
-    t[:, :3, 2] = z
-    t[:, :3, 1] = [0.0, 0.0, 1.0]
-    t[:, :3, 0] = np.cross(t[:, :3, 1], z)
-    centre = np.column_stack([np.full(n, 0.5), np.zeros(n), rng.uniform(0.03, 0.2, n)])
-    back = rng.uniform(-0.01, 0.06, n)[:, None]  # frame behind the axis: the hand reaches it
-    side = rng.uniform(-0.02, 0.02, n)[:, None]
-    t[:, :3, 3] = centre - back * z + side * t[:, :3, 1]
-    res = solve_ik(robot, t)
-    return res.q[res.success]
-
-
-def _bisected(checker, q, mode, steps=14, most=200):
-    """Both sides of contact: free and colliding configurations bisected ``steps`` times."""
-    hit = checker.check(q, mode) != ""
-    free, coll = q[~hit], q[hit]
-    m = min(len(free), len(coll), most)
-    a, b = free[:m].copy(), coll[:m].copy()
-    for _ in range(steps):
-        mid = 0.5 * (a + b)
-        mh = checker.check(mid, mode) != ""
-        b[mh], a[~mh] = mid[mh], mid[~mh]
-    return np.concatenate([a, b])
-
-
 @pytest.fixture(scope="module", params=sorted(_GRIPPER))
 def case(request, tmp_path_factory):
     cfg = _config(request.param, tmp_path_factory)
@@ -183,8 +156,10 @@ def case(request, tmp_path_factory):
     checker = make_checker(robot, cfg.environment, cfg.object)
     assert {checker.link_names[g] for g in checker.gripper_geoms} == _GRIPPER[request.param]
     rules = Rules(robot, checker.world, _GRIPPER[request.param], checker.contact_tolerance)
-    q = np.concatenate([robot.random_configurations(300, 3), _around_the_bottle(robot, 300, 4)])
-    q = np.concatenate([q, _bisected(checker, q, "grasp"), _bisected(checker, q, "approach")])
+    q = np.concatenate([robot.random_configurations(300, 3), around_the_bottle(robot, 300, 4)])
+    q = np.concatenate(
+        [q, decision_contact(checker, q, "grasp"), decision_contact(checker, q, "approach")]
+    )
     return checker, q, rules.reasons(q, ("grasp", "approach"))
 
 

@@ -7,15 +7,24 @@ against ``coal.distance`` of the placed sphere and shape, for the primitives
 (where the bound is exact: equal to coal's distance) and for the shapes bounded
 by their local box (a cone, an ellipsoid, a convex polytope, a triangle mesh).
 The compiled kernel's packed form of the same bound is compared with it.
+
+Then on robots, for the Panda, the UR5 with the Robotiq 2F-85 and a user URDF
+(``write_mixed_arm``): every cover sphere and ball of the checker, placed by its
+joint frames in configurations on both sides of contact, against every world
+shape it is checked against (the table, the bottle, the bottle shrunk by the
+contact tolerance); and, per checked pair, the spheres' bound against coal's
+distance of the link's own geometry (placed by Pinocchio) and the shape.
 """
 
 from __future__ import annotations
 
 import coal
 import numpy as np
+import pinocchio as pin
 import pytest
 import trimesh
-from helpers import random_rigid
+from helpers import around_the_bottle, decision_contact, random_rigid
+from urdfs import bottle_checker
 
 from gcm_pipeline.geometry.meshes import read_mesh
 from gcm_pipeline.robot import kernels
@@ -98,3 +107,69 @@ def test_sphere_bound_never_exceeds_coal_distance(kind, tmp_path):
         # the compiled kernel's packed bound is the same bound
         packed = _packed_lower(bound.packed(), centres)
         np.testing.assert_allclose(packed, bound.lower(centres), atol=1e-12)
+
+
+def _placed(frames, joints, local):
+    """Points (N, P, 3) [m] of ``local`` (P, 3) fixed to ``joints`` (P,), base frame."""
+    rots, poss = np.stack(frames.rots, 1)[:, joints], np.stack(frames.poss, 1)[:, joints]
+    return np.einsum("npij,pj->npi", rots, local) + poss
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5_robotiq", "user_mixed"])
+def test_robot_spheres_bounds_near_contact(name, tmp_path):
+    """The bound of each placed cover sphere and ball is coal's distance to the shape (to
+    1e-6 m where apart, never above 0 where they overlap), and, pair by pair, the least
+    of a link's spheres' bounds never exceeds coal's distance of the link itself."""
+    checker = bottle_checker(name, tmp_path)
+    robot, gm, cov = checker.robot, checker._gm, checker._cover
+    q = np.concatenate([robot.random_configurations(150, 31), around_the_bottle(robot, 150, 32)])
+    q = np.concatenate([q, decision_contact(checker, q, "grasp", most=150)])
+    frames = checker._frames.compute(q)
+    world = sorted({p.b for p in checker._pairs if p.kind != "self"})
+    assert {type(gm.geometryObjects[w].geometry) for w in world} == {coal.Box, coal.Cylinder}
+    n_robot = len(cov.start) - 1
+    # every placed sphere, (N, S, 3), and ball, (N, R, 3)
+    centres = _placed(frames, cov.joint, cov.centre)
+    balls = _placed(frames, cov.ball_joint, cov.ball_centre)
+    rows = np.random.default_rng(2).choice(len(q), 40, replace=False)
+    for w in world:
+        shape = gm.geometryObjects[w]
+        bound = ShapeBound(shape.geometry, shape.placement.homogeneous)
+        assert bound.exact
+        for pts, radii in ((centres, cov.radius), (balls, cov.ball_radius)):
+            lower = bound.lower(pts[rows].reshape(-1, 3)) - np.tile(radii, rows.size)
+            true = np.array(
+                [
+                    _coal_distance(shape.geometry, shape.placement.homogeneous, c, r)
+                    for c, r in zip(
+                        pts[rows].reshape(-1, 3), np.tile(radii, rows.size), strict=True
+                    )
+                ]
+            )
+            apart = true > 1e-9
+            assert apart.sum() > 100 and (~apart).sum() > 5, (name, shape.name)
+            np.testing.assert_allclose(lower[apart], true[apart], atol=1e-6)
+            assert np.all(lower[~apart] <= 1e-9), (name, shape.name)
+    # pair by pair: the spheres' least bound against the link's own distance
+    data, gd = robot.model.createData(), pin.GeometryData(gm)
+    req = coal.DistanceRequest()
+    tight = 0
+    for i in rows:
+        pin.updateGeometryPlacements(robot.model, data, gm, gd, q[i])
+        for p in checker._pairs:
+            if p.kind == "self" or p.owner >= n_robot:
+                continue
+            shape = gm.geometryObjects[p.b]
+            e = slice(cov.start[p.owner], cov.start[p.owner + 1])
+            least = (checker._bounds[p.b].lower(centres[i, e]) - cov.radius[e]).min()
+            d = coal.distance(
+                gm.geometryObjects[p.a].geometry,
+                coal.Transform3s(gd.oMg[p.a].homogeneous[:3, :3], gd.oMg[p.a].translation),
+                shape.geometry,
+                coal.Transform3s(shape.placement.homogeneous[:3, :3], shape.placement.translation),
+                req,
+                coal.DistanceResult(),
+            )
+            assert least <= max(d, 0.0) + 1e-9, (name, shape.name, gm.geometryObjects[p.a].name)
+            tight += int(d - 0.01 < least < d + 1e-9)
+    assert tight > 50, (name, tight)  # bounds within 1 cm of the distance are common

@@ -48,7 +48,9 @@ for delay in delays:
         lat = time.perf_counter() - t0
         err.seek(0)
         text = err.read()
-        dump = text.split("Stack (most recent call first):")[-1]
+        # the main thread's stack: the block that is not the progress line's thread
+        blocks = re.split(r"(?:Current thread|Thread) 0x[0-9a-f]+ \(most recent call first\):", text)
+        dump = next((b for b in blocks[1:] if "progress.py" not in b and "threading.py" not in b), "")
         frames = re.findall(r'File "[^"]*/((?:gcm_pipeline|site-packages)/[^"]+)", line (\d+) in (\S+)', dump)
         stages = re.findall(r"stage (\w+) +[0-9.]+ s", text)
         rows.append({

@@ -32,9 +32,19 @@ WRAP = (
 for delay in delays:
     for sig in (signal.SIGTERM, signal.SIGINT):
         parent = Path(tempfile.mkdtemp(prefix="lat_", dir="/tmp/s42c"))
-        cmd = [sys.executable, "-c", WRAP, "run", str(cfg), "--set",
-               f"environment.point_clouds.0.path={cloud}", "--out", str(parent / "run"),
-               "--debug", "-v"]
+        cmd = [
+            sys.executable,
+            "-c",
+            WRAP,
+            "run",
+            str(cfg),
+            "--set",
+            f"environment.point_clouds.0.path={cloud}",
+            "--out",
+            str(parent / "run"),
+            "--debug",
+            "-v",
+        ]
         err = open(parent.with_suffix(".err"), "w+")
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
         time.sleep(delay)
@@ -49,15 +59,26 @@ for delay in delays:
         err.seek(0)
         text = err.read()
         # the main thread's stack: the block that is not the progress line's thread
-        blocks = re.split(r"(?:Current thread|Thread) 0x[0-9a-f]+ \(most recent call first\):", text)
-        dump = next((b for b in blocks[1:] if "progress.py" not in b and "threading.py" not in b), "")
-        frames = re.findall(r'File "[^"]*/((?:gcm_pipeline|site-packages)/[^"]+)", line (\d+) in (\S+)', dump)
+        blocks = re.split(
+            r"(?:Current thread|Thread) 0x[0-9a-f]+ \(most recent call first\):", text
+        )
+        dump = next(
+            (b for b in blocks[1:] if "progress.py" not in b and "threading.py" not in b), ""
+        )
+        frames = re.findall(
+            r'File "[^"]*/((?:gcm_pipeline|site-packages)/[^"]+)", line (\d+) in (\S+)', dump
+        )
         stages = re.findall(r"stage (\w+) +[0-9.]+ s", text)
-        rows.append({
-            "delay": delay, "signal": sig.name, "latency_s": round(lat, 3), "exit": rc,
-            "where": [f"{f}:{n} {fn}" for f, n, fn in frames[:3]],
-            "after_stage": stages[-1] if stages else None,
-            "left": sorted(os.listdir(parent)),
-        })
+        rows.append(
+            {
+                "delay": delay,
+                "signal": sig.name,
+                "latency_s": round(lat, 3),
+                "exit": rc,
+                "where": [f"{f}:{n} {fn}" for f, n, fn in frames[:3]],
+                "after_stage": stages[-1] if stages else None,
+                "left": sorted(os.listdir(parent)),
+            }
+        )
         print(json.dumps(rows[-1]), flush=True)
 json.dump(rows, open(out, "w"), indent=1)

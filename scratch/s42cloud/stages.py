@@ -32,7 +32,10 @@ rep = {}
 def timed(name, fn):
     t0, c0 = time.perf_counter(), time.process_time()
     v = fn()
-    rep[name] = {"wall": round(time.perf_counter() - t0, 3), "cpu": round(time.process_time() - c0, 3)}
+    rep[name] = {
+        "wall": round(time.perf_counter() - t0, 3),
+        "cpu": round(time.process_time() - c0, 3),
+    }
     return v
 
 

@@ -246,7 +246,7 @@ class ClearanceQueries(BroadPhase):
         return stacked(frames.transforms)[:, rows], self._place(frames, cov.joint, cov.centre, rows)
 
     def _octree_distance(self, p: int, near: tuple[Any, np.ndarray], k: int, cap: float) -> float:
-        """coal's distance of clearance pair ``p`` (a robot geometry and an octree) below ``cap``.
+        """The distance by coal of clearance pair ``p`` (a link and an octree) below ``cap``.
 
         Over the octree's cells near the geometry
         (:func:`~gcm_pipeline.robot.collision.octree_near.near_distance`);

@@ -44,11 +44,13 @@ def near_distance(
     cap: float,
     request: Any,
 ) -> float:
-    """coal's distance [m] of ``geometry`` to ``tree`` wherever it is below ``cap``.
+    """The distance [m] by coal of ``geometry`` to ``tree`` wherever it is below ``cap``.
 
     Args:
-        geometry: The robot's coal geometry, placed by ``geometry_tf`` (``coal.Transform3s``).
-        tree: The coal ``OcTree``, placed by ``tree_tf``.
+        geometry: The robot's coal geometry.
+        geometry_tf: Its placement (``coal.Transform3s``).
+        tree: The coal ``OcTree``.
+        tree_tf: Its placement.
         cells: A ``cKDTree`` of the tree's occupied cell centres (the tree's frame).
         reach: The largest cell's half diagonal [m] (:func:`~.broadphase.octree_cells`).
         centres: The geometry's cover spheres' centres (S, 3), in the tree's frame.
@@ -77,7 +79,7 @@ def near_distance(
 
 
 def _whole(geometry: Any, geometry_tf: Any, tree: Any, tree_tf: Any, request: Any) -> float:
-    """coal's distance of ``geometry`` to the whole ``tree``."""
+    """The distance by coal of ``geometry`` to the whole ``tree``."""
     return float(
         coal.distance(geometry, geometry_tf, tree, tree_tf, request, coal.DistanceResult())
     )

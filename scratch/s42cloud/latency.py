@@ -1,12 +1,12 @@
 """Signal latency of `gcm run` on the cloud scene: signal at a delay, time to exit, leftovers.
 
-    cd TREE && PYTHONPATH=TREE python scratch/s42cloud/latency.py CLOUD.npy OUT.json DELAY [DELAY ...]
+    cd TREE && PYTHONPATH=TREE python scratch/s42cloud/latency.py CLOUD.npy OUT.json DELAY ...
 
-For each delay [s] after the start and each of SIGTERM and SIGINT: `gcm run --debug -v`
-into a fresh parent directory, the signal sent at the delay, the wall time from the signal
-to the process's exit, its exit code, the innermost package frame of the traceback
-(faulthandler's dump on SIGUSR1 just before: where the signal landed), the last stage logged, and what is left in
-the parent directory (the run directory contract: nothing, since the run did not finish).
+For each delay [s] after the start and each of SIGTERM and SIGINT: `gcm run -v` into a
+fresh parent directory, the signal sent at the delay, the wall time from the signal to its
+"interrupted" line and to the process's exit, its exit code, the main thread's innermost
+frames (faulthandler's dump on SIGUSR1 just before: where the signal landed), the last
+stage logged, and what is left in the parent directory (nothing: the run did not finish).
 """
 
 import json
@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -23,6 +24,14 @@ cloud, out = sys.argv[1], sys.argv[2]
 delays = [float(d) for d in sys.argv[3:]]
 cfg = Path(__file__).resolve().parent / "cloud_scene.yaml"
 rows = []
+
+
+def _read(stream, lines):
+    """Each line of ``stream`` with the time it came, into ``lines``."""
+    for ln in stream:
+        lines.append((time.perf_counter(), ln))
+
+
 # `python -m gcm_pipeline` with faulthandler's stack dump on SIGUSR1 (written at once, even
 # while C code runs)
 WRAP = (
@@ -45,8 +54,10 @@ for delay in delays:
             "--debug",
             "-v",
         ]
-        err = open(parent.with_suffix(".err"), "w+")
-        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        lines = []
+        reader = threading.Thread(target=_read, args=(p.stderr, lines))
+        reader.start()
         time.sleep(delay)
         if p.poll() is not None:
             rows.append({"delay": delay, "signal": sig.name, "finished_before": True})
@@ -56,8 +67,9 @@ for delay in delays:
         p.send_signal(sig)
         rc = p.wait()
         lat = time.perf_counter() - t0
-        err.seek(0)
-        text = err.read()
+        reader.join()
+        text = "".join(ln for _, ln in lines)
+        said = next((t - t0 for t, ln in lines if ln.startswith("interrupted")), None)
         # the main thread's stack: the block that is not the progress line's thread
         blocks = re.split(
             r"(?:Current thread|Thread) 0x[0-9a-f]+ \(most recent call first\):", text

@@ -2,8 +2,9 @@
 
 Surfaces sampled uniformly by area: the table top in front of the robot (its base
 region left out), two boxes beside the bottle, a shelf behind it (two boards and
-two side walls), the room around them (floor, two walls), and the bottle's own surface (dropped when read by
-``exclude_object_distance``). Gaussian noise of ``--noise`` [m] on every point.
+two side walls), the room around them (floor, two walls), and the bottle's own
+surface (dropped when read by ``exclude_object_distance``). Gaussian noise of
+``--noise`` [m] on every point.
 
     python scratch/s42cloud/make_cloud.py OUT.npy [--points 3000000] [--seed 0]
 """
@@ -15,7 +16,8 @@ import argparse
 import numpy as np
 
 
-def box_faces(lo, hi, top_only=False):
+def box_faces(lo, hi):
+    """The faces of box ``lo``..``hi`` but its bottom, as (axis, value, lo2, hi2)."""
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     faces = []
     for axis in range(3):
@@ -28,6 +30,7 @@ def box_faces(lo, hi, top_only=False):
 
 
 def sample_rect(rng, n, axis, value, lo, hi):
+    """``n`` points uniform on the axis-aligned rectangle at ``value`` along ``axis``."""
     o = [k for k in range(3) if k != axis]
     p = np.empty((n, 3))
     p[:, axis] = value
@@ -36,6 +39,7 @@ def sample_rect(rng, n, axis, value, lo, hi):
 
 
 def main() -> None:
+    """Write the cloud."""
     ap = argparse.ArgumentParser()
     ap.add_argument("out")
     ap.add_argument("--points", type=int, default=3_000_000)
@@ -66,7 +70,7 @@ def main() -> None:
     total = areas.sum() + bottle_area
     counts = np.floor(a.points * np.append(areas, bottle_area) / total).astype(int)
     counts[0] += a.points - counts.sum()
-    parts = [sample_rect(rng, c, *r) for c, r in zip(counts[:-1], rects)]
+    parts = [sample_rect(rng, c, *r) for c, r in zip(counts[:-1], rects, strict=True)]
     nb = counts[-1]
     side = rng.random(nb) < (2 * np.pi * 0.035 * 0.22) / bottle_area
     th = rng.uniform(0, 2 * np.pi, nb)

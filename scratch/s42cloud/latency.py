@@ -51,7 +51,6 @@ for delay in delays:
             f"environment.point_clouds.0.path={cloud}",
             "--out",
             str(parent / "run"),
-            "--debug",
             "-v",
         ]
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -86,6 +85,7 @@ for delay in delays:
                 "delay": delay,
                 "signal": sig.name,
                 "latency_s": round(lat, 3),
+                "to_message_s": None if said is None else round(said, 3),
                 "exit": rc,
                 "where": [f"{f}:{n} {fn}" for f, n, fn in frames[:3]],
                 "after_stage": stages[-1] if stages else None,

@@ -30,6 +30,7 @@ rep = {}
 
 
 def timed(name, fn):
+    """``fn()``, its wall and CPU seconds kept in the report under ``name``."""
     t0, c0 = time.perf_counter(), time.process_time()
     v = fn()
     rep[name] = {

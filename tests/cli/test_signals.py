@@ -334,3 +334,26 @@ def test_sigterm_inside_the_clearance_against_a_cloud_leaves_nothing(cli, tmp_pa
     assert status == 128 + signal.SIGTERM
     assert err.strip().splitlines() == ["interrupted (SIGTERM)"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_gcm_exits_without_a_last_collection_over_what_it_loaded(tmp_path):
+    """At exit the interpreter's last garbage collection walks every object the command
+    loaded (seconds after a big cloud's run, and after its interrupt); ``gcm`` freezes
+    them first, so the process ends at once. Seen from an exit handler that runs after
+    gcm's: the objects are frozen."""
+    probe = (
+        "import atexit, gc, sys; "
+        "atexit.register(lambda: print('frozen', gc.get_freeze_count() > 0)); "
+        "sys.argv = ['gcm', 'schema']; "
+        "from gcm_pipeline.__main__ import entry; status = entry(); sys.exit(status)"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=gcm_env(),
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "frozen True"

@@ -255,6 +255,7 @@ def main() -> None:
             f" --reference-rows {args.reference_rows}",
             "python": platform.python_version(),
             "machine": platform.machine(),
+            "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
             "load_average": os.getloadavg()[0],
             **stages,
         }

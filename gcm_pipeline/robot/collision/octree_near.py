@@ -60,8 +60,11 @@ def near_distance(
         request: The pair's ``coal.DistanceRequest``.
 
     Returns:
-        coal's distance over the cells within reach of the cap; ``inf`` when none is.
+        coal's distance over the cells within reach of the cap; ``inf`` when none is;
+        coal's over the whole tree for a penetration or a tree without cells.
     """
+    if reach <= 0.0:  # no occupied cell (octree_cells' stand-in far point): coal decides
+        return _whole(geometry, geometry_tf, tree, tree_tf, request)
     if len(points):
         cap = min(cap, float(np.min(cells.query(points)[0])))
     if not np.isfinite(cap):

@@ -4,6 +4,7 @@ Run from the repository root::
 
     python benchmarks/bench_cloud_scene.py                 # writes results/cloud_scene.json
     python benchmarks/bench_cloud_scene.py --repeats 1 --config my_scene.yaml
+    python benchmarks/bench_cloud_scene.py --stages big.npy   # writes results/cloud_stages.json
 
 Scenes: ``configs/clutter_scene.yaml`` (the committed rendered scene,
 ``tests/data/clutter``: Contact-GraspNet-layout predictions of a mug on a
@@ -35,13 +36,26 @@ voxel size is built by coal, and each robot collision geometry placed by
 Pinocchio's forward kinematics is tested with ``coal.collide``
 (``raw_check_collisions``: the count of reachable grasps that touch it; the
 target is 0).
+
+``--stages CLOUD`` (an (N, 3) ``.npy`` or ``.ply`` of world points, e.g. a fused scan
+of millions) instead times each stage of the bottle example
+(``configs/bottle_side.yaml``, its table left to the cloud, 5 mm voxels, the points
+within 1 cm of the bottle dropped) in this process, one worker: reading and
+voxelising the cloud, building its octree tiles, building the reachability engine
+(tiles and checker), the stage's steps (CPU s), and the peak resident memory.
+Then the clearance of the stage's reachable configurations twice on one checker:
+coal over the cells near each link (as the stage does) and coal over whole tiles
+(the reference, ``--reference-rows`` rows), with the ratio and the largest
+difference of their answers.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import resource
 import statistics
 import sys
 import time
@@ -148,13 +162,108 @@ def _raw_check(cfg, run_dir: Path) -> dict:
     }
 
 
+def _clock(fn):
+    """``fn()``, its wall and CPU seconds."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    value = fn()
+    return value, {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+
+
+def _stages(cloud: Path, reference_rows: int) -> dict:
+    """Stage times of the bottle example with ``cloud`` as its scene (see the module doc)."""
+    from gcm_pipeline import pipeline as P
+    from gcm_pipeline.pipeline.clouds import cloud_world, scene_clouds
+
+    cfg = load_config(
+        REPO / "configs/bottle_side.yaml",
+        [
+            "environment.table=null",
+            f"environment.point_clouds=[{{path: {cloud}, frame: world, voxel_size: 0.005, "
+            "exclude_object_distance: 0.01, name: scene}]",
+            "ik.workers=1",
+        ],
+    )
+    cands = P.generate_candidates(cfg)
+    grasps = P.densify(cands, P.build_manifold(cands, cfg), cfg)
+    robot = P.robot_from_config(cfg)
+    clouds, load = _clock(lambda: scene_clouds(cfg.environment, cfg.object))
+    base_inv = np.linalg.inv(cfg.robot.base_pose.matrix())
+    tiles, build = _clock(lambda: cloud_world(cfg.environment, cfg.object, base_inv))
+    engine, engine_s = _clock(lambda: P.reachability_engine(robot, cfg))
+    done, stage = _clock(lambda: P.check_reachability(grasps, robot, cfg, engine=engine))
+    checker = P.make_checker(robot, cfg.environment, cfg.object, cfg.robot.base_pose)
+    engine.close()
+    q = np.asarray(done["q"])[np.asarray(done["reachable"], bool)][:reference_rows]
+    near, near_s = _clock(lambda: checker.clearance(q))
+    octree_pairs, checker._octree_pairs = checker._octree_pairs, {}  # coal on whole tiles
+    whole, whole_s = _clock(lambda: checker.clearance(q))
+    checker._octree_pairs = octree_pairs
+    return {
+        "points": int(sum(c.counts["read"] for c in clouds)),
+        "voxels": int(sum(len(c) for c in clouds)),
+        "tiles": len(tiles),
+        "poses": len(done),
+        "reachable": int(np.count_nonzero(done["reachable"])),
+        "load_voxelise": load,
+        "octree_build": build,
+        "engine_build": engine_s,
+        "reachability": stage,
+        "reachability_steps_cpu_s": dict(engine.timings),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "clearance_reference": {
+            "rows": int(len(q)),
+            "near_cells_cpu_s": near_s["cpu_s"],
+            "whole_tiles_cpu_s": whole_s["cpu_s"],
+            "speedup": whole_s["cpu_s"] / max(near_s["cpu_s"], 1e-9),
+            "max_abs_difference_m": float(np.max(np.abs(near - whole), initial=0.0)),
+        },
+    }
+
+
+def _print_stages(s: dict) -> None:
+    print(
+        f"{s['points']:,} points -> {s['voxels']:,} voxels in {s['tiles']} tiles; "
+        f"{s['poses']} poses, {s['reachable']} reachable; peak {s['peak_rss_mb']:.0f} MB"
+    )
+    for key in ("load_voxelise", "octree_build", "engine_build", "reachability"):
+        print(f"  {key:15s} {s[key]['wall_s']:8.2f} s wall {s[key]['cpu_s']:8.2f} s CPU")
+    for key, value in s["reachability_steps_cpu_s"].items():
+        print(f"    {key:13s} {value:8.2f} s CPU")
+    ref = s["clearance_reference"]
+    print(
+        f"  clearance of {ref['rows']} reachable rows: near cells {ref['near_cells_cpu_s']:.2f} s, "
+        f"whole tiles {ref['whole_tiles_cpu_s']:.2f} s CPU (x{ref['speedup']:.1f}), "
+        f"largest difference {ref['max_abs_difference_m']:.3g} m"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--config", action="append", type=Path, default=[])
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks/results/cloud_scene.json")
+    parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--work", type=Path, default=Path("/tmp/gcm_bench_cloud_scene"))
+    parser.add_argument("--stages", type=Path, help="time the stages on this cloud instead")
+    parser.add_argument("--reference-rows", type=int, default=60)
     args = parser.parse_args()
+    if args.stages is not None:
+        out = args.out or REPO / "benchmarks/results/cloud_stages.json"
+        stages = _stages(args.stages.resolve(), args.reference_rows)
+        _print_stages(stages)
+        report = {
+            "command": f"python benchmarks/bench_cloud_scene.py --stages {args.stages.name}"
+            f" --reference-rows {args.reference_rows}",
+            "python": platform.python_version(),
+            "machine": platform.machine(),
+            "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+            "load_average": os.getloadavg()[0],
+            **stages,
+        }
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=2) + "\n")
+        print(f"wrote {out}")
+        return
+    args.out = args.out or REPO / "benchmarks/results/cloud_scene.json"
     report: dict = {
         "command": "python benchmarks/bench_cloud_scene.py"
         + "".join(f" --config {c.name}" for c in args.config)

@@ -225,6 +225,18 @@ def render_columns() -> str:
 
 #: What each benchmark measures (no figures: those come from the JSON files).
 BENCH_NOTES: dict[str, str] = {
+    "cloud_stages": (
+        "The bottle example with a big point cloud as its scene (`--stages CLOUD`; the "
+        "cloud of the command: 3,000,000 points sampled with 2 mm noise on a table top, "
+        "two boxes, a shelf, the floor and two walls around the bottle, made by "
+        "`scratch/s42cloud/make_cloud.py`), 5 mm voxels, in one "
+        "process and one worker: wall and CPU seconds of reading and voxelising the cloud, "
+        "building its octree tiles, building the reachability engine (tiles and checker "
+        "again), the stage and its steps (CPU), and the peak resident memory. The reference "
+        "in the same run: the clearance of the reachable configurations on one checker, "
+        "coal over the cells near each link (what the stage does) against coal over whole "
+        "tiles, their CPU ratio and largest difference."
+    ),
     "adaptive": (
         "The bottle example densified adaptively (`densify.adaptive: {max_level: L}`) "
         "against the uniform lattice with `subdivisions: 2^L`, both checked as `gcm run` "

@@ -312,3 +312,48 @@ def test_sigterm_inside_the_neighbour_search_of_many_grasps_stops_at_once(tmp_pa
     assert lines[-1] == "interrupted (SIGTERM)"
     assert waited < 5.0, f"{waited:.1f} s from SIGTERM to exit"  # not a speed figure: was 10-200 s
     assert list(out.parent.iterdir()) == [] and list(scratch.iterdir()) == []
+
+
+def test_sigterm_inside_the_clearance_against_a_cloud_leaves_nothing(cli, tmp_path, monkeypatch):
+    """A cloud run spends its time in coal's distances of links to octree tiles (the
+    clearance): a SIGTERM landing in one ends the run with its one line, nothing written."""
+    from gcm_pipeline.robot.collision import clearance
+
+    near = clearance.near_distance
+    calls = []
+
+    def terminated(*args, **kwargs):
+        calls.append(1)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return near(*args, **kwargs)  # the handler raises in this call or right after it
+
+    monkeypatch.setattr(clearance, "near_distance", terminated)
+    out = tmp_path / "run"
+    status, _, err = cli("run", ROOT / "configs" / "clutter_scene.yaml", "--out", out, *QUICK)
+    assert calls
+    assert status == 128 + signal.SIGTERM
+    assert err.strip().splitlines() == ["interrupted (SIGTERM)"]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_gcm_exits_without_a_last_collection_over_what_it_loaded(tmp_path):
+    """At exit the interpreter's last garbage collection walks every object the command
+    loaded (seconds after a big cloud's run, and after its interrupt); ``gcm`` freezes
+    them first, so the process ends at once. Seen from an exit handler that runs after
+    gcm's: the objects are frozen."""
+    probe = (
+        "import atexit, gc, sys; "
+        "atexit.register(lambda: print('frozen', gc.get_freeze_count() > 0)); "
+        "sys.argv = ['gcm', 'schema']; "
+        "from gcm_pipeline.__main__ import entry; status = entry(); sys.exit(status)"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=gcm_env(),
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "frozen True"

@@ -28,7 +28,13 @@ from gcm_pipeline.robot.collision.broadphase import (
     squared_norms,
     stacked,
 )
-from gcm_pipeline.robot.collision.pairs import MODE_BIT, Pair, without_cached_guess
+from gcm_pipeline.robot.collision.octree_near import near_distance
+from gcm_pipeline.robot.collision.pairs import (
+    MODE_BIT,
+    Pair,
+    coal_transform,
+    without_cached_guess,
+)
 from gcm_pipeline.robot.collision.spheres import POLYTOPES
 
 __all__ = ["ClearanceQueries"]
@@ -86,6 +92,8 @@ class ClearanceQueries(BroadPhase):
             or (p.kind == "object" and p.a not in gripper and p.modes & MODE_BIT["grasp"])
         ]
         self._dist_model: Any = None
+        #: clearance pairs against an octree: the robot geometry's (joint, hull vertices)
+        self._octree_pairs: dict[int, tuple[int, np.ndarray]] = {}
         self._packed: _Packed | None = None  # the compiled kernels' arguments, when asked
         if dist:
             dm = gm.copy()
@@ -103,6 +111,12 @@ class ClearanceQueries(BroadPhase):
             for col, p in enumerate(dist):
                 world = gm.geometryObjects[p.b]
                 robot_geom = gm.geometryObjects[p.a].geometry
+                if isinstance(world.geometry, coal.OcTree):
+                    self._octree_pairs[col] = (
+                        self._hull(p.a)
+                        if isinstance(robot_geom, POLYTOPES)
+                        else (0, np.zeros((0, 3)))
+                    )
                 if not isinstance(robot_geom, POLYTOPES) or p.a != p.owner:
                     continue
                 if self._bounds_for(p.b).exact:
@@ -204,6 +218,7 @@ class ClearanceQueries(BroadPhase):
             todo = np.flatnonzero(open_)
             out[block[~open_]] = best0[~open_]
             order = np.argsort(bound[todo], axis=1)
+            near = self._octree_near(frames, todo) if self._octree_pairs else None
             for k, i in enumerate(todo.tolist()):
                 n = int(block[i])
                 pin.updateGeometryPlacements(model, data, dm, dd, qs[n])
@@ -212,10 +227,59 @@ class ClearanceQueries(BroadPhase):
                 for p in order[k].tolist():
                     if lb[p] >= best - precision:
                         break
-                    d = exact[i, p] if known[i, p] else pin.computeDistance(dm, dd, p).min_distance
+                    if known[i, p]:
+                        d = exact[i, p]
+                    elif near is not None and p in self._octree_pairs:
+                        d = self._octree_distance(p, near, k, best)
+                    else:
+                        d = pin.computeDistance(dm, dd, p).min_distance
                     if d < best:
                         best = d
                 out[n] = best
+
+    def _octree_near(self, frames: Any, rows: np.ndarray) -> tuple[Any, np.ndarray]:
+        """What :meth:`_octree_distance` needs of the configurations ``rows`` of a block.
+
+        The joint frames (J, M, 3, 4) and the cover spheres' centres (M, S, 3), base frame.
+        """
+        cov = self._cover
+        return stacked(frames.transforms)[:, rows], self._place(frames, cov.joint, cov.centre, rows)
+
+    def _octree_distance(self, p: int, near: tuple[Any, np.ndarray], k: int, cap: float) -> float:
+        """The distance by coal of clearance pair ``p`` (a link and an octree) below ``cap``.
+
+        Over the octree's cells near the geometry
+        (:func:`~gcm_pipeline.robot.collision.octree_near.near_distance`);
+        ``near`` from :meth:`_octree_near`, ``k`` the configuration's row in it;
+        the geometry placements of :attr:`_dist_data` are the configuration's.
+        """
+        tfs, centres = near
+        pair = self._dist_model.collisionPairs[p]
+        a, w = int(pair.first), int(pair.second)
+        g = int(self._dist_owner[p])
+        shape = self._bounds_for(w)
+        cov = self._cover
+        sph = slice(cov.start[g], cov.start[g + 1])
+        inv = shape.inv
+        local = centres[k, sph] @ inv[:3, :3].T + inv[:3, 3]
+        joint, verts = self._octree_pairs[p]
+        tf = tfs[joint, k]
+        rot = inv[:3, :3] @ tf[:, :3]
+        pts = verts @ rot.T + (inv[:3, :3] @ tf[:, 3] + inv[:3, 3])
+        dm, dd = self._dist_model, self._dist_data
+        return near_distance(
+            dm.geometryObjects[a].geometry,
+            coal_transform(dd.oMg[a].homogeneous),
+            dm.geometryObjects[w].geometry,
+            coal_transform(dd.oMg[w].homogeneous),
+            shape.cells,
+            shape.cell_reach,
+            local,
+            cov.radius[sph],
+            pts,
+            cap,
+            dd.distanceRequests[p],
+        )
 
     def _bounds_and_faces(self, frames: Any) -> tuple[np.ndarray, np.ndarray]:
         """The NumPy reference of a block's first steps: exact face distances and bounds.

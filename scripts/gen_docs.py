@@ -229,7 +229,7 @@ BENCH_NOTES: dict[str, str] = {
         "The bottle example with a big point cloud as its scene (`--stages CLOUD`; the "
         "cloud of the command: 3,000,000 points sampled with 2 mm noise on a table top, "
         "two boxes, a shelf, the floor and two walls around the bottle, made by "
-        "`scratch/s42cloud/make_cloud.py`), 5 mm voxels, in one "
+        "`python benchmarks/make_cloud.py cloud3m.npy`), 5 mm voxels, in one "
         "process and one worker: wall and CPU seconds of reading and voxelising the cloud, "
         "building its octree tiles, building the reachability engine (tiles and checker "
         "again), the stage and its steps (CPU), and the peak resident memory. The reference "

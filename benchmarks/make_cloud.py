@@ -6,7 +6,7 @@ two side walls), the room around them (floor, two walls), and the bottle's own
 surface (dropped when read by ``exclude_object_distance``). Gaussian noise of
 ``--noise`` [m] on every point.
 
-    python scratch/s42cloud/make_cloud.py OUT.npy [--points 3000000] [--seed 0]
+    python benchmarks/make_cloud.py OUT.npy [--points 3000000] [--seed 0]
 """
 
 from __future__ import annotations

@@ -320,7 +320,7 @@ class ArrowCells(ColumnsByType):
             values = pc.cast(col, pa.float64())
         except pa.ArrowInvalid:  # not Arrow's number: Python's (" 1", "1_0") or an error
             return None
-        out = values.fill_null(np.nan).to_numpy(zero_copy_only=False)
+        out = values.to_numpy(zero_copy_only=False)  # a null is NaN
         if values.null_count < len(values) - int(np.count_nonzero(~np.isnan(out))):
             return None  # a "nan" text: Python's float decides its sign
         return out

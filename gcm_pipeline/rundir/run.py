@@ -244,7 +244,7 @@ def _candidates_first(
     towards the end, so a big table is not copied (a fresh copy of a million
     rows costs more in page faults than in copying). Others are copied.
     """
-    n, k = len(grasps), len(rows)
+    k = len(rows)
     cols = dict(zip(grasps.columns, (grasps[c] for c in grasps.columns), strict=True))
     if k == 0 or np.array_equal(rows, np.arange(k)):
         return cols

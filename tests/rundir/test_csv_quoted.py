@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_same_table, python_read_grasps, same_read_outcome
 
 from gcm_pipeline.errors import InputError
 from gcm_pipeline.rundir import csv_text
@@ -39,22 +40,6 @@ TEXTS = [
 ]
 
 
-def _python_read(path: Path) -> GraspTable:
-    return G._table(G._Cells(path, *G._read_rows(path)))[0]
-
-
-def _arrow_split(path: Path):
-    return csv_text.read_text_columns(path)
-
-
-def _same(a: GraspTable, b: GraspTable) -> None:
-    assert a.columns == b.columns
-    for name in a.columns:
-        x, y = np.asarray(a[name]), np.asarray(b[name])
-        assert (x.dtype, x.shape) == (y.dtype, y.shape), name
-        assert x.tobytes() == y.tobytes(), name
-
-
 def _table(labels: list[str], seed: int = 0) -> GraspTable:
     n = len(labels)
     rng = np.random.default_rng(seed)
@@ -81,10 +66,10 @@ def test_a_written_file_with_quoted_text_is_split_by_arrow_as_python_reads_it(tm
     path = tmp_path / "grasps.csv"
     G.write_grasps_csv(_table(TEXTS), path)
     assert b'"' in path.read_bytes()
-    split = _arrow_split(path)
+    split = csv_text.read_text_columns(path)
     assert split is not None, "the Arrow reader refused a file the writer quoted"
-    _same(G._table(csv_text.ArrowCells(path, *split))[0], _python_read(path))
-    _same(G.read_grasps_csv(path), _python_read(path))
+    assert_same_table(G._table(csv_text.ArrowCells(path, *split))[0], python_read_grasps(path))
+    assert_same_table(G.read_grasps_csv(path), python_read_grasps(path))
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -94,11 +79,11 @@ def test_random_quoted_text_reads_the_same_through_arrow(tmp_path, seed):
     labels = ["".join(rng.choice(alphabet, size=rng.integers(0, 9))) for _ in range(300)]
     path = tmp_path / "grasps.csv"
     G.write_grasps_csv(_table(labels, seed), path)
-    split = _arrow_split(path)
+    split = csv_text.read_text_columns(path)
     assert split is not None
     got = G._table(csv_text.ArrowCells(path, *split))[0]
-    _same(got, _python_read(path))
-    assert got["label"].tolist() == _python_read(path)["label"].tolist()
+    assert_same_table(got, python_read_grasps(path))
+    assert got["label"].tolist() == python_read_grasps(path)["label"].tolist()
 
 
 @pytest.mark.parametrize(
@@ -146,24 +131,19 @@ def test_hostile_quoted_files_same_table_or_same_error(tmp_path, data):
 def test_quoting_the_writer_would_not_write_is_left_to_python(tmp_path):
     path = tmp_path / "grasps.csv"
     path.write_text(HEADER + ROW + '"7"\n' + ROW + '"a,b"\n', encoding="utf-8")
-    assert _arrow_split(path) is None
+    assert csv_text.read_text_columns(path) is None
     assert G.read_grasps_csv(path)["label"].tolist() == ["7", "a,b"]
 
 
 def _same_outcome(path: Path) -> None:
-    """read_grasps_csv (Arrow first) and the Python reader: same table, or same one-line error."""
-    try:
-        expected = _python_read(path)
-    except InputError as exc:
-        with pytest.raises(InputError) as got:
-            G.read_grasps_csv(path)
-        assert str(got.value) == str(exc) and "\n" not in str(exc)
-        assert (got.value.row, got.value.key) == (exc.row, exc.key)
+    """The Python reader's outcome; and what Arrow splits, it splits as Python does."""
+    same_read_outcome(path)
+    split = csv_text.read_text_columns(path)
+    if split is None:
         return
-    _same(G.read_grasps_csv(path), expected)
-    split = _arrow_split(path)
-    if split is not None:  # what Arrow splits, it splits as Python does
-        try:
-            _same(G._table(csv_text.ArrowCells(path, *split))[0], expected)
-        except csv_text.Fallback:
-            pass
+    try:
+        expected = python_read_grasps(path)
+        got = G._table(csv_text.ArrowCells(path, *split))[0]
+    except (InputError, csv_text.Fallback):  # a fault: the Python reader's error, checked above
+        return
+    assert_same_table(got, expected)

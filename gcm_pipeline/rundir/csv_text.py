@@ -300,10 +300,13 @@ def _written_as(path: Path, start: int, table: Any) -> bool:
 
 def _has_special(column: Any) -> bool:
     """Whether any cell of an Arrow text column holds ``,``, ``"`` or a newline (bytes searched)."""
+    import pyarrow as pa
+
     for chunk in column.chunks:
         if len(chunk) == 0:
             continue
-        offsets = np.frombuffer(chunk.buffers()[1], dtype=np.int32)
+        wide = chunk.type in (pa.large_string(), pa.large_binary())
+        offsets = np.frombuffer(chunk.buffers()[1], dtype=np.int64 if wide else np.int32)
         first, end = int(offsets[chunk.offset]), int(offsets[chunk.offset + len(chunk)])
         data = chunk.buffers()[2]
         text = b"" if data is None else memoryview(data)[first:end].tobytes()

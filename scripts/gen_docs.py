@@ -304,6 +304,16 @@ BENCH_NOTES: dict[str, str] = {
         "bag (`mcap`) the serialised bytes of each topic. `moveit_trajectory` is "
         "`--format moveit --trajectory`."
     ),
+    "read": (
+        "A big run read back: `gcm show`, `gcm query` (one pose; three poses as JSON), "
+        "`read_run` alone, and `read_grasps_csv` of a copy of the run's "
+        "`grasps.csv` with a text column whose cells hold commas, quotes and newlines. Each case "
+        "is a fresh process, measured by its CPU time (user + system) and wall time; with "
+        "`--before CHECKOUT` each also runs on that code, the two alternating "
+        "(`cases.*.before`, `cases.*.after`, `cpu_ratio_before_over_after`), and "
+        "`identical_stdout` says whether every run of both printed the same bytes (the two "
+        "read cases print nothing)."
+    ),
     "geometry": (
         "Dual-quaternion conversions and DLB on a million poses, Qhull and Bowyer-Watson "
         "on uniform random points, and the densify stage with DLB and DIB."

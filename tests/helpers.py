@@ -222,3 +222,39 @@ def tilted_elbow_chain(ur5: Any) -> Any:
     placement.rotation = placement.rotation @ pin.exp3(np.array([0.05, 0.0, 0.0]))
     model.jointPlacements[j] = placement
     return KinematicChain(model, ur5.grasp_frame_id)
+
+
+def python_read_grasps(path: Path) -> Any:
+    """``grasps.csv`` read by the Python reader alone (the reference of the Arrow reader)."""
+    from gcm_pipeline.rundir import grasps_csv
+
+    return grasps_csv._table(grasps_csv._Cells(path, *grasps_csv._read_rows(path)))[0]
+
+
+def assert_same_table(a: Any, b: Any) -> None:
+    """Two grasp tables with the same columns, dtypes, shapes and bits (NaN payloads included)."""
+    import numpy as np
+
+    assert a.columns == b.columns
+    for name in a.columns:
+        x, y = np.asarray(a[name]), np.asarray(b[name])
+        assert (x.dtype, x.shape) == (y.dtype, y.shape), name
+        assert x.tobytes() == y.tobytes(), name
+
+
+def same_read_outcome(path: Path) -> None:
+    """read_grasps_csv (Arrow first) and the Python reader: same table, or same one-line error."""
+    import pytest
+
+    from gcm_pipeline.errors import InputError
+    from gcm_pipeline.rundir import grasps_csv
+
+    try:
+        expected = python_read_grasps(path)
+    except InputError as exc:
+        with pytest.raises(InputError) as got:
+            grasps_csv.read_grasps_csv(path)
+        assert str(got.value) == str(exc) and "\n" not in str(exc)
+        assert (got.value.row, got.value.key) == (exc.row, exc.key)
+        return
+    assert_same_table(grasps_csv.read_grasps_csv(path), expected)

@@ -42,7 +42,11 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from gcm_pipeline.errors import GeometryError, InputError, choice_error
-from gcm_pipeline.geometry.pose_metric import ORIENTATION_SCALE, pose_features
+from gcm_pipeline.geometry.pose_metric import (
+    ORIENTATION_SCALE,
+    other_sign_features,
+    pose_features,
+)
 from gcm_pipeline.manifold.build import Manifold
 from gcm_pipeline.manifold.lattice import RowMesh, interpolate, row_memberships, row_mesh
 from gcm_pipeline.manifold.locate import Location, TriangleLocator, as_query_poses
@@ -80,6 +84,59 @@ QUERY_METRICS = (
 _ROBOT_METRICS = ("yoshikawa", "translational", "inverse_condition", "joint_limit_margin")
 
 _NO_CONFIG = "this manifold has no config"
+
+#: Most query poses whose nearest rows :func:`nearest_of_both_signs` finds by brute force
+#: (each costs one pass over the rows; more share one KD-tree).
+_BRUTE_QUERIES = 8
+
+#: Relative gap under which two squared distances count as tied (far above rounding).
+_TIE = 1e-9
+
+
+def nearest_of_both_signs(
+    feat: np.ndarray, queries: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``cKDTree(points).query(queries, k)``, points: ``feat`` then its other sign.
+
+    ``feat`` (N, 7) are rows' :func:`~gcm_pipeline.geometry.pose_metric.pose_features`;
+    returns (M, k) distances and indices into the 2N points. For a few
+    queries the k nearest are found by one pass over the rows instead of
+    building the tree: where the k + 1 nearest are apart by more than
+    :data:`_TIE` (relative), the answer has only one order, and the k are
+    measured by a KD-tree of their own (the tree's distance, bit for bit);
+    a query with near ties gets the whole tree's answer (its order among equals).
+    """
+    n, m = len(feat), len(queries)
+    if m > _BRUTE_QUERIES or k > 2 * n:
+        dist, idx = _both_signs_tree(feat).query(queries, k=k)
+        return np.reshape(dist, (m, k)), np.reshape(idx, (m, k))
+    dist, idx = np.empty((m, k)), np.empty((m, k), dtype=np.intp)
+    square = np.empty_like(feat)
+    tree = None
+    for i, query in enumerate(queries):
+        d2 = np.empty(2 * n)
+        for half, other in enumerate((query, other_sign_features(query))):
+            # |q - p'| for p' = p with r negated is |q' - p| (q' = q with r negated), term by term
+            np.square(np.subtract(feat, other, out=square), out=square)
+            d2[half * n : (half + 1) * n] = square.sum(axis=1)
+        part = np.argpartition(d2, min(k, 2 * n - 1))[: k + 1]
+        part = part[np.argsort(d2[part], kind="stable")]
+        if (np.diff(d2[part]) <= _TIE * d2[part][1:]).any():  # near ties: the tree's order
+            tree = _both_signs_tree(feat) if tree is None else tree
+            d, j = tree.query(query, k=k)
+            dist[i], idx[i] = np.reshape(d, k), np.reshape(j, k)
+            continue
+        chosen = part[:k]
+        own = feat[chosen % n]
+        own[chosen >= n] = other_sign_features(own[chosen >= n])
+        d, j = cKDTree(own).query(query, k=k)
+        dist[i], idx[i] = np.reshape(d, k), chosen[np.reshape(j, k)]
+    return dist, idx
+
+
+def _both_signs_tree(feat: np.ndarray) -> cKDTree:
+    """A KD-tree over ``feat`` (N, 7) and then its other sign (row ``N + i``: row ``i``)."""
+    return cKDTree(np.concatenate((feat, other_sign_features(feat))))
 
 
 class GraspManifold:
@@ -353,10 +410,9 @@ class GraspManifold:
         d_near = np.full(m, np.inf)  # distance to the nearest reachable row
         if k > 0:
             feat = pose_features(self.grasps["dq"][rows_ok], self.orientation_scale)
-            flip = feat.copy()
-            flip[:, 3:] *= -1.0
-            tree = cKDTree(np.concatenate((feat, flip)))
-            dist, idx = tree.query(pose_features(query, self.orientation_scale), k=2 * k)
+            dist, idx = nearest_of_both_signs(
+                feat, pose_features(query, self.orientation_scale), 2 * k
+            )
             d_near = np.asarray(dist).reshape(m, 2 * k)[:, 0]
             idx = np.asarray(idx).reshape(m, 2 * k) % rows_ok.size
             near = first_unique(idx, k)

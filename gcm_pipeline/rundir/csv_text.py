@@ -15,9 +15,14 @@ the Python code writes and accepts:
   1e10 that Arrow writes with an exponent); NaN is ``""``. :func:`arrow_floats_ok` checks
   these rules once per process on values of every kind and falls back to
   :func:`repr` for every cell if they do not hold.
-- **reading**: a file is split by Arrow only when it has no ``"`` and no
-  ``\r`` (Python's :mod:`csv` and Arrow agree on such files), its header
-  names every column once and every row has the header's fields; each cell
+- **reading**: a file is split by Arrow only when it has no ``\r``, its
+  header names every column once and every row has the header's fields.
+  Without ``"`` Python's :mod:`csv` and Arrow agree on such a file. With
+  quotes (text with commas, quotes or newlines), Arrow splits it quoting
+  as the writer quotes, and the file is kept only if it is, byte for byte,
+  the writer's quoting of the cells Arrow found (each cell quoted exactly
+  when it holds ``,``, ``"``, a newline or ``\r``, inner quotes doubled):
+  Python's reader reads that text back as those cells. Each cell
   is then converted only where the conversion is exactly Python's (see
   :class:`ArrowCells`). Anything else, and every file with a fault, goes to
   the Python reader, whose errors name the line and the column.
@@ -184,11 +189,16 @@ def empty_cells(n: int) -> Any:
 
 def write_rows(fh: BinaryIO, columns: Sequence[Any]) -> None:
     r"""Write the rows of equal-length Arrow text columns: cells joined by ``,``, rows by ``\n``."""
+    fh.write(_joined_rows(columns))
+
+
+def _joined_rows(columns: Sequence[Any]) -> memoryview:
+    r"""The text of equal-length Arrow text columns' rows: cells joined by ``,``, rows by ``\n``."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
     if not columns or len(columns[0]) == 0:
-        return
+        return memoryview(b"")
     text = pa.large_string()  # 64-bit offsets: any length of text
     wide = [c.cast(text) for c in columns]
     empty, newline, comma = (pa.scalar(s, text) for s in ("", "\n", ","))
@@ -196,7 +206,7 @@ def write_rows(fh: BinaryIO, columns: Sequence[Any]) -> None:
     rows = pc.binary_join_element_wise(*wide[:-1], last, comma) if len(wide) > 1 else last
     offsets = np.frombuffer(rows.buffers()[1], dtype=np.int64)
     first, end = int(offsets[rows.offset]), int(offsets[rows.offset + len(rows)])
-    fh.write(memoryview(rows.buffers()[2])[first:end])
+    return memoryview(rows.buffers()[2])[first:end]
 
 
 # ------------------------------------------------------------------ reading
@@ -205,11 +215,12 @@ def write_rows(fh: BinaryIO, columns: Sequence[Any]) -> None:
 def read_text_columns(path: Path) -> tuple[list[str], dict[str, Any]] | None:
     r"""The header and the text of every column of a CSV file, split by Arrow; None: use Python.
 
-    Only for a file Python's :mod:`csv` reads the same way: no ``"``, no
-    ``\r``, no NUL, a header on the first line (after a UTF-8 byte order mark) that
-    names every column once, UTF-8 cells of at most
+    Only for a file Python's :mod:`csv` reads the same way: no ``\r``, no
+    NUL, a header without quotes on the first line (after a UTF-8 byte order
+    mark) that names every column once, UTF-8 cells of at most
     :data:`~gcm_pipeline.bounds.MAX_CSV_CELL` bytes and the header's number
-    of fields in every non-empty line. An empty cell is null.
+    of fields in every non-empty line; a file with quotes must be the
+    writer's quoting of its cells (module docstring). An empty cell is null.
     """
     import pyarrow as pa
     import pyarrow.csv as pv
@@ -219,14 +230,17 @@ def read_text_columns(path: Path) -> tuple[list[str], dict[str, Any]] | None:
             if path.stat().st_size == 0:
                 return None
             with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-                if any(mm.find(c) >= 0 for c in (b'"', b"\r", b"\0")):
+                if any(mm.find(c) >= 0 for c in (b"\r", b"\0")):
                     return None
                 start = 3 if mm[:3] == b"\xef\xbb\xbf" else 0
                 end = mm.find(b"\n", start)
                 if end < 0:
                     return None
+                quoted = mm.find(b'"') >= 0
                 names = mm[start:end].decode("utf-8").split(",")
     except (OSError, ValueError):  # unreadable, not UTF-8: the Python reader says why
+        return None
+    if quoted and any('"' in n for n in names):
         return None
     if len(set(names)) != len(names) or not all(n.strip() for n in names):
         return None
@@ -242,15 +256,73 @@ def read_text_columns(path: Path) -> tuple[list[str], dict[str, Any]] | None:
             table = pv.read_csv(
                 source,
                 read_options=read,
-                parse_options=pv.ParseOptions(quote_char=False, ignore_empty_lines=True),
+                parse_options=pv.ParseOptions(
+                    quote_char='"' if quoted else False,
+                    double_quote=True,
+                    newlines_in_values=quoted,
+                    ignore_empty_lines=True,
+                ),
                 convert_options=convert,
             )
+        if quoted and not _written_as(path, end + 1, table):
+            return None
     except (pa.ArrowException, OSError):  # a row of another width, bad UTF-8: Python says where
         return None
     columns = {n: table.column(n) for n in names}
     if table.num_rows and _longest(columns.values()) > MAX_CSV_CELL:
         return None
     return names, columns
+
+
+def _written_as(path: Path, start: int, table: Any) -> bool:
+    r"""Whether the file from byte ``start`` on is exactly the writer's text of ``table``'s rows.
+
+    The writer's text: each cell quoted when it holds ``,``, ``"``, a
+    newline or ``\r`` (inner quotes doubled), cells joined by ``,``, every
+    row ended by a newline (an empty cell is null in ``table``).
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    text = pa.large_string()
+    special = [_has_special(col) for col in table.columns]  # cells to look at one by one
+    with path.open("rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+        pos = start
+        for batch in table.to_batches(max_chunksize=CHUNK_ROWS):
+            cells = [c.cast(text).fill_null("") for c in batch.columns]
+            cells = [_quoted(c, pa, pc) if q else c for c, q in zip(cells, special, strict=True)]
+            body = _joined_rows(cells)
+            if mm[pos : pos + len(body)] != body.tobytes():
+                return False
+            pos += len(body)
+        return pos == len(mm)
+
+
+def _has_special(column: Any) -> bool:
+    """Whether any cell of an Arrow text column holds ``,``, ``"`` or a newline (bytes searched)."""
+    import pyarrow as pa
+
+    for chunk in column.chunks:
+        if len(chunk) == 0:
+            continue
+        wide = chunk.type in (pa.large_string(), pa.large_binary())
+        offsets = np.frombuffer(chunk.buffers()[1], dtype=np.int64 if wide else np.int32)
+        first, end = int(offsets[chunk.offset]), int(offsets[chunk.offset + len(chunk)])
+        data = chunk.buffers()[2]
+        text = b"" if data is None else memoryview(data)[first:end].tobytes()
+        if any(text.find(c) >= 0 for c in (b",", b'"', b"\n")):
+            return True
+    return False
+
+
+def _quoted(cells: Any, pa: Any, pc: Any) -> Any:
+    """Text cells as the writer quotes them (``grasps_csv._quote``), in Arrow."""
+    needs = pc.match_substring_regex(cells, '[,"\n\r]')
+    if not pc.any(needs).as_py():
+        return cells
+    quote, empty = pa.scalar('"', cells.type), pa.scalar("", cells.type)
+    inner = pc.replace_substring(cells, '"', '""')
+    return pc.if_else(needs, pc.binary_join_element_wise(quote, inner, quote, empty), cells)
 
 
 def _longest(columns: Any) -> int:
@@ -320,7 +392,7 @@ class ArrowCells(ColumnsByType):
             values = pc.cast(col, pa.float64())
         except pa.ArrowInvalid:  # not Arrow's number: Python's (" 1", "1_0") or an error
             return None
-        out = values.fill_null(np.nan).to_numpy(zero_copy_only=False)
+        out = values.to_numpy(zero_copy_only=False)  # a null is NaN
         if values.null_count < len(values) - int(np.count_nonzero(~np.isnan(out))):
             return None  # a "nan" text: Python's float decides its sign
         return out

@@ -15,8 +15,8 @@ booleans are ``true`` / ``false``.
 The text is made and split in C++ (:mod:`gcm_pipeline.rundir.csv_text`:
 Arrow, the same bytes as the Python writer and the same table as the Python
 reader, a few seconds for a million rows); a file Arrow cannot vouch for
-(quotes, a carriage return, any fault) is read by the Python reader here, whose errors
-name the file, the line and the column.
+(quoting the writer would not write, a carriage return, any fault) is read by the Python
+reader here, whose errors name the file, the line and the column.
 """
 
 from __future__ import annotations

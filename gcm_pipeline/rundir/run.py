@@ -203,24 +203,98 @@ def read_run(run_dir: str | Path) -> RunData:
         grasps = grasps.with_columns(**extra) if extra else grasps
     manifold = read_manifold(run_dir / "manifold.npz", n_rows=len(grasps))
     vertex_rows = manifold_vertex_rows(run_dir / "manifold.npz", len(manifold.chart))
-    if "vertices" in grasps and len(grasps):
-        used = np.asarray(grasps["vertices"])
-        used = np.unique(used[used >= 0])
-        stray = np.setdiff1d(used, vertex_rows)
+    n = len(grasps)
+    is_vertex = np.zeros(n, dtype=bool)
+    is_vertex[vertex_rows] = True  # unique rows of the file (read_manifold checks them)
+    if "vertices" in grasps and n:
+        used = np.asarray(grasps["vertices"]).reshape(-1)
+        used = used[used >= 0]
+        named = np.zeros(max(n, int(used.max(initial=-1)) + 1), dtype=bool)
+        named[used] = True
+        named[:n] &= ~is_vertex
+        stray = np.flatnonzero(named)
         if stray.size:
             raise InputError(
                 f"{run_dir / 'grasps.csv'}: v1..v3 name row {int(stray[0])}, which is not a "
                 "candidate of manifold.npz"
             )
-    rest = np.setdiff1d(np.arange(len(grasps)), vertex_rows, assume_unique=False)
-    perm = np.concatenate([vertex_rows, rest])
-    grasps = grasps.take(perm)
+    grasps = GraspTable(_candidates_first(grasps, vertex_rows, is_vertex))
     if "vertices" in grasps:  # rows of the file -> rows of the reordered table
-        new_row = np.empty(len(perm), dtype=np.int64)
-        new_row[perm] = np.arange(len(perm))
+        new_row = np.empty(n, dtype=np.int64)
+        new_row[vertex_rows] = np.arange(len(vertex_rows))
+        new_row[~is_vertex] = np.arange(len(vertex_rows), n)
         vert = np.asarray(grasps["vertices"])
         grasps = grasps.with_columns(vertices=np.where(vert >= 0, new_row[np.maximum(vert, 0)], -1))
     return RunData(grasps, manifold, summary, run_dir)
+
+
+#: Most candidate rows moved in place by :func:`_candidates_first` (one copy per segment between
+#: two of them); a table with more is reordered by a copy.
+_MOVES_IN_PLACE = 4096
+
+
+def _candidates_first(
+    grasps: GraspTable, rows: np.ndarray, is_row: np.ndarray
+) -> dict[str, np.ndarray]:
+    """The columns of ``grasps`` with ``rows`` first (in that order), then the others in order.
+
+    The same as ``grasps.take(np.concatenate([rows, np.flatnonzero(~is_row)]))``.
+    A column that holds its memory alone (as the readers return them) is
+    reordered in place: the rows between two of ``rows`` are moved as one block
+    towards the end, so a big table is not copied (a fresh copy of a million
+    rows costs more in page faults than in copying). Others are copied.
+    """
+    k = len(rows)
+    cols = dict(zip(grasps.columns, (grasps[c] for c in grasps.columns), strict=True))
+    if k == 0 or np.array_equal(rows, np.arange(k)):
+        return cols
+    perm: np.ndarray | None = None
+    owners = [_owner(a) for a in cols.values()]
+    shared = {id(o) for o in owners if sum(o is p for p in owners) > 1}
+    ends = np.sort(rows)
+    for (name, values), owner in zip(cols.items(), owners, strict=True):
+        if k <= _MOVES_IN_PLACE and id(owner) not in shared and _writable(values):
+            _move_first(values, rows, ends)
+            values.setflags(write=False)
+        else:
+            perm = np.concatenate([rows, np.flatnonzero(~is_row)]) if perm is None else perm
+            cols[name] = values[perm]
+    return cols
+
+
+def _owner(values: np.ndarray) -> object:
+    """The object that holds an array's memory (its last base)."""
+    base: object = values
+    while isinstance(base, np.ndarray) and base.base is not None:
+        base = base.base
+    return base
+
+
+def _writable(values: np.ndarray) -> bool:
+    """Whether a C-contiguous array with rows of bytes can be written in place."""
+    if not values.flags.c_contiguous or values.itemsize == 0 or values.ndim == 0:
+        return False
+    try:
+        values.setflags(write=True)
+    except ValueError:  # memory of another library (Arrow), read-only
+        return False
+    return True
+
+
+def _move_first(values: np.ndarray, rows: np.ndarray, ends: np.ndarray) -> None:
+    """In place: ``rows`` first, then the other rows in order (``ends``: ``rows`` sorted)."""
+    head = values[rows].copy()
+    size = values.strides[0]
+    flat = values.reshape(-1).view(np.uint8)
+    k = len(ends)
+    # the rows between ends[j - 1] and ends[j] move k - j rows down; from the last block
+    # back, each lands where rows already moved or candidates were (1-D copies may overlap)
+    for j in range(k - 1, -1, -1):
+        lo = int(ends[j - 1]) + 1 if j else 0
+        hi, shift = int(ends[j]), k - j
+        if hi > lo:
+            flat[(lo + shift) * size : (hi + shift) * size] = flat[lo * size : hi * size]
+    values[:k] = head
 
 
 def read_summary(path: str | Path) -> dict[str, Any]:

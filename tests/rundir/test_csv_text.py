@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import BOTTLE
+from helpers import BOTTLE, assert_same_table, python_read_grasps, same_read_outcome
 
 from gcm_pipeline.config import load_config
 from gcm_pipeline.errors import InputError
@@ -60,20 +60,6 @@ def python_write(grasps: GraspTable, path: Path) -> None:
         fh.writelines(",".join(row) + "\n" for row in zip(*cols, strict=True))
 
 
-def python_read(path: Path) -> GraspTable:
-    """The Python reader (the fallback)."""
-    return G._table(G._Cells(path, *G._read_rows(path)))[0]
-
-
-def assert_same_table(a: GraspTable, b: GraspTable) -> None:
-    """Same columns, dtypes, shapes and bits (NaN payloads included)."""
-    assert a.columns == b.columns
-    for name in a.columns:
-        x, y = np.asarray(a[name]), np.asarray(b[name])
-        assert (x.dtype, x.shape) == (y.dtype, y.shape), name
-        assert x.tobytes() == y.tobytes(), name
-
-
 def arrow_read(path: Path) -> GraspTable:
     """The Arrow reader on its own (fails the test if it would fall back)."""
     split = csv_text.read_text_columns(path)
@@ -103,9 +89,9 @@ def test_real_run_byte_identical_and_read_back_bit_identical(tmp_path):
     G.write_grasps_csv(grasps, new)
     python_write(grasps, old)
     assert new.read_bytes() == old.read_bytes()
-    assert_same_table(arrow_read(new), python_read(new))
+    assert_same_table(arrow_read(new), python_read_grasps(new))
     table, pose = G.read_grasps_csv_pose(new)
-    assert_same_table(table, python_read(new))
+    assert_same_table(table, python_read_grasps(new))
     cells = [line.split(",")[9:16] for line in new.read_text().splitlines()[1:]]
     assert pose.tolist() == [[float(c) for c in row] for row in cells]
 
@@ -170,7 +156,7 @@ def test_edge_values_without_text_are_read_by_arrow_bit_for_bit(tmp_path):
     path = tmp_path / "g.csv"
     G.write_grasps_csv(plain, path)
     table = arrow_read(path)
-    assert_same_table(table, python_read(path))
+    assert_same_table(table, python_read_grasps(path))
     assert table["metric"].dtype == float and np.isinf(table["metric"]).sum() == 2
     assert np.signbit(table["metric"][np.asarray(table["metric"]) == 0]).any()  # -0.0 kept
 
@@ -203,7 +189,7 @@ def test_text_with_quotes_is_read_by_python_the_same(tmp_path):
     G.write_grasps_csv(grasps, path)
     assert csv_text.read_text_columns(path) is None  # quotes: the Python reader
     table = G.read_grasps_csv(path)
-    assert_same_table(table, python_read(path))
+    assert_same_table(table, python_read_grasps(path))
     assert "new\nline" in set(table["label"].tolist())
 
 
@@ -247,7 +233,7 @@ GOOD = "1,candidate,0.5,0,0.25,1,0,0,0,true,0.5,7\n"
 def test_hostile_cells_same_table_or_same_error(tmp_path, body):
     path = tmp_path / "grasps.csv"
     path.write_text(HEADER + body, encoding="utf-8")
-    _same_outcome(path)
+    same_read_outcome(path)
 
 
 @pytest.mark.parametrize(
@@ -267,20 +253,7 @@ def test_hostile_cells_same_table_or_same_error(tmp_path, body):
 def test_hostile_files_same_table_or_same_error(tmp_path, data):
     path = tmp_path / "grasps.csv"
     path.write_bytes(data)
-    _same_outcome(path)
-
-
-def _same_outcome(path: Path) -> None:
-    """read_grasps_csv (Arrow first) and the Python reader: same table, or same one-line error."""
-    try:
-        expected = python_read(path)
-    except InputError as exc:
-        with pytest.raises(InputError) as got:
-            G.read_grasps_csv(path)
-        assert str(got.value) == str(exc) and "\n" not in str(exc)
-        assert (got.value.row, got.value.key) == (exc.row, exc.key)
-        return
-    assert_same_table(G.read_grasps_csv(path), expected)
+    same_read_outcome(path)
 
 
 def test_missing_file_same_error(tmp_path):

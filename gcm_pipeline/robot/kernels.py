@@ -367,6 +367,10 @@ class _Kernel:
         ]
 
     def _array(self, i: int, dtype: Any, ndim: int, value: Any) -> Any:
+        if type(value) is np.ndarray and value.ndim == ndim and value.dtype == dtype:
+            flags = value.flags
+            if flags.c_contiguous and flags.aligned:
+                return value  # as the kernel takes it (most calls): nothing to convert
         a = np.asarray(value)
         if a.ndim != ndim:
             raise TypeError(

@@ -50,6 +50,7 @@ from gcm_pipeline.reach.waypoints import (
     line_waypoints,
     max_over_joints,
 )
+from gcm_pipeline.robot import kernels
 from gcm_pipeline.robot.ik import solve_ik
 from gcm_pipeline.robot.model import Robot
 
@@ -568,41 +569,64 @@ def _grid_path(b: _MoveBatch, q_path: np.ndarray) -> None:
     A move whose joints change by more than ``max_joint_step`` between two grid
     points fails (``joint_step``).
     """
-    sub, fine_steps, steps = SUBSTEPS, b.fine_steps, b.steps
     rows = np.flatnonzero(b.ok)
-    if rows.size:
-        # the knots on each side of every grid point: the last at or before it and
-        # the first at or after it (a move still ok has knots at 0 and at the end)
-        # (np.take throughout: NumPy's fancy indexing gathers several times slower)
-        slot = b.knots.slot.take(rows, axis=0)
-        width = fine_steps + 1
-        keys = np.flatnonzero(slot >= 0)  # row * width + position, sorted
-        pos = keys % width
-        slot = slot.take(keys)
-        grid = np.arange(steps + 1) * sub
-        query = (np.arange(rows.size)[:, None] * width + grid).ravel()
-        shape = (rows.size, steps + 1)
-        before = np.searchsorted(keys, query, side="right") - 1
-        # the first at or after: that knot where one sits on the grid point, else the next
-        # (the keys are distinct)
-        after = before + (keys.take(before) != query)
-        pa, pb = pos.take(before).reshape(shape), pos.take(after).reshape(shape)
-        ka = b.knots.q.take(slot.take(before), axis=0).reshape(*shape, -1)
-        f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
-        # ka + f * (kb - ka), in one array
-        path = b.knots.q.take(slot.take(after), axis=0).reshape(*shape, -1)
-        path -= ka
-        path *= f
-        path += ka
-        q_path[rows] = path
-        # the change of every joint between consecutive grid points
-        step = np.subtract(path[:, 1:], path[:, :-1])
-        np.abs(step, out=step)
-        most = max_over_joints(step)
-        big = most > b.move.max_joint_step
-        over = np.flatnonzero(big.any(axis=1))
-        if over.size:
-            b.fail(rows[over], np.argmax(big[over], axis=1) * sub, "joint_step")
+    if rows.size == 0:
+        return
+    compiled = kernels.get()
+    # the kernel does the reference's arithmetic row by row (equal to the bit)
+    points = _grid_points if compiled is None else compiled.grid_path
+    path, jump_at = points(
+        b.knots.slot.take(rows, axis=0),
+        b.knots.q[: b.knots.size],
+        SUBSTEPS,
+        b.move.max_joint_step,
+    )
+    q_path[rows] = path
+    over = np.flatnonzero(jump_at >= 0)
+    if over.size:
+        b.fail(rows[over], jump_at[over] * SUBSTEPS, "joint_step")
+
+
+def _grid_points(
+    slot: np.ndarray, knots: np.ndarray, sub: int, max_step: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint paths at the grid points through their waypoints, and their first jump.
+
+    The NumPy reference of :func:`~gcm_pipeline.robot.chain_kernel.grid_path`
+    (same arguments and results): ``slot`` (M, steps * sub + 1) the row of
+    ``knots`` at each fine position (-1: none; every path has waypoints at its
+    first and last); returns the paths (M, steps + 1, nq) and each one's first
+    grid step (0-based) whose largest joint change exceeds ``max_step``, -1 if none.
+    """
+    m, width = slot.shape
+    steps = (width - 1) // sub
+    # the knots on each side of every grid point: the last at or before it and
+    # the first at or after it (np.take throughout: NumPy's fancy indexing
+    # gathers several times slower)
+    keys = np.flatnonzero(slot >= 0)  # row * width + position, sorted
+    pos = keys % width
+    slot = slot.take(keys)
+    grid = np.arange(steps + 1) * sub
+    query = (np.arange(m)[:, None] * width + grid).ravel()
+    shape = (m, steps + 1)
+    before = np.searchsorted(keys, query, side="right") - 1
+    # the first at or after: that knot where one sits on the grid point, else the next
+    # (the keys are distinct)
+    after = before + (keys.take(before) != query)
+    pa, pb = pos.take(before).reshape(shape), pos.take(after).reshape(shape)
+    ka = knots.take(slot.take(before), axis=0).reshape(*shape, -1)
+    f = ((grid - pa) / np.maximum(pb - pa, 1))[:, :, None]
+    # ka + f * (kb - ka), in one array
+    path = knots.take(slot.take(after), axis=0).reshape(*shape, -1)
+    path -= ka
+    path *= f
+    path += ka
+    # the change of every joint between consecutive grid points
+    step = np.subtract(path[:, 1:], path[:, :-1])
+    np.abs(step, out=step)
+    big = max_over_joints(step) > max_step
+    jump_at = np.where(big.any(axis=1), np.argmax(big, axis=1), -1)
+    return path, jump_at
 
 
 def _split_segments(

@@ -8,7 +8,10 @@
 * :func:`segment_samples`: the deviation samples of
   :func:`gcm_pipeline.reach.deviation.segment_bounds` (its NumPy reference lives in
   the reach package, a layer above the robot's: the kernel stays here, with the
-  chain's frames it samples).
+  chain's frames it samples);
+* :func:`grid_path`: a move's joint path at its grid points, piecewise linear
+  through its waypoints (the NumPy reference is ``_grid_path`` of
+  :mod:`gcm_pipeline.reach.path`, a layer above).
 
 Imported by :func:`gcm_pipeline.robot.kernels.get` only (it imports Numba); the
 inline pieces come from :mod:`~gcm_pipeline.robot.kernel_common`.
@@ -21,7 +24,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from gcm_pipeline.robot.kernel_common import F2, F3, I1, dot4, fma, frames, jacobian_columns
+from gcm_pipeline.robot.kernel_common import F2, F3, I1, I2, dot4, fma, frames, jacobian_columns
 
 
 @njit(
@@ -144,6 +147,65 @@ def segment_samples(q_a, q_b, intervals, start, rot0, offsets, q_index, placemen
                     squared += (tcp[a, b] - rot0[r, a, b]) ** 2
             turned[r] = max(turned[r], math.sqrt(squared))
     return dist, turned
+
+
+@njit(
+    types.Tuple((types.float64[:, :, ::1], types.intp[::1]))(I2, F2, types.intp, types.float64),
+    cache=True,
+)
+def grid_path(slot, knots, sub, max_step):
+    """Joint paths at the grid points, piecewise linear through the waypoints, and their jumps.
+
+    Row m's waypoints sit at the fine positions ``p`` with ``slot[m, p] >= 0``
+    (configuration ``knots[slot[m, p]]``), among them the first and the last.
+    Grid point ``g`` (fine position ``g * sub``) lies between the last waypoint
+    at or before it (``a``) and the first at or after it (``b``):
+    ``(q_b - q_a) * f + q_a`` with ``f = (g sub - a) / max(b - a, 1)``, the
+    NumPy code's operations in its order (equal to the bit). The jump of grid
+    step ``g`` is the largest ``|q_g+1 - q_g|`` over the joints, NaN if one is
+    (as ``np.maximum`` propagates it).
+
+    Args:
+        slot: Row of ``knots`` at each fine position of each path (M, steps * sub + 1), -1: none.
+        knots: The waypoints (K, nq) [rad].
+        sub: Fine positions per grid step, >= 1.
+        max_step: Largest jump allowed per grid step [rad].
+
+    Returns:
+        ``(path, over)``: the grid points (M, steps + 1, nq) and each path's
+        first grid step (0-based) whose jump exceeds ``max_step``, -1 if none.
+    """
+    m, width = slot.shape
+    steps = (width - 1) // sub
+    nq = knots.shape[1]
+    path = np.empty((m, steps + 1, nq))
+    over = np.full(m, -1, dtype=np.intp)
+    for r in range(m):
+        for g in range(steps + 1):
+            at = g * sub
+            a = at
+            while a > 0 and slot[r, a] < 0:
+                a -= 1
+            b = at
+            while b < width - 1 and slot[r, b] < 0:
+                b += 1
+            f = (at - a) / max(b - a, 1)
+            ka = slot[r, a]
+            kb = slot[r, b]
+            for j in range(nq):
+                path[r, g, j] = (knots[kb, j] - knots[ka, j]) * f + knots[ka, j]
+            if g == 0 or over[r] >= 0:
+                continue
+            nan, big = False, False
+            for j in range(nq):
+                d = abs(path[r, g, j] - path[r, g - 1, j])
+                if d != d:
+                    nan = True
+                elif d > max_step:
+                    big = True
+            if big and not nan:
+                over[r] = g - 1
+    return path, over
 
 
 #: ``1.5 * 2**52``: ``(t + MAGIC) - MAGIC`` rounds ``|t| < 2**51`` to an integer

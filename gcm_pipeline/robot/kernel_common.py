@@ -33,6 +33,7 @@ F2 = types.Array(types.float64, 2, "C", readonly=True)
 F3 = types.Array(types.float64, 3, "C", readonly=True)
 F4 = types.Array(types.float64, 4, "C", readonly=True)
 I1 = types.Array(types.intp, 1, "C", readonly=True)
+I2 = types.Array(types.intp, 2, "C", readonly=True)
 I1W = types.intp[::1]
 
 

@@ -8,8 +8,9 @@ all of them:
   (:meth:`KinematicChain._forward <gcm_pipeline.robot.chain.KinematicChain>`), every
   joint's frame (:meth:`JointFrames.compute <gcm_pipeline.robot.chain.JointFrames>`), and
   the approach's deviation samples along joint segments
-  (:func:`~gcm_pipeline.reach.deviation.segment_bounds`):
-  :mod:`~gcm_pipeline.robot.chain_kernel`;
+  (:func:`~gcm_pipeline.reach.deviation.segment_bounds`), and a move's joint path at
+  its grid points through its waypoints (``_grid_points`` of
+  :mod:`~gcm_pipeline.reach.path`): :mod:`~gcm_pipeline.robot.chain_kernel`;
 * the IK's Levenberg-Marquardt iterations
   (:func:`~gcm_pipeline.robot.ik.lm.levenberg_marquardt`), per (target, seed) pair:
   :mod:`~gcm_pipeline.robot.ik.lm_kernel`;
@@ -87,6 +88,8 @@ The NumPy code is the reference.
 * The closed form: the same arithmetic and the same solutions; the angles
   differ by round-off (1e-13 rad measured; acos near +-1 can amplify an
   ulp to 2e-8 rad).
+* A move's grid points: the NumPy code's differences, products and sums,
+  each rounded once, in its order: equal to the bit (tested).
 * A 6R arm's branches: the NumPy code's operations on each angle, each
   rounded once (IEEE: fmod and rint are exact), in the same order: the same
   branches and angles to the bit.
@@ -179,6 +182,7 @@ class Kernels(NamedTuple):
             :data:`FREE`, :data:`COLLIDES` or :data:`UNDECIDED`.
         hulls_apart: Level 3 of two robot polytopes: where a face of one's box
             separates them (free).
+        grid_path: A move's joint path at its grid points, through its waypoints.
     """
 
     chain_forward: Callable[..., Any]
@@ -197,6 +201,7 @@ class Kernels(NamedTuple):
     hull_vs_cylinder: Callable[..., Any]
     hull_vs_robot_box: Callable[..., Any]
     hulls_apart: Callable[..., Any]
+    grid_path: Callable[..., Any]
 
 
 @functools.cache
@@ -295,6 +300,7 @@ def _import() -> Kernels | None:
                 broadphase_kernel.hull_vs_cylinder,
                 broadphase_kernel.hull_vs_robot_box,
                 broadphase_kernel.hulls_apart,
+                chain_kernel.grid_path,
             )
         )
     )
@@ -361,6 +367,10 @@ class _Kernel:
         ]
 
     def _array(self, i: int, dtype: Any, ndim: int, value: Any) -> Any:
+        if type(value) is np.ndarray and value.ndim == ndim and value.dtype == dtype:
+            flags = value.flags
+            if flags.c_contiguous and flags.aligned:
+                return value  # as the kernel takes it (most calls): nothing to convert
         a = np.asarray(value)
         if a.ndim != ndim:
             raise TypeError(

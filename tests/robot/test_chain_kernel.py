@@ -132,6 +132,37 @@ def test_segment_bound_kernel_equals_numpy(compiled, panda, reject, numpy_code):
     np.testing.assert_array_equal(segment_bounds(*strided), got)
 
 
+@pytest.mark.parametrize("max_step", [0.05, 0.5, 5.0])
+def test_grid_path_kernel_equals_numpy(compiled, max_step):
+    """A move's grid points through its waypoints: the kernel does the NumPy code's
+    operations (differences, products, sums, each rounded once) in its order, so the
+    paths are equal to the bit on any CPU, and so is each path's first jump."""
+    from gcm_pipeline.reach.path import _grid_points
+
+    rng = np.random.default_rng(5)
+    m, sub, steps, nq = 500, 8, 10, 7
+    width = sub * steps + 1
+    have = rng.random((m, width)) < rng.choice([0.02, 0.15, 1.0], size=(m, 1))
+    have[:, 0] = have[:, -1] = True  # every path has waypoints at its ends
+    slot = np.full((m, width), -1, dtype=np.int32)  # the engine's slots are int32
+    slot[have] = rng.permutation(have.sum())
+    knots = rng.normal(0.0, 0.3, (have.sum(), nq))
+    knots[slot[7, 0], 3] = np.nan  # a NaN joint: no jump found where it enters
+    path, jump_at = compiled.grid_path(slot, knots, sub, max_step)
+    ref_path, ref_jump = _grid_points(slot, knots, sub, max_step)
+    np.testing.assert_array_equal(path, ref_path)
+    np.testing.assert_array_equal(jump_at, ref_jump)
+    # what it means: a waypoint on a grid point is that point; the first jump over
+    # max_step is where the largest joint change first exceeds it
+    r, at = np.nonzero(have[:, ::sub])
+    np.testing.assert_array_equal(path[r, at], knots[slot[r, at * sub]])
+    change = np.abs(np.diff(path, axis=1)).max(axis=2)
+    over = change > max_step
+    want = np.where(over.any(axis=1), over.argmax(axis=1), -1)
+    np.testing.assert_array_equal(jump_at, want)
+    assert 0 < (jump_at >= 0).sum() < m or max_step == 5.0
+
+
 # --- cosines and sines of the joint frames ----------------------------------------------
 
 

@@ -34,7 +34,8 @@ base frame), in :meth:`ReachabilityEngine.run`:
    is never re-tried). Nothing else is
    re-solved: a target with no IK solution had every seed already, and one
    whose solution failed a move that ends beyond reach (proved for the
-   Panda's kinematics, :func:`~gcm_pipeline.reach.moves.unreachable_ends`)
+   Panda's kinematics and 6R arms of the UR geometry,
+   :func:`~gcm_pipeline.reach.moves.unreachable_ends`)
    fails that move with any solution. Such moves are not planned either: they
    fail in 2 without IK.
 4. **More branches** (``solutions`` > 1): for every reachable target, further

@@ -6,7 +6,8 @@ The joint path is piecewise linear through waypoints (knots) on a grid
 
 0. **Ends beyond reach**: a move whose end no configuration reaches within
    the IK tolerances fails (``no_ik``) without any IK; this is proved from
-   the Panda's elbow range (:func:`~gcm_pipeline.reach.moves.unreachable_ends`), not searched for.
+   the Panda's elbow range or, for a 6R arm of the UR geometry, the reach of its upper arm and
+   forearm (:func:`~gcm_pipeline.reach.moves.unreachable_ends`), not searched for.
 1. **The end of the move**: one IK of the pose at :math:`s = 1` seeded with
    :math:`q_g` only (a solution elsewhere is of no use), to the IK tolerances
    (verified by Pinocchio FK, strictly inside the limits). Where that fails

@@ -104,9 +104,7 @@ def urdf_links(xml: str) -> tuple[list[str], set[str]]:
 
 
 def _unknown_link(key: str, name: str, links: Sequence[str], where: str) -> RobotSpecError:
-    return choice_error(
-        RobotSpecError, "link", name, links, key=key, prefix=f"{where}: {key}: "
-    )
+    return choice_error(RobotSpecError, "link", name, links, key=key, prefix=f"{where}: {key}: ")
 
 
 def checked_hand_links(

@@ -1,10 +1,11 @@
 """The arm's joints as a spec sets them: locked joints, joint ranges, home.
 
 Used when a :class:`~gcm_pipeline.robot.model.Robot` is built: the spec's locked
-joints (checked against the full model) and the mimic joints that follow them, each joint's range (the model's,
-intersected with the spec's ``joint_limits``, less ``limit_margin`` on revolute
-joints; an "unlimited" +-1e308 or an empty range refused in one line), and the
-home configuration (the spec's, else the middle of every range).
+joints (checked against the full model) and the mimic joints that follow them,
+each joint's range (the model's, intersected with the spec's ``joint_limits``,
+less ``limit_margin`` on revolute joints; an "unlimited" +-1e308 or an empty
+range refused in one line), and the home configuration (the spec's, else the
+middle of every range).
 """
 
 from __future__ import annotations
@@ -103,7 +104,11 @@ def locked_joints(
             )
         locked_q[iq] = value
         locked_ids.append(jid)
-    return locked_q, locked_ids, {full.names[j]: float(locked_q[full.joints[j].idx_q]) for j in locked_ids}
+    return (
+        locked_q,
+        locked_ids,
+        {full.names[j]: float(locked_q[full.joints[j].idx_q]) for j in locked_ids},
+    )
 
 
 def joint_ranges(

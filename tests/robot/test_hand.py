@@ -59,9 +59,7 @@ def _box_at_tcp(robot, q: np.ndarray, half_width: float) -> WorldShape:
 
 
 def _reason(robot, q: np.ndarray, half_width: float, mode: str = "grasp") -> str:
-    checker = CollisionChecker(
-        robot, (_box_at_tcp(robot, q, half_width),), contact_tolerance=0.005
-    )
+    checker = CollisionChecker(robot, (_box_at_tcp(robot, q, half_width),), contact_tolerance=0.005)
     return str(checker.check(q[None], mode)[0])
 
 

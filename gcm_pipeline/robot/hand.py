@@ -31,7 +31,13 @@ import pinocchio as pin
 
 from gcm_pipeline.errors import RobotSpecError, choice_error
 
-__all__ = ["checked_drop_collision", "checked_hand_links", "hand_links", "urdf_links"]
+__all__ = [
+    "checked_drop_collision",
+    "checked_hand_links",
+    "hand_links",
+    "urdf_links",
+    "wrist_link",
+]
 
 
 def _frame_body(model: pin.Model, fid: int) -> int:
@@ -73,14 +79,7 @@ def hand_links(
     """
     frames = full.frames
     root = _frame_body(full, grasp_frame_id)
-    joint = int(frames[root].parentJoint)
-    while joint > 0 and full.names[joint] not in free_joints:
-        joint = int(full.parents[joint])
-    chain = _ancestors(full, root)
-    # the last free joint's frame: the highest frame on the chain that it carries
-    child = next(
-        (f for f in reversed(chain) if int(frames[f].parentJoint) == joint and joint > 0), root
-    )
+    chain, child = _last_free_joint(full, root, free_joints)
     # the frames from it down to the grasp frame's link (that link is the hand's)
     arm_way = set(chain[1 : chain.index(child) + 1])
     if not beside:
@@ -92,6 +91,36 @@ def hand_links(
         if child in _ancestors(full, i):
             names.add(str(f.name))
     return frozenset(names)
+
+
+def _last_free_joint(
+    full: pin.Model, root: int, free_joints: Collection[str]
+) -> tuple[list[int], int]:
+    """``root``'s chain of frames (:func:`_ancestors`) and the last free joint's frame on it.
+
+    The joint's frame is the highest frame of the chain that the joint carries (``root``
+    when no free joint moves it).
+    """
+    frames = full.frames
+    joint = int(frames[root].parentJoint)
+    while joint > 0 and full.names[joint] not in free_joints:
+        joint = int(full.parents[joint])
+    chain = _ancestors(full, root)
+    carried = [f for f in chain if int(frames[f].parentJoint) == joint and joint > 0]
+    return chain, carried[-1] if carried else root
+
+
+def wrist_link(full: pin.Model, grasp_frame_id: int, free_joints: Collection[str]) -> str:
+    """The link the arm's last free joint moves, on the way to the grasp frame.
+
+    A hand the model has is more than this link: a TCP-only tool on a bare wrist
+    (Bravo 7 without its jaws) still has no hand to collision-check.
+    """
+    root = _frame_body(full, grasp_frame_id)
+    chain, joint_frame = _last_free_joint(full, root, free_joints)
+    below = chain[: chain.index(joint_frame)]
+    body = next((f for f in reversed(below) if full.frames[f].type == pin.FrameType.BODY), root)
+    return str(full.frames[body].name)
 
 
 def urdf_links(xml: str) -> tuple[list[str], set[str]]:

@@ -36,6 +36,7 @@ from gcm_pipeline.robot.hand import (
     checked_hand_links,
     hand_links,
     urdf_links,
+    wrist_link,
 )
 from gcm_pipeline.robot.joints import home_configuration, joint_ranges, locked_joints
 from gcm_pipeline.robot.model_files import check_srdf, model_files
@@ -224,7 +225,9 @@ class Robot:
         hand_links: The hand's links (:mod:`gcm_pipeline.robot.hand`): the spec's
             ``hand_links``, else found from the model; they may touch the object at a
             grasp by the contact tolerance.
-        model_hand_links: Those of them with collision geometry, in URDF order.
+        model_hand_links: Those of them with collision geometry, in URDF order; by
+            default without the link the last free joint moves (a bare wrist is no
+            hand).
         dropped_links: The spec's ``drop_collision``: links without collision geometry.
         cache: Per-robot caches of the IK backends (seed library, MuJoCo model).
     """
@@ -300,18 +303,19 @@ class Robot:
         self.dropped_links = checked_drop_collision(
             spec.drop_collision, links, with_collision, where
         )
+        shaped = {n for n in with_collision if n not in self.dropped_links}
         if spec.hand_links is None:
             tool = spec.tool
             beside = tool is None or not tool.collision
             hand = hand_links(full, self.full_grasp_frame_id, self.joint_names, beside)
+            # a bare wrist link is no hand of the model (the TCP-only tool's warning)
+            shaped.discard(wrist_link(full, self.full_grasp_frame_id, self.joint_names))
         else:
             hand = checked_hand_links(spec.hand_links, model, self.grasp_frame_id, links, where)
         #: the hand's links (BODY frames), which may touch the object at a grasp
         self.hand_links = hand
-        #: the hand's links with collision geometry, in URDF order
-        self.model_hand_links = [
-            n for n in links if n in hand and n in with_collision and n not in self.dropped_links
-        ]
+        #: the hand's links with collision geometry (a bare wrist link aside), in URDF order
+        self.model_hand_links = [n for n in links if n in hand and n in shaped]
         self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}
         if spec.tool is not None:  # read the meshes now: a bad one fails before any work
             self._tool_shapes = _tool_shapes(spec, self.model_hand_links)

@@ -76,39 +76,50 @@ def locked_joints(
     URDF range, often written for the other sign of the multiplier, is not checked.
     """
     mimic = mimic or {}
-    joint_names = [full.names[i] for i in range(1, full.njoints)]
+    # the spec's own values first: a leader outside its range is named as such
+    for jname, value in spec.locked_joints.items():
+        _lock_index(spec, full, jname, value, mimic)
     locked_q = pin.neutral(full)
     locked_ids = []
-    values = mimic_locks(spec, mimic)
-    for jname, value in values.items():
-        if not full.existJointName(jname):
-            if jname in mimic and jname not in spec.locked_joints:
-                continue  # a fixed joint with a <mimic>: nothing to lock
-            raise choice_error(
-                RobotSpecError,
-                "joint",
-                jname,
-                joint_names,
-                key="locked_joints",
-                prefix=f"robot {spec.name!r}: locked_joints: ",
-            )
-        jid = full.getJointId(jname)
-        if full.joints[jid].nq != 1:
-            raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
-        iq = full.joints[jid].idx_q
-        lo, hi = full.lowerPositionLimit[iq], full.upperPositionLimit[iq]
-        if jname not in mimic and not lo - 1e-9 <= value <= hi + 1e-9:
-            raise RobotSpecError(
-                f"robot {spec.name!r}: locked_joints.{jname} = {value:g} is outside the "
-                f"joint's range [{lo:g}, {hi:g}]"
-            )
+    for jname, value in mimic_locks(spec, mimic).items():
+        iq = _lock_index(spec, full, jname, value, mimic)
+        if iq is None:
+            continue
         locked_q[iq] = value
-        locked_ids.append(jid)
+        locked_ids.append(full.getJointId(jname))
     return (
         locked_q,
         locked_ids,
         {full.names[j]: float(locked_q[full.joints[j].idx_q]) for j in locked_ids},
     )
+
+
+def _lock_index(
+    spec: RobotSpec, full: Any, jname: str, value: float, mimic: Mapping[str, Mimic]
+) -> int | None:
+    """The configuration index of a joint to lock, checked; None for a fixed mimic joint."""
+    if not full.existJointName(jname):
+        if jname in mimic and jname not in spec.locked_joints:
+            return None  # a fixed joint with a <mimic>: nothing to lock
+        raise choice_error(
+            RobotSpecError,
+            "joint",
+            jname,
+            [full.names[i] for i in range(1, full.njoints)],
+            key="locked_joints",
+            prefix=f"robot {spec.name!r}: locked_joints: ",
+        )
+    jid = full.getJointId(jname)
+    if full.joints[jid].nq != 1:
+        raise RobotSpecError(f"robot {spec.name!r}: cannot lock multi-DoF joint {jname!r}")
+    iq = int(full.joints[jid].idx_q)
+    lo, hi = full.lowerPositionLimit[iq], full.upperPositionLimit[iq]
+    if jname not in mimic and not lo - 1e-9 <= value <= hi + 1e-9:
+        raise RobotSpecError(
+            f"robot {spec.name!r}: locked_joints.{jname} = {value:g} is outside the "
+            f"joint's range [{lo:g}, {hi:g}]"
+        )
+    return iq
 
 
 def joint_ranges(

@@ -8,11 +8,12 @@ that joint to the grasp frame's link: the link carrying the grasp frame and all
 below it (the Panda's ``panda_hand`` and fingers; a tool's flange), and the links
 beside that way (a Kinova Jaco2's fingers, siblings of its
 ``j2s6s200_end_effector``; the fingers of TIAGo's hand beside its
-``hand_grasping_frame``). The wrist link the last free joint moves stays the arm's
-unless the grasp frame hangs on it (Jaco2's ``j2s6s200_link_6`` under a tool on
-``j2s6s200_end_effector``). A tool with collision shapes is the hand itself: then
-only the flange's link and what lies below it join the tool's shapes (UR's
-``ee_link``, a 1 cm box beside ``tool0``, stays the arm's).
+``hand_grasping_frame``) that have a mass (a massless link is a marker frame, as
+UR's ``ee_link``, a 1 cm box beside ``tool0``). The wrist link the last free joint
+moves stays the arm's unless the grasp frame hangs on it (Jaco2's
+``j2s6s200_link_6`` under a tool on ``j2s6s200_end_effector``). A tool with
+collision shapes is the hand itself: then only the flange's link and what lies
+below it join the tool's shapes.
 
 A spec's ``hand_links`` replaces the default with MoveIt's explicit list
 (:func:`checked_hand_links`); a link a free joint moves relative to the grasp
@@ -61,7 +62,11 @@ def _ancestors(model: pin.Model, fid: int) -> list[int]:
 
 
 def hand_links(
-    full: pin.Model, grasp_frame_id: int, free_joints: Collection[str], beside: bool = True
+    full: pin.Model,
+    grasp_frame_id: int,
+    free_joints: Collection[str],
+    beside: bool = True,
+    massive: Collection[str] = (),
 ) -> frozenset[str]:
     """The hand's links by default (see the module docstring).
 
@@ -73,6 +78,8 @@ def hand_links(
             frame's link; without, only that link and all below it (a tool with
             collision shapes is the hand: what else hangs on the wrist, as UR's
             ``ee_link``, is not).
+        massive: The links with a mass; a link beside that way joins the hand only
+            with one (a massless link is a marker frame, as UR's ``ee_link``).
 
     Returns:
         Names of the hand's BODY frames, with or without collision geometry.
@@ -88,7 +95,8 @@ def hand_links(
     for i, f in enumerate(frames):
         if f.type != pin.FrameType.BODY or i in arm_way:
             continue
-        if child in _ancestors(full, i):
+        up = _ancestors(full, i)
+        if root in up or (child in up and f.name in massive):
             names.add(str(f.name))
     return frozenset(names)
 
@@ -123,12 +131,20 @@ def wrist_link(full: pin.Model, grasp_frame_id: int, free_joints: Collection[str
     return str(full.frames[body].name)
 
 
-def urdf_links(xml: str) -> tuple[list[str], set[str]]:
-    """The URDF's links in file order, and those with collision geometry."""
+def urdf_links(xml: str) -> tuple[list[str], set[str], set[str]]:
+    """The URDF's links in file order, those with collision geometry and those with a mass."""
     links = list(ET.fromstring(xml).iter("link"))
+
+    def mass(link: ET.Element) -> float:
+        try:
+            return float(link.find("inertial/mass").get("value", "0"))  # type: ignore[union-attr]
+        except (AttributeError, ValueError):
+            return 0.0
+
     return (
         [str(link.get("name")) for link in links],
         {str(link.get("name")) for link in links if link.find("collision") is not None},
+        {str(link.get("name")) for link in links if mass(link) > 0},
     )
 
 

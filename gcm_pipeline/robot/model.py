@@ -299,7 +299,7 @@ class Robot:
         home.setflags(write=False)
         self.home = home
         _check_all_joints_move_the_grasp_frame(self)
-        links, with_collision = urdf_links(prepared.xml)
+        links, with_collision, massive = urdf_links(prepared.xml)
         self.dropped_links = checked_drop_collision(
             spec.drop_collision, links, with_collision, where
         )
@@ -307,7 +307,7 @@ class Robot:
         if spec.hand_links is None:
             tool = spec.tool
             beside = tool is None or not tool.collision
-            hand = hand_links(full, self.full_grasp_frame_id, self.joint_names, beside)
+            hand = hand_links(full, self.full_grasp_frame_id, self.joint_names, beside, massive)
             # a bare wrist link is no hand of the model (the TCP-only tool's warning)
             shaped.discard(wrist_link(full, self.full_grasp_frame_id, self.joint_names))
         else:

@@ -24,11 +24,13 @@ TCP = 0.10  # [m] along the flange's z
 TCP_ONLY = f"tool: {{name: tcp_only, flange: tool0, tcp: {{xyz: [0, 0, {TCP}]}}}}\n"
 
 
-def _fixed_box(name: str, size: str, xyz: str, parent: str = "wrist_3_link") -> str:
+def _fixed_box(name: str, size: str, xyz: str, mass: float = 0.05) -> str:
+    """A box link fixed to the wrist link with tool0's origin (``mass`` 0: a marker)."""
     return (
         f'  <link name="{name}"><collision><origin xyz="{xyz}"/><geometry><box size="{size}"/>'
-        f"</geometry></collision></link>\n"
-        f'  <joint name="{name}_joint" type="fixed"><parent link="{parent}"/>'
+        f'</geometry></collision><inertial><mass value="{mass}"/>'
+        '<inertia ixx="1e-5" iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial></link>\n'
+        f'  <joint name="{name}_joint" type="fixed"><parent link="wrist_3_link"/>'
         f'<child link="{name}"/>{FLANGE}</joint>\n'
     )
 
@@ -66,7 +68,9 @@ def _reason(robot, q: np.ndarray, half_width: float, mode: str = "grasp") -> str
 def test_fingers_beside_the_flange_may_touch_the_object_by_the_contact_tolerance(tmp_path):
     # Kinova Jaco2, TIAGo: a TCP-only tool on a marker frame whose fingers are its siblings;
     # the fingers were arm links then, so a finger pad closing on the object collided
-    robot = load_robot(_arm(tmp_path, FINGERS))
+    # UR's ee_link: a massless marker box beside the flange is no part of the hand
+    marker = _fixed_box("marker", "0.01 0.01 0.01", "0 0 -0.01", mass=0)
+    robot = load_robot(_arm(tmp_path, FINGERS + marker))
     assert gripper_links(robot) == {"tool0", "finger_left", "finger_right"}
     assert robot.model_hand_links == ["finger_left", "finger_right"]
     q = robot.home

@@ -84,8 +84,12 @@ def _joint_lines(robot: Any) -> list[str]:
         out.append(
             "               continuous joints get [-2pi, 2pi] unless joint_limits gives a range"
         )
-    if spec.locked_joints:
-        locked = ", ".join(f"{k} = {v:g}" for k, v in spec.locked_joints.items())
+    if robot.locked_values:
+        mimic = robot.urdf.mimic
+        locked = ", ".join(
+            f"{k} = {v:g}" + (f" (mimics {mimic[k].leader})" if k not in spec.locked_joints else "")
+            for k, v in robot.locked_values.items()
+        )
         out.append(f"  locked       {locked}")
     out.append(
         f"  limit margin {spec.limit_margin:g} rad (each revolute range above shrinks by it "
@@ -136,8 +140,8 @@ def _frame_and_tool_lines(robot: Any) -> list[str]:
         elif robot.model_hand_links:
             links = ", ".join(robot.model_hand_links)
             out.append(
-                "               TCP only: no collision shapes; the hand is the model's links "
-                f"at or below the flange, collision-checked: {links}"
+                "               TCP only: no collision shapes; the hand is the model's links, "
+                f"collision-checked: {links}"
             )
         else:
             out.append(
@@ -181,6 +185,8 @@ def _collision_lines(robot: Any) -> list[str]:
                 why = "SRDF"
             excluded.append(f"{a}-{b} ({why})")
     grip = sorted(gripper_links(robot))
+    if robot.dropped_links:
+        out.append(f"  dropped      collision geometry of {', '.join(sorted(robot.dropped_links))}")
     out.append(
         f"  collision    {checker.n_robot_geoms} shapes on {len(names)} links; gripper: "
         f"{', '.join(grip) or '(none)'}"

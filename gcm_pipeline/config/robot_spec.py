@@ -21,6 +21,12 @@ A robot spec is a small YAML file (``gcm_pipeline/robot/specs/<name>.yaml``)::
     tool: {flange, mount, tcp, collision, ...}  # optional: a gripper for a bare flange;
                                          #   grasp_frame then names the TCP frame it adds
                                          #   (see gcm_pipeline.robot.tool)
+    hand_links: [link, ...]              # optional: the hand's links (MoveIt's end-effector
+                                         #   group), which may touch the object at a grasp;
+                                         #   default: found from the model
+                                         #   (see gcm_pipeline.robot.hand)
+    drop_collision: [link, ...]          # optional: links whose collision geometry is not
+                                         #   loaded (a safety box around the hand)
 
 The ``tool`` section mounts a gripper on a bare flange and defines the grasp
 (TCP) frame that IK targets::
@@ -63,7 +69,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Strict, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, model_validator
 
 from gcm_pipeline.config.gripper_spec import load_gripper, mount_gripper
 from gcm_pipeline.config.sections import FiniteFloat, NonNegFloat
@@ -141,6 +147,8 @@ class RobotSpecFile(_Strict):
         dict[Text, Annotated[tuple[FiniteFloat, FiniteFloat], AfterValidator(_ordered)]] | None
     ) = None
     tool: ToolSection | None = None
+    hand_links: Annotated[list[Text], Field(min_length=1)] | None = None
+    drop_collision: list[Text] | None = None
 
 
 def _spec_dir() -> Any:
@@ -214,6 +222,8 @@ def build_spec(spec: RobotSpecFile, path: Path) -> RobotSpec:
         limit_margin=spec.limit_margin,
         joint_limits=dict(spec.joint_limits or {}),
         tool=None if spec.tool is None else build_tool(spec.tool, base),
+        hand_links=None if spec.hand_links is None else tuple(spec.hand_links),
+        drop_collision=tuple(spec.drop_collision or ()),
     )
 
 

@@ -37,8 +37,8 @@ _MAX_SAMPLES = 64
 def gripper_radius(robot: Robot) -> float:
     """Largest distance of a point of the gripper's collision geometry from the grasp frame [m].
 
-    The gripper is the body carrying the grasp frame and the links below it
-    (rigid in the reduced model); each geometry is bounded by the corners of
+    The gripper is the robot's hand (:func:`~gcm_pipeline.robot.collision.gripper_links`,
+    rigid in the reduced model); each geometry is bounded by the corners of
     its local bounding box.
     """
     cached = robot.cache.get("gripper_radius")

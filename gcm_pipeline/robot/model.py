@@ -31,6 +31,13 @@ import pinocchio as pin
 from gcm_pipeline.errors import InputError, RobotSpecError, choice_error, clip
 from gcm_pipeline.geometry.meshes import MeshReadError, read_mesh
 from gcm_pipeline.robot.chain import KinematicChain
+from gcm_pipeline.robot.hand import (
+    checked_drop_collision,
+    checked_hand_links,
+    hand_links,
+    urdf_links,
+    wrist_link,
+)
 from gcm_pipeline.robot.joints import home_configuration, joint_ranges, locked_joints
 from gcm_pipeline.robot.model_files import check_srdf, model_files
 from gcm_pipeline.robot.tool import ToolSpec, shape_geometry
@@ -70,6 +77,11 @@ class RobotSpec:
         joint_limits: Joint name -> (lower, upper) [rad], intersected with the model's.
         tool: A tool mounted on a flange frame (:mod:`gcm_pipeline.robot.tool`) or None;
             with a tool, ``grasp_frame`` names the TCP frame the tool adds.
+        hand_links: The links of the hand, which may touch the object at a grasp
+            (MoveIt's end-effector group); None: found from the model
+            (:mod:`gcm_pipeline.robot.hand`).
+        drop_collision: Links whose collision geometry is not loaded (checked
+            against nothing; still drawn).
     """
 
     name: str
@@ -86,45 +98,15 @@ class RobotSpec:
     limit_margin: float = 0.1
     joint_limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     tool: ToolSpec | None = None
-
-
-def _links_below(full: pin.Model, prepared: PreparedUrdf, flange: str, where: str) -> list[str]:
-    """The URDF links with collision geometry at or below the flange frame (a hand in the model).
-
-    A TCP-only tool on such a flange (a gripper link of the model, as the Z1's
-    ``gripperStator``) still has its hand collision-checked: the model's links.
-    """
-    import xml.etree.ElementTree as ET
-
-    root = resolve_frame(full, flange, "tool.flange", where)
-    with_collision = {
-        link.get("name")
-        for link in ET.fromstring(prepared.xml).iter("link")
-        if link.find("collision") is not None
-    }
-    # the flange's own link counts when it is mounted (a fixed joint), not when a joint
-    # moves it (a bare wrist link such as the Bravo's link7 is the arm's, not a hand)
-    mounted = full.frames[int(full.frames[root].parentFrame)].type == pin.FrameType.FIXED_JOINT
-    below: list[str] = []
-    for i, f in enumerate(full.frames):
-        if f.type != pin.FrameType.BODY or f.name not in with_collision:
-            continue
-        if i == root and not mounted:
-            continue
-        j, seen = i, set()
-        while j not in seen and j > 0 and j != root:
-            seen.add(j)
-            j = int(full.frames[j].parentFrame)
-        if j == root:
-            below.append(str(f.name))
-    return below
+    hand_links: tuple[str, ...] | None = None
+    drop_collision: tuple[str, ...] = ()
 
 
 def _tool_shapes(spec: RobotSpec, hand_links: list[str]) -> dict[str, list[tuple[Any, Any, Any]]]:
     """The tool's collision and visual shapes with their geometry and pose (meshes read now).
 
-    ``hand_links``: the model's links at or below the flange (no warning for a TCP-only
-    tool on a hand the model has).
+    ``hand_links``: the model's hand links with collision geometry (no warning for a
+    TCP-only tool on a hand the model has).
     """
     shapes_of: dict[str, list[tuple[Any, Any, Any]]] = {}
     if spec.tool is None:
@@ -146,25 +128,31 @@ def _tool_shapes(spec: RobotSpec, hand_links: list[str]) -> dict[str, list[tuple
     return shapes_of
 
 
-def _check_mimic(spec: RobotSpec, prepared: PreparedUrdf) -> None:
-    """Refuse a mimic joint the spec leaves free, or locks while its leader moves.
+def _check_mimic(spec: RobotSpec, prepared: PreparedUrdf, locked: Mapping[str, float]) -> None:
+    """Refuse a mimic joint left free, or locked while the joint it follows moves.
 
-    Pinocchio (without ``mimic=True``) reads a mimic joint as an independent joint: free,
-    the IK would move it on its own; locked with a free leader, it would not follow.
+    Pinocchio (without ``mimic=True``) reads a mimic joint as an independent joint:
+    free, the IK would move it on its own; locked with a free leader, it would not
+    follow. A mimic joint of a locked joint is locked where it follows
+    (:func:`~gcm_pipeline.robot.joints.mimic_locks`).
     """
-    locked = spec.locked_joints
-    for joint, leader in prepared.mimic.items():
-        if joint not in locked:
-            raise RobotSpecError(
-                f"robot {spec.name!r}: joint {joint!r} mimics {leader!r} in the URDF; mimic "
-                f"joints are not supported as free joints: lock it (locked_joints: "
-                f"{{{joint}: value}})"
-            )
-        if leader not in locked and leader in prepared.moving:
+    for joint, mimic in prepared.mimic.items():
+        leader = mimic.leader
+        leader_free = leader in prepared.moving and leader not in locked
+        if joint in locked and leader_free:
             raise RobotSpecError(
                 f"robot {spec.name!r}: joint {joint!r} is locked but mimics {leader!r}, which "
-                f"is free: it would not follow; lock {leader!r} too"
+                f"is free: it would not follow; lock {leader!r} instead (the joints that "
+                "mimic it follow)"
             )
+        if joint in locked or joint not in prepared.moving:
+            continue
+        lock = leader if leader_free else joint
+        raise RobotSpecError(
+            f"robot {spec.name!r}: joint {joint!r} mimics {leader!r} in the URDF; mimic "
+            f"joints are not supported as free joints: lock {lock!r} (locked_joints: "
+            f"{{{lock}: value}}; the joints that mimic it follow)"
+        )
 
 
 def _check_all_joints_move_the_grasp_frame(robot: Robot) -> None:
@@ -232,6 +220,15 @@ class Robot:
         reach_bound: Sum of the link offsets from the shoulder to the grasp frame,
             a rigorous upper bound of ``max_reach`` [m].
         chain: Vectorised kinematics of the grasp frame.
+        locked_values: Every locked joint -> its value [rad or m]: the spec's, and
+            the mimic joints that follow them at ``multiplier * value + offset``.
+        hand_links: The hand's links (:mod:`gcm_pipeline.robot.hand`): the spec's
+            ``hand_links``, else found from the model; they may touch the object at a
+            grasp by the contact tolerance.
+        model_hand_links: Those of them with collision geometry, in URDF order; by
+            default without the link the last free joint moves (a bare wrist is no
+            hand).
+        dropped_links: The spec's ``drop_collision``: links without collision geometry.
         cache: Per-robot caches of the IK backends (seed library, MuJoCo model).
     """
 
@@ -260,9 +257,11 @@ class Robot:
         self.full_model = full
         if srdf is not None:
             check_srdf(spec.name, srdf)
-        locked_q, locked_ids = locked_joints(spec, full)
-        _check_mimic(spec, prepared)
+        locked_q, locked_ids, locked_values = locked_joints(spec, full, prepared.mimic)
+        _check_mimic(spec, prepared, locked_values)
         self.locked_q = locked_q
+        #: every locked joint's value: the spec's and the mimic joints that follow them
+        self.locked_values = locked_values
         if locked_ids:
             model = pin.buildReducedModel(bare, locked_ids, locked_q)
             if spec.tool is not None:
@@ -300,11 +299,25 @@ class Robot:
         home.setflags(write=False)
         self.home = home
         _check_all_joints_move_the_grasp_frame(self)
+        links, with_collision, massive = urdf_links(prepared.xml)
+        self.dropped_links = checked_drop_collision(
+            spec.drop_collision, links, with_collision, where
+        )
+        shaped = {n for n in with_collision if n not in self.dropped_links}
+        if spec.hand_links is None:
+            tool = spec.tool
+            beside = tool is None or not tool.collision
+            hand = hand_links(full, self.full_grasp_frame_id, self.joint_names, beside, massive)
+            # a bare wrist link is no hand of the model (the TCP-only tool's warning)
+            shaped.discard(wrist_link(full, self.full_grasp_frame_id, self.joint_names))
+        else:
+            hand = checked_hand_links(spec.hand_links, model, self.grasp_frame_id, links, where)
+        #: the hand's links (BODY frames), which may touch the object at a grasp
+        self.hand_links = hand
+        #: the hand's links with collision geometry (a bare wrist link aside), in URDF order
+        self.model_hand_links = [n for n in links if n in hand and n in shaped]
         self._tool_shapes: dict[str, list[tuple[Any, Any, Any]]] = {}
-        #: the model's links with collision geometry at or below the tool's flange
-        self.model_hand_links: list[str] = []
         if spec.tool is not None:  # read the meshes now: a bad one fails before any work
-            self.model_hand_links = _links_below(full, prepared, spec.tool.flange, where)
             self._tool_shapes = _tool_shapes(spec, self.model_hand_links)
         self.shoulder = self.chain.root_origin.copy()
         self.reach_bound = float(self.chain.link_lengths().sum())
@@ -446,9 +459,14 @@ class Robot:
                 )
         except Exception as exc:  # pinocchio raises ValueError/RuntimeError
             raise self._geometry_error(kind, exc) from None
+        if kind == "collision" and self.dropped_links:
+            fm = self.full_model
+            for go in list(geom.geometryObjects):
+                if fm.frames[go.parentFrame].name in self.dropped_links:
+                    geom.removeGeometryObject(go.name)
         locked = [
             self.full_model.getJointId(j)
-            for j in self.spec.locked_joints
+            for j in self.locked_values
             if self.full_model.existJointName(j)
         ]
         if locked:

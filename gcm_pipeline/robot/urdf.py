@@ -18,8 +18,9 @@ builds the model from:
   A mesh that is not found is one line naming the link, the mesh and where it
   was looked for.
 - **A moving joint with the zero axis** is one line (Pinocchio would divide by
-  its norm). **Mimic joints** are recorded (:attr:`PreparedUrdf.mimic`): the
-  robot refuses one its spec leaves free.
+  its norm). **Mimic joints** are recorded with the joint they follow, the
+  multiplier and the offset (:attr:`PreparedUrdf.mimic`): a robot locks them
+  where the joint they follow is locked.
 
 :func:`build_model` builds the Pinocchio model with urdfdom's console output
 captured at the file-descriptor level (urdfdom prints its errors on stderr
@@ -40,6 +41,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import pinocchio as pin
 
@@ -49,6 +51,7 @@ __all__ = [
     "CONTINUOUS_RANGE",
     "MAX_URDF_BYTES",
     "MeshRef",
+    "Mimic",
     "PreparedUrdf",
     "build_model",
     "captured_output",
@@ -88,6 +91,14 @@ class MeshRef:
     scale: str = ""
 
 
+class Mimic(NamedTuple):
+    """A URDF ``<mimic>``: the joint is at ``multiplier * leader + offset``."""
+
+    leader: str
+    multiplier: float = 1.0
+    offset: float = 0.0
+
+
 @dataclass(frozen=True)
 class PreparedUrdf:
     """A URDF read and rewritten for Pinocchio (see the module docstring).
@@ -103,6 +114,7 @@ class PreparedUrdf:
         meshes: Every mesh of every link.
         package_dirs: Folders that resolved ``package://`` URIs (for other readers).
         mimic: Joints with a ``<mimic>`` element, each with the joint it follows.
+            (:class:`Mimic`: leader, multiplier, offset).
         moving: Joints of a moving type (revolute, continuous, prismatic, ...: not fixed).
     """
 
@@ -114,7 +126,7 @@ class PreparedUrdf:
     unbounded: tuple[str, ...]
     meshes: tuple[MeshRef, ...]
     package_dirs: tuple[Path, ...]
-    mimic: Mapping[str, str] = field(default_factory=dict)
+    mimic: Mapping[str, Mimic] = field(default_factory=dict)
     moving: frozenset[str] = frozenset()
 
 
@@ -255,7 +267,7 @@ def prepare_urdf(
     limits = dict(joint_limits or {})
     continuous: dict[str, tuple[float, float]] = {}
     unbounded: list[str] = []
-    mimic: dict[str, str] = {}
+    mimic: dict[str, Mimic] = {}
     children = set()
     for joint in root.findall("joint"):
         child = joint.find("child")
@@ -264,7 +276,7 @@ def prepare_urdf(
         name = str(joint.get("name"))
         _check_axis(joint, name, where)
         if joint.find("mimic") is not None:
-            mimic[name] = str(joint.find("mimic").get("joint"))  # type: ignore[union-attr]
+            mimic[name] = _mimic(joint.find("mimic"), name, where)  # type: ignore[arg-type]
         if joint.get("type") == "continuous":
             rng = limits.get(name, CONTINUOUS_RANGE)
             joint.set("type", "revolute")
@@ -323,6 +335,23 @@ def prepare_urdf(
             str(j.get("name")) for j in root.findall("joint") if j.get("type") != "fixed"
         ),
     )
+
+
+def _mimic(element: ET.Element, joint: str, where: str) -> Mimic:
+    """A ``<mimic joint multiplier offset>`` element (URDF defaults: 1 and 0)."""
+    values = []
+    for attr, default in (("multiplier", 1.0), ("offset", 0.0)):
+        text = element.get(attr)
+        try:
+            value = default if text is None else float(text)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise RobotSpecError(
+                f"{where}: joint {joint!r}: <mimic {attr}={clip(text)}> is not a finite number"
+            )
+        values.append(value)
+    return Mimic(str(element.get("joint")), values[0], values[1])
 
 
 def _urdfdom_message(text: str) -> str:

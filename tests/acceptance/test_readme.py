@@ -131,10 +131,14 @@ def _load_readme_spec(data: dict) -> None:
     from gcm_pipeline.config.robot_spec import load_robot
 
     with tempfile.TemporaryDirectory() as tmp:
+        spec = Path(tmp) / "spec.yaml"
+        if "urdf" not in data["model"]:  # a model of example-robot-data (the hand's examples)
+            spec.write_text(yaml.safe_dump(data))
+            assert load_robot(spec).grasp_frame == data["grasp_frame"]
+            return
         urdf = Path(tmp) / data["model"]["urdf"]
         urdf.parent.mkdir(parents=True)
         urdf.write_text(arm_urdf())
-        spec = Path(tmp) / "spec.yaml"
         spec.write_text(yaml.safe_dump(data))
         robot = load_robot(spec)
         assert robot.grasp_frame == data["grasp_frame"]

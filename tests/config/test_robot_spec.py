@@ -46,8 +46,8 @@ def _error(path: Path) -> str:
         (
             {**PANDA, "limit_margn": 0.1},
             "unknown key 'limit_margn' (did you mean 'limit_margin'?); valid keys here: "
-            "description, grasp_frame, home, joint_limits, limit_margin, locked_joints, model, "
-            "name, tool",
+            "description, drop_collision, grasp_frame, hand_links, home, joint_limits, "
+            "limit_margin, locked_joints, model, name, tool",
         ),
         (
             _with_tool(collision=[{"shape": "sphere", "radus": 0.1}]),

@@ -12,8 +12,8 @@ Pairs that are checked, by kind (the ``reason`` a colliding configuration gets):
     (``pin.removeCollisionPairs``) and adjacent links (parent/child joints).
 ``collision_object``
     every robot link, the open fingers included, vs the object. The *gripper*
-    (the body that carries the grasp frame and every link below it: ``panda_hand``
-    and both fingers) may press into the object by ``contact_tolerance`` ``t``
+    (the robot's hand, :mod:`gcm_pipeline.robot.hand`: ``panda_hand`` and both
+    fingers; a tool's shapes) may press into the object by ``contact_tolerance`` ``t``
     at the grasp (a finger pad closing on the surface is a grasp, not a collision):
 
     * a **primitive** object (cylinder, box, sphere, a thin box for a plane) is
@@ -294,33 +294,16 @@ def add_eroded_gripper(
 
 
 def gripper_links(robot: Robot) -> set[str]:
-    """Links of the gripper: the body carrying the grasp frame and all links below it.
+    """Links of the gripper: the robot's hand (:mod:`gcm_pipeline.robot.hand`).
 
-    Walks the *full* (unreduced) model's frame tree: the grasp frame's nearest
-    BODY ancestor (``panda_hand`` for the Panda) and its descendants
-    (``panda_leftfinger``, ``panda_rightfinger``).
+    The links of :attr:`~gcm_pipeline.robot.model.Robot.hand_links` (the Panda's
+    ``panda_hand`` and both fingers) and, for a tool with collision shapes, the flange
+    frame that carries them.
     """
-    fm = robot.full_model
-    fid = robot.full_grasp_frame_id  # by name and type: a joint may share its name
-    root = fid
-    k = int(fm.frames[fid].parentFrame)
-    while k != root and k > 0:
-        if fm.frames[k].type == pin.FrameType.BODY:
-            root = k
-            break
-        k = int(fm.frames[k].parentFrame)
-    names: set[str] = set()
-    for i, f in enumerate(fm.frames):
-        j, seen = i, set()
-        while j not in seen:
-            if j == root:
-                if f.type == pin.FrameType.BODY:
-                    names.add(f.name)
-                break
-            seen.add(j)
-            if j == 0:
-                break
-            j = int(fm.frames[j].parentFrame)
+    names = set(robot.hand_links)
+    tool = robot.spec.tool
+    if tool is not None and tool.collision:
+        names.add(tool.flange)
     return names
 
 

@@ -109,9 +109,9 @@ def _urdf_for_mujoco(robot: Any) -> str:
                 raise RobotSpecError(f"mesh {fname!r} not found under {robot.package_dirs}")
     for joint in root.findall("joint"):
         name = joint.get("name")
-        if name not in robot.spec.locked_joints:
+        if name not in robot.locked_values:
             continue
-        value = robot.spec.locked_joints[name]
+        value = robot.locked_values[name]
         kind = joint.get("type")
         origin = joint.find("origin")
         if origin is None:

@@ -41,13 +41,21 @@ __all__ = [
 ]
 
 
-def _frame_body(model: pin.Model, fid: int) -> int:
-    """The nearest BODY frame above ``fid`` (not ``fid`` itself); ``fid`` at the root."""
+def _frame_body(model: pin.Model, fid: int, free_joints: Collection[str]) -> int:
+    """The nearest BODY frame above ``fid`` (not ``fid`` itself); ``fid`` at the root.
+
+    Also ``fid`` itself when it is a link that a free joint moves relative to that BODY
+    frame (a grasp frame on a wrist link: the link before the joint is the arm's).
+    """
+    own = model.frames[fid].type == pin.FrameType.BODY
     k = int(model.frames[fid].parentFrame)
     while k != fid and k > 0:
-        if model.frames[k].type == pin.FrameType.BODY:
+        frame = model.frames[k]
+        if frame.type == pin.FrameType.BODY:
             return k
-        k = int(model.frames[k].parentFrame)
+        if own and frame.type == pin.FrameType.JOINT and frame.name in free_joints:
+            return fid
+        k = int(frame.parentFrame)
     return fid
 
 
@@ -85,7 +93,7 @@ def hand_links(
         Names of the hand's BODY frames, with or without collision geometry.
     """
     frames = full.frames
-    root = _frame_body(full, grasp_frame_id)
+    root = _frame_body(full, grasp_frame_id, free_joints)
     chain, child = _last_free_joint(full, root, free_joints)
     # the frames from it down to the grasp frame's link (that link is the hand's)
     arm_way = set(chain[1 : chain.index(child) + 1])
@@ -124,7 +132,7 @@ def wrist_link(full: pin.Model, grasp_frame_id: int, free_joints: Collection[str
     A hand the model has is more than this link: a TCP-only tool on a bare wrist
     (Bravo 7 without its jaws) still has no hand to collision-check.
     """
-    root = _frame_body(full, grasp_frame_id)
+    root = _frame_body(full, grasp_frame_id, free_joints)
     chain, joint_frame = _last_free_joint(full, root, free_joints)
     below = chain[: chain.index(joint_frame)]
     body = next((f for f in reversed(below) if full.frames[f].type == pin.FrameType.BODY), root)

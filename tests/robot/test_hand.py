@@ -191,3 +191,24 @@ def test_locking_a_leader_puts_its_mimic_joints_where_they_follow(cli, tmp_path)
     spec.write_text(text.replace("locked_joints: {left_joint: 0.03}\n", ""))
     code, _, err = cli("robot", spec)
     assert_one_line_error(code, err, "lock 'left_joint'", "the joints that mimic it follow")
+
+
+def test_a_grasp_frame_on_a_wrist_link_leaves_the_link_before_its_joint_to_the_arm(tmp_path):
+    """The grasp frame is the wrist link itself (no tool): the hand is that link and what is
+    fixed to it; the link before the wrist joint, which the joint turns relative to the grasp
+    frame, is arm (its clearance to the object counts; it may not press into the object)."""
+    spec = write_arm(tmp_path)
+    spec.write_text(spec.read_text().replace("grasp_frame: tool0", "grasp_frame: wrist_3_link"))
+    robot = load_robot(spec)
+    assert {"wrist_3_link", "tool0"} <= robot.hand_links
+    assert "wrist_2_link" not in robot.hand_links
+    assert "wrist_2_link" not in gripper_links(robot)
+    # the same set as the spec's hand_links accepts: no link a free joint moves
+    with pytest.raises(RobotSpecError, match="wrist_2_link"):
+        load_robot(_with_hand_links(spec, "wrist_2_link", tmp_path))
+
+
+def _with_hand_links(spec: Path, link: str, folder: Path) -> Path:
+    out = folder / "hand_spec.yaml"
+    out.write_text(spec.read_text() + f"hand_links: [{link}]\n")
+    return out

@@ -271,8 +271,13 @@ def _owner(values: np.ndarray) -> object:
 
 
 def _writable(values: np.ndarray) -> bool:
-    """Whether a C-contiguous array with rows of bytes can be written in place."""
-    if not values.flags.c_contiguous or values.itemsize == 0 or values.ndim == 0:
+    """Whether a C-contiguous array with rows of bytes can be written in place.
+
+    Not an array of Python objects: its rows are references, not bytes to move.
+    """
+    if values.dtype.hasobject or values.ndim == 0 or values.itemsize == 0:
+        return False
+    if not values.flags.c_contiguous:
         return False
     try:
         values.setflags(write=True)

@@ -24,6 +24,7 @@ def _columns(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         "right": shared[:, 2:],
         "frozen": frozen,
         "strided": rng.random((n, 2))[:, 0],
+        "objects": np.array([f"row {i}" for i in range(n)] + [None], dtype=object)[:n].copy(),
     }
 
 
